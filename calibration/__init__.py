@@ -1,0 +1,1 @@
+"""Calibration: camera intrinsics, camera-to-floor geometry, the P(loop | score) curve."""

@@ -1,0 +1,1 @@
+"""Hardware drivers: bytes and frames in, typed robotd messages out."""

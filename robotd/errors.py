@@ -1,0 +1,24 @@
+"""The exception tree: one root, one subclass per area.
+
+A known error ends the CLI with one clear line and a non-zero exit code.
+"""
+
+
+class RobotdError(Exception):
+    """Root of every error robotd raises on purpose."""
+
+
+class ConfigError(RobotdError):
+    """A configuration file is missing, unreadable, or has an unknown key or a bad value."""
+
+
+class DriverError(RobotdError):
+    """A hardware device (serial port, camera, CAN bus) cannot be opened or has vanished."""
+
+
+class CalibrationError(RobotdError):
+    """A calibration is missing, invalid, or cannot be computed from the given data."""
+
+
+class MapStoreError(RobotdError):
+    """The map file cannot be opened, is damaged, or has an incompatible schema."""

@@ -1,0 +1,69 @@
+"""SE(2) maths: the one place that owns planar rotations and rigid transforms.
+
+Poses are ``(x_m, y_m, yaw_rad)`` in REP-103 conventions (x forward, y left, yaw
+counter-clockwise). Arrays of poses are ``(N, 3) float64``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def wrap_angle(a_rad: float | np.ndarray) -> float | np.ndarray:
+    """Wrap an angle (float) or an array of angles to [-pi, pi)."""
+    if isinstance(a_rad, np.ndarray):
+        return (a_rad + math.pi) % (2.0 * math.pi) - math.pi
+    return (float(a_rad) + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def rot2(yaw_rad: float) -> np.ndarray:
+    """The 2x2 rotation matrix of ``yaw_rad``."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([[c, -s], [s, c]])
+
+
+def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a (+) b``: pose ``b`` expressed in frame ``a``, returned in ``a``'s parent frame.
+
+    Works on single poses ``(3,)`` and on stacks ``(N, 3)`` (broadcast).
+    """
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    yaw = wrap_angle(a[..., 2] + b[..., 2])
+    return np.stack([x, y, yaw], axis=-1)
+
+
+def inverse(a: np.ndarray) -> np.ndarray:
+    """The inverse transform of pose ``a`` (``(3,)`` or ``(N, 3)``)."""
+    a = np.asarray(a, dtype=float)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = -c * a[..., 0] - s * a[..., 1]
+    y = s * a[..., 0] - c * a[..., 1]
+    return np.stack([x, y, wrap_angle(-a[..., 2])], axis=-1)
+
+
+def between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a^-1 (+) b``: pose ``b`` expressed in the frame of pose ``a``."""
+    return compose(inverse(a), b)
+
+
+def transform_points(pose: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
+    """Map ``(N, 2)`` points from the frame of ``pose`` into its parent frame."""
+    pose = np.asarray(pose, dtype=float)
+    pts = np.asarray(points_xy, dtype=float)
+    return pts @ rot2(float(pose[2])).T + pose[:2]
+
+
+def yaw_to_quaternion(yaw_rad: float) -> tuple[float, float, float, float]:
+    """Quaternion ``(qx, qy, qz, qw)`` of a rotation by ``yaw_rad`` about z."""
+    return (0.0, 0.0, math.sin(yaw_rad / 2.0), math.cos(yaw_rad / 2.0))
+
+
+def quaternion_to_yaw(qx: float, qy: float, qz: float, qw: float) -> float:
+    """Yaw (rad) of a quaternion, assuming a rotation about z (roll = pitch = 0)."""
+    return math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
