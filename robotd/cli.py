@@ -1,0 +1,116 @@
+"""The ``robotd`` command: one entry point, one subcommand per job.
+
+A known error (:class:`~robotd.errors.RobotdError`) ends with one line on stderr and exit
+status 2; ``--traceback`` shows the whole stack instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from robotd import __version__
+from robotd.errors import RobotdError
+
+log = logging.getLogger("robotd")
+
+EPILOG = """\
+examples:
+  robotd demo                          run the daemon on the built-in virtual robot
+  robotd demo --route square --duration 60 --out /tmp/demo
+  robotd run --config /etc/robotd/robotd.toml
+  robotd config check robotd.toml      validate a config file
+  robotd kobuki decode capture.txt     decode a serial capture (raw or pyserial spy://)
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="robotd",
+        description="On-robot odometry and loop-closure daemon for Turtlebot-class robots.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--version", action="version", version=f"robotd {__version__}")
+    p.add_argument("--log-level", choices=("debug", "info", "warning", "error"), default=None,
+                   help="logging level (default: the config's, or info)")
+    p.add_argument("--traceback", action="store_true", help="show a traceback on errors")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    run = sub.add_parser("run", help="run the daemon on real hardware, as the config says",
+                         description="Run the daemon on real hardware (the systemd service's command).")
+    run.add_argument("--config", type=Path, required=True, help="TOML config file")
+    run.set_defaults(func=_cmd_run)
+
+    from robotd import demo as demo_mod  # light module: heavy imports happen inside run()
+    d = sub.add_parser("demo", help="run the daemon on the built-in virtual robot",
+                       description="Run the whole daemon against the virtual robot: Kobuki "
+                                   "bytes over a pseudo-terminal, a rendered floor camera, "
+                                   "ground truth. Writes a map, trajectories, a plot and a summary.")
+    demo_mod.add_arguments(d)
+    d.set_defaults(func=demo_mod.run_from_args)
+
+    cfg = sub.add_parser("config", help="check or print configuration files")
+    cfg_sub = cfg.add_subparsers(dest="config_command", metavar="ACTION", required=True)
+    chk = cfg_sub.add_parser("check", help="validate a config file")
+    chk.add_argument("file", type=Path)
+    chk.set_defaults(func=_cmd_config_check)
+    dflt = cfg_sub.add_parser("default", help="print the default configuration as TOML")
+    dflt.set_defaults(func=_cmd_config_default)
+
+    kob = sub.add_parser("kobuki", help="Kobuki base tools")
+    kob_sub = kob.add_subparsers(dest="kobuki_command", metavar="ACTION", required=True)
+    dec = kob_sub.add_parser("decode", help="decode a serial capture into JSON lines",
+                             description="Decode a raw serial capture, or the hex dump written "
+                                         "by pyserial's spy:// URL, into one JSON line per packet, "
+                                         "with the error counts on the last line.")
+    from drivers import kobuki
+    kobuki.add_decode_arguments(dec)
+    dec.set_defaults(func=kobuki.run_decode)
+    return p
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from robotd.config import load_config
+    from robotd.service import run_service
+
+    cfg = load_config(args.config)
+    if args.log_level is None:
+        logging.getLogger().setLevel(cfg.daemon.log_level.upper())
+    return run_service(cfg)
+
+
+def _cmd_config_check(args: argparse.Namespace) -> int:
+    from robotd.config import load_config
+
+    load_config(args.file)
+    print(f"{args.file}: OK")
+    return 0
+
+
+def _cmd_config_default(args: argparse.Namespace) -> int:
+    from robotd.config import Config, to_toml
+
+    print(to_toml(Config()), end="")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=(args.log_level or "info").upper(),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args) or 0)
+    except RobotdError as exc:
+        if args.traceback:
+            raise
+        print(f"robotd: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
