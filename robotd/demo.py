@@ -1,0 +1,246 @@
+"""``robotd demo``: the whole daemon on the built-in virtual robot.
+
+The virtual robot speaks Kobuki bytes over a pseudo-terminal and renders the floor
+camera; the daemon opens the pty with its real serial driver, fuses odometry, selects
+keyframes and writes the map, exactly as on the robot. Afterwards the demo compares the
+trajectories with ground truth and writes:
+
+``OUT/map.sqlite``, ``groundtruth.tum``, ``wheel.tum``, ``fused.tum``, ``summary.json``,
+``trajectories.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from robotd.sim.route import ROUTES
+
+    p.add_argument("--route", default="office", choices=sorted(ROUTES),
+                   help="route to drive (default: office, about 110 m with loops both ways)")
+    p.add_argument("--floor", action="append", type=Path, metavar="FILE", default=None,
+                   help="floor photograph(s) to build the floor from (repeat for several; "
+                        "default: the scikit-image brick, grass and gravel photographs)")
+    p.add_argument("--floor-scale", type=float, default=0.001, metavar="M_PER_PX",
+                   help="size of one floor-photo pixel in metres (default 0.001)")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="stop after this many seconds of robot time (default: whole route)")
+    p.add_argument("--out", type=Path, default=Path("demo-out"), metavar="DIR",
+                   help="output folder (default: ./demo-out)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the virtual robot")
+    p.add_argument("--config", type=Path, default=None,
+                   help="start from this config file (the base port, camera source and map "
+                        "path are replaced by the virtual robot's)")
+    p.add_argument("--realtime", action="store_true",
+                   help="pace the virtual robot on the wall clock (default: as fast as possible)")
+    p.add_argument("--no-plot", action="store_true", help="skip trajectories.png")
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    from robotd.config import Config, load_config
+    from robotd.errors import ConfigError
+
+    if args.floor_scale <= 0 or not math.isfinite(args.floor_scale):
+        raise ConfigError(f"--floor-scale must be a positive number of metres, got {args.floor_scale}")
+    if args.duration is not None and args.duration <= 0:
+        raise ConfigError(f"--duration must be positive, got {args.duration}")
+    base_cfg = load_config(args.config) if args.config else Config()
+    summary = run_demo(base_cfg, out=args.out, route=args.route,
+                       floor_files=tuple(str(f) for f in args.floor or ()),
+                       floor_scale=args.floor_scale, duration_s=args.duration, seed=args.seed,
+                       realtime=args.realtime, plot=not args.no_plot)
+    print_summary(summary, sys.stdout)
+    return 0 if summary["ok"] else 1
+
+
+class _Recorder:
+    """Pipeline observer: writes the fused and wheel-only trajectories as they come."""
+
+    def __init__(self, out: Path) -> None:
+        from robotd.trajectory import TumWriter
+
+        self.fused = TumWriter(out / "fused.tum")
+        self.wheel = TumWriter(out / "wheel.tum")
+        self.keyframe_poses: list[tuple[float, float]] = []
+
+    def on_odometry(self, fused: Any, wheel: Any) -> None:
+        self.fused.write(fused.stamp_ns, fused.x_m, fused.y_m, fused.yaw_rad)
+        self.wheel.write(wheel.stamp_ns, wheel.x_m, wheel.y_m, wheel.yaw_rad)
+
+    def on_keyframe(self, keyframe_id: int, frame: Any, pose: Any) -> None:
+        self.keyframe_poses.append((pose.x_m, pose.y_m))
+
+    def close(self) -> None:
+        self.fused.close()
+        self.wheel.close()
+
+
+class _Progress:
+    """A progress line on stderr: robot time done, speed against real time."""
+
+    def __init__(self, total_s: float) -> None:
+        self.total_s = total_s
+        self.start = time.monotonic()
+        self.last = 0.0
+        self.tty = sys.stderr.isatty()
+        self.next_pct = 10
+
+    def update(self, sim_s: float, keyframes: int, final: bool = False) -> None:
+        now = time.monotonic()
+        if not final and now - self.last < 0.5:
+            return
+        self.last = now
+        wall = now - self.start
+        pct = 100.0 * min(1.0, sim_s / self.total_s) if self.total_s > 0 else 100.0
+        line = (f"demo: {pct:5.1f}%  robot time {sim_s:6.1f}/{self.total_s:.0f} s  "
+                f"keyframes {keyframes}  x{sim_s / wall if wall > 0 else 0:.1f} real time")
+        if self.tty:
+            sys.stderr.write("\r" + line + ("\n" if final else ""))
+            sys.stderr.flush()
+        elif final or pct >= self.next_pct:
+            sys.stderr.write(line + "\n")
+            while self.next_pct <= pct:
+                self.next_pct += 10
+
+
+def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tuple[str, ...] = (),
+             floor_scale: float = 0.001, duration_s: float | None = None, seed: int = 0,
+             realtime: bool = False, plot: bool = True) -> dict[str, Any]:
+    """Run the daemon on the virtual robot; returns the summary (also written as JSON)."""
+    import numpy as np
+
+    from drivers.kobuki import KobukiDriver
+    from robotd.clock import ManualClock
+    from robotd.config import replace
+    from robotd.daemon import Daemon
+    from robotd.floorcam import FloorCameraModel
+    from robotd.notify import Notifier
+    from robotd.odometry.ekf import OdometryFilter
+    from robotd.service import build_odometry
+    from robotd.sim.robot import VirtualRobot, VirtualRobotSettings
+    from robotd.store import MapStore
+    from robotd.trajectory import read_tum, trajectory_errors
+
+    out.mkdir(parents=True, exist_ok=True)
+    map_path = out / "map.sqlite"
+    for suffix in ("", "-wal", "-shm"):
+        stale = Path(str(map_path) + suffix)
+        if stale.exists():
+            log.info("replacing the previous demo map %s", stale)
+            stale.unlink()
+    clock = ManualClock()
+    cam_model = FloorCameraModel.from_config(base_cfg.floor_camera)
+    settings = VirtualRobotSettings(route=route, seed=seed, duration_s=duration_s, realtime=realtime,
+                                    floor_files=floor_files, floor_metres_per_px=floor_scale,
+                                    camera_fps=base_cfg.floor_camera.fps)
+    wall0 = time.monotonic()
+    robot = VirtualRobot(settings, cam_model, clock)
+    cfg = replace(base_cfg, "base", driver="kobuki", port=robot.port)
+    cfg = replace(cfg, "floor_camera", source="virtual")
+    cfg = replace(cfg, "map", path=str(map_path))
+    recorder = _Recorder(out)
+    progress = _Progress(robot.duration_s)
+    with robot, MapStore.open(map_path, clock=clock) as store, KobukiDriver(
+        robot.port, clock=clock, baudrate=cfg.base.baudrate, yaw_source=cfg.base.yaw_source
+    ) as driver:
+        driver.request_extra(hardware_version=True, firmware_version=True, udid=True)
+        odometry: OdometryFilter = build_odometry(cfg)
+        daemon = Daemon(cfg, clock, {"base": (driver, None), "floor": (robot.camera, None)},
+                        odometry, store, Notifier(), lossless=not realtime, observers=[recorder],
+                        driver_stats=lambda: {"kobuki": driver.stats.as_dict()})
+        robot.start()
+
+        def finished() -> bool:
+            c = daemon.pipeline.counters
+            progress.update(robot.sim_time_s, c.keyframes)
+            if robot.error is not None:
+                return True
+            return (robot.finished.is_set() and c.frames >= robot.frames_emitted
+                    and c.wheel_msgs >= robot.packets_emitted and not daemon.pipeline.pending)
+
+        report = daemon.run(stop_when=finished)
+        progress.update(robot.sim_time_s, daemon.pipeline.counters.keyframes, final=True)
+        robot.stop()
+        recorder.close()
+        robot.write_ground_truth_tum(out / "groundtruth.tum")
+        keyframes_stored = store.count_keyframes()
+        commands = dict(robot.commands_received)
+        camera_drops = robot.camera.dropped
+    if robot.error is not None:
+        raise robot.error
+    wall_s = time.monotonic() - wall0
+
+    stamps, fused = read_tum(out / "fused.tum")
+    _, wheel = read_tum(out / "wheel.tum")
+    truth = robot.motion.poses_at(stamps / 1e9)
+    err_fused = trajectory_errors(truth, fused)
+    err_wheel = trajectory_errors(truth, wheel)
+    c = report.counters
+    kob = report.driver_stats.get("kobuki", {})
+    summary: dict[str, Any] = {
+        "route": route, "seed": seed, "floor": list(floor_files) or ["skimage:brick,grass,gravel"],
+        "robot_time_s": robot.duration_s, "wall_time_s": wall_s,
+        "real_time_factor": robot.duration_s / wall_s if wall_s > 0 else None,
+        "distance_m": err_fused.distance_m,
+        "frames_rendered": robot.frames_emitted, "frames_processed": c.frames,
+        "keyframes": keyframes_stored, "odometry_samples": c.wheel_msgs,
+        "drops": {"camera": camera_drops, **{f"queue_{k}": v for k, v in report.queue_drops.items()},
+                  "frames_unsynced": c.frames_unsynced},
+        "packet_errors": {k: kob.get(k, 0) for k in
+                          ("garbage_bytes", "bad_checksums", "truncated", "malformed_subpayloads")},
+        "commands_seen_by_robot": commands,
+        "wheel_only": err_wheel.as_dict(), "fused": err_fused.as_dict(),
+        "stopped_by": report.stopped_by,
+    }
+    summary["ok"] = bool(c.frames == robot.frames_emitted and keyframes_stored == c.keyframes)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if plot:
+        from robotd.geometry import compose, inverse, transform_points
+        from robotd.plots import plot_trajectories
+        from robotd.trajectory import anchor_to
+
+        # Odometry starts at its own origin; draw it from the route's start, as the errors do.
+        to_world = compose(truth[0], inverse(fused[0]))
+        kf = transform_points(to_world, np.asarray(recorder.keyframe_poses).reshape(-1, 2))
+        plot_trajectories(out / "trajectories.png", robot.floor, truth,
+                          {"wheel only": anchor_to(truth[0], wheel),
+                           "fused (EKF)": anchor_to(truth[0], fused)},
+                          keyframes_xy=kf,
+                          title=f"robotd demo: route {route}, {err_fused.distance_m:.0f} m")
+    return summary
+
+
+def print_summary(s: dict[str, Any], f: Any) -> None:
+    """The short table the demo prints."""
+    w, fu = s["wheel_only"], s["fused"]
+    rows = [
+        ("route", f"{s['route']} (seed {s['seed']})"),
+        ("distance", f"{s['distance_m']:.1f} m in {s['robot_time_s']:.0f} s robot time"),
+        ("wall time", f"{s['wall_time_s']:.1f} s (x{s['real_time_factor']:.1f} real time)"),
+        ("frames", f"{s['frames_processed']} processed of {s['frames_rendered']} rendered"),
+        ("keyframes", f"{s['keyframes']}"),
+        ("drops", ", ".join(f"{k} {v}" for k, v in s["drops"].items())),
+        ("packet errors", ", ".join(f"{k} {v}" for k, v in s["packet_errors"].items())),
+    ]
+    width = max(len(r[0]) for r in rows)
+    for k, v in rows:
+        print(f"{k:<{width}}  {v}", file=f)
+    print(file=f)
+    print(f"{'odometry vs ground truth':<26}{'wheel only':>12}{'fused':>12}", file=f)
+    for label, key, fmt in (
+        ("end position error (m)", "end_position_error_m", "{:.3f}"),
+        ("end heading error (deg)", "end_heading_error_deg", "{:.2f}"),
+        ("max position error (m)", "max_position_error_m", "{:.3f}"),
+        ("end drift per 100 m (m)", "end_drift_per_100m_m", "{:.3f}"),
+    ):
+        print(f"{label:<26}{fmt.format(w[key]):>12}{fmt.format(fu[key]):>12}", file=f)

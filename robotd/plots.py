@@ -1,0 +1,58 @@
+"""Plots written by the CLI (matplotlib, Agg backend, PNG files)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def _figure(size: tuple[float, float]) -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt.subplots(figsize=size, dpi=110)
+
+
+def plot_trajectories(path: Path, floor: Any, truth: np.ndarray, estimates: dict[str, np.ndarray],
+                      keyframes_xy: np.ndarray | None = None, title: str = "") -> None:
+    """Ground truth and estimated trajectories drawn over the floor they were driven on.
+
+    ``truth`` and each estimate are ``(N, 3)`` poses in the world frame (metres).
+    """
+    import matplotlib.pyplot as plt
+
+    pts = np.vstack([truth[:, :2]] + [e[:, :2] for e in estimates.values()])
+    lo = pts.min(axis=0) - 0.6
+    hi = pts.max(axis=0) + 0.6
+    span = hi - lo
+    fig, ax = _figure((9.0, 9.0 * span[1] / max(span[0], 1e-6) * 0.9 + 1.0))
+    if floor is not None:
+        px_per_m = min(100.0, 1600.0 / float(max(span)))
+        img = floor.render_overview(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), px_per_m)
+        ax.imshow(img, cmap="gray", extent=(lo[0], hi[0], lo[1], hi[1]), origin="upper",
+                  vmin=0, vmax=255, alpha=0.55, interpolation="bilinear")
+    ax.plot(truth[:, 0], truth[:, 1], color="black", lw=2.2, label="ground truth")
+    colours = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd"]
+    for (name, est), col in zip(estimates.items(), colours):
+        ax.plot(est[:, 0], est[:, 1], color=col, lw=1.4, label=name)
+        ax.plot(est[-1, 0], est[-1, 1], "o", color=col, ms=6)
+    if keyframes_xy is not None and len(keyframes_xy):
+        ax.plot(keyframes_xy[:, 0], keyframes_xy[:, 1], ".", color="#ff7f0e", ms=2.0,
+                label=f"keyframes ({len(keyframes_xy)})", alpha=0.7)
+    ax.plot(truth[0, 0], truth[0, 1], "k*", ms=14, label="start")
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize=9, framealpha=0.9)
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

@@ -1,0 +1,101 @@
+"""``robotd run``: the daemon on real hardware, as the config says.
+
+Opens the drivers the config names (a missing device is a clear error at start-up, so
+systemd's ``Restart=on-failure`` retries), opens the map, sends READY, and runs until
+SIGTERM. A device that vanishes while running is retried by its source thread.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any, Callable
+
+from robotd.clock import Clock, MonotonicClock
+from robotd.config import Config
+from robotd.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+def build_odometry(cfg: Config) -> Any:
+    """The wheel + gyro filter with the config's robot geometry and noise model."""
+    from robotd.odometry.ekf import EkfParams, OdometryFilter
+    from robotd.odometry.kinematics import DiffDriveParams
+
+    o = cfg.odometry
+    params = EkfParams(
+        accel_noise_mps2=o.accel_noise_mps2,
+        angular_accel_noise_radps2=o.angular_accel_noise_radps2,
+        gyro_bias_walk_radps_sqrt_s=o.gyro_bias_walk_radps_sqrt_s,
+        wheel_v_noise_mps=o.wheel_v_noise_mps,
+        wheel_v_noise_frac=o.wheel_v_noise_frac,
+        wheel_w_noise_radps=o.wheel_w_noise_radps,
+        wheel_w_noise_frac=o.wheel_w_noise_frac,
+        gyro_noise_radps=o.gyro_noise_radps,
+        initial_gyro_bias_sigma_radps=o.initial_gyro_bias_sigma_radps,
+    )
+    drive = DiffDriveParams(wheel_radius_m=cfg.robot.wheel_radius_m,
+                            wheel_base_m=cfg.robot.wheel_base_m,
+                            ticks_per_rev=cfg.robot.ticks_per_rev)
+    return OdometryFilter(drive, params)
+
+
+def open_sources(cfg: Config, clock: Clock) -> dict[str, tuple[Any, Callable[[], Any]]]:
+    """Open every driver the config enables: name -> (open driver, function to reopen it)."""
+    from drivers.camera import V4L2Camera
+    from drivers.kobuki import KobukiDriver
+
+    sources: dict[str, tuple[Any, Callable[[], Any]]] = {}
+    if cfg.base.driver == "kobuki":
+        b = cfg.base
+
+        def open_base() -> Any:
+            return KobukiDriver(b.port, clock=clock, baudrate=b.baudrate, yaw_source=b.yaw_source)
+
+        sources["base"] = (open_base(), open_base)
+    fc = cfg.floor_camera
+    if fc.source == "virtual":
+        raise ConfigError("[floor_camera] source: 'virtual' exists only in `robotd demo`")
+    if fc.source == "v4l2":
+
+        def open_floor() -> Any:
+            return V4L2Camera(fc.device, width_px=fc.width_px, height_px=fc.height_px, fps=fc.fps,
+                              fourcc=fc.fourcc, buffer_size=fc.buffer_size, grey=True,
+                              clock=clock, name="floor")
+
+        try:
+            sources["floor"] = (open_floor(), open_floor)
+        except Exception:
+            for drv, _ in sources.values():
+                drv.close()
+            raise
+    return sources
+
+
+def run_service(cfg: Config) -> int:
+    """Run until SIGTERM/SIGINT; returns the process exit status."""
+    from robotd.daemon import Daemon
+    from robotd.notify import Notifier
+    from robotd.store import MapStore
+
+    clock = MonotonicClock()
+    notifier = Notifier()
+    with MapStore.open(cfg.map.path) as store:
+        sources = open_sources(cfg, clock)
+        try:
+            if not sources:
+                log.warning("no sources enabled: the daemon will only keep the map open")
+            daemon = Daemon(cfg, clock, sources, build_odometry(cfg), store, notifier,
+                            lossless=False,
+                            driver_stats=lambda: {n: _stats(d) for n, (d, _) in sources.items()})
+            report = daemon.run()
+        finally:
+            for drv, _ in sources.values():
+                drv.close()
+    log.info("final: %s", report.as_dict())
+    return 0
+
+
+def _stats(driver: Any) -> Any:
+    s = getattr(driver, "stats", None)
+    return s.as_dict() if hasattr(s, "as_dict") else repr(s)
