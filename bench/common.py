@@ -1,0 +1,110 @@
+"""Helpers shared by the benchmarks: machine description, repeated timing, JSON, tables.
+
+Benchmarks are command-line programs, not tests: they time with the wall clock
+(``time.perf_counter``), report the median and the interquartile range after a warm-up,
+and record the machine, the library versions and the git commit next to the numbers.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+def git_commit(repo_dir: Path = REPO_ROOT) -> str | None:
+    """``git rev-parse HEAD`` of ``repo_dir``, or ``None`` when git or the repo is missing."""
+    try:
+        done = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo_dir, capture_output=True,
+                              text=True, timeout=10, check=True)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() or None
+
+
+def git_dirty(repo_dir: Path = REPO_ROOT) -> bool | None:
+    """Whether the work tree has uncommitted changes (``None`` when unknown)."""
+    try:
+        done = subprocess.run(["git", "status", "--porcelain"], cwd=repo_dir,
+                              capture_output=True, text=True, timeout=10, check=True)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return bool(done.stdout.strip())
+
+
+def machine_info() -> dict[str, Any]:
+    """Platform, CPU count, Python and numpy versions, git commit, and the UTC date."""
+    try:
+        import numpy
+        numpy_version: str | None = numpy.__version__
+    except ImportError:
+        numpy_version = None
+    return {
+        "platform": platform.platform(),
+        "machine": platform.machine(),
+        "processor": platform.processor() or None,
+        "cpu_count": os.cpu_count(),
+        "python": sys.version.split()[0],
+        "python_implementation": platform.python_implementation(),
+        "numpy": numpy_version,
+        "git_commit": git_commit(),
+        "git_dirty": git_dirty(),
+        "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    }
+
+
+def time_repeats(fn: Callable[[], object], repeats: int = 7, warmup: int = 1) -> dict[str, Any]:
+    """Call ``fn`` ``warmup`` times untimed, then ``repeats`` times timed.
+
+    Returns ``median_s``, ``iqr_s`` (interquartile range, the spread), ``min_s`` and
+    ``runs`` (every timed run, seconds).
+    """
+    if repeats < 1:
+        raise ValueError("repeats must be >= 1")
+    for _ in range(warmup):
+        fn()
+    runs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        runs.append(time.perf_counter() - t0)
+    if len(runs) >= 2:
+        q1, _, q3 = statistics.quantiles(runs, n=4, method="inclusive")
+        iqr = q3 - q1
+    else:
+        iqr = 0.0
+    return {"median_s": statistics.median(runs), "iqr_s": iqr, "min_s": min(runs), "runs": runs}
+
+
+def write_json(path: str | Path, payload: Any) -> Path:
+    """Write ``payload`` as indented JSON, creating the parent directories."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(payload, indent=2) + "\n", encoding="utf-8")
+    return path
+
+
+def print_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> None:
+    """Print an aligned text table: text left-aligned, numbers right-aligned."""
+    cells = [[str(h) for h in headers]] + [[str(c) for c in row] for row in rows]
+    widths = [max(len(row[k]) for row in cells) for k in range(len(headers))]
+    numeric = [all(isinstance(row[k], (int, float)) for row in rows) for k in range(len(headers))]
+
+    def fmt(row: list[str]) -> str:
+        return "  ".join(c.rjust(w) if num else c.ljust(w)
+                         for c, w, num in zip(row, widths, numeric)).rstrip()
+
+    print(fmt(cells[0]))
+    print("  ".join("-" * w for w in widths))
+    for row in cells[1:]:
+        print(fmt(row))
