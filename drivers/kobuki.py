@@ -643,6 +643,13 @@ class KobukiDriverStats:
     untimed_packets: int
     commands_sent: int
 
+    def as_dict(self) -> dict[str, int]:
+        """Every counter in one flat mapping (parser counters first), for JSON and STATUS."""
+        d = dataclasses.asdict(self.parser)
+        d.update(messages_out=self.messages_out, clock_clamps=self.clock_clamps,
+                 untimed_packets=self.untimed_packets, commands_sent=self.commands_sent)
+        return d
+
 
 class KobukiDriver:
     """A Kobuki base on any pyserial URL (``/dev/kobuki``, a pty path, ``loop://``).

@@ -54,7 +54,8 @@ class BaseConfig:
 class FloorCameraConfig:
     """The downward-facing floor camera: device, intrinsics and mounting."""
 
-    source: str = _f("v4l2", "camera source", choices=("v4l2", "none"))
+    source: str = _f("v4l2", "camera source ('virtual': the built-in virtual robot, demo only)",
+                     choices=("v4l2", "none", "virtual"))
     device: str = _f("/dev/video0", "V4L2 device path")
     fourcc: str = _f("YUYV", "pixel format requested from the driver", choices=("YUYV", "MJPG", "GREY"))
     width_px: int = _f(640, "image width", lo=16, hi=8192)
@@ -79,12 +80,14 @@ class OdometryConfig:
     """Noise model of the wheel + gyro extended Kalman filter (1-sigma values)."""
 
     accel_noise_mps2: float = _f(0.5, "process noise: linear acceleration", lo=1e-6, hi=100.0)
-    angular_accel_noise_radps2: float = _f(2.0, "process noise: angular acceleration", lo=1e-6, hi=1000.0)
+    angular_accel_noise_radps2: float = _f(0.3, "process noise: angular acceleration", lo=1e-6, hi=1000.0)
     gyro_bias_walk_radps_sqrt_s: float = _f(2e-5, "gyro bias random walk", lo=0.0, hi=1.0)
     wheel_v_noise_mps: float = _f(0.01, "wheel speed noise at standstill", lo=1e-6, hi=10.0)
     wheel_v_noise_frac: float = _f(0.02, "wheel speed noise growing with speed (slip)", lo=0.0, hi=1.0)
     wheel_w_noise_radps: float = _f(0.05, "wheel yaw-rate noise", lo=1e-6, hi=10.0)
     wheel_w_noise_frac: float = _f(0.05, "wheel yaw-rate noise growing with turn rate", lo=0.0, hi=1.0)
+    wheel_w_noise_per_mps: float = _f(0.5, "wheel yaw-rate noise growing with speed (unequal wheels)",
+                                      lo=0.0, hi=100.0)
     gyro_noise_radps: float = _f(0.003, "gyro yaw-rate white noise per sample", lo=1e-7, hi=10.0)
     initial_gyro_bias_sigma_radps: float = _f(0.01, "prior on the gyro bias", lo=1e-7, hi=10.0)
 

@@ -182,7 +182,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
 
     stamps, fused = read_tum(out / "fused.tum")
     _, wheel = read_tum(out / "wheel.tum")
-    truth = robot.motion.poses_at(stamps / 1e9)
+    truth = robot.motion.pose_at(stamps / 1e9)
     err_fused = trajectory_errors(truth, fused)
     err_wheel = trajectory_errors(truth, wheel)
     c = report.counters

@@ -31,6 +31,7 @@ def build_odometry(cfg: Config) -> Any:
         wheel_v_noise_frac=o.wheel_v_noise_frac,
         wheel_w_noise_radps=o.wheel_w_noise_radps,
         wheel_w_noise_frac=o.wheel_w_noise_frac,
+        wheel_w_noise_per_mps=o.wheel_w_noise_per_mps,
         gyro_noise_radps=o.gyro_noise_radps,
         initial_gyro_bias_sigma_radps=o.initial_gyro_bias_sigma_radps,
     )

@@ -38,7 +38,7 @@ from robotd.floorcam import FloorCameraModel
 from robotd.messages import Frame
 from robotd.sim.floor import Floor
 from robotd.sim.render import FloorRenderer, RenderParams
-from robotd.sim.route import MotionLimits, ROUTES, build_route, plan_motion
+from robotd.sim.route import ROUTES, MotionLimits, build_route, plan_motion
 from robotd.sim.sensors import BaseSensorParams, simulate_base
 
 log = logging.getLogger(__name__)
@@ -172,7 +172,7 @@ class VirtualRobot:
         from robotd.trajectory import write_tum
 
         t = np.arange(0.0, self.duration_s, 1.0 / rate_hz)
-        poses = self.motion.poses_at(t)
+        poses = self.motion.pose_at(t)
         write_tum(path, (t * 1e9).astype(np.int64), poses)
 
     # -- the event loop ----------------------------------------------------------------
@@ -223,7 +223,7 @@ class VirtualRobot:
                                        angle_rate_centidegps=int(b.angle_rate_cdegps[i]))
         gyro = kobuki.RawGyroData(
             frame_id=i & 0xFF,
-            samples=tuple((0, 0, int(z)) for z in b.raw_gyro_z[i]),
+            samples=tuple(tuple(int(a) for a in xyz) for xyz in b.gyro_digits[i, : b.gyro_count[i]]),
         )
         return kobuki.encode_feedback(basic, inertial, gyro)
 

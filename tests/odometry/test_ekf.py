@@ -1,0 +1,313 @@
+"""The wheel + gyro EKF: single steps against hand-derived answers, then the stream filter."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from robotd.messages import WheelTicks, YawRate
+from robotd.odometry.ekf import (
+    IB,
+    IV,
+    IW,
+    IX,
+    IY,
+    IYAW,
+    EkfParams,
+    EkfState,
+    OdometryFilter,
+    initial_state,
+    predict,
+    update_gyro,
+    update_wheels,
+)
+from robotd.odometry.kinematics import DiffDriveParams
+from robotd.sim.route import Motion
+from robotd.sim.sensors import BaseSensorParams, simulate_base
+
+MS = 1_000_000  # ns
+ROUND = DiffDriveParams(wheel_radius_m=0.05, wheel_base_m=0.5, ticks_per_rev=1000.0)
+MPT = 2 * math.pi * 0.05 / 1000  # metres per tick of ROUND
+
+
+def _state(mean, diag, stamp_ns=0):
+    return EkfState(stamp_ns, np.array(mean, float), np.diag(np.array(diag, float)))
+
+
+# ---- single steps ----------------------------------------------------------------------
+
+
+def test_predict_one_step_by_hand():
+    """Driving straight along +x at 1 m/s, no turn, for 0.1 s."""
+    params = EkfParams(accel_noise_mps2=0.5, angular_accel_noise_radps2=2.0,
+                       gyro_bias_walk_radps_sqrt_s=0.001)
+    s0 = _state([0, 0, 0, 1.0, 0.0, 0.01], [0.01, 0.02, 0.03, 0.04, 0.05, 0.06])
+    s1 = predict(s0, 100 * MS, params)
+    assert s1.stamp_ns == 100 * MS
+    np.testing.assert_allclose(s1.mean, [0.1, 0, 0, 1.0, 0, 0.01], atol=1e-15)
+    # F has dx/dv = dt = 0.1, dy/dyaw = v dt = 0.1, dy/dw = v dt^2 / 2 = 0.005,
+    # dyaw/dw = dt = 0.1. Q: (x, v) block 0.25*[dt^3/3, dt^2/2; ., dt], (yaw, w) block
+    # 4*[dt^3/3, dt^2/2; ., dt], bias 1e-6 * dt.
+    p = s1.cov
+    assert p[IX, IX] == pytest.approx(0.01 + 0.01 * 0.04 + 0.25 * 0.001 / 3)
+    assert p[IX, IV] == pytest.approx(0.1 * 0.04 + 0.25 * 0.005)
+    assert p[IV, IV] == pytest.approx(0.04 + 0.25 * 0.1)
+    assert p[IY, IY] == pytest.approx(0.02 + 0.01 * 0.03 + 0.005 ** 2 * 0.05)
+    assert p[IY, IYAW] == pytest.approx(0.1 * 0.03 + 0.005 * 0.1 * 0.05)
+    assert p[IY, IW] == pytest.approx(0.005 * 0.05)
+    assert p[IYAW, IYAW] == pytest.approx(0.03 + 0.01 * 0.05 + 4 * 0.001 / 3)
+    assert p[IYAW, IW] == pytest.approx(0.1 * 0.05 + 4 * 0.005)
+    assert p[IW, IW] == pytest.approx(0.05 + 4 * 0.1)
+    assert p[IB, IB] == pytest.approx(0.06 + 1e-6 * 0.1)
+    assert p[IX, IY] == pytest.approx(0.0, abs=1e-18)
+    np.testing.assert_array_equal(p, p.T)
+
+
+def test_predict_along_an_arc_and_wraps_yaw():
+    # A quarter circle of radius 1 m in 1 s, starting just below +pi.
+    s0 = _state([0, 0, 3.0, math.pi / 2, math.pi / 2, 0], [1e-6] * 6)
+    s1 = predict(s0, 1000 * MS)
+    # Chord sqrt(2) at heading 3 + pi/4.
+    assert s1.mean[IX] == pytest.approx(math.sqrt(2) * math.cos(3 + math.pi / 4))
+    assert s1.mean[IY] == pytest.approx(math.sqrt(2) * math.sin(3 + math.pi / 4))
+    assert s1.mean[IYAW] == pytest.approx(3 + math.pi / 2 - 2 * math.pi)
+
+
+def test_predict_zero_dt_is_identity_and_backwards_is_an_error():
+    s0 = initial_state(5 * MS)
+    assert predict(s0, 5 * MS) is s0
+    with pytest.raises(ValueError, match="backwards"):
+        predict(s0, 4 * MS)
+
+
+def test_gyro_update_gain_by_hand():
+    # z = w + b with P_ww = 0.04, P_bb = 0.01, R = 0.1^2: S = 0.06,
+    # K_w = 0.04/0.06 = 2/3, K_b = 0.01/0.06 = 1/6; innovation 0.4 - (0.2 + 0.05) = 0.15.
+    params = EkfParams(gyro_noise_radps=0.1)
+    s0 = _state([1, 2, 0.5, 0.3, 0.2, 0.05], [0.5, 0.5, 0.5, 0.5, 0.04, 0.01])
+    s1 = update_gyro(s0, 0.4, params)
+    assert s1.mean[IW] == pytest.approx(0.2 + 0.15 * 2 / 3)
+    assert s1.mean[IB] == pytest.approx(0.05 + 0.15 / 6)
+    np.testing.assert_allclose(s1.mean[[IX, IY, IYAW, IV]], [1, 2, 0.5, 0.3])
+    assert s1.cov[IW, IW] == pytest.approx(0.04 - 0.04 ** 2 / 0.06)
+    assert s1.cov[IW, IB] == pytest.approx(-0.04 * 0.01 / 0.06)
+    assert s1.cov[IB, IB] == pytest.approx(0.01 - 0.01 ** 2 / 0.06)
+    assert s1.cov[IV, IV] == pytest.approx(0.5)
+    assert s1.stamp_ns == s0.stamp_ns
+
+
+def test_wheel_update_gain_by_hand():
+    params = EkfParams(wheel_v_noise_mps=0.2, wheel_v_noise_frac=0.0, wheel_w_noise_radps=0.1,
+                       wheel_w_noise_frac=0.0, wheel_w_noise_per_mps=0.0)
+    s0 = _state([0, 0, 0, 0.3, 0.2, 0.05], [0.5, 0.5, 0.5, 0.04, 0.04, 0.01])
+    s1 = update_wheels(s0, 0.5, 0.0, params)
+    # K_v = 0.04 / (0.04 + 0.04) = 1/2, K_w = 0.04 / (0.04 + 0.01) = 4/5; the bias is
+    # not measured by the wheels and had no correlation with w, so it stays.
+    assert s1.mean[IV] == pytest.approx(0.4)
+    assert s1.mean[IW] == pytest.approx(0.2 - 0.8 * 0.2)
+    assert s1.mean[IB] == pytest.approx(0.05)
+    assert s1.cov[IV, IV] == pytest.approx(0.02)
+    assert s1.cov[IW, IW] == pytest.approx(0.04 * 0.01 / 0.05)
+
+
+def test_wheel_noise_grows_with_speed_and_is_small_at_standstill():
+    params = EkfParams(wheel_v_noise_mps=0.01, wheel_v_noise_frac=0.02, wheel_w_noise_radps=0.05,
+                       wheel_w_noise_frac=0.05, wheel_w_noise_per_mps=0.5,
+                       stationary_noise_radps=1e-3)
+    s0 = _state([0, 0, 0, 0, 0, 0], [1.0] * 6)
+    moving = update_wheels(s0, 0.5, 1.0, params)
+    still = update_wheels(s0, 0.0, 0.0, params, stationary=True)
+    # sigma_w = 0.05 + 0.05*1 + 0.5*0.5 = 0.35: posterior 1*0.35^2/(1 + 0.35^2).
+    assert moving.cov[IW, IW] == pytest.approx(0.35 ** 2 / (1 + 0.35 ** 2))
+    assert still.cov[IW, IW] == pytest.approx(1e-6 / (1 + 1e-6))
+
+
+def test_covariance_stays_symmetric_positive_definite():
+    rng = np.random.default_rng(7)
+    s = initial_state(0)
+    t = 0
+    for _ in range(2000):
+        t += int(rng.integers(1, 40)) * MS
+        s = predict(s, t)
+        if rng.random() < 0.5:
+            s = update_wheels(s, rng.normal(0.3, 0.2), rng.normal(0, 1),
+                              stationary=rng.random() < 0.1)
+        else:
+            s = update_gyro(s, rng.normal(0, 1))
+        assert -math.pi <= s.mean[IYAW] < math.pi
+    np.testing.assert_array_equal(s.cov, s.cov.T)
+    assert np.linalg.eigvalsh(s.cov).min() > 0.0
+    assert not s.cov.flags.writeable and not s.mean.flags.writeable
+
+
+def test_params_reject_bad_values():
+    with pytest.raises(ValueError, match="gyro_noise_radps"):
+        EkfParams(gyro_noise_radps=0.0)
+    with pytest.raises(ValueError, match="accel_noise_mps2"):
+        EkfParams(accel_noise_mps2=float("nan"))
+
+
+# ---- the stream filter -------------------------------------------------------------------
+
+
+def test_bias_converges_at_standstill_and_heading_does_not_drift():
+    rng = np.random.default_rng(3)
+    bias = math.radians(0.25)  # 0.25 deg/s
+    f = OdometryFilter()
+    for k in range(500):  # 10 s at 50 Hz
+        stamp = k * 20 * MS
+        assert f.on_wheels(WheelTicks(stamp, 1234, 4321))
+        assert f.on_yaw_rate(YawRate(stamp, bias + rng.normal(0.0, 0.003)))
+    s = f.state
+    # 499 readings of sigma 0.003: the mean is good to ~1.3e-4 rad/s.
+    assert s.gyro_bias_radps == pytest.approx(bias, abs=4e-4)
+    assert math.sqrt(s.cov[IB, IB]) < 3e-4
+    # Integrating the raw rate would have turned the heading by bias * 10 s = 0.044 rad.
+    assert abs(f.pose().yaw_rad) < 0.003
+    assert f.counters.still_updates >= 490
+
+
+def test_standstill_readings_that_disagree_are_not_used_to_pin_the_yaw_rate():
+    """Ticks stop ~30 ms before a slowing turn does: such readings must not move the bias."""
+    rng = np.random.default_rng(5)
+    bias = math.radians(0.2)
+    f = OdometryFilter()
+    for k in range(250):  # 5 s at rest, gyro samples between the wheel packets
+        f.on_wheels(WheelTicks(k * 20 * MS, 500, 600))
+        f.on_yaw_rate(YawRate(k * 20 * MS + 10 * MS, bias + rng.normal(0.0, 0.003)))
+    f.on_wheels(WheelTicks(250 * 20 * MS, 500, 600))
+    before = f.state.gyro_bias_radps
+    for k in range(250, 253):  # no tick, but the base still turns at 0.04 rad/s
+        f.on_yaw_rate(YawRate(k * 20 * MS + 10 * MS, bias + 0.04))
+        f.on_wheels(WheelTicks((k + 1) * 20 * MS, 500, 600))
+    assert f.counters.still_rejected >= 3
+    assert abs(f.state.gyro_bias_radps - before) < 2e-5
+
+
+def _circle_motion(speed_mps: float = 0.3, radius_m: float = 1.0, laps: float = 2.0,
+                   dt_s: float = 0.002) -> Motion:
+    still, ramp = 2.0, 1.0
+    cruise = laps * 2 * math.pi * radius_m / speed_mps - ramp  # the ramps add half each
+    t = np.arange(0.0, 2 * still + 2 * ramp + cruise, dt_s)
+    up = np.clip((t - still) / ramp, 0.0, 1.0)
+    down = np.clip((2 * still + 2 * ramp + cruise - still - t) / ramp, 0.0, 1.0)
+    v = speed_mps * np.minimum(up, down)
+    return Motion.from_velocities(v, v / radius_m, dt_s)
+
+
+def test_fused_heading_beats_wheels_on_a_circle_with_wheel_base_error_and_gyro_bias():
+    motion = _circle_motion()
+    params = dataclasses.replace(
+        BaseSensorParams.ideal(), wheel_base_error_range=(0.02, 0.02),
+        gyro_bias_degps_range=(0.25, 0.25), gyro_noise_density_degps_sqrt_hz=0.03,
+        gyro_bias_walk_degps_sqrt_s=0.001)
+    stream = simulate_base(motion, params, np.random.default_rng(11))
+    f = OdometryFilter()
+    for msg in stream.messages():
+        (f.on_wheels if isinstance(msg, WheelTicks) else f.on_yaw_rate)(msg)
+    true_yaw = stream.true_pose[-1, 2]
+    wheel_err = abs(math.remainder(f.wheel_pose().yaw_rad - true_yaw, 2 * math.pi))
+    fused_err = abs(math.remainder(f.pose().yaw_rad - true_yaw, 2 * math.pi))
+    # Two laps (4 pi rad) with a 2 % wheel-base error: the wheels are off by ~0.25 rad.
+    assert wheel_err == pytest.approx(0.02 * 4 * math.pi, rel=0.1)
+    assert fused_err < wheel_err / 10
+    assert f.state.gyro_bias_radps == pytest.approx(math.radians(
+        stream.errors.gyro_bias0_degps), abs=math.radians(0.03))
+    end = stream.true_pose[-1]
+    assert math.hypot(f.pose().x_m - end[0], f.pose().y_m - end[1]) < 0.05
+
+
+def test_first_message_duplicates_and_out_of_order():
+    f = OdometryFilter(drive=ROUND)
+    assert f.latest_stamp_ns() is None
+    assert (f.pose().x_m, f.pose().yaw_rad) == (0.0, 0.0)
+    assert f.on_wheels(WheelTicks(100 * MS, 10, 20))
+    assert f.latest_stamp_ns() == 100 * MS
+    assert f.on_wheels(WheelTicks(100 * MS, 10, 20)) is False
+    assert f.counters.duplicates == 1
+    assert f.on_wheels(WheelTicks(120 * MS, 110, 120))
+    assert f.on_wheels(WheelTicks(110 * MS, 60, 70)) is False
+    assert f.counters.out_of_order == 1
+    # The dropped messages changed nothing: 100 ticks each, straight ahead.
+    assert f.wheel_pose().x_m == pytest.approx(100 * MPT)
+    # A gyro reading 10 ms behind the filter is still used (late); 50 ms behind is not.
+    assert f.on_yaw_rate(YawRate(110 * MS, 0.0))
+    assert f.counters.late == 1
+    assert f.on_yaw_rate(YawRate(70 * MS, 0.0)) is False
+    assert f.counters.out_of_order == 2
+    assert f.on_yaw_rate(YawRate(110 * MS, 0.0)) is False
+    assert f.counters.duplicates == 2
+    assert (f.counters.wheel_msgs, f.counters.yaw_msgs) == (2, 1)
+
+
+def test_a_gap_is_bridged_with_the_wheel_ticks():
+    """The base speeds up from 0.2 to 0.5 m/s during a 1 s gap in the data."""
+    f = OdometryFilter(drive=ROUND)
+    ticks, stamp = 0.0, 0
+    for _ in range(51):  # 1 s at 0.2 m/s
+        f.on_wheels(WheelTicks(stamp, round(ticks) % 65536, round(ticks) % 65536))
+        ticks += 0.2 * 0.02 / MPT
+        stamp += 20 * MS
+    ticks -= 0.2 * 0.02 / MPT
+    stamp -= 20 * MS
+    ticks += 0.35 / MPT  # 1 s accelerating from 0.2 to 0.5 m/s: 0.35 m
+    stamp += 1000 * MS
+    for _ in range(11):  # 0.2 s at 0.5 m/s
+        assert f.on_wheels(WheelTicks(stamp, round(ticks) % 65536, round(ticks) % 65536))
+        ticks += 0.5 * 0.02 / MPT
+        stamp += 20 * MS
+    assert f.counters.gaps == 1
+    # 0.2 + 0.35 + 0.1 m. Carrying the old 0.2 m/s through the gap ends ~7 cm short.
+    assert f.pose().x_m == pytest.approx(0.65, abs=0.01)
+    assert f.pose().covariance[0, 0] > 0.0
+
+
+def test_a_gap_too_long_for_the_counters_restarts_the_wheel_reference():
+    f = OdometryFilter(drive=ROUND)
+    f.on_wheels(WheelTicks(0, 0, 0))
+    f.on_wheels(WheelTicks(20 * MS, 10, 10))
+    # 30 s later the counters can have wrapped any number of times: no motion is inferred.
+    assert f.on_wheels(WheelTicks(30_020 * MS, 30000, 5000))
+    assert f.counters.resets == 1
+    assert f.wheel_pose().x_m == pytest.approx(10 * MPT)
+    assert f.on_wheels(WheelTicks(30_040 * MS, 30010, 5010))
+    assert f.wheel_pose().x_m == pytest.approx(20 * MPT)
+
+
+def test_pose_at_interpolates_and_refuses_outside_the_history():
+    f = OdometryFilter(drive=ROUND)
+    ticks = 0.0
+    for k in range(251):  # 5 s at 0.2 m/s
+        n = round(ticks)
+        f.on_wheels(WheelTicks(k * 20 * MS, n % 65536, n % 65536))
+        ticks += 0.2 * 0.02 / MPT
+    latest = f.latest_stamp_ns()
+    assert latest == 5000 * MS
+    a, b = f.pose_at(latest - 20 * MS), f.pose_at(latest)
+    mid = f.pose_at(latest - 5 * MS)
+    assert mid.x_m == pytest.approx(0.25 * a.x_m + 0.75 * b.x_m)
+    assert mid.stamp_ns == latest - 5 * MS
+    np.testing.assert_allclose(mid.covariance, 0.25 * a.covariance + 0.75 * b.covariance)
+    assert b.x_m == pytest.approx(f.pose().x_m)
+    assert f.pose_at(latest + 1) is None
+    assert f.pose_at(0) is None  # older than the ~2 s history
+
+
+def test_pose_at_interpolates_yaw_across_pi():
+    f = OdometryFilter(drive=ROUND, initial_pose=(0.0, 0.0, 3.0))
+    per_step = 16  # ticks per wheel per 20 ms: 2*16*MPT/0.5 = 0.0201 rad
+    crossing = None
+    for k in range(40):
+        n = k * per_step
+        f.on_wheels(WheelTicks(k * 20 * MS, (-n) % 65536, n % 65536))
+        if k and crossing is None and f.pose().yaw_rad < 0 < f.pose_at((k - 1) * 20 * MS).yaw_rad:
+            crossing = k
+    assert crossing is not None
+    before = f.pose_at((crossing - 1) * 20 * MS).yaw_rad
+    after = f.pose_at(crossing * 20 * MS).yaw_rad
+    mid = f.pose_at((crossing - 1) * 20 * MS + 10 * MS).yaw_rad
+    assert before > 3.0 and after < -3.0
+    assert abs(mid) > 3.0  # along the short arc through pi, not through 0

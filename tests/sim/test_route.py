@@ -1,0 +1,158 @@
+"""Routes and the planned true motion: lengths, limits, closure, revisits, interpolation."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from robotd.errors import ConfigError
+from robotd.sim.route import ROUTES, Motion, MotionLimits, Route, build_route, plan_motion
+
+LIMITS = MotionLimits()
+
+
+@pytest.fixture(scope="module")
+def motions() -> dict[str, Motion]:
+    return {name: plan_motion(build_route(name), LIMITS) for name in ROUTES}
+
+
+def test_every_route_has_a_description_and_the_expected_names():
+    assert set(ROUTES) == {"office", "square", "figure8", "straight", "corridor"}
+    for name, entry in ROUTES.items():
+        assert entry.description and "\n" not in entry.description
+        assert entry.build().name == name
+
+
+@pytest.mark.parametrize("name, length_m",
+                         [("square", 16.0), ("straight", 10.0), ("corridor", 16.0)])
+def test_routes_with_turns_in_place_drive_exactly_their_polyline(motions, name, length_m):
+    assert build_route(name).polyline_length_m == pytest.approx(length_m)
+    assert motions[name].length_m == pytest.approx(length_m, abs=1e-6)
+
+
+def test_rounded_corners_shorten_the_path(motions):
+    office = build_route("office")
+    # 4 corridor sides of 10 and 6 m twice, two rooms of 4 x 3.5 m, the west loop 22 m.
+    assert office.polyline_length_m == pytest.approx(114.0)
+    assert 105.0 < motions["office"].length_m < office.polyline_length_m
+    fig8 = build_route("figure8")
+    assert fig8.polyline_length_m == pytest.approx(4 * math.sqrt(8) + 2 * (2 + 4 + 2))
+    assert 0.9 * fig8.polyline_length_m < motions["figure8"].length_m < fig8.polyline_length_m
+
+
+def test_square_takes_the_trapezoid_times(motions):
+    # Each 2 m side: 1 s up to 0.5 m/s (0.25 m), 3 s cruising, 1 s down. Each 90 deg turn:
+    # 0.75 s up to 1.5 rad/s, (pi/2 - 1.125)/1.5 s cruising, 0.75 s down. Plus 2 x 2 s still.
+    turn = 1.5 + (math.pi / 2 - 1.5 ** 2 / 2.0) / 1.5
+    assert motions["square"].duration_s == pytest.approx(4.0 + 8 * 5.0 + 7 * turn, abs=0.003)
+
+
+@pytest.mark.parametrize("name", sorted(ROUTES))
+def test_motion_stays_within_the_limits(motions, name):
+    m = motions[name]
+    dt = m.dt_s
+    assert np.all(m.v_mps >= -1e-12)
+    assert np.max(m.v_mps) <= LIMITS.v_max_mps + 1e-9
+    assert np.max(np.abs(m.w_radps)) <= LIMITS.w_max_radps + 1e-9
+    assert np.max(np.abs(np.diff(m.v_mps[:-1]))) / dt <= LIMITS.a_max_mps2 * 1.001
+    assert np.max(np.abs(np.diff(m.w_radps[:-1]))) / dt <= LIMITS.alpha_max_radps2 * 1.001
+    # Driven at the limits somewhere (the planner is not needlessly slow).
+    assert np.max(m.v_mps) == pytest.approx(LIMITS.v_max_mps, rel=1e-6)
+
+
+@pytest.mark.parametrize("name", sorted(ROUTES))
+def test_standstill_at_both_ends(motions, name):
+    m = motions[name]
+    still = m.t_s < 2.0 - 1e-9
+    assert np.all(m.v_mps[still] == 0.0) and np.all(m.w_radps[still] == 0.0)
+    end = m.t_s > m.t_s[-1] - 2.0 + m.dt_s
+    assert np.all(np.abs(m.v_mps[end]) < 1e-12) and np.all(np.abs(m.w_radps[end]) < 1e-12)
+    assert m.v_mps[-1] == 0.0 and m.w_radps[-1] == 0.0
+
+
+@pytest.mark.parametrize("name, end_xy", [("office", (0.0, 0.0)), ("square", (0.0, 0.0)),
+                                           ("figure8", (0.0, 0.0)), ("corridor", (0.0, 0.0)),
+                                           ("straight", (10.0, 0.0))])
+def test_routes_end_where_they_should(motions, name, end_xy):
+    m = motions[name]
+    start = build_route(name).points()[0]
+    assert (m.x_m[0], m.y_m[0]) == pytest.approx(tuple(start))
+    assert math.hypot(m.x_m[-1] - end_xy[0], m.y_m[-1] - end_xy[1]) < 0.01
+
+
+@pytest.mark.parametrize("name", sorted(ROUTES))
+def test_path_stays_inside_the_documented_bounds(motions, name):
+    x0, y0, x1, y1 = build_route(name).bounds_m()
+    m = motions[name]
+    assert m.x_m.min() >= x0 - 1e-6 and m.x_m.max() <= x1 + 1e-6
+    assert m.y_m.min() >= y0 - 1e-6 and m.y_m.max() <= y1 + 1e-6
+    assert build_route(name).bounds_m(margin_m=1.0) == (x0 - 1, y0 - 1, x1 + 1, y1 + 1)
+
+
+def test_office_bounds_fit_a_10_by_8_m_area():
+    x0, y0, x1, y1 = build_route("office").bounds_m(margin_m=1.0)
+    assert (x1 - x0, y1 - y0) == (12.0, 8.0)
+
+
+def test_office_revisits_places_in_both_directions(motions):
+    m = motions["office"]
+    s = np.concatenate([[0.0], np.cumsum(m.v_mps[:-1] * m.dt_s)])
+    idx = np.searchsorted(s, np.arange(0.0, s[-1], 0.1))  # a pose every 10 cm of travel
+    xy = np.stack([m.x_m[idx], m.y_m[idx]], axis=1)
+    yaw, dist = m.yaw_rad[idx], s[idx]
+    near = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1)) < 0.05
+    later = dist[None, :] - dist[:, None] > 5.0  # the same place, >5 m of travel later
+    i, j = np.nonzero(near & later)
+    diff = np.abs(np.remainder(yaw[j] - yaw[i] + math.pi, 2 * math.pi) - math.pi)
+    assert np.sum(diff > math.radians(170)) > 100  # driven the other way
+    assert np.sum(diff < math.radians(10)) > 100   # driven the same way again
+    # Both loops (corridor: y = 6, room: x = 3.5) are revisited the other way.
+    opposite = diff > math.radians(170)
+    assert np.any(opposite & (np.abs(xy[i, 1] - 6.0) < 0.01))
+    assert np.any(opposite & (np.abs(xy[i, 0] - 3.5) < 0.01))
+
+
+def test_from_velocities_integrates_a_circle_exactly():
+    dt = 0.01
+    n = round(2 * math.pi / dt)
+    m = Motion.from_velocities(np.full(n, 1.0), np.full(n, 1.0), dt, (0.0, 0.0, 0.0))
+    t = m.t_s
+    np.testing.assert_allclose(m.x_m, np.sin(t), atol=1e-12)
+    np.testing.assert_allclose(m.y_m, 1.0 - np.cos(t), atol=1e-12)
+    # Between samples too: the step's arc, not a straight line.
+    p = m.pose_at(0.123)
+    np.testing.assert_allclose(p, [math.sin(0.123), 1 - math.cos(0.123), 0.123], atol=1e-12)
+    assert m.length_m == pytest.approx(n * dt)
+
+
+def test_pose_at_moves_yaw_along_the_circle_through_pi():
+    # Turning in place at 1 rad/s from yaw 3.1: pi is passed at t = 0.0416 s.
+    m = Motion.from_velocities(np.zeros(10), np.ones(10), 0.01, (0.0, 0.0, 3.1))
+    yaw = m.pose_at(0.045)[2]
+    assert yaw == pytest.approx(3.145 - 2 * math.pi)
+    poses = m.poses_at(np.array([0.0, 0.035, 0.2]))
+    assert poses.shape == (3, 3)
+    assert poses[1, 2] == pytest.approx(3.135)
+    assert poses[2, 2] == pytest.approx(3.2 - 2 * math.pi)  # clamped at the end
+
+
+def test_truncated_and_velocity_at(motions):
+    m = motions["straight"]
+    short = m.truncated(5.0)
+    assert short.t_s[-1] == pytest.approx(5.0)
+    # 2 s still, then 1 s of 0.5 m/s^2 to 0.5 m/s (0.25 m) and 2 s cruising (1.0 m).
+    assert short.x_m[-1] == pytest.approx(1.25, abs=1e-6)
+    assert m.velocity_at(2.5) == pytest.approx((0.25, 0.0), abs=0.002)
+    assert m.velocity_at(10.0) == pytest.approx((0.5, 0.0), abs=1e-9)
+    assert m.velocity_at(-1.0) == (0.0, 0.0)
+
+
+def test_unknown_route_and_bad_routes_are_errors():
+    with pytest.raises(ConfigError, match="unknown route 'moon'"):
+        build_route("moon")
+    with pytest.raises(ValueError, match="corner"):
+        Route("x", ((0, 0), (1, 0)), corner="spline")
+    with pytest.raises(ValueError, match="too short"):
+        plan_motion(Route("tight", ((0, 0), (0.5, 0), (0.5, 0.5)), corner="arc"))
