@@ -22,3 +22,7 @@ class CalibrationError(RobotdError):
 
 class MapStoreError(RobotdError):
     """The map file cannot be opened, is damaged, or has an incompatible schema."""
+
+
+class DescriptorError(RobotdError):
+    """Descriptor bytes are corrupt, truncated, of an unknown version, or of a bad mode."""

@@ -1,0 +1,1 @@
+"""The floor loop detector (paper 003): compact descriptors, matching, the map index."""
