@@ -99,7 +99,9 @@ def _cmd_config_default(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=(args.log_level or "info").upper(),
+    # The demo shows its own progress line; its log is warnings only unless asked.
+    default_level = "warning" if args.command == "demo" else "info"
+    logging.basicConfig(level=(args.log_level or default_level).upper(),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         return int(args.func(args) or 0)
