@@ -104,6 +104,18 @@ class KeyframeConfig:
 
 
 @dataclass(frozen=True)
+class FloorDetectorConfig:
+    """Compact floor descriptors of every keyframe and the map query (paper 003)."""
+
+    enabled: bool = _f(True, "describe keyframes and query the map for look-alikes")
+    mode: int = _f(4, "descriptor mode: 1..6 = at most 512 B, 1, 2, 4, 8, 16 kB per image", lo=1, hi=6)
+    candidates: int = _f(5, "candidates returned per query", lo=1, hi=100)
+    shortlist: int = _f(30, "keyframes scored locally per query (after the global shortlist)",
+                        lo=1, hi=100_000)
+    exclude_recent_s: float = _f(20.0, "keyframes younger than this are not candidates", lo=0.0, hi=1e6)
+
+
+@dataclass(frozen=True)
 class MapConfig:
     """The SQLite map file."""
 
@@ -127,6 +139,7 @@ class Config:
     floor_camera: FloorCameraConfig = field(default_factory=FloorCameraConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    floor_detector: FloorDetectorConfig = field(default_factory=FloorDetectorConfig)
     map: MapConfig = field(default_factory=MapConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
 

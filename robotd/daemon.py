@@ -180,6 +180,8 @@ class PipelineObserver(Protocol):
 
     def on_keyframe(self, keyframe_id: int, frame: Frame, pose: PoseStamped) -> None: ...
 
+    def on_floor_query(self, query: Any) -> None: ...
+
 
 @dataclass
 class PipelineCounters:
@@ -192,6 +194,8 @@ class PipelineCounters:
     frames_unsynced: int = 0
     frames_without_odometry: int = 0
     odometry_rejected: int = 0
+    floor_queries: int = 0
+    floor_candidates: int = 0
 
 
 class Pipeline:
@@ -203,7 +207,7 @@ class Pipeline:
     """
 
     def __init__(self, config: Config, clock: Clock, odometry: Any, store: Any, run_id: int,
-                 observers: list[PipelineObserver] | None = None) -> None:
+                 observers: list[PipelineObserver] | None = None, floor: Any = None) -> None:
         kf = config.keyframes
         self.config = config
         self.clock = clock
@@ -215,6 +219,7 @@ class Pipeline:
         self.pending: collections.deque[Frame] = collections.deque()
         self.counters = PipelineCounters()
         self.has_base = config.base.driver != "none"
+        self.floor = floor  # a FloorLoopDetector, or None
         self._max_wait_ns = int(kf.max_sync_wait_s * 1e9)
 
     def on_base(self, msg: WheelTicks | YawRate) -> None:
@@ -269,12 +274,23 @@ class Pipeline:
         if not self.selector.offer(xyyaw):
             return
         image = downsample(frame.image, self.config.keyframes.image_width_px)
+        descriptor = mode = None
+        if self.floor is not None:
+            descriptor = self.floor.describe(frame.image)
+            mode = self.floor.params.mode
         kf_id = self.store.add_keyframe(
             self.run_id, frame.stamp_ns, xyyaw, pose.covariance, image,
+            descriptor=descriptor, descriptor_mode=mode,
         )
         self.counters.keyframes += 1
         for o in self.observers:
             o.on_keyframe(kf_id, frame, pose)
+        if descriptor is not None:
+            query = self.floor.query_and_add(kf_id, frame.stamp_ns, descriptor)
+            self.counters.floor_queries += 1
+            self.counters.floor_candidates += len(query.candidates)
+            for o in self.observers:
+                o.on_floor_query(query)
 
 
 def downsample(image: np.ndarray, width_px: int) -> np.ndarray | None:
@@ -315,7 +331,8 @@ class Daemon:
     def __init__(self, config: Config, clock: Clock, sources: dict[str, tuple[Source, Any]],
                  odometry: Any, store: Any, notifier: Any, *, lossless: bool = False,
                  observers: list[PipelineObserver] | None = None,
-                 driver_stats: Callable[[], dict[str, Any]] | None = None) -> None:
+                 driver_stats: Callable[[], dict[str, Any]] | None = None,
+                 floor: Any = None) -> None:
         self.config = config
         self.clock = clock
         self.store = store
@@ -323,7 +340,7 @@ class Daemon:
         self.stop_event = threading.Event()
         self.wakeup = threading.Event()
         self.run_id = store.begin_run(to_toml(config))
-        self.pipeline = Pipeline(config, clock, odometry, store, self.run_id, observers)
+        self.pipeline = Pipeline(config, clock, odometry, store, self.run_id, observers, floor)
         self.driver_stats = driver_stats or (lambda: {})
         self.queues: dict[str, SourceQueue] = {}
         self.threads: dict[str, SourceThread] = {}

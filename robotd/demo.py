@@ -72,6 +72,9 @@ class _Recorder:
         self.fused = TumWriter(out / "fused.tum")
         self.wheel = TumWriter(out / "wheel.tum")
         self.keyframe_poses: list[tuple[float, float]] = []
+        self.keyframe_ids: list[int] = []
+        self.keyframe_stamps: list[int] = []
+        self.queries: list[tuple[int, list[tuple[int, float, float, int]]]] = []
 
     def on_odometry(self, fused: Any, wheel: Any) -> None:
         self.fused.write(fused.stamp_ns, fused.x_m, fused.y_m, fused.yaw_rad)
@@ -79,6 +82,13 @@ class _Recorder:
 
     def on_keyframe(self, keyframe_id: int, frame: Any, pose: Any) -> None:
         self.keyframe_poses.append((pose.x_m, pose.y_m))
+        self.keyframe_ids.append(keyframe_id)
+        self.keyframe_stamps.append(frame.stamp_ns)
+
+    def on_floor_query(self, query: Any) -> None:
+        self.queries.append((query.keyframe_id, [
+            (c.keyframe_id, float(c.local.score), float(c.global_score), int(c.local.n_inliers))
+            for c in query.candidates]))
 
     def close(self) -> None:
         self.fused.close()
@@ -126,7 +136,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     from robotd.floorcam import FloorCameraModel
     from robotd.notify import Notifier
     from robotd.odometry.ekf import OdometryFilter
-    from robotd.service import build_odometry
+    from robotd.service import build_floor_detector, build_odometry
     from robotd.sim.robot import VirtualRobot, VirtualRobotSettings
     from robotd.store import MapStore
     from robotd.trajectory import read_tum, trajectory_errors
@@ -157,7 +167,8 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
         odometry: OdometryFilter = build_odometry(cfg)
         daemon = Daemon(cfg, clock, {"base": (driver, None), "floor": (robot.camera, None)},
                         odometry, store, Notifier(), lossless=not realtime, observers=[recorder],
-                        driver_stats=lambda: {"kobuki": driver.stats.as_dict()})
+                        driver_stats=lambda: {"kobuki": driver.stats.as_dict()},
+                        floor=build_floor_detector(cfg, store))
         robot.start()
 
         def finished() -> bool:
@@ -202,6 +213,9 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
         "wheel_only": err_wheel.as_dict(), "fused": err_fused.as_dict(),
         "stopped_by": report.stopped_by,
     }
+    if cfg.floor_detector.enabled and recorder.keyframe_ids:
+        summary["floor_detector"] = floor_summary(cfg, cam_model, robot.motion, recorder,
+                                                  out if plot else None)
     summary["ok"] = bool(c.frames == robot.frames_emitted and keyframes_stored == c.keyframes)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     if plot:
@@ -218,6 +232,45 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
                           keyframes_xy=kf,
                           title=f"robotd demo: route {route}, {err_fused.distance_m:.0f} m")
     return summary
+
+
+def floor_summary(cfg: Any, camera: Any, motion: Any, recorder: _Recorder,
+                  out: Path | None) -> dict[str, Any]:
+    """The map queries' candidates judged by ground-truth footprint overlap."""
+    import numpy as np
+
+    from robotd.floor.evaluation import candidate_report, overlap_matrix
+
+    ids = np.asarray(recorder.keyframe_ids)
+    stamps = np.asarray(recorder.keyframe_stamps, dtype=np.int64)
+    row = {int(k): i for i, k in enumerate(ids)}
+    truth = motion.pose_at(stamps / 1e9)
+    overlap = overlap_matrix(camera, truth)
+    queries = [(row[q], [(row[c], s) for c, s, _g, _n in cs]) for q, cs in recorder.queries]
+    rep = candidate_report(overlap, stamps, queries, cfg.floor_detector.exclude_recent_s)
+    best = sorted(rep.candidates, key=lambda c: -c.local_score)[:10]
+    scores = np.array([c.local_score for c in rep.candidates]) if rep.candidates else np.zeros(0)
+    levels = sorted({float(np.quantile(scores, q)) for q in (0.5, 0.9, 0.99)}) if len(scores) else []
+    d: dict[str, Any] = {
+        "mode": cfg.floor_detector.mode, "queries": rep.queries,
+        "candidates_returned": len(rep.candidates),
+        "queries_with_true_revisit": rep.queries_with_true_loop,
+        "revisits_found_among_candidates": rep.found,
+        "recall_of_candidates": rep.recall,
+        "top1_true_overlap": rep.top1_true, "top1_total": rep.top1_total,
+        "top1_precision_above_score": {f"{lv:.2f}": rep.precision_above(lv) for lv in levels},
+        "best_candidates": [{"query_keyframe": int(ids[c.query]), "candidate_keyframe": int(ids[c.candidate]),
+                             "local_score": c.local_score, "true_overlap_J": c.overlap} for c in best],
+    }
+    if out is not None:
+        from robotd.plots import plot_similarity
+
+        score_m = np.full(overlap.shape, np.nan, np.float32)
+        for c in rep.candidates:
+            score_m[c.query, c.candidate] = c.local_score
+        plot_similarity(out / "similarity.png", overlap, score_m, stamps,
+                        cfg.floor_detector.exclude_recent_s, mode=cfg.floor_detector.mode)
+    return d
 
 
 def print_summary(s: dict[str, Any], f: Any) -> None:
@@ -244,3 +297,17 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
         ("end drift per 100 m (m)", "end_drift_per_100m_m", "{:.3f}"),
     ):
         print(f"{label:<26}{fmt.format(w[key]):>12}{fmt.format(fu[key]):>12}", file=f)
+    fd = s.get("floor_detector")
+    if fd:
+        print(file=f)
+        print(f"floor loop candidates (mode {fd['mode']}): {fd['queries']} map queries, "
+              f"{fd['candidates_returned']} candidates", file=f)
+        print(f"  revisits (true overlap J >= 0.33 with an older keyframe): {fd['queries_with_true_revisit']}, "
+              f"found among the candidates: {fd['revisits_found_among_candidates']}", file=f)
+        print(f"  top candidate truly overlapping: {fd['top1_true_overlap']} of {fd['top1_total']}", file=f)
+        for lv, (t, n) in fd["top1_precision_above_score"].items():
+            print(f"  top candidates with local score >= {lv}: {t} of {n} truly overlapping", file=f)
+        print(f"  {'query':>7} {'candidate':>9} {'local score':>11} {'true J':>7}", file=f)
+        for b in fd["best_candidates"]:
+            print(f"  {b['query_keyframe']:>7} {b['candidate_keyframe']:>9} {b['local_score']:>11.2f} "
+                  f"{b['true_overlap_J']:>7.2f}", file=f)

@@ -56,3 +56,41 @@ def plot_trajectories(path: Path, floor: Any, truth: np.ndarray, estimates: dict
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def plot_similarity(path: Path, overlap: np.ndarray, scores: np.ndarray, stamps_ns: np.ndarray,
+                    exclude_recent_s: float, mode: int) -> None:
+    """Ground-truth overlap J of every keyframe pair beside the local scores of the
+    candidates the map queries returned (paper 003 Fig. 2 style, lower triangle).
+
+    ``overlap`` and ``scores`` are ``(N, N)``; ``scores`` is NaN where a pair was not a
+    candidate. Pairs inside the recent-keyframe exclusion window are shaded.
+    """
+    import matplotlib.pyplot as plt
+
+    n = len(overlap)
+    lower = np.tril(np.ones((n, n), bool), -1)
+    t = np.asarray(stamps_ns) / 1e9
+    recent = lower & ((t[:, None] - t[None, :]) < exclude_recent_s)
+    fig, axes = _figure((13.0, 6.2))
+    fig.clf()
+    ax1, ax2 = fig.subplots(1, 2)
+    j = np.where(lower, overlap, np.nan)
+    im1 = ax1.imshow(j, cmap="viridis", vmin=0, vmax=1, interpolation="nearest")
+    ax1.set_title("ground-truth footprint overlap J")
+    fig.colorbar(im1, ax=ax1, fraction=0.046)
+    ax2.imshow(np.where(recent, 0.15, np.nan), cmap="gray", vmin=0, vmax=1, interpolation="nearest")
+    qi, ci = np.nonzero(np.isfinite(scores))
+    sc = ax2.scatter(ci, qi, c=scores[qi, ci], s=4, cmap="viridis", marker="s")
+    ax2.set_xlim(-0.5, n - 0.5)
+    ax2.set_ylim(n - 0.5, -0.5)
+    ax2.set_aspect("equal")
+    ax2.set_title(f"local score of the returned candidates (mode {mode})\n"
+                  f"grey: the last {exclude_recent_s:.0f} s, never queried")
+    fig.colorbar(sc, ax=ax2, fraction=0.046)
+    for ax in (ax1, ax2):
+        ax.set_xlabel("earlier keyframe j")
+        ax.set_ylabel("keyframe i")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

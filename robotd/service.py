@@ -41,6 +41,18 @@ def build_odometry(cfg: Config) -> Any:
     return OdometryFilter(drive, params)
 
 
+def build_floor_detector(cfg: Config, store: Any) -> Any:
+    """The floor loop detector with its index rebuilt from the map, or None if disabled."""
+    if not cfg.floor_detector.enabled or cfg.floor_camera.source == "none":
+        return None
+    from robotd.floor.detector import FloorDetectorParams, FloorLoopDetector
+
+    f = cfg.floor_detector
+    params = FloorDetectorParams(mode=f.mode, candidates=f.candidates, shortlist=f.shortlist,
+                                 exclude_recent_s=f.exclude_recent_s)
+    return FloorLoopDetector.from_store(store, params)
+
+
 def open_sources(cfg: Config, clock: Clock) -> dict[str, tuple[Any, Callable[[], Any]]]:
     """Open every driver the config enables: name -> (open driver, function to reopen it)."""
     from drivers.camera import V4L2Camera
@@ -88,7 +100,8 @@ def run_service(cfg: Config) -> int:
                 log.warning("no sources enabled: the daemon will only keep the map open")
             daemon = Daemon(cfg, clock, sources, build_odometry(cfg), store, notifier,
                             lossless=False,
-                            driver_stats=lambda: {n: _stats(d) for n, (d, _) in sources.items()})
+                            driver_stats=lambda: {n: _stats(d) for n, (d, _) in sources.items()},
+                            floor=build_floor_detector(cfg, store))
             report = daemon.run()
         finally:
             for drv, _ in sources.values():
