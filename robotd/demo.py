@@ -31,6 +31,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--floor", action="append", type=Path, metavar="FILE", default=None,
                    help="floor photograph(s) to build the floor from (repeat for several; "
                         "default: the scikit-image brick, grass and gravel photographs)")
+    p.add_argument("--floor-pattern", choices=("planks", "tiles"), default=None,
+                   help="a regular printed floor instead: planks or tiles whose few prints "
+                        "repeat (the paper's worst case; the print is --floor's photo or gravel)")
     p.add_argument("--floor-scale", type=float, default=0.001, metavar="M_PER_PX",
                    help="size of one floor-photo pixel in metres (default 0.001)")
     p.add_argument("--duration", type=float, default=None, metavar="S",
@@ -57,7 +60,8 @@ def run_from_args(args: argparse.Namespace) -> int:
     base_cfg = load_config(args.config) if args.config else Config()
     summary = run_demo(base_cfg, out=args.out, route=args.route,
                        floor_files=tuple(str(f) for f in args.floor or ()),
-                       floor_scale=args.floor_scale, duration_s=args.duration, seed=args.seed,
+                       floor_scale=args.floor_scale, floor_pattern=args.floor_pattern,
+                       duration_s=args.duration, seed=args.seed,
                        realtime=args.realtime, plot=not args.no_plot)
     print_summary(summary, sys.stdout)
     return 0 if summary["ok"] else 1
@@ -124,7 +128,8 @@ class _Progress:
 
 
 def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tuple[str, ...] = (),
-             floor_scale: float = 0.001, duration_s: float | None = None, seed: int = 0,
+             floor_scale: float = 0.001, floor_pattern: str | None = None,
+             duration_s: float | None = None, seed: int = 0,
              realtime: bool = False, plot: bool = True) -> dict[str, Any]:
     """Run the daemon on the virtual robot; returns the summary (also written as JSON)."""
     import numpy as np
@@ -152,6 +157,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     cam_model = FloorCameraModel.from_config(base_cfg.floor_camera)
     settings = VirtualRobotSettings(route=route, seed=seed, duration_s=duration_s, realtime=realtime,
                                     floor_files=floor_files, floor_metres_per_px=floor_scale,
+                                    floor_pattern=floor_pattern,
                                     camera_fps=base_cfg.floor_camera.fps)
     wall0 = time.monotonic()
     robot = VirtualRobot(settings, cam_model, clock)
@@ -199,7 +205,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     c = report.counters
     kob = report.driver_stats.get("kobuki", {})
     summary: dict[str, Any] = {
-        "route": route, "seed": seed, "floor": list(floor_files) or ["skimage:brick,grass,gravel"],
+        "route": route, "seed": seed, "floor": list(floor_files) or ["skimage:brick,grass,gravel"], "floor_pattern": floor_pattern,
         "robot_time_s": robot.duration_s, "wall_time_s": wall_s,
         "real_time_factor": robot.duration_s / wall_s if wall_s > 0 else None,
         "distance_m": err_fused.distance_m,

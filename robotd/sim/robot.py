@@ -54,8 +54,16 @@ class VirtualRobotSettings:
     realtime: bool = False
     floor_files: tuple[str, ...] = ()
     floor_metres_per_px: float = 0.001
+    floor_pattern: str | None = None
     camera_fps: float = 30.0
     camera_queue_size: int = 4
+
+
+def _default_print_photo() -> "np.ndarray":
+    """The photo printed on pattern floors by default: scikit-image's gravel."""
+    import skimage.data
+
+    return skimage.data.gravel()
 
 
 class VirtualCamera:
@@ -113,7 +121,16 @@ class VirtualRobot:
         if settings.duration_s is not None:
             self.motion = self.motion.truncated(settings.duration_s)
         self.base = simulate_base(self.motion, sensor_params or BaseSensorParams(), rng)
-        if settings.floor_files:
+        if settings.floor_pattern is not None:
+            from robotd.sim.floor import load_floor_photo
+            from robotd.sim.pattern import PatternFloor, PatternParams
+
+            photo = (load_floor_photo(settings.floor_files[0]) if settings.floor_files
+                     else _default_print_photo())
+            params = (PatternParams(kind="tiles", width_m=0.3) if settings.floor_pattern == "tiles"
+                      else PatternParams(kind="planks"))
+            self.floor = PatternFloor(photo, params, settings.floor_metres_per_px, settings.seed)
+        elif settings.floor_files:
             self.floor = Floor.from_photos(list(settings.floor_files),
                                            metres_per_px=settings.floor_metres_per_px,
                                            seed=settings.seed)

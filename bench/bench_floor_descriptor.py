@@ -1,0 +1,223 @@
+"""Compact floor descriptor against OpenCV SIFT: extraction time, size, matching time.
+
+Paper 003 Sec. IV-B on our descriptor (modes 1-6) and on OpenCV SIFT, same frames, same
+run, one thread (``cv2.setNumThreads(1)``):
+
+* Table I: extraction time per 640x480 frame, per mode and SIFT, per floor, and the ratio
+  SIFT / ours (target: >= 10x in every mode);
+* Fig. 4: local features per frame and bytes per frame per mode, with the share of the
+  mode's byte budget used (target: never above it, >= 85 % used on textured floors);
+  SIFT's size as ``features x 128`` float32 (OpenCV's output) and as uint8;
+* Table II: matching time per frame pair (``local_score`` on decoded descriptors; SIFT:
+  2-NN ratio test and RANSAC) and the ratio SIFT / ours (target: >= 50x). Pairs are the
+  consecutive frames of the run and as many random pairs of frames of it.
+
+Frames: a straight run of ``--frames`` frames 5 cm apart on each floor (gravel, grass,
+brick, the herringbone photo, the default mixed floor, and every ``--floor FILE``).
+Times are the median over frames (or pairs) of each item's median over ``--repeats``
+timed calls after a warm-up; the spread is the interquartile range over items.
+
+Run from the repo root: ``.venv/bin/python bench/bench_floor_descriptor.py [--out DIR]``.
+Writes ``DIR/floor_descriptor.json`` and ``DIR/floor_descriptor_features.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+try:
+    from bench.common import print_table, write_json
+    from bench.floor_common import (MODES, SiftBaseline, add_common_args, bench_floors, header,
+                                    log, pyplot, r, time_each)
+except ImportError:  # run as a script: bench/ is on sys.path
+    from common import print_table, write_json
+    from floor_common import (MODES, SiftBaseline, add_common_args, bench_floors, header, log,
+                              pyplot, r, time_each)
+
+from robotd.floor.descriptor import MODE_BYTES, decode, extract
+from robotd.floor.match import local_score
+from robotd.floorcam import FloorCameraModel
+from robotd.sim.pairs import straight_run
+
+SPACING_M = 0.05
+
+
+def bench_floor(name: str, floor: object, args: argparse.Namespace, sift: SiftBaseline) -> dict:
+    """Every measurement for one floor."""
+    cam = FloorCameraModel.default()
+    rng = np.random.default_rng(args.seed)
+    _, images = straight_run(floor, cam, rng, (0.0, 0.0, 0.0), (args.frames - 1) * SPACING_M, SPACING_M)
+    n = len(images)
+    consecutive = [(i, i + 1) for i in range(n - 1)]
+    random_pairs = []
+    while len(random_pairs) < n - 1:
+        i, j = (int(v) for v in rng.choice(n, 2, replace=False))
+        random_pairs.append((i, j))
+    pairs = consecutive + random_pairs
+    out: dict = {"floor": name, "frames": n, "pairs": {"consecutive": len(consecutive), "random": len(random_pairs)},
+                 "modes": {}}
+
+    for mode in MODES:
+        log(f"  {name}: mode {mode}")
+        t_ext = time_each(lambda im: extract(im, mode), images, args.repeats, warmup=2)
+        blobs = [extract(im, mode) for im in images]
+        t_dec = time_each(decode, blobs, args.repeats, warmup=2)
+        decs = [decode(b) for b in blobs]
+        sizes = np.array([len(b) for b in blobs])
+        feats = np.array([len(d.xy_px) for d in decs])
+        t_match = time_each(lambda p: local_score(decs[p[0]], decs[p[1]]), pairs, args.repeats, warmup=2)
+        scores = np.array([local_score(decs[i], decs[j]).score for i, j in pairs], float)
+        budget = MODE_BYTES[mode]
+        out["modes"][str(mode)] = {
+            "extract": t_ext, "decode": t_dec, "match": t_match,
+            "features_mean": float(feats.mean()), "features_min": int(feats.min()), "features_max": int(feats.max()),
+            "bytes_mean": float(sizes.mean()), "bytes_min": int(sizes.min()), "bytes_max": int(sizes.max()),
+            "budget_bytes": int(budget), "budget_used_mean": float(sizes.mean() / budget),
+            "budget_used_min": float(sizes.min() / budget), "over_budget_frames": int((sizes > budget).sum()),
+            "score_consecutive_mean": float(scores[: len(consecutive)].mean()),
+            "score_random_mean": float(scores[len(consecutive):].mean()),
+        }
+
+    log(f"  {name}: SIFT")
+    t_ext = time_each(sift.extract, images, args.sift_repeats, warmup=1)
+    feats = [sift.extract(im) for im in images]
+    t_match = time_each(lambda p: sift.match(feats[p[0]], feats[p[1]]), pairs, args.sift_repeats, warmup=1)
+    nf = np.array([len(f) for f in feats])
+    scores = np.array([sift.match(feats[i], feats[j]).score for i, j in pairs], float)
+    out["sift"] = {
+        "extract": t_ext, "match": t_match,
+        "features_mean": float(nf.mean()), "features_min": int(nf.min()), "features_max": int(nf.max()),
+        "bytes_float32_mean": float(nf.mean() * 128 * 4), "bytes_uint8_mean": float(nf.mean() * 128),
+        "score_consecutive_mean": float(scores[: len(consecutive)].mean()),
+        "score_random_mean": float(scores[len(consecutive):].mean()),
+    }
+    for mode in MODES:
+        m = out["modes"][str(mode)]
+        m["extract_ratio_sift"] = t_ext["median_ms"] / m["extract"]["median_ms"]
+        m["match_ratio_sift"] = t_match["median_ms"] / m["match"]["median_ms"]
+        m["bytes_ratio_sift_uint8"] = out["sift"]["bytes_uint8_mean"] / m["bytes_mean"]
+    return out
+
+
+def plot_features(results: list[dict], path: Path) -> None:
+    """Paper Fig. 4: local features per frame, per mode (bars) and floor (groups); SIFT in
+    the title of each group's panel since it is 10-100x more."""
+    plt = pyplot()
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 4.5), dpi=110)
+    width = 0.8 / len(MODES)
+    x = np.arange(len(results))
+    for k, mode in enumerate(MODES):
+        ax.bar(x + (k - 2.5) * width, [res["modes"][str(mode)]["features_mean"] for res in results],
+               width, label=f"mode {mode}")
+        ax2.bar(x + (k - 2.5) * width, [100 * res["modes"][str(mode)]["budget_used_mean"] for res in results],
+                width, label=f"mode {mode}")
+    labels = [f"{res['floor']}\n(SIFT {res['sift']['features_mean']:.0f})" for res in results]
+    ax.set_xticks(x, labels)
+    ax.set_ylabel("local features per frame (mean)")
+    ax.set_title("Local features per 640x480 frame (paper 003 Fig. 4)")
+    ax.legend(fontsize=8, ncol=2)
+    ax2.set_xticks(x, [res["floor"] for res in results])
+    ax2.axhline(85, color="k", ls="--", lw=1)
+    ax2.axhline(100, color="r", lw=1)
+    ax2.set_ylim(0, 110)
+    ax2.set_ylabel("bytes used, % of the mode's bound")
+    ax2.set_title("Descriptor size against its bound (dashed: 85 %)")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_common_args(ap)
+    ap.add_argument("--frames", type=int, default=30, help="frames per floor, 5 cm apart (default 30)")
+    ap.add_argument("--repeats", type=int, default=3, help="timed calls per frame or pair, ours (default 3)")
+    ap.add_argument("--sift-repeats", type=int, default=1,
+                    help="timed calls per frame or pair, SIFT (default 1: it is 10-1000x slower)")
+    args = ap.parse_args(argv)
+    cv2.setNumThreads(1)
+    sift = SiftBaseline(args.seed)
+
+    results = []
+    for bf in bench_floors(args.floor, args.seed):
+        log(f"floor {bf.name} ({bf.source})")
+        res = bench_floor(bf.name, bf.floor, args, sift)
+        res["source"] = bf.source
+        results.append(res)
+
+    def per_mode(res: dict, key: str, sub: str | None = None, nd: int = 2) -> list[float]:
+        vals = [res["modes"][str(m)][key] for m in MODES]
+        return [r(v[sub] if sub else v, nd) for v in vals]
+
+    mode_cols = [f"m{m}" for m in MODES]
+    print("\nTable I: extraction time per 640x480 frame, ms (median over frames; one thread)")
+    print_table(["floor", *mode_cols, "SIFT"],
+                [[res["floor"], *per_mode(res, "extract", "median_ms"), r(res["sift"]["extract"]["median_ms"], 1)]
+                 for res in results])
+    print("\n  spread (IQR over frames), ms")
+    print_table(["floor", *mode_cols, "SIFT"],
+                [[res["floor"], *per_mode(res, "extract", "iqr_ms"), r(res["sift"]["extract"]["iqr_ms"], 1)]
+                 for res in results])
+    print("\n  SIFT / ours (target >= 10)")
+    print_table(["floor", *mode_cols], [[res["floor"], *per_mode(res, "extract_ratio_sift", nd=1)] for res in results])
+
+    print("\nFig. 4: local features per frame (mean; SIFT: keypoints)")
+    print_table(["floor", *mode_cols, "SIFT"],
+                [[res["floor"], *per_mode(res, "features_mean", nd=1), r(res["sift"]["features_mean"], 0)]
+                 for res in results])
+    print("\n  bytes per frame, mean (max) / bound; SIFT: features x 128 x float32 and x uint8")
+    rows = []
+    for res in results:
+        cells = [f"{res['modes'][str(m)]['bytes_mean']:.0f} ({res['modes'][str(m)]['bytes_max']})" for m in MODES]
+        rows.append([res["floor"], *cells, f"{res['sift']['bytes_float32_mean']:.0f}",
+                     f"{res['sift']['bytes_uint8_mean']:.0f}"])
+    print_table(["floor", *[f"m{m} /{MODE_BYTES[m]}" for m in MODES], "SIFT f32", "SIFT u8"], rows)
+    print("\n  share of the bound used, % : mean / minimum over frames (target >= 85, never > 100)")
+    rows = [[res["floor"], *[f"{100 * res['modes'][str(m)]['budget_used_mean']:.1f} / "
+                             f"{100 * res['modes'][str(m)]['budget_used_min']:.1f}" for m in MODES]]
+            for res in results]
+    print_table(["floor", *mode_cols], rows)
+
+    print("\nTable II: matching time per frame pair, ms (median over consecutive and random pairs)")
+    print_table(["floor", *mode_cols, "SIFT"],
+                [[res["floor"], *per_mode(res, "match", "median_ms", 3), r(res["sift"]["match"]["median_ms"], 1)]
+                 for res in results])
+    print("\n  spread (IQR over pairs), ms")
+    print_table(["floor", *mode_cols, "SIFT"],
+                [[res["floor"], *per_mode(res, "match", "iqr_ms", 3), r(res["sift"]["match"]["iqr_ms"], 1)]
+                 for res in results])
+    print("\n  SIFT / ours (target >= 50)")
+    print_table(["floor", *mode_cols], [[res["floor"], *per_mode(res, "match_ratio_sift", nd=1)] for res in results])
+    print("\n  decode time per descriptor, ms (not in the match times: the index decodes once per keyframe)")
+    print_table(["floor", *mode_cols], [[res["floor"], *per_mode(res, "decode", "median_ms", 3)] for res in results])
+    print("\n  mean local score, consecutive pairs / random pairs (sanity: consecutive >> random)")
+    rows = [[res["floor"], *[f"{res['modes'][str(m)]['score_consecutive_mean']:.1f}/"
+                             f"{res['modes'][str(m)]['score_random_mean']:.1f}" for m in MODES],
+             f"{res['sift']['score_consecutive_mean']:.0f}/{res['sift']['score_random_mean']:.0f}"]
+            for res in results]
+    print_table(["floor", *mode_cols, "SIFT"], rows)
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    png = args.out / "floor_descriptor_features.png"
+    plot_features(results, png)
+    payload = header("floor_descriptor", {
+        "threads": 1, "image": [640, 480], "frames_per_floor": args.frames, "spacing_m": SPACING_M,
+        "repeats": args.repeats, "sift_repeats": args.sift_repeats, "seed": args.seed,
+        "mode_bytes": {str(m): int(MODE_BYTES[m]) for m in MODES},
+        "sift": {"ratio": SiftBaseline.ratio, "ransac_px": SiftBaseline.ransac_px,
+                 "matcher": "BFMatcher L2 knnMatch k=2", "model": "estimateAffinePartial2D RANSAC"},
+        "timing": "median over items of the median of repeats, after warm-up; spread = IQR over items",
+    })
+    payload["floors"] = results
+    out = write_json(args.out / "floor_descriptor.json", payload)
+    print(f"\nwrote {out} and {png}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

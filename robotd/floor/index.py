@@ -1,0 +1,357 @@
+"""The map index: find earlier keyframes that look like a new one without scoring them all.
+
+Paper 003 (Sec. V, Table V) matches the last of 7154 images against every earlier one with
+the local score and reports 4 to 58 s per query; DESIGN.md ("Floor loop detector") asks for
+a query that does not compare against every keyframe. A query here runs in two stages,
+as in CDVS retrieval (paper 003 Sec. II-B: a global score, then a local score):
+
+1. **Global shortlist.** Every keyframe's global descriptor (a packed binary vector) sits
+   in one contiguous ``(capacity, words) uint64`` array that grows by doubling. The query's
+   global descriptor is compared with all of them at once: XOR and popcount
+   (``numpy.bitwise_count``), a similarity ``1 - hamming / bits`` in [0, 1]. This is
+   linear in the map but costs well under a microsecond per keyframe. The ``shortlist``
+   most similar keyframes that are not excluded go on.
+2. **Local scoring** of the shortlist only: :func:`robotd.floor.match.local_score` (matches
+   that survive the geometric consistency test), and the best ``k`` by local score are
+   returned as :class:`Candidate`\\ s, each with its match result (inlier correspondences
+   for the loop transform, and the reason a low-scoring one was dismissed).
+
+The cost of a query is therefore ``shortlist`` local matches plus a vectorised scan, so it
+grows far slower than the map (``bench/bench_floor_map.py`` measures it). Memory: the
+global array plus the decoded descriptors (:attr:`FloorIndex.nbytes`).
+
+The index holds descriptors of one mode: the first descriptor added fixes the global
+descriptor's length, and a descriptor of another length is refused (ValueError).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Collection, Iterable
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from robotd.errors import DescriptorError
+from robotd.floor.descriptor import FloorDescriptor, decode
+from robotd.floor.match import MatchResult, local_score
+
+__all__ = ["Candidate", "FloorIndex", "IndexParams", "LoadReport"]
+
+log = logging.getLogger(__name__)
+
+LocalScorer = Callable[[FloorDescriptor, FloorDescriptor], MatchResult]
+"""``scorer(query, stored) -> MatchResult``: how a shortlisted keyframe is scored locally."""
+
+
+@dataclass(frozen=True)
+class IndexParams:
+    """Parameters of :class:`FloorIndex`.
+
+    Fields:
+        k: candidates a query returns by default (the best by local score).
+        shortlist: keyframes a query scores locally by default, taken in order of global
+            similarity; the cost of a query is about ``shortlist`` local matches. 30 keeps
+            the true overlapping keyframes of the office route among the candidates
+            (``bench/bench_floor_map.py``) at well under 1 % of brute-force cost on a
+            7154-keyframe map.
+        initial_capacity: rows of the global-descriptor array before its first doubling.
+        match_params: passed to :func:`robotd.floor.match.local_score` as ``params``
+            (None: the matcher's defaults).
+    """
+
+    k: int = 5
+    shortlist: int = 30
+    initial_capacity: int = 256
+    match_params: Any = None
+
+    def __post_init__(self) -> None:
+        if self.k < 1:
+            raise ValueError(f"k must be >= 1, got {self.k}")
+        if self.shortlist < 1:
+            raise ValueError(f"shortlist must be >= 1, got {self.shortlist}")
+        if self.initial_capacity < 1:
+            raise ValueError(f"initial_capacity must be >= 1, got {self.initial_capacity}")
+
+
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """An earlier keyframe that may show the same floor as the query.
+
+    ``global_score``: global similarity in [0, 1] (``1 - hamming / bits``); ``local``: the
+    local match against the query (``local.score``, the inlier correspondences, and
+    ``local.reason`` when it was dismissed).
+    """
+
+    keyframe_id: int
+    global_score: float
+    local: MatchResult
+
+    @property
+    def score(self) -> float:
+        """The local score, which orders the candidates."""
+        return float(self.local.score)
+
+
+@dataclass(frozen=True)
+class LoadReport:
+    """What :meth:`FloorIndex.from_store` did: keyframes indexed, ids skipped because their
+    descriptor did not decode (or did not fit the index), and keyframes without a
+    descriptor of the wanted mode (not an error: other modes, or not yet described)."""
+
+    loaded: int
+    corrupt_ids: tuple[int, ...]
+    other_mode: int
+
+
+def _global_bytes(descriptor: FloorDescriptor) -> np.ndarray:
+    """The packed global descriptor as ``(B,) uint8`` (bool arrays are packed first)."""
+    bits = np.asarray(descriptor.global_bits)
+    if bits.dtype == np.bool_:
+        bits = np.packbits(bits.ravel())
+    return np.ascontiguousarray(bits).view(np.uint8).ravel()
+
+
+def _descriptor_nbytes(descriptor: FloorDescriptor) -> int:
+    """Bytes held by a decoded descriptor's arrays (and byte strings)."""
+    total = 0
+    for f in fields(descriptor):  # type: ignore[arg-type]
+        value = getattr(descriptor, f.name)
+        if isinstance(value, np.ndarray):
+            total += value.nbytes
+        elif isinstance(value, (bytes, bytearray)):
+            total += len(value)
+    return total
+
+
+class FloorIndex:
+    """Keyframe descriptors of one mode, queried by global shortlist then local score.
+
+    ``scorer`` replaces the local matcher (default :func:`robotd.floor.match.local_score`
+    with ``params.match_params``); :attr:`local_matches` counts every local match the
+    index has made, so the cost of queries can be checked.
+    """
+
+    def __init__(self, params: IndexParams | None = None, scorer: LocalScorer | None = None) -> None:
+        self.params = params if params is not None else IndexParams()
+        if scorer is None:
+            match_params = self.params.match_params
+
+            def scorer(a: FloorDescriptor, b: FloorDescriptor) -> MatchResult:
+                return local_score(a, b, match_params)
+
+        self._scorer: LocalScorer = scorer
+        self._words = 0  # uint64 words per global descriptor, fixed by the first add
+        self._bits = 0  # global descriptor length, bits
+        self._global = np.zeros((0, 0), np.uint64)  # (capacity, words)
+        self._ids = np.zeros(0, np.int64)  # (capacity,)
+        self._descriptors: list[FloorDescriptor] = []  # row -> descriptor
+        self._row_of: dict[int, int] = {}
+        self._local_nbytes = 0
+        self.local_matches = 0
+        self.load_report: LoadReport | None = None
+
+    # ------------------------------------------------------------------ building
+
+    def __len__(self) -> int:
+        return len(self._descriptors)
+
+    def __contains__(self, keyframe_id: object) -> bool:
+        return keyframe_id in self._row_of
+
+    @property
+    def ids(self) -> np.ndarray:
+        """Keyframe ids in the order they were added, ``(N,) int64`` (a copy)."""
+        return self._ids[: len(self)].copy()
+
+    @property
+    def capacity(self) -> int:
+        """Rows allocated in the global-descriptor array (doubles when full)."""
+        return int(self._global.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the index: the global array (whole capacity), the id array and
+        the decoded descriptors' arrays. Python object overhead is not counted."""
+        return int(self._global.nbytes + self._ids.nbytes + self._local_nbytes)
+
+    def add(self, keyframe_id: int, descriptor: FloorDescriptor) -> None:
+        """Index a keyframe's decoded descriptor.
+
+        Raises ValueError if ``keyframe_id`` is already indexed or the global descriptor's
+        length differs from the first one added (another mode).
+        """
+        keyframe_id = int(keyframe_id)
+        if keyframe_id in self._row_of:
+            raise ValueError(f"keyframe {keyframe_id} is already in the index")
+        g = _global_bytes(descriptor)
+        if not self._descriptors and self._words == 0:
+            self._bits = 8 * g.size
+            self._words = max(1, -(-g.size // 8))
+            cap = self.params.initial_capacity
+            self._global = np.zeros((cap, self._words), np.uint64)
+            self._ids = np.zeros(cap, np.int64)
+        elif 8 * g.size != self._bits:
+            raise ValueError(
+                f"keyframe {keyframe_id}: global descriptor of {8 * g.size} bits, the index holds"
+                f" {self._bits}-bit descriptors (one mode per index)"
+            )
+        row = len(self._descriptors)
+        if row == self._global.shape[0]:
+            self._grow()
+        padded = np.zeros(8 * self._words, np.uint8)
+        padded[: g.size] = g
+        self._global[row] = padded.view(np.uint64)
+        self._ids[row] = keyframe_id
+        self._descriptors.append(descriptor)
+        self._row_of[keyframe_id] = row
+        self._local_nbytes += _descriptor_nbytes(descriptor)
+
+    def _grow(self) -> None:
+        cap = 2 * self._global.shape[0]
+        bigger = np.zeros((cap, self._words), np.uint64)
+        bigger[: self._global.shape[0]] = self._global
+        ids = np.zeros(cap, np.int64)
+        ids[: self._ids.shape[0]] = self._ids
+        self._global, self._ids = bigger, ids
+
+    @classmethod
+    def from_store(cls, store: Any, mode: int, params: IndexParams | None = None,
+                   scorer: LocalScorer | None = None) -> FloorIndex:
+        """Rebuild the index from the descriptors of ``mode`` stored in a
+        :class:`~robotd.store.MapStore`, in keyframe-id order.
+
+        A stored descriptor that does not decode (or whose global descriptor does not fit
+        the index) is skipped, logged with its keyframe id and counted in
+        :attr:`load_report`; it never stops the load.
+        """
+        index = cls(params, scorer)
+        corrupt: list[int] = []
+        other = 0
+        for rec in store.keyframes():
+            if rec.descriptor is None or rec.descriptor_mode != mode:
+                other += 1
+                continue
+            try:
+                desc = decode(rec.descriptor)
+                index.add(rec.id, desc)
+            except (DescriptorError, ValueError) as exc:
+                log.warning("floor index: keyframe %d skipped, its descriptor is unusable: %s", rec.id, exc)
+                corrupt.append(int(rec.id))
+        index.load_report = LoadReport(len(index), tuple(corrupt), other)
+        if corrupt:
+            log.warning("floor index: %d of %d stored mode-%d descriptors skipped",
+                        len(corrupt), len(corrupt) + len(index), mode)
+        return index
+
+    # ------------------------------------------------------------------ querying
+
+    def global_scores(self, descriptor: FloorDescriptor) -> np.ndarray:
+        """Global similarity of ``descriptor`` to every indexed keyframe, ``(N,) float64``
+        in [0, 1], in the order of :attr:`ids`: ``1 - hamming / bits``."""
+        n = len(self)
+        if n == 0:
+            return np.zeros(0)
+        g = _global_bytes(descriptor)
+        if 8 * g.size != self._bits:
+            raise ValueError(f"query global descriptor has {8 * g.size} bits, the index holds {self._bits}")
+        padded = np.zeros(8 * self._words, np.uint8)
+        padded[: g.size] = g
+        q = padded.view(np.uint64)
+        dist = np.bitwise_count(np.bitwise_xor(self._global[:n], q)).sum(axis=1, dtype=np.int64)
+        return 1.0 - dist / float(self._bits)
+
+    def shortlist(self, descriptor: FloorDescriptor, size: int | None = None,
+                  exclude_ids: Callable[[int], bool] | Collection[int] | None = None,
+                  exclude_after_id: int | None = None) -> list[tuple[int, float]]:
+        """The ``size`` keyframes most similar by global score that are not excluded, as
+        ``(keyframe_id, global_score)``, best first (ties: earlier keyframe first).
+
+        ``exclude_ids``: ids to leave out, as a collection or a predicate ``f(id) -> True``
+        to exclude; ``exclude_after_id``: leave out every keyframe with a larger id (the
+        most recent ones, which overlap the query trivially).
+        """
+        size = self.params.shortlist if size is None else int(size)
+        sims = self.global_scores(descriptor)
+        n = len(sims)
+        if n == 0 or size < 1:
+            return []
+        ids = self._ids[:n]
+        valid = np.ones(n, bool)
+        if exclude_after_id is not None:
+            valid &= ids <= int(exclude_after_id)
+        predicate: Callable[[int], bool] | None = None
+        if callable(exclude_ids):
+            predicate = exclude_ids
+        elif exclude_ids is not None:
+            excluded = np.fromiter((int(i) for i in exclude_ids), np.int64)
+            valid &= ~np.isin(ids, excluded)
+        rows = np.flatnonzero(valid)
+        if rows.size == 0:
+            return []
+        # Best first; ties broken by row (= insertion order) through the stable sort.
+        # Only the top of the list is sorted unless a predicate rejects many of it.
+        want = size if predicate is None else 2 * size
+        if rows.size > want:
+            top = np.argpartition(-sims[rows], want - 1)[:want]
+            cut = sims[rows[top]].min()
+            top = np.flatnonzero(sims[rows] >= cut)  # keep every tie at the cut
+            ordered = rows[top[np.argsort(-sims[rows[top]], kind="stable")]]
+        else:
+            ordered = rows[np.argsort(-sims[rows], kind="stable")]
+        out: list[tuple[int, float]] = []
+        for row in ordered:
+            kf = int(ids[row])
+            if predicate is not None and predicate(kf):
+                continue
+            out.append((kf, float(sims[row])))
+            if len(out) == size:
+                return out
+        if predicate is not None and len(ordered) < rows.size:
+            # The predicate rejected too many of the top rows: walk the rest in order.
+            seen = set(ordered.tolist())
+            rest = [r for r in rows[np.argsort(-sims[rows], kind="stable")] if int(r) not in seen]
+            for row in rest:
+                kf = int(ids[row])
+                if predicate(kf):
+                    continue
+                out.append((kf, float(sims[row])))
+                if len(out) == size:
+                    break
+        return out
+
+    def query(self, descriptor: FloorDescriptor, k: int | None = None,
+              exclude_ids: Callable[[int], bool] | Collection[int] | None = None,
+              exclude_after_id: int | None = None, shortlist: int | None = None) -> list[Candidate]:
+        """The best ``k`` earlier keyframes for ``descriptor``, by local score (best first;
+        ties by global score, then by id).
+
+        Only the ``shortlist`` keyframes of :meth:`shortlist` are scored locally; defaults
+        come from :attr:`params`. Exclusions as in :meth:`shortlist`.
+        """
+        k = self.params.k if k is None else int(k)
+        short = self.shortlist(descriptor, shortlist, exclude_ids, exclude_after_id)
+        candidates = []
+        for kf, g in short:
+            result = self._scorer(descriptor, self._descriptors[self._row_of[kf]])
+            self.local_matches += 1
+            candidates.append(Candidate(kf, g, result))
+        candidates.sort(key=lambda c: (-c.score, -c.global_score, c.keyframe_id))
+        return candidates[:k]
+
+    def brute_force(self, descriptor: FloorDescriptor, k: int | None = None,
+                    exclude_ids: Callable[[int], bool] | Collection[int] | None = None,
+                    exclude_after_id: int | None = None) -> list[Candidate]:
+        """Like :meth:`query` but scoring every non-excluded keyframe locally (paper 003
+        Table V's brute force); the reference the shortlist is measured against."""
+        return self.query(descriptor, k, exclude_ids, exclude_after_id, shortlist=max(len(self), 1))
+
+    def descriptor(self, keyframe_id: int) -> FloorDescriptor:
+        """The indexed descriptor of a keyframe; KeyError if it is not indexed."""
+        return self._descriptors[self._row_of[int(keyframe_id)]]
+
+    def extend(self, items: Iterable[tuple[int, FloorDescriptor]]) -> None:
+        """:meth:`add` each ``(keyframe_id, descriptor)``."""
+        for kf, desc in items:
+            self.add(kf, desc)
