@@ -1,0 +1,53 @@
+"""The P(loop | score) curve: monotone, calibrated, and its threshold where it should be."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from calibration.loop_curve import _pava, fit_loop_curve, pick_threshold, precision_recall
+
+
+def test_pava_by_hand():
+    assert np.allclose(_pava(np.array([1.0, 3.0, 2.0, 4.0]), np.ones(4)), [1, 2.5, 2.5, 4])
+    # weights pull the pooled value: (3*1 + 1*3) / 4 = 1.5
+    assert np.allclose(_pava(np.array([3.0, 1.0]), np.array([1.0, 3.0])), [1.5, 1.5])
+
+
+def test_curve_recovers_a_step_and_the_threshold():
+    rng = np.random.default_rng(0)
+    # Below 20 a loop one time in ten; from 20 on always a loop.
+    s = rng.uniform(0, 40, 20000)
+    y = np.where(s >= 20, True, rng.random(len(s)) < 0.1)
+    curve = fit_loop_curve(s, y, bins=40)
+    assert np.all(np.diff(curve.probability) >= 0) and np.all(np.diff(curve.lower) >= 0)
+    assert np.all(curve.lower <= curve.probability)
+    assert curve.at(5.0) == pytest.approx(0.1, abs=0.03)
+    assert curve.at(35.0) > 0.99
+    t = pick_threshold(curve, 0.99)
+    assert t is not None and 19.0 <= t <= 21.5
+    pr = precision_recall(s, y, t)
+    assert pr.precision > 0.995 and pr.recall > 0.7
+
+
+def test_no_threshold_when_never_certain():
+    rng = np.random.default_rng(1)
+    s = rng.uniform(0, 10, 5000)
+    y = rng.random(len(s)) < 0.5
+    assert pick_threshold(fit_loop_curve(s, y), 0.99) is None
+
+
+def test_precision_recall_counts():
+    pr = precision_recall(np.array([1, 5, 7, 9.0]), np.array([False, True, False, True]), 6.0)
+    assert (pr.true_positives, pr.false_positives, pr.false_negatives) == (1, 1, 1)
+    assert pr.precision == 0.5 and pr.recall == 0.5
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(st.lists(st.tuples(st.floats(0, 100), st.booleans()), min_size=1, max_size=400))
+def test_curve_is_always_monotone_and_a_probability(pairs):
+    s = np.array([p[0] for p in pairs])
+    y = np.array([p[1] for p in pairs])
+    c = fit_loop_curve(s, y, bins=10, min_per_bin=5)
+    assert np.all(np.diff(c.probability) >= -1e-12)
+    assert np.all((c.probability > 0) & (c.probability < 1))
+    assert c.count.sum() == len(s) and c.positives.sum() == y.sum()
