@@ -47,6 +47,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--realtime", action="store_true",
                    help="pace the virtual robot on the wall clock (default: as fast as possible)")
     p.add_argument("--no-plot", action="store_true", help="skip trajectories.png")
+    p.add_argument("--record", type=Path, default=None, metavar="FILE.mcap",
+                   help="also record the run (frames, ticks, gyro, odometry, ground truth) to MCAP")
 
 
 def run_from_args(args: argparse.Namespace) -> int:
@@ -62,7 +64,7 @@ def run_from_args(args: argparse.Namespace) -> int:
                        floor_files=tuple(str(f) for f in args.floor or ()),
                        floor_scale=args.floor_scale, floor_pattern=args.floor_pattern,
                        duration_s=args.duration, seed=args.seed,
-                       realtime=args.realtime, plot=not args.no_plot)
+                       realtime=args.realtime, plot=not args.no_plot, record=args.record)
     print_summary(summary, sys.stdout)
     return 0 if summary["ok"] else 1
 
@@ -130,7 +132,7 @@ class _Progress:
 def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tuple[str, ...] = (),
              floor_scale: float = 0.001, floor_pattern: str | None = None,
              duration_s: float | None = None, seed: int = 0,
-             realtime: bool = False, plot: bool = True) -> dict[str, Any]:
+             realtime: bool = False, plot: bool = True, record: Path | None = None) -> dict[str, Any]:
     """Run the daemon on the virtual robot; returns the summary (also written as JSON)."""
     import numpy as np
 
@@ -166,13 +168,26 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     cfg = replace(cfg, "map", path=str(map_path))
     recorder = _Recorder(out)
     progress = _Progress(robot.duration_s)
+    writer = None
+    if record is not None:
+        from drivers.recording import RecordingWriter
+        from robotd.config import to_toml
+
+        writer = RecordingWriter(record, image_format="png", config_toml=to_toml(cfg))
     with robot, MapStore.open(map_path, clock=clock) as store, KobukiDriver(
         robot.port, clock=clock, baudrate=cfg.base.baudrate, yaw_source=cfg.base.yaw_source
     ) as driver:
         driver.request_extra(hardware_version=True, firmware_version=True, udid=True)
         odometry: OdometryFilter = build_odometry(cfg)
-        daemon = Daemon(cfg, clock, {"base": (driver, None), "floor": (robot.camera, None)},
-                        odometry, store, Notifier(), lossless=not realtime, observers=[recorder],
+        sources: dict[str, Any] = {"base": (driver, None), "floor": (robot.camera, None)}
+        observers: list[Any] = [recorder]
+        if writer is not None:
+            from drivers.recording import OdometryRecorder, RecordingTee
+
+            sources = {name: (RecordingTee(src, writer), None) for name, (src, _) in sources.items()}
+            observers.append(OdometryRecorder(writer, wheel_topic="/odom/wheel"))
+        daemon = Daemon(cfg, clock, sources,
+                        odometry, store, Notifier(), lossless=not realtime, observers=observers,
                         driver_stats=lambda: {"kobuki": driver.stats.as_dict()},
                         floor=build_floor_detector(cfg, store))
         robot.start()
@@ -190,6 +205,10 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
         robot.stop()
         recorder.close()
         robot.write_ground_truth_tum(out / "groundtruth.tum")
+        if writer is not None:
+            for stamp, pose in zip(robot.base.stamp_ns, robot.base.true_pose):
+                writer.write_ground_truth(int(stamp), *map(float, pose))
+            writer.close()
         keyframes_stored = store.count_keyframes()
         commands = dict(robot.commands_received)
         camera_drops = robot.camera.dropped
@@ -218,6 +237,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
         "commands_seen_by_robot": commands,
         "wheel_only": err_wheel.as_dict(), "fused": err_fused.as_dict(),
         "stopped_by": report.stopped_by,
+        "recording": str(record) if record is not None else None,
     }
     if cfg.floor_detector.enabled and recorder.keyframe_ids:
         summary["floor_detector"] = floor_summary(cfg, cam_model, robot.motion, recorder,

@@ -8,10 +8,11 @@ SIGTERM. A device that vanishes while running is retried by its source thread.
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 from typing import Any, Callable
 
 from robotd.clock import Clock, MonotonicClock
-from robotd.config import Config
+from robotd.config import Config, to_toml
 from robotd.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -85,29 +86,92 @@ def open_sources(cfg: Config, clock: Clock) -> dict[str, tuple[Any, Callable[[],
     return sources
 
 
-def run_service(cfg: Config) -> int:
-    """Run until SIGTERM/SIGINT; returns the process exit status."""
+def run_service(cfg: Config, record: Path | None = None) -> int:
+    """Run until SIGTERM/SIGINT; returns the process exit status.
+
+    With ``record``, everything the drivers deliver and the odometry are also written to
+    that MCAP file (complete once the daemon stops, ``.partial`` until then).
+    """
     from robotd.daemon import Daemon
     from robotd.notify import Notifier
     from robotd.store import MapStore
 
     clock = MonotonicClock()
     notifier = Notifier()
+    writer = None
+    observers: list[Any] = []
     with MapStore.open(cfg.map.path) as store:
         sources = open_sources(cfg, clock)
         try:
             if not sources:
                 log.warning("no sources enabled: the daemon will only keep the map open")
+            if record is not None:
+                from drivers.recording import OdometryRecorder, RecordingTee, RecordingWriter
+
+                writer = RecordingWriter(record, config_toml=to_toml(cfg))
+                sources = {name: (RecordingTee(drv, writer), _tee_reopen(reopen, writer))
+                           for name, (drv, reopen) in sources.items()}
+                observers.append(OdometryRecorder(writer, wheel_topic="/odom/wheel"))
             daemon = Daemon(cfg, clock, sources, build_odometry(cfg), store, notifier,
-                            lossless=False,
+                            lossless=False, observers=observers,
                             driver_stats=lambda: {n: _stats(d) for n, (d, _) in sources.items()},
                             floor=build_floor_detector(cfg, store))
             report = daemon.run()
         finally:
             for drv, _ in sources.values():
                 drv.close()
+            if writer is not None:
+                writer.close()
     log.info("final: %s", report.as_dict())
     return 0
+
+
+def _tee_reopen(reopen: Callable[[], Any], writer: Any) -> Callable[[], Any]:
+    from drivers.recording import RecordingTee
+
+    return lambda: RecordingTee(reopen(), writer)
+
+
+def run_replay(cfg: Config, path: Path, speed: float | None) -> dict[str, Any]:
+    """Feed a recording through the daemon (at ``speed`` x recorded time, or as fast as
+    possible when None) and write the map the config names; returns the run's report."""
+    from drivers.recording import RecordingReader, ReplaySource
+    from robotd.clock import ManualClock
+    from robotd.daemon import Daemon
+    from robotd.notify import Notifier
+    from robotd.store import MapStore
+
+    span = RecordingReader(path).time_range_ns
+    if span is None:
+        raise ConfigError(f"{path}: the recording holds no messages")
+    clock = ManualClock(span[0])
+    replay = ReplaySource(path, clock, speed)
+    with replay, MapStore.open(cfg.map.path, clock=clock) as store:
+        daemon = Daemon(cfg, clock, {"base": (replay.base, None), "floor": (replay.floor, None)},
+                        build_odometry(cfg), store, Notifier(), lossless=True,
+                        floor=build_floor_detector(cfg, store))
+        replay.start()
+
+        def finished() -> bool:
+            c = daemon.pipeline.counters
+            if replay.error is not None:
+                return True
+            if not replay.done():
+                return False
+            caught_up = (c.wheel_msgs + c.yaw_msgs >= replay.base.handed_out
+                         and c.frames >= replay.floor.handed_out)
+            # Frames after the last odometry sample can never get a pose: they end the run.
+            latest = daemon.pipeline.odometry.latest_stamp_ns()
+            stuck = bool(daemon.pipeline.pending) and (
+                latest is None or latest < daemon.pipeline.pending[0].stamp_ns)
+            return caught_up and (not daemon.pipeline.pending or stuck)
+
+        report = daemon.run(stop_when=finished)
+    if replay.error is not None:
+        raise replay.error
+    return {"replayed": dict(replay.counts), "keyframes": report.counters.keyframes,
+            "frames": report.counters.frames, "odometry_samples": report.counters.wheel_msgs,
+            "wall_s": report.wall_s, "recording_s": (span[1] - span[0]) / 1e9}
 
 
 def _stats(driver: Any) -> Any:
