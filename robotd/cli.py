@@ -23,6 +23,9 @@ examples:
   robotd run --config /etc/robotd/robotd.toml
   robotd config check robotd.toml      validate a config file
   robotd kobuki decode capture.txt     decode a serial capture (raw or pyserial spy://)
+  robotd calibrate intrinsics left*.jpg --board 9x6 --square 0.025 --out calibration.yml
+  robotd record run.mcap --virtual --route figure8    record the virtual robot to MCAP
+  robotd replay run.mcap --map replay.sqlite          feed a recording through the daemon
 """
 
 
@@ -85,6 +88,22 @@ def build_parser() -> argparse.ArgumentParser:
     chk.set_defaults(func=_cmd_config_check)
     dflt = cfg_sub.add_parser("default", help="print the default configuration as TOML")
     dflt.set_defaults(func=_cmd_config_default)
+
+    cal = sub.add_parser("calibrate", help="camera and floor calibration")
+    cal_sub = cal.add_subparsers(dest="calibrate_command", metavar="ACTION", required=True)
+    from calibration import floor_mount, intrinsics
+
+    ci = cal_sub.add_parser("intrinsics", help="camera intrinsics from chessboard photos",
+                            description="Calibrate the camera from chessboard photos and write (or "
+                                        "update) an OpenCV YAML calibration file.")
+    intrinsics.add_intrinsics_arguments(ci)
+    ci.set_defaults(func=intrinsics.run_intrinsics)
+    cm = cal_sub.add_parser("floor-mount", help="the floor camera's height, tilt and offset from a "
+                                                "chessboard lying on the floor",
+                            description="Measure the downward camera's mounting from one photo of a "
+                                        "chessboard lying at a known place in the robot frame.")
+    floor_mount.add_floor_mount_arguments(cm)
+    cm.set_defaults(func=floor_mount.run_floor_mount)
 
     kob = sub.add_parser("kobuki", help="Kobuki base tools")
     kob_sub = kob.add_subparsers(dest="kobuki_command", metavar="ACTION", required=True)
