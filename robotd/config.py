@@ -116,6 +116,14 @@ class FloorDetectorConfig:
 
 
 @dataclass(frozen=True)
+class CalibrationConfig:
+    """Where the calibration file is (written by ``robotd calibrate``)."""
+
+    path: str = _f("/etc/robotd/calibration.yml",
+                   "OpenCV YAML: intrinsics, floor mount, trained loop thresholds (optional)")
+
+
+@dataclass(frozen=True)
 class MapConfig:
     """The SQLite map file."""
 
@@ -140,6 +148,7 @@ class Config:
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     floor_detector: FloorDetectorConfig = field(default_factory=FloorDetectorConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     map: MapConfig = field(default_factory=MapConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
 

@@ -196,6 +196,7 @@ class PipelineCounters:
     odometry_rejected: int = 0
     floor_queries: int = 0
     floor_candidates: int = 0
+    loops_declared: int = 0
 
 
 class Pipeline:
@@ -289,6 +290,9 @@ class Pipeline:
             query = self.floor.query_and_add(kf_id, frame.stamp_ns, descriptor)
             self.counters.floor_queries += 1
             self.counters.floor_candidates += len(query.candidates)
+            for loop in query.loops:
+                self.store.add_link("loop", loop.from_id, loop.to_id, loop.delta, loop.information)
+                self.counters.loops_declared += 1
             for o in self.observers:
                 o.on_floor_query(query)
 

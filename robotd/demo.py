@@ -143,7 +143,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     from robotd.floorcam import FloorCameraModel
     from robotd.notify import Notifier
     from robotd.odometry.ekf import OdometryFilter
-    from robotd.service import build_floor_detector, build_odometry
+    from robotd.service import build_floor_detector, build_odometry, load_calibration
     from robotd.sim.robot import VirtualRobot, VirtualRobotSettings
     from robotd.store import MapStore
     from robotd.trajectory import read_tum, trajectory_errors
@@ -189,7 +189,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
         daemon = Daemon(cfg, clock, sources,
                         odometry, store, Notifier(), lossless=not realtime, observers=observers,
                         driver_stats=lambda: {"kobuki": driver.stats.as_dict()},
-                        floor=build_floor_detector(cfg, store))
+                        floor=build_floor_detector(cfg, store, load_calibration(cfg)))
         robot.start()
 
         def finished() -> bool:

@@ -67,3 +67,23 @@ def yaw_to_quaternion(yaw_rad: float) -> tuple[float, float, float, float]:
 def quaternion_to_yaw(qx: float, qy: float, qz: float, qw: float) -> float:
     """Yaw (rad) of a quaternion, assuming a rotation about z (roll = pitch = 0)."""
     return math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+
+
+def rigid_fit_2d(src_xy: np.ndarray, dst_xy: np.ndarray) -> np.ndarray:
+    """The rigid transform ``(x_m, y_m, yaw_rad)`` that best maps ``src`` onto ``dst``.
+
+    Least squares over ``(N, 2)`` point pairs (N >= 2): centroids, then the rotation from
+    the SVD of the cross-covariance (Kabsch), as paper 003 Sec. IV-D does for visual
+    odometry. ``dst ~ R(yaw) src + t``; a reflection is never returned.
+    """
+    a = np.asarray(src_xy, dtype=float).reshape(-1, 2)
+    b = np.asarray(dst_xy, dtype=float).reshape(-1, 2)
+    if len(a) < 2 or a.shape != b.shape:
+        raise ValueError("rigid_fit_2d needs at least two point pairs of equal shape")
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    h = (a - ca).T @ (b - cb)
+    u, _s, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    r = vt.T @ np.diag([1.0, d]) @ u.T
+    t = cb - r @ ca
+    return np.array([t[0], t[1], math.atan2(r[1, 0], r[0, 0])])

@@ -42,16 +42,45 @@ def build_odometry(cfg: Config) -> Any:
     return OdometryFilter(drive, params)
 
 
-def build_floor_detector(cfg: Config, store: Any) -> Any:
-    """The floor loop detector with its index rebuilt from the map, or None if disabled."""
+def load_calibration(cfg: Config) -> Any:
+    """The calibration file the config names, or None (logged clearly) when there is none.
+
+    A file that exists but is damaged is an error: the daemon must not run on a
+    half-read calibration.
+    """
+    from calibration.calibfile import read_calibration
+
+    path = Path(cfg.calibration.path)
+    if not path.exists():
+        log.warning("no calibration file at %s: using the [floor_camera] values of the config, "
+                    "and no floor loops will be declared (see `robotd calibrate`)", path)
+        return None
+    calib = read_calibration(path)
+    log.info("calibration loaded from %s", path)
+    return calib
+
+
+def build_floor_detector(cfg: Config, store: Any, calib: Any = None) -> Any:
+    """The floor loop detector with its index rebuilt from the map, or None if disabled.
+
+    Loops are declared only with a trained threshold for the configured mode.
+    """
     if not cfg.floor_detector.enabled or cfg.floor_camera.source == "none":
         return None
+    from calibration.calibfile import camera_model
     from robotd.floor.detector import FloorDetectorParams, FloorLoopDetector
 
     f = cfg.floor_detector
     params = FloorDetectorParams(mode=f.mode, candidates=f.candidates, shortlist=f.shortlist,
                                  exclude_recent_s=f.exclude_recent_s)
-    return FloorLoopDetector.from_store(store, params)
+    threshold = calib.loop.for_mode(f.mode) if calib is not None and calib.loop is not None else None
+    if threshold is None:
+        log.warning("no trained loop threshold for descriptor mode %d: floor loop candidates are "
+                    "found and stored but no loop is declared (train with `robotd calibrate "
+                    "loop-curve`)", f.mode)
+    else:
+        log.info("floor loops declared at local score >= %.2f (mode %d)", threshold, f.mode)
+    return FloorLoopDetector.from_store(store, params, threshold, camera_model(calib, cfg.floor_camera))
 
 
 def open_sources(cfg: Config, clock: Clock) -> dict[str, tuple[Any, Callable[[], Any]]]:
@@ -115,7 +144,7 @@ def run_service(cfg: Config, record: Path | None = None) -> int:
             daemon = Daemon(cfg, clock, sources, build_odometry(cfg), store, notifier,
                             lossless=False, observers=observers,
                             driver_stats=lambda: {n: _stats(d) for n, (d, _) in sources.items()},
-                            floor=build_floor_detector(cfg, store))
+                            floor=build_floor_detector(cfg, store, load_calibration(cfg)))
             report = daemon.run()
         finally:
             for drv, _ in sources.values():
@@ -149,7 +178,7 @@ def run_replay(cfg: Config, path: Path, speed: float | None) -> dict[str, Any]:
     with replay, MapStore.open(cfg.map.path, clock=clock) as store:
         daemon = Daemon(cfg, clock, {"base": (replay.base, None), "floor": (replay.floor, None)},
                         build_odometry(cfg), store, Notifier(), lossless=True,
-                        floor=build_floor_detector(cfg, store))
+                        floor=build_floor_detector(cfg, store, load_calibration(cfg)))
         replay.start()
 
         def finished() -> bool:

@@ -18,6 +18,7 @@ import numpy as np
 
 from robotd.floor.descriptor import decode, extract
 from robotd.floor.index import Candidate, FloorIndex
+from robotd.geometry import rigid_fit_2d, transform_points
 
 log = logging.getLogger(__name__)
 
@@ -35,27 +36,76 @@ class FloorDetectorParams:
 
 
 @dataclass(frozen=True, eq=False)
+class Loop:
+    """A declared loop: keyframe ``to_id`` sees the floor ``from_id`` saw.
+
+    ``delta (3,)``: the pose of ``to_id`` in the frame of ``from_id`` (x_m, y_m, yaw_rad),
+    from the inlier floor points; ``information (3, 3)``: its inverse covariance.
+    """
+
+    from_id: int
+    to_id: int
+    score: float
+    n_inliers: int
+    delta: np.ndarray
+    information: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
 class KeyframeQuery:
-    """What one keyframe's query found: its descriptor bytes and the candidates."""
+    """What one keyframe's query found: its descriptor bytes, the candidates, and the
+    candidates declared loops (local score at or above the mode's trained threshold)."""
 
     keyframe_id: int
     stamp_ns: int
     descriptor: bytes
     candidates: list[Candidate]
+    loops: list[Loop]
+
+
+def loop_transform(camera: Any, xy_query_px: np.ndarray, xy_old_px: np.ndarray,
+                   min_sigma_m: float = 0.001) -> tuple[np.ndarray, np.ndarray] | None:
+    """Relative pose of the query keyframe in the old keyframe's frame, and its information.
+
+    Matched pixels become floor points in each robot frame (camera model); the rigid fit
+    maps the query's points onto the old ones (paper 003 Sec. IV-D). The covariance comes
+    from the fit residuals (at least ``min_sigma_m`` per point). None if under 3 points.
+    """
+    pq = camera.pixel_to_floor_robot(np.asarray(xy_query_px, float))
+    po = camera.pixel_to_floor_robot(np.asarray(xy_old_px, float))
+    ok = np.isfinite(pq).all(axis=1) & np.isfinite(po).all(axis=1)
+    pq, po = pq[ok], po[ok]
+    n = len(pq)
+    if n < 3:
+        return None
+    delta = rigid_fit_2d(pq, po)
+    resid = transform_points(delta, pq) - po
+    sigma2 = max(float(np.mean(np.sum(resid ** 2, axis=1)) / 2.0), min_sigma_m ** 2)
+    spread2 = max(float(np.mean(np.sum((pq - pq.mean(axis=0)) ** 2, axis=1))), 1e-6)
+    info = np.diag([n / sigma2, n / sigma2, n * spread2 / sigma2])
+    return delta, info
 
 
 class FloorLoopDetector:
     """Describes keyframes and finds earlier look-alikes through a :class:`FloorIndex`."""
 
     def __init__(self, params: FloorDetectorParams, index: FloorIndex | None = None,
-                 stamps: list[tuple[int, int]] | None = None) -> None:
+                 stamps: list[tuple[int, int]] | None = None, threshold: float | None = None,
+                 camera: Any = None) -> None:
+        """``threshold``: the mode's trained local-score threshold (None: declare no loops);
+        ``camera``: the floor camera model, to turn matched pixels into a loop transform."""
+        if threshold is not None and camera is None:
+            raise ValueError("declaring loops needs the floor camera model")
         self.params = params
+        self.threshold = threshold
+        self.camera = camera
         self.index = index if index is not None else FloorIndex()
         # (stamp_ns, keyframe_id) in time order, for the recent-keyframe exclusion.
         self._stamps: list[tuple[int, int]] = sorted(stamps or [])
 
     @classmethod
-    def from_store(cls, store: Any, params: FloorDetectorParams) -> "FloorLoopDetector":
+    def from_store(cls, store: Any, params: FloorDetectorParams, threshold: float | None = None,
+                   camera: Any = None) -> "FloorLoopDetector":
         """Rebuild the index from a map's stored descriptors of the same mode (a restart
         continues the same map). Descriptors that do not decode are skipped and counted."""
         index = FloorIndex.from_store(store, params.mode)
@@ -63,7 +113,7 @@ class FloorLoopDetector:
                   if k.descriptor is not None and k.descriptor_mode == params.mode]
         if len(index):
             log.info("floor index: %d keyframes loaded from the map", len(index))
-        return cls(params, index, stamps)
+        return cls(params, index, stamps, threshold, camera)
 
     def describe(self, image: np.ndarray) -> bytes:
         """The keyframe's compact descriptor (at most the mode's byte budget)."""
@@ -84,4 +134,13 @@ class FloorLoopDetector:
                                           shortlist=self.params.shortlist)
         self.index.add(keyframe_id, desc)
         self._stamps.append((stamp_ns, keyframe_id))
-        return KeyframeQuery(keyframe_id, stamp_ns, descriptor, candidates)
+        loops = []
+        if self.threshold is not None:
+            for c in candidates:
+                if c.local.score < self.threshold:
+                    continue
+                fit = loop_transform(self.camera, c.local.xy_a, c.local.xy_b)
+                if fit is not None:
+                    loops.append(Loop(c.keyframe_id, keyframe_id, float(c.local.score),
+                                      int(c.local.n_inliers), fit[0], fit[1]))
+        return KeyframeQuery(keyframe_id, stamp_ns, descriptor, candidates, loops)
