@@ -28,7 +28,7 @@ class LoopCurve:
 
     ``score_lo/score_hi (B,)``: each bin's score range; ``probability (B,)`` the monotone
     posterior mean; ``lower (B,)`` a monotone lower credible bound (about the 5th percentile
-    of the Beta posterior of the isotonic block the bin was pooled into); ``positives/count (B,)`` the labels behind each bin.
+    of the Beta posterior of the isotonic block the bin was pooled into); ``positives/count (B,)`` the (weighted) labels behind each bin.
     """
 
     score_lo: np.ndarray
@@ -81,26 +81,29 @@ def _beta_lower(a: np.ndarray, b: np.ndarray, q: float = 0.05) -> np.ndarray:
 
 
 def fit_loop_curve(scores: np.ndarray, labels: np.ndarray, bins: int = 40,
-                   min_per_bin: int = 20) -> LoopCurve:
+                   min_per_bin: int = 20, weights: np.ndarray | None = None) -> LoopCurve:
     """Estimate the monotone P(loop | score) from ``scores (N,)`` and boolean ``labels (N,)``.
 
     Bins have about equal counts (at least ``min_per_bin`` pairs each, so fewer bins for
-    small samples); ties in score never straddle two bins.
+    small samples); ties in score never straddle two bins. ``weights (N,)``: how many
+    pairs of the whole population each scored pair stands for (1 / sampling rate), so a
+    subsample of distant pairs still counts with its true share of non-loops.
     """
     s = np.asarray(scores, dtype=float)
     y = np.asarray(labels, dtype=bool)
-    if s.shape != y.shape or s.ndim != 1 or len(s) == 0:
-        raise ValueError("scores and labels must be non-empty 1-D arrays of the same length")
+    w = np.ones(len(s)) if weights is None else np.asarray(weights, dtype=float)
+    if s.shape != y.shape or s.ndim != 1 or len(s) == 0 or w.shape != s.shape:
+        raise ValueError("scores, labels (and weights) must be non-empty 1-D arrays of one length")
     order = np.argsort(s, kind="stable")
-    s, y = s[order], y[order]
+    s, y, w = s[order], y[order], w[order]
     n_bins = max(1, min(bins, len(s) // max(1, min_per_bin)))
     edges = np.unique(np.quantile(s, np.linspace(0, 1, n_bins + 1)[1:-1]))
     idx = np.searchsorted(edges, s, side="right")  # bin of each score; equal scores together
     b = idx.max() + 1
-    count = np.bincount(idx, minlength=b)
-    keep = count > 0
-    pos = np.bincount(idx, weights=y, minlength=b)[keep]
-    count = count[keep]
+    n_in = np.bincount(idx, minlength=b)
+    keep = n_in > 0
+    pos = np.bincount(idx, weights=w * y, minlength=b)[keep]
+    count = np.bincount(idx, weights=w, minlength=b)[keep]
     lo = np.array([s[idx == k].min() for k in np.flatnonzero(keep)])
     hi = np.array([s[idx == k].max() for k in np.flatnonzero(keep)])
     a, bb = pos + 1.0, count - pos + 1.0
@@ -114,7 +117,7 @@ def fit_loop_curve(scores: np.ndarray, labels: np.ndarray, bins: int = 40,
     pooled_n = np.array([count[i:j].sum() for i, j in zip(starts, ends)])
     block_lower = _beta_lower(pooled_pos + 1.0, pooled_n - pooled_pos + 1.0)
     lower = np.minimum(np.repeat(np.maximum.accumulate(block_lower), sizes), prob)
-    return LoopCurve(lo, hi, prob, lower, pos.astype(int), count.astype(int))
+    return LoopCurve(lo, hi, prob, lower, pos, count)
 
 
 def pick_threshold(curve: LoopCurve, confidence: float = 0.99) -> float | None:

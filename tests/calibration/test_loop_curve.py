@@ -29,6 +29,20 @@ def test_curve_recovers_a_step_and_the_threshold():
     assert pr.precision > 0.995 and pr.recall > 0.7
 
 
+def test_weights_count_a_subsample_with_its_true_share():
+    rng = np.random.default_rng(2)
+    # 1000 high-scoring pairs: 990 loops and 10 distant look-alikes; keep 1 in 10 of the
+    # distant ones with weight 10: the estimate must still be about 0.99, not 0.999.
+    s = np.concatenate([rng.uniform(30, 40, 990), rng.uniform(30, 40, 10)])
+    y = np.concatenate([np.ones(990, bool), np.zeros(10, bool)])
+    keep = np.concatenate([np.ones(990, bool), np.arange(10) % 10 == 0])
+    w = np.where(y, 1.0, 10.0)[keep]
+    c = fit_loop_curve(s[keep], y[keep], bins=1, min_per_bin=1, weights=w)
+    assert c.probability[0] == pytest.approx(991 / 1002, abs=1e-6)  # Beta(1,1) posterior mean
+    unweighted = fit_loop_curve(s[keep], y[keep], bins=1, min_per_bin=1)
+    assert unweighted.probability[0] > 0.997
+
+
 def test_no_threshold_when_never_certain():
     rng = np.random.default_rng(1)
     s = rng.uniform(0, 10, 5000)
