@@ -104,6 +104,20 @@ def build_parser() -> argparse.ArgumentParser:
                                         "chessboard lying at a known place in the robot frame.")
     floor_mount.add_floor_mount_arguments(cm)
     cm.set_defaults(func=floor_mount.run_floor_mount)
+    from calibration import train
+
+    cl = cal_sub.add_parser("loop-curve", help="train P(loop | score) and the loop thresholds "
+                                               "from a calibration recording",
+                            description="Score keyframe pairs of a recorded drive in every descriptor "
+                                        "mode, label them by footprint overlap from the fused odometry, "
+                                        "fit P(J >= r | score) and write each mode's threshold "
+                                        "(paper 003 Sec. IV-C, Fig. 5, Table III).")
+    train.add_loop_curve_arguments(cl)
+    cl.set_defaults(func=train.run_loop_curve)
+    cv = cal_sub.add_parser("validate", help="precision and recall of the thresholds on another "
+                                             "recording (labelled by its ground truth)")
+    train.add_validate_arguments(cv)
+    cv.set_defaults(func=train.run_validate)
 
     kob = sub.add_parser("kobuki", help="Kobuki base tools")
     kob_sub = kob.add_subparsers(dest="kobuki_command", metavar="ACTION", required=True)

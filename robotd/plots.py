@@ -94,3 +94,29 @@ def plot_similarity(path: Path, overlap: np.ndarray, scores: np.ndarray, stamps_
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def plot_loop_curves(path: Path, curves: dict[int, Any], thresholds: dict[int, float | None],
+                     confidence: float, title: str = "") -> None:
+    """P(loop | local score) per descriptor mode, with each mode's threshold (paper 003 Fig. 5)."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = _figure((8.0, 5.0))
+    for m, c in curves.items():
+        mid = 0.5 * (c.score_lo + c.score_hi)
+        line, = ax.plot(mid, c.probability, "-", lw=1.8, label=f"mode {m}")
+        ax.fill_between(mid, c.lower, c.probability, color=line.get_color(), alpha=0.15)
+        t = thresholds.get(m)
+        if t is not None:
+            ax.axvline(t, color=line.get_color(), ls=":", lw=1)
+    ax.axhline(confidence, color="k", ls="--", lw=0.8, label=f"confidence {confidence}")
+    ax.set_xlabel("local score")
+    ax.set_ylabel("P(loop | score)")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
