@@ -164,12 +164,13 @@ def candidate_pairs(poses: np.ndarray, camera: FloorCameraModel, far_per_keyfram
     total_far = n * (n - 1) // 2 - len(ni)
     want = int(min(total_far, far_per_keyframe * n))
     fi, fj = [], []
-    near_set = set(zip(ni.tolist(), nj.tolist()))
+    taken = set(zip(ni.tolist(), nj.tolist()))  # near pairs, then each sampled one: no repeats
     while len(fi) < want:
         i = rng.integers(1, n, want)
         j = (rng.random(want) * i).astype(int)
         for a, b in zip(i.tolist(), j.tolist()):
-            if (a, b) not in near_set and len(fi) < want:
+            if (a, b) not in taken and len(fi) < want:
+                taken.add((a, b))
                 fi.append(a)
                 fj.append(b)
     w_far = total_far / want if want else 0.0
