@@ -18,8 +18,12 @@ Topics (ROS 2 type -> what :func:`read_recording` gives back):
 
 Conventions:
 
-- Log time and publish time are the message's ``stamp_ns``; every header stamp is the same
-  time split into ``sec``/``nanosec``. Stamps are robotd's time base (host monotonic time,
+- Publish time and the header stamp are the message's ``stamp_ns`` (the header splits it
+  into ``sec``/``nanosec``). Log time is the stamp too, except that on the base stream
+  (``/wheel_ticks`` and ``/imu``, which arrive together from one driver) it never goes
+  back: a gyro sample stamped before the wheel reading received ahead of it is logged at
+  that reading's time, so a replay hands the base messages to odometry in the order the
+  daemon received them and reproduces its estimate exactly. Stamps are robotd's time base (host monotonic time,
   or the virtual robot's time from 0), not Unix time, so tools show dates near 1970.
 - ``robotd_msgs/msg/WheelTicks`` is ours (no standard ROS 2 message holds raw 16-bit
   encoder counters); its definition travels in the file like the others. No
@@ -346,6 +350,7 @@ class RecordingWriter:
         except OSError as exc:
             raise DriverError(f"{self.partial_path}: cannot create the recording: {exc.strerror}") from exc
         self._lock = threading.Lock()
+        self._base_log_time_ns = 0  # the base stream's log time never goes back (module docs)
         self._closed = False
         self._yaw_source: str | None = None
         self.counts: dict[str, int] = {}
@@ -381,7 +386,10 @@ class RecordingWriter:
                 if schema is None:
                     schema = self._mcap.register_msgdef(type_name, schema_text(type_name))
                     self._schemas[type_name] = schema
-                self._mcap.write_message(topic, schema, msg, log_time=stamp_ns,
+                log_time = stamp_ns
+                if topic in (TOPIC_WHEEL_TICKS, TOPIC_IMU):
+                    log_time = self._base_log_time_ns = max(self._base_log_time_ns, stamp_ns)
+                self._mcap.write_message(topic, schema, msg, log_time=log_time,
                                          publish_time=stamp_ns, sequence=sequence)
             except OSError as exc:
                 raise DriverError(f"{self.partial_path}: cannot write: {exc.strerror}") from exc

@@ -375,6 +375,27 @@ def test_tee_and_odometry_recorder(tmp_path: Path) -> None:
     assert out[4][1].x_m == 1.5 and out[3][1].covariance[2, 2] == 1.0
 
 
+
+def test_base_stream_reads_back_in_the_order_it_arrived(tmp_path: Path) -> None:
+    # A Kobuki packet carries the gyro samples of the last few ms: one stamped before the
+    # wheel reading received ahead of it must replay after that reading, as the daemon
+    # saw it (odometry treats a late gyro sample differently from an early one).
+    path = tmp_path / "base.mcap"
+    arrived = [WheelTicks(100, 1, 2, 3), YawRate(90, 0.1), YawRate(100, 0.2), WheelTicks(120, 2, 3, 4),
+               YawRate(110, 0.3), YawRate(120, 0.4)]
+    with RecordingWriter(path) as w:
+        for m in arrived:
+            (w.write_wheel_ticks if isinstance(m, WheelTicks) else w.write_yaw_rate)(m)
+        w.write_odometry(PoseStamped(95, 0.0, 0.0, 0.0))  # other topics keep log time = stamp
+    out = list(read_recording(path))
+    assert [m for t, m in out if t != "/odom"] == arrived
+    assert [t for t, _ in out].index("/odom") == 0
+    with open(path, "rb") as f:
+        log_times = {(c.topic, m.publish_time): m.log_time
+                     for _, c, m in make_reader(f).iter_messages(log_time_order=False)}
+    assert log_times[("/imu", 90)] == 100 and log_times[("/imu", 110)] == 120
+    assert log_times[("/odom", 95)] == 95
+
 # -- damaged files ---------------------------------------------------------------------
 
 def _summary_start(data: bytes) -> int:
