@@ -117,8 +117,8 @@ def load_run(path: Path, cfg: Any, params: TrainParams, progress: Progress | Non
             elif isinstance(msg, PoseStamped) and topic == "/ground_truth":
                 truth_t.append(msg.stamp_ns)
                 truth_p.append((msg.x_m, msg.y_m, msg.yaw_rad))
-            latest = odo.latest_stamp_ns()
-            while pending and latest is not None and latest >= pending[0].stamp_ns:
+            settled = odo.settled_stamp_ns()
+            while pending and settled is not None and settled >= pending[0].stamp_ns:
                 take(pending.pop(0))
             if progress is not None and n % 500 == 0:
                 progress("reading and describing", int(getattr(msg, "stamp_ns", span[0]) - span[0]), total)

@@ -253,8 +253,8 @@ class Pipeline:
                 self.counters.frames_without_odometry += 1
                 done += 1
                 continue
-            latest = self.odometry.latest_stamp_ns()
-            if latest is None or latest < frame.stamp_ns:
+            settled = self.odometry.settled_stamp_ns()
+            if settled is None or settled < frame.stamp_ns:
                 if self.clock.now_ns() - frame.stamp_ns > self._max_wait_ns:
                     self.pending.popleft()
                     self.counters.frames_unsynced += 1

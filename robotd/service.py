@@ -190,9 +190,9 @@ def run_replay(cfg: Config, path: Path, speed: float | None) -> dict[str, Any]:
             caught_up = (c.wheel_msgs + c.yaw_msgs >= replay.base.handed_out
                          and c.frames >= replay.floor.handed_out)
             # Frames after the last odometry sample can never get a pose: they end the run.
-            latest = daemon.pipeline.odometry.latest_stamp_ns()
+            settled = daemon.pipeline.odometry.settled_stamp_ns()
             stuck = bool(daemon.pipeline.pending) and (
-                latest is None or latest < daemon.pipeline.pending[0].stamp_ns)
+                settled is None or settled < daemon.pipeline.pending[0].stamp_ns)
             return caught_up and (not daemon.pipeline.pending or stuck)
 
         report = daemon.run(stop_when=finished)

@@ -579,6 +579,16 @@ class OdometryFilter:
         """The filter's time: the newest stamp it has processed (None before any)."""
         return None if self._state is None else self._state.stamp_ns
 
+    def settled_stamp_ns(self) -> int | None:
+        """The newest stamp up to which :meth:`pose_at` is final (None before two poses).
+
+        The newest recorded pose can still change: a gyro reading of its own stamp, or a
+        late one, is applied to it when the next wheel message arrives. Every pose before it
+        is fixed, so a frame stamped up to here gets the same pose whatever arrives later
+        (a replay then reproduces the live keyframes exactly).
+        """
+        return self._hist_t[-2] if len(self._hist_t) >= 2 else None
+
     def pose(self) -> PoseStamped:
         """The fused pose and its 3x3 covariance (the initial pose before any message)."""
         if self._state is None:

@@ -296,6 +296,34 @@ def test_pose_at_interpolates_and_refuses_outside_the_history():
     assert f.pose_at(0) is None  # older than the ~2 s history
 
 
+
+def test_poses_up_to_the_settled_stamp_never_change():
+    # Wheel at t, then (next packet) a gyro reading of the same t and a late one: they
+    # change the newest pose only, never what pose_at gave up to settled_stamp_ns.
+    f = OdometryFilter(drive=ROUND)
+    assert f.settled_stamp_ns() is None
+    ticks = 0.0
+    asked: dict[int, tuple[float, float, float]] = {}
+    for k in range(60):
+        t = k * 20 * MS
+        n = round(ticks)
+        f.on_wheels(WheelTicks(t, n % 65536, (n + k) % 65536))
+        f.on_yaw_rate(YawRate(t, 0.3))
+        if k % 3 == 0:
+            f.on_yaw_rate(YawRate(t + 7 * MS, -0.2))
+        ticks += 0.2 * 0.02 / MPT
+        settled = f.settled_stamp_ns()
+        if settled is not None:
+            assert settled < f.latest_stamp_ns()
+            for s in (settled, settled - 3 * MS):
+                p = f.pose_at(s)
+                asked.setdefault(s, (p.x_m, p.y_m, p.yaw_rad))
+    assert len(asked) > 50
+    for s, want in asked.items():
+        p = f.pose_at(s)
+        if p is not None:  # still in the history
+            assert (p.x_m, p.y_m, p.yaw_rad) == want
+
 def test_pose_at_interpolates_yaw_across_pi():
     f = OdometryFilter(drive=ROUND, initial_pose=(0.0, 0.0, 3.0))
     per_step = 16  # ticks per wheel per 20 ms: 2*16*MPT/0.5 = 0.0201 rad
