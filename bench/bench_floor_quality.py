@@ -95,6 +95,8 @@ def plot_distributions(results: list[dict], path: Path) -> None:
     """Histograms of the local score of loops (J >= 0.33), partial overlaps and disjoint
     pairs: one row per floor, one column per mode and SIFT."""
     plt = pyplot()
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
     cols = [str(m) for m in MODES] + ["sift"]
     fig, axes = plt.subplots(len(results), len(cols), figsize=(2.3 * len(cols), 1.9 * len(results)),
                              dpi=100, squeeze=False)
@@ -111,6 +113,8 @@ def plot_distributions(results: list[dict], path: Path) -> None:
             for label, sel, colour in groups:
                 ax.hist(s[sel], bins=bins, alpha=0.55, color=colour, label=label)
             ax.set_yscale("log")
+            ax.yaxis.set_minor_formatter(NullFormatter())
+            ax.yaxis.set_major_formatter(ScalarFormatter())
             ax.set_title(f"{res['floor']} {'SIFT' if key == 'sift' else 'mode ' + key}\nAUC {d['auc']:.3f}",
                          fontsize=8)
             ax.tick_params(labelsize=6)
@@ -223,17 +227,19 @@ def run_matrices(name: str, floor: object, args: argparse.Namespace, sift: SiftB
 
     plt = pyplot()
     panels = [("ground truth J", j_true, 1.0)] + [(k, v, None) for k, v in mats.items()]
-    fig, axes = plt.subplots(2, 4, figsize=(14, 7.4), dpi=100)
+    fig, axes = plt.subplots(2, 4, figsize=(15, 8), dpi=100, layout="constrained")
     for ax, (title, m, vmax) in zip(axes.ravel(), panels):
         top = np.nanmax(m) if vmax is None else vmax
         norm = m / top if top and np.isfinite(top) and top > 0 else m
         ext = (0, len(m) * args.run_spacing, len(m) * args.run_spacing, 0)
         im = ax.imshow(norm, cmap="viridis", vmin=0, vmax=1, extent=ext, interpolation="nearest")
+        if title == "SIFT":
+            title = f"SIFT, first {args.sift_run_m:g} m"
         ax.set_title(f"{title} (max {top:.3g})" if vmax is None else title, fontsize=9)
         ax.set_xlabel("earlier frame, m along the run", fontsize=7)
         ax.set_ylabel("current frame, m", fontsize=7)
         ax.tick_params(labelsize=6)
-    fig.colorbar(im, ax=axes.ravel().tolist(), shrink=0.6, label="normalised local score")
+    fig.colorbar(im, ax=axes, shrink=0.6, label="normalised local score (J for ground truth)")
     fig.suptitle(f"{name}: local score of each frame against the earlier ones, 10 m straight run "
                  f"(paper 003 Fig. 2/3; SIFT on the first {args.sift_run_m:g} m)", fontsize=10)
     fig.savefig(png)

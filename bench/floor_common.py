@@ -85,6 +85,18 @@ def bench_floors(extra_files: Sequence[str | Path] = (), seed: int = 0) -> list[
     return out
 
 
+def printed_floor(seed: int = 0) -> BenchFloor:
+    """The paper's worst case, printed planks whose few prints repeat (``robotd.sim.pattern``,
+    gravel photo printed on 0.45 x 0.12 m planks, 4 prints): not one of the five floors,
+    offered for the map benchmark."""
+    import skimage.data
+
+    from robotd.sim.pattern import PatternFloor, PatternParams
+
+    return BenchFloor("printed", PatternFloor(skimage.data.gravel(), PatternParams(kind="planks"), seed=seed),
+                      "PatternFloor planks of skimage.data.gravel, 4 prints")
+
+
 def add_common_args(ap: argparse.ArgumentParser, default_out: Path = RESULTS_DIR) -> None:
     """``--out DIR``, ``--floor FILE`` (repeatable), ``--seed``."""
     ap.add_argument("--out", type=Path, default=default_out,

@@ -80,8 +80,9 @@ class Candidate:
     """An earlier keyframe that may show the same floor as the query.
 
     ``global_score``: global similarity in [0, 1] (``1 - hamming / bits``); ``local``: the
-    local match against the query (``local.score``, the inlier correspondences, and
-    ``local.reason`` when it was dismissed).
+    local match of the query (side ``a``) against this keyframe (side ``b``):
+    ``local.score``, the inlier correspondences (``xy_a`` in the query image, ``xy_b`` in
+    the keyframe's) and ``local.reason`` when it was dismissed.
     """
 
     keyframe_id: int

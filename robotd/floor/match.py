@@ -1,0 +1,210 @@
+"""Matching two floor descriptors: the local score and the global score (paper 003, Sec. II-B).
+
+**Local score** (CDVS: a sum over the matches that survive a geometric consistency check
+of a weight that falls with descriptor distance). Steps of :func:`local_score`:
+
+1. Nearest neighbours of A's ternary descriptors among B's, by the squared Euclidean
+   distance of the trit vectors (one float32 matrix product: ``|a|^2 + |b|^2 - 2 a.b``),
+   kept when the nearest is clearly nearer than the second (Lowe's ratio test) and not
+   farther than ``max_distance``. Distances are normalised by the descriptor length
+   (independent random trits are 4/3 apart on average).
+2. Orientation consistency: a rigid motion turns every keypoint by the same angle, so
+   the differences of the matched keypoints' orientations pile up in one bin of their
+   histogram; matches farther than ``angle_tol_rad`` from that peak are dropped.
+3. RANSAC (Fischler and Bolles 1981) on a 2-D rigid transform from 2-point samples. A
+   sample is accepted only if the distance between its two points is the same in both
+   images within ``max_log_scale`` (the downward camera sees the floor at one scale: the
+   log distance ratio of inlier pairs is about 0, the observation DISTRAT (Lepsoy et al.
+   2011) builds its outlier test on). The best hypothesis is refined by least squares
+   (:func:`robotd.geometry.rigid_fit_2d`) on its inliers, twice.
+4. ``score = sum over inliers of max(0, 1 - distance / weight_distance)``; zero when
+   fewer than ``min_inliers`` survive (the result then says why, as DLoopDetector does).
+
+Scores are comparable within a mode (the descriptor length and feature count are fixed
+by the mode), not across modes.
+
+**Global score**: ``1 - hamming / bits`` of the binary global descriptors (SimHash of the
+VLAD: about 0.5 for unrelated images, 1 for identical ones).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from robotd.floor.descriptor import FloorDescriptor
+from robotd.geometry import rigid_fit_2d
+
+__all__ = ["MatchParams", "MatchResult", "global_score", "local_score"]
+
+TOO_FEW_FEATURES = "TOO_FEW_FEATURES"
+TOO_FEW_MATCHES = "TOO_FEW_MATCHES"
+NO_GEOMETRIC_CONSISTENCY = "NO_GEOMETRIC_CONSISTENCY"
+
+
+@dataclass(frozen=True)
+class MatchParams:
+    """Parameters of :func:`local_score`.
+
+    Fields:
+        ratio: Lowe's ratio test on descriptor distances (nearest / second nearest).
+        max_distance: largest normalised squared trit distance of a match (per element;
+            independent random descriptors are 4/3 apart).
+        angle_tol_rad: largest difference between a match's orientation change and the
+            dominant one, radians (covers the 5-bit orientation quantisation).
+        inlier_px: largest distance between a point mapped by the transform and its match,
+            pixels (generous: lens distortion bends a rigid floor motion by a few pixels).
+        max_log_scale: largest |log(distance in B / distance in A)| of a RANSAC sample.
+        min_sample_px: smallest distance between the two points of a RANSAC sample, px.
+        iterations: RANSAC hypotheses.
+        min_matches: fewer matches after steps 1-2 dismiss the pair (TOO_FEW_MATCHES).
+        min_inliers: fewer inliers dismiss the pair (NO_GEOMETRIC_CONSISTENCY).
+        weight_distance: distance at which an inlier's weight in the score reaches 0.
+        seed: seed of RANSAC's sampling (results are deterministic).
+    """
+
+    ratio: float = 0.9
+    max_distance: float = 1.0
+    angle_tol_rad: float = 0.35
+    inlier_px: float = 8.0
+    max_log_scale: float = 0.1
+    min_sample_px: float = 20.0
+    iterations: int = 100
+    min_matches: int = 4
+    min_inliers: int = 4
+    weight_distance: float = 1.2
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not (0 < self.ratio <= 1 and self.max_distance > 0 and self.angle_tol_rad > 0 and self.inlier_px > 0
+                and self.max_log_scale > 0 and self.min_sample_px >= 0 and self.iterations >= 1
+                and self.min_matches >= 2 and self.min_inliers >= 2 and self.weight_distance > 0):
+            raise ValueError(f"match parameters out of range: {self}")
+
+
+@dataclass(frozen=True, eq=False)
+class MatchResult:
+    """The local match of descriptor A against descriptor B.
+
+    Fields:
+        score: the local score (0 when dismissed).
+        n_matches: descriptor matches before the geometric check.
+        n_inliers: matches consistent with ``transform``.
+        inliers_a, inliers_b: ``(K,) int64`` keypoint indices of the inlier matches.
+        xy_a, xy_b: ``(K, 2) float32`` their positions, pixels of image A, resp. B.
+        transform: ``(2, 3) float64`` rigid transform ``xy_b ~ R xy_a + t`` (pixels), or
+            None when dismissed.
+        reason: '' on success, else why the pair was dismissed (TOO_FEW_FEATURES,
+            TOO_FEW_MATCHES, NO_GEOMETRIC_CONSISTENCY).
+    """
+
+    score: float
+    n_matches: int
+    n_inliers: int
+    inliers_a: np.ndarray
+    inliers_b: np.ndarray
+    xy_a: np.ndarray
+    xy_b: np.ndarray
+    transform: np.ndarray | None
+    reason: str
+
+    @property
+    def rotation_rad(self) -> float:
+        """Rotation of the transform, radians (NaN when dismissed)."""
+        return math.nan if self.transform is None else math.atan2(self.transform[1, 0], self.transform[0, 0])
+
+
+def _dismissed(reason: str, n_matches: int = 0) -> MatchResult:
+    e = np.zeros(0, np.int64)
+    xy = np.zeros((0, 2), np.float32)
+    return MatchResult(0.0, n_matches, 0, e, e, xy, xy, None, reason)
+
+
+def _rigid(xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
+    x, y, yaw = rigid_fit_2d(xa, xb)
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, x], [s, c, y]])
+
+
+def local_score(a: FloorDescriptor, b: FloorDescriptor, params: MatchParams | None = None) -> MatchResult:
+    """Match descriptor ``a`` against ``b`` (same mode) and score the geometric inliers."""
+    p = params or MatchParams()
+    if a.length != b.length:
+        raise ValueError(f"descriptors of different lengths ({a.length} and {b.length} trits): modes differ")
+    if len(a) < 2 or len(b) < 2:
+        return _dismissed(TOO_FEW_FEATURES)
+    ta, tb = a.ternary(), b.ternary()
+    dist = np.abs(ta).sum(1)[:, None] + np.abs(tb).sum(1)[None, :] - 2 * (ta @ tb.T)
+    rows = np.arange(len(ta))
+    nn = np.argmin(dist, axis=1)
+    d1 = dist[rows, nn].copy()
+    dist[rows, nn] = np.inf
+    d2 = dist.min(axis=1)
+    d1 *= 1.0 / a.length
+    d2 *= 1.0 / a.length
+    keep = (d1 <= p.max_distance) & (d1 < p.ratio * p.ratio * d2)
+    ia, ib, dm = rows[keep], nn[keep], d1[keep]
+    if len(ia) < p.min_matches:
+        return _dismissed(TOO_FEW_MATCHES, len(ia))
+    # Step 2: dominant orientation change (histogram over the 2**ANGLE_BITS levels).
+    dth = (b.angle_rad[ib] - a.angle_rad[ia]) % (2 * math.pi)
+    nbins = 32
+    hist = np.bincount((dth * (nbins / (2 * math.pi))).astype(np.intp) % nbins, minlength=nbins).astype(float)
+    hist = hist + 0.5 * (np.roll(hist, 1) + np.roll(hist, -1))
+    peak = (np.argmax(hist) + 0.5) * (2 * math.pi / nbins)
+    near = np.abs((dth - peak + math.pi) % (2 * math.pi) - math.pi) <= p.angle_tol_rad + math.pi / nbins
+    ka, kb, kd = ia[near], ib[near], dm[near]
+    n_matches = len(ia)
+    if len(ka) < p.min_inliers:
+        return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
+    xa, xb = a.xy_px[ka].astype(np.float64), b.xy_px[kb].astype(np.float64)
+    weight = np.maximum(0.0, 1.0 - kd / p.weight_distance)
+    # Step 3: RANSAC over 2-point rigid hypotheses.
+    rng = np.random.default_rng(p.seed)
+    m = len(ka)
+    i = rng.integers(m, size=p.iterations)
+    j = (i + 1 + rng.integers(m - 1, size=p.iterations)) % m
+    va, vb = xa[j] - xa[i], xb[j] - xb[i]
+    la, lb = np.hypot(va[:, 0], va[:, 1]), np.hypot(vb[:, 0], vb[:, 1])
+    phi = np.arctan2(vb[:, 1], vb[:, 0]) - np.arctan2(va[:, 1], va[:, 0])
+    ok = (la >= p.min_sample_px) & (np.abs(np.log(np.maximum(lb, 1e-9) / np.maximum(la, 1e-9))) <= p.max_log_scale)
+    ok &= np.abs((phi - peak + math.pi) % (2 * math.pi) - math.pi) <= p.angle_tol_rad + math.pi / nbins
+    if not np.any(ok):
+        return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
+    i, j, phi = i[ok], j[ok], phi[ok]
+    c, s = np.cos(phi), np.sin(phi)
+    ca, cb = 0.5 * (xa[i] + xa[j]), 0.5 * (xb[i] + xb[j])
+    tx = cb[:, 0] - (c * ca[:, 0] - s * ca[:, 1])
+    ty = cb[:, 1] - (s * ca[:, 0] + c * ca[:, 1])
+    rx = c[:, None] * xa[None, :, 0] - s[:, None] * xa[None, :, 1] + tx[:, None] - xb[None, :, 0]
+    ry = s[:, None] * xa[None, :, 0] + c[:, None] * xa[None, :, 1] + ty[:, None] - xb[None, :, 1]
+    inl = rx * rx + ry * ry <= p.inlier_px**2
+    best = int(np.argmax(inl @ (weight + 1e-6)))
+    mask = inl[best]
+    # Refine on all descriptor matches (not only those near the orientation peak).
+    fa, fb = a.xy_px[ia].astype(np.float64), b.xy_px[ib].astype(np.float64)
+    sel = np.flatnonzero(near)[mask]
+    transform = None
+    for _ in range(2):
+        if len(sel) < 2:
+            break
+        transform = _rigid(fa[sel], fb[sel])
+        res = fa @ transform[:, :2].T + transform[:, 2] - fb
+        sel = np.flatnonzero((res * res).sum(1) <= p.inlier_px**2)
+    if len(sel) < p.min_inliers or transform is None:
+        return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
+    score = float(np.maximum(0.0, 1.0 - dm[sel] / p.weight_distance).sum())
+    return MatchResult(score, n_matches, len(sel), ia[sel].astype(np.int64), ib[sel].astype(np.int64),
+                       a.xy_px[ia[sel]], b.xy_px[ib[sel]], transform, "")
+
+
+def global_score(a: FloorDescriptor, b: FloorDescriptor) -> float:
+    """Similarity of the global descriptors in [0, 1]: ``1 - hamming / bits``."""
+    ga, gb = np.asarray(a.global_bits, np.uint8), np.asarray(b.global_bits, np.uint8)
+    if ga.shape != gb.shape:
+        raise ValueError(f"global descriptors of different sizes ({ga.size} and {gb.size} bytes): modes differ")
+    if ga.size == 0:
+        return 0.0
+    return 1.0 - float(np.bitwise_count(ga ^ gb).sum()) / (8 * ga.size)

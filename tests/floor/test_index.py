@@ -1,0 +1,244 @@
+"""The map index: shortlist by global Hamming similarity, local scoring of the shortlist only,
+exclusions, growth, rebuilding from a map file, and finding the true revisit on a rendered run."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from robotd.floor.index import Candidate, FloorIndex, IndexParams
+
+
+@dataclass(frozen=True, eq=False)
+class _Desc:
+    """A stand-in descriptor: the index reads only ``global_bits``; the scorer gets the rest."""
+
+    global_bits: np.ndarray
+    tag: int = 0
+
+
+@dataclass(frozen=True)
+class _Result:
+    score: float
+
+
+class _CountingScorer:
+    """Local scorer that records every pair it is asked about; score = ``tag`` of the stored one."""
+
+    def __init__(self) -> None:
+        self.calls: list[int] = []
+
+    def __call__(self, query: _Desc, stored: _Desc) -> _Result:
+        self.calls.append(stored.tag)
+        return _Result(float(stored.tag))
+
+
+def _hamming(a: np.ndarray, b: np.ndarray) -> int:
+    """Bit differences counted the slow, obvious way."""
+    return sum(bin(int(x) ^ int(y)).count("1") for x, y in zip(a.tolist(), b.tolist()))
+
+
+def _random_index(n: int, n_bytes: int, seed: int, **params) -> tuple[FloorIndex, _CountingScorer, list[_Desc]]:
+    rng = np.random.default_rng(seed)
+    scorer = _CountingScorer()
+    index = FloorIndex(IndexParams(**params), scorer=scorer)
+    descs = [_Desc(rng.integers(0, 256, n_bytes, dtype=np.uint8), tag=i) for i in range(n)]
+    for i, d in enumerate(descs):
+        index.add(100 + i, d)
+    return index, scorer, descs
+
+
+def test_global_scores_are_one_minus_normalised_hamming():
+    index = FloorIndex(scorer=_CountingScorer())
+    a = np.array([0b1111_0000, 0b0000_0000], np.uint8)
+    b = np.array([0b1111_0000, 0b0000_0111], np.uint8)  # 3 bits from a
+    c = np.array([0b0000_1111, 0b1111_1111], np.uint8)  # all 16 bits from a
+    for kf, bits in enumerate((a, b, c)):
+        index.add(kf, _Desc(bits))
+    assert index.global_scores(_Desc(a)).tolist() == [1.0, 1.0 - 3 / 16, 0.0]
+
+
+def test_shortlist_bounds_local_matches_and_takes_the_globally_nearest():
+    index, scorer, descs = _random_index(300, 64, seed=1)
+    rng = np.random.default_rng(2)
+    query = _Desc(rng.integers(0, 256, 64, dtype=np.uint8))
+    cands = index.query(query, k=3, shortlist=7)
+    assert len(scorer.calls) == 7 and index.local_matches == 7
+    dist = np.array([_hamming(query.global_bits, d.global_bits) for d in descs])
+    nearest = set(np.argsort(dist, kind="stable")[:7].tolist())
+    assert set(scorer.calls) == nearest  # the 7 scored are the 7 nearest by Hamming
+    # Candidates: the best 3 of the 7 by local score (here the tag), best first.
+    assert [c.score for c in cands] == sorted((float(t) for t in nearest), reverse=True)[:3]
+    assert [c.keyframe_id for c in cands] == [100 + int(c.score) for c in cands]
+    for c in cands:
+        assert c.global_score == pytest.approx(1.0 - dist[c.keyframe_id - 100] / 512)
+    index.query(query, shortlist=7)
+    assert index.local_matches == 14  # the counter accumulates
+
+
+def test_default_k_and_shortlist_come_from_params():
+    index, scorer, _ = _random_index(50, 8, seed=3, k=2, shortlist=4)
+    cands = index.query(_Desc(np.zeros(8, np.uint8)))
+    assert len(cands) == 2 and len(scorer.calls) == 4
+    cands = index.query(_Desc(np.zeros(8, np.uint8)), k=10, shortlist=100)
+    assert len(cands) == 10 and len(scorer.calls) == 4 + 50  # a shortlist beyond the map: all of it
+
+
+def test_brute_force_scores_every_keyframe():
+    index, scorer, _ = _random_index(40, 8, seed=4)
+    best = index.brute_force(_Desc(np.zeros(8, np.uint8)), k=1)
+    assert len(scorer.calls) == 40
+    assert best[0].keyframe_id == 139 and best[0].score == 39.0  # the highest tag anywhere
+
+
+def test_recent_keyframes_are_excluded_even_when_they_match_best():
+    index, scorer, descs = _random_index(30, 16, seed=5)
+    query = descs[-1]  # identical to the newest keyframe (id 129)
+    cands = index.query(query, k=30, shortlist=30, exclude_after_id=119)
+    ids = [c.keyframe_id for c in cands]
+    assert len(ids) == 20 and max(ids) == 119 and 129 not in ids
+    assert all(tag <= 19 for tag in scorer.calls)
+    # Without the exclusion the newest keyframe tops the global shortlist.
+    assert index.shortlist(query, size=1) == [(129, 1.0)]
+
+
+@pytest.mark.parametrize("as_callable", [False, True])
+def test_exclude_ids_as_set_or_predicate(as_callable):
+    index, scorer, descs = _random_index(30, 16, seed=6)
+    banned = {100, 105, 129}
+    excl = (lambda kf: kf in banned) if as_callable else banned
+    short = index.shortlist(descs[5], size=5, exclude_ids=excl)
+    assert len(short) == 5 and not banned & {kf for kf, _ in short}
+    # Excluded ids never reach the local scorer, however many are asked for.
+    index.query(descs[5], k=30, shortlist=30, exclude_ids=excl)
+    assert len(scorer.calls) == 27 and not {0, 5, 29} & set(scorer.calls)
+
+
+def test_predicate_rejecting_the_whole_top_falls_through_to_the_rest():
+    index, _, descs = _random_index(40, 16, seed=7)
+    sims = index.global_scores(descs[0])
+    order = np.argsort(-sims, kind="stable")
+    top_ids = {100 + int(i) for i in order[:10]}
+    short = index.shortlist(descs[0], size=3, exclude_ids=lambda kf: kf in top_ids)
+    assert [kf for kf, _ in short] == [100 + int(i) for i in order[10:13]]
+
+
+def test_array_grows_by_doubling_and_keeps_every_row():
+    index, _, descs = _random_index(9, 24, seed=8, initial_capacity=4)
+    assert index.capacity == 16 and len(index) == 9
+    assert index.ids.tolist() == list(range(100, 109))
+    for i, d in enumerate(descs):
+        sims = index.global_scores(d)
+        assert sims[i] == 1.0 and int(np.argmax(sims)) == i
+    # 24 bytes = 3 words per row: the array holds capacity x 24 bytes plus the ids.
+    assert index.nbytes >= 16 * 24 + 16 * 8
+
+
+def test_adding_twice_or_another_length_is_refused():
+    index = FloorIndex(scorer=_CountingScorer())
+    index.add(1, _Desc(np.zeros(8, np.uint8)))
+    with pytest.raises(ValueError, match="already"):
+        index.add(1, _Desc(np.zeros(8, np.uint8)))
+    with pytest.raises(ValueError, match="bits"):
+        index.add(2, _Desc(np.zeros(16, np.uint8)))
+    assert len(index) == 1 and 1 in index and 2 not in index
+
+
+def test_empty_index_and_everything_excluded_give_no_candidates():
+    scorer = _CountingScorer()
+    index = FloorIndex(scorer=scorer)
+    assert index.query(_Desc(np.zeros(8, np.uint8))) == []
+    index.add(5, _Desc(np.zeros(8, np.uint8)))
+    assert index.query(_Desc(np.zeros(8, np.uint8)), exclude_after_id=4) == []
+    assert scorer.calls == []
+
+
+def test_params_are_validated():
+    with pytest.raises(ValueError, match="shortlist"):
+        IndexParams(shortlist=0)
+    with pytest.raises(ValueError, match="k"):
+        IndexParams(k=0)
+
+
+# ------------------------------------------------------------ with real descriptors
+
+
+@pytest.fixture(scope="module")
+def gravel_run():
+    """Keyframes every 0.1 m along a 4 m straight run on a gravel floor, and a query frame
+    taken later at 2.03 m, turned by 0.5 rad: the revisit the index must find."""
+    import skimage.data
+
+    from robotd.floorcam import FloorCameraModel, overlap_ratios
+    from robotd.sim.floor import Floor
+    from robotd.sim.pairs import straight_run
+    from robotd.sim.render import FloorRenderer, RenderParams
+
+    floor = Floor.from_photos([skimage.data.gravel()], seed=3)
+    cam = FloorCameraModel.default()
+    poses, images = straight_run(floor, cam, np.random.default_rng(0), (0.0, 0.0, 0.0), 4.0, 0.1)
+    q_pose = np.array([2.03, 0.02, 0.5])
+    q_image = FloorRenderer(floor, cam, RenderParams(), np.random.default_rng(1)).render(q_pose, 0.1, 0.0, 30.0)
+    overlap = overlap_ratios(cam, np.repeat(q_pose[None], len(poses), axis=0), poses)
+    return images, q_image, overlap
+
+
+def test_true_revisit_is_among_the_candidates_on_a_rendered_run(gravel_run):
+    from robotd.floor.descriptor import decode, extract
+
+    images, q_image, overlap = gravel_run
+    mode = 4
+    index = FloorIndex()
+    for kf, image in enumerate(images):
+        index.add(kf, decode(extract(image, mode)))
+    query = decode(extract(q_image, mode))
+    shortlist = 8
+    cands = index.query(query, k=3, shortlist=shortlist)
+    assert index.local_matches == shortlist  # 8 of the 41 keyframes scored, not all
+    true = set(np.flatnonzero(overlap >= 0.33).tolist())
+    assert len(true) >= 2  # the ground truth has revisits to find (about 1.8 to 2.2 m)
+    assert cands[0].keyframe_id in true
+    assert cands[0].local.score > 0
+    assert all(a.score >= b.score for a, b in zip(cands, cands[1:]))
+    # A keyframe far from the query (0 m vs 2.03 m) scores below the true revisit.
+    far = index.brute_force(query, k=len(images))
+    by_id = {c.keyframe_id: c.score for c in far}
+    assert overlap[0] == 0.0 and by_id[0] < cands[0].score
+
+
+def test_from_store_round_trip_skips_a_corrupt_descriptor(gravel_run, tmp_path, caplog):
+    from robotd.floor.descriptor import decode, extract
+    from robotd.store import MapStore
+
+    images = gravel_run[0][:6]
+    mode = 3
+    blobs = [extract(im, mode) for im in images]
+    path = tmp_path / "map.db"
+    with MapStore.open(path, image_codec="png", synchronous="NORMAL") as store:
+        run = store.begin_run("", started_ns=0)
+        ids = [store.add_keyframe(run, k, (0.1 * k, 0.0, 0.0), np.eye(3), None, b, mode)
+               for k, b in enumerate(blobs)]
+        bad = store.add_keyframe(run, 10, (0.0, 0.0, 0.0), np.eye(3), None,
+                                 blobs[2][: len(blobs[2]) // 2], mode)  # truncated bytes
+        other = store.add_keyframe(run, 11, (0.0, 0.0, 0.0), np.eye(3), None, extract(images[0], 1), 1)
+        bare = store.add_keyframe(run, 12, (0.0, 0.0, 0.0), np.eye(3), None)  # no descriptor yet
+    with MapStore.open(path, create=False) as store, caplog.at_level(logging.WARNING):
+        index = FloorIndex.from_store(store, mode)
+    assert index.ids.tolist() == ids
+    assert index.load_report.corrupt_ids == (bad,)
+    assert index.load_report.loaded == 6 and index.load_report.other_mode == 2
+    assert any(str(bad) in rec.getMessage() for rec in caplog.records)
+    assert other not in index and bare not in index
+    # The rebuilt index answers like one built directly from the same bytes.
+    direct = FloorIndex()
+    for kf, b in zip(ids, blobs):
+        direct.add(kf, decode(b))
+    q = decode(blobs[4])
+    assert np.array_equal(index.global_scores(q), direct.global_scores(q))
+    a = index.query(q, k=3, shortlist=6)
+    b = direct.query(q, k=3, shortlist=6)
+    assert [c.keyframe_id for c in a] == [c.keyframe_id for c in b] and a[0].keyframe_id == ids[4]
+    assert [c.score for c in a] == [c.score for c in b]
