@@ -497,8 +497,10 @@ def extract(image: np.ndarray, mode: int, params: ExtractParams | None = None) -
 
     Raises ``ValueError`` for an unknown mode or an image that is not uint8 2-D/BGR.
     """
-    if mode not in MODES:
+    # 2.0 == 2 is in MODES too, but struct.pack refuses a float after all the work is done.
+    if isinstance(mode, bool) or not isinstance(mode, (int, np.integer)) or mode not in MODES:
         raise ValueError(f"mode must be one of {sorted(MODES)}, got {mode!r}")
+    mode = int(mode)
     params = params or ExtractParams()
     learned = params.learned or _shipped()
     spec = MODES[mode]

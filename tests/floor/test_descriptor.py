@@ -1,0 +1,478 @@
+"""The compact floor descriptor: the byte bound holds for any image in every mode, the bytes
+decode back to what extraction selected, and damaged or forged bytes give DescriptorError."""
+
+from __future__ import annotations
+
+import math
+import re
+import struct
+import zlib
+
+import cv2
+import numpy as np
+import pytest
+import skimage.data
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from robotd.errors import DescriptorError, RobotdError
+from robotd.floor.descriptor import (ANGLE_BITS, MODE_BYTES, MODES, POSITION_STEP_PX, ExtractParams, candidates,
+                                     decode, describe, extract, load_learned, raw_descriptors, ternarise)
+from robotd.floorcam import FloorCameraModel
+from robotd.sim.floor import Floor
+from robotd.sim.render import FloorRenderer, RenderParams
+
+ALL_MODES = sorted(MODES)
+HEADER_BYTES = 20  # magic, version, mode, sizes, n, k, reserved, CRC (module docstring)
+
+
+# ----------------------------------------------------------------------------- helpers
+
+@pytest.fixture(scope="module")
+def frames() -> dict[str, np.ndarray]:
+    """One virtual-robot floor frame ``(480, 640) uint8`` per texture photo."""
+    cam = FloorCameraModel.default()
+    out = {}
+    for i, name in enumerate(("brick", "grass", "gravel")):
+        floor = Floor.from_photos([getattr(skimage.data, name)()], seed=31 + i)
+        renderer = FloorRenderer(floor, cam, RenderParams(), np.random.default_rng(7 + i))
+        out[name] = renderer.render(np.array([0.4, -0.3, 0.5 + i]), 0.1, 0.0, 3.0)
+    return out
+
+
+@pytest.fixture(scope="module")
+def coded(frames) -> dict[int, bytes]:
+    """A real descriptor of the brick frame in every mode."""
+    return {m: extract(frames["brick"], m) for m in ALL_MODES}
+
+
+def _sections(data: bytes) -> list[tuple[str, int, int]]:
+    """``(name, start, end)`` byte ranges of a descriptor, from the documented layout."""
+    _, _, mode, _, _, _, _, n, k, _, _ = struct.unpack_from("<2sBBHHHHHBBI", data)
+    spec = MODES[mode]
+    sizes = [("header", 16), ("crc", 4), ("global", spec.global_bits // 8), ("rice remainders", -(-n * k // 8)),
+             ("angles", -(-n * ANGLE_BITS // 8)), ("trits", -(-n * spec.length // 5))]
+    out, pos = [], 0
+    for name, size in sizes:
+        out.append((name, pos, pos + size))
+        pos += size
+    out.append(("unary", pos, len(data)))
+    return out
+
+
+def _with_crc(data: bytes | bytearray) -> bytes:
+    """``data`` with its CRC-32 field recomputed: a forgery the checksum cannot catch."""
+    b = bytearray(data)
+    b[16:20] = struct.pack("<I", zlib.crc32(bytes(b[20:]), zlib.crc32(bytes(b[:16]))))
+    return bytes(b)
+
+
+def _set_header(data: bytes, **fields: int) -> bytes:
+    """Change named header fields and recompute the CRC."""
+    names = ["magic", "version", "mode", "width", "height", "work_width", "work_height", "n", "k", "reserved", "crc"]
+    values = dict(zip(names, struct.unpack_from("<2sBBHHHHHBBI", data)))
+    values.update(fields)
+    return _with_crc(struct.pack("<2sBBHHHHHBBI", *values.values()) + data[HEADER_BYTES:])
+
+
+def _check_valid(data: bytes, mode: int, height: int, width: int) -> None:
+    """Everything the format promises about ``extract(image of height x width, mode)``."""
+    assert isinstance(data, bytes)
+    assert len(data) <= MODE_BYTES[mode]
+    d = decode(data)
+    spec = MODES[mode]
+    n = len(d)
+    assert d.mode == mode and (d.width_px, d.height_px) == (width, height)
+    assert d.length == spec.length
+    assert d.xy_px.shape == (n, 2) and d.xy_px.dtype == np.float32
+    assert np.all(d.xy_px >= -0.5) and np.all(d.xy_px[:, 0] <= width - 0.5) and np.all(d.xy_px[:, 1] <= height - 0.5)
+    assert d.angle_rad.shape == (n,)
+    assert np.all((d.angle_rad >= 0) & (d.angle_rad < 2 * math.pi))
+    levels = d.angle_rad / (2 * math.pi / 2**ANGLE_BITS)
+    assert np.allclose(levels, np.round(levels), atol=1e-3)
+    words = -(-spec.length // 64)
+    assert d.local_pos.shape == d.local_neg.shape == (n, words) and d.local_pos.dtype == np.uint64
+    assert not np.any(d.local_pos & d.local_neg)  # an element is never +1 and -1
+    t = d.ternary()
+    assert t.shape == (n, spec.length) and set(np.unique(t).tolist()) <= {-1.0, 0.0, 1.0}
+    assert d.global_bits.shape == (spec.global_bits // 8,) and d.global_bits.dtype == np.uint8
+    assert d.position_step_px >= POSITION_STEP_PX
+    if max(height, width) <= ExtractParams().max_side_px:
+        assert d.position_step_px == POSITION_STEP_PX
+    # Coded order: grid cells in row-major order, never decreasing.
+    dx, dy = np.diff(d.xy_px[:, 0]), np.diff(d.xy_px[:, 1])
+    assert np.all((dy > 0) | ((dy == 0) & (dx >= 0)))
+
+
+# ----------------------------------------------------------------------------- the byte bound
+
+def _noise(rng, h, w):
+    return rng.integers(0, 256, (h, w), dtype=np.uint8)
+
+
+def _smooth(rng, h, w):
+    sigma = float(rng.uniform(0.7, 8.0))
+    x = cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), sigma)
+    x = (x - x.min()) / max(float(np.ptp(x)), 1e-6)
+    return np.round(255 * x).astype(np.uint8)
+
+
+def _salt_and_pepper(rng, h, w):
+    return np.where(rng.random((h, w)) < 0.5, 0, 255).astype(np.uint8)
+
+
+def _checker(rng, h, w):
+    s = int(rng.integers(1, 40))
+    yy, xx = np.mgrid[0:h, 0:w]
+    return np.where(((yy // s) + (xx // s)) % 2 == 0, 0, 255).astype(np.uint8)
+
+
+@st.composite
+def images(draw, max_h: int = 480, max_w: int = 640) -> np.ndarray:
+    """Random noise, blank at any grey, saturated (0/255) checkerboards and salt-and-pepper
+    noise, smoothed noise, tiny,
+    thin strips; grey, BGR (equal or independent channels), or a non-contiguous view."""
+    kind = draw(st.sampled_from(["noise", "blank", "checker", "salt_and_pepper", "smooth", "tiny", "strip"]))
+    seed = draw(st.integers(0, 2**32 - 1))
+    rng = np.random.default_rng(seed)
+    if kind == "tiny":
+        h, w = draw(st.integers(1, 40)), draw(st.integers(1, 40))
+    elif kind == "strip":
+        h, w = draw(st.integers(1, 40)), draw(st.integers(41, 4000))
+        if draw(st.booleans()):
+            h, w = w, h
+    else:
+        h, w = draw(st.integers(1, max_h)), draw(st.integers(1, max_w))
+    if kind == "blank":
+        grey = np.full((h, w), draw(st.integers(0, 255)), np.uint8)
+    else:
+        grey = {"noise": _noise, "checker": _checker, "salt_and_pepper": _salt_and_pepper, "smooth": _smooth,
+                "tiny": _smooth, "strip": _noise}[kind](rng, h, w)
+    layout = draw(st.sampled_from(["grey", "bgr_same", "bgr", "flipped"]))
+    if layout == "bgr_same":
+        return np.dstack([grey] * 3)
+    if layout == "bgr":
+        return np.dstack([grey, _noise(rng, h, w), grey[::-1, ::-1]])
+    if layout == "flipped":
+        return grey[::-1, ::-1]
+    return grey
+
+
+@settings(derandomize=True, database=None, max_examples=150, deadline=None)
+@given(image=images(), mode=st.sampled_from(ALL_MODES))
+def test_any_image_fits_the_bound_and_decodes_consistently(image, mode):
+    _check_valid(extract(image, mode), mode, image.shape[0], image.shape[1])
+
+
+@pytest.mark.parametrize("kind", [_noise, _salt_and_pepper, _checker, _smooth])
+@pytest.mark.parametrize("mode", ALL_MODES)
+def test_every_kind_of_full_size_image_in_every_mode(kind, mode):
+    """Full 480 x 640 frames of each kind, whatever examples hypothesis picks above."""
+    image = kind(np.random.default_rng(mode), 480, 640)
+    data = extract(image, mode)
+    _check_valid(data, mode, 480, 640)
+    assert len(decode(data)) > 0
+
+
+@settings(derandomize=True, database=None, max_examples=6, deadline=None)
+@given(h=st.integers(1281, 3000), w=st.integers(1281, 4000), seed=st.integers(0, 2**32 - 1),
+       smooth=st.booleans(), mode=st.sampled_from(ALL_MODES))
+def test_huge_images_fit_the_bound(h, w, seed, smooth, mode):
+    rng = np.random.default_rng(seed)
+    image = _smooth(rng, h, w) if smooth else _noise(rng, h, w)
+    data = extract(image, mode)
+    _check_valid(data, mode, h, w)
+    d = decode(data)
+    # Downscaled to max_side_px: the coordinate grid grows with the scale.
+    assert d.position_step_px == pytest.approx(POSITION_STEP_PX * max(h, w) / 1280, rel=0.02)
+
+
+@pytest.mark.parametrize("grey_level", [0, 1, 127, 254, 255])
+@pytest.mark.parametrize("mode", ALL_MODES)
+def test_blank_image_has_no_keypoints_and_costs_header_plus_global(grey_level, mode):
+    data = extract(np.full((480, 640), grey_level, np.uint8), mode)
+    assert len(data) == HEADER_BYTES + MODES[mode].global_bits // 8
+    d = decode(data)
+    assert len(d) == 0 and d.ternary().shape == (0, MODES[mode].length)
+    assert not np.any(d.global_bits)  # nothing aggregated: every projection is 0, no sign bit set
+
+
+@pytest.mark.parametrize("name", ["brick", "grass", "gravel"])
+def test_floor_frames_fill_at_least_85_percent_of_every_budget(frames, name):
+    counts = []
+    for mode in ALL_MODES:
+        data = extract(frames[name], mode)
+        assert 0.85 * MODE_BYTES[mode] <= len(data) <= MODE_BYTES[mode], (mode, len(data))
+        d = decode(data)
+        _check_valid(data, mode, 480, 640)
+        counts.append(len(d))
+    assert all(b > a for a, b in zip(counts, counts[1:])), counts  # more bytes: more keypoints
+    assert counts[0] >= 40 and counts[-1] >= 400, counts
+    lengths = [MODES[m].length for m in ALL_MODES]
+    assert all(b > a for a, b in zip(lengths, lengths[1:]))  # and longer local descriptors
+
+
+def test_extraction_is_deterministic_and_layout_independent(frames):
+    img = frames["grass"]
+    for mode in (1, 4, 6):
+        a = extract(img, mode)
+        assert extract(img.copy(), mode) == a
+        assert extract(np.dstack([img] * 3), mode) == a  # BGR with equal channels is the same grey
+        assert extract(img[:, :, None], mode) == a
+        assert extract(np.ascontiguousarray(img[::-1])[::-1], mode) == a  # a strided view
+    assert extract(img, 3) != extract(frames["brick"], 3)
+
+
+def test_describe_is_decode_of_extract(frames):
+    d1, d2 = describe(frames["gravel"], 5), decode(extract(frames["gravel"], 5))
+    for f in ("xy_px", "angle_rad", "local_pos", "local_neg", "global_bits"):
+        assert np.array_equal(getattr(d1, f), getattr(d2, f))
+
+
+# ----------------------------------------------------------------------------- round trip of the content
+
+@pytest.mark.parametrize("mode", [1, 3, 6])
+def test_decoded_keypoints_are_the_most_relevant_candidates(frames, mode):
+    """Positions within half a grid step, angles within half a quantisation step, and the
+    trits exactly as ternarised, for the ``n`` most relevant candidates in coded order."""
+    img = frames["brick"]  # 640 px: the working image is the image itself
+    params, learned = ExtractParams(), load_learned()
+    c = candidates(img, params, learned)
+    d = decode(extract(img, mode))
+    n = len(d)
+    assert 0 < n < len(c.xy)
+    step = POSITION_STEP_PX
+    col = ((c.xy[:n, 0] + 0.5) // step).astype(int)
+    row = ((c.xy[:n, 1] + 0.5) // step).astype(int)
+    order = np.lexsort((np.arange(n), col, row))  # row-major cells, ties in relevance order
+    xy = c.xy[:n][order]
+    assert np.all(np.abs(d.xy_px - xy) <= step / 2 + 1e-4)
+    dang = np.abs((d.angle_rad - c.angle[:n][order] + math.pi) % (2 * math.pi) - math.pi)
+    assert np.all(dang <= math.pi / 2**ANGLE_BITS + 1e-5)
+    trits = ternarise(raw_descriptors(c, n, params), learned, MODES[mode].length)[order]
+    assert np.array_equal(d.ternary(), trits.astype(np.float32))
+
+
+def _blobs(h: int, w: int, centres: np.ndarray, sigma_px: float) -> np.ndarray:
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    img = np.full((h, w), 60.0)
+    for x, y in centres:
+        img += 120 * np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * sigma_px**2))
+    return np.round(img).astype(np.uint8)
+
+
+@pytest.mark.parametrize("scale", [1, 3])
+def test_keypoints_land_on_known_blobs(scale):
+    """Twelve Gaussian blobs at sub-pixel positions: a keypoint within half a grid step
+    (plus 0.35 step of detection error) of each, also in a downscaled 1920 x 1440 image."""
+    rng = np.random.default_rng(4)
+    h, w = 480 * scale, 640 * scale
+    gx, gy = np.meshgrid((np.arange(4) + 0.5) * w / 4, (np.arange(3) + 0.5) * h / 3)
+    centres = np.column_stack([gx.ravel(), gy.ravel()]) + rng.uniform(-20, 20, (12, 2)) * scale
+    d = describe(_blobs(h, w, centres, 4.0 * scale), 2)
+    expected_step = POSITION_STEP_PX * max(1.0, w / 1280)
+    assert d.position_step_px == pytest.approx(expected_step)
+    err = np.abs(d.xy_px[None, :, :] - centres[:, None, :]).max(axis=2).min(axis=1)  # per blob, nearest keypoint
+    assert np.all(err <= 0.85 * expected_step), err
+    assert 12 <= len(d) <= 20  # the blobs, and at most a few ring responses
+
+
+# ----------------------------------------------------------------------------- bad arguments
+
+@pytest.mark.parametrize("mode", [0, 7, -1, 2.0, 1.5, True, "1", None])
+def test_unknown_mode_is_a_value_error(mode):
+    with pytest.raises(ValueError, match="mode must be one of"):
+        extract(np.zeros((64, 64), np.uint8), mode)
+
+
+def test_numpy_integer_modes_are_accepted():
+    img = np.zeros((64, 64), np.uint8)
+    assert extract(img, np.int64(3)) == extract(img, 3)
+
+
+@pytest.mark.parametrize("image, message", [
+    (np.zeros((48, 64), np.float32), "uint8"),
+    (np.zeros((48, 64), np.uint16), "uint8"),
+    (np.zeros((48, 64), bool), "uint8"),
+    (np.zeros((48, 64, 2), np.uint8), "shape"),
+    (np.zeros((2, 48, 64), np.uint8), "shape"),
+    (np.zeros((0, 64), np.uint8), "shape"),
+    (np.zeros(64, np.uint8), "shape"),
+    (np.zeros((1, 65536), np.uint8), "65535"),
+    (np.zeros((65536, 1), np.uint8), "65535"),
+])
+def test_bad_image_is_a_value_error(image, message):
+    with pytest.raises(ValueError, match=message):
+        extract(image, 1)
+
+
+def test_largest_allowed_side_is_accepted():
+    data = extract(np.zeros((1, 65535), np.uint8), 1)
+    assert decode(data).width_px == 65535
+
+
+def test_extract_params_out_of_range():
+    with pytest.raises(ValueError, match="out of range"):
+        ExtractParams(max_side_px=16)
+    with pytest.raises(ValueError, match="out of range"):
+        ExtractParams(dog_ratio=1.0)
+
+
+# ----------------------------------------------------------------------------- damaged bytes
+
+@pytest.mark.parametrize("mode", ALL_MODES)
+def test_every_single_byte_change_is_caught(coded, mode):
+    """CRC-32 catches every burst of up to 32 bits, so every changed byte anywhere
+    (header, checksum, every section, the tail) must give DescriptorError."""
+    data = coded[mode]
+    names = {name for name, start, end in _sections(data) if end > start}
+    assert names == {"header", "crc", "global", "rice remainders", "angles", "trits", "unary"}
+    rng = np.random.default_rng(mode)
+    masks = rng.integers(1, 256, len(data))
+    b = bytearray(data)
+    for i in range(len(data)):
+        for mask in ((1 << (i % 8)), int(masks[i])):
+            b[i] ^= mask
+            with pytest.raises(DescriptorError):
+                decode(bytes(b))
+            b[i] ^= mask
+    assert decode(bytes(b)).mode == mode  # restored
+
+
+@pytest.mark.parametrize("mode", [1, 6])
+def test_every_truncation_is_caught(coded, mode):
+    data = coded[mode]
+    for cut in range(len(data)):
+        with pytest.raises(DescriptorError, match="truncated|checksum"):
+            decode(data[:cut])
+
+
+def test_messages_name_the_problem(coded):
+    data = coded[2]
+    cases = [
+        (b"", "truncated: 0 bytes"),
+        (data[:10], "truncated: 10 bytes"),
+        (b"XY" + data[2:], "bad magic"),
+        (data[:2] + bytes([2]) + data[3:], "unsupported version 2"),
+        (data[:3] + bytes([0]) + data[4:], "bad mode 0"),
+        (data[:3] + bytes([9]) + data[4:], "bad mode 9"),
+        (data[:3] + bytes([1]) + data[4:], "exceed mode 1's bound of 512"),
+        (data + bytes(MODE_BYTES[2] - len(data) + 1), "exceed mode 2's bound of 1024"),
+        (data + b"\x00", "checksum mismatch"),
+    ]
+    for bad, message in cases:
+        with pytest.raises(DescriptorError, match=re.escape(message)) as e:
+            decode(bad)
+        assert str(e.value).startswith("floor descriptor: ")
+    assert issubclass(DescriptorError, RobotdError)
+
+
+@pytest.mark.parametrize("value", ["FD", 42, None, [70, 68], np.frombuffer(b"FD", np.uint8)])
+def test_non_bytes_is_a_descriptor_error(value):
+    with pytest.raises(DescriptorError, match="expected bytes"):
+        decode(value)
+
+
+def test_bytearray_and_memoryview_decode_like_bytes(coded):
+    data = coded[3]
+    ref = decode(data)
+    for view in (bytearray(data), memoryview(data)):
+        assert np.array_equal(decode(view).xy_px, ref.xy_px)
+
+
+@settings(derandomize=True, database=None, max_examples=150, deadline=None)
+@given(st.binary(max_size=2048))
+def test_random_bytes_are_a_descriptor_error(data):
+    with pytest.raises(DescriptorError):
+        decode(data)
+
+
+@settings(derandomize=True, database=None, max_examples=150, deadline=None)
+@given(mode=st.sampled_from(ALL_MODES), body=st.binary(min_size=0, max_size=600), n=st.integers(0, 80),
+       k=st.integers(0, 20), size=st.tuples(st.integers(0, 700), st.integers(0, 700)))
+def test_random_bodies_with_a_correct_checksum_never_crash(mode, body, n, k, size):
+    """A valid magic, version, mode and CRC over garbage: decoded or DescriptorError, never
+    another exception; what decodes keeps every documented invariant."""
+    head = struct.pack("<2sBBHHHHHBBI", b"FD", 1, mode, size[0], size[1], size[0], size[1], n, k, 0, 0)
+    data = _with_crc(head + body)
+    try:
+        d = decode(data)
+    except DescriptorError:
+        return
+    _check_valid(data, mode, size[1], size[0])
+    assert len(d) == n
+
+
+# ----------------------------------------------------------------------------- forged bytes (CRC recomputed)
+
+def test_forged_header_fields_are_caught(coded):
+    data = coded[4]
+    _, _, _, width, height, ww, wh, n, k, _, _ = struct.unpack_from("<2sBBHHHHHBBI", data)
+    forged = {
+        "n + 1": dict(n=n + 1), "n - 1": dict(n=n - 1), "n = 0": dict(n=0), "n = 65535": dict(n=65535),
+        "k + 1": dict(k=k + 1), "k - 1": dict(k=k - 1), "k = 17": dict(k=17), "k = 255": dict(k=255),
+        "reserved": dict(reserved=1), "work wider than image": dict(work_width=width + 1),
+        "work taller than image": dict(work_height=height + 1), "zero work width": dict(work_width=0),
+        "zero size": dict(width=0, height=0, work_width=0, work_height=0),
+        "positions outside the image": dict(height=20, work_height=20),
+    }
+    for label, fields in forged.items():
+        with pytest.raises(DescriptorError):
+            decode(_set_header(data, **fields))
+            pytest.fail(f"forged {label} decoded")
+
+
+def test_forged_sections_are_caught(coded):
+    data = coded[3]
+    s = {name: (start, end) for name, start, end in _sections(data)}
+    trits = bytearray(data)
+    trits[s["trits"][0]] = 243  # 3**5: not five trits
+    with pytest.raises(DescriptorError, match="bad descriptor code"):
+        decode(_with_crc(trits))
+    for label, bad in [("extra 0x00: another terminator", data + b"\x00"),
+                       ("extra 0xFF: padding of 8 or more bits", data + b"\xff"),
+                       ("a unary byte dropped", data[:-1]),
+                       ("all unary zeros", data[:s["unary"][0]] + bytes(s["unary"][1] - s["unary"][0])),
+                       ("no unary part", data[:s["unary"][0]]),
+                       ("body cut inside the trits", data[:s["trits"][0] + 3])]:
+        with pytest.raises(DescriptorError, match="position code|truncated"):
+            decode(_with_crc(bad))
+            pytest.fail(f"forged {label} decoded")
+
+
+def _trit_bytes(trits: list[int]) -> bytes:
+    """Trits in {-1, 0, 1}, five per byte, the first as the least significant base-3 digit."""
+    digits = [t + 1 for t in trits] + [0] * (-len(trits) % 5)
+    return bytes(sum(d * 3**i for i, d in enumerate(digits[j:j + 5])) for j in range(0, len(digits), 5))
+
+
+def _hand_made(height: int) -> bytes:
+    """A mode-1 descriptor of a 64 x ``height`` image built bit by bit from the layout:
+    two keypoints in grid cells 5 and 70 (32 cells per row), Rice k = 2."""
+    # gaps 5 = 1 << 2 | 1 and 65 = 16 << 2 | 1: remainders 01 01, quotients 1 and 16.
+    remainders = bytes([0b0101_0000])
+    angles = bytes([0b00011_111, 0b11_000000])  # levels 3 and 31, 5 bits each
+    t = [0] * 48
+    t[0], t[24 + 1], t[47] = 1, -1, 1
+    unary = bytes([0b10_111111, 0b11111111, 0b110_11111])  # "10", 16 ones and "0", padding ones
+    glob = bytes(range(32))
+    head = struct.pack("<2sBBHHHHHBBI", b"FD", 1, 1, 64, height, 64, height, 2, 2, 0, 0)
+    return _with_crc(head + glob + remainders + angles + _trit_bytes(t) + unary)
+
+
+def test_hand_made_descriptor_decodes_to_its_values():
+    d = decode(_hand_made(48))
+    assert (d.mode, d.width_px, d.height_px, len(d), d.length) == (1, 64, 48, 2, 24)
+    assert np.array_equal(d.xy_px, np.array([[10.5, 0.5], [12.5, 4.5]], np.float32))  # cell centres
+    assert np.allclose(d.angle_rad, np.array([3, 31]) * 2 * math.pi / 32)
+    expected = np.zeros((2, 24), np.float32)
+    expected[0, 0], expected[1, 1], expected[1, 23] = 1, -1, 1
+    assert np.array_equal(d.ternary(), expected)
+    assert np.array_equal(d.global_bits, np.arange(32, dtype=np.uint8))
+
+
+def test_forged_position_beyond_the_grid_is_caught():
+    """Cell 70 needs three rows of 32 cells: a 64 x 4 image has two."""
+    with pytest.raises(DescriptorError, match="outside the image"):
+        decode(_hand_made(4))
+    assert len(decode(_hand_made(6))) == 2  # three rows: cell 70 fits
