@@ -1,7 +1,7 @@
 """Compact floor descriptor against OpenCV SIFT: extraction time, size, matching time.
 
 Paper 003 Sec. IV-B on our descriptor (modes 1-6) and on OpenCV SIFT, same frames, same
-run, one thread (``cv2.setNumThreads(1)``):
+run, one thread (OpenCV and numpy's BLAS, :func:`floor_common.one_thread`):
 
 * Table I: extraction time per 640x480 frame, per mode and SIFT, per floor, and the ratio
   SIFT / ours (target: >= 10x in every mode);
@@ -27,17 +27,16 @@ import argparse
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 try:
     from bench.common import print_table, write_json
     from bench.floor_common import (MODES, SiftBaseline, add_common_args, bench_floors, header,
-                                    log, pyplot, r, time_each)
+                                    load_average, log, one_thread, pyplot, r, time_each)
 except ImportError:  # run as a script: bench/ is on sys.path
     from common import print_table, write_json
-    from floor_common import (MODES, SiftBaseline, add_common_args, bench_floors, header, log,
-                              pyplot, r, time_each)
+    from floor_common import (MODES, SiftBaseline, add_common_args, bench_floors, header,
+                              load_average, log, one_thread, pyplot, r, time_each)
 
 from robotd.floor.descriptor import MODE_BYTES, decode, extract
 from robotd.floor.match import local_score
@@ -127,8 +126,9 @@ def plot_features(results: list[dict], path: Path) -> None:
     ax2.axhline(85, color="k", ls="--", lw=1)
     ax2.axhline(100, color="r", lw=1)
     ax2.set_ylim(0, 110)
-    ax2.set_ylabel("bytes used, % of the mode's bound")
-    ax2.set_title("Descriptor size against its bound (dashed: 85 %)")
+    ax2.set_ylabel("bytes used, % of the mode's bound (mean over frames)")
+    ax2.set_title("Descriptor size against its bound (dashed: 85 %, red: 100 %)")
+    ax2.legend(fontsize=7, ncol=6, loc="lower center")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -142,7 +142,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sift-repeats", type=int, default=1,
                     help="timed calls per frame or pair, SIFT (default 1: it is 10-1000x slower)")
     args = ap.parse_args(argv)
-    cv2.setNumThreads(1)
+    load_start = load_average()
+    blas = one_thread()
+    log(f"load average {load_start}; BLAS pools {blas}")
     sift = SiftBaseline(args.seed)
 
     results = []
@@ -207,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     png = args.out / "floor_descriptor_features.png"
     plot_features(results, png)
-    payload = header("floor_descriptor", {
+    payload = header("floor_descriptor", load_start=load_start, settings={
         "threads": 1, "image": [640, 480], "frames_per_floor": args.frames, "spacing_m": SPACING_M,
         "repeats": args.repeats, "sift_repeats": args.sift_repeats, "seed": args.seed,
         "mode_bytes": {str(m): int(MODE_BYTES[m]) for m in MODES},

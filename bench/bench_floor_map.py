@@ -36,17 +36,17 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 try:
     from bench.common import print_table, time_repeats, write_json
     from bench.floor_common import (LOOP_OVERLAP, MODES, SiftBaseline, add_common_args, bench_floors,
-                                    header, log, printed_floor, pyplot, r, spread)
+                                    header, load_average, log, one_thread, printed_floor, pyplot, r,
+                                    spread)
 except ImportError:  # run as a script: bench/ is on sys.path
     from common import print_table, time_repeats, write_json
     from floor_common import (LOOP_OVERLAP, MODES, SiftBaseline, add_common_args, bench_floors, header,
-                              log, printed_floor, pyplot, r, spread)
+                              load_average, log, one_thread, printed_floor, pyplot, r, spread)
 
 from robotd.floor.descriptor import MODE_BYTES, decode, extract
 from robotd.floor.index import FloorIndex, IndexParams
@@ -212,18 +212,19 @@ def bench_mode(mode: int, m: dict, args: argparse.Namespace, recent: int) -> dic
 
 def plot_scaling(results: list[dict], path: Path) -> None:
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(7.5, 5), dpi=110)
+    fig, ax = plt.subplots(figsize=(9.5, 5), dpi=110)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for res, col in zip(results, colours):
         s = np.array([x["size"] for x in res["scaling"]])
         ax.plot(s, [x["query_ms"] for x in res["scaling"]], "o-", color=col, label=f"mode {res['mode']} index")
         ax.plot(s, [x["brute_force_ms"] for x in res["scaling"]], "x--", color=col, alpha=0.6)
+    ax.plot([], [], "x--", color="grey", label="brute force (mode's colour)")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("keyframes in the map")
     ax.set_ylabel("time to query one keyframe, ms")
     ax.set_title("Index query (solid) vs brute-force local scoring (dashed)")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path)
@@ -247,7 +248,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--queries", type=int, default=200, help="extra queries over the second half (default 200)")
     ap.add_argument("--repeats", type=int, default=7, help="timed index queries (default 7)")
     args = ap.parse_args(argv)
-    cv2.setNumThreads(1)
+    load_start = load_average()
+    blas = one_thread()
+    log(f"load average {load_start}; BLAS pools {blas}")
     floors = {bf.name: bf for bf in [*bench_floors(args.floor, args.seed), printed_floor(args.seed)]}
     if args.map_floor not in floors:
         ap.error(f"unknown --map-floor {args.map_floor!r}; known: {', '.join(floors)}")
@@ -313,7 +316,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     png = args.out / "floor_map_scaling.png"
     plot_scaling(results, png)
-    payload = header("floor_map", {
+    payload = header("floor_map", load_start=load_start, settings={
         "threads": 1, "seed": args.seed, "floor": bf.name, "floor_source": bf.source, "route": "office",
         "keyframes": n, "frame_interval_s": dt, "k": args.k, "shortlist": args.shortlist,
         "exclude_recent_s": args.exclude_recent_s, "exclude_recent_keyframes": recent,

@@ -41,11 +41,11 @@ import numpy as np
 try:
     from bench.common import print_table, write_json
     from bench.floor_common import (FEATURES_DIR, LOOP_OVERLAP, MODES, SiftBaseline, add_common_args,
-                                    bench_floors, header, log, pyplot, r, roc_auc)
+                                    bench_floors, header, load_average, log, one_thread, pyplot, r, roc_auc)
 except ImportError:  # run as a script: bench/ is on sys.path
     from common import print_table, write_json
     from floor_common import (FEATURES_DIR, LOOP_OVERLAP, MODES, SiftBaseline, add_common_args,
-                              bench_floors, header, log, pyplot, r, roc_auc)
+                              bench_floors, header, load_average, log, one_thread, pyplot, r, roc_auc)
 
 from robotd.floor.descriptor import decode, extract
 from robotd.floor.match import local_score
@@ -262,11 +262,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip", action="append", default=[], choices=["separation", "graffiti", "matrices"],
                     help="leave a part out (repeatable)")
     args = ap.parse_args(argv)
-    cv2.setNumThreads(1)
+    load_start = load_average()
+    blas = one_thread()
+    log(f"load average {load_start}; BLAS pools {blas}")
     sift = SiftBaseline(args.seed)
     args.out.mkdir(parents=True, exist_ok=True)
     floors = bench_floors(args.floor, args.seed)
-    payload = header("floor_quality", {
+    payload = header("floor_quality", load_start=load_start, settings={
         "threads": 1, "seed": args.seed, "pairs_per_floor": args.pairs, "near_fraction": NEAR_FRACTION,
         "max_offset_m": MAX_OFFSET_M, "loop_overlap": LOOP_OVERLAP, "run_spacing_m": args.run_spacing,
         "sift_run_m": args.sift_run_m, "graffiti_tolerance_px": GRAFFITI_TOLERANCE_PX,

@@ -17,6 +17,7 @@ the same frames in the same run. This module holds the parts they have in common
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import time
@@ -230,6 +231,23 @@ def time_each(fn: Callable[[Any], object], items: Sequence[Any], repeats: int = 
     return spread(per_item)
 
 
+def one_thread() -> list[dict[str, Any]]:
+    """Run OpenCV and numpy's BLAS on one thread, the condition of the issue's targets.
+
+    ``cv2.setNumThreads(1)`` alone is not enough: ``local_score``'s descriptor-distance
+    product goes through numpy's BLAS (OpenBLAS here), which by default uses every core.
+    On a 2-core machine whose other core is busy, each product of a 170 x 48 matrix or
+    larger then waits for a descheduled BLAS thread: 16 ms instead of 0.4 ms (measured).
+    Returns threadpoolctl's description of the BLAS pools after the limit (for the JSON).
+    """
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    cv2.setNumThreads(1)
+    threadpool_limits(limits=1)  # process-wide until exit (no context manager: a benchmark is the process)
+    return [{"library": i.get("internal_api"), "version": i.get("version"), "num_threads": i.get("num_threads")}
+            for i in threadpool_info()]
+
+
 def versions() -> dict[str, str]:
     """Versions of the libraries whose speed or results the floor benchmarks depend on."""
     import matplotlib
@@ -240,9 +258,25 @@ def versions() -> dict[str, str]:
             "matplotlib": matplotlib.__version__, "shapely": shapely.__version__}
 
 
-def header(name: str, settings: dict[str, Any]) -> dict[str, Any]:
-    """The common head of a benchmark's JSON: name, machine (with commit), versions, settings."""
-    return {"benchmark": name, "machine": machine_info(), "versions": versions(), "settings": settings}
+def load_average() -> list[float] | None:
+    """``os.getloadavg()`` (1, 5, 15 min), or None where unavailable: the machine's
+    contention during the run (timings are ratios within the run for that reason)."""
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except (AttributeError, OSError):
+        return None
+
+
+def header(name: str, settings: dict[str, Any], load_start: list[float] | None = None) -> dict[str, Any]:
+    """The common head of a benchmark's JSON: name, machine (with commit, and the load
+    average ``load_start`` measured when the run began and the one now), versions, BLAS
+    thread pools, settings."""
+    from threadpoolctl import threadpool_info
+
+    machine = {**machine_info(), "load_average_start": load_start, "load_average_end": load_average()}
+    blas = [{"library": i.get("internal_api"), "num_threads": i.get("num_threads")} for i in threadpool_info()]
+    return {"benchmark": name, "machine": machine, "versions": versions(), "blas_threads": blas,
+            "settings": settings}
 
 
 def pyplot() -> Any:
