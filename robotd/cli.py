@@ -24,6 +24,8 @@ examples:
   robotd config check robotd.toml      validate a config file
   robotd kobuki decode capture.txt     decode a serial capture (raw or pyserial spy://)
   robotd calibrate intrinsics left*.jpg --board 9x6 --square 0.025 --out calibration.yml
+  robotd calibrate loop-curve drive.mcap --calibration calibration.yml --plot curves.png
+  robotd calibrate validate other-drive.mcap --calibration calibration.yml
   robotd record run.mcap --virtual --route figure8    record the virtual robot to MCAP
   robotd replay run.mcap --map replay.sqlite          feed a recording through the daemon
 """
@@ -110,12 +112,17 @@ def build_parser() -> argparse.ArgumentParser:
                                                "from a calibration recording",
                             description="Score keyframe pairs of a recorded drive in every descriptor "
                                         "mode, label them by footprint overlap from the fused odometry, "
-                                        "fit P(J >= r | score) and write each mode's threshold "
-                                        "(paper 003 Sec. IV-C, Fig. 5, Table III).")
+                                        "fit P(J >= r | score) and write each mode's threshold into the "
+                                        "calibration file the daemon loads (paper 003 Sec. IV-C, Fig. 5, "
+                                        "Table III).")
     train.add_loop_curve_arguments(cl)
     cl.set_defaults(func=train.run_loop_curve)
     cv = cal_sub.add_parser("validate", help="precision and recall of the thresholds on another "
-                                             "recording (labelled by its ground truth)")
+                                             "recording (labelled by its ground truth)",
+                            description="Apply the calibration file's thresholds to the keyframe pairs "
+                                        "of another recording of the virtual robot and report, per "
+                                        "mode, precision and recall of the declared loops against the "
+                                        "ground-truth footprint overlap.")
     train.add_validate_arguments(cv)
     cv.set_defaults(func=train.run_validate)
 

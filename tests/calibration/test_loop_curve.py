@@ -4,13 +4,32 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from calibration.loop_curve import _pava, fit_loop_curve, pick_threshold, precision_recall
+from calibration.loop_curve import _pava_blocks, fit_loop_curve, pick_threshold, precision_recall
 
 
-def test_pava_by_hand():
-    assert np.allclose(_pava(np.array([1.0, 3.0, 2.0, 4.0]), np.ones(4)), [1, 2.5, 2.5, 4])
-    # weights pull the pooled value: (3*1 + 1*3) / 4 = 1.5
-    assert np.allclose(_pava(np.array([3.0, 1.0]), np.array([1.0, 3.0])), [1.5, 1.5])
+def test_pava_blocks_by_hand():
+    # Posterior means 1/3, 4/6, 2/6, 5/6: the second and third bins violate and pool
+    # into one block of 4 loops in 8 pairs (5/10); the last stays alone.
+    assert _pava_blocks(np.array([0.0, 3.0, 1.0, 4.0]), np.array([1.0, 4.0, 4.0, 4.0])).tolist() == [1, 2, 1]
+    # Equal estimates are pooled (same fit, pooled evidence).
+    assert _pava_blocks(np.array([5.0, 5.0]), np.array([5.0, 5.0])).tolist() == [2]
+
+
+def test_pooled_bins_count_all_their_evidence():
+    # 2000 pairs, all loops above 50, 1 in 2 below: ten bins of 100 loops each, every one of
+    # which alone only shows P >= 0.97; pooled they show P >= 0.05 ** (1 / 1001) = 0.997.
+    s = np.arange(2000, dtype=float) / 20.0
+    y = np.where(s >= 50, True, np.arange(2000) % 2 == 0)
+    c = fit_loop_curve(s, y, bins=20, min_per_bin=100)
+    top = c.score_lo >= 50
+    assert top.sum() == 10
+    assert np.allclose(c.probability[top], 1001 / 1002)
+    assert np.allclose(c.lower[top], 0.05 ** (1 / 1001))
+    assert pick_threshold(c, 0.99) == 50.0
+    # Half the evidence is not enough for a 0.995 lower bound (0.05 ** (1 / 501) = 0.994).
+    half = fit_loop_curve(s[1000:1500], y[1000:1500], bins=5, min_per_bin=100)
+    assert half.lower[-1] == pytest.approx(0.05 ** (1 / 501))
+    assert pick_threshold(half, 0.995) is None
 
 
 def test_curve_recovers_a_step_and_the_threshold():

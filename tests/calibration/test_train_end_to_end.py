@@ -1,0 +1,111 @@
+"""`robotd calibrate loop-curve` and `validate` end to end on short virtual-robot recordings:
+thresholds trained from the fused odometry of one drive, written to the calibration file,
+loaded by the daemon, and checked against the ground truth of another drive."""
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from calibration.calibfile import read_calibration
+from calibration.train import _interpolate
+from robotd.cli import main
+from robotd.config import Config, replace
+from robotd.demo import run_demo
+from robotd.service import build_floor_detector, load_calibration
+from robotd.store import MapStore
+
+MODES = (2, 4)
+CONFIDENCE = 0.99
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A 12 s straight drive to train on, a 14 s square drive (another route, another
+    seed: another floor) to validate on; modes 2 and 4 trained and validated."""
+    d = tmp_path_factory.mktemp("loop_curve")
+    cfg = replace(Config(), "floor_detector", enabled=False)  # the recording needs no detector
+    run_demo(cfg, out=d / "train-demo", route="straight", duration_s=12.0, seed=3, plot=False,
+             record=d / "train.mcap")
+    run_demo(cfg, out=d / "val-demo", route="square", duration_s=14.0, seed=4, plot=False,
+             record=d / "val.mcap")
+    calib = d / "calibration.yml"
+    modes = ",".join(map(str, MODES))
+    rc_train = main(["calibrate", "loop-curve", str(d / "train.mcap"), "--calibration", str(calib),
+                     "--modes", modes, "--confidence", str(CONFIDENCE), "--plot", str(d / "curves.png"),
+                     "--json", str(d / "train.json")])
+    rc_val = main(["calibrate", "validate", str(d / "val.mcap"), "--calibration", str(calib),
+                   "--modes", modes, "--json", str(d / "val.json")])
+    return {"dir": d, "calib": calib, "rc": (rc_train, rc_val),
+            "train": json.loads((d / "train.json").read_text()),
+            "val": json.loads((d / "val.json").read_text())}
+
+
+@pytest.mark.slow
+def test_thresholds_are_written_and_read_back(trained):
+    assert trained["rc"] == (0, 0)
+    t = trained["train"]
+    assert t["odometry"] == "fused" and t["keyframes"] > 50 and t["pairs"] > t["near_pairs"] > 0
+    calib = read_calibration(trained["calib"])
+    assert calib.loop is not None
+    assert calib.loop.confidence == CONFIDENCE and calib.loop.overlap_r == 0.33
+    for m in range(1, 7):
+        expected = t["modes"][str(m)]["threshold"] if m in MODES else None
+        if expected is None:
+            assert calib.loop.for_mode(m) is None
+        else:
+            assert calib.loop.for_mode(m) == pytest.approx(expected, rel=1e-12)
+            assert expected > 0
+
+
+@pytest.mark.slow
+def test_curves_are_monotone_and_the_threshold_is_where_they_reach_the_confidence(trained):
+    for m in MODES:
+        c = trained["train"]["modes"][str(m)]
+        p, lo, s_lo = (np.array(c["curve"][k]) for k in ("probability", "lower", "score_lo"))
+        assert len(p) > 10
+        assert np.all(np.diff(p) >= 0) and np.all(np.diff(lo) >= 0) and np.all(lo <= p)
+        assert p[0] < 0.5 < CONFIDENCE <= p[-1]  # from "no loop" at low scores to certain
+        t = c["threshold"]
+        k = int(np.flatnonzero(s_lo == t)[0])
+        assert p[k] >= CONFIDENCE and lo[k] >= CONFIDENCE
+        assert k == 0 or min(p[k - 1], lo[k - 1]) < CONFIDENCE  # the smallest such score
+    # Higher modes keep more and longer local descriptors: larger scores (paper Table III).
+    assert trained["train"]["modes"]["4"]["threshold"] > trained["train"]["modes"]["2"]["threshold"]
+    png = cv2.imread(str(trained["dir"] / "curves.png"))
+    assert png is not None and png.shape[0] > 200 and png.shape[1] > 300
+
+
+@pytest.mark.slow
+def test_thresholds_hold_on_another_drive_against_ground_truth(trained):
+    v = trained["val"]
+    for m in MODES:
+        r = v["modes"][str(m)]
+        assert r["threshold"] == pytest.approx(trained["train"]["modes"][str(m)]["threshold"])
+        a = r["all"]
+        assert a["true_positives"] + a["false_negatives"] > 100  # the square drive has loops
+        # P(loop | score) >= 0.99 from the threshold on: declared loops are real at that rate.
+        assert a["precision"] >= CONFIDENCE
+        assert a["recall"] >= 0.5  # not a threshold that declares (almost) nothing
+
+
+@pytest.mark.slow
+def test_the_daemon_declares_loops_with_the_trained_threshold(trained, tmp_path):
+    cfg = replace(Config(), "calibration", path=str(trained["calib"]))
+    cfg = replace(cfg, "floor_detector", enabled=True, mode=4)
+    with MapStore.open(tmp_path / "map.sqlite") as store:
+        det = build_floor_detector(cfg, store, load_calibration(cfg))
+    assert det.threshold == pytest.approx(trained["train"]["modes"]["4"]["threshold"], rel=1e-12)
+
+
+def test_poses_interpolate_across_the_yaw_wrap():
+    track_ns = np.array([0, 10, 20])
+    track = np.array([[0.0, 0.0, math.pi - 0.1], [1.0, 2.0, -math.pi + 0.1], [2.0, 2.0, -math.pi + 0.3]])
+    out = _interpolate(np.array([-5, 5, 10, 15, 25]), track_ns, track)
+    assert np.allclose(out[:, :2], [[0, 0], [0.5, 1.0], [1, 2], [1.5, 2], [2, 2]])
+    # Halfway from pi - 0.1 to -pi + 0.1 is pi (the short way round), not 0.
+    assert abs(abs(out[1, 2]) - math.pi) < 1e-12
+    assert np.allclose(out[[0, 2, 3, 4], 2], [math.pi - 0.1, -math.pi + 0.1, -math.pi + 0.2, -math.pi + 0.3])
