@@ -107,7 +107,7 @@ class KeyframeConfig:
 class FloorDetectorConfig:
     """Compact floor descriptors of every keyframe and the map query (paper 003)."""
 
-    enabled: bool = _f(False, "describe keyframes and query the map for look-alikes")
+    enabled: bool = _f(True, "describe keyframes and query the map for look-alikes")
     mode: int = _f(4, "descriptor mode: 1..6 = at most 512 B, 1, 2, 4, 8, 16 kB per image", lo=1, hi=6)
     candidates: int = _f(5, "candidates returned per query", lo=1, hi=100)
     shortlist: int = _f(30, "keyframes scored locally per query (after the global shortlist)",
