@@ -270,6 +270,28 @@ class Pipeline:
             done += 1
         return done
 
+    def finish(self) -> int:
+        """End of input: nothing more will arrive, so the newest pose is final as well.
+
+        Held frames stamped up to the newest odometry sample take their pose now; frames
+        after it can never have one and are counted in ``frames_unsynced``. Without this a
+        run whose clock stops with the input (the virtual robot, a replay) would wait for a
+        settled pose forever. Returns how many frames were handled.
+        """
+        done = 0
+        while self.pending:
+            frame = self.pending.popleft()
+            done += 1
+            pose = self.odometry.pose_at(frame.stamp_ns) if self.has_base else None
+            if pose is None:
+                if self.has_base:
+                    self.counters.frames_unsynced += 1
+                else:
+                    self.counters.frames_without_odometry += 1
+            else:
+                self._maybe_keyframe(frame, pose)
+        return done
+
     def _maybe_keyframe(self, frame: Frame, pose: PoseStamped) -> None:
         xyyaw = np.array([pose.x_m, pose.y_m, pose.yaw_rad])
         if not self.selector.offer(xyyaw):
@@ -433,6 +455,7 @@ class Daemon:
                 t.join(timeout=5.0)
             # Whatever was already received is still processed, so nothing read is lost.
             self.step()
+            self.pipeline.finish()
             self.store.end_run(self.run_id, self.clock.now_ns())
             for sig, h in old_handlers.items():
                 signal.signal(sig, h)

@@ -198,7 +198,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
             if robot.error is not None:
                 return True
             return (robot.finished.is_set() and c.frames >= robot.frames_emitted
-                    and c.wheel_msgs >= robot.packets_emitted and not daemon.pipeline.pending)
+                    and c.wheel_msgs >= robot.packets_emitted)  # frames still held: Pipeline.finish
 
         report = daemon.run(stop_when=finished)
         progress.update(robot.sim_time_s, daemon.pipeline.counters.keyframes, final=True)

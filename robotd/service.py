@@ -187,13 +187,9 @@ def run_replay(cfg: Config, path: Path, speed: float | None) -> dict[str, Any]:
                 return True
             if not replay.done():
                 return False
-            caught_up = (c.wheel_msgs + c.yaw_msgs >= replay.base.handed_out
-                         and c.frames >= replay.floor.handed_out)
-            # Frames after the last odometry sample can never get a pose: they end the run.
-            settled = daemon.pipeline.odometry.settled_stamp_ns()
-            stuck = bool(daemon.pipeline.pending) and (
-                settled is None or settled < daemon.pipeline.pending[0].stamp_ns)
-            return caught_up and (not daemon.pipeline.pending or stuck)
+            # Frames still held for a settled pose are handled by Pipeline.finish at the end.
+            return (c.wheel_msgs + c.yaw_msgs >= replay.base.handed_out
+                    and c.frames >= replay.floor.handed_out)
 
         report = daemon.run(stop_when=finished)
     if replay.error is not None:

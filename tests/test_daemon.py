@@ -170,3 +170,33 @@ def test_run_with_a_missing_port_is_one_clear_line(tmp_path: Path):
     assert r.returncode == 2
     assert "robotd: error: cannot open Kobuki port /dev/does-not-exist" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_frames_held_at_the_end_of_input_are_finished(tmp_path: Path):
+    """A frozen clock (virtual robot or replay at its end) never times a held frame out:
+    finish() gives frames up to the newest odometry sample their (now final) pose and counts
+    later ones as unsynced, so a run that ends on a frame never waits forever."""
+    from robotd.clock import ManualClock
+    from robotd.config import Config, replace
+    from robotd.daemon import Pipeline
+    from robotd.messages import Frame, WheelTicks
+    from robotd.service import build_odometry
+
+    cfg = replace(Config(), "base", driver="kobuki")
+    clock = ManualClock(0)
+    with MapStore.open(tmp_path / "map.sqlite", clock=clock) as store:
+        run_id = store.begin_run("[test]")
+        pipe = Pipeline(cfg, clock, build_odometry(cfg), store, run_id)
+        for k in range(3):  # 1 cm per wheel message, 20 ms apart, straight ahead
+            ticks = int(round(k * 0.01 / (2 * math.pi * 0.035) * 2578.33))
+            pipe.on_base(WheelTicks(k * 20_000_000, ticks, ticks, 0))
+        img = np.zeros((48, 64), np.uint8)
+        pipe.on_frame(Frame(30_000_000, "floor", img, 0))  # after the settled stamp (20 ms)
+        pipe.on_frame(Frame(55_000_000, "floor", img, 1))  # after the newest sample (40 ms)
+        clock.set_ns(40_000_000)  # frozen at the last sample, as the virtual robot leaves it
+        assert pipe.process_pending() == 0 and len(pipe.pending) == 2  # would wait forever
+        assert pipe.finish() == 2 and not pipe.pending
+        assert pipe.counters.keyframes == 1 and pipe.counters.frames_unsynced == 1
+        kf = list(store.keyframes())[-1]
+        assert kf.stamp_ns == 30_000_000
+        assert kf.x_m == pytest.approx(0.015, abs=1e-3)  # halfway between 1 and 2 cm
