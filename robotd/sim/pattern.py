@@ -43,6 +43,22 @@ class PatternParams:
             raise ConfigError("pattern prints must be >= 1")
 
 
+def _print_index(col: np.ndarray, row: np.ndarray, seed: int, prints: int) -> np.ndarray:
+    """Which print a plank at grid index ``(col, row)`` gets: a well-mixed hash (the
+    splitmix64 finaliser) modulo ``prints``, so the choice has no period. (Multiplying by
+    odd constants and XOR-ing, then taking the value modulo a power of two, keeps only the
+    low bits of ``col`` and ``row``: with 4 prints that floor repeats exactly every 4 planks
+    and 4 rows, which makes every view appear again a couple of metres away.)"""
+    with np.errstate(over="ignore"):
+        z = (col.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+             + row.astype(np.uint64) * np.uint64(0xC2B2AE3D27D4EB4F)
+             + np.uint64(seed & 0xFFFFFFFF) * np.uint64(0x165667B19E3779F9))
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        z = z ^ (z >> np.uint64(31))
+    return (z % np.uint64(prints)).astype(np.int64)
+
+
 class PatternFloor:
     """A printed plank or tile floor (see the module docstring); a ``FloorSource``."""
 
@@ -85,8 +101,7 @@ class PatternFloor:
         col = np.floor(xs / cl).astype(np.int64)
         u = xs - col * cl          # metres along the plank, [0, cl)
         v = y_m - row * cw         # metres across, [0, cw)
-        h = (col * 73856093) ^ (row * 19349663) ^ (self.seed * 83492791)
-        k = np.abs(h) % p.prints
+        k = _print_index(col, row, self.seed, p.prints)
         ci = np.clip((u / self._mpp).astype(np.int64), 0, self._prints.shape[2] - 1)
         ri = np.clip(((cw - v) / self._mpp).astype(np.int64), 0, self._prints.shape[1] - 1)
         out = self._prints[k, ri, ci]

@@ -49,3 +49,21 @@ def test_bad_pattern_params():
         PatternParams(kind="hexagons")
     with pytest.raises(ConfigError):
         PatternParams(width_m=0.01, joint_m=0.01)
+
+
+def test_print_choice_has_no_short_period():
+    # Each print about equally often, and no grid period: shifted by up to 8 planks or rows,
+    # the print map agrees with itself about 1 / prints of the time (an exactly periodic
+    # map, as a hash that keeps only low bits gives, would agree everywhere at its period).
+    from robotd.sim.pattern import _print_index
+
+    col, row = np.meshgrid(np.arange(-40, 40), np.arange(-40, 40))
+    k = _print_index(col, row, seed=5, prints=4)
+    assert np.allclose(np.bincount(k.ravel(), minlength=4) / k.size, 0.25, atol=0.03)
+    for dc in range(0, 9):
+        for dr in range(0, 9):
+            if dc == dr == 0:
+                continue
+            agree = np.mean(k[dr:, dc:] == k[:k.shape[0] - dr, :k.shape[1] - dc])
+            assert 0.18 < agree < 0.32, (dc, dr, agree)
+    assert not np.array_equal(k, _print_index(col, row, seed=6, prints=4))
