@@ -217,9 +217,10 @@ def load_run(path: Path, cfg: Any, params: TrainParams, progress: Progress | Non
             while pending and settled is not None and settled >= pending[0].stamp_ns:
                 take(pending.pop(0))
             if progress is not None and n % 500 == 0:
-                progress("reading the recording", int(getattr(msg, "stamp_ns", span[0]) - span[0]), total)
+                progress("reading the recording (s)", int(getattr(msg, "stamp_ns", span[0]) - span[0]) // 10**9,
+                         total // 10**9)
         if progress is not None:
-            progress("reading the recording", total, total)
+            progress("reading the recording (s)", total // 10**9, total // 10**9)
         collect(len(jobs), show=True)
     finally:
         pool.close()
