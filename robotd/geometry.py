@@ -72,9 +72,10 @@ def quaternion_to_yaw(qx: float, qy: float, qz: float, qw: float) -> float:
 def rigid_fit_2d(src_xy: np.ndarray, dst_xy: np.ndarray) -> np.ndarray:
     """The rigid transform ``(x_m, y_m, yaw_rad)`` that best maps ``src`` onto ``dst``.
 
-    Least squares over ``(N, 2)`` point pairs (N >= 2): centroids, then the rotation from
-    the SVD of the cross-covariance (Kabsch), as paper 003 Sec. IV-D does for visual
-    odometry. ``dst ~ R(yaw) src + t``; a reflection is never returned.
+    Least squares over ``(N, 2)`` point pairs (N >= 2): centroids, then the rotation that
+    maximises the cross-covariance's trace (Kabsch, as paper 003 Sec. IV-D does for visual
+    odometry), which in 2-D is ``atan2`` of its antisymmetric and symmetric parts, with no
+    SVD. ``dst ~ R(yaw) src + t``; a reflection is never returned.
     """
     a = np.asarray(src_xy, dtype=float).reshape(-1, 2)
     b = np.asarray(dst_xy, dtype=float).reshape(-1, 2)
@@ -82,8 +83,6 @@ def rigid_fit_2d(src_xy: np.ndarray, dst_xy: np.ndarray) -> np.ndarray:
         raise ValueError("rigid_fit_2d needs at least two point pairs of equal shape")
     ca, cb = a.mean(axis=0), b.mean(axis=0)
     h = (a - ca).T @ (b - cb)
-    u, _s, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
-    r = vt.T @ np.diag([1.0, d]) @ u.T
-    t = cb - r @ ca
-    return np.array([t[0], t[1], math.atan2(r[1, 0], r[0, 0])])
+    yaw = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([cb[0] - (c * ca[0] - s * ca[1]), cb[1] - (s * ca[0] + c * ca[1]), yaw])

@@ -208,6 +208,10 @@ class FloorDescriptor:
         """The local descriptors as ``(N, length) float32`` in {-1, 0, +1}."""
         return _unpack_planes(self.local_pos, self.length) - _unpack_planes(self.local_neg, self.length)
 
+    def nonzero_trits(self) -> np.ndarray:
+        """``(N,) float32``: the non-zero elements of each local descriptor (its squared norm)."""
+        return np.bitwise_count(self.local_pos | self.local_neg).sum(axis=1, dtype=np.float32)
+
 
 # ----------------------------------------------------------------------------- steps 1-3
 

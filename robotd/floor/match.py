@@ -122,6 +122,20 @@ def _dismissed(reason: str, n_matches: int = 0) -> MatchResult:
     return MatchResult(0.0, n_matches, 0, e, e, xy, xy, None, reason)
 
 
+_PREV_BIN = np.roll(np.arange(32), 1)  # the orientation histogram's 32 bins, circularly
+_NEXT_BIN = np.roll(np.arange(32), -1)
+
+
+def _augmented(d: FloorDescriptor, scale: float, last: np.ndarray | None) -> np.ndarray:
+    """``(N, length + 1) float32``: ``scale`` times the trits, then ``last`` (or ones)."""
+    out = np.empty((len(d), d.length + 1), np.float32)
+    out[:, :-1] = d.ternary()
+    if scale != 1.0:
+        out[:, :-1] *= scale
+    out[:, -1] = 1.0 if last is None else last
+    return out
+
+
 def _rigid(xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
     x, y, yaw = rigid_fit_2d(xa, xb)
     c, s = math.cos(yaw), math.sin(yaw)
@@ -135,13 +149,17 @@ def local_score(a: FloorDescriptor, b: FloorDescriptor, params: MatchParams | No
         raise ValueError(f"descriptors of different lengths ({a.length} and {b.length} trits): modes differ")
     if len(a) < 2 or len(b) < 2:
         return _dismissed(TOO_FEW_FEATURES)
-    ta, tb = a.ternary(), b.ternary()
-    dist = np.abs(ta).sum(1)[:, None] + np.abs(tb).sum(1)[None, :] - 2 * (ta @ tb.T)
-    rows = np.arange(len(ta))
+    # Squared distance of ternary vectors: |ta|^2 + |tb|^2 - 2 ta.tb, where |t|^2 counts the
+    # non-zero trits. |ta|^2 is the same along a row, so the search needs only the rest,
+    # |tb|^2 - 2 ta.tb = [ta, 1] . [-2 tb, |tb|^2]: one matrix product (integers, exact in
+    # float32), which is most of the time in mode 6.
+    dist = _augmented(a, 1.0, None) @ _augmented(b, -2.0, b.nonzero_trits()).T
+    rows = np.arange(len(a))
     nn = np.argmin(dist, axis=1)
-    d1 = dist[rows, nn].copy()
+    norm_a = a.nonzero_trits()
+    d1 = dist[rows, nn] + norm_a
     dist[rows, nn] = np.inf
-    d2 = dist.min(axis=1)
+    d2 = dist.min(axis=1) + norm_a
     d1 *= 1.0 / a.length
     d2 *= 1.0 / a.length
     keep = (d1 <= p.max_distance) & (d1 < p.ratio * p.ratio * d2)
@@ -150,9 +168,9 @@ def local_score(a: FloorDescriptor, b: FloorDescriptor, params: MatchParams | No
         return _dismissed(TOO_FEW_MATCHES, len(ia))
     # Step 2: dominant orientation change (histogram over the 2**ANGLE_BITS levels).
     dth = (b.angle_rad[ib] - a.angle_rad[ia]) % (2 * math.pi)
-    nbins = 32
+    nbins = len(_PREV_BIN)
     hist = np.bincount((dth * (nbins / (2 * math.pi))).astype(np.intp) % nbins, minlength=nbins).astype(float)
-    hist = hist + 0.5 * (np.roll(hist, 1) + np.roll(hist, -1))
+    hist = hist + 0.5 * (hist[_PREV_BIN] + hist[_NEXT_BIN])
     peak = (np.argmax(hist) + 0.5) * (2 * math.pi / nbins)
     near = np.abs((dth - peak + math.pi) % (2 * math.pi) - math.pi) <= p.angle_tol_rad + math.pi / nbins
     ka, kb, kd = ia[near], ib[near], dm[near]
@@ -178,8 +196,12 @@ def local_score(a: FloorDescriptor, b: FloorDescriptor, params: MatchParams | No
     ca, cb = 0.5 * (xa[i] + xa[j]), 0.5 * (xb[i] + xb[j])
     tx = cb[:, 0] - (c * ca[:, 0] - s * ca[:, 1])
     ty = cb[:, 1] - (s * ca[:, 0] + c * ca[:, 1])
-    rx = c[:, None] * xa[None, :, 0] - s[:, None] * xa[None, :, 1] + tx[:, None] - xb[None, :, 0]
-    ry = s[:, None] * xa[None, :, 0] + c[:, None] * xa[None, :, 1] + ty[:, None] - xb[None, :, 1]
+    # Residuals of every hypothesis at every match: rows of [R | t] times [x; y; 1].
+    xa1 = np.vstack([xa.T, np.ones(m)])
+    rx = np.stack([c, -s, tx], axis=1) @ xa1
+    rx -= xb[:, 0]
+    ry = np.stack([s, c, ty], axis=1) @ xa1
+    ry -= xb[:, 1]
     inl = rx * rx + ry * ry <= p.inlier_px**2
     best = int(np.argmax(inl @ (weight + 1e-6)))
     mask = inl[best]
