@@ -161,23 +161,17 @@ def report(results: list[dict[str, Any]], big: dict[str, Any] | None) -> None:
                          *(_thr(t["modes"][str(m)]["threshold"]) for m in MODES)])
     print_table(["floor", "labels", "keyframes", "pairs", *(f"m{m}" for m in MODES)], rows)
 
-    print("\nValidation on another route, against ground truth: precision / recall, % (all scored pairs)")
-    rows = []
-    for r in results:
-        for odo in ("fused", "wheel"):
-            v = r[odo]["validate"]["modes"]
-            rows.append([r["floor"], odo, *(f"{_pct(v[str(m)]['all']['precision'])} / {_pct(v[str(m)]['all']['recall'])}"
-                                            for m in MODES)])
-    print_table(["floor", "labels", *(f"m{m}" for m in MODES)], rows)
-
-    print("\nRevisits only (pairs > 2 m of travel apart): precision / recall, %")
-    rows = []
-    for r in results:
-        for odo in ("fused", "wheel"):
-            v = r[odo]["validate"]["modes"]
-            rows.append([r["floor"], odo, *(f"{_pct(v[str(m)]['revisits']['precision'])} / "
-                                            f"{_pct(v[str(m)]['revisits']['recall'])}" for m in MODES)])
-    print_table(["floor", "labels", *(f"m{m}" for m in MODES)], rows)
+    for subset, title in (("all", "Validation on another route, against ground truth: precision / recall, % "
+                                  "(all scored pairs)"),
+                          ("revisits", "Revisits only (pairs > 2 m of travel apart): precision / recall, %")):
+        print("\n" + title)
+        rows = []
+        for r in results:
+            for odo in ("fused", "wheel"):
+                v = r[odo]["validate"]["modes"]
+                rows.append([r["floor"], odo, *(f"{_pct(v[str(m)][subset]['precision'])} / "
+                                                f"{_pct(v[str(m)][subset]['recall'])}" for m in MODES)])
+        print_table(["floor", "labels", *(f"m{m}" for m in MODES)], rows)
 
     print("\nTraining cost")
     rows = []

@@ -30,12 +30,12 @@ VLAD: about 0.5 for unrelated images, 1 for identical ones).
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 
 from robotd.floor.descriptor import FloorDescriptor
-from robotd.geometry import rigid_fit_2d
 
 __all__ = ["MatchParams", "MatchResult", "global_score", "local_score"]
 
@@ -137,9 +137,33 @@ def _augmented(d: FloorDescriptor, scale: float, last: np.ndarray | None) -> np.
 
 
 def _rigid(xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
-    x, y, yaw = rigid_fit_2d(xa, xb)
+    """``[R | t]`` (2 x 3) of the least-squares rigid fit ``xb ~ R xa + t`` (as
+    :func:`robotd.geometry.rigid_fit_2d`, from raw sums: this runs twice per match)."""
+    n = len(xa)
+    sa, sb = xa.sum(axis=0), xb.sum(axis=0)
+    h = xa.T @ xb - np.outer(sa, sb) / n
+    yaw = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
     c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, x], [s, c, y]])
+    ca, cb = sa / n, sb / n
+    return np.array([[c, -s, cb[0] - (c * ca[0] - s * ca[1])], [s, c, cb[1] - (s * ca[0] + c * ca[1])]])
+
+
+def _ransac_rng(seed: int) -> np.random.Generator:
+    """A generator in the state ``default_rng(seed)`` starts in (same draws), without the
+    cost of seeding it afresh on every match: one per thread and seed, rewound."""
+    cache = getattr(_RNGS, "by_seed", None)
+    if cache is None:
+        cache = _RNGS.by_seed = {}
+    entry = cache.get(seed)
+    if entry is None:
+        g = np.random.default_rng(seed)
+        entry = cache[seed] = (g, g.bit_generator.state)
+    g, start = entry
+    g.bit_generator.state = start
+    return g
+
+
+_RNGS = threading.local()
 
 
 def local_score(a: FloorDescriptor, b: FloorDescriptor, params: MatchParams | None = None) -> MatchResult:
@@ -180,7 +204,7 @@ def local_score(a: FloorDescriptor, b: FloorDescriptor, params: MatchParams | No
     xa, xb = a.xy_px[ka].astype(np.float64), b.xy_px[kb].astype(np.float64)
     weight = np.maximum(0.0, 1.0 - kd / p.weight_distance)
     # Step 3: RANSAC over 2-point rigid hypotheses.
-    rng = np.random.default_rng(p.seed)
+    rng = _ransac_rng(p.seed)
     m = len(ka)
     i = rng.integers(m, size=p.iterations)
     j = (i + 1 + rng.integers(m - 1, size=p.iterations)) % m
