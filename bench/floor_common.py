@@ -243,6 +243,8 @@ def one_thread() -> list[dict[str, Any]]:
     from threadpoolctl import threadpool_info, threadpool_limits
 
     cv2.setNumThreads(1)
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"  # for BLAS libraries loaded later (scipy's, through scikit-image)
     threadpool_limits(limits=1)  # process-wide until exit (no context manager: a benchmark is the process)
     return [{"library": i.get("internal_api"), "version": i.get("version"), "num_threads": i.get("num_threads")}
             for i in threadpool_info()]
