@@ -8,7 +8,9 @@ keyframe is described in every mode; pairs of keyframes are scored with the loca
 and labelled by the overlap J of their footprints at the *odometry* poses (ground truth
 is never used for training). Every pair whose footprints could overlap is scored;
 distant pairs (J = 0 whatever the odometry drift at that range) are sampled and weighted
-by the inverse of the sampling rate. Validation scores pairs of a second recording and
+by the inverse of the sampling rate. Pairs far apart in travel whose label the drift of
+the odometry could change (most revisits on a long run) are left out rather than
+mislabelled (:func:`trusted_pairs`). Validation scores pairs of a second recording and
 labels them with its *ground-truth* poses.
 
 Worker processes come from a fork server, not from a fork of the caller: a fork of a
@@ -50,7 +52,11 @@ class TrainParams:
     daemon's ``[keyframes]`` defaults); ``odometry``: 'fused' or 'wheel' poses label the
     pairs; ``far_pairs_per_keyframe``: distant pairs sampled per keyframe; ``r``: the
     overlap that makes a loop; ``confidence``: P(loop | score) the threshold must reach;
-    ``workers``: processes that describe and score; ``seed``: of the pair sampling."""
+    ``workers``: processes that describe and score; ``seed``: of the pair sampling;
+    ``drift``: a bound on the odometry's position error per metre of travel between two
+    keyframes; ``label_tolerance``: the largest such error, as a fraction of the footprint's
+    shorter side, at which an overlap from odometry still labels a pair (see
+    :func:`trusted_pairs`)."""
 
     modes: tuple[int, ...] = MODES
     spacing_m: float = 0.05
@@ -61,6 +67,8 @@ class TrainParams:
     confidence: float = 0.99
     workers: int = 2
     seed: int = 0
+    drift: float = 0.02
+    label_tolerance: float = 0.1
 
 
 @dataclass(eq=False)
@@ -274,6 +282,28 @@ def candidate_pairs(poses: np.ndarray, camera: FloorCameraModel, far_per_keyfram
     return i, j, w
 
 
+def trusted_pairs(poses: np.ndarray, camera: FloorCameraModel, i: np.ndarray, j: np.ndarray,
+                  drift: float, tolerance: float) -> np.ndarray:
+    """Which pairs (i[k], j[k]) odometry can label: ``(P,)`` bool.
+
+    Odometry drifts: the relative pose of two keyframes is off by up to ``drift`` times the
+    travel between them (the fused odometry of the virtual robot stays within 1.5 %), so a
+    revisit after a long drive can look like no overlap, or a neighbour's footprint like a
+    loop. A pair is labelled only where that bound cannot change the answer much: the bound
+    is at most ``tolerance`` times the footprint's shorter side, or the footprints are
+    further apart than their reach plus the bound (disjoint whatever the drift). The other
+    pairs stay out of training: on a long run they are most revisits, which costs evidence
+    but not correctness.
+    """
+    travel = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
+    bound = drift * np.abs(travel[i] - travel[j])
+    fp = camera.footprint_robot(8)
+    side = float(np.min(fp.max(axis=0) - fp.min(axis=0)))
+    reach = 2.0 * float(np.max(np.hypot(fp[:, 0], fp[:, 1])))
+    apart = np.hypot(poses[i, 0] - poses[j, 0], poses[i, 1] - poses[j, 1])
+    return (bound <= tolerance * side) | (apart > reach + bound)
+
+
 def _score_chunk(pairs: np.ndarray) -> tuple[np.ndarray, float]:
     from robotd.floor.match import local_score
 
@@ -311,6 +341,7 @@ class ModeResult:
     weights: np.ndarray
     seconds: float
     worker_peak_rss_mb: float = 0.0
+    untrusted: int = 0  # candidate pairs left unlabelled: odometry drift could change their label
 
 
 def train(run: CalibrationRun, camera: FloorCameraModel, params: TrainParams,
@@ -321,6 +352,8 @@ def train(run: CalibrationRun, camera: FloorCameraModel, params: TrainParams,
     poses = run.fused if params.odometry == "fused" else run.wheel
     rng = np.random.default_rng(params.seed)
     i, j, w = candidate_pairs(poses, camera, params.far_pairs_per_keyframe, rng)
+    keep = trusted_pairs(poses, camera, i, j, params.drift, params.label_tolerance)
+    i, j, w = i[keep], j[keep], w[keep]
     overlap = overlap_ratios(camera, poses[i], poses[j])
     results: dict[int, ModeResult] = {}
     for m in params.modes:
@@ -328,7 +361,7 @@ def train(run: CalibrationRun, camera: FloorCameraModel, params: TrainParams,
         s, worker_mb = score_pairs(run.descriptors[m], i, j, params.workers, progress, f"scoring mode {m}")
         curve = fit_loop_curve(s, overlap >= params.r, weights=w)
         results[m] = ModeResult(m, curve, pick_threshold(curve, params.confidence), s, overlap, w,
-                                time.monotonic() - t0, worker_mb)
+                                time.monotonic() - t0, worker_mb, int(np.sum(~keep)))
     return results
 
 
@@ -412,6 +445,12 @@ def add_loop_curve_arguments(p: Any) -> None:
                    help="which odometry labels the pairs (default: fused wheel+gyro, as in the paper)")
     p.add_argument("--confidence", type=float, default=TrainParams.confidence,
                    help=f"P(loop | score) at the threshold (default {TrainParams.confidence})")
+    p.add_argument("--drift", type=float, default=TrainParams.drift, metavar="F",
+                   help="bound on the odometry's position error per metre of travel (default "
+                        f"{TrainParams.drift:g}); pairs whose label that error could change are not used")
+    p.add_argument("--label-tolerance", type=float, default=TrainParams.label_tolerance, metavar="F",
+                   help="largest such error that still labels a pair, as a fraction of the footprint's "
+                        f"shorter side (default {TrainParams.label_tolerance:g})")
     p.add_argument("--plot", type=Path, default=None, help="write the curves (paper Fig. 5) to this PNG")
     _common_arguments(p)
 
@@ -437,13 +476,16 @@ def _setup(args: Any) -> tuple[Any, FloorCameraModel, TrainParams]:
     confidence = getattr(args, "confidence", TrainParams.confidence)
     spacing = cfg.keyframes.distance_m if args.spacing is None else args.spacing
     rotation = cfg.keyframes.rotation_deg if args.rotation is None else args.rotation
+    drift = getattr(args, "drift", TrainParams.drift)
+    tolerance = getattr(args, "label_tolerance", TrainParams.label_tolerance)
     if not (spacing > 0 and rotation > 0 and 0 < args.r <= 1 and 0 < confidence < 1
-            and args.far_pairs >= 0 and args.workers >= 1):
+            and args.far_pairs >= 0 and args.workers >= 1 and drift >= 0 and tolerance > 0):
         raise CalibrationError("need --spacing > 0, --rotation > 0, 0 < --r <= 1, 0 < --confidence < 1, "
-                               "--far-pairs >= 0, --workers >= 1")
+                               "--far-pairs >= 0, --workers >= 1, --drift >= 0, --label-tolerance > 0")
     params = TrainParams(modes=modes, spacing_m=spacing, rotation_deg=rotation,
                          odometry=getattr(args, "odometry", "fused"), far_pairs_per_keyframe=args.far_pairs,
-                         r=args.r, confidence=confidence, workers=args.workers)
+                         r=args.r, confidence=confidence, workers=args.workers, drift=drift,
+                         label_tolerance=tolerance)
     return cfg, camera_model(calib, cfg.floor_camera), params
 
 
@@ -497,7 +539,8 @@ def run_loop_curve(args: Any) -> int:
     print(f"\n{len(run.stamps_ns)} keyframes (every {params.spacing_m:g} m or {params.rotation_deg:g} deg); "
           f"{len(first.scores)} scored pairs per mode ({n_near} that could overlap, "
           f"{len(first.scores) - n_near} sampled distant ones); labels from {params.odometry} odometry, "
-          f"loop = J >= {params.r}", file=out)
+          f"loop = J >= {params.r}; {first.untrusted} candidate pairs left unlabelled (a drift of "
+          f"{params.drift:g} per metre of travel could change their label)", file=out)
     print(f"Thresholds (paper 003 Table III): smallest local score with P(loop | score) >= "
           f"{params.confidence}", file=out)
     print(format_table_iii(res, params), file=out)
@@ -521,6 +564,8 @@ def run_loop_curve(args: Any) -> int:
             "recording": str(args.recording), "odometry": params.odometry, "keyframes": len(run.stamps_ns),
             "spacing_m": params.spacing_m, "r": params.r, "confidence": params.confidence,
             "pairs": len(first.scores), "near_pairs": n_near, "workers": params.workers,
+            "unlabelled_pairs": first.untrusted, "drift": params.drift,
+            "label_tolerance": params.label_tolerance,
             "seconds": seconds, "seconds_load": t_load, "peak_rss_mb_main": own_mb,
             "peak_rss_mb_largest_worker": worker_mb,
             "modes": {str(m): {"threshold": r.threshold, "loops": int(np.sum(r.overlap >= params.r)),

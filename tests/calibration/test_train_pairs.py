@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from calibration.train import candidate_pairs
+from calibration.train import candidate_pairs, trusted_pairs
 from robotd.floorcam import FloorCameraModel, overlap_ratios
 
 
@@ -25,3 +25,29 @@ def test_near_pairs_complete_and_far_pairs_weighted():
     far = w != 1
     assert far.sum() == int(2.0 * n)
     assert np.isclose(w[far].sum(), n * (n - 1) / 2 - (w == 1).sum())
+
+
+def test_trusted_pairs_leave_out_what_drift_could_relabel():
+    cam = FloorCameraModel.default()
+    # A 4 m square driven twice, keyframes every 5 cm: the second lap revisits the first
+    # 16 m of travel later, with a neighbour 5 cm behind and a far corner across the square.
+    side = np.arange(0, 4, 0.05)
+    lap = np.vstack([np.column_stack([side, np.zeros_like(side)]),
+                     np.column_stack([np.full_like(side, 4.0), side]),
+                     np.column_stack([4.0 - side, np.full_like(side, 4.0)]),
+                     np.column_stack([np.zeros_like(side), 4.0 - side])])
+    xy = np.vstack([lap, lap])
+    poses = np.column_stack([xy, np.zeros(len(xy))])
+    n_lap = len(lap)
+    i = np.array([1, n_lap + 10, n_lap + 10, n_lap + 10])
+    j = np.array([0, 10, 9, 2 * 80 + 10])  # neighbour; revisit; revisit's neighbour; opposite side
+    fp = cam.footprint_robot(8)
+    side_m = float(np.min(fp.max(axis=0) - fp.min(axis=0)))
+    ok = trusted_pairs(poses, cam, i, j, drift=0.02, tolerance=0.1)
+    # 16 m apart in travel: up to 0.32 m of drift, more than 10 % of the footprint; the
+    # corner 8 m across the square is further than reach + drift whatever the drift.
+    assert 0.02 * 16.0 > 0.1 * side_m
+    assert ok.tolist() == [True, False, False, True]
+    # A perfect odometry labels everything; a very loose tolerance too.
+    assert trusted_pairs(poses, cam, i, j, drift=0.0, tolerance=0.1).all()
+    assert trusted_pairs(poses, cam, i, j, drift=0.02, tolerance=10.0).all()
