@@ -7,7 +7,8 @@ the odometry and the footprints, a label ``J >= r``. The curve
 
 is estimated per mode from those pairs: scores are binned with equal counts and the curve is
 the isotonic (monotone non-decreasing) fit of the bins' loop rates by pool adjacent
-violators, since a higher local score should never mean a less likely loop. Each block of
+violators, since a higher local score should never mean a less likely loop (a run of bins
+that are all loops is one block, whatever the bins' sizes). Each block of
 bins that the fit pools is one estimate: its probability is the posterior mean of a
 Beta(1, 1) prior updated by all the (weighted) labels pooled in it, and its lower bound
 the 5th percentile of that posterior. Pooling the evidence matters: a bin of 100 pairs
@@ -51,21 +52,30 @@ class LoopCurve:
 def _pava_blocks(pos: np.ndarray, count: np.ndarray) -> np.ndarray:
     """Isotonic regression by pool adjacent violators on (weighted) Bernoulli counts.
 
-    ``pos (B,)``, ``count (B,)``: loops and pairs per bin, in score order. A block's value
-    is the Beta(1, 1) posterior mean of its pooled counts, ``(pos + 1) / (count + 2)``;
-    adjacent blocks are pooled while the earlier one is not below the later one (ties are
-    pooled too: same fit, pooled evidence). Returns the number of bins in each block; the
-    blocks' values are strictly increasing.
+    ``pos (B,)``, ``count (B,)``: loops and pairs per bin, in score order. Adjacent blocks
+    are pooled while the earlier one's loop rate ``pos / count`` is not below the later
+    one's (ties are pooled too: same fit, pooled evidence), so a run of bins that are all
+    loops becomes one block whatever their sizes. A second pass pools the blocks whose
+    Beta(1, 1) posterior means ``(pos + 1) / (count + 2)`` (the curve's values) would still
+    decrease (a small block's mean is pulled towards 1/2). Returns the number of bins in
+    each block; the blocks' posterior means are strictly increasing.
     """
-    blocks: list[list[float]] = []  # [pooled positives, pooled count, bins]
-    for p, n in zip(np.asarray(pos, float), np.asarray(count, float)):
-        blocks.append([p, n, 1])
-        while len(blocks) > 1 and _posterior_mean(*blocks[-2][:2]) >= _posterior_mean(*blocks[-1][:2]):
-            p2, n2, k2 = blocks.pop()
-            blocks[-1][0] += p2
-            blocks[-1][1] += n2
-            blocks[-1][2] += k2
+    blocks = [[p, n, 1] for p, n in zip(np.asarray(pos, float), np.asarray(count, float))]
+    for value in (_rate, _posterior_mean):
+        pooled: list[list[float]] = []  # [pooled positives, pooled count, bins]
+        for b in blocks:
+            pooled.append(list(b))
+            while len(pooled) > 1 and value(*pooled[-2][:2]) >= value(*pooled[-1][:2]):
+                p2, n2, k2 = pooled.pop()
+                pooled[-1][0] += p2
+                pooled[-1][1] += n2
+                pooled[-1][2] += k2
+        blocks = pooled
     return np.array([int(b[2]) for b in blocks])
+
+
+def _rate(pos: float, count: float) -> float:
+    return pos / count if count > 0 else 0.0
 
 
 def _posterior_mean(pos: float, count: float) -> float:

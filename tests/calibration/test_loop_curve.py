@@ -8,11 +8,37 @@ from calibration.loop_curve import _pava_blocks, fit_loop_curve, pick_threshold,
 
 
 def test_pava_blocks_by_hand():
-    # Posterior means 1/3, 4/6, 2/6, 5/6: the second and third bins violate and pool
-    # into one block of 4 loops in 8 pairs (5/10); the last stays alone.
+    # Loop rates 0, 3/4, 1/4, 1: the second and third bins violate and pool into one block
+    # of 4 loops in 8 pairs (posterior mean 5/10); the last stays alone.
     assert _pava_blocks(np.array([0.0, 3.0, 1.0, 4.0]), np.array([1.0, 4.0, 4.0, 4.0])).tolist() == [1, 2, 1]
     # Equal estimates are pooled (same fit, pooled evidence).
     assert _pava_blocks(np.array([5.0, 5.0]), np.array([5.0, 5.0])).tolist() == [2]
+    # Bins that are all loops pool whatever their sizes (their posterior means 140/141 <
+    # 141/142 < 142/143 differ, their rates do not), and not with the bin below that has a
+    # miss (299 in 300: posterior mean 0.9934 < 421/422).
+    assert _pava_blocks(np.array([299.0, 139.0, 140.0, 141.0]),
+                        np.array([300.0, 139.0, 140.0, 141.0])).tolist() == [1, 3]
+    # ... unless the pure block is so small that its posterior mean (121/122 = 0.9918) is
+    # below its predecessor's: then the curve's monotonicity pools them.
+    assert _pava_blocks(np.array([299.0, 39.0, 40.0, 41.0]),
+                        np.array([300.0, 39.0, 40.0, 41.0])).tolist() == [4]
+    # A tiny block whose posterior mean would fall below its predecessor's is pooled.
+    assert _pava_blocks(np.array([1.0, 0.0]), np.array([100.0, 1.0])).tolist() == [2]
+
+
+def test_pure_top_bins_of_unequal_sizes_give_a_threshold():
+    # Non-loops below 100, loops from 100 on but one miss at 150, and above it 750 loops
+    # at 150 distinct scores (five each, so the equal-count bins differ in size).
+    s = np.concatenate([np.arange(0, 100.0), np.arange(100, 150.0), [150.0], np.repeat(np.arange(151, 301.0), 5)])
+    y = np.concatenate([np.zeros(100, bool), np.ones(50, bool), [False], np.ones(750, bool)])
+    c = fit_loop_curve(s, y, bins=40, min_per_bin=20)
+    pure = np.arange(len(c.count)) > np.flatnonzero(c.positives < c.count)[-1]
+    assert len(np.unique(c.count[pure])) > 1  # the pure bins differ in size
+    n = c.count[pure].sum()
+    assert n >= 740
+    # One block: every pure bin carries the evidence of all of them (0.05 ** (1 / 741) = 0.996).
+    assert np.allclose(c.lower[pure], 0.05 ** (1 / (n + 1)))
+    assert pick_threshold(c, 0.99) == c.score_lo[pure][0] > 150.0
 
 
 def test_pooled_bins_count_all_their_evidence():
