@@ -4,7 +4,8 @@ Paper 003 names printed wood the hardest floor for loop detection: laminate is a
 printed on planks, and the same few prints recur every few planks, so distant places look
 alike (perceptual aliasing). This floor reproduces that on purpose: ``prints`` crops of a
 real photograph are laid on a regular grid of planks (staggered rows) or square tiles
-with dark joints, the print of each plank chosen by a hash of its grid index. Ground truth
+with dark joints, the print of each plank chosen by a hash of its grid index. The prints
+are disjoint crops, so two prints never share content. Ground truth
 never comes from the image, so the detector must survive the repeats.
 """
 
@@ -72,19 +73,25 @@ class PatternFloor:
         self._cell_m = (p.width_m, p.width_m) if p.kind == "tiles" else (p.length_m, p.width_m)
         cw = int(math.ceil(self._cell_m[0] / self._mpp))
         ch = int(math.ceil(self._cell_m[1] / self._mpp))
+        # The prints are disjoint crops of the photo, like the distinct photos a laminate
+        # maker prints: crops that overlapped would share their content at a shift, and the
+        # floor would alias more than its print count says (with 0.45 m planks cut at random
+        # from a 512 px photo, two of four prints once shared 78 % of their pixels).
         h, w = grey.shape
-        if cw > w or ch > h:
-            # A plank longer than the photo: stretch the photo (prints are still real detail).
-            scale = max(cw / w, ch / h)
-            grey = cv2.resize(grey, (int(math.ceil(w * scale)), int(math.ceil(h * scale))),
-                              interpolation=cv2.INTER_CUBIC)
+        scale = 1.0
+        while (int(h * scale) // ch) * (int(w * scale) // cw) < p.prints:
+            scale *= 1.05  # a photo too small for that many crops: stretch it (still real detail)
+        if scale > 1.0:
+            grey = cv2.resize(grey, (int(w * scale), int(h * scale)), interpolation=cv2.INTER_CUBIC)
             h, w = grey.shape
         rng = np.random.default_rng(seed)
-        crops = []
-        for _ in range(p.prints):
-            y = int(rng.integers(0, h - ch + 1))
-            x = int(rng.integers(0, w - cw + 1))
-            crops.append(grey[y:y + ch, x:x + cw])
+        rows, cols = h // ch, w // cw
+        y0 = int(rng.integers(0, h - rows * ch + 1))
+        x0 = int(rng.integers(0, w - cols * cw + 1))
+        slots = rng.choice(rows * cols, size=p.prints, replace=False)
+        #: ``(prints, 4)`` crop boxes ``(y, x, height, width)`` in the (possibly stretched) photo.
+        self.crop_boxes = np.array([(y0 + (k // cols) * ch, x0 + (k % cols) * cw, ch, cw) for k in slots])
+        crops = [grey[y:y + hh, x:x + ww] for y, x, hh, ww in self.crop_boxes]
         self._prints = np.stack(crops).astype(np.uint8)  # (K, ch, cw)
 
     @property

@@ -7,12 +7,14 @@ from robotd.errors import ConfigError
 from robotd.sim.pattern import PatternFloor, PatternParams
 
 
-def _photo() -> np.ndarray:
-    return np.random.default_rng(1).integers(60, 200, (512, 512)).astype(np.uint8)
+def _photo(size: int = 512) -> np.ndarray:
+    return np.random.default_rng(1).integers(60, 200, (size, size)).astype(np.uint8)
 
 
 def test_tile_joints_and_print_repeats():
-    f = PatternFloor(_photo(), PatternParams(kind="tiles", width_m=0.3, joint_m=0.004, prints=2))
+    # A photo that holds two disjoint 0.3 m crops unstretched: white noise, so tiles of
+    # different prints (or windows a pixel apart) do not correlate.
+    f = PatternFloor(_photo(640), PatternParams(kind="tiles", width_m=0.3, joint_m=0.004, prints=2))
     img, aff = f.patch(0.0, -0.9, 1.2, 0.0)
     # World x = 0.3 m is a joint; the centre of a tile is print content, not joint grey.
     col = lambda x: int(round(aff[0, 0] * x + aff[0, 2]))  # noqa: E731
@@ -67,3 +69,21 @@ def test_print_choice_has_no_short_period():
             agree = np.mean(k[dr:, dc:] == k[:k.shape[0] - dr, :k.shape[1] - dc])
             assert 0.18 < agree < 0.32, (dc, dr, agree)
     assert not np.array_equal(k, _print_index(col, row, seed=6, prints=4))
+
+
+@pytest.mark.parametrize("params", [PatternParams(kind="planks"), PatternParams(kind="tiles", width_m=0.3),
+                                    PatternParams(kind="planks", prints=6)])
+def test_prints_are_disjoint_crops(params):
+    # Overlapping crops would share content at a shift: more aliasing than the print count.
+    for seed in range(8):
+        f = PatternFloor(_photo(), params, seed=seed)
+        boxes = f.crop_boxes
+        assert len(boxes) == params.prints
+        for a in range(len(boxes)):
+            for b in range(a + 1, len(boxes)):
+                ya, xa, h, w = boxes[a]
+                yb, xb, _, _ = boxes[b]
+                assert abs(ya - yb) >= h or abs(xa - xb) >= w, (seed, boxes)
+        # Each print is its box of the photo (stretched when the photo is too small).
+        assert f._prints.shape[1:] == (boxes[0][2], boxes[0][3])
+        assert len({f._prints[k].tobytes() for k in range(len(boxes))}) == params.prints
