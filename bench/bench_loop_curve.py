@@ -12,7 +12,9 @@ Then, exactly as a user would, with the ``robotd`` command's own code:
 
 * ``robotd calibrate loop-curve TRAIN.mcap --odometry fused`` and ``--odometry wheel``:
   thresholds per mode (paper Table III) from pairs labelled by the fused wheel+gyro
-  odometry, and once by wheel-only odometry to show what the gyro changes;
+  odometry, and once by wheel-only odometry to show what the gyro changes; both once more
+  with ``--drift 0``, which trusts the odometry over any travel and labels every candidate
+  pair, revisits included (what the default drift bound protects against);
 * ``robotd calibrate validate VAL.mcap``: precision and recall of each set of thresholds
   against the validation drive's *ground-truth* overlap (all scored pairs, and revisits:
   pairs more than 2 m of travel apart).
@@ -53,6 +55,9 @@ HERRINGBONE = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "loop_curve"
 PAPER_FRAMES = 7154
 MODES = (1, 2, 3, 4, 5, 6)
+#: Training variants: name -> (odometry, extra ``calibrate loop-curve`` options).
+LABELS = {"fused": ("fused", []), "wheel": ("wheel", []),
+          "fused, every pair": ("fused", ["--drift", "0"]), "wheel, every pair": ("wheel", ["--drift", "0"])}
 
 
 def log(msg: str) -> None:
@@ -94,15 +99,16 @@ def run_floor(name: str, floor_args: list[str], args: argparse.Namespace, cfg_pa
     step(val, ["record", str(val), "--virtual", "--config", str(cfg_path), "--route", args.val_route,
                "--seed", seed, *floor_args])
     res: dict[str, Any] = {"floor": name, "floor_args": floor_args}
-    for odo in ("fused", "wheel"):
-        calib = d / f"calibration-{odo}.yml"
-        tj, vj = d / f"train-{odo}.json", d / f"validate-{odo}.json"
+    for label, (odo, extra) in LABELS.items():
+        tag = label.replace(", every pair", "-every-pair")
+        calib = d / f"calibration-{tag}.yml"
+        tj, vj = d / f"train-{tag}.json", d / f"validate-{tag}.json"
         if not tj.exists() and calib.exists():
             calib.unlink()  # a half-finished earlier run
-        step(tj, ["calibrate", "loop-curve", str(train), "--calibration", str(calib), "--odometry", odo,
-                  "--plot", str(d / f"curves-{odo}.png"), "--json", str(tj)])
+        step(tj, ["calibrate", "loop-curve", str(train), "--calibration", str(calib), "--odometry", odo, *extra,
+                  "--plot", str(d / f"curves-{tag}.png"), "--json", str(tj)])
         step(vj, ["calibrate", "validate", str(val), "--calibration", str(calib), "--json", str(vj)])
-        res[odo] = {"train": json.loads(tj.read_text()), "validate": json.loads(vj.read_text())}
+        res[label] = {"train": json.loads(tj.read_text()), "validate": json.loads(vj.read_text())}
     return res
 
 
@@ -155,11 +161,11 @@ def report(results: list[dict[str, Any]], big: dict[str, Any] | None) -> None:
     print("\nThresholds per mode (paper Table III: smallest local score with P(loop | score) >= 0.99)")
     rows = []
     for r in results:
-        for odo in ("fused", "wheel"):
+        for odo in LABELS:
             t = r[odo]["train"]
-            rows.append([r["floor"], odo, t["keyframes"], t["pairs"],
+            rows.append([r["floor"], odo, t["keyframes"], t["pairs"], t.get("mislabelled_pairs", "?"),
                          *(_thr(t["modes"][str(m)]["threshold"]) for m in MODES)])
-    print_table(["floor", "labels", "keyframes", "pairs", *(f"m{m}" for m in MODES)], rows)
+    print_table(["floor", "labels", "keyframes", "pairs", "wrong labels", *(f"m{m}" for m in MODES)], rows)
 
     for subset, title in (("all", "Validation on another route, against ground truth: precision / recall, % "
                                   "(all scored pairs)"),
@@ -167,7 +173,7 @@ def report(results: list[dict[str, Any]], big: dict[str, Any] | None) -> None:
         print("\n" + title)
         rows = []
         for r in results:
-            for odo in ("fused", "wheel"):
+            for odo in LABELS:
                 v = r[odo]["validate"]["modes"]
                 rows.append([r["floor"], odo, *(f"{_pct(v[str(m)][subset]['precision'])} / "
                                                 f"{_pct(v[str(m)][subset]['recall'])}" for m in MODES)])

@@ -342,6 +342,7 @@ class ModeResult:
     seconds: float
     worker_peak_rss_mb: float = 0.0
     untrusted: int = 0  # candidate pairs left unlabelled: odometry drift could change their label
+    mislabelled: int | None = None  # labels that ground truth (virtual robot only) contradicts
 
 
 def train(run: CalibrationRun, camera: FloorCameraModel, params: TrainParams,
@@ -355,13 +356,17 @@ def train(run: CalibrationRun, camera: FloorCameraModel, params: TrainParams,
     keep = trusted_pairs(poses, camera, i, j, params.drift, params.label_tolerance)
     i, j, w = i[keep], j[keep], w[keep]
     overlap = overlap_ratios(camera, poses[i], poses[j])
+    mislabelled = None
+    if run.truth is not None:  # a virtual-robot recording: how often the odometry's label is wrong
+        truth = overlap_ratios(camera, run.truth[i], run.truth[j])
+        mislabelled = int(np.sum((truth >= params.r) != (overlap >= params.r)))
     results: dict[int, ModeResult] = {}
     for m in params.modes:
         t0 = time.monotonic()
         s, worker_mb = score_pairs(run.descriptors[m], i, j, params.workers, progress, f"scoring mode {m}")
         curve = fit_loop_curve(s, overlap >= params.r, weights=w)
         results[m] = ModeResult(m, curve, pick_threshold(curve, params.confidence), s, overlap, w,
-                                time.monotonic() - t0, worker_mb, int(np.sum(~keep)))
+                                time.monotonic() - t0, worker_mb, int(np.sum(~keep)), mislabelled)
     return results
 
 
@@ -541,6 +546,9 @@ def run_loop_curve(args: Any) -> int:
           f"{len(first.scores) - n_near} sampled distant ones); labels from {params.odometry} odometry, "
           f"loop = J >= {params.r}; {first.untrusted} candidate pairs left unlabelled (a drift of "
           f"{params.drift:g} per metre of travel could change their label)", file=out)
+    if first.mislabelled is not None:
+        print(f"ground truth (virtual robot) contradicts {first.mislabelled} of the {len(first.scores)} "
+              "labels", file=out)
     print(f"Thresholds (paper 003 Table III): smallest local score with P(loop | score) >= "
           f"{params.confidence}", file=out)
     print(format_table_iii(res, params), file=out)
@@ -564,7 +572,7 @@ def run_loop_curve(args: Any) -> int:
             "recording": str(args.recording), "odometry": params.odometry, "keyframes": len(run.stamps_ns),
             "spacing_m": params.spacing_m, "r": params.r, "confidence": params.confidence,
             "pairs": len(first.scores), "near_pairs": n_near, "workers": params.workers,
-            "unlabelled_pairs": first.untrusted, "drift": params.drift,
+            "unlabelled_pairs": first.untrusted, "mislabelled_pairs": first.mislabelled, "drift": params.drift,
             "label_tolerance": params.label_tolerance,
             "seconds": seconds, "seconds_load": t_load, "peak_rss_mb_main": own_mb,
             "peak_rss_mb_largest_worker": worker_mb,

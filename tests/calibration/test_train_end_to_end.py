@@ -49,6 +49,8 @@ def test_thresholds_are_written_and_read_back(trained):
     assert trained["rc"] == (0, 0)
     t = trained["train"]
     assert t["odometry"] == "fused" and t["keyframes"] > 50 and t["pairs"] > t["near_pairs"] > 0
+    # Over a 12 s straight drive the fused odometry labels (almost) every pair as the truth does.
+    assert 0 <= t["mislabelled_pairs"] <= 0.01 * t["pairs"]
     calib = read_calibration(trained["calib"])
     assert calib.loop is not None
     assert calib.loop.confidence == CONFIDENCE and calib.loop.overlap_r == 0.33
