@@ -55,9 +55,10 @@ HERRINGBONE = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "loop_curve"
 PAPER_FRAMES = 7154
 MODES = (1, 2, 3, 4, 5, 6)
-#: Training variants: name -> (odometry, extra ``calibrate loop-curve`` options).
-LABELS = {"fused": ("fused", []), "wheel": ("wheel", []),
-          "fused, every pair": ("fused", ["--drift", "0"]), "wheel, every pair": ("wheel", ["--drift", "0"])}
+#: Training variants: name -> (file tag, odometry, extra ``calibrate loop-curve`` options).
+LABELS = {"fused": ("fused", "fused", []), "wheel": ("wheel", "wheel", []),
+          "fused, every pair": ("fused-every-pair", "fused", ["--drift", "0"]),
+          "wheel, every pair": ("wheel-every-pair", "wheel", ["--drift", "0"])}
 
 
 def log(msg: str) -> None:
@@ -99,8 +100,7 @@ def run_floor(name: str, floor_args: list[str], args: argparse.Namespace, cfg_pa
     step(val, ["record", str(val), "--virtual", "--config", str(cfg_path), "--route", args.val_route,
                "--seed", seed, *floor_args])
     res: dict[str, Any] = {"floor": name, "floor_args": floor_args}
-    for label, (odo, extra) in LABELS.items():
-        tag = label.replace(", every pair", "-every-pair")
+    for label, (tag, odo, extra) in LABELS.items():
         calib = d / f"calibration-{tag}.yml"
         tj, vj = d / f"train-{tag}.json", d / f"validate-{tag}.json"
         if not tj.exists() and calib.exists():

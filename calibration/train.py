@@ -252,8 +252,7 @@ def candidate_pairs(poses: np.ndarray, camera: FloorCameraModel, far_per_keyfram
     """``(i, j, weight)`` with i > j: every pair whose centres are close enough for the
     footprints to overlap (weight 1), and a uniform sample of the others, weighted by
     (all distant pairs) / (sampled distant pairs)."""
-    fp = camera.footprint_robot(8)
-    reach = 2.0 * float(np.max(np.hypot(fp[:, 0], fp[:, 1])))
+    reach = camera.footprint_reach_m()
     n = len(poses)
     near_i, near_j = [], []
     for i in range(1, n):
@@ -282,6 +281,11 @@ def candidate_pairs(poses: np.ndarray, camera: FloorCameraModel, far_per_keyfram
     return i, j, w
 
 
+def _travel_m(poses: np.ndarray) -> np.ndarray:
+    """``(N,)`` distance travelled along the keyframe poses ``(N, 3)`` up to each one, metres."""
+    return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
+
+
 def trusted_pairs(poses: np.ndarray, camera: FloorCameraModel, i: np.ndarray, j: np.ndarray,
                   drift: float, tolerance: float) -> np.ndarray:
     """Which pairs (i[k], j[k]) odometry can label: ``(P,)`` bool.
@@ -295,11 +299,11 @@ def trusted_pairs(poses: np.ndarray, camera: FloorCameraModel, i: np.ndarray, j:
     pairs stay out of training: on a long run they are most revisits, which costs evidence
     but not correctness.
     """
-    travel = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
+    travel = _travel_m(poses)
     bound = drift * np.abs(travel[i] - travel[j])
     fp = camera.footprint_robot(8)
     side = float(np.min(fp.max(axis=0) - fp.min(axis=0)))
-    reach = 2.0 * float(np.max(np.hypot(fp[:, 0], fp[:, 1])))
+    reach = camera.footprint_reach_m()
     apart = np.hypot(poses[i, 0] - poses[j, 0], poses[i, 1] - poses[j, 1])
     return (bound <= tolerance * side) | (apart > reach + bound)
 
@@ -396,7 +400,7 @@ def validate(run: CalibrationRun, camera: FloorCameraModel, thresholds: dict[int
     rng = np.random.default_rng(params.seed + 1)
     i, j, w = candidate_pairs(run.truth, camera, params.far_pairs_per_keyframe, rng)
     loop = overlap_ratios(camera, run.truth[i], run.truth[j]) >= params.r
-    travel = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(run.truth[:, :2], axis=0).T))])
+    travel = _travel_m(run.truth)
     revisit = travel[i] - travel[j] > revisit_m
     out: dict[int, ModeValidation] = {}
     for m, t in thresholds.items():

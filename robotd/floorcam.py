@@ -305,6 +305,12 @@ class FloorCameraModel:
             poly = poly[::-1].copy()
         return poly
 
+    def footprint_reach_m(self, samples_per_edge: int = 8) -> float:
+        """Twice the farthest footprint point from the robot's origin, metres: two robot
+        poses further apart than this cannot see a common patch of floor (whatever their
+        headings)."""
+        return _reach_m(self.footprint_robot(samples_per_edge))
+
     def metres_per_px_at_centre(self) -> float:
         """Floor distance covered by one pixel at the principal point, metres.
 
@@ -383,6 +389,11 @@ def overlap_ratio(poly_a: np.ndarray, poly_b: np.ndarray) -> float:
     return float(inter / union) if union > 0 else 0.0
 
 
+def _reach_m(footprint: np.ndarray) -> float:
+    """See :meth:`FloorCameraModel.footprint_reach_m`; ``footprint (M, 2)`` robot frame."""
+    return 2.0 * float(np.max(np.hypot(footprint[:, 0], footprint[:, 1])))
+
+
 def overlap_ratios(camera: FloorCameraModel, poses_a: np.ndarray, poses_b: np.ndarray,
                    samples_per_edge: int = 8) -> np.ndarray:
     """J for many pose pairs at once: ``(N, 3)`` and ``(N, 3)`` poses -> ``(N,)``.
@@ -398,7 +409,7 @@ def overlap_ratios(camera: FloorCameraModel, poses_a: np.ndarray, poses_b: np.nd
     pb = np.asarray(poses_b, float).reshape(-1, 3)
     out = np.zeros(len(pa))
     fp = camera.footprint_robot(samples_per_edge)  # (M, 2), robot frame
-    reach = 2.0 * float(np.max(np.hypot(fp[:, 0], fp[:, 1])))
+    reach = _reach_m(fp)
     near = np.hypot(pa[:, 0] - pb[:, 0], pa[:, 1] - pb[:, 1]) < reach
     if not np.any(near):
         return out

@@ -21,8 +21,7 @@ def overlap_matrix(camera: FloorCameraModel, poses: np.ndarray) -> np.ndarray:
     """
     n = len(poses)
     i, j = np.tril_indices(n, -1)
-    fp = camera.footprint_robot(8)
-    reach = 2.0 * float(np.max(np.hypot(fp[:, 0], fp[:, 1])))
+    reach = camera.footprint_reach_m()
     near = np.hypot(poses[i, 0] - poses[j, 0], poses[i, 1] - poses[j, 1]) < reach
     out = np.zeros((n, n), np.float32)
     jj = overlap_ratios(camera, poses[i[near]], poses[j[near]])
