@@ -40,8 +40,8 @@ except ImportError:  # run as a script: bench/ is on sys.path
 
 from robotd.floor.descriptor import MODE_BYTES, decode, extract
 from robotd.floor.match import local_score
-from robotd.floorcam import FloorCameraModel
-from robotd.sim.pairs import straight_run
+from robotd.base.camera import FloorCameraModel
+from sim.pairs import straight_run
 
 SPACING_M = 0.05
 

@@ -4,7 +4,7 @@ Paper 003 Table V: the robot drives ~110 m through an office and takes 7154 floo
 the table gives the storage of all their descriptors and the time to match the last image
 against all the previous ones (4.2-58 s for CDVS modes 2-6, 1264 s for SIFT). Here:
 
-* the virtual robot drives the ``office`` route (``robotd.sim.route``: ~110 m, corridor and
+* the virtual robot drives the ``office`` route (``sim.route``: ~110 m, corridor and
   room loops each driven both ways, back to the start) and a 640x480 frame is rendered at
   7154 instants evenly spread over the drive (one every ~1.5 cm at full speed, as in the
   paper; the start and end standstills and the turns in place are part of it). Every
@@ -51,9 +51,9 @@ except ImportError:  # run as a script: bench/ is on sys.path
 from robotd.floor.descriptor import MODE_BYTES, decode, extract
 from robotd.floor.index import FloorIndex, IndexParams
 from robotd.floor.match import local_score
-from robotd.floorcam import FloorCameraModel, overlap_ratios
-from robotd.sim.render import FloorRenderer, RenderParams
-from robotd.sim.route import build_route, plan_motion
+from robotd.base.camera import FloorCameraModel, overlap_ratios
+from sim.cameras.floor import FloorRenderer, RenderParams
+from sim.route import build_route, plan_motion
 
 MB = 1e6  # the paper's MB (7154 x 1 kB bound = 7.3 MB, Table V: 7.67 MB for mode 2)
 SIZES = (500, 1000, 2000, 4000)

@@ -3,7 +3,7 @@
 Three parts, our descriptor (modes 1-6) and SIFT on the same images in the same run:
 
 (a) **Overlap separation.** Per floor, ``--pairs`` random frame pairs from the virtual
-    robot (``robotd.sim.pairs.random_pairs``: 70 % with B within 0.4 m of A at any
+    robot (``sim.pairs.random_pairs``: 70 % with B within 0.4 m of A at any
     heading, the rest anywhere in a 5 x 5 m area), labelled by the ground-truth footprint
     overlap J (paper 003 eq. 3-4): a loop when J >= 0.33. The ROC AUC of the local score
     (rank statistic, ties half) for loop vs not (target: >= 0.99 for modes 3-6 on every
@@ -49,8 +49,8 @@ except ImportError:  # run as a script: bench/ is on sys.path
 
 from robotd.floor.descriptor import decode, extract
 from robotd.floor.match import local_score
-from robotd.floorcam import FloorCameraModel, overlap_ratios
-from robotd.sim.pairs import random_pairs, straight_run
+from robotd.base.camera import FloorCameraModel, overlap_ratios
+from sim.pairs import random_pairs, straight_run
 
 GRAFFITI_TOLERANCE_PX = 5.0
 NEAR_FRACTION = 0.7

@@ -3,8 +3,8 @@
 A seeded stream of realistic feedback (the sub-payloads a Kobuki streams by default at
 50 Hz: basic sensor data, docking IR, inertial, cliff, current, 2-3 raw gyro samples,
 general-purpose input) with about 10 % garbage runs, corrupted and truncated packets is
-parsed by :class:`drivers.kobuki.PacketParser` (alone, in 64-byte reads as a 115200-baud
-port delivers them, and with :func:`drivers.kobuki.decode_feedback`) and by a byte-at-a-time
+parsed by :class:`drivers.kobuki.protocol.PacketParser` (alone, in 64-byte reads as a 115200-baud
+port delivers them, and with :func:`drivers.kobuki.protocol.decode_feedback`) and by a byte-at-a-time
 state machine written here, the naive baseline. Reported: median bytes/s and spread over
 repeats after a warm-up, the ratio to the line rate (115200 baud 8N1 = 11520 bytes/s) and
 to the naive parser, and whether every valid packet was recovered.
@@ -24,7 +24,7 @@ try:
 except ImportError:  # run as a script: bench/ is on sys.path
     from common import machine_info, print_table, time_repeats, write_json
 
-from drivers.kobuki import (
+from drivers.kobuki.protocol import (
     LINE_RATE_BYTES_PER_S,
     BasicSensorData,
     InertialData,

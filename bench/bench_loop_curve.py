@@ -48,8 +48,8 @@ try:
 except ImportError:  # run as a script: bench/ is on sys.path
     from common import machine_info, print_table, write_json
 
-from robotd.cli import main as robotd
-from robotd.config import Config, replace, to_toml
+from robotd.app.cli import main as robotd
+from robotd.base.config import Config, replace, to_toml
 
 HERRINGBONE = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "floor" / "brick_floor_herringbone_1k.png"
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "loop_curve"
@@ -114,7 +114,7 @@ def run_floor(name: str, floor_args: list[str], args: argparse.Namespace, cfg_pa
 
 def run_big(args: argparse.Namespace, cfg: Config) -> dict[str, Any]:
     """The 7154-frame office recording and its training (fused odometry)."""
-    from robotd.sim.route import build_route, plan_motion
+    from sim.route import build_route, plan_motion
 
     d = args.out / "big"
     d.mkdir(parents=True, exist_ok=True)
@@ -143,7 +143,7 @@ def run_big(args: argparse.Namespace, cfg: Config) -> dict[str, Any]:
 
 def _count_frames(path: Path) -> int:
     """Floor frames in a recording (counted without decoding the images)."""
-    from drivers.recording import RecordingReader
+    from drivers.recording.reader import RecordingReader
 
     with RecordingReader(path) as r:
         return sum(1 for ch, _ in r.raw_messages() if ch.topic == "/floor_camera/image/compressed")

@@ -2,7 +2,7 @@
 
 For each seed the route (default ``office``, about 110 m as in paper 003, Sec. V) is
 planned, the base's encoders and gyro are simulated with the error model of
-:mod:`robotd.sim.sensors` (its defaults: per-seed wheel radius and wheel-base errors,
+:mod:`sim.sensors` (its defaults: per-seed wheel radius and wheel-base errors,
 slip, gyro turn-on bias, bias walk, white noise and scale error, all quantised as the
 Kobuki reports them), and the same messages are run through
 
@@ -38,12 +38,12 @@ try:
 except ImportError:  # run as a script: bench/ is on sys.path
     from common import machine_info, print_table, time_repeats, write_json
 
-from robotd.messages import WheelTicks, YawRate
+from robotd.base.messages import WheelTicks, YawRate
 from robotd.odometry.ekf import EkfParams, OdometryFilter
 from robotd.odometry.kinematics import WheelOdometry
-from robotd.sim.route import ROUTES, MotionLimits, build_route, plan_motion
-from robotd.sim.sensors import BaseSensorParams, BaseStream, simulate_base
-from robotd.trajectory import trajectory_errors
+from sim.route import ROUTES, MotionLimits, build_route, plan_motion
+from sim.sensors import BaseSensorParams, BaseStream, simulate_base
+from robotd.io.trajectory import trajectory_errors
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "odometry.json"
 METRICS = ("end_position_error_m", "end_heading_error_deg", "max_drift_per_100m_m",

@@ -22,7 +22,6 @@ Run: ``.venv/bin/python bench/bench_render.py [--out FILE] [--repeats 3]``.
 from __future__ import annotations
 
 import argparse
-import math
 import statistics
 import sys
 import time
@@ -37,9 +36,9 @@ try:
 except ImportError:  # run as a script: bench/ is on sys.path
     from common import machine_info, print_table, time_repeats, write_json
 
-from robotd.floorcam import FloorCameraModel
-from robotd.sim.floor import Floor
-from robotd.sim.render import FloorRenderer, RenderParams
+from robotd.base.camera import FloorCameraModel
+from sim.world.floor import Floor
+from sim.cameras.floor import FloorRenderer, RenderParams
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "render.json"
 FPS = 30.0

@@ -58,7 +58,7 @@ class BenchFloor:
     """A named floor for the virtual camera and where its texture comes from."""
 
     name: str
-    floor: Any  # robotd.sim.floor.Floor
+    floor: Any  # sim.world.floor.Floor
     source: str
 
 
@@ -68,7 +68,7 @@ def bench_floors(extra_files: Sequence[str | Path] = (), seed: int = 0) -> list[
     default mixed floor (brick, grass and gravel regions), then one floor per extra file."""
     import skimage.data
 
-    from robotd.sim.floor import Floor
+    from sim.world.floor import Floor
 
     out = [
         BenchFloor("gravel", Floor.from_photos([skimage.data.gravel()], seed=seed), "skimage.data.gravel"),
@@ -87,12 +87,12 @@ def bench_floors(extra_files: Sequence[str | Path] = (), seed: int = 0) -> list[
 
 
 def printed_floor(seed: int = 0) -> BenchFloor:
-    """The paper's worst case, printed planks whose few prints repeat (``robotd.sim.pattern``,
+    """The paper's worst case, printed planks whose few prints repeat (``sim.world.pattern``,
     gravel photo printed on 0.45 x 0.12 m planks, 4 prints): not one of the five floors,
     offered for the map benchmark."""
     import skimage.data
 
-    from robotd.sim.pattern import PatternFloor, PatternParams
+    from sim.world.pattern import PatternFloor, PatternParams
 
     return BenchFloor("printed", PatternFloor(skimage.data.gravel(), PatternParams(kind="planks"), seed=seed),
                       "PatternFloor planks of skimage.data.gravel, 4 prints")

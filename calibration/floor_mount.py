@@ -3,7 +3,7 @@
 The user lays a chessboard face up on the floor at a known place relative to the robot
 and takes one picture with the floor camera. With the camera's intrinsics, the board's
 corners fix the camera's pose over the floor plane (``cv2.solvePnPGeneric``, IPPE); in the
-conventions of :class:`robotd.floorcam.FloorCameraModel` that pose is the mount: lens
+conventions of :class:`robotd.base.camera.FloorCameraModel` that pose is the mount: lens
 height, forward tilt, image yaw and the lens position in the robot frame. The height and
 the tilt come from the picture alone; the position and the yaw are only as good as the
 board's placement (they are measured *relative to the board*).
@@ -41,10 +41,10 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from calibration.calibfile import CalibrationFile, FloorMount, Intrinsics, read_calibration, update_calibration
+from robotd.io.calibfile import CalibrationFile, FloorMount, Intrinsics, read_calibration, update_calibration
 from calibration.intrinsics import board_object_points, find_board_corners, parse_board
-from robotd.errors import CalibrationError
-from robotd.floorcam import FloorCameraModel, polygon_area_signed
+from robotd.base.errors import CalibrationError
+from robotd.base.camera import FloorCameraModel, polygon_area_signed
 
 logger = logging.getLogger(__name__)
 
@@ -157,7 +157,7 @@ def canonical_board_corners(gray: np.ndarray, corners_px: np.ndarray,
     ``corners_px``: ``(cols * rows, 2)`` as found (row-major, any of the grid's symmetric
     orders). Returns ``(cols * rows, 2)``, row-major from the origin next to the black
     corner square, with the board's y axis to the left of its x axis seen from above.
-    Raises :class:`~robotd.errors.CalibrationError` when the orientation cannot be told.
+    Raises :class:`~robotd.base.errors.CalibrationError` when the orientation cannot be told.
     """
     cols, rows = board_inner_corners
     if (cols + rows) % 2 == 0:
@@ -265,12 +265,12 @@ def measure_floor_mount(
     """Measure the floor camera's mount from one picture of a chessboard lying on the floor.
 
     ``image``: ``(H, W)`` or ``(H, W, 3)`` uint8 picture from the floor camera;
-    ``intrinsics``: an :class:`~calibration.calibfile.Intrinsics` or ``(K, dist)`` (K
+    ``intrinsics``: an :class:`~robotd.io.calibfile.Intrinsics` or ``(K, dist)`` (K
     ``(3, 3)``, dist k1 k2 p1 p2 k3); ``board_inner_corners``: ``(cols, rows)``;
     ``square_size_m``: square side, metres; ``board_pose_robot``: ``(x_m, y_m, yaw_deg)``
     of the board origin in the robot frame (module docstring).
 
-    Raises :class:`~robotd.errors.CalibrationError` when no board is found, its
+    Raises :class:`~robotd.base.errors.CalibrationError` when no board is found, its
     orientation cannot be told, or no camera pose above the floor explains the corners.
     """
     img = np.asarray(image)

@@ -37,8 +37,8 @@ from typing import Callable, Sequence, TextIO
 import cv2
 import numpy as np
 
-from calibration.calibfile import CalibrationFile, Intrinsics, update_calibration
-from robotd.errors import CalibrationError
+from robotd.io.calibfile import CalibrationFile, Intrinsics, update_calibration
+from robotd.base.errors import CalibrationError
 
 logger = logging.getLogger(__name__)
 
@@ -213,7 +213,7 @@ def calibrate_intrinsics(
     ``progress(done, total, path)`` is called after each image.
 
     The image size is the most common size among the readable images; images of another
-    size are rejected. Raises :class:`~robotd.errors.CalibrationError` when fewer than
+    size are rejected. Raises :class:`~robotd.base.errors.CalibrationError` when fewer than
     ``MIN_IMAGES`` images are usable (the message lists what was rejected and why) or
     when OpenCV cannot solve the calibration.
     """

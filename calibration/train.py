@@ -37,8 +37,8 @@ from typing import Any, Callable
 import numpy as np
 
 from calibration.loop_curve import LoopCurve, PrecisionRecall, fit_loop_curve, pick_threshold, precision_recall
-from robotd.errors import CalibrationError, RobotdError
-from robotd.floorcam import FloorCameraModel, overlap_ratios
+from robotd.base.errors import CalibrationError, RobotdError
+from robotd.base.camera import FloorCameraModel, overlap_ratios
 
 log = logging.getLogger(__name__)
 
@@ -137,8 +137,8 @@ def recording_config(path: Path) -> Any:
     """The robotd config a recording was made with (its ``robotd`` metadata), or None."""
     import tomllib
 
-    from drivers.recording import RecordingReader
-    from robotd.config import config_from_dict
+    from drivers.recording.reader import RecordingReader
+    from robotd.base.config import config_from_dict
 
     with RecordingReader(path) as reader:
         text = reader.metadata.get("robotd", {}).get("config_toml", "")
@@ -155,15 +155,15 @@ def recording_config(path: Path) -> Any:
 def load_run(path: Path, cfg: Any, params: TrainParams, progress: Progress | None = None) -> CalibrationRun:
     """Read a recording, run the odometry, pick keyframes, and describe them in every mode.
 
-    Keyframes are chosen by the daemon's :class:`~robotd.daemon.KeyframeSelector` on the
+    Keyframes are chosen by the daemon's :class:`~robotd.app.daemon.KeyframeSelector` on the
     fused pose at each floor frame (``spacing_m`` of travel or ``rotation_deg`` of turn
     since the last keyframe). Each keyframe's fused pose is the filter's pose at the frame's
     stamp; its wheel-only and ground-truth poses are those tracks interpolated at that stamp.
     """
-    from drivers.recording import RecordingReader
-    from robotd.daemon import KeyframeSelector
-    from robotd.messages import Frame, PoseStamped, WheelTicks, YawRate
-    from robotd.service import build_odometry
+    from drivers.recording.reader import RecordingReader
+    from robotd.app.daemon import KeyframeSelector
+    from robotd.base.messages import Frame, PoseStamped, WheelTicks, YawRate
+    from robotd.app.service import build_odometry
 
     reader = RecordingReader(path)
     span = reader.time_range_ns
@@ -465,8 +465,8 @@ def add_loop_curve_arguments(p: Any) -> None:
 
 
 def _setup(args: Any) -> tuple[Any, FloorCameraModel, TrainParams]:
-    from calibration.calibfile import camera_model, read_calibration
-    from robotd.config import Config, load_config
+    from robotd.io.calibfile import camera_model, read_calibration
+    from robotd.base.config import Config, load_config
 
     if args.config is not None:
         cfg = load_config(args.config)
@@ -528,7 +528,7 @@ def run_loop_curve(args: Any) -> int:
     import json
     import sys
 
-    from calibration.calibfile import CalibrationFile, LoopThresholds, update_calibration
+    from robotd.io.calibfile import CalibrationFile, LoopThresholds, update_calibration
 
     t0 = time.monotonic()
     cfg, camera, params = _setup(args)
@@ -565,7 +565,7 @@ def run_loop_curve(args: Any) -> int:
               "with enough evidence; no threshold (the daemon declares no loops in these modes)", file=out)
     print(f"thresholds written to {args.calibration}", file=out)
     if args.plot is not None:
-        from robotd.plots import plot_loop_curves
+        from robotd.io.plots import plot_loop_curves
 
         plot_loop_curves(args.plot, {m: r.curve for m, r in res.items()}, thresholds, params.confidence,
                          title=f"P(J >= {params.r} | local score), {len(run.stamps_ns)} keyframes, "
@@ -620,7 +620,7 @@ def run_validate(args: Any) -> int:
     import json
     import sys
 
-    from calibration.calibfile import read_calibration
+    from robotd.io.calibfile import read_calibration
 
     cfg, camera, params = _setup(args)
     calib = read_calibration(args.calibration)

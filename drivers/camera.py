@@ -7,9 +7,9 @@ with exponential backoff when the device is lost. A backend implements only
 style of python-can's ``BusABC``. :class:`V4L2Camera` is the OpenCV/V4L2 backend.
 
 Reconnection never sleeps on the wall clock unless the clock is the real
-:class:`~robotd.clock.MonotonicClock`: with any other clock, while the device is away,
+:class:`~robotd.base.clock.MonotonicClock`: with any other clock, while the device is away,
 ``read`` returns None at once until the clock reaches the next retry time, so a replay or
-a test drives the backoff by moving a :class:`~robotd.clock.ManualClock`.
+a test drives the backoff by moving a :class:`~robotd.base.clock.ManualClock`.
 """
 
 from __future__ import annotations
@@ -28,9 +28,9 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from robotd.clock import Clock, MonotonicClock
-from robotd.errors import DriverError
-from robotd.messages import Frame
+from robotd.base.clock import Clock, MonotonicClock
+from robotd.base.errors import DriverError
+from robotd.base.messages import Frame
 
 __all__ = [
     "Camera",
@@ -84,11 +84,11 @@ class CameraFormat:
 class Camera:
     """Base class of camera sources; a context manager.
 
-    ``name`` becomes :attr:`Frame.camera <robotd.messages.Frame.camera>` (``"floor"``,
+    ``name`` becomes :attr:`Frame.camera <robotd.base.messages.Frame.camera>` (``"floor"``,
     ``"forward"``). ``grey=True`` converts colour images to ``(H, W) uint8``.
     ``clock`` stamps frames that carry no device timestamp and times reconnection
     (default: the host monotonic clock). Only with a real
-    :class:`~robotd.clock.MonotonicClock` does ``read`` sleep (up to its timeout) while
+    :class:`~robotd.base.clock.MonotonicClock` does ``read`` sleep (up to its timeout) while
     waiting for the next reconnection attempt, so a reading thread does not spin; with
     any other clock (a ManualClock in a replay or a test) it returns None at once.
     After a loss, attempts are made ``initial_backoff_s`` later, then at doubling
@@ -363,7 +363,7 @@ class V4L2Camera(Camera):
 
     Frames are stamped with the V4L2 buffer timestamp (``CAP_PROP_POS_MSEC``, the
     kernel's ``CLOCK_MONOTONIC`` for UVC and most capture drivers, i.e. the same base as
-    :class:`~robotd.clock.MonotonicClock`). A stamp that is missing or further than
+    :class:`~robotd.base.clock.MonotonicClock`). A stamp that is missing or further than
     ``max_stamp_skew_s`` from the clock (a driver on another time base) is replaced by the
     clock's time, and counted in :attr:`stats`.
 

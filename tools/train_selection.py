@@ -40,10 +40,10 @@ if str(REPO) not in sys.path:
 
 from robotd.floor.descriptor import (N_ATTRIBUTES, ExtractParams, Learned, _working,  # noqa: E402
                                      candidates, raw_descriptors, transform)
-from robotd.floorcam import FloorCameraModel, overlap_ratios  # noqa: E402
-from robotd.geometry import inverse, transform_points  # noqa: E402
-from robotd.sim.floor import Floor  # noqa: E402
-from robotd.sim.render import FloorRenderer, RenderParams  # noqa: E402
+from robotd.base.camera import FloorCameraModel, overlap_ratios  # noqa: E402
+from robotd.base.geometry import inverse, transform_points  # noqa: E402
+from sim.world.floor import Floor  # noqa: E402
+from sim.cameras.floor import FloorRenderer, RenderParams  # noqa: E402
 
 FLOORS = ("gravel", "grass", "brick")
 PCA_DIM = 32

@@ -67,7 +67,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from robotd.errors import DescriptorError
+from robotd.base.errors import DescriptorError
 
 __all__ = ["ANGLE_BITS", "MODE_BYTES", "MODES", "POSITION_STEP_PX", "ExtractParams", "FloorDescriptor",
            "Learned", "decode", "describe", "extract", "load_learned"]

@@ -18,7 +18,7 @@ import numpy as np
 
 from robotd.floor.descriptor import decode, extract
 from robotd.floor.index import Candidate, FloorIndex
-from robotd.geometry import rigid_fit_2d, transform_points
+from robotd.base.geometry import rigid_fit_2d, transform_points
 
 log = logging.getLogger(__name__)
 

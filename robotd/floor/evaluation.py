@@ -11,7 +11,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from robotd.floorcam import FloorCameraModel, overlap_ratios
+from robotd.base.camera import FloorCameraModel, overlap_ratios
 
 
 def overlap_matrix(camera: FloorCameraModel, poses: np.ndarray) -> np.ndarray:

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from robotd.errors import DescriptorError
+from robotd.base.errors import DescriptorError
 from robotd.floor.descriptor import FloorDescriptor, decode
 from robotd.floor.match import MatchResult, local_score
 
@@ -221,7 +221,7 @@ class FloorIndex:
     def from_store(cls, store: Any, mode: int, params: IndexParams | None = None,
                    scorer: LocalScorer | None = None) -> FloorIndex:
         """Rebuild the index from the descriptors of ``mode`` stored in a
-        :class:`~robotd.store.MapStore`, in keyframe-id order.
+        :class:`~robotd.io.store.MapStore`, in keyframe-id order.
 
         A stored descriptor that does not decode (or whose global descriptor does not fit
         the index) is skipped, logged with its keyframe id and counted in

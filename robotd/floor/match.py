@@ -16,7 +16,7 @@ of a weight that falls with descriptor distance). Steps of :func:`local_score`:
    images within ``max_log_scale`` (the downward camera sees the floor at one scale: the
    log distance ratio of inlier pairs is about 0, the observation DISTRAT (Lepsoy et al.
    2011) builds its outlier test on). The best hypothesis is refined by least squares
-   (:func:`robotd.geometry.rigid_fit_2d`) on its inliers, twice.
+   (:func:`robotd.base.geometry.rigid_fit_2d`) on its inliers, twice.
 4. ``score = sum over inliers of max(0, 1 - distance / weight_distance)``; zero when
    fewer than ``min_inliers`` survive (the result then says why, as DLoopDetector does).
 
@@ -138,7 +138,7 @@ def _augmented(d: FloorDescriptor, scale: float, last: np.ndarray | None) -> np.
 
 def _rigid(xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
     """``[R | t]`` (2 x 3) of the least-squares rigid fit ``xb ~ R xa + t`` (as
-    :func:`robotd.geometry.rigid_fit_2d`, from raw sums: this runs twice per match)."""
+    :func:`robotd.base.geometry.rigid_fit_2d`, from raw sums: this runs twice per match)."""
     n = len(xa)
     sa, sb = xa.sum(axis=0), xb.sum(axis=0)
     h = xa.T @ xb - np.outer(sa, sb) / n

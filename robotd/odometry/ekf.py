@@ -47,7 +47,7 @@ Every function returns a new :class:`EkfState` (GTSAM style), which makes each s
 testable against a hand-derived answer.
 
 :class:`OdometryFilter` runs these functions over the message stream the daemon sees:
-:class:`~robotd.messages.WheelTicks` and :class:`~robotd.messages.YawRate` in stamp order,
+:class:`~robotd.base.messages.WheelTicks` and :class:`~robotd.base.messages.YawRate` in stamp order,
 with a wheel-only :class:`~robotd.odometry.kinematics.WheelOdometry` alongside for
 comparison and the last couple of seconds of fused poses, so a camera frame gets the pose
 at its own timestamp (paper 003, Sec. IV-C pairs floor images with this odometry).
@@ -75,7 +75,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robotd.messages import PoseStamped, WheelTicks, YawRate
+from robotd.base.messages import PoseStamped, WheelTicks, YawRate
 from robotd.odometry.kinematics import (
     DiffDriveParams,
     WheelOdometry,
@@ -209,7 +209,7 @@ class EkfState:
         return float(self.mean[IB])
 
     def pose(self) -> PoseStamped:
-        """The pose part as a :class:`~robotd.messages.PoseStamped`."""
+        """The pose part as a :class:`~robotd.base.messages.PoseStamped`."""
         m = self.mean
         return PoseStamped(self.stamp_ns, float(m[IX]), float(m[IY]), float(m[IYAW]),
                            self.pose_cov)

@@ -6,7 +6,7 @@ encoder sample), so :func:`integrate_pose` is exact for that motion; paper 003, 
 eqs. (1)-(2) write the same step as a rotation followed by a translation.
 
 This module owns the maths of one drive step; the SE(2) composition itself lives in
-:mod:`robotd.geometry`.
+:mod:`robotd.base.geometry`.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robotd.geometry import compose, wrap_angle
-from robotd.messages import PoseStamped, WheelTicks
+from robotd.base.geometry import compose, wrap_angle
+from robotd.base.messages import PoseStamped, WheelTicks
 
 __all__ = [
     "DiffDriveParams",
@@ -108,7 +108,7 @@ def integrate_pose(pose: np.ndarray, ds_m: float, dyaw_rad: float) -> np.ndarray
 
 @dataclass
 class WheelOdometry:
-    """Dead reckoning from :class:`~robotd.messages.WheelTicks` alone (no gyro).
+    """Dead reckoning from :class:`~robotd.base.messages.WheelTicks` alone (no gyro).
 
     The first message only sets the tick reference; every later one adds the arc of its
     tick deltas. The covariance over ``(x, y, yaw)`` follows the usual independent-wheel

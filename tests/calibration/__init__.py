@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from robotd.floorcam import FloorCameraModel
-from robotd.geometry import compose
-from robotd.sim.floor import ImageFloor
-from robotd.sim.render import FloorRenderer, RenderParams
+from robotd.base.camera import FloorCameraModel
+from robotd.base.geometry import compose
+from sim.world.floor import ImageFloor
+from sim.cameras.floor import FloorRenderer, RenderParams
 
 #: ../shared/data next to the repository (absent outside the project's workspace and CI).
 SHARED_DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.calibfile import CalibrationFile, FloorMount, Intrinsics, read_calibration, write_calibration
+from robotd.io.calibfile import CalibrationFile, FloorMount, Intrinsics, read_calibration, write_calibration
 from calibration.floor_mount import (
     add_floor_mount_arguments,
     board_corners_robot,
@@ -19,8 +19,8 @@ from calibration.floor_mount import (
     run_floor_mount,
 )
 from calibration.intrinsics import find_board_corners
-from robotd.errors import CalibrationError
-from robotd.floorcam import FloorCameraModel, overlap_ratio
+from robotd.base.errors import CalibrationError
+from robotd.base.camera import FloorCameraModel, overlap_ratio
 from tests.calibration import centred_board_pose, render_board
 
 LENS = dict(fx=400.0, fy=410.0, cx=322.0, cy=236.5, dist=(-0.05, 0.01, 0.001, -0.0005, 0.0))

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.calibfile import CalibrationFile, FloorMount, read_calibration, write_calibration
+from robotd.io.calibfile import CalibrationFile, FloorMount, read_calibration, write_calibration
 from calibration.intrinsics import (
     ProgressBar,
     RejectReason,
@@ -21,8 +21,8 @@ from calibration.intrinsics import (
     parse_board,
     run_intrinsics,
 )
-from robotd.errors import CalibrationError
-from robotd.floorcam import FloorCameraModel
+from robotd.base.errors import CalibrationError
+from robotd.base.camera import FloorCameraModel
 from tests.calibration import SHARED_DATA, centred_board_pose, render_board
 
 PHOTOS = SHARED_DATA / "calibration" / "opencv_left"

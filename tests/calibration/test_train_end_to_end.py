@@ -4,19 +4,18 @@ loaded by the daemon, and checked against the ground truth of another drive."""
 
 import json
 import math
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from calibration.calibfile import read_calibration
+from robotd.io.calibfile import read_calibration
 from calibration.train import _interpolate
-from robotd.cli import main
-from robotd.config import Config, replace
-from robotd.demo import run_demo
-from robotd.service import build_floor_detector, load_calibration
-from robotd.store import MapStore
+from robotd.app.cli import main
+from robotd.base.config import Config, replace
+from robotd.app.demo import run_demo
+from robotd.app.service import build_floor_detector, load_calibration
+from robotd.io.store import MapStore
 
 MODES = (2, 4)
 CONFIDENCE = 0.99

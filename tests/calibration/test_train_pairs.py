@@ -3,7 +3,7 @@
 import numpy as np
 
 from calibration.train import candidate_pairs, trusted_pairs
-from robotd.floorcam import FloorCameraModel, overlap_ratios
+from robotd.base.camera import FloorCameraModel, overlap_ratios
 
 
 def test_near_pairs_complete_and_far_pairs_weighted():

@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 
 from drivers.camera import CameraFormat, V4L2Camera, _describe_open_error, check_video_device
-from robotd.clock import ManualClock
-from robotd.errors import DriverError
+from robotd.base.clock import ManualClock
+from robotd.base.errors import DriverError
 
 S = 1_000_000_000
 DEV = "/dev/video0"

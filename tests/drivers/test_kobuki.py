@@ -19,34 +19,32 @@ import serial
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.kobuki import (
+from drivers.kobuki.capture import decode_capture, detect_capture_format, main
+from drivers.kobuki.driver import KobukiDriver
+from drivers.kobuki.protocol import (
     BaseControl,
     BasicSensorData,
     FirmwareVersion,
     HardwareVersion,
     InertialData,
-    KobukiDriver,
     PacketParser,
     RawGyroData,
     RequestExtra,
     UniqueDeviceId,
     UnknownSubPayload,
     base_control_from_twist,
-    decode_capture,
     decode_commands,
     decode_feedback,
-    detect_capture_format,
     encode_base_control,
     encode_commands,
     encode_feedback,
     encode_packet,
     encode_request_extra,
-    main,
     twist_from_base_control,
 )
-from robotd.clock import ManualClock
-from robotd.errors import DriverError
-from robotd.messages import WheelTicks, YawRate
+from robotd.base.clock import ManualClock
+from robotd.base.errors import DriverError
+from robotd.base.messages import WheelTicks, YawRate
 
 MS = 1_000_000  # ns
 

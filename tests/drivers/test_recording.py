@@ -16,25 +16,18 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as Ros2Writer
 
-from drivers.recording import (
-    PARTIAL_SUFFIX,
-    OdometryRecorder,
-    RecordingReader,
-    RecordingTee,
-    RecordingWriter,
-    ReplaySource,
-    camera_topic,
-    read_recording,
-    schema_text,
-)
-from robotd.clock import ManualClock
-from robotd.errors import DriverError
-from robotd.floorcam import FloorCameraModel
-from robotd.messages import Frame, PoseStamped, WheelTicks, YawRate
-from robotd.sim.floor import ImageFloor
-from robotd.sim.render import FloorRenderer, RenderParams
-from robotd.sim.route import MotionLimits, build_route, plan_motion
-from robotd.sim.sensors import BaseSensorParams, simulate_base
+from drivers.recording.reader import RecordingReader, read_recording
+from drivers.recording.replay import ReplaySource
+from drivers.recording.schemas import PARTIAL_SUFFIX, camera_topic, schema_text
+from drivers.recording.writer import OdometryRecorder, RecordingTee, RecordingWriter
+from robotd.base.camera import FloorCameraModel
+from robotd.base.clock import ManualClock
+from robotd.base.errors import DriverError
+from robotd.base.messages import Frame, PoseStamped, WheelTicks, YawRate
+from sim.cameras.floor import FloorRenderer, RenderParams
+from sim.route import MotionLimits, build_route, plan_motion
+from sim.sensors import BaseSensorParams, simulate_base
+from sim.world.floor import ImageFloor
 
 FLOOR_TOPIC = "/floor_camera/image/compressed"
 FORWARD_TOPIC = "/forward_camera/image/compressed"
@@ -174,6 +167,7 @@ def test_topics_schemas_and_metadata(run: Run, recording) -> None:
         }
         meta = r.metadata["robotd"]
         from robotd import __version__
+        
         assert meta["robotd_version"] == __version__
         assert meta["config_toml"] == CONFIG_TOML
         assert meta["start_time_utc"] == "2024-05-06T07:08:09+00:00"
@@ -638,11 +632,11 @@ def test_daemon_runs_on_a_replay_and_its_odometry_can_be_recorded(
         run: Run, recording, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The wiring the CLI will use: replay.base and replay.floor as the daemon's sources,
     the fused odometry recorded through OdometryRecorder."""
-    from robotd.config import Config, replace
-    from robotd.daemon import Daemon
-    from robotd.notify import Notifier
-    from robotd.service import build_odometry
-    from robotd.store import MapStore
+    from robotd.app.daemon import Daemon
+    from robotd.app.notify import Notifier
+    from robotd.app.service import build_odometry
+    from robotd.base.config import Config, replace
+    from robotd.io.store import MapStore
 
     monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
     path, _ = recording

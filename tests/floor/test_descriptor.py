@@ -15,12 +15,12 @@ import skimage.data
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from robotd.errors import DescriptorError, RobotdError
+from robotd.base.errors import DescriptorError, RobotdError
 from robotd.floor.descriptor import (ANGLE_BITS, MODE_BYTES, MODES, POSITION_STEP_PX, ExtractParams, candidates,
                                      decode, describe, extract, load_learned, raw_descriptors, ternarise)
-from robotd.floorcam import FloorCameraModel
-from robotd.sim.floor import Floor
-from robotd.sim.render import FloorRenderer, RenderParams
+from robotd.base.camera import FloorCameraModel
+from sim.world.floor import Floor
+from sim.cameras.floor import FloorRenderer, RenderParams
 
 ALL_MODES = sorted(MODES)
 HEADER_BYTES = 20  # magic, version, mode, sizes, n, k, reserved, CRC (module docstring)

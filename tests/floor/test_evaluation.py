@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from robotd.floor.evaluation import candidate_report, overlap_matrix
-from robotd.floorcam import FloorCameraModel
+from robotd.base.camera import FloorCameraModel
 
 
 def test_overlap_matrix_of_a_forward_run():

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from robotd.floor.index import Candidate, FloorIndex, IndexParams
+from robotd.floor.index import FloorIndex, IndexParams
 
 
 @dataclass(frozen=True, eq=False)
@@ -172,10 +172,10 @@ def gravel_run():
     taken later at 2.03 m, turned by 0.5 rad: the revisit the index must find."""
     import skimage.data
 
-    from robotd.floorcam import FloorCameraModel, overlap_ratios
-    from robotd.sim.floor import Floor
-    from robotd.sim.pairs import straight_run
-    from robotd.sim.render import FloorRenderer, RenderParams
+    from robotd.base.camera import FloorCameraModel, overlap_ratios
+    from sim.world.floor import Floor
+    from sim.pairs import straight_run
+    from sim.cameras.floor import FloorRenderer, RenderParams
 
     floor = Floor.from_photos([skimage.data.gravel()], seed=3)
     cam = FloorCameraModel.default()
@@ -211,7 +211,7 @@ def test_true_revisit_is_among_the_candidates_on_a_rendered_run(gravel_run):
 
 def test_from_store_round_trip_skips_a_corrupt_descriptor(gravel_run, tmp_path, caplog):
     from robotd.floor.descriptor import decode, extract
-    from robotd.store import MapStore
+    from robotd.io.store import MapStore
 
     images = gravel_run[0][:6]
     mode = 3

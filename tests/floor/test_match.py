@@ -15,10 +15,10 @@ import skimage.data
 from robotd.floor.descriptor import describe
 from robotd.floor.match import (NO_GEOMETRIC_CONSISTENCY, TOO_FEW_FEATURES, TOO_FEW_MATCHES, MatchParams,
                                 global_score, local_score)
-from robotd.floorcam import FloorCameraModel
-from robotd.geometry import inverse, rigid_fit_2d, transform_points
-from robotd.sim.floor import Floor
-from robotd.sim.render import FloorRenderer, RenderParams
+from robotd.base.camera import FloorCameraModel
+from robotd.base.geometry import inverse, rigid_fit_2d, transform_points
+from sim.world.floor import Floor
+from sim.cameras.floor import FloorRenderer, RenderParams
 
 PHOTOS = ("brick", "grass", "gravel")
 DISMISSALS = {TOO_FEW_FEATURES, TOO_FEW_MATCHES, NO_GEOMETRIC_CONSISTENCY}

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from robotd.messages import WheelTicks, YawRate
+from robotd.base.messages import WheelTicks, YawRate
 from robotd.odometry.ekf import (
     IB,
     IV,
@@ -25,8 +25,8 @@ from robotd.odometry.ekf import (
     update_wheels,
 )
 from robotd.odometry.kinematics import DiffDriveParams
-from robotd.sim.route import Motion
-from robotd.sim.sensors import BaseSensorParams, simulate_base
+from sim.route import Motion
+from sim.sensors import BaseSensorParams, simulate_base
 
 MS = 1_000_000  # ns
 ROUND = DiffDriveParams(wheel_radius_m=0.05, wheel_base_m=0.5, ticks_per_rev=1000.0)

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from robotd.messages import WheelTicks
+from robotd.base.messages import WheelTicks
 from robotd.odometry.kinematics import (
     DiffDriveParams,
     WheelOdometry,

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import skimage.data
 
-from robotd.errors import ConfigError
-from robotd.sim.floor import Floor, FloorParams, ImageFloor
+from robotd.base.errors import ConfigError
+from sim.world.floor import Floor, FloorParams, ImageFloor
 
 
 def _ncc(a: np.ndarray, b: np.ndarray) -> float:

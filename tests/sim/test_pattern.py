@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from robotd.errors import ConfigError
-from robotd.sim.pattern import PatternFloor, PatternParams
+from robotd.base.errors import ConfigError
+from sim.world.pattern import PatternFloor, PatternParams
 
 
 def _photo(size: int = 512) -> np.ndarray:
@@ -57,7 +57,7 @@ def test_print_choice_has_no_short_period():
     # Each print about equally often, and no grid period: shifted by up to 8 planks or rows,
     # the print map agrees with itself about 1 / prints of the time (an exactly periodic
     # map, as a hash that keeps only low bits gives, would agree everywhere at its period).
-    from robotd.sim.pattern import _print_index
+    from sim.world.pattern import _print_index
 
     col, row = np.meshgrid(np.arange(-40, 40), np.arange(-40, 40))
     k = _print_index(col, row, seed=5, prints=4)

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from robotd.errors import ConfigError
-from robotd.sim.route import ROUTES, Motion, MotionLimits, Route, build_route, plan_motion
+from robotd.base.errors import ConfigError
+from sim.route import ROUTES, Motion, MotionLimits, Route, build_route, plan_motion
 
 LIMITS = MotionLimits()
 

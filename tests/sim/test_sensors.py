@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from robotd.messages import WheelTicks, YawRate
+from robotd.base.messages import WheelTicks, YawRate
 from robotd.odometry.kinematics import DiffDriveParams, WheelOdometry, unwrap_ticks_delta
-from robotd.sim.route import build_route, plan_motion
-from robotd.sim.sensors import BaseSensorParams, BaseStream, simulate_base
+from sim.route import build_route, plan_motion
+from sim.sensors import BaseSensorParams, BaseStream, simulate_base
 
 MPT = DiffDriveParams().metres_per_tick
 IDEAL = BaseSensorParams.ideal()

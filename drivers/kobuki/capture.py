@@ -1,0 +1,140 @@
+"""Kobuki capture decoding (``robotd kobuki decode CAPTURE``): raw bytes or pyserial spy:// hex dumps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import re
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TextIO
+
+from drivers.kobuki.protocol import (
+    FeedbackSubPayload,
+    PacketParser,
+    UnknownSubPayload,
+    decode_feedback,
+)
+from robotd.base.errors import DriverError, RobotdError
+
+# --------------------------------------------------------------------------------------
+# Capture decoding (``robotd kobuki decode CAPTURE``)
+# --------------------------------------------------------------------------------------
+
+_ANSI = re.compile(rb"\x1b\[[0-9;]*m")
+_SPY_START = re.compile(rb"(?:\x1b\[[0-9;]*m)*\d{6,}\.\d{3} \S")
+# pyserial spy:// hexdump line: "{time:010.3f} RX   {offset:04X}  {16 x 'HH '}{' ' at 8} {ascii}"
+_SPY_RX = re.compile(rb"\d+\.\d{3} RX   [0-9A-F]{4,}  (.*)")
+_SPY_HEX_WIDTH = 16 * 3 + 1
+
+
+def _spy_rx_bytes(text: bytes) -> bytes:
+    """The received bytes of a pyserial ``spy://`` hexdump, in order (TX and control
+    lines are skipped; the ASCII column is cut off by its fixed position)."""
+    chunks = []
+    for line in text.splitlines():
+        m = _SPY_RX.match(_ANSI.sub(b"", line))
+        if m:
+            chunks.append(bytes.fromhex(m.group(1)[:_SPY_HEX_WIDTH].decode("ascii")))
+    return b"".join(chunks)
+
+
+def detect_capture_format(data: bytes) -> str:
+    """``"spy"`` when ``data`` starts like a pyserial ``spy://`` hexdump, else ``"raw"``."""
+    return "spy" if _SPY_START.match(data) else "raw"
+
+
+def _subpayload_dict(item: FeedbackSubPayload) -> dict:
+    d: dict = {"type": item.NAME, "id": item.id if isinstance(item, UnknownSubPayload) else item.ID}
+    for f in dataclasses.fields(item):
+        value = getattr(item, f.name)
+        if f.name != "id":
+            d[f.name] = value.hex() if isinstance(value, bytes) else value
+    return d
+
+
+def decode_capture(data: bytes, fmt: str = "auto") -> Iterator[dict]:
+    """Decode a capture of the Kobuki's output into one dict per valid packet.
+
+    ``fmt`` is ``"raw"`` (the bytes as read from the port), ``"spy"`` (the text pyserial's
+    ``spy://`` URL writes; only RX lines count) or ``"auto"``. Each dict has ``packet``
+    (index), ``offset`` (byte offset of its header in the received stream) and
+    ``subpayloads``; ``malformed`` appears when a sub-payload ended its decoding. The last
+    dict is ``{"summary": {...}}`` with the format and the counters of
+    :class:`ParserStats`.
+    """
+    if fmt == "auto":
+        fmt = detect_capture_format(data)
+    if fmt not in ("raw", "spy"):
+        raise ValueError(f"unknown capture format {fmt!r}")
+    stream = _spy_rx_bytes(data) if fmt == "spy" else data
+    parser = PacketParser()
+    stats = parser.stats
+    index = 0
+    chunk = 1 << 16
+    for start in range(0, len(stream) + 1, chunk):
+        last = start + chunk > len(stream)
+        payloads = parser.feed(stream[start:start + chunk])
+        offsets = parser.last_offsets
+        if last:
+            payloads += parser.finish()
+            offsets = offsets + parser.last_offsets
+        for offset, payload in zip(offsets, payloads):
+            malformed = stats.malformed_subpayloads
+            items = decode_feedback(payload, stats)
+            record: dict = {"packet": index, "offset": offset,
+                            "subpayloads": [_subpayload_dict(s) for s in items]}
+            if stats.malformed_subpayloads != malformed:
+                record["malformed"] = True
+            index += 1
+            yield record
+    yield {"summary": {"format": fmt, **dataclasses.asdict(stats)}}
+
+
+def add_decode_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the capture decoder's arguments to ``parser`` (for ``robotd kobuki decode``)."""
+    parser.add_argument("capture", type=Path,
+                        help="raw serial capture, or a pyserial spy:// hexdump")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="write the JSON lines to this file (default: stdout)")
+    parser.add_argument("--format", choices=("auto", "raw", "spy"), default="auto",
+                        help="capture format (default: detect)")
+
+
+def run_decode(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
+    """Decode ``args.capture`` to JSON lines; raises :class:`DriverError` on I/O errors."""
+    try:
+        data = args.capture.read_bytes()
+    except OSError as exc:
+        raise DriverError(f"cannot read capture {args.capture}: {exc.strerror}") from exc
+    try:
+        out = open(args.out, "w", encoding="utf-8") if args.out else (stdout or sys.stdout)
+    except OSError as exc:
+        raise DriverError(f"cannot write {args.out}: {exc.strerror}") from exc
+    try:
+        for record in decode_capture(data, args.format):
+            out.write(json.dumps(record) + "\n")
+    finally:
+        if args.out:
+            out.close()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m drivers.kobuki.capture CAPTURE [--out FILE]``: decode a capture to JSON lines."""
+    parser = argparse.ArgumentParser(prog="robotd kobuki decode",
+                                     description="Decode a Kobuki serial capture to JSON lines.")
+    add_decode_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        return run_decode(args)
+    except RobotdError as exc:
+        print(f"robotd: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

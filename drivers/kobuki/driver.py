@@ -1,0 +1,248 @@
+"""The Kobuki driver: a pyserial URL in, stamped WheelTicks and YawRate out.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+from dataclasses import dataclass
+
+import serial
+
+from drivers.kobuki.protocol import (
+    _DEG,
+    BAUDRATE,
+    GYRO_DPS_PER_DIGIT,
+    WHEELBASE_M,
+    BasicSensorData,
+    FeedbackSubPayload,
+    InertialData,
+    PacketParser,
+    ParserStats,
+    RawGyroData,
+    base_control_from_twist,
+    decode_feedback,
+    encode_base_control,
+    encode_request_extra,
+)
+from robotd.base.clock import Clock
+from robotd.base.errors import DriverError
+from robotd.base.messages import WheelTicks, YawRate
+
+logger = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------------------
+# Driver
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class KobukiDriverStats:
+    """A snapshot of a driver's counters.
+
+    ``clock_clamps`` counts packets whose mapped stamp would have gone back in time and
+    was raised to the previous stamp; ``untimed_packets`` counts packets without basic
+    sensor data, stamped with their receipt time.
+    """
+
+    parser: ParserStats
+    messages_out: int
+    clock_clamps: int
+    untimed_packets: int
+    commands_sent: int
+
+    def as_dict(self) -> dict[str, int]:
+        """Every counter in one flat mapping (parser counters first), for JSON and STATUS."""
+        d = dataclasses.asdict(self.parser)
+        d.update(messages_out=self.messages_out, clock_clamps=self.clock_clamps,
+                 untimed_packets=self.untimed_packets, commands_sent=self.commands_sent)
+        return d
+
+
+class KobukiDriver:
+    """A Kobuki base on any pyserial URL (``/dev/kobuki``, a pty path, ``loop://``).
+
+    :meth:`read` returns one :class:`~robotd.base.messages.WheelTicks` per basic-sensor
+    sub-payload and one :class:`~robotd.base.messages.YawRate` per packet, both stamped with the
+    packet's device time mapped to ``clock``: the 16-bit millisecond timestamp is
+    unwrapped (the number of 65.536 s wraps that best matches the host time elapsed since
+    the previous read, so a long silence is not mistaken for a short one), and
+    ``stamp = device time + offset`` with ``offset`` the minimum of ``receipt time -
+    device time`` over the last ``offset_window_s`` of device time: the packet that
+    travelled fastest sets the offset, transport delay and batching drop out, and the
+    window lets the offset follow clock drift. Packets read together share their receipt
+    time, so the whole batch enters the window before any of it is stamped. Stamps never
+    go backwards (clamped and counted).
+
+    ``yaw_source`` is ``"raw_gyro"`` (the mean yaw axis of the packet's raw 3-axis gyro
+    samples, falling back to the inertial rate when a packet has none) or ``"inertial"``.
+    """
+
+    def __init__(self, url: str, clock: Clock, *, yaw_source: str = "raw_gyro",
+                 wheelbase_m: float = WHEELBASE_M, offset_window_s: float = 10.0,
+                 gyro_dps_per_digit: float = GYRO_DPS_PER_DIGIT,
+                 timeout_s: float = 0.1, baudrate: int = BAUDRATE) -> None:
+        if yaw_source not in ("raw_gyro", "inertial"):
+            raise ValueError(f"yaw_source must be 'raw_gyro' or 'inertial', not {yaw_source!r}")
+        self._url = url
+        self._clock = clock
+        self._yaw_source = yaw_source
+        self._wheelbase_m = wheelbase_m
+        self._window_ns = int(offset_window_s * 1e9)
+        self._gyro_radps_per_digit = gyro_dps_per_digit * _DEG
+        self._parser = PacketParser()
+        self._window: collections.deque[tuple[int, int]] = collections.deque()
+        self._last_raw_ms: int | None = None
+        self._device_ms = 0
+        self._last_receipt_ns = 0
+        self._last_stamp_ns: int | None = None
+        self._messages_out = 0
+        self._clock_clamps = 0
+        self._untimed_packets = 0
+        self._commands_sent = 0
+        try:
+            self._serial = serial.serial_for_url(url, baudrate=baudrate, timeout=timeout_s,
+                                                 exclusive=True)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise DriverError(f"cannot open Kobuki port {url}: {exc}") from exc
+        logger.info("opened Kobuki port %s", url)
+
+    def __enter__(self) -> KobukiDriver:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    @property
+    def port(self) -> serial.SerialBase:
+        """The underlying pyserial port (tests write feedback into ``loop://`` with it)."""
+        return self._open_port()
+
+    def close(self) -> None:
+        """Close the port; safe to call more than once."""
+        port, self._serial = self._serial, None
+        if port is not None:
+            port.close()
+            logger.info("closed Kobuki port %s", self._url)
+
+    @property
+    def stats(self) -> KobukiDriverStats:
+        return KobukiDriverStats(self._parser.stats.copy(), self._messages_out,
+                                 self._clock_clamps, self._untimed_packets, self._commands_sent)
+
+    def _open_port(self) -> serial.SerialBase:
+        if self._serial is None:
+            raise DriverError(f"Kobuki port {self._url} is closed")
+        return self._serial
+
+    def read(self, timeout_s: float) -> list[WheelTicks | YawRate]:
+        """Wait up to ``timeout_s`` for bytes, take all that are available, and return the
+        messages of the packets they complete (possibly none)."""
+        port = self._open_port()
+        try:
+            if port.timeout != timeout_s:
+                port.timeout = timeout_s
+            waiting = port.in_waiting
+            data = port.read(waiting or 1)
+            if data and not waiting:
+                more = port.in_waiting
+                if more:
+                    data += port.read(more)
+        except (serial.SerialException, OSError) as exc:
+            raise DriverError(f"Kobuki port {self._url} failed: {exc}") from exc
+        if not data:
+            return []
+        receipt_ns = self._clock.now_ns()
+        stats = self._parser.stats
+        bad_before = stats.bad_checksums + stats.truncated + stats.malformed_subpayloads
+        packets = [decode_feedback(p, stats) for p in self._parser.feed(data)]
+        messages = self._convert(packets, receipt_ns)
+        bad_after = stats.bad_checksums + stats.truncated + stats.malformed_subpayloads
+        if bad_after != bad_before:
+            logger.debug("Kobuki %s: %d bad packets or sub-payloads in %d bytes",
+                         self._url, bad_after - bad_before, len(data))
+        return messages
+
+    def _convert(self, packets: list[list[FeedbackSubPayload]],
+                 receipt_ns: int) -> list[WheelTicks | YawRate]:
+        device_ns: list[int | None] = []
+        for items in packets:
+            basic = next((s for s in items if type(s) is BasicSensorData), None)
+            if basic is None:
+                device_ns.append(None)
+                continue
+            dev = self._unwrap_ms(basic.timestamp_ms, receipt_ns) * 1_000_000
+            self._push_offset(dev, receipt_ns - dev)
+            device_ns.append(dev)
+        out: list[WheelTicks | YawRate] = []
+        for items, dev in zip(packets, device_ns):
+            if dev is None:
+                self._untimed_packets += 1
+                stamp = receipt_ns
+            else:
+                stamp = dev + self._window[0][1]
+            if self._last_stamp_ns is not None and stamp < self._last_stamp_ns:
+                self._clock_clamps += 1
+                stamp = self._last_stamp_ns
+            self._last_stamp_ns = stamp
+            gyro_z: list[int] = []
+            inertial = None
+            for s in items:
+                if type(s) is BasicSensorData:
+                    out.append(WheelTicks(stamp, s.left_encoder, s.right_encoder, s.timestamp_ms))
+                elif type(s) is RawGyroData:
+                    gyro_z.extend(z for _, _, z in s.samples)
+                elif type(s) is InertialData:
+                    inertial = s
+            if self._yaw_source == "raw_gyro" and gyro_z:
+                rate = sum(gyro_z) / len(gyro_z) * self._gyro_radps_per_digit
+                out.append(YawRate(stamp, rate, "raw_gyro"))
+            elif inertial is not None:
+                out.append(YawRate(stamp, inertial.angle_rate_centidegps / 100.0 * _DEG,
+                                   "inertial"))
+        self._messages_out += len(out)
+        return out
+
+    def _unwrap_ms(self, raw_ms: int, receipt_ns: int) -> int:
+        if self._last_raw_ms is None:
+            self._device_ms = raw_ms
+        else:
+            delta = (raw_ms - self._last_raw_ms) & 0xFFFF
+            elapsed_ms = (receipt_ns - self._last_receipt_ns) / 1e6
+            wraps = max(0, round((elapsed_ms - delta) / 65536.0))
+            self._device_ms += delta + 65536 * wraps
+        self._last_raw_ms = raw_ms
+        self._last_receipt_ns = receipt_ns
+        return self._device_ms
+
+    def _push_offset(self, device_ns: int, candidate_ns: int) -> None:
+        # sliding-window minimum: a deque of increasing candidates (Lemire's algorithm)
+        w = self._window
+        while w and w[-1][1] >= candidate_ns:
+            w.pop()
+        w.append((device_ns, candidate_ns))
+        horizon = device_ns - self._window_ns
+        while w[0][0] < horizon:
+            w.popleft()
+
+    def send_base_control(self, v_mps: float, w_radps: float) -> None:
+        """Command a body twist (m/s forward, rad/s counter-clockwise)."""
+        speed, radius = base_control_from_twist(v_mps, w_radps, self._wheelbase_m)
+        self._write(encode_base_control(speed, radius))
+
+    def request_extra(self, hardware_version: bool = True, firmware_version: bool = True,
+                      udid: bool = True) -> None:
+        """Ask the base for its version answers (they arrive in later feedback)."""
+        self._write(encode_request_extra(hardware_version, firmware_version, udid))
+
+    def _write(self, packet: bytes) -> None:
+        port = self._open_port()
+        try:
+            port.write(packet)
+        except (serial.SerialException, OSError) as exc:
+            raise DriverError(f"Kobuki port {self._url} failed: {exc}") from exc
+        self._commands_sent += 1
+
+

@@ -1,0 +1,380 @@
+"""Writing recordings: the MCAP writer, a tee that records what a driver reads, and an odometry recorder.
+"""
+
+from __future__ import annotations
+
+import datetime
+import logging
+import math
+import os
+import threading
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import cv2
+import numpy as np
+from mcap.writer import CompressionType
+from mcap_ros2.writer import Writer as Ros2Writer
+
+from drivers.recording.schemas import (
+    _MAX_STAMP_NS,
+    _NS_PER_S,
+    PARTIAL_SUFFIX,
+    TOPIC_GROUND_TRUTH,
+    TOPIC_IMU,
+    TOPIC_ODOM,
+    TOPIC_WHEEL_TICKS,
+    camera_topic,
+    schema_text,
+)
+from robotd.base.errors import DriverError
+from robotd.base.messages import Frame, PoseStamped, WheelTicks, YawRate
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------
+
+
+class _UnbufferedSink:
+    """The file under the MCAP writer: every write goes to the OS at once.
+
+    ``mcap`` writes a chunk (and its indexes) only when the chunk is full, so each write
+    here is a finished piece of the recording that must survive a process crash.
+    """
+
+    def __init__(self, fd: int) -> None:
+        self._fd = fd
+        self._pos = 0
+
+    def write(self, data: bytes) -> int:
+        view = memoryview(data)
+        while view:
+            n = os.write(self._fd, view)
+            view = view[n:]
+        self._pos += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self._pos
+
+    def flush(self) -> None:
+        pass
+
+
+def _header(stamp_ns: int, frame_id: str) -> dict[str, Any]:
+    sec, nanosec = divmod(stamp_ns, _NS_PER_S)
+    return {"stamp": {"sec": sec, "nanosec": nanosec}, "frame_id": frame_id}
+
+
+def _check_stamp(stamp_ns: int) -> int:
+    s = int(stamp_ns)
+    if not 0 <= s < _MAX_STAMP_NS:
+        raise ValueError(f"stamp_ns {stamp_ns} is outside 0 .. 2^31 s (ROS time)")
+    return s
+
+
+def _check_u16(name: str, value: int) -> int:
+    v = int(value)
+    if not 0 <= v <= 0xFFFF:
+        raise ValueError(f"{name} {value} does not fit a uint16")
+    return v
+
+
+def _odometry_dict(stamp_ns: int, x_m: float, y_m: float, yaw_rad: float, cov3: np.ndarray,
+                   frame_id: str, child_frame_id: str) -> dict[str, Any]:
+    cov3 = np.asarray(cov3, dtype=np.float64)
+    if cov3.shape != (3, 3):
+        raise ValueError(f"pose covariance must be (3, 3), got {cov3.shape}")
+    cov6 = np.zeros((6, 6))
+    cov6[np.ix_((0, 1, 5), (0, 1, 5))] = cov3
+    half = 0.5 * float(yaw_rad)
+    return {
+        "header": _header(stamp_ns, frame_id),
+        "child_frame_id": child_frame_id,
+        "pose": {
+            "pose": {
+                "position": {"x": float(x_m), "y": float(y_m), "z": 0.0},
+                "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(half), "w": math.cos(half)},
+            },
+            "covariance": cov6.ravel().tolist(),
+        },
+        "twist": {"twist": {}, "covariance": [0.0] * 36},
+    }
+
+
+class RecordingWriter:
+    """Writes a run to an MCAP file with ROS 2 message types; a context manager.
+
+    ``path`` is the final name; until :meth:`close` the data goes to ``path + ".partial"``
+    (see the module doc for what survives a crash). An existing ``path`` is an error
+    unless ``overwrite``. ``image_format`` is ``"png"`` (lossless, default) or ``"jpeg"``;
+    ``png_compression`` is zlib's level 0-9 (1: fastest, what a 30 Hz camera needs),
+    ``jpeg_quality`` 0-100. ``config_toml`` (the daemon's configuration) and
+    ``start_time_utc`` (default: now) go into the ``robotd`` metadata record.
+    ``chunk_size`` (bytes of messages per compressed chunk) bounds what a crash can lose.
+
+    The ``write_*`` methods may be called from several threads. Methods raise
+    ``ValueError`` for a message that cannot be represented (negative stamp, counter out
+    of range, bad image) and :class:`~robotd.base.errors.DriverError` naming the file when the
+    disk fails.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, image_format: str = "png",
+                 png_compression: int = 1, jpeg_quality: int = 90, config_toml: str = "",
+                 start_time_utc: datetime.datetime | None = None,
+                 chunk_size: int = 256 * 1024, overwrite: bool = False,
+                 imu_frame_id: str = "gyro_link") -> None:
+        if image_format not in ("png", "jpeg"):
+            raise ValueError(f"image_format must be 'png' or 'jpeg', got {image_format!r}")
+        if not 0 <= png_compression <= 9:
+            raise ValueError("png_compression must be 0..9")
+        if not 0 <= jpeg_quality <= 100:
+            raise ValueError("jpeg_quality must be 0..100")
+        if chunk_size < 1024:
+            raise ValueError("chunk_size must be at least 1024 bytes")
+        from robotd import __version__
+
+        
+
+        self.path = Path(path)
+        self.partial_path = self.path.with_name(self.path.name + PARTIAL_SUFFIX)
+        self.image_format = image_format
+        self.imu_frame_id = imu_frame_id
+        if image_format == "png":
+            self._encode_ext, self._encode_params = ".png", [cv2.IMWRITE_PNG_COMPRESSION, png_compression]
+        else:
+            self._encode_ext, self._encode_params = ".jpg", [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality]
+        if self.path.exists() and not overwrite:
+            raise DriverError(f"{self.path}: a recording already exists (choose another name)")
+        flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL)
+        try:
+            self._fd = os.open(self.partial_path, flags, 0o644)
+        except FileExistsError as exc:
+            raise DriverError(f"{self.partial_path}: an interrupted recording is in the way (read "
+                              "it, or remove it, first)") from exc
+        except OSError as exc:
+            raise DriverError(f"{self.partial_path}: cannot create the recording: {exc.strerror}") from exc
+        self._lock = threading.Lock()
+        self._base_log_time_ns = 0  # the base stream's log time never goes back (module docs)
+        self._closed = False
+        self._yaw_source: str | None = None
+        self.counts: dict[str, int] = {}
+        """Messages written per topic."""
+        self.mixed_yaw_sources = 0
+        """Yaw rates whose ``source`` differed from the first one's (stored as the first)."""
+        start = start_time_utc or datetime.datetime.now(datetime.UTC)
+        try:
+            self._mcap = Ros2Writer(_UnbufferedSink(self._fd), chunk_size=chunk_size,
+                                    compression=CompressionType.ZSTD)
+            self._mcap.add_metadata("robotd", {
+                "robotd_version": __version__,
+                "config_toml": config_toml,
+                "start_time_utc": start.isoformat(),
+                "image_format": image_format,
+                "stamp_time_base": "robotd clock (host monotonic or virtual robot time), not Unix time",
+            })
+        except OSError as exc:
+            os.close(self._fd)
+            self.partial_path.unlink(missing_ok=True)
+            raise DriverError(f"{self.partial_path}: cannot write: {exc.strerror}") from exc
+        self._schemas: dict[str, Any] = {}
+
+    # -- writing ---------------------------------------------------------------------
+
+    def _write(self, topic: str, type_name: str, stamp_ns: int, msg: dict[str, Any],
+               sequence: int = 0) -> None:
+        with self._lock:
+            if self._closed:
+                raise ValueError(f"{self.path}: the recording is closed")
+            try:
+                schema = self._schemas.get(type_name)
+                if schema is None:
+                    schema = self._mcap.register_msgdef(type_name, schema_text(type_name))
+                    self._schemas[type_name] = schema
+                log_time = stamp_ns
+                if topic in (TOPIC_WHEEL_TICKS, TOPIC_IMU):
+                    log_time = self._base_log_time_ns = max(self._base_log_time_ns, stamp_ns)
+                self._mcap.write_message(topic, schema, msg, log_time=log_time,
+                                         publish_time=stamp_ns, sequence=sequence)
+            except OSError as exc:
+                raise DriverError(f"{self.partial_path}: cannot write: {exc.strerror}") from exc
+            self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def write_wheel_ticks(self, msg: WheelTicks) -> None:
+        """``/wheel_ticks`` (``robotd_msgs/msg/WheelTicks``, frame ``base_link``)."""
+        stamp = _check_stamp(msg.stamp_ns)
+        self._write(TOPIC_WHEEL_TICKS, "robotd_msgs/msg/WheelTicks", stamp, {
+            "header": _header(stamp, "base_link"),
+            "left_ticks": _check_u16("left_ticks", msg.left_ticks),
+            "right_ticks": _check_u16("right_ticks", msg.right_ticks),
+            "device_ms": _check_u16("device_ms", msg.device_ms),
+        })
+
+    def write_yaw_rate(self, msg: YawRate) -> None:
+        """``/imu`` (``sensor_msgs/msg/Imu``): ``angular_velocity.z`` = the yaw rate, rad/s."""
+        stamp = _check_stamp(msg.stamp_ns)
+        if self._closed:
+            raise ValueError(f"{self.path}: the recording is closed")
+        if self._yaw_source is None:
+            with self._lock:
+                if self._yaw_source is None and not self._closed:
+                    try:
+                        self._mcap.add_metadata("robotd.imu", {"topic": TOPIC_IMU, "yaw_source": msg.source})
+                    except OSError as exc:
+                        raise DriverError(f"{self.partial_path}: cannot write: {exc.strerror}") from exc
+                    self._yaw_source = msg.source
+        if msg.source != self._yaw_source:
+            if self.mixed_yaw_sources == 0:
+                log.warning("%s: yaw rates from %r after %r; the recording keeps %r for all",
+                            self.path, msg.source, self._yaw_source, self._yaw_source)
+            self.mixed_yaw_sources += 1
+        self._write(TOPIC_IMU, "sensor_msgs/msg/Imu", stamp, {
+            "header": _header(stamp, self.imu_frame_id),
+            "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+            "orientation_covariance": [-1.0] + [0.0] * 8,
+            "angular_velocity": {"x": 0.0, "y": 0.0, "z": float(msg.yaw_rate_radps)},
+            "angular_velocity_covariance": [0.0] * 9,
+            "linear_acceleration": {"x": 0.0, "y": 0.0, "z": 0.0},
+            "linear_acceleration_covariance": [-1.0] + [0.0] * 8,
+        })
+
+    def write_frame(self, frame: Frame) -> None:
+        """``/<camera>_camera/image/compressed`` (``sensor_msgs/msg/CompressedImage``).
+
+        ``frame.image`` is ``(H, W) uint8`` or ``(H, W, 3) uint8`` (BGR); it is encoded
+        in the calling thread (PNG level 1 of a 640x480 grey frame: a few milliseconds).
+        """
+        stamp = _check_stamp(frame.stamp_ns)
+        topic = camera_topic(frame.camera)
+        img = frame.image
+        if img.dtype != np.uint8 or not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)):
+            raise ValueError(f"frame image must be (H, W) or (H, W, 3) uint8, got {img.shape} {img.dtype}")
+        ok, buf = cv2.imencode(self._encode_ext, img, self._encode_params)
+        if not ok:
+            raise ValueError(f"cannot encode a {img.shape} frame as {self.image_format}")
+        self._write(topic, "sensor_msgs/msg/CompressedImage", stamp, {
+            "header": _header(stamp, f"{frame.camera}_camera_optical_frame"),
+            "format": self.image_format,
+            "data": buf.tobytes(),
+        }, sequence=int(frame.seq) & 0xFFFFFFFF)
+
+    def write_odometry(self, pose: PoseStamped, topic: str = TOPIC_ODOM, *,
+                       frame_id: str = "odom", child_frame_id: str = "base_footprint") -> None:
+        """A planar pose estimate as ``nav_msgs/msg/Odometry`` on ``topic`` (default ``/odom``)."""
+        stamp = _check_stamp(pose.stamp_ns)
+        self._write(topic, "nav_msgs/msg/Odometry", stamp, _odometry_dict(
+            stamp, pose.x_m, pose.y_m, pose.yaw_rad, pose.covariance, frame_id, child_frame_id))
+
+    def write_ground_truth(self, stamp_ns: int, x_m: float, y_m: float, yaw_rad: float) -> None:
+        """The virtual robot's true pose on ``/ground_truth`` (``nav_msgs/msg/Odometry``,
+        frame ``world``, zero covariance)."""
+        stamp = _check_stamp(stamp_ns)
+        self._write(TOPIC_GROUND_TRUTH, "nav_msgs/msg/Odometry", stamp, _odometry_dict(
+            stamp, x_m, y_m, yaw_rad, np.zeros((3, 3)), "world", "base_footprint"))
+
+    # -- closing ---------------------------------------------------------------------
+
+    def close(self, *, completed: bool = True, reason: str = "") -> None:
+        """Finish the file (summary and indexes), fsync it and rename it to :attr:`path`.
+
+        Safe to call twice. ``completed=False`` (what leaving the ``with`` block by an
+        exception passes) still finishes the file, whose data are valid, and records
+        ``completed: false`` and ``reason`` in the ``robotd.end`` metadata record.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            try:
+                self._mcap.add_metadata("robotd.end", {
+                    "completed": "true" if completed else "false", "reason": reason,
+                    "messages": str(sum(self.counts.values()))})
+                self._mcap.finish()
+                os.fsync(self._fd)
+            except OSError as exc:
+                raise DriverError(f"{self.partial_path}: cannot finish the recording: "
+                                  f"{exc.strerror}") from exc
+            finally:
+                os.close(self._fd)
+            os.replace(self.partial_path, self.path)
+            try:
+                dir_fd = os.open(self.path.parent if str(self.path.parent) else ".", os.O_RDONLY)
+                try:
+                    os.fsync(dir_fd)
+                finally:
+                    os.close(dir_fd)
+            except OSError:  # some filesystems cannot fsync a directory; the data are safe
+                log.debug("%s: could not fsync the directory", self.path, exc_info=True)
+        log.info("%s: recording closed (%d messages)", self.path, sum(self.counts.values()))
+
+    def __enter__(self) -> RecordingWriter:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.close(completed=False, reason=f"{exc_type.__name__}: {exc}")
+
+
+class RecordingTee:
+    """A driver wrapper: ``read`` returns what ``source.read`` returns and records it.
+
+    Wrap a base driver (WheelTicks and YawRate) or a camera (Frame) before handing it to
+    the daemon, so the recording holds exactly what the daemon received. ``close``
+    closes the wrapped source, not the writer.
+    """
+
+    def __init__(self, source: Any, writer: RecordingWriter) -> None:
+        self.source = source
+        self.writer = writer
+
+    def read(self, timeout_s: float) -> Any:
+        got = self.source.read(timeout_s)
+        if got is not None:
+            for msg in got if isinstance(got, list) else (got,):
+                self._record(msg)
+        return got
+
+    def _record(self, msg: Any) -> None:
+        if isinstance(msg, WheelTicks):
+            self.writer.write_wheel_ticks(msg)
+        elif isinstance(msg, YawRate):
+            self.writer.write_yaw_rate(msg)
+        elif isinstance(msg, Frame):
+            self.writer.write_frame(msg)
+
+    def close(self) -> None:
+        self.source.close()
+
+    def __getattr__(self, name: str) -> Any:  # driver extras (stats, request_extra, ...)
+        if name == "source":
+            raise AttributeError(name)
+        return getattr(self.source, name)
+
+
+class OdometryRecorder:
+    """A pipeline observer that records the fused odometry on ``/odom`` and, when
+    ``wheel_topic`` is given (e.g. ``"/odom/wheel"``), the wheel-only odometry too."""
+
+    def __init__(self, writer: RecordingWriter, wheel_topic: str | None = None) -> None:
+        self.writer = writer
+        self.wheel_topic = wheel_topic
+
+    def on_odometry(self, fused: PoseStamped, wheel: PoseStamped) -> None:
+        self.writer.write_odometry(fused, TOPIC_ODOM)
+        if self.wheel_topic:
+            self.writer.write_odometry(wheel, self.wheel_topic)
+
+    def on_keyframe(self, keyframe_id: int, frame: Frame, pose: PoseStamped) -> None:
+        pass
+
+    def on_floor_query(self, query: Any) -> None:
+        pass
+
+

@@ -1,0 +1,231 @@
+"""The ``robotd`` command: one entry point, one subcommand per job.
+
+A known error (:class:`~robotd.base.errors.RobotdError`) ends with one line on stderr and exit
+status 2; ``--traceback`` shows the whole stack instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from robotd import __version__
+
+from robotd.base.errors import RobotdError
+
+log = logging.getLogger("robotd")
+
+EPILOG = """\
+examples:
+  robotd demo                          run the daemon on the built-in virtual robot
+  robotd demo --route square --duration 60 --out /tmp/demo
+  robotd run --config /etc/robotd/robotd.toml
+  robotd config check robotd.toml      validate a config file
+  robotd kobuki decode capture.txt     decode a serial capture (raw or pyserial spy://)
+  robotd calibrate intrinsics left*.jpg --board 9x6 --square 0.025 --out calibration.yml
+  robotd calibrate loop-curve drive.mcap --calibration calibration.yml --plot curves.png
+  robotd calibrate validate other-drive.mcap --calibration calibration.yml
+  robotd record run.mcap --virtual --route figure8    record the virtual robot to MCAP
+  robotd replay run.mcap --map replay.sqlite          feed a recording through the daemon
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="robotd",
+        description="On-robot odometry and loop-closure daemon for Turtlebot-class robots.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--version", action="version", version=f"robotd {__version__}")
+    p.add_argument("--log-level", choices=("debug", "info", "warning", "error"), default=None,
+                   help="logging level (default: the config's, or info)")
+    p.add_argument("--traceback", action="store_true", help="show a traceback on errors")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    run = sub.add_parser("run", help="run the daemon on real hardware, as the config says",
+                         description="Run the daemon on real hardware (the systemd service's command).")
+    run.add_argument("--config", type=Path, required=True, help="TOML config file")
+    run.set_defaults(func=_cmd_run)
+
+    rec = sub.add_parser("record", help="run the daemon and record everything to an MCAP file",
+                         description="Record a run to MCAP with ROS 2 message types (floor frames, "
+                                     "wheel ticks, gyro, fused and wheel-only odometry; ground truth "
+                                     "with --virtual), readable by Foxglove and ros2 bag.")
+    rec.add_argument("output", type=Path, metavar="OUT.mcap")
+    rec.add_argument("--virtual", action="store_true",
+                     help="record the built-in virtual robot (takes the demo's options)")
+    rec.add_argument("--config", type=Path, default=None,
+                     help="config file (required on real hardware)")
+    rec.add_argument("--route", default="office", help="virtual robot's route")
+    rec.add_argument("--floor", action="append", type=Path, default=None, metavar="FILE",
+                     help="virtual robot's floor photo(s)")
+    rec.add_argument("--floor-pattern", choices=("planks", "tiles"), default=None)
+    rec.add_argument("--duration", type=float, default=None, metavar="S")
+    rec.add_argument("--seed", type=int, default=0)
+    rec.set_defaults(func=_cmd_record)
+
+    rep = sub.add_parser("replay", help="feed a recording through the daemon",
+                         description="Replay an MCAP recording through the daemon (odometry, "
+                                     "keyframes, floor descriptors), writing the map the config names.")
+    rep.add_argument("recording", type=Path, metavar="FILE.mcap")
+    rep.add_argument("--config", type=Path, default=None, help="config file (default: defaults)")
+    rep.add_argument("--map", type=Path, default=None, help="map file to write (overrides the config)")
+    rep.add_argument("--speed", type=float, default=None,
+                     help="replay at this multiple of recorded time (default: as fast as possible)")
+    rep.set_defaults(func=_cmd_replay)
+
+    from robotd.app import demo as demo_mod  # light module: heavy imports happen inside run()
+    d = sub.add_parser("demo", help="run the daemon on the built-in virtual robot",
+                       description="Run the whole daemon against the virtual robot: Kobuki "
+                                   "bytes over a pseudo-terminal, a rendered floor camera, "
+                                   "ground truth. Writes a map, trajectories, a plot and a summary.")
+    demo_mod.add_arguments(d)
+    d.set_defaults(func=demo_mod.run_from_args)
+
+    cfg = sub.add_parser("config", help="check or print configuration files")
+    cfg_sub = cfg.add_subparsers(dest="config_command", metavar="ACTION", required=True)
+    chk = cfg_sub.add_parser("check", help="validate a config file")
+    chk.add_argument("file", type=Path)
+    chk.set_defaults(func=_cmd_config_check)
+    dflt = cfg_sub.add_parser("default", help="print the default configuration as TOML")
+    dflt.set_defaults(func=_cmd_config_default)
+
+    cal = sub.add_parser("calibrate", help="camera and floor calibration")
+    cal_sub = cal.add_subparsers(dest="calibrate_command", metavar="ACTION", required=True)
+    from calibration import floor_mount, intrinsics
+
+    
+
+    ci = cal_sub.add_parser("intrinsics", help="camera intrinsics from chessboard photos",
+                            description="Calibrate the camera from chessboard photos and write (or "
+                                        "update) an OpenCV YAML calibration file.")
+    intrinsics.add_intrinsics_arguments(ci)
+    ci.set_defaults(func=intrinsics.run_intrinsics)
+    cm = cal_sub.add_parser("floor-mount", help="the floor camera's height, tilt and offset from a "
+                                                "chessboard lying on the floor",
+                            description="Measure the downward camera's mounting from one photo of a "
+                                        "chessboard lying at a known place in the robot frame.")
+    floor_mount.add_floor_mount_arguments(cm)
+    cm.set_defaults(func=floor_mount.run_floor_mount)
+    from calibration import train
+
+    
+
+    cl = cal_sub.add_parser("loop-curve", help="train P(loop | score) and the loop thresholds "
+                                               "from a calibration recording",
+                            description="Score keyframe pairs of a recorded drive in every descriptor "
+                                        "mode, label them by footprint overlap from the fused odometry, "
+                                        "fit P(J >= r | score) and write each mode's threshold into the "
+                                        "calibration file the daemon loads (paper 003 Sec. IV-C, Fig. 5, "
+                                        "Table III).")
+    train.add_loop_curve_arguments(cl)
+    cl.set_defaults(func=train.run_loop_curve)
+    cv = cal_sub.add_parser("validate", help="precision and recall of the thresholds on another "
+                                             "recording (labelled by its ground truth)",
+                            description="Apply the calibration file's thresholds to the keyframe pairs "
+                                        "of another recording of the virtual robot and report, per "
+                                        "mode, precision and recall of the declared loops against the "
+                                        "ground-truth footprint overlap.")
+    train.add_validate_arguments(cv)
+    cv.set_defaults(func=train.run_validate)
+
+    kob = sub.add_parser("kobuki", help="Kobuki base tools")
+    kob_sub = kob.add_subparsers(dest="kobuki_command", metavar="ACTION", required=True)
+    dec = kob_sub.add_parser("decode", help="decode a serial capture into JSON lines",
+                             description="Decode a raw serial capture, or the hex dump written "
+                                         "by pyserial's spy:// URL, into one JSON line per packet, "
+                                         "with the error counts on the last line.")
+    from drivers.kobuki import capture
+    capture.add_decode_arguments(dec)
+    dec.set_defaults(func=capture.run_decode)
+    return p
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from robotd.base.config import load_config
+    from robotd.app.service import run_service
+
+    cfg = load_config(args.config)
+    if args.log_level is None:
+        logging.getLogger().setLevel(cfg.daemon.log_level.upper())
+    return run_service(cfg)
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    from robotd.base.config import Config, load_config
+    from robotd.base.errors import ConfigError
+
+    cfg = load_config(args.config) if args.config else Config()
+    if args.virtual:
+        from robotd.app.demo import print_summary, run_demo
+
+        out = args.output.with_name(args.output.stem + "-demo")
+        s = run_demo(cfg, out=out, route=args.route, floor_files=tuple(str(f) for f in args.floor or ()),
+                     floor_pattern=args.floor_pattern, duration_s=args.duration, seed=args.seed,
+                     record=args.output)
+        print_summary(s, sys.stdout)
+        print(f"recording: {args.output} ({args.output.stat().st_size / 1e6:.1f} MB); "
+              f"demo outputs in {out}")
+        return 0
+    if args.config is None:
+        raise ConfigError("robotd record needs --config on real hardware (or --virtual)")
+    from robotd.app.service import run_service
+
+    return run_service(cfg, record=args.output)
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from robotd.base.config import Config, load_config, replace
+    from robotd.base.errors import ConfigError
+    from robotd.app.service import run_replay
+
+    if args.speed is not None and not args.speed > 0:
+        raise ConfigError(f"--speed must be positive, got {args.speed}")
+    cfg = load_config(args.config) if args.config else Config()
+    cfg = replace(cfg, "floor_camera", source="virtual")
+    if args.map is not None:
+        cfg = replace(cfg, "map", path=str(args.map))
+    r = run_replay(cfg, args.recording, args.speed)
+    print(f"replayed {args.recording}: {r['recording_s']:.1f} s of recording in {r['wall_s']:.1f} s; "
+          f"{r['odometry_samples']} odometry samples, {r['frames']} frames, {r['keyframes']} keyframes "
+          f"-> {cfg.map.path}")
+    return 0
+
+
+def _cmd_config_check(args: argparse.Namespace) -> int:
+    from robotd.base.config import load_config
+
+    load_config(args.file)
+    print(f"{args.file}: OK")
+    return 0
+
+
+def _cmd_config_default(args: argparse.Namespace) -> int:
+    from robotd.base.config import Config, to_toml
+
+    print(to_toml(Config()), end="")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    # The demo shows its own progress line; its log is warnings only unless asked.
+    default_level = "warning" if args.command == "demo" else "info"
+    logging.basicConfig(level=(args.log_level or default_level).upper(),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args) or 0)
+    except RobotdError as exc:
+        if args.traceback:
+            raise
+        print(f"robotd: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,339 @@
+"""``robotd demo``: the whole daemon on the built-in virtual robot.
+
+The virtual robot speaks Kobuki bytes over a pseudo-terminal and renders the floor
+camera; the daemon opens the pty with its real serial driver, fuses odometry, selects
+keyframes and writes the map, exactly as on the robot. Afterwards the demo compares the
+trajectories with ground truth and writes:
+
+``OUT/map.sqlite``, ``groundtruth.tum``, ``wheel.tum``, ``fused.tum``, ``summary.json``,
+``trajectories.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from sim.route import ROUTES
+
+    p.add_argument("--route", default="office", choices=sorted(ROUTES),
+                   help="route to drive (default: office, about 110 m with loops both ways)")
+    p.add_argument("--floor", action="append", type=Path, metavar="FILE", default=None,
+                   help="floor photograph(s) to build the floor from (repeat for several; "
+                        "default: the scikit-image brick, grass and gravel photographs)")
+    p.add_argument("--floor-pattern", choices=("planks", "tiles"), default=None,
+                   help="a regular printed floor instead: planks or tiles whose few prints "
+                        "repeat (the paper's worst case; the print is --floor's photo or gravel)")
+    p.add_argument("--floor-scale", type=float, default=0.001, metavar="M_PER_PX",
+                   help="size of one floor-photo pixel in metres (default 0.001)")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="stop after this many seconds of robot time (default: whole route)")
+    p.add_argument("--out", type=Path, default=Path("demo-out"), metavar="DIR",
+                   help="output folder (default: ./demo-out)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the virtual robot")
+    p.add_argument("--config", type=Path, default=None,
+                   help="start from this config file (the base port, camera source and map "
+                        "path are replaced by the virtual robot's)")
+    p.add_argument("--realtime", action="store_true",
+                   help="pace the virtual robot on the wall clock (default: as fast as possible)")
+    p.add_argument("--no-plot", action="store_true", help="skip trajectories.png")
+    p.add_argument("--record", type=Path, default=None, metavar="FILE.mcap",
+                   help="also record the run (frames, ticks, gyro, odometry, ground truth) to MCAP")
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    from robotd.base.config import Config, load_config
+    from robotd.base.errors import ConfigError
+
+    if args.floor_scale <= 0 or not math.isfinite(args.floor_scale):
+        raise ConfigError(f"--floor-scale must be a positive number of metres, got {args.floor_scale}")
+    if args.duration is not None and args.duration <= 0:
+        raise ConfigError(f"--duration must be positive, got {args.duration}")
+    base_cfg = load_config(args.config) if args.config else Config()
+    summary = run_demo(base_cfg, out=args.out, route=args.route,
+                       floor_files=tuple(str(f) for f in args.floor or ()),
+                       floor_scale=args.floor_scale, floor_pattern=args.floor_pattern,
+                       duration_s=args.duration, seed=args.seed,
+                       realtime=args.realtime, plot=not args.no_plot, record=args.record)
+    print_summary(summary, sys.stdout)
+    return 0 if summary["ok"] else 1
+
+
+class _Recorder:
+    """Pipeline observer: writes the fused and wheel-only trajectories as they come."""
+
+    def __init__(self, out: Path) -> None:
+        from robotd.io.trajectory import TumWriter
+
+        self.fused = TumWriter(out / "fused.tum")
+        self.wheel = TumWriter(out / "wheel.tum")
+        self.keyframe_poses: list[tuple[float, float]] = []
+        self.keyframe_ids: list[int] = []
+        self.keyframe_stamps: list[int] = []
+        self.queries: list[tuple[int, list[tuple[int, float, float, int]]]] = []
+
+    def on_odometry(self, fused: Any, wheel: Any) -> None:
+        self.fused.write(fused.stamp_ns, fused.x_m, fused.y_m, fused.yaw_rad)
+        self.wheel.write(wheel.stamp_ns, wheel.x_m, wheel.y_m, wheel.yaw_rad)
+
+    def on_keyframe(self, keyframe_id: int, frame: Any, pose: Any) -> None:
+        self.keyframe_poses.append((pose.x_m, pose.y_m))
+        self.keyframe_ids.append(keyframe_id)
+        self.keyframe_stamps.append(frame.stamp_ns)
+
+    def on_floor_query(self, query: Any) -> None:
+        self.queries.append((query.keyframe_id, [
+            (c.keyframe_id, float(c.local.score), float(c.global_score), int(c.local.n_inliers))
+            for c in query.candidates]))
+
+    def close(self) -> None:
+        self.fused.close()
+        self.wheel.close()
+
+
+class _Progress:
+    """A progress line on stderr: robot time done, speed against real time."""
+
+    def __init__(self, total_s: float) -> None:
+        self.total_s = total_s
+        self.start = time.monotonic()
+        self.last = 0.0
+        self.tty = sys.stderr.isatty()
+        self.next_pct = 10
+
+    def update(self, sim_s: float, keyframes: int, final: bool = False) -> None:
+        now = time.monotonic()
+        if not final and now - self.last < 0.5:
+            return
+        self.last = now
+        wall = now - self.start
+        pct = 100.0 * min(1.0, sim_s / self.total_s) if self.total_s > 0 else 100.0
+        line = (f"demo: {pct:5.1f}%  robot time {sim_s:6.1f}/{self.total_s:.0f} s  "
+                f"keyframes {keyframes}  x{sim_s / wall if wall > 0 else 0:.1f} real time")
+        if self.tty:
+            sys.stderr.write("\r" + line + ("\n" if final else ""))
+            sys.stderr.flush()
+        elif final or pct >= self.next_pct:
+            sys.stderr.write(line + "\n")
+            while self.next_pct <= pct:
+                self.next_pct += 10
+
+
+def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tuple[str, ...] = (),
+             floor_scale: float = 0.001, floor_pattern: str | None = None,
+             duration_s: float | None = None, seed: int = 0,
+             realtime: bool = False, plot: bool = True, record: Path | None = None) -> dict[str, Any]:
+    """Run the daemon on the virtual robot; returns the summary (also written as JSON)."""
+    import numpy as np
+
+    from drivers.kobuki.driver import KobukiDriver
+    from robotd.base.clock import ManualClock
+    from robotd.base.config import replace
+    from robotd.app.daemon import Daemon
+    from robotd.base.camera import FloorCameraModel
+    from robotd.app.notify import Notifier
+    from robotd.odometry.ekf import OdometryFilter
+    from robotd.app.service import build_floor_detector, build_odometry, load_calibration
+    from sim.robot import VirtualRobot, VirtualRobotSettings
+    from robotd.io.store import MapStore
+    from robotd.io.trajectory import read_tum, trajectory_errors
+
+    out.mkdir(parents=True, exist_ok=True)
+    map_path = out / "map.sqlite"
+    for suffix in ("", "-wal", "-shm"):
+        stale = Path(str(map_path) + suffix)
+        if stale.exists():
+            log.info("replacing the previous demo map %s", stale)
+            stale.unlink()
+    clock = ManualClock()
+    cam_model = FloorCameraModel.from_config(base_cfg.floor_camera)
+    settings = VirtualRobotSettings(route=route, seed=seed, duration_s=duration_s, realtime=realtime,
+                                    floor_files=floor_files, floor_metres_per_px=floor_scale,
+                                    floor_pattern=floor_pattern,
+                                    camera_fps=base_cfg.floor_camera.fps)
+    wall0 = time.monotonic()
+    robot = VirtualRobot(settings, cam_model, clock)
+    cfg = replace(base_cfg, "base", driver="kobuki", port=robot.port)
+    cfg = replace(cfg, "floor_camera", source="virtual")
+    cfg = replace(cfg, "map", path=str(map_path))
+    recorder = _Recorder(out)
+    progress = _Progress(robot.duration_s)
+    writer = None
+    if record is not None:
+        from drivers.recording.writer import RecordingWriter
+        from robotd.base.config import to_toml
+
+        writer = RecordingWriter(record, image_format="png", config_toml=to_toml(cfg))
+    with robot, MapStore.open(map_path, clock=clock) as store, KobukiDriver(
+        robot.port, clock=clock, baudrate=cfg.base.baudrate, yaw_source=cfg.base.yaw_source
+    ) as driver:
+        driver.request_extra(hardware_version=True, firmware_version=True, udid=True)
+        odometry: OdometryFilter = build_odometry(cfg)
+        sources: dict[str, Any] = {"base": (driver, None), "floor": (robot.camera, None)}
+        observers: list[Any] = [recorder]
+        if writer is not None:
+            from drivers.recording.writer import OdometryRecorder, RecordingTee
+
+            sources = {name: (RecordingTee(src, writer), None) for name, (src, _) in sources.items()}
+            observers.append(OdometryRecorder(writer, wheel_topic="/odom/wheel"))
+        daemon = Daemon(cfg, clock, sources,
+                        odometry, store, Notifier(), lossless=not realtime, observers=observers,
+                        driver_stats=lambda: {"kobuki": driver.stats.as_dict()},
+                        floor=build_floor_detector(cfg, store, load_calibration(cfg)))
+        robot.start()
+
+        def finished() -> bool:
+            c = daemon.pipeline.counters
+            progress.update(robot.sim_time_s, c.keyframes)
+            if robot.error is not None:
+                return True
+            return (robot.finished.is_set() and c.frames >= robot.frames_emitted
+                    and c.wheel_msgs >= robot.packets_emitted)  # frames still held: Pipeline.finish
+
+        report = daemon.run(stop_when=finished)
+        progress.update(robot.sim_time_s, daemon.pipeline.counters.keyframes, final=True)
+        robot.stop()
+        recorder.close()
+        robot.write_ground_truth_tum(out / "groundtruth.tum")
+        if writer is not None:
+            for stamp, pose in zip(robot.base.stamp_ns, robot.base.true_pose):
+                writer.write_ground_truth(int(stamp), *map(float, pose))
+            writer.close()
+        keyframes_stored = store.count_keyframes()
+        commands = dict(robot.commands_received)
+        camera_drops = robot.camera.dropped
+    if robot.error is not None:
+        raise robot.error
+    wall_s = time.monotonic() - wall0
+
+    stamps, fused = read_tum(out / "fused.tum")
+    _, wheel = read_tum(out / "wheel.tum")
+    truth = robot.motion.pose_at(stamps / 1e9)
+    err_fused = trajectory_errors(truth, fused)
+    err_wheel = trajectory_errors(truth, wheel)
+    c = report.counters
+    kob = report.driver_stats.get("kobuki", {})
+    summary: dict[str, Any] = {
+        "route": route, "seed": seed, "floor": list(floor_files) or ["skimage:brick,grass,gravel"], "floor_pattern": floor_pattern,
+        "robot_time_s": robot.duration_s, "wall_time_s": wall_s,
+        "real_time_factor": robot.duration_s / wall_s if wall_s > 0 else None,
+        "distance_m": err_fused.distance_m,
+        "frames_rendered": robot.frames_emitted, "frames_processed": c.frames,
+        "keyframes": keyframes_stored, "odometry_samples": c.wheel_msgs,
+        "drops": {"camera": camera_drops, **{f"queue_{k}": v for k, v in report.queue_drops.items()},
+                  "frames_unsynced": c.frames_unsynced},
+        "packet_errors": {k: kob.get(k, 0) for k in
+                          ("garbage_bytes", "bad_checksums", "truncated", "malformed_subpayloads")},
+        "commands_seen_by_robot": commands,
+        "wheel_only": err_wheel.as_dict(), "fused": err_fused.as_dict(),
+        "stopped_by": report.stopped_by,
+        "recording": str(record) if record is not None else None,
+    }
+    if cfg.floor_detector.enabled and recorder.keyframe_ids:
+        summary["floor_detector"] = floor_summary(cfg, cam_model, robot.motion, recorder,
+                                                  out if plot else None)
+    summary["ok"] = bool(c.frames == robot.frames_emitted and keyframes_stored == c.keyframes)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if plot:
+        from robotd.base.geometry import compose, inverse, transform_points
+        from robotd.io.plots import plot_trajectories
+        from robotd.io.trajectory import anchor_to
+
+        # Odometry starts at its own origin; draw it from the route's start, as the errors do.
+        to_world = compose(truth[0], inverse(fused[0]))
+        kf = transform_points(to_world, np.asarray(recorder.keyframe_poses).reshape(-1, 2))
+        plot_trajectories(out / "trajectories.png", robot.floor, truth,
+                          {"wheel only": anchor_to(truth[0], wheel),
+                           "fused (EKF)": anchor_to(truth[0], fused)},
+                          keyframes_xy=kf,
+                          title=f"robotd demo: route {route}, {err_fused.distance_m:.0f} m")
+    return summary
+
+
+def floor_summary(cfg: Any, camera: Any, motion: Any, recorder: _Recorder,
+                  out: Path | None) -> dict[str, Any]:
+    """The map queries' candidates judged by ground-truth footprint overlap."""
+    import numpy as np
+
+    from robotd.floor.evaluation import candidate_report, overlap_matrix
+
+    ids = np.asarray(recorder.keyframe_ids)
+    stamps = np.asarray(recorder.keyframe_stamps, dtype=np.int64)
+    row = {int(k): i for i, k in enumerate(ids)}
+    truth = motion.pose_at(stamps / 1e9)
+    overlap = overlap_matrix(camera, truth)
+    queries = [(row[q], [(row[c], s) for c, s, _g, _n in cs]) for q, cs in recorder.queries]
+    rep = candidate_report(overlap, stamps, queries, cfg.floor_detector.exclude_recent_s)
+    best = sorted(rep.candidates, key=lambda c: -c.local_score)[:10]
+    scores = np.array([c.local_score for c in rep.candidates]) if rep.candidates else np.zeros(0)
+    levels = sorted({float(np.quantile(scores, q)) for q in (0.5, 0.9, 0.99)}) if len(scores) else []
+    d: dict[str, Any] = {
+        "mode": cfg.floor_detector.mode, "queries": rep.queries,
+        "candidates_returned": len(rep.candidates),
+        "queries_with_true_revisit": rep.queries_with_true_loop,
+        "revisits_found_among_candidates": rep.found,
+        "recall_of_candidates": rep.recall,
+        "top1_true_overlap": rep.top1_true, "top1_total": rep.top1_total,
+        "top1_precision_above_score": {f"{lv:.2f}": rep.precision_above(lv) for lv in levels},
+        "best_candidates": [{"query_keyframe": int(ids[c.query]), "candidate_keyframe": int(ids[c.candidate]),
+                             "local_score": c.local_score, "true_overlap_J": c.overlap} for c in best],
+    }
+    if out is not None:
+        from robotd.io.plots import plot_similarity
+
+        score_m = np.full(overlap.shape, np.nan, np.float32)
+        for c in rep.candidates:
+            score_m[c.query, c.candidate] = c.local_score
+        plot_similarity(out / "similarity.png", overlap, score_m, stamps,
+                        cfg.floor_detector.exclude_recent_s, mode=cfg.floor_detector.mode)
+    return d
+
+
+def print_summary(s: dict[str, Any], f: Any) -> None:
+    """The short table the demo prints."""
+    w, fu = s["wheel_only"], s["fused"]
+    rows = [
+        ("route", f"{s['route']} (seed {s['seed']})"),
+        ("distance", f"{s['distance_m']:.1f} m in {s['robot_time_s']:.0f} s robot time"),
+        ("wall time", f"{s['wall_time_s']:.1f} s (x{s['real_time_factor']:.1f} real time)"),
+        ("frames", f"{s['frames_processed']} processed of {s['frames_rendered']} rendered"),
+        ("keyframes", f"{s['keyframes']}"),
+        ("drops", ", ".join(f"{k} {v}" for k, v in s["drops"].items())),
+        ("packet errors", ", ".join(f"{k} {v}" for k, v in s["packet_errors"].items())),
+    ]
+    width = max(len(r[0]) for r in rows)
+    for k, v in rows:
+        print(f"{k:<{width}}  {v}", file=f)
+    print(file=f)
+    print(f"{'odometry vs ground truth':<26}{'wheel only':>12}{'fused':>12}", file=f)
+    for label, key, fmt in (
+        ("end position error (m)", "end_position_error_m", "{:.3f}"),
+        ("end heading error (deg)", "end_heading_error_deg", "{:.2f}"),
+        ("max position error (m)", "max_position_error_m", "{:.3f}"),
+        ("end drift per 100 m (m)", "end_drift_per_100m_m", "{:.3f}"),
+    ):
+        print(f"{label:<26}{fmt.format(w[key]):>12}{fmt.format(fu[key]):>12}", file=f)
+    fd = s.get("floor_detector")
+    if fd:
+        print(file=f)
+        print(f"floor loop candidates (mode {fd['mode']}): {fd['queries']} map queries, "
+              f"{fd['candidates_returned']} candidates", file=f)
+        print(f"  revisits (true overlap J >= 0.33 with an older keyframe): {fd['queries_with_true_revisit']}, "
+              f"found among the candidates: {fd['revisits_found_among_candidates']}", file=f)
+        print(f"  top candidate truly overlapping: {fd['top1_true_overlap']} of {fd['top1_total']}", file=f)
+        for lv, (t, n) in fd["top1_precision_above_score"].items():
+            print(f"  top candidates with local score >= {lv}: {t} of {n} truly overlapping", file=f)
+        print(f"  {'query':>7} {'candidate':>9} {'local score':>11} {'true J':>7}", file=f)
+        for b in fd["best_candidates"]:
+            print(f"  {b['query_keyframe']:>7} {b['candidate_keyframe']:>9} {b['local_score']:>11.2f} "
+                  f"{b['true_overlap_J']:>7.2f}", file=f)

@@ -1,0 +1,267 @@
+"""The one configuration file: TOML read into frozen dataclasses.
+
+Every section is a frozen dataclass whose fields carry their unit in the name and their
+valid range in ``metadata``. Unknown sections, unknown keys, wrong types and out-of-range
+values are :class:`~robotd.base.errors.ConfigError` naming the key (``[floor_camera] fps``).
+There is exactly one source of configuration: the file (or the defaults when a key is
+absent). Environment variables change nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from robotd.base.errors import ConfigError
+
+
+def _f(default: Any, doc: str, *, lo: float | None = None, hi: float | None = None,
+       choices: tuple[str, ...] | None = None, length: int | None = None) -> Any:
+    """A config field with its documentation and validity constraints."""
+    meta = {"doc": doc, "lo": lo, "hi": hi, "choices": choices, "length": length}
+    if isinstance(default, (list, tuple)):
+        return field(default=tuple(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    """Differential-drive geometry (Kobuki defaults)."""
+
+    wheel_radius_m: float = _f(0.035, "wheel radius", lo=0.005, hi=1.0)
+    wheel_base_m: float = _f(0.23, "distance between the wheel contact points", lo=0.02, hi=5.0)
+    ticks_per_rev: float = _f(2578.33, "encoder ticks per wheel turn", lo=1.0, hi=1e7)
+
+
+@dataclass(frozen=True)
+class BaseConfig:
+    """The mobile base: wheel encoders and gyro."""
+
+    driver: str = _f("kobuki", "base driver", choices=("kobuki", "none"))
+    port: str = _f("/dev/kobuki", "serial port: a device path or any pyserial URL")
+    baudrate: int = _f(115200, "serial baud rate", lo=1200, hi=4_000_000)
+    yaw_source: str = _f("raw_gyro", "which gyro reading feeds the filter",
+                         choices=("raw_gyro", "inertial"))
+    queue_size: int = _f(512, "samples buffered between the driver thread and the pipeline",
+                         lo=1, hi=1_000_000)
+
+
+@dataclass(frozen=True)
+class FloorCameraConfig:
+    """The downward-facing floor camera: device, intrinsics and mounting."""
+
+    source: str = _f("v4l2", "camera source ('virtual': the built-in virtual robot, demo only)",
+                     choices=("v4l2", "none", "virtual"))
+    device: str = _f("/dev/video0", "V4L2 device path")
+    fourcc: str = _f("YUYV", "pixel format requested from the driver", choices=("YUYV", "MJPG", "GREY"))
+    width_px: int = _f(640, "image width", lo=16, hi=8192)
+    height_px: int = _f(480, "image height", lo=16, hi=8192)
+    fps: float = _f(30.0, "frame rate", lo=0.1, hi=1000.0)
+    buffer_size: int = _f(2, "driver-side frame buffers (small = low latency)", lo=1, hi=32)
+    queue_size: int = _f(8, "frames buffered between the camera thread and the pipeline", lo=1, hi=10_000)
+    fx_px: float = _f(400.0, "focal length x", lo=1.0, hi=1e5)
+    fy_px: float = _f(400.0, "focal length y", lo=1.0, hi=1e5)
+    cx_px: float = _f(319.5, "principal point x", lo=-1e5, hi=1e5)
+    cy_px: float = _f(239.5, "principal point y", lo=-1e5, hi=1e5)
+    distortion: tuple = _f((-0.05, 0.0, 0.0, 0.0, 0.0), "OpenCV k1 k2 p1 p2 k3", length=5)
+    mount_height_m: float = _f(0.40, "lens height above the floor", lo=0.01, hi=5.0)
+    mount_tilt_deg: float = _f(0.0, "pitch away from straight down, towards forward", lo=-60.0, hi=60.0)
+    mount_x_m: float = _f(0.0, "camera position in the robot frame, forward", lo=-2.0, hi=2.0)
+    mount_y_m: float = _f(0.0, "camera position in the robot frame, left", lo=-2.0, hi=2.0)
+    mount_yaw_deg: float = _f(0.0, "image rotation about the optical axis", lo=-180.0, hi=180.0)
+
+
+@dataclass(frozen=True)
+class OdometryConfig:
+    """Noise model of the wheel + gyro extended Kalman filter (1-sigma values)."""
+
+    accel_noise_mps2: float = _f(0.5, "process noise: linear acceleration", lo=1e-6, hi=100.0)
+    angular_accel_noise_radps2: float = _f(0.3, "process noise: angular acceleration", lo=1e-6, hi=1000.0)
+    gyro_bias_walk_radps_sqrt_s: float = _f(2e-5, "gyro bias random walk", lo=0.0, hi=1.0)
+    wheel_v_noise_mps: float = _f(0.01, "wheel speed noise at standstill", lo=1e-6, hi=10.0)
+    wheel_v_noise_frac: float = _f(0.02, "wheel speed noise growing with speed (slip)", lo=0.0, hi=1.0)
+    wheel_w_noise_radps: float = _f(0.05, "wheel yaw-rate noise", lo=1e-6, hi=10.0)
+    wheel_w_noise_frac: float = _f(0.05, "wheel yaw-rate noise growing with turn rate", lo=0.0, hi=1.0)
+    wheel_w_noise_per_mps: float = _f(0.5, "wheel yaw-rate noise growing with speed (unequal wheels)",
+                                      lo=0.0, hi=100.0)
+    gyro_noise_radps: float = _f(0.003, "gyro yaw-rate white noise per sample", lo=1e-7, hi=10.0)
+    initial_gyro_bias_sigma_radps: float = _f(0.01, "prior on the gyro bias", lo=1e-7, hi=10.0)
+
+
+@dataclass(frozen=True)
+class KeyframeConfig:
+    """When a floor frame becomes a keyframe, and what of it is stored."""
+
+    distance_m: float = _f(0.05, "distance travelled since the last keyframe", lo=0.001, hi=100.0)
+    rotation_deg: float = _f(10.0, "rotation since the last keyframe", lo=0.1, hi=360.0)
+    image_width_px: int = _f(160, "width of the stored downsampled image (0 = none)", lo=0, hi=8192)
+    jpeg_quality: int = _f(85, "JPEG quality of the stored image", lo=1, hi=100)
+    max_sync_wait_s: float = _f(0.5, "how long a frame waits for odometry at its stamp", lo=0.0, hi=60.0)
+
+
+@dataclass(frozen=True)
+class FloorDetectorConfig:
+    """Compact floor descriptors of every keyframe and the map query (paper 003)."""
+
+    enabled: bool = _f(True, "describe keyframes and query the map for look-alikes")
+    mode: int = _f(4, "descriptor mode: 1..6 = at most 512 B, 1, 2, 4, 8, 16 kB per image", lo=1, hi=6)
+    candidates: int = _f(5, "candidates returned per query", lo=1, hi=100)
+    shortlist: int = _f(30, "keyframes scored locally per query (after the global shortlist)",
+                        lo=1, hi=100_000)
+    exclude_recent_s: float = _f(20.0, "keyframes younger than this are not candidates", lo=0.0, hi=1e6)
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """Where the calibration file is (written by ``robotd calibrate``)."""
+
+    path: str = _f("/etc/robotd/calibration.yml",
+                   "OpenCV YAML: intrinsics, floor mount, trained loop thresholds (optional)")
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """The SQLite map file."""
+
+    path: str = _f("/var/lib/robotd/map.sqlite", "map file (created if missing)")
+
+
+@dataclass(frozen=True)
+class DaemonConfig:
+    """Service behaviour."""
+
+    status_interval_s: float = _f(5.0, "how often STATUS is sent to systemd and logged", lo=0.1, hi=3600.0)
+    log_level: str = _f("info", "logging level", choices=("debug", "info", "warning", "error"))
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration, one dataclass per TOML table."""
+
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    base: BaseConfig = field(default_factory=BaseConfig)
+    floor_camera: FloorCameraConfig = field(default_factory=FloorCameraConfig)
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    floor_detector: FloorDetectorConfig = field(default_factory=FloorDetectorConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    map: MapConfig = field(default_factory=MapConfig)
+    daemon: DaemonConfig = field(default_factory=DaemonConfig)
+
+
+def _check_value(section: str, f: dataclasses.Field, value: Any) -> Any:
+    """Type- and range-check one value; return it converted to the field's type."""
+    key = f"[{section}] {f.name}"
+    meta = f.metadata
+    default = f.default
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}: expected true or false, got {value!r}")
+    elif isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+    elif isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key}: expected a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f"{key}: must be finite, got {value!r}")
+    elif isinstance(default, str):
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}: expected a string, got {value!r}")
+    elif isinstance(default, tuple):
+        if not isinstance(value, list) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
+        ):
+            raise ConfigError(f"{key}: expected a list of numbers, got {value!r}")
+        if meta.get("length") is not None and len(value) != meta["length"]:
+            raise ConfigError(f"{key}: expected {meta['length']} numbers, got {len(value)}")
+        value = tuple(float(v) for v in value)
+    lo, hi = meta.get("lo"), meta.get("hi")
+    if lo is not None and value < lo:
+        raise ConfigError(f"{key}: {value!r} is below the minimum {lo!r}")
+    if hi is not None and value > hi:
+        raise ConfigError(f"{key}: {value!r} is above the maximum {hi!r}")
+    choices = meta.get("choices")
+    if choices is not None and value not in choices:
+        raise ConfigError(f"{key}: {value!r} is not one of {', '.join(map(repr, choices))}")
+    return value
+
+
+def config_from_dict(data: dict[str, Any]) -> Config:
+    """Build a :class:`Config` from parsed TOML, validating every key."""
+    sections = {f.name: f for f in dataclasses.fields(Config)}
+    built: dict[str, Any] = {}
+    for name, table in data.items():
+        if name not in sections:
+            raise ConfigError(f"unknown section [{name}] (known: {', '.join(sections)})")
+        if not isinstance(table, dict):
+            raise ConfigError(f"[{name}] must be a table, got {table!r}")
+        cls = sections[name].default_factory  # type: ignore[misc]
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        values = {}
+        for key, value in table.items():
+            if key not in fields:
+                raise ConfigError(f"unknown key [{name}] {key} (known: {', '.join(fields)})")
+            values[key] = _check_value(name, fields[key], value)
+        built[name] = cls(**values)
+    cfg = Config(**built)
+    fc = cfg.floor_camera
+    if not (0 <= fc.cx_px < fc.width_px and 0 <= fc.cy_px < fc.height_px):
+        raise ConfigError("[floor_camera] cx_px/cy_px: the principal point must lie inside the image")
+    return cfg
+
+
+def load_config(path: str | Path) -> Config:
+    """Read and validate a TOML config file."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"config file not found: {p}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read config file {p}: {exc}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    return config_from_dict(data)
+
+
+def replace(cfg: Config, section: str, **changes: Any) -> Config:
+    """A copy of ``cfg`` with some keys of one section changed (validated like the file)."""
+    sec = getattr(cfg, section)
+    fields = {f.name: f for f in dataclasses.fields(sec)}
+    checked = {}
+    for key, value in changes.items():
+        if key not in fields:
+            raise ConfigError(f"unknown key [{section}] {key}")
+        v = list(value) if isinstance(value, tuple) else value
+        checked[key] = _check_value(section, fields[key], v)
+    return dataclasses.replace(cfg, **{section: dataclasses.replace(sec, **checked)})
+
+
+def to_toml(cfg: Config) -> str:
+    """Serialise a config back to TOML (stored with every run in the map file)."""
+    lines: list[str] = []
+    for sf in dataclasses.fields(cfg):
+        lines.append(f"[{sf.name}]")
+        for f in dataclasses.fields(getattr(cfg, sf.name)):
+            v = getattr(getattr(cfg, sf.name), f.name)
+            lines.append(f"{f.name} = {_toml_value(v)}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return '"' + str(v).replace("\\", "\\\\").replace('"', '\\"') + '"'

@@ -1,0 +1,61 @@
+"""Typed, timestamped samples that flow from the drivers down the pipeline.
+
+Every message is a frozen dataclass with ``stamp_ns`` (host monotonic time base, or the
+virtual robot's time) and SI units in its field names. Drivers produce these and import
+nothing else from robotd except :mod:`robotd.base.errors` and :mod:`robotd.base.clock`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True, slots=True)
+class WheelTicks:
+    """Raw wheel encoder counters as the base reports them.
+
+    ``left_ticks``/``right_ticks`` are the raw 16-bit counters (0..65535, wrapping);
+    the odometry unwraps them. ``device_ms`` is the base's own 16-bit millisecond
+    timestamp, kept for diagnostics.
+    """
+
+    stamp_ns: int
+    left_ticks: int
+    right_ticks: int
+    device_ms: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class YawRate:
+    """Angular rate about the robot's z axis (REP-103: counter-clockwise positive), rad/s."""
+
+    stamp_ns: int
+    yaw_rate_radps: float
+    source: str = "gyro"
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Frame:
+    """One camera image.
+
+    ``image`` is ``(H, W) uint8`` (grey) or ``(H, W, 3) uint8`` (BGR); ``camera`` names
+    the source (``"floor"`` or ``"forward"``); ``seq`` counts frames from the source.
+    """
+
+    stamp_ns: int
+    camera: str
+    image: np.ndarray
+    seq: int = 0
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PoseStamped:
+    """A planar pose estimate with its 3x3 covariance over (x_m, y_m, yaw_rad)."""
+
+    stamp_ns: int
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))

@@ -1,0 +1,532 @@
+"""The calibration file the daemon loads: OpenCV's YAML, written and read by ``cv2.FileStorage``.
+
+An OpenCV user recognises the intrinsic part at once: it uses the key names of OpenCV's
+own calibration sample (``camera_matrix`` 3x3, ``distortion_coefficients`` 1x5 in the
+order k1 k2 p1 p2 k3, ``image_width``, ``image_height``, ``avg_reprojection_error``), so
+``cv2.FileStorage(path, cv2.FILE_STORAGE_READ).getNode("camera_matrix").mat()`` works on it
+and the daemon reads the files OpenCV's sample writes. Two optional robotd sections follow:
+
+* the floor camera's mount on the robot (``mount_height_m``, ``mount_tilt_deg``,
+  ``mount_x_m``, ``mount_y_m``, ``mount_yaw_deg``; conventions of
+  :class:`robotd.base.camera.FloorCameraModel`), measured by ``robotd calibrate floor-mount``;
+* the floor loop detector's per-mode score thresholds (``loop_threshold_mode_1`` ..
+  ``loop_threshold_mode_6``, ``loop_overlap_r``, ``loop_confidence``), trained by
+  ``robotd calibrate loop-curve`` (paper 003, Sec. IV-C and Table III).
+
+Each part is optional, so the calibration runs can fill the file one step at a time:
+:func:`update_calibration` reads the file, replaces one part and writes it back
+atomically (a temporary file in the same directory, then ``os.replace``), so a crash or
+a full disk never leaves a half-written calibration behind.
+
+Keys that robotd does not know are ignored when they come from other tools (OpenCV's
+sample writes ``nframes``, ``flags``, ``extrinsic_parameters`` and more), but a key in
+robotd's own namespaces (``mount_*``, ``loop_*``) that is not listed above is an error:
+it is most likely a typo that would otherwise silently fall back to the config.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import cv2
+import numpy as np
+
+from robotd.base.errors import CalibrationError
+from robotd.base.camera import FloorCameraModel
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "N_MODES",
+    "CalibrationFile",
+    "FloorMount",
+    "Intrinsics",
+    "LoopThresholds",
+    "camera_model",
+    "merge",
+    "read_calibration",
+    "update_calibration",
+    "write_calibration",
+]
+
+#: Number of descriptor modes (paper 003: modes 1..6, 512 B .. 16 kB per image).
+N_MODES = 6
+
+_MOUNT_KEYS = ("mount_height_m", "mount_tilt_deg", "mount_x_m", "mount_y_m", "mount_yaw_deg")
+_LOOP_MODE_KEYS = tuple(f"loop_threshold_mode_{m}" for m in range(1, N_MODES + 1))
+_LOOP_KEYS = _LOOP_MODE_KEYS + ("loop_overlap_r", "loop_confidence")
+_INTRINSIC_KEYS = ("camera_matrix", "distortion_coefficients", "image_width", "image_height",
+                   "avg_reprojection_error")
+
+
+def _finite(name: str, value: float) -> float:
+    value = float(value)
+    if not math.isfinite(value):
+        raise CalibrationError(f"{name} must be a finite number, got {value!r}")
+    return value
+
+
+# ------------------------------------------------------------------------- parts
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics and lens distortion of one camera at one image size.
+
+    Fields:
+        width_px, height_px: image size the calibration belongs to, pixels.
+        fx, fy: focal lengths, pixels.
+        cx, cy: principal point, pixels (OpenCV convention: top-left pixel centre = 0).
+        dist: ``(k1, k2, p1, p2, k3)``, OpenCV's order (Brown-Conrady on normalised
+            coordinates).
+        reprojection_error_px: RMS reprojection error of the calibration over all corners,
+            pixels (OpenCV's ``avg_reprojection_error``); ``None`` when unknown.
+    """
+
+    width_px: int
+    height_px: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    reprojection_error_px: float | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "dist", tuple(_finite("distortion coefficient", d) for d in self.dist))
+        if len(self.dist) != 5:
+            raise CalibrationError(f"distortion_coefficients: need 5 (k1 k2 p1 p2 k3), got {len(self.dist)}")
+        if int(self.width_px) != self.width_px or int(self.height_px) != self.height_px \
+                or self.width_px <= 0 or self.height_px <= 0:
+            raise CalibrationError(f"image size must be positive integers, got {self.width_px}x{self.height_px}")
+        object.__setattr__(self, "width_px", int(self.width_px))
+        object.__setattr__(self, "height_px", int(self.height_px))
+        for name in ("fx", "fy", "cx", "cy"):
+            object.__setattr__(self, name, _finite(f"camera_matrix {name}", getattr(self, name)))
+        if self.fx <= 0.0 or self.fy <= 0.0:
+            raise CalibrationError(f"camera_matrix: focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        if self.reprojection_error_px is not None:
+            err = _finite("avg_reprojection_error", self.reprojection_error_px)
+            if err < 0.0:
+                raise CalibrationError(f"avg_reprojection_error must be >= 0, got {err}")
+            object.__setattr__(self, "reprojection_error_px", err)
+
+    @classmethod
+    def from_matrix(cls, camera_matrix: np.ndarray, dist: Iterable[float], width_px: int, height_px: int,
+                    reprojection_error_px: float | None = None) -> Intrinsics:
+        """From an OpenCV ``(3, 3)`` camera matrix and 4, 5 or more distortion coefficients.
+
+        Coefficients past k3 (OpenCV's rational, thin-prism and tilt models) must be zero:
+        the floor camera model is Brown-Conrady with five coefficients. A camera matrix with
+        skew or a bottom row other than ``(0, 0, 1)`` is rejected for the same reason.
+        """
+        k = np.asarray(camera_matrix, dtype=np.float64)
+        if k.shape != (3, 3):
+            raise CalibrationError(f"camera_matrix must be 3x3, got shape {k.shape}")
+        if not np.all(np.isfinite(k)):
+            raise CalibrationError("camera_matrix has non-finite entries")
+        if abs(k[0, 1]) > 1e-9 * abs(k[0, 0]) or abs(k[1, 0]) > 0.0 or np.any(k[2] != (0.0, 0.0, 1.0)):
+            raise CalibrationError(f"camera_matrix must be [[fx 0 cx] [0 fy cy] [0 0 1]] (no skew), got {k.tolist()}")
+        d = np.asarray(list(dist), dtype=np.float64).ravel()
+        if d.size == 4:
+            d = np.append(d, 0.0)
+        if d.size < 4:
+            raise CalibrationError(f"distortion_coefficients: need at least 4, got {d.size}")
+        if d.size > 5 and np.any(d[5:] != 0.0):
+            raise CalibrationError(
+                f"distortion_coefficients: {d.size} coefficients with non-zero k4.. (OpenCV's rational or "
+                "thin-prism model) are not supported; calibrate with the 5-coefficient model")
+        return cls(width_px=width_px, height_px=height_px, fx=float(k[0, 0]), fy=float(k[1, 1]),
+                   cx=float(k[0, 2]), cy=float(k[1, 2]), dist=tuple(float(x) for x in d[:5]),
+                   reprojection_error_px=reprojection_error_px)
+
+    @property
+    def camera_matrix(self) -> np.ndarray:
+        """``(3, 3) float64`` OpenCV camera matrix K."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist_array(self) -> np.ndarray:
+        """``(5,) float64`` distortion coefficients, OpenCV's order."""
+        return np.array(self.dist, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class FloorMount:
+    """Where the downward floor camera sits on the robot (FloorCameraModel conventions).
+
+    Fields:
+        height_m: lens centre above the floor, metres (> 0).
+        tilt_deg: pitch of the optical axis from straight down towards robot forward,
+            degrees, in (-90, 90).
+        x_m, y_m: lens centre in the robot frame (x forward, y left), metres.
+        yaw_deg: image rotation about the optical axis, counter-clockwise seen from above,
+            degrees; 0 = image up is robot forward.
+    """
+
+    height_m: float
+    tilt_deg: float
+    x_m: float = 0.0
+    y_m: float = 0.0
+    yaw_deg: float = 0.0
+
+    def __post_init__(self) -> None:
+        for key, name in zip(_MOUNT_KEYS, ("height_m", "tilt_deg", "x_m", "y_m", "yaw_deg")):
+            object.__setattr__(self, name, _finite(key, getattr(self, name)))
+        if self.height_m <= 0.0:
+            raise CalibrationError(f"mount_height_m must be positive (lens above the floor), got {self.height_m}")
+        if not -90.0 < self.tilt_deg < 90.0:
+            raise CalibrationError(f"mount_tilt_deg must lie in (-90, 90), got {self.tilt_deg}")
+
+
+@dataclass(frozen=True)
+class LoopThresholds:
+    """Per-mode local-score thresholds above which a floor match is declared a loop.
+
+    Fields:
+        thresholds: ``N_MODES`` entries, index ``mode - 1``; ``None`` for a mode that was
+            not trained (the daemon declares no loops in that mode).
+        overlap_r: footprint overlap J that defines a loop when training (paper: 0.33).
+        confidence: P(J >= r | score) the threshold guarantees (default 0.99).
+    """
+
+    thresholds: tuple[float | None, ...] = (None,) * N_MODES
+    overlap_r: float = 0.33
+    confidence: float = 0.99
+
+    def __post_init__(self) -> None:
+        th = tuple(None if t is None else _finite("loop threshold", t) for t in self.thresholds)
+        if len(th) != N_MODES:
+            raise CalibrationError(f"loop thresholds: need {N_MODES} entries (modes 1..{N_MODES}), got {len(th)}")
+        object.__setattr__(self, "thresholds", th)
+        r = _finite("loop_overlap_r", self.overlap_r)
+        c = _finite("loop_confidence", self.confidence)
+        if not 0.0 < r <= 1.0:
+            raise CalibrationError(f"loop_overlap_r must lie in (0, 1], got {r}")
+        if not 0.0 < c < 1.0:
+            raise CalibrationError(f"loop_confidence must lie in (0, 1), got {c}")
+        object.__setattr__(self, "overlap_r", r)
+        object.__setattr__(self, "confidence", c)
+
+    @classmethod
+    def from_mapping(cls, by_mode: Mapping[int, float], overlap_r: float = 0.33,
+                     confidence: float = 0.99) -> LoopThresholds:
+        """From ``{mode: threshold}`` (modes 1..N_MODES); missing modes are untrained."""
+        bad = [m for m in by_mode if not 1 <= int(m) <= N_MODES]
+        if bad:
+            raise CalibrationError(f"loop thresholds: modes must be 1..{N_MODES}, got {sorted(bad)}")
+        th = tuple(by_mode.get(m) for m in range(1, N_MODES + 1))
+        return cls(thresholds=th, overlap_r=overlap_r, confidence=confidence)
+
+    def for_mode(self, mode: int) -> float | None:
+        """The threshold of descriptor mode ``mode`` (1..N_MODES), ``None`` if untrained."""
+        if not 1 <= mode <= N_MODES:
+            raise ValueError(f"mode must be 1..{N_MODES}, got {mode}")
+        return self.thresholds[mode - 1]
+
+
+@dataclass(frozen=True)
+class CalibrationFile:
+    """Everything a calibration file holds; every part is optional."""
+
+    intrinsics: Intrinsics | None = None
+    mount: FloorMount | None = None
+    loop: LoopThresholds | None = None
+
+    @property
+    def is_empty(self) -> bool:
+        """True when no part is present."""
+        return self.intrinsics is None and self.mount is None and self.loop is None
+
+
+def merge(base: CalibrationFile | None, update: CalibrationFile) -> CalibrationFile:
+    """``base`` with every part that ``update`` has replaced; the other parts kept."""
+    if base is None:
+        return update
+    return CalibrationFile(
+        intrinsics=update.intrinsics if update.intrinsics is not None else base.intrinsics,
+        mount=update.mount if update.mount is not None else base.mount,
+        loop=update.loop if update.loop is not None else base.loop,
+    )
+
+
+# ------------------------------------------------------------------------ reading
+
+
+class _Reader:
+    """Typed access to the top-level keys of one parsed file; errors name the key."""
+
+    def __init__(self, fs: Any, keys: tuple[str, ...]) -> None:
+        self.fs = fs
+        self.keys = set(keys)
+
+    def has(self, key: str) -> bool:
+        return key in self.keys
+
+    def number(self, key: str) -> float:
+        node = self.fs.getNode(key)
+        if not (node.isInt() or node.isReal()):
+            raise CalibrationError(f"{key} must be a number, got {_describe(node)}")
+        return float(node.real())
+
+    def integer(self, key: str) -> int:
+        value = self.number(key)
+        if not value.is_integer():
+            raise CalibrationError(f"{key} must be an integer, got {value}")
+        return int(value)
+
+    def matrix(self, key: str) -> np.ndarray:
+        node = self.fs.getNode(key)
+        if not node.isMap() or not {"rows", "cols", "data"} <= set(node.keys()):
+            raise CalibrationError(f"{key} must be an !!opencv-matrix (rows, cols, dt, data), got {_describe(node)}")
+        try:
+            m = node.mat()
+        except (cv2.error, SystemError) as exc:
+            raise CalibrationError(f"{key} is a damaged matrix: {_cv_message(exc)}") from None
+        if m is None:
+            raise CalibrationError(f"{key} is a damaged matrix")
+        return np.asarray(m, dtype=np.float64)
+
+
+def _describe(node: Any) -> str:
+    if node.isString():
+        return f"the string {node.string()!r}"
+    if node.isInt() or node.isReal():
+        return f"the number {node.real():g}"
+    if node.isMap():
+        return "a mapping"
+    if node.isSeq():
+        return "a sequence"
+    if node.isNone():
+        return "nothing"
+    return "an unreadable value"
+
+
+def _cv_message(exc: BaseException) -> str:
+    """The useful last line of an OpenCV error (also when wrapped in a SystemError)."""
+    cause = exc.__cause__ if isinstance(exc, SystemError) and exc.__cause__ is not None else exc
+    text = str(cause).strip().splitlines()
+    msg = text[-1] if text else type(exc).__name__
+    # "OpenCV(5.0.0) /path/persistence_yml.cpp:681: error: (-212:Parsing error) parseValue in function ..."
+    return msg.split(" error: ", 1)[-1]
+
+
+def read_calibration(path: str | os.PathLike[str]) -> CalibrationFile:
+    """Read a calibration file.
+
+    Raises :class:`~robotd.base.errors.CalibrationError`, naming the path and what is wrong,
+    when the file is missing or unreadable, is not YAML (binary, XML, plain text), is
+    damaged (a parse error, a truncated matrix), holds no calibration at all, or has a
+    missing, mistyped or out-of-range value.
+    """
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except FileNotFoundError:
+        raise CalibrationError(f"{p}: no such calibration file") from None
+    except IsADirectoryError:
+        raise CalibrationError(f"{p}: is a directory, not a calibration file") from None
+    except OSError as exc:
+        raise CalibrationError(f"{p}: cannot read the calibration file: {exc.strerror or exc}") from None
+    try:
+        return parse_calibration(raw)
+    except CalibrationError as exc:
+        raise CalibrationError(f"{p}: {exc}") from None
+
+
+def parse_calibration(raw: bytes) -> CalibrationFile:
+    """Parse the bytes of a calibration file (see :func:`read_calibration`)."""
+    if b"\x00" in raw:
+        raise CalibrationError("not a calibration file: binary data, expected OpenCV YAML text")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise CalibrationError("not a calibration file: not UTF-8 text, expected OpenCV YAML") from None
+    head = text.lstrip()
+    if not head:
+        raise CalibrationError("the calibration file is empty")
+    if head.startswith("<"):
+        raise CalibrationError("not YAML (looks like XML); robotd calibration files are OpenCV YAML")
+    try:
+        fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY | cv2.FILE_STORAGE_FORMAT_YAML)
+    except (cv2.error, SystemError) as exc:
+        raise CalibrationError(f"not valid OpenCV YAML: {_cv_message(exc)}") from None
+    try:
+        if not fs.isOpened():
+            raise CalibrationError("not valid OpenCV YAML")
+        root = fs.root()
+        if not root.isMap():
+            raise CalibrationError("not a calibration file: the YAML document is not a mapping of keys")
+        keys = tuple(root.keys())
+        dup = sorted({k for k in keys if keys.count(k) > 1})
+        if dup:
+            raise CalibrationError(f"key {dup[0]} appears more than once")
+        ours = [k for k in keys if k.startswith(("mount_", "loop_")) and k not in _MOUNT_KEYS + _LOOP_KEYS]
+        if ours:
+            raise CalibrationError(f"unknown key {ours[0]} (known: {', '.join(_MOUNT_KEYS + _LOOP_KEYS)})")
+        r = _Reader(fs, keys)
+        calib = CalibrationFile(intrinsics=_read_intrinsics(r), mount=_read_mount(r), loop=_read_loop(r))
+    finally:
+        fs.release()
+    if calib.is_empty:
+        raise CalibrationError(
+            "holds no calibration (neither camera_matrix, nor mount_*, nor loop_* keys)")
+    return calib
+
+
+def _require(r: _Reader, section: str, keys: Iterable[str]) -> None:
+    missing = [k for k in keys if not r.has(k)]
+    if missing:
+        raise CalibrationError(f"{section} is incomplete: {', '.join(missing)} missing")
+
+
+def _read_intrinsics(r: _Reader) -> Intrinsics | None:
+    if not any(r.has(k) for k in _INTRINSIC_KEYS[:4]):
+        return None
+    _require(r, "the intrinsics section", _INTRINSIC_KEYS[:4])
+    k = r.matrix("camera_matrix")
+    if k.shape != (3, 3):
+        raise CalibrationError(f"camera_matrix must be 3x3, got {k.shape[0]}x{k.shape[1] if k.ndim > 1 else 1}")
+    d = r.matrix("distortion_coefficients")
+    if d.ndim != 2 or min(d.shape) != 1:
+        raise CalibrationError(f"distortion_coefficients must be 1xN or Nx1, got shape {d.shape}")
+    err = r.number("avg_reprojection_error") if r.has("avg_reprojection_error") else None
+    return Intrinsics.from_matrix(k, d.ravel(), r.integer("image_width"), r.integer("image_height"), err)
+
+
+def _read_mount(r: _Reader) -> FloorMount | None:
+    if not any(r.has(k) for k in _MOUNT_KEYS):
+        return None
+    _require(r, "the floor-mount section", _MOUNT_KEYS)
+    h, t, x, y, yaw = (r.number(k) for k in _MOUNT_KEYS)
+    return FloorMount(height_m=h, tilt_deg=t, x_m=x, y_m=y, yaw_deg=yaw)
+
+
+def _read_loop(r: _Reader) -> LoopThresholds | None:
+    if not any(r.has(k) for k in _LOOP_KEYS):
+        return None
+    _require(r, "the loop-threshold section", ("loop_overlap_r", "loop_confidence"))
+    th = tuple(r.number(k) if r.has(k) else None for k in _LOOP_MODE_KEYS)
+    return LoopThresholds(thresholds=th, overlap_r=r.number("loop_overlap_r"),
+                          confidence=r.number("loop_confidence"))
+
+
+# ------------------------------------------------------------------------ writing
+
+
+def format_calibration(calib: CalibrationFile) -> str:
+    """The YAML text :func:`write_calibration` writes (OpenCV FileStorage output)."""
+    if calib.is_empty:
+        raise CalibrationError("refusing to write an empty calibration")
+    fs = cv2.FileStorage("", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY | cv2.FILE_STORAGE_FORMAT_YAML)
+    fs.writeComment("robotd calibration (OpenCV FileStorage YAML). Units: pixels, metres, degrees.")
+    ci = calib.intrinsics
+    if ci is not None:
+        fs.writeComment("Camera intrinsics; distortion_coefficients: k1 k2 p1 p2 k3.")
+        fs.write("image_width", ci.width_px)
+        fs.write("image_height", ci.height_px)
+        fs.write("camera_matrix", ci.camera_matrix)
+        fs.write("distortion_coefficients", ci.dist_array.reshape(1, 5))
+        if ci.reprojection_error_px is not None:
+            fs.write("avg_reprojection_error", float(ci.reprojection_error_px))
+    m = calib.mount
+    if m is not None:
+        fs.writeComment("Floor camera mount: lens height, forward tilt, position (x forward, y left), "
+                        "image yaw (counter-clockwise from above).")
+        for key, value in zip(_MOUNT_KEYS, (m.height_m, m.tilt_deg, m.x_m, m.y_m, m.yaw_deg)):
+            fs.write(key, float(value))
+    lp = calib.loop
+    if lp is not None:
+        fs.writeComment("Floor loop detector: per-mode local-score thresholds (absent = untrained), "
+                        "loop overlap r, confidence.")
+        for key, value in zip(_LOOP_MODE_KEYS, lp.thresholds):
+            if value is not None:
+                fs.write(key, float(value))
+        fs.write("loop_overlap_r", float(lp.overlap_r))
+        fs.write("loop_confidence", float(lp.confidence))
+    return fs.releaseAndGetString()
+
+
+def write_calibration(path: str | os.PathLike[str], calib: CalibrationFile) -> None:
+    """Write ``calib`` to ``path`` atomically.
+
+    The text goes to a temporary file in the same directory, is flushed to disk, and then
+    replaces ``path`` in one ``os.replace``: readers see the old file or the new one,
+    never a mixture. Raises :class:`~robotd.base.errors.CalibrationError` when it cannot write.
+    """
+    p = Path(path)
+    data = format_calibration(calib).encode("utf-8")
+    directory = p.parent if str(p.parent) else Path(".")
+    tmp = directory / f".{p.name}.{os.getpid()}.{os.urandom(4).hex()}.tmp"
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view):]
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, p)
+    except OSError as exc:
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        raise CalibrationError(f"{p}: cannot write the calibration file: {exc.strerror or exc}") from None
+    try:  # make the rename itself durable
+        dfd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    except OSError:
+        pass
+    logger.info("wrote calibration %s", p)
+
+
+def update_calibration(path: str | os.PathLike[str], update: CalibrationFile) -> CalibrationFile:
+    """Merge ``update`` into the file at ``path`` (created if missing); returns the result.
+
+    An existing file that cannot be read is never overwritten: the error is raised
+    instead, so a damaged calibration is looked at rather than silently replaced.
+    """
+    p = Path(path)
+    base = read_calibration(p) if p.exists() else None
+    merged = merge(base, update)
+    write_calibration(p, merged)
+    return merged
+
+
+# ----------------------------------------------------------------- camera model
+
+
+def camera_model(calib: CalibrationFile | None, fallback_config: Any) -> FloorCameraModel:
+    """The floor camera model: calibrated parts from ``calib``, the rest from the config.
+
+    ``fallback_config`` is a ``[floor_camera]`` section (duck-typed like
+    :meth:`FloorCameraModel.from_config`): the image size always comes from it (that is
+    what the camera is asked to deliver); intrinsics come from ``calib.intrinsics`` and the
+    mount from ``calib.mount`` when present, else from the config's ``fx_px`` .. and
+    ``mount_*`` keys. Raises :class:`~robotd.base.errors.CalibrationError` when the calibrated
+    intrinsics belong to another image size.
+    """
+    base = FloorCameraModel.from_config(fallback_config)
+    values: dict[str, Any] = {}
+    ci = calib.intrinsics if calib is not None else None
+    if ci is not None:
+        if (ci.width_px, ci.height_px) != (base.width_px, base.height_px):
+            raise CalibrationError(
+                f"the calibration is for {ci.width_px}x{ci.height_px} images but the floor camera "
+                f"delivers {base.width_px}x{base.height_px}; recalibrate at that size")
+        values.update(fx=ci.fx, fy=ci.fy, cx=ci.cx, cy=ci.cy, dist=ci.dist)
+    m = calib.mount if calib is not None else None
+    if m is not None:
+        values.update(height_m=m.height_m, tilt_rad=math.radians(m.tilt_deg), offset_x_m=m.x_m,
+                      offset_y_m=m.y_m, yaw_rad=math.radians(m.yaw_deg))
+    return replace(base, **values) if values else base

@@ -1,0 +1,69 @@
+"""`robotd demo` end to end: the daemon on the virtual robot, through the real drivers."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from robotd.base.config import Config
+from robotd.app.demo import run_demo
+from sim.route import MotionLimits, build_route, plan_motion
+from robotd.io.store import MapStore
+from robotd.io.trajectory import read_tum
+
+
+def test_short_demo_writes_a_consistent_map_and_trajectories(tmp_path: Path):
+    s = run_demo(Config(), out=tmp_path, route="square", duration_s=12.0, seed=3)
+    # Lossless: every rendered frame reached the pipeline, nothing dropped, no bad bytes.
+    assert s["frames_processed"] == s["frames_rendered"] == int(math.ceil(12.0 * 30))
+    assert all(v == 0 for v in s["drops"].values()), s["drops"]
+    assert all(v == 0 for v in s["packet_errors"].values()), s["packet_errors"]
+    assert s["odometry_samples"] >= 12.0 * 50 - 2
+    # The robot answered the daemon's RequestExtra over the pty.
+    assert s["commands_seen_by_robot"].get("RequestExtra") == 1
+    # Keyframes every 5 cm or 10 deg: at least distance / 0.05 of them.
+    assert s["keyframes"] >= s["distance_m"] / 0.05
+    # TUM files: one line per odometry sample, stamps increasing.
+    stamps, fused = read_tum(tmp_path / "fused.tum")
+    assert len(stamps) == s["odometry_samples"] and np.all(np.diff(stamps) > 0)
+    gt_stamps, gt = read_tum(tmp_path / "groundtruth.tum")
+    assert len(gt_stamps) > 0 and abs(gt_stamps[-1] / 1e9 - 12.0) < 0.05
+    # Over 12 s the fused odometry is within a few centimetres of the truth.
+    assert s["fused"]["max_position_error_m"] < 0.05
+    # Keyframe poses in the map are the fused poses at the frame stamps: near the truth.
+    motion = plan_motion(build_route("square"), MotionLimits())
+    with MapStore.open(tmp_path / "map.sqlite", create=False) as store:
+        kfs = list(store.keyframes())
+        assert len(kfs) == s["keyframes"]
+        truth = motion.pose_at(np.array([k.stamp_ns / 1e9 for k in kfs]))
+        est = np.array([[k.x_m, k.y_m] for k in kfs])
+        assert np.max(np.hypot(*(est - truth[:, :2]).T)) < 0.05
+        img = store.keyframe_image(kfs[len(kfs) // 2].id)
+        assert img.shape == (120, 160) and img.std() > 5  # a real, textured floor image
+        assert all(np.all(np.linalg.eigvalsh(k.covariance) >= 0) for k in kfs)
+    png = cv2.imread(str(tmp_path / "trajectories.png"))
+    assert png is not None and png.shape[0] > 400 and png.std() > 10
+    assert json.loads((tmp_path / "summary.json").read_text())["keyframes"] == s["keyframes"]
+
+
+@pytest.mark.slow
+def test_default_demo_from_the_command_line(tmp_path: Path):
+    """What `./dev demo` runs: the whole office route (about 110 m)."""
+    r = subprocess.run([sys.executable, "-m", "robotd.app.cli", "demo", "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=1800)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "end position error (m)" in r.stdout
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert 100.0 < s["distance_m"] < 125.0
+    assert s["frames_processed"] == s["frames_rendered"]
+    assert all(v == 0 for v in s["drops"].values())
+    # Fusion with the gyro beats wheel-only odometry at the end of the route.
+    assert s["fused"]["end_position_error_m"] < s["wheel_only"]["end_position_error_m"]
+    assert s["fused"]["end_heading_error_deg"] < s["wheel_only"]["end_heading_error_deg"]

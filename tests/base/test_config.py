@@ -1,0 +1,62 @@
+"""The TOML config: defaults, the shipped commented file, and errors that name the key."""
+
+from pathlib import Path
+
+import pytest
+
+from robotd.base.config import Config, config_from_dict, load_config, replace, to_toml
+from robotd.base.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_shipped_default_file_equals_code_defaults():
+    assert load_config(REPO / "systemd" / "robotd.toml") == Config()
+
+
+def test_values_are_read_and_converted(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text('[floor_camera]\nfps = 15\ndistortion = [0.1, 0, 0, 0, 0]\n[base]\nport = "loop://"\n')
+    cfg = load_config(f)
+    assert cfg.floor_camera.fps == 15.0 and isinstance(cfg.floor_camera.fps, float)
+    assert cfg.floor_camera.distortion == (0.1, 0.0, 0.0, 0.0, 0.0)
+    assert cfg.base.port == "loop://"
+    assert cfg.robot == Config().robot
+
+
+@pytest.mark.parametrize("toml, message", [
+    ("[floor_camera]\nfsp = 30\n", "unknown key [floor_camera] fsp"),
+    ("[camera]\nfps = 30\n", "unknown section [camera]"),
+    ("[floor_camera]\nfps = -1\n", "[floor_camera] fps: -1.0 is below the minimum"),
+    ("[floor_camera]\nfps = \"fast\"\n", "[floor_camera] fps: expected a number"),
+    ("[base]\nbaudrate = 115200.5\n", "[base] baudrate: expected an integer"),
+    ("[base]\ndriver = \"roomba\"\n", "[base] driver: 'roomba' is not one of"),
+    ("[floor_camera]\ndistortion = [0.1, 0.2]\n", "[floor_camera] distortion: expected 5 numbers"),
+    ("[floor_camera]\ncx_px = 700.0\n", "principal point must lie inside the image"),
+    ("[keyframes]\ndistance_m = nan\n", "[keyframes] distance_m: must be finite"),
+    ("robot = 3\n", "[robot] must be a table"),
+])
+def test_bad_values_name_the_key(tmp_path, toml, message):
+    f = tmp_path / "c.toml"
+    f.write_text(toml)
+    with pytest.raises(ConfigError) as err:
+        load_config(f)
+    assert message in str(err.value)
+
+
+def test_broken_toml_and_missing_file(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text("[base\nport = 1\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(f)
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(tmp_path / "missing.toml")
+
+
+def test_round_trip_through_toml_and_replace():
+    cfg = replace(Config(), "keyframes", distance_m=0.2)
+    assert cfg.keyframes.distance_m == 0.2
+    import tomllib
+    assert config_from_dict(tomllib.loads(to_toml(cfg))) == cfg
+    with pytest.raises(ConfigError, match=r"\[keyframes\] distance_m"):
+        replace(cfg, "keyframes", distance_m=-3.0)

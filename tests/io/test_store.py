@@ -1,0 +1,403 @@
+"""Tests of robotd.io.store: round trips through the file, refusal of bad files without
+touching them, migrations, and survival of a SIGKILL in the middle of writing."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import signal
+import sqlite3
+import struct
+import subprocess
+import sys
+import textwrap
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from robotd.io import store as store_module
+from robotd.base.errors import MapStoreError
+from robotd.io.store import SCHEMA_VERSION, KeyframeRecord, MapStore
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _cov(seed: int) -> np.ndarray:
+    """A non-symmetric 3x3 matrix with distinct entries: catches transposes and reorderings."""
+    return np.arange(9, dtype=np.float64).reshape(3, 3) * 0.125 + seed + 1e-9 * seed
+
+
+def _make_map(path: Path, n_keyframes: int = 3) -> list[int]:
+    rng = np.random.default_rng(1)
+    with MapStore.open(path, image_codec="png") as store:
+        run = store.begin_run("[robot]\nname = 'x'\n", started_ns=1_000)
+        ids = [
+            store.add_keyframe(
+                run,
+                stamp_ns=2_000 + i,
+                pose_xyyaw=(float(i), -float(i), 0.1 * i),
+                covariance=_cov(i),
+                image=rng.integers(0, 256, size=(24, 32), dtype=np.uint8),
+            )
+            for i in range(n_keyframes)
+        ]
+        store.end_run(run, ended_ns=3_000)
+    return ids
+
+
+def test_round_trip_of_every_field_through_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "map.sqlite"
+    rng = np.random.default_rng(7)
+    image = rng.integers(0, 256, size=(48, 64), dtype=np.uint8)
+    descriptor = bytes(rng.integers(0, 256, size=300, dtype=np.uint8))
+    with MapStore.open(path, image_codec="png") as store:
+        run = store.begin_run("a = 1\n", started_ns=123, notes="bench run", robotd_version="9.9")
+        kf1 = store.add_keyframe(run, 1_000_000_001, (1.5, -2.25, 3.0), _cov(1), image,
+                                 descriptor, 3)
+        kf2 = store.add_keyframe(run, 1_000_000_002, (0.0, 0.5, -1.0), _cov(2), None)
+        store.set_descriptor(kf2, b"\x00\x01\xff", 6)
+        odo = store.add_link("odometry", kf1, kf2, (0.25, -0.5, 0.125), _cov(3))
+        loop = store.add_link("loop", kf2, kf1, (-0.25, 0.5, -0.125), _cov(4))
+        store.put_calibration("floor_camera", "fx = 1\n", created_ns=10)
+        store.put_calibration("floor_camera", "fx = 2\n", created_ns=20)
+        store.set_meta("map_name", "kitchen")
+        store.end_run(run, ended_ns=456)
+
+    with MapStore.open(path, create=False) as store:
+        assert store.schema_version == SCHEMA_VERSION
+        (r,) = store.runs()
+        assert (r.id, r.started_ns, r.ended_ns, r.config, r.robotd_version, r.notes) == (
+            run, 123, 456, "a = 1\n", "9.9", "bench run")
+        a, b = store.keyframes()
+        assert (a.id, a.run_id, a.stamp_ns, a.x_m, a.y_m, a.yaw_rad) == (
+            kf1, run, 1_000_000_001, 1.5, -2.25, 3.0)
+        np.testing.assert_array_equal(a.covariance, _cov(1))
+        assert (a.image_width, a.image_height) == (64, 48)
+        assert (a.descriptor, a.descriptor_mode) == (descriptor, 3)
+        np.testing.assert_array_equal(store.keyframe_image(kf1), image)
+        assert (b.id, b.x_m, b.y_m, b.yaw_rad) == (kf2, 0.0, 0.5, -1.0)
+        assert (b.image_width, b.image_height) == (None, None)
+        assert store.keyframe_image(kf2) is None
+        assert (b.descriptor, b.descriptor_mode) == (b"\x00\x01\xff", 6)
+        assert store.keyframe(kf2).descriptor == b"\x00\x01\xff"
+        l1, l2 = store.links()
+        assert (l1.id, l1.kind, l1.from_id, l1.to_id, l1.dx_m, l1.dy_m, l1.dyaw_rad) == (
+            odo, "odometry", kf1, kf2, 0.25, -0.5, 0.125)
+        np.testing.assert_array_equal(l1.information, _cov(3))
+        assert (l2.id, l2.kind, l2.from_id, l2.to_id) == (loop, "loop", kf2, kf1)
+        np.testing.assert_array_equal(l2.information, _cov(4))
+        assert [link.id for link in store.links("loop")] == [loop]
+        assert store.get_calibration("floor_camera") == "fx = 2\n"
+        assert store.get_calibration("forward_camera") is None
+        assert store.get_meta("map_name") == "kitchen"
+        assert store.count_keyframes() == 2
+        assert not a.covariance.flags.writeable
+
+    # The documented on-disk format: 9 little-endian float64, row-major.
+    with sqlite3.connect(path) as raw:
+        blob = raw.execute("SELECT covariance FROM keyframes WHERE id = ?", (kf1,)).fetchone()[0]
+    assert struct.unpack("<9d", blob) == tuple(_cov(1).ravel())
+
+
+def test_jpeg_images_are_jpeg_and_close_to_the_original(tmp_path: Path) -> None:
+    yy, xx = np.mgrid[0:60, 0:80]
+    image = (xx * 2 + yy).astype(np.uint8)  # smooth: JPEG's error stays small
+    with MapStore.open(tmp_path / "map.sqlite", jpeg_quality=95) as store:
+        run = store.begin_run("", 0)
+        kf = store.add_keyframe(run, 0, (0, 0, 0), np.eye(3), image)
+        decoded = store.keyframe_image(kf)
+    with sqlite3.connect(tmp_path / "map.sqlite") as raw:
+        blob = raw.execute("SELECT image FROM keyframes").fetchone()[0]
+    assert blob[:2] == b"\xff\xd8"  # JPEG start-of-image marker
+    assert decoded.shape == (60, 80) and decoded.dtype == np.uint8
+    assert np.abs(decoded.astype(int) - image.astype(int)).mean() < 2.0
+
+
+def test_file_is_in_wal_mode(tmp_path: Path) -> None:
+    path = tmp_path / "map.sqlite"
+    _make_map(path)
+    with sqlite3.connect(path) as raw:
+        assert raw.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+
+
+def test_reopen_continues_the_same_map(tmp_path: Path) -> None:
+    path = tmp_path / "map.sqlite"
+    first_ids = _make_map(path, n_keyframes=3)
+    assert first_ids == [1, 2, 3]
+    with MapStore.open(path) as store:
+        run2 = store.begin_run("second", started_ns=5_000)
+        new_id = store.add_keyframe(run2, 6_000, (9, 9, 0), np.eye(3), None)
+        assert new_id == 4
+        assert store.count_keyframes() == 4
+        assert store.count_keyframes(run2) == 1
+        assert [r.id for r in store.runs()] == [1, run2]
+        assert [k.id for k in store.keyframes(run_id=1)] == [1, 2, 3]
+        assert [k.x_m for k in store.keyframes()] == [0.0, 1.0, 2.0, 9.0]
+
+
+def test_keyframe_iteration_crosses_page_boundaries(tmp_path: Path) -> None:
+    n = 2 * store_module._PAGE_ROWS + 3
+    with MapStore.open(tmp_path / "map.sqlite") as store:
+        runs = [store.begin_run("a", 0), store.begin_run("b", 1)]
+        for i in range(n):
+            store.add_keyframe(runs[i % 2], i, (i, 0, 0), np.eye(3), None)
+        assert [k.stamp_ns for k in store.keyframes()] == list(range(n))
+        assert [k.stamp_ns for k in store.keyframes(runs[1])] == list(range(1, n, 2))
+
+
+@pytest.mark.parametrize(
+    "damage",
+    [
+        pytest.param(lambda data: os.urandom(len(data)), id="random-bytes"),
+        pytest.param(lambda data: b"hello" * 3, id="tiny-text-file"),
+    ],
+)
+def test_a_file_that_is_not_sqlite_is_refused_and_untouched(tmp_path: Path, damage) -> None:
+    path = tmp_path / "map.sqlite"
+    path.write_bytes(damage(b"x" * 8192))
+    before, listing = _digest(path), sorted(os.listdir(tmp_path))
+    with pytest.raises(MapStoreError, match="is not an SQLite database") as info:
+        MapStore.open(path)
+    assert str(path) in str(info.value)
+    assert _digest(path) == before
+    assert sorted(os.listdir(tmp_path)) == listing
+
+
+def _truncate(data: bytes) -> bytes:
+    return data[: len(data) // 2]
+
+
+def _smash_a_page(data: bytes) -> bytes:
+    page = 4096
+    assert len(data) >= 6 * page
+    damaged = bytearray(data)
+    damaged[4 * page : 5 * page] = np.random.default_rng(3).bytes(page)
+    return bytes(damaged)
+
+
+@pytest.mark.parametrize("damage", [_truncate, _smash_a_page])
+def test_a_damaged_map_is_refused_and_untouched(tmp_path: Path, damage) -> None:
+    path = tmp_path / "map.sqlite"
+    _make_map(path, n_keyframes=20)  # several pages of PNG noise
+    path.write_bytes(damage(path.read_bytes()))
+    before, listing = _digest(path), sorted(os.listdir(tmp_path))
+    with pytest.raises(MapStoreError, match="damaged") as info:
+        MapStore.open(path)
+    assert str(path) in str(info.value)
+    assert _digest(path) == before
+    assert sorted(os.listdir(tmp_path)) == listing
+
+
+def test_a_newer_schema_is_refused_and_untouched(tmp_path: Path) -> None:
+    path = tmp_path / "map.sqlite"
+    _make_map(path)
+    with sqlite3.connect(path) as raw:
+        raw.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'",
+                    (str(SCHEMA_VERSION + 1),))
+    raw.close()
+    before = _digest(path)
+    with pytest.raises(MapStoreError, match=f"schema version {SCHEMA_VERSION + 1}, newer"):
+        MapStore.open(path)
+    assert _digest(path) == before
+
+
+def test_another_sqlite_database_is_refused_and_untouched(tmp_path: Path) -> None:
+    path = tmp_path / "other.db"
+    with sqlite3.connect(path) as raw:
+        raw.execute("CREATE TABLE photos (id INTEGER)")
+    raw.close()
+    before = _digest(path)
+    with pytest.raises(MapStoreError, match="not a robotd map"):
+        MapStore.open(path)
+    assert _digest(path) == before
+
+
+def test_missing_file_without_create(tmp_path: Path) -> None:
+    path = tmp_path / "nope.sqlite"
+    with pytest.raises(MapStoreError, match="does not exist"):
+        MapStore.open(path, create=False)
+    assert not path.exists()
+    with pytest.raises(MapStoreError, match="directory .* does not exist"):
+        MapStore.open(tmp_path / "no_dir" / "map.sqlite")
+
+
+def _add_cameras_column(conn: sqlite3.Connection) -> None:
+    conn.execute("ALTER TABLE keyframes ADD COLUMN camera TEXT NOT NULL DEFAULT 'floor'")
+
+
+def _broken_migration(conn: sqlite3.Connection) -> None:
+    conn.execute("ALTER TABLE keyframes ADD COLUMN camera TEXT")
+    raise RuntimeError("simulated failure half-way through a migration")
+
+
+def _columns(path: Path) -> list[str]:
+    with sqlite3.connect(path) as raw:
+        cols = [row[1] for row in raw.execute("PRAGMA table_info(keyframes)")]
+    raw.close()
+    return cols
+
+
+def test_an_older_schema_is_migrated_keeping_the_data(tmp_path, monkeypatch) -> None:
+    path = tmp_path / "map.sqlite"
+    _make_map(path, n_keyframes=2)
+    monkeypatch.setattr(
+        store_module, "MIGRATIONS", {**store_module.MIGRATIONS, 2: _add_cameras_column}
+    )
+    with MapStore.open(path) as store:
+        assert store.schema_version == 2
+        assert [k.x_m for k in store.keyframes()] == [0.0, 1.0]
+    assert "camera" in _columns(path)
+
+
+def test_a_failing_migration_leaves_the_old_version(tmp_path, monkeypatch) -> None:
+    path = tmp_path / "map.sqlite"
+    _make_map(path, n_keyframes=2)
+    monkeypatch.setattr(
+        store_module, "MIGRATIONS", {**store_module.MIGRATIONS, 2: _broken_migration}
+    )
+    with pytest.raises(RuntimeError, match="simulated failure"):
+        MapStore.open(path)
+    monkeypatch.undo()
+    assert "camera" not in _columns(path)
+    with MapStore.open(path) as store:
+        assert store.schema_version == 1
+        assert store.count_keyframes() == 2
+
+
+def test_bad_arguments_are_rejected(tmp_path: Path) -> None:
+    with MapStore.open(tmp_path / "map.sqlite") as store:
+        run = store.begin_run("", 0)
+        kf = store.add_keyframe(run, 0, (0, 0, 0), np.eye(3), None)
+        with pytest.raises(ValueError, match="FOREIGN KEY"):
+            store.add_keyframe(run + 1, 0, (0, 0, 0), np.eye(3), None)
+        with pytest.raises(ValueError, match="FOREIGN KEY"):
+            store.add_link("loop", kf, kf + 1, (0, 0, 0), np.eye(3))
+        with pytest.raises(ValueError, match="link kind"):
+            store.add_link("gps", kf, kf, (0, 0, 0), np.eye(3))
+        with pytest.raises(ValueError, match=r"shape \(3, 3\)"):
+            store.add_keyframe(run, 0, (0, 0, 0), np.eye(2), None)
+        with pytest.raises(ValueError, match="finite"):
+            store.add_keyframe(run, 0, (0, float("nan"), 0), np.eye(3), None)
+        with pytest.raises(ValueError, match="together"):
+            store.add_keyframe(run, 0, (0, 0, 0), np.eye(3), None, descriptor=b"x")
+        with pytest.raises(ValueError, match="grey"):
+            store.add_keyframe(run, 0, (0, 0, 0), np.eye(3), np.zeros((4, 4, 3), np.uint8))
+        with pytest.raises(KeyError):
+            store.end_run(run + 5, 1)
+        with pytest.raises(KeyError):
+            store.set_descriptor(kf + 5, b"x", 1)
+        with pytest.raises(KeyError):
+            store.keyframe_image(kf + 5)
+        with pytest.raises(ValueError, match="reserved|managed"):
+            store.set_meta("schema_version", "7")
+        # None of the refused writes left a row behind.
+        assert store.count_keyframes() == 1
+        assert store.links() == []
+
+
+def test_close_twice_and_use_after_close(tmp_path: Path) -> None:
+    store = MapStore.open(tmp_path / "map.sqlite")
+    store.close()
+    store.close()
+    assert store.closed
+    with pytest.raises(MapStoreError, match="closed"):
+        store.count_keyframes()
+
+
+def test_the_store_refuses_use_from_another_thread(tmp_path: Path) -> None:
+    errors: list[BaseException] = []
+    with MapStore.open(tmp_path / "map.sqlite") as store:
+        def use() -> None:
+            try:
+                store.count_keyframes()
+            except BaseException as exc:  # noqa: BLE001 - recorded for the assertion
+                errors.append(exc)
+
+        thread = threading.Thread(target=use)
+        thread.start()
+        thread.join()
+    assert len(errors) == 1
+    assert isinstance(errors[0], sqlite3.ProgrammingError)
+    assert "thread" in str(errors[0])
+
+
+_WRITER = textwrap.dedent(
+    """
+    import sys
+    import numpy as np
+    from robotd.io.store import MapStore
+
+    store = MapStore.open(sys.argv[1])
+    run = store.begin_run("crash test", 0)
+    image = np.random.default_rng(0).integers(0, 256, size=(120, 160), dtype=np.uint8)
+    for i in range(1_000_000):
+        kf = store.add_keyframe(run, i, (float(i), 0.0, 0.0), np.eye(3), image)
+        print(kf, flush=True)  # reported only after add_keyframe's COMMIT returned
+    """
+)
+
+
+def test_sigkill_while_writing_loses_nothing_reported_committed(tmp_path: Path) -> None:
+    path = tmp_path / "map.sqlite"
+    with (tmp_path / "stderr.txt").open("w") as stderr:
+        proc = subprocess.Popen(
+            [sys.executable, "-c", _WRITER, str(path)],
+            stdout=subprocess.PIPE,
+            stderr=stderr,
+            text=True,
+        )
+        guard = threading.Timer(60.0, proc.kill)  # only if the child hangs; not a sleep
+        guard.start()
+        try:
+            reported: list[int] = []
+            assert proc.stdout is not None
+            for line in proc.stdout:
+                reported.append(int(line))
+                if len(reported) == 300:  # past the first WAL checkpoint (~4 MB)
+                    os.kill(proc.pid, signal.SIGKILL)
+                    break
+            # Ids the child printed between our read and the kill were committed too.
+            reported += [int(line) for line in proc.stdout.read().split()]
+            proc.wait()
+        finally:
+            guard.cancel()
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == -signal.SIGKILL, (tmp_path / "stderr.txt").read_text()
+    assert reported == list(range(1, len(reported) + 1))
+
+    with MapStore.open(path, create=False) as store:  # runs quick_check
+        stored = list(store.keyframes())
+        ids = [k.id for k in stored]
+        assert set(reported) <= set(ids)
+        # At most one keyframe committed whose id the child had not printed yet.
+        assert ids == list(range(1, len(ids) + 1))
+        assert len(ids) - len(reported) in (0, 1)
+        assert all(isinstance(k, KeyframeRecord) and k.x_m == k.id - 1 for k in stored)
+        image = store.keyframe_image(reported[-1])
+        assert image is not None and image.shape == (120, 160)
+    with sqlite3.connect(path) as raw:
+        assert raw.execute("PRAGMA integrity_check").fetchall() == [("ok",)]
+    raw.close()
+
+
+def test_times_not_given_come_from_the_injected_clock(tmp_path: Path) -> None:
+    from robotd.base.clock import ManualClock
+
+    path = tmp_path / "map.sqlite"
+    clock = ManualClock(5 * 10**9)
+    with MapStore.open(path, clock=clock) as store:
+        run = store.begin_run("cfg")
+        clock.advance_ns(7)
+        store.put_calibration("floor_camera", "fx = 1\n")
+        clock.advance_ns(3)
+        store.end_run(run)
+        (record,) = store.runs()
+    assert (record.started_ns, record.ended_ns) == (5 * 10**9, 5 * 10**9 + 10)
+    with sqlite3.connect(path) as raw:
+        assert raw.execute("SELECT created_ns FROM calibration").fetchone() == (5 * 10**9 + 7,)
+    raw.close()
