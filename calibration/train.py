@@ -155,15 +155,15 @@ def recording_config(path: Path) -> Any:
 def load_run(path: Path, cfg: Any, params: TrainParams, progress: Progress | None = None) -> CalibrationRun:
     """Read a recording, run the odometry, pick keyframes, and describe them in every mode.
 
-    Keyframes are chosen by the daemon's :class:`~robotd.app.daemon.KeyframeSelector` on the
+    Keyframes are chosen by the daemon's :class:`~robotd.keyframes.KeyframeSelector` on the
     fused pose at each floor frame (``spacing_m`` of travel or ``rotation_deg`` of turn
     since the last keyframe). Each keyframe's fused pose is the filter's pose at the frame's
     stamp; its wheel-only and ground-truth poses are those tracks interpolated at that stamp.
     """
     from drivers.recording.reader import RecordingReader
-    from robotd.app.daemon import KeyframeSelector
+    from robotd.keyframes import KeyframeSelector
     from robotd.base.messages import Frame, PoseStamped, WheelTicks, YawRate
-    from robotd.app.service import build_odometry
+    from robotd.app.assemble import build_odometry
 
     reader = RecordingReader(path)
     span = reader.time_range_ns

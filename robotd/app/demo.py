@@ -70,7 +70,10 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 
 class _Recorder:
-    """Pipeline observer: writes the fused and wheel-only trajectories as they come."""
+    """Pipeline observer: writes the fused and wheel-only trajectories as they come, and
+    keeps the keyframes and the floor queries for the report."""
+
+    name = "demo_recorder"
 
     def __init__(self, out: Path) -> None:
         from robotd.io.trajectory import TumWriter
@@ -82,14 +85,22 @@ class _Recorder:
         self.keyframe_stamps: list[int] = []
         self.queries: list[tuple[int, list[tuple[int, float, float, int]]]] = []
 
-    def on_odometry(self, fused: Any, wheel: Any) -> None:
-        self.fused.write(fused.stamp_ns, fused.x_m, fused.y_m, fused.yaw_rad)
-        self.wheel.write(wheel.stamp_ns, wheel.x_m, wheel.y_m, wheel.yaw_rad)
+    def subscriptions(self) -> dict[type, Any]:
+        from robotd.base.messages import KeyframeStored, OdometryUpdate
+        from robotd.floor.detector import KeyframeQuery
 
-    def on_keyframe(self, keyframe_id: int, frame: Any, pose: Any) -> None:
-        self.keyframe_poses.append((pose.x_m, pose.y_m))
-        self.keyframe_ids.append(keyframe_id)
-        self.keyframe_stamps.append(frame.stamp_ns)
+        return {OdometryUpdate: self.on_odometry, KeyframeStored: self.on_keyframe,
+                KeyframeQuery: self.on_floor_query}
+
+    def on_odometry(self, u: Any) -> None:
+        self.fused.write(u.fused.stamp_ns, u.fused.x_m, u.fused.y_m, u.fused.yaw_rad)
+        self.wheel.write(u.wheel.stamp_ns, u.wheel.x_m, u.wheel.y_m, u.wheel.yaw_rad)
+
+    def on_keyframe(self, msg: Any) -> None:
+        kf = msg.keyframe
+        self.keyframe_poses.append((kf.pose.x_m, kf.pose.y_m))
+        self.keyframe_ids.append(kf.keyframe_id)
+        self.keyframe_stamps.append(kf.stamp_ns)
 
     def on_floor_query(self, query: Any) -> None:
         self.queries.append((query.keyframe_id, [
@@ -139,13 +150,10 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     from drivers.kobuki.driver import KobukiDriver
     from robotd.base.clock import ManualClock
     from robotd.base.config import replace
-    from robotd.app.daemon import Daemon
-    from robotd.base.camera import FloorCameraModel
+    from robotd.app.assemble import assemble_daemon, open_map
     from robotd.app.notify import Notifier
-    from robotd.odometry.ekf import OdometryFilter
-    from robotd.app.service import build_floor_detector, build_odometry, load_calibration
+    from robotd.base.camera import FloorCameraModel
     from sim.robot import VirtualRobot, VirtualRobotSettings
-    from robotd.io.store import MapStore
     from robotd.io.trajectory import read_tum, trajectory_errors
 
     out.mkdir(parents=True, exist_ok=True)
@@ -174,34 +182,35 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
         from robotd.base.config import to_toml
 
         writer = RecordingWriter(record, image_format="png", config_toml=to_toml(cfg))
-    with robot, MapStore.open(map_path, clock=clock) as store, KobukiDriver(
+    with robot, open_map(cfg, clock=clock) as store, KobukiDriver(
         robot.port, clock=clock, baudrate=cfg.base.baudrate, yaw_source=cfg.base.yaw_source
     ) as driver:
         driver.request_extra(hardware_version=True, firmware_version=True, udid=True)
-        odometry: OdometryFilter = build_odometry(cfg)
-        sources: dict[str, Any] = {"base": (driver, None), "floor": (robot.camera, None)}
+        sources: dict[str, Any] = {"base": driver, "floor": robot.camera}
         observers: list[Any] = [recorder]
         if writer is not None:
-            from drivers.recording.writer import OdometryRecorder, RecordingTee
+            from drivers.recording.writer import RecordingTee
+            from robotd.app.service import OdometryRecorder
 
-            sources = {name: (RecordingTee(src, writer), None) for name, (src, _) in sources.items()}
-            observers.append(OdometryRecorder(writer, wheel_topic="/odom/wheel"))
-        daemon = Daemon(cfg, clock, sources,
-                        odometry, store, Notifier(), lossless=not realtime, observers=observers,
-                        driver_stats=lambda: {"kobuki": driver.stats.as_dict()},
-                        floor=build_floor_detector(cfg, store, load_calibration(cfg)))
+            sources = {name: RecordingTee(src, writer) for name, src in sources.items()}
+            observers.append(OdometryRecorder(writer))
+        daemon = assemble_daemon(cfg, clock, sources, store, Notifier(), lossless=not realtime,
+                                 observers=observers,
+                                 driver_stats=lambda: {"kobuki": driver.stats.as_dict()})
         robot.start()
 
         def finished() -> bool:
-            c = daemon.pipeline.counters
+            c = daemon.pipeline.stage("keyframes")
             progress.update(robot.sim_time_s, c.keyframes)
             if robot.error is not None:
                 return True
-            return (robot.finished.is_set() and c.frames >= robot.frames_emitted
-                    and c.wheel_msgs >= robot.packets_emitted)  # frames still held: Pipeline.finish
+            # Frames still held for a settled pose are handled by Pipeline.finish at the end.
+            odo = daemon.pipeline.stage("odometry")
+            return (robot.finished.is_set() and odo.wheel_msgs >= robot.packets_emitted
+                    and c.frames >= robot.frames_emitted - robot.camera.dropped)
 
         report = daemon.run(stop_when=finished)
-        progress.update(robot.sim_time_s, daemon.pipeline.counters.keyframes, final=True)
+        progress.update(robot.sim_time_s, daemon.pipeline.stage("keyframes").keyframes, final=True)
         robot.stop()
         recorder.close()
         robot.write_ground_truth_tum(out / "groundtruth.tum")
@@ -228,10 +237,11 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
         "robot_time_s": robot.duration_s, "wall_time_s": wall_s,
         "real_time_factor": robot.duration_s / wall_s if wall_s > 0 else None,
         "distance_m": err_fused.distance_m,
-        "frames_rendered": robot.frames_emitted, "frames_processed": c.frames,
-        "keyframes": keyframes_stored, "odometry_samples": c.wheel_msgs,
+        "frames_rendered": robot.frames_emitted, "frames_processed": c["frames"],
+        "keyframes": keyframes_stored, "odometry_samples": c["wheel_msgs"],
+        "links": {"odometry": c.get("links_odometry", 0), "loop": c.get("links_loop", 0)},
         "drops": {"camera": camera_drops, **{f"queue_{k}": v for k, v in report.queue_drops.items()},
-                  "frames_unsynced": c.frames_unsynced},
+                  "frames_unsynced": c["frames_unsynced"]},
         "packet_errors": {k: kob.get(k, 0) for k in
                           ("garbage_bytes", "bad_checksums", "truncated", "malformed_subpayloads")},
         "commands_seen_by_robot": commands,
@@ -242,7 +252,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     if cfg.floor_detector.enabled and recorder.keyframe_ids:
         summary["floor_detector"] = floor_summary(cfg, cam_model, robot.motion, recorder,
                                                   out if plot else None)
-    summary["ok"] = bool(c.frames == robot.frames_emitted and keyframes_stored == c.keyframes)
+    summary["ok"] = bool(c["frames"] == robot.frames_emitted and keyframes_stored == c["keyframes"])
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     if plot:
         from robotd.base.geometry import compose, inverse, transform_points

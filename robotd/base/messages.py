@@ -59,3 +59,64 @@ class PoseStamped:
     y_m: float
     yaw_rad: float
     covariance: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+
+
+# --------------------------------------------------------------------------------------
+# What the pipeline's stages hand each other (robotd.app.pipeline routes them by type).
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class OdometryUpdate:
+    """The filter's fused pose and the wheel-only pose after an accepted wheel reading."""
+
+    fused: PoseStamped
+    wheel: PoseStamped
+
+
+@dataclass(slots=True, eq=False)
+class Keyframe:
+    """A floor frame chosen as a keyframe, with the fused pose at its stamp.
+
+    It is filled in on its way down the pipeline: stages that describe keyframes put
+    their descriptor in ``descriptors`` (name -> ``(mode, bytes)``) before the map writer
+    stores it; the writer then sets ``keyframe_id`` and ``run_id`` and publishes
+    :class:`KeyframeStored`. Nothing changes it after that.
+    """
+
+    frame: Frame
+    pose: PoseStamped
+    descriptors: dict[str, tuple[int, bytes]] = field(default_factory=dict)
+    keyframe_id: int | None = None
+    run_id: int | None = None
+
+    @property
+    def stamp_ns(self) -> int:
+        return self.frame.stamp_ns
+
+    @property
+    def pose_xyyaw(self) -> np.ndarray:
+        """``(3,)`` x_m, y_m, yaw_rad."""
+        return np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class KeyframeStored:
+    """A keyframe is in the map (its ``keyframe_id`` and ``run_id`` are set)."""
+
+    keyframe: Keyframe
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Link:
+    """A pose-graph edge to store: the pose of ``to_id`` in the frame of ``from_id``.
+
+    ``kind``: ``"odometry"`` or ``"loop"``; ``delta_xyyaw`` ``(3,)`` metres and radians;
+    ``information`` ``(3, 3)``, the inverse covariance of ``delta_xyyaw``.
+    """
+
+    kind: str
+    from_id: int
+    to_id: int
+    delta_xyyaw: np.ndarray
+    information: np.ndarray

@@ -90,30 +90,35 @@ class FloorLoopDetector:
     """Describes keyframes and finds earlier look-alikes through a :class:`FloorIndex`."""
 
     def __init__(self, params: FloorDetectorParams, index: FloorIndex | None = None,
-                 stamps: list[tuple[int, int]] | None = None, threshold: float | None = None,
-                 camera: Any = None) -> None:
-        """``threshold``: the mode's trained local-score threshold (None: declare no loops);
-        ``camera``: the floor camera model, to turn matched pixels into a loop transform."""
+                 threshold: float | None = None, camera: Any = None) -> None:
+        """``index``: the map's earlier keyframes (earlier runs, or this run before a
+        restart of the detector), all of which count as old; ``threshold``: the mode's
+        trained local-score threshold (None: declare no loops); ``camera``: the floor camera
+        model, to turn matched pixels into a loop transform."""
         if threshold is not None and camera is None:
             raise ValueError("declaring loops needs the floor camera model")
         self.params = params
         self.threshold = threshold
         self.camera = camera
         self.index = index if index is not None else FloorIndex()
-        # (stamp_ns, keyframe_id) in time order, for the recent-keyframe exclusion.
-        self._stamps: list[tuple[int, int]] = sorted(stamps or [])
+        # Every keyframe already in the index is old: its stamps belong to earlier runs,
+        # whose clocks (CLOCK_MONOTONIC restarts at boot) cannot be compared with ours.
+        ids = self.index.ids
+        self._prior_max_id: int | None = int(ids.max()) if len(ids) else None
+        # (stamp_ns, keyframe_id) of this run's keyframes, in time order, for the
+        # recent-keyframe exclusion. Keyframe ids grow with time across runs.
+        self._run_stamps: list[tuple[int, int]] = []
 
     @classmethod
     def from_store(cls, store: Any, params: FloorDetectorParams, threshold: float | None = None,
                    camera: Any = None) -> "FloorLoopDetector":
         """Rebuild the index from a map's stored descriptors of the same mode (a restart
-        continues the same map). Descriptors that do not decode are skipped and counted."""
+        continues the same map: every stored keyframe is old to the new run). Descriptors
+        that do not decode are skipped and counted."""
         index = FloorIndex.from_store(store, params.mode)
-        stamps = [(k.stamp_ns, k.id) for k in store.keyframes()
-                  if k.descriptor is not None and k.descriptor_mode == params.mode]
         if len(index):
             log.info("floor index: %d keyframes loaded from the map", len(index))
-        return cls(params, index, stamps, threshold, camera)
+        return cls(params, index, threshold, camera)
 
     def describe(self, image: np.ndarray) -> bytes:
         """The keyframe's compact descriptor (at most the mode's byte budget)."""
@@ -122,18 +127,23 @@ class FloorLoopDetector:
     def query_and_add(self, keyframe_id: int, stamp_ns: int, descriptor: bytes) -> KeyframeQuery:
         """Query the map with a stored keyframe's descriptor, then add it to the index."""
         desc = decode(descriptor)
+        # Recent means: this run, and within exclude_recent_s. Everything before the last
+        # of this run's keyframes older than the cutoff is old, and so is every keyframe of
+        # an earlier run (their ids are all smaller than this run's).
         cutoff = stamp_ns - int(self.params.exclude_recent_s * 1e9)
-        # Keyframe ids grow with time: everything after the last keyframe older than the
-        # cutoff is recent and excluded.
-        i = bisect.bisect_left(self._stamps, (cutoff, -1))
+        i = bisect.bisect_left(self._run_stamps, (cutoff, -1))
+        last_old_id = self._run_stamps[i - 1][1] if i > 0 else self._prior_max_id
         candidates: list[Candidate] = []
-        if i > 0:
-            last_old_id = self._stamps[i - 1][1]
+        if last_old_id is not None:
             candidates = self.index.query(desc, k=self.params.candidates,
                                           exclude_after_id=last_old_id,
                                           shortlist=self.params.shortlist)
         self.index.add(keyframe_id, desc)
-        self._stamps.append((stamp_ns, keyframe_id))
+        if self._run_stamps and stamp_ns < self._run_stamps[-1][0]:
+            log.warning("keyframe %d: stamp %d before the previous keyframe's within one run",
+                        keyframe_id, stamp_ns)
+            stamp_ns = self._run_stamps[-1][0]
+        self._run_stamps.append((stamp_ns, keyframe_id))
         loops = []
         if self.threshold is not None:
             for c in candidates:

@@ -5,8 +5,13 @@ Tables (schema version :data:`SCHEMA_VERSION`):
 ``meta``
     ``key TEXT -> value TEXT``; ``schema_version`` is the one the code relies on.
 ``runs``
-    One row per daemon run: ``started_ns``/``ended_ns`` (the daemon's clock), the full
-    TOML configuration text, the robotd version and free-form notes.
+    One row per daemon run: ``started_ns``/``ended_ns`` (the run's own clock), the full
+    TOML configuration text, the robotd version and free-form notes; since version 2 also
+    the run's epoch, ``epoch_unix_ns`` (the host's wall clock, Unix time, when the run
+    started; NULL for runs recorded before version 2). Each run has its own time base:
+    keyframe stamps are ``CLOCK_MONOTONIC`` on the robot, which restarts at every boot, or
+    the virtual robot's time from 0, so stamps of two runs are never compared. Within a
+    run they grow with time; across runs the keyframe ids (never reused) give the order.
 ``keyframes``
     Pose ``x_m, y_m, yaw_rad`` (map frame, REP-103), ``stamp_ns``, the 3x3 pose
     covariance as 9 little-endian float64 (row-major), the keyframe image encoded (JPEG or
@@ -47,6 +52,7 @@ import contextlib
 import logging
 import math
 import sqlite3
+import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -148,7 +154,14 @@ def _migrate_0_to_1(conn: sqlite3.Connection) -> None:
         conn.execute(statement)
 
 
-MIGRATIONS: Mapping[int, Migration] = {1: _migrate_0_to_1}
+def _migrate_1_to_2(conn: sqlite3.Connection) -> None:
+    """Version 2: runs get their epoch (``epoch_unix_ns``, NULL for the runs before), and
+    keyframes are indexed by run and stamp, the key of "recent" in the floor detector."""
+    conn.execute("ALTER TABLE runs ADD COLUMN epoch_unix_ns INTEGER")
+    conn.execute("CREATE INDEX keyframes_by_run_stamp ON keyframes(run_id, stamp_ns)")
+
+
+MIGRATIONS: Mapping[int, Migration] = {1: _migrate_0_to_1, 2: _migrate_1_to_2}
 """Schema migrations keyed by the version each one produces, contiguous from 1.
 
 A new database is "migrated" from version 0 through every step, so creating a map and
@@ -170,6 +183,7 @@ class RunRecord:
     config: str
     robotd_version: str
     notes: str
+    epoch_unix_ns: int | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -462,16 +476,21 @@ class MapStore:
         *,
         notes: str = "",
         robotd_version: str = robotd.__version__,
+        epoch_unix_ns: int | None = None,
     ) -> int:
         """Record the start of a run at ``started_ns`` (default: the store's clock now)
-        with the full configuration text it runs with; returns the run id."""
+        with the full configuration text it runs with; returns the run id.
+        ``epoch_unix_ns`` (default: the host's wall clock now) dates the run for people
+        and orders runs whose own clocks restarted."""
         if started_ns is None:
             started_ns = self._clock.now_ns()
+        if epoch_unix_ns is None:
+            epoch_unix_ns = time.time_ns()
         with self._write() as conn:
             cur = conn.execute(
-                "INSERT INTO runs(started_ns, config, robotd_version, notes)"
-                " VALUES (?, ?, ?, ?)",
-                (int(started_ns), str(config_text), str(robotd_version), str(notes)),
+                "INSERT INTO runs(started_ns, config, robotd_version, notes, epoch_unix_ns)"
+                " VALUES (?, ?, ?, ?, ?)",
+                (int(started_ns), str(config_text), str(robotd_version), str(notes), int(epoch_unix_ns)),
             )
         run_id = int(cur.lastrowid)
         _log.info("map %s: run %d started", self._path, run_id)
@@ -492,7 +511,7 @@ class MapStore:
     def runs(self) -> list[RunRecord]:
         """Every run, oldest first."""
         rows = self._read(
-            "SELECT id, started_ns, ended_ns, config, robotd_version, notes"
+            "SELECT id, started_ns, ended_ns, config, robotd_version, notes, epoch_unix_ns"
             " FROM runs ORDER BY id"
         )
         return [RunRecord(*row) for row in rows]

@@ -1,72 +1,26 @@
-"""The daemon: queues that count drops, keyframe selection, and `robotd run` as a service.
+"""The daemon: its main loop on an injected clock, and `robotd run` as a service.
 
-The service test starts the real `robotd run` in a subprocess with its base on a
-pseudo-terminal fed with Kobuki packets, and a real AF_UNIX datagram socket as
-NOTIFY_SOCKET: READY, STATUS and WATCHDOG while packets flow, no WATCHDOG once they stop,
-STOPPING and a clean exit on SIGTERM, the run closed in the map.
+The in-process tests drive :class:`Daemon` turn by turn with a manual wall clock and a
+real AF_UNIX datagram socket as NOTIFY_SOCKET. The service test starts the real
+`robotd run` in a subprocess with its base on a pseudo-terminal fed with Kobuki packets:
+READY, STATUS counting exactly the packets written, STOPPING and a clean exit on SIGTERM,
+the run closed in the map.
 """
 
 from __future__ import annotations
 
-import math
 import os
 import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 import tty
 from pathlib import Path
 
-import numpy as np
-import pytest
 
 from drivers.kobuki import protocol
-from robotd.app.daemon import KeyframeSelector, SourceQueue, downsample
 from robotd.io.store import MapStore
-
-
-def test_live_queue_drops_oldest_and_counts():
-    q = SourceQueue("floor", 3, lossless=False, wakeup=threading.Event())
-    stop = threading.Event()
-    for i in range(5):
-        assert q.put(i, stop)
-    assert q.dropped == 2
-    assert [q.get_nowait() for _ in range(4)] == [2, 3, 4, None]
-
-
-def test_lossless_queue_blocks_until_room_or_stop():
-    q = SourceQueue("base", 1, lossless=True, wakeup=threading.Event())
-    stop = threading.Event()
-    assert q.put("a", stop)
-    done: list[bool] = []
-    t = threading.Thread(target=lambda: done.append(q.put("b", stop)))
-    t.start()
-    t.join(0.3)
-    assert t.is_alive()  # blocked: the queue is full and nothing was dropped
-    assert q.get_nowait() == "a"
-    t.join(5.0)
-    assert done == [True] and q.get_nowait() == "b" and q.dropped == 0
-    assert q.put("c", stop)
-    stop.set()
-    assert q.put("d", stop) is False  # full and stopping: gives up instead of hanging
-
-
-def test_keyframe_selector_by_distance_and_rotation():
-    sel = KeyframeSelector(distance_m=0.1, rotation_rad=math.radians(10))
-    assert sel.offer(np.array([0.0, 0.0, 0.0]))  # the first frame is always a keyframe
-    assert not sel.offer(np.array([0.09, 0.0, 0.0]))
-    assert sel.offer(np.array([0.06, 0.08, 0.0]))  # 0.1 m away (3-4-5)
-    assert not sel.offer(np.array([0.06, 0.08, math.radians(9.9)]))
-    assert sel.offer(np.array([0.06, 0.08, math.radians(-10.5)]))
-
-
-def test_downsample_keeps_aspect():
-    img = np.zeros((480, 640), np.uint8)
-    assert downsample(img, 160).shape == (120, 160)
-    assert downsample(img, 0) is None
-    assert downsample(np.zeros((480, 640, 3), np.uint8), 160).shape == (120, 160)
 
 
 def _packet(i: int) -> bytes:
@@ -94,7 +48,7 @@ def _recv_until(sock: socket.socket, wanted: str, deadline_s: float) -> list[str
     raise AssertionError(f"no {wanted!r} within {deadline_s} s; got {got}")
 
 
-def test_service_notifies_pings_only_on_progress_and_stops_on_sigterm(tmp_path: Path):
+def test_service_notifies_counts_and_stops_on_sigterm(tmp_path: Path):
     notify_path = tmp_path / "notify.sock"
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     sock.bind(str(notify_path))
@@ -110,45 +64,21 @@ def test_service_notifies_pings_only_on_progress_and_stops_on_sigterm(tmp_path: 
     env = dict(os.environ, NOTIFY_SOCKET=str(notify_path), WATCHDOG_USEC="400000")
     proc = subprocess.Popen([sys.executable, "-m", "robotd.app.cli", "run", "--config", str(cfg)],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    feeding = threading.Event()
-    feeding.set()
-    stop_writer = threading.Event()
-
-    def writer() -> None:
-        i = 0
-        while not stop_writer.is_set():
-            if feeding.is_set():
-                os.write(master, _packet(i))
-                i += 1
-            stop_writer.wait(0.02)  # the base's 50 Hz, simulated hardware pacing
-
-    w = threading.Thread(target=writer, daemon=True)
     try:
         _recv_until(sock, "READY=1", 20.0)
-        w.start()
-        msgs = _recv_until(sock, "WATCHDOG=1", 5.0)
-        msgs += _recv_until(sock, "STATUS=odometry", 5.0)
-        status = [m for m in msgs if m.startswith("STATUS=odometry")][-1]
-        rate = float(status.split("odometry ")[1].split("/s")[0])
-        assert 5.0 < rate < 80.0, status  # about 50 packets a second flowing through
-        # Stop the base: the pipeline stalls, so the watchdog pings must stop too. One
-        # more ping may be due for the progress made just before; none after that.
-        feeding.clear()
-        t0 = time.monotonic()
-        pings: list[float] = []
-        while time.monotonic() - t0 < 1.5:
-            sock.settimeout(max(0.01, 1.5 - (time.monotonic() - t0)))
-            try:
-                if sock.recv(4096).decode() == "WATCHDOG=1":
-                    pings.append(time.monotonic() - t0)
-            except socket.timeout:
+        for i in range(200):  # four seconds of base data, written at once
+            os.write(master, _packet(i))
+        msgs = _recv_until(sock, "STATUS=odometry", 20.0)
+        for _ in range(200):
+            if "(200), frames" in msgs[-1]:
                 break
-        assert len(pings) <= 1 and all(p < 0.5 for p in pings), pings
+            msgs += _recv_until(sock, "STATUS=odometry", 5.0)
+        assert "odometry" in msgs[-1] and "(200), frames" in msgs[-1], msgs[-1]
+        assert any(m == "WATCHDOG=1" for m in msgs)  # progress was made, so it was fed
         proc.send_signal(signal.SIGTERM)
         _recv_until(sock, "STOPPING=1", 10.0)
         assert proc.wait(15.0) == 0, proc.stderr.read().decode()
     finally:
-        stop_writer.set()
         if proc.poll() is None:
             proc.kill()
             proc.wait()
@@ -172,31 +102,97 @@ def test_run_with_a_missing_port_is_one_clear_line(tmp_path: Path):
     assert "Traceback" not in r.stderr
 
 
-def test_frames_held_at_the_end_of_input_are_finished(tmp_path: Path):
-    """A frozen clock (virtual robot or replay at its end) never times a held frame out:
-    finish() gives frames up to the newest odometry sample their (now final) pose and counts
-    later ones as unsynced, so a run that ends on a frame never waits forever."""
-    from robotd.app.daemon import Pipeline
-    from robotd.app.service import build_odometry
-    from robotd.base.clock import ManualClock
-    from robotd.base.config import Config, replace
-    from robotd.base.messages import Frame, WheelTicks
+class _Counter:
+    """A stage that counts the integers it is fed."""
 
-    cfg = replace(Config(), "base", driver="kobuki")
-    clock = ManualClock(0)
-    with MapStore.open(tmp_path / "map.sqlite", clock=clock) as store:
-        run_id = store.begin_run("[test]")
-        pipe = Pipeline(cfg, clock, build_odometry(cfg), store, run_id)
-        for k in range(3):  # 1 cm per wheel message, 20 ms apart, straight ahead
-            ticks = int(round(k * 0.01 / (2 * math.pi * 0.035) * 2578.33))
-            pipe.on_base(WheelTicks(k * 20_000_000, ticks, ticks, 0))
-        img = np.zeros((48, 64), np.uint8)
-        pipe.on_frame(Frame(30_000_000, "floor", img, 0))  # after the settled stamp (20 ms)
-        pipe.on_frame(Frame(55_000_000, "floor", img, 1))  # after the newest sample (40 ms)
-        clock.set_ns(40_000_000)  # frozen at the last sample, as the virtual robot leaves it
-        assert pipe.process_pending() == 0 and len(pipe.pending) == 2  # would wait forever
-        assert pipe.finish() == 2 and not pipe.pending
-        assert pipe.counters.keyframes == 1 and pipe.counters.frames_unsynced == 1
-        kf = list(store.keyframes())[-1]
-        assert kf.stamp_ns == 30_000_000
-        assert kf.x_m == pytest.approx(0.015, abs=1e-3)  # halfway between 1 and 2 cm
+    name = "count"
+
+    def __init__(self) -> None:
+        self.n = 0
+
+    def subscriptions(self):
+        return {int: self.on_int}
+
+    def on_int(self, _: int) -> None:
+        self.n += 1
+
+
+class _ListSource:
+    """A driver that hands out a fixed list, then nothing."""
+
+    def __init__(self, items: list) -> None:
+        self.items = list(items)
+        self.closed = 0
+
+    def read(self, timeout_s: float):
+        return [self.items.pop(0)] if self.items else None
+
+    def close(self) -> None:
+        self.closed += 1
+
+
+def _datagrams(sock: socket.socket) -> list[str]:
+    out = []
+    sock.setblocking(False)
+    while True:
+        try:
+            out.append(sock.recv(4096).decode())
+        except BlockingIOError:
+            return out
+
+
+def test_watchdog_is_fed_only_while_the_pipeline_makes_progress(tmp_path, monkeypatch):
+    """Turn by turn on a manual wall clock: a ping per interval while inputs flow, none
+    while the pipeline stalls, STATUS when due; no wall-clock waiting."""
+    from robotd.app.daemon import Daemon
+    from robotd.app.notify import Notifier
+    from robotd.app.pipeline import Pipeline
+    from robotd.base.clock import ManualClock
+
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(tmp_path / "notify.sock"))
+    monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "notify.sock"))
+    monkeypatch.setenv("WATCHDOG_USEC", "2000000")  # pings due every 1 s (half of it)
+    monkeypatch.delenv("WATCHDOG_PID", raising=False)
+    wall = ManualClock(0)
+    pipe = Pipeline()
+    counter = pipe.add(_Counter())
+    d = Daemon(ManualClock(0), pipe, {}, Notifier(), status_interval_s=3.0, wall_clock=wall)
+    try:
+        d.start()
+        assert _datagrams(sock)[0].startswith("READY=1")
+        for second in range(1, 4):  # progress every second: one ping each
+            pipe.feed(second)
+            wall.advance_ns(1_000_000_000)
+            d.turn()
+        got = _datagrams(sock)
+        assert got.count("WATCHDOG=1") == 3 and counter.n == 3
+        assert [m for m in got if m.startswith("STATUS=")] == [
+            "STATUS=odometry 0.0/s (0), frames 0.0/s (0), keyframes 0, loops 0, drops 0, unsynced 0"]
+        for _ in range(5):  # stalled for 5 s: the pings stop, so systemd would restart us
+            wall.advance_ns(1_000_000_000)
+            d.turn()
+        assert "WATCHDOG=1" not in _datagrams(sock)
+        pipe.feed(99)
+        wall.advance_ns(1_000_000_000)
+        d.turn()
+        assert "WATCHDOG=1" in _datagrams(sock)
+    finally:
+        d.shutdown()
+        sock.close()
+
+
+def test_shutdown_handles_what_the_sources_already_read(tmp_path):
+    """Items already queued when the daemon stops still reach the pipeline."""
+    from robotd.app.daemon import Daemon
+    from robotd.app.notify import Notifier
+    from robotd.app.pipeline import Pipeline
+    from robotd.base.clock import ManualClock
+
+    pipe = Pipeline()
+    counter = pipe.add(_Counter())
+    src = _ListSource(list(range(50)))
+    d = Daemon(ManualClock(0), pipe, {"list": src}, Notifier(), lossless=True, wall_clock=ManualClock(0))
+    report = d.run(stop_when=lambda: not src.items and d.queues["list"].qsize() == 0)
+    assert counter.n == 50 and report.counters["inputs"] == 50
+    assert report.queue_drops == {"list": 0} and report.stopped_by == "finished"

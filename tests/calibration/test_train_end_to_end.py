@@ -14,7 +14,7 @@ from calibration.train import _interpolate
 from robotd.app.cli import main
 from robotd.base.config import Config, replace
 from robotd.app.demo import run_demo
-from robotd.app.service import build_floor_detector, load_calibration
+from robotd.app.assemble import build_floor_detector, load_calibration
 from robotd.io.store import MapStore
 
 MODES = (2, 4)

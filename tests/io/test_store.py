@@ -245,10 +245,10 @@ def test_an_older_schema_is_migrated_keeping_the_data(tmp_path, monkeypatch) -> 
     path = tmp_path / "map.sqlite"
     _make_map(path, n_keyframes=2)
     monkeypatch.setattr(
-        store_module, "MIGRATIONS", {**store_module.MIGRATIONS, 2: _add_cameras_column}
+        store_module, "MIGRATIONS", {**store_module.MIGRATIONS, SCHEMA_VERSION + 1: _add_cameras_column}
     )
     with MapStore.open(path) as store:
-        assert store.schema_version == 2
+        assert store.schema_version == SCHEMA_VERSION + 1
         assert [k.x_m for k in store.keyframes()] == [0.0, 1.0]
     assert "camera" in _columns(path)
 
@@ -257,14 +257,14 @@ def test_a_failing_migration_leaves_the_old_version(tmp_path, monkeypatch) -> No
     path = tmp_path / "map.sqlite"
     _make_map(path, n_keyframes=2)
     monkeypatch.setattr(
-        store_module, "MIGRATIONS", {**store_module.MIGRATIONS, 2: _broken_migration}
+        store_module, "MIGRATIONS", {**store_module.MIGRATIONS, SCHEMA_VERSION + 1: _broken_migration}
     )
     with pytest.raises(RuntimeError, match="simulated failure"):
         MapStore.open(path)
     monkeypatch.undo()
     assert "camera" not in _columns(path)
     with MapStore.open(path) as store:
-        assert store.schema_version == 1
+        assert store.schema_version == SCHEMA_VERSION
         assert store.count_keyframes() == 2
 
 
@@ -400,4 +400,42 @@ def test_times_not_given_come_from_the_injected_clock(tmp_path: Path) -> None:
     assert (record.started_ns, record.ended_ns) == (5 * 10**9, 5 * 10**9 + 10)
     with sqlite3.connect(path) as raw:
         assert raw.execute("SELECT created_ns FROM calibration").fetchone() == (5 * 10**9 + 7,)
+    raw.close()
+
+
+V1_MAP = Path(__file__).parent / "data" / "map_v1.sqlite"
+"""A version-1 map written by the store as it was before version 2 (commit ecb9c76):
+two runs of three keyframes (mode-1 descriptors, 160 px images), a loop link, one
+calibration document."""
+
+
+def test_a_version_1_map_written_by_the_old_code_is_migrated(tmp_path: Path) -> None:
+    path = tmp_path / "map.sqlite"
+    path.write_bytes(V1_MAP.read_bytes())
+    with sqlite3.connect(path) as raw:
+        before_kf = raw.execute("SELECT * FROM keyframes ORDER BY id").fetchall()
+        before_links = raw.execute("SELECT * FROM links").fetchall()
+        assert raw.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone() == ("1",)
+    raw.close()
+    with MapStore.open(path) as store:
+        assert store.schema_version == SCHEMA_VERSION == 2
+        runs = store.runs()
+        assert [r.id for r in runs] == [1, 2]
+        assert all(r.epoch_unix_ns is None for r in runs)  # unknown for old runs
+        assert [r.ended_ns for r in runs] == [4_000_000_000] * 2
+        kfs = list(store.keyframes())
+        assert [k.run_id for k in kfs] == [1, 1, 1, 2, 2, 2]
+        assert [k.x_m for k in kfs] == pytest.approx([0.0, 0.05, 0.1] * 2)
+        assert all(k.descriptor_mode == 1 and len(k.descriptor) <= 512 for k in kfs)
+        assert store.keyframe_image(kfs[4].id).shape == (120, 160)
+        assert store.get_calibration("loop_thresholds") == "mode1 = 20.0\n"
+        new_run = store.begin_run("", 0)
+        assert store.runs()[-1].epoch_unix_ns is not None
+        assert new_run == 3
+    with sqlite3.connect(path) as raw:
+        # Every old row is still there, unchanged.
+        assert raw.execute("SELECT * FROM keyframes ORDER BY id").fetchall() == before_kf
+        assert raw.execute("SELECT * FROM links").fetchall() == before_links
+        indexes = {r[0] for r in raw.execute("SELECT name FROM sqlite_master WHERE type='index'")}
+        assert "keyframes_by_run_stamp" in indexes
     raw.close()

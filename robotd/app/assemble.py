@@ -1,0 +1,146 @@
+"""One place that assembles a daemon from a config, its sources and a clock.
+
+The service (:mod:`robotd.app.service`), replay, the demo (:mod:`robotd.app.demo`) and the
+loop-curve training (:mod:`calibration.train`) all build their daemon here, so they run
+the same stages with the same parameters and differ only in their sources, their clock,
+and the observers they add.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from robotd.app.daemon import Daemon, Source
+from robotd.app.pipeline import (
+    FloorDetectorStage,
+    KeyframeStage,
+    MapWriterStage,
+    OdometryStage,
+    Pipeline,
+)
+from robotd.base.clock import Clock
+from robotd.base.config import Config, to_toml
+
+log = logging.getLogger(__name__)
+
+
+def build_odometry(cfg: Config) -> Any:
+    """The wheel + gyro filter with the config's robot geometry and noise model."""
+    from robotd.odometry.ekf import EkfParams, OdometryFilter
+    from robotd.odometry.kinematics import DiffDriveParams
+
+    o = cfg.odometry
+    params = EkfParams(
+        accel_noise_mps2=o.accel_noise_mps2,
+        angular_accel_noise_radps2=o.angular_accel_noise_radps2,
+        gyro_bias_walk_radps_sqrt_s=o.gyro_bias_walk_radps_sqrt_s,
+        wheel_v_noise_mps=o.wheel_v_noise_mps,
+        wheel_v_noise_frac=o.wheel_v_noise_frac,
+        wheel_w_noise_radps=o.wheel_w_noise_radps,
+        wheel_w_noise_frac=o.wheel_w_noise_frac,
+        wheel_w_noise_per_mps=o.wheel_w_noise_per_mps,
+        gyro_noise_radps=o.gyro_noise_radps,
+        initial_gyro_bias_sigma_radps=o.initial_gyro_bias_sigma_radps,
+    )
+    drive = DiffDriveParams(wheel_radius_m=cfg.robot.wheel_radius_m,
+                            wheel_base_m=cfg.robot.wheel_base_m,
+                            ticks_per_rev=cfg.robot.ticks_per_rev)
+    return OdometryFilter(drive, params)
+
+
+def load_calibration(cfg: Config) -> Any:
+    """The calibration file the config names, or None (logged clearly) when there is none.
+
+    A file that exists but is damaged is an error: the daemon must not run on a
+    half-read calibration.
+    """
+    from robotd.io.calibfile import read_calibration
+
+    path = Path(cfg.calibration.path)
+    if not path.exists():
+        log.warning("no calibration file at %s: using the [floor_camera] values of the config, "
+                    "and no floor loops will be declared (see `robotd calibrate`)", path)
+        return None
+    calib = read_calibration(path)
+    log.info("calibration loaded from %s", path)
+    return calib
+
+
+def build_floor_detector(cfg: Config, store: Any, calib: Any = None) -> Any:
+    """The floor loop detector with its index rebuilt from the map, or None if disabled.
+
+    Loops are declared only with a trained threshold for the configured mode.
+    """
+    if not cfg.floor_detector.enabled or cfg.floor_camera.source == "none":
+        return None
+    from robotd.floor.detector import FloorDetectorParams, FloorLoopDetector
+    from robotd.io.calibfile import camera_model
+
+    f = cfg.floor_detector
+    params = FloorDetectorParams(mode=f.mode, candidates=f.candidates, shortlist=f.shortlist,
+                                 exclude_recent_s=f.exclude_recent_s)
+    threshold = calib.loop.for_mode(f.mode) if calib is not None and calib.loop is not None else None
+    if threshold is None:
+        log.warning("no trained loop threshold for descriptor mode %d: floor loop candidates are "
+                    "found and stored but no loop is declared (train with `robotd calibrate "
+                    "loop-curve`)", f.mode)
+    else:
+        log.info("floor loops declared at local score >= %.2f (mode %d)", threshold, f.mode)
+    detector = FloorLoopDetector.from_store(store, params, threshold, camera_model(calib, cfg.floor_camera))
+    return detector
+
+
+def build_pipeline(cfg: Config, clock: Clock, store: Any, run_id: int, *, lossless: bool,
+                   calibration: Any = None, observers: Sequence[Any] = (),
+                   floor_detector: bool = True) -> Pipeline:
+    """The daemon's stages in their order (see :mod:`robotd.app.pipeline`), then
+    ``observers`` (stages that only watch: trajectory writers, recorders, training)."""
+    kf = cfg.keyframes
+    pipeline = Pipeline()
+    odometry = build_odometry(cfg) if cfg.base.driver != "none" else None
+    if odometry is not None:
+        pipeline.add(OdometryStage(odometry))
+    pipeline.add(KeyframeStage(odometry, clock, distance_m=kf.distance_m,
+                               rotation_rad=math.radians(kf.rotation_deg),
+                               max_sync_wait_s=kf.max_sync_wait_s, lossless=lossless))
+    detector = build_floor_detector(cfg, store, calibration) if floor_detector else None
+    if detector is not None:
+        pipeline.add(FloorDetectorStage(detector))
+    pipeline.add(MapWriterStage(store, run_id, image_width_px=kf.image_width_px))
+    for o in observers:
+        pipeline.add(o)
+    return pipeline
+
+
+def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store: Any, notifier: Any,
+                    *, lossless: bool, observers: Sequence[Any] = (), calibration: Any = None,
+                    load_calibration_file: bool = True, floor_detector: bool = True,
+                    reopen: dict[str, Callable[[], Source]] | None = None,
+                    driver_stats: Callable[[], dict[str, Any]] | None = None) -> Daemon:
+    """A daemon over ``sources`` writing into ``store``: begins a run in the map, builds the
+    pipeline from ``cfg`` and returns the daemon, ready to :meth:`~Daemon.run`.
+
+    ``calibration``: the calibration file's contents (default: loaded from the path the
+    config names, when ``load_calibration_file``). ``lossless``: queues block instead of
+    dropping, and frames wait for their odometry as long as it takes (replay, simulation).
+    """
+    if calibration is None and load_calibration_file:
+        calibration = load_calibration(cfg)
+    run_id = store.begin_run(to_toml(cfg))
+    pipeline = build_pipeline(cfg, clock, store, run_id, lossless=lossless, calibration=calibration,
+                              observers=observers, floor_detector=floor_detector)
+    sizes = {"base": cfg.base.queue_size, "floor": cfg.floor_camera.queue_size}
+    return Daemon(clock, pipeline, sources, notifier, store=store, run_id=run_id, lossless=lossless,
+                  status_interval_s=cfg.daemon.status_interval_s, queue_sizes=sizes,
+                  reopen=reopen, driver_stats=driver_stats)
+
+
+def open_map(cfg: Config, clock: Clock | None = None) -> Any:
+    """The map store the config names, with the config's keyframe image quality."""
+    from robotd.io.store import MapStore
+
+    return MapStore.open(cfg.map.path, jpeg_quality=cfg.keyframes.jpeg_quality, clock=clock)

@@ -1,0 +1,364 @@
+"""The pipeline: stages registered by name, messages routed to them by type.
+
+Every source's messages (``WheelTicks``, ``YawRate``, ``Frame``, ...) are published to the
+:class:`Pipeline`, which hands each one to the stages that subscribe to its type, in the
+order the stages were registered. A stage may publish further messages (an
+:class:`~robotd.base.messages.OdometryUpdate`, a :class:`~robotd.base.messages.Keyframe`,
+a :class:`~robotd.base.messages.Link`); they are delivered at once, depth first, so one
+input is handled completely before the next and a run is deterministic. Adding a source or
+a stage is a registration, not an edit of the daemon: a forward-camera detector subscribes
+to forward frames and publishes loop links, a pose graph subscribes to links.
+
+The stages of today, in the order :func:`robotd.app.assemble.build_pipeline` registers them:
+
+``odometry``  wheel ticks + gyro -> the EKF; publishes ``OdometryUpdate``.
+``keyframes`` floor frames wait until the odometry has settled past their stamp, then take
+              the fused pose at that stamp; a frame far enough from the last keyframe is
+              published as a ``Keyframe``.
+``floor``     describes each ``Keyframe`` (compact descriptor) before it is stored, then
+              queries the map with each ``KeyframeStored``; publishes the query (the
+              candidates) and a loop ``Link`` per declared loop.
+``map``       stores each ``Keyframe`` (publishing ``KeyframeStored``), the odometry link
+              from the run's previous keyframe, and every ``Link``.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+from collections.abc import Callable, Mapping
+from typing import Any, Protocol
+
+import numpy as np
+
+from robotd.base.clock import Clock
+from robotd.base.messages import (
+    Frame,
+    Keyframe,
+    KeyframeStored,
+    Link,
+    OdometryUpdate,
+    PoseStamped,
+    WheelTicks,
+    YawRate,
+)
+from robotd.keyframes import KeyframeSelector, downsample
+from robotd.odometry.increments import odometry_edge
+
+log = logging.getLogger(__name__)
+
+Handler = Callable[[Any], None]
+
+
+class Stage(Protocol):
+    """One step of the pipeline.
+
+    ``name`` identifies it (counters, logs); :meth:`subscriptions` maps each message type
+    it consumes to its handler. Optional methods, called when present: ``attach(pipeline)``
+    (once, at registration: the stage keeps the pipeline to publish to), ``poll() -> int``
+    (work that waits on something other than a new message, e.g. frames waiting for
+    odometry; returns how many items it handled), ``finish() -> int`` (end of input) and
+    ``counters() -> dict[str, int]``.
+    """
+
+    name: str
+
+    def subscriptions(self) -> Mapping[type, Handler]: ...
+
+
+class Pipeline:
+    """Routes messages to the stages registered for their type (see the module notes)."""
+
+    def __init__(self) -> None:
+        self._stages: dict[str, Any] = {}
+        self._routes: dict[type, list[Handler]] = collections.defaultdict(list)
+        self.inputs = 0
+        """Messages published from outside (the sources), a measure of progress."""
+        self.unrouted: collections.Counter[str] = collections.Counter()
+        """Messages of a type no stage consumes, by type name."""
+
+    def add(self, stage: Any) -> Any:
+        """Register ``stage`` (after every stage registered before it); returns it."""
+        if stage.name in self._stages:
+            raise ValueError(f"a stage named {stage.name!r} is already registered")
+        self._stages[stage.name] = stage
+        for msg_type, handler in stage.subscriptions().items():
+            self._routes[msg_type].append(handler)
+        if hasattr(stage, "attach"):
+            stage.attach(self)
+        return stage
+
+    def stage(self, name: str) -> Any:
+        """The stage registered as ``name`` (KeyError if none)."""
+        return self._stages[name]
+
+    @property
+    def stages(self) -> list[Any]:
+        return list(self._stages.values())
+
+    def subscribed(self, msg_type: type) -> bool:
+        """Whether any stage consumes ``msg_type`` (lets a stage skip building a message)."""
+        return bool(self._routes.get(msg_type))
+
+    def feed(self, msg: Any) -> None:
+        """A message from a source: counted as input, then published."""
+        self.inputs += 1
+        self.publish(msg)
+
+    def publish(self, msg: Any) -> None:
+        """Hand ``msg`` to every stage subscribed to its type, in registration order."""
+        handlers = self._routes.get(type(msg))
+        if not handlers:
+            self.unrouted[type(msg).__name__] += 1
+            return
+        for handler in handlers:
+            handler(msg)
+
+    def poll(self) -> int:
+        """Let every stage do waiting work; returns how many items were handled."""
+        return sum(s.poll() for s in self._stages.values() if hasattr(s, "poll"))
+
+    def finish(self) -> int:
+        """End of input: every stage finishes what it holds; returns items handled."""
+        return sum(s.finish() for s in self._stages.values() if hasattr(s, "finish"))
+
+    def counters(self) -> dict[str, int]:
+        """Every stage's counters in one flat mapping (the names are unique by design)."""
+        out: dict[str, int] = {"inputs": self.inputs}
+        for s in self._stages.values():
+            if hasattr(s, "counters"):
+                out.update(s.counters())
+        for name, n in self.unrouted.items():
+            out[f"unrouted_{name}"] = n
+        return out
+
+
+class _Publisher:
+    """Mixin: keeps the pipeline a stage publishes to."""
+
+    pipeline: Pipeline | None = None
+
+    def attach(self, pipeline: Pipeline) -> None:
+        self.pipeline = pipeline
+
+    def _publish(self, msg: Any) -> None:
+        if self.pipeline is not None:
+            self.pipeline.publish(msg)
+
+
+class OdometryStage(_Publisher):
+    """Wheel ticks and gyro into the odometry filter (:mod:`robotd.odometry.ekf`)."""
+
+    name = "odometry"
+
+    def __init__(self, odometry: Any) -> None:
+        self.odometry = odometry
+        self.wheel_msgs = 0
+        self.yaw_msgs = 0
+        self.rejected = 0
+
+    def subscriptions(self) -> Mapping[type, Handler]:
+        return {WheelTicks: self.on_wheels, YawRate: self.on_yaw_rate}
+
+    def on_wheels(self, msg: WheelTicks) -> None:
+        self.wheel_msgs += 1
+        if self.odometry.on_wheels(msg) is False:
+            self.rejected += 1
+            return
+        if self.pipeline is not None and self.pipeline.subscribed(OdometryUpdate):
+            self._publish(OdometryUpdate(self.odometry.pose(), self.odometry.wheel_pose()))
+
+    def on_yaw_rate(self, msg: YawRate) -> None:
+        self.yaw_msgs += 1
+        if self.odometry.on_yaw_rate(msg) is False:
+            self.rejected += 1
+
+    def counters(self) -> dict[str, int]:
+        return {"wheel_msgs": self.wheel_msgs, "yaw_msgs": self.yaw_msgs,
+                "odometry_rejected": self.rejected}
+
+
+class KeyframeStage(_Publisher):
+    """Floor frames take the fused pose at their stamp; some become keyframes.
+
+    A frame is held until the odometry has settled past its stamp, so every keyframe pose is
+    interpolated, never extrapolated, and final (a replay gives the same poses). Live
+    (``lossless=False``), a frame that waits longer than ``max_sync_wait_s`` of clock time
+    is dropped and counted in ``frames_unsynced`` (the base stopped talking; fresh frames
+    matter more). Lossless (replay, the virtual robot), a frame waits as long as it takes:
+    its odometry is on its way, and dropping it would make the result depend on the CPU.
+    """
+
+    name = "keyframes"
+
+    def __init__(self, odometry: Any, clock: Clock, *, distance_m: float, rotation_rad: float,
+                 max_sync_wait_s: float, lossless: bool, camera: str = "floor",
+                 max_pending: int = 64) -> None:
+        self.odometry = odometry  # None: no base, frames cannot get a pose
+        self.clock = clock
+        self.selector = KeyframeSelector(distance_m, rotation_rad)
+        self.camera = camera
+        self.lossless = lossless
+        self.max_pending = max_pending
+        self._max_wait_ns = int(max_sync_wait_s * 1e9)
+        self.pending: collections.deque[Frame] = collections.deque()
+        self.frames = 0
+        self.frames_unsynced = 0
+        self.frames_without_odometry = 0
+        self.frames_other_camera = 0
+        self.keyframes = 0
+
+    def subscriptions(self) -> Mapping[type, Handler]:
+        return {Frame: self.on_frame}
+
+    def on_frame(self, frame: Frame) -> None:
+        if frame.camera != self.camera:
+            self.frames_other_camera += 1
+            return
+        self.frames += 1
+        self.pending.append(frame)
+        if not self.lossless and len(self.pending) > self.max_pending:
+            self.pending.popleft()
+            self.frames_unsynced += 1
+        self.poll()
+
+    def poll(self) -> int:
+        """Handle every held frame whose pose is now known; returns how many."""
+        done = 0
+        while self.pending:
+            frame = self.pending[0]
+            if self.odometry is None:
+                self.pending.popleft()
+                self.frames_without_odometry += 1
+                done += 1
+                continue
+            settled = self.odometry.settled_stamp_ns()
+            if settled is None or settled < frame.stamp_ns:
+                if not self.lossless and self.clock.now_ns() - frame.stamp_ns > self._max_wait_ns:
+                    self.pending.popleft()
+                    self.frames_unsynced += 1
+                    done += 1
+                    continue
+                break
+            self.pending.popleft()
+            self._take(frame, self.odometry.pose_at(frame.stamp_ns))
+            done += 1
+        return done
+
+    def finish(self) -> int:
+        """End of input: nothing more will arrive, so the newest pose is final as well.
+
+        Held frames stamped up to the newest odometry sample take their pose now; frames
+        after it can never have one and are counted in ``frames_unsynced``. Without this a
+        run whose clock stops with the input (the virtual robot, a replay) would wait for a
+        settled pose forever.
+        """
+        done = 0
+        while self.pending:
+            frame = self.pending.popleft()
+            done += 1
+            if self.odometry is None:
+                self.frames_without_odometry += 1
+                continue
+            self._take(frame, self.odometry.pose_at(frame.stamp_ns))
+        return done
+
+    def _take(self, frame: Frame, pose: PoseStamped | None) -> None:
+        if pose is None:
+            self.frames_unsynced += 1
+            return
+        if self.selector.offer(np.array([pose.x_m, pose.y_m, pose.yaw_rad])):
+            self.keyframes += 1
+            self._publish(Keyframe(frame, pose))
+
+    def counters(self) -> dict[str, int]:
+        return {"frames": self.frames, "frames_unsynced": self.frames_unsynced,
+                "frames_without_odometry": self.frames_without_odometry,
+                "frames_other_camera": self.frames_other_camera, "keyframes": self.keyframes}
+
+
+class FloorDetectorStage(_Publisher):
+    """The floor loop detector (:class:`robotd.floor.detector.FloorLoopDetector`).
+
+    Describes each keyframe before it is stored (the descriptor goes into the same map
+    row), then queries the map with it once it has an id. Publishes the query result (a
+    :class:`~robotd.floor.detector.KeyframeQuery`) and a loop :class:`Link` per loop.
+    """
+
+    name = "floor"
+
+    def __init__(self, detector: Any) -> None:
+        self.detector = detector
+        self.queries = 0
+        self.candidates = 0
+        self.loops = 0
+
+    def subscriptions(self) -> Mapping[type, Handler]:
+        return {Keyframe: self.describe, KeyframeStored: self.query}
+
+    def describe(self, kf: Keyframe) -> None:
+        kf.descriptors["floor"] = (self.detector.params.mode, self.detector.describe(kf.frame.image))
+
+    def query(self, msg: KeyframeStored) -> None:
+        kf = msg.keyframe
+        if "floor" not in kf.descriptors or kf.keyframe_id is None:
+            return
+        result = self.detector.query_and_add(kf.keyframe_id, kf.stamp_ns, kf.descriptors["floor"][1])
+        self.queries += 1
+        self.candidates += len(result.candidates)
+        self._publish(result)
+        for loop in result.loops:
+            self.loops += 1
+            self._publish(Link("loop", loop.from_id, loop.to_id, loop.delta, loop.information))
+
+    def counters(self) -> dict[str, int]:
+        return {"floor_queries": self.queries, "floor_candidates": self.candidates,
+                "loops_declared": self.loops}
+
+
+class MapWriterStage(_Publisher):
+    """Writes keyframes and links to the map store.
+
+    Each keyframe after the run's first also gets an odometry link from the previous one:
+    the relative transform of the fused poses and its information from the filter's
+    covariances (:func:`robotd.odometry.increments.odometry_edge`).
+    """
+
+    name = "map"
+
+    def __init__(self, store: Any, run_id: int, *, image_width_px: int) -> None:
+        self.store = store
+        self.run_id = run_id
+        self.image_width_px = image_width_px
+        self._previous: Keyframe | None = None
+        self.stored = 0
+        self.links = collections.Counter[str]()
+
+    def subscriptions(self) -> Mapping[type, Handler]:
+        return {Keyframe: self.on_keyframe, Link: self.on_link}
+
+    def on_keyframe(self, kf: Keyframe) -> None:
+        descriptor = mode = None
+        if "floor" in kf.descriptors:
+            mode, descriptor = kf.descriptors["floor"]
+        kf.keyframe_id = self.store.add_keyframe(
+            self.run_id, kf.stamp_ns, kf.pose_xyyaw, kf.pose.covariance,
+            downsample(kf.frame.image, self.image_width_px),
+            descriptor=descriptor, descriptor_mode=mode,
+        )
+        kf.run_id = self.run_id
+        self.stored += 1
+        prev, self._previous = self._previous, kf
+        if prev is not None:
+            delta, info = odometry_edge(prev.pose_xyyaw, prev.pose.covariance,
+                                        kf.pose_xyyaw, kf.pose.covariance)
+            self.on_link(Link("odometry", prev.keyframe_id, kf.keyframe_id, delta, info))
+        self._publish(KeyframeStored(kf))
+
+    def on_link(self, link: Link) -> None:
+        self.store.add_link(link.kind, link.from_id, link.to_id, link.delta_xyyaw, link.information)
+        self.links[link.kind] += 1
+
+    def counters(self) -> dict[str, int]:
+        return {"keyframes_stored": self.stored,
+                **{f"links_{k}": n for k, n in sorted(self.links.items())}}

@@ -1,0 +1,57 @@
+"""Odometry increments between keyframes, as pose-graph edges with their information.
+
+A pose graph chains consecutive keyframes with the odometry's relative transform
+``d = x_a^-1 (+) x_b`` (the pose of keyframe b in the frame of keyframe a) and its
+uncertainty. The filter gives the *absolute* pose covariances ``P_a`` and ``P_b``. Writing
+``x_b = x_a (+) d`` and linearising,
+
+    P_b = J_a P_a J_a^T + J_d S J_d^T,   J_a = d x_b / d x_a,  J_d = d x_b / d d,
+
+so the increment's covariance is ``S = J_d^-1 (P_b - J_a P_a J_a^T) J_d^-T``. This holds
+when the increment is independent of the pose at a, which a filter's motion increments
+are up to the slowly varying gyro bias (it correlates consecutive increments a little).
+``P_b - J_a P_a J_a^T`` can then lose definiteness by rounding or by that correlation, so
+the result is symmetrised and its eigenvalues are raised to a floor (``min_sigma_m``,
+``min_sigma_rad``). The information is ``S^-1``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from robotd.base.geometry import between
+
+
+def increment_covariance(pose_a: np.ndarray, cov_a: np.ndarray, pose_b: np.ndarray,
+                         cov_b: np.ndarray, *, min_sigma_m: float = 1e-4,
+                         min_sigma_rad: float = 1e-4) -> np.ndarray:
+    """Covariance ``(3, 3)`` of ``between(pose_a, pose_b)`` over ``(dx_m, dy_m, dyaw_rad)``.
+
+    ``pose_*``: ``(3,)`` x_m, y_m, yaw_rad; ``cov_*``: their ``(3, 3)`` filter covariances.
+    See the module notes for the derivation and the eigenvalue floor.
+    """
+    xa, ya, tha = (float(v) for v in pose_a)
+    xb, yb = float(pose_b[0]), float(pose_b[1])
+    j_a = np.array([[1.0, 0.0, -(yb - ya)],
+                    [0.0, 1.0, xb - xa],
+                    [0.0, 0.0, 1.0]])
+    c, s = math.cos(tha), math.sin(tha)
+    j_d_inv = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # inverse of the rotation
+    grown = np.asarray(cov_b, float) - j_a @ np.asarray(cov_a, float) @ j_a.T
+    cov = j_d_inv @ grown @ j_d_inv.T
+    cov = 0.5 * (cov + cov.T)
+    # Raise each eigenvalue to the floor of its axis mix (metres for x/y, radians for yaw).
+    floor = np.diag([min_sigma_m ** 2, min_sigma_m ** 2, min_sigma_rad ** 2])
+    w, v = np.linalg.eigh(cov)
+    floor_w = np.einsum("ij,jk,ki->i", v.T, floor, v)
+    return (v * np.maximum(w, floor_w)) @ v.T
+
+
+def odometry_edge(pose_a: np.ndarray, cov_a: np.ndarray, pose_b: np.ndarray,
+                  cov_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The edge from keyframe a to b: ``(delta (3,), information (3, 3))``."""
+    delta = between(np.asarray(pose_a, float), np.asarray(pose_b, float))
+    info = np.linalg.inv(increment_covariance(pose_a, cov_a, pose_b, cov_b))
+    return delta, 0.5 * (info + info.T)

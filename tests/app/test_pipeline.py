@@ -1,0 +1,210 @@
+"""The pipeline: routing by type, the keyframe stage's waiting rules, odometry links, and a
+map that continues across runs whose clocks restarted."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import skimage.data
+
+from robotd.app.assemble import build_odometry, build_pipeline
+from robotd.app.pipeline import FloorDetectorStage, KeyframeStage, MapWriterStage, Pipeline
+from robotd.base.clock import ManualClock
+from robotd.base.config import Config, replace
+from robotd.base.geometry import between
+from robotd.base.messages import Frame, Keyframe, KeyframeStored, PoseStamped, WheelTicks
+from robotd.floor.detector import FloorDetectorParams, FloorLoopDetector, KeyframeQuery
+from robotd.io.store import MapStore
+
+TICKS_PER_M = 2578.33 / (2 * math.pi * 0.035)
+
+
+@dataclass
+class Ping:
+    n: int
+
+
+@dataclass
+class Pong:
+    n: int
+
+
+class Echo:
+    """A toy stage: answers each Ping with a Pong and logs what it sees."""
+
+    def __init__(self, name: str, log: list) -> None:
+        self.name, self.log, self.pipeline = name, log, None
+
+    def attach(self, pipeline: Pipeline) -> None:
+        self.pipeline = pipeline
+
+    def subscriptions(self):
+        return {Ping: self.on_ping, Pong: self.on_pong}
+
+    def on_ping(self, m: Ping) -> None:
+        self.log.append((self.name, "ping", m.n))
+        if self.name == "a":
+            self.pipeline.publish(Pong(m.n))
+
+    def on_pong(self, m: Pong) -> None:
+        self.log.append((self.name, "pong", m.n))
+
+
+def test_messages_reach_subscribers_in_registration_order_depth_first():
+    log: list = []
+    p = Pipeline()
+    p.add(Echo("a", log))
+    p.add(Echo("b", log))
+    p.feed(Ping(1))
+    p.feed("not routed")
+    # a's Pong is delivered (to a, then b) before b sees the Ping: one input at a time.
+    assert log == [("a", "ping", 1), ("a", "pong", 1), ("b", "pong", 1), ("b", "ping", 1)]
+    assert p.counters() == {"inputs": 2, "unrouted_str": 1}
+    with pytest.raises(ValueError, match="already registered"):
+        p.add(Echo("a", log))
+
+
+def _wheels(k: int, stamp_ns: int) -> WheelTicks:
+    """Straight ahead, 1 cm per message."""
+    ticks = int(round(k * 0.01 * TICKS_PER_M))
+    return WheelTicks(stamp_ns, ticks, ticks, 0)
+
+
+def _keyframe_pipeline(tmp_path: Path, *, lossless: bool, clock: ManualClock) -> tuple[Pipeline, MapStore]:
+    cfg = replace(replace(Config(), "base", driver="kobuki"), "floor_detector", enabled=False)
+    cfg = replace(cfg, "keyframes", distance_m=0.005)
+    store = MapStore.open(tmp_path / "map.sqlite", clock=clock)
+    run = store.begin_run("[test]")
+    return build_pipeline(cfg, clock, store, run, lossless=lossless), store
+
+
+def test_frames_held_at_the_end_of_input_are_finished(tmp_path: Path):
+    """A frozen clock (virtual robot or replay at its end) never times a held frame out:
+    finish() gives frames up to the newest odometry sample their (now final) pose and counts
+    later ones as unsynced, so a run that ends on a frame never waits forever."""
+    clock = ManualClock(0)
+    pipe, store = _keyframe_pipeline(tmp_path, lossless=False, clock=clock)
+    with store:
+        for k in range(3):  # 20 ms apart
+            pipe.feed(_wheels(k, k * 20_000_000))
+        img = np.zeros((48, 64), np.uint8)
+        pipe.feed(Frame(30_000_000, "floor", img, 0))  # after the settled stamp (20 ms)
+        pipe.feed(Frame(55_000_000, "floor", img, 1))  # after the newest sample (40 ms)
+        clock.set_ns(40_000_000)  # frozen at the last sample, as the virtual robot leaves it
+        stage: KeyframeStage = pipe.stage("keyframes")
+        assert pipe.poll() == 0 and len(stage.pending) == 2  # would wait forever
+        assert pipe.finish() == 2 and not stage.pending
+        c = pipe.counters()
+        assert (c["keyframes"], c["frames_unsynced"], c["keyframes_stored"]) == (1, 1, 1)
+        kf = list(store.keyframes())[-1]
+        assert kf.stamp_ns == 30_000_000
+        assert kf.x_m == pytest.approx(0.015, abs=1e-3)  # halfway between 1 and 2 cm
+
+
+@pytest.mark.parametrize("lossless", [False, True])
+def test_a_frame_waits_for_its_odometry_only_when_live_is_it_dropped(tmp_path: Path, lossless: bool):
+    clock = ManualClock(0)
+    pipe, store = _keyframe_pipeline(tmp_path, lossless=lossless, clock=clock)
+    with store:
+        pipe.feed(_wheels(0, 0))
+        pipe.feed(Frame(10_000_000, "floor", np.zeros((48, 64), np.uint8), 0))
+        clock.set_ns(2_000_000_000)  # 2 s later (max_sync_wait_s is 0.5): the base is silent
+        pipe.poll()
+        c = pipe.counters()
+        assert c["frames_unsynced"] == (0 if lossless else 1)
+        for k in range(1, 4):  # the odometry arrives after all (a replay that fell behind)
+            pipe.feed(_wheels(k, k * 20_000_000))
+        pipe.poll()
+        assert pipe.counters()["keyframes"] == (1 if lossless else 0)
+
+
+def test_every_keyframe_after_the_first_is_linked_by_odometry(tmp_path: Path):
+    clock = ManualClock(0)
+    pipe, store = _keyframe_pipeline(tmp_path, lossless=True, clock=clock)
+    with store:
+        img = np.zeros((48, 64), np.uint8)
+        for k in range(60):  # 1.2 s straight, a frame every 40 ms
+            pipe.feed(_wheels(k, k * 20_000_000))
+            if k % 2 == 1:
+                pipe.feed(Frame(k * 20_000_000 - 5_000_000, "floor", img, k))
+        pipe.finish()
+        kfs = list(store.keyframes())
+        links = store.links("odometry")
+        assert len(kfs) >= 20 and len(links) == len(kfs) - 1
+        for link, a, b in zip(links, kfs[:-1], kfs[1:]):
+            assert (link.from_id, link.to_id) == (a.id, b.id)
+            want = between(np.array([a.x_m, a.y_m, a.yaw_rad]), np.array([b.x_m, b.y_m, b.yaw_rad]))
+            assert [link.dx_m, link.dy_m, link.dyaw_rad] == pytest.approx(want, abs=1e-12)
+            assert np.all(np.linalg.eigvalsh(link.information) > 0)
+        # Driving straight: the along-track step is known to a few mm, not to 0.1 mm.
+        sigma_x = [1 / math.sqrt(link.information[0, 0]) for link in links]
+        assert 1e-4 < float(np.median(sigma_x)) < 0.02
+
+
+def _floor_stages(store: MapStore, run_id: int) -> Pipeline:
+    det = FloorLoopDetector.from_store(store, FloorDetectorParams(mode=2, exclude_recent_s=20.0))
+    p = Pipeline()
+    p.add(FloorDetectorStage(det))
+    p.add(MapWriterStage(store, run_id, image_width_px=0))
+    return p
+
+
+class _Queries:
+    name = "queries"
+
+    def __init__(self) -> None:
+        self.got: list[KeyframeQuery] = []
+
+    def subscriptions(self):
+        return {KeyframeQuery: self.got.append}
+
+
+def test_after_a_restart_queries_reach_the_earlier_runs(tmp_path: Path):
+    """Run 2's clock restarted (CLOCK_MONOTONIC after a reboot): its stamps are smaller than
+    run 1's. Its queries still reach every keyframe of run 1, and 'recent' excludes only
+    run 2's own keyframes of the last exclude_recent_s."""
+    photo = cv2.resize(skimage.data.gravel(), (640, 480))
+    pose = PoseStamped(0, 0.0, 0.0, 0.0, np.eye(3) * 1e-4)
+    with MapStore.open(tmp_path / "map.sqlite") as store:
+        run1 = store.begin_run("[run 1]", 0)
+        p1 = _floor_stages(store, run1)
+        for i in range(4):  # stamps 100..103 s
+            p1.publish(Keyframe(Frame(100_000_000_000 + i * 1_000_000_000, "floor", photo, i), pose))
+        ids1 = [k.id for k in store.keyframes(run1)]
+        store.end_run(run1, 104_000_000_000)
+
+        run2 = store.begin_run("[run 2]", 0)
+        p2 = _floor_stages(store, run2)
+        q = p2.add(_Queries())
+        for i in range(3):  # stamps 5..7 s: before run 1's
+            p2.publish(Keyframe(Frame(5_000_000_000 + i * 1_000_000_000, "floor", photo, i), pose))
+        ids2 = [k.id for k in store.keyframes(run2)]
+        for query in q.got:
+            found = {c.keyframe_id for c in query.candidates}
+            assert found and found <= set(ids1), (query.keyframe_id, found)
+        assert [query.keyframe_id for query in q.got] == ids2
+        # Within run 2, its first keyframe becomes old once 20 s of run 2 have passed.
+        p2.publish(Keyframe(Frame(26_000_000_000, "floor", photo, 9), pose))
+        late = {c.keyframe_id for c in q.got[-1].candidates}
+        assert ids2[0] in late and not (set(ids2[1:]) & late)
+        # Odometry links chain each run's keyframes, never across runs.
+        assert [(lk.from_id, lk.to_id) for lk in store.links("odometry")] == \
+            list(zip(ids1[:-1], ids1[1:])) + list(zip(ids2, ids2[1:] + [ids2[-1] + 1]))
+
+
+def test_build_pipeline_orders_the_stages(tmp_path: Path):
+    cfg = replace(Config(), "base", driver="kobuki")
+    cfg = replace(cfg, "calibration", path=str(tmp_path / "none.yml"))
+    with MapStore.open(tmp_path / "map.sqlite") as store:
+        run = store.begin_run("")
+        p = build_pipeline(cfg, ManualClock(), store, run, lossless=True)
+        assert [s.name for s in p.stages] == ["odometry", "keyframes", "floor", "map"]
+        nobase = build_pipeline(replace(cfg, "base", driver="none"), ManualClock(), store, run,
+                                lossless=True, floor_detector=False)
+        assert [s.name for s in nobase.stages] == ["keyframes", "map"]
+    assert build_odometry(cfg).drive.wheel_base_m == cfg.robot.wheel_base_m
