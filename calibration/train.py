@@ -152,96 +152,128 @@ def recording_config(path: Path) -> Any:
         return None
 
 
+class _KeyframeCollector:
+    """A pipeline observer for training: keeps the wheel-only track, and sends each stored
+    keyframe's image to the describing workers (a few images queued per worker, not the
+    whole recording: reading outruns describing)."""
+
+    name = "training"
+
+    def __init__(self, pool: Any, params: TrainParams, total_ns: int, start_ns: int,
+                 progress: Progress | None) -> None:
+        self.pool = pool
+        self.params = params
+        self.total_ns, self.start_ns = total_ns, start_ns
+        self.progress = progress
+        self.wheel_t: list[int] = []
+        self.wheel_p: list[tuple[float, float, float]] = []
+        self.stamps: list[int] = []
+        self.fused: list[np.ndarray] = []
+        self.jobs: list[Any] = []
+        self.results: list[list[bytes]] = []
+        self.worker_mb = 0.0
+        self._next_report_ns = start_ns
+
+    def subscriptions(self) -> dict[type, Any]:
+        from robotd.base.messages import KeyframeStored, OdometryUpdate
+
+        return {OdometryUpdate: self.on_odometry, KeyframeStored: self.on_keyframe}
+
+    def on_odometry(self, u: Any) -> None:
+        w = u.wheel
+        self.wheel_t.append(w.stamp_ns)
+        self.wheel_p.append((w.x_m, w.y_m, w.yaw_rad))
+        if self.progress is not None and w.stamp_ns >= self._next_report_ns:
+            self.progress("reading the recording (s)", (w.stamp_ns - self.start_ns) // 10**9,
+                          self.total_ns // 10**9)
+            self._next_report_ns = w.stamp_ns + 10**9
+
+    def on_keyframe(self, msg: Any) -> None:
+        kf = msg.keyframe
+        self.stamps.append(kf.stamp_ns)
+        self.fused.append(kf.pose_xyyaw)
+        self.collect(len(self.jobs) - 4 * self.params.workers)
+        self.jobs.append(self.pool.apply_async(_describe_all, (kf.frame.image, self.params.modes)))
+
+    def collect(self, upto: int, show: bool = False) -> None:
+        """Wait for the descriptions of keyframes before ``upto``."""
+        while len(self.results) < upto:
+            described, mb = self.jobs[len(self.results)].get()
+            self.results.append(described)
+            self.worker_mb = max(self.worker_mb, mb)
+            if show and self.progress is not None and (
+                    len(self.results) % 50 == 0 or len(self.results) == len(self.jobs)):
+                self.progress("describing the last keyframes", len(self.results), len(self.jobs))
+
+
 def load_run(path: Path, cfg: Any, params: TrainParams, progress: Progress | None = None) -> CalibrationRun:
-    """Read a recording, run the odometry, pick keyframes, and describe them in every mode.
+    """Replay a recording through the daemon's own pipeline and describe its keyframes in
+    every mode.
 
-    Keyframes are chosen by the daemon's :class:`~robotd.keyframes.KeyframeSelector` on the
-    fused pose at each floor frame (``spacing_m`` of travel or ``rotation_deg`` of turn
-    since the last keyframe). Each keyframe's fused pose is the filter's pose at the frame's
-    stamp; its wheel-only and ground-truth poses are those tracks interpolated at that stamp.
+    The daemon is assembled as the service assembles it (:func:`robotd.app.assemble.
+    assemble_daemon`: the same odometry, the same frame/odometry synchronisation, the same
+    keyframe selection, here with ``spacing_m`` of travel or ``rotation_deg`` of turn), fed
+    losslessly by the recording, with a temporary map. Each keyframe's fused pose is the
+    filter's pose at the frame's stamp; its wheel-only and ground-truth poses are those
+    tracks interpolated at that stamp.
     """
-    from drivers.recording.reader import RecordingReader
-    from robotd.keyframes import KeyframeSelector
-    from robotd.base.messages import Frame, PoseStamped, WheelTicks, YawRate
-    from robotd.app.assemble import build_odometry
+    import tempfile
 
-    reader = RecordingReader(path)
-    span = reader.time_range_ns
+    from drivers.recording.reader import RecordingReader
+    from drivers.recording.replay import ReplaySource
+    from robotd.app.assemble import assemble_daemon
+    from robotd.app.notify import Notifier
+    from robotd.base.clock import ManualClock
+    from robotd.base.config import replace
+    from robotd.base.messages import PoseStamped
+    from robotd.io.store import MapStore
+
+    with RecordingReader(path) as reader:
+        span = reader.time_range_ns
     if span is None:
         raise CalibrationError(f"{path}: the recording holds no messages")
-    odo = build_odometry(cfg)
-    truth_t: list[int] = []
-    truth_p: list[tuple[float, float, float]] = []
-    wheel_t: list[int] = []
-    wheel_p: list[tuple[float, float, float]] = []
-    stamps: list[int] = []
-    fused: list[np.ndarray] = []
-    pending: list[Frame] = []
-    selector = KeyframeSelector(params.spacing_m, math.radians(params.rotation_deg))
-    jobs: list[Any] = []
-    results: list[list[bytes]] = []
-    worker_mb = 0.0
-    total = max(1, span[1] - span[0])
+    cfg = replace(cfg, "keyframes", distance_m=params.spacing_m, rotation_deg=params.rotation_deg,
+                  image_width_px=0)
+    cfg = replace(cfg, "floor_detector", enabled=False)
+    clock = ManualClock(span[0])
     pool = _pool(params.workers)
+    collector = _KeyframeCollector(pool, params, max(1, span[1] - span[0]), span[0], progress)
+    truth: list[tuple[int, tuple[float, float, float]]] = []
 
-    def collect(upto: int, show: bool = False) -> None:
-        """Wait for the descriptions of keyframes before ``upto``."""
-        nonlocal worker_mb
-        while len(results) < upto:
-            described, mb = jobs[len(results)].get()
-            results.append(described)
-            worker_mb = max(worker_mb, mb)
-            if show and progress is not None and (len(results) % 50 == 0 or len(results) == len(jobs)):
-                progress("describing the last keyframes", len(results), len(jobs))
-
-    def take(frame: Frame) -> None:
-        p = odo.pose_at(frame.stamp_ns)
-        if p is None:
-            return
-        xyyaw = np.array([p.x_m, p.y_m, p.yaw_rad])
-        if not selector.offer(xyyaw):
-            return
-        stamps.append(frame.stamp_ns)
-        fused.append(xyyaw)
-        # A few images queued per worker, not the whole recording: reading outruns describing.
-        collect(len(jobs) - 4 * params.workers)
-        jobs.append(pool.apply_async(_describe_all, (frame.image, params.modes)))
+    def other(topic: str, m: Any) -> None:  # the replay's thread: list.append is atomic
+        if topic == "/ground_truth" and isinstance(m, PoseStamped):
+            truth.append((m.stamp_ns, (m.x_m, m.y_m, m.yaw_rad)))
 
     try:
-        for n, (topic, msg) in enumerate(reader.messages()):
-            if isinstance(msg, WheelTicks):
-                if odo.on_wheels(msg):
-                    w = odo.wheel_pose()
-                    wheel_t.append(w.stamp_ns)
-                    wheel_p.append((w.x_m, w.y_m, w.yaw_rad))
-            elif isinstance(msg, YawRate):
-                odo.on_yaw_rate(msg)
-            elif isinstance(msg, Frame) and msg.camera == "floor":
-                pending.append(msg)
-            elif isinstance(msg, PoseStamped) and topic == "/ground_truth":
-                truth_t.append(msg.stamp_ns)
-                truth_p.append((msg.x_m, msg.y_m, msg.yaw_rad))
-            settled = odo.settled_stamp_ns()
-            while pending and settled is not None and settled >= pending[0].stamp_ns:
-                take(pending.pop(0))
-            if progress is not None and n % 500 == 0:
-                progress("reading the recording (s)", int(getattr(msg, "stamp_ns", span[0]) - span[0]) // 10**9,
-                         total // 10**9)
+        with tempfile.TemporaryDirectory(prefix="robotd-train-") as tmp, \
+                ReplaySource(path, clock) as replay, \
+                MapStore.open(Path(tmp) / "train.sqlite", synchronous="NORMAL", clock=clock) as store:
+            daemon = assemble_daemon(cfg, clock, {"base": replay.base, "floor": replay.floor}, store,
+                                     Notifier(), lossless=True, observers=[collector],
+                                     load_calibration_file=False, floor_detector=False)
+            replay.start()
+            daemon.run(stop_when=lambda: replay.error is not None or (
+                replay.done() and daemon.pipeline.inputs >= replay.base.handed_out + replay.floor.handed_out))
+            if replay.error is not None:
+                raise replay.error
         if progress is not None:
-            progress("reading the recording (s)", total // 10**9, total // 10**9)
-        collect(len(jobs), show=True)
+            progress("reading the recording (s)", collector.total_ns // 10**9, collector.total_ns // 10**9)
+        collector.collect(len(collector.jobs), show=True)
     finally:
         pool.close()
         pool.join()
-        reader.close()
+    stamps, wheel_t = collector.stamps, collector.wheel_t
     if len(stamps) < 10 or len(wheel_t) < 2:
         raise CalibrationError(f"{path}: only {len(stamps)} keyframes with odometry; a calibration run "
                                "needs a drive with floor frames and wheel/gyro data")
     st = np.asarray(stamps, np.int64)
-    run = CalibrationRun(st, np.asarray(fused), _interpolate(st, np.asarray(wheel_t), np.asarray(wheel_p)),
-                         None, {m: [r[i] for r in results] for i, m in enumerate(params.modes)}, worker_mb)
-    if len(truth_t) >= 2:
-        run.truth = _interpolate(st, np.asarray(truth_t), np.asarray(truth_p))
+    results = collector.results
+    run = CalibrationRun(st, np.asarray(collector.fused),
+                         _interpolate(st, np.asarray(wheel_t), np.asarray(collector.wheel_p)),
+                         None, {m: [r[i] for r in results] for i, m in enumerate(params.modes)},
+                         collector.worker_mb)
+    if len(truth) >= 2:
+        run.truth = _interpolate(st, np.asarray([t for t, _ in truth]), np.asarray([p for _, p in truth]))
     return run
 
 
