@@ -36,9 +36,15 @@ from typing import Any, Callable
 
 import numpy as np
 
-from calibration.loop_curve import LoopCurve, PrecisionRecall, fit_loop_curve, pick_threshold, precision_recall
-from robotd.base.errors import CalibrationError, RobotdError
+from calibration.loop_curve import (
+    LoopCurve,
+    PrecisionRecall,
+    fit_loop_curve,
+    pick_threshold,
+    precision_recall,
+)
 from robotd.base.camera import FloorCameraModel, overlap_ratios
+from robotd.base.errors import CalibrationError, RobotdError
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +117,7 @@ def _pool(workers: int, descriptors: list[bytes] | None = None) -> Any:
     return ctx.Pool(max(1, workers), initializer=_init_worker, initargs=(descriptors,))
 
 
-def _peak_rss_mb() -> float:
+def peak_rss_mb() -> float:
     """This process's peak resident memory, MB (Linux reports kB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
@@ -119,7 +125,7 @@ def _peak_rss_mb() -> float:
 def _describe_all(image: np.ndarray, modes: tuple[int, ...]) -> tuple[list[bytes], float]:
     from robotd.floor.descriptor import extract
 
-    return [extract(image, m) for m in modes], _peak_rss_mb()
+    return [extract(image, m) for m in modes], peak_rss_mb()
 
 
 def _interpolate(stamps_ns: np.ndarray, track_ns: np.ndarray, track: np.ndarray) -> np.ndarray:
@@ -246,7 +252,7 @@ def load_run(path: Path, cfg: Any, params: TrainParams, progress: Progress | Non
 
     try:
         with tempfile.TemporaryDirectory(prefix="robotd-train-") as tmp, \
-                ReplaySource(path, clock) as replay, \
+                ReplaySource(path, clock, on_other=other) as replay, \
                 MapStore.open(Path(tmp) / "train.sqlite", synchronous="NORMAL", clock=clock) as store:
             daemon = assemble_daemon(cfg, clock, {"base": replay.base, "floor": replay.floor}, store,
                                      Notifier(), lossless=True, observers=[collector],
@@ -344,7 +350,7 @@ def _score_chunk(pairs: np.ndarray) -> tuple[np.ndarray, float]:
     from robotd.floor.match import local_score
 
     descs = _WORKER["descriptors"]
-    return np.array([local_score(descs[a], descs[b]).score for a, b in pairs], dtype=float), _peak_rss_mb()
+    return np.array([local_score(descs[a], descs[b]).score for a, b in pairs], dtype=float), peak_rss_mb()
 
 
 def score_pairs(descriptors: list[bytes], i: np.ndarray, j: np.ndarray, workers: int = 2,
@@ -445,251 +451,3 @@ def validate(run: CalibrationRun, camera: FloorCameraModel, thresholds: dict[int
         out[m] = ModeValidation(m, precision_recall(s, loop, t, w),
                                 precision_recall(s[revisit], loop[revisit], t, w[revisit]))
     return out
-
-
-# -- command line ---------------------------------------------------------------------------
-
-def _progress_printer() -> Progress:
-    from calibration.intrinsics import ProgressBar  # one progress bar for every calibration step
-
-    bars: dict[str, Any] = {}
-
-    def show(label: str, done: int, total: int) -> None:
-        bars.setdefault(label, ProgressBar(label))(done, total)
-
-    return show
-
-
-def _common_arguments(p: Any) -> None:
-    p.add_argument("--config", type=Path, default=None,
-                   help="robotd config (odometry, floor camera); default: the one the recording "
-                        "was made with, else the defaults")
-    p.add_argument("--modes", default="1,2,3,4,5,6", help="descriptor modes (default: all)")
-    p.add_argument("--spacing", type=float, default=None, metavar="M",
-                   help="keyframe spacing, metres (default: the config's [keyframes] distance_m)")
-    p.add_argument("--rotation", type=float, default=None, metavar="DEG",
-                   help="keyframe rotation, degrees (default: the config's [keyframes] rotation_deg)")
-    p.add_argument("--r", type=float, default=TrainParams.r,
-                   help=f"footprint overlap J that makes a loop (default {TrainParams.r})")
-    p.add_argument("--far-pairs", type=float, default=TrainParams.far_pairs_per_keyframe, metavar="K",
-                   help="distant pairs sampled per keyframe (default "
-                        f"{TrainParams.far_pairs_per_keyframe:g})")
-    p.add_argument("--workers", type=int, default=TrainParams.workers, help="worker processes")
-    p.add_argument("--json", type=Path, default=None, metavar="FILE", help="also write the results as JSON")
-
-
-def add_loop_curve_arguments(p: Any) -> None:
-    p.add_argument("recording", type=Path, help="MCAP recording of a calibration drive")
-    p.add_argument("--calibration", type=Path, required=True,
-                   help="calibration file to write the thresholds into (created or updated)")
-    p.add_argument("--odometry", choices=("fused", "wheel"), default="fused",
-                   help="which odometry labels the pairs (default: fused wheel+gyro, as in the paper)")
-    p.add_argument("--confidence", type=float, default=TrainParams.confidence,
-                   help=f"P(loop | score) at the threshold (default {TrainParams.confidence})")
-    p.add_argument("--drift", type=float, default=TrainParams.drift, metavar="F",
-                   help="bound on the odometry's position error per metre of travel (default "
-                        f"{TrainParams.drift:g}); pairs whose label that error could change are not used")
-    p.add_argument("--label-tolerance", type=float, default=TrainParams.label_tolerance, metavar="F",
-                   help="largest such error that still labels a pair, as a fraction of the footprint's "
-                        f"shorter side (default {TrainParams.label_tolerance:g})")
-    p.add_argument("--plot", type=Path, default=None, help="write the curves (paper Fig. 5) to this PNG")
-    _common_arguments(p)
-
-
-def _setup(args: Any) -> tuple[Any, FloorCameraModel, TrainParams]:
-    from robotd.io.calibfile import camera_model, read_calibration
-    from robotd.base.config import Config, load_config
-
-    if args.config is not None:
-        cfg = load_config(args.config)
-    else:
-        cfg = recording_config(args.recording)
-        if cfg is None:
-            log.info("%s holds no config: using the default config", args.recording)
-            cfg = Config()
-    calib = read_calibration(args.calibration) if args.calibration.exists() else None
-    try:
-        modes = tuple(sorted({int(m) for m in args.modes.split(",")}))
-    except ValueError:
-        raise CalibrationError(f"--modes must be a comma-separated list of 1..6, got {args.modes!r}") from None
-    if not modes or not set(modes) <= set(MODES):
-        raise CalibrationError(f"--modes must be a comma-separated list of 1..6, got {args.modes!r}")
-    confidence = getattr(args, "confidence", TrainParams.confidence)
-    spacing = cfg.keyframes.distance_m if args.spacing is None else args.spacing
-    rotation = cfg.keyframes.rotation_deg if args.rotation is None else args.rotation
-    drift = getattr(args, "drift", TrainParams.drift)
-    tolerance = getattr(args, "label_tolerance", TrainParams.label_tolerance)
-    if not (spacing > 0 and rotation > 0 and 0 < args.r <= 1 and 0 < confidence < 1
-            and args.far_pairs >= 0 and args.workers >= 1 and drift >= 0 and tolerance > 0):
-        raise CalibrationError("need --spacing > 0, --rotation > 0, 0 < --r <= 1, 0 < --confidence < 1, "
-                               "--far-pairs >= 0, --workers >= 1, --drift >= 0, --label-tolerance > 0")
-    params = TrainParams(modes=modes, spacing_m=spacing, rotation_deg=rotation,
-                         odometry=getattr(args, "odometry", "fused"), far_pairs_per_keyframe=args.far_pairs,
-                         r=args.r, confidence=confidence, workers=args.workers, drift=drift,
-                         label_tolerance=tolerance)
-    return cfg, camera_model(calib, cfg.floor_camera), params
-
-
-def _row(name: str, values: list[str]) -> str:
-    return f"{name:<22}" + "".join(f"{v:>9}" for v in values)
-
-
-def format_table_iii(res: dict[int, ModeResult], params: TrainParams) -> str:
-    """The trained thresholds in the layout of paper 003's Table III (one column per mode),
-    with what stands behind each: P(loop) at the threshold and the training loops above it."""
-    modes = list(res)
-    lines = [_row("local score", [f"mode {m}" for m in modes])]
-    lines.append(_row("threshold", [_fmt(r.threshold) for r in res.values()]))
-    p_at, above, loops = [], [], []
-    for r in res.values():
-        is_loop = r.overlap >= params.r
-        loops.append(str(int(is_loop.sum())))
-        if r.threshold is None:
-            p_at.append("-")
-            above.append("-")
-            continue
-        p_at.append(f"{float(r.curve.at(r.threshold)):.4f}")
-        above.append(str(int(np.sum((r.scores >= r.threshold) & is_loop))))
-    lines.append(_row("P(loop) at threshold", p_at))
-    lines.append(_row("loops (J >= r)", loops))
-    lines.append(_row("loops above threshold", above))
-    return "\n".join(lines)
-
-
-def run_loop_curve(args: Any) -> int:
-    import json
-    import sys
-
-    from robotd.io.calibfile import CalibrationFile, LoopThresholds, update_calibration
-
-    t0 = time.monotonic()
-    cfg, camera, params = _setup(args)
-    progress = _progress_printer()
-    run = load_run(args.recording, cfg, params, progress)
-    t_load = time.monotonic() - t0
-    res = train(run, camera, params, progress)
-    seconds = time.monotonic() - t0
-    own_mb = _peak_rss_mb()
-    worker_mb = max([run.worker_peak_rss_mb] + [r.worker_peak_rss_mb for r in res.values()])
-    thresholds = {m: r.threshold for m, r in res.items()}
-    update_calibration(args.calibration, CalibrationFile(loop=LoopThresholds.from_mapping(
-        thresholds, overlap_r=params.r, confidence=params.confidence)))
-    first = next(iter(res.values()))
-    n_near = int(np.sum(first.weights == 1.0))
-    out = sys.stdout
-    print(f"\n{len(run.stamps_ns)} keyframes (every {params.spacing_m:g} m or {params.rotation_deg:g} deg); "
-          f"{len(first.scores)} scored pairs per mode ({n_near} that could overlap, "
-          f"{len(first.scores) - n_near} sampled distant ones); labels from {params.odometry} odometry, "
-          f"loop = J >= {params.r}; {first.untrusted} candidate pairs left unlabelled (a drift of "
-          f"{params.drift:g} per metre of travel could change their label)", file=out)
-    if first.mislabelled is not None:
-        print(f"ground truth (virtual robot) contradicts {first.mislabelled} of the {len(first.scores)} "
-              "labels", file=out)
-    print(f"Thresholds (paper 003 Table III): smallest local score with P(loop | score) >= "
-          f"{params.confidence}", file=out)
-    print(format_table_iii(res, params), file=out)
-    print(f"training time {seconds:.1f} s (reading and describing {t_load:.1f} s, scoring "
-          f"{sum(r.seconds for r in res.values()):.1f} s) on {params.workers} worker process(es); peak resident "
-          f"memory {own_mb:.0f} MB (main process), {worker_mb:.0f} MB (largest worker)", file=out)
-    untrained = [m for m, t in thresholds.items() if t is None]
-    if untrained:
-        print(f"modes {', '.join(map(str, untrained))}: no score reaches P(loop) >= {params.confidence} "
-              "with enough evidence; no threshold (the daemon declares no loops in these modes)", file=out)
-    print(f"thresholds written to {args.calibration}", file=out)
-    if args.plot is not None:
-        from robotd.io.plots import plot_loop_curves
-
-        plot_loop_curves(args.plot, {m: r.curve for m, r in res.items()}, thresholds, params.confidence,
-                         title=f"P(J >= {params.r} | local score), {len(run.stamps_ns)} keyframes, "
-                               f"labels from {params.odometry} odometry")
-        print(f"curves: {args.plot}", file=out)
-    if args.json is not None:
-        args.json.write_text(json.dumps({
-            "recording": str(args.recording), "odometry": params.odometry, "keyframes": len(run.stamps_ns),
-            "spacing_m": params.spacing_m, "r": params.r, "confidence": params.confidence,
-            "pairs": len(first.scores), "near_pairs": n_near, "workers": params.workers,
-            "unlabelled_pairs": first.untrusted, "mislabelled_pairs": first.mislabelled, "drift": params.drift,
-            "label_tolerance": params.label_tolerance,
-            "seconds": seconds, "seconds_load": t_load, "peak_rss_mb_main": own_mb,
-            "peak_rss_mb_largest_worker": worker_mb,
-            "modes": {str(m): {"threshold": r.threshold, "loops": int(np.sum(r.overlap >= params.r)),
-                               "seconds": r.seconds,
-                               "curve": {"score_lo": r.curve.score_lo.tolist(),
-                                         "score_hi": r.curve.score_hi.tolist(),
-                                         "probability": r.curve.probability.tolist(),
-                                         "lower": r.curve.lower.tolist()}}
-                      for m, r in res.items()},
-        }, indent=2) + "\n")
-    return 0
-
-
-def _fmt(t: float | None) -> str:
-    return "-" if t is None else f"{t:.1f}"
-
-
-def add_validate_arguments(p: Any) -> None:
-    p.add_argument("recording", type=Path, help="MCAP recording of another drive (with ground truth)")
-    p.add_argument("--calibration", type=Path, required=True, help="calibration file with thresholds")
-    p.add_argument("--revisit", type=float, default=2.0, metavar="M",
-                   help="pairs more than this much travel apart count as revisits (default 2 m)")
-    _common_arguments(p)
-
-
-def _pr_json(pr: PrecisionRecall) -> dict[str, Any]:
-    """Counts, precision and recall as JSON values (null where undefined)."""
-    def num(x: float) -> float | None:
-        return x if math.isfinite(x) else None
-
-    return {"true_positives": pr.true_positives, "false_positives": pr.false_positives,
-            "false_negatives": pr.false_negatives, "precision": num(pr.precision), "recall": num(pr.recall)}
-
-
-def _pct(x: float) -> str:
-    return "-" if x != x else f"{100.0 * x:.2f}%"
-
-
-def run_validate(args: Any) -> int:
-    import json
-    import sys
-
-    from robotd.io.calibfile import read_calibration
-
-    cfg, camera, params = _setup(args)
-    calib = read_calibration(args.calibration)
-    if calib.loop is None:
-        raise CalibrationError(f"{args.calibration}: no loop thresholds (run `robotd calibrate loop-curve`)")
-    if args.r != calib.loop.overlap_r:
-        log.warning("validating with r = %s but the thresholds were trained for r = %s",
-                    args.r, calib.loop.overlap_r)
-    progress = _progress_printer()
-    run = load_run(args.recording, cfg, params, progress)
-    res = validate(run, camera, {m: calib.loop.for_mode(m) for m in params.modes}, params,
-                   revisit_m=args.revisit, progress=progress)
-    out = sys.stdout
-    print(f"\n{len(run.stamps_ns)} keyframes (every {params.spacing_m:g} m or {params.rotation_deg:g} deg); "
-          f"a loop is a ground-truth overlap J >= {params.r}; distant pairs sampled and weighted", file=out)
-    modes = list(res)
-    rows: list[tuple[str, Callable[[ModeValidation], str]]] = [
-        ("threshold", lambda v: _fmt(v.all_pairs.threshold if math.isfinite(v.all_pairs.threshold) else None)),
-        ("declared loops", lambda v: str(v.all_pairs.true_positives + v.all_pairs.false_positives)),
-        ("false loops", lambda v: str(v.all_pairs.false_positives)),
-        ("missed loops", lambda v: str(v.all_pairs.false_negatives)),
-        ("precision", lambda v: _pct(v.all_pairs.precision)),
-        ("recall", lambda v: _pct(v.all_pairs.recall)),
-        (f"revisits (> {args.revisit:g} m): loops", lambda v: str(v.revisits.true_positives
-                                                                  + v.revisits.false_negatives)),
-        ("  precision", lambda v: _pct(v.revisits.precision)),
-        ("  recall", lambda v: _pct(v.revisits.recall)),
-    ]
-    print(f"{'local score':<26}" + "".join(f"{'mode ' + str(m):>9}" for m in modes), file=out)
-    for name, cell in rows:
-        print(f"{name:<26}" + "".join(f"{cell(v):>9}" for v in res.values()), file=out)
-    if args.json is not None:
-        args.json.write_text(json.dumps({
-            "recording": str(args.recording), "keyframes": len(run.stamps_ns), "r": params.r,
-            "revisit_m": args.revisit,
-            "modes": {str(m): {
-                "threshold": v.all_pairs.threshold if math.isfinite(v.all_pairs.threshold) else None,
-                "all": _pr_json(v.all_pairs), "revisits": _pr_json(v.revisits)} for m, v in res.items()},
-        }, indent=2) + "\n")
-    return 0

@@ -45,7 +45,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="logging level (default: the config's, or info)")
     p.add_argument("--traceback", action="store_true", help="show a traceback on errors")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    _add_daemon_commands(sub)
+    _add_config_commands(sub)
+    _add_calibrate_commands(sub)
+    _add_kobuki_commands(sub)
+    return p
 
+
+def _add_daemon_commands(sub: argparse._SubParsersAction) -> None:
+    """``run``, ``record``, ``replay`` and ``demo``: the daemon on hardware, a recording,
+    or the virtual robot."""
     run = sub.add_parser("run", help="run the daemon on real hardware, as the config says",
                          description="Run the daemon on real hardware (the systemd service's command).")
     run.add_argument("--config", type=Path, required=True, help="TOML config file")
@@ -86,6 +95,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo_mod.add_arguments(d)
     d.set_defaults(func=demo_mod.run_from_args)
 
+
+def _add_config_commands(sub: argparse._SubParsersAction) -> None:
     cfg = sub.add_parser("config", help="check or print configuration files")
     cfg_sub = cfg.add_subparsers(dest="config_command", metavar="ACTION", required=True)
     chk = cfg_sub.add_parser("check", help="validate a config file")
@@ -94,12 +105,13 @@ def build_parser() -> argparse.ArgumentParser:
     dflt = cfg_sub.add_parser("default", help="print the default configuration as TOML")
     dflt.set_defaults(func=_cmd_config_default)
 
+
+def _add_calibrate_commands(sub: argparse._SubParsersAction) -> None:
+    """``calibrate intrinsics|floor-mount|loop-curve|validate``: the offline tools."""
+    from calibration import floor_mount, intrinsics, train_cli
+
     cal = sub.add_parser("calibrate", help="camera and floor calibration")
     cal_sub = cal.add_subparsers(dest="calibrate_command", metavar="ACTION", required=True)
-    from calibration import floor_mount, intrinsics
-
-    
-
     ci = cal_sub.add_parser("intrinsics", help="camera intrinsics from chessboard photos",
                             description="Calibrate the camera from chessboard photos and write (or "
                                         "update) an OpenCV YAML calibration file.")
@@ -111,10 +123,6 @@ def build_parser() -> argparse.ArgumentParser:
                                         "chessboard lying at a known place in the robot frame.")
     floor_mount.add_floor_mount_arguments(cm)
     cm.set_defaults(func=floor_mount.run_floor_mount)
-    from calibration import train
-
-    
-
     cl = cal_sub.add_parser("loop-curve", help="train P(loop | score) and the loop thresholds "
                                                "from a calibration recording",
                             description="Score keyframe pairs of a recorded drive in every descriptor "
@@ -122,16 +130,20 @@ def build_parser() -> argparse.ArgumentParser:
                                         "fit P(J >= r | score) and write each mode's threshold into the "
                                         "calibration file the daemon loads (paper 003 Sec. IV-C, Fig. 5, "
                                         "Table III).")
-    train.add_loop_curve_arguments(cl)
-    cl.set_defaults(func=train.run_loop_curve)
+    train_cli.add_loop_curve_arguments(cl)
+    cl.set_defaults(func=train_cli.run_loop_curve)
     cv = cal_sub.add_parser("validate", help="precision and recall of the thresholds on another "
                                              "recording (labelled by its ground truth)",
                             description="Apply the calibration file's thresholds to the keyframe pairs "
                                         "of another recording of the virtual robot and report, per "
                                         "mode, precision and recall of the declared loops against the "
                                         "ground-truth footprint overlap.")
-    train.add_validate_arguments(cv)
-    cv.set_defaults(func=train.run_validate)
+    train_cli.add_validate_arguments(cv)
+    cv.set_defaults(func=train_cli.run_validate)
+
+
+def _add_kobuki_commands(sub: argparse._SubParsersAction) -> None:
+    from drivers.kobuki import capture
 
     kob = sub.add_parser("kobuki", help="Kobuki base tools")
     kob_sub = kob.add_subparsers(dest="kobuki_command", metavar="ACTION", required=True)
@@ -139,10 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
                              description="Decode a raw serial capture, or the hex dump written "
                                          "by pyserial's spy:// URL, into one JSON line per packet, "
                                          "with the error counts on the last line.")
-    from drivers.kobuki import capture
     capture.add_decode_arguments(dec)
     dec.set_defaults(func=capture.run_decode)
-    return p
 
 
 def _cmd_run(args: argparse.Namespace) -> int:

@@ -53,7 +53,7 @@ import logging
 import math
 import sqlite3
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -65,6 +65,7 @@ import numpy as np
 import robotd
 from robotd.base.clock import Clock, MonotonicClock
 from robotd.base.errors import MapStoreError
+from robotd.io.mapfile import MIGRATIONS, SCHEMA_VERSION, inspect_file, migrate
 
 __all__ = [
     "MIGRATIONS",
@@ -77,100 +78,10 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 
-_SQLITE_MAGIC = b"SQLite format 3\x00"
 _MATRIX_DTYPE = np.dtype("<f8")
 _MATRIX_BYTES = 9 * _MATRIX_DTYPE.itemsize
 _LINK_KINDS = ("odometry", "loop")
 _PAGE_ROWS = 256  # rows fetched per query when iterating (see MapStore.keyframes)
-
-Migration = Callable[[sqlite3.Connection], None]
-"""Brings a database from version ``v - 1`` to ``v`` (the key it is stored under in
-:data:`MIGRATIONS`). It runs inside a write transaction that also records the new
-version, so a crash leaves the file at the old version or the new one, never between."""
-
-
-_SCHEMA_V1 = (
-    """CREATE TABLE meta (
-        key   TEXT PRIMARY KEY,
-        value TEXT NOT NULL
-    ) WITHOUT ROWID""",
-    """CREATE TABLE runs (
-        id             INTEGER PRIMARY KEY AUTOINCREMENT,
-        started_ns     INTEGER NOT NULL,
-        ended_ns       INTEGER,
-        config         TEXT NOT NULL,
-        robotd_version TEXT NOT NULL,
-        notes          TEXT NOT NULL DEFAULT ''
-    )""",
-    # AUTOINCREMENT: an id is never reused, so ids exported to g2o/TUM files or written
-    # in logs keep naming the same keyframe for the life of the map.
-    """CREATE TABLE keyframes (
-        id              INTEGER PRIMARY KEY AUTOINCREMENT,
-        run_id          INTEGER NOT NULL REFERENCES runs(id),
-        stamp_ns        INTEGER NOT NULL,
-        x_m             REAL NOT NULL,
-        y_m             REAL NOT NULL,
-        yaw_rad         REAL NOT NULL,
-        covariance      BLOB NOT NULL CHECK (length(covariance) = 72),
-        image           BLOB,
-        image_width     INTEGER,
-        image_height    INTEGER,
-        descriptor      BLOB,
-        descriptor_mode INTEGER,
-        CHECK ((image IS NULL) = (image_width IS NULL)
-               AND (image IS NULL) = (image_height IS NULL)),
-        CHECK ((descriptor IS NULL) = (descriptor_mode IS NULL))
-    )""",
-    "CREATE INDEX keyframes_by_run ON keyframes(run_id, id)",
-    """CREATE TABLE links (
-        id          INTEGER PRIMARY KEY AUTOINCREMENT,
-        kind        TEXT NOT NULL CHECK (kind IN ('odometry', 'loop')),
-        from_id     INTEGER NOT NULL REFERENCES keyframes(id),
-        to_id       INTEGER NOT NULL REFERENCES keyframes(id),
-        dx_m        REAL NOT NULL,
-        dy_m        REAL NOT NULL,
-        dyaw_rad    REAL NOT NULL,
-        information BLOB NOT NULL CHECK (length(information) = 72)
-    )""",
-    "CREATE INDEX links_by_from ON links(from_id)",
-    "CREATE INDEX links_by_to ON links(to_id)",
-    """CREATE TABLE calibration (
-        id         INTEGER PRIMARY KEY AUTOINCREMENT,
-        name       TEXT NOT NULL,
-        created_ns INTEGER NOT NULL,
-        content    TEXT NOT NULL
-    )""",
-    "CREATE INDEX calibration_by_name ON calibration(name, id)",
-)
-
-
-def _migrate_0_to_1(conn: sqlite3.Connection) -> None:
-    """Version 1, the first schema: create every table on an empty database.
-
-    Statements run one by one with ``execute``: ``executescript`` would commit the
-    enclosing migration transaction first.
-    """
-    for statement in _SCHEMA_V1:
-        conn.execute(statement)
-
-
-def _migrate_1_to_2(conn: sqlite3.Connection) -> None:
-    """Version 2: runs get their epoch (``epoch_unix_ns``, NULL for the runs before), and
-    keyframes are indexed by run and stamp, the key of "recent" in the floor detector."""
-    conn.execute("ALTER TABLE runs ADD COLUMN epoch_unix_ns INTEGER")
-    conn.execute("CREATE INDEX keyframes_by_run_stamp ON keyframes(run_id, stamp_ns)")
-
-
-MIGRATIONS: Mapping[int, Migration] = {1: _migrate_0_to_1, 2: _migrate_1_to_2}
-"""Schema migrations keyed by the version each one produces, contiguous from 1.
-
-A new database is "migrated" from version 0 through every step, so creating a map and
-upgrading an old one are the same code path. To change the schema, append
-``N + 1: _migrate_N_to_N_plus_1``; never edit a released step."""
-
-SCHEMA_VERSION: int = max(MIGRATIONS)
-"""The schema version this code writes; a file with a newer version is refused."""
-
 
 @dataclass(frozen=True, slots=True)
 class RunRecord:
@@ -255,10 +166,6 @@ def _check_descriptor(descriptor: bytes | None, mode: int | None) -> None:
         raise TypeError(f"descriptor must be bytes, got {type(descriptor).__name__}")
 
 
-def _sidecars(path: Path) -> tuple[Path, Path]:
-    return path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm")
-
-
 class MapStore:
     """The robot's map in one SQLite file; see the module docstring for the layout.
 
@@ -326,7 +233,7 @@ class MapStore:
                 raise MapStoreError(f"map file {path} is not a regular file")
             if path.stat().st_size == 0 and not create:
                 raise MapStoreError(f"map file {path} is empty")
-            version = _inspect(path, target)
+            version = inspect_file(path, target)
         elif create:
             if not path.parent.is_dir():
                 raise MapStoreError(
@@ -355,7 +262,7 @@ class MapStore:
                 )
             conn.execute(f"PRAGMA synchronous={synchronous}")
             conn.execute("PRAGMA foreign_keys=ON")
-            _migrate(conn, path, migrations, target)
+            migrate(conn, path, migrations, target)
         except sqlite3.Error as exc:
             conn.close()
             raise MapStoreError(f"cannot open map file {path}: {exc}") from exc
@@ -747,121 +654,3 @@ class MapStore:
             (str(name),),
         )
         return rows[0][0] if rows else None
-
-
-def _inspect(path: Path, target: int) -> int:
-    """Check an existing file without writing to it; return its schema version.
-
-    Uses a read-only connection, so SQLite itself cannot modify the database file. A
-    read-only connection to a WAL database still creates empty ``-wal``/``-shm`` files
-    next to it when they are missing; on rejection those are removed again.
-    """
-    with path.open("rb") as f:
-        header = f.read(len(_SQLITE_MAGIC))
-    if header == b"":
-        return 0  # an empty file is an empty database: SQLite treats it so too
-    if header != _SQLITE_MAGIC:
-        raise MapStoreError(f"map file {path} is not an SQLite database")
-
-    existed = {p: p.exists() for p in _sidecars(path)}
-    try:
-        try:
-            ro = sqlite3.connect(path.as_uri() + "?mode=ro", uri=True, isolation_level=None)
-        except sqlite3.Error as exc:
-            raise MapStoreError(f"cannot open map file {path}: {exc}") from exc
-        try:
-            problems = [row[0] for row in ro.execute("PRAGMA quick_check(5)").fetchall()]
-            if problems != ["ok"]:
-                raise MapStoreError(
-                    f"map file {path} is damaged (quick_check: {'; '.join(problems)})"
-                )
-            tables = {
-                row[0]
-                for row in ro.execute("SELECT name FROM sqlite_master WHERE type = 'table'")
-            }
-            if not tables:
-                return 0
-            if "meta" not in tables:
-                raise MapStoreError(f"map file {path} is an SQLite database but not a robotd map")
-            row = ro.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
-            try:
-                version = int(row[0])
-            except (TypeError, ValueError):
-                raise MapStoreError(
-                    f"map file {path} has no valid schema_version in its meta table"
-                ) from None
-        except sqlite3.Error as exc:
-            raise MapStoreError(f"map file {path} is damaged or unreadable: {exc}") from exc
-        finally:
-            ro.close()
-        if version > target:
-            raise MapStoreError(
-                f"map file {path} has schema version {version}, newer than the {target}"
-                f" this robotd {robotd.__version__} understands; upgrade robotd"
-            )
-        if version < 1:
-            raise MapStoreError(f"map file {path} has an invalid schema version {version}")
-        return version
-    except MapStoreError:
-        _remove_new_sidecars(existed)
-        raise
-
-
-def _remove_new_sidecars(existed: Mapping[Path, bool]) -> None:
-    """Remove the empty ``-wal``/``-shm`` files our read-only check created."""
-    wal, shm = existed
-    if existed[wal] or existed[shm]:
-        return  # someone else's: leave them alone
-    with contextlib.suppress(FileNotFoundError):
-        if wal.stat().st_size != 0:
-            return
-    for sidecar in (wal, shm):
-        with contextlib.suppress(FileNotFoundError):
-            sidecar.unlink()
-
-
-def _migrate(
-    conn: sqlite3.Connection, path: Path, migrations: Mapping[int, Migration], target: int
-) -> None:
-    """Apply ``migrations`` one version at a time until the file is at ``target``.
-
-    Each step and the new ``schema_version`` commit together under ``BEGIN IMMEDIATE``,
-    which also stops two processes from migrating the same file at once.
-    """
-    if sorted(migrations) != list(range(1, target + 1)):
-        raise MapStoreError(f"internal: migrations must be numbered 1..{target}")
-    while True:
-        conn.execute("BEGIN IMMEDIATE")
-        try:
-            has_meta = conn.execute(
-                "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'meta'"
-            ).fetchone()
-            version = 0
-            if has_meta:
-                row = conn.execute(
-                    "SELECT value FROM meta WHERE key = 'schema_version'"
-                ).fetchone()
-                version = int(row[0]) if row else 0
-            if version > target:  # changed between the inspection and now
-                raise MapStoreError(
-                    f"map file {path} has schema version {version}, newer than {target}"
-                )
-            if version == target:
-                conn.execute("COMMIT")
-                return
-            migrations[version + 1](conn)
-            conn.execute(
-                "INSERT INTO meta(key, value) VALUES ('schema_version', ?)"
-                " ON CONFLICT(key) DO UPDATE SET value = excluded.value",
-                (str(version + 1),),
-            )
-            if version == 0:
-                conn.execute(
-                    "INSERT INTO meta(key, value) VALUES ('created_by', ?)",
-                    (f"robotd {robotd.__version__}",),
-                )
-            conn.execute("COMMIT")
-        except BaseException:
-            if conn.in_transaction:
-                conn.execute("ROLLBACK")
-            raise

@@ -208,3 +208,27 @@ def test_build_pipeline_orders_the_stages(tmp_path: Path):
                                 lossless=True, floor_detector=False)
         assert [s.name for s in nobase.stages] == ["keyframes", "map"]
     assert build_odometry(cfg).drive.wheel_base_m == cfg.robot.wheel_base_m
+
+
+def test_the_configured_jpeg_quality_reaches_the_map(tmp_path: Path):
+    """[keyframes] jpeg_quality is what the map stores its keyframe images with."""
+    import sqlite3
+
+    from robotd.app.assemble import open_map
+
+    noisy = np.random.default_rng(0).integers(0, 256, (120, 160), dtype=np.uint8)
+    sizes = {}
+    for q in (20, 95):
+        cfg = replace(replace(Config(), "keyframes", jpeg_quality=q), "map", path=str(tmp_path / f"q{q}.sqlite"))
+        with open_map(cfg) as store:
+            run = store.begin_run("")
+            store.add_keyframe(run, 0, (0, 0, 0), np.eye(3), noisy)
+        with sqlite3.connect(tmp_path / f"q{q}.sqlite") as raw:
+            blob = raw.execute("SELECT image FROM keyframes").fetchone()[0]
+        raw.close()
+        sizes[q] = len(blob)
+        back = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_GRAYSCALE)
+        err = float(np.mean(np.abs(back.astype(float) - noisy)))
+        sizes[f"err{q}"] = err
+    assert sizes[20] < 0.5 * sizes[95]
+    assert sizes["err20"] > sizes["err95"]
