@@ -11,11 +11,19 @@ import math
 import numpy as np
 
 
+_TWO_PI = 2.0 * math.pi
+
+
 def wrap_angle(a_rad: float | np.ndarray) -> float | np.ndarray:
-    """Wrap an angle (float) or an array of angles to [-pi, pi)."""
+    """Wrap an angle or an array of angles (radians) to ``[-pi, pi)``.
+
+    The one angle wrap of robotd. A scalar (Python or NumPy) gives a Python ``float``
+    through plain float arithmetic (no array is built: the EKF calls this once per
+    message); an array gives an array of the same shape and dtype.
+    """
     if isinstance(a_rad, np.ndarray):
-        return (a_rad + math.pi) % (2.0 * math.pi) - math.pi
-    return (float(a_rad) + math.pi) % (2.0 * math.pi) - math.pi
+        return (a_rad + math.pi) % _TWO_PI - math.pi
+    return (float(a_rad) + math.pi) % _TWO_PI - math.pi
 
 
 def rot2(yaw_rad: float) -> np.ndarray:
