@@ -39,6 +39,7 @@ import numpy as np
 from calibration.loop_curve import LoopCurve, PrecisionRecall, fit_loop_curve, pick_threshold, precision_recall
 from robotd.base.errors import CalibrationError, RobotdError
 from robotd.base.camera import FloorCameraModel, overlap_ratios
+from robotd.base.geometry import interpolate_poses
 
 log = logging.getLogger(__name__)
 
@@ -120,17 +121,6 @@ def _describe_all(image: np.ndarray, modes: tuple[int, ...]) -> tuple[list[bytes
     from robotd.floor.descriptor import extract
 
     return [extract(image, m) for m in modes], _peak_rss_mb()
-
-
-def _interpolate(stamps_ns: np.ndarray, track_ns: np.ndarray, track: np.ndarray) -> np.ndarray:
-    """Poses ``(N, 3)`` of a track ``(M, 3)`` at ``stamps_ns (N,)``: position linearly, yaw
-    linearly along its unwrapped sequence, clamped at the track's ends."""
-    t = np.asarray(track_ns, dtype=np.float64)
-    q = np.asarray(stamps_ns, dtype=np.float64)
-    yaw = np.unwrap(track[:, 2])
-    out = np.column_stack([np.interp(q, t, track[:, 0]), np.interp(q, t, track[:, 1]), np.interp(q, t, yaw)])
-    out[:, 2] = (out[:, 2] + np.pi) % (2 * np.pi) - np.pi
-    return out
 
 
 def recording_config(path: Path) -> Any:
@@ -238,10 +228,10 @@ def load_run(path: Path, cfg: Any, params: TrainParams, progress: Progress | Non
         raise CalibrationError(f"{path}: only {len(stamps)} keyframes with odometry; a calibration run "
                                "needs a drive with floor frames and wheel/gyro data")
     st = np.asarray(stamps, np.int64)
-    run = CalibrationRun(st, np.asarray(fused), _interpolate(st, np.asarray(wheel_t), np.asarray(wheel_p)),
+    run = CalibrationRun(st, np.asarray(fused), interpolate_poses(np.asarray(wheel_t), np.asarray(wheel_p), st),
                          None, {m: [r[i] for r in results] for i, m in enumerate(params.modes)}, worker_mb)
     if len(truth_t) >= 2:
-        run.truth = _interpolate(st, np.asarray(truth_t), np.asarray(truth_p))
+        run.truth = interpolate_poses(np.asarray(truth_t), np.asarray(truth_p), st)
     return run
 
 

@@ -75,7 +75,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robotd.base.geometry import wrap_angle
+from robotd.base.geometry import interpolate_poses, wrap_angle
 from robotd.base.messages import PoseStamped, WheelTicks, YawRate
 from robotd.odometry.kinematics import (
     DiffDriveParams,
@@ -611,9 +611,8 @@ class OdometryFilter:
             return PoseStamped(int(stamp_ns), float(p[0]), float(p[1]), float(p[2]), c.copy())
         t0, t1 = ts[i - 1], ts[i]
         f = (stamp_ns - t0) / (t1 - t0)
-        p0, p1 = self._hist_pose[i - 1], self._hist_pose[i]
-        dyaw = wrap_angle(p1[2] - p0[2])
-        yaw = wrap_angle(p0[2] + f * dyaw)
+        x, y, yaw = interpolate_poses(np.array([t0, t1], dtype=np.int64),
+                                      np.array([self._hist_pose[i - 1], self._hist_pose[i]]),
+                                      np.array([stamp_ns], dtype=np.int64))[0]
         cov = (1.0 - f) * self._hist_cov[i - 1] + f * self._hist_cov[i]
-        return PoseStamped(int(stamp_ns), float(p0[0] + f * (p1[0] - p0[0])),
-                           float(p0[1] + f * (p1[1] - p0[1])), float(yaw), cov)
+        return PoseStamped(int(stamp_ns), float(x), float(y), float(yaw), cov)
