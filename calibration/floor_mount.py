@@ -41,10 +41,11 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from robotd.io.calibfile import CalibrationFile, FloorMount, Intrinsics, read_calibration, update_calibration
+from robotd.io.calibfile import CalibrationFile, FloorMount, read_calibration, update_calibration
 from calibration.intrinsics import board_object_points, find_board_corners, parse_board
 from robotd.base.errors import CalibrationError
-from robotd.base.camera import FloorCameraModel, polygon_area_signed
+from robotd.base.camera import CameraIntrinsics, FloorCameraModel, polygon_area_signed
+from robotd.base.geometry import transform_points
 
 logger = logging.getLogger(__name__)
 
@@ -92,16 +93,15 @@ class FloorMountResult:
         return FloorMount(height_m=self.height_m, tilt_deg=self.tilt_deg, x_m=self.x_m, y_m=self.y_m,
                           yaw_deg=self.yaw_deg)
 
-    def camera_model(self, intrinsics: Intrinsics) -> FloorCameraModel:
+    def camera_model(self, intrinsics: CameraIntrinsics) -> FloorCameraModel:
         """The floor camera model with these intrinsics and this mount."""
         return _camera(intrinsics, self.height_m, math.radians(self.tilt_deg), math.radians(self.yaw_deg),
                        self.x_m, self.y_m)
 
 
-def _camera(intr: Intrinsics, h: float, tilt_rad: float, yaw_rad: float, x: float, y: float) -> FloorCameraModel:
-    return FloorCameraModel(width_px=intr.width_px, height_px=intr.height_px, fx=intr.fx, fy=intr.fy,
-                            cx=intr.cx, cy=intr.cy, dist=intr.dist, height_m=h, tilt_rad=tilt_rad,
-                            offset_x_m=x, offset_y_m=y, yaw_rad=yaw_rad)
+def _camera(intr: CameraIntrinsics, h: float, tilt_rad: float, yaw_rad: float, x: float,
+            y: float) -> FloorCameraModel:
+    return FloorCameraModel(intrinsics=intr, height_m=h, tilt_rad=tilt_rad, offset_x_m=x, offset_y_m=y, yaw_rad=yaw_rad)
 
 
 # ------------------------------------------------------------------ board frame
@@ -116,8 +116,7 @@ def board_corners_robot(board_inner_corners: tuple[int, int], square_size_m: flo
     """
     bx, by, yaw_deg = (float(v) for v in board_pose_robot)
     pts = board_object_points(board_inner_corners, square_size_m)[:, :2].astype(np.float64)
-    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
-    return pts @ np.array([[c, s], [-s, c]]) + (bx, by)
+    return transform_points(np.array([bx, by, math.radians(yaw_deg)]), pts)
 
 
 def _square_brightness(gray: np.ndarray, centre: np.ndarray, radius_px: float) -> float | None:
@@ -187,15 +186,19 @@ def canonical_board_corners(gray: np.ndarray, corners_px: np.ndarray,
 # ------------------------------------------------------------------- measuring
 
 
-def _as_intrinsics(intrinsics: Intrinsics | tuple[np.ndarray, Sequence[float]], image_wh: tuple[int, int]) -> Intrinsics:
-    if isinstance(intrinsics, Intrinsics):
+def _as_intrinsics(intrinsics: CameraIntrinsics | tuple[np.ndarray, Sequence[float]],
+                   image_wh: tuple[int, int]) -> CameraIntrinsics:
+    if isinstance(intrinsics, CameraIntrinsics):
         if (intrinsics.width_px, intrinsics.height_px) != image_wh:
             raise CalibrationError(
                 f"the intrinsics are for {intrinsics.width_px}x{intrinsics.height_px} images, "
                 f"the picture is {image_wh[0]}x{image_wh[1]}")
         return intrinsics
     k, dist = intrinsics
-    return Intrinsics.from_matrix(np.asarray(k, dtype=np.float64), dist, image_wh[0], image_wh[1])
+    try:
+        return CameraIntrinsics.from_camera_matrix(np.asarray(k, dtype=np.float64), dist, image_wh[0], image_wh[1])
+    except ValueError as exc:
+        raise CalibrationError(str(exc)) from None
 
 
 def _params_from_pose(rvec: np.ndarray, tvec: np.ndarray) -> tuple[np.ndarray, float]:
@@ -211,7 +214,7 @@ def _params_from_pose(rvec: np.ndarray, tvec: np.ndarray) -> tuple[np.ndarray, f
     return np.array([centre[2], tilt, yaw, centre[0], centre[1]]), roll
 
 
-def _fit_model(intr: Intrinsics, p0: np.ndarray, floor_xy: np.ndarray, uv: np.ndarray,
+def _fit_model(intr: CameraIntrinsics, p0: np.ndarray, floor_xy: np.ndarray, uv: np.ndarray,
                iterations: int = 50) -> tuple[np.ndarray, float]:
     """Levenberg-Marquardt on the 5 model parameters; returns them and the RMS error (px)."""
 
@@ -257,7 +260,7 @@ def _fit_model(intr: Intrinsics, p0: np.ndarray, floor_xy: np.ndarray, uv: np.nd
 
 def measure_floor_mount(
     image: np.ndarray,
-    intrinsics: Intrinsics | tuple[np.ndarray, Sequence[float]],
+    intrinsics: CameraIntrinsics | tuple[np.ndarray, Sequence[float]],
     board_inner_corners: tuple[int, int] = (9, 6),
     square_size_m: float = 0.025,
     board_pose_robot: Sequence[float] = (0.0, 0.0, 0.0),
@@ -265,7 +268,7 @@ def measure_floor_mount(
     """Measure the floor camera's mount from one picture of a chessboard lying on the floor.
 
     ``image``: ``(H, W)`` or ``(H, W, 3)`` uint8 picture from the floor camera;
-    ``intrinsics``: an :class:`~robotd.io.calibfile.Intrinsics` or ``(K, dist)`` (K
+    ``intrinsics``: a :class:`~robotd.base.camera.CameraIntrinsics` or ``(K, dist)`` (K
     ``(3, 3)``, dist k1 k2 p1 p2 k3); ``board_inner_corners``: ``(cols, rows)``;
     ``square_size_m``: square side, metres; ``board_pose_robot``: ``(x_m, y_m, yaw_deg)``
     of the board origin in the robot frame (module docstring).
@@ -292,13 +295,13 @@ def measure_floor_mount(
     # Both poses a planar target allows (IPPE); each is fitted within the model and the
     # better fit whose lens is above the floor wins.
     try:
-        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, uv.reshape(-1, 1, 2), intr.camera_matrix, intr.dist_array,
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, uv.reshape(-1, 1, 2), intr.camera_matrix(), intr.distortion_array(),
                                                  flags=cv2.SOLVEPNP_IPPE)
     except cv2.error as exc:
         raise CalibrationError(f"OpenCV could not solve the camera pose: {str(exc).strip().splitlines()[-1]}") from None
     best: tuple[float, np.ndarray, float] | None = None
     for rvec, tvec in zip(rvecs[:n], tvecs[:n]):
-        rvec, tvec = cv2.solvePnPRefineLM(obj, uv.reshape(-1, 1, 2), intr.camera_matrix, intr.dist_array,
+        rvec, tvec = cv2.solvePnPRefineLM(obj, uv.reshape(-1, 1, 2), intr.camera_matrix(), intr.distortion_array(),
                                           rvec.copy(), tvec.copy())
         p0, roll = _params_from_pose(rvec, tvec)
         if p0[0] <= 0.0:

@@ -37,7 +37,8 @@ from typing import Callable, Sequence, TextIO
 import cv2
 import numpy as np
 
-from robotd.io.calibfile import CalibrationFile, Intrinsics, update_calibration
+from robotd.base.camera import CameraIntrinsics
+from robotd.io.calibfile import CalibrationFile, update_calibration
 from robotd.base.errors import CalibrationError
 
 logger = logging.getLogger(__name__)
@@ -89,9 +90,8 @@ class IntrinsicsResult:
     """The outcome of :func:`calibrate_intrinsics`.
 
     Fields:
-        camera_matrix: ``(3, 3) float64`` K, pixels (read-only).
-        dist: ``(k1, k2, p1, p2, k3)``.
-        image_size: ``(width_px, height_px)``.
+        intrinsics: the calibrated camera matrix, distortion ``(k1, k2, p1, p2, k3)`` and
+            image size.
         rms_error_px: RMS reprojection error over all corners of all used images, pixels
             (what OpenCV's sample writes as ``avg_reprojection_error``).
         mean_error_px: mean Euclidean reprojection error per corner, pixels (<= RMS).
@@ -106,9 +106,7 @@ class IntrinsicsResult:
         flags: the ``cv2.calibrateCamera`` flags used.
     """
 
-    camera_matrix: np.ndarray
-    dist: tuple[float, float, float, float, float]
-    image_size: tuple[int, int]
+    intrinsics: CameraIntrinsics
     rms_error_px: float
     mean_error_px: float
     per_image_error_px: tuple[float, ...]
@@ -119,27 +117,9 @@ class IntrinsicsResult:
     square_size_m: float
     flags: int
 
-    @property
-    def fx(self) -> float:
-        return float(self.camera_matrix[0, 0])
-
-    @property
-    def fy(self) -> float:
-        return float(self.camera_matrix[1, 1])
-
-    @property
-    def cx(self) -> float:
-        return float(self.camera_matrix[0, 2])
-
-    @property
-    def cy(self) -> float:
-        return float(self.camera_matrix[1, 2])
-
-    @property
-    def intrinsics(self) -> Intrinsics:
-        """The calibration-file part of this result."""
-        return Intrinsics.from_matrix(self.camera_matrix, self.dist, self.image_size[0], self.image_size[1],
-                                      reprojection_error_px=self.rms_error_px)
+    def calibration_file(self) -> CalibrationFile:
+        """The calibration-file part of this result: the intrinsics and their RMS error."""
+        return CalibrationFile(intrinsics=self.intrinsics, reprojection_error_px=self.rms_error_px)
 
 
 # --------------------------------------------------------------------- the board
@@ -284,15 +264,12 @@ def calibrate_intrinsics(
         dist_sum += float(np.sqrt(sq).sum())
         n_pts += len(sq)
     k = np.array(k, dtype=np.float64)
-    k.setflags(write=False)
-    dist5 = tuple(float(x) for x in np.asarray(d, dtype=np.float64).ravel()[:5])
+    dist5 = np.asarray(d, dtype=np.float64).ravel()[:5]
     std = np.asarray(std_intr, dtype=np.float64).ravel()[:4].copy()
     if fix_aspect_ratio:  # OpenCV reports 0 for fx, which follows fy at a fixed ratio
         std[0] = std[1] * k[0, 0] / k[1, 1]
     return IntrinsicsResult(
-        camera_matrix=k,
-        dist=dist5,  # type: ignore[arg-type]
-        image_size=(int(size[0]), int(size[1])),
+        intrinsics=CameraIntrinsics.from_camera_matrix(k, dist5, int(size[0]), int(size[1])),
         rms_error_px=math.sqrt(sq_sum / n_pts),
         mean_error_px=dist_sum / n_pts,
         per_image_error_px=tuple(per_image),
@@ -358,15 +335,16 @@ def format_intrinsics_report(result: IntrinsicsResult) -> str:
     else:
         lines.append("rejected: none")
     lines.append("")
-    d = result.dist
+    ci = result.intrinsics
+    d = ci.distortion
     fixed = " (aspect ratio fixed)" if result.flags & cv2.CALIB_FIX_ASPECT_RATIO else ""
     lines += [
         f"images used     {len(result.used_images)} of {len(result.used_images) + len(result.rejected)}, "
-        f"{result.image_size[0]}x{result.image_size[1]} px, board {result.board_inner_corners[0]}x"
+        f"{ci.width_px}x{ci.height_px} px, board {result.board_inner_corners[0]}x"
         f"{result.board_inner_corners[1]}, square {result.square_size_m * 1000:g} mm",
-        f"fx, fy          {result.fx:.4f}, {result.fy:.4f} px{fixed}  "
+        f"fx, fy          {ci.fx_px:.4f}, {ci.fy_px:.4f} px{fixed}  "
         f"(+- {result.std_dev_px[0]:.2f}, {result.std_dev_px[1]:.2f})",
-        f"cx, cy          {result.cx:.4f}, {result.cy:.4f} px  (+- {result.std_dev_px[2]:.2f}, {result.std_dev_px[3]:.2f})",
+        f"cx, cy          {ci.cx_px:.4f}, {ci.cy_px:.4f} px  (+- {result.std_dev_px[2]:.2f}, {result.std_dev_px[3]:.2f})",
         f"k1 k2 p1 p2 k3  {d[0]:.5f} {d[1]:.5f} {d[2]:.5f} {d[3]:.5f} {d[4]:.5f}",
         f"RMS error       {result.rms_error_px:.4f} px (mean {result.mean_error_px:.4f} px per corner)",
     ]
@@ -393,7 +371,7 @@ def run_intrinsics(args: argparse.Namespace) -> int:
                                   square_size_m=float(args.square), fix_aspect_ratio=bool(args.fix_aspect_ratio),
                                   progress=bar)
     print(format_intrinsics_report(result))
-    merged = update_calibration(args.out, CalibrationFile(intrinsics=result.intrinsics))
+    merged = update_calibration(args.out, result.calibration_file())
     print(f"wrote {args.out}")
     if merged.mount is not None:
         print("note: the file's floor mount was kept; it was measured with the previous intrinsics, "

@@ -45,6 +45,7 @@ from calibration.loop_curve import (
 )
 from robotd.base.camera import FloorCameraModel, overlap_ratios
 from robotd.base.errors import CalibrationError, RobotdError
+from robotd.base.geometry import interpolate_poses
 
 log = logging.getLogger(__name__)
 
@@ -126,17 +127,6 @@ def _describe_all(image: np.ndarray, modes: tuple[int, ...]) -> tuple[list[bytes
     from robotd.floor.descriptor import extract
 
     return [extract(image, m) for m in modes], peak_rss_mb()
-
-
-def _interpolate(stamps_ns: np.ndarray, track_ns: np.ndarray, track: np.ndarray) -> np.ndarray:
-    """Poses ``(N, 3)`` of a track ``(M, 3)`` at ``stamps_ns (N,)``: position linearly, yaw
-    linearly along its unwrapped sequence, clamped at the track's ends."""
-    t = np.asarray(track_ns, dtype=np.float64)
-    q = np.asarray(stamps_ns, dtype=np.float64)
-    yaw = np.unwrap(track[:, 2])
-    out = np.column_stack([np.interp(q, t, track[:, 0]), np.interp(q, t, track[:, 1]), np.interp(q, t, yaw)])
-    out[:, 2] = (out[:, 2] + np.pi) % (2 * np.pi) - np.pi
-    return out
 
 
 def recording_config(path: Path) -> Any:
@@ -275,11 +265,11 @@ def load_run(path: Path, cfg: Any, params: TrainParams, progress: Progress | Non
     st = np.asarray(stamps, np.int64)
     results = collector.results
     run = CalibrationRun(st, np.asarray(collector.fused),
-                         _interpolate(st, np.asarray(wheel_t), np.asarray(collector.wheel_p)),
+                         interpolate_poses(np.asarray(wheel_t), np.asarray(collector.wheel_p), st),
                          None, {m: [r[i] for r in results] for i, m in enumerate(params.modes)},
                          collector.worker_mb)
     if len(truth) >= 2:
-        run.truth = _interpolate(st, np.asarray([t for t, _ in truth]), np.asarray([p for _, p in truth]))
+        run.truth = interpolate_poses(np.asarray([t for t, _ in truth]), np.asarray([p for _, p in truth]), st)
     return run
 
 

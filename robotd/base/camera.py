@@ -28,8 +28,105 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Iterable
 
 import numpy as np
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics and lens distortion of one camera at one image size.
+
+    The one intrinsics type of robotd: the camera model, the calibration file and the
+    calibration tools all use it. Invalid values raise ``ValueError``.
+
+    Fields:
+        width_px, height_px: image size the intrinsics belong to, pixels (> 0).
+        fx_px, fy_px: focal lengths, pixels (> 0).
+        cx_px, cy_px: principal point, pixels (OpenCV convention: top-left pixel centre = 0).
+        distortion: ``(k1, k2, p1, p2, k3)``, OpenCV's order (Brown-Conrady model on
+            normalised coordinates), dimensionless; a tuple so the type stays hashable.
+    """
+
+    width_px: int
+    height_px: int
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        dist = tuple(_finite("distortion coefficient", d) for d in self.distortion)
+        if len(dist) != 5:
+            raise ValueError(f"distortion: need 5 coefficients (k1 k2 p1 p2 k3), got {len(dist)}")
+        object.__setattr__(self, "distortion", dist)
+        if int(self.width_px) != self.width_px or int(self.height_px) != self.height_px \
+                or self.width_px <= 0 or self.height_px <= 0:
+            raise ValueError(f"image size must be positive integers, got {self.width_px}x{self.height_px}")
+        object.__setattr__(self, "width_px", int(self.width_px))
+        object.__setattr__(self, "height_px", int(self.height_px))
+        for name in ("fx_px", "fy_px", "cx_px", "cy_px"):
+            object.__setattr__(self, name, _finite(name, getattr(self, name)))
+        if self.fx_px <= 0.0 or self.fy_px <= 0.0:
+            raise ValueError(f"focal lengths must be positive, got fx={self.fx_px}, fy={self.fy_px}")
+
+    @classmethod
+    def from_config(cls, cfg: object) -> CameraIntrinsics:
+        """From a ``[floor_camera]`` config section (duck-typed): its ``width_px, height_px,
+        fx_px, fy_px, cx_px, cy_px, distortion`` keys."""
+        return cls(
+            width_px=int(cfg.width_px),  # type: ignore[attr-defined]
+            height_px=int(cfg.height_px),  # type: ignore[attr-defined]
+            fx_px=float(cfg.fx_px),  # type: ignore[attr-defined]
+            fy_px=float(cfg.fy_px),  # type: ignore[attr-defined]
+            cx_px=float(cfg.cx_px),  # type: ignore[attr-defined]
+            cy_px=float(cfg.cy_px),  # type: ignore[attr-defined]
+            distortion=tuple(cfg.distortion),  # type: ignore[attr-defined]
+        )
+
+    @classmethod
+    def from_camera_matrix(cls, camera_matrix: np.ndarray, distortion: Iterable[float], width_px: int,
+                           height_px: int) -> CameraIntrinsics:
+        """From an OpenCV ``(3, 3)`` camera matrix K and 4, 5 or more distortion coefficients.
+
+        Coefficients past k3 (OpenCV's rational, thin-prism and tilt models) must be zero:
+        the floor camera model is Brown-Conrady with five coefficients. A camera matrix with
+        skew or a bottom row other than ``(0, 0, 1)`` is rejected for the same reason.
+        """
+        k = np.asarray(camera_matrix, dtype=np.float64)
+        if k.shape != (3, 3):
+            raise ValueError(f"camera_matrix must be 3x3, got shape {k.shape}")
+        if not np.all(np.isfinite(k)):
+            raise ValueError("camera_matrix has non-finite entries")
+        if abs(k[0, 1]) > 1e-9 * abs(k[0, 0]) or abs(k[1, 0]) > 0.0 or np.any(k[2] != (0.0, 0.0, 1.0)):
+            raise ValueError(f"camera_matrix must be [[fx 0 cx] [0 fy cy] [0 0 1]] (no skew), got {k.tolist()}")
+        d = np.asarray(list(distortion), dtype=np.float64).ravel()
+        if d.size == 4:
+            d = np.append(d, 0.0)
+        if d.size < 4:
+            raise ValueError(f"distortion_coefficients: need at least 4, got {d.size}")
+        if d.size > 5 and np.any(d[5:] != 0.0):
+            raise ValueError(
+                f"distortion_coefficients: {d.size} coefficients with non-zero k4.. (OpenCV's rational or "
+                "thin-prism model) are not supported; calibrate with the 5-coefficient model")
+        return cls(width_px=width_px, height_px=height_px, fx_px=float(k[0, 0]), fy_px=float(k[1, 1]),
+                   cx_px=float(k[0, 2]), cy_px=float(k[1, 2]), distortion=tuple(float(x) for x in d[:5]))
+
+    def camera_matrix(self) -> np.ndarray:
+        """``(3, 3) float64`` OpenCV camera matrix K, pixels."""
+        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
+
+    def distortion_array(self) -> np.ndarray:
+        """``(5,) float64`` distortion coefficients, OpenCV's order (for ``cv2`` calls)."""
+        return np.array(self.distortion, dtype=np.float64)
+
+
+def _finite(name: str, value: float) -> float:
+    value = float(value)
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite number, got {value!r}")
+    return value
 
 
 @dataclass(frozen=True)
@@ -37,11 +134,7 @@ class FloorCameraModel:
     """Intrinsics, lens distortion and mounting of the downward floor camera.
 
     Fields:
-        width_px, height_px: image size, pixels.
-        fx, fy: focal lengths, pixels.
-        cx, cy: principal point, pixels (OpenCV convention, top-left pixel centre = 0).
-        dist: ``(k1, k2, p1, p2, k3)`` in OpenCV's order (Brown-Conrady model on
-            normalised coordinates).
+        intrinsics: image size, focal lengths, principal point and distortion.
         height_m: height of the lens centre above the floor, metres (> 0).
         tilt_rad: pitch of the optical axis away from straight down, towards the robot's
             forward direction, radians (0 = straight down; must stay below pi/2).
@@ -50,13 +143,7 @@ class FloorCameraModel:
             seen from above (see the module docstring).
     """
 
-    width_px: int
-    height_px: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    intrinsics: CameraIntrinsics
     height_m: float = 0.40
     tilt_rad: float = 0.0
     offset_x_m: float = 0.0
@@ -64,18 +151,22 @@ class FloorCameraModel:
     yaw_rad: float = 0.0
 
     def __post_init__(self) -> None:
-        # Keep the model hashable and comparable whatever sequence the caller passed.
-        object.__setattr__(self, "dist", tuple(float(d) for d in self.dist))
-        if len(self.dist) != 5:
-            raise ValueError(f"dist must have 5 coefficients (k1, k2, p1, p2, k3), got {len(self.dist)}")
-        if self.width_px <= 0 or self.height_px <= 0:
-            raise ValueError("width_px and height_px must be positive")
-        if self.fx <= 0 or self.fy <= 0:
-            raise ValueError("fx and fy must be positive")
+        if not isinstance(self.intrinsics, CameraIntrinsics):
+            raise TypeError(f"intrinsics must be a CameraIntrinsics, got {type(self.intrinsics).__name__}")
         if self.height_m <= 0:
             raise ValueError("height_m must be positive (lens above the floor)")
         if not -math.pi / 2 < self.tilt_rad < math.pi / 2:
             raise ValueError("tilt_rad must lie in (-pi/2, pi/2)")
+
+    @property
+    def width_px(self) -> int:
+        """Image width, pixels (from the intrinsics)."""
+        return self.intrinsics.width_px
+
+    @property
+    def height_px(self) -> int:
+        """Image height, pixels (from the intrinsics)."""
+        return self.intrinsics.height_px
 
     @classmethod
     def default(cls) -> FloorCameraModel:
@@ -99,13 +190,8 @@ class FloorCameraModel:
         would need a boom or a camera under a raised deck.
         """
         return cls(
-            width_px=640,
-            height_px=480,
-            fx=400.0,
-            fy=400.0,
-            cx=319.5,
-            cy=239.5,
-            dist=(-0.05, 0.0, 0.0, 0.0, 0.0),
+            intrinsics=CameraIntrinsics(width_px=640, height_px=480, fx_px=400.0, fy_px=400.0, cx_px=319.5,
+                                        cy_px=239.5, distortion=(-0.05, 0.0, 0.0, 0.0, 0.0)),
             height_m=0.40,
             tilt_rad=0.0,
             offset_x_m=0.0,
@@ -117,17 +203,11 @@ class FloorCameraModel:
     def from_config(cls, cfg: object) -> FloorCameraModel:
         """Build the model from a ``[floor_camera]`` config section (duck-typed).
 
-        Reads ``width_px, height_px, fx_px, fy_px, cx_px, cy_px, distortion,
-        mount_height_m, mount_tilt_deg, mount_x_m, mount_y_m, mount_yaw_deg``.
+        Intrinsics through :meth:`CameraIntrinsics.from_config`; the mount from
+        ``mount_height_m, mount_tilt_deg, mount_x_m, mount_y_m, mount_yaw_deg``.
         """
         return cls(
-            width_px=int(cfg.width_px),  # type: ignore[attr-defined]
-            height_px=int(cfg.height_px),  # type: ignore[attr-defined]
-            fx=float(cfg.fx_px),  # type: ignore[attr-defined]
-            fy=float(cfg.fy_px),  # type: ignore[attr-defined]
-            cx=float(cfg.cx_px),  # type: ignore[attr-defined]
-            cy=float(cfg.cy_px),  # type: ignore[attr-defined]
-            dist=tuple(cfg.distortion),  # type: ignore[attr-defined]
+            intrinsics=CameraIntrinsics.from_config(cfg),
             height_m=float(cfg.mount_height_m),  # type: ignore[attr-defined]
             tilt_rad=math.radians(float(cfg.mount_tilt_deg)),  # type: ignore[attr-defined]
             offset_x_m=float(cfg.mount_x_m),  # type: ignore[attr-defined]
@@ -167,16 +247,11 @@ class FloorCameraModel:
         """``(3,)`` lens centre in the robot frame, metres."""
         return np.array([self.offset_x_m, self.offset_y_m, self.height_m])
 
-    @property
-    def camera_matrix(self) -> np.ndarray:
-        """``(3, 3)`` OpenCV intrinsic matrix K."""
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
     # -------------------------------------------------------------- distortion
 
     def _distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Brown-Conrady distortion of normalised coordinates (OpenCV's model)."""
-        k1, k2, p1, p2, k3 = self.dist
+        k1, k2, p1, p2, k3 = self.intrinsics.distortion
         r2 = x * x + y * y
         radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
         xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
@@ -185,8 +260,8 @@ class FloorCameraModel:
 
     def _undistort(self, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Invert :meth:`_distort` by Newton's method (converges to ~1e-15 for sane lenses)."""
-        k1, k2, p1, p2, k3 = self.dist
-        if not any(self.dist):
+        k1, k2, p1, p2, k3 = self.intrinsics.distortion
+        if not any(self.intrinsics.distortion):
             return xd.copy(), yd.copy()
         x, y = xd.copy(), yd.copy()
         for _ in range(50):
@@ -216,7 +291,7 @@ class FloorCameraModel:
         Beyond it the polynomial folds back and far-away points would wrongly land
         inside the image; projections there are reported as invalid.
         """
-        k1, k2, _, _, k3 = self.dist
+        k1, k2, _, _, k3 = self.intrinsics.distortion
         r = np.linspace(0.0, 10.0, 20001)
         r2 = r * r
         rd = r * (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)))
@@ -233,8 +308,9 @@ class FloorCameraModel:
         the lens model stops being one-to-one (an invalid calibration for that image).
         """
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-        xd = (uv[:, 0] - self.cx) / self.fx
-        yd = (uv[:, 1] - self.cy) / self.fy
+        k = self.intrinsics
+        xd = (uv[:, 0] - k.cx_px) / k.fx_px
+        yd = (uv[:, 1] - k.cy_px) / k.fy_px
         xn, yn = self._undistort(xd, yd)
         # Past the fold of the radial polynomial the pixel has no true preimage.
         bad = ~(xn * xn + yn * yn <= self._max_radius_sq)
@@ -278,7 +354,8 @@ class FloorCameraModel:
         xn[fold] = np.nan
         yn[fold] = np.nan
         xd, yd = self._distort(xn, yn)
-        return np.column_stack([self.fx * xd + self.cx, self.fy * yd + self.cy])
+        k = self.intrinsics
+        return np.column_stack([k.fx_px * xd + k.cx_px, k.fy_px * yd + k.cy_px])
 
     def footprint_robot(self, samples_per_edge: int = 16) -> np.ndarray:
         """Outline of the image border on the floor, ``(4 * samples_per_edge, 2)`` metres.
@@ -317,7 +394,7 @@ class FloorCameraModel:
         The mean of the horizontal and vertical pixel sizes (they differ under tilt);
         equals ``height_m / fx`` for an untilted camera with ``fx = fy``.
         """
-        c = np.array([[self.cx, self.cy]])
+        c = np.array([[self.intrinsics.cx_px, self.intrinsics.cy_px]])
         pts = self.pixel_to_floor_robot(
             np.vstack([c - [0.5, 0.0], c + [0.5, 0.0], c - [0.0, 0.5], c + [0.0, 0.5]])
         )

@@ -11,11 +11,47 @@ import math
 import numpy as np
 
 
+_TWO_PI = 2.0 * math.pi
+
+
 def wrap_angle(a_rad: float | np.ndarray) -> float | np.ndarray:
-    """Wrap an angle (float) or an array of angles to [-pi, pi)."""
+    """Wrap an angle or an array of angles (radians) to ``[-pi, pi)``.
+
+    The one angle wrap of robotd. A scalar (Python or NumPy) gives a Python ``float``
+    through plain float arithmetic (no array is built: the EKF calls this once per
+    message); an array gives an array of the same shape and dtype.
+    """
     if isinstance(a_rad, np.ndarray):
-        return (a_rad + math.pi) % (2.0 * math.pi) - math.pi
-    return (float(a_rad) + math.pi) % (2.0 * math.pi) - math.pi
+        return (a_rad + math.pi) % _TWO_PI - math.pi
+    return (float(a_rad) + math.pi) % _TWO_PI - math.pi
+
+
+def interpolate_poses(track_stamps_ns: np.ndarray, track_poses: np.ndarray,
+                      query_stamps_ns: np.ndarray) -> np.ndarray:
+    """Poses of a track at query stamps: ``(N,)`` int ns, ``(N, 3)``, ``(M,)`` int ns -> ``(M, 3)``.
+
+    Between the two track poses around a query, x and y are interpolated linearly and the
+    yaw linearly along the shorter arc between them (the track's yaw is unwrapped first,
+    so a turn through +-pi goes the short way round); the yaw returned is wrapped to
+    ``[-pi, pi)``. A query at a track stamp gives that pose. Queries before the first
+    stamp or after the last are clamped: they get the first or the last pose (no
+    extrapolation). ``track_stamps_ns`` must be non-decreasing and non-empty; stamps are
+    taken relative to the first one before any float arithmetic, so epoch nanoseconds
+    keep their resolution.
+    """
+    t = np.asarray(track_stamps_ns).reshape(-1)
+    p = np.asarray(track_poses, dtype=np.float64).reshape(-1, 3)
+    if len(t) == 0 or len(t) != len(p):
+        raise ValueError(f"need as many track stamps as poses (at least one), got {len(t)} and {len(p)}")
+    if np.any(np.diff(t) < 0):
+        raise ValueError("track stamps must be non-decreasing")
+    q = np.asarray(query_stamps_ns).reshape(-1)
+    t0 = t[0]
+    tr = (t - t0).astype(np.float64)
+    qr = (q - t0).astype(np.float64)
+    yaw = np.unwrap(p[:, 2])
+    return np.column_stack([np.interp(qr, tr, p[:, 0]), np.interp(qr, tr, p[:, 1]),
+                            wrap_angle(np.interp(qr, tr, yaw))])
 
 
 def rot2(yaw_rad: float) -> np.ndarray:

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from robotd.base.geometry import wrap_angle
 from robotd.floor.descriptor import FloorDescriptor
 
 __all__ = ["MatchParams", "MatchResult", "global_score", "local_score"]
@@ -196,7 +197,7 @@ def local_score(a: FloorDescriptor, b: FloorDescriptor, params: MatchParams | No
     hist = np.bincount((dth * (nbins / (2 * math.pi))).astype(np.intp) % nbins, minlength=nbins).astype(float)
     hist = hist + 0.5 * (hist[_PREV_BIN] + hist[_NEXT_BIN])
     peak = (np.argmax(hist) + 0.5) * (2 * math.pi / nbins)
-    near = np.abs((dth - peak + math.pi) % (2 * math.pi) - math.pi) <= p.angle_tol_rad + math.pi / nbins
+    near = np.abs(wrap_angle(dth - peak)) <= p.angle_tol_rad + math.pi / nbins
     ka, kb, kd = ia[near], ib[near], dm[near]
     n_matches = len(ia)
     if len(ka) < p.min_inliers:
@@ -212,7 +213,7 @@ def local_score(a: FloorDescriptor, b: FloorDescriptor, params: MatchParams | No
     la, lb = np.hypot(va[:, 0], va[:, 1]), np.hypot(vb[:, 0], vb[:, 1])
     phi = np.arctan2(vb[:, 1], vb[:, 0]) - np.arctan2(va[:, 1], va[:, 0])
     ok = (la >= p.min_sample_px) & (np.abs(np.log(np.maximum(lb, 1e-9) / np.maximum(la, 1e-9))) <= p.max_log_scale)
-    ok &= np.abs((phi - peak + math.pi) % (2 * math.pi) - math.pi) <= p.angle_tol_rad + math.pi / nbins
+    ok &= np.abs(wrap_angle(phi - peak)) <= p.angle_tol_rad + math.pi / nbins
     if not np.any(ok):
         return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
     i, j, phi = i[ok], j[ok], phi[ok]

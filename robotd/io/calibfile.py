@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from robotd.base.errors import CalibrationError
-from robotd.base.camera import FloorCameraModel
+from robotd.base.camera import CameraIntrinsics, FloorCameraModel
 
 logger = logging.getLogger(__name__)
 
@@ -45,7 +45,6 @@ __all__ = [
     "N_MODES",
     "CalibrationFile",
     "FloorMount",
-    "Intrinsics",
     "LoopThresholds",
     "camera_model",
     "merge",
@@ -72,88 +71,6 @@ def _finite(name: str, value: float) -> float:
 
 
 # ------------------------------------------------------------------------- parts
-
-
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics and lens distortion of one camera at one image size.
-
-    Fields:
-        width_px, height_px: image size the calibration belongs to, pixels.
-        fx, fy: focal lengths, pixels.
-        cx, cy: principal point, pixels (OpenCV convention: top-left pixel centre = 0).
-        dist: ``(k1, k2, p1, p2, k3)``, OpenCV's order (Brown-Conrady on normalised
-            coordinates).
-        reprojection_error_px: RMS reprojection error of the calibration over all corners,
-            pixels (OpenCV's ``avg_reprojection_error``); ``None`` when unknown.
-    """
-
-    width_px: int
-    height_px: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
-    reprojection_error_px: float | None = None
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "dist", tuple(_finite("distortion coefficient", d) for d in self.dist))
-        if len(self.dist) != 5:
-            raise CalibrationError(f"distortion_coefficients: need 5 (k1 k2 p1 p2 k3), got {len(self.dist)}")
-        if int(self.width_px) != self.width_px or int(self.height_px) != self.height_px \
-                or self.width_px <= 0 or self.height_px <= 0:
-            raise CalibrationError(f"image size must be positive integers, got {self.width_px}x{self.height_px}")
-        object.__setattr__(self, "width_px", int(self.width_px))
-        object.__setattr__(self, "height_px", int(self.height_px))
-        for name in ("fx", "fy", "cx", "cy"):
-            object.__setattr__(self, name, _finite(f"camera_matrix {name}", getattr(self, name)))
-        if self.fx <= 0.0 or self.fy <= 0.0:
-            raise CalibrationError(f"camera_matrix: focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
-        if self.reprojection_error_px is not None:
-            err = _finite("avg_reprojection_error", self.reprojection_error_px)
-            if err < 0.0:
-                raise CalibrationError(f"avg_reprojection_error must be >= 0, got {err}")
-            object.__setattr__(self, "reprojection_error_px", err)
-
-    @classmethod
-    def from_matrix(cls, camera_matrix: np.ndarray, dist: Iterable[float], width_px: int, height_px: int,
-                    reprojection_error_px: float | None = None) -> Intrinsics:
-        """From an OpenCV ``(3, 3)`` camera matrix and 4, 5 or more distortion coefficients.
-
-        Coefficients past k3 (OpenCV's rational, thin-prism and tilt models) must be zero:
-        the floor camera model is Brown-Conrady with five coefficients. A camera matrix with
-        skew or a bottom row other than ``(0, 0, 1)`` is rejected for the same reason.
-        """
-        k = np.asarray(camera_matrix, dtype=np.float64)
-        if k.shape != (3, 3):
-            raise CalibrationError(f"camera_matrix must be 3x3, got shape {k.shape}")
-        if not np.all(np.isfinite(k)):
-            raise CalibrationError("camera_matrix has non-finite entries")
-        if abs(k[0, 1]) > 1e-9 * abs(k[0, 0]) or abs(k[1, 0]) > 0.0 or np.any(k[2] != (0.0, 0.0, 1.0)):
-            raise CalibrationError(f"camera_matrix must be [[fx 0 cx] [0 fy cy] [0 0 1]] (no skew), got {k.tolist()}")
-        d = np.asarray(list(dist), dtype=np.float64).ravel()
-        if d.size == 4:
-            d = np.append(d, 0.0)
-        if d.size < 4:
-            raise CalibrationError(f"distortion_coefficients: need at least 4, got {d.size}")
-        if d.size > 5 and np.any(d[5:] != 0.0):
-            raise CalibrationError(
-                f"distortion_coefficients: {d.size} coefficients with non-zero k4.. (OpenCV's rational or "
-                "thin-prism model) are not supported; calibrate with the 5-coefficient model")
-        return cls(width_px=width_px, height_px=height_px, fx=float(k[0, 0]), fy=float(k[1, 1]),
-                   cx=float(k[0, 2]), cy=float(k[1, 2]), dist=tuple(float(x) for x in d[:5]),
-                   reprojection_error_px=reprojection_error_px)
-
-    @property
-    def camera_matrix(self) -> np.ndarray:
-        """``(3, 3) float64`` OpenCV camera matrix K."""
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-    @property
-    def dist_array(self) -> np.ndarray:
-        """``(5,) float64`` distortion coefficients, OpenCV's order."""
-        return np.array(self.dist, dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -232,11 +149,31 @@ class LoopThresholds:
 
 @dataclass(frozen=True)
 class CalibrationFile:
-    """Everything a calibration file holds; every part is optional."""
+    """Everything a calibration file holds; every part is optional.
 
-    intrinsics: Intrinsics | None = None
+    Fields:
+        intrinsics: the camera's intrinsics (``image_width``, ``image_height``,
+            ``camera_matrix``, ``distortion_coefficients``).
+        reprojection_error_px: RMS reprojection error of the intrinsics calibration over
+            all corners, pixels (OpenCV's ``avg_reprojection_error``); ``None`` when
+            unknown, and always ``None`` without intrinsics.
+        mount: the floor camera's mount on the robot.
+        loop: the floor loop detector's thresholds.
+    """
+
+    intrinsics: CameraIntrinsics | None = None
+    reprojection_error_px: float | None = None
     mount: FloorMount | None = None
     loop: LoopThresholds | None = None
+
+    def __post_init__(self) -> None:
+        if self.reprojection_error_px is not None:
+            if self.intrinsics is None:
+                raise CalibrationError("avg_reprojection_error without intrinsics (camera_matrix ...)")
+            err = _finite("avg_reprojection_error", self.reprojection_error_px)
+            if err < 0.0:
+                raise CalibrationError(f"avg_reprojection_error must be >= 0, got {err}")
+            object.__setattr__(self, "reprojection_error_px", err)
 
     @property
     def is_empty(self) -> bool:
@@ -248,8 +185,11 @@ def merge(base: CalibrationFile | None, update: CalibrationFile) -> CalibrationF
     """``base`` with every part that ``update`` has replaced; the other parts kept."""
     if base is None:
         return update
+    # The reprojection error belongs to the intrinsics it was measured with.
+    intr = update if update.intrinsics is not None else base
     return CalibrationFile(
-        intrinsics=update.intrinsics if update.intrinsics is not None else base.intrinsics,
+        intrinsics=intr.intrinsics,
+        reprojection_error_px=intr.reprojection_error_px,
         mount=update.mount if update.mount is not None else base.mount,
         loop=update.loop if update.loop is not None else base.loop,
     )
@@ -370,7 +310,9 @@ def parse_calibration(raw: bytes) -> CalibrationFile:
         if ours:
             raise CalibrationError(f"unknown key {ours[0]} (known: {', '.join(_MOUNT_KEYS + _LOOP_KEYS)})")
         r = _Reader(fs, keys)
-        calib = CalibrationFile(intrinsics=_read_intrinsics(r), mount=_read_mount(r), loop=_read_loop(r))
+        intrinsics, err = _read_intrinsics(r)
+        calib = CalibrationFile(intrinsics=intrinsics, reprojection_error_px=err, mount=_read_mount(r),
+                                loop=_read_loop(r))
     finally:
         fs.release()
     if calib.is_empty:
@@ -385,9 +327,10 @@ def _require(r: _Reader, section: str, keys: Iterable[str]) -> None:
         raise CalibrationError(f"{section} is incomplete: {', '.join(missing)} missing")
 
 
-def _read_intrinsics(r: _Reader) -> Intrinsics | None:
+def _read_intrinsics(r: _Reader) -> tuple[CameraIntrinsics | None, float | None]:
+    """The intrinsics and their reprojection error (``None, None`` when absent)."""
     if not any(r.has(k) for k in _INTRINSIC_KEYS[:4]):
-        return None
+        return None, None
     _require(r, "the intrinsics section", _INTRINSIC_KEYS[:4])
     k = r.matrix("camera_matrix")
     if k.shape != (3, 3):
@@ -396,7 +339,11 @@ def _read_intrinsics(r: _Reader) -> Intrinsics | None:
     if d.ndim != 2 or min(d.shape) != 1:
         raise CalibrationError(f"distortion_coefficients must be 1xN or Nx1, got shape {d.shape}")
     err = r.number("avg_reprojection_error") if r.has("avg_reprojection_error") else None
-    return Intrinsics.from_matrix(k, d.ravel(), r.integer("image_width"), r.integer("image_height"), err)
+    width, height = r.integer("image_width"), r.integer("image_height")
+    try:
+        return CameraIntrinsics.from_camera_matrix(k, d.ravel(), width, height), err
+    except ValueError as exc:
+        raise CalibrationError(str(exc)) from None
 
 
 def _read_mount(r: _Reader) -> FloorMount | None:
@@ -430,10 +377,10 @@ def format_calibration(calib: CalibrationFile) -> str:
         fs.writeComment("Camera intrinsics; distortion_coefficients: k1 k2 p1 p2 k3.")
         fs.write("image_width", ci.width_px)
         fs.write("image_height", ci.height_px)
-        fs.write("camera_matrix", ci.camera_matrix)
-        fs.write("distortion_coefficients", ci.dist_array.reshape(1, 5))
-        if ci.reprojection_error_px is not None:
-            fs.write("avg_reprojection_error", float(ci.reprojection_error_px))
+        fs.write("camera_matrix", ci.camera_matrix())
+        fs.write("distortion_coefficients", ci.distortion_array().reshape(1, 5))
+        if calib.reprojection_error_px is not None:
+            fs.write("avg_reprojection_error", float(calib.reprojection_error_px))
     m = calib.mount
     if m is not None:
         fs.writeComment("Floor camera mount: lens height, forward tilt, position (x forward, y left), "
@@ -524,7 +471,7 @@ def camera_model(calib: CalibrationFile | None, fallback_config: Any) -> FloorCa
             raise CalibrationError(
                 f"the calibration is for {ci.width_px}x{ci.height_px} images but the floor camera "
                 f"delivers {base.width_px}x{base.height_px}; recalibrate at that size")
-        values.update(fx=ci.fx, fy=ci.fy, cx=ci.cx, cy=ci.cy, dist=ci.dist)
+        values.update(intrinsics=ci)
     m = calib.mount if calib is not None else None
     if m is not None:
         values.update(height_m=m.height_m, tilt_rad=math.radians(m.tilt_deg), offset_x_m=m.x_m,

@@ -75,6 +75,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from robotd.base.geometry import interpolate_poses, wrap_angle
 from robotd.base.messages import PoseStamped, WheelTicks, YawRate
 from robotd.odometry.kinematics import (
     DiffDriveParams,
@@ -215,14 +216,10 @@ class EkfState:
                            self.pose_cov)
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
 def initial_state(stamp_ns: int, params: EkfParams = EkfParams(),
                   pose: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> EkfState:
     """The belief before any measurement: at ``pose``, speed and bias unknown (priors)."""
-    mean = np.array([pose[0], pose[1], _wrap(float(pose[2])), 0.0, 0.0, 0.0])
+    mean = np.array([pose[0], pose[1], wrap_angle(float(pose[2])), 0.0, 0.0, 0.0])
     sig = np.array([params.initial_pose_sigma] * 3 + [
         params.initial_speed_sigma_mps, params.initial_yaw_rate_sigma_radps,
         params.initial_gyro_bias_sigma_radps])
@@ -258,7 +255,7 @@ def predict(state: EkfState, t_ns: int, params: EkfParams = EkfParams()) -> EkfS
     mean = m.copy()
     mean[IX] += ds * f * c
     mean[IY] += ds * f * s
-    mean[IYAW] = _wrap(yaw + dth)
+    mean[IYAW] = wrap_angle(yaw + dth)
 
     jac = _EYE.copy()
     jac[IX, IYAW] = -ds * f * s
@@ -296,7 +293,7 @@ def _update(state: EkfState, innovation: np.ndarray, h: np.ndarray, r: np.ndarra
     s = h @ ph + r
     gain = np.linalg.solve(s, ph.T).T  # = P H^T S^-1 (S is symmetric)
     mean = state.mean + gain @ innovation
-    mean[IYAW] = _wrap(mean[IYAW])
+    mean[IYAW] = wrap_angle(mean[IYAW])
     a = _EYE - gain @ h
     cov = a @ p @ a.T + gain @ r @ gain.T
     return EkfState(state.stamp_ns, mean, 0.5 * (cov + cov.T))
@@ -614,9 +611,8 @@ class OdometryFilter:
             return PoseStamped(int(stamp_ns), float(p[0]), float(p[1]), float(p[2]), c.copy())
         t0, t1 = ts[i - 1], ts[i]
         f = (stamp_ns - t0) / (t1 - t0)
-        p0, p1 = self._hist_pose[i - 1], self._hist_pose[i]
-        dyaw = (p1[2] - p0[2] + math.pi) % (2.0 * math.pi) - math.pi
-        yaw = (p0[2] + f * dyaw + math.pi) % (2.0 * math.pi) - math.pi
+        x, y, yaw = interpolate_poses(np.array([t0, t1], dtype=np.int64),
+                                      np.array([self._hist_pose[i - 1], self._hist_pose[i]]),
+                                      np.array([stamp_ns], dtype=np.int64))[0]
         cov = (1.0 - f) * self._hist_cov[i - 1] + f * self._hist_cov[i]
-        return PoseStamped(int(stamp_ns), float(p0[0] + f * (p1[0] - p0[0])),
-                           float(p0[1] + f * (p1[1] - p0[1])), float(yaw), cov)
+        return PoseStamped(int(stamp_ns), float(x), float(y), float(yaw), cov)

@@ -154,14 +154,14 @@ class FloorRenderer:
         return int(min(p.max_blur_samples, math.ceil(extent / p.blur_step_px) + 1))
 
     def _vignette_map(self) -> np.ndarray:
-        c = self.camera
-        u, v = np.meshgrid(np.arange(c.width_px) - c.cx, np.arange(c.height_px) - c.cy)
-        r2 = (u / c.fx) ** 2 + (v / c.fy) ** 2
+        c = self.camera.intrinsics
+        u, v = np.meshgrid(np.arange(c.width_px) - c.cx_px, np.arange(c.height_px) - c.cy_px)
+        r2 = (u / c.fx_px) ** 2 + (v / c.fy_px) ** 2
         corner = max(
-            ((0 - c.cx) / c.fx) ** 2 + ((0 - c.cy) / c.fy) ** 2,
-            ((c.width_px - 1 - c.cx) / c.fx) ** 2 + ((c.height_px - 1 - c.cy) / c.fy) ** 2,
-            ((0 - c.cx) / c.fx) ** 2 + ((c.height_px - 1 - c.cy) / c.fy) ** 2,
-            ((c.width_px - 1 - c.cx) / c.fx) ** 2 + ((0 - c.cy) / c.fy) ** 2,
+            ((0 - c.cx_px) / c.fx_px) ** 2 + ((0 - c.cy_px) / c.fy_px) ** 2,
+            ((c.width_px - 1 - c.cx_px) / c.fx_px) ** 2 + ((c.height_px - 1 - c.cy_px) / c.fy_px) ** 2,
+            ((0 - c.cx_px) / c.fx_px) ** 2 + ((c.height_px - 1 - c.cy_px) / c.fy_px) ** 2,
+            ((c.width_px - 1 - c.cx_px) / c.fx_px) ** 2 + ((0 - c.cy_px) / c.fy_px) ** 2,
         )
         # cos^4 law shape, scaled so the corner loses exactly `vignetting`.
         fall = 1.0 / (1.0 + r2) ** 2

@@ -17,7 +17,7 @@ from robotd.app.pipeline import FloorDetectorStage, KeyframeStage, MapWriterStag
 from robotd.base.clock import ManualClock
 from robotd.base.config import Config, replace
 from robotd.base.geometry import between
-from robotd.base.messages import Frame, Keyframe, KeyframeStored, PoseStamped, WheelTicks
+from robotd.base.messages import Frame, Keyframe, PoseStamped, WheelTicks
 from robotd.floor.detector import FloorDetectorParams, FloorLoopDetector, KeyframeQuery
 from robotd.io.store import MapStore
 

@@ -11,14 +11,14 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from robotd.base.camera import FloorCameraModel, polygon_area_signed
+from robotd.base.camera import CameraIntrinsics, FloorCameraModel, polygon_area_signed
 
 
-def _plain(**kw: float) -> FloorCameraModel:
+def _plain(fx_px: float = 400.0, fy_px: float = 400.0, distortion: tuple = (0.0,) * 5,
+           **mount: float) -> FloorCameraModel:
     """640x480, fx = fy = 400, no distortion, 0.4 m high, straight down."""
-    base = dict(width_px=640, height_px=480, fx=400.0, fy=400.0, cx=319.5, cy=239.5)
-    base.update(kw)
-    return FloorCameraModel(**base)  # type: ignore[arg-type]
+    intr = CameraIntrinsics(640, 480, fx_px=fx_px, fy_px=fy_px, cx_px=319.5, cy_px=239.5, distortion=distortion)
+    return FloorCameraModel(intr, **mount)
 
 
 def _pixels_inside(model: FloorCameraModel, n: int, seed: int) -> np.ndarray:
@@ -52,7 +52,7 @@ def test_round_trip_any_mount(k1: float, k2: float, p1: float, p2: float, tilt: 
     fold = np.nonzero(np.diff(rd) <= 0)[0]
     corner = math.hypot(320.0 / fx, 240.0 / (1.02 * fx))
     assume(fold.size == 0 or rd[fold[0]] > 1.05 * corner)
-    cam = _plain(fx=fx, fy=fx * 1.02, dist=(k1, k2, p1, p2, 0.0), tilt_rad=tilt, yaw_rad=yaw,
+    cam = _plain(fx_px=fx, fy_px=fx * 1.02, distortion=(k1, k2, p1, p2, 0.0), tilt_rad=tilt, yaw_rad=yaw,
                  height_m=height, offset_x_m=0.07, offset_y_m=-0.03)
     uv = _pixels_inside(cam, 300, seed=2)
     xy = cam.pixel_to_floor_robot(uv)
@@ -62,7 +62,7 @@ def test_round_trip_any_mount(k1: float, k2: float, p1: float, p2: float, tilt: 
 
 def test_footprint_area_untilted_undistorted_is_the_hand_computed_rectangle() -> None:
     h = 0.5
-    cam = _plain(height_m=h, fx=400.0, fy=500.0, offset_x_m=0.1, offset_y_m=0.02)
+    cam = _plain(height_m=h, fx_px=400.0, fy_px=500.0, offset_x_m=0.1, offset_y_m=0.02)
     poly = cam.footprint_robot(samples_per_edge=4)
     # (W / fx * h) x (H / fy * h): 0.8 m across the robot, 0.48 m along it.
     assert polygon_area_signed(poly) == pytest.approx((640 / 400 * h) * (480 / 500 * h), rel=1e-9)
@@ -75,13 +75,13 @@ def test_footprint_area_untilted_undistorted_is_the_hand_computed_rectangle() ->
 
 def test_footprint_is_counter_clockwise_for_any_yaw() -> None:
     for yaw in (0.0, 1.0, -2.5, math.pi):
-        poly = _plain(yaw_rad=yaw, dist=(-0.05, 0, 0, 0, 0)).footprint_robot()
+        poly = _plain(yaw_rad=yaw, distortion=(-0.05, 0, 0, 0, 0)).footprint_robot()
         assert polygon_area_signed(poly) > 0.3  # positive = counter-clockwise, ~0.33 m^2
 
 
 def test_barrel_distortion_widens_the_footprint() -> None:
     plain = polygon_area_signed(_plain().footprint_robot(32))
-    barrel = polygon_area_signed(_plain(dist=(-0.05, 0, 0, 0, 0)).footprint_robot(32))
+    barrel = polygon_area_signed(_plain(distortion=(-0.05, 0, 0, 0, 0)).footprint_robot(32))
     assert barrel > plain * 1.03
 
 
@@ -111,7 +111,7 @@ def test_tilt_moves_the_footprint_forward() -> None:
 
 def test_metres_per_px_at_centre() -> None:
     assert FloorCameraModel.default().metres_per_px_at_centre() == pytest.approx(0.40 / 400.0, rel=1e-6)
-    assert _plain(height_m=0.8, fx=500.0, fy=500.0).metres_per_px_at_centre() == pytest.approx(0.8 / 500.0, rel=1e-9)
+    assert _plain(height_m=0.8, fx_px=500.0, fy_px=500.0).metres_per_px_at_centre() == pytest.approx(0.8 / 500.0, rel=1e-9)
     # Tilt: the principal ray is longer (h / cos t) and meets the floor obliquely.
     t = 0.4
     tilted = _plain(tilt_rad=t).metres_per_px_at_centre()
@@ -133,7 +133,7 @@ def test_points_behind_or_beyond_the_lens_fold_are_nan() -> None:
     uv = steep.floor_robot_to_pixel([[-5.0, 0.0], [0.5, 0.0]])
     assert np.all(np.isnan(uv[0]))  # behind the image plane
     assert np.all(np.isfinite(uv[1]))
-    barrel = _plain(dist=(-0.05, 0, 0, 0, 0))  # radial map folds back at r = 2.58
+    barrel = _plain(distortion=(-0.05, 0, 0, 0, 0))  # radial map folds back at r = 2.58
     uv = barrel.floor_robot_to_pixel([[0.0, 0.4 * 3.0], [0.0, 0.4 * 2.0]])
     assert np.all(np.isnan(uv[0]))
     assert np.all(np.isfinite(uv[1]))
@@ -172,12 +172,64 @@ def test_from_config_converts_degrees() -> None:
     cam = FloorCameraModel.from_config(cfg)
     assert cam.tilt_rad == pytest.approx(math.radians(10.0))
     assert cam.yaw_rad == pytest.approx(math.pi / 2)
-    assert cam.dist == (-0.1, 0.01, 0.0, 0.0, 0.0)
-    assert (cam.width_px, cam.fy, cam.offset_y_m) == (320, 310.0, -0.01)
+    assert cam.intrinsics.distortion == (-0.1, 0.01, 0.0, 0.0, 0.0)
+    assert (cam.width_px, cam.intrinsics.fy_px, cam.offset_y_m) == (320, 310.0, -0.01)
 
 
 def test_invalid_models_are_rejected() -> None:
     with pytest.raises(ValueError, match="dist"):
-        _plain(dist=(0.1, 0.0))
+        _plain(distortion=(0.1, 0.0))
     with pytest.raises(ValueError, match="height_m"):
         _plain(height_m=0.0)
+
+
+# ----------------------------------------------------------------------- intrinsics
+
+
+def test_intrinsics_camera_matrix_and_distortion_by_hand() -> None:
+    k = CameraIntrinsics(640, 480, fx_px=401.25, fy_px=399.5, cx_px=321.1, cy_px=238.7,
+                         distortion=[-0.05, 0.01, 0.001, -0.002, 0.003])
+    np.testing.assert_array_equal(k.camera_matrix(), [[401.25, 0, 321.1], [0, 399.5, 238.7], [0, 0, 1]])
+    assert k.distortion == (-0.05, 0.01, 0.001, -0.002, 0.003)  # a list becomes a tuple: hashable
+    assert k.distortion_array().shape == (5,) and k.distortion_array()[3] == -0.002
+    assert hash(k) == hash(CameraIntrinsics(640, 480, 401.25, 399.5, 321.1, 238.7,
+                                            (-0.05, 0.01, 0.001, -0.002, 0.003)))
+
+
+def test_intrinsics_from_opencv_layouts() -> None:
+    k = np.array([[500.0, 0, 320], [0, 510, 240], [0, 0, 1]])
+    four = CameraIntrinsics.from_camera_matrix(k, [0.1, 0.01, 0.001, 0.002], 640, 480)
+    assert (four.fx_px, four.fy_px, four.cx_px, four.cy_px) == (500.0, 510.0, 320.0, 240.0)
+    assert four.distortion == (0.1, 0.01, 0.001, 0.002, 0.0)
+    np.testing.assert_array_equal(four.camera_matrix(), k)
+    eight = CameraIntrinsics.from_camera_matrix(k, np.array([[0.1, 0.01, 0.001, 0.002, 0.3, 0, 0, 0]]), 640, 480)
+    assert eight.distortion == (0.1, 0.01, 0.001, 0.002, 0.3)
+    with pytest.raises(ValueError, match="k4"):
+        CameraIntrinsics.from_camera_matrix(k, [0.1, 0.01, 0.001, 0.002, 0.3, 0.5, 0, 0], 640, 480)
+    with pytest.raises(ValueError, match="3x3"):
+        CameraIntrinsics.from_camera_matrix(np.eye(2), [0.0] * 5, 640, 480)
+    with pytest.raises(ValueError, match="no skew"):
+        CameraIntrinsics.from_camera_matrix(k + [[0, 2.0, 0], [0, 0, 0], [0, 0, 0]], [0.0] * 5, 640, 480)
+
+
+def test_intrinsics_from_the_config_section() -> None:
+    from robotd.base.config import FloorCameraConfig
+
+    cfg = FloorCameraConfig()
+    k = CameraIntrinsics.from_config(cfg)
+    assert k == CameraIntrinsics(cfg.width_px, cfg.height_px, cfg.fx_px, cfg.fy_px, cfg.cx_px, cfg.cy_px,
+                                 tuple(cfg.distortion))
+    # The shipped default config describes the virtual robot's camera.
+    assert k == FloorCameraModel.default().intrinsics
+    assert FloorCameraModel.from_config(cfg).intrinsics == k
+
+
+def test_invalid_intrinsics_are_rejected() -> None:
+    with pytest.raises(ValueError, match="focal lengths must be positive"):
+        CameraIntrinsics(640, 480, -400.0, 400.0, 320.0, 240.0)
+    with pytest.raises(ValueError, match="image size"):
+        CameraIntrinsics(640.5, 480, 400.0, 400.0, 320.0, 240.0)
+    with pytest.raises(ValueError, match="finite"):
+        CameraIntrinsics(640, 480, 400.0, 400.0, math.nan, 240.0)
+    with pytest.raises(TypeError, match="CameraIntrinsics"):
+        FloorCameraModel(intrinsics=(640, 480, 400.0, 400.0, 320.0, 240.0))  # type: ignore[arg-type]

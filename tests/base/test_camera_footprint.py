@@ -5,14 +5,13 @@ import math
 import numpy as np
 import pytest
 
-from robotd.base.camera import FloorCameraModel, footprint_world, overlap_ratio, overlap_ratios
+from robotd.base.camera import CameraIntrinsics, FloorCameraModel, footprint_world, overlap_ratio, overlap_ratios
 
 
 def _pinhole() -> FloorCameraModel:
     # No distortion, no tilt: the footprint is a W/fx*h by H/fy*h rectangle (0.64 x 0.48 m),
     # image up = robot forward, so 0.48 m along x and 0.64 m along y.
-    return FloorCameraModel(width_px=640, height_px=480, fx=400.0, fy=400.0, cx=319.5, cy=239.5,
-                            dist=(0.0, 0.0, 0.0, 0.0, 0.0), height_m=0.40)
+    return FloorCameraModel(CameraIntrinsics(640, 480, 400.0, 400.0, 319.5, 239.5), height_m=0.40)
 
 
 @pytest.mark.parametrize("d", [0.0, 0.05, 0.12, 0.3, 0.47])

@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from robotd.base.geometry import between, compose, inverse, rigid_fit_2d, transform_points, wrap_angle
+from robotd.base.geometry import (between, compose, interpolate_poses, inverse, rigid_fit_2d, transform_points,
+                                   wrap_angle)
 
 
 def test_compose_inverse_between_by_hand():
@@ -15,6 +16,27 @@ def test_compose_inverse_between_by_hand():
     assert np.allclose(compose(a, inverse(a)), [0, 0, 0])
     assert np.allclose(between(a, compose(a, b)), b)
     assert wrap_angle(3 * math.pi) == pytest.approx(-math.pi)
+
+
+def test_wrap_angle_scalars_by_hand():
+    assert wrap_angle(math.pi) == -math.pi  # the interval is [-pi, pi)
+    assert wrap_angle(-math.pi) == -math.pi
+    assert wrap_angle(0.5) == 0.5
+    assert wrap_angle(2 * math.pi + 0.25) == pytest.approx(0.25, abs=1e-15)
+    assert wrap_angle(-2.5 * math.pi) == pytest.approx(-0.5 * math.pi, abs=1e-15)
+    assert wrap_angle(7) == pytest.approx(7 - 2 * math.pi, abs=1e-15)  # an int
+    # A NumPy scalar gives a plain float (the EKF stores it in its state array).
+    out = wrap_angle(np.float64(4.0))
+    assert type(out) is float and out == pytest.approx(4.0 - 2 * math.pi, abs=1e-15)
+
+
+def test_wrap_angle_arrays_keep_shape_and_dtype():
+    a = np.array([[3 * math.pi / 2, -3 * math.pi / 2], [0.1, -7.0]])
+    out = wrap_angle(a)
+    assert out.shape == (2, 2) and out.dtype == np.float64
+    assert np.allclose(out, [[-math.pi / 2, math.pi / 2], [0.1, -7.0 + 2 * math.pi]], atol=1e-15)
+    f32 = wrap_angle(np.array([4.0], dtype=np.float32))
+    assert f32.dtype == np.float32 and f32[0] == pytest.approx(4.0 - 2 * math.pi, abs=1e-6)
 
 
 def test_rigid_fit_recovers_a_known_motion_with_noise():
@@ -27,3 +49,51 @@ def test_rigid_fit_recovers_a_known_motion_with_noise():
     # A mirrored set is not a rotation: the fit stays a proper rotation anyway.
     est2 = rigid_fit_2d(src, src * [1, -1])
     assert np.isfinite(est2).all()
+
+
+def test_interpolate_poses_by_hand_across_the_yaw_wrap():
+    track_ns = np.array([0, 10, 20])
+    track = np.array([[0.0, 0.0, math.pi - 0.1], [1.0, 2.0, -math.pi + 0.1], [2.0, 2.0, -math.pi + 0.3]])
+    out = interpolate_poses(track_ns, track, np.array([5, 10, 15, 2]))
+    assert out.shape == (4, 3)
+    assert np.allclose(out[:, :2], [[0.5, 1.0], [1.0, 2.0], [1.5, 2.0], [0.2, 0.4]], rtol=0, atol=1e-15)
+    # Halfway from pi - 0.1 to -pi + 0.1 is +-pi (the short way, through 0.2 rad), not 0;
+    # a fifth of the way is pi - 0.1 + 0.04 = pi - 0.06.
+    assert abs(out[0, 2]) == pytest.approx(math.pi, abs=1e-12)
+    assert out[1, 2] == pytest.approx(-math.pi + 0.1, abs=1e-12)
+    assert out[2, 2] == pytest.approx(-math.pi + 0.2, abs=1e-12)
+    assert out[3, 2] == pytest.approx(math.pi - 0.06, abs=1e-12)
+
+
+def test_interpolate_poses_at_the_ends_and_outside_clamps():
+    track_ns = np.array([100, 200])
+    track = np.array([[1.0, -1.0, -3.0], [3.0, 1.0, 3.0]])  # the short arc from -3 to 3 passes through pi
+    out = interpolate_poses(track_ns, track, np.array([100, 200, 0, 99, 201, 10**6, 150]))
+    np.testing.assert_allclose(out[0], track[0], rtol=0, atol=1e-15)  # at the ends: the end poses
+    np.testing.assert_allclose(out[1], track[1], rtol=0, atol=1e-15)
+    # Before the first stamp and after the last: the end pose, not an extrapolation.
+    np.testing.assert_allclose(out[2:4], [track[0], track[0]], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(out[4:6], [track[1], track[1]], rtol=0, atol=1e-15)
+    # Midway, -3 and 3 meet at pi (0.283 rad the short way), not at 0 (6 rad the long way).
+    assert out[6, :2] == pytest.approx([2.0, 0.0], abs=1e-15)
+    assert abs(out[6, 2]) == pytest.approx(math.pi, abs=1e-12)
+
+
+def test_interpolate_poses_one_pose_track_and_epoch_stamps():
+    out = interpolate_poses(np.array([7]), np.array([[1.0, 2.0, 0.5]]), np.array([0, 7, 9]))
+    np.testing.assert_array_equal(out, [[1.0, 2.0, 0.5]] * 3)
+    # Epoch nanoseconds (~1.7e18) are beyond float64's integer resolution (2**53 ~ 9e15):
+    # 1 ns after the first stamp of a 4 ns step is a quarter of the way, exactly.
+    t0 = 1_700_000_000_123_456_789
+    out = interpolate_poses(np.array([t0, t0 + 4]), np.array([[0.0, 0.0, 0.0], [4.0, 8.0, 0.4]]),
+                            np.array([t0 + 1, t0 + 3]))
+    np.testing.assert_allclose(out, [[1.0, 2.0, 0.1], [3.0, 6.0, 0.3]], rtol=0, atol=1e-12)
+
+
+def test_interpolate_poses_rejects_bad_tracks():
+    with pytest.raises(ValueError, match="non-decreasing"):
+        interpolate_poses(np.array([0, 20, 10]), np.zeros((3, 3)), np.array([5]))
+    with pytest.raises(ValueError, match="as many track stamps as poses"):
+        interpolate_poses(np.array([0, 10]), np.zeros((3, 3)), np.array([5]))
+    with pytest.raises(ValueError, match="at least one"):
+        interpolate_poses(np.array([], dtype=np.int64), np.zeros((0, 3)), np.array([5]))

@@ -63,7 +63,7 @@ def centred_board_pose(camera: FloorCameraModel, cols: int, rows: int, square_m:
                        at_px: tuple[float, float] | None = None) -> tuple[float, float, float]:
     """Board pose ``(x_m, y_m, yaw_deg)`` in the robot frame with the board's centre seen at
     pixel ``at_px`` (default: the principal point)."""
-    uv = (camera.cx, camera.cy) if at_px is None else at_px
+    uv = (camera.intrinsics.cx_px, camera.intrinsics.cy_px) if at_px is None else at_px
     centre = camera.pixel_to_floor_robot(np.array([uv], dtype=float))[0]
     a = math.radians(yaw_deg)
     half = np.array([(cols - 1) * square_m / 2.0, (rows - 1) * square_m / 2.0])

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from robotd.io.calibfile import CalibrationFile, FloorMount, Intrinsics, read_calibration, write_calibration
+from robotd.io.calibfile import CalibrationFile, FloorMount, read_calibration, write_calibration
 from calibration.floor_mount import (
     add_floor_mount_arguments,
     board_corners_robot,
@@ -20,16 +20,16 @@ from calibration.floor_mount import (
 )
 from calibration.intrinsics import find_board_corners
 from robotd.base.errors import CalibrationError
-from robotd.base.camera import FloorCameraModel, overlap_ratio
+from robotd.base.camera import CameraIntrinsics, FloorCameraModel, overlap_ratio
 from tests.calibration import centred_board_pose, render_board
 
-LENS = dict(fx=400.0, fy=410.0, cx=322.0, cy=236.5, dist=(-0.05, 0.01, 0.001, -0.0005, 0.0))
-INTR = Intrinsics(640, 480, **LENS)
+INTR = CameraIntrinsics(640, 480, fx_px=400.0, fy_px=410.0, cx_px=322.0, cy_px=236.5,
+                        distortion=(-0.05, 0.01, 0.001, -0.0005, 0.0))
 BOARD, SQUARE = (9, 6), 0.025
 
 
 def _camera(h: float, tilt_deg: float, yaw_deg: float, x: float, y: float) -> FloorCameraModel:
-    return FloorCameraModel(640, 480, **LENS, height_m=h, tilt_rad=math.radians(tilt_deg),
+    return FloorCameraModel(INTR, height_m=h, tilt_rad=math.radians(tilt_deg),
                             offset_x_m=x, offset_y_m=y, yaw_rad=math.radians(yaw_deg))
 
 
@@ -128,7 +128,7 @@ def test_camera_matrix_and_distortion_tuple_work_like_intrinsics():
     pose = centred_board_pose(cam, *BOARD, SQUARE, 60.0)
     img = render_board(cam, *BOARD, SQUARE, pose)
     a = measure_floor_mount(img, INTR, BOARD, SQUARE, pose)
-    b = measure_floor_mount(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR), (INTR.camera_matrix, LENS["dist"]),
+    b = measure_floor_mount(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR), (INTR.camera_matrix(), INTR.distortion),
                             BOARD, SQUARE, pose)
     assert (a.height_m, a.tilt_deg, a.yaw_deg, a.x_m, a.y_m) == pytest.approx(
         (b.height_m, b.tilt_deg, b.yaw_deg, b.x_m, b.y_m), abs=1e-9)
@@ -139,7 +139,7 @@ def test_wrong_intrinsics_show_in_the_fit():
     pose = centred_board_pose(cam, *BOARD, SQUARE, 60.0)
     img = render_board(cam, *BOARD, SQUARE, pose)
     right = measure_floor_mount(img, INTR, BOARD, SQUARE, pose)
-    wrong = Intrinsics(640, 480, 400.0, 410.0, 322.0, 236.5, (0.2, 0.0, 0.0, 0.0, 0.0))  # pincushion, not barrel
+    wrong = CameraIntrinsics(640, 480, 400.0, 410.0, 322.0, 236.5, (0.2, 0.0, 0.0, 0.0, 0.0))  # pincushion, not barrel
     r = measure_floor_mount(img, wrong, BOARD, SQUARE, pose)
     assert right.reprojection_error_px < 0.1
     assert r.reprojection_error_px > 0.3

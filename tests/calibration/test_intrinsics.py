@@ -22,7 +22,7 @@ from calibration.intrinsics import (
     run_intrinsics,
 )
 from robotd.base.errors import CalibrationError
-from robotd.base.camera import FloorCameraModel
+from robotd.base.camera import CameraIntrinsics, FloorCameraModel
 from tests.calibration import SHARED_DATA, centred_board_pose, render_board
 
 PHOTOS = SHARED_DATA / "calibration" / "opencv_left"
@@ -67,14 +67,14 @@ def test_reproduces_opencv_published_intrinsics(opencv_left, published):
     r = opencv_left
     k = published["K"]
     assert len(_photos()) == 13 and len(r.used_images) == 13 and r.rejected == ()
-    assert r.image_size == (640, 480)
+    assert (r.intrinsics.width_px, r.intrinsics.height_px) == (640, 480)
     # Measured on OpenCV 5.0.0: fx = fy +0.193 px, cx +0.090 px, cy +0.025 px, RMS +0.0162 px
     # (the published run used OpenCV 4.6; its corner detector differs slightly on left02/left13).
-    assert abs(r.fx - k[0, 0]) < 0.5
-    assert abs(r.fy - k[1, 1]) < 0.5
-    assert abs(r.cx - k[0, 2]) < 0.5
-    assert abs(r.cy - k[1, 2]) < 0.5
-    assert r.fx == r.fy  # the aspect ratio is held at 1
+    assert abs(r.intrinsics.fx_px - k[0, 0]) < 0.5
+    assert abs(r.intrinsics.fy_px - k[1, 1]) < 0.5
+    assert abs(r.intrinsics.cx_px - k[0, 2]) < 0.5
+    assert abs(r.intrinsics.cy_px - k[1, 2]) < 0.5
+    assert r.intrinsics.fx_px == r.intrinsics.fy_px  # the aspect ratio is held at 1
     assert abs(r.rms_error_px - published["error"]) < 0.05
     assert r.mean_error_px < r.rms_error_px
     # The differences are far inside OpenCV's own uncertainty of the estimate (~1 px).
@@ -88,10 +88,10 @@ def test_distortion_and_per_image_errors_match_published(opencv_left, published)
     # over the part of the image the boards covered.
     grid = np.stack(np.meshgrid(np.linspace(-0.5, 0.5, 11), np.linspace(-0.35, 0.35, 8)), -1).reshape(-1, 2)
     pts = np.column_stack([grid, np.ones(len(grid))])
-    ours, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), r.camera_matrix, np.array(r.dist))
+    ours, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), r.intrinsics.camera_matrix(), r.intrinsics.distortion_array())
     theirs, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), published["K"], published["dist"])
     assert np.max(np.abs(ours - theirs)) < 0.5
-    assert r.dist[0] == pytest.approx(published["dist"][0], abs=0.005)
+    assert r.intrinsics.distortion[0] == pytest.approx(published["dist"][0], abs=0.005)
     # Per image, as OpenCV's sample reports them: left02 is by far the worst in both.
     names = [Path(p).name for p in r.used_images]
     assert names[int(np.argmax(r.per_image_error_px))] == "left02.jpg"
@@ -101,8 +101,8 @@ def test_distortion_and_per_image_errors_match_published(opencv_left, published)
 @needs_photos
 def test_free_aspect_ratio_estimates_fx_and_fy_separately():
     r = calibrate_intrinsics(_photos(), fix_aspect_ratio=False)
-    assert r.fx != r.fy
-    assert abs(r.fx - PUBLISHED["fx"]) < 1.0 and abs(r.fy - PUBLISHED["fy"]) < 1.0
+    assert r.intrinsics.fx_px != r.intrinsics.fy_px
+    assert abs(r.intrinsics.fx_px - PUBLISHED["fx"]) < 1.0 and abs(r.intrinsics.fy_px - PUBLISHED["fy"]) < 1.0
     assert r.flags & cv2.CALIB_FIX_ASPECT_RATIO == 0
 
 
@@ -128,7 +128,7 @@ def test_bad_images_are_rejected_with_reasons_and_do_not_change_the_result(tmp_p
     assert [Path(x.path).name for x in r.rejected] == ["notes.jpg", "missing.jpg", "floor.png", "small.png"]
     assert len(r.used_images) == 13
     # Identical up to the last bits OpenCV's parallel solver varies in.
-    assert r.fx == pytest.approx(opencv_left.fx, abs=1e-6) and r.cx == pytest.approx(opencv_left.cx, abs=1e-6)
+    assert r.intrinsics.fx_px == pytest.approx(opencv_left.intrinsics.fx_px, abs=1e-6) and r.intrinsics.cx_px == pytest.approx(opencv_left.intrinsics.cx_px, abs=1e-6)
     assert [c[0] for c in calls] == list(range(1, 18)) and all(c[1] == 17 for c in calls)
 
 
@@ -165,7 +165,8 @@ def test_recovers_a_rendered_camera(tmp_path):
     paths = []
     for k in range(16):
         tilt = rng.choice([-1.0, 1.0]) * rng.uniform(25.0, 38.0)
-        cam = FloorCameraModel(640, 480, **truth, height_m=0.2, tilt_rad=math.radians(tilt),
+        cam = FloorCameraModel(CameraIntrinsics(640, 480, truth["fx"], truth["fy"], truth["cx"], truth["cy"],
+                                                truth["dist"]), height_m=0.2, tilt_rad=math.radians(tilt),
                                yaw_rad=math.radians(rng.uniform(-180, 180)))
         pose = centred_board_pose(cam, *board, square, rng.uniform(-180, 180),
                                   at_px=(rng.uniform(200, 440), rng.uniform(150, 330)))
@@ -175,14 +176,14 @@ def test_recovers_a_rendered_camera(tmp_path):
     r = calibrate_intrinsics(paths, board_inner_corners=board, square_size_m=square)
     assert len(r.used_images) >= 10  # views whose board runs off the image are rejected
     assert all(x.reason is RejectReason.CORNERS_NOT_FOUND for x in r.rejected)
-    assert abs(r.fx - truth["fx"]) < 0.5 and abs(r.fy - truth["fy"]) < 0.5
+    assert abs(r.intrinsics.fx_px - truth["fx"]) < 0.5 and abs(r.intrinsics.fy_px - truth["fy"]) < 0.5
     # The principal point of a dozen small-board views is known to about half a pixel.
-    assert abs(r.cx - truth["cx"]) < 1.0 and abs(r.cy - truth["cy"]) < 1.0
+    assert abs(r.intrinsics.cx_px - truth["cx"]) < 1.0 and abs(r.intrinsics.cy_px - truth["cy"]) < 1.0
     assert r.rms_error_px < 0.1
     grid = np.stack(np.meshgrid(np.linspace(-0.6, 0.6, 13), np.linspace(-0.45, 0.45, 9)), -1).reshape(-1, 2)
     pts = np.column_stack([grid, np.ones(len(grid))])
     k_true = np.array([[truth["fx"], 0, truth["cx"]], [0, truth["fy"], truth["cy"]], [0, 0, 1.0]])
-    ours, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), r.camera_matrix, np.array(r.dist))
+    ours, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), r.intrinsics.camera_matrix(), r.intrinsics.distortion_array())
     true, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), k_true, np.array(truth["dist"]))
     assert np.max(np.abs(ours - true)) < 1.0
 
@@ -209,7 +210,7 @@ def test_cli_writes_a_file_opencv_reads_and_keeps_the_mount(tmp_path, capsys, op
     printed = capsys.readouterr()
     assert "left02.jpg" in printed.out and "<- worst" in printed.out
     assert "notes.jpg  unreadable" in printed.out
-    assert f"{opencv_left.fx:.4f}" in printed.out
+    assert f"{opencv_left.intrinsics.fx_px:.4f}" in printed.out
     assert printed.err.count("\n") >= 1 and "14/14" in printed.err  # plain progress lines (not a TTY)
     fs = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
     k = fs.getNode("camera_matrix").mat()
@@ -218,26 +219,28 @@ def test_cli_writes_a_file_opencv_reads_and_keeps_the_mount(tmp_path, capsys, op
     err = fs.getNode("avg_reprojection_error").real()
     fs.release()
     # A second run of OpenCV's solver can differ in the last bits (parallel sums).
-    np.testing.assert_allclose(k, opencv_left.camera_matrix, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(k, opencv_left.intrinsics.camera_matrix(), rtol=0, atol=1e-6)
     assert d.shape == (1, 5)
-    np.testing.assert_allclose(d.ravel(), opencv_left.dist, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(d.ravel(), opencv_left.intrinsics.distortion, rtol=0, atol=1e-8)
     assert (w, h) == (640, 480) and err == pytest.approx(opencv_left.rms_error_px, abs=1e-8)
     back = read_calibration(out)
     assert back.mount == mount
-    assert back.intrinsics is not None and back.intrinsics.fx == k[0, 0]
+    assert back.intrinsics is not None and back.intrinsics.fx_px == k[0, 0]
 
 
 @needs_photos
 def test_written_file_gives_opencv_the_same_matrix(tmp_path, opencv_left):
     out = tmp_path / "calibration.yml"
-    write_calibration(out, CalibrationFile(intrinsics=opencv_left.intrinsics))
+    write_calibration(out, opencv_left.calibration_file())
     fs = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
     k = fs.getNode("camera_matrix").mat()
     d = fs.getNode("distortion_coefficients").mat()
     fs.release()
-    np.testing.assert_array_equal(k, opencv_left.camera_matrix)  # bit for bit
-    assert d.ravel().tolist() == list(opencv_left.dist)
-    assert read_calibration(out).intrinsics == opencv_left.intrinsics
+    np.testing.assert_array_equal(k, opencv_left.intrinsics.camera_matrix())  # bit for bit
+    assert d.ravel().tolist() == list(opencv_left.intrinsics.distortion)
+    back = read_calibration(out)
+    assert back.intrinsics == opencv_left.intrinsics
+    assert back.reprojection_error_px == opencv_left.rms_error_px
 
 
 def test_progress_bar_tty_and_plain():

@@ -3,14 +3,12 @@ thresholds trained from the fused odometry of one drive, written to the calibrat
 loaded by the daemon, and checked against the ground truth of another drive."""
 
 import json
-import math
 
 import cv2
 import numpy as np
 import pytest
 
 from robotd.io.calibfile import read_calibration
-from calibration.train import _interpolate
 from robotd.app.cli import main
 from robotd.base.config import Config, replace
 from robotd.app.demo import run_demo
@@ -101,12 +99,3 @@ def test_the_daemon_declares_loops_with_the_trained_threshold(trained, tmp_path)
         det = build_floor_detector(cfg, store, load_calibration(cfg))
     assert det.threshold == pytest.approx(trained["train"]["modes"]["4"]["threshold"], rel=1e-12)
 
-
-def test_poses_interpolate_across_the_yaw_wrap():
-    track_ns = np.array([0, 10, 20])
-    track = np.array([[0.0, 0.0, math.pi - 0.1], [1.0, 2.0, -math.pi + 0.1], [2.0, 2.0, -math.pi + 0.3]])
-    out = _interpolate(np.array([-5, 5, 10, 15, 25]), track_ns, track)
-    assert np.allclose(out[:, :2], [[0, 0], [0.5, 1.0], [1, 2], [1.5, 2], [2, 2]])
-    # Halfway from pi - 0.1 to -pi + 0.1 is pi (the short way round), not 0.
-    assert abs(abs(out[1, 2]) - math.pi) < 1e-12
-    assert np.allclose(out[[0, 2, 3, 4], 2], [math.pi - 0.1, -math.pi + 0.1, -math.pi + 0.2, -math.pi + 0.3])

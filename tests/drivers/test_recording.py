@@ -23,6 +23,7 @@ from drivers.recording.writer import OdometryRecorder, RecordingTee, RecordingWr
 from robotd.base.camera import FloorCameraModel
 from robotd.base.clock import ManualClock
 from robotd.base.errors import DriverError
+from robotd.base.geometry import wrap_angle
 from robotd.base.messages import Frame, PoseStamped, WheelTicks, YawRate
 from sim.cameras.floor import FloorRenderer, RenderParams
 from sim.route import MotionLimits, build_route, plan_motion
@@ -107,10 +108,6 @@ class Run:
         return sorted(self.written, key=lambda tm: tm[1].stamp_ns)
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
 def assert_same(topic: str, got: object, want: object) -> None:
     assert type(got) is type(want), topic
     if isinstance(want, (WheelTicks, YawRate)):
@@ -121,7 +118,7 @@ def assert_same(topic: str, got: object, want: object) -> None:
         assert np.array_equal(got.image, want.image)
     else:
         assert (got.stamp_ns, got.x_m, got.y_m) == (want.stamp_ns, want.x_m, want.y_m)
-        assert abs(_wrap(got.yaw_rad - want.yaw_rad)) < 1e-12
+        assert abs(wrap_angle(got.yaw_rad - want.yaw_rad)) < 1e-12
         assert -math.pi <= got.yaw_rad <= math.pi
         assert np.array_equal(got.covariance, want.covariance)
 

@@ -16,6 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from robotd.base.errors import DescriptorError, RobotdError
+from robotd.base.geometry import wrap_angle
 from robotd.floor.descriptor import (ANGLE_BITS, MODE_BYTES, MODES, POSITION_STEP_PX, ExtractParams, candidates,
                                      decode, describe, extract, load_learned, raw_descriptors, ternarise)
 from robotd.base.camera import FloorCameraModel
@@ -247,7 +248,7 @@ def test_decoded_keypoints_are_the_most_relevant_candidates(frames, mode):
     order = np.lexsort((np.arange(n), col, row))  # row-major cells, ties in relevance order
     xy = c.xy[:n][order]
     assert np.all(np.abs(d.xy_px - xy) <= step / 2 + 1e-4)
-    dang = np.abs((d.angle_rad - c.angle[:n][order] + math.pi) % (2 * math.pi) - math.pi)
+    dang = np.abs(wrap_angle(d.angle_rad - c.angle[:n][order]))
     assert np.all(dang <= math.pi / 2**ANGLE_BITS + 1e-5)
     trits = ternarise(raw_descriptors(c, n, params), learned, MODES[mode].length)[order]
     assert np.array_equal(d.ternary(), trits.astype(np.float32))

@@ -4,12 +4,11 @@ import numpy as np
 import pytest
 
 from robotd.floor.evaluation import candidate_report, overlap_matrix
-from robotd.base.camera import FloorCameraModel
+from robotd.base.camera import CameraIntrinsics, FloorCameraModel
 
 
 def test_overlap_matrix_of_a_forward_run():
-    cam = FloorCameraModel(width_px=640, height_px=480, fx=400.0, fy=400.0, cx=319.5, cy=239.5,
-                           dist=(0.0,) * 5, height_m=0.40)
+    cam = FloorCameraModel(CameraIntrinsics(640, 480, 400.0, 400.0, 319.5, 239.5), height_m=0.40)
     poses = np.array([[0.0, 0, 0], [0.12, 0, 0], [0.24, 0, 0], [5.0, 0, 0]])
     m = overlap_matrix(cam, poses)
     assert np.allclose(m, m.T) and np.allclose(np.diag(m), 1.0)

@@ -7,14 +7,12 @@ import os
 from pathlib import Path
 
 import cv2
-import numpy as np
 import pytest
 
 import robotd.io.calibfile as calibfile
 from robotd.io.calibfile import (
     CalibrationFile,
     FloorMount,
-    Intrinsics,
     LoopThresholds,
     camera_model,
     merge,
@@ -22,15 +20,16 @@ from robotd.io.calibfile import (
     update_calibration,
     write_calibration,
 )
+from robotd.base.camera import CameraIntrinsics
 from robotd.base.config import FloorCameraConfig
 from robotd.base.errors import CalibrationError
 from tests.calibration import SHARED_DATA
 
-INTR = Intrinsics(width_px=640, height_px=480, fx=401.25, fy=399.5, cx=321.1, cy=238.7,
-                  dist=(-0.051, 0.012, 0.0011, -0.0004, 0.003), reprojection_error_px=0.183)
+INTR = CameraIntrinsics(width_px=640, height_px=480, fx_px=401.25, fy_px=399.5, cx_px=321.1, cy_px=238.7,
+                        distortion=(-0.051, 0.012, 0.0011, -0.0004, 0.003))
 MOUNT = FloorMount(height_m=0.352, tilt_deg=7.5, x_m=0.105, y_m=-0.021, yaw_deg=-90.0)
 LOOP = LoopThresholds(thresholds=(None, 0.41, 0.38, 0.35, 0.33, 0.3), overlap_r=0.33, confidence=0.99)
-FULL = CalibrationFile(intrinsics=INTR, mount=MOUNT, loop=LOOP)
+FULL = CalibrationFile(intrinsics=INTR, reprojection_error_px=0.183, mount=MOUNT, loop=LOOP)
 
 GOOD_TEXT = """%YAML:1.0
 ---
@@ -66,7 +65,7 @@ def test_the_file_is_plain_opencv_yaml(tmp_path):
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     assert fs.getNode("camera_matrix").mat().tolist() == [[401.25, 0, 321.1], [0, 399.5, 238.7], [0, 0, 1]]
     d = fs.getNode("distortion_coefficients").mat()
-    assert d.shape == (1, 5) and d.ravel().tolist() == list(INTR.dist)
+    assert d.shape == (1, 5) and d.ravel().tolist() == list(INTR.distortion)
     assert fs.getNode("image_width").isInt() and fs.getNode("image_width").real() == 640
     assert fs.getNode("image_height").real() == 480
     assert fs.getNode("avg_reprojection_error").real() == 0.183
@@ -82,17 +81,18 @@ def test_reads_the_file_opencvs_own_sample_wrote():
     ci = calib.intrinsics
     assert ci is not None and calib.mount is None and calib.loop is None
     assert (ci.width_px, ci.height_px) == (640, 480)
-    assert ci.fx == pytest.approx(535.9157, abs=1e-4) and ci.fy == ci.fx
-    assert ci.cx == pytest.approx(342.2832, abs=1e-4) and ci.cy == pytest.approx(235.5708, abs=1e-4)
-    assert ci.dist == pytest.approx((-0.26637, -0.03859, 0.00178, -0.00028, 0.23839), abs=1e-5)
-    assert ci.reprojection_error_px == pytest.approx(0.3926, abs=1e-4)
+    assert ci.fx_px == pytest.approx(535.9157, abs=1e-4) and ci.fy_px == ci.fx_px
+    assert ci.cx_px == pytest.approx(342.2832, abs=1e-4) and ci.cy_px == pytest.approx(235.5708, abs=1e-4)
+    assert ci.distortion == pytest.approx((-0.26637, -0.03859, 0.00178, -0.00028, 0.23839), abs=1e-5)
+    assert calib.reprojection_error_px == pytest.approx(0.3926, abs=1e-4)
 
 
 def test_minimal_file_without_error_or_extras(tmp_path):
     path = tmp_path / "c.yml"
     path.write_text(GOOD_TEXT + "nframes: 13\nflags: 2\n")  # keys of other tools are ignored
-    ci = read_calibration(path).intrinsics
-    assert ci == Intrinsics(640, 480, 400.0, 400.0, 320.0, 240.0, (-0.05, 0.0, 0.0, 0.0, 0.0), None)
+    calib = read_calibration(path)
+    assert calib.intrinsics == CameraIntrinsics(640, 480, 400.0, 400.0, 320.0, 240.0, (-0.05, 0.0, 0.0, 0.0, 0.0))
+    assert calib.reprojection_error_px is None
 
 
 def test_missing_file(tmp_path):
@@ -203,14 +203,20 @@ def test_empty_calibration_is_not_written(tmp_path):
 def test_merge_replaces_one_part_and_keeps_the_others():
     new_mount = FloorMount(height_m=0.5, tilt_deg=0.0)
     merged = merge(FULL, CalibrationFile(mount=new_mount))
-    assert merged == CalibrationFile(intrinsics=INTR, mount=new_mount, loop=LOOP)
+    assert merged == CalibrationFile(intrinsics=INTR, reprojection_error_px=0.183, mount=new_mount, loop=LOOP)
+    # New intrinsics replace the old ones' reprojection error too (unknown here).
+    assert merge(FULL, CalibrationFile(intrinsics=INTR)).reprojection_error_px is None
+    with pytest.raises(CalibrationError, match="without intrinsics"):
+        CalibrationFile(reprojection_error_px=0.2)
+    with pytest.raises(CalibrationError, match="must be >= 0"):
+        CalibrationFile(intrinsics=INTR, reprojection_error_px=-0.1)
     assert merge(None, CalibrationFile(loop=LOOP)) == CalibrationFile(loop=LOOP)
     assert merge(FULL, CalibrationFile()) == FULL
 
 
 def test_update_calibration_creates_then_merges(tmp_path):
     path = tmp_path / "c.yml"
-    update_calibration(path, CalibrationFile(intrinsics=INTR))
+    update_calibration(path, CalibrationFile(intrinsics=INTR, reprojection_error_px=0.183))
     update_calibration(path, CalibrationFile(loop=LOOP))
     update_calibration(path, CalibrationFile(mount=MOUNT))
     assert read_calibration(path) == FULL
@@ -222,19 +228,6 @@ def test_update_never_overwrites_a_damaged_file(tmp_path):
     with pytest.raises(CalibrationError, match="not valid OpenCV YAML"):
         update_calibration(path, CalibrationFile(mount=MOUNT))
     assert path.read_bytes() == GOOD_TEXT.encode()[:180]
-
-
-def test_intrinsics_from_other_opencv_layouts():
-    k = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
-    four = Intrinsics.from_matrix(k, [0.1, 0.01, 0.001, 0.002], 640, 480)
-    assert four.dist == (0.1, 0.01, 0.001, 0.002, 0.0)
-    eight = Intrinsics.from_matrix(k, [0.1, 0.01, 0.001, 0.002, 0.3, 0, 0, 0], 640, 480)
-    assert eight.dist == (0.1, 0.01, 0.001, 0.002, 0.3)
-    with pytest.raises(CalibrationError, match="k4"):
-        Intrinsics.from_matrix(k, [0.1, 0.01, 0.001, 0.002, 0.3, 0.5, 0, 0], 640, 480)
-    with pytest.raises(CalibrationError, match="3x3"):
-        Intrinsics.from_matrix(np.eye(2), [0.0] * 5, 640, 480)
-    np.testing.assert_array_equal(four.camera_matrix, k)
 
 
 def test_loop_thresholds_checks():
@@ -254,23 +247,25 @@ def test_loop_thresholds_checks():
 def test_camera_model_takes_calibrated_parts_and_falls_back_to_the_config():
     cfg = FloorCameraConfig()
     base = camera_model(None, cfg)
-    assert (base.fx, base.height_m, base.dist) == (cfg.fx_px, cfg.mount_height_m, tuple(cfg.distortion))
+    assert base.intrinsics == CameraIntrinsics.from_config(cfg)
+    assert (base.intrinsics.fx_px, base.height_m, base.intrinsics.distortion) == (
+        cfg.fx_px, cfg.mount_height_m, tuple(cfg.distortion))
 
     only_mount = camera_model(CalibrationFile(mount=MOUNT), cfg)
-    assert only_mount.fx == cfg.fx_px and only_mount.cx == cfg.cx_px
+    assert only_mount.intrinsics.fx_px == cfg.fx_px and only_mount.intrinsics.cx_px == cfg.cx_px
     assert only_mount.height_m == 0.352 and only_mount.offset_x_m == 0.105 and only_mount.offset_y_m == -0.021
     assert only_mount.tilt_rad == pytest.approx(math.radians(7.5)) and only_mount.yaw_rad == pytest.approx(-math.pi / 2)
 
     full = camera_model(FULL, cfg)
-    assert (full.fx, full.fy, full.cx, full.cy, full.dist) == (INTR.fx, INTR.fy, INTR.cx, INTR.cy, INTR.dist)
+    assert full.intrinsics == INTR
     assert full.height_m == MOUNT.height_m
 
     only_intr = camera_model(CalibrationFile(intrinsics=INTR), cfg)
-    assert only_intr.fx == INTR.fx and only_intr.height_m == cfg.mount_height_m
+    assert only_intr.intrinsics.fx_px == INTR.fx_px and only_intr.height_m == cfg.mount_height_m
 
 
 def test_camera_model_refuses_intrinsics_of_another_image_size():
-    small = Intrinsics(320, 240, 200.0, 200.0, 160.0, 120.0)
+    small = CameraIntrinsics(320, 240, 200.0, 200.0, 160.0, 120.0)
     with pytest.raises(CalibrationError, match="320x240 images but the floor camera delivers 640x480"):
         camera_model(CalibrationFile(intrinsics=small), FloorCameraConfig())
 

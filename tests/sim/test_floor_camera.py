@@ -40,7 +40,9 @@ def _centroid(img: np.ndarray) -> np.ndarray:
     [
         FloorCameraModel.default(),
         dataclasses.replace(FloorCameraModel.default(), tilt_rad=0.25, yaw_rad=0.4, offset_x_m=0.08,
-                            offset_y_m=-0.02, dist=(-0.12, 0.02, 0.001, -0.001, 0.0)),
+                            offset_y_m=-0.02,
+                            intrinsics=dataclasses.replace(FloorCameraModel.default().intrinsics,
+                                                           distortion=(-0.12, 0.02, 0.001, -0.001, 0.0))),
     ],
     ids=["default", "tilted-yawed-distorted"],
 )

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from robotd.base.errors import ConfigError
+from robotd.base.geometry import wrap_angle
 from sim.route import ROUTES, Motion, MotionLimits, Route, build_route, plan_motion
 
 LIMITS = MotionLimits()
@@ -105,7 +106,7 @@ def test_office_revisits_places_in_both_directions(motions):
     near = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1)) < 0.05
     later = dist[None, :] - dist[:, None] > 5.0  # the same place, >5 m of travel later
     i, j = np.nonzero(near & later)
-    diff = np.abs(np.remainder(yaw[j] - yaw[i] + math.pi, 2 * math.pi) - math.pi)
+    diff = np.abs(wrap_angle(yaw[j] - yaw[i]))
     assert np.sum(diff > math.radians(170)) > 100  # driven the other way
     assert np.sum(diff < math.radians(10)) > 100   # driven the same way again
     # Both loops (corridor: y = 6, room: x = 3.5) are revisited the other way.

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from robotd.base.geometry import wrap_angle
 from robotd.base.messages import WheelTicks, YawRate
 from robotd.odometry.kinematics import DiffDriveParams, WheelOdometry, unwrap_ticks_delta
 from sim.route import build_route, plan_motion
@@ -101,7 +102,7 @@ def test_wheel_base_error_scales_every_turn(square):
     # Seven quarter turns in place: the encoders see (1 + e_B) times each.
     turned = odo.pose().yaw_rad - s.true_pose[-1, 2]
     expected = s.errors.wheel_base_error * 7 * math.pi / 2
-    assert math.remainder(turned, 2 * math.pi) == pytest.approx(expected, rel=0.01)
+    assert wrap_angle(turned) == pytest.approx(expected, rel=0.01)
 
 
 def test_16_bit_counters_and_device_clock_wrap(office_stream):
