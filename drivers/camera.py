@@ -28,6 +28,7 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
+from drivers.timesync import SkewCheck
 from robotd.base.clock import Clock, MonotonicClock
 from robotd.base.errors import DriverError
 from robotd.base.messages import Frame
@@ -413,13 +414,12 @@ class V4L2Camera(Camera):
         self.negotiated = CameraFormat()
         """What the driver accepted at the last (re)open."""
         self._max_failures = max_consecutive_failures
-        self._max_skew_ns = int(max_stamp_skew_s * 1e9)
+        self._skew = SkewCheck(int(max_stamp_skew_s * 1e9))
         self._capture_factory = capture_factory
         self._device_check = device_check
         self._cap: VideoCaptureLike | None = None
         self._timeout_ms: int | None = None
         self._failures_in_row = 0
-        self._skew_logged = False
         self._start()
 
     def __str__(self) -> str:
@@ -509,14 +509,12 @@ class V4L2Camera(Camera):
         if not (math.isfinite(pos_msec) and pos_msec > 0):
             return None
         stamp_ns = round(pos_msec * 1e6)
-        skew_ns = stamp_ns - self._clock.now_ns()
-        if abs(skew_ns) > self._max_skew_ns:
-            if not self._skew_logged:
+        if not self._skew.accept(stamp_ns, self._clock.now_ns()):
+            if self._skew.rejected == 1:
                 _log.warning(
                     "%s: driver timestamps are %.3f s off the clock; stamping with the clock",
-                    self, skew_ns / 1e9,
+                    self, self._skew.last_skew_ns / 1e9,
                 )
-                self._skew_logged = True
             return None
         return stamp_ns
 

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import logging
 from dataclasses import dataclass
@@ -26,6 +25,7 @@ from drivers.kobuki.protocol import (
     encode_base_control,
     encode_request_extra,
 )
+from drivers.timesync import CounterUnwrapper, OffsetMapper
 from robotd.base.clock import Clock
 from robotd.base.errors import DriverError
 from robotd.base.messages import WheelTicks, YawRate
@@ -90,16 +90,11 @@ class KobukiDriver:
         self._clock = clock
         self._yaw_source = yaw_source
         self._wheelbase_m = wheelbase_m
-        self._window_ns = int(offset_window_s * 1e9)
         self._gyro_radps_per_digit = gyro_dps_per_digit * _DEG
         self._parser = PacketParser()
-        self._window: collections.deque[tuple[int, int]] = collections.deque()
-        self._last_raw_ms: int | None = None
-        self._device_ms = 0
-        self._last_receipt_ns = 0
-        self._last_stamp_ns: int | None = None
+        self._device_clock = CounterUnwrapper(bits=16, tick_ns=1_000_000)
+        self._mapper = OffsetMapper(int(offset_window_s * 1e9))
         self._messages_out = 0
-        self._clock_clamps = 0
         self._untimed_packets = 0
         self._commands_sent = 0
         try:
@@ -130,7 +125,7 @@ class KobukiDriver:
     @property
     def stats(self) -> KobukiDriverStats:
         return KobukiDriverStats(self._parser.stats.copy(), self._messages_out,
-                                 self._clock_clamps, self._untimed_packets, self._commands_sent)
+                                 self._mapper.clamps, self._untimed_packets, self._commands_sent)
 
     def _open_port(self) -> serial.SerialBase:
         if self._serial is None:
@@ -173,20 +168,16 @@ class KobukiDriver:
             if basic is None:
                 device_ns.append(None)
                 continue
-            dev = self._unwrap_ms(basic.timestamp_ms, receipt_ns) * 1_000_000
-            self._push_offset(dev, receipt_ns - dev)
+            dev = self._device_clock.unwrap(basic.timestamp_ms, receipt_ns)
+            self._mapper.observe(dev, receipt_ns)
             device_ns.append(dev)
         out: list[WheelTicks | YawRate] = []
         for items, dev in zip(packets, device_ns):
             if dev is None:
                 self._untimed_packets += 1
-                stamp = receipt_ns
+                stamp = self._mapper.clamp(receipt_ns)
             else:
-                stamp = dev + self._window[0][1]
-            if self._last_stamp_ns is not None and stamp < self._last_stamp_ns:
-                self._clock_clamps += 1
-                stamp = self._last_stamp_ns
-            self._last_stamp_ns = stamp
+                stamp = self._mapper.stamp(dev)
             gyro_z: list[int] = []
             inertial = None
             for s in items:
@@ -204,28 +195,6 @@ class KobukiDriver:
                                    "inertial"))
         self._messages_out += len(out)
         return out
-
-    def _unwrap_ms(self, raw_ms: int, receipt_ns: int) -> int:
-        if self._last_raw_ms is None:
-            self._device_ms = raw_ms
-        else:
-            delta = (raw_ms - self._last_raw_ms) & 0xFFFF
-            elapsed_ms = (receipt_ns - self._last_receipt_ns) / 1e6
-            wraps = max(0, round((elapsed_ms - delta) / 65536.0))
-            self._device_ms += delta + 65536 * wraps
-        self._last_raw_ms = raw_ms
-        self._last_receipt_ns = receipt_ns
-        return self._device_ms
-
-    def _push_offset(self, device_ns: int, candidate_ns: int) -> None:
-        # sliding-window minimum: a deque of increasing candidates (Lemire's algorithm)
-        w = self._window
-        while w and w[-1][1] >= candidate_ns:
-            w.pop()
-        w.append((device_ns, candidate_ns))
-        horizon = device_ns - self._window_ns
-        while w[0][0] < horizon:
-            w.popleft()
 
     def send_base_control(self, v_mps: float, w_radps: float) -> None:
         """Command a body twist (m/s forward, rad/s counter-clockwise)."""
