@@ -188,7 +188,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
             observers.append(OdometryRecorder(writer, wheel_topic="/odom/wheel"))
         daemon = Daemon(cfg, clock, sources,
                         odometry, store, Notifier(), lossless=not realtime, observers=observers,
-                        driver_stats=lambda: {"kobuki": driver.stats.as_dict()},
+                        driver_stats=lambda: {"kobuki": driver.stats()},
                         floor=build_floor_detector(cfg, store, load_calibration(cfg)))
         robot.start()
 

@@ -202,4 +202,4 @@ def run_replay(cfg: Config, path: Path, speed: float | None) -> dict[str, Any]:
 
 def _stats(driver: Any) -> Any:
     s = getattr(driver, "stats", None)
-    return s.as_dict() if hasattr(s, "as_dict") else repr(s)
+    return s() if callable(s) else repr(s)
