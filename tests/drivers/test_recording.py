@@ -345,7 +345,6 @@ def test_tee_and_odometry_recorder(tmp_path: Path) -> None:
             self.reads = [[WheelTicks(1, 10, 20, 30), YawRate(1, 0.5, "inertial")], None,
                           Frame(2, "floor", np.full((8, 8), 7, np.uint8), 0)]
             self.closed = 0
-            self.stats = "driver stats"
 
         def read(self, timeout_s: float):
             return self.reads.pop(0)
@@ -353,16 +352,21 @@ def test_tee_and_odometry_recorder(tmp_path: Path) -> None:
         def close(self) -> None:
             self.closed += 1
 
+        def stats(self) -> dict[str, int]:
+            return {"driver_reads": 3 - len(self.reads)}
+
     path = tmp_path / "tee.mcap"
     driver = FakeDriver()
     with RecordingWriter(path) as w:
         tee = RecordingTee(driver, w)
         got = [tee.read(0.1) for _ in range(3)]
         tee.close()
+        tee.close()
         rec = OdometryRecorder(w, wheel_topic="/odom/wheel")
         rec.on_odometry(PoseStamped(3, 1.0, 2.0, 0.5, np.eye(3)), PoseStamped(3, 1.5, 2.5, 0.25))
-    assert got[0] == [WheelTicks(1, 10, 20, 30), YawRate(1, 0.5, "inertial")] and got[1] is None
-    assert driver.closed == 1 and tee.stats == "driver stats"
+    assert got[0] == [WheelTicks(1, 10, 20, 30), YawRate(1, 0.5, "inertial")] and got[1] == []
+    assert len(got[2]) == 1 and got[2][0].stamp_ns == 2
+    assert driver.closed == 1 and tee.stats() == {"driver_reads": 3}
     out = list(read_recording(path))
     assert [t for t, _ in out] == ["/wheel_ticks", "/imu", FLOOR_TOPIC, "/odom", "/odom/wheel"]
     assert out[1][1] == YawRate(1, 0.5, "inertial")
