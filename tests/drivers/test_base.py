@@ -126,7 +126,7 @@ def test_unknown_backend_names_the_known_ones():
         open_driver("base", "can", BaseConfig(), ManualClock())
     with pytest.raises(ConfigError, match=r"unknown floor_camera driver 'depthai'; known: v4l2"):
         open_driver("floor_camera", "depthai", FloorCameraConfig(), ManualClock())
-    with pytest.raises(ConfigError, match=r"no driver role 'lidar'; known roles: base, floor_camera"):
+    with pytest.raises(ConfigError, match=r"no driver role 'lidar'; known roles: base, floor_camera, replay"):
         open_driver("lidar", "rplidar", None, ManualClock())
 
 
