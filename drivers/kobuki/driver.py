@@ -8,6 +8,7 @@ import logging
 
 import serial
 
+from drivers.base import Driver, StatValue
 from drivers.kobuki.protocol import (
     _DEG,
     BAUDRATE,
@@ -23,7 +24,6 @@ from drivers.kobuki.protocol import (
     encode_base_control,
     encode_request_extra,
 )
-from drivers.base import Driver, StatValue
 from drivers.timesync import CounterUnwrapper, OffsetMapper
 from robotd.base.clock import Clock
 from robotd.base.config import BaseConfig

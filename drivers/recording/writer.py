@@ -17,6 +17,7 @@ import numpy as np
 from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer as Ros2Writer
 
+from drivers.base import Driver, Message, StatValue
 from drivers.recording.schemas import (
     _MAX_STAMP_NS,
     _NS_PER_S,
@@ -28,7 +29,6 @@ from drivers.recording.schemas import (
     camera_topic,
     schema_text,
 )
-from drivers.base import Driver, Message, StatValue
 from robotd.base.errors import DriverError
 from robotd.base.messages import Frame, PoseStamped, WheelTicks, YawRate
 

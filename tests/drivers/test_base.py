@@ -112,9 +112,8 @@ def test_every_driver_is_a_context_manager():
     with ScriptedDriver([]) as drv:
         assert isinstance(drv, ScriptedDriver)
     assert drv.close_calls == 1
-    with pytest.raises(KeyError):
-        with ScriptedDriver([]) as failing:
-            raise KeyError("inside")
+    with pytest.raises(KeyError), ScriptedDriver([]) as failing:
+        raise KeyError("inside")
     assert failing.close_calls == 1
 
 

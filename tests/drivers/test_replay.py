@@ -114,7 +114,7 @@ def test_two_replays_give_identical_sequences(recording) -> None:
 
 
 def test_a_clock_already_later_is_not_moved_back(recording) -> None:
-    path, expected = recording
+    path, _ = recording
     start = T0 + 1_000 * MS
     clock = ManualClock(start)
     with ReplayDriver(path, clock, max_batch=1) as drv:
