@@ -216,8 +216,9 @@ def load_run(path: Path, cfg: Any, params: TrainParams, progress: Progress | Non
     import tempfile
 
     from drivers.recording.reader import RecordingReader
-    from drivers.recording.replay import ReplaySource
+    from drivers.recording.replay import ReplayDriver
     from robotd.app.assemble import assemble_daemon
+    from robotd.app.service import replay_finished
     from robotd.app.notify import Notifier
     from robotd.base.clock import ManualClock
     from robotd.base.config import replace
@@ -242,16 +243,14 @@ def load_run(path: Path, cfg: Any, params: TrainParams, progress: Progress | Non
 
     try:
         with tempfile.TemporaryDirectory(prefix="robotd-train-") as tmp, \
-                ReplaySource(path, clock, on_other=other) as replay, \
+                ReplayDriver(path, clock, on_other=other) as replay, \
                 MapStore.open(Path(tmp) / "train.sqlite", synchronous="NORMAL", clock=clock) as store:
-            daemon = assemble_daemon(cfg, clock, {"base": replay.base, "floor": replay.floor}, store,
-                                     Notifier(), lossless=True, observers=[collector],
-                                     load_calibration_file=False, floor_detector=False)
-            replay.start()
-            daemon.run(stop_when=lambda: replay.error is not None or (
-                replay.done() and daemon.pipeline.inputs >= replay.base.handed_out + replay.floor.handed_out))
-            if replay.error is not None:
-                raise replay.error
+            daemon = assemble_daemon(cfg, clock, {"replay": replay}, store, Notifier(), lossless=True,
+                                     observers=[collector], load_calibration_file=False,
+                                     floor_detector=False)
+            report = daemon.run(stop_when=lambda: replay_finished(replay, daemon))
+            if report.source_errors.get("replay"):
+                raise CalibrationError(f"{path}: the replay stopped on an error (see the log)")
         if progress is not None:
             progress("reading the recording (s)", collector.total_ns // 10**9, collector.total_ns // 10**9)
         collector.collect(len(collector.jobs), show=True)

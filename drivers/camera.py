@@ -1,14 +1,15 @@
 """Camera sources behind one small base class.
 
-:class:`Camera` does what every source needs: stamping (the device's timestamp, else the
-injected clock), frame numbering, grey conversion, counting, logging, and reconnecting
-with exponential backoff when the device is lost. A backend implements only
-``_open_internal()``, ``_read_internal(timeout_s)`` and ``_close_internal()``, in the
+:class:`Camera` is a :class:`~drivers.base.Driver` (which does the counting, logging and
+the closed check) that adds what every camera needs: stamping (the device's timestamp,
+else the injected clock), frame numbering, grey conversion, and reconnecting with
+exponential backoff when the device is lost. A camera backend implements only
+``_open_internal()``, ``_grab_internal(timeout_s)`` and ``_release_internal()``, in the
 style of python-can's ``BusABC``. :class:`V4L2Camera` is the OpenCV/V4L2 backend.
 
 Reconnection never sleeps on the wall clock unless the clock is the real
 :class:`~robotd.base.clock.MonotonicClock`: with any other clock, while the device is away,
-``read`` returns None at once until the clock reaches the next retry time, so a replay or
+``read`` returns ``[]`` at once until the clock reaches the next retry time, so a replay or
 a test drives the backoff by moving a :class:`~robotd.base.clock.ManualClock`.
 """
 
@@ -22,50 +23,30 @@ import stat
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Any, Protocol
 
 import cv2
 import numpy as np
 
+from drivers.base import Driver, StatValue
+from drivers.timesync import SkewCheck
 from robotd.base.clock import Clock, MonotonicClock
+from robotd.base.config import FloorCameraConfig
 from robotd.base.errors import DriverError
 from robotd.base.messages import Frame
 
 __all__ = [
     "Camera",
     "CameraFormat",
-    "CameraStats",
     "V4L2Camera",
     "check_video_device",
+    "open_v4l2",
 ]
 
 _log = logging.getLogger(__name__)
 
 VIDEO4LINUX_MAJOR = 81
 """Character-device major number of every ``/dev/videoN`` (Linux ``VIDEO_MAJOR``)."""
-
-
-@dataclass(frozen=True, slots=True)
-class CameraStats:
-    """Counters of a camera since it was created (a snapshot)."""
-
-    frames: int = 0
-    """Frames returned by :meth:`Camera.read`."""
-    empty_reads: int = 0
-    """Reads that returned None with the device present (timeout or a dropped frame)."""
-    losses: int = 0
-    """Times the device was lost (vanished or stopped delivering frames)."""
-    reopen_failures: int = 0
-    """Reconnection attempts that failed."""
-    reconnects: int = 0
-    """Reconnection attempts that succeeded."""
-    clock_stamps: int = 0
-    """Frames stamped with the injected clock because the device gave no usable stamp."""
-
-    def as_dict(self) -> dict[str, int]:
-        """The counters by name (for status lines and reports)."""
-        return {name: getattr(self, name) for name in self.__dataclass_fields__}
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,8 +62,14 @@ class CameraFormat:
     buffer_size: int | None = None
 
 
-class Camera:
-    """Base class of camera sources; a context manager.
+_CAMERA_COUNTERS = ("no_frame_reads", "losses", "reopen_failures", "reconnects", "clock_stamps")
+
+
+class Camera(Driver):
+    """Base class of camera sources; a :class:`~drivers.base.Driver`.
+
+    :meth:`read` returns ``[frame]``, or ``[]`` if no frame came within the timeout or
+    the device is away.
 
     ``name`` becomes :attr:`Frame.camera <robotd.base.messages.Frame.camera>` (``"floor"``,
     ``"forward"``). ``grey=True`` converts colour images to ``(H, W) uint8``.
@@ -90,9 +77,15 @@ class Camera:
     (default: the host monotonic clock). Only with a real
     :class:`~robotd.base.clock.MonotonicClock` does ``read`` sleep (up to its timeout) while
     waiting for the next reconnection attempt, so a reading thread does not spin; with
-    any other clock (a ManualClock in a replay or a test) it returns None at once.
+    any other clock (a ManualClock in a replay or a test) it returns ``[]`` at once.
     After a loss, attempts are made ``initial_backoff_s`` later, then at doubling
     intervals up to ``max_backoff_s``.
+
+    :meth:`stats` adds to the base counters ``no_frame_reads`` (reads with the device
+    present that gave no frame: a timeout or a dropped frame), ``losses`` (times the
+    device was lost: vanished or stopped delivering frames), ``reopen_failures`` and
+    ``reconnects`` (reconnection attempts that failed, succeeded) and ``clock_stamps``
+    (frames stamped with the injected clock because the device gave no usable stamp).
     """
 
     def __init__(
@@ -106,7 +99,7 @@ class Camera:
     ) -> None:
         if not 0 < initial_backoff_s <= max_backoff_s:
             raise ValueError("need 0 < initial_backoff_s <= max_backoff_s")
-        self.name = name
+        super().__init__(name)
         self.grey = grey
         self._clock: Clock = MonotonicClock() if clock is None else clock
         self._may_sleep = isinstance(self._clock, MonotonicClock)
@@ -115,9 +108,8 @@ class Camera:
         self._backoff_ns = self._initial_backoff_ns
         self._next_attempt_ns = 0
         self._connected = False
-        self._closed = False
         self._seq = 0
-        self._counts = dict.fromkeys(CameraStats.__dataclass_fields__, 0)
+        self._counts = dict.fromkeys(_CAMERA_COUNTERS, 0)
 
     # -- what a backend implements ---------------------------------------------------
 
@@ -125,8 +117,8 @@ class Camera:
         """Open the device; raise :class:`DriverError` saying why if it cannot be."""
         raise NotImplementedError
 
-    def _read_internal(self, timeout_s: float | None) -> tuple[np.ndarray, int | None] | None:
-        """Wait up to ``timeout_s`` (None: the backend's default) for one image.
+    def _grab_internal(self, timeout_s: float) -> tuple[np.ndarray, int | None] | None:
+        """Wait up to ``timeout_s`` for one image.
 
         Return ``(image, stamp_ns)`` with ``stamp_ns`` None if the device has no usable
         timestamp, None if no frame came but the device is still there, or raise
@@ -134,7 +126,7 @@ class Camera:
         """
         raise NotImplementedError
 
-    def _close_internal(self) -> None:
+    def _release_internal(self) -> None:
         """Release the device; called once per successful ``_open_internal``."""
         raise NotImplementedError
 
@@ -154,28 +146,18 @@ class Camera:
         """True while the device is open (False while waiting to reconnect)."""
         return self._connected
 
-    @property
-    def stats(self) -> CameraStats:
-        """A snapshot of the counters."""
-        return CameraStats(**self._counts)
-
-    def read(self, timeout_s: float | None = None) -> Frame | None:
+    def _read_internal(self, timeout_s: float) -> Frame | None:
         """The next frame, or None if none came within ``timeout_s`` or the device is
-        away (then it is reopened on a later call, see the class docstring).
-
-        Raises :class:`DriverError` only if the camera was closed.
-        """
-        if self._closed:
-            raise DriverError(f"{self} is closed")
+        away (then it is reopened on a later call, see the class docstring)."""
         if not self._connected and not self._reconnect(timeout_s):
             return None
         try:
-            result = self._read_internal(timeout_s)
+            result = self._grab_internal(timeout_s)
         except DriverError as exc:
             self._lose(exc)
             return None
         if result is None:
-            self._counts["empty_reads"] += 1
+            self._counts["no_frame_reads"] += 1
             return None
         image, stamp_ns = result
         if stamp_ns is None:
@@ -185,30 +167,15 @@ class Camera:
             image = _to_grey(image)
         frame = Frame(stamp_ns=stamp_ns, camera=self.name, image=image, seq=self._seq)
         self._seq += 1
-        self._counts["frames"] += 1
-        if _log.isEnabledFor(logging.DEBUG):
-            _log.debug("%s: frame %d at %d ns, %s", self, frame.seq, stamp_ns, image.shape)
         return frame
 
-    def close(self) -> None:
-        """Release the device. Safe to call more than once."""
-        if self._closed:
-            return
-        self._closed = True
+    def _close_internal(self) -> None:
         if self._connected:
             self._connected = False
-            self._close_internal()
+            self._release_internal()
 
-    def __enter__(self) -> Camera:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
+    def _stats_internal(self) -> dict[str, StatValue]:
+        return dict(self._counts)
 
     def __str__(self) -> str:
         return f"{self.name} camera"
@@ -219,7 +186,7 @@ class Camera:
         self._counts["losses"] += 1
         self._connected = False
         try:
-            self._close_internal()
+            self._release_internal()
         except Exception as close_exc:  # noqa: BLE001 - the device is gone; log and go on
             _log.debug("%s: error while releasing a lost device: %s", self, close_exc)
         self._backoff_ns = self._initial_backoff_ns
@@ -338,6 +305,13 @@ def check_video_device(path: str) -> None:
     os.close(fd)
 
 
+def open_v4l2(section: FloorCameraConfig, clock: Clock) -> V4L2Camera:
+    """The registry's factory of ``("floor_camera", "v4l2")``: the floor camera, grey."""
+    return V4L2Camera(section.device, name="floor", fourcc=section.fourcc,
+                      width_px=section.width_px, height_px=section.height_px, fps=section.fps,
+                      buffer_size=section.buffer_size, grey=True, clock=clock)
+
+
 def _fourcc_code(fourcc: str) -> int:
     if len(fourcc) != 4 or not fourcc.isascii():
         raise ValueError(f"fourcc must be 4 ASCII characters, got {fourcc!r}")
@@ -365,7 +339,7 @@ class V4L2Camera(Camera):
     kernel's ``CLOCK_MONOTONIC`` for UVC and most capture drivers, i.e. the same base as
     :class:`~robotd.base.clock.MonotonicClock`). A stamp that is missing or further than
     ``max_stamp_skew_s`` from the clock (a driver on another time base) is replaced by the
-    clock's time, and counted in :attr:`stats`.
+    clock's time, and counted (``clock_stamps`` in :meth:`stats`).
 
     A failed read is a dropped frame unless the device node has gone or
     ``max_consecutive_failures`` reads failed in a row; then the device counts as lost and
@@ -413,13 +387,12 @@ class V4L2Camera(Camera):
         self.negotiated = CameraFormat()
         """What the driver accepted at the last (re)open."""
         self._max_failures = max_consecutive_failures
-        self._max_skew_ns = int(max_stamp_skew_s * 1e9)
+        self._skew = SkewCheck(int(max_stamp_skew_s * 1e9))
         self._capture_factory = capture_factory
         self._device_check = device_check
         self._cap: VideoCaptureLike | None = None
         self._timeout_ms: int | None = None
         self._failures_in_row = 0
-        self._skew_logged = False
         self._start()
 
     def __str__(self) -> str:
@@ -484,7 +457,7 @@ class V4L2Camera(Camera):
             _log.warning("%s: the driver chose %s", self, "; ".join(differences))
         return got
 
-    def _read_internal(self, timeout_s: float | None) -> tuple[np.ndarray, int | None] | None:
+    def _grab_internal(self, timeout_s: float) -> tuple[np.ndarray, int | None] | None:
         cap = self._cap
         assert cap is not None
         if timeout_s is not None:
@@ -509,18 +482,16 @@ class V4L2Camera(Camera):
         if not (math.isfinite(pos_msec) and pos_msec > 0):
             return None
         stamp_ns = round(pos_msec * 1e6)
-        skew_ns = stamp_ns - self._clock.now_ns()
-        if abs(skew_ns) > self._max_skew_ns:
-            if not self._skew_logged:
+        if not self._skew.accept(stamp_ns, self._clock.now_ns()):
+            if self._skew.rejected == 1:
                 _log.warning(
                     "%s: driver timestamps are %.3f s off the clock; stamping with the clock",
-                    self, skew_ns / 1e9,
+                    self, self._skew.last_skew_ns / 1e9,
                 )
-                self._skew_logged = True
             return None
         return stamp_ns
 
-    def _close_internal(self) -> None:
+    def _release_internal(self) -> None:
         cap, self._cap = self._cap, None
         if cap is not None:
             cap.release()

@@ -3,13 +3,12 @@
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import logging
-from dataclasses import dataclass
 
 import serial
 
+from drivers.base import Driver, StatValue
 from drivers.kobuki.protocol import (
     _DEG,
     BAUDRATE,
@@ -19,49 +18,28 @@ from drivers.kobuki.protocol import (
     FeedbackSubPayload,
     InertialData,
     PacketParser,
-    ParserStats,
     RawGyroData,
     base_control_from_twist,
     decode_feedback,
     encode_base_control,
     encode_request_extra,
 )
+from drivers.timesync import CounterUnwrapper, OffsetMapper
 from robotd.base.clock import Clock
+from robotd.base.config import BaseConfig
 from robotd.base.errors import DriverError
 from robotd.base.messages import WheelTicks, YawRate
 
 logger = logging.getLogger(__name__)
 
 
-# --------------------------------------------------------------------------------------
-# Driver
-# --------------------------------------------------------------------------------------
+def open_kobuki(section: BaseConfig, clock: Clock) -> KobukiDriver:
+    """The registry's factory of ``("base", "kobuki")``: a driver on ``section.port``."""
+    return KobukiDriver(section.port, clock, yaw_source=section.yaw_source,
+                        baudrate=section.baudrate)
 
 
-@dataclass(frozen=True, slots=True)
-class KobukiDriverStats:
-    """A snapshot of a driver's counters.
-
-    ``clock_clamps`` counts packets whose mapped stamp would have gone back in time and
-    was raised to the previous stamp; ``untimed_packets`` counts packets without basic
-    sensor data, stamped with their receipt time.
-    """
-
-    parser: ParserStats
-    messages_out: int
-    clock_clamps: int
-    untimed_packets: int
-    commands_sent: int
-
-    def as_dict(self) -> dict[str, int]:
-        """Every counter in one flat mapping (parser counters first), for JSON and STATUS."""
-        d = dataclasses.asdict(self.parser)
-        d.update(messages_out=self.messages_out, clock_clamps=self.clock_clamps,
-                 untimed_packets=self.untimed_packets, commands_sent=self.commands_sent)
-        return d
-
-
-class KobukiDriver:
+class KobukiDriver(Driver):
     """A Kobuki base on any pyserial URL (``/dev/kobuki``, a pty path, ``loop://``).
 
     :meth:`read` returns one :class:`~robotd.base.messages.WheelTicks` per basic-sensor
@@ -76,30 +54,35 @@ class KobukiDriver:
     time, so the whole batch enters the window before any of it is stamped. Stamps never
     go backwards (clamped and counted).
 
+    The unwrapping and the offset are :mod:`drivers.timesync`'s
+    :class:`~drivers.timesync.CounterUnwrapper` (16 bits, 1 ms) and
+    :class:`~drivers.timesync.OffsetMapper`.
+
     ``yaw_source`` is ``"raw_gyro"`` (the mean yaw axis of the packet's raw 3-axis gyro
     samples, falling back to the inertial rate when a packet has none) or ``"inertial"``.
+
+    :meth:`stats` adds to the base counters the parser's (``packets``,
+    ``garbage_bytes``, ``bad_checksums``, ...), ``clock_clamps`` (packets whose mapped
+    stamp would have gone back in time and was raised to the previous stamp),
+    ``untimed_packets`` (packets without basic sensor data, stamped with their receipt
+    time) and ``commands_sent``.
     """
 
     def __init__(self, url: str, clock: Clock, *, yaw_source: str = "raw_gyro",
                  wheelbase_m: float = WHEELBASE_M, offset_window_s: float = 10.0,
                  gyro_dps_per_digit: float = GYRO_DPS_PER_DIGIT,
-                 timeout_s: float = 0.1, baudrate: int = BAUDRATE) -> None:
+                 timeout_s: float = 0.1, baudrate: int = BAUDRATE, name: str = "base") -> None:
         if yaw_source not in ("raw_gyro", "inertial"):
             raise ValueError(f"yaw_source must be 'raw_gyro' or 'inertial', not {yaw_source!r}")
+        super().__init__(name)
         self._url = url
         self._clock = clock
         self._yaw_source = yaw_source
         self._wheelbase_m = wheelbase_m
-        self._window_ns = int(offset_window_s * 1e9)
         self._gyro_radps_per_digit = gyro_dps_per_digit * _DEG
         self._parser = PacketParser()
-        self._window: collections.deque[tuple[int, int]] = collections.deque()
-        self._last_raw_ms: int | None = None
-        self._device_ms = 0
-        self._last_receipt_ns = 0
-        self._last_stamp_ns: int | None = None
-        self._messages_out = 0
-        self._clock_clamps = 0
+        self._device_clock = CounterUnwrapper(bits=16, tick_ns=1_000_000)
+        self._mapper = OffsetMapper(int(offset_window_s * 1e9))
         self._untimed_packets = 0
         self._commands_sent = 0
         try:
@@ -109,35 +92,32 @@ class KobukiDriver:
             raise DriverError(f"cannot open Kobuki port {url}: {exc}") from exc
         logger.info("opened Kobuki port %s", url)
 
-    def __enter__(self) -> KobukiDriver:
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
+    def __str__(self) -> str:
+        return f"{self.name}: Kobuki port {self._url}"
 
     @property
     def port(self) -> serial.SerialBase:
         """The underlying pyserial port (tests write feedback into ``loop://`` with it)."""
         return self._open_port()
 
-    def close(self) -> None:
-        """Close the port; safe to call more than once."""
+    def _close_internal(self) -> None:
         port, self._serial = self._serial, None
         if port is not None:
             port.close()
             logger.info("closed Kobuki port %s", self._url)
 
-    @property
-    def stats(self) -> KobukiDriverStats:
-        return KobukiDriverStats(self._parser.stats.copy(), self._messages_out,
-                                 self._clock_clamps, self._untimed_packets, self._commands_sent)
+    def _stats_internal(self) -> dict[str, StatValue]:
+        out: dict[str, StatValue] = dict(dataclasses.asdict(self._parser.stats))
+        out.update(clock_clamps=self._mapper.clamps, untimed_packets=self._untimed_packets,
+                   commands_sent=self._commands_sent)
+        return out
 
     def _open_port(self) -> serial.SerialBase:
         if self._serial is None:
             raise DriverError(f"Kobuki port {self._url} is closed")
         return self._serial
 
-    def read(self, timeout_s: float) -> list[WheelTicks | YawRate]:
+    def _read_internal(self, timeout_s: float) -> list[WheelTicks | YawRate]:
         """Wait up to ``timeout_s`` for bytes, take all that are available, and return the
         messages of the packets they complete (possibly none)."""
         port = self._open_port()
@@ -173,20 +153,16 @@ class KobukiDriver:
             if basic is None:
                 device_ns.append(None)
                 continue
-            dev = self._unwrap_ms(basic.timestamp_ms, receipt_ns) * 1_000_000
-            self._push_offset(dev, receipt_ns - dev)
+            dev = self._device_clock.unwrap(basic.timestamp_ms, receipt_ns)
+            self._mapper.observe(dev, receipt_ns)
             device_ns.append(dev)
         out: list[WheelTicks | YawRate] = []
         for items, dev in zip(packets, device_ns):
             if dev is None:
                 self._untimed_packets += 1
-                stamp = receipt_ns
+                stamp = self._mapper.clamp(receipt_ns)
             else:
-                stamp = dev + self._window[0][1]
-            if self._last_stamp_ns is not None and stamp < self._last_stamp_ns:
-                self._clock_clamps += 1
-                stamp = self._last_stamp_ns
-            self._last_stamp_ns = stamp
+                stamp = self._mapper.stamp(dev)
             gyro_z: list[int] = []
             inertial = None
             for s in items:
@@ -202,30 +178,7 @@ class KobukiDriver:
             elif inertial is not None:
                 out.append(YawRate(stamp, inertial.angle_rate_centidegps / 100.0 * _DEG,
                                    "inertial"))
-        self._messages_out += len(out)
         return out
-
-    def _unwrap_ms(self, raw_ms: int, receipt_ns: int) -> int:
-        if self._last_raw_ms is None:
-            self._device_ms = raw_ms
-        else:
-            delta = (raw_ms - self._last_raw_ms) & 0xFFFF
-            elapsed_ms = (receipt_ns - self._last_receipt_ns) / 1e6
-            wraps = max(0, round((elapsed_ms - delta) / 65536.0))
-            self._device_ms += delta + 65536 * wraps
-        self._last_raw_ms = raw_ms
-        self._last_receipt_ns = receipt_ns
-        return self._device_ms
-
-    def _push_offset(self, device_ns: int, candidate_ns: int) -> None:
-        # sliding-window minimum: a deque of increasing candidates (Lemire's algorithm)
-        w = self._window
-        while w and w[-1][1] >= candidate_ns:
-            w.pop()
-        w.append((device_ns, candidate_ns))
-        horizon = device_ns - self._window_ns
-        while w[0][0] < horizon:
-            w.popleft()
 
     def send_base_control(self, v_mps: float, w_radps: float) -> None:
         """Command a body twist (m/s forward, rad/s counter-clockwise)."""

@@ -71,9 +71,8 @@ that definition is damaged, the topic's later messages cannot be decoded and are
 as undecodable. Messages come out in log-time order by merging chunks on their time
 ranges, so memory holds only the chunks that overlap in time.
 
-:class:`ReplaySource` feeds a recording to the daemon through two driver-like
-sub-sources (``replay.base``, ``replay.floor``), as fast as possible or paced at a
-multiple of recorded speed.
+:class:`~drivers.recording.replay.ReplayDriver` feeds a recording back as one driver,
+as fast as it is read or paced at a multiple of recorded speed.
 """
 
 from __future__ import annotations

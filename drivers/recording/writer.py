@@ -17,6 +17,7 @@ import numpy as np
 from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer as Ros2Writer
 
+from drivers.base import Driver, Message, StatValue
 from drivers.recording.schemas import (
     _MAX_STAMP_NS,
     _NS_PER_S,
@@ -322,24 +323,29 @@ class RecordingWriter:
             self.close(completed=False, reason=f"{exc_type.__name__}: {exc}")
 
 
-class RecordingTee:
+class RecordingTee(Driver):
     """A driver wrapper: ``read`` returns what ``source.read`` returns and records it.
 
     Wrap a base driver (WheelTicks and YawRate) or a camera (Frame) before handing it to
-    the daemon, so the recording holds exactly what the daemon received. ``close``
-    closes the wrapped source, not the writer.
+    the daemon, so the recording holds exactly what the daemon received. ``source`` is a
+    :class:`~drivers.base.Driver` or any object whose ``read(timeout_s)`` returns None,
+    one message or a list (the virtual robot's camera). ``close`` closes the wrapped
+    source, not the writer. :meth:`stats` are the wrapped driver's (the tee's own
+    counters for a source without ``stats()``); other attributes (``request_extra``,
+    ``port``, ...) are the wrapped source's.
     """
 
     def __init__(self, source: Any, writer: RecordingWriter) -> None:
+        super().__init__(str(getattr(source, "name", "tee")))
         self.source = source
         self.writer = writer
 
-    def read(self, timeout_s: float) -> Any:
+    def _read_internal(self, timeout_s: float) -> list[Message]:
         got = self.source.read(timeout_s)
-        if got is not None:
-            for msg in got if isinstance(got, list) else (got,):
-                self._record(msg)
-        return got
+        messages = [] if got is None else got if isinstance(got, list) else [got]
+        for msg in messages:
+            self._record(msg)
+        return messages
 
     def _record(self, msg: Any) -> None:
         if isinstance(msg, WheelTicks):
@@ -349,32 +355,18 @@ class RecordingTee:
         elif isinstance(msg, Frame):
             self.writer.write_frame(msg)
 
-    def close(self) -> None:
+    def _close_internal(self) -> None:
         self.source.close()
 
-    def __getattr__(self, name: str) -> Any:  # driver extras (stats, request_extra, ...)
+    def stats(self) -> dict[str, StatValue]:
+        """The wrapped driver's :meth:`~drivers.base.Driver.stats`."""
+        inner = getattr(self.source, "stats", None)
+        return inner() if callable(inner) else super().stats()
+
+    def __str__(self) -> str:
+        return f"recording tee of {self.source}"
+
+    def __getattr__(self, name: str) -> Any:  # driver extras (request_extra, port, ...)
         if name == "source":
             raise AttributeError(name)
         return getattr(self.source, name)
-
-
-class OdometryRecorder:
-    """A pipeline observer that records the fused odometry on ``/odom`` and, when
-    ``wheel_topic`` is given (e.g. ``"/odom/wheel"``), the wheel-only odometry too."""
-
-    def __init__(self, writer: RecordingWriter, wheel_topic: str | None = None) -> None:
-        self.writer = writer
-        self.wheel_topic = wheel_topic
-
-    def on_odometry(self, fused: PoseStamped, wheel: PoseStamped) -> None:
-        self.writer.write_odometry(fused, TOPIC_ODOM)
-        if self.wheel_topic:
-            self.writer.write_odometry(wheel, self.wheel_topic)
-
-    def on_keyframe(self, keyframe_id: int, frame: Frame, pose: PoseStamped) -> None:
-        pass
-
-    def on_floor_query(self, query: Any) -> None:
-        pass
-
-

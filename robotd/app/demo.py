@@ -196,7 +196,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
             observers.append(OdometryRecorder(writer))
         daemon = assemble_daemon(cfg, clock, sources, store, Notifier(), lossless=not realtime,
                                  observers=observers,
-                                 driver_stats=lambda: {"kobuki": driver.stats.as_dict()})
+                                 driver_stats=lambda: {"kobuki": driver.stats()})
         robot.start()
 
         def finished() -> bool:

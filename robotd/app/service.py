@@ -14,41 +14,36 @@ from typing import Any, Callable
 from robotd.app.assemble import assemble_daemon, open_map
 from robotd.base.clock import Clock, MonotonicClock
 from robotd.base.config import Config, to_toml
-from robotd.base.errors import ConfigError
+from robotd.base.errors import ConfigError, DriverError
 from robotd.base.messages import OdometryUpdate
 
 log = logging.getLogger(__name__)
 
 
 def open_sources(cfg: Config, clock: Clock) -> dict[str, tuple[Any, Callable[[], Any]]]:
-    """Open every driver the config enables: name -> (open driver, function to reopen it)."""
-    from drivers.camera import V4L2Camera
-    from drivers.kobuki.driver import KobukiDriver
+    """Open every driver the config enables, each backend chosen by name through the
+    driver registry: source name -> (open driver, function to reopen it)."""
+    from drivers.registry import open_driver
 
-    sources: dict[str, tuple[Any, Callable[[], Any]]] = {}
-    if cfg.base.driver == "kobuki":
-        b = cfg.base
-
-        def open_base() -> Any:
-            return KobukiDriver(b.port, clock=clock, baudrate=b.baudrate, yaw_source=b.yaw_source)
-
-        sources["base"] = (open_base(), open_base)
+    wanted: list[tuple[str, str, str, Any]] = []  # (source, role, backend, config section)
+    if cfg.base.driver != "none":
+        wanted.append(("base", "base", cfg.base.driver, cfg.base))
     fc = cfg.floor_camera
     if fc.source == "virtual":
         raise ConfigError("[floor_camera] source: 'virtual' exists only in `robotd demo`")
-    if fc.source == "v4l2":
+    if fc.source != "none":
+        wanted.append(("floor", "floor_camera", fc.source, fc))
+    sources: dict[str, tuple[Any, Callable[[], Any]]] = {}
+    try:
+        for source, role, backend, section in wanted:
+            def reopen(role: str = role, backend: str = backend, section: Any = section) -> Any:
+                return open_driver(role, backend, section, clock)
 
-        def open_floor() -> Any:
-            return V4L2Camera(fc.device, width_px=fc.width_px, height_px=fc.height_px, fps=fc.fps,
-                              fourcc=fc.fourcc, buffer_size=fc.buffer_size, grey=True,
-                              clock=clock, name="floor")
-
-        try:
-            sources["floor"] = (open_floor(), open_floor)
-        except Exception:
-            for drv, _ in sources.values():
-                drv.close()
-            raise
+            sources[source] = (reopen(), reopen)
+    except BaseException:
+        for drv, _ in sources.values():
+            drv.close()
+        raise
     return sources
 
 
@@ -121,37 +116,36 @@ def run_replay(cfg: Config, path: Path, speed: float | None) -> dict[str, Any]:
     As fast as possible, the replay is lossless: every message reaches the pipeline and
     every frame waits for its odometry, so the map is the same on every replay.
     """
-    from drivers.recording.reader import RecordingReader
-    from drivers.recording.replay import ReplaySource
+    from drivers.recording.replay import ReplayDriver
     from robotd.app.notify import Notifier
     from robotd.base.clock import ManualClock
 
-    span = RecordingReader(path).time_range_ns
-    if span is None:
-        raise ConfigError(f"{path}: the recording holds no messages")
-    clock = ManualClock(span[0])
-    replay = ReplaySource(path, clock, speed)
-    with replay, open_map(cfg, clock=clock) as store:
-        daemon = assemble_daemon(cfg, clock, {"base": replay.base, "floor": replay.floor}, store,
-                                 Notifier(), lossless=True)
-        replay.start()
-
-        def finished() -> bool:
-            if replay.error is not None:
-                return True
-            # Frames still held for a settled pose are handled by Pipeline.finish at the end.
-            return replay.done() and daemon.pipeline.inputs >= replay.base.handed_out + replay.floor.handed_out
-
-        report = daemon.run(stop_when=finished)
-    if replay.error is not None:
-        raise replay.error
+    clock = ManualClock()
+    with ReplayDriver(path, clock, speed) as replay:
+        span = replay.time_range_ns
+        if span is None:
+            raise ConfigError(f"{path}: the recording holds no messages")
+        clock.set_ns(span[0])
+        with open_map(cfg, clock=clock) as store:
+            daemon = assemble_daemon(cfg, clock, {"replay": replay}, store, Notifier(), lossless=True,
+                                     driver_stats=lambda: {"replay": replay.stats()})
+            report = daemon.run(stop_when=lambda: replay_finished(replay, daemon))
     c = report.counters
+    if report.source_errors.get("replay"):
+        raise DriverError(f"{path}: the replay stopped on an error (see the log)")
     return {"replayed": dict(replay.counts), "keyframes": c.get("keyframes", 0),
             "frames": c.get("frames", 0), "frames_unsynced": c.get("frames_unsynced", 0),
-            "odometry_samples": c.get("wheel_msgs", 0),
+            "odometry_samples": c.get("wheel_msgs", 0), "damage": replay.damage.as_dict(),
             "wall_s": report.wall_s, "recording_s": (span[1] - span[0]) / 1e9}
+
+
+def replay_finished(replay: Any, daemon: Any) -> bool:
+    """True once a replay's last message has gone through the pipeline (frames still
+    held for a settled pose are handled by the pipeline's finish)."""
+    reading = daemon.threads["replay"].is_alive()  # a replay that failed stops reading
+    return (replay.finished or not reading) and daemon.pipeline.inputs >= replay.handed_out
 
 
 def _stats(driver: Any) -> Any:
     s = getattr(driver, "stats", None)
-    return s.as_dict() if hasattr(s, "as_dict") else repr(s)
+    return s() if callable(s) else repr(s)

@@ -5,8 +5,6 @@ from __future__ import annotations
 import datetime
 import math
 import struct
-import threading
-import time
 from pathlib import Path
 
 import cv2
@@ -17,9 +15,9 @@ from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as Ros2Writer
 
 from drivers.recording.reader import RecordingReader, read_recording
-from drivers.recording.replay import ReplaySource
+from drivers.recording.replay import ReplayDriver
 from drivers.recording.schemas import PARTIAL_SUFFIX, camera_topic, schema_text
-from drivers.recording.writer import OdometryRecorder, RecordingTee, RecordingWriter
+from drivers.recording.writer import RecordingTee, RecordingWriter
 from robotd.base.camera import FloorCameraModel
 from robotd.base.clock import ManualClock
 from robotd.base.errors import DriverError
@@ -336,13 +334,12 @@ def test_exception_in_with_block_still_finishes_the_file(tmp_path: Path) -> None
         assert [m for _, m in r.messages()] == [WheelTicks(1, 2, 3, 4)]
 
 
-def test_tee_and_odometry_recorder(tmp_path: Path) -> None:
+def test_tee_records_what_the_driver_reads(tmp_path: Path) -> None:
     class FakeDriver:
         def __init__(self) -> None:
             self.reads = [[WheelTicks(1, 10, 20, 30), YawRate(1, 0.5, "inertial")], None,
                           Frame(2, "floor", np.full((8, 8), 7, np.uint8), 0)]
             self.closed = 0
-            self.stats = "driver stats"
 
         def read(self, timeout_s: float):
             return self.reads.pop(0)
@@ -350,16 +347,21 @@ def test_tee_and_odometry_recorder(tmp_path: Path) -> None:
         def close(self) -> None:
             self.closed += 1
 
+        def stats(self) -> dict[str, int]:
+            return {"driver_reads": 3 - len(self.reads)}
+
     path = tmp_path / "tee.mcap"
     driver = FakeDriver()
     with RecordingWriter(path) as w:
         tee = RecordingTee(driver, w)
         got = [tee.read(0.1) for _ in range(3)]
         tee.close()
-        rec = OdometryRecorder(w, wheel_topic="/odom/wheel")
-        rec.on_odometry(PoseStamped(3, 1.0, 2.0, 0.5, np.eye(3)), PoseStamped(3, 1.5, 2.5, 0.25))
-    assert got[0] == [WheelTicks(1, 10, 20, 30), YawRate(1, 0.5, "inertial")] and got[1] is None
-    assert driver.closed == 1 and tee.stats == "driver stats"
+        tee.close()
+        w.write_odometry(PoseStamped(3, 1.0, 2.0, 0.5, np.eye(3)))
+        w.write_odometry(PoseStamped(3, 1.5, 2.5, 0.25), "/odom/wheel")
+    assert got[0] == [WheelTicks(1, 10, 20, 30), YawRate(1, 0.5, "inertial")] and got[1] == []
+    assert len(got[2]) == 1 and got[2][0].stamp_ns == 2
+    assert driver.closed == 1 and tee.stats() == {"driver_reads": 3}
     out = list(read_recording(path))
     assert [t for t, _ in out] == ["/wheel_ticks", "/imu", FLOOR_TOPIC, "/odom", "/odom/wheel"]
     assert out[1][1] == YawRate(1, 0.5, "inertial")
@@ -494,7 +496,7 @@ def test_unreadable_files_raise_driver_error_naming_the_path(tmp_path: Path) -> 
     empty = tmp_path / "empty.mcap"
     empty.write_bytes(b"")
     with pytest.raises(DriverError, match="empty"):
-        ReplaySource(empty)
+        ReplayDriver(empty, ManualClock())
 
 
 def test_foreign_topics_are_skipped_and_bad_images_counted(tmp_path: Path) -> None:
@@ -521,105 +523,3 @@ def test_foreign_topics_are_skipped_and_bad_images_counted(tmp_path: Path) -> No
 
 
 # -- replay ----------------------------------------------------------------------------
-
-def _consume(replay: ReplaySource, source, out: list, clock: ManualClock | None) -> None:
-    """Read like a daemon source thread until the replay has handed everything out."""
-    while True:
-        got = source.read(0.05)
-        if got is None:
-            if replay.done():
-                return
-            continue
-        for item in got if isinstance(got, list) else (got,):
-            out.append((item, clock.now_ns() if clock else None))
-
-
-def test_replay_delivers_everything_in_order_through_both_sources(run: Run, recording) -> None:
-    path, _ = recording
-    clock = ManualClock()
-    others: list[tuple[str, object]] = []
-    replay = ReplaySource(path, clock, speed=None, queue_size=4,
-                          on_other=lambda t, m: others.append((t, m)))
-    base_got: list = []
-    floor_got: list = []
-    threads = [threading.Thread(target=_consume, args=(replay, replay.base, base_got, clock)),
-               threading.Thread(target=_consume, args=(replay, replay.floor, floor_got, clock))]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(60.0)
-    assert not any(t.is_alive() for t in threads)
-    replay.close()
-    replay.close()
-    assert replay.finished.is_set()
-    assert replay.error is None
-    want_base = [m for _, m in run.expected() if isinstance(m, (WheelTicks, YawRate))]
-    assert [m for m, _ in base_got] == want_base
-    assert len(floor_got) == len(run.frames)
-    for (got, _), want in zip(floor_got, run.frames, strict=True):
-        assert_same(FLOOR_TOPIC, got, want)
-    # the clock had reached each message's stamp when the message was read
-    for m, now in base_got + floor_got:
-        assert now >= m.stamp_ns
-    handed = [m.stamp_ns for m, _ in base_got + floor_got]
-    assert clock.now_ns() == max(handed)
-    assert replay.base.handed_out == len(want_base) and replay.floor.handed_out == len(run.frames)
-    assert replay.counts == {"/wheel_ticks": sum(isinstance(m, WheelTicks) for m in want_base),
-                             "/imu": sum(isinstance(m, YawRate) for m in want_base),
-                             FLOOR_TOPIC: len(run.frames)}
-    assert replay.skipped == {FORWARD_TOPIC: 1, "/odom": len(run.odom), "/ground_truth": len(run.truth)}
-    assert [t for t, _ in others].count("/ground_truth") == len(run.truth)
-    assert [m.stamp_ns for _, m in others] == sorted(m.stamp_ns for _, m in others)
-
-
-def test_replay_paced_at_speed_is_not_faster_than_asked(run: Run, recording) -> None:
-    path, _ = recording
-    with pytest.raises(ValueError):
-        ReplaySource(path, speed=0.0)
-    replay = ReplaySource(path, speed=100.0, cameras=())
-    assert replay.floor is None
-    items: list = []
-    t0 = time.monotonic()
-    with replay:
-        _consume(replay, replay.base, items, None)
-        elapsed = time.monotonic() - t0
-    items = [m for m, _ in items]
-    span_s = (items[-1].stamp_ns - items[0].stamp_ns) / 1e9
-    assert len(items) == len(run.base_msgs)
-    assert elapsed >= span_s / 100.0  # the last message waited for its paced time
-    assert replay.skipped[FLOOR_TOPIC] == len(run.frames)
-
-
-def test_replay_of_damaged_recording_reads_what_is_intact(run: Run, recording, tmp_path: Path) -> None:
-    path, _ = recording
-    data = path.read_bytes()
-    cut = tmp_path / "cut.mcap"
-    cut.write_bytes(data[: len(data) // 2])
-    with ReplaySource(cut, cameras=()) as replay:
-        got: list = []
-        _consume(replay, replay.base, got, None)
-        assert replay.damage.no_summary and replay.error is None
-    items = [m for m, _ in got]
-    want = [m for _, m in run.expected() if isinstance(m, (WheelTicks, YawRate))]
-    assert 0 < len(items) < len(want)
-    assert items == want[: len(items)]  # base data are written in time order: a prefix survives
-    assert [m.stamp_ns for m in items] == sorted(m.stamp_ns for m in items)
-    assert all(m in want for m in items)
-
-
-def test_replay_reports_a_failure_through_read(tmp_path: Path) -> None:
-    path = tmp_path / "r.mcap"
-    with RecordingWriter(path) as w:
-        w.write_wheel_ticks(WheelTicks(1, 2, 3, 4))
-        w.write_ground_truth(2, 0.0, 0.0, 0.0)
-        w.write_wheel_ticks(WheelTicks(3, 2, 3, 4))
-
-    def broken(topic: str, msg: object) -> None:
-        raise RuntimeError("observer bug")
-
-    with ReplaySource(path, on_other=broken) as replay:
-        assert replay.base.read(10.0) == [WheelTicks(1, 2, 3, 4)]
-        assert replay.finished.wait(10.0)
-        with pytest.raises(DriverError, match="r.mcap.*observer bug"):
-            replay.base.read(0.01)
-        assert replay.counts == {"/wheel_ticks": 1}
