@@ -42,7 +42,8 @@ from robotd.base.messages import WheelTicks, YawRate
 from robotd.odometry.ekf import EkfParams, OdometryFilter
 from robotd.odometry.kinematics import WheelOdometry
 from sim.route import ROUTES, MotionLimits, build_route, plan_motion
-from sim.sensors import BaseSensorParams, BaseStream, simulate_base
+from sim.emulators.kobuki import KobukiFeedback, simulate_kobuki
+from sim.sensors import BaseSensorParams
 from robotd.io.trajectory import trajectory_errors
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "odometry.json"
@@ -74,13 +75,13 @@ def run_fused(msgs: list[WheelTicks | YawRate]) -> tuple[np.ndarray, OdometryFil
     return np.asarray(out), f
 
 
-def evaluate_seed(stream: BaseStream, yaw_source: str) -> dict[str, Any]:
+def evaluate_seed(stream: KobukiFeedback, yaw_source: str) -> dict[str, Any]:
     """Errors of both estimators on one simulated run."""
     msgs = stream.messages(yaw_source)
     wheels = [m for m in msgs if isinstance(m, WheelTicks)]
     wheel = run_wheel_only(wheels)
     fused, f = run_fused(msgs)
-    e = stream.errors
+    e = stream.sensors.errors
     return {
         "drawn_errors": dataclasses.asdict(e),
         "wheel_only": trajectory_errors(stream.true_pose, wheel).as_dict(),
@@ -113,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     per_seed = []
     streams = []
     for seed in range(args.seeds):
-        stream = simulate_base(motion, sensor_params, np.random.default_rng(seed))
+        stream = simulate_kobuki(motion, sensor_params, np.random.default_rng(seed))
         streams.append(stream)
         per_seed.append({"seed": seed, **evaluate_seed(stream, args.yaw_source)})
 
@@ -126,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
                          *(round(m[k], 3) for k in METRICS)])
         rows[-2].append(f"eB {100 * e['wheel_base_error']:+.1f}%  dR-dL "
                         f"{100 * (e['right_radius_error'] - e['left_radius_error']):+.2f}%  "
-                        f"bias {e['gyro_bias0_degps']:+.2f} deg/s")
+                        f"bias {np.degrees(e['gyro_bias0_radps']):+.2f} deg/s")
         rows[-1].append("")
     median = {method: {k: statistics.median(r[method][k] for r in per_seed) for k in METRICS}
               for method in ("wheel_only", "fused")}

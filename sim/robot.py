@@ -1,17 +1,18 @@
 """The virtual robot: a Turtlebot 2 that speaks the real protocols.
 
-It plans a route (:mod:`sim.route`), simulates the wheel encoders and gyro with
-their errors (:mod:`sim.sensors`), and plays them out in time order:
+It plans a route (:mod:`sim.route`) over a floor (:mod:`sim.world`), and composes parts
+that each own a list of event times and an ``emit(i)``:
 
-* Kobuki feedback packets (basic sensor data, inertial, raw gyro) at 50 Hz are written to
-  the master side of a pseudo-terminal, so the daemon opens the slave by its path with the
-  same serial driver it uses on the robot; commands the daemon sends back are decoded and
-  counted (RequestExtra is answered with version and UDID packets, as the firmware does).
-* Floor camera frames at 30 Hz are rendered (:mod:`sim.cameras.floor`) at the true pose
-  and handed over through :class:`VirtualCamera`, which has the same ``read``/``close``
-  shape as the V4L2 camera.
-* The injected :class:`~robotd.base.clock.ManualClock` is moved to each event's time before
-  the event is emitted, so the daemon's clock is the virtual robot's.
+* emulators (:mod:`sim.emulators`): the Kobuki base, whose SI sensor streams
+  (:mod:`sim.sensors`) are encoded into feedback packets at 50 Hz and written to the
+  master side of a pseudo-terminal, so the daemon opens the slave by its path with the
+  same serial driver it uses on the robot; it answers the daemon's commands;
+* cameras (:mod:`sim.cameras`): the downward floor camera, rendered at the true pose at
+  30 Hz and read like a real camera.
+
+One thread plays every part's events in time order (emulators before cameras on equal
+times); the injected :class:`~robotd.base.clock.ManualClock` is moved to each event's time
+before the event is emitted, so the daemon's clock is the virtual robot's.
 
 Fast mode (default) emits as fast as the daemon consumes (lossless back-pressure);
 real-time mode paces events on the wall clock and drops frames like a real camera when
@@ -20,28 +21,43 @@ the consumer falls behind.
 
 from __future__ import annotations
 
+import heapq
 import logging
-import os
-import queue
-import select
 import threading
 import time
-import tty
+from collections.abc import Iterator
 from dataclasses import dataclass
-from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
-from drivers.kobuki import protocol
 from robotd.base.camera import FloorCameraModel
 from robotd.base.clock import ManualClock
-from robotd.base.messages import Frame
-from sim.cameras.floor import FloorRenderer, RenderParams
+from sim.cameras.device import VirtualCamera
+from sim.cameras.floor import FloorRenderer, RenderParams, floor_camera
+from sim.emulators.kobuki import KobukiEmulator, KobukiParams, simulate_kobuki
 from sim.route import ROUTES, MotionLimits, build_route, plan_motion
-from sim.sensors import BaseSensorParams, simulate_base
+from sim.sensors import BaseSensorParams
 from sim.world.floor import Floor
 
+__all__ = ["Part", "VirtualCamera", "VirtualRobot", "VirtualRobotSettings"]
+
 log = logging.getLogger(__name__)
+
+
+class Part(Protocol):
+    """An emulator or a camera of the virtual robot."""
+
+    @property
+    def event_times_s(self) -> np.ndarray:
+        """``(K,) float64`` increasing simulation times of the part's events, s."""
+        ...
+
+    def emit(self, i: int) -> None:
+        """Emit event ``i`` (the clock is already at its time)."""
+        ...
+
+    def close(self) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -66,51 +82,20 @@ def _default_print_photo() -> "np.ndarray":
     return skimage.data.gravel()
 
 
-class VirtualCamera:
-    """Frames rendered by the virtual robot, read like a real camera.
-
-    ``read(timeout_s)`` returns a :class:`~robotd.base.messages.Frame` or ``None``; after the
-    last frame, ``exhausted`` is set. Lossless mode makes the robot wait for the reader;
-    otherwise a full buffer drops the new frame, as a camera whose reader is late does.
-    """
-
-    def __init__(self, capacity: int, lossless: bool) -> None:
-        self._q: queue.Queue[Frame] = queue.Queue(maxsize=capacity)
-        self.lossless = lossless
-        self.dropped = 0
-        self.exhausted = threading.Event()
-        self.closed = False
-
-    def read(self, timeout_s: float) -> Frame | None:
-        try:
-            return self._q.get(timeout=timeout_s)
-        except queue.Empty:
-            return None
-
-    def close(self) -> None:
-        self.closed = True
-
-    def push(self, frame: Frame, stop: threading.Event) -> None:
-        if not self.lossless:
-            try:
-                self._q.put_nowait(frame)
-            except queue.Full:
-                self.dropped += 1
-            return
-        while not stop.is_set():
-            try:
-                self._q.put(frame, timeout=0.1)
-                return
-            except queue.Full:
-                continue
-
-
 class VirtualRobot:
-    """The simulated robot; ``start()`` plays it out in a thread, ``close()`` tears down."""
+    """The simulated robot; ``start()`` plays it out in a thread, ``close()`` tears down.
+
+    ``emulators`` and ``cameras`` are its parts (today the Kobuki base, :attr:`base`, and
+    the floor camera, :attr:`camera`). ``sensor_params`` is the base's sensor error
+    model, ``base_params`` what its firmware reports, ``render_params`` the floor
+    camera's exposure and noise. The base's random draws come from ``settings.seed``, the
+    camera's noise from ``settings.seed + 1``.
+    """
 
     def __init__(self, settings: VirtualRobotSettings, camera_model: FloorCameraModel,
                  clock: ManualClock, sensor_params: BaseSensorParams | None = None,
-                 render_params: RenderParams | None = None) -> None:
+                 render_params: RenderParams | None = None,
+                 base_params: KobukiParams | None = None) -> None:
         if settings.route not in ROUTES:
             from robotd.base.errors import ConfigError
             raise ConfigError(f"unknown route {settings.route!r} (known: {', '.join(ROUTES)})")
@@ -120,37 +105,21 @@ class VirtualRobot:
         self.motion = plan_motion(build_route(settings.route), MotionLimits())
         if settings.duration_s is not None:
             self.motion = self.motion.truncated(settings.duration_s)
-        self.base = simulate_base(self.motion, sensor_params or BaseSensorParams(), rng)
-        if settings.floor_pattern is not None:
-            from sim.world.floor import load_floor_photo
-            from sim.world.pattern import PatternFloor, PatternParams
-
-            photo = (load_floor_photo(settings.floor_files[0]) if settings.floor_files
-                     else _default_print_photo())
-            params = (PatternParams(kind="tiles", width_m=0.3) if settings.floor_pattern == "tiles"
-                      else PatternParams(kind="planks"))
-            self.floor = PatternFloor(photo, params, settings.floor_metres_per_px, settings.seed)
-        elif settings.floor_files:
-            self.floor = Floor.from_photos(list(settings.floor_files),
-                                           metres_per_px=settings.floor_metres_per_px,
-                                           seed=settings.seed)
-        else:
-            self.floor = Floor.default(seed=settings.seed, metres_per_px=settings.floor_metres_per_px)
+        feedback = simulate_kobuki(self.motion, sensor_params or BaseSensorParams(), rng,
+                                   base_params)
+        self.floor = _make_floor(settings)
         self.camera_model = camera_model
         self.renderer = FloorRenderer(self.floor, camera_model, render_params or RenderParams(),
                                       np.random.default_rng(settings.seed + 1))
-        self.camera = VirtualCamera(settings.camera_queue_size, lossless=not settings.realtime)
-        self.frame_times_s = np.arange(0.0, float(self.motion.t_s[-1]), 1.0 / settings.camera_fps)
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)
-        os.set_blocking(self._master, False)
-        self.port = os.ttyname(self._slave)
-        self._parser = protocol.PacketParser()
-        self.commands_received: dict[str, int] = {}
-        self.packets_emitted = 0
-        self.frames_emitted = 0
-        self.finished = threading.Event()
         self._stop = threading.Event()
+        self.base = KobukiEmulator(feedback, stop=self._stop)
+        self.camera = floor_camera(self.renderer, self.motion, settings.camera_fps,
+                                   capacity=settings.camera_queue_size,
+                                   lossless=not settings.realtime, stop=self._stop)
+        self.emulators: list[KobukiEmulator] = [self.base]
+        self.cameras: list[VirtualCamera] = [self.camera]
+        self.port = self.base.port
+        self.finished = threading.Event()
         self._thread = threading.Thread(target=self._run, name="virtual-robot", daemon=True)
         self.error: BaseException | None = None
 
@@ -163,20 +132,33 @@ class VirtualRobot:
     def sim_time_s(self) -> float:
         return self.clock.now_ns() / 1e9
 
+    @property
+    def packets_emitted(self) -> int:
+        """Feedback packets written by all emulators."""
+        return sum(e.packets_emitted for e in self.emulators)
+
+    @property
+    def frames_emitted(self) -> int:
+        """Frames handed over (or dropped) by all cameras."""
+        return sum(c.frames_emitted for c in self.cameras)
+
+    @property
+    def commands_received(self) -> dict[str, int]:
+        """Commands the base received, by type name."""
+        return self.base.commands_received
+
     def start(self) -> None:
         self._thread.start()
 
     def stop(self) -> None:
         self._stop.set()
-        self._thread.join(timeout=10.0)
+        if self._thread.is_alive():
+            self._thread.join(timeout=10.0)
 
     def close(self) -> None:
         self.stop()
-        for fd in (self._master, self._slave):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
+        for part in (*self.emulators, *self.cameras):
+            part.close()
 
     def __enter__(self) -> "VirtualRobot":
         return self
@@ -184,13 +166,11 @@ class VirtualRobot:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def write_ground_truth_tum(self, path: Path, rate_hz: float = 50.0) -> None:
-        """Ground-truth poses as a TUM trajectory file (t x y z qx qy qz qw)."""
-        from robotd.io.trajectory import write_tum
-
-        t = np.arange(0.0, self.duration_s, 1.0 / rate_hz)
-        poses = self.motion.pose_at(t)
-        write_tum(path, (t * 1e9).astype(np.int64), poses)
+    def ground_truth(self, rate_hz: float = 50.0) -> tuple[np.ndarray, np.ndarray]:
+        """The true trajectory every ``1 / rate_hz`` s over the run: ``stamp_ns`` ``(N,)
+        int64`` and poses ``(N, 3) float64`` ``(x_m, y_m, yaw_rad)``."""
+        t_s = np.arange(0.0, self.duration_s, 1.0 / rate_hz)
+        return (t_s * 1e9).astype(np.int64), self.motion.pose_at(t_s)
 
     # -- the event loop ----------------------------------------------------------------
     def _run(self) -> None:
@@ -200,78 +180,44 @@ class VirtualRobot:
             self.error = exc
             log.exception("virtual robot failed")
         finally:
-            self.camera.exhausted.set()
+            for camera in self.cameras:
+                camera.exhausted.set()
             self.finished.set()
 
     def _play(self) -> None:
-        packet_t = self.base.t_s
-        frame_t = self.frame_times_s
-        i = j = 0
+        parts: list[Part] = [*self.emulators, *self.cameras]
+        events = heapq.merge(*(_events(k, p.event_times_s) for k, p in enumerate(parts)))
         wall0 = time.monotonic()
-        while not self._stop.is_set() and (i < len(packet_t) or j < len(frame_t)):
-            is_packet = j >= len(frame_t) or (i < len(packet_t) and packet_t[i] <= frame_t[j])
-            t = float(packet_t[i] if is_packet else frame_t[j])
+        for t_s, k, i in events:
+            if self._stop.is_set():
+                return
             if self.settings.realtime:
-                delay = wall0 + t - time.monotonic()
+                delay = wall0 + t_s - time.monotonic()
                 if delay > 0:
                     self._stop.wait(delay)
-            self.clock.set_ns(max(self.clock.now_ns(), int(round(t * 1e9))))
-            if is_packet:
-                self._write(self._packet_bytes(i))
-                self.packets_emitted += 1
-                i += 1
-                self._poll_commands()
-            else:
-                pose = self.motion.pose_at(t)
-                v, w = self.motion.velocity_at(t)
-                image = self.renderer.render(pose, v, w, t)
-                self.camera.push(Frame(int(round(t * 1e9)), "floor", image, j), self._stop)
-                self.frames_emitted += 1
-                j += 1
+            self.clock.set_ns(max(self.clock.now_ns(), int(round(t_s * 1e9))))
+            parts[k].emit(i)
 
-    def _packet_bytes(self, i: int) -> bytes:
-        b = self.base
-        basic = protocol.BasicSensorData(
-            timestamp_ms=int(b.device_ms[i]), bumper=0, wheel_drop=0, cliff=0,
-            left_encoder=int(b.left_ticks[i]), right_encoder=int(b.right_ticks[i]),
-            left_pwm=0, right_pwm=0, buttons=0, charger=0, battery_decivolts=165, overcurrent=0,
-        )
-        inertial = protocol.InertialData(angle_centideg=int(b.angle_cdeg[i]),
-                                       angle_rate_centidegps=int(b.angle_rate_cdegps[i]))
-        gyro = protocol.RawGyroData(
-            frame_id=i & 0xFF,
-            samples=tuple(tuple(int(a) for a in xyz) for xyz in b.gyro_digits[i, : b.gyro_count[i]]),
-        )
-        return protocol.encode_feedback(basic, inertial, gyro)
 
-    def _write(self, data: bytes) -> None:
-        view = memoryview(data)
-        while view and not self._stop.is_set():
-            try:
-                n = os.write(self._master, view)
-                view = view[n:]
-            except BlockingIOError:
-                select.select([], [self._master], [], 0.1)
+def _events(k: int, times_s: np.ndarray) -> Iterator[tuple[float, int, int]]:
+    """Part ``k``'s events as ``(t_s, k, i)``: merged, equal times go in part order."""
+    for i, t_s in enumerate(times_s):
+        yield float(t_s), k, i
 
-    def _poll_commands(self) -> None:
-        try:
-            data = os.read(self._master, 4096)
-        except (BlockingIOError, OSError):
-            return
-        for payload in self._parser.feed(data):
-            for cmd in protocol.decode_commands(payload):
-                name = type(cmd).__name__
-                self.commands_received[name] = self.commands_received.get(name, 0) + 1
-                if isinstance(cmd, protocol.RequestExtra):
-                    self._write(self._extra_reply(cmd))
 
-    @staticmethod
-    def _extra_reply(cmd: "protocol.RequestExtra") -> bytes:
-        parts = []
-        if cmd.hardware_version:
-            parts.append(protocol.HardwareVersion(major=1, minor=0, patch=4))
-        if cmd.firmware_version:
-            parts.append(protocol.FirmwareVersion(major=1, minor=2, patch=0))
-        if cmd.udid:
-            parts.append(protocol.UniqueDeviceId(udid0=0x524F424F, udid1=0x54440000, udid2=0x00000001))
-        return protocol.encode_feedback(*parts) if parts else b""
+def _make_floor(settings: VirtualRobotSettings):
+    """The floor the settings ask for: a pattern printed with a photo, photos, or the
+    default (scikit-image's textures)."""
+    if settings.floor_pattern is not None:
+        from sim.world.floor import load_floor_photo
+        from sim.world.pattern import PatternFloor, PatternParams
+
+        photo = (load_floor_photo(settings.floor_files[0]) if settings.floor_files
+                 else _default_print_photo())
+        params = (PatternParams(kind="tiles", width_m=0.3) if settings.floor_pattern == "tiles"
+                  else PatternParams(kind="planks"))
+        return PatternFloor(photo, params, settings.floor_metres_per_px, settings.seed)
+    if settings.floor_files:
+        return Floor.from_photos(list(settings.floor_files),
+                                 metres_per_px=settings.floor_metres_per_px, seed=settings.seed)
+    return Floor.default(seed=settings.seed, metres_per_px=settings.floor_metres_per_px)

@@ -37,7 +37,6 @@ __all__ = [
     "Route",
     "RouteEntry",
     "build_route",
-    "get_route",
     "plan_motion",
 ]
 

@@ -154,7 +154,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     from robotd.app.notify import Notifier
     from robotd.base.camera import FloorCameraModel
     from sim.robot import VirtualRobot, VirtualRobotSettings
-    from robotd.io.trajectory import read_tum, trajectory_errors
+    from robotd.io.trajectory import read_tum, trajectory_errors, write_tum
 
     out.mkdir(parents=True, exist_ok=True)
     map_path = out / "map.sqlite"
@@ -213,7 +213,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
         progress.update(robot.sim_time_s, daemon.pipeline.stage("keyframes").keyframes, final=True)
         robot.stop()
         recorder.close()
-        robot.write_ground_truth_tum(out / "groundtruth.tum")
+        write_tum(out / "groundtruth.tum", *robot.ground_truth())
         if writer is not None:
             for stamp, pose in zip(robot.base.stamp_ns, robot.base.true_pose):
                 writer.write_ground_truth(int(stamp), *map(float, pose))

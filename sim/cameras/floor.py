@@ -19,6 +19,7 @@ electrons_per_level`` and read noise of sigma ``noise_sigma``, rounding and clip
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, fields
 
 import cv2
@@ -27,9 +28,11 @@ import numpy as np
 from robotd.base.errors import ConfigError
 from robotd.base.camera import FloorCameraModel
 from robotd.base.geometry import compose
+from sim.cameras.device import VirtualCamera
+from sim.route import Motion
 from sim.world.floor import FloorSource
 
-__all__ = ["FloorRenderer", "RenderParams"]
+__all__ = ["FloorRenderer", "RenderParams", "floor_camera"]
 
 
 @dataclass(frozen=True)
@@ -256,3 +259,16 @@ def _arc(v_mps: float, w_radps: float, dt_s: float) -> np.ndarray:
         return np.array([v_mps * dt_s, 0.0, th])
     r = v_mps / w_radps
     return np.array([r * math.sin(th), r * (1.0 - math.cos(th)), th])
+
+
+def floor_camera(renderer: FloorRenderer, motion: Motion, fps: float, *, capacity: int,
+                 lossless: bool, stop: threading.Event | None = None) -> VirtualCamera:
+    """The downward floor camera along ``motion``: frames every ``1 / fps`` s from 0 to the
+    end of the motion (excluded), each rendered at the true pose and velocity of its time;
+    see :class:`~sim.cameras.device.VirtualCamera` for the hand-over."""
+    def render(t_s: float) -> np.ndarray:
+        v, w = motion.velocity_at(t_s)
+        return renderer.render(motion.pose_at(t_s), v, w, t_s)
+
+    times_s = np.arange(0.0, float(motion.t_s[-1]), 1.0 / fps)
+    return VirtualCamera("floor", times_s, render, capacity=capacity, lossless=lossless, stop=stop)

@@ -25,7 +25,8 @@ from robotd.base.geometry import wrap_angle
 from robotd.base.messages import Frame, PoseStamped, WheelTicks, YawRate
 from sim.cameras.floor import FloorRenderer, RenderParams
 from sim.route import MotionLimits, build_route, plan_motion
-from sim.sensors import BaseSensorParams, simulate_base
+from sim.emulators.kobuki import simulate_kobuki
+from sim.sensors import BaseSensorParams
 from sim.world.floor import ImageFloor
 
 FLOOR_TOPIC = "/floor_camera/image/compressed"
@@ -45,7 +46,7 @@ class Run:
     def __init__(self, duration_s: float = 4.0, seed: int = 0) -> None:
         rng = np.random.default_rng(seed)
         motion = plan_motion(build_route("square"), MotionLimits()).truncated(duration_s)
-        base = simulate_base(motion, BaseSensorParams(), rng)
+        base = simulate_kobuki(motion, BaseSensorParams(), rng)
         self.base_msgs = base.messages()
         # A floor texture with structure at several scales, like a photographed floor.
         noise = rng.random((1600, 1600)).astype(np.float32)

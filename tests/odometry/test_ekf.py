@@ -26,7 +26,8 @@ from robotd.odometry.ekf import (
 )
 from robotd.odometry.kinematics import DiffDriveParams
 from sim.route import Motion
-from sim.sensors import BaseSensorParams, simulate_base
+from sim.emulators.kobuki import simulate_kobuki
+from sim.sensors import BaseSensorParams
 
 MS = 1_000_000  # ns
 ROUND = DiffDriveParams(wheel_radius_m=0.05, wheel_base_m=0.5, ticks_per_rev=1000.0)
@@ -204,7 +205,7 @@ def test_fused_heading_beats_wheels_on_a_circle_with_wheel_base_error_and_gyro_b
         BaseSensorParams.ideal(), wheel_base_error_range=(0.02, 0.02),
         gyro_bias_degps_range=(0.25, 0.25), gyro_noise_density_degps_sqrt_hz=0.03,
         gyro_bias_walk_degps_sqrt_s=0.001)
-    stream = simulate_base(motion, params, np.random.default_rng(11))
+    stream = simulate_kobuki(motion, params, np.random.default_rng(11))
     f = OdometryFilter()
     for msg in stream.messages():
         (f.on_wheels if isinstance(msg, WheelTicks) else f.on_yaw_rate)(msg)
@@ -214,8 +215,8 @@ def test_fused_heading_beats_wheels_on_a_circle_with_wheel_base_error_and_gyro_b
     # Two laps (4 pi rad) with a 2 % wheel-base error: the wheels are off by ~0.25 rad.
     assert wheel_err == pytest.approx(0.02 * 4 * math.pi, rel=0.1)
     assert fused_err < wheel_err / 10
-    assert f.state.gyro_bias_radps == pytest.approx(math.radians(
-        stream.errors.gyro_bias0_degps), abs=math.radians(0.03))
+    assert f.state.gyro_bias_radps == pytest.approx(stream.sensors.errors.gyro_bias0_radps,
+                                                    abs=math.radians(0.03))
     end = stream.true_pose[-1]
     assert math.hypot(f.pose().x_m - end[0], f.pose().y_m - end[1]) < 0.05
 

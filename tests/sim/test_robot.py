@@ -1,0 +1,47 @@
+"""The virtual robot: parts played in time order on the injected clock, read by real drivers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drivers.kobuki.driver import KobukiDriver
+from robotd.base.camera import FloorCameraModel
+from robotd.base.clock import ManualClock
+from robotd.base.errors import ConfigError
+from robotd.base.messages import Frame, WheelTicks, YawRate
+from sim.robot import VirtualRobot, VirtualRobotSettings
+
+
+def test_a_short_run_through_the_kobuki_driver_and_the_camera():
+    clock = ManualClock()
+    settings = VirtualRobotSettings(route="square", seed=3, duration_s=0.5, camera_queue_size=2)
+    with VirtualRobot(settings, FloorCameraModel.default(), clock) as robot, \
+            KobukiDriver(robot.port, clock) as driver:
+        assert robot.emulators == [robot.base] and robot.cameras == [robot.camera]
+        robot.start()
+        base: list[WheelTicks | YawRate] = []
+        frames: list[tuple[int, Frame]] = []
+        while not (robot.finished.is_set() and len(frames) == robot.frames_emitted
+                   and sum(isinstance(m, WheelTicks) for m in base) >= robot.packets_emitted):
+            base += driver.read(0.01)
+            frame = robot.camera.read(0.01)
+            if frame is not None:
+                frames.append((clock.now_ns(), frame))
+        assert robot.error is None
+    assert robot.packets_emitted == 26 and robot.frames_emitted == 15  # 50 Hz and 30 Hz
+    wheels = [m for m in base if isinstance(m, WheelTicks)]
+    assert [m.stamp_ns for m in wheels] == list(robot.base.stamp_ns)
+    # The clock was at each frame's time when it was emitted, never behind.
+    assert [f.stamp_ns for _, f in frames] == [round(i * 1e9 / 30) for i in range(15)]
+    assert all(now >= f.stamp_ns for now, f in frames)
+    assert clock.now_ns() == robot.base.stamp_ns[-1] == 500_000_000
+    stamps_ns, poses = robot.ground_truth(rate_hz=10.0)
+    np.testing.assert_array_equal(stamps_ns, np.arange(5) * 100_000_000)
+    np.testing.assert_allclose(poses, robot.motion.pose_at(stamps_ns / 1e9))
+    assert robot.duration_s == 0.5 and robot.sim_time_s == 0.5
+
+
+def test_an_unknown_route_is_a_config_error():
+    with pytest.raises(ConfigError, match="unknown route"):
+        VirtualRobot(VirtualRobotSettings(route="moon"), FloorCameraModel.default(), ManualClock())
