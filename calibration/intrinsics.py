@@ -178,6 +178,39 @@ def _load_gray(path: str) -> tuple[np.ndarray | None, str]:
 # ------------------------------------------------------------------- calibration
 
 
+def _find_boards(paths: list[str], board: tuple[int, int], progress: ProgressFn | None,
+                 ) -> tuple[tuple[int, int], dict[int, np.ndarray], tuple[RejectedImage, ...]]:
+    """The common image size, the board corners per usable image index, and the rejected
+    images with their reasons. One pass, one image in memory at a time."""
+    cols, rows = board
+    rejected: dict[int, RejectedImage] = {}
+    found: dict[int, tuple[tuple[int, int], np.ndarray | None]] = {}  # size, corners
+    for i, path in enumerate(paths):
+        gray, why = _load_gray(path)
+        if gray is None:
+            rejected[i] = RejectedImage(path, RejectReason.UNREADABLE, why)
+        else:
+            found[i] = ((gray.shape[1], gray.shape[0]), find_board_corners(gray, (cols, rows)))
+        if progress is not None:
+            progress(i + 1, len(paths), path)
+    sizes = Counter(s for s, _ in found.values())
+    # most_common keeps first-seen order among equal counts.
+    size = sizes.most_common(1)[0][0] if sizes else (0, 0)
+    corners: dict[int, np.ndarray] = {}
+    for i, (got, c) in found.items():
+        if got != size:
+            rejected[i] = RejectedImage(paths[i], RejectReason.WRONG_SIZE,
+                                        f"{got[0]}x{got[1]}, the others are {size[0]}x{size[1]}")
+        elif c is None:
+            rejected[i] = RejectedImage(paths[i], RejectReason.CORNERS_NOT_FOUND, f"no {cols}x{rows} chessboard found")
+        else:
+            corners[i] = c
+    rejected_list = tuple(rejected[i] for i in sorted(rejected))
+    for r in rejected_list:
+        logger.debug("rejected %s: %s (%s)", r.path, r.reason.value, r.detail)
+    return size, corners, rejected_list
+
+
 def calibrate_intrinsics(
     images: Sequence[str | os.PathLike[str]],
     board_inner_corners: tuple[int, int] = (9, 6),
@@ -204,34 +237,8 @@ def calibrate_intrinsics(
         raise CalibrationError(f"square size must be positive, got {square_size_m}")
     paths = [os.fspath(p) for p in images]
     total = len(paths)
-    rejected: dict[int, RejectedImage] = {}
-    found: dict[int, tuple[tuple[int, int], np.ndarray | None]] = {}  # size, corners
-    # One pass, one image in memory at a time: decode, note the size, look for the board.
-    for i, path in enumerate(paths):
-        gray, why = _load_gray(path)
-        if gray is None:
-            rejected[i] = RejectedImage(path, RejectReason.UNREADABLE, why)
-        else:
-            found[i] = ((gray.shape[1], gray.shape[0]), find_board_corners(gray, (cols, rows)))
-        if progress is not None:
-            progress(i + 1, total, path)
-    sizes = Counter(s for s, _ in found.values())
-    # most_common keeps first-seen order among equal counts.
-    size = sizes.most_common(1)[0][0] if sizes else (0, 0)
-    corners: dict[int, np.ndarray] = {}
-    for i, (got, c) in found.items():
-        if got != size:
-            rejected[i] = RejectedImage(paths[i], RejectReason.WRONG_SIZE,
-                                        f"{got[0]}x{got[1]}, the others are {size[0]}x{size[1]}")
-        elif c is None:
-            rejected[i] = RejectedImage(paths[i], RejectReason.CORNERS_NOT_FOUND, f"no {cols}x{rows} chessboard found")
-        else:
-            corners[i] = c
-
+    size, corners, rejected_list = _find_boards(paths, (cols, rows), progress)
     used = sorted(corners)
-    rejected_list = tuple(rejected[i] for i in sorted(rejected))
-    for r in rejected_list:
-        logger.debug("rejected %s: %s (%s)", r.path, r.reason.value, r.detail)
     if len(used) < MIN_IMAGES:
         listing = "; ".join(f"{os.path.basename(r.path)}: {r.reason.value}" for r in rejected_list[:10])
         more = f" (and {len(rejected_list) - 10} more)" if len(rejected_list) > 10 else ""

@@ -145,24 +145,14 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
              duration_s: float | None = None, seed: int = 0,
              realtime: bool = False, plot: bool = True, record: Path | None = None) -> dict[str, Any]:
     """Run the daemon on the virtual robot; returns the summary (also written as JSON)."""
-    import numpy as np
-
-    from drivers.kobuki.driver import KobukiDriver
+    from robotd.base.camera import FloorCameraModel
     from robotd.base.clock import ManualClock
     from robotd.base.config import replace
-    from robotd.app.assemble import assemble_daemon, open_map
-    from robotd.app.notify import Notifier
-    from robotd.base.camera import FloorCameraModel
     from sim.robot import VirtualRobot, VirtualRobotSettings
-    from robotd.io.trajectory import read_tum, trajectory_errors, write_tum
 
     out.mkdir(parents=True, exist_ok=True)
     map_path = out / "map.sqlite"
-    for suffix in ("", "-wal", "-shm"):
-        stale = Path(str(map_path) + suffix)
-        if stale.exists():
-            log.info("replacing the previous demo map %s", stale)
-            stale.unlink()
+    _clear_previous_map(map_path)
     clock = ManualClock()
     cam_model = FloorCameraModel.from_config(base_cfg.floor_camera)
     settings = VirtualRobotSettings(route=route, seed=seed, duration_s=duration_s, realtime=realtime,
@@ -175,6 +165,33 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     cfg = replace(cfg, "floor_camera", source="virtual")
     cfg = replace(cfg, "map", path=str(map_path))
     recorder = _Recorder(out)
+    live = _drive(robot, cfg, clock, recorder, realtime=realtime, record=record)
+    live["wall_s"] = time.monotonic() - wall0
+    summary = _summarise(cfg, cam_model, robot, recorder, live, out, plot=plot,
+                         floor_files=floor_files, floor_pattern=floor_pattern, record=record)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _clear_previous_map(map_path: Path) -> None:
+    for suffix in ("", "-wal", "-shm"):
+        stale = Path(str(map_path) + suffix)
+        if stale.exists():
+            log.info("replacing the previous demo map %s", stale)
+            stale.unlink()
+
+
+def _drive(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, *, realtime: bool,
+           record: Path | None) -> dict[str, Any]:
+    """Play the virtual robot out through the assembled daemon (its Kobuki bytes read by
+    the real driver over the pty), optionally recording everything; returns the run's
+    figures (report, keyframes stored, commands the robot saw, camera drops)."""
+    from drivers.kobuki.driver import KobukiDriver
+    from robotd.app.assemble import assemble_daemon, open_map
+    from robotd.app.notify import Notifier
+    from robotd.io.trajectory import write_tum
+
+    out = Path(cfg.map.path).parent
     progress = _Progress(robot.duration_s)
     writer = None
     if record is not None:
@@ -218,33 +235,43 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
             for stamp, pose in zip(robot.base.stamp_ns, robot.base.true_pose):
                 writer.write_ground_truth(int(stamp), *map(float, pose))
             writer.close()
-        keyframes_stored = store.count_keyframes()
-        commands = dict(robot.commands_received)
-        camera_drops = robot.camera.dropped
+        live = {"report": report, "keyframes_stored": store.count_keyframes(),
+                "commands": dict(robot.commands_received), "camera_drops": robot.camera.dropped}
     if robot.error is not None:
         raise robot.error
-    wall_s = time.monotonic() - wall0
+    return live
+
+
+def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: dict[str, Any],
+               out: Path, *, plot: bool, floor_files: tuple[str, ...], floor_pattern: str | None,
+               record: Path | None) -> dict[str, Any]:
+    """The demo's figures against ground truth (and its plots)."""
+    from robotd.io.trajectory import read_tum, trajectory_errors
 
     stamps, fused = read_tum(out / "fused.tum")
     _, wheel = read_tum(out / "wheel.tum")
     truth = robot.motion.pose_at(stamps / 1e9)
     err_fused = trajectory_errors(truth, fused)
     err_wheel = trajectory_errors(truth, wheel)
+    report = live["report"]
     c = report.counters
     kob = report.driver_stats.get("kobuki", {})
+    wall_s = live["wall_s"]
     summary: dict[str, Any] = {
-        "route": route, "seed": seed, "floor": list(floor_files) or ["skimage:brick,grass,gravel"], "floor_pattern": floor_pattern,
+        "route": robot.settings.route, "seed": robot.settings.seed,
+        "floor": list(floor_files) or ["skimage:brick,grass,gravel"], "floor_pattern": floor_pattern,
         "robot_time_s": robot.duration_s, "wall_time_s": wall_s,
         "real_time_factor": robot.duration_s / wall_s if wall_s > 0 else None,
         "distance_m": err_fused.distance_m,
         "frames_rendered": robot.frames_emitted, "frames_processed": c["frames"],
-        "keyframes": keyframes_stored, "odometry_samples": c["wheel_msgs"],
+        "keyframes": live["keyframes_stored"], "odometry_samples": c["wheel_msgs"],
         "links": {"odometry": c.get("links_odometry", 0), "loop": c.get("links_loop", 0)},
-        "drops": {"camera": camera_drops, **{f"queue_{k}": v for k, v in report.queue_drops.items()},
+        "drops": {"camera": live["camera_drops"],
+                  **{f"queue_{k}": v for k, v in report.queue_drops.items()},
                   "frames_unsynced": c["frames_unsynced"]},
         "packet_errors": {k: kob.get(k, 0) for k in
                           ("garbage_bytes", "bad_checksums", "truncated", "malformed_subpayloads")},
-        "commands_seen_by_robot": commands,
+        "commands_seen_by_robot": live["commands"],
         "wheel_only": err_wheel.as_dict(), "fused": err_fused.as_dict(),
         "stopped_by": report.stopped_by,
         "recording": str(record) if record is not None else None,
@@ -252,22 +279,29 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     if cfg.floor_detector.enabled and recorder.keyframe_ids:
         summary["floor_detector"] = floor_summary(cfg, cam_model, robot.motion, recorder,
                                                   out if plot else None)
-    summary["ok"] = bool(c["frames"] == robot.frames_emitted and keyframes_stored == c["keyframes"])
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    summary["ok"] = bool(c["frames"] == robot.frames_emitted
+                         and live["keyframes_stored"] == c["keyframes"])
     if plot:
-        from robotd.base.geometry import compose, inverse, transform_points
-        from robotd.io.plots import plot_trajectories
-        from robotd.io.trajectory import anchor_to
-
-        # Odometry starts at its own origin; draw it from the route's start, as the errors do.
-        to_world = compose(truth[0], inverse(fused[0]))
-        kf = transform_points(to_world, np.asarray(recorder.keyframe_poses).reshape(-1, 2))
-        plot_trajectories(out / "trajectories.png", robot.floor, truth,
-                          {"wheel only": anchor_to(truth[0], wheel),
-                           "fused (EKF)": anchor_to(truth[0], fused)},
-                          keyframes_xy=kf,
-                          title=f"robotd demo: route {route}, {err_fused.distance_m:.0f} m")
+        _plot_trajectories(out, robot, recorder, truth, fused, wheel, err_fused.distance_m)
     return summary
+
+
+def _plot_trajectories(out: Path, robot: Any, recorder: _Recorder, truth: Any, fused: Any,
+                       wheel: Any, distance_m: float) -> None:
+    import numpy as np
+
+    from robotd.base.geometry import compose, inverse, transform_points
+    from robotd.io.plots import plot_trajectories
+    from robotd.io.trajectory import anchor_to
+
+    # Odometry starts at its own origin; draw it from the route's start, as the errors do.
+    to_world = compose(truth[0], inverse(fused[0]))
+    kf = transform_points(to_world, np.asarray(recorder.keyframe_poses).reshape(-1, 2))
+    plot_trajectories(out / "trajectories.png", robot.floor, truth,
+                      {"wheel only": anchor_to(truth[0], wheel),
+                       "fused (EKF)": anchor_to(truth[0], fused)},
+                      keyframes_xy=kf,
+                      title=f"robotd demo: route {robot.settings.route}, {distance_m:.0f} m")
 
 
 def floor_summary(cfg: Any, camera: Any, motion: Any, recorder: _Recorder,
@@ -318,6 +352,7 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
         ("wall time", f"{s['wall_time_s']:.1f} s (x{s['real_time_factor']:.1f} real time)"),
         ("frames", f"{s['frames_processed']} processed of {s['frames_rendered']} rendered"),
         ("keyframes", f"{s['keyframes']}"),
+        ("map links", f"odometry {s['links']['odometry']}, loop {s['links']['loop']}"),
         ("drops", ", ".join(f"{k} {v}" for k, v in s["drops"].items())),
         ("packet errors", ", ".join(f"{k} {v}" for k, v in s["packet_errors"].items())),
     ]
