@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from robotd.app.daemon import Daemon, Source
+from robotd.app.notify import Notifier
 from robotd.app.pipeline import (
     FloorDetectorStage,
     KeyframeStage,
@@ -24,15 +25,17 @@ from robotd.app.pipeline import (
 )
 from robotd.base.clock import Clock
 from robotd.base.config import Config, to_toml
+from robotd.floor.detector import FloorDetectorParams, FloorLoopDetector
+from robotd.io.calibfile import CalibrationFile
+from robotd.io.store import MapStore
+from robotd.odometry.ekf import EkfParams, OdometryFilter
+from robotd.odometry.kinematics import DiffDriveParams
 
 log = logging.getLogger(__name__)
 
 
-def build_odometry(cfg: Config) -> Any:
+def build_odometry(cfg: Config) -> OdometryFilter:
     """The wheel + gyro filter with the config's robot geometry and noise model."""
-    from robotd.odometry.ekf import EkfParams, OdometryFilter
-    from robotd.odometry.kinematics import DiffDriveParams
-
     o = cfg.odometry
     params = EkfParams(
         accel_noise_mps2=o.accel_noise_mps2,
@@ -52,7 +55,7 @@ def build_odometry(cfg: Config) -> Any:
     return OdometryFilter(drive, params)
 
 
-def load_calibration(cfg: Config) -> Any:
+def load_calibration(cfg: Config) -> CalibrationFile | None:
     """The calibration file the config names, or None (logged clearly) when there is none.
 
     A file that exists but is damaged is an error: the daemon must not run on a
@@ -70,14 +73,14 @@ def load_calibration(cfg: Config) -> Any:
     return calib
 
 
-def build_floor_detector(cfg: Config, store: Any, calib: Any = None) -> Any:
+def build_floor_detector(cfg: Config, store: MapStore, calib: CalibrationFile | None = None,
+                         ) -> FloorLoopDetector | None:
     """The floor loop detector with its index rebuilt from the map, or None if disabled.
 
     Loops are declared only with a trained threshold for the configured mode.
     """
     if not cfg.floor_detector.enabled or cfg.floor_camera.source == "none":
         return None
-    from robotd.floor.detector import FloorDetectorParams, FloorLoopDetector
     from robotd.io.calibfile import camera_model
 
     f = cfg.floor_detector
@@ -94,8 +97,8 @@ def build_floor_detector(cfg: Config, store: Any, calib: Any = None) -> Any:
     return detector
 
 
-def build_pipeline(cfg: Config, clock: Clock, store: Any, run_id: int, *, lossless: bool,
-                   calibration: Any = None, observers: Sequence[Any] = (),
+def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, lossless: bool,
+                   calibration: CalibrationFile | None = None, observers: Sequence[Any] = (),
                    floor_detector: bool = True) -> Pipeline:
     """The daemon's stages in their order (see :mod:`robotd.app.pipeline`), then
     ``observers`` (stages that only watch: trajectory writers, recorders, training)."""
@@ -116,8 +119,9 @@ def build_pipeline(cfg: Config, clock: Clock, store: Any, run_id: int, *, lossle
     return pipeline
 
 
-def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store: Any, notifier: Any,
-                    *, lossless: bool, observers: Sequence[Any] = (), calibration: Any = None,
+def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store: MapStore,
+                    notifier: Notifier, *, lossless: bool, observers: Sequence[Any] = (),
+                    calibration: CalibrationFile | None = None,
                     load_calibration_file: bool = True, floor_detector: bool = True,
                     reopen: dict[str, Callable[[], Source]] | None = None,
                     driver_stats: Callable[[], dict[str, Any]] | None = None) -> Daemon:
@@ -139,8 +143,6 @@ def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store
                   reopen=reopen, driver_stats=driver_stats)
 
 
-def open_map(cfg: Config, clock: Clock | None = None) -> Any:
+def open_map(cfg: Config, clock: Clock | None = None) -> MapStore:
     """The map store the config names, with the config's keyframe image quality."""
-    from robotd.io.store import MapStore
-
     return MapStore.open(cfg.map.path, jpeg_quality=cfg.keyframes.jpeg_quality, clock=clock)

@@ -42,7 +42,10 @@ from robotd.base.messages import (
     WheelTicks,
     YawRate,
 )
+from robotd.floor.detector import FloorLoopDetector
+from robotd.io.store import MapStore
 from robotd.keyframes import KeyframeSelector, downsample
+from robotd.odometry.ekf import OdometryFilter
 from robotd.odometry.increments import odometry_edge
 
 log = logging.getLogger(__name__)
@@ -151,7 +154,7 @@ class OdometryStage(_Publisher):
 
     name = "odometry"
 
-    def __init__(self, odometry: Any) -> None:
+    def __init__(self, odometry: OdometryFilter) -> None:
         self.odometry = odometry
         self.wheel_msgs = 0
         self.yaw_msgs = 0
@@ -191,7 +194,7 @@ class KeyframeStage(_Publisher):
 
     name = "keyframes"
 
-    def __init__(self, odometry: Any, clock: Clock, *, distance_m: float, rotation_rad: float,
+    def __init__(self, odometry: OdometryFilter | None, clock: Clock, *, distance_m: float, rotation_rad: float,
                  max_sync_wait_s: float, lossless: bool, camera: str = "floor",
                  max_pending: int = 64) -> None:
         self.odometry = odometry  # None: no base, frames cannot get a pose
@@ -287,7 +290,7 @@ class FloorDetectorStage(_Publisher):
 
     name = "floor"
 
-    def __init__(self, detector: Any) -> None:
+    def __init__(self, detector: FloorLoopDetector) -> None:
         self.detector = detector
         self.queries = 0
         self.candidates = 0
@@ -326,7 +329,7 @@ class MapWriterStage(_Publisher):
 
     name = "map"
 
-    def __init__(self, store: Any, run_id: int, *, image_width_px: int) -> None:
+    def __init__(self, store: MapStore, run_id: int, *, image_width_px: int) -> None:
         self.store = store
         self.run_id = run_id
         self.image_width_px = image_width_px
