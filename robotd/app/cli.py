@@ -224,8 +224,10 @@ def _cmd_config_default(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    # The demo shows its own progress line; its log is warnings only unless asked.
-    default_level = "warning" if args.command == "demo" else "info"
+    # The demo (and recording the virtual robot) shows its own progress line; its log is
+    # warnings only unless asked.
+    quiet = args.command == "demo" or (args.command == "record" and args.virtual)
+    default_level = "warning" if quiet else "info"
     logging.basicConfig(level=(args.log_level or default_level).upper(),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
