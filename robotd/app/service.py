@@ -76,9 +76,10 @@ def run_service(cfg: Config, record: Path | None = None) -> int:
     notifier = Notifier()
     writer = None
     observers: list[Any] = []
-    with open_map(cfg) as store:
-        sources = open_sources(cfg, clock)
-        try:
+    # The devices first: a missing port or camera is reported before any map is created.
+    sources = open_sources(cfg, clock)
+    try:
+        with open_map(cfg) as store:
             if not sources:
                 log.warning("no sources enabled: the daemon will only keep the map open")
             drivers = {name: drv for name, (drv, _) in sources.items()}
@@ -94,11 +95,11 @@ def run_service(cfg: Config, record: Path | None = None) -> int:
                                      observers=observers, reopen=reopen,
                                      driver_stats=lambda: {n: _stats(d) for n, d in drivers.items()})
             report = daemon.run()
-        finally:
-            for drv, _ in sources.values():
-                drv.close()
-            if writer is not None:
-                writer.close()
+    finally:
+        for drv, _ in sources.values():
+            drv.close()
+        if writer is not None:
+            writer.close()
     log.info("final: %s", report.as_dict())
     return 0
 

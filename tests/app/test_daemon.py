@@ -100,6 +100,7 @@ def test_run_with_a_missing_port_is_one_clear_line(tmp_path: Path):
     assert r.returncode == 2
     assert "robotd: error: cannot open Kobuki port /dev/does-not-exist" in r.stderr
     assert "Traceback" not in r.stderr
+    assert not (tmp_path / "map.sqlite").exists()  # no map is made for a run that cannot start
 
 
 class _Counter:
