@@ -201,7 +201,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         cfg = replace(cfg, "map", path=str(args.map))
     r = run_replay(cfg, args.recording, args.speed)
     print(f"replayed {args.recording}: {r['recording_s']:.1f} s of recording in {r['wall_s']:.1f} s; "
-          f"{r['odometry_samples']} odometry samples, {r['frames']} frames, {r['keyframes']} keyframes "
+          f"{r['odometry_samples']} odometry samples, {r['frames']} frames "
+          f"({r['frames_unsynced']} without odometry), {r['keyframes']} keyframes "
           f"-> {cfg.map.path}")
     return 0
 
