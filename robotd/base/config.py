@@ -116,6 +116,19 @@ class FloorDetectorConfig:
 
 
 @dataclass(frozen=True)
+class VisualOdometryConfig:
+    """Floor visual odometry between consecutive keyframes (paper 003, Sec. IV-D); the
+    descriptor mode is ``[floor_detector] mode`` (the keyframe's descriptor is reused)."""
+
+    enabled: bool = _f(False, "estimate the motion between consecutive keyframes from the floor camera")
+    mode: str = _f("fused", "'fused': a measurement in the wheel + gyro filter; 'vision_only': the "
+                   "chained steps are the odometry (no wheels; failed steps take the wheel + gyro "
+                   "increment when there is one)", choices=("fused", "vision_only"))
+    min_inliers: int = _f(8, "fewest metric inliers of a usable step", lo=3, hi=10_000)
+    ransac_threshold_m: float = _f(0.003, "RANSAC inlier distance on the floor", lo=1e-5, hi=0.1)
+
+
+@dataclass(frozen=True)
 class CalibrationConfig:
     """Where the calibration file is (written by ``robotd calibrate``)."""
 
@@ -148,6 +161,7 @@ class Config:
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     floor_detector: FloorDetectorConfig = field(default_factory=FloorDetectorConfig)
+    visual_odometry: VisualOdometryConfig = field(default_factory=VisualOdometryConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     map: MapConfig = field(default_factory=MapConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)

@@ -122,3 +122,62 @@ def rigid_fit_2d(src_xy: np.ndarray, dst_xy: np.ndarray) -> np.ndarray:
     yaw = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
     c, s = math.cos(yaw), math.sin(yaw)
     return np.array([cb[0] - (c * ca[0] - s * ca[1]), cb[1] - (s * ca[0] + c * ca[1]), yaw])
+
+
+def rigid_fit_2d_covariance(src_xy: np.ndarray, dst_xy: np.ndarray, pose: np.ndarray,
+                            min_sigma_m: float = 0.0) -> tuple[np.ndarray, float]:
+    """Covariance ``(3, 3)`` of :func:`rigid_fit_2d`'s ``pose`` from its residuals, and the
+    residual sigma (metres per coordinate).
+
+    Model: ``dst_i = R(yaw) src_i + t + e_i`` with ``e_i`` white, isotropic, ``sigma`` per
+    coordinate. ``sigma^2`` is estimated as ``sum |r_i|^2 / (2N - 3)`` (3 parameters
+    fitted), raised to ``min_sigma_m^2`` (a perfect fit on a few points is not proof of
+    perfection). The covariance is the Gauss-Newton one, ``sigma^2 (sum J_i^T J_i)^-1``
+    with ``J_i = [I_2 | perp(R src_i)]``, so the coupling of yaw with a translation far
+    from the points' centroid is kept. ``(N, 2)`` metres in, N >= 2 (N = 2 has no
+    residual degree of freedom: only ``min_sigma_m`` then). Points bunched together
+    determine the yaw poorly; the yaw's information is floored at that of points 1 mm
+    from the fitted centre, so the matrix stays invertible (the caller checks the spread).
+    """
+    a = np.asarray(src_xy, dtype=float).reshape(-1, 2)
+    b = np.asarray(dst_xy, dtype=float).reshape(-1, 2)
+    n = len(a)
+    resid = transform_points(pose, a) - b
+    dof = 2 * n - 3
+    sigma2 = float(np.sum(resid * resid)) / dof if dof > 0 else 0.0
+    sigma2 = max(sigma2, min_sigma_m * min_sigma_m)
+    ra = a @ rot2(float(pose[2])).T
+    perp = np.column_stack([-ra[:, 1], ra[:, 0]])  # d(R src)/d(yaw)
+    jtj = np.zeros((3, 3))
+    jtj[0, 0] = jtj[1, 1] = n
+    jtj[:2, 2] = jtj[2, :2] = perp.sum(axis=0)
+    centred = perp - perp.mean(axis=0)
+    jtj[2, 2] = float(np.sum(perp * perp)) + max(0.0, n * 1e-6 - float(np.sum(centred * centred)))
+    cov = sigma2 * np.linalg.inv(jtj)
+    return 0.5 * (cov + cov.T), math.sqrt(sigma2)
+
+
+def rigid_from_two_pairs(src_i: np.ndarray, src_j: np.ndarray, dst_i: np.ndarray,
+                         dst_j: np.ndarray) -> np.ndarray:
+    """Rigid transforms ``(K, 3)`` (x_m, y_m, yaw_rad) from ``K`` minimal samples.
+
+    Each sample is two point pairs, ``(K, 2)`` arrays: the yaw turns the segment
+    ``src_i -> src_j`` onto ``dst_i -> dst_j``, the translation maps the segment's midpoint
+    onto the other's (``dst ~ R src + t``, as :func:`rigid_fit_2d`). Used for RANSAC
+    hypotheses; the scale of the two segments is not checked here.
+    """
+    va, vb = src_j - src_i, dst_j - dst_i
+    yaw = wrap_angle(np.arctan2(vb[:, 1], vb[:, 0]) - np.arctan2(va[:, 1], va[:, 0]))
+    c, s = np.cos(yaw), np.sin(yaw)
+    ma, mb = 0.5 * (src_i + src_j), 0.5 * (dst_i + dst_j)
+    return np.column_stack([mb[:, 0] - (c * ma[:, 0] - s * ma[:, 1]),
+                            mb[:, 1] - (s * ma[:, 0] + c * ma[:, 1]), yaw])
+
+
+def compose_jacobians(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(3, 3)`` Jacobians of :func:`compose` ``a (+) b`` with respect to ``a`` and ``b``."""
+    c, s = math.cos(float(a[2])), math.sin(float(a[2]))
+    bx, by = float(b[0]), float(b[1])
+    j_a = np.array([[1.0, 0.0, -s * bx - c * by], [0.0, 1.0, c * bx - s * by], [0.0, 0.0, 1.0]])
+    j_b = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return j_a, j_b

@@ -18,7 +18,8 @@ import numpy as np
 
 from robotd.floor.descriptor import decode, extract
 from robotd.floor.index import Candidate, FloorIndex
-from robotd.base.geometry import rigid_fit_2d, transform_points
+from robotd.base.geometry import rigid_fit_2d, rigid_fit_2d_covariance
+from robotd.floor.vo import floor_point_pairs
 
 log = logging.getLogger(__name__)
 
@@ -67,23 +68,19 @@ def loop_transform(camera: Any, xy_query_px: np.ndarray, xy_old_px: np.ndarray,
                    min_sigma_m: float = 0.001) -> tuple[np.ndarray, np.ndarray] | None:
     """Relative pose of the query keyframe in the old keyframe's frame, and its information.
 
-    Matched pixels become floor points in each robot frame (camera model); the rigid fit
-    maps the query's points onto the old ones (paper 003 Sec. IV-D). The covariance comes
-    from the fit residuals (at least ``min_sigma_m`` per point). None if under 3 points.
+    Matched pixels become floor points in each robot frame (camera model,
+    :func:`robotd.floor.vo.floor_point_pairs`); the rigid fit maps the query's points onto
+    the old ones (paper 003 Sec. IV-D, as visual odometry does). The covariance is the
+    fit's Gauss-Newton one from its residuals (at least ``min_sigma_m`` per coordinate),
+    :func:`robotd.base.geometry.rigid_fit_2d_covariance`. None if under 3 points.
     """
-    pq = camera.pixel_to_floor_robot(np.asarray(xy_query_px, float))
-    po = camera.pixel_to_floor_robot(np.asarray(xy_old_px, float))
-    ok = np.isfinite(pq).all(axis=1) & np.isfinite(po).all(axis=1)
-    pq, po = pq[ok], po[ok]
-    n = len(pq)
-    if n < 3:
+    po, pq = floor_point_pairs(camera, xy_old_px, xy_query_px)
+    if len(pq) < 3:
         return None
     delta = rigid_fit_2d(pq, po)
-    resid = transform_points(delta, pq) - po
-    sigma2 = max(float(np.mean(np.sum(resid ** 2, axis=1)) / 2.0), min_sigma_m ** 2)
-    spread2 = max(float(np.mean(np.sum((pq - pq.mean(axis=0)) ** 2, axis=1))), 1e-6)
-    info = np.diag([n / sigma2, n / sigma2, n * spread2 / sigma2])
-    return delta, info
+    cov, _ = rigid_fit_2d_covariance(pq, po, delta, min_sigma_m)
+    info = np.linalg.inv(cov)
+    return delta, 0.5 * (info + info.T)
 
 
 class FloorLoopDetector:

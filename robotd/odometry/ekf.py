@@ -75,7 +75,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robotd.base.geometry import interpolate_poses, wrap_angle
+from robotd.base.geometry import between, interpolate_poses, wrap_angle
 from robotd.base.messages import PoseStamped, WheelTicks, YawRate
 from robotd.odometry.kinematics import (
     DiffDriveParams,
@@ -84,21 +84,30 @@ from robotd.odometry.kinematics import (
     unwrap_ticks_delta,
     wheel_increment,
 )
+from robotd.odometry.relative import (
+    PoseClone,
+    clone_after_predict,
+    clone_after_update,
+    clone_pose,
+    shift_measurement,
+    update_relative_pose,
+)
 
 __all__ = [
-    "EkfParams",
-    "EkfState",
-    "FilterCounters",
     "IB",
     "IV",
     "IW",
     "IX",
     "IY",
     "IYAW",
-    "OdometryFilter",
     "STATE_SIZE",
+    "EkfParams",
+    "EkfState",
+    "FilterCounters",
+    "OdometryFilter",
     "initial_state",
     "predict",
+    "predict_with_jacobian",
     "update_gyro",
     "update_wheels",
     "wheel_noise",
@@ -240,11 +249,18 @@ def predict(state: EkfState, t_ns: int, params: EkfParams = EkfParams()) -> EkfS
 
     ``dt = 0`` returns ``state`` unchanged; a negative ``dt`` is a ``ValueError``.
     """
+    return predict_with_jacobian(state, t_ns, params)[0]
+
+
+def predict_with_jacobian(state: EkfState, t_ns: int,
+                          params: EkfParams = EkfParams()) -> tuple[EkfState, np.ndarray]:
+    """:func:`predict` and its ``(6, 6)`` state Jacobian (a pose clone's cross-covariance
+    follows it, :mod:`robotd.odometry.relative`)."""
     dt_ns = int(t_ns) - state.stamp_ns
     if dt_ns < 0:
         raise ValueError(f"cannot predict backwards ({t_ns} < {state.stamp_ns})")
     if dt_ns == 0:
-        return state
+        return state, _EYE.copy()
     dt = dt_ns * 1e-9
     m = state.mean
     yaw, v, w = m[IYAW], m[IV], m[IW]
@@ -283,7 +299,7 @@ def predict(state: EkfState, t_ns: int, params: EkfParams = EkfParams()) -> EkfS
     q[IB, IB] = params.gyro_bias_walk_radps_sqrt_s ** 2 * dt
 
     cov = jac @ state.cov @ jac.T + q
-    return EkfState(int(t_ns), mean, 0.5 * (cov + cov.T))
+    return EkfState(int(t_ns), mean, 0.5 * (cov + cov.T)), jac
 
 
 def _update(state: EkfState, innovation: np.ndarray, h: np.ndarray, r: np.ndarray) -> EkfState:
@@ -347,6 +363,10 @@ class FilterCounters:
     wrapped ambiguously; the wheel reference was restarted without motion.
     ``still_updates``: wheel intervals taken as standstill (zero-velocity updates).
     ``still_rejected``: gyro readings at standstill that disagreed with it (gate).
+    Visual odometry (:meth:`OdometryFilter.on_visual_odometry`): ``vo_fused`` used,
+    ``vo_missing`` keyframes without a measurement, ``vo_no_clone`` measurements whose
+    previous keyframe is not the filter's last, ``vo_no_pose`` keyframes outside the
+    pose history, ``vo_rejected`` measurements that failed the chi-square gate.
     """
 
     wheel_msgs: int = 0
@@ -358,6 +378,11 @@ class FilterCounters:
     late: int = 0
     gaps: int = 0
     resets: int = 0
+    vo_fused: int = 0
+    vo_missing: int = 0
+    vo_no_clone: int = 0
+    vo_no_pose: int = 0
+    vo_rejected: int = 0
 
 
 @dataclass
@@ -373,7 +398,9 @@ class OdometryFilter:
     can turn in a gap before the 16-bit counters become ambiguous. ``max_gyro_wait_s``:
     how long gyro readings wait for a wheel message before they are applied anyway.
     ``still_gate_sigma``: at rest, a gyro reading further than this many sigma from the
-    bias estimate is not paired with a zero-velocity update.
+    bias estimate is not paired with a zero-velocity update. ``vo_gate_nis``: a visual
+    odometry measurement whose normalised innovation squared exceeds this (chi-square, 3
+    degrees of freedom; 16.27 = 99.9 %) is rejected.
     """
 
     drive: DiffDriveParams = field(default_factory=DiffDriveParams)
@@ -385,6 +412,7 @@ class OdometryFilter:
     max_wheel_speed_mps: float = 0.7
     max_gyro_wait_s: float = 0.1
     still_gate_sigma: float = 3.0
+    vo_gate_nis: float = 16.27
 
     def __post_init__(self) -> None:
         self.counters = FilterCounters()
@@ -394,6 +422,7 @@ class OdometryFilter:
         self._last_yaw_ns: int | None = None
         self._gyro_buf: collections.deque[YawRate] = collections.deque()
         self._was_still = False
+        self._clone: PoseClone | None = None  # the pose at the last keyframe (relative.py)
         self._max_gyro_wait_ns = int(self.max_gyro_wait_s * 1e9)
         self._hist_t: list[int] = []
         self._hist_pose: list[np.ndarray] = []
@@ -463,15 +492,17 @@ class OdometryFilter:
                 # Nothing arrived during the gap: the constant-rate prediction knows
                 # nothing of what happened, the ticks do. Move the mean along the wheel
                 # arc and keep the predicted (grown) covariance.
-                pred = predict(state, t, self.params)
+                pred, jac = predict_with_jacobian(state, t, self.params)
                 mean = pred.mean.copy()
                 mean[:3] = integrate_pose(state.mean[:3], ds, dyaw)
                 mean[IV], mean[IW] = v, w
                 self._state = EkfState(t, mean, pred.cov)
+                if self._clone is not None:
+                    self._clone = clone_after_predict(self._clone, jac)
         self._flush_gyro(t, stationary)
         self.counters.still_updates += int(stationary)
         self._advance_to(t)
-        self._state = update_wheels(self._state, v, w, self.params, stationary=stationary)
+        self._apply_wheels(v, w, stationary)
         self._record()
         return True
 
@@ -510,9 +541,22 @@ class OdometryFilter:
             self._advance_to(ts)
             rate = float(msg.yaw_rate_radps)
             if stationary and self._still_gate(rate):
-                self._state = update_wheels(self._state, 0.0, 0.0, self.params, stationary=True)
-            self._state = update_gyro(self._state, rate, self.params)
+                self._apply_wheels(0.0, 0.0, True)
+            prior = self._state
+            self._state = update_gyro(prior, rate, self.params)
+            if self._clone is not None:
+                r = np.array([[self.params.gyro_noise_radps ** 2]])
+                self._clone = clone_after_update(self._clone, prior.cov, _H_GYRO, r)
             self._record()
+
+    def _apply_wheels(self, v: float, w: float, stationary: bool) -> None:
+        """The wheel update, carrying a pose clone's cross-covariance along."""
+        prior = self._state
+        assert prior is not None
+        self._state = update_wheels(prior, v, w, self.params, stationary=stationary)
+        if self._clone is not None:
+            sv, sw = wheel_noise(v, w, self.params, stationary)
+            self._clone = clone_after_update(self._clone, prior.cov, _H_WHEELS, np.diag([sv * sv, sw * sw]))
 
     def _still_gate(self, rate_radps: float) -> bool:
         """True when the gyro agrees with a base at rest (within ``still_gate_sigma``).
@@ -547,7 +591,47 @@ class OdometryFilter:
     def _advance_to(self, t: int) -> None:
         assert self._state is not None
         if t > self._state.stamp_ns:
-            self._state = predict(self._state, t, self.params)
+            self._state, jac = predict_with_jacobian(self._state, t, self.params)
+            if self._clone is not None:
+                self._clone = clone_after_predict(self._clone, jac)
+
+    def on_visual_odometry(self, stamp_ns: int, prev_stamp_ns: int | None, delta: np.ndarray | None,
+                           covariance: np.ndarray | None) -> bool:
+        """Fuse the motion between the keyframes at ``prev_stamp_ns`` and ``stamp_ns``.
+
+        ``delta (3,)``: the pose at ``stamp_ns`` in the robot frame of the pose at
+        ``prev_stamp_ns`` (``dx_m, dy_m, dyaw_rad``, floor visual odometry, paper 003 Sec.
+        IV-D); ``covariance (3, 3)``. Call it for every keyframe, in order, once the filter
+        has reached its stamp; ``delta=None`` (the step failed) leaves the wheel + gyro
+        estimate alone. Either way the pose at ``stamp_ns`` becomes the clone the next
+        measurement refers to (stochastic cloning, :mod:`robotd.odometry.relative`).
+        Returns True when fused; otherwise False and counted (:class:`FilterCounters`).
+        """
+        s = self._state
+        kf = self.pose_at(stamp_ns) if s is not None else None
+        if s is None or kf is None:
+            self.counters.vo_no_pose += 1
+            self._clone = None
+            return False
+        offset = between(np.array([kf.x_m, kf.y_m, kf.yaw_rad]), s.mean[:3])
+        fused = False
+        c = self._clone
+        if delta is None or covariance is None or not np.all(np.isfinite(delta)):
+            self.counters.vo_missing += 1
+        elif c is None or c.keyframe_stamp_ns != prev_stamp_ns:
+            self.counters.vo_no_clone += 1
+        else:
+            z, r = shift_measurement(delta, covariance, c.offset, offset)
+            mean, cov, nis = update_relative_pose(s.mean, s.cov, c, z, r)
+            if nis > self.vo_gate_nis:
+                self.counters.vo_rejected += 1
+            else:
+                self._state = EkfState(s.stamp_ns, mean, cov)
+                self._record()
+                self.counters.vo_fused += 1
+                fused = True
+        self._clone = clone_pose(self._state.mean, self._state.cov, stamp_ns, offset)
+        return fused
 
     def _record(self) -> None:
         s = self._state

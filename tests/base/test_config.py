@@ -60,3 +60,16 @@ def test_round_trip_through_toml_and_replace():
     assert config_from_dict(tomllib.loads(to_toml(cfg))) == cfg
     with pytest.raises(ConfigError, match=r"\[keyframes\] distance_m"):
         replace(cfg, "keyframes", distance_m=-3.0)
+
+
+def test_visual_odometry_section(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text('[visual_odometry]\nenabled = true\nmode = "vision_only"\nmin_inliers = 12\n')
+    vo = load_config(f).visual_odometry
+    assert (vo.enabled, vo.mode, vo.min_inliers, vo.ransac_threshold_m) == (True, "vision_only", 12, 0.003)
+    f.write_text('[visual_odometry]\nmode = "wheels"\n')
+    with pytest.raises(ConfigError, match=r"\[visual_odometry\] mode"):
+        load_config(f)
+    f.write_text('[visual_odometry]\nmin_inliers = 2\n')
+    with pytest.raises(ConfigError, match=r"\[visual_odometry\] min_inliers"):
+        load_config(f)

@@ -97,3 +97,38 @@ def test_interpolate_poses_rejects_bad_tracks():
         interpolate_poses(np.array([0, 10]), np.zeros((3, 3)), np.array([5]))
     with pytest.raises(ValueError, match="at least one"):
         interpolate_poses(np.array([], dtype=np.int64), np.zeros((0, 3)), np.array([5]))
+
+
+def test_rigid_fit_covariance_matches_monte_carlo():
+    """The Gauss-Newton covariance of the rigid fit against the spread of 2000 fits of
+    noisy copies of 15 points off-centre (the yaw couples with the translation)."""
+    from robotd.base.geometry import rigid_fit_2d, rigid_fit_2d_covariance
+    rng = np.random.default_rng(3)
+    src = rng.uniform(-0.1, 0.1, (15, 2)) + [0.3, 0.1]
+    pose = np.array([0.05, -0.02, 0.3])
+    clean = transform_points(pose, src)
+    fits, covs = [], []
+    for _ in range(2000):
+        dst = clean + rng.normal(0, 1e-3, clean.shape)
+        est = rigid_fit_2d(src, dst)
+        fits.append(est)
+        covs.append(rigid_fit_2d_covariance(src, dst, est)[0])
+    emp = np.cov(np.array(fits).T)
+    mean_cov = np.mean(covs, axis=0)
+    assert np.diag(mean_cov) == pytest.approx(np.diag(emp), rel=0.15)
+    assert mean_cov[0, 2] == pytest.approx(emp[0, 2], rel=0.2)  # strongly coupled: not 0
+    assert abs(emp[0, 2]) > 0.5 * math.sqrt(emp[0, 0] * emp[2, 2])
+    cov, sigma = rigid_fit_2d_covariance(src, clean, pose, min_sigma_m=2e-3)
+    assert sigma == 2e-3  # exact fit: the floor applies
+
+
+def test_rigid_from_two_pairs_recovers_exact_transforms():
+    from robotd.base.geometry import rigid_from_two_pairs
+    rng = np.random.default_rng(4)
+    poses = np.column_stack([rng.uniform(-1, 1, (5, 2)), rng.uniform(-3, 3, 5)])
+    a_i, a_j = rng.uniform(-1, 1, (5, 2)), rng.uniform(-1, 1, (5, 2))
+    b_i = np.array([transform_points(p, q[None])[0] for p, q in zip(poses, a_i)])
+    b_j = np.array([transform_points(p, q[None])[0] for p, q in zip(poses, a_j)])
+    got = rigid_from_two_pairs(a_i, a_j, b_i, b_j)
+    assert got[:, :2] == pytest.approx(poses[:, :2], abs=1e-12)
+    assert np.abs(wrap_angle(got[:, 2] - poses[:, 2])).max() < 1e-12

@@ -1,0 +1,157 @@
+"""A relative-pose measurement between a past keyframe and now, fused into the wheel + gyro
+EKF by stochastic cloning (Roumeliotis and Burdick 2002).
+
+Floor visual odometry (paper 003, Sec. IV-D) measures ``z = x_{k-1}^-1 (+) x_k``: the pose
+of keyframe ``k`` in the frame of keyframe ``k-1``, with covariance ``R``. The filter's
+state :data:`robotd.odometry.ekf.STATE_SIZE` holds only the current pose, so the pose at
+keyframe ``k-1`` is kept as a *clone*: when a keyframe is taken, its pose ``c`` (3) is
+copied with its covariance and with the cross-covariance ``X = Cov(state, c)`` (6 x 3).
+Until the next keyframe, every filter step carries ``X`` along:
+
+- a prediction ``state' = f(state)`` with Jacobian ``F``: ``X' = F X``;
+- a wheel or gyro update with gain ``K`` and measurement matrix ``H``: ``X' = (I - K H) X``.
+
+The clone itself is not refined by those updates (a Schmidt-style "consider" clone: rates
+say almost nothing about a past pose), which keeps the joint covariance exact for the
+estimator actually run. At keyframe ``k`` the measurement ``h(state, c) = c^-1 (+) pose``
+is applied to the joint ``(state, c)`` by an ordinary EKF update (Joseph form), then the
+clone is replaced by one of the new keyframe.
+
+Why not the simpler alternative, treating the previous keyframe pose as known and
+inflating ``R`` by its covariance ``P_{k-1}``: the current pose and the pose at ``k-1``
+share all the error accumulated before ``k-1``, so that treatment counts ``P_{k-1}`` twice.
+The gain on a yaw drift becomes ``(P_{k-1} + q) / (2 P_{k-1} + q + r)`` instead of the right
+``q / (q + r)`` (``q``: the yaw variance added since ``k-1``, ``r``: the measurement's),
+about 1/2 however good the measurement is, and the covariance shrinks every keyframe
+though the absolute heading is no better known: an overconfident filter. The clone costs a
+6 x 3 matrix and a 3 x 3 product per filter step.
+
+Everything here is a pure function of its inputs; :class:`~robotd.odometry.ekf.OdometryFilter`
+keeps the clone and calls them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from robotd.base.geometry import (
+    between,
+    compose,
+    compose_jacobians,
+    inverse,
+    wrap_angle,
+)
+
+__all__ = ["PoseClone", "clone_after_predict", "clone_after_update", "clone_pose",
+           "relative_pose_jacobians", "shift_measurement", "update_relative_pose"]
+
+_IYAW = 2
+
+
+@dataclass(frozen=True, eq=False)
+class PoseClone:
+    """The filter's pose at the last keyframe, kept for the next relative measurement.
+
+    Fields:
+        keyframe_stamp_ns: stamp of the keyframe (camera frame) the clone stands for.
+        pose: ``(3,)`` the filter's ``(x_m, y_m, yaw_rad)`` when the clone was taken.
+        cov: ``(3, 3)`` its covariance.
+        cross: ``(n, 3)`` covariance of the filter's current state with ``pose``.
+        offset: ``(3,)`` ``pose`` in the frame of the filter's pose at ``keyframe_stamp_ns``
+            (the filter is usually a few ms past the frame when it learns of it).
+    """
+
+    keyframe_stamp_ns: int
+    pose: np.ndarray
+    cov: np.ndarray
+    cross: np.ndarray
+    offset: np.ndarray
+
+
+def clone_pose(mean: np.ndarray, cov: np.ndarray, keyframe_stamp_ns: int,
+               offset: np.ndarray | None = None) -> PoseClone:
+    """Clone the pose (the first three entries) of a state ``mean (n,)``, ``cov (n, n)``."""
+    mean = np.asarray(mean, float)
+    cov = np.asarray(cov, float)
+    off = np.zeros(3) if offset is None else np.asarray(offset, float).reshape(3)
+    return PoseClone(int(keyframe_stamp_ns), mean[:3].copy(), cov[:3, :3].copy(), cov[:, :3].copy(), off)
+
+
+def clone_after_predict(clone: PoseClone, jac: np.ndarray) -> PoseClone:
+    """The clone after a prediction with state Jacobian ``jac (n, n)``: ``X' = F X``."""
+    return PoseClone(clone.keyframe_stamp_ns, clone.pose, clone.cov, jac @ clone.cross, clone.offset)
+
+
+def clone_after_update(clone: PoseClone, prior_cov: np.ndarray, h: np.ndarray, r: np.ndarray) -> PoseClone:
+    """The clone after a measurement update of the state alone: ``X' = (I - K H) X`` with
+    ``K = P H^T (H P H^T + R)^-1`` from the state's covariance ``P`` before the update."""
+    ph = prior_cov @ h.T
+    gain = np.linalg.solve(h @ ph + r, ph.T).T
+    cross = clone.cross - gain @ (h @ clone.cross)
+    return PoseClone(clone.keyframe_stamp_ns, clone.pose, clone.cov, cross, clone.offset)
+
+
+def relative_pose_jacobians(clone_xyyaw: np.ndarray, pose_xyyaw: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``h = clone^-1 (+) pose`` ``(3,)`` and its ``(3, 3)`` Jacobians with respect to the
+    current pose and to the clone."""
+    h = between(clone_xyyaw, pose_xyyaw)
+    c, s = math.cos(float(clone_xyyaw[2])), math.sin(float(clone_xyyaw[2]))
+    rt = np.array([[c, s], [-s, c]])
+    j_pose = np.eye(3)
+    j_pose[:2, :2] = rt
+    j_clone = -np.eye(3)
+    j_clone[:2, :2] = -rt
+    j_clone[0, 2], j_clone[1, 2] = h[1], -h[0]  # d(R^T (p - c)) / d(clone yaw)
+    return h, j_pose, j_clone
+
+
+def shift_measurement(z: np.ndarray, r: np.ndarray, offset_prev: np.ndarray,
+                      offset_now: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A measurement between two keyframe stamps moved to the filter times of the clones:
+    ``offset_prev^-1 (+) z (+) offset_now``, its covariance ``J R J^T`` (the offsets, a
+    few ms of the filter's own motion, are taken as exact)."""
+    z = np.asarray(z, float)
+    inv_prev = inverse(np.asarray(offset_prev, float))
+    w = compose(z, offset_now)
+    j_z, _ = compose_jacobians(z, offset_now)
+    _, j_w = compose_jacobians(inv_prev, w)
+    j = j_w @ j_z
+    return compose(inv_prev, w), j @ np.asarray(r, float) @ j.T
+
+
+def update_relative_pose(mean: np.ndarray, cov: np.ndarray, clone: PoseClone, z: np.ndarray,
+                         r: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """EKF update of the joint ``(state, clone)`` with ``z = clone^-1 (+) pose``, ``(3,)``,
+    covariance ``r (3, 3)``.
+
+    ``mean (n,)``, ``cov (n, n)``: the state (pose first). Returns the updated state's
+    mean and covariance and the normalised innovation squared (chi-square, 3 degrees of
+    freedom) for gating by the caller.
+    """
+    mean = np.asarray(mean, float)
+    n = len(mean)
+    pj = np.zeros((n + 3, n + 3))
+    pj[:n, :n] = cov
+    pj[:n, n:] = clone.cross
+    pj[n:, :n] = clone.cross.T
+    pj[n:, n:] = clone.cov
+    h, j_pose, j_clone = relative_pose_jacobians(clone.pose, mean[:3])
+    hm = np.zeros((3, n + 3))
+    hm[:, :3] = j_pose
+    hm[:, n:] = j_clone
+    innovation = np.asarray(z, float) - h
+    innovation[_IYAW] = wrap_angle(float(innovation[_IYAW]))
+    phT = pj @ hm.T
+    s = hm @ phT + r
+    nis = float(innovation @ np.linalg.solve(s, innovation))
+    gain = np.linalg.solve(s, phT.T).T
+    a = np.eye(n + 3) - gain @ hm
+    joint = a @ pj @ a.T + gain @ r @ gain.T
+    new_mean = mean + (gain @ innovation)[:n]
+    new_mean[_IYAW] = wrap_angle(float(new_mean[_IYAW]))
+    new_cov = joint[:n, :n]
+    return new_mean, 0.5 * (new_cov + new_cov.T), nis
