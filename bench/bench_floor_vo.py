@@ -41,7 +41,7 @@ from robotd.base.geometry import between
 from robotd.base.messages import WheelTicks
 from robotd.floor.descriptor import MODES, decode, extract
 from robotd.floor.vo import FloorVisualOdometry, VoParams, integrate
-from robotd.odometry.ekf import OdometryFilter
+from robotd.odometry.fusion import OdometryFilter
 from robotd.odometry.kinematics import WheelOdometry
 from sim.cameras.floor import FloorRenderer, RenderParams
 from sim.emulators.kobuki import simulate_kobuki

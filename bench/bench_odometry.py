@@ -7,7 +7,7 @@ slip, gyro turn-on bias, bias walk, white noise and scale error, all quantised a
 Kobuki reports them), and the same messages are run through
 
 - (a) :class:`robotd.odometry.kinematics.WheelOdometry`: dead reckoning from the ticks only;
-- (b) :class:`robotd.odometry.ekf.OdometryFilter`: the EKF with its default noise model
+- (b) :class:`robotd.odometry.fusion.OdometryFilter`: the EKF with its default noise model
   (which equals the default ``[odometry]`` configuration).
 
 Both are compared with the true pose at every feedback packet, after anchoring the
@@ -39,12 +39,13 @@ except ImportError:  # run as a script: bench/ is on sys.path
     from common import machine_info, print_table, time_repeats, write_json
 
 from robotd.base.messages import WheelTicks, YawRate
-from robotd.odometry.ekf import EkfParams, OdometryFilter
-from robotd.odometry.kinematics import WheelOdometry
-from sim.route import ROUTES, MotionLimits, build_route, plan_motion
-from sim.emulators.kobuki import KobukiFeedback, simulate_kobuki
-from sim.sensors import BaseSensorParams
 from robotd.io.trajectory import trajectory_errors
+from robotd.odometry.ekf import EkfParams
+from robotd.odometry.fusion import OdometryFilter
+from robotd.odometry.kinematics import WheelOdometry
+from sim.emulators.kobuki import KobukiFeedback, simulate_kobuki
+from sim.route import ROUTES, MotionLimits, build_route, plan_motion
+from sim.sensors import BaseSensorParams
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "odometry.json"
 METRICS = ("end_position_error_m", "end_heading_error_deg", "max_drift_per_100m_m",

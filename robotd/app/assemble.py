@@ -28,7 +28,8 @@ from robotd.base.config import Config, to_toml
 from robotd.floor.detector import FloorDetectorParams, FloorLoopDetector
 from robotd.io.calibfile import CalibrationFile
 from robotd.io.store import MapStore
-from robotd.odometry.ekf import EkfParams, OdometryFilter
+from robotd.odometry.ekf import EkfParams
+from robotd.odometry.fusion import OdometryFilter
 from robotd.odometry.kinematics import DiffDriveParams
 
 log = logging.getLogger(__name__)

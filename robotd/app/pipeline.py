@@ -45,7 +45,7 @@ from robotd.base.messages import (
 from robotd.floor.detector import FloorLoopDetector
 from robotd.io.store import MapStore
 from robotd.keyframes import KeyframeSelector, downsample
-from robotd.odometry.ekf import OdometryFilter
+from robotd.odometry.fusion import OdometryFilter
 from robotd.odometry.increments import odometry_edge
 
 log = logging.getLogger(__name__)

@@ -46,54 +46,24 @@ innovation needs wrapping.
 Every function returns a new :class:`EkfState` (GTSAM style), which makes each step
 testable against a hand-derived answer.
 
-:class:`OdometryFilter` runs these functions over the message stream the daemon sees:
-:class:`~robotd.base.messages.WheelTicks` and :class:`~robotd.base.messages.YawRate` in stamp order,
-with a wheel-only :class:`~robotd.odometry.kinematics.WheelOdometry` alongside for
-comparison and the last couple of seconds of fused poses, so a camera frame gets the pose
-at its own timestamp (paper 003, Sec. IV-C pairs floor images with this odometry).
-Messages that cannot be used are values, not exceptions: ``on_wheels`` and
-``on_yaw_rate`` return False and count why in :class:`FilterCounters`.
-
-Standstill is where the bias is learnt, so it is detected with care: an interval counts
-as still only when no tick moved in it *and* in the interval before (a decelerating wheel
-can go ~30 ms without a tick while the base still creeps). Gyro readings wait for the
-wheel message that covers their stamp (at most one packet, 20 ms) so the filter knows
-whether they were taken at rest; each reading at rest is paired with a zero-velocity
-update at its own time, unless it disagrees with the bias estimate by more than
-``still_gate_sigma`` (the base was still turning). Without the pairing the white angular
-acceleration lets ``w`` wander between the 50 Hz wheel updates and a 2 s standstill
-teaches the filter almost nothing about the bias.
+The stream of messages is run through these functions by
+:class:`robotd.odometry.fusion.OdometryFilter`.
 """
 
 from __future__ import annotations
 
-import bisect
-import collections
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from robotd.base.geometry import between, interpolate_poses, wrap_angle
-from robotd.base.messages import PoseStamped, WheelTicks, YawRate
-from robotd.odometry.kinematics import (
-    DiffDriveParams,
-    WheelOdometry,
-    integrate_pose,
-    unwrap_ticks_delta,
-    wheel_increment,
-)
-from robotd.odometry.relative import (
-    PoseClone,
-    clone_after_predict,
-    clone_after_update,
-    clone_pose,
-    shift_measurement,
-    update_relative_pose,
-)
+from robotd.base.geometry import wrap_angle
+from robotd.base.messages import PoseStamped
 
 __all__ = [
+    "H_GYRO",
+    "H_WHEELS",
     "IB",
     "IV",
     "IW",
@@ -103,8 +73,6 @@ __all__ = [
     "STATE_SIZE",
     "EkfParams",
     "EkfState",
-    "FilterCounters",
-    "OdometryFilter",
     "initial_state",
     "predict",
     "predict_with_jacobian",
@@ -118,12 +86,12 @@ _log = logging.getLogger(__name__)
 STATE_SIZE = 6
 IX, IY, IYAW, IV, IW, IB = range(STATE_SIZE)
 
-_H_WHEELS = np.zeros((2, STATE_SIZE))
-_H_WHEELS[0, IV] = 1.0
-_H_WHEELS[1, IW] = 1.0
-_H_GYRO = np.zeros((1, STATE_SIZE))
-_H_GYRO[0, IW] = 1.0
-_H_GYRO[0, IB] = 1.0
+H_WHEELS = np.zeros((2, STATE_SIZE))
+H_WHEELS[0, IV] = 1.0
+H_WHEELS[1, IW] = 1.0
+H_GYRO = np.zeros((1, STATE_SIZE))
+H_GYRO[0, IW] = 1.0
+H_GYRO[0, IB] = 1.0
 _EYE = np.eye(STATE_SIZE)
 
 
@@ -336,367 +304,16 @@ def update_wheels(state: EkfState, v_mps: float, w_radps: float,
     sv, sw = wheel_noise(v_mps, w_radps, params, stationary)
     z = np.array([v_mps, w_radps], dtype=float)
     innovation = z - state.mean[[IV, IW]]
-    return _update(state, innovation, _H_WHEELS, np.diag([sv * sv, sw * sw]))
+    return _update(state, innovation, H_WHEELS, np.diag([sv * sv, sw * sw]))
 
 
 def update_gyro(state: EkfState, w_radps: float, params: EkfParams = EkfParams()) -> EkfState:
     """Measurement of the gyro's yaw rate: ``h(x) = x[w] + x[bias]``."""
     innovation = np.array([w_radps - state.mean[IW] - state.mean[IB]])
     r = np.array([[params.gyro_noise_radps ** 2]])
-    return _update(state, innovation, _H_GYRO, r)
+    return _update(state, innovation, H_GYRO, r)
 
 
 # --------------------------------------------------------------------------------------
 # The filter over a message stream (what the daemon runs).
 # --------------------------------------------------------------------------------------
-
-
-@dataclass
-class FilterCounters:
-    """What the filter did with its input.
-
-    ``wheel_msgs``/``yaw_msgs``: messages used. ``out_of_order``: dropped because older
-    than what was already processed (beyond ``late_tolerance_ns``). ``duplicates``:
-    dropped because their stream already had a message with that stamp. ``late``: used
-    at the filter's current time although slightly older. ``gaps``: wheel intervals
-    longer than ``max_gap_s``. ``resets``: gaps so long the tick counters may have
-    wrapped ambiguously; the wheel reference was restarted without motion.
-    ``still_updates``: wheel intervals taken as standstill (zero-velocity updates).
-    ``still_rejected``: gyro readings at standstill that disagreed with it (gate).
-    Visual odometry (:meth:`OdometryFilter.on_visual_odometry`): ``vo_fused`` used,
-    ``vo_missing`` keyframes without a measurement, ``vo_no_clone`` measurements whose
-    previous keyframe is not the filter's last, ``vo_no_pose`` keyframes outside the
-    pose history, ``vo_rejected`` measurements that failed the chi-square gate.
-    """
-
-    wheel_msgs: int = 0
-    yaw_msgs: int = 0
-    still_updates: int = 0
-    still_rejected: int = 0
-    out_of_order: int = 0
-    duplicates: int = 0
-    late: int = 0
-    gaps: int = 0
-    resets: int = 0
-    vo_fused: int = 0
-    vo_missing: int = 0
-    vo_no_clone: int = 0
-    vo_no_pose: int = 0
-    vo_rejected: int = 0
-
-
-@dataclass
-class OdometryFilter:
-    """Wheel + gyro EKF over a message stream, with a wheel-only twin and a pose history.
-
-    ``drive``: the base geometry. ``params``: the EKF noise model. ``initial_pose``: the
-    pose at the first message (the start defines the odometry frame). ``history_s``: how
-    far back :meth:`pose_at` can look. ``max_gap_s``: a longer wheel interval is a gap.
-    ``late_tolerance_ns``: a message at most this much older than the filter's time is
-    still used, at the filter's time (a driver may emit a packet's gyro samples after its
-    wheel ticks); older ones are dropped. ``max_wheel_speed_mps``: bounds how far a wheel
-    can turn in a gap before the 16-bit counters become ambiguous. ``max_gyro_wait_s``:
-    how long gyro readings wait for a wheel message before they are applied anyway.
-    ``still_gate_sigma``: at rest, a gyro reading further than this many sigma from the
-    bias estimate is not paired with a zero-velocity update. ``vo_gate_nis``: a visual
-    odometry measurement whose normalised innovation squared exceeds this (chi-square, 3
-    degrees of freedom; 16.27 = 99.9 %) is rejected.
-    """
-
-    drive: DiffDriveParams = field(default_factory=DiffDriveParams)
-    params: EkfParams = field(default_factory=EkfParams)
-    initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    history_s: float = 2.0
-    max_gap_s: float = 0.25
-    late_tolerance_ns: int = 20_000_000
-    max_wheel_speed_mps: float = 0.7
-    max_gyro_wait_s: float = 0.1
-    still_gate_sigma: float = 3.0
-    vo_gate_nis: float = 16.27
-
-    def __post_init__(self) -> None:
-        self.counters = FilterCounters()
-        self._state: EkfState | None = None
-        self._wheel = WheelOdometry(self.drive, self.initial_pose)
-        self._wheel_ref: WheelTicks | None = None
-        self._last_yaw_ns: int | None = None
-        self._gyro_buf: collections.deque[YawRate] = collections.deque()
-        self._was_still = False
-        self._clone: PoseClone | None = None  # the pose at the last keyframe (relative.py)
-        self._max_gyro_wait_ns = int(self.max_gyro_wait_s * 1e9)
-        self._hist_t: list[int] = []
-        self._hist_pose: list[np.ndarray] = []
-        self._hist_cov: list[np.ndarray] = []
-        self._history_ns = int(self.history_s * 1e9)
-        # A wheel turning at max speed covers half the counter range in this time.
-        half_range_m = 32767 * self.drive.metres_per_tick
-        self._max_unwrap_ns = int(half_range_m / self.max_wheel_speed_mps * 1e9)
-
-    # ---- input --------------------------------------------------------------------------
-
-    def on_wheels(self, msg: WheelTicks) -> bool:
-        """Use one encoder reading; False (and counted) when it was dropped.
-
-        Gyro readings buffered up to this stamp are applied first, in stamp order; when no
-        tick moved over this interval and the one before, the base was standing still and
-        each of them is paired with a zero-velocity update (this calibrates the bias).
-        """
-        t = int(msg.stamp_ns)
-        ref = self._wheel_ref
-        if ref is not None:
-            if t == ref.stamp_ns:
-                self.counters.duplicates += 1
-                return False
-            if t < ref.stamp_ns:
-                self.counters.out_of_order += 1
-                return False
-        if not self._admit(t):
-            return False
-        self.counters.wheel_msgs += 1
-        self._wheel_ref = msg
-        if ref is None:
-            self._wheel.update(msg)
-            self._flush_gyro(t, stationary=False)
-            self._advance_to(t)
-            self._record()
-            return True
-
-        dt_ns = t - ref.stamp_ns
-        if dt_ns > self._max_unwrap_ns:
-            self.counters.gaps += 1
-            self.counters.resets += 1
-            _log.warning("wheel gap of %.1f s: tick counters may have wrapped; restarting "
-                         "the wheel reference", dt_ns * 1e-9)
-            self._wheel.rebase(msg)
-            self._flush_gyro(t, stationary=False)
-            self._advance_to(t)
-            self._record()
-            return True
-
-        dl = unwrap_ticks_delta(ref.left_ticks, msg.left_ticks)
-        dr = unwrap_ticks_delta(ref.right_ticks, msg.right_ticks)
-        self._wheel.update(msg)
-        ds, dyaw = wheel_increment(dl, dr, self.drive)
-        dt = dt_ns * 1e-9
-        v, w = ds / dt, dyaw / dt
-        # At rest: no tick over this interval and the one before (a decelerating wheel
-        # can go ~30 ms without a tick while the base still creeps).
-        still_now = dl == 0 and dr == 0
-        stationary = still_now and self._was_still
-        self._was_still = still_now
-        if dt_ns > self.max_gap_s * 1e9:
-            self.counters.gaps += 1
-            state = self._state
-            no_gyro = not self._gyro_buf or self._gyro_buf[0].stamp_ns > t
-            if state is not None and state.stamp_ns <= ref.stamp_ns and no_gyro:
-                # Nothing arrived during the gap: the constant-rate prediction knows
-                # nothing of what happened, the ticks do. Move the mean along the wheel
-                # arc and keep the predicted (grown) covariance.
-                pred, jac = predict_with_jacobian(state, t, self.params)
-                mean = pred.mean.copy()
-                mean[:3] = integrate_pose(state.mean[:3], ds, dyaw)
-                mean[IV], mean[IW] = v, w
-                self._state = EkfState(t, mean, pred.cov)
-                if self._clone is not None:
-                    self._clone = clone_after_predict(self._clone, jac)
-        self._flush_gyro(t, stationary)
-        self.counters.still_updates += int(stationary)
-        self._advance_to(t)
-        self._apply_wheels(v, w, stationary)
-        self._record()
-        return True
-
-    def on_yaw_rate(self, msg: YawRate) -> bool:
-        """Take one gyro reading; False (and counted) when it was dropped.
-
-        Readings wait (at most ``max_gyro_wait_s``) for the wheel message that covers
-        their stamp, which tells whether the base was standing still.
-        """
-        t = int(msg.stamp_ns)
-        if self._last_yaw_ns is not None:
-            if t == self._last_yaw_ns:
-                self.counters.duplicates += 1
-                return False
-            if t < self._last_yaw_ns:
-                self.counters.out_of_order += 1
-                return False
-        if not self._admit(t):
-            return False
-        self._last_yaw_ns = t
-        self.counters.yaw_msgs += 1
-        self._gyro_buf.append(msg)
-        if t - self._gyro_buf[0].stamp_ns > self._max_gyro_wait_ns:
-            # No wheel message for a while: use what we have without the standstill test.
-            self._flush_gyro(t, stationary=False)
-        return True
-
-    def _flush_gyro(self, t: int, stationary: bool) -> None:
-        """Apply the buffered gyro readings stamped at or before ``t``."""
-        buf = self._gyro_buf
-        while buf and buf[0].stamp_ns <= t:
-            msg = buf.popleft()
-            ts = int(msg.stamp_ns)
-            if self._state is None:
-                self._state = initial_state(ts, self.params, self.initial_pose)
-            self._advance_to(ts)
-            rate = float(msg.yaw_rate_radps)
-            if stationary and self._still_gate(rate):
-                self._apply_wheels(0.0, 0.0, True)
-            prior = self._state
-            self._state = update_gyro(prior, rate, self.params)
-            if self._clone is not None:
-                r = np.array([[self.params.gyro_noise_radps ** 2]])
-                self._clone = clone_after_update(self._clone, prior.cov, _H_GYRO, r)
-            self._record()
-
-    def _apply_wheels(self, v: float, w: float, stationary: bool) -> None:
-        """The wheel update, carrying a pose clone's cross-covariance along."""
-        prior = self._state
-        assert prior is not None
-        self._state = update_wheels(prior, v, w, self.params, stationary=stationary)
-        if self._clone is not None:
-            sv, sw = wheel_noise(v, w, self.params, stationary)
-            self._clone = clone_after_update(self._clone, prior.cov, _H_WHEELS, np.diag([sv * sv, sw * sw]))
-
-    def _still_gate(self, rate_radps: float) -> bool:
-        """True when the gyro agrees with a base at rest (within ``still_gate_sigma``).
-
-        Ticks stop about 30 ms before a decelerating turn does (the last tick is 85 um of
-        rim), so a reading can come from a base that still turns a little: pinning its
-        yaw rate to zero then would push the error into the bias estimate.
-        """
-        s = self._state
-        assert s is not None
-        p = self.params
-        var = s.cov[IB, IB] + p.gyro_noise_radps ** 2 + p.stationary_noise_radps ** 2
-        resid = rate_radps - s.mean[IB]
-        if resid * resid <= self.still_gate_sigma ** 2 * var:
-            return True
-        self.counters.still_rejected += 1
-        return False
-
-    def _admit(self, t: int) -> bool:
-        """False (counted) when ``t`` is too far behind the filter's time."""
-        if self._state is None:
-            self._state = initial_state(t, self.params, self.initial_pose)
-            return True
-        if t >= self._state.stamp_ns:
-            return True
-        if self._state.stamp_ns - t <= self.late_tolerance_ns:
-            self.counters.late += 1
-            return True
-        self.counters.out_of_order += 1
-        return False
-
-    def _advance_to(self, t: int) -> None:
-        assert self._state is not None
-        if t > self._state.stamp_ns:
-            self._state, jac = predict_with_jacobian(self._state, t, self.params)
-            if self._clone is not None:
-                self._clone = clone_after_predict(self._clone, jac)
-
-    def on_visual_odometry(self, stamp_ns: int, prev_stamp_ns: int | None, delta: np.ndarray | None,
-                           covariance: np.ndarray | None) -> bool:
-        """Fuse the motion between the keyframes at ``prev_stamp_ns`` and ``stamp_ns``.
-
-        ``delta (3,)``: the pose at ``stamp_ns`` in the robot frame of the pose at
-        ``prev_stamp_ns`` (``dx_m, dy_m, dyaw_rad``, floor visual odometry, paper 003 Sec.
-        IV-D); ``covariance (3, 3)``. Call it for every keyframe, in order, once the filter
-        has reached its stamp; ``delta=None`` (the step failed) leaves the wheel + gyro
-        estimate alone. Either way the pose at ``stamp_ns`` becomes the clone the next
-        measurement refers to (stochastic cloning, :mod:`robotd.odometry.relative`).
-        Returns True when fused; otherwise False and counted (:class:`FilterCounters`).
-        """
-        s = self._state
-        kf = self.pose_at(stamp_ns) if s is not None else None
-        if s is None or kf is None:
-            self.counters.vo_no_pose += 1
-            self._clone = None
-            return False
-        offset = between(np.array([kf.x_m, kf.y_m, kf.yaw_rad]), s.mean[:3])
-        fused = False
-        c = self._clone
-        if delta is None or covariance is None or not np.all(np.isfinite(delta)):
-            self.counters.vo_missing += 1
-        elif c is None or c.keyframe_stamp_ns != prev_stamp_ns:
-            self.counters.vo_no_clone += 1
-        else:
-            z, r = shift_measurement(delta, covariance, c.offset, offset)
-            mean, cov, nis = update_relative_pose(s.mean, s.cov, c, z, r)
-            if nis > self.vo_gate_nis:
-                self.counters.vo_rejected += 1
-            else:
-                self._state = EkfState(s.stamp_ns, mean, cov)
-                self._record()
-                self.counters.vo_fused += 1
-                fused = True
-        self._clone = clone_pose(self._state.mean, self._state.cov, stamp_ns, offset)
-        return fused
-
-    def _record(self) -> None:
-        s = self._state
-        assert s is not None
-        t = s.stamp_ns
-        pose, cov = s.mean[:3].copy(), s.cov[:3, :3].copy()
-        if self._hist_t and self._hist_t[-1] == t:
-            self._hist_pose[-1], self._hist_cov[-1] = pose, cov
-            return
-        self._hist_t.append(t)
-        self._hist_pose.append(pose)
-        self._hist_cov.append(cov)
-        if len(self._hist_t) > 64 and t - self._hist_t[0] > 2 * self._history_ns:
-            cut = bisect.bisect_left(self._hist_t, t - self._history_ns)
-            cut = min(cut, len(self._hist_t) - 2)
-            del self._hist_t[:cut], self._hist_pose[:cut], self._hist_cov[:cut]
-
-    # ---- output -------------------------------------------------------------------------
-
-    @property
-    def state(self) -> EkfState | None:
-        """The full EKF state (None before the first message)."""
-        return self._state
-
-    def latest_stamp_ns(self) -> int | None:
-        """The filter's time: the newest stamp it has processed (None before any)."""
-        return None if self._state is None else self._state.stamp_ns
-
-    def settled_stamp_ns(self) -> int | None:
-        """The newest stamp up to which :meth:`pose_at` is final (None before two poses).
-
-        The newest recorded pose can still change: a gyro reading of its own stamp, or a
-        late one, is applied to it when the next wheel message arrives. Every pose before it
-        is fixed, so a frame stamped up to here gets the same pose whatever arrives later
-        (a replay then reproduces the live keyframes exactly).
-        """
-        return self._hist_t[-2] if len(self._hist_t) >= 2 else None
-
-    def pose(self) -> PoseStamped:
-        """The fused pose and its 3x3 covariance (the initial pose before any message)."""
-        if self._state is None:
-            return initial_state(0, self.params, self.initial_pose).pose()
-        return self._state.pose()
-
-    def wheel_pose(self) -> PoseStamped:
-        """The wheel-only dead-reckoned pose, for comparison."""
-        return self._wheel.pose()
-
-    def pose_at(self, stamp_ns: int) -> PoseStamped | None:
-        """The fused pose at ``stamp_ns``, interpolated between the two recorded poses around it.
-
-        Position and covariance are interpolated linearly, yaw along the shorter arc.
-        None when ``stamp_ns`` is newer than the filter's time or older than the history.
-        """
-        ts = self._hist_t
-        if not ts or stamp_ns > ts[-1] or stamp_ns < ts[0]:
-            return None
-        i = bisect.bisect_left(ts, stamp_ns)
-        if ts[i] == stamp_ns:
-            p, c = self._hist_pose[i], self._hist_cov[i]
-            return PoseStamped(int(stamp_ns), float(p[0]), float(p[1]), float(p[2]), c.copy())
-        t0, t1 = ts[i - 1], ts[i]
-        f = (stamp_ns - t0) / (t1 - t0)
-        x, y, yaw = interpolate_poses(np.array([t0, t1], dtype=np.int64),
-                                      np.array([self._hist_pose[i - 1], self._hist_pose[i]]),
-                                      np.array([stamp_ns], dtype=np.int64))[0]
-        cov = (1.0 - f) * self._hist_cov[i - 1] + f * self._hist_cov[i]
-        return PoseStamped(int(stamp_ns), float(x), float(y), float(yaw), cov)

@@ -26,7 +26,7 @@ about 1/2 however good the measurement is, and the covariance shrinks every keyf
 though the absolute heading is no better known: an overconfident filter. The clone costs a
 6 x 3 matrix and a 3 x 3 product per filter step.
 
-Everything here is a pure function of its inputs; :class:`~robotd.odometry.ekf.OdometryFilter`
+Everything here is a pure function of its inputs; :class:`~robotd.odometry.fusion.OdometryFilter`
 keeps the clone and calls them.
 """
 

@@ -18,15 +18,15 @@ from robotd.odometry.ekf import (
     IYAW,
     EkfParams,
     EkfState,
-    OdometryFilter,
     initial_state,
     predict,
     update_gyro,
     update_wheels,
 )
+from robotd.odometry.fusion import OdometryFilter
 from robotd.odometry.kinematics import DiffDriveParams
-from sim.route import Motion
 from sim.emulators.kobuki import simulate_kobuki
+from sim.route import Motion
 from sim.sensors import BaseSensorParams
 
 MS = 1_000_000  # ns

@@ -9,7 +9,8 @@ import pytest
 
 from robotd.base.geometry import between
 from robotd.base.messages import WheelTicks, YawRate
-from robotd.odometry.ekf import IYAW, OdometryFilter
+from robotd.odometry.ekf import IYAW
+from robotd.odometry.fusion import OdometryFilter
 from robotd.odometry.relative import (
     clone_after_predict,
     clone_after_update,
