@@ -22,6 +22,7 @@ from robotd.app.pipeline import (
     MapWriterStage,
     OdometryStage,
     Pipeline,
+    VisualOdometryStage,
 )
 from robotd.base.clock import Clock
 from robotd.base.config import Config, to_toml
@@ -98,6 +99,21 @@ def build_floor_detector(cfg: Config, store: MapStore, calib: CalibrationFile | 
     return detector
 
 
+def build_visual_odometry(cfg: Config, odometry: OdometryFilter | None,
+                          calib: CalibrationFile | None = None) -> VisualOdometryStage:
+    """Floor visual odometry in the floor detector's descriptor mode (the keyframe's
+    descriptor is reused), with the calibrated camera model."""
+    from robotd.floor.vo import FloorVisualOdometry, VoParams
+    from robotd.io.calibfile import camera_model
+
+    v = cfg.visual_odometry
+    params = VoParams(mode=cfg.floor_detector.mode, min_inliers=v.min_inliers,
+                      ransac_threshold_m=v.ransac_threshold_m)
+    vo = FloorVisualOdometry(camera_model(calib, cfg.floor_camera), params)
+    log.info("floor visual odometry on (%s, mode %d)", v.mode, params.mode)
+    return VisualOdometryStage(vo, odometry, v.mode)
+
+
 def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, lossless: bool,
                    calibration: CalibrationFile | None = None, observers: Sequence[Any] = (),
                    floor_detector: bool = True) -> Pipeline:
@@ -114,6 +130,8 @@ def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, l
     detector = build_floor_detector(cfg, store, calibration) if floor_detector else None
     if detector is not None:
         pipeline.add(FloorDetectorStage(detector))
+    if cfg.visual_odometry.enabled and cfg.floor_camera.source != "none":
+        pipeline.add(build_visual_odometry(cfg, odometry, calibration))
     pipeline.add(MapWriterStage(store, run_id, image_width_px=kf.image_width_px))
     for o in observers:
         pipeline.add(o)

@@ -276,6 +276,9 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
         "stopped_by": report.stopped_by,
         "recording": str(record) if record is not None else None,
     }
+    if cfg.visual_odometry.enabled:
+        summary["visual_odometry"] = {"mode": cfg.visual_odometry.mode,
+                                      **{k: v for k, v in c.items() if k.startswith("vo_")}}
     if cfg.floor_detector.enabled and recorder.keyframe_ids:
         summary["floor_detector"] = floor_summary(cfg, cam_model, robot.motion, recorder,
                                                   out if plot else None)

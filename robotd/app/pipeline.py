@@ -18,6 +18,8 @@ The stages of today, in the order :func:`robotd.app.assemble.build_pipeline` reg
 ``floor``     describes each ``Keyframe`` (compact descriptor) before it is stored, then
               queries the map with each ``KeyframeStored``; publishes the query (the
               candidates) and a loop ``Link`` per declared loop.
+``visual_odometry`` (optional) the motion from the previous keyframe by floor visual
+              odometry: fused into the filter, or (vision only) the keyframe's odometry edge.
 ``map``       stores each ``Keyframe`` (publishing ``KeyframeStored``), the odometry link
               from the run's previous keyframe, and every ``Link``.
 """
@@ -43,6 +45,7 @@ from robotd.base.messages import (
     YawRate,
 )
 from robotd.floor.detector import FloorLoopDetector
+from robotd.floor.vo import FloorVisualOdometry
 from robotd.io.store import MapStore
 from robotd.keyframes import KeyframeSelector, downsample
 from robotd.odometry.fusion import OdometryFilter
@@ -177,8 +180,10 @@ class OdometryStage(_Publisher):
             self.rejected += 1
 
     def counters(self) -> dict[str, int]:
+        f = self.odometry.counters
         return {"wheel_msgs": self.wheel_msgs, "yaw_msgs": self.yaw_msgs,
-                "odometry_rejected": self.rejected}
+                "odometry_rejected": self.rejected, "vo_fused": f.vo_fused,
+                "vo_rejected_by_filter": f.vo_rejected}
 
 
 class KeyframeStage(_Publisher):
@@ -319,12 +324,69 @@ class FloorDetectorStage(_Publisher):
                 "loops_declared": self.loops}
 
 
+class VisualOdometryStage:
+    """Floor visual odometry between consecutive keyframes (paper 003 Sec. IV-D).
+
+    Registered after ``floor`` (it reuses the keyframe's descriptor) and before ``map``.
+    ``fused``: each step is a relative-pose measurement in the wheel + gyro filter
+    (:meth:`robotd.odometry.fusion.OdometryFilter.on_visual_odometry`; a failed step leaves
+    the filter alone). ``vision_only``: each successful step becomes the keyframe's
+    odometry edge in the map (the pose graph's odometry), and a failed one falls back to
+    the filter's increment (counted in ``vo_fallback``).
+    """
+
+    name = "visual_odometry"
+
+    def __init__(self, vo: FloorVisualOdometry, odometry: OdometryFilter | None, mode: str) -> None:
+        if mode not in ("fused", "vision_only"):
+            raise ValueError(f"visual odometry mode must be 'fused' or 'vision_only', not {mode!r}")
+        self.vo = vo
+        self.odometry = odometry
+        self.mode = mode
+        self._prev_stamp_ns: int | None = None
+        self.steps = 0
+        self.ok = 0
+        self.fallback = 0
+        self.failures = collections.Counter[str]()
+
+    def subscriptions(self) -> Mapping[type, Handler]:
+        return {Keyframe: self.on_keyframe}
+
+    def on_keyframe(self, kf: Keyframe) -> None:
+        desc = kf.descriptors.get("floor")
+        result = self.vo.step(desc[1] if desc is not None and desc[0] == self.vo.params.mode
+                              else kf.frame.image)
+        first = self._prev_stamp_ns is None
+        if not first:
+            self.steps += 1
+            if result.ok:
+                self.ok += 1
+            else:
+                self.failures[result.reason] += 1
+        if self.mode == "fused" and self.odometry is not None:
+            self.odometry.on_visual_odometry(kf.stamp_ns, self._prev_stamp_ns,
+                                             result.delta if result.ok else None,
+                                             result.covariance if result.ok else None)
+        elif self.mode == "vision_only" and not first:
+            if result.ok:
+                kf.odometry_edge = (result.delta, result.covariance)
+            else:
+                self.fallback += 1
+        self._prev_stamp_ns = kf.stamp_ns
+
+    def counters(self) -> dict[str, int]:
+        out = {"vo_steps": self.steps, "vo_ok": self.ok, "vo_fallback": self.fallback}
+        out.update({f"vo_failed_{k}": n for k, n in sorted(self.failures.items())})
+        return out
+
+
 class MapWriterStage(_Publisher):
     """Writes keyframes and links to the map store.
 
     Each keyframe after the run's first also gets an odometry link from the previous one:
     the relative transform of the fused poses and its information from the filter's
-    covariances (:func:`robotd.odometry.increments.odometry_edge`).
+    covariances (:func:`robotd.odometry.increments.odometry_edge`), or the edge another
+    stage measured (``Keyframe.odometry_edge``: vision-only visual odometry).
     """
 
     name = "map"
@@ -353,8 +415,13 @@ class MapWriterStage(_Publisher):
         self.stored += 1
         prev, self._previous = self._previous, kf
         if prev is not None:
-            delta, info = odometry_edge(prev.pose_xyyaw, prev.pose.covariance,
-                                        kf.pose_xyyaw, kf.pose.covariance)
+            if kf.odometry_edge is not None:  # measured by another stage (visual odometry)
+                delta, cov = kf.odometry_edge
+                info = np.linalg.inv(cov)
+                info = 0.5 * (info + info.T)
+            else:
+                delta, info = odometry_edge(prev.pose_xyyaw, prev.pose.covariance,
+                                            kf.pose_xyyaw, kf.pose.covariance)
             self.on_link(Link("odometry", prev.keyframe_id, kf.keyframe_id, delta, info))
         self._publish(KeyframeStored(kf))
 

@@ -89,6 +89,10 @@ class Keyframe:
     descriptors: dict[str, tuple[int, bytes]] = field(default_factory=dict)
     keyframe_id: int | None = None
     run_id: int | None = None
+    odometry_edge: tuple[np.ndarray, np.ndarray] | None = None
+    """``(delta (3,), covariance (3, 3))`` from the previous keyframe, when a stage other
+    than the wheel + gyro filter measured it (vision-only visual odometry); the map writer
+    then links the keyframes with it instead of the filter's increment."""
 
     @property
     def stamp_ns(self) -> int:

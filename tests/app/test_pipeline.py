@@ -232,3 +232,56 @@ def test_the_configured_jpeg_quality_reaches_the_map(tmp_path: Path):
         sizes[f"err{q}"] = err
     assert sizes[20] < 0.5 * sizes[95]
     assert sizes["err20"] > sizes["err95"]
+
+
+def _vo_demo(tmp_path: Path, mode: str) -> tuple[dict, Path]:
+    from robotd.app.demo import run_demo
+
+    cfg = replace(Config(), "visual_odometry", enabled=True, mode=mode)
+    cfg = replace(cfg, "calibration", path=str(tmp_path / "none.yml"))
+    out = tmp_path / mode
+    return run_demo(cfg, out=out, route="square", duration_s=10.0, seed=1, plot=False), out
+
+
+def test_vision_only_odometry_edges_are_the_floor_motion(tmp_path: Path):
+    """With [visual_odometry] mode = "vision_only", the map's odometry links are the floor
+    visual odometry's steps: the same numbers as visual odometry recomputed from the stored
+    descriptors, and within 0.5 mm of the ground truth at the 95th percentile (the filter's
+    own increments on this drive: 1.5 mm)."""
+    from robotd.base.camera import FloorCameraModel
+    from robotd.base.geometry import interpolate_poses
+    from robotd.floor.vo import FloorVisualOdometry, VoParams
+    from robotd.io.trajectory import read_tum
+
+    s, out = _vo_demo(tmp_path, "vision_only")
+    vo = s["visual_odometry"]
+    assert vo["vo_steps"] == s["keyframes"] - 1 and vo["vo_ok"] + vo["vo_fallback"] == vo["vo_steps"]
+    assert vo["vo_ok"] >= 0.95 * vo["vo_steps"]
+    t_ns, truth = read_tum(out / "groundtruth.tum")
+    with MapStore.open(out / "map.sqlite", create=False) as store:
+        kfs = [k for k in store.keyframes()]
+        links = {(lk.from_id, lk.to_id): lk for lk in store.links("odometry")}
+    assert len(links) == vo["vo_steps"]
+    again = FloorVisualOdometry(FloorCameraModel.from_config(Config().floor_camera),
+                                VoParams(mode=Config().floor_detector.mode))
+    true_kf = interpolate_poses(t_ns, truth, np.array([k.stamp_ns for k in kfs]))
+    errors, same = [], 0
+    again.step(kfs[0].descriptor)
+    for i in range(1, len(kfs)):
+        lk = links[(kfs[i - 1].id, kfs[i].id)]
+        r = again.step(kfs[i].descriptor)
+        if r.ok:
+            assert [lk.dx_m, lk.dy_m, lk.dyaw_rad] == pytest.approx(r.delta, abs=1e-12)
+            same += 1
+        want = between(true_kf[i - 1], true_kf[i])
+        errors.append(math.hypot(lk.dx_m - want[0], lk.dy_m - want[1]))
+    assert same == vo["vo_ok"]
+    assert float(np.percentile(errors, 95)) < 0.0005
+
+
+def test_fused_visual_odometry_reaches_the_filter(tmp_path: Path):
+    s, _ = _vo_demo(tmp_path, "fused")
+    vo = s["visual_odometry"]
+    assert vo["vo_steps"] == s["keyframes"] - 1
+    assert vo["vo_fused"] >= 0.9 * vo["vo_ok"] > 0
+    assert s["fused"]["end_position_error_m"] < 0.05
