@@ -44,6 +44,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, default=None,
                    help="start from this config file (the base port, camera source and map "
                         "path are replaced by the virtual robot's)")
+    p.add_argument("--calibration", type=Path, default=None, metavar="FILE.yml",
+                   help="calibration file with the loop thresholds (default: the config's, or, "
+                        "when that does not exist, the demo's own calibration drive shipped "
+                        "with robotd; see tools/demo_calibration.sh)")
     p.add_argument("--realtime", action="store_true",
                    help="pace the virtual robot on the wall clock (default: as fast as possible)")
     p.add_argument("--no-plot", action="store_true", help="skip trajectories.png")
@@ -52,14 +56,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    from robotd.base.config import Config, load_config
+    from robotd.base.config import Config, load_config, replace
     from robotd.base.errors import ConfigError
 
     if args.floor_scale <= 0 or not math.isfinite(args.floor_scale):
         raise ConfigError(f"--floor-scale must be a positive number of metres, got {args.floor_scale}")
-    if args.duration is not None and args.duration <= 0:
-        raise ConfigError(f"--duration must be positive, got {args.duration}")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise ConfigError(f"--duration must be a positive number of seconds, got {args.duration}")
     base_cfg = load_config(args.config) if args.config else Config()
+    calibration = args.calibration
+    if calibration is not None and not calibration.is_file():
+        raise ConfigError(f"--calibration {calibration}: no such file")
+    if calibration is None and not Path(base_cfg.calibration.path).exists():
+        calibration = shipped_calibration()
+    if calibration is not None:
+        base_cfg = replace(base_cfg, "calibration", path=str(calibration))
     summary = run_demo(base_cfg, out=args.out, route=args.route,
                        floor_files=tuple(str(f) for f in args.floor or ()),
                        floor_scale=args.floor_scale, floor_pattern=args.floor_pattern,
@@ -67,6 +78,14 @@ def run_from_args(args: argparse.Namespace) -> int:
                        realtime=args.realtime, plot=not args.no_plot, record=args.record)
     print_summary(summary, sys.stdout)
     return 0 if summary["ok"] else 1
+
+
+def shipped_calibration() -> Path | None:
+    """The calibration file of the demo's own calibration drive, shipped as package data
+    (``robotd/app/data/demo_calibration.yml``; ``tools/demo_calibration.sh`` makes it
+    again), or None if this installation lacks it."""
+    path = Path(__file__).with_name("data") / "demo_calibration.yml"
+    return path if path.is_file() else None
 
 
 class _Recorder:
@@ -84,13 +103,18 @@ class _Recorder:
         self.keyframe_ids: list[int] = []
         self.keyframe_stamps: list[int] = []
         self.queries: list[tuple[int, list[tuple[int, float, float, int]]]] = []
+        self.loops: list[tuple[int, int]] = []  # declared loops: (older keyframe, newer)
 
     def subscriptions(self) -> dict[type, Any]:
-        from robotd.base.messages import KeyframeStored, OdometryUpdate
+        from robotd.base.messages import KeyframeStored, Link, OdometryUpdate
         from robotd.floor.detector import KeyframeQuery
 
         return {OdometryUpdate: self.on_odometry, KeyframeStored: self.on_keyframe,
-                KeyframeQuery: self.on_floor_query}
+                KeyframeQuery: self.on_floor_query, Link: self.on_link}
+
+    def on_link(self, link: Any) -> None:
+        if link.kind == "loop":
+            self.loops.append((link.from_id, link.to_id))
 
     def on_odometry(self, u: Any) -> None:
         self.fused.write(u.fused.stamp_ns, u.fused.x_m, u.fused.y_m, u.fused.yaw_rad)
@@ -235,7 +259,9 @@ def _drive(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, *, realtime: b
             for stamp, pose in zip(robot.base.stamp_ns, robot.base.true_pose):
                 writer.write_ground_truth(int(stamp), *map(float, pose))
             writer.close()
+        floor = daemon.pipeline.stages_by_name().get("floor")
         live = {"report": report, "keyframes_stored": store.count_keyframes(),
+                "floor_threshold": floor.detector.threshold if floor is not None else None,
                 "commands": dict(robot.commands_received), "camera_drops": robot.camera.dropped}
     if robot.error is not None:
         raise robot.error
@@ -274,6 +300,7 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
         "commands_seen_by_robot": live["commands"],
         "wheel_only": err_wheel.as_dict(), "fused": err_fused.as_dict(),
         "stopped_by": report.stopped_by,
+        "calibration": cfg.calibration.path if Path(cfg.calibration.path).exists() else None,
         "recording": str(record) if record is not None else None,
     }
     if cfg.visual_odometry.enabled:
@@ -282,6 +309,7 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
     if cfg.floor_detector.enabled and recorder.keyframe_ids:
         summary["floor_detector"] = floor_summary(cfg, cam_model, robot.motion, recorder,
                                                   out if plot else None)
+        summary["floor_detector"]["threshold"] = live["floor_threshold"]
     summary["ok"] = bool(c["frames"] == robot.frames_emitted
                          and live["keyframes_stored"] == c["keyframes"])
     if plot:
@@ -305,6 +333,9 @@ def _plot_trajectories(out: Path, robot: Any, recorder: _Recorder, truth: Any, f
                        "fused (EKF)": anchor_to(truth[0], fused)},
                       keyframes_xy=kf,
                       title=f"robotd demo: route {robot.settings.route}, {distance_m:.0f} m")
+
+
+LOOP_R = 0.33  # the loop definition's overlap ratio r (paper 003 Sec. III-A)
 
 
 def floor_summary(cfg: Any, camera: Any, motion: Any, recorder: _Recorder,
@@ -335,6 +366,11 @@ def floor_summary(cfg: Any, camera: Any, motion: Any, recorder: _Recorder,
         "best_candidates": [{"query_keyframe": int(ids[c.query]), "candidate_keyframe": int(ids[c.candidate]),
                              "local_score": c.local_score, "true_overlap_J": c.overlap} for c in best],
     }
+    # Declared loops (local score at or above the trained threshold), judged by the truth.
+    j = np.array([overlap[row[a], row[b]] for a, b in recorder.loops], dtype=float)
+    d["loops_declared"] = int(len(j))
+    d["loops_truly_overlapping"] = int(np.sum(j >= LOOP_R))
+    d["loops_sharing_floor"] = int(np.sum(j > 0))
     if out is not None:
         from robotd.io.plots import plot_similarity
 
@@ -354,6 +390,7 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
         ("distance", f"{s['distance_m']:.1f} m in {s['robot_time_s']:.0f} s robot time"),
         ("wall time", f"{s['wall_time_s']:.1f} s (x{s['real_time_factor']:.1f} real time)"),
         ("frames", f"{s['frames_processed']} processed of {s['frames_rendered']} rendered"),
+        ("calibration", s.get("calibration") or "none (no loops declared)"),
         ("keyframes", f"{s['keyframes']}"),
         ("map links", f"odometry {s['links']['odometry']}, loop {s['links']['loop']}"),
         ("drops", ", ".join(f"{k} {v}" for k, v in s["drops"].items())),
@@ -379,6 +416,12 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
         print(f"  revisits (true overlap J >= 0.33 with an older keyframe): {fd['queries_with_true_revisit']}, "
               f"found among the candidates: {fd['revisits_found_among_candidates']}", file=f)
         print(f"  top candidate truly overlapping: {fd['top1_true_overlap']} of {fd['top1_total']}", file=f)
+        if fd.get("threshold") is not None:
+            print(f"  declared loops (local score >= {fd['threshold']:.2f}): {fd['loops_declared']}, "
+                  f"truly overlapping (J >= {LOOP_R}): {fd['loops_truly_overlapping']}, "
+                  f"sharing some floor: {fd['loops_sharing_floor']}", file=f)
+        else:
+            print("  declared loops: none (no trained threshold for this mode)", file=f)
         for lv, (t, n) in fd["top1_precision_above_score"].items():
             print(f"  top candidates with local score >= {lv}: {t} of {n} truly overlapping", file=f)
         print(f"  {'query':>7} {'candidate':>9} {'local score':>11} {'true J':>7}", file=f)

@@ -102,6 +102,10 @@ class Pipeline:
     def stages(self) -> list[Any]:
         return list(self._stages.values())
 
+    def stages_by_name(self) -> dict[str, Any]:
+        """Every registered stage by its name, in registration order."""
+        return dict(self._stages)
+
     def subscribed(self, msg_type: type) -> bool:
         """Whether any stage consumes ``msg_type`` (lets a stage skip building a message)."""
         return bool(self._routes.get(msg_type))
