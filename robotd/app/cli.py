@@ -31,6 +31,8 @@ examples:
   robotd calibrate validate other-drive.mcap --calibration calibration.yml
   robotd record run.mcap --virtual --route figure8    record the virtual robot to MCAP
   robotd replay run.mcap --map replay.sqlite          feed a recording through the daemon
+  robotd graph optimize CSAIL.g2o --out CSAIL-opt.g2o --isotropic
+  robotd graph export map.sqlite --out /tmp/graph     g2o + odometry/optimised TUM files
 """
 
 
@@ -49,6 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_commands(sub)
     _add_calibrate_commands(sub)
     _add_kobuki_commands(sub)
+    from robotd.app import graph_cli  # light module: gtsam loads when a graph command runs
+    graph_cli.add_arguments(sub)
     return p
 
 

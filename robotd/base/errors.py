@@ -26,3 +26,8 @@ class MapStoreError(RobotdError):
 
 class DescriptorError(RobotdError):
     """Descriptor bytes are corrupt, truncated, of an unknown version, or of a bad mode."""
+
+
+class GraphError(RobotdError):
+    """A pose graph or a pose-graph file is malformed: a missing vertex, a non-positive-definite
+    information matrix, a truncated or garbled line, a duplicate vertex."""

@@ -1,0 +1,221 @@
+"""The pose graph against the published optima and plain Levenberg-Marquardt.
+
+Three parts, each against GTSAM's plain Levenberg-Marquardt started from odometry (no
+LAGO, no robust kernel; the baseline), timed in the same run:
+
+1. The shared SE-Sync benchmarks (CSAIL, manhattan) with ``--isotropic`` noise: our final
+   objective against the published optimum F* (3.170e1, 6.432e3; Rosen et al. IJRR 2019,
+   Table 1; given to four digits, so +-0.016 % and +-0.008 % of rounding), the times and
+   their ratio. Median and interquartile range over ``--repeats`` after one warm-up.
+2. manhattan with ``--outliers`` (1000) random wrong loop edges (seeded; each joins two
+   random poses with a uniform offset of +-10 m and +-pi and the information of a true
+   loop): ATE (RMS position error after a rigid 2D fit) of our robust solution and of
+   plain LM against the outlier-free optimum, full information. One run each (slow).
+3. A synthetic route of ``--keyframes`` (7000) keyframes: laps of a 10 x 6 m rectangle
+   with a keyframe every 0.25 m, odometry with noise, and a loop edge every 10th keyframe
+   back to the same place in the first lap. Batch time of ours and of plain LM; then the
+   same graph fed to :class:`IncrementalGraph` keyframe by keyframe (loops as they come):
+   median and p99 of the per-keyframe update time against ``--keyframe-period``.
+
+Run: ``.venv/bin/python bench/bench_posegraph.py [--repeats 5] [--full]
+[--out bench/results/posegraph.json]``. ``--full`` uses 20000 keyframes in part 3.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import math
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+try:
+    from bench.common import machine_info, print_table, time_repeats, write_json
+except ImportError:  # run as a script: bench/ is on sys.path
+    from common import machine_info, print_table, time_repeats, write_json
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+from robotd.base.geometry import compose, rigid_fit_2d  # noqa: E402
+from robotd.graph import BatchParams, IncrementalGraph, PoseGraph, optimize_batch  # noqa: E402
+from robotd.io.g2o import read_g2o  # noqa: E402
+
+DATA = REPO / ".." / "shared" / "data" / "posegraphs"
+PUBLISHED = {"CSAIL": 3.170e1, "manhattan": 6.432e3}
+BASELINE = dict(robust=False, initialisation="odometry")
+
+
+def ate_m(poses: np.ndarray, reference: np.ndarray) -> float:
+    """RMS position error (m) of ``poses`` against ``reference`` after a rigid 2D fit."""
+    fit = rigid_fit_2d(poses[:, :2], reference[:, :2])
+    moved = compose(fit, poses)
+    return float(np.sqrt(np.mean(np.sum((moved[:, :2] - reference[:, :2]) ** 2, axis=1))))
+
+
+def part_benchmarks(repeats: int) -> list[dict[str, Any]]:
+    rows = []
+    for name, f_star in PUBLISHED.items():
+        graph = read_g2o(DATA / f"{name}.g2o")
+        ours_p, base_p = BatchParams(noise="isotropic"), BatchParams(noise="isotropic", **BASELINE)
+        ours, base = optimize_batch(graph, ours_p), optimize_batch(graph, base_p)
+        t_ours = time_repeats(lambda: optimize_batch(graph, ours_p), repeats)
+        t_base = time_repeats(lambda: optimize_batch(graph, base_p), repeats)
+        rows.append({
+            "graph": name, "poses": len(graph), "edges": len(graph.edges), "published_F": f_star,
+            "ours_F": ours.final_objective, "ours_gap_pct": 100 * (ours.final_objective / f_star - 1),
+            "lm_F": base.final_objective, "lm_gap_pct": 100 * (base.final_objective / f_star - 1),
+            "ours_iterations": ours.iterations, "lm_iterations": base.iterations,
+            "ours_time": t_ours, "lm_time": t_base,
+            "time_ratio_ours_over_lm": t_ours["median_s"] / t_base["median_s"],
+        })
+    return rows
+
+
+def with_outliers(graph: PoseGraph, count: int, seed: int) -> PoseGraph:
+    """``graph`` plus ``count`` wrong loop edges between random poses (seeded)."""
+    rng = np.random.default_rng(seed)
+    out = graph.with_poses(graph.ids, graph.poses())
+    info = next(e.information for e in graph.edges if e.kind == "loop")
+    for _ in range(count):
+        i, j = rng.choice(graph.ids, 2, replace=False)
+        out.add_edge(int(i), int(j), (rng.uniform(-10, 10), rng.uniform(-10, 10),
+                                      rng.uniform(-math.pi, math.pi)), info, "loop")
+    return out
+
+
+def part_outliers(count: int, seed: int) -> dict[str, Any]:
+    graph = read_g2o(DATA / "manhattan.g2o")
+    reference = optimize_batch(graph, BatchParams(robust=False))
+    bad = with_outliers(graph, count, seed)
+    ours = optimize_batch(bad)
+    base = optimize_batch(bad, BatchParams(**BASELINE))
+    n_true = sum(e.kind == "loop" for e in graph.edges)
+    return {
+        "outliers": count, "seed": seed,
+        "odometry_ate_m": ate_m(graph.poses(), reference.poses),
+        "ours_ate_m": ate_m(ours.poses, reference.poses), "ours_time_s": ours.time_s,
+        "ours_iterations": ours.iterations,
+        "lm_ate_m": ate_m(base.poses, reference.poses), "lm_time_s": base.time_s,
+        "wrong_loops_kept": int((ours.loop_weights[n_true:] >= 0.5).sum()),
+        "true_loops_down_weighted": int((ours.loop_weights[:n_true] < 0.5).sum()),
+        "true_loops": n_true,
+    }
+
+
+def synthetic_route(keyframes: int, seed: int) -> PoseGraph:
+    """Laps of a 10 x 6 m rectangle, a keyframe every 0.25 m, noisy odometry, and a loop
+    to the first lap every 10th keyframe (exact relative pose, loop-sized information)."""
+    rng = np.random.default_rng(seed)
+    side = [40, 24, 40, 24]  # keyframes per side (0.25 m steps)
+    lap = sum(side)
+    steps = []
+    for n in side:
+        steps += [(0.25, 0.0, 0.0)] * (n - 1) + [(0.25, 0.0, math.pi / 2)]
+    truth = [np.zeros(3)]
+    for k in range(1, keyframes):
+        truth.append(compose(truth[-1], steps[(k - 1) % lap]))
+    g = PoseGraph()
+    odo_info = np.diag([1 / 0.01**2, 1 / 0.01**2, 1 / 0.005**2])
+    loop_info = np.diag([1 / 0.02**2, 1 / 0.02**2, 1 / 0.01**2])
+    pose = np.zeros(3)
+    g.add_pose(0, pose)
+    for k in range(1, keyframes):
+        d = np.array(steps[(k - 1) % lap]) + rng.normal(0, [0.01, 0.01, 0.005])
+        pose = compose(pose, d)
+        g.add_pose(k, pose)
+        g.add_edge(k - 1, k, d, odo_info, "odometry")
+        if k >= lap and k % 10 == 0:
+            j = k % lap
+            a, b = truth[j], truth[k]
+            c, s = math.cos(a[2]), math.sin(a[2])
+            dx, dy = b[0] - a[0], b[1] - a[1]
+            rel = (c * dx + s * dy, -s * dx + c * dy, math.remainder(b[2] - a[2], 2 * math.pi))
+            g.add_edge(j, k, rel, loop_info, "loop")
+    return g
+
+
+def part_synthetic(keyframes: int, repeats: int, period_s: float) -> dict[str, Any]:
+    graph = synthetic_route(keyframes, seed=7)
+    t_ours = time_repeats(lambda: optimize_batch(graph), repeats)
+    t_base = time_repeats(lambda: optimize_batch(graph, BatchParams(**BASELINE)), repeats)
+    inc = IncrementalGraph()
+    loops_at: dict[int, list] = {}
+    for e in graph.edges:
+        if e.kind == "loop":
+            loops_at.setdefault(e.to_id, []).append(e)
+    updates = []
+    inc.add_first(0, graph.pose(0))
+    for e in graph.edges:
+        if e.kind != "odometry":
+            continue
+        t0 = time.perf_counter()
+        inc.add_keyframe(e.to_id, e.from_id, e.delta, e.information)
+        for loop in loops_at.get(e.to_id, []):
+            inc.add_loop(loop.from_id, loop.to_id, loop.delta, loop.information)
+        updates.append(time.perf_counter() - t0)
+    batch = optimize_batch(graph)
+    _, inc_poses = inc.estimate()
+    return {
+        "keyframes": keyframes, "loops": sum(e.kind == "loop" for e in graph.edges),
+        "ours_batch_time": t_ours, "lm_batch_time": t_base,
+        "batch_ratio_ours_over_lm": t_ours["median_s"] / t_base["median_s"],
+        "incremental_median_s": statistics.median(updates),
+        "incremental_p99_s": float(np.percentile(updates, 99)),
+        "incremental_max_s": max(updates),
+        "keyframe_period_s": period_s,
+        "incremental_vs_batch_max_m": float(np.max(np.linalg.norm(inc_poses[:, :2] - batch.poses[:, :2], axis=1))),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--outliers", type=int, default=1000)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--keyframes", type=int, default=None)
+    ap.add_argument("--keyframe-period", type=float, default=0.5, help="seconds between keyframes")
+    ap.add_argument("--full", action="store_true", help="20000 keyframes in part 3")
+    ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "posegraph.json")
+    args = ap.parse_args(argv)
+    if not DATA.is_dir():
+        print(f"shared data {DATA} is absent", file=sys.stderr)
+        return 2
+    keyframes = args.keyframes or (20000 if args.full else 7000)
+    bench = part_benchmarks(args.repeats)
+    print_table(["graph", "F* published", "ours F", "gap %", "LM F", "ours s", "LM s", "ratio"],
+                [[r["graph"], r["published_F"], round(r["ours_F"], 4), round(r["ours_gap_pct"], 4),
+                  round(r["lm_F"], 4), round(r["ours_time"]["median_s"], 4),
+                  round(r["lm_time"]["median_s"], 4), round(r["time_ratio_ours_over_lm"], 2)]
+                 for r in bench])
+    outl = part_outliers(args.outliers, args.seed)
+    print()
+    print_table(["manhattan + wrong loops", "odometry ATE m", "ours ATE m", "LM ATE m", "ours s",
+                 "LM s", "wrong kept", "true down"],
+                [[outl["outliers"], round(outl["odometry_ate_m"], 3), round(outl["ours_ate_m"], 4),
+                  round(outl["lm_ate_m"], 3), round(outl["ours_time_s"], 2), round(outl["lm_time_s"], 2),
+                  outl["wrong_loops_kept"], outl["true_loops_down_weighted"]]])
+    syn = part_synthetic(keyframes, args.repeats, args.keyframe_period)
+    print()
+    print_table(["keyframes", "loops", "ours batch s", "LM batch s", "ratio", "iSAM2 median ms",
+                 "iSAM2 p99 ms", "period ms"],
+                [[syn["keyframes"], syn["loops"], round(syn["ours_batch_time"]["median_s"], 3),
+                  round(syn["lm_batch_time"]["median_s"], 3), round(syn["batch_ratio_ours_over_lm"], 2),
+                  round(1e3 * syn["incremental_median_s"], 2), round(1e3 * syn["incremental_p99_s"], 2),
+                  round(1e3 * syn["keyframe_period_s"])]])
+    info = machine_info()
+    info["gtsam"] = importlib.metadata.version("gtsam")
+    path = write_json(args.out, {"machine": info, "benchmarks": bench, "outliers": outl,
+                                 "synthetic": syn})
+    print(f"\nwrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
