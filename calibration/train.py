@@ -247,7 +247,7 @@ def load_run(path: Path, cfg: Any, params: TrainParams, progress: Progress | Non
                 MapStore.open(Path(tmp) / "train.sqlite", synchronous="NORMAL", clock=clock) as store:
             daemon = assemble_daemon(cfg, clock, {"replay": replay}, store, Notifier(), lossless=True,
                                      observers=[collector], load_calibration_file=False,
-                                     floor_detector=False)
+                                     floor_detector=False, pose_graph=False)
             report = daemon.run(stop_when=lambda: replay_finished(replay, daemon))
             if report.source_errors.get("replay"):
                 raise CalibrationError(f"{path}: the replay stopped on an error (see the log)")

@@ -19,6 +19,7 @@ from robotd.app.notify import Notifier
 from robotd.app.pipeline import (
     FloorDetectorStage,
     KeyframeStage,
+    LoopsUngated,
     MapWriterStage,
     OdometryStage,
     Pipeline,
@@ -116,7 +117,7 @@ def build_visual_odometry(cfg: Config, odometry: OdometryFilter | None,
 
 def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, lossless: bool,
                    calibration: CalibrationFile | None = None, observers: Sequence[Any] = (),
-                   floor_detector: bool = True) -> Pipeline:
+                   floor_detector: bool = True, pose_graph: bool = True) -> Pipeline:
     """The daemon's stages in their order (see :mod:`robotd.app.pipeline`), then
     ``observers`` (stages that only watch: trajectory writers, recorders, training)."""
     kf = cfg.keyframes
@@ -127,6 +128,14 @@ def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, l
     pipeline.add(KeyframeStage(odometry, clock, distance_m=kf.distance_m,
                                rotation_rad=math.radians(kf.rotation_deg),
                                max_sync_wait_s=kf.max_sync_wait_s, lossless=lossless))
+    if cfg.pose_graph.enabled and pose_graph:
+        from robotd.app.posegraph import PoseGraphStage
+        from robotd.graph.incremental import IncrementalGraph
+
+        pipeline.add(PoseGraphStage(IncrementalGraph(), store, gate_chi2=cfg.pose_graph.gate_chi2,
+                                    save_every=cfg.pose_graph.save_every_keyframes))
+    else:
+        pipeline.add(LoopsUngated())
     detector = build_floor_detector(cfg, store, calibration) if floor_detector else None
     if detector is not None:
         pipeline.add(FloorDetectorStage(detector))
@@ -142,6 +151,7 @@ def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store
                     notifier: Notifier, *, lossless: bool, observers: Sequence[Any] = (),
                     calibration: CalibrationFile | None = None,
                     load_calibration_file: bool = True, floor_detector: bool = True,
+                    pose_graph: bool = True,
                     reopen: dict[str, Callable[[], Source]] | None = None,
                     driver_stats: Callable[[], dict[str, Any]] | None = None) -> Daemon:
     """A daemon over ``sources`` writing into ``store``: begins a run in the map, builds the
@@ -155,7 +165,8 @@ def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store
         calibration = load_calibration(cfg)
     run_id = store.begin_run(to_toml(cfg))
     pipeline = build_pipeline(cfg, clock, store, run_id, lossless=lossless, calibration=calibration,
-                              observers=observers, floor_detector=floor_detector)
+                              observers=observers, floor_detector=floor_detector,
+                              pose_graph=pose_graph)
     sizes = {"base": cfg.base.queue_size, "floor": cfg.floor_camera.queue_size}
     return Daemon(clock, pipeline, sources, notifier, store=store, run_id=run_id, lossless=lossless,
                   status_interval_s=cfg.daemon.status_interval_s, queue_sizes=sizes,

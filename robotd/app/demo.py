@@ -310,28 +310,77 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
         summary["floor_detector"] = floor_summary(cfg, cam_model, robot.motion, recorder,
                                                   out if plot else None)
         summary["floor_detector"]["threshold"] = live["floor_threshold"]
+    graph = _graph_summary(out / "map.sqlite", robot, c)
+    if graph is not None:
+        summary["pose_graph"] = graph
     summary["ok"] = bool(c["frames"] == robot.frames_emitted
                          and live["keyframes_stored"] == c["keyframes"])
     if plot:
-        _plot_trajectories(out, robot, recorder, truth, fused, wheel, err_fused.distance_m)
+        _plot_trajectories(out, robot, recorder, truth, fused, wheel, err_fused.distance_m,
+                           graph)
+    if graph is not None:
+        graph.pop("_plot")
     return summary
 
 
+def _graph_summary(map_path: Path, robot: Any, c: dict[str, int]) -> dict[str, Any] | None:
+    """The loop-corrected keyframe poses against ground truth, beside the fused odometry
+    at the same keyframes: end errors, ATE (RMS position error, start-anchored, no fit)
+    and RPE (RMS error of each keyframe-to-keyframe step)."""
+    import numpy as np
+
+    from robotd.io.store import MapStore
+    from robotd.io.trajectory import relative_pose_error, trajectory_errors
+
+    with MapStore.open(map_path, create=False) as store:
+        kfs = list(store.keyframes())
+        opt = store.optimized_poses()
+        loops = [(lk.from_id, lk.to_id) for lk in store.links("loop")]
+    if len(kfs) < 2 or not opt:
+        return None
+    kfs = [k for k in kfs if k.id in opt]
+    fused = np.array([[k.x_m, k.y_m, k.yaw_rad] for k in kfs])
+    optimized = np.array([opt[k.id] for k in kfs])
+    truth = robot.motion.pose_at(np.array([k.stamp_ns for k in kfs]) / 1e9)
+    out: dict[str, Any] = {"keyframes": len(kfs), "loops_in_graph": len(loops),
+                           **{k: v for k, v in c.items() if k.startswith(("loops_", "graph_"))}}
+    for name, est in (("fused", fused), ("loop_corrected", optimized)):
+        e = trajectory_errors(truth, est)
+        rpe_t, rpe_r = relative_pose_error(truth, est)
+        out[name] = {"end_position_error_m": e.end_position_error_m,
+                     "end_heading_error_deg": e.end_heading_error_deg,
+                     "ate_rmse_m": e.rmse_position_m, "rpe_rmse_mm": rpe_t * 1e3,
+                     "rpe_rmse_deg": float(np.degrees(rpe_r))}
+    out["_plot"] = {"ids": [k.id for k in kfs], "optimized": optimized, "truth0": truth[0],
+                    "loops": loops}
+    return out
+
+
 def _plot_trajectories(out: Path, robot: Any, recorder: _Recorder, truth: Any, fused: Any,
-                       wheel: Any, distance_m: float) -> None:
+                       wheel: Any, distance_m: float, graph: dict[str, Any] | None = None) -> None:
     import numpy as np
 
     from robotd.base.geometry import compose, inverse, transform_points
     from robotd.io.plots import plot_trajectories
+
+    def transform_points_poses(pose: Any, poses: Any) -> Any:
+        return compose(pose, poses)
     from robotd.io.trajectory import anchor_to
 
     # Odometry starts at its own origin; draw it from the route's start, as the errors do.
     to_world = compose(truth[0], inverse(fused[0]))
     kf = transform_points(to_world, np.asarray(recorder.keyframe_poses).reshape(-1, 2))
-    plot_trajectories(out / "trajectories.png", robot.floor, truth,
-                      {"wheel only": anchor_to(truth[0], wheel),
-                       "fused (EKF)": anchor_to(truth[0], fused)},
-                      keyframes_xy=kf,
+    estimates = {"wheel only": anchor_to(truth[0], wheel), "fused (EKF)": anchor_to(truth[0], fused)}
+    loop_xy = None
+    if graph is not None:
+        g = graph["_plot"]
+        opt = transform_points_poses(to_world, g["optimized"])
+        estimates["loop-corrected (pose graph)"] = opt
+        row = {k: i for i, k in enumerate(g["ids"])}
+        pairs = [(row[a], row[b]) for a, b in g["loops"] if a in row and b in row]
+        loop_xy = np.array([[opt[a, :2], opt[b, :2]] for a, b in pairs]).reshape(-1, 2, 2)
+    plot_trajectories(out / "trajectories.png", robot.floor, truth, estimates,
+                      keyframes_xy=kf, loop_edges_xy=loop_xy,
                       title=f"robotd demo: route {robot.settings.route}, {distance_m:.0f} m")
 
 
@@ -408,6 +457,23 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
         ("end drift per 100 m (m)", "end_drift_per_100m_m", "{:.3f}"),
     ):
         print(f"{label:<26}{fmt.format(w[key]):>12}{fmt.format(fu[key]):>12}", file=f)
+    g = s.get("pose_graph")
+    if g:
+        print(file=f)
+        print(f"{'at the ' + str(g['keyframes']) + ' keyframes':<26}{'fused':>12}{'loop-corr.':>12}", file=f)
+        for label, key, fmt in (
+            ("end position error (m)", "end_position_error_m", "{:.3f}"),
+            ("end heading error (deg)", "end_heading_error_deg", "{:.2f}"),
+            ("ATE, RMS (m)", "ate_rmse_m", "{:.3f}"),
+            ("RPE per step, RMS (mm)", "rpe_rmse_mm", "{:.2f}"),
+        ):
+            print(f"{label:<26}{fmt.format(g['fused'][key]):>12}{fmt.format(g['loop_corrected'][key]):>12}",
+                  file=f)
+        print(f"pose graph: {g['loops_in_graph']} loop edges accepted, {g.get('loops_failed_gate', 0)} "
+              f"refused by the chi-square gate, {g.get('loops_down_weighted', 0)} down-weighted by the "
+              f"optimiser; iSAM2 update median {g.get('graph_update_median_us', 0) / 1e3:.2f} ms, p99 "
+              f"{g.get('graph_update_p99_us', 0) / 1e3:.2f} ms; last full solve {g.get('graph_solve_ms', 0)} ms",
+              file=f)
     fd = s.get("floor_detector")
     if fd:
         print(file=f)

@@ -35,10 +35,12 @@ import numpy as np
 
 from robotd.base.clock import Clock
 from robotd.base.messages import (
+    CandidateFate,
     Frame,
     Keyframe,
     KeyframeStored,
     Link,
+    LoopCandidate,
     OdometryUpdate,
     PoseStamped,
     WheelTicks,
@@ -294,7 +296,9 @@ class FloorDetectorStage(_Publisher):
 
     Describes each keyframe before it is stored (the descriptor goes into the same map
     row), then queries the map with it once it has an id. Publishes the query result (a
-    :class:`~robotd.floor.detector.KeyframeQuery`) and a loop :class:`Link` per loop.
+    :class:`~robotd.floor.detector.KeyframeQuery`), a :class:`LoopCandidate` per candidate
+    at or above the trained threshold (the pose graph gates it), and the fate of the
+    others (:class:`CandidateFate`).
     """
 
     name = "floor"
@@ -319,13 +323,26 @@ class FloorDetectorStage(_Publisher):
         self.queries += 1
         self.candidates += len(result.candidates)
         self._publish(result)
+        threshold = self.detector.threshold
+        declared = {loop.from_id for loop in result.loops}
+        for c in result.candidates:
+            score = float(c.local.score)
+            if threshold is None:
+                continue  # untrained: nothing is declared, nothing to record
+            if score < threshold:
+                self._publish(CandidateFate(kf.keyframe_id, c.keyframe_id, score, "below_threshold",
+                                            f"score {score:.2f} < {threshold:.2f}"))
+            elif c.keyframe_id not in declared:
+                self._publish(CandidateFate(kf.keyframe_id, c.keyframe_id, score, "no_transform",
+                                            "fewer than 3 inliers map onto the floor"))
         for loop in result.loops:
             self.loops += 1
-            self._publish(Link("loop", loop.from_id, loop.to_id, loop.delta, loop.information))
+            self._publish(LoopCandidate(loop.from_id, loop.to_id, loop.score, loop.delta,
+                                        loop.information))
 
     def counters(self) -> dict[str, int]:
         return {"floor_queries": self.queries, "floor_candidates": self.candidates,
-                "loops_declared": self.loops}
+                "loop_candidates_above_threshold": self.loops}
 
 
 class VisualOdometryStage:
@@ -384,6 +401,20 @@ class VisualOdometryStage:
         return out
 
 
+class LoopsUngated(_Publisher):
+    """Without a pose graph ([pose_graph] enabled = false), every loop candidate at or
+    above the threshold becomes a loop link, recorded as accepted without a gate."""
+
+    name = "loops_ungated"
+
+    def subscriptions(self) -> Mapping[type, Handler]:
+        return {LoopCandidate: self.on_candidate}
+
+    def on_candidate(self, c: LoopCandidate) -> None:
+        self._publish(CandidateFate(c.to_id, c.from_id, c.score, "accepted", "no pose graph: not gated"))
+        self._publish(Link("loop", c.from_id, c.to_id, c.delta_xyyaw, c.information))
+
+
 class MapWriterStage(_Publisher):
     """Writes keyframes and links to the map store.
 
@@ -402,9 +433,25 @@ class MapWriterStage(_Publisher):
         self._previous: Keyframe | None = None
         self.stored = 0
         self.links = collections.Counter[str]()
+        self.fates = collections.Counter[str]()
+        self._fates: list[tuple[int, int, float, str, str]] = []
 
     def subscriptions(self) -> Mapping[type, Handler]:
-        return {Keyframe: self.on_keyframe, Link: self.on_link}
+        return {Keyframe: self.on_keyframe, Link: self.on_link, CandidateFate: self.on_fate}
+
+    def on_fate(self, fate: CandidateFate) -> None:
+        self._fates.append((fate.query_id, fate.candidate_id, fate.score, fate.fate, fate.detail))
+        self.fates[fate.fate] += 1
+
+    def flush_fates(self) -> None:
+        """Write the candidates' fates gathered since the last flush (one transaction)."""
+        if self._fates:
+            self.store.add_loop_candidates(self._fates)
+            self._fates = []
+
+    def finish(self) -> int:
+        self.flush_fates()
+        return 0
 
     def on_keyframe(self, kf: Keyframe) -> None:
         descriptor = mode = None
@@ -426,8 +473,9 @@ class MapWriterStage(_Publisher):
             else:
                 delta, info = odometry_edge(prev.pose_xyyaw, prev.pose.covariance,
                                             kf.pose_xyyaw, kf.pose.covariance)
-            self.on_link(Link("odometry", prev.keyframe_id, kf.keyframe_id, delta, info))
+            self._publish(Link("odometry", prev.keyframe_id, kf.keyframe_id, delta, info))
         self._publish(KeyframeStored(kf))
+        self.flush_fates()
 
     def on_link(self, link: Link) -> None:
         self.store.add_link(link.kind, link.from_id, link.to_id, link.delta_xyyaw, link.information)
@@ -435,4 +483,5 @@ class MapWriterStage(_Publisher):
 
     def counters(self) -> dict[str, int]:
         return {"keyframes_stored": self.stored,
-                **{f"links_{k}": n for k, n in sorted(self.links.items())}}
+                **{f"links_{k}": n for k, n in sorted(self.links.items())},
+                **{f"candidates_{k}": n for k, n in sorted(self.fates.items())}}

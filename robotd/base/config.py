@@ -129,6 +129,19 @@ class VisualOdometryConfig:
 
 
 @dataclass(frozen=True)
+class PoseGraphConfig:
+    """The live pose graph: keyframes, odometry edges and gated loop edges (GTSAM iSAM2)."""
+
+    enabled: bool = _f(True, "keep a pose graph and store the loop-corrected poses in the map")
+    gate_chi2: float = _f(16.27, "largest Mahalanobis distance squared of a loop against the graph's "
+                          "prediction (16.27: 99.9 % of chi-square with 3 degrees of freedom)",
+                          lo=0.1, hi=1e6)
+    save_every_keyframes: int = _f(200, "re-solve the whole graph robustly and store the optimised "
+                                   "poses every this many keyframes (0: only at the end of a run)",
+                                   lo=0, hi=1_000_000)
+
+
+@dataclass(frozen=True)
 class CalibrationConfig:
     """Where the calibration file is (written by ``robotd calibrate``)."""
 
@@ -162,6 +175,7 @@ class Config:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     floor_detector: FloorDetectorConfig = field(default_factory=FloorDetectorConfig)
     visual_odometry: VisualOdometryConfig = field(default_factory=VisualOdometryConfig)
+    pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     map: MapConfig = field(default_factory=MapConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)

@@ -124,3 +124,30 @@ class Link:
     to_id: int
     delta_xyyaw: np.ndarray
     information: np.ndarray
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class LoopCandidate:
+    """A candidate at or above the trained threshold, with the relative pose measured from
+    its inlier floor points: keyframe ``to_id`` seen from ``from_id`` (``delta_xyyaw`` in
+    ``from_id``'s frame, ``information`` (3, 3)). The pose graph decides whether it becomes
+    a loop :class:`Link`."""
+
+    from_id: int
+    to_id: int
+    score: float
+    delta_xyyaw: np.ndarray
+    information: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class CandidateFate:
+    """What became of one loop candidate (as DLoopDetector reports its detections):
+    ``fate`` is ``accepted``, ``below_threshold``, ``no_transform``, ``failed_gate`` or
+    ``down_weighted``; ``detail`` says why in numbers (the chi-square, the weight)."""
+
+    query_id: int
+    candidate_id: int
+    score: float
+    fate: str
+    detail: str = ""

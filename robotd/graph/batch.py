@@ -20,6 +20,7 @@ needs a start near the inlier optimum, which LAGO gives (from odometry it ended 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import time
 from dataclasses import dataclass
@@ -32,6 +33,9 @@ from robotd.base.geometry import compose, inverse
 from robotd.graph.factors import (Kernel, anchor_factor, between_factor, factor_graph, from_values,
                                   robust_kernel, to_values)
 from robotd.graph.model import PoseGraph, chi2, edge_chi2, isotropic_graph, isotropic_objective
+
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True)
@@ -150,7 +154,13 @@ def optimize_batch(graph: PoseGraph, params: BatchParams = BatchParams()) -> Bat
     initial = work.poses()
     t0 = time.perf_counter()
     use_lago = params.initialisation == "lago" and len(work.components()) == 1
-    start = lago_initialise(work) if use_lago else initial
+    start = initial
+    if use_lago:
+        try:
+            start = lago_initialise(work)
+        except RuntimeError as exc:  # GTSAM: e.g. an orientation LAGO cannot determine
+            log.warning("LAGO initialisation failed (%s); starting from the odometry poses",
+                        str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
     t1 = time.perf_counter()
     kernel = robust_kernel(params.kernel, params.kernel_width) if params.robust else None
     lm_params = gtsam.LevenbergMarquardtParams()

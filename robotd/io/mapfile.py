@@ -5,7 +5,9 @@ Version history:
 
 1. the first schema: ``meta``, ``runs``, ``keyframes``, ``links``, ``calibration``;
 2. runs get their epoch (``epoch_unix_ns``: each run has its own clock), keyframes are
-   indexed by ``(run_id, stamp_ns)``.
+   indexed by ``(run_id, stamp_ns)``;
+3. the pose graph's results: ``optimized_poses`` (the newest solved pose of each
+   keyframe) and ``loop_candidates`` (every loop-closure candidate and its fate).
 """
 
 from __future__ import annotations
@@ -98,7 +100,39 @@ def _migrate_1_to_2(conn: sqlite3.Connection) -> None:
     conn.execute("CREATE INDEX keyframes_by_run_stamp ON keyframes(run_id, stamp_ns)")
 
 
-MIGRATIONS: Mapping[int, Migration] = {1: _migrate_0_to_1, 2: _migrate_1_to_2}
+def _migrate_2_to_3(conn: sqlite3.Connection) -> None:
+    """Version 3: ``optimized_poses`` (one row per keyframe, replaced by each new solution)
+    and ``loop_candidates`` (one row per candidate considered, with what became of it).
+    The fates are spelled out here, not taken from the store: a released step never
+    changes."""
+    conn.execute(
+        """CREATE TABLE optimized_poses (
+            keyframe_id    INTEGER PRIMARY KEY REFERENCES keyframes(id),
+            x_m            REAL NOT NULL,
+            y_m            REAL NOT NULL,
+            yaw_rad        REAL NOT NULL,
+            solved_unix_ns INTEGER NOT NULL
+        )"""
+    )
+    conn.execute(
+        """CREATE TABLE loop_candidates (
+            id           INTEGER PRIMARY KEY AUTOINCREMENT,
+            query_id     INTEGER NOT NULL REFERENCES keyframes(id),
+            candidate_id INTEGER NOT NULL REFERENCES keyframes(id),
+            score        REAL NOT NULL,
+            fate         TEXT NOT NULL CHECK (fate IN ('accepted', 'below_threshold',
+                             'failed_gate', 'no_transform', 'down_weighted')),
+            detail       TEXT NOT NULL DEFAULT ''
+        )"""
+    )
+    conn.execute("CREATE INDEX loop_candidates_by_query ON loop_candidates(query_id)")
+
+
+MIGRATIONS: Mapping[int, Migration] = {
+    1: _migrate_0_to_1,
+    2: _migrate_1_to_2,
+    3: _migrate_2_to_3,
+}
 """Schema migrations keyed by the version each one produces, contiguous from 1.
 
 A new database is "migrated" from version 0 through every step, so creating a map and

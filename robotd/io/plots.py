@@ -18,10 +18,13 @@ def _figure(size: tuple[float, float]) -> Any:
 
 
 def plot_trajectories(path: Path, floor: Any, truth: np.ndarray, estimates: dict[str, np.ndarray],
-                      keyframes_xy: np.ndarray | None = None, title: str = "") -> None:
+                      keyframes_xy: np.ndarray | None = None, title: str = "",
+                      loop_edges_xy: np.ndarray | None = None) -> None:
     """Ground truth and estimated trajectories drawn over the floor they were driven on.
 
-    ``truth`` and each estimate are ``(N, 3)`` poses in the world frame (metres).
+    ``truth`` and each estimate are ``(N, 3)`` poses in the world frame (metres);
+    ``loop_edges_xy`` ``(L, 2, 2)``: the accepted loop edges as segments between the two
+    keyframes' positions.
     """
     import matplotlib.pyplot as plt
 
@@ -43,6 +46,11 @@ def plot_trajectories(path: Path, floor: Any, truth: np.ndarray, estimates: dict
     if keyframes_xy is not None and len(keyframes_xy):
         ax.plot(keyframes_xy[:, 0], keyframes_xy[:, 1], ".", color="#ff7f0e", ms=2.0,
                 label=f"keyframes ({len(keyframes_xy)})", alpha=0.7)
+    if loop_edges_xy is not None and len(loop_edges_xy):
+        from matplotlib.collections import LineCollection
+
+        ax.add_collection(LineCollection(loop_edges_xy, colors="#e377c2", linewidths=0.6, alpha=0.6,
+                                         label=f"loop edges ({len(loop_edges_xy)})"))
     ax.plot(truth[0, 0], truth[0, 1], "k*", ms=14, label="start")
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])

@@ -24,6 +24,13 @@ Tables (schema version :data:`SCHEMA_VERSION`):
 ``calibration``
     Named text documents (TOML) with their creation time; every version is kept and the
     newest one is returned.
+``optimized_poses`` (since version 3)
+    The newest pose-graph solution per keyframe: ``x_m, y_m, yaw_rad`` (map frame) and
+    ``solved_unix_ns`` (host wall clock, Unix time, when the graph was solved).
+``loop_candidates`` (since version 3)
+    Every loop-closure candidate considered: ``query_id``, ``candidate_id`` (keyframes),
+    the local ``score``, its ``fate`` (one of :data:`LOOP_CANDIDATE_FATES`) and a free
+    ``detail`` text (e.g. the chi-square value, the optimiser's weight).
 
 Durability. Every write is its own transaction (``BEGIN IMMEDIATE`` ... ``COMMIT``), so
 a crash never leaves half a keyframe. The journal is a write-ahead log with
@@ -68,12 +75,8 @@ from robotd.base.errors import MapStoreError
 from robotd.io.mapfile import MIGRATIONS, SCHEMA_VERSION, inspect_file, migrate
 
 __all__ = [
-    "MIGRATIONS",
-    "SCHEMA_VERSION",
-    "KeyframeRecord",
-    "LinkRecord",
-    "MapStore",
-    "RunRecord",
+    "LOOP_CANDIDATE_FATES", "MIGRATIONS", "SCHEMA_VERSION", "KeyframeRecord", "LinkRecord",
+    "LoopCandidateRecord", "MapStore", "RunRecord",
 ]
 
 _log = logging.getLogger(__name__)
@@ -82,6 +85,9 @@ _MATRIX_DTYPE = np.dtype("<f8")
 _MATRIX_BYTES = 9 * _MATRIX_DTYPE.itemsize
 _LINK_KINDS = ("odometry", "loop")
 _PAGE_ROWS = 256  # rows fetched per query when iterating (see MapStore.keyframes)
+LOOP_CANDIDATE_FATES = (
+    "accepted", "below_threshold", "failed_gate", "no_transform", "down_weighted")
+"""The allowed ``loop_candidates.fate`` values (the table's CHECK constraint)."""
 
 @dataclass(frozen=True, slots=True)
 class RunRecord:
@@ -133,6 +139,19 @@ class LinkRecord:
     dy_m: float
     dyaw_rad: float
     information: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class LoopCandidateRecord:
+    """A loop-closure candidate: keyframe ``candidate_id`` proposed for ``query_id`` with
+    the local ``score`` (unitless), its ``fate`` and free-form ``detail``."""
+
+    id: int
+    query_id: int
+    candidate_id: int
+    score: float
+    fate: str
+    detail: str
 
 
 def _matrix_to_blob(matrix: np.ndarray | Sequence[Sequence[float]], what: str) -> bytes:
@@ -455,19 +474,9 @@ class MapStore:
                 "INSERT INTO keyframes(run_id, stamp_ns, x_m, y_m, yaw_rad, covariance,"
                 " image, image_width, image_height, descriptor, descriptor_mode)"
                 " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (
-                    int(run_id),
-                    int(stamp_ns),
-                    x_m,
-                    y_m,
-                    yaw_rad,
-                    cov_blob,
-                    image_blob,
-                    width,
-                    height,
-                    None if descriptor is None else bytes(descriptor),
-                    None if descriptor_mode is None else int(descriptor_mode),
-                ),
+                (int(run_id), int(stamp_ns), x_m, y_m, yaw_rad, cov_blob, image_blob, width,
+                 height, None if descriptor is None else bytes(descriptor),
+                 None if descriptor_mode is None else int(descriptor_mode)),
             )
         return int(cur.lastrowid)
 
@@ -491,17 +500,8 @@ class MapStore:
     def _keyframe_record(row: tuple) -> KeyframeRecord:
         kf_id, run_id, stamp_ns, x_m, y_m, yaw_rad, cov, width, height, desc, mode = row
         return KeyframeRecord(
-            id=kf_id,
-            run_id=run_id,
-            stamp_ns=stamp_ns,
-            x_m=x_m,
-            y_m=y_m,
-            yaw_rad=yaw_rad,
-            covariance=_blob_to_matrix(cov),
-            image_width=width,
-            image_height=height,
-            descriptor=None if desc is None else bytes(desc),
-            descriptor_mode=mode,
+            kf_id, run_id, stamp_ns, x_m, y_m, yaw_rad, _blob_to_matrix(cov), width, height,
+            None if desc is None else bytes(desc), mode,
         )
 
     def keyframe(self, keyframe_id: int) -> KeyframeRecord:
@@ -620,19 +620,7 @@ class MapStore:
             sql += " WHERE kind = ?"
             params = (kind,)
         rows = self._read(sql + " ORDER BY id", params)
-        return [
-            LinkRecord(
-                id=r[0],
-                kind=r[1],
-                from_id=r[2],
-                to_id=r[3],
-                dx_m=r[4],
-                dy_m=r[5],
-                dyaw_rad=r[6],
-                information=_blob_to_matrix(r[7]),
-            )
-            for r in rows
-        ]
+        return [LinkRecord(*r[:7], information=_blob_to_matrix(r[7])) for r in rows]
 
     # -- calibration ---------------------------------------------------------------
 
@@ -654,3 +642,80 @@ class MapStore:
             (str(name),),
         )
         return rows[0][0] if rows else None
+
+    # -- pose graph results --------------------------------------------------------
+
+    def put_optimized_poses(
+        self, keyframe_ids: Sequence[int], poses: np.ndarray, solved_unix_ns: int | None = None
+    ) -> None:
+        """Store a pose-graph solution in one transaction, replacing any older solved
+        pose of the same keyframes.
+
+        ``poses`` is ``(N, 3)`` rows of ``(x_m, y_m, yaw_rad)`` (map frame), one per id
+        in ``keyframe_ids`` (distinct); ``solved_unix_ns`` (default: the host's wall clock
+        now) is when the graph was solved. ValueError for bad shapes or values, KeyError
+        naming the first unknown keyframe; nothing is written then.
+        """
+        ids = [int(i) for i in keyframe_ids]
+        array = np.asarray(poses, dtype=np.float64)
+        if array.size == 0 and not ids:
+            array = array.reshape(0, 3)
+        if array.shape != (len(ids), 3):
+            raise ValueError(f"poses must have shape ({len(ids)}, 3), got {array.shape}")
+        if not np.all(np.isfinite(array)):
+            raise ValueError("poses must be finite")
+        if len(set(ids)) != len(ids):
+            raise ValueError("keyframe_ids must be distinct")
+        stamp = time.time_ns() if solved_unix_ns is None else int(solved_unix_ns)
+        with self._write() as conn:
+            for kf_id in ids:
+                if not conn.execute("SELECT 1 FROM keyframes WHERE id = ?", (kf_id,)).fetchone():
+                    raise KeyError(f"no keyframe {kf_id} in map {self._path}")
+            conn.executemany(
+                "INSERT INTO optimized_poses(keyframe_id, x_m, y_m, yaw_rad, solved_unix_ns)"
+                " VALUES (?, ?, ?, ?, ?) ON CONFLICT(keyframe_id) DO UPDATE SET"
+                " x_m = excluded.x_m, y_m = excluded.y_m, yaw_rad = excluded.yaw_rad,"
+                " solved_unix_ns = excluded.solved_unix_ns",
+                [(kf_id, *map(float, row), stamp) for kf_id, row in zip(ids, array)],
+            )
+
+    def optimized_poses(self) -> dict[int, np.ndarray]:
+        """Keyframe id -> its newest solved pose, ``(3,) float64`` ``(x_m, y_m, yaw_rad)``."""
+        rows = self._read(
+            "SELECT keyframe_id, x_m, y_m, yaw_rad FROM optimized_poses ORDER BY keyframe_id"
+        )
+        return {r[0]: np.array(r[1:], dtype=np.float64) for r in rows}
+
+    def optimized_pose(self, keyframe_id: int) -> np.ndarray | None:
+        """The newest solved ``(x_m, y_m, yaw_rad)`` of a keyframe, None if never solved."""
+        rows = self._read(
+            "SELECT x_m, y_m, yaw_rad FROM optimized_poses WHERE keyframe_id = ?",
+            (int(keyframe_id),),
+        )
+        return np.array(rows[0], dtype=np.float64) if rows else None
+
+    def add_loop_candidates(self, rows: Sequence[tuple[int, int, float, str, str]]) -> None:
+        """Record loop candidates ``(query_id, candidate_id, score, fate, detail)`` in one
+        transaction. ValueError (nothing written) for a fate not in
+        :data:`LOOP_CANDIDATE_FATES`, a non-finite score or an unknown keyframe id."""
+        values = []
+        for query_id, candidate_id, score, fate, detail in rows:  # ValueError if not 5
+            if fate not in LOOP_CANDIDATE_FATES:
+                raise ValueError(f"fate must be one of {LOOP_CANDIDATE_FATES}, got {fate!r}")
+            if not math.isfinite(float(score)):
+                raise ValueError(f"score must be finite, got {score}")
+            values.append((int(query_id), int(candidate_id), float(score), fate, str(detail)))
+        with self._write() as conn:
+            conn.executemany(
+                "INSERT INTO loop_candidates(query_id, candidate_id, score, fate, detail)"
+                " VALUES (?, ?, ?, ?, ?)", values)
+
+    def loop_candidates(self, fate: str | None = None) -> list[LoopCandidateRecord]:
+        """Every loop candidate (or those of one fate), in the order recorded."""
+        sql = "SELECT id, query_id, candidate_id, score, fate, detail FROM loop_candidates"
+        if fate is None:
+            return [LoopCandidateRecord(*r) for r in self._read(sql + " ORDER BY id")]
+        if fate not in LOOP_CANDIDATE_FATES:
+            raise ValueError(f"fate must be one of {LOOP_CANDIDATE_FATES}, got {fate!r}")
+        rows = self._read(sql + " WHERE fate = ? ORDER BY id", (fate,))
+        return [LoopCandidateRecord(*r) for r in rows]

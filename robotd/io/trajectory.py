@@ -13,7 +13,7 @@ from typing import TextIO
 
 import numpy as np
 
-from robotd.base.geometry import compose, inverse, quaternion_to_yaw, wrap_angle, yaw_to_quaternion
+from robotd.base.geometry import between, compose, inverse, quaternion_to_yaw, wrap_angle, yaw_to_quaternion
 
 
 def format_tum_line(stamp_ns: int, x_m: float, y_m: float, yaw_rad: float) -> str:
@@ -115,3 +115,15 @@ def trajectory_errors(truth: np.ndarray, estimate: np.ndarray) -> TrajectoryErro
         max_position_error_m=float(err.max()),
         rmse_position_m=float(np.sqrt(np.mean(err ** 2))),
     )
+
+
+def relative_pose_error(truth: np.ndarray, estimate: np.ndarray) -> tuple[float, float]:
+    """RPE between consecutive poses: RMS of the translation error (m) and of the heading
+    error (rad) of each step ``between(p[i], p[i+1])``, both ``(N, 3)`` at the same stamps."""
+    if truth.shape != estimate.shape or len(truth) < 2:
+        raise ValueError("truth and estimate must be (N, 3) arrays of the same length, N >= 2")
+    dt = between(truth[:-1], truth[1:])
+    de = between(estimate[:-1], estimate[1:])
+    trans = np.hypot(de[:, 0] - dt[:, 0], de[:, 1] - dt[:, 1])
+    rot = wrap_angle(de[:, 2] - dt[:, 2])
+    return float(np.sqrt(np.mean(trans ** 2))), float(np.sqrt(np.mean(np.asarray(rot) ** 2)))

@@ -203,10 +203,10 @@ def test_build_pipeline_orders_the_stages(tmp_path: Path):
     with MapStore.open(tmp_path / "map.sqlite") as store:
         run = store.begin_run("")
         p = build_pipeline(cfg, ManualClock(), store, run, lossless=True)
-        assert [s.name for s in p.stages] == ["odometry", "keyframes", "floor", "map"]
+        assert [s.name for s in p.stages] == ["odometry", "keyframes", "graph", "floor", "map"]
         nobase = build_pipeline(replace(cfg, "base", driver="none"), ManualClock(), store, run,
-                                lossless=True, floor_detector=False)
-        assert [s.name for s in nobase.stages] == ["keyframes", "map"]
+                                lossless=True, floor_detector=False, pose_graph=False)
+        assert [s.name for s in nobase.stages] == ["keyframes", "loops_ungated", "map"]
     assert build_odometry(cfg).drive.wheel_base_m == cfg.robot.wheel_base_m
 
 
@@ -285,3 +285,61 @@ def test_fused_visual_odometry_reaches_the_filter(tmp_path: Path):
     assert vo["vo_steps"] == s["keyframes"] - 1
     assert vo["vo_fused"] >= 0.9 * vo["vo_ok"] > 0
     assert s["fused"]["end_position_error_m"] < 0.05
+
+
+
+def _graph_pipeline(store: MapStore, run: int):
+    from robotd.app.posegraph import PoseGraphStage
+    from robotd.graph.incremental import IncrementalGraph
+
+    p = Pipeline()
+    graph = p.add(PoseGraphStage(IncrementalGraph(), store))
+    p.add(MapWriterStage(store, run, image_width_px=0))
+    return p, graph
+
+
+def test_the_graph_gates_loops_and_stores_the_corrected_poses(tmp_path: Path):
+    """A square driven twice with odometry that drifts in yaw: a true loop (the truth's
+    relative pose, with a few mm of noise) passes the gate, pulls the drifted poses back,
+    and the optimised poses land in the map; a look-alike 0.35 m off is refused."""
+    from robotd.base.geometry import compose
+    from robotd.base.messages import LoopCandidate
+
+    rng = np.random.default_rng(4)
+    steps = [np.array([0.25, 0.0, 0.0])] * 4 + [np.array([0.0, 0.0, math.pi / 2])]
+    truth = [np.zeros(3)]
+    for k in range(40):
+        truth.append(compose(truth[-1], steps[k % 5]))
+    truth = np.array(truth)
+    drift = np.array([0.0, 0.0, 0.004])  # rad per step of odometry heading error
+    with MapStore.open(tmp_path / "map.sqlite") as store:
+        run = store.begin_run("")
+        p, graph = _graph_pipeline(store, run)
+        odo = [truth[0]]
+        cov = np.zeros((3, 3))
+        for k in range(len(truth)):
+            if k:
+                odo.append(compose(odo[-1], between(truth[k - 1], truth[k]) + drift))
+                cov = cov + np.diag([1e-6, 1e-6, 2e-5])
+            p.publish(Keyframe(Frame(k * 10**9, "floor", np.zeros((4, 4), np.uint8), k),
+                               PoseStamped(k * 10**9, *odo[-1], cov.copy())))
+        ids = [k.id for k in store.keyframes()]
+        # A lap is 20 steps: keyframe 20 is where keyframe 0 was, and so on.
+        info = np.diag([1 / 0.003 ** 2, 1 / 0.003 ** 2, 1 / 0.003 ** 2])
+        for a, b in ((0, 20), (5, 25), (10, 30), (15, 35), (20, 40)):
+            meas = between(truth[a], truth[b]) + rng.normal(0, 0.002, 3)
+            p.publish(LoopCandidate(ids[a], ids[b], 200.0, meas, info))
+        wrong = between(truth[12], truth[37]) + np.array([0.35, 0.0, 0.0])  # a plank away
+        p.publish(LoopCandidate(ids[12], ids[37], 190.0, wrong, info))
+        p.finish()
+        c = p.counters()
+        assert (c["loops_accepted"], c["loops_failed_gate"]) == (5, 1)
+        fates = {(r.query_id, r.candidate_id): r.fate for r in store.loop_candidates()}
+        assert fates[(ids[37], ids[12])] == "failed_gate"
+        assert fates[(ids[20], ids[0])] == "accepted"
+        assert len(store.links("loop")) == 5
+        opt = store.optimized_poses()
+        assert sorted(opt) == ids
+        end_odo = np.hypot(*(odo[-1][:2] - truth[-1][:2]))
+        end_opt = np.hypot(*(opt[ids[-1]][:2] - truth[-1][:2]))
+        assert end_odo > 0.1 and end_opt < 0.2 * end_odo

@@ -12,6 +12,8 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
+from dataclasses import FrozenInstanceError
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +21,13 @@ import pytest
 
 from robotd.io import store as store_module
 from robotd.base.errors import MapStoreError
-from robotd.io.store import SCHEMA_VERSION, KeyframeRecord, MapStore
+from robotd.io.store import (
+    LOOP_CANDIDATE_FATES,
+    SCHEMA_VERSION,
+    KeyframeRecord,
+    LoopCandidateRecord,
+    MapStore,
+)
 
 
 def _digest(path: Path) -> str:
@@ -418,7 +426,9 @@ def test_a_version_1_map_written_by_the_old_code_is_migrated(tmp_path: Path) -> 
         assert raw.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone() == ("1",)
     raw.close()
     with MapStore.open(path) as store:
-        assert store.schema_version == SCHEMA_VERSION == 2
+        assert store.schema_version == SCHEMA_VERSION == 3
+        assert store.optimized_poses() == {}
+        assert store.loop_candidates() == []
         runs = store.runs()
         assert [r.id for r in runs] == [1, 2]
         assert all(r.epoch_unix_ns is None for r in runs)  # unknown for old runs
@@ -438,4 +448,150 @@ def test_a_version_1_map_written_by_the_old_code_is_migrated(tmp_path: Path) -> 
         assert raw.execute("SELECT * FROM links").fetchall() == before_links
         indexes = {r[0] for r in raw.execute("SELECT name FROM sqlite_master WHERE type='index'")}
         assert "keyframes_by_run_stamp" in indexes
+        assert "loop_candidates_by_query" in indexes
+        tables = {r[0] for r in raw.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        assert {"optimized_poses", "loop_candidates"} <= tables
+        assert raw.execute("SELECT count(*) FROM optimized_poses").fetchone() == (0,)
+        assert raw.execute("SELECT count(*) FROM loop_candidates").fetchone() == (0,)
+    raw.close()
+
+
+def _all_rows(path: Path) -> dict[str, list[tuple]]:
+    """Every row of every table of the file (sqlite_sequence included), by table name."""
+    with sqlite3.connect(path) as raw:
+        names = [r[0] for r in raw.execute("SELECT name FROM sqlite_master WHERE type='table'")]
+        rows = {n: raw.execute(f'SELECT * FROM "{n}" ORDER BY 1').fetchall() for n in names}
+    raw.close()
+    return rows
+
+
+def test_a_version_2_map_written_by_the_current_code_is_migrated(tmp_path, monkeypatch) -> None:
+    path = tmp_path / "map.sqlite"
+    migrations = store_module.MIGRATIONS
+    monkeypatch.setattr(store_module, "MIGRATIONS", {1: migrations[1], 2: migrations[2]})
+    with MapStore.open(path, image_codec="png") as store:
+        assert store.schema_version == 2
+        run = store.begin_run("a = 1\n", started_ns=10, notes="v2", epoch_unix_ns=1_700_000_000)
+        image = np.random.default_rng(2).integers(0, 256, size=(24, 32), dtype=np.uint8)
+        kfs = [store.add_keyframe(run, 100 + i, (i, 2 * i, 0.1), _cov(i), image, b"d", 2)
+               for i in range(3)]
+        store.add_link("odometry", kfs[0], kfs[1], (1, 2, 0), _cov(5))
+        store.add_link("loop", kfs[2], kfs[0], (-2, -4, 0), _cov(6))
+        store.put_calibration("floor_camera", "fx = 1\n", created_ns=5)
+        store.set_meta("map_name", "hall")
+        store.end_run(run, ended_ns=200)
+    before = _all_rows(path)
+    assert "optimized_poses" not in before and "loop_candidates" not in before
+    monkeypatch.undo()
+
+    with MapStore.open(path) as store:
+        assert store.schema_version == SCHEMA_VERSION == 3
+        assert store.optimized_poses() == {} and store.loop_candidates() == []
+        np.testing.assert_array_equal(store.keyframe_image(kfs[1]), image)
+        (r,) = store.runs()
+        assert (r.epoch_unix_ns, r.ended_ns, r.notes) == (1_700_000_000, 200, "v2")
+    after = _all_rows(path)
+    assert after.pop("optimized_poses") == [] and after.pop("loop_candidates") == []
+    # Every old row is still there, unchanged; only the schema version moved on.
+    meta_before, meta_after = before.pop("meta"), after.pop("meta")
+    assert after == before
+    assert dict(meta_after) == {**dict(meta_before), "schema_version": "3"}
+
+    with MapStore.open(path) as store:  # and the new tables take rows
+        store.put_optimized_poses(kfs, np.zeros((3, 3)), solved_unix_ns=1)
+        store.add_loop_candidates([(kfs[2], kfs[0], 0.5, "accepted", "")])
+        assert len(store.optimized_poses()) == 3 and len(store.loop_candidates()) == 1
+
+
+def test_optimized_poses_round_trip_and_the_newest_solution_replaces_the_old(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "map.sqlite"
+    a, b, c = _make_map(path, n_keyframes=3)
+    with MapStore.open(path) as store:
+        assert store.optimized_poses() == {} and store.optimized_pose(a) is None
+        store.put_optimized_poses([a, b], np.array([[1.0, 2.0, 0.5], [-1.5, 0.25, -3.0]]),
+                                  solved_unix_ns=1_000)
+        store.put_optimized_poses((b, c), [[7.0, 8.0, 0.125], [0.0, -0.5, 3.0]],
+                                  solved_unix_ns=2_000)
+        t0 = time.time_ns()
+        store.put_optimized_poses([], np.empty((0, 3)))  # nothing to write: no error
+    with MapStore.open(path, create=False) as store:
+        poses = store.optimized_poses()
+        assert sorted(poses) == [a, b, c]
+        np.testing.assert_array_equal(poses[a], [1.0, 2.0, 0.5])
+        np.testing.assert_array_equal(poses[b], [7.0, 8.0, 0.125])  # replaced
+        np.testing.assert_array_equal(poses[c], [0.0, -0.5, 3.0])
+        assert poses[a].shape == (3,) and poses[a].dtype == np.float64
+        np.testing.assert_array_equal(store.optimized_pose(b), [7.0, 8.0, 0.125])
+        assert store.optimized_pose(c + 1) is None
+        store.put_optimized_poses([a], np.array([[0.0, 0.0, 0.0]]))  # default: wall clock now
+        t1 = time.time_ns()
+    with sqlite3.connect(path) as raw:
+        stamps = dict(raw.execute("SELECT keyframe_id, solved_unix_ns FROM optimized_poses"))
+        assert raw.execute("SELECT count(*) FROM optimized_poses").fetchone() == (3,)
+    raw.close()
+    assert stamps[b] == stamps[c] == 2_000
+    assert t0 <= stamps[a] <= t1
+
+
+def test_loop_candidates_round_trip_with_every_fate(tmp_path: Path) -> None:
+    path = tmp_path / "map.sqlite"
+    a, b, c = _make_map(path, n_keyframes=3)
+    rows = [(c, a, 0.25 * i, fate, f"chi2={i}.5") for i, fate in enumerate(LOOP_CANDIDATE_FATES)]
+    with MapStore.open(path) as store:
+        store.add_loop_candidates(rows)
+        store.add_loop_candidates([(b, a, 3.0, "accepted", "")])
+        store.add_loop_candidates([])
+    with MapStore.open(path, create=False) as store:
+        records = store.loop_candidates()
+        assert all(isinstance(r, LoopCandidateRecord) for r in records)
+        assert [(r.query_id, r.candidate_id, r.score, r.fate, r.detail) for r in records] == [
+            *rows, (b, a, 3.0, "accepted", "")]
+        assert [r.id for r in records] == list(range(1, len(rows) + 2))
+        assert [r.query_id for r in store.loop_candidates("accepted")] == [c, b]
+        assert [r.detail for r in store.loop_candidates("failed_gate")] == ["chi2=2.5"]
+        with pytest.raises(FrozenInstanceError):
+            records[0].fate = "accepted"  # type: ignore[misc]
+        with pytest.raises(ValueError, match="accepted"):
+            store.loop_candidates("rejected")
+    assert set(LOOP_CANDIDATE_FATES) == {
+        "accepted", "below_threshold", "failed_gate", "no_transform", "down_weighted"}
+    assert {"LOOP_CANDIDATE_FATES", "LoopCandidateRecord"} <= set(store_module.__all__)
+    # The table itself refuses any other fate (its CHECK and the constant agree).
+    with sqlite3.connect(path) as raw, pytest.raises(sqlite3.IntegrityError, match="CHECK"):
+        raw.execute("INSERT INTO loop_candidates(query_id, candidate_id, score, fate)"
+                    " VALUES (?, ?, 0.0, 'maybe')", (a, b))
+    raw.close()
+
+
+def test_bad_pose_graph_writes_are_refused_and_write_nothing(tmp_path: Path) -> None:
+    path = tmp_path / "map.sqlite"
+    a, b = _make_map(path, n_keyframes=2)
+    good = np.array([[1.0, 2.0, 0.5], [3.0, 4.0, -0.5]])
+    with MapStore.open(path) as store:
+        with pytest.raises(KeyError, match=f"no keyframe {b + 7}"):
+            store.put_optimized_poses([a, b, b + 7], np.vstack([good, good[:1]]))
+        with pytest.raises(ValueError, match=r"shape \(2, 3\)"):
+            store.put_optimized_poses([a, b], good[:1])
+        with pytest.raises(ValueError, match=r"shape \(2, 3\)"):
+            store.put_optimized_poses([a, b], good[:, :2])
+        with pytest.raises(ValueError, match="finite"):
+            store.put_optimized_poses([a, b], np.array([[1.0, 2.0, 0.5], [np.inf, 0, 0]]))
+        with pytest.raises(ValueError, match="distinct"):
+            store.put_optimized_poses([a, a], good)
+        assert store.optimized_poses() == {}
+
+        with pytest.raises(ValueError, match="accepted.*below_threshold.*down_weighted"):
+            store.add_loop_candidates([(b, a, 1.0, "accepted", ""), (b, a, 1.0, "maybe", "")])
+        with pytest.raises(ValueError, match="finite"):
+            store.add_loop_candidates([(b, a, float("nan"), "accepted", "")])
+        with pytest.raises(ValueError, match="FOREIGN KEY"):
+            store.add_loop_candidates([(b, a, 1.0, "accepted", ""), (b, b + 9, 1.0, "accepted", "")])
+        with pytest.raises(ValueError):
+            store.add_loop_candidates([(b, a, 1.0, "accepted")])  # type: ignore[list-item]
+        assert store.loop_candidates() == []
+    with sqlite3.connect(path) as raw:
+        assert raw.execute("SELECT count(*) FROM optimized_poses").fetchone() == (0,)
+        assert raw.execute("SELECT count(*) FROM loop_candidates").fetchone() == (0,)
     raw.close()

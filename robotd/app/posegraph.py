@@ -1,0 +1,166 @@
+"""The pose graph as a pipeline stage: keyframes and odometry links in, loop candidates
+gated, the optimised trajectory out (paper 003 Sec. V; DESIGN.md "Pose graph").
+
+Each stored keyframe enters an iSAM2 graph (:class:`robotd.graph.incremental.IncrementalGraph`)
+with its odometry edge: one incremental update per keyframe. A loop candidate (a local
+score at or above the mode's trained threshold, with a relative pose from its inlier floor
+points) is checked against the graph's own prediction of that relative pose before it may
+enter: the innovation ``e = log(predicted^-1 * measured)`` and its covariance
+``S = Ad P_a Ad^T + P_b + Sigma_loop`` (the two poses' marginal covariances from iSAM2,
+their correlation left out, which makes ``S`` larger and the gate more lenient) give the
+Mahalanobis distance ``e^T S^-1 e``; above ``gate_chi2`` (default: the 99.9 % point of
+chi-square with 3 degrees of freedom) the candidate is refused as ``failed_gate``. What
+passes becomes a loop :class:`~robotd.base.messages.Link` under the graph's robust
+kernel. At the end of a run (and every ``save_every`` keyframes) the whole graph is
+re-solved robustly (LAGO, then DCS-weighted Levenberg-Marquardt), the optimised poses go
+into the map beside the odometry poses, and loops the optimiser down-weighted are
+recorded as ``down_weighted``.
+
+Keyframes of earlier runs are not in the live graph (each run's graph starts at its first
+keyframe), so a candidate that reaches one is recorded as ``failed_gate`` with that reason;
+relocalisation against the stored map is issue 14's.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from robotd.base.messages import CandidateFate, KeyframeStored, Link, LoopCandidate
+from robotd.graph.incremental import IncrementalGraph
+from robotd.io.store import MapStore
+
+log = logging.getLogger(__name__)
+
+GATE_CHI2_3DOF_999 = 16.27  # chi-square, 3 degrees of freedom, 99.9 %
+DOWN_WEIGHTED = 0.5  # a loop whose final weight is under this counts as down-weighted
+
+
+def loop_innovation(graph: IncrementalGraph, from_id: int, to_id: int, delta: np.ndarray,
+                    information: np.ndarray) -> float:
+    """Mahalanobis distance squared of a measured loop against the graph's prediction
+    (see the module notes), dimensionless."""
+    isam = graph._isam  # noqa: SLF001 - the stage and the graph are one unit
+    pa = isam.calculateEstimatePose2(int(from_id))
+    pb = isam.calculateEstimatePose2(int(to_id))
+    predicted = pa.between(pb)
+    measured = gtsam.Pose2(float(delta[0]), float(delta[1]), float(delta[2]))
+    e = gtsam.Pose2.Logmap(predicted.between(measured))
+    ad = predicted.inverse().AdjointMap()
+    cov = ad @ isam.marginalCovariance(int(from_id)) @ ad.T + isam.marginalCovariance(int(to_id))
+    cov = cov + np.linalg.inv(information)
+    return float(e @ np.linalg.solve(cov, e))
+
+
+class PoseGraphStage:
+    """The live pose graph (see the module notes). Register it before ``floor`` (it must
+    hold a keyframe before that keyframe's loop candidates arrive) and before ``map``."""
+
+    name = "graph"
+
+    def __init__(self, graph: IncrementalGraph, store: MapStore, *, gate_chi2: float = GATE_CHI2_3DOF_999,
+                 save_every: int = 0) -> None:
+        self.graph = graph
+        self.store = store
+        self.gate_chi2 = gate_chi2
+        self.save_every = save_every
+        self.pipeline: Any = None
+        self.accepted = 0
+        self.failed_gate = 0
+        self.earlier_run = 0
+        self.down_weighted = 0
+        self.solves = 0
+        self.solve_failures = 0
+        self.update_ms: list[float] = []
+        self.last_solve_ms = 0.0
+        self._loops: dict[tuple[int, int], tuple[int, float]] = {}  # edge -> (query, score)
+        self._since_save = 0
+
+    def attach(self, pipeline: Any) -> None:
+        self.pipeline = pipeline
+
+    def subscriptions(self) -> Mapping[type, Any]:
+        return {Link: self.on_link, KeyframeStored: self.on_keyframe, LoopCandidate: self.on_candidate}
+
+    def on_link(self, link: Link) -> None:
+        if link.kind != "odometry" or link.from_id not in self.graph.graph:
+            return
+        t0 = time.perf_counter()
+        self.graph.add_keyframe(link.to_id, link.from_id, link.delta_xyyaw, link.information)
+        self.update_ms.append((time.perf_counter() - t0) * 1e3)
+
+    def on_keyframe(self, msg: KeyframeStored) -> None:
+        kf = msg.keyframe
+        if kf.keyframe_id not in self.graph.graph and not len(self.graph.graph):
+            self.graph.add_first(kf.keyframe_id, kf.pose_xyyaw)
+        self._since_save += 1
+        if self.save_every and self._since_save >= self.save_every:
+            self.solve_and_save()
+
+    def on_candidate(self, c: LoopCandidate) -> None:
+        if c.from_id not in self.graph.graph or c.to_id not in self.graph.graph:
+            self.earlier_run += 1
+            self._fate(c, "failed_gate", "keyframe of an earlier run: not in this run's graph")
+            return
+        d2 = loop_innovation(self.graph, c.from_id, c.to_id, c.delta_xyyaw, c.information)
+        if not d2 <= self.gate_chi2:
+            self.failed_gate += 1
+            self._fate(c, "failed_gate", f"chi2 {d2:.1f} > {self.gate_chi2:.2f}")
+            return
+        t0 = time.perf_counter()
+        self.graph.add_loop(c.from_id, c.to_id, c.delta_xyyaw, c.information)
+        self.update_ms.append((time.perf_counter() - t0) * 1e3)
+        self.accepted += 1
+        self._loops[(c.from_id, c.to_id)] = (c.to_id, c.score)
+        self._fate(c, "accepted", f"chi2 {d2:.2f}")
+        self.pipeline.publish(Link("loop", c.from_id, c.to_id, c.delta_xyyaw, c.information))
+
+    def _fate(self, c: LoopCandidate, fate: str, detail: str) -> None:
+        self.pipeline.publish(CandidateFate(c.to_id, c.from_id, c.score, fate, detail))
+
+    def solve_and_save(self) -> None:
+        """Re-solve the whole graph robustly and store the optimised poses."""
+        if len(self.graph.graph) < 2:
+            return
+        t0 = time.perf_counter()
+        try:
+            result = self.graph.resolve()
+        except RuntimeError as exc:  # a solver failure must not stop the daemon
+            self.solve_failures += 1
+            log.warning("pose graph: the full solve failed (%s); the map keeps the last solution",
+                        str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
+            return
+        self.last_solve_ms = (time.perf_counter() - t0) * 1e3
+        self.solves += 1
+        self._since_save = 0
+        self.store.put_optimized_poses([int(i) for i in result.ids], result.poses)
+        loop_edges = [(e.from_id, e.to_id) for e in self.graph.graph.edges if e.kind == "loop"]
+        for (a, b), w in zip(loop_edges, result.loop_weights):
+            if w < DOWN_WEIGHTED and (a, b) in self._loops:
+                query, score = self._loops.pop((a, b))
+                self.down_weighted += 1
+                self.pipeline.publish(CandidateFate(query, a, score, "down_weighted", f"weight {w:.3f}"))
+        log.info("pose graph: %d keyframes, %d loops, solved in %.0f ms", len(self.graph.graph),
+                 self.accepted, self.last_solve_ms)
+
+    def finish(self) -> int:
+        self.solve_and_save()
+        return 0
+
+    def optimized(self) -> tuple[np.ndarray, np.ndarray]:
+        """The current estimate: ``(ids (N,), poses (N, 3))``."""
+        return self.graph.estimate()
+
+    def counters(self) -> dict[str, int]:
+        u = np.asarray(self.update_ms) if self.update_ms else np.zeros(1)
+        return {"loops_accepted": self.accepted, "loops_failed_gate": self.failed_gate,
+                "loops_earlier_run": self.earlier_run, "loops_down_weighted": self.down_weighted,
+                "graph_solves": self.solves, "graph_solve_failures": self.solve_failures,
+                "graph_update_median_us": int(np.median(u) * 1e3),
+                "graph_update_p99_us": int(np.percentile(u, 99) * 1e3),
+                "graph_solve_ms": int(self.last_solve_ms)}
