@@ -6,7 +6,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from robotd.app.cli import main
 from robotd.io.g2o import read_g2o
