@@ -310,6 +310,7 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
         summary["floor_detector"] = floor_summary(cfg, cam_model, robot.motion, recorder,
                                                   out if plot else None)
         summary["floor_detector"]["threshold"] = live["floor_threshold"]
+        summary["floor_detector"]["above_threshold"] = c.get("loop_candidates_above_threshold", 0)
     graph = _graph_summary(out / "map.sqlite", robot, c)
     if graph is not None:
         summary["pose_graph"] = graph
@@ -415,7 +416,8 @@ def floor_summary(cfg: Any, camera: Any, motion: Any, recorder: _Recorder,
         "best_candidates": [{"query_keyframe": int(ids[c.query]), "candidate_keyframe": int(ids[c.candidate]),
                              "local_score": c.local_score, "true_overlap_J": c.overlap} for c in best],
     }
-    # Declared loops (local score at or above the trained threshold), judged by the truth.
+    # Loop edges that entered the map (above the threshold, through the graph's gate),
+    # judged by the truth.
     j = np.array([overlap[row[a], row[b]] for a, b in recorder.loops], dtype=float)
     d["loops_declared"] = int(len(j))
     d["loops_truly_overlapping"] = int(np.sum(j >= LOOP_R))
@@ -483,7 +485,8 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
               f"found among the candidates: {fd['revisits_found_among_candidates']}", file=f)
         print(f"  top candidate truly overlapping: {fd['top1_true_overlap']} of {fd['top1_total']}", file=f)
         if fd.get("threshold") is not None:
-            print(f"  declared loops (local score >= {fd['threshold']:.2f}): {fd['loops_declared']}, "
+            print(f"  candidates at or above the threshold ({fd['threshold']:.2f}): "
+                  f"{fd.get('above_threshold', 0)}; loop edges accepted: {fd['loops_declared']}, "
                   f"truly overlapping (J >= {LOOP_R}): {fd['loops_truly_overlapping']}, "
                   f"sharing some floor: {fd['loops_sharing_floor']}", file=f)
         else:
