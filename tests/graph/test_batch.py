@@ -111,3 +111,22 @@ def test_two_unlinked_components_are_each_anchored():
     r = optimize_batch(g)
     assert np.allclose(r.pose_of()[50], (10.0, 5.0, 1.0), atol=1e-6)
     assert np.allclose(r.pose_of()[51], (10.0 + 2 * math.cos(1.0), 5.0 + 2 * math.sin(1.0), 1.0), atol=1e-4)
+
+
+def test_a_failing_lago_start_falls_back_to_odometry(monkeypatch, caplog):
+    """GTSAM's LAGO can raise (it did once on a short demo: "underconstrained
+    variables"); the solve then starts from the odometry poses and still converges."""
+    import robotd.graph.batch as batch
+
+    def broken(graph):
+        raise RuntimeError("underconstrained variables")
+
+    monkeypatch.setattr(batch, "lago_initialise", broken)
+    g = _straight_chain_with_loop(0.3)
+    r = optimize_batch(g, BatchParams(initialisation="lago", robust=False))
+    assert r.start_objective == pytest.approx(r.initial_objective)  # started from odometry
+    monkeypatch.undo()
+    direct = optimize_batch(g, BatchParams(initialisation="odometry", robust=False))
+    assert r.final_objective == pytest.approx(direct.final_objective, rel=1e-6)
+    assert r.final_objective < 0.2 * r.initial_objective
+    assert "LAGO initialisation failed" in caplog.text
