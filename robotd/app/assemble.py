@@ -96,8 +96,7 @@ def build_floor_detector(cfg: Config, store: MapStore, calib: CalibrationFile | 
                     "loop-curve`)", f.mode)
     else:
         log.info("floor loops declared at local score >= %.2f (mode %d)", threshold, f.mode)
-    detector = FloorLoopDetector.from_store(store, params, threshold, camera_model(calib, cfg.floor_camera))
-    return detector
+    return FloorLoopDetector.from_store(store, params, threshold, camera_model(calib, cfg.floor_camera))
 
 
 def build_visual_odometry(cfg: Config, odometry: OdometryFilter | None,

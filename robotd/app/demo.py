@@ -259,7 +259,7 @@ def _drive(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, *, realtime: b
             for stamp, pose in zip(robot.base.stamp_ns, robot.base.true_pose):
                 writer.write_ground_truth(int(stamp), *map(float, pose))
             writer.close()
-        floor = daemon.pipeline.stages_by_name().get("floor")
+        floor = next((st for st in daemon.pipeline.stages if st.name == "floor"), None)
         live = {"report": report, "keyframes_stored": store.count_keyframes(),
                 "floor_threshold": floor.detector.threshold if floor is not None else None,
                 "commands": dict(robot.commands_received), "camera_drops": robot.camera.dropped}
@@ -363,9 +363,6 @@ def _plot_trajectories(out: Path, robot: Any, recorder: _Recorder, truth: Any, f
 
     from robotd.base.geometry import compose, inverse, transform_points
     from robotd.io.plots import plot_trajectories
-
-    def transform_points_poses(pose: Any, poses: Any) -> Any:
-        return compose(pose, poses)
     from robotd.io.trajectory import anchor_to
 
     # Odometry starts at its own origin; draw it from the route's start, as the errors do.
@@ -375,7 +372,7 @@ def _plot_trajectories(out: Path, robot: Any, recorder: _Recorder, truth: Any, f
     loop_xy = None
     if graph is not None:
         g = graph["_plot"]
-        opt = transform_points_poses(to_world, g["optimized"])
+        opt = compose(to_world, g["optimized"])
         estimates["loop-corrected (pose graph)"] = opt
         row = {k: i for i, k in enumerate(g["ids"])}
         pairs = [(row[a], row[b]) for a, b in g["loops"] if a in row and b in row]
@@ -419,7 +416,7 @@ def floor_summary(cfg: Any, camera: Any, motion: Any, recorder: _Recorder,
     # Loop edges that entered the map (above the threshold, through the graph's gate),
     # judged by the truth.
     j = np.array([overlap[row[a], row[b]] for a, b in recorder.loops], dtype=float)
-    d["loops_declared"] = int(len(j))
+    d["loops_accepted"] = int(len(j))
     d["loops_truly_overlapping"] = int(np.sum(j >= LOOP_R))
     d["loops_sharing_floor"] = int(np.sum(j > 0))
     if out is not None:
@@ -431,6 +428,14 @@ def floor_summary(cfg: Any, camera: Any, motion: Any, recorder: _Recorder,
         plot_similarity(out / "similarity.png", overlap, score_m, stamps,
                         cfg.floor_detector.exclude_recent_s, mode=cfg.floor_detector.mode)
     return d
+
+
+def _print_comparison(f: Any, title: str, left: tuple[str, dict[str, float]],
+                      right: tuple[str, dict[str, float]], rows: tuple[tuple[str, str, str], ...]) -> None:
+    """A two-column table: ``rows`` of (label, key, format) looked up in each column's dict."""
+    print(f"{title:<26}{left[0]:>12}{right[0]:>12}", file=f)
+    for label, key, fmt in rows:
+        print(f"{label:<26}{fmt.format(left[1][key]):>12}{fmt.format(right[1][key]):>12}", file=f)
 
 
 def print_summary(s: dict[str, Any], f: Any) -> None:
@@ -451,26 +456,22 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
     for k, v in rows:
         print(f"{k:<{width}}  {v}", file=f)
     print(file=f)
-    print(f"{'odometry vs ground truth':<26}{'wheel only':>12}{'fused':>12}", file=f)
-    for label, key, fmt in (
+    _print_comparison(f, "odometry vs ground truth", ("wheel only", w), ("fused", fu), (
         ("end position error (m)", "end_position_error_m", "{:.3f}"),
         ("end heading error (deg)", "end_heading_error_deg", "{:.2f}"),
         ("max position error (m)", "max_position_error_m", "{:.3f}"),
         ("end drift per 100 m (m)", "end_drift_per_100m_m", "{:.3f}"),
-    ):
-        print(f"{label:<26}{fmt.format(w[key]):>12}{fmt.format(fu[key]):>12}", file=f)
+    ))
     g = s.get("pose_graph")
     if g:
         print(file=f)
-        print(f"{'at the ' + str(g['keyframes']) + ' keyframes':<26}{'fused':>12}{'loop-corr.':>12}", file=f)
-        for label, key, fmt in (
+        _print_comparison(f, f"at the {g['keyframes']} keyframes", ("fused", g["fused"]),
+                          ("loop-corr.", g["loop_corrected"]), (
             ("end position error (m)", "end_position_error_m", "{:.3f}"),
             ("end heading error (deg)", "end_heading_error_deg", "{:.2f}"),
             ("ATE, RMS (m)", "ate_rmse_m", "{:.3f}"),
             ("RPE per step, RMS (mm)", "rpe_rmse_mm", "{:.2f}"),
-        ):
-            print(f"{label:<26}{fmt.format(g['fused'][key]):>12}{fmt.format(g['loop_corrected'][key]):>12}",
-                  file=f)
+        ))
         print(f"pose graph: {g['loops_in_graph']} loop edges accepted, {g.get('loops_failed_gate', 0)} "
               f"refused by the chi-square gate, {g.get('loops_down_weighted', 0)} down-weighted by the "
               f"optimiser; iSAM2 update median {g.get('graph_update_median_us', 0) / 1e3:.2f} ms, p99 "
@@ -486,7 +487,7 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
         print(f"  top candidate truly overlapping: {fd['top1_true_overlap']} of {fd['top1_total']}", file=f)
         if fd.get("threshold") is not None:
             print(f"  candidates at or above the threshold ({fd['threshold']:.2f}): "
-                  f"{fd.get('above_threshold', 0)}; loop edges accepted: {fd['loops_declared']}, "
+                  f"{fd.get('above_threshold', 0)}; loop edges accepted: {fd['loops_accepted']}, "
                   f"truly overlapping (J >= {LOOP_R}): {fd['loops_truly_overlapping']}, "
                   f"sharing some floor: {fd['loops_sharing_floor']}", file=f)
         else:

@@ -34,6 +34,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from robotd.base.clock import Clock
+from robotd.base.geometry import information_from_covariance
 from robotd.base.messages import (
     CandidateFate,
     Frame,
@@ -104,10 +105,6 @@ class Pipeline:
     def stages(self) -> list[Any]:
         return list(self._stages.values())
 
-    def stages_by_name(self) -> dict[str, Any]:
-        """Every registered stage by its name, in registration order."""
-        return dict(self._stages)
-
     def subscribed(self, msg_type: type) -> bool:
         """Whether any stage consumes ``msg_type`` (lets a stage skip building a message)."""
         return bool(self._routes.get(msg_type))
@@ -145,7 +142,7 @@ class Pipeline:
         return out
 
 
-class _Publisher:
+class Publisher:
     """Mixin: keeps the pipeline a stage publishes to."""
 
     pipeline: Pipeline | None = None
@@ -158,7 +155,7 @@ class _Publisher:
             self.pipeline.publish(msg)
 
 
-class OdometryStage(_Publisher):
+class OdometryStage(Publisher):
     """Wheel ticks and gyro into the odometry filter (:mod:`robotd.odometry.ekf`)."""
 
     name = "odometry"
@@ -192,7 +189,7 @@ class OdometryStage(_Publisher):
                 "vo_rejected_by_filter": f.vo_rejected}
 
 
-class KeyframeStage(_Publisher):
+class KeyframeStage(Publisher):
     """Floor frames take the fused pose at their stamp; some become keyframes.
 
     A frame is held until the odometry has settled past its stamp, so every keyframe pose is
@@ -291,7 +288,7 @@ class KeyframeStage(_Publisher):
                 "frames_other_camera": self.frames_other_camera, "keyframes": self.keyframes}
 
 
-class FloorDetectorStage(_Publisher):
+class FloorDetectorStage(Publisher):
     """The floor loop detector (:class:`robotd.floor.detector.FloorLoopDetector`).
 
     Describes each keyframe before it is stored (the descriptor goes into the same map
@@ -401,7 +398,7 @@ class VisualOdometryStage:
         return out
 
 
-class LoopsUngated(_Publisher):
+class LoopsUngated(Publisher):
     """Without a pose graph ([pose_graph] enabled = false), every loop candidate at or
     above the threshold becomes a loop link, recorded as accepted without a gate."""
 
@@ -415,7 +412,7 @@ class LoopsUngated(_Publisher):
         self._publish(Link("loop", c.from_id, c.to_id, c.delta_xyyaw, c.information))
 
 
-class MapWriterStage(_Publisher):
+class MapWriterStage(Publisher):
     """Writes keyframes and links to the map store.
 
     Each keyframe after the run's first also gets an odometry link from the previous one:
@@ -468,8 +465,7 @@ class MapWriterStage(_Publisher):
         if prev is not None:
             if kf.odometry_edge is not None:  # measured by another stage (visual odometry)
                 delta, cov = kf.odometry_edge
-                info = np.linalg.inv(cov)
-                info = 0.5 * (info + info.T)
+                info = information_from_covariance(cov)
             else:
                 delta, info = odometry_edge(prev.pose_xyyaw, prev.pose.covariance,
                                             kf.pose_xyyaw, kf.pose.covariance)

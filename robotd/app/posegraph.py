@@ -10,7 +10,7 @@ enter: the innovation ``e = log(predicted^-1 * measured)`` and its covariance
 their correlation left out, which makes ``S`` larger and the gate more lenient) give the
 Mahalanobis distance ``e^T S^-1 e``; above ``gate_chi2`` (default: the 99.9 % point of
 chi-square with 3 degrees of freedom) the candidate is refused as ``failed_gate``. What
-passes becomes a loop :class:`~robotd.base.messages.Link` under the graph's robust
+passes (:meth:`robotd.graph.incremental.IncrementalGraph.loop_chi2`) becomes a loop :class:`~robotd.base.messages.Link` under the graph's robust
 kernel. At the end of a run (and every ``save_every`` keyframes) the whole graph is
 re-solved robustly (LAGO, then DCS-weighted Levenberg-Marquardt), the optimised poses go
 into the map beside the odometry poses, and loops the optimiser down-weighted are
@@ -28,9 +28,9 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
-import gtsam
 import numpy as np
 
+from robotd.app.pipeline import Publisher
 from robotd.base.messages import CandidateFate, KeyframeStored, Link, LoopCandidate
 from robotd.graph.incremental import IncrementalGraph
 from robotd.io.store import MapStore
@@ -41,23 +41,7 @@ GATE_CHI2_3DOF_999 = 16.27  # chi-square, 3 degrees of freedom, 99.9 %
 DOWN_WEIGHTED = 0.5  # a loop whose final weight is under this counts as down-weighted
 
 
-def loop_innovation(graph: IncrementalGraph, from_id: int, to_id: int, delta: np.ndarray,
-                    information: np.ndarray) -> float:
-    """Mahalanobis distance squared of a measured loop against the graph's prediction
-    (see the module notes), dimensionless."""
-    isam = graph._isam  # noqa: SLF001 - the stage and the graph are one unit
-    pa = isam.calculateEstimatePose2(int(from_id))
-    pb = isam.calculateEstimatePose2(int(to_id))
-    predicted = pa.between(pb)
-    measured = gtsam.Pose2(float(delta[0]), float(delta[1]), float(delta[2]))
-    e = gtsam.Pose2.Logmap(predicted.between(measured))
-    ad = predicted.inverse().AdjointMap()
-    cov = ad @ isam.marginalCovariance(int(from_id)) @ ad.T + isam.marginalCovariance(int(to_id))
-    cov = cov + np.linalg.inv(information)
-    return float(e @ np.linalg.solve(cov, e))
-
-
-class PoseGraphStage:
+class PoseGraphStage(Publisher):
     """The live pose graph (see the module notes). Register it before ``floor`` (it must
     hold a keyframe before that keyframe's loop candidates arrive) and before ``map``."""
 
@@ -69,7 +53,6 @@ class PoseGraphStage:
         self.store = store
         self.gate_chi2 = gate_chi2
         self.save_every = save_every
-        self.pipeline: Any = None
         self.accepted = 0
         self.failed_gate = 0
         self.earlier_run = 0
@@ -80,9 +63,6 @@ class PoseGraphStage:
         self.last_solve_ms = 0.0
         self._loops: dict[tuple[int, int], tuple[int, float]] = {}  # edge -> (query, score)
         self._since_save = 0
-
-    def attach(self, pipeline: Any) -> None:
-        self.pipeline = pipeline
 
     def subscriptions(self) -> Mapping[type, Any]:
         return {Link: self.on_link, KeyframeStored: self.on_keyframe, LoopCandidate: self.on_candidate}
@@ -107,7 +87,7 @@ class PoseGraphStage:
             self.earlier_run += 1
             self._fate(c, "failed_gate", "keyframe of an earlier run: not in this run's graph")
             return
-        d2 = loop_innovation(self.graph, c.from_id, c.to_id, c.delta_xyyaw, c.information)
+        d2 = self.graph.loop_chi2(c.from_id, c.to_id, c.delta_xyyaw, c.information)
         if not d2 <= self.gate_chi2:
             self.failed_gate += 1
             self._fate(c, "failed_gate", f"chi2 {d2:.1f} > {self.gate_chi2:.2f}")
@@ -118,10 +98,10 @@ class PoseGraphStage:
         self.accepted += 1
         self._loops[(c.from_id, c.to_id)] = (c.to_id, c.score)
         self._fate(c, "accepted", f"chi2 {d2:.2f}")
-        self.pipeline.publish(Link("loop", c.from_id, c.to_id, c.delta_xyyaw, c.information))
+        self._publish(Link("loop", c.from_id, c.to_id, c.delta_xyyaw, c.information))
 
     def _fate(self, c: LoopCandidate, fate: str, detail: str) -> None:
-        self.pipeline.publish(CandidateFate(c.to_id, c.from_id, c.score, fate, detail))
+        self._publish(CandidateFate(c.to_id, c.from_id, c.score, fate, detail))
 
     def solve_and_save(self) -> None:
         """Re-solve the whole graph robustly and store the optimised poses."""
@@ -144,7 +124,7 @@ class PoseGraphStage:
             if w < DOWN_WEIGHTED and (a, b) in self._loops:
                 query, score = self._loops.pop((a, b))
                 self.down_weighted += 1
-                self.pipeline.publish(CandidateFate(query, a, score, "down_weighted", f"weight {w:.3f}"))
+                self._publish(CandidateFate(query, a, score, "down_weighted", f"weight {w:.3f}"))
         log.info("pose graph: %d keyframes, %d loops, solved in %.0f ms", len(self.graph.graph),
                  self.accepted, self.last_solve_ms)
 

@@ -93,7 +93,7 @@ def run_service(cfg: Config, record: Path | None = None) -> int:
                 observers.append(OdometryRecorder(writer))
             daemon = assemble_daemon(cfg, clock, drivers, store, notifier, lossless=False,
                                      observers=observers, reopen=reopen,
-                                     driver_stats=lambda: {n: _stats(d) for n, d in drivers.items()})
+                                     driver_stats=lambda: {n: d.stats() for n, d in drivers.items()})
             report = daemon.run()
     finally:
         for drv, _ in sources.values():
@@ -145,8 +145,3 @@ def replay_finished(replay: Any, daemon: Any) -> bool:
     held for a settled pose are handled by the pipeline's finish)."""
     reading = daemon.threads["replay"].is_alive()  # a replay that failed stops reading
     return (replay.finished or not reading) and daemon.pipeline.inputs >= replay.handed_out
-
-
-def _stats(driver: Any) -> Any:
-    s = getattr(driver, "stats", None)
-    return s() if callable(s) else repr(s)

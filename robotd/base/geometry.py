@@ -181,3 +181,10 @@ def compose_jacobians(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndar
     j_a = np.array([[1.0, 0.0, -s * bx - c * by], [0.0, 1.0, c * bx - s * by], [0.0, 0.0, 1.0]])
     j_b = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return j_a, j_b
+
+
+def information_from_covariance(cov: np.ndarray) -> np.ndarray:
+    """The symmetric information matrix ``(3, 3)`` of a pose covariance (its inverse,
+    symmetrised against rounding)."""
+    info = np.linalg.inv(np.asarray(cov, dtype=float))
+    return 0.5 * (info + info.T)

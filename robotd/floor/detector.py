@@ -18,7 +18,7 @@ import numpy as np
 
 from robotd.floor.descriptor import decode, extract
 from robotd.floor.index import Candidate, FloorIndex
-from robotd.base.geometry import rigid_fit_2d, rigid_fit_2d_covariance
+from robotd.base.geometry import information_from_covariance, rigid_fit_2d, rigid_fit_2d_covariance
 from robotd.floor.vo import floor_point_pairs
 
 log = logging.getLogger(__name__)
@@ -79,8 +79,7 @@ def loop_transform(camera: Any, xy_query_px: np.ndarray, xy_old_px: np.ndarray,
         return None
     delta = rigid_fit_2d(pq, po)
     cov, _ = rigid_fit_2d_covariance(pq, po, delta, min_sigma_m)
-    info = np.linalg.inv(cov)
-    return delta, 0.5 * (info + info.T)
+    return delta, information_from_covariance(cov)
 
 
 class FloorLoopDetector:

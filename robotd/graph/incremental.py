@@ -92,6 +92,22 @@ class IncrementalGraph:
         for _ in range(self.params.loop_updates):
             self._isam.update()
 
+    def loop_chi2(self, from_id: int, to_id: int, delta: Iterable[float],
+                  information: np.ndarray) -> float:
+        """Mahalanobis distance squared of a measured loop ``from_id -> to_id`` against the
+        graph's prediction, dimensionless: the innovation ``e = log(predicted^-1 measured)``
+        with covariance ``Ad P_from Ad^T + P_to + information^-1`` (the two marginals from
+        iSAM2, their correlation left out: ``S`` is then larger, the test more lenient)."""
+        pa = self._isam.calculateEstimatePose2(int(from_id))
+        pb = self._isam.calculateEstimatePose2(int(to_id))
+        predicted = pa.between(pb)
+        d = [float(v) for v in delta]
+        e = gtsam.Pose2.Logmap(predicted.between(gtsam.Pose2(d[0], d[1], d[2])))
+        ad = predicted.inverse().AdjointMap()
+        cov = (ad @ self._isam.marginalCovariance(int(from_id)) @ ad.T
+               + self._isam.marginalCovariance(int(to_id)) + np.linalg.inv(information))
+        return float(e @ np.linalg.solve(cov, e))
+
     def pose(self, keyframe_id: int) -> np.ndarray:
         """The current estimate of one keyframe, ``(3,)`` (m, m, rad)."""
         p = self._isam.calculateEstimatePose2(int(keyframe_id))

@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from robotd.base.geometry import between
+from robotd.base.geometry import between, information_from_covariance
 
 
 def increment_covariance(pose_a: np.ndarray, cov_a: np.ndarray, pose_b: np.ndarray,
@@ -53,5 +53,4 @@ def odometry_edge(pose_a: np.ndarray, cov_a: np.ndarray, pose_b: np.ndarray,
                   cov_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The edge from keyframe a to b: ``(delta (3,), information (3, 3))``."""
     delta = between(np.asarray(pose_a, float), np.asarray(pose_b, float))
-    info = np.linalg.inv(increment_covariance(pose_a, cov_a, pose_b, cov_b))
-    return delta, 0.5 * (info + info.T)
+    return delta, information_from_covariance(increment_covariance(pose_a, cov_a, pose_b, cov_b))
