@@ -167,8 +167,10 @@ class _Progress:
 def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tuple[str, ...] = (),
              floor_scale: float = 0.001, floor_pattern: str | None = None,
              duration_s: float | None = None, seed: int = 0,
-             realtime: bool = False, plot: bool = True, record: Path | None = None) -> dict[str, Any]:
-    """Run the daemon on the virtual robot; returns the summary (also written as JSON)."""
+             realtime: bool = False, plot: bool = True, record: Path | None = None,
+             observers: tuple[Any, ...] = ()) -> dict[str, Any]:
+    """Run the daemon on the virtual robot; returns the summary (also written as JSON).
+    ``observers``: extra pipeline stages that watch the run (the benchmarks use this)."""
     from robotd.base.camera import FloorCameraModel
     from robotd.base.clock import ManualClock
     from robotd.base.config import replace
@@ -189,7 +191,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     cfg = replace(cfg, "floor_camera", source="virtual")
     cfg = replace(cfg, "map", path=str(map_path))
     recorder = _Recorder(out)
-    live = _drive(robot, cfg, clock, recorder, realtime=realtime, record=record)
+    live = _drive(robot, cfg, clock, recorder, realtime=realtime, record=record, observers=observers)
     live["wall_s"] = time.monotonic() - wall0
     summary = _summarise(cfg, cam_model, robot, recorder, live, out, plot=plot,
                          floor_files=floor_files, floor_pattern=floor_pattern, record=record)
@@ -206,7 +208,7 @@ def _clear_previous_map(map_path: Path) -> None:
 
 
 def _drive(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, *, realtime: bool,
-           record: Path | None) -> dict[str, Any]:
+           record: Path | None, observers: tuple[Any, ...] = ()) -> dict[str, Any]:
     """Play the virtual robot out through the assembled daemon (its Kobuki bytes read by
     the real driver over the pty), optionally recording everything; returns the run's
     figures (report, keyframes stored, commands the robot saw, camera drops)."""
@@ -228,15 +230,15 @@ def _drive(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, *, realtime: b
     ) as driver:
         driver.request_extra(hardware_version=True, firmware_version=True, udid=True)
         sources: dict[str, Any] = {"base": driver, "floor": robot.camera}
-        observers: list[Any] = [recorder]
+        watchers: list[Any] = [recorder, *observers]
         if writer is not None:
             from drivers.recording.writer import RecordingTee
             from robotd.app.service import OdometryRecorder
 
             sources = {name: RecordingTee(src, writer) for name, src in sources.items()}
-            observers.append(OdometryRecorder(writer))
+            watchers.append(OdometryRecorder(writer))
         daemon = assemble_daemon(cfg, clock, sources, store, Notifier(), lossless=not realtime,
-                                 observers=observers,
+                                 observers=watchers,
                                  driver_stats=lambda: {"kobuki": driver.stats()})
         robot.start()
 

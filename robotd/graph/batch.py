@@ -9,12 +9,17 @@ loses its pull while a right one keeps full weight.
 
 Why DCS and not GNC: on the shared manhattan graph with 1000 random wrong loops, GTSAM's
 GNC (TLS or Geman-McClure, odometry as known inliers) took 150-220 s and rejected 150-250
-true loops; DCS (Phi = 30) from the LAGO guess took 5-15 s. How close DCS stays depends
-on how confident the wrong loops claim to be: with an odometry edge's information the ATE
-against the outlier-free optimum was 0.014 m; with a true loop's information
-(bench/bench_posegraph.py) it was 1.1 m (odometry: 15 m, plain LM: 30 m), with 96 of
-1954 true loops down-weighted. Cauchy (width 1) ended 8.6 m away in the first case. DCS
-needs a start near the inlier optimum, which LAGO gives (from odometry it ended 8 m away).
+true loops; DCS (Phi = 30) took 15-80 s.
+
+Where DCS starts matters, and no one start is right for every graph, so by default
+(``initialisation="auto"``) it starts from LAGO and, when that solve leaves some loop
+down-weighted, once more from the odometry poses; the solution with the lower *robust*
+cost wins. LAGO is not robust itself: wrong loops bend its linear orientation estimate.
+Measured (bench/bench_posegraph.py, wrong loops carrying a true loop's information): on
+manhattan with 1000 wrong loops DCS from LAGO ended 1.1 m (ATE) from the outlier-free
+optimum with 96 of 1954 true loops down-weighted, from odometry 0.026 m with 4; on the
+clean CSAIL and manhattan graphs with full information it is the other way round (from
+odometry DCS stops in a local minimum at 144x and 9.7x LAGO's objective).
 """
 
 from __future__ import annotations
@@ -44,8 +49,10 @@ class BatchParams:
 
     noise: "full" uses each edge's information matrix and scores with :func:`chi2`;
         "isotropic" uses SE-Sync's isotropic model and scores with the SE-Sync objective.
-    initialisation: "lago" (default) or "odometry" (the graph's own poses); a graph of
-        several connected components (say, two runs never linked) starts from odometry.
+    initialisation: "auto" (default: LAGO, and also the odometry when the robust solve
+        from LAGO down-weights some loop; the lower robust cost wins), "lago" or
+        "odometry" (the graph's own poses); a graph of several connected components (say,
+        two runs never linked) starts from odometry.
     robust: put loop edges under ``kernel`` (default True); False is plain least squares.
     kernel: "dcs" (default) or "cauchy".
     kernel_width: edge chi2 up to which a loop keeps full weight (DCS Phi), default 30:
@@ -57,7 +64,7 @@ class BatchParams:
     """
 
     noise: Literal["full", "isotropic"] = "full"
-    initialisation: Literal["lago", "odometry"] = "lago"
+    initialisation: Literal["auto", "lago", "odometry"] = "auto"
     robust: bool = True
     kernel: Kernel = "dcs"
     kernel_width: float = 30.0
@@ -73,8 +80,9 @@ class BatchResult:
     initial_objective: at the graph's own poses; start_objective: at the optimiser's start
     (after LAGO, or equal to initial); final_objective: at the result. All are the plain
     (non-robust) objective over every edge of the chosen noise model.
-    iterations: Levenberg-Marquardt iterations; time_s: wall time of initialisation plus
-    refinement; init_time_s: of the initialisation alone.
+    iterations: Levenberg-Marquardt iterations (of the solve kept); time_s: wall time of
+    initialisation plus refinement (every start tried); init_time_s: of LAGO alone.
+    start: which start the result came from, "lago" or "odometry".
     loop_weights: ``(L,)`` the kernel's weight in [0, 1] of each loop edge at the result, in
     the order of the graph's loop edges (1 everywhere when not robust): a weight well below
     1 means "down-weighted by the optimiser".
@@ -89,6 +97,7 @@ class BatchResult:
     time_s: float
     init_time_s: float
     loop_weights: np.ndarray
+    start: str = "odometry"
 
     def pose_of(self) -> dict[int, np.ndarray]:
         """The poses keyed by vertex id."""
@@ -153,29 +162,47 @@ def optimize_batch(graph: PoseGraph, params: BatchParams = BatchParams()) -> Bat
     work = isotropic_graph(graph) if params.noise == "isotropic" else graph
     initial = work.poses()
     t0 = time.perf_counter()
-    use_lago = params.initialisation == "lago" and len(work.components()) == 1
-    start = initial
+    use_lago = params.initialisation in ("auto", "lago") and len(work.components()) == 1
+    starts = [("odometry", initial)]
     if use_lago:
         try:
-            start = lago_initialise(work)
+            starts = [("lago", lago_initialise(work))]
+            if params.initialisation == "auto" and params.robust:
+                starts.append(("odometry", initial))
         except RuntimeError as exc:  # GTSAM: e.g. an orientation LAGO cannot determine
             log.warning("LAGO initialisation failed (%s); starting from the odometry poses",
                         str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
     t1 = time.perf_counter()
     kernel = robust_kernel(params.kernel, params.kernel_width) if params.robust else None
-    lm_params = gtsam.LevenbergMarquardtParams()
-    lm_params.setMaxIterations(params.max_iterations)
-    lm_params.setRelativeErrorTol(params.relative_tolerance)
-    optimizer = gtsam.LevenbergMarquardtOptimizer(factor_graph(work, kernel), to_values(ids, start),
-                                                  lm_params)
-    values = optimizer.optimize()
+    factors = factor_graph(work, kernel)
+    best = None
+    for name, start in starts:
+        values, iterations = _refine(factors, ids, start, params)
+        cost = factors.error(values)
+        poses = from_values(values, ids)
+        weights = loop_weights(work, ids, poses, kernel)
+        if best is None or cost < best[0]:
+            best = (cost, name, start, poses, iterations, weights)
+        if not (weights < 0.5).any():  # nothing down-weighted: no other start is needed
+            break
     t2 = time.perf_counter()
-    poses = from_values(values, ids)
+    _cost, name, start, poses, iterations, weights = best
     return BatchResult(
         ids=ids, poses=poses,
         initial_objective=objective(graph, ids, initial, params.noise),
         start_objective=objective(graph, ids, start, params.noise),
         final_objective=objective(graph, ids, poses, params.noise),
-        iterations=int(optimizer.iterations()), time_s=t2 - t0, init_time_s=t1 - t0,
-        loop_weights=loop_weights(work, ids, poses, kernel),
+        iterations=iterations, time_s=t2 - t0, init_time_s=t1 - t0,
+        loop_weights=weights, start=name,
     )
+
+
+def _refine(factors: gtsam.NonlinearFactorGraph, ids: np.ndarray, start: np.ndarray,
+            params: BatchParams) -> tuple[gtsam.Values, int]:
+    """Levenberg-Marquardt on ``factors`` from ``start``: the values and the iterations."""
+    lm_params = gtsam.LevenbergMarquardtParams()
+    lm_params.setMaxIterations(params.max_iterations)
+    lm_params.setRelativeErrorTol(params.relative_tolerance)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(factors, to_values(ids, start), lm_params)
+    values = optimizer.optimize()
+    return values, int(optimizer.iterations())

@@ -130,3 +130,65 @@ def test_a_failing_lago_start_falls_back_to_odometry(monkeypatch, caplog):
     assert r.final_objective == pytest.approx(direct.final_objective, rel=1e-6)
     assert r.final_objective < 0.2 * r.initial_objective
     assert "LAGO initialisation failed" in caplog.text
+
+
+def _laps_with_wrong_loops(seed: int = 1) -> PoseGraph:
+    """Three laps of a 40-pose ring (drifting odometry start), a true loop each time a lap
+    passes a pose of the lap before, and 40 wrong loops between random poses that claim the
+    same confidence as the true ones."""
+    rng = np.random.default_rng(seed)
+    n, laps = 40, 3
+    step = 2 * math.pi / n
+    truth = [(5 * math.cos(k * step), 5 * math.sin(k * step), k * step + math.pi / 2) for k in range(n * laps)]
+    g = PoseGraph()
+    est = np.array(truth[0], float)
+    d = 2 * 5 * math.sin(step / 2)
+    for k in range(n * laps):
+        g.add_pose(k, est)
+        est = est + np.array([d * math.cos(est[2] + step / 2), d * math.sin(est[2] + step / 2), step + 0.004])
+    info = np.diag([400.0, 400.0, 2500.0])
+    for k in range(n * laps - 1):
+        g.add_edge(k, k + 1, (d * math.cos(step / 2), d * math.sin(step / 2), step), info, "odometry")
+    for k in range(n, n * laps, 4):
+        g.add_edge(k - n, k, (0.0, 0.0, 0.0), info, "loop")
+    for _ in range(40):
+        a, b = rng.choice(n * laps, 2, replace=False)
+        g.add_edge(int(a), int(b), (rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(-math.pi, math.pi)),
+                   info, "loop")
+    return g
+
+
+def test_auto_keeps_the_start_whose_robust_solve_costs_less():
+    import gtsam
+
+    from robotd.graph.factors import factor_graph, robust_kernel, to_values
+
+    # Seed 3: the wrong loops bend LAGO's orientations enough that DCS from LAGO gives up
+    # six true loops too (46 down-weighted, robust cost 2118); from odometry it keeps them (40, 1795).
+    g = _laps_with_wrong_loops(3)
+    params = BatchParams()
+    kernel = robust_kernel(params.kernel, params.kernel_width)
+    factors = factor_graph(g, kernel)
+
+    def robust_cost(r):
+        return factors.error(to_values(r.ids, r.poses))
+
+    lago = optimize_batch(g, BatchParams(initialisation="lago"))
+    odo = optimize_batch(g, BatchParams(initialisation="odometry"))
+    auto = optimize_batch(g)
+    assert isinstance(factors, gtsam.NonlinearFactorGraph)
+    assert lago.start == "lago" and odo.start == "odometry"
+    # Something is down-weighted from LAGO (the wrong loops), so auto tries both starts.
+    assert (lago.loop_weights < 0.5).any()
+    best = lago if robust_cost(lago) <= robust_cost(odo) else odo
+    assert best is odo and robust_cost(odo) < 0.9 * robust_cost(lago)
+    assert auto.start == "odometry"
+    assert np.allclose(auto.poses, best.poses)
+    assert robust_cost(auto) <= min(robust_cost(lago), robust_cost(odo)) + 1e-9
+
+
+def test_auto_solves_once_when_nothing_is_down_weighted():
+    g = _straight_chain_with_loop(2.7)
+    r = optimize_batch(g)
+    assert r.start == "lago"
+    assert np.allclose(r.loop_weights, 1.0)
