@@ -29,9 +29,10 @@ its own calibration drive the same way (``robotd record --virtual --route figure
 ``--out`` and reused. A mode without a trained threshold declares no loop (the daemon
 says so); the table shows it.
 
-Default: the 16 m square route, modes 1-6, both floors, vision-only odometry (about 10 min
-on a quiet 2-core machine). ``--full``: the office route (about 110 m, ~7000 frames, the
-paper's run) with both odometries (about 2 h). Every run writes ``--out/RUN/result.json``
+Default: the 16 m square route, modes 1-6, the plank floor, vision-only odometry (about 12
+min on a quiet 2-core machine, the plank calibration drive included). ``--full``: the
+office route (about 110 m, ~7000 frames, the paper's run), both floors, both odometries
+(about 2 h). Every run writes ``--out/RUN/result.json``
 and is skipped when that exists, so an interrupted bench resumes (delete the folder to
 start afresh).
 
@@ -388,7 +389,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--full", action="store_true", help="the office route (~110 m) with both odometries (~2 h)")
     ap.add_argument("--route", default=None, help="route (default square; office with --full)")
-    ap.add_argument("--floors", default="planks,mixed", help="comma-separated: planks, mixed")
+    ap.add_argument("--floors", default=None, help="comma-separated: planks, mixed (default planks; both with --full)")
     ap.add_argument("--odometry", default=None, help="comma-separated: vo, wheel (default vo; both with --full)")
     ap.add_argument("--modes", default="1,2,3,4,5,6", help="comma-separated descriptor modes")
     ap.add_argument("--inject", default="0.05,0.2", help="fractions of accepted loops replaced by wrong ones")
@@ -396,7 +397,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
     route = args.route or ("office" if args.full else "square")
-    floors = [f for f in args.floors.split(",") if f]
+    floors = [f for f in (args.floors or ("planks,mixed" if args.full else "planks")).split(",") if f]
     odometries = [o for o in (args.odometry or ("vo,wheel" if args.full else "vo")).split(",") if o]
     modes = [int(m) for m in args.modes.split(",") if m]
     fractions = [float(f) for f in args.inject.split(",") if f]

@@ -10,7 +10,8 @@ LAGO, no robust kernel; the baseline), timed in the same run:
 2. manhattan with ``--outliers`` (1000) random wrong loop edges (seeded; each joins two
    random poses with a uniform offset of +-10 m and +-pi and the information of a true
    loop): ATE (RMS position error after a rigid 2D fit) of our robust solution and of
-   plain LM against the outlier-free optimum, full information. One run each (slow).
+   plain LM against the outlier-free optimum, full information, and which start (LAGO or
+   odometry) our solve kept. One run each (slow).
 3. A synthetic route of ``--keyframes`` (7000) keyframes: laps of a 10 x 6 m rectangle
    with a keyframe every 0.25 m, odometry with noise, and a loop edge every 10th keyframe
    back to the same place in the first lap. Batch time of ours and of plain LM; then the
@@ -101,7 +102,7 @@ def part_outliers(count: int, seed: int) -> dict[str, Any]:
         "outliers": count, "seed": seed,
         "odometry_ate_m": ate_m(graph.poses(), reference.poses),
         "ours_ate_m": ate_m(ours.poses, reference.poses), "ours_time_s": ours.time_s,
-        "ours_iterations": ours.iterations,
+        "ours_iterations": ours.iterations, "ours_start": ours.start,
         "lm_ate_m": ate_m(base.poses, reference.poses), "lm_time_s": base.time_s,
         "wrong_loops_kept": int((ours.loop_weights[n_true:] >= 0.5).sum()),
         "true_loops_down_weighted": int((ours.loop_weights[:n_true] < 0.5).sum()),
@@ -197,10 +198,10 @@ def main(argv: list[str] | None = None) -> int:
     outl = part_outliers(args.outliers, args.seed)
     print()
     print_table(["manhattan + wrong loops", "odometry ATE m", "ours ATE m", "LM ATE m", "ours s",
-                 "LM s", "wrong kept", "true down"],
+                 "LM s", "wrong kept", "true down", "DCS start"],
                 [[outl["outliers"], round(outl["odometry_ate_m"], 3), round(outl["ours_ate_m"], 4),
                   round(outl["lm_ate_m"], 3), round(outl["ours_time_s"], 2), round(outl["lm_time_s"], 2),
-                  outl["wrong_loops_kept"], outl["true_loops_down_weighted"]]])
+                  outl["wrong_loops_kept"], outl["true_loops_down_weighted"], outl["ours_start"]]])
     syn = part_synthetic(keyframes, args.repeats, args.keyframe_period)
     print()
     print_table(["keyframes", "loops", "ours batch s", "LM batch s", "ratio", "iSAM2 median ms",
