@@ -62,12 +62,12 @@ from robotd.app.demo import LOOP_R, run_demo, shipped_calibration
 from robotd.app.graph_cli import graph_from_map
 from robotd.base.camera import FloorCameraModel, overlap_ratios
 from robotd.base.config import Config, replace
-from robotd.base.geometry import between, compose, interpolate_poses, inverse, wrap_angle
+from robotd.base.geometry import between, interpolate_poses, wrap_angle
 from robotd.base.messages import CandidateFate, LoopCandidate
 from robotd.graph import BatchParams, PoseGraph, optimize_batch
 from robotd.graph.model import chain_poses
 from robotd.io.store import MapStore
-from robotd.io.trajectory import read_tum, relative_pose_error, trajectory_errors
+from robotd.io.trajectory import anchor_to, read_tum, relative_pose_error, trajectory_errors
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "loop_closure"
 #: A loop edge whose measured relative pose is farther than this from the truth is false.
@@ -190,6 +190,18 @@ def _delta_error(truth: dict[int, np.ndarray], a: int, b: int, delta: np.ndarray
     return float(math.hypot(e[0], e[1])), float(abs(math.degrees(wrap_angle(e[2]))))
 
 
+def _nees(truth: dict[int, np.ndarray], edges: list[Any]) -> float | None:
+    """Mean normalised estimation error squared of ``edges`` against the truth."""
+    if not edges:
+        return None
+    vals = []
+    for e in edges:
+        err = between(between(truth[e.from_id], truth[e.to_id]), np.asarray(e.delta, float))
+        err[2] = wrap_angle(err[2])
+        vals.append(float(err @ e.information @ err))
+    return float(np.mean(vals))
+
+
 def evaluate(d: Path, watcher: LoopWatcher, summary: dict[str, Any], wall_s: float) -> dict[str, Any]:
     with MapStore.open(d / "map.sqlite", create=False) as store:
         graph, stamps = graph_from_map(store)
@@ -231,6 +243,9 @@ def evaluate(d: Path, watcher: LoopWatcher, summary: dict[str, Any], wall_s: flo
         "accepted_error_mm_median": float(np.median([t for t, _r in errs]) * 1e3) if errs else None,
         "accepted_error_mm_p95": float(np.percentile([t for t, _r in errs], 95) * 1e3) if errs else None,
     }
+    # Are the stated covariances right? NEES (e^T I e against the truth; 3 when they are)
+    # of the odometry edges and of the accepted loop edges.
+    result["nees"] = {"odometry_mean": _nees(truth, odo_edges), "loops_mean": _nees(truth, loops)}
     # The gate's refusals, judged by the truth: true loops (transform within FALSE_LOOP_M)
     # and look-alikes.
     measured = {(a, b): np.asarray(dl) for a, b, _s, dl in watcher.candidates}
@@ -328,12 +343,11 @@ def plot_runs(path: Path, title: str, runs: dict[int, dict[str, Any]]) -> None:
     for ax, m in zip(axes.ravel(), modes):
         r = runs[m]
         truth = np.asarray(r["_truth"])
-        to_world = lambda p: compose(compose(truth[0], inverse(p[0])), p)  # noqa: E731
         ax.plot(truth[:, 0], truth[:, 1], color="black", lw=1.0, label="ground truth")
-        odo = to_world(np.asarray(r["_odometry"]))
+        odo = anchor_to(truth[0], np.asarray(r["_odometry"]))
         ax.plot(odo[:, 0], odo[:, 1], color="tab:orange", lw=0.9, label="odometry alone")
         if "_optimized" in r:
-            opt = to_world(np.asarray(r["_optimized"]))
+            opt = anchor_to(truth[0], np.asarray(r["_optimized"]))
             ax.plot(opt[:, 0], opt[:, 1], color="tab:blue", lw=0.9, label="with loops")
         lp = r["loops"]
         ax.set_title(f"mode {m}: {lp['accepted']} loops, {lp['false']} false", fontsize=10)
