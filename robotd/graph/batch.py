@@ -162,7 +162,10 @@ def optimize_batch(graph: PoseGraph, params: BatchParams = BatchParams()) -> Bat
     work = isotropic_graph(graph) if params.noise == "isotropic" else graph
     initial = work.poses()
     t0 = time.perf_counter()
-    use_lago = params.initialisation in ("auto", "lago") and len(work.components()) == 1
+    # Without a loop the odometry chain is already the optimum: nothing for LAGO to do (and
+    # GTSAM's LAGO can fail on a bare chain, "indeterminate linear system").
+    has_loop = any(e.kind == "loop" for e in work.edges)
+    use_lago = params.initialisation in ("auto", "lago") and has_loop and len(work.components()) == 1
     starts = [("odometry", initial)]
     if use_lago:
         try:
