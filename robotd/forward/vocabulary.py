@@ -51,9 +51,9 @@ class VocabularyParams:
 
     word_radius_l2: float = 0.4
     word_radius_bits: int = 40
-    connectivity: int = 16
-    expansion_add: int = 64
-    expansion_search: int = 64
+    connectivity: int = 12
+    expansion_add: int = 40
+    expansion_search: int = 24
 
 
 class Vocabulary:
