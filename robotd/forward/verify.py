@@ -39,7 +39,8 @@ class VerifyParams:
     Fields:
         ratio: Lowe's ratio test, nearest / second-nearest descriptor distance.
         min_inliers: accept when at least this many matches fit the essential matrix and
-            lie in front of both cameras.
+            lie in front of both cameras (20, as RTAB-Map's ``Vis/MinInliers``; on the
+            rtabmap_samples corridor the best wrong image pair reaches 16).
         ransac_threshold_px: largest distance of a point from its epipolar line, pixels.
         ransac_confidence: RANSAC's confidence of having drawn one all-inlier sample.
         seed: OpenCV's random generator is seeded with this before RANSAC, so a run is
@@ -47,7 +48,7 @@ class VerifyParams:
     """
 
     ratio: float = 0.8
-    min_inliers: int = 30
+    min_inliers: int = 20
     ransac_threshold_px: float = 1.0
     ransac_confidence: float = 0.999
     seed: int = 0

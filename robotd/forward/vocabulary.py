@@ -103,9 +103,11 @@ class Vocabulary:
         if not len(d) or not self._n_words:
             return out
         m = self._index.search(d, 1, threads=1)
+        # usearch answers one query with a Matches (no counts), several with BatchMatches.
+        counts = np.asarray(getattr(m, "counts", [len(np.atleast_1d(m.keys))])).reshape(-1)
         keys = np.asarray(m.keys, np.int64).reshape(len(d), -1)[:, 0]
         dist = np.asarray(m.distances, np.float64).reshape(len(d), -1)[:, 0]
-        found = (np.asarray(m.counts).reshape(-1) > 0) & (dist <= self._radius)
+        found = (counts > 0) & (dist <= self._radius)
         out[found] = keys[found]
         return out
 

@@ -30,6 +30,8 @@ def test_words_are_created_only_for_descriptors_far_from_every_word():
     assert list(words) == [1, 2] and new == 1
     assert len(voc) == 3
     assert list(voc.quantize(np.stack([c, _unit(rng, 1)[0]]))) == [2, -1]
+    assert list(voc.quantize(c[None])) == [2]  # a single query too
+    assert list(voc.add(_unit(rng, 1))[0]) == [3]
 
 
 def test_the_radius_decides():
