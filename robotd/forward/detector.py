@@ -179,8 +179,13 @@ class ForwardDetector:
         t3 = clock()
         times["filter"] = t3 - t2
 
+        # I_t joins the inverted index after its own vote (its words are part of Z_t+1);
+        # that bookkeeping counts as word search.
         self.index.add_image(t, words)
         self._features.append(feats)
+        t3b = clock()
+        times["words"] += t3b - t3
+        t3 = t3b
 
         verification = None
         if n_hyp == 0:
