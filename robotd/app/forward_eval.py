@@ -192,6 +192,10 @@ def run_forward(args: argparse.Namespace) -> int:
     if brute is not None:
         results["brute force"] = (score_decisions(bf_cand, bf_conf, bf_decl, truth, args.recent), bf_total)
     _print_table(results, stage_t)
+    if detector is not None:
+        print(f"vocabulary: {len(detector.vocabulary)} words after {n} images "
+              f"({len(detector.vocabulary) / n:.0f} new words per image); inverted index "
+              f"{detector.index.memory_bytes() / 1e3:.0f} kB")
 
     if args.out is not None:
         out: Path = args.out
@@ -208,6 +212,8 @@ def run_forward(args: argparse.Namespace) -> int:
             "methods": {name: {**s.as_dict(), "time_per_image": _time_stats(tt)}
                         for name, (s, tt) in results.items()},
             "stage_time_per_image": {s: _time_stats(v) for s, v in stage_t.items()},
+            "memory": {"words": len(detector.vocabulary) if detector else 0,
+                       "inverted_index_bytes": detector.index.memory_bytes() if detector else 0},
             "per_image": rows,
         }
         (out / "forward_eval.json").write_text(json.dumps(report, indent=1))
