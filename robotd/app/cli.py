@@ -33,6 +33,7 @@ examples:
   robotd replay run.mcap --map replay.sqlite          feed a recording through the daemon
   robotd graph optimize CSAIL.g2o --out CSAIL-opt.g2o --isotropic
   robotd graph export map.sqlite --out /tmp/graph     g2o + odometry/optimised TUM files
+  robotd eval forward --images seq/ --ground-truth seq/gt.bmp --out /tmp/fw   forward loops
 """
 
 
@@ -53,6 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_kobuki_commands(sub)
     from robotd.app import graph_cli  # light module: gtsam loads when a graph command runs
     graph_cli.add_arguments(sub)
+    from robotd.app import forward_eval  # light module: OpenCV and usearch load when it runs
+    forward_eval.add_arguments(sub)
     return p
 
 

@@ -31,3 +31,8 @@ class DescriptorError(RobotdError):
 class GraphError(RobotdError):
     """A pose graph or a pose-graph file is malformed: a missing vertex, a non-positive-definite
     information matrix, a truncated or garbled line, a duplicate vertex."""
+
+
+class SequenceError(RobotdError):
+    """An image sequence or its ground-truth matrix cannot be read, or they do not fit
+    together (a missing folder, an unreadable image, a matrix of the wrong size)."""

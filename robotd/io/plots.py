@@ -132,3 +132,86 @@ def plot_loop_curves(path: Path, curves: dict[int, Any], thresholds: dict[int, f
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def plot_stage_times(path: Path, stage_times_s: dict[str, np.ndarray], average_every: int = 5,
+                     extra_s: dict[str, np.ndarray] | None = None, title: str = "") -> None:
+    """Processing time per image, stage by stage, stacked (paper 000 Fig. 7).
+
+    ``stage_times_s``: per stage (in processing order), ``(N,)`` seconds per image; each
+    curve is the cumulative time up to that stage, averaged over blocks of
+    ``average_every`` images as in the paper. ``extra_s``: other per-image times drawn as
+    dashed lines (a baseline's).
+    """
+    import matplotlib.pyplot as plt
+
+    def block_mean(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        a = np.asarray(a, np.float64)
+        k = max(1, average_every)
+        m = len(a) // k * k
+        if m == 0:
+            return np.arange(len(a)), a
+        xs = np.arange(m).reshape(-1, k).mean(axis=1)
+        ys = a[:m].reshape(-1, k).mean(axis=1)
+        return xs, ys
+
+    fig, ax = _figure((8.0, 5.0))
+    markers = ["^", "o", "s", "D", "v", "x"]
+    total = None
+    for (name, t), mk in zip(stage_times_s.items(), markers):
+        first = total is None
+        total = np.asarray(t, np.float64) if first else total + np.asarray(t, np.float64)
+        xs, ys = block_mean(total)
+        ax.plot(xs, ys * 1e3, "-" + mk, ms=4, lw=1.2, label=name if first else f"+ {name}")
+    for name, t in (extra_s or {}).items():
+        xs, ys = block_mean(t)
+        ax.plot(xs, ys * 1e3, "--", lw=1.2, label=name)
+    ax.set_xlabel("image")
+    ax.set_ylabel(f"time per image (ms, mean of {average_every})")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def plot_likelihood_posterior(path: Path, image_id: int, scores: np.ndarray, virtual_score: float,
+                              posterior: np.ndarray, loop_threshold: float,
+                              truth: np.ndarray | None = None, title: str = "") -> None:
+    """The full posterior and the likelihood of one image's hypotheses (paper 000 Fig. 5).
+
+    ``scores (n,)``: tf-idf votes of the image hypotheses 0 .. n - 1; ``virtual_score``:
+    the no-loop image's vote (drawn at -1); ``posterior (1 + n,)``: no-loop first.
+    The likelihood panel shows the mean of the scores and mean + standard deviation (the
+    level above which a hypothesis is believed). ``truth (n,) bool``: the true matches,
+    marked along the axis.
+    """
+    import matplotlib.pyplot as plt
+
+    n = len(scores)
+    fig, axes = _figure((9.0, 6.0))
+    fig.clf()
+    ax1, ax2 = fig.subplots(2, 1, sharex=True)
+    x = np.arange(-1, n)
+    ax1.bar(x, posterior, width=0.8, color="#1f77b4")
+    ax1.axhline(loop_threshold, color="r", ls="--", lw=0.8, label=f"threshold {loop_threshold:g}")
+    ax1.set_ylabel("posterior")
+    ax1.set_ylim(0, 1.02)
+    ax1.legend(fontsize=8)
+    all_s = np.concatenate([[virtual_score], np.asarray(scores, np.float64)])
+    ax2.bar(x, all_s, width=0.8, color="#7f7f7f")
+    ax2.bar([-1], [virtual_score], width=0.8, color="#ff7f0e", label="virtual no-loop image")
+    mean, std = float(all_s.mean()), float(all_s.std())
+    ax2.axhline(mean, color="g", lw=1.2, label="mean")
+    ax2.axhline(mean + std, color="b", ls=":", lw=1.2, label="mean + std")
+    if truth is not None and np.any(truth):
+        ax2.plot(np.flatnonzero(truth), np.zeros(int(np.sum(truth))), "r^", ms=6, label="true match")
+    ax2.set_xlabel("hypothesis (past image; -1 = no loop)")
+    ax2.set_ylabel("tf-idf score")
+    ax2.legend(fontsize=8)
+    ax1.set_title(title or f"image {image_id}: posterior and likelihood")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

@@ -1,0 +1,116 @@
+"""Local features of a forward-camera image: SIFT by default (paper 000 Sec. III), ORB for
+small CPUs.
+
+SIFT descriptors are scaled to unit Euclidean length (OpenCV returns them with a norm of
+about 512), so the vocabulary's word radius is a plain number independent of OpenCV's
+scaling: two views of one scene point are typically 0.2-0.35 apart, unrelated points 0.5
+or more. ORB descriptors stay packed 256-bit strings compared by Hamming distance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+
+__all__ = ["FeatureExtractor", "FeatureParams", "Features", "extract_features", "to_gray"]
+
+FeatureKind = Literal["sift", "orb"]
+
+
+@dataclass(frozen=True)
+class FeatureParams:
+    """How features are extracted.
+
+    Fields:
+        kind: ``"sift"`` (128 float32 per keypoint, L2 distance; the paper's choice) or
+            ``"orb"`` (256 bits packed in 32 uint8, Hamming distance; about 4x faster).
+        max_features: keep at most this many keypoints per image, the strongest
+            (0 = no limit for SIFT; ORB always needs a cap and uses 1000 then).
+        sift_contrast_threshold: OpenCV's SIFT ``contrastThreshold`` (default 0.04); lower
+            finds more keypoints on bare corridor walls.
+    """
+
+    kind: FeatureKind = "sift"
+    max_features: int = 0
+    sift_contrast_threshold: float = 0.04
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("sift", "orb"):
+            raise ValueError(f"feature kind must be 'sift' or 'orb', got {self.kind!r}")
+        if self.max_features < 0:
+            raise ValueError(f"max_features must be >= 0, got {self.max_features}")
+
+    @property
+    def binary(self) -> bool:
+        """True for packed binary descriptors compared by Hamming distance."""
+        return self.kind == "orb"
+
+    @property
+    def descriptor_size(self) -> int:
+        """Elements per descriptor: 128 floats (SIFT) or 32 bytes (ORB)."""
+        return 32 if self.binary else 128
+
+
+@dataclass(frozen=True, eq=False)
+class Features:
+    """The keypoints of one image.
+
+    ``keypoints_px (N, 2) float32``: keypoint positions (x right, y down), pixels;
+    ``descriptors``: ``(N, 128) float32`` unit-length (SIFT) or ``(N, 32) uint8`` (ORB);
+    ``image_size_px``: ``(width, height)``.
+    """
+
+    keypoints_px: np.ndarray
+    descriptors: np.ndarray
+    image_size_px: tuple[int, int]
+
+    def __len__(self) -> int:
+        return len(self.keypoints_px)
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """An 8-bit single-channel view of ``image`` (``(H, W)`` or ``(H, W, 3)`` BGR, uint8)."""
+    if image.ndim == 3 and image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim == 3 and image.shape[2] == 1:
+        return image[:, :, 0]
+    if image.ndim != 2:
+        raise ValueError(f"expected an (H, W) or (H, W, 3) image, got shape {image.shape}")
+    return image
+
+
+class FeatureExtractor:
+    """Holds one OpenCV detector so it is not rebuilt per image (not thread-safe: one per
+    thread)."""
+
+    def __init__(self, params: FeatureParams = FeatureParams()) -> None:
+        self.params = params
+        if params.kind == "sift":
+            self._detector = cv2.SIFT_create(nfeatures=params.max_features,
+                                             contrastThreshold=params.sift_contrast_threshold)
+        else:
+            self._detector = cv2.ORB_create(nfeatures=params.max_features or 1000)
+
+    def __call__(self, image: np.ndarray) -> Features:
+        gray = to_gray(image)
+        kps, desc = self._detector.detectAndCompute(gray, None)
+        size = (int(gray.shape[1]), int(gray.shape[0]))
+        if desc is None or not kps:
+            shape = (0, self.params.descriptor_size)
+            return Features(np.zeros((0, 2), np.float32),
+                            np.zeros(shape, np.uint8 if self.params.binary else np.float32), size)
+        xy = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
+        if self.params.binary:
+            return Features(xy, np.ascontiguousarray(desc, np.uint8), size)
+        d = np.asarray(desc, np.float32)
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        return Features(xy, d, size)
+
+
+def extract_features(image: np.ndarray, params: FeatureParams = FeatureParams()) -> Features:
+    """Keypoints and descriptors of ``image`` (one-off; a detector loop should keep a
+    :class:`FeatureExtractor`)."""
+    return FeatureExtractor(params)(image)

@@ -1,0 +1,107 @@
+"""The incremental vocabulary, the inverted index, tf-idf and the virtual image."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams
+
+
+def _unit(rng: np.random.Generator, n: int) -> np.ndarray:
+    d = rng.standard_normal((n, 128)).astype(np.float32)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _near(d: np.ndarray, rng: np.random.Generator, scale: float = 0.01) -> np.ndarray:
+    e = d + scale * rng.standard_normal(d.shape).astype(np.float32)
+    return e / np.linalg.norm(e, axis=1, keepdims=True)
+
+
+def test_words_are_created_only_for_descriptors_far_from_every_word():
+    rng = np.random.default_rng(1)
+    a, b, c = _unit(rng, 3)  # random unit vectors are about 1.4 apart
+    voc = Vocabulary()
+    words, new = voc.add(np.stack([a, _near(a[None], rng)[0], b]))
+    assert list(words) == [0, 0, 1] and new == 2  # a and its near copy share one word
+    words, new = voc.add(np.stack([_near(b[None], rng)[0], c]))
+    assert list(words) == [1, 2] and new == 1
+    assert len(voc) == 3
+    assert list(voc.quantize(np.stack([c, _unit(rng, 1)[0]]))) == [2, -1]
+    assert list(voc.quantize(c[None])) == [2]  # a single query too
+    assert list(voc.add(_unit(rng, 1))[0]) == [3]
+
+
+def test_the_radius_decides():
+    rng = np.random.default_rng(2)
+    a = _unit(rng, 1)
+    far = _near(a, rng, 0.05)  # about 0.05 * sqrt(128) = 0.57 away
+    dist = float(np.linalg.norm(far - a))
+    assert 0.4 < dist < 0.8
+    assert list(Vocabulary(params=VocabularyParams(word_radius_l2=0.4)).add(np.vstack([a, far]))[0]) == [0, 1]
+    assert list(Vocabulary(params=VocabularyParams(word_radius_l2=0.9)).add(np.vstack([a, far]))[0]) == [0, 0]
+
+
+def test_binary_words_use_the_hamming_distance():
+    rng = np.random.default_rng(3)
+    a = rng.integers(0, 256, (1, 32), dtype=np.uint8)
+    close = a.copy()
+    close[0, :3] ^= 0xFF  # 24 bits differ
+    far = a.copy()
+    far[0, :8] ^= 0xFF  # 64 bits differ
+    voc = Vocabulary(dim=32, binary=True, params=VocabularyParams(word_radius_bits=40))
+    words, new = voc.add(np.vstack([a, close, far]))
+    assert list(words) == [0, 0, 1] and new == 2
+
+
+def test_many_words_stay_searchable():
+    rng = np.random.default_rng(4)
+    d = _unit(rng, 3000)
+    voc = Vocabulary()
+    for k in range(0, 3000, 300):
+        voc.add(d[k:k + 300])
+    assert len(voc) == 3000
+    hits = voc.quantize(_near(d[::10], rng))
+    assert np.mean(hits == np.arange(0, 3000, 10)) > 0.97  # approximate search, nearly exact
+
+
+def _index() -> InvertedIndex:
+    idx = InvertedIndex()
+    idx.add_image(0, np.array([0, 0, 1]))
+    idx.add_image(1, np.array([1, 2]))
+    idx.add_image(2, np.array([2, 2, 2, 3]))
+    return idx
+
+
+def test_tfidf_after_insertions_and_kept_current():
+    idx = _index()
+    assert idx.document_frequency(2) == 2
+    assert idx.tfidf(0, 0) == pytest.approx(2 / 3 * math.log(3))       # 0.732408
+    assert idx.tfidf(1, 1) == pytest.approx(1 / 2 * math.log(3 / 2))   # 0.202733
+    assert idx.tfidf(2, 2) == pytest.approx(3 / 4 * math.log(3 / 2))   # 0.304099
+    assert idx.tfidf(3, 0) == 0.0
+    idx.add_image(3, np.array([0]))
+    # N = 4 and df(0) = 2 now: the same pair weighs less.
+    assert idx.tfidf(0, 0) == pytest.approx(2 / 3 * math.log(2))       # 0.462098
+    with pytest.raises(ValueError):
+        idx.add_image(3, np.array([1]))
+
+
+def test_virtual_image_is_the_most_frequent_words():
+    idx = _index()
+    # Occurrences: w0 2, w1 2, w2 4, w3 1; 9 words over 3 images -> n = 3; the tie between
+    # w0 and w1 goes to the older word.
+    assert list(idx.virtual_image()) == [2, 0, 1]
+    assert list(InvertedIndex().virtual_image()) == []
+
+
+def test_votes_are_tfidf_sums_and_the_virtual_image_votes_too():
+    idx = _index()
+    scores, virtual = idx.vote(np.array([2, 0, -1, 7]))  # -1 (no word) and 7 (unknown) ignored
+    assert np.allclose(scores, [2 / 3 * math.log(3), 1 / 2 * math.log(1.5), 3 / 4 * math.log(1.5)])
+    assert virtual == pytest.approx((math.log(1.5) + math.log(3)) / 3)  # 0.501359
+    # A word twice in the query votes twice.
+    scores2, _ = idx.vote(np.array([2, 2]))
+    assert np.allclose(scores2, [0.0, math.log(1.5), 1.5 * math.log(1.5)])
