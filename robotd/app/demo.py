@@ -209,13 +209,11 @@ def _drive(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, *, realtime: b
            record: Path | None) -> dict[str, Any]:
     """Play the virtual robot out through the assembled daemon (its Kobuki bytes read by
     the real driver over the pty), optionally recording everything; returns the run's
-    figures (report, keyframes stored, commands the robot saw, camera drops)."""
-    from drivers.kobuki.driver import KobukiDriver
-    from robotd.app.assemble import assemble_daemon, open_map
-    from robotd.app.notify import Notifier
-    from robotd.io.trajectory import write_tum
+    figures (report, keyframes stored, commands the robot saw, camera drops).
 
-    out = Path(cfg.map.path).parent
+    A recording that cannot be written (disk full) stops the run: the daemon raises the
+    :class:`~robotd.base.errors.RecordingError` after closing the run in the map, and the
+    recording stays readable under its ``.partial`` name."""
     progress = _Progress(robot.duration_s)
     writer = None
     if record is not None:
@@ -223,6 +221,22 @@ def _drive(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, *, realtime: b
         from robotd.base.config import to_toml
 
         writer = RecordingWriter(record, image_format="png", config_toml=to_toml(cfg))
+    try:
+        return _drive_and_record(robot, cfg, clock, recorder, progress, realtime=realtime,
+                                 writer=writer)
+    finally:
+        if writer is not None:
+            writer.close(completed=False, reason="the demo stopped on an error")
+
+
+def _drive_and_record(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, progress: _Progress,
+                      *, realtime: bool, writer: Any) -> dict[str, Any]:
+    from drivers.kobuki.driver import KobukiDriver
+    from robotd.app.assemble import assemble_daemon, open_map
+    from robotd.app.notify import Notifier
+    from robotd.io.trajectory import write_tum
+
+    out = Path(cfg.map.path).parent
     with robot, open_map(cfg, clock=clock) as store, KobukiDriver(
         robot.port, clock=clock, baudrate=cfg.base.baudrate, yaw_source=cfg.base.yaw_source
     ) as driver:

@@ -48,7 +48,12 @@ def open_sources(cfg: Config, clock: Clock) -> dict[str, tuple[Any, Callable[[],
 
 
 class OdometryRecorder:
-    """A pipeline observer that records the fused and wheel-only odometry to MCAP."""
+    """A pipeline observer that records the fused and wheel-only odometry to MCAP.
+
+    Once the writer has failed (its ``error``: the disk is full), the run is stopping on
+    that error (raised here the first time, or by a source's recording tee): the odometry
+    still handled during the shutdown is not offered to the writer again.
+    """
 
     name = "record_odometry"
 
@@ -60,6 +65,8 @@ class OdometryRecorder:
         return {OdometryUpdate: self.on_odometry}
 
     def on_odometry(self, u: OdometryUpdate) -> None:
+        if self.writer.error is not None:
+            return
         self.writer.write_odometry(u.fused)
         self.writer.write_odometry(u.wheel, self.wheel_topic)
 

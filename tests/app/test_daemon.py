@@ -197,3 +197,48 @@ def test_shutdown_handles_what_the_sources_already_read(tmp_path):
     report = d.run(stop_when=lambda: not src.items and d.queues["list"].qsize() == 0)
     assert counter.n == 50 and report.counters["inputs"] == 50
     assert report.queue_drops == {"list": 0} and report.stopped_by == "finished"
+
+
+class _FailingSource(_ListSource):
+    """Hands out its list, then fails the way a recording tee on a full disk does."""
+
+    def __init__(self, items: list, error: Exception) -> None:
+        super().__init__(items)
+        self.error = error
+
+    def read(self, timeout_s: float):
+        if not self.items:
+            raise self.error
+        return super().read(timeout_s)
+
+
+def test_a_source_failing_beyond_reopening_stops_the_run(tmp_path):
+    """A recording that cannot be written (not a device error: reopening would not help)
+    stops the daemon, which still handles what was read, ends the run in the map, and
+    raises the error; before, the source thread died and the daemon ran on forever."""
+    import pytest
+
+    from robotd.app.daemon import Daemon
+    from robotd.app.notify import Notifier
+    from robotd.app.pipeline import Pipeline
+    from robotd.base.clock import ManualClock
+    from robotd.base.errors import RecordingError
+
+    pipe = Pipeline()
+    counter = pipe.add(_Counter())
+    error = RecordingError("x.mcap.partial: cannot write: No space left on device")
+    src = _FailingSource(list(range(20)), error)
+    reopened = []
+    with MapStore.open(tmp_path / "map.sqlite", clock=ManualClock(7)) as store:
+        run_id = store.begin_run("")
+        d = Daemon(ManualClock(0), pipe, {"floor": src}, Notifier(), store=store, run_id=run_id,
+                   lossless=True, wall_clock=ManualClock(0),
+                   reopen={"floor": lambda: reopened.append(1) or src})
+        deadline = time.monotonic() + 10.0  # the old daemon never stopped by itself
+        with pytest.raises(RecordingError) as failure:
+            d.run(stop_when=lambda: time.monotonic() > deadline)
+        assert failure.value is error and time.monotonic() < deadline
+        assert counter.n == 20 and reopened == []
+        assert d.threads["floor"].fatal is error
+        assert d.report().stopped_by == f"floor failed: {error}"
+        assert store.runs()[0].ended_ns == 0  # the run is closed (the daemon's clock)

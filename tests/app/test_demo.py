@@ -67,3 +67,41 @@ def test_default_demo_from_the_command_line(tmp_path: Path):
     # Fusion with the gyro beats wheel-only odometry at the end of the route.
     assert s["fused"]["end_position_error_m"] < s["wheel_only"]["end_position_error_m"]
     assert s["fused"]["end_heading_error_deg"] < s["wheel_only"]["end_heading_error_deg"]
+
+
+def _small_disk(limit_bytes: int):
+    """preexec_fn: no file of the child may grow past ``limit_bytes`` (writes beyond fail
+    with EFBIG, as on a full disk; SIGXFSZ ignored so the write fails instead of killing)."""
+    import resource
+    import signal
+
+    def apply() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+
+    return apply
+
+
+def test_recording_to_a_full_disk_stops_the_demo_with_one_line(tmp_path: Path):
+    """`robotd demo --record` on a disk that fills up: it used to hang for ever (the
+    camera's source thread died, the demo waited for its frames)."""
+    rec = tmp_path / "x.mcap"
+    r = subprocess.run([sys.executable, "-m", "robotd.app.cli", "demo", "--route", "square",
+                        "--duration", "5", "--no-plot", "--out", str(tmp_path / "out"),
+                        "--record", str(rec)],
+                       capture_output=True, text=True, timeout=300, check=False,
+                       preexec_fn=_small_disk(1_000_000))
+    assert r.returncode == 2, r.stderr[-3000:]
+    assert "Traceback" not in r.stderr
+    errors = [line for line in r.stderr.splitlines() if line.startswith("robotd: error:")]
+    assert len(errors) == 1 and "x.mcap.partial: cannot write: File too large" in errors[0]
+    assert not rec.exists()
+    from drivers.recording.reader import RecordingReader
+
+    with RecordingReader(str(rec) + ".partial") as reader:
+        topics = {t for t, _ in reader.messages()}
+        assert reader.damage.unread_tail_bytes == 0 and reader.damage.damaged_chunks == 0
+    assert {"/wheel_ticks", "/imu", "/floor_camera/image/compressed"} <= topics
+    with MapStore.open(tmp_path / "out" / "map.sqlite", create=False) as store:
+        (run,) = store.runs()
+        assert run.ended_ns is not None and store.count_keyframes() >= 1  # closed, consistent
