@@ -61,8 +61,6 @@ def run_from_args(args: argparse.Namespace) -> int:
 
     if args.floor_scale <= 0 or not math.isfinite(args.floor_scale):
         raise ConfigError(f"--floor-scale must be a positive number of metres, got {args.floor_scale}")
-    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
-        raise ConfigError(f"--duration must be a positive number of seconds, got {args.duration}")
     base_cfg = load_config(args.config) if args.config else Config()
     calibration = args.calibration
     if calibration is not None and not calibration.is_file():
@@ -168,13 +166,20 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
              floor_scale: float = 0.001, floor_pattern: str | None = None,
              duration_s: float | None = None, seed: int = 0,
              realtime: bool = False, plot: bool = True, record: Path | None = None) -> dict[str, Any]:
-    """Run the daemon on the virtual robot; returns the summary (also written as JSON)."""
+    """Run the daemon on the virtual robot; returns the summary (also written as JSON).
+
+    Raises :class:`~robotd.base.errors.ConfigError` for a duration that is not a number of
+    seconds of at least :data:`MIN_DURATION_S`, or an output folder that cannot be made or
+    written, and :class:`~robotd.base.errors.MapStoreError` when ``out/map.sqlite`` holds
+    something other than an earlier demo's map (which is left as it is).
+    """
     from robotd.base.camera import FloorCameraModel
     from robotd.base.clock import ManualClock
     from robotd.base.config import replace
     from sim.robot import VirtualRobot, VirtualRobotSettings
 
-    out.mkdir(parents=True, exist_ok=True)
+    check_duration(duration_s)
+    _prepare_output_folder(out)
     map_path = out / "map.sqlite"
     _clear_previous_map(map_path)
     clock = ManualClock()
@@ -197,12 +202,67 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     return summary
 
 
+MIN_DURATION_S = 0.1
+"""The shortest demo, seconds of robot time: a few odometry packets and camera frames."""
+
+DEMO_MAP_META = "demo"
+"""The ``meta`` key that marks a map written by the demo, which the next demo into the
+same folder may replace; any other file at ``OUT/map.sqlite`` is left alone."""
+
+
+def check_duration(duration_s: float | None) -> None:
+    """ConfigError unless ``duration_s`` is None (the whole route) or a finite number of
+    seconds of at least :data:`MIN_DURATION_S`."""
+    from robotd.base.errors import ConfigError
+
+    if duration_s is not None and not (math.isfinite(duration_s) and duration_s >= MIN_DURATION_S):
+        raise ConfigError(f"--duration must be a number of seconds of robot time, at least "
+                          f"{MIN_DURATION_S:g}, got {duration_s}")
+
+
+def _prepare_output_folder(out: Path) -> None:
+    """Make ``out`` (and its parents); ConfigError, naming it, when it is a file, cannot be
+    made, or cannot be written."""
+    import os
+
+    from robotd.base.errors import ConfigError
+
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"output folder {out} exists and is not a folder (choose another --out)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"cannot create the output folder {out}: {exc.strerror or exc}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise ConfigError(f"output folder {out} is not writable (read-only file system or "
+                          "permissions; choose another --out)")
+
+
 def _clear_previous_map(map_path: Path) -> None:
-    for suffix in ("", "-wal", "-shm"):
-        stale = Path(str(map_path) + suffix)
-        if stale.exists():
-            log.info("replacing the previous demo map %s", stale)
-            stale.unlink()
+    """Remove an earlier demo's map at ``map_path`` (with its ``-wal``/``-shm``); refuse,
+    leaving it untouched, anything else there: a foreign or damaged file, a robotd map not
+    written by the demo."""
+    from robotd.base.errors import MapStoreError
+    from robotd.io.mapfile import read_meta
+
+    sidecars = [Path(str(map_path) + suffix) for suffix in ("-wal", "-shm")]
+    if not map_path.exists():
+        if any(p.exists() for p in sidecars):
+            raise MapStoreError(f"{sidecars[0].name} or {sidecars[1].name} without their map is in "
+                                f"{map_path.parent}; left as it is: move it away or choose another --out")
+        return
+    try:
+        is_demo_map = map_path.is_file() and DEMO_MAP_META in read_meta(map_path)
+    except MapStoreError as exc:
+        raise MapStoreError(f"{map_path} is in the way and is not a demo map ({exc}); left as it "
+                            "is: move it away or choose another --out") from None
+    if not is_demo_map:
+        raise MapStoreError(f"{map_path} is in the way: a robotd map without the demo's mark (not "
+                            "written by the demo, or by a demo older than the mark); left as it "
+                            "is: move it away or choose another --out")
+    log.info("replacing the previous demo map %s", map_path)
+    for stale in (map_path, *sidecars):
+        stale.unlink(missing_ok=True)
 
 
 def _drive(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, *, realtime: bool,
@@ -240,6 +300,8 @@ def _drive_and_record(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, pro
     with robot, open_map(cfg, clock=clock) as store, KobukiDriver(
         robot.port, clock=clock, baudrate=cfg.base.baudrate, yaw_source=cfg.base.yaw_source
     ) as driver:
+        store.set_meta(DEMO_MAP_META, "written by robotd demo; the next demo into this folder "
+                                      "replaces it")
         driver.request_extra(hardware_version=True, firmware_version=True, udid=True)
         sources: dict[str, Any] = {"base": driver, "floor": robot.camera}
         observers: list[Any] = [recorder]

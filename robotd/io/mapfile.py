@@ -206,6 +206,29 @@ def inspect_file(path: Path, target: int) -> int:
         raise
 
 
+def read_meta(path: Path) -> dict[str, str]:
+    """The ``meta`` table of the robotd map at ``path``, read without writing to it.
+
+    Raises :class:`MapStoreError` for what :func:`inspect_file` refuses (not SQLite,
+    damaged, not a robotd map, a newer schema), and for an empty or unreadable file.
+    """
+    path = Path(path).absolute()
+    existed = {p: p.exists() for p in _sidecars(path)}
+    version = inspect_file(path, SCHEMA_VERSION)
+    if version == 0:
+        raise MapStoreError(f"map file {path} is empty")
+    try:
+        ro = sqlite3.connect(path.as_uri() + "?mode=ro", uri=True, isolation_level=None)
+        try:
+            return {str(k): str(v) for k, v in ro.execute("SELECT key, value FROM meta")}
+        finally:
+            ro.close()
+    except sqlite3.Error as exc:
+        raise MapStoreError(f"map file {path} is damaged or unreadable: {exc}") from exc
+    finally:
+        _remove_new_sidecars(existed)
+
+
 def _remove_new_sidecars(existed: Mapping[Path, bool]) -> None:
     """Remove the empty ``-wal``/``-shm`` files our read-only check created."""
     wal, shm = existed

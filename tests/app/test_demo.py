@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -105,3 +106,94 @@ def test_recording_to_a_full_disk_stops_the_demo_with_one_line(tmp_path: Path):
     with MapStore.open(tmp_path / "out" / "map.sqlite", create=False) as store:
         (run,) = store.runs()
         assert run.ended_ns is not None and store.count_keyframes() >= 1  # closed, consistent
+
+
+def _foreign_files(tmp_path: Path) -> dict[str, bytes]:
+    """What a user may keep at OUT/map.sqlite: text, a damaged map, another program's SQLite
+    database, a robotd map the demo did not write."""
+    import sqlite3
+
+    files = {"text": b"my notes, not a map\n"}
+    other = tmp_path / "other.sqlite"
+    with sqlite3.connect(other) as conn:
+        conn.execute("CREATE TABLE songs (title TEXT)")
+    conn.close()
+    files["sqlite"] = other.read_bytes()
+    robotd_map = tmp_path / "robot.sqlite"
+    with MapStore.open(robotd_map) as store:
+        store.begin_run("[map]\n")
+    files["robotd map"] = robotd_map.read_bytes()
+    files["damaged"] = files["robotd map"][:4096] + bytes(4096) + files["robotd map"][8192:]
+    return files
+
+
+@pytest.mark.parametrize("kind", ["text", "sqlite", "robotd map", "damaged"])
+def test_demo_leaves_a_foreign_file_at_its_map_path_alone(tmp_path: Path, kind: str):
+    """It used to delete whatever was at OUT/map.sqlite."""
+    from robotd.base.errors import MapStoreError
+
+    content = _foreign_files(tmp_path)[kind]
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "map.sqlite").write_bytes(content)
+    with pytest.raises(MapStoreError, match=r"map.sqlite is in the way.*left as it is"):
+        run_demo(Config(), out=out, route="square", duration_s=0.5, plot=False)
+    assert (out / "map.sqlite").read_bytes() == content
+    assert sorted(p.name for p in out.iterdir()) == ["map.sqlite"]
+
+
+def test_demo_replaces_its_own_earlier_map(tmp_path: Path):
+    s1 = run_demo(Config(), out=tmp_path, route="square", duration_s=0.5, plot=False)
+    s2 = run_demo(Config(), out=tmp_path, route="square", duration_s=0.5, plot=False, seed=1)
+    assert s1["ok"] and s2["ok"]
+    with MapStore.open(tmp_path / "map.sqlite", create=False) as store:
+        assert len(store.runs()) == 1 and store.count_keyframes() == s2["keyframes"]
+
+
+def _cli(capsys, *args: str) -> tuple[int, str]:
+    from robotd.app.cli import main
+
+    code = main(list(args))
+    return code, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("duration", ["1e-9", "0.05", "nan", "inf", "-1"])
+def test_demo_and_record_refuse_a_duration_that_is_no_drive(tmp_path: Path, capsys, duration: str):
+    """`--duration 1e-9` ended in an IndexError; `robotd record --virtual --duration nan`
+    recorded the whole route."""
+    out = tmp_path / "out"
+    for args in (("demo", "--out", str(out)), ("record", str(tmp_path / "x.mcap"), "--virtual")):
+        code, err = _cli(capsys, *args, "--route", "square", "--duration", duration)
+        assert code == 2 and err == (f"robotd: error: --duration must be a number of seconds of "
+                                     f"robot time, at least 0.1, got {float(duration)}\n")
+    assert sorted(tmp_path.iterdir()) == []  # nothing made
+
+
+def test_demo_out_that_cannot_be_a_folder_is_one_line(tmp_path: Path, capsys):
+    """`--out` on an existing file, or below one, ended in a traceback."""
+    afile = tmp_path / "afile"
+    afile.write_text("keep me\n")
+    code, err = _cli(capsys, "demo", "--route", "square", "--duration", "0.5", "--out", str(afile))
+    assert code == 2 and err == (f"robotd: error: output folder {afile} exists and is not a folder "
+                                 "(choose another --out)\n")
+    code, err = _cli(capsys, "demo", "--route", "square", "--duration", "0.5", "--out",
+                     str(afile / "sub"))
+    assert code == 2 and err == (f"robotd: error: cannot create the output folder {afile / 'sub'}: "
+                                 "Not a directory\n")
+    assert afile.read_text() == "keep me\n"
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_demo_out_in_a_read_only_folder_is_one_line(tmp_path: Path, capsys):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    try:
+        code, err = _cli(capsys, "demo", "--route", "square", "--duration", "0.5", "--out", str(ro))
+        assert code == 2 and err.startswith(f"robotd: error: output folder {ro} is not writable")
+        code, err = _cli(capsys, "demo", "--route", "square", "--duration", "0.5", "--out",
+                         str(ro / "sub"))
+        assert code == 2 and err == (f"robotd: error: cannot create the output folder {ro / 'sub'}: "
+                                     "Permission denied\n")
+    finally:
+        ro.chmod(0o755)
