@@ -58,6 +58,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import sqlite3
 import time
 from collections.abc import Iterator, Sequence
@@ -220,8 +221,15 @@ class MapStore:
         jpeg_quality: int = 90,
         synchronous: Literal["NORMAL", "FULL"] = "FULL",
         clock: Clock | None = None,
+        read_only: bool = False,
     ) -> MapStore:
         """Open the map at ``path``, creating it if it does not exist and ``create``.
+
+        ``read_only`` opens an existing map of the current schema for reading only, never
+        writing to the file (a map on a read-only mount can be read and exported); its
+        write methods raise :class:`MapStoreError`. Opened for writing, a map whose file
+        or folder cannot be written (the map writes its ``-wal``/``-shm`` files beside it)
+        is refused with a MapStoreError saying so, after the read-only inspection.
 
         ``image_codec`` encodes keyframe images added through this store (``"png"`` is
         lossless, ``"jpeg"`` at ``jpeg_quality`` 0..100 is several times smaller); images
@@ -250,10 +258,10 @@ class MapStore:
         if path.exists():
             if not path.is_file():
                 raise MapStoreError(f"map file {path} is not a regular file")
-            if path.stat().st_size == 0 and not create:
+            if path.stat().st_size == 0 and (not create or read_only):
                 raise MapStoreError(f"map file {path} is empty")
             version = inspect_file(path, target)
-        elif create:
+        elif create and not read_only:
             if not path.parent.is_dir():
                 raise MapStoreError(
                     f"cannot create map file {path}: directory {path.parent} does not exist"
@@ -261,6 +269,16 @@ class MapStore:
             version = 0
         else:
             raise MapStoreError(f"map file {path} does not exist")
+        if read_only:
+            return cls._open_read_only(path, version, target, image_codec=image_codec,
+                                       jpeg_quality=jpeg_quality, clock=clock)
+        if not os.access(path.parent, os.W_OK | os.X_OK):
+            raise MapStoreError(
+                f"{'map file' if version else 'cannot create map file'} {path}: its folder"
+                f" {path.parent} is read-only (the map writes its -wal and -shm files beside it)"
+            )
+        if version and not os.access(path, os.W_OK):
+            raise MapStoreError(f"map file {path} is read-only")
 
         try:
             conn = sqlite3.connect(
@@ -298,6 +316,28 @@ class MapStore:
             jpeg_quality=jpeg_quality,
             clock=MonotonicClock() if clock is None else clock,
         )
+
+    @classmethod
+    def _open_read_only(cls, path: Path, version: int, target: int, *,
+                        image_codec: Literal["jpeg", "png"], jpeg_quality: int,
+                        clock: Clock | None) -> MapStore:
+        if version != target:
+            raise MapStoreError(
+                f"map file {path} has schema version {version}; open it once for writing to"
+                f" upgrade it to {target} before reading it read-only"
+            )
+        uri = path.as_uri() + "?mode=ro"
+        wal = path.with_name(path.name + "-wal")
+        if not os.access(path.parent, os.W_OK | os.X_OK) and not wal.exists():
+            uri += "&immutable=1"  # see mapfile.inspect_file
+        try:
+            conn = sqlite3.connect(uri, uri=True, isolation_level=None, check_same_thread=True,
+                                   timeout=5.0)
+        except sqlite3.Error as exc:
+            raise MapStoreError(f"cannot open map file {path}: {exc}") from exc
+        _log.info("map store %s open read-only (schema version %d)", path, version)
+        return cls(conn, path, image_codec=image_codec, jpeg_quality=jpeg_quality,
+                   clock=MonotonicClock() if clock is None else clock)
 
     @property
     def path(self) -> Path:
