@@ -75,7 +75,7 @@ def run_from_args(args: argparse.Namespace) -> int:
                        duration_s=args.duration, seed=args.seed,
                        realtime=args.realtime, plot=not args.no_plot, record=args.record)
     print_summary(summary, sys.stdout)
-    return 0 if summary["ok"] else 1
+    return exit_status(summary)
 
 
 def shipped_calibration() -> Path | None:
@@ -330,18 +330,43 @@ def _drive_and_record(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, pro
         progress.update(robot.sim_time_s, daemon.pipeline.stage("keyframes").keyframes, final=True)
         robot.stop()
         recorder.close()
-        write_tum(out / "groundtruth.tum", *robot.ground_truth())
+        # Interrupted (Ctrl-C, SIGTERM), the run covers the robot time reached, not the route.
+        interrupted = report.stopped_by if report.stopped_by in _STOP_SIGNALS else None
+        reached_ns = clock.now_ns() if interrupted else None
+        stamps, poses = robot.ground_truth()
+        base_stamps, base_poses = robot.base.stamp_ns, robot.base.true_pose
+        if reached_ns is not None:
+            stamps, poses = stamps[stamps <= reached_ns], poses[stamps <= reached_ns]
+            base_poses = base_poses[base_stamps <= reached_ns]
+            base_stamps = base_stamps[base_stamps <= reached_ns]
+        write_tum(out / "groundtruth.tum", stamps, poses)
         if writer is not None:
-            for stamp, pose in zip(robot.base.stamp_ns, robot.base.true_pose):
+            for stamp, pose in zip(base_stamps, base_poses):
                 writer.write_ground_truth(int(stamp), *map(float, pose))
-            writer.close()
+            writer.close(completed=interrupted is None,
+                         reason=f"interrupted ({interrupted})" if interrupted else "")
         floor = next((st for st in daemon.pipeline.stages if st.name == "floor"), None)
         live = {"report": report, "keyframes_stored": store.count_keyframes(),
                 "floor_threshold": floor.detector.threshold if floor is not None else None,
-                "commands": dict(robot.commands_received), "camera_drops": robot.camera.dropped}
+                "commands": dict(robot.commands_received), "camera_drops": robot.camera.dropped,
+                "interrupted": interrupted,
+                "robot_time_s": (min(reached_ns / 1e9, robot.duration_s) if reached_ns is not None
+                                 else robot.duration_s)}
     if robot.error is not None:
         raise robot.error
     return live
+
+
+_STOP_SIGNALS = {"SIGINT": 2, "SIGTERM": 15}
+"""The daemon's stop reasons that mean the user stopped the run, with their numbers."""
+
+
+def exit_status(summary: dict[str, Any]) -> int:
+    """The demo's exit status: 128 + the signal that interrupted it, else 0 when its
+    figures are complete (``ok``), else 1."""
+    if summary.get("interrupted"):
+        return 128 + _STOP_SIGNALS[summary["interrupted"]]
+    return 0 if summary["ok"] else 1
 
 
 def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: dict[str, Any],
@@ -362,8 +387,9 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
     summary: dict[str, Any] = {
         "route": robot.settings.route, "seed": robot.settings.seed,
         "floor": list(floor_files) or ["skimage:brick,grass,gravel"], "floor_pattern": floor_pattern,
-        "robot_time_s": robot.duration_s, "wall_time_s": wall_s,
-        "real_time_factor": robot.duration_s / wall_s if wall_s > 0 else None,
+        "interrupted": live["interrupted"], "planned_robot_time_s": robot.duration_s,
+        "robot_time_s": live["robot_time_s"], "wall_time_s": wall_s,
+        "real_time_factor": live["robot_time_s"] / wall_s if wall_s > 0 else None,
         "distance_m": err_fused.distance_m,
         "frames_rendered": robot.frames_emitted, "frames_processed": c["frames"],
         "keyframes": live["keyframes_stored"], "odometry_samples": c["wheel_msgs"],
@@ -390,7 +416,7 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
     graph = _graph_summary(out / "map.sqlite", robot, c)
     if graph is not None:
         summary["pose_graph"] = graph
-    summary["ok"] = bool(c["frames"] == robot.frames_emitted
+    summary["ok"] = bool(c["frames"] == robot.frames_emitted and not live["interrupted"]
                          and live["keyframes_stored"] == c["keyframes"])
     if plot:
         _plot_trajectories(out, robot, recorder, truth, fused, wheel, err_fused.distance_m,
@@ -517,6 +543,9 @@ def _print_comparison(f: Any, title: str, left: tuple[str, dict[str, float]],
 def print_summary(s: dict[str, Any], f: Any) -> None:
     """The short table the demo prints."""
     w, fu = s["wheel_only"], s["fused"]
+    if s.get("interrupted"):
+        print(f"interrupted ({s['interrupted']}) after {s['robot_time_s']:.1f} s of robot time of the "
+              f"planned {s['planned_robot_time_s']:.1f} s; the figures below are of that part", file=f)
     rows = [
         ("route", f"{s['route']} (seed {s['seed']})"),
         ("distance", f"{s['distance_m']:.1f} m in {s['robot_time_s']:.0f} s robot time"),

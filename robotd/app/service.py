@@ -119,7 +119,10 @@ def _tee_reopen(reopen: Callable[[], Any], writer: Any) -> Callable[[], Any]:
 
 def run_replay(cfg: Config, path: Path, speed: float | None) -> dict[str, Any]:
     """Feed a recording through the daemon (at ``speed`` x recorded time, or as fast as
-    possible when None) and write the map the config names; returns the run's report.
+    possible when None) and write the map the config names; returns the run's report:
+    ``recording_s`` is how much of the recording was replayed (``recording_total_s`` of it
+    all), short of it when ``interrupted`` names the signal (SIGINT, SIGTERM) that stopped
+    the replay; the map is consistent either way (the run is ended in it).
 
     As fast as possible, the replay is lossless: every message reaches the pipeline and
     every frame waits for its odometry, so the map is the same on every replay.
@@ -141,10 +144,14 @@ def run_replay(cfg: Config, path: Path, speed: float | None) -> dict[str, Any]:
     c = report.counters
     if report.source_errors.get("replay"):
         raise DriverError(f"{path}: the replay stopped on an error (see the log)")
+    interrupted = report.stopped_by if report.stopped_by in ("SIGINT", "SIGTERM") else None
+    reached_ns = min(clock.now_ns(), span[1]) if interrupted else span[1]
     return {"replayed": dict(replay.counts), "keyframes": c.get("keyframes", 0),
             "frames": c.get("frames", 0), "frames_unsynced": c.get("frames_unsynced", 0),
             "odometry_samples": c.get("wheel_msgs", 0), "damage": replay.damage.as_dict(),
-            "wall_s": report.wall_s, "recording_s": (span[1] - span[0]) / 1e9}
+            "wall_s": report.wall_s, "interrupted": interrupted,
+            "recording_s": (reached_ns - span[0]) / 1e9,
+            "recording_total_s": (span[1] - span[0]) / 1e9}
 
 
 def replay_finished(replay: Any, daemon: Any) -> bool:

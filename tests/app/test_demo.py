@@ -197,3 +197,47 @@ def test_demo_out_in_a_read_only_folder_is_one_line(tmp_path: Path, capsys):
                                      "Permission denied\n")
     finally:
         ro.chmod(0o755)
+
+
+def _interrupt_when(proc: subprocess.Popen, marker: str) -> list[str]:
+    """Read ``proc``'s stderr until a line holds ``marker``, then send SIGINT (Ctrl-C);
+    returns the lines read."""
+    import signal
+
+    lines = []
+    for line in proc.stderr:
+        lines.append(line)
+        if marker in line:
+            proc.send_signal(signal.SIGINT)
+            return lines
+    raise AssertionError(f"no {marker!r} on stderr: {''.join(lines)[-2000:]}")
+
+
+def test_an_interrupted_demo_says_so_and_reports_what_it_did(tmp_path: Path):
+    """Ctrl-C used to give the planned duration's figures and exit 0 (or 1)."""
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "robotd.app.cli", "demo", "--route", "square",
+                             "--duration", "40", "--no-plot", "--out", str(out),
+                             "--record", str(tmp_path / "x.mcap")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _interrupt_when(proc, "demo:  ")  # the first progress line: 10 % of the drive done
+    stdout, stderr = proc.communicate(timeout=300)
+    assert proc.returncode == 130, stderr[-3000:]
+    assert "Traceback" not in stderr
+    s = json.loads((out / "summary.json").read_text())
+    assert s["interrupted"] == "SIGINT" and not s["ok"] and s["planned_robot_time_s"] == 40.0
+    assert 4.0 <= s["robot_time_s"] < 40.0
+    assert stdout.splitlines()[0] == (f"interrupted (SIGINT) after {s['robot_time_s']:.1f} s of robot "
+                                      "time of the planned 40.0 s; the figures below are of that part")
+    assert f"in {s['robot_time_s']:.0f} s robot time" in stdout
+    gt_stamps, _ = read_tum(out / "groundtruth.tum")
+    assert gt_stamps[-1] / 1e9 <= s["robot_time_s"] + 1e-9  # the truth of the part driven
+    with MapStore.open(out / "map.sqlite", create=False) as store:  # consistent, run closed
+        (run,) = store.runs()
+        assert run.ended_ns is not None and store.count_keyframes() == s["keyframes"] > 0
+    from drivers.recording.reader import RecordingReader
+
+    with RecordingReader(tmp_path / "x.mcap") as r:
+        assert not r.damage.any
+        assert r.metadata["robotd.end"]["completed"] == "false"
+        assert r.metadata["robotd.end"]["reason"] == "interrupted (SIGINT)"
