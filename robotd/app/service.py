@@ -11,7 +11,7 @@ import logging
 from pathlib import Path
 from typing import Any, Callable
 
-from robotd.app.assemble import assemble_daemon, open_map
+from robotd.app.assemble import assemble_daemon, load_calibration, open_map
 from robotd.base.clock import Clock, MonotonicClock
 from robotd.base.config import Config, to_toml
 from robotd.base.errors import ConfigError, DriverError
@@ -83,9 +83,11 @@ def run_service(cfg: Config, record: Path | None = None) -> int:
     notifier = Notifier()
     writer = None
     observers: list[Any] = []
-    # The devices first: a missing port or camera is reported before any map is created.
+    # The devices and the calibration first: a missing port or camera, or a calibration
+    # file that does not read, is reported before any map is created.
     sources = open_sources(cfg, clock)
     try:
+        calibration = load_calibration(cfg)
         with open_map(cfg) as store:
             if not sources:
                 log.warning("no sources enabled: the daemon will only keep the map open")
@@ -99,7 +101,8 @@ def run_service(cfg: Config, record: Path | None = None) -> int:
                 reopen = {name: _tee_reopen(r, writer) for name, r in reopen.items()}
                 observers.append(OdometryRecorder(writer))
             daemon = assemble_daemon(cfg, clock, drivers, store, notifier, lossless=False,
-                                     observers=observers, reopen=reopen,
+                                     observers=observers, reopen=reopen, calibration=calibration,
+                                     load_calibration_file=False,
                                      driver_stats=lambda: {n: d.stats() for n, d in drivers.items()})
             report = daemon.run()
     finally:

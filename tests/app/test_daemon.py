@@ -18,6 +18,7 @@ import time
 import tty
 from pathlib import Path
 
+import pytest
 
 from drivers.kobuki import protocol
 from robotd.io.store import MapStore
@@ -101,6 +102,28 @@ def test_run_with_a_missing_port_is_one_clear_line(tmp_path: Path):
     assert "robotd: error: cannot open Kobuki port /dev/does-not-exist" in r.stderr
     assert "Traceback" not in r.stderr
     assert not (tmp_path / "map.sqlite").exists()  # no map is made for a run that cannot start
+
+
+
+@pytest.mark.parametrize(("setting", "message"), [
+    ('[base]\ndriver = "none"\n[floor_camera]\nsource = "v4l2"\ndevice = "/dev/does-not-exist"\n',
+     "robotd: error: camera device /dev/does-not-exist does not exist"),
+    ('[base]\ndriver = "none"\n[floor_camera]\nsource = "none"\n[calibration]\npath = "{bad}"\n',
+     "robotd: error: {bad}: not valid OpenCV YAML"),
+])
+def test_run_that_cannot_start_makes_no_map(tmp_path: Path, setting: str, message: str):
+    """A missing camera, or a calibration file that does not read, is found before the map
+    is made (the calibration file used to be read after it)."""
+    bad = tmp_path / "calibration.yml"
+    bad.write_text("junk: [\n")
+    cfg = tmp_path / "robotd.toml"
+    cfg.write_text(setting.format(bad=bad) + f'[map]\npath = "{tmp_path / "map.sqlite"}"\n')
+    r = subprocess.run([sys.executable, "-m", "robotd.app.cli", "run", "--config", str(cfg)],
+                       capture_output=True, text=True, timeout=60, check=False)
+    assert r.returncode == 2, r.stderr
+    (line,) = r.stderr.splitlines()
+    assert line.startswith(message.format(bad=bad))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.yml", "robotd.toml"]
 
 
 class _Counter:
