@@ -76,7 +76,8 @@ from robotd.base.errors import MapStoreError
 from robotd.io.mapfile import MIGRATIONS, SCHEMA_VERSION, inspect_file, migrate
 
 __all__ = [
-    "LOOP_CANDIDATE_FATES", "MIGRATIONS", "SCHEMA_VERSION", "KeyframeRecord", "LinkRecord",
+    "LOOP_CANDIDATE_FATES", "MIGRATIONS", "SCHEMA_VERSION", "UNCLEAN_END_NOTE", "KeyframeRecord",
+    "LinkRecord",
     "LoopCandidateRecord", "MapStore", "RunRecord",
 ]
 
@@ -90,10 +91,15 @@ LOOP_CANDIDATE_FATES = (
     "accepted", "below_threshold", "failed_gate", "no_transform", "down_weighted")
 """The allowed ``loop_candidates.fate`` values (the table's CHECK constraint)."""
 
+UNCLEAN_END_NOTE = "did not end cleanly"
+"""Begins the note :meth:`MapStore.mark_unfinished_runs` adds to a run that never ended."""
+
+
 @dataclass(frozen=True, slots=True)
 class RunRecord:
-    """One daemon run as stored in ``runs``; ``ended_ns`` is None while running or if
-    the run never ended cleanly."""
+    """One daemon run as stored in ``runs``; ``ended_ns`` is None while running, or for a
+    run that never ended (killed, power cut) until the next start marks it (see
+    :meth:`MapStore.mark_unfinished_runs` and :attr:`ended_cleanly`)."""
 
     id: int
     started_ns: int
@@ -102,6 +108,11 @@ class RunRecord:
     robotd_version: str
     notes: str
     epoch_unix_ns: int | None = None
+
+    @property
+    def ended_cleanly(self) -> bool:
+        """True when the run recorded its own end."""
+        return self.ended_ns is not None and UNCLEAN_END_NOTE not in self.notes
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -473,6 +484,33 @@ class MapStore:
             )
             if cur.rowcount != 1:
                 raise KeyError(f"no run {run_id} in map {self._path}")
+
+    def mark_unfinished_runs(self) -> list[tuple[RunRecord, int]]:
+        """Mark the runs that never recorded their end (``ended_ns`` NULL: the process was
+        killed, or the power cut) as ended at their last keyframe's stamp (their start
+        when they have none), with a note beginning :data:`UNCLEAN_END_NOTE`; nothing else
+        changes. Returns each such run as it was found, with its number of keyframes.
+
+        Call it when a run starts: one daemon writes a map at a time, so a run without an
+        end is not running any more.
+        """
+        found = [RunRecord(*row) for row in self._read(
+            "SELECT id, started_ns, ended_ns, config, robotd_version, notes, epoch_unix_ns"
+            " FROM runs WHERE ended_ns IS NULL ORDER BY id")]
+        out = []
+        for run in found:
+            last, count = self._read(
+                "SELECT max(stamp_ns), count(*) FROM keyframes WHERE run_id = ?", (run.id,))[0]
+            ended = run.started_ns if last is None else max(int(last), run.started_ns)
+            note = (f"{UNCLEAN_END_NOTE}: no end was recorded (killed or power cut?); ended_ns is "
+                    f"its last keyframe's stamp, set when the next run started")
+            with self._write() as conn:
+                conn.execute(
+                    "UPDATE runs SET ended_ns = ?, notes = CASE WHEN notes = '' THEN ?"
+                    " ELSE notes || char(10) || ? END WHERE id = ? AND ended_ns IS NULL",
+                    (ended, note, note, run.id))
+            out.append((run, int(count)))
+        return out
 
     def runs(self) -> list[RunRecord]:
         """Every run, oldest first."""

@@ -265,3 +265,37 @@ def test_a_source_failing_beyond_reopening_stops_the_run(tmp_path):
         assert d.threads["floor"].fatal is error
         assert d.report().stopped_by == f"floor failed: {error}"
         assert store.runs()[0].ended_ns == 0  # the run is closed (the daemon's clock)
+
+
+def test_the_next_start_says_a_killed_run_did_not_end_cleanly(tmp_path: Path) -> None:
+    """`robotd run` killed with SIGKILL left ended_ns NULL and nothing said so later."""
+    cfg = tmp_path / "robotd.toml"
+    path = tmp_path / "map.sqlite"
+    cfg.write_text('[base]\ndriver = "none"\n[floor_camera]\nsource = "none"\n'
+                   f'[map]\npath = "{path}"\n')
+
+    def start(stop: signal.Signals) -> str:
+        proc = subprocess.Popen([sys.executable, "-m", "robotd.app.cli", "run", "--config", str(cfg)],
+                                stderr=subprocess.PIPE, text=True)
+        lines = []
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            lines.append(line)
+            if "robotd running" in line:
+                proc.send_signal(stop)
+                break
+        lines.append(proc.communicate(timeout=60)[1])
+        assert proc.returncode == (-signal.SIGKILL if stop == signal.SIGKILL else 0), lines
+        return "".join(lines)
+
+    start(signal.SIGKILL)
+    with MapStore.open(path, create=False) as store:
+        assert [r.ended_ns for r in store.runs()] == [None]
+    err = start(signal.SIGTERM)
+    assert (f"WARNING robotd.app.assemble: map {path}: run 1 did not end cleanly (killed or power "
+            "cut?); its 0 keyframes are kept and it is marked as ended at its last one") in err
+    with MapStore.open(path, create=False) as store:
+        first, second = store.runs()
+        assert first.ended_ns == first.started_ns and not first.ended_cleanly
+        assert second.ended_cleanly
+    assert "did not end cleanly" not in start(signal.SIGTERM)  # said once

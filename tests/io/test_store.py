@@ -689,3 +689,25 @@ def test_a_read_only_open_neither_creates_nor_migrates(tmp_path: Path, monkeypat
                                             "writing"):
         MapStore.open(path, read_only=True)
     assert _digest(path) == before
+
+
+def test_runs_that_never_ended_are_marked_once_keeping_their_keyframes(tmp_path: Path) -> None:
+    path = tmp_path / "map.sqlite"
+    with MapStore.open(path) as store:
+        killed = store.begin_run("a", started_ns=100)
+        ids = [store.add_keyframe(killed, stamp_ns=200 + i, pose_xyyaw=(i, 0, 0), covariance=_cov(i),
+                                  image=None) for i in range(3)]
+        empty = store.begin_run("b", started_ns=50, notes="bench drive")
+        found = store.mark_unfinished_runs()
+        assert [(run.id, run.ended_ns, n) for run, n in found] == [(killed, None, 3), (empty, None, 0)]
+        runs = {r.id: r for r in store.runs()}
+        assert runs[killed].ended_ns == 202 and runs[empty].ended_ns == 50
+        assert runs[killed].notes.startswith("did not end cleanly: no end was recorded")
+        assert runs[empty].notes.startswith("bench drive\ndid not end cleanly")
+        assert not runs[killed].ended_cleanly and not runs[empty].ended_cleanly
+        assert [k.id for k in store.keyframes(killed)] == ids
+        assert store.mark_unfinished_runs() == []  # said once
+        clean = store.begin_run("c", started_ns=1)
+        store.end_run(clean, ended_ns=2)
+        assert store.runs()[-1].ended_cleanly
+
