@@ -144,7 +144,12 @@ def format_table_iii(res: dict[int, ModeResult], params: TrainParams) -> str:
 
 def run_loop_curve(args: Any) -> int:
 
-    from robotd.io.calibfile import CalibrationFile, LoopThresholds, update_calibration
+    from robotd.io.calibfile import (
+        CalibrationFile,
+        LoopThresholds,
+        read_calibration,
+        update_calibration,
+    )
 
     t0 = time.monotonic()
     cfg, camera, params = _setup(args)
@@ -156,8 +161,8 @@ def run_loop_curve(args: Any) -> int:
     own_mb = peak_rss_mb()
     worker_mb = max([run.worker_peak_rss_mb] + [r.worker_peak_rss_mb for r in res.values()])
     thresholds = {m: r.threshold for m, r in res.items()}
-    update_calibration(args.calibration, CalibrationFile(loop=LoopThresholds.from_mapping(
-        thresholds, overlap_r=params.r, confidence=params.confidence)))
+    old = read_calibration(args.calibration).loop if args.calibration.exists() else None
+    by_mode, kept, dropped = merge_thresholds(old, thresholds, params)
     first = next(iter(res.values()))
     n_near = int(np.sum(first.weights == 1.0))
     out = sys.stdout
@@ -178,7 +183,22 @@ def run_loop_curve(args: Any) -> int:
     untrained = [m for m, t in thresholds.items() if t is None]
     if untrained:
         print(f"modes {', '.join(map(str, untrained))}: no score reaches P(loop) >= {params.confidence} "
-              "with enough evidence; no threshold (the daemon declares no loops in these modes)", file=out)
+              "with enough evidence; no new threshold", file=out)
+    if len(untrained) == len(thresholds):
+        had = [m for m in range(1, 7) if old is not None and old.for_mode(m) is not None]
+        raise CalibrationError(
+            f"{args.recording}: no mode could be trained ({len(run.stamps_ns)} keyframes: too short "
+            f"a drive, or too few revisits); {args.calibration} is left as it was"
+            + (f", with its thresholds for modes {', '.join(map(str, had))}" if had else ""))
+    update_calibration(args.calibration, CalibrationFile(loop=LoopThresholds.from_mapping(
+        by_mode, overlap_r=params.r, confidence=params.confidence)))
+    if kept:
+        print(f"modes {', '.join(map(str, kept))}: the thresholds already in {args.calibration} are "
+              "kept", file=out)
+    if dropped:
+        print(f"modes {', '.join(map(str, dropped))}: the thresholds in {args.calibration} were trained "
+              f"for r = {old.overlap_r:g}, confidence {old.confidence:g} (not r = {params.r:g}, "
+              f"confidence {params.confidence:g}) and are removed", file=out)
     print(f"thresholds written to {args.calibration}", file=out)
     if args.plot is not None:
         from robotd.io.plots import plot_loop_curves
@@ -205,6 +225,28 @@ def run_loop_curve(args: Any) -> int:
                       for m, r in res.items()},
         }, indent=2) + "\n")
     return 0
+
+
+def merge_thresholds(old: Any, trained: dict[int, float | None], params: TrainParams,
+                     ) -> tuple[dict[int, float], list[int], list[int]]:
+    """The thresholds to write: each newly trained one, and the calibration file's own
+    (``old``, a :class:`~robotd.io.calibfile.LoopThresholds` or None) for every mode not
+    trained now, when they were trained for the same ``r`` and confidence. Returns
+    ``(threshold by mode, modes whose old threshold is kept, modes whose old threshold
+    cannot stand beside the new ones: another r or confidence)``."""
+    by_mode = {m: t for m, t in trained.items() if t is not None}
+    kept: list[int] = []
+    dropped: list[int] = []
+    if old is not None:
+        same = (old.overlap_r, old.confidence) == (params.r, params.confidence)
+        for m in range(1, len(old.thresholds) + 1):
+            if m not in by_mode and old.for_mode(m) is not None:
+                if same:
+                    by_mode[m] = old.for_mode(m)
+                    kept.append(m)
+                else:
+                    dropped.append(m)
+    return by_mode, kept, dropped
 
 
 def _fmt(t: float | None) -> str:

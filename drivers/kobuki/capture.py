@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
 import re
 import sys
 from collections.abc import Iterator
@@ -20,31 +21,76 @@ from drivers.kobuki.protocol import (
 )
 from robotd.base.errors import DriverError, RobotdError
 
+log = logging.getLogger(__name__)
+
 # --------------------------------------------------------------------------------------
 # Capture decoding (``robotd kobuki decode CAPTURE``)
 # --------------------------------------------------------------------------------------
 
 _ANSI = re.compile(rb"\x1b\[[0-9;]*m")
-_SPY_START = re.compile(rb"(?:\x1b\[[0-9;]*m)*\d{6,}\.\d{3} \S")
+_SPY_START = re.compile(rb"\d{6,}\.\d{3} \S")
 # pyserial spy:// hexdump line: "{time:010.3f} RX   {offset:04X}  {16 x 'HH '}{' ' at 8} {ascii}"
-_SPY_RX = re.compile(rb"\d+\.\d{3} RX   [0-9A-F]{4,}  (.*)")
+_SPY_RX = re.compile(rb"\d+\.\d{3} RX   (.*)")
+_SPY_RX_DATA = re.compile(rb"[0-9A-F]{4,}  (.*)")
+_HEX_CELL = re.compile(rb"[0-9A-Fa-f]{2}")
 _SPY_HEX_WIDTH = 16 * 3 + 1
+_DETECT_LINES = 64
 
 
-def _spy_rx_bytes(text: bytes) -> bytes:
+@dataclasses.dataclass
+class SpyDamage:
+    """Lines of a ``spy://`` hexdump that could not be read whole."""
+
+    damaged_rx_lines: int = 0
+    """RX lines whose hex column is cut or garbled: their bytes up to the damage are used."""
+    unrecognised_lines: int = 0
+    """Lines that are not pyserial's (blank lines and ``#`` comments are not counted)."""
+
+
+def _is_comment(line: bytes) -> bool:
+    stripped = line.strip()
+    return not stripped or stripped.startswith(b"#")
+
+
+def _spy_rx_bytes(text: bytes, damage: SpyDamage | None = None) -> bytes:
     """The received bytes of a pyserial ``spy://`` hexdump, in order (TX and control
-    lines are skipped; the ASCII column is cut off by its fixed position)."""
+    lines are skipped; the ASCII column is cut off by its fixed position).
+
+    A damaged RX line (cut short, garbled, non-ASCII) gives its hex cells up to the
+    damage and is counted in ``damage``, as is a line that is not pyserial's at all.
+    """
+    damage = damage if damage is not None else SpyDamage()
     chunks = []
-    for line in text.splitlines():
-        m = _SPY_RX.match(_ANSI.sub(b"", line))
-        if m:
-            chunks.append(bytes.fromhex(m.group(1)[:_SPY_HEX_WIDTH].decode("ascii")))
+    for raw_line in text.splitlines():
+        line = _ANSI.sub(b"", raw_line)
+        m = _SPY_RX.match(line)
+        if m is None:
+            if not (_SPY_START.match(line) or _is_comment(line)):
+                damage.unrecognised_lines += 1
+            continue
+        rest = m.group(1).rstrip(b"\r")
+        if rest == b"<empty>":
+            continue
+        data = _SPY_RX_DATA.match(rest)
+        cells = data.group(1)[:_SPY_HEX_WIDTH].split() if data else []
+        good = []
+        for cell in cells:
+            if not _HEX_CELL.fullmatch(cell):
+                break
+            good.append(cell)
+        if data is None or not good or len(good) != len(cells):
+            damage.damaged_rx_lines += 1
+        chunks.append(bytes.fromhex(b"".join(good).decode("ascii")))
     return b"".join(chunks)
 
 
 def detect_capture_format(data: bytes) -> str:
-    """``"spy"`` when ``data`` starts like a pyserial ``spy://`` hexdump, else ``"raw"``."""
-    return "spy" if _SPY_START.match(data) else "raw"
+    """``"spy"`` when ``data`` reads like a pyserial ``spy://`` hexdump, else ``"raw"``:
+    most of its first lines (blank lines and ``#`` comments aside) are pyserial's."""
+    lines = [_ANSI.sub(b"", line) for line in data.splitlines()[:_DETECT_LINES]]
+    lines = [line for line in lines if not _is_comment(line)]
+    spy = sum(1 for line in lines if _SPY_START.match(line))
+    return "spy" if lines and 2 * spy > len(lines) else "raw"
 
 
 def _subpayload_dict(item: FeedbackSubPayload) -> dict:
@@ -64,13 +110,15 @@ def decode_capture(data: bytes, fmt: str = "auto") -> Iterator[dict]:
     (index), ``offset`` (byte offset of its header in the received stream) and
     ``subpayloads``; ``malformed`` appears when a sub-payload ended its decoding. The last
     dict is ``{"summary": {...}}`` with the format and the counters of
-    :class:`ParserStats`.
+    :class:`ParserStats`, and for a hexdump those of :class:`SpyDamage`
+    (``spy_damaged_rx_lines``, ``spy_unrecognised_lines``).
     """
     if fmt == "auto":
         fmt = detect_capture_format(data)
     if fmt not in ("raw", "spy"):
         raise ValueError(f"unknown capture format {fmt!r}")
-    stream = _spy_rx_bytes(data) if fmt == "spy" else data
+    damage = SpyDamage()
+    stream = _spy_rx_bytes(data, damage) if fmt == "spy" else data
     parser = PacketParser()
     stats = parser.stats
     index = 0
@@ -91,7 +139,10 @@ def decode_capture(data: bytes, fmt: str = "auto") -> Iterator[dict]:
                 record["malformed"] = True
             index += 1
             yield record
-    yield {"summary": {"format": fmt, **dataclasses.asdict(stats)}}
+    summary = {"format": fmt, **dataclasses.asdict(stats)}
+    if fmt == "spy":
+        summary.update({f"spy_{k}": v for k, v in dataclasses.asdict(damage).items()})
+    yield {"summary": summary}
 
 
 def add_decode_arguments(parser: argparse.ArgumentParser) -> None:
@@ -120,6 +171,11 @@ def run_decode(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     finally:
         if args.out:
             out.close()
+    summary = record["summary"]
+    damaged, foreign = summary.get("spy_damaged_rx_lines", 0), summary.get("spy_unrecognised_lines", 0)
+    if damaged or foreign:
+        log.warning("%s: %d damaged RX lines (read up to the damage) and %d lines that are not "
+                    "pyserial's (skipped)", args.capture, damaged, foreign)
     return 0
 
 

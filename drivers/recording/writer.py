@@ -29,7 +29,7 @@ from drivers.recording.schemas import (
     camera_topic,
     schema_text,
 )
-from robotd.base.errors import DriverError
+from robotd.base.errors import DriverError, RecordingError
 from robotd.base.messages import Frame, PoseStamped, WheelTicks, YawRate
 
 log = logging.getLogger(__name__)
@@ -45,6 +45,10 @@ class _UnbufferedSink:
 
     ``mcap`` writes a chunk (and its indexes) only when the chunk is full, so each write
     here is a finished piece of the recording that must survive a process crash.
+
+    ``mcap`` hands over whole records in each write, so when a write fails (the disk is
+    full) the file is cut back to the end of the last complete write: it then ends on a
+    record boundary, and the space the failed write took is given back.
     """
 
     def __init__(self, fd: int) -> None:
@@ -53,11 +57,23 @@ class _UnbufferedSink:
 
     def write(self, data: bytes) -> int:
         view = memoryview(data)
-        while view:
-            n = os.write(self._fd, view)
-            view = view[n:]
+        try:
+            while view:
+                n = os.write(self._fd, view)
+                view = view[n:]
+        except OSError:
+            self.cut_back()
+            raise
         self._pos += len(data)
         return len(data)
+
+    def cut_back(self) -> None:
+        """Truncate the file to the end of the last complete write (best effort)."""
+        try:
+            os.ftruncate(self._fd, self._pos)
+            os.lseek(self._fd, self._pos, os.SEEK_SET)
+        except OSError:
+            log.debug("could not truncate the recording back to %d bytes", self._pos, exc_info=True)
 
     def tell(self) -> int:
         return self._pos
@@ -120,8 +136,11 @@ class RecordingWriter:
 
     The ``write_*`` methods may be called from several threads. Methods raise
     ``ValueError`` for a message that cannot be represented (negative stamp, counter out
-    of range, bad image) and :class:`~robotd.base.errors.DriverError` naming the file when the
-    disk fails.
+    of range, bad image) and :class:`~robotd.base.errors.RecordingError` naming the file when
+    the disk fails (full, I/O error). The first such failure ends the recording: the file
+    is cut back to its last complete record and stays under its ``.partial`` name, readable
+    by :class:`~drivers.recording.reader.RecordingReader`; every later write raises the
+    same error (also kept in :attr:`error`), and :meth:`close` only closes the file.
     """
 
     def __init__(self, path: str | os.PathLike[str], *, image_format: str = "png",
@@ -160,6 +179,8 @@ class RecordingWriter:
         except OSError as exc:
             raise DriverError(f"{self.partial_path}: cannot create the recording: {exc.strerror}") from exc
         self._lock = threading.Lock()
+        self.error: RecordingError | None = None
+        """The write failure that ended the recording, None while it is sound."""
         self._base_log_time_ns = 0  # the base stream's log time never goes back (module docs)
         self._closed = False
         self._yaw_source: str | None = None
@@ -168,8 +189,9 @@ class RecordingWriter:
         self.mixed_yaw_sources = 0
         """Yaw rates whose ``source`` differed from the first one's (stored as the first)."""
         start = start_time_utc or datetime.datetime.now(datetime.UTC)
+        self._sink = _UnbufferedSink(self._fd)
         try:
-            self._mcap = Ros2Writer(_UnbufferedSink(self._fd), chunk_size=chunk_size,
+            self._mcap = Ros2Writer(self._sink, chunk_size=chunk_size,
                                     compression=CompressionType.ZSTD)
             self._mcap.add_metadata("robotd", {
                 "robotd_version": __version__,
@@ -181,7 +203,7 @@ class RecordingWriter:
         except OSError as exc:
             os.close(self._fd)
             self.partial_path.unlink(missing_ok=True)
-            raise DriverError(f"{self.partial_path}: cannot write: {exc.strerror}") from exc
+            raise RecordingError(f"{self.partial_path}: cannot write: {exc.strerror}") from exc
         self._schemas: dict[str, Any] = {}
 
     # -- writing ---------------------------------------------------------------------
@@ -189,6 +211,8 @@ class RecordingWriter:
     def _write(self, topic: str, type_name: str, stamp_ns: int, msg: dict[str, Any],
                sequence: int = 0) -> None:
         with self._lock:
+            if self.error is not None:
+                raise self.error
             if self._closed:
                 raise ValueError(f"{self.path}: the recording is closed")
             try:
@@ -202,7 +226,7 @@ class RecordingWriter:
                 self._mcap.write_message(topic, schema, msg, log_time=log_time,
                                          publish_time=stamp_ns, sequence=sequence)
             except OSError as exc:
-                raise DriverError(f"{self.partial_path}: cannot write: {exc.strerror}") from exc
+                raise self._failed(exc) from exc
             self.counts[topic] = self.counts.get(topic, 0) + 1
 
     def write_wheel_ticks(self, msg: WheelTicks) -> None:
@@ -218,15 +242,17 @@ class RecordingWriter:
     def write_yaw_rate(self, msg: YawRate) -> None:
         """``/imu`` (``sensor_msgs/msg/Imu``): ``angular_velocity.z`` = the yaw rate, rad/s."""
         stamp = _check_stamp(msg.stamp_ns)
+        if self.error is not None:
+            raise self.error
         if self._closed:
             raise ValueError(f"{self.path}: the recording is closed")
         if self._yaw_source is None:
             with self._lock:
-                if self._yaw_source is None and not self._closed:
+                if self._yaw_source is None and not self._closed and self.error is None:
                     try:
                         self._mcap.add_metadata("robotd.imu", {"topic": TOPIC_IMU, "yaw_source": msg.source})
                     except OSError as exc:
-                        raise DriverError(f"{self.partial_path}: cannot write: {exc.strerror}") from exc
+                        raise self._failed(exc) from exc
                     self._yaw_source = msg.source
         if msg.source != self._yaw_source:
             if self.mixed_yaw_sources == 0:
@@ -277,6 +303,14 @@ class RecordingWriter:
         self._write(TOPIC_GROUND_TRUTH, "nav_msgs/msg/Odometry", stamp, _odometry_dict(
             stamp, x_m, y_m, yaw_rad, np.zeros((3, 3)), "world", "base_footprint"))
 
+    def _failed(self, exc: OSError) -> RecordingError:
+        """Remember the write failure that ends the recording (the lock is held)."""
+        self.error = RecordingError(
+            f"{self.partial_path}: cannot write: {exc.strerror or exc}; the recording stopped "
+            f"there ({self._sink.tell()} bytes, {sum(self.counts.values())} messages kept, "
+            f"readable as they are in {self.partial_path})")
+        return self.error
+
     # -- closing ---------------------------------------------------------------------
 
     def close(self, *, completed: bool = True, reason: str = "") -> None:
@@ -285,11 +319,20 @@ class RecordingWriter:
         Safe to call twice. ``completed=False`` (what leaving the ``with`` block by an
         exception passes) still finishes the file, whose data are valid, and records
         ``completed: false`` and ``reason`` in the ``robotd.end`` metadata record.
+
+        After a write failure (:attr:`error`) it only closes the file, which keeps its
+        ``.partial`` name; it raises :class:`~robotd.base.errors.RecordingError` if the
+        summary itself cannot be written, leaving the ``.partial`` file cut back to its last
+        complete record.
         """
         with self._lock:
             if self._closed:
                 return
             self._closed = True
+            if self.error is not None:
+                os.close(self._fd)
+                log.info("%s: recording left incomplete (%s)", self.partial_path, self.error)
+                return
             try:
                 self._mcap.add_metadata("robotd.end", {
                     "completed": "true" if completed else "false", "reason": reason,
@@ -297,8 +340,10 @@ class RecordingWriter:
                 self._mcap.finish()
                 os.fsync(self._fd)
             except OSError as exc:
-                raise DriverError(f"{self.partial_path}: cannot finish the recording: "
-                                  f"{exc.strerror}") from exc
+                self.error = RecordingError(
+                    f"{self.partial_path}: cannot finish the recording: {exc.strerror or exc}; "
+                    f"its messages are readable as they are in {self.partial_path}")
+                raise self.error from exc
             finally:
                 os.close(self._fd)
             os.replace(self.partial_path, self.path)
@@ -333,18 +378,28 @@ class RecordingTee(Driver):
     source, not the writer. :meth:`stats` are the wrapped driver's (the tee's own
     counters for a source without ``stats()``); other attributes (``request_extra``,
     ``port``, ...) are the wrapped source's.
+
+    When the writer fails (:class:`~robotd.base.errors.RecordingError`: the disk is full),
+    the messages of that read are still returned, so the daemon loses nothing it read, and
+    the next ``read`` raises the error: a recording run must stop, not go on unrecorded.
     """
 
     def __init__(self, source: Any, writer: RecordingWriter) -> None:
         super().__init__(str(getattr(source, "name", "tee")))
         self.source = source
         self.writer = writer
+        self._failure: RecordingError | None = None
 
     def _read_internal(self, timeout_s: float) -> list[Message]:
+        if self._failure is not None:
+            raise self._failure
         got = self.source.read(timeout_s)
         messages = [] if got is None else got if isinstance(got, list) else [got]
-        for msg in messages:
-            self._record(msg)
+        try:
+            for msg in messages:
+                self._record(msg)
+        except RecordingError as exc:
+            self._failure = exc
         return messages
 
     def _record(self, msg: Any) -> None:

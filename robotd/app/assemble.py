@@ -154,7 +154,8 @@ def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store
                     reopen: dict[str, Callable[[], Source]] | None = None,
                     driver_stats: Callable[[], dict[str, Any]] | None = None) -> Daemon:
     """A daemon over ``sources`` writing into ``store``: begins a run in the map, builds the
-    pipeline from ``cfg`` and returns the daemon, ready to :meth:`~Daemon.run`.
+    pipeline from ``cfg`` and returns the daemon, ready to :meth:`~Daemon.run`. Runs in the
+    map that never ended (the daemon was killed) are first marked as such, with a warning.
 
     ``calibration``: the calibration file's contents (default: loaded from the path the
     config names, when ``load_calibration_file``). ``lossless``: queues block instead of
@@ -162,6 +163,9 @@ def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store
     """
     if calibration is None and load_calibration_file:
         calibration = load_calibration(cfg)
+    for run, keyframes in store.mark_unfinished_runs():
+        log.warning("map %s: run %d did not end cleanly (killed or power cut?); its %d keyframes are "
+                    "kept and it is marked as ended at its last one", store.path, run.id, keyframes)
     run_id = store.begin_run(to_toml(cfg))
     pipeline = build_pipeline(cfg, clock, store, run_id, lossless=lossless, calibration=calibration,
                               observers=observers, floor_detector=floor_detector,

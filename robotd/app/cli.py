@@ -178,7 +178,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config) if args.config else Config()
     if args.virtual:
-        from robotd.app.demo import print_summary, run_demo
+        from robotd.app.demo import exit_status, print_summary, run_demo
 
         out = args.output.with_name(args.output.stem + "-demo")
         s = run_demo(cfg, out=out, route=args.route, floor_files=tuple(str(f) for f in args.floor or ()),
@@ -187,7 +187,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         print_summary(s, sys.stdout)
         print(f"recording: {args.output} ({args.output.stat().st_size / 1e6:.1f} MB); "
               f"demo outputs in {out}")
-        return 0
+        return exit_status(s) if s["interrupted"] else 0
     if args.config is None:
         raise ConfigError("robotd record needs --config on real hardware (or --virtual)")
     from robotd.app.service import run_service
@@ -207,10 +207,14 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if args.map is not None:
         cfg = replace(cfg, "map", path=str(args.map))
     r = run_replay(cfg, args.recording, args.speed)
+    done = (f"{r['odometry_samples']} odometry samples, {r['frames']} frames "
+            f"({r['frames_unsynced']} without odometry), {r['keyframes']} keyframes -> {cfg.map.path}")
+    if r["interrupted"]:
+        print(f"replay of {args.recording} interrupted ({r['interrupted']}) after {r['recording_s']:.1f} "
+              f"of its {r['recording_total_s']:.1f} s, in {r['wall_s']:.1f} s; {done}")
+        return 128 + signal.Signals[r["interrupted"]].value
     print(f"replayed {args.recording}: {r['recording_s']:.1f} s of recording in {r['wall_s']:.1f} s; "
-          f"{r['odometry_samples']} odometry samples, {r['frames']} frames "
-          f"({r['frames_unsynced']} without odometry), {r['keyframes']} keyframes "
-          f"-> {cfg.map.path}")
+          f"{done}")
     return 0
 
 

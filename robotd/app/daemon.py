@@ -24,7 +24,7 @@ from typing import Any, Callable, Protocol
 
 from robotd.app.pipeline import Pipeline
 from robotd.base.clock import Clock, MonotonicClock
-from robotd.base.errors import DriverError
+from robotd.base.errors import DriverError, RobotdError
 from robotd.base.queues import BoundedQueue
 
 log = logging.getLogger(__name__)
@@ -46,19 +46,25 @@ class SourceThread(threading.Thread):
     ``read`` may return ``None``, one message, or a list of messages. A
     :class:`~robotd.base.errors.DriverError` is logged and counted; the thread then calls
     ``reopen`` (if given) so a vanished device is retried rather than ending the service.
+    Any other exception (a recording that cannot be written, a bug) ends the thread and is
+    handed to ``on_fatal``, so the daemon stops instead of running on without the source.
     """
 
     def __init__(self, name: str, source: Source, out: BoundedQueue, stop: threading.Event,
-                 reopen: Callable[[], Source] | None = None, retry_s: float = 1.0) -> None:
+                 reopen: Callable[[], Source] | None = None, retry_s: float = 1.0,
+                 on_fatal: Callable[[str, Exception], None] | None = None) -> None:
         super().__init__(name=f"robotd-{name}", daemon=True)
+        self.source_name = name
         self.source = source
         self.out = out
         self.stop = stop
         self.reopen = reopen
         self.retry_s = retry_s
+        self.on_fatal = on_fatal
         self.errors = 0
         self.reopens = 0
         self.last_error: str | None = None
+        self.fatal: Exception | None = None
 
     def run(self) -> None:
         while not self.stop.is_set():
@@ -71,6 +77,17 @@ class SourceThread(threading.Thread):
                 if not self._reopen():
                     return
                 continue
+            except Exception as exc:
+                self.errors += 1
+                self.last_error = str(exc)
+                self.fatal = exc
+                if isinstance(exc, RobotdError):  # a known error: the caller reports it
+                    log.info("%s: %s; the daemon stops", self.name, exc)
+                else:
+                    log.exception("%s: unexpected error; the daemon stops", self.name)
+                if self.on_fatal is not None:
+                    self.on_fatal(self.source_name, exc)
+                return
             if got is None:
                 continue
             for item in got if isinstance(got, list) else (got,):
@@ -149,8 +166,9 @@ class Daemon:
                                            wakeup=self.wakeup, name=name)
             self.queues[name] = q
             self.threads[name] = SourceThread(name, driver, q, self.stop_event,
-                                              (reopen or {}).get(name))
+                                              (reopen or {}).get(name), on_fatal=self._source_failed)
         self._stop_reason = ""
+        self._fatal: Exception | None = None
         self._old_handlers: dict[int, Any] = {}
         self._start_ns = self.wall_clock.now_ns()
         self._next_status_ns = self._start_ns
@@ -162,6 +180,13 @@ class Daemon:
             self._stop_reason = reason
         self.stop_event.set()
         self.wakeup.set()
+
+    def _source_failed(self, name: str, exc: Exception) -> None:
+        """A source thread ended on an error no reopening can mend: stop, and let
+        :meth:`run` raise it once the run is closed."""
+        if self._fatal is None:
+            self._fatal = exc
+        self.request_stop(f"{name} failed: {exc}")
 
     def _install_signal_handlers(self) -> dict[int, Any]:
         old = {}
@@ -239,7 +264,12 @@ class Daemon:
         log.info("robotd stopped (%s)", self._stop_reason or "stop")
 
     def run(self, stop_when: Callable[[], bool] | None = None) -> DaemonReport:
-        """Run until SIGTERM/SIGINT, :meth:`request_stop`, or ``stop_when()`` is true."""
+        """Run until SIGTERM/SIGINT, :meth:`request_stop`, or ``stop_when()`` is true.
+
+        A source that failed beyond reopening (see :class:`SourceThread`) stops the run;
+        its exception is raised here after the shutdown, which still handles what was
+        read and ends the run in the map.
+        """
         self.start()
         try:
             while not self.stop_event.is_set():
@@ -252,6 +282,8 @@ class Daemon:
                     self.wakeup.clear()
         finally:
             self.shutdown()
+        if self._fatal is not None:
+            raise self._fatal
         return self.report()
 
     def report(self) -> DaemonReport:

@@ -61,8 +61,6 @@ def run_from_args(args: argparse.Namespace) -> int:
 
     if args.floor_scale <= 0 or not math.isfinite(args.floor_scale):
         raise ConfigError(f"--floor-scale must be a positive number of metres, got {args.floor_scale}")
-    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
-        raise ConfigError(f"--duration must be a positive number of seconds, got {args.duration}")
     base_cfg = load_config(args.config) if args.config else Config()
     calibration = args.calibration
     if calibration is not None and not calibration.is_file():
@@ -77,7 +75,7 @@ def run_from_args(args: argparse.Namespace) -> int:
                        duration_s=args.duration, seed=args.seed,
                        realtime=args.realtime, plot=not args.no_plot, record=args.record)
     print_summary(summary, sys.stdout)
-    return 0 if summary["ok"] else 1
+    return exit_status(summary)
 
 
 def shipped_calibration() -> Path | None:
@@ -170,13 +168,20 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
              realtime: bool = False, plot: bool = True, record: Path | None = None,
              observers: tuple[Any, ...] = ()) -> dict[str, Any]:
     """Run the daemon on the virtual robot; returns the summary (also written as JSON).
-    ``observers``: extra pipeline stages that watch the run (the benchmarks use this)."""
+    ``observers``: extra pipeline stages that watch the run (the benchmarks use this).
+
+    Raises :class:`~robotd.base.errors.ConfigError` for a duration that is not a number of
+    seconds of at least :data:`MIN_DURATION_S`, or an output folder that cannot be made or
+    written, and :class:`~robotd.base.errors.MapStoreError` when ``out/map.sqlite`` holds
+    something other than an earlier demo's map (which is left as it is).
+    """
     from robotd.base.camera import FloorCameraModel
     from robotd.base.clock import ManualClock
     from robotd.base.config import replace
     from sim.robot import VirtualRobot, VirtualRobotSettings
 
-    out.mkdir(parents=True, exist_ok=True)
+    check_duration(duration_s)
+    _prepare_output_folder(out)
     map_path = out / "map.sqlite"
     _clear_previous_map(map_path)
     clock = ManualClock()
@@ -199,25 +204,78 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     return summary
 
 
+MIN_DURATION_S = 0.1
+"""The shortest demo, seconds of robot time: a few odometry packets and camera frames."""
+
+DEMO_MAP_META = "demo"
+"""The ``meta`` key that marks a map written by the demo, which the next demo into the
+same folder may replace; any other file at ``OUT/map.sqlite`` is left alone."""
+
+
+def check_duration(duration_s: float | None) -> None:
+    """ConfigError unless ``duration_s`` is None (the whole route) or a finite number of
+    seconds of at least :data:`MIN_DURATION_S`."""
+    from robotd.base.errors import ConfigError
+
+    if duration_s is not None and not (math.isfinite(duration_s) and duration_s >= MIN_DURATION_S):
+        raise ConfigError(f"--duration must be a number of seconds of robot time, at least "
+                          f"{MIN_DURATION_S:g}, got {duration_s}")
+
+
+def _prepare_output_folder(out: Path) -> None:
+    """Make ``out`` (and its parents); ConfigError, naming it, when it is a file, cannot be
+    made, or cannot be written."""
+    import os
+
+    from robotd.base.errors import ConfigError
+
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"output folder {out} exists and is not a folder (choose another --out)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"cannot create the output folder {out}: {exc.strerror or exc}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise ConfigError(f"output folder {out} is not writable (read-only file system or "
+                          "permissions; choose another --out)")
+
+
 def _clear_previous_map(map_path: Path) -> None:
-    for suffix in ("", "-wal", "-shm"):
-        stale = Path(str(map_path) + suffix)
-        if stale.exists():
-            log.info("replacing the previous demo map %s", stale)
-            stale.unlink()
+    """Remove an earlier demo's map at ``map_path`` (with its ``-wal``/``-shm``); refuse,
+    leaving it untouched, anything else there: a foreign or damaged file, a robotd map not
+    written by the demo."""
+    from robotd.base.errors import MapStoreError
+    from robotd.io.mapfile import read_meta
+
+    sidecars = [Path(str(map_path) + suffix) for suffix in ("-wal", "-shm")]
+    if not map_path.exists():
+        if any(p.exists() for p in sidecars):
+            raise MapStoreError(f"{sidecars[0].name} or {sidecars[1].name} without their map is in "
+                                f"{map_path.parent}; left as it is: move it away or choose another --out")
+        return
+    try:
+        is_demo_map = map_path.is_file() and DEMO_MAP_META in read_meta(map_path)
+    except MapStoreError as exc:
+        raise MapStoreError(f"{map_path} is in the way and is not a demo map ({exc}); left as it "
+                            "is: move it away or choose another --out") from None
+    if not is_demo_map:
+        raise MapStoreError(f"{map_path} is in the way: a robotd map without the demo's mark (not "
+                            "written by the demo, or by a demo older than the mark); left as it "
+                            "is: move it away or choose another --out")
+    log.info("replacing the previous demo map %s", map_path)
+    for stale in (map_path, *sidecars):
+        stale.unlink(missing_ok=True)
 
 
 def _drive(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, *, realtime: bool,
            record: Path | None, observers: tuple[Any, ...] = ()) -> dict[str, Any]:
     """Play the virtual robot out through the assembled daemon (its Kobuki bytes read by
     the real driver over the pty), optionally recording everything; returns the run's
-    figures (report, keyframes stored, commands the robot saw, camera drops)."""
-    from drivers.kobuki.driver import KobukiDriver
-    from robotd.app.assemble import assemble_daemon, open_map
-    from robotd.app.notify import Notifier
-    from robotd.io.trajectory import write_tum
+    figures (report, keyframes stored, commands the robot saw, camera drops).
 
-    out = Path(cfg.map.path).parent
+    A recording that cannot be written (disk full) stops the run: the daemon raises the
+    :class:`~robotd.base.errors.RecordingError` after closing the run in the map, and the
+    recording stays readable under its ``.partial`` name."""
     progress = _Progress(robot.duration_s)
     writer = None
     if record is not None:
@@ -225,9 +283,27 @@ def _drive(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, *, realtime: b
         from robotd.base.config import to_toml
 
         writer = RecordingWriter(record, image_format="png", config_toml=to_toml(cfg))
+    try:
+        return _drive_and_record(robot, cfg, clock, recorder, progress, realtime=realtime,
+                                 writer=writer, observers=observers)
+    finally:
+        if writer is not None:
+            writer.close(completed=False, reason="the demo stopped on an error")
+
+
+def _drive_and_record(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, progress: _Progress,
+                      *, realtime: bool, writer: Any, observers: tuple[Any, ...] = ()) -> dict[str, Any]:
+    from drivers.kobuki.driver import KobukiDriver
+    from robotd.app.assemble import assemble_daemon, open_map
+    from robotd.app.notify import Notifier
+    from robotd.io.trajectory import write_tum
+
+    out = Path(cfg.map.path).parent
     with robot, open_map(cfg, clock=clock) as store, KobukiDriver(
         robot.port, clock=clock, baudrate=cfg.base.baudrate, yaw_source=cfg.base.yaw_source
     ) as driver:
+        store.set_meta(DEMO_MAP_META, "written by robotd demo; the next demo into this folder "
+                                      "replaces it")
         driver.request_extra(hardware_version=True, firmware_version=True, udid=True)
         sources: dict[str, Any] = {"base": driver, "floor": robot.camera}
         watchers: list[Any] = [recorder, *observers]
@@ -256,18 +332,43 @@ def _drive(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, *, realtime: b
         progress.update(robot.sim_time_s, daemon.pipeline.stage("keyframes").keyframes, final=True)
         robot.stop()
         recorder.close()
-        write_tum(out / "groundtruth.tum", *robot.ground_truth())
+        # Interrupted (Ctrl-C, SIGTERM), the run covers the robot time reached, not the route.
+        interrupted = report.stopped_by if report.stopped_by in _STOP_SIGNALS else None
+        reached_ns = clock.now_ns() if interrupted else None
+        stamps, poses = robot.ground_truth()
+        base_stamps, base_poses = robot.base.stamp_ns, robot.base.true_pose
+        if reached_ns is not None:
+            stamps, poses = stamps[stamps <= reached_ns], poses[stamps <= reached_ns]
+            base_poses = base_poses[base_stamps <= reached_ns]
+            base_stamps = base_stamps[base_stamps <= reached_ns]
+        write_tum(out / "groundtruth.tum", stamps, poses)
         if writer is not None:
-            for stamp, pose in zip(robot.base.stamp_ns, robot.base.true_pose):
+            for stamp, pose in zip(base_stamps, base_poses):
                 writer.write_ground_truth(int(stamp), *map(float, pose))
-            writer.close()
+            writer.close(completed=interrupted is None,
+                         reason=f"interrupted ({interrupted})" if interrupted else "")
         floor = next((st for st in daemon.pipeline.stages if st.name == "floor"), None)
         live = {"report": report, "keyframes_stored": store.count_keyframes(),
                 "floor_threshold": floor.detector.threshold if floor is not None else None,
-                "commands": dict(robot.commands_received), "camera_drops": robot.camera.dropped}
+                "commands": dict(robot.commands_received), "camera_drops": robot.camera.dropped,
+                "interrupted": interrupted,
+                "robot_time_s": (min(reached_ns / 1e9, robot.duration_s) if reached_ns is not None
+                                 else robot.duration_s)}
     if robot.error is not None:
         raise robot.error
     return live
+
+
+_STOP_SIGNALS = {"SIGINT": 2, "SIGTERM": 15}
+"""The daemon's stop reasons that mean the user stopped the run, with their numbers."""
+
+
+def exit_status(summary: dict[str, Any]) -> int:
+    """The demo's exit status: 128 + the signal that interrupted it, else 0 when its
+    figures are complete (``ok``), else 1."""
+    if summary.get("interrupted"):
+        return 128 + _STOP_SIGNALS[summary["interrupted"]]
+    return 0 if summary["ok"] else 1
 
 
 def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: dict[str, Any],
@@ -288,8 +389,9 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
     summary: dict[str, Any] = {
         "route": robot.settings.route, "seed": robot.settings.seed,
         "floor": list(floor_files) or ["skimage:brick,grass,gravel"], "floor_pattern": floor_pattern,
-        "robot_time_s": robot.duration_s, "wall_time_s": wall_s,
-        "real_time_factor": robot.duration_s / wall_s if wall_s > 0 else None,
+        "interrupted": live["interrupted"], "planned_robot_time_s": robot.duration_s,
+        "robot_time_s": live["robot_time_s"], "wall_time_s": wall_s,
+        "real_time_factor": live["robot_time_s"] / wall_s if wall_s > 0 else None,
         "distance_m": err_fused.distance_m,
         "frames_rendered": robot.frames_emitted, "frames_processed": c["frames"],
         "keyframes": live["keyframes_stored"], "odometry_samples": c["wheel_msgs"],
@@ -316,7 +418,7 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
     graph = _graph_summary(out / "map.sqlite", robot, c)
     if graph is not None:
         summary["pose_graph"] = graph
-    summary["ok"] = bool(c["frames"] == robot.frames_emitted
+    summary["ok"] = bool(c["frames"] == robot.frames_emitted and not live["interrupted"]
                          and live["keyframes_stored"] == c["keyframes"])
     if plot:
         _plot_trajectories(out, robot, recorder, truth, fused, wheel, err_fused.distance_m,
@@ -443,6 +545,9 @@ def _print_comparison(f: Any, title: str, left: tuple[str, dict[str, float]],
 def print_summary(s: dict[str, Any], f: Any) -> None:
     """The short table the demo prints."""
     w, fu = s["wheel_only"], s["fused"]
+    if s.get("interrupted"):
+        print(f"interrupted ({s['interrupted']}) after {s['robot_time_s']:.1f} s of robot time of the "
+              f"planned {s['planned_robot_time_s']:.1f} s; the figures below are of that part", file=f)
     rows = [
         ("route", f"{s['route']} (seed {s['seed']})"),
         ("distance", f"{s['distance_m']:.1f} m in {s['robot_time_s']:.0f} s robot time"),

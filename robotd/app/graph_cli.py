@@ -116,7 +116,7 @@ def run_export(args: argparse.Namespace) -> int:
     out: Path = args.out
     targets = [out / "graph.g2o", out / "odometry.tum", out / "optimized.tum"]
     _refuse_overwrite(targets, args.force)
-    with MapStore.open(args.map, create=False) as store:
+    with MapStore.open(args.map, create=False, read_only=True) as store:
         graph, stamps = graph_from_map(store)
     result = optimize_batch(graph)
     out.mkdir(parents=True, exist_ok=True)

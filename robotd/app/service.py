@@ -11,7 +11,7 @@ import logging
 from pathlib import Path
 from typing import Any, Callable
 
-from robotd.app.assemble import assemble_daemon, open_map
+from robotd.app.assemble import assemble_daemon, load_calibration, open_map
 from robotd.base.clock import Clock, MonotonicClock
 from robotd.base.config import Config, to_toml
 from robotd.base.errors import ConfigError, DriverError
@@ -48,7 +48,12 @@ def open_sources(cfg: Config, clock: Clock) -> dict[str, tuple[Any, Callable[[],
 
 
 class OdometryRecorder:
-    """A pipeline observer that records the fused and wheel-only odometry to MCAP."""
+    """A pipeline observer that records the fused and wheel-only odometry to MCAP.
+
+    Once the writer has failed (its ``error``: the disk is full), the run is stopping on
+    that error (raised here the first time, or by a source's recording tee): the odometry
+    still handled during the shutdown is not offered to the writer again.
+    """
 
     name = "record_odometry"
 
@@ -60,6 +65,8 @@ class OdometryRecorder:
         return {OdometryUpdate: self.on_odometry}
 
     def on_odometry(self, u: OdometryUpdate) -> None:
+        if self.writer.error is not None:
+            return
         self.writer.write_odometry(u.fused)
         self.writer.write_odometry(u.wheel, self.wheel_topic)
 
@@ -76,9 +83,11 @@ def run_service(cfg: Config, record: Path | None = None) -> int:
     notifier = Notifier()
     writer = None
     observers: list[Any] = []
-    # The devices first: a missing port or camera is reported before any map is created.
+    # The devices and the calibration first: a missing port or camera, or a calibration
+    # file that does not read, is reported before any map is created.
     sources = open_sources(cfg, clock)
     try:
+        calibration = load_calibration(cfg)
         with open_map(cfg) as store:
             if not sources:
                 log.warning("no sources enabled: the daemon will only keep the map open")
@@ -92,7 +101,8 @@ def run_service(cfg: Config, record: Path | None = None) -> int:
                 reopen = {name: _tee_reopen(r, writer) for name, r in reopen.items()}
                 observers.append(OdometryRecorder(writer))
             daemon = assemble_daemon(cfg, clock, drivers, store, notifier, lossless=False,
-                                     observers=observers, reopen=reopen,
+                                     observers=observers, reopen=reopen, calibration=calibration,
+                                     load_calibration_file=False,
                                      driver_stats=lambda: {n: d.stats() for n, d in drivers.items()})
             report = daemon.run()
     finally:
@@ -112,7 +122,10 @@ def _tee_reopen(reopen: Callable[[], Any], writer: Any) -> Callable[[], Any]:
 
 def run_replay(cfg: Config, path: Path, speed: float | None) -> dict[str, Any]:
     """Feed a recording through the daemon (at ``speed`` x recorded time, or as fast as
-    possible when None) and write the map the config names; returns the run's report.
+    possible when None) and write the map the config names; returns the run's report:
+    ``recording_s`` is how much of the recording was replayed (``recording_total_s`` of it
+    all), short of it when ``interrupted`` names the signal (SIGINT, SIGTERM) that stopped
+    the replay; the map is consistent either way (the run is ended in it).
 
     As fast as possible, the replay is lossless: every message reaches the pipeline and
     every frame waits for its odometry, so the map is the same on every replay.
@@ -134,10 +147,14 @@ def run_replay(cfg: Config, path: Path, speed: float | None) -> dict[str, Any]:
     c = report.counters
     if report.source_errors.get("replay"):
         raise DriverError(f"{path}: the replay stopped on an error (see the log)")
+    interrupted = report.stopped_by if report.stopped_by in ("SIGINT", "SIGTERM") else None
+    reached_ns = min(clock.now_ns(), span[1]) if interrupted else span[1]
     return {"replayed": dict(replay.counts), "keyframes": c.get("keyframes", 0),
             "frames": c.get("frames", 0), "frames_unsynced": c.get("frames_unsynced", 0),
             "odometry_samples": c.get("wheel_msgs", 0), "damage": replay.damage.as_dict(),
-            "wall_s": report.wall_s, "recording_s": (span[1] - span[0]) / 1e9}
+            "wall_s": report.wall_s, "interrupted": interrupted,
+            "recording_s": (reached_ns - span[0]) / 1e9,
+            "recording_total_s": (span[1] - span[0]) / 1e9}
 
 
 def replay_finished(replay: Any, daemon: Any) -> bool:

@@ -16,6 +16,12 @@ class DriverError(RobotdError):
     """A hardware device (serial port, camera, CAN bus) cannot be opened or has vanished."""
 
 
+class RecordingError(RobotdError):
+    """A recording cannot be written (disk full, I/O error). Not a :class:`DriverError`: the
+    device is fine and reopening it would not help, so the run stops rather than go on
+    without its recording."""
+
+
 class CalibrationError(RobotdError):
     """A calibration is missing, invalid, or cannot be computed from the given data."""
 

@@ -13,6 +13,8 @@ Version history:
 from __future__ import annotations
 
 import contextlib
+import functools
+import os
 import sqlite3
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -144,6 +146,45 @@ SCHEMA_VERSION: int = max(MIGRATIONS)
 
 
 
+@functools.cache
+def expected_schema(version: int) -> Mapping[str, frozenset[str]]:
+    """Table name -> column names of a map at schema ``version``, found by running the
+    migrations up to it on an empty in-memory database (so it cannot drift from them)."""
+    conn = sqlite3.connect(":memory:", isolation_level=None)
+    try:
+        for v in range(1, version + 1):
+            MIGRATIONS[v](conn)
+        return _schema_of(conn)
+    finally:
+        conn.close()
+
+
+def _schema_of(conn: sqlite3.Connection) -> dict[str, frozenset[str]]:
+    tables = [row[0] for row in conn.execute(
+        "SELECT name FROM sqlite_master WHERE type = 'table' AND name NOT LIKE 'sqlite_%'")]
+    return {t: frozenset(row[1] for row in conn.execute(f"PRAGMA table_info({_quote(t)})"))
+            for t in tables}
+
+
+def _quote(name: str) -> str:
+    return '"' + name.replace('"', '""') + '"'
+
+
+def _missing(found: Mapping[str, frozenset[str]], expected: Mapping[str, frozenset[str]]) -> list[str]:
+    """What ``expected`` has and ``found`` lacks: ``table`` or ``table.column``."""
+    out = []
+    for table, columns in sorted(expected.items()):
+        if table not in found:
+            out.append(table)
+        else:
+            out.extend(f"{table}.{c}" for c in sorted(columns - found[table]))
+    return out
+
+
+def _writable_dir(path: Path) -> bool:
+    return os.access(path.parent, os.W_OK | os.X_OK)
+
+
 def _sidecars(path: Path) -> tuple[Path, Path]:
     return path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm")
 
@@ -153,19 +194,31 @@ def inspect_file(path: Path, target: int) -> int:
 
     Uses a read-only connection, so SQLite itself cannot modify the database file. A
     read-only connection to a WAL database still creates empty ``-wal``/``-shm`` files
-    next to it when they are missing; on rejection those are removed again.
+    next to it when they are missing; on rejection those are removed again. In a folder
+    it cannot write (a read-only mount), with no ``-wal`` file beside the map, the file is
+    read as immutable, which needs no ``-shm``. A file whose tables or columns fall short
+    of its schema version (as the migrations make them) is refused: migrating it would
+    write to it first.
     """
-    with path.open("rb") as f:
-        header = f.read(len(_SQLITE_MAGIC))
+    try:
+        with path.open("rb") as f:
+            header = f.read(len(_SQLITE_MAGIC))
+    except OSError as exc:
+        raise MapStoreError(f"cannot read map file {path}: {exc.strerror or exc}") from None
     if header == b"":
         return 0  # an empty file is an empty database: SQLite treats it so too
     if header != _SQLITE_MAGIC:
         raise MapStoreError(f"map file {path} is not an SQLite database")
 
-    existed = {p: p.exists() for p in _sidecars(path)}
+    wal, shm = _sidecars(path)
+    existed = {wal: wal.exists(), shm: shm.exists()}
+    writable_dir = _writable_dir(path)
+    uri = path.as_uri() + "?mode=ro"
+    if not writable_dir and not existed[wal]:
+        uri += "&immutable=1"  # nothing to read from a log, and no -shm can be made
     try:
         try:
-            ro = sqlite3.connect(path.as_uri() + "?mode=ro", uri=True, isolation_level=None)
+            ro = sqlite3.connect(uri, uri=True, isolation_level=None)
         except sqlite3.Error as exc:
             raise MapStoreError(f"cannot open map file {path}: {exc}") from exc
         try:
@@ -189,7 +242,13 @@ def inspect_file(path: Path, target: int) -> int:
                 raise MapStoreError(
                     f"map file {path} has no valid schema_version in its meta table"
                 ) from None
+            found = _schema_of(ro) if 1 <= version <= target else {}
         except sqlite3.Error as exc:
+            if not writable_dir:
+                raise MapStoreError(
+                    f"cannot read map file {path} in the read-only folder {path.parent}: {exc}"
+                    " (a map with a write-ahead log needs its -shm file beside it)"
+                ) from exc
             raise MapStoreError(f"map file {path} is damaged or unreadable: {exc}") from exc
         finally:
             ro.close()
@@ -200,10 +259,43 @@ def inspect_file(path: Path, target: int) -> int:
             )
         if version < 1:
             raise MapStoreError(f"map file {path} has an invalid schema version {version}")
+        missing = _missing(found, expected_schema(min(version, SCHEMA_VERSION)))
+        if missing:
+            raise MapStoreError(
+                f"map file {path} claims schema version {version} but lacks "
+                f"{', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''}: not a robotd map,"
+                " or a damaged one; left as it is"
+            )
         return version
     except MapStoreError:
         _remove_new_sidecars(existed)
         raise
+
+
+def read_meta(path: Path) -> dict[str, str]:
+    """The ``meta`` table of the robotd map at ``path``, read without writing to it.
+
+    Raises :class:`MapStoreError` for what :func:`inspect_file` refuses (not SQLite,
+    damaged, not a robotd map, a newer schema), and for an empty or unreadable file.
+    """
+    path = Path(path).absolute()
+    existed = {p: p.exists() for p in _sidecars(path)}
+    version = inspect_file(path, SCHEMA_VERSION)
+    if version == 0:
+        raise MapStoreError(f"map file {path} is empty")
+    uri = path.as_uri() + "?mode=ro"
+    if not _writable_dir(path) and not existed[_sidecars(path)[0]]:
+        uri += "&immutable=1"
+    try:
+        ro = sqlite3.connect(uri, uri=True, isolation_level=None)
+        try:
+            return {str(k): str(v) for k, v in ro.execute("SELECT key, value FROM meta")}
+        finally:
+            ro.close()
+    except sqlite3.Error as exc:
+        raise MapStoreError(f"map file {path} is damaged or unreadable: {exc}") from exc
+    finally:
+        _remove_new_sidecars(existed)
 
 
 def _remove_new_sidecars(existed: Mapping[Path, bool]) -> None:
@@ -215,7 +307,8 @@ def _remove_new_sidecars(existed: Mapping[Path, bool]) -> None:
         if wal.stat().st_size != 0:
             return
     for sidecar in (wal, shm):
-        with contextlib.suppress(FileNotFoundError):
+        # none made in a read-only place (unlink says EROFS/EACCES there, not ENOENT)
+        with contextlib.suppress(OSError):
             sidecar.unlink()
 
 

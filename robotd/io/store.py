@@ -58,6 +58,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import sqlite3
 import time
 from collections.abc import Iterator, Sequence
@@ -75,7 +76,8 @@ from robotd.base.errors import MapStoreError
 from robotd.io.mapfile import MIGRATIONS, SCHEMA_VERSION, inspect_file, migrate
 
 __all__ = [
-    "LOOP_CANDIDATE_FATES", "MIGRATIONS", "SCHEMA_VERSION", "KeyframeRecord", "LinkRecord",
+    "LOOP_CANDIDATE_FATES", "MIGRATIONS", "SCHEMA_VERSION", "UNCLEAN_END_NOTE", "KeyframeRecord",
+    "LinkRecord",
     "LoopCandidateRecord", "MapStore", "RunRecord",
 ]
 
@@ -89,10 +91,15 @@ LOOP_CANDIDATE_FATES = (
     "accepted", "below_threshold", "failed_gate", "no_transform", "down_weighted")
 """The allowed ``loop_candidates.fate`` values (the table's CHECK constraint)."""
 
+UNCLEAN_END_NOTE = "did not end cleanly"
+"""Begins the note :meth:`MapStore.mark_unfinished_runs` adds to a run that never ended."""
+
+
 @dataclass(frozen=True, slots=True)
 class RunRecord:
-    """One daemon run as stored in ``runs``; ``ended_ns`` is None while running or if
-    the run never ended cleanly."""
+    """One daemon run as stored in ``runs``; ``ended_ns`` is None while running, or for a
+    run that never ended (killed, power cut) until the next start marks it (see
+    :meth:`MapStore.mark_unfinished_runs` and :attr:`ended_cleanly`)."""
 
     id: int
     started_ns: int
@@ -101,6 +108,11 @@ class RunRecord:
     robotd_version: str
     notes: str
     epoch_unix_ns: int | None = None
+
+    @property
+    def ended_cleanly(self) -> bool:
+        """True when the run recorded its own end."""
+        return self.ended_ns is not None and UNCLEAN_END_NOTE not in self.notes
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -220,8 +232,15 @@ class MapStore:
         jpeg_quality: int = 90,
         synchronous: Literal["NORMAL", "FULL"] = "FULL",
         clock: Clock | None = None,
+        read_only: bool = False,
     ) -> MapStore:
         """Open the map at ``path``, creating it if it does not exist and ``create``.
+
+        ``read_only`` opens an existing map of the current schema for reading only, never
+        writing to the file (a map on a read-only mount can be read and exported); its
+        write methods raise :class:`MapStoreError`. Opened for writing, a map whose file
+        or folder cannot be written (the map writes its ``-wal``/``-shm`` files beside it)
+        is refused with a MapStoreError saying so, after the read-only inspection.
 
         ``image_codec`` encodes keyframe images added through this store (``"png"`` is
         lossless, ``"jpeg"`` at ``jpeg_quality`` 0..100 is several times smaller); images
@@ -250,10 +269,10 @@ class MapStore:
         if path.exists():
             if not path.is_file():
                 raise MapStoreError(f"map file {path} is not a regular file")
-            if path.stat().st_size == 0 and not create:
+            if path.stat().st_size == 0 and (not create or read_only):
                 raise MapStoreError(f"map file {path} is empty")
             version = inspect_file(path, target)
-        elif create:
+        elif create and not read_only:
             if not path.parent.is_dir():
                 raise MapStoreError(
                     f"cannot create map file {path}: directory {path.parent} does not exist"
@@ -261,6 +280,16 @@ class MapStore:
             version = 0
         else:
             raise MapStoreError(f"map file {path} does not exist")
+        if read_only:
+            return cls._open_read_only(path, version, target, image_codec=image_codec,
+                                       jpeg_quality=jpeg_quality, clock=clock)
+        if not os.access(path.parent, os.W_OK | os.X_OK):
+            raise MapStoreError(
+                f"{'map file' if version else 'cannot create map file'} {path}: its folder"
+                f" {path.parent} is read-only (the map writes its -wal and -shm files beside it)"
+            )
+        if version and not os.access(path, os.W_OK):
+            raise MapStoreError(f"map file {path} is read-only")
 
         try:
             conn = sqlite3.connect(
@@ -298,6 +327,28 @@ class MapStore:
             jpeg_quality=jpeg_quality,
             clock=MonotonicClock() if clock is None else clock,
         )
+
+    @classmethod
+    def _open_read_only(cls, path: Path, version: int, target: int, *,
+                        image_codec: Literal["jpeg", "png"], jpeg_quality: int,
+                        clock: Clock | None) -> MapStore:
+        if version != target:
+            raise MapStoreError(
+                f"map file {path} has schema version {version}; open it once for writing to"
+                f" upgrade it to {target} before reading it read-only"
+            )
+        uri = path.as_uri() + "?mode=ro"
+        wal = path.with_name(path.name + "-wal")
+        if not os.access(path.parent, os.W_OK | os.X_OK) and not wal.exists():
+            uri += "&immutable=1"  # see mapfile.inspect_file
+        try:
+            conn = sqlite3.connect(uri, uri=True, isolation_level=None, check_same_thread=True,
+                                   timeout=5.0)
+        except sqlite3.Error as exc:
+            raise MapStoreError(f"cannot open map file {path}: {exc}") from exc
+        _log.info("map store %s open read-only (schema version %d)", path, version)
+        return cls(conn, path, image_codec=image_codec, jpeg_quality=jpeg_quality,
+                   clock=MonotonicClock() if clock is None else clock)
 
     @property
     def path(self) -> Path:
@@ -433,6 +484,33 @@ class MapStore:
             )
             if cur.rowcount != 1:
                 raise KeyError(f"no run {run_id} in map {self._path}")
+
+    def mark_unfinished_runs(self) -> list[tuple[RunRecord, int]]:
+        """Mark the runs that never recorded their end (``ended_ns`` NULL: the process was
+        killed, or the power cut) as ended at their last keyframe's stamp (their start
+        when they have none), with a note beginning :data:`UNCLEAN_END_NOTE`; nothing else
+        changes. Returns each such run as it was found, with its number of keyframes.
+
+        Call it when a run starts: one daemon writes a map at a time, so a run without an
+        end is not running any more.
+        """
+        found = [RunRecord(*row) for row in self._read(
+            "SELECT id, started_ns, ended_ns, config, robotd_version, notes, epoch_unix_ns"
+            " FROM runs WHERE ended_ns IS NULL ORDER BY id")]
+        out = []
+        for run in found:
+            last, count = self._read(
+                "SELECT max(stamp_ns), count(*) FROM keyframes WHERE run_id = ?", (run.id,))[0]
+            ended = run.started_ns if last is None else max(int(last), run.started_ns)
+            note = (f"{UNCLEAN_END_NOTE}: no end was recorded (killed or power cut?); ended_ns is "
+                    f"its last keyframe's stamp, set when the next run started")
+            with self._write() as conn:
+                conn.execute(
+                    "UPDATE runs SET ended_ns = ?, notes = CASE WHEN notes = '' THEN ?"
+                    " ELSE notes || char(10) || ? END WHERE id = ? AND ended_ns IS NULL",
+                    (ended, note, note, run.id))
+            out.append((run, int(count)))
+        return out
 
     def runs(self) -> list[RunRecord]:
         """Every run, oldest first."""

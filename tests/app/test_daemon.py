@@ -18,6 +18,7 @@ import time
 import tty
 from pathlib import Path
 
+import pytest
 
 from drivers.kobuki import protocol
 from robotd.io.store import MapStore
@@ -101,6 +102,28 @@ def test_run_with_a_missing_port_is_one_clear_line(tmp_path: Path):
     assert "robotd: error: cannot open Kobuki port /dev/does-not-exist" in r.stderr
     assert "Traceback" not in r.stderr
     assert not (tmp_path / "map.sqlite").exists()  # no map is made for a run that cannot start
+
+
+
+@pytest.mark.parametrize(("setting", "message"), [
+    ('[base]\ndriver = "none"\n[floor_camera]\nsource = "v4l2"\ndevice = "/dev/does-not-exist"\n',
+     "robotd: error: camera device /dev/does-not-exist does not exist"),
+    ('[base]\ndriver = "none"\n[floor_camera]\nsource = "none"\n[calibration]\npath = "{bad}"\n',
+     "robotd: error: {bad}: not valid OpenCV YAML"),
+])
+def test_run_that_cannot_start_makes_no_map(tmp_path: Path, setting: str, message: str):
+    """A missing camera, or a calibration file that does not read, is found before the map
+    is made (the calibration file used to be read after it)."""
+    bad = tmp_path / "calibration.yml"
+    bad.write_text("junk: [\n")
+    cfg = tmp_path / "robotd.toml"
+    cfg.write_text(setting.format(bad=bad) + f'[map]\npath = "{tmp_path / "map.sqlite"}"\n')
+    r = subprocess.run([sys.executable, "-m", "robotd.app.cli", "run", "--config", str(cfg)],
+                       capture_output=True, text=True, timeout=60, check=False)
+    assert r.returncode == 2, r.stderr
+    (line,) = r.stderr.splitlines()
+    assert line.startswith(message.format(bad=bad))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.yml", "robotd.toml"]
 
 
 class _Counter:
@@ -197,3 +220,82 @@ def test_shutdown_handles_what_the_sources_already_read(tmp_path):
     report = d.run(stop_when=lambda: not src.items and d.queues["list"].qsize() == 0)
     assert counter.n == 50 and report.counters["inputs"] == 50
     assert report.queue_drops == {"list": 0} and report.stopped_by == "finished"
+
+
+class _FailingSource(_ListSource):
+    """Hands out its list, then fails the way a recording tee on a full disk does."""
+
+    def __init__(self, items: list, error: Exception) -> None:
+        super().__init__(items)
+        self.error = error
+
+    def read(self, timeout_s: float):
+        if not self.items:
+            raise self.error
+        return super().read(timeout_s)
+
+
+def test_a_source_failing_beyond_reopening_stops_the_run(tmp_path):
+    """A recording that cannot be written (not a device error: reopening would not help)
+    stops the daemon, which still handles what was read, ends the run in the map, and
+    raises the error; before, the source thread died and the daemon ran on forever."""
+    import pytest
+
+    from robotd.app.daemon import Daemon
+    from robotd.app.notify import Notifier
+    from robotd.app.pipeline import Pipeline
+    from robotd.base.clock import ManualClock
+    from robotd.base.errors import RecordingError
+
+    pipe = Pipeline()
+    counter = pipe.add(_Counter())
+    error = RecordingError("x.mcap.partial: cannot write: No space left on device")
+    src = _FailingSource(list(range(20)), error)
+    reopened = []
+    with MapStore.open(tmp_path / "map.sqlite", clock=ManualClock(7)) as store:
+        run_id = store.begin_run("")
+        d = Daemon(ManualClock(0), pipe, {"floor": src}, Notifier(), store=store, run_id=run_id,
+                   lossless=True, wall_clock=ManualClock(0),
+                   reopen={"floor": lambda: reopened.append(1) or src})
+        deadline = time.monotonic() + 10.0  # the old daemon never stopped by itself
+        with pytest.raises(RecordingError) as failure:
+            d.run(stop_when=lambda: time.monotonic() > deadline)
+        assert failure.value is error and time.monotonic() < deadline
+        assert counter.n == 20 and reopened == []
+        assert d.threads["floor"].fatal is error
+        assert d.report().stopped_by == f"floor failed: {error}"
+        assert store.runs()[0].ended_ns == 0  # the run is closed (the daemon's clock)
+
+
+def test_the_next_start_says_a_killed_run_did_not_end_cleanly(tmp_path: Path) -> None:
+    """`robotd run` killed with SIGKILL left ended_ns NULL and nothing said so later."""
+    cfg = tmp_path / "robotd.toml"
+    path = tmp_path / "map.sqlite"
+    cfg.write_text('[base]\ndriver = "none"\n[floor_camera]\nsource = "none"\n'
+                   f'[map]\npath = "{path}"\n')
+
+    def start(stop: signal.Signals) -> str:
+        proc = subprocess.Popen([sys.executable, "-m", "robotd.app.cli", "run", "--config", str(cfg)],
+                                stderr=subprocess.PIPE, text=True)
+        lines = []
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            lines.append(line)
+            if "robotd running" in line:
+                proc.send_signal(stop)
+                break
+        lines.append(proc.communicate(timeout=60)[1])
+        assert proc.returncode == (-signal.SIGKILL if stop == signal.SIGKILL else 0), lines
+        return "".join(lines)
+
+    start(signal.SIGKILL)
+    with MapStore.open(path, create=False) as store:
+        assert [r.ended_ns for r in store.runs()] == [None]
+    err = start(signal.SIGTERM)
+    assert (f"WARNING robotd.app.assemble: map {path}: run 1 did not end cleanly (killed or power "
+            "cut?); its 0 keyframes are kept and it is marked as ended at its last one") in err
+    with MapStore.open(path, create=False) as store:
+        first, second = store.runs()
+        assert first.ended_ns == first.started_ns and not first.ended_cleanly
+        assert second.ended_cleanly
+    assert "did not end cleanly" not in start(signal.SIGTERM)  # said once

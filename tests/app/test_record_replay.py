@@ -89,3 +89,32 @@ def test_a_long_full_speed_replay_loses_no_frame(tmp_path: Path):
     assert r["frames"] == s["frames_rendered"] and r["frames_unsynced"] == 0
     assert r["keyframes"] == s["keyframes"]
     _assert_same_keyframes(tmp_path / "live" / "map.sqlite", tmp_path / "replay.sqlite")
+
+
+def test_an_interrupted_replay_says_so_and_reports_what_it_did(tmp_path: Path):
+    """Ctrl-C used to report the whole recording as replayed and exit 0."""
+    import signal
+    import subprocess
+    import sys
+
+    rec = tmp_path / "run.mcap"
+    run_demo(Config(), out=tmp_path / "live", route="square", duration_s=4.0, seed=5,
+             plot=False, record=rec)
+    map_path = tmp_path / "replay.sqlite"
+    proc = subprocess.Popen([sys.executable, "-m", "robotd.app.cli", "replay", str(rec), "--map",
+                             str(map_path), "--speed", "1"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for line in proc.stderr:  # at real speed, the replay has about 4 s to go
+        if "robotd running" in line:
+            proc.send_signal(signal.SIGINT)
+            break
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130, stderr[-3000:]
+    assert "Traceback" not in stderr
+    assert stdout.startswith(f"replay of {rec} interrupted (SIGINT) after ")
+    done_s = float(stdout.split(" after ")[1].split(" ")[0])
+    assert 0.0 <= done_s < 3.5 and "of its 4.0 s" in stdout
+    with MapStore.open(map_path, create=False) as store:
+        (run,) = store.runs()
+        assert run.ended_ns is not None  # the map is consistent, its run closed
+        assert f"{store.count_keyframes()} keyframes -> {map_path}" in stdout

@@ -714,6 +714,55 @@ def test_spy_text_written_by_hand():
     assert (summary["bytes_in"], summary["packets"], summary["garbage_bytes"]) == (18, 1, 8)
 
 
+_SPY_OK = (  # the hand-written dump above: one hardware_version packet after 8 garbage bytes
+    b"000000.020 RX   0000  41 42 20 43 44 20 45 46  AA 55 06 0A 04 04 00 01  AB CD EF.U......\n"
+    b"000000.020 RX   0010  00 0D                                             ..              \n"
+)
+_SECOND = (  # the same packet again, in a second read of the port
+    b"000000.040 RX   0000  AA 55 06 0A 04 04 00 01  00 0D                    .U........      \n"
+)
+
+
+@pytest.mark.parametrize(("name", "text", "packets", "damaged", "foreign"), [
+    # it used to raise ValueError from bytes.fromhex
+    ("cut line", _SPY_OK + _SECOND + b"000000.050 RX   0000  AA 55 06 0", 2, 1, 0),
+    ("junk in the hex column", _SPY_OK + b"000000.030 RX   0000  zz 55 06 0A\n" + _SECOND, 2, 1, 0),
+    # it used to raise UnicodeDecodeError
+    # (its AA is read, one byte of garbage before the second packet)
+    ("non-ASCII bytes", _SPY_OK + b"000000.030 RX   0000  AA \xc3\xa9 06\n" + _SECOND, 2, 1, 0),
+    ("a junk line", _SPY_OK + b"\x00\xff garbage \xe2\x82\xac\n" + _SECOND, 2, 0, 1),
+    # it used to be read as raw bytes: 0 packets
+    ("a leading comment", b"# captured on the robot, 2024-05-06\n\n" + _SPY_OK + _SECOND, 2, 0, 0),
+    ("a leading junk line", b"Kobuki capture\n" + _SPY_OK + _SECOND, 2, 0, 1),
+])
+def test_damaged_spy_dumps_decode_what_is_intact(tmp_path, capsys, caplog, name, text, packets,
+                                                 damaged, foreign):
+    assert detect_capture_format(text) == "spy"
+    records = list(decode_capture(text))
+    summary = records[-1]["summary"]
+    assert (summary["format"], summary["packets"]) == ("spy", packets)
+    assert (summary["spy_damaged_rx_lines"], summary["spy_unrecognised_lines"]) == (damaged, foreign)
+    assert [r["offset"] for r in records[:-1]] == [8, 19 if name == "non-ASCII bytes" else 18]
+    assert all(r["subpayloads"] == records[0]["subpayloads"] for r in records[:-1])
+    cap = tmp_path / "kobuki.spy"
+    cap.write_bytes(text)
+    assert main([str(cap)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert json.loads(out[-1]) == json.loads(json.dumps(records[-1]))
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    if damaged or foreign:
+        assert warnings == [f"{cap}: {damaged} damaged RX lines (read up to the damage) and "
+                            f"{foreign} lines that are not pyserial's (skipped)"]
+    else:
+        assert warnings == []
+
+
+def test_raw_bytes_are_not_taken_for_a_dump():
+    assert detect_capture_format(HAND_FEEDBACK * 40) == "raw"
+    assert detect_capture_format(b"# only a comment\n") == "raw"
+    assert detect_capture_format(b"") == "raw"
+
+
 def test_raw_capture_through_main(tmp_path, capsys):
     cap = tmp_path / "kobuki.bin"
     cap.write_bytes(b"\x00" + HAND_FEEDBACK + HAND_FEEDBACK[:20])

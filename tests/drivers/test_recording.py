@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import datetime
+import errno
 import math
+import os
 import struct
 from pathlib import Path
 
@@ -20,7 +22,7 @@ from drivers.recording.schemas import PARTIAL_SUFFIX, camera_topic, schema_text
 from drivers.recording.writer import RecordingTee, RecordingWriter
 from robotd.base.camera import FloorCameraModel
 from robotd.base.clock import ManualClock
-from robotd.base.errors import DriverError
+from robotd.base.errors import DriverError, RecordingError
 from robotd.base.geometry import wrap_angle
 from robotd.base.messages import Frame, PoseStamped, WheelTicks, YawRate
 from sim.cameras.floor import FloorRenderer, RenderParams
@@ -285,6 +287,108 @@ def test_partial_name_until_close_and_readable_while_written(run: Run, tmp_path:
     w.close()
     assert path.exists() and not partial.exists()
     assert [m for _, m in read_recording(path)] == base
+
+
+class _DiskOf:
+    """``os`` for the writer module with a disk that holds ``free_bytes`` more: past that,
+    ``write`` writes what still fits and then raises ENOSPC, as a full file system does."""
+
+    def __init__(self, free_bytes: int) -> None:
+        self.free_bytes = free_bytes
+        self.failures = 0
+
+    def write(self, fd: int, data) -> int:
+        if self.free_bytes <= 0:
+            self.failures += 1
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        n = os.write(fd, bytes(data[: self.free_bytes]))
+        self.free_bytes -= n
+        return n
+
+    def __getattr__(self, name: str):
+        return getattr(os, name)
+
+
+def test_full_disk_ends_the_recording_readably(run: Run, tmp_path: Path, monkeypatch) -> None:
+    import drivers.recording.writer as writer_module
+
+    disk = _DiskOf(6000)
+    monkeypatch.setattr(writer_module, "os", disk)
+    path = tmp_path / "full.mcap"
+    partial = Path(str(path) + PARTIAL_SUFFIX)
+    w = RecordingWriter(path, chunk_size=4096)
+    offered = []  # the last one is the write that failed
+    with pytest.raises(RecordingError, match="No space left on device") as failure:
+        for m in run.base_msgs:
+            offered.append(m)
+            (w.write_wheel_ticks if isinstance(m, WheelTicks) else w.write_yaw_rate)(m)
+    assert str(partial) in str(failure.value) and w.error is failure.value
+    assert disk.failures == 1 and 100 < len(offered) < len(run.base_msgs)
+    # the recording is over: later writes raise the same error without touching the disk
+    with pytest.raises(RecordingError) as again:
+        w.write_wheel_ticks(WheelTicks(10**9, 1, 2, 3))
+    assert again.value is failure.value and disk.failures == 1
+    w.close()  # closes the file, raises nothing, keeps the .partial name
+    w.close()
+    assert not path.exists() and partial.stat().st_size <= 6000
+    with RecordingReader(partial) as r:
+        got = [m for _, m in r.messages()]
+        # cut back to its last complete record: nothing half-written at the end
+        assert r.damage.no_summary and r.damage.unread_tail_bytes == 0
+        assert r.damage.damaged_chunks == 0
+    # every complete chunk is there: at most the chunk being filled (~60 messages) is lost
+    assert len(got) >= len(offered) - 80 and got == offered[: len(got)]
+
+
+def test_full_disk_at_close_keeps_a_readable_partial(run: Run, tmp_path: Path, monkeypatch) -> None:
+    import drivers.recording.writer as writer_module
+
+    path = tmp_path / "full.mcap"
+    partial = Path(str(path) + PARTIAL_SUFFIX)
+    disk = _DiskOf(10**9)
+    monkeypatch.setattr(writer_module, "os", disk)
+    w = RecordingWriter(path, chunk_size=4096)
+    base = run.base_msgs[:300]
+    for m in base:
+        (w.write_wheel_ticks if isinstance(m, WheelTicks) else w.write_yaw_rate)(m)
+    disk.free_bytes = 0  # full by the time the summary is written
+    with pytest.raises(RecordingError, match=f"cannot finish the recording.*{partial.name}"):
+        w.close()
+    w.close()
+    assert not path.exists()
+    with RecordingReader(partial) as r:
+        got = [m for _, m in r.messages()]
+        assert r.damage.unread_tail_bytes == 0
+    assert 0 < len(got) <= len(base) and got == base[: len(got)]
+
+
+def test_tee_hands_over_what_it_read_then_raises_the_write_failure(tmp_path: Path,
+                                                                   monkeypatch) -> None:
+    import drivers.recording.writer as writer_module
+
+    class Source:
+        def __init__(self) -> None:
+            self.n = 0
+
+        def read(self, timeout_s: float):
+            self.n += 1
+            return [WheelTicks(self.n, self.n, self.n, self.n) for _ in range(50)]
+
+        def close(self) -> None:
+            pass
+
+    disk = _DiskOf(4000)
+    monkeypatch.setattr(writer_module, "os", disk)
+    w = RecordingWriter(tmp_path / "tee.mcap", chunk_size=1024)
+    tee = RecordingTee(Source(), w)
+    reads = []
+    with pytest.raises(RecordingError, match="No space left"):
+        for _ in range(1000):
+            reads.append(tee.read(0.1))
+    # every read before the failure was handed over whole, the failing one too
+    assert reads and all(len(r) == 50 for r in reads) and w.error is not None
+    assert tee.stats()["errors"] == 0  # not a device error
+    w.close()
 
 
 def test_writer_rejects_bad_values_and_existing_files(tmp_path: Path) -> None:

@@ -595,3 +595,119 @@ def test_bad_pose_graph_writes_are_refused_and_write_nothing(tmp_path: Path) -> 
         assert raw.execute("SELECT count(*) FROM optimized_poses").fetchone() == (0,)
         assert raw.execute("SELECT count(*) FROM loop_candidates").fetchone() == (0,)
     raw.close()
+
+
+def test_a_file_claiming_a_version_without_its_tables_is_refused_and_untouched(tmp_path: Path) -> None:
+    """A crafted file holding only meta(schema_version=1) used to be switched to WAL mode
+    (its header rewritten) before the migration to version 2 failed on it."""
+    path = tmp_path / "map.sqlite"
+    with sqlite3.connect(path) as raw:
+        raw.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL) WITHOUT ROWID")
+        raw.execute("INSERT INTO meta VALUES ('schema_version', '1')")
+    raw.close()
+    before = _digest(path)
+    with pytest.raises(MapStoreError, match=r"claims schema version 1 but lacks calibration, "
+                                            r"keyframes, links, runs: not a robotd map"):
+        MapStore.open(path)
+    assert _digest(path) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.sqlite"]
+
+
+def test_a_map_missing_a_column_of_its_version_is_refused_and_untouched(tmp_path: Path) -> None:
+    path = tmp_path / "map.sqlite"
+    _make_map(path)
+    with sqlite3.connect(path) as raw:
+        raw.execute("PRAGMA journal_mode=DELETE")
+        raw.execute("ALTER TABLE loop_candidates DROP COLUMN detail")
+    raw.close()
+    before = _digest(path)
+    with pytest.raises(MapStoreError, match=r"lacks loop_candidates\.detail"):
+        MapStore.open(path)
+    assert _digest(path) == before
+
+
+@pytest.fixture
+def read_only_folder(tmp_path: Path):
+    """A folder nothing can be written into: permissions for a normal user, a read-only
+    bind mount for root (skipped where it cannot be made)."""
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    if os.geteuid() != 0:
+        def make_read_only() -> None:
+            folder.chmod(0o555)
+        yield folder, make_read_only
+        folder.chmod(0o755)
+        return
+    mounted = []
+
+    def make_read_only() -> None:
+        for cmd in (["mount", "--bind", str(folder), str(folder)],
+                    ["mount", "-o", "remount,bind,ro", str(folder)]):
+            if subprocess.run(cmd, capture_output=True, check=False).returncode != 0:
+                pytest.skip("root without a read-only bind mount")
+            mounted.append(cmd)
+    yield folder, make_read_only
+    if mounted:
+        subprocess.run(["umount", str(folder)], check=True)
+
+
+def test_a_healthy_map_in_a_read_only_folder(read_only_folder) -> None:
+    """It used to be called damaged (SQLite could not make its -shm), and on a read-only
+    mount the clean-up of that check ended in a traceback (EROFS from unlink)."""
+    folder, make_read_only = read_only_folder
+    path = folder / "map.sqlite"
+    ids = _make_map(path)
+    make_read_only()
+    before = _digest(path)
+    with pytest.raises(MapStoreError) as refused:
+        MapStore.open(path)
+    assert str(refused.value) == (f"map file {path}: its folder {folder} is read-only (the map "
+                                  "writes its -wal and -shm files beside it)")
+    with MapStore.open(path, create=False, read_only=True) as store:  # reading needs no writing
+        assert [k.id for k in store.keyframes()] == ids
+        assert store.keyframe_image(ids[1]).shape == (24, 32)
+        with pytest.raises(MapStoreError, match="write failed"):
+            store.begin_run("")
+    with pytest.raises(MapStoreError, match=f"cannot create map file {folder / 'new.sqlite'}: "
+                                            f"its folder {folder} is read-only"):
+        MapStore.open(folder / "new.sqlite")
+    assert _digest(path) == before
+    assert sorted(p.name for p in folder.iterdir()) == ["map.sqlite"]
+
+
+def test_a_read_only_open_neither_creates_nor_migrates(tmp_path: Path, monkeypatch) -> None:
+    path = tmp_path / "map.sqlite"
+    with pytest.raises(MapStoreError, match="does not exist"):
+        MapStore.open(path, read_only=True)
+    assert not path.exists()
+    _make_map(path)
+    monkeypatch.setattr(
+        store_module, "MIGRATIONS", {**store_module.MIGRATIONS, SCHEMA_VERSION + 1: _add_cameras_column}
+    )
+    before = _digest(path)
+    with pytest.raises(MapStoreError, match=f"schema version {SCHEMA_VERSION}; open it once for "
+                                            "writing"):
+        MapStore.open(path, read_only=True)
+    assert _digest(path) == before
+
+
+def test_runs_that_never_ended_are_marked_once_keeping_their_keyframes(tmp_path: Path) -> None:
+    path = tmp_path / "map.sqlite"
+    with MapStore.open(path) as store:
+        killed = store.begin_run("a", started_ns=100)
+        ids = [store.add_keyframe(killed, stamp_ns=200 + i, pose_xyyaw=(i, 0, 0), covariance=_cov(i),
+                                  image=None) for i in range(3)]
+        empty = store.begin_run("b", started_ns=50, notes="bench drive")
+        found = store.mark_unfinished_runs()
+        assert [(run.id, run.ended_ns, n) for run, n in found] == [(killed, None, 3), (empty, None, 0)]
+        runs = {r.id: r for r in store.runs()}
+        assert runs[killed].ended_ns == 202 and runs[empty].ended_ns == 50
+        assert runs[killed].notes.startswith("did not end cleanly: no end was recorded")
+        assert runs[empty].notes.startswith("bench drive\ndid not end cleanly")
+        assert not runs[killed].ended_cleanly and not runs[empty].ended_cleanly
+        assert [k.id for k in store.keyframes(killed)] == ids
+        assert store.mark_unfinished_runs() == []  # said once
+        clean = store.begin_run("c", started_ns=1)
+        store.end_run(clean, ended_ns=2)
+        assert store.runs()[-1].ended_cleanly
+
