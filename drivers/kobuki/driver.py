@@ -32,6 +32,9 @@ from robotd.base.messages import WheelTicks, YawRate
 
 logger = logging.getLogger(__name__)
 
+#: The Kobuki's feedback period (50 Hz), device time.
+FEEDBACK_PERIOD_NS = 20_000_000
+
 
 def open_kobuki(section: BaseConfig, clock: Clock) -> KobukiDriver:
     """The registry's factory of ``("base", "kobuki")``: a driver on ``section.port``."""
@@ -60,6 +63,13 @@ class KobukiDriver(Driver):
 
     ``yaw_source`` is ``"raw_gyro"`` (the mean yaw axis of the packet's raw 3-axis gyro
     samples, falling back to the inertial rate when a packet has none) or ``"inertial"``.
+    A packet carries the raw samples taken since the previous packet, so their mean is the
+    yaw rate in the *middle* of that interval: the raw-gyro :class:`YawRate` is stamped
+    half the interval (the device time since the previous packet, at most one nominal
+    period, ``FEEDBACK_PERIOD_NS``) before the packet, and comes before the packet's
+    wheel message. Stamped at the packet itself, the heading lagged by about 10 ms, which
+    in a 1 rad/s turn is 0.6 degrees (measured against the virtual robot's truth:
+    heading error = -9.9 ms x yaw rate).
 
     :meth:`stats` adds to the base counters the parser's (``packets``,
     ``garbage_bytes``, ``bad_checksums``, ...), ``clock_clamps`` (packets whose mapped
@@ -85,6 +95,8 @@ class KobukiDriver(Driver):
         self._mapper = OffsetMapper(int(offset_window_s * 1e9))
         self._untimed_packets = 0
         self._commands_sent = 0
+        self._prev_device_ns: int | None = None
+        self._prev_stamp_ns = 0
         try:
             self._serial = serial.serial_for_url(url, baudrate=baudrate, timeout=timeout_s,
                                                  exclusive=True)
@@ -145,6 +157,13 @@ class KobukiDriver(Driver):
                          self._url, bad_after - bad_before, len(data))
         return messages
 
+    def _half_interval_ns(self, dev: int | None) -> int:
+        """Half the device time since the previous packet (at most one nominal period)."""
+        gap = FEEDBACK_PERIOD_NS
+        if dev is not None and self._prev_device_ns is not None and dev > self._prev_device_ns:
+            gap = min(gap, dev - self._prev_device_ns)
+        return gap // 2
+
     def _convert(self, packets: list[list[FeedbackSubPayload]],
                  receipt_ns: int) -> list[WheelTicks | YawRate]:
         device_ns: list[int | None] = []
@@ -165,19 +184,26 @@ class KobukiDriver(Driver):
                 stamp = self._mapper.stamp(dev)
             gyro_z: list[int] = []
             inertial = None
+            wheels = []
             for s in items:
                 if type(s) is BasicSensorData:
-                    out.append(WheelTicks(stamp, s.left_encoder, s.right_encoder, s.timestamp_ms))
+                    wheels.append(WheelTicks(stamp, s.left_encoder, s.right_encoder, s.timestamp_ms))
                 elif type(s) is RawGyroData:
                     gyro_z.extend(z for _, _, z in s.samples)
                 elif type(s) is InertialData:
                     inertial = s
             if self._yaw_source == "raw_gyro" and gyro_z:
                 rate = sum(gyro_z) / len(gyro_z) * self._gyro_radps_per_digit
-                out.append(YawRate(stamp, rate, "raw_gyro"))
+                # never before the previous packet (nor before the clock's zero)
+                mid = max(stamp - self._half_interval_ns(dev), self._prev_stamp_ns, 0)
+                out.append(YawRate(mid, rate, "raw_gyro"))
             elif inertial is not None:
                 out.append(YawRate(stamp, inertial.angle_rate_centidegps / 100.0 * _DEG,
                                    "inertial"))
+            out.extend(wheels)
+            if dev is not None:
+                self._prev_device_ns = dev
+            self._prev_stamp_ns = stamp
         return out
 
     def send_base_control(self, v_mps: float, w_radps: float) -> None:

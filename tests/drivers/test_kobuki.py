@@ -489,10 +489,14 @@ def test_driver_maps_wrapping_device_time_to_the_clock():
             (T0 - 60 * MS, 65534, 1, 65500), (T0 - 40 * MS, 65535, 0, 65520),
             (T0 - 20 * MS, 0, 65535, 4), (T0, 1, 65534, 24)]
         yaw = [m for m in messages if isinstance(m, YawRate)]
-        assert [m.stamp_ns for m in yaw] == [T0 - 60 * MS, T0 - 40 * MS, T0 - 20 * MS, T0]
+        # The mean of the samples taken since the previous packet: the middle of the 20 ms
+        # between packets (the first packet: half the nominal 20 ms period).
+        assert [m.stamp_ns for m in yaw] == [T0 - 70 * MS, T0 - 50 * MS, T0 - 30 * MS, T0 - 10 * MS]
         assert yaw[0].source == "raw_gyro"
         assert yaw[0].yaw_rate_radps == pytest.approx(math.radians(150 * 0.00875), rel=1e-12)
-        assert [type(m) for m in messages[:2]] == [WheelTicks, YawRate]
+        # in time order: each packet's yaw rate before its wheel message
+        assert [type(m) for m in messages[:2]] == [YawRate, WheelTicks]
+        assert [m.stamp_ns for m in messages] == sorted(m.stamp_ns for m in messages)
 
         # a slower packet later does not move the offset: stamp = device time + best offset
         clock.advance_ns(25 * MS)
@@ -790,3 +794,16 @@ def test_main_missing_capture_is_one_line_error(tmp_path, capsys):
     assert main([str(missing)]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(missing) in err[0]
+
+
+def test_raw_gyro_stamp_is_half_the_device_interval_at_most_half_a_period():
+    clock = ManualClock(T0)
+    with KobukiDriver("loop://", clock) as drv:
+        # 12 ms apart (a faster firmware), then a 60 ms gap (packets lost: the samples still
+        # cover only the last nominal period)
+        for ts in (1000, 1012, 1072):
+            drv.port.write(fb(ts))
+        messages = drv.read(0.0)
+        wheel = [m.stamp_ns for m in messages if isinstance(m, WheelTicks)]
+        yaw = [m.stamp_ns for m in messages if isinstance(m, YawRate)]
+        assert [w - y for w, y in zip(wheel, yaw)] == [10 * MS, 6 * MS, 10 * MS]

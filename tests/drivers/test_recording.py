@@ -201,10 +201,12 @@ def test_mcap_summary_shows_channels_and_counts(run: Run, recording) -> None:
 def test_ros_fields_as_ros_tools_decode_them(run: Run, recording) -> None:
     path, _ = recording
     seen: dict[str, object] = {}
+    yaw_msg = [m for m in run.base_msgs if isinstance(m, YawRate)][7]
     with open(path, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         for _schema, channel, message, ros in reader.iter_decoded_messages():
-            if channel.topic == FORWARD_TOPIC or message.log_time == run.odom[7].stamp_ns:
+            if (channel.topic == FORWARD_TOPIC or message.log_time == run.odom[7].stamp_ns
+                    or (channel.topic == "/imu" and message.log_time == yaw_msg.stamp_ns)):
                 seen.setdefault(channel.topic, (message, ros))
     msg, fwd = seen[FORWARD_TOPIC]
     assert (fwd.header.stamp.sec, fwd.header.stamp.nanosec) == (1, 234_567_891)
@@ -212,7 +214,6 @@ def test_ros_fields_as_ros_tools_decode_them(run: Run, recording) -> None:
     assert fwd.header.frame_id == "forward_camera_optical_frame" and fwd.format == "png"
     assert fwd.data[:8] == b"\x89PNG\r\n\x1a\n"
     _, imu = seen["/imu"]
-    yaw_msg = next(m for m in run.base_msgs if isinstance(m, YawRate) and m.stamp_ns == run.odom[7].stamp_ns)
     assert imu.angular_velocity.z == yaw_msg.yaw_rate_radps
     assert imu.orientation_covariance[0] == -1.0 and imu.linear_acceleration_covariance[0] == -1.0
     assert imu.header.frame_id == "gyro_link"

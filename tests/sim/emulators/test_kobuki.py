@@ -68,11 +68,15 @@ def test_driver_messages_match_a_hand_conversion_of_the_si_streams(square_feedba
         np.testing.assert_array_equal([getattr(m, attr) for m in wheels], expected)
     ms = (st.device_ms0 + np.round(s.device_clock_s * 1000).astype(np.int64)) % 65536
     np.testing.assert_array_equal([m.device_ms for m in wheels], ms)
-    # Stamps: the packets' times.
+    # Stamps: the packets' times; the yaw rate (a mean of the samples since the previous
+    # packet) half a packet interval earlier, which is where its samples' mean time is.
     np.testing.assert_array_equal([m.stamp_ns for m in wheels], s.stamp_ns)
-    np.testing.assert_array_equal([m.stamp_ns for m in yaws], s.stamp_ns)
-    # Yaw rate: the mean of the packet's yaw samples, each rounded to 0.00875 deg/s.
     owner = _packet_of_sample(s.t_s, s.gyro_t_s)
+    for k in (1, 2, 500, 1500, len(s.t_s) - 1):
+        mean_t_ns = s.gyro_t_s[owner == k].mean() * 1e9
+        assert abs(yaws[k].stamp_ns - mean_t_ns) < 5e6
+        assert abs(s.stamp_ns[k] - mean_t_ns) > 5e6  # the packet's own stamp is not
+    # Yaw rate: the mean of the packet's yaw samples, each rounded to 0.00875 deg/s.
     digits = np.round(np.degrees(s.gyro_radps[:, 2]) / DIGIT_DEGPS)
     for k in (0, 1, 500, 1500, len(s.t_s) - 1):
         mean_deg = digits[owner == k].mean() * DIGIT_DEGPS
