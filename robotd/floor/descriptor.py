@@ -411,13 +411,15 @@ def drop_repeats(c: Candidates, params: ExtractParams) -> tuple[Candidates, np.n
     if params.repeat_distance <= 0 or k < 2:
         return c, raw
     sq = np.einsum("ij,ij->i", raw, raw)
-    d2 = sq[:, None] + sq[None, :] - 2 * (raw @ raw.T)
-    xy = c.xy[:k].astype(np.float32)
-    pq = np.einsum("ij,ij->i", xy, xy)
+    d2 = raw @ raw.T  # |a - b|^2 = |a|^2 + |b|^2 - 2 a.b, in place
+    d2 *= -2.0
+    d2 += sq[:, None]
+    d2 += sq[None, :]
+    i, j = np.nonzero(d2 < params.repeat_distance**2)  # the diagonal, neighbours on one blob, repeats
     patch_px = 2 * 4 * params.cell_px  # the patch width, in working-image pixels (cells are half-resolution)
-    d2[pq[:, None] + pq[None, :] - 2 * (xy @ xy.T) < patch_px**2] = np.inf  # the diagonal too
+    far = np.sum((c.xy[i] - c.xy[j]) ** 2, axis=1) >= patch_px**2
     repeat = np.zeros(len(c.xy), bool)
-    repeat[:k] = d2.min(axis=1) < params.repeat_distance**2
+    repeat[i[far]] = True
     keep = ~repeat
     kept = Candidates(c.xy[keep], c.angle[keep], c.attributes[keep], c.relevance[keep], c.pooled)
     return kept, raw[keep[:k]]
