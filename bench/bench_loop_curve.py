@@ -26,7 +26,9 @@ same training with *every* pair of keyframes scored (the paper's N^2 labelling),
 estimated from the measured per-pair time of the run, reported as a ratio.
 
 Every step writes its own files into ``--out`` and is skipped when its output is already
-there, so an interrupted run resumes (delete the folder to start afresh). Writes
+there, so an interrupted run resumes (delete the folder to start afresh). ``--only NAME``
+runs only some floors, ``--labels TAG`` only some training variants (``fused``, ``wheel``,
+``fused-every-pair``, ``wheel-every-pair``). Writes
 ``DIR/loop_curve.json`` and prints the tables. Takes ~15 min per floor on 2 cores, plus
 ~25 min with ``--big``.
 
@@ -101,6 +103,8 @@ def run_floor(name: str, floor_args: list[str], args: argparse.Namespace, cfg_pa
                "--seed", seed, *floor_args])
     res: dict[str, Any] = {"floor": name, "floor_args": floor_args}
     for label, (tag, odo, extra) in LABELS.items():
+        if args.labels and tag not in args.labels:
+            continue
         calib = d / f"calibration-{tag}.yml"
         tj, vj = d / f"train-{tag}.json", d / f"validate-{tag}.json"
         if not tj.exists() and calib.exists():
@@ -162,6 +166,8 @@ def report(results: list[dict[str, Any]], big: dict[str, Any] | None) -> None:
     rows = []
     for r in results:
         for odo in LABELS:
+            if odo not in r:
+                continue
             t = r[odo]["train"]
             rows.append([r["floor"], odo, t["keyframes"], t["pairs"], t.get("mislabelled_pairs", "?"),
                          *(_thr(t["modes"][str(m)]["threshold"]) for m in MODES)])
@@ -174,6 +180,8 @@ def report(results: list[dict[str, Any]], big: dict[str, Any] | None) -> None:
         rows = []
         for r in results:
             for odo in LABELS:
+                if odo not in r:
+                    continue
                 v = r[odo]["validate"]["modes"]
                 rows.append([r["floor"], odo, *(f"{_pct(v[str(m)][subset]['precision'])} / "
                                                 f"{_pct(v[str(m)][subset]['recall'])}" for m in MODES)])
@@ -209,6 +217,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--floor", action="append", default=[], metavar="FILE", help="another floor photo")
     ap.add_argument("--only", action="append", default=[], metavar="NAME", help="only these floors")
+    ap.add_argument("--labels", action="append", default=[], choices=[v[0] for v in LABELS.values()],
+                    metavar="TAG", help="only these training variants (fused, wheel, fused-every-pair, "
+                                        "wheel-every-pair; default all)")
     ap.add_argument("--train-route", default="figure8")
     ap.add_argument("--val-route", default="square")
     ap.add_argument("--seed", type=int, default=1, help="seed of the floors and the robots")

@@ -19,7 +19,10 @@ floor's scale barely changes between views, its rotation changes all the time.
    probabilities that a keypoint matches. Ours: detector response, edge ratio, distance
    from the image centre and orientation strength, each binned; the log-probability
    tables were learned on virtual-robot pairs (``tools/train_selection.py``, shipped in
-   ``selection.npz``). The budget is filled greedily in that order.
+   ``selection.npz``). Keypoints that repeat within their own image are dropped first
+   (:func:`drop_repeats`: a printed floor repeats its few prints every few planks, and a
+   keypoint whose copy is in view is ambiguous to every other view of that floor). The
+   budget is filled greedily in that order.
 3. **Local descriptors** of the selected keypoints only: 4 x 4 cells x 8 orientation
    bins of gradients in a patch rotated to the keypoint's orientation (SIFT-like). The
    gradient orientation maps are pooled once over the image (as DAISY does) and one
@@ -70,7 +73,7 @@ import numpy as np
 from robotd.base.errors import DescriptorError
 
 __all__ = ["ANGLE_BITS", "MODE_BYTES", "MODES", "POSITION_STEP_PX", "ExtractParams", "FloorDescriptor",
-           "Learned", "decode", "describe", "extract", "load_learned"]
+           "Learned", "decode", "describe", "drop_repeats", "extract", "load_learned"]
 
 MODE_BYTES = {1: 512, 2: 1024, 3: 2048, 4: 4096, 5: 8192, 6: 16384}
 MAGIC = b"FD"
@@ -110,6 +113,15 @@ class ExtractParams:
         pool_sigma_px: Gaussian pooling of the gradient orientation maps (cell support).
         cell_px: distance between the centres of neighbouring descriptor cells.
         max_candidates: cap on the candidates ranked (strongest responses first).
+        repeat_distance: a keypoint whose own image holds another keypoint (beyond the
+            descriptor's patch, ``4 cell_px``) with a raw descriptor nearer than this (L2 of
+            the unit-norm 128-D descriptors) is a repeat and is not coded. 0.3 is about the
+            90th percentile of the distance between two views of one floor point (measured
+            on the virtual robot's floors; unrelated keypoints are 0.7-1.0 apart): the copy
+            is as alike as a re-observation. 0 keeps every keypoint.
+        repeat_pool: how many of the most relevant candidates are checked for repeats
+            (the pairwise distances cost ``repeat_pool**2 x 128`` multiply-adds); candidates
+            after them are kept unchecked. Enough for the largest mode's budget.
         global_min_features: the global descriptor aggregates at least this many of the
             best keypoints, even when fewer are coded (low modes).
         learned: learned tables; None = the shipped ``selection.npz``.
@@ -124,13 +136,16 @@ class ExtractParams:
     pool_sigma_px: float = 2.5
     cell_px: float = 6.0
     max_candidates: int = 4000
+    repeat_distance: float = 0.3
+    repeat_pool: int = 1000
     global_min_features: int = 200
     learned: Learned | None = None
 
     def __post_init__(self) -> None:
         if not (self.max_side_px >= 32 and self.detect_sigma_px > 0 and self.dog_ratio > 1
                 and self.edge_ratio > 1 and self.orientation_sigma_px > 0 and self.pool_sigma_px > 0
-                and self.cell_px > 0 and self.max_candidates >= 1 and self.global_min_features >= 0):
+                and self.cell_px > 0 and self.max_candidates >= 1 and self.global_min_features >= 0
+                and self.repeat_distance >= 0 and self.repeat_pool >= 0):
             raise ValueError(f"extraction parameters out of range: {self}")
 
 
@@ -369,6 +384,47 @@ def raw_descriptors(c: Candidates, n: int, params: ExtractParams) -> np.ndarray:
     return d
 
 
+def drop_repeats(c: Candidates, params: ExtractParams) -> tuple[Candidates, np.ndarray]:
+    """Step 2b: drop the candidates that repeat within their own image.
+
+    Of the first ``params.repeat_pool`` candidates (relevance order), each one whose raw
+    descriptor (:func:`raw_descriptors`) lies within ``params.repeat_distance`` of another
+    one's is dropped, both copies alike, unless the two are closer than the descriptor's
+    patch (``4 cell_px``; two extrema on one blob share their patch, they are not a
+    repeat). Which copy another view's keypoint is cannot be told from its descriptor, and
+    when that view holds both, the matcher's ratio test rejects either (Lowe 2004,
+    Sec. 7.1): a repeat spends budget and brings only false agreement.
+
+    That false agreement is what makes a printed floor (paper 003's worst case) alias. Two
+    views ``s`` apart, ``s`` a step of the plank lattice, see the same image at the same
+    pixels wherever the planks ``s`` apart carry the same print, and the matcher finds the
+    identity with most keypoints as inliers while the views are ``s`` apart. A keypoint at
+    ``u`` agrees so only if the floor at ``u`` and at ``u + s`` is the same print; when
+    ``u + s`` is in view too, the keypoint repeats in its own image and is dropped here. For
+    ``s`` under half the view, that leaves only keypoints near the corners.
+
+    Returns the kept candidates (same order) and the ``(K, 128) float32`` raw descriptors
+    of the first ``K`` of them (the checked ones that were kept), for reuse.
+    """
+    k = min(params.repeat_pool, len(c.xy))
+    raw = raw_descriptors(c, k, params)
+    if params.repeat_distance <= 0 or k < 2:
+        return c, raw
+    sq = np.einsum("ij,ij->i", raw, raw)
+    d2 = raw @ raw.T  # |a - b|^2 = |a|^2 + |b|^2 - 2 a.b, in place
+    d2 *= -2.0
+    d2 += sq[:, None]
+    d2 += sq[None, :]
+    i, j = np.nonzero(d2 < params.repeat_distance**2)  # the diagonal, neighbours on one blob, repeats
+    patch_px = 2 * 4 * params.cell_px  # the patch width, in working-image pixels (cells are half-resolution)
+    far = np.sum((c.xy[i] - c.xy[j]) ** 2, axis=1) >= patch_px**2
+    repeat = np.zeros(len(c.xy), bool)
+    repeat[i[far]] = True
+    keep = ~repeat
+    kept = Candidates(c.xy[keep], c.angle[keep], c.attributes[keep], c.relevance[keep], c.pooled)
+    return kept, raw[keep[:k]]
+
+
 def _haar() -> np.ndarray:
     """``(2, 8, 8)`` the two per-cell transforms (the second on bins shifted by one)."""
     t = np.zeros((8, 8), np.float32)
@@ -511,11 +567,12 @@ def extract(image: np.ndarray, mode: int, params: ExtractParams | None = None) -
     grey = _grey(image)
     work = _working(grey, params)
     wh, ww = work.shape
-    c = candidates(work, params, learned)
+    c, raw_checked = drop_repeats(candidates(work, params, learned), params)
     grid_w, grid_h = -(-ww // POSITION_STEP_PX), -(-wh // POSITION_STEP_PX)
     cells = _cells(c.xy, grid_w, grid_h)
     n = _fit(spec, cells)
-    raw = raw_descriptors(c, min(len(c.xy), max(n, params.global_min_features)), params)
+    m = min(len(c.xy), max(n, params.global_min_features))
+    raw = raw_checked[:m] if m <= len(raw_checked) else raw_descriptors(c, m, params)
     trits = ternarise(raw[:n], learned, spec.length)
     gbits = _hadamard_bits(global_vector(raw, learned), learned.signs, spec.global_bits)
     order = np.argsort(cells[:n], kind="stable")

@@ -18,7 +18,8 @@ from hypothesis import strategies as st
 from robotd.base.errors import DescriptorError, RobotdError
 from robotd.base.geometry import wrap_angle
 from robotd.floor.descriptor import (ANGLE_BITS, MODE_BYTES, MODES, POSITION_STEP_PX, ExtractParams, candidates,
-                                     decode, describe, extract, load_learned, raw_descriptors, ternarise)
+                                     decode, describe, drop_repeats, extract, load_learned, raw_descriptors,
+                                     ternarise)
 from robotd.base.camera import FloorCameraModel
 from sim.world.floor import Floor
 from sim.cameras.floor import FloorRenderer, RenderParams
@@ -235,10 +236,11 @@ def test_describe_is_decode_of_extract(frames):
 @pytest.mark.parametrize("mode", [1, 3, 6])
 def test_decoded_keypoints_are_the_most_relevant_candidates(frames, mode):
     """Positions within half a grid step, angles within half a quantisation step, and the
-    trits exactly as ternarised, for the ``n`` most relevant candidates in coded order."""
+    trits exactly as ternarised, for the ``n`` most relevant candidates that do not repeat
+    in the image, in coded order."""
     img = frames["brick"]  # 640 px: the working image is the image itself
     params, learned = ExtractParams(), load_learned()
-    c = candidates(img, params, learned)
+    c, _ = drop_repeats(candidates(img, params, learned), params)
     d = decode(extract(img, mode))
     n = len(d)
     assert 0 < n < len(c.xy)
@@ -270,12 +272,77 @@ def test_keypoints_land_on_known_blobs(scale):
     h, w = 480 * scale, 640 * scale
     gx, gy = np.meshgrid((np.arange(4) + 0.5) * w / 4, (np.arange(3) + 0.5) * h / 3)
     centres = np.column_stack([gx.ravel(), gy.ravel()]) + rng.uniform(-20, 20, (12, 2)) * scale
-    d = describe(_blobs(h, w, centres, 4.0 * scale), 2)
+    # Twelve identical blobs repeat one another: keep them to test where keypoints land.
+    d = describe(_blobs(h, w, centres, 4.0 * scale), 2, ExtractParams(repeat_distance=0.0))
     expected_step = POSITION_STEP_PX * max(1.0, w / 1280)
     assert d.position_step_px == pytest.approx(expected_step)
     err = np.abs(d.xy_px[None, :, :] - centres[:, None, :]).max(axis=2).min(axis=1)  # per blob, nearest keypoint
     assert np.all(err <= 0.85 * expected_step), err
     assert 12 <= len(d) <= 20  # the blobs, and at most a few ring responses
+
+
+def _repeat_scene() -> tuple[np.ndarray, list[tuple[int, int]], tuple[int, int], int]:
+    """A 640 x 480 grass image with one 160 px gravel crop pasted twice and another once.
+
+    Returns the image, the two copies' top-left corners, the unique crop's corner and the
+    crop size (offsets are even, so both copies fall on the same half-resolution grid).
+    """
+    img = cv2.resize(skimage.data.grass(), (640, 480), interpolation=cv2.INTER_CUBIC)
+    size = 160
+    gravel = skimage.data.gravel()
+    crop, other = gravel[:size, :size], gravel[300:300 + size, 300:300 + size]
+    copies, unique = [(120, 100), (380, 220)], (100, 290)
+    for x, y in copies:
+        img[y:y + size, x:x + size] = crop
+    img[unique[1]:unique[1] + size, unique[0]:unique[0] + size] = other
+    return img, copies, unique, size
+
+
+def _inside(xy: np.ndarray, corner: tuple[int, int], size: int, margin: int) -> np.ndarray:
+    x, y = corner
+    return ((xy[:, 0] >= x + margin) & (xy[:, 0] < x + size - margin)
+            & (xy[:, 1] >= y + margin) & (xy[:, 1] < y + size - margin))
+
+
+@pytest.mark.parametrize("mode", [2, 4, 6])
+def test_keypoints_that_repeat_in_the_image_are_not_coded(mode):
+    """Where the image holds two copies of one texture, none of the copies' keypoints whose
+    patch lies inside the copy is coded; a texture that appears once keeps its keypoints.
+    With repeats kept (``repeat_distance=0``) the copies have keypoints like any texture."""
+    img, copies, unique, size = _repeat_scene()
+    margin = 40  # the descriptor patch (4 cells of 6 half-resolution px) plus the blur
+    kept = describe(img, mode)
+    every = describe(img, mode, ExtractParams(repeat_distance=0.0))
+    for corner in copies:
+        assert np.sum(_inside(every.xy_px, corner, size, margin)) >= 5
+        assert np.sum(_inside(kept.xy_px, corner, size, margin)) == 0
+    assert np.sum(_inside(kept.xy_px, unique, size, margin)) >= 5
+    assert len(kept) >= 0.9 * len(every)  # the budget is filled with other keypoints
+
+
+def test_drop_repeats_keeps_the_order_and_returns_the_kept_raw_descriptors():
+    img, copies, _, size = _repeat_scene()
+    params, learned = ExtractParams(), load_learned()
+    c = candidates(img, params, learned)
+    kept, raw = drop_repeats(c, params)
+    assert 0 < len(kept.xy) < len(c.xy)
+    # The kept candidates are a subsequence of the candidates, in relevance order.
+    assert np.all(np.diff(kept.relevance) <= 0)
+    idx = [int(np.flatnonzero(np.all(c.xy == p, axis=1))[0]) for p in kept.xy]
+    assert idx == sorted(idx)
+    assert np.array_equal(raw, raw_descriptors(kept, len(raw), params))
+    # Nothing dropped with the check off; only checked candidates (the pool) are dropped.
+    assert len(drop_repeats(c, ExtractParams(repeat_distance=0.0))[0].xy) == len(c.xy)
+    small = ExtractParams(repeat_pool=50)
+    kept_small, raw_small = drop_repeats(c, small)
+    assert np.array_equal(kept_small.xy[len(raw_small):], c.xy[50:])
+
+
+def test_extract_params_repeat_fields_out_of_range():
+    with pytest.raises(ValueError):
+        ExtractParams(repeat_distance=-0.1)
+    with pytest.raises(ValueError):
+        ExtractParams(repeat_pool=-1)
 
 
 # ----------------------------------------------------------------------------- bad arguments

@@ -283,3 +283,39 @@ def test_global_score_counts_differing_bits(textures):
     assert global_score(d, flipped) == pytest.approx(1 - 3 / 256)
     inverted = dataclasses.replace(d, global_bits=~d.global_bits)
     assert global_score(d, inverted) == 0.0
+
+
+@pytest.fixture(scope="module")
+def plank_views() -> dict[str, np.ndarray]:
+    """Virtual-robot frames on the printed plank floor (``sim.world.pattern``: 4 prints of
+    the gravel photo on staggered 0.45 x 0.12 m planks): ``here``; ``lattice``, one plank
+    row up (0.15 m along, 0.12 m across: where the stagger repeats the plank layout);
+    ``near``, 5 cm ahead. At ``here`` most planks one lattice step away carry the same print."""
+    from sim.world.pattern import PatternFloor, PatternParams
+
+    floor = PatternFloor(skimage.data.gravel(), PatternParams(kind="planks"), 0.001, seed=1)
+    renderer = FloorRenderer(floor, FloorCameraModel.default(), RenderParams(), np.random.default_rng(0))
+    here = np.array([1.108, 0.255, -1.926])
+    ahead = 0.05 * np.array([math.cos(here[2]), math.sin(here[2]), 0.0])
+    return {name: renderer.render(here + d, 0.0, 0.0, 0.0)
+            for name, d in (("here", np.zeros(3)), ("lattice", np.array([0.15, 0.12, 0.0])), ("near", ahead))}
+
+
+@pytest.mark.parametrize("mode", [2, 3, 5])
+def test_plank_views_a_lattice_step_apart_do_not_match_like_a_true_overlap(plank_views, mode):
+    """Keypoints that repeat within their image are not coded, so the view a lattice step
+    away scores under half the true 5 cm overlap. Coding them (``repeat_distance=0``), it
+    matched at the identity with more inliers than the true overlap: the alias the plank
+    floor's loop thresholds failed on."""
+    from robotd.floor.descriptor import ExtractParams
+
+    for params in (ExtractParams(repeat_distance=0.0), ExtractParams()):
+        here = describe(plank_views["here"], mode, params)
+        alias = local_score(here, describe(plank_views["lattice"], mode, params))
+        true = local_score(here, describe(plank_views["near"], mode, params))
+        assert np.linalg.norm(true.transform[:, 2]) == pytest.approx(50.0, abs=5.0)  # 5 cm at 1 mm/px
+        if params.repeat_distance == 0.0:
+            assert alias.score > true.score
+            assert np.linalg.norm(alias.transform[:, 2]) < 5.0  # the identity; the truth is 192 px away
+        else:
+            assert alias.score < 0.5 * true.score
