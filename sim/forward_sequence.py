@@ -11,7 +11,8 @@ turned ``turn_rad`` since the last one, renders each keyframe with the forward c
   (:func:`sim.cameras.forward.same_place_matrix`), symmetric;
 * ``overlap.npy``: ``(N, N) float16`` view overlap behind it, to re-threshold;
 * ``poses.csv``: ``index,t_s,x_m,y_m,yaw_rad`` true robot pose of every image;
-* ``world.png``: the top view with the route drawn, and ``sequence.json`` the settings.
+* ``sequence.json``: the settings and counts; ``world/top_view.png``: the top view with
+  the route drawn (in a subfolder: every image in the folder itself is a sequence image).
 """
 
 from __future__ import annotations
@@ -107,7 +108,8 @@ def write_forward_sequence(out_dir: str | Path, settings: SequenceSettings = Seq
         f.write("index,t_s,x_m,y_m,yaw_rad\n")
         for i, (t, p) in enumerate(zip(times, poses)):
             f.write(f"{i},{t:.4f},{p[0]:.5f},{p[1]:.5f},{p[2]:.6f}\n")
-    cv2.imwrite(str(out / "world.png"), _overview_with_route(world, poses))
+    (out / "world").mkdir(exist_ok=True)
+    cv2.imwrite(str(out / "world" / "top_view.png"), _overview_with_route(world, poses))
     summary = {
         "settings": asdict(settings), "images": int(len(poses)),
         "images_with_a_revisit": int(truth.any(axis=1).sum()),
