@@ -32,6 +32,7 @@ whole frame.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -254,7 +255,9 @@ def _walls(free, max_wall_m: float) -> list[Wall]:
 # ------------------------------------------------------------------------ textures
 
 
+@functools.lru_cache(maxsize=None)
 def _load_photo(name: str) -> np.ndarray:
+    """A scikit-image sample photo as grey ``uint8``, read-only (cached: worlds share them)."""
     import skimage.data
 
     img = skimage.data.stereo_motorcycle()[0] if name == "motorcycle" else getattr(skimage.data, name)()
@@ -262,6 +265,7 @@ def _load_photo(name: str) -> np.ndarray:
         img = cv2.cvtColor(np.ascontiguousarray(img[..., :3]), cv2.COLOR_RGB2GRAY)
     if img.dtype != np.uint8:
         img = cv2.normalize(img.astype(np.float32), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    img.setflags(write=False)
     return img
 
 
