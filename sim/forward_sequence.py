@@ -27,8 +27,14 @@ import cv2
 import numpy as np
 
 from robotd.base.geometry import wrap_angle
-from sim.cameras.forward import (ForwardCameraModel, ForwardRenderer, ForwardRenderParams,
-                                 same_place_matrix, view_histograms, view_overlap)
+from sim.cameras.forward import (
+    ForwardCameraModel,
+    ForwardRenderer,
+    ForwardRenderParams,
+    same_place_matrix,
+    view_histograms,
+    view_overlap,
+)
 from sim.route import Motion, MotionLimits, build_route, plan_motion
 from sim.world.rooms import WorldParams, world_for_route
 

@@ -41,7 +41,7 @@ import numpy as np
 
 from robotd.base.errors import ConfigError
 
-__all__ = ["Wall", "WorldParams", "WallWorld", "office_world", "world_for_route", "PHOTO_NAMES"]
+__all__ = ["PHOTO_NAMES", "Wall", "WallWorld", "WorldParams", "corridor_world", "office_world", "world_for_route"]
 
 #: scikit-image sample photographs hung on the walls (all ship inside the wheel).
 PHOTO_NAMES: tuple[str, ...] = (
@@ -255,7 +255,7 @@ def _walls(free, max_wall_m: float) -> list[Wall]:
 # ------------------------------------------------------------------------ textures
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _load_photo(name: str) -> np.ndarray:
     """A scikit-image sample photo as grey ``uint8``, read-only (cached: worlds share them)."""
     import skimage.data

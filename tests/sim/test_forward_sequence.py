@@ -9,7 +9,11 @@ import numpy as np
 import pytest
 
 from robotd.io.sequence import list_images, load_ground_truth, read_image
-from sim.forward_sequence import SequenceSettings, keyframe_times, write_forward_sequence
+from sim.forward_sequence import (
+    SequenceSettings,
+    keyframe_times,
+    write_forward_sequence,
+)
 from sim.route import Motion, build_route, plan_motion
 
 

@@ -9,8 +9,14 @@ import numpy as np
 import pytest
 
 from robotd.base.errors import ConfigError
-from sim.cameras.forward import (ForwardCameraModel, ForwardRenderer, ForwardRenderParams,
-                                 same_place_matrix, view_histograms, view_overlap)
+from sim.cameras.forward import (
+    ForwardCameraModel,
+    ForwardRenderer,
+    ForwardRenderParams,
+    same_place_matrix,
+    view_histograms,
+    view_overlap,
+)
 from sim.world.rooms import WorldParams, corridor_world
 
 CLEAN = ForwardRenderParams(noise_sigma=0.0, mipmap=False)
