@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--step-m", type=float, default=0.1, help="keyframe every STEP metres (default 0.1)")
     ap.add_argument("--turn-deg", type=float, default=10.0, help="or every TURN degrees (default 10)")
-    ap.add_argument("--threshold", type=float, default=0.3, help="view overlap for 'same place' (default 0.3)")
+    ap.add_argument("--threshold", type=float, default=0.2, help="view overlap for 'same place' (default 0.2)")
     ap.add_argument("--repeats", type=int, default=1, help="drive the route this many times")
     ap.add_argument("--no-brute-force", action="store_true")
     ap.add_argument("--skip-write", action="store_true", help="reuse the images already in --dir")

@@ -54,7 +54,7 @@ class SequenceSettings:
     seed: int = 0
     step_m: float = 0.1
     turn_rad: float = math.radians(10.0)
-    threshold: float = 0.3
+    threshold: float = 0.2
     leave_below: float = 0.1
     repeats: int = 1
     noise_sigma: float = 2.0

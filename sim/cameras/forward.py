@@ -331,7 +331,7 @@ def view_overlap(hist: np.ndarray, block: int = 256) -> np.ndarray:
     return out
 
 
-def same_place_matrix(overlap: np.ndarray, threshold: float = 0.3, leave_below: float = 0.1,
+def same_place_matrix(overlap: np.ndarray, threshold: float = 0.2, leave_below: float = 0.1,
                       ) -> np.ndarray:
     """``(N, N) bool`` symmetric "same place on a revisit" labels from :func:`view_overlap`.
 
