@@ -20,12 +20,13 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from robotd.base.errors import ConfigError
 from robotd.base.geometry import wrap_angle
 from sim.cameras.forward import (
     ForwardCameraModel,
@@ -35,7 +36,7 @@ from sim.cameras.forward import (
     view_histograms,
     view_overlap,
 )
-from sim.route import Motion, MotionLimits, build_route, plan_motion
+from sim.route import Motion, MotionLimits, Route, build_route, plan_motion
 from sim.world.rooms import WorldParams, world_for_route
 
 __all__ = ["SequenceSettings", "keyframe_times", "write_forward_sequence"]
@@ -76,13 +77,17 @@ def keyframe_times(motion: Motion, step_m: float, turn_rad: float, rate_hz: floa
     return t[np.asarray(keep)]
 
 
-def _repeat(motion: Motion, times: int) -> Motion:
+def _repeated_route(name: str, times: int) -> Route:
+    """The named route driven ``times`` times in a row: its waypoints repeated (the planner
+    turns the robot at each lap's start, so every lap starts from the same pose)."""
+    route = build_route(name)
     if times == 1:
-        return motion
-    v = np.tile(motion.v_mps[:-1], times)
-    w = np.tile(motion.w_radps[:-1], times)
-    start = (float(motion.x_m[0]), float(motion.y_m[0]), float(motion.yaw_rad[0]))
-    return Motion.from_velocities(v, w, motion.dt_s, start, route_name=motion.route_name)
+        return route
+    pts = list(route.waypoints_m)
+    joined = list(pts)
+    for _ in range(times - 1):
+        joined += pts[1:] if pts[0] == joined[-1] else pts
+    return replace(route, name=f"{name}x{times}", waypoints_m=tuple(joined))
 
 
 def write_forward_sequence(out_dir: str | Path, settings: SequenceSettings = SequenceSettings(),
@@ -95,9 +100,13 @@ def write_forward_sequence(out_dir: str | Path, settings: SequenceSettings = Seq
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     world = world_for_route(settings.route, settings.seed, world_params)
-    motion = _repeat(plan_motion(build_route(settings.route), MotionLimits()), settings.repeats)
+    motion = plan_motion(_repeated_route(settings.route, settings.repeats), MotionLimits())
     times = keyframe_times(motion, settings.step_m, settings.turn_rad)
     poses = motion.poses_at(times)
+    outside = [i for i, p in enumerate(poses) if not world.contains(p[0], p[1])]
+    if outside:
+        raise ConfigError(f"route {settings.route!r} leaves its world at {len(outside)} keyframes "
+                          f"(first: {poses[outside[0], :2].round(2).tolist()})")
     renderer = ForwardRenderer(world, camera, ForwardRenderParams(noise_sigma=settings.noise_sigma),
                                np.random.default_rng(settings.seed + 2))
     t0 = time.perf_counter()

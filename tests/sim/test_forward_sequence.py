@@ -49,3 +49,13 @@ def test_written_sequence_reads_back_through_robotd_io(tmp_path):
     np.testing.assert_allclose(poses[:, 2:4], motion.poses_at(poses[:, 1])[:, :2], atol=1e-4)
     assert (tmp_path / "world" / "top_view.png").is_file()
     assert json.loads((tmp_path / "sequence.json").read_text())["images"] == len(files)
+
+
+def test_repeated_laps_start_from_the_same_pose_and_stay_in_the_world():
+    from sim.forward_sequence import _repeated_route
+    from sim.world.rooms import world_for_route
+
+    one, three = plan_motion(build_route("square")), plan_motion(_repeated_route("square", 3))
+    assert three.length_m == pytest.approx(3 * one.length_m, rel=1e-6)
+    world = world_for_route("square")
+    assert all(world.contains(x, y) for x, y, _ in three.poses[::50])
