@@ -8,7 +8,8 @@ that each own a list of event times and an ``emit(i)``:
   master side of a pseudo-terminal, so the daemon opens the slave by its path with the
   same serial driver it uses on the robot; it answers the daemon's commands;
 * cameras (:mod:`sim.cameras`): the downward floor camera, rendered at the true pose at
-  30 Hz and read like a real camera.
+  30 Hz and read like a real camera; optionally (``forward_camera=True``) the forward
+  camera in the route's textured world (:mod:`sim.world.rooms`), at ``forward_fps``.
 
 One thread plays every part's events in time order (emulators before cameras on equal
 times); the injected :class:`~robotd.base.clock.ManualClock` is moved to each event's time
@@ -73,6 +74,8 @@ class VirtualRobotSettings:
     floor_pattern: str | None = None
     camera_fps: float = 30.0
     camera_queue_size: int = 4
+    forward_camera: bool = False
+    forward_fps: float = 10.0
 
 
 def _default_print_photo() -> "np.ndarray":
@@ -86,10 +89,13 @@ class VirtualRobot:
     """The simulated robot; ``start()`` plays it out in a thread, ``close()`` tears down.
 
     ``emulators`` and ``cameras`` are its parts (today the Kobuki base, :attr:`base`, and
-    the floor camera, :attr:`camera`). ``sensor_params`` is the base's sensor error
+    the floor camera, :attr:`camera`; with ``settings.forward_camera`` also the forward
+    camera, :attr:`forward`, else ``None``). ``sensor_params`` is the base's sensor error
     model, ``base_params`` what its firmware reports, ``render_params`` the floor
     camera's exposure and noise. The base's random draws come from ``settings.seed``, the
-    camera's noise from ``settings.seed + 1``.
+    floor camera's noise from ``settings.seed + 1``, the forward camera's from
+    ``settings.seed + 2``. In fast (lossless) mode every camera must be read, or the robot
+    waits for its reader: enable the forward camera only when something reads it.
     """
 
     def __init__(self, settings: VirtualRobotSettings, camera_model: FloorCameraModel,
@@ -118,6 +124,10 @@ class VirtualRobot:
                                    lossless=not settings.realtime, stop=self._stop)
         self.emulators: list[KobukiEmulator] = [self.base]
         self.cameras: list[VirtualCamera] = [self.camera]
+        self.forward: VirtualCamera | None = None
+        if settings.forward_camera:
+            self.forward = _make_forward_camera(settings, self.motion, self._stop)
+            self.cameras.append(self.forward)
         self.port = self.base.port
         self.finished = threading.Event()
         self._thread = threading.Thread(target=self._run, name="virtual-robot", daemon=True)
@@ -203,6 +213,18 @@ def _events(k: int, times_s: np.ndarray) -> Iterator[tuple[float, int, int]]:
     """Part ``k``'s events as ``(t_s, k, i)``: merged, equal times go in part order."""
     for i, t_s in enumerate(times_s):
         yield float(t_s), k, i
+
+
+def _make_forward_camera(settings: VirtualRobotSettings, motion, stop: threading.Event) -> VirtualCamera:
+    """The forward camera in the route's world (:func:`sim.world.rooms.world_for_route`)."""
+    from sim.cameras.forward import ForwardCameraModel, ForwardRenderer, ForwardRenderParams, forward_camera
+    from sim.world.rooms import world_for_route
+
+    world = world_for_route(settings.route, settings.seed)
+    renderer = ForwardRenderer(world, ForwardCameraModel(), ForwardRenderParams(),
+                               np.random.default_rng(settings.seed + 2))
+    return forward_camera(renderer, motion, settings.forward_fps, capacity=settings.camera_queue_size,
+                          lossless=not settings.realtime, stop=stop)
 
 
 def _make_floor(settings: VirtualRobotSettings):

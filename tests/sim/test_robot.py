@@ -45,3 +45,31 @@ def test_a_short_run_through_the_kobuki_driver_and_the_camera():
 def test_an_unknown_route_is_a_config_error():
     with pytest.raises(ConfigError, match="unknown route"):
         VirtualRobot(VirtualRobotSettings(route="moon"), FloorCameraModel.default(), ManualClock())
+
+
+def test_the_optional_forward_camera_plays_with_the_floor_camera():
+    clock = ManualClock()
+    settings = VirtualRobotSettings(route="corridor", seed=1, duration_s=0.5, camera_queue_size=2,
+                                    forward_camera=True, forward_fps=10.0)
+    with VirtualRobot(settings, FloorCameraModel.default(), clock) as robot:
+        assert robot.forward is not None and robot.cameras == [robot.camera, robot.forward]
+        robot.start()
+        floor, forward = [], []
+        while not (robot.finished.is_set() and len(floor) + len(forward) == robot.frames_emitted):
+            for cam, got in ((robot.camera, floor), (robot.forward, forward)):
+                frame = cam.read(0.01)
+                if frame is not None:
+                    got.append(frame)
+        assert robot.error is None
+    assert len(floor) == 15 and len(forward) == 5  # 30 Hz and 10 Hz over 0.5 s
+    assert [f.stamp_ns for f in forward] == [i * 100_000_000 for i in range(5)]
+    assert all(f.camera == "forward" and f.image.shape == (480, 640) for f in forward)
+    # The robot stands still for its first 2 s: the forward frames differ only by noise.
+    diff = np.abs(forward[0].image.astype(int) - forward[-1].image.astype(int))
+    assert diff.mean() < 4.0
+
+
+def test_without_the_forward_camera_nothing_changes():
+    settings = VirtualRobotSettings(route="square", duration_s=0.2)
+    with VirtualRobot(settings, FloorCameraModel.default(), ManualClock()) as robot:
+        assert robot.forward is None and robot.cameras == [robot.camera]
