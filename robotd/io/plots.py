@@ -17,6 +17,15 @@ def _figure(size: tuple[float, float]) -> Any:
     return plt.subplots(figsize=size, dpi=110)
 
 
+def _save(fig: Any, path: Path) -> None:
+    """Lay out, write the PNG and free the figure."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
 def plot_trajectories(path: Path, floor: Any, truth: np.ndarray, estimates: dict[str, np.ndarray],
                       keyframes_xy: np.ndarray | None = None, title: str = "",
                       loop_edges_xy: np.ndarray | None = None) -> None:
@@ -26,8 +35,6 @@ def plot_trajectories(path: Path, floor: Any, truth: np.ndarray, estimates: dict
     ``loop_edges_xy`` ``(L, 2, 2)``: the accepted loop edges as segments between the two
     keyframes' positions.
     """
-    import matplotlib.pyplot as plt
-
     pts = np.vstack([truth[:, :2]] + [e[:, :2] for e in estimates.values()])
     lo = pts.min(axis=0) - 0.6
     hi = pts.max(axis=0) + 0.6
@@ -61,9 +68,7 @@ def plot_trajectories(path: Path, floor: Any, truth: np.ndarray, estimates: dict
     ax.legend(loc="best", fontsize=9, framealpha=0.9)
     if title:
         ax.set_title(title)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def plot_similarity(path: Path, overlap: np.ndarray, scores: np.ndarray, stamps_ns: np.ndarray,
@@ -74,8 +79,6 @@ def plot_similarity(path: Path, overlap: np.ndarray, scores: np.ndarray, stamps_
     ``overlap`` and ``scores`` are ``(N, N)``; ``scores`` is NaN where a pair was not a
     candidate. Pairs inside the recent-keyframe exclusion window are shaded.
     """
-    import matplotlib.pyplot as plt
-
     n = len(overlap)
     lower = np.tril(np.ones((n, n), bool), -1)
     t = np.asarray(stamps_ns) / 1e9
@@ -99,9 +102,7 @@ def plot_similarity(path: Path, overlap: np.ndarray, scores: np.ndarray, stamps_
     for ax in (ax1, ax2):
         ax.set_xlabel("earlier keyframe j")
         ax.set_ylabel("keyframe i")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def plot_loop_curves(path: Path, curves: dict[int, Any], thresholds: dict[int, float | None],
@@ -110,8 +111,6 @@ def plot_loop_curves(path: Path, curves: dict[int, Any], thresholds: dict[int, f
 
     Each curve is drawn through its bins' centres; the shaded band reaches down to the
     lower credible bound; a dotted vertical line marks the mode's threshold."""
-    import matplotlib.pyplot as plt
-
     fig, ax = _figure((8.0, 5.0))
     for m, c in curves.items():
         mid = 0.5 * (c.score_lo + c.score_hi)
@@ -129,9 +128,7 @@ def plot_loop_curves(path: Path, curves: dict[int, Any], thresholds: dict[int, f
     ax.legend(fontsize=8)
     if title:
         ax.set_title(title)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def plot_stage_times(path: Path, stage_times_s: dict[str, np.ndarray], average_every: int = 5,
@@ -143,8 +140,6 @@ def plot_stage_times(path: Path, stage_times_s: dict[str, np.ndarray], average_e
     ``average_every`` images as in the paper. ``extra_s``: other per-image times drawn as
     dashed lines (a baseline's).
     """
-    import matplotlib.pyplot as plt
-
     def block_mean(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         a = np.asarray(a, np.float64)
         k = max(1, average_every)
@@ -172,9 +167,7 @@ def plot_stage_times(path: Path, stage_times_s: dict[str, np.ndarray], average_e
     ax.legend(fontsize=8)
     if title:
         ax.set_title(title)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def plot_likelihood_posterior(path: Path, image_id: int, scores: np.ndarray, virtual_score: float,
@@ -188,8 +181,6 @@ def plot_likelihood_posterior(path: Path, image_id: int, scores: np.ndarray, vir
     level above which a hypothesis is believed). ``truth (n,) bool``: the true matches,
     marked along the axis.
     """
-    import matplotlib.pyplot as plt
-
     n = len(scores)
     fig, axes = _figure((9.0, 6.0))
     fig.clf()
@@ -212,6 +203,4 @@ def plot_likelihood_posterior(path: Path, image_id: int, scores: np.ndarray, vir
     ax2.set_ylabel("tf-idf score")
     ax2.legend(fontsize=8)
     ax1.set_title(title or f"image {image_id}: posterior and likelihood")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    _save(fig, path)
