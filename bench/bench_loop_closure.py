@@ -186,22 +186,25 @@ def trajectory_figures(truth: np.ndarray, est: np.ndarray) -> dict[str, float]:
             "rpe_mm": rpe_t * 1e3, "rpe_deg": float(math.degrees(rpe_r))}
 
 
+def _edge_error(truth: dict[int, np.ndarray], a: int, b: int, delta: np.ndarray) -> np.ndarray:
+    """``(3,)`` error of a measured relative pose b-in-a against the truth, yaw wrapped."""
+    e = between(between(truth[a], truth[b]), np.asarray(delta, float))
+    e[2] = wrap_angle(e[2])
+    return e
+
+
 def _delta_error(truth: dict[int, np.ndarray], a: int, b: int, delta: np.ndarray) -> tuple[float, float]:
     """Translation (m) and rotation (deg) error of a measured relative pose b-in-a."""
-    e = between(between(truth[a], truth[b]), np.asarray(delta, float))
-    return float(math.hypot(e[0], e[1])), float(abs(math.degrees(wrap_angle(e[2]))))
+    e = _edge_error(truth, a, b, delta)
+    return float(math.hypot(e[0], e[1])), float(abs(math.degrees(e[2])))
 
 
 def _nees(truth: dict[int, np.ndarray], edges: list[Any]) -> float | None:
     """Mean normalised estimation error squared of ``edges`` against the truth."""
     if not edges:
         return None
-    vals = []
-    for e in edges:
-        err = between(between(truth[e.from_id], truth[e.to_id]), np.asarray(e.delta, float))
-        err[2] = wrap_angle(err[2])
-        vals.append(float(err @ e.information @ err))
-    return float(np.mean(vals))
+    errs = [_edge_error(truth, e.from_id, e.to_id, e.delta) for e in edges]
+    return float(np.mean([err @ e.information @ err for err, e in zip(errs, edges)]))
 
 
 def evaluate(d: Path, watcher: LoopWatcher, summary: dict[str, Any], wall_s: float) -> dict[str, Any]:
