@@ -102,13 +102,18 @@ class _Recorder:
         self.keyframe_stamps: list[int] = []
         self.queries: list[tuple[int, list[tuple[int, float, float, int]]]] = []
         self.loops: list[tuple[int, int]] = []  # declared loops: (older keyframe, newer)
+        self.refused: list[tuple[int, int]] = []  # refused by the graph's gate: (older, newer)
 
     def subscriptions(self) -> dict[type, Any]:
-        from robotd.base.messages import KeyframeStored, Link, OdometryUpdate
+        from robotd.base.messages import CandidateFate, KeyframeStored, Link, OdometryUpdate
         from robotd.floor.detector import KeyframeQuery
 
         return {OdometryUpdate: self.on_odometry, KeyframeStored: self.on_keyframe,
-                KeyframeQuery: self.on_floor_query, Link: self.on_link}
+                KeyframeQuery: self.on_floor_query, Link: self.on_link, CandidateFate: self.on_fate}
+
+    def on_fate(self, fate: Any) -> None:
+        if fate.fate == "failed_gate" and fate.detail.startswith("chi2"):  # not an earlier run's
+            self.refused.append((fate.candidate_id, fate.query_id))
 
     def on_link(self, link: Any) -> None:
         if link.kind == "loop":
@@ -523,6 +528,11 @@ def floor_summary(cfg: Any, camera: Any, motion: Any, recorder: _Recorder,
     d["loops_accepted"] = int(len(j))
     d["loops_truly_overlapping"] = int(np.sum(j >= LOOP_R))
     d["loops_sharing_floor"] = int(np.sum(j > 0))
+    # The gate's refusals judged the same way: a truly overlapping one is a true loop the
+    # graph's prediction disagreed with (odometry covariance too tight, or a bad transform).
+    jr = np.array([overlap[row[a], row[b]] for a, b in recorder.refused if a in row and b in row], dtype=float)
+    d["refused_by_gate"] = int(len(jr))
+    d["refused_truly_overlapping"] = int(np.sum(jr >= LOOP_R))
     if out is not None:
         from robotd.io.plots import plot_similarity
 
@@ -597,6 +607,8 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
                   f"{fd.get('above_threshold', 0)}; loop edges accepted: {fd['loops_accepted']}, "
                   f"truly overlapping (J >= {LOOP_R}): {fd['loops_truly_overlapping']}, "
                   f"sharing some floor: {fd['loops_sharing_floor']}", file=f)
+            print(f"  refused by the graph's gate: {fd.get('refused_by_gate', 0)}, truly overlapping: "
+                  f"{fd.get('refused_truly_overlapping', 0)}", file=f)
         else:
             print("  declared loops: none (no trained threshold for this mode)", file=f)
         for lv, (t, n) in fd["top1_precision_above_score"].items():
