@@ -120,6 +120,17 @@ class EkfParams:
     - ``initial_pose_sigma``: prior on ``x``, ``y`` (m) and ``yaw`` (rad); the start pose
       defines the odometry frame (paper 003, Sec. III), so this is tiny but keeps the
       covariance positive definite.
+    - ``smooth_pose`` (default True): at rest (the zero-velocity updates and the gyro
+      readings paired with them) the measurements update ``v``, ``w`` and the bias but do
+      not move the pose. The optimal gain would also move it along the pose's correlation
+      with the bias, and that correlation spans the whole run: at a stop, where the bias
+      becomes observable, each gyro reading then shifted the heading and, through it, the
+      position, by up to 8 cm per reading at the end of the 110 m office route (the
+      heading's lever arm over the route), back and forth, so the pose "moved" while the
+      robot stood still and keyframes taken at rest got those jumps as odometry edges. An
+      odometry frame must be continuous (REP 105): the gain with the pose rows zeroed is a
+      Schmidt ("consider") update, and the Joseph form keeps the covariance right for it.
+      Moving, the optimal gain is kept.
     """
 
     accel_noise_mps2: float = 0.5
@@ -137,6 +148,7 @@ class EkfParams:
     initial_speed_sigma_mps: float = 0.5
     initial_yaw_rate_sigma_radps: float = 1.0
     initial_pose_sigma: float = 1e-5
+    smooth_pose: bool = True
 
     def __post_init__(self) -> None:
         for name in self.__slots__:
@@ -270,12 +282,22 @@ def predict_with_jacobian(state: EkfState, t_ns: int,
     return EkfState(int(t_ns), mean, 0.5 * (cov + cov.T)), jac
 
 
-def _update(state: EkfState, innovation: np.ndarray, h: np.ndarray, r: np.ndarray) -> EkfState:
-    """Linear(ised) measurement update in Joseph form."""
+def rate_gain(cov: np.ndarray, h: np.ndarray, r: np.ndarray, smooth_pose: bool) -> np.ndarray:
+    """The gain of a rate measurement: ``P H^T S^-1``, with the pose rows zeroed when
+    ``smooth_pose`` (:class:`EkfParams`)."""
+    ph = cov @ h.T
+    gain = np.linalg.solve(h @ ph + r, ph.T).T  # = P H^T S^-1 (S is symmetric)
+    if smooth_pose:
+        gain[:3] = 0.0
+    return gain
+
+
+def _update(state: EkfState, innovation: np.ndarray, h: np.ndarray, r: np.ndarray,
+            smooth_pose: bool = False) -> EkfState:
+    """Linear(ised) measurement update in Joseph form (valid for any gain, so also for the
+    pose-frozen one of ``smooth_pose``)."""
     p = state.cov
-    ph = p @ h.T
-    s = h @ ph + r
-    gain = np.linalg.solve(s, ph.T).T  # = P H^T S^-1 (S is symmetric)
+    gain = rate_gain(p, h, r, smooth_pose)
     mean = state.mean + gain @ innovation
     mean[IYAW] = wrap_angle(mean[IYAW])
     a = _EYE - gain @ h
@@ -304,14 +326,17 @@ def update_wheels(state: EkfState, v_mps: float, w_radps: float,
     sv, sw = wheel_noise(v_mps, w_radps, params, stationary)
     z = np.array([v_mps, w_radps], dtype=float)
     innovation = z - state.mean[[IV, IW]]
-    return _update(state, innovation, H_WHEELS, np.diag([sv * sv, sw * sw]))
+    return _update(state, innovation, H_WHEELS, np.diag([sv * sv, sw * sw]),
+                   stationary and params.smooth_pose)
 
 
-def update_gyro(state: EkfState, w_radps: float, params: EkfParams = EkfParams()) -> EkfState:
-    """Measurement of the gyro's yaw rate: ``h(x) = x[w] + x[bias]``."""
+def update_gyro(state: EkfState, w_radps: float, params: EkfParams = EkfParams(),
+                at_rest: bool = False) -> EkfState:
+    """Measurement of the gyro's yaw rate: ``h(x) = x[w] + x[bias]`` (``at_rest``: paired
+    with a zero-velocity update, see ``smooth_pose`` in :class:`EkfParams`)."""
     innovation = np.array([w_radps - state.mean[IW] - state.mean[IB]])
     r = np.array([[params.gyro_noise_radps ** 2]])
-    return _update(state, innovation, H_GYRO, r)
+    return _update(state, innovation, H_GYRO, r, at_rest and params.smooth_pose)
 
 
 # --------------------------------------------------------------------------------------

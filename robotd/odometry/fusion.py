@@ -254,13 +254,15 @@ class OdometryFilter:
                 self._state = initial_state(ts, self.params, self.initial_pose)
             self._advance_to(ts)
             rate = float(msg.yaw_rate_radps)
-            if stationary and self._still_gate(rate):
+            at_rest = stationary and self._still_gate(rate)
+            if at_rest:
                 self._apply_wheels(0.0, 0.0, True)
             prior = self._state
-            self._state = update_gyro(prior, rate, self.params)
+            self._state = update_gyro(prior, rate, self.params, at_rest)
             if self._clone is not None:
                 r = np.array([[self.params.gyro_noise_radps ** 2]])
-                self._clone = clone_after_update(self._clone, prior.cov, H_GYRO, r)
+                self._clone = clone_after_update(self._clone, prior.cov, H_GYRO, r,
+                                                 at_rest and self.params.smooth_pose)
             self._record()
 
     def _apply_wheels(self, v: float, w: float, stationary: bool) -> None:
@@ -270,7 +272,8 @@ class OdometryFilter:
         self._state = update_wheels(prior, v, w, self.params, stationary=stationary)
         if self._clone is not None:
             sv, sw = wheel_noise(v, w, self.params, stationary)
-            self._clone = clone_after_update(self._clone, prior.cov, H_WHEELS, np.diag([sv * sv, sw * sw]))
+            self._clone = clone_after_update(self._clone, prior.cov, H_WHEELS, np.diag([sv * sv, sw * sw]),
+                                             stationary and self.params.smooth_pose)
 
     def _still_gate(self, rate_radps: float) -> bool:
         """True when the gyro agrees with a base at rest (within ``still_gate_sigma``).

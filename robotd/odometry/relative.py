@@ -37,6 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from robotd.odometry.ekf import rate_gain
 from robotd.base.geometry import (
     between,
     compose,
@@ -85,11 +86,12 @@ def clone_after_predict(clone: PoseClone, jac: np.ndarray) -> PoseClone:
     return PoseClone(clone.keyframe_stamp_ns, clone.pose, clone.cov, jac @ clone.cross, clone.offset)
 
 
-def clone_after_update(clone: PoseClone, prior_cov: np.ndarray, h: np.ndarray, r: np.ndarray) -> PoseClone:
+def clone_after_update(clone: PoseClone, prior_cov: np.ndarray, h: np.ndarray, r: np.ndarray,
+                       smooth_pose: bool = False) -> PoseClone:
     """The clone after a measurement update of the state alone: ``X' = (I - K H) X`` with
-    ``K = P H^T (H P H^T + R)^-1`` from the state's covariance ``P`` before the update."""
-    ph = prior_cov @ h.T
-    gain = np.linalg.solve(h @ ph + r, ph.T).T
+    ``K = P H^T (H P H^T + R)^-1`` from the state's covariance ``P`` before the update (its
+    pose rows zeroed with ``smooth_pose``, as the filter's rate updates do)."""
+    gain = rate_gain(prior_cov, h, r, smooth_pose)
     cross = clone.cross - gain @ (h @ clone.cross)
     return PoseClone(clone.keyframe_stamp_ns, clone.pose, clone.cov, cross, clone.offset)
 
