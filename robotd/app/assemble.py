@@ -14,6 +14,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from robotd.app.daemon import Daemon, Source
 from robotd.app.notify import Notifier
 from robotd.app.pipeline import (
@@ -28,6 +30,7 @@ from robotd.app.pipeline import (
 from robotd.base.clock import Clock
 from robotd.base.config import Config, to_toml
 from robotd.floor.detector import FloorDetectorParams, FloorLoopDetector
+from robotd.forward.planar import PlanarLoopParams
 from robotd.io.calibfile import CalibrationFile
 from robotd.io.store import MapStore
 from robotd.odometry.ekf import EkfParams
@@ -114,6 +117,33 @@ def build_visual_odometry(cfg: Config, odometry: OdometryFilter | None,
     return VisualOdometryStage(vo, odometry, v.mode)
 
 
+def forward_mount(cfg: Config) -> np.ndarray:
+    """The forward camera's ``(x_m, y_m, yaw_rad)`` in the robot frame."""
+    f = cfg.forward_detector
+    return np.array([f.mount_x_m, f.mount_y_m, math.radians(f.mount_yaw_deg)])
+
+
+def forward_loop_params(cfg: Config) -> PlanarLoopParams:
+    """The noise of a forward loop edge, from the config."""
+    f = cfg.forward_detector
+    return PlanarLoopParams(sigma_bearing_rad=math.radians(f.sigma_bearing_deg),
+                            sigma_yaw_rad=math.radians(f.sigma_yaw_deg))
+
+
+def build_forward_stage(cfg: Config) -> Any:
+    """The forward loop detector stage (paper 000) with the config's features and camera."""
+    from robotd.app.forwardloops import ForwardLoopStage
+    from robotd.forward import DetectorParams, FeatureParams, ForwardDetector
+
+    f = cfg.forward_detector
+    k = np.array([[f.fx_px, 0.0, f.cx_px], [0.0, f.fy_px, f.cy_px], [0.0, 0.0, 1.0]])
+    params = DetectorParams(features=FeatureParams(kind=f.features, max_features=f.max_features))
+    log.info("forward loop detector on (%s, a keyframe every %.2f m or %.0f deg)", f.features,
+             f.distance_m, f.rotation_deg)
+    return ForwardLoopStage(ForwardDetector(params, camera_matrix=k), distance_m=f.distance_m,
+                            rotation_rad=math.radians(f.rotation_deg), sync_tolerance_s=f.sync_tolerance_s)
+
+
 def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, lossless: bool,
                    calibration: CalibrationFile | None = None, observers: Sequence[Any] = (),
                    floor_detector: bool = True, pose_graph: bool = True) -> Pipeline:
@@ -131,10 +161,14 @@ def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, l
         from robotd.app.posegraph import PoseGraphStage
         from robotd.graph.incremental import IncrementalGraph
 
+        fw = cfg.forward_detector
         pipeline.add(PoseGraphStage(IncrementalGraph(), store, gate_chi2=cfg.pose_graph.gate_chi2,
-                                    save_every=cfg.pose_graph.save_every_keyframes))
+                                    save_every=cfg.pose_graph.save_every_keyframes,
+                                    forward_mount=forward_mount(cfg), forward_params=forward_loop_params(cfg)))
     else:
         pipeline.add(LoopsUngated())
+    if cfg.forward_detector.enabled:
+        pipeline.add(build_forward_stage(cfg))
     detector = build_floor_detector(cfg, store, calibration) if floor_detector else None
     if detector is not None:
         pipeline.add(FloorDetectorStage(detector))
@@ -170,7 +204,8 @@ def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store
     pipeline = build_pipeline(cfg, clock, store, run_id, lossless=lossless, calibration=calibration,
                               observers=observers, floor_detector=floor_detector,
                               pose_graph=pose_graph)
-    sizes = {"base": cfg.base.queue_size, "floor": cfg.floor_camera.queue_size}
+    sizes = {"base": cfg.base.queue_size, "floor": cfg.floor_camera.queue_size,
+             "forward": cfg.floor_camera.queue_size}
     return Daemon(clock, pipeline, sources, notifier, store=store, run_id=run_id, lossless=lossless,
                   status_interval_s=cfg.daemon.status_interval_s, queue_sizes=sizes,
                   reopen=reopen, driver_stats=driver_stats)

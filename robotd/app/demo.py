@@ -50,6 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "with robotd; see tools/demo_calibration.sh)")
     p.add_argument("--realtime", action="store_true",
                    help="pace the virtual robot on the wall clock (default: as fast as possible)")
+    p.add_argument("--forward", action="store_true",
+                   help="also render the forward camera in the route's textured world and run the "
+                        "forward loop detector (paper 000) on it; its loops join the pose graph")
     p.add_argument("--no-plot", action="store_true", help="skip trajectories.png")
     p.add_argument("--record", type=Path, default=None, metavar="FILE.mcap",
                    help="also record the run (frames, ticks, gyro, odometry, ground truth) to MCAP")
@@ -69,6 +72,8 @@ def run_from_args(args: argparse.Namespace) -> int:
         calibration = shipped_calibration()
     if calibration is not None:
         base_cfg = replace(base_cfg, "calibration", path=str(calibration))
+    if args.forward:
+        base_cfg = replace(base_cfg, "forward_detector", enabled=True)
     summary = run_demo(base_cfg, out=args.out, route=args.route,
                        floor_files=tuple(str(f) for f in args.floor or ()),
                        floor_scale=args.floor_scale, floor_pattern=args.floor_pattern,
@@ -103,20 +108,25 @@ class _Recorder:
         self.queries: list[tuple[int, list[tuple[int, float, float, int]]]] = []
         self.loops: list[tuple[int, int]] = []  # declared loops: (older keyframe, newer)
         self.refused: list[tuple[int, int]] = []  # refused by the graph's gate: (older, newer)
+        self.forward_loops: list[Any] = []  # ForwardLoop messages (verified by the camera)
+        self.forward_fates: dict[tuple[int, int], str] = {}  # (older, newer) -> fate
 
     def subscriptions(self) -> dict[type, Any]:
-        from robotd.base.messages import CandidateFate, KeyframeStored, Link, OdometryUpdate
+        from robotd.base.messages import CandidateFate, ForwardLoop, KeyframeStored, Link, OdometryUpdate
         from robotd.floor.detector import KeyframeQuery
 
         return {OdometryUpdate: self.on_odometry, KeyframeStored: self.on_keyframe,
-                KeyframeQuery: self.on_floor_query, Link: self.on_link, CandidateFate: self.on_fate}
+                KeyframeQuery: self.on_floor_query, Link: self.on_link, CandidateFate: self.on_fate,
+                ForwardLoop: self.forward_loops.append}
 
     def on_fate(self, fate: Any) -> None:
-        if fate.fate == "failed_gate" and fate.detail.startswith("chi2"):  # not an earlier run's
+        if fate.detail.startswith("forward: "):
+            self.forward_fates[(fate.candidate_id, fate.query_id)] = fate.fate
+        elif fate.fate == "failed_gate" and fate.detail.startswith("chi2"):  # not an earlier run's
             self.refused.append((fate.candidate_id, fate.query_id))
 
     def on_link(self, link: Any) -> None:
-        if link.kind == "loop":
+        if link.kind == "loop" and link.source == "floor":
             self.loops.append((link.from_id, link.to_id))
 
     def on_odometry(self, u: Any) -> None:
@@ -194,7 +204,9 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     settings = VirtualRobotSettings(route=route, seed=seed, duration_s=duration_s, realtime=realtime,
                                     floor_files=floor_files, floor_metres_per_px=floor_scale,
                                     floor_pattern=floor_pattern,
-                                    camera_fps=base_cfg.floor_camera.fps)
+                                    camera_fps=base_cfg.floor_camera.fps,
+                                    forward_camera=base_cfg.forward_detector.enabled,
+                                    forward_fps=FORWARD_FPS)
     wall0 = time.monotonic()
     robot = VirtualRobot(settings, cam_model, clock)
     cfg = replace(base_cfg, "base", driver="kobuki", port=robot.port)
@@ -208,6 +220,9 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
+
+FORWARD_FPS = 15.0
+"""The virtual forward camera's frame rate in the demo: a frame within 33 ms of each keyframe."""
 
 MIN_DURATION_S = 0.1
 """The shortest demo, seconds of robot time: a few odometry packets and camera frames."""
@@ -311,6 +326,8 @@ def _drive_and_record(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, pro
                                       "replaces it")
         driver.request_extra(hardware_version=True, firmware_version=True, udid=True)
         sources: dict[str, Any] = {"base": driver, "floor": robot.camera}
+        if robot.forward is not None:
+            sources["forward"] = robot.forward
         watchers: list[Any] = [recorder, *observers]
         if writer is not None:
             from drivers.recording.writer import RecordingTee
@@ -331,7 +348,7 @@ def _drive_and_record(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, pro
             # Frames still held for a settled pose are handled by Pipeline.finish at the end.
             odo = daemon.pipeline.stage("odometry")
             return (robot.finished.is_set() and odo.wheel_msgs >= robot.packets_emitted
-                    and c.frames >= robot.frames_emitted - robot.camera.dropped)
+                    and c.frames >= robot.camera.frames_emitted - robot.camera.dropped)
 
         report = daemon.run(stop_when=finished)
         progress.update(robot.sim_time_s, daemon.pipeline.stage("keyframes").keyframes, final=True)
@@ -398,7 +415,7 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
         "robot_time_s": live["robot_time_s"], "wall_time_s": wall_s,
         "real_time_factor": live["robot_time_s"] / wall_s if wall_s > 0 else None,
         "distance_m": err_fused.distance_m,
-        "frames_rendered": robot.frames_emitted, "frames_processed": c["frames"],
+        "frames_rendered": robot.camera.frames_emitted, "frames_processed": c["frames"],
         "keyframes": live["keyframes_stored"], "odometry_samples": c["wheel_msgs"],
         "links": {"odometry": c.get("links_odometry", 0), "loop": c.get("links_loop", 0)},
         "drops": {"camera": live["camera_drops"],
@@ -423,7 +440,9 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
     graph = _graph_summary(out / "map.sqlite", robot, c)
     if graph is not None:
         summary["pose_graph"] = graph
-    summary["ok"] = bool(c["frames"] == robot.frames_emitted and not live["interrupted"]
+    if cfg.forward_detector.enabled:
+        summary["forward_detector"] = forward_summary(cfg, robot, recorder, c)
+    summary["ok"] = bool(c["frames"] == robot.camera.frames_emitted and not live["interrupted"]
                          and live["keyframes_stored"] == c["keyframes"])
     if plot:
         _plot_trajectories(out, robot, recorder, truth, fused, wheel, err_fused.distance_m,
@@ -431,6 +450,49 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
     if graph is not None:
         graph.pop("_plot")
     return summary
+
+
+FORWARD_YAW_OK_DEG = 5.0
+FORWARD_BEARING_OK_DEG = 10.0
+"""A forward loop's measured heading change and bearing are "right" when within these of the
+truth (the bearing is judged only when the true cameras are more than 0.2 m apart)."""
+
+
+def forward_summary(cfg: Any, robot: Any, recorder: _Recorder, c: dict[str, Any]) -> dict[str, Any]:
+    """The forward loops judged by the truth: each verified loop's heading change and bearing
+    against the true camera poses of its two keyframes, and what the pose graph did with it."""
+    import numpy as np
+
+    from robotd.base.geometry import between, compose, wrap_angle
+
+    f = cfg.forward_detector
+    mount = np.array([f.mount_x_m, f.mount_y_m, math.radians(f.mount_yaw_deg)])
+    stamp_of = dict(zip(recorder.keyframe_ids, recorder.keyframe_stamps))
+    rows = []
+    for m in recorder.forward_loops:
+        if m.from_id not in stamp_of or m.to_id not in stamp_of:
+            continue
+        a, b = (compose(robot.motion.pose_at(stamp_of[k] / 1e9), mount) for k in (m.from_id, m.to_id))
+        rel = between(a, b)
+        dist = float(np.hypot(rel[0], rel[1]))
+        yaw_err = abs(math.degrees(wrap_angle(m.dyaw_rad - rel[2])))
+        bearing_err = abs(math.degrees(wrap_angle(m.bearing_rad - math.atan2(rel[1], rel[0]))))
+        right = yaw_err <= FORWARD_YAW_OK_DEG and (dist <= 0.2 or bearing_err <= FORWARD_BEARING_OK_DEG)
+        rows.append({"from": m.from_id, "to": m.to_id, "probability": m.probability,
+                     "inliers": m.inliers, "true_distance_m": dist, "yaw_error_deg": yaw_err,
+                     "bearing_error_deg": bearing_err if dist > 0.2 else None, "right": right,
+                     "fate": recorder.forward_fates.get((m.from_id, m.to_id), "none")})
+    accepted = [r for r in rows if r["fate"] == "accepted"]
+    return {"images": c.get("forward_images", 0), "frames": c.get("forward_frames", 0),
+            "unsynced": c.get("forward_unsynced", 0), "verified_loops": len(rows),
+            "verified_right": sum(r["right"] for r in rows),
+            "accepted": len(accepted), "accepted_right": sum(r["right"] for r in accepted),
+            "refused_by_gate": c.get("forward_loops_failed_gate", 0),
+            "failed_verification": c.get("forward_failed_verification", 0),
+            "not_planar": c.get("forward_not_planar", 0),
+            "vocabulary_words": c.get("forward_vocabulary", 0),
+            "ms_per_image_median": c.get("forward_ms_median"), "ms_per_image_p99": c.get("forward_ms_p99"),
+            "loops": rows}
 
 
 def _graph_summary(map_path: Path, robot: Any, c: dict[str, int]) -> dict[str, Any] | None:
@@ -594,6 +656,17 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
               f"optimiser; iSAM2 update median {g.get('graph_update_median_us', 0) / 1e3:.2f} ms, p99 "
               f"{g.get('graph_update_p99_us', 0) / 1e3:.2f} ms; last full solve {g.get('graph_solve_ms', 0)} ms",
               file=f)
+    fw = s.get("forward_detector")
+    if fw:
+        print(file=f)
+        print(f"forward loops: {fw['images']} forward keyframes ({fw['unsynced']} without a frame in time), "
+              f"{fw['verified_loops']} loops verified, {fw['verified_right']} of them right by the truth "
+              f"(heading within {FORWARD_YAW_OK_DEG:g} deg, bearing within {FORWARD_BEARING_OK_DEG:g} deg)", file=f)
+        print(f"  into the pose graph: {fw['accepted']} accepted ({fw['accepted_right']} right), "
+              f"{fw['refused_by_gate']} refused by the gate, {fw['not_planar']} not planar; "
+              f"{fw['failed_verification']} candidates failed the epipolar check", file=f)
+        print(f"  per forward keyframe: median {fw['ms_per_image_median']} ms, p99 {fw['ms_per_image_p99']} ms; "
+              f"vocabulary {fw['vocabulary_words']} words", file=f)
     fd = s.get("floor_detector")
     if fd:
         print(file=f)

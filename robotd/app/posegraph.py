@@ -16,6 +16,10 @@ re-solved robustly (LAGO, then DCS-weighted Levenberg-Marquardt), the optimised 
 into the map beside the odometry poses, and loops the optimiser down-weighted are
 recorded as ``down_weighted``.
 
+A forward-camera loop (:class:`~robotd.base.messages.ForwardLoop`: heading change and
+bearing, no distance) becomes an SE(2) edge whose range is the graph's own prediction with a
+large uncertainty (:func:`robotd.forward.planar.loop_edge`), then meets the same gate.
+
 Keyframes of earlier runs are not in the live graph (each run's graph starts at its first
 keyframe), so a candidate that reaches one is recorded as ``failed_gate`` with that reason;
 relocalisation against the stored map is issue 14's.
@@ -31,7 +35,9 @@ from typing import Any
 import numpy as np
 
 from robotd.app.pipeline import Publisher
-from robotd.base.messages import CandidateFate, KeyframeStored, Link, LoopCandidate
+from robotd.base.geometry import between
+from robotd.base.messages import CandidateFate, ForwardLoop, KeyframeStored, Link, LoopCandidate
+from robotd.forward.planar import PlanarLoopParams, loop_edge
 from robotd.graph.incremental import IncrementalGraph
 from robotd.io.store import MapStore
 
@@ -48,8 +54,13 @@ class PoseGraphStage(Publisher):
     name = "graph"
 
     def __init__(self, graph: IncrementalGraph, store: MapStore, *, gate_chi2: float = GATE_CHI2_3DOF_999,
-                 save_every: int = 0) -> None:
+                 save_every: int = 0, forward_mount: np.ndarray | None = None,
+                 forward_params: PlanarLoopParams = PlanarLoopParams()) -> None:
         self.graph = graph
+        self.forward_mount = np.zeros(3) if forward_mount is None else np.asarray(forward_mount, float)
+        self.forward_params = forward_params
+        self.forward_accepted = 0
+        self.forward_failed_gate = 0
         self.store = store
         self.gate_chi2 = gate_chi2
         self.save_every = save_every
@@ -65,7 +76,8 @@ class PoseGraphStage(Publisher):
         self._since_save = 0
 
     def subscriptions(self) -> Mapping[type, Any]:
-        return {Link: self.on_link, KeyframeStored: self.on_keyframe, LoopCandidate: self.on_candidate}
+        return {Link: self.on_link, KeyframeStored: self.on_keyframe, LoopCandidate: self.on_candidate,
+                ForwardLoop: self.on_forward_loop}
 
     def on_link(self, link: Link) -> None:
         if link.kind != "odometry" or link.from_id not in self.graph.graph:
@@ -99,6 +111,29 @@ class PoseGraphStage(Publisher):
         self._loops[(c.from_id, c.to_id)] = (c.to_id, c.score)
         self._fate(c, "accepted", f"chi2 {d2:.2f}")
         self._publish(Link("loop", c.from_id, c.to_id, c.delta_xyyaw, c.information))
+
+    def on_forward_loop(self, c: ForwardLoop) -> None:
+        def fate(f: str, detail: str) -> None:
+            self._publish(CandidateFate(c.to_id, c.from_id, c.probability, f, "forward: " + detail))
+
+        if c.from_id not in self.graph.graph or c.to_id not in self.graph.graph:
+            self.earlier_run += 1
+            fate("failed_gate", "keyframe of an earlier run: not in this run's graph")
+            return
+        predicted = between(self.graph.pose(c.from_id), self.graph.pose(c.to_id))
+        delta, info = loop_edge(predicted, c.dyaw_rad, c.bearing_rad, self.forward_mount, self.forward_params)
+        d2 = self.graph.loop_chi2(c.from_id, c.to_id, delta, info)
+        if not d2 <= self.gate_chi2:
+            self.forward_failed_gate += 1
+            fate("failed_gate", f"chi2 {d2:.1f} > {self.gate_chi2:.2f}")
+            return
+        t0 = time.perf_counter()
+        self.graph.add_loop(c.from_id, c.to_id, delta, info)
+        self.update_ms.append((time.perf_counter() - t0) * 1e3)
+        self.forward_accepted += 1
+        self._loops[(c.from_id, c.to_id)] = (c.to_id, c.probability)
+        fate("accepted", f"chi2 {d2:.2f}")
+        self._publish(Link("loop", c.from_id, c.to_id, delta, info, source="forward"))
 
     def _fate(self, c: LoopCandidate, fate: str, detail: str) -> None:
         self._publish(CandidateFate(c.to_id, c.from_id, c.score, fate, detail))
@@ -140,6 +175,8 @@ class PoseGraphStage(Publisher):
         u = np.asarray(self.update_ms) if self.update_ms else np.zeros(1)
         return {"loops_accepted": self.accepted, "loops_failed_gate": self.failed_gate,
                 "loops_earlier_run": self.earlier_run, "loops_down_weighted": self.down_weighted,
+                "forward_loops_accepted": self.forward_accepted,
+                "forward_loops_failed_gate": self.forward_failed_gate,
                 "graph_solves": self.solves, "graph_solve_failures": self.solve_failures,
                 "graph_update_median_us": int(np.median(u) * 1e3),
                 "graph_update_p99_us": int(np.percentile(u, 99) * 1e3),

@@ -142,6 +142,30 @@ class PoseGraphConfig:
 
 
 @dataclass(frozen=True)
+class ForwardDetectorConfig:
+    """The forward camera's Bayesian loop detector (paper 000) on forward keyframes; its
+    verified loops enter the pose graph with the range taken from the graph's prediction."""
+
+    enabled: bool = _f(False, "run the forward loop detector (needs a forward camera source)")
+    features: str = _f("sift", "local features: 'sift' (the paper's) or 'orb' (binary, about 4x "
+                       "faster, for small CPUs)", choices=("sift", "orb"))
+    max_features: int = _f(500, "strongest keypoints kept per image (0: all)", lo=0, hi=100_000)
+    distance_m: float = _f(0.5, "a forward keyframe every this far travelled", lo=0.01, hi=100.0)
+    rotation_deg: float = _f(20.0, "or every this much turned", lo=0.1, hi=360.0)
+    sync_tolerance_s: float = _f(0.04, "largest offset of the forward frame from its floor keyframe",
+                                 lo=0.0, hi=1.0)
+    fx_px: float = _f(525.0, "forward camera focal length x", lo=1.0, hi=1e5)
+    fy_px: float = _f(525.0, "forward camera focal length y", lo=1.0, hi=1e5)
+    cx_px: float = _f(319.5, "forward camera principal point x", lo=-1e5, hi=1e5)
+    cy_px: float = _f(239.5, "forward camera principal point y", lo=-1e5, hi=1e5)
+    mount_x_m: float = _f(0.1, "forward camera position in the robot frame, forward", lo=-2.0, hi=2.0)
+    mount_y_m: float = _f(0.0, "forward camera position in the robot frame, left", lo=-2.0, hi=2.0)
+    mount_yaw_deg: float = _f(0.0, "forward camera heading in the robot frame", lo=-180.0, hi=180.0)
+    sigma_bearing_deg: float = _f(2.0, "1-sigma of a loop's translation direction", lo=0.01, hi=90.0)
+    sigma_yaw_deg: float = _f(1.0, "1-sigma of a loop's heading change", lo=0.01, hi=90.0)
+
+
+@dataclass(frozen=True)
 class CalibrationConfig:
     """Where the calibration file is (written by ``robotd calibrate``)."""
 
@@ -176,6 +200,7 @@ class Config:
     floor_detector: FloorDetectorConfig = field(default_factory=FloorDetectorConfig)
     visual_odometry: VisualOdometryConfig = field(default_factory=VisualOdometryConfig)
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
+    forward_detector: ForwardDetectorConfig = field(default_factory=ForwardDetectorConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     map: MapConfig = field(default_factory=MapConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)

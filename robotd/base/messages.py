@@ -116,7 +116,8 @@ class Link:
     """A pose-graph edge to store: the pose of ``to_id`` in the frame of ``from_id``.
 
     ``kind``: ``"odometry"`` or ``"loop"``; ``delta_xyyaw`` ``(3,)`` metres and radians;
-    ``information`` ``(3, 3)``, the inverse covariance of ``delta_xyyaw``.
+    ``information`` ``(3, 3)``, the inverse covariance of ``delta_xyyaw``; ``source``: what
+    measured a loop (``"floor"`` or ``"forward"``).
     """
 
     kind: str
@@ -124,6 +125,7 @@ class Link:
     to_id: int
     delta_xyyaw: np.ndarray
     information: np.ndarray
+    source: str = "floor"
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -138,6 +140,23 @@ class LoopCandidate:
     score: float
     delta_xyyaw: np.ndarray
     information: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class ForwardLoop:
+    """A loop the forward camera verified (paper 000): keyframe ``to_id`` sees the place of
+    the older keyframe ``from_id``. Monocular geometry gives no distance: ``dyaw_rad`` is the
+    camera's heading change and ``bearing_rad`` the direction of the new camera centre, both
+    in the old camera's planar frame (:func:`robotd.forward.planar.planar_motion`); the pose
+    graph takes the range from its own prediction. ``probability``: the filter's posterior
+    of the loop; ``inliers``: matches fitting the essential matrix."""
+
+    from_id: int
+    to_id: int
+    probability: float
+    dyaw_rad: float
+    bearing_rad: float
+    inliers: int
 
 
 @dataclass(frozen=True, slots=True)

@@ -343,3 +343,126 @@ def test_the_graph_gates_loops_and_stores_the_corrected_poses(tmp_path: Path):
         end_odo = np.hypot(*(odo[-1][:2] - truth[-1][:2]))
         end_opt = np.hypot(*(opt[ids[-1]][:2] - truth[-1][:2]))
         assert end_odo > 0.1 and end_opt < 0.2 * end_odo
+
+
+def test_forward_loops_enter_the_graph_by_bearing_and_heading(tmp_path: Path):
+    """The same drifting square, closed by the forward camera instead: each loop gives only the
+    heading change and the bearing of the new camera (no distance); the graph takes the range
+    from its prediction, the loops still pull the drift back, and a look-alike whose bearing
+    is 40 deg off (the same poster on another wall) is refused by the gate."""
+    from robotd.base.geometry import compose
+    from robotd.base.messages import ForwardLoop
+
+    mount = np.array([0.1, 0.0, 0.0])
+    steps = [np.array([0.25, 0.0, 0.0])] * 4 + [np.array([0.0, 0.0, math.pi / 2])]
+    truth = [np.zeros(3)]
+    for k in range(40):
+        truth.append(compose(truth[-1], steps[k % 5]))
+    truth = np.array(truth)
+    drift = np.array([0.0, 0.0, 0.004])
+    with MapStore.open(tmp_path / "map.sqlite") as store:
+        run = store.begin_run("")
+        from robotd.app.posegraph import PoseGraphStage
+        from robotd.graph.incremental import IncrementalGraph
+
+        p = Pipeline()
+        p.add(PoseGraphStage(IncrementalGraph(), store, forward_mount=mount))
+        p.add(MapWriterStage(store, run, image_width_px=0))
+        odo = [truth[0]]
+        cov = np.zeros((3, 3))
+        for k in range(len(truth)):
+            if k:
+                odo.append(compose(odo[-1], between(truth[k - 1], truth[k]) + drift))
+                cov = cov + np.diag([1e-6, 1e-6, 2e-5])
+            p.publish(Keyframe(Frame(k * 10**9, "floor", np.zeros((4, 4), np.uint8), k),
+                               PoseStamped(k * 10**9, *odo[-1], cov.copy())))
+        ids = [k.id for k in store.keyframes()]
+
+        def seen(a: int, b: int, bearing_error: float = 0.0) -> ForwardLoop:
+            # Camera b a step further along than a: a revisit seen from 0.25 m behind.
+            cam = between(compose(truth[a], mount), compose(truth[b], mount))
+            return ForwardLoop(ids[a], ids[b], 0.9, cam[2], math.atan2(cam[1], cam[0]) + bearing_error, 60)
+
+        for a, b in ((0, 21), (5, 26), (10, 31), (15, 36), (20, 39)):
+            p.publish(seen(a, b))
+        p.publish(seen(12, 38, math.radians(40)))
+        p.finish()
+        c = p.counters()
+        assert (c["forward_loops_accepted"], c["forward_loops_failed_gate"]) == (5, 1)
+        fates = {(r.query_id, r.candidate_id): (r.fate, r.detail) for r in store.loop_candidates()}
+        assert fates[(ids[38], ids[12])][0] == "failed_gate"
+        assert fates[(ids[21], ids[0])][0] == "accepted"
+        assert fates[(ids[21], ids[0])][1].startswith("forward: ")
+        assert len(store.links("loop")) == 5
+        opt = store.optimized_poses()
+        end_odo = np.hypot(*(odo[-1][:2] - truth[-1][:2]))
+        end_opt = np.hypot(*(opt[ids[-1]][:2] - truth[-1][:2]))
+        assert end_odo > 0.1 and end_opt < 0.3 * end_odo
+
+
+class _ScriptedDetector:
+    """Stands in for ForwardDetector: image k of the run is a loop with image ``loops[k]``."""
+
+    def __init__(self, loops: dict[int, int]) -> None:
+        from robotd.forward.verify import ACCEPTED, Verification
+
+        self.loops = loops
+        self.seen: list[int] = []
+        self.vocabulary: list = []
+        c, s = math.cos(0.3), math.sin(0.3)
+        rot = np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])  # a 0.3 rad turn, level
+        self.verification = Verification(True, ACCEPTED, 80, 60, rot, np.array([0.0, 0.0, -1.0]))
+
+    def process(self, image: np.ndarray) -> object:
+        from types import SimpleNamespace
+
+        from robotd.forward import LOOP, LOW_POSTERIOR
+
+        k = len(self.seen)
+        self.seen.append(int(image[0, 0]))
+        loop = self.loops.get(k)
+        return SimpleNamespace(status=LOOP if loop is not None else LOW_POSTERIOR, loop_id=loop,
+                               verification=self.verification if loop is not None else None,
+                               candidate_probability=0.9, times_s={"total": 0.01})
+
+
+def test_the_forward_stage_pairs_each_due_keyframe_with_the_nearest_forward_frame():
+    """Forward keyframes every 0.5 m: the frame nearest the keyframe's stamp is used even when
+    it arrives after the keyframe, a keyframe with no frame within the tolerance is skipped
+    and counted, and a verified loop goes out under the floor keyframes' ids."""
+    from robotd.app.forwardloops import ForwardLoopStage
+    from robotd.base.messages import ForwardLoop, KeyframeStored
+
+    det = _ScriptedDetector({2: 0})
+    stage = ForwardLoopStage(det, distance_m=0.5, sync_tolerance_s=0.04)
+    got: list = []
+    p = Pipeline()
+    p.add(stage)
+    p.add(type("Sink", (), {"name": "sink", "subscriptions": lambda self: {ForwardLoop: got.append}})())
+
+    def frame(t_ms: int) -> None:  # the image's first pixel says which frame it was
+        p.publish(Frame(t_ms * 10**6, "forward", np.full((4, 4), t_ms // 10 % 256, np.uint8)))
+
+    def keyframe(kid: int, t_ms: int, x: float) -> None:
+        kf = Keyframe(Frame(t_ms * 10**6, "floor", np.zeros((4, 4), np.uint8)), PoseStamped(t_ms * 10**6, x, 0.0, 0.0))
+        kf.keyframe_id = kid
+        p.publish(KeyframeStored(kf))
+
+    frame(0)
+    frame(100)
+    keyframe(10, 110, 0.0)          # due (first); frame at 100 ms is the newest, 10 ms away, but
+    frame(130)                      # not newer: it waits for the 130 ms frame and takes 100 (nearer)
+    keyframe(11, 400, 0.2)          # not due: 0.2 m
+    keyframe(12, 700, 0.6)          # due; newest frame 130 ms is older: waits
+    frame(800)                      # 100 ms after: nearest is 800 (100 ms) > 40 ms: skipped
+    keyframe(13, 1000, 0.7)         # due again (the skipped one did not count)
+    frame(1010)
+    keyframe(14, 1500, 1.2)         # due
+    frame(1490)
+    frame(1520)
+    assert det.seen == [10, 101, 149]  # the frames of 100, 1010 and 1490 ms
+    assert stage.unsynced == 1
+    assert len(got) == 1 and (got[0].from_id, got[0].to_id) == (10, 14)
+    # The scripted motion: the camera turned 0.3 rad to the right and moved forward-right.
+    assert got[0].dyaw_rad == pytest.approx(-0.3, abs=1e-9)
+    assert got[0].bearing_rad == pytest.approx(-0.3, abs=1e-9)

@@ -1,0 +1,133 @@
+"""The forward camera's loop detector as a pipeline stage (issue 14, item 7; paper 000).
+
+Forward frames are buffered; when a floor keyframe is stored and the robot has moved
+``distance_m`` or turned ``rotation_rad`` since the last forward keyframe, the buffered
+forward frame nearest the keyframe's stamp (within ``sync_tolerance_s``) becomes a forward
+keyframe under the floor keyframe's id: the pose graph's vertices stay the floor keyframes,
+and a forward loop is an edge between two of them. The image runs through
+:class:`robotd.forward.ForwardDetector` (incremental vocabulary, Bayes filter, epipolar
+verification); a verified loop whose motion is planar is published as a
+:class:`~robotd.base.messages.ForwardLoop`, which the pose graph gates and adds
+(:mod:`robotd.app.posegraph`).
+
+The detector runs in the pipeline's thread, once per forward keyframe (every half metre by
+default, about one image per 1.5 s at the demo's speed): a SIFT image costs tens of
+milliseconds, which the source queues absorb. The frame's offset from its keyframe (at most
+``sync_tolerance_s``) is left in the edge's noise (:class:`robotd.forward.planar.PlanarLoopParams`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from robotd.app.pipeline import Publisher
+from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored
+from robotd.forward import LOOP, STAGES, ForwardDetector
+from robotd.forward.planar import planar_motion
+
+log = logging.getLogger(__name__)
+
+
+class ForwardLoopStage(Publisher):
+    """Forward keyframes through the detector; verified planar loops out (module notes)."""
+
+    name = "forward"
+
+    def __init__(self, detector: ForwardDetector, *, distance_m: float = 0.5,
+                 rotation_rad: float = math.radians(20.0), sync_tolerance_s: float = 0.04,
+                 max_tilt_rad: float = math.radians(10.0), camera: str = "forward") -> None:
+        self.detector = detector
+        self.distance_m = distance_m
+        self.rotation_rad = rotation_rad
+        self.sync_tolerance_ns = int(sync_tolerance_s * 1e9)
+        self.max_tilt_rad = max_tilt_rad
+        self.camera = camera
+        self._frames: deque[Frame] = deque(maxlen=16)
+        self._keyframe_ids: list[int] = []  # detector image id -> floor keyframe id
+        self._last_pose: np.ndarray | None = None
+        self._pending: tuple[Any, np.ndarray] | None = None  # a due keyframe awaiting its frame
+        self.frames = 0
+        self.images = 0
+        self.unsynced = 0
+        self.loops = 0
+        self.not_planar = 0
+        self.rejected_geometry = 0
+        self.times_ms: dict[str, list[float]] = {s: [] for s in (*STAGES, "total")}
+
+    def subscriptions(self) -> Mapping[type, Any]:
+        return {Frame: self.on_frame, KeyframeStored: self.on_keyframe}
+
+    def on_frame(self, frame: Frame) -> None:
+        if frame.camera != self.camera:
+            return
+        self.frames += 1
+        self._frames.append(frame)
+        if self._pending is not None and frame.stamp_ns >= self._pending[0].stamp_ns:
+            kf, pose = self._pending
+            self._pending = None
+            self._take(kf, pose)
+
+    def _due(self, pose: np.ndarray) -> bool:
+        if self._last_pose is None:
+            return True
+        d = pose - self._last_pose
+        turn = abs(math.remainder(float(d[2]), math.tau))
+        return bool(math.hypot(d[0], d[1]) >= self.distance_m or turn >= self.rotation_rad)
+
+    def on_keyframe(self, msg: KeyframeStored) -> None:
+        kf = msg.keyframe
+        pose = np.array(kf.pose_xyyaw, dtype=np.float64)
+        if not self._due(pose):
+            return
+        if self._pending is not None:  # the forward frames stopped coming in time
+            self.unsynced += 1
+        self._pending = None
+        if self._frames and self._frames[-1].stamp_ns >= kf.stamp_ns:
+            self._take(kf, pose)
+        else:  # the frame after the keyframe has not arrived yet: decide when it does
+            self._pending = (kf, pose)
+
+    def _take(self, kf: Any, pose: np.ndarray) -> None:
+        """Run the forward frame nearest ``kf``'s stamp through the detector, if near enough."""
+        frame = min(self._frames, key=lambda f: abs(f.stamp_ns - kf.stamp_ns))
+        if abs(frame.stamp_ns - kf.stamp_ns) > self.sync_tolerance_ns:
+            self.unsynced += 1
+            return
+        self._last_pose = pose
+        det = self.detector.process(frame.image)
+        self._keyframe_ids.append(kf.keyframe_id)
+        self.images += 1
+        for stage, seconds in det.times_s.items():
+            self.times_ms.setdefault(stage, []).append(seconds * 1e3)
+        if det.status != LOOP or det.verification is None or det.loop_id is None:
+            if det.verification is not None and not det.verification.accepted:
+                self.rejected_geometry += 1
+            return
+        v = det.verification
+        old = self._keyframe_ids[det.loop_id]
+        dyaw, bearing, tilt = planar_motion(v.rotation, v.translation_dir)
+        if tilt > self.max_tilt_rad:
+            self.not_planar += 1
+            self._publish(CandidateFate(kf.keyframe_id, old, det.candidate_probability, "failed_gate",
+                                        f"forward: motion {math.degrees(tilt):.1f} deg out of the floor plane"))
+            return
+        self.loops += 1
+        log.debug("forward loop: keyframe %d sees keyframe %d (p %.2f, %d inliers)", kf.keyframe_id, old,
+                  det.candidate_probability, v.n_inliers)
+        self._publish(ForwardLoop(old, kf.keyframe_id, det.candidate_probability, dyaw, bearing, v.n_inliers))
+
+    def counters(self) -> dict[str, Any]:
+        total = np.asarray(self.times_ms["total"]) if self.times_ms["total"] else np.zeros(1)
+        return {"forward_frames": self.frames, "forward_images": self.images,
+                "forward_unsynced": self.unsynced, "forward_loops": self.loops,
+                "forward_not_planar": self.not_planar,
+                "forward_failed_verification": self.rejected_geometry,
+                "forward_vocabulary": len(self.detector.vocabulary),
+                "forward_ms_median": round(float(np.median(total)), 2),
+                "forward_ms_p99": round(float(np.percentile(total, 99)), 2)}

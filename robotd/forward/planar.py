@@ -1,0 +1,136 @@
+"""A verified forward-camera loop as a planar pose-graph edge (issue 14, item 7).
+
+Epipolar verification (:mod:`robotd.forward.verify`) gives the rotation between the two
+camera views and the *direction* of the translation; the distance between them is not
+observable from two images. On a robot moving on a floor the camera's motion is planar, so
+the measurement reduces to two numbers in the old camera's planar frame (x along the optical
+axis, y to the left):
+
+* ``dyaw``, the heading change of the camera, and
+* ``bearing``, the direction in which the new camera centre lies.
+
+The pose graph's edges are full SE(2) relative poses with a 3x3 information matrix. The
+metric scale is therefore taken from the graph's own prediction of the relative pose (from
+odometry and earlier loops): the range is the predicted one, and its uncertainty is made so
+large (``sigma_log_range``: a factor e^1 either way by default) that the edge constrains
+almost only the bearing and the heading change. That keeps one edge type for the solvers,
+the gate, the map file and g2o export; the cost is that the range component of the edge
+repeats the prediction and adds no information (its weight is about 1 / e^2 of the range
+squared per edge, far below odometry's), and that the chi-square gate's three degrees of
+freedom have in effect two.
+
+The camera sits at ``mount = (x_m, y_m, yaw_rad)`` in the robot frame; the robot-frame edge is
+``mount * camera_edge * mount^-1``. Its covariance is propagated to the GTSAM ``Between``
+error coordinates (translation in the *to* frame, as in :mod:`robotd.graph.model`) through a
+numerical Jacobian, so any mount and heading change are handled the same way.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from robotd.base.geometry import compose, inverse, wrap_angle
+
+__all__ = ["PlanarLoopParams", "loop_edge", "planar_motion"]
+
+
+@dataclass(frozen=True)
+class PlanarLoopParams:
+    """1-sigma uncertainties of a forward loop edge.
+
+    Fields:
+        sigma_bearing_rad: direction of the translation (the five-point solution on a level
+            camera; 2 deg covers a frame taken up to 40 ms from its keyframe at 0.5 rad/s).
+        sigma_yaw_rad: heading change.
+        sigma_log_range: the range is the prediction's, uncertain by this much in log units.
+        sigma_translation_m: isotropic translation noise added in the camera frame, for
+            views taken close together where the bearing means little.
+        max_tilt_rad: the camera motion must be planar: a rotation axis or a translation
+            direction more than this out of the floor plane is not a level robot's motion,
+            and :func:`planar_motion` reports it.
+    """
+
+    sigma_bearing_rad: float = math.radians(2.0)
+    sigma_yaw_rad: float = math.radians(1.0)
+    sigma_log_range: float = 1.0
+    sigma_translation_m: float = 0.03
+    max_tilt_rad: float = math.radians(10.0)
+
+    def __post_init__(self) -> None:
+        for name in ("sigma_bearing_rad", "sigma_yaw_rad", "sigma_log_range", "sigma_translation_m",
+                     "max_tilt_rad"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0.0):
+                raise ValueError(f"{name} must be positive and finite, got {v}")
+
+
+def planar_motion(rotation: np.ndarray, translation_dir: np.ndarray) -> tuple[float, float, float]:
+    """``(dyaw_rad, bearing_rad, tilt_rad)`` of the new camera in the old camera's planar frame.
+
+    ``rotation (3, 3)`` and ``translation_dir (3,)`` as :class:`robotd.forward.verify.Verification`
+    gives them (OpenCV axes: x right, y down, z forward; a point X_old in the old camera frame
+    is ``rotation @ X_old + s * translation_dir`` in the new one). ``tilt_rad`` is how far the
+    motion leaves the floor plane: the larger of the new optical axis' elevation, the roll
+    of its x axis and the translation's elevation; a level camera on a floor gives about 0.
+    """
+    r = np.asarray(rotation, np.float64).reshape(3, 3)
+    t = np.asarray(translation_dir, np.float64).reshape(3)
+    centre = -r.T @ t               # new camera centre in the old camera frame (times s)
+    forward = r.T @ np.array([0.0, 0.0, 1.0])   # new optical axis in the old frame
+    right = r.T @ np.array([1.0, 0.0, 0.0])
+    dyaw = math.atan2(-forward[0], forward[2])   # planar frame: x = camera z, y = -camera x
+    bearing = math.atan2(-centre[0], centre[2])
+    norm = max(float(np.linalg.norm(centre)), 1e-12)
+    tilt = max(abs(math.asin(max(-1.0, min(1.0, forward[1])))),
+               abs(math.asin(max(-1.0, min(1.0, right[1])))),
+               abs(math.asin(max(-1.0, min(1.0, centre[1] / norm)))))
+    return dyaw, bearing, tilt
+
+
+def _base_edge(params: np.ndarray, mount: np.ndarray) -> np.ndarray:
+    """Robot-frame edge from ``(bearing, dyaw, log_range, nx, ny)`` in the camera frame."""
+    bearing, dyaw, log_range, nx, ny = params
+    s = math.exp(log_range)
+    cam = np.array([s * math.cos(bearing) + nx, s * math.sin(bearing) + ny, dyaw])
+    return compose(compose(mount, cam), inverse(mount))
+
+
+def _between_error(nominal: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """GTSAM's ``Between`` error coordinates of ``other`` against ``nominal`` (first order):
+    the translation difference in ``nominal``'s frame, the wrapped heading difference."""
+    c, s = math.cos(nominal[2]), math.sin(nominal[2])
+    d = other[:2] - nominal[:2]
+    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], float(wrap_angle(other[2] - nominal[2]))])
+
+
+def loop_edge(predicted: np.ndarray, dyaw_rad: float, bearing_rad: float,
+              mount: np.ndarray = np.zeros(3), params: PlanarLoopParams = PlanarLoopParams(),
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """The robot-frame loop edge ``(delta (3,), information (3, 3))`` of a forward loop.
+
+    ``predicted (3,)``: the graph's current relative pose of the two keyframes (robot
+    frame, to in from), which gives the range; ``dyaw_rad``, ``bearing_rad`` from
+    :func:`planar_motion`; ``mount (3,)``: the forward camera in the robot frame.
+    """
+    mount = np.asarray(mount, np.float64).reshape(3)
+    predicted = np.asarray(predicted, np.float64).reshape(3)
+    pred_cam = compose(compose(inverse(mount), predicted), mount)
+    range_m = max(float(math.hypot(pred_cam[0], pred_cam[1])), 1e-3)
+    x0 = np.array([bearing_rad, dyaw_rad, math.log(range_m), 0.0, 0.0])
+    delta = _base_edge(x0, mount)
+    sig = np.array([params.sigma_bearing_rad, params.sigma_yaw_rad, params.sigma_log_range,
+                    params.sigma_translation_m, params.sigma_translation_m])
+    jac = np.zeros((3, 5))
+    for k in range(5):  # central differences, steps well inside each parameter's sigma
+        h = 1e-6 * max(1.0, abs(x0[k]))
+        xp, xm = x0.copy(), x0.copy()
+        xp[k] += h
+        xm[k] -= h
+        jac[:, k] = (_between_error(delta, _base_edge(xp, mount))
+                     - _between_error(delta, _base_edge(xm, mount))) / (2.0 * h)
+    cov = jac @ np.diag(sig**2) @ jac.T
+    info = np.linalg.inv(cov)
+    return delta, 0.5 * (info + info.T)

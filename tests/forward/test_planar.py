@@ -1,0 +1,123 @@
+"""A verified forward loop as a planar edge (robotd.forward.planar)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from robotd.base.geometry import between, compose, inverse
+from robotd.forward.planar import PlanarLoopParams, loop_edge, planar_motion
+
+# Planar frame (x forward, y left, z up) -> OpenCV camera axes (x right, y down, z forward).
+_CAM_FROM_PLANAR = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+
+
+def _opencv_motion(rel: np.ndarray, pitch_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t_dir)`` as cv2.recoverPose reports them for a new camera at planar pose ``rel``
+    (x, y, yaw) in the old camera's planar frame, optionally pitched up by ``pitch_rad``."""
+    c, s = math.cos(rel[2]), math.sin(rel[2])
+    rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])   # new planar axes in old planar
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    ry = np.array([[cp, 0.0, -sp], [0.0, 1.0, 0.0], [sp, 0.0, cp]])  # nose up about the planar y axis
+    # new camera axes in the old camera frame
+    r_old_new = _CAM_FROM_PLANAR @ rz @ ry @ _CAM_FROM_PLANAR.T
+    centre = _CAM_FROM_PLANAR @ np.array([rel[0], rel[1], 0.0])
+    r = r_old_new.T                  # X_new = R X_old + t
+    t = -r @ centre
+    return r, t / np.linalg.norm(t)
+
+
+@pytest.mark.parametrize("rel", [(2.0, 0.0, 0.0), (1.0, 1.0, math.radians(30)),
+                                 (-0.5, -2.0, math.radians(-100)), (0.3, 0.1, math.radians(170))])
+def test_planar_motion_recovers_heading_change_and_bearing(rel):
+    rel = np.array(rel)
+    dyaw, bearing, tilt = planar_motion(*_opencv_motion(rel))
+    assert dyaw == pytest.approx(rel[2], abs=1e-9)
+    assert bearing == pytest.approx(math.atan2(rel[1], rel[0]), abs=1e-9)
+    assert tilt == pytest.approx(0.0, abs=1e-9)
+
+
+def test_planar_motion_reports_a_tilted_motion():
+    _, _, tilt = planar_motion(*_opencv_motion(np.array([1.0, 0.5, 0.3]), pitch_rad=math.radians(15)))
+    assert tilt == pytest.approx(math.radians(15), abs=1e-6)
+
+
+def _measure(predicted_base: np.ndarray, true_base: np.ndarray, mount: np.ndarray):
+    """The camera-frame dyaw and bearing of the *true* motion, as a perfect verification gives."""
+    cam = compose(compose(inverse(mount), true_base), mount)
+    return cam[2], math.atan2(cam[1], cam[0])
+
+
+@pytest.mark.parametrize("mount", [np.zeros(3), np.array([0.1, 0.0, 0.0]), np.array([0.2, -0.05, 0.3])])
+def test_a_right_prediction_and_a_perfect_measurement_give_the_predicted_edge(mount):
+    true = np.array([1.5, -0.7, math.radians(120)])
+    dyaw, bearing = _measure(true, true, mount)
+    delta, info = loop_edge(true, dyaw, bearing, mount)
+    np.testing.assert_allclose(delta, true, atol=1e-9)
+    assert np.all(np.linalg.eigvalsh(info) > 0)
+
+
+def test_the_edge_keeps_the_measured_bearing_and_takes_only_the_range_from_the_prediction():
+    mount = np.array([0.1, 0.0, 0.0])
+    true = np.array([2.0, 1.0, math.radians(45)])
+    # The prediction is 30 % too long in range but right in direction and heading.
+    cam_true = compose(compose(inverse(mount), true), mount)
+    cam_pred = cam_true.copy()
+    cam_pred[:2] *= 1.3
+    predicted = compose(compose(mount, cam_pred), inverse(mount))
+    dyaw, bearing = _measure(predicted, true, mount)
+    delta, info = loop_edge(predicted, dyaw, bearing, mount)
+    np.testing.assert_allclose(delta, predicted, atol=1e-9)  # the same direction: nothing to correct
+    # The range error costs almost nothing; a bearing error of 10 deg costs a lot.
+    e_range = np.array([*(cam_true[:2] - cam_pred[:2]), 0.0])  # the range difference, camera frame
+    e_range = np.array([*np.array([[math.cos(delta[2]), math.sin(delta[2])],
+                                   [-math.sin(delta[2]), math.cos(delta[2])]]) @ e_range[:2], 0.0])
+    assert e_range @ info @ e_range < 0.5
+    wrong = loop_edge(predicted, dyaw, bearing + math.radians(10), mount)[0]
+    e_wrong = between(delta, wrong)
+    assert e_wrong @ info @ e_wrong > 16.27  # the gate's 99.9 % point
+
+
+def test_heading_information_follows_sigma_yaw():
+    true = np.array([1.0, 0.0, 0.2])
+    dyaw, bearing = _measure(true, true, np.zeros(3))
+    _, info_tight = loop_edge(true, dyaw, bearing, params=PlanarLoopParams(sigma_yaw_rad=math.radians(0.5)))
+    _, info_loose = loop_edge(true, dyaw, bearing, params=PlanarLoopParams(sigma_yaw_rad=math.radians(2.0)))
+    cov_tight, cov_loose = np.linalg.inv(info_tight), np.linalg.inv(info_loose)
+    assert math.sqrt(cov_tight[2, 2]) == pytest.approx(math.radians(0.5), rel=1e-3)
+    assert math.sqrt(cov_loose[2, 2]) == pytest.approx(math.radians(2.0), rel=1e-3)
+
+
+def test_bad_parameters_are_refused():
+    with pytest.raises(ValueError, match="sigma_bearing_rad"):
+        PlanarLoopParams(sigma_bearing_rad=0.0)
+
+
+def test_verified_rendered_views_give_the_true_planar_motion():
+    """Two frames of the virtual forward camera, verified by the five-point method: the heading
+    change and bearing match the true camera poses."""
+    from robotd.forward import extract_features, verify_pair
+    from sim.cameras.forward import ForwardCameraModel, ForwardRenderer, ForwardRenderParams
+    from sim.world.rooms import world_for_route
+
+    model = ForwardCameraModel()
+    renderer = ForwardRenderer(world_for_route("office", 0), model, ForwardRenderParams(),
+                               np.random.default_rng(0))
+    k = np.array([[model.intrinsics.fx_px, 0, model.intrinsics.cx_px],
+                  [0, model.intrinsics.fy_px, model.intrinsics.cy_px], [0, 0, 1.0]])
+    mount = np.array([model.x_m, model.y_m, model.yaw_rad])
+    a = np.array([2.0, 0.0, 0.0])
+    checked = 0
+    for b in (np.array([2.6, 0.15, math.radians(8)]), np.array([3.0, -0.2, math.radians(-12)])):
+        v = verify_pair(extract_features(renderer.render(a)), extract_features(renderer.render(b)),
+                        camera_matrix=k)
+        assert v.accepted, v.reason
+        dyaw, bearing, tilt = planar_motion(v.rotation, v.translation_dir)
+        cam = between(compose(a, mount), compose(b, mount))
+        assert math.degrees(abs(dyaw - cam[2])) < 1.0
+        assert math.degrees(abs(bearing - math.atan2(cam[1], cam[0]))) < 3.0
+        assert math.degrees(tilt) < 3.0
+        checked += 1
+    assert checked == 2
