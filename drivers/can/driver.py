@@ -65,8 +65,9 @@ later ones at debug); a bus with no frame at all for as long is silent (``bus_si
 While either lasts the driver is degraded: it emits a
 :class:`~robotd.base.messages.BaseStatus` when that changes, the odometry stage marks the
 odometry degraded (its STATUS line says so), and :meth:`stats` has ``degraded`` and a
-one-line ``status``. No wheel pair is emitted while a wheel is stale (half a pair would
-read as a turn).
+one-line ``status``. A wheel that never spoke is stale once the bus has run that long
+without it. No wheel pair is emitted while a wheel is silent: a pair needs a new sample
+of both (a new sample of one wheel with the other's old one would read as a turn).
 """
 
 from __future__ import annotations
@@ -238,6 +239,7 @@ class CanBaseDriver(Driver):
         self._mapper = OffsetMapper(int(offset_window_s * 1e9))
         self._last_device_ns: int | None = None
         self._newest_ns: int | None = None      # newest data frame's stamp
+        self._first_ns: int | None = None       # first data frame's stamp
         self._opened_ns = clock.now_ns()
         self._last_receipt_ns: int | None = None
         self._silent = False
@@ -410,6 +412,8 @@ class CanBaseDriver(Driver):
         for msg, dev in data:
             stamp = self._mapper.stamp(dev) if dev is not None else self._mapper.clamp(receipt_ns)
             self._newest_ns = stamp
+            if self._first_ns is None:
+                self._first_ns = stamp
             key = (int(msg.arbitration_id), bool(msg.is_extended_id))
             route = self._routes.get(key)
             if route is None:
@@ -455,7 +459,7 @@ class CanBaseDriver(Driver):
     def _pair(self) -> WheelTicks | None:
         """Both wheels' ticks at the later of their samples, once both are fresh."""
         left, right = self._wheels["left"], self._wheels["right"]
-        if not (left.fresh and right.fresh) or left.stale or right.stale:
+        if not (left.fresh and right.fresh):
             return None
         assert left.stamp_ns is not None and right.stamp_ns is not None
         stamp = max(left.stamp_ns, right.stamp_ns)
@@ -479,9 +483,9 @@ class CanBaseDriver(Driver):
                            "(counted; odometry degraded until frames come back)")
         self._silent = silent
         stale: list[str] = []
-        if self._newest_ns is not None:
+        if self._newest_ns is not None and self._first_ns is not None:
             for w in self._wheels.values():
-                last = w.stamp_ns if w.stamp_ns is not None else self._opened_ns
+                last = w.stamp_ns if w.stamp_ns is not None else self._first_ns
                 is_stale = self._newest_ns - last > self._stale_ns
                 if is_stale and not w.stale:
                     w.stale_episodes += 1
