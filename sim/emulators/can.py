@@ -16,7 +16,7 @@ that DBC by cantools:
   (its turns count backwards: ``[can] left_scale = -1``); heartbeats every 100 ms. No gyro.
 
 Every frame carries its send time as its timestamp (the bus preserves it), as a kernel
-timestamps a frame on receipt. :class:`CanFaults` injects faults into the stream: a
+timestamps a frame on receipt, on a clock of its own (:data:`FRAME_TIME_BASE_S`). :class:`CanFaults` injects faults into the stream: a
 flood of frames with ids not in the DBC, a bus-off (error frame, silence, restart), a
 wheel gone silent, and frames of a known id with a wrong length.
 
@@ -32,6 +32,7 @@ import os
 import threading
 from dataclasses import dataclass, field
 from itertools import count
+from typing import Any
 
 import numpy as np
 
@@ -39,9 +40,14 @@ from drivers.can.driver import CAN_ERR_BUSOFF, CAN_ERR_RESTARTED, load_dbc
 from sim.sensors import BaseSensorStreams
 
 __all__ = ["CONVENTIONS", "CanEmulator", "CanFaults", "CanFrames", "can_config_changes",
-           "encode_can"]
+           "driver_messages", "encode_can"]
 
 CONVENTIONS = ("diff_drive", "odrive_cansimple")
+
+FRAME_TIME_BASE_S = 1_000_000.0
+"""Frame timestamps are simulation time plus this: a clock that is not the daemon's, as
+socketcan's wall-clock timestamps are not its monotonic clock (and python-can reads a
+timestamp of 0 as none)."""
 
 _ERROR_FRAME = -1
 """``frame_id`` marker of an error frame (its class is in ``data``)."""
@@ -132,8 +138,9 @@ def encode_can(sensors: BaseSensorStreams, convention: str, rng: np.random.Gener
         turns = angle / (2.0 * math.pi) * np.array([-1.0, 1.0])  # the left motor is mirrored
         turns0 = rng.uniform(-50.0, 50.0, 2)
         t_right = t + odrive_skew_s
-        right = np.interp(t_right, t, turns[:, 1])
         vel = np.gradient(turns, t, axis=0) if len(t) > 1 else np.zeros_like(turns)
+        right = np.interp(t_right, t, turns[:, 1])
+        right[-1] = turns[-1, 1] + vel[-1, 1] * odrive_skew_s  # past the streams' last sample
         enc = [db.get_message_by_name("Left_Encoder_Estimates"),
                db.get_message_by_name("Right_Encoder_Estimates")]
         for i, ti in enumerate(t):
@@ -236,7 +243,7 @@ class CanEmulator:
     def emit(self, i: int) -> None:
         fid = int(self.frames.frame_id[i])
         data = self.frames.data[i]
-        t = float(self.frames.t_s[i])
+        t = float(self.frames.t_s[i]) + FRAME_TIME_BASE_S
         if fid == _ERROR_FRAME:
             msg = self._can.Message(timestamp=t, arbitration_id=int.from_bytes(data, "little"),
                                     is_extended_id=False, is_error_frame=True, dlc=0, data=b"")
@@ -256,3 +263,41 @@ class CanEmulator:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def driver_messages(frames: CanFrames, sensors: BaseSensorStreams, *, read_every: int = 8,
+                    ) -> tuple[list[Any], dict[str, Any]]:
+    """What the real :class:`~drivers.can.driver.CanBaseDriver` makes of ``frames``, and its
+    stats: the emulator sends them on a virtual bus in time order with a
+    :class:`~robotd.base.clock.ManualClock` at each frame's time, and the driver (opened
+    through its registry factory with the convention's ``[can]`` keys and the default
+    ``[robot]``) reads after every ``read_every`` frames, at least every ``[can]
+    period_s`` of a quiet bus, and at the end."""
+    from drivers.can.driver import open_can
+    from robotd.base.clock import ManualClock
+    from robotd.base.config import Config, replace
+
+    clock = ManualClock()
+    out: list[Any] = []
+    with CanEmulator(frames, sensors) as emulator:
+        cfg = replace(Config(), "can", interface="virtual", channel=emulator.channel,
+                      **can_config_changes(frames.convention))
+        with open_can(cfg, clock) as driver:
+            period_ns = int(cfg.can.period_s * 1e9)
+            last_read_ns = 0
+            for i, t in enumerate(frames.t_s):
+                t_ns = int(round(float(t) * 1e9))
+                while t_ns - last_read_ns > period_ns:  # a quiet bus is still read
+                    last_read_ns += period_ns
+                    clock.set_ns(max(clock.now_ns(), last_read_ns))
+                    out += driver.read(0.0)
+                clock.set_ns(max(clock.now_ns(), t_ns))
+                emulator.emit(i)
+                if i % read_every == read_every - 1:
+                    out += driver.read(0.0)
+                    last_read_ns = clock.now_ns()
+            for _ in range(emulator.frames_sent):  # the virtual bus has them all already
+                out += driver.read(0.0)
+                if driver.stats()["frames"] >= emulator.frames_sent:
+                    break
+            return out, driver.stats()
