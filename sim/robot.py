@@ -3,11 +3,12 @@
 It plans a route (:mod:`sim.route`) over a floor (:mod:`sim.world`), and composes parts
 that each own a list of event times and an ``emit(i)``:
 
-* emulators (:mod:`sim.emulators`): the Kobuki base (or, with ``base="can"``, a CAN
-  base putting the same sensor streams on a python-can virtual bus, :mod:`sim.emulators.can`), whose SI sensor streams
+* emulators (:mod:`sim.emulators`): the Kobuki base, whose SI sensor streams
   (:mod:`sim.sensors`) are encoded into feedback packets at 50 Hz and written to the
   master side of a pseudo-terminal, so the daemon opens the slave by its path with the
-  same serial driver it uses on the robot; it answers the daemon's commands;
+  same serial driver it uses on the robot; it answers the daemon's commands. With
+  ``base="can"`` the same streams go out instead as CAN frames on a python-can virtual
+  bus (:mod:`sim.emulators.can`), which the daemon's CAN driver opens by channel name;
 * cameras (:mod:`sim.cameras`): the downward floor camera, rendered at the true pose at
   30 Hz and read like a real camera; optionally (``forward_camera=True``) the forward
   camera in the route's textured world (:mod:`sim.world.rooms`), at ``forward_fps``.
