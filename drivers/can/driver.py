@@ -47,7 +47,8 @@ preserves it) mapped to the driver's clock as the Kobuki driver maps its device 
 minimum ``receipt - frame time`` over the last ``offset_window_s``. So the frames' own
 spacing is kept, batching and read latency drop out, and a wall-clock step is followed
 within the window. A frame time that goes backwards is raised to the previous one
-(``timestamps_backwards``); a frame without a time takes its receipt time.
+(``timestamps_backwards``); a frame without a time (0, NaN, or absurdly large) takes its
+receipt time (``untimed_frames``).
 
 Faults: counted, never fatal
 ----------------------------
@@ -105,6 +106,9 @@ CAN_ERR_RESTARTED = 0x100
 CAN_ERR_CRTL_PASSIVE = 0x10 | 0x20  # RX or TX error passive
 
 _U16 = 1 << 16
+_MAX_TIMESTAMP_S = 1e11
+"""A frame time beyond this (the year 5138, or infinite) is taken as none (the fuzz found
+that 1.8e299 s overflowed the conversion to ns)."""
 _MAX_UNKNOWN_IDS = 4096
 """Distinct unknown ids remembered (bounds memory on a flood of random ids)."""
 
@@ -378,7 +382,7 @@ class CanBaseDriver(Driver):
     def _device_ns(self, msg: can.Message, receipt_ns: int) -> int | None:
         """The frame's own time in ns (non-decreasing), None when it has none."""
         ts = msg.timestamp
-        if not (isinstance(ts, float | int) and math.isfinite(ts) and ts > 0.0):
+        if not (isinstance(ts, float | int) and 0.0 < ts < _MAX_TIMESTAMP_S):
             self._n["untimed_frames"] += 1
             return None
         dev = int(round(ts * 1e9))

@@ -418,3 +418,12 @@ def test_the_service_opens_and_reopens_the_can_base_from_the_whole_config():
         again.close()
     finally:
         drv.close()
+
+
+def test_frames_without_a_usable_time_take_their_receipt_time(rig):
+    """The fuzz found a timestamp of 1.8e299 s overflowing the conversion to ns."""
+    r = rig("diff_drive")
+    r.send(wheels_frame(0.0, 0.0, 1.797693134862316e+299), gyro_frame(1.0, float("nan")))
+    out = r.read(at_s=2.5)
+    assert [m.stamp_ns for m in out] == [2_500_000_000, 2_500_000_000]
+    assert r.driver.stats()["untimed_frames"] == 2
