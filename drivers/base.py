@@ -16,13 +16,13 @@ from types import TracebackType
 from typing import Self
 
 from robotd.base.errors import DriverError
-from robotd.base.messages import Frame, WheelTicks, YawRate
+from robotd.base.messages import BaseStatus, Frame, WheelTicks, YawRate
 
 __all__ = ["Driver", "Message", "StatValue"]
 
 _log = logging.getLogger(__name__)
 
-Message = WheelTicks | YawRate | Frame
+Message = WheelTicks | YawRate | Frame | BaseStatus
 """What a driver hands out."""
 
 StatValue = int | float | str

@@ -22,6 +22,7 @@ __all__ = ["BACKENDS", "known_backends", "open_driver", "resolve"]
 
 BACKENDS: dict[tuple[str, str], str] = {
     ("base", "kobuki"): "drivers.kobuki.driver:open_kobuki",
+    ("base", "can"): "drivers.can.driver:open_can",
     ("floor_camera", "v4l2"): "drivers.camera:open_v4l2",
     ("replay", "mcap"): "drivers.recording.replay:open_replay",
 }

@@ -6,7 +6,9 @@ that each own a list of event times and an ``emit(i)``:
 * emulators (:mod:`sim.emulators`): the Kobuki base, whose SI sensor streams
   (:mod:`sim.sensors`) are encoded into feedback packets at 50 Hz and written to the
   master side of a pseudo-terminal, so the daemon opens the slave by its path with the
-  same serial driver it uses on the robot; it answers the daemon's commands;
+  same serial driver it uses on the robot; it answers the daemon's commands. With
+  ``base="can"`` the same streams go out instead as CAN frames on a python-can virtual
+  bus (:mod:`sim.emulators.can`), which the daemon's CAN driver opens by channel name;
 * cameras (:mod:`sim.cameras`): the downward floor camera, rendered at the true pose at
   30 Hz and read like a real camera; optionally (``forward_camera=True``) the forward
   camera in the route's textured world (:mod:`sim.world.rooms`), at ``forward_fps``.
@@ -28,7 +30,7 @@ import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -40,6 +42,9 @@ from sim.emulators.kobuki import KobukiEmulator, KobukiParams, simulate_kobuki
 from sim.route import ROUTES, MotionLimits, build_route, plan_motion
 from sim.sensors import BaseSensorParams
 from sim.world.floor import Floor
+
+if TYPE_CHECKING:  # python-can and cantools are loaded only for a CAN base
+    from sim.emulators.can import CanEmulator, CanFaults
 
 __all__ = ["Part", "VirtualCamera", "VirtualRobot", "VirtualRobotSettings"]
 
@@ -76,6 +81,10 @@ class VirtualRobotSettings:
     camera_queue_size: int = 4
     forward_camera: bool = False
     forward_fps: float = 10.0
+    base: str = "kobuki"
+    """``"kobuki"`` (serial bytes on a pty) or ``"can"`` (frames on a python-can virtual bus)."""
+    can_convention: str = "diff_drive"
+    can_faults: CanFaults | None = None
 
 
 def _default_print_photo() -> "np.ndarray":
@@ -102,6 +111,9 @@ class VirtualRobot:
                  clock: ManualClock, sensor_params: BaseSensorParams | None = None,
                  render_params: RenderParams | None = None,
                  base_params: KobukiParams | None = None) -> None:
+        if settings.base not in ("kobuki", "can"):
+            from robotd.base.errors import ConfigError
+            raise ConfigError(f"unknown virtual base {settings.base!r} (known: kobuki, can)")
         if settings.route not in ROUTES:
             from robotd.base.errors import ConfigError
             raise ConfigError(f"unknown route {settings.route!r} (known: {', '.join(ROUTES)})")
@@ -118,11 +130,22 @@ class VirtualRobot:
         self.renderer = FloorRenderer(self.floor, camera_model, render_params or RenderParams(),
                                       np.random.default_rng(settings.seed + 1))
         self._stop = threading.Event()
-        self.base = KobukiEmulator(feedback, stop=self._stop)
+        self.base: KobukiEmulator | CanEmulator
+        if settings.base == "can":
+            from sim.emulators.can import CanEmulator, encode_can
+
+            # The same sensor streams (same seed, same drawn errors) as the Kobuki's, sent
+            # as CAN frames instead: only the protocol and the driver differ.
+            self.base = CanEmulator(
+                encode_can(feedback.sensors, settings.can_convention,
+                           np.random.default_rng(settings.seed + 3), settings.can_faults),
+                feedback.sensors)
+        else:
+            self.base = KobukiEmulator(feedback, stop=self._stop)
         self.camera = floor_camera(self.renderer, self.motion, settings.camera_fps,
                                    capacity=settings.camera_queue_size,
                                    lossless=not settings.realtime, stop=self._stop)
-        self.emulators: list[KobukiEmulator] = [self.base]
+        self.emulators: list[KobukiEmulator | CanEmulator] = [self.base]
         self.cameras: list[VirtualCamera] = [self.camera]
         self.forward: VirtualCamera | None = None
         if settings.forward_camera:

@@ -29,6 +29,10 @@ from robotd.base.queues import BoundedQueue
 
 log = logging.getLogger(__name__)
 
+_STATUS_FAULTS = ("frames", "unknown_frames", "decode_errors", "error_frames", "bus_off",
+                  "bus_errors", "flood_reads", "bus_silent", "stale_left", "stale_right")
+"""Driver counters shown in STATUS beside a driver's ``status`` (those that are not 0)."""
+
 _BATCH = 256  # items taken from one queue per turn, so no source starves the others
 
 
@@ -218,9 +222,29 @@ class Daemon:
         rate = lambda n: n / elapsed_s if elapsed_s > 0 else 0.0  # noqa: E731
         drops = sum(q.dropped for q in self.queues.values())
         wheel, frames = c.get("wheel_msgs", 0), c.get("frames", 0)
-        return (f"odometry {rate(wheel):.1f}/s ({wheel}), frames {rate(frames):.1f}/s ({frames}), "
+        text = (f"odometry {rate(wheel):.1f}/s ({wheel}), frames {rate(frames):.1f}/s ({frames}), "
                 f"keyframes {c.get('keyframes', 0)}, loops {c.get('links_loop', 0)}, drops {drops}, "
                 f"unsynced {c.get('frames_unsynced', 0)}")
+        if c.get("odometry_degraded"):
+            odo = self.pipeline.stage("odometry")
+            text += f", odometry DEGRADED ({getattr(odo, 'degraded_detail', '')})"
+        return text + self._driver_status()
+
+    def _driver_status(self) -> str:
+        """``; name: status ...`` for each driver whose stats carry a ``status`` line (the
+        CAN base: its health and fault counters), so they reach STATUS."""
+        try:
+            stats = self.driver_stats()
+        except Exception:  # STATUS must never stop the daemon
+            log.debug("driver stats failed", exc_info=True)
+            return ""
+        parts = []
+        for name, st in stats.items():
+            if not isinstance(st, dict) or "status" not in st:
+                continue
+            faults = ", ".join(f"{k} {st[k]}" for k in _STATUS_FAULTS if st.get(k))
+            parts.append(f"; {name}: {st['status']}" + (f" ({faults})" if faults else ""))
+        return "".join(parts)
 
     def start(self) -> None:
         """Start the source threads and tell systemd the service is ready."""

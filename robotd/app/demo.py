@@ -56,6 +56,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-plot", action="store_true", help="skip trajectories.png")
     p.add_argument("--record", type=Path, default=None, metavar="FILE.mcap",
                    help="also record the run (frames, ticks, gyro, odometry, ground truth) to MCAP")
+    p.add_argument("--base", choices=("kobuki", "can"), default="kobuki",
+                   help="the virtual robot's base: Kobuki bytes over a pty (default), or the same "
+                        "sensor streams as CAN frames on a python-can virtual bus")
+    p.add_argument("--can-dbc", choices=("diff_drive", "odrive_cansimple"), default="diff_drive",
+                   help="with --base can: the convention of the frames (default diff_drive: wheel "
+                        "angles and a gyro; odrive_cansimple: an ODrive per wheel, no gyro)")
+    p.add_argument("--can-faults", action="store_true",
+                   help="with --base can: inject a flood of unknown ids, a bus-off, a stale wheel "
+                        "and undecodable frames during the run")
 
 
 def run_from_args(args: argparse.Namespace) -> int:
@@ -78,7 +87,8 @@ def run_from_args(args: argparse.Namespace) -> int:
                        floor_files=tuple(str(f) for f in args.floor or ()),
                        floor_scale=args.floor_scale, floor_pattern=args.floor_pattern,
                        duration_s=args.duration, seed=args.seed,
-                       realtime=args.realtime, plot=not args.no_plot, record=args.record)
+                       realtime=args.realtime, plot=not args.no_plot, record=args.record,
+                       base=args.base, can_convention=args.can_dbc, can_faults=args.can_faults)
     print_summary(summary, sys.stdout)
     return exit_status(summary)
 
@@ -181,9 +191,13 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
              floor_scale: float = 0.001, floor_pattern: str | None = None,
              duration_s: float | None = None, seed: int = 0,
              realtime: bool = False, plot: bool = True, record: Path | None = None,
-             observers: tuple[Any, ...] = ()) -> dict[str, Any]:
+             observers: tuple[Any, ...] = (), base: str = "kobuki",
+             can_convention: str = "diff_drive", can_faults: bool = False) -> dict[str, Any]:
     """Run the daemon on the virtual robot; returns the summary (also written as JSON).
     ``observers``: extra pipeline stages that watch the run (the benchmarks use this).
+    ``base``: ``"kobuki"`` or ``"can"`` (the same sensor streams as ``can_convention``
+    frames on a python-can virtual bus, read by the CAN driver; ``can_faults`` injects
+    :meth:`sim.emulators.can.CanFaults.standard`).
 
     Raises :class:`~robotd.base.errors.ConfigError` for a duration that is not a number of
     seconds of at least :data:`MIN_DURATION_S`, or an output folder that cannot be made or
@@ -204,12 +218,21 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     settings = VirtualRobotSettings(route=route, seed=seed, duration_s=duration_s, realtime=realtime,
                                     floor_files=floor_files, floor_metres_per_px=floor_scale,
                                     floor_pattern=floor_pattern,
-                                    camera_fps=base_cfg.floor_camera.fps,
+                                    camera_fps=base_cfg.floor_camera.fps, base=base,
+                                    can_convention=can_convention,
+                                    can_faults=_can_faults(can_faults, duration_s, route),
                                     forward_camera=base_cfg.forward_detector.enabled,
                                     forward_fps=FORWARD_FPS)
     wall0 = time.monotonic()
     robot = VirtualRobot(settings, cam_model, clock)
-    cfg = replace(base_cfg, "base", driver="kobuki", port=robot.port)
+    if base == "can":
+        from sim.emulators.can import can_config_changes
+
+        cfg = replace(base_cfg, "base", driver="can")
+        cfg = replace(cfg, "can", interface="virtual", channel=robot.port,
+                      **can_config_changes(can_convention))
+    else:
+        cfg = replace(base_cfg, "base", driver="kobuki", port=robot.port)
     cfg = replace(cfg, "floor_camera", source="virtual")
     cfg = replace(cfg, "map", path=str(map_path))
     recorder = _Recorder(out)
@@ -223,6 +246,19 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
 
 FORWARD_FPS = 15.0
 """The virtual forward camera's frame rate in the demo: a frame within 33 ms of each keyframe."""
+
+
+def _can_faults(wanted: bool, duration_s: float | None, route: str) -> Any:
+    """The standard CAN faults over the run's length, or None."""
+    if not wanted:
+        return None
+    from sim.emulators.can import CanFaults
+    from sim.route import MotionLimits, build_route, plan_motion
+
+    length = duration_s if duration_s is not None else float(
+        plan_motion(build_route(route), MotionLimits()).t_s[-1])
+    return CanFaults.standard(length)
+
 
 MIN_DURATION_S = 0.1
 """The shortest demo, seconds of robot time: a few odometry packets and camera frames."""
@@ -313,18 +349,17 @@ def _drive(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, *, realtime: b
 
 def _drive_and_record(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, progress: _Progress,
                       *, realtime: bool, writer: Any, observers: tuple[Any, ...] = ()) -> dict[str, Any]:
-    from drivers.kobuki.driver import KobukiDriver
     from robotd.app.assemble import assemble_daemon, open_map
     from robotd.app.notify import Notifier
     from robotd.io.trajectory import write_tum
 
     out = Path(cfg.map.path).parent
-    with robot, open_map(cfg, clock=clock) as store, KobukiDriver(
-        robot.port, clock=clock, baudrate=cfg.base.baudrate, yaw_source=cfg.base.yaw_source
-    ) as driver:
+    with robot, open_map(cfg, clock=clock) as store, _open_base(robot, cfg, clock) as driver:
         store.set_meta(DEMO_MAP_META, "written by robotd demo; the next demo into this folder "
                                       "replaces it")
-        driver.request_extra(hardware_version=True, firmware_version=True, udid=True)
+        is_can = cfg.base.driver == "can"
+        if not is_can:
+            driver.request_extra(hardware_version=True, firmware_version=True, udid=True)
         sources: dict[str, Any] = {"base": driver, "floor": robot.camera}
         if robot.forward is not None:
             sources["forward"] = robot.forward
@@ -337,7 +372,7 @@ def _drive_and_record(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, pro
             watchers.append(OdometryRecorder(writer))
         daemon = assemble_daemon(cfg, clock, sources, store, Notifier(), lossless=not realtime,
                                  observers=watchers,
-                                 driver_stats=lambda: {"kobuki": driver.stats()})
+                                 driver_stats=lambda: {"can" if is_can else "kobuki": driver.stats()})
         robot.start()
 
         def finished() -> bool:
@@ -347,7 +382,13 @@ def _drive_and_record(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, pro
                 return True
             # Frames still held for a settled pose are handled by Pipeline.finish at the end.
             odo = daemon.pipeline.stage("odometry")
-            return (robot.finished.is_set() and odo.wheel_msgs >= robot.packets_emitted
+            if is_can:  # every frame read, and every wheel pair it made handled
+                st = driver.stats()
+                base_done = (st["frames"] >= robot.packets_emitted
+                             and odo.wheel_msgs >= st["wheel_samples"])
+            else:
+                base_done = odo.wheel_msgs >= robot.packets_emitted
+            return (robot.finished.is_set() and base_done
                     and c.frames >= robot.camera.frames_emitted - robot.camera.dropped)
 
         report = daemon.run(stop_when=finished)
@@ -381,6 +422,19 @@ def _drive_and_record(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, pro
     return live
 
 
+def _open_base(robot: Any, cfg: Any, clock: Any) -> Any:
+    """The daemon's driver of the virtual robot's base: the Kobuki driver on its pty, or
+    the CAN driver on its virtual bus channel (through the registry, as ``robotd run``)."""
+    if cfg.base.driver == "can":
+        from drivers.registry import open_driver
+
+        return open_driver("base", "can", cfg, clock)
+    from drivers.kobuki.driver import KobukiDriver
+
+    return KobukiDriver(robot.port, clock=clock, baudrate=cfg.base.baudrate,
+                        yaw_source=cfg.base.yaw_source)
+
+
 _STOP_SIGNALS = {"SIGINT": 2, "SIGTERM": 15}
 """The daemon's stop reasons that mean the user stopped the run, with their numbers."""
 
@@ -407,6 +461,7 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
     report = live["report"]
     c = report.counters
     kob = report.driver_stats.get("kobuki", {})
+    can_stats = report.driver_stats.get("can")
     wall_s = live["wall_s"]
     summary: dict[str, Any] = {
         "route": robot.settings.route, "seed": robot.settings.seed,
@@ -429,6 +484,12 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
         "calibration": cfg.calibration.path if Path(cfg.calibration.path).exists() else None,
         "recording": str(record) if record is not None else None,
     }
+    if can_stats is not None:
+        summary["base"] = "can"
+        summary["can"] = {**can_stats, "convention": robot.settings.can_convention,
+                          "frames_sent": robot.base.frames_sent,
+                          "faults_injected": robot.base.frames.injected,
+                          "odometry_degraded_episodes": c.get("odometry_degraded_episodes", 0)}
     if cfg.visual_odometry.enabled:
         summary["visual_odometry"] = {"mode": cfg.visual_odometry.mode,
                                       **{k: v for k, v in c.items() if k.startswith("vo_")}}
@@ -631,6 +692,13 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
         ("drops", ", ".join(f"{k} {v}" for k, v in s["drops"].items())),
         ("packet errors", ", ".join(f"{k} {v}" for k, v in s["packet_errors"].items())),
     ]
+    if "can" in s:
+        cs = s["can"]
+        rows[-1] = ("CAN frames", f"{cs['frames']} read of {cs['frames_sent']} sent ({cs['convention']}): "
+                    f"used {cs['frames_used']}, unknown {cs['unknown_frames']}, decode errors "
+                    f"{cs['decode_errors']}, error frames {cs['error_frames']}, bus-off {cs['bus_off']}, "
+                    f"floods {cs['flood_reads']}, stale left/right {cs['stale_left']}/{cs['stale_right']}, "
+                    f"odometry degraded {cs['odometry_degraded_episodes']}x")
     width = max(len(r[0]) for r in rows)
     for k, v in rows:
         print(f"{k:<{width}}  {v}", file=f)

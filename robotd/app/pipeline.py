@@ -36,6 +36,7 @@ import numpy as np
 from robotd.base.clock import Clock
 from robotd.base.geometry import information_from_covariance
 from robotd.base.messages import (
+    BaseStatus,
     CandidateFate,
     Frame,
     Keyframe,
@@ -156,7 +157,14 @@ class Publisher:
 
 
 class OdometryStage(Publisher):
-    """Wheel ticks and gyro into the odometry filter (:mod:`robotd.odometry.ekf`)."""
+    """Wheel ticks and gyro into the odometry filter (:mod:`robotd.odometry.ekf`).
+
+    A base driver that knows its wheel readings have stopped (a stale wheel on a CAN
+    bus) says so with :class:`~robotd.base.messages.BaseStatus`: the odometry is then
+    ``degraded`` (``odometry_degraded`` 1, with ``degraded_detail``; the STATUS line
+    says so) until the driver reports it healthy again; ``odometry_degraded_episodes``
+    counts the times it became degraded.
+    """
 
     name = "odometry"
 
@@ -165,9 +173,22 @@ class OdometryStage(Publisher):
         self.wheel_msgs = 0
         self.yaw_msgs = 0
         self.rejected = 0
+        self.degraded = False
+        self.degraded_detail = ""
+        self.degraded_episodes = 0
 
     def subscriptions(self) -> Mapping[type, Handler]:
-        return {WheelTicks: self.on_wheels, YawRate: self.on_yaw_rate}
+        return {WheelTicks: self.on_wheels, YawRate: self.on_yaw_rate,
+                BaseStatus: self.on_base_status}
+
+    def on_base_status(self, msg: BaseStatus) -> None:
+        if msg.degraded and not self.degraded:
+            self.degraded_episodes += 1
+            log.warning("odometry degraded: %s", msg.detail)
+        elif self.degraded and not msg.degraded:
+            log.info("odometry no longer degraded")
+        self.degraded = msg.degraded
+        self.degraded_detail = msg.detail if msg.degraded else ""
 
     def on_wheels(self, msg: WheelTicks) -> None:
         self.wheel_msgs += 1
@@ -185,7 +206,8 @@ class OdometryStage(Publisher):
     def counters(self) -> dict[str, int]:
         f = self.odometry.counters
         return {"wheel_msgs": self.wheel_msgs, "yaw_msgs": self.yaw_msgs,
-                "odometry_rejected": self.rejected, "vo_fused": f.vo_fused,
+                "odometry_rejected": self.rejected, "odometry_degraded": int(self.degraded),
+                "odometry_degraded_episodes": self.degraded_episodes, "vo_fused": f.vo_fused,
                 "vo_rejected_by_filter": f.vo_rejected}
 
 

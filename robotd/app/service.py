@@ -27,7 +27,8 @@ def open_sources(cfg: Config, clock: Clock) -> dict[str, tuple[Any, Callable[[],
 
     wanted: list[tuple[str, str, str, Any]] = []  # (source, role, backend, config section)
     if cfg.base.driver != "none":
-        wanted.append(("base", "base", cfg.base.driver, cfg.base))
+        # The CAN base takes the whole config: its [can] section and [robot]'s geometry.
+        wanted.append(("base", "base", cfg.base.driver, cfg if cfg.base.driver == "can" else cfg.base))
     fc = cfg.floor_camera
     if fc.source == "virtual":
         raise ConfigError("[floor_camera] source: 'virtual' exists only in `robotd demo`")

@@ -41,13 +41,41 @@ class RobotConfig:
 class BaseConfig:
     """The mobile base: wheel encoders and gyro."""
 
-    driver: str = _f("kobuki", "base driver", choices=("kobuki", "none"))
+    driver: str = _f("kobuki", "base driver ('can': the [can] section)", choices=("kobuki", "can", "none"))
     port: str = _f("/dev/kobuki", "serial port: a device path or any pyserial URL")
     baudrate: int = _f(115200, "serial baud rate", lo=1200, hi=4_000_000)
     yaw_source: str = _f("raw_gyro", "which gyro reading feeds the filter",
                          choices=("raw_gyro", "inertial"))
     queue_size: int = _f(512, "samples buffered between the driver thread and the pipeline",
                          lo=1, hi=1_000_000)
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    """A base on a CAN bus (``[base] driver = "can"``): python-can for the bus, a DBC file
+    for the frames, and which decoded signals are the wheels and the gyro.
+
+    A signal is ``"Message.Signal"`` of the DBC. A wheel signal in a unit of angle or
+    distance is a position (cumulative), one per second a speed (integrated by the
+    driver). ``left_scale``/``right_scale`` multiply the decoded value first: -1 for a
+    mirrored motor, 1/N for a gearbox of ratio N when the signal is motor turns."""
+
+    interface: str = _f("socketcan", "python-can interface ('socketcan' on the robot, 'virtual' in tests)")
+    channel: str = _f("can0", "python-can channel (the socketcan network interface)")
+    dbc: str = _f("diff_drive", "a DBC shipped with robotd ('diff_drive', 'odrive_cansimple') or a .dbc path")
+    left: str = _f("Base_Wheels.Left_Wheel_Pos", "left wheel signal, Message.Signal")
+    right: str = _f("Base_Wheels.Right_Wheel_Pos", "right wheel signal, Message.Signal")
+    wheel_unit: str = _f("rad", "unit of the wheel signals (per second: a speed)",
+                         choices=("turn", "rad", "deg", "m", "turn/s", "rad/s", "deg/s", "m/s", "rpm"))
+    left_scale: float = _f(1.0, "multiplies the left signal (-1: mirrored; 1/N: gear ratio N)", lo=-1e6, hi=1e6)
+    right_scale: float = _f(1.0, "multiplies the right signal (-1: mirrored; 1/N: gear ratio N)", lo=-1e6, hi=1e6)
+    yaw: str = _f("Base_Gyro.Yaw_Rate", "yaw-rate signal, Message.Signal ('': no gyro)")
+    yaw_unit: str = _f("deg/s", "unit of the yaw-rate signal", choices=("rad/s", "deg/s"))
+    yaw_scale: float = _f(1.0, "multiplies the yaw signal (-1: clockwise positive)", lo=-1e6, hi=1e6)
+    period_s: float = _f(0.02, "the wheel frames' nominal period", lo=1e-4, hi=10.0)
+    stale_periods: int = _f(5, "a wheel (or the bus) silent this many periods is stale", lo=1, hi=100_000)
+    max_frames_per_read: int = _f(2000, "frames taken per read; more waiting is a flood (counted)",
+                                  lo=1, hi=1_000_000)
 
 
 @dataclass(frozen=True)
@@ -194,6 +222,7 @@ class Config:
 
     robot: RobotConfig = field(default_factory=RobotConfig)
     base: BaseConfig = field(default_factory=BaseConfig)
+    can: CanConfig = field(default_factory=CanConfig)
     floor_camera: FloorCameraConfig = field(default_factory=FloorCameraConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)

@@ -36,6 +36,17 @@ class YawRate:
     source: str = "gyro"
 
 
+@dataclass(frozen=True, slots=True)
+class BaseStatus:
+    """The base driver's word on its own health, sent when it changes: ``degraded`` while
+    a wheel (or the whole bus) has been silent too long, so the wheel odometry is not
+    being updated; ``detail`` says which (``"left wheel stale"``, ``"bus silent"``)."""
+
+    stamp_ns: int
+    degraded: bool
+    detail: str = ""
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class Frame:
     """One camera image.

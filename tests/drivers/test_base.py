@@ -121,8 +121,8 @@ def test_every_driver_is_a_context_manager():
 
 
 def test_unknown_backend_names_the_known_ones():
-    with pytest.raises(ConfigError, match=r"unknown base driver 'can'; known: kobuki"):
-        open_driver("base", "can", BaseConfig(), ManualClock())
+    with pytest.raises(ConfigError, match=r"unknown base driver 'roomba'; known: can, kobuki"):
+        open_driver("base", "roomba", BaseConfig(), ManualClock())
     with pytest.raises(ConfigError, match=r"unknown floor_camera driver 'depthai'; known: v4l2"):
         open_driver("floor_camera", "depthai", FloorCameraConfig(), ManualClock())
     with pytest.raises(ConfigError, match=r"no driver role 'lidar'; known roles: base, floor_camera, replay"):
