@@ -1,0 +1,165 @@
+"""Fault test: the floor camera unplugged and plugged back in while the daemon runs.
+
+The whole daemon as `robotd run` assembles it, on the real clock, with real threads: the
+base is the Kobuki driver on a pseudo-terminal fed 50 packets a second; the floor camera
+is the DepthAI driver on a host-only depthai pipeline whose ReplayVideo node plays a
+one-second video (no device: see tests/drivers/test_depthai_camera.py). The video's end
+closes the stream, which the driver takes for an unplugged camera; the file is then moved
+away (reopening fails, with backoff) and, 1.5 s later, back (the camera comes back).
+Checked: the base thread kept producing odometry during the gap, frames resumed after
+the replug, and the gap (count and duration) is in STATUS (read from a real AF_UNIX
+notify socket) and in the log, equal to the driver's own figures.
+
+Marked slow: it runs about 5 s of real time.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import socket
+import threading
+import time
+import tty
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+dai = pytest.importorskip("depthai")
+
+from drivers.depthai_camera import DepthAICamera, DepthAISettings, replay_stream_opener  # noqa: E402
+from drivers.kobuki.driver import KobukiDriver  # noqa: E402
+from drivers.kobuki.protocol import BasicSensorData, InertialData, encode_feedback  # noqa: E402
+from robotd.app.assemble import assemble_daemon, open_map  # noqa: E402
+from robotd.app.notify import Notifier  # noqa: E402
+from robotd.base.clock import MonotonicClock  # noqa: E402
+from robotd.base.config import Config, replace  # noqa: E402
+
+pytestmark = pytest.mark.slow
+
+AWAY_S = 1.5
+"""How long the video file stays moved away (the camera unplugged), seconds."""
+
+
+def _packet(i: int) -> bytes:
+    basic = BasicSensorData(
+        timestamp_ms=(20 * i) & 0xFFFF, bumper=0, wheel_drop=0, cliff=0,
+        left_encoder=(10 * i) & 0xFFFF, right_encoder=(10 * i) & 0xFFFF,
+        left_pwm=0, right_pwm=0, buttons=0, charger=0, battery_decivolts=160, overcurrent=0)
+    return encode_feedback(basic, InertialData(angle_centideg=0, angle_rate_centidegps=0))
+
+
+def _feed(master: int, stop: threading.Event) -> None:
+    """Kobuki feedback at 50 Hz until ``stop``."""
+    i = 0
+    start = time.monotonic()
+    while not stop.is_set():
+        os.write(master, _packet(i))
+        i += 1
+        stop.wait(max(0.0, start + 0.02 * i - time.monotonic()))
+
+
+def _statuses(sock: socket.socket) -> list[str]:
+    out = []
+    sock.setblocking(False)
+    while True:
+        try:
+            msg = sock.recv(4096).decode()
+        except BlockingIOError:
+            return out
+        out += [line[len("STATUS="):] for line in msg.splitlines() if line.startswith("STATUS=")]
+
+
+def test_the_floor_camera_unplugged_and_replugged_while_odometry_runs(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    video = tmp_path / "floor.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"MJPG"), 30, (64, 48))
+    for i in range(30):
+        writer.write(np.full((48, 64, 3), 8 * i, np.uint8))
+    writer.release()
+    away = tmp_path / "floor.unplugged"
+
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(tmp_path / "notify.sock"))
+    monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "notify.sock"))
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    cfg = replace(Config(), "floor_detector", enabled=False)
+    cfg = replace(cfg, "pose_graph", enabled=False)
+    cfg = replace(cfg, "map", path=str(tmp_path / "map.sqlite"))
+    cfg = replace(cfg, "calibration", path=str(tmp_path / "none.yml"))
+    cfg = replace(cfg, "daemon", status_interval_s=0.2)
+    clock = MonotonicClock()
+    stop_feeding = threading.Event()
+    feeder = threading.Thread(target=_feed, args=(master, stop_feeding), daemon=True)
+    camera = DepthAICamera(DepthAISettings(width_px=64, height_px=48, fps=30.0),
+                           opener=replay_stream_opener(video), clock=clock,
+                           initial_backoff_s=0.1, max_backoff_s=0.4)
+    marks: dict[str, float] = {}
+    wheel_at: dict[str, int] = {}
+    frames_at: dict[str, int] = {}
+    try:
+        with KobukiDriver(os.ttyname(slave), clock) as base, open_map(cfg) as store:
+            drivers = {"base": base, "floor": camera}
+            daemon = assemble_daemon(cfg, clock, drivers, store, Notifier(), lossless=False,
+                                     driver_stats=lambda: {n: d.stats() for n, d in drivers.items()})
+            counters = daemon.pipeline.counters
+
+            lines: list[str] = []
+
+            def step() -> bool:
+                """The test's script, run by the daemon's main loop every turn (it also
+                reads the notify socket, whose sender blocks when it is full)."""
+                lines.extend(_statuses(sock))
+                now = time.monotonic()
+                if "lost" not in marks and not camera.connected:  # the video ended
+                    video.rename(away)
+                    marks["lost"] = now
+                    wheel_at["lost"] = counters()["wheel_msgs"]
+                elif "lost" in marks and "back" not in marks and now - marks["lost"] >= AWAY_S:
+                    away.rename(video)
+                    marks["back"] = now
+                    wheel_at["back"] = counters()["wheel_msgs"]
+                    frames_at["back"] = counters()["frames"]
+                elif "back" in marks and "resumed" not in marks and camera.stats()["gaps"] == 1:
+                    marks["resumed"] = now
+                elif "resumed" in marks and now - marks["resumed"] >= 0.5:
+                    return True
+                return now - marks.get("start", now) > 30.0  # a safety net, never reached
+
+            marks["start"] = time.monotonic()
+            feeder.start()
+            with caplog.at_level(logging.INFO):
+                report = daemon.run(stop_when=step)
+    finally:
+        stop_feeding.set()
+        feeder.join()
+        camera.close()
+        os.close(master)
+        os.close(slave)
+    assert "resumed" in marks, marks
+    cam = report.driver_stats["floor"]
+    base_stats = report.driver_stats["base"]
+
+    # The base thread kept producing while the camera was away (50 Hz for >= 1.5 s).
+    assert wheel_at["back"] - wheel_at["lost"] >= 50, wheel_at
+    assert base_stats["losses"] == 0 and report.stopped_by == "finished"
+    # Frames resumed after the replug.
+    assert report.counters["frames"] > frames_at["back"] >= 25
+    # One gap, at least as long as the camera was away, and not much longer (backoff <= 0.4 s).
+    assert cam["losses"] == 1 and cam["gaps"] == 1 and cam["reconnects"] == 1
+    assert cam["reopen_failures"] >= 2
+    gap_s = float(cam["last_gap_s"])
+    assert AWAY_S <= gap_s <= AWAY_S + 3.0, gap_s
+    # STATUS said the camera was away, then the gap with the driver's own figures.
+    lines += _statuses(sock)
+    assert any(re.search(r"\bfloor away \d+\.\d s\b", line) for line in lines), lines
+    assert any(f"floor gaps 1 ({gap_s:.3f} s, last {gap_s:.3f} s)" in line for line in lines), lines
+    assert not any("base away" in line or "base gaps" in line for line in lines)
+    # And the log: the loss, then the return with the gap's length.
+    assert re.search(r"floor camera DepthAI .* lost \(the frame stream closed", caplog.text)
+    assert f"back after {gap_s:.3f} s without data (gap 1; {gap_s:.3f} s in all)" in caplog.text
+    sock.close()
