@@ -19,8 +19,9 @@ import dataclasses
 import logging
 import signal
 import threading
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Protocol
+from typing import Any, Callable, Protocol
 
 from robotd.app.pipeline import Pipeline
 from robotd.base.clock import Clock, MonotonicClock

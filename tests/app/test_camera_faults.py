@@ -31,15 +31,15 @@ import pytest
 
 dai = pytest.importorskip("depthai")
 
-from drivers.depthai_camera import DepthAICamera, DepthAISettings, replay_stream_opener  # noqa: E402
-from drivers.kobuki.driver import KobukiDriver  # noqa: E402
-from drivers.kobuki.protocol import BasicSensorData, InertialData, encode_feedback  # noqa: E402
-from robotd.app.assemble import assemble_daemon, open_map  # noqa: E402
-from robotd.app.daemon import Daemon, gap_text  # noqa: E402
-from robotd.app.notify import Notifier  # noqa: E402
-from robotd.app.pipeline import Pipeline  # noqa: E402
-from robotd.base.clock import ManualClock, MonotonicClock  # noqa: E402
-from robotd.base.config import Config, replace  # noqa: E402
+from drivers.depthai_camera import DepthAICamera, DepthAISettings, replay_stream_opener
+from drivers.kobuki.driver import KobukiDriver
+from drivers.kobuki.protocol import BasicSensorData, InertialData, encode_feedback
+from robotd.app.assemble import assemble_daemon, open_map
+from robotd.app.daemon import Daemon, gap_text
+from robotd.app.notify import Notifier
+from robotd.app.pipeline import Pipeline
+from robotd.base.clock import ManualClock, MonotonicClock
+from robotd.base.config import Config, replace
 
 AWAY_S = 1.5
 """How long the video file stays moved away (the camera unplugged), seconds."""

@@ -22,14 +22,14 @@ import pytest
 
 dai = pytest.importorskip("depthai")
 
-from drivers.depthai_camera import (  # noqa: E402 - after the importorskip
+from drivers.depthai_camera import (
     DepthAICamera,
     DepthAISettings,
     _find_device,
     replay_stream_opener,
 )
-from robotd.base.clock import ManualClock, MonotonicClock  # noqa: E402
-from robotd.base.errors import DriverError  # noqa: E402
+from robotd.base.clock import ManualClock, MonotonicClock
+from robotd.base.errors import DriverError
 
 S = 1_000_000_000
 N_FRAMES = 6
@@ -186,7 +186,7 @@ def test_settings_are_checked() -> None:
 def test_no_device_is_one_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
     """The device opener's first step, with depthai's device list as this host has it
     (empty) and with one device present under another id."""
-    monkeypatch.setattr(dai.Device, "getAllAvailableDevices", staticmethod(lambda: []))
+    monkeypatch.setattr(dai.Device, "getAllAvailableDevices", staticmethod(list))
     with pytest.raises(DriverError, match="no DepthAI device found"):
         _find_device("")
     other = dai.DeviceInfo("1.3")
