@@ -108,6 +108,8 @@ def test_run_with_a_missing_port_is_one_clear_line(tmp_path: Path):
 @pytest.mark.parametrize(("setting", "message"), [
     ('[base]\ndriver = "none"\n[floor_camera]\nsource = "v4l2"\ndevice = "/dev/does-not-exist"\n',
      "robotd: error: camera device /dev/does-not-exist does not exist"),
+    ('[base]\ndriver = "none"\n[floor_camera]\nsource = "depthai"\n',
+     "robotd: error: no DepthAI device found (is the camera plugged in?"),
     ('[base]\ndriver = "none"\n[floor_camera]\nsource = "none"\n[calibration]\npath = "{bad}"\n',
      "robotd: error: {bad}: not valid OpenCV YAML"),
 ])
