@@ -29,15 +29,20 @@ the host's steady clock (``CLOCK_MONOTONIC`` on Linux, the time base of
 A stamp further than ``max_stamp_skew_s`` from the injected clock is replaced by the
 clock's time and counted (``clock_stamps``), as for V4L2.
 
-What is tested without a device (``tests/drivers/test_depthai_camera.py``): everything
-after the device, on real depthai objects, through :func:`replay_stream_opener`, a
-host-only depthai pipeline whose ``dai.node.ReplayVideo`` node plays a video file into a
-real ``MessageQueue``: frame conversion (GRAY8 and NV12 to BGR), size, sequence numbers,
-timestamps, the queue closing (treated as a lost device), and reopening with backoff.
-depthai's reconnection statuses are fed into the driver's callback by the test, with
-depthai's own enum values (a fake at the boundary: no device here can drop off the bus).
-:func:`open_device_stream` itself (``dai.Device``, the ``Camera`` node) needs a device and
-is not exercised; on a host without one it raises the one-line "no DepthAI device" error.
+What is tested without a device (``tests/drivers/test_depthai_camera.py``):
+
+- on real depthai objects, through :func:`replay_stream_opener` (a host-only depthai
+  pipeline whose ``dai.node.ReplayVideo`` node plays a video file into a real
+  ``MessageQueue``): frame conversion (GRAY8, and NV12 to BGR), size, numbering,
+  timestamps, the queue closing (a lost device), and reopening with backoff;
+- with a fake device at depthai's boundary (fake ``dai.Device``, ``dai.Pipeline`` and
+  Camera node that record the calls and hand real ``dai.ImgFrame`` objects through a
+  fake queue): :func:`open_device_stream`'s calls (socket, size, type, fps, queue,
+  reconnection attempts with the driver's callback), device stamps, sequence gaps, and
+  depthai's reconnection statuses arriving through that callback. That a real device
+  accepts these calls is not tested here (no device); on a host without one the
+  opener's first step gives the one-line "no DepthAI device found" error, which is
+  tested against depthai's real (empty) device list.
 """
 
 from __future__ import annotations

@@ -6,12 +6,15 @@ the real driver: frame types and sizes, sequence numbers, timestamps, the stream
 (a lost device) and reopening with backoff. What is faked at the boundary: depthai's
 reconnection statuses, which only a device dropping off the bus produces; the test hands
 depthai's own ``dai.Device.ReconnectionStatus`` values to the driver's callback. The
-device opener (:func:`open_device_stream`) is checked only for its error when no device
-is present.
+device opener (:func:`open_device_stream`) runs against a fake ``dai.Device``,
+``dai.Pipeline`` and Camera node that record its calls and hand real ``dai.ImgFrame``
+objects through a fake queue (the calls it makes are checked, not that a real device
+accepts them), and against depthai's real (empty) device list.
 """
 
 from __future__ import annotations
 
+import datetime
 import logging
 import time
 from pathlib import Path
@@ -195,3 +198,159 @@ def test_no_device_is_one_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
     assert _find_device("1.3") is other
     with pytest.raises(DriverError, match="DepthAI device 14442C10D13EABCE00 not found; present:"):
         _find_device("14442C10D13EABCE00")
+
+
+# -- the device path, with a fake device at depthai's boundary ---------------------------
+
+
+class _FakeQueue:
+    """A ``dai.MessageQueue`` stand-in holding real ``dai.ImgFrame`` objects."""
+
+    def __init__(self) -> None:
+        self.frames: list = []
+        self.closed = False
+
+    def get(self, timeout):
+        if self.closed:
+            raise dai.MessageQueue.QueueException("MessageQueue was closed")
+        return self.frames.pop(0) if self.frames else None
+
+    def tryGetAll(self):
+        out, self.frames = self.frames, []
+        return out
+
+
+class _FakeDevicePath:
+    """``dai.Device``, ``dai.Pipeline`` and the Camera node as :func:`open_device_stream`
+    uses them, recording the calls; everything else is the real depthai."""
+
+    def __init__(self) -> None:
+        self.calls: list = []
+        self.queues: list[_FakeQueue] = []
+        self.status_callbacks: list = []
+        self.fail_start = False
+        fake = self
+
+        class Device:
+            ReconnectionStatus = dai.Device.ReconnectionStatus
+
+            @staticmethod
+            def getAllAvailableDevices():
+                return [dai.DeviceInfo("1.3")]
+
+            def __init__(self, info) -> None:
+                fake.calls.append(("Device", info.name))
+
+            def setMaxReconnectionAttempts(self, n, callback):
+                fake.calls.append(("setMaxReconnectionAttempts", n))
+                fake.status_callbacks.append(callback)
+
+            def close(self) -> None:
+                fake.calls.append(("Device.close",))
+
+        class Output:
+            def createOutputQueue(self, maxSize, blocking):
+                fake.calls.append(("createOutputQueue", maxSize, blocking))
+                queue = _FakeQueue()
+                fake.queues.append(queue)
+                return queue
+
+        class CameraNode:
+            def build(self, socket):
+                fake.calls.append(("build", socket))
+                return self
+
+            def requestOutput(self, size, type, fps):
+                fake.calls.append(("requestOutput", size, type, fps))
+                return Output()
+
+        class Pipeline:
+            def __init__(self, device) -> None:
+                fake.calls.append(("Pipeline",))
+
+            def create(self, node_type):
+                assert node_type is dai.node.Camera
+                return CameraNode()
+
+            def start(self) -> None:
+                if fake.fail_start:
+                    raise RuntimeError("camera CAM_C not connected")
+                fake.calls.append(("start",))
+
+            def isRunning(self) -> bool:
+                return True
+
+            def stop(self) -> None:
+                fake.calls.append(("stop",))
+                fake.queues[-1].closed = True
+
+        self.dai = type("dai", (), {
+            "Device": Device, "Pipeline": Pipeline, "node": dai.node,
+            "CameraBoardSocket": dai.CameraBoardSocket, "ImgFrame": dai.ImgFrame,
+            "MessageQueue": dai.MessageQueue})
+
+    def push(self, seq: int, stamp_s: float, value: int) -> None:
+        frame = dai.ImgFrame()
+        frame.setType(dai.ImgFrame.Type.GRAY8)
+        frame.setWidth(4)
+        frame.setHeight(3)
+        frame.setData(np.full(12, value, np.uint8))
+        frame.setSequenceNum(seq)
+        frame.setTimestamp(datetime.timedelta(seconds=stamp_s))
+        self.queues[-1].frames.append(frame)
+
+
+def test_the_device_path_with_a_fake_device(monkeypatch: pytest.MonkeyPatch) -> None:
+    """open_device_stream's calls (socket, size, type, fps, queue, depthai's reconnection
+    with the driver's callback), frames and device stamps through it, a sequence gap
+    counted, and depthai's statuses arriving through the callback it was given."""
+    import drivers.depthai_camera as module
+
+    fake = _FakeDevicePath()
+    monkeypatch.setattr(module, "dai", fake.dai)
+    clock = ManualClock(10 * S)
+    settings = DepthAISettings(socket="CAM_B", width_px=4, height_px=3, fps=15.0, queue_size=2,
+                               reconnection_attempts=5)
+    camera = DepthAICamera(settings, clock=clock, initial_backoff_s=1.0)
+    assert fake.calls == [
+        ("Device", "1.3"), ("setMaxReconnectionAttempts", 5), ("Pipeline",),
+        ("build", dai.CameraBoardSocket.CAM_B),
+        ("requestOutput", (4, 3), dai.ImgFrame.Type.GRAY8, 15.0),
+        ("createOutputQueue", 2, False), ("start",)]
+    fake.push(seq=3, stamp_s=10.0, value=9)
+    fake.push(seq=6, stamp_s=10.2, value=11)  # 4 and 5 never reached the host
+    first, second = camera.read(0.0) + camera.read(0.0)
+    assert (first.stamp_ns, second.stamp_ns) == (10 * S, 10_200_000_000)
+    assert first.image.tolist() == [[9] * 4] * 3 and second.image.shape == (3, 4)
+    assert camera.stats()["frames_skipped"] == 2 and camera.stats()["clock_stamps"] == 0
+
+    (callback,) = fake.status_callbacks
+    fake.push(seq=7, stamp_s=10.3, value=12)  # queued before the device dropped off
+    callback(STATUS.RECONNECTING)
+    assert camera.read(0.0) == [] and camera.stats()["frames_discarded"] == 1
+    clock.advance_ns(2 * S)
+    callback(STATUS.RECONNECTED)
+    fake.push(seq=0, stamp_s=12.0, value=13)  # the device restarted its numbering
+    assert [f.image[0, 0] for f in camera.read(0.0)] == [13]
+    stats = camera.stats()
+    assert stats["last_gap_s"] == 2.0 and stats["frames_skipped"] == 2 and stats["losses"] == 1
+
+    callback(STATUS.RECONNECT_FAILED)  # depthai gave up: the driver closes everything
+    assert camera.read(0.0) == [] and fake.calls[-2:] == [("stop",), ("Device.close",)]
+    fake.fail_start = True
+    clock.advance_ns(S)
+    assert camera.read(0.0) == []  # reopening fails: the device is closed again
+    assert fake.calls[-1] == ("Device.close",) and camera.stats()["reopen_failures"] == 1
+    camera.close()
+
+
+def test_a_camera_that_does_not_start_is_one_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    import drivers.depthai_camera as module
+
+    fake = _FakeDevicePath()
+    fake.fail_start = True
+    monkeypatch.setattr(module, "dai", fake.dai)
+    with pytest.raises(DriverError, match=r"^DepthAI device .*: cannot start the CAM_C camera at "
+                                          r"640x400, 30 fps: camera CAM_C not connected$"):
+        DepthAICamera(DepthAISettings(socket="CAM_C"))
+    assert fake.calls[-1] == ("Device.close",)
