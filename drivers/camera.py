@@ -1,16 +1,12 @@
 """Camera sources behind one small base class.
 
-:class:`Camera` is a :class:`~drivers.base.Driver` (which does the counting, logging and
-the closed check) that adds what every camera needs: stamping (the device's timestamp,
-else the injected clock), frame numbering, grey conversion, and reconnecting with
-exponential backoff when the device is lost. A camera backend implements only
+:class:`Camera` is a :class:`~drivers.base.Driver` (which does the counting, logging, the
+closed check, and reconnection with exponential backoff when the device is lost) that
+adds what every camera needs: stamping (the device's timestamp, else the injected clock),
+frame numbering and grey conversion. A camera backend implements only
 ``_open_internal()``, ``_grab_internal(timeout_s)`` and ``_release_internal()``, in the
-style of python-can's ``BusABC``. :class:`V4L2Camera` is the OpenCV/V4L2 backend.
-
-Reconnection never sleeps on the wall clock unless the clock is the real
-:class:`~robotd.base.clock.MonotonicClock`: with any other clock, while the device is away,
-``read`` returns ``[]`` at once until the clock reaches the next retry time, so a replay or
-a test drives the backoff by moving a :class:`~robotd.base.clock.ManualClock`.
+style of python-can's ``BusABC``. :class:`V4L2Camera` is the OpenCV/V4L2 backend;
+:mod:`drivers.depthai_camera` holds the DepthAI one.
 """
 
 from __future__ import annotations
@@ -20,7 +16,6 @@ import logging
 import math
 import os
 import stat
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -30,7 +25,7 @@ import numpy as np
 
 from drivers.base import Driver, StatValue
 from drivers.timesync import SkewCheck
-from robotd.base.clock import Clock, MonotonicClock
+from robotd.base.clock import Clock
 from robotd.base.config import FloorCameraConfig
 from robotd.base.errors import DriverError
 from robotd.base.messages import Frame
@@ -62,14 +57,15 @@ class CameraFormat:
     buffer_size: int | None = None
 
 
-_CAMERA_COUNTERS = ("no_frame_reads", "losses", "reopen_failures", "reconnects", "clock_stamps")
+_CAMERA_COUNTERS = ("no_frame_reads", "clock_stamps", "bad_frames")
 
 
 class Camera(Driver):
-    """Base class of camera sources; a :class:`~drivers.base.Driver`.
+    """Base class of camera sources; a reconnecting :class:`~drivers.base.Driver`.
 
     :meth:`read` returns ``[frame]``, or ``[]`` if no frame came within the timeout or
-    the device is away.
+    the device is away (it is then reopened with backoff, and the time without frames is
+    counted as a gap: see :mod:`drivers.base`).
 
     ``name`` becomes :attr:`Frame.camera <robotd.base.messages.Frame.camera>` (``"floor"``,
     ``"forward"``). ``grey=True`` converts colour images to ``(H, W) uint8``.
@@ -81,11 +77,12 @@ class Camera(Driver):
     After a loss, attempts are made ``initial_backoff_s`` later, then at doubling
     intervals up to ``max_backoff_s``.
 
-    :meth:`stats` adds to the base counters ``no_frame_reads`` (reads with the device
-    present that gave no frame: a timeout or a dropped frame), ``losses`` (times the
-    device was lost: vanished or stopped delivering frames), ``reopen_failures`` and
-    ``reconnects`` (reconnection attempts that failed, succeeded) and ``clock_stamps``
-    (frames stamped with the injected clock because the device gave no usable stamp).
+    :meth:`stats` adds to the base counters (which include ``losses``,
+    ``reopen_failures``, ``reconnects`` and the gaps) ``no_frame_reads`` (reads with the
+    device present that gave no frame: a timeout or a dropped frame) and
+    ``clock_stamps`` (frames stamped with the injected clock because the device gave no
+    usable stamp) and ``bad_frames`` (images of a shape that cannot be made grey,
+    skipped).
     """
 
     def __init__(
@@ -97,25 +94,13 @@ class Camera(Driver):
         initial_backoff_s: float = 0.5,
         max_backoff_s: float = 8.0,
     ) -> None:
-        if not 0 < initial_backoff_s <= max_backoff_s:
-            raise ValueError("need 0 < initial_backoff_s <= max_backoff_s")
-        super().__init__(name)
+        super().__init__(name, clock=clock, initial_backoff_s=initial_backoff_s,
+                         max_backoff_s=max_backoff_s)
         self.grey = grey
-        self._clock: Clock = MonotonicClock() if clock is None else clock
-        self._may_sleep = isinstance(self._clock, MonotonicClock)
-        self._initial_backoff_ns = int(initial_backoff_s * 1e9)
-        self._max_backoff_ns = int(max_backoff_s * 1e9)
-        self._backoff_ns = self._initial_backoff_ns
-        self._next_attempt_ns = 0
-        self._connected = False
         self._seq = 0
         self._counts = dict.fromkeys(_CAMERA_COUNTERS, 0)
 
     # -- what a backend implements ---------------------------------------------------
-
-    def _open_internal(self) -> None:
-        """Open the device; raise :class:`DriverError` saying why if it cannot be."""
-        raise NotImplementedError
 
     def _grab_internal(self, timeout_s: float) -> tuple[np.ndarray, int | None] | None:
         """Wait up to ``timeout_s`` for one image.
@@ -126,36 +111,12 @@ class Camera(Driver):
         """
         raise NotImplementedError
 
-    def _release_internal(self) -> None:
-        """Release the device; called once per successful ``_open_internal``."""
-        raise NotImplementedError
-
     # -- public API ------------------------------------------------------------------
 
-    def _start(self) -> None:
-        """Open the device for the first time; a backend's ``__init__`` ends with this.
-
-        A failure here raises: a camera that is missing at start-up is a configuration
-        or wiring problem to report, not something to wait for.
-        """
-        self._open_internal()
-        self._connected = True
-
-    @property
-    def connected(self) -> bool:
-        """True while the device is open (False while waiting to reconnect)."""
-        return self._connected
-
     def _read_internal(self, timeout_s: float) -> Frame | None:
-        """The next frame, or None if none came within ``timeout_s`` or the device is
-        away (then it is reopened on a later call, see the class docstring)."""
-        if not self._connected and not self._reconnect(timeout_s):
-            return None
-        try:
-            result = self._grab_internal(timeout_s)
-        except DriverError as exc:
-            self._lose(exc)
-            return None
+        """The next frame, or None if none came within ``timeout_s``; raises
+        :class:`DriverError` when the device is lost (the base reconnects)."""
+        result = self._grab_internal(timeout_s)
         if result is None:
             self._counts["no_frame_reads"] += 1
             return None
@@ -164,61 +125,22 @@ class Camera(Driver):
             stamp_ns = self._clock.now_ns()
             self._counts["clock_stamps"] += 1
         if self.grey:
-            image = _to_grey(image)
+            try:
+                image = _to_grey(image)
+            except ValueError as exc:  # a bad image, not a lost device: skip it
+                self._counts["bad_frames"] += 1
+                log = _log.warning if self._counts["bad_frames"] == 1 else _log.debug
+                log("%s: frame skipped: %s", self, exc)
+                return None
         frame = Frame(stamp_ns=stamp_ns, camera=self.name, image=image, seq=self._seq)
         self._seq += 1
         return frame
-
-    def _close_internal(self) -> None:
-        if self._connected:
-            self._connected = False
-            self._release_internal()
 
     def _stats_internal(self) -> dict[str, StatValue]:
         return dict(self._counts)
 
     def __str__(self) -> str:
         return f"{self.name} camera"
-
-    # -- loss and reconnection ---------------------------------------------------------
-
-    def _lose(self, exc: DriverError) -> None:
-        self._counts["losses"] += 1
-        self._connected = False
-        try:
-            self._release_internal()
-        except Exception as close_exc:  # noqa: BLE001 - the device is gone; log and go on
-            _log.debug("%s: error while releasing a lost device: %s", self, close_exc)
-        self._backoff_ns = self._initial_backoff_ns
-        self._next_attempt_ns = self._clock.now_ns() + self._backoff_ns
-        _log.warning(
-            "%s lost (%s); reconnecting in %.1f s", self, exc, self._backoff_ns / 1e9
-        )
-
-    def _reconnect(self, timeout_s: float | None) -> bool:
-        wait_ns = self._next_attempt_ns - self._clock.now_ns()
-        if wait_ns > 0:
-            if not (self._may_sleep and timeout_s):
-                return False
-            # Real clock only: wait inside read() instead of letting the caller spin.
-            time.sleep(min(wait_ns / 1e9, timeout_s))
-            if self._clock.now_ns() < self._next_attempt_ns:
-                return False
-        try:
-            self._open_internal()
-        except DriverError as exc:
-            self._counts["reopen_failures"] += 1
-            self._backoff_ns = min(2 * self._backoff_ns, self._max_backoff_ns)
-            self._next_attempt_ns = self._clock.now_ns() + self._backoff_ns
-            log = _log.warning if self._counts["reopen_failures"] == 1 else _log.debug
-            log("%s: reconnection failed (%s); next try in %.1f s",
-                self, exc, self._backoff_ns / 1e9)
-            return False
-        self._connected = True
-        self._counts["reconnects"] += 1
-        self._backoff_ns = self._initial_backoff_ns
-        _log.warning("%s reconnected", self)
-        return True
 
 
 def _to_grey(image: np.ndarray) -> np.ndarray:
@@ -228,7 +150,7 @@ def _to_grey(image: np.ndarray) -> np.ndarray:
         return image[:, :, 0]
     if image.ndim == 3 and image.shape[2] == 3:
         return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    raise DriverError(f"cannot convert an image of shape {image.shape} to grey")
+    raise ValueError(f"cannot convert an image of shape {image.shape} to grey")
 
 
 # -- V4L2 ------------------------------------------------------------------------------

@@ -24,6 +24,7 @@ BACKENDS: dict[tuple[str, str], str] = {
     ("base", "kobuki"): "drivers.kobuki.driver:open_kobuki",
     ("base", "can"): "drivers.can.driver:open_can",
     ("floor_camera", "v4l2"): "drivers.camera:open_v4l2",
+    ("floor_camera", "depthai"): "drivers.depthai_camera:open_depthai",
     ("replay", "mcap"): "drivers.recording.replay:open_replay",
 }
 """``(role, name)`` -> ``"module:callable"`` of the factory ``(section, clock) -> Driver``."""

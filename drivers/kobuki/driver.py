@@ -76,17 +76,26 @@ class KobukiDriver(Driver):
     stamp would have gone back in time and was raised to the previous stamp),
     ``untimed_packets`` (packets without basic sensor data, stamped with their receipt
     time) and ``commands_sent``.
+
+    A port that fails (a USB adapter pulled, the pty's other end closed) is reopened by
+    path with backoff (``initial_backoff_s``, doubling up to ``max_backoff_s``), as
+    :mod:`drivers.base` does for every reconnecting driver: meanwhile :meth:`read`
+    returns ``[]``, and the time without packets is counted as a gap.
     """
 
     def __init__(self, url: str, clock: Clock, *, yaw_source: str = "raw_gyro",
                  wheelbase_m: float = WHEELBASE_M, offset_window_s: float = 10.0,
                  gyro_dps_per_digit: float = GYRO_DPS_PER_DIGIT,
-                 timeout_s: float = 0.1, baudrate: int = BAUDRATE, name: str = "base") -> None:
+                 timeout_s: float = 0.1, baudrate: int = BAUDRATE, name: str = "base",
+                 initial_backoff_s: float = 0.5, max_backoff_s: float = 8.0) -> None:
         if yaw_source not in ("raw_gyro", "inertial"):
             raise ValueError(f"yaw_source must be 'raw_gyro' or 'inertial', not {yaw_source!r}")
-        super().__init__(name)
+        super().__init__(name, clock=clock, initial_backoff_s=initial_backoff_s,
+                         max_backoff_s=max_backoff_s)
         self._url = url
-        self._clock = clock
+        self._baudrate = baudrate
+        self._timeout_s = timeout_s
+        self._serial: serial.SerialBase | None = None
         self._yaw_source = yaw_source
         self._wheelbase_m = wheelbase_m
         self._gyro_radps_per_digit = gyro_dps_per_digit * _DEG
@@ -97,12 +106,15 @@ class KobukiDriver(Driver):
         self._commands_sent = 0
         self._prev_device_ns: int | None = None
         self._prev_stamp_ns = 0
+        self._start()
+
+    def _open_internal(self) -> None:
         try:
-            self._serial = serial.serial_for_url(url, baudrate=baudrate, timeout=timeout_s,
-                                                 exclusive=True)
+            self._serial = serial.serial_for_url(self._url, baudrate=self._baudrate,
+                                                 timeout=self._timeout_s, exclusive=True)
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise DriverError(f"cannot open Kobuki port {url}: {exc}") from exc
-        logger.info("opened Kobuki port %s", url)
+            raise DriverError(f"cannot open Kobuki port {self._url}: {exc}") from exc
+        logger.info("opened Kobuki port %s", self._url)
 
     def __str__(self) -> str:
         return f"{self.name}: Kobuki port {self._url}"
@@ -112,7 +124,7 @@ class KobukiDriver(Driver):
         """The underlying pyserial port (tests write feedback into ``loop://`` with it)."""
         return self._open_port()
 
-    def _close_internal(self) -> None:
+    def _release_internal(self) -> None:
         port, self._serial = self._serial, None
         if port is not None:
             port.close()
@@ -126,7 +138,8 @@ class KobukiDriver(Driver):
 
     def _open_port(self) -> serial.SerialBase:
         if self._serial is None:
-            raise DriverError(f"Kobuki port {self._url} is closed")
+            state = "closed" if self.closed else "lost (reconnecting)"
+            raise DriverError(f"Kobuki port {self._url} is {state}")
         return self._serial
 
     def _read_internal(self, timeout_s: float) -> list[WheelTicks | YawRate]:

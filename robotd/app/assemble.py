@@ -185,7 +185,6 @@ def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store
                     calibration: CalibrationFile | None = None,
                     load_calibration_file: bool = True, floor_detector: bool = True,
                     pose_graph: bool = True,
-                    reopen: dict[str, Callable[[], Source]] | None = None,
                     driver_stats: Callable[[], dict[str, Any]] | None = None) -> Daemon:
     """A daemon over ``sources`` writing into ``store``: begins a run in the map, builds the
     pipeline from ``cfg`` and returns the daemon, ready to :meth:`~Daemon.run`. Runs in the
@@ -208,7 +207,7 @@ def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store
              "forward": cfg.floor_camera.queue_size}
     return Daemon(clock, pipeline, sources, notifier, store=store, run_id=run_id, lossless=lossless,
                   status_interval_s=cfg.daemon.status_interval_s, queue_sizes=sizes,
-                  reopen=reopen, driver_stats=driver_stats)
+                  driver_stats=driver_stats)
 
 
 def open_map(cfg: Config, clock: Clock | None = None) -> MapStore:

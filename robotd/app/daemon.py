@@ -19,12 +19,13 @@ import dataclasses
 import logging
 import signal
 import threading
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol
 
 from robotd.app.pipeline import Pipeline
 from robotd.base.clock import Clock, MonotonicClock
-from robotd.base.errors import DriverError, RobotdError
+from robotd.base.errors import RobotdError
 from robotd.base.queues import BoundedQueue
 
 log = logging.getLogger(__name__)
@@ -47,26 +48,23 @@ class Source(Protocol):
 class SourceThread(threading.Thread):
     """Reads a driver in a loop and queues what it returns.
 
-    ``read`` may return ``None``, one message, or a list of messages. A
-    :class:`~robotd.base.errors.DriverError` is logged and counted; the thread then calls
-    ``reopen`` (if given) so a vanished device is retried rather than ending the service.
-    Any other exception (a recording that cannot be written, a bug) ends the thread and is
-    handed to ``on_fatal``, so the daemon stops instead of running on without the source.
+    ``read`` may return ``None``, one message, or a list of messages. The driver owns
+    reconnection (:mod:`drivers.base`): one that lost its device returns nothing until it
+    has reopened it. So any exception out of ``read`` (a
+    :class:`~robotd.base.errors.DriverError` from a driver that cannot go on, a recording
+    that cannot be written, a bug) ends the thread and is handed to ``on_fatal``, so the
+    daemon stops (and systemd restarts it) instead of running on without the source.
     """
 
     def __init__(self, name: str, source: Source, out: BoundedQueue, stop: threading.Event,
-                 reopen: Callable[[], Source] | None = None, retry_s: float = 1.0,
                  on_fatal: Callable[[str, Exception], None] | None = None) -> None:
         super().__init__(name=f"robotd-{name}", daemon=True)
         self.source_name = name
         self.source = source
         self.out = out
         self.stop = stop
-        self.reopen = reopen
-        self.retry_s = retry_s
         self.on_fatal = on_fatal
         self.errors = 0
-        self.reopens = 0
         self.last_error: str | None = None
         self.fatal: Exception | None = None
 
@@ -74,13 +72,6 @@ class SourceThread(threading.Thread):
         while not self.stop.is_set():
             try:
                 got = self.source.read(0.1)
-            except DriverError as exc:
-                self.errors += 1
-                self.last_error = str(exc)
-                log.warning("%s: %s", self.name, exc)
-                if not self._reopen():
-                    return
-                continue
             except Exception as exc:
                 self.errors += 1
                 self.last_error = str(exc)
@@ -98,24 +89,28 @@ class SourceThread(threading.Thread):
                 if not self.out.put(item, self.stop):
                     return
 
-    def _reopen(self) -> bool:
-        if self.reopen is None:
-            return False
-        try:
-            self.source.close()
-        except Exception:  # closing a broken device must not stop the retry
-            log.debug("%s: close failed during reopen", self.name, exc_info=True)
-        while not self.stop.wait(self.retry_s):
-            try:
-                self.source = self.reopen()
-                self.reopens += 1
-                log.info("%s: reopened", self.name)
-                return True
-            except DriverError as exc:
-                self.errors += 1
-                self.last_error = str(exc)
-                log.debug("%s: reopen failed: %s", self.name, exc)
-        return False
+
+def gap_text(driver_stats: Mapping[str, Mapping[str, Any]]) -> str:
+    """The STATUS fragment of sources that lost their device, ``""`` when none did.
+
+    For each source whose driver counted a loss (:mod:`drivers.base`'s ``losses``):
+    ``"floor away 2.1 s"`` while its device is still missing, then the gaps that ended,
+    ``"floor gaps 1 (3.400 s, last 3.400 s)"``, e.g.
+    ``"floor away 0.5 s, gaps 2 (7.100 s, last 4.000 s)"``.
+    """
+    parts = []
+    for name, st in driver_stats.items():
+        if not st.get("losses"):
+            continue
+        bits = []
+        if st.get("away_s"):
+            bits.append(f"away {float(st['away_s']):.1f} s")
+        if st.get("gaps"):
+            bits.append(f"gaps {st['gaps']} ({float(st['gap_s_total']):.3f} s, "
+                        f"last {float(st['last_gap_s']):.3f} s)")
+        if bits:
+            parts.append(f"{name} " + ", ".join(bits))
+    return "; ".join(parts)
 
 
 @dataclass
@@ -136,9 +131,11 @@ class DaemonReport:
 class Daemon:
     """One run of the service: owns the source threads and the main loop.
 
-    ``sources`` maps a name to an open driver (``read(timeout_s)``, ``close()``);
-    ``reopen`` maps some of those names to a function that opens the device again after
-    it vanished; ``queue_sizes`` maps names to their queue's capacity (default 64).
+    ``sources`` maps a name to an open driver (``read(timeout_s)``, ``close()``; a driver
+    that loses its device reopens it itself); ``queue_sizes`` maps names to their
+    queue's capacity (default 64). ``driver_stats`` returns each driver's
+    :meth:`~drivers.base.Driver.stats`, for the report and for the STATUS line, which
+    names every source that lost its device (see :func:`gap_text`).
     READY is sent when :meth:`run` starts, the drivers being open by then. The caller
     owns the drivers (closes them) and the store; :meth:`run` ends the run in the store.
     """
@@ -147,7 +144,6 @@ class Daemon:
                  notifier: Any, *, store: Any = None, run_id: int | None = None,
                  lossless: bool = False, status_interval_s: float = 5.0,
                  queue_sizes: dict[str, int] | None = None,
-                 reopen: dict[str, Callable[[], Source]] | None = None,
                  driver_stats: Callable[[], dict[str, Any]] | None = None,
                  wall_clock: Clock | None = None) -> None:
         self.clock = clock
@@ -170,7 +166,7 @@ class Daemon:
                                            wakeup=self.wakeup, name=name)
             self.queues[name] = q
             self.threads[name] = SourceThread(name, driver, q, self.stop_event,
-                                              (reopen or {}).get(name), on_fatal=self._source_failed)
+                                              on_fatal=self._source_failed)
         self._stop_reason = ""
         self._fatal: Exception | None = None
         self._old_handlers: dict[int, Any] = {}
@@ -186,7 +182,7 @@ class Daemon:
         self.wakeup.set()
 
     def _source_failed(self, name: str, exc: Exception) -> None:
-        """A source thread ended on an error no reopening can mend: stop, and let
+        """A source thread ended on an error its driver cannot mend: stop, and let
         :meth:`run` raise it once the run is closed."""
         if self._fatal is None:
             self._fatal = exc
@@ -225,6 +221,9 @@ class Daemon:
         text = (f"odometry {rate(wheel):.1f}/s ({wheel}), frames {rate(frames):.1f}/s ({frames}), "
                 f"keyframes {c.get('keyframes', 0)}, loops {c.get('links_loop', 0)}, drops {drops}, "
                 f"unsynced {c.get('frames_unsynced', 0)}")
+        gaps = gap_text(self.driver_stats())
+        if gaps:
+            text += f", {gaps}"
         if c.get("odometry_degraded"):
             odo = self.pipeline.stage("odometry")
             text += f", odometry DEGRADED ({getattr(odo, 'degraded_detail', '')})"
@@ -290,7 +289,7 @@ class Daemon:
     def run(self, stop_when: Callable[[], bool] | None = None) -> DaemonReport:
         """Run until SIGTERM/SIGINT, :meth:`request_stop`, or ``stop_when()`` is true.
 
-        A source that failed beyond reopening (see :class:`SourceThread`) stops the run;
+        A source whose driver failed for good (see :class:`SourceThread`) stops the run;
         its exception is raised here after the shutdown, which still handles what was
         read and ends the run in the map.
         """

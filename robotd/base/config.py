@@ -83,7 +83,7 @@ class FloorCameraConfig:
     """The downward-facing floor camera: device, intrinsics and mounting."""
 
     source: str = _f("v4l2", "camera source ('virtual': the built-in virtual robot, demo only)",
-                     choices=("v4l2", "none", "virtual"))
+                     choices=("v4l2", "depthai", "none", "virtual"))
     device: str = _f("/dev/video0", "V4L2 device path")
     fourcc: str = _f("YUYV", "pixel format requested from the driver", choices=("YUYV", "MJPG", "GREY"))
     width_px: int = _f(640, "image width", lo=16, hi=8192)
@@ -101,6 +101,15 @@ class FloorCameraConfig:
     mount_x_m: float = _f(0.0, "camera position in the robot frame, forward", lo=-2.0, hi=2.0)
     mount_y_m: float = _f(0.0, "camera position in the robot frame, left", lo=-2.0, hi=2.0)
     mount_yaw_deg: float = _f(0.0, "image rotation about the optical axis", lo=-180.0, hi=180.0)
+    # DepthAI (source = "depthai"): width_px, height_px and fps as above, buffer_size is
+    # the host queue's length in frames.
+    depthai_device: str = _f("", "DepthAI device id, IP address or USB name ('' = the first found)")
+    depthai_socket: str = _f("CAM_A", "board socket of the camera (OAK-D: CAM_A colour, CAM_B/CAM_C mono)",
+                             choices=("CAM_A", "CAM_B", "CAM_C", "CAM_D", "CAM_E", "CAM_F", "CAM_G", "CAM_H"))
+    colour: bool = _f(False, "DepthAI: request colour (NV12) instead of mono (GRAY8); the floor "
+                      "camera is converted to grey either way")
+    depthai_reconnection_attempts: int = _f(3, "times depthai reconnects a lost device itself before "
+                                            "the driver reopens it with backoff", lo=0, hi=1000)
 
 
 @dataclass(frozen=True)

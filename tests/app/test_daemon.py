@@ -108,6 +108,8 @@ def test_run_with_a_missing_port_is_one_clear_line(tmp_path: Path):
 @pytest.mark.parametrize(("setting", "message"), [
     ('[base]\ndriver = "none"\n[floor_camera]\nsource = "v4l2"\ndevice = "/dev/does-not-exist"\n',
      "robotd: error: camera device /dev/does-not-exist does not exist"),
+    ('[base]\ndriver = "none"\n[floor_camera]\nsource = "depthai"\n',
+     "robotd: error: no DepthAI device found (is the camera plugged in?"),
     ('[base]\ndriver = "none"\n[floor_camera]\nsource = "none"\n[calibration]\npath = "{bad}"\n',
      "robotd: error: {bad}: not valid OpenCV YAML"),
 ])
@@ -235,33 +237,32 @@ class _FailingSource(_ListSource):
         return super().read(timeout_s)
 
 
-def test_a_source_failing_beyond_reopening_stops_the_run(tmp_path):
-    """A recording that cannot be written (not a device error: reopening would not help)
-    stops the daemon, which still handles what was read, ends the run in the map, and
-    raises the error; before, the source thread died and the daemon ran on forever."""
-    import pytest
-
+@pytest.mark.parametrize("kind", ["recording", "driver"])
+def test_a_source_failing_for_good_stops_the_run(tmp_path, kind):
+    """A recording that cannot be written, or a driver that raises (drivers reconnect
+    themselves, so a DriverError out of read() means it cannot go on), stops the daemon,
+    which still handles what was read, ends the run in the map, and raises the error;
+    before, the source thread died and the daemon ran on forever."""
     from robotd.app.daemon import Daemon
     from robotd.app.notify import Notifier
     from robotd.app.pipeline import Pipeline
     from robotd.base.clock import ManualClock
-    from robotd.base.errors import RecordingError
+    from robotd.base.errors import DriverError, RecordingError
 
     pipe = Pipeline()
     counter = pipe.add(_Counter())
-    error = RecordingError("x.mcap.partial: cannot write: No space left on device")
+    error = (RecordingError("x.mcap.partial: cannot write: No space left on device")
+             if kind == "recording" else DriverError("floor camera: gave up"))
     src = _FailingSource(list(range(20)), error)
-    reopened = []
     with MapStore.open(tmp_path / "map.sqlite", clock=ManualClock(7)) as store:
         run_id = store.begin_run("")
         d = Daemon(ManualClock(0), pipe, {"floor": src}, Notifier(), store=store, run_id=run_id,
-                   lossless=True, wall_clock=ManualClock(0),
-                   reopen={"floor": lambda: reopened.append(1) or src})
+                   lossless=True, wall_clock=ManualClock(0))
         deadline = time.monotonic() + 10.0  # the old daemon never stopped by itself
-        with pytest.raises(RecordingError) as failure:
+        with pytest.raises(type(error)) as failure:
             d.run(stop_when=lambda: time.monotonic() > deadline)
         assert failure.value is error and time.monotonic() < deadline
-        assert counter.n == 20 and reopened == []
+        assert counter.n == 20
         assert d.threads["floor"].fatal is error
         assert d.report().stopped_by == f"floor failed: {error}"
         assert store.runs()[0].ended_ns == 0  # the run is closed (the daemon's clock)

@@ -123,10 +123,19 @@ def test_every_driver_is_a_context_manager():
 def test_unknown_backend_names_the_known_ones():
     with pytest.raises(ConfigError, match=r"unknown base driver 'roomba'; known: can, kobuki"):
         open_driver("base", "roomba", BaseConfig(), ManualClock())
-    with pytest.raises(ConfigError, match=r"unknown floor_camera driver 'depthai'; known: v4l2"):
-        open_driver("floor_camera", "depthai", FloorCameraConfig(), ManualClock())
+    with pytest.raises(ConfigError, match=r"unknown floor_camera driver 'gige'; known: depthai, v4l2"):
+        open_driver("floor_camera", "gige", FloorCameraConfig(), ManualClock())
     with pytest.raises(ConfigError, match=r"no driver role 'lidar'; known roles: base, floor_camera, replay"):
         open_driver("lidar", "rplidar", None, ManualClock())
+
+
+def test_the_depthai_floor_camera_without_a_device_is_one_clear_error():
+    """Registered, importable, and on this host (no device) one line saying so."""
+    dai = pytest.importorskip("depthai")
+    if dai.Device.getAllAvailableDevices():
+        pytest.skip("a DepthAI device is present")
+    with pytest.raises(DriverError, match=r"^no DepthAI device found \(is the camera plugged in\?"):
+        open_driver("floor_camera", "depthai", FloorCameraConfig(source="depthai"), ManualClock())
 
 
 def test_a_backend_is_imported_only_when_chosen(monkeypatch):

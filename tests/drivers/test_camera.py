@@ -277,6 +277,8 @@ def test_a_vanished_device_is_reopened_with_backoff_driven_by_the_clock() -> Non
     (frame,) = camera.read(0.0)  # reconnects and reads in the same call
     assert frame.stamp_ns == 7 * S and frame.seq == 1
     assert camera.stats()["reconnects"] == 1 and camera.connected
+    # The gap: from the loss to this frame, on the camera's clock (0.5+1+1.5+1.5+1.5 s).
+    assert camera.stats()["gaps"] == 1 and camera.stats()["last_gap_s"] == 6.0
 
     # The backoff starts again from its initial value after a good reconnection.
     device.plugged = False
