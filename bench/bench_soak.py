@@ -154,7 +154,7 @@ class SoakProbe:
 
     def __init__(self, source: LoopedReplay, counters: Any) -> None:
         self.source = source
-        self.counters = counters  # the pipeline's counters() (read at each lap's end)
+        self._pipeline_counters = counters  # the pipeline's counters() (read at each lap's end)
         self.rows: list[dict[str, Any]] = []
         self._lap = 0
         self._frames = 0
@@ -183,7 +183,7 @@ class SoakProbe:
     def close_lap(self) -> None:
         """Record the lap just ended (also called once at the end of the run)."""
         now = time.perf_counter()
-        c = self.counters()
+        c = self._pipeline_counters()
         wall = now - self._t0
         self.rows.append({"lap": self._lap, "frames": self._frames, "wall_s": wall,
                           "ms_per_frame": 1e3 * wall / self._frames if self._frames else math.nan,
@@ -239,6 +239,7 @@ def soak(lap: Path, work: Path, frames: int, keyframe_distance_m: float) -> dict
     cfg = replace(cfg, "floor_camera", source="virtual")
     cfg = replace(cfg, "keyframes", distance_m=keyframe_distance_m)
     map_path = work / "soak.sqlite"
+    cfg = replace(cfg, "map", path=str(map_path))
     for p in (map_path, Path(f"{map_path}-wal"), Path(f"{map_path}-shm")):
         p.unlink(missing_ok=True)
     clock = ManualClock()

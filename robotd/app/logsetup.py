@@ -67,12 +67,12 @@ def configure_logging(level: str, env: Mapping[str, str] | None = None,
                       stream: IO[str] | None = None) -> logging.Handler | None:
     """Send the root logger to the journal or ``stream`` (default stderr) at ``level``
     (``"info"``, ...); returns the handler installed. A root logger that already has
-    handlers keeps them (as with :func:`logging.basicConfig`) and only takes the level;
-    None is returned then."""
+    handlers keeps them and its level (as with :func:`logging.basicConfig`); None is
+    returned then."""
     root = logging.getLogger()
-    root.setLevel(level.upper())
     if root.handlers:
         return None
+    root.setLevel(level.upper())
     handler = make_handler(os.environ if env is None else env,
                            sys.stderr if stream is None else stream)
     root.addHandler(handler)
