@@ -227,8 +227,10 @@ def map_sizes(path: Path, mode: int) -> dict[str, Any]:
             "loop_links": loops}
 
 
-def soak(lap: Path, work: Path, frames: int, keyframe_distance_m: float) -> dict[str, Any]:
-    """Replay ``lap`` until ``frames`` frames went through one daemon; the figures."""
+def soak(lap: Path, work: Path, frames: int | None, keyframe_distance_m: float,
+         laps: int | None = None) -> dict[str, Any]:
+    """Replay ``lap`` until ``frames`` frames (or ``laps`` laps) went through one daemon;
+    the figures."""
     from robotd.app.assemble import assemble_daemon, open_map
     from robotd.app.demo import shipped_calibration
     from robotd.app.notify import Notifier
@@ -244,7 +246,8 @@ def soak(lap: Path, work: Path, frames: int, keyframe_distance_m: float) -> dict
         p.unlink(missing_ok=True)
     clock = ManualClock()
     lap_frames = _frames_in(lap)
-    laps = max(1, math.ceil(frames / lap_frames))
+    if laps is None:
+        laps = max(1, math.ceil((frames or 0) / lap_frames))
     source = LoopedReplay(lap, clock, laps)
     clock.set_ns(source.t0_ns)
     rss0 = rss_mb()
@@ -306,6 +309,7 @@ def trend(rows: list[dict[str, Any]]) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--frames", type=int, default=None, help="frames to soak (default 100000)")
+    p.add_argument("--laps", type=int, default=None, help="soak this many laps instead")
     p.add_argument("--keyframe-distance", type=float, default=None, metavar="M",
                    help="[keyframes] distance_m of the soak (default 0.2)")
     p.add_argument("--full", action="store_true",
@@ -325,13 +329,14 @@ def main(argv: list[str] | None = None) -> int:
         work.mkdir(parents=True, exist_ok=True)
     try:
         lap = record_lap(work, args.seed)
-        result = soak(lap, work, frames, distance)
+        result = soak(lap, work, frames, distance, laps=args.laps)
     finally:
         if tmp is not None:
             tmp.cleanup()
     result["trend"] = trend(result["laps_table"])
     result["machine"] = machine_info()
-    result["args"] = {"frames": frames, "keyframe_distance_m": distance, "seed": args.seed}
+    result["args"] = {"frames": frames, "laps": args.laps, "keyframe_distance_m": distance,
+                      "seed": args.seed}
     print_table(["lap", "frames", "ms/frame", "RSS MB", "keyframes", "loop edges", "above thr."],
                 [[r["lap"], r["frames"], round(r["ms_per_frame"], 2), round(r["rss_mb"], 1),
                   r["keyframes_total"], r["loops_total"], r["above_threshold_total"]]
