@@ -192,6 +192,10 @@ class SoakProbe:
                           "above_threshold_total": c.get("loop_candidates_above_threshold", 0)})
         self._t0 = now
         self._frames = 0
+        r = self.rows[-1]
+        print(f"soak: lap {r['lap']} frames {r['frames']} {r['ms_per_frame']:.2f} ms/frame "
+              f"RSS {r['rss_mb']:.1f} MB keyframes {r['keyframes_total']} loop edges {r['loops_total']}",
+              file=sys.stderr, flush=True)  # a run stopped early still leaves its laps
 
 
 def record_lap(work: Path, seed: int) -> Path:

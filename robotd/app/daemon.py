@@ -6,8 +6,9 @@ reading its driver and putting what it reads into its own bounded queue
 runs :meth:`Daemon.run`: it drains every queue into the :class:`~robotd.app.pipeline.Pipeline`,
 which routes each message to the stages that consume it, sends systemd notifications, and
 handles SIGTERM/SIGINT (stop) and, when the service gave it a reloader, SIGHUP (reload the
-config between two turns of the loop: :attr:`Daemon.on_reload`). The daemon knows nothing of what the messages are: a new source is
-a new entry in ``sources``, a new consumer a new pipeline stage.
+config between two turns of the loop: :attr:`Daemon.on_reload`). The daemon knows nothing
+of what the messages are: a new source is a new entry in ``sources``, a new consumer a new
+pipeline stage.
 
 Time comes from an injected clock. Live, messages are dropped when a queue is full (fresh
 data matters more than old); replaying or simulating, queues block instead
@@ -205,9 +206,10 @@ class Daemon:
         Python runs it in the main thread between two bytecodes, which may be inside
         ``threading.Event.wait()``/``clear()`` of :attr:`wakeup` while that thread holds
         the Event's (non-reentrant) lock. So it only assigns attributes, which the main
-        loop reads at least every 50 ms: when it called :meth:`request_stop`, which sets
-        the Events, such a signal deadlocked the main thread for good (SIGTERM taken,
-        STOPPING=1 never sent: the flaky service test).
+        loop reads at least every 50 ms. The former handler called :meth:`request_stop`,
+        which sets the Events: a signal landing in that window deadlocked the main thread
+        for good (SIGTERM taken, STOPPING=1 never sent, later SIGTERMs ignored: the flaky
+        service test).
         """
         if signum == signal.SIGHUP:
             self.request_reload()

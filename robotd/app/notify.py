@@ -93,7 +93,8 @@ class Notifier:
         """``RELOADING=1``: the configuration is being reloaded (SIGHUP); send
         :meth:`ready` when done. ``MONOTONIC_USEC`` (CLOCK_MONOTONIC now) goes with it, as
         ``sd_notify(3)`` asks since systemd 253 (``Type=notify-reload``)."""
-        return self._send(f"RELOADING=1\nMONOTONIC_USEC={time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000}")
+        now_us = time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000
+        return self._send(f"RELOADING=1\nMONOTONIC_USEC={now_us}")
 
     def stopping(self) -> bool:
         """``STOPPING=1``: shutdown has begun."""
