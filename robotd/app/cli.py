@@ -169,7 +169,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.log_level is None:
         logging.getLogger().setLevel(cfg.daemon.log_level.upper())
-    return run_service(cfg)
+    return run_service(cfg, config_path=args.config, log_level_fixed=args.log_level is not None)
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
@@ -240,8 +240,9 @@ def main(argv: list[str] | None = None) -> int:
     # warnings only unless asked.
     quiet = args.command == "demo" or (args.command == "record" and args.virtual)
     default_level = "warning" if quiet else "info"
-    logging.basicConfig(level=(args.log_level or default_level).upper(),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from robotd.app.logsetup import configure_logging
+
+    configure_logging(args.log_level or default_level)  # the journal under systemd, else stderr
     try:
         return int(args.func(args) or 0)
     except RobotdError as exc:

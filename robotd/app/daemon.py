@@ -5,8 +5,10 @@ reading its driver and putting what it reads into its own bounded queue
 (:class:`~robotd.base.queues.BoundedQueue`), which counts what it drops. The main thread
 runs :meth:`Daemon.run`: it drains every queue into the :class:`~robotd.app.pipeline.Pipeline`,
 which routes each message to the stages that consume it, sends systemd notifications, and
-handles SIGTERM/SIGINT. The daemon knows nothing of what the messages are: a new source is
-a new entry in ``sources``, a new consumer a new pipeline stage.
+handles SIGTERM/SIGINT (stop) and, when the service gave it a reloader, SIGHUP (reload the
+config between two turns of the loop: :attr:`Daemon.on_reload`). The daemon knows nothing
+of what the messages are: a new source is a new entry in ``sources``, a new consumer a new
+pipeline stage.
 
 Time comes from an injected clock. Live, messages are dropped when a queue is full (fresh
 data matters more than old); replaying or simulating, queues block instead
@@ -169,6 +171,13 @@ class Daemon:
                                               on_fatal=self._source_failed)
         self._stop_reason = ""
         self._fatal: Exception | None = None
+        self.on_reload: Callable[[Daemon], None] | None = None
+        """Called from the main loop after SIGHUP (set before :meth:`run`); without it
+        SIGHUP keeps its default action."""
+        self._reload_pending = False
+        self._signalled = ""  # set by the signal handler only; see _on_signal
+        self.reloads = 0
+        self._turns = 0
         self._old_handlers: dict[int, Any] = {}
         self._start_ns = self.wall_clock.now_ns()
         self._next_status_ns = self._start_ns
@@ -181,6 +190,59 @@ class Daemon:
         self.stop_event.set()
         self.wakeup.set()
 
+    def request_reload(self) -> None:
+        """Ask the main loop to call :attr:`on_reload` at its next turn (SIGHUP)."""
+        self._reload_pending = True
+
+    def signalled(self, name: str) -> None:
+        """A stop signal (``"SIGTERM"``, ``"SIGINT"``) arrived: the main loop stops within
+        one turn. Safe to call from a signal handler, as :meth:`request_stop` is not."""
+        if not self._signalled:
+            self._signalled = name
+
+    def _on_signal(self, signum: int, _frame: Any) -> None:
+        """The SIGTERM/SIGINT/SIGHUP handler.
+
+        Python runs it in the main thread between two bytecodes, which may be inside
+        ``threading.Event.wait()``/``clear()`` of :attr:`wakeup` while that thread holds
+        the Event's (non-reentrant) lock. So it only assigns attributes, which the main
+        loop reads at least every 50 ms. The former handler called :meth:`request_stop`,
+        which sets the Events: a signal landing in that window deadlocked the main thread
+        for good (SIGTERM taken, STOPPING=1 never sent, later SIGTERMs ignored: the flaky
+        service test).
+        """
+        if signum == signal.SIGHUP:
+            self.request_reload()
+        else:
+            self.signalled(signal.Signals(signum).name)
+
+    def stopping_requested(self) -> bool:
+        """True once a stop was requested or signalled (main thread)."""
+        if self._signalled and not self.stop_event.is_set():
+            self.request_stop(self._signalled)
+        return self.stop_event.is_set()
+
+    def set_status_interval(self, interval_s: float) -> None:
+        """Send STATUS every ``interval_s`` from now on (a reloaded config)."""
+        self.status_interval_s = interval_s
+        self._next_status_ns = min(self._next_status_ns,
+                                   self.wall_clock.now_ns() + int(interval_s * 1e9))
+
+    def _reload(self) -> None:
+        """SIGHUP: RELOADING=1, the reloader, READY=1. A failing reloader is logged and
+        the daemon runs on with what it had: a reload must never stop the robot."""
+        self._reload_pending = False
+        if self.on_reload is None:
+            return
+        self.notifier.reloading()
+        try:
+            self.on_reload(self)
+            self.reloads += 1
+        except Exception:
+            log.exception("reload failed; running on with the previous configuration")
+        finally:
+            self.notifier.ready()
+
     def _source_failed(self, name: str, exc: Exception) -> None:
         """A source thread ended on an error its driver cannot mend: stop, and let
         :meth:`run` raise it once the run is closed."""
@@ -192,13 +254,18 @@ class Daemon:
         old = {}
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGTERM, signal.SIGINT):
-                old[sig] = signal.signal(sig, lambda s, _f: self.request_stop(signal.Signals(s).name))
+                old[sig] = signal.signal(sig, self._on_signal)
+            if self.on_reload is not None:
+                old[signal.SIGHUP] = signal.signal(signal.SIGHUP, self._on_signal)
         return old
 
     # -- main loop ---------------------------------------------------------------------
     def progress(self) -> int:
-        """A counter that grows while the pipeline does work (feeds the watchdog gate)."""
-        return self.pipeline.inputs
+        """A counter that grows while the pipeline does work (feeds the watchdog gate).
+
+        Without sources there is no input to wait for: the main loop turning is then the
+        progress, or the watchdog would restart a daemon that only keeps its map open."""
+        return self.pipeline.inputs if self.threads else self._turns
 
     def step(self) -> int:
         """Drain the queues into the pipeline once; returns how many items were handled."""
@@ -259,7 +326,11 @@ class Daemon:
 
     def turn(self) -> int:
         """One turn of the main loop: drain the queues into the pipeline, feed the watchdog
-        if the pipeline made progress, send STATUS when due. Returns items handled."""
+        if the pipeline made progress, send STATUS when due; first, after SIGHUP, reload.
+        Returns items handled."""
+        if self._reload_pending:
+            self._reload()
+        self._turns += 1
         handled = self.step()
         now_ns = self.wall_clock.now_ns()
         self._gate.tick(self.progress())
@@ -295,7 +366,7 @@ class Daemon:
         """
         self.start()
         try:
-            while not self.stop_event.is_set():
+            while not self.stopping_requested():
                 handled = self.turn()
                 if stop_when is not None and stop_when():
                     self.request_stop("finished")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 
 from systemd import daemon
 
@@ -87,6 +88,13 @@ class Notifier:
         """``WATCHDOG=1``: keep-alive ping. Prefer :class:`WatchdogGate`, which pings only
         when the pipeline made progress."""
         return self._send("WATCHDOG=1")
+
+    def reloading(self) -> bool:
+        """``RELOADING=1``: the configuration is being reloaded (SIGHUP); send
+        :meth:`ready` when done. ``MONOTONIC_USEC`` (CLOCK_MONOTONIC now) goes with it, as
+        ``sd_notify(3)`` asks since systemd 253 (``Type=notify-reload``)."""
+        now_us = time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000
+        return self._send(f"RELOADING=1\nMONOTONIC_USEC={now_us}")
 
     def stopping(self) -> bool:
         """``STOPPING=1``: shutdown has begun."""

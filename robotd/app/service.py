@@ -9,6 +9,8 @@ while the other sources run on; the gap shows in STATUS (:func:`~robotd.app.daem
 from __future__ import annotations
 
 import logging
+import signal
+import threading
 from pathlib import Path
 from typing import Any, Callable
 
@@ -71,12 +73,63 @@ class OdometryRecorder:
         self.writer.write_odometry(u.wheel, self.wheel_topic)
 
 
-def run_service(cfg: Config, record: Path | None = None) -> int:
+class StartupSignals:
+    """SIGTERM/SIGINT that arrive while ``robotd run`` starts (opening the devices and
+    the map, assembling the pipeline), before the daemon's own handlers exist.
+
+    Without it such a signal killed the process outright (Python's default action), in
+    the middle of making a run in the map; now it is held and handed to the daemon,
+    which then starts, stops at once and ends the run cleanly. A context manager: the
+    previous handlers come back on exit. Like the daemon's handler, this one only
+    assigns attributes (see :meth:`robotd.app.daemon.Daemon._on_signal`).
+    """
+
+    def __init__(self) -> None:
+        self.received = ""
+        self._daemon: Any = None
+        self._old: dict[int, Any] = {}
+
+    def __enter__(self) -> StartupSignals:
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                self._old[sig] = signal.signal(sig, self._handler)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._old.items():
+            signal.signal(sig, handler)
+
+    def _handler(self, signum: int, _frame: Any) -> None:
+        name = signal.Signals(signum).name
+        if self._daemon is not None:
+            self._daemon.signalled(name)
+        elif not self.received:
+            self.received = name
+
+    def attach(self, daemon: Any) -> None:
+        """From now on signals go to ``daemon``, and one held already is handed over."""
+        self._daemon = daemon
+        if self.received:
+            log.info("%s during start-up: stopping once the run is open", self.received)
+            daemon.signalled(self.received)
+
+
+def run_service(cfg: Config, record: Path | None = None, *, config_path: Path | None = None,
+                log_level_fixed: bool = False) -> int:
     """Run until SIGTERM/SIGINT; returns the process exit status.
 
     With ``record``, everything the drivers deliver and the odometry are also written to
-    that MCAP file (complete once the daemon stops, ``.partial`` until then).
+    that MCAP file (complete once the daemon stops, ``.partial`` until then). With
+    ``config_path`` (the file ``cfg`` came from), SIGHUP reloads it
+    (:class:`~robotd.app.reload.ConfigReloader`; ``log_level_fixed``: ``--log-level`` was
+    given and stays).
     """
+    with StartupSignals() as early:
+        return _run_service(cfg, record, config_path, log_level_fixed, early)
+
+
+def _run_service(cfg: Config, record: Path | None, config_path: Path | None,
+                 log_level_fixed: bool, early: StartupSignals) -> int:
     from robotd.app.notify import Notifier
 
     clock = MonotonicClock()
@@ -102,6 +155,12 @@ def run_service(cfg: Config, record: Path | None = None) -> int:
                                      observers=observers, calibration=calibration,
                                      load_calibration_file=False,
                                      driver_stats=lambda: {n: d.stats() for n, d in drivers.items()})
+            if config_path is not None:
+                from robotd.app.reload import ConfigReloader
+
+                daemon.on_reload = ConfigReloader(config_path, cfg, calibration,
+                                                  log_level_fixed=log_level_fixed)
+            early.attach(daemon)
             report = daemon.run()
     finally:
         for drv in sources.values():

@@ -183,7 +183,8 @@ def test_watchdog_is_fed_only_while_the_pipeline_makes_progress(tmp_path, monkey
     wall = ManualClock(0)
     pipe = Pipeline()
     counter = pipe.add(_Counter())
-    d = Daemon(ManualClock(0), pipe, {}, Notifier(), status_interval_s=3.0, wall_clock=wall)
+    idle = _ListSource([])  # a source that has nothing to say: only the fed items are progress
+    d = Daemon(ManualClock(0), pipe, {"idle": idle}, Notifier(), status_interval_s=3.0, wall_clock=wall)
     try:
         d.start()
         assert _datagrams(sock)[0].startswith("READY=1")
@@ -300,3 +301,76 @@ def test_the_next_start_says_a_killed_run_did_not_end_cleanly(tmp_path: Path) ->
         assert first.ended_ns == first.started_ns and not first.ended_cleanly
         assert second.ended_cleanly
     assert "did not end cleanly" not in start(signal.SIGTERM)  # said once
+
+
+_SIGNAL_WHILE_HOLDING_WAKEUP = """
+import signal
+from robotd.app.daemon import Daemon
+from robotd.app.notify import Notifier
+from robotd.app.pipeline import Pipeline
+from robotd.base.clock import ManualClock
+
+d = Daemon(ManualClock(0), Pipeline(), {}, Notifier(), wall_clock=ManualClock(0))
+d.start()
+# The main loop spends its idle time in wakeup.wait()/clear(), holding the Event's lock
+# for a few bytecodes each time; a SIGTERM taken there runs the handler right here.
+with d.wakeup._cond:
+    signal.raise_signal(signal.SIGTERM)
+turns = 0
+while not d.stopping_requested() and turns < 100:
+    d.turn()
+    turns += 1
+d.shutdown()
+print(d.report().stopped_by, turns)
+"""
+
+
+def test_sigterm_while_the_main_loop_holds_the_wakeup_lock_stops_the_daemon():
+    """The cause of the flaky service test: the SIGTERM handler set threading Events, so
+    a signal that landed while the main thread was inside ``wakeup.wait()`` deadlocked it
+    on the Event's own lock (and it ignored every later SIGTERM). The handler now only
+    assigns attributes; the old one hangs here until the timeout."""
+    root = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, PYTHONPATH=str(root))
+    env.pop("NOTIFY_SOCKET", None)
+    r = subprocess.run([sys.executable, "-c", _SIGNAL_WHILE_HOLDING_WAKEUP], env=env, cwd=root,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["SIGTERM", "0"]  # stopped before a single turn
+
+
+_SIGTERM_DURING_START_UP = """
+import signal, sys
+import robotd.app.service as service
+from robotd.base.config import load_config
+
+real_open_map = service.open_map
+
+def open_map_then_sigterm(cfg, **kw):  # systemctl stop while the map is being opened
+    store = real_open_map(cfg, **kw)
+    signal.raise_signal(signal.SIGTERM)
+    return store
+
+service.open_map = open_map_then_sigterm
+sys.exit(service.run_service(load_config(sys.argv[1])))
+"""
+
+
+def test_sigterm_during_start_up_ends_the_run_cleanly(tmp_path: Path) -> None:
+    """A SIGTERM before the daemon's handlers exist (systemctl stop during a start: here
+    right after the map is opened) used to kill the process by Python's default action,
+    in the middle of making its run; now it is held, the run opens and closes cleanly and
+    the exit status is 0."""
+    cfg = tmp_path / "robotd.toml"
+    path = tmp_path / "map.sqlite"
+    cfg.write_text('[base]\ndriver = "none"\n[floor_camera]\nsource = "none"\n'
+                   f'[map]\npath = "{path}"\n')
+    root = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, PYTHONPATH=str(root))
+    env.pop("NOTIFY_SOCKET", None)
+    r = subprocess.run([sys.executable, "-c", _SIGTERM_DURING_START_UP, str(cfg)], env=env, cwd=root,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    with MapStore.open(path, create=False) as store:
+        (run,) = store.runs()
+        assert run.ended_cleanly
