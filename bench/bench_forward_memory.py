@@ -42,7 +42,8 @@ try:
 except ImportError:  # run as a script: bench/ is on sys.path
     from common import machine_info, write_json
 
-from robotd.forward import (LOOP, DetectorParams, FeatureExtractor, ForwardDetector, MemoryParams)
+from robotd.forward import (LOOP, DetectorParams, FeatureExtractor, FeatureParams, ForwardDetector,
+                            MemoryParams)
 from robotd.forward.baselines import BruteForceMatcher
 from robotd.forward.verify import camera_matrix_guess
 from sim.cameras.forward import ForwardCameraModel, ForwardRenderer, ForwardRenderParams
@@ -122,6 +123,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="working-memory bound (default 1200, a little more than one lap of 1031)")
     ap.add_argument("--brute-images", type=int, default=40,
                     help="measure brute force on this many first images (0: skip)")
+    ap.add_argument("--max-features", type=int, default=0,
+                    help="keep the strongest N SIFT keypoints per image (default 0: all, the detector's "
+                         "default; a cap makes a long run fit a loaded machine)")
     ap.add_argument("--route", default="office")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
@@ -137,9 +141,10 @@ def main(argv: list[str] | None = None) -> int:
     k = camera_matrix_guess(intr.width_px, intr.height_px, intr.fx_px)
     print(f"{n} keyframes of {args.route!r} lap after lap (route planned in {time.perf_counter() - t0:.1f} s)")
 
-    extract = FeatureExtractor()
-    dets = {"paper": ForwardDetector(DetectorParams(), camera_matrix=k),
-            "wm": ForwardDetector(DetectorParams(memory=MemoryParams(max_places=args.max_places)),
+    fp = FeatureParams(max_features=args.max_features)
+    extract = FeatureExtractor(fp)
+    dets = {"paper": ForwardDetector(DetectorParams(features=fp), camera_matrix=k),
+            "wm": ForwardDetector(DetectorParams(features=fp, memory=MemoryParams(max_places=args.max_places)),
                                   camera_matrix=k)}
     st = {m: {c: np.zeros(n) for c in COLUMNS} for m in dets}
     wm_size = np.zeros(n, np.int64)
@@ -154,6 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     def report(done: int) -> dict:
         res = {"benchmark": "forward_memory", "machine": machine_info(), "images": done,
                "images_planned": n, "route": args.route, "max_places": args.max_places,
+               "max_features": args.max_features, "command": " ".join(sys.argv),
                "render_ms_median": float(np.median(render_t[:done]) * 1e3), "window": WINDOW,
                "samples": samples, "brute_force": brute, "methods": {}}
         for m, d in dets.items():
