@@ -19,7 +19,7 @@ Fig. 7). The :class:`Detection` says why an image closed no loop, as DLoopDetect
 
 Everything is in memory (features of every image are kept for the verification). By
 default the inverted index, the votes and the filter grow with the run, as in the paper.
-With ``DetectorParams.memory.max_places`` set, a working memory
+With ``DetectorParams.memory.max_places`` (or ``time_budget_s``) set, a working memory
 (:mod:`robotd.forward.memory`) bounds them: only the places in it vote and are hypotheses
 (the filter runs over their ids, :func:`robotd.forward.filter.predict_ids`); after each
 image the memory stage links a verified loop's places, retrieves long-term places next to
@@ -187,7 +187,7 @@ class ForwardDetector:
         t1 = clock()
         times["words"] = t1 - t0
 
-        bounded = p.memory.max_places is not None
+        bounded = p.memory.bounded
         scores, virtual = self.index.vote(words)
         if not bounded:  # the paper's detector: slots are images 0 .. t - 1
             n_hyp = max(0, t - p.recent_excluded + 1)
@@ -248,7 +248,10 @@ class ForwardDetector:
                 k = p.filter.neighbours
                 self.memory.touch(hyp_ids[np.abs(hyp_ids - best) <= k], t)
                 retrieved = self.memory.retrieve_around(best, t)
-            transferred = self.memory.enforce_bound(t)
+            over = 0.0
+            if p.memory.time_budget_s is not None:
+                over = (times["likelihood"] + times["filter"]) / p.memory.time_budget_s
+            transferred = self.memory.enforce_bound(t, over)
         t5 = clock()
         times["memory"] = t5 - t4
         times["total"] = features_s + (t5 - t0)

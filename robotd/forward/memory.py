@@ -26,14 +26,21 @@ the votes and the Bayes filter grow with the run. :class:`WorkingMemory` bounds 
   where the filter's diffusion from the recognised neighbour gives them mass at once
   (:func:`robotd.forward.filter.predict_ids`).
 
-With ``max_places=None`` (the default) nothing ever leaves WM and the detector is exactly
-the paper's. The vocabulary itself (the word centres in the HNSW index) is not bounded:
+- **Time budget** (optional, as RTAB-Map's time threshold): when the stages the working
+  memory bounds (the vote and the filter) took longer than ``time_budget_s`` for an image,
+  that share of the places over the budget leaves at once: ``ceil(n * (1 - budget /
+  time))`` of the ``n`` places, with the same ranking. The memory then grows again by one
+  place per image until the next image over the budget (or ``max_places``).
+
+With neither bound (the default) nothing ever leaves WM and the detector is exactly the
+paper's. The vocabulary itself (the word centres in the HNSW index) is not bounded:
 its search time grows with the logarithm of the number of words (paper Fig. 7), and the
 words of LTM places must still be found when those places come back.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,14 +64,24 @@ class MemoryParams:
         retrieve_radius: LTM places within this many images of the recognised place are
             its neighbours in time.
         max_retrieved: at most this many places come back per image (RTAB-Map: 2).
+        time_budget_s: seconds the vote and the filter may take per image (None: no time
+            budget); over it, places leave in proportion (see the module's note).
     """
 
     max_places: int | None = None
     retrieve_threshold: float = 0.5
     retrieve_radius: int = 5
     max_retrieved: int = 3
+    time_budget_s: float | None = None
+
+    @property
+    def bounded(self) -> bool:
+        """True when places can leave the working memory (a size bound or a time budget)."""
+        return self.max_places is not None or self.time_budget_s is not None
 
     def __post_init__(self) -> None:
+        if self.time_budget_s is not None and not self.time_budget_s > 0:
+            raise ValueError(f"time_budget_s must be positive or None, got {self.time_budget_s}")
         if self.max_places is not None and self.max_places < 1:
             raise ValueError(f"max_places must be >= 1 or None, got {self.max_places}")
         if not 0.0 <= self.retrieve_threshold <= 1.0:
@@ -145,7 +162,7 @@ class WorkingMemory:
         w = np.asarray(words, np.int64)
         self.index.add_image(place, w)
         # Without a bound nothing ever leaves: keep no copy of the words.
-        self._words.append(w.astype(np.int32) if self.params.max_places is not None else _NONE)
+        self._words.append(w.astype(np.int32) if self.params.bounded else _NONE)
         self._weight.append(0)
         self._used.append(now)
         self._wm.add(place)
@@ -189,19 +206,22 @@ class WorkingMemory:
             self.retrieved += len(out)
         return out
 
-    def enforce_bound(self, now: int) -> list[int]:
-        """Move places to LTM until WM holds at most ``max_places``; returns them (least
-        recently used, then lowest weight, then oldest first; never the last
-        ``protect_recent`` images nor a place used at ``now``)."""
-        cap = self.params.max_places
-        if cap is None or len(self._wm) <= cap:
+    def enforce_bound(self, now: int, over_budget: float = 0.0) -> list[int]:
+        """Move places to LTM until WM holds at most ``max_places``, and, when the image
+        took ``over_budget`` times the time budget (> 1), that share of the places more;
+        returns them (least recently used, then lowest weight, then oldest first; never the
+        last ``protect_recent`` images nor a place used at ``now``)."""
+        cap = self.params.max_places if self.params.max_places is not None else len(self._wm)
+        if over_budget > 1.0:
+            cap = min(cap, len(self._wm) - math.ceil(len(self._wm) * (1.0 - 1.0 / over_budget)))
+        if len(self._wm) <= cap:
             return []
         ids = self.ids()
         movable = ids[ids <= now - self.protect_recent]
         used = np.asarray([self._used[i] for i in movable.tolist()], np.int64)
         movable, used = movable[used < now], used[used < now]
         weight = np.asarray([self._weight[i] for i in movable.tolist()], np.int64)
-        n_out = len(self._wm) - cap
+        n_out = len(self._wm) - cap  # fewer when not enough may move (a time budget)
         order = np.lexsort((movable, weight, used))[:n_out]
         out = sorted(movable[order].tolist())
         for q in out:

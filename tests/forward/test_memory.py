@@ -205,3 +205,32 @@ def test_below_the_bound_the_detector_is_the_papers(scene):
         assert not b.retrieved and not b.transferred
     # The scene's loops: pass 2 closes with its places 59 .. 1 (all of them in memory).
     assert sum(d.status == LOOP for d in paper) >= 50
+
+
+class _Clock:
+    """A fake clock: every reading is ``step_s`` later than the one before."""
+
+    def __init__(self, step_s: float) -> None:
+        self.now, self.step = 0.0, step_s
+
+    def __call__(self) -> float:
+        self.now += self.step
+        return self.now
+
+
+def test_a_time_budget_moves_out_the_share_of_places_over_it(scene):
+    # Every clock reading is 1 ms later, so the vote and the filter take 2 ms per image:
+    # with a 1.5 ms budget each image is 4/3 over, and a quarter of the places must leave.
+    det = ForwardDetector(DetectorParams(memory=MemoryParams(time_budget_s=1.5e-3)),
+                          camera_matrix=K, timer=_Clock(1e-3))
+    ds = [det.process_features(f) for f in scene[:60]]
+    assert all(d.times_s["likelihood"] + d.times_s["filter"] == pytest.approx(2e-3) for d in ds)
+    for d in ds:
+        n = d.working_memory + len(d.transferred)          # places before the transfer
+        movable = max(0, d.image_id - 12 + 1) - (d.image_id + 1 - n)  # older than the last 12 (+ 2)
+        assert len(d.transferred) == min(math.ceil(n / 4), max(movable, 0))
+    assert ds[-1].working_memory < 30 and det.memory.transferred == 60 - ds[-1].working_memory
+    # A budget never reached changes nothing.
+    det2 = ForwardDetector(DetectorParams(memory=MemoryParams(time_budget_s=2.5e-3)),
+                           camera_matrix=K, timer=_Clock(1e-3))
+    assert all(not det2.process_features(f).transferred for f in scene[:60])
