@@ -172,7 +172,11 @@ def main(argv: list[str] | None = None) -> int:
                                 "without_features": window_stats(detector_only, z),
                                 **{c: window_stats(s[c], z) for c in COLUMNS[:-1]}}
                        for z in SIZES if z <= done},
+                "vote_filter_memory_at": {str(z): window_stats(bounded_stages(st[m], done), z)
+                                          for z in SIZES if z <= done},
                 "slope_ms_per_1000_images": {
+                    "vote_filter_memory_from_max_places": slope_ms_per_1000(bounded_stages(st[m], done),
+                                                                            min(args.max_places, done)),
                     "total_from_1000": slope_ms_per_1000(s["total"], 1000),
                     "without_features_from_1000": slope_ms_per_1000(detector_only, 1000),
                     "without_features_from_max_places": slope_ms_per_1000(detector_only, min(args.max_places, done))},
@@ -188,7 +192,8 @@ def main(argv: list[str] | None = None) -> int:
         res["loops_in_both"] = len(both)
         res["features_bytes"] = feat_bytes
         res["per_image_series_ms"] = {m: {"total": np.round(st[m]["total"][:done] * 1e3, 2).tolist(),
-                                          "without_features": np.round((st[m]["total"][:done] - st[m]["features"][:done]) * 1e3, 2).tolist()}
+                                          "without_features": np.round((st[m]["total"][:done] - st[m]["features"][:done]) * 1e3, 2).tolist(),
+                                          "vote_filter_memory": np.round(bounded_stages(st[m], done) * 1e3, 3).tolist()}
                                       for m in dets}
         res["wm_size"] = wm_size[:done].tolist()
         return res
@@ -242,18 +247,27 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def bounded_stages(st: dict, done: int) -> np.ndarray:
+    """Seconds per image of the stages the working memory bounds: the vote (likelihood),
+    the filter and the memory's own bookkeeping."""
+    return st["likelihood"][:done] + st["filter"][:done] + st["memory"][:done]
+
+
 def plot(path: Path, st: dict, done: int, max_places: int) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 1, figsize=(10, 7), sharex=True)
+    fig, axes = plt.subplots(3, 1, figsize=(10, 10), sharex=True)
     i = np.arange(done)
     for ax, col, title in ((axes[0], "total", "per image, features included"),
-                           (axes[1], None, "per image without feature extraction")):
+                           (axes[1], "detector", "per image without feature extraction"),
+                           (axes[2], "bounded", "vote + filter + memory (the stages the working memory bounds)")):
         for m, colour, label in (("paper", "tab:red", "paper (no bound)"),
                                  ("wm", "tab:blue", f"working memory, {max_places} places")):
-            y = st[m]["total"][:done] if col else st[m]["total"][:done] - st[m]["features"][:done]
+            y = {"total": st[m]["total"][:done],
+                 "detector": st[m]["total"][:done] - st[m]["features"][:done],
+                 "bounded": bounded_stages(st[m], done)}[col]
             ax.plot(i, y * 1e3, ",", color=colour, alpha=0.3)
             if done >= 51:
                 med = np.array([np.median(y[max(0, j - 50):j + 1]) for j in range(done)])
@@ -263,7 +277,7 @@ def plot(path: Path, st: dict, done: int, max_places: int) -> None:
         ax.set_yscale("log")
         ax.legend(loc="upper left")
         ax.grid(True, which="both", alpha=0.3)
-    axes[1].set_xlabel("image index")
+    axes[2].set_xlabel("image index")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
@@ -278,6 +292,8 @@ def print_summary(res: dict) -> None:
             t, wf = a["total"], a["without_features"]
             print(f"  at {z:>5}: total median {t['median_ms']:.1f} ms p99 {t['p99_ms']:.1f} ms; "
                   f"without features median {wf['median_ms']:.1f} ms p99 {wf['p99_ms']:.1f} ms")
+        for z, a in r["vote_filter_memory_at"].items():
+            print(f"  at {z:>5}: vote + filter + memory median {a['median_ms']:.2f} ms p99 {a['p99_ms']:.2f} ms")
         print(f"  slope: {r['slope_ms_per_1000_images']}")
     if res.get("brute_force"):
         print(f"\nbrute force (extrapolated from {res['brute_force']['images_measured']} images): "
