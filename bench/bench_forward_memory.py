@@ -42,8 +42,14 @@ try:
 except ImportError:  # run as a script: bench/ is on sys.path
     from common import machine_info, write_json
 
-from robotd.forward import (LOOP, DetectorParams, FeatureExtractor, FeatureParams, ForwardDetector,
-                            MemoryParams)
+from robotd.forward import (
+    LOOP,
+    DetectorParams,
+    FeatureExtractor,
+    FeatureParams,
+    ForwardDetector,
+    MemoryParams,
+)
 from robotd.forward.baselines import BruteForceMatcher
 from robotd.forward.verify import camera_matrix_guess
 from sim.cameras.forward import ForwardCameraModel, ForwardRenderer, ForwardRenderParams
@@ -227,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
                             **{f"{m}_usearch_bytes": int(d.vocabulary._index.memory_usage) for m, d in dets.items()},
                             "elapsed_s": time.perf_counter() - t_start})
             print(f"{done:6d} images  {time.perf_counter() - t_start:7.0f} s  rss {samples[-1]['rss_bytes'] / 1e9:.2f} GB  "
-                  + "  ".join(f"{m}: {np.median((st[m]['total'][done - 250:done] - st[m]['features'][done - 250:done])) * 1e3:.1f} ms"
+                  + "  ".join(f"{m}: {np.median(st[m]['total'][done - 250:done] - st[m]['features'][done - 250:done]) * 1e3:.1f} ms"
                               f" loops {len(loops[m])}" for m in dets)
                   + f"  wm {wm_size[i]}", flush=True)
         if args.brute_images and done == args.brute_images:

@@ -8,9 +8,22 @@ import math
 import numpy as np
 import pytest
 
-from robotd.forward import LOOP, DetectorParams, Features, ForwardDetector, InvertedIndex, MemoryParams
-from robotd.forward.filter import (neighbourhood_sums, neighbourhood_sums_ids, predict, predict_ids,
-                                   select_candidate, select_candidate_ids)
+from robotd.forward import (
+    LOOP,
+    DetectorParams,
+    Features,
+    ForwardDetector,
+    InvertedIndex,
+    MemoryParams,
+)
+from robotd.forward.filter import (
+    neighbourhood_sums,
+    neighbourhood_sums_ids,
+    predict,
+    predict_ids,
+    select_candidate,
+    select_candidate_ids,
+)
 from robotd.forward.memory import WorkingMemory
 
 # --- the inverted index ----------------------------------------------------------------------
