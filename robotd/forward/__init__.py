@@ -1,17 +1,19 @@
 """The forward loop detector (paper 000, Angeli et al. 2008; algorithm layer, no I/O):
 local features, an incremental vocabulary with an inverted index, tf-idf voting, a Bayes
-filter over loop hypotheses and epipolar verification."""
+filter over loop hypotheses and epipolar verification; optionally a working memory that
+bounds the per-image time (issue 14 item 4)."""
 
 from robotd.forward.detector import (LOOP, LOW_POSTERIOR, NO_GEOMETRIC_CONSISTENCY, NO_HYPOTHESES,
                                      STAGES, Detection, DetectorParams, ForwardDetector)
 from robotd.forward.features import FeatureExtractor, FeatureParams, Features, extract_features
 from robotd.forward.filter import FilterParams
+from robotd.forward.memory import MemoryParams, WorkingMemory
 from robotd.forward.verify import Verification, VerifyParams, verify_pair
 from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams
 
 __all__ = [
     "Detection", "DetectorParams", "FeatureExtractor", "FeatureParams", "Features", "FilterParams",
-    "ForwardDetector", "InvertedIndex", "LOOP", "LOW_POSTERIOR", "NO_GEOMETRIC_CONSISTENCY",
+    "ForwardDetector", "MemoryParams", "WorkingMemory", "InvertedIndex", "LOOP", "LOW_POSTERIOR", "NO_GEOMETRIC_CONSISTENCY",
     "NO_HYPOTHESES", "STAGES", "Verification", "VerifyParams", "Vocabulary", "VocabularyParams",
     "extract_features", "verify_pair",
 ]

@@ -17,11 +17,13 @@ For image I_t (t = 0, 1, 2, ... in arrival order), :meth:`ForwardDetector.proces
 Then I_t is added to the inverted index. Each stage is timed with the injected timer (paper
 Fig. 7). The :class:`Detection` says why an image closed no loop, as DLoopDetector does.
 
-Everything is in memory and grows with the run (features of every image are kept for the
-verification). A time budget with a working memory (issue 14 item 4) would sit in
-:meth:`ForwardDetector.process` between the stages: the stage times are measured there
-already, and the hypotheses would then be a subset of the past images (see
-:mod:`robotd.forward.filter`).
+Everything is in memory (features of every image are kept for the verification). By
+default the inverted index, the votes and the filter grow with the run, as in the paper.
+With ``DetectorParams.memory.max_places`` (or ``time_budget_s``) set, a working memory
+(:mod:`robotd.forward.memory`) bounds them: only the places in it vote and are hypotheses
+(the filter runs over their ids, :func:`robotd.forward.filter.predict_ids`); after each
+image the memory stage links a verified loop's places, retrieves long-term places next to
+a place being recognised, and moves the least useful places out to keep the bound.
 """
 
 from __future__ import annotations
@@ -33,8 +35,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from robotd.forward.features import FeatureExtractor, FeatureParams, Features
-from robotd.forward.filter import FilterParams, predict, select_candidate, update
+from robotd.forward.filter import (FilterParams, predict, predict_ids, select_candidate,
+                                   select_candidate_ids, update)
 from robotd.forward.likelihood import LikelihoodMethod, adjust_likelihood
+from robotd.forward.memory import MemoryParams, WorkingMemory
 from robotd.forward.verify import Verification, VerifyParams, verify_pair
 from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams
 
@@ -48,7 +52,7 @@ LOW_POSTERIOR = "LOW_POSTERIOR"          # no neighbourhood's posterior above th
 NO_GEOMETRIC_CONSISTENCY = "NO_GEOMETRIC_CONSISTENCY"  # the candidate failed verification
 
 #: Timed stages, in order (seconds in :attr:`Detection.times_s`, plus ``"total"``).
-STAGES = ("features", "words", "likelihood", "filter", "verify")
+STAGES = ("features", "words", "likelihood", "filter", "verify", "memory")
 
 
 @dataclass(frozen=True)
@@ -62,6 +66,8 @@ class DetectorParams:
         verify: epipolar check (:class:`~robotd.forward.verify.VerifyParams`).
         recent_excluded: p, the last images that are never hypotheses (10, Sec. IV).
         likelihood: ``"paper"`` (default) or RTAB-Map's ``"rtabmap"`` normalisation.
+        memory: the working memory (:class:`~robotd.forward.memory.MemoryParams`; no bound
+            by default, the paper's detector).
     """
 
     features: FeatureParams = field(default_factory=FeatureParams)
@@ -70,6 +76,7 @@ class DetectorParams:
     verify: VerifyParams = field(default_factory=VerifyParams)
     recent_excluded: int = 10
     likelihood: LikelihoodMethod = "paper"
+    memory: MemoryParams = field(default_factory=MemoryParams)
 
     def __post_init__(self) -> None:
         if self.recent_excluded < 1:
@@ -87,14 +94,20 @@ class Detection:
         candidate_id: the filter's candidate (verified or not), else None.
         candidate_probability: the largest posterior summed over a neighbourhood.
         scores: ``(t,)`` tf-idf votes of every past image 0 .. t - 1 (the last p included,
-            for plots and the best-score baseline; they are not hypotheses).
+            for plots and the best-score baseline; they are not hypotheses); 0 for a place
+            in long-term memory.
         virtual_score: the vote of the virtual no-loop image.
-        likelihood: ``(1 + n,)`` factors of the hypotheses -1, 0 .. n - 1 (n = t - p + 1).
+        likelihood: ``(1 + n,)`` factors of the hypotheses: no loop, then the images
+            ``hypothesis_ids`` (0 .. t - p without a working memory).
         posterior: ``(1 + n,)`` p(S_t | z^t) over the same hypotheses.
         verification: the epipolar check of the candidate, when one was made.
         n_features: keypoints in the image; new_words: words it created;
         vocabulary_size: words after it.
         times_s: seconds per stage (:data:`STAGES`) and ``"total"``.
+        hypothesis_ids: ``(n,)`` the image of each hypothesis, sorted.
+        working_memory: places in the working memory after this image (all past images
+            without a bound); retrieved, transferred: the places that came back from and
+            went to long-term memory after it.
     """
 
     image_id: int
@@ -111,6 +124,10 @@ class Detection:
     new_words: int
     vocabulary_size: int
     times_s: dict[str, float]
+    hypothesis_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    working_memory: int = 0
+    retrieved: tuple[int, ...] = ()
+    transferred: tuple[int, ...] = ()
 
     @property
     def n_hypotheses(self) -> int:
@@ -136,8 +153,12 @@ class ForwardDetector:
         fp = params.features
         self.vocabulary = Vocabulary(dim=fp.descriptor_size, binary=fp.binary, params=params.vocabulary)
         self.index = InvertedIndex()
+        self.memory = WorkingMemory(self.index, params.memory,
+                                    protect_recent=params.recent_excluded + params.filter.neighbours,
+                                    neighbours=params.filter.neighbours)
         self._features: list[Features] = []
         self._posterior = np.ones(1)
+        self._hyp_ids = np.zeros(0, np.int64)
 
     def __len__(self) -> int:
         """Images processed."""
@@ -166,22 +187,42 @@ class ForwardDetector:
         t1 = clock()
         times["words"] = t1 - t0
 
+        bounded = p.memory.bounded
         scores, virtual = self.index.vote(words)
-        n_hyp = max(0, t - p.recent_excluded + 1)
-        hyp_scores = np.concatenate([[virtual], scores[:n_hyp]])
+        if not bounded:  # the paper's detector: slots are images 0 .. t - 1
+            n_hyp = max(0, t - p.recent_excluded + 1)
+            hyp_ids = np.arange(n_hyp, dtype=np.int64)
+            hyp_scores = np.concatenate([[virtual], scores[:n_hyp]])
+        else:
+            slot_ids = self.index.image_ids
+            live = slot_ids >= 0
+            scores_t = np.zeros(t, np.float64)
+            scores_t[slot_ids[live]] = scores[live]
+            scores = scores_t
+            wm = self.memory.ids()
+            hyp_ids = wm[wm <= t - p.recent_excluded]
+            hyp_scores = np.concatenate([[virtual], scores[hyp_ids]])
+        n_hyp = len(hyp_ids)
         like = adjust_likelihood(hyp_scores, p.likelihood)
         t2 = clock()
         times["likelihood"] = t2 - t1
 
-        prior = predict(self._posterior, n_hyp, p.filter)
-        self._posterior = update(prior, like)
-        candidate, prob = select_candidate(self._posterior, p.filter)
+        best = None
+        if not bounded:
+            prior = predict(self._posterior, n_hyp, p.filter)
+            self._posterior = update(prior, like)
+            candidate, prob = select_candidate(self._posterior, p.filter)
+        else:
+            prior = predict_ids(self._posterior, self._hyp_ids, hyp_ids, p.filter)
+            self._posterior = update(prior, like)
+            candidate, prob, best = select_candidate_ids(self._posterior, hyp_ids, p.filter)
+        self._hyp_ids = hyp_ids
         t3 = clock()
         times["filter"] = t3 - t2
 
         # I_t joins the inverted index after its own vote (its words are part of Z_t+1);
         # that bookkeeping counts as word search.
-        self.index.add_image(t, words)
+        self.memory.add(t, words, t)
         self._features.append(feats)
         t3b = clock()
         times["words"] += t3b - t3
@@ -197,10 +238,28 @@ class ForwardDetector:
             status = LOOP if verification.accepted else NO_GEOMETRIC_CONSISTENCY
         t4 = clock()
         times["verify"] = t4 - t3
-        times["total"] = features_s + (t4 - t0)
+
+        retrieved: list[int] = []
+        transferred: list[int] = []
+        if bounded:
+            if status == LOOP:
+                self.memory.link(t, int(candidate))
+            if best is not None and prob >= p.memory.retrieve_threshold:
+                k = p.filter.neighbours
+                self.memory.touch(hyp_ids[np.abs(hyp_ids - best) <= k], t)
+                retrieved = self.memory.retrieve_around(best, t)
+            over = 0.0
+            if p.memory.time_budget_s is not None:
+                over = (times["likelihood"] + times["filter"]) / p.memory.time_budget_s
+            transferred = self.memory.enforce_bound(t, over)
+        t5 = clock()
+        times["memory"] = t5 - t4
+        times["total"] = features_s + (t5 - t0)
         return Detection(
             image_id=t, status=status, loop_id=candidate if status == LOOP else None,
             candidate_id=candidate, candidate_probability=prob, scores=scores,
             virtual_score=virtual, likelihood=like, posterior=self._posterior.copy(),
             verification=verification, n_features=len(feats), new_words=new_words,
-            vocabulary_size=len(self.vocabulary), times_s=times)
+            vocabulary_size=len(self.vocabulary), times_s=times, hypothesis_ids=hyp_ids,
+            working_memory=len(self.memory), retrieved=tuple(retrieved),
+            transferred=tuple(transferred))

@@ -22,9 +22,10 @@ Eq. 4), so it can be checked against a hand-derived answer:
   neighbourhood (the same +-2 images); when the largest sum exceeds the threshold (0.8)
   the most probable image of that neighbourhood is the loop candidate.
 
-A later working memory (issue 14 item 4) would keep only some images as hypotheses; the
-functions then need the neighbours of each hypothesis as explicit lists instead of
-"index +- 2". Until then hypotheses are the dense range 0 .. t - p.
+With a working memory (issue 14 item 4, :mod:`robotd.forward.memory`) the hypotheses are
+only some of the past images; :func:`predict_ids`, :func:`neighbourhood_sums_ids` and
+:func:`select_candidate_ids` take them as sorted image ids (see the note above them). The
+detector uses the dense functions as long as no place has left the working memory.
 """
 
 from __future__ import annotations
@@ -33,8 +34,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FilterParams", "diffusion_weights", "neighbourhood_sums", "predict",
-           "select_candidate", "transition_matrix", "update"]
+__all__ = ["FilterParams", "diffusion_weights", "neighbourhood_sums", "neighbourhood_sums_ids",
+           "predict", "predict_ids", "select_candidate", "select_candidate_ids",
+           "transition_matrix", "update"]
 
 
 @dataclass(frozen=True)
@@ -166,3 +168,106 @@ def select_candidate(posterior: np.ndarray,
     lo = max(0, best - params.neighbours)
     hi = min(len(img), best + params.neighbours + 1)
     return lo + int(np.argmax(img[lo:hi])), prob
+
+
+# --- Hypotheses that are a subset of the past images (a working memory) -----------------
+#
+# With a working memory (:mod:`robotd.forward.memory`) the image hypotheses are the places in
+# it, ``ids`` (sorted image ids, not 0 .. n - 1): places leave it (to long-term memory) and
+# come back (retrieval). The paper's model carries over with "neighbours" meaning the
+# images within +-neighbours *ids* that are hypotheses now:
+#
+# - p(-1 | -1) = 0.9 and p(i | -1) = 0.1 / n for each of the n hypotheses;
+# - p(-1 | j) = 0.1 and the Gaussian over j's neighbours among the hypotheses now,
+#   renormalised on those, carrying 0.9; j itself is one of them unless it left;
+# - a hypothesis j that left with none of its neighbours still there gives its 0.9 to no
+#   loop (the place cannot be represented any more), so every column still sums to 1;
+# - a new or retrieved place gets 0.1 / n of the no-loop mass plus whatever its neighbours'
+#   Gaussians send it (a retrieved neighbour of a recognised place inherits mass at once).
+#
+# When the ids are exactly 0 .. n - 1 these are :func:`predict`, :func:`neighbourhood_sums`
+# and :func:`select_candidate` (tests check it).
+
+def _neighbour_slots(ids_from: np.ndarray, ids_to: np.ndarray, params: FilterParams
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """For each offset o in -neighbours .. +neighbours and each id j of ``ids_from``, the
+    position of j + o in the sorted ``ids_to`` (``(2k + 1, len(ids_from))``) and whether it
+    is there."""
+    offsets = np.arange(-params.neighbours, params.neighbours + 1)
+    target = ids_from[None, :] + offsets[:, None]
+    pos = np.searchsorted(ids_to, target)
+    found = pos < len(ids_to)
+    found[found] = ids_to[pos[found]] == target[found]
+    return np.where(found, pos, 0), found
+
+
+def _check_ids(ids: np.ndarray, n: int, what: str) -> np.ndarray:
+    a = np.asarray(ids, np.int64)
+    if a.ndim != 1 or len(a) != n:
+        raise ValueError(f"{what}: expected {n} ids, got shape {a.shape}")
+    if len(a) > 1 and not (np.diff(a) > 0).all():
+        raise ValueError(f"{what}: ids must be strictly increasing")
+    return a
+
+
+def predict_ids(posterior: np.ndarray, ids_prev: np.ndarray, ids_new: np.ndarray,
+                params: FilterParams = FilterParams()) -> np.ndarray:
+    """The prior over the hypotheses ``ids_new`` from the posterior over ``ids_prev``
+    (both sorted image ids; ``posterior (1 + len(ids_prev),)``, no loop first). Returns
+    ``(1 + len(ids_new),)`` summing to the posterior's sum. O(n log n)."""
+    post = np.asarray(posterior, np.float64)
+    prev = _check_ids(ids_prev, len(post) - 1, "ids_prev")
+    new = _check_ids(ids_new, len(np.asarray(ids_new)), "ids_new")
+    n_new = len(new)
+    prior = np.zeros(1 + n_new, np.float64)
+    p0 = post[0]
+    img = post[1:]
+    if n_new == 0:
+        prior[0] = p0 + img.sum()
+        return prior
+    prior[0] = params.p_no_loop_stays * p0 + params.p_loop_ends * img.sum()
+    prior[1:] = (1.0 - params.p_no_loop_stays) / n_new * p0
+    if len(prev):
+        g = diffusion_weights(params)
+        pos, found = _neighbour_slots(prev, new, params)
+        norm = (found * g[:, None]).sum(axis=0)
+        orphan = norm == 0
+        prior[0] += (1.0 - params.p_loop_ends) * img[orphan].sum()
+        mass = np.where(orphan, 0.0, (1.0 - params.p_loop_ends) * img / np.where(orphan, 1.0, norm))
+        for k, w in enumerate(g.tolist()):
+            f = found[k]
+            prior[1:] += np.bincount(pos[k][f], weights=w * mass[f], minlength=n_new)
+    return prior
+
+
+def neighbourhood_sums_ids(posterior: np.ndarray, ids: np.ndarray,
+                           params: FilterParams = FilterParams()) -> np.ndarray:
+    """For each hypothesis, the posterior summed over the hypotheses within +-neighbours
+    ids, ``(n,)``."""
+    img = np.asarray(posterior, np.float64)[1:]
+    a = _check_ids(ids, len(img), "ids")
+    if not len(img):
+        return img
+    c = np.concatenate([[0.0], np.cumsum(img)])
+    hi = np.searchsorted(a, a + params.neighbours, side="right")
+    lo = np.searchsorted(a, a - params.neighbours, side="left")
+    return c[hi] - c[lo]
+
+
+def select_candidate_ids(posterior: np.ndarray, ids: np.ndarray,
+                         params: FilterParams = FilterParams()) -> tuple[int | None, float, int | None]:
+    """:func:`select_candidate` over hypotheses named by ``ids``: ``(image id or None,
+    probability, best)`` where ``best`` is the most probable image of the best
+    neighbourhood whether or not it passes the threshold (None without hypotheses): the
+    place a working memory retrieves around."""
+    sums = neighbourhood_sums_ids(posterior, ids, params)
+    if not len(sums):
+        return None, 0.0, None
+    a = np.asarray(ids, np.int64)
+    img = np.asarray(posterior, np.float64)[1:]
+    b = int(np.argmax(sums))
+    prob = float(sums[b])
+    lo = int(np.searchsorted(a, a[b] - params.neighbours, side="left"))
+    hi = int(np.searchsorted(a, a[b] + params.neighbours, side="right"))
+    best = int(a[lo + int(np.argmax(img[lo:hi]))])
+    return (best if prob > params.loop_threshold else None), prob, best

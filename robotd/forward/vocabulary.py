@@ -26,6 +26,7 @@ image, each counted once: tf = 1 / n.
 
 from __future__ import annotations
 
+import heapq
 import itertools
 from dataclasses import dataclass
 
@@ -172,8 +173,13 @@ class _GrowingInts:
 class InvertedIndex:
     """Word -> images it was seen in (with counts), and the tf-idf statistics.
 
-    Images are added with increasing ids (the detector's image numbers); scores come back
-    as one value per indexed image, in insertion order (:attr:`image_ids`).
+    Each indexed image holds a *slot*; scores come back as one value per slot
+    (:attr:`image_ids` says which image holds it, -1 for a free slot). Images added and
+    never removed hold slots 0, 1, 2, ... in insertion order, so that scores are then
+    simply in insertion order. :meth:`remove_image` takes an image out (a working memory
+    moving a place to long-term memory): its words no longer vote and N, df, the
+    occurrence counts and the virtual image no longer count it; its slot is reused by the
+    next image added. An image may be added again after its removal (retrieval).
     """
 
     def __init__(self) -> None:
@@ -182,17 +188,31 @@ class InvertedIndex:
         self._df = _GrowingInts()                # per word: images containing it
         self._occ = _GrowingInts()               # per word: total occurrences
         self._image_len = _GrowingInts()         # per slot: n(i), words (with repeats) in the image
-        self._image_ids: list[int] = []
-        self._total = 0                          # sum of n(i)
+        self._image_ids: list[int] = []          # per slot: the image in it, -1 when free
+        self._slot_of: dict[int, int] = {}       # image id -> slot
+        self._free: list[int] = []               # free slots (a min-heap)
+        self._last_added = -1                    # the highest image id added
+        self._removed: set[int] = set()          # ids removed (they may be added again)
+        self._total = 0                          # sum of n(i) over the indexed images
+        # Words with df > 0, packed (the virtual image is chosen among them only, so its
+        # cost follows the indexed images' words, not every word ever made).
+        self._active = _GrowingInts()            # the words with df > 0, in no order
+        self._active_pos = _GrowingInts()        # per word: its position in _active, or -1
 
     @property
     def n_images(self) -> int:
         """N: images indexed."""
+        return len(self._slot_of)
+
+    @property
+    def n_slots(self) -> int:
+        """Slots (the length of :meth:`vote`'s scores): indexed images plus free slots."""
         return len(self._image_ids)
 
     @property
     def image_ids(self) -> np.ndarray:
-        """``(N,) int64``: the id of each indexed image, in insertion order (= score order)."""
+        """``(n_slots,) int64``: the id of the image in each slot (= score order), -1 when
+        free; the insertion order when no image was removed."""
         return np.asarray(self._image_ids, np.int64)
 
     @property
@@ -200,16 +220,32 @@ class InvertedIndex:
         """Words the index knows (the highest word id added + 1)."""
         return self._df.n
 
+    def __contains__(self, image_id: int) -> bool:
+        return image_id in self._slot_of
+
     def add_image(self, image_id: int, words: np.ndarray) -> None:
-        """Index image ``image_id`` with its words (``(K,) int``, repeats counted)."""
-        if self._image_ids and image_id <= self._image_ids[-1]:
-            raise ValueError(f"image ids must increase: {image_id} after {self._image_ids[-1]}")
+        """Index image ``image_id`` with its words (``(K,) int``, repeats counted).
+
+        A new image must have a higher id than every image added before; an image removed
+        earlier may come back with its old id (and the same words)."""
+        image_id = int(image_id)
+        if image_id in self._slot_of:
+            raise ValueError(f"image {image_id} is indexed already")
+        if image_id <= self._last_added and image_id not in self._removed:
+            raise ValueError(f"image ids must increase: {image_id} after {self._last_added}")
         w = np.asarray(words, np.int64)
         if len(w) and w.min() < 0:
             raise ValueError("word ids must be >= 0")
-        slot = len(self._image_ids)
-        self._image_ids.append(int(image_id))
-        self._image_len.resize(slot + 1)
+        if self._free:
+            slot = heapq.heappop(self._free)
+            self._image_ids[slot] = image_id
+        else:
+            slot = len(self._image_ids)
+            self._image_ids.append(image_id)
+            self._image_len.resize(slot + 1)
+        self._slot_of[image_id] = slot
+        self._removed.discard(image_id)
+        self._last_added = max(self._last_added, image_id)
         self._image_len.view[slot] = len(w)
         self._total += len(w)
         if not len(w):
@@ -220,13 +256,64 @@ class InvertedIndex:
             for _ in range(top - len(self._post_slots)):
                 self._post_slots.append([])
                 self._post_counts.append([])
+            old = self._df.n
             self._df.resize(top)
             self._occ.resize(top)
+            self._active_pos.resize(top)
+            self._active_pos.view[old:] = -1
         for wid, c in zip(uw.tolist(), cnt.tolist()):
             self._post_slots[wid].append(slot)
             self._post_counts[wid].append(c)
+        born = uw[self._df.view[uw] == 0]
         self._df.view[uw] += 1
         self._occ.view[uw] += cnt
+        if len(born):
+            a = self._active.n
+            self._active.resize(a + len(born))
+            self._active.view[a:] = born
+            self._active_pos.view[born] = np.arange(a, a + len(born))
+
+    def remove_image(self, image_id: int, words: np.ndarray) -> None:
+        """Take image ``image_id`` out of the index, given the words it was added with
+        (``(K,) int``, repeats counted; the caller keeps them to add the image back).
+        Costs the length of its words' posting lists, not the index's size."""
+        image_id = int(image_id)
+        slot = self._slot_of.get(image_id)
+        if slot is None:
+            raise ValueError(f"image {image_id} is not indexed")
+        w = np.asarray(words, np.int64)
+        if len(w) != int(self._image_len.view[slot]):
+            raise ValueError(f"image {image_id} was indexed with {int(self._image_len.view[slot])} "
+                             f"words, not {len(w)}")
+        uw, cnt = np.unique(w, return_counts=True)
+        if len(uw) and (uw[0] < 0 or uw[-1] >= self._df.n):
+            raise ValueError(f"image {image_id}: word ids outside 0 .. {self._df.n - 1}")
+        where = []
+        for wid, c in zip(uw.tolist(), cnt.tolist()):
+            ps = self._post_slots[wid]
+            k = ps.index(slot) if slot in ps else -1
+            if k < 0 or self._post_counts[wid][k] != c:
+                raise ValueError(f"image {image_id} was not indexed with word {wid} x {c}")
+            where.append(k)
+        for wid, k in zip(uw.tolist(), where):
+            self._post_slots[wid].pop(k)
+            self._post_counts[wid].pop(k)
+        del self._slot_of[image_id]
+        if len(uw):
+            self._df.view[uw] -= 1
+            self._occ.view[uw] -= cnt
+            for wid in uw[self._df.view[uw] == 0].tolist():  # swap-remove from the active list
+                pos = int(self._active_pos.view[wid])
+                last = int(self._active.view[self._active.n - 1])
+                self._active.view[pos] = last
+                self._active_pos.view[last] = pos
+                self._active_pos.view[wid] = -1
+                self._active.n -= 1
+        self._total -= len(w)
+        self._image_len.view[slot] = 0
+        self._image_ids[slot] = -1
+        heapq.heappush(self._free, slot)
+        self._removed.add(image_id)
 
     def document_frequency(self, word: int) -> int:
         """df(w): indexed images that contain ``word``."""
@@ -249,7 +336,7 @@ class InvertedIndex:
 
     def tfidf(self, word: int, image_id: int) -> float:
         """tf(w, i) * idf(w) with the current counts (0 when ``word`` is not in the image)."""
-        slot = self._image_ids.index(image_id)
+        slot = self._slot_of[image_id]
         if word >= len(self._post_slots) or slot not in self._post_slots[word]:
             return 0.0
         n_wi = self._post_counts[word][self._post_slots[word].index(slot)]
@@ -262,13 +349,15 @@ class InvertedIndex:
         if not self.n_images or not self._total:
             return np.zeros(0, np.int64)
         n = max(1, int(round(self._total / self.n_images)))
-        occ = self._occ.view
-        n = min(n, len(occ))
+        act = self._active.view              # the words with df > 0 (occurrences > 0)
+        occ = self._occ.view[act]
+        n = min(n, len(act))
         # Stable sort on -occurrences: equal counts keep word-id order.
         part = np.argpartition(-occ, n - 1)[:n] if n < len(occ) else np.arange(len(occ))
         kth = occ[part].min()
-        cand = np.flatnonzero(occ >= kth)
-        order = cand[np.lexsort((cand, -occ[cand]))]
+        cand = act[occ >= kth]
+        occ_c = self._occ.view[cand]
+        order = cand[np.lexsort((cand, -occ_c))]
         return order[:n].astype(np.int64)
 
     def vote(self, words: np.ndarray) -> tuple[np.ndarray, float]:
@@ -277,10 +366,11 @@ class InvertedIndex:
 
         Each occurrence of a word in the query adds tf(w, i) * idf(w) to every indexed image
         i that contains w, and tf = 1 / n times idf(w) to the virtual image when w is one of
-        its words. Returns ``(N,) float64`` scores in insertion order and the virtual
+        its words. Returns ``(n_slots,) float64`` scores, one per slot (:attr:`image_ids`:
+        insertion order when no image was removed; 0 for a free slot), and the virtual
         image's score.
         """
-        scores = np.zeros(self.n_images, np.float64)
+        scores = np.zeros(self.n_slots, np.float64)
         w = np.asarray(words, np.int64)
         w = w[(w >= 0) & (w < self._df.n)]
         if not len(w) or not self.n_images:
@@ -298,13 +388,14 @@ class InvertedIndex:
                            np.int64, int(df.sum()))
         per_word = cq * idf
         weights = np.repeat(per_word, df) * n_wi / self._image_len.view[slots]
-        scores += np.bincount(slots, weights=weights, minlength=self.n_images)
+        scores += np.bincount(slots, weights=weights, minlength=self.n_slots)
         virt = self.virtual_image()
         in_virt = np.isin(uw, virt)
         virtual = float((per_word[in_virt]).sum() / len(virt)) if len(virt) else 0.0
         return scores, virtual
 
     def memory_bytes(self) -> int:
-        """Approximate bytes held by the postings (8 per slot and count entry) and counters."""
+        """Approximate bytes held by the postings (8 per slot and count entry) and the
+        per-word and per-slot counters."""
         entries = sum(len(p) for p in self._post_slots)
-        return 16 * entries + 8 * (2 * self._df.n + self._image_len.n)
+        return 16 * entries + 8 * (4 * self._df.n + self._image_len.n)
