@@ -87,6 +87,8 @@ TOPIC_WHEEL_TICKS = "/wheel_ticks"
 TOPIC_IMU = "/imu"
 TOPIC_ODOM = "/odom"
 TOPIC_GROUND_TRUTH = "/ground_truth"
+TOPIC_TF = "/tf"
+TOPIC_TF_STATIC = "/tf_static"
 PARTIAL_SUFFIX = ".partial"
 """Suffix of a recording being written (``run.mcap.partial`` until close)."""
 
@@ -129,6 +131,33 @@ _MSG_DEFS: dict[str, str] = {
         "float64[9] linear_acceleration_covariance\n"
     ),
     "sensor_msgs/msg/CompressedImage": "std_msgs/Header header\nstring format\nuint8[] data\n",
+    "geometry_msgs/msg/Transform": "Vector3 translation\nQuaternion rotation\n",
+    "geometry_msgs/msg/TransformStamped": (
+        "std_msgs/Header header\n"
+        "string child_frame_id\n"
+        "Transform transform\n"
+    ),
+    "tf2_msgs/msg/TFMessage": "geometry_msgs/TransformStamped[] transforms\n",
+    "sensor_msgs/msg/RegionOfInterest": (
+        "uint32 x_offset\n"
+        "uint32 y_offset\n"
+        "uint32 height\n"
+        "uint32 width\n"
+        "bool do_rectify\n"
+    ),
+    "sensor_msgs/msg/CameraInfo": (
+        "std_msgs/Header header\n"
+        "uint32 height\n"
+        "uint32 width\n"
+        "string distortion_model\n"
+        "float64[] d\n"
+        "float64[9] k\n"
+        "float64[9] r\n"
+        "float64[12] p\n"
+        "uint32 binning_x\n"
+        "uint32 binning_y\n"
+        "RegionOfInterest roi\n"
+    ),
     "robotd_msgs/msg/WheelTicks": (
         "# Raw wheel encoder counters of a differential-drive base, as the base reports them.\n"
         "# The counters wrap at 16 bits; consumers unwrap consecutive differences.\n"
@@ -171,6 +200,12 @@ def schema_text(name: str) -> str:
         pkg, _, msg = dep.split("/")
         parts.append("=" * 80 + f"\nMSG: {pkg}/{msg}\n" + _MSG_DEFS[dep].rstrip("\n"))
     return "\n".join(parts) + "\n"
+
+
+def camera_info_topic(camera: str) -> str:
+    """The topic of camera ``camera``'s calibration: ``/<camera>_camera/camera_info`` (beside
+    its images, where image_transport and Foxglove look for it)."""
+    return camera_topic(camera).removesuffix("/image/compressed") + "/camera_info"
 
 
 def camera_topic(camera: str) -> str:

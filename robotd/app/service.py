@@ -94,9 +94,9 @@ def run_service(cfg: Config, record: Path | None = None) -> int:
             drivers = {name: drv for name, (drv, _) in sources.items()}
             reopen = {name: r for name, (_, r) in sources.items() if r is not None}
             if record is not None:
-                from drivers.recording.writer import RecordingTee, RecordingWriter
+                from drivers.recording.writer import RecordingTee
 
-                writer = RecordingWriter(record, config_toml=to_toml(cfg))
+                writer = open_recording(cfg, record)
                 drivers = {name: RecordingTee(drv, writer) for name, drv in drivers.items()}
                 reopen = {name: _tee_reopen(r, writer) for name, r in reopen.items()}
                 observers.append(OdometryRecorder(writer))
@@ -112,6 +112,21 @@ def run_service(cfg: Config, record: Path | None = None) -> int:
             writer.close()
     log.info("final: %s", report.as_dict())
     return 0
+
+
+def open_recording(cfg: Config, path: Path) -> Any:
+    """A :class:`~drivers.recording.writer.RecordingWriter` for ``path`` as ``[recording]``
+    says (frame format and quality), with the floor camera's CameraInfo and mount (for
+    ``/tf_static``) from ``[floor_camera]``."""
+    from drivers.recording.writer import RecordingWriter
+    from robotd.base.camera import FloorCameraModel
+
+    rc = cfg.recording
+    writer = RecordingWriter(path, image_format=rc.image_format, jpeg_quality=rc.jpeg_quality,
+                             png_compression=rc.png_compression, config_toml=to_toml(cfg))
+    model = FloorCameraModel.from_config(cfg.floor_camera)
+    writer.add_camera("floor", model.intrinsics, model.rotation_robot_from_camera, model.position_robot_m)
+    return writer
 
 
 def _tee_reopen(reopen: Callable[[], Any], writer: Any) -> Callable[[], Any]:

@@ -157,6 +157,16 @@ class MapConfig:
 
 
 @dataclass(frozen=True)
+class RecordingConfig:
+    """How ``robotd record`` (and the demo's ``--record``) stores camera frames."""
+
+    image_format: str = _f("jpeg", "camera frames as 'jpeg' (lossy, compact) or 'png' (lossless, "
+                           "about 10x larger)", choices=("jpeg", "png"))
+    jpeg_quality: int = _f(20, "JPEG quality of recorded frames", lo=1, hi=100)
+    png_compression: int = _f(1, "zlib level of recorded PNG frames (1: fastest)", lo=0, hi=9)
+
+
+@dataclass(frozen=True)
 class DaemonConfig:
     """Service behaviour."""
 
@@ -178,6 +188,7 @@ class Config:
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     map: MapConfig = field(default_factory=MapConfig)
+    recording: RecordingConfig = field(default_factory=RecordingConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
 
 
