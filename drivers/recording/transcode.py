@@ -26,6 +26,7 @@ from mcap_ros2.decoder import DecoderFactory
 
 from drivers.recording.reader import RecordingReader, _normalise_type
 from drivers.recording.schemas import PARTIAL_SUFFIX
+from drivers.recording.writer import image_encoding
 from robotd.base.errors import DriverError
 
 log = logging.getLogger(__name__)
@@ -67,8 +68,7 @@ def transcode(src: str | os.PathLike[str], dst: str | os.PathLike[str], *, image
     partial = dst.with_name(dst.name + PARTIAL_SUFFIX)
     if dst.exists():
         raise DriverError(f"{dst}: a recording already exists (choose another name)")
-    ext, params = ((".jpg", [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality]) if image_format == "jpeg"
-                   else (".png", [cv2.IMWRITE_PNG_COMPRESSION, png_compression]))
+    ext, params = image_encoding(image_format, jpeg_quality, png_compression)
     quality = (f"jpeg_quality {jpeg_quality}" if image_format == "jpeg"
                else f"png_compression {png_compression}")
     messages = frames = bad = 0

@@ -257,6 +257,13 @@ def test_transcode_keeps_every_message_and_reencodes_only_frames(run: Run, tmp_p
             assert (ma.x_m, ma.y_m, ma.yaw_rad) == (mb.x_m, mb.y_m, mb.yaw_rad)
         else:
             assert ma == mb
+    # The very bytes a JPEG recording of the same run at that quality holds.
+    direct = tmp_path / "direct.mcap"
+    run.write(direct, image_format="jpeg", jpeg_quality=30)
+    with RecordingReader(direct) as d, RecordingReader(jpeg) as b:
+        frames_d = [m.data for c, m in d.raw_messages() if "/image/" in c.topic]
+        frames_b = [m.data for c, m in b.raw_messages() if "/image/" in c.topic]
+    assert frames_d == frames_b and len(frames_d) == res.frames
     # And back to PNG: lossless from the JPEG pixels on.
     back = tmp_path / "back.mcap"
     transcode(jpeg, back, image_format="png")
