@@ -307,3 +307,39 @@ def test_replay_of_a_recording_with_ros_extras_hands_out_the_same_driver_message
         assert sum(1 for _ in reader.messages()) == len(out) + len(run.odom) * 2 + len(run.truth)
         assert reader.skipped == {t: counts[t] for t in (
             "/tf", "/tf_static", "/floor_camera/camera_info", "/forward_camera/camera_info")}
+
+
+def test_an_old_png_recording_without_ros_extras_still_replays(tmp_path: Path) -> None:
+    """A file as robotd wrote it before /tf, CameraInfo and ``image_quality`` existed."""
+    from mcap_ros2.writer import Writer as Ros2Writer
+
+    from drivers.recording.schemas import schema_text
+
+    rng = np.random.default_rng(4)
+    image = (rng.random((48, 64)) * 255).astype(np.uint8)
+    path = tmp_path / "old.mcap"
+    with open(path, "wb") as f:
+        w = Ros2Writer(f)
+        w.add_metadata("robotd", {"robotd_version": "0.1", "config_toml": "", "image_format": "png",
+                                  "start_time_utc": "2024-01-01T00:00:00+00:00", "stamp_time_base": "x"})
+        ticks = w.register_msgdef("robotd_msgs/msg/WheelTicks", schema_text("robotd_msgs/msg/WheelTicks"))
+        img = w.register_msgdef("sensor_msgs/msg/CompressedImage", schema_text("sensor_msgs/msg/CompressedImage"))
+        for i in range(3):
+            stamp = {"sec": 0, "nanosec": 10 * i}
+            w.write_message("/wheel_ticks", ticks, {"header": {"stamp": stamp, "frame_id": "base_link"},
+                                                    "left_ticks": i, "right_ticks": 2 * i, "device_ms": i},
+                            log_time=10 * i)
+            w.write_message(FLOOR_TOPIC, img, {"header": {"stamp": stamp, "frame_id": "floor_camera_optical_frame"},
+                                               "format": "png", "data": cv2.imencode(".png", image + i)[1].tobytes()},
+                            log_time=10 * i, sequence=i)
+        w.finish()
+    with ReplayDriver(path, ManualClock()) as replay:
+        out = []
+        while not replay.done:
+            out.extend(replay.read(0.0))
+    frames = [m for m in out if isinstance(m, Frame)]
+    assert [f.seq for f in frames] == [0, 1, 2]
+    for i, f in enumerate(frames):
+        assert np.array_equal(f.image, image + i)
+    assert [(m.left_ticks, m.right_ticks) for m in out if isinstance(m, WheelTicks)] == [(0, 0), (1, 2), (2, 4)]
+    assert set(read_with_rosbags(path)) == {"/wheel_ticks", FLOOR_TOPIC}
