@@ -192,6 +192,9 @@ class RecordingWriter:
     ``jpeg_quality`` 0-100. ``config_toml`` (the daemon's configuration) and
     ``start_time_utc`` (default: now) go into the ``robotd`` metadata record.
     ``chunk_size`` (bytes of messages per compressed chunk) bounds what a crash can lose.
+    ``/tf_static`` is written before the first message; :meth:`add_camera` adds a camera's
+    mount to it and a CameraInfo beside each of its frames; ``/odom`` poses also go to
+    ``/tf`` (see the module doc of :mod:`drivers.recording.schemas`).
 
     The ``write_*`` methods may be called from several threads. Methods raise
     ``ValueError`` for a message that cannot be represented (negative stamp, counter out
