@@ -162,7 +162,7 @@ class RecordingConfig:
 
     image_format: str = _f("jpeg", "camera frames as 'jpeg' (lossy, compact) or 'png' (lossless, "
                            "about 10x larger)", choices=("jpeg", "png"))
-    jpeg_quality: int = _f(20, "JPEG quality of recorded frames", lo=1, hi=100)
+    jpeg_quality: int = _f(15, "JPEG quality of recorded frames (15: about 10x smaller than PNG)", lo=1, hi=100)
     png_compression: int = _f(1, "zlib level of recorded PNG frames (1: fastest)", lo=0, hi=9)
 
 
