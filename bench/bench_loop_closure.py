@@ -129,8 +129,10 @@ def calibration_for(floor: str, out: Path) -> Path:
     if not drive.exists():
         log(f"{floor}: recording the calibration drive (figure8, seed 11)")
         tmp = drive.with_suffix(".part.mcap")
+        png = out / "record-png.toml"  # train on the camera's own pixels
+        png.write_text('[recording]\nimage_format = "png"\n')
         if robotd(["record", str(tmp), "--virtual", "--route", "figure8", "--seed", "11",
-                   *FLOOR_ARGS[floor]]) != 0:
+                   "--config", str(png), *FLOOR_ARGS[floor]]) != 0:
             raise SystemExit(f"recording the {floor} calibration drive failed")
         tmp.rename(drive)
     log(f"{floor}: training the loop thresholds")

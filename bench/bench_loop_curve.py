@@ -228,6 +228,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     # The recordings need no floor detector; everything else is the default config.
     cfg = replace(Config(), "floor_detector", enabled=False)
+    cfg = replace(cfg, "recording", image_format="png")  # train on the camera's own pixels
     cfg_path = args.out / "robotd.toml"
     cfg_path.write_text(to_toml(cfg))
     results = []

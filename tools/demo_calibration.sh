@@ -9,7 +9,10 @@ cd "$(dirname "$0")/.."
 ROBOTD=${ROBOTD:-.venv/bin/robotd}
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
-"$ROBOTD" record "$work/drive.mcap" --virtual --route figure8 --seed 11
+# Lossless frames: the thresholds are trained on the pixels the camera gave (a JPEG
+# recording, robotd record's default, shifts them; see README "Compact recordings").
+printf '[recording]\nimage_format = "png"\n' > "$work/record.toml"
+"$ROBOTD" record "$work/drive.mcap" --virtual --route figure8 --seed 11 --config "$work/record.toml"
 out=robotd/app/data/demo_calibration.yml
 rm -f "$out.new"
 "$ROBOTD" calibrate loop-curve "$work/drive.mcap" --calibration "$out.new" \

@@ -16,6 +16,19 @@ Topics (ROS 2 type -> what :func:`read_recording` gives back):
   topic given to :meth:`RecordingWriter.write_odometry`: ``nav_msgs/msg/Odometry`` ->
   :class:`~robotd.base.messages.PoseStamped`
 
+and, for ROS tools only (a replay skips them; :attr:`RecordingReader.skipped` counts them):
+
+- ``/tf``: ``tf2_msgs/msg/TFMessage``, ``base_footprint`` in ``odom`` at every ``/odom``
+  pose, so Foxglove's 3D panel follows the robot;
+- ``/tf_static``: ``tf2_msgs/msg/TFMessage``, latched (rosbag2's transient-local QoS in
+  the channel's ``offered_qos_profiles``): ``base_link`` in ``base_footprint`` and the
+  gyro's frame in ``base_link`` (both identity: robotd's robot frame is on the floor), and
+  each described camera's ``<camera>_camera_optical_frame`` in ``base_link`` from its
+  mount; written before the first message and again when a camera is added later;
+- ``/<camera>_camera/camera_info``: ``sensor_msgs/msg/CameraInfo`` (``plumb_bob``) beside
+  every frame of a camera given to :meth:`RecordingWriter.add_camera`, same stamp and
+  ``frame_id`` as the image, so the image panel can undistort and project.
+
 Conventions:
 
 - Publish time and the header stamp are the message's ``stamp_ns`` (the header splits it
@@ -35,9 +48,11 @@ Conventions:
   is all zero ("unknown"). :attr:`YawRate.source <robotd.base.messages.YawRate.source>` has no
   ROS field; it is kept in the metadata record ``robotd.imu`` (the first source written;
   a later different source is logged and counted, and reads back as the first).
-- Frames: PNG by default (lossless, so a replay gives the daemon the very pixels it saw)
-  or JPEG (``image_format="jpeg"``, lossy; 2 to 4 times smaller on the virtual camera's
-  noisy 640x480 frames, at quality 90 to 75). The frame's ``seq``
+- Frames: PNG (lossless, so a replay gives the daemon the very pixels it saw) or JPEG
+  (lossy, with optimised Huffman tables). On the virtual camera's noisy 640x480 frames
+  JPEG is 2.4x smaller than PNG at quality 90, 4x at 75 and about 10x at 15 (the
+  ``[recording]`` config section chooses; :mod:`drivers.recording.transcode` converts a
+  recording either way). The frame's ``seq``
   is the MCAP message ``sequence``; the camera name is the topic's
   ``/<camera>_camera/image/compressed``; ``frame_id`` is ``<camera>_camera_optical_frame``.
 - ``/odom`` (``frame_id`` ``odom``, ``child_frame_id`` ``base_footprint``): the 3x3
@@ -46,7 +61,9 @@ Conventions:
   estimated and is written as zero with zero covariance. ``/ground_truth`` has
   ``frame_id`` ``world``. Yaw reads back wrapped to [-pi, pi].
 - Metadata record ``robotd``: ``robotd_version``, ``config_toml``, ``start_time_utc``
-  (ISO 8601, the host's wall clock, for people), ``image_format``, ``stamp_time_base``.
+  (ISO 8601, the host's wall clock, for people), ``image_format``, ``image_quality``
+  (``"jpeg_quality Q"`` or ``"png_compression L"``; absent in older files),
+  ``stamp_time_base``.
 
 Crash safety (the choice made here): the writer writes ``NAME.partial`` and renames it to
 ``NAME`` only after :meth:`RecordingWriter.close` has written the summary and fsynced, so
@@ -87,6 +104,8 @@ TOPIC_WHEEL_TICKS = "/wheel_ticks"
 TOPIC_IMU = "/imu"
 TOPIC_ODOM = "/odom"
 TOPIC_GROUND_TRUTH = "/ground_truth"
+TOPIC_TF = "/tf"
+TOPIC_TF_STATIC = "/tf_static"
 PARTIAL_SUFFIX = ".partial"
 """Suffix of a recording being written (``run.mcap.partial`` until close)."""
 
@@ -129,6 +148,33 @@ _MSG_DEFS: dict[str, str] = {
         "float64[9] linear_acceleration_covariance\n"
     ),
     "sensor_msgs/msg/CompressedImage": "std_msgs/Header header\nstring format\nuint8[] data\n",
+    "geometry_msgs/msg/Transform": "Vector3 translation\nQuaternion rotation\n",
+    "geometry_msgs/msg/TransformStamped": (
+        "std_msgs/Header header\n"
+        "string child_frame_id\n"
+        "Transform transform\n"
+    ),
+    "tf2_msgs/msg/TFMessage": "geometry_msgs/TransformStamped[] transforms\n",
+    "sensor_msgs/msg/RegionOfInterest": (
+        "uint32 x_offset\n"
+        "uint32 y_offset\n"
+        "uint32 height\n"
+        "uint32 width\n"
+        "bool do_rectify\n"
+    ),
+    "sensor_msgs/msg/CameraInfo": (
+        "std_msgs/Header header\n"
+        "uint32 height\n"
+        "uint32 width\n"
+        "string distortion_model\n"
+        "float64[] d\n"
+        "float64[9] k\n"
+        "float64[9] r\n"
+        "float64[12] p\n"
+        "uint32 binning_x\n"
+        "uint32 binning_y\n"
+        "RegionOfInterest roi\n"
+    ),
     "robotd_msgs/msg/WheelTicks": (
         "# Raw wheel encoder counters of a differential-drive base, as the base reports them.\n"
         "# The counters wrap at 16 bits; consumers unwrap consecutive differences.\n"
@@ -171,6 +217,12 @@ def schema_text(name: str) -> str:
         pkg, _, msg = dep.split("/")
         parts.append("=" * 80 + f"\nMSG: {pkg}/{msg}\n" + _MSG_DEFS[dep].rstrip("\n"))
     return "\n".join(parts) + "\n"
+
+
+def camera_info_topic(camera: str) -> str:
+    """The topic of camera ``camera``'s calibration: ``/<camera>_camera/camera_info`` (beside
+    its images, where image_transport and Foxglove look for it)."""
+    return camera_topic(camera).removesuffix("/image/compressed") + "/camera_info"
 
 
 def camera_topic(camera: str) -> str:

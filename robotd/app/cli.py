@@ -70,7 +70,9 @@ def _add_daemon_commands(sub: argparse._SubParsersAction) -> None:
     rec = sub.add_parser("record", help="run the daemon and record everything to an MCAP file",
                          description="Record a run to MCAP with ROS 2 message types (floor frames, "
                                      "wheel ticks, gyro, fused and wheel-only odometry; ground truth "
-                                     "with --virtual), readable by Foxglove and ros2 bag.")
+                                     "with --virtual; /tf, /tf_static and CameraInfo), readable by "
+                                     "Foxglove and ros2 bag. Frames are JPEG or PNG as the config's "
+                                     "[recording] section says (default: JPEG, quality 15).")
     rec.add_argument("output", type=Path, metavar="OUT.mcap")
     rec.add_argument("--virtual", action="store_true",
                      help="record the built-in virtual robot (takes the demo's options)")

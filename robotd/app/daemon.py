@@ -281,12 +281,16 @@ class Daemon:
         return handled
 
     def status_text(self, elapsed_s: float) -> str:
+        """The STATUS line. ``stored N`` acknowledges that this run's first N keyframes are
+        committed to the map (the map stage counts a keyframe only after its transaction
+        committed), so they survive a kill at any later moment."""
         c = self.pipeline.counters()
         rate = lambda n: n / elapsed_s if elapsed_s > 0 else 0.0  # noqa: E731
         drops = sum(q.dropped for q in self.queues.values())
         wheel, frames = c.get("wheel_msgs", 0), c.get("frames", 0)
         text = (f"odometry {rate(wheel):.1f}/s ({wheel}), frames {rate(frames):.1f}/s ({frames}), "
-                f"keyframes {c.get('keyframes', 0)}, loops {c.get('links_loop', 0)}, drops {drops}, "
+                f"keyframes {c.get('keyframes', 0)}, stored {c.get('keyframes_stored', 0)}, "
+                f"loops {c.get('links_loop', 0)}, drops {drops}, "
                 f"unsynced {c.get('frames_unsynced', 0)}")
         gaps = gap_text(self.driver_stats())
         if gaps:

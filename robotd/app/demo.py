@@ -335,10 +335,9 @@ def _drive(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, *, realtime: b
     progress = _Progress(robot.duration_s)
     writer = None
     if record is not None:
-        from drivers.recording.writer import RecordingWriter
-        from robotd.base.config import to_toml
+        from robotd.app.service import open_recording
 
-        writer = RecordingWriter(record, image_format="png", config_toml=to_toml(cfg))
+        writer = open_recording(cfg, record)
     try:
         return _drive_and_record(robot, cfg, clock, recorder, progress, realtime=realtime,
                                  writer=writer, observers=observers)

@@ -483,6 +483,8 @@ class MapWriterStage(Publisher):
         )
         kf.run_id = self.run_id
         self.stored += 1
+        # The acknowledgement (debug level: several a second): add_keyframe has committed.
+        log.debug("keyframe %d committed (run %d, %d stored)", kf.keyframe_id, self.run_id, self.stored)
         prev, self._previous = self._previous, kf
         if prev is not None:
             if kf.odometry_edge is not None:  # measured by another stage (visual odometry)

@@ -146,9 +146,9 @@ def _run_service(cfg: Config, record: Path | None, config_path: Path | None,
                 log.warning("no sources enabled: the daemon will only keep the map open")
             drivers = dict(sources)
             if record is not None:
-                from drivers.recording.writer import RecordingTee, RecordingWriter
+                from drivers.recording.writer import RecordingTee
 
-                writer = RecordingWriter(record, config_toml=to_toml(cfg))
+                writer = open_recording(cfg, record)
                 drivers = {name: RecordingTee(drv, writer) for name, drv in drivers.items()}
                 observers.append(OdometryRecorder(writer))
             daemon = assemble_daemon(cfg, clock, drivers, store, notifier, lossless=False,
@@ -169,6 +169,21 @@ def _run_service(cfg: Config, record: Path | None, config_path: Path | None,
             writer.close()
     log.info("final: %s", report.as_dict())
     return 0
+
+
+def open_recording(cfg: Config, path: Path) -> Any:
+    """A :class:`~drivers.recording.writer.RecordingWriter` for ``path`` as ``[recording]``
+    says (frame format and quality), with the floor camera's CameraInfo and mount (for
+    ``/tf_static``) from ``[floor_camera]``."""
+    from drivers.recording.writer import RecordingWriter
+    from robotd.base.camera import FloorCameraModel
+
+    rc = cfg.recording
+    writer = RecordingWriter(path, image_format=rc.image_format, jpeg_quality=rc.jpeg_quality,
+                             png_compression=rc.png_compression, config_toml=to_toml(cfg))
+    model = FloorCameraModel.from_config(cfg.floor_camera)
+    writer.add_camera("floor", model.intrinsics, model.rotation_robot_from_camera, model.position_robot_m)
+    return writer
 
 
 def run_replay(cfg: Config, path: Path, speed: float | None) -> dict[str, Any]:

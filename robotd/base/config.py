@@ -218,6 +218,16 @@ class MapConfig:
 
 
 @dataclass(frozen=True)
+class RecordingConfig:
+    """How ``robotd record`` (and the demo's ``--record``) stores camera frames."""
+
+    image_format: str = _f("jpeg", "camera frames as 'jpeg' (lossy, compact) or 'png' (lossless, "
+                           "about 10x larger)", choices=("jpeg", "png"))
+    jpeg_quality: int = _f(15, "JPEG quality of recorded frames (15: about 10x smaller than PNG)", lo=1, hi=100)
+    png_compression: int = _f(1, "zlib level of recorded PNG frames (1: fastest)", lo=0, hi=9)
+
+
+@dataclass(frozen=True)
 class DaemonConfig:
     """Service behaviour."""
 
@@ -241,6 +251,7 @@ class Config:
     forward_detector: ForwardDetectorConfig = field(default_factory=ForwardDetectorConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     map: MapConfig = field(default_factory=MapConfig)
+    recording: RecordingConfig = field(default_factory=RecordingConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
 
 

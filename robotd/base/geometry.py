@@ -100,6 +100,36 @@ def yaw_to_quaternion(yaw_rad: float) -> tuple[float, float, float, float]:
     return (0.0, 0.0, math.sin(yaw_rad / 2.0), math.cos(yaw_rad / 2.0))
 
 
+def quaternion_from_rotation(rot: np.ndarray) -> tuple[float, float, float, float]:
+    """Unit quaternion ``(qx, qy, qz, qw)`` of a ``(3, 3)`` rotation matrix, ``qw >= 0``.
+
+    Shepperd's method: the largest of the four squared components is taken from the
+    trace or a diagonal element, the others from off-diagonal sums, so it stays accurate
+    for every rotation (a trace near -1 included).
+    """
+    r = np.asarray(rot, dtype=np.float64)
+    if r.shape != (3, 3):
+        raise ValueError(f"rotation must be (3, 3), got {r.shape}")
+    t = float(np.trace(r))
+    cands = (t, r[0, 0], r[1, 1], r[2, 2])
+    k = int(np.argmax(cands))
+    if k == 0:
+        s = 2.0 * math.sqrt(max(1.0 + t, 0.0))
+        q = ((r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, 0.25 * s)
+    elif k == 1:
+        s = 2.0 * math.sqrt(max(1.0 + r[0, 0] - r[1, 1] - r[2, 2], 0.0))
+        q = (0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s)
+    elif k == 2:
+        s = 2.0 * math.sqrt(max(1.0 - r[0, 0] + r[1, 1] - r[2, 2], 0.0))
+        q = ((r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s)
+    else:
+        s = 2.0 * math.sqrt(max(1.0 - r[0, 0] - r[1, 1] + r[2, 2], 0.0))
+        q = ((r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s)
+    n = math.sqrt(sum(c * c for c in q))
+    sign = -1.0 if q[3] < 0.0 else 1.0
+    return tuple(float(sign * c / n) for c in q)  # type: ignore[return-value]
+
+
 def quaternion_to_yaw(qx: float, qy: float, qz: float, qw: float) -> float:
     """Yaw (rad) of a quaternion, assuming a rotation about z (roll = pitch = 0)."""
     return math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))

@@ -195,7 +195,7 @@ def test_watchdog_is_fed_only_while_the_pipeline_makes_progress(tmp_path, monkey
         got = _datagrams(sock)
         assert got.count("WATCHDOG=1") == 3 and counter.n == 3
         assert [m for m in got if m.startswith("STATUS=")] == [
-            "STATUS=odometry 0.0/s (0), frames 0.0/s (0), keyframes 0, loops 0, drops 0, unsynced 0"]
+            "STATUS=odometry 0.0/s (0), frames 0.0/s (0), keyframes 0, stored 0, loops 0, drops 0, unsynced 0"]
         for _ in range(5):  # stalled for 5 s: the pings stop, so systemd would restart us
             wall.advance_ns(1_000_000_000)
             d.turn()

@@ -49,8 +49,9 @@ def _assert_same_keyframes(live: Path, replayed: Path) -> None:
 
 
 def test_replay_reproduces_the_live_keyframes(tmp_path: Path):
+    """Recorded lossless (PNG): the replay sees the very pixels the live run saw."""
     rec = tmp_path / "run.mcap"
-    s = run_demo(Config(), out=tmp_path / "live", route="square", duration_s=8.0, seed=5,
+    s = run_demo(replace(Config(), "recording", image_format="png"), out=tmp_path / "live", route="square", duration_s=8.0, seed=5,
                  plot=False, record=rec)
     topics: dict[str, int] = {}
     for topic, _ in read_recording(rec):

@@ -35,6 +35,9 @@ def test_values_are_read_and_converted(tmp_path):
     ("[floor_camera]\ncx_px = 700.0\n", "principal point must lie inside the image"),
     ("[keyframes]\ndistance_m = nan\n", "[keyframes] distance_m: must be finite"),
     ("robot = 3\n", "[robot] must be a table"),
+    ("[recording]\nimage_format = \"webp\"\n", "[recording] image_format: 'webp' is not one of"),
+    ("[recording]\njpeg_quality = 0\n", "[recording] jpeg_quality: 0 is below the minimum"),
+    ("[recording]\npng_compression = 10\n", "[recording] png_compression: 10 is above the maximum"),
 ])
 def test_bad_values_name_the_key(tmp_path, toml, message):
     f = tmp_path / "c.toml"

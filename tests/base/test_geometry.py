@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from robotd.base.geometry import (between, compose, interpolate_poses, inverse, rigid_fit_2d, transform_points,
-                                   wrap_angle)
+from robotd.base.geometry import (between, compose, interpolate_poses, inverse, quaternion_from_rotation,
+                                   rigid_fit_2d, transform_points, wrap_angle)
 
 
 def test_compose_inverse_between_by_hand():
@@ -132,3 +132,37 @@ def test_rigid_from_two_pairs_recovers_exact_transforms():
     got = rigid_from_two_pairs(a_i, a_j, b_i, b_j)
     assert got[:, :2] == pytest.approx(poses[:, :2], abs=1e-12)
     assert np.abs(wrap_angle(got[:, 2] - poses[:, 2])).max() < 1e-12
+
+
+def _matrix_of(q: tuple[float, float, float, float]) -> np.ndarray:
+    x, y, z, w = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def test_quaternion_from_rotation_by_hand_and_round_trip():
+    # By hand: 90 degrees about z; 180 degrees about x (trace -1, where the trace formula fails).
+    assert quaternion_from_rotation(np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])) == pytest.approx(
+        (0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5)))
+    assert quaternion_from_rotation(np.diag([1.0, -1.0, -1.0])) == pytest.approx((1.0, 0.0, 0.0, 0.0))
+    assert quaternion_from_rotation(np.diag([-1.0, 1.0, -1.0])) == pytest.approx((0.0, 1.0, 0.0, 0.0))
+    assert quaternion_from_rotation(np.diag([-1.0, -1.0, 1.0])) == pytest.approx((0.0, 0.0, 1.0, 0.0))
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        axis = rng.normal(size=3)
+        angle = rng.uniform(0.0, math.pi) if _ % 2 else math.pi - rng.uniform(0.0, 1e-6)
+        rot = rodrigues(axis / np.linalg.norm(axis) * angle)
+        q = quaternion_from_rotation(rot)
+        assert math.isclose(sum(c * c for c in q), 1.0, abs_tol=1e-12) and q[3] >= 0.0
+        np.testing.assert_allclose(_matrix_of(q), rot, atol=1e-9)
+    with pytest.raises(ValueError):
+        quaternion_from_rotation(np.eye(2))
+
+
+def rodrigues(rvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (axis times angle), Rodrigues' formula."""
+    angle = float(np.linalg.norm(rvec))
+    k = rvec / angle
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(angle) * kx + (1 - math.cos(angle)) * kx @ kx

@@ -26,6 +26,7 @@ def trained(tmp_path_factory):
     seed: another floor) to validate on; modes 2 and 4 trained and validated."""
     d = tmp_path_factory.mktemp("loop_curve")
     cfg = replace(Config(), "floor_detector", enabled=False)  # the recording needs no detector
+    cfg = replace(cfg, "recording", image_format="png")  # calibration drives are recorded lossless
     run_demo(cfg, out=d / "train-demo", route="straight", duration_s=12.0, seed=3, plot=False,
              record=d / "train.mcap")
     run_demo(cfg, out=d / "val-demo", route="square", duration_s=14.0, seed=4, plot=False,

@@ -77,6 +77,9 @@ class Run:
         self.written = []
         kwargs.setdefault("chunk_size", 16 * 1024)
         with RecordingWriter(path, config_toml=CONFIG_TOML, start_time_utc=START, **kwargs) as w:
+            model = FloorCameraModel.default()
+            w.add_camera("floor", model.intrinsics, model.rotation_robot_from_camera,
+                         model.position_robot_m)
             frames = list(self.frames)
             for m in self.base_msgs:
                 while frames and frames[0].stamp_ns <= m.stamp_ns - 60_000_000:  # frames lag
@@ -162,6 +165,9 @@ def test_topics_schemas_and_metadata(run: Run, recording) -> None:
             FORWARD_TOPIC: "sensor_msgs/msg/CompressedImage",
             "/odom": "nav_msgs/msg/Odometry",
             "/ground_truth": "nav_msgs/msg/Odometry",
+            "/tf": "tf2_msgs/msg/TFMessage",
+            "/tf_static": "tf2_msgs/msg/TFMessage",
+            "/floor_camera/camera_info": "sensor_msgs/msg/CameraInfo",
         }
         meta = r.metadata["robotd"]
         from robotd import __version__
@@ -171,7 +177,12 @@ def test_topics_schemas_and_metadata(run: Run, recording) -> None:
         assert meta["start_time_utc"] == "2024-05-06T07:08:09+00:00"
         assert meta["image_format"] == "png"
         assert r.metadata["robotd.end"]["completed"] == "true"
-        assert r.metadata["robotd.end"]["messages"] == str(len(run.written))
+        assert meta["image_quality"] == "png_compression 1"
+        # the ROS extras: one /tf per /odom, one CameraInfo per floor frame (the forward
+        # camera was not described), /tf_static once (no camera added after the first write)
+        extras = {"/tf": len(run.odom), "/floor_camera/camera_info": len(run.frames), "/tf_static": 1}
+        assert {t: counts[t] for t in extras} == extras
+        assert r.metadata["robotd.end"]["messages"] == str(len(run.written) + sum(extras.values()))
         assert r.yaw_source == "raw_gyro"
         assert r.time_range_ns == (0, max(m.stamp_ns for _, m in run.written))
         assert not r.damage.any
@@ -192,7 +203,7 @@ def test_mcap_summary_shows_channels_and_counts(run: Run, recording) -> None:
         assert ch.message_encoding == "cdr"
         assert summary.schemas[ch.schema_id].encoding == "ros2msg"
         assert summary.statistics.channel_message_counts[ch.id] == counts[topic]
-    assert summary.statistics.message_count == len(run.written)
+    assert summary.statistics.message_count == sum(counts.values())
     assert summary.statistics.message_start_time == 0
     assert summary.statistics.message_end_time == max(m.stamp_ns for _, m in run.written)
     assert len(summary.chunk_indexes) > 3  # small chunks: several, overlapping in time
