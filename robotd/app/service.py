@@ -9,10 +9,13 @@ while the other sources run on; the gap shows in STATUS (:func:`~robotd.app.daem
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import threading
 from pathlib import Path
 from typing import Any, Callable
+
+import numpy as np
 
 from robotd.app.assemble import assemble_daemon, load_calibration, open_map
 from robotd.base.clock import Clock, MonotonicClock
@@ -183,6 +186,15 @@ def open_recording(cfg: Config, path: Path) -> Any:
                              png_compression=rc.png_compression, config_toml=to_toml(cfg))
     model = FloorCameraModel.from_config(cfg.floor_camera)
     writer.add_camera("floor", model.intrinsics, model.rotation_robot_from_camera, model.position_robot_m)
+    fw = cfg.forward_detector
+    if fw.enabled:  # a level camera looking along mount_yaw_deg
+        from robotd.base.camera import CameraIntrinsics
+
+        c, s = math.cos(math.radians(fw.mount_yaw_deg)), math.sin(math.radians(fw.mount_yaw_deg))
+        rot = np.array([[s, 0.0, c], [-c, 0.0, s], [0.0, -1.0, 0.0]])  # columns: optical x, y, z
+        writer.add_camera("forward", CameraIntrinsics(fw.width_px, fw.height_px, fw.fx_px, fw.fy_px,
+                                                      fw.cx_px, fw.cy_px),
+                          rot, np.array([fw.mount_x_m, fw.mount_y_m, fw.mount_height_m]))
     return writer
 
 

@@ -191,6 +191,8 @@ class ForwardDetectorConfig:
     rotation_deg: float = _f(20.0, "or every this much turned", lo=0.1, hi=360.0)
     sync_tolerance_s: float = _f(0.04, "largest offset of the forward frame from its floor keyframe",
                                  lo=0.0, hi=1.0)
+    width_px: int = _f(640, "forward camera image width", lo=16, hi=8192)
+    height_px: int = _f(480, "forward camera image height", lo=16, hi=8192)
     fx_px: float = _f(525.0, "forward camera focal length x", lo=1.0, hi=1e5)
     fy_px: float = _f(525.0, "forward camera focal length y", lo=1.0, hi=1e5)
     cx_px: float = _f(319.5, "forward camera principal point x", lo=-1e5, hi=1e5)
@@ -198,6 +200,8 @@ class ForwardDetectorConfig:
     mount_x_m: float = _f(0.1, "forward camera position in the robot frame, forward", lo=-2.0, hi=2.0)
     mount_y_m: float = _f(0.0, "forward camera position in the robot frame, left", lo=-2.0, hi=2.0)
     mount_yaw_deg: float = _f(0.0, "forward camera heading in the robot frame", lo=-180.0, hi=180.0)
+    mount_height_m: float = _f(0.6, "forward camera lens height above the floor (level optical axis)",
+                               lo=0.0, hi=5.0)
     sigma_bearing_deg: float = _f(2.0, "1-sigma of a loop's translation direction", lo=0.01, hi=90.0)
     sigma_yaw_deg: float = _f(1.0, "1-sigma of a loop's heading change", lo=0.01, hi=90.0)
 
