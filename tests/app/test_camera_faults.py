@@ -66,7 +66,7 @@ def test_status_names_each_source_that_lost_its_device() -> None:
     stats = {"base": never, "floor": away}
     d = Daemon(ManualClock(0), Pipeline(), {}, Notifier(), wall_clock=ManualClock(0),
                driver_stats=lambda: stats)
-    assert d.status_text(1.0) == ("odometry 0.0/s (0), frames 0.0/s (0), keyframes 0, loops 0, "
+    assert d.status_text(1.0) == ("odometry 0.0/s (0), frames 0.0/s (0), keyframes 0, stored 0, loops 0, "
                                   "drops 0, unsynced 0, floor away 2.2 s")
     stats["floor"] = never
     assert d.status_text(1.0).endswith("unsynced 0")  # nothing lost: the line is as before
