@@ -147,6 +147,9 @@ def _run_service(cfg: Config, record: Path | None, config_path: Path | None,
         with open_map(cfg) as store:
             if not sources:
                 log.warning("no sources enabled: the daemon will only keep the map open")
+            if cfg.forward_detector.enabled and "forward" not in sources:
+                log.warning("[forward_detector] is enabled but `robotd run` has no forward camera "
+                            "source yet (only `robotd demo --forward` has one): no forward loops")
             drivers = dict(sources)
             if record is not None:
                 from drivers.recording.writer import RecordingTee
