@@ -161,7 +161,6 @@ def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, l
         from robotd.app.posegraph import PoseGraphStage
         from robotd.graph.incremental import IncrementalGraph
 
-        fw = cfg.forward_detector
         pipeline.add(PoseGraphStage(IncrementalGraph(), store, gate_chi2=cfg.pose_graph.gate_chi2,
                                     save_every=cfg.pose_graph.save_every_keyframes,
                                     forward_mount=forward_mount(cfg), forward_params=forward_loop_params(cfg)))

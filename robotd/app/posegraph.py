@@ -36,7 +36,13 @@ import numpy as np
 
 from robotd.app.pipeline import Publisher
 from robotd.base.geometry import between
-from robotd.base.messages import CandidateFate, ForwardLoop, KeyframeStored, Link, LoopCandidate
+from robotd.base.messages import (
+    CandidateFate,
+    ForwardLoop,
+    KeyframeStored,
+    Link,
+    LoopCandidate,
+)
 from robotd.forward.planar import PlanarLoopParams, loop_edge
 from robotd.graph.incremental import IncrementalGraph
 from robotd.io.store import MapStore
@@ -55,10 +61,10 @@ class PoseGraphStage(Publisher):
 
     def __init__(self, graph: IncrementalGraph, store: MapStore, *, gate_chi2: float = GATE_CHI2_3DOF_999,
                  save_every: int = 0, forward_mount: np.ndarray | None = None,
-                 forward_params: PlanarLoopParams = PlanarLoopParams()) -> None:
+                 forward_params: PlanarLoopParams | None = None) -> None:
         self.graph = graph
         self.forward_mount = np.zeros(3) if forward_mount is None else np.asarray(forward_mount, float)
-        self.forward_params = forward_params
+        self.forward_params = PlanarLoopParams() if forward_params is None else forward_params
         self.forward_accepted = 0
         self.forward_failed_gate = 0
         self.store = store

@@ -107,15 +107,18 @@ def _between_error(nominal: np.ndarray, other: np.ndarray) -> np.ndarray:
 
 
 def loop_edge(predicted: np.ndarray, dyaw_rad: float, bearing_rad: float,
-              mount: np.ndarray = np.zeros(3), params: PlanarLoopParams = PlanarLoopParams(),
+              mount: np.ndarray | None = None, params: PlanarLoopParams | None = None,
               ) -> tuple[np.ndarray, np.ndarray]:
     """The robot-frame loop edge ``(delta (3,), information (3, 3))`` of a forward loop.
 
     ``predicted (3,)``: the graph's current relative pose of the two keyframes (robot
     frame, to in from), which gives the range; ``dyaw_rad``, ``bearing_rad`` from
-    :func:`planar_motion`; ``mount (3,)``: the forward camera in the robot frame.
+    :func:`planar_motion`; ``mount (3,)``: the forward camera in the robot frame (default:
+    at the robot's origin, looking forward); ``params``: the noise (default
+    :class:`PlanarLoopParams`).
     """
-    mount = np.asarray(mount, np.float64).reshape(3)
+    mount = np.zeros(3) if mount is None else np.asarray(mount, np.float64).reshape(3)
+    params = PlanarLoopParams() if params is None else params
     predicted = np.asarray(predicted, np.float64).reshape(3)
     pred_cam = compose(compose(inverse(mount), predicted), mount)
     range_m = max(float(math.hypot(pred_cam[0], pred_cam[1])), 1e-3)

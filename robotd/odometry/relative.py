@@ -37,7 +37,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robotd.odometry.ekf import rate_gain
 from robotd.base.geometry import (
     between,
     compose,
@@ -45,6 +44,7 @@ from robotd.base.geometry import (
     inverse,
     wrap_angle,
 )
+from robotd.odometry.ekf import rate_gain
 
 __all__ = ["PoseClone", "clone_after_predict", "clone_after_update", "clone_pose",
            "relative_pose_jacobians", "shift_measurement", "update_relative_pose"]

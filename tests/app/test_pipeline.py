@@ -13,7 +13,12 @@ import pytest
 import skimage.data
 
 from robotd.app.assemble import build_odometry, build_pipeline
-from robotd.app.pipeline import FloorDetectorStage, KeyframeStage, MapWriterStage, Pipeline
+from robotd.app.pipeline import (
+    FloorDetectorStage,
+    KeyframeStage,
+    MapWriterStage,
+    Pipeline,
+)
 from robotd.base.clock import ManualClock
 from robotd.base.config import Config, replace
 from robotd.base.geometry import between
@@ -298,31 +303,47 @@ def _graph_pipeline(store: MapStore, run: int):
     return p, graph
 
 
-def test_the_graph_gates_loops_and_stores_the_corrected_poses(tmp_path: Path):
-    """A square driven twice with odometry that drifts in yaw: a true loop (the truth's
-    relative pose, with a few mm of noise) passes the gate, pulls the drifted poses back,
-    and the optimised poses land in the map; a look-alike 0.35 m off is refused."""
+def _drifting_square() -> np.ndarray:
+    """The true keyframe poses of a 1 m square driven twice (0.25 m steps, a 90 deg turn at
+    each corner): a lap is 20 steps, keyframe 20 is where keyframe 0 was."""
     from robotd.base.geometry import compose
-    from robotd.base.messages import LoopCandidate
 
-    rng = np.random.default_rng(4)
     steps = [np.array([0.25, 0.0, 0.0])] * 4 + [np.array([0.0, 0.0, math.pi / 2])]
     truth = [np.zeros(3)]
     for k in range(40):
         truth.append(compose(truth[-1], steps[k % 5]))
-    truth = np.array(truth)
+    return np.array(truth)
+
+
+def _publish_drifting_odometry(p: Pipeline, truth: np.ndarray) -> list[np.ndarray]:
+    """Keyframes at the truth's steps with 0.004 rad of heading drift per step, their
+    covariance growing; returns the odometry poses."""
+    from robotd.base.geometry import compose
+
     drift = np.array([0.0, 0.0, 0.004])  # rad per step of odometry heading error
+    odo = [truth[0]]
+    cov = np.zeros((3, 3))
+    for k in range(len(truth)):
+        if k:
+            odo.append(compose(odo[-1], between(truth[k - 1], truth[k]) + drift))
+            cov = cov + np.diag([1e-6, 1e-6, 2e-5])
+        p.publish(Keyframe(Frame(k * 10**9, "floor", np.zeros((4, 4), np.uint8), k),
+                           PoseStamped(k * 10**9, *odo[-1], cov.copy())))
+    return odo
+
+
+def test_the_graph_gates_loops_and_stores_the_corrected_poses(tmp_path: Path):
+    """A square driven twice with odometry that drifts in yaw: a true loop (the truth's
+    relative pose, with a few mm of noise) passes the gate, pulls the drifted poses back,
+    and the optimised poses land in the map; a look-alike 0.35 m off is refused."""
+    from robotd.base.messages import LoopCandidate
+
+    rng = np.random.default_rng(4)
+    truth = _drifting_square()
     with MapStore.open(tmp_path / "map.sqlite") as store:
         run = store.begin_run("")
         p, graph = _graph_pipeline(store, run)
-        odo = [truth[0]]
-        cov = np.zeros((3, 3))
-        for k in range(len(truth)):
-            if k:
-                odo.append(compose(odo[-1], between(truth[k - 1], truth[k]) + drift))
-                cov = cov + np.diag([1e-6, 1e-6, 2e-5])
-            p.publish(Keyframe(Frame(k * 10**9, "floor", np.zeros((4, 4), np.uint8), k),
-                               PoseStamped(k * 10**9, *odo[-1], cov.copy())))
+        odo = _publish_drifting_odometry(p, truth)
         ids = [k.id for k in store.keyframes()]
         # A lap is 20 steps: keyframe 20 is where keyframe 0 was, and so on.
         info = np.diag([1 / 0.003 ** 2, 1 / 0.003 ** 2, 1 / 0.003 ** 2])
@@ -350,32 +371,19 @@ def test_forward_loops_enter_the_graph_by_bearing_and_heading(tmp_path: Path):
     heading change and the bearing of the new camera (no distance); the graph takes the range
     from its prediction, the loops still pull the drift back, and a look-alike whose bearing
     is 40 deg off (the same poster on another wall) is refused by the gate."""
+    from robotd.app.posegraph import PoseGraphStage
     from robotd.base.geometry import compose
     from robotd.base.messages import ForwardLoop
+    from robotd.graph.incremental import IncrementalGraph
 
     mount = np.array([0.1, 0.0, 0.0])
-    steps = [np.array([0.25, 0.0, 0.0])] * 4 + [np.array([0.0, 0.0, math.pi / 2])]
-    truth = [np.zeros(3)]
-    for k in range(40):
-        truth.append(compose(truth[-1], steps[k % 5]))
-    truth = np.array(truth)
-    drift = np.array([0.0, 0.0, 0.004])
+    truth = _drifting_square()
     with MapStore.open(tmp_path / "map.sqlite") as store:
         run = store.begin_run("")
-        from robotd.app.posegraph import PoseGraphStage
-        from robotd.graph.incremental import IncrementalGraph
-
         p = Pipeline()
         p.add(PoseGraphStage(IncrementalGraph(), store, forward_mount=mount))
         p.add(MapWriterStage(store, run, image_width_px=0))
-        odo = [truth[0]]
-        cov = np.zeros((3, 3))
-        for k in range(len(truth)):
-            if k:
-                odo.append(compose(odo[-1], between(truth[k - 1], truth[k]) + drift))
-                cov = cov + np.diag([1e-6, 1e-6, 2e-5])
-            p.publish(Keyframe(Frame(k * 10**9, "floor", np.zeros((4, 4), np.uint8), k),
-                               PoseStamped(k * 10**9, *odo[-1], cov.copy())))
+        odo = _publish_drifting_odometry(p, truth)
         ids = [k.id for k in store.keyframes()]
 
         def seen(a: int, b: int, bearing_error: float = 0.0) -> ForwardLoop:

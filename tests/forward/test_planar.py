@@ -99,7 +99,11 @@ def test_verified_rendered_views_give_the_true_planar_motion():
     """Two frames of the virtual forward camera, verified by the five-point method: the heading
     change and bearing match the true camera poses."""
     from robotd.forward import extract_features, verify_pair
-    from sim.cameras.forward import ForwardCameraModel, ForwardRenderer, ForwardRenderParams
+    from sim.cameras.forward import (
+        ForwardCameraModel,
+        ForwardRenderer,
+        ForwardRenderParams,
+    )
     from sim.world.rooms import world_for_route
 
     model = ForwardCameraModel()
