@@ -51,8 +51,8 @@ def _assert_same_keyframes(live: Path, replayed: Path) -> None:
 def test_replay_reproduces_the_live_keyframes(tmp_path: Path):
     """Recorded lossless (PNG): the replay sees the very pixels the live run saw."""
     rec = tmp_path / "run.mcap"
-    s = run_demo(replace(Config(), "recording", image_format="png"), out=tmp_path / "live", route="square", duration_s=8.0, seed=5,
-                 plot=False, record=rec)
+    s = run_demo(replace(Config(), "recording", image_format="png"), out=tmp_path / "live",
+                 route="square", duration_s=8.0, seed=5, plot=False, record=rec)
     topics: dict[str, int] = {}
     for topic, _ in read_recording(rec):
         topics[topic] = topics.get(topic, 0) + 1
@@ -81,10 +81,11 @@ def test_ten_replays_give_identical_maps(tmp_path: Path):
 @pytest.mark.slow
 def test_a_long_full_speed_replay_loses_no_frame(tmp_path: Path):
     """Two and a half minutes of robot time replayed as fast as the CPU allows: every frame
-    reaches the pipeline, none waits out its odometry, the keyframes are the live run's."""
+    reaches the pipeline, none waits out its odometry, the keyframes are the live run's
+    (recorded lossless, PNG, so the descriptors must be identical too)."""
     rec = tmp_path / "long.mcap"
-    s = run_demo(Config(), out=tmp_path / "live", route="office", duration_s=150.0, seed=0,
-                 plot=False, record=rec)
+    s = run_demo(replace(Config(), "recording", image_format="png"), out=tmp_path / "live",
+                 route="office", duration_s=150.0, seed=0, plot=False, record=rec)
     assert s["robot_time_s"] >= 120.0
     r = _replay(rec, tmp_path / "replay.sqlite")
     assert r["frames"] == s["frames_rendered"] and r["frames_unsynced"] == 0
