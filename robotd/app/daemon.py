@@ -92,6 +92,18 @@ class SourceThread(threading.Thread):
                     return
 
 
+def _driver_status(stats: Mapping[str, Any]) -> str:
+    """``; name: status ...`` for each driver whose stats carry a ``status`` line (the CAN
+    base: its health and fault counters), so they reach STATUS."""
+    parts = []
+    for name, st in stats.items():
+        if not isinstance(st, dict) or "status" not in st:
+            continue
+        faults = ", ".join(f"{k} {st[k]}" for k in _STATUS_FAULTS if st.get(k))
+        parts.append(f"; {name}: {st['status']}" + (f" ({faults})" if faults else ""))
+    return "".join(parts)
+
+
 def gap_text(driver_stats: Mapping[str, Mapping[str, Any]]) -> str:
     """The STATUS fragment of sources that lost their device, ``""`` when none did.
 
@@ -292,29 +304,23 @@ class Daemon:
                 f"keyframes {c.get('keyframes', 0)}, stored {c.get('keyframes_stored', 0)}, "
                 f"loops {c.get('links_loop', 0)}, drops {drops}, "
                 f"unsynced {c.get('frames_unsynced', 0)}")
-        gaps = gap_text(self.driver_stats())
+        stats = self._safe_driver_stats()
+        gaps = gap_text(stats)
         if gaps:
             text += f", {gaps}"
         if c.get("odometry_degraded"):
             odo = self.pipeline.stage("odometry")
             text += f", odometry DEGRADED ({getattr(odo, 'degraded_detail', '')})"
-        return text + self._driver_status()
+        return text + _driver_status(stats)
 
-    def _driver_status(self) -> str:
-        """``; name: status ...`` for each driver whose stats carry a ``status`` line (the
-        CAN base: its health and fault counters), so they reach STATUS."""
+    def _safe_driver_stats(self) -> dict[str, Any]:
+        """The drivers' stats, once per STATUS line ({} when they fail: STATUS must never
+        stop the daemon)."""
         try:
-            stats = self.driver_stats()
-        except Exception:  # STATUS must never stop the daemon
+            return self.driver_stats()
+        except Exception:
             log.debug("driver stats failed", exc_info=True)
-            return ""
-        parts = []
-        for name, st in stats.items():
-            if not isinstance(st, dict) or "status" not in st:
-                continue
-            faults = ", ".join(f"{k} {st[k]}" for k in _STATUS_FAULTS if st.get(k))
-            parts.append(f"; {name}: {st['status']}" + (f" ({faults})" if faults else ""))
-        return "".join(parts)
+            return {}
 
     def start(self) -> None:
         """Start the source threads and tell systemd the service is ready."""

@@ -122,7 +122,13 @@ class _Recorder:
         self.forward_fates: dict[tuple[int, int], str] = {}  # (older, newer) -> fate
 
     def subscriptions(self) -> dict[type, Any]:
-        from robotd.base.messages import CandidateFate, ForwardLoop, KeyframeStored, Link, OdometryUpdate
+        from robotd.base.messages import (
+            CandidateFate,
+            ForwardLoop,
+            KeyframeStored,
+            Link,
+            OdometryUpdate,
+        )
         from robotd.floor.detector import KeyframeQuery
 
         return {OdometryUpdate: self.on_odometry, KeyframeStored: self.on_keyframe,
@@ -523,10 +529,10 @@ def forward_summary(cfg: Any, robot: Any, recorder: _Recorder, c: dict[str, Any]
     against the true camera poses of its two keyframes, and what the pose graph did with it."""
     import numpy as np
 
+    from robotd.app.assemble import forward_mount
     from robotd.base.geometry import between, compose, wrap_angle
 
-    f = cfg.forward_detector
-    mount = np.array([f.mount_x_m, f.mount_y_m, math.radians(f.mount_yaw_deg)])
+    mount = forward_mount(cfg)
     stamp_of = dict(zip(recorder.keyframe_ids, recorder.keyframe_stamps))
     rows = []
     for m in recorder.forward_loops:

@@ -28,7 +28,7 @@ import numpy as np
 
 from robotd.app.pipeline import Publisher
 from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored
-from robotd.forward import LOOP, STAGES, ForwardDetector
+from robotd.forward import LOOP, ForwardDetector
 from robotd.forward.planar import planar_motion
 
 log = logging.getLogger(__name__)
@@ -58,7 +58,7 @@ class ForwardLoopStage(Publisher):
         self.loops = 0
         self.not_planar = 0
         self.rejected_geometry = 0
-        self.times_ms: dict[str, list[float]] = {s: [] for s in (*STAGES, "total")}
+        self.total_ms: list[float] = []  # the detector's time per forward keyframe
 
     def subscriptions(self) -> Mapping[type, Any]:
         return {Frame: self.on_frame, KeyframeStored: self.on_keyframe}
@@ -103,8 +103,7 @@ class ForwardLoopStage(Publisher):
         det = self.detector.process(frame.image)
         self._keyframe_ids.append(kf.keyframe_id)
         self.images += 1
-        for stage, seconds in det.times_s.items():
-            self.times_ms.setdefault(stage, []).append(seconds * 1e3)
+        self.total_ms.append(det.times_s["total"] * 1e3)
         if det.status != LOOP or det.verification is None or det.loop_id is None:
             if det.verification is not None and not det.verification.accepted:
                 self.rejected_geometry += 1
@@ -123,7 +122,7 @@ class ForwardLoopStage(Publisher):
         self._publish(ForwardLoop(old, kf.keyframe_id, det.candidate_probability, dyaw, bearing, v.n_inliers))
 
     def counters(self) -> dict[str, Any]:
-        total = np.asarray(self.times_ms["total"]) if self.times_ms["total"] else np.zeros(1)
+        total = np.asarray(self.total_ms) if self.total_ms else np.zeros(1)
         return {"forward_frames": self.frames, "forward_images": self.images,
                 "forward_unsynced": self.unsynced, "forward_loops": self.loops,
                 "forward_not_planar": self.not_planar,

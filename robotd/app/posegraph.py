@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -101,48 +101,48 @@ class PoseGraphStage(Publisher):
             self.solve_and_save()
 
     def on_candidate(self, c: LoopCandidate) -> None:
-        if c.from_id not in self.graph.graph or c.to_id not in self.graph.graph:
-            self.earlier_run += 1
-            self._fate(c, "failed_gate", "keyframe of an earlier run: not in this run's graph")
-            return
-        d2 = self.graph.loop_chi2(c.from_id, c.to_id, c.delta_xyyaw, c.information)
-        if not d2 <= self.gate_chi2:
-            self.failed_gate += 1
-            self._fate(c, "failed_gate", f"chi2 {d2:.1f} > {self.gate_chi2:.2f}")
-            return
-        t0 = time.perf_counter()
-        self.graph.add_loop(c.from_id, c.to_id, c.delta_xyyaw, c.information)
-        self.update_ms.append((time.perf_counter() - t0) * 1e3)
-        self.accepted += 1
-        self._loops[(c.from_id, c.to_id)] = (c.to_id, c.score)
-        self._fate(c, "accepted", f"chi2 {d2:.2f}")
-        self._publish(Link("loop", c.from_id, c.to_id, c.delta_xyyaw, c.information))
+        self._gate_and_add(c.from_id, c.to_id, c.score, lambda: (c.delta_xyyaw, c.information), "floor")
 
     def on_forward_loop(self, c: ForwardLoop) -> None:
-        def fate(f: str, detail: str) -> None:
-            self._publish(CandidateFate(c.to_id, c.from_id, c.probability, f, "forward: " + detail))
+        def edge() -> tuple[np.ndarray, np.ndarray]:
+            predicted = between(self.graph.pose(c.from_id), self.graph.pose(c.to_id))
+            return loop_edge(predicted, c.dyaw_rad, c.bearing_rad, self.forward_mount, self.forward_params)
 
-        if c.from_id not in self.graph.graph or c.to_id not in self.graph.graph:
+        self._gate_and_add(c.from_id, c.to_id, c.probability, edge, "forward")
+
+    def _gate_and_add(self, from_id: int, to_id: int, score: float,
+                      edge: Callable[[], tuple[np.ndarray, np.ndarray]], source: str) -> None:
+        """The gate, then the loop edge for a candidate of ``source`` (``"floor"``: fates'
+        details as they were; ``"forward"``: prefixed ``forward: ``). ``edge()`` gives its
+        ``(delta, information)`` once both keyframes are known to be in this run's graph."""
+        prefix = "forward: " if source == "forward" else ""
+
+        def fate(f: str, detail: str) -> None:
+            self._publish(CandidateFate(to_id, from_id, score, f, prefix + detail))
+
+        if from_id not in self.graph.graph or to_id not in self.graph.graph:
             self.earlier_run += 1
             fate("failed_gate", "keyframe of an earlier run: not in this run's graph")
             return
-        predicted = between(self.graph.pose(c.from_id), self.graph.pose(c.to_id))
-        delta, info = loop_edge(predicted, c.dyaw_rad, c.bearing_rad, self.forward_mount, self.forward_params)
-        d2 = self.graph.loop_chi2(c.from_id, c.to_id, delta, info)
+        delta, info = edge()
+        d2 = self.graph.loop_chi2(from_id, to_id, delta, info)
         if not d2 <= self.gate_chi2:
-            self.forward_failed_gate += 1
+            if source == "forward":
+                self.forward_failed_gate += 1
+            else:
+                self.failed_gate += 1
             fate("failed_gate", f"chi2 {d2:.1f} > {self.gate_chi2:.2f}")
             return
         t0 = time.perf_counter()
-        self.graph.add_loop(c.from_id, c.to_id, delta, info)
+        self.graph.add_loop(from_id, to_id, delta, info)
         self.update_ms.append((time.perf_counter() - t0) * 1e3)
-        self.forward_accepted += 1
-        self._loops[(c.from_id, c.to_id)] = (c.to_id, c.probability)
+        if source == "forward":
+            self.forward_accepted += 1
+        else:
+            self.accepted += 1
+        self._loops[(from_id, to_id)] = (to_id, score)
         fate("accepted", f"chi2 {d2:.2f}")
-        self._publish(Link("loop", c.from_id, c.to_id, delta, info, source="forward"))
-
-    def _fate(self, c: LoopCandidate, fate: str, detail: str) -> None:
-        self._publish(CandidateFate(c.to_id, c.from_id, c.score, fate, detail))
+        self._publish(Link("loop", from_id, to_id, delta, info, source=source))
 
     def solve_and_save(self) -> None:
         """Re-solve the whole graph robustly and store the optimised poses."""
