@@ -29,6 +29,7 @@ Run: ``.venv/bin/python bench/bench_soak.py`` (100,000 frames, keyframes every 0
 from __future__ import annotations
 
 import argparse
+import ctypes
 import dataclasses
 import math
 import os
@@ -56,6 +57,18 @@ def rss_mb() -> float:
     """Resident memory of this process, MB (``/proc/self/statm``, second field)."""
     with open("/proc/self/statm", encoding="ascii") as f:
         return int(f.read().split()[1]) * _PAGE / 1e6
+
+
+def trimmed_rss_mb() -> float:
+    """Resident memory after glibc's ``malloc_trim(0)`` hands freed heap pages back to the
+    kernel: what the process still holds, without the free lists that glibc keeps (they
+    grow and shrink with the allocation pattern, not with live data). The plain RSS is
+    recorded beside it."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except OSError:  # not glibc
+        pass
+    return rss_mb()
 
 
 class LoopedReplay:
@@ -159,6 +172,7 @@ class SoakProbe:
         self._lap = 0
         self._frames = 0
         self._t0 = time.perf_counter()
+        self._cpu0 = time.process_time()
         self.frames = 0
         self.keyframes = 0
         self.loops = 0
@@ -182,19 +196,25 @@ class SoakProbe:
 
     def close_lap(self) -> None:
         """Record the lap just ended (also called once at the end of the run)."""
-        now = time.perf_counter()
+        now, cpu_now = time.perf_counter(), time.process_time()
         c = self._pipeline_counters()
-        wall = now - self._t0
+        wall, cpu = now - self._t0, cpu_now - self._cpu0
         self.rows.append({"lap": self._lap, "frames": self._frames, "wall_s": wall,
                           "ms_per_frame": 1e3 * wall / self._frames if self._frames else math.nan,
-                          "rss_mb": rss_mb(), "keyframes_total": self.keyframes,
+                          "cpu_ms_per_frame": 1e3 * cpu / self._frames if self._frames else math.nan,
+                          "keyframes_not_stored": c.get("keyframes_not_stored", 0),
+                          "localise_matches": c.get("localise_matches_accepted", 0),
+                          "rss_mb": rss_mb(), "rss_trimmed_mb": trimmed_rss_mb(),
+                          "keyframes_total": self.keyframes,
                           "loops_total": self.loops,
                           "above_threshold_total": c.get("loop_candidates_above_threshold", 0)})
-        self._t0 = now
+        self._t0, self._cpu0 = now, cpu_now
         self._frames = 0
         r = self.rows[-1]
         print(f"soak: lap {r['lap']} frames {r['frames']} {r['ms_per_frame']:.2f} ms/frame "
-              f"RSS {r['rss_mb']:.1f} MB keyframes {r['keyframes_total']} loop edges {r['loops_total']}",
+              f"(CPU {r['cpu_ms_per_frame']:.2f}) "
+              f"RSS {r['rss_mb']:.1f} MB (trimmed {r['rss_trimmed_mb']:.1f}) keyframes {r['keyframes_total']} "
+              f"loop edges {r['loops_total']}",
               file=sys.stderr, flush=True)  # a run stopped early still leaves its laps
 
 
@@ -232,7 +252,7 @@ def map_sizes(path: Path, mode: int) -> dict[str, Any]:
 
 
 def soak(lap: Path, work: Path, frames: int | None, keyframe_distance_m: float,
-         laps: int | None = None) -> dict[str, Any]:
+         laps: int | None = None, localise: bool = True) -> dict[str, Any]:
     """Replay ``lap`` until ``frames`` frames (or ``laps`` laps) went through one daemon;
     the figures."""
     from robotd.app.assemble import assemble_daemon, open_map
@@ -244,6 +264,7 @@ def soak(lap: Path, work: Path, frames: int | None, keyframe_distance_m: float,
     cfg = replace(Config(), "calibration", path=str(shipped_calibration()))
     cfg = replace(cfg, "floor_camera", source="virtual")
     cfg = replace(cfg, "keyframes", distance_m=keyframe_distance_m)
+    cfg = replace(cfg, "pose_graph", localise_mapped=localise)
     map_path = work / "soak.sqlite"
     cfg = replace(cfg, "map", path=str(map_path))
     for p in (map_path, Path(f"{map_path}-wal"), Path(f"{map_path}-shm")):
@@ -299,15 +320,20 @@ def trend(rows: list[dict[str, Any]]) -> dict[str, Any]:
         return {}
     first, last = full[0], full[-1]
     laps = np.array([r["lap"] for r in full], dtype=float)
-    rss = np.array([r["rss_mb"] for r in full])
-    kf = np.array([r["keyframes_total"] for r in full], dtype=float)
-    slope_lap = float(np.polyfit(laps, rss, 1)[0])
-    slope_kf = float(np.polyfit(kf, rss, 1)[0]) * 1000 if np.ptp(kf) > 0 else math.nan
+
+    def slope(key: str) -> float:
+        return float(np.polyfit(laps, np.array([r[key] for r in full], dtype=float), 1)[0])
+
     return {"first_lap": first["lap"], "last_lap": last["lap"],
             "rss_mb_first": first["rss_mb"], "rss_mb_last": last["rss_mb"],
+            "rss_trimmed_mb_first": first["rss_trimmed_mb"], "rss_trimmed_mb_last": last["rss_trimmed_mb"],
             "ms_per_frame_first": first["ms_per_frame"], "ms_per_frame_last": last["ms_per_frame"],
-            "ms_per_frame_ratio_last_to_first": last["ms_per_frame"] / first["ms_per_frame"],
-            "rss_slope_mb_per_lap": slope_lap, "rss_slope_mb_per_1000_keyframes": slope_kf}
+            "cpu_ms_per_frame_first": first["cpu_ms_per_frame"],
+            "cpu_ms_per_frame_last": last["cpu_ms_per_frame"],
+            "cpu_ms_per_frame_ratio_last_to_first": last["cpu_ms_per_frame"] / first["cpu_ms_per_frame"],
+            "rss_slope_mb_per_lap": slope("rss_mb"), "rss_trimmed_slope_mb_per_lap": slope("rss_trimmed_mb"),
+            "cpu_ms_per_frame_slope_per_lap": slope("cpu_ms_per_frame"),
+            "keyframes_per_lap_last": last["keyframes_total"] - full[-2]["keyframes_total"]}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -321,6 +347,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--work", type=Path, default=None, help="folder for the lap recording and map")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    p.add_argument("--no-localise", action="store_true",
+                   help="store every keyframe on every lap ([pose_graph] localise_mapped = false): "
+                        "the map and the graph grow with the distance driven")
     args = p.parse_args(argv)
     frames = args.frames or (300_000 if args.full else 100_000)
     distance = args.keyframe_distance or (0.05 if args.full else 0.2)
@@ -333,17 +362,21 @@ def main(argv: list[str] | None = None) -> int:
         work.mkdir(parents=True, exist_ok=True)
     try:
         lap = record_lap(work, args.seed)
-        result = soak(lap, work, frames, distance, laps=args.laps)
+        result = soak(lap, work, frames, distance, laps=args.laps, localise=not args.no_localise)
     finally:
         if tmp is not None:
             tmp.cleanup()
     result["trend"] = trend(result["laps_table"])
     result["machine"] = machine_info()
     result["args"] = {"frames": frames, "laps": args.laps, "keyframe_distance_m": distance,
+                      "localise_mapped": not args.no_localise,
                       "seed": args.seed}
-    print_table(["lap", "frames", "ms/frame", "RSS MB", "keyframes", "loop edges", "above thr."],
-                [[r["lap"], r["frames"], round(r["ms_per_frame"], 2), round(r["rss_mb"], 1),
-                  r["keyframes_total"], r["loops_total"], r["above_threshold_total"]]
+    print_table(["lap", "frames", "ms/frame", "CPU ms/frame", "RSS MB", "RSS trimmed", "keyframes",
+                 "not stored", "relocalised", "loop edges", "above thr."],
+                [[r["lap"], r["frames"], round(r["ms_per_frame"], 2), round(r["cpu_ms_per_frame"], 2),
+                  round(r["rss_mb"], 1), round(r["rss_trimmed_mb"], 1), r["keyframes_total"],
+                  r["keyframes_not_stored"], r["localise_matches"], r["loops_total"],
+                  r["above_threshold_total"]]
                  for r in result["laps_table"]])
     m, t = result["map"], result["trend"]
     print(f"\nframes {result['frames_processed']} processed of {result['frames_handed_out']} handed out, "
@@ -356,10 +389,12 @@ def main(argv: list[str] | None = None) -> int:
           f"(bound {m['descriptor_bound_bytes']} B); stored image mean {m['image_bytes_mean']:.0f} B")
     if t:
         print(f"lap {t['first_lap']} -> lap {t['last_lap']}: RSS {t['rss_mb_first']:.1f} -> "
-              f"{t['rss_mb_last']:.1f} MB (slope {t['rss_slope_mb_per_lap']:+.2f} MB/lap, "
-              f"{t['rss_slope_mb_per_1000_keyframes']:+.1f} MB per 1000 keyframes); "
-              f"{t['ms_per_frame_first']:.2f} -> {t['ms_per_frame_last']:.2f} ms/frame "
-              f"(x{t['ms_per_frame_ratio_last_to_first']:.2f})")
+              f"{t['rss_mb_last']:.1f} MB (slope {t['rss_slope_mb_per_lap']:+.2f} MB/lap), trimmed "
+              f"{t['rss_trimmed_mb_first']:.1f} -> {t['rss_trimmed_mb_last']:.1f} MB "
+              f"({t['rss_trimmed_slope_mb_per_lap']:+.2f} MB/lap); CPU {t['cpu_ms_per_frame_first']:.2f} -> "
+              f"{t['cpu_ms_per_frame_last']:.2f} ms/frame (x{t['cpu_ms_per_frame_ratio_last_to_first']:.2f}, "
+              f"{t['cpu_ms_per_frame_slope_per_lap']:+.3f} ms/frame per lap); keyframes added in the last "
+              f"lap {t['keyframes_per_lap_last']}")
     print(f"wrote {write_json(args.out, result)}")
     return 0
 

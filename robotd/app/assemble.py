@@ -154,16 +154,22 @@ def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, l
     odometry = build_odometry(cfg) if cfg.base.driver != "none" else None
     if odometry is not None:
         pipeline.add(OdometryStage(odometry))
-    pipeline.add(KeyframeStage(odometry, clock, distance_m=kf.distance_m,
-                               rotation_rad=math.radians(kf.rotation_deg),
-                               max_sync_wait_s=kf.max_sync_wait_s, lossless=lossless))
+    keyframe_stage = pipeline.add(KeyframeStage(odometry, clock, distance_m=kf.distance_m,
+                                                rotation_rad=math.radians(kf.rotation_deg),
+                                                max_sync_wait_s=kf.max_sync_wait_s, lossless=lossless))
+    mapped_ground = None
     if cfg.pose_graph.enabled and pose_graph:
+        from robotd.app.mappedground import MappedGroundParams
         from robotd.app.posegraph import PoseGraphStage
         from robotd.graph.incremental import IncrementalGraph
 
-        pipeline.add(PoseGraphStage(IncrementalGraph(), store, gate_chi2=cfg.pose_graph.gate_chi2,
-                                    save_every=cfg.pose_graph.save_every_keyframes,
-                                    forward_mount=forward_mount(cfg), forward_params=forward_loop_params(cfg)))
+        g = cfg.pose_graph
+        graph_stage = pipeline.add(PoseGraphStage(
+            IncrementalGraph(), store, gate_chi2=g.gate_chi2, save_every=g.save_every_keyframes,
+            forward_mount=forward_mount(cfg), forward_params=forward_loop_params(cfg),
+            mapped_ground=MappedGroundParams(g.mapped_radius_m, g.max_unlocalised_m) if g.localise_mapped else None))
+        mapped_ground = graph_stage.mapped_ground
+        keyframe_stage.mapped_ground = mapped_ground
     else:
         pipeline.add(LoopsUngated())
     if cfg.forward_detector.enabled:
@@ -173,7 +179,8 @@ def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, l
         pipeline.add(FloorDetectorStage(detector))
     if cfg.visual_odometry.enabled and cfg.floor_camera.source != "none":
         pipeline.add(build_visual_odometry(cfg, odometry, calibration))
-    pipeline.add(MapWriterStage(store, run_id, image_width_px=kf.image_width_px))
+    writer = pipeline.add(MapWriterStage(store, run_id, image_width_px=kf.image_width_px))
+    writer.mapped_ground = mapped_ground
     for o in observers:
         pipeline.add(o)
     return pipeline

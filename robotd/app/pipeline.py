@@ -33,8 +33,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from robotd.app.mappedground import MappedGround
 from robotd.base.clock import Clock
-from robotd.base.geometry import information_from_covariance
+from robotd.base.geometry import between, information_from_covariance
 from robotd.base.messages import (
     BaseStatus,
     CandidateFate,
@@ -43,8 +44,10 @@ from robotd.base.messages import (
     KeyframeStored,
     Link,
     LoopCandidate,
+    MapMatch,
     OdometryUpdate,
     PoseStamped,
+    TransientKeyframe,
     WheelTicks,
     YawRate,
 )
@@ -53,7 +56,7 @@ from robotd.floor.vo import FloorVisualOdometry
 from robotd.io.store import MapStore
 from robotd.keyframes import KeyframeSelector, downsample
 from robotd.odometry.fusion import OdometryFilter
-from robotd.odometry.increments import odometry_edge
+from robotd.odometry.increments import increment_covariance, odometry_edge
 
 log = logging.getLogger(__name__)
 
@@ -240,6 +243,7 @@ class KeyframeStage(Publisher):
         self.frames_without_odometry = 0
         self.frames_other_camera = 0
         self.keyframes = 0
+        self.mapped_ground: MappedGround | None = None  # set by the assembly: transient keyframes
 
     def subscriptions(self) -> Mapping[type, Handler]:
         return {Frame: self.on_frame}
@@ -300,9 +304,11 @@ class KeyframeStage(Publisher):
         if pose is None:
             self.frames_unsynced += 1
             return
-        if self.selector.offer(np.array([pose.x_m, pose.y_m, pose.yaw_rad])):
+        xyyaw = np.array([pose.x_m, pose.y_m, pose.yaw_rad])
+        if self.selector.offer(xyyaw):
             self.keyframes += 1
-            self._publish(Keyframe(frame, pose))
+            transient = self.mapped_ground is not None and self.mapped_ground.is_transient(xyyaw)
+            self._publish(Keyframe(frame, pose, transient=transient))
 
     def counters(self) -> dict[str, int]:
         return {"frames": self.frames, "frames_unsynced": self.frames_unsynced,
@@ -325,11 +331,23 @@ class FloorDetectorStage(Publisher):
     def __init__(self, detector: FloorLoopDetector) -> None:
         self.detector = detector
         self.queries = 0
+        self.transient_queries = 0
         self.candidates = 0
         self.loops = 0
 
     def subscriptions(self) -> Mapping[type, Handler]:
-        return {Keyframe: self.describe, KeyframeStored: self.query}
+        return {Keyframe: self.describe, KeyframeStored: self.query, TransientKeyframe: self.query_transient}
+
+    def query_transient(self, msg: TransientKeyframe) -> None:
+        """A transient keyframe (over mapped ground) is matched against the map, not added;
+        its matches go to the pose graph as :class:`MapMatch`."""
+        kf = msg.keyframe
+        if "floor" not in kf.descriptors:
+            return
+        result = self.detector.query(kf.stamp_ns, kf.descriptors["floor"][1])
+        self.transient_queries += 1
+        for loop in result.loops:
+            self._publish(MapMatch(loop.from_id, loop.score, loop.delta, loop.information))
 
     def describe(self, kf: Keyframe) -> None:
         kf.descriptors["floor"] = (self.detector.params.mode, self.detector.describe(kf.frame.image))
@@ -360,7 +378,8 @@ class FloorDetectorStage(Publisher):
                                         loop.information))
 
     def counters(self) -> dict[str, int]:
-        return {"floor_queries": self.queries, "floor_candidates": self.candidates,
+        return {"floor_queries": self.queries, "floor_transient_queries": self.transient_queries,
+                "floor_candidates": self.candidates,
                 "loop_candidates_above_threshold": self.loops}
 
 
@@ -451,6 +470,8 @@ class MapWriterStage(Publisher):
         self.image_width_px = image_width_px
         self._previous: Keyframe | None = None
         self.stored = 0
+        self.transient = 0
+        self.mapped_ground: MappedGround | None = None  # set by the assembly: transient keyframes
         self.links = collections.Counter[str]()
         self.fates = collections.Counter[str]()
         self._fates: list[tuple[int, int, float, str, str]] = []
@@ -473,6 +494,9 @@ class MapWriterStage(Publisher):
         return 0
 
     def on_keyframe(self, kf: Keyframe) -> None:
+        if self.mapped_ground is not None:
+            self._on_keyframe_mapped_ground(kf, self.mapped_ground)
+            return
         descriptor = mode = None
         if "floor" in kf.descriptors:
             mode, descriptor = kf.descriptors["floor"]
@@ -497,11 +521,51 @@ class MapWriterStage(Publisher):
         self._publish(KeyframeStored(kf))
         self.flush_fates()
 
+    def _on_keyframe_mapped_ground(self, kf: Keyframe, mapped: MappedGround) -> None:
+        """:meth:`on_keyframe` with localisation over mapped ground on: a transient keyframe
+        only extends the odometry chain; a stored one is linked from the chain's start."""
+        prev, self._previous = self._previous, kf
+        edge = None
+        if prev is not None:
+            if kf.odometry_edge is not None:
+                edge = (np.asarray(kf.odometry_edge[0], float), np.asarray(kf.odometry_edge[1], float))
+            else:
+                edge = (between(prev.pose_xyyaw, kf.pose_xyyaw),
+                        increment_covariance(prev.pose_xyyaw, prev.pose.covariance,
+                                             kf.pose_xyyaw, kf.pose.covariance))
+        if kf.transient and edge is not None:
+            mapped.extend(edge, kf.pose_xyyaw)
+            self.transient += 1
+            self._publish(TransientKeyframe(kf))
+            return
+        self._store(kf)
+        if edge is not None:
+            from_id, delta, cov = mapped.edge_for_stored(prev.keyframe_id if prev is not None else None, edge)
+            if from_id is not None:
+                self._publish(Link("odometry", from_id, kf.keyframe_id, delta,
+                                   information_from_covariance(cov)))
+        mapped.stored(kf.keyframe_id, kf.pose_xyyaw)
+        self._publish(KeyframeStored(kf))
+        self.flush_fates()
+
+    def _store(self, kf: Keyframe) -> None:
+        descriptor = mode = None
+        if "floor" in kf.descriptors:
+            mode, descriptor = kf.descriptors["floor"]
+        kf.keyframe_id = self.store.add_keyframe(
+            self.run_id, kf.stamp_ns, kf.pose_xyyaw, kf.pose.covariance,
+            downsample(kf.frame.image, self.image_width_px),
+            descriptor=descriptor, descriptor_mode=mode,
+        )
+        kf.run_id = self.run_id
+        self.stored += 1
+        log.debug("keyframe %d committed (run %d, %d stored)", kf.keyframe_id, self.run_id, self.stored)
+
     def on_link(self, link: Link) -> None:
         self.store.add_link(link.kind, link.from_id, link.to_id, link.delta_xyyaw, link.information)
         self.links[link.kind] += 1
 
     def counters(self) -> dict[str, int]:
-        return {"keyframes_stored": self.stored,
+        return {"keyframes_stored": self.stored, "keyframes_not_stored": self.transient,
                 **{f"links_{k}": n for k, n in sorted(self.links.items())},
                 **{f"candidates_{k}": n for k, n in sorted(self.fates.items())}}

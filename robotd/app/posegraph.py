@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from robotd.app.mappedground import MappedGround, MappedGroundParams
 from robotd.app.pipeline import Publisher
 from robotd.base.geometry import between
 from robotd.base.messages import (
@@ -42,6 +43,7 @@ from robotd.base.messages import (
     KeyframeStored,
     Link,
     LoopCandidate,
+    MapMatch,
 )
 from robotd.forward.planar import PlanarLoopParams, loop_edge
 from robotd.graph.incremental import IncrementalGraph
@@ -61,8 +63,12 @@ class PoseGraphStage(Publisher):
 
     def __init__(self, graph: IncrementalGraph, store: MapStore, *, gate_chi2: float = GATE_CHI2_3DOF_999,
                  save_every: int = 0, forward_mount: np.ndarray | None = None,
-                 forward_params: PlanarLoopParams | None = None) -> None:
+                 forward_params: PlanarLoopParams | None = None,
+                 mapped_ground: MappedGroundParams | None = None) -> None:
         self.graph = graph
+        # Localisation over mapped ground (robotd.app.mappedground), when configured.
+        self.mapped_ground = None if mapped_ground is None else MappedGround(
+            mapped_ground, graph.pose, lambda: graph.estimate()[1][:, :2], graph.loop_chi2)
         self.forward_mount = np.zeros(3) if forward_mount is None else np.asarray(forward_mount, float)
         self.forward_params = PlanarLoopParams() if forward_params is None else forward_params
         self.forward_accepted = 0
@@ -83,7 +89,13 @@ class PoseGraphStage(Publisher):
 
     def subscriptions(self) -> Mapping[type, Any]:
         return {Link: self.on_link, KeyframeStored: self.on_keyframe, LoopCandidate: self.on_candidate,
-                ForwardLoop: self.on_forward_loop}
+                ForwardLoop: self.on_forward_loop, MapMatch: self.on_map_match}
+
+    def on_map_match(self, m: MapMatch) -> None:
+        """A transient keyframe matched the map: gated, it re-localises the robot (the graph
+        is not changed)."""
+        if self.mapped_ground is not None:
+            self.mapped_ground.match(m.from_id, m.delta_xyyaw, m.information, self.gate_chi2)
 
     def on_link(self, link: Link) -> None:
         if link.kind != "odometry" or link.from_id not in self.graph.graph:
@@ -141,6 +153,8 @@ class PoseGraphStage(Publisher):
         else:
             self.accepted += 1
         self._loops[(from_id, to_id)] = (to_id, score)
+        if self.mapped_ground is not None:
+            self.mapped_ground.loop_accepted(to_id)
         fate("accepted", f"chi2 {d2:.2f}")
         self._publish(Link("loop", from_id, to_id, delta, info, source=source))
 
@@ -186,4 +200,5 @@ class PoseGraphStage(Publisher):
                 "graph_solves": self.solves, "graph_solve_failures": self.solve_failures,
                 "graph_update_median_us": int(np.median(u) * 1e3),
                 "graph_update_p99_us": int(np.percentile(u, 99) * 1e3),
-                "graph_solve_ms": int(self.last_solve_ms)}
+                "graph_solve_ms": int(self.last_solve_ms),
+                **(self.mapped_ground.counters() if self.mapped_ground is not None else {})}

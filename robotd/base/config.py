@@ -176,6 +176,13 @@ class PoseGraphConfig:
     save_every_keyframes: int = _f(200, "re-solve the whole graph robustly and store the optimised "
                                    "poses every this many keyframes (0: only at the end of a run)",
                                    lo=0, hi=1_000_000)
+    localise_mapped: bool = _f(False, "over ground the map already holds, once a loop is accepted, "
+                               "keyframes only re-localise the robot and are not stored: the map and "
+                               "the graph grow with the area covered, not the distance driven")
+    mapped_radius_m: float = _f(0.15, "a keyframe this close to a stored one (by the graph's estimate) "
+                                "is on mapped ground", lo=0.001, hi=100.0)
+    max_unlocalised_m: float = _f(1.0, "on mapped ground, travel this far without an accepted match "
+                                  "and the robot stores keyframes again", lo=0.01, hi=1000.0)
 
 
 @dataclass(frozen=True)

@@ -104,6 +104,10 @@ class Keyframe:
     """``(delta (3,), covariance (3, 3))`` from the previous keyframe, when a stage other
     than the wheel + gyro filter measured it (vision-only visual odometry); the map writer
     then links the keyframes with it instead of the filter's increment."""
+    transient: bool = False
+    """Taken over mapped ground while the robot is localised (``[pose_graph]
+    localise_mapped``): described and queried against the map, never stored; the map
+    writer publishes :class:`TransientKeyframe` instead of :class:`KeyframeStored`."""
 
     @property
     def stamp_ns(self) -> int:
@@ -113,6 +117,25 @@ class Keyframe:
     def pose_xyyaw(self) -> np.ndarray:
         """``(3,)`` x_m, y_m, yaw_rad."""
         return np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class TransientKeyframe:
+    """A transient keyframe (see :attr:`Keyframe.transient`) is ready to be queried."""
+
+    keyframe: Keyframe
+
+
+@dataclass(frozen=True, slots=True)
+class MapMatch:
+    """A transient keyframe matched stored keyframe ``from_id`` at or above the trained
+    threshold: the transient's pose in ``from_id``'s frame (``delta_xyyaw``) and its
+    ``information`` (3, 3). The pose graph gates it to re-localise the robot."""
+
+    from_id: int
+    score: float
+    delta_xyyaw: np.ndarray
+    information: np.ndarray
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -122,6 +122,14 @@ class FloorLoopDetector:
 
     def query_and_add(self, keyframe_id: int, stamp_ns: int, descriptor: bytes) -> KeyframeQuery:
         """Query the map with a stored keyframe's descriptor, then add it to the index."""
+        return self._query(keyframe_id, stamp_ns, descriptor, add=True)
+
+    def query(self, stamp_ns: int, descriptor: bytes) -> KeyframeQuery:
+        """Query the map with a keyframe that is not stored (a transient keyframe over
+        mapped ground): nothing is added; its loops carry ``to_id`` -1."""
+        return self._query(-1, stamp_ns, descriptor, add=False)
+
+    def _query(self, keyframe_id: int, stamp_ns: int, descriptor: bytes, *, add: bool) -> KeyframeQuery:
         desc = decode(descriptor)
         # Recent means: this run, and within exclude_recent_s. Everything before the last
         # of this run's keyframes older than the cutoff is old, and so is every keyframe of
@@ -134,12 +142,13 @@ class FloorLoopDetector:
             candidates = self.index.query(desc, k=self.params.candidates,
                                           exclude_after_id=last_old_id,
                                           shortlist=self.params.shortlist)
-        self.index.add(keyframe_id, desc)
-        if self._run_stamps and stamp_ns < self._run_stamps[-1][0]:
-            log.warning("keyframe %d: stamp %d before the previous keyframe's within one run",
-                        keyframe_id, stamp_ns)
-            stamp_ns = self._run_stamps[-1][0]
-        self._run_stamps.append((stamp_ns, keyframe_id))
+        if add:
+            self.index.add(keyframe_id, desc)
+            if self._run_stamps and stamp_ns < self._run_stamps[-1][0]:
+                log.warning("keyframe %d: stamp %d before the previous keyframe's within one run",
+                            keyframe_id, stamp_ns)
+                stamp_ns = self._run_stamps[-1][0]
+            self._run_stamps.append((stamp_ns, keyframe_id))
         loops = []
         if self.threshold is not None:
             for c in candidates:
