@@ -304,6 +304,9 @@ class Daemon:
                 f"keyframes {c.get('keyframes', 0)}, stored {c.get('keyframes_stored', 0)}, "
                 f"loops {c.get('links_loop', 0)}, drops {drops}, "
                 f"unsynced {c.get('frames_unsynced', 0)}")
+        if "keyframes_not_stored" in c:
+            text += (f", mapped ground: {c['keyframes_not_stored']} keyframes not stored, "
+                     f"{c.get('localise_matches_accepted', 0)} re-localisations")
         stats = self._safe_driver_stats()
         gaps = gap_text(stats)
         if gaps:

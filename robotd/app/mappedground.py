@@ -35,6 +35,7 @@ Nothing here does I/O; the stages that own the map and the graph call it.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -63,6 +64,8 @@ def invert_edge(e: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarra
     cov_inv = j @ cov @ j.T
     return inverse(d), 0.5 * (cov_inv + cov_inv.T)
 
+
+log = logging.getLogger(__name__)
 
 _ZERO = np.zeros(3)
 _NO_COV = np.zeros((3, 3))
@@ -117,6 +120,8 @@ class MappedGround:
         if self.travelled_m + step > self.params.max_unlocalised_m:
             self.localised = False
             self.left_unlocalised += 1
+            log.info("mapped ground: %.2f m without an accepted match; storing keyframes again",
+                     self.travelled_m + step)
             return False
         predicted = compose(compose(self._pose_of(self.node), self.node_to_ref[0]),
                             between(self.ref_odom_pose, np.asarray(odom_pose, float)))
@@ -124,6 +129,7 @@ class MappedGround:
         if not len(xy) or float(np.min(np.hypot(*(xy - predicted[:2]).T))) > self.params.mapped_radius_m:
             self.localised = False
             self.left_new_ground += 1
+            log.info("mapped ground left: new ground, storing keyframes again")
             return False
         return True
 
@@ -166,6 +172,8 @@ class MappedGround:
         if query_id == self.node and self._at_node():
             if not self.localised:
                 self.entered += 1
+                log.info("mapped ground: localised at keyframe %d; keyframes over mapped ground "
+                         "are not stored", query_id)
             self.localised = True
             self.travelled_m = 0.0
 
