@@ -16,10 +16,20 @@ Recorded per lap, in the same process: wall time per frame, the resident memory
 at the end: frames dropped (queue drops, frames without odometry), and the map's size per
 keyframe against the descriptor mode's byte bound.
 
+The daemon localises over mapped ground (``[pose_graph] localise_mapped``, as the service's
+``systemd/robotd.toml`` sets it): from the second lap on, keyframes over the figure eight
+are matched against the map and not stored, so the map, the floor index and the pose graph
+stop growing. ``--no-localise`` stores every keyframe of every lap, as the code's default
+does: then the map and the graph grow with the laps, and iSAM2's cost per keyframe with
+them (each pass is tied to the earlier ones by loops).
+
+Resident memory is recorded twice per lap: as the kernel counts it, and after glibc's
+``malloc_trim(0)`` (what the process really holds; glibc's free lists grow and shrink with
+the allocation pattern). Per-frame time is recorded as wall time and as this process's CPU
+time, which a loaded machine disturbs less.
+
 What it is not: every lap shows the daemon the same images (one recording), so it says
-nothing about detection quality, and the map grows without bound over the same 26 m
-(keyframes are never merged; that is by design today, and the trend figures show what it
-costs).
+nothing about detection quality.
 
 Run: ``.venv/bin/python bench/bench_soak.py`` (100,000 frames, keyframes every 0.2 m;
 ``--full``: 300,000 frames at the daemon's own 0.05 m spacing), ``--frames N``,
@@ -290,6 +300,10 @@ def soak(lap: Path, work: Path, frames: int | None, keyframe_distance_m: float,
             "frames_processed": c.get("frames", 0), "frames_unsynced": c.get("frames_unsynced", 0),
             "queue_drops": report.queue_drops, "keyframes": c.get("keyframes", 0),
             "loop_edges": c.get("links_loop", 0),
+            "keyframes_not_stored": c.get("keyframes_not_stored", 0),
+            "relocalisations": c.get("localise_matches_accepted", 0),
+            "relocalisations_failed_gate": c.get("localise_matches_failed_gate", 0),
+            "mapped_ground_left": c.get("localise_left_new_ground", 0) + c.get("localise_left_unlocalised", 0),
             "above_threshold": c.get("loop_candidates_above_threshold", 0),
             "wall_s": wall, "rss_mb_before_daemon": rss0, "laps_table": probe.rows,
             "map": map_sizes(map_path, cfg.floor_detector.mode),
@@ -383,7 +397,10 @@ def main(argv: list[str] | None = None) -> int:
           f"{result['laps']} laps, {result['wall_s']:.0f} s; unsynced {result['frames_unsynced']}, "
           f"queue drops {sum(result['queue_drops'].values())}")
     print(f"keyframes {result['keyframes']}, loop edges {result['loop_edges']}, "
-          f"candidates above threshold {result['above_threshold']}")
+          f"candidates above threshold {result['above_threshold']}; over mapped ground: "
+          f"{result['keyframes_not_stored']} keyframes not stored, {result['relocalisations']} "
+          f"re-localisations ({result['relocalisations_failed_gate']} matches refused by the gate), "
+          f"left {result['mapped_ground_left']} times")
     print(f"map: {m['file_bytes'] / 1e6:.1f} MB, {m['file_bytes_per_keyframe']:.0f} B per keyframe; "
           f"descriptor mean {m['descriptor_bytes_mean']:.0f} B, max {m['descriptor_bytes_max']} B "
           f"(bound {m['descriptor_bound_bytes']} B); stored image mean {m['image_bytes_mean']:.0f} B")

@@ -29,18 +29,24 @@ def test_three_laps_lose_nothing_find_loops_and_keep_the_descriptor_bound(tmp_pa
     assert s["frames_handed_out"] == 3 * s["frames_per_lap"] == s["frames_processed"]
     assert [row["frames"] for row in laps] == [s["frames_per_lap"]] * 3
     assert s["frames_unsynced"] == 0 and sum(s["queue_drops"].values()) == 0
-    # Laps 2 and 3 drive over lap 1's floor again: loops are found and accepted.
-    assert laps[0]["loops_total"] < laps[1]["loops_total"] < laps[2]["loops_total"]
-    # Each lap adds about the same number of keyframes (the seam is continuous: a jump in
-    # the odometry there would add or remove keyframes).
-    per_lap = [laps[0]["keyframes_total"], laps[1]["keyframes_total"] - laps[0]["keyframes_total"],
-               laps[2]["keyframes_total"] - laps[1]["keyframes_total"]]
-    assert max(per_lap) <= 1.1 * min(per_lap), per_lap
+    # Laps 2 and 3 drive over lap 1's floor again: the daemon localises there
+    # ([pose_graph] localise_mapped, on in the soak) and the map stops growing: almost no
+    # keyframe is stored (the seam and the odd failed match may add a few), nearly every
+    # keyframe taken is matched against the map instead, and the robot re-localises.
+    first = laps[0]["keyframes_total"]
+    added = [laps[k]["keyframes_total"] - laps[k - 1]["keyframes_total"] for k in (1, 2)]
+    assert first > 100 and max(added) <= 0.1 * first, (first, added)
+    not_stored = [laps[k]["keyframes_not_stored"] - laps[k - 1]["keyframes_not_stored"] for k in (1, 2)]
+    assert min(not_stored) >= 0.8 * first, (first, not_stored)
+    assert laps[2]["localise_matches"] > laps[1]["localise_matches"] > laps[0]["localise_matches"]
+    # With keyframes every 0.2 m and max_unlocalised_m = 1.0, fewer than one accepted match
+    # in five keyframes would make the daemon store keyframes again.
+    assert s["relocalisations"] == laps[2]["localise_matches"] >= 0.2 * sum(not_stored)
     m = s["map"]
     assert m["keyframes"] == s["keyframes"] == laps[2]["keyframes_total"]
     assert 0 < m["descriptor_bytes_max"] <= m["descriptor_bound_bytes"] == 4096
-    # Memory: the third lap may not keep a frame per keyframe (a 640 x 480 frame is 307
-    # kB). The map in memory grows by design, about 50 kB per keyframe in the bench's
-    # soak, in steps of the allocator's arenas, so only a leak that size is caught here.
-    growth_kb = (laps[2]["rss_mb"] - laps[1]["rss_mb"]) * 1000 / max(1, per_lap[2])
-    assert growth_kb < 300, growth_kb
+    # Memory: what the process holds (after malloc_trim) may not grow from lap 2 to lap 3
+    # by more than a few MB: a leak of one 640 x 480 frame per keyframe taken (307 kB
+    # each, about 137 a lap) would add 40 MB.
+    growth_mb = laps[2]["rss_trimmed_mb"] - laps[1]["rss_trimmed_mb"]
+    assert growth_mb < 10, growth_mb
