@@ -227,11 +227,18 @@ def check_video_device(path: str) -> None:
     os.close(fd)
 
 
-def open_v4l2(section: FloorCameraConfig, clock: Clock) -> V4L2Camera:
+def open_v4l2(section: FloorCameraConfig, clock: Clock, *, name: str = "floor") -> V4L2Camera:
     """The registry's factory of ``("floor_camera", "v4l2")``: the floor camera, grey."""
-    return V4L2Camera(section.device, name="floor", fourcc=section.fourcc,
+    return V4L2Camera(section.device, name=name, fourcc=section.fourcc,
                       width_px=section.width_px, height_px=section.height_px, fps=section.fps,
                       buffer_size=section.buffer_size, grey=True, clock=clock)
+
+
+def open_v4l2_forward(section: Any, clock: Clock) -> V4L2Camera:
+    """The registry's factory of ``("forward_camera", "v4l2")``: the forward camera, grey
+    (its frames are named ``"forward"``). ``section``: ``[forward_camera]`` with the size
+    of ``[forward_detector]`` (see :func:`robotd.app.service.open_sources`)."""
+    return open_v4l2(section, clock, name="forward")
 
 
 def _fourcc_code(fourcc: str) -> int:

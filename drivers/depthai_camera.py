@@ -208,7 +208,7 @@ def replay_stream_opener(video_path: str | os.PathLike[str], *, loop: bool = Fal
     return open_replay
 
 
-def open_depthai(section: Any, clock: Clock) -> DepthAICamera:
+def open_depthai(section: Any, clock: Clock, *, name: str = "floor") -> DepthAICamera:
     """The registry's factory of ``("floor_camera", "depthai")``: the floor camera, grey,
     from a ``[floor_camera]`` section (``depthai_device``, ``depthai_socket``, size,
     ``fps``, ``colour``, ``buffer_size`` as the host queue, ``depthai_reconnection_attempts``)."""
@@ -217,7 +217,13 @@ def open_depthai(section: Any, clock: Clock) -> DepthAICamera:
         width_px=section.width_px, height_px=section.height_px, fps=section.fps,
         colour=section.colour, queue_size=section.buffer_size,
         reconnection_attempts=section.depthai_reconnection_attempts)
-    return DepthAICamera(settings, name="floor", grey=True, clock=clock)
+    return DepthAICamera(settings, name=name, grey=True, clock=clock)
+
+
+def open_depthai_forward(section: Any, clock: Clock) -> DepthAICamera:
+    """The registry's factory of ``("forward_camera", "depthai")``: as
+    :func:`open_depthai`, frames named ``"forward"``."""
+    return open_depthai(section, clock, name="forward")
 
 
 def _timedelta_ns(td: datetime.timedelta) -> int:

@@ -25,6 +25,8 @@ BACKENDS: dict[tuple[str, str], str] = {
     ("base", "can"): "drivers.can.driver:open_can",
     ("floor_camera", "v4l2"): "drivers.camera:open_v4l2",
     ("floor_camera", "depthai"): "drivers.depthai_camera:open_depthai",
+    ("forward_camera", "v4l2"): "drivers.camera:open_v4l2_forward",
+    ("forward_camera", "depthai"): "drivers.depthai_camera:open_depthai_forward",
     ("replay", "mcap"): "drivers.recording.replay:open_replay",
 }
 """``(role, name)`` -> ``"module:callable"`` of the factory ``(section, clock) -> Driver``."""

@@ -8,11 +8,13 @@ while the other sources run on; the gap shows in STATUS (:func:`~robotd.app.daem
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import signal
 import threading
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, Callable
 
 import numpy as np
@@ -41,6 +43,14 @@ def open_sources(cfg: Config, clock: Clock) -> dict[str, Any]:
         raise ConfigError("[floor_camera] source: 'virtual' exists only in `robotd demo`")
     if fc.source != "none":
         wanted.append(("floor", "floor_camera", fc.source, fc))
+    fw, fd = cfg.forward_camera, cfg.forward_detector
+    if fw.source != "none" and not fd.enabled:
+        log.warning("[forward_camera] source = %r but [forward_detector] is off: the forward camera "
+                    "is not opened", fw.source)
+    elif fw.source != "none":
+        # The device section with the size the detector's camera model assumes.
+        section = SimpleNamespace(**dataclasses.asdict(fw), width_px=fd.width_px, height_px=fd.height_px)
+        wanted.append(("forward", "forward_camera", fw.source, section))
     sources: dict[str, Any] = {}
     try:
         for source, role, backend, section in wanted:
@@ -148,8 +158,8 @@ def _run_service(cfg: Config, record: Path | None, config_path: Path | None,
             if not sources:
                 log.warning("no sources enabled: the daemon will only keep the map open")
             if cfg.forward_detector.enabled and "forward" not in sources:
-                log.warning("[forward_detector] is enabled but `robotd run` has no forward camera "
-                            "source yet (only `robotd demo --forward` has one): no forward loops")
+                log.warning("[forward_detector] is enabled but [forward_camera] source is 'none': "
+                            "no forward loops")
             drivers = dict(sources)
             if record is not None:
                 from drivers.recording.writer import RecordingTee

@@ -214,6 +214,26 @@ class ForwardDetectorConfig:
 
 
 @dataclass(frozen=True)
+class ForwardCameraConfig:
+    """The forward camera's device for `robotd run` (its size, intrinsics and mount are in
+    ``[forward_detector]``, which uses its frames). Opened only when the detector is on."""
+
+    source: str = _f("none", "camera source of the forward camera ('none': no forward camera)",
+                     choices=("v4l2", "depthai", "none"))
+    device: str = _f("/dev/video1", "V4L2 device path")
+    fourcc: str = _f("YUYV", "pixel format requested from the driver", choices=("YUYV", "MJPG", "GREY"))
+    fps: float = _f(15.0, "frame rate (the detector takes a keyframe every few frames)", lo=0.1, hi=1000.0)
+    buffer_size: int = _f(2, "driver-side frame buffers (small = low latency)", lo=1, hi=32)
+    depthai_device: str = _f("", "DepthAI device id, IP address or USB name ('' = the first found)")
+    depthai_socket: str = _f("CAM_A", "board socket of the camera (OAK-D: CAM_A colour, CAM_B/CAM_C mono)",
+                             choices=("CAM_A", "CAM_B", "CAM_C", "CAM_D", "CAM_E", "CAM_F", "CAM_G", "CAM_H"))
+    colour: bool = _f(False, "DepthAI: request colour (NV12) instead of mono (GRAY8); converted to "
+                      "grey either way")
+    depthai_reconnection_attempts: int = _f(3, "times depthai reconnects a lost device itself before "
+                                            "the driver reopens it with backoff", lo=0, hi=1000)
+
+
+@dataclass(frozen=True)
 class CalibrationConfig:
     """Where the calibration file is (written by ``robotd calibrate``)."""
 
@@ -260,6 +280,7 @@ class Config:
     visual_odometry: VisualOdometryConfig = field(default_factory=VisualOdometryConfig)
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     forward_detector: ForwardDetectorConfig = field(default_factory=ForwardDetectorConfig)
+    forward_camera: ForwardCameraConfig = field(default_factory=ForwardCameraConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     map: MapConfig = field(default_factory=MapConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
