@@ -28,7 +28,7 @@ keeps every stored edge a measured one:
   accepted match (odometry alone is not trusted to say "this is mapped ground" for long).
   The next keyframe is stored with an odometry edge from the anchor's node: the anchor's
   relative pose composed with the odometry chain since, and their covariances propagated
-  to first order (:func:`compose_edges`).
+  to first order in the graph's own error convention (:func:`compose_edges`).
 
 Nothing here does I/O; the stages that own the map and the graph call it.
 """
@@ -42,27 +42,35 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robotd.base.geometry import between, compose, compose_jacobians, inverse
+from robotd.base.geometry import between, compose, inverse
 
 
+def adjoint(pose: np.ndarray) -> np.ndarray:
+    """``(3, 3)`` adjoint of an SE(2) pose ``(x, y, yaw)`` on tangent vectors ``(vx, vy, w)``
+    (GTSAM's ``Pose2.AdjointMap``): ``T exp(xi) = exp(Ad_T xi) T``."""
+    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
+    return np.array([[c, -s, float(pose[1])], [s, c, -float(pose[0])], [0.0, 0.0, 1.0]])
+
+
+# Edge covariances follow the pose graph's convention (GTSAM's BetweenFactor, g2o's
+# EDGE_SE2): the error of a relative pose ``delta`` is a tangent vector at its end,
+# ``delta_true = delta exp(xi)``, ``xi ~ N(0, covariance)``
+# (robotd.base.geometry.between_error_covariance).
 def compose_edges(a: tuple[np.ndarray, np.ndarray],
                   b: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """``(delta, covariance)`` of two relative poses in a row, ``a (+) b``: the deltas
-    composed, the covariances propagated to first order (independent errors)."""
-    j_a, j_b = compose_jacobians(a[0], b[0])
-    cov = j_a @ a[1] @ j_a.T + j_b @ b[1] @ j_b.T
+    """``(delta, covariance)`` of two relative poses in a row, ``a (+) b``, independent
+    errors, to first order: ``a exp(xa) b exp(xb) = a b exp(Ad(b^-1) xa) exp(xb)``."""
+    ad = adjoint(inverse(b[0]))
+    cov = ad @ a[1] @ ad.T + b[1]
     return compose(a[0], b[0]), 0.5 * (cov + cov.T)
 
 
 def invert_edge(e: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """``(delta, covariance)`` of the inverse relative pose, to first order."""
-    d, cov = e
-    c, s = math.cos(float(d[2])), math.sin(float(d[2]))
-    x, y = float(d[0]), float(d[1])
-    # inverse(d) = (-R^T t, -yaw): derivatives with respect to (x, y, yaw).
-    j = np.array([[-c, -s, s * x - c * y], [s, -c, c * x + s * y], [0.0, 0.0, -1.0]])
-    cov_inv = j @ cov @ j.T
-    return inverse(d), 0.5 * (cov_inv + cov_inv.T)
+    """``(delta, covariance)`` of the inverse relative pose, to first order:
+    ``(d exp(x))^-1 = d^-1 exp(-Ad(d) x)``."""
+    ad = adjoint(e[0])
+    cov = ad @ e[1] @ ad.T
+    return inverse(e[0]), 0.5 * (cov + cov.T)
 
 
 log = logging.getLogger(__name__)

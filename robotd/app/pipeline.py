@@ -35,7 +35,7 @@ import numpy as np
 
 from robotd.app.mappedground import MappedGround
 from robotd.base.clock import Clock
-from robotd.base.geometry import between, information_from_covariance
+from robotd.base.geometry import information_from_covariance
 from robotd.base.messages import (
     BaseStatus,
     CandidateFate,
@@ -56,7 +56,7 @@ from robotd.floor.vo import FloorVisualOdometry
 from robotd.io.store import MapStore
 from robotd.keyframes import KeyframeSelector, downsample
 from robotd.odometry.fusion import OdometryFilter
-from robotd.odometry.increments import increment_covariance, odometry_edge
+from robotd.odometry.increments import odometry_edge
 
 log = logging.getLogger(__name__)
 
@@ -494,59 +494,38 @@ class MapWriterStage(Publisher):
         return 0
 
     def on_keyframe(self, kf: Keyframe) -> None:
-        if self.mapped_ground is not None:
-            self._on_keyframe_mapped_ground(kf, self.mapped_ground)
-            return
-        descriptor = mode = None
-        if "floor" in kf.descriptors:
-            mode, descriptor = kf.descriptors["floor"]
-        kf.keyframe_id = self.store.add_keyframe(
-            self.run_id, kf.stamp_ns, kf.pose_xyyaw, kf.pose.covariance,
-            downsample(kf.frame.image, self.image_width_px),
-            descriptor=descriptor, descriptor_mode=mode,
-        )
-        kf.run_id = self.run_id
-        self.stored += 1
-        # The acknowledgement (debug level: several a second): add_keyframe has committed.
-        log.debug("keyframe %d committed (run %d, %d stored)", kf.keyframe_id, self.run_id, self.stored)
-        prev, self._previous = self._previous, kf
-        if prev is not None:
-            if kf.odometry_edge is not None:  # measured by another stage (visual odometry)
-                delta, cov = kf.odometry_edge
-                info = information_from_covariance(cov)
-            else:
-                delta, info = odometry_edge(prev.pose_xyyaw, prev.pose.covariance,
-                                            kf.pose_xyyaw, kf.pose.covariance)
-            self._publish(Link("odometry", prev.keyframe_id, kf.keyframe_id, delta, info))
-        self._publish(KeyframeStored(kf))
-        self.flush_fates()
-
-    def _on_keyframe_mapped_ground(self, kf: Keyframe, mapped: MappedGround) -> None:
-        """:meth:`on_keyframe` with localisation over mapped ground on: a transient keyframe
-        only extends the odometry chain; a stored one is linked from the chain's start."""
-        prev, self._previous = self._previous, kf
-        edge = None
-        if prev is not None:
-            if kf.odometry_edge is not None:
-                edge = (np.asarray(kf.odometry_edge[0], float), np.asarray(kf.odometry_edge[1], float))
-            else:
-                edge = (between(prev.pose_xyyaw, kf.pose_xyyaw),
-                        increment_covariance(prev.pose_xyyaw, prev.pose.covariance,
-                                             kf.pose_xyyaw, kf.pose.covariance))
-        if kf.transient and edge is not None:
-            mapped.extend(edge, kf.pose_xyyaw)
+        prev = self._previous
+        edge = None if prev is None else self._odometry_edge(prev, kf)
+        mapped = self.mapped_ground
+        if mapped is not None and kf.transient and edge is not None:
+            # Over mapped ground: not stored, the odometry chain grows (robotd.app.mappedground).
+            mapped.extend((edge[0], np.linalg.inv(edge[1])), kf.pose_xyyaw)
+            self._previous = kf
             self.transient += 1
             self._publish(TransientKeyframe(kf))
             return
-        self._store(kf)
+        self._store(kf)  # a failed write raises here and leaves the chain as it was
+        self._previous = kf
         if edge is not None:
-            from_id, delta, cov = mapped.edge_for_stored(prev.keyframe_id if prev is not None else None, edge)
+            assert prev is not None
+            from_id, delta, info = prev.keyframe_id, edge[0], edge[1]
+            if mapped is not None:  # from the chain's start when transient keyframes came between
+                from_id, delta, cov = mapped.edge_for_stored(prev.keyframe_id, (delta, np.linalg.inv(info)))
+                info = information_from_covariance(cov)
             if from_id is not None:
-                self._publish(Link("odometry", from_id, kf.keyframe_id, delta,
-                                   information_from_covariance(cov)))
-        mapped.stored(kf.keyframe_id, kf.pose_xyyaw)
+                self._publish(Link("odometry", from_id, kf.keyframe_id, delta, info))
+        if mapped is not None:
+            mapped.stored(kf.keyframe_id, kf.pose_xyyaw)
         self._publish(KeyframeStored(kf))
         self.flush_fates()
+
+    @staticmethod
+    def _odometry_edge(prev: Keyframe, kf: Keyframe) -> tuple[np.ndarray, np.ndarray]:
+        """``(delta, information)`` from the previous keyframe (stored or not) to ``kf``."""
+        if kf.odometry_edge is not None:  # measured by another stage (visual odometry)
+            delta, cov = kf.odometry_edge
+            return np.asarray(delta, float), information_from_covariance(cov)
+        return odometry_edge(prev.pose_xyyaw, prev.pose.covariance, kf.pose_xyyaw, kf.pose.covariance)
 
     def _store(self, kf: Keyframe) -> None:
         descriptor = mode = None
@@ -559,6 +538,7 @@ class MapWriterStage(Publisher):
         )
         kf.run_id = self.run_id
         self.stored += 1
+        # The acknowledgement (debug level: several a second): add_keyframe has committed.
         log.debug("keyframe %d committed (run %d, %d stored)", kf.keyframe_id, self.run_id, self.stored)
 
     def on_link(self, link: Link) -> None:

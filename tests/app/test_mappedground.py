@@ -3,6 +3,7 @@ state machine against a small graph of known poses."""
 
 from __future__ import annotations
 
+import gtsam
 import numpy as np
 import pytest
 
@@ -10,22 +11,41 @@ from robotd.app.mappedground import MappedGround, MappedGroundParams, compose_ed
 from robotd.base.geometry import between, compose, inverse
 
 
-def _numeric_jacobian(f, x: np.ndarray, h: float = 1e-6) -> np.ndarray:
-    cols = []
-    for i in range(3):
-        d = np.zeros(3)
-        d[i] = h
-        cols.append((f(x + d) - f(x - d)) / (2 * h))
-    return np.column_stack(cols)
+def _p(v: np.ndarray) -> gtsam.Pose2:
+    return gtsam.Pose2(float(v[0]), float(v[1]), float(v[2]))
 
 
-def test_the_inverse_edge_propagates_the_covariance_through_the_true_jacobian() -> None:
-    d = np.array([0.4, -0.25, 0.7])
+def _right_jacobian(f, *poses: np.ndarray, h: float = 1e-6) -> list[np.ndarray]:
+    """Numeric Jacobians of ``f(*poses)`` under right perturbations ``p exp(xi)`` of each
+    argument, the result's error taken the same way (``log(f0^-1 f)``), with GTSAM's
+    Expmap and Logmap: the pose graph's convention, computed independently of the code."""
+    f0 = _p(f(*poses))
+    out = []
+    for k in range(len(poses)):
+        cols = []
+        for i in range(3):
+            xi = np.zeros(3)
+            xi[i] = h
+            plus = list(poses)
+            minus = list(poses)
+            pk = _p(poses[k])
+            for sign, args in ((1, plus), (-1, minus)):
+                q = pk.compose(gtsam.Pose2.Expmap(sign * xi))
+                args[k] = np.array([q.x(), q.y(), q.theta()])
+            e_plus = gtsam.Pose2.Logmap(f0.between(_p(f(*plus))))
+            e_minus = gtsam.Pose2.Logmap(f0.between(_p(f(*minus))))
+            cols.append((e_plus - e_minus) / (2 * h))
+        out.append(np.column_stack(cols))
+    return out
+
+
+def test_the_inverse_edge_propagates_the_covariance_in_the_graphs_convention() -> None:
+    d = np.array([0.4, -0.25, 2.7])
     cov = np.diag([1e-4, 4e-4, 1e-3])
     inv, cov_inv = invert_edge((d, cov))
     np.testing.assert_allclose(inv, inverse(d))
-    j = _numeric_jacobian(inverse, d)
-    np.testing.assert_allclose(cov_inv, j @ cov @ j.T, atol=1e-10)
+    (j,) = _right_jacobian(inverse, d)
+    np.testing.assert_allclose(cov_inv, j @ cov @ j.T, atol=1e-9)
     # Inverting twice gives the edge back, covariance included.
     back, cov_back = invert_edge((inv, cov_inv))
     np.testing.assert_allclose(back, d, atol=1e-12)
@@ -33,13 +53,12 @@ def test_the_inverse_edge_propagates_the_covariance_through_the_true_jacobian() 
 
 
 def test_composed_edges_add_their_deltas_and_propagate_both_covariances() -> None:
-    a = (np.array([1.0, 0.2, 0.5]), np.diag([1e-4, 1e-4, 1e-3]))
+    a = (np.array([1.0, 0.2, 2.5]), np.diag([1e-4, 1e-4, 1e-3]))
     b = (np.array([0.3, -0.1, -0.2]), np.diag([4e-4, 1e-4, 2e-3]))
     d, cov = compose_edges(a, b)
     np.testing.assert_allclose(d, compose(a[0], b[0]))
-    ja = _numeric_jacobian(lambda x: compose(x, b[0]), a[0])
-    jb = _numeric_jacobian(lambda x: compose(a[0], x), b[0])
-    np.testing.assert_allclose(cov, ja @ a[1] @ ja.T + jb @ b[1] @ jb.T, atol=1e-10)
+    ja, jb = _right_jacobian(compose, a[0], b[0])
+    np.testing.assert_allclose(cov, ja @ a[1] @ ja.T + jb @ b[1] @ jb.T, atol=1e-9)
 
 
 class Corridor:
