@@ -125,7 +125,7 @@ def test_unknown_backend_names_the_known_ones():
         open_driver("base", "roomba", BaseConfig(), ManualClock())
     with pytest.raises(ConfigError, match=r"unknown floor_camera driver 'gige'; known: depthai, v4l2"):
         open_driver("floor_camera", "gige", FloorCameraConfig(), ManualClock())
-    with pytest.raises(ConfigError, match=r"no driver role 'lidar'; known roles: base, floor_camera, replay"):
+    with pytest.raises(ConfigError, match=r"no driver role 'lidar'; known roles: base, floor_camera, forward_camera, replay"):
         open_driver("lidar", "rplidar", None, ManualClock())
 
 
