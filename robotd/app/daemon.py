@@ -311,6 +311,10 @@ class Daemon:
         if c.get("odometry_degraded"):
             odo = self.pipeline.stage("odometry")
             text += f", odometry DEGRADED ({getattr(odo, 'degraded_detail', '')})"
+        for stage in self.pipeline.stages:  # e.g. the pose graph: "not localised in the stored map"
+            fragment = stage.status_fragment() if hasattr(stage, "status_fragment") else ""
+            if fragment:
+                text += f", {fragment}"
         return text + _driver_status(stats)
 
     def _safe_driver_stats(self) -> dict[str, Any]:
