@@ -249,7 +249,7 @@ class PoseGraphStage(Publisher):
         self.relocalisations = 0
         self.reloc_refused = 0
         self.lifts = 0
-        self.relocalised_at: list[dict[str, float]] = []  # per relocalisation: the figures logged
+        self.relocalised_at: list[dict[str, Any]] = []  # per relocalisation: the figures logged
         self._edges_into: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
         self._edges_seen = 0
 
@@ -366,11 +366,18 @@ class PoseGraphStage(Publisher):
                               np.asarray(info, float), self.graph.pose(query), self._travelled.get(query, 0.0),
                               old_run, source)
         decision = self._relocaliser.offer(cand)
-        for p, why in decision.dropped:
-            self._refuse(p.query_id, p.old_id, p.score, why)
         if decision.relocalised:
             self._relocalise(decision)
+            # The other held candidates are in one frame with their old keyframes now: the gate
+            # judges them as any later candidate (a look-alike among them fails it).
+            for p, _why in decision.dropped:
+                if p.old_id not in self.graph.graph:
+                    self.graph.add_fixed(p.old_id, p.old_pose)
+                self._gate_and_add(p.old_id, p.query_id, p.score,
+                                   lambda p=p: (p.delta, p.information), "floor")
         else:
+            for p, why in decision.dropped:
+                self._refuse(p.query_id, p.old_id, p.score, why)
             log.debug("relocalisation: keyframe %d sees keyframe %d of run %d: %s", query, old, old_run,
                       decision.detail)
         return True
@@ -405,7 +412,8 @@ class PoseGraphStage(Publisher):
         self._reloc_text = f"relocalised against run {run} after {after_s:.1f} s and {after_m:.1f} m"
         self.relocalised_at.append({"run": run, "after_s": after_s, "after_m": after_m,
                                     "keyframe": newest.query_id, "stamp_ns": self._stamps.get(newest.query_id, 0),
-                                    "candidates": len(d.members)})
+                                    "candidates": len(d.members),
+                                    "pose": [float(v) for v in self.graph.pose(newest.query_id)]})
         if self._run_id is not None:
             self.store.add_map_frame_run(self._run_id)
         log.info("%s (%s; keyframes %s; the lost frame is at x %.2f m, y %.2f m, yaw %.1f deg in the map)",
