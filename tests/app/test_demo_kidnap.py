@@ -17,7 +17,7 @@ from robotd.io.store import MapStore
 def test_a_kidnapped_demo_relocalises_with_a_small_pose_error(tmp_path: Path):
     # The square route: lifted at 20 s, put down 5 s later where the route was at 4 s (1.2 m
     # away, facing another way), then 9 s of driving over floor it saw in its first lap.
-    r = subprocess.run([sys.executable, "-m", "robotd.app.cli", "demo", "--route", "square",
+    r = subprocess.run([sys.executable, "-m", "robotd.app.cli", "--log-level", "info", "demo", "--route", "square",
                         "--kidnap", "20", "--kidnap-to", "4", "--duration", "34", "--no-plot",
                         "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
