@@ -17,8 +17,10 @@ and the trajectory is relocalised only when candidates **agree**. The rule chose
 * at least ``min_agreeing`` (2) candidates;
 * from query keyframes at least ``min_separation_m`` (0.5 m) apart along the lost
   trajectory: two floor images taken further apart than the camera's footprint (about
-  0.3 x 0.2 m) see different floor, so one look-alike patch cannot vote twice (candidates
-  of the same or nearly the same query are one piece of evidence, not two);
+  0.3 x 0.2 m on the robot, DESIGN.md) see different floor, so one look-alike patch cannot
+  vote twice (candidates of the same or nearly the same query are one piece of evidence,
+  not two). The virtual robot's camera sees more (0.64 x 0.48 m): there two queries 0.5 m
+  apart may still share a strip of floor;
 * pairwise agreeing: for candidates ``a`` and ``b`` the relative pose of their queries in the
   lost frame (odometry between them, ``r``) must match the relative pose the two loops
   imply, ``(M_a (+) d_a)^-1 (+) (M_b (+) d_b)``. The residual's covariance is propagated
