@@ -75,11 +75,11 @@ def test_a_restart_relocalises_against_the_first_run_from_real_floor_loops(tmp_p
         first = {k.id: k for k in store.keyframes(run1)}
         assert "run 1 starts the map" in caplog.text
 
-        # Restarted 3 s into the route (1 m along the first side, the odometry at zero again).
+        # Restarted 9 s into the route (at the first corner, turned 90 deg; the odometry at zero again).
         run2 = store.begin_run("")
         p2 = build_pipeline(cfg, clock, store, run2, lossless=True, calibration=calib)
         graph = p2.stage("graph")
-        times = np.arange(3.0, 9.0, 0.2)
+        times = np.arange(9.0, 15.0, 0.2)
         seen = _drive(p2, renderer, motion, times[:1], 1000.0)
         assert graph.status_fragment() == "not localised in the stored map"
         seen += _drive(p2, renderer, motion, times[1:], 1000.0)
@@ -97,7 +97,7 @@ def test_a_restart_relocalises_against_the_first_run_from_real_floor_loops(tmp_p
         assert np.hypot(*(pose[:2] - truth_then[:2])) < 0.05
         assert abs(wrap_angle(pose[2] - truth_then[2])) < np.radians(1.0)
         odo = store.keyframe(r["keyframe"])
-        assert np.hypot(odo.x_m - truth_then[0], odo.y_m - truth_then[1]) > 0.5
+        assert np.hypot(odo.x_m - truth_then[0], odo.y_m - truth_then[1]) > 1.5
         p2.finish()
         assert store.map_frame_runs() == {run1, run2}
         opt = store.optimized_poses()
