@@ -69,7 +69,13 @@ from robotd.base.messages import (
 )
 from robotd.forward.planar import PlanarLoopParams, loop_edge
 from robotd.graph.incremental import IncrementalGraph
-from robotd.graph.reloc import RelocCandidate, RelocDecision, Relocaliser, RelocParams, chain_relative
+from robotd.graph.reloc import (
+    Relocaliser,
+    RelocCandidate,
+    RelocDecision,
+    RelocParams,
+    chain_relative,
+)
 from robotd.io.store import MapStore
 
 log = logging.getLogger(__name__)

@@ -50,7 +50,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robotd.base.geometry import between, compose, compose_jacobians, inverse, wrap_angle
+from robotd.base.geometry import (
+    between,
+    compose,
+    compose_jacobians,
+    inverse,
+    wrap_angle,
+)
 
 __all__ = ["RelocCandidate", "RelocDecision", "RelocParams", "Relocaliser", "chain_relative",
            "implied_transform", "pair_chi2"]
@@ -254,8 +260,8 @@ class Relocaliser:
             dropped = []
             while len(self.pending) > self.params.max_pending:
                 old = self.pending.pop(0)
-                dropped.append((old, f"relocalisation: no agreeing candidate among the next "
-                                     f"{self.params.max_pending}"))
+                why = f"relocalisation: no agreeing candidate among the next {self.params.max_pending}"
+                dropped.append((old, why))
             return RelocDecision(False, f"{len(group)} of {need} agreeing candidates", dropped=tuple(dropped))
         members = {id(m) for m in group}
         others = [p for p in self.pending if id(p) not in members]

@@ -10,8 +10,8 @@ import pytest
 
 from robotd.base.geometry import between, compose, inverse, wrap_angle
 from robotd.graph.reloc import (
-    RelocCandidate,
     Relocaliser,
+    RelocCandidate,
     RelocParams,
     chain_relative,
     implied_transform,
