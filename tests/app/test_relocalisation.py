@@ -216,3 +216,27 @@ def test_a_kidnapping_breaks_the_chain_and_relocalises_against_the_run_itself(tm
         # robot was lifted: more than a metre off.
         odo = store.keyframe(new_ids[0])
         assert np.hypot(odo.x_m - after[0][0], odo.y_m - after[0][1]) > 1.0
+
+
+def test_the_status_line_says_where_the_robot_stands_with_the_map(tmp_path: Path):
+    from robotd.app.daemon import Daemon
+    from robotd.app.notify import Notifier
+    from robotd.base.clock import ManualClock
+
+    rng = np.random.default_rng(14)
+    with MapStore.open(tmp_path / "map.sqlite") as store:
+        old_ids, old_truth = _first_run(store, rng)
+        run = store.begin_run("")
+        p, _graph = _pipeline(store, run)
+        d = Daemon(ManualClock(0), p, {}, Notifier(), wall_clock=ManualClock(0), driver_stats=lambda: {})
+        assert d.status_text(1.0).endswith("unsynced 0")  # nothing known yet
+        drive = _Odometry(p, store, run)
+        truth = _square_laps(1, start=7)
+        for k in range(9):
+            drive.keyframe(truth[k], 100 + k)
+        assert d.status_text(1.0).endswith("unsynced 0, not localised in the stored map")
+        _loop(p, old_ids[12], old_truth[12], drive.ids[5], truth[5], rng)
+        _loop(p, old_ids[15], old_truth[15], drive.ids[8], truth[8], rng)
+        assert d.status_text(1.0).endswith("unsynced 0, relocalised against run 1 after 8.0 s and 1.5 m")
+        p.publish(WheelDrop(int(109e9), True, left=True, right=True))
+        assert d.status_text(1.0).endswith("unsynced 0, LOST (lifted)")
