@@ -41,3 +41,15 @@ def test_a_kidnapped_demo_relocalises_with_a_small_pose_error(tmp_path: Path):
         assert store.map_frame_runs() == {1}
         # Every keyframe, before and after the carry, has a pose in the map frame.
         assert set(store.optimized_poses()) == set(kfs)
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (("--kidnap-to", "3"), "--kidnap-to needs --kidnap"),
+    (("--kidnap", "900"), "a kidnapping at 900.0 s to 450.0 s (carried 5.0 s) does not fit a motion of 56.6 s"),
+    (("--kidnap", "5", "--base", "can"), "a kidnapping needs the Kobuki base (the wheel-drop bits of its sensor data)"),
+])
+def test_a_kidnapping_that_cannot_be_is_one_line(tmp_path: Path, capsys, args: tuple[str, ...], message: str):
+    from robotd.app.cli import main
+
+    code = main(["demo", "--route", "square", "--no-plot", "--out", str(tmp_path / "out"), *args])
+    assert (code, capsys.readouterr().err) == (2, f"robotd: error: {message}\n")
