@@ -36,13 +36,13 @@ from typing import Self
 
 from robotd.base.clock import Clock, MonotonicClock
 from robotd.base.errors import DriverError
-from robotd.base.messages import BaseStatus, Frame, WheelTicks, YawRate
+from robotd.base.messages import BaseStatus, Frame, WheelDrop, WheelTicks, YawRate
 
 __all__ = ["Driver", "Message", "StatValue"]
 
 _log = logging.getLogger(__name__)
 
-Message = WheelTicks | YawRate | Frame | BaseStatus
+Message = WheelTicks | YawRate | Frame | BaseStatus | WheelDrop
 """What a driver hands out."""
 
 StatValue = int | float | str

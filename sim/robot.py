@@ -39,7 +39,7 @@ from robotd.base.clock import ManualClock
 from sim.cameras.device import VirtualCamera
 from sim.cameras.floor import FloorRenderer, RenderParams, floor_camera
 from sim.emulators.kobuki import KobukiEmulator, KobukiParams, simulate_kobuki
-from sim.route import ROUTES, MotionLimits, build_route, plan_motion
+from sim.route import ROUTES, MotionLimits, build_route, kidnapped, plan_motion
 from sim.sensors import BaseSensorParams
 from sim.world.floor import Floor
 
@@ -85,6 +85,10 @@ class VirtualRobotSettings:
     """``"kobuki"`` (serial bytes on a pty) or ``"can"`` (frames on a python-can virtual bus)."""
     can_convention: str = "diff_drive"
     can_faults: CanFaults | None = None
+    kidnap: tuple[float, float, float] | None = None
+    """``(at_s, to_s, carry_s)``: at ``at_s`` of the route the robot is lifted (wheel drop,
+    cameras covered), carried for ``carry_s`` and put down where the route is at ``to_s``
+    (:func:`sim.route.kidnapped`); it drives on from there. Kobuki base only."""
 
 
 def _default_print_photo() -> "np.ndarray":
@@ -117,10 +121,21 @@ class VirtualRobot:
         if settings.route not in ROUTES:
             from robotd.base.errors import ConfigError
             raise ConfigError(f"unknown route {settings.route!r} (known: {', '.join(ROUTES)})")
+        if settings.kidnap is not None and settings.base != "kobuki":
+            from robotd.base.errors import ConfigError
+            raise ConfigError("a kidnapping needs the Kobuki base (the wheel-drop bits of its sensor data)")
         self.settings = settings
         self.clock = clock
         rng = np.random.default_rng(settings.seed)
         self.motion = plan_motion(build_route(settings.route), MotionLimits())
+        if settings.kidnap is not None:
+            from robotd.base.errors import ConfigError
+
+            at_s, to_s, carry_s = settings.kidnap
+            try:
+                self.motion = kidnapped(self.motion, at_s, to_s, carry_s)
+            except ValueError as exc:
+                raise ConfigError(str(exc)) from None
         if settings.duration_s is not None:
             self.motion = self.motion.truncated(settings.duration_s)
         feedback = simulate_kobuki(self.motion, sensor_params or BaseSensorParams(), rng,

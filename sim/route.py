@@ -32,6 +32,7 @@ from robotd.odometry.kinematics import arc_increment
 
 __all__ = [
     "Motion",
+    "kidnapped",
     "MotionLimits",
     "ROUTES",
     "Route",
@@ -128,6 +129,9 @@ class Motion:
     yaw_unwrapped_rad: np.ndarray
     dt_s: float
     route_name: str = ""
+    lifted: np.ndarray | None = None
+    """``(N,) bool``: the robot is off the floor over ``[t_s[k], t_s[k] + dt_s)`` (carried,
+    :func:`kidnapped`); None: never."""
 
     @classmethod
     def from_velocities(cls, v_mps: np.ndarray, w_radps: np.ndarray, dt_s: float,
@@ -178,7 +182,16 @@ class Motion:
         n = max(1, n)
         return Motion(self.t_s[:n], self.x_m[:n], self.y_m[:n], self.yaw_rad[:n],
                       self.v_mps[:n], self.w_radps[:n], self.yaw_unwrapped_rad[:n],
-                      self.dt_s, self.route_name)
+                      self.dt_s, self.route_name, None if self.lifted is None else self.lifted[:n])
+
+    def lifted_at(self, t_s: float | np.ndarray) -> bool | np.ndarray:
+        """Whether the robot is off the floor at ``t_s`` (a bool, or ``(M,) bool``)."""
+        if self.lifted is None:
+            return np.zeros(np.shape(t_s), dtype=bool) if np.ndim(t_s) else False
+        t = np.asarray(t_s, dtype=float)
+        k = np.clip(np.floor((t - self.t_s[0]) / self.dt_s).astype(int), 0, len(self.t_s) - 1)
+        out = self.lifted[k]
+        return bool(out) if np.ndim(t_s) == 0 else out
 
     def velocity_at(self, t_s: float) -> tuple[float, float]:
         """``(v_mps, w_radps)`` of the step that contains ``t_s`` (zero past the end)."""
@@ -202,6 +215,44 @@ class Motion:
         tau = t - self.t_s[k]
         start = np.stack([self.x_m[k], self.y_m[k], self.yaw_unwrapped_rad[k]], axis=-1)
         return compose(start, arc_increment(self.v_mps[k] * tau, self.w_radps[k] * tau))
+
+
+def kidnapped(motion: Motion, at_s: float, to_s: float, carry_s: float = 5.0) -> Motion:
+    """``motion`` with a kidnapping: at ``at_s`` the robot is lifted and held where it was
+    for ``carry_s`` (wheels still, :attr:`Motion.lifted` set), then put down at the pose
+    ``motion`` has at ``to_s`` and drives on from there to the end (at the speed the motion
+    has there). Times after the lift are shifted by ``carry_s - (to_s - at_s)``.
+    ValueError unless ``0 < at_s`` and both times lie inside the motion, ``carry_s > 0``."""
+    dt = motion.dt_s
+    end = float(motion.t_s[-1])
+    if not (0.0 < at_s < end and 0.0 <= to_s < end and carry_s > 0.0):
+        raise ValueError(f"a kidnapping at {at_s} s to {to_s} s (carried {carry_s} s) does not fit a "
+                         f"motion of {end:.1f} s")
+    i_at = int(round((at_s - motion.t_s[0]) / dt))
+    i_to = int(round((to_s - motion.t_s[0]) / dt))
+    n_carry = max(1, int(round(carry_s / dt)))
+    keep_a, keep_b = slice(0, i_at), slice(i_to, len(motion.t_s))
+    hold = np.full(n_carry, 1.0)
+
+    def join(a: np.ndarray, held: float, b: np.ndarray) -> np.ndarray:
+        return np.concatenate([a[keep_a], held * hold, b[keep_b]])
+
+    n = i_at + n_carry + (len(motion.t_s) - i_to)
+    lifted = np.zeros(n, dtype=bool)
+    lifted[i_at:i_at + n_carry] = True
+    if motion.lifted is not None:
+        lifted[:i_at] |= motion.lifted[keep_a]
+        lifted[i_at + n_carry:] |= motion.lifted[keep_b]
+    return Motion(
+        t_s=motion.t_s[0] + np.arange(n) * dt,
+        x_m=join(motion.x_m, motion.x_m[i_at], motion.x_m),
+        y_m=join(motion.y_m, motion.y_m[i_at], motion.y_m),
+        yaw_rad=join(motion.yaw_rad, motion.yaw_rad[i_at], motion.yaw_rad),
+        v_mps=join(motion.v_mps, 0.0, motion.v_mps),
+        w_radps=join(motion.w_radps, 0.0, motion.w_radps),
+        yaw_unwrapped_rad=join(motion.yaw_unwrapped_rad, motion.yaw_unwrapped_rad[i_at],
+                               motion.yaw_unwrapped_rad),
+        dt_s=dt, route_name=motion.route_name, lifted=lifted)
 
 
 # --------------------------------------------------------------------------------------

@@ -28,7 +28,7 @@ from drivers.timesync import CounterUnwrapper, OffsetMapper
 from robotd.base.clock import Clock
 from robotd.base.config import BaseConfig
 from robotd.base.errors import DriverError
-from robotd.base.messages import WheelTicks, YawRate
+from robotd.base.messages import WheelDrop, WheelTicks, YawRate
 
 logger = logging.getLogger(__name__)
 
@@ -75,7 +75,12 @@ class KobukiDriver(Driver):
     ``garbage_bytes``, ``bad_checksums``, ...), ``clock_clamps`` (packets whose mapped
     stamp would have gone back in time and was raised to the previous stamp),
     ``untimed_packets`` (packets without basic sensor data, stamped with their receipt
-    time) and ``commands_sent``.
+    time), ``commands_sent`` and ``wheel_drops`` (times the robot was lifted).
+
+    The wheel-drop bits of the basic sensor data (0x01 right, 0x02 left) are reported when
+    they change, as a :class:`~robotd.base.messages.WheelDrop` before that packet's wheel
+    message (and at the first packet when a wheel already hangs free): the robot was picked
+    up, or put down again.
 
     A port that fails (a USB adapter pulled, the pty's other end closed) is reopened by
     path with backoff (``initial_backoff_s``, doubling up to ``max_backoff_s``), as
@@ -106,6 +111,8 @@ class KobukiDriver(Driver):
         self._commands_sent = 0
         self._prev_device_ns: int | None = None
         self._prev_stamp_ns = 0
+        self._wheel_drop: int | None = None
+        self._wheel_drops = 0
         self._start()
 
     def _open_internal(self) -> None:
@@ -133,7 +140,7 @@ class KobukiDriver(Driver):
     def _stats_internal(self) -> dict[str, StatValue]:
         out: dict[str, StatValue] = dict(dataclasses.asdict(self._parser.stats))
         out.update(clock_clamps=self._mapper.clamps, untimed_packets=self._untimed_packets,
-                   commands_sent=self._commands_sent)
+                   commands_sent=self._commands_sent, wheel_drops=self._wheel_drops)
         return out
 
     def _open_port(self) -> serial.SerialBase:
@@ -142,7 +149,7 @@ class KobukiDriver(Driver):
             raise DriverError(f"Kobuki port {self._url} is {state}")
         return self._serial
 
-    def _read_internal(self, timeout_s: float) -> list[WheelTicks | YawRate]:
+    def _read_internal(self, timeout_s: float) -> list[WheelTicks | YawRate | WheelDrop]:
         """Wait up to ``timeout_s`` for bytes, take all that are available, and return the
         messages of the packets they complete (possibly none)."""
         port = self._open_port()
@@ -177,8 +184,22 @@ class KobukiDriver(Driver):
             gap = min(gap, dev - self._prev_device_ns)
         return gap // 2
 
+    def _wheel_drop_change(self, stamp: int, bits: int) -> WheelDrop | None:
+        """A :class:`WheelDrop` when the wheel-drop bits changed (or are set at the start)."""
+        bits &= 0x03
+        prev, self._wheel_drop = self._wheel_drop, bits
+        if bits == (prev if prev is not None else 0):
+            return None
+        if bits and not prev:
+            self._wheel_drops += 1
+            logger.warning("Kobuki %s: wheel drop (%s): the robot is lifted", self._url,
+                           {1: "right", 2: "left", 3: "both"}[bits])
+        elif not bits:
+            logger.info("Kobuki %s: both wheels on the floor again", self._url)
+        return WheelDrop(stamp, bool(bits), left=bool(bits & 0x02), right=bool(bits & 0x01))
+
     def _convert(self, packets: list[list[FeedbackSubPayload]],
-                 receipt_ns: int) -> list[WheelTicks | YawRate]:
+                 receipt_ns: int) -> list[WheelTicks | YawRate | WheelDrop]:
         device_ns: list[int | None] = []
         for items in packets:
             basic = next((s for s in items if type(s) is BasicSensorData), None)
@@ -188,7 +209,7 @@ class KobukiDriver(Driver):
             dev = self._device_clock.unwrap(basic.timestamp_ms, receipt_ns)
             self._mapper.observe(dev, receipt_ns)
             device_ns.append(dev)
-        out: list[WheelTicks | YawRate] = []
+        out: list[WheelTicks | YawRate | WheelDrop] = []
         for items, dev in zip(packets, device_ns):
             if dev is None:
                 self._untimed_packets += 1
@@ -198,8 +219,10 @@ class KobukiDriver(Driver):
             gyro_z: list[int] = []
             inertial = None
             wheels = []
+            drop = None
             for s in items:
                 if type(s) is BasicSensorData:
+                    drop = self._wheel_drop_change(stamp, s.wheel_drop) or drop
                     wheels.append(WheelTicks(stamp, s.left_encoder, s.right_encoder, s.timestamp_ms))
                 elif type(s) is RawGyroData:
                     gyro_z.extend(z for _, _, z in s.samples)
@@ -213,6 +236,8 @@ class KobukiDriver(Driver):
             elif inertial is not None:
                 out.append(YawRate(stamp, inertial.angle_rate_centidegps / 100.0 * _DEG,
                                    "inertial"))
+            if drop is not None:
+                out.append(drop)
             out.extend(wheels)
             if dev is not None:
                 self._prev_device_ns = dev

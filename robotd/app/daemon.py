@@ -304,9 +304,9 @@ class Daemon:
                 f"keyframes {c.get('keyframes', 0)}, stored {c.get('keyframes_stored', 0)}, "
                 f"loops {c.get('links_loop', 0)}, drops {drops}, "
                 f"unsynced {c.get('frames_unsynced', 0)}")
-        if "keyframes_not_stored" in c:
+        if "localise_matches_accepted" in c:  # [pose_graph] localise_mapped
             text += (f", mapped ground: {c['keyframes_not_stored']} keyframes not stored, "
-                     f"{c.get('localise_matches_accepted', 0)} re-localisations")
+                     f"{c.get("localise_matches_accepted", 0)} map matches")
         stats = self._safe_driver_stats()
         gaps = gap_text(stats)
         if gaps:
@@ -314,6 +314,10 @@ class Daemon:
         if c.get("odometry_degraded"):
             odo = self.pipeline.stage("odometry")
             text += f", odometry DEGRADED ({getattr(odo, 'degraded_detail', '')})"
+        for stage in self.pipeline.stages:  # e.g. the pose graph: "not localised in the stored map"
+            fragment = stage.status_fragment() if hasattr(stage, "status_fragment") else ""
+            if fragment:
+                text += f", {fragment}"
         return text + _driver_status(stats)
 
     def _safe_driver_stats(self) -> dict[str, Any]:

@@ -62,6 +62,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--can-dbc", choices=("diff_drive", "odrive_cansimple"), default="diff_drive",
                    help="with --base can: the convention of the frames (default diff_drive: wheel "
                         "angles and a gyro; odrive_cansimple: an ODrive per wheel, no gyro)")
+    p.add_argument("--kidnap", type=float, default=None, metavar="T",
+                   help="kidnap the robot at T s of the route: lifted (wheel drop, cameras covered), "
+                        f"carried for {KIDNAP_CARRY_S:g} s and put down where the route is at --kidnap-to; "
+                        "the daemon must notice, break its odometry chain and relocalise (Kobuki base)")
+    p.add_argument("--kidnap-to", type=float, default=None, metavar="S",
+                   help="with --kidnap: the route time of the place it is put down (default T/2, a "
+                        "place driven before)")
     p.add_argument("--can-faults", action="store_true",
                    help="with --base can: inject a flood of unknown ids, a bus-off, a stale wheel "
                         "and undecodable frames during the run")
@@ -83,12 +90,18 @@ def run_from_args(args: argparse.Namespace) -> int:
         base_cfg = replace(base_cfg, "calibration", path=str(calibration))
     if args.forward:
         base_cfg = replace(base_cfg, "forward_detector", enabled=True)
+    kidnap = None
+    if args.kidnap is not None:
+        kidnap = (args.kidnap, args.kidnap / 2 if args.kidnap_to is None else args.kidnap_to, KIDNAP_CARRY_S)
+    elif args.kidnap_to is not None:
+        raise ConfigError("--kidnap-to needs --kidnap")
     summary = run_demo(base_cfg, out=args.out, route=args.route,
                        floor_files=tuple(str(f) for f in args.floor or ()),
                        floor_scale=args.floor_scale, floor_pattern=args.floor_pattern,
                        duration_s=args.duration, seed=args.seed,
                        realtime=args.realtime, plot=not args.no_plot, record=args.record,
-                       base=args.base, can_convention=args.can_dbc, can_faults=args.can_faults)
+                       base=args.base, can_convention=args.can_dbc, can_faults=args.can_faults,
+                       kidnap=kidnap)
     print_summary(summary, sys.stdout)
     return exit_status(summary)
 
@@ -113,6 +126,7 @@ class _Recorder:
         self.fused = TumWriter(out / "fused.tum")
         self.wheel = TumWriter(out / "wheel.tum")
         self.keyframe_poses: list[tuple[float, float]] = []
+        self.keyframe_poses_full: list[tuple[float, float, float]] = []
         self.keyframe_ids: list[int] = []
         self.keyframe_stamps: list[int] = []
         self.queries: list[tuple[int, list[tuple[int, float, float, int]]]] = []
@@ -152,6 +166,7 @@ class _Recorder:
     def on_keyframe(self, msg: Any) -> None:
         kf = msg.keyframe
         self.keyframe_poses.append((kf.pose.x_m, kf.pose.y_m))
+        self.keyframe_poses_full.append((kf.pose.x_m, kf.pose.y_m, kf.pose.yaw_rad))
         self.keyframe_ids.append(kf.keyframe_id)
         self.keyframe_stamps.append(kf.stamp_ns)
 
@@ -198,12 +213,14 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
              duration_s: float | None = None, seed: int = 0,
              realtime: bool = False, plot: bool = True, record: Path | None = None,
              observers: tuple[Any, ...] = (), base: str = "kobuki",
-             can_convention: str = "diff_drive", can_faults: bool = False) -> dict[str, Any]:
+             can_convention: str = "diff_drive", can_faults: bool = False,
+             kidnap: tuple[float, float, float] | None = None) -> dict[str, Any]:
     """Run the daemon on the virtual robot; returns the summary (also written as JSON).
     ``observers``: extra pipeline stages that watch the run (the benchmarks use this).
     ``base``: ``"kobuki"`` or ``"can"`` (the same sensor streams as ``can_convention``
     frames on a python-can virtual bus, read by the CAN driver; ``can_faults`` injects
-    :meth:`sim.emulators.can.CanFaults.standard`).
+    :meth:`sim.emulators.can.CanFaults.standard`). ``kidnap``: ``(at_s, to_s, carry_s)``, see
+    :attr:`sim.robot.VirtualRobotSettings.kidnap`; the summary then has ``relocalisation``.
 
     Raises :class:`~robotd.base.errors.ConfigError` for a duration that is not a number of
     seconds of at least :data:`MIN_DURATION_S`, or an output folder that cannot be made or
@@ -228,7 +245,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
                                     can_convention=can_convention,
                                     can_faults=_can_faults(can_faults, duration_s, route),
                                     forward_camera=base_cfg.forward_detector.enabled,
-                                    forward_fps=FORWARD_FPS)
+                                    forward_fps=FORWARD_FPS, kidnap=kidnap)
     wall0 = time.monotonic()
     robot = VirtualRobot(settings, cam_model, clock)
     if base == "can":
@@ -249,6 +266,9 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
+
+KIDNAP_CARRY_S = 5.0
+"""How long ``--kidnap`` carries the robot, seconds."""
 
 FORWARD_FPS = 15.0
 """The virtual forward camera's frame rate in the demo: a frame within 33 ms of each keyframe."""
@@ -416,7 +436,8 @@ def _drive_and_record(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, pro
             writer.close(completed=interrupted is None,
                          reason=f"interrupted ({interrupted})" if interrupted else "")
         floor = next((st for st in daemon.pipeline.stages if st.name == "floor"), None)
-        live = {"report": report, "keyframes_stored": store.count_keyframes(),
+        graph_stage = next((st for st in daemon.pipeline.stages if st.name == "graph"), None)
+        live = {"relocalisations": list(getattr(graph_stage, "relocalised_at", [])),"report": report, "keyframes_stored": store.count_keyframes(),
                 "floor_threshold": floor.detector.threshold if floor is not None else None,
                 "commands": dict(robot.commands_received), "camera_drops": robot.camera.dropped,
                 "interrupted": interrupted,
@@ -508,6 +529,8 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
         summary["pose_graph"] = graph
     if cfg.forward_detector.enabled:
         summary["forward_detector"] = forward_summary(cfg, robot, recorder, c)
+    if robot.settings.kidnap is not None:
+        summary["relocalisation"] = relocalisation_summary(robot, recorder, live, c)
     summary["ok"] = bool(c["frames"] == robot.camera.frames_emitted and not live["interrupted"]
                          and live["keyframes_stored"] == c["keyframes"])
     if plot:
@@ -522,6 +545,49 @@ FORWARD_YAW_OK_DEG = 5.0
 FORWARD_BEARING_OK_DEG = 10.0
 """A forward loop's measured heading change and bearing are "right" when within these of the
 truth (the bearing is judged only when the true cameras are more than 0.2 m apart)."""
+
+
+def relocalisation_summary(robot: Any, recorder: _Recorder, live: dict[str, Any],
+                           c: dict[str, Any]) -> dict[str, Any]:
+    """The kidnapping judged by the truth: when the robot was put down, how long and how far
+    it drove until the daemon relocalised (the daemon's own figures, from its odometry, and
+    the truth's distance), and the pose error of the relocalising keyframe right after
+    relocalisation (the graph's estimate then, in the map frame, against the true pose)."""
+    import numpy as np
+
+    from robotd.base.geometry import between, compose, inverse, wrap_angle
+
+    at_s, to_s, carry_s = robot.settings.kidnap
+    motion = robot.motion
+    put_down_s = at_s + carry_s
+    stamps = np.asarray(recorder.keyframe_stamps, dtype=np.int64)
+    first_s = stamps[0] / 1e9 if len(stamps) else 0.0
+    # The map frame is the first run's odometry frame: its origin is the truth's first keyframe pose
+    # as the odometry saw it (the odometry starts at zero there, as the demo's plots assume).
+    fused0 = np.array(recorder.keyframe_poses_full[0]) if recorder.keyframe_poses_full else np.zeros(3)
+    to_world = compose(motion.pose_at(first_s), inverse(fused0))
+    out: dict[str, Any] = {"kidnapped_at_s": at_s, "put_down_at_s": put_down_s, "carried_s": carry_s,
+                           "put_down_where_route_was_at_s": to_s,
+                           "carried_m": float(np.hypot(*(motion.pose_at(at_s)[:2] - motion.pose_at(put_down_s + 1e-3)[:2]))),
+                           "lifts_detected": c.get("lifts", 0), "odometry_breaks": c.get("odometry_breaks", 0),
+                           "relocalisations": c.get("relocalisations", 0),
+                           "candidates_refused_before": c.get("reloc_candidates_refused", 0)}
+    after = [r for r in live["relocalisations"] if r["stamp_ns"] / 1e9 >= put_down_s]
+    if not after:
+        out["relocalised"] = False
+        return out
+    r = after[0]
+    t_s = r["stamp_ns"] / 1e9
+    k0 = int(np.searchsorted(motion.t_s, put_down_s))
+    k1 = int(np.searchsorted(motion.t_s, t_s))
+    true_m = float(np.sum(np.abs(motion.v_mps[k0:k1])) * motion.dt_s)
+    err = between(motion.pose_at(t_s), compose(to_world, np.asarray(r["pose"])))
+    out.update({"relocalised": True, "against_run": r["run"], "after_s": t_s - put_down_s,
+                "after_s_daemon": r["after_s"], "after_m_daemon": r["after_m"], "after_m_true": true_m,
+                "agreeing_candidates": r["candidates"],
+                "position_error_m": float(np.hypot(err[0], err[1])),
+                "heading_error_deg": float(abs(np.degrees(wrap_angle(err[2]))))})
+    return out
 
 
 def forward_summary(cfg: Any, robot: Any, recorder: _Recorder, c: dict[str, Any]) -> dict[str, Any]:
@@ -740,6 +806,19 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
               f"{fw['failed_verification']} candidates failed the epipolar check", file=f)
         print(f"  per forward keyframe: median {fw['ms_per_image_median']} ms, p99 {fw['ms_per_image_p99']} ms; "
               f"vocabulary {fw['vocabulary_words']} words", file=f)
+    rl = s.get("relocalisation")
+    if rl:
+        print(file=f)
+        print(f"kidnapped at {rl['kidnapped_at_s']:.1f} s, carried {rl['carried_s']:.0f} s over "
+              f"{rl['carried_m']:.1f} m; lifts detected {rl['lifts_detected']}, odometry chain broken "
+              f"{rl['odometry_breaks']}x", file=f)
+        if rl.get("relocalised"):
+            print(f"  relocalised against run {rl['against_run']} {rl['after_s']:.1f} s and "
+                  f"{rl['after_m_true']:.2f} m (odometry: {rl['after_m_daemon']:.2f} m) after being put down, "
+                  f"{rl['agreeing_candidates']} agreeing candidates; pose error then "
+                  f"{rl['position_error_m']:.3f} m, {rl['heading_error_deg']:.2f} deg", file=f)
+        else:
+            print("  NOT relocalised before the end of the run", file=f)
     fd = s.get("floor_detector")
     if fd:
         print(file=f)

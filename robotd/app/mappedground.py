@@ -173,6 +173,13 @@ class MappedGround:
         """No transient keyframe and no re-anchoring since the newest stored keyframe."""
         return self.chain[0] is _ZERO and self.node_to_ref[0] is _ZERO
 
+    def chain_broken(self) -> None:
+        """The robot was carried (no odometry across): no longer localised; the next keyframe
+        is stored and starts a new chain."""
+        if self.localised:
+            log.info("mapped ground: the robot was carried; storing keyframes until it is localised again")
+        self.localised = False
+
     # --- the pose graph stage -----------------------------------------------------------
     def loop_accepted(self, query_id: int) -> None:
         """A loop was accepted for stored keyframe ``query_id``: if it is the newest, the

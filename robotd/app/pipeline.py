@@ -48,6 +48,7 @@ from robotd.base.messages import (
     OdometryUpdate,
     PoseStamped,
     TransientKeyframe,
+    WheelDrop,
     WheelTicks,
     YawRate,
 )
@@ -214,6 +215,30 @@ class OdometryStage(Publisher):
                 "vo_rejected_by_filter": f.vo_rejected}
 
 
+class LiftIntervals:
+    """When the robot was off the floor, from the base's :class:`WheelDrop` messages
+    (stamps, ns): a frame taken then shows nothing of the floor it will be put down on, and
+    no odometry edge may cross such an interval (the robot was carried)."""
+
+    def __init__(self) -> None:
+        self.intervals: list[list[int | None]] = []  # [lifted_ns, put_down_ns or None]
+
+    def on_wheel_drop(self, msg: WheelDrop) -> None:
+        lifted = bool(self.intervals) and self.intervals[-1][1] is None
+        if msg.lifted and not lifted:
+            self.intervals.append([msg.stamp_ns, None])
+        elif not msg.lifted and lifted:
+            self.intervals[-1][1] = msg.stamp_ns
+
+    def covers(self, stamp_ns: int) -> bool:
+        """Whether the robot was off the floor at ``stamp_ns``."""
+        return any(a <= stamp_ns and (b is None or stamp_ns <= b) for a, b in reversed(self.intervals))
+
+    def lifted_between(self, a_ns: int, b_ns: int) -> bool:
+        """Whether the robot was lifted at some time in ``(a_ns, b_ns]``."""
+        return any(a_ns < a <= b_ns for a, _b in reversed(self.intervals))
+
+
 class KeyframeStage(Publisher):
     """Floor frames take the fused pose at their stamp; some become keyframes.
 
@@ -223,6 +248,10 @@ class KeyframeStage(Publisher):
     is dropped and counted in ``frames_unsynced`` (the base stopped talking; fresh frames
     matter more). Lossless (replay, the virtual robot), a frame waits as long as it takes:
     its odometry is on its way, and dropping it would make the result depend on the CPU.
+
+    While the base reports a wheel drop (the robot is carried, :class:`LiftIntervals`),
+    frames are not keyframes (counted in ``frames_lifted``): the camera sees nothing of the
+    floor the robot will be put down on.
     """
 
     name = "keyframes"
@@ -242,11 +271,13 @@ class KeyframeStage(Publisher):
         self.frames_unsynced = 0
         self.frames_without_odometry = 0
         self.frames_other_camera = 0
+        self.frames_lifted = 0
         self.keyframes = 0
         self.mapped_ground: MappedGround | None = None  # set by the assembly: transient keyframes
+        self.lifts = LiftIntervals()
 
     def subscriptions(self) -> Mapping[type, Handler]:
-        return {Frame: self.on_frame}
+        return {Frame: self.on_frame, WheelDrop: self.lifts.on_wheel_drop}
 
     def on_frame(self, frame: Frame) -> None:
         if frame.camera != self.camera:
@@ -304,6 +335,9 @@ class KeyframeStage(Publisher):
         if pose is None:
             self.frames_unsynced += 1
             return
+        if self.lifts.intervals and self.lifts.covers(frame.stamp_ns):
+            self.frames_lifted += 1
+            return
         xyyaw = np.array([pose.x_m, pose.y_m, pose.yaw_rad])
         if self.selector.offer(xyyaw):
             self.keyframes += 1
@@ -313,7 +347,8 @@ class KeyframeStage(Publisher):
     def counters(self) -> dict[str, int]:
         return {"frames": self.frames, "frames_unsynced": self.frames_unsynced,
                 "frames_without_odometry": self.frames_without_odometry,
-                "frames_other_camera": self.frames_other_camera, "keyframes": self.keyframes}
+                "frames_other_camera": self.frames_other_camera, "frames_lifted": self.frames_lifted,
+                "keyframes": self.keyframes}
 
 
 class FloorDetectorStage(Publisher):
@@ -459,7 +494,9 @@ class MapWriterStage(Publisher):
     Each keyframe after the run's first also gets an odometry link from the previous one:
     the relative transform of the fused poses and its information from the filter's
     covariances (:func:`robotd.odometry.increments.odometry_edge`), or the edge another
-    stage measured (``Keyframe.odometry_edge``: vision-only visual odometry).
+    stage measured (``Keyframe.odometry_edge``: vision-only visual odometry). No odometry
+    link crosses a time the robot was lifted (:class:`LiftIntervals`): the keyframe after
+    it starts a new chain (``odometry_breaks``), which the pose graph relocalises.
     """
 
     name = "map"
@@ -475,9 +512,12 @@ class MapWriterStage(Publisher):
         self.links = collections.Counter[str]()
         self.fates = collections.Counter[str]()
         self._fates: list[tuple[int, int, float, str, str]] = []
+        self.lifts = LiftIntervals()
+        self.odometry_breaks = 0
 
     def subscriptions(self) -> Mapping[type, Handler]:
-        return {Keyframe: self.on_keyframe, Link: self.on_link, CandidateFate: self.on_fate}
+        return {Keyframe: self.on_keyframe, Link: self.on_link, CandidateFate: self.on_fate,
+                WheelDrop: self.lifts.on_wheel_drop}
 
     def on_fate(self, fate: CandidateFate) -> None:
         self._fates.append((fate.query_id, fate.candidate_id, fate.score, fate.fate, fate.detail))
@@ -495,8 +535,14 @@ class MapWriterStage(Publisher):
 
     def on_keyframe(self, kf: Keyframe) -> None:
         prev = self._previous
-        edge = None if prev is None else self._odometry_edge(prev, kf)
         mapped = self.mapped_ground
+        carried = (prev is not None and bool(self.lifts.intervals)
+                   and self.lifts.lifted_between(prev.stamp_ns, kf.stamp_ns))
+        if carried:  # no odometry link across a lift: the wheels did not see the motion
+            prev = None
+            if mapped is not None:
+                mapped.chain_broken()
+        edge = None if prev is None else self._odometry_edge(prev, kf)
         if mapped is not None and kf.transient and edge is not None:
             # Over mapped ground: not stored, the odometry chain grows (robotd.app.mappedground).
             mapped.extend((edge[0], np.linalg.inv(edge[1])), kf.pose_xyyaw)
@@ -506,6 +552,10 @@ class MapWriterStage(Publisher):
             return
         self._store(kf)  # a failed write raises here and leaves the chain as it was
         self._previous = kf
+        if carried:
+            self.odometry_breaks += 1
+            log.info("keyframe %d: the robot was carried since the previous keyframe; no odometry "
+                     "link between them", kf.keyframe_id)
         if edge is not None:
             assert prev is not None
             from_id, delta, info = prev.keyframe_id, edge[0], edge[1]
@@ -547,5 +597,6 @@ class MapWriterStage(Publisher):
 
     def counters(self) -> dict[str, int]:
         return {"keyframes_stored": self.stored, "keyframes_not_stored": self.transient,
+                "odometry_breaks": self.odometry_breaks,
                 **{f"links_{k}": n for k, n in sorted(self.links.items())},
                 **{f"candidates_{k}": n for k, n in sorted(self.fates.items())}}

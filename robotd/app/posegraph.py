@@ -20,14 +20,37 @@ A forward-camera loop (:class:`~robotd.base.messages.ForwardLoop`: heading chang
 bearing, no distance) becomes an SE(2) edge whose range is the graph's own prediction with a
 large uncertainty (:func:`robotd.forward.planar.loop_edge`), then meets the same gate.
 
-Keyframes of earlier runs are not in the live graph (each run's graph starts at its first
-keyframe), so a candidate that reaches one is recorded as ``failed_gate`` with that reason;
-relocalisation against the stored map is issue 14's.
+Relocalisation (issue 14, item 7). The map frame is the frame of the run that started the
+map; a run that relocalises against it joins it (``MapStore.map_frame_runs``). A run that
+starts on a map with keyframes in the map frame does not know where it is: it says so
+("not localised in the stored map", in the log and STATUS), keeps running on odometry in
+its own frame, and holds the floor loop candidates that reach a map keyframe in a
+:class:`robotd.graph.reloc.Relocaliser` until two or more independent ones agree on the
+transform to the map frame (the rule and why: :mod:`robotd.graph.reloc`). Then the old
+keyframes of the agreeing loops enter the graph fixed at their optimised map poses, the
+run's trajectory is moved into the map frame and tied to them by those loops
+(:meth:`robotd.graph.incremental.IncrementalGraph.attach`), the log and STATUS say
+"relocalised against run N after X s and Y m", and every later candidate meets the gate
+as usual (an old keyframe it reaches enters the graph fixed first). Held candidates that
+never agree are recorded as ``failed_gate`` with the reason (``relocalisation: ...``).
+
+A kidnapping: the base reports a wheel drop (:class:`~robotd.base.messages.WheelDrop`)
+while the robot is carried; the keyframe stage takes no keyframes then and the map writer
+links no odometry edge across it, so the next keyframe starts a new segment of the
+trajectory in a frame of its own (:meth:`~robotd.graph.incremental.IncrementalGraph.add_segment`).
+The stage says "LOST" and relocalises that segment as above, against the map's keyframes
+of earlier runs and of this run's localised segments. A forward loop has no range of its
+own, so it cannot relocalise; one that reaches another frame is recorded with that reason.
+Only keyframes in the map frame get optimised poses in the map file: a segment that never
+relocalised keeps its odometry poses only (its frame is its own).
 """
 
 from __future__ import annotations
 
+import bisect
+import collections
 import logging
+import math
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -44,9 +67,17 @@ from robotd.base.messages import (
     Link,
     LoopCandidate,
     MapMatch,
+    WheelDrop,
 )
 from robotd.forward.planar import PlanarLoopParams, loop_edge
 from robotd.graph.incremental import IncrementalGraph
+from robotd.graph.reloc import (
+    Relocaliser,
+    RelocCandidate,
+    RelocDecision,
+    RelocParams,
+    chain_relative,
+)
 from robotd.io.store import MapStore
 
 log = logging.getLogger(__name__)
@@ -64,7 +95,8 @@ class PoseGraphStage(Publisher):
     def __init__(self, graph: IncrementalGraph, store: MapStore, *, gate_chi2: float = GATE_CHI2_3DOF_999,
                  save_every: int = 0, forward_mount: np.ndarray | None = None,
                  forward_params: PlanarLoopParams | None = None,
-                 mapped_ground: MappedGroundParams | None = None) -> None:
+                 mapped_ground: MappedGroundParams | None = None,
+                 reloc_params: RelocParams | None = None) -> None:
         self.graph = graph
         # Localisation over mapped ground (robotd.app.mappedground), when configured.
         self.mapped_ground = None if mapped_ground is None else MappedGround(
@@ -86,15 +118,18 @@ class PoseGraphStage(Publisher):
         self.last_solve_ms = 0.0
         self._loops: dict[tuple[int, int], tuple[int, float]] = {}  # edge -> (query, score)
         self._since_save = 0
+        self._init_relocalisation(reloc_params)
 
     def subscriptions(self) -> Mapping[type, Any]:
         return {Link: self.on_link, KeyframeStored: self.on_keyframe, LoopCandidate: self.on_candidate,
-                ForwardLoop: self.on_forward_loop, MapMatch: self.on_map_match}
+                ForwardLoop: self.on_forward_loop, MapMatch: self.on_map_match,
+                WheelDrop: self.on_wheel_drop}
 
     def on_map_match(self, m: MapMatch) -> None:
         """A transient keyframe matched the map: gated, it re-localises the robot (the graph
         is not changed)."""
-        if self.mapped_ground is not None:
+        if self.mapped_ground is not None and m.from_id in self.graph.graph:
+            # (A keyframe of an earlier run that is not in the graph cannot be gated against.)
             self.mapped_ground.match(m.from_id, m.delta_xyyaw, m.information, self.gate_chi2)
 
     def on_link(self, link: Link) -> None:
@@ -106,6 +141,7 @@ class PoseGraphStage(Publisher):
 
     def on_keyframe(self, msg: KeyframeStored) -> None:
         kf = msg.keyframe
+        self._track_keyframe(kf)
         if kf.keyframe_id not in self.graph.graph and not len(self.graph.graph):
             self.graph.add_first(kf.keyframe_id, kf.pose_xyyaw)
         self._since_save += 1
@@ -113,6 +149,8 @@ class PoseGraphStage(Publisher):
             self.solve_and_save()
 
     def on_candidate(self, c: LoopCandidate) -> None:
+        if self._relocalisation_takes(c.from_id, c.to_id, c.score, c.delta_xyyaw, c.information, "floor"):
+            return
         self._gate_and_add(c.from_id, c.to_id, c.score, lambda: (c.delta_xyyaw, c.information), "floor")
 
     def on_forward_loop(self, c: ForwardLoop) -> None:
@@ -120,6 +158,8 @@ class PoseGraphStage(Publisher):
             predicted = between(self.graph.pose(c.from_id), self.graph.pose(c.to_id))
             return loop_edge(predicted, c.dyaw_rad, c.bearing_rad, self.forward_mount, self.forward_params)
 
+        if self._relocalisation_takes(c.from_id, c.to_id, c.probability, None, None, "forward"):
+            return
         self._gate_and_add(c.from_id, c.to_id, c.probability, edge, "forward")
 
     def _gate_and_add(self, from_id: int, to_id: int, score: float,
@@ -173,7 +213,8 @@ class PoseGraphStage(Publisher):
         self.last_solve_ms = (time.perf_counter() - t0) * 1e3
         self.solves += 1
         self._since_save = 0
-        self.store.put_optimized_poses([int(i) for i in result.ids], result.poses)
+        keep = [n for n, i in enumerate(result.ids) if self._in_map_frame(int(i)) and int(i) not in self._map_poses]
+        self.store.put_optimized_poses([int(result.ids[n]) for n in keep], result.poses[keep])
         loop_edges = [(e.from_id, e.to_id) for e in self.graph.graph.edges if e.kind == "loop"]
         for (a, b), w in zip(loop_edges, result.loop_weights):
             if w < DOWN_WEIGHTED and (a, b) in self._loops:
@@ -184,7 +225,12 @@ class PoseGraphStage(Publisher):
                  self.accepted, self.last_solve_ms)
 
     def finish(self) -> int:
+        self._drop_pending("relocalisation: no agreeing candidate before the run ended")
         self.solve_and_save()
+        if self._run_id is not None and not self._in_map_frame(self._segments[-1]):
+            log.warning("the run ended %s: its last %d keyframes keep their odometry poses only",
+                        "not localised in the stored map" if self._state == "not_localised" else "lost",
+                        len([k for k in self.graph.graph.ids if self._segment_of(int(k)) == len(self._segments) - 1]))
         return 0
 
     def optimized(self) -> tuple[np.ndarray, np.ndarray]:
@@ -201,4 +247,211 @@ class PoseGraphStage(Publisher):
                 "graph_update_median_us": int(np.median(u) * 1e3),
                 "graph_update_p99_us": int(np.percentile(u, 99) * 1e3),
                 "graph_solve_ms": int(self.last_solve_ms),
+                "localised": int(self._run_id is not None and self._in_map_frame(self._segments[-1])),
+                "relocalisations": self.relocalisations, "reloc_candidates_refused": self.reloc_refused,
+                "lifts": self.lifts,
                 **(self.mapped_ground.counters() if self.mapped_ground is not None else {})}
+
+    # -- relocalisation (module notes) -----------------------------------------------------
+
+    def _init_relocalisation(self, params: RelocParams | None) -> None:
+        self.reloc_params = RelocParams() if params is None else params
+        self._relocaliser = Relocaliser(self._odometry_between, self.reloc_params)
+        self._run_id: int | None = None
+        self._map_poses: dict[int, tuple[np.ndarray, int]] = {}  # earlier runs: id -> (map pose, run)
+        self._segments: list[int] = []  # first keyframe id of each segment of this run
+        self._in_map: set[int] = set()  # segments (indices) in the map frame
+        self._travelled: dict[int, float] = {}  # keyframe -> odometry distance along its segment, m
+        self._stamps: dict[int, int] = {}  # keyframe -> stamp, ns (this segment's)
+        self._last_kf: tuple[int, np.ndarray] | None = None
+        self._segment_start_ns = 0
+        self._put_down_ns: int | None = None
+        self._lifted = False
+        self._state = "map"  # map | not_localised | lifted | lost | relocalised
+        self._reloc_text = ""
+        self.relocalisations = 0
+        self.reloc_refused = 0
+        self.lifts = 0
+        self.relocalised_at: list[dict[str, Any]] = []  # per relocalisation: the figures logged
+        self._edges_into: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
+        self._edges_seen = 0
+
+    def _segment_of(self, keyframe_id: int) -> int:
+        """The segment (index) of one of this run's keyframes; -1 for earlier runs'."""
+        return bisect.bisect_right(self._segments, keyframe_id) - 1
+
+    def _in_map_frame(self, keyframe_id: int) -> bool:
+        """Whether a keyframe's pose in the graph is in the map frame."""
+        if keyframe_id in self._map_poses:
+            return True
+        seg = self._segment_of(keyframe_id)
+        return seg >= 0 and seg in self._in_map
+
+    def _track_keyframe(self, kf: Any) -> None:
+        """Segments, distance driven and stamps; the run's first keyframe decides whether
+        the run starts the map or must relocalise against it."""
+        kid = int(kf.keyframe_id)
+        pose = np.asarray(kf.pose_xyyaw, dtype=float)
+        if self._run_id is None:
+            self._run_id = int(kf.run_id) if kf.run_id is not None else 0
+            self._start_segment(kid, kf.stamp_ns)
+            self._map_poses = self.store.map_frame_poses(exclude_run=self._run_id)
+            if self._map_poses:
+                runs = sorted({r for _p, r in self._map_poses.values()})
+                self._state = "not_localised"
+                log.warning("not localised in the stored map (%d keyframes of run%s %s in the map "
+                            "frame): running on odometry in this run's own frame until %d floor loops "
+                            "agree on where it is", len(self._map_poses), "s" if len(runs) > 1 else "",
+                            ", ".join(map(str, runs)), self.reloc_params.min_agreeing)
+            else:
+                self._in_map.add(0)
+                self.store.add_map_frame_run(self._run_id)
+                log.info("no keyframes in the map frame yet: run %d starts the map", self._run_id)
+        elif kid not in self.graph.graph and len(self.graph.graph):
+            # No odometry edge reached it: the chain was broken (the robot was carried).
+            self._start_segment(kid, self._put_down_ns if self._put_down_ns is not None else kf.stamp_ns)
+            self.graph.add_segment(kid, pose)
+            if not self._lifted:
+                self._state = "lost"
+            log.warning("keyframe %d starts a new trajectory segment in a frame of its own: lost until "
+                        "%d floor loops agree on where it is", kid, self.reloc_params.min_agreeing)
+        if self._last_kf is not None and self._segment_of(self._last_kf[0]) == self._segment_of(kid):
+            step = float(np.hypot(*(pose[:2] - self._last_kf[1][:2])))
+            self._travelled[kid] = self._travelled.get(self._last_kf[0], 0.0) + step
+        else:
+            self._travelled[kid] = 0.0
+        self._stamps[kid] = int(kf.stamp_ns)
+        self._last_kf = (kid, pose)
+
+    def _start_segment(self, keyframe_id: int, start_ns: int) -> None:
+        if self._segments:
+            self._drop_pending("relocalisation: the trajectory was broken again (the robot was carried)")
+        self._segments.append(keyframe_id)
+        self._segment_start_ns = int(start_ns)
+        self._put_down_ns = None
+        self._travelled = {}
+        self._stamps = {}
+
+    def on_wheel_drop(self, msg: WheelDrop) -> None:
+        if msg.lifted and not self._lifted:
+            self._lifted = True
+            self.lifts += 1
+            self._state = "lifted"
+            log.warning("lifted (wheel drop): lost; no odometry edge will cross the carry, and the "
+                        "trajectory relocalises after the robot is put down")
+        elif not msg.lifted and self._lifted:
+            self._lifted = False
+            self._put_down_ns = msg.stamp_ns
+            self._state = "lost"
+            log.warning("put down: lost until %d floor loops agree on where", self.reloc_params.min_agreeing)
+
+    def _odometry_between(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray] | None:
+        edges = self.graph.graph.edges
+        if len(edges) != self._edges_seen:
+            for e in edges[self._edges_seen:]:
+                if e.kind == "odometry":
+                    self._edges_into[e.to_id] = (e.from_id, e.delta, e.information)
+            self._edges_seen = len(edges)
+        return chain_relative(self._edges_into, a, b)
+
+    def _refuse(self, query: int, old: int, score: float, detail: str) -> None:
+        self.reloc_refused += 1
+        self._publish(CandidateFate(query, old, score, "failed_gate", detail))
+
+    def _relocalisation_takes(self, old: int, query: int, score: float, delta: np.ndarray | None,
+                              info: np.ndarray | None, source: str) -> bool:
+        """Handle a candidate whose two keyframes are not in one frame: hold it for
+        relocalisation, or refuse it with the reason. False: the gate judges it (an old map
+        keyframe it reaches is first added to the graph, fixed)."""
+        if query not in self.graph.graph or self._run_id is None:
+            return False
+        q_map = self._in_map_frame(query)
+        earlier = old not in self.graph.graph
+        if earlier and old not in self._map_poses:
+            return False  # the gate's own refusal: a keyframe of an earlier run outside the map frame
+        o_map = self._in_map_frame(old)
+        if not earlier and (self._segment_of(old) == self._segment_of(query) or (q_map and o_map)):
+            return False
+        if q_map and o_map:  # an earlier run's map keyframe, reached from the map frame
+            self.graph.add_fixed(old, self._map_poses[old][0])
+            return False
+        prefix = "forward: " if source == "forward" else ""
+        if not o_map:
+            self._refuse(query, old, score, f"{prefix}keyframe of a trajectory not localised in the map")
+            return True
+        if source != "floor" or delta is None or info is None:
+            self._refuse(query, old, score, "forward: not localised: a forward loop has no range of "
+                                            "its own and cannot relocalise")
+            return True
+        old_pose, old_run = (self._map_poses[old] if earlier
+                             else (self.graph.pose(old), int(self._run_id)))
+        cand = RelocCandidate(old, query, float(score), np.asarray(old_pose, float), np.asarray(delta, float),
+                              np.asarray(info, float), self.graph.pose(query), self._travelled.get(query, 0.0),
+                              old_run, source)
+        decision = self._relocaliser.offer(cand)
+        if decision.relocalised:
+            self._relocalise(decision)
+            # The other held candidates are in one frame with their old keyframes now: the gate
+            # judges them as any later candidate (a look-alike among them fails it).
+            for p, _why in decision.dropped:
+                if p.old_id not in self.graph.graph:
+                    self.graph.add_fixed(p.old_id, p.old_pose)
+                self._gate_and_add(p.old_id, p.query_id, p.score,
+                                   lambda p=p: (p.delta, p.information), "floor")
+        else:
+            for p, why in decision.dropped:
+                self._refuse(p.query_id, p.old_id, p.score, why)
+            log.debug("relocalisation: keyframe %d sees keyframe %d of run %d: %s", query, old, old_run,
+                      decision.detail)
+        return True
+
+    def _drop_pending(self, why: str) -> None:
+        for p in self._relocaliser.reset():
+            self._refuse(p.query_id, p.old_id, p.score, why)
+
+    def _relocalise(self, d: RelocDecision) -> None:
+        """Anchor the current segment in the map frame with the agreeing loops."""
+        seg = len(self._segments) - 1
+        ids = [int(k) for k in self.graph.graph.ids if self._segment_of(int(k)) == seg]
+        for m in d.members:
+            if m.old_id not in self.graph.graph:
+                self.graph.add_fixed(m.old_id, m.old_pose)
+        t0 = time.perf_counter()
+        self.graph.attach(ids, d.transform, [(m.old_id, m.query_id, m.delta, m.information) for m in d.members])
+        self.update_ms.append((time.perf_counter() - t0) * 1e3)
+        self._in_map.add(seg)
+        for m in d.members:
+            self.accepted += 1
+            self._loops[(m.old_id, m.query_id)] = (m.query_id, m.score)
+            self._publish(CandidateFate(m.query_id, m.old_id, m.score, "accepted", f"relocalisation: {d.detail}"))
+            self._publish(Link("loop", m.old_id, m.query_id, m.delta, m.information, source=m.source))
+        self.relocalisations += 1
+        newest = max(d.members, key=lambda m: m.query_id)
+        runs = collections.Counter(m.old_run for m in d.members)
+        run = runs.most_common(1)[0][0]
+        after_s = max(0.0, (self._stamps.get(newest.query_id, self._segment_start_ns) - self._segment_start_ns) / 1e9)
+        after_m = self._travelled.get(newest.query_id, 0.0)
+        self._state = "relocalised"
+        self._reloc_text = f"relocalised against run {run} after {after_s:.1f} s and {after_m:.1f} m"
+        self.relocalised_at.append({"run": run, "after_s": after_s, "after_m": after_m,
+                                    "keyframe": newest.query_id, "stamp_ns": self._stamps.get(newest.query_id, 0),
+                                    "candidates": len(d.members),
+                                    "pose": [float(v) for v in self.graph.pose(newest.query_id)]})
+        if self._run_id is not None:
+            self.store.add_map_frame_run(self._run_id)
+        log.info("%s (%s; keyframes %s; the lost frame is at x %.2f m, y %.2f m, yaw %.1f deg in the map)",
+                 self._reloc_text, d.detail, ", ".join(f"{m.query_id}->{m.old_id}" for m in d.members),
+                 d.transform[0], d.transform[1], math.degrees(d.transform[2]))
+
+    def status_fragment(self) -> str:
+        """Where the robot stands with the map, for the STATUS line ("" when it simply
+        continues the map it started)."""
+        if self._state == "not_localised":
+            return "not localised in the stored map"
+        if self._state == "lifted":
+            return "LOST (lifted)"
+        if self._state == "lost":
+            return "LOST (relocalising)"
+        if self._state == "relocalised":
+            return self._reloc_text
+        return ""

@@ -47,6 +47,18 @@ class BaseStatus:
     detail: str = ""
 
 
+@dataclass(frozen=True, slots=True)
+class WheelDrop:
+    """The base's wheel-drop switches changed: ``lifted`` while either wheel hangs free
+    (the robot is picked up, as the Kobuki reports in its basic sensor data), False again
+    when both wheels are back on the floor. ``left``/``right``: each wheel's switch."""
+
+    stamp_ns: int
+    lifted: bool
+    left: bool = False
+    right: bool = False
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class Frame:
     """One camera image.

@@ -108,6 +108,51 @@ class IncrementalGraph:
                + self._isam.marginalCovariance(int(to_id)) + np.linalg.inv(information))
         return float(e @ np.linalg.solve(cov, e))
 
+    def add_segment(self, keyframe_id: int, pose: Iterable[float]) -> None:
+        """Start a new trajectory segment at ``keyframe_id`` without an odometry edge (the
+        chain was broken: the robot was carried). iSAM2 holds it at ``pose`` (its own frame)
+        until :meth:`attach` ties the segment to the rest; in a full solve the segment, a
+        component without a fixed vertex, is anchored at its smallest id, this one."""
+        if keyframe_id in self.graph:
+            raise GraphError(f"keyframe {keyframe_id} is already in the graph")
+        self.graph.add_pose(keyframe_id, pose)
+        fg = gtsam.NonlinearFactorGraph()
+        fg.add(anchor_factor(keyframe_id, self.graph.pose(keyframe_id)))
+        self._isam.update(fg, to_values(np.array([keyframe_id]), self.graph.pose(keyframe_id)[None]))
+
+    def add_fixed(self, keyframe_id: int, pose: Iterable[float]) -> None:
+        """Add a keyframe held at ``pose`` (an earlier run's optimised pose in the map frame),
+        with no edge yet; loops to it are added with :meth:`add_loop` or :meth:`attach`."""
+        if keyframe_id in self.graph:
+            raise GraphError(f"keyframe {keyframe_id} is already in the graph")
+        self.graph.add_pose(keyframe_id, pose)
+        self.graph.fix(keyframe_id)
+        fg = gtsam.NonlinearFactorGraph()
+        fg.add(anchor_factor(keyframe_id, self.graph.pose(keyframe_id)))
+        self._isam.update(fg, to_values(np.array([keyframe_id]), self.graph.pose(keyframe_id)[None]))
+
+    def attach(self, segment_ids: Iterable[int], transform: Iterable[float],
+               loops: Iterable[tuple[int, int, np.ndarray, np.ndarray]]) -> None:
+        """Relocalise a segment: move its keyframes (``segment_ids``) by ``transform`` (their
+        own frame in the graph's frame, ``(3,)``), let go of their anchors, add ``loops``
+        (``(from_id, to_id, delta (3,), information (3, 3))``, under the robust kernel) that
+        tie them to the rest, and rebuild iSAM2 from the whole graph at the moved estimate."""
+        t = np.asarray(transform, dtype=float).reshape(3)
+        moved = {int(k) for k in segment_ids}
+        ids, est = self.estimate()
+        for n, kid in enumerate(ids):
+            if int(kid) in moved:
+                est[n] = compose(t, est[n])
+                self.graph.set_pose(int(kid), compose(t, self.graph.pose(int(kid))))
+                self.graph.unfix(int(kid))
+        for from_id, to_id, delta, info in loops:
+            self.graph.add_edge(from_id, to_id, delta, info, "loop")
+        isam = self._new_isam()
+        isam.update(factor_graph(self.graph, self._kernel), to_values(ids, est))
+        for _ in range(self.params.loop_updates):
+            isam.update()
+        self._isam = isam
+
     def pose(self, keyframe_id: int) -> np.ndarray:
         """The current estimate of one keyframe, ``(3,)`` (m, m, rad)."""
         p = self._isam.calculateEstimatePose2(int(keyframe_id))

@@ -143,6 +143,11 @@ class PoseGraph:
             raise GraphError(f"cannot fix vertex {keyframe_id}: no such vertex")
         self._fixed.add(int(keyframe_id))
 
+    def unfix(self, keyframe_id: int) -> None:
+        """Let vertex ``keyframe_id`` move again (a relocalised trajectory's first keyframe,
+        now held by its loops to the map instead)."""
+        self._fixed.discard(int(keyframe_id))
+
     @property
     def ids(self) -> np.ndarray:
         """Vertex ids in increasing order, ``(N,) int64``."""

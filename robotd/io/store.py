@@ -444,6 +444,46 @@ class MapStore:
                 (key, str(value)),
             )
 
+    # -- the map frame -------------------------------------------------------------
+
+    MAP_FRAME_RUNS_KEY = "map_frame_runs"
+    """``meta`` key: the runs whose optimised poses are in the map frame, comma-separated
+    ids (the run that started the map, and every run that relocalised against it)."""
+
+    def map_frame_runs(self) -> set[int]:
+        """The runs whose optimised poses are in the map frame. A map written before this
+        was recorded counts its first run with keyframes (the others ran each in a frame of
+        its own)."""
+        value = self.get_meta(self.MAP_FRAME_RUNS_KEY)
+        if value is None:
+            rows = self._read("SELECT MIN(run_id) FROM keyframes")
+            return {int(rows[0][0])} if rows and rows[0][0] is not None else set()
+        try:
+            return {int(v) for v in value.split(",") if v.strip()}
+        except ValueError:
+            _log.warning("map %s: meta %s is not a list of run ids (%r); no run counts as in the "
+                        "map frame", self._path, self.MAP_FRAME_RUNS_KEY, value)
+            return set()
+
+    def add_map_frame_run(self, run_id: int) -> None:
+        """Record that run ``run_id``'s optimised poses are (from now on) in the map frame."""
+        runs = self.map_frame_runs() | {int(run_id)}
+        self.set_meta(self.MAP_FRAME_RUNS_KEY, ",".join(str(r) for r in sorted(runs)))
+
+    def map_frame_poses(self, exclude_run: int | None = None) -> dict[int, tuple[np.ndarray, int]]:
+        """Keyframe id -> ``(optimised pose (3,), run id)`` of every keyframe of a map-frame
+        run (:meth:`map_frame_runs`) that has an optimised pose, except those of
+        ``exclude_run``."""
+        runs = self.map_frame_runs() - ({int(exclude_run)} if exclude_run is not None else set())
+        if not runs:
+            return {}
+        marks = ",".join("?" * len(runs))
+        rows = self._read(
+            "SELECT o.keyframe_id, o.x_m, o.y_m, o.yaw_rad, k.run_id FROM optimized_poses o"
+            f" JOIN keyframes k ON k.id = o.keyframe_id WHERE k.run_id IN ({marks})"
+            " ORDER BY o.keyframe_id", tuple(sorted(runs)))
+        return {int(r[0]): (np.array(r[1:4], dtype=np.float64), int(r[4])) for r in rows}
+
     # -- runs ----------------------------------------------------------------------
 
     def begin_run(

@@ -264,11 +264,12 @@ def _arc(v_mps: float, w_radps: float, dt_s: float) -> np.ndarray:
 def floor_camera(renderer: FloorRenderer, motion: Motion, fps: float, *, capacity: int,
                  lossless: bool, stop: threading.Event | None = None) -> VirtualCamera:
     """The downward floor camera along ``motion``: frames every ``1 / fps`` s from 0 to the
-    end of the motion (excluded), each rendered at the true pose and velocity of its time;
-    see :class:`~sim.cameras.device.VirtualCamera` for the hand-over."""
+    end of the motion (excluded), each rendered at the true pose and velocity of its time
+    (black while the robot is carried, :attr:`sim.route.Motion.lifted`); see :class:`~sim.cameras.device.VirtualCamera` for the hand-over."""
     def render(t_s: float) -> np.ndarray:
         v, w = motion.velocity_at(t_s)
-        return renderer.render(motion.pose_at(t_s), v, w, t_s)
+        image = renderer.render(motion.pose_at(t_s), v, w, t_s)
+        return np.zeros_like(image) if motion.lifted_at(t_s) else image  # carried: covered
 
     times_s = np.arange(0.0, float(motion.t_s[-1]), 1.0 / fps)
     return VirtualCamera("floor", times_s, render, capacity=capacity, lossless=lossless, stop=stop)

@@ -364,9 +364,11 @@ def same_place_matrix(overlap: np.ndarray, threshold: float = 0.2, leave_below: 
 def forward_camera(renderer: ForwardRenderer, motion: Motion, fps: float, *, capacity: int,
                    lossless: bool, stop: threading.Event | None = None) -> VirtualCamera:
     """The forward camera along ``motion``: frames every ``1 / fps`` s from 0 to the end of
-    the motion (excluded), each rendered at the true pose of its time."""
+    the motion (excluded), each rendered at the true pose of its time (black while the robot
+    is carried)."""
     def render(t_s: float) -> np.ndarray:
-        return renderer.render(motion.pose_at(t_s), t_s)
+        image = renderer.render(motion.pose_at(t_s), t_s)
+        return np.zeros_like(image) if motion.lifted_at(t_s) else image  # carried: covered
 
     times_s = np.arange(0.0, float(motion.t_s[-1]), 1.0 / fps)
     return VirtualCamera("forward", times_s, render, capacity=capacity, lossless=lossless, stop=stop)

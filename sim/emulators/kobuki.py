@@ -34,6 +34,8 @@ daemon's messages without running the daemon.
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import os
 import select
@@ -136,6 +138,9 @@ class KobukiFeedback:
     sensors: BaseSensorStreams
     state: KobukiState
     params: KobukiParams
+    wheel_drop: np.ndarray | None = None
+    """``(N,) uint8`` the wheel-drop bits of each packet (0x01 right, 0x02 left: both while
+    the robot is carried); None: the wheels never leave the floor."""
 
     @property
     def raw_gyro_z(self) -> list[np.ndarray]:
@@ -145,7 +150,8 @@ class KobukiFeedback:
     def packet(self, i: int) -> bytes:
         """Packet ``i`` framed as the base sends it."""
         basic = protocol.BasicSensorData(
-            timestamp_ms=int(self.device_ms[i]), bumper=0, wheel_drop=0, cliff=0,
+            timestamp_ms=int(self.device_ms[i]), bumper=0,
+            wheel_drop=0 if self.wheel_drop is None else int(self.wheel_drop[i]), cliff=0,
             left_encoder=int(self.left_ticks[i]), right_encoder=int(self.right_ticks[i]),
             left_pwm=0, right_pwm=0, buttons=0, charger=0,
             battery_decivolts=self.params.battery_decivolts, overcurrent=0,
@@ -239,7 +245,11 @@ def simulate_kobuki(motion: Motion, sensor_params: BaseSensorParams, rng: np.ran
     errors = draw_errors(sensor_params, rng)
     state = KobukiState.draw(errors, params, rng)
     sensors = simulate_sensors(motion, sensor_params, errors, rng, rate_hz)
-    return encode(sensors, state, params)
+    feedback = encode(sensors, state, params)
+    if motion.lifted is not None:  # carried: both wheels hang free
+        drop = np.where(np.asarray(motion.lifted_at(feedback.t_s)), 0x03, 0x00).astype(np.uint8)
+        feedback = dataclasses.replace(feedback, wheel_drop=drop)
+    return feedback
 
 
 def driver_messages(feedback: KobukiFeedback,

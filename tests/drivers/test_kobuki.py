@@ -807,3 +807,37 @@ def test_raw_gyro_stamp_is_half_the_device_interval_at_most_half_a_period():
         wheel = [m.stamp_ns for m in messages if isinstance(m, WheelTicks)]
         yaw = [m.stamp_ns for m in messages if isinstance(m, YawRate)]
         assert [w - y for w, y in zip(wheel, yaw)] == [10 * MS, 6 * MS, 10 * MS]
+
+
+def test_driver_reports_wheel_drop_changes_before_that_packets_wheels():
+    """The wheel-drop bits (0x01 right, 0x02 left) of the basic sensor data become a
+    WheelDrop when they change: lifted, still lifted (nothing), put down."""
+    from robotd.base.messages import WheelDrop
+
+    def drop_fb(ts_ms: int, bits: int) -> bytes:
+        return encode_feedback(BasicSensorData(ts_ms, 0, bits, 0, 10, 20, 0, 0, 0, 0, 160, 0),
+                               InertialData(0, 0))
+
+    clock = ManualClock(T0)
+    with KobukiDriver("loop://", clock) as drv:
+        for ts, bits in ((0, 0), (20, 0), (40, 2), (60, 3), (80, 3), (100, 0), (120, 0)):
+            drv.port.write(drop_fb(ts, bits))
+        messages = drv.read(0.0)
+        drops = [m for m in messages if isinstance(m, WheelDrop)]
+        assert [(m.lifted, m.left, m.right) for m in drops] == [
+            (True, True, False), (True, True, True), (False, False, False)]
+        wheels = [m for m in messages if isinstance(m, WheelTicks)]
+        assert [m.stamp_ns for m in drops] == [wheels[2].stamp_ns, wheels[3].stamp_ns, wheels[5].stamp_ns]
+        i = messages.index(drops[0])
+        assert messages[i + 1] is wheels[2]
+        assert drv.stats()["wheel_drops"] == 1
+
+
+def test_driver_reports_a_base_that_starts_lifted():
+    from robotd.base.messages import WheelDrop
+
+    clock = ManualClock(T0)
+    with KobukiDriver("loop://", clock) as drv:
+        drv.port.write(encode_feedback(BasicSensorData(0, 0, 1, 0, 0, 0, 0, 0, 0, 0, 160, 0)))
+        [drop] = [m for m in drv.read(0.0) if isinstance(m, WheelDrop)]
+        assert (drop.lifted, drop.left, drop.right) == (True, False, True)

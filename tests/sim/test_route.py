@@ -157,3 +157,38 @@ def test_unknown_route_and_bad_routes_are_errors():
         Route("x", ((0, 0), (1, 0)), corner="spline")
     with pytest.raises(ValueError, match="too short"):
         plan_motion(Route("tight", ((0, 0), (0.5, 0), (0.5, 0.5)), corner="arc"))
+
+
+def test_a_kidnapped_motion_holds_the_lift_pose_then_goes_on_from_the_put_down_place(motions):
+    from sim.route import kidnapped
+
+    m = motions["square"]
+    k = kidnapped(m, 10.0, 3.0, 5.0)
+    assert k.duration_s == pytest.approx(m.duration_s + 7.0 + 5.0, abs=1e-9)  # 7 s driven again
+    assert np.sum(k.lifted) * k.dt_s == pytest.approx(5.0)
+    assert not k.lifted_at(9.99) and k.lifted_at(10.0) and k.lifted_at(14.99) and not k.lifted_at(15.0)
+    assert list(k.lifted_at(np.array([9.0, 12.0, 16.0]))) == [False, True, False]
+    # Held where it was lifted, wheels still; then where the route was at 3 s.
+    assert np.allclose(k.pose_at(12.0), m.pose_at(10.0), atol=1e-9)
+    assert np.all(k.v_mps[k.lifted] == 0) and np.all(k.w_radps[k.lifted] == 0)
+    assert np.allclose(k.pose_at(15.0), m.pose_at(3.0), atol=1e-9)
+    assert np.allclose(k.pose_at(20.0), m.pose_at(8.0), atol=1e-6)
+    assert not m.lifted_at(12.0) and m.lifted is None
+    assert k.truncated(12.0).lifted_at(11.0)
+    with pytest.raises(ValueError, match="does not fit"):
+        kidnapped(m, 10.0, m.duration_s + 1.0)
+
+
+def test_the_kidnapped_kobuki_reports_wheel_drop_and_its_wheels_stand_still(motions):
+    from sim.emulators.kobuki import simulate_kobuki
+    from sim.route import kidnapped
+    from sim.sensors import BaseSensorParams
+
+    k = kidnapped(motions["square"], 10.0, 3.0, 5.0)
+    fb = simulate_kobuki(k, BaseSensorParams(), np.random.default_rng(0))
+    lifted = (fb.t_s >= 10.0) & (fb.t_s < 15.0)
+    assert np.all(fb.wheel_drop[lifted] == 3) and np.all(fb.wheel_drop[~lifted] == 0)
+    inside = np.flatnonzero(lifted)[1:]
+    assert np.all(fb.left_ticks[inside] == fb.left_ticks[inside[0]])
+    assert np.all(fb.right_ticks[inside] == fb.right_ticks[inside[0]])
+    assert simulate_kobuki(motions["square"], BaseSensorParams(), np.random.default_rng(0)).wheel_drop is None

@@ -1,0 +1,203 @@
+"""The relocalisation agreement rule: true candidates that agree relocalise; a single
+look-alike, candidates of the same floor, or candidates that disagree do not."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from robotd.base.geometry import between, compose, inverse, wrap_angle
+from robotd.graph.reloc import (
+    Relocaliser,
+    RelocCandidate,
+    RelocParams,
+    chain_relative,
+    implied_transform,
+    pair_chi2,
+)
+
+# The lost trajectory's frame in the map frame (what relocalisation must find).
+T_TRUE = np.array([3.2, -1.4, math.radians(130.0)])
+LOOP_SIGMA = np.array([0.004, 0.004, math.radians(0.3)])  # a floor loop's transform, 1 sigma
+LOOP_INFO = np.diag(1.0 / LOOP_SIGMA**2)
+ODO_SIGMA_PER_M = np.array([0.01, 0.01, math.radians(0.5)])  # odometry between queries
+
+
+def _lost_path(n: int = 60) -> np.ndarray:
+    """Query keyframes of the lost trajectory in its own frame: 0.1 m apart, curving."""
+    poses = [np.zeros(3)]
+    for _ in range(n - 1):
+        poses.append(compose(poses[-1], np.array([0.1, 0.0, math.radians(2.0)])))
+    return np.array(poses)
+
+
+LOST = _lost_path()
+
+
+def _relative(a: int, b: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Odometry between two queries (ids index LOST), covariance growing with distance."""
+    if b <= a:
+        return None
+    dist = 0.1 * (b - a)
+    return between(LOST[a], LOST[b]), np.diag((ODO_SIGMA_PER_M * math.sqrt(dist)) ** 2 + 1e-10)
+
+
+def _candidate(q: int, rng: np.random.Generator, transform: np.ndarray = T_TRUE,
+               old_offset: np.ndarray | None = None, old_id: int | None = None) -> RelocCandidate:
+    """A candidate from query ``q`` to an old keyframe near the query's true map pose: the
+    measured delta is the truth (under ``transform``) plus loop noise."""
+    truth_map = compose(transform, LOST[q])
+    off = np.array([0.05, -0.08, 0.1]) if old_offset is None else old_offset
+    old_pose = compose(truth_map, inverse(off))  # the old keyframe sees the query at ``off``
+    delta = off + rng.normal(0.0, LOOP_SIGMA)
+    return RelocCandidate(old_id=1000 + q if old_id is None else old_id, query_id=q, score=95.0,
+                          old_pose=old_pose, delta=delta, information=LOOP_INFO,
+                          query_pose=LOST[q], travelled_m=0.1 * q, old_run=1)
+
+
+def _look_alike(q: int, rng: np.random.Generator) -> RelocCandidate:
+    """A false candidate: the old keyframe is elsewhere in the map (another floor patch
+    that looks alike), so its implied transform is wrong."""
+    wrong = compose(T_TRUE, np.array([0.0, 2.5, math.radians(-40.0)]))
+    return _candidate(q, rng, transform=wrong)
+
+
+def test_implied_transform_of_an_exact_candidate_is_the_truth():
+    c = _candidate(10, np.random.default_rng(0))
+    exact = RelocCandidate(c.old_id, c.query_id, c.score, c.old_pose, np.array([0.05, -0.08, 0.1]),
+                           c.information, c.query_pose, c.travelled_m)
+    assert np.allclose(implied_transform(exact), T_TRUE, atol=1e-12)
+
+
+def test_true_pairs_pass_and_false_pairs_fail_the_chi2_test_as_expected():
+    rng = np.random.default_rng(1)
+    p = RelocParams()
+    map_sigma = np.array([p.map_sigma_m, p.map_sigma_m, p.map_sigma_rad])
+
+    def noisy_map(c: RelocCandidate) -> RelocCandidate:  # the map's own error, as modelled
+        return RelocCandidate(c.old_id, c.query_id, c.score, c.old_pose + rng.normal(0.0, map_sigma),
+                              c.delta, c.information, c.query_pose, c.travelled_m)
+
+    true_d2, false_d2 = [], []
+    for _ in range(300):
+        qa, qb = sorted(rng.choice(np.arange(60), 2, replace=False))
+        rel, cov = _relative(int(qa), int(qb))
+        rel_noisy = rel + rng.multivariate_normal(np.zeros(3), cov)  # odometry error, as modelled
+        true_d2.append(pair_chi2(noisy_map(_candidate(qa, rng)), noisy_map(_candidate(qb, rng)),
+                                 rel_noisy, cov))
+        false_d2.append(pair_chi2(_candidate(qa, rng), _look_alike(qb, rng), rel, cov))
+    true_d2, false_d2 = np.array(true_d2), np.array(false_d2)
+    # Truly agreeing pairs: chi-square with 3 dof, mean about 3 (noise within the model).
+    assert 2.4 < np.mean(true_d2) < 3.6
+    assert np.mean(true_d2 <= p.agree_chi2) >= 0.98
+    # A look-alike 2.5 m and 40 deg away never agrees.
+    assert np.min(false_d2) > 10 * p.agree_chi2
+
+
+def test_two_independent_agreeing_candidates_relocalise():
+    rng = np.random.default_rng(2)
+    reloc = Relocaliser(_relative)
+    first = reloc.offer(_candidate(5, rng))
+    assert not first.relocalised and first.detail == "1 of 2 agreeing candidates"
+    second = reloc.offer(_candidate(20, rng))
+    assert second.relocalised
+    assert [m.query_id for m in second.members] == [20, 5]
+    t = second.transform
+    assert np.hypot(*(t[:2] - T_TRUE[:2])) < 0.02
+    assert abs(wrap_angle(t[2] - T_TRUE[2])) < math.radians(1.0)
+    assert reloc.pending == []
+
+
+def test_a_single_look_alike_does_not_relocalise_and_is_dropped_when_true_ones_agree():
+    rng = np.random.default_rng(3)
+    reloc = Relocaliser(_relative)
+    assert not reloc.offer(_look_alike(3, rng)).relocalised
+    assert not reloc.offer(_candidate(12, rng)).relocalised  # the look-alike disagrees
+    d = reloc.offer(_candidate(30, rng))
+    assert d.relocalised
+    assert sorted(m.query_id for m in d.members) == [12, 30]
+    assert [(c.query_id, why.startswith("relocalisation: disagrees")) for c, why in d.dropped] == [(3, True)]
+    assert np.hypot(*(d.transform[:2] - T_TRUE[:2])) < 0.02
+
+
+def test_candidates_of_the_same_floor_are_not_independent():
+    rng = np.random.default_rng(4)
+    reloc = Relocaliser(_relative)
+    reloc.offer(_candidate(10, rng))
+    # 0.2 m further along (under min_separation_m = 0.5 m), another old keyframe: not a second vote.
+    d = reloc.offer(_candidate(12, rng, old_id=77))
+    assert not d.relocalised
+    # The same query against a second old keyframe is the same image: not a second vote either.
+    assert not reloc.offer(_candidate(12, rng, old_offset=np.array([-0.1, 0.02, 0.0]), old_id=78)).relocalised
+    assert reloc.offer(_candidate(16, rng)).relocalised
+
+
+def test_disagreeing_candidates_do_not_relocalise():
+    rng = np.random.default_rng(5)
+    reloc = Relocaliser(_relative)
+    shifts = [np.array([0.0, 2.5, -0.7]), np.array([-3.0, 0.5, 1.2]), np.array([1.5, -1.5, 2.5]),
+              np.array([0.4, 0.0, 0.0])]
+    for q, s in zip((5, 15, 25, 35), shifts):
+        d = reloc.offer(_candidate(q, rng, transform=compose(T_TRUE, s)))
+        assert not d.relocalised, d.detail
+    assert len(reloc.pending) == 4
+
+
+def test_two_look_alikes_of_one_wrong_place_would_agree():
+    """The rule's known limit, stated as a test: two false candidates that imply the same
+    wrong transform (a repeated region larger than min_separation_m) do relocalise."""
+    rng = np.random.default_rng(6)
+    reloc = Relocaliser(_relative)
+    reloc.offer(_look_alike(5, rng))
+    d = reloc.offer(_look_alike(20, rng))
+    assert d.relocalised
+    assert np.hypot(*(d.transform[:2] - T_TRUE[:2])) > 2.0
+
+
+def test_more_agreeing_candidates_can_be_required():
+    rng = np.random.default_rng(7)
+    reloc = Relocaliser(_relative, RelocParams(min_agreeing=3))
+    assert not reloc.offer(_candidate(5, rng)).relocalised
+    assert not reloc.offer(_candidate(15, rng)).relocalised
+    assert reloc.offer(_candidate(25, rng)).relocalised
+
+
+def test_the_oldest_held_candidate_is_dropped_beyond_max_pending():
+    rng = np.random.default_rng(8)
+    reloc = Relocaliser(_relative, RelocParams(max_pending=2))
+    wrong = [compose(T_TRUE, np.array([k, 0.0, 0.0])) for k in (3.0, 6.0, 9.0)]
+    reloc.offer(_candidate(5, rng, transform=wrong[0]))
+    reloc.offer(_candidate(15, rng, transform=wrong[1]))
+    d = reloc.offer(_candidate(25, rng, transform=wrong[2]))
+    assert [c.query_id for c, _ in d.dropped] == [5]
+    assert [c.query_id for c in reloc.pending] == [15, 25]
+
+
+def test_no_odometry_chain_means_no_agreement():
+    rng = np.random.default_rng(9)
+    reloc = Relocaliser(lambda a, b: None)
+    reloc.offer(_candidate(5, rng))
+    assert not reloc.offer(_candidate(25, rng)).relocalised
+
+
+def test_chain_relative_composes_edges_and_their_covariance():
+    info = np.diag([1e4, 1e4, 1e4])
+    step = np.array([1.0, 0.0, math.pi / 2])
+    edges = {2: (1, step, info), 3: (2, step, info), 4: (3, step, info)}
+    rel, cov = chain_relative(edges, 1, 4)
+    assert np.allclose(rel, [0.0, 1.0, -math.pi / 2], atol=1e-12)  # three quarter turns of a square
+    # Three independent edges: the heading variance adds up exactly.
+    assert cov[2, 2] == pytest.approx(3e-4)
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+    assert chain_relative(edges, 1, 1)[0] == pytest.approx(np.zeros(3))
+    assert chain_relative({4: (3, step, info)}, 1, 4) is None  # broken chain
+    assert chain_relative(edges, 4, 2) is None
+
+
+def test_params_are_checked():
+    with pytest.raises(ValueError, match="min_agreeing"):
+        RelocParams(min_agreeing=0)
+    with pytest.raises(ValueError, match="map_sigma_m"):
+        RelocParams(map_sigma_m=0.0)
