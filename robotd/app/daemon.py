@@ -306,7 +306,7 @@ class Daemon:
                 f"unsynced {c.get('frames_unsynced', 0)}")
         if "localise_matches_accepted" in c:  # [pose_graph] localise_mapped
             text += (f", mapped ground: {c['keyframes_not_stored']} keyframes not stored, "
-                     f"{c.get("localise_matches_accepted", 0)} map matches")
+                     f"{c.get('localise_matches_accepted', 0)} map matches")
         stats = self._safe_driver_stats()
         gaps = gap_text(stats)
         if gaps:
