@@ -58,8 +58,8 @@ def _draw(img_old: np.ndarray, img_new: np.ndarray, s_old, s_new, on_plane, plan
     vis = cv2.cvtColor(vis, cv2.COLOR_GRAY2BGR) if vis.ndim == 2 else vis.copy()
     for a, b, p in zip(s_old, s_new, on_plane):
         col = (0, 200, 0) if p else (0, 0, 255)
-        pa = (int(round(a[0])), int(round(a[1])))
-        pb = (int(round(b[0])) + w, int(round(b[1])))
+        pa = tuple(int(v) for v in np.round(a))
+        pb = (int(np.round(b[0])) + w, int(np.round(b[1])))
         cv2.line(vis, pa, pb, (255, 200, 0), 1)
         cv2.circle(vis, pa, 4, col, 2)
         cv2.circle(vis, pb, 4, col, 2)

@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 import numpy as np
-
-from robotd.forward.features import Features
 import pytest
 
-from robotd.forward.verify import (ACCEPTED, NO_GEOMETRIC_CONSISTENCY, SMALL_SUPPORT, TOO_FEW_MATCHES,
-                                   VerifyParams, camera_matrix_guess, support_area, verify_pair)
+from robotd.forward.features import Features
+from robotd.forward.verify import (
+    ACCEPTED,
+    NO_GEOMETRIC_CONSISTENCY,
+    SMALL_SUPPORT,
+    TOO_FEW_MATCHES,
+    VerifyParams,
+    camera_matrix_guess,
+    support_area,
+    verify_pair,
+)
 
 K = camera_matrix_guess(640, 480)
 
@@ -85,7 +92,7 @@ def _plane_pair(rng: np.random.Generator, width_m: float, height_m: float, n: in
     x_new = x_old @ r.T + t
     desc = rng.standard_normal((n, 128)).astype(np.float32)
     desc /= np.linalg.norm(desc, axis=1, keepdims=True)
-    noise = lambda: rng.normal(0, 0.3, (n, 2)).astype(np.float32)  # noqa: E731
+    noise = lambda: rng.normal(0, 0.3, (n, 2)).astype(np.float32)
     return _features(_project(x_old) + noise(), desc), _features(_project(x_new) + noise(), desc)
 
 

@@ -16,9 +16,20 @@ import pytest
 
 from robotd.forward.features import FeatureExtractor
 from robotd.forward.planar import planar_motion
-from robotd.forward.verify import ACCEPTED, SMALL_SUPPORT, VerifyParams, camera_matrix_guess, verify_pair
-from sim.cameras.forward import (ForwardCameraModel, ForwardRenderer, ForwardRenderParams,
-                                 view_histograms, view_overlap)
+from robotd.forward.verify import (
+    ACCEPTED,
+    SMALL_SUPPORT,
+    VerifyParams,
+    camera_matrix_guess,
+    verify_pair,
+)
+from sim.cameras.forward import (
+    ForwardCameraModel,
+    ForwardRenderer,
+    ForwardRenderParams,
+    view_histograms,
+    view_overlap,
+)
 from sim.world.rooms import WorldParams, world_for_route
 
 POSES = {
