@@ -25,6 +25,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+try:
+    from bench.common import machine_info, write_json
+except ImportError:  # run as a script: bench/ is on sys.path
+    from common import machine_info, write_json
+
 from robotd.forward import FeatureExtractor, FeatureParams
 from robotd.forward.verify import VerifyParams, match_features, verify_pair
 from robotd.io.sequence import list_images, load_ground_truth, read_image
@@ -117,9 +122,10 @@ def main(argv: list[str] | None = None) -> int:
                     "on_plane": on_plane.tolist()})
         print(f"{t} -> {j}: paper {paper.reason}, with the support check {v.reason}; {v.n_inliers} inliers ({v.n_plane_inliers} on one plane), "
               f"support {100 * v.support_area:.1f} % of the image")
-    (args.out / "false_loops.json").write_text(json.dumps(
-        {"eval": str(args.eval), "method": args.method, "min_support_area": vp.min_support_area,
-         "false_loops": len(pairs), "pairs": out}, indent=1))
+    write_json(args.out / "false_loops.json",
+               {"benchmark": "forward_false_loops", "machine": machine_info(), "eval": str(args.eval),
+                "method": args.method, "min_support_area": vp.min_support_area,
+                "false_loops": len(pairs), "pairs": out})
     print(f"{len(pairs)} false loops ({args.method}); wrote {min(len(pairs), args.limit)} pairs to {args.out}")
     return 0
 
