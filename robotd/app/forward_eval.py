@@ -59,6 +59,9 @@ def add_arguments(sub: argparse._SubParsersAction) -> None:
                     help="the last P images are never loop hypotheses (default 10)")
     fw.add_argument("--min-inliers", type=int, default=None, metavar="N",
                     help="epipolar inliers needed to accept a loop (default: the detector's)")
+    fw.add_argument("--min-support-area", type=float, default=None, metavar="F",
+                    help="fraction of each image the verified inliers must cover (default: the "
+                         "detector's; 0 = the paper's check without it)")
     fw.add_argument("--focal-px", type=float, default=None,
                     help="focal length in pixels for the essential matrix (default: the image width)")
     fw.add_argument("--plot-image", type=int, default=None, metavar="K",
@@ -108,6 +111,10 @@ def run_forward(args: argparse.Namespace) -> int:
                             recent_excluded=args.recent)
     if args.min_inliers is not None:
         params = replace(params, verify=replace(params.verify, min_inliers=args.min_inliers))
+    if args.min_support_area is not None:
+        if not 0.0 <= args.min_support_area < 1.0:
+            raise SequenceError(f"--min-support-area must be in [0, 1), got {args.min_support_area}")
+        params = replace(params, verify=replace(params.verify, min_support_area=args.min_support_area))
     print(f"{args.images}: {n} images, {int(positives(truth, args.recent).sum())} of them revisit a "
           f"place at least {args.recent} images back; features {args.features}, likelihood "
           f"{args.likelihood}")
@@ -162,6 +169,10 @@ def run_forward(args: argparse.Namespace) -> int:
             "image": path.name, "status": d.status, "candidate": d.candidate_id,
             "candidate_probability": round(d.candidate_probability, 6), "loop": d.loop_id,
             "inliers": d.verification.n_inliers if d.verification else None,
+            "verification": None if d.verification is None else {
+                "reason": d.verification.reason, "plane_inliers": d.verification.n_plane_inliers,
+                "planar": d.verification.planar,
+                "support_area": round(d.verification.support_area, 4)},
             "features": d.n_features, "new_words": d.new_words, "vocabulary": d.vocabulary_size,
             "times_ms": {k: round(v * 1e3, 3) for k, v in d.times_s.items()},
             "best_score": {"candidate": cand, "ratio": None if cand is None else round(ratio, 6),

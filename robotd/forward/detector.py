@@ -10,7 +10,8 @@ For image I_t (t = 0, 1, 2, ... in arrival order), :meth:`ForwardDetector.proces
    (:mod:`robotd.forward.likelihood`);
 4. runs the Bayes filter over the hypotheses -1, 0 .. t - p (:mod:`robotd.forward.filter`)
    and picks a candidate when its neighbourhood's posterior exceeds 0.8;
-5. verifies the candidate with epipolar geometry (:mod:`robotd.forward.verify`); a
+5. verifies the candidate with epipolar geometry (:mod:`robotd.forward.verify`; beyond the
+   paper, the inliers must also not be one small plane, such as a repeated poster); a
    rejected candidate is only dismissed for this image: its posterior is left as it is and
    diffuses on (Sec. IV-C).
 
@@ -63,7 +64,8 @@ class DetectorParams:
         features: feature kind and count (:class:`~robotd.forward.features.FeatureParams`).
         vocabulary: word radius and search (:class:`~robotd.forward.vocabulary.VocabularyParams`).
         filter: transition model and loop threshold (:class:`~robotd.forward.filter.FilterParams`).
-        verify: epipolar check (:class:`~robotd.forward.verify.VerifyParams`).
+        verify: epipolar check (:class:`~robotd.forward.verify.VerifyParams`; its
+            ``min_support_area = 0`` is the paper's check without the support test).
         recent_excluded: p, the last images that are never hypotheses (10, Sec. IV).
         likelihood: ``"paper"`` (default) or RTAB-Map's ``"rtabmap"`` normalisation.
         memory: the working memory (:class:`~robotd.forward.memory.MemoryParams`; no bound

@@ -45,6 +45,8 @@ def test_eval_forward_prints_every_method_and_writes_json_and_plots(tmp_path: Pa
     assert report["per_image"][9]["image"] == "10.png"  # natural order, not 1, 10, 11, ...
     assert report["methods"]["detector"]["positives"] == 4
     assert report["params"]["recent_excluded"] == 3
+    assert report["params"]["verify"]["min_support_area"] == 0.03
+    assert all("verification" in r for r in report["per_image"])
     for name in ("stage_times.png", "likelihood_posterior_13.png"):
         assert cv2.imread(str(out / name)) is not None
 
@@ -65,6 +67,11 @@ def test_eval_forward_errors_are_one_line(tmp_path: Path, capsys):
     assert main(args + [str(tmp_path / "seq"), "--ground-truth", str(tmp_path / "gt.npy"),
                         "--plot-image", "8"]) == 2
     assert "--plot-image 8 is outside the sequence (0..7)" in capsys.readouterr().err
+
+    assert main(args + [str(tmp_path / "seq"), "--ground-truth", str(tmp_path / "gt.npy"),
+                        "--min-support-area", "1.5"]) == 2
+    err = capsys.readouterr().err
+    assert "--min-support-area must be in [0, 1), got 1.5" in err and err.count("\n") == 1
 
     (tmp_path / "seq" / "5.png").write_bytes(b"\x89PNG broken")
     assert main(args + [str(tmp_path / "seq"), "--ground-truth", str(tmp_path / "gt.npy")]) == 2

@@ -3,10 +3,19 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from robotd.forward.features import Features
-from robotd.forward.verify import (ACCEPTED, NO_GEOMETRIC_CONSISTENCY, TOO_FEW_MATCHES,
-                                   VerifyParams, camera_matrix_guess, verify_pair)
+from robotd.forward.verify import (
+    ACCEPTED,
+    NO_GEOMETRIC_CONSISTENCY,
+    SMALL_SUPPORT,
+    TOO_FEW_MATCHES,
+    VerifyParams,
+    camera_matrix_guess,
+    support_area,
+    verify_pair,
+)
 
 K = camera_matrix_guess(640, 480)
 
@@ -44,6 +53,8 @@ def test_a_true_pair_is_accepted_with_its_rotation_and_translation_direction():
     v = verify_pair(_features(_project(x_old), desc), _features(px_new, desc))
     assert v.accepted and v.reason == ACCEPTED
     assert v.n_matches == 150 and v.n_inliers >= 130
+    assert not v.planar and v.n_plane_inliers < 0.8 * v.n_inliers  # depths 3-8 m: parallax
+    assert v.support_area > 0.3
     angle = np.degrees(np.arccos(np.clip((np.trace(v.rotation.T @ r) - 1) / 2, -1, 1)))
     assert angle < 0.5
     assert np.dot(v.translation_dir, t / np.linalg.norm(t)) > 0.995  # within 6 degrees
@@ -68,3 +79,52 @@ def test_too_few_matches_is_a_value_not_an_exception():
     assert not v.accepted and v.reason == TOO_FEW_MATCHES and v.n_matches == 10
     empty = Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32), (640, 480))
     assert verify_pair(empty, _features(xy, a)).reason == TOO_FEW_MATCHES
+
+
+def _plane_pair(rng: np.random.Generator, width_m: float, height_m: float, n: int = 80):
+    """``n`` points on a fronto-parallel rectangle ``width_m`` x ``height_m`` 4 m in front of
+    the old camera (a poster, or a whole wall), seen by both cameras of :func:`_scene`, with
+    0.3 px of noise; the same random descriptors in both images."""
+    x_old = np.column_stack([rng.uniform(-width_m / 2, width_m / 2, n) + 0.3,
+                             rng.uniform(-height_m / 2, height_m / 2, n), np.full(n, 4.0)])
+    r = _rot_y(np.radians(10))
+    t = np.array([0.3, 0.0, -0.4])
+    x_new = x_old @ r.T + t
+    desc = rng.standard_normal((n, 128)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    noise = lambda: rng.normal(0, 0.3, (n, 2)).astype(np.float32)
+    return _features(_project(x_old) + noise(), desc), _features(_project(x_new) + noise(), desc)
+
+
+def test_a_small_plane_passes_the_papers_check_but_not_the_support_check():
+    # A 0.5 x 0.4 m poster at 4 m: every match fits one homography, so five-point RANSAC
+    # finds an essential matrix that all of them satisfy (the paper's check accepts), but
+    # they cover about 1.5 % of the image: a repeated poster elsewhere would look the same.
+    old, new = _plane_pair(np.random.default_rng(3), 0.5, 0.4)
+    paper = verify_pair(old, new, VerifyParams(min_support_area=0.0))
+    assert paper.accepted and paper.n_inliers >= 60
+    v = verify_pair(old, new)
+    assert not v.accepted and v.reason == SMALL_SUPPORT
+    assert v.planar and v.n_plane_inliers >= 0.95 * v.n_inliers
+    assert 0.005 < v.support_area < 0.03
+
+
+def test_a_plane_that_fills_the_view_is_accepted():
+    # The same geometry on a 3 x 2 m wall: one plane, but it covers a third of the image.
+    old, new = _plane_pair(np.random.default_rng(4), 3.0, 2.0)
+    v = verify_pair(old, new)
+    assert v.accepted and v.reason == ACCEPTED and v.planar
+    assert v.support_area > 0.2
+
+
+def test_support_area_of_points():
+    square = np.array([[0, 0], [64, 0], [64, 48], [0, 48], [32, 24]], np.float32)
+    assert support_area(square, (640, 480)) == pytest.approx(0.01)
+    assert support_area(square[:2], (640, 480)) == 0.0
+
+
+@pytest.mark.parametrize("kw", [{"min_support_area": -0.1}, {"min_support_area": 1.0},
+                                {"planar_fraction": 0.0}, {"homography_threshold_px": 0.0}])
+def test_bad_support_parameters_are_refused(kw):
+    with pytest.raises(ValueError):
+        VerifyParams(**kw)
