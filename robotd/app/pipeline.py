@@ -302,7 +302,10 @@ class KeyframeStage(Publisher):
             return
         if self.selector.offer(np.array([pose.x_m, pose.y_m, pose.yaw_rad])):
             self.keyframes += 1
-            self._publish(Keyframe(frame, pose))
+            # The filter's motion since the previous keyframe, with its covariance from
+            # the pose clone (None at the first one).
+            edge = self.odometry.keyframe_edge(frame.stamp_ns) if self.odometry is not None else None
+            self._publish(Keyframe(frame, pose, odometry_edge=edge))
 
     def counters(self) -> dict[str, int]:
         return {"frames": self.frames, "frames_unsynced": self.frames_unsynced,
@@ -438,9 +441,11 @@ class MapWriterStage(Publisher):
     """Writes keyframes and links to the map store.
 
     Each keyframe after the run's first also gets an odometry link from the previous one:
-    the relative transform of the fused poses and its information from the filter's
-    covariances (:func:`robotd.odometry.increments.odometry_edge`), or the edge another
-    stage measured (``Keyframe.odometry_edge``: vision-only visual odometry).
+    ``Keyframe.odometry_edge``, the filter's increment with its covariance from the pose
+    clone (:meth:`robotd.odometry.fusion.OdometryFilter.keyframe_edge`) or what vision-only
+    visual odometry measured instead. A keyframe without one (the filter had no clone)
+    falls back to the relative transform of the fused poses with the difference of their
+    covariances (:func:`robotd.odometry.increments.odometry_edge`).
     """
 
     name = "map"
@@ -487,7 +492,7 @@ class MapWriterStage(Publisher):
         log.debug("keyframe %d committed (run %d, %d stored)", kf.keyframe_id, self.run_id, self.stored)
         prev, self._previous = self._previous, kf
         if prev is not None:
-            if kf.odometry_edge is not None:  # measured by another stage (visual odometry)
+            if kf.odometry_edge is not None:  # the filter's clone, or visual odometry
                 delta, cov = kf.odometry_edge
                 info = information_from_covariance(cov)
             else:

@@ -47,7 +47,8 @@ from robotd.base.geometry import (
 from robotd.odometry.ekf import rate_gain
 
 __all__ = ["PoseClone", "clone_after_predict", "clone_after_update", "clone_pose",
-           "relative_pose_jacobians", "shift_measurement", "update_relative_pose"]
+           "relative_pose_covariance", "relative_pose_jacobians", "shift_measurement",
+           "update_relative_pose"]
 
 _IYAW = 2
 
@@ -109,6 +110,20 @@ def relative_pose_jacobians(clone_xyyaw: np.ndarray, pose_xyyaw: np.ndarray
     j_clone[:2, :2] = -rt
     j_clone[0, 2], j_clone[1, 2] = h[1], -h[0]  # d(R^T (p - c)) / d(clone yaw)
     return h, j_pose, j_clone
+
+
+def relative_pose_covariance(pose_xyyaw: np.ndarray, pose_cov: np.ndarray, clone: PoseClone
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """The filter's motion since the clone, ``h = clone^-1 (+) pose`` ``(3,)``, and its
+    covariance ``(3, 3)`` from the joint covariance of ``(pose, clone)``: ``pose_cov``, the
+    clone's own and their cross-covariance (the first three rows of ``clone.cross``),
+    ``J_p P J_p^T + J_c P_c J_c^T + J_p X J_c^T + (J_p X J_c^T)^T``. Everything the pose
+    and the clone share (the error accumulated before the clone, the gyro bias's part in
+    both) cancels here, which the difference of two absolute covariances cannot do."""
+    h, j_pose, j_clone = relative_pose_jacobians(clone.pose, np.asarray(pose_xyyaw, float))
+    cross = j_pose @ clone.cross[:3] @ j_clone.T
+    cov = j_pose @ np.asarray(pose_cov, float) @ j_pose.T + j_clone @ clone.cov @ j_clone.T + cross + cross.T
+    return h, 0.5 * (cov + cov.T)
 
 
 def shift_measurement(z: np.ndarray, r: np.ndarray, offset_prev: np.ndarray,
