@@ -34,7 +34,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from robotd.base.clock import Clock
-from robotd.base.geometry import information_from_covariance
+from robotd.base.geometry import between_error_covariance, information_from_covariance
 from robotd.base.messages import (
     BaseStatus,
     CandidateFate,
@@ -412,7 +412,7 @@ class VisualOdometryStage:
                                              result.covariance if result.ok else None)
         elif self.mode == "vision_only" and not first:
             if result.ok:
-                kf.odometry_edge = (result.delta, result.covariance)
+                kf.odometry_edge = (result.delta, between_error_covariance(result.delta, result.covariance))
             else:
                 self.fallback += 1
         self._prev_stamp_ns = kf.stamp_ns

@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-from robotd.base.geometry import between, information_from_covariance
+from robotd.base.geometry import between, between_error_covariance, information_from_covariance
 
 
 def increment_covariance(pose_a: np.ndarray, cov_a: np.ndarray, pose_b: np.ndarray,
@@ -70,6 +70,8 @@ def floor_covariance(cov: np.ndarray, *, min_sigma_m: float = 1e-4,
 
 def odometry_edge(pose_a: np.ndarray, cov_a: np.ndarray, pose_b: np.ndarray,
                   cov_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The edge from keyframe a to b: ``(delta (3,), information (3, 3))``."""
+    """The edge from keyframe a to b: ``(delta (3,), information (3, 3))``, the information
+    of the error as the pose graph measures it (:func:`robotd.base.geometry.between_error_covariance`)."""
     delta = between(np.asarray(pose_a, float), np.asarray(pose_b, float))
-    return delta, information_from_covariance(increment_covariance(pose_a, cov_a, pose_b, cov_b))
+    cov = between_error_covariance(delta, increment_covariance(pose_a, cov_a, pose_b, cov_b))
+    return delta, information_from_covariance(cov)
