@@ -436,14 +436,14 @@ class OdometryFilter:
         step, self._map = self._map, np.eye(STATE_SIZE)
         if self._hist_t and self._hist_t[-1] == t:
             self._hist_pose[-1], self._hist_cov[-1] = pose, cov
-            self._hist_mean6[-1], self._hist_cov6[-1] = s.mean.copy(), s.cov.copy()
+            self._hist_mean6[-1], self._hist_cov6[-1] = s.mean, s.cov  # read-only arrays
             self._hist_map[-1] = step @ self._hist_map[-1]
             return
         self._hist_t.append(t)
         self._hist_pose.append(pose)
         self._hist_cov.append(cov)
-        self._hist_mean6.append(s.mean.copy())
-        self._hist_cov6.append(s.cov.copy())
+        self._hist_mean6.append(s.mean)
+        self._hist_cov6.append(s.cov)
         self._hist_map.append(step)
         if len(self._hist_t) > 64 and t - self._hist_t[0] > 2 * self._history_ns:
             cut = bisect.bisect_left(self._hist_t, t - self._history_ns)
