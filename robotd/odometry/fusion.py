@@ -28,7 +28,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robotd.base.geometry import between, between_error_covariance, interpolate_poses, inverse
+from robotd.base.geometry import (
+    between,
+    between_error_covariance,
+    interpolate_poses,
+    inverse,
+)
 from robotd.base.messages import PoseStamped, WheelTicks, YawRate
 from robotd.odometry.ekf import (
     H_GYRO,

@@ -29,7 +29,11 @@ import math
 
 import numpy as np
 
-from robotd.base.geometry import between, between_error_covariance, information_from_covariance
+from robotd.base.geometry import (
+    between,
+    between_error_covariance,
+    information_from_covariance,
+)
 
 
 def increment_covariance(pose_a: np.ndarray, cov_a: np.ndarray, pose_b: np.ndarray,
