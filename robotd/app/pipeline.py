@@ -35,7 +35,7 @@ import numpy as np
 
 from robotd.app.mappedground import MappedGround
 from robotd.base.clock import Clock
-from robotd.base.geometry import information_from_covariance
+from robotd.base.geometry import between_error_covariance, information_from_covariance
 from robotd.base.messages import (
     BaseStatus,
     CandidateFate,
@@ -342,7 +342,10 @@ class KeyframeStage(Publisher):
         if self.selector.offer(xyyaw):
             self.keyframes += 1
             transient = self.mapped_ground is not None and self.mapped_ground.is_transient(xyyaw)
-            self._publish(Keyframe(frame, pose, transient=transient))
+            # The filter's motion since the previous keyframe, with its covariance from
+            # the pose clone (None at the first one).
+            edge = self.odometry.keyframe_edge(frame.stamp_ns) if self.odometry is not None else None
+            self._publish(Keyframe(frame, pose, odometry_edge=edge, transient=transient))
 
     def counters(self) -> dict[str, int]:
         return {"frames": self.frames, "frames_unsynced": self.frames_unsynced,
@@ -463,7 +466,7 @@ class VisualOdometryStage:
                                              result.covariance if result.ok else None)
         elif self.mode == "vision_only" and not first:
             if result.ok:
-                kf.odometry_edge = (result.delta, result.covariance)
+                kf.odometry_edge = (result.delta, between_error_covariance(result.delta, result.covariance))
             else:
                 self.fallback += 1
         self._prev_stamp_ns = kf.stamp_ns
@@ -492,11 +495,15 @@ class MapWriterStage(Publisher):
     """Writes keyframes and links to the map store.
 
     Each keyframe after the run's first also gets an odometry link from the previous one:
-    the relative transform of the fused poses and its information from the filter's
-    covariances (:func:`robotd.odometry.increments.odometry_edge`), or the edge another
-    stage measured (``Keyframe.odometry_edge``: vision-only visual odometry). No odometry
-    link crosses a time the robot was lifted (:class:`LiftIntervals`): the keyframe after
-    it starts a new chain (``odometry_breaks``), which the pose graph relocalises.
+    ``Keyframe.odometry_edge``, the filter's increment with its covariance from the pose
+    clone (:meth:`robotd.odometry.fusion.OdometryFilter.keyframe_edge`) or what vision-only
+    visual odometry measured instead. A keyframe without one (the filter had no clone)
+    falls back to the relative transform of the fused poses with the difference of their
+    covariances (:func:`robotd.odometry.increments.odometry_edge`).
+    No odometry link crosses a time the robot was lifted (:class:`LiftIntervals`): the
+    keyframe after it starts a new chain (``odometry_breaks``), which the pose graph
+    relocalises. Over mapped ground (``Keyframe.transient``), keyframes are not stored and
+    extend the chain of :class:`robotd.app.mappedground.MappedGround` instead.
     """
 
     name = "map"

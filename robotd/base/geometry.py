@@ -213,6 +213,23 @@ def compose_jacobians(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndar
     return j_a, j_b
 
 
+def between_error_covariance(delta: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """A relative pose's covariance as the pose graph measures its error.
+
+    ``delta (3,)`` = ``a^-1 (+) b`` was estimated with errors ``(dx_m, dy_m, dyaw_rad)``
+    added in frame ``a`` (covariance ``cov (3, 3)``: a rigid fit's, the odometry filter's).
+    GTSAM's ``BetweenFactor<Pose2>`` and g2o's ``EDGE_SE2`` measure an edge's error as
+    ``log(delta^-1 (+) a^-1 (+) b)``, in the frame of ``delta``'s end: to first order the
+    translation error turned by ``-dyaw``, so ``J cov J^T`` with ``J = diag(R(dyaw)^T, 1)``.
+    Without it a loop closed in the opposite direction has its x and y variances and its
+    yaw-translation coupling applied 180 deg turned.
+    """
+    j = np.eye(3)
+    j[:2, :2] = rot2(float(np.asarray(delta, float)[2])).T
+    out = j @ np.asarray(cov, float) @ j.T
+    return 0.5 * (out + out.T)
+
+
 def information_from_covariance(cov: np.ndarray) -> np.ndarray:
     """The symmetric information matrix ``(3, 3)`` of a pose covariance (its inverse,
     symmetrised against rounding)."""

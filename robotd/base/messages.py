@@ -113,9 +113,9 @@ class Keyframe:
     keyframe_id: int | None = None
     run_id: int | None = None
     odometry_edge: tuple[np.ndarray, np.ndarray] | None = None
-    """``(delta (3,), covariance (3, 3))`` from the previous keyframe, when a stage other
-    than the wheel + gyro filter measured it (vision-only visual odometry); the map writer
-    then links the keyframes with it instead of the filter's increment."""
+    """``(delta (3,), covariance (3, 3))`` from the previous keyframe: the wheel + gyro
+    filter's increment (set by the keyframe stage), replaced by vision-only visual
+    odometry where it measured the step; the map writer links the keyframes with it."""
     transient: bool = False
     """Taken over mapped ground while the robot is localised (``[pose_graph]
     localise_mapped``): described and queried against the map, never stored; the map

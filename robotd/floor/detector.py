@@ -18,7 +18,8 @@ import numpy as np
 
 from robotd.floor.descriptor import decode, extract
 from robotd.floor.index import Candidate, FloorIndex
-from robotd.base.geometry import information_from_covariance, rigid_fit_2d, rigid_fit_2d_covariance
+from robotd.base.geometry import (between_error_covariance, information_from_covariance, rigid_fit_2d,
+                                  rigid_fit_2d_covariance)
 from robotd.floor.vo import floor_point_pairs
 
 log = logging.getLogger(__name__)
@@ -72,14 +73,16 @@ def loop_transform(camera: Any, xy_query_px: np.ndarray, xy_old_px: np.ndarray,
     :func:`robotd.floor.vo.floor_point_pairs`); the rigid fit maps the query's points onto
     the old ones (paper 003 Sec. IV-D, as visual odometry does). The covariance is the
     fit's Gauss-Newton one from its residuals (at least ``min_sigma_m`` per coordinate),
-    :func:`robotd.base.geometry.rigid_fit_2d_covariance`. None if under 3 points.
+    :func:`robotd.base.geometry.rigid_fit_2d_covariance`, turned into the frame the pose
+    graph measures the edge's error in (:func:`robotd.base.geometry.between_error_covariance`).
+    None if under 3 points.
     """
     po, pq = floor_point_pairs(camera, xy_old_px, xy_query_px)
     if len(pq) < 3:
         return None
     delta = rigid_fit_2d(pq, po)
     cov, _ = rigid_fit_2d_covariance(pq, po, delta, min_sigma_m)
-    return delta, information_from_covariance(cov)
+    return delta, information_from_covariance(between_error_covariance(delta, cov))
 
 
 class FloorLoopDetector:

@@ -47,7 +47,8 @@ from robotd.base.geometry import (
 from robotd.odometry.ekf import rate_gain
 
 __all__ = ["PoseClone", "clone_after_predict", "clone_after_update", "clone_pose",
-           "relative_pose_jacobians", "shift_measurement", "update_relative_pose"]
+           "relative_pose_covariance", "relative_pose_jacobians", "relative_update_transition",
+           "shift_measurement", "update_relative_pose"]
 
 _IYAW = 2
 
@@ -111,6 +112,20 @@ def relative_pose_jacobians(clone_xyyaw: np.ndarray, pose_xyyaw: np.ndarray
     return h, j_pose, j_clone
 
 
+def relative_pose_covariance(pose_xyyaw: np.ndarray, pose_cov: np.ndarray, clone: PoseClone
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """The filter's motion since the clone, ``h = clone^-1 (+) pose`` ``(3,)``, and its
+    covariance ``(3, 3)`` from the joint covariance of ``(pose, clone)``: ``pose_cov``, the
+    clone's own and their cross-covariance (the first three rows of ``clone.cross``),
+    ``J_p P J_p^T + J_c P_c J_c^T + J_p X J_c^T + (J_p X J_c^T)^T``. Everything the pose
+    and the clone share (the error accumulated before the clone, the gyro bias's part in
+    both) cancels here, which the difference of two absolute covariances cannot do."""
+    h, j_pose, j_clone = relative_pose_jacobians(clone.pose, np.asarray(pose_xyyaw, float))
+    cross = j_pose @ clone.cross[:3] @ j_clone.T
+    cov = j_pose @ np.asarray(pose_cov, float) @ j_pose.T + j_clone @ clone.cov @ j_clone.T + cross + cross.T
+    return h, 0.5 * (cov + cov.T)
+
+
 def shift_measurement(z: np.ndarray, r: np.ndarray, offset_prev: np.ndarray,
                       offset_now: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A measurement between two keyframe stamps moved to the filter times of the clones:
@@ -157,3 +172,23 @@ def update_relative_pose(mean: np.ndarray, cov: np.ndarray, clone: PoseClone, z:
     new_mean[_IYAW] = wrap_angle(float(new_mean[_IYAW]))
     new_cov = joint[:n, :n]
     return new_mean, 0.5 * (new_cov + new_cov.T), nis
+
+
+def relative_update_transition(mean: np.ndarray, cov: np.ndarray, clone: PoseClone,
+                               r: np.ndarray) -> np.ndarray:
+    """The state's block ``(n, n)`` of ``I - K H`` of :func:`update_relative_pose` with the
+    same arguments: how the update maps the state's error (the clone's share left out)."""
+    mean = np.asarray(mean, float)
+    n = len(mean)
+    pj = np.zeros((n + 3, n + 3))
+    pj[:n, :n] = cov
+    pj[:n, n:] = clone.cross
+    pj[n:, :n] = clone.cross.T
+    pj[n:, n:] = clone.cov
+    _h, j_pose, j_clone = relative_pose_jacobians(clone.pose, mean[:3])
+    hm = np.zeros((3, n + 3))
+    hm[:, :3] = j_pose
+    hm[:, n:] = j_clone
+    phT = pj @ hm.T
+    gain = np.linalg.solve(hm @ phT + np.asarray(r, float), phT.T).T
+    return np.eye(n) - gain[:n] @ hm[:, :n]

@@ -128,9 +128,23 @@ def test_a_frame_waits_for_its_odometry_only_when_live_is_it_dropped(tmp_path: P
         assert pipe.counters()["keyframes"] == (1 if lossless else 0)
 
 
+class _Keyframes:
+    name = "keyframes_seen"
+
+    def __init__(self) -> None:
+        self.got: list[Keyframe] = []
+
+    def subscriptions(self):
+        return {Keyframe: self.got.append}
+
+
 def test_every_keyframe_after_the_first_is_linked_by_odometry(tmp_path: Path):
+    """The links are the filter's increments with the covariance of its pose clone
+    (``OdometryFilter.keyframe_edge``, carried by the keyframe), not the difference of
+    the two absolute covariances."""
     clock = ManualClock(0)
     pipe, store = _keyframe_pipeline(tmp_path, lossless=True, clock=clock)
+    seen = pipe.add(_Keyframes())
     with store:
         img = np.zeros((48, 64), np.uint8)
         for k in range(60):  # 1.2 s straight, a frame every 40 ms
@@ -146,6 +160,9 @@ def test_every_keyframe_after_the_first_is_linked_by_odometry(tmp_path: Path):
             want = between(np.array([a.x_m, a.y_m, a.yaw_rad]), np.array([b.x_m, b.y_m, b.yaw_rad]))
             assert [link.dx_m, link.dy_m, link.dyaw_rad] == pytest.approx(want, abs=1e-12)
             assert np.all(np.linalg.eigvalsh(link.information) > 0)
+        assert seen.got[0].odometry_edge is None
+        for link, kf in zip(links, seen.got[1:]):
+            assert link.information == pytest.approx(np.linalg.inv(kf.odometry_edge[1]), rel=1e-9)
         # Driving straight: the along-track step is known to a few mm, not to 0.1 mm.
         sigma_x = [1 / math.sqrt(link.information[0, 0]) for link in links]
         assert 1e-4 < float(np.median(sigma_x)) < 0.02

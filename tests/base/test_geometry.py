@@ -5,8 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from robotd.base.geometry import (between, compose, interpolate_poses, inverse, quaternion_from_rotation,
-                                   rigid_fit_2d, transform_points, wrap_angle)
+from robotd.base.geometry import (between, between_error_covariance, compose, interpolate_poses, inverse,
+                                   quaternion_from_rotation, rigid_fit_2d, rigid_fit_2d_covariance,
+                                   transform_points, wrap_angle)
 
 
 def test_compose_inverse_between_by_hand():
@@ -166,3 +167,28 @@ def rodrigues(rvec: np.ndarray) -> np.ndarray:
     k = rvec / angle
     kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
     return np.eye(3) + math.sin(angle) * kx + (1 - math.cos(angle)) * kx @ kx
+
+
+def test_between_error_covariance_is_that_of_the_graphs_edge_error():
+    """A rigid fit turned by 2.5 rad, points 5-35 cm ahead of the origin (the yaw couples
+    with the translation): the pose graph's edge error ``between(fit, truth)`` (GTSAM's
+    and g2o's, in the frame of the edge's end) has NEES 3 against the fit's covariance
+    turned by :func:`between_error_covariance`, and about 17 against the fit's own (errors
+    added in the start's frame), which the graph and its gate used before."""
+    rng = np.random.default_rng(5)
+    src = rng.uniform([0.05, -0.1], [0.35, 0.1], size=(40, 2))
+    true = np.array([0.12, -0.05, 2.5])
+    turned, raw = [], []
+    for _ in range(1000):
+        dst = transform_points(true, src) + 0.001 * rng.standard_normal(src.shape)
+        fit = rigid_fit_2d(src, dst)
+        cov, _ = rigid_fit_2d_covariance(src, dst, fit)
+        e = between(fit, true)
+        e[2] = wrap_angle(e[2])
+        turned.append(e @ np.linalg.solve(between_error_covariance(fit, cov), e))
+        raw.append(e @ np.linalg.solve(cov, e))
+    assert np.mean(turned) == pytest.approx(3.0, abs=0.25)  # 1000 draws: sd of the mean ~0.08
+    assert np.mean(raw) > 10.0
+    # A yaw of 0 leaves the covariance as it is.
+    c = np.array([[4.0, 1.0, 0.5], [1.0, 2.0, -0.3], [0.5, -0.3, 1.0]])
+    assert between_error_covariance(np.array([0.3, 0.1, 0.0]), c) == pytest.approx(c)

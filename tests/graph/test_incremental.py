@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import math
 
+import gtsam
 import numpy as np
 import pytest
 
 from robotd.base.errors import GraphError
+from robotd.base.geometry import between, compose, compose_jacobians, rot2
 from robotd.graph import BatchParams, IncrementalGraph, optimize_batch
+from robotd.odometry.relative import relative_pose_jacobians
 
 INFO = np.diag([400.0, 400.0, 2500.0])
 
@@ -53,3 +56,53 @@ def test_odometry_from_an_unknown_keyframe_is_an_error():
     inc.add_first(0)
     with pytest.raises(GraphError, match="unknown keyframe 5"):
         inc.add_keyframe(6, 5, (1, 0, 0), INFO)
+
+
+def _branch(inc: IncrementalGraph, first_id: int, n: int, rng: np.random.Generator
+            ) -> tuple[int, np.ndarray, np.ndarray]:
+    """A chain of ``n`` odometry edges from the anchor (keyframe 0), each with its own full
+    covariance, which GTSAM applies to the error ``log(delta^-1 (+) a^-1 (+) b)`` in the
+    frame of the edge's end. Returns the last id, its pose in the anchor's frame and that
+    pose's covariance of errors added in the anchor's frame, propagated by hand."""
+    pose, cov, prev = np.zeros(3), np.zeros((3, 3)), 0
+    for k in range(n):
+        d = np.array([0.05, 0.0, 0.3 * rng.standard_normal()])
+        a = rng.standard_normal((3, 3)) * np.array([1e-3, 1e-3, 2e-3])
+        c = a @ a.T + 1e-8 * np.eye(3)
+        inc.add_keyframe(first_id + k, prev, d, np.linalg.inv(c))
+        prev = first_id + k
+        turn = np.eye(3)
+        turn[:2, :2] = rot2(d[2])  # the edge's end frame -> its start frame
+        j_pose, j_delta = compose_jacobians(pose, d)
+        cov = j_pose @ cov @ j_pose.T + j_delta @ turn @ c @ turn.T @ j_delta.T
+        pose = compose(pose, d)
+    return prev, pose, cov
+
+
+def test_the_gate_covariance_is_the_relative_poses_when_the_poses_are_uncorrelated():
+    """Two branches from the fixed anchor, so their ends' errors are independent and the
+    gate's ``S = Ad P_a Ad^T + P_b + R`` (iSAM2's marginals in each pose's own frame, the
+    adjoint of the predicted relative pose) is exact: a loop measured 3 sigma off along each
+    principal axis of the relative pose's covariance (propagated by hand through both
+    branches) has exactly the chi-square that covariance gives. The adjoint of the relative
+    pose instead of its inverse's is 15-45 % off here, and so is the hand propagation by
+    2-6 % if it takes each edge's covariance in the edge's start frame: GTSAM applies it
+    in the frame of the edge's end (``between_error_covariance``)."""
+    rng = np.random.default_rng(3)
+    inc = IncrementalGraph()
+    inc.add_first(0, (1.0, 2.0, 0.7))
+    a, pose_a, cov_a = _branch(inc, 1, 30, rng)
+    b, pose_b, cov_b = _branch(inc, 100, 40, rng)
+    h, j_b, j_a = relative_pose_jacobians(pose_a, pose_b)
+    rel = j_b @ cov_b @ j_b.T + j_a @ cov_a @ j_a.T
+    turn = np.eye(3)
+    turn[:2, :2] = rot2(h[2]).T
+    rel = turn @ rel @ turn.T  # in the frame of the relative pose's end, as the gate's error
+    loop_cov = np.diag([1e-6, 2e-6, 1e-5])
+    predicted = gtsam.Pose2(*between(inc.pose(a), inc.pose(b)))
+    for axis in np.linalg.eigh(rel)[1].T:
+        off = 3.0 * axis * math.sqrt(axis @ rel @ axis)
+        m = predicted.compose(gtsam.Pose2.Expmap(off))  # log(predicted^-1 measured) = off
+        measured = np.array([m.x(), m.y(), m.theta()])
+        want = off @ np.linalg.solve(rel + loop_cov, off)
+        assert inc.loop_chi2(a, b, measured, np.linalg.inv(loop_cov)) == pytest.approx(want, rel=1e-3)
