@@ -151,15 +151,7 @@ def update_relative_pose(mean: np.ndarray, cov: np.ndarray, clone: PoseClone, z:
     """
     mean = np.asarray(mean, float)
     n = len(mean)
-    pj = np.zeros((n + 3, n + 3))
-    pj[:n, :n] = cov
-    pj[:n, n:] = clone.cross
-    pj[n:, :n] = clone.cross.T
-    pj[n:, n:] = clone.cov
-    h, j_pose, j_clone = relative_pose_jacobians(clone.pose, mean[:3])
-    hm = np.zeros((3, n + 3))
-    hm[:, :3] = j_pose
-    hm[:, n:] = j_clone
+    pj, hm, h = _joint(mean, cov, clone)
     innovation = np.asarray(z, float) - h
     innovation[_IYAW] = wrap_angle(float(innovation[_IYAW]))
     phT = pj @ hm.T
@@ -180,15 +172,23 @@ def relative_update_transition(mean: np.ndarray, cov: np.ndarray, clone: PoseClo
     same arguments: how the update maps the state's error (the clone's share left out)."""
     mean = np.asarray(mean, float)
     n = len(mean)
+    pj, hm, _h = _joint(mean, cov, clone)
+    phT = pj @ hm.T
+    gain = np.linalg.solve(hm @ phT + np.asarray(r, float), phT.T).T
+    return np.eye(n) - gain[:n] @ hm[:, :n]
+
+
+def _joint(mean: np.ndarray, cov: np.ndarray, clone: PoseClone) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The joint ``(state, clone)`` covariance ``(n + 3, n + 3)``, the Jacobian ``(3, n + 3)``
+    of ``clone^-1 (+) pose`` in it, and that predicted relative pose ``(3,)``."""
+    n = len(mean)
     pj = np.zeros((n + 3, n + 3))
     pj[:n, :n] = cov
     pj[:n, n:] = clone.cross
     pj[n:, :n] = clone.cross.T
     pj[n:, n:] = clone.cov
-    _h, j_pose, j_clone = relative_pose_jacobians(clone.pose, mean[:3])
+    h, j_pose, j_clone = relative_pose_jacobians(clone.pose, mean[:3])
     hm = np.zeros((3, n + 3))
     hm[:, :3] = j_pose
     hm[:, n:] = j_clone
-    phT = pj @ hm.T
-    gain = np.linalg.solve(hm @ phT + np.asarray(r, float), phT.T).T
-    return np.eye(n) - gain[:n] @ hm[:, :n]
+    return pj, hm, h
