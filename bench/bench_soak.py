@@ -299,6 +299,7 @@ def soak(lap: Path, work: Path, frames: int | None, keyframe_distance_m: float,
     return {"laps": laps, "frames_per_lap": lap_frames, "frames_handed_out": source.frames,
             "frames_processed": c.get("frames", 0), "frames_unsynced": c.get("frames_unsynced", 0),
             "queue_drops": report.queue_drops, "keyframes": c.get("keyframes", 0),
+            "keyframes_stored": c.get("keyframes_stored", 0),
             "loop_edges": c.get("links_loop", 0),
             "keyframes_not_stored": c.get("keyframes_not_stored", 0),
             "relocalisations": c.get("localise_matches_accepted", 0),
@@ -396,7 +397,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nframes {result['frames_processed']} processed of {result['frames_handed_out']} handed out, "
           f"{result['laps']} laps, {result['wall_s']:.0f} s; unsynced {result['frames_unsynced']}, "
           f"queue drops {sum(result['queue_drops'].values())}")
-    print(f"keyframes {result['keyframes']}, loop edges {result['loop_edges']}, "
+    print(f"keyframes {result['keyframes']} taken, {result['keyframes_stored']} stored; "
+          f"loop edges {result['loop_edges']}, "
           f"candidates above threshold {result['above_threshold']}; over mapped ground: "
           f"{result['keyframes_not_stored']} keyframes not stored, {result['relocalisations']} "
           f"re-localisations ({result['relocalisations_failed_gate']} matches refused by the gate), "
