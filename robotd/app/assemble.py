@@ -58,7 +58,9 @@ def build_odometry(cfg: Config) -> OdometryFilter:
     drive = DiffDriveParams(wheel_radius_m=cfg.robot.wheel_radius_m,
                             wheel_base_m=cfg.robot.wheel_base_m,
                             ticks_per_rev=cfg.robot.ticks_per_rev)
-    return OdometryFilter(drive, params)
+    v = cfg.visual_odometry
+    # Fusing visual odometry: the graph's edges come from a wheel + gyro twin (fusion.py).
+    return OdometryFilter(drive, params, vo_twin=v.enabled and v.mode == "fused")
 
 
 def load_calibration(cfg: Config) -> CalibrationFile | None:

@@ -57,7 +57,7 @@ from robotd.floor.vo import FloorVisualOdometry
 from robotd.io.store import MapStore
 from robotd.keyframes import KeyframeSelector, downsample
 from robotd.odometry.fusion import OdometryFilter
-from robotd.odometry.increments import odometry_edge
+from robotd.odometry.increments import combine_edges, odometry_edge
 
 log = logging.getLogger(__name__)
 
@@ -427,7 +427,10 @@ class VisualOdometryStage:
     Registered after ``floor`` (it reuses the keyframe's descriptor) and before ``map``.
     ``fused``: each step is a relative-pose measurement in the wheel + gyro filter
     (:meth:`robotd.odometry.fusion.OdometryFilter.on_visual_odometry`; a failed step leaves
-    the filter alone). ``vision_only``: each successful step becomes the keyframe's
+    the filter alone), and the keyframe's odometry edge becomes the wheel + gyro edge and
+    the step combined as two independent measurements
+    (:func:`robotd.odometry.increments.combine_edges`; the filter keeps a wheel + gyro twin
+    for those edges, ``vo_twin``), counted in ``vo_combined``. ``vision_only``: each successful step becomes the keyframe's
     odometry edge in the map (the pose graph's odometry), and a failed one falls back to
     the filter's increment (counted in ``vo_fallback``).
     """
@@ -444,6 +447,7 @@ class VisualOdometryStage:
         self.steps = 0
         self.ok = 0
         self.fallback = 0
+        self.combined = 0
         self.failures = collections.Counter[str]()
 
     def subscriptions(self) -> Mapping[type, Handler]:
@@ -460,19 +464,29 @@ class VisualOdometryStage:
                 self.ok += 1
             else:
                 self.failures[result.reason] += 1
+        step = None
+        if result.ok and not first:
+            step = (result.delta, between_error_covariance(result.delta, result.covariance))
         if self.mode == "fused" and self.odometry is not None:
             self.odometry.on_visual_odometry(kf.stamp_ns, self._prev_stamp_ns,
                                              result.delta if result.ok else None,
                                              result.covariance if result.ok else None)
+            if step is not None:
+                if kf.odometry_edge is not None:
+                    kf.odometry_edge = combine_edges(kf.odometry_edge, step)
+                    self.combined += 1
+                else:
+                    kf.odometry_edge = step
         elif self.mode == "vision_only" and not first:
-            if result.ok:
-                kf.odometry_edge = (result.delta, between_error_covariance(result.delta, result.covariance))
+            if step is not None:
+                kf.odometry_edge = step
             else:
                 self.fallback += 1
         self._prev_stamp_ns = kf.stamp_ns
 
     def counters(self) -> dict[str, int]:
-        out = {"vo_steps": self.steps, "vo_ok": self.ok, "vo_fallback": self.fallback}
+        out = {"vo_steps": self.steps, "vo_ok": self.ok, "vo_fallback": self.fallback,
+               "vo_combined": self.combined}
         out.update({f"vo_failed_{k}": n for k, n in sorted(self.failures.items())})
         return out
 

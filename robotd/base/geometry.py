@@ -213,6 +213,29 @@ def compose_jacobians(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndar
     return j_a, j_b
 
 
+def se2_exp(xi: np.ndarray) -> np.ndarray:
+    """The pose ``(x_m, y_m, yaw_rad)`` of the tangent vector ``xi = (u, v, w)`` of SE(2)
+    (GTSAM's ``Pose2.Expmap``: translation ``V(w) (u, v)``)."""
+    u, v, w = (float(c) for c in xi)
+    if abs(w) < 1e-9:
+        a, b = 1.0 - w * w / 6.0, w / 2.0
+    else:
+        a, b = math.sin(w) / w, (1.0 - math.cos(w)) / w
+    return np.array([a * u - b * v, b * u + a * v, wrap_angle(w)])
+
+
+def se2_log(pose: np.ndarray) -> np.ndarray:
+    """The tangent vector ``(u, v, w)`` of a pose, the inverse of :func:`se2_exp`
+    (GTSAM's ``Pose2.Logmap``)."""
+    x, y, w = float(pose[0]), float(pose[1]), float(wrap_angle(float(pose[2])))
+    if abs(w) < 1e-9:
+        a, b = 1.0 - w * w / 6.0, w / 2.0
+    else:
+        a, b = math.sin(w) / w, (1.0 - math.cos(w)) / w
+    det = a * a + b * b
+    return np.array([(a * x + b * y) / det, (-b * x + a * y) / det, w])
+
+
 def between_error_covariance(delta: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """A relative pose's covariance as the pose graph measures its error.
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import bisect
 import collections
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 
@@ -65,7 +66,6 @@ from robotd.odometry.relative import (
     clone_after_update,
     clone_pose,
     relative_pose_covariance,
-    relative_update_transition,
     shift_measurement,
     update_relative_pose,
 )
@@ -125,7 +125,12 @@ class OdometryFilter:
     ``still_gate_sigma``: at rest, a gyro reading further than this many sigma from the
     bias estimate is not paired with a zero-velocity update. ``vo_gate_nis``: a visual
     odometry measurement whose normalised innovation squared exceeds this (chi-square, 3
-    degrees of freedom; 16.27 = 99.9 %) is rejected.
+    degrees of freedom; 16.27 = 99.9 %) is rejected. ``vo_twin``: visual odometry will be
+    fused (:meth:`on_visual_odometry`); a twin filter then sees only the wheels and the gyro
+    and gives :meth:`keyframe_edge` its edges, so that the pose graph gets the wheel + gyro
+    motion and the visual step as independent measurements of the same edge
+    (:func:`robotd.odometry.increments.combine_edges`) instead of a fused estimate whose
+    cross-covariances a late relative update makes hard to carry.
     """
 
     drive: DiffDriveParams = field(default_factory=DiffDriveParams)
@@ -138,9 +143,11 @@ class OdometryFilter:
     max_gyro_wait_s: float = 0.1
     still_gate_sigma: float = 3.0
     vo_gate_nis: float = 16.27
+    vo_twin: bool = False
 
     def __post_init__(self) -> None:
         self.counters = FilterCounters()
+        self._twin = dataclasses.replace(self, vo_twin=False) if self.vo_twin else None
         self._state: EkfState | None = None
         self._wheel = WheelOdometry(self.drive, self.initial_pose)
         self._wheel_ref: WheelTicks | None = None
@@ -178,6 +185,8 @@ class OdometryFilter:
         tick moved over this interval and the one before, the base was standing still and
         each of them is paired with a zero-velocity update (this calibrates the bias).
         """
+        if self._twin is not None:
+            self._twin.on_wheels(msg)
         t = int(msg.stamp_ns)
         ref = self._wheel_ref
         if ref is not None:
@@ -250,6 +259,8 @@ class OdometryFilter:
         Readings wait (at most ``max_gyro_wait_s``) for the wheel message that covers
         their stamp, which tells whether the base was standing still.
         """
+        if self._twin is not None:
+            self._twin.on_yaw_rate(msg)
         t = int(msg.stamp_ns)
         if self._last_yaw_ns is not None:
             if t == self._last_yaw_ns:
@@ -371,9 +382,6 @@ class OdometryFilter:
             if nis > self.vo_gate_nis:
                 self.counters.vo_rejected += 1
             else:
-                # The error's map leaves out the term of the clone's error (keyframe_edge's
-                # covariance is approximate in fused mode).
-                self._map = relative_update_transition(s.mean, s.cov, c, r) @ self._map
                 self._state = EkfState(s.stamp_ns, mean, cov)
                 self._record()
                 self.counters.vo_fused += 1
@@ -406,10 +414,17 @@ class OdometryFilter:
         :mod:`robotd.odometry.relative`, done after the fact: the pipeline learns that a
         frame is a keyframe when the filter may be a second past it, and a clone taken then
         gives the covariance of another interval than the edge's). It is exact for the
-        filter as run (in fused visual-odometry mode the clone's share of a fused update is
-        left out); floored as the old edges were
+        filter as run; floored as the old edges were
         (:func:`robotd.odometry.increments.floor_covariance`).
+
+        With visual odometry fused the edge is the wheel + gyro twin's (``vo_twin``). A
+        filter fusing it without the twin returns None for an edge with a fused update in
+        it: its error map would need the clone's share of each update, and on the office
+        route the edges made without that term made iSAM2's system indeterminate after
+        about 400 keyframes.
         """
+        if self._twin is not None:
+            return self._twin.keyframe_edge(stamp_ns)
         ts = self._hist_t
         kf = self.pose_at(stamp_ns)
         if kf is None:
@@ -434,12 +449,7 @@ class OdometryFilter:
             # From the recorded states back to the keyframes' stamps (offsets taken as exact).
             delta, cov = shift_measurement(h, cov_h, inverse(self._kf_offset), inverse(offset))
             edge = delta, floor_covariance(between_error_covariance(delta, cov))
-        if self._vo_fused_since_keyframe:
-            # In fused visual-odometry mode the error map leaves out the clone's share of
-            # each fused update, and on the office route with VO fused that made iSAM2's
-            # system indeterminate after about 400 keyframes. Until that term is carried,
-            # such an edge is left to the map writer's fallback (the fused poses and the
-            # difference of their covariances), as before keyframe_edge existed.
+        if self._vo_fused_since_keyframe:  # no twin: see the docstring
             edge = None
         self._vo_fused_since_keyframe = False
         self._kf_t, self._kf_offset, self._anchor = ts[j], offset, None

@@ -32,7 +32,10 @@ import numpy as np
 from robotd.base.geometry import (
     between,
     between_error_covariance,
+    compose,
     information_from_covariance,
+    se2_exp,
+    se2_log,
 )
 
 
@@ -79,3 +82,49 @@ def odometry_edge(pose_a: np.ndarray, cov_a: np.ndarray, pose_b: np.ndarray,
     delta = between(np.asarray(pose_a, float), np.asarray(pose_b, float))
     cov = between_error_covariance(delta, increment_covariance(pose_a, cov_a, pose_b, cov_b))
     return delta, information_from_covariance(cov)
+
+
+def combine_edges(a: tuple[np.ndarray, np.ndarray],
+                  b: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Two independent measurements of the same edge, ``(delta (3,), covariance (3, 3))``
+    each with its covariance as the pose graph measures the error
+    (:func:`robotd.base.geometry.between_error_covariance`), as one: the pose that
+    minimises both factors' errors ``log(z^-1 (+) x)`` weighted by their information (a few
+    Gauss-Newton steps from ``a``), with the inverse of the summed information at it, as
+    the graph would have it from the two factors.
+    """
+    za, zb = np.asarray(a[0], float), np.asarray(b[0], float)
+    infos = [information_from_covariance(a[1]), information_from_covariance(b[1])]
+    x = za.copy()
+    for _ in range(_COMBINE_STEPS):
+        hess, grad = np.zeros((3, 3)), np.zeros(3)
+        for z, info in zip((za, zb), infos):
+            r, jac = _error_and_jacobian(z, x)
+            hess += jac.T @ info @ jac
+            grad += jac.T @ info @ r
+        step = -np.linalg.solve(hess, grad)
+        x = compose(x, se2_exp(step))
+        if np.abs(step).max() < 1e-12:
+            break
+    hess = np.zeros((3, 3))
+    for z, info in zip((za, zb), infos):
+        jac = _error_and_jacobian(z, x)[1]
+        hess += jac.T @ info @ jac
+    cov = np.linalg.inv(hess)
+    return x, 0.5 * (cov + cov.T)
+
+
+_COMBINE_STEPS = 5
+
+
+def _error_and_jacobian(z: np.ndarray, x: np.ndarray, eps: float = 1e-7) -> tuple[np.ndarray, np.ndarray]:
+    """``log(z^-1 (+) x)`` and its Jacobian ``(3, 3)`` in a right perturbation of ``x``
+    (central differences: the error's own Jacobian is near the identity)."""
+    r = se2_log(between(z, x))
+    jac = np.empty((3, 3))
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = eps
+        jac[:, k] = (se2_log(between(z, compose(x, se2_exp(d))))
+                     - se2_log(between(z, compose(x, se2_exp(-d))))) / (2 * eps)
+    return r, jac

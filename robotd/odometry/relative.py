@@ -47,7 +47,7 @@ from robotd.base.geometry import (
 from robotd.odometry.ekf import rate_gain
 
 __all__ = ["PoseClone", "clone_after_predict", "clone_after_update", "clone_pose",
-           "relative_pose_covariance", "relative_pose_jacobians", "relative_update_transition",
+           "relative_pose_covariance", "relative_pose_jacobians",
            "shift_measurement", "update_relative_pose"]
 
 _IYAW = 2
@@ -164,18 +164,6 @@ def update_relative_pose(mean: np.ndarray, cov: np.ndarray, clone: PoseClone, z:
     new_mean[_IYAW] = wrap_angle(float(new_mean[_IYAW]))
     new_cov = joint[:n, :n]
     return new_mean, 0.5 * (new_cov + new_cov.T), nis
-
-
-def relative_update_transition(mean: np.ndarray, cov: np.ndarray, clone: PoseClone,
-                               r: np.ndarray) -> np.ndarray:
-    """The state's block ``(n, n)`` of ``I - K H`` of :func:`update_relative_pose` with the
-    same arguments: how the update maps the state's error (the clone's share left out)."""
-    mean = np.asarray(mean, float)
-    n = len(mean)
-    pj, hm, _h = _joint(mean, cov, clone)
-    phT = pj @ hm.T
-    gain = np.linalg.solve(hm @ phT + np.asarray(r, float), phT.T).T
-    return np.eye(n) - gain[:n] @ hm[:, :n]
 
 
 def _joint(mean: np.ndarray, cov: np.ndarray, clone: PoseClone) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -126,3 +126,35 @@ def test_filter_learns_the_gyro_bias_from_vo_and_counts():
     # A stamp beyond the filter's time has no pose: counted, the clone is dropped.
     assert not f.on_visual_odometry(f.latest_stamp_ns() + 10**9, t, np.zeros(3), np.eye(3))
     assert f.counters.vo_no_pose == 1
+
+
+def test_fused_filter_edges_come_from_its_wheel_and_gyro_twin():
+    """With ``vo_twin`` the fused filter's keyframe edges are those of a filter that never
+    saw visual odometry (same messages, same keyframes), while its own pose was pulled by
+    the visual steps; without the twin an edge with a fused step in it is None (the map
+    writer's fallback)."""
+    fused, plain, bare = OdometryFilter(vo_twin=True), OdometryFilter(), OdometryFilter()
+    ticks = [0, 0, 0]
+    step_m = 50 * 23 * fused.drive.metres_per_tick
+    t_prev = None
+    edges = []
+    for k in range(5):
+        for i, f in enumerate((fused, plain, bare)):
+            t0 = 0 if f.latest_stamp_ns() is None else f.latest_stamp_ns() + 20_000_000
+            ticks[i] = _drive(f, 50, 0.05, t0_ns=t0, ticks0=ticks[i])
+        t = fused.latest_stamp_ns() - 20_000_000
+        got = [fused.keyframe_edge(t), plain.keyframe_edge(t), bare.keyframe_edge(t)]
+        delta = None if t_prev is None else np.array([step_m, 0.0, 0.0])
+        fused.on_visual_odometry(t, t_prev, delta, None if delta is None else np.eye(3) * 1e-6)
+        bare.on_visual_odometry(t, t_prev, delta, None if delta is None else np.eye(3) * 1e-6)
+        edges.append(got)
+        t_prev = t
+    assert fused.counters.vo_fused == 4 and bare.counters.vo_fused == 4
+    assert all(e[0] is None and e[1] is None for e in edges[:1])
+    for e_fused, e_plain, _ in edges[1:]:
+        assert e_fused[0] == pytest.approx(e_plain[0], abs=1e-12)
+        assert e_fused[1] == pytest.approx(e_plain[1], rel=1e-9, abs=1e-18)
+    assert edges[1][2] is not None  # no visual step fused in its interval yet
+    assert all(e[2] is None for e in edges[2:])
+    # The fused pose was pulled straight; the twin's (and the plain filter's) was not.
+    assert abs(fused.state.mean[IYAW]) < 0.3 * abs(plain.state.mean[IYAW])
