@@ -107,6 +107,9 @@ class MappedGround:
         self.node: int | None = None  # the graph node the chain starts at
         self.node_to_ref: tuple[np.ndarray, np.ndarray] = (_ZERO, _NO_COV)
         self.chain: tuple[np.ndarray, np.ndarray] = (_ZERO, _NO_COV)  # reference -> newest keyframe
+        # A transient keyframe or a re-anchoring since the newest stored keyframe: the next
+        # stored keyframe's edge starts at self.node through node_to_ref and the chain.
+        self._moved = False
         self.ref_odom_pose: np.ndarray | None = None  # odometry pose of the reference keyframe
         self.chain_odom_pose: np.ndarray | None = None  # odometry pose of the newest keyframe
         self.localised = False
@@ -149,13 +152,14 @@ class MappedGround:
         self.travelled_m += float(np.hypot(edge[0][0], edge[0][1]))
         self.chain_odom_pose = np.asarray(odom_pose, float)
         self.transient += 1
+        self._moved = True
 
     def edge_for_stored(self, previous_id: int | None,
                         edge: tuple[np.ndarray, np.ndarray]) -> tuple[int | None, np.ndarray, np.ndarray]:
         """The odometry edge ``(from_id, delta, covariance)`` of a keyframe about to be
         stored, given its edge from the previous keyframe (``previous_id``: that keyframe's
         id if it was stored). Without transient keyframes in between it is that edge."""
-        if self.node is None or self._at_node():
+        if self.node is None or not self._moved:
             return previous_id, edge[0], edge[1]
         delta, cov = compose_edges(compose_edges(self.node_to_ref, self.chain), edge)
         return self.node, delta, cov
@@ -168,10 +172,7 @@ class MappedGround:
         self.chain = (_ZERO, _NO_COV)
         self.ref_odom_pose = self.chain_odom_pose = np.asarray(odom_pose, float)
         self.travelled_m = 0.0
-
-    def _at_node(self) -> bool:
-        """No transient keyframe and no re-anchoring since the newest stored keyframe."""
-        return self.chain[0] is _ZERO and self.node_to_ref[0] is _ZERO
+        self._moved = False
 
     def chain_broken(self) -> None:
         """The robot was carried (no odometry across): no longer localised; the next keyframe
@@ -184,7 +185,7 @@ class MappedGround:
     def loop_accepted(self, query_id: int) -> None:
         """A loop was accepted for stored keyframe ``query_id``: if it is the newest, the
         robot is localised."""
-        if query_id == self.node and self._at_node():
+        if query_id == self.node and not self._moved:
             if not self.localised:
                 self.entered += 1
                 log.info("mapped ground: localised at keyframe %d; keyframes over mapped ground "
@@ -216,6 +217,7 @@ class MappedGround:
         self.ref_odom_pose = self.chain_odom_pose
         self.chain = (_ZERO, _NO_COV)
         self.travelled_m = 0.0
+        self._moved = True
         return True, d2
 
     def counters(self) -> dict[str, int]:

@@ -51,6 +51,25 @@ def test_resolve_returns_the_batch_result_and_keeps_going():
     assert np.allclose(last[:2], poses[-1, :2] + [math.cos(poses[-1, 2]), math.sin(poses[-1, 2])], atol=1e-6)
 
 
+def test_the_estimate_follows_every_change_of_the_graph():
+    """estimate() is computed once per change (the mapped-ground test asks for it at every
+    keyframe): after each kind of change it is iSAM2's estimate again, and a caller that
+    writes into the returned arrays does not change the next answer."""
+    inc = IncrementalGraph()
+    inc.add_first(0)
+    inc.add_keyframe(1, 0, (1.0, 0.0, 0.0), INFO)
+    ids, poses = inc.estimate()
+    poses[:] = 99.0
+    assert inc.estimate()[1][1] == pytest.approx([1.0, 0.0, 0.0], abs=1e-9)
+    inc.add_keyframe(2, 1, (1.0, 0.0, math.pi / 2), INFO)
+    assert list(inc.estimate()[0]) == [0, 1, 2]
+    inc.add_loop(2, 0, (-2.0, 0.2, -math.pi / 2), INFO)  # pulls keyframe 2 sideways
+    moved = inc.estimate()[1][2]
+    assert moved[1] != pytest.approx(0.0, abs=1e-3) and moved == pytest.approx(inc.pose(2), abs=1e-12)
+    result = inc.resolve()
+    assert inc.estimate()[1] == pytest.approx(result.poses, abs=1e-4)
+
+
 def test_odometry_from_an_unknown_keyframe_is_an_error():
     inc = IncrementalGraph()
     inc.add_first(0)
