@@ -21,7 +21,9 @@ chi-square gate and robust re-solves). Then, against ground truth at the keyfram
   truth, each carrying the replaced edge's measurement and information), and the stored
   graph is re-solved with robotd's batch optimiser; ATE beside the clean re-solve's, and
   beside the re-solve with the same edges only removed (replacing 20 % of the true loops
-  also loses their information: that part of the growth is not the wrong edges' harm);
+  also loses their information: that part of the growth is not the wrong edges' harm),
+  and beside the re-solve with the same wrong edges added to all the true ones (the
+  outliers' harm alone); the maps are kept beside result.json for such re-solves;
 * the trajectories, one panel per mode (paper Fig. 7/8), per floor and odometry.
 
 Thresholds: the default floor uses the calibration shipped with the demo (a figure-eight
@@ -277,22 +279,24 @@ def evaluate(d: Path, watcher: LoopWatcher, summary: dict[str, Any], wall_s: flo
 
 
 def inject_wrong_loops(graph: PoseGraph, truth: dict[int, np.ndarray], fraction: float,
-                       rng: np.random.Generator) -> tuple[PoseGraph, PoseGraph, int]:
-    """Two copies of ``graph``: one with ``fraction`` of its loop edges replaced by wrong
+                       rng: np.random.Generator) -> tuple[PoseGraph, PoseGraph, PoseGraph, int]:
+    """Three copies of ``graph``: one with ``fraction`` of its loop edges replaced by wrong
     ones (each joins a random pair of keyframes at least ``WRONG_LOOP_MIN_M`` apart by the
-    truth and carries the replaced edge's measurement and information), and one with the
+    truth and carries the replaced edge's measurement and information), one with the
     same edges only removed (what the replaced graph would be if the wrong edges did no
-    harm: the lost true loops alone)."""
+    harm: the lost true loops alone), and one with every true edge kept and the wrong ones
+    added (the outliers' harm without the lost information)."""
     loops = [i for i, e in enumerate(graph.edges) if e.kind == "loop"]
     k = int(round(fraction * len(loops)))
     replaced = set(rng.choice(loops, size=k, replace=False).tolist()) if k else set()
     ids = graph.ids
     xy = np.array([truth[int(i)][:2] for i in ids])
-    out, removed = PoseGraph(), PoseGraph()
+    out, removed, added = PoseGraph(), PoseGraph(), PoseGraph()
     for i, p in zip(ids, graph.poses()):
-        out.add_pose(int(i), p)
-        removed.add_pose(int(i), p)
+        for g in (out, removed, added):
+            g.add_pose(int(i), p)
     for i, e in enumerate(graph.edges):
+        added.add_edge(e.from_id, e.to_id, e.delta, e.information, e.kind)
         if i not in replaced:
             out.add_edge(e.from_id, e.to_id, e.delta, e.information, e.kind)
             removed.add_edge(e.from_id, e.to_id, e.delta, e.information, e.kind)
@@ -302,10 +306,11 @@ def inject_wrong_loops(graph: PoseGraph, truth: dict[int, np.ndarray], fraction:
             if np.hypot(*(xy[a] - xy[b])) >= WRONG_LOOP_MIN_M:
                 break
         out.add_edge(int(ids[a]), int(ids[b]), e.delta, e.information, "loop")
+        added.add_edge(int(ids[a]), int(ids[b]), e.delta, e.information, "loop")
     for f in graph.fixed:
-        out.fix(f)
-        removed.fix(f)
-    return out, removed, k
+        for g in (out, removed, added):
+            g.fix(f)
+    return out, removed, added, k
 
 
 def injection(d: Path, fractions: list[float], seed: int) -> dict[str, Any]:
@@ -329,13 +334,16 @@ def injection(d: Path, fractions: list[float], seed: int) -> dict[str, Any]:
                            "clean_down_weighted": dw_clean, "injected": []}
     rng = np.random.default_rng(seed)
     for frac in fractions:
-        g, without, k = inject_wrong_loops(graph, truth, frac, rng)
+        g, without, with_all, k = inject_wrong_loops(graph, truth, frac, rng)
         a, t, dw = ate(g)
         a0, _t0, _dw0 = ate(without)
+        a1, _t1, dw1 = ate(with_all)
         out["injected"].append({"fraction": frac, "wrong_edges": k, "ate_m": a, "time_s": t,
                                 "down_weighted": dw, "ate_growth_pct": 100.0 * (a - clean) / clean,
                                 "ate_removed_only_m": a0,
-                                "ate_growth_from_wrong_edges_pct": 100.0 * (a - a0) / a0})
+                                "ate_growth_from_wrong_edges_pct": 100.0 * (a - a0) / a0,
+                                "ate_added_m": a1, "added_down_weighted": dw1,
+                                "ate_growth_added_pct": 100.0 * (a1 - clean) / clean})
     return out
 
 
@@ -409,11 +417,13 @@ def injection_table(results: list[dict[str, Any]]) -> None:
             rows.append([r["floor"], r["odometry"], r["mode"], inj["loops"], f"{100 * i['fraction']:.0f} %",
                          i["wrong_edges"], f"{inj['clean_ate_m'] * 1e3:.3f}", f"{i['ate_m'] * 1e3:.3f}",
                          f"{i['ate_growth_pct']:+.1f} %", f"{i.get('ate_removed_only_m', math.nan) * 1e3:.3f}",
-                         f"{i.get('ate_growth_from_wrong_edges_pct', math.nan):+.1f} %", i["down_weighted"]])
+                         f"{i.get('ate_growth_from_wrong_edges_pct', math.nan):+.1f} %", i["down_weighted"],
+                         f"{i.get('ate_added_m', math.nan) * 1e3:.3f}",
+                         f"{i.get('ate_growth_added_pct', math.nan):+.1f} %"])
     if rows:
         print_table(["floor", "odometry", "mode", "loops", "injected", "wrong edges", "ATE clean mm",
-                     "ATE injected mm", "growth", "ATE edges removed mm", "growth from wrong", "down-weighted"],
-                    rows)
+                     "ATE replaced mm", "growth", "ATE edges removed mm", "growth from wrong", "down-weighted",
+                     "ATE added mm", "growth added"], rows)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -462,10 +472,10 @@ def main(argv: list[str] | None = None) -> int:
                     log(f"  {r['keyframes']} keyframes, {r['loops']['accepted']} loops "
                         f"({r['loops']['false']} false), end {r['odometry_alone']['end_m']:.3f} m -> "
                         f"{lc.get('end_m', float('nan')):.3f} m, x{r['real_time_factor']:.2f} real time")
-                if "injection" not in r:
+                injected = r.get("injection", {}).get("injected") or [{}]
+                if "ate_added_m" not in injected[0] and (d / "map.sqlite").exists():
                     r["injection"] = injection(d, fractions, args.seed)
                     res_path.write_text(json.dumps(r) + "\n")
-                    (d / "map.sqlite").unlink()  # the figures are in result.json
                 per_mode[mode] = r
                 results.append(r)
             png = out / f"trajectories-{floor}-{odometry}.png"
