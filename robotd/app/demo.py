@@ -129,6 +129,7 @@ class _Recorder:
         self.keyframe_poses_full: list[tuple[float, float, float]] = []
         self.keyframe_ids: list[int] = []
         self.keyframe_stamps: list[int] = []
+        self.visual_poses: dict[int, Any] = {}  # keyframe id -> VO-only pose, when VO is on
         self.queries: list[tuple[int, list[tuple[int, float, float, int]]]] = []
         self.loops: list[tuple[int, int]] = []  # declared loops: (older keyframe, newer)
         self.refused: list[tuple[int, int]] = []  # refused by the graph's gate: (older, newer)
@@ -169,6 +170,8 @@ class _Recorder:
         self.keyframe_poses_full.append((kf.pose.x_m, kf.pose.y_m, kf.pose.yaw_rad))
         self.keyframe_ids.append(kf.keyframe_id)
         self.keyframe_stamps.append(kf.stamp_ns)
+        if kf.visual_pose is not None:
+            self.visual_poses[kf.keyframe_id] = kf.visual_pose
 
     def on_floor_query(self, query: Any) -> None:
         self.queries.append((query.keyframe_id, [
@@ -524,7 +527,7 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
                                                   out if plot else None)
         summary["floor_detector"]["threshold"] = live["floor_threshold"]
         summary["floor_detector"]["above_threshold"] = c.get("loop_candidates_above_threshold", 0)
-    graph = _graph_summary(out / "map.sqlite", robot, c)
+    graph = _graph_summary(out / "map.sqlite", robot, c, recorder.visual_poses)
     if graph is not None:
         summary["pose_graph"] = graph
     if cfg.forward_detector.enabled:
@@ -627,10 +630,12 @@ def forward_summary(cfg: Any, robot: Any, recorder: _Recorder, c: dict[str, Any]
             "loops": rows}
 
 
-def _graph_summary(map_path: Path, robot: Any, c: dict[str, int]) -> dict[str, Any] | None:
+def _graph_summary(map_path: Path, robot: Any, c: dict[str, int],
+                   visual_poses: dict[int, Any]) -> dict[str, Any] | None:
     """The loop-corrected keyframe poses against ground truth, beside the fused odometry
-    at the same keyframes: end errors, ATE (RMS position error, start-anchored, no fit)
-    and RPE (RMS error of each keyframe-to-keyframe step)."""
+    and (with visual odometry on) floor visual odometry alone at the same keyframes: end
+    errors, ATE (RMS position error, start-anchored, no fit) and RPE (RMS error of each
+    keyframe-to-keyframe step)."""
     import numpy as np
 
     from robotd.io.store import MapStore
@@ -648,7 +653,10 @@ def _graph_summary(map_path: Path, robot: Any, c: dict[str, int]) -> dict[str, A
     truth = robot.motion.pose_at(np.array([k.stamp_ns for k in kfs]) / 1e9)
     out: dict[str, Any] = {"keyframes": len(kfs), "loops_in_graph": len(loops),
                            **{k: v for k, v in c.items() if k.startswith(("loops_", "graph_"))}}
-    for name, est in (("fused", fused), ("loop_corrected", optimized)):
+    columns = [("fused", fused), ("loop_corrected", optimized)]
+    if visual_poses and all(k.id in visual_poses for k in kfs):
+        columns.insert(1, ("vo_only", np.array([visual_poses[k.id] for k in kfs])))
+    for name, est in columns:
         e = trajectory_errors(truth, est)
         rpe_t, rpe_r = relative_pose_error(truth, est)
         out[name] = {"end_position_error_m": e.end_position_error_m,
@@ -656,7 +664,7 @@ def _graph_summary(map_path: Path, robot: Any, c: dict[str, int]) -> dict[str, A
                      "ate_rmse_m": e.rmse_position_m, "rpe_rmse_mm": rpe_t * 1e3,
                      "rpe_rmse_deg": float(np.degrees(rpe_r))}
     out["_plot"] = {"ids": [k.id for k in kfs], "optimized": optimized, "truth0": truth[0],
-                    "loops": loops}
+                    "loops": loops, "vo_only": dict(columns).get("vo_only")}
     return out
 
 
@@ -676,6 +684,8 @@ def _plot_trajectories(out: Path, robot: Any, recorder: _Recorder, truth: Any, f
     if graph is not None:
         g = graph["_plot"]
         opt = compose(to_world, g["optimized"])
+        if g["vo_only"] is not None:
+            estimates["floor VO alone (keyframes)"] = compose(to_world, g["vo_only"])
         estimates["loop-corrected (pose graph)"] = opt
         row = {k: i for i, k in enumerate(g["ids"])}
         pairs = [(row[a], row[b]) for a, b in g["loops"] if a in row and b in row]
@@ -738,12 +748,12 @@ def floor_summary(cfg: Any, camera: Any, motion: Any, recorder: _Recorder,
     return d
 
 
-def _print_comparison(f: Any, title: str, left: tuple[str, dict[str, float]],
-                      right: tuple[str, dict[str, float]], rows: tuple[tuple[str, str, str], ...]) -> None:
-    """A two-column table: ``rows`` of (label, key, format) looked up in each column's dict."""
-    print(f"{title:<26}{left[0]:>12}{right[0]:>12}", file=f)
+def _print_comparison(f: Any, title: str, columns: list[tuple[str, dict[str, float]]],
+                      rows: tuple[tuple[str, str, str], ...]) -> None:
+    """A table: ``rows`` of (label, key, format) looked up in each column's dict."""
+    print(f"{title:<26}" + "".join(f"{name:>12}" for name, _ in columns), file=f)
     for label, key, fmt in rows:
-        print(f"{label:<26}{fmt.format(left[1][key]):>12}{fmt.format(right[1][key]):>12}", file=f)
+        print(f"{label:<26}" + "".join(f"{fmt.format(col[key]):>12}" for _, col in columns), file=f)
 
 
 def print_summary(s: dict[str, Any], f: Any) -> None:
@@ -774,7 +784,7 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
     for k, v in rows:
         print(f"{k:<{width}}  {v}", file=f)
     print(file=f)
-    _print_comparison(f, "odometry vs ground truth", ("wheel only", w), ("fused", fu), (
+    _print_comparison(f, "odometry vs ground truth", [("wheel only", w), ("fused", fu)], (
         ("end position error (m)", "end_position_error_m", "{:.3f}"),
         ("end heading error (deg)", "end_heading_error_deg", "{:.2f}"),
         ("max position error (m)", "max_position_error_m", "{:.3f}"),
@@ -783,8 +793,10 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
     g = s.get("pose_graph")
     if g:
         print(file=f)
-        _print_comparison(f, f"at the {g['keyframes']} keyframes", ("fused", g["fused"]),
-                          ("loop-corr.", g["loop_corrected"]), (
+        columns = [("fused", g["fused"]), ("loop-corr.", g["loop_corrected"])]
+        if "vo_only" in g:
+            columns.insert(1, ("VO only", g["vo_only"]))
+        _print_comparison(f, f"at the {g['keyframes']} keyframes", columns, (
             ("end position error (m)", "end_position_error_m", "{:.3f}"),
             ("end heading error (deg)", "end_heading_error_deg", "{:.2f}"),
             ("ATE, RMS (m)", "ate_rmse_m", "{:.3f}"),
@@ -795,6 +807,12 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
               f"optimiser; iSAM2 update median {g.get('graph_update_median_us', 0) / 1e3:.2f} ms, p99 "
               f"{g.get('graph_update_p99_us', 0) / 1e3:.2f} ms; last full solve {g.get('graph_solve_ms', 0)} ms",
               file=f)
+    v = s.get("visual_odometry")
+    if v:
+        how = (f"{v.get('vo_combined', 0)} graph edges combined with the wheel + gyro edge"
+               if v["mode"] == "fused" else f"{v.get('vo_fallback', 0)} fell back to the wheel + gyro edge")
+        print(f"floor visual odometry ({v['mode']}): {v.get('vo_ok', 0)} of {v.get('vo_steps', 0)} steps "
+              f"measured; {how}", file=f)
     fw = s.get("forward_detector")
     if fw:
         print(file=f)

@@ -35,7 +35,7 @@ import numpy as np
 
 from robotd.app.mappedground import MappedGround
 from robotd.base.clock import Clock
-from robotd.base.geometry import between_error_covariance, information_from_covariance
+from robotd.base.geometry import between_error_covariance, compose, information_from_covariance
 from robotd.base.messages import (
     BaseStatus,
     CandidateFate,
@@ -430,7 +430,8 @@ class VisualOdometryStage:
     the filter alone), and the keyframe's odometry edge becomes the wheel + gyro edge and
     the step combined as two independent measurements
     (:func:`robotd.odometry.increments.combine_edges`; the filter keeps a wheel + gyro twin
-    for those edges, ``vo_twin``), counted in ``vo_combined``. ``vision_only``: each successful step becomes the keyframe's
+    for those edges, ``vo_twin``), counted in ``vo_combined``. In both modes it keeps the
+    visual odometry alone dead-reckoned (``Keyframe.visual_pose``). ``vision_only``: each successful step becomes the keyframe's
     odometry edge in the map (the pose graph's odometry), and a failed one falls back to
     the filter's increment (counted in ``vo_fallback``).
     """
@@ -444,6 +445,7 @@ class VisualOdometryStage:
         self.odometry = odometry
         self.mode = mode
         self._prev_stamp_ns: int | None = None
+        self._visual_pose: np.ndarray | None = None
         self.steps = 0
         self.ok = 0
         self.fallback = 0
@@ -467,6 +469,11 @@ class VisualOdometryStage:
         step = None
         if result.ok and not first:
             step = (result.delta, between_error_covariance(result.delta, result.covariance))
+        if first or self._visual_pose is None:
+            self._visual_pose = kf.pose_xyyaw
+        elif step is not None or kf.odometry_edge is not None:
+            self._visual_pose = compose(self._visual_pose, (step or kf.odometry_edge)[0])
+        kf.visual_pose = self._visual_pose
         if self.mode == "fused" and self.odometry is not None:
             self.odometry.on_visual_odometry(kf.stamp_ns, self._prev_stamp_ns,
                                              result.delta if result.ok else None,

@@ -116,6 +116,11 @@ class Keyframe:
     """``(delta (3,), covariance (3, 3))`` from the previous keyframe: the wheel + gyro
     filter's increment (set by the keyframe stage), replaced by vision-only visual
     odometry where it measured the step; the map writer links the keyframes with it."""
+    visual_pose: np.ndarray | None = None
+    """``(3,)`` floor visual odometry alone, dead-reckoned from the run's first keyframe
+    (which it starts at, in the odometry frame), set by the visual odometry stage when it
+    is on: each step chained, a failed one replaced by the wheel + gyro edge. For
+    comparison (the demo's "VO only" column); nothing else uses it."""
     transient: bool = False
     """Taken over mapped ground while the robot is localised (``[pose_graph]
     localise_mapped``): described and queried against the map, never stored; the map
