@@ -164,6 +164,8 @@ def run_one(floor: str, odometry: str, mode: int, route: str, seed: int, calibra
     cfg = replace(cfg, "floor_detector", mode=mode)
     if odometry == "vo":
         cfg = replace(cfg, "visual_odometry", enabled=True, mode="vision_only")
+    else:  # the wheel + gyro filter's own edges
+        cfg = replace(cfg, "visual_odometry", enabled=False)
     watcher = LoopWatcher()
     t0 = time.monotonic()
     summary = run_demo(cfg, out=d, route=route, floor_pattern=FLOOR_PATTERN[floor], seed=seed,

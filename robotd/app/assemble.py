@@ -60,7 +60,8 @@ def build_odometry(cfg: Config) -> OdometryFilter:
                             ticks_per_rev=cfg.robot.ticks_per_rev)
     v = cfg.visual_odometry
     # Fusing visual odometry: the graph's edges come from a wheel + gyro twin (fusion.py).
-    return OdometryFilter(drive, params, vo_twin=v.enabled and v.mode == "fused")
+    twin = v.enabled and v.mode == "fused" and cfg.floor_camera.source != "none"
+    return OdometryFilter(drive, params, vo_twin=twin)
 
 
 def load_calibration(cfg: Config) -> CalibrationFile | None:
@@ -179,7 +180,7 @@ def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, l
     detector = build_floor_detector(cfg, store, calibration) if floor_detector else None
     if detector is not None:
         pipeline.add(FloorDetectorStage(detector))
-    if cfg.visual_odometry.enabled and cfg.floor_camera.source != "none":
+    if cfg.visual_odometry.enabled and cfg.floor_camera.source != "none" and odometry is not None:
         pipeline.add(build_visual_odometry(cfg, odometry, calibration))
     writer = pipeline.add(MapWriterStage(store, run_id, image_width_px=kf.image_width_px))
     writer.mapped_ground = mapped_ground

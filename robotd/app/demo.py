@@ -632,8 +632,9 @@ def forward_summary(cfg: Any, robot: Any, recorder: _Recorder, c: dict[str, Any]
 
 def _graph_summary(map_path: Path, robot: Any, c: dict[str, int],
                    visual_poses: dict[int, Any]) -> dict[str, Any] | None:
-    """The loop-corrected keyframe poses against ground truth, beside the fused odometry
-    and (with visual odometry on) floor visual odometry alone at the same keyframes: end
+    """The loop-corrected keyframe poses against ground truth, beside the keyframes' own
+    poses (the wheel + gyro filter's: :class:`robotd.app.pipeline.KeyframeStage`) and (with
+    visual odometry on) floor visual odometry alone at the same keyframes: end
     errors, ATE (RMS position error, start-anchored, no fit) and RPE (RMS error of each
     keyframe-to-keyframe step)."""
     import numpy as np
@@ -648,12 +649,12 @@ def _graph_summary(map_path: Path, robot: Any, c: dict[str, int],
     if len(kfs) < 2 or not opt:
         return None
     kfs = [k for k in kfs if k.id in opt]
-    fused = np.array([[k.x_m, k.y_m, k.yaw_rad] for k in kfs])
+    odometry = np.array([[k.x_m, k.y_m, k.yaw_rad] for k in kfs])  # wheel + gyro (KeyframeStage)
     optimized = np.array([opt[k.id] for k in kfs])
     truth = robot.motion.pose_at(np.array([k.stamp_ns for k in kfs]) / 1e9)
     out: dict[str, Any] = {"keyframes": len(kfs), "loops_in_graph": len(loops),
                            **{k: v for k, v in c.items() if k.startswith(("loops_", "graph_"))}}
-    columns = [("fused", fused), ("loop_corrected", optimized)]
+    columns = [("odometry", odometry), ("loop_corrected", optimized)]
     if visual_poses and all(k.id in visual_poses for k in kfs):
         columns.insert(1, ("vo_only", np.array([visual_poses[k.id] for k in kfs])))
     for name, est in columns:
@@ -793,7 +794,7 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
     g = s.get("pose_graph")
     if g:
         print(file=f)
-        columns = [("fused", g["fused"]), ("loop-corr.", g["loop_corrected"])]
+        columns = [("odometry", g["odometry"]), ("loop-corr.", g["loop_corrected"])]
         if "vo_only" in g:
             columns.insert(1, ("VO only", g["vo_only"]))
         _print_comparison(f, f"at the {g['keyframes']} keyframes", columns, (

@@ -240,7 +240,12 @@ class LiftIntervals:
 
 
 class KeyframeStage(Publisher):
-    """Floor frames take the fused pose at their stamp; some become keyframes.
+    """Floor frames take the odometry pose at their stamp; some become keyframes.
+
+    The pose is the wheel + gyro filter's (:attr:`OdometryFilter.wheel_gyro`): with floor
+    visual odometry fused, the fused pose depends on when each visual step reached the
+    filter, which live is whenever the pipeline got to its keyframe; the keyframes and
+    their edges must not (a replay reproduces the live map).
 
     A frame is held until the odometry has settled past its stamp, so every keyframe pose is
     interpolated, never extrapolated, and final (a replay gives the same poses). Live
@@ -300,7 +305,7 @@ class KeyframeStage(Publisher):
                 self.frames_without_odometry += 1
                 done += 1
                 continue
-            settled = self.odometry.settled_stamp_ns()
+            settled = self.odometry.wheel_gyro.settled_stamp_ns()
             if settled is None or settled < frame.stamp_ns:
                 if not self.lossless and self.clock.now_ns() - frame.stamp_ns > self._max_wait_ns:
                     self.pending.popleft()
@@ -309,7 +314,7 @@ class KeyframeStage(Publisher):
                     continue
                 break
             self.pending.popleft()
-            self._take(frame, self.odometry.pose_at(frame.stamp_ns))
+            self._take(frame, self.odometry.wheel_gyro.pose_at(frame.stamp_ns))
             done += 1
         return done
 
@@ -328,7 +333,7 @@ class KeyframeStage(Publisher):
             if self.odometry is None:
                 self.frames_without_odometry += 1
                 continue
-            self._take(frame, self.odometry.pose_at(frame.stamp_ns))
+            self._take(frame, self.odometry.wheel_gyro.pose_at(frame.stamp_ns))
         return done
 
     def _take(self, frame: Frame, pose: PoseStamped | None) -> None:

@@ -157,7 +157,7 @@ class VisualOdometryConfig:
     """Floor visual odometry between consecutive keyframes (paper 003, Sec. IV-D); the
     descriptor mode is ``[floor_detector] mode`` (the keyframe's descriptor is reused)."""
 
-    enabled: bool = _f(False, "estimate the motion between consecutive keyframes from the floor camera")
+    enabled: bool = _f(True, "estimate the motion between consecutive keyframes from the floor camera")
     mode: str = _f("fused", "'fused': a measurement in the wheel + gyro filter; 'vision_only': the "
                    "chained steps are the odometry (no wheels; failed steps take the wheel + gyro "
                    "increment when there is one)", choices=("fused", "vision_only"))

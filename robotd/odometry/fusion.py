@@ -503,6 +503,14 @@ class OdometryFilter:
     # ---- output -------------------------------------------------------------------------
 
     @property
+    def wheel_gyro(self) -> OdometryFilter:
+        """The filter of the wheels and the gyro alone: the twin when visual odometry is
+        fused (``vo_twin``), else this one. The daemon chooses and poses keyframes on it, so
+        that the map does not depend on when a visual step reached the fused filter (live,
+        that is whenever the pipeline got to the keyframe; a replay must give the same map)."""
+        return self if self._twin is None else self._twin
+
+    @property
     def state(self) -> EkfState | None:
         """The full EKF state (None before the first message)."""
         return self._state

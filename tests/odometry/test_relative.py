@@ -158,3 +158,10 @@ def test_fused_filter_edges_come_from_its_wheel_and_gyro_twin():
     assert all(e[2] is None for e in edges[2:])
     # The fused pose was pulled straight; the twin's (and the plain filter's) was not.
     assert abs(fused.state.mean[IYAW]) < 0.3 * abs(plain.state.mean[IYAW])
+    # Keyframes are posed on the twin: the plain filter's poses, whatever VO did.
+    assert plain.wheel_gyro is plain and fused.wheel_gyro is not fused
+    t = fused.settled_stamp_ns()
+    assert t == plain.settled_stamp_ns()
+    p_twin, p_plain = fused.wheel_gyro.pose_at(t), plain.pose_at(t)
+    assert (p_twin.x_m, p_twin.y_m, p_twin.yaw_rad) == (p_plain.x_m, p_plain.y_m, p_plain.yaw_rad)
+    assert fused.pose_at(t).yaw_rad != pytest.approx(p_plain.yaw_rad, abs=1e-3)
