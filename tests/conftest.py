@@ -1,5 +1,6 @@
 """Settings shared by the whole test suite."""
 
+import robotd  # noqa: F401  (first: one BLAS thread, as the daemon runs; see robotd/__init__.py)
 from hypothesis import settings
 
 # Property tests check values, never speed: hypothesis' default 200 ms deadline per example
