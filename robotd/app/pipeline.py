@@ -496,6 +496,13 @@ class VisualOdometryStage:
                 self.fallback += 1
         self._prev_stamp_ns = kf.stamp_ns
 
+    def status_fragment(self) -> str:
+        """For STATUS: how many steps the floor measured (a dirty lens or a bare floor shows
+        here first)."""
+        if not self.steps:
+            return ""
+        return f"floor VO {100.0 * self.ok / self.steps:.0f} % of {self.steps} steps"
+
     def counters(self) -> dict[str, int]:
         out = {"vo_steps": self.steps, "vo_ok": self.ok, "vo_fallback": self.fallback,
                "vo_combined": self.combined}

@@ -527,3 +527,35 @@ def test_the_forward_stage_pairs_each_due_keyframe_with_the_nearest_forward_fram
     # The scripted motion: the camera turned 0.3 rad to the right and moved forward-right.
     assert got[0].dyaw_rad == pytest.approx(-0.3, abs=1e-9)
     assert got[0].bearing_rad == pytest.approx(-0.3, abs=1e-9)
+
+
+def test_visual_odometry_status_and_its_own_chain():
+    """STATUS says how many steps the floor measured; the VO-only chain takes each measured
+    step and, where one failed, the keyframe's wheel + gyro edge."""
+    from types import SimpleNamespace
+
+    from robotd.app.pipeline import VisualOdometryStage
+
+    steps = iter([None, (0.1, 0.0, 0.0), None, (0.0, 0.1, 0.0)])
+
+    class FakeVo:
+        params = SimpleNamespace(mode=4)
+
+        def step(self, _image):
+            d = next(steps)
+            ok = d is not None
+            return SimpleNamespace(ok=ok, reason="" if ok else "too_few_matches",
+                                   delta=np.array(d if ok else [np.nan] * 3),
+                                   covariance=np.eye(3) * 1e-6 if ok else np.full((3, 3), np.nan))
+
+    stage = VisualOdometryStage(FakeVo(), None, "vision_only")
+    assert stage.status_fragment() == ""
+    pose = PoseStamped(0, 1.0, 2.0, 0.0, np.eye(3))
+    wheel = (np.array([0.05, 0.0, 0.0]), np.eye(3) * 1e-6)
+    chain = []
+    for k in range(4):
+        kf = Keyframe(Frame(k, "floor", np.zeros((4, 4), np.uint8)), pose, odometry_edge=wheel)
+        stage.on_keyframe(kf)
+        chain.append(kf.visual_pose)
+    assert stage.status_fragment() == "floor VO 67 % of 3 steps"
+    assert np.allclose(chain, [[1.0, 2.0, 0.0], [1.1, 2.0, 0.0], [1.15, 2.0, 0.0], [1.15, 2.1, 0.0]])
