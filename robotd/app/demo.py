@@ -794,7 +794,7 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
     g = s.get("pose_graph")
     if g:
         print(file=f)
-        columns = [("odometry", g["odometry"]), ("loop-corr.", g["loop_corrected"])]
+        columns = [("wheel+gyro", g["odometry"]), ("loop-corr.", g["loop_corrected"])]
         if "vo_only" in g:
             columns.insert(1, ("VO only", g["vo_only"]))
         _print_comparison(f, f"at the {g['keyframes']} keyframes", columns, (
