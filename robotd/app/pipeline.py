@@ -57,7 +57,7 @@ from robotd.floor.vo import FloorVisualOdometry
 from robotd.io.store import MapStore
 from robotd.keyframes import KeyframeSelector, downsample
 from robotd.odometry.fusion import OdometryFilter
-from robotd.odometry.increments import combine_edges, odometry_edge
+from robotd.odometry.increments import combine_edges, edge_disagreement, odometry_edge
 
 log = logging.getLogger(__name__)
 
@@ -435,7 +435,9 @@ class VisualOdometryStage:
     the filter alone), and the keyframe's odometry edge becomes the wheel + gyro edge and
     the step combined as two independent measurements
     (:func:`robotd.odometry.increments.combine_edges`; the filter keeps a wheel + gyro twin
-    for those edges, ``vo_twin``), counted in ``vo_combined``. In both modes it keeps the
+    for those edges, ``vo_twin``), counted in ``vo_combined``; a step that disagrees with the
+    wheel + gyro edge beyond the filter's chi-square gate (``vo_gate_nis``) is left out of
+    the edge (``vo_disagreed``), as the filter leaves it out of its state. In both modes it keeps the
     visual odometry alone dead-reckoned (``Keyframe.visual_pose``). ``vision_only``: each successful step becomes the keyframe's
     odometry edge in the map (the pose graph's odometry), and a failed one falls back to
     the filter's increment (counted in ``vo_fallback``).
@@ -455,6 +457,7 @@ class VisualOdometryStage:
         self.ok = 0
         self.fallback = 0
         self.combined = 0
+        self.disagreed = 0
         self.failures = collections.Counter[str]()
 
     def subscriptions(self) -> Mapping[type, Handler]:
@@ -484,11 +487,13 @@ class VisualOdometryStage:
                                              result.delta if result.ok else None,
                                              result.covariance if result.ok else None)
             if step is not None:
-                if kf.odometry_edge is not None:
+                if kf.odometry_edge is None:
+                    kf.odometry_edge = step
+                elif edge_disagreement(kf.odometry_edge, step) > self.odometry.vo_gate_nis:
+                    self.disagreed += 1  # a wrong step (a look-alike lattice shift): wheels only
+                else:
                     kf.odometry_edge = combine_edges(kf.odometry_edge, step)
                     self.combined += 1
-                else:
-                    kf.odometry_edge = step
         elif self.mode == "vision_only" and not first:
             if step is not None:
                 kf.odometry_edge = step
@@ -505,7 +510,7 @@ class VisualOdometryStage:
 
     def counters(self) -> dict[str, int]:
         out = {"vo_steps": self.steps, "vo_ok": self.ok, "vo_fallback": self.fallback,
-               "vo_combined": self.combined}
+               "vo_combined": self.combined, "vo_disagreed": self.disagreed}
         out.update({f"vo_failed_{k}": n for k, n in sorted(self.failures.items())})
         return out
 

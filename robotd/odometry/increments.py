@@ -117,6 +117,15 @@ def combine_edges(a: tuple[np.ndarray, np.ndarray],
 _COMBINE_STEPS = 5
 
 
+def edge_disagreement(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> float:
+    """Mahalanobis distance squared between two independent measurements of one edge
+    (as :func:`combine_edges` takes them): ``e^T (A + B)^-1 e`` with ``e = log(a^-1 (+) b)``;
+    chi-square with 3 degrees of freedom when both are right."""
+    e = se2_log(between(np.asarray(a[0], float), np.asarray(b[0], float)))
+    s = np.asarray(a[1], float) + np.asarray(b[1], float)
+    return float(e @ np.linalg.solve(s, e))
+
+
 def _error_and_jacobian(z: np.ndarray, x: np.ndarray, eps: float = 1e-7) -> tuple[np.ndarray, np.ndarray]:
     """``log(z^-1 (+) x)`` and its Jacobian ``(3, 3)`` in a right perturbation of ``x``
     (central differences: the error's own Jacobian is near the identity)."""

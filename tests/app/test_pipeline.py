@@ -559,3 +559,37 @@ def test_visual_odometry_status_and_its_own_chain():
         chain.append(kf.visual_pose)
     assert stage.status_fragment() == "floor VO 67 % of 3 steps"
     assert np.allclose(chain, [[1.0, 2.0, 0.0], [1.1, 2.0, 0.0], [1.15, 2.0, 0.0], [1.15, 2.1, 0.0]])
+
+
+def test_fused_step_that_disagrees_with_the_wheels_stays_out_of_the_edge():
+    """Fused: a step within the gate is combined with the wheel + gyro edge; one 20 sigma
+    off (a look-alike shift) leaves the edge as the wheels measured it, and is counted."""
+    from types import SimpleNamespace
+
+    from robotd.app.pipeline import VisualOdometryStage
+    from robotd.odometry.fusion import OdometryFilter
+
+    steps = iter([None, (0.0502, 0.0, 0.0), (0.0502, 0.02, 0.0)])
+
+    class FakeVo:
+        params = SimpleNamespace(mode=4)
+
+        def step(self, _image):
+            d = next(steps)
+            ok = d is not None
+            return SimpleNamespace(ok=ok, reason="" if ok else "x", delta=np.array(d if ok else [np.nan] * 3),
+                                   covariance=np.eye(3) * 1e-6 if ok else np.full((3, 3), np.nan))
+
+    stage = VisualOdometryStage(FakeVo(), OdometryFilter(), "fused")
+    wheel = (np.array([0.05, 0.0, 0.0]), np.eye(3) * 1e-6)  # sigma 1 mm, 1 mrad
+    edges = []
+    for k in range(3):
+        kf = Keyframe(Frame(k, "floor", np.zeros((4, 4), np.uint8)), PoseStamped(0, 0.0, 0.0, 0.0, np.eye(3)),
+                      odometry_edge=wheel)
+        stage.on_keyframe(kf)
+        edges.append(kf.odometry_edge)
+    c = stage.counters()
+    assert (c["vo_combined"], c["vo_disagreed"]) == (1, 1)
+    assert edges[1][0] == pytest.approx([0.0501, 0.0, 0.0], abs=1e-6)  # the two averaged
+    assert edges[1][1] == pytest.approx(np.eye(3) * 0.5e-6, rel=1e-3)
+    assert edges[2] is wheel
