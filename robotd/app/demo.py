@@ -811,7 +811,8 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
     v = s.get("visual_odometry")
     if v:
         how = (f"{v.get('vo_combined', 0)} graph edges combined with the wheel + gyro edge, "
-               f"{v.get('vo_disagreed', 0)} steps left out (disagreeing with it)"
+               f"{v.get('vo_disagreed', 0)} steps left out (disagreeing with it); the live filter "
+               f"fused {v.get('vo_fused', 0)}, its gate refused {v.get('vo_rejected_by_filter', 0)}"
                if v["mode"] == "fused" else f"{v.get('vo_fallback', 0)} fell back to the wheel + gyro edge")
         print(f"floor visual odometry ({v['mode']}): {v.get('vo_ok', 0)} of {v.get('vo_steps', 0)} steps "
               f"measured; {how}", file=f)
