@@ -18,8 +18,18 @@ Throughput: messages per second of the EKF against the wheel-only integrator (th
 baseline, timed in the same run), median and interquartile range over repeats after a
 warm-up.
 
+With ``--late-vo``, floor visual odometry steps are added: a keyframe every
+``--vo-every`` feedback packets, its step the true motion since the previous keyframe plus
+noise drawn from the covariance handed over with it (so the steps are exactly as good as
+they claim). The fused filter (``vo_twin``, as the daemon builds it) gets them at once, or
+late by a random 0 to ``--vo-late-ms`` (the pipeline's latency), or late without the
+journal that lets it go back to the frame's time (the filter before 128adcb). Reported:
+the errors of each (the late one must equal the immediate one bit for bit), the steps the
+filter's gate refused, and the CPU time of each against the filter without visual steps
+(the baseline, timed in the same run).
+
 Run: ``.venv/bin/python bench/bench_odometry.py [--route office] [--seeds 5]
-[--yaw-source raw_gyro] [--repeats 3] [--out bench/results/odometry.json]``.
+[--yaw-source raw_gyro] [--repeats 3] [--late-vo] [--out bench/results/odometry.json]``.
 """
 
 from __future__ import annotations
@@ -76,6 +86,71 @@ def run_fused(msgs: list[WheelTicks | YawRate]) -> tuple[np.ndarray, OdometryFil
     return np.asarray(out), f
 
 
+VO_SIGMA = (0.0005, 0.0005, 0.001)  # m, m, rad: one synthetic visual step's noise
+
+
+def run_with_vo(msgs: list[WheelTicks | YawRate], stream: KobukiFeedback, every: int,
+                late_max: int, journal: bool, seed: int) -> tuple[np.ndarray, OdometryFilter]:
+    """The fused filter (``vo_twin``) with a synthetic visual step at every ``every``-th
+    wheel message, handed over ``0..late_max`` wheel messages after its frame (uniform,
+    in keyframe order); ``journal=False`` applies late steps to the current state (no
+    going back). Poses ``(N, 3)`` after each wheel message (the live output), the filter."""
+    from robotd.base.geometry import between
+
+    rng = np.random.default_rng(1000 + seed)  # the steps' noise: the same whatever the latency
+    rng_late = np.random.default_rng(2000 + seed)
+    f = OdometryFilter(params=EkfParams(), vo_twin=True)
+    if not journal:
+        f._journal = None  # the filter as it was before the journal
+    cov = np.diag(np.square(VO_SIGMA))
+    due: list[tuple[int, int, int | None, np.ndarray | None]] = []
+    prev: tuple[int, int] | None = None  # (wheel index, stamp) of the last keyframe
+    out = []
+    k = -1
+    for msg in msgs:
+        if not isinstance(msg, WheelTicks):
+            f.on_yaw_rate(msg)
+            continue
+        k += 1
+        f.on_wheels(msg)
+        if k % every == every - 1:
+            delta = None
+            if prev is not None:
+                delta = between(stream.true_pose[prev[0]], stream.true_pose[k]) + rng.normal(0.0, VO_SIGMA)
+            at = max(k + int(rng_late.integers(0, late_max + 1)), due[-1][0] if due else 0)
+            due.append((at, int(msg.stamp_ns), None if prev is None else prev[1], delta))
+            prev = (k, int(msg.stamp_ns))
+        while due and due[0][0] <= k:
+            _, t, t_prev, delta = due.pop(0)
+            f.on_visual_odometry(t, t_prev, delta, None if delta is None else cov)
+        p = f.pose()
+        out.append((p.x_m, p.y_m, p.yaw_rad))
+    for _, t, t_prev, delta in due:  # steps still pending at the end: the last pose gets them
+        f.on_visual_odometry(t, t_prev, delta, None if delta is None else cov)
+    p = f.pose()
+    out[-1] = (p.x_m, p.y_m, p.yaw_rad)
+    return np.asarray(out), f
+
+
+def evaluate_late_vo(stream: KobukiFeedback, yaw_source: str, every: int, late_max: int,
+                     seed: int) -> dict[str, Any]:
+    """Errors of the fused filter given visual steps at once, late, and late without the
+    journal; bit-for-bit agreement of the first two."""
+    msgs = stream.messages(yaw_source)
+    res: dict[str, Any] = {}
+    poses = {}
+    for name, late, journal in (("vo_at_once", 0, True), ("vo_late", late_max, True),
+                                ("vo_late_no_journal", late_max, False)):
+        est, f = run_with_vo(msgs, stream, every, late, journal, seed)
+        poses[name] = est
+        res[name] = {**trajectory_errors(stream.true_pose, est).as_dict(),
+                     "vo_fused": f.counters.vo_fused, "vo_rejected": f.counters.vo_rejected}
+    d = poses["vo_late"][-1] - poses["vo_at_once"][-1]
+    d[2] = (d[2] + np.pi) % (2 * np.pi) - np.pi
+    res["late_minus_at_once_max_abs"] = float(np.abs(d).max())
+    return res
+
+
 def evaluate_seed(stream: KobukiFeedback, yaw_source: str) -> dict[str, Any]:
     """Errors of both estimators on one simulated run."""
     msgs = stream.messages(yaw_source)
@@ -101,6 +176,12 @@ def main(argv: list[str] | None = None) -> int:
                     choices=("raw_gyro", "raw_gyro_samples", "inertial"),
                     help="which gyro reading feeds the EKF (raw_gyro is the config default)")
     ap.add_argument("--repeats", type=int, default=3, help="timed repeats for the throughput")
+    ap.add_argument("--late-vo", action="store_true",
+                    help="add synthetic visual steps, at once and late (see the module text)")
+    ap.add_argument("--vo-every", type=int, default=6,
+                    help="a keyframe every this many feedback packets (6 = 8 Hz, as the demo)")
+    ap.add_argument("--vo-late-ms", type=float, default=500.0,
+                    help="largest latency of a visual step, ms (the demo: 53 median, 527 max)")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
     if args.seeds < 1:
@@ -118,6 +199,10 @@ def main(argv: list[str] | None = None) -> int:
         stream = simulate_kobuki(motion, sensor_params, np.random.default_rng(seed))
         streams.append(stream)
         per_seed.append({"seed": seed, **evaluate_seed(stream, args.yaw_source)})
+        if args.late_vo:
+            late_max = int(round(args.vo_late_ms / 20.0))  # feedback packets are 20 ms apart
+            per_seed[-1]["late_vo"] = evaluate_late_vo(stream, args.yaw_source, args.vo_every,
+                                                       late_max, seed)
 
     rows = []
     for r in per_seed:
@@ -138,6 +223,39 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print_table(["seed", "method", "end pos err m", "end hdg err deg", "max drift m/100m",
                  "end drift m/100m", "RMS ATE m", "errors drawn"], rows)
+
+    late_vo_timing = None
+    if args.late_vo:
+        print()
+        vrows = []
+        names = ("vo_at_once", "vo_late", "vo_late_no_journal")
+        for r in per_seed:
+            lv = r["late_vo"]
+            for name in names:
+                m = lv[name]
+                vrows.append([r["seed"], name.replace("_", " "), round(m["end_position_error_m"], 3),
+                              round(m["end_heading_error_deg"], 2), round(m["rmse_position_m"], 3),
+                              f"{m['vo_fused']} / {m['vo_rejected']}"])
+            vrows.append([r["seed"], "late - at once (max abs)", f"{lv['late_minus_at_once_max_abs']:.1e}",
+                          "", "", ""])
+        print_table(["seed", "fused filter", "end pos err m", "end hdg err deg", "RMS ATE m",
+                     "steps fused / refused"], vrows)
+        msgs0 = streams[0].messages(args.yaw_source)
+        late_max = int(round(args.vo_late_ms / 20.0))
+        t_none = time_repeats(lambda: run_fused(msgs0), repeats=args.repeats, warmup=1)
+        t_once = time_repeats(lambda: run_with_vo(msgs0, streams[0], args.vo_every, 0, True, 0),
+                              repeats=args.repeats, warmup=1)
+        t_late = time_repeats(lambda: run_with_vo(msgs0, streams[0], args.vo_every, late_max, True, 0),
+                              repeats=args.repeats, warmup=1)
+        t_old = time_repeats(lambda: run_with_vo(msgs0, streams[0], args.vo_every, late_max, False, 0),
+                             repeats=args.repeats, warmup=1)
+        late_vo_timing = {"no_vo": t_none, "vo_at_once": t_once, "vo_late": t_late,
+                          "vo_late_no_journal": t_old}
+        print()
+        print_table(["filter (seed 0)", "median s", "IQR s", "x the filter without VO"], [
+            [n, round(t["median_s"], 2), round(t["iqr_s"], 2), round(t["median_s"] / t_none["median_s"], 2)]
+            for n, t in (("no visual steps (baseline)", t_none), ("VO at once", t_once),
+                         ("VO late, journal", t_late), ("VO late, no journal", t_old))])
 
     # Throughput on the first seed's messages: the EKF against the wheel-only baseline.
     msgs = streams[0].messages(args.yaw_source)
@@ -168,7 +286,8 @@ def main(argv: list[str] | None = None) -> int:
         "benchmark": "odometry",
         "machine": machine_info(),
         "args": {"route": args.route, "seeds": args.seeds, "yaw_source": args.yaw_source,
-                 "repeats": args.repeats},
+                 "repeats": args.repeats, "late_vo": args.late_vo, "vo_every": args.vo_every,
+                 "vo_late_ms": args.vo_late_ms},
         "route": {"name": args.route, "length_m": motion.length_m, "duration_s": motion.duration_s},
         "limits": dataclasses.asdict(limits),
         "sensor_params": dataclasses.asdict(sensor_params),
@@ -176,6 +295,8 @@ def main(argv: list[str] | None = None) -> int:
         "per_seed": per_seed,
         "median": median,
         "timing": timing,
+        "late_vo_timing": late_vo_timing,
+        "vo_sigma": VO_SIGMA if args.late_vo else None,
     }
     path = write_json(args.out, payload)
     print(f"wrote {path}")
