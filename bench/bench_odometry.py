@@ -200,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
         streams.append(stream)
         per_seed.append({"seed": seed, **evaluate_seed(stream, args.yaw_source)})
         if args.late_vo:
-            late_max = int(round(args.vo_late_ms / 20.0))  # feedback packets are 20 ms apart
+            late_max = round(args.vo_late_ms / 20.0)  # feedback packets are 20 ms apart
             per_seed[-1]["late_vo"] = evaluate_late_vo(stream, args.yaw_source, args.vo_every,
                                                        late_max, seed)
 
@@ -241,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
         print_table(["seed", "fused filter", "end pos err m", "end hdg err deg", "RMS ATE m",
                      "steps fused / refused"], vrows)
         msgs0 = streams[0].messages(args.yaw_source)
-        late_max = int(round(args.vo_late_ms / 20.0))
+        late_max = round(args.vo_late_ms / 20.0)
         t_none = time_repeats(lambda: run_fused(msgs0), repeats=args.repeats, warmup=1)
         t_once = time_repeats(lambda: run_with_vo(msgs0, streams[0], args.vo_every, 0, True, 0),
                               repeats=args.repeats, warmup=1)
