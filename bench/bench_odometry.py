@@ -48,6 +48,7 @@ try:
 except ImportError:  # run as a script: bench/ is on sys.path
     from common import machine_info, print_table, time_repeats, write_json
 
+from robotd.base.geometry import between
 from robotd.base.messages import WheelTicks, YawRate
 from robotd.io.trajectory import trajectory_errors
 from robotd.odometry.ekf import EkfParams
@@ -95,8 +96,6 @@ def run_with_vo(msgs: list[WheelTicks | YawRate], stream: KobukiFeedback, every:
     wheel message, handed over ``0..late_max`` wheel messages after its frame (uniform,
     in keyframe order); ``journal=False`` applies late steps to the current state (no
     going back). Poses ``(N, 3)`` after each wheel message (the live output), the filter."""
-    from robotd.base.geometry import between
-
     rng = np.random.default_rng(1000 + seed)  # the steps' noise: the same whatever the latency
     rng_late = np.random.default_rng(2000 + seed)
     f = OdometryFilter(params=EkfParams(), vo_twin=True)
