@@ -12,10 +12,12 @@ import os
 import signal
 import sys
 from pathlib import Path
+from typing import NoReturn
 
 from robotd import __version__
 
 from robotd.base.errors import RobotdError
+from robotd.base.files import nonempty_path
 
 log = logging.getLogger("robotd")
 
@@ -37,8 +39,15 @@ examples:
 """
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its usage errors on one line (the CLI contract: one line on stderr)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="robotd",
         description="On-robot odometry and loop-closure daemon for Turtlebot-class robots.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -64,7 +73,7 @@ def _add_daemon_commands(sub: argparse._SubParsersAction) -> None:
     or the virtual robot."""
     run = sub.add_parser("run", help="run the daemon on real hardware, as the config says",
                          description="Run the daemon on real hardware (the systemd service's command).")
-    run.add_argument("--config", type=Path, required=True, help="TOML config file")
+    run.add_argument("--config", type=nonempty_path, required=True, help="TOML config file")
     run.set_defaults(func=_cmd_run)
 
     rec = sub.add_parser("record", help="run the daemon and record everything to an MCAP file",
@@ -73,13 +82,13 @@ def _add_daemon_commands(sub: argparse._SubParsersAction) -> None:
                                      "with --virtual; /tf, /tf_static and CameraInfo), readable by "
                                      "Foxglove and ros2 bag. Frames are JPEG or PNG as the config's "
                                      "[recording] section says (default: JPEG, quality 15).")
-    rec.add_argument("output", type=Path, metavar="OUT.mcap")
+    rec.add_argument("output", type=nonempty_path, metavar="OUT.mcap")
     rec.add_argument("--virtual", action="store_true",
                      help="record the built-in virtual robot (takes the demo's options)")
-    rec.add_argument("--config", type=Path, default=None,
+    rec.add_argument("--config", type=nonempty_path, default=None,
                      help="config file (required on real hardware)")
     rec.add_argument("--route", default="office", help="virtual robot's route")
-    rec.add_argument("--floor", action="append", type=Path, default=None, metavar="FILE",
+    rec.add_argument("--floor", action="append", type=nonempty_path, default=None, metavar="FILE",
                      help="virtual robot's floor photo(s)")
     rec.add_argument("--floor-pattern", choices=("planks", "tiles"), default=None)
     rec.add_argument("--duration", type=float, default=None, metavar="S")
@@ -89,9 +98,10 @@ def _add_daemon_commands(sub: argparse._SubParsersAction) -> None:
     rep = sub.add_parser("replay", help="feed a recording through the daemon",
                          description="Replay an MCAP recording through the daemon (odometry, "
                                      "keyframes, floor descriptors), writing the map the config names.")
-    rep.add_argument("recording", type=Path, metavar="FILE.mcap")
-    rep.add_argument("--config", type=Path, default=None, help="config file (default: defaults)")
-    rep.add_argument("--map", type=Path, default=None, help="map file to write (overrides the config)")
+    rep.add_argument("recording", type=nonempty_path, metavar="FILE.mcap")
+    rep.add_argument("--config", type=nonempty_path, default=None, help="config file (default: defaults)")
+    rep.add_argument("--map", type=nonempty_path, default=None,
+                     help="map file to write (overrides the config)")
     rep.add_argument("--speed", type=float, default=None,
                      help="replay at this multiple of recorded time (default: as fast as possible)")
     rep.set_defaults(func=_cmd_replay)
@@ -109,7 +119,7 @@ def _add_config_commands(sub: argparse._SubParsersAction) -> None:
     cfg = sub.add_parser("config", help="check or print configuration files")
     cfg_sub = cfg.add_subparsers(dest="config_command", metavar="ACTION", required=True)
     chk = cfg_sub.add_parser("check", help="validate a config file")
-    chk.add_argument("file", type=Path)
+    chk.add_argument("file", type=nonempty_path)
     chk.set_defaults(func=_cmd_config_check)
     dflt = cfg_sub.add_parser("default", help="print the default configuration as TOML")
     dflt.set_defaults(func=_cmd_config_default)
@@ -201,9 +211,15 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from robotd.base.config import Config, load_config, replace
     from robotd.base.errors import ConfigError
     from robotd.app.service import run_replay
+    from robotd.base.files import check_utf8_path
 
-    if args.speed is not None and not args.speed > 0:
-        raise ConfigError(f"--speed must be positive, got {args.speed}")
+    if args.speed is not None and not MIN_REPLAY_SPEED <= args.speed <= MAX_REPLAY_SPEED:
+        raise ConfigError(f"--speed must be from {MIN_REPLAY_SPEED:g} to {MAX_REPLAY_SPEED:g} times "
+                          f"recorded time, got {args.speed:g} (leave it out to replay as fast as "
+                          "possible)")
+    check_input_file(args.recording, "recording")
+    if args.map is not None:
+        check_utf8_path(args.map, "--map")
     cfg = load_config(args.config) if args.config else Config()
     cfg = replace(cfg, "floor_camera", source="virtual")
     if args.map is not None:
@@ -212,12 +228,31 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     done = (f"{r['odometry_samples']} odometry samples, {r['frames']} frames "
             f"({r['frames_unsynced']} without odometry), {r['keyframes']} keyframes -> {cfg.map.path}")
     if r["interrupted"]:
-        print(f"replay of {args.recording} interrupted ({r['interrupted']}) after {r['recording_s']:.1f} "
-              f"of its {r['recording_total_s']:.1f} s, in {r['wall_s']:.1f} s; {done}")
+        print(f"robotd: replay of {args.recording} interrupted ({r['interrupted']}) after "
+              f"{r['recording_s']:.1f} of its {r['recording_total_s']:.1f} s, in {r['wall_s']:.1f} s; "
+              f"the run is closed in the map; {done}", file=sys.stderr)
         return 128 + signal.Signals[r["interrupted"]].value
     print(f"replayed {args.recording}: {r['recording_s']:.1f} s of recording in {r['wall_s']:.1f} s; "
           f"{done}")
     return 0
+
+
+MIN_REPLAY_SPEED = 0.01
+MAX_REPLAY_SPEED = 1000.0
+"""``robotd replay --speed`` bounds (times recorded time); without it, as fast as possible."""
+
+
+def check_input_file(path: Path, what: str) -> None:
+    """ConfigError unless ``path`` is a regular file (not missing, a folder, a device or a
+    pipe that would be read forever)."""
+    from robotd.base.errors import ConfigError
+    from robotd.base.files import describe_path_kind
+
+    kind = describe_path_kind(path)
+    if kind == "missing":
+        raise ConfigError(f"{what} {path}: no such file")
+    if kind != "a regular file":
+        raise ConfigError(f"{what} {path} is {kind}, not a file")
 
 
 def _cmd_config_check(args: argparse.Namespace) -> int:
@@ -253,6 +288,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"robotd: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        print("robotd: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:
         # The reader of our output went away (`robotd ... | head`): stop quietly, as a
@@ -260,6 +296,20 @@ def main(argv: list[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 128 + signal.SIGPIPE
+    except OSError as exc:
+        # The last resort for a file-system failure no command foresaw (a folder it may not
+        # enter, a full or read-only disk): one line, as for a known error.
+        if args.traceback:
+            raise
+        where = f": {exc.filename}" if exc.filename else ""
+        print(f"robotd: error: {exc.strerror or exc}{where}", file=sys.stderr)
+        return 2
+    except UnicodeEncodeError as exc:
+        if args.traceback:
+            raise
+        print(f"robotd: error: a path or name that is not valid UTF-8 ({exc.reason}); rename it",
+              file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

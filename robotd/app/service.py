@@ -22,7 +22,7 @@ import numpy as np
 from robotd.app.assemble import assemble_daemon, load_calibration, open_map
 from robotd.base.clock import Clock, MonotonicClock
 from robotd.base.config import Config, to_toml
-from robotd.base.errors import ConfigError
+from robotd.base.errors import ConfigError, DriverError
 from robotd.base.messages import OdometryUpdate
 
 log = logging.getLogger(__name__)
@@ -109,7 +109,13 @@ class StartupSignals:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        for sig, handler in self._old.items():
+        self.release()
+
+    def release(self) -> None:
+        """Give the signals back to their previous handlers (once the daemon has stopped,
+        a Ctrl-C must interrupt what follows, not be held for a daemon that is gone)."""
+        old, self._old = self._old, {}
+        for sig, handler in old.items():
             signal.signal(sig, handler)
 
     def _handler(self, signum: int, _frame: Any) -> None:
@@ -118,6 +124,12 @@ class StartupSignals:
             self._daemon.signalled(name)
         elif not self.received:
             self.received = name
+
+    def stop_if_received(self) -> None:
+        """KeyboardInterrupt if a signal arrived already: called before anything is written,
+        so that a Ctrl-C during start-up leaves the outputs as they were."""
+        if self.received and self._daemon is None:
+            raise KeyboardInterrupt(self.received)
 
     def attach(self, daemon: Any) -> None:
         """From now on signals go to ``daemon``, and one held already is handed over."""
@@ -137,7 +149,11 @@ def run_service(cfg: Config, record: Path | None = None, *, config_path: Path | 
     (:class:`~robotd.app.reload.ConfigReloader`; ``log_level_fixed``: ``--log-level`` was
     given and stays).
     """
-    with StartupSignals() as early:
+    from robotd.io.maplock import hold_map_lock
+
+    # The map's lock first: a second daemon on the same map is refused before it opens a
+    # device, and the first one's run is never touched.
+    with StartupSignals() as early, hold_map_lock(Path(cfg.map.path).absolute()):
         return _run_service(cfg, record, config_path, log_level_fixed, early)
 
 
@@ -225,16 +241,26 @@ def run_replay(cfg: Config, path: Path, speed: float | None) -> dict[str, Any]:
     from robotd.app.notify import Notifier
     from robotd.base.clock import ManualClock
 
+    from robotd.io.maplock import hold_map_lock
+
     clock = ManualClock()
-    with ReplayDriver(path, clock, speed) as replay:
+    with StartupSignals() as early, hold_map_lock(Path(cfg.map.path).absolute()), \
+            ReplayDriver(path, clock, speed) as replay:
         span = replay.time_range_ns
-        if span is None:
-            raise ConfigError(f"{path}: the recording holds no messages")
+        if span is None or replay.peek() is None:
+            # Checked before the map is opened: a file robotd cannot replay adds no empty run.
+            raise DriverError(f"{path}: no message robotd replays (wheel ticks, yaw rates, camera "
+                              f"frames); the file holds {replay.describe_contents()}")
+        calibration = load_calibration(cfg)
+        early.stop_if_received()
         clock.set_ns(span[0])
         with open_map(cfg, clock=clock) as store:
             daemon = assemble_daemon(cfg, clock, {"replay": replay}, store, Notifier(), lossless=True,
+                                     calibration=calibration, load_calibration_file=False,
                                      driver_stats=lambda: {"replay": replay.stats()})
+            early.attach(daemon)
             report = daemon.run(stop_when=lambda: replay_finished(replay, daemon))
+        early.release()
     c = report.counters
     interrupted = report.stopped_by if report.stopped_by in ("SIGINT", "SIGTERM") else None
     reached_ns = min(clock.now_ns(), span[1]) if interrupted else span[1]
