@@ -72,9 +72,13 @@ def _acquire(map_path: Path) -> int:
     folder = map_path.parent
     if not folder.is_dir():
         raise MapStoreError(f"cannot create map file {map_path}: directory {folder} does not exist")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise MapStoreError(f"map file {map_path}: its folder {folder} is read-only or not ours "
-                            "(the map writes its lock, -wal and -shm files beside it)")
+    if not os.access(folder, os.X_OK):
+        raise MapStoreError(f"map file {map_path}: cannot enter its folder {folder} "
+                            "(permission denied: run as the user the map belongs to)")
+    if not os.access(folder, os.W_OK):
+        raise MapStoreError(f"map file {map_path}: its folder {folder} is not writable (read-only "
+                            "file system or permissions; the map writes its lock, -wal and -shm "
+                            "files beside it)")
     while True:
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)

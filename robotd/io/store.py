@@ -265,6 +265,9 @@ class MapStore:
         if synchronous not in ("NORMAL", "FULL"):
             raise ValueError(f"synchronous must be 'NORMAL' or 'FULL', got {synchronous!r}")
         path = Path(path).absolute()
+        if path.parent.is_dir() and not os.access(path.parent, os.X_OK):
+            raise MapStoreError(f"map file {path}: cannot enter its folder {path.parent} "
+                                "(permission denied: run as the user the map belongs to)")
         migrations = MIGRATIONS
         target = max(migrations)
 
