@@ -12,7 +12,7 @@ import os
 import signal
 import sys
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from robotd import __version__
 
@@ -181,7 +181,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.log_level is None:
         logging.getLogger().setLevel(cfg.daemon.log_level.upper())
-    return run_service(cfg, config_path=args.config, log_level_fixed=args.log_level is not None)
+    return run_service(cfg, config_path=args.config, log_level_fixed=args.log_level is not None,
+                       startup=args.startup)
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
@@ -195,7 +196,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         out = args.output.with_name(args.output.stem + "-demo")
         s = run_demo(cfg, out=out, route=args.route, floor_files=tuple(str(f) for f in args.floor or ()),
                      floor_pattern=args.floor_pattern, duration_s=args.duration, seed=args.seed,
-                     record=args.output)
+                     record=args.output, startup=args.startup)
         print_summary(s, sys.stdout)
         print(f"recording: {args.output} ({args.output.stat().st_size / 1e6:.1f} MB); "
               f"demo outputs in {out}")
@@ -204,7 +205,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         raise ConfigError("robotd record needs --config on real hardware (or --virtual)")
     from robotd.app.service import run_service
 
-    return run_service(cfg, record=args.output)
+    return run_service(cfg, record=args.output, startup=args.startup)
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
@@ -224,7 +225,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     cfg = replace(cfg, "floor_camera", source="virtual")
     if args.map is not None:
         cfg = replace(cfg, "map", path=str(args.map))
-    r = run_replay(cfg, args.recording, args.speed)
+    r = run_replay(cfg, args.recording, args.speed, startup=args.startup)
     done = (f"{r['odometry_samples']} odometry samples, {r['frames']} frames "
             f"({r['frames_unsynced']} without odometry), {r['keyframes']} keyframes -> {cfg.map.path}")
     if r["interrupted"]:
@@ -270,9 +271,35 @@ def _cmd_config_default(args: argparse.Namespace) -> int:
     return 0
 
 
+DAEMON_COMMANDS = ("run", "record", "replay", "demo")
+"""Commands that run the daemon: SIGINT/SIGTERM stay held until it takes them over."""
+
+
 def main(argv: list[str] | None = None) -> int:
+    from robotd.app.signals import Interrupted, StartupSignals
+
+    # From the first line: building the parser imports the simulator and the calibration
+    # tools, which takes a second on a loaded robot; a Ctrl-C then is held, not a traceback.
+    startup = StartupSignals().__enter__()
+    try:
+        return _main(argv, startup)
+    except Interrupted as exc:
+        print("robotd: interrupted during start-up; nothing was written", file=sys.stderr)
+        return exc.exit_status
+    finally:
+        startup.release()
+
+
+def _main(argv: list[str] | None, startup: Any) -> int:
+    from robotd.app.signals import Interrupted
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command in DAEMON_COMMANDS:
+        args.startup = startup  # held until the daemon runs (robotd.app.signals)
+    else:  # a Ctrl-C from now on interrupts at once
+        startup.release()
+        startup.stop_if_received()
     # The demo (and recording the virtual robot) shows its own progress line; its log is
     # warnings only unless asked.
     quiet = args.command == "demo" or (args.command == "record" and args.virtual)
@@ -287,6 +314,8 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"robotd: error: {exc}", file=sys.stderr)
         return 2
+    except Interrupted:
+        raise  # held during start-up: main says so
     except KeyboardInterrupt:
         print("robotd: interrupted", file=sys.stderr)
         return 130

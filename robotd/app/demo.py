@@ -107,7 +107,7 @@ def run_from_args(args: argparse.Namespace) -> int:
                        duration_s=args.duration, seed=args.seed,
                        realtime=args.realtime, plot=not args.no_plot, record=args.record,
                        base=args.base, can_convention=args.can_dbc, can_faults=args.can_faults,
-                       kidnap=kidnap)
+                       kidnap=kidnap, startup=getattr(args, "startup", None))
     print_summary(summary, sys.stdout)
     return exit_status(summary)
 
@@ -223,7 +223,8 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
              realtime: bool = False, plot: bool = True, record: Path | None = None,
              observers: tuple[Any, ...] = (), base: str = "kobuki",
              can_convention: str = "diff_drive", can_faults: bool = False,
-             kidnap: tuple[float, float, float] | None = None) -> dict[str, Any]:
+             kidnap: tuple[float, float, float] | None = None,
+             startup: Any = None) -> dict[str, Any]:
     """Run the daemon on the virtual robot; returns the summary (also written as JSON).
     ``observers``: extra pipeline stages that watch the run (the benchmarks use this).
     ``base``: ``"kobuki"`` or ``"can"`` (the same sensor streams as ``can_convention``
@@ -237,7 +238,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     something other than an earlier demo's map (which is left as it is).
     """
     from robotd.app.assemble import load_calibration
-    from robotd.app.service import StartupSignals
+    from robotd.app.signals import held_signals
     from robotd.base.camera import FloorCameraModel
     from robotd.base.clock import ManualClock
     from robotd.base.config import replace
@@ -246,7 +247,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
 
     # Everything is checked before the output folder is touched: a refused demo leaves the
     # previous demo's outputs (and anything else in --out) exactly as they were.
-    with StartupSignals() as early:
+    with held_signals(startup) as early:
         check_demo_arguments(duration_s=duration_s, seed=seed, kidnap=kidnap, record=record, out=out)
         calibration = load_calibration(base_cfg)
         clock = ManualClock()
