@@ -713,7 +713,7 @@ def _graph_summary(map_path: Path, robot: Any, c: dict[str, int],
     import numpy as np
 
     from robotd.io.store import MapStore
-    from robotd.io.trajectory import relative_pose_error, trajectory_errors
+    from robotd.io.trajectory import relative_pose_error, trajectory_errors, write_tum
 
     with MapStore.open(map_path, create=False) as store:
         kfs = list(store.keyframes())
@@ -724,6 +724,9 @@ def _graph_summary(map_path: Path, robot: Any, c: dict[str, int],
     kfs = [k for k in kfs if k.id in opt]
     odometry = np.array([[k.x_m, k.y_m, k.yaw_rad] for k in kfs])  # wheel + gyro (KeyframeStage)
     optimized = np.array([opt[k.id] for k in kfs])
+    # Every trajectory the summary prints is a file, so evo compares them all.
+    stamps = np.array([k.stamp_ns for k in kfs], dtype=np.int64)
+    write_tum(map_path.parent / "corrected.tum", stamps, optimized)
     truth = robot.motion.pose_at(np.array([k.stamp_ns for k in kfs]) / 1e9)
     out: dict[str, Any] = {"keyframes": len(kfs), "loops_in_graph": len(loops),
                            **{k: v for k, v in c.items() if k.startswith(("loops_", "graph_"))}}
@@ -731,6 +734,8 @@ def _graph_summary(map_path: Path, robot: Any, c: dict[str, int],
     if visual_poses and all(k.id in visual_poses for k in kfs):
         columns.insert(1, ("vo_only", np.array([visual_poses[k.id] for k in kfs])))
     for name, est in columns:
+        if name != "loop_corrected":
+            write_tum(map_path.parent / f"{'keyframes' if name == 'odometry' else name}.tum", stamps, est)
         e = trajectory_errors(truth, est)
         rpe_t, rpe_r = relative_pose_error(truth, est)
         out[name] = {"end_position_error_m": e.end_position_error_m,

@@ -52,6 +52,14 @@ def test_short_demo_writes_a_consistent_map_and_trajectories(tmp_path: Path):
     png = cv2.imread(str(tmp_path / "trajectories.png"))
     assert png is not None and png.shape[0] > 400 and png.std() > 10
     assert json.loads((tmp_path / "summary.json").read_text())["keyframes"] == s["keyframes"]
+    # Every trajectory the summary prints is a TUM file: the same figures come back from it.
+    kf_stamps, corrected = read_tum(tmp_path / "corrected.tum")
+    _, at_keyframes = read_tum(tmp_path / "keyframes.tum")
+    assert len(kf_stamps) == s["pose_graph"]["keyframes"] and np.all(np.diff(kf_stamps) > 0)
+    truth = motion.pose_at(kf_stamps / 1e9)
+    for name, est in (("loop_corrected", corrected), ("odometry", at_keyframes)):
+        ate = float(np.sqrt(np.mean(np.sum((est[:, :2] - truth[:, :2]) ** 2, axis=1))))
+        assert ate == pytest.approx(s["pose_graph"][name]["ate_rmse_m"], abs=2e-6), name
 
 
 @pytest.mark.slow
