@@ -241,7 +241,6 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     from robotd.app.signals import held_signals
     from robotd.base.camera import FloorCameraModel
     from robotd.base.clock import ManualClock
-    from robotd.base.config import replace
     from robotd.io.maplock import hold_map_lock
     from sim.robot import VirtualRobot, VirtualRobotSettings
 

@@ -11,8 +11,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import signal
-import threading
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, Callable
