@@ -97,11 +97,12 @@ def _add_daemon_commands(sub: argparse._SubParsersAction) -> None:
 
     rep = sub.add_parser("replay", help="feed a recording through the daemon",
                          description="Replay an MCAP recording through the daemon (odometry, "
-                                     "keyframes, floor descriptors), writing the map the config names.")
+                                     "keyframes, floor descriptors), writing the map --map names.")
     rep.add_argument("recording", type=nonempty_path, metavar="FILE.mcap")
     rep.add_argument("--config", type=nonempty_path, default=None, help="config file (default: defaults)")
-    rep.add_argument("--map", type=nonempty_path, default=None,
-                     help="map file to write (overrides the config)")
+    rep.add_argument("--map", type=nonempty_path, required=True,
+                     help="map file to write (created, or continued if it exists); required, so "
+                          "that a replay never writes into the service's map by accident")
     rep.add_argument("--speed", type=float, default=None,
                      help="replay at this multiple of recorded time (default: as fast as possible)")
     rep.set_defaults(func=_cmd_replay)

@@ -398,6 +398,14 @@ def test_replay_refuses_a_speed_it_cannot_keep(speed: str, material: Path, tmp_p
     assert list(tmp_path.iterdir()) == []
 
 
+def test_replay_needs_a_map_named_on_its_command_line(material: Path, tmp_path: Path):
+    """Without --map a replay wrote into [map] path: the live service's map, given the
+    service's config."""
+    r = run("replay", material / "drive.mcap", cwd=tmp_path)
+    assert_refused(r, "the following arguments are required: --map")
+    assert list(tmp_path.iterdir()) == []
+
+
 def _write_mcap(path: Path, topic: str, schema_name: str, encoding: str, payload: bytes) -> None:
     from mcap.writer import Writer
 
