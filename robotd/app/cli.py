@@ -269,9 +269,9 @@ def _cmd_config_check(args: argparse.Namespace) -> int:
 
 
 def _cmd_config_default(args: argparse.Namespace) -> int:
-    from robotd.base.config import Config, to_toml
+    from robotd.base.config import commented_toml
 
-    print(to_toml(Config()), end="")
+    print(commented_toml(), end="")
     return 0
 
 

@@ -397,6 +397,33 @@ def to_toml(cfg: Config) -> str:
     return "\n".join(lines)
 
 
+def commented_toml(cfg: Config | None = None) -> str:
+    """``cfg`` (default: the defaults) as TOML with each section's and key's description,
+    unit and valid range as comments: what ``robotd config default`` prints, a config file
+    to start from."""
+    cfg = Config() if cfg is None else cfg
+    lines = ["# robotd configuration (robotd config default). Unknown keys and out-of-range",
+             "# values are errors that name the key. Units are in the key names.", ""]
+    for sf in dataclasses.fields(cfg):
+        section = getattr(cfg, sf.name)
+        lines.append(f"[{sf.name}]")
+        doc = " ".join((type(section).__doc__ or "").strip().split("\n\n")[0].split())
+        if doc:
+            lines.append(f"# {doc}")
+        for f in dataclasses.fields(section):
+            meta = f.metadata
+            note = " ".join(str(meta.get("doc", "")).split())
+            lo, hi, choices = meta.get("lo"), meta.get("hi"), meta.get("choices")
+            if choices:
+                note += f" (one of {', '.join(map(repr, choices))})"
+            elif lo is not None or hi is not None:
+                note += f" ({'' if lo is None else f'{lo:g} '}..{'' if hi is None else f' {hi:g}'})"
+            lines.append(f"# {note}")
+            lines.append(f"{f.name} = {_toml_value(getattr(section, f.name))}")
+        lines.append("")
+    return "\n".join(lines)
+
+
 def _toml_value(v: Any) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
