@@ -98,7 +98,7 @@ class FloorCameraConfig:
     fy_px: float = _f(400.0, "focal length y", lo=1.0, hi=1e5)
     cx_px: float = _f(319.5, "principal point x", lo=-1e5, hi=1e5)
     cy_px: float = _f(239.5, "principal point y", lo=-1e5, hi=1e5)
-    distortion: tuple = _f((-0.05, 0.0, 0.0, 0.0, 0.0), "OpenCV k1 k2 p1 p2 k3", length=5)
+    distortion: tuple[float, ...] = _f((-0.05, 0.0, 0.0, 0.0, 0.0), "OpenCV k1 k2 p1 p2 k3", length=5)
     mount_height_m: float = _f(0.40, "lens height above the floor", lo=0.01, hi=5.0)
     mount_tilt_deg: float = _f(0.0, "pitch away from straight down, towards forward", lo=-60.0, hi=60.0)
     mount_x_m: float = _f(0.0, "camera position in the robot frame, forward", lo=-2.0, hi=2.0)
@@ -291,7 +291,7 @@ class Config:
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
 
 
-def _check_value(section: str, f: dataclasses.Field, value: Any) -> Any:
+def _check_value(section: str, f: dataclasses.Field[Any], value: Any) -> Any:
     """Type- and range-check one value; return it converted to the field's type."""
     key = f"[{section}] {f.name}"
     meta = f.metadata
@@ -341,7 +341,7 @@ def config_from_dict(data: dict[str, Any]) -> Config:
             raise ConfigError(f"unknown section [{name}] (known: {', '.join(sections)})")
         if not isinstance(table, dict):
             raise ConfigError(f"[{name}] must be a table, got {table!r}")
-        cls = sections[name].default_factory  # type: ignore[misc]
+        cls: Any = sections[name].default_factory
         fields = {f.name: f for f in dataclasses.fields(cls)}
         values = {}
         for key, value in table.items():

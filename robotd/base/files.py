@@ -21,7 +21,7 @@ import stat
 import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 from robotd.base.errors import OutputError
 
@@ -103,7 +103,7 @@ def check_output_file(path: Path, *, force: bool, inputs: Iterable[Path] = (),
 
 
 @contextlib.contextmanager
-def replacing(path: Path, mode: str = "w", encoding: str | None = "utf-8") -> Iterator[IO]:
+def replacing(path: Path, mode: str = "w", encoding: str | None = "utf-8") -> Iterator[IO[Any]]:
     """Write ``path`` through a temporary file in its folder, renamed over ``path`` only
     when the ``with`` block ends normally (after ``fsync``). On any error, Ctrl-C
     included, the temporary file is removed and ``path`` is left as it was; an
