@@ -308,6 +308,8 @@ class Ros2Config:
     floor_camera_topic: str = _f("/floor_camera/image_raw", "floor camera images (sensor_msgs/Image; "
                                  "a name ending in /compressed: sensor_msgs/CompressedImage)")
     forward_camera_topic: str = _f("/forward_camera/image_raw", "forward camera images (as above)")
+    input_timeout_s: float = _f(0.5, "an input topic silent this long after data flowed begins a gap "
+                                "(counted, shown in STATUS)", lo=0.01, hi=60.0)
 
 
 @dataclass(frozen=True)

@@ -68,6 +68,9 @@ def pub(domain: int, seconds: float) -> None:
         odom = p.writer("/odom", "nav_msgs/msg/Odometry")
         imu = p.writer("/imu", "sensor_msgs/msg/Imu", dds.QOS_SENSOR)
         cam = p.writer("/floor_camera/image_raw", "sensor_msgs/msg/Image", dds.QOS_SENSOR)
+        t0 = time.monotonic()  # wait until the driver under test has matched (at most 10 s)
+        while time.monotonic() - t0 < 10 and not (odom.matched() and cam.matched()):
+            time.sleep(0.01)
         t_end = time.monotonic() + seconds
         i = 0
         stamp0 = time.time_ns()
