@@ -93,7 +93,7 @@ def topic_specs(cfg: Config) -> dict[str, TopicSpec]:
 def ros2_keys(cfg: Config) -> set[str]:
     """The keys ``[ros2]`` switches on."""
     r = cfg.ros2
-    keys = {k for k, on in (("tf", r.tf), ("tf_static", r.tf), ("odometry", bool(r.odometry_topic)),
+    keys = {k for k, on in (("tf", r.tf), ("tf_static", r.static_tf), ("odometry", bool(r.odometry_topic)),
                             ("pose", bool(r.pose_topic)), ("path", bool(r.path_topic)),
                             ("loops", bool(r.loop_closures_topic)), ("diagnostics", r.diagnostics),
                             ("keyframe_floor", r.keyframe_images), ("keyframe_forward", r.keyframe_images))

@@ -286,7 +286,9 @@ class Ros2Config:
     odom_tf: str = _f("auto", "publish odom -> base_frame on /tf: 'auto' only when robotd reads the "
                       "base itself ([base] driver kobuki or can), 'always', 'never'",
                       choices=("auto", "always", "never"))
-    tf: bool = _f(True, "publish map -> odom on /tf and the camera mounts on /tf_static")
+    tf: bool = _f(True, "publish map -> odom on /tf")
+    static_tf: bool = _f(True, "publish base_link and the camera mounts on /tf_static (false when "
+                         "robot_state_publisher does, from the robot's URDF)")
     odometry_topic: str = _f("robotd/odometry", "fused odometry (nav_msgs/Odometry); '' = off")
     pose_topic: str = _f("robotd/pose", "loop-corrected pose in the map frame "
                          "(geometry_msgs/PoseWithCovarianceStamped); '' = off")
