@@ -30,6 +30,9 @@ def summary(type_name: str, m: dict) -> str:
     if type_name == "nav_msgs/msg/Odometry":
         p = m["pose"]["pose"]["position"]
         return f"{m['header']['frame_id']} x {p['x']:.3f} y {p['y']:.3f}"
+    if type_name == "geometry_msgs/msg/PoseWithCovarianceStamped":
+        p = m["pose"]["pose"]["position"]
+        return f"{m['header']['frame_id']} x {p['x']:.3f} y {p['y']:.3f}"
     if type_name == "nav_msgs/msg/Path":
         return f"{len(m['poses'])} poses"
     if type_name == "visualization_msgs/msg/MarkerArray":

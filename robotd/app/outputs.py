@@ -105,6 +105,7 @@ class DdsSink:
     """ROS 2 topics over DDS (:mod:`drivers.ros2.dds`)."""
 
     name = "ros2"
+    latches = True  # transient-local topics reach late joiners
 
     def __init__(self, cfg: Config, *, dds_config: str | None = None) -> None:
         from drivers.ros2 import dds
@@ -135,6 +136,9 @@ class FoxgloveSink:
     as they read ROS 2 data."""
 
     name = "foxglove"
+    latches = False
+    """Foxglove's server keeps no message for a client that connects later: the output
+    stage repeats ``/tf_static`` to it every second."""
 
     def __init__(self, host: str, port: int, *, keys: set[str]) -> None:
         try:
@@ -236,12 +240,13 @@ class RosOutputStage:
         except KeyError:
             return None
 
-    def _send(self, key: str, type_name: str, msg: dict[str, Any], stamp_ns: int) -> None:
+    def _send(self, key: str, type_name: str, msg: dict[str, Any], stamp_ns: int, *,
+              unlatched_only: bool = False) -> None:
         if key not in self.active:
             return
         data = ros2msg.encode(type_name, msg)
         for s in self.sinks:
-            if key in s.keys:
+            if key in s.keys and not (unlatched_only and getattr(s, "latches", True)):
                 try:
                     s.publish(key, data, stamp_ns)
                 except Exception as exc:  # noqa: BLE001 - an output must never stop the daemon
@@ -316,8 +321,10 @@ class RosOutputStage:
         if self._path_dirty and now >= self._next_path_ns:
             self._send_path()
             self._next_path_ns = now + self._path_ns
-        if now >= self._next_diag_ns and "diagnostics" in self.active and self._last_odom is not None:
+        if now >= self._next_diag_ns and self._last_odom is not None:
             self._send_diagnostics()
+            if self._static_sent:  # for the sinks that do not latch (Foxglove)
+                self._send_static(self._last_odom.stamp_ns, unlatched_only=True)
             self._next_diag_ns = now + 1_000_000_000
         self.cpu_ns += time.thread_time_ns() - t0
         return 0
@@ -368,11 +375,12 @@ class RosOutputStage:
             tfs.append(ros2msg.planar_transform_msg(stamp, self.odom_frame, self.base_frame, (p.x_m, p.y_m, p.yaw_rad)))
         self._send("tf", "tf2_msgs/msg/TFMessage", ros2msg.tf_message(tfs), stamp)
 
-    def _send_static(self, stamp_ns: int) -> None:
+    def _send_static(self, stamp_ns: int, *, unlatched_only: bool = False) -> None:
         self._static_sent = True
         stamp = self._ros_ns(stamp_ns)
         self._send("tf_static", "tf2_msgs/msg/TFMessage",
-                   rosview.static_transforms(stamp, self.base_frame, self.cfg), stamp)
+                   rosview.static_transforms(stamp, self.base_frame, self.cfg), stamp,
+                   unlatched_only=unlatched_only)
 
     def _send_image(self, key: str, frame: Frame, stamp: int) -> None:
         ok, buf = cv2.imencode(".jpg", frame.image, self._jpeg)
@@ -397,6 +405,8 @@ class RosOutputStage:
                    rosview.loop_markers(stamp, self.map_frame, self._loops, positions), stamp)
 
     def _send_diagnostics(self) -> None:
+        if "diagnostics" not in self.active:
+            return
         counters = self.pipeline.counters() if self.pipeline is not None else {}
         localisation = ""
         if "localised" in counters:

@@ -230,3 +230,17 @@ def test_missing_packages_are_one_clear_error(monkeypatch: pytest.MonkeyPatch) -
     with pytest.raises(ConfigError, match=r"robotd\[foxglove\]"):
         build_output_stage(replace(Config(), "foxglove", enabled=True), ManualClock())
     assert build_output_stage(Config(), ManualClock()) is None
+
+
+def test_static_transforms_repeat_only_to_sinks_that_do_not_latch() -> None:
+    cfg = replace(Config(), "ros2", ros_time=False)
+    latching, plain = RecordingSink({"tf_static"}), RecordingSink({"tf_static"})
+    plain.latches = False  # as Foxglove's server: a client that connects later gets nothing old
+    wall = ManualClock(0)
+    stage = RosOutputStage(cfg, [latching, plain], ManualClock(), wall_clock=wall)
+    stage.on_odometry(odo(0, 0, 0, 0))
+    for _ in range(3):
+        stage.poll()
+        wall.advance_ns(1_000_000_000)
+    assert len(latching.decoded("tf_static")) == 1
+    assert len(plain.decoded("tf_static")) == 4  # the first, then once a second
