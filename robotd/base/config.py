@@ -20,9 +20,12 @@ from robotd.base.errors import ConfigError
 
 
 def _f(default: Any, doc: str, *, lo: float | None = None, hi: float | None = None,
-       choices: tuple[str, ...] | None = None, length: int | None = None) -> Any:
-    """A config field with its documentation and validity constraints."""
-    meta = {"doc": doc, "lo": lo, "hi": hi, "choices": choices, "length": length}
+       choices: tuple[str, ...] | None = None, length: int | None = None,
+       nonempty: bool = False) -> Any:
+    """A config field with its documentation and validity constraints (``nonempty``: a
+    string that must not be empty or blank, such as a file path)."""
+    meta = {"doc": doc, "lo": lo, "hi": hi, "choices": choices, "length": length,
+            "nonempty": nonempty}
     if isinstance(default, (list, tuple)):
         return field(default=tuple(default), metadata=meta)
     return field(default=default, metadata=meta)
@@ -44,7 +47,7 @@ class BaseConfig:
     driver: str = _f("kobuki", "base driver ('can': the [can] section; 'ros2': nav_msgs/Odometry "
                      "and sensor_msgs/Imu from the [ros2] input topics)",
                      choices=("kobuki", "can", "ros2", "none"))
-    port: str = _f("/dev/kobuki", "serial port: a device path or any pyserial URL")
+    port: str = _f("/dev/kobuki", "serial port: a device path or any pyserial URL", nonempty=True)
     baudrate: int = _f(115200, "serial baud rate", lo=1200, hi=4_000_000)
     yaw_source: str = _f("raw_gyro", "which gyro reading feeds the filter",
                          choices=("raw_gyro", "inertial"))
@@ -242,14 +245,15 @@ class CalibrationConfig:
     """Where the calibration file is (written by ``robotd calibrate``)."""
 
     path: str = _f("/etc/robotd/calibration.yml",
-                   "OpenCV YAML: intrinsics, floor mount, trained loop thresholds (optional)")
+                   "OpenCV YAML: intrinsics, floor mount, trained loop thresholds (optional)",
+                   nonempty=True)
 
 
 @dataclass(frozen=True)
 class MapConfig:
     """The SQLite map file."""
 
-    path: str = _f("/var/lib/robotd/map.sqlite", "map file (created if missing)")
+    path: str = _f("/var/lib/robotd/map.sqlite", "map file (created if missing)", nonempty=True)
 
 
 @dataclass(frozen=True)
@@ -370,6 +374,8 @@ def _check_value(section: str, f: dataclasses.Field, value: Any) -> Any:
     elif isinstance(default, str):
         if not isinstance(value, str):
             raise ConfigError(f"{key}: expected a string, got {value!r}")
+        if meta.get("nonempty") and not value.strip():
+            raise ConfigError(f"{key}: must not be empty")
     elif isinstance(default, tuple):
         if not isinstance(value, list) or not all(
             isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
