@@ -99,13 +99,19 @@ def run_from_args(args: argparse.Namespace) -> int:
         base_cfg = replace(base_cfg, "calibration", path=str(calibration))
     if args.forward:
         base_cfg = replace(base_cfg, "forward_detector", enabled=True)
-    if args.ros2:
-        base_cfg = replace(base_cfg, "ros2", enabled=True)
     if args.foxglove_port is not None and not args.foxglove:
         raise ConfigError("--foxglove-port needs --foxglove")
+    if args.ros2:
+        from drivers.ros2.dds import require_cyclonedds
+
+        base_cfg = replace(base_cfg, "ros2", enabled=True)
+        require_cyclonedds()  # before the demo's folder is touched
     if args.foxglove:
+        from robotd.app.outputs import require_foxglove
+
         base_cfg = replace(base_cfg, "foxglove", enabled=True,
                            **({} if args.foxglove_port is None else {"port": args.foxglove_port}))
+        require_foxglove()
     kidnap = None
     if args.kidnap is not None:
         kidnap = (args.kidnap, args.kidnap / 2 if args.kidnap_to is None else args.kidnap_to, KIDNAP_CARRY_S)

@@ -130,6 +130,16 @@ class DdsSink:
         self.participant.close()
 
 
+def require_foxglove() -> Any:
+    """The ``foxglove`` module, or :class:`ConfigError` saying how to install it."""
+    try:
+        import foxglove
+    except ImportError as exc:
+        raise ConfigError(f"[foxglove] enabled needs the foxglove-sdk package ({exc}); install "
+                          "the extra: pip install 'robotd[foxglove]'") from None
+    return foxglove
+
+
 class FoxgloveSink:
     """A Foxglove WebSocket server (``foxglove-sdk``): every topic as a ``cdr`` channel with
     its ``ros2msg`` schema, so Foxglove's 3D, image, plot and diagnostics panels read them
@@ -141,11 +151,7 @@ class FoxgloveSink:
     stage repeats ``/tf_static`` to it every second."""
 
     def __init__(self, host: str, port: int, *, keys: set[str]) -> None:
-        try:
-            import foxglove
-        except ImportError as exc:
-            raise ConfigError(f"[foxglove] enabled needs the foxglove-sdk package ({exc}); install "
-                              "the extra: pip install 'robotd[foxglove]'") from None
+        foxglove = require_foxglove()
         self._fg = foxglove
         self.keys = keys
         self.context = foxglove.Context()
