@@ -8,7 +8,8 @@ map -> odom transforms with MIN_DISTINCT different values, MIN_ODOMETRY odometry
 messages and one static message (or at
 the timeout) and writes what it received.
 
-``pub DOMAIN SECONDS``: publishes ``/odom`` (nav_msgs/Odometry) and ``/imu``
+``pub DOMAIN SECONDS``: publishes ``/odom`` (nav_msgs/Odometry: an arc of radius 2 m at
+0.2 m/s, 0.1 rad/s) and ``/imu``
 (sensor_msgs/Imu) at 50 Hz and ``/floor_camera/image_raw`` (sensor_msgs/Image, best
 effort) at 10 Hz, as a ROS 2 base driver and camera node would, with a gap of 0.5 s in
 the odometry after 1 s; prints one JSON line per message sent.
@@ -78,8 +79,8 @@ def pub(domain: int, seconds: float) -> None:
             stamp = stamp0 + i * 20_000_000
             t_s = i * 0.02
             if not 1.0 <= t_s < 1.5:  # a 0.5 s gap in the base's odometry
-                x, yaw = 0.2 * t_s, 0.1 * t_s
-                odom.publish(ros2msg.odometry_msg(stamp, x * math.cos(yaw), x * math.sin(yaw), yaw,
+                yaw = 0.1 * t_s  # an arc of radius 2 m at 0.2 m/s, as a differential drive moves
+                odom.publish(ros2msg.odometry_msg(stamp, 2.0 * math.sin(yaw), 2.0 * (1.0 - math.cos(yaw)), yaw,
                                                   np.diag([1e-4, 1e-4, 1e-3]), "odom", "base_footprint",
                                                   v_mps=0.2, w_radps=0.1, twist_cov3=np.diag([1e-4, 1e-4, 4e-4])))
                 print(json.dumps({"topic": "/odom", "stamp_ns": stamp}), flush=True)

@@ -35,7 +35,7 @@ def test_base_and_camera_from_a_publisher_process() -> None:
                     ticks_per_rev=TPR, domain_id=domain, timeout_s=0.2, dds_config=cfg)
     cam = Ros2Camera(clock, camera="floor", topic="/floor_camera/image_raw", domain_id=domain, timeout_s=0.5,
                      dds_config=None)  # the same participant's domain: already configured above
-    peer = subprocess.Popen([sys.executable, str(PEER), "pub", str(domain), "2.5"], env=peer_env(domain),
+    peer = subprocess.Popen([sys.executable, str(PEER), "pub", str(domain), "2.0"], env=peer_env(domain),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     got: list = []
     frames: list = []
@@ -65,7 +65,7 @@ def test_base_and_camera_from_a_publisher_process() -> None:
     left, right = unwrap([t.left_ticks for t in ticks]), unwrap([t.right_ticks for t in ticks])
     t_s = (np.array([t.stamp_ns for t in ticks]) - ticks[0].stamp_ns) / 1e9
     per_m = TPR / (2 * math.pi * R)
-    # (0.2 m/s, 0.1 rad/s on the arc: the chord along the mean heading is the arc length to 1e-6)
+    # (on the arc the chord between messages, along the mean heading, is the arc length to 1e-6)
     assert np.allclose((left + right) / 2, 0.2 * t_s * per_m, atol=1.0)
     assert np.allclose(right - left, 0.1 * t_s * B * per_m, atol=1.0)
     # the gyro: every message the driver took is the published yaw rate, with its variance
