@@ -162,6 +162,9 @@ class FoxgloveSink:
         self.port = self.server.port
         self.channels: dict[str, Any] = {}
         log.info("Foxglove live view on ws://%s:%d", host, self.port)
+        if host not in ("127.0.0.1", "::1", "localhost"):
+            log.warning("the Foxglove view listens on %s: anyone who can reach port %d sees the robot's "
+                        "data (the server has no authentication)", host, self.port)
 
     def advertise(self, key: str, spec: TopicSpec) -> None:
         from foxglove.channel import Channel
