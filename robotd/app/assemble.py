@@ -210,13 +210,18 @@ def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store
     from robotd.app.outputs import build_output_stage
 
     outputs = build_output_stage(cfg, clock)
-    for run, keyframes in store.mark_unfinished_runs():
-        log.warning("map %s: run %d did not end cleanly (killed or power cut?); its %d keyframes are "
-                    "kept and it is marked as ended at its last one", store.path, run.id, keyframes)
-    run_id = store.begin_run(to_toml(cfg))
-    pipeline = build_pipeline(cfg, clock, store, run_id, lossless=lossless, calibration=calibration,
-                              observers=observers, floor_detector=floor_detector,
-                              pose_graph=pose_graph)
+    try:
+        for run, keyframes in store.mark_unfinished_runs():
+            log.warning("map %s: run %d did not end cleanly (killed or power cut?); its %d keyframes are "
+                        "kept and it is marked as ended at its last one", store.path, run.id, keyframes)
+        run_id = store.begin_run(to_toml(cfg))
+        pipeline = build_pipeline(cfg, clock, store, run_id, lossless=lossless, calibration=calibration,
+                                  observers=observers, floor_detector=floor_detector,
+                                  pose_graph=pose_graph)
+    except BaseException:
+        if outputs is not None:  # the sockets and the server thread, when the run never starts
+            outputs.close()
+        raise
     sizes = {"base": cfg.base.queue_size, "floor": cfg.floor_camera.queue_size,
              "forward": cfg.floor_camera.queue_size}
     if outputs is not None:
