@@ -12,7 +12,9 @@ Per keyframe whose floor query closed a loop (the pose graph accepted it), three
 - ``delivered``: from the query result to the moment the subscriber process has taken
   that ``/tf`` sample (both on the host's Unix clock; same machine).
 
-And, from the same run, the CPU time of the output stage (building, encoding and sending
+Before that, the CDR encoding of a few message types, robotd's codec against
+mcap-ros2-support's (the MCAP writer's before), bytes checked equal. And, from the same
+run, the CPU time of the output stage (building, encoding and sending
 every message: ``outputs_cpu_us``) against the daemon's own main-thread CPU time (the
 pipeline, outputs included), and the main-thread CPU of the same drive without outputs
 (the baseline) as a ratio.
@@ -143,6 +145,40 @@ def run(route: str, duration_s: float | None, ros2: bool, out: Path) -> tuple[di
     return summary, probe
 
 
+def codec_times(repeats: int = 7, n: int = 2000) -> dict[str, Any]:
+    """Encoding time per message, robotd's CDR codec against mcap-ros2-support's encoder
+    (what the MCAP writer used before), on the same dicts; the bytes are checked equal."""
+    from mcap_ros2._dynamic import serialize_dynamic
+
+    from robotd.base import ros2msg as r
+
+    msgs = {
+        "nav_msgs/msg/Odometry": r.odometry_msg(123_456_789, 1.0, 2.0, 0.3, np.eye(3) * 0.01, "odom",
+                                                "base_footprint"),
+        "sensor_msgs/msg/Imu": r.imu_yaw_rate_msg(123_456_789, "gyro_link", 0.1),
+        "tf2_msgs/msg/TFMessage": r.tf_message([r.planar_transform_msg(5, "map", "odom", (1.0, 2.0, 0.1)),
+                                                r.planar_transform_msg(5, "odom", "base_footprint", (3.0, 1.0, 0.2))]),
+        "nav_msgs/msg/Path": r.path_msg(5, "map", list(range(500)), np.random.default_rng(0).normal(size=(500, 3))),
+    }
+    out: dict[str, Any] = {}
+    for name, msg in msgs.items():
+        theirs = serialize_dynamic(name, r.schema_text(name))[name]
+        if bytes(theirs(msg)) != r.encode(name, msg):
+            raise SystemExit(f"{name}: the two encoders disagree")
+        row = {}
+        for label, fn in (("robotd", lambda: r.encode(name, msg)), ("mcap_ros2", lambda: theirs(msg))):
+            runs = []
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                for _ in range(n):
+                    fn()
+                runs.append((time.perf_counter() - t0) / n * 1e6)
+            row[f"{label}_us"] = float(np.median(runs))
+        row["speedup"] = row["mcap_ros2_us"] / row["robotd_us"]
+        out[name] = row
+    return out
+
+
 def stats_us(values: list[float]) -> dict[str, float]:
     a = np.asarray(values, float)
     if not len(a):
@@ -193,6 +229,14 @@ def markdown(r: dict[str, Any]) -> str:
         f"Messages published: {', '.join(f'{k} {v}' for k, v in sorted(r['published'].items()))}; "
         f"/tf samples with map -> odom taken by the subscriber: {r['tf_received']}.",
         "",
+        "Encoding one message (µs, median of 7 runs; identical bytes), robotd's CDR codec against "
+        "mcap-ros2-support's encoder, which the MCAP writer used before:",
+        "",
+        "| type | robotd | mcap-ros2-support | x faster |",
+        "|---|---|---|---|",
+        *[f"| `{k}` | {v['robotd_us']:.1f} | {v['mcap_ros2_us']:.1f} | {v['speedup']:.1f} |"
+          for k, v in r.get("codec", {}).items()],
+        "",
     ])
 
 
@@ -230,6 +274,10 @@ def main(argv: list[str] | None = None) -> int:
     while not sub_out.with_suffix(".ready").exists() and time.monotonic() - t0 < 30:
         time.sleep(0.05)
 
+    codec = codec_times()
+    print_table(["encode (us per message)", "robotd", "mcap_ros2", "x faster"],
+                [[k, round(v["robotd_us"], 1), round(v["mcap_ros2_us"], 1), round(v["speedup"], 2)]
+                 for k, v in codec.items()])
     print(f"baseline: the demo without outputs ({route}, {duration or 'whole'} s)", flush=True)
     w0 = time.perf_counter()
     base_summary, base_probe = run(route, duration, False, tmp / "base")
@@ -265,7 +313,7 @@ def main(argv: list[str] | None = None) -> int:
             "main_thread_ratio_to_baseline": probe.cpu_ns / base_probe.cpu_ns if base_probe.cpu_ns else None,
             "wall_s": wall, "baseline_wall_s": base_wall,
         },
-        "published": published, "tf_received": len(received),
+        "published": published, "tf_received": len(received), "codec": codec,
         "keyframes": summary.get("keyframes"), "robot_time_s": summary.get("robot_time_s"),
         "distance_m": summary.get("distance_m"),
     }
