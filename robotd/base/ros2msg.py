@@ -379,9 +379,59 @@ class Codec:
             raise ValueError(f"no definition of {name} (needed by {self.full_name})")
         return parse_definition(name, self._defs[name])
 
+    def _flat_layout(self, name: str) -> list[tuple[tuple[str, ...], str, int, Any]] | None:
+        """The scalar fields of ``name`` in order, nested messages flattened, as (path,
+        struct code, size, default), when every field is a fixed-size scalar (no string,
+        no array); None otherwise."""
+        out: list[tuple[tuple[str, ...], str, int, Any]] = []
+        for f in self._fields(name):
+            if f.array is not None or f.type in _STRINGS:
+                return None
+            if f.type in _PRIMITIVES:
+                code, size = _PRIMITIVES[f.type]
+                out.append(((f.name,), code, size, _default_value(f)))
+                continue
+            sub = self._flat_layout(f.type)
+            if sub is None:
+                return None
+            out += [((f.name, *path), code, size, d) for path, code, size, d in sub]
+        return out
+
+    def _flat_encoder(self, name: str) -> Encode | None:
+        """One ``struct.pack`` for a message of fixed-size scalars (Time, Point, Pose, ...)
+        whose first field has the largest alignment: aligned to it, the padding between
+        the fields no longer depends on where the message starts, so it is computed once."""
+        layout = self._flat_layout(name)
+        if not layout or layout[0][2] != max(size for _p, _c, size, _d in layout):
+            return None
+        fmt, pos = "<", 0
+        for _path, code, size, _d in layout:
+            pad = -pos % size
+            fmt += "x" * pad + code
+            pos += pad + size
+        packer = struct.Struct(fmt)
+        first = layout[0][2]
+        paths = [(p, 0 if d is None else d) for p, _c, _s, d in layout]
+
+        def value(msg: Any, path: tuple[str, ...], default: Any) -> Any:
+            for key in path:
+                if msg is None:
+                    return default
+                msg = msg.get(key)
+            return default if msg is None else msg
+
+        def enc(w: _Writer, msg: Any) -> None:
+            w.align(first)
+            w.buf += packer.pack(*[value(msg, p, d) for p, d in paths])
+        return enc
+
     def _struct_encoder(self, name: str) -> Encode:
         if name in self._enc:
             return self._enc[name]
+        flat = self._flat_encoder(name)
+        if flat is not None:
+            self._enc[name] = flat
+            return flat
         parts: list[tuple[str, Encode, Any]] = []
 
         def enc(w: _Writer, msg: Any) -> None:
