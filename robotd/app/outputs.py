@@ -253,14 +253,16 @@ class RosOutputStage:
               unlatched_only: bool = False) -> None:
         if key not in self.active:
             return
+        sinks = [s for s in self.sinks if key in s.keys and not (unlatched_only and getattr(s, "latches", True))]
+        if not sinks:
+            return
         data = ros2msg.encode(type_name, msg)
-        for s in self.sinks:
-            if key in s.keys and not (unlatched_only and getattr(s, "latches", True)):
-                try:
-                    s.publish(key, data, stamp_ns)
-                except Exception as exc:  # noqa: BLE001 - an output must never stop the daemon
-                    self.published[f"failed_{key}"] += 1
-                    log.debug("%s: publishing %s failed: %s", s.name, key, exc)
+        for s in sinks:
+            try:
+                s.publish(key, data, stamp_ns)
+            except Exception as exc:  # noqa: BLE001 - an output must never stop the daemon
+                self.published[f"failed_{key}"] += 1
+                log.debug("%s: publishing %s failed: %s", s.name, key, exc)
         self.published[key] += 1
 
     def _ros_ns(self, stamp_ns: int) -> int:

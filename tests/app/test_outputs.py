@@ -244,3 +244,14 @@ def test_static_transforms_repeat_only_to_sinks_that_do_not_latch() -> None:
         wall.advance_ns(1_000_000_000)
     assert len(latching.decoded("tf_static")) == 1
     assert len(plain.decoded("tf_static")) == 4  # the first, then once a second
+
+
+def test_repeats_nobody_takes_are_neither_encoded_nor_counted() -> None:
+    sink = RecordingSink({"tf_static", "tf"})
+    wall = ManualClock(0)
+    stage = RosOutputStage(replace(Config(), "ros2", ros_time=False), [sink], ManualClock(), wall_clock=wall)
+    stage.on_odometry(odo(0, 0, 0, 0))
+    for _ in range(3):
+        stage.poll()
+        wall.advance_ns(1_000_000_000)
+    assert stage.published["tf_static"] == 1 == len(sink.decoded("tf_static"))
