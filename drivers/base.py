@@ -209,9 +209,15 @@ class Driver:
         except DriverError as exc:
             self._lose(exc)
             return None
-        if got and self._gap_start_ns is not None:
+        if got and self._gap_start_ns is not None and self._gap_ends_with(got):
             self._end_gap()
         return got
+
+    def _gap_ends_with(self, got: Message | list[Message]) -> bool:
+        """Whether ``got`` (what a read returned during a gap) ends the gap: any message by
+        default. A backend with several streams, of which one is the one that matters (the
+        ROS 2 base's odometry beside its gyro), says which messages count."""
+        return True
 
     # -- public API ------------------------------------------------------------------
 

@@ -27,6 +27,9 @@ BACKENDS: dict[tuple[str, str], str] = {
     ("floor_camera", "depthai"): "drivers.depthai_camera:open_depthai",
     ("forward_camera", "v4l2"): "drivers.camera:open_v4l2_forward",
     ("forward_camera", "depthai"): "drivers.depthai_camera:open_depthai_forward",
+    ("base", "ros2"): "drivers.ros2.inputs:open_ros2_base",
+    ("floor_camera", "ros2"): "drivers.ros2.inputs:open_ros2_floor",
+    ("forward_camera", "ros2"): "drivers.ros2.inputs:open_ros2_forward",
     ("replay", "mcap"): "drivers.recording.replay:open_replay",
 }
 """``(role, name)`` -> ``"module:callable"`` of the factory ``(section, clock) -> Driver``."""

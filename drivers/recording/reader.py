@@ -6,7 +6,6 @@ from __future__ import annotations
 import heapq
 import io
 import logging
-import math
 import os
 import threading
 from collections.abc import Callable, Iterator
@@ -21,14 +20,13 @@ from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Chunk, Header, Message, Metadata, Schema
 from mcap.stream_reader import breakup_chunk
-from mcap_ros2.decoder import DecoderFactory
 
 from drivers.recording.schemas import (
     _CAMERA_TOPIC,
     _MCAP_MAGIC,
-    _NS_PER_S,
     _RECORD_HEAD,
 )
+from robotd.base import ros2msg
 from robotd.base.errors import DriverError, RobotdError
 from robotd.base.messages import Frame, PoseStamped, WheelTicks, YawRate
 
@@ -77,12 +75,8 @@ class _ChunkRef:
 RobotdMessage = WheelTicks | YawRate | Frame | PoseStamped
 
 
-def _stamp_ns(header: Any) -> int:
-    return int(header.stamp.sec) * _NS_PER_S + int(header.stamp.nanosec)
-
-
-def _yaw_from_quaternion(q: Any) -> float:
-    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+_stamp_ns = ros2msg.stamp_ns_of
+_yaw_from_quaternion = ros2msg.yaw_of_quaternion
 
 
 def _normalise_type(name: str) -> str:
@@ -320,7 +314,6 @@ class RecordingReader:
         :class:`PoseStamped` (every ``nav_msgs/msg/Odometry`` topic). Other types are
         skipped and counted in :attr:`skipped`; damage is counted in :attr:`damage`.
         """
-        factory = DecoderFactory()
         decoders: dict[int, Callable[[bytes], Any] | None] = {}
         yaw_source = self.yaw_source
         for channel, msg in self.raw_messages():
@@ -331,7 +324,10 @@ class RecordingReader:
                 continue
             if channel.id not in decoders:
                 try:
-                    decoders[channel.id] = factory.decoder_for("cdr", schema)
+                    # Decoded with the file's own definitions (a file from another
+                    # version of robotd, or from ros2 bag), by robotd's one CDR codec.
+                    decoders[channel.id] = ros2msg.Codec(kind, ros2msg.parse_schema_text(
+                        kind, schema.data.decode())).decode
                 except Exception:  # noqa: BLE001 - a broken schema text in the file
                     log.warning("%s: cannot parse the schema of %s", self.path, channel.topic)
                     decoders[channel.id] = None
@@ -359,27 +355,26 @@ class RecordingReader:
 
 
 def _to_wheel_ticks(topic: str, m: Any, rec: Message, yaw_source: str) -> WheelTicks:
-    return WheelTicks(_stamp_ns(m.header), int(m.left_ticks), int(m.right_ticks), int(m.device_ms))
+    return WheelTicks(_stamp_ns(m["header"]), int(m["left_ticks"]), int(m["right_ticks"]), int(m["device_ms"]))
 
 
 def _to_yaw_rate(topic: str, m: Any, rec: Message, yaw_source: str) -> YawRate:
-    return YawRate(_stamp_ns(m.header), float(m.angular_velocity.z), yaw_source)
+    return YawRate(_stamp_ns(m["header"]), float(m["angular_velocity"]["z"]), yaw_source)
 
 
 def _to_frame(topic: str, m: Any, rec: Message, yaw_source: str) -> Frame:
-    image = cv2.imdecode(np.frombuffer(m.data, np.uint8), cv2.IMREAD_UNCHANGED)
+    image = cv2.imdecode(np.frombuffer(m["data"], np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
-        raise ValueError(f"image data ({m.format!r}) does not decode")
+        raise ValueError(f"image data ({m['format']!r}) does not decode")
     match = _CAMERA_TOPIC.match(topic)
     camera = match.group(1) if match else topic.strip("/")
-    return Frame(_stamp_ns(m.header), camera, image, int(rec.sequence))
+    return Frame(_stamp_ns(m["header"]), camera, image, int(rec.sequence))
 
 
 def _to_pose(topic: str, m: Any, rec: Message, yaw_source: str) -> PoseStamped:
-    p = m.pose.pose
-    cov6 = np.asarray(m.pose.covariance, dtype=np.float64).reshape(6, 6)
-    return PoseStamped(_stamp_ns(m.header), float(p.position.x), float(p.position.y),
-                       _yaw_from_quaternion(p.orientation), cov6[np.ix_((0, 1, 5), (0, 1, 5))].copy())
+    p = m["pose"]["pose"]
+    return PoseStamped(_stamp_ns(m["header"]), float(p["position"]["x"]), float(p["position"]["y"]),
+                       _yaw_from_quaternion(p["orientation"]), ros2msg.covariance3(m["pose"]["covariance"]))
 
 
 _CONVERTERS: dict[str, Callable[[str, Any, Message, str], RobotdMessage]] = {

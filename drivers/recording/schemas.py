@@ -98,6 +98,8 @@ import logging
 import re
 import struct
 
+from robotd.base import ros2msg
+
 log = logging.getLogger(__name__)
 
 TOPIC_WHEEL_TICKS = "/wheel_ticks"
@@ -112,111 +114,11 @@ PARTIAL_SUFFIX = ".partial"
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _CAMERA_TOPIC = re.compile(r"^/([A-Za-z][A-Za-z0-9_]*)_camera/image/compressed$")
 _CAMERA_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
-_NS_PER_S = 1_000_000_000
-_MAX_STAMP_NS = (1 << 31) * _NS_PER_S  # builtin_interfaces/Time.sec is an int32
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode u8, record length u64
 
-# --------------------------------------------------------------------------------------
-# ROS 2 message definitions. Each schema written to the file is its type's definition
-# followed by every type it uses, each after a line of '=' and a "MSG: pkg/Name" line,
-# which is how rosbag2 and mcap-ros2-support expect a self-contained definition.
-# --------------------------------------------------------------------------------------
-
-_MSG_DEFS: dict[str, str] = {
-    "builtin_interfaces/msg/Time": "int32 sec\nuint32 nanosec\n",
-    "std_msgs/msg/Header": "builtin_interfaces/Time stamp\nstring frame_id\n",
-    "geometry_msgs/msg/Vector3": "float64 x\nfloat64 y\nfloat64 z\n",
-    "geometry_msgs/msg/Point": "float64 x\nfloat64 y\nfloat64 z\n",
-    "geometry_msgs/msg/Quaternion": "float64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1\n",
-    "geometry_msgs/msg/Pose": "Point position\nQuaternion orientation\n",
-    "geometry_msgs/msg/PoseWithCovariance": "Pose pose\nfloat64[36] covariance\n",
-    "geometry_msgs/msg/Twist": "Vector3 linear\nVector3 angular\n",
-    "geometry_msgs/msg/TwistWithCovariance": "Twist twist\nfloat64[36] covariance\n",
-    "nav_msgs/msg/Odometry": (
-        "std_msgs/Header header\n"
-        "string child_frame_id\n"
-        "geometry_msgs/PoseWithCovariance pose\n"
-        "geometry_msgs/TwistWithCovariance twist\n"
-    ),
-    "sensor_msgs/msg/Imu": (
-        "std_msgs/Header header\n"
-        "geometry_msgs/Quaternion orientation\n"
-        "float64[9] orientation_covariance\n"
-        "geometry_msgs/Vector3 angular_velocity\n"
-        "float64[9] angular_velocity_covariance\n"
-        "geometry_msgs/Vector3 linear_acceleration\n"
-        "float64[9] linear_acceleration_covariance\n"
-    ),
-    "sensor_msgs/msg/CompressedImage": "std_msgs/Header header\nstring format\nuint8[] data\n",
-    "geometry_msgs/msg/Transform": "Vector3 translation\nQuaternion rotation\n",
-    "geometry_msgs/msg/TransformStamped": (
-        "std_msgs/Header header\n"
-        "string child_frame_id\n"
-        "Transform transform\n"
-    ),
-    "tf2_msgs/msg/TFMessage": "geometry_msgs/TransformStamped[] transforms\n",
-    "sensor_msgs/msg/RegionOfInterest": (
-        "uint32 x_offset\n"
-        "uint32 y_offset\n"
-        "uint32 height\n"
-        "uint32 width\n"
-        "bool do_rectify\n"
-    ),
-    "sensor_msgs/msg/CameraInfo": (
-        "std_msgs/Header header\n"
-        "uint32 height\n"
-        "uint32 width\n"
-        "string distortion_model\n"
-        "float64[] d\n"
-        "float64[9] k\n"
-        "float64[9] r\n"
-        "float64[12] p\n"
-        "uint32 binning_x\n"
-        "uint32 binning_y\n"
-        "RegionOfInterest roi\n"
-    ),
-    "robotd_msgs/msg/WheelTicks": (
-        "# Raw wheel encoder counters of a differential-drive base, as the base reports them.\n"
-        "# The counters wrap at 16 bits; consumers unwrap consecutive differences.\n"
-        "std_msgs/Header header\n"
-        "uint16 left_ticks   # left wheel encoder counter, ticks, 0..65535, wrapping\n"
-        "uint16 right_ticks  # right wheel encoder counter, ticks, 0..65535, wrapping\n"
-        "uint16 device_ms    # the base's own millisecond clock, 0..65535, wrapping\n"
-    ),
-}
-
-_PRIMITIVES = frozenset({
-    "bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16",
-    "int32", "uint32", "int64", "uint64", "string", "wstring",
-})
-
-
-def _dependencies(name: str) -> list[str]:
-    """Full names of the types ``name`` uses, depth first, each once."""
-    pkg = name.split("/")[0]
-    out: list[str] = []
-    for line in _MSG_DEFS[name].splitlines():
-        line = line.split("#", 1)[0].strip()
-        if not line:
-            continue
-        ftype = re.sub(r"\[.*\]$", "", line.split()[0])
-        if ftype in _PRIMITIVES or ftype.startswith("string<"):
-            continue
-        dep_pkg, dep_name = ftype.split("/") if "/" in ftype else (pkg, ftype)
-        full = f"{dep_pkg}/msg/{dep_name}"
-        for d in (full, *_dependencies(full)):
-            if d not in out:
-                out.append(d)
-    return out
-
-
-def schema_text(name: str) -> str:
-    """The self-contained ROS 2 definition of ``name`` (e.g. ``"nav_msgs/msg/Odometry"``)."""
-    parts = [_MSG_DEFS[name].rstrip("\n")]
-    for dep in _dependencies(name):
-        pkg, _, msg = dep.split("/")
-        parts.append("=" * 80 + f"\nMSG: {pkg}/{msg}\n" + _MSG_DEFS[dep].rstrip("\n"))
-    return "\n".join(parts) + "\n"
+# The ROS 2 message definitions (and the CDR written with them) are robotd's one message
+# model, robotd.base.ros2msg; schema_text is re-exported here for the recording's users.
+schema_text = ros2msg.schema_text
 
 
 def camera_info_topic(camera: str) -> str:

@@ -21,12 +21,11 @@ import cv2
 import numpy as np
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
-from mcap_ros2._dynamic import serialize_dynamic
-from mcap_ros2.decoder import DecoderFactory
 
 from drivers.recording.reader import RecordingReader, _normalise_type
 from drivers.recording.schemas import PARTIAL_SUFFIX
 from drivers.recording.writer import image_encoding
+from robotd.base import ros2msg
 from robotd.base.errors import DriverError
 
 log = logging.getLogger(__name__)
@@ -95,23 +94,21 @@ def transcode(src: str | os.PathLike[str], dst: str | os.PathLike[str], *, image
                 out.add_metadata("robotd.transcoded", {"source": str(Path(src).name),
                                                        "image_format": image_format,
                                                        "image_quality": quality})
-                decoders: dict[int, Any] = {}
-                encoders: dict[int, Any] = {}
-                factory = DecoderFactory()
+                codecs: dict[int, ros2msg.Codec] = {}
                 for channel, msg in reader.raw_messages():
                     data = msg.data
                     schema = reader.schemas.get(channel.schema_id)
                     if schema is not None and _normalise_type(schema.name) == _IMAGE_TYPE:
                         frames += 1
-                        if schema.id not in decoders:
-                            decoders[schema.id] = factory.decoder_for("cdr", schema)
-                            encoders[schema.id] = serialize_dynamic(
-                                schema.name, schema.data.decode())[schema.name]
-                        new = _reencode(decoders[schema.id](data), ext, params, image_format)
+                        if schema.id not in codecs:  # the file's own definition, robotd's codec
+                            codecs[schema.id] = ros2msg.Codec(_IMAGE_TYPE, ros2msg.parse_schema_text(
+                                _IMAGE_TYPE, schema.data.decode()))
+                        codec = codecs[schema.id]
+                        new = _reencode(codec.decode(data), ext, params, image_format)
                         if new is None:
                             bad += 1
                         else:
-                            data = encoders[schema.id](new)
+                            data = codec.encode(new)
                     out.add_message(channel_ids[channel.id], log_time=msg.log_time, data=data,
                                     publish_time=msg.publish_time, sequence=msg.sequence)
                     messages += 1
@@ -126,16 +123,13 @@ def transcode(src: str | os.PathLike[str], dst: str | os.PathLike[str], *, image
     return TranscodeResult(messages, frames, bad, Path(src).stat().st_size, dst.stat().st_size)
 
 
-def _reencode(ros: Any, ext: str, params: list[int], image_format: str) -> dict[str, Any] | None:
-    """The CompressedImage ``ros`` as a dict with its image re-encoded; None when the
-    image does not decode."""
-    image = cv2.imdecode(np.frombuffer(bytes(ros.data), np.uint8), cv2.IMREAD_UNCHANGED)
+def _reencode(ros: dict[str, Any], ext: str, params: list[int], image_format: str) -> dict[str, Any] | None:
+    """The CompressedImage ``ros`` (a decoded dict) with its image re-encoded; None when
+    the image does not decode."""
+    image = cv2.imdecode(np.frombuffer(ros["data"], np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
         return None
     ok, buf = cv2.imencode(ext, image, params)
     if not ok:
         return None
-    stamp = ros.header.stamp
-    return {"header": {"stamp": {"sec": stamp.sec, "nanosec": stamp.nanosec},
-                       "frame_id": ros.header.frame_id},
-            "format": image_format, "data": buf.tobytes()}
+    return {"header": ros["header"], "format": image_format, "data": buf.tobytes()}

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import datetime
 import logging
-import math
 import os
 import threading
 from pathlib import Path
@@ -14,13 +13,12 @@ from typing import Any
 
 import cv2
 import numpy as np
+from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType
-from mcap_ros2.writer import Writer as Ros2Writer
+from mcap.writer import Writer as McapWriter
 
 from drivers.base import Driver, Message, StatValue
 from drivers.recording.schemas import (
-    _MAX_STAMP_NS,
-    _NS_PER_S,
     PARTIAL_SUFFIX,
     TOPIC_GROUND_TRUTH,
     TOPIC_IMU,
@@ -30,12 +28,14 @@ from drivers.recording.schemas import (
     TOPIC_WHEEL_TICKS,
     camera_info_topic,
     camera_topic,
-    schema_text,
 )
+from robotd.base import ros2msg
 from robotd.base.camera import CameraIntrinsics
 from robotd.base.errors import DriverError, RecordingError
 from robotd.base.geometry import quaternion_from_rotation
 from robotd.base.messages import Frame, PoseStamped, WheelTicks, YawRate
+from robotd.base.ros2msg import check_stamp as _check_stamp
+from robotd.base.ros2msg import header as _header
 
 log = logging.getLogger(__name__)
 
@@ -96,45 +96,11 @@ def image_encoding(image_format: str, jpeg_quality: int, png_compression: int) -
     return ".jpg", [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality, cv2.IMWRITE_JPEG_OPTIMIZE, 1]
 
 
-def _header(stamp_ns: int, frame_id: str) -> dict[str, Any]:
-    sec, nanosec = divmod(stamp_ns, _NS_PER_S)
-    return {"stamp": {"sec": sec, "nanosec": nanosec}, "frame_id": frame_id}
-
-
-def _check_stamp(stamp_ns: int) -> int:
-    s = int(stamp_ns)
-    if not 0 <= s < _MAX_STAMP_NS:
-        raise ValueError(f"stamp_ns {stamp_ns} is outside 0 .. 2^31 s (ROS time)")
-    return s
-
-
 def _check_u16(name: str, value: int) -> int:
     v = int(value)
     if not 0 <= v <= 0xFFFF:
         raise ValueError(f"{name} {value} does not fit a uint16")
     return v
-
-
-def _odometry_dict(stamp_ns: int, x_m: float, y_m: float, yaw_rad: float, cov3: np.ndarray,
-                   frame_id: str, child_frame_id: str) -> dict[str, Any]:
-    cov3 = np.asarray(cov3, dtype=np.float64)
-    if cov3.shape != (3, 3):
-        raise ValueError(f"pose covariance must be (3, 3), got {cov3.shape}")
-    cov6 = np.zeros((6, 6))
-    cov6[np.ix_((0, 1, 5), (0, 1, 5))] = cov3
-    half = 0.5 * float(yaw_rad)
-    return {
-        "header": _header(stamp_ns, frame_id),
-        "child_frame_id": child_frame_id,
-        "pose": {
-            "pose": {
-                "position": {"x": float(x_m), "y": float(y_m), "z": 0.0},
-                "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(half), "w": math.cos(half)},
-            },
-            "covariance": cov6.ravel().tolist(),
-        },
-        "twist": {"twist": {}, "covariance": [0.0] * 36},
-    }
 
 
 # rosbag2's QoS of a latched topic (keep last 1, reliable, transient local), as it stores
@@ -156,14 +122,6 @@ _LATCHED_QOS_YAML = """- history: 1
     nsec: 4294967295
   avoid_ros_namespace_conventions: false
 """
-
-
-def _transform(stamp_ns: int, parent: str, child: str, xyz: tuple[float, float, float],
-               quat: tuple[float, float, float, float]) -> dict[str, Any]:
-    """A ``geometry_msgs/msg/TransformStamped`` as a dict: ``child`` in ``parent``."""
-    return {"header": _header(stamp_ns, parent), "child_frame_id": child, "transform": {
-        "translation": {"x": float(xyz[0]), "y": float(xyz[1]), "z": float(xyz[2])},
-        "rotation": {"x": quat[0], "y": quat[1], "z": quat[2], "w": quat[3]}}}
 
 
 def _camera_info(stamp_ns: int, frame_id: str, k: CameraIntrinsics) -> dict[str, Any]:
@@ -250,8 +208,8 @@ class RecordingWriter:
         start = start_time_utc or datetime.datetime.now(datetime.UTC)
         self._sink = _UnbufferedSink(self._fd)
         try:
-            self._mcap = Ros2Writer(self._sink, chunk_size=chunk_size,
-                                    compression=CompressionType.ZSTD)
+            self._mcap = McapWriter(self._sink, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+            self._mcap.start(profile="ros2", library=f"robotd {__version__}")
             self._mcap.add_metadata("robotd", {
                 "robotd_version": __version__,
                 "config_toml": config_toml,
@@ -265,7 +223,8 @@ class RecordingWriter:
             os.close(self._fd)
             self.partial_path.unlink(missing_ok=True)
             raise RecordingError(f"{self.partial_path}: cannot write: {exc.strerror}") from exc
-        self._schemas: dict[str, Any] = {}
+        self._schemas: dict[str, int] = {}  # type name -> MCAP schema id
+        self._channels: dict[str, int] = {}  # topic -> MCAP channel id
         self._camera_info: dict[str, CameraIntrinsics] = {}
         # Static transforms (parent, child, xyz, quaternion), written on /tf_static with the
         # stamp of the first message after a change.
@@ -307,7 +266,7 @@ class RecordingWriter:
     def _write_static_locked(self, stamp_ns: int) -> None:
         """``/tf_static``: every static transform in one ``tf2_msgs/msg/TFMessage``, as
         tf2's static broadcaster latches them (the lock is held)."""
-        transforms = [_transform(stamp_ns, parent, child, xyz, q)
+        transforms = [ros2msg.transform_msg(stamp_ns, parent, child, xyz, q)
                       for child, (parent, xyz, q) in self._static.items()]
         self._write_locked(TOPIC_TF_STATIC, "tf2_msgs/msg/TFMessage", stamp_ns,
                            {"transforms": transforms}, latched=True)
@@ -332,22 +291,24 @@ class RecordingWriter:
 
     def _write_locked(self, topic: str, type_name: str, stamp_ns: int, msg: dict[str, Any],
                       sequence: int = 0, latched: bool = False) -> None:
+        data = ros2msg.encode(type_name, msg)  # the one CDR path (robotd.base.ros2msg)
         try:
-            schema = self._schemas.get(type_name)
-            if schema is None:
-                schema = self._mcap.register_msgdef(type_name, schema_text(type_name))
-                self._schemas[type_name] = schema
-            if latched and topic not in self._mcap._channel_ids:
-                # mcap-ros2-support registers channels without metadata; register this
-                # one ourselves to give it rosbag2's latched QoS.
-                self._mcap._channel_ids[topic] = self._mcap._writer.register_channel(
-                    topic=topic, message_encoding="cdr", schema_id=schema.id,
-                    metadata={"offered_qos_profiles": _LATCHED_QOS_YAML})
+            schema_id = self._schemas.get(type_name)
+            if schema_id is None:
+                schema_id = self._mcap.register_schema(type_name, SchemaEncoding.ROS2,
+                                                       ros2msg.schema_text(type_name).encode())
+                self._schemas[type_name] = schema_id
+            channel_id = self._channels.get(topic)
+            if channel_id is None:
+                # A latched topic carries rosbag2's transient-local QoS in its metadata.
+                channel_id = self._channels[topic] = self._mcap.register_channel(
+                    topic=topic, message_encoding=MessageEncoding.CDR, schema_id=schema_id,
+                    metadata={"offered_qos_profiles": _LATCHED_QOS_YAML} if latched else {})
             log_time = stamp_ns
             if topic in (TOPIC_WHEEL_TICKS, TOPIC_IMU):
                 log_time = self._base_log_time_ns = max(self._base_log_time_ns, stamp_ns)
-            self._mcap.write_message(topic, schema, msg, log_time=log_time,
-                                     publish_time=stamp_ns, sequence=sequence)
+            self._mcap.add_message(channel_id, log_time=log_time, data=data,
+                                   publish_time=stamp_ns, sequence=sequence)
         except OSError as exc:
             raise self._failed(exc) from exc
         self.counts[topic] = self.counts.get(topic, 0) + 1
@@ -382,15 +343,8 @@ class RecordingWriter:
                 log.warning("%s: yaw rates from %r after %r; the recording keeps %r for all",
                             self.path, msg.source, self._yaw_source, self._yaw_source)
             self.mixed_yaw_sources += 1
-        self._write(TOPIC_IMU, "sensor_msgs/msg/Imu", stamp, {
-            "header": _header(stamp, self.imu_frame_id),
-            "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
-            "orientation_covariance": [-1.0] + [0.0] * 8,
-            "angular_velocity": {"x": 0.0, "y": 0.0, "z": float(msg.yaw_rate_radps)},
-            "angular_velocity_covariance": [0.0] * 9,
-            "linear_acceleration": {"x": 0.0, "y": 0.0, "z": 0.0},
-            "linear_acceleration_covariance": [-1.0] + [0.0] * 8,
-        })
+        self._write(TOPIC_IMU, "sensor_msgs/msg/Imu", stamp,
+                    ros2msg.imu_yaw_rate_msg(stamp, self.imu_frame_id, msg.yaw_rate_radps))
 
     def write_frame(self, frame: Frame) -> None:
         """``/<camera>_camera/image/compressed`` (``sensor_msgs/msg/CompressedImage``).
@@ -411,11 +365,9 @@ class RecordingWriter:
         extra = () if intrinsics is None else (
             (camera_info_topic(frame.camera), "sensor_msgs/msg/CameraInfo",
              _camera_info(stamp, frame_id, intrinsics)),)
-        self._write(topic, "sensor_msgs/msg/CompressedImage", stamp, {
-            "header": _header(stamp, frame_id),
-            "format": self.image_format,
-            "data": buf.tobytes(),
-        }, sequence=int(frame.seq) & 0xFFFFFFFF, extra=extra)
+        self._write(topic, "sensor_msgs/msg/CompressedImage", stamp,
+                    ros2msg.compressed_image_msg(stamp, frame_id, self.image_format, buf.tobytes()),
+                    sequence=int(frame.seq) & 0xFFFFFFFF, extra=extra)
 
     def write_odometry(self, pose: PoseStamped, topic: str = TOPIC_ODOM, *,
                        frame_id: str = "odom", child_frame_id: str = "base_footprint") -> None:
@@ -428,10 +380,10 @@ class RecordingWriter:
         stamp = _check_stamp(pose.stamp_ns)
         extra: tuple[tuple[str, str, dict[str, Any]], ...] = ()
         if topic == TOPIC_ODOM:
-            tf = _transform(stamp, frame_id, child_frame_id, (pose.x_m, pose.y_m, 0.0),
-                            (0.0, 0.0, math.sin(0.5 * pose.yaw_rad), math.cos(0.5 * pose.yaw_rad)))
+            tf = ros2msg.planar_transform_msg(stamp, frame_id, child_frame_id,
+                                              (pose.x_m, pose.y_m, pose.yaw_rad))
             extra = ((TOPIC_TF, "tf2_msgs/msg/TFMessage", {"transforms": [tf]}),)
-        self._write(topic, "nav_msgs/msg/Odometry", stamp, _odometry_dict(
+        self._write(topic, "nav_msgs/msg/Odometry", stamp, ros2msg.odometry_msg(
             stamp, pose.x_m, pose.y_m, pose.yaw_rad, pose.covariance, frame_id, child_frame_id),
             extra=extra)
 
@@ -439,7 +391,7 @@ class RecordingWriter:
         """The virtual robot's true pose on ``/ground_truth`` (``nav_msgs/msg/Odometry``,
         frame ``world``, zero covariance)."""
         stamp = _check_stamp(stamp_ns)
-        self._write(TOPIC_GROUND_TRUTH, "nav_msgs/msg/Odometry", stamp, _odometry_dict(
+        self._write(TOPIC_GROUND_TRUTH, "nav_msgs/msg/Odometry", stamp, ros2msg.odometry_msg(
             stamp, x_m, y_m, yaw_rad, np.zeros((3, 3)), "world", "base_footprint"))
 
     def _failed(self, exc: OSError) -> RecordingError:

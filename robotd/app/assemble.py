@@ -220,18 +220,33 @@ def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store
     """
     if calibration is None and load_calibration_file:
         calibration = load_calibration(cfg)
-    for run, keyframes in store.mark_unfinished_runs():
-        log.warning("map %s: run %d did not end cleanly (killed or power cut?); its %d keyframes are "
-                    "kept and it is marked as ended at its last one", store.path, run.id, keyframes)
-    run_id = store.begin_run(to_toml(cfg))
-    pipeline = build_pipeline(cfg, clock, store, run_id, lossless=lossless, calibration=calibration,
-                              observers=observers, floor_detector=floor_detector,
-                              pose_graph=pose_graph)
+    # ROS 2 and Foxglove outputs ([ros2], [foxglove]): built first, so a missing package
+    # is an error before a run begins in the map.
+    from robotd.app.outputs import build_output_stage
+
+    outputs = build_output_stage(cfg, clock)
+    try:
+        for run, keyframes in store.mark_unfinished_runs():
+            log.warning("map %s: run %d did not end cleanly (killed or power cut?); its %d keyframes are "
+                        "kept and it is marked as ended at its last one", store.path, run.id, keyframes)
+        run_id = store.begin_run(to_toml(cfg))
+        pipeline = build_pipeline(cfg, clock, store, run_id, lossless=lossless, calibration=calibration,
+                                  observers=observers, floor_detector=floor_detector,
+                                  pose_graph=pose_graph)
+    except BaseException:
+        if outputs is not None:  # the sockets and the server thread, when the run never starts
+            outputs.close()
+        raise
     sizes = {"base": cfg.base.queue_size, "floor": cfg.floor_camera.queue_size,
              "forward": cfg.floor_camera.queue_size}
-    return Daemon(clock, pipeline, sources, notifier, store=store, run_id=run_id, lossless=lossless,
-                  status_interval_s=cfg.daemon.status_interval_s, queue_sizes=sizes,
-                  driver_stats=driver_stats)
+    if outputs is not None:
+        pipeline.add(outputs)
+    daemon = Daemon(clock, pipeline, sources, notifier, store=store, run_id=run_id, lossless=lossless,
+                    status_interval_s=cfg.daemon.status_interval_s, queue_sizes=sizes,
+                    driver_stats=driver_stats)
+    if outputs is not None:
+        outputs.bind(lambda: {n: q.dropped for n, q in daemon.queues.items()}, daemon.driver_stats)
+    return daemon
 
 
 def open_map(cfg: Config, clock: Clock | None = None) -> MapStore:

@@ -71,6 +71,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--kidnap-to", type=float, default=None, metavar="S",
                    help="with --kidnap: the route time of the place it is put down (default T/2, a "
                         "place driven before)")
+    p.add_argument("--ros2", action="store_true",
+                   help="publish the demo on ROS 2 (/tf map -> odom, robotd/odometry, path, loop closures, "
+                        "diagnostics; DDS domain from ROS_DOMAIN_ID; needs robotd[ros2], docs/ros2.md)")
+    p.add_argument("--foxglove", action="store_true",
+                   help="serve a live Foxglove view of the demo on ws://127.0.0.1:8765 (needs robotd[foxglove])")
+    p.add_argument("--foxglove-port", type=int, default=None, metavar="N",
+                   help="with --foxglove: the port (default 8765)")
     p.add_argument("--can-faults", action="store_true",
                    help="with --base can: inject a flood of unknown ids, a bus-off, a stale wheel "
                         "and undecodable frames during the run")
@@ -92,6 +99,19 @@ def run_from_args(args: argparse.Namespace) -> int:
         base_cfg = replace(base_cfg, "calibration", path=str(calibration))
     if args.forward:
         base_cfg = replace(base_cfg, "forward_detector", enabled=True)
+    if args.foxglove_port is not None and not args.foxglove:
+        raise ConfigError("--foxglove-port needs --foxglove")
+    if args.ros2:
+        from drivers.ros2.dds import require_cyclonedds
+
+        base_cfg = replace(base_cfg, "ros2", enabled=True)
+        require_cyclonedds()  # before the demo's folder is touched
+    if args.foxglove:
+        from robotd.app.outputs import require_foxglove
+
+        base_cfg = replace(base_cfg, "foxglove", enabled=True,
+                           **({} if args.foxglove_port is None else {"port": args.foxglove_port}))
+        require_foxglove()
     kidnap = None
     if args.kidnap is not None:
         kidnap = (args.kidnap, args.kidnap / 2 if args.kidnap_to is None else args.kidnap_to, KIDNAP_CARRY_S)

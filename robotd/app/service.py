@@ -35,13 +35,14 @@ def open_sources(cfg: Config, clock: Clock) -> dict[str, Any]:
 
     wanted: list[tuple[str, str, str, Any]] = []  # (source, role, backend, config section)
     if cfg.base.driver != "none":
-        # The CAN base takes the whole config: its [can] section and [robot]'s geometry.
-        wanted.append(("base", "base", cfg.base.driver, cfg if cfg.base.driver == "can" else cfg.base))
+        # The CAN and ROS 2 bases take the whole config: their [can] or [ros2] section and
+        # [robot]'s geometry.
+        wanted.append(("base", "base", cfg.base.driver, cfg if cfg.base.driver in ("can", "ros2") else cfg.base))
     fc = cfg.floor_camera
     if fc.source == "virtual":
         raise ConfigError("[floor_camera] source: 'virtual' exists only in `robotd demo`")
     if fc.source != "none":
-        wanted.append(("floor", "floor_camera", fc.source, fc))
+        wanted.append(("floor", "floor_camera", fc.source, cfg if fc.source == "ros2" else fc))
     fw, fd = cfg.forward_camera, cfg.forward_detector
     if fw.source != "none" and not fd.enabled:
         log.warning("[forward_camera] source = %r but [forward_detector] is off: the forward camera "
@@ -49,6 +50,8 @@ def open_sources(cfg: Config, clock: Clock) -> dict[str, Any]:
     elif fw.source != "none":
         # The device section with the size the detector's camera model assumes.
         section = SimpleNamespace(**dataclasses.asdict(fw), width_px=fd.width_px, height_px=fd.height_px)
+        if fw.source == "ros2":  # its topic is in [ros2]
+            section = cfg
         wanted.append(("forward", "forward_camera", fw.source, section))
     sources: dict[str, Any] = {}
     try:

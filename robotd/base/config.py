@@ -44,7 +44,9 @@ class RobotConfig:
 class BaseConfig:
     """The mobile base: wheel encoders and gyro."""
 
-    driver: str = _f("kobuki", "base driver ('can': the [can] section)", choices=("kobuki", "can", "none"))
+    driver: str = _f("kobuki", "base driver ('can': the [can] section; 'ros2': nav_msgs/Odometry "
+                     "and sensor_msgs/Imu from the [ros2] input topics)",
+                     choices=("kobuki", "can", "ros2", "none"))
     port: str = _f("/dev/kobuki", "serial port: a device path or any pyserial URL", nonempty=True)
     baudrate: int = _f(115200, "serial baud rate", lo=1200, hi=4_000_000)
     yaw_source: str = _f("raw_gyro", "which gyro reading feeds the filter",
@@ -85,8 +87,9 @@ class CanConfig:
 class FloorCameraConfig:
     """The downward-facing floor camera: device, intrinsics and mounting."""
 
-    source: str = _f("v4l2", "camera source ('virtual': the built-in virtual robot, demo only)",
-                     choices=("v4l2", "depthai", "none", "virtual"))
+    source: str = _f("v4l2", "camera source ('virtual': the built-in virtual robot, demo only; "
+                     "'ros2': the [ros2] floor_camera_topic)",
+                     choices=("v4l2", "depthai", "none", "virtual", "ros2"))
     device: str = _f("/dev/video0", "V4L2 device path")
     fourcc: str = _f("YUYV", "pixel format requested from the driver", choices=("YUYV", "MJPG", "GREY"))
     width_px: int = _f(640, "image width", lo=16, hi=8192)
@@ -221,8 +224,9 @@ class ForwardCameraConfig:
     """The forward camera's device for `robotd run` (its size, intrinsics and mount are in
     ``[forward_detector]``, which uses its frames). Opened only when the detector is on."""
 
-    source: str = _f("none", "camera source of the forward camera ('none': no forward camera)",
-                     choices=("v4l2", "depthai", "none"))
+    source: str = _f("none", "camera source of the forward camera ('none': no forward camera; "
+                     "'ros2': the [ros2] forward_camera_topic)",
+                     choices=("v4l2", "depthai", "none", "ros2"))
     device: str = _f("/dev/video1", "V4L2 device path")
     fourcc: str = _f("YUYV", "pixel format requested from the driver", choices=("YUYV", "MJPG", "GREY"))
     fps: float = _f(15.0, "frame rate (the detector takes a keyframe every few frames)", lo=0.1, hi=1000.0)
@@ -271,6 +275,63 @@ class DaemonConfig:
 
 
 @dataclass(frozen=True)
+class Ros2Config:
+    """ROS 2 topics over DDS (the ``robotd[ros2]`` extra; docs/ros2.md): what robotd
+    publishes when ``enabled``, and the topics the ``ros2`` base and camera sources read.
+    Relative topic names resolve in ``namespace``; absolute ones (``/tf``) do not."""
+
+    enabled: bool = _f(False, "publish robotd's outputs on ROS 2 (needs cyclonedds)")
+    domain_id: int = _f(-1, "DDS domain; -1: ROS_DOMAIN_ID of the environment (0 when unset), as "
+                        "a ROS 2 node does", lo=-1, hi=232)
+    namespace: str = _f("", "namespace of the relative topics ('' = the root)")
+    map_frame: str = _f("map", "the loop-corrected frame (REP 105)")
+    odom_frame: str = _f("odom", "the odometry frame (REP 105)")
+    base_frame: str = _f("base_footprint", "the robot's frame on the floor")
+    odom_tf: str = _f("auto", "publish odom -> base_frame on /tf: 'auto' only when robotd reads the "
+                      "base itself ([base] driver kobuki or can), 'always', 'never'",
+                      choices=("auto", "always", "never"))
+    tf: bool = _f(True, "publish map -> odom on /tf")
+    static_tf: bool = _f(True, "publish base_link and the camera mounts on /tf_static (false when "
+                         "robot_state_publisher does, from the robot's URDF)")
+    odometry_topic: str = _f("robotd/odometry", "fused odometry (nav_msgs/Odometry); '' = off")
+    pose_topic: str = _f("robotd/pose", "loop-corrected pose in the map frame "
+                         "(geometry_msgs/PoseWithCovarianceStamped); '' = off")
+    path_topic: str = _f("robotd/path", "corrected keyframe path (nav_msgs/Path); '' = off")
+    loop_closures_topic: str = _f("robotd/loop_closures", "accepted loop edges "
+                                  "(visualization_msgs/MarkerArray); '' = off")
+    diagnostics: bool = _f(True, "publish /diagnostics (diagnostic_msgs/DiagnosticArray) at 1 Hz")
+    keyframe_images: bool = _f(False, "publish each keyframe's image (JPEG) on "
+                               "robotd/keyframes/<camera>/compressed")
+    odometry_rate_hz: float = _f(20.0, "most odometry messages (and map -> odom) a second; 0: every "
+                                 "update", lo=0.0, hi=1000.0)
+    path_interval_s: float = _f(1.0, "the path and loop markers at most this often", lo=0.0, hi=3600.0)
+    odometry_reliable: bool = _f(True, "robotd/odometry reliable (false: best effort, as sensor data)")
+    ros_time: bool = _f(True, "stamp messages in ROS time (the Unix clock, what other nodes use): "
+                        "robotd's stamps plus the offset between the clocks at start-up")
+    # input ([base] driver = "ros2", [floor_camera]/[forward_camera] source = "ros2")
+    input_odometry_topic: str = _f("/odom", "wheel odometry read by the ros2 base (nav_msgs/Odometry)")
+    input_imu_topic: str = _f("/imu", "gyro read by the ros2 base (sensor_msgs/Imu); '' = none")
+    floor_camera_topic: str = _f("/floor_camera/image_raw", "floor camera images (sensor_msgs/Image; "
+                                 "a name ending in /compressed: sensor_msgs/CompressedImage)")
+    forward_camera_topic: str = _f("/forward_camera/image_raw", "forward camera images (as above)")
+    input_timeout_s: float = _f(0.5, "an input topic silent this long after data flowed begins a gap "
+                                "(counted, shown in STATUS)", lo=0.01, hi=60.0)
+
+
+@dataclass(frozen=True)
+class FoxgloveConfig:
+    """A live view for Foxglove (the ``robotd[foxglove]`` extra): a WebSocket server with the
+    same ROS 2 messages as [ros2] (poses, path, loop edges, /tf, diagnostics) and the
+    keyframe images. It has no authentication: keep it on the loopback unless the network
+    is yours."""
+
+    enabled: bool = _f(False, "serve the live view")
+    host: str = _f("127.0.0.1", "address to listen on (127.0.0.1: this machine only)")
+    port: int = _f(8765, "TCP port", lo=1, hi=65535)
+    jpeg_quality: int = _f(60, "JPEG quality of the keyframe images", lo=1, hi=100)
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole configuration, one dataclass per TOML table."""
 
@@ -289,6 +350,8 @@ class Config:
     map: MapConfig = field(default_factory=MapConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
+    ros2: Ros2Config = field(default_factory=Ros2Config)
+    foxglove: FoxgloveConfig = field(default_factory=FoxgloveConfig)
 
 
 def _check_value(section: str, f: dataclasses.Field[Any], value: Any) -> Any:

@@ -359,6 +359,8 @@ DEMO_REFUSALS = {
     "can_faults_without_can": (["--can-faults"], "--can-faults needs --base can"),
     "duration_zero": (["--duration", "0"], "--duration must be"),
     "unknown_route": (["--route", "moon"], "invalid choice"),
+    "foxglove_port_alone": (["--foxglove-port", "9000"], "--foxglove-port needs --foxglove"),
+    "foxglove_port_range": (["--foxglove", "--foxglove-port", "70000"], "above the maximum"),
 }
 
 

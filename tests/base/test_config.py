@@ -113,4 +113,6 @@ def test_config_default_is_a_commented_file_that_loads_as_the_defaults(tmp_path)
     (tmp_path / "d.toml").write_text(text)
     assert load_config(tmp_path / "d.toml") == Config()
     assert "# wheel radius (0.005 .. 1)\nwheel_radius_m = 0.035\n" in text
-    assert "(one of 'kobuki', 'can', 'none')\ndriver = \"kobuki\"" in text
+    driver = {f.name: f for f in dataclasses.fields(Config().base)}["driver"]
+    choices = ", ".join(map(repr, driver.metadata["choices"]))
+    assert f"(one of {choices})\ndriver = \"kobuki\"" in text

@@ -121,9 +121,9 @@ def test_every_driver_is_a_context_manager():
 
 
 def test_unknown_backend_names_the_known_ones():
-    with pytest.raises(ConfigError, match=r"unknown base driver 'roomba'; known: can, kobuki"):
+    with pytest.raises(ConfigError, match=r"unknown base driver 'roomba'; known: can, kobuki, ros2"):
         open_driver("base", "roomba", BaseConfig(), ManualClock())
-    with pytest.raises(ConfigError, match=r"unknown floor_camera driver 'gige'; known: depthai, v4l2"):
+    with pytest.raises(ConfigError, match=r"unknown floor_camera driver 'gige'; known: depthai, ros2, v4l2"):
         open_driver("floor_camera", "gige", FloorCameraConfig(), ManualClock())
     with pytest.raises(ConfigError, match=r"no driver role 'lidar'; known roles: base, floor_camera, forward_camera, replay"):
         open_driver("lidar", "rplidar", None, ManualClock())
