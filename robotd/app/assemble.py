@@ -136,11 +136,13 @@ def forward_loop_params(cfg: Config) -> PlanarLoopParams:
 def build_forward_stage(cfg: Config) -> Any:
     """The forward loop detector stage (paper 000) with the config's features and camera."""
     from robotd.app.forwardloops import ForwardLoopStage
-    from robotd.forward import DetectorParams, FeatureParams, ForwardDetector
+    from robotd.forward import DetectorParams, FeatureParams, ForwardDetector, VerifyParams
 
     f = cfg.forward_detector
     k = np.array([[f.fx_px, 0.0, f.cx_px], [0.0, f.fy_px, f.cy_px], [0.0, 0.0, 1.0]])
-    params = DetectorParams(features=FeatureParams(kind=f.features, max_features=f.max_features))
+    # The camera's height gives the loops their range on the floor (robotd.forward.verify).
+    params = DetectorParams(features=FeatureParams(kind=f.features, max_features=f.max_features),
+                            verify=VerifyParams(camera_height_m=f.mount_height_m if f.mount_height_m > 0 else None))
     log.info("forward loop detector on (%s, a keyframe every %.2f m or %.0f deg)", f.features,
              f.distance_m, f.rotation_deg)
     return ForwardLoopStage(ForwardDetector(params, camera_matrix=k), distance_m=f.distance_m,
