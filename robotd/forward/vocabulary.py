@@ -48,6 +48,11 @@ class VocabularyParams:
         expansion_add: HNSW candidate list size while inserting.
         expansion_search: HNSW candidate list size while searching (recall of the nearest
             word against speed).
+        purge_after: words seen in one image only are removed from the search once that
+            many images have come after it (iBoW-LCD's purging, issue 24): most words of an
+            image never recur, and they would otherwise fill the search structure; 0 =
+            never (the paper). A purged word keeps its id and its place in the inverted
+            index (it still counts for its one image) but no later descriptor can find it.
     """
 
     word_radius_l2: float = 0.4
@@ -55,6 +60,7 @@ class VocabularyParams:
     connectivity: int = 12
     expansion_add: int = 40
     expansion_search: int = 24
+    purge_after: int = 0
 
 
 class Vocabulary:
@@ -86,9 +92,20 @@ class Vocabulary:
                                 expansion_search=params.expansion_search)
             self._radius = float(params.word_radius_l2) ** 2  # usearch returns squared L2
         self._n_words = 0
+        self._images = 0                        # add() calls so far (one per image)
+        self._born = _GrowingInts()             # per word: the image (add() call) that made it
+        self._seen = _GrowingInts()             # per word: images it was found in
+        self._unpurged_from = 0                 # words below this id were all examined
+        self.purged = 0
 
     def __len__(self) -> int:
+        """Words made so far (purged ones included: ids are never reused)."""
         return self._n_words
+
+    @property
+    def n_searchable(self) -> int:
+        """Words the search can still find (made minus purged)."""
+        return self._n_words - self.purged
 
     def _check(self, descriptors: np.ndarray) -> np.ndarray:
         d = np.ascontiguousarray(descriptors, np.uint8 if self.binary else np.float32)
@@ -114,8 +131,11 @@ class Vocabulary:
 
     def _pairwise(self, d: np.ndarray) -> np.ndarray:
         """Distances between the rows of ``d`` in the units of the radius (bits, or squared L2)."""
-        if self.binary:
-            return np.bitwise_count(d[:, None, :] ^ d[None, :, :]).sum(axis=2).astype(np.float64)
+        if self.binary:  # |a xor b| = |a| + |b| - 2 a.b over the bits: one float32 product,
+            # far faster than an (N, N, 32) xor array; exact (integers below 2^24)
+            bits = np.unpackbits(d, axis=1).astype(np.float32)
+            ones = bits.sum(axis=1)
+            return (ones[:, None] + ones[None, :] - 2.0 * (bits @ bits.T)).astype(np.float64)
         sq = np.einsum("ij,ij->i", d, d).astype(np.float64)
         return np.maximum(sq[:, None] + sq[None, :] - 2.0 * (d.astype(np.float64) @ d.T.astype(np.float64)), 0.0)
 
@@ -129,8 +149,12 @@ class Vocabulary:
         """
         d = self._check(descriptors)
         words = self.quantize(d)
+        self._images += 1
+        found = np.unique(words[words >= 0])
+        self._seen.view[found] += 1
         new = np.flatnonzero(words < 0)
         if not len(new):
+            self._purge()
             return words, 0
         dist = self._pairwise(d[new])
         owner = np.full(len(new), -1, np.int64)
@@ -147,8 +171,31 @@ class Vocabulary:
         keys = np.arange(self._n_words, self._n_words + len(founders), dtype=np.int64)
         self._index.add(keys, d[new[founders]], threads=1)
         self._n_words += len(founders)
+        n0 = self._born.n
+        self._born.resize(n0 + len(founders))
+        self._born.view[n0:] = self._images - 1
+        self._seen.resize(n0 + len(founders))
+        self._seen.view[n0:] = 1
         words[new] = owner
+        self._purge()
         return words, len(founders)
+
+    def _purge(self) -> None:
+        """Remove from the search the words seen in one image only, made ``purge_after``
+        images ago or earlier (the words are examined once, in creation order)."""
+        age = self.params.purge_after
+        if age <= 0:
+            return
+        limit = self._images - 1 - age          # words born at or before this image are due
+        lo = self._unpurged_from
+        hi = lo + int(np.searchsorted(self._born.view[lo:], limit, side="right"))
+        if hi <= lo:
+            return
+        gone = lo + np.flatnonzero(self._seen.view[lo:hi] <= 1)
+        if len(gone):
+            self._index.remove(gone.astype(np.int64))
+            self.purged += len(gone)
+        self._unpurged_from = hi
 
 
 class _GrowingInts:

@@ -105,3 +105,29 @@ def test_votes_are_tfidf_sums_and_the_virtual_image_votes_too():
     # A word twice in the query votes twice.
     scores2, _ = idx.vote(np.array([2, 2]))
     assert np.allclose(scores2, [0.0, math.log(1.5), 1.5 * math.log(1.5)])
+
+
+def test_words_seen_in_one_image_only_are_purged_after_the_set_age():
+    """iBoW-LCD's purging (issue 24): a word no later image found leaves the search once
+    ``purge_after`` images have come after the image that made it; a word that recurred
+    stays; ids are never reused."""
+    rng = np.random.default_rng(7)
+    params = VocabularyParams(word_radius_bits=40, purge_after=2)
+    voc = Vocabulary(dim=32, binary=True, params=params)
+    a = rng.integers(0, 256, (2, 32), dtype=np.uint8)  # image 0: two words, 0 and 1
+    voc.add(a)
+    voc.add(a[:1])                       # image 1 finds word 0 again: it recurred
+    assert voc.purged == 0 and list(voc.quantize(a)) == [0, 1]  # one image after: not yet
+    voc.add(rng.integers(0, 256, (1, 32), dtype=np.uint8))  # image 2: word 1 (seen once) goes
+    assert voc.purged == 1 and voc.n_searchable == len(voc) - 1
+    assert list(voc.quantize(a)) == [0, -1]
+    words, new = voc.add(a[1:])          # the same descriptor now makes a new word
+    assert new == 1 and words[0] == len(voc) - 1 and words[0] != 1
+
+
+def test_no_purging_by_default():
+    rng = np.random.default_rng(8)
+    voc = Vocabulary(dim=32, binary=True)
+    for _ in range(30):
+        voc.add(rng.integers(0, 256, (5, 32), dtype=np.uint8))
+    assert voc.purged == 0 and voc.n_searchable == len(voc) == 150
