@@ -91,10 +91,10 @@ def office_sequence(folder: Path) -> Path:
 
 
 def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, object], skip: set[str],
-                 recent: int = 10) -> dict[str, object]:
+                 recent: int = 10, only: set[str] | None = None) -> dict[str, object]:
     files = list_images(folder, exclude=(truth_path,))
     truth = load_ground_truth(truth_path, len(files))
-    images = [read_image(p) for p in files]
+    images = [read_image(p) for p in files]  # decoded once (grey office images: 300 kB each)
     h, w = images[0].shape[:2]
     k = camera_matrix_guess(w, h, 525.0 if name == "office" else None)
     # OpenCV's own ORB on the same images: the baseline of the time column.
@@ -111,10 +111,10 @@ def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, obje
                                                                        "p99": float(np.percentile(cv_ms, 99))},
                               "configurations": {}}
     print(f"\n{name}: {len(files)} images ({w}x{h}); OpenCV ORB (300) extraction: median {cv_median:.1f} ms")
-    print(f"{'configuration':<28}{'R@100%P':>9}{'FP':>5}{'prec.':>7}{'loops':>7}{'ms med':>8}{'p99':>8}"
-          f"{'x ORB':>7}{'words':>8}")
+    print(f"{'configuration':<32}{'R@100%P':>9}{'FP':>5}{'prec.':>7}{'loops':>7}{'ms med':>8}{'p99':>8}"
+          f"{'x ORB':>7}{'words':>8}{'B/image':>9}")
     for cname, params in cfgs.items():
-        if cname in skip:
+        if cname in skip or (only is not None and cname not in only):
             continue
         fk = (params.features.kind, params.features.max_features)
         if fk not in feats:
@@ -136,12 +136,15 @@ def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, obje
                 cand[t], conf[t], decl[t] = d.candidate_id, d.candidate_probability, d.status == LOOP
         s = score_decisions(cand, conf, decl, truth, recent)
         med, p99 = float(np.median(total)), float(np.percentile(total, 99))
+        mem = det.memory_bytes()
+        per_image = sum(mem.values()) / n
         row = {**s.as_dict(), "ms_median": med, "ms_p99": p99, "ratio_to_opencv_orb": med / cv_median,
-               "words": len(det.vocabulary), "searchable_words": det.vocabulary.n_searchable}
+               "words": len(det.vocabulary), "searchable_words": det.vocabulary.n_searchable,
+               "bytes_per_image": per_image, "bytes_per_image_by_part": {k: v / n for k, v in mem.items()}}
         out["configurations"][cname] = row
-        print(f"{cname:<28}{s.recall_at_full_precision:>9.3f}{s.false_positives:>5}{s.precision:>7.3f}"
-              f"{s.declared:>7}{med:>8.1f}{p99:>8.1f}{med / cv_median:>7.1f}{det.vocabulary.n_searchable:>8}",
-              flush=True)
+        print(f"{cname:<32}{s.recall_at_full_precision:>9.3f}{s.false_positives:>5}{s.precision:>7.3f}"
+              f"{s.declared:>7}{med:>8.1f}{p99:>8.1f}{med / cv_median:>7.1f}{det.vocabulary.n_searchable:>8}"
+              f"{per_image:>9.0f}", flush=True)
     return out
 
 
@@ -152,18 +155,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=DATA,
                     help="the shared data folder (default ../shared/data from the project root)")
     ap.add_argument("--only", choices=("rtabmap", "office"), default=None)
+    ap.add_argument("--configs", default=None,
+                    help="configuration names to run, separated by semicolons (default: all)")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
     cfgs = configurations(args.full)
+    only = None if args.configs is None else {c.strip() for c in args.configs.split(";")}
     result: dict[str, object] = {"machine": machine_info(), "sequences": {}}
     rtabmap = args.data / "forward" / "rtabmap_samples"
     if args.only in (None, "rtabmap"):
         result["sequences"]["rtabmap_samples"] = run_sequence(
-            "rtabmap_samples", rtabmap, rtabmap / "ground_truth.bmp", cfgs, set())
+            "rtabmap_samples", rtabmap, rtabmap / "ground_truth.bmp", cfgs, set(), only=only)
     if args.only in (None, "office"):
         office = office_sequence(args.dir)
         skip = set() if args.full else {"paper (SIFT)"}
-        result["sequences"]["office"] = run_sequence("office", office, office / "gt.npy", cfgs, skip)
+        result["sequences"]["office"] = run_sequence("office", office, office / "gt.npy", cfgs, skip, only=only)
     print(f"wrote {write_json(args.out, result)}")
     return 0
 

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robotd.forward.features import FeatureExtractor, FeatureParams, Features
+from robotd.forward.features import CompactFeatures, FeatureExtractor, FeatureParams, Features, compact
 from robotd.forward.filter import (FilterParams, predict, predict_ids, select_candidate,
                                    select_candidate_ids, update)
 from robotd.forward.likelihood import LikelihoodMethod, adjust_likelihood
@@ -192,7 +192,7 @@ class ForwardDetector:
         self.memory = WorkingMemory(self.index, params.memory,
                                     protect_recent=params.recent_excluded + params.filter.neighbours,
                                     neighbours=params.filter.neighbours)
-        self._features: list[Features] = []
+        self._features: list[CompactFeatures] = []
         self._posterior = np.ones(1)
         self._hyp_ids = np.zeros(0, np.int64)
         self._run = 0                      # consecutive images with consistent candidates
@@ -202,9 +202,18 @@ class ForwardDetector:
         """Images processed."""
         return len(self._features)
 
-    def features_of(self, image_id: int) -> Features:
-        """The stored features of a processed image."""
+    def features_of(self, image_id: int) -> CompactFeatures:
+        """The stored features of a processed image (compact: word ids, keypoints in 1/16
+        px, descriptors; they read like :class:`Features`)."""
         return self._features[image_id]
+
+    def memory_bytes(self) -> dict[str, int]:
+        """Bytes the detector holds, by part: ``images`` (word ids, keypoints, descriptors
+        of every past image), ``index`` (the inverted index), ``vocabulary`` (the word
+        search, as usearch reports it, reserved capacity included)."""
+        return {"images": sum(f.nbytes for f in self._features),
+                "index": self.index.memory_bytes(),
+                "vocabulary": self.vocabulary.memory_bytes()}
 
     def process(self, image: np.ndarray) -> Detection:
         """Run one image (``(H, W)`` gray or ``(H, W, 3)`` BGR uint8) through the detector."""
@@ -264,7 +273,7 @@ class ForwardDetector:
         # I_t joins the inverted index after its own vote (its words are part of Z_t+1);
         # that bookkeeping counts as word search.
         self.memory.add(t, words, t)
-        self._features.append(feats)
+        self._features.append(compact(feats, words))
         t3b = clock()
         times["words"] += t3b - t3
         t3 = t3b

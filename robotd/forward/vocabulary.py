@@ -27,7 +27,8 @@ image, each counted once: tf = 1 / n.
 from __future__ import annotations
 
 import heapq
-import itertools
+import sys
+from array import array
 from dataclasses import dataclass
 
 import numpy as np
@@ -101,6 +102,11 @@ class Vocabulary:
     def __len__(self) -> int:
         """Words made so far (purged ones included: ids are never reused)."""
         return self._n_words
+
+    def memory_bytes(self) -> int:
+        """Bytes of the word search (usearch's own figure, its reserved capacity included)
+        and the per-word counters."""
+        return int(self._index.memory_usage) + 16 * self._n_words
 
     @property
     def n_searchable(self) -> int:
@@ -230,8 +236,9 @@ class InvertedIndex:
     """
 
     def __init__(self) -> None:
-        self._post_slots: list[list[int]] = []   # per word: slots of the images containing it
-        self._post_counts: list[list[int]] = []  # per word: n(w, i) for those images
+        # Postings as C int arrays (4 bytes an entry, not a Python int object each).
+        self._post_slots: list[array] = []       # per word: slots of the images containing it
+        self._post_counts: list[array] = []      # per word: n(w, i) for those images
         self._df = _GrowingInts()                # per word: images containing it
         self._occ = _GrowingInts()               # per word: total occurrences
         self._image_len = _GrowingInts()         # per slot: n(i), words (with repeats) in the image
@@ -301,8 +308,8 @@ class InvertedIndex:
         top = int(uw[-1]) + 1
         if top > self._df.n:
             for _ in range(top - len(self._post_slots)):
-                self._post_slots.append([])
-                self._post_counts.append([])
+                self._post_slots.append(array("i"))
+                self._post_counts.append(array("i"))
             old = self._df.n
             self._df.resize(top)
             self._occ.resize(top)
@@ -429,10 +436,9 @@ class InvertedIndex:
         if not len(uw):
             return scores, 0.0
         idf = np.log(self.n_images / df)
-        lists = [self._post_slots[k] for k in uw.tolist()]
-        slots = np.fromiter(itertools.chain.from_iterable(lists), np.int64, int(df.sum()))
-        n_wi = np.fromiter(itertools.chain.from_iterable(self._post_counts[k] for k in uw.tolist()),
-                           np.int64, int(df.sum()))
+        ids = uw.tolist()
+        slots = np.concatenate([np.frombuffer(self._post_slots[k], np.int32) for k in ids]).astype(np.int64)
+        n_wi = np.concatenate([np.frombuffer(self._post_counts[k], np.int32) for k in ids])
         per_word = cq * idf
         weights = np.repeat(per_word, df) * n_wi / self._image_len.view[slots]
         scores += np.bincount(slots, weights=weights, minlength=self.n_slots)
@@ -442,7 +448,8 @@ class InvertedIndex:
         return scores, virtual
 
     def memory_bytes(self) -> int:
-        """Approximate bytes held by the postings (8 per slot and count entry) and the
-        per-word and per-slot counters."""
-        entries = sum(len(p) for p in self._post_slots)
-        return 16 * entries + 8 * (4 * self._df.n + self._image_len.n)
+        """Bytes held by the postings (the int arrays with their object overhead, and the
+        lists holding them) and the per-word and per-slot counters."""
+        posting = sum(sys.getsizeof(a) for a in self._post_slots) + sum(sys.getsizeof(a) for a in self._post_counts)
+        lists = sys.getsizeof(self._post_slots) + sys.getsizeof(self._post_counts)
+        return posting + lists + 8 * (4 * self._df.n + self._image_len.n)
