@@ -133,8 +133,9 @@ def forward_loop_params(cfg: Config) -> PlanarLoopParams:
                             sigma_yaw_rad=math.radians(f.sigma_yaw_deg))
 
 
-def build_forward_stage(cfg: Config) -> Any:
-    """The forward loop detector stage (paper 000) with the config's features and camera."""
+def build_forward_stage(cfg: Config, store: MapStore | None = None) -> Any:
+    """The forward loop detector stage (paper 000) with the config's features and camera;
+    with ``store``, its memory is kept in the map and taken up from earlier runs."""
     from robotd.app.forwardloops import ForwardLoopStage
     from dataclasses import replace
 
@@ -152,7 +153,8 @@ def build_forward_stage(cfg: Config) -> Any:
     log.info("forward loop detector on (method %s, %s features, a keyframe every %.2f m or %.0f deg)",
              f.method, kind, f.distance_m, f.rotation_deg)
     return ForwardLoopStage(ForwardDetector(params, camera_matrix=k), distance_m=f.distance_m,
-                            rotation_rad=math.radians(f.rotation_deg), sync_tolerance_s=f.sync_tolerance_s)
+                            rotation_rad=math.radians(f.rotation_deg), sync_tolerance_s=f.sync_tolerance_s,
+                            store=store)
 
 
 def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, lossless: bool,
@@ -184,7 +186,7 @@ def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, l
     else:
         pipeline.add(LoopsUngated())
     if cfg.forward_detector.enabled:
-        pipeline.add(build_forward_stage(cfg))
+        pipeline.add(build_forward_stage(cfg, store))
     detector = build_floor_detector(cfg, store, calibration) if floor_detector else None
     if detector is not None:
         pipeline.add(FloorDetectorStage(detector))

@@ -207,6 +207,25 @@ class ForwardDetector:
         px, descriptors; they read like :class:`Features`)."""
         return self._features[image_id]
 
+    def restore(self, images: list[CompactFeatures], word_descriptors: np.ndarray, word_born: np.ndarray,
+                word_purged: np.ndarray) -> None:
+        """Take up the memory of an earlier run (issue 24 item 4): its images in order (as
+        :meth:`features_of` gave them) and its words (descriptors, the image that made each,
+        purged or not). The inverted index is rebuilt from the images' words; the filter
+        starts at "no loop" as at any start; the earlier images are hypotheses at once."""
+        if len(self._features):
+            raise ValueError("restore() needs a detector that has seen no image")
+        n_words = len(word_descriptors)
+        seen = np.zeros(n_words, np.int64)
+        for t, f in enumerate(images):
+            w = f.words.astype(np.int64)
+            if len(w) and w.max() >= n_words:
+                raise ValueError(f"stored image {t} has word {int(w.max())}, beyond the {n_words} stored words")
+            seen[np.unique(w)] += 1
+            self.memory.add(t, w, t)
+            self._features.append(f)
+        self.vocabulary.restore(word_descriptors, word_born, word_purged, seen, len(images))
+
     def memory_bytes(self) -> dict[str, int]:
         """Bytes the detector holds, by part: ``images`` (word ids, keypoints, descriptors
         of every past image), ``index`` (the inverted index), ``vocabulary`` (the word

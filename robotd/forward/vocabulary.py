@@ -98,6 +98,9 @@ class Vocabulary:
         self._seen = _GrowingInts()             # per word: images it was found in
         self._unpurged_from = 0                 # words below this id were all examined
         self.purged = 0
+        # What the last add() changed, for a store to write (robotd.io.store, issue 24):
+        self.last_new: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros((0, dim)))
+        self.last_purged = np.zeros(0, np.int64)
 
     def __len__(self) -> int:
         """Words made so far (purged ones included: ids are never reused)."""
@@ -156,6 +159,8 @@ class Vocabulary:
         d = self._check(descriptors)
         words = self.quantize(d)
         self._images += 1
+        self.last_new = (np.zeros(0, np.int64), d[:0])
+        self.last_purged = np.zeros(0, np.int64)
         found = np.unique(words[words >= 0])
         self._seen.view[found] += 1
         new = np.flatnonzero(words < 0)
@@ -183,8 +188,37 @@ class Vocabulary:
         self._seen.resize(n0 + len(founders))
         self._seen.view[n0:] = 1
         words[new] = owner
+        self.last_new = (keys, d[new[founders]])
         self._purge()
         return words, len(founders)
+
+    def restore(self, descriptors: np.ndarray, born: np.ndarray, purged: np.ndarray,
+                seen: np.ndarray, n_images: int) -> None:
+        """Rebuild an empty vocabulary from stored words (ids 0 .. n - 1 in order):
+        ``descriptors (n, dim)``, ``born (n,)`` the image that made each, ``purged (n,)
+        bool``, ``seen (n,)`` images each was found in, ``n_images`` images added so far.
+        Purged words keep their ids but are not searchable."""
+        if self._n_words:
+            raise ValueError("restore() needs an empty vocabulary")
+        d = self._check(descriptors)
+        n = len(d)
+        born = np.asarray(born, np.int64)
+        purged = np.asarray(purged, bool)
+        if not (len(born) == len(purged) == len(seen) == n):
+            raise ValueError("descriptors, born, purged and seen must have one row per word")
+        keep = np.flatnonzero(~purged)
+        if len(keep):
+            self._index.add(keep.astype(np.int64), d[keep], threads=1)
+        self._n_words = n
+        self._born.resize(n)
+        self._born.view[:] = born
+        self._seen.resize(n)
+        self._seen.view[:] = np.asarray(seen, np.int64)
+        self._images = int(n_images)
+        self.purged = int(purged.sum())
+        age = self.params.purge_after
+        if age > 0:  # the words already due were examined when they fell due
+            self._unpurged_from = int(np.searchsorted(born, self._images - 1 - age, side="right"))
 
     def _purge(self) -> None:
         """Remove from the search the words seen in one image only, made ``purge_after``
@@ -201,6 +235,7 @@ class Vocabulary:
         if len(gone):
             self._index.remove(gone.astype(np.int64))
             self.purged += len(gone)
+            self.last_purged = gone.astype(np.int64)
         self._unpurged_from = hi
 
 
