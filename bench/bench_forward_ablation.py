@@ -14,12 +14,13 @@ operating point, precision, and time per image (median, p99) with its ratio to O
 ORB. Written: JSON (machine, versions, commit, every figure), read by
 ``tools/forward_benchmark_doc.py`` to make ``docs/benchmarks/forward.md``.
 
-Run: ``.venv/bin/python bench/bench_forward_ablation.py --dir /tmp/office``. By default
-(about 10 minutes on the 2-core development machine when it is not shared): every
-configuration on rtabmap_samples, and the default detector beside ORB with the paper's
-filter on the office route. ``--full`` runs every configuration on the office route too,
-the paper's SIFT detector included (about an hour there; each lever's office figures in
-docs/benchmarks/forward.md come from it). ``--configs "A;B"`` picks configurations.
+Run: ``.venv/bin/python bench/bench_forward_ablation.py --dir /tmp/office``. By default:
+every configuration on rtabmap_samples, and the default detector beside ORB with the
+paper's filter on the office route (on the shared 2-core development machine under load:
+about 4 minutes for rtabmap_samples and 4-6 minutes per office configuration, so about a
+quarter of an hour; less on an idle machine). ``--full`` runs every configuration on the
+office route too, the paper's SIFT detector included (over an hour there).
+``--configs "A;B"`` picks configurations.
 """
 
 from __future__ import annotations
