@@ -101,7 +101,10 @@ class ForwardLoopStage(Publisher):
             d = np.frombuffer(desc, dtype).reshape(-1, dim)
             feats.append(CompactFeatures(w, kq, d, size))
             self._keyframe_ids.append(kf_id)
-        word_desc = np.stack([np.frombuffer(w[2], dtype) for w in words]) if words else np.zeros((0, dim), dtype)
+        word_desc = np.zeros((len(words), dim), dtype)  # purged words' descriptors are not kept
+        for n, w in enumerate(words):
+            if not w[4]:
+                word_desc[n] = np.frombuffer(w[2], dtype)
         self.detector.restore(feats, word_desc, np.array([w[3] for w in words], np.int64),
                               np.array([w[4] for w in words], bool))
         self.restored = len(feats)

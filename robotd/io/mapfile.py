@@ -139,7 +139,8 @@ def _migrate_3_to_4(conn: sqlite3.Connection) -> None:
     keyframe (``image_id``, the detector's image number, in arrival order over all runs;
     ``kind`` of features; ``words`` uint32, ``keypoints`` uint16 pairs in 1/16 px,
     ``descriptors`` as extracted, all little-endian). ``forward_words``: one row per word
-    (``descriptor``, ``born_image``, ``purged`` = 1 once it left the search). The inverted
+    (``descriptor``, ``born_image``, ``purged`` = 1 once it left the search, its descriptor
+    then emptied). The inverted
     index and the Bayes filter are rebuilt from these at start (the filter starts at "no
     loop", as at any start)."""
     conn.execute(

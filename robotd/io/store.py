@@ -852,8 +852,8 @@ class MapStore:
                           new_words: Sequence[tuple[int, bytes]] = (), purged: Sequence[int] = ()) -> None:
         """Store one forward image (``words (N,) uint32``, ``keypoints_q (N, 2) uint16`` in
         1/16 px, ``descriptors``), the words it made (``(word id, descriptor bytes)``) and
-        the words purged after it, in one transaction (a power cut loses at most this
-        image). ValueError for an unknown keyframe or a repeated id."""
+        the words purged after it (their descriptors are dropped), in one transaction (a
+        power cut loses at most this image). ValueError for an unknown keyframe or a repeated id."""
         w, h = (int(v) for v in image_size_px)
         with self._write() as conn:
             conn.execute(
@@ -867,13 +867,16 @@ class MapStore:
                 conn.executemany("INSERT INTO forward_words (id, kind, descriptor, born_image) VALUES (?, ?, ?, ?)",
                                  [(int(i), kind, bytes(d), int(image_id)) for i, d in new_words])
             if purged:
-                conn.executemany("UPDATE forward_words SET purged = 1 WHERE id = ?", [(int(i),) for i in purged])
+                # A purged word is never searched again: its descriptor is dropped.
+                conn.executemany("UPDATE forward_words SET purged = 1, descriptor = X'' WHERE id = ?",
+                                 [(int(i),) for i in purged])
 
     def forward_memory(self) -> tuple[list[tuple], list[tuple]]:
         """Everything :meth:`add_forward_image` stored: the images as ``(image_id,
         keyframe_id, kind, (width, height), words (N,) uint32, keypoints_q (N, 2) uint16,
         descriptors bytes)`` in image order, and the words as ``(id, kind, descriptor
-        bytes, born_image, purged)`` in id order (the caller knows the descriptor type)."""
+        bytes, born_image, purged)`` in id order (the caller knows the descriptor type; a
+        purged word's descriptor is empty)."""
         images = []
         for image_id, kf, kind, w, h, words, kps, desc in self._read(
                 "SELECT image_id, keyframe_id, kind, image_width, image_height, words, keypoints, descriptors"

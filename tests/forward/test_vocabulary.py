@@ -131,3 +131,31 @@ def test_no_purging_by_default():
     for _ in range(30):
         voc.add(rng.integers(0, 256, (5, 32), dtype=np.uint8))
     assert voc.purged == 0 and voc.n_searchable == len(voc) == 150
+
+
+def test_a_restored_vocabulary_finds_what_the_original_finds_and_purges_on():
+    """restore() (a restarted daemon, issue 24): the same searchable words, purged ones
+    not found, and purging goes on from where it was."""
+    rng = np.random.default_rng(9)
+    params = VocabularyParams(word_radius_bits=40, purge_after=3)
+    voc = Vocabulary(dim=32, binary=True, params=params)
+    imgs = [rng.integers(0, 256, (4, 32), dtype=np.uint8) for _ in range(6)]
+    descs = []
+    for k, d in enumerate(imgs):
+        voc.add(d if k != 5 else np.vstack([d, imgs[4][:1]]))  # image 5 sees a word of image 4 again
+        descs.append(voc.last_new[1])
+    all_desc = np.vstack(descs)
+    born = np.repeat(np.arange(6), [len(x) for x in descs])
+    purged = np.zeros(len(voc), bool)
+    purged[:voc.purged] = True  # purged in creation order: images 0-2 were due, seen once
+    seen = np.ones(len(voc), np.int64)
+    seen[16] = 2  # the word of image 4 found again at image 5
+    again = Vocabulary(dim=32, binary=True, params=params)
+    again.restore(all_desc, born, purged, seen, n_images=6)
+    assert voc.purged == 12 and again.purged == 12 and len(again) == len(voc) == 24
+    probe = np.vstack(imgs)
+    np.testing.assert_array_equal(again.quantize(probe), voc.quantize(probe))
+    assert (again.quantize(probe)[:12] == -1).all()
+    again.add(rng.integers(0, 256, (1, 32), dtype=np.uint8))  # image 6: image 3's words fall due
+    voc.add(rng.integers(0, 256, (1, 32), dtype=np.uint8))
+    assert again.purged == voc.purged == 16

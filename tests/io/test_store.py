@@ -761,3 +761,4 @@ def test_the_forward_memory_round_trips_one_image_per_transaction(tmp_path) -> N
     assert np.frombuffer(images[0][6], np.uint8).reshape(-1, 32).tolist() == desc.tolist()
     assert [(w[0], w[3], w[4]) for w in words] == [(0, 0, False), (1, 0, False), (2, 0, False), (3, 0, True),
                                                    (4, 0, True), (5, 1, False)]
+    assert words[2][2] == desc[2].tobytes() and words[3][2] == b"" and words[4][2] == b""  # purged: dropped
