@@ -225,6 +225,8 @@ class ForwardDetector:
             self.memory.add(t, w, t)
             self._features.append(f)
         self.vocabulary.restore(word_descriptors, word_born, word_purged, seen, len(images))
+        if not self.params.memory.bounded:
+            self.index.drop_postings(np.flatnonzero(np.asarray(word_purged, bool)))
 
     def memory_bytes(self) -> dict[str, int]:
         """Bytes the detector holds, by part: ``images`` (word ids, keypoints, descriptors
@@ -250,6 +252,8 @@ class ForwardDetector:
 
         t0 = clock()
         words, new_words = self.vocabulary.add(feats.descriptors)
+        if len(self.vocabulary.last_purged) and not p.memory.bounded:
+            self.index.drop_postings(self.vocabulary.last_purged)  # no query can find them
         t1 = clock()
         times["words"] = t1 - t0
 

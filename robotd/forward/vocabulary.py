@@ -258,6 +258,9 @@ class _GrowingInts:
         return self._a[:self.n]
 
 
+_NO_POSTINGS = array("i")  # shared by the words whose postings were dropped (never appended to)
+
+
 class InvertedIndex:
     """Word -> images it was seen in (with counts), and the tf-idf statistics.
 
@@ -351,6 +354,8 @@ class InvertedIndex:
             self._active_pos.resize(top)
             self._active_pos.view[old:] = -1
         for wid, c in zip(uw.tolist(), cnt.tolist()):
+            if self._post_slots[wid] is _NO_POSTINGS:
+                self._post_slots[wid], self._post_counts[wid] = array("i"), array("i")
             self._post_slots[wid].append(slot)
             self._post_counts[wid].append(c)
         born = uw[self._df.view[uw] == 0]
@@ -403,6 +408,16 @@ class InvertedIndex:
         self._image_ids[slot] = -1
         heapq.heappush(self._free, slot)
         self._removed.add(image_id)
+
+    def drop_postings(self, words: np.ndarray) -> None:
+        """Free the postings of ``words`` that no query can contain any more (words purged
+        from the vocabulary's search): their images keep their word counts and the words
+        their document frequencies, so every other score stays as it was. Not for an index
+        whose images may be removed again (a bounded working memory checks postings)."""
+        for wid in np.asarray(words, np.int64).tolist():
+            if 0 <= wid < len(self._post_slots):
+                self._post_slots[wid] = _NO_POSTINGS
+                self._post_counts[wid] = _NO_POSTINGS
 
     def document_frequency(self, word: int) -> int:
         """df(w): indexed images that contain ``word``."""
@@ -474,8 +489,9 @@ class InvertedIndex:
         ids = uw.tolist()
         slots = np.concatenate([np.frombuffer(self._post_slots[k], np.int32) for k in ids]).astype(np.int64)
         n_wi = np.concatenate([np.frombuffer(self._post_counts[k], np.int32) for k in ids])
+        held = np.fromiter((len(self._post_slots[k]) for k in ids), np.int64, len(ids))  # df, bar dropped postings
         per_word = cq * idf
-        weights = np.repeat(per_word, df) * n_wi / self._image_len.view[slots]
+        weights = np.repeat(per_word, held) * n_wi / self._image_len.view[slots]
         scores += np.bincount(slots, weights=weights, minlength=self.n_slots)
         virt = self.virtual_image()
         in_virt = np.isin(uw, virt)
@@ -485,6 +501,7 @@ class InvertedIndex:
     def memory_bytes(self) -> int:
         """Bytes held by the postings (the int arrays with their object overhead, and the
         lists holding them) and the per-word and per-slot counters."""
-        posting = sum(sys.getsizeof(a) for a in self._post_slots) + sum(sys.getsizeof(a) for a in self._post_counts)
+        posting = sum(sys.getsizeof(a) for a in self._post_slots if a is not _NO_POSTINGS) + sum(
+            sys.getsizeof(a) for a in self._post_counts if a is not _NO_POSTINGS)
         lists = sys.getsizeof(self._post_slots) + sys.getsizeof(self._post_counts)
         return posting + lists + 8 * (4 * self._df.n + self._image_len.n)

@@ -159,3 +159,20 @@ def test_a_restored_vocabulary_finds_what_the_original_finds_and_purges_on():
     again.add(rng.integers(0, 256, (1, 32), dtype=np.uint8))  # image 6: image 3's words fall due
     voc.add(rng.integers(0, 256, (1, 32), dtype=np.uint8))
     assert again.purged == voc.purged == 16
+
+
+def test_dropped_postings_change_no_score_of_the_other_words():
+    rng = np.random.default_rng(10)
+    idx, ref = InvertedIndex(), InvertedIndex()
+    words = [rng.integers(0, 40, 12) for _ in range(8)]
+    for i, w in enumerate(words):
+        idx.add_image(i, w)
+        ref.add_image(i, w)
+    only_once = [w for w in range(40) if idx.document_frequency(w) == 1]
+    before = idx.memory_bytes()
+    idx.drop_postings(np.array(only_once))
+    assert idx.memory_bytes() < before
+    query = np.array([w for w in range(40) if w not in only_once])
+    np.testing.assert_array_equal(idx.vote(query)[0], ref.vote(query)[0])
+    idx.add_image(8, np.array(only_once[:2]))  # a dropped word coming back gets postings again
+    assert idx.document_frequency(only_once[0]) == 2 and idx.vote(np.array(only_once[:1]))[0][8] > 0
