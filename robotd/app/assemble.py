@@ -148,18 +148,28 @@ def forward_loop_params(cfg: Config) -> PlanarLoopParams:
                             sigma_yaw_rad=math.radians(f.sigma_yaw_deg))
 
 
-def build_forward_stage(cfg: Config) -> Any:
-    """The forward loop detector stage (paper 000) with the config's features and camera."""
+def build_forward_stage(cfg: Config, store: MapStore | None = None) -> Any:
+    """The forward loop detector stage (paper 000) with the config's features and camera;
+    with ``store``, its memory is kept in the map and taken up from earlier runs."""
     from robotd.app.forwardloops import ForwardLoopStage
-    from robotd.forward import DetectorParams, FeatureParams, ForwardDetector
+    from dataclasses import replace
+
+    from robotd.forward import FeatureParams, ForwardDetector, method_params
 
     f = cfg.forward_detector
     k = np.array([[f.fx_px, 0.0, f.cx_px], [0.0, f.fy_px, f.cy_px], [0.0, 0.0, 1.0]])
-    params = DetectorParams(features=FeatureParams(kind=f.features, max_features=f.max_features))
-    log.info("forward loop detector on (%s, a keyframe every %.2f m or %.0f deg)", f.features,
-             f.distance_m, f.rotation_deg)
+    params = method_params(f.method)
+    kind = params.features.kind if f.features == "auto" else f.features
+    n_feat = f.max_features or (params.features.max_features if kind == params.features.kind else 0)
+    # The camera's height gives the loops their range on the floor (robotd.forward.verify).
+    params = replace(params, features=FeatureParams(kind=kind, max_features=n_feat),
+                     verify=replace(params.verify,
+                                    camera_height_m=f.mount_height_m if f.mount_height_m > 0 else None))
+    log.info("forward loop detector on (method %s, %s features, a keyframe every %.2f m or %.0f deg)",
+             f.method, kind, f.distance_m, f.rotation_deg)
     return ForwardLoopStage(ForwardDetector(params, camera_matrix=k), distance_m=f.distance_m,
-                            rotation_rad=math.radians(f.rotation_deg), sync_tolerance_s=f.sync_tolerance_s)
+                            rotation_rad=math.radians(f.rotation_deg), sync_tolerance_s=f.sync_tolerance_s,
+                            store=store)
 
 
 def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, lossless: bool,
@@ -191,7 +201,7 @@ def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, l
     else:
         pipeline.add(LoopsUngated())
     if cfg.forward_detector.enabled:
-        pipeline.add(build_forward_stage(cfg))
+        pipeline.add(build_forward_stage(cfg, store))
     detector = build_floor_detector(cfg, store, calibration) if floor_detector else None
     if detector is not None:
         pipeline.add(FloorDetectorStage(detector))

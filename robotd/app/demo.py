@@ -708,6 +708,7 @@ def forward_summary(cfg: Any, robot: Any, recorder: _Recorder, c: dict[str, Any]
         rows.append({"from": m.from_id, "to": m.to_id, "probability": m.probability,
                      "inliers": m.inliers, "true_distance_m": dist, "yaw_error_deg": yaw_err,
                      "bearing_error_deg": bearing_err if dist > 0.2 else None, "right": right,
+                     "measured_range_m": m.range_m,
                      "fate": recorder.forward_fates.get((m.from_id, m.to_id), "none")})
     accepted = [r for r in rows if r["fate"] == "accepted"]
     return {"images": c.get("forward_images", 0), "frames": c.get("forward_frames", 0),

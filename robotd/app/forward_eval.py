@@ -49,13 +49,22 @@ def add_arguments(sub: argparse._SubParsersAction) -> None:
     fw.add_argument("--images", type=nonempty_path, required=True, metavar="DIR",
                     help="folder of images (jpg, png, bmp, ...), taken in name order")
     fw.add_argument("--ground-truth", type=nonempty_path, required=True, metavar="FILE",
-                    help="N x N matrix, non-zero = same place (.npy, .csv, or an image such as .bmp/.png; "
-                         "either triangle)")
+                    help="N x N matrix, non-zero = same place (.npy, .csv, MATLAB .mat as Lip6, NewCollege "
+                         "and CityCentre publish it, or an image such as .bmp/.png; either triangle)")
+    fw.add_argument("--method", choices=("default", "paper"), default="default",
+                    help="detector: 'default' (ORB, binary vocabulary with purging, the levers kept by "
+                         "the ablation, docs/forward.md) or 'paper' (paper 000 as written: SIFT, 0.8 on a "
+                         "neighbourhood's posterior)")
+    fw.add_argument("--tolerance", type=int, default=0, metavar="K",
+                    help="a declared loop counts as right within K images of a true match (default 0)")
+    fw.add_argument("--every", type=int, default=1, metavar="N",
+                    help="take every N-th image (and the ground truth's rows and columns; default 1)")
     fw.add_argument("--out", type=nonempty_path, default=None, metavar="DIR",
                     help="write forward_eval.json and the plots here")
-    fw.add_argument("--features", choices=("sift", "orb"), default="sift")
-    fw.add_argument("--likelihood", choices=("paper", "rtabmap"), default="paper",
-                    help="likelihood normalisation (default: the paper's)")
+    fw.add_argument("--features", choices=("sift", "orb"), default=None,
+                    help="override the method's features (default: ORB for 'default', SIFT for 'paper')")
+    fw.add_argument("--likelihood", choices=("paper", "rtabmap"), default=None,
+                    help="override the method's likelihood normalisation")
     fw.add_argument("--recent", type=int, default=10, metavar="P",
                     help="the last P images are never loop hypotheses (default 10)")
     fw.add_argument("--min-inliers", type=int, default=None, metavar="N",
@@ -94,22 +103,33 @@ def run_forward(args: argparse.Namespace) -> int:
     """``robotd eval forward``."""
     from dataclasses import asdict, replace
 
-    from robotd.forward import (LOOP, STAGES, DetectorParams, FeatureExtractor, FeatureParams,
-                                ForwardDetector, verify_pair)
+    from robotd.forward import (LOOP, STAGES, FeatureExtractor, FeatureParams, ForwardDetector,
+                                method_params, verify_pair)
     from robotd.forward.baselines import BruteForceMatcher, best_score
-    from robotd.forward.evaluation import positives, score_decisions
+    from robotd.forward.evaluation import positives, pr_curve, score_decisions
     from robotd.forward.verify import camera_matrix_guess
     from robotd.io.sequence import list_images, load_ground_truth, read_image
 
     if args.recent < 1:
         raise SequenceError(f"--recent must be at least 1, got {args.recent}")
+    if args.tolerance < 0:
+        raise SequenceError(f"--tolerance must be >= 0, got {args.tolerance}")
+    if args.every < 1:
+        raise SequenceError(f"--every must be at least 1, got {args.every}")
     files = list_images(args.images, exclude=(args.ground_truth,))
+    truth = load_ground_truth(args.ground_truth, len(files))
+    files = files[::args.every]
+    truth = truth[::args.every, ::args.every]
     n = len(files)
-    truth = load_ground_truth(args.ground_truth, n)
+    tol = args.tolerance
     if args.plot_image is not None and not 0 <= args.plot_image < n:
         raise SequenceError(f"--plot-image {args.plot_image} is outside the sequence (0..{n - 1})")
-    params = DetectorParams(features=FeatureParams(kind=args.features), likelihood=args.likelihood,
-                            recent_excluded=args.recent)
+    params = method_params(args.method, recent_excluded=args.recent)
+    if args.features is not None and args.features != params.features.kind:
+        params = replace(params, features=FeatureParams(kind=args.features,
+                                                        max_features=params.features.max_features))
+    if args.likelihood is not None:
+        params = replace(params, likelihood=args.likelihood)
     if args.min_inliers is not None:
         params = replace(params, verify=replace(params.verify, min_inliers=args.min_inliers))
     if args.min_support_area is not None:
@@ -117,8 +137,9 @@ def run_forward(args: argparse.Namespace) -> int:
             raise SequenceError(f"--min-support-area must be in [0, 1), got {args.min_support_area}")
         params = replace(params, verify=replace(params.verify, min_support_area=args.min_support_area))
     print(f"{args.images}: {n} images, {int(positives(truth, args.recent).sum())} of them revisit a "
-          f"place at least {args.recent} images back; features {args.features}, likelihood "
-          f"{args.likelihood}")
+          f"place at least {args.recent} images back; method {args.method} (features "
+          f"{params.features.kind}, likelihood {params.likelihood}); tolerance {tol} images"
+          + (f", every {args.every}th image" if args.every > 1 else ""))
 
     extract = FeatureExtractor(params.features)
     k_matrix = None
@@ -196,13 +217,19 @@ def run_forward(args: argparse.Namespace) -> int:
             log.info("%d / %d images, %.1f s", t + 1, n, time.perf_counter() - t_start)
 
     results = {
-        "detector": (score_decisions(det_cand, det_conf, det_decl, truth, args.recent), det_total),
-        "best score": (score_decisions(bs_cand, bs_conf, bs_decl, truth, args.recent), bs_total),
-        "best score + epipolar": (score_decisions(bs_cand, bs_conf, bsv_decl, truth, args.recent),
+        "detector": (score_decisions(det_cand, det_conf, det_decl, truth, args.recent, tol), det_total),
+        "best score": (score_decisions(bs_cand, bs_conf, bs_decl, truth, args.recent, tol), bs_total),
+        "best score + epipolar": (score_decisions(bs_cand, bs_conf, bsv_decl, truth, args.recent, tol),
                                   bsv_total),
     }
     if brute is not None:
-        results["brute force"] = (score_decisions(bf_cand, bf_conf, bf_decl, truth, args.recent), bf_total)
+        results["brute force"] = (score_decisions(bf_cand, bf_conf, bf_decl, truth, args.recent, tol),
+                                  bf_total)
+    # The detector's precision-recall curve over its decision threshold: every candidate
+    # verified or not is swept by its probability (the verified ones alone are the
+    # operating point).
+    curves = {"detector (verified loops)": pr_curve(det_cand, det_conf, det_decl, truth, args.recent, tol),
+              "best score": pr_curve(bs_cand, bs_conf, bs_decl, truth, args.recent, tol)}
     _print_table(results, stage_t)
     if detector is not None:
         print(f"vocabulary: {len(detector.vocabulary)} words after {n} images "
@@ -219,6 +246,8 @@ def run_forward(args: argparse.Namespace) -> int:
 
         report = {
             "images": str(args.images), "ground_truth": str(args.ground_truth), "n_images": n,
+            "method": args.method, "tolerance": tol, "every": args.every,
+            "pr_curves": curves,
             "params": asdict(params), "camera_matrix": None if k_matrix is None else k_matrix.tolist(),
             "versions": _versions(),
             "methods": {name: {**s.as_dict(), "time_per_image": _time_stats(tt)}
@@ -237,6 +266,16 @@ def run_forward(args: argparse.Namespace) -> int:
                                                    "verification (total)": stage_t["verify"]},
                          extra_s=extra, title=f"{args.images.name}: time per image by stage")
         written = [out / "forward_eval.json", out / "stage_times.png"]
+        from robotd.io.plots import plot_pr_curves
+
+        s_det = results["detector"][0]
+        plot_pr_curves(out / "pr_curve.png", curves,
+                       {"detector": (s_det.recall, s_det.precision)},
+                       title=f"{args.images.name}: precision-recall ({args.method}, tolerance {tol})")
+        (out / "pr_curve.json").write_text(json.dumps({"method": args.method, "tolerance": tol,
+                                                        "curves": curves,
+                                                        "operating_point": s_det.as_dict()}, indent=1))
+        written += [out / "pr_curve.png", out / "pr_curve.json"]
         if plot_data is not None and plot_k is not None:
             nh = len(plot_data["scores"])
             lp = out / f"likelihood_posterior_{plot_k}.png"

@@ -10,6 +10,13 @@ verification); a verified loop whose motion is planar is published as a
 :class:`~robotd.base.messages.ForwardLoop`, which the pose graph gates and adds
 (:mod:`robotd.app.posegraph`).
 
+With a map store the forward memory is durable (issue 24 item 4): each forward image is
+written to the map (its word ids, compact keypoints and descriptors, the words it made and
+the words purged after it) in one transaction, and a new stage on the same map takes up
+the earlier runs' memory, so the detector goes on finding loops against them after a
+restart. A write that fails is logged and counted (``forward_store_errors``); detection
+goes on.
+
 The detector runs in the pipeline's thread, once per forward keyframe (every half metre by
 default, about one image per 1.5 s at the demo's speed): a SIFT image costs tens of
 milliseconds, which the source queues absorb. The frame's offset from its keyframe (at most
@@ -27,8 +34,10 @@ from typing import Any
 import numpy as np
 
 from robotd.app.pipeline import Publisher
+from robotd.base.errors import MapStoreError
 from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored
 from robotd.forward import LOOP, ForwardDetector
+from robotd.forward.features import CompactFeatures
 from robotd.forward.planar import planar_motion
 
 log = logging.getLogger(__name__)
@@ -41,8 +50,12 @@ class ForwardLoopStage(Publisher):
 
     def __init__(self, detector: ForwardDetector, *, distance_m: float = 0.5,
                  rotation_rad: float = math.radians(20.0), sync_tolerance_s: float = 0.04,
-                 max_tilt_rad: float = math.radians(10.0), camera: str = "forward") -> None:
+                 max_tilt_rad: float = math.radians(10.0), camera: str = "forward",
+                 store: Any = None) -> None:
         self.detector = detector
+        self.store = store
+        self.store_errors = 0
+        self.restored = 0
         self.distance_m = distance_m
         self.rotation_rad = rotation_rad
         self.sync_tolerance_ns = int(sync_tolerance_s * 1e9)
@@ -59,6 +72,59 @@ class ForwardLoopStage(Publisher):
         self.not_planar = 0
         self.rejected_geometry = 0
         self.total_ms: list[float] = []  # the detector's time per forward keyframe
+        if store is not None:
+            self._restore()
+
+    def _restore(self) -> None:
+        """Take up the forward memory stored in the map by earlier runs."""
+        images, words = self.store.forward_memory()
+        if not images and not words:
+            return
+        kind = self.detector.params.features.kind
+        kinds = {i[2] for i in images} | {w[1] for w in words}
+        if kinds != {kind}:
+            log.warning("the map's forward memory holds %s features, the detector uses %s: the "
+                        "earlier runs' forward images are not used and this run's are not stored",
+                        "/".join(sorted(kinds)), kind)
+            self.store = None
+            return
+        binary = self.detector.params.features.binary
+        dim = self.detector.params.features.descriptor_size
+        dtype = np.uint8 if binary else np.float32
+        feats = []
+        for n, (image_id, kf_id, _, size, w, kq, desc) in enumerate(images):
+            if image_id != n:
+                log.warning("the map's forward images are not numbered 0, 1, ...: not used, and this run's "
+                            "are not stored")
+                self.store = None
+                return
+            d = np.frombuffer(desc, dtype).reshape(-1, dim)
+            feats.append(CompactFeatures(w, kq, d, size))
+            self._keyframe_ids.append(kf_id)
+        word_desc = np.zeros((len(words), dim), dtype)  # purged words' descriptors are not kept
+        for n, w in enumerate(words):
+            if not w[4]:
+                word_desc[n] = np.frombuffer(w[2], dtype)
+        self.detector.restore(feats, word_desc, np.array([w[3] for w in words], np.int64),
+                              np.array([w[4] for w in words], bool))
+        self.restored = len(feats)
+        log.info("forward memory taken up from the map: %d images, %d words (%d purged)", len(feats),
+                 len(words), self.detector.vocabulary.purged)
+
+    def _store_image(self, keyframe_id: int) -> None:
+        """Write the image just processed, with the words it made and those purged."""
+        t = len(self.detector) - 1
+        f = self.detector.features_of(t)
+        voc = self.detector.vocabulary
+        ids, descs = voc.last_new
+        try:
+            self.store.add_forward_image(
+                t, keyframe_id, self.detector.params.features.kind, f.image_size_px, f.words, f.keypoints_q,
+                f.descriptors, new_words=[(int(i), d.tobytes()) for i, d in zip(ids, descs)],
+                purged=[int(i) for i in voc.last_purged])
+        except (ValueError, MapStoreError) as exc:
+            self.store_errors += 1
+            log.warning("forward image %d (keyframe %d) not stored: %s", t, keyframe_id, exc)
 
     def subscriptions(self) -> Mapping[type, Any]:
         return {Frame: self.on_frame, KeyframeStored: self.on_keyframe}
@@ -102,6 +168,8 @@ class ForwardLoopStage(Publisher):
         self._last_pose = pose
         det = self.detector.process(frame.image)
         self._keyframe_ids.append(kf.keyframe_id)
+        if self.store is not None:
+            self._store_image(kf.keyframe_id)
         self.images += 1
         self.total_ms.append(det.times_s["total"] * 1e3)
         if det.status != LOOP or det.verification is None or det.loop_id is None:
@@ -119,7 +187,8 @@ class ForwardLoopStage(Publisher):
         self.loops += 1
         log.debug("forward loop: keyframe %d sees keyframe %d (p %.2f, %d inliers)", kf.keyframe_id, old,
                   det.candidate_probability, v.n_inliers)
-        self._publish(ForwardLoop(old, kf.keyframe_id, det.candidate_probability, dyaw, bearing, v.n_inliers))
+        self._publish(ForwardLoop(old, kf.keyframe_id, det.candidate_probability, dyaw, bearing, v.n_inliers,
+                                  range_m=v.range_m))
 
     def counters(self) -> dict[str, Any]:
         total = np.asarray(self.total_ms) if self.total_ms else np.zeros(1)
@@ -128,5 +197,6 @@ class ForwardLoopStage(Publisher):
                 "forward_not_planar": self.not_planar,
                 "forward_failed_verification": self.rejected_geometry,
                 "forward_vocabulary": len(self.detector.vocabulary),
+                "forward_restored_images": self.restored, "forward_store_errors": self.store_errors,
                 "forward_ms_median": round(float(np.median(total)), 2),
                 "forward_ms_p99": round(float(np.percentile(total, 99)), 2)}

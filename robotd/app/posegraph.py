@@ -156,7 +156,8 @@ class PoseGraphStage(Publisher):
     def on_forward_loop(self, c: ForwardLoop) -> None:
         def edge() -> tuple[np.ndarray, np.ndarray]:
             predicted = between(self.graph.pose(c.from_id), self.graph.pose(c.to_id))
-            return loop_edge(predicted, c.dyaw_rad, c.bearing_rad, self.forward_mount, self.forward_params)
+            return loop_edge(predicted, c.dyaw_rad, c.bearing_rad, self.forward_mount, self.forward_params,
+                             range_m=c.range_m)
 
         if self._relocalisation_takes(c.from_id, c.to_id, c.probability, None, None, "forward"):
             return

@@ -197,9 +197,14 @@ class ForwardDetectorConfig:
     verified loops enter the pose graph with the range taken from the graph's prediction."""
 
     enabled: bool = _f(False, "run the forward loop detector (needs a forward camera source)")
-    features: str = _f("sift", "local features: 'sift' (the paper's) or 'orb' (binary, about 4x "
-                       "faster, for small CPUs)", choices=("sift", "orb"))
-    max_features: int = _f(500, "strongest keypoints kept per image (0: all)", lo=0, hi=100_000)
+    method: str = _f("default", "the detector: 'default' (binary ORB features, an incremental Hamming "
+                     "vocabulary with purging, the levers docs/forward.md measures) or 'paper' (paper "
+                     "000 as written: SIFT, 0.8 on a neighbourhood's posterior; the reference)",
+                     choices=("default", "paper"))
+    features: str = _f("auto", "local features: 'auto' (the method's: ORB for 'default', SIFT for "
+                       "'paper'), 'sift' or 'orb'", choices=("auto", "sift", "orb"))
+    max_features: int = _f(0, "strongest keypoints kept per image (0: the method's: 300 ORB, all SIFT)",
+                           lo=0, hi=100_000)
     distance_m: float = _f(0.5, "a forward keyframe every this far travelled", lo=0.01, hi=100.0)
     rotation_deg: float = _f(20.0, "or every this much turned", lo=0.1, hi=360.0)
     sync_tolerance_s: float = _f(0.04, "largest offset of the forward frame from its floor keyframe",

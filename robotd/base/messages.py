@@ -199,8 +199,10 @@ class ForwardLoop:
     the older keyframe ``from_id``. Monocular geometry gives no distance: ``dyaw_rad`` is the
     camera's heading change and ``bearing_rad`` the direction of the new camera centre, both
     in the old camera's planar frame (:func:`robotd.forward.planar.planar_motion`); the pose
-    graph takes the range from its own prediction. ``probability``: the filter's posterior
-    of the loop; ``inliers``: matches fitting the essential matrix."""
+    graph takes the range from its own prediction, unless ``range_m`` (the distance between
+    the camera centres, measured on the floor from the camera's known height,
+    :func:`robotd.forward.verify.floor_range`) is given. ``probability``: the filter's
+    posterior of the loop; ``inliers``: matches fitting the essential matrix."""
 
     from_id: int
     to_id: int
@@ -208,6 +210,7 @@ class ForwardLoop:
     dyaw_rad: float
     bearing_rad: float
     inliers: int
+    range_m: float | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -3,7 +3,8 @@ local features, an incremental vocabulary with an inverted index, tf-idf voting,
 filter over loop hypotheses and epipolar verification; optionally a working memory that
 bounds the per-image time (issue 14 item 4)."""
 
-from robotd.forward.detector import (LOOP, LOW_POSTERIOR, NO_GEOMETRIC_CONSISTENCY, NO_HYPOTHESES,
+from robotd.forward.detector import (LOOP, LOW_POSTERIOR, METHODS, NO_GEOMETRIC_CONSISTENCY, NO_HYPOTHESES,
+                                     NOT_CONSISTENT_YET, method_params,
                                      STAGES, Detection, DetectorParams, ForwardDetector)
 from robotd.forward.features import FeatureExtractor, FeatureParams, Features, extract_features
 from robotd.forward.filter import FilterParams
@@ -15,5 +16,5 @@ __all__ = [
     "Detection", "DetectorParams", "FeatureExtractor", "FeatureParams", "Features", "FilterParams",
     "ForwardDetector", "MemoryParams", "WorkingMemory", "InvertedIndex", "LOOP", "LOW_POSTERIOR", "NO_GEOMETRIC_CONSISTENCY",
     "NO_HYPOTHESES", "STAGES", "Verification", "VerifyParams", "Vocabulary", "VocabularyParams",
-    "extract_features", "verify_pair",
+    "extract_features", "verify_pair", "METHODS", "NOT_CONSISTENT_YET", "method_params",
 ]

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robotd.forward.features import FeatureExtractor, FeatureParams, Features
+from robotd.forward.features import CompactFeatures, FeatureExtractor, FeatureParams, Features, compact
 from robotd.forward.filter import (FilterParams, predict, predict_ids, select_candidate,
                                    select_candidate_ids, update)
 from robotd.forward.likelihood import LikelihoodMethod, adjust_likelihood
@@ -43,14 +43,18 @@ from robotd.forward.memory import MemoryParams, WorkingMemory
 from robotd.forward.verify import Verification, VerifyParams, verify_pair
 from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams
 
-__all__ = ["Detection", "DetectorParams", "ForwardDetector", "LOOP", "NO_HYPOTHESES",
-           "LOW_POSTERIOR", "NO_GEOMETRIC_CONSISTENCY", "STAGES"]
+__all__ = ["Detection", "DetectorParams", "ForwardDetector", "LOOP", "METHODS", "NO_HYPOTHESES",
+           "LOW_POSTERIOR", "NOT_CONSISTENT_YET", "NO_GEOMETRIC_CONSISTENCY", "STAGES", "method_params"]
 
 #: Why an image closed a loop or did not.
 LOOP = "LOOP"
 NO_HYPOTHESES = "NO_HYPOTHESES"          # t < p: no past image can be a loop yet
 LOW_POSTERIOR = "LOW_POSTERIOR"          # no neighbourhood's posterior above the threshold
 NO_GEOMETRIC_CONSISTENCY = "NO_GEOMETRIC_CONSISTENCY"  # the candidate failed verification
+NOT_CONSISTENT_YET = "NOT_CONSISTENT_YET"  # fewer than k consistent candidates in a row (issue 24)
+
+#: The detectors ``[forward_detector] method`` and ``robotd eval forward --method`` select.
+METHODS = ("default", "paper")
 
 #: Timed stages, in order (seconds in :attr:`Detection.times_s`, plus ``"total"``).
 STAGES = ("features", "words", "likelihood", "filter", "verify", "memory")
@@ -70,6 +74,20 @@ class DetectorParams:
         likelihood: ``"paper"`` (default) or RTAB-Map's ``"rtabmap"`` normalisation.
         memory: the working memory (:class:`~robotd.forward.memory.MemoryParams`; no bound
             by default, the paper's detector).
+        consistency: k, candidates of this many images in a row, each within
+            ``consistency_gap`` images of the one before, before the candidate is verified
+            (DLoopDetector's temporal consistency; 1 = the paper: every candidate is
+            verified).
+        consistency_gap: how far (images) a candidate may be from the previous image's to
+            count as the same loop continuing.
+        decision: ``"filter"`` (the paper's Bayes filter picks the candidate) or
+            ``"score"``: the best-scoring hypothesis is the candidate when its normalised
+            score exceeds ``score_threshold`` (no filter; DLoopDetector's decision, issue
+            24). The candidate's probability is then that normalised score.
+        score_normalisation: ``"virtual"``: the best score over the virtual no-loop
+            image's vote; ``"previous"``: over the vote of the image just before
+            (DLoopDetector's normalisation by the best score one can expect).
+        score_threshold: the normalised score a candidate must exceed.
     """
 
     features: FeatureParams = field(default_factory=FeatureParams)
@@ -79,8 +97,23 @@ class DetectorParams:
     recent_excluded: int = 10
     likelihood: LikelihoodMethod = "paper"
     memory: MemoryParams = field(default_factory=MemoryParams)
+    consistency: int = 1
+    consistency_gap: int = 3
+    decision: str = "filter"
+    score_normalisation: str = "virtual"
+    score_threshold: float = 1.0
 
     def __post_init__(self) -> None:
+        if self.decision not in ("filter", "score"):
+            raise ValueError(f"decision must be 'filter' or 'score', got {self.decision!r}")
+        if self.score_normalisation not in ("virtual", "previous"):
+            raise ValueError(f"score_normalisation must be 'virtual' or 'previous', got {self.score_normalisation!r}")
+        if self.decision == "score" and self.memory.bounded:
+            raise ValueError("the score decision runs without a working memory bound")
+        if self.consistency < 1:
+            raise ValueError(f"consistency must be >= 1, got {self.consistency}")
+        if self.consistency_gap < 0:
+            raise ValueError(f"consistency_gap must be >= 0, got {self.consistency_gap}")
         if self.recent_excluded < 1:
             raise ValueError(f"recent_excluded must be >= 1, got {self.recent_excluded}")
 
@@ -91,7 +124,8 @@ class Detection:
 
     Fields:
         image_id: t, the image's number (0 for the first).
-        status: ``LOOP``, ``NO_HYPOTHESES``, ``LOW_POSTERIOR`` or ``NO_GEOMETRIC_CONSISTENCY``.
+        status: ``LOOP``, ``NO_HYPOTHESES``, ``LOW_POSTERIOR``, ``NOT_CONSISTENT_YET`` or
+            ``NO_GEOMETRIC_CONSISTENCY``.
         loop_id: the past image it closes a loop with (status ``LOOP``), else None.
         candidate_id: the filter's candidate (verified or not), else None.
         candidate_probability: the largest posterior summed over a neighbourhood.
@@ -158,17 +192,49 @@ class ForwardDetector:
         self.memory = WorkingMemory(self.index, params.memory,
                                     protect_recent=params.recent_excluded + params.filter.neighbours,
                                     neighbours=params.filter.neighbours)
-        self._features: list[Features] = []
+        self._features: list[CompactFeatures] = []
         self._posterior = np.ones(1)
         self._hyp_ids = np.zeros(0, np.int64)
+        self._run = 0                      # consecutive images with consistent candidates
+        self._last_candidate: int | None = None
 
     def __len__(self) -> int:
         """Images processed."""
         return len(self._features)
 
-    def features_of(self, image_id: int) -> Features:
-        """The stored features of a processed image."""
+    def features_of(self, image_id: int) -> CompactFeatures:
+        """The stored features of a processed image (compact: word ids, keypoints in 1/16
+        px, descriptors; they read like :class:`Features`)."""
         return self._features[image_id]
+
+    def restore(self, images: list[CompactFeatures], word_descriptors: np.ndarray, word_born: np.ndarray,
+                word_purged: np.ndarray) -> None:
+        """Take up the memory of an earlier run (issue 24 item 4): its images in order (as
+        :meth:`features_of` gave them) and its words (descriptors, the image that made each,
+        purged or not). The inverted index is rebuilt from the images' words; the filter
+        starts at "no loop" as at any start; the earlier images are hypotheses at once."""
+        if len(self._features):
+            raise ValueError("restore() needs a detector that has seen no image")
+        n_words = len(word_descriptors)
+        seen = np.zeros(n_words, np.int64)
+        for t, f in enumerate(images):
+            w = f.words.astype(np.int64)
+            if len(w) and w.max() >= n_words:
+                raise ValueError(f"stored image {t} has word {int(w.max())}, beyond the {n_words} stored words")
+            seen[np.unique(w)] += 1
+            self.memory.add(t, w, t)
+            self._features.append(f)
+        self.vocabulary.restore(word_descriptors, word_born, word_purged, seen, len(images))
+        if not self.params.memory.bounded:
+            self.index.drop_postings(np.flatnonzero(np.asarray(word_purged, bool)))
+
+    def memory_bytes(self) -> dict[str, int]:
+        """Bytes the detector holds, by part: ``images`` (word ids, keypoints, descriptors
+        of every past image), ``index`` (the inverted index), ``vocabulary`` (the word
+        search, as usearch reports it, reserved capacity included)."""
+        return {"images": sum(f.nbytes for f in self._features),
+                "index": self.index.memory_bytes(),
+                "vocabulary": self.vocabulary.memory_bytes()}
 
     def process(self, image: np.ndarray) -> Detection:
         """Run one image (``(H, W)`` gray or ``(H, W, 3)`` BGR uint8) through the detector."""
@@ -186,6 +252,8 @@ class ForwardDetector:
 
         t0 = clock()
         words, new_words = self.vocabulary.add(feats.descriptors)
+        if len(self.vocabulary.last_purged) and not p.memory.bounded:
+            self.index.drop_postings(self.vocabulary.last_purged)  # no query can find them
         t1 = clock()
         times["words"] = t1 - t0
 
@@ -210,7 +278,10 @@ class ForwardDetector:
         times["likelihood"] = t2 - t1
 
         best = None
-        if not bounded:
+        if p.decision == "score":  # no filter: the posterior shown is the normalised likelihood
+            candidate, prob = _best_normalised(scores, n_hyp, virtual, t, p)
+            self._posterior = like / like.sum()
+        elif not bounded:
             prior = predict(self._posterior, n_hyp, p.filter)
             self._posterior = update(prior, like)
             candidate, prob = select_candidate(self._posterior, p.filter)
@@ -225,16 +296,25 @@ class ForwardDetector:
         # I_t joins the inverted index after its own vote (its words are part of Z_t+1);
         # that bookkeeping counts as word search.
         self.memory.add(t, words, t)
-        self._features.append(feats)
+        self._features.append(compact(feats, words))
         t3b = clock()
         times["words"] += t3b - t3
         t3 = t3b
 
+        if candidate is None:
+            self._run, self._last_candidate = 0, None
+        else:
+            near = (self._last_candidate is not None
+                    and abs(int(candidate) - self._last_candidate) <= p.consistency_gap)
+            self._run = self._run + 1 if near else 1
+            self._last_candidate = int(candidate)
         verification = None
         if n_hyp == 0:
             status = NO_HYPOTHESES
         elif candidate is None:
             status = LOW_POSTERIOR
+        elif self._run < p.consistency:
+            status = NOT_CONSISTENT_YET
         else:
             verification = verify_pair(self._features[candidate], feats, p.verify, self.camera_matrix)
             status = LOOP if verification.accepted else NO_GEOMETRIC_CONSISTENCY
@@ -265,3 +345,56 @@ class ForwardDetector:
             vocabulary_size=len(self.vocabulary), times_s=times, hypothesis_ids=hyp_ids,
             working_memory=len(self.memory), retrieved=tuple(retrieved),
             transferred=tuple(transferred))
+
+
+def _best_normalised(scores: np.ndarray, n_hyp: int, virtual: float, t: int,
+                     p: DetectorParams) -> tuple[int | None, float]:
+    """The score decision (:attr:`DetectorParams.decision`): ``(candidate or None,
+    normalised score)`` over the hypotheses 0 .. n_hyp - 1."""
+    if n_hyp == 0:
+        return None, 0.0
+    s = scores[:n_hyp]
+    best = int(np.argmax(s))
+    if not s[best] > 0.0:
+        return None, 0.0
+    ref = virtual if p.score_normalisation == "virtual" else (float(scores[t - 1]) if t >= 1 else 0.0)
+    ratio = float(s[best] / ref) if ref > 0.0 else float("inf")
+    return (best if ratio > p.score_threshold else None), ratio
+
+
+def method_params(method: str, **overrides: object) -> DetectorParams:
+    """The detector a method name selects (``[forward_detector] method``,
+    ``robotd eval forward --method``), with ``overrides`` replacing fields of the result.
+
+    - ``"paper"``: paper 000 as written: SIFT, the paper's likelihood, the 0.8 threshold on
+      one neighbourhood's posterior, every candidate verified (the reference).
+    - ``"default"``: binary ORB features (OpenCV) in an incremental Hamming vocabulary whose
+      words that never recur are purged, and the levers that the ablation of
+      ``bench/bench_forward_ablation.py`` kept (``docs/forward.md``).
+    """
+    from dataclasses import replace
+
+    from robotd.forward.features import FeatureParams
+    from robotd.forward.filter import FilterParams
+    from robotd.forward.vocabulary import VocabularyParams
+
+    if method == "paper":
+        params = DetectorParams()
+    elif method == "default":
+        params = DetectorParams(features=FeatureParams(kind="orb", max_features=DEFAULT_ORB_FEATURES),
+                                vocabulary=VocabularyParams(purge_after=DEFAULT_PURGE_AFTER),
+                                filter=FilterParams(rule=DEFAULT_RULE, loop_threshold=DEFAULT_THRESHOLD),
+                                consistency=DEFAULT_CONSISTENCY)
+    else:
+        raise ValueError(f"forward detector method must be one of {', '.join(METHODS)}, got {method!r}")
+    return replace(params, **overrides) if overrides else params
+
+
+#: The default detector's settings, chosen by the ablation (docs/forward.md): each lever was
+#: kept only when it helped on both development sequences (rtabmap_samples and the virtual
+#: office route), never on one alone.
+DEFAULT_ORB_FEATURES = 300
+DEFAULT_PURGE_AFTER = 50
+DEFAULT_RULE = "total"
+DEFAULT_THRESHOLD = 0.5
+DEFAULT_CONSISTENCY = 2

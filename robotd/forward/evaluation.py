@@ -11,6 +11,11 @@ Per image t (a query), a method declares at most one loop with a past image j. W
 Recall at 100 % precision: each declared loop also has a confidence (the posterior, a vote
 ratio, an inlier count); sweeping a threshold on it from the top, the largest recall
 reached before the first false positive.
+
+Frame tolerance (``tolerance = K``, as the literature scores Lip6, NewCollege and
+CityCentre): a declared loop (t, j) is right when image t truly matches any of j - K ..
+j + K. :func:`pr_curve` gives precision and recall over the whole sweep of the
+confidence threshold.
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-__all__ = ["Scores", "positives", "score_decisions"]
+__all__ = ["Scores", "positives", "pr_curve", "score_decisions", "tolerant_truth"]
 
 
 @dataclass(frozen=True)
@@ -51,14 +56,57 @@ def positives(truth: np.ndarray, recent_excluded: int) -> np.ndarray:
     return (t & eligible).any(axis=1)
 
 
+def tolerant_truth(truth: np.ndarray, tolerance: int) -> np.ndarray:
+    """``truth`` with each true (t, j) widened to (t, j - K .. j + K), for judging declared
+    loops with a frame tolerance ``K`` (the positives are counted on the plain truth)."""
+    t = np.asarray(truth, bool)
+    if tolerance < 0:
+        raise ValueError(f"tolerance must be >= 0, got {tolerance}")
+    out = t.copy()
+    for k in range(1, tolerance + 1):
+        out[:, k:] |= t[:, :-k]
+        out[:, :-k] |= t[:, k:]
+    return out
+
+
+def pr_curve(candidates: np.ndarray, confidences: np.ndarray, declared: np.ndarray,
+             truth: np.ndarray, recent_excluded: int, tolerance: int = 0) -> dict[str, list[float]]:
+    """Precision and recall as the confidence threshold sweeps down over the declared loops
+    (ties together): ``{"threshold", "precision", "recall"}``, one entry per distinct
+    confidence, highest first."""
+    cand = np.asarray(candidates, np.int64)
+    conf = np.asarray(confidences, np.float64)
+    decl = np.asarray(declared, bool) & (cand >= 0)
+    judge = tolerant_truth(truth, tolerance)
+    n_pos = int(positives(truth, recent_excluded).sum())
+    q = np.flatnonzero(decl)
+    correct = judge[q, cand[q]]
+    order = np.argsort(-conf[q], kind="stable")
+    c, ok = conf[q][order], correct[order]
+    out: dict[str, list[float]] = {"threshold": [], "precision": [], "recall": []}
+    tp = 0
+    i = 0
+    while i < len(c):
+        j = i
+        while j < len(c) and c[j] == c[i]:
+            j += 1
+        tp += int(ok[i:j].sum())
+        out["threshold"].append(float(c[i]))
+        out["precision"].append(tp / j)
+        out["recall"].append(tp / n_pos if n_pos else 0.0)
+        i = j
+    return out
+
+
 def score_decisions(candidates: np.ndarray, confidences: np.ndarray, declared: np.ndarray,
-                    truth: np.ndarray, recent_excluded: int) -> Scores:
+                    truth: np.ndarray, recent_excluded: int, tolerance: int = 0) -> Scores:
     """Score one method's decisions.
 
     ``candidates (N,) int``: the past image each query points at (-1: none);
     ``confidences (N,) float``: the confidence of that candidate; ``declared (N,) bool``:
     whether the method declared the loop (at its own operating point);
-    ``truth (N, N) bool``: symmetric same-place matrix.
+    ``truth (N, N) bool``: symmetric same-place matrix; ``tolerance``: frame tolerance K
+    (module notes; 0 = the exact image).
     """
     cand = np.asarray(candidates, np.int64)
     conf = np.asarray(confidences, np.float64)
@@ -69,7 +117,7 @@ def score_decisions(candidates: np.ndarray, confidences: np.ndarray, declared: n
         raise ValueError(f"decisions for {len(cand)} images, ground truth for {n}")
     pos = positives(truth, recent_excluded)
     q = np.flatnonzero(decl)
-    correct = truth[q, cand[q]]
+    correct = (tolerant_truth(truth, tolerance) if tolerance else truth)[q, cand[q]]
     tp = int(correct.sum())
     fp = int(len(q) - tp)
     n_pos = int(pos.sum())

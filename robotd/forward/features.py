@@ -15,7 +15,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-__all__ = ["FeatureExtractor", "FeatureParams", "Features", "extract_features", "to_gray"]
+__all__ = ["CompactFeatures", "FeatureExtractor", "FeatureParams", "Features", "compact", "extract_features",
+           "to_gray"]
 
 FeatureKind = Literal["sift", "orb"]
 
@@ -69,6 +70,48 @@ class Features:
 
     def __len__(self) -> int:
         return len(self.keypoints_px)
+
+
+#: Keypoint positions are kept in fixed point, 1/16 pixel (error at most 1/32 px, far below
+#: the verification's 1 px RANSAC threshold), as uint16: images up to 4095 px wide.
+KEYPOINT_SCALE = 16.0
+
+
+@dataclass(frozen=True, eq=False)
+class CompactFeatures:
+    """What the detector keeps of one past image for voting and verification (issue 24):
+    ``words (N,) uint32`` (the vocabulary word of each keypoint), ``keypoints_q (N, 2)
+    uint16`` (positions in 1/16 px), ``descriptors`` as extracted (``(N, 32) uint8`` ORB;
+    SIFT stays ``(N, 128) float32``, the paper's reference), ``image_size_px``. It reads
+    like :class:`Features` (``keypoints_px``, ``descriptors``, ``len``), so the
+    verification takes it as is. 300 ORB keypoints: 12,000 bytes."""
+
+    words: np.ndarray
+    keypoints_q: np.ndarray
+    descriptors: np.ndarray
+    image_size_px: tuple[int, int]
+
+    def __len__(self) -> int:
+        return len(self.keypoints_q)
+
+    @property
+    def keypoints_px(self) -> np.ndarray:
+        """``(N, 2) float32`` keypoint positions, pixels."""
+        return self.keypoints_q.astype(np.float32) / np.float32(KEYPOINT_SCALE)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the three arrays."""
+        return int(self.words.nbytes + self.keypoints_q.nbytes + self.descriptors.nbytes)
+
+
+def compact(feats: Features, words: np.ndarray) -> CompactFeatures:
+    """``feats`` and their ``words`` (``(N,)`` int) as :class:`CompactFeatures`."""
+    w, h = feats.image_size_px
+    if max(w, h) * KEYPOINT_SCALE > np.iinfo(np.uint16).max:
+        raise ValueError(f"images up to {int(np.iinfo(np.uint16).max / KEYPOINT_SCALE)} px wide are kept, got {w}x{h}")
+    q = np.rint(np.clip(feats.keypoints_px, 0.0, None) * KEYPOINT_SCALE).astype(np.uint16)
+    return CompactFeatures(np.asarray(words, np.uint32), q, feats.descriptors, feats.image_size_px)
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:

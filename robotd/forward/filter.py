@@ -52,7 +52,13 @@ class FilterParams:
         sigma_images: standard deviation of that Gaussian, in images (the paper gives only
             its support; with 1.0 the weights of offsets 0, 1, 2 are 1 : 0.61 : 0.14).
         loop_threshold: a candidate when the posterior summed over an image's
-            neighbourhood exceeds this (0.8).
+            neighbourhood exceeds this (0.8), or, with ``rule = "total"``, when the total
+            loop probability does.
+        rule: ``"neighbourhood"`` (the paper, Sec. IV-C) or ``"total"``: the total loop
+            probability 1 - p(S_t = -1) against the threshold, as RTAB-Map thresholds it
+            (``Rtabmap/LoopThr``; issue 24), so that a place seen in several images far
+            apart in time does not split its probability below the threshold; the
+            candidate is the same (the most probable image of the best neighbourhood).
     """
 
     p_no_loop_stays: float = 0.9
@@ -60,8 +66,11 @@ class FilterParams:
     neighbours: int = 2
     sigma_images: float = 1.0
     loop_threshold: float = 0.8
+    rule: str = "neighbourhood"
 
     def __post_init__(self) -> None:
+        if self.rule not in ("neighbourhood", "total"):
+            raise ValueError(f"rule must be 'neighbourhood' or 'total', got {self.rule!r}")
         for name in ("p_no_loop_stays", "p_loop_ends", "loop_threshold"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
@@ -154,14 +163,15 @@ def select_candidate(posterior: np.ndarray,
                      params: FilterParams = FilterParams()) -> tuple[int | None, float]:
     """The loop candidate of Sec. IV-C: ``(image, probability)``.
 
-    ``probability`` is the largest neighbourhood sum; ``image`` the most probable image in
+    ``probability`` is the largest neighbourhood sum (``rule = "total"``: 1 - p(no loop));
+    ``image`` the most probable image in
     that neighbourhood when the sum exceeds ``loop_threshold``, else None.
     """
     sums = neighbourhood_sums(posterior, params)
     if not len(sums):
         return None, 0.0
     best = int(np.argmax(sums))
-    prob = float(sums[best])
+    prob = float(sums[best]) if params.rule == "neighbourhood" else 1.0 - float(posterior[0])
     if prob <= params.loop_threshold:
         return None, prob
     img = np.asarray(posterior, np.float64)[1:]
@@ -266,7 +276,7 @@ def select_candidate_ids(posterior: np.ndarray, ids: np.ndarray,
     a = np.asarray(ids, np.int64)
     img = np.asarray(posterior, np.float64)[1:]
     b = int(np.argmax(sums))
-    prob = float(sums[b])
+    prob = float(sums[b]) if params.rule == "neighbourhood" else 1.0 - float(posterior[0])
     lo = int(np.searchsorted(a, a[b] - params.neighbours, side="left"))
     hi = int(np.searchsorted(a, a[b] + params.neighbours, side="right"))
     best = int(a[lo + int(np.argmax(img[lo:hi]))])

@@ -32,6 +32,23 @@ off and gives the paper's verification exactly. The check cannot refuse a copy t
 the view (two identical doors seen square-on): only the Bayes filter's temporal consistency
 keeps those out.
 
+**The range from the floor (not in the paper).** The essential matrix fixes only the
+translation's direction, and a wrong loop can still fit one: on the virtual office route,
+two places 2.5-2.9 m apart along a corridor, with no wall in common, see the same floor
+tiles and ceiling panels (both repeat every metre or two); the floor matches and the
+ceiling matches then each fit a forward translation of their own length, and along one
+direction the epipolar constraint cannot tell lengths apart. Five-point RANSAC accepts 26
+of 81 such pairs (heading right to a degree, bearing wrong by 60-180 deg). That is what the
+daemon's wrong forward loops were, not a reversed sign: the from/to convention checks out
+against the virtual camera's truth (``tests/forward/test_verify_virtual.py``). A robot's
+forward camera is at a known height above the floor, so the floor fixes the scale: with
+``camera_height_m`` set, the inliers are triangulated with a unit baseline, the largest
+group of points below the camera at one height (within ``floor_band_log`` in log height)
+is taken as the floor, and ``range_m = camera_height_m / that height``. On the pairs above
+it reads 0.1-0.5 m where the truth is 2.5 m; on true loops it is within a factor 1.7 of
+the truth. The pose graph then weighs the measured range (:mod:`robotd.forward.planar`),
+so its gate sees the contradiction.
+
 Expected failures are values (:class:`Verification` with a reason), not exceptions.
 """
 
@@ -45,7 +62,7 @@ import numpy as np
 from robotd.forward.features import Features
 
 __all__ = ["ACCEPTED", "NO_GEOMETRIC_CONSISTENCY", "SMALL_SUPPORT", "TOO_FEW_MATCHES", "Verification",
-           "VerifyParams", "camera_matrix_guess", "match_features", "support_area", "verify_pair"]
+           "VerifyParams", "camera_matrix_guess", "floor_range", "match_features", "support_area", "verify_pair"]
 
 ACCEPTED = "ACCEPTED"
 TOO_FEW_MATCHES = "TOO_FEW_MATCHES"
@@ -73,6 +90,10 @@ class VerifyParams:
         planar_fraction: the inliers are one plane when a homography holds at least this
             fraction of them (then only its inliers are support).
         homography_threshold_px: largest transfer error of a homography inlier, pixels.
+        camera_height_m: the camera's optical centre above the floor, metres; when set, the
+            range is measured from the floor points (module notes), else ``range_m`` is None.
+        min_floor_points: inliers that must agree on the floor's height to give a range.
+        floor_band_log: floor points agree within this in log height (0.1: +-10 %).
     """
 
     ratio: float = 0.8
@@ -83,8 +104,15 @@ class VerifyParams:
     min_support_area: float = 0.03
     planar_fraction: float = 0.8
     homography_threshold_px: float = 3.0
+    camera_height_m: float | None = None
+    min_floor_points: int = 4
+    floor_band_log: float = 0.1
 
     def __post_init__(self) -> None:
+        if self.camera_height_m is not None and not self.camera_height_m > 0.0:
+            raise ValueError(f"camera_height_m must be positive, got {self.camera_height_m}")
+        if self.min_floor_points < 2:
+            raise ValueError(f"min_floor_points must be >= 2, got {self.min_floor_points}")
         if not 0.0 <= self.min_support_area < 1.0:
             raise ValueError(f"min_support_area must be in [0, 1), got {self.min_support_area}")
         if not 0.0 < self.planar_fraction <= 1.0:
@@ -102,7 +130,9 @@ class Verification:
     ``n_inliers`` after RANSAC and the cheirality check; ``n_plane_inliers`` of those on
     the best homography, ``planar`` when they are at least ``planar_fraction`` of them, and
     ``support_area`` the smaller fraction of the two images the support covers (these three
-    only when the support check ran). When a pose was recovered: ``rotation (3, 3)`` and
+    only when the support check ran); ``range_m`` the distance between the camera centres
+    measured on the floor, metres, and ``n_floor_points`` the inliers it rests on (with
+    ``camera_height_m``, when enough inliers agree). When a pose was recovered: ``rotation (3, 3)`` and
     ``translation_dir (3,)`` (unit length) such that a point X_old in the old image's
     camera frame is ``rotation @ X_old + s * translation_dir`` in the new image's camera
     frame, for an unknown scale s > 0 (OpenCV camera axes: x right, y down, z forward).
@@ -117,6 +147,8 @@ class Verification:
     n_plane_inliers: int = 0
     planar: bool = False
     support_area: float = 0.0
+    range_m: float | None = None
+    n_floor_points: int = 0
 
 
 def camera_matrix_guess(width_px: int, height_px: int, focal_px: float | None = None) -> np.ndarray:
@@ -173,10 +205,13 @@ def verify_pair(old: Features, new: Features, params: VerifyParams = VerifyParam
     r = np.asarray(r, np.float64)
     if n_inl < params.min_inliers:
         return Verification(False, NO_GEOMETRIC_CONSISTENCY, n, n_inl, r, t_dir)
-    if params.min_support_area <= 0.0:  # the paper's verification
-        return Verification(True, ACCEPTED, n, n_inl, r, t_dir)
-    # Not in the paper: the inliers must not be one small plane (module notes).
     inl = np.asarray(mask2).ravel() > 0
+    range_m, n_floor = (None, 0)
+    if params.camera_height_m is not None:
+        range_m, n_floor = floor_range(p_old[inl], p_new[inl], r, t_dir, k, params)
+    if params.min_support_area <= 0.0:  # the paper's verification
+        return Verification(True, ACCEPTED, n, n_inl, r, t_dir, range_m=range_m, n_floor_points=n_floor)
+    # Not in the paper: the inliers must not be one small plane (module notes).
     s_old, s_new = p_old[inl], p_new[inl]
     _, hmask = cv2.findHomography(s_old, s_new, cv2.RANSAC, params.homography_threshold_px)
     on_plane = np.zeros(len(s_old), bool) if hmask is None else np.asarray(hmask).ravel() > 0
@@ -187,7 +222,39 @@ def verify_pair(old: Features, new: Features, params: VerifyParams = VerifyParam
     area = min(support_area(s_old, old.image_size_px), support_area(s_new, new.image_size_px))
     ok = area >= params.min_support_area
     return Verification(ok, ACCEPTED if ok else SMALL_SUPPORT, n, n_inl, r, t_dir,
-                        n_plane_inliers=n_plane, planar=bool(planar), support_area=area)
+                        n_plane_inliers=n_plane, planar=bool(planar), support_area=area,
+                        range_m=range_m, n_floor_points=n_floor)
+
+
+def floor_range(p_old: np.ndarray, p_new: np.ndarray, rotation: np.ndarray, translation_dir: np.ndarray,
+                camera_matrix: np.ndarray, params: VerifyParams) -> tuple[float | None, int]:
+    """``(range_m, n_floor_points)``: the distance between the two camera centres, metres,
+    from the inliers on the floor (module notes), or ``(None, n)`` when fewer than
+    ``params.min_floor_points`` agree. ``p_old, p_new (M, 2)`` inlier pixels; ``rotation``,
+    ``translation_dir`` as :class:`Verification`; the camera is level (OpenCV y down)."""
+    if params.camera_height_m is None or len(p_old) < params.min_floor_points:
+        return None, 0
+    k = np.asarray(camera_matrix, np.float64)
+    p1 = k @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    p2 = k @ np.hstack([np.asarray(rotation, np.float64), np.asarray(translation_dir, np.float64).reshape(3, 1)])
+    x = cv2.triangulatePoints(p1, p2, np.asarray(p_old, np.float64).T, np.asarray(p_new, np.float64).T)
+    w = x[3]
+    ok = np.abs(w) > 1e-12
+    y = np.where(ok, x[1] / np.where(ok, w, 1.0), -1.0)
+    z = np.where(ok, x[2] / np.where(ok, w, 1.0), -1.0)
+    below = (y > 0.0) & (z > 0.0)  # in front of the camera and below its optical centre
+    if int(below.sum()) < params.min_floor_points:
+        return None, 0
+    ly = np.log(y[below])
+    # The largest group at one height: for each point, the points within the band around it.
+    near = np.abs(ly[:, None] - ly[None, :]) <= params.floor_band_log
+    counts = near.sum(axis=1)
+    best = int(np.argmax(counts))
+    n_floor = int(counts[best])
+    if n_floor < params.min_floor_points:
+        return None, n_floor
+    height_unit = float(np.exp(np.median(ly[near[best]])))  # floor depth below the camera, baseline 1
+    return params.camera_height_m / height_unit, n_floor
 
 
 def support_area(points_px: np.ndarray, image_size_px: tuple[int, int]) -> float:

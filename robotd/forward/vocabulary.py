@@ -27,7 +27,8 @@ image, each counted once: tf = 1 / n.
 from __future__ import annotations
 
 import heapq
-import itertools
+import sys
+from array import array
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,6 +49,11 @@ class VocabularyParams:
         expansion_add: HNSW candidate list size while inserting.
         expansion_search: HNSW candidate list size while searching (recall of the nearest
             word against speed).
+        purge_after: words seen in one image only are removed from the search once that
+            many images have come after it (iBoW-LCD's purging, issue 24): most words of an
+            image never recur, and they would otherwise fill the search structure; 0 =
+            never (the paper). A purged word keeps its id and its place in the inverted
+            index (it still counts for its one image) but no later descriptor can find it.
     """
 
     word_radius_l2: float = 0.4
@@ -55,6 +61,7 @@ class VocabularyParams:
     connectivity: int = 12
     expansion_add: int = 40
     expansion_search: int = 24
+    purge_after: int = 0
 
 
 class Vocabulary:
@@ -86,9 +93,28 @@ class Vocabulary:
                                 expansion_search=params.expansion_search)
             self._radius = float(params.word_radius_l2) ** 2  # usearch returns squared L2
         self._n_words = 0
+        self._images = 0                        # add() calls so far (one per image)
+        self._born = _GrowingInts()             # per word: the image (add() call) that made it
+        self._seen = _GrowingInts()             # per word: images it was found in
+        self._unpurged_from = 0                 # words below this id were all examined
+        self.purged = 0
+        # What the last add() changed, for a store to write (robotd.io.store, issue 24):
+        self.last_new: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros((0, dim)))
+        self.last_purged = np.zeros(0, np.int64)
 
     def __len__(self) -> int:
+        """Words made so far (purged ones included: ids are never reused)."""
         return self._n_words
+
+    def memory_bytes(self) -> int:
+        """Bytes of the word search (usearch's own figure, its reserved capacity included)
+        and the per-word counters."""
+        return int(self._index.memory_usage) + 16 * self._n_words
+
+    @property
+    def n_searchable(self) -> int:
+        """Words the search can still find (made minus purged)."""
+        return self._n_words - self.purged
 
     def _check(self, descriptors: np.ndarray) -> np.ndarray:
         d = np.ascontiguousarray(descriptors, np.uint8 if self.binary else np.float32)
@@ -114,8 +140,11 @@ class Vocabulary:
 
     def _pairwise(self, d: np.ndarray) -> np.ndarray:
         """Distances between the rows of ``d`` in the units of the radius (bits, or squared L2)."""
-        if self.binary:
-            return np.bitwise_count(d[:, None, :] ^ d[None, :, :]).sum(axis=2).astype(np.float64)
+        if self.binary:  # |a xor b| = |a| + |b| - 2 a.b over the bits: one float32 product,
+            # far faster than an (N, N, 32) xor array; exact (integers below 2^24)
+            bits = np.unpackbits(d, axis=1).astype(np.float32)
+            ones = bits.sum(axis=1)
+            return (ones[:, None] + ones[None, :] - 2.0 * (bits @ bits.T)).astype(np.float64)
         sq = np.einsum("ij,ij->i", d, d).astype(np.float64)
         return np.maximum(sq[:, None] + sq[None, :] - 2.0 * (d.astype(np.float64) @ d.T.astype(np.float64)), 0.0)
 
@@ -129,8 +158,14 @@ class Vocabulary:
         """
         d = self._check(descriptors)
         words = self.quantize(d)
+        self._images += 1
+        self.last_new = (np.zeros(0, np.int64), d[:0])
+        self.last_purged = np.zeros(0, np.int64)
+        found = np.unique(words[words >= 0])
+        self._seen.view[found] += 1
         new = np.flatnonzero(words < 0)
         if not len(new):
+            self._purge()
             return words, 0
         dist = self._pairwise(d[new])
         owner = np.full(len(new), -1, np.int64)
@@ -147,8 +182,61 @@ class Vocabulary:
         keys = np.arange(self._n_words, self._n_words + len(founders), dtype=np.int64)
         self._index.add(keys, d[new[founders]], threads=1)
         self._n_words += len(founders)
+        n0 = self._born.n
+        self._born.resize(n0 + len(founders))
+        self._born.view[n0:] = self._images - 1
+        self._seen.resize(n0 + len(founders))
+        self._seen.view[n0:] = 1
         words[new] = owner
+        self.last_new = (keys, d[new[founders]])
+        self._purge()
         return words, len(founders)
+
+    def restore(self, descriptors: np.ndarray, born: np.ndarray, purged: np.ndarray,
+                seen: np.ndarray, n_images: int) -> None:
+        """Rebuild an empty vocabulary from stored words (ids 0 .. n - 1 in order):
+        ``descriptors (n, dim)``, ``born (n,)`` the image that made each, ``purged (n,)
+        bool``, ``seen (n,)`` images each was found in, ``n_images`` images added so far.
+        Purged words keep their ids but are not searchable."""
+        if self._n_words:
+            raise ValueError("restore() needs an empty vocabulary")
+        d = self._check(descriptors)
+        n = len(d)
+        born = np.asarray(born, np.int64)
+        purged = np.asarray(purged, bool)
+        if not (len(born) == len(purged) == len(seen) == n):
+            raise ValueError("descriptors, born, purged and seen must have one row per word")
+        keep = np.flatnonzero(~purged)
+        if len(keep):
+            self._index.add(keep.astype(np.int64), d[keep], threads=1)
+        self._n_words = n
+        self._born.resize(n)
+        self._born.view[:] = born
+        self._seen.resize(n)
+        self._seen.view[:] = np.asarray(seen, np.int64)
+        self._images = int(n_images)
+        self.purged = int(purged.sum())
+        age = self.params.purge_after
+        if age > 0:  # the words already due were examined when they fell due
+            self._unpurged_from = int(np.searchsorted(born, self._images - 1 - age, side="right"))
+
+    def _purge(self) -> None:
+        """Remove from the search the words seen in one image only, made ``purge_after``
+        images ago or earlier (the words are examined once, in creation order)."""
+        age = self.params.purge_after
+        if age <= 0:
+            return
+        limit = self._images - 1 - age          # words born at or before this image are due
+        lo = self._unpurged_from
+        hi = lo + int(np.searchsorted(self._born.view[lo:], limit, side="right"))
+        if hi <= lo:
+            return
+        gone = lo + np.flatnonzero(self._seen.view[lo:hi] <= 1)
+        if len(gone):
+            self._index.remove(gone.astype(np.int64))
+            self.purged += len(gone)
+            self.last_purged = gone.astype(np.int64)
+        self._unpurged_from = hi
 
 
 class _GrowingInts:
@@ -170,6 +258,9 @@ class _GrowingInts:
         return self._a[:self.n]
 
 
+_NO_POSTINGS = array("i")  # shared by the words whose postings were dropped (never appended to)
+
+
 class InvertedIndex:
     """Word -> images it was seen in (with counts), and the tf-idf statistics.
 
@@ -183,8 +274,9 @@ class InvertedIndex:
     """
 
     def __init__(self) -> None:
-        self._post_slots: list[list[int]] = []   # per word: slots of the images containing it
-        self._post_counts: list[list[int]] = []  # per word: n(w, i) for those images
+        # Postings as C int arrays (4 bytes an entry, not a Python int object each).
+        self._post_slots: list[array] = []       # per word: slots of the images containing it
+        self._post_counts: list[array] = []      # per word: n(w, i) for those images
         self._df = _GrowingInts()                # per word: images containing it
         self._occ = _GrowingInts()               # per word: total occurrences
         self._image_len = _GrowingInts()         # per slot: n(i), words (with repeats) in the image
@@ -254,14 +346,16 @@ class InvertedIndex:
         top = int(uw[-1]) + 1
         if top > self._df.n:
             for _ in range(top - len(self._post_slots)):
-                self._post_slots.append([])
-                self._post_counts.append([])
+                self._post_slots.append(array("i"))
+                self._post_counts.append(array("i"))
             old = self._df.n
             self._df.resize(top)
             self._occ.resize(top)
             self._active_pos.resize(top)
             self._active_pos.view[old:] = -1
         for wid, c in zip(uw.tolist(), cnt.tolist()):
+            if self._post_slots[wid] is _NO_POSTINGS:
+                self._post_slots[wid], self._post_counts[wid] = array("i"), array("i")
             self._post_slots[wid].append(slot)
             self._post_counts[wid].append(c)
         born = uw[self._df.view[uw] == 0]
@@ -314,6 +408,16 @@ class InvertedIndex:
         self._image_ids[slot] = -1
         heapq.heappush(self._free, slot)
         self._removed.add(image_id)
+
+    def drop_postings(self, words: np.ndarray) -> None:
+        """Free the postings of ``words`` that no query can contain any more (words purged
+        from the vocabulary's search): their images keep their word counts and the words
+        their document frequencies, so every other score stays as it was. Not for an index
+        whose images may be removed again (a bounded working memory checks postings)."""
+        for wid in np.asarray(words, np.int64).tolist():
+            if 0 <= wid < len(self._post_slots):
+                self._post_slots[wid] = _NO_POSTINGS
+                self._post_counts[wid] = _NO_POSTINGS
 
     def document_frequency(self, word: int) -> int:
         """df(w): indexed images that contain ``word``."""
@@ -382,12 +486,12 @@ class InvertedIndex:
         if not len(uw):
             return scores, 0.0
         idf = np.log(self.n_images / df)
-        lists = [self._post_slots[k] for k in uw.tolist()]
-        slots = np.fromiter(itertools.chain.from_iterable(lists), np.int64, int(df.sum()))
-        n_wi = np.fromiter(itertools.chain.from_iterable(self._post_counts[k] for k in uw.tolist()),
-                           np.int64, int(df.sum()))
+        ids = uw.tolist()
+        slots = np.concatenate([np.frombuffer(self._post_slots[k], np.int32) for k in ids]).astype(np.int64)
+        n_wi = np.concatenate([np.frombuffer(self._post_counts[k], np.int32) for k in ids])
+        held = np.fromiter((len(self._post_slots[k]) for k in ids), np.int64, len(ids))  # df, bar dropped postings
         per_word = cq * idf
-        weights = np.repeat(per_word, df) * n_wi / self._image_len.view[slots]
+        weights = np.repeat(per_word, held) * n_wi / self._image_len.view[slots]
         scores += np.bincount(slots, weights=weights, minlength=self.n_slots)
         virt = self.virtual_image()
         in_virt = np.isin(uw, virt)
@@ -395,7 +499,9 @@ class InvertedIndex:
         return scores, virtual
 
     def memory_bytes(self) -> int:
-        """Approximate bytes held by the postings (8 per slot and count entry) and the
-        per-word and per-slot counters."""
-        entries = sum(len(p) for p in self._post_slots)
-        return 16 * entries + 8 * (4 * self._df.n + self._image_len.n)
+        """Bytes held by the postings (the int arrays with their object overhead, and the
+        lists holding them) and the per-word and per-slot counters."""
+        posting = sum(sys.getsizeof(a) for a in self._post_slots if a is not _NO_POSTINGS) + sum(
+            sys.getsizeof(a) for a in self._post_counts if a is not _NO_POSTINGS)
+        lists = sys.getsizeof(self._post_slots) + sys.getsizeof(self._post_counts)
+        return posting + lists + 8 * (4 * self._df.n + self._image_len.n)

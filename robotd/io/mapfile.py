@@ -7,7 +7,11 @@ Version history:
 2. runs get their epoch (``epoch_unix_ns``: each run has its own clock), keyframes are
    indexed by ``(run_id, stamp_ns)``;
 3. the pose graph's results: ``optimized_poses`` (the newest solved pose of each
-   keyframe) and ``loop_candidates`` (every loop-closure candidate and its fate).
+   keyframe) and ``loop_candidates`` (every loop-closure candidate and its fate);
+4. the forward camera's memory (issue 24): ``forward_images`` (what the detector keeps of
+   each forward keyframe: word ids, compact keypoints, descriptors) and ``forward_words``
+   (the incremental vocabulary's words, with the image that made each one and whether it
+   was purged), so a restarted daemon goes on detecting forward loops against earlier runs.
 """
 
 from __future__ import annotations
@@ -130,10 +134,43 @@ def _migrate_2_to_3(conn: sqlite3.Connection) -> None:
     conn.execute("CREATE INDEX loop_candidates_by_query ON loop_candidates(query_id)")
 
 
+def _migrate_3_to_4(conn: sqlite3.Connection) -> None:
+    """Version 4: the forward camera's memory. ``forward_images``: one row per forward
+    keyframe (``image_id``, the detector's image number, in arrival order over all runs;
+    ``kind`` of features; ``words`` uint32, ``keypoints`` uint16 pairs in 1/16 px,
+    ``descriptors`` as extracted, all little-endian). ``forward_words``: one row per word
+    (``descriptor``, ``born_image``, ``purged`` = 1 once it left the search, its descriptor
+    then emptied). The inverted
+    index and the Bayes filter are rebuilt from these at start (the filter starts at "no
+    loop", as at any start)."""
+    conn.execute(
+        """CREATE TABLE forward_images (
+            image_id     INTEGER PRIMARY KEY,
+            keyframe_id  INTEGER NOT NULL UNIQUE REFERENCES keyframes(id),
+            kind         TEXT NOT NULL CHECK (kind IN ('orb', 'sift')),
+            image_width  INTEGER NOT NULL,
+            image_height INTEGER NOT NULL,
+            words        BLOB NOT NULL,
+            keypoints    BLOB NOT NULL,
+            descriptors  BLOB NOT NULL
+        )"""
+    )
+    conn.execute(
+        """CREATE TABLE forward_words (
+            id         INTEGER PRIMARY KEY,
+            kind       TEXT NOT NULL CHECK (kind IN ('orb', 'sift')),
+            descriptor BLOB NOT NULL,
+            born_image INTEGER NOT NULL,
+            purged     INTEGER NOT NULL DEFAULT 0 CHECK (purged IN (0, 1))
+        )"""
+    )
+
+
 MIGRATIONS: Mapping[int, Migration] = {
     1: _migrate_0_to_1,
     2: _migrate_1_to_2,
     3: _migrate_2_to_3,
+    4: _migrate_3_to_4,
 }
 """Schema migrations keyed by the version each one produces, contiguous from 1.
 

@@ -204,3 +204,24 @@ def plot_likelihood_posterior(path: Path, image_id: int, scores: np.ndarray, vir
     ax2.legend(fontsize=8)
     ax1.set_title(title or f"image {image_id}: posterior and likelihood")
     _save(fig, path)
+
+
+def plot_pr_curves(path: Path, curves: dict[str, dict[str, list[float]]],
+                   points: dict[str, tuple[float, float]], title: str = "") -> None:
+    """Precision against recall, one line per method (``curves``: ``{"recall": [...],
+    "precision": [...]}`` as :func:`robotd.forward.evaluation.pr_curve` gives), and each
+    method's operating point (``points``: name -> (recall, precision)) marked."""
+    fig, ax = _figure((6.0, 4.5))
+    for name, c in curves.items():
+        ax.plot(c["recall"], c["precision"], marker=".", markersize=3, label=name)
+    for name, (r, p) in points.items():
+        ax.plot([r], [p], "k*", markersize=10, label=f"{name}: operating point")
+    ax.set_xlabel("recall")
+    ax.set_ylabel("precision")
+    ax.set_xlim(0.0, 1.0)
+    ax.set_ylim(0.0, 1.02)
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="lower left", fontsize=8)
+    if title:
+        ax.set_title(title, fontsize=9)
+    _save(fig, path)

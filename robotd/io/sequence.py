@@ -73,6 +73,8 @@ def load_ground_truth(path: Path, n_images: int | None = None) -> np.ndarray:
             text = path.read_text()
             delim = "," if "," in text else None
             m = np.loadtxt(path, delimiter=delim, ndmin=2)
+        elif suffix == ".mat":
+            m = _matlab_matrix(path)
         elif suffix in IMAGE_SUFFIXES:
             import cv2
 
@@ -81,10 +83,10 @@ def load_ground_truth(path: Path, n_images: int | None = None) -> np.ndarray:
                 raise SequenceError(f"cannot read ground-truth image {path}")
         else:
             raise SequenceError(f"ground-truth file {path}: unknown format {suffix!r} "
-                                "(use .npy, .csv, .txt or an image such as .bmp/.png)")
+                                "(use .npy, .csv, .txt, .mat or an image such as .bmp/.png)")
     except SequenceError:
         raise
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, NotImplementedError) as exc:
         raise SequenceError(f"cannot read ground-truth file {path}: {exc}") from None
     m = np.asarray(m)
     if m.ndim != 2 or m.shape[0] != m.shape[1]:
@@ -103,3 +105,28 @@ def load_ground_truth(path: Path, n_images: int | None = None) -> np.ndarray:
     truth = truth | truth.T
     np.fill_diagonal(truth, False)
     return truth
+
+
+def _matlab_matrix(path: Path) -> np.ndarray:
+    """The ground-truth matrix of a MATLAB ``.mat`` file, as the public loop-closure
+    datasets publish it (Lip6, NewCollege, CityCentre: a variable such as ``truth`` or
+    ``GroundTruth``, N x N, possibly sparse): the largest square numeric 2-D variable.
+    MATLAB v7.3 files (HDF5) are not read (scipy cannot)."""
+    from scipy import io as sio
+    from scipy import sparse
+
+    data = sio.loadmat(str(path))
+    best = None
+    for key, value in data.items():
+        if key.startswith("__"):
+            continue
+        if sparse.issparse(value):
+            value = value.toarray()
+        a = np.asarray(value)
+        if a.ndim == 2 and a.shape[0] == a.shape[1] and a.dtype.kind in "biuf":
+            if best is None or a.shape[0] > best.shape[0]:
+                best = a
+    if best is None:
+        names = ", ".join(k for k in data if not k.startswith("__")) or "none"
+        raise SequenceError(f"ground-truth file {path}: no square numeric matrix among its variables ({names})")
+    return best

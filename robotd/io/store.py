@@ -32,6 +32,12 @@ Tables (schema version :data:`SCHEMA_VERSION`):
     the local ``score``, its ``fate`` (one of :data:`LOOP_CANDIDATE_FATES`) and a free
     ``detail`` text (e.g. the chi-square value, the optimiser's weight).
 
+``forward_images``, ``forward_words`` (since version 4)
+    The forward camera's memory (:meth:`MapStore.add_forward_image`,
+    :meth:`MapStore.forward_memory`): per forward keyframe its word ids, compact
+    keypoints and descriptors; per word its descriptor, the image that made it and
+    whether it was purged. One image and its new words are one transaction.
+
 Durability. Every write is its own transaction (``BEGIN IMMEDIATE`` ... ``COMMIT``), so
 a crash never leaves half a keyframe. The journal is a write-ahead log with
 ``synchronous=FULL`` by default: every commit is synced to disk, so a power cut loses at
@@ -860,3 +866,46 @@ class MapStore:
             raise ValueError(f"fate must be one of {LOOP_CANDIDATE_FATES}, got {fate!r}")
         rows = self._read(sql + " WHERE fate = ? ORDER BY id", (fate,))
         return [LoopCandidateRecord(*r) for r in rows]
+
+
+    # -- the forward camera's memory (version 4) -----------------------------------
+
+    def add_forward_image(self, image_id: int, keyframe_id: int, kind: str, image_size_px: tuple[int, int],
+                          words: np.ndarray, keypoints_q: np.ndarray, descriptors: np.ndarray,
+                          new_words: Sequence[tuple[int, bytes]] = (), purged: Sequence[int] = ()) -> None:
+        """Store one forward image (``words (N,) uint32``, ``keypoints_q (N, 2) uint16`` in
+        1/16 px, ``descriptors``), the words it made (``(word id, descriptor bytes)``) and
+        the words purged after it (their descriptors are dropped), in one transaction (a
+        power cut loses at most this image). ValueError for an unknown keyframe or a repeated id."""
+        w, h = (int(v) for v in image_size_px)
+        with self._write() as conn:
+            conn.execute(
+                "INSERT INTO forward_images (image_id, keyframe_id, kind, image_width, image_height, words,"
+                " keypoints, descriptors) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (int(image_id), int(keyframe_id), kind, w, h,
+                 np.ascontiguousarray(words, "<u4").tobytes(),
+                 np.ascontiguousarray(keypoints_q, "<u2").tobytes(),
+                 np.ascontiguousarray(descriptors, descriptors.dtype.newbyteorder("<")).tobytes()))
+            if new_words:
+                conn.executemany("INSERT INTO forward_words (id, kind, descriptor, born_image) VALUES (?, ?, ?, ?)",
+                                 [(int(i), kind, bytes(d), int(image_id)) for i, d in new_words])
+            if purged:
+                # A purged word is never searched again: its descriptor is dropped.
+                conn.executemany("UPDATE forward_words SET purged = 1, descriptor = X'' WHERE id = ?",
+                                 [(int(i),) for i in purged])
+
+    def forward_memory(self) -> tuple[list[tuple], list[tuple]]:
+        """Everything :meth:`add_forward_image` stored: the images as ``(image_id,
+        keyframe_id, kind, (width, height), words (N,) uint32, keypoints_q (N, 2) uint16,
+        descriptors bytes)`` in image order, and the words as ``(id, kind, descriptor
+        bytes, born_image, purged)`` in id order (the caller knows the descriptor type; a
+        purged word's descriptor is empty)."""
+        images = []
+        for image_id, kf, kind, w, h, words, kps, desc in self._read(
+                "SELECT image_id, keyframe_id, kind, image_width, image_height, words, keypoints, descriptors"
+                " FROM forward_images ORDER BY image_id"):
+            images.append((image_id, kf, kind, (w, h), np.frombuffer(words, "<u4").astype(np.uint32),
+                           np.frombuffer(kps, "<u2").astype(np.uint16).reshape(-1, 2), bytes(desc)))
+        words = [(i, kind, bytes(d), born, bool(p)) for i, kind, d, born, p in self._read(
+            "SELECT id, kind, descriptor, born_image, purged FROM forward_words ORDER BY id")]
+        return images, words

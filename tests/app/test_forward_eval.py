@@ -77,3 +77,27 @@ def test_eval_forward_errors_are_one_line(tmp_path: Path, capsys):
     assert main(args + [str(tmp_path / "seq"), "--ground-truth", str(tmp_path / "gt.npy")]) == 2
     err = capsys.readouterr().err
     assert "cannot read image" in err and "5.png" in err
+
+
+def test_eval_forward_method_tolerance_every_and_the_pr_curve(tmp_path: Path, capsys):
+    truth = _sequence(tmp_path / "seq")
+    np.save(tmp_path / "gt.npy", truth)
+    out = tmp_path / "out"
+    rc = main(["eval", "forward", "--images", str(tmp_path / "seq"), "--ground-truth", str(tmp_path / "gt.npy"),
+               "--out", str(out), "--recent", "2", "--method", "paper", "--tolerance", "1", "--every", "2",
+               "--no-brute-force"])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "8 images" in text and "method paper (features sift" in text and "tolerance 1" in text
+    report = json.loads((out / "forward_eval.json").read_text())
+    assert report["n_images"] == 8 and report["per_image"][1]["image"] == "3.png"  # every 2nd image
+    assert report["params"]["features"]["kind"] == "sift" and report["tolerance"] == 1
+    pr = json.loads((out / "pr_curve.json").read_text())
+    assert set(pr["curves"]) == {"detector (verified loops)", "best score"}
+    c = pr["curves"]["best score"]
+    assert len(c["threshold"]) == len(c["precision"]) == len(c["recall"])
+    assert c["threshold"] == sorted(c["threshold"], reverse=True)
+    assert cv2.imread(str(out / "pr_curve.png")) is not None
+    assert main(["eval", "forward", "--images", str(tmp_path / "seq"), "--ground-truth",
+                 str(tmp_path / "gt.npy"), "--every", "0"]) == 2
+    assert "--every must be at least 1" in capsys.readouterr().err

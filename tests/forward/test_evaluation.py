@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.forward.evaluation import positives, score_decisions
+from robotd.forward.evaluation import positives, pr_curve, score_decisions
 
 
 def _truth() -> np.ndarray:
@@ -52,3 +52,29 @@ def test_nothing_declared_is_full_precision_and_no_recall():
     assert (s.precision, s.recall, s.declared) == (1.0, 0.0, 0)
     with pytest.raises(ValueError):
         score_decisions(np.full(7, -1), np.zeros(7), np.zeros(7, bool), _truth(), 2)
+
+
+def test_a_frame_tolerance_accepts_a_neighbour_of_a_true_match():
+    truth = np.zeros((20, 20), bool)
+    truth[15, 3] = truth[3, 15] = True
+    cand = np.full(20, -1)
+    cand[15] = 5  # two images off the true match
+    conf = np.where(cand >= 0, 1.0, 0.0)
+    assert score_decisions(cand, conf, cand >= 0, truth, 10).true_positives == 0
+    assert score_decisions(cand, conf, cand >= 0, truth, 10, tolerance=1).true_positives == 0
+    s = score_decisions(cand, conf, cand >= 0, truth, 10, tolerance=2)
+    assert (s.true_positives, s.positives, s.recall_at_full_precision) == (1, 1, 1.0)
+
+
+def test_the_pr_curve_sweeps_the_confidence_from_the_top():
+    truth = np.zeros((30, 30), bool)
+    for q, j in ((20, 1), (21, 2), (22, 3), (23, 4)):
+        truth[q, j] = truth[j, q] = True
+    cand = np.full(30, -1)
+    conf = np.zeros(30)
+    cand[[20, 21, 22, 25]] = [1, 2, 9, 7]   # right, right, wrong, wrong
+    conf[[20, 21, 22, 25]] = [0.9, 0.8, 0.7, 0.6]
+    c = pr_curve(cand, conf, cand >= 0, truth, 10)
+    assert c["threshold"] == [0.9, 0.8, 0.7, 0.6]
+    assert c["precision"] == [1.0, 1.0, 2 / 3, 0.5]
+    assert c["recall"] == [0.25, 0.5, 0.5, 0.5]

@@ -78,3 +78,19 @@ def test_neighbourhood_sums_and_candidate():
 def test_update_refuses_a_vanished_posterior():
     with pytest.raises(ValueError):
         update(np.array([0.0, 1.0]), np.array([1.0, 0.0]))
+
+
+def test_the_total_rule_thresholds_one_minus_the_no_loop_probability():
+    """A place seen twice far apart in time splits its probability between two
+    neighbourhoods: neither passes 0.8 alone, the total loop probability does (issue 24)."""
+    post = np.zeros(21)
+    post[0] = 0.11
+    post[1 + 3] = 0.45   # image 3
+    post[1 + 15] = 0.40  # image 15, far from 3
+    post[1 + 16] = 0.04
+    assert select_candidate(post, FilterParams())[0] is None
+    cand, prob = select_candidate(post, FilterParams(rule="total"))
+    assert cand == 3 and prob == pytest.approx(0.89)
+    assert select_candidate(post, FilterParams(rule="total", loop_threshold=0.95))[0] is None
+    with pytest.raises(ValueError):
+        FilterParams(rule="sum")

@@ -125,3 +125,17 @@ def test_verified_rendered_views_give_the_true_planar_motion():
         assert math.degrees(tilt) < 3.0
         checked += 1
     assert checked == 2
+
+
+def test_a_measured_range_replaces_the_predicted_one_and_is_weighed():
+    """With ``range_m`` (measured on the floor) the edge's length is the measurement, not
+    the prediction's, and its range is far better constrained than a predicted one's."""
+    true = np.array([2.0, 0.0, 0.0])
+    d_pred, i_pred = loop_edge(true, 0.0, 0.0)
+    d_meas, i_meas = loop_edge(true, 0.0, 0.0, range_m=0.4)
+    assert d_pred[0] == pytest.approx(2.0) and d_meas[0] == pytest.approx(0.4)
+    # Information along x (the range) at a 2 m range: 1 / (2 m * 1.0)^2 predicted, about
+    # 1 / (0.4 m * 0.5)^2 measured.
+    assert i_meas[0, 0] > 20 * i_pred[0, 0]
+    with pytest.raises(ValueError):
+        loop_edge(true, 0.0, 0.0, range_m=-1.0)

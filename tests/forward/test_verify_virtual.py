@@ -76,3 +76,89 @@ def test_a_true_loop_on_the_next_lap_is_still_accepted(office):
     dyaw, bearing, tilt = planar_motion(v.rotation, v.translation_dir)
     # The truth: same heading, the new camera 0.42 m straight ahead.
     assert abs(math.degrees(dyaw)) < 2 and abs(math.degrees(bearing)) < 5 and math.degrees(tilt) < 3
+
+
+# --- issue 24 item 1: the relative pose a verified forward loop hands the pose graph ------
+# Two views of one corridor (the images of the same name in the office sequence above), and
+# two pairs of *different* places 2.4-2.6 m apart (images 671/839 and 269/956: no wall cell
+# in common) that see the same repeating floor tiles and ceiling panels.
+CORRIDOR = np.array([3.49755, 0.0, math.pi])
+ALIASED = {"a": (np.array([0.17110, 3.33687, -2.367459]), np.array([0.12268, 5.78204, -2.221038])),
+           "b": (np.array([0.22284, 5.88098, -2.503552]), np.array([0.16828, 3.33408, -2.359535]))}
+
+
+def _truth(renderer, old_pose, new_pose):
+    """The true ``(dyaw, bearing, distance)`` of the new camera in the old camera's planar frame."""
+    from robotd.base.geometry import between, compose
+
+    cam = renderer.camera
+    mount = np.array([cam.x_m, cam.y_m, cam.yaw_rad])
+    rel = between(compose(old_pose, mount), compose(new_pose, mount))
+    return rel[2], math.atan2(rel[1], rel[0]), math.hypot(rel[0], rel[1])
+
+
+@pytest.mark.parametrize("rel", [(0.6, 0.0, 0.0), (-0.6, 0.0, 0.0), (1.2, 0.3, 0.15), (-1.0, -0.3, -0.2)])
+def test_the_loop_edge_is_the_true_relative_pose_whichever_camera_is_ahead(office, rel):
+    """The from/to convention end to end: images rendered at two true poses (the new camera
+    ahead of or behind the old one) -> verification -> planar motion -> the pose graph's
+    robot-frame edge, which must be the true relative pose of the two robot poses."""
+    from robotd.base.geometry import between, compose
+    from robotd.forward.planar import loop_edge
+
+    renderer, _, k = office
+    cam = renderer.camera
+    mount = np.array([cam.x_m, cam.y_m, cam.yaw_rad])
+    extract = FeatureExtractor()
+    old_pose = CORRIDOR
+    new_pose = compose(CORRIDOR, np.array(rel))
+    v = verify_pair(extract(renderer.render(old_pose)), extract(renderer.render(new_pose)),
+                    VerifyParams(camera_height_m=cam.height_m), k)
+    assert v.accepted
+    dyaw, bearing, _ = planar_motion(v.rotation, v.translation_dir)
+    t_yaw, t_bearing, t_dist = _truth(renderer, old_pose, new_pose)
+    assert abs(math.degrees(dyaw - t_yaw)) < 1.5
+    assert abs(math.degrees(math.remainder(bearing - t_bearing, math.tau))) < 6
+    assert v.range_m is not None and 1 / 1.7 < v.range_m / t_dist < 1.7
+    truth = between(old_pose, new_pose)
+    delta, _ = loop_edge(truth, dyaw, bearing, mount, range_m=v.range_m)
+    # Right in direction and heading; the length is the floor's measurement.
+    assert abs(math.degrees(math.remainder(float(delta[2] - truth[2]), math.tau))) < 1.5
+    assert math.hypot(*(delta[:2] - truth[:2])) < 0.7 * math.hypot(*truth[:2])
+
+
+@pytest.mark.parametrize("pair", sorted(ALIASED))
+def test_an_aliased_floor_and_ceiling_pass_the_epipolar_check_but_measure_the_wrong_range(office, pair):
+    """The daemon's wrong forward loops (issue 24): different places, the same floor and
+    ceiling; the five-point check accepts them with the heading right and the bearing far
+    off, which looked like a reversed sign. The floor measures a range a fraction of the
+    true one, and the edge built with it is refused by the pose graph's gate."""
+    from robotd.base.geometry import between
+    from robotd.forward.planar import loop_edge
+
+    renderer, _, k = office
+    cam = renderer.camera
+    old_pose, new_pose = ALIASED[pair]
+    assert _overlap_poses(renderer, old_pose, new_pose) < 0.1  # the truth: not the same place (gt: < 0.1)
+    extract = FeatureExtractor()
+    v = verify_pair(extract(renderer.render(old_pose)), extract(renderer.render(new_pose)),
+                    VerifyParams(camera_height_m=cam.height_m), k)
+    assert v.accepted  # the epipolar check alone cannot tell (module notes of verify)
+    dyaw, bearing, _ = planar_motion(v.rotation, v.translation_dir)
+    t_yaw, t_bearing, t_dist = _truth(renderer, old_pose, new_pose)
+    assert abs(math.degrees(dyaw - t_yaw)) < 10
+    assert abs(math.degrees(math.remainder(bearing - t_bearing, math.tau))) > 90
+    assert v.range_m is not None and v.range_m < 0.35 * t_dist
+    # The gate's test with a perfect prediction (the strictest case: no marginals added):
+    # the measured range alone puts the edge far outside the 99.9 % gate (16.27).
+    mount = np.array([cam.x_m, cam.y_m, cam.yaw_rad])
+    truth = between(old_pose, new_pose)
+    t_cam_dyaw, t_cam_bearing = t_yaw, t_bearing
+    delta, info = loop_edge(truth, t_cam_dyaw, t_cam_bearing, mount, range_m=v.range_m)
+    c, s_ = math.cos(delta[2]), math.sin(delta[2])
+    d = truth[:2] - delta[:2]
+    e = np.array([c * d[0] + s_ * d[1], -s_ * d[0] + c * d[1], math.remainder(float(truth[2] - delta[2]), math.tau)])
+    assert float(e @ info @ e) > 16.27
+
+
+def _overlap_poses(renderer, a: np.ndarray, b: np.ndarray) -> float:
+    return float(view_overlap(view_histograms(renderer, np.array([a, b])))[0, 1])

@@ -105,3 +105,74 @@ def test_votes_are_tfidf_sums_and_the_virtual_image_votes_too():
     # A word twice in the query votes twice.
     scores2, _ = idx.vote(np.array([2, 2]))
     assert np.allclose(scores2, [0.0, math.log(1.5), 1.5 * math.log(1.5)])
+
+
+def test_words_seen_in_one_image_only_are_purged_after_the_set_age():
+    """iBoW-LCD's purging (issue 24): a word no later image found leaves the search once
+    ``purge_after`` images have come after the image that made it; a word that recurred
+    stays; ids are never reused."""
+    rng = np.random.default_rng(7)
+    params = VocabularyParams(word_radius_bits=40, purge_after=2)
+    voc = Vocabulary(dim=32, binary=True, params=params)
+    a = rng.integers(0, 256, (2, 32), dtype=np.uint8)  # image 0: two words, 0 and 1
+    voc.add(a)
+    voc.add(a[:1])                       # image 1 finds word 0 again: it recurred
+    assert voc.purged == 0 and list(voc.quantize(a)) == [0, 1]  # one image after: not yet
+    voc.add(rng.integers(0, 256, (1, 32), dtype=np.uint8))  # image 2: word 1 (seen once) goes
+    assert voc.purged == 1 and voc.n_searchable == len(voc) - 1
+    assert list(voc.quantize(a)) == [0, -1]
+    words, new = voc.add(a[1:])          # the same descriptor now makes a new word
+    assert new == 1 and words[0] == len(voc) - 1 and words[0] != 1
+
+
+def test_no_purging_by_default():
+    rng = np.random.default_rng(8)
+    voc = Vocabulary(dim=32, binary=True)
+    for _ in range(30):
+        voc.add(rng.integers(0, 256, (5, 32), dtype=np.uint8))
+    assert voc.purged == 0 and voc.n_searchable == len(voc) == 150
+
+
+def test_a_restored_vocabulary_finds_what_the_original_finds_and_purges_on():
+    """restore() (a restarted daemon, issue 24): the same searchable words, purged ones
+    not found, and purging goes on from where it was."""
+    rng = np.random.default_rng(9)
+    params = VocabularyParams(word_radius_bits=40, purge_after=3)
+    voc = Vocabulary(dim=32, binary=True, params=params)
+    imgs = [rng.integers(0, 256, (4, 32), dtype=np.uint8) for _ in range(6)]
+    descs = []
+    for k, d in enumerate(imgs):
+        voc.add(d if k != 5 else np.vstack([d, imgs[4][:1]]))  # image 5 sees a word of image 4 again
+        descs.append(voc.last_new[1])
+    all_desc = np.vstack(descs)
+    born = np.repeat(np.arange(6), [len(x) for x in descs])
+    purged = np.zeros(len(voc), bool)
+    purged[:voc.purged] = True  # purged in creation order: images 0-2 were due, seen once
+    seen = np.ones(len(voc), np.int64)
+    seen[16] = 2  # the word of image 4 found again at image 5
+    again = Vocabulary(dim=32, binary=True, params=params)
+    again.restore(all_desc, born, purged, seen, n_images=6)
+    assert voc.purged == 12 and again.purged == 12 and len(again) == len(voc) == 24
+    probe = np.vstack(imgs)
+    np.testing.assert_array_equal(again.quantize(probe), voc.quantize(probe))
+    assert (again.quantize(probe)[:12] == -1).all()
+    again.add(rng.integers(0, 256, (1, 32), dtype=np.uint8))  # image 6: image 3's words fall due
+    voc.add(rng.integers(0, 256, (1, 32), dtype=np.uint8))
+    assert again.purged == voc.purged == 16
+
+
+def test_dropped_postings_change_no_score_of_the_other_words():
+    rng = np.random.default_rng(10)
+    idx, ref = InvertedIndex(), InvertedIndex()
+    words = [rng.integers(0, 40, 12) for _ in range(8)]
+    for i, w in enumerate(words):
+        idx.add_image(i, w)
+        ref.add_image(i, w)
+    only_once = [w for w in range(40) if idx.document_frequency(w) == 1]
+    before = idx.memory_bytes()
+    idx.drop_postings(np.array(only_once))
+    assert idx.memory_bytes() < before
+    query = np.array([w for w in range(40) if w not in only_once])
+    np.testing.assert_array_equal(idx.vote(query)[0], ref.vote(query)[0])
+    idx.add_image(8, np.array(only_once[:2]))  # a dropped word coming back gets postings again
+    assert idx.document_frequency(only_once[0]) == 2 and idx.vote(np.array(only_once[:1]))[0][8] > 0

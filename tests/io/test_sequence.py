@@ -84,3 +84,21 @@ def test_ground_truth_errors(tmp_path: Path):
     (tmp_path / "gt.png").write_bytes(b"garbage")
     with pytest.raises(SequenceError, match="cannot read ground-truth image"):
         load_ground_truth(tmp_path / "gt.png")
+
+
+def test_ground_truth_from_a_matlab_file_as_the_public_datasets_publish_it(tmp_path: Path):
+    """A .mat file (Lip6, NewCollege, CityCentre): the square numeric variable, dense or
+    sparse, beside other variables; a file without one is a clear error."""
+    from scipy import io as sio
+    from scipy import sparse
+
+    m = np.zeros((6, 6))
+    m[4, 1] = m[5, 2] = 1
+    sio.savemat(tmp_path / "gt.mat", {"truth": m, "names": np.array([[1.0, 2.0, 3.0]])})
+    t = load_ground_truth(tmp_path / "gt.mat", 6)
+    assert t[4, 1] and t[1, 4] and t[5, 2] and int(t.sum()) == 4
+    sio.savemat(tmp_path / "sparse.mat", {"GroundTruth": sparse.csr_matrix(m)})
+    assert np.array_equal(load_ground_truth(tmp_path / "sparse.mat"), t)
+    sio.savemat(tmp_path / "none.mat", {"row": np.ones((1, 6))})
+    with pytest.raises(SequenceError, match="no square numeric matrix"):
+        load_ground_truth(tmp_path / "none.mat")

@@ -426,7 +426,8 @@ def test_a_version_1_map_written_by_the_old_code_is_migrated(tmp_path: Path) -> 
         assert raw.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone() == ("1",)
     raw.close()
     with MapStore.open(path) as store:
-        assert store.schema_version == SCHEMA_VERSION == 3
+        assert store.schema_version == SCHEMA_VERSION == 4
+        assert store.forward_memory() == ([], [])
         assert store.optimized_poses() == {}
         assert store.loop_candidates() == []
         runs = store.runs()
@@ -485,17 +486,19 @@ def test_a_version_2_map_written_by_the_current_code_is_migrated(tmp_path, monke
     monkeypatch.undo()
 
     with MapStore.open(path) as store:
-        assert store.schema_version == SCHEMA_VERSION == 3
+        assert store.schema_version == SCHEMA_VERSION == 4
+        assert store.forward_memory() == ([], [])
         assert store.optimized_poses() == {} and store.loop_candidates() == []
         np.testing.assert_array_equal(store.keyframe_image(kfs[1]), image)
         (r,) = store.runs()
         assert (r.epoch_unix_ns, r.ended_ns, r.notes) == (1_700_000_000, 200, "v2")
     after = _all_rows(path)
     assert after.pop("optimized_poses") == [] and after.pop("loop_candidates") == []
+    assert after.pop("forward_images") == [] and after.pop("forward_words") == []
     # Every old row is still there, unchanged; only the schema version moved on.
     meta_before, meta_after = before.pop("meta"), after.pop("meta")
     assert after == before
-    assert dict(meta_after) == {**dict(meta_before), "schema_version": "3"}
+    assert dict(meta_after) == {**dict(meta_before), "schema_version": "4"}
 
     with MapStore.open(path) as store:  # and the new tables take rows
         store.put_optimized_poses(kfs, np.zeros((3, 3)), solved_unix_ns=1)
@@ -711,3 +714,51 @@ def test_runs_that_never_ended_are_marked_once_keeping_their_keyframes(tmp_path:
         store.end_run(clean, ended_ns=2)
         assert store.runs()[-1].ended_cleanly
 
+
+
+def test_a_version_3_map_gains_the_forward_memory_and_keeps_its_rows(tmp_path, monkeypatch) -> None:
+    """Today's maps (version 3) are upgraded to version 4 (issue 24): the forward tables
+    appear, empty; every earlier row is as it was."""
+    path = tmp_path / "map.sqlite"
+    migrations = store_module.MIGRATIONS
+    monkeypatch.setattr(store_module, "MIGRATIONS", {v: migrations[v] for v in (1, 2, 3)})
+    with MapStore.open(path) as store:
+        assert store.schema_version == 3
+        run = store.begin_run("a = 1\n", started_ns=10)
+        kfs = [store.add_keyframe(run, 100 + i, (i, 0.0, 0.0), _cov(i), None) for i in range(2)]
+        store.add_link("odometry", kfs[0], kfs[1], (1, 0, 0), _cov(3))
+        store.put_optimized_poses([kfs[0]], np.zeros((1, 3)), solved_unix_ns=7)
+    before = _all_rows(path)
+    monkeypatch.undo()
+    with MapStore.open(path) as store:
+        assert store.schema_version == 4
+        assert store.forward_memory() == ([], [])
+    after = _all_rows(path)
+    assert {k: v for k, v in after.items() if k != "meta"} == {
+        **{k: v for k, v in before.items() if k != "meta"}, "forward_images": [], "forward_words": []}
+
+
+def test_the_forward_memory_round_trips_one_image_per_transaction(tmp_path) -> None:
+    path = tmp_path / "map.sqlite"
+    rng = np.random.default_rng(3)
+    with MapStore.open(path) as store:
+        run = store.begin_run("a = 1\n", started_ns=10)
+        kfs = [store.add_keyframe(run, 100 + i, (i, 0.0, 0.0), _cov(i), None) for i in range(2)]
+        desc = rng.integers(0, 256, (5, 32), dtype=np.uint8)
+        kps = rng.integers(0, 10_000, (5, 2)).astype(np.uint16)
+        store.add_forward_image(0, kfs[0], "orb", (640, 480), np.arange(5, dtype=np.uint32), kps, desc,
+                                new_words=[(i, desc[i].tobytes()) for i in range(5)])
+        store.add_forward_image(1, kfs[1], "orb", (640, 480), np.array([0, 1, 5], np.uint32), kps[:3], desc[:3],
+                                new_words=[(5, desc[0].tobytes())], purged=[3, 4])
+        with pytest.raises(ValueError):  # an unknown keyframe: nothing of the image is kept
+            store.add_forward_image(2, 999, "orb", (640, 480), np.array([6], np.uint32), kps[:1], desc[:1],
+                                    new_words=[(6, desc[0].tobytes())])
+    with MapStore.open(path) as store:
+        images, words = store.forward_memory()
+    assert [(i[0], i[1], i[2], i[3]) for i in images] == [(0, kfs[0], "orb", (640, 480)), (1, kfs[1], "orb", (640, 480))]
+    np.testing.assert_array_equal(images[1][4], [0, 1, 5])
+    np.testing.assert_array_equal(images[0][5], kps)
+    assert np.frombuffer(images[0][6], np.uint8).reshape(-1, 32).tolist() == desc.tolist()
+    assert [(w[0], w[3], w[4]) for w in words] == [(0, 0, False), (1, 0, False), (2, 0, False), (3, 0, True),
+                                                   (4, 0, True), (5, 1, False)]
+    assert words[2][2] == desc[2].tobytes() and words[3][2] == b"" and words[4][2] == b""  # purged: dropped

@@ -1,0 +1,185 @@
+"""The forward detector's levers, one at a time, on the development data (issue 24 item 2-3).
+
+Two sequences, never one alone: the real corridor of ``../shared/data/forward/rtabmap_samples``
+(84 images, its ``ground_truth.bmp``) and the virtual office route (1139 images: 0.4 m or
+30 deg keyframes, four laps, aliasing on; written with :func:`sim.forward_sequence.write_forward_sequence`
+into ``--dir`` unless it is there already). Every configuration runs over the same images;
+the features of each kind are extracted once per image and their extraction time is added
+to every configuration's time per image (features included, as the issue's targets count
+them). OpenCV's own ORB extraction of the same images (``cv2.ORB_create``,
+``detectAndCompute``), timed in the same run, is the baseline column.
+
+Printed per sequence and configuration: recall at 100 % precision, false positives at the
+operating point, precision, and time per image (median, p99) with its ratio to OpenCV's
+ORB. Written: JSON (machine, versions, commit, every figure), read by
+``tools/forward_benchmark_doc.py`` to make ``docs/benchmarks/forward.md``.
+
+Run: ``.venv/bin/python bench/bench_forward_ablation.py --dir /tmp/office``. By default:
+every configuration on rtabmap_samples, and the default detector beside ORB with the
+paper's filter on the office route (on the shared 2-core development machine under load:
+about 4 minutes for rtabmap_samples and 4-6 minutes per office configuration, so about a
+quarter of an hour; less on an idle machine). ``--full`` runs every configuration on the
+office route too, the paper's SIFT detector included (over an hour there).
+``--configs "A;B"`` picks configurations.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+try:
+    from bench.common import machine_info, write_json
+except ImportError:  # run as a script: bench/ is on sys.path
+    from common import machine_info, write_json
+
+from robotd.forward import LOOP, FeatureExtractor, ForwardDetector, method_params
+from robotd.forward.evaluation import score_decisions
+from robotd.forward.features import FeatureParams
+from robotd.forward.verify import camera_matrix_guess
+from robotd.forward.vocabulary import VocabularyParams
+from robotd.io.sequence import list_images, load_ground_truth, read_image
+
+REPO = Path(__file__).resolve().parent.parent
+DATA = REPO.parent / "shared" / "data"
+DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "forward_ablation.json"
+
+
+def configurations(full: bool) -> dict[str, object]:
+    """Name -> DetectorParams: the paper, ORB with the paper's filter, then one lever at a
+    time on top of ORB, then the default."""
+    paper = method_params("paper")
+    orb = replace(paper, features=FeatureParams(kind="orb", max_features=300))
+    f = orb.filter
+    sc = replace(orb, decision="score")
+    cfgs = {
+        "paper (SIFT)": paper,
+        "ORB 300": orb,
+        "ORB 500": replace(orb, features=FeatureParams(kind="orb", max_features=500)),
+        "ORB + purge 50": replace(orb, vocabulary=VocabularyParams(purge_after=50)),
+        "ORB + purge 200": replace(orb, vocabulary=VocabularyParams(purge_after=200)),
+        "ORB + rtabmap likelihood": replace(orb, likelihood="rtabmap"),
+        "ORB + total p > 0.8": replace(orb, filter=replace(f, rule="total")),
+        "ORB + total p > 0.5": replace(orb, filter=replace(f, rule="total", loop_threshold=0.5)),
+        "ORB + neighbourhood > 0.5": replace(orb, filter=replace(f, loop_threshold=0.5)),
+        "ORB + k = 2": replace(orb, consistency=2),
+        "ORB score/virtual > 1": sc,
+        "ORB score/virtual > 1, k = 2": replace(sc, consistency=2),
+        "ORB score/previous > 0.3": replace(sc, score_normalisation="previous", score_threshold=0.3),
+        "ORB score/previous > 0.3, k = 2": replace(sc, score_normalisation="previous", score_threshold=0.3,
+                                                   consistency=2),
+        "default": method_params("default"),
+    }
+    if full:
+        cfgs["ORB 1000"] = replace(orb, features=FeatureParams(kind="orb", max_features=1000))
+    return cfgs
+
+
+def office_sequence(folder: Path) -> Path:
+    """The virtual office sequence in ``folder`` (written when ``gt.npy`` is missing)."""
+    if not (folder / "gt.npy").exists():
+        from sim.forward_sequence import SequenceSettings, write_forward_sequence
+
+        print(f"writing the virtual office sequence to {folder} ...", flush=True)
+        write_forward_sequence(folder, SequenceSettings(step_m=0.4, turn_rad=math.radians(30.0), repeats=4))
+    return folder
+
+
+def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, object], skip: set[str],
+                 recent: int = 10, only: set[str] | None = None) -> dict[str, object]:
+    files = list_images(folder, exclude=(truth_path,))
+    truth = load_ground_truth(truth_path, len(files))
+    images = [read_image(p) for p in files]  # decoded once (grey office images: 300 kB each)
+    h, w = images[0].shape[:2]
+    k = camera_matrix_guess(w, h, 525.0 if name == "office" else None)
+    # OpenCV's own ORB on the same images: the baseline of the time column.
+    orb = cv2.ORB_create(nfeatures=300)
+    cv_ms = []
+    for im in images:
+        g = cv2.cvtColor(im, cv2.COLOR_BGR2GRAY) if im.ndim == 3 else im
+        t0 = time.perf_counter()
+        orb.detectAndCompute(g, None)
+        cv_ms.append((time.perf_counter() - t0) * 1e3)
+    cv_median = float(np.median(cv_ms))
+    feats: dict[tuple, list] = {}
+    out: dict[str, object] = {"images": len(files), "opencv_orb_ms": {"median": cv_median,
+                                                                       "p99": float(np.percentile(cv_ms, 99))},
+                              "configurations": {}}
+    print(f"\n{name}: {len(files)} images ({w}x{h}); OpenCV ORB (300) extraction: median {cv_median:.1f} ms")
+    print(f"{'configuration':<32}{'R@100%P':>9}{'FP':>5}{'prec.':>7}{'loops':>7}{'ms med':>8}{'p99':>8}"
+          f"{'x ORB':>7}{'words':>8}{'B/image':>9}")
+    for cname, params in cfgs.items():
+        if cname in skip or (only is not None and cname not in only):
+            continue
+        fk = (params.features.kind, params.features.max_features)
+        if fk not in feats:
+            ex = FeatureExtractor(params.features)
+            lst = []
+            for im in images:
+                t0 = time.perf_counter()
+                fe = ex(im)
+                lst.append((fe, time.perf_counter() - t0))
+            feats[fk] = lst
+        det = ForwardDetector(params, camera_matrix=k)
+        n = len(files)
+        cand, conf, decl = np.full(n, -1), np.zeros(n), np.zeros(n, bool)
+        total = np.zeros(n)
+        for t, (fe, fs) in enumerate(feats[fk]):
+            d = det.process_features(fe, fs)
+            total[t] = d.times_s["total"] * 1e3
+            if d.candidate_id is not None:
+                cand[t], conf[t], decl[t] = d.candidate_id, d.candidate_probability, d.status == LOOP
+        s = score_decisions(cand, conf, decl, truth, recent)
+        med, p99 = float(np.median(total)), float(np.percentile(total, 99))
+        mem = det.memory_bytes()
+        per_image = sum(mem.values()) / n
+        row = {**s.as_dict(), "ms_median": med, "ms_p99": p99, "ratio_to_opencv_orb": med / cv_median,
+               "words": len(det.vocabulary), "searchable_words": det.vocabulary.n_searchable,
+               "bytes_per_image": per_image, "bytes_per_image_by_part": {k: v / n for k, v in mem.items()}}
+        out["configurations"][cname] = row
+        print(f"{cname:<32}{s.recall_at_full_precision:>9.3f}{s.false_positives:>5}{s.precision:>7.3f}"
+              f"{s.declared:>7}{med:>8.1f}{p99:>8.1f}{med / cv_median:>7.1f}{det.vocabulary.n_searchable:>8}"
+              f"{per_image:>9.0f}", flush=True)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--dir", type=Path, required=True, help="folder of the virtual office sequence")
+    ap.add_argument("--full", action="store_true",
+                    help="every configuration on the office route too, the paper's SIFT detector included")
+    ap.add_argument("--data", type=Path, default=DATA,
+                    help="the shared data folder (default ../shared/data from the project root)")
+    ap.add_argument("--only", choices=("rtabmap", "office"), default=None)
+    ap.add_argument("--configs", default=None,
+                    help="configuration names to run, separated by semicolons (default: all)")
+    ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    args = ap.parse_args(argv)
+    cfgs = configurations(args.full)
+    only = None if args.configs is None else {c.strip() for c in args.configs.split(";")}
+    import usearch
+
+    result: dict[str, object] = {"machine": {**machine_info(), "opencv": cv2.__version__,
+                                             "usearch": usearch.__version__}, "sequences": {}}
+    rtabmap = args.data / "forward" / "rtabmap_samples"
+    if args.only in (None, "rtabmap"):
+        result["sequences"]["rtabmap_samples"] = run_sequence(
+            "rtabmap_samples", rtabmap, rtabmap / "ground_truth.bmp", cfgs, set(), only=only)
+    if args.only in (None, "office"):
+        office = office_sequence(args.dir)
+        office_only = only if (only is not None or args.full) else {"ORB 300", "default"}
+        result["sequences"]["office"] = run_sequence("office", office, office / "gt.npy", cfgs, set(),
+                                                     only=office_only)
+    print(f"wrote {write_json(args.out, result)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

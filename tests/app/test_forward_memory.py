@@ -1,0 +1,76 @@
+"""The forward memory in the map (issue 24 item 4): each forward image is written as it is
+processed; a new stage on the same map takes the earlier run's memory up and closes a loop
+against it."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from robotd.app.forwardloops import ForwardLoopStage
+from robotd.app.pipeline import Pipeline
+from robotd.base.messages import ForwardLoop, Frame, Keyframe, KeyframeStored, PoseStamped
+from robotd.forward import ForwardDetector, method_params
+from robotd.forward.verify import ACCEPTED, Verification
+from robotd.io.store import MapStore
+
+
+def _places(n: int) -> list[np.ndarray]:
+    """``n`` distinct textured 320x240 views (ORB finds a few hundred corners in each)."""
+    rng = np.random.default_rng(5)
+    out = []
+    for _ in range(n):
+        img = cv2.resize(rng.integers(0, 256, (30, 40), dtype=np.uint8), (320, 240), interpolation=cv2.INTER_NEAREST)
+        out.append(cv2.GaussianBlur(img, (0, 0), 1.0))
+    return out
+
+
+def _run(store: MapStore, run: int, views: list[np.ndarray], t0_ms: int, monkeypatch) -> tuple[ForwardLoopStage, list]:
+    import robotd.forward.detector as det_mod
+
+    # Decisions only: the geometry of these flat views is not what this test is about.
+    monkeypatch.setattr(det_mod, "verify_pair", lambda old, new, p, k: Verification(
+        True, ACCEPTED, 100, 100, np.eye(3), np.array([0.0, 0.0, -1.0])))
+    params = replace(method_params("default"), recent_excluded=2, decision="score", consistency=1,
+                     score_threshold=20.0)  # an identical view stands far out; different ones reach 3
+    stage = ForwardLoopStage(ForwardDetector(params), distance_m=0.5, store=store)
+    got: list = []
+    p = Pipeline()
+    p.add(stage)
+    p.add(type("Sink", (), {"name": "sink", "subscriptions": lambda self: {ForwardLoop: got.append}})())
+    for k, img in enumerate(views):
+        t_ms = t0_ms + 1000 * k
+        kid = store.add_keyframe(run, t_ms * 10**6, (float(k), 0.0, 0.0), np.eye(3) * 1e-4, None)
+        p.publish(Frame(t_ms * 10**6, "forward", img))
+        kf = Keyframe(Frame(t_ms * 10**6, "floor", np.zeros((4, 4), np.uint8)), PoseStamped(t_ms * 10**6, float(k), 0.0, 0.0))
+        kf.keyframe_id = kid
+        p.publish(KeyframeStored(kf))
+    return stage, got
+
+
+def test_a_restarted_stage_closes_a_loop_against_the_earlier_run(tmp_path: Path, monkeypatch):
+    places = _places(6)
+    path = tmp_path / "map.sqlite"
+    with MapStore.open(path) as store:
+        run1 = store.begin_run("a = 1\n", started_ns=0)
+        first, got1 = _run(store, run1, places, 0, monkeypatch)
+        assert first.images == 6 and first.store_errors == 0 and got1 == []
+        stored_words = len(first.detector.vocabulary)
+        kf_first = first._keyframe_ids[3]
+    with MapStore.open(path) as store:  # a new daemon on the same map
+        images, words = store.forward_memory()
+        assert len(images) == 6 and len(words) == stored_words
+        run2 = store.begin_run("a = 1\n", started_ns=0)
+        # Place 3 (place 0 would tie with the virtual image, its words being the oldest).
+        second, got2 = _run(store, run2, [places[3]], 100_000, monkeypatch)
+        assert second.restored == 6 and len(second.detector) == 7
+        assert [(m.from_id, m.to_id) for m in got2] == [(kf_first, second._keyframe_ids[6])]
+        assert len(store.forward_memory()[0]) == 7  # this run's image is stored too
+        # A stage without the map starts empty and finds nothing.
+    with MapStore.open(tmp_path / "other.sqlite") as other:
+        run = other.begin_run("a = 1\n", started_ns=0)
+        fresh, got3 = _run(other, run, [places[3]], 0, monkeypatch)
+        assert fresh.restored == 0 and got3 == []

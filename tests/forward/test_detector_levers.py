@@ -1,0 +1,91 @@
+"""The detector's levers beyond the paper (issue 24): temporal consistency, the score
+decision, the method presets."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from robotd.forward import (LOOP, LOW_POSTERIOR, NOT_CONSISTENT_YET, DetectorParams, ForwardDetector,
+                            method_params)
+from robotd.forward.features import FeatureParams, Features
+from robotd.forward.verify import VerifyParams
+
+
+def _views(n_places: int, revisit: list[int], seed: int = 0) -> list[Features]:
+    """Binary features of ``n_places`` distinct places, then revisits of the places in
+    ``revisit`` (the same descriptors with a few bits flipped, the same keypoints)."""
+    rng = np.random.default_rng(seed)
+    places = [rng.integers(0, 256, (120, 32), dtype=np.uint8) for _ in range(n_places)]
+    kps = [rng.uniform(0, 600, (120, 2)).astype(np.float32) for _ in range(n_places)]
+    out = [Features(kps[i], places[i], (640, 480)) for i in range(n_places)]
+    for i in revisit:
+        d = places[i].copy()
+        d[:, 0] ^= 0x03  # 2 bits of 256 flipped: well inside the word radius
+        out.append(Features(kps[i], d, (640, 480)))
+    return out
+
+
+# No geometry in these views: verification accepts everything, so the decisions alone count.
+ACCEPT_ALL = VerifyParams(min_inliers=0, min_support_area=0.0)
+
+
+def _run(params: DetectorParams, views: list[Features], monkeypatch) -> list:
+    import robotd.forward.detector as det_mod
+    from robotd.forward.verify import ACCEPTED, Verification
+
+    monkeypatch.setattr(det_mod, "verify_pair",
+                        lambda old, new, p, k: Verification(True, ACCEPTED, 100, 100))
+    det = ForwardDetector(params)
+    return [det.process_features(v) for v in views]
+
+
+def test_k_consistent_candidates_before_a_loop(monkeypatch):
+    views = _views(30, [5, 6, 7, 8, 9])
+    base = DetectorParams(features=FeatureParams(kind="orb"), decision="score", verify=ACCEPT_ALL)
+    one = _run(base, views, monkeypatch)[30:]
+    three = _run(replace(base, consistency=3), views, monkeypatch)[30:]
+    assert [d.candidate_id for d in one] == [5, 6, 7, 8, 9]
+    assert [d.status for d in one] == [LOOP] * 5
+    # The same candidates; the first two wait for the run to reach three.
+    assert [d.candidate_id for d in three] == [5, 6, 7, 8, 9]
+    assert [d.status for d in three] == [NOT_CONSISTENT_YET] * 2 + [LOOP] * 3
+
+
+def test_an_inconsistent_jump_restarts_the_run(monkeypatch):
+    views = _views(30, [5, 6, 20, 21, 22])
+    params = DetectorParams(features=FeatureParams(kind="orb"), decision="score", verify=ACCEPT_ALL,
+                            consistency=2)
+    got = _run(params, views, monkeypatch)[30:]
+    assert [d.candidate_id for d in got] == [5, 6, 20, 21, 22]
+    assert [d.status for d in got] == [NOT_CONSISTENT_YET, LOOP, NOT_CONSISTENT_YET, LOOP, LOOP]
+
+
+def test_the_score_decision_needs_the_best_score_to_stand_out(monkeypatch):
+    params = DetectorParams(features=FeatureParams(kind="orb"), decision="score", verify=ACCEPT_ALL)
+    d = _run(params, _views(30, [4]), monkeypatch)[30]
+    # Place 4's words are none of the virtual image's (the most frequent words: all seen
+    # once, ties to the oldest, so place 0's): the ratio is unbounded.
+    assert d.candidate_id == 4 and d.candidate_probability == float("inf") and d.status == LOOP
+    # Place 0's words *are* the virtual image: its vote equals the virtual one, ratio 1.
+    d0 = _run(params, _views(30, [0]), monkeypatch)[30]
+    assert d0.candidate_probability == pytest.approx(1.0) and d0.candidate_id is None
+    assert d0.status == LOW_POSTERIOR
+    # Against the previous image (29, nothing in common) instead: unbounded too.
+    d_prev = _run(replace(params, score_normalisation="previous"), _views(30, [0]), monkeypatch)[30]
+    assert d_prev.candidate_id == 0 and d_prev.candidate_probability == float("inf")
+
+
+def test_the_methods():
+    paper = method_params("paper")
+    assert paper == DetectorParams()
+    assert (paper.features.kind, paper.filter.loop_threshold, paper.filter.rule) == ("sift", 0.8, "neighbourhood")
+    default = method_params("default")
+    assert default.features.kind == "orb" and default.vocabulary.purge_after > 0
+    assert method_params("paper", recent_excluded=5).recent_excluded == 5
+    with pytest.raises(ValueError):
+        method_params("best")
+    with pytest.raises(ValueError):
+        DetectorParams(decision="vote")
