@@ -115,7 +115,11 @@ def _matlab_matrix(path: Path) -> np.ndarray:
     from scipy import io as sio
     from scipy import sparse
 
-    data = sio.loadmat(str(path))
+    try:
+        data = sio.loadmat(str(path))
+    except Exception as exc:  # noqa: BLE001 - scipy raises IndexError, ValueError, ... on damage
+        raise SequenceError(f"cannot read ground-truth file {path}: not a readable MATLAB file "
+                            f"({type(exc).__name__}: {exc or 'truncated'})") from None
     best = None
     for key, value in data.items():
         if key.startswith("__"):

@@ -492,6 +492,28 @@ def test_eval_forward_refuses_a_ground_truth_with_nan(tmp_path: Path):
     assert snapshot(tmp_path) == before and not (tmp_path / "fw").exists()
 
 
+@pytest.mark.parametrize("args, says", [
+    (["--every", "0"], "--every must be at least 1"),
+    (["--tolerance", "-1"], "--tolerance must be >= 0"),
+    (["--method", "best"], "invalid choice: 'best'"),
+])
+def test_eval_forward_refuses_bad_options(args: list[str], says: str, tmp_path: Path):
+    seq = _sequence(tmp_path)
+    gt = tmp_path / "gt.csv"
+    np.savetxt(gt, np.eye(4), delimiter=",")
+    before = snapshot(tmp_path)
+    assert_refused(run("eval", "forward", "--images", seq, "--ground-truth", gt, *args), says)
+    assert snapshot(tmp_path) == before
+
+
+def test_eval_forward_refuses_a_damaged_mat_file(tmp_path: Path):
+    seq = _sequence(tmp_path)
+    gt = tmp_path / "gt.mat"
+    gt.write_bytes(b"MATLAB 5.0 MAT-file, cut short" + bytes(20))
+    assert_refused(run("eval", "forward", "--images", seq, "--ground-truth", gt),
+                   f"cannot read ground-truth file {gt}")
+
+
 def test_eval_forward_names_a_folder_given_as_ground_truth(tmp_path: Path):
     seq = _sequence(tmp_path)
     r = run("eval", "forward", "--images", seq, "--ground-truth", seq)
