@@ -26,9 +26,11 @@ one core. This benchmark:
   0.8) and a RANSAC similarity fit (``cv2.estimateAffinePartial2D``) against the ORB
   features of the same keyframes the floor index shortlisted for it;
 * ``--scale N,...``: the floor index at larger maps: every frame of the recording is
-  described (and its rotations by 90, 180 and 270 degrees and their mirror images when
-  more are needed), N of them indexed, and ``--queries`` keyframes of the drive queried;
-  describe and query medians and the index's memory at each size.
+  described (then, when more are needed, the frames turned by 180 degrees, mirrored left
+  to right, mirrored top to bottom), N of them indexed, and ``--queries`` frames of the
+  drive queried with the loop threshold as ``min_score`` and every copy of the frames of
+  the 20 s around it left out, as the detector does; describe
+  and query medians, the index's memory and the process's at each size.
 
 Run from the repo root: ``./dev bench daemon [--out DIR]`` (default ``bench/results``).
 Writes ``DIR/daemon.json``; ``--doc FILE`` also writes the markdown page generated from
@@ -385,9 +387,16 @@ def baseline(recording: Path, map_path: Path, exclude_recent_s: float, shortlist
 # ----------------------------------------------------------------------------- scale
 
 
-def scale(recording: Path, sizes: list[int], queries: int, mode: int, shortlist: int) -> dict[str, Any]:
+def scale(recording: Path, sizes: list[int], queries: int, mode: int, shortlist: int,
+          duration_s: float) -> dict[str, Any]:
     """Describe the recording's frames (and turned or mirrored copies) until the largest
-    size is reached; index them and time queries at each size."""
+    size is reached; index them and time queries at each size, with the demo's loop
+    threshold for ``mode`` as the detector passes it (``min_score``)."""
+    from robotd.app.demo import shipped_calibration
+    from robotd.io.calibfile import read_calibration
+
+    calib = read_calibration(shipped_calibration())
+    min_score = (calib.loop.for_mode(mode) if calib.loop is not None else None) or 0.0
     import cv2
 
     from drivers.recording.reader import RecordingReader
@@ -396,40 +405,46 @@ def scale(recording: Path, sizes: list[int], queries: int, mode: int, shortlist:
     from robotd.floor.index import FloorIndex, IndexParams
 
     need = max(sizes)
-    frames = []
-    with RecordingReader(recording) as r:
-        for _topic, msg in r.messages():
-            if isinstance(msg, Frame) and msg.camera == "floor":
-                img = msg.image
-                frames.append(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img)
     variants = [lambda im: im, lambda im: cv2.rotate(im, cv2.ROTATE_180), lambda im: cv2.flip(im, 1),
                 lambda im: cv2.flip(im, 0)]
     blobs: list[bytes] = []
     describe_ms: list[float] = []
-    for v in variants:
-        for im in frames:
-            if len(blobs) >= need:
-                break
-            t0 = time.thread_time()
-            blobs.append(extract(v(im), mode))
-            describe_ms.append((time.thread_time() - t0) * 1e3)
+    n_frames = 0
+    for v in variants:  # the recording read again per variant: no frame is kept in memory
+        with RecordingReader(recording) as r:
+            for _topic, msg in r.messages():
+                if len(blobs) >= need:
+                    break
+                if isinstance(msg, Frame) and msg.camera == "floor":
+                    img = msg.image
+                    img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
+                    t0 = time.thread_time()
+                    blobs.append(extract(v(img), mode))
+                    describe_ms.append((time.thread_time() - t0) * 1e3)
+                    n_frames += v is variants[0]
+        if len(blobs) >= need:
+            break
     if len(blobs) < need:
         print(f"scale: only {len(blobs)} distinct images, sizes capped")
     rng = np.random.default_rng(0)
-    out: dict[str, Any] = {"describe_ms": {"median": statistics.median(describe_ms),
+    out: dict[str, Any] = {"min_score": min_score, "describe_ms": {"median": statistics.median(describe_ms),
                                            "p99": float(np.quantile(describe_ms, 0.99)),
                                            "n": len(describe_ms)}, "sizes": []}
     index = FloorIndex(IndexParams(shortlist=shortlist))
     rss0 = rss_mb()
-    decoded = [decode(b) for b in blobs[: len(frames)]]  # queries: the drive's own frames
+    decoded = [decode(b) for b in blobs[:n_frames]]  # queries: the drive's own frames
+    recent = int(20.0 * n_frames / max(1.0, duration_s))  # frames in 20 s
     for n in sorted(s for s in sizes if s <= len(blobs)):
         for i in range(len(index), n):
             index.add(i, decode(blobs[i]))
         qs = rng.choice(len(decoded), size=min(queries, len(decoded)), replace=False)
         ms = []
+        ids = np.arange(n)
         for q in qs:
+            # As the detector: nothing from the last (or next) 20 s of the drive, in any copy.
+            excluded = ids[np.abs(ids % n_frames - q) < recent]
             t0 = time.thread_time()
-            index.query(decoded[q], k=5, exclude_ids=lambda kf, q=q: kf == q)
+            index.query(decoded[q], k=5, min_score=min_score, exclude_ids=excluded)
             ms.append((time.thread_time() - t0) * 1e3)
         out["sizes"].append({"keyframes": n, "query_ms": {"median": statistics.median(ms),
                                                           "p99": float(np.quantile(ms, 0.99)), "n": len(ms)},
@@ -506,6 +521,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="[keyframes] distance_m (default: the config's)")
     ap.add_argument("--localise-mapped", action="store_true", help="[pose_graph] localise_mapped = true")
     ap.add_argument("--no-baseline", action="store_true")
+    ap.add_argument("--keep-map", type=Path, default=None, metavar="FILE",
+                    help="copy the replay's map here (for further analysis)")
     ap.add_argument("--scale", default="1000", help="index sizes to time queries at, comma-separated "
                                                     "(default 1000; --full: 1000,10000; '' for none)")
     ap.add_argument("--queries", type=int, default=100, help="queries per index size (default 100)")
@@ -525,9 +542,14 @@ def main(argv: list[str] | None = None) -> int:
         truth = read_truth(recording)
         j = judge(map_path, truth, 20.0)
         print("judged against the ground truth", flush=True)
+        if args.keep_map is not None:
+            import shutil
+
+            shutil.copyfile(map_path, args.keep_map)
         b = None if args.no_baseline else baseline(recording, map_path, 20.0, r["config"]["shortlist"])
     sizes = [int(s) for s in args.scale.split(",") if s.strip()]
-    sc = scale(recording, sizes, args.queries, r["config"]["mode"], r["config"]["shortlist"]) if sizes else None
+    sc = (scale(recording, sizes, args.queries, r["config"]["mode"], r["config"]["shortlist"], r["robot_s"])
+          if sizes else None)
     payload = {"machine": machine_info(), "recording": str(recording), "args": {k: str(v) for k, v in vars(args).items()},
                "replay": r, "judge": j, "baseline": b, "scale": sc}
     rows = [(name, round(s, 2), round(s / r["robot_s"], 4), round(s / j["distance_m"], 4))
