@@ -33,7 +33,7 @@ class FloorDetectorParams:
 
     mode: int = 4
     candidates: int = 5
-    shortlist: int = 30
+    shortlist: int = 10
     exclude_recent_s: float = 20.0
 
 
