@@ -196,6 +196,8 @@ def make_config(args: argparse.Namespace, map_path: Path) -> Any:
     cfg = replace(cfg, "calibration", path=str(shipped_calibration()))
     if args.keyframe_distance is not None:
         cfg = replace(cfg, "keyframes", distance_m=args.keyframe_distance)
+    if args.shortlist is not None:
+        cfg = replace(cfg, "floor_detector", shortlist=args.shortlist)
     if args.localise_mapped:
         cfg = replace(cfg, "pose_graph", localise_mapped=True)
     if args.forward:
@@ -530,6 +532,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--forward", action="store_true", help="forward detector on (records with a forward camera)")
     ap.add_argument("--keyframe-distance", type=float, default=None, metavar="M",
                     help="[keyframes] distance_m (default: the config's)")
+    ap.add_argument("--shortlist", type=int, default=None, help="[floor_detector] shortlist (default: the config's)")
     ap.add_argument("--localise-mapped", action="store_true", help="[pose_graph] localise_mapped = true")
     ap.add_argument("--no-baseline", action="store_true")
     ap.add_argument("--keep-map", type=Path, default=None, metavar="FILE",
