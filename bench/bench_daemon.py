@@ -520,6 +520,35 @@ def markdown(p: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def comparison(paths: list[Path]) -> str:
+    """A markdown table of several runs' JSON (e.g. a keyframe-spacing sweep), one row each."""
+    lines = ["# The whole daemon at several settings (`bench/bench_daemon.py --compare`)", "",
+             "Generated from the JSON files named in the first column; each row is a separate run",
+             "(on a shared machine: read CPU to within about 20 %). Loop edges are judged by the",
+             "ground-truth footprint overlap J; a revisiting keyframe has a truly overlapping",
+             "keyframe older than 20 s and is closed when it got a loop edge; ATE is the RMS position",
+             "error of the stored keyframes.", "",
+             "| run | spacing, shortlist | keyframes stored | CPU s | per robot s | per metre | "
+             "per keyframe median / p99 (ms) | query median (ms) | loop edges | J < 0.33 | revisits closed | "
+             "ATE loop-corrected / odometry (mm) | RSS after (MB) |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for path in paths:
+        p = json.loads(Path(path).read_text(encoding="utf-8"))
+        r, j, c = p["replay"], p["judge"], p["replay"]["config"]
+        setting = f"{c['keyframe_distance_m'] * 100:g} cm, {c['shortlist']}"
+        if c.get("localise_mapped"):
+            setting += ", localise_mapped"
+        ate = j["ate_loop_corrected_m"]
+        lines.append(
+            f"| {Path(path).name} | {setting} | {j['keyframes']} | {r['process_cpu_s']:.1f} | "
+            f"{r['process_cpu_s'] / r['robot_s']:.3f} | {r['process_cpu_s'] / j['distance_m']:.2f} | "
+            f"{r['keyframe_ms']['median']:.1f} / {r['keyframe_ms']['p99']:.1f} | {r['query_ms']['median']:.1f} | "
+            f"{j['loop_edges']} | {j['loop_edges_false']} | {j['revisits_closed']} / {j['revisits']} | "
+            f"{'-' if ate is None else f'{ate * 1e3:.1f}'} / {j['ate_odometry_m'] * 1e3:.1f} | "
+            f"{r['rss_after_mb']:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--recording", type=Path, default=None, help="replay this MCAP instead of the cached drive")
@@ -545,7 +574,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "bench" / "results")
     ap.add_argument("--name", default="daemon", help="JSON file name (default daemon)")
     ap.add_argument("--doc", type=Path, default=None, help="also write the markdown page here")
+    ap.add_argument("--compare", type=Path, nargs="+", default=None, metavar="JSON",
+                    help="only print a markdown table comparing these runs' JSON (to --doc if given)")
     args = ap.parse_args(argv)
+    if args.compare:
+        table = comparison(args.compare)
+        if args.doc is not None:
+            args.doc.parent.mkdir(parents=True, exist_ok=True)
+            args.doc.write_text(table, encoding="utf-8")
+        print(table, end="")
+        return 0
     if args.full:
         args.duration = None
         args.distinct = max(args.distinct, 10000)
