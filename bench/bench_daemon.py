@@ -141,14 +141,17 @@ def ensure_recording(args: argparse.Namespace) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     print(f"recording the virtual robot to {path} ...", flush=True)
     if args.forward:
-        # robotd record has no --forward: record through the demo with the forward camera on.
-        from robotd.app.demo import run_demo
-        from robotd.base.config import Config, replace
-
-        cfg = replace(Config(), "forward_detector", enabled=True)
-        with tempfile.TemporaryDirectory() as out:
-            run_demo(cfg, out=Path(out), route=args.route, duration_s=args.duration, seed=args.seed,
-                     plot=False, record=path)
+        # robotd record has no --forward: record through the demo with the forward camera on,
+        # in a child process like robotd record (the rendering would stay in this one's RSS).
+        code = ("import sys, tempfile; from pathlib import Path; from robotd.app.demo import run_demo; "
+                "from robotd.base.config import Config, replace; "
+                "cfg = replace(Config(), 'forward_detector', enabled=True); "
+                "d = None if sys.argv[2] == 'None' else float(sys.argv[2]); "
+                "t = tempfile.TemporaryDirectory(); "
+                "run_demo(cfg, out=Path(t.name), route=sys.argv[1], duration_s=d, seed=int(sys.argv[3]), "
+                "plot=False, record=Path(sys.argv[4]))")
+        subprocess.run([sys.executable, "-c", code, args.route, str(args.duration), str(args.seed), str(path)],
+                       check=True, stdout=subprocess.DEVNULL, env={**os.environ, "PYTHONPATH": str(REPO_ROOT)})
         return path
     cmd = [sys.executable, "-m", "robotd.app.cli", "record", "--virtual", "--route", args.route,
            "--seed", str(args.seed), str(path)]
