@@ -102,6 +102,19 @@ class Pipeline:
             stage.attach(self)
         return stage
 
+    def instrument(self, wrap: Callable[[str, str, Callable[..., Any]], Callable[..., Any]]) -> None:
+        """Replace every stage's message handlers and its ``poll``/``finish`` by
+        ``wrap(stage_name, handler_name, fn)`` (a function with the same signature), e.g.
+        to account CPU time per stage (``bench/bench_daemon.py``). Call it once, after
+        the last stage was added and before the first message."""
+        for msg_type, handlers in self._routes.items():
+            handlers[:] = [wrap(getattr(getattr(h, "__self__", None), "name", "?"),
+                                getattr(h, "__name__", msg_type.__name__), h) for h in handlers]
+        for stage in self._stages.values():
+            for what in ("poll", "finish"):
+                if hasattr(stage, what):
+                    setattr(stage, what, wrap(stage.name, what, getattr(stage, what)))
+
     def stage(self, name: str) -> Any:
         """The stage registered as ``name`` (KeyError if none)."""
         return self._stages[name]

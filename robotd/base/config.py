@@ -139,7 +139,7 @@ class OdometryConfig:
 class KeyframeConfig:
     """When a floor frame becomes a keyframe, and what of it is stored."""
 
-    distance_m: float = _f(0.05, "distance travelled since the last keyframe", lo=0.001, hi=100.0)
+    distance_m: float = _f(0.15, "distance travelled since the last keyframe", lo=0.001, hi=100.0)
     rotation_deg: float = _f(10.0, "rotation since the last keyframe", lo=0.1, hi=360.0)
     image_width_px: int = _f(160, "width of the stored downsampled image (0 = none)", lo=0, hi=8192)
     jpeg_quality: int = _f(85, "JPEG quality of the stored image", lo=1, hi=100)
@@ -153,7 +153,7 @@ class FloorDetectorConfig:
     enabled: bool = _f(True, "describe keyframes and query the map for look-alikes")
     mode: int = _f(4, "descriptor mode: 1..6 = at most 512 B, 1, 2, 4, 8, 16 kB per image", lo=1, hi=6)
     candidates: int = _f(5, "candidates returned per query", lo=1, hi=100)
-    shortlist: int = _f(30, "keyframes scored locally per query (after the global shortlist)",
+    shortlist: int = _f(10, "keyframes scored locally per query (after the global shortlist)",
                         lo=1, hi=100_000)
     exclude_recent_s: float = _f(20.0, "keyframes younger than this are not candidates", lo=0.0, hi=1e6)
 

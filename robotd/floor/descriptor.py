@@ -410,19 +410,66 @@ def drop_repeats(c: Candidates, params: ExtractParams) -> tuple[Candidates, np.n
     raw = raw_descriptors(c, k, params)
     if params.repeat_distance <= 0 or k < 2:
         return c, raw
-    sq = np.einsum("ij,ij->i", raw, raw)
-    d2 = raw @ raw.T  # |a - b|^2 = |a|^2 + |b|^2 - 2 a.b, in place
-    d2 *= -2.0
-    d2 += sq[:, None]
-    d2 += sq[None, :]
-    i, j = np.nonzero(d2 < params.repeat_distance**2)  # the diagonal, neighbours on one blob, repeats
-    patch_px = 2 * 4 * params.cell_px  # the patch width, in working-image pixels (cells are half-resolution)
-    far = np.sum((c.xy[i] - c.xy[j]) ** 2, axis=1) >= patch_px**2
     repeat = np.zeros(len(c.xy), bool)
-    repeat[i[far]] = True
+    repeat[:k] = _repeats(raw, c.xy[:k], 0, k, params)
     keep = ~repeat
     kept = Candidates(c.xy[keep], c.angle[keep], c.attributes[keep], c.relevance[keep], c.pooled)
     return kept, raw[keep[:k]]
+
+
+def _repeats(raw: np.ndarray, xy: np.ndarray, start: int, stop: int, params: ExtractParams) -> np.ndarray:
+    """``(stop - start,) bool``: which of the checked candidates ``start:stop`` repeat
+    (:func:`drop_repeats`) among all ``K`` checked ones, given their ``(K, 128)`` raw
+    descriptors and ``(K, 2)`` working-image positions. Rows are independent, so the
+    rows can be decided a block at a time (:func:`extract` decides only as many as the
+    budget reaches)."""
+    sq = np.einsum("ij,ij->i", raw, raw)
+    d2 = raw[start:stop] @ raw.T  # |a - b|^2 = |a|^2 + |b|^2 - 2 a.b, in place
+    d2 *= -2.0
+    d2 += sq[start:stop, None]
+    d2 += sq[None, :]
+    i, j = np.nonzero(d2 < params.repeat_distance**2)  # the diagonal, neighbours on one blob, repeats
+    patch_px = 2 * 4 * params.cell_px  # the patch width, in working-image pixels (cells are half-resolution)
+    far = np.sum((xy[start + i] - xy[j]) ** 2, axis=1) >= patch_px**2
+    out = np.zeros(stop - start, bool)
+    out[i[far]] = True
+    return out
+
+
+def _kept_for_budget(c: Candidates, params: ExtractParams, spec: ModeSpec, grid_w: int, grid_h: int,
+                     block: int = 256) -> tuple[Candidates, np.ndarray, int]:
+    """:func:`drop_repeats` and :func:`_fit` together, deciding only the rows needed.
+
+    The coded keypoints are the first ``n`` kept candidates and the global descriptor
+    aggregates the first ``max(n, global_min_features)``; whether a later candidate repeats
+    changes neither. So the candidates are checked (each against the whole pool, as
+    :func:`drop_repeats` does) a ``block`` at a time until the kept ones reach past what
+    the budget codes. The result is the same as ``drop_repeats`` then ``_fit`` for
+    everything :func:`extract` uses: the returned candidates are exact up to the first
+    ``max(n + 1, global_min_features)`` kept ones, and end there when not all were checked.
+
+    Returns the kept candidates, the raw descriptors of the first of them (the checked
+    ones) and ``n``.
+    """
+    k = min(params.repeat_pool, len(c.xy))
+    if params.repeat_distance <= 0 or k < 2:
+        kept, raw = c, raw_descriptors(c, k, params)
+        return kept, raw, _fit(spec, _cells(kept.xy, grid_w, grid_h))
+    raw = raw_descriptors(c, k, params)
+    repeat = np.zeros(k, bool)
+    done = 0
+    while True:
+        stop = min(k, done + block)
+        repeat[done:stop] = _repeats(raw, c.xy[:k], done, stop, params)
+        done = stop
+        keep = np.flatnonzero(~repeat[:done])
+        if done == k:  # every checked row decided; unchecked candidates after the pool are kept
+            keep = np.concatenate([keep, np.arange(k, len(c.xy))])
+        n = _fit(spec, _cells(c.xy[keep], grid_w, grid_h))
+        if done == k or (n < len(keep) and len(keep) >= params.global_min_features):
+            break
+    kept = Candidates(c.xy[keep], c.angle[keep], c.attributes[keep], c.relevance[keep], c.pooled)
+    return kept, raw[keep[keep < k]], n
 
 
 def _haar() -> np.ndarray:
@@ -567,10 +614,9 @@ def extract(image: np.ndarray, mode: int, params: ExtractParams | None = None) -
     grey = _grey(image)
     work = _working(grey, params)
     wh, ww = work.shape
-    c, raw_checked = drop_repeats(candidates(work, params, learned), params)
     grid_w, grid_h = -(-ww // POSITION_STEP_PX), -(-wh // POSITION_STEP_PX)
+    c, raw_checked, n = _kept_for_budget(candidates(work, params, learned), params, spec, grid_w, grid_h)
     cells = _cells(c.xy, grid_w, grid_h)
-    n = _fit(spec, cells)
     m = min(len(c.xy), max(n, params.global_min_features))
     raw = raw_checked[:m] if m <= len(raw_checked) else raw_descriptors(c, m, params)
     trits = ternarise(raw[:n], learned, spec.length)

@@ -33,7 +33,7 @@ class FloorDetectorParams:
 
     mode: int = 4
     candidates: int = 5
-    shortlist: int = 30
+    shortlist: int = 10
     exclude_recent_s: float = 20.0
 
 
@@ -142,9 +142,12 @@ class FloorLoopDetector:
         last_old_id = self._run_stamps[i - 1][1] if i > 0 else self._prior_max_id
         candidates: list[Candidate] = []
         if last_old_id is not None:
+            # Candidates that cannot reach the loop threshold are not checked
+            # geometrically (they come back with score 0: nothing declares them a loop).
             candidates = self.index.query(desc, k=self.params.candidates,
                                           exclude_after_id=last_old_id,
-                                          shortlist=self.params.shortlist)
+                                          shortlist=self.params.shortlist,
+                                          min_score=self.threshold or 0.0)
         if add:
             self.index.add(keyframe_id, desc)
             if self._run_stamps and stamp_ns < self._run_stamps[-1][0]:

@@ -35,7 +35,7 @@ import numpy as np
 
 from robotd.base.errors import DescriptorError
 from robotd.floor.descriptor import FloorDescriptor, decode
-from robotd.floor.match import MatchResult, local_score
+from robotd.floor.match import Matcher, MatchResult, local_score
 
 __all__ = ["Candidate", "FloorIndex", "IndexParams", "LoadReport"]
 
@@ -142,6 +142,9 @@ class FloorIndex:
             def scorer(a: FloorDescriptor, b: FloorDescriptor) -> MatchResult:
                 return local_score(a, b, match_params)
 
+            self._default_scorer = True
+        else:
+            self._default_scorer = False
         self._scorer: LocalScorer = scorer
         self._words = 0  # uint64 words per global descriptor, fixed by the first add
         self._bits = 0  # global descriptor length, bits
@@ -324,18 +327,27 @@ class FloorIndex:
 
     def query(self, descriptor: FloorDescriptor, k: int | None = None,
               exclude_ids: Callable[[int], bool] | Collection[int] | None = None,
-              exclude_after_id: int | None = None, shortlist: int | None = None) -> list[Candidate]:
+              exclude_after_id: int | None = None, shortlist: int | None = None,
+              min_score: float = 0.0) -> list[Candidate]:
         """The best ``k`` earlier keyframes for ``descriptor``, by local score (best first;
         ties by global score, then by id).
 
         Only the ``shortlist`` keyframes of :meth:`shortlist` are scored locally; defaults
-        come from :attr:`params`. Exclusions as in :meth:`shortlist`.
+        come from :attr:`params`. Exclusions as in :meth:`shortlist`. ``min_score`` (the
+        default matcher only): shortlisted keyframes that provably cannot reach it are not
+        checked geometrically and come back with score 0 and reason ``BELOW_MIN_SCORE``
+        (:func:`robotd.floor.match.local_score`); a candidate at or above it is scored
+        exactly as without it. The query's own side of the descriptor distance is prepared
+        once for the whole shortlist (:class:`robotd.floor.match.Matcher`).
         """
         k = self.params.k if k is None else int(k)
         short = self.shortlist(descriptor, shortlist, exclude_ids, exclude_after_id)
         candidates = []
+        matcher = Matcher(descriptor, self.params.match_params) if self._default_scorer and short else None
         for kf, g in short:
-            result = self._scorer(descriptor, self._descriptors[self._row_of[kf]])
+            stored = self._descriptors[self._row_of[kf]]
+            result = (matcher.score(stored, min_score) if matcher is not None
+                      else self._scorer(descriptor, stored))
             self.local_matches += 1
             candidates.append(Candidate(kf, g, result))
         candidates.sort(key=lambda c: (-c.score, -c.global_score, c.keyframe_id))

@@ -19,6 +19,9 @@ of a weight that falls with descriptor distance). Steps of :func:`local_score`:
    (:func:`robotd.base.geometry.rigid_fit_2d`) on its inliers, twice.
 4. ``score = sum over inliers of max(0, 1 - distance / weight_distance)``; zero when
    fewer than ``min_inliers`` survive (the result then says why, as DLoopDetector does).
+   A caller that only needs scores of at least ``min_score`` (the loop threshold) skips
+   steps 2-3 when even the sum over every descriptor match of step 1 stays below it: the
+   score sums the same weights over a subset of those matches (``BELOW_MIN_SCORE``).
 
 Scores are comparable within a mode (the descriptor length and feature count are fixed
 by the mode), not across modes.
@@ -38,11 +41,12 @@ import numpy as np
 from robotd.base.geometry import wrap_angle
 from robotd.floor.descriptor import FloorDescriptor
 
-__all__ = ["MatchParams", "MatchResult", "global_score", "local_score"]
+__all__ = ["Matcher", "MatchParams", "MatchResult", "global_score", "local_score"]
 
 TOO_FEW_FEATURES = "TOO_FEW_FEATURES"
 TOO_FEW_MATCHES = "TOO_FEW_MATCHES"
 NO_GEOMETRIC_CONSISTENCY = "NO_GEOMETRIC_CONSISTENCY"
+BELOW_MIN_SCORE = "BELOW_MIN_SCORE"
 
 
 @dataclass(frozen=True)
@@ -98,7 +102,7 @@ class MatchResult:
         transform: ``(2, 3) float64`` rigid transform ``xy_b ~ R xy_a + t`` (pixels), or
             None when dismissed.
         reason: '' on success, else why the pair was dismissed (TOO_FEW_FEATURES,
-            TOO_FEW_MATCHES, NO_GEOMETRIC_CONSISTENCY).
+            TOO_FEW_MATCHES, BELOW_MIN_SCORE, NO_GEOMETRIC_CONSISTENCY).
     """
 
     score: float
@@ -167,21 +171,46 @@ def _ransac_rng(seed: int) -> np.random.Generator:
 _RNGS = threading.local()
 
 
-def local_score(a: FloorDescriptor, b: FloorDescriptor, params: MatchParams | None = None) -> MatchResult:
-    """Match descriptor ``a`` against ``b`` (same mode) and score the geometric inliers."""
-    p = params or MatchParams()
+def local_score(a: FloorDescriptor, b: FloorDescriptor, params: MatchParams | None = None,
+                min_score: float = 0.0) -> MatchResult:
+    """Match descriptor ``a`` against ``b`` (same mode) and score the geometric inliers.
+
+    ``min_score``: a pair whose score cannot reach it is dismissed after step 1
+    (``BELOW_MIN_SCORE``, score 0) without the geometric check. The score sums, over a
+    subset of the descriptor matches, a weight each match has before any geometry, so
+    the sum over all matches bounds it: nothing that could reach ``min_score`` is lost.
+    """
+    return Matcher(a, params).score(b, min_score)
+
+
+class Matcher:
+    """:func:`local_score` of one descriptor ``a`` against many: ``a``'s side of the
+    descriptor distance (its trits as floats and their norms) is prepared once."""
+
+    def __init__(self, a: FloorDescriptor, params: MatchParams | None = None) -> None:
+        self.a = a
+        self.params = params or MatchParams()
+        self._aug = _augmented(a, 1.0, None) if len(a) >= 2 else None
+        self._norm = a.nonzero_trits()
+
+    def score(self, b: FloorDescriptor, min_score: float = 0.0) -> MatchResult:
+        """``local_score(a, b, params, min_score)``."""
+        return _score(self.a, b, self.params, self._aug, self._norm, min_score)
+
+
+def _score(a: FloorDescriptor, b: FloorDescriptor, p: MatchParams, aug_a: np.ndarray | None,
+           norm_a: np.ndarray, min_score: float) -> MatchResult:
     if a.length != b.length:
         raise ValueError(f"descriptors of different lengths ({a.length} and {b.length} trits): modes differ")
-    if len(a) < 2 or len(b) < 2:
+    if len(a) < 2 or len(b) < 2 or aug_a is None:
         return _dismissed(TOO_FEW_FEATURES)
     # Squared distance of ternary vectors: |ta|^2 + |tb|^2 - 2 ta.tb, where |t|^2 counts the
     # non-zero trits. |ta|^2 is the same along a row, so the search needs only the rest,
     # |tb|^2 - 2 ta.tb = [ta, 1] . [-2 tb, |tb|^2]: one matrix product (integers, exact in
     # float32), which is most of the time in mode 6.
-    dist = _augmented(a, 1.0, None) @ _augmented(b, -2.0, b.nonzero_trits()).T
+    dist = aug_a @ _augmented(b, -2.0, b.nonzero_trits()).T
     rows = np.arange(len(a))
     nn = np.argmin(dist, axis=1)
-    norm_a = a.nonzero_trits()
     d1 = dist[rows, nn] + norm_a
     dist[rows, nn] = np.inf
     d2 = dist.min(axis=1) + norm_a
@@ -191,6 +220,9 @@ def local_score(a: FloorDescriptor, b: FloorDescriptor, params: MatchParams | No
     ia, ib, dm = rows[keep], nn[keep], d1[keep]
     if len(ia) < p.min_matches:
         return _dismissed(TOO_FEW_MATCHES, len(ia))
+    # The bound, with room for the rounding of a sum taken in another order.
+    if min_score > 0 and float(np.maximum(0.0, 1.0 - dm / p.weight_distance).sum()) * (1 + 1e-6) + 1e-6 < min_score:
+        return _dismissed(BELOW_MIN_SCORE, len(ia))
     # Step 2: dominant orientation change (histogram over the 2**ANGLE_BITS levels).
     dth = (b.angle_rad[ib] - a.angle_rad[ia]) % (2 * math.pi)
     nbins = len(_PREV_BIN)

@@ -29,8 +29,8 @@ def test_short_demo_writes_a_consistent_map_and_trajectories(tmp_path: Path):
     assert s["odometry_samples"] >= 12.0 * 50 - 2
     # The robot answered the daemon's RequestExtra over the pty.
     assert s["commands_seen_by_robot"].get("RequestExtra") == 1
-    # Keyframes every 5 cm or 10 deg: at least distance / 0.05 of them.
-    assert s["keyframes"] >= s["distance_m"] / 0.05
+    # A keyframe every [keyframes] distance_m or rotation_deg: at least distance / distance_m.
+    assert s["keyframes"] >= s["distance_m"] / Config().keyframes.distance_m
     # TUM files: one line per odometry sample, stamps increasing.
     stamps, fused = read_tum(tmp_path / "fused.tum")
     assert len(stamps) == s["odometry_samples"] and np.all(np.diff(stamps) > 0)

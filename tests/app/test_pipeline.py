@@ -74,6 +74,26 @@ def test_messages_reach_subscribers_in_registration_order_depth_first():
         p.add(Echo("a", log))
 
 
+def test_instrument_wraps_every_handler_with_its_stage_and_name():
+    log: list = []
+    calls: list = []
+    p = Pipeline()
+    p.add(Echo("a", log))
+    p.add(Echo("b", log))
+
+    def wrap(stage, handler, fn):
+        def wrapped(*args):
+            calls.append((stage, handler))
+            return fn(*args)
+        return wrapped
+
+    p.instrument(wrap)
+    p.feed(Ping(1))
+    # Same deliveries as without it, each seen by the wrapper with its stage and handler.
+    assert log == [("a", "ping", 1), ("a", "pong", 1), ("b", "pong", 1), ("b", "ping", 1)]
+    assert calls == [("a", "on_ping"), ("a", "on_pong"), ("b", "on_pong"), ("b", "on_ping")]
+
+
 def _wheels(k: int, stamp_ns: int) -> WheelTicks:
     """Straight ahead, 1 cm per message."""
     ticks = int(round(k * 0.01 * TICKS_PER_M))

@@ -84,7 +84,8 @@ def test_sighup_applies_live_keys_and_reports_restart_keys(running, tmp_path, ca
     daemon, reloader, sock, path = running
     caplog.set_level(logging.INFO, logger="robotd.app.reload")
     keyframes, floor, graph = (daemon.pipeline.stage(n) for n in ("keyframes", "floor", "graph"))
-    assert (floor.detector.threshold, graph.gate_chi2, keyframes.selector.distance_m) == (40.0, 16.27, 0.05)
+    assert (floor.detector.threshold, graph.gate_chi2, keyframes.selector.distance_m) == (
+        40.0, 16.27, Config().keyframes.distance_m)
     _datagrams(sock)
     path.write_text(_config(tmp_path, '[keyframes]\ndistance_m = 0.1\nrotation_deg = 20.0\n'
                                       '[floor_detector]\nshortlist = 12\nmode = 5\n'
@@ -145,7 +146,7 @@ def test_a_broken_file_on_sighup_keeps_everything_and_is_one_error(running, tmp_
                                               "configuration: ")
     assert error in records[0].getMessage() and "\n" not in records[0].getMessage()
     assert reloader.failures == 1 and daemon.reloads == 1  # the reload ran and refused
-    assert daemon.pipeline.stage("keyframes").selector.distance_m == 0.05
+    assert daemon.pipeline.stage("keyframes").selector.distance_m == Config().keyframes.distance_m
     assert daemon.pipeline.stage("graph").gate_chi2 == 16.27
     assert daemon.pipeline.stage("floor").detector.threshold == 40.0
     assert reloader.config == load_config_default(tmp_path)

@@ -13,8 +13,8 @@ import pytest
 import skimage.data
 
 from robotd.floor.descriptor import describe
-from robotd.floor.match import (NO_GEOMETRIC_CONSISTENCY, TOO_FEW_FEATURES, TOO_FEW_MATCHES, MatchParams,
-                                global_score, local_score)
+from robotd.floor.match import (BELOW_MIN_SCORE, NO_GEOMETRIC_CONSISTENCY, TOO_FEW_FEATURES, TOO_FEW_MATCHES,
+                                Matcher, MatchParams, global_score, local_score)
 from robotd.base.camera import FloorCameraModel
 from robotd.base.geometry import inverse, rigid_fit_2d, transform_points
 from sim.world.floor import Floor
@@ -130,6 +130,30 @@ def test_local_score_is_deterministic(textures):
     r1, r2 = local_score(a, b), local_score(a, b)
     assert r1.score == r2.score and np.array_equal(r1.inliers_a, r2.inliers_a)
     assert np.array_equal(r1.transform, r2.transform)
+
+
+def test_min_score_skips_only_pairs_that_cannot_reach_it(textures):
+    """A pair whose score is at least ``min_score`` is scored exactly as without it; an
+    unrelated pair below it is dismissed before the geometric check (BELOW_MIN_SCORE);
+    :class:`Matcher` (one query, many stored) gives local_score's results."""
+    tex = textures["gravel"]
+    a = describe(_view(tex, 0.0, CENTRE)[0], 4)
+    near = describe(_view(tex, 0.7, (660.0, 560.0))[0], 4)
+    other = describe(_view(textures["brick"], 0.3, CENTRE)[0], 4)
+    full = local_score(a, near)
+    assert full.score > 20
+    for min_score in (0.5 * full.score, full.score):
+        r = local_score(a, near, min_score=min_score)
+        assert r.score == full.score and np.array_equal(r.inliers_b, full.inliers_b)
+    unrelated = local_score(a, other)
+    assert unrelated.score < 0.1 * full.score
+    skipped = local_score(a, other, min_score=full.score)
+    assert skipped.reason == BELOW_MIN_SCORE and skipped.score == 0.0 and skipped.transform is None
+    assert skipped.n_matches == unrelated.n_matches  # step 1 ran: its matches are counted
+    m = Matcher(a)
+    for b in (near, other):
+        assert m.score(b).score == local_score(a, b).score
+        assert m.score(b, full.score).reason == local_score(a, b, min_score=full.score).reason
 
 
 @pytest.mark.parametrize("mode", [1, 3, 6])
