@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Does the robot install resolve to wheels on a Raspberry Pi (Linux aarch64, CPython 3.11)?
 #
-#   tools/check_aarch64_wheels.sh [EXTRAS]     (default EXTRAS: can,depthai)
+#   tools/check_aarch64_wheels.sh [EXTRAS]     (default EXTRAS: can,depthai,foxglove; ros2 has no aarch64 wheel, docs/ros2.md)
 #
 # Resolves robotd's dependencies (pyproject.toml [project] dependencies plus the optional
 # EXTRAS a robot may install) for Linux aarch64 and CPython 3.11 with binary wheels only
@@ -23,7 +23,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] && PY=.venv/bin/python
-EXTRAS=${1:-can,depthai}
+EXTRAS=${1:-can,depthai,foxglove}
 GLIBC_MAX=${GLIBC_MAX:-2.35}
 MUST_COMPILE=${MUST_COMPILE-systemd-python}  # the docs name these; empty: check them too
 
