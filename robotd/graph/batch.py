@@ -236,11 +236,14 @@ def refine_gnc(graph: PoseGraph, start: np.ndarray, params: BatchParams) -> tupl
 
     Odometry edges and anchors are known inliers; a loop edge is an inlier while its chi2
     stays within ``params.inlier_chi2``. GTSAM's GNC starts every inner Levenberg-Marquardt
-    solve from the values it was given, so a start near the answer (the DCS solution) is
-    what makes it fast: from the odometry poses of manhattan with 1000 wrong loops it
-    had not finished after 4 times plain LM's time, from the DCS solution it takes about
-    ... (see docs/benchmarks/posegraph.md). At convergence the weights are 0 or 1 and the
-    result is the least-squares optimum over the odometry and the loops kept.
+    solve from the values it was given, and its first solve uses its initial weights (all 1
+    by default: plain least squares over every loop, as slow as plain LM and as far from
+    the answer). So it is given a start near the answer (the DCS solution) and initial
+    weights that already leave out the loops whose chi2 there exceeds the threshold; the
+    graduation from the convex surrogate to truncated least squares then decides every
+    loop again, each inner solve converging in a few iterations. At convergence the
+    weights are 0 or 1 and the result is the least-squares optimum over the odometry and
+    the loops kept.
     """
     ids = graph.ids
     factors = factor_graph(graph)  # plain Gaussians: GNC applies its own weights
@@ -254,6 +257,10 @@ def refine_gnc(graph: PoseGraph, start: np.ndarray, params: BatchParams) -> tupl
     gnc_params.setKnownInliers(known)
     optimizer = gtsam.GncLMOptimizer(factors, to_values(ids, start), gnc_params)
     optimizer.setInlierCostThresholds(0.5 * params.inlier_chi2)
+    initial = np.ones(factors.size())
+    c2 = edge_chi2(graph, ids, start)
+    initial[np.flatnonzero(is_loop & (c2 > params.inlier_chi2))] = 0.0
+    optimizer.setWeights(initial)
     values = optimizer.optimize()
     weights = np.asarray(optimizer.getWeights(), dtype=float)[: len(graph.edges)][is_loop]
     return from_values(values, ids), weights
