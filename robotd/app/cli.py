@@ -117,7 +117,7 @@ def _add_config_commands(sub: argparse._SubParsersAction) -> None:
 
 def _add_calibrate_commands(sub: argparse._SubParsersAction) -> None:
     """``calibrate intrinsics|floor-mount|loop-curve|validate``: the offline tools."""
-    from calibration import floor_mount, intrinsics, train_cli
+    from calibration import floor_mount, intrinsics, odometry as odometry_cal, train_cli
 
     cal = sub.add_parser("calibrate", help="camera and floor calibration")
     cal_sub = cal.add_subparsers(dest="calibrate_command", metavar="ACTION", required=True)
@@ -149,6 +149,16 @@ def _add_calibrate_commands(sub: argparse._SubParsersAction) -> None:
                                         "ground-truth footprint overlap.")
     train_cli.add_validate_arguments(cv)
     cv.set_defaults(func=train_cli.run_validate)
+    co = cal_sub.add_parser("odometry", help="fit this robot's wheel radii, wheel base, gyro scale and "
+                                             "noise to a calibration drive",
+                            description="Replay a calibration drive (the loop curve's) with floor loops and "
+                                        "the pose graph, fit the left and right wheel radii, the wheel "
+                                        "base, the gyro's scale and turn-on bias and the noise densities "
+                                        "to the loop-corrected trajectory, with their uncertainties, and "
+                                        "write them into the calibration file. A drive that cannot make "
+                                        "them observable is refused and the file kept as it was.")
+    odometry_cal.add_odometry_arguments(co)
+    co.set_defaults(func=odometry_cal.run_odometry)
 
 
 def _add_kobuki_commands(sub: argparse._SubParsersAction) -> None:
