@@ -80,9 +80,10 @@ class OdometryFitParams:
     min_keyframes: reference keyframes needed, default 30.
     still_margin_s: readings this close to the start or end of a still period are left out
         of the gyro's noise (the base may still creep), default 0.2.
-    slip_gate_sigma: intervals whose wheel residual exceeds this many sigma after the first
-        fit are left out of the second (slip events: a wheel spinning while accelerating),
-        default 4.
+    slip_gate_sigma: heading windows whose wheel-against-gyro residual exceeds this many
+        (robust) sigma are slip events, left out with their neighbours and the keyframe
+        intervals they fall in, default 4.
+    window_s: length of the heading windows, default 0.2 s.
     """
 
     min_turn_deg: float = 180.0
@@ -91,6 +92,7 @@ class OdometryFitParams:
     min_keyframes: int = 30
     still_margin_s: float = 0.2
     slip_gate_sigma: float = 4.0
+    window_s: float = 0.2
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -106,7 +108,8 @@ class OdometryFit:
     the gyro's heading change (rad), with the nominal model (``nominal``: radius, base;
     gyro scale 1, bias 0 beyond the one the still periods show) and with the fitted one.
     interval_end_s ``(K-1,)``: each interval's end, s from the first keyframe.
-    used ``(K-1,)`` bool: intervals kept by the slip gate. turn_left_deg, turn_right_deg,
+    used ``(K-1,)`` bool: intervals kept by the slip gate; slip_windows: heading windows
+    left out as slip (with their neighbours), of heading_windows. turn_left_deg, turn_right_deg,
     distance_m, still_s: what the drive offered.
     """
 
@@ -127,6 +130,8 @@ class OdometryFit:
     residuals_after: np.ndarray
     interval_end_s: np.ndarray
     used: np.ndarray
+    slip_windows: int
+    heading_windows: int
     turn_left_deg: float
     turn_right_deg: float
     distance_m: float
@@ -300,15 +305,30 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
     r = np.concatenate(resid)
     gyro_density = float(np.std(r, ddof=1) / math.sqrt(fs / 2.0))
 
-    # -- gyro: integral = s dyaw + b0 dt + b1 d(t^2/2); weights from the gyro noise and the
-    # reference's heading noise, the latter estimated from a first unweighted fit.
-    a_g = np.column_stack([iv.dyaw_ref, iv.dt_s, iv.tsq])
+    # -- gyro: its integral from the first keyframe to keyframe k is
+    # G_k = s Y_k + b0 t_k + b1 t_k^2 / 2 + c (Y: the reference's unwrapped heading). The
+    # errors are the reference's own heading noise (white, sigma_ref per keyframe) and the
+    # gyro's white noise integrated (a random walk, q_g t): generalised least squares with
+    # that covariance, sigma_ref first estimated from the increments (their variance is
+    # 2 sigma_ref^2 + q_g dt).
     q_g = gyro_density ** 2
-    x_g, _cov, _ = _weighted_lstsq(a_g, iv.gyro, np.ones(n))
-    res = iv.gyro - a_g @ x_g
-    c_ref = max(float(np.mean(res ** 2 - q_g * iv.dt_s)), 1e-12)
-    x_g, cov_g, _red_g = _weighted_lstsq(a_g, iv.gyro, 1.0 / (q_g * iv.dt_s + c_ref))
-    s, b0, b1 = (float(v) for v in x_g)
+    a_inc = np.column_stack([iv.dyaw_ref, iv.dt_s, iv.tsq])
+    x_inc, *_ = np.linalg.lstsq(a_inc, iv.gyro, rcond=None)
+    res = iv.gyro - a_inc @ x_inc
+    var_ref = max(0.5 * float(np.mean(res ** 2 - q_g * iv.dt_s)), 1e-12)
+    tk = np.concatenate([[0.0], iv.t_end_s])
+    g_lev = np.concatenate([[0.0], np.cumsum(iv.gyro)])
+    y_lev = np.concatenate([[0.0], np.cumsum(iv.dyaw_ref)])
+    a_lev = np.column_stack([y_lev, tk, 0.5 * tk ** 2, np.ones_like(tk)])
+    cov_lev = var_ref * np.eye(len(tk)) + q_g * np.minimum.outer(tk, tk)
+    chol = np.linalg.cholesky(cov_lev)
+    a_w = np.linalg.solve(chol, a_lev)
+    g_w = np.linalg.solve(chol, g_lev)
+    x_g, *_ = np.linalg.lstsq(a_w, g_w, rcond=None)
+    r_w = g_w - a_w @ x_g
+    red_g = float(r_w @ r_w / max(len(g_w) - 4, 1))
+    cov_g = np.linalg.inv(a_w.T @ a_w) * max(red_g, 1.0)
+    s, b0, b1 = (float(v) for v in x_g[:3])
 
     def heading(t_s: np.ndarray) -> np.ndarray:
         """The calibrated gyro's heading (rad, from 0 at the first keyframe)."""
@@ -317,61 +337,85 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
 
     arcs = _arc_regressors(drive, heading, t0)  # (J, 2 axes, 2 wheels)
 
-    # -- wheels: unknowns (r_L, r_R, 1/B) after a change of variables that makes the heading
-    # linear: (r_R dphi_R - r_L dphi_L) / B = dyaw. Solved by Gauss-Newton on (r_L, r_R, B).
+    # -- wheels: unknowns (r_L, r_R, B), solved by Gauss-Newton over two blocks of residuals:
+    # the displacement over each keyframe interval against the reference (the radii), and
+    # the heading change over short windows of the wheel timeline against the calibrated
+    # gyro (the wheel base, and the radii's difference). The gyro, once calibrated, is
+    # better than the reference over a fraction of a second, and it shows a slip event (a
+    # wheel over- or under-rotating by a few percent for a fraction of a second) as a jump
+    # of tens of its own sigmas: such windows and their neighbours are left out of both
+    # blocks. Left in, a handful of them moves the wheel base by 0.1-0.4 % on a 26 m drive.
     def residuals(p: np.ndarray) -> np.ndarray:
         rl, rr, bb = p
         pos = arcs[:, :, 0] * rl + arcs[:, :, 1] * rr - iv.d_ref      # (J, 2)
         yaw = (rr * iv.dphi[:, 1] - rl * iv.dphi[:, 0]) / bb - iv.dyaw_ref
         return np.column_stack([pos, yaw])
 
-    def jac(p: np.ndarray) -> np.ndarray:  # (J, 3 residuals, 3 params)
+    tw = (np.asarray(drive.wheel_stamp_ns, np.int64) - t0) * 1e-9
+    phi = np.asarray(drive.wheel_angle_rad, float)
+    step_w = max(1, int(round(params.window_s / float(np.median(np.diff(tw))))))
+    cut = np.arange(0, len(tw), step_w)
+    w_t0, w_t1 = tw[cut[:-1]], tw[cut[1:]]
+    w_dphi = phi[cut[1:]] - phi[cut[:-1]]
+    inside = (w_t0 >= 0.0) & (w_t1 <= iv.t_end_s[-1]) & (np.abs(w_dphi).sum(axis=1) > 0)
+    w_t0, w_t1, w_dphi = w_t0[inside], w_t1[inside], w_dphi[inside]
+    w_y = heading(w_t1) - heading(w_t0)
+    interval_of = np.searchsorted(iv.t_end_s, 0.5 * (w_t0 + w_t1))  # keyframe interval of each window
+
+    def heading_res(p: np.ndarray) -> np.ndarray:
         rl, rr, bb = p
-        j = np.zeros((n, 3, 3))
-        j[:, 0:2, 0] = arcs[:, :, 0]
-        j[:, 0:2, 1] = arcs[:, :, 1]
-        j[:, 2, 0] = -iv.dphi[:, 0] / bb
-        j[:, 2, 1] = iv.dphi[:, 1] / bb
-        j[:, 2, 2] = -(rr * iv.dphi[:, 1] - rl * iv.dphi[:, 0]) / bb ** 2
-        return j
+        return (rr * w_dphi[:, 1] - rl * w_dphi[:, 0]) / bb - w_y
+
+    def heading_jac(p: np.ndarray) -> np.ndarray:
+        rl, rr, bb = p
+        return np.column_stack([-w_dphi[:, 0] / bb, w_dphi[:, 1] / bb,
+                                -(rr * w_dphi[:, 1] - rl * w_dphi[:, 0]) / bb ** 2])
 
     travel = np.maximum(np.abs(iv.dphi).mean(axis=1) * nominal_radius_m, 1e-6)
     p = np.array([nominal_radius_m, nominal_radius_m, nominal_base_m])
     used = np.ones(n, bool)
+    clean = np.ones(len(w_y), bool)
     sig_pos = np.full(n, 1e-3)
-    sig_yaw = np.full(n, 1e-3)
-    q_w, c_pos = 0.0, 0.0
-    for rnd in range(3):
+    sig_h = 1e-3
+    q_w = 0.0
+
+    def system(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r_pos = residuals(p)[used, :2] / sig_pos[used, None]
+        j_pos = np.zeros((int(used.sum()), 2, 3))
+        j_pos[:, :, 0] = arcs[used, :, 0]
+        j_pos[:, :, 1] = arcs[used, :, 1]
+        j_pos /= sig_pos[used, None, None]
+        y = np.concatenate([r_pos.reshape(-1), heading_res(p)[clean] / sig_h])
+        a = np.concatenate([j_pos.reshape(-1, 3), heading_jac(p)[clean] / sig_h])
+        return a, y
+
+    for rnd in range(4):
         for _ in range(10):
-            r = residuals(p)
-            wts = np.column_stack([1 / sig_pos, 1 / sig_pos, 1 / sig_yaw])[used]
-            a = (jac(p)[used] * wts[:, :, None]).reshape(-1, 3)
-            y = (r[used] * wts).reshape(-1)
+            a, y = system(p)
             step, *_ = np.linalg.lstsq(a, -y, rcond=None)
             p = p + step
             if np.all(np.abs(step) < 1e-12 + 1e-10 * np.abs(p)):
                 break
-        # Noise from the residuals: var(pos) = q |ds| + c (per axis), var(yaw) likewise
-        # with the wheel base's lever (2 q |ds| / B^2) plus the reference's heading noise.
+        e = heading_res(p)
+        mad = float(np.median(np.abs(e[clean] - np.median(e[clean])))) * 1.4826
+        sig_h = max(mad, 1e-9)
+        slip = np.abs(e) > params.slip_gate_sigma * sig_h
+        slip = slip | np.roll(slip, 1) | np.roll(slip, -1)
+        clean = ~slip
+        used = np.ones(n, bool)
+        used[np.unique(interval_of[slip])] = False
+        # The displacement's noise: var = q |ds| + c per axis (c: the reference's own).
         r = residuals(p)
-        e2 = 0.5 * (r[:, 0] ** 2 + r[:, 1] ** 2)
-        sel = used
-        design = np.column_stack([travel[sel], np.ones(sel.sum())])
-        coef, *_ = np.linalg.lstsq(design, e2[sel], rcond=None)
+        e2 = 0.5 * (r[used, 0] ** 2 + r[used, 1] ** 2)
+        design = np.column_stack([travel[used], np.ones(int(used.sum()))])
+        coef, *_ = np.linalg.lstsq(design, e2, rcond=None)
         q_w, c_pos = max(float(coef[0]), 1e-12), max(float(coef[1]), 1e-12)
         sig_pos = np.sqrt(q_w * travel + c_pos)
-        yaw_design = np.column_stack([2 * travel[sel] / p[2] ** 2, np.ones(sel.sum())])
-        coef_y, *_ = np.linalg.lstsq(yaw_design, r[sel, 2] ** 2, rcond=None)
-        sig_yaw = np.sqrt(np.maximum(coef_y[0], 0.0) * 2 * travel / p[2] ** 2 + max(float(coef_y[1]), 1e-12))
-        if rnd < 2:
-            z = np.abs(r / np.column_stack([sig_pos, sig_pos, sig_yaw])).max(axis=1)
-            used = z <= params.slip_gate_sigma
-    r = residuals(p)
-    wts = np.column_stack([1 / sig_pos, 1 / sig_pos, 1 / sig_yaw])[used]
-    a = (jac(p)[used] * wts[:, :, None]).reshape(-1, 3)
-    y = (r[used] * wts).reshape(-1)
+    a, y = system(p)
     red = float(y @ y / max(len(y) - 3, 1))
     cov_w = np.linalg.inv(a.T @ a) * max(red, 1.0)
+    # The wheel base is measured against the gyro: its scale's uncertainty carries over.
+    cov_w[2, 2] += (p[2] * math.sqrt(cov_g[0, 0]) / s) ** 2
 
     # -- residuals before (nominal wheels, raw gyro but for the still periods' mean level)
     # and after.
@@ -400,5 +444,6 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
         gyro_bias_radps=b0, gyro_bias_sigma=float(math.sqrt(cov_g[1, 1])), gyro_bias_drift_radps2=b1,
         gyro_noise_radps_sqrt_hz=gyro_density, wheel_noise_m_sqrt_m=float(math.sqrt(q_w)),
         residuals_before=before, residuals_after=after, interval_end_s=iv.t_end_s, used=used,
+        slip_windows=int((~clean).sum()), heading_windows=len(clean),
         turn_left_deg=left, turn_right_deg=right, distance_m=dist, still_s=still,
     )
