@@ -84,6 +84,9 @@ def _add_daemon_commands(sub: argparse._SubParsersAction) -> None:
     rec.add_argument("--floor-pattern", choices=("planks", "tiles"), default=None)
     rec.add_argument("--duration", type=float, default=None, metavar="S")
     rec.add_argument("--seed", type=int, default=0)
+    rec.add_argument("--base-seed", type=int, default=None, metavar="N",
+                     help="virtual robot: the base (wheel and gyro errors) of seed N on this drive "
+                          "(default: the drive's own seed), e.g. a calibration drive of the demo's robot")
     rec.set_defaults(func=_cmd_record)
 
     rep = sub.add_parser("replay", help="feed a recording through the daemon",
@@ -195,7 +198,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         out = args.output.with_name(args.output.stem + "-demo")
         s = run_demo(cfg, out=out, route=args.route, floor_files=tuple(str(f) for f in args.floor or ()),
                      floor_pattern=args.floor_pattern, duration_s=args.duration, seed=args.seed,
-                     record=args.output)
+                     record=args.output, base_seed=getattr(args, "base_seed", None))
         print_summary(s, sys.stdout)
         print(f"recording: {args.output} ({args.output.stat().st_size / 1e6:.1f} MB); "
               f"demo outputs in {out}")

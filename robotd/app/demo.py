@@ -217,8 +217,11 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
              realtime: bool = False, plot: bool = True, record: Path | None = None,
              observers: tuple[Any, ...] = (), base: str = "kobuki",
              can_convention: str = "diff_drive", can_faults: bool = False,
-             kidnap: tuple[float, float, float] | None = None) -> dict[str, Any]:
+             kidnap: tuple[float, float, float] | None = None,
+             base_seed: int | None = None) -> dict[str, Any]:
     """Run the daemon on the virtual robot; returns the summary (also written as JSON).
+    ``base_seed``: the seed whose base errors the robot has (default: ``seed``'s; see
+    :attr:`sim.robot.VirtualRobotSettings.base_seed`).
     ``observers``: extra pipeline stages that watch the run (the benchmarks use this).
     ``base``: ``"kobuki"`` or ``"can"`` (the same sensor streams as ``can_convention``
     frames on a python-can virtual bus, read by the CAN driver; ``can_faults`` injects
@@ -241,7 +244,8 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     _clear_previous_map(map_path)
     clock = ManualClock()
     cam_model = FloorCameraModel.from_config(base_cfg.floor_camera)
-    settings = VirtualRobotSettings(route=route, seed=seed, duration_s=duration_s, realtime=realtime,
+    settings = VirtualRobotSettings(route=route, seed=seed, base_seed=base_seed, duration_s=duration_s,
+                                    realtime=realtime,
                                     floor_files=floor_files, floor_metres_per_px=floor_scale,
                                     floor_pattern=floor_pattern,
                                     camera_fps=base_cfg.floor_camera.fps, base=base,
