@@ -131,6 +131,9 @@ def add_odometry_arguments(p: Any) -> None:
                         "odometry model is written into it")
     p.add_argument("--config", type=Path, default=None,
                    help="robotd config (default: the one the recording was made with, else the defaults)")
+    p.add_argument("--passes", type=int, default=2, metavar="N",
+                   help="replays of the drive: each after the first makes the reference trajectory "
+                        "with the model the one before fitted (default 2)")
     p.add_argument("--plot", type=Path, default=None, help="write the residuals before and after (PNG)")
     p.add_argument("--json", type=Path, default=None, metavar="FILE", help="also write the results as JSON")
 
@@ -220,17 +223,28 @@ def run_odometry(args: Any) -> int:
     if not args.calibration.exists():
         raise CalibrationError(f"{args.calibration}: no such calibration file (run `robotd calibrate "
                                "loop-curve` on the drive first: the reference trajectory needs its loops)")
+    if args.passes < 1:
+        raise CalibrationError(f"--passes must be at least 1, got {args.passes}")
     calib = read_calibration(args.calibration)
     if calib.loop is None or calib.loop.for_mode(cfg.floor_detector.mode) is None:
         raise CalibrationError(f"{args.calibration}: no loop threshold for descriptor mode "
                                f"{cfg.floor_detector.mode} (run `robotd calibrate loop-curve` first)")
-    data = load_drive(args.recording, cfg, dc_replace(calib, odometry=None))
     nominal_r, nominal_b = cfg.robot.wheel_radius_m, cfg.robot.wheel_base_m
-    try:
-        fit = fit_odometry(data.drive, nominal_r, nominal_b)
-    except CalibrationError as exc:
-        raise CalibrationError(f"{args.recording}: {exc}; {args.calibration} is left as it was") from None
     out = sys.stdout
+    model = None
+    for rnd in range(args.passes):
+        # Pass 1 makes the reference with the nominal model, each later one with the model
+        # the pass before fitted: the loop-corrected poses between loops still lean on the
+        # odometry, so a reference made with the wrong model pulls the fit towards it.
+        data = load_drive(args.recording, cfg, dc_replace(calib, odometry=model))
+        try:
+            fit = fit_odometry(data.drive, nominal_r, nominal_b)
+        except CalibrationError as exc:
+            raise CalibrationError(f"{args.recording}: {exc}; {args.calibration} is left as it was") from None
+        model = model_from_fit(fit)
+        if args.passes > 1:
+            print(f"pass {rnd + 1}: radii {fit.wheel_radius_left_m:.6f} / {fit.wheel_radius_right_m:.6f} m, "
+                  f"wheel base {fit.wheel_base_m:.6f} m, gyro scale {fit.gyro_scale:.6f}", file=out)
     print(f"\n{data.keyframes} keyframes with loop-corrected poses ({data.loops} loops); drive "
           f"{fit.distance_m:.1f} m, turning {fit.turn_left_deg:.0f} deg left and {fit.turn_right_deg:.0f} "
           f"deg right, {fit.still_s:.1f} s still", file=out)

@@ -414,6 +414,13 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
     a, y = system(p)
     red = float(y @ y / max(len(y) - 3, 1))
     cov_w = np.linalg.inv(a.T @ a) * max(red, 1.0)
+    # The wheels' slip noise from the heading windows (the displacement's residuals are the
+    # reference's own at this scale): var = 2 q |ds| / B^2 + q_g dt + c, with slip events out.
+    e = heading_res(p)[clean]
+    w_travel = np.abs(w_dphi[clean]).mean(axis=1) * 0.5 * (p[0] + p[1])
+    design = np.column_stack([2.0 * w_travel / p[2] ** 2, np.ones(len(e))])
+    coef, *_ = np.linalg.lstsq(design, e ** 2 - q_g * (w_t1 - w_t0)[clean], rcond=None)
+    q_w = max(float(coef[0]), 0.0)
     # The wheel base is measured against the gyro: its scale's uncertainty carries over.
     cov_w[2, 2] += (p[2] * math.sqrt(cov_g[0, 0]) / s) ** 2
 

@@ -54,6 +54,8 @@ def test_the_fit_finds_the_simulated_base_errors(seed):
     # The turn-on bias to 0.01 deg/s, the noise density to 15 % of the simulator's.
     assert abs(math.degrees(f.gyro_bias_radps - err.gyro_bias0_radps)) < 0.01
     assert f.gyro_noise_radps_sqrt_hz == pytest.approx(math.radians(p.gyro_noise_density_degps_sqrt_hz), rel=0.15)
+    # The continuous slip noise to within half of the simulator's (slip events left out).
+    assert f.wheel_noise_m_sqrt_m == pytest.approx(p.slip_noise_m_per_sqrt_m, rel=0.5)
     # The residuals shrink: the wheels' heading per interval most (the reference's own
     # 0.5 mm and 0.03 deg of noise per keyframe is a floor for every one of them).
     rms_before = np.sqrt(np.mean(f.residuals_before ** 2, axis=0))
