@@ -65,9 +65,9 @@ def _summary(result: BatchResult) -> None:
     print(f"final objective    {result.final_objective:.6e}", file=out)
     print(f"iterations         {result.iterations}", file=out)
     print(f"time               {result.time_s:.3f} s", file=out)
-    print(f"loops down-weighted by the optimiser: {down} of {n_loops} (weight < 0.5)", file=out)
     if result.gnc_time_s:
-        print(f"of which GNC        {result.gnc_time_s:.3f} s", file=out)
+        print(f"  of which GNC     {result.gnc_time_s:.3f} s", file=out)
+    print(f"loops down-weighted by the optimiser: {down} of {n_loops} (weight < 0.5)", file=out)
     if n_loops and result.final_objective > result.start_objective:
         print("(the objectives are the plain sum over every edge, no robust kernel: with loops "
               "down-weighted the robust cost falls while this one may rise)", file=out)
