@@ -206,7 +206,8 @@ def optimize_batch(graph: PoseGraph, params: BatchParams = BatchParams()) -> Bat
             break
     _cost, name, start, poses, iterations, weights = best
     t_gnc = time.perf_counter()
-    if params.robust and params.kernel == "gnc" and len(weights):
+    gnc = params.robust and params.kernel == "gnc" and len(weights) > 0
+    if gnc:
         poses, weights = refine_gnc(work, poses, params)
     t2 = time.perf_counter()
     return BatchResult(
@@ -215,7 +216,7 @@ def optimize_batch(graph: PoseGraph, params: BatchParams = BatchParams()) -> Bat
         start_objective=objective(graph, ids, start, params.noise),
         final_objective=objective(graph, ids, poses, params.noise),
         iterations=iterations, time_s=t2 - t0, init_time_s=t1 - t0,
-        loop_weights=weights, start=name, gnc_time_s=t2 - t_gnc,
+        loop_weights=weights, start=name, gnc_time_s=t2 - t_gnc if gnc else 0.0,
     )
 
 
