@@ -188,12 +188,19 @@ def plot_residuals(path: Path, fit: Any) -> None:
     import matplotlib.pyplot as plt
 
     t = fit.interval_end_s
-    fig, axes = plt.subplots(4, 1, figsize=(10, 9), sharex=True)
+    fig, axes = plt.subplots(6, 1, figsize=(10, 12), sharex=True)
     names = [("wheel dx (mm)", 1e3), ("wheel dy (mm)", 1e3), ("wheel heading (deg)", 180 / math.pi),
              ("gyro heading (deg)", 180 / math.pi)]
     for ax, (name, k), n in zip(axes, names, range(4)):
         ax.plot(t, k * fit.residuals_before[:, n], ".", ms=3, color="tab:red", label="nominal")
         ax.plot(t, k * fit.residuals_after[:, n], ".", ms=3, color="tab:blue", label="fitted")
+        ax.set_ylabel(name)
+        ax.grid(alpha=0.3)
+    # Summed over the drive, the systematic part stands out of the per-interval noise: the
+    # heading error dead reckoning from the wheels alone, or the gyro alone, would build up.
+    for ax, n, name in ((axes[4], 2, "wheel heading,\nsummed (deg)"), (axes[5], 3, "gyro heading,\nsummed (deg)")):
+        ax.plot(t, np.degrees(np.cumsum(fit.residuals_before[:, n])), color="tab:red", label="nominal")
+        ax.plot(t, np.degrees(np.cumsum(fit.residuals_after[:, n])), color="tab:blue", label="fitted")
         ax.set_ylabel(name)
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper right")
