@@ -313,4 +313,16 @@ def refine_gnc(graph: PoseGraph, start: np.ndarray, params: BatchParams) -> tupl
             break
         prev_cost = cost
         mu *= 1.4
+    # Truncated least squares itself from there: keep exactly the loops within the threshold
+    # at the current solution, re-solve, until that set stops changing (each step lowers
+    # the TLS cost). The schedule's last weights were set at the solution before the last
+    # one, so a loop may sit just beyond or within the threshold of the final one.
+    for _ in range(params.max_iterations):
+        keep = (r <= c).astype(float)
+        if np.array_equal(keep, weights):
+            break
+        weights = keep
+        values, fg = solve(weights, values)
+        poses = from_values(values, ids)
+        r = loop_chi2(poses)
     return poses, weights
