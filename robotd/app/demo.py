@@ -827,7 +827,7 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
     print(file=f)
     columns = [("wheel only", w), ("fused", fu)]
     if s.get("wheel_only_nominal"):  # the odometry model is calibrated: before and after
-        columns = [("wheel nominal", s["wheel_only_nominal"]), ("wheel calib.", w), ("fused", fu)]
+        columns = [("wheel nom.", s["wheel_only_nominal"]), ("wheel cal.", w), ("fused", fu)]
     _print_comparison(f, "odometry vs ground truth", columns, (
         ("end position error (m)", "end_position_error_m", "{:.3f}"),
         ("end heading error (deg)", "end_heading_error_deg", "{:.2f}"),
