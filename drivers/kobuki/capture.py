@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import logging
@@ -20,6 +21,7 @@ from drivers.kobuki.protocol import (
     decode_feedback,
 )
 from robotd.base.errors import DriverError, RobotdError
+from robotd.base.files import check_output_file, describe_path_kind, replacing
 
 log = logging.getLogger(__name__)
 
@@ -153,24 +155,33 @@ def add_decode_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write the JSON lines to this file (default: stdout)")
     parser.add_argument("--format", choices=("auto", "raw", "spy"), default="auto",
                         help="capture format (default: detect)")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing --out file")
 
 
 def run_decode(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
-    """Decode ``args.capture`` to JSON lines; raises :class:`DriverError` on I/O errors."""
+    """Decode ``args.capture`` to JSON lines; raises :class:`DriverError` on I/O errors.
+
+    The capture must be a file: a serial port or ``/dev/zero`` would be read forever, so a
+    device is refused (record the port first: ``robotd record``, or pyserial's ``spy://``).
+    ``--out`` is checked before decoding (an existing file needs ``--force``; the capture
+    itself is never overwritten) and replaced only when the decoding is complete.
+    """
+    kind = describe_path_kind(args.capture)
+    if kind == "missing":
+        raise DriverError(f"capture {args.capture}: no such file")
+    if kind != "a regular file":
+        raise DriverError(f"capture {args.capture} is {kind}, not a capture file: decode reads a "
+                          "recorded file (capture a port with pyserial's spy:// URL, or record "
+                          "the robot with `robotd record`)")
+    if args.out is not None:
+        check_output_file(args.out, force=getattr(args, "force", False), inputs=[args.capture])
     try:
         data = args.capture.read_bytes()
     except OSError as exc:
         raise DriverError(f"cannot read capture {args.capture}: {exc.strerror}") from exc
-    try:
-        out = open(args.out, "w", encoding="utf-8") if args.out else (stdout or sys.stdout)
-    except OSError as exc:
-        raise DriverError(f"cannot write {args.out}: {exc.strerror}") from exc
-    try:
+    with (replacing(args.out) if args.out else contextlib.nullcontext(stdout or sys.stdout)) as out:
         for record in decode_capture(data, args.format):
             out.write(json.dumps(record) + "\n")
-    finally:
-        if args.out:
-            out.close()
     summary = record["summary"]
     damaged, foreign = summary.get("spy_damaged_rx_lines", 0), summary.get("spy_unrecognised_lines", 0)
     if damaged or foreign:

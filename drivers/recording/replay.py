@@ -119,6 +119,24 @@ class ReplayDriver(Driver):
             return self._exhausted and self._next is None
         return self._peek() is None
 
+    def peek(self) -> tuple[str, Message] | None:
+        """The first driver message not yet handed out, or None when the recording has none
+        left (reads on past messages of other types and undecodable ones, counting them)."""
+        return self._peek()
+
+    def describe_contents(self) -> str:
+        """The recording's topics and types in words, with its damage, for a message that
+        says why it cannot be replayed."""
+        topics = self._reader.topics
+        if not topics:
+            return "no topics"
+        shown = ", ".join(f"{t} [{k or 'no schema'}]" for t, k in sorted(topics.items())[:6])
+        more = f" and {len(topics) - 6} more" if len(topics) > 6 else ""
+        damage = self._reader.damage
+        bad = (f"; {damage.undecodable_messages} messages of robotd's types did not decode"
+               if damage.undecodable_messages else "")
+        return f"{len(topics)} topics: {shown}{more}{bad}"
+
     def _peek(self) -> tuple[str, Message] | None:
         """The next driver message without handing it out (None at the end)."""
         while self._next is None and not self._exhausted:

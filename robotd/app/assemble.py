@@ -92,7 +92,22 @@ def load_calibration(cfg: Config) -> CalibrationFile | None:
         return None
     calib = read_calibration(path)
     log.info("calibration loaded from %s", path)
+    overridden = calibration_overrides(calib)
+    if overridden:
+        log.info("the calibration file %s replaces [floor_camera] %s of the config", path,
+                 ", ".join(overridden))
     return calib
+
+
+def calibration_overrides(calib: CalibrationFile) -> list[str]:
+    """The ``[floor_camera]`` keys whose config values the calibration file replaces (its
+    intrinsics and its mount; :func:`robotd.io.calibfile.camera_model`)."""
+    keys: list[str] = []
+    if calib.intrinsics is not None:
+        keys += ["fx_px", "fy_px", "cx_px", "cy_px", "distortion"]
+    if calib.mount is not None:
+        keys += ["mount_height_m", "mount_tilt_deg", "mount_x_m", "mount_y_m", "mount_yaw_deg"]
+    return keys
 
 
 def build_floor_detector(cfg: Config, store: MapStore, calib: CalibrationFile | None = None,

@@ -12,10 +12,12 @@ import os
 import signal
 import sys
 from pathlib import Path
+from typing import Any, NoReturn
 
 from robotd import __version__
 
 from robotd.base.errors import RobotdError
+from robotd.base.files import nonempty_path
 
 log = logging.getLogger("robotd")
 
@@ -37,8 +39,15 @@ examples:
 """
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its usage errors on one line (the CLI contract: one line on stderr)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="robotd",
         description="On-robot odometry and loop-closure daemon for Turtlebot-class robots.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -64,7 +73,7 @@ def _add_daemon_commands(sub: argparse._SubParsersAction) -> None:
     or the virtual robot."""
     run = sub.add_parser("run", help="run the daemon on real hardware, as the config says",
                          description="Run the daemon on real hardware (the systemd service's command).")
-    run.add_argument("--config", type=Path, required=True, help="TOML config file")
+    run.add_argument("--config", type=nonempty_path, required=True, help="TOML config file")
     run.set_defaults(func=_cmd_run)
 
     rec = sub.add_parser("record", help="run the daemon and record everything to an MCAP file",
@@ -73,13 +82,13 @@ def _add_daemon_commands(sub: argparse._SubParsersAction) -> None:
                                      "with --virtual; /tf, /tf_static and CameraInfo), readable by "
                                      "Foxglove and ros2 bag. Frames are JPEG or PNG as the config's "
                                      "[recording] section says (default: JPEG, quality 15).")
-    rec.add_argument("output", type=Path, metavar="OUT.mcap")
+    rec.add_argument("output", type=nonempty_path, metavar="OUT.mcap")
     rec.add_argument("--virtual", action="store_true",
                      help="record the built-in virtual robot (takes the demo's options)")
-    rec.add_argument("--config", type=Path, default=None,
+    rec.add_argument("--config", type=nonempty_path, default=None,
                      help="config file (required on real hardware)")
     rec.add_argument("--route", default="office", help="virtual robot's route")
-    rec.add_argument("--floor", action="append", type=Path, default=None, metavar="FILE",
+    rec.add_argument("--floor", action="append", type=nonempty_path, default=None, metavar="FILE",
                      help="virtual robot's floor photo(s)")
     rec.add_argument("--floor-pattern", choices=("planks", "tiles"), default=None)
     rec.add_argument("--duration", type=float, default=None, metavar="S")
@@ -91,10 +100,12 @@ def _add_daemon_commands(sub: argparse._SubParsersAction) -> None:
 
     rep = sub.add_parser("replay", help="feed a recording through the daemon",
                          description="Replay an MCAP recording through the daemon (odometry, "
-                                     "keyframes, floor descriptors), writing the map the config names.")
-    rep.add_argument("recording", type=Path, metavar="FILE.mcap")
-    rep.add_argument("--config", type=Path, default=None, help="config file (default: defaults)")
-    rep.add_argument("--map", type=Path, default=None, help="map file to write (overrides the config)")
+                                     "keyframes, floor descriptors), writing the map --map names.")
+    rep.add_argument("recording", type=nonempty_path, metavar="FILE.mcap")
+    rep.add_argument("--config", type=nonempty_path, default=None, help="config file (default: defaults)")
+    rep.add_argument("--map", type=nonempty_path, required=True,
+                     help="map file to write (created, or continued if it exists); required, so "
+                          "that a replay never writes into the service's map by accident")
     rep.add_argument("--speed", type=float, default=None,
                      help="replay at this multiple of recorded time (default: as fast as possible)")
     rep.set_defaults(func=_cmd_replay)
@@ -112,10 +123,13 @@ def _add_config_commands(sub: argparse._SubParsersAction) -> None:
     cfg = sub.add_parser("config", help="check or print configuration files")
     cfg_sub = cfg.add_subparsers(dest="config_command", metavar="ACTION", required=True)
     chk = cfg_sub.add_parser("check", help="validate a config file")
-    chk.add_argument("file", type=Path)
+    chk.add_argument("file", type=nonempty_path)
     chk.set_defaults(func=_cmd_config_check)
     dflt = cfg_sub.add_parser("default", help="print the default configuration as TOML")
     dflt.set_defaults(func=_cmd_config_default)
+    ref = cfg_sub.add_parser("reference", help="print the configuration reference (Markdown, "
+                                               "docs/configuration.md)")
+    ref.set_defaults(func=_cmd_config_reference)
 
 
 def _add_calibrate_commands(sub: argparse._SubParsersAction) -> None:
@@ -184,7 +198,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.log_level is None:
         logging.getLogger().setLevel(cfg.daemon.log_level.upper())
-    return run_service(cfg, config_path=args.config, log_level_fixed=args.log_level is not None)
+    return run_service(cfg, config_path=args.config, log_level_fixed=args.log_level is not None,
+                       startup=args.startup)
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
@@ -198,7 +213,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
         out = args.output.with_name(args.output.stem + "-demo")
         s = run_demo(cfg, out=out, route=args.route, floor_files=tuple(str(f) for f in args.floor or ()),
                      floor_pattern=args.floor_pattern, duration_s=args.duration, seed=args.seed,
-                     record=args.output, base_seed=getattr(args, "base_seed", None))
+                     record=args.output, startup=args.startup,
+                     base_seed=getattr(args, "base_seed", None))
         print_summary(s, sys.stdout)
         print(f"recording: {args.output} ({args.output.stat().st_size / 1e6:.1f} MB); "
               f"demo outputs in {out}")
@@ -207,30 +223,55 @@ def _cmd_record(args: argparse.Namespace) -> int:
         raise ConfigError("robotd record needs --config on real hardware (or --virtual)")
     from robotd.app.service import run_service
 
-    return run_service(cfg, record=args.output)
+    return run_service(cfg, record=args.output, startup=args.startup)
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
     from robotd.base.config import Config, load_config, replace
     from robotd.base.errors import ConfigError
     from robotd.app.service import run_replay
+    from robotd.base.files import check_utf8_path
 
-    if args.speed is not None and not args.speed > 0:
-        raise ConfigError(f"--speed must be positive, got {args.speed}")
+    if args.speed is not None and not MIN_REPLAY_SPEED <= args.speed <= MAX_REPLAY_SPEED:
+        raise ConfigError(f"--speed must be from {MIN_REPLAY_SPEED:g} to {MAX_REPLAY_SPEED:g} times "
+                          f"recorded time, got {args.speed:g} (leave it out to replay as fast as "
+                          "possible)")
+    check_input_file(args.recording, "recording")
+    if args.map is not None:
+        check_utf8_path(args.map, "--map")
     cfg = load_config(args.config) if args.config else Config()
     cfg = replace(cfg, "floor_camera", source="virtual")
     if args.map is not None:
         cfg = replace(cfg, "map", path=str(args.map))
-    r = run_replay(cfg, args.recording, args.speed)
+    r = run_replay(cfg, args.recording, args.speed, startup=args.startup)
     done = (f"{r['odometry_samples']} odometry samples, {r['frames']} frames "
             f"({r['frames_unsynced']} without odometry), {r['keyframes']} keyframes -> {cfg.map.path}")
     if r["interrupted"]:
-        print(f"replay of {args.recording} interrupted ({r['interrupted']}) after {r['recording_s']:.1f} "
-              f"of its {r['recording_total_s']:.1f} s, in {r['wall_s']:.1f} s; {done}")
+        print(f"robotd: replay of {args.recording} interrupted ({r['interrupted']}) after "
+              f"{r['recording_s']:.1f} of its {r['recording_total_s']:.1f} s, in {r['wall_s']:.1f} s; "
+              f"the run is closed in the map; {done}", file=sys.stderr)
         return 128 + signal.Signals[r["interrupted"]].value
     print(f"replayed {args.recording}: {r['recording_s']:.1f} s of recording in {r['wall_s']:.1f} s; "
           f"{done}")
     return 0
+
+
+MIN_REPLAY_SPEED = 0.01
+MAX_REPLAY_SPEED = 1000.0
+"""``robotd replay --speed`` bounds (times recorded time); without it, as fast as possible."""
+
+
+def check_input_file(path: Path, what: str) -> None:
+    """ConfigError unless ``path`` is a regular file (not missing, a folder, a device or a
+    pipe that would be read forever)."""
+    from robotd.base.errors import ConfigError
+    from robotd.base.files import describe_path_kind
+
+    kind = describe_path_kind(path)
+    if kind == "missing":
+        raise ConfigError(f"{what} {path}: no such file")
+    if kind != "a regular file":
+        raise ConfigError(f"{what} {path} is {kind}, not a file")
 
 
 def _cmd_config_check(args: argparse.Namespace) -> int:
@@ -242,15 +283,91 @@ def _cmd_config_check(args: argparse.Namespace) -> int:
 
 
 def _cmd_config_default(args: argparse.Namespace) -> int:
-    from robotd.base.config import Config, to_toml
+    from robotd.base.config import commented_toml
 
-    print(to_toml(Config()), end="")
+    print(commented_toml(), end="")
     return 0
 
 
+DAEMON_COMMANDS = ("run", "record", "replay", "demo")
+"""Commands that run the daemon: SIGINT/SIGTERM stay held until it takes them over."""
+
+
+def _cmd_config_reference(args: argparse.Namespace) -> int:
+    print(config_reference(), end="")
+    return 0
+
+
+def config_reference() -> str:
+    """The configuration reference as Markdown: every section and key with its type,
+    default, range and description from the config's own metadata, and whether SIGHUP
+    applies it live (:data:`robotd.app.reload.LIVE_KEYS`). ``docs/configuration.md`` is
+    this text (a test keeps them equal)."""
+    import dataclasses
+
+    from robotd.app.reload import LIVE_KEYS
+    from robotd.base.config import Config, _toml_value
+
+    out = ["# Configuration reference\n",
+           "Generated by `robotd config reference` from the config's own definitions "
+           "(`robotd/base/config.py`); do not edit by hand. One TOML file "
+           "(`/etc/robotd/robotd.toml` for the service; `systemd/robotd.toml` is the "
+           "commented default). Unknown keys and out-of-range values are errors that name "
+           "the key. **live**: `systemctl reload robotd` (SIGHUP) applies the key at once; "
+           "the others need a restart.\n"]
+    for section in dataclasses.fields(Config):
+        cls = section.default_factory  # type: ignore[misc]
+        out.append(f"## [{section.name}]\n")
+        doc = " ".join((cls.__doc__ or "").strip().split("\n\n")[0].split())
+        if doc:
+            out.append(f"{doc}\n")
+        out.append("| key | type | default | range | live | description |")
+        out.append("|---|---|---|---|---|---|")
+        for f in dataclasses.fields(cls):
+            meta = f.metadata
+            kind = type(f.default).__name__ if f.default is not dataclasses.MISSING else "?"
+            kind = {"str": "string", "float": "number", "int": "integer", "bool": "boolean",
+                    "tuple": "list of numbers"}.get(kind, kind)
+            lo, hi, choices = meta.get("lo"), meta.get("hi"), meta.get("choices")
+            rng = (" or ".join(f"`{c}`" for c in choices) if choices else
+                   f"{lo:g} to {hi:g}" if lo is not None and hi is not None else
+                   f">= {lo:g}" if lo is not None else f"<= {hi:g}" if hi is not None else "")
+            if meta.get("length"):
+                rng = f"{meta['length']} numbers"
+            if meta.get("nonempty"):
+                rng = "not empty"
+            live = "yes" if (section.name, f.name) in LIVE_KEYS else ""
+            desc = " ".join(str(meta.get("doc", "")).split()).replace("|", "\\|")
+            out.append(f"| `{f.name}` | {kind} | `{_toml_value(f.default)}` | {rng} | {live} | {desc} |")
+        out.append("")
+    return "\n".join(out)
+
+
 def main(argv: list[str] | None = None) -> int:
+    from robotd.app.signals import Interrupted, StartupSignals
+
+    # From the first line: building the parser imports the simulator and the calibration
+    # tools, which takes a second on a loaded robot; a Ctrl-C then is held, not a traceback.
+    startup = StartupSignals().__enter__()
+    try:
+        return _main(argv, startup)
+    except Interrupted as exc:
+        print("robotd: interrupted during start-up; nothing was written", file=sys.stderr)
+        return exc.exit_status
+    finally:
+        startup.release()
+
+
+def _main(argv: list[str] | None, startup: Any) -> int:
+    from robotd.app.signals import Interrupted
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command in DAEMON_COMMANDS:
+        args.startup = startup  # held until the daemon runs (robotd.app.signals)
+    else:  # a Ctrl-C from now on interrupts at once
+        startup.release()
+        startup.stop_if_received()
     # The demo (and recording the virtual robot) shows its own progress line; its log is
     # warnings only unless asked.
     quiet = args.command == "demo" or (args.command == "record" and args.virtual)
@@ -265,7 +382,10 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"robotd: error: {exc}", file=sys.stderr)
         return 2
+    except Interrupted:
+        raise  # held during start-up: main says so
     except KeyboardInterrupt:
+        print("robotd: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:
         # The reader of our output went away (`robotd ... | head`): stop quietly, as a
@@ -273,6 +393,20 @@ def main(argv: list[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 128 + signal.SIGPIPE
+    except OSError as exc:
+        # The last resort for a file-system failure no command foresaw (a folder it may not
+        # enter, a full or read-only disk): one line, as for a known error.
+        if args.traceback:
+            raise
+        where = f": {exc.filename}" if exc.filename else ""
+        print(f"robotd: error: {exc.strerror or exc}{where}", file=sys.stderr)
+        return 2
+    except UnicodeEncodeError as exc:
+        if args.traceback:
+            raise
+        print(f"robotd: error: a path or name that is not valid UTF-8 ({exc.reason}); rename it",
+              file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -20,6 +20,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from robotd.base.files import nonempty_path
+
 log = logging.getLogger(__name__)
 
 
@@ -28,7 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--route", default="office", choices=sorted(ROUTES),
                    help="route to drive (default: office, about 110 m with loops both ways)")
-    p.add_argument("--floor", action="append", type=Path, metavar="FILE", default=None,
+    p.add_argument("--floor", action="append", type=nonempty_path, metavar="FILE", default=None,
                    help="floor photograph(s) to build the floor from (repeat for several; "
                         "default: the scikit-image brick, grass and gravel photographs)")
     p.add_argument("--floor-pattern", choices=("planks", "tiles"), default=None,
@@ -38,13 +40,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="size of one floor-photo pixel in metres (default 0.001)")
     p.add_argument("--duration", type=float, default=None, metavar="S",
                    help="stop after this many seconds of robot time (default: whole route)")
-    p.add_argument("--out", type=Path, default=Path("demo-out"), metavar="DIR",
+    p.add_argument("--out", type=nonempty_path, default=Path("demo-out"), metavar="DIR",
                    help="output folder (default: ./demo-out)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the virtual robot")
-    p.add_argument("--config", type=Path, default=None,
+    p.add_argument("--config", type=nonempty_path, default=None,
                    help="start from this config file (the base port, camera source and map "
                         "path are replaced by the virtual robot's)")
-    p.add_argument("--calibration", type=Path, default=None, metavar="FILE.yml",
+    p.add_argument("--calibration", type=nonempty_path, default=None, metavar="FILE.yml",
                    help="calibration file with the loop thresholds (default: the config's, or, "
                         "when that does not exist, the demo's own calibration drive shipped "
                         "with robotd; see tools/demo_calibration.sh)")
@@ -54,7 +56,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="also render the forward camera in the route's textured world and run the "
                         "forward loop detector (paper 000) on it; its loops join the pose graph")
     p.add_argument("--no-plot", action="store_true", help="skip trajectories.png")
-    p.add_argument("--record", type=Path, default=None, metavar="FILE.mcap",
+    p.add_argument("--record", type=nonempty_path, default=None, metavar="FILE.mcap",
                    help="also record the run (frames, ticks, gyro, odometry, ground truth) to MCAP")
     p.add_argument("--base", choices=("kobuki", "can"), default="kobuki",
                    help="the virtual robot's base: Kobuki bytes over a pty (default), or the same "
@@ -95,25 +97,27 @@ def run_from_args(args: argparse.Namespace) -> int:
         kidnap = (args.kidnap, args.kidnap / 2 if args.kidnap_to is None else args.kidnap_to, KIDNAP_CARRY_S)
     elif args.kidnap_to is not None:
         raise ConfigError("--kidnap-to needs --kidnap")
+    if args.can_faults and args.base != "can":
+        raise ConfigError("--can-faults needs --base can (the faults are injected on the CAN bus)")
+    if args.can_dbc != "diff_drive" and args.base != "can":
+        raise ConfigError("--can-dbc needs --base can")
     summary = run_demo(base_cfg, out=args.out, route=args.route,
                        floor_files=tuple(str(f) for f in args.floor or ()),
                        floor_scale=args.floor_scale, floor_pattern=args.floor_pattern,
                        duration_s=args.duration, seed=args.seed,
                        realtime=args.realtime, plot=not args.no_plot, record=args.record,
                        base=args.base, can_convention=args.can_dbc, can_faults=args.can_faults,
-                       kidnap=kidnap)
+                       kidnap=kidnap, startup=getattr(args, "startup", None))
     print_summary(summary, sys.stdout)
     return exit_status(summary)
 
 
-def _nominal_drive_if_calibrated(cfg: Any) -> Any:
-    """The config's nominal wheel geometry when the calibration file holds an odometry model
+def _nominal_drive_if_calibrated(cfg: Any, calibration: Any) -> Any:
+    """The config's nominal wheel geometry when the calibration holds an odometry model
     (the daemon then uses the model), else None."""
-    from robotd.io.calibfile import read_calibration
     from robotd.odometry.kinematics import DiffDriveParams
 
-    path = Path(cfg.calibration.path)
-    if not path.exists() or read_calibration(path).odometry is None:
+    if calibration is None or calibration.odometry is None:
         return None
     r = cfg.robot
     return DiffDriveParams(wheel_radius_m=r.wheel_radius_m, wheel_base_m=r.wheel_base_m,
@@ -248,7 +252,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
              observers: tuple[Any, ...] = (), base: str = "kobuki",
              can_convention: str = "diff_drive", can_faults: bool = False,
              kidnap: tuple[float, float, float] | None = None,
-             base_seed: int | None = None) -> dict[str, Any]:
+             startup: Any = None, base_seed: int | None = None) -> dict[str, Any]:
     """Run the daemon on the virtual robot; returns the summary (also written as JSON).
     ``base_seed``: the seed whose base errors the robot has (default: ``seed``'s; see
     :attr:`sim.robot.VirtualRobotSettings.base_seed`).
@@ -263,28 +267,84 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     written, and :class:`~robotd.base.errors.MapStoreError` when ``out/map.sqlite`` holds
     something other than an earlier demo's map (which is left as it is).
     """
+    from robotd.app.assemble import load_calibration
+    from robotd.app.signals import held_signals
     from robotd.base.camera import FloorCameraModel
     from robotd.base.clock import ManualClock
-    from robotd.base.config import replace
+    from robotd.io.maplock import hold_map_lock
     from sim.robot import VirtualRobot, VirtualRobotSettings
 
+    # Everything is checked before the output folder is touched: a refused demo leaves the
+    # previous demo's outputs (and anything else in --out) exactly as they were.
+    with held_signals(startup) as early:
+        check_demo_arguments(duration_s=duration_s, seed=seed, kidnap=kidnap, record=record, out=out)
+        calibration = load_calibration(base_cfg)
+        clock = ManualClock()
+        cam_model = FloorCameraModel.from_config(base_cfg.floor_camera)
+        settings = VirtualRobotSettings(route=route, seed=seed, base_seed=base_seed,
+                                        duration_s=duration_s, realtime=realtime, floor_files=floor_files,
+                                        floor_metres_per_px=floor_scale,
+                                        floor_pattern=floor_pattern,
+                                        camera_fps=base_cfg.floor_camera.fps, base=base,
+                                        can_convention=can_convention,
+                                        can_faults=_can_faults(can_faults, duration_s, route),
+                                        forward_camera=base_cfg.forward_detector.enabled,
+                                        forward_fps=FORWARD_FPS, kidnap=kidnap)
+        wall0 = time.monotonic()
+        robot = VirtualRobot(settings, cam_model, clock)  # checks the route, floor and kidnapping
+        with robot:
+            early.stop_if_received()
+            _prepare_output_folder(out)
+            map_path = (out / "map.sqlite").absolute()
+            # One demo per folder: a second one into the same --out is refused here, before
+            # it clears anything (robotd.io.maplock).
+            with hold_map_lock(map_path):
+                _clear_previous_map(map_path)
+                return _run_demo(base_cfg, robot, clock, cam_model, out=out, map_path=map_path,
+                                 calibration=calibration, early=early, wall0=wall0,
+                                 realtime=realtime, plot=plot, record=record,
+                                 observers=observers, base=base, can_convention=can_convention,
+                                 floor_files=floor_files, floor_pattern=floor_pattern)
+
+
+def check_demo_arguments(*, duration_s: float | None, seed: int,
+                         kidnap: tuple[float, float, float] | None,
+                         record: Path | None, out: Path) -> None:
+    """ConfigError (or OutputError for ``record``) for arguments the demo cannot run with,
+    before any output is touched."""
+    from robotd.base.errors import ConfigError
+    from robotd.base.files import check_output_file, check_utf8_path
+    from drivers.recording.schemas import PARTIAL_SUFFIX
+
     check_duration(duration_s)
-    _prepare_output_folder(out)
-    map_path = out / "map.sqlite"
-    _clear_previous_map(map_path)
-    clock = ManualClock()
-    cam_model = FloorCameraModel.from_config(base_cfg.floor_camera)
-    settings = VirtualRobotSettings(route=route, seed=seed, base_seed=base_seed, duration_s=duration_s,
-                                    realtime=realtime,
-                                    floor_files=floor_files, floor_metres_per_px=floor_scale,
-                                    floor_pattern=floor_pattern,
-                                    camera_fps=base_cfg.floor_camera.fps, base=base,
-                                    can_convention=can_convention,
-                                    can_faults=_can_faults(can_faults, duration_s, route),
-                                    forward_camera=base_cfg.forward_detector.enabled,
-                                    forward_fps=FORWARD_FPS, kidnap=kidnap)
-    wall0 = time.monotonic()
-    robot = VirtualRobot(settings, cam_model, clock)
+    check_utf8_path(out, "--out")
+    if not 0 <= seed < 2**63:
+        raise ConfigError(f"--seed must be a whole number from 0 to 2^63 - 1, got {seed}")
+    if kidnap is not None:
+        at_s, to_s, _carry_s = kidnap
+        if not (math.isfinite(at_s) and at_s > 0 and math.isfinite(to_s) and to_s >= 0):
+            raise ConfigError(f"--kidnap and --kidnap-to must be route times in seconds, got "
+                              f"{at_s:g} and {to_s:g}")
+        if duration_s is not None and at_s >= duration_s:
+            raise ConfigError(f"--kidnap {at_s:g} s is past the end of the run (--duration "
+                              f"{duration_s:g} s): the robot would never be kidnapped")
+    if record is not None:
+        check_utf8_path(record, "--record")
+        check_output_file(record, force=False, option="--record", force_option=None)
+        partial = record.with_name(record.name + PARTIAL_SUFFIX)
+        if partial.exists():
+            raise ConfigError(f"{partial}: an interrupted recording is in the way (read it, or "
+                              "remove it, first)")
+
+
+def _run_demo(base_cfg: Any, robot: Any, clock: Any, cam_model: Any, *, out: Path, map_path: Path,
+              calibration: Any, early: Any, wall0: float, realtime: bool, plot: bool,
+              record: Path | None, observers: tuple[Any, ...], base: str, can_convention: str,
+              floor_files: tuple[str, ...], floor_pattern: str | None) -> dict[str, Any]:
+    """The demo once its arguments are checked, its folder is ready and its map locked."""
+    from robotd.base.config import replace
+    from robotd.base.files import write_text_replacing
+
     if base == "can":
         from sim.emulators.can import can_config_changes
 
@@ -295,12 +355,13 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
         cfg = replace(base_cfg, "base", driver="kobuki", port=robot.port)
     cfg = replace(cfg, "floor_camera", source="virtual")
     cfg = replace(cfg, "map", path=str(map_path))
-    recorder = _Recorder(out, _nominal_drive_if_calibrated(cfg))
-    live = _drive(robot, cfg, clock, recorder, realtime=realtime, record=record, observers=observers)
+    recorder = _Recorder(out, _nominal_drive_if_calibrated(cfg, calibration))
+    live = _drive(robot, cfg, clock, recorder, realtime=realtime, record=record, observers=observers,
+                  calibration=calibration, early=early)
     live["wall_s"] = time.monotonic() - wall0
     summary = _summarise(cfg, cam_model, robot, recorder, live, out, plot=plot,
                          floor_files=floor_files, floor_pattern=floor_pattern, record=record)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    write_text_replacing(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary
 
 
@@ -387,7 +448,8 @@ def _clear_previous_map(map_path: Path) -> None:
 
 
 def _drive(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, *, realtime: bool,
-           record: Path | None, observers: tuple[Any, ...] = ()) -> dict[str, Any]:
+           record: Path | None, observers: tuple[Any, ...] = (), calibration: Any = None,
+           early: Any = None) -> dict[str, Any]:
     """Play the virtual robot out through the assembled daemon (its Kobuki bytes read by
     the real driver over the pty), optionally recording everything; returns the run's
     figures (report, keyframes stored, commands the robot saw, camera drops).
@@ -403,14 +465,16 @@ def _drive(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, *, realtime: b
         writer = open_recording(cfg, record)
     try:
         return _drive_and_record(robot, cfg, clock, recorder, progress, realtime=realtime,
-                                 writer=writer, observers=observers)
+                                 writer=writer, observers=observers, calibration=calibration,
+                                 early=early)
     finally:
         if writer is not None:
             writer.close(completed=False, reason="the demo stopped on an error")
 
 
 def _drive_and_record(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, progress: _Progress,
-                      *, realtime: bool, writer: Any, observers: tuple[Any, ...] = ()) -> dict[str, Any]:
+                      *, realtime: bool, writer: Any, observers: tuple[Any, ...] = (),
+                      calibration: Any = None, early: Any = None) -> dict[str, Any]:
     from robotd.app.assemble import assemble_daemon, open_map
     from robotd.app.notify import Notifier
     from robotd.io.trajectory import write_tum
@@ -433,8 +497,10 @@ def _drive_and_record(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, pro
             sources = {name: RecordingTee(src, writer) for name, src in sources.items()}
             watchers.append(OdometryRecorder(writer))
         daemon = assemble_daemon(cfg, clock, sources, store, Notifier(), lossless=not realtime,
-                                 observers=watchers,
+                                 observers=watchers, calibration=calibration,
                                  driver_stats=lambda: {"can" if is_can else "kobuki": driver.stats()})
+        if early is not None:  # a Ctrl-C held during start-up stops the run at once
+            early.attach(daemon)
         robot.start()
 
         def finished() -> bool:
@@ -454,6 +520,8 @@ def _drive_and_record(robot: Any, cfg: Any, clock: Any, recorder: _Recorder, pro
                     and c.frames >= robot.camera.frames_emitted - robot.camera.dropped)
 
         report = daemon.run(stop_when=finished)
+        if early is not None:  # from here on Ctrl-C interrupts the report as usual
+            early.release()
         progress.update(robot.sim_time_s, daemon.pipeline.stage("keyframes").keyframes, final=True)
         robot.stop()
         recorder.close()
@@ -680,7 +748,7 @@ def _graph_summary(map_path: Path, robot: Any, c: dict[str, int],
     import numpy as np
 
     from robotd.io.store import MapStore
-    from robotd.io.trajectory import relative_pose_error, trajectory_errors
+    from robotd.io.trajectory import relative_pose_error, trajectory_errors, write_tum
 
     with MapStore.open(map_path, create=False) as store:
         kfs = list(store.keyframes())
@@ -691,6 +759,9 @@ def _graph_summary(map_path: Path, robot: Any, c: dict[str, int],
     kfs = [k for k in kfs if k.id in opt]
     odometry = np.array([[k.x_m, k.y_m, k.yaw_rad] for k in kfs])  # wheel + gyro (KeyframeStage)
     optimized = np.array([opt[k.id] for k in kfs])
+    # Every trajectory the summary prints is a file, so evo compares them all.
+    stamps = np.array([k.stamp_ns for k in kfs], dtype=np.int64)
+    write_tum(map_path.parent / "corrected.tum", stamps, optimized)
     truth = robot.motion.pose_at(np.array([k.stamp_ns for k in kfs]) / 1e9)
     out: dict[str, Any] = {"keyframes": len(kfs), "loops_in_graph": len(loops),
                            **{k: v for k, v in c.items() if k.startswith(("loops_", "graph_"))}}
@@ -698,6 +769,8 @@ def _graph_summary(map_path: Path, robot: Any, c: dict[str, int],
     if visual_poses and all(k.id in visual_poses for k in kfs):
         columns.insert(1, ("vo_only", np.array([visual_poses[k.id] for k in kfs])))
     for name, est in columns:
+        if name != "loop_corrected":
+            write_tum(map_path.parent / f"{'keyframes' if name == 'odometry' else name}.tum", stamps, est)
         e = trajectory_errors(truth, est)
         rpe_t, rpe_r = relative_pose_error(truth, est)
         out[name] = {"end_position_error_m": e.end_position_error_m,

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from robotd.base.errors import SequenceError
+from robotd.base.files import nonempty_path
 
 log = logging.getLogger(__name__)
 
@@ -45,12 +46,12 @@ def add_arguments(sub: argparse._SubParsersAction) -> None:
                     "natural name order and score it against a ground-truth same-place matrix, "
                     "beside two baselines: the same likelihoods without the filter, and brute-force "
                     "SIFT matching with RANSAC against every past image.")
-    fw.add_argument("--images", type=Path, required=True, metavar="DIR",
+    fw.add_argument("--images", type=nonempty_path, required=True, metavar="DIR",
                     help="folder of images (jpg, png, bmp, ...), taken in name order")
-    fw.add_argument("--ground-truth", type=Path, required=True, metavar="FILE",
+    fw.add_argument("--ground-truth", type=nonempty_path, required=True, metavar="FILE",
                     help="N x N matrix, non-zero = same place (.npy, .csv, or an image such as .bmp/.png; "
                          "either triangle)")
-    fw.add_argument("--out", type=Path, default=None, metavar="DIR",
+    fw.add_argument("--out", type=nonempty_path, default=None, metavar="DIR",
                     help="write forward_eval.json and the plots here")
     fw.add_argument("--features", choices=("sift", "orb"), default="sift")
     fw.add_argument("--likelihood", choices=("paper", "rtabmap"), default="paper",

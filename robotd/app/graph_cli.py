@@ -11,7 +11,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from robotd.base.errors import GraphError, RobotdError
+from robotd.base.errors import GraphError, OutputError, RobotdError
+from robotd.base.files import check_output_file, describe_path_kind, nonempty_path
 
 if TYPE_CHECKING:  # the real imports happen in the commands, so `robotd --help` skips gtsam
     from robotd.graph import BatchResult, PoseGraph
@@ -28,8 +29,8 @@ def add_arguments(sub: argparse._SubParsersAction) -> None:
                     "then Levenberg-Marquardt with loop edges under a DCS robust kernel, then "
                     "graduated non-convexity (--robust). Prints the "
                     "initial and final objective, the iterations and the time.")
-    opt.add_argument("input", type=Path, metavar="IN.g2o")
-    opt.add_argument("--out", type=Path, required=True, metavar="OUT.g2o")
+    opt.add_argument("input", type=nonempty_path, metavar="IN.g2o")
+    opt.add_argument("--out", type=nonempty_path, required=True, metavar="OUT.g2o")
     opt.add_argument("--isotropic", action="store_true",
                      help="SE-Sync's isotropic noise per edge and its objective (benchmark tables)")
     opt.add_argument("--no-robust", action="store_true", help="plain least squares on every edge")
@@ -43,16 +44,20 @@ def add_arguments(sub: argparse._SubParsersAction) -> None:
         "export", help="write a map's pose graph as g2o and its trajectories as TUM",
         description="Write DIR/graph.g2o (keyframes at their odometry poses, odometry and loop links), "
                     "DIR/odometry.tum and DIR/optimized.tum (after the batch solver).")
-    exp.add_argument("map", type=Path, metavar="MAP.sqlite")
-    exp.add_argument("--out", type=Path, required=True, metavar="DIR")
+    exp.add_argument("map", type=nonempty_path, metavar="MAP.sqlite")
+    exp.add_argument("--out", type=nonempty_path, required=True, metavar="DIR")
     exp.add_argument("--force", action="store_true", help="overwrite existing output files")
     exp.set_defaults(func=run_export)
 
 
-def _refuse_overwrite(paths: list[Path], force: bool) -> None:
-    existing = [p for p in paths if p.exists()]
-    if existing and not force:
-        raise RobotdError(f"{existing[0]} exists (use --force to overwrite)")
+def _check_input(path: Path, what: str) -> None:
+    from robotd.base.files import describe_path_kind
+
+    kind = describe_path_kind(path)
+    if kind == "missing":
+        raise RobotdError(f"{what} {path}: no such file")
+    if kind != "a regular file":
+        raise RobotdError(f"{what} {path} is {kind}, not a file")
 
 
 def _summary(result: BatchResult) -> None:
@@ -78,7 +83,8 @@ def run_optimize(args: argparse.Namespace) -> int:
     from robotd.graph import BatchParams, optimize_batch
     from robotd.io.g2o import read_g2o, write_g2o
 
-    _refuse_overwrite([args.out], args.force)
+    _check_input(args.input, "input")
+    check_output_file(args.out, force=args.force, inputs=[args.input])
     graph = read_g2o(args.input)
     params = BatchParams(noise="isotropic" if args.isotropic else "full", robust=not args.no_robust,
                          kernel=getattr(args, "robust", "gnc"))
@@ -124,12 +130,20 @@ def run_export(args: argparse.Namespace) -> int:
     from robotd.io.trajectory import write_tum
 
     out: Path = args.out
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"--out {out} is {describe_path_kind(out)}; give a folder (it gets "
+                          "graph.g2o, odometry.tum and optimized.tum)")
     targets = [out / "graph.g2o", out / "odometry.tum", out / "optimized.tum"]
-    _refuse_overwrite(targets, args.force)
+    if out.is_dir():
+        for t in targets:
+            check_output_file(t, force=args.force, inputs=[args.map])
     with MapStore.open(args.map, create=False, read_only=True) as store:
         graph, stamps = graph_from_map(store)
     result = optimize_batch(graph)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create the output folder {out}: {exc.strerror or exc}") from None
     write_g2o(targets[0], graph)
     write_tum(targets[1], stamps, graph.poses())
     write_tum(targets[2], stamps, result.poses)

@@ -11,8 +11,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import signal
-import threading
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, Callable
@@ -20,9 +18,10 @@ from typing import Any, Callable
 import numpy as np
 
 from robotd.app.assemble import assemble_daemon, load_calibration, open_map
+from robotd.app.signals import StartupSignals, held_signals
 from robotd.base.clock import Clock, MonotonicClock
 from robotd.base.config import Config, to_toml
-from robotd.base.errors import ConfigError
+from robotd.base.errors import ConfigError, DriverError
 from robotd.base.messages import OdometryUpdate
 
 log = logging.getLogger(__name__)
@@ -86,58 +85,23 @@ class OdometryRecorder:
         self.writer.write_odometry(u.wheel, self.wheel_topic)
 
 
-class StartupSignals:
-    """SIGTERM/SIGINT that arrive while ``robotd run`` starts (opening the devices and
-    the map, assembling the pipeline), before the daemon's own handlers exist.
-
-    Without it such a signal killed the process outright (Python's default action), in
-    the middle of making a run in the map; now it is held and handed to the daemon,
-    which then starts, stops at once and ends the run cleanly. A context manager: the
-    previous handlers come back on exit. Like the daemon's handler, this one only
-    assigns attributes (see :meth:`robotd.app.daemon.Daemon._on_signal`).
-    """
-
-    def __init__(self) -> None:
-        self.received = ""
-        self._daemon: Any = None
-        self._old: dict[int, Any] = {}
-
-    def __enter__(self) -> StartupSignals:
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGTERM, signal.SIGINT):
-                self._old[sig] = signal.signal(sig, self._handler)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for sig, handler in self._old.items():
-            signal.signal(sig, handler)
-
-    def _handler(self, signum: int, _frame: Any) -> None:
-        name = signal.Signals(signum).name
-        if self._daemon is not None:
-            self._daemon.signalled(name)
-        elif not self.received:
-            self.received = name
-
-    def attach(self, daemon: Any) -> None:
-        """From now on signals go to ``daemon``, and one held already is handed over."""
-        self._daemon = daemon
-        if self.received:
-            log.info("%s during start-up: stopping once the run is open", self.received)
-            daemon.signalled(self.received)
-
-
 def run_service(cfg: Config, record: Path | None = None, *, config_path: Path | None = None,
-                log_level_fixed: bool = False) -> int:
+                log_level_fixed: bool = False, startup: StartupSignals | None = None) -> int:
     """Run until SIGTERM/SIGINT; returns the process exit status.
 
     With ``record``, everything the drivers deliver and the odometry are also written to
     that MCAP file (complete once the daemon stops, ``.partial`` until then). With
     ``config_path`` (the file ``cfg`` came from), SIGHUP reloads it
     (:class:`~robotd.app.reload.ConfigReloader`; ``log_level_fixed``: ``--log-level`` was
-    given and stays).
+    given and stays). ``startup``: the CLI's guard of SIGINT/SIGTERM during start-up
+    (default: one of its own).
     """
-    with StartupSignals() as early:
+    from robotd.io.maplock import hold_map_lock
+
+    # The map's lock first: a second daemon on the same map is refused before it opens a
+    # device, and the first one's run is never touched.
+    with held_signals(startup) as early, hold_map_lock(Path(cfg.map.path).absolute()):
+        early.stop_if_received()
         return _run_service(cfg, record, config_path, log_level_fixed, early)
 
 
@@ -211,7 +175,8 @@ def open_recording(cfg: Config, path: Path) -> Any:
     return writer
 
 
-def run_replay(cfg: Config, path: Path, speed: float | None) -> dict[str, Any]:
+def run_replay(cfg: Config, path: Path, speed: float | None,
+               startup: StartupSignals | None = None) -> dict[str, Any]:
     """Feed a recording through the daemon (at ``speed`` x recorded time, or as fast as
     possible when None) and write the map the config names; returns the run's report:
     ``recording_s`` is how much of the recording was replayed (``recording_total_s`` of it
@@ -225,16 +190,26 @@ def run_replay(cfg: Config, path: Path, speed: float | None) -> dict[str, Any]:
     from robotd.app.notify import Notifier
     from robotd.base.clock import ManualClock
 
+    from robotd.io.maplock import hold_map_lock
+
     clock = ManualClock()
-    with ReplayDriver(path, clock, speed) as replay:
+    with held_signals(startup) as early, hold_map_lock(Path(cfg.map.path).absolute()), \
+            ReplayDriver(path, clock, speed) as replay:
         span = replay.time_range_ns
-        if span is None:
-            raise ConfigError(f"{path}: the recording holds no messages")
+        if span is None or replay.peek() is None:
+            # Checked before the map is opened: a file robotd cannot replay adds no empty run.
+            raise DriverError(f"{path}: no message robotd replays (wheel ticks, yaw rates, camera "
+                              f"frames); the file holds {replay.describe_contents()}")
+        calibration = load_calibration(cfg)
+        early.stop_if_received()
         clock.set_ns(span[0])
         with open_map(cfg, clock=clock) as store:
             daemon = assemble_daemon(cfg, clock, {"replay": replay}, store, Notifier(), lossless=True,
+                                     calibration=calibration, load_calibration_file=False,
                                      driver_stats=lambda: {"replay": replay.stats()})
+            early.attach(daemon)
             report = daemon.run(stop_when=lambda: replay_finished(replay, daemon))
+        early.release()
     c = report.counters
     interrupted = report.stopped_by if report.stopped_by in ("SIGINT", "SIGTERM") else None
     reached_ns = min(clock.now_ns(), span[1]) if interrupted else span[1]

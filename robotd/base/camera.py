@@ -111,7 +111,8 @@ class CameraIntrinsics:
                 f"distortion_coefficients: {d.size} coefficients with non-zero k4.. (OpenCV's rational or "
                 "thin-prism model) are not supported; calibrate with the 5-coefficient model")
         return cls(width_px=width_px, height_px=height_px, fx_px=float(k[0, 0]), fy_px=float(k[1, 1]),
-                   cx_px=float(k[0, 2]), cy_px=float(k[1, 2]), distortion=tuple(float(x) for x in d[:5]))
+                   cx_px=float(k[0, 2]), cy_px=float(k[1, 2]),
+                   distortion=(float(d[0]), float(d[1]), float(d[2]), float(d[3]), float(d[4])))
 
     def camera_matrix(self) -> np.ndarray:
         """``(3, 3) float64`` OpenCV camera matrix K, pixels."""

@@ -20,9 +20,12 @@ from robotd.base.errors import ConfigError
 
 
 def _f(default: Any, doc: str, *, lo: float | None = None, hi: float | None = None,
-       choices: tuple[str, ...] | None = None, length: int | None = None) -> Any:
-    """A config field with its documentation and validity constraints."""
-    meta = {"doc": doc, "lo": lo, "hi": hi, "choices": choices, "length": length}
+       choices: tuple[str, ...] | None = None, length: int | None = None,
+       nonempty: bool = False) -> Any:
+    """A config field with its documentation and validity constraints (``nonempty``: a
+    string that must not be empty or blank, such as a file path)."""
+    meta = {"doc": doc, "lo": lo, "hi": hi, "choices": choices, "length": length,
+            "nonempty": nonempty}
     if isinstance(default, (list, tuple)):
         return field(default=tuple(default), metadata=meta)
     return field(default=default, metadata=meta)
@@ -42,7 +45,7 @@ class BaseConfig:
     """The mobile base: wheel encoders and gyro."""
 
     driver: str = _f("kobuki", "base driver ('can': the [can] section)", choices=("kobuki", "can", "none"))
-    port: str = _f("/dev/kobuki", "serial port: a device path or any pyserial URL")
+    port: str = _f("/dev/kobuki", "serial port: a device path or any pyserial URL", nonempty=True)
     baudrate: int = _f(115200, "serial baud rate", lo=1200, hi=4_000_000)
     yaw_source: str = _f("raw_gyro", "which gyro reading feeds the filter",
                          choices=("raw_gyro", "inertial"))
@@ -95,7 +98,7 @@ class FloorCameraConfig:
     fy_px: float = _f(400.0, "focal length y", lo=1.0, hi=1e5)
     cx_px: float = _f(319.5, "principal point x", lo=-1e5, hi=1e5)
     cy_px: float = _f(239.5, "principal point y", lo=-1e5, hi=1e5)
-    distortion: tuple = _f((-0.05, 0.0, 0.0, 0.0, 0.0), "OpenCV k1 k2 p1 p2 k3", length=5)
+    distortion: tuple[float, ...] = _f((-0.05, 0.0, 0.0, 0.0, 0.0), "OpenCV k1 k2 p1 p2 k3", length=5)
     mount_height_m: float = _f(0.40, "lens height above the floor", lo=0.01, hi=5.0)
     mount_tilt_deg: float = _f(0.0, "pitch away from straight down, towards forward", lo=-60.0, hi=60.0)
     mount_x_m: float = _f(0.0, "camera position in the robot frame, forward", lo=-2.0, hi=2.0)
@@ -238,14 +241,15 @@ class CalibrationConfig:
     """Where the calibration file is (written by ``robotd calibrate``)."""
 
     path: str = _f("/etc/robotd/calibration.yml",
-                   "OpenCV YAML: intrinsics, floor mount, trained loop thresholds (optional)")
+                   "OpenCV YAML: intrinsics, floor mount, trained loop thresholds (optional)",
+                   nonempty=True)
 
 
 @dataclass(frozen=True)
 class MapConfig:
     """The SQLite map file."""
 
-    path: str = _f("/var/lib/robotd/map.sqlite", "map file (created if missing)")
+    path: str = _f("/var/lib/robotd/map.sqlite", "map file (created if missing)", nonempty=True)
 
 
 @dataclass(frozen=True)
@@ -287,7 +291,7 @@ class Config:
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
 
 
-def _check_value(section: str, f: dataclasses.Field, value: Any) -> Any:
+def _check_value(section: str, f: dataclasses.Field[Any], value: Any) -> Any:
     """Type- and range-check one value; return it converted to the field's type."""
     key = f"[{section}] {f.name}"
     meta = f.metadata
@@ -307,6 +311,8 @@ def _check_value(section: str, f: dataclasses.Field, value: Any) -> Any:
     elif isinstance(default, str):
         if not isinstance(value, str):
             raise ConfigError(f"{key}: expected a string, got {value!r}")
+        if meta.get("nonempty") and not value.strip():
+            raise ConfigError(f"{key}: must not be empty")
     elif isinstance(default, tuple):
         if not isinstance(value, list) or not all(
             isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
@@ -335,7 +341,7 @@ def config_from_dict(data: dict[str, Any]) -> Config:
             raise ConfigError(f"unknown section [{name}] (known: {', '.join(sections)})")
         if not isinstance(table, dict):
             raise ConfigError(f"[{name}] must be a table, got {table!r}")
-        cls = sections[name].default_factory  # type: ignore[misc]
+        cls: Any = sections[name].default_factory
         fields = {f.name: f for f in dataclasses.fields(cls)}
         values = {}
         for key, value in table.items():
@@ -387,6 +393,33 @@ def to_toml(cfg: Config) -> str:
         for f in dataclasses.fields(getattr(cfg, sf.name)):
             v = getattr(getattr(cfg, sf.name), f.name)
             lines.append(f"{f.name} = {_toml_value(v)}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def commented_toml(cfg: Config | None = None) -> str:
+    """``cfg`` (default: the defaults) as TOML with each section's and key's description,
+    unit and valid range as comments: what ``robotd config default`` prints, a config file
+    to start from."""
+    cfg = Config() if cfg is None else cfg
+    lines = ["# robotd configuration (robotd config default). Unknown keys and out-of-range",
+             "# values are errors that name the key. Units are in the key names.", ""]
+    for sf in dataclasses.fields(cfg):
+        section = getattr(cfg, sf.name)
+        lines.append(f"[{sf.name}]")
+        doc = " ".join((type(section).__doc__ or "").strip().split("\n\n")[0].split())
+        if doc:
+            lines.append(f"# {doc}")
+        for f in dataclasses.fields(section):
+            meta = f.metadata
+            note = " ".join(str(meta.get("doc", "")).split())
+            lo, hi, choices = meta.get("lo"), meta.get("hi"), meta.get("choices")
+            if choices:
+                note += f" (one of {', '.join(map(repr, choices))})"
+            elif lo is not None or hi is not None:
+                note += f" ({'' if lo is None else f'{lo:g} '}..{'' if hi is None else f' {hi:g}'})"
+            lines.append(f"# {note}")
+            lines.append(f"{f.name} = {_toml_value(getattr(section, f.name))}")
         lines.append("")
     return "\n".join(lines)
 

@@ -42,3 +42,9 @@ class GraphError(RobotdError):
 class SequenceError(RobotdError):
     """An image sequence or its ground-truth matrix cannot be read, or they do not fit
     together (a missing folder, an unreadable image, a matrix of the wrong size)."""
+
+
+class OutputError(RobotdError):
+    """An output file the user named cannot or must not be written: it exists (without
+    ``--force``), it is one of the inputs, it is a folder, or the disk is full or read-only.
+    The previous file, if any, is left as it was."""

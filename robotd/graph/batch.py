@@ -38,7 +38,7 @@ import gtsam
 import numpy as np
 
 from robotd.base.geometry import compose, inverse
-from robotd.graph.factors import (Kernel, anchor_factor, between_factor, factor_graph, from_values,
+from robotd.graph.factors import (anchor_factor, between_factor, factor_graph, from_values,
                                   robust_kernel, to_values)
 from robotd.graph.model import PoseGraph, chi2, edge_chi2, isotropic_graph, isotropic_objective
 

@@ -29,8 +29,13 @@ from pathlib import Path
 import numpy as np
 
 from robotd.base.errors import GraphError
+from robotd.base.files import write_text_replacing
 from robotd.graph import PoseGraph, chain_poses, make_edge
 from robotd.graph.model import Edge
+
+
+MAX_VERTEX_ID = 2**63 - 1
+"""The largest vertex id read (the map store's and numpy's signed 64-bit integers)."""
 
 
 def _numbers(parts: list[str], where: str, kinds: str) -> list[float]:
@@ -42,6 +47,8 @@ def _numbers(parts: list[str], where: str, kinds: str) -> list[float]:
                 value: float = int(text)
                 if value < 0:
                     raise GraphError(f"{where}: negative vertex id {text}")
+                if value > MAX_VERTEX_ID:  # GTSAM keys are 64-bit; robotd's ids are signed 64-bit
+                    raise GraphError(f"{where}: vertex id {text} is above the largest, 2^63 - 1")
             else:
                 value = float(text)
                 if not math.isfinite(value):
@@ -178,5 +185,6 @@ def format_g2o(graph: PoseGraph, poses: np.ndarray | None = None) -> str:
 
 
 def write_g2o(path: Path | str, graph: PoseGraph, poses: np.ndarray | None = None) -> None:
-    """Write :func:`format_g2o` to ``path``."""
-    Path(path).write_text(format_g2o(graph, poses), encoding="ascii")
+    """Write :func:`format_g2o` to ``path``, replacing it atomically (a full disk or an
+    interruption leaves the previous file as it was; :class:`OutputError`)."""
+    write_text_replacing(Path(path), format_g2o(graph, poses), encoding="ascii")

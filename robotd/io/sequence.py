@@ -63,7 +63,8 @@ def load_ground_truth(path: Path, n_images: int | None = None) -> np.ndarray:
     """
     path = Path(path)
     if not path.is_file():
-        raise SequenceError(f"ground-truth file {path} does not exist")
+        what = "is a folder, not a file" if path.is_dir() else "does not exist"
+        raise SequenceError(f"ground-truth file {path} {what}")
     suffix = path.suffix.lower()
     try:
         if suffix == ".npy":
@@ -93,6 +94,11 @@ def load_ground_truth(path: Path, n_images: int | None = None) -> np.ndarray:
                             f"has {n_images} images")
     if m.dtype.kind not in "biuf":
         raise SequenceError(f"ground truth {path} is not numeric (dtype {m.dtype})")
+    if m.dtype.kind == "f" and not np.isfinite(m).all():
+        bad = np.argwhere(~np.isfinite(m))[0]
+        raise SequenceError(f"ground truth {path} holds {int((~np.isfinite(m)).sum())} values that "
+                            f"are not numbers (NaN or infinite), the first at row {bad[0]}, column "
+                            f"{bad[1]}: every pair must be 0 (different places) or 1 (same place)")
     truth = m != 0
     truth = truth | truth.T
     np.fill_diagonal(truth, False)

@@ -74,6 +74,7 @@ import robotd
 from robotd.base.clock import Clock, MonotonicClock
 from robotd.base.errors import MapStoreError
 from robotd.io.mapfile import MIGRATIONS, SCHEMA_VERSION, inspect_file, migrate
+from robotd.io.maplock import acquire_map_lock, release_map_lock
 
 __all__ = [
     "LOOP_CANDIDATE_FATES", "MIGRATIONS", "SCHEMA_VERSION", "UNCLEAN_END_NOTE", "KeyframeRecord",
@@ -219,6 +220,7 @@ class MapStore:
         self._clock = clock
         self._image_codec = image_codec
         self._jpeg_quality = int(jpeg_quality)
+        self._holds_lock = False  # set by open() for a writable store
 
     # -- opening and closing -------------------------------------------------------
 
@@ -263,6 +265,9 @@ class MapStore:
         if synchronous not in ("NORMAL", "FULL"):
             raise ValueError(f"synchronous must be 'NORMAL' or 'FULL', got {synchronous!r}")
         path = Path(path).absolute()
+        if path.parent.is_dir() and not os.access(path.parent, os.X_OK):
+            raise MapStoreError(f"map file {path}: cannot enter its folder {path.parent} "
+                                "(permission denied: run as the user the map belongs to)")
         migrations = MIGRATIONS
         target = max(migrations)
 
@@ -291,6 +296,21 @@ class MapStore:
         if version and not os.access(path, os.W_OK):
             raise MapStoreError(f"map file {path} is read-only")
 
+        acquire_map_lock(path)  # one writer per map (robotd.io.maplock); refused at once
+        try:
+            store = cls._open_writable(path, version, target, migrations, synchronous=synchronous,
+                                       image_codec=image_codec, jpeg_quality=jpeg_quality,
+                                       clock=clock)
+        except BaseException:
+            release_map_lock(path)
+            raise
+        store._holds_lock = True
+        return store
+
+    @classmethod
+    def _open_writable(cls, path: Path, version: int, target: int, migrations: dict, *,
+                       synchronous: str, image_codec: Literal["jpeg", "png"], jpeg_quality: int,
+                       clock: Clock | None) -> MapStore:
         try:
             conn = sqlite3.connect(
                 path.as_uri() + "?mode=rwc",
@@ -372,6 +392,9 @@ class MapStore:
             except sqlite3.Error as exc:  # an optimisation hint: never fail close on it
                 _log.debug("PRAGMA optimize failed on %s: %s", self._path, exc)
             conn.close()
+            if self._holds_lock:
+                self._holds_lock = False
+                release_map_lock(self._path)
 
     def __enter__(self) -> MapStore:
         return self

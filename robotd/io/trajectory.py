@@ -13,6 +13,7 @@ from typing import TextIO
 
 import numpy as np
 
+from robotd.base.files import replacing
 from robotd.base.geometry import between, compose, inverse, quaternion_to_yaw, wrap_angle, yaw_to_quaternion
 
 
@@ -23,8 +24,9 @@ def format_tum_line(stamp_ns: int, x_m: float, y_m: float, yaw_rad: float) -> st
 
 
 def write_tum(path: Path | str, stamps_ns: np.ndarray, poses: np.ndarray) -> None:
-    """Write a whole trajectory as a TUM file."""
-    with open(path, "w", encoding="ascii") as f:
+    """Write a whole trajectory as a TUM file, replacing ``path`` atomically (a full disk or
+    an interruption leaves the previous file as it was; :class:`OutputError`)."""
+    with replacing(Path(path), "w", encoding="ascii") as f:
         f.write("# timestamp x y z qx qy qz qw\n")
         for t, p in zip(stamps_ns, poses):
             f.write(format_tum_line(int(t), float(p[0]), float(p[1]), float(p[2])))

@@ -593,3 +593,24 @@ def test_fused_step_that_disagrees_with_the_wheels_stays_out_of_the_edge():
     assert edges[1][0] == pytest.approx([0.0501, 0.0, 0.0], abs=1e-6)  # the two averaged
     assert edges[1][1] == pytest.approx(np.eye(3) * 0.5e-6, rel=1e-3)
     assert edges[2] is wheel
+
+
+def test_the_calibration_file_says_which_floor_camera_keys_it_replaces(tmp_path, caplog):
+    """A calibrated camera silently replacing the config's [floor_camera] values was a trap:
+    the start-up log now names them."""
+    import logging
+
+    from robotd.app.assemble import calibration_overrides, load_calibration
+    from robotd.base.config import Config, replace
+    from robotd.io.calibfile import CalibrationFile, FloorMount, write_calibration
+
+    path = tmp_path / "cal.yml"
+    write_calibration(path, CalibrationFile(mount=FloorMount(height_m=0.2, tilt_deg=1.0, x_m=0.1,
+                                                             y_m=0.0, yaw_deg=-90.0)))
+    cfg = replace(Config(), "calibration", path=str(path))
+    with caplog.at_level(logging.INFO, logger="robotd.app.assemble"):
+        calib = load_calibration(cfg)
+    assert calibration_overrides(calib) == ["mount_height_m", "mount_tilt_deg", "mount_x_m",
+                                            "mount_y_m", "mount_yaw_deg"]
+    assert f"the calibration file {path} replaces [floor_camera] mount_height_m, " in caplog.text
+    assert "fx_px" not in caplog.text

@@ -1,5 +1,6 @@
 """The TOML config: defaults, the shipped commented file, and errors that name the key."""
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -80,3 +81,36 @@ def test_visual_odometry_section(tmp_path):
     f.write_text('[visual_odometry]\nmin_inliers = 2\n')
     with pytest.raises(ConfigError, match=r"\[visual_odometry\] min_inliers"):
         load_config(f)
+
+
+SERVICE_CHOICES = {("pose_graph", "localise_mapped"): True}
+"""Where systemd/robotd.toml deliberately differs from the code's defaults (a robot that
+drives the same rooms for weeks should stop growing its map over mapped ground)."""
+
+
+def test_the_shipped_service_config_is_the_defaults_plus_its_stated_choices():
+    """systemd/robotd.toml names every key of the schema, and each value is the default
+    unless SERVICE_CHOICES says otherwise: the hand-commented file cannot drift."""
+    import tomllib
+
+    from robotd.base.config import Config, load_config
+
+    path = Path(__file__).resolve().parents[2] / "systemd" / "robotd.toml"
+    raw = tomllib.loads(path.read_text())
+    service, default = load_config(path), Config()
+    for sf in dataclasses.fields(Config):
+        keys = {f.name for f in dataclasses.fields(getattr(default, sf.name))}
+        assert set(raw.get(sf.name, {})) == keys, f"[{sf.name}] in robotd.toml"
+        for key in keys:
+            want = SERVICE_CHOICES.get((sf.name, key), getattr(getattr(default, sf.name), key))
+            assert getattr(getattr(service, sf.name), key) == want, f"[{sf.name}] {key}"
+
+
+def test_config_default_is_a_commented_file_that_loads_as_the_defaults(tmp_path):
+    from robotd.base.config import Config, commented_toml, load_config
+
+    text = commented_toml()
+    (tmp_path / "d.toml").write_text(text)
+    assert load_config(tmp_path / "d.toml") == Config()
+    assert "# wheel radius (0.005 .. 1)\nwheel_radius_m = 0.035\n" in text
+    assert "(one of 'kobuki', 'can', 'none')\ndriver = \"kobuki\"" in text

@@ -24,10 +24,18 @@ from calibration.intrinsics import (
 from robotd.base.errors import CalibrationError
 from robotd.base.camera import CameraIntrinsics, FloorCameraModel
 from tests.calibration import SHARED_DATA, centred_board_pose, render_board
+from tests.shared_data import require
 
 PHOTOS = SHARED_DATA / "calibration" / "opencv_left"
-needs_photos = pytest.mark.skipif(not (PHOTOS / "left_intrinsics.yml").is_file(),
-                                  reason=f"OpenCV sample photos not found at {PHOTOS} (../shared/data is absent)")
+
+
+@pytest.fixture
+def opencv_photos() -> Path:
+    """The OpenCV sample photos (skipped where ../shared/data is absent, failed in CI)."""
+    return require(PHOTOS / "left_intrinsics.yml", "OpenCV sample photos").parent
+
+
+needs_photos = pytest.mark.usefixtures("opencv_photos")
 
 # OpenCV's result for these photos (left_intrinsics.yml; DATA README).
 PUBLISHED = {"fx": 535.9157, "fy": 535.9157, "cx": 342.2832, "cy": 235.5708, "error": 0.3926}

@@ -164,7 +164,9 @@ unknown_st = st.builds(UnknownSubPayload, st.sampled_from([2, 3, 5, 6, 16, 200])
 def test_feedback_round_trip(items):
     packet = encode_feedback(*items)
     parser = PacketParser()
-    (payload,) = parser.feed(packet)
+    # A packet whose bytes hold AA 55 is settled only by the next packet or the stream's
+    # end (PacketParser._scan: "cannot tell before the next packet is complete").
+    (payload,) = parser.feed(packet) + parser.finish()
     assert decode_feedback(payload, parser.stats) == items
     assert parser.stats.unknown_subpayloads == sum(type(i) is UnknownSubPayload for i in items)
     assert parser.stats.malformed_subpayloads == 0

@@ -11,14 +11,13 @@ import pytest
 from robotd.forward import LOOP, DetectorParams, FeatureParams, ForwardDetector, MemoryParams
 from robotd.forward.evaluation import score_decisions
 from robotd.io.sequence import list_images, load_ground_truth, read_image
+from tests.shared_data import require
 
 SAMPLES = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "forward" / "rtabmap_samples"
 
 
 def _run(params: DetectorParams):
-    if not (SAMPLES / "ground_truth.bmp").is_file():
-        pytest.skip(f"real corridor images not found at {SAMPLES} (../shared/data is absent)")
-    gt_path = SAMPLES / "ground_truth.bmp"
+    gt_path = require(SAMPLES / "ground_truth.bmp", "real corridor images")
     files = list_images(SAMPLES, exclude=(gt_path,))
     truth = load_ground_truth(gt_path, len(files))
     det = ForwardDetector(params)

@@ -4,6 +4,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.shared_data import require
+
 SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "posegraphs"
 
 
@@ -11,8 +13,5 @@ SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "poseg
 def posegraph_file():
     """Path of a shared benchmark graph, or a skip when ../shared is absent."""
     def get(name: str) -> Path:
-        path = SHARED / name
-        if not path.is_file():
-            pytest.skip(f"shared benchmark graph {path} is absent (../shared/data not checked out)")
-        return path
+        return require(SHARED / name, "shared benchmark graph")
     return get

@@ -24,6 +24,7 @@ from robotd.base.camera import CameraIntrinsics
 from robotd.base.config import FloorCameraConfig
 from robotd.base.errors import CalibrationError
 from tests.calibration import SHARED_DATA
+from tests.shared_data import require
 
 INTR = CameraIntrinsics(width_px=640, height_px=480, fx_px=401.25, fy_px=399.5, cx_px=321.1, cy_px=238.7,
                         distortion=(-0.051, 0.012, 0.0011, -0.0004, 0.003))
@@ -74,10 +75,9 @@ def test_the_file_is_plain_opencv_yaml(tmp_path):
     fs.release()
 
 
-@pytest.mark.skipif(not (SHARED_DATA / "calibration" / "opencv_left" / "left_intrinsics.yml").is_file(),
-                    reason="OpenCV's published calibration not found (../shared/data is absent)")
 def test_reads_the_file_opencvs_own_sample_wrote():
-    calib = read_calibration(SHARED_DATA / "calibration" / "opencv_left" / "left_intrinsics.yml")
+    calib = read_calibration(require(SHARED_DATA / "calibration" / "opencv_left" / "left_intrinsics.yml",
+                                     "OpenCV's published calibration"))
     ci = calib.intrinsics
     assert ci is not None and calib.mount is None and calib.loop is None
     assert (ci.width_px, ci.height_px) == (640, 480)

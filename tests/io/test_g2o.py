@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from robotd.base.errors import GraphError
 from robotd.graph import PoseGraph
 from robotd.io.g2o import format_g2o, parse_g2o, read_g2o, write_g2o
+from tests.shared_data import require
 
 SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "posegraphs"
 
@@ -93,9 +94,7 @@ def test_read_names_the_file(tmp_path: Path):
 
 
 def test_shared_benchmark_files_read_with_chained_vertices():
-    path = SHARED / "CSAIL.g2o"
-    if not path.is_file():
-        pytest.skip(f"shared benchmark graph {path} is absent")
+    path = require(SHARED / "CSAIL.g2o", "shared benchmark graph")
     g = read_g2o(path)
     assert len(g) == 1045 and len(g.edges) == 1172
     assert sum(e.kind == "loop" for e in g.edges) == 1172 - 1044
