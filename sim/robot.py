@@ -72,6 +72,9 @@ class VirtualRobotSettings:
 
     route: str = "office"
     seed: int = 0
+    base_seed: int | None = None
+    """The seed whose base errors (wheel radii, wheel base, gyro scale) this robot has;
+    None: ``seed``'s. The same robot on another drive, as a calibration drive needs."""
     duration_s: float | None = None
     realtime: bool = False
     floor_files: tuple[str, ...] = ()
@@ -138,8 +141,13 @@ class VirtualRobot:
                 raise ConfigError(str(exc)) from None
         if settings.duration_s is not None:
             self.motion = self.motion.truncated(settings.duration_s)
-        feedback = simulate_kobuki(self.motion, sensor_params or BaseSensorParams(), rng,
-                                   base_params)
+        sp = sensor_params or BaseSensorParams()
+        own = None
+        if settings.base_seed is not None and settings.base_seed != settings.seed:
+            from sim.sensors import draw_errors
+
+            own = draw_errors(sp, np.random.default_rng(settings.base_seed))
+        feedback = simulate_kobuki(self.motion, sp, rng, base_params, errors=own)
         self.floor = _make_floor(settings)
         self.camera_model = camera_model
         self.renderer = FloorRenderer(self.floor, camera_model, render_params or RenderParams(),

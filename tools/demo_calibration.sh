@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # Make the demo's calibration file again: a calibration drive of the virtual robot (the
-# figure-eight route over the default floor, seed 11: not the demo's own route or seed),
-# then `robotd calibrate loop-curve` on it, exactly as on a robot. Writes
-# robotd/app/data/demo_calibration.yml (shipped with the package; `robotd demo` uses it
-# when the config names no calibration file that exists). About 5 minutes on 2 cores.
+# figure-eight route over the default floor, seed 11: not the demo's own route or seed,
+# but the demo's robot: --base-seed 0 gives it the wheel and gyro errors of the demo's
+# seed-0 base), then `robotd calibrate loop-curve` and `robotd calibrate odometry` on it,
+# exactly as on a robot. Writes robotd/app/data/demo_calibration.yml (shipped with the
+# package; `robotd demo` uses it when the config names no calibration file that exists).
+# About 15 minutes on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROBOTD=${ROBOTD:-.venv/bin/robotd}
@@ -12,10 +14,15 @@ trap 'rm -rf "$work"' EXIT
 # Lossless frames: the thresholds are trained on the pixels the camera gave (a JPEG
 # recording, robotd record's default, shifts them; see README "Compact recordings").
 printf '[recording]\nimage_format = "png"\n' > "$work/record.toml"
-"$ROBOTD" record "$work/drive.mcap" --virtual --route figure8 --seed 11 --config "$work/record.toml"
+"$ROBOTD" record "$work/drive.mcap" --virtual --route figure8 --seed 11 --base-seed 0 \
+    --config "$work/record.toml"
 out=robotd/app/data/demo_calibration.yml
 rm -f "$out.new"
 "$ROBOTD" calibrate loop-curve "$work/drive.mcap" --calibration "$out.new" \
     --plot "$work/curves.png" --json "$work/train.json"
+# The odometry model from the same drive: the loop-corrected trajectory (with the
+# thresholds just trained) against the wheels and the gyro.
+"$ROBOTD" calibrate odometry "$work/drive.mcap" --calibration "$out.new" \
+    --plot "$work/odometry.png" --json "$work/odometry.json"
 mv "$out.new" "$out"
 echo "wrote $out"

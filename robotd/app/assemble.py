@@ -40,8 +40,10 @@ from robotd.odometry.kinematics import DiffDriveParams
 log = logging.getLogger(__name__)
 
 
-def build_odometry(cfg: Config) -> OdometryFilter:
-    """The wheel + gyro filter with the config's robot geometry and noise model."""
+def build_odometry(cfg: Config, calibration: CalibrationFile | None = None) -> OdometryFilter:
+    """The wheel + gyro filter with the config's robot geometry and noise model; with a
+    calibrated odometry model (``robotd calibrate odometry``), its wheel radii, wheel base
+    and gyro scale instead of the nominal ``[robot]`` values."""
     o = cfg.odometry
     params = EkfParams(
         accel_noise_mps2=o.accel_noise_mps2,
@@ -58,10 +60,21 @@ def build_odometry(cfg: Config) -> OdometryFilter:
     drive = DiffDriveParams(wheel_radius_m=cfg.robot.wheel_radius_m,
                             wheel_base_m=cfg.robot.wheel_base_m,
                             ticks_per_rev=cfg.robot.ticks_per_rev)
+    gyro_scale = 1.0
+    model = calibration.odometry if calibration is not None else None
+    if model is not None:
+        drive = DiffDriveParams(wheel_radius_m=cfg.robot.wheel_radius_m, wheel_base_m=model.wheel_base_m,
+                                ticks_per_rev=cfg.robot.ticks_per_rev,
+                                wheel_radius_left_m=model.wheel_radius_left_m,
+                                wheel_radius_right_m=model.wheel_radius_right_m)
+        gyro_scale = model.gyro_scale
+        log.info("odometry model from the calibration: wheel radii %.5f / %.5f m, wheel base %.4f m, "
+                 "gyro scale %.5f", model.wheel_radius_left_m, model.wheel_radius_right_m,
+                 model.wheel_base_m, model.gyro_scale)
     v = cfg.visual_odometry
     # Fusing visual odometry: the graph's edges come from a wheel + gyro twin (fusion.py).
     twin = v.enabled and v.mode == "fused" and cfg.floor_camera.source != "none"
-    return OdometryFilter(drive, params, vo_twin=twin)
+    return OdometryFilter(drive, params, vo_twin=twin, gyro_scale=gyro_scale)
 
 
 def load_calibration(cfg: Config) -> CalibrationFile | None:
@@ -179,7 +192,7 @@ def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, l
     ``observers`` (stages that only watch: trajectory writers, recorders, training)."""
     kf = cfg.keyframes
     pipeline = Pipeline()
-    odometry = build_odometry(cfg) if cfg.base.driver != "none" else None
+    odometry = build_odometry(cfg, calibration) if cfg.base.driver != "none" else None
     if odometry is not None:
         pipeline.add(OdometryStage(odometry))
     keyframe_stage = pipeline.add(KeyframeStage(odometry, clock, distance_m=kf.distance_m,

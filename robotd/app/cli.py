@@ -93,6 +93,9 @@ def _add_daemon_commands(sub: argparse._SubParsersAction) -> None:
     rec.add_argument("--floor-pattern", choices=("planks", "tiles"), default=None)
     rec.add_argument("--duration", type=float, default=None, metavar="S")
     rec.add_argument("--seed", type=int, default=0)
+    rec.add_argument("--base-seed", type=int, default=None, metavar="N",
+                     help="virtual robot: the base (wheel and gyro errors) of seed N on this drive "
+                          "(default: the drive's own seed), e.g. a calibration drive of the demo's robot")
     rec.set_defaults(func=_cmd_record)
 
     rep = sub.add_parser("replay", help="feed a recording through the daemon",
@@ -131,7 +134,7 @@ def _add_config_commands(sub: argparse._SubParsersAction) -> None:
 
 def _add_calibrate_commands(sub: argparse._SubParsersAction) -> None:
     """``calibrate intrinsics|floor-mount|loop-curve|validate``: the offline tools."""
-    from calibration import floor_mount, intrinsics, train_cli
+    from calibration import floor_mount, intrinsics, odometry as odometry_cal, train_cli
 
     cal = sub.add_parser("calibrate", help="camera and floor calibration")
     cal_sub = cal.add_subparsers(dest="calibrate_command", metavar="ACTION", required=True)
@@ -163,6 +166,16 @@ def _add_calibrate_commands(sub: argparse._SubParsersAction) -> None:
                                         "ground-truth footprint overlap.")
     train_cli.add_validate_arguments(cv)
     cv.set_defaults(func=train_cli.run_validate)
+    co = cal_sub.add_parser("odometry", help="fit this robot's wheel radii, wheel base, gyro scale and "
+                                             "noise to a calibration drive",
+                            description="Replay a calibration drive (the loop curve's) with floor loops and "
+                                        "the pose graph, fit the left and right wheel radii, the wheel "
+                                        "base, the gyro's scale and turn-on bias and the noise densities "
+                                        "to the loop-corrected trajectory, with their uncertainties, and "
+                                        "write them into the calibration file. A drive that cannot make "
+                                        "them observable is refused and the file kept as it was.")
+    odometry_cal.add_odometry_arguments(co)
+    co.set_defaults(func=odometry_cal.run_odometry)
 
 
 def _add_kobuki_commands(sub: argparse._SubParsersAction) -> None:
@@ -200,7 +213,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
         out = args.output.with_name(args.output.stem + "-demo")
         s = run_demo(cfg, out=out, route=args.route, floor_files=tuple(str(f) for f in args.floor or ()),
                      floor_pattern=args.floor_pattern, duration_s=args.duration, seed=args.seed,
-                     record=args.output, startup=args.startup)
+                     record=args.output, startup=args.startup,
+                     base_seed=getattr(args, "base_seed", None))
         print_summary(s, sys.stdout)
         print(f"recording: {args.output} ({args.output.stat().st_size / 1e6:.1f} MB); "
               f"demo outputs in {out}")

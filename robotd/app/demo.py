@@ -132,6 +132,18 @@ def run_from_args(args: argparse.Namespace) -> int:
     return exit_status(summary)
 
 
+def _nominal_drive_if_calibrated(cfg: Any, calibration: Any) -> Any:
+    """The config's nominal wheel geometry when the calibration holds an odometry model
+    (the daemon then uses the model), else None."""
+    from robotd.odometry.kinematics import DiffDriveParams
+
+    if calibration is None or calibration.odometry is None:
+        return None
+    r = cfg.robot
+    return DiffDriveParams(wheel_radius_m=r.wheel_radius_m, wheel_base_m=r.wheel_base_m,
+                           ticks_per_rev=r.ticks_per_rev)
+
+
 def shipped_calibration() -> Path | None:
     """The calibration file of the demo's own calibration drive, shipped as package data
     (``robotd/app/data/demo_calibration.yml``; ``tools/demo_calibration.sh`` makes it
@@ -146,11 +158,16 @@ class _Recorder:
 
     name = "demo_recorder"
 
-    def __init__(self, out: Path) -> None:
+    def __init__(self, out: Path, nominal_drive: Any = None) -> None:
         from robotd.io.trajectory import TumWriter
+        from robotd.odometry.kinematics import WheelOdometry
 
         self.fused = TumWriter(out / "fused.tum")
         self.wheel = TumWriter(out / "wheel.tum")
+        # With a calibrated odometry model: wheel-only odometry with the nominal [robot]
+        # geometry beside it (the demo's "before calibration").
+        self.nominal = WheelOdometry(nominal_drive) if nominal_drive is not None else None
+        self.wheel_nominal = TumWriter(out / "wheel_nominal.tum") if nominal_drive is not None else None
         self.keyframe_poses: list[tuple[float, float]] = []
         self.keyframe_poses_full: list[tuple[float, float, float]] = []
         self.keyframe_ids: list[int] = []
@@ -172,9 +189,18 @@ class _Recorder:
         )
         from robotd.floor.detector import KeyframeQuery
 
-        return {OdometryUpdate: self.on_odometry, KeyframeStored: self.on_keyframe,
+        subs = {OdometryUpdate: self.on_odometry, KeyframeStored: self.on_keyframe,
                 KeyframeQuery: self.on_floor_query, Link: self.on_link, CandidateFate: self.on_fate,
                 ForwardLoop: self.forward_loops.append}
+        if self.nominal is not None:
+            from robotd.base.messages import WheelTicks
+
+            subs[WheelTicks] = self.on_ticks
+        return subs
+
+    def on_ticks(self, msg: Any) -> None:
+        p = self.nominal.update(msg)
+        self.wheel_nominal.write(p.stamp_ns, p.x_m, p.y_m, p.yaw_rad)
 
     def on_fate(self, fate: Any) -> None:
         if fate.detail.startswith("forward: "):
@@ -207,6 +233,8 @@ class _Recorder:
     def close(self) -> None:
         self.fused.close()
         self.wheel.close()
+        if self.wheel_nominal is not None:
+            self.wheel_nominal.close()
 
 
 class _Progress:
@@ -244,8 +272,10 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
              observers: tuple[Any, ...] = (), base: str = "kobuki",
              can_convention: str = "diff_drive", can_faults: bool = False,
              kidnap: tuple[float, float, float] | None = None,
-             startup: Any = None) -> dict[str, Any]:
+             startup: Any = None, base_seed: int | None = None) -> dict[str, Any]:
     """Run the daemon on the virtual robot; returns the summary (also written as JSON).
+    ``base_seed``: the seed whose base errors the robot has (default: ``seed``'s; see
+    :attr:`sim.robot.VirtualRobotSettings.base_seed`).
     ``observers``: extra pipeline stages that watch the run (the benchmarks use this).
     ``base``: ``"kobuki"`` or ``"can"`` (the same sensor streams as ``can_convention``
     frames on a python-can virtual bus, read by the CAN driver; ``can_faults`` injects
@@ -271,8 +301,8 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
         calibration = load_calibration(base_cfg)
         clock = ManualClock()
         cam_model = FloorCameraModel.from_config(base_cfg.floor_camera)
-        settings = VirtualRobotSettings(route=route, seed=seed, duration_s=duration_s,
-                                        realtime=realtime, floor_files=floor_files,
+        settings = VirtualRobotSettings(route=route, seed=seed, base_seed=base_seed,
+                                        duration_s=duration_s, realtime=realtime, floor_files=floor_files,
                                         floor_metres_per_px=floor_scale,
                                         floor_pattern=floor_pattern,
                                         camera_fps=base_cfg.floor_camera.fps, base=base,
@@ -345,7 +375,7 @@ def _run_demo(base_cfg: Any, robot: Any, clock: Any, cam_model: Any, *, out: Pat
         cfg = replace(base_cfg, "base", driver="kobuki", port=robot.port)
     cfg = replace(cfg, "floor_camera", source="virtual")
     cfg = replace(cfg, "map", path=str(map_path))
-    recorder = _Recorder(out)
+    recorder = _Recorder(out, _nominal_drive_if_calibrated(cfg, calibration))
     live = _drive(robot, cfg, clock, recorder, realtime=realtime, record=record, observers=observers,
                   calibration=calibration, early=early)
     live["wall_s"] = time.monotonic() - wall0
@@ -579,6 +609,11 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
     truth = robot.motion.pose_at(stamps / 1e9)
     err_fused = trajectory_errors(truth, fused)
     err_wheel = trajectory_errors(truth, wheel)
+    err_nominal = None
+    if (out / "wheel_nominal.tum").exists() and recorder.nominal is not None:
+        n_stamps, nominal = read_tum(out / "wheel_nominal.tum")
+        if len(n_stamps):
+            err_nominal = trajectory_errors(robot.motion.pose_at(n_stamps / 1e9), nominal).as_dict()
     report = live["report"]
     c = report.counters
     kob = report.driver_stats.get("kobuki", {})
@@ -601,6 +636,7 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
                           ("garbage_bytes", "bad_checksums", "truncated", "malformed_subpayloads")},
         "commands_seen_by_robot": live["commands"],
         "wheel_only": err_wheel.as_dict(), "fused": err_fused.as_dict(),
+        "wheel_only_nominal": err_nominal,
         "stopped_by": report.stopped_by,
         "calibration": cfg.calibration.path if Path(cfg.calibration.path).exists() else None,
         "recording": str(record) if record is not None else None,
@@ -883,7 +919,10 @@ def print_summary(s: dict[str, Any], f: Any) -> None:
     for k, v in rows:
         print(f"{k:<{width}}  {v}", file=f)
     print(file=f)
-    _print_comparison(f, "odometry vs ground truth", [("wheel only", w), ("fused", fu)], (
+    columns = [("wheel only", w), ("fused", fu)]
+    if s.get("wheel_only_nominal"):  # the odometry model is calibrated: before and after
+        columns = [("wheel nom.", s["wheel_only_nominal"]), ("wheel cal.", w), ("fused", fu)]
+    _print_comparison(f, "odometry vs ground truth", columns, (
         ("end position error (m)", "end_position_error_m", "{:.3f}"),
         ("end heading error (deg)", "end_heading_error_deg", "{:.2f}"),
         ("max position error (m)", "max_position_error_m", "{:.3f}"),

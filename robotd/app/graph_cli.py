@@ -26,13 +26,18 @@ def add_arguments(sub: argparse._SubParsersAction) -> None:
     opt = gsub.add_parser(
         "optimize", help="optimise a g2o 2D pose graph",
         description="Optimise a g2o 2D pose graph (VERTEX_SE2, EDGE_SE2, FIX): LAGO initialisation, "
-                    "then Levenberg-Marquardt with loop edges under a DCS robust kernel. Prints the "
+                    "then Levenberg-Marquardt with loop edges under a DCS robust kernel, then "
+                    "graduated non-convexity (--robust). Prints the "
                     "initial and final objective, the iterations and the time.")
     opt.add_argument("input", type=nonempty_path, metavar="IN.g2o")
     opt.add_argument("--out", type=nonempty_path, required=True, metavar="OUT.g2o")
     opt.add_argument("--isotropic", action="store_true",
                      help="SE-Sync's isotropic noise per edge and its objective (benchmark tables)")
     opt.add_argument("--no-robust", action="store_true", help="plain least squares on every edge")
+    opt.add_argument("--robust", choices=("gnc", "dcs", "cauchy"), default="gnc",
+                     help="how wrong loops are resisted: gnc (default; graduated non-convexity, "
+                          "truncated least squares, started from the DCS solution), or only the "
+                          "dcs or cauchy kernel under Levenberg-Marquardt")
     opt.add_argument("--force", action="store_true", help="overwrite OUT.g2o")
     opt.set_defaults(func=run_optimize)
     exp = gsub.add_parser(
@@ -65,6 +70,8 @@ def _summary(result: BatchResult) -> None:
     print(f"final objective    {result.final_objective:.6e}", file=out)
     print(f"iterations         {result.iterations}", file=out)
     print(f"time               {result.time_s:.3f} s", file=out)
+    if result.gnc_time_s:
+        print(f"  of which GNC     {result.gnc_time_s:.3f} s", file=out)
     print(f"loops down-weighted by the optimiser: {down} of {n_loops} (weight < 0.5)", file=out)
     if n_loops and result.final_objective > result.start_objective:
         print("(the objectives are the plain sum over every edge, no robust kernel: with loops "
@@ -79,9 +86,12 @@ def run_optimize(args: argparse.Namespace) -> int:
     _check_input(args.input, "input")
     check_output_file(args.out, force=args.force, inputs=[args.input])
     graph = read_g2o(args.input)
-    params = BatchParams(noise="isotropic" if args.isotropic else "full", robust=not args.no_robust)
+    params = BatchParams(noise="isotropic" if args.isotropic else "full", robust=not args.no_robust,
+                         kernel=getattr(args, "robust", "gnc"))
     n_loops = sum(e.kind == "loop" for e in graph.edges)
-    kernel = "none" if args.no_robust else f"{params.kernel} (width {params.kernel_width:g})"
+    kernel = ("none" if args.no_robust else
+              f"gnc (TLS, inlier chi2 {params.inlier_chi2:g}, from dcs width {params.kernel_width:g})"
+              if params.kernel == "gnc" else f"{params.kernel} (width {params.kernel_width:g})")
     print(f"{args.input}: {len(graph)} poses, {len(graph.edges)} edges ({n_loops} loops); "
           f"{params.noise} noise, robust kernel {kernel}")
     result = optimize_batch(graph, params)

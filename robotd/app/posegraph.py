@@ -12,7 +12,7 @@ Mahalanobis distance ``e^T S^-1 e``; above ``gate_chi2`` (default: the 99.9 % po
 chi-square with 3 degrees of freedom) the candidate is refused as ``failed_gate``. What
 passes (:meth:`robotd.graph.incremental.IncrementalGraph.loop_chi2`) becomes a loop :class:`~robotd.base.messages.Link` under the graph's robust
 kernel. At the end of a run (and every ``save_every`` keyframes) the whole graph is
-re-solved robustly (LAGO, then DCS-weighted Levenberg-Marquardt), the optimised poses go
+re-solved robustly (LAGO, DCS-weighted Levenberg-Marquardt, then GNC), the optimised poses go
 into the map beside the odometry poses, and loops the optimiser down-weighted are
 recorded as ``down_weighted``.
 

@@ -3,6 +3,7 @@ keyframe ids), the robust kernels of loop edges, and conversions of GTSAM values
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from typing import Literal
 
 import gtsam
@@ -53,10 +54,13 @@ def anchor_factor(keyframe_id: int, pose: np.ndarray) -> gtsam.PriorFactorPose2:
 
 
 def factor_graph(graph: PoseGraph, kernel: gtsam.noiseModel.mEstimator.Base | None = None,
-                 diagonal: bool = False) -> gtsam.NonlinearFactorGraph:
-    """Every edge as a factor (loop edges through ``kernel`` when given), then the anchors."""
+                 diagonal: bool = False, skip: Collection[int] = ()) -> gtsam.NonlinearFactorGraph:
+    """Every edge as a factor (loop edges through ``kernel`` when given; the edges whose
+    indices are in ``skip`` left out), then the anchors."""
     fg = gtsam.NonlinearFactorGraph()
-    for e in graph.edges:
+    for n, e in enumerate(graph.edges):
+        if n in skip:
+            continue
         fg.add(between_factor(e, kernel if e.kind == "loop" else None, diagonal))
     for kid in graph.anchors():
         fg.add(anchor_factor(kid, graph.pose(kid)))

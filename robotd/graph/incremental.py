@@ -1,5 +1,13 @@
 """Live pose graph: one iSAM2 update per keyframe (Kaess et al., IJRR 2012), a loop edge
-under the same robust kernel as the batch solver, and a full batch re-solve on demand."""
+under the batch solver's robust kernel (DCS when the full solve is GNC), and a full batch
+re-solve on demand.
+
+Kept in step with the full solve: :meth:`IncrementalGraph.resolve` restarts iSAM2 from the
+batch result, and when that was a GNC solve, without the loop edges GNC rejected (weight
+below one half), so that iSAM2's later updates build on the same inliers instead of
+letting a rejected loop pull again through its kernel. The rejected loops stay in
+:attr:`IncrementalGraph.graph`: the next full solve judges them again, with everything
+learnt since."""
 
 from __future__ import annotations
 
@@ -12,8 +20,7 @@ import numpy as np
 from robotd.base.errors import GraphError
 from robotd.base.geometry import compose
 from robotd.graph.batch import BatchParams, BatchResult, optimize_batch
-from robotd.graph.factors import (anchor_factor, between_factor, factor_graph, from_values,
-                                  robust_kernel, to_values)
+from robotd.graph.factors import anchor_factor, between_factor, factor_graph, from_values, to_values
 from robotd.graph.model import PoseGraph
 
 
@@ -48,7 +55,8 @@ class IncrementalGraph:
         self.params = params
         self.graph = PoseGraph()
         b = params.batch
-        self._kernel = robust_kernel(b.kernel, b.kernel_width) if b.robust else None
+        self._kernel = b.loop_kernel()
+        self.rejected_loops: set[int] = set()  # edge indices the last GNC solve left out
         self._isam = self._new_isam()
         self._version = 0  # bumped by every change of the estimate
         self._cached: tuple[int, np.ndarray, np.ndarray] | None = None
@@ -154,7 +162,7 @@ class IncrementalGraph:
         for from_id, to_id, delta, info in loops:
             self.graph.add_edge(from_id, to_id, delta, info, "loop")
         isam = self._new_isam()
-        isam.update(factor_graph(self.graph, self._kernel), to_values(ids, est))
+        isam.update(factor_graph(self.graph, self._kernel, skip=self.rejected_loops), to_values(ids, est))
         for _ in range(self.params.loop_updates):
             isam.update()
         self._isam = isam
@@ -177,10 +185,16 @@ class IncrementalGraph:
 
     def resolve(self) -> BatchResult:
         """Full robust batch re-solve (:func:`optimize_batch` from scratch), then restart
-        iSAM2 from its result so that later updates build on it."""
+        iSAM2 from its result so that later updates build on it (without the loops a GNC
+        solve rejected)."""
         result = optimize_batch(self.graph, self.params.batch)
+        loops = [n for n, e in enumerate(self.graph.edges) if e.kind == "loop"]
+        b = self.params.batch
+        self.rejected_loops = ({n for n, w in zip(loops, result.loop_weights) if w < 0.5}
+                               if b.robust and b.kernel == "gnc" else set())
         isam = self._new_isam()
-        isam.update(factor_graph(self.graph, self._kernel), to_values(result.ids, result.poses))
+        isam.update(factor_graph(self.graph, self._kernel, skip=self.rejected_loops),
+                    to_values(result.ids, result.poses))
         self._isam = isam
         self._version += 1
         return result

@@ -11,7 +11,10 @@ and the daemon reads the files OpenCV's sample writes. Two optional robotd secti
   :class:`robotd.base.camera.FloorCameraModel`), measured by ``robotd calibrate floor-mount``;
 * the floor loop detector's per-mode score thresholds (``loop_threshold_mode_1`` ..
   ``loop_threshold_mode_6``, ``loop_overlap_r``, ``loop_confidence``), trained by
-  ``robotd calibrate loop-curve`` (paper 003, Sec. IV-C and Table III).
+  ``robotd calibrate loop-curve`` (paper 003, Sec. IV-C and Table III);
+* the odometry model of this robot (``odometry_wheel_radius_left_m`` ..., see
+  :class:`OdometryModel`), fitted by ``robotd calibrate odometry``; the daemon uses it in
+  place of the config's nominal ``[robot]`` geometry and gyro noise.
 
 Each part is optional, so the calibration runs can fill the file one step at a time:
 :func:`update_calibration` reads the file, replaces one part and writes it back
@@ -20,7 +23,7 @@ a full disk never leaves a half-written calibration behind.
 
 Keys that robotd does not know are ignored when they come from other tools (OpenCV's
 sample writes ``nframes``, ``flags``, ``extrinsic_parameters`` and more), but a key in
-robotd's own namespaces (``mount_*``, ``loop_*``) that is not listed above is an error:
+robotd's own namespaces (``mount_*``, ``loop_*``, ``odometry_*``) that is not listed above is an error:
 it is most likely a typo that would otherwise silently fall back to the config.
 """
 
@@ -46,6 +49,7 @@ __all__ = [
     "CalibrationFile",
     "FloorMount",
     "LoopThresholds",
+    "OdometryModel",
     "camera_model",
     "merge",
     "read_calibration",
@@ -59,6 +63,21 @@ N_MODES = 6
 _MOUNT_KEYS = ("mount_height_m", "mount_tilt_deg", "mount_x_m", "mount_y_m", "mount_yaw_deg")
 _LOOP_MODE_KEYS = tuple(f"loop_threshold_mode_{m}" for m in range(1, N_MODES + 1))
 _LOOP_KEYS = _LOOP_MODE_KEYS + ("loop_overlap_r", "loop_confidence")
+_ODOMETRY_FIELDS = (
+    ("wheel_radius_left_m", "odometry_wheel_radius_left_m"),
+    ("wheel_radius_right_m", "odometry_wheel_radius_right_m"),
+    ("wheel_base_m", "odometry_wheel_base_m"),
+    ("gyro_scale", "odometry_gyro_scale"),
+    ("gyro_bias_radps", "odometry_gyro_bias_radps"),
+    ("gyro_noise_radps_sqrt_hz", "odometry_gyro_noise_radps_sqrt_hz"),
+    ("wheel_noise_m_sqrt_m", "odometry_wheel_noise_m_sqrt_m"),
+    ("wheel_radius_left_sigma_m", "odometry_wheel_radius_left_sigma_m"),
+    ("wheel_radius_right_sigma_m", "odometry_wheel_radius_right_sigma_m"),
+    ("wheel_base_sigma_m", "odometry_wheel_base_sigma_m"),
+    ("gyro_scale_sigma", "odometry_gyro_scale_sigma"),
+    ("gyro_bias_sigma_radps", "odometry_gyro_bias_sigma_radps"),
+)
+_ODOMETRY_KEYS = tuple(k for _f, k in _ODOMETRY_FIELDS)
 _INTRINSIC_KEYS = ("camera_matrix", "distortion_coefficients", "image_width", "image_height",
                    "avg_reprojection_error")
 
@@ -148,6 +167,44 @@ class LoopThresholds:
 
 
 @dataclass(frozen=True)
+class OdometryModel:
+    """This robot's odometry model, fitted to a calibration drive (``robotd calibrate
+    odometry``; :mod:`robotd.odometry.calibration`). Every value has its 1-sigma
+    uncertainty beside it (``*_sigma*``).
+
+    Fields: wheel_radius_left_m, wheel_radius_right_m, wheel_base_m (m); gyro_scale
+    (measured over true yaw rate); gyro_bias_radps (the calibration drive's turn-on bias,
+    rad/s: the firmware or the filter learns each power-on's own at standstill, so this is
+    a record of the drive and a scale for the prior, not a correction);
+    gyro_noise_radps_sqrt_hz (white rate noise density); wheel_noise_m_sqrt_m (slip noise
+    per sqrt(m) of travel).
+    """
+
+    wheel_radius_left_m: float
+    wheel_radius_right_m: float
+    wheel_base_m: float
+    gyro_scale: float
+    gyro_bias_radps: float
+    gyro_noise_radps_sqrt_hz: float
+    wheel_noise_m_sqrt_m: float
+    wheel_radius_left_sigma_m: float
+    wheel_radius_right_sigma_m: float
+    wheel_base_sigma_m: float
+    gyro_scale_sigma: float
+    gyro_bias_sigma_radps: float
+
+    def __post_init__(self) -> None:
+        for field_name, key in _ODOMETRY_FIELDS:
+            v = _finite(key, getattr(self, field_name))
+            if field_name in ("wheel_radius_left_m", "wheel_radius_right_m", "wheel_base_m",
+                              "gyro_scale") and not v > 0.0:
+                raise CalibrationError(f"{key} must be positive, got {v}")
+            if field_name.endswith(("sigma_m", "sigma", "sigma_radps", "sqrt_hz", "sqrt_m")) and v < 0.0:
+                raise CalibrationError(f"{key} must be >= 0, got {v}")
+            object.__setattr__(self, field_name, v)
+
+
+@dataclass(frozen=True)
 class CalibrationFile:
     """Everything a calibration file holds; every part is optional.
 
@@ -159,12 +216,14 @@ class CalibrationFile:
             unknown, and always ``None`` without intrinsics.
         mount: the floor camera's mount on the robot.
         loop: the floor loop detector's thresholds.
+        odometry: the fitted odometry model.
     """
 
     intrinsics: CameraIntrinsics | None = None
     reprojection_error_px: float | None = None
     mount: FloorMount | None = None
     loop: LoopThresholds | None = None
+    odometry: OdometryModel | None = None
 
     def __post_init__(self) -> None:
         if self.reprojection_error_px is not None:
@@ -178,7 +237,8 @@ class CalibrationFile:
     @property
     def is_empty(self) -> bool:
         """True when no part is present."""
-        return self.intrinsics is None and self.mount is None and self.loop is None
+        return (self.intrinsics is None and self.mount is None and self.loop is None
+                and self.odometry is None)
 
 
 def merge(base: CalibrationFile | None, update: CalibrationFile) -> CalibrationFile:
@@ -192,6 +252,7 @@ def merge(base: CalibrationFile | None, update: CalibrationFile) -> CalibrationF
         reprojection_error_px=intr.reprojection_error_px,
         mount=update.mount if update.mount is not None else base.mount,
         loop=update.loop if update.loop is not None else base.loop,
+        odometry=update.odometry if update.odometry is not None else base.odometry,
     )
 
 
@@ -306,18 +367,19 @@ def parse_calibration(raw: bytes) -> CalibrationFile:
         dup = sorted({k for k in keys if keys.count(k) > 1})
         if dup:
             raise CalibrationError(f"key {dup[0]} appears more than once")
-        ours = [k for k in keys if k.startswith(("mount_", "loop_")) and k not in _MOUNT_KEYS + _LOOP_KEYS]
+        known = _MOUNT_KEYS + _LOOP_KEYS + _ODOMETRY_KEYS
+        ours = [k for k in keys if k.startswith(("mount_", "loop_", "odometry_")) and k not in known]
         if ours:
-            raise CalibrationError(f"unknown key {ours[0]} (known: {', '.join(_MOUNT_KEYS + _LOOP_KEYS)})")
+            raise CalibrationError(f"unknown key {ours[0]} (known: {', '.join(known)})")
         r = _Reader(fs, keys)
         intrinsics, err = _read_intrinsics(r)
         calib = CalibrationFile(intrinsics=intrinsics, reprojection_error_px=err, mount=_read_mount(r),
-                                loop=_read_loop(r))
+                                loop=_read_loop(r), odometry=_read_odometry(r))
     finally:
         fs.release()
     if calib.is_empty:
         raise CalibrationError(
-            "holds no calibration (neither camera_matrix, nor mount_*, nor loop_* keys)")
+            "holds no calibration (neither camera_matrix, nor mount_*, nor loop_*, nor odometry_* keys)")
     return calib
 
 
@@ -363,6 +425,13 @@ def _read_loop(r: _Reader) -> LoopThresholds | None:
                           confidence=r.number("loop_confidence"))
 
 
+def _read_odometry(r: _Reader) -> OdometryModel | None:
+    if not any(r.has(k) for k in _ODOMETRY_KEYS):
+        return None
+    _require(r, "the odometry section", _ODOMETRY_KEYS)
+    return OdometryModel(**{f: r.number(k) for f, k in _ODOMETRY_FIELDS})
+
+
 # ------------------------------------------------------------------------ writing
 
 
@@ -396,6 +465,13 @@ def format_calibration(calib: CalibrationFile) -> str:
                 fs.write(key, float(value))
         fs.write("loop_overlap_r", float(lp.overlap_r))
         fs.write("loop_confidence", float(lp.confidence))
+    od = calib.odometry
+    if od is not None:
+        fs.writeComment("Odometry model (robotd calibrate odometry): wheel radii and base (m), gyro "
+                        "scale (measured / true), the drive's turn-on bias (rad/s), noise densities "
+                        "(rad/s/sqrt(Hz), m/sqrt(m)), each value's 1-sigma uncertainty.")
+        for field_name, key in _ODOMETRY_FIELDS:
+            fs.write(key, float(getattr(od, field_name)))
     return fs.releaseAndGetString()
 
 

@@ -151,6 +151,8 @@ class OdometryFilter:
     cross-covariances a late relative update makes hard to carry. The filter then also
     keeps a journal of its messages over the history, so that a visual step is applied at
     its keyframe's time however late it comes (see :meth:`on_visual_odometry`).
+    ``gyro_scale``: the gyro's calibrated scale (measured over true yaw rate; ``robotd
+    calibrate odometry``), by which every reading is divided; 1 uncalibrated.
     """
 
     drive: DiffDriveParams = field(default_factory=DiffDriveParams)
@@ -164,6 +166,7 @@ class OdometryFilter:
     still_gate_sigma: float = 3.0
     vo_gate_nis: float = 16.27
     vo_twin: bool = False
+    gyro_scale: float = 1.0
 
     def __post_init__(self) -> None:
         self.counters = FilterCounters()
@@ -323,7 +326,7 @@ class OdometryFilter:
             if self._state is None:
                 self._state = initial_state(ts, self.params, self.initial_pose)
             self._advance_to(ts)
-            rate = float(msg.yaw_rate_radps)
+            rate = float(msg.yaw_rate_radps) / self.gyro_scale
             at_rest = stationary and self._still_gate(rate)
             if at_rest:
                 self._apply_wheels(0.0, 0.0, True)

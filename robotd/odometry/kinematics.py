@@ -48,22 +48,43 @@ class DiffDriveParams:
     ``wheel_radius_m``: wheel radius, metres. ``wheel_base_m``: distance between the two
     wheels' contact points, metres. ``ticks_per_rev``: encoder ticks per wheel turn
     (the Kobuki's is 2578.33: a 52:1 gearbox behind a ~49.6-tick motor encoder).
+    ``wheel_radius_left_m`` / ``wheel_radius_right_m``: each wheel's own rolling radius
+    when calibrated (``robotd calibrate odometry``), else None: both are
+    ``wheel_radius_m``.
     """
 
     wheel_radius_m: float = 0.035
     wheel_base_m: float = 0.23
     ticks_per_rev: float = 2578.33
+    wheel_radius_left_m: float | None = None
+    wheel_radius_right_m: float | None = None
 
     def __post_init__(self) -> None:
-        for name in ("wheel_radius_m", "wheel_base_m", "ticks_per_rev"):
+        for name in ("wheel_radius_m", "wheel_base_m", "ticks_per_rev", "wheel_radius_left_m",
+                     "wheel_radius_right_m"):
             value = getattr(self, name)
+            if value is None and name.startswith("wheel_radius_"):
+                continue
             if not (value > 0.0 and math.isfinite(value)):
                 raise ValueError(f"{name} must be positive and finite, got {value!r}")
 
     @property
     def metres_per_tick(self) -> float:
-        """Distance the wheel rim travels per encoder tick, metres."""
-        return 2.0 * math.pi * self.wheel_radius_m / self.ticks_per_rev
+        """Distance the wheel rim travels per encoder tick, metres (the larger wheel's when
+        the two differ: it bounds how far a wheel moves)."""
+        return max(self.metres_per_tick_left, self.metres_per_tick_right)
+
+    @property
+    def metres_per_tick_left(self) -> float:
+        """The left wheel's rim travel per tick, metres."""
+        r = self.wheel_radius_m if self.wheel_radius_left_m is None else self.wheel_radius_left_m
+        return 2.0 * math.pi * r / self.ticks_per_rev
+
+    @property
+    def metres_per_tick_right(self) -> float:
+        """The right wheel's rim travel per tick, metres."""
+        r = self.wheel_radius_m if self.wheel_radius_right_m is None else self.wheel_radius_right_m
+        return 2.0 * math.pi * r / self.ticks_per_rev
 
 
 def wheel_increment(d_left_ticks: int | float, d_right_ticks: int | float,
@@ -73,9 +94,8 @@ def wheel_increment(d_left_ticks: int | float, d_right_ticks: int | float,
     ``ds_m = (s_l + s_r) / 2`` and ``dyaw_rad = (s_r - s_l) / B`` with ``s_i`` the rim
     distance of wheel ``i`` and ``B`` the wheel base. Returns ``(ds_m, dyaw_rad)``.
     """
-    k = params.metres_per_tick
-    s_l = float(d_left_ticks) * k
-    s_r = float(d_right_ticks) * k
+    s_l = float(d_left_ticks) * params.metres_per_tick_left
+    s_r = float(d_right_ticks) * params.metres_per_tick_right
     return 0.5 * (s_l + s_r), (s_r - s_l) / params.wheel_base_m
 
 
@@ -153,8 +173,7 @@ class WheelOdometry:
 
     def _step(self, dl: int, dr: int) -> None:
         p = self.params
-        k = p.metres_per_tick
-        s_l, s_r = dl * k, dr * k
+        s_l, s_r = dl * p.metres_per_tick_left, dr * p.metres_per_tick_right
         ds, dth = 0.5 * (s_l + s_r), (s_r - s_l) / p.wheel_base_m
         phi = self._pose[2] + 0.5 * dth
         c, s = math.cos(phi), math.sin(phi)

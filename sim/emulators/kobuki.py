@@ -238,11 +238,18 @@ def encode(sensors: BaseSensorStreams, state: KobukiState,
 
 
 def simulate_kobuki(motion: Motion, sensor_params: BaseSensorParams, rng: np.random.Generator,
-                    params: KobukiParams | None = None, rate_hz: float = 50.0) -> KobukiFeedback:
+                    params: KobukiParams | None = None, rate_hz: float = 50.0,
+                    errors: BaseErrors | None = None) -> KobukiFeedback:
     """A Kobuki's packets at ``rate_hz`` along ``motion``: draws the sensors' errors, the
-    base's power-on state, then the sensor streams (in that order, see the module doc)."""
+    base's power-on state, then the sensor streams (in that order, see the module doc).
+    ``errors``: the base's own errors instead of the drawn ones (the same robot on another
+    drive: the draws are still made, so the rest of the run is the seed's as ever)."""
     params = params or KobukiParams()
-    errors = draw_errors(sensor_params, rng)
+    drawn = draw_errors(sensor_params, rng)
+    if errors is None:
+        errors = drawn
+    else:  # the turn-on bias is the drive's own; the rest is the base's
+        errors = dataclasses.replace(errors, gyro_bias0_radps=drawn.gyro_bias0_radps)
     state = KobukiState.draw(errors, params, rng)
     sensors = simulate_sensors(motion, sensor_params, errors, rng, rate_hz)
     feedback = encode(sensors, state, params)

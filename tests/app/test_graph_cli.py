@@ -79,3 +79,23 @@ def test_export_writes_g2o_and_both_trajectories(tmp_path: Path, capsys):
 def test_export_of_a_missing_map_is_a_clear_error(tmp_path: Path, capsys):
     assert main(["graph", "export", str(tmp_path / "none.sqlite"), "--out", str(tmp_path / "o")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_optimize_robust_chooses_gnc_or_dcs_and_both_reject_a_wrong_loop(tmp_path: Path, capsys):
+    # The octagon twice round (the second lap's vertices 8..15 tied to the first's by true
+    # loops) and one wrong loop between opposite corners.
+    side = 2 * 3 * math.sin(math.pi / 8)
+    lines = [f"EDGE_SE2 {k} {k + 1} {side:.9f} 0 {math.pi / 4:.9f} 100 0 0 100 0 1000\n" for k in range(15)]
+    lines += [f"EDGE_SE2 {k} {k + 8} 0 0 0 100 0 0 100 0 1000\n" for k in range(8)]
+    lines.append("EDGE_SE2 2 13 1.5 -0.5 0.3 100 0 0 100 0 1000\n")  # wrong
+    src = tmp_path / "laps.g2o"
+    src.write_text("".join(lines))
+    for robust in ("gnc", "dcs"):
+        out = tmp_path / f"{robust}.g2o"
+        assert main(["graph", "optimize", str(src), "--out", str(out), "--robust", robust]) == 0
+        text = capsys.readouterr().out
+        assert f"robust kernel {robust} (" in text
+        assert ("of which GNC" in text) == (robust == "gnc")
+        assert "loops down-weighted by the optimiser: 1 of 9" in text
+        r = np.linalg.norm(read_g2o(out).poses()[:, :2] - CENTRE, axis=1)
+        assert np.allclose(r, 3.0, atol=1e-3)  # (GNC against DCS, exactly: tests/graph/test_batch.py)

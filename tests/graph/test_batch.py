@@ -166,16 +166,16 @@ def test_auto_keeps_the_start_whose_robust_solve_costs_less():
     # Seed 3: the wrong loops bend LAGO's orientations enough that DCS from LAGO gives up
     # six true loops too (46 down-weighted, robust cost 2118); from odometry it keeps them (40, 1795).
     g = _laps_with_wrong_loops(3)
-    params = BatchParams()
+    params = BatchParams(kernel="dcs")
     kernel = robust_kernel(params.kernel, params.kernel_width)
     factors = factor_graph(g, kernel)
 
     def robust_cost(r):
         return factors.error(to_values(r.ids, r.poses))
 
-    lago = optimize_batch(g, BatchParams(initialisation="lago"))
-    odo = optimize_batch(g, BatchParams(initialisation="odometry"))
-    auto = optimize_batch(g)
+    lago = optimize_batch(g, BatchParams(initialisation="lago", kernel="dcs"))
+    odo = optimize_batch(g, BatchParams(initialisation="odometry", kernel="dcs"))
+    auto = optimize_batch(g, params)
     assert isinstance(factors, gtsam.NonlinearFactorGraph)
     assert lago.start == "lago" and odo.start == "odometry"
     # Something is down-weighted from LAGO (the wrong loops), so auto tries both starts.
@@ -192,3 +192,33 @@ def test_auto_solves_once_when_nothing_is_down_weighted():
     r = optimize_batch(g)
     assert r.start == "lago"
     assert np.allclose(r.loop_weights, 1.0)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_gnc_ends_at_the_least_squares_optimum_over_the_true_loops_alone(seed):
+    # The laps graph with 40 wrong loops: GNC (truncated least squares) must reject exactly
+    # the wrong ones and end where plain least squares ends on the graph without them;
+    # DCS alone leaves their pull in the result (down-weighted, not removed).
+    g = _laps_with_wrong_loops(seed)
+    clean = PoseGraph()
+    for k, p in zip(g.ids, g.poses()):
+        clean.add_pose(int(k), p)
+    n_true = sum(e.kind == "loop" for e in g.edges) - 40  # the wrong loops come last
+    loops = 0
+    for e in g.edges:
+        loops += e.kind == "loop"
+        if loops <= n_true:
+            clean.add_edge(e.from_id, e.to_id, e.delta, e.information, e.kind)
+    reference = optimize_batch(clean, BatchParams(robust=False))
+    gnc = optimize_batch(g)
+    dcs = optimize_batch(g, BatchParams(kernel="dcs"))
+    assert gnc.gnc_time_s > 0.0
+    assert np.all(gnc.loop_weights[:n_true] > 0.99) and np.all(gnc.loop_weights[n_true:] < 0.01)
+    def err(r):
+        d = r.poses - reference.poses
+        d[:, 2] = np.remainder(d[:, 2] + math.pi, 2 * math.pi) - math.pi
+        return np.abs(d).max()
+
+    err_gnc, err_dcs = err(gnc), err(dcs)
+    assert err_gnc < 1e-5
+    assert err_dcs > 10 * err_gnc

@@ -1,0 +1,221 @@
+"""The calibrated odometry model against the simulator's truth and on the office route.
+
+For each seed given a calibration file (``robotd calibrate odometry`` on a calibration
+drive of that seed's base: ``robotd record --virtual --route figure8 --seed S --base-seed
+N``), two parts:
+
+1. The fitted wheel radii, wheel base and gyro scale against the errors the simulator drew
+   for that base (:func:`sim.sensors.draw_errors`, seed N), as relative errors, with the
+   fit's own 1-sigma (issue 28's targets: radii 0.05 %, wheel base 0.1 %, gyro scale
+   0.05 %).
+2. The office route (about 110 m) of that seed's base, run through the wheel-only
+   integrator and the wheel + gyro filter twice: with the nominal ``[robot]`` geometry
+   (the baseline) and with the calibrated model. End position error and RMS position
+   error (ATE) against ground truth, and their ratio (issue 28: wheel-only end error with
+   the calibrated model at most a fifth of the nominal one; fused better).
+
+Run: ``.venv/bin/python bench/bench_odometry_calibration.py --calibration '/tmp/cal{seed}.yml'
+[--seeds 0,1,2,3,4] [--markdown docs/benchmarks/odometry_calibration.md]``. About a minute
+per seed; ``--full`` is the same (the cost is in making the calibration drives, minutes
+each, not here).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+try:
+    from bench.common import machine_info, print_table, write_json
+except ImportError:  # run as a script: bench/ is on sys.path
+    from common import machine_info, print_table, write_json
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from robotd.base.messages import WheelTicks  # noqa: E402
+from robotd.io.calibfile import read_calibration  # noqa: E402
+from robotd.io.trajectory import trajectory_errors  # noqa: E402
+from robotd.odometry.ekf import EkfParams  # noqa: E402
+from robotd.odometry.fusion import OdometryFilter  # noqa: E402
+from robotd.odometry.kinematics import DiffDriveParams, WheelOdometry  # noqa: E402
+from sim.emulators.kobuki import simulate_kobuki  # noqa: E402
+from sim.route import MotionLimits, build_route, plan_motion  # noqa: E402
+from sim.sensors import BaseSensorParams, draw_errors  # noqa: E402
+
+
+def run(msgs: list[Any], drive: DiffDriveParams, gyro_scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Wheel-only and fused poses ``(N, 3)`` after each wheel message."""
+    wheel = WheelOdometry(drive)
+    f = OdometryFilter(drive, EkfParams(), gyro_scale=gyro_scale)
+    w_out, f_out = [], []
+    for m in msgs:
+        if isinstance(m, WheelTicks):
+            p = wheel.update(m)
+            w_out.append((p.x_m, p.y_m, p.yaw_rad))
+            f.on_wheels(m)
+            q = f.pose()
+            f_out.append((q.x_m, q.y_m, q.yaw_rad))
+        else:
+            f.on_yaw_rate(m)
+    return np.asarray(w_out), np.asarray(f_out)
+
+
+def synthetic_model(seed: int, route: str, sigma_m: float, sigma_rad: float) -> Any:
+    """The model fitted to a drive of seed ``seed``'s base along ``route`` (its own seed
+    100 + seed for the drive's other draws) against the true keyframe poses plus white
+    noise (``sigma_m``, ``sigma_rad``): the fit alone, without the pipeline's reference."""
+    from calibration.odometry import model_from_fit
+    from robotd.odometry.calibration import CalibrationDrive, fit_odometry
+    from sim.sensors import simulate_sensors
+
+    p = BaseSensorParams()
+    errors = draw_errors(p, np.random.default_rng(seed))
+    rng = np.random.default_rng(100 + seed)
+    draw_errors(p, rng)  # the drive's own draws follow, as with --base-seed
+    s = simulate_sensors(plan_motion(build_route(route)), p, errors, rng)
+    tp = s.true_pose
+    idx = [0]
+    for k in range(1, len(tp)):
+        a, b = tp[idx[-1]], tp[k]
+        if math.hypot(b[0] - a[0], b[1] - a[1]) >= 0.1 or abs(math.remainder(b[2] - a[2], 2 * math.pi)) >= 0.1:
+            idx.append(k)
+    noise = np.random.default_rng(200 + seed).normal(0, [sigma_m, sigma_m, sigma_rad], (len(idx), 3))
+    drive = CalibrationDrive(s.stamp_ns, s.wheel_angle_rad, np.round(s.gyro_t_s * 1e9).astype(np.int64),
+                             s.gyro_radps[:, 2], s.stamp_ns[idx], tp[idx] + noise)
+    return model_from_fit(fit_odometry(drive, p.drive.wheel_radius_m, p.drive.wheel_base_m))
+
+
+def evaluate(seed: int, calib_path: Path | None, motion: Any, model: Any = None) -> dict[str, Any]:
+    p = BaseSensorParams()
+    truth = draw_errors(p, np.random.default_rng(seed))
+    if model is None:
+        model = read_calibration(calib_path).odometry
+    if model is None:
+        raise SystemExit(f"{calib_path}: no odometry model")
+    r0, b0 = p.drive.wheel_radius_m, p.drive.wheel_base_m
+    true_l, true_r = r0 * (1 + truth.left_radius_error), r0 * (1 + truth.right_radius_error)
+    true_b, true_s = b0 * (1 + truth.wheel_base_error), 1 + truth.gyro_scale_error
+    fit = {
+        "left_radius_err_pct": 100 * (model.wheel_radius_left_m / true_l - 1),
+        "left_radius_sigma_pct": 100 * model.wheel_radius_left_sigma_m / true_l,
+        "right_radius_err_pct": 100 * (model.wheel_radius_right_m / true_r - 1),
+        "right_radius_sigma_pct": 100 * model.wheel_radius_right_sigma_m / true_r,
+        "wheel_base_err_pct": 100 * (model.wheel_base_m / true_b - 1),
+        "wheel_base_sigma_pct": 100 * model.wheel_base_sigma_m / true_b,
+        "gyro_scale_err_pct": 100 * (model.gyro_scale / true_s - 1),
+        "gyro_scale_sigma_pct": 100 * model.gyro_scale_sigma,
+        "nominal_left_radius_err_pct": 100 * (r0 / true_l - 1),
+        "nominal_wheel_base_err_pct": 100 * (b0 / true_b - 1),
+        "nominal_gyro_scale_err_pct": 100 * (1 / true_s - 1),
+    }
+    stream = simulate_kobuki(motion, p, np.random.default_rng(seed))
+    msgs = stream.messages("raw_gyro")
+    nominal = DiffDriveParams(wheel_radius_m=r0, wheel_base_m=b0)
+    calibrated = DiffDriveParams(wheel_radius_m=r0, wheel_base_m=model.wheel_base_m,
+                                 wheel_radius_left_m=model.wheel_radius_left_m,
+                                 wheel_radius_right_m=model.wheel_radius_right_m)
+    out: dict[str, Any] = {"seed": seed, "calibration": str(calib_path), "fit": fit}
+    for name, drive, scale in (("nominal", nominal, 1.0), ("calibrated", calibrated, model.gyro_scale)):
+        wheel, fused = run(msgs, drive, scale)
+        out[name] = {"wheel_only": trajectory_errors(stream.true_pose, wheel).as_dict(),
+                     "fused": trajectory_errors(stream.true_pose, fused).as_dict()}
+    return out
+
+
+def write_markdown(path: Path, rows: list[dict[str, Any]], route: str) -> None:
+    lines = [
+        "# Odometry calibration (generated by bench/bench_odometry_calibration.py --markdown)", "",
+        "Calibrations: " + "; ".join(sorted({str(r['calibration']) for r in rows})) + ".", "",
+        "Part 1: the fitted model against the simulator's drawn base errors (relative error, the "
+        "fit's 1-sigma in brackets; targets: radii 0.05 %, wheel base 0.1 %, gyro scale 0.05 %).", "",
+        "| seed | left radius | right radius | wheel base | gyro scale | nominal wheel base off by |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        f = r["fit"]
+        lines.append(
+            f"| {r['seed']} | {f['left_radius_err_pct']:+.3f} % ({f['left_radius_sigma_pct']:.3f}) | "
+            f"{f['right_radius_err_pct']:+.3f} % ({f['right_radius_sigma_pct']:.3f}) | "
+            f"{f['wheel_base_err_pct']:+.3f} % ({f['wheel_base_sigma_pct']:.3f}) | "
+            f"{f['gyro_scale_err_pct']:+.3f} % ({f['gyro_scale_sigma_pct']:.3f}) | "
+            f"{f['nominal_wheel_base_err_pct']:+.2f} % |")
+    lines += ["", f"Part 2: the {route} route, nominal model (baseline) against calibrated, same run.", "",
+              "| seed | wheel-only end error nominal (m) | calibrated (m) | ratio | fused end nominal (m) | "
+              "calibrated (m) | fused ATE nominal (m) | calibrated (m) |",
+              "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        n, c = r["nominal"], r["calibrated"]
+        lines.append(
+            f"| {r['seed']} | {n['wheel_only']['end_position_error_m']:.3f} | "
+            f"{c['wheel_only']['end_position_error_m']:.3f} | "
+            f"{c['wheel_only']['end_position_error_m'] / n['wheel_only']['end_position_error_m']:.2f} | "
+            f"{n['fused']['end_position_error_m']:.3f} | {c['fused']['end_position_error_m']:.3f} | "
+            f"{n['fused']['rmse_position_m']:.3f} | {c['fused']['rmse_position_m']:.3f} |")
+    lines.append("")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--calibration", default=None, metavar="PATTERN",
+                    help="calibration file of each seed's base, with {seed} in it")
+    ap.add_argument("--synthetic-reference", default=None, metavar="ROUTE",
+                    help="instead: fit each seed's base on a simulated drive along ROUTE against the "
+                         "true poses plus --reference-noise (the fit alone, no pipeline)")
+    ap.add_argument("--reference-noise", default="0.0005,0.0005", metavar="M,RAD")
+    ap.add_argument("--seeds", default="0,1,2,3,4")
+    ap.add_argument("--route", default="office")
+    ap.add_argument("--full", action="store_true", help="the same as the default (see the module text)")
+    ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "odometry_calibration.json")
+    ap.add_argument("--markdown", type=Path, default=None)
+    args = ap.parse_args(argv)
+    motion = plan_motion(build_route(args.route), MotionLimits())
+    rows = []
+    if (args.calibration is None) == (args.synthetic_reference is None):
+        ap.error("give --calibration or --synthetic-reference")
+    for seed in (int(s) for s in args.seeds.split(",")):
+        if args.synthetic_reference is not None:
+            sm, sr = (float(v) for v in args.reference_noise.split(","))
+            model = synthetic_model(seed, args.synthetic_reference, sm, sr)
+            rows.append(evaluate(seed, None, motion, model))
+            rows[-1]["calibration"] = f"synthetic: {args.synthetic_reference}, reference noise {sm} m, {sr} rad"
+            continue
+        path = Path(args.calibration.format(seed=seed))
+        if not path.is_file():
+            print(f"seed {seed}: no calibration file {path}, skipped", file=sys.stderr)
+            continue
+        rows.append(evaluate(seed, path, motion))
+    if not rows:
+        print("no calibration file found", file=sys.stderr)
+        return 2
+    print_table(["seed", "left r %", "right r %", "base %", "gyro scale %", "sigma base %"],
+                [[r["seed"], round(r["fit"]["left_radius_err_pct"], 3), round(r["fit"]["right_radius_err_pct"], 3),
+                  round(r["fit"]["wheel_base_err_pct"], 3), round(r["fit"]["gyro_scale_err_pct"], 3),
+                  round(r["fit"]["wheel_base_sigma_pct"], 3)] for r in rows])
+    print()
+    print_table(["seed", "wheel end nominal m", "wheel end calib. m", "ratio", "fused end nominal m",
+                 "fused end calib. m", "fused ATE nominal m", "fused ATE calib. m"],
+                [[r["seed"], round(r["nominal"]["wheel_only"]["end_position_error_m"], 3),
+                  round(r["calibrated"]["wheel_only"]["end_position_error_m"], 3),
+                  round(r["calibrated"]["wheel_only"]["end_position_error_m"]
+                        / r["nominal"]["wheel_only"]["end_position_error_m"], 2),
+                  round(r["nominal"]["fused"]["end_position_error_m"], 3),
+                  round(r["calibrated"]["fused"]["end_position_error_m"], 3),
+                  round(r["nominal"]["fused"]["rmse_position_m"], 3),
+                  round(r["calibrated"]["fused"]["rmse_position_m"], 3)] for r in rows])
+    if args.markdown is not None:
+        write_markdown(args.markdown, rows, args.route)
+    path = write_json(args.out, {"machine": machine_info(), "route": args.route, "seeds": rows})
+    print(f"\nwrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,456 @@
+"""The odometry model of one robot, fitted to a calibration drive (issue 28, item 1).
+
+A calibration drive (the loop curve's drive: floor loops and floor visual odometry) gives a
+reference trajectory at its keyframes, the loop-corrected pose graph's, far better than
+the wheels or the gyro alone. Against it this module fits the classic systematic errors of
+a differential drive (UMBmark, Borenstein and Feng 1996; here jointly, by least squares
+over every keyframe interval) and the random ones:
+
+- the left and right wheels' rolling radii ``r_L``, ``r_R`` (m) and the effective wheel
+  base ``B`` (m). Over the interval ``k`` between keyframes ``k-1`` and ``k`` the wheels
+  turned ``dphi_L``, ``dphi_R`` (rad); the model says the heading changed by
+  ``(r_R dphi_R - r_L dphi_L) / B`` and the base moved by the sum of the per-sample arcs
+  ``(r_L dphi_L + r_R dphi_R) / 2`` along the heading, expressed in keyframe ``k-1``'s
+  frame. Straight driving fixes ``r_R / B - r_L / B`` (a curving straight), turns fix
+  ``r_R / B + r_L / B`` and distance fixes ``r_L + r_R``: three numbers, three unknowns.
+- the gyro's scale ``s`` (dimensionless, measured = ``s`` x true rate + bias) and its
+  turn-on bias ``b0`` (rad/s) with a linear drift ``b1`` (rad/s^2) standing in for the
+  bias walk over the drive: the gyro's integral over an interval is
+  ``s dyaw_ref + b0 dt + b1 d(t^2/2)``, linear in the three. Turns both ways separate the
+  scale from the bias (a drive turning one way only confounds them with time).
+- the noise densities: the gyro's white rate noise (rad/s per sqrt(Hz)), from the spread
+  of its readings while the base stands still (no tick moved); the wheels' slip noise
+  (m per sqrt(m) of travel), from the distance residuals after the fit, whose variance
+  grows with the interval's travel (``var = q |ds| + c``, ``c`` the reference's own).
+
+Uncertainties are the least-squares covariances, each scaled by the fit's reduced chi2
+when that exceeds one (the weights then understated the residuals). A drive that cannot
+make these observable is refused (:func:`missing_observability`) before any fit.
+
+No I/O here: the caller reads the recording and the reference trajectory
+(:mod:`calibration.odometry`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from robotd.base.errors import CalibrationError
+from robotd.base.geometry import rot2
+
+__all__ = [
+    "CalibrationDrive",
+    "OdometryFit",
+    "OdometryFitParams",
+    "fit_odometry",
+    "missing_observability",
+]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CalibrationDrive:
+    """What the fit reads from a drive (SI units, stamps in ns, non-decreasing).
+
+    wheel_stamp_ns ``(N,) int64``; wheel_angle_rad ``(N, 2)`` cumulative unwrapped angle of
+    the left and right wheel (ticks x 2 pi / ticks per turn); gyro_stamp_ns ``(M,) int64``;
+    gyro_radps ``(M,)`` yaw-rate readings as the gyro gave them; ref_stamp_ns ``(K,) int64``
+    and ref_pose ``(K, 3)`` the reference trajectory (x_m, y_m, yaw_rad) at its keyframes.
+    """
+
+    wheel_stamp_ns: np.ndarray
+    wheel_angle_rad: np.ndarray
+    gyro_stamp_ns: np.ndarray
+    gyro_radps: np.ndarray
+    ref_stamp_ns: np.ndarray
+    ref_pose: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class OdometryFitParams:
+    """Refusal thresholds and fit settings.
+
+    min_turn_deg: the drive must turn at least this much in total to each side (the gyro
+        scale against its bias, the wheel base against the radii), default 180.
+    min_distance_m: and travel at least this far (the radii), default 10.
+    min_still_s: and stand still (no tick moving) for at least this long in all (the gyro's
+        noise and turn-on bias), default 1.
+    min_keyframes: reference keyframes needed, default 30.
+    still_margin_s: readings this close to the start or end of a still period are left out
+        of the gyro's noise (the base may still creep), default 0.2.
+    slip_gate_sigma: heading windows whose wheel-against-gyro residual exceeds this many
+        (robust) sigma are slip events, left out with their neighbours and the keyframe
+        intervals they fall in, default 4.
+    window_s: length of the heading windows, default 0.2 s.
+    """
+
+    min_turn_deg: float = 180.0
+    min_distance_m: float = 10.0
+    min_still_s: float = 1.0
+    min_keyframes: int = 30
+    still_margin_s: float = 0.2
+    slip_gate_sigma: float = 4.0
+    window_s: float = 0.2
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class OdometryFit:
+    """The fitted model, each value with its 1-sigma uncertainty (``*_sigma``).
+
+    wheel_radius_left_m, wheel_radius_right_m, wheel_base_m: m. gyro_scale: measured rate
+    over true rate. gyro_bias_radps: the bias at the drive's first reading (turn-on), rad/s;
+    gyro_bias_drift_radps2 its fitted drift. gyro_noise_radps_sqrt_hz: white rate noise
+    density; wheel_noise_m_sqrt_m: slip noise per sqrt(m) of travel.
+    residuals_before / residuals_after ``(K-1, 4)``: per keyframe interval, the residual of
+    the wheels' dx, dy (m, in the interval's start frame), the wheels' heading change and
+    the gyro's heading change (rad), with the nominal model (``nominal``: radius, base;
+    gyro scale 1, bias 0 beyond the one the still periods show) and with the fitted one.
+    interval_end_s ``(K-1,)``: each interval's end, s from the first keyframe.
+    used ``(K-1,)`` bool: intervals kept by the slip gate; slip_windows: heading windows
+    left out as slip (with their neighbours), of heading_windows. turn_left_deg, turn_right_deg,
+    distance_m, still_s: what the drive offered.
+    """
+
+    wheel_radius_left_m: float
+    wheel_radius_right_m: float
+    wheel_base_m: float
+    wheel_radius_left_sigma: float
+    wheel_radius_right_sigma: float
+    wheel_base_sigma: float
+    gyro_scale: float
+    gyro_scale_sigma: float
+    gyro_bias_radps: float
+    gyro_bias_sigma: float
+    gyro_bias_drift_radps2: float
+    gyro_noise_radps_sqrt_hz: float
+    wheel_noise_m_sqrt_m: float
+    residuals_before: np.ndarray
+    residuals_after: np.ndarray
+    interval_end_s: np.ndarray
+    used: np.ndarray
+    slip_windows: int
+    heading_windows: int
+    turn_left_deg: float
+    turn_right_deg: float
+    distance_m: float
+    still_s: float
+
+
+def _unwrap_yaw(yaw: np.ndarray) -> np.ndarray:
+    return np.unwrap(np.asarray(yaw, float))
+
+
+def _gyro_integral(drive: CalibrationDrive, t0_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sample times (s from ``t0_ns``) and the cumulative trapezoid integral of the gyro."""
+    t = (np.asarray(drive.gyro_stamp_ns, np.int64) - t0_ns) * 1e-9
+    w = np.asarray(drive.gyro_radps, float)
+    g = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))])
+    return t, g
+
+
+def _still_mask(drive: CalibrationDrive) -> np.ndarray:
+    """Per wheel interval (``(N-1,)``): True when neither wheel moved over it."""
+    d = np.abs(np.diff(np.asarray(drive.wheel_angle_rad, float), axis=0))
+    return ~(d > 1e-12).any(axis=1)
+
+
+def _still_periods(drive: CalibrationDrive, margin_s: float) -> list[tuple[int, int]]:
+    """Still periods as (start_ns, end_ns), shrunk by ``margin_s`` at each end."""
+    still = _still_mask(drive)
+    t = np.asarray(drive.wheel_stamp_ns, np.int64)
+    out = []
+    n = 0
+    margin = int(margin_s * 1e9)
+    while n < len(still):
+        if not still[n]:
+            n += 1
+            continue
+        m = n
+        while m < len(still) and still[m]:
+            m += 1
+        a, b = int(t[n]) + margin, int(t[m]) - margin
+        if b > a:
+            out.append((a, b))
+        n = m
+    return out
+
+
+def _turns_deg(drive: CalibrationDrive) -> tuple[float, float, float]:
+    """Total reference turn to the left and to the right (deg) and reference path length (m)."""
+    yaw = _unwrap_yaw(drive.ref_pose[:, 2])
+    d = np.diff(yaw)
+    d = d[np.abs(d) > math.radians(0.5)]  # not the reference's jitter while driving straight
+    dist = float(np.sum(np.hypot(*np.diff(drive.ref_pose[:, :2], axis=0).T)))
+    return math.degrees(float(d[d > 0].sum())), math.degrees(float(np.abs(d[d < 0]).sum())), dist
+
+
+def missing_observability(drive: CalibrationDrive, params: OdometryFitParams = OdometryFitParams(),
+                          ) -> list[str]:
+    """What the drive lacks for the fit, one phrase each (empty: it can be fitted)."""
+    lacks = []
+    k = len(drive.ref_stamp_ns)
+    if k < params.min_keyframes:
+        lacks.append(f"{k} reference keyframes (needs {params.min_keyframes})")
+        if k < 2:
+            return lacks
+    if len(drive.wheel_stamp_ns) < 2 or len(drive.gyro_stamp_ns) < 2:
+        lacks.append("wheel and gyro readings")
+        return lacks
+    left, right, dist = _turns_deg(drive)
+    if left < params.min_turn_deg:
+        lacks.append(f"turns to the left ({left:.0f} deg in all, needs {params.min_turn_deg:.0f})")
+    if right < params.min_turn_deg:
+        lacks.append(f"turns to the right ({right:.0f} deg in all, needs {params.min_turn_deg:.0f})")
+    if dist < params.min_distance_m:
+        lacks.append(f"distance ({dist:.1f} m, needs {params.min_distance_m:g})")
+    still = sum(b - a for a, b in _still_periods(drive, params.still_margin_s)) * 1e-9
+    if still < params.min_still_s:
+        lacks.append(f"standing still ({still:.1f} s, needs {params.min_still_s:g})")
+    return lacks
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Intervals:
+    dt_s: np.ndarray         # (J,) interval durations
+    t_end_s: np.ndarray      # (J,) interval ends, s from the first keyframe
+    dyaw_ref: np.ndarray     # (J,)
+    d_ref: np.ndarray        # (J, 2) reference displacement in the interval's start frame
+    dphi: np.ndarray         # (J, 2) left, right wheel angle over the interval
+    gyro: np.ndarray         # (J,) gyro integral over the interval
+    tsq: np.ndarray          # (J,) d(t^2 / 2) over the interval (the bias drift's regressor)
+
+
+def _intervals(drive: CalibrationDrive) -> _Intervals:
+    t0 = int(drive.ref_stamp_ns[0])
+    tk = (np.asarray(drive.ref_stamp_ns, np.int64) - t0) * 1e-9
+    tw = (np.asarray(drive.wheel_stamp_ns, np.int64) - t0) * 1e-9
+    phi = np.asarray(drive.wheel_angle_rad, float)
+    phi_k = np.stack([np.interp(tk, tw, phi[:, i]) for i in range(2)], axis=-1)
+    tg, g = _gyro_integral(drive, t0)
+    g_k = np.interp(tk, tg, g)
+    yaw = _unwrap_yaw(drive.ref_pose[:, 2])
+    pose = np.asarray(drive.ref_pose, float)
+    d_ref = np.stack([rot2(float(yaw[k])).T @ (pose[k + 1, :2] - pose[k, :2])
+                      for k in range(len(tk) - 1)]) if len(tk) > 1 else np.zeros((0, 2))
+    return _Intervals(dt_s=np.diff(tk), t_end_s=tk[1:], dyaw_ref=np.diff(yaw), d_ref=d_ref,
+                      dphi=np.diff(phi_k, axis=0), gyro=np.diff(g_k), tsq=np.diff(0.5 * tk ** 2))
+
+
+def _arc_regressors(drive: CalibrationDrive, heading_of_t, t0_ns: int) -> np.ndarray:
+    """Per keyframe interval, ``(J, 2, 2)``: the displacement (in the interval's start frame)
+    per metre of wheel radius, for the left (``[:, :, 0]``) and right wheel: the sum over the
+    wheel samples inside the interval of ``dphi_i / 2 * (cos, sin)(heading - heading_start)``
+    at each sample's mid-time (the part of a sample before or after the interval counts pro
+    rata)."""
+    tk = (np.asarray(drive.ref_stamp_ns, np.int64) - t0_ns) * 1e-9
+    tw = (np.asarray(drive.wheel_stamp_ns, np.int64) - t0_ns) * 1e-9
+    phi = np.asarray(drive.wheel_angle_rad, float)
+    # Split the wheel timeline at the keyframe stamps so every piece lies in one interval.
+    inside = (tk > tw[0]) & (tk < tw[-1])
+    knots = np.union1d(tw, tk[inside])
+    phi_knots = np.stack([np.interp(knots, tw, phi[:, i]) for i in range(2)], axis=-1)
+    dphi = np.diff(phi_knots, axis=0)
+    mid = 0.5 * (knots[1:] + knots[:-1])
+    which = np.searchsorted(tk, mid, side="right") - 1  # interval index of each piece
+    ok = (which >= 0) & (which < len(tk) - 1)
+    rel = heading_of_t(mid) - heading_of_t(tk[np.clip(which, 0, len(tk) - 1)])
+    cs = np.stack([np.cos(rel), np.sin(rel)], axis=-1)  # (P, 2)
+    out = np.zeros((len(tk) - 1, 2, 2))
+    for wheel in range(2):
+        contrib = 0.5 * dphi[:, wheel, None] * cs
+        for axis in range(2):
+            out[:, axis, wheel] = np.bincount(which[ok], weights=contrib[ok, axis], minlength=len(tk) - 1)
+    return out
+
+
+def _weighted_lstsq(a: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Weighted linear least squares: the solution, its covariance scaled by the reduced
+    chi2 when that exceeds one, and the reduced chi2."""
+    sw = np.sqrt(w)
+    x, *_ = np.linalg.lstsq(a * sw[:, None], y * sw, rcond=None)
+    r = (y - a @ x) * sw
+    dof = max(len(y) - a.shape[1], 1)
+    red = float(r @ r / dof)
+    cov = np.linalg.inv((a * w[:, None]).T @ a) * max(red, 1.0)
+    return x, cov, red
+
+
+def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_m: float,
+                 params: OdometryFitParams = OdometryFitParams()) -> OdometryFit:
+    """Fit the odometry model to ``drive`` (see the module notes); the nominal radius and
+    wheel base (m) give the "before" residuals and the first linearisation. Raises
+    :class:`CalibrationError` naming what the drive lacks when it cannot be fitted."""
+    lacks = missing_observability(drive, params)
+    if lacks:
+        raise CalibrationError("the drive lacks " + "; ".join(lacks))
+    t0 = int(drive.ref_stamp_ns[0])
+    iv = _intervals(drive)
+    n = len(iv.dt_s)
+
+    # -- gyro noise and turn-on level from the still periods.
+    tg = np.asarray(drive.gyro_stamp_ns, np.int64)
+    w = np.asarray(drive.gyro_radps, float)
+    still_sel = np.zeros(len(tg), bool)
+    for a, b in _still_periods(drive, params.still_margin_s):
+        still_sel |= (tg >= a) & (tg <= b)
+    fs = 1.0 / float(np.median(np.diff(tg)) * 1e-9)
+    # The spread about each still period's own mean (the bias moves between them).
+    resid = []
+    for a, b in _still_periods(drive, params.still_margin_s):
+        sel = (tg >= a) & (tg <= b)
+        if sel.sum() >= 3:
+            resid.append(w[sel] - w[sel].mean())
+    r = np.concatenate(resid)
+    gyro_density = float(np.std(r, ddof=1) / math.sqrt(fs / 2.0))
+
+    # -- gyro: its integral from the first keyframe to keyframe k is
+    # G_k = s Y_k + b0 t_k + b1 t_k^2 / 2 + c (Y: the reference's unwrapped heading). The
+    # errors are the reference's own heading noise (white, sigma_ref per keyframe) and the
+    # gyro's white noise integrated (a random walk, q_g t): generalised least squares with
+    # that covariance, sigma_ref first estimated from the increments (their variance is
+    # 2 sigma_ref^2 + q_g dt).
+    q_g = gyro_density ** 2
+    a_inc = np.column_stack([iv.dyaw_ref, iv.dt_s, iv.tsq])
+    x_inc, *_ = np.linalg.lstsq(a_inc, iv.gyro, rcond=None)
+    res = iv.gyro - a_inc @ x_inc
+    var_ref = max(0.5 * float(np.mean(res ** 2 - q_g * iv.dt_s)), 1e-12)
+    tk = np.concatenate([[0.0], iv.t_end_s])
+    g_lev = np.concatenate([[0.0], np.cumsum(iv.gyro)])
+    y_lev = np.concatenate([[0.0], np.cumsum(iv.dyaw_ref)])
+    a_lev = np.column_stack([y_lev, tk, 0.5 * tk ** 2, np.ones_like(tk)])
+    cov_lev = var_ref * np.eye(len(tk)) + q_g * np.minimum.outer(tk, tk)
+    chol = np.linalg.cholesky(cov_lev)
+    a_w = np.linalg.solve(chol, a_lev)
+    g_w = np.linalg.solve(chol, g_lev)
+    x_g, *_ = np.linalg.lstsq(a_w, g_w, rcond=None)
+    r_w = g_w - a_w @ x_g
+    red_g = float(r_w @ r_w / max(len(g_w) - 4, 1))
+    cov_g = np.linalg.inv(a_w.T @ a_w) * max(red_g, 1.0)
+    s, b0, b1 = (float(v) for v in x_g[:3])
+
+    def heading(t_s: np.ndarray) -> np.ndarray:
+        """The calibrated gyro's heading (rad, from 0 at the first keyframe)."""
+        tgi, gi = _gyro_integral(drive, t0)
+        return (np.interp(t_s, tgi, gi) - b0 * t_s - 0.5 * b1 * t_s ** 2) / s
+
+    arcs = _arc_regressors(drive, heading, t0)  # (J, 2 axes, 2 wheels)
+
+    # -- wheels: unknowns (r_L, r_R, B), solved by Gauss-Newton over two blocks of residuals:
+    # the displacement over each keyframe interval against the reference (the radii), and
+    # the heading change over short windows of the wheel timeline against the calibrated
+    # gyro (the wheel base, and the radii's difference). The gyro, once calibrated, is
+    # better than the reference over a fraction of a second, and it shows a slip event (a
+    # wheel over- or under-rotating by a few percent for a fraction of a second) as a jump
+    # of tens of its own sigmas: such windows and their neighbours are left out of both
+    # blocks. Left in, a handful of them moves the wheel base by 0.1-0.4 % on a 26 m drive.
+    def residuals(p: np.ndarray) -> np.ndarray:
+        rl, rr, bb = p
+        pos = arcs[:, :, 0] * rl + arcs[:, :, 1] * rr - iv.d_ref      # (J, 2)
+        yaw = (rr * iv.dphi[:, 1] - rl * iv.dphi[:, 0]) / bb - iv.dyaw_ref
+        return np.column_stack([pos, yaw])
+
+    tw = (np.asarray(drive.wheel_stamp_ns, np.int64) - t0) * 1e-9
+    phi = np.asarray(drive.wheel_angle_rad, float)
+    step_w = max(1, int(round(params.window_s / float(np.median(np.diff(tw))))))
+    cut = np.arange(0, len(tw), step_w)
+    w_t0, w_t1 = tw[cut[:-1]], tw[cut[1:]]
+    w_dphi = phi[cut[1:]] - phi[cut[:-1]]
+    inside = (w_t0 >= 0.0) & (w_t1 <= iv.t_end_s[-1]) & (np.abs(w_dphi).sum(axis=1) > 0)
+    w_t0, w_t1, w_dphi = w_t0[inside], w_t1[inside], w_dphi[inside]
+    w_y = heading(w_t1) - heading(w_t0)
+    interval_of = np.searchsorted(iv.t_end_s, 0.5 * (w_t0 + w_t1))  # keyframe interval of each window
+
+    def heading_res(p: np.ndarray) -> np.ndarray:
+        rl, rr, bb = p
+        return (rr * w_dphi[:, 1] - rl * w_dphi[:, 0]) / bb - w_y
+
+    def heading_jac(p: np.ndarray) -> np.ndarray:
+        rl, rr, bb = p
+        return np.column_stack([-w_dphi[:, 0] / bb, w_dphi[:, 1] / bb,
+                                -(rr * w_dphi[:, 1] - rl * w_dphi[:, 0]) / bb ** 2])
+
+    travel = np.maximum(np.abs(iv.dphi).mean(axis=1) * nominal_radius_m, 1e-6)
+    p = np.array([nominal_radius_m, nominal_radius_m, nominal_base_m])
+    used = np.ones(n, bool)
+    clean = np.ones(len(w_y), bool)
+    sig_pos = np.full(n, 1e-3)
+    sig_h = 1e-3
+    q_w = 0.0
+
+    def system(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r_pos = residuals(p)[used, :2] / sig_pos[used, None]
+        j_pos = np.zeros((int(used.sum()), 2, 3))
+        j_pos[:, :, 0] = arcs[used, :, 0]
+        j_pos[:, :, 1] = arcs[used, :, 1]
+        j_pos /= sig_pos[used, None, None]
+        y = np.concatenate([r_pos.reshape(-1), heading_res(p)[clean] / sig_h])
+        a = np.concatenate([j_pos.reshape(-1, 3), heading_jac(p)[clean] / sig_h])
+        return a, y
+
+    for rnd in range(4):
+        for _ in range(10):
+            a, y = system(p)
+            step, *_ = np.linalg.lstsq(a, -y, rcond=None)
+            p = p + step
+            if np.all(np.abs(step) < 1e-12 + 1e-10 * np.abs(p)):
+                break
+        e = heading_res(p)
+        mad = float(np.median(np.abs(e[clean] - np.median(e[clean])))) * 1.4826
+        sig_h = max(mad, 1e-9)
+        slip = np.abs(e) > params.slip_gate_sigma * sig_h
+        slip = slip | np.roll(slip, 1) | np.roll(slip, -1)
+        clean = ~slip
+        used = np.ones(n, bool)
+        used[np.unique(interval_of[slip])] = False
+        # The displacement's noise: var = q |ds| + c per axis (c: the reference's own).
+        r = residuals(p)
+        e2 = 0.5 * (r[used, 0] ** 2 + r[used, 1] ** 2)
+        design = np.column_stack([travel[used], np.ones(int(used.sum()))])
+        coef, *_ = np.linalg.lstsq(design, e2, rcond=None)
+        q_w, c_pos = max(float(coef[0]), 1e-12), max(float(coef[1]), 1e-12)
+        sig_pos = np.sqrt(q_w * travel + c_pos)
+    a, y = system(p)
+    red = float(y @ y / max(len(y) - 3, 1))
+    cov_w = np.linalg.inv(a.T @ a) * max(red, 1.0)
+    # The wheels' slip noise from the heading windows (the displacement's residuals are the
+    # reference's own at this scale): var = 2 q |ds| / B^2 + q_g dt + c, with slip events out.
+    e = heading_res(p)[clean]
+    w_travel = np.abs(w_dphi[clean]).mean(axis=1) * 0.5 * (p[0] + p[1])
+    design = np.column_stack([2.0 * w_travel / p[2] ** 2, np.ones(len(e))])
+    coef, *_ = np.linalg.lstsq(design, e ** 2 - q_g * (w_t1 - w_t0)[clean], rcond=None)
+    q_w = max(float(coef[0]), 0.0)
+    # The wheel base is measured against the gyro: its scale's uncertainty carries over.
+    cov_w[2, 2] += (p[2] * math.sqrt(cov_g[0, 0]) / s) ** 2
+
+    # -- residuals before (nominal wheels, raw gyro but for the still periods' mean level)
+    # and after.
+    b_still = float(w[still_sel].mean()) if still_sel.any() else 0.0
+    p_nom = np.array([nominal_radius_m, nominal_radius_m, nominal_base_m])
+
+    def nominal_heading(t_s: np.ndarray) -> np.ndarray:
+        tgi, gi = _gyro_integral(drive, t0)
+        return np.interp(t_s, tgi, gi) - b_still * t_s
+
+    arcs_nom = _arc_regressors(drive, nominal_heading, t0)
+    pos_nom = arcs_nom[:, :, 0] * p_nom[0] + arcs_nom[:, :, 1] * p_nom[1] - iv.d_ref
+    yaw_nom = (p_nom[1] * iv.dphi[:, 1] - p_nom[0] * iv.dphi[:, 0]) / p_nom[2] - iv.dyaw_ref
+    gyro_nom = (iv.gyro - b_still * iv.dt_s) - iv.dyaw_ref
+    before = np.column_stack([pos_nom, yaw_nom, gyro_nom])
+    gyro_after = (iv.gyro - b0 * iv.dt_s - b1 * iv.tsq) / s - iv.dyaw_ref
+    after = np.column_stack([residuals(p), gyro_after])
+    left, right, dist = _turns_deg(drive)
+    still = sum(b - a for a, b in _still_periods(drive, params.still_margin_s)) * 1e-9
+    return OdometryFit(
+        wheel_radius_left_m=float(p[0]), wheel_radius_right_m=float(p[1]), wheel_base_m=float(p[2]),
+        wheel_radius_left_sigma=float(math.sqrt(cov_w[0, 0])),
+        wheel_radius_right_sigma=float(math.sqrt(cov_w[1, 1])),
+        wheel_base_sigma=float(math.sqrt(cov_w[2, 2])),
+        gyro_scale=s, gyro_scale_sigma=float(math.sqrt(cov_g[0, 0])),
+        gyro_bias_radps=b0, gyro_bias_sigma=float(math.sqrt(cov_g[1, 1])), gyro_bias_drift_radps2=b1,
+        gyro_noise_radps_sqrt_hz=gyro_density, wheel_noise_m_sqrt_m=float(math.sqrt(q_w)),
+        residuals_before=before, residuals_after=after, interval_end_s=iv.t_end_s, used=used,
+        slip_windows=int((~clean).sum()), heading_windows=len(clean),
+        turn_left_deg=left, turn_right_deg=right, distance_m=dist, still_s=still,
+    )
