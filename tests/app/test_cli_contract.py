@@ -391,6 +391,36 @@ def test_a_foreign_file_in_the_demo_folder_is_left_alone(demo_out: Path):
     assert snapshot(demo_out) == before
 
 
+# -- robotd calibrate odometry (issue 28) ---------------------------------------------------
+
+@pytest.mark.parametrize("case", ["drive_too_short", "drive_missing", "calibration_missing",
+                                  "drive_is_a_folder"])
+def test_calibrate_odometry_refusals_keep_the_calibration_file(case: str, material: Path,
+                                                               tmp_path: Path):
+    cal = tmp_path / "cal.yml"
+    shutil.copy(Path(__file__).resolve().parents[2] / "robotd" / "app" / "data" / "demo_calibration.yml", cal)
+    drive, says = material / "drive.mcap", {
+        "drive_too_short": "the drive lacks", "drive_missing": "cannot open the recording",
+        "calibration_missing": "no such calibration file",
+        "drive_is_a_folder": "cannot open the recording: Is a directory"}[case]
+    if case == "drive_missing":
+        drive = tmp_path / "absent.mcap"
+    elif case == "calibration_missing":
+        cal = tmp_path / "absent.yml"
+    elif case == "drive_is_a_folder":
+        drive = tmp_path
+    before = snapshot(tmp_path)
+    assert_refused(run("calibrate", "odometry", drive, "--calibration", cal), says)
+    assert snapshot(tmp_path) == before
+
+
+def test_graph_optimize_refuses_an_unknown_robust_kernel(g2o: Path, tmp_path: Path):
+    before = snapshot(tmp_path)
+    assert_refused(run("graph", "optimize", g2o, "--out", tmp_path / "o.g2o", "--robust", "bogus"),
+                   "invalid choice: 'bogus'")
+    assert snapshot(tmp_path) == before
+
+
 # -- 6, 11. replay's arguments and 14: recordings with nothing to replay -----------------
 
 @pytest.mark.parametrize("speed", ["1e-9", "inf", "nan", "0", "-1", "1e6"])
