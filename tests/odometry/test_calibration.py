@@ -81,3 +81,25 @@ def test_a_short_drive_is_refused_naming_what_it_lacks():
     assert any(x.startswith("distance (") for x in lacks)
     assert any(x.startswith("turns to the left") for x in lacks) or any(
         x.startswith("turns to the right") for x in lacks)
+
+
+def test_the_command_refuses_such_a_drive_in_one_line_and_keeps_the_file(tmp_path, monkeypatch, capsys):
+    import calibration.odometry as cal_odometry
+    from robotd.app.cli import main
+
+    drive, _p, _ = _drive("square", 0)
+    monkeypatch.setattr(cal_odometry, "load_drive",
+                        lambda path, cfg, calib: cal_odometry.OdometryDriveData(drive, None, 40, 5))
+    calib = tmp_path / "calib.yml"
+    calib.write_text("%YAML 1.2\n---\nloop_threshold_mode_4: 90.0\nloop_overlap_r: 0.33\n"
+                     "loop_confidence: 0.99\n")
+    before = calib.read_bytes()
+    rec = tmp_path / "drive.mcap"
+    rec.write_bytes(b"")
+    cfg = tmp_path / "robotd.toml"
+    cfg.write_text("")
+    assert main(["calibrate", "odometry", str(rec), "--calibration", str(calib), "--config", str(cfg)]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the drive lacks turns to the right" in err[0]
+    assert "is left as it was" in err[0]
+    assert calib.read_bytes() == before
