@@ -65,9 +65,9 @@ def test_short_demo_writes_a_consistent_map_and_trajectories(tmp_path: Path):
 @pytest.mark.slow
 def test_default_demo_from_the_command_line(tmp_path: Path):
     """What `./dev demo` runs: the whole office route (about 110 m), with the figures the
-    README shows pinned: at least 5000 loop edges accepted and every one truly overlapping
-    (README: 5400 of 5400), none of the true ones refused by the gate, the loop-corrected
-    ATE under 1 cm (README: 2 mm), the fused end error under 0.3 m (README: 0.226 m) and
+    README shows pinned: at least 1400 loop edges accepted and every one truly overlapping
+    (README: 1636 of 1636), none of the true ones refused by the gate, the loop-corrected
+    ATE under 1 cm (README: 3 mm), the fused end error under 0.1 m (README: 0.022 m) and
     far below the wheel-only one (README: 2.14 m)."""
     r = subprocess.run([sys.executable, "-m", "robotd.app.cli", "demo", "--out", str(tmp_path)],
                        capture_output=True, text=True, timeout=1800)
@@ -81,11 +81,11 @@ def test_default_demo_from_the_command_line(tmp_path: Path):
     assert s["fused"]["end_position_error_m"] < s["wheel_only"]["end_position_error_m"]
     assert s["fused"]["end_heading_error_deg"] < s["wheel_only"]["end_heading_error_deg"]
     fd, pg = s["floor_detector"], s["pose_graph"]
-    assert fd["loops_accepted"] >= 5000
+    assert fd["loops_accepted"] >= 1400
     assert fd["loops_truly_overlapping"] == fd["loops_accepted"]
     assert fd["refused_truly_overlapping"] == 0
     assert pg["loop_corrected"]["ate_rmse_m"] < 0.01
-    assert s["fused"]["end_position_error_m"] < 0.3
+    assert s["fused"]["end_position_error_m"] < 0.1
     assert s["fused"]["end_position_error_m"] < 0.25 * s["wheel_only"]["end_position_error_m"]
 
 
