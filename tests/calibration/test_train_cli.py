@@ -22,10 +22,11 @@ OLD = LoopThresholds(thresholds=(20.0, 32.0, 48.0, 93.0, 136.0, 234.0))
 
 
 def test_a_drive_too_short_to_train_keeps_the_old_thresholds(tmp_path: Path, capsys):
-    """It used to exit 0 and write a file with no threshold at all."""
+    """It used to exit 0 and write a file with no threshold at all. (8 s of the square: about a
+    dozen keyframes at the default 0.15 m spacing, enough to be read, no revisit to train on.)"""
     cfg = replace(Config(), "floor_detector", enabled=False)
     rec = tmp_path / "short.mcap"
-    run_demo(cfg, out=tmp_path / "demo", route="square", duration_s=5.0, plot=False, record=rec)
+    run_demo(cfg, out=tmp_path / "demo", route="square", duration_s=8.0, plot=False, record=rec)
     calib = tmp_path / "calibration.yml"
     write_calibration(calib, CalibrationFile(loop=OLD))
     before = calib.read_bytes()
