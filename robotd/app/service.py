@@ -212,7 +212,7 @@ def run_replay(cfg: Config, path: Path, speed: float | None,
                                      driver_stats=lambda: {"replay": replay.stats()})
             early.attach(daemon)
             report = daemon.run(stop_when=lambda: replay_finished(replay, daemon))
-        early.release()
+            early.release()  # from here on Ctrl-C interrupts at once (closing the map included)
     c = report.counters
     interrupted = report.stopped_by if report.stopped_by in ("SIGINT", "SIGTERM") else None
     reached_ns = min(clock.now_ns(), span[1]) if interrupted else span[1]
