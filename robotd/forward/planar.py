@@ -35,6 +35,7 @@ numerical Jacobian, so any mount and heading change are handled the same way.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -173,7 +174,8 @@ def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
         return np.eye(3)
     k = w / a
     kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(a) * kx + (1.0 - math.cos(a)) * (kx @ kx)
+    out: np.ndarray = np.eye(3) + math.sin(a) * kx + (1.0 - math.cos(a)) * (kx @ kx)
+    return out
 
 
 def _sampson_px(x_old: np.ndarray, x_new: np.ndarray, rotation: np.ndarray, t: np.ndarray,
@@ -186,7 +188,8 @@ def _sampson_px(x_old: np.ndarray, x_new: np.ndarray, rotation: np.ndarray, t: n
     etx2 = x_new @ e             # rows: E^T x_new
     num = np.einsum("ij,ij->i", x_new, ex1)
     den = np.sqrt(ex1[:, 0]**2 + ex1[:, 1]**2 + etx2[:, 0]**2 + etx2[:, 1]**2)
-    return focal_px * num / np.maximum(den, 1e-15)
+    out: np.ndarray = focal_px * num / np.maximum(den, 1e-15)
+    return out
 
 
 def refine_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarray,
@@ -227,7 +230,7 @@ def refine_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarr
     x_old = np.hstack([p_old, np.ones((n, 1))]) @ kinv.T
     x_new = np.hstack([p_new, np.ones((n, 1))]) @ kinv.T
 
-    def linearise(r: np.ndarray, t: np.ndarray):
+    def linearise(r: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]]:
         # Two unit vectors orthogonal to t: the translation's tangent plane on the sphere.
         a = np.eye(3)[int(np.argmin(np.abs(t)))]
         e1 = np.cross(t, a)
