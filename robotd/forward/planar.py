@@ -262,7 +262,10 @@ def refine_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarr
         cost_new = float(res_new @ res_new)
         if not cost_new < cost:
             break
+        converged = cost - cost_new < 1e-6 * cost
         r, t, res, jac, pose, cost = r_new, t_new, res_new, jac_new, pose_new, cost_new
+        if converged:
+            break
     noise = math.sqrt(cost / (n - 5))
     jtj = jac.T @ jac
     if not np.all(np.isfinite(jtj)) or np.linalg.cond(jtj) > 1e14:
