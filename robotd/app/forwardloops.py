@@ -188,7 +188,8 @@ class ForwardLoopStage(Publisher):
         log.debug("forward loop: keyframe %d sees keyframe %d (p %.2f, %d inliers)", kf.keyframe_id, old,
                   det.candidate_probability, v.n_inliers)
         self._publish(ForwardLoop(old, kf.keyframe_id, det.candidate_probability, dyaw, bearing, v.n_inliers,
-                                  range_m=v.range_m))
+                                  range_m=v.range_m,
+                                  sigma_bearing_rad=v.sigma_bearing_rad if np.isfinite(v.sigma_bearing_rad) else None))
 
     def counters(self) -> dict[str, Any]:
         total = np.asarray(self.total_ms) if self.total_ms else np.zeros(1)

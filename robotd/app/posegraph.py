@@ -157,7 +157,7 @@ class PoseGraphStage(Publisher):
         def edge() -> tuple[np.ndarray, np.ndarray]:
             predicted = between(self.graph.pose(c.from_id), self.graph.pose(c.to_id))
             return loop_edge(predicted, c.dyaw_rad, c.bearing_rad, self.forward_mount, self.forward_params,
-                             range_m=c.range_m)
+                             range_m=c.range_m, sigma_bearing_rad=c.sigma_bearing_rad)
 
         if self._relocalisation_takes(c.from_id, c.to_id, c.probability, None, None, "forward"):
             return

@@ -202,7 +202,9 @@ class ForwardLoop:
     graph takes the range from its own prediction, unless ``range_m`` (the distance between
     the camera centres, measured on the floor from the camera's known height,
     :func:`robotd.forward.verify.floor_range`) is given. ``probability``: the filter's
-    posterior of the loop; ``inliers``: matches fitting the essential matrix."""
+    posterior of the loop; ``inliers``: matches fitting the essential matrix;
+    ``sigma_bearing_rad``: how well the inliers fix the bearing (1-sigma,
+    :func:`robotd.forward.planar.refine_motion`), None when not known."""
 
     from_id: int
     to_id: int
@@ -211,6 +213,7 @@ class ForwardLoop:
     bearing_rad: float
     inliers: int
     range_m: float | None = None
+    sigma_bearing_rad: float | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -35,13 +35,14 @@ numerical Jacobian, so any mount and heading change are handled the same way.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from robotd.base.geometry import compose, inverse, wrap_angle
 
-__all__ = ["PlanarLoopParams", "loop_edge", "planar_motion"]
+__all__ = ["PlanarLoopParams", "loop_edge", "planar_motion", "refine_motion"]
 
 
 @dataclass(frozen=True)
@@ -120,7 +121,8 @@ def _between_error(nominal: np.ndarray, other: np.ndarray) -> np.ndarray:
 
 def loop_edge(predicted: np.ndarray, dyaw_rad: float, bearing_rad: float,
               mount: np.ndarray | None = None, params: PlanarLoopParams | None = None,
-              range_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+              range_m: float | None = None,
+              sigma_bearing_rad: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The robot-frame loop edge ``(delta (3,), information (3, 3))`` of a forward loop.
 
     ``predicted (3,)``: the graph's current relative pose of the two keyframes (robot
@@ -128,7 +130,10 @@ def loop_edge(predicted: np.ndarray, dyaw_rad: float, bearing_rad: float,
     camera centres measured on the floor, metres) is given; ``dyaw_rad``, ``bearing_rad`` from
     :func:`planar_motion`; ``mount (3,)``: the forward camera in the robot frame (default:
     at the robot's origin, looking forward); ``params``: the noise (default
-    :class:`PlanarLoopParams`).
+    :class:`PlanarLoopParams`); ``sigma_bearing_rad``: how well the verification's inliers
+    fixed the bearing (:func:`refine_motion`), added in quadrature to
+    ``params.sigma_bearing_rad`` (which covers what the images cannot: the frame's offset
+    from its keyframe).
     """
     mount = np.zeros(3) if mount is None else np.asarray(mount, np.float64).reshape(3)
     params = PlanarLoopParams() if params is None else params
@@ -143,7 +148,11 @@ def loop_edge(predicted: np.ndarray, dyaw_rad: float, bearing_rad: float,
     x0 = np.array([bearing_rad, dyaw_rad, math.log(range_m), 0.0, 0.0])
     delta = _base_edge(x0, mount)
     sig_range = params.sigma_log_range_measured if measured else params.sigma_log_range
-    sig = np.array([params.sigma_bearing_rad, params.sigma_yaw_rad, sig_range,
+    if sigma_bearing_rad is not None and not (math.isfinite(sigma_bearing_rad) and sigma_bearing_rad >= 0.0):
+        raise ValueError(f"sigma_bearing_rad must be non-negative and finite, got {sigma_bearing_rad}")
+    sig_bearing = params.sigma_bearing_rad if sigma_bearing_rad is None else math.hypot(params.sigma_bearing_rad,
+                                                                                         sigma_bearing_rad)
+    sig = np.array([sig_bearing, params.sigma_yaw_rad, sig_range,
                     params.sigma_translation_m, params.sigma_translation_m])
     jac = np.zeros((3, 5))
     for k in range(5):  # central differences, steps well inside each parameter's sigma
@@ -156,3 +165,119 @@ def loop_edge(predicted: np.ndarray, dyaw_rad: float, bearing_rad: float,
     cov = jac @ np.diag(sig**2) @ jac.T
     info = np.linalg.inv(cov)
     return delta, 0.5 * (info + info.T)
+
+
+def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``w (3,)`` (Rodrigues)."""
+    a = float(np.linalg.norm(w))
+    if a < 1e-15:
+        return np.eye(3)
+    k = w / a
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    out: np.ndarray = np.eye(3) + math.sin(a) * kx + (1.0 - math.cos(a)) * (kx @ kx)
+    return out
+
+
+def _sampson_px(x_old: np.ndarray, x_new: np.ndarray, rotation: np.ndarray, t: np.ndarray,
+                focal_px: float) -> np.ndarray:
+    """Sampson distances ``(N,)`` in pixels of normalised homogeneous points ``(N, 3)`` to
+    the epipolar geometry ``E = [t]x R``."""
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    e = tx @ rotation
+    ex1 = x_old @ e.T            # rows: E x_old
+    etx2 = x_new @ e             # rows: E^T x_new
+    num = np.einsum("ij,ij->i", x_new, ex1)
+    den = np.sqrt(ex1[:, 0]**2 + ex1[:, 1]**2 + etx2[:, 0]**2 + etx2[:, 1]**2)
+    out: np.ndarray = focal_px * num / np.maximum(den, 1e-15)
+    return out
+
+
+def refine_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarray,
+                  translation_dir: np.ndarray, camera_matrix: np.ndarray,
+                  iterations: int = 5) -> tuple[np.ndarray, np.ndarray, float, float, float]:
+    """The two-view motion refined on all the inliers, and how well they fix it (not in
+    paper 000).
+
+    Returns ``(rotation (3, 3), translation_dir (3,), sigma_bearing_rad, sigma_yaw_rad,
+    noise_px)``. RANSAC's essential matrix comes from one minimal sample of five points;
+    here its five degrees of freedom (the rotation, the translation's direction on the unit
+    sphere) are refined by Gauss-Newton on every inlier's epipolar error (Sampson distance,
+    pixels), and their covariance is ``noise_px^2 (J^T J)^-1`` at the optimum, with
+    ``noise_px`` the inliers' own residual (``sqrt(sum r^2 / (N - 5))``). It is propagated
+    to the bearing and the heading change of :func:`planar_motion`. This is what makes the
+    bearing honest at short baselines: a point at depth Z moves by about ``f * b / Z``
+    pixels of parallax for a baseline b, so the translation's direction is fixed to about
+    ``noise / parallax / sqrt(N)``; with the rotation free too, a lateral shift and a turn
+    explain the far points alike (the rotation-translation ambiguity of a narrow field of
+    view). Both grow as the baseline shrinks; nothing here is tuned.
+
+    ``p_old_px, p_new_px (N, 2)``: the inliers, pixels; ``rotation (3, 3)``,
+    ``translation_dir (3,)`` as :class:`robotd.forward.verify.Verification`;
+    ``camera_matrix (3, 3)``. With fewer than six inliers or a degenerate geometry the
+    motion is returned as given and the sigmas are ``inf``.
+    """
+    p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
+    p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
+    r0 = np.asarray(rotation, np.float64).reshape(3, 3)
+    t0 = np.asarray(translation_dir, np.float64).reshape(3)
+    t0 = t0 / max(float(np.linalg.norm(t0)), 1e-15)
+    n = len(p_old)
+    if n < 6:
+        return r0, t0, math.inf, math.inf, math.nan
+    k = np.asarray(camera_matrix, np.float64)
+    kinv = np.linalg.inv(k)
+    focal = 0.5 * (k[0, 0] + k[1, 1])
+    x_old = np.hstack([p_old, np.ones((n, 1))]) @ kinv.T
+    x_new = np.hstack([p_new, np.ones((n, 1))]) @ kinv.T
+
+    def linearise(r: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]]:
+        # Two unit vectors orthogonal to t: the translation's tangent plane on the sphere.
+        a = np.eye(3)[int(np.argmin(np.abs(t)))]
+        e1 = np.cross(t, a)
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(t, e1)
+
+        def pose(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            tt = t + theta[3] * e1 + theta[4] * e2
+            return _rotvec_matrix(theta[:3]) @ r, tt / np.linalg.norm(tt)
+
+        jac = np.zeros((n, 5))
+        h = 1e-6
+        for j in range(5):
+            d = np.zeros(5)
+            d[j] = h
+            jac[:, j] = (_sampson_px(x_old, x_new, *pose(d), focal) - _sampson_px(x_old, x_new, *pose(-d), focal)) / (2 * h)
+        return _sampson_px(x_old, x_new, r, t, focal), jac, pose
+
+    r, t = r0, t0
+    res, jac, pose = linearise(r, t)
+    cost = float(res @ res)
+    for _ in range(iterations):
+        jtj = jac.T @ jac
+        if not np.all(np.isfinite(jtj)) or np.linalg.cond(jtj) > 1e14:
+            return r0, t0, math.inf, math.inf, math.sqrt(cost / (n - 5))
+        step = -np.linalg.solve(jtj, jac.T @ res)
+        r_new, t_new = pose(step)
+        res_new, jac_new, pose_new = linearise(r_new, t_new)
+        cost_new = float(res_new @ res_new)
+        if not cost_new < cost:
+            break
+        converged = cost - cost_new < 1e-6 * cost
+        r, t, res, jac, pose, cost = r_new, t_new, res_new, jac_new, pose_new, cost_new
+        if converged:
+            break
+    noise = math.sqrt(cost / (n - 5))
+    jtj = jac.T @ jac
+    if not np.all(np.isfinite(jtj)) or np.linalg.cond(jtj) > 1e14:
+        return r, t, math.inf, math.inf, noise
+    cov = noise**2 * np.linalg.inv(jtj)
+    grad = np.zeros((2, 5))
+    h = 1e-6
+    for j in range(5):
+        d = np.zeros(5)
+        d[j] = h
+        yp, bp, _ = planar_motion(*pose(d))
+        ym, bm, _ = planar_motion(*pose(-d))
+        grad[:, j] = (wrap_angle(bp - bm) / (2 * h), wrap_angle(yp - ym) / (2 * h))
+    var = np.einsum("ij,jk,ik->i", grad, cov, grad)
+    return r, t, math.sqrt(max(float(var[0]), 0.0)), math.sqrt(max(float(var[1]), 0.0)), noise

@@ -139,3 +139,82 @@ def test_a_measured_range_replaces_the_predicted_one_and_is_weighed():
     assert i_meas[0, 0] > 20 * i_pred[0, 0]
     with pytest.raises(ValueError):
         loop_edge(true, 0.0, 0.0, range_m=-1.0)
+
+
+# --- the bearing's uncertainty from the inliers (robotd.forward.planar.refine_motion) -------
+
+def _synthetic_pair(rel: np.ndarray, noise_px: float, rng: np.random.Generator, n: int = 120):
+    """Noisy pixels ``(N, 2), (N, 2)`` of points 1.5-8 m ahead seen from the old camera and
+    from a new one at planar pose ``rel``, with ``(R, t_dir)`` the truth, and the camera matrix."""
+    k = np.array([[525.0, 0.0, 320.0], [0.0, 525.0, 240.0], [0.0, 0.0, 1.0]])
+    r, t = _opencv_motion(rel)
+    centre = -r.T @ t  # unit-length new camera centre in the old frame; scale it to the range
+    s = math.hypot(rel[0], rel[1])
+    z = rng.uniform(1.5, 8.0, n)
+    pts = np.column_stack([rng.uniform(-0.45, 0.45, n) * z, rng.uniform(-0.35, 0.35, n) * z, z])
+    new = (pts - s * centre) @ r.T
+    keep = new[:, 2] > 0.5
+    pts, new = pts[keep], new[keep]
+    p_old = (pts / pts[:, 2:]) @ k.T
+    p_new = (new / new[:, 2:]) @ k.T
+    p_old = p_old[:, :2] + rng.normal(0.0, noise_px, (len(pts), 2))
+    p_new = p_new[:, :2] + rng.normal(0.0, noise_px, (len(pts), 2))
+    in_view = (p_new[:, 0] > 0) & (p_new[:, 0] < 640) & (p_new[:, 1] > 0) & (p_new[:, 1] < 480)
+    return p_old[in_view], p_new[in_view], r, t, k
+
+
+@pytest.mark.parametrize("baseline_m", [0.25, 1.0])
+def test_the_claimed_bearing_sigma_is_the_spread_of_the_bearing_over_noisy_images(baseline_m):
+    """Monte Carlo against the Cramer-Rao covariance: the refined bearing's spread over many
+    noisy draws of one scene matches the sigma each draw claims, at a short and a long
+    baseline, and the noise is recovered from the residuals."""
+    from robotd.forward.planar import refine_motion
+
+    rel = np.array([baseline_m * math.cos(0.6), baseline_m * math.sin(0.6), math.radians(5.0)])
+    t_bearing = math.atan2(rel[1], rel[0])
+    rng = np.random.default_rng(7)
+    errors, sigmas, noises = [], [], []
+    for _ in range(150):
+        p_old, p_new, r, t, k = _synthetic_pair(rel, 0.5, rng)
+        # Start off the truth, as a five-point sample would.
+        r0 = r @ np.array([[1.0, -0.002, 0.004], [0.002, 1.0, 0.0], [-0.004, 0.0, 1.0]])
+        t0 = t + rng.normal(0.0, 0.03, 3)
+        r_ref, t_ref, sig_b, sig_y, noise = refine_motion(p_old, p_new, r0, t0 / np.linalg.norm(t0), k)
+        _, bearing, _ = planar_motion(r_ref, t_ref)
+        errors.append(math.remainder(bearing - t_bearing, math.tau))
+        sigmas.append(sig_b)
+        noises.append(noise)
+    spread = float(np.sqrt(np.mean(np.square(errors))))
+    claimed = float(np.sqrt(np.mean(np.square(sigmas))))
+    assert 0.75 < spread / claimed < 1.33
+    assert float(np.median(noises)) == pytest.approx(0.5, rel=0.1)
+
+
+def test_the_bearing_sigma_grows_as_the_baseline_shrinks():
+    """One scene seen from new cameras ever closer to the old one: the parallax shrinks with
+    the baseline, and the claimed bearing sigma grows about inversely with it."""
+    from robotd.forward.planar import refine_motion
+
+    sig = {}
+    for b in (0.1, 0.2, 0.4, 0.8):
+        rel = np.array([b * math.cos(1.0), b * math.sin(1.0), 0.0])
+        p_old, p_new, r, t, k = _synthetic_pair(rel, 0.5, np.random.default_rng(3), n=300)
+        sig[b] = refine_motion(p_old, p_new, r, t, k)[2]
+    for b in (0.1, 0.2, 0.4):
+        assert 1.7 < sig[b] / sig[2 * b] < 2.4  # measured 2.0-2.2
+    assert math.degrees(sig[0.1]) > 0.5 > math.degrees(sig[0.8])
+
+
+def test_a_measured_bearing_sigma_loosens_the_edge_across_the_baseline():
+    true = np.array([0.25, 0.0, 0.0])
+    dyaw, bearing = 0.0, 0.0
+    _, info_default = loop_edge(true, dyaw, bearing, range_m=0.25)
+    _, info_loose = loop_edge(true, dyaw, bearing, range_m=0.25, sigma_bearing_rad=math.radians(10.0))
+    # Across the baseline (y) the edge now allows about 0.25 m * 10 deg, plus the 3 cm floor.
+    sig_y_default = math.sqrt(np.linalg.inv(info_default)[1, 1])
+    sig_y_loose = math.sqrt(np.linalg.inv(info_loose)[1, 1])
+    expect = math.hypot(0.03, 0.25 * math.hypot(math.radians(2.0), math.radians(10.0)))
+    assert sig_y_loose == pytest.approx(expect, rel=0.05)
+    assert sig_y_default == pytest.approx(math.hypot(0.03, 0.25 * math.radians(2.0)), rel=0.05)
+    with pytest.raises(ValueError, match="sigma_bearing_rad"):
+        loop_edge(true, dyaw, bearing, sigma_bearing_rad=math.nan)

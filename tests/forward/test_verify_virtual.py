@@ -162,3 +162,53 @@ def test_an_aliased_floor_and_ceiling_pass_the_epipolar_check_but_measure_the_wr
 
 def _overlap_poses(renderer, a: np.ndarray, b: np.ndarray) -> float:
     return float(view_overlap(view_histograms(renderer, np.array([a, b])))[0, 1])
+
+
+# --- the bearing's uncertainty handed to the pose graph (issue 24: short-baseline loops) ---
+# The daemon's two wrong accepted loops were true revisits 0.23-0.25 m apart with the bearing
+# 13-17 deg off under a fixed 2 deg sigma. New cameras around one corridor pose, at short
+# (0.12-0.25 m) and long (0.6-1.0 m) baselines, in all directions, turned by a few degrees.
+_RELS_SHORT = [(0.2, 0.0, 0.05), (0.0, 0.18, -0.1), (-0.15, 0.12, 0.0), (0.1, -0.1, 0.15),
+               (-0.2, -0.1, -0.05), (0.17, 0.17, 0.1)]
+_RELS_LONG = [(0.8, 0.0, 0.05), (0.0, 0.6, -0.1), (-0.6, 0.5, 0.0), (0.5, -0.5, 0.15),
+              (-0.9, -0.3, -0.05), (0.7, 0.6, 0.1)]
+
+
+def _bearing_errors(renderer, k, rels):
+    """``(error, claimed edge sigma, the inliers' own sigma)`` in radians of each accepted pair."""
+    from robotd.base.geometry import compose
+    from robotd.forward.planar import PlanarLoopParams
+
+    cam = renderer.camera
+    extract = FeatureExtractor()
+    old = extract(renderer.render(CORRIDOR))
+    floor = PlanarLoopParams().sigma_bearing_rad  # what loop_edge adds in quadrature
+    out = []
+    for rel in rels:
+        new_pose = compose(CORRIDOR, np.array(rel))
+        v = verify_pair(old, extract(renderer.render(new_pose)), VerifyParams(camera_height_m=cam.height_m), k)
+        if not v.accepted:
+            continue
+        _, bearing, _ = planar_motion(v.rotation, v.translation_dir)
+        _, t_bearing, _ = _truth(renderer, CORRIDOR, new_pose)
+        out.append((abs(math.remainder(bearing - t_bearing, math.tau)), math.hypot(floor, v.sigma_bearing_rad),
+                    v.sigma_bearing_rad))
+    return np.array(out)
+
+
+def test_the_claimed_bearing_sigma_covers_the_true_error_at_short_and_long_baselines(office):
+    """The sigma the edge claims (the inliers' own, :func:`robotd.forward.planar.refine_motion`,
+    with the configured 2 deg in quadrature) against the truth. Short baselines: every
+    pair's error within 3 sigma. Long baselines: the typical error within 1 sigma (median
+    |error| / sigma); a few pairs with few inliers (28-36) are measured there with a biased
+    solution 3-25 sigma off (heading off too): no Gaussian sigma describes those, the
+    graph's gate and robust solver are what stands against them. The inliers' own sigma
+    here is 0.1-1.2 deg at either baseline (the long ones keep fewer inliers): its growth
+    as the baseline shrinks, for one scene, is in ``test_planar.py``."""
+    renderer, _, k = office
+    short = _bearing_errors(renderer, k, _RELS_SHORT)
+    long_ = _bearing_errors(renderer, k, _RELS_LONG)
+    assert len(short) >= 5 and len(long_) >= 5
+    for err, claimed, _ in short:
+        assert err <= 3.0 * claimed, (math.degrees(err), math.degrees(claimed))
+    assert np.median(long_[:, 0] / long_[:, 1]) <= 1.0
