@@ -33,11 +33,15 @@ def trained(tmp_path_factory):
              record=d / "val.mcap")
     calib = d / "calibration.yml"
     modes = ",".join(map(str, MODES))
+    # Keyframes every 5 cm, denser than the daemon's default (0.15 m), so that these short
+    # drives give the curve enough pairs: the training takes its spacing from the config.
+    dense = d / "dense.toml"
+    dense.write_text("[keyframes]\ndistance_m = 0.05\n")
     rc_train = main(["calibrate", "loop-curve", str(d / "train.mcap"), "--calibration", str(calib),
-                     "--modes", modes, "--confidence", str(CONFIDENCE), "--plot", str(d / "curves.png"),
-                     "--json", str(d / "train.json")])
+                     "--config", str(dense), "--modes", modes, "--confidence", str(CONFIDENCE),
+                     "--plot", str(d / "curves.png"), "--json", str(d / "train.json")])
     rc_val = main(["calibrate", "validate", str(d / "val.mcap"), "--calibration", str(calib),
-                   "--modes", modes, "--json", str(d / "val.json")])
+                   "--config", str(dense), "--modes", modes, "--json", str(d / "val.json")])
     return {"dir": d, "calib": calib, "rc": (rc_train, rc_val),
             "train": json.loads((d / "train.json").read_text()),
             "val": json.loads((d / "val.json").read_text())}
