@@ -62,11 +62,12 @@ def test_daemon_runs_on_ros2_topics(tmp_path: Path, monkeypatch: pytest.MonkeyPa
     yaw = 0.1 * t_end
     assert math.hypot(pose.x_m - 2.0 * math.sin(yaw), pose.y_m - 2.0 * (1.0 - math.cos(yaw))) < 0.01
     assert abs(pose.yaw_rad - yaw) < 0.02
-    # floor frames (10 Hz: one every 2 cm) became keyframes (every 5 cm of travel): the map
-    # holds most of the steps they span (the first frames wait for odometry, a few are lost
-    # at the end)
+    # floor frames (10 Hz: one every 2 cm) became keyframes (one per [keyframes] distance_m
+    # of travel): the map holds most of the steps they span (the first frames wait for
+    # odometry, a few are lost at the end)
     assert c["frames"] >= 20
-    assert 0.6 * c["frames"] * 0.02 / 0.05 <= keyframes <= c["frames"] * 0.02 / 0.05 + 1
+    spacing_m = cfg.keyframes.distance_m
+    assert 0.6 * c["frames"] * 0.02 / spacing_m <= keyframes <= c["frames"] * 0.02 / spacing_m + 1
     # the base's 0.5 s pause: one gap in the driver's stats (STATUS shows it)
     assert report.driver_stats["base"]["gaps"] >= 1
     assert np.isfinite(pose.covariance).all()
