@@ -217,6 +217,7 @@ def run_odometry(args: Any) -> int:
 
     from calibration.train import recording_config
     from robotd.base.config import Config, load_config
+    from robotd.base.files import check_output_file
     from robotd.io.calibfile import CalibrationFile, read_calibration, update_calibration
     from robotd.odometry.calibration import fit_odometry
 
@@ -232,6 +233,11 @@ def run_odometry(args: Any) -> int:
                                "loop-curve` on the drive first: the reference trajectory needs its loops)")
     if args.passes < 1:
         raise CalibrationError(f"--passes must be at least 1, got {args.passes}")
+    # The outputs are checked before the replay (minutes), not when they are written.
+    for option, path in (("--plot", args.plot), ("--json", args.json)):
+        if path is not None:
+            check_output_file(path, force=True, inputs=[args.recording, args.calibration],
+                              option=option)
     calib = read_calibration(args.calibration)
     if calib.loop is None or calib.loop.for_mode(cfg.floor_detector.mode) is None:
         raise CalibrationError(f"{args.calibration}: no loop threshold for descriptor mode "

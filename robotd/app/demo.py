@@ -297,7 +297,8 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
     # Everything is checked before the output folder is touched: a refused demo leaves the
     # previous demo's outputs (and anything else in --out) exactly as they were.
     with held_signals(startup) as early:
-        check_demo_arguments(duration_s=duration_s, seed=seed, kidnap=kidnap, record=record, out=out)
+        check_demo_arguments(duration_s=duration_s, seed=seed, kidnap=kidnap, record=record, out=out,
+                             base_seed=base_seed)
         calibration = load_calibration(base_cfg)
         clock = ManualClock()
         cam_model = FloorCameraModel.from_config(base_cfg.floor_camera)
@@ -329,7 +330,7 @@ def run_demo(base_cfg: Any, *, out: Path, route: str = "office", floor_files: tu
 
 def check_demo_arguments(*, duration_s: float | None, seed: int,
                          kidnap: tuple[float, float, float] | None,
-                         record: Path | None, out: Path) -> None:
+                         record: Path | None, out: Path, base_seed: int | None = None) -> None:
     """ConfigError (or OutputError for ``record``) for arguments the demo cannot run with,
     before any output is touched."""
     from robotd.base.errors import ConfigError
@@ -338,8 +339,9 @@ def check_demo_arguments(*, duration_s: float | None, seed: int,
 
     check_duration(duration_s)
     check_utf8_path(out, "--out")
-    if not 0 <= seed < 2**63:
-        raise ConfigError(f"--seed must be a whole number from 0 to 2^63 - 1, got {seed}")
+    for option, value in (("--seed", seed), ("--base-seed", base_seed)):
+        if value is not None and not 0 <= value < 2**63:
+            raise ConfigError(f"{option} must be a whole number from 0 to 2^63 - 1, got {value}")
     if kidnap is not None:
         at_s, to_s, _carry_s = kidnap
         if not (math.isfinite(at_s) and at_s > 0 and math.isfinite(to_s) and to_s >= 0):

@@ -376,6 +376,12 @@ def test_a_refused_demo_leaves_the_previous_demo_as_it_was(case: str, material: 
     assert not (tmp_path / "nowhere").exists()
 
 
+def test_a_negative_base_seed_is_refused_before_anything_is_written(tmp_path: Path):
+    assert_refused(run("record", tmp_path / "r.mcap", "--virtual", "--duration", "1",
+                       "--base-seed", "-1"), "--base-seed must be a whole number")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_refused_record_makes_no_demo_folder(material: Path, tmp_path: Path):
     rec = tmp_path / "run.mcap"
     rec.write_bytes(b"mine")
@@ -394,7 +400,8 @@ def test_a_foreign_file_in_the_demo_folder_is_left_alone(demo_out: Path):
 # -- robotd calibrate odometry (issue 28) ---------------------------------------------------
 
 @pytest.mark.parametrize("case", ["drive_too_short", "drive_missing", "calibration_missing",
-                                  "drive_is_a_folder"])
+                                  "drive_is_a_folder", "passes_zero", "plot_folder_missing",
+                                  "json_is_the_calibration"])
 def test_calibrate_odometry_refusals_keep_the_calibration_file(case: str, material: Path,
                                                                tmp_path: Path):
     cal = tmp_path / "cal.yml"
@@ -402,7 +409,12 @@ def test_calibrate_odometry_refusals_keep_the_calibration_file(case: str, materi
     drive, says = material / "drive.mcap", {
         "drive_too_short": "the drive lacks", "drive_missing": "cannot open the recording",
         "calibration_missing": "no such calibration file",
-        "drive_is_a_folder": "cannot open the recording: Is a directory"}[case]
+        "drive_is_a_folder": "cannot open the recording: Is a directory",
+        "passes_zero": "--passes must be at least 1", "plot_folder_missing": "folder",
+        "json_is_the_calibration": "--json"}[case]
+    extra: list[object] = {"passes_zero": ["--passes", "0"],
+                           "plot_folder_missing": ["--plot", tmp_path / "nowhere" / "r.png"],
+                           "json_is_the_calibration": ["--json", cal]}.get(case, [])
     if case == "drive_missing":
         drive = tmp_path / "absent.mcap"
     elif case == "calibration_missing":
@@ -410,7 +422,7 @@ def test_calibrate_odometry_refusals_keep_the_calibration_file(case: str, materi
     elif case == "drive_is_a_folder":
         drive = tmp_path
     before = snapshot(tmp_path)
-    assert_refused(run("calibrate", "odometry", drive, "--calibration", cal), says)
+    assert_refused(run("calibrate", "odometry", drive, "--calibration", cal, *extra), says)
     assert snapshot(tmp_path) == before
 
 
