@@ -215,19 +215,12 @@ def run_odometry(args: Any) -> int:
     """``robotd calibrate odometry``."""
     from dataclasses import replace as dc_replace
 
-    from calibration.train import recording_config
-    from robotd.base.config import Config, load_config
+    from calibration.train import drive_config
     from robotd.base.files import check_output_file
     from robotd.io.calibfile import CalibrationFile, read_calibration, update_calibration
     from robotd.odometry.calibration import fit_odometry
 
-    if args.config is not None:
-        cfg = load_config(args.config)
-    else:
-        cfg = recording_config(args.recording)
-        if cfg is None:
-            log.info("%s holds no config: using the default config", args.recording)
-            cfg = Config()
+    cfg = drive_config(args.config, args.recording)
     if not args.calibration.exists():
         raise CalibrationError(f"{args.calibration}: no such calibration file (run `robotd calibrate "
                                "loop-curve` on the drive first: the reference trajectory needs its loops)")

@@ -129,6 +129,20 @@ def _describe_all(image: np.ndarray, modes: tuple[int, ...]) -> tuple[list[bytes
     return [extract(image, m) for m in modes], peak_rss_mb()
 
 
+def drive_config(config_path: Path | None, recording: Path) -> Any:
+    """The config of a calibration command: the file ``--config`` names, else the one the
+    recording was made with, else the defaults (logged)."""
+    from robotd.base.config import Config, load_config
+
+    if config_path is not None:
+        return load_config(config_path)
+    cfg = recording_config(recording)
+    if cfg is None:
+        log.info("%s holds no config: using the default config", recording)
+        cfg = Config()
+    return cfg
+
+
 def recording_config(path: Path) -> Any:
     """The robotd config a recording was made with (its ``robotd`` metadata), or None."""
     import tomllib

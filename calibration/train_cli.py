@@ -23,7 +23,7 @@ from calibration.train import (
     TrainParams,
     peak_rss_mb,
     load_run,
-    recording_config,
+    drive_config,
     train,
     validate,
 )
@@ -83,16 +83,9 @@ def add_loop_curve_arguments(p: Any) -> None:
 
 
 def _setup(args: Any) -> tuple[Any, FloorCameraModel, TrainParams]:
-    from robotd.base.config import Config, load_config
     from robotd.io.calibfile import camera_model, read_calibration
 
-    if args.config is not None:
-        cfg = load_config(args.config)
-    else:
-        cfg = recording_config(args.recording)
-        if cfg is None:
-            log.info("%s holds no config: using the default config", args.recording)
-            cfg = Config()
+    cfg = drive_config(args.config, args.recording)
     calib = read_calibration(args.calibration) if args.calibration.exists() else None
     try:
         modes = tuple(sorted({int(m) for m in args.modes.split(",")}))
