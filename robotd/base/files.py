@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import secrets
 import stat
-import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import IO, Any
@@ -111,11 +111,13 @@ def replacing(path: Path, mode: str = "w", encoding: str | None = "utf-8") -> It
     :class:`OutputError` naming ``path``. ``mode`` is ``"w"`` or ``"wb"``."""
     if mode not in ("w", "wb"):
         raise ValueError(f"mode must be 'w' or 'wb', got {mode!r}")
+    # Created 0o666 less the umask, as a plain open() would (mkstemp's 0o600 would need the
+    # umask read back, which os.umask can only do by changing it for every thread).
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
     try:
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
     except OSError as exc:
         raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from None
-    tmp = Path(tmp_name)
     try:
         try:
             f = os.fdopen(fd, mode, encoding=None if "b" in mode else encoding)
@@ -129,11 +131,6 @@ def replacing(path: Path, mode: str = "w", encoding: str | None = "utf-8") -> It
         if path.exists():  # keep the permissions the user gave the file it replaces
             with contextlib.suppress(OSError):
                 os.chmod(tmp, stat.S_IMODE(path.stat().st_mode))
-        else:
-            with contextlib.suppress(OSError):
-                umask = os.umask(0)
-                os.umask(umask)
-                os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     except OSError as exc:
         tmp.unlink(missing_ok=True)
