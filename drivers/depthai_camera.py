@@ -53,6 +53,7 @@ import logging
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import depthai as dai
@@ -196,7 +197,7 @@ def replay_stream_opener(video_path: str | os.PathLike[str], *, loop: bool = Fal
             raise DriverError(f"replayed DepthAI camera: {path} does not exist")
         pipeline = dai.Pipeline(False)
         replay = pipeline.create(dai.node.ReplayVideo)
-        replay.setReplayVideoFile(path)
+        replay.setReplayVideoFile(Path(path))
         replay.setOutFrameType(settings.frame_type)
         replay.setSize(settings.width_px, settings.height_px)
         replay.setFps(settings.fps)

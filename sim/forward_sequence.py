@@ -37,7 +37,7 @@ from sim.cameras.forward import (
     view_overlap,
 )
 from sim.route import Motion, MotionLimits, Route, build_route, plan_motion
-from sim.world.rooms import WorldParams, world_for_route
+from sim.world.rooms import WallWorld, WorldParams, world_for_route
 
 __all__ = ["SequenceSettings", "keyframe_times", "write_forward_sequence"]
 
@@ -92,7 +92,7 @@ def _repeated_route(name: str, times: int) -> Route:
 
 def write_forward_sequence(out_dir: str | Path, settings: SequenceSettings = SequenceSettings(),
                            camera: ForwardCameraModel = ForwardCameraModel(),
-                           world_params: WorldParams = WorldParams()) -> dict:
+                           world_params: WorldParams = WorldParams()) -> dict[str, object]:
     """Write the sequence to ``out_dir`` (created); returns a summary (also written as
     ``sequence.json``): image count, positives, render and ground-truth times."""
     import time
@@ -140,7 +140,7 @@ def write_forward_sequence(out_dir: str | Path, settings: SequenceSettings = Seq
     return summary
 
 
-def _overview_with_route(world, poses: np.ndarray, px_per_m: float = 40.0, margin_m: float = 0.5) -> np.ndarray:
+def _overview_with_route(world: WallWorld, poses: np.ndarray, px_per_m: float = 40.0, margin_m: float = 0.5) -> np.ndarray:
     img = world.overview(px_per_m, margin_m)
     x0, _, _, y1 = world.bounds_m
     pts = np.column_stack([(poses[:, 0] - x0 + margin_m) * px_per_m, (y1 + margin_m - poses[:, 1]) * px_per_m])

@@ -12,6 +12,7 @@ import numpy as np
 
 from robotd.base.camera import FloorCameraModel, overlap_ratios
 from sim.cameras.floor import FloorRenderer, RenderParams
+from sim.world.floor import FloorSource
 
 
 @dataclass(frozen=True, eq=False)
@@ -37,7 +38,7 @@ def render_at(renderer: FloorRenderer, poses: np.ndarray, rng: np.random.Generat
     return [renderer.render(p, float(v), 0.0, float(t)) for p, v, t in zip(poses, speeds, times)]
 
 
-def random_pairs(floor: object, camera: FloorCameraModel, n_pairs: int, rng: np.random.Generator,
+def random_pairs(floor: FloorSource, camera: FloorCameraModel, n_pairs: int, rng: np.random.Generator,
                  area_m: tuple[float, float, float, float] = (-2.5, -2.5, 2.5, 2.5),
                  near_fraction: float = 0.6, max_offset_m: float = 0.6,
                  render_params: RenderParams | None = None) -> FramePairs:
@@ -59,7 +60,7 @@ def random_pairs(floor: object, camera: FloorCameraModel, n_pairs: int, rng: np.
                       overlap_ratios(camera, pa, pb))
 
 
-def straight_run(floor: object, camera: FloorCameraModel, rng: np.random.Generator,
+def straight_run(floor: FloorSource, camera: FloorCameraModel, rng: np.random.Generator,
                  start_xyyaw: tuple[float, float, float] = (0.0, 0.0, 0.0), length_m: float = 10.0,
                  spacing_m: float = 0.05, speed_mps: float = 0.3,
                  render_params: RenderParams | None = None) -> tuple[np.ndarray, list[np.ndarray]]:

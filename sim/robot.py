@@ -39,9 +39,9 @@ from robotd.base.clock import ManualClock
 from sim.cameras.device import VirtualCamera
 from sim.cameras.floor import FloorRenderer, RenderParams, floor_camera
 from sim.emulators.kobuki import KobukiEmulator, KobukiParams, simulate_kobuki
-from sim.route import ROUTES, MotionLimits, build_route, kidnapped, plan_motion
+from sim.route import ROUTES, Motion, MotionLimits, build_route, kidnapped, plan_motion
 from sim.sensors import BaseSensorParams
-from sim.world.floor import Floor
+from sim.world.floor import Floor, FloorSource
 
 if TYPE_CHECKING:  # python-can and cantools are loaded only for a CAN base
     from sim.emulators.can import CanEmulator, CanFaults
@@ -261,7 +261,8 @@ def _events(k: int, times_s: np.ndarray) -> Iterator[tuple[float, int, int]]:
         yield float(t_s), k, i
 
 
-def _make_forward_camera(settings: VirtualRobotSettings, motion, stop: threading.Event) -> VirtualCamera:
+def _make_forward_camera(settings: VirtualRobotSettings, motion: Motion,
+                         stop: threading.Event) -> VirtualCamera:
     """The forward camera in the route's world (:func:`sim.world.rooms.world_for_route`)."""
     from sim.cameras.forward import ForwardCameraModel, ForwardRenderer, ForwardRenderParams, forward_camera
     from sim.world.rooms import world_for_route
@@ -273,7 +274,7 @@ def _make_forward_camera(settings: VirtualRobotSettings, motion, stop: threading
                           lossless=not settings.realtime, stop=stop)
 
 
-def _make_floor(settings: VirtualRobotSettings):
+def _make_floor(settings: VirtualRobotSettings) -> FloorSource:
     """The floor the settings ask for: a pattern printed with a photo, photos, or the
     default (scikit-image's textures)."""
     if settings.floor_pattern is not None:

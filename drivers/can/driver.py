@@ -83,7 +83,7 @@ from typing import Any
 import can
 import cantools
 
-from drivers.base import Driver, StatValue
+from drivers.base import Driver, Message, StatValue
 from drivers.timesync import OffsetMapper
 from robotd.base.clock import Clock
 from robotd.base.errors import ConfigError, DriverError
@@ -123,17 +123,20 @@ def dbc_path(name: str) -> Path:
     return SHIPPED_DBC.get(name, Path(name))
 
 
-def load_dbc(name: str) -> Any:
+def load_dbc(name: str) -> cantools.database.can.Database:
     """The cantools database of ``[can] dbc``; :class:`ConfigError` in one line if it
     cannot be read or parsed."""
     path = dbc_path(name)
     try:
-        return cantools.database.load_file(str(path), database_format="dbc")
+        db = cantools.database.load_file(str(path), database_format="dbc")
     except FileNotFoundError:
         known = ", ".join(sorted(SHIPPED_DBC))
         raise ConfigError(f"[can] dbc: no file {path} (shipped: {known})") from None
     except Exception as exc:  # cantools raises its own parse errors and plain ones
         raise ConfigError(f"[can] dbc: {path} is not a readable DBC file: {exc}") from None
+    if not isinstance(db, cantools.database.can.Database):  # a DBC file is always a CAN database
+        raise ConfigError(f"[can] dbc: {path} is not a CAN database")
+    return db
 
 
 @dataclass(frozen=True)
@@ -312,7 +315,7 @@ class CanBaseDriver(Driver):
             parts.append("error passive")
         return ", ".join(parts) or "ok"
 
-    def _read_internal(self, timeout_s: float) -> list[WheelTicks | YawRate | BaseStatus]:
+    def _read_internal(self, timeout_s: float) -> list[Message]:
         bus = self._bus
         if bus is None:
             raise DriverError(f"{self._label} is closed")
@@ -393,7 +396,7 @@ class CanBaseDriver(Driver):
         return dev
 
     def _handle(self, frames: list[can.Message], receipt_ns: int
-                ) -> list[WheelTicks | YawRate | BaseStatus]:
+                ) -> list[Message]:
         n = self._n
         data: list[tuple[can.Message, int | None]] = []
         for msg in frames:
@@ -412,7 +415,7 @@ class CanBaseDriver(Driver):
             self._last_receipt_ns = receipt_ns
             if self._bus_off:  # frames flow again: the controller is back on the bus
                 self._bus_off = False
-        out: list[WheelTicks | YawRate | BaseStatus] = []
+        out: list[Message] = []
         for msg, dev in data:
             stamp = self._mapper.stamp(dev) if dev is not None else self._mapper.clamp(receipt_ns)
             self._newest_ns = stamp

@@ -95,8 +95,8 @@ def detect_capture_format(data: bytes) -> str:
     return "spy" if lines and 2 * spy > len(lines) else "raw"
 
 
-def _subpayload_dict(item: FeedbackSubPayload) -> dict:
-    d: dict = {"type": item.NAME, "id": item.id if isinstance(item, UnknownSubPayload) else item.ID}
+def _subpayload_dict(item: FeedbackSubPayload) -> dict[str, object]:
+    d: dict[str, object] = {"type": item.NAME, "id": item.id if isinstance(item, UnknownSubPayload) else item.ID}
     for f in dataclasses.fields(item):
         value = getattr(item, f.name)
         if f.name != "id":
@@ -104,7 +104,7 @@ def _subpayload_dict(item: FeedbackSubPayload) -> dict:
     return d
 
 
-def decode_capture(data: bytes, fmt: str = "auto") -> Iterator[dict]:
+def decode_capture(data: bytes, fmt: str = "auto") -> Iterator[dict[str, object]]:
     """Decode a capture of the Kobuki's output into one dict per valid packet.
 
     ``fmt`` is ``"raw"`` (the bytes as read from the port), ``"spy"`` (the text pyserial's
@@ -135,7 +135,7 @@ def decode_capture(data: bytes, fmt: str = "auto") -> Iterator[dict]:
         for offset, payload in zip(offsets, payloads):
             malformed = stats.malformed_subpayloads
             items = decode_feedback(payload, stats)
-            record: dict = {"packet": index, "offset": offset,
+            record: dict[str, object] = {"packet": index, "offset": offset,
                             "subpayloads": [_subpayload_dict(s) for s in items]}
             if stats.malformed_subpayloads != malformed:
                 record["malformed"] = True
@@ -182,7 +182,8 @@ def run_decode(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     with (replacing(args.out) if args.out else contextlib.nullcontext(stdout or sys.stdout)) as out:
         for record in decode_capture(data, args.format):
             out.write(json.dumps(record) + "\n")
-    summary = record["summary"]
+    summary = record["summary"]  # the last record is always the summary
+    assert isinstance(summary, dict)
     damaged, foreign = summary.get("spy_damaged_rx_lines", 0), summary.get("spy_unrecognised_lines", 0)
     if damaged or foreign:
         log.warning("%s: %d damaged RX lines (read up to the damage) and %d lines that are not "

@@ -8,7 +8,7 @@ import logging
 
 import serial
 
-from drivers.base import Driver, StatValue
+from drivers.base import Driver, Message, StatValue
 from drivers.kobuki.protocol import (
     _DEG,
     BAUDRATE,
@@ -149,7 +149,7 @@ class KobukiDriver(Driver):
             raise DriverError(f"Kobuki port {self._url} is {state}")
         return self._serial
 
-    def _read_internal(self, timeout_s: float) -> list[WheelTicks | YawRate | WheelDrop]:
+    def _read_internal(self, timeout_s: float) -> list[Message]:
         """Wait up to ``timeout_s`` for bytes, take all that are available, and return the
         messages of the packets they complete (possibly none)."""
         port = self._open_port()
@@ -199,17 +199,17 @@ class KobukiDriver(Driver):
         return WheelDrop(stamp, bool(bits), left=bool(bits & 0x02), right=bool(bits & 0x01))
 
     def _convert(self, packets: list[list[FeedbackSubPayload]],
-                 receipt_ns: int) -> list[WheelTicks | YawRate | WheelDrop]:
+                 receipt_ns: int) -> list[Message]:
         device_ns: list[int | None] = []
         for items in packets:
             basic = next((s for s in items if type(s) is BasicSensorData), None)
             if basic is None:
                 device_ns.append(None)
                 continue
-            dev = self._device_clock.unwrap(basic.timestamp_ms, receipt_ns)
-            self._mapper.observe(dev, receipt_ns)
-            device_ns.append(dev)
-        out: list[WheelTicks | YawRate | WheelDrop] = []
+            unwrapped = self._device_clock.unwrap(basic.timestamp_ms, receipt_ns)
+            self._mapper.observe(unwrapped, receipt_ns)
+            device_ns.append(unwrapped)
+        out: list[Message] = []
         for items, dev in zip(packets, device_ns):
             if dev is None:
                 self._untimed_packets += 1

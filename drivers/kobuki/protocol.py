@@ -38,7 +38,8 @@ import math
 import operator
 import struct
 from dataclasses import dataclass
-from typing import ClassVar, Union
+from collections.abc import Callable, Mapping
+from typing import ClassVar, Optional, TypeVar, Union
 
 import numpy as np
 
@@ -51,7 +52,7 @@ GYRO_DPS_PER_DIGIT = 0.00875  # L3G4200D at 250 deg/s full scale
 _DEG = math.pi / 180.0
 
 
-def _pack(st: struct.Struct, *values: int) -> bytes:
+def _pack(st: struct.Struct, *values: int | bytes) -> bytes:
     try:
         return st.pack(*values)
     except struct.error as exc:
@@ -286,10 +287,13 @@ def _s16_struct(count: int) -> struct.Struct:
 
 
 # Decoders: (payload, start, length) -> instance, or None when the length is wrong.
-def _fixed(cls, size: int):
-    st = cls._ST
+_T = TypeVar("_T")
+_Decoder = Callable[[bytes, int, int], Optional[_T]]
 
-    def decode(payload: bytes, start: int, length: int):
+
+def _fixed(cls: Callable[..., _T], st: struct.Struct, size: int) -> _Decoder[_T]:
+    """The decoder of a sub-payload of ``size`` bytes laid out as ``st`` (``cls._ST``)."""
+    def decode(payload: bytes, start: int, length: int) -> _T | None:
         return cls(*st.unpack_from(payload, start)) if length == size else None
     return decode
 
@@ -304,8 +308,11 @@ def _decode_raw_gyro(payload: bytes, start: int, length: int) -> RawGyroData | N
     return RawGyroData(frame_id, tuple(zip(v[0::3], v[1::3], v[2::3])))
 
 
-def _decode_version(cls):
-    def decode(payload: bytes, start: int, length: int):
+_VersionT = TypeVar("_VersionT", HardwareVersion, FirmwareVersion)
+
+
+def _decode_version(cls: type[_VersionT]) -> _Decoder[_VersionT]:
+    def decode(payload: bytes, start: int, length: int) -> _VersionT | None:
         if length != 4:
             return None
         patch, minor, major = payload[start:start + 3]
@@ -313,17 +320,17 @@ def _decode_version(cls):
     return decode
 
 
-_FEEDBACK_DECODERS = {
-    BasicSensorData.ID: _fixed(BasicSensorData, 15),
-    InertialData.ID: _fixed(InertialData, 7),
+_FEEDBACK_DECODERS: dict[int, _Decoder[FeedbackSubPayload]] = {
+    BasicSensorData.ID: _fixed(BasicSensorData, BasicSensorData._ST, 15),
+    InertialData.ID: _fixed(InertialData, InertialData._ST, 7),
     RawGyroData.ID: _decode_raw_gyro,
     HardwareVersion.ID: _decode_version(HardwareVersion),
     FirmwareVersion.ID: _decode_version(FirmwareVersion),
-    UniqueDeviceId.ID: _fixed(UniqueDeviceId, 12),
+    UniqueDeviceId.ID: _fixed(UniqueDeviceId, UniqueDeviceId._ST, 12),
 }
-_COMMAND_DECODERS = {
-    BaseControl.ID: _fixed(BaseControl, 4),
-    RequestExtra.ID: _fixed(RequestExtra, 2),
+_COMMAND_DECODERS: dict[int, _Decoder[CommandSubPayload]] = {
+    BaseControl.ID: _fixed(BaseControl, BaseControl._ST, 4),
+    RequestExtra.ID: _fixed(RequestExtra, RequestExtra._ST, 2),
 }
 
 
@@ -523,8 +530,9 @@ class PacketParser:
         return payloads
 
 
-def _decode_chain(payload: bytes, decoders: dict, stats: ParserStats | None) -> list:
-    out = []
+def _decode_chain(payload: bytes, decoders: Mapping[int, _Decoder[_T]], unknown: Callable[[int, bytes], _T],
+                  stats: ParserStats | None) -> list[_T]:
+    out: list[_T] = []
     n = len(payload)
     k = 0
     while k < n:
@@ -536,7 +544,7 @@ def _decode_chain(payload: bytes, decoders: dict, stats: ParserStats | None) -> 
         sub_id, length = payload[k], payload[k + 1]
         decode = decoders.get(sub_id)
         if decode is None:
-            out.append(UnknownSubPayload(sub_id, payload[k + 2:k + 2 + length]))
+            out.append(unknown(sub_id, payload[k + 2:k + 2 + length]))
             if stats is not None:
                 stats.unknown_subpayloads += 1
         else:
@@ -559,12 +567,12 @@ def decode_feedback(payload: bytes, stats: ParserStats | None = None) -> list[Fe
     decoding of this payload (what came before is kept). ``stats``, if given, counts both.
     Never raises on bad bytes.
     """
-    return _decode_chain(bytes(payload), _FEEDBACK_DECODERS, stats)
+    return _decode_chain(bytes(payload), _FEEDBACK_DECODERS, UnknownSubPayload, stats)
 
 
 def decode_commands(payload: bytes, stats: ParserStats | None = None) -> list[CommandSubPayload]:
     """Decode a command payload (what the daemon sends) like :func:`decode_feedback`."""
-    return _decode_chain(bytes(payload), _COMMAND_DECODERS, stats)
+    return _decode_chain(bytes(payload), _COMMAND_DECODERS, UnknownSubPayload, stats)
 
 
 # --------------------------------------------------------------------------------------

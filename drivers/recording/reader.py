@@ -319,7 +319,7 @@ class RecordingReader:
         for channel, msg in self.raw_messages():
             schema = self._schemas.get(channel.schema_id)
             kind = _normalise_type(schema.name) if schema is not None else ""
-            if kind not in _CONVERTERS or channel.message_encoding != "cdr":
+            if schema is None or kind not in _CONVERTERS or channel.message_encoding != "cdr":
                 self.skipped[channel.topic] = self.skipped.get(channel.topic, 0) + 1
                 continue
             if channel.id not in decoders:

@@ -82,8 +82,8 @@ def transcode(src: str | os.PathLike[str], dst: str | os.PathLike[str], *, image
                 out.start(profile="ros2", library="robotd transcode")
                 schema_ids: dict[int, int] = {}
                 channel_ids: dict[int, int] = {}
-                for sid, schema in sorted(reader.schemas.items()):
-                    schema_ids[sid] = out.register_schema(schema.name, schema.encoding, schema.data)
+                for sid, known in sorted(reader.schemas.items()):
+                    schema_ids[sid] = out.register_schema(known.name, known.encoding, known.data)
                 for cid, ch in sorted(reader.channels.items()):
                     channel_ids[cid] = out.register_channel(
                         ch.topic, ch.message_encoding, schema_ids.get(ch.schema_id, 0), dict(ch.metadata))

@@ -208,7 +208,10 @@ class RecordingWriter:
         start = start_time_utc or datetime.datetime.now(datetime.UTC)
         self._sink = _UnbufferedSink(self._fd)
         try:
-            self._mcap = McapWriter(self._sink, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+            # mcap annotates its output as IO but calls only write(), tell() and flush() (a RawIOBase it
+            # would wrap in a BufferedWriter, which is what the sink must avoid).
+            self._mcap = McapWriter(self._sink, chunk_size=chunk_size,  # type: ignore[arg-type]
+                                    compression=CompressionType.ZSTD)
             self._mcap.start(profile="ros2", library=f"robotd {__version__}")
             self._mcap.add_metadata("robotd", {
                 "robotd_version": __version__,

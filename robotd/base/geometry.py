@@ -7,6 +7,7 @@ counter-clockwise). Arrays of poses are ``(N, 3) float64``.
 from __future__ import annotations
 
 import math
+from typing import overload
 
 import numpy as np
 
@@ -14,6 +15,10 @@ import numpy as np
 _TWO_PI = 2.0 * math.pi
 
 
+@overload
+def wrap_angle(a_rad: float) -> float: ...
+@overload
+def wrap_angle(a_rad: np.ndarray) -> np.ndarray: ...
 def wrap_angle(a_rad: float | np.ndarray) -> float | np.ndarray:
     """Wrap an angle or an array of angles (radians) to ``[-pi, pi)``.
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TypedDict, Unpack
 
 import numpy as np
 
@@ -116,6 +117,24 @@ class DetectorParams:
             raise ValueError(f"consistency_gap must be >= 0, got {self.consistency_gap}")
         if self.recent_excluded < 1:
             raise ValueError(f"recent_excluded must be >= 1, got {self.recent_excluded}")
+
+
+class DetectorOverrides(TypedDict, total=False):
+    """Fields of :class:`DetectorParams` that :func:`method_params` may replace (by keyword;
+    mypy checks each against the field it replaces)."""
+
+    features: FeatureParams
+    vocabulary: VocabularyParams
+    filter: FilterParams
+    verify: VerifyParams
+    recent_excluded: int
+    likelihood: LikelihoodMethod
+    memory: MemoryParams
+    consistency: int
+    consistency_gap: int
+    decision: str
+    score_normalisation: str
+    score_threshold: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -324,7 +343,7 @@ class ForwardDetector:
         retrieved: list[int] = []
         transferred: list[int] = []
         if bounded:
-            if status == LOOP:
+            if status == LOOP and candidate is not None:  # a loop always has its candidate
                 self.memory.link(t, int(candidate))
             if best is not None and prob >= p.memory.retrieve_threshold:
                 k = p.filter.neighbours
@@ -362,7 +381,7 @@ def _best_normalised(scores: np.ndarray, n_hyp: int, virtual: float, t: int,
     return (best if ratio > p.score_threshold else None), ratio
 
 
-def method_params(method: str, **overrides: object) -> DetectorParams:
+def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> DetectorParams:
     """The detector a method name selects (``[forward_detector] method``,
     ``robotd eval forward --method``), with ``overrides`` replacing fields of the result.
 

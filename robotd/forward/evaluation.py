@@ -44,7 +44,7 @@ class Scores:
     recall_at_full_precision: float
     threshold_at_full_precision: float | None
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, object]:
         return asdict(self)
 
 
@@ -53,7 +53,7 @@ def positives(truth: np.ndarray, recent_excluded: int) -> np.ndarray:
     t = np.asarray(truth, bool)
     n = len(t)
     eligible = np.arange(n)[None, :] <= (np.arange(n)[:, None] - recent_excluded)
-    return (t & eligible).any(axis=1)
+    return np.any(t & eligible, axis=1)
 
 
 def tolerant_truth(truth: np.ndarray, tolerance: int) -> np.ndarray:

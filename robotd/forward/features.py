@@ -10,7 +10,7 @@ or more. ORB descriptors stay packed 256-bit strings compared by Hamming distanc
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Protocol
 
 import cv2
 import numpy as np
@@ -72,6 +72,22 @@ class Features:
         return len(self.keypoints_px)
 
 
+class FeatureSet(Protocol):
+    """What the verification reads of one image's keypoints: :class:`Features` or
+    :class:`CompactFeatures`."""
+
+    @property
+    def keypoints_px(self) -> np.ndarray: ...
+
+    @property
+    def descriptors(self) -> np.ndarray: ...
+
+    @property
+    def image_size_px(self) -> tuple[int, int]: ...
+
+    def __len__(self) -> int: ...
+
+
 #: Keypoint positions are kept in fixed point, 1/16 pixel (error at most 1/32 px, far below
 #: the verification's 1 px RANSAC threshold), as uint16: images up to 4095 px wide.
 KEYPOINT_SCALE = 16.0
@@ -131,11 +147,12 @@ class FeatureExtractor:
 
     def __init__(self, params: FeatureParams = FeatureParams()) -> None:
         self.params = params
+        self._detector: cv2.Feature2D
         if params.kind == "sift":
-            self._detector = cv2.SIFT_create(nfeatures=params.max_features,
-                                             contrastThreshold=params.sift_contrast_threshold)
+            self._detector = cv2.SIFT.create(nfeatures=params.max_features,
+                                              contrastThreshold=params.sift_contrast_threshold)
         else:
-            self._detector = cv2.ORB_create(nfeatures=params.max_features or 1000)
+            self._detector = cv2.ORB.create(nfeatures=params.max_features or 1000)
 
     def __call__(self, image: np.ndarray) -> Features:
         gray = to_gray(image)

@@ -142,7 +142,7 @@ def loop_edge(predicted: np.ndarray, dyaw_rad: float, bearing_rad: float,
     if range_m is not None and not (math.isfinite(range_m) and range_m > 0.0):
         raise ValueError(f"range_m must be positive and finite, got {range_m}")
     measured = range_m is not None
-    if not measured:
+    if range_m is None:
         range_m = float(math.hypot(pred_cam[0], pred_cam[1]))
     range_m = max(float(range_m), 1e-3)
     x0 = np.array([bearing_rad, dyaw_rad, math.log(range_m), 0.0, 0.0])

@@ -59,7 +59,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from robotd.forward.features import Features
+from robotd.forward.features import FeatureSet
 from robotd.forward.planar import refine_motion
 
 __all__ = ["ACCEPTED", "NO_GEOMETRIC_CONSISTENCY", "SMALL_SUPPORT", "TOO_FEW_MATCHES", "Verification",
@@ -166,7 +166,7 @@ def camera_matrix_guess(width_px: int, height_px: int, focal_px: float | None = 
     return np.array([[f, 0.0, width_px / 2.0], [0.0, f, height_px / 2.0], [0.0, 0.0, 1.0]])
 
 
-def match_features(a: Features, b: Features, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
+def match_features(a: FeatureSet, b: FeatureSet, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
     """Matched keypoints ``(M, 2), (M, 2)`` float32 of ``a`` and ``b``: each of ``a``'s
     descriptors against ``b``'s, kept when the nearest is clearly nearer than the second
     (Lowe's ratio test), at most one match per keypoint of ``b`` (the nearer one)."""
@@ -189,7 +189,7 @@ def match_features(a: Features, b: Features, ratio: float = 0.8) -> tuple[np.nda
     return a.keypoints_px[ia], b.keypoints_px[ib]
 
 
-def verify_pair(old: Features, new: Features, params: VerifyParams = VerifyParams(),
+def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyParams(),
                 camera_matrix: np.ndarray | None = None) -> Verification:
     """Check that ``new`` and ``old`` see one 3D scene (epipolar geometry) and return the
     relative pose. ``camera_matrix (3, 3)``: intrinsics shared by both images (default

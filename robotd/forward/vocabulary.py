@@ -169,7 +169,7 @@ class Vocabulary:
             return words, 0
         dist = self._pairwise(d[new])
         owner = np.full(len(new), -1, np.int64)
-        founders = []
+        founders: list[int] = []
         for k in range(len(new)):
             if owner[k] >= 0:
                 continue
@@ -275,8 +275,8 @@ class InvertedIndex:
 
     def __init__(self) -> None:
         # Postings as C int arrays (4 bytes an entry, not a Python int object each).
-        self._post_slots: list[array] = []       # per word: slots of the images containing it
-        self._post_counts: list[array] = []      # per word: n(w, i) for those images
+        self._post_slots: list[array[int]] = []  # per word: slots of the images containing it
+        self._post_counts: list[array[int]] = []  # per word: n(w, i) for those images
         self._df = _GrowingInts()                # per word: images containing it
         self._occ = _GrowingInts()               # per word: total occurrences
         self._image_len = _GrowingInts()         # per slot: n(i), words (with repeats) in the image

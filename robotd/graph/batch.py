@@ -31,6 +31,7 @@ import dataclasses
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -38,7 +39,7 @@ import gtsam
 import numpy as np
 
 from robotd.base.geometry import compose, inverse
-from robotd.graph.factors import (anchor_factor, between_factor, factor_graph, from_values,
+from robotd.graph.factors import (RobustKernel, anchor_factor, between_factor, factor_graph, from_values,
                                   robust_kernel, to_values)
 from robotd.graph.model import PoseGraph, chi2, edge_chi2, isotropic_graph, isotropic_objective
 
@@ -80,7 +81,7 @@ class BatchParams:
     max_iterations: int = 100
     relative_tolerance: float = 1e-5
 
-    def loop_kernel(self) -> gtsam.noiseModel.mEstimator.Base | None:
+    def loop_kernel(self) -> RobustKernel | None:
         """The M-estimator on loop edges in Levenberg-Marquardt and iSAM2 (None when not
         robust): DCS for "gnc" (its start, and iSAM2 between full solves)."""
         if not self.robust:
@@ -162,7 +163,7 @@ def lago_initialise(graph: PoseGraph) -> np.ndarray:
 
 
 def loop_weights(graph: PoseGraph, ids: np.ndarray, poses: np.ndarray,
-                 kernel: gtsam.noiseModel.mEstimator.Base | None) -> np.ndarray:
+                 kernel: RobustKernel | None) -> np.ndarray:
     """Each loop edge's kernel weight at ``poses`` (``(L,)``, 1 without a kernel)."""
     is_loop = np.array([e.kind == "loop" for e in graph.edges], dtype=bool)
     if kernel is None or not is_loop.any():
@@ -197,7 +198,7 @@ def optimize_batch(graph: PoseGraph, params: BatchParams = BatchParams()) -> Bat
     t1 = time.perf_counter()
     kernel = params.loop_kernel()
     factors = factor_graph(work, kernel)
-    best = None
+    best: tuple[float, str, np.ndarray, np.ndarray, int, np.ndarray] | None = None
     for name, start in starts:
         values, iterations = _refine(factors, ids, start, params)
         cost = factors.error(values)
@@ -207,6 +208,7 @@ def optimize_batch(graph: PoseGraph, params: BatchParams = BatchParams()) -> Bat
             best = (cost, name, start, poses, iterations, weights)
         if not (weights < 0.5).any():  # nothing down-weighted: no other start is needed
             break
+    assert best is not None  # starts is never empty
     _cost, name, start, poses, iterations, weights = best
     t_gnc = time.perf_counter()
     gnc = params.robust and params.kernel == "gnc" and len(weights) > 0
@@ -278,7 +280,7 @@ def refine_gnc(graph: PoseGraph, start: np.ndarray, params: BatchParams) -> tupl
     lm_params.setMaxIterations(params.max_iterations)
     lm_params.setRelativeErrorTol(params.relative_tolerance)
 
-    def solve(weights: np.ndarray, values: gtsam.Values) -> gtsam.Values:
+    def solve(weights: np.ndarray, values: gtsam.Values) -> tuple[gtsam.Values, gtsam.NonlinearFactorGraph]:
         fg = gtsam.NonlinearFactorGraph(fixed)
         for e, w in zip(loops, weights):
             if w > 0.0:
@@ -333,7 +335,10 @@ def refine_gnc(graph: PoseGraph, start: np.ndarray, params: BatchParams) -> tupl
     return best[1], best[2]
 
 
-def _tls_descent(solve, loop_chi2, ids, values, poses, weights, r, c, max_steps):
+def _tls_descent(solve: Callable[[np.ndarray, gtsam.Values], tuple[gtsam.Values, gtsam.NonlinearFactorGraph]],
+                 loop_chi2: Callable[[np.ndarray], np.ndarray], ids: np.ndarray, values: gtsam.Values,
+                 poses: np.ndarray, weights: np.ndarray, r: np.ndarray, c: float, max_steps: int
+                 ) -> tuple[gtsam.Values, np.ndarray, np.ndarray, np.ndarray]:
     """Keep exactly the loops within ``c`` at the current solution and re-solve, until the
     kept set stops changing; returns ``(values, poses, weights, loop chi2)``."""
     for _ in range(max_steps):

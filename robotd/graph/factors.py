@@ -17,7 +17,12 @@ Kernel = Literal["dcs", "cauchy"]
 ANCHOR_SIGMA = 1e-8
 
 
-def robust_kernel(kernel: Kernel, width_chi2: float) -> gtsam.noiseModel.mEstimator.Base:
+#: The loop-edge M-estimators of :func:`robust_kernel` (their ``weight(e)`` is the weight of
+#: an edge at whitened error ``e``).
+RobustKernel = gtsam.noiseModel.mEstimator.DCS | gtsam.noiseModel.mEstimator.Cauchy
+
+
+def robust_kernel(kernel: Kernel, width_chi2: float) -> RobustKernel:
     """The loop-edge M-estimator. ``width_chi2`` is the edge chi2 (``e^T I e``) below which
     an edge keeps full weight: DCS's Phi (Agarwal et al., ICRA 2013, eq. 16), or the square
     of the Cauchy width."""
@@ -36,6 +41,7 @@ def between_factor(edge: Edge, kernel: gtsam.noiseModel.mEstimator.Base | None =
     the conditional standard deviations ``1 / sqrt(diag(I))``, as LAGO needs: the marginal
     ones blow up when x and y are strongly correlated, as in CSAIL), wrapped in ``kernel``
     if given."""
+    model: gtsam.noiseModel.Base
     if diagonal:
         sigmas = 1.0 / np.sqrt(np.diag(edge.information))
         model = gtsam.noiseModel.Diagonal.Sigmas(sigmas)

@@ -61,8 +61,13 @@ class IncrementalGraph:
         self._version = 0  # bumped by every change of the estimate
         self._cached: tuple[int, np.ndarray, np.ndarray] | None = None
 
-    def _update(self, *args) -> None:
-        self._isam.update(*args)
+    def _update(self, factors: gtsam.NonlinearFactorGraph | None = None,
+                values: gtsam.Values | None = None) -> None:
+        """One iSAM2 step with the new ``factors`` and ``values`` (none: one more relinearisation)."""
+        if factors is None or values is None:
+            self._isam.update()
+        else:
+            self._isam.update(factors, values)
         self._version += 1
 
     def _new_isam(self) -> gtsam.ISAM2:

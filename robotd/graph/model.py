@@ -49,7 +49,8 @@ class Edge:
     kind: EdgeKind
 
 
-def check_information(information: np.ndarray | Iterable, what: str = "information") -> np.ndarray:
+def check_information(information: np.ndarray | Iterable[Iterable[float]],
+                      what: str = "information") -> np.ndarray:
     """Return ``information`` as a read-only ``(3, 3)`` float64 array, or raise GraphError
     when it is not finite, not symmetric or not positive definite (a Cholesky test)."""
     info = np.array(information, dtype=np.float64)
@@ -69,7 +70,7 @@ def check_information(information: np.ndarray | Iterable, what: str = "informati
 
 
 def make_edge(from_id: int, to_id: int, delta: Iterable[float],
-              information: np.ndarray | Iterable, kind: EdgeKind) -> Edge:
+              information: np.ndarray | Iterable[Iterable[float]], kind: EdgeKind) -> Edge:
     """A checked :class:`Edge` (GraphError for a self-loop, a bad kind, a non-finite delta
     or a non-positive-definite information matrix)."""
     a, b = int(from_id), int(to_id)
@@ -81,7 +82,7 @@ def make_edge(from_id: int, to_id: int, delta: Iterable[float],
                 check_information(information, f"edge {a} -> {b} information"), kind)
 
 
-def _triple(values: Iterable, what: str) -> np.ndarray:
+def _triple(values: Iterable[float], what: str) -> np.ndarray:
     arr = np.array(values, dtype=np.float64).reshape(-1)
     if arr.shape != (3,) or not np.all(np.isfinite(arr)):
         raise GraphError(f"{what} must be 3 finite numbers, got {arr}")
@@ -118,7 +119,7 @@ class PoseGraph:
         self._poses[int(keyframe_id)] = _triple(pose, f"pose of vertex {keyframe_id}")
 
     def add_edge(self, from_id: int, to_id: int, delta: Iterable[float],
-                 information: np.ndarray | Iterable, kind: EdgeKind) -> Edge:
+                 information: np.ndarray | Iterable[Iterable[float]], kind: EdgeKind) -> Edge:
         """Add an edge between two existing vertices; returns it."""
         a, b = int(from_id), int(to_id)
         for kid in (a, b):

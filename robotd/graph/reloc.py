@@ -266,10 +266,10 @@ class Relocaliser:
         members = {id(m) for m in group}
         others = [p for p in self.pending if id(p) not in members]
         transform = implied_transform(c)
-        dropped = tuple((p, self._why_not(c, p)) for p in others)
+        left_out = tuple((p, self._why_not(c, p)) for p in others)
         self.pending = []
         return RelocDecision(True, f"{len(group)} candidates agree (of {len(others) + len(group)} held)",
-                             transform, tuple(group), dropped)
+                             transform, tuple(group), left_out)
 
     def _why_not(self, c: RelocCandidate, p: RelocCandidate) -> str:
         """Why a held candidate ``p`` is not in the group that relocalised with ``c``."""

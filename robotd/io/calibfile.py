@@ -460,9 +460,9 @@ def format_calibration(calib: CalibrationFile) -> str:
     if lp is not None:
         fs.writeComment("Floor loop detector: per-mode local-score thresholds (absent = untrained), "
                         "loop overlap r, confidence.")
-        for key, value in zip(_LOOP_MODE_KEYS, lp.thresholds):
-            if value is not None:
-                fs.write(key, float(value))
+        for key, threshold in zip(_LOOP_MODE_KEYS, lp.thresholds):
+            if threshold is not None:
+                fs.write(key, float(threshold))
         fs.write("loop_overlap_r", float(lp.overlap_r))
         fs.write("loop_confidence", float(lp.confidence))
     od = calib.odometry

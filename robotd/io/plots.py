@@ -56,7 +56,7 @@ def plot_trajectories(path: Path, floor: Any, truth: np.ndarray, estimates: dict
     if loop_edges_xy is not None and len(loop_edges_xy):
         from matplotlib.collections import LineCollection
 
-        ax.add_collection(LineCollection(loop_edges_xy, colors="#e377c2", linewidths=0.6, alpha=0.6,
+        ax.add_collection(LineCollection(list(loop_edges_xy), colors="#e377c2", linewidths=0.6, alpha=0.6,
                                          label=f"loop edges ({len(loop_edges_xy)})"))
     ax.plot(truth[0, 0], truth[0, 1], "k*", ms=14, label="start")
     ax.set_xlim(lo[0], hi[0])
@@ -152,10 +152,11 @@ def plot_stage_times(path: Path, stage_times_s: dict[str, np.ndarray], average_e
 
     fig, ax = _figure((8.0, 5.0))
     markers = ["^", "o", "s", "D", "v", "x"]
-    total = None
+    total: np.ndarray | None = None
     for (name, t), mk in zip(stage_times_s.items(), markers):
         first = total is None
-        total = np.asarray(t, np.float64) if first else total + np.asarray(t, np.float64)
+        times = np.asarray(t, np.float64)
+        total = times if total is None else total + times
         xs, ys = block_mean(total)
         ax.plot(xs, ys * 1e3, "-" + mk, ms=4, lw=1.2, label=name if first else f"+ {name}")
     for name, t in (extra_s or {}).items():

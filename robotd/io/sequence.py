@@ -25,7 +25,7 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".pgm", ".ppm", ".tif", ".tif
 _DIGITS = re.compile(r"(\d+)")
 
 
-def natural_key(name: str) -> tuple:
+def natural_key(name: str) -> tuple[tuple[int, int | str, str], ...]:
     """Sort key ordering digit runs by value: ``2.jpg`` < ``10.jpg``, ``a9b`` < ``a10b``."""
     parts = _DIGITS.split(name)
     return tuple((0, int(p), p) if k % 2 else (1, p.lower(), p) for k, p in enumerate(parts))

@@ -34,6 +34,7 @@ No I/O here: the caller reads the recording and the reference trajectory
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -153,7 +154,7 @@ def _gyro_integral(drive: CalibrationDrive, t0_ns: int) -> tuple[np.ndarray, np.
 def _still_mask(drive: CalibrationDrive) -> np.ndarray:
     """Per wheel interval (``(N-1,)``): True when neither wheel moved over it."""
     d = np.abs(np.diff(np.asarray(drive.wheel_angle_rad, float), axis=0))
-    return ~(d > 1e-12).any(axis=1)
+    return ~np.any(d > 1e-12, axis=1)
 
 
 def _still_periods(drive: CalibrationDrive, margin_s: float) -> list[tuple[int, int]]:
@@ -238,7 +239,8 @@ def _intervals(drive: CalibrationDrive) -> _Intervals:
                       dphi=np.diff(phi_k, axis=0), gyro=np.diff(g_k), tsq=np.diff(0.5 * tk ** 2))
 
 
-def _arc_regressors(drive: CalibrationDrive, heading_of_t, t0_ns: int) -> np.ndarray:
+def _arc_regressors(drive: CalibrationDrive, heading_of_t: Callable[[np.ndarray], np.ndarray],
+                    t0_ns: int) -> np.ndarray:
     """Per keyframe interval, ``(J, 2, 2)``: the displacement (in the interval's start frame)
     per metre of wheel radius, for the left (``[:, :, 0]``) and right wheel: the sum over the
     wheel samples inside the interval of ``dphi_i / 2 * (cos, sin)(heading - heading_start)``
@@ -293,13 +295,13 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
     tg = np.asarray(drive.gyro_stamp_ns, np.int64)
     w = np.asarray(drive.gyro_radps, float)
     still_sel = np.zeros(len(tg), bool)
-    for a, b in _still_periods(drive, params.still_margin_s):
-        still_sel |= (tg >= a) & (tg <= b)
+    for lo_ns, hi_ns in _still_periods(drive, params.still_margin_s):
+        still_sel |= (tg >= lo_ns) & (tg <= hi_ns)
     fs = 1.0 / float(np.median(np.diff(tg)) * 1e-9)
     # The spread about each still period's own mean (the bias moves between them).
     resid = []
-    for a, b in _still_periods(drive, params.still_margin_s):
-        sel = (tg >= a) & (tg <= b)
+    for lo_ns, hi_ns in _still_periods(drive, params.still_margin_s):
+        sel = (tg >= lo_ns) & (tg <= hi_ns)
         if sel.sum() >= 3:
             resid.append(w[sel] - w[sel].mean())
     r = np.concatenate(resid)

@@ -92,6 +92,15 @@ class RenderParams:
                 raise ConfigError(f"render parameter {name} out of range: {getattr(self, name)!r}")
 
 
+def _remap(src: np.ndarray, maps: np.ndarray) -> np.ndarray:
+    """``src`` sampled (bilinear, zero outside) at ``maps`` ``(H, W, 2) float32`` pixel
+    coordinates. OpenCV's stubs require a second map, which ``cv2.remap`` documents as
+    empty when the first holds (x, y) pairs."""
+    out: np.ndarray = cv2.remap(src, maps, None, cv2.INTER_LINEAR,  # type: ignore[call-overload]
+                                borderMode=cv2.BORDER_CONSTANT)
+    return out
+
+
 class FloorRenderer:
     """Renders ``(height_px, width_px) uint8`` floor-camera frames at given robot poses.
 
@@ -211,14 +220,13 @@ class FloorRenderer:
         self._ensure_patch(float(pose[0]), float(pose[1]), abs(v_mps) * half_t)
         assert self._patch is not None
         if n == 1:
-            out = cv2.remap(self._patch, self._maps_at(pose), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+            out = _remap(self._patch, self._maps_at(pose))
         else:
-            out = None
-            for k in range(n):
-                tau = -half_t + 2.0 * half_t * k / (n - 1)
-                sub = compose(pose, _arc(v_mps, w_radps, tau))
-                img = cv2.remap(self._patch, self._maps_at(sub), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-                out = img if out is None else cv2.add(out, img)
+            images = (_remap(self._patch, self._maps_at(compose(pose, _arc(v_mps, w_radps, tau))))
+                      for tau in (-half_t + 2.0 * half_t * k / (n - 1) for k in range(n)))
+            out = next(images)
+            for img in images:
+                out = cv2.add(out, img)
             out *= np.float32(1.0 / n)
         if self._invalid is not None:
             out[self._invalid] = 0.0

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from itertools import count
 from typing import Any
 
+import cantools
 import numpy as np
 
 from drivers.can.driver import CAN_ERR_BUSOFF, CAN_ERR_RESTARTED, load_dbc
@@ -162,7 +163,8 @@ def encode_can(sensors: BaseSensorStreams, convention: str, rng: np.random.Gener
                      [r[3] for r in rows], convention, injected)
 
 
-def _inject(rows: list[tuple[float, int, int, bytes, str]], faults: CanFaults, db, rng: np.random.Generator,
+def _inject(rows: list[tuple[float, int, int, bytes, str]], faults: CanFaults,
+            db: cantools.database.can.Database, rng: np.random.Generator,
             injected: dict[str, int], convention: str) -> list[tuple[float, int, int, bytes, str]]:
     known = {m.frame_id for m in db.messages}
     if faults.stale_at_s is not None:
@@ -179,8 +181,8 @@ def _inject(rows: list[tuple[float, int, int, bytes, str]], faults: CanFaults, d
         rows.append((hi, -1, _ERROR_FRAME, CAN_ERR_RESTARTED.to_bytes(4, "little"), "error"))
         injected["bus_off"] = 1
     if faults.flood_at_s is not None:
-        ids = rng.integers(0, 0x800, faults.flood_frames * 2)
-        ids = [int(i) for i in ids if int(i) not in known][: faults.flood_frames]
+        drawn = rng.integers(0, 0x800, faults.flood_frames * 2)
+        ids = [int(i) for i in drawn if int(i) not in known][: faults.flood_frames]
         for i in ids:
             rows.append((faults.flood_at_s, 3, i, rng.integers(0, 256, 8, dtype=np.uint8).tobytes(), "flood"))
         injected["flood_frames"] = len(ids)
@@ -211,7 +213,8 @@ class CanEmulator:
         self.frames = frames
         self.sensors = sensors
         self.channel = f"robotd-virtual-{os.getpid()}-{next(_channels)}"
-        self._bus = can.Bus(interface="virtual", channel=self.channel, preserve_timestamps=True)
+        self._bus: can.BusABC | None = can.Bus(interface="virtual", channel=self.channel,
+                                               preserve_timestamps=True)
         self._can = can
         self.frames_sent = 0
         self.commands_received: dict[str, int] = {}  # a CAN base here takes no commands
@@ -250,6 +253,8 @@ class CanEmulator:
         else:
             msg = self._can.Message(timestamp=t, arbitration_id=fid, is_extended_id=False,
                                     data=data, dlc=len(data))
+        if self._bus is None:
+            raise RuntimeError("the CAN emulator is closed")
         self._bus.send(msg)
         self.frames_sent += 1
 
@@ -298,6 +303,6 @@ def driver_messages(frames: CanFrames, sensors: BaseSensorStreams, *, read_every
                     last_read_ns = clock.now_ns()
             for _ in range(emulator.frames_sent):  # the virtual bus has them all already
                 out += driver.read(0.0)
-                if driver.stats()["frames"] >= emulator.frames_sent:
+                if int(driver.stats()["frames"]) >= emulator.frames_sent:
                     break
             return out, driver.stats()

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drivers.base import Message
 from drivers.kobuki import protocol
 from robotd.base.clock import ManualClock
 from robotd.base.messages import WheelTicks, YawRate
@@ -160,12 +161,12 @@ class KobukiFeedback:
                                          angle_rate_centidegps=int(self.angle_rate_cdegps[i]))
         gyro = protocol.RawGyroData(
             frame_id=i & 0xFF,
-            samples=tuple(tuple(int(a) for a in xyz)
-                          for xyz in self.gyro_digits[i, : self.gyro_count[i]]),
+            samples=tuple((int(x), int(y), int(z))
+                          for x, y, z in self.gyro_digits[i, : self.gyro_count[i]]),
         )
         return protocol.encode_feedback(basic, inertial, gyro)
 
-    def messages(self, yaw_source: str = "raw_gyro") -> list[WheelTicks | YawRate]:
+    def messages(self, yaw_source: str = "raw_gyro") -> list[Message]:
         """What the daemon gets from these packets; see :func:`driver_messages`."""
         return driver_messages(self, yaw_source)
 
@@ -260,7 +261,7 @@ def simulate_kobuki(motion: Motion, sensor_params: BaseSensorParams, rng: np.ran
 
 
 def driver_messages(feedback: KobukiFeedback,
-                    yaw_source: str = "raw_gyro") -> list[WheelTicks | YawRate]:
+                    yaw_source: str = "raw_gyro") -> list[Message]:
     """The messages :class:`~drivers.kobuki.driver.KobukiDriver` makes of ``feedback``.
 
     A :class:`KobukiEmulator` plays the packets one at a time and the real driver reads
@@ -278,7 +279,7 @@ def driver_messages(feedback: KobukiFeedback,
         raise ValueError("yaw_source must be 'raw_gyro', 'raw_gyro_samples' or 'inertial', "
                          f"got {yaw_source!r}")
     clock = ManualClock()
-    out: list[WheelTicks | YawRate] = []
+    out: list[Message] = []
     driver_source = "inertial" if yaw_source == "inertial" else "raw_gyro"
     with KobukiEmulator(feedback) as emulator, KobukiDriver(
             emulator.port, clock, yaw_source=driver_source) as driver:
@@ -286,7 +287,7 @@ def driver_messages(feedback: KobukiFeedback,
             clock.set_ns(int(stamp_ns))
             emulator.emit(i)
             for _ in range(_READS_PER_PACKET):  # a read may see part of the packet
-                if driver.stats()["bytes_in"] >= emulator.bytes_written:
+                if int(driver.stats()["bytes_in"]) >= emulator.bytes_written:
                     break
                 out += driver.read(1.0)
             else:
@@ -297,7 +298,7 @@ def driver_messages(feedback: KobukiFeedback,
 
 
 def _with_sample_rates(wheels: list[WheelTicks],
-                       feedback: KobukiFeedback) -> list[WheelTicks | YawRate]:
+                       feedback: KobukiFeedback) -> list[Message]:
     """``wheels`` merged with one yaw rate per raw gyro sample at its true time (wheels
     first on equal stamps, as the driver emits a packet's messages)."""
     mask = np.arange(feedback.gyro_digits.shape[1])[None, :] < feedback.gyro_count[:, None]

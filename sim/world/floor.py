@@ -261,11 +261,12 @@ def _prepare_source(grey: np.ndarray, name: str, params: FloorParams, seed: int)
     content = cv2.GaussianBlur(v, (0, 0), params.seam_content_sigma_px)
     content = (content - float(content.mean())) / (float(content.std()) or 1.0)
     rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5EA3])
-    noise = cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), params.seam_noise_sigma_px)
+    noise: np.ndarray = cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0),
+                                         params.seam_noise_sigma_px)
     noise /= float(noise.std()) or 1.0
     seam = params.seam_content * np.clip(content, -2.5, 2.5) + params.seam_noise * noise
     stack = np.dstack([v, seam]).astype(np.float32)
-    levels = [stack]
+    levels: list[np.ndarray] = [stack]
     while min(levels[-1].shape[:2]) >= 16:
         levels.append(cv2.pyrDown(levels[-1]))
     for lv in levels:
@@ -344,7 +345,7 @@ class Floor:
         :class:`~robotd.base.errors.ConfigError` naming the file.
         """
         if isinstance(photos, (str, os.PathLike, np.ndarray)):
-            photos = [photos]  # type: ignore[list-item]
+            photos = [photos]
         sources = []
         for k, p in enumerate(photos):
             if isinstance(p, np.ndarray):
@@ -429,9 +430,9 @@ class Floor:
         reach = (p.block_support + p.block_jitter + 1.0) * s_m
         i = np.arange(math.floor((xmin - reach) / s_m), math.floor((xmax + reach) / s_m) + 1)
         j = np.arange(math.floor((ymin - reach) / s_m), math.floor((ymax + reach) / s_m) + 1)
-        ii, jj = np.meshgrid(i, j, indexing="ij")
-        ii = ii.ravel()
-        jj = jj.ravel()
+        grid_i, grid_j = np.meshgrid(i, j, indexing="ij")
+        ii = grid_i.ravel()
+        jj = grid_j.ravel()
         seed = p.seed
         cx = (ii + 0.5 + p.block_jitter * (2.0 * _hash_u01(seed, ii, jj, 1) - 1.0)) * s_m
         cy = (jj + 0.5 + p.block_jitter * (2.0 * _hash_u01(seed, ii, jj, 2) - 1.0)) * s_m

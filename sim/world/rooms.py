@@ -35,11 +35,15 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from robotd.base.errors import ConfigError
+
+if TYPE_CHECKING:
+    from shapely.geometry.base import BaseGeometry  # shapely has no type information
 
 __all__ = ["PHOTO_NAMES", "Wall", "WallWorld", "WorldParams", "corridor_world", "office_world", "world_for_route"]
 
@@ -123,7 +127,7 @@ class WallWorld:
     floor_period_px: tuple[int, int]
     ceiling_origin: np.ndarray
     ceiling_period_px: tuple[int, int]
-    free_space: object = field(repr=False)  # shapely geometry of the free space
+    free_space: BaseGeometry = field(repr=False)  # shapely geometry of the free space
     items: list[tuple[int, str, float, float]] = field(default_factory=list, repr=False)
 
     @property
@@ -215,7 +219,8 @@ def corridor_world(waypoints_m: np.ndarray, seed: int = 0, params: WorldParams =
                   seed, params)
 
 
-def _free_space(points: np.ndarray, width_m: float, rooms: list, pillars: list):
+def _free_space(points: np.ndarray, width_m: float, rooms: list[tuple[float, float, float, float]],
+                pillars: list[tuple[float, float, float, float]]) -> BaseGeometry:
     from shapely.geometry import LineString, box
     from shapely.ops import unary_union
 
@@ -232,7 +237,7 @@ def _free_space(points: np.ndarray, width_m: float, rooms: list, pillars: list):
     return set_precision(free, 1e-3).simplify(1e-4)
 
 
-def _walls(free, max_wall_m: float) -> list[Wall]:
+def _walls(free: BaseGeometry, max_wall_m: float) -> list[Wall]:
     from shapely.geometry.polygon import orient
 
     walls: list[Wall] = []
@@ -264,7 +269,8 @@ def _load_photo(name: str) -> np.ndarray:
     if img.ndim == 3:
         img = cv2.cvtColor(np.ascontiguousarray(img[..., :3]), cv2.COLOR_RGB2GRAY)
     if img.dtype != np.uint8:
-        img = cv2.normalize(img.astype(np.float32), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+        f = img.astype(np.float32)
+        img = cv2.normalize(f, np.empty_like(f), 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
     img.setflags(write=False)
     return img
 
@@ -346,8 +352,8 @@ def _pattern_band(kind: int, w: int, h: int, ppm: float) -> np.ndarray:
     return np.broadcast_to(v, (h, w)).astype(np.float32)
 
 
-def _wall_texture(length_m: float, params: WorldParams, rng: np.random.Generator, photos: list,
-                  door: np.ndarray, posters: list, photo_counter: list[int]
+def _wall_texture(length_m: float, params: WorldParams, rng: np.random.Generator, photos: list[np.ndarray],
+                  door: np.ndarray, posters: list[np.ndarray], photo_counter: list[int]
                   ) -> tuple[np.ndarray, list[tuple[str, float, float]]]:
     """One wall's texture, ``(rows, cols) float32`` (row 0 at the ceiling, column 0 at the
     wall's end ``b``), and the items hung on it ``(kind, s0_m, s1_m)`` from column 0."""
@@ -451,7 +457,7 @@ def _ceiling_tile(ppm: float) -> np.ndarray:
 # --------------------------------------------------------------------------- build
 
 
-def _build(free, seed: int, params: WorldParams) -> WallWorld:
+def _build(free: BaseGeometry, seed: int, params: WorldParams) -> WallWorld:
     rng = np.random.default_rng(seed)
     walls = _walls(free, params.max_wall_m)
     if not walls:
@@ -522,9 +528,8 @@ def _build(free, seed: int, params: WorldParams) -> WallWorld:
     atlas[h0:, :w0 // 2] = l1
     atlas[h0:h0 + h0 // 4, w0 // 2:w0 // 2 + w0 // 4] = l2
     offsets = np.array([[0.0, 0.0], [0.0, h0], [w0 / 2.0, h0]])
-    a = np.array([w.a_xy_m for w in walls])
-    b = np.array([w.b_xy_m for w in walls])
-    return WallWorld(params=params, a_m=a, b_m=b, tex_x0=tex_x0, tex_y0=tex_y0,
+    return WallWorld(params=params, a_m=np.array([w.a_xy_m for w in walls]),
+                     b_m=np.array([w.b_xy_m for w in walls]), tex_x0=tex_x0, tex_y0=tex_y0,
                      cell0=np.asarray(cell0, np.int64), n_cells=n_cells, atlas=atlas,
                      level_offsets=offsets, floor_origin=floor_origin,
                      floor_period_px=(floor.shape[1], floor.shape[0]), ceiling_origin=ceiling_origin,
