@@ -15,6 +15,7 @@ from robotd.app.demo import run_demo
 from robotd.app.service import run_replay
 from robotd.base.config import Config, replace
 from robotd.io.store import MapStore
+from tests.drives import RecordedDrive
 
 
 def _replay(rec: Path, map_path: Path) -> dict:
@@ -37,7 +38,7 @@ def _map_content(path: Path) -> str:
 
 
 def _assert_same_keyframes(live: Path, replayed: Path) -> None:
-    with MapStore.open(live, create=False) as a, MapStore.open(replayed, create=False) as b:
+    with MapStore.open(live, create=False, read_only=True) as a, MapStore.open(replayed, create=False) as b:
         ka, kb = list(a.keyframes()), list(b.keyframes())
         assert [k.stamp_ns for k in ka] == [k.stamp_ns for k in kb]
         pa = np.array([[k.x_m, k.y_m, k.yaw_rad] for k in ka])
@@ -48,11 +49,9 @@ def _assert_same_keyframes(live: Path, replayed: Path) -> None:
         assert len(a.links("odometry")) == len(b.links("odometry")) == len(ka) - 1
 
 
-def test_replay_reproduces_the_live_keyframes(tmp_path: Path):
+def test_replay_reproduces_the_live_keyframes(tmp_path: Path, recorded_square: RecordedDrive):
     """Recorded lossless (PNG): the replay sees the very pixels the live run saw."""
-    rec = tmp_path / "run.mcap"
-    s = run_demo(replace(Config(), "recording", image_format="png"), out=tmp_path / "live",
-                 route="square", duration_s=8.0, seed=5, plot=False, record=rec)
+    rec, s = recorded_square.recording, recorded_square.summary
     topics: dict[str, int] = {}
     for topic, _ in read_recording(rec):
         topics[topic] = topics.get(topic, 0) + 1
@@ -63,7 +62,7 @@ def test_replay_reproduces_the_live_keyframes(tmp_path: Path):
     r = _replay(rec, tmp_path / "replay.sqlite")
     assert r["frames"] == s["frames_rendered"] and r["frames_unsynced"] == 0
     assert r["keyframes"] == s["keyframes"]
-    _assert_same_keyframes(tmp_path / "live" / "map.sqlite", tmp_path / "replay.sqlite")
+    _assert_same_keyframes(recorded_square.live / "map.sqlite", tmp_path / "replay.sqlite")
 
 
 def test_ten_replays_give_identical_maps(tmp_path: Path):
@@ -93,20 +92,19 @@ def test_a_long_full_speed_replay_loses_no_frame(tmp_path: Path):
     _assert_same_keyframes(tmp_path / "live" / "map.sqlite", tmp_path / "replay.sqlite")
 
 
-def test_an_interrupted_replay_says_so_and_reports_what_it_did(tmp_path: Path):
+def test_an_interrupted_replay_says_so_and_reports_what_it_did(tmp_path: Path,
+                                                               recorded_square: RecordedDrive):
     """Ctrl-C used to report the whole recording as replayed and exit 0."""
     import signal
     import subprocess
     import sys
 
-    rec = tmp_path / "run.mcap"
-    run_demo(Config(), out=tmp_path / "live", route="square", duration_s=4.0, seed=5,
-             plot=False, record=rec)
+    rec = recorded_square.recording
     map_path = tmp_path / "replay.sqlite"
     proc = subprocess.Popen([sys.executable, "-m", "robotd.app.cli", "replay", str(rec), "--map",
                              str(map_path), "--speed", "1"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    for line in proc.stderr:  # at real speed, the replay has about 4 s to go
+    for line in proc.stderr:  # at real speed, the replay has about 8 s to go
         if "robotd running" in line:
             proc.send_signal(signal.SIGINT)
             break
@@ -116,7 +114,7 @@ def test_an_interrupted_replay_says_so_and_reports_what_it_did(tmp_path: Path):
     said = stderr.strip().splitlines()[-1]  # the outcome, after the log lines
     assert said.startswith(f"robotd: replay of {rec} interrupted (SIGINT) after ")
     done_s = float(said.split(" after ")[1].split(" ")[0])
-    assert 0.0 <= done_s < 3.5 and "of its 4.0 s" in said
+    assert 0.0 <= done_s < 7.5 and "of its 8.0 s" in said
     with MapStore.open(map_path, create=False) as store:
         (run,) = store.runs()
         assert run.ended_ns is not None  # the map is consistent, its run closed

@@ -9,24 +9,22 @@ import pytest
 
 from calibration.train import TrainParams
 from robotd.app.cli import main
-from robotd.app.demo import run_demo
-from robotd.base.config import Config, replace
 from robotd.io.calibfile import (
     CalibrationFile,
     LoopThresholds,
     read_calibration,
     write_calibration,
 )
+from tests.drives import RecordedDrive
 
 OLD = LoopThresholds(thresholds=(20.0, 32.0, 48.0, 93.0, 136.0, 234.0))
 
 
-def test_a_drive_too_short_to_train_keeps_the_old_thresholds(tmp_path: Path, capsys):
+def test_a_drive_too_short_to_train_keeps_the_old_thresholds(tmp_path: Path, capsys,
+                                                             recorded_square: RecordedDrive):
     """It used to exit 0 and write a file with no threshold at all. (8 s of the square: about a
     dozen keyframes at the default 0.15 m spacing, enough to be read, no revisit to train on.)"""
-    cfg = replace(Config(), "floor_detector", enabled=False)
-    rec = tmp_path / "short.mcap"
-    run_demo(cfg, out=tmp_path / "demo", route="square", duration_s=8.0, plot=False, record=rec)
+    rec = recorded_square.recording
     calib = tmp_path / "calibration.yml"
     write_calibration(calib, CalibrationFile(loop=OLD))
     before = calib.read_bytes()

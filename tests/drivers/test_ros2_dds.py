@@ -27,7 +27,12 @@ PEER = ROOT / "tests" / "drivers" / "ros2_peer.py"
 
 
 def domain_for(n: int) -> int:
-    """A domain id for this test process (0..232), away from the default 0."""
+    """A domain id for this test process (100..219), away from the default 0. Under
+    pytest-xdist (``./dev test``) each worker of a run gets its own ten (from their common
+    parent's pid and the worker's number), so two workers never share a domain."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")  # "gw0", "gw1", ...
+    if worker.startswith("gw"):
+        return 100 + (os.getppid() * 7 + 10 * int(worker[2:]) + n) % 120
     return 100 + (os.getpid() * 7 + n) % 120
 
 
