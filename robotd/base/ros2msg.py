@@ -37,10 +37,10 @@ from robotd.base.ros2msg_types import (DEFINITIONS, Field, dds_topic_name, dds_t
 
 __all__ = [
     "CDR_LE_HEADER", "DEFINITIONS", "MAX_STAMP_NS", "NS_PER_S", "Codec", "Field", "check_stamp", "codec",
-    "compressed_image_msg", "covariance3", "covariance6", "dds_topic_name", "dds_type_name", "decode",
+    "compressed_image_msg", "covariance3", "covariance6", "covariance_problem", "dds_topic_name", "dds_type_name", "decode",
     "dependencies", "diagnostic_status", "encode", "header", "imu_yaw_rate_msg", "key_values",
     "line_list_marker", "odometry_msg", "parse_definition", "parse_schema_text", "path_msg", "planar_pose",
-    "planar_transform_msg", "pose_with_covariance_msg", "ros_topic_name", "schema_text", "stamp_ns_of",
+    "planar_transform_msg", "pose_with_covariance_msg", "ros_topic_name", "schema_text", "stamp_ns_of", "stated_variances",
     "tf_message", "time_msg", "transform_msg", "yaw_of_quaternion", "yaw_quaternion",
 ]
 
@@ -112,6 +112,28 @@ def covariance3(cov36: Sequence[float]) -> np.ndarray:
     """The ``(3, 3)`` ``(x, y, yaw)`` block of a ROS 36-value pose or twist covariance."""
     c = np.asarray(cov36, dtype=np.float64).reshape(6, 6)
     return c[np.ix_((0, 1, 5), (0, 1, 5))].copy()
+
+
+def covariance_problem(cov: Sequence[float], diagonal: tuple[int, ...]) -> str | None:
+    """Why a ROS covariance (row-major values) states no variance at ``diagonal``, or None
+    when it does: ``-1`` in element 0 ("no estimate"), all zeros ("unknown"), or an entry
+    that is not finite and positive."""
+    if len(cov) == 0 or cov[0] == -1.0:
+        return "element 0 is -1: no estimate"
+    if not any(cov):
+        return "all zeros: unknown"
+    for i in diagonal:
+        if not (math.isfinite(cov[i]) and cov[i] > 0.0):
+            return f"element {i} is {cov[i]!r}, not a positive variance"
+    return None
+
+
+def stated_variances(cov: Sequence[float], diagonal: tuple[int, ...]) -> tuple[float, ...] | None:
+    """The variances at ``diagonal`` of a ROS covariance, or None when it states none
+    (:func:`covariance_problem`)."""
+    if covariance_problem(cov, diagonal) is not None:
+        return None
+    return tuple(float(cov[i]) for i in diagonal)
 
 
 def odometry_msg(stamp_ns: int, x_m: float, y_m: float, yaw_rad: float, cov3: np.ndarray,
@@ -192,16 +214,21 @@ def compressed_image_msg(stamp_ns: int, frame_id: str, image_format: str, data: 
     return {"header": header(stamp_ns, frame_id), "format": image_format, "data": data}
 
 
-def imu_yaw_rate_msg(stamp_ns: int, frame_id: str, yaw_rate_radps: float) -> dict[str, Any]:
+def imu_yaw_rate_msg(stamp_ns: int, frame_id: str, yaw_rate_radps: float,
+                     yaw_rate_var_rad2ps2: float | None = None) -> dict[str, Any]:
     """``sensor_msgs/Imu`` holding only a yaw rate: ``angular_velocity.z`` (rad/s); the
     orientation and linear acceleration are "not provided" (covariance[0] = -1) and the
-    angular velocity covariance is all zero ("unknown")."""
+    angular velocity covariance is all zero ("unknown"), or holds only the yaw rate's
+    variance (element 8, (rad/s)^2) when ``yaw_rate_var_rad2ps2`` is given."""
+    av_cov = [0.0] * 9
+    if yaw_rate_var_rad2ps2 is not None:
+        av_cov[8] = float(yaw_rate_var_rad2ps2)
     return {
         "header": header(stamp_ns, frame_id),
         "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
         "orientation_covariance": [-1.0] + [0.0] * 8,
         "angular_velocity": {"x": 0.0, "y": 0.0, "z": float(yaw_rate_radps)},
-        "angular_velocity_covariance": [0.0] * 9,
+        "angular_velocity_covariance": av_cov,
         "linear_acceleration": {"x": 0.0, "y": 0.0, "z": 0.0},
         "linear_acceleration_covariance": [-1.0] + [0.0] * 8,
     }

@@ -306,24 +306,44 @@ def _update(state: EkfState, innovation: np.ndarray, h: np.ndarray, r: np.ndarra
 
 
 def wheel_noise(v_mps: float, w_radps: float, params: EkfParams,
-                stationary: bool = False) -> tuple[float, float]:
-    """1-sigma noise ``(sigma_v_mps, sigma_w_radps)`` of one wheel speed measurement."""
+                stationary: bool = False, speed_var_m2ps2: float | None = None,
+                yaw_rate_var_rad2ps2: float | None = None) -> tuple[float, float]:
+    """1-sigma noise ``(sigma_v_mps, sigma_w_radps)`` of one wheel speed measurement.
+
+    ``speed_var_m2ps2`` / ``yaw_rate_var_rad2ps2``: variances the source stated with the
+    measurement (a ROS 2 odometry's twist covariance, checked valid by its driver); each
+    replaces the noise model's value for its component. At standstill the zero-velocity
+    noise is used whatever the source said: it is the filter's own knowledge (no tick
+    moved), not the source's.
+    """
     if stationary:
         return params.stationary_noise_mps, params.stationary_noise_radps
-    sv = params.wheel_v_noise_mps + params.wheel_v_noise_frac * abs(v_mps)
+    sv = (params.wheel_v_noise_mps + params.wheel_v_noise_frac * abs(v_mps)
+          if speed_var_m2ps2 is None else math.sqrt(speed_var_m2ps2))
     sw = (params.wheel_w_noise_radps + params.wheel_w_noise_frac * abs(w_radps)
-          + params.wheel_w_noise_per_mps * abs(v_mps))
+          + params.wheel_w_noise_per_mps * abs(v_mps)
+          if yaw_rate_var_rad2ps2 is None else math.sqrt(yaw_rate_var_rad2ps2))
     return sv, sw
 
 
+def gyro_noise_var(params: EkfParams, yaw_rate_var_rad2ps2: float | None = None) -> np.ndarray:
+    """``(1, 1)`` noise covariance of one gyro reading, (rad/s)^2: the variance the source
+    stated (a ROS 2 IMU's, checked valid by its driver), else ``gyro_noise_radps**2``."""
+    var = params.gyro_noise_radps ** 2 if yaw_rate_var_rad2ps2 is None else yaw_rate_var_rad2ps2
+    return np.array([[var]])
+
+
 def update_wheels(state: EkfState, v_mps: float, w_radps: float,
-                  params: EkfParams = EkfParams(), stationary: bool = False) -> EkfState:
+                  params: EkfParams = EkfParams(), stationary: bool = False,
+                  speed_var_m2ps2: float | None = None,
+                  yaw_rate_var_rad2ps2: float | None = None) -> EkfState:
     """Measurement ``(v, w)`` from the encoders: ``h(x) = (x[v], x[w])``.
 
     ``stationary=True`` (no tick moved over the interval) uses the much smaller
     zero-velocity noise: the base is not moving, which is what makes the bias observable.
+    The variances, when given, are the source's (:func:`wheel_noise`).
     """
-    sv, sw = wheel_noise(v_mps, w_radps, params, stationary)
+    sv, sw = wheel_noise(v_mps, w_radps, params, stationary, speed_var_m2ps2, yaw_rate_var_rad2ps2)
     z = np.array([v_mps, w_radps], dtype=float)
     innovation = z - state.mean[[IV, IW]]
     return _update(state, innovation, H_WHEELS, np.diag([sv * sv, sw * sw]),
@@ -331,11 +351,12 @@ def update_wheels(state: EkfState, v_mps: float, w_radps: float,
 
 
 def update_gyro(state: EkfState, w_radps: float, params: EkfParams = EkfParams(),
-                at_rest: bool = False) -> EkfState:
+                at_rest: bool = False, yaw_rate_var_rad2ps2: float | None = None) -> EkfState:
     """Measurement of the gyro's yaw rate: ``h(x) = x[w] + x[bias]`` (``at_rest``: paired
-    with a zero-velocity update, see ``smooth_pose`` in :class:`EkfParams`)."""
+    with a zero-velocity update, see ``smooth_pose`` in :class:`EkfParams`; the variance,
+    when given, is the source's: :func:`gyro_noise_var`)."""
     innovation = np.array([w_radps - state.mean[IW] - state.mean[IB]])
-    r = np.array([[params.gyro_noise_radps ** 2]])
+    r = gyro_noise_var(params, yaw_rate_var_rad2ps2)
     return _update(state, innovation, H_GYRO, r, at_rest and params.smooth_pose)
 
 
