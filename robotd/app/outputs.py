@@ -124,11 +124,20 @@ class DdsSink:
         self.keys = ros2_keys(cfg)
         self.participant = dds.Participant(self.domain_id, config=dds_config)
         self.writers: dict[str, Any] = {}
-        log.info("ROS 2 output on DDS domain %d (namespace %r)", self.domain_id, self.namespace or "/")
+        self.node_name = "robotd"
+        self.distro = dds.ros_distro()
+        log.info("ROS 2 output on DDS domain %d (namespace %r, node %s, %s graph information)", self.domain_id,
+                 self.namespace or "/", self.node_name, self.distro)
 
     def advertise(self, key: str, spec: TopicSpec) -> None:
         qos = self._dds.QosSpec(spec.reliable, spec.transient_local, spec.depth)
         self.writers[key] = self.participant.writer(spec.topic, spec.type_name, qos, namespace=self.namespace)
+        # ros_discovery_info names the writers robotd's node (``ros2 node list``): again
+        # with each new one (only at start-up), the last one latched for late joiners
+        try:
+            self.participant.announce(self.node_name, self.namespace, self.distro)
+        except Exception as exc:  # noqa: BLE001 - the graph information must never stop the outputs
+            log.warning("ros_discovery_info not published: %s", exc)
 
     def publish(self, key: str, data: bytes, stamp_ns: int) -> None:
         self.writers[key].write(data)

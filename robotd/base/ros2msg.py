@@ -32,14 +32,15 @@ from typing import Any
 import numpy as np
 
 from robotd.base.ros2msg_cdr import CDR_LE_HEADER, Codec, codec, decode, encode
-from robotd.base.ros2msg_types import (DEFINITIONS, Field, dds_topic_name, dds_type_name, dependencies,
-                                       parse_definition, parse_schema_text, ros_topic_name, schema_text)
+from robotd.base.ros2msg_types import (DEFINITIONS, DISTRO_DEFINITIONS, DISTROS, Field, dds_topic_name, dds_type_name, definitions,
+                                       dependencies, gid_size, parse_definition, parse_schema_text, ros_topic_name,
+                                       schema_text)
 
 __all__ = [
-    "CDR_LE_HEADER", "DEFINITIONS", "MAX_STAMP_NS", "NS_PER_S", "Codec", "Field", "check_stamp", "codec",
+    "CDR_LE_HEADER", "DEFINITIONS", "DISTROS", "DISTRO_DEFINITIONS", "MAX_STAMP_NS", "NS_PER_S", "Codec", "Field", "check_stamp", "codec",
     "compressed_image_msg", "covariance3", "covariance6", "covariance_problem", "dds_topic_name", "dds_type_name", "decode",
-    "dependencies", "diagnostic_status", "encode", "header", "imu_yaw_rate_msg", "key_values",
-    "line_list_marker", "odometry_msg", "parse_definition", "parse_schema_text", "path_msg", "planar_pose",
+    "definitions", "dependencies", "diagnostic_status", "encode", "gid_size", "header", "imu_yaw_rate_msg", "key_values",
+    "line_list_marker", "odometry_msg", "parse_definition", "parse_schema_text", "participant_entities_info", "path_msg", "planar_pose",
     "planar_transform_msg", "pose_with_covariance_msg", "ros_topic_name", "schema_text", "stamp_ns_of", "stated_variances",
     "tf_message", "time_msg", "transform_msg", "yaw_of_quaternion", "yaw_quaternion",
 ]
@@ -237,3 +238,23 @@ def imu_yaw_rate_msg(stamp_ns: int, frame_id: str, yaw_rate_radps: float,
 def tf_message(transforms: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
     """``tf2_msgs/TFMessage`` of ``TransformStamped`` dicts."""
     return {"transforms": list(transforms)}
+
+
+def participant_entities_info(participant_guid: bytes, node_namespace: str, node_name: str,
+                              reader_guids: Iterable[bytes], writer_guids: Iterable[bytes],
+                              distro: str | None = None) -> dict[str, Any]:
+    """``rmw_dds_common/msg/ParticipantEntitiesInfo`` of one participant holding one node:
+    what a ROS 2 node publishes on ``ros_discovery_info`` so that ``ros2 node list`` and
+    ``ros2 node info`` know which DDS readers and writers are the node's. The GUIDs (16
+    bytes each) are zero-padded to ``distro``'s GID size (:func:`gid_size`)."""
+    n = gid_size(distro)
+
+    def gid(guid: bytes) -> dict[str, bytes]:
+        g = bytes(guid)
+        if len(g) > n:
+            raise ValueError(f"a GUID of {len(g)} bytes does not fit a GID of {n}")
+        return {"data": g + b"\x00" * (n - len(g))}
+
+    return {"gid": gid(participant_guid), "node_entities_info_seq": [{
+        "node_namespace": node_namespace or "/", "node_name": node_name,
+        "reader_gid_seq": [gid(g) for g in reader_guids], "writer_gid_seq": [gid(g) for g in writer_guids]}]}

@@ -15,8 +15,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 # --------------------------------------------------------------------------------------
-# Definitions (ROS 2 Humble, Jazzy and Kilted agree on every one of them; checked against
-# the rosbags type stores of the three in tests/base/test_ros2msg.py)
+# Definitions (ROS 2 Humble, Jazzy and Kilted agree on every one of them but
+# rmw_dds_common/msg/Gid, see DISTRO_DEFINITIONS; checked against the rosbags type stores
+# of the three in tests/base/test_ros2msg.py)
 # --------------------------------------------------------------------------------------
 
 DEFINITIONS: dict[str, str] = {
@@ -125,6 +126,14 @@ DEFINITIONS: dict[str, str] = {
         "KeyValue[] values\n"
     ),
     "diagnostic_msgs/msg/DiagnosticArray": "std_msgs/Header header\nDiagnosticStatus[] status\n",
+    "rmw_dds_common/msg/Gid": "char[16] data\n",
+    "rmw_dds_common/msg/NodeEntitiesInfo": (
+        "string<=256 node_namespace\n"
+        "string<=256 node_name\n"
+        "Gid[] reader_gid_seq\n"
+        "Gid[] writer_gid_seq\n"
+    ),
+    "rmw_dds_common/msg/ParticipantEntitiesInfo": "Gid gid\nNodeEntitiesInfo[] node_entities_info_seq\n",
     "robotd_msgs/msg/WheelTicks": (
         "# Raw wheel encoder counters of a differential-drive base, as the base reports them.\n"
         "# The counters wrap at 16 bits; consumers unwrap consecutive differences.\n"
@@ -134,6 +143,29 @@ DEFINITIONS: dict[str, str] = {
         "uint16 device_ms    # the base's own millisecond clock, 0..65535, wrapping\n"
     ),
 }
+
+DISTROS = ("humble", "jazzy", "kilted")
+"""The ROS 2 distributions robotd's definitions are checked against."""
+
+DISTRO_DEFINITIONS: dict[str, dict[str, str]] = {
+    # A participant's GID was 24 bytes until Humble, the 16 of the DDS GUID since Iron.
+    "humble": {"rmw_dds_common/msg/Gid": "char[24] data\n"},
+}
+"""Where a distribution's definition differs from :data:`DEFINITIONS` (which is Jazzy's
+and Kilted's)."""
+
+
+def definitions(distro: str | None = None) -> dict[str, str]:
+    """Every definition as ``distro`` (one of :data:`DISTROS`; None: Jazzy) has it."""
+    if distro is not None and distro not in DISTROS:
+        raise ValueError(f"ROS 2 distribution {distro!r} is not one of {', '.join(DISTROS)}")
+    return {**DEFINITIONS, **DISTRO_DEFINITIONS.get(distro or "jazzy", {})}
+
+
+def gid_size(distro: str | None = None) -> int:
+    """Bytes of ``rmw_dds_common/msg/Gid.data`` in ``distro`` (24 in Humble, else 16)."""
+    return 24 if distro == "humble" else 16
+
 
 # struct format and size of each primitive
 _PRIMITIVES: dict[str, tuple[str, int]] = {
