@@ -195,7 +195,7 @@ class Ros2Base(_Ros2Source):
         self._variances.update(odometry_var_x_m2=float(cov[0, 0]), odometry_var_yaw_rad2=float(cov[2, 2]))
         twist_cov = m["twist"]["covariance"]
         var_v, var_w = self._stated("odometry", twist_cov, (0, 35))
-        if var_v is not None:
+        if var_v is not None and var_w is not None:
             self._variances.update(odometry_speed_var_m2ps2=var_v, odometry_yaw_rate_var_rad2ps2=var_w)
         self._prev = (stamp, x, y, yaw)
         if prev is not None:

@@ -314,9 +314,9 @@ class RosOutputStage:
             self._send("odometry", "nav_msgs/msg/Odometry", ros2msg.odometry_msg(
                 stamp, p.x_m, p.y_m, p.yaw_rad, p.covariance, self.odom_frame, self.base_frame), stamp)
             if "pose" in self.active:
-                corrected, cov = self._corrected(p)
+                (x, y, yaw), cov = self._corrected(p)
                 self._send("pose", "geometry_msgs/msg/PoseWithCovarianceStamped", ros2msg.pose_with_covariance_msg(
-                    stamp, self.map_frame, *corrected, cov), stamp)
+                    stamp, self.map_frame, x, y, yaw, cov), stamp)
         self.cpu_ns += time.thread_time_ns() - t0
 
     def on_frame(self, frame: Frame) -> None:

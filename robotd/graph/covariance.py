@@ -49,8 +49,9 @@ def tangent_to_world(pose_xyyaw: np.ndarray, cov_tangent: np.ndarray) -> np.ndar
     """``(3, 3)`` covariance in world axes of a pose whose ``(3, 3)`` covariance is given in
     its own tangent space (GTSAM's ``Pose2`` marginals: x, y along the pose's axes, yaw)."""
     r = _rotation3(float(pose_xyyaw[2]))
-    out = r @ np.asarray(cov_tangent, float) @ r.T
-    return 0.5 * (out + out.T)
+    out: np.ndarray = r @ np.asarray(cov_tangent, float) @ r.T
+    sym: np.ndarray = 0.5 * (out + out.T)
+    return sym
 
 
 def odometry_increment_covariance(odom_k_xyyaw: np.ndarray, cov_k: np.ndarray,
@@ -62,7 +63,8 @@ def odometry_increment_covariance(odom_k_xyyaw: np.ndarray, cov_k: np.ndarray,
     inc = np.asarray(cov_now, float) - j @ np.asarray(cov_k, float) @ j.T
     inc = 0.5 * (inc + inc.T)
     w, v = np.linalg.eigh(inc)
-    return (v * np.clip(w, 0.0, None)) @ v.T
+    psd: np.ndarray = (v * np.clip(w, 0.0, None)) @ v.T
+    return psd
 
 
 def corrected_pose(map_k_xyyaw: np.ndarray, map_k_cov_world: np.ndarray, odom_k_xyyaw: np.ndarray,
@@ -82,5 +84,5 @@ def corrected_pose(map_k_xyyaw: np.ndarray, map_k_cov_world: np.ndarray, odom_k_
     j = _compose_jacobian(map_k, now)
     r = _rotation3(float(map_k[2] - odom_k[2]))
     inc = odometry_increment_covariance(odom_k, odom_k_cov, odom_now_xyyaw, odom_now_cov)
-    cov = j @ np.asarray(map_k_cov_world, float) @ j.T + r @ inc @ r.T
+    cov: np.ndarray = j @ np.asarray(map_k_cov_world, float) @ j.T + r @ inc @ r.T
     return now, 0.5 * (cov + cov.T)
