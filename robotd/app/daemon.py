@@ -62,7 +62,7 @@ class SourceThread(threading.Thread):
     daemon stops (and systemd restarts it) instead of running on without the source.
     """
 
-    def __init__(self, name: str, source: Source, out: BoundedQueue, stop: threading.Event,
+    def __init__(self, name: str, source: Source, out: BoundedQueue[Any], stop: threading.Event,
                  on_fatal: Callable[[str, Exception], None] | None = None) -> None:
         super().__init__(name=f"robotd-{name}", daemon=True)
         self.source_name = name
@@ -176,11 +176,11 @@ class Daemon:
         self.stop_event = threading.Event()
         self.wakeup = threading.Event()
         self.driver_stats = driver_stats or (lambda: {})
-        self.queues: dict[str, BoundedQueue] = {}
+        self.queues: dict[str, BoundedQueue[Any]] = {}
         self.threads: dict[str, SourceThread] = {}
         sizes = queue_sizes or {}
         for name, driver in sources.items():
-            q: BoundedQueue = BoundedQueue(sizes.get(name, 64), lossless=lossless, drop="oldest",
+            q: BoundedQueue[Any] = BoundedQueue(sizes.get(name, 64), lossless=lossless, drop="oldest",
                                            wakeup=self.wakeup, name=name)
             self.queues[name] = q
             self.threads[name] = SourceThread(name, driver, q, self.stop_event,
@@ -268,7 +268,7 @@ class Daemon:
         self.request_stop(f"{name} failed: {exc}")
 
     def _install_signal_handlers(self) -> dict[int, Any]:
-        old = {}
+        old: dict[int, Any] = {}
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGTERM, signal.SIGINT):
                 old[sig] = signal.signal(sig, self._on_signal)
