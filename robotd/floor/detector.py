@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from robotd.base.config import FloorDetectorConfig
 from robotd.floor.descriptor import decode, extract
 from robotd.floor.index import Candidate, FloorIndex
 from robotd.base.geometry import (between_error_covariance, information_from_covariance, rigid_fit_2d,
@@ -27,14 +28,21 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class FloorDetectorParams:
-    """``mode``: descriptor mode 1-6 (512 B .. 16 kB per image); ``candidates``: how many
+    """``mode``: descriptor mode 1-6 (paper 003) (512 B .. 16 kB per image); ``candidates``: how many
     candidates a query returns; ``shortlist``: keyframes scored locally per query after the
     global shortlist; ``exclude_recent_s``: keyframes younger than this are not queried."""
 
-    mode: int = 4
-    candidates: int = 5
-    shortlist: int = 10
-    exclude_recent_s: float = 20.0
+    mode: int = FloorDetectorConfig.descriptor_mode
+    candidates: int = FloorDetectorConfig.candidates
+    shortlist: int = FloorDetectorConfig.shortlist
+    exclude_recent_s: float = FloorDetectorConfig.exclude_recent_s
+
+    @classmethod
+    def from_config(cls, section: FloorDetectorConfig) -> FloorDetectorParams:
+        """The params of a ``[floor_detector]`` table (whose defaults these are; ``mode``
+        is its ``descriptor_mode``)."""
+        return cls(mode=section.descriptor_mode, candidates=section.candidates,
+                   shortlist=section.shortlist, exclude_recent_s=section.exclude_recent_s)
 
 
 @dataclass(frozen=True, eq=False)

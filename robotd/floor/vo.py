@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from robotd.base.config import FloorDetectorConfig, VisualOdometryConfig
 from robotd.base.geometry import (compose, rigid_fit_2d, rigid_fit_2d_covariance,
                                   rigid_from_two_pairs, transform_points)
 from robotd.floor.descriptor import MODES, FloorDescriptor, decode, extract
@@ -79,14 +80,21 @@ class VoParams:
         match: the descriptor matcher's parameters (step 1).
     """
 
-    mode: int = 4
-    min_inliers: int = 8
-    ransac_threshold_m: float = 0.003
+    mode: int = FloorDetectorConfig.descriptor_mode
+    min_inliers: int = VisualOdometryConfig.min_inliers
+    ransac_threshold_m: float = VisualOdometryConfig.ransac_threshold_m
     iterations: int = 100
     seed: int = 0
     min_spread_m: float = 0.02
     min_sigma_m: float = 0.0005
     match: MatchParams = field(default_factory=MatchParams)
+
+    @classmethod
+    def from_config(cls, section: VisualOdometryConfig, descriptor_mode: int) -> VoParams:
+        """The params of a ``[visual_odometry]`` table (whose defaults these are), on
+        descriptors of ``[floor_detector] descriptor_mode`` (the keyframe's are reused)."""
+        return cls(mode=descriptor_mode, min_inliers=section.min_inliers,
+                   ransac_threshold_m=section.ransac_threshold_m)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
