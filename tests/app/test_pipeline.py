@@ -291,7 +291,7 @@ def _vo_demo(tmp_path: Path, mode: str) -> tuple[dict, Path]:
 
 
 def test_vision_only_odometry_edges_are_the_floor_motion(tmp_path: Path):
-    """With [visual_odometry] mode = "vision_only", the map's odometry links are the floor
+    """With [visual_odometry] role = "vision_only", the map's odometry links are the floor
     visual odometry's steps: the same numbers as visual odometry recomputed from the stored
     descriptors, and within 0.5 mm of the ground truth at the 95th percentile (the filter's
     own increments on this drive: 1.5 mm)."""
