@@ -47,7 +47,7 @@ class RobotConfig:
 
     wheel_radius_m: float = _f(0.035, "wheel radius", lo=0.005, hi=1.0)
     wheel_base_m: float = _f(0.23, "distance between the wheel contact points", lo=0.02, hi=5.0)
-    ticks_per_rev: float = _f(2578.33, "encoder ticks per wheel turn", lo=1.0, hi=1e7)
+    ticks_per_rev: float = _f(2578.33, "encoder ticks per wheel turn", lo=1.0, hi=1e7, unit="ticks")
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,7 @@ class BaseConfig:
     port: str = _f("/dev/kobuki", "serial port: a device path (the udev rule of systemd/ names the "
                    "Kobuki /dev/kobuki) or any pyserial URL, e.g. spy:///dev/kobuki?file=/tmp/k.txt "
                    "to log the traffic", nonempty=True)
-    baudrate: int = _f(115200, "serial baud rate", lo=1200, hi=4_000_000)
+    baudrate: int = _f(115200, "serial baud rate", lo=1200, hi=4_000_000, unit="baud")
     yaw_source: str = _f("raw_gyro", "which gyro reading feeds the filter: the Kobuki's raw gyro "
                          "(sub-payload 13, ~100 Hz, 0.00875 deg/s) or its inertial heading rate "
                          "(sub-payload 4)",
@@ -126,7 +126,7 @@ class FloorCameraConfig:
     fourcc: str = _f("YUYV", "pixel format requested from the driver", choices=("YUYV", "MJPG", "GREY"))
     width_px: int = _f(640, "image width", lo=16, hi=8192)
     height_px: int = _f(480, "image height", lo=16, hi=8192)
-    fps: float = _f(30.0, "frame rate", lo=0.1, hi=1000.0)
+    fps: float = _f(30.0, "frame rate", lo=0.1, hi=1000.0, unit="Hz")
     buffer_size: int = _f(2, "driver-side frame buffers (small = low latency; DepthAI: the host "
                           "queue's length)", lo=1, hi=32, unit="frames")
     queue_size: int = _f(8, "frames buffered between the camera thread and the pipeline (drops are "
@@ -294,7 +294,8 @@ class ForwardCameraConfig:
     fourcc: str = _f("YUYV", "pixel format requested from the driver", choices=("YUYV", "MJPG", "GREY"))
     width_px: int = _f(640, "image width", lo=16, hi=8192)
     height_px: int = _f(480, "image height", lo=16, hi=8192)
-    fps: float = _f(15.0, "frame rate (the detector takes a keyframe every few frames)", lo=0.1, hi=1000.0)
+    fps: float = _f(15.0, "frame rate (the detector takes a keyframe every few frames)", lo=0.1, hi=1000.0,
+                    unit="Hz")
     buffer_size: int = _f(2, "driver-side frame buffers (small = low latency)", lo=1, hi=32, unit="frames")
     fx_px: float = _f(525.0, "focal length x", lo=1.0, hi=1e5)
     fy_px: float = _f(525.0, "focal length y", lo=1.0, hi=1e5)
@@ -665,6 +666,9 @@ def section_doc(cls: Any) -> list[str]:
     return [" ".join(par.split()).replace("``", "`") for par in text.split("\n\n") if par.strip()]
 
 
+_NBSP = "\u00a0"  # joins a range to its unit in field_note, for commented_toml's wrapping
+
+
 def field_note(f: dataclasses.Field[Any]) -> str:
     """A key's description with its unit, range and liveness, on one line."""
     meta = f.metadata
@@ -675,7 +679,7 @@ def field_note(f: dataclasses.Field[Any]) -> str:
         note += f" (one of {', '.join(map(repr, choices))})"
     elif lo is not None or hi is not None:
         rng = f"{'' if lo is None else f'{lo:g}'}..{'' if hi is None else f'{hi:g}'}"
-        note += f" ({rng}{' ' + unit if unit else ''})"
+        note += f" ({rng}{_NBSP + unit if unit else ''})"
     elif unit:
         note += f" ({unit})"
     if meta.get("live"):
@@ -705,9 +709,10 @@ def commented_toml(cfg: Config | None = None, *, service: bool = False) -> str:
               "# `systemctl reload robotd` (SIGHUP) applies the keys marked 'reload applies it",
               "# live' at once; any other change is logged as needing a restart.", ""]
 
-    def comment(text: str) -> list[str]:
-        return textwrap.wrap(text, 88, initial_indent="# ", subsequent_indent="# ",
-                             break_on_hyphens=False, break_long_words=False)
+    def comment(text: str) -> list[str]:  # a range and its unit stay on one line
+        return [line.replace(_NBSP, " ") for line in textwrap.wrap(
+            text, 88, initial_indent="# ", subsequent_indent="# ", break_on_hyphens=False,
+            break_long_words=False)]
 
     for sf in dataclasses.fields(cfg):
         section = getattr(cfg, sf.name)
