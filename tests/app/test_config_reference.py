@@ -32,3 +32,16 @@ def test_every_key_is_listed_once_with_its_default_and_liveness():
     assert "| `distance_m` | number | m | `0.15` | 0.001 to 100 | yes |" in text
     for (old_sec, old_key), (new_sec, new_key) in RENAMED.items():
         assert f"| `[{old_sec}] {old_key}` | `[{new_sec}] {new_key}` |" in text
+
+
+def test_the_docs_name_no_old_key():
+    """After a rename the pages say the new name (the renamed table of the reference and
+    CHANGELOG.md excepted)."""
+    root = DOC.parents[1]
+    pages = [p for p in (root / "docs").rglob("*.md") if p != DOC] + [
+        root / "README.md", root / "systemd" / "README.md", root / "systemd" / "robotd.toml"]
+    for page in pages:
+        text = page.read_text()
+        for old_sec, old_key in RENAMED:
+            assert f"[{old_sec}] {old_key}" not in text, (page, old_sec, old_key)
+            assert f"[{old_sec}]` `{old_key}`" not in text, (page, old_sec, old_key)
