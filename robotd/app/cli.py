@@ -315,8 +315,10 @@ def config_reference() -> str:
            "(`robotd/base/config.py`); do not edit by hand. One TOML file "
            "(`/etc/robotd/robotd.toml` for the service; `systemd/robotd.toml` is the "
            "commented default). Unknown keys and out-of-range values are errors that name "
-           "the key. **live**: `systemctl reload robotd` (SIGHUP) applies the key at once; "
-           "the others need a restart.\n"]
+           "the key. **unit**: the unit the key's name ends in (`_m`, `_deg`, `_s`, ...). **live**: "
+           "`systemctl reload robotd` (SIGHUP) applies the key at once; the others need a "
+           "restart. `robotd config default` prints the same as a commented TOML file, and "
+           "`robotd config default --service` is `systemd/robotd.toml`.\n"]
     for section in dataclasses.fields(Config):
         cls = section.default_factory  # type: ignore[misc]
         out.append(f"## [{section.name}]\n")
