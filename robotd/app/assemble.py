@@ -106,7 +106,7 @@ def build_floor_detector(cfg: Config, store: MapStore, calib: CalibrationFile | 
     from robotd.io.calibfile import camera_model
 
     params = FloorDetectorParams.from_config(cfg.floor_detector)
-    mode = params.mode
+    mode = params.descriptor_mode
     threshold = calib.loop.for_mode(mode) if calib is not None and calib.loop is not None else None
     if threshold is None:
         log.warning("no trained loop threshold for descriptor mode %d: floor loop candidates are "
@@ -127,7 +127,7 @@ def build_visual_odometry(cfg: Config, odometry: OdometryFilter | None,
     v = cfg.visual_odometry
     params = VoParams.from_config(v, cfg.floor_detector.descriptor_mode)
     vo = FloorVisualOdometry(camera_model(calib, cfg.floor_camera), params)
-    log.info("floor visual odometry on (%s, mode %d)", v.role, params.mode)
+    log.info("floor visual odometry on (%s, mode %d)", v.role, params.descriptor_mode)
     return VisualOdometryStage(vo, odometry, v.role)
 
 

@@ -175,7 +175,7 @@ class ConfigReloader:
         stage = _stage(daemon, "floor")
         if stage is None:
             return []
-        mode = stage.detector.params.mode
+        mode = stage.detector.params.descriptor_mode
         loop = calibration.loop if calibration is not None else None
         threshold = loop.for_mode(mode) if loop is not None else None
         if threshold == stage.detector.threshold:

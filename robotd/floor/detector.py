@@ -28,20 +28,19 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class FloorDetectorParams:
-    """``mode``: descriptor mode 1-6 (paper 003) (512 B .. 16 kB per image); ``candidates``: how many
+    """``descriptor_mode``: descriptor mode 1-6 (paper 003) (512 B .. 16 kB per image); ``candidates``: how many
     candidates a query returns; ``shortlist``: keyframes scored locally per query after the
     global shortlist; ``exclude_recent_s``: keyframes younger than this are not queried."""
 
-    mode: int = FloorDetectorConfig.descriptor_mode
+    descriptor_mode: int = FloorDetectorConfig.descriptor_mode
     candidates: int = FloorDetectorConfig.candidates
     shortlist: int = FloorDetectorConfig.shortlist
     exclude_recent_s: float = FloorDetectorConfig.exclude_recent_s
 
     @classmethod
     def from_config(cls, section: FloorDetectorConfig) -> FloorDetectorParams:
-        """The params of a ``[floor_detector]`` table (whose defaults these are; ``mode``
-        is its ``descriptor_mode``)."""
-        return cls(mode=section.descriptor_mode, candidates=section.candidates,
+        """The params of a ``[floor_detector]`` table (whose defaults these are)."""
+        return cls(descriptor_mode=section.descriptor_mode, candidates=section.candidates,
                    shortlist=section.shortlist, exclude_recent_s=section.exclude_recent_s)
 
 
@@ -122,14 +121,14 @@ class FloorLoopDetector:
         """Rebuild the index from a map's stored descriptors of the same mode (a restart
         continues the same map: every stored keyframe is old to the new run). Descriptors
         that do not decode are skipped and counted."""
-        index = FloorIndex.from_store(store, params.mode)
+        index = FloorIndex.from_store(store, params.descriptor_mode)
         if len(index):
             log.info("floor index: %d keyframes loaded from the map", len(index))
         return cls(params, index, threshold, camera)
 
     def describe(self, image: np.ndarray) -> bytes:
         """The keyframe's compact descriptor (at most the mode's byte budget)."""
-        return extract(image, self.params.mode)
+        return extract(image, self.params.descriptor_mode)
 
     def query_and_add(self, keyframe_id: int, stamp_ns: int, descriptor: bytes) -> KeyframeQuery:
         """Query the map with a stored keyframe's descriptor, then add it to the index."""

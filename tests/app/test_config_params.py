@@ -25,8 +25,8 @@ def test_the_params_of_the_default_config_are_the_params_defaults():
     assert FloorDetectorParams.from_config(cfg.floor_detector) == FloorDetectorParams()
     vo = VoParams.from_config(cfg.visual_odometry, cfg.floor_detector.descriptor_mode)
     default = VoParams()
-    assert (vo.mode, vo.min_inliers, vo.ransac_threshold_m) == (
-        default.mode, default.min_inliers, default.ransac_threshold_m)
+    assert (vo.descriptor_mode, vo.min_inliers, vo.ransac_threshold_m) == (
+        default.descriptor_mode, default.min_inliers, default.ransac_threshold_m)
     assert PlanarLoopParams.from_config(cfg.forward_detector) == PlanarLoopParams()
 
 
@@ -48,7 +48,7 @@ def test_changed_sections_reach_the_other_params():
     assert FloorDetectorParams.from_config(cfg.floor_detector) == FloorDetectorParams(2, 7, 20, 3.0)
     cfg = replace(cfg, "visual_odometry", min_inliers=11, ransac_threshold_m=0.004)
     vo = VoParams.from_config(cfg.visual_odometry, 2)
-    assert (vo.mode, vo.min_inliers, vo.ransac_threshold_m) == (2, 11, 0.004)
+    assert (vo.descriptor_mode, vo.min_inliers, vo.ransac_threshold_m) == (2, 11, 0.004)
     cfg = replace(cfg, "forward_detector", sigma_bearing_deg=3.0, sigma_yaw_deg=0.5)
     loop = PlanarLoopParams.from_config(cfg.forward_detector)
     assert (loop.sigma_bearing_rad, loop.sigma_yaw_rad) == pytest.approx((math.radians(3.0), math.radians(0.5)))

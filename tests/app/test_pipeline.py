@@ -189,7 +189,7 @@ def test_every_keyframe_after_the_first_is_linked_by_odometry(tmp_path: Path):
 
 
 def _floor_stages(store: MapStore, run_id: int) -> Pipeline:
-    det = FloorLoopDetector.from_store(store, FloorDetectorParams(mode=2, exclude_recent_s=20.0))
+    det = FloorLoopDetector.from_store(store, FloorDetectorParams(descriptor_mode=2, exclude_recent_s=20.0))
     p = Pipeline()
     p.add(FloorDetectorStage(det))
     p.add(MapWriterStage(store, run_id, image_width_px=0))
@@ -310,7 +310,7 @@ def test_vision_only_odometry_edges_are_the_floor_motion(tmp_path: Path):
         links = {(lk.from_id, lk.to_id): lk for lk in store.links("odometry")}
     assert len(links) == vo["vo_steps"]
     again = FloorVisualOdometry(FloorCameraModel.from_config(Config().floor_camera),
-                                VoParams(mode=Config().floor_detector.descriptor_mode))
+                                VoParams(descriptor_mode=Config().floor_detector.descriptor_mode))
     true_kf = interpolate_poses(t_ns, truth, np.array([k.stamp_ns for k in kfs]))
     errors, same = [], 0
     again.step(kfs[0].descriptor)

@@ -99,7 +99,7 @@ def test_sighup_applies_live_keys_and_reports_restart_keys(running, tmp_path, ca
     assert keyframes.selector.distance_m == 0.1
     assert keyframes.selector.rotation_rad == pytest.approx(math.radians(20.0))
     assert floor.detector.params.shortlist == 12
-    assert floor.detector.params.mode == 4  # needs a restart: not applied
+    assert floor.detector.params.descriptor_mode == 4  # needs a restart: not applied
     assert floor.detector.threshold == 55.5
     assert graph.gate_chi2 == 9.0
     assert daemon.status_interval_s == 1.5
