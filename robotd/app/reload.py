@@ -8,8 +8,7 @@ does not read is one ERROR line, and the daemon runs on with everything it had.
 What changes live is what the running stages can take between two messages, marked
 ``live`` in the config's metadata (:func:`robotd.base.config.live_keys`, the one list: the
 configuration reference and ``robotd config default`` show it; :data:`LIVE_KEYS` says how
-each is applied, and a test keeps the two the same): the log level, the status interval, when a frame becomes a keyframe, the map
-query's sizes, the pose graph's gate and re-solve period, and the loop threshold of the
+each is applied, and a test keeps the two the same), and the loop threshold of the
 calibration file. Everything else (devices, the map file, the robot's geometry and noise
 model, the descriptor mode, the camera model, which stages exist, ...) is fixed when the
 daemon is assembled: a change there is logged as needing a restart and is not applied,
