@@ -68,3 +68,21 @@ def test_the_stage_defaults_of_the_app_are_the_config_defaults():
     assert (fw["distance_m"].default, fw["rotation_rad"].default, fw["sync_tolerance_s"].default) == (
         cfg.forward_detector.distance_m, math.radians(cfg.forward_detector.rotation_deg),
         cfg.forward_detector.sync_tolerance_s)
+
+
+def test_driver_keyword_defaults_that_are_config_keys_are_the_config_defaults():
+    """The CAN driver's keywords named like [can] and [robot] keys default to those keys'
+    defaults (``yaw`` excepted: the driver's default is no gyro, the config names the
+    shipped DBC's signal); the Kobuki's baud rate is [base]'s."""
+    from drivers.can.driver import CanBaseDriver
+    from drivers.kobuki.protocol import BAUDRATE
+
+    cfg = Config()
+    defaults = {**dataclasses.asdict(cfg.can), **dataclasses.asdict(cfg.robot)}
+    params = inspect.signature(CanBaseDriver).parameters
+    shared = [n for n, p in params.items() if n in defaults and n != "yaw"
+              and p.default is not inspect.Parameter.empty]
+    assert len(shared) >= 9, shared
+    for name in shared:
+        assert params[name].default == defaults[name], name
+    assert BAUDRATE == cfg.base.baudrate
