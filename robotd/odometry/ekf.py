@@ -52,12 +52,15 @@ The stream of messages is run through these functions by
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from robotd.base.config import OdometryConfig
 from robotd.base.geometry import wrap_angle
 from robotd.base.messages import PoseStamped
 
@@ -93,20 +96,23 @@ H_GYRO = np.zeros((1, STATE_SIZE))
 H_GYRO[0, IW] = 1.0
 H_GYRO[0, IB] = 1.0
 _EYE = np.eye(STATE_SIZE)
+_CONFIG = OdometryConfig()
 
 
 @dataclass(frozen=True, slots=True)
 class EkfParams:
-    """Noise model of the filter; all values are 1-sigma.
+    """Noise model of the filter: process noises as spectral densities (square roots of
+    the power spectral densities), measurement noises 1-sigma per reading.
 
-    The first nine fields have the names and defaults of the ``[odometry]`` table of the
-    configuration file, so ``EkfParams(**dataclasses.asdict(config.odometry))`` works.
+    The first ten fields are the keys of the ``[odometry]`` table of the configuration
+    file, defaults included (taken from :class:`~robotd.base.config.OdometryConfig`, the
+    one place they are written): :meth:`from_config` builds the params from that table.
 
-    - ``accel_noise_mps2``: white linear acceleration driving ``v``, m/s^2 per sqrt(Hz)
-      (the velocity's variance grows by ``accel_noise_mps2**2 * dt``).
-    - ``angular_accel_noise_radps2``: white angular acceleration driving ``w``,
-      rad/s^2 per sqrt(Hz).
-    - ``gyro_bias_walk_radps_sqrt_s``: gyro bias random walk, rad/s per sqrt(s).
+    - ``accel_noise_density_mps2_per_sqrt_hz``: white linear acceleration driving ``v``,
+      m/s^2 per sqrt(Hz) (the velocity's variance grows by its square times ``dt``).
+    - ``angular_accel_noise_density_radps2_per_sqrt_hz``: white angular acceleration
+      driving ``w``, rad/s^2 per sqrt(Hz).
+    - ``gyro_bias_walk_radps_per_sqrt_s``: gyro bias random walk, rad/s per sqrt(s).
     - ``wheel_v_noise_mps`` + ``wheel_v_noise_frac * |v|``: noise of the speed from
       one tick delta, m/s (tick quantisation, then scale error and slip growing with speed).
     - ``wheel_w_noise_radps`` + ``wheel_w_noise_frac * |w|`` + ``wheel_w_noise_per_mps *
@@ -133,22 +139,27 @@ class EkfParams:
       Moving, the optimal gain is kept.
     """
 
-    accel_noise_mps2: float = 0.5
-    angular_accel_noise_radps2: float = 0.3
-    gyro_bias_walk_radps_sqrt_s: float = 2e-5
-    wheel_v_noise_mps: float = 0.01
-    wheel_v_noise_frac: float = 0.02
-    wheel_w_noise_radps: float = 0.05
-    wheel_w_noise_frac: float = 0.05
-    gyro_noise_radps: float = 0.003
-    initial_gyro_bias_sigma_radps: float = 0.01
-    wheel_w_noise_per_mps: float = 0.5
+    accel_noise_density_mps2_per_sqrt_hz: float = _CONFIG.accel_noise_density_mps2_per_sqrt_hz
+    angular_accel_noise_density_radps2_per_sqrt_hz: float = _CONFIG.angular_accel_noise_density_radps2_per_sqrt_hz
+    gyro_bias_walk_radps_per_sqrt_s: float = _CONFIG.gyro_bias_walk_radps_per_sqrt_s
+    wheel_v_noise_mps: float = _CONFIG.wheel_v_noise_mps
+    wheel_v_noise_frac: float = _CONFIG.wheel_v_noise_frac
+    wheel_w_noise_radps: float = _CONFIG.wheel_w_noise_radps
+    wheel_w_noise_frac: float = _CONFIG.wheel_w_noise_frac
+    wheel_w_noise_per_mps: float = _CONFIG.wheel_w_noise_per_mps
+    gyro_noise_radps: float = _CONFIG.gyro_noise_radps
+    initial_gyro_bias_sigma_radps: float = _CONFIG.initial_gyro_bias_sigma_radps
     stationary_noise_mps: float = 1e-3
     stationary_noise_radps: float = 1e-3
     initial_speed_sigma_mps: float = 0.5
     initial_yaw_rate_sigma_radps: float = 1.0
     initial_pose_sigma: float = 1e-5
     smooth_pose: bool = True
+
+    @classmethod
+    def from_config(cls, section: OdometryConfig, **others: Any) -> EkfParams:
+        """The params of an ``[odometry]`` table; ``others``: the fields it does not hold."""
+        return cls(**{f.name: getattr(section, f.name) for f in dataclasses.fields(section)}, **others)
 
     def __post_init__(self) -> None:
         for name in self.__slots__:
@@ -263,8 +274,8 @@ def predict_with_jacobian(state: EkfState, t_ns: int,
     jac[IYAW, IW] = dt
 
     q = np.zeros((STATE_SIZE, STATE_SIZE))
-    qa = params.angular_accel_noise_radps2 ** 2
-    ql = params.accel_noise_mps2 ** 2
+    qa = params.angular_accel_noise_density_radps2_per_sqrt_hz ** 2
+    ql = params.accel_noise_density_mps2_per_sqrt_hz ** 2
     d2, d3 = dt * dt / 2.0, dt ** 3 / 3.0
     q[IYAW, IYAW] = qa * d3
     q[IYAW, IW] = q[IW, IYAW] = qa * d2
@@ -276,7 +287,7 @@ def predict_with_jacobian(state: EkfState, t_ns: int,
     q[IX, IV] = q[IV, IX] = ql * d2 * ux
     q[IY, IV] = q[IV, IY] = ql * d2 * uy
     q[IV, IV] = ql * dt
-    q[IB, IB] = params.gyro_bias_walk_radps_sqrt_s ** 2 * dt
+    q[IB, IB] = params.gyro_bias_walk_radps_per_sqrt_s ** 2 * dt
 
     cov = jac @ state.cov @ jac.T + q
     return EkfState(int(t_ns), mean, 0.5 * (cov + cov.T)), jac
