@@ -65,7 +65,7 @@ class _SensorCollector:
 def _unwrapped_angles(ticks: np.ndarray, ticks_per_rev: float) -> np.ndarray:
     """Cumulative wheel angles ``(N, 2)`` rad from raw 16-bit counters ``(N, 2)``."""
     d = np.diff(ticks.astype(np.int64), axis=0)
-    d = (d + 32768) % 65536 - 32768
+    d = np.mod(d + 32768, 65536) - 32768
     return np.concatenate([np.zeros((1, 2)), np.cumsum(d, axis=0)]) * (2.0 * math.pi / ticks_per_rev)
 
 
@@ -232,9 +232,9 @@ def run_odometry(args: Any) -> int:
             check_output_file(path, force=True, inputs=[args.recording, args.calibration],
                               option=option)
     calib = read_calibration(args.calibration)
-    if calib.loop is None or calib.loop.for_mode(cfg.floor_detector.mode) is None:
+    if calib.loop is None or calib.loop.for_mode(cfg.floor_detector.descriptor_mode) is None:
         raise CalibrationError(f"{args.calibration}: no loop threshold for descriptor mode "
-                               f"{cfg.floor_detector.mode} (run `robotd calibrate loop-curve` first)")
+                               f"{cfg.floor_detector.descriptor_mode} (run `robotd calibrate loop-curve` first)")
     nominal_r, nominal_b = cfg.robot.wheel_radius_m, cfg.robot.wheel_base_m
     out = sys.stdout
     model = None
