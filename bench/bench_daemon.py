@@ -59,7 +59,6 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # this checkout's robotd first
-import robotd  # noqa: E402,F401 - before numpy: one BLAS thread, as the daemon runs (robotd/__init__.py)
 import numpy as np  # noqa: E402
 
 try:
@@ -553,6 +552,9 @@ def comparison(paths: list[Path]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--recording", type=Path, default=None, help="replay this MCAP instead of the cached drive")
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "robotd-bench",

@@ -429,6 +429,9 @@ def injection_table(results: list[dict[str, Any]]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--full", action="store_true", help="the office route (~110 m) with both odometries (~2 h)")
     ap.add_argument("--route", default=None, help="route (default square; office with --full)")

@@ -168,6 +168,9 @@ def evaluate_seed(stream: KobukiFeedback, yaw_source: str) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--route", default="office", choices=sorted(ROUTES))
     ap.add_argument("--seeds", type=int, default=5, help="number of seeds (0, 1, ...)")

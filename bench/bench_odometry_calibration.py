@@ -163,6 +163,9 @@ def write_markdown(path: Path, rows: list[dict[str, Any]], route: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--calibration", default=None, metavar="PATTERN",
                     help="calibration file of each seed's base, with {seed} in it")

@@ -345,7 +345,6 @@ def config_reference() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     from robotd.app.signals import Interrupted, StartupSignals
-
     # From the first line: building the parser imports the simulator and the calibration
     # tools, which takes a second on a loaded robot; a Ctrl-C then is held, not a traceback.
     startup = StartupSignals().__enter__()
@@ -360,6 +359,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None, startup: Any) -> int:
     from robotd.app.signals import Interrupted
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # the process's setting, made here rather than on import (robotd.base.blas)
 
     parser = build_parser()
     args = parser.parse_args(argv)
