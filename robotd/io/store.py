@@ -79,6 +79,7 @@ import numpy as np
 import robotd
 from robotd.base.clock import Clock, MonotonicClock
 from robotd.base.errors import MapStoreError
+from robotd.base.messages import LoopFate
 from robotd.io.mapfile import MIGRATIONS, SCHEMA_VERSION, inspect_file, migrate
 from robotd.io.maplock import acquire_map_lock, release_map_lock
 
@@ -94,9 +95,10 @@ _MATRIX_DTYPE = np.dtype("<f8")
 _MATRIX_BYTES = 9 * _MATRIX_DTYPE.itemsize
 _LINK_KINDS = ("odometry", "loop")
 _PAGE_ROWS = 256  # rows fetched per query when iterating (see MapStore.keyframes)
-LOOP_CANDIDATE_FATES = (
-    "accepted", "below_threshold", "failed_gate", "no_transform", "down_weighted")
-"""The allowed ``loop_candidates.fate`` values (the table's CHECK constraint)."""
+LOOP_CANDIDATE_FATES: tuple[LoopFate, ...] = tuple(LoopFate)
+"""The allowed ``loop_candidates.fate`` values (the table's CHECK constraint, spelled out
+in :mod:`robotd.io.mapfile`)."""
+_FATE_TEXTS = ", ".join(LOOP_CANDIDATE_FATES)
 
 UNCLEAN_END_NOTE = "did not end cleanly"
 """Begins the note :meth:`MapStore.mark_unfinished_runs` adds to a run that never ended."""
@@ -169,8 +171,14 @@ class LoopCandidateRecord:
     query_id: int
     candidate_id: int
     score: float
-    fate: str
+    fate: LoopFate
     detail: str
+
+
+def _candidate_record(row: tuple[int, int, int, float, str, str]) -> LoopCandidateRecord:
+    """A ``loop_candidates`` row ``(id, query_id, candidate_id, score, fate, detail)``."""
+    i, query_id, candidate_id, score, fate, detail = row
+    return LoopCandidateRecord(i, query_id, candidate_id, score, LoopFate(fate), detail)
 
 
 def _matrix_to_blob(matrix: np.ndarray | Sequence[Sequence[float]], what: str) -> bytes:
@@ -841,31 +849,31 @@ class MapStore:
         )
         return np.array(rows[0], dtype=np.float64) if rows else None
 
-    def add_loop_candidates(self, rows: Sequence[tuple[int, int, float, str, str]]) -> None:
+    def add_loop_candidates(self, rows: Sequence[tuple[int, int, float, LoopFate | str, str]]) -> None:
         """Record loop candidates ``(query_id, candidate_id, score, fate, detail)`` in one
         transaction. ValueError (nothing written) for a fate not in
         :data:`LOOP_CANDIDATE_FATES`, a non-finite score or an unknown keyframe id."""
         values = []
         for query_id, candidate_id, score, fate, detail in rows:  # ValueError if not 5
             if fate not in LOOP_CANDIDATE_FATES:
-                raise ValueError(f"fate must be one of {LOOP_CANDIDATE_FATES}, got {fate!r}")
+                raise ValueError(f"fate must be one of {_FATE_TEXTS}, got {fate!r}")
             if not math.isfinite(float(score)):
                 raise ValueError(f"score must be finite, got {score}")
-            values.append((int(query_id), int(candidate_id), float(score), fate, str(detail)))
+            values.append((int(query_id), int(candidate_id), float(score), str(fate), str(detail)))
         with self._write() as conn:
             conn.executemany(
                 "INSERT INTO loop_candidates(query_id, candidate_id, score, fate, detail)"
                 " VALUES (?, ?, ?, ?, ?)", values)
 
-    def loop_candidates(self, fate: str | None = None) -> list[LoopCandidateRecord]:
+    def loop_candidates(self, fate: LoopFate | str | None = None) -> list[LoopCandidateRecord]:
         """Every loop candidate (or those of one fate), in the order recorded."""
         sql = "SELECT id, query_id, candidate_id, score, fate, detail FROM loop_candidates"
         if fate is None:
-            return [LoopCandidateRecord(*r) for r in self._read(sql + " ORDER BY id")]
+            return [_candidate_record(r) for r in self._read(sql + " ORDER BY id")]
         if fate not in LOOP_CANDIDATE_FATES:
-            raise ValueError(f"fate must be one of {LOOP_CANDIDATE_FATES}, got {fate!r}")
-        rows = self._read(sql + " WHERE fate = ? ORDER BY id", (fate,))
-        return [LoopCandidateRecord(*r) for r in rows]
+            raise ValueError(f"fate must be one of {_FATE_TEXTS}, got {fate!r}")
+        rows = self._read(sql + " WHERE fate = ? ORDER BY id", (str(fate),))
+        return [_candidate_record(r) for r in rows]
 
 
     # -- the forward camera's memory (version 4) -----------------------------------
