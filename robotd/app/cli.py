@@ -208,7 +208,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config) if args.config else Config()
     if args.virtual:
-        from robotd.app.demo import exit_status, print_summary, run_demo
+        from robotd.app.demo import exit_status, run_demo
+        from robotd.app.demo_report import print_summary
 
         out = args.output.with_name(args.output.stem + "-demo")
         s = run_demo(cfg, out=out, route=args.route, floor_files=tuple(str(f) for f in args.floor or ()),
