@@ -99,26 +99,31 @@ def run_seed(motion: Any, seed: int) -> dict[str, Any]:
 
 
 def run_e2e(route: str, duration_s: float, seed: int) -> dict[str, Any]:
-    """The whole daemon on the virtual robot, three ways."""
+    """The whole daemon on the virtual robot, three ways; the odometry judged here from the
+    demo's trajectory files against the route's truth (:mod:`robotd.evaluation.metrics`)."""
     from robotd.app.demo import run_demo, shipped_calibration
     from robotd.base.config import Config, replace
+    from robotd.io.trajectory import read_tum
 
     cfg = Config()
     cal = shipped_calibration()
     if cal is not None:
         cfg = replace(cfg, "calibration", path=str(cal))
+    motion = plan_motion(build_route(route), MotionLimits())
     out = {}
     for name, kw in (("kobuki", {}), ("can", {"base": "can"}),
                      ("can + faults", {"base": "can", "can_faults": True})):
         with tempfile.TemporaryDirectory() as tmp:
             s = run_demo(cfg, out=Path(tmp), route=route, duration_s=duration_s, seed=seed,
                          plot=False, **kw)
-        out[name] = {"ok": s["ok"], "wall_time_s": s["wall_time_s"], "distance_m": s["distance_m"],
-                     "odometry_samples": s["odometry_samples"], "keyframes": s["keyframes"],
-                     "fused_end_m": s["fused"]["end_position_error_m"],
-                     "fused_ape_origin_m": s["fused"]["ape_origin_rmse_m"],
-                     "wheel_end_m": s["wheel_only"]["end_position_error_m"],
-                     "wheel_ape_origin_m": s["wheel_only"]["ape_origin_rmse_m"],
+            stamps, fused = read_tum(Path(tmp) / "fused.tum")
+            _, wheel = read_tum(Path(tmp) / "wheel.tum")
+        truth = motion.pose_at(stamps / 1e9)
+        ef, ew = odometry_errors(truth, fused), odometry_errors(truth, wheel)
+        out[name] = {"ok": s["ok"], "wall_time_s": s["wall_time_s"], "distance_m": ef.distance_m,
+                     "odometry_samples": len(stamps), "keyframes": s["keyframes"],
+                     "fused_end_m": ef.end_position_error_m, "fused_ape_origin_m": ef.ape_origin_rmse_m,
+                     "wheel_end_m": ew.end_position_error_m, "wheel_ape_origin_m": ew.ape_origin_rmse_m,
                      "can": s.get("can")}
     return out
 
