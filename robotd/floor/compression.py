@@ -38,7 +38,7 @@ _TRANSFORM = _block_transform()
 def transform(raw: np.ndarray) -> np.ndarray:
     """Step 4a: ``(n, 128)`` raw descriptors -> ``(n, 128)`` transformed elements
     (cell-major, 8 per cell)."""
-    return raw @ _TRANSFORM.T
+    return np.asarray(raw @ _TRANSFORM.T)
 
 
 def ternarise(raw: np.ndarray, learned: Learned, length: int) -> np.ndarray:
@@ -46,7 +46,7 @@ def ternarise(raw: np.ndarray, learned: Learned, length: int) -> np.ndarray:
     ``(n, length) int8`` trits."""
     o = learned.order[:length]
     e = raw @ _TRANSFORM[o].T
-    return (e > learned.tern_hi[o]).view(np.int8) - (e < learned.tern_lo[o]).view(np.int8)
+    return np.asarray((e > learned.tern_hi[o]).view(np.int8) - (e < learned.tern_lo[o]).view(np.int8))
 
 
 def global_vector(raw: np.ndarray, learned: Learned) -> np.ndarray:
@@ -61,7 +61,7 @@ def global_vector(raw: np.ndarray, learned: Learned) -> np.ndarray:
     out = onehot.T @ z - onehot.sum(0)[:, None] * cen  # residual sums per centroid
     out = np.sign(out) * np.sqrt(np.abs(out))
     out /= np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
-    return out.ravel()
+    return np.asarray(out.ravel())
 
 
 def hadamard_bits(vec: np.ndarray, signs: np.ndarray, bits: int) -> np.ndarray:

@@ -123,11 +123,11 @@ class FloorDescriptor:
 
     def ternary(self) -> np.ndarray:
         """The local descriptors as ``(N, length) float32`` in {-1, 0, +1}."""
-        return unpack_planes(self.local_pos, self.length) - unpack_planes(self.local_neg, self.length)
+        return np.asarray(unpack_planes(self.local_pos, self.length) - unpack_planes(self.local_neg, self.length))
 
     def nonzero_trits(self) -> np.ndarray:
         """``(N,) float32``: the non-zero elements of each local descriptor (its squared norm)."""
-        return np.bitwise_count(self.local_pos | self.local_neg).sum(axis=1, dtype=np.float32)
+        return np.asarray(np.bitwise_count(self.local_pos | self.local_neg).sum(axis=1, dtype=np.float32))
 
 
 def extract(image: np.ndarray, mode: int, params: ExtractParams | None = None) -> bytes:
@@ -203,12 +203,12 @@ def decode(data: bytes) -> FloorDescriptor:
         raise _fail("inconsistent header fields")
     sections = [spec.global_bits // 8, -(-n * k // 8), -(-n * ANGLE_BITS // 8), -(-n * spec.length // 5)]
     pos = HEADER.size
+    if pos + sum(sections) > len(data):
+        raise _fail("truncated body")
     parts = []
     for s in sections:
-        parts.append(np.frombuffer(data, np.uint8, s, pos) if pos + s <= len(data) else None)
+        parts.append(np.frombuffer(data, np.uint8, s, pos))
         pos += s
-    if any(p is None for p in parts):
-        raise _fail("truncated body")
     gbits, rem_b, ang_b, trit_b = parts
     unary = np.unpackbits(np.frombuffer(data, np.uint8, offset=pos))
     zeros = np.flatnonzero(unary == 0)
