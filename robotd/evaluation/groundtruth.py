@@ -118,7 +118,7 @@ def floor_evaluation(camera: FloorCameraModel, truth: GroundTruth, obs: RunObser
 
 
 def forward_evaluation(truth: GroundTruth, mount: np.ndarray, obs: RunObservations,
-                       counters: Mapping[str, Any]) -> Summary:
+                       counters: Mapping[str, float]) -> Summary:
     """The forward loops judged by the truth: each verified loop's heading change and bearing
     against the true camera poses (``mount (3,)``: the forward camera on the robot) of its
     two keyframes, and what the pose graph did with it."""
@@ -154,7 +154,7 @@ def forward_evaluation(truth: GroundTruth, mount: np.ndarray, obs: RunObservatio
 
 def relocalisation_evaluation(truth: GroundTruth, kidnap: tuple[float, float, float], obs: RunObservations,
                               relocalisations: Sequence[Mapping[str, Any]],
-                              counters: Mapping[str, Any]) -> Summary:
+                              counters: Mapping[str, float]) -> Summary:
     """The kidnapping ``(at_s, to_s, carry_s)`` judged by the truth: when the robot was put
     down, how long and how far it drove until the daemon relocalised (the daemon's own
     figures, from its odometry, in ``relocalisations``, and the truth's distance), and the
