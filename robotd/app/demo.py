@@ -274,7 +274,7 @@ def _run_demo(base_cfg: Config, robot: VirtualRobot, clock: ManualClock, cam_mod
               floor_pattern: str | None) -> Summary:
     """The demo once its arguments are checked, its folder is ready and its map locked."""
     from robotd.app.demo_summary import summarise
-    from robotd.base.config import replace
+    from robotd.base.config import replace, with_virtual_floor_camera
     from robotd.base.files import write_text_replacing
     from robotd.evaluation.observations import RunObservations
     from robotd.io.trajectory import TumRecorder
@@ -287,7 +287,7 @@ def _run_demo(base_cfg: Config, robot: VirtualRobot, clock: ManualClock, cam_mod
                       **can_config_changes(can_convention))
     else:
         cfg = replace(base_cfg, "base", driver="kobuki", port=robot.port)
-    cfg = replace(cfg, "floor_camera", source="virtual")
+    cfg = with_virtual_floor_camera(cfg)
     cfg = replace(cfg, "map", path=str(map_path))
     tum = TumRecorder(out, _nominal_drive_if_calibrated(cfg, calibration))
     obs = RunObservations()

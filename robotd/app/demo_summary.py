@@ -97,15 +97,15 @@ def summarise(cfg: Config, cam_model: FloorCameraModel, robot: VirtualRobot, obs
                           "faults_injected": robot.base.frames.injected,
                           "odometry_degraded_episodes": c.get("odometry_degraded_episodes", 0)}
     if cfg.visual_odometry.enabled:
-        summary["visual_odometry"] = {"mode": cfg.visual_odometry.mode,
+        summary["visual_odometry"] = {"mode": cfg.visual_odometry.role,
                                       **{k: v for k, v in c.items() if k.startswith("vo_")}}
     fd = cfg.floor_detector
     if fd.enabled and obs.keyframe_ids:
-        floor = floor_evaluation(cam_model, robot.motion, obs, exclude_recent_s=fd.exclude_recent_s, mode=fd.mode)
+        floor = floor_evaluation(cam_model, robot.motion, obs, exclude_recent_s=fd.exclude_recent_s, mode=fd.descriptor_mode)
         summary["floor_detector"] = {**floor.summary, "threshold": live.floor_threshold,
                                      "above_threshold": c.get("loop_candidates_above_threshold", 0)}
         if plot:
-            plot_floor_similarity(out, floor, obs.stamps_ns, fd.exclude_recent_s, fd.mode)
+            plot_floor_similarity(out, floor, obs.stamps_ns, fd.exclude_recent_s, fd.descriptor_mode)
     graph = _graph_summary(out / "map.sqlite", robot, c, obs)
     if graph is not None:
         summary["pose_graph"] = graph[0]

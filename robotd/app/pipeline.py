@@ -407,7 +407,7 @@ class FloorDetectorStage(Publisher):
             self._publish(MapMatch(loop.from_id, loop.score, loop.delta, loop.information))
 
     def describe(self, kf: Keyframe) -> None:
-        kf.descriptors["floor"] = (self.detector.params.mode, self.detector.describe(kf.frame.image))
+        kf.descriptors["floor"] = (self.detector.params.descriptor_mode, self.detector.describe(kf.frame.image))
 
     def query(self, msg: KeyframeStored) -> None:
         kf = msg.keyframe
@@ -479,7 +479,7 @@ class VisualOdometryStage:
 
     def on_keyframe(self, kf: Keyframe) -> None:
         desc = kf.descriptors.get("floor")
-        result = self.vo.step(desc[1] if desc is not None and desc[0] == self.vo.params.mode
+        result = self.vo.step(desc[1] if desc is not None and desc[0] == self.vo.params.descriptor_mode
                               else kf.frame.image)
         first = self._prev_stamp_ns is None
         if not first:
