@@ -44,6 +44,7 @@ from robotd.base.messages import (
     KeyframeStored,
     Link,
     LoopCandidate,
+    LoopFate,
     MapMatch,
     OdometryUpdate,
     PoseStamped,
@@ -423,10 +424,10 @@ class FloorDetectorStage(Publisher):
             if threshold is None:
                 continue  # untrained: nothing is declared, nothing to record
             if score < threshold:
-                self._publish(CandidateFate(kf.keyframe_id, c.keyframe_id, score, "below_threshold",
+                self._publish(CandidateFate(kf.keyframe_id, c.keyframe_id, score, LoopFate.BELOW_THRESHOLD,
                                             f"score {score:.2f} < {threshold:.2f}"))
             elif c.keyframe_id not in declared:
-                self._publish(CandidateFate(kf.keyframe_id, c.keyframe_id, score, "no_transform",
+                self._publish(CandidateFate(kf.keyframe_id, c.keyframe_id, score, LoopFate.NO_TRANSFORM,
                                             "fewer than 3 inliers map onto the floor"))
         for loop in result.loops:
             self.loops += 1
@@ -538,7 +539,7 @@ class LoopsUngated(Publisher):
         return {LoopCandidate: self.on_candidate}
 
     def on_candidate(self, c: LoopCandidate) -> None:
-        self._publish(CandidateFate(c.to_id, c.from_id, c.score, "accepted", "no pose graph: not gated"))
+        self._publish(CandidateFate(c.to_id, c.from_id, c.score, LoopFate.ACCEPTED, "no pose graph: not gated"))
         self._publish(Link("loop", c.from_id, c.to_id, c.delta_xyyaw, c.information))
 
 
