@@ -139,10 +139,12 @@ def _idl_type_locked(full_name: str, distro: str | None = None) -> Any:
     fields: dict[str, Any] = {}
     for f in ros2msg.parse_definition(full_name, ros2msg.definitions(distro)[full_name]):
         ftype = prim[f.type] if f.type in prim else _idl_type_locked(f.type, distro)
+        # cyclonedds' IDL array and sequence are subscripted at run time (__class_getitem__
+        # builds the IDL type); their annotations do not say so.
         if f.array == "fixed":
-            ftype = t.array[ftype, f.length]
+            ftype = t.array[ftype, f.length]  # type: ignore[misc]
         elif f.array == "sequence":
-            ftype = t.sequence[ftype]
+            ftype = t.sequence[ftype]  # type: ignore[misc]
         fields[f.name] = ftype
     pkg, _, name = full_name.split("/")
     cls = make_idl_struct(f"{pkg}_{name}_" + (f"{distro}_" if distro else ""), ros2msg.dds_type_name(full_name),

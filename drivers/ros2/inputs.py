@@ -253,13 +253,14 @@ def image_to_grey(m: dict[str, Any]) -> np.ndarray:
         return (img16 >> 8).astype(np.uint8)
     if enc not in _ENCODINGS:
         raise ValueError(f"image encoding {enc!r} is not read (mono8, mono16, bgr8, rgb8, bgra8, rgba8)")
-    channels = {None: 1}.get(_ENCODINGS[enc], 4 if enc in ("bgra8", "rgba8") else 3)
+    conversion = _ENCODINGS[enc]
+    channels = 1 if conversion is None else 4 if enc in ("bgra8", "rgba8") else 3
     if len(data) < h * step or step < channels * w:
         raise ValueError(f"{enc} image {w}x{h} (step {step}): {len(data)} bytes")
     img = data[:h * step].reshape(h, step)[:, :channels * w]
-    if channels == 1:
+    if conversion is None:
         return img.copy()
-    return cv2.cvtColor(img.reshape(h, w, channels), _ENCODINGS[enc])
+    return cv2.cvtColor(img.reshape(h, w, channels), conversion)
 
 
 class Ros2Camera(_Ros2Source):

@@ -72,7 +72,8 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None)
     s = params.detect_sigma_px
     g1 = cv2.GaussianBlur(x, (0, 0), s)
     d = g1 - cv2.GaussianBlur(g1, (0, 0), s * math.sqrt(params.dog_ratio**2 - 1.0))
-    ext = (d == cv2.dilate(d, None)) | (d == cv2.erode(d, None))
+    square = np.ones((3, 3), np.uint8)  # OpenCV's default kernel (None): the 8-neighbourhood
+    ext = (d == cv2.dilate(d, square)) | (d == cv2.erode(d, square))
     ext &= np.abs(d) > params.min_contrast
     ext[:border], ext[-border:], ext[:, :border], ext[:, -border:] = False, False, False, False
     ys, xs = np.nonzero(ext)
