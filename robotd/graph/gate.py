@@ -82,6 +82,11 @@ DOWN_WEIGHTED = 0.5  # a loop whose final weight is under this counts as down-we
 Emit = Callable[[CandidateFate | Link], None]
 
 
+def _given(edge: tuple[np.ndarray, np.ndarray]) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
+    """``edge`` as the gate takes a candidate's edge (a function giving it)."""
+    return lambda: edge
+
+
 class GatedGraph:
     """The gate, relocalisation and mapped ground over one :class:`IncrementalGraph` (see
     the module notes). ``emit`` receives every :class:`CandidateFate` and loop
@@ -372,8 +377,7 @@ class GatedGraph:
             for p, _why in decision.dropped:
                 if p.old_id not in self.graph.graph:
                     self.graph.add_fixed(p.old_id, p.old_pose)
-                self._gate_and_add(p.old_id, p.query_id, p.score,
-                                   lambda p=p: (p.delta, p.information), "floor")
+                self._gate_and_add(p.old_id, p.query_id, p.score, _given((p.delta, p.information)), "floor")
         else:
             for p, why in decision.dropped:
                 self._refuse(p.query_id, p.old_id, p.score, why)
@@ -392,8 +396,10 @@ class GatedGraph:
         for m in d.members:
             if m.old_id not in self.graph.graph:
                 self.graph.add_fixed(m.old_id, m.old_pose)
+        assert d.transform is not None  # relocalised
+        transform = d.transform
         t0 = time.perf_counter()
-        self.graph.attach(ids, d.transform, [(m.old_id, m.query_id, m.delta, m.information) for m in d.members])
+        self.graph.attach(ids, transform, [(m.old_id, m.query_id, m.delta, m.information) for m in d.members])
         self.update_ms.append((time.perf_counter() - t0) * 1e3)
         self._in_map.add(seg)
         for m in d.members:
@@ -417,7 +423,7 @@ class GatedGraph:
             self._joined_map(self._run_id)
         log.info("%s (%s; keyframes %s; the lost frame is at x %.2f m, y %.2f m, yaw %.1f deg in the map)",
                  self._reloc_text, d.detail, ", ".join(f"{m.query_id}->{m.old_id}" for m in d.members),
-                 d.transform[0], d.transform[1], math.degrees(d.transform[2]))
+                 transform[0], transform[1], math.degrees(transform[2]))
 
     def status_fragment(self) -> str:
         """Where the robot stands with the map, for the STATUS line ("" when it simply
