@@ -43,7 +43,8 @@ class Stage(Protocol):
     ``name`` identifies it (counters, logs); :meth:`subscriptions` maps each message type
     it consumes to its handler. Declared, when the stage publishes or may wait for nothing:
     ``produces`` (the message types it publishes) and ``optional_inputs`` (subscribed types
-    it can do without). Optional methods, called when present: ``attach(pipeline)`` (once,
+    it can do without), ``precedes`` (names of stages that must be registered after it,
+    where both subscribe to one type and the order matters). Optional methods, called when present: ``attach(pipeline)`` (once,
     at registration: the stage keeps the pipeline to publish to), ``poll() -> int`` (work
     that waits on something other than a new message, e.g. frames waiting for odometry;
     returns how many items it handled), ``finish() -> int`` (end of input) and
@@ -108,14 +109,25 @@ class Pipeline:
                 out[s.name] = missing
         return out
 
+    def misordered(self) -> list[tuple[str, str]]:
+        """``(stage, other)`` for each stage registered after one it must precede: the one
+        order that types do not give, between subscribers of the same message (a stage's
+        ``precedes``: the pose graph must hold a stored keyframe before the floor and forward
+        stages, subscribers of the same ``KeyframeStored``, publish its loop candidates)."""
+        names = list(self._stages)
+        return [(s.name, other) for s in self._stages.values() for other in getattr(s, "precedes", ())
+                if other in self._stages and names.index(other) < names.index(s.name)]
+
     def check(self) -> None:
         """Raise ValueError naming every stage that reads something no source or stage
-        produces (:meth:`missing_inputs`)."""
+        produces (:meth:`missing_inputs`) or is registered after a stage it must precede
+        (:meth:`misordered`)."""
         missing = self.missing_inputs()
-        if missing:
-            raise ValueError("pipeline: " + "; ".join(
-                f"stage {name!r} reads {', '.join(t.__name__ for t in types)}, which nothing produces"
-                for name, types in missing.items()))
+        problems = [f"stage {name!r} reads {', '.join(t.__name__ for t in types)}, which nothing produces"
+                    for name, types in missing.items()]
+        problems += [f"stage {a!r} must be registered before {b!r}" for a, b in self.misordered()]
+        if problems:
+            raise ValueError("pipeline: " + "; ".join(problems))
 
     def mermaid(self) -> str:
         """The data flow as a Mermaid flowchart, from the registrations: an edge from each

@@ -95,3 +95,20 @@ def test_a_stored_keyframe_is_a_new_message_and_its_inputs_stay_as_they_were(tmp
         assert stored.frame is kf.frame and stored.descriptor is None and stored.visual_pose is None
         with pytest.raises(AttributeError):
             kf.odometry_edge = None  # type: ignore[misc]
+
+
+def test_the_pose_graph_registered_after_the_floor_stage_is_refused(tmp_path: Path):
+    """Both subscribe to KeyframeStored: the graph must hold the keyframe before the floor
+    stage publishes its loop candidates, the one order the types do not give."""
+    from robotd.app.stages.floor import FloorDetectorStage
+    from robotd.app.stages.pose_graph import PoseGraphStage
+    from robotd.floor.detector import FloorDetectorParams, FloorLoopDetector
+    from robotd.graph.incremental import IncrementalGraph
+
+    with MapStore.open(tmp_path / "map.sqlite") as store:
+        p = Pipeline()
+        p.add(FloorDetectorStage(FloorLoopDetector.from_store(store, FloorDetectorParams(mode=2))))
+        p.add(PoseGraphStage(IncrementalGraph(), store))
+        assert p.misordered() == [("graph", "floor")]
+        with pytest.raises(ValueError, match="stage 'graph' must be registered before 'floor'"):
+            p.check()

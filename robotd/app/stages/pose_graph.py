@@ -40,13 +40,15 @@ log = logging.getLogger(__name__)
 
 
 class PoseGraphStage(Publisher):
-    """The live pose graph (see the module notes). Register it before ``floor`` (it must
-    hold a keyframe before that keyframe's loop candidates arrive, both being subscribers
-    of :class:`KeyframeStored`)."""
+    """The live pose graph (see the module notes). Registered before ``floor`` and
+    ``forward`` (``precedes``, checked by :meth:`robotd.app.pipeline.Pipeline.check`): it
+    must hold a keyframe before that keyframe's loop candidates arrive, all three being
+    subscribers of :class:`KeyframeStored`."""
 
     name = "graph"
     produces = (CandidateFate, Link)
     optional_inputs = (LoopCandidate, ForwardLoop, MapMatch, WheelDrop)
+    precedes = ("floor", "forward")  # they publish a stored keyframe's loops: it must be in the graph
 
     def __init__(self, graph: IncrementalGraph, store: MapStore, *, gate_chi2: float = GATE_CHI2_3DOF_999,
                  save_every: int = 0, forward_mount: np.ndarray | None = None,
