@@ -32,7 +32,7 @@ What it is not: every lap shows the daemon the same images (one recording), so i
 nothing about detection quality.
 
 Run: ``.venv/bin/python bench/bench_soak.py`` (100,000 frames, keyframes every 0.2 m;
-``--full``: 300,000 frames at the daemon's own 0.05 m spacing), ``--frames N``,
+``--full``: 300,000 frames at the daemon's own keyframe spacing, ``[keyframes] distance_m``), ``--frames N``,
 ``--keyframe-distance M``, ``--work DIR`` (keeps the lap recording for the next run).
 """
 
@@ -56,6 +56,7 @@ except ImportError:  # run as a script: bench/ is on sys.path
     from common import machine_info, print_table, write_json
 
 from robotd.base.clock import ManualClock
+from robotd.base.config import KeyframeConfig
 from robotd.base.messages import Frame, KeyframeStored, Link, WheelTicks, YawRate
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "soak.json"
@@ -358,7 +359,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--keyframe-distance", type=float, default=None, metavar="M",
                    help="[keyframes] distance_m of the soak (default 0.2)")
     p.add_argument("--full", action="store_true",
-                   help="300000 frames at the daemon's default keyframe spacing (0.05 m)")
+                   help="300000 frames at the daemon's default keyframe spacing ([keyframes] distance_m)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--work", type=Path, default=None, help="folder for the lap recording and map")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
@@ -367,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
                         "the map and the graph grow with the distance driven")
     args = p.parse_args(argv)
     frames = args.frames or (300_000 if args.full else 100_000)
-    distance = args.keyframe_distance or (0.05 if args.full else 0.2)
+    distance = args.keyframe_distance or (KeyframeConfig().distance_m if args.full else 0.2)
     tmp = None
     if args.work is None:
         tmp = tempfile.TemporaryDirectory(prefix="robotd-soak-")

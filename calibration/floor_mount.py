@@ -330,12 +330,12 @@ def parse_board_pose(text: str) -> tuple[float, float, float]:
     """``"0.30,-0.10,90"`` -> ``(0.30, -0.10, 90.0)``: board origin x, y (metres), yaw (degrees)."""
     parts = [p.strip() for p in text.split(",")]
     try:
-        values = tuple(float(p) for p in parts)
+        values = [float(p) for p in parts]
     except ValueError:
-        values = ()
+        values = []
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
         raise argparse.ArgumentTypeError(f"board pose must be X_M,Y_M,YAW_DEG, e.g. 0.3,-0.1,90; got {text!r}")
-    return values  # type: ignore[return-value]
+    return values[0], values[1], values[2]
 
 
 def add_floor_mount_arguments(parser: argparse.ArgumentParser) -> None:

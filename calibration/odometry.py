@@ -65,7 +65,7 @@ class _SensorCollector:
 def _unwrapped_angles(ticks: np.ndarray, ticks_per_rev: float) -> np.ndarray:
     """Cumulative wheel angles ``(N, 2)`` rad from raw 16-bit counters ``(N, 2)``."""
     d = np.diff(ticks.astype(np.int64), axis=0)
-    d = (d + 32768) % 65536 - 32768
+    d = np.mod(d + 32768, 65536) - 32768
     return np.concatenate([np.zeros((1, 2)), np.cumsum(d, axis=0)]) * (2.0 * math.pi / ticks_per_rev)
 
 

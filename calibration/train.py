@@ -295,7 +295,8 @@ def candidate_pairs(poses: np.ndarray, camera: FloorCameraModel, far_per_keyfram
     (all distant pairs) / (sampled distant pairs)."""
     reach = camera.footprint_reach_m()
     n = len(poses)
-    near_i, near_j = [], []
+    near_i: list[np.ndarray] = []
+    near_j: list[np.ndarray] = []
     for i in range(1, n):
         d = np.hypot(poses[:i, 0] - poses[i, 0], poses[:i, 1] - poses[i, 1])
         j = np.flatnonzero(d < reach)
@@ -305,26 +306,27 @@ def candidate_pairs(poses: np.ndarray, camera: FloorCameraModel, far_per_keyfram
     nj = np.concatenate(near_j) if near_j else np.zeros(0, int)
     total_far = n * (n - 1) // 2 - len(ni)
     want = int(min(total_far, far_per_keyframe * n))
-    fi, fj = [], []
+    fi: list[int] = []
+    fj: list[int] = []
     taken = set(zip(ni.tolist(), nj.tolist()))  # near pairs, then each sampled one: no repeats
     while len(fi) < want:
-        i = rng.integers(1, n, want)
-        j = (rng.random(want) * i).astype(int)
-        for a, b in zip(i.tolist(), j.tolist()):
+        draw_i = rng.integers(1, n, want)
+        draw_j = (rng.random(want) * draw_i).astype(int)
+        for a, b in zip(draw_i.tolist(), draw_j.tolist()):
             if (a, b) not in taken and len(fi) < want:
                 taken.add((a, b))
                 fi.append(a)
                 fj.append(b)
     w_far = total_far / want if want else 0.0
-    i = np.concatenate([ni, np.asarray(fi, int)])
-    j = np.concatenate([nj, np.asarray(fj, int)])
-    w = np.concatenate([np.ones(len(ni)), np.full(len(fi), w_far)])
-    return i, j, w
+    pair_i = np.concatenate([ni, np.asarray(fi, int)])
+    pair_j = np.concatenate([nj, np.asarray(fj, int)])
+    weight = np.concatenate([np.ones(len(ni)), np.full(len(fi), w_far)])
+    return pair_i, pair_j, weight
 
 
 def _travel_m(poses: np.ndarray) -> np.ndarray:
     """``(N,)`` distance travelled along the keyframe poses ``(N, 3)`` up to each one, metres."""
-    return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
+    return np.concatenate([np.zeros(1), np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
 
 
 def trusted_pairs(poses: np.ndarray, camera: FloorCameraModel, i: np.ndarray, j: np.ndarray,

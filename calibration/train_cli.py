@@ -188,7 +188,7 @@ def run_loop_curve(args: Any) -> int:
     if kept:
         print(f"modes {', '.join(map(str, kept))}: the thresholds already in {args.calibration} are "
               "kept", file=out)
-    if dropped:
+    if dropped and old is not None:  # only a file that had thresholds can lose some
         print(f"modes {', '.join(map(str, dropped))}: the thresholds in {args.calibration} were trained "
               f"for r = {old.overlap_r:g}, confidence {old.confidence:g} (not r = {params.r:g}, "
               f"confidence {params.confidence:g}) and are removed", file=out)

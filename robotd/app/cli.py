@@ -68,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _add_daemon_commands(sub: argparse._SubParsersAction) -> None:
+def _add_daemon_commands(sub: argparse._SubParsersAction[Any]) -> None:
     """``run``, ``record``, ``replay`` and ``demo``: the daemon on hardware, a recording,
     or the virtual robot."""
     run = sub.add_parser("run", help="run the daemon on real hardware, as the config says",
@@ -119,7 +119,7 @@ def _add_daemon_commands(sub: argparse._SubParsersAction) -> None:
     d.set_defaults(func=demo_mod.run_from_args)
 
 
-def _add_config_commands(sub: argparse._SubParsersAction) -> None:
+def _add_config_commands(sub: argparse._SubParsersAction[Any]) -> None:
     cfg = sub.add_parser("config", help="check or print configuration files")
     cfg_sub = cfg.add_subparsers(dest="config_command", metavar="ACTION", required=True)
     chk = cfg_sub.add_parser("check", help="validate a config file")
@@ -132,7 +132,7 @@ def _add_config_commands(sub: argparse._SubParsersAction) -> None:
     ref.set_defaults(func=_cmd_config_reference)
 
 
-def _add_calibrate_commands(sub: argparse._SubParsersAction) -> None:
+def _add_calibrate_commands(sub: argparse._SubParsersAction[Any]) -> None:
     """``calibrate intrinsics|floor-mount|loop-curve|validate``: the offline tools."""
     from calibration import floor_mount, intrinsics, odometry as odometry_cal, train_cli
 
@@ -178,7 +178,7 @@ def _add_calibrate_commands(sub: argparse._SubParsersAction) -> None:
     co.set_defaults(func=odometry_cal.run_odometry)
 
 
-def _add_kobuki_commands(sub: argparse._SubParsersAction) -> None:
+def _add_kobuki_commands(sub: argparse._SubParsersAction[Any]) -> None:
     from drivers.kobuki import capture
 
     kob = sub.add_parser("kobuki", help="Kobuki base tools")
@@ -315,8 +315,9 @@ def config_reference() -> str:
            "commented default). Unknown keys and out-of-range values are errors that name "
            "the key. **live**: `systemctl reload robotd` (SIGHUP) applies the key at once; "
            "the others need a restart.\n"]
+    defaults = Config()
     for section in dataclasses.fields(Config):
-        cls = section.default_factory  # type: ignore[misc]
+        cls = type(getattr(defaults, section.name))
         out.append(f"## [{section.name}]\n")
         doc = " ".join((cls.__doc__ or "").strip().split("\n\n")[0].split())
         if doc:

@@ -32,6 +32,10 @@ from robotd.base.queues import BoundedQueue
 
 log = logging.getLogger(__name__)
 
+SILENT_AFTER_S = 5.0
+"""A source that has sent nothing this long after the start is named in STATUS (and logged
+once): the sign of a wrong port, topic or device, or of a base that is switched off."""
+
 _STATUS_FAULTS = ("frames", "unknown_frames", "decode_errors", "error_frames", "bus_off",
                   "bus_errors", "flood_reads", "bus_silent", "stale_left", "stale_right")
 """Driver counters shown in STATUS beside a driver's ``status`` (those that are not 0)."""
@@ -58,7 +62,7 @@ class SourceThread(threading.Thread):
     daemon stops (and systemd restarts it) instead of running on without the source.
     """
 
-    def __init__(self, name: str, source: Source, out: BoundedQueue, stop: threading.Event,
+    def __init__(self, name: str, source: Source, out: BoundedQueue[Any], stop: threading.Event,
                  on_fatal: Callable[[str, Exception], None] | None = None) -> None:
         super().__init__(name=f"robotd-{name}", daemon=True)
         self.source_name = name
@@ -172,16 +176,17 @@ class Daemon:
         self.stop_event = threading.Event()
         self.wakeup = threading.Event()
         self.driver_stats = driver_stats or (lambda: {})
-        self.queues: dict[str, BoundedQueue] = {}
+        self.queues: dict[str, BoundedQueue[Any]] = {}
         self.threads: dict[str, SourceThread] = {}
         sizes = queue_sizes or {}
         for name, driver in sources.items():
-            q: BoundedQueue = BoundedQueue(sizes.get(name, 64), lossless=lossless, drop="oldest",
+            q: BoundedQueue[Any] = BoundedQueue(sizes.get(name, 64), lossless=lossless, drop="oldest",
                                            wakeup=self.wakeup, name=name)
             self.queues[name] = q
             self.threads[name] = SourceThread(name, driver, q, self.stop_event,
                                               on_fatal=self._source_failed)
         self._stop_reason = ""
+        self._warned_silent: set[str] = set()
         self._fatal: Exception | None = None
         self.on_reload: Callable[[Daemon], None] | None = None
         """Called from the main loop after SIGHUP (set before :meth:`run`); without it
@@ -263,7 +268,7 @@ class Daemon:
         self.request_stop(f"{name} failed: {exc}")
 
     def _install_signal_handlers(self) -> dict[int, Any]:
-        old = {}
+        old: dict[int, Any] = {}
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGTERM, signal.SIGINT):
                 old[sig] = signal.signal(sig, self._on_signal)
@@ -311,6 +316,9 @@ class Daemon:
         gaps = gap_text(stats)
         if gaps:
             text += f", {gaps}"
+        silent = self._silent_sources(elapsed_s)
+        if silent:
+            text += ", " + ", ".join(f"{name} silent (nothing in {elapsed_s:.0f} s)" for name in silent)
         if c.get("odometry_degraded"):
             odo = self.pipeline.stage("odometry")
             text += f", odometry DEGRADED ({getattr(odo, 'degraded_detail', '')})"
@@ -319,6 +327,20 @@ class Daemon:
             if fragment:
                 text += f", {fragment}"
         return text + _driver_status(stats)
+
+    def _silent_sources(self, elapsed_s: float) -> list[str]:
+        """The sources that have not sent one message in the run's first ``elapsed_s``
+        seconds, once that is :data:`SILENT_AFTER_S` or more; each is logged as a warning
+        the first time."""
+        if elapsed_s < SILENT_AFTER_S:
+            return []
+        silent = [name for name, q in self.queues.items() if q.put_count == 0]
+        for name in silent:
+            if name not in self._warned_silent:
+                self._warned_silent.add(name)
+                log.warning("%s: no message in the first %.0f s of the run (is the device on, and "
+                            "the port, device or topic in the config the right one?)", name, elapsed_s)
+        return silent
 
     def _safe_driver_stats(self) -> dict[str, Any]:
         """The drivers' stats, once per STATUS line ({} when they fail: STATUS must never

@@ -35,7 +35,7 @@ from robotd.base.files import nonempty_path
 log = logging.getLogger(__name__)
 
 
-def add_arguments(sub: argparse._SubParsersAction) -> None:
+def add_arguments(sub: argparse._SubParsersAction[Any]) -> None:
     """Register ``eval forward`` under ``sub``."""
     ev = sub.add_parser("eval", help="evaluate a detector on recorded data")
     esub = ev.add_subparsers(dest="eval_command", metavar="ACTION", required=True)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any, TYPE_CHECKING
 
 from robotd.base.errors import GraphError, OutputError, RobotdError
 from robotd.base.files import check_output_file, describe_path_kind, nonempty_path
@@ -19,7 +19,7 @@ if TYPE_CHECKING:  # the real imports happen in the commands, so `robotd --help`
     from robotd.io.store import MapStore
 
 
-def add_arguments(sub: argparse._SubParsersAction) -> None:
+def add_arguments(sub: argparse._SubParsersAction[Any]) -> None:
     """Register ``graph optimize`` and ``graph export`` under ``sub``."""
     gr = sub.add_parser("graph", help="optimise or export pose graphs (g2o, TUM)")
     gsub = gr.add_subparsers(dest="graph_command", metavar="ACTION", required=True)
@@ -124,6 +124,8 @@ def graph_from_map(store: MapStore) -> tuple[PoseGraph, list[int]]:
 
 def run_export(args: argparse.Namespace) -> int:
     """``robotd graph export``."""
+    import numpy as np
+
     from robotd.graph import optimize_batch
     from robotd.io.g2o import write_g2o
     from robotd.io.store import MapStore
@@ -145,8 +147,8 @@ def run_export(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise OutputError(f"cannot create the output folder {out}: {exc.strerror or exc}") from None
     write_g2o(targets[0], graph)
-    write_tum(targets[1], stamps, graph.poses())
-    write_tum(targets[2], stamps, result.poses)
+    write_tum(targets[1], np.asarray(stamps, np.int64), graph.poses())
+    write_tum(targets[2], np.asarray(stamps, np.int64), result.poses)
     n_loops = len(result.loop_weights)
     print(f"{args.map}: {len(graph)} keyframes, {len(graph.edges) - n_loops} odometry and "
           f"{n_loops} loop links")

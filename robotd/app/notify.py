@@ -17,7 +17,7 @@ import logging
 import os
 import time
 
-from systemd import daemon
+import systemd.daemon as daemon
 
 from robotd.base.clock import Clock, MonotonicClock
 

@@ -117,7 +117,7 @@ def _global_bytes(descriptor: FloorDescriptor) -> np.ndarray:
 def _descriptor_nbytes(descriptor: FloorDescriptor) -> int:
     """Bytes held by a decoded descriptor's arrays (and byte strings)."""
     total = 0
-    for f in fields(descriptor):  # type: ignore[arg-type]
+    for f in fields(descriptor):
         value = getattr(descriptor, f.name)
         if isinstance(value, np.ndarray):
             total += value.nbytes
@@ -264,7 +264,7 @@ class FloorIndex:
         padded[: g.size] = g
         q = padded.view(np.uint64)
         dist = np.bitwise_count(np.bitwise_xor(self._global[:n], q)).sum(axis=1, dtype=np.int64)
-        return 1.0 - dist / float(self._bits)
+        return np.asarray(1.0 - dist / float(self._bits))
 
     def shortlist(self, descriptor: FloorDescriptor, size: int | None = None,
                   exclude_ids: Callable[[int], bool] | Collection[int] | None = None,

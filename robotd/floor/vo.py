@@ -159,7 +159,7 @@ def _ransac(src: np.ndarray, dst: np.ndarray, p: VoParams) -> np.ndarray:
     ry = s[:, None] * src[:, 0] + c[:, None] * src[:, 1] + hyp[:, 1:2] - dst[:, 1]
     r2 = np.minimum(rx * rx + ry * ry, p.ransac_threshold_m ** 2)
     best = int(np.argmin(r2.sum(axis=1)))
-    return r2[best] < p.ransac_threshold_m ** 2
+    return np.asarray(r2[best] < p.ransac_threshold_m ** 2)
 
 
 def floor_motion(p_prev: np.ndarray, p_cur: np.ndarray, params: VoParams | None = None,

@@ -72,6 +72,30 @@ def test_status_names_each_source_that_lost_its_device() -> None:
     assert d.status_text(1.0).endswith("unsynced 0")  # nothing lost: the line is as before
 
 
+def test_status_names_a_source_silent_since_the_start(caplog: pytest.LogCaptureFixture) -> None:
+    """A base on the wrong port sends nothing and loses nothing: no gap to report, so the
+    STATUS line names it as silent once the run is SILENT_AFTER_S old, and the log says so
+    once."""
+    from robotd.app.daemon import SILENT_AFTER_S
+
+    class Quiet:
+        def read(self, timeout_s: float) -> list:
+            return []
+
+        def close(self) -> None:
+            pass
+
+    d = Daemon(ManualClock(0), Pipeline(), {"base": Quiet(), "floor": Quiet()}, Notifier(),
+               wall_clock=ManualClock(0))
+    assert d.status_text(SILENT_AFTER_S - 0.5).endswith("unsynced 0")
+    d.queues["floor"].put(object())
+    with caplog.at_level("WARNING", logger="robotd.app.daemon"):
+        assert d.status_text(7.2).endswith("unsynced 0, base silent (nothing in 7 s)")
+        assert d.status_text(12.0).endswith("unsynced 0, base silent (nothing in 12 s)")
+    warnings = [r.getMessage() for r in caplog.records if "no message" in r.getMessage()]
+    assert len(warnings) == 1 and warnings[0].startswith("base: no message in the first 7 s")
+
+
 def _packet(i: int) -> bytes:
     basic = BasicSensorData(
         timestamp_ms=(20 * i) & 0xFFFF, bumper=0, wheel_drop=0, cliff=0,

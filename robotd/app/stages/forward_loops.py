@@ -178,6 +178,8 @@ class ForwardLoopStage(Publisher):
                 self.rejected_geometry += 1
             return
         v = det.verification
+        if v.rotation is None or v.translation_dir is None:
+            raise AssertionError("an accepted forward loop's verification has no relative pose")
         old = self._keyframe_ids[det.loop_id]
         dyaw, bearing, tilt = planar_motion(v.rotation, v.translation_dir)
         if tilt > self.max_tilt_rad:
