@@ -415,7 +415,9 @@ class OdometryFilter:
                 self.counters.vo_fused += 1
                 self._history.mark_fused()
                 fused = True
-        self._clone = clone_pose(self._state.mean, self._state.cov, stamp_ns, offset)
+        now = self._state  # s, or s with the step fused
+        assert now is not None
+        self._clone = clone_pose(now.mean, now.cov, stamp_ns, offset)
         return fused
 
     def _journalled(self, msg: WheelTicks | YawRate, used: bool) -> bool:
