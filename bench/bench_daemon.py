@@ -193,10 +193,10 @@ def truth_at(stamps_ns: np.ndarray, truth: tuple[np.ndarray, np.ndarray]) -> np.
 def make_config(args: argparse.Namespace, map_path: Path) -> Any:
     """``robotd replay``'s config (floor camera: virtual) with the demo's loop thresholds."""
     from robotd.app.demo import shipped_calibration
-    from robotd.base.config import Config, replace
+    from robotd.base.config import Config, replace, with_virtual_floor_camera
 
     cfg = Config()
-    cfg = replace(cfg, "floor_camera", source="virtual")
+    cfg = with_virtual_floor_camera(cfg)
     cfg = replace(cfg, "map", path=str(map_path))
     cfg = replace(cfg, "calibration", path=str(shipped_calibration()))
     if args.keyframe_distance is not None:
@@ -264,7 +264,7 @@ def replay(args: argparse.Namespace, recording: Path, map_path: Path) -> dict[st
             "keyframe_ms": stats(per_kf), "describe_ms": stats(describe), "query_ms": stats(query),
             "rss_before_mb": rss0, "rss_after_mb": rss_mb(), "peak_rss_mb": peak_rss_mb(),
             "counters": {k: v for k, v in c.items() if isinstance(v, (int, float))},
-            "config": {"keyframe_distance_m": cfg.keyframes.distance_m, "mode": cfg.floor_detector.mode,
+            "config": {"keyframe_distance_m": cfg.keyframes.distance_m, "mode": cfg.floor_detector.descriptor_mode,
                        "shortlist": cfg.floor_detector.shortlist,
                        "localise_mapped": cfg.pose_graph.localise_mapped,
                        "forward": cfg.forward_detector.enabled}}

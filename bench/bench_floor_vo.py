@@ -94,7 +94,7 @@ def run_mode(images: list[np.ndarray], kf_truth: np.ndarray, kf_ekf: np.ndarray,
     t0 = time.perf_counter()
     descs = [extract(img, mode) for img in images]
     extract_ms = 1e3 * (time.perf_counter() - t0) / len(images)
-    vo = FloorVisualOdometry(cam, VoParams(mode=mode))
+    vo = FloorVisualOdometry(cam, VoParams(descriptor_mode=mode))
     vo.step(descs[0])
     steps, times = [], []
     for d in descs[1:]:

@@ -161,9 +161,9 @@ def run_one(floor: str, odometry: str, mode: int, route: str, seed: int, calibra
             d: Path) -> dict[str, Any]:
     """One drive through the daemon, then its figures against the truth."""
     cfg = replace(Config(), "calibration", path=str(calibration))
-    cfg = replace(cfg, "floor_detector", mode=mode)
+    cfg = replace(cfg, "floor_detector", descriptor_mode=mode)
     if odometry == "vo":
-        cfg = replace(cfg, "visual_odometry", enabled=True, mode="vision_only")
+        cfg = replace(cfg, "visual_odometry", enabled=True, role="vision_only")
     else:  # the wheel + gyro filter's own edges
         cfg = replace(cfg, "visual_odometry", enabled=False)
     watcher = LoopWatcher()

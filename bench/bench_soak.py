@@ -269,11 +269,11 @@ def soak(lap: Path, work: Path, frames: int | None, keyframe_distance_m: float,
     from robotd.app.assemble import assemble_daemon, open_map
     from robotd.app.demo import shipped_calibration
     from robotd.app.notify import Notifier
-    from robotd.base.config import Config, replace
+    from robotd.base.config import Config, replace, with_virtual_floor_camera
     from robotd.app.service import replay_finished
 
     cfg = replace(Config(), "calibration", path=str(shipped_calibration()))
-    cfg = replace(cfg, "floor_camera", source="virtual")
+    cfg = with_virtual_floor_camera(cfg)
     cfg = replace(cfg, "keyframes", distance_m=keyframe_distance_m)
     cfg = replace(cfg, "pose_graph", localise_mapped=localise)
     map_path = work / "soak.sqlite"
@@ -308,8 +308,8 @@ def soak(lap: Path, work: Path, frames: int | None, keyframe_distance_m: float,
             "mapped_ground_left": c.get("localise_left_new_ground", 0) + c.get("localise_left_unlocalised", 0),
             "above_threshold": c.get("loop_candidates_above_threshold", 0),
             "wall_s": wall, "rss_mb_before_daemon": rss0, "laps_table": probe.rows,
-            "map": map_sizes(map_path, cfg.floor_detector.mode),
-            "keyframe_distance_m": keyframe_distance_m, "config_mode": cfg.floor_detector.mode}
+            "map": map_sizes(map_path, cfg.floor_detector.descriptor_mode),
+            "keyframe_distance_m": keyframe_distance_m, "config_mode": cfg.floor_detector.descriptor_mode}
 
 
 def _frames_in(lap: Path) -> int:

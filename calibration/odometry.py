@@ -232,9 +232,9 @@ def run_odometry(args: Any) -> int:
             check_output_file(path, force=True, inputs=[args.recording, args.calibration],
                               option=option)
     calib = read_calibration(args.calibration)
-    if calib.loop is None or calib.loop.for_mode(cfg.floor_detector.mode) is None:
+    if calib.loop is None or calib.loop.for_mode(cfg.floor_detector.descriptor_mode) is None:
         raise CalibrationError(f"{args.calibration}: no loop threshold for descriptor mode "
-                               f"{cfg.floor_detector.mode} (run `robotd calibrate loop-curve` first)")
+                               f"{cfg.floor_detector.descriptor_mode} (run `robotd calibrate loop-curve` first)")
     nominal_r, nominal_b = cfg.robot.wheel_radius_m, cfg.robot.wheel_base_m
     out = sys.stdout
     model = None

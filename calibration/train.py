@@ -155,7 +155,9 @@ def recording_config(path: Path) -> Any:
     if not text:
         return None
     try:
-        return config_from_dict(tomllib.loads(text))
+        # Written by robotd itself, possibly by an earlier version: old key names are
+        # taken (with a warning each) and the replayed recording's virtual camera accepted.
+        return config_from_dict(tomllib.loads(text), origin=f"{path} (its config)", stored=True)
     except (tomllib.TOMLDecodeError, RobotdError) as exc:
         log.warning("%s: cannot use the config the recording was made with (%s); using the "
                     "defaults (pass --config to choose)", path, exc)

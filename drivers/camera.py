@@ -236,8 +236,8 @@ def open_v4l2(section: FloorCameraConfig, clock: Clock, *, name: str = "floor") 
 
 def open_v4l2_forward(section: Any, clock: Clock) -> V4L2Camera:
     """The registry's factory of ``("forward_camera", "v4l2")``: the forward camera, grey
-    (its frames are named ``"forward"``). ``section``: ``[forward_camera]`` with the size
-    of ``[forward_detector]`` (see :func:`robotd.app.service.open_sources`)."""
+    (its frames are named ``"forward"``). ``section``: ``[forward_camera]``, which holds
+    its size too (see :func:`robotd.app.service.open_sources`)."""
     return open_v4l2(section, clock, name="forward")
 
 

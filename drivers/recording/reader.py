@@ -359,7 +359,9 @@ def _to_wheel_ticks(topic: str, m: Any, rec: Message, yaw_source: str) -> WheelT
 
 
 def _to_yaw_rate(topic: str, m: Any, rec: Message, yaw_source: str) -> YawRate:
-    return YawRate(_stamp_ns(m["header"]), float(m["angular_velocity"]["z"]), yaw_source)
+    stated = ros2msg.stated_variances(m["angular_velocity_covariance"], (8,))
+    return YawRate(_stamp_ns(m["header"]), float(m["angular_velocity"]["z"]), yaw_source,
+                   None if stated is None else stated[0])
 
 
 def _to_frame(topic: str, m: Any, rec: Message, yaw_source: str) -> Frame:

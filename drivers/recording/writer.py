@@ -324,7 +324,8 @@ class RecordingWriter:
         })
 
     def write_yaw_rate(self, msg: YawRate) -> None:
-        """``/imu`` (``sensor_msgs/msg/Imu``): ``angular_velocity.z`` = the yaw rate, rad/s."""
+        """``/imu`` (``sensor_msgs/msg/Imu``): ``angular_velocity.z`` = the yaw rate, rad/s, and
+        its stated variance, when the reading has one, in ``angular_velocity_covariance[8]``."""
         stamp = _check_stamp(msg.stamp_ns)
         if self.error is not None:
             raise self.error
@@ -344,7 +345,8 @@ class RecordingWriter:
                             self.path, msg.source, self._yaw_source, self._yaw_source)
             self.mixed_yaw_sources += 1
         self._write(TOPIC_IMU, "sensor_msgs/msg/Imu", stamp,
-                    ros2msg.imu_yaw_rate_msg(stamp, self.imu_frame_id, msg.yaw_rate_radps))
+                    ros2msg.imu_yaw_rate_msg(stamp, self.imu_frame_id, msg.yaw_rate_radps,
+                                             msg.yaw_rate_var_rad2ps2))
 
     def write_frame(self, frame: Frame) -> None:
         """``/<camera>_camera/image/compressed`` (``sensor_msgs/msg/CompressedImage``).

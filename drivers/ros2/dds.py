@@ -22,6 +22,7 @@ aarch64: built against a Cyclone DDS C library, see ``docs/ros2.md``).
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import threading
@@ -115,15 +116,17 @@ _TYPES: dict[str, Any] = {}
 _TYPES_LOCK = threading.Lock()
 
 
-def idl_type(full_name: str) -> Any:
+def idl_type(full_name: str, distro: str | None = None) -> Any:
     """The ``cyclonedds`` ``IdlStruct`` class of ``full_name`` (built once from
-    :data:`robotd.base.ros2msg.DEFINITIONS`), named as ROS 2 names it."""
+    :data:`robotd.base.ros2msg.DEFINITIONS`, or ``distro``'s where it differs), named as
+    ROS 2 names it."""
     with _TYPES_LOCK:
-        return _idl_type_locked(full_name)
+        return _idl_type_locked(full_name, distro if distro in ros2msg.DISTRO_DEFINITIONS else None)
 
 
-def _idl_type_locked(full_name: str) -> Any:
-    cls = _TYPES.get(full_name)
+def _idl_type_locked(full_name: str, distro: str | None = None) -> Any:
+    key = full_name if distro is None else f"{full_name}@{distro}"
+    cls = _TYPES.get(key)
     if cls is not None:
         return cls
     from cyclonedds.idl import make_idl_struct
@@ -134,17 +137,45 @@ def _idl_type_locked(full_name: str) -> Any:
             "int64": t.int64, "uint64": t.uint64, "float32": t.float32, "float64": t.float64,
             "string": str}
     fields: dict[str, Any] = {}
-    for f in ros2msg.parse_definition(full_name, ros2msg.DEFINITIONS[full_name]):
-        ftype = prim[f.type] if f.type in prim else _idl_type_locked(f.type)
+    for f in ros2msg.parse_definition(full_name, ros2msg.definitions(distro)[full_name]):
+        ftype = prim[f.type] if f.type in prim else _idl_type_locked(f.type, distro)
         if f.array == "fixed":
             ftype = t.array[ftype, f.length]
         elif f.array == "sequence":
             ftype = t.sequence[ftype]
         fields[f.name] = ftype
     pkg, _, name = full_name.split("/")
-    cls = make_idl_struct(f"{pkg}_{name}_", ros2msg.dds_type_name(full_name), fields)
-    _TYPES[full_name] = cls
+    cls = make_idl_struct(f"{pkg}_{name}_" + (f"{distro}_" if distro else ""), ros2msg.dds_type_name(full_name),
+                          fields)
+    _TYPES[key] = cls
     return cls
+
+
+DISCOVERY_TOPIC = "ros_discovery_info"
+"""The DDS topic (no ``rt/`` prefix: it is not a ROS topic) of ROS 2's graph information."""
+DISCOVERY_TYPE = "rmw_dds_common/msg/ParticipantEntitiesInfo"
+QOS_DISCOVERY = QosSpec(transient_local=True, depth=1)
+"""``ros_discovery_info``'s QoS in ``rmw_dds_common``: reliable, transient local, keep last 1."""
+
+
+def ros_distro() -> str:
+    """The ROS 2 distribution whose ``ros_discovery_info`` layout to speak: ``ROS_DISTRO``
+    (what a sourced ROS 2 environment sets) when it is one of ``humble``, ``jazzy``,
+    ``kilted``; otherwise ``jazzy`` (Kilted has the same layout; only Humble's GID is
+    longer), logged when ``ROS_DISTRO`` names another."""
+    raw = os.environ.get("ROS_DISTRO", "").strip().lower()
+    if raw in ros2msg.DISTROS:
+        return raw
+    if raw:
+        log.warning("ROS_DISTRO=%s is not one robotd knows (%s): ros_discovery_info as jazzy has it",
+                    raw, ", ".join(ros2msg.DISTROS))
+    return "jazzy"
+
+
+@functools.lru_cache(maxsize=None)
+def discovery_codec(distro: str | None = None) -> ros2msg.Codec:
+    """The codec of ``ros_discovery_info`` in ``distro``."""
+    return ros2msg.Codec(DISCOVERY_TYPE, ros2msg.definitions(distro))
 
 
 def _qos(spec: QosSpec) -> Any:
@@ -166,6 +197,7 @@ class Participant:
 
     def __init__(self, domain_id: int, *, config: str | None = None) -> None:
         require_cyclonedds()
+        from cyclonedds.core import Policy, Qos
         from cyclonedds.domain import Domain, DomainParticipant
 
         if not 0 <= domain_id <= 232:
@@ -174,19 +206,28 @@ class Participant:
         try:
             # A Domain entity with an explicit configuration must exist before the participant.
             self._domain = Domain(domain_id, config) if config is not None else None
-            self.dp = DomainParticipant(domain_id)
+            # ROS 2's rmw puts the security enclave in the participant's user data
+            self.dp = DomainParticipant(domain_id, qos=Qos(Policy.Userdata(b"enclave=/;")))
         except Exception as exc:  # noqa: BLE001 - cyclonedds raises DDSException with a code
             raise DriverError(f"DDS domain {domain_id}: cannot create a participant: {exc}") from exc
         self._topics: dict[str, Any] = {}
         self._closed = False
+        self.writers: list[RawWriter] = []
+        self.readers: list[RawReader] = []
+        self._discovery: RawWriter | None = None
 
-    def topic(self, dds_topic: str, full_name: str) -> Any:
+    @property
+    def guid(self) -> bytes:
+        """The participant's DDS GUID (16 bytes), its GID in ROS 2's graph."""
+        return self.dp.guid.bytes
+
+    def topic(self, dds_topic: str, full_name: str, distro: str | None = None) -> Any:
         """The DDS topic ``dds_topic`` (``rt/...``) of ROS type ``full_name`` (one per name)."""
         from cyclonedds.topic import Topic
 
         tp = self._topics.get(dds_topic)
         if tp is None:
-            tp = self._topics[dds_topic] = Topic(self.dp, dds_topic, idl_type(full_name))
+            tp = self._topics[dds_topic] = Topic(self.dp, dds_topic, idl_type(full_name, distro))
         return tp
 
     def writer(self, topic: str, full_name: str, qos: QosSpec = QOS_DEFAULT, *,
@@ -196,7 +237,8 @@ class Participant:
 
         name = ros2msg.dds_topic_name(topic, namespace)
         w = DataWriter(self.dp, self.topic(name, full_name), qos=_qos(qos))
-        return RawWriter(w, name, full_name)
+        self.writers.append(RawWriter(w, name, full_name))
+        return self.writers[-1]
 
     def reader(self, topic: str, full_name: str, qos: QosSpec = QOS_DEFAULT, *,
                namespace: str = "") -> RawReader:
@@ -205,7 +247,35 @@ class Participant:
 
         name = ros2msg.dds_topic_name(topic, namespace)
         r = DataReader(self.dp, self.topic(name, full_name), qos=_qos(qos))
-        return RawReader(r, name, full_name)
+        self.readers.append(RawReader(r, name, full_name))
+        return self.readers[-1]
+
+    def announce(self, node_name: str, namespace: str = "", distro: str | None = None) -> bytes:
+        """Publish (again) this participant's ``ros_discovery_info``: one node ``node_name``
+        in ``namespace`` holding every reader and writer made so far, as a ROS 2 node's
+        ``rmw`` does (reliable, transient local, keep last 1; ``distro``'s message layout,
+        see :func:`ros_distro`), so that ``ros2 node list`` can name it. Returns the bytes."""
+        from cyclonedds.pub import DataWriter
+
+        full_name = DISCOVERY_TYPE
+        if self._discovery is None:
+            tp = self.topic(DISCOVERY_TOPIC, full_name, distro)
+            w = DataWriter(self.dp, tp, qos=_qos(QOS_DISCOVERY))
+            self._discovery = RawWriter(w, DISCOVERY_TOPIC, full_name)
+        ns = "/" + namespace.strip("/") if namespace.strip("/") else "/"
+        msg = ros2msg.participant_entities_info(self.guid, ns, node_name, [r.guid for r in self.readers],
+                                                [w.guid for w in self.writers], distro)
+        data = discovery_codec(distro).encode(msg)
+        self._discovery.write(data)
+        return data
+
+    def discovery_reader(self, distro: str | None = None) -> RawReader:
+        """A reader of ``ros_discovery_info`` (what ``ros2 node list`` reads), in
+        ``distro``'s layout; decode with :func:`discovery_codec`."""
+        from cyclonedds.sub import DataReader
+
+        r = DataReader(self.dp, self.topic(DISCOVERY_TOPIC, DISCOVERY_TYPE, distro), qos=_qos(QOS_DISCOVERY))
+        return RawReader(r, DISCOVERY_TOPIC, DISCOVERY_TYPE)
 
     def close(self) -> None:
         """Delete the participant and everything under it; safe to call twice."""
@@ -239,6 +309,8 @@ class RawWriter:
         self.full_name = full_name
         self.written = 0
         self.bytes_written = 0
+        self.guid = writer.guid.bytes
+        """The writer's DDS GUID (16 bytes), its GID in ROS 2's graph."""
 
     def write(self, data: bytes, source_timestamp_ns: int | None = None) -> None:
         """Send ``data`` (CDR with its encapsulation header, from :mod:`robotd.base.ros2msg`),
@@ -278,6 +350,8 @@ class RawReader:
         self.taken = 0
         self.invalid = 0
         """Samples without data (a writer left or disposed): skipped."""
+        self.guid = reader.guid.bytes
+        """The reader's DDS GUID (16 bytes)."""
 
     def take(self, n: int = 64) -> list[bytes]:
         """Up to ``n`` waiting samples' CDR bytes (samples without data are skipped and
@@ -321,5 +395,6 @@ class WaitSet:
 
 
 __all__ = ["Participant", "QosSpec", "RawReader", "RawWriter", "WaitSet", "available",
-           "domain_id_from", "idl_type", "loopback_config", "require_cyclonedds",
+           "discovery_codec", "domain_id_from", "idl_type", "loopback_config", "require_cyclonedds", "ros_distro",
+           "DISCOVERY_TOPIC", "DISCOVERY_TYPE", "QOS_DISCOVERY",
            "QOS_DEFAULT", "QOS_SENSOR", "QOS_TF", "QOS_TF_STATIC"]

@@ -13,9 +13,16 @@ hand the daemon what its own drivers would:
   ``[robot]``'s wheel base, and into encoder ticks with its wheel radius and ticks per turn,
   accumulated and wrapped at 16 bits as a Kobuki's counters are. Each ``sensor_msgs/Imu``
   becomes a :class:`~robotd.base.messages.YawRate` (``angular_velocity.z``, source
-  ``"ros2"``). The filter then weighs them with its own noise model (``[odometry]``); the
-  covariances the messages carry are read and reported (``stats()``: the latest yaw-rate
-  variance and the odometry's pose variances), not fused.
+  ``"ros2"``). The variances the messages state go with them to the filter, which uses
+  them instead of its own noise model (``[odometry]``): the odometry's twist covariance
+  (``twist.covariance[0]``, forward speed, and ``[35]``, yaw rate) on the
+  ``WheelTicks``, the IMU's ``angular_velocity_covariance[8]`` (yaw rate) on the
+  ``YawRate``. A covariance counts as stated when its diagonal entry is finite and
+  positive and the matrix is not flagged unknown: ROS marks "no estimate" with ``-1`` in
+  element 0 and "unknown" with all zeros, and a zero variance would claim an exact
+  measurement. Otherwise that message falls back to the noise model: counted per stream
+  (``odometry_cov_fallbacks``, ``imu_cov_fallbacks``; ``*_cov_used`` for the others) and
+  logged once per stream. ``stats()`` also shows the latest stated values.
 - :class:`Ros2Camera`: each image becomes a grey :class:`~robotd.base.messages.Frame`
   (``mono8``, ``mono16``, ``bgr8``, ``rgb8``, ``bgra8``/``rgba8``; or any JPEG/PNG
   ``CompressedImage`` when the topic ends in ``/compressed``), read best effort (ROS 2's
@@ -159,7 +166,8 @@ class Ros2Base(_Ros2Source):
         self._half_base_m = 0.5 * wheel_base_m
         self._prev: tuple[int, float, float, float] | None = None  # stamp, x, y, yaw
         self._ticks = [0.0, 0.0]  # accumulated left, right
-        self._counts = {"odometry_msgs": 0, "imu_msgs": 0}
+        self._counts = {"odometry_msgs": 0, "imu_msgs": 0, "odometry_cov_used": 0, "odometry_cov_fallbacks": 0,
+                        "imu_cov_used": 0, "imu_cov_fallbacks": 0}
         self._variances: dict[str, float] = {}
         topics: dict[str, tuple[str, dds.QosSpec, Any]] = {
             odometry_topic: ("nav_msgs/msg/Odometry", dds.QOS_DEFAULT, self._on_odometry)}
@@ -185,6 +193,10 @@ class Ros2Base(_Ros2Source):
         self._counts["odometry_msgs"] += 1
         cov = ros2msg.covariance3(m["pose"]["covariance"])
         self._variances.update(odometry_var_x_m2=float(cov[0, 0]), odometry_var_yaw_rad2=float(cov[2, 2]))
+        twist_cov = m["twist"]["covariance"]
+        var_v, var_w = self._stated("odometry", twist_cov, (0, 35))
+        if var_v is not None and var_w is not None:
+            self._variances.update(odometry_speed_var_m2ps2=var_v, odometry_yaw_rate_var_rad2ps2=var_w)
         self._prev = (stamp, x, y, yaw)
         if prev is not None:
             dyaw = float(wrap_angle(yaw - prev[3]))
@@ -192,15 +204,31 @@ class Ros2Base(_Ros2Source):
             ds = (x - prev[1]) * math.cos(mid) + (y - prev[2]) * math.sin(mid)
             self._ticks[0] += (ds - dyaw * self._half_base_m) * self._ticks_per_m
             self._ticks[1] += (ds + dyaw * self._half_base_m) * self._ticks_per_m
-        return WheelTicks(stamp, int(round(self._ticks[0])) % _U16, int(round(self._ticks[1])) % _U16)
+        return WheelTicks(stamp, int(round(self._ticks[0])) % _U16, int(round(self._ticks[1])) % _U16,
+                          speed_var_m2ps2=var_v, yaw_rate_var_rad2ps2=var_w)
 
     def _on_imu(self, m: dict[str, Any]) -> YawRate | None:
         stamp = self._local_ns(m["header"])
         if stamp is None:
             return None
         self._counts["imu_msgs"] += 1
-        self._variances["imu_yaw_rate_var_radps2"] = float(m["angular_velocity_covariance"][8])
-        return YawRate(stamp, float(m["angular_velocity"]["z"]), "ros2")
+        (var,) = self._stated("imu", m["angular_velocity_covariance"], (8,))
+        if var is not None:
+            self._variances["imu_yaw_rate_var_rad2ps2"] = var
+        return YawRate(stamp, float(m["angular_velocity"]["z"]), "ros2", yaw_rate_var_rad2ps2=var)
+
+    def _stated(self, stream: str, cov: list[float], diagonal: tuple[int, ...]) -> tuple[float | None, ...]:
+        """The variances at ``diagonal`` (indices into the row-major ``cov``) when the
+        message states them (see the module notes), else Nones, counted and logged once."""
+        values = ros2msg.stated_variances(cov, diagonal)
+        if values is not None:
+            self._counts[f"{stream}_cov_used"] += 1
+            return values
+        self._counts[f"{stream}_cov_fallbacks"] += 1
+        if self._counts[f"{stream}_cov_fallbacks"] == 1:
+            log.info("%s: the %s messages state no usable covariance (%s); the filter uses its own "
+                     "noise model for them ([odometry])", self, stream, ros2msg.covariance_problem(cov, diagonal))
+        return (None,) * len(diagonal)
 
     def _stats_internal(self) -> dict[str, StatValue]:
         return {**super()._stats_internal(), **self._counts, **self._variances}

@@ -43,36 +43,21 @@ def build_odometry(cfg: Config, calibration: CalibrationFile | None = None) -> O
     """The wheel + gyro filter with the config's robot geometry and noise model; with a
     calibrated odometry model (``robotd calibrate odometry``), its wheel radii, wheel base
     and gyro scale instead of the nominal ``[robot]`` values."""
-    o = cfg.odometry
-    params = EkfParams(
-        accel_noise_mps2=o.accel_noise_mps2,
-        angular_accel_noise_radps2=o.angular_accel_noise_radps2,
-        gyro_bias_walk_radps_sqrt_s=o.gyro_bias_walk_radps_sqrt_s,
-        wheel_v_noise_mps=o.wheel_v_noise_mps,
-        wheel_v_noise_frac=o.wheel_v_noise_frac,
-        wheel_w_noise_radps=o.wheel_w_noise_radps,
-        wheel_w_noise_frac=o.wheel_w_noise_frac,
-        wheel_w_noise_per_mps=o.wheel_w_noise_per_mps,
-        gyro_noise_radps=o.gyro_noise_radps,
-        initial_gyro_bias_sigma_radps=o.initial_gyro_bias_sigma_radps,
-    )
-    drive = DiffDriveParams(wheel_radius_m=cfg.robot.wheel_radius_m,
-                            wheel_base_m=cfg.robot.wheel_base_m,
-                            ticks_per_rev=cfg.robot.ticks_per_rev)
+    params = EkfParams.from_config(cfg.odometry)
+    drive = DiffDriveParams.from_config(cfg.robot)
     gyro_scale = 1.0
     model = calibration.odometry if calibration is not None else None
     if model is not None:
-        drive = DiffDriveParams(wheel_radius_m=cfg.robot.wheel_radius_m, wheel_base_m=model.wheel_base_m,
-                                ticks_per_rev=cfg.robot.ticks_per_rev,
-                                wheel_radius_left_m=model.wheel_radius_left_m,
-                                wheel_radius_right_m=model.wheel_radius_right_m)
+        drive = DiffDriveParams.from_config(cfg.robot, wheel_base_m=model.wheel_base_m,
+                                            wheel_radius_left_m=model.wheel_radius_left_m,
+                                            wheel_radius_right_m=model.wheel_radius_right_m)
         gyro_scale = model.gyro_scale
         log.info("odometry model from the calibration: wheel radii %.5f / %.5f m, wheel base %.4f m, "
                  "gyro scale %.5f", model.wheel_radius_left_m, model.wheel_radius_right_m,
                  model.wheel_base_m, model.gyro_scale)
     v = cfg.visual_odometry
     # Fusing visual odometry: the graph's edges come from a wheel + gyro twin (fusion.py).
-    twin = v.enabled and v.mode == "fused" and cfg.floor_camera.source != "none"
+    twin = v.enabled and v.role == "fused" and cfg.floor_camera.source != "none"
     return OdometryFilter(drive, params, vo_twin=twin, gyro_scale=gyro_scale)
 
 
@@ -119,16 +104,15 @@ def build_floor_detector(cfg: Config, store: MapStore, calib: CalibrationFile | 
         return None
     from robotd.io.calibfile import camera_model
 
-    f = cfg.floor_detector
-    params = FloorDetectorParams(mode=f.mode, candidates=f.candidates, shortlist=f.shortlist,
-                                 exclude_recent_s=f.exclude_recent_s)
-    threshold = calib.loop.for_mode(f.mode) if calib is not None and calib.loop is not None else None
+    params = FloorDetectorParams.from_config(cfg.floor_detector)
+    mode = params.descriptor_mode
+    threshold = calib.loop.for_mode(mode) if calib is not None and calib.loop is not None else None
     if threshold is None:
         log.warning("no trained loop threshold for descriptor mode %d: floor loop candidates are "
                     "found and stored but no loop is declared (train with `robotd calibrate "
-                    "loop-curve`)", f.mode)
+                    "loop-curve`)", mode)
     else:
-        log.info("floor loops declared at local score >= %.2f (mode %d)", threshold, f.mode)
+        log.info("floor loops declared at local score >= %.2f (mode %d)", threshold, mode)
     return FloorLoopDetector.from_store(store, params, threshold, camera_model(calib, cfg.floor_camera))
 
 
@@ -142,24 +126,21 @@ def build_visual_odometry(cfg: Config, odometry: OdometryStage,
     from robotd.io.calibfile import camera_model
 
     v = cfg.visual_odometry
-    params = VoParams(mode=cfg.floor_detector.mode, min_inliers=v.min_inliers,
-                      ransac_threshold_m=v.ransac_threshold_m)
+    params = VoParams.from_config(v, cfg.floor_detector.descriptor_mode)
     vo = FloorVisualOdometry(camera_model(calib, cfg.floor_camera), params)
-    log.info("floor visual odometry on (%s, mode %d)", v.mode, params.mode)
-    return VisualOdometryStage(vo, v.mode, gate_nis=odometry.vo_gate_nis, takes=takes)
+    log.info("floor visual odometry on (%s, mode %d)", v.role, params.descriptor_mode)
+    return VisualOdometryStage(vo, v.role, gate_nis=odometry.vo_gate_nis, takes=takes)
 
 
 def forward_mount(cfg: Config) -> np.ndarray:
     """The forward camera's ``(x_m, y_m, yaw_rad)`` in the robot frame."""
-    f = cfg.forward_detector
+    f = cfg.forward_camera
     return np.array([f.mount_x_m, f.mount_y_m, math.radians(f.mount_yaw_deg)])
 
 
 def forward_loop_params(cfg: Config) -> PlanarLoopParams:
     """The noise of a forward loop edge, from the config."""
-    f = cfg.forward_detector
-    return PlanarLoopParams(sigma_bearing_rad=math.radians(f.sigma_bearing_deg),
-                            sigma_yaw_rad=math.radians(f.sigma_yaw_deg))
+    return PlanarLoopParams.from_config(cfg.forward_detector)
 
 
 def build_forward_stage(cfg: Config, store: MapStore | None = None) -> Any:
@@ -170,15 +151,15 @@ def build_forward_stage(cfg: Config, store: MapStore | None = None) -> Any:
 
     from robotd.forward import FeatureParams, ForwardDetector, method_params
 
-    f = cfg.forward_detector
-    k = np.array([[f.fx_px, 0.0, f.cx_px], [0.0, f.fy_px, f.cy_px], [0.0, 0.0, 1.0]])
+    f, cam = cfg.forward_detector, cfg.forward_camera
+    k = np.array([[cam.fx_px, 0.0, cam.cx_px], [0.0, cam.fy_px, cam.cy_px], [0.0, 0.0, 1.0]])
     params = method_params(f.method)
     kind = params.features.kind if f.features == "auto" else f.features
     n_feat = f.max_features or (params.features.max_features if kind == params.features.kind else 0)
     # The camera's height gives the loops their range on the floor (robotd.forward.verify).
     params = replace(params, features=FeatureParams(kind=kind, max_features=n_feat),
                      verify=replace(params.verify,
-                                    camera_height_m=f.mount_height_m if f.mount_height_m > 0 else None))
+                                    camera_height_m=cam.mount_height_m if cam.mount_height_m > 0 else None))
     log.info("forward loop detector on (method %s, %s features, a keyframe every %.2f m or %.0f deg)",
              f.method, kind, f.distance_m, f.rotation_deg)
     return ForwardLoopStage(ForwardDetector(params, camera_matrix=k), distance_m=f.distance_m,
@@ -207,7 +188,7 @@ def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, l
 
         g = cfg.pose_graph
         graph_stage = pipeline.add(PoseGraphStage(
-            IncrementalGraph(), store, gate_chi2=g.gate_chi2, save_every=g.save_every_keyframes,
+            IncrementalGraph(), store, gate_chi2=g.gate_chi2, save_every=g.full_solve_every_keyframes,
             forward_mount=forward_mount(cfg), forward_params=forward_loop_params(cfg),
             mapped_ground=MappedGroundParams(g.mapped_radius_m, g.max_unlocalised_m) if g.localise_mapped else None))
         mapped_ground = graph_stage.mapped_ground  # owned by the graph stage; the writer's interface
@@ -297,7 +278,7 @@ def data_flow_diagram() -> str:
     cfg = replace(Config(), "base", driver="kobuki")
     cfg = replace(cfg, "forward_detector", enabled=True)
     cfg = replace(cfg, "pose_graph", localise_mapped=True)
-    cfg = replace(cfg, "visual_odometry", enabled=True, mode="fused")
+    cfg = replace(cfg, "visual_odometry", enabled=True, role="fused")
     with tempfile.TemporaryDirectory() as tmp:
         cfg = replace(cfg, "calibration", path=str(Path(tmp) / "none.yml"))
         with MapStore.open(Path(tmp) / "map.sqlite") as store:

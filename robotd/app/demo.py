@@ -364,7 +364,7 @@ def _run_demo(base_cfg: Any, robot: Any, clock: Any, cam_model: Any, *, out: Pat
               record: Path | None, observers: tuple[Any, ...], base: str, can_convention: str,
               floor_files: tuple[str, ...], floor_pattern: str | None) -> dict[str, Any]:
     """The demo once its arguments are checked, its folder is ready and its map locked."""
-    from robotd.base.config import replace
+    from robotd.base.config import replace, with_virtual_floor_camera
     from robotd.base.files import write_text_replacing
 
     if base == "can":
@@ -375,7 +375,7 @@ def _run_demo(base_cfg: Any, robot: Any, clock: Any, cam_model: Any, *, out: Pat
                       **can_config_changes(can_convention))
     else:
         cfg = replace(base_cfg, "base", driver="kobuki", port=robot.port)
-    cfg = replace(cfg, "floor_camera", source="virtual")
+    cfg = with_virtual_floor_camera(cfg)
     cfg = replace(cfg, "map", path=str(map_path))
     recorder = _Recorder(out, _nominal_drive_if_calibrated(cfg, calibration))
     live = _drive(robot, cfg, clock, recorder, realtime=realtime, record=record, observers=observers,
@@ -650,7 +650,7 @@ def _summarise(cfg: Any, cam_model: Any, robot: Any, recorder: _Recorder, live: 
                           "faults_injected": robot.base.frames.injected,
                           "odometry_degraded_episodes": c.get("odometry_degraded_episodes", 0)}
     if cfg.visual_odometry.enabled:
-        summary["visual_odometry"] = {"mode": cfg.visual_odometry.mode,
+        summary["visual_odometry"] = {"mode": cfg.visual_odometry.role,
                                       **{k: v for k, v in c.items() if k.startswith("vo_")}}
     if cfg.floor_detector.enabled and recorder.keyframe_ids:
         summary["floor_detector"] = floor_summary(cfg, cam_model, robot.motion, recorder,
@@ -853,7 +853,7 @@ def floor_summary(cfg: Any, camera: Any, motion: Any, recorder: _Recorder,
     scores = np.array([c.local_score for c in rep.candidates]) if rep.candidates else np.zeros(0)
     levels = sorted({float(np.quantile(scores, q)) for q in (0.5, 0.9, 0.99)}) if len(scores) else []
     d: dict[str, Any] = {
-        "mode": cfg.floor_detector.mode, "queries": rep.queries,
+        "mode": cfg.floor_detector.descriptor_mode, "queries": rep.queries,
         "candidates_returned": len(rep.candidates),
         "queries_with_true_revisit": rep.queries_with_true_loop,
         "revisits_found_among_candidates": rep.found,
@@ -881,7 +881,7 @@ def floor_summary(cfg: Any, camera: Any, motion: Any, recorder: _Recorder,
         for c in rep.candidates:
             score_m[c.query, c.candidate] = c.local_score
         plot_similarity(out / "similarity.png", overlap, score_m, stamps,
-                        cfg.floor_detector.exclude_recent_s, mode=cfg.floor_detector.mode)
+                        cfg.floor_detector.exclude_recent_s, mode=cfg.floor_detector.descriptor_mode)
     return d
 
 

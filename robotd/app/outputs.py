@@ -26,6 +26,13 @@ every odometry message and at once when a keyframe enters the graph or a loop is
 and ``odom -> base_footprint`` only when robotd reads the base itself (``[ros2] odom_tf``):
 on a ROS robot the base driver publishes that one.
 
+``robotd/pose`` is the fused pose moved into the map frame (``map -> odom`` composed with
+it), with the pose graph's covariance: the newest keyframe's marginal from iSAM2, carried
+forward by what the odometry added since (:mod:`robotd.graph.covariance`). The marginal is
+computed once per keyframe entering the graph and per accepted loop (its time is counted
+in ``outputs_marginal_us``), the composition with every odometry message. Before the first
+keyframe, or if the graph cannot give the marginal, it carries the odometry's covariance.
+
 Stamps: robotd's clock (host monotonic time, or the virtual robot's from 0) plus the offset
 to the Unix clock measured once at start-up (``[ros2] ros_time``), so other ROS nodes can
 look the transforms up at their own time.
@@ -51,6 +58,7 @@ from robotd.base.config import Config
 from robotd.base.errors import ConfigError
 from robotd.base.geometry import compose, interpolate_poses
 from robotd.base.messages import Frame, KeyframeStored, Link, OdometryUpdate
+from robotd.graph.covariance import corrected_pose, tangent_to_world
 from robotd.io import rosview
 from robotd.io.rosview import TopicSpec
 
@@ -116,11 +124,20 @@ class DdsSink:
         self.keys = ros2_keys(cfg)
         self.participant = dds.Participant(self.domain_id, config=dds_config)
         self.writers: dict[str, Any] = {}
-        log.info("ROS 2 output on DDS domain %d (namespace %r)", self.domain_id, self.namespace or "/")
+        self.node_name = "robotd"
+        self.distro = dds.ros_distro()
+        log.info("ROS 2 output on DDS domain %d (namespace %r, node %s, %s graph information)", self.domain_id,
+                 self.namespace or "/", self.node_name, self.distro)
 
     def advertise(self, key: str, spec: TopicSpec) -> None:
         qos = self._dds.QosSpec(spec.reliable, spec.transient_local, spec.depth)
         self.writers[key] = self.participant.writer(spec.topic, spec.type_name, qos, namespace=self.namespace)
+        # ros_discovery_info names the writers robotd's node (``ros2 node list``): again
+        # with each new one (only at start-up), the last one latched for late joiners
+        try:
+            self.participant.announce(self.node_name, self.namespace, self.distro)
+        except Exception as exc:  # noqa: BLE001 - the graph information must never stop the outputs
+            log.warning("ros_discovery_info not published: %s", exc)
 
     def publish(self, key: str, data: bytes, stamp_ns: int) -> None:
         self.writers[key].write(data)
@@ -211,9 +228,16 @@ class RosOutputStage:
         self.driver_stats: Callable[[], Mapping[str, Mapping[str, Any]]] = dict
         self.map_odom = np.zeros(3)
         self._hist: collections.deque[tuple[int, float, float, float]] = collections.deque(maxlen=4096)
+        self._hist_cov: collections.deque[np.ndarray] = collections.deque(maxlen=4096)
+        self._kf_map: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        """The newest keyframe in the graph: map pose, its marginal (map axes), odometry pose
+        and covariance at its stamp; what robotd/pose composes with the odometry."""
+        self.marginal_ns = 0
+        self.marginals = 0
+        self.marginal_failures = 0
         self._last_odom: Any = None
         self._next_odom_ns: int | None = None
-        self._last_kf: tuple[int, np.ndarray] | None = None
+        self._last_kf: tuple[int, np.ndarray, np.ndarray] | None = None
         self._loops: dict[str, list[tuple[int, int]]] = collections.defaultdict(list)
         self._path_dirty = False
         self._next_path_ns = 0
@@ -274,6 +298,7 @@ class RosOutputStage:
         t0 = time.thread_time_ns()
         p = u.fused
         self._hist.append((p.stamp_ns, p.x_m, p.y_m, p.yaw_rad))
+        self._hist_cov.append(p.covariance)
         self._last_odom = p
         if not self._static_sent:
             self._send_static(p.stamp_ns)
@@ -288,9 +313,10 @@ class RosOutputStage:
             self._send_tf(stamp, with_odom=True)
             self._send("odometry", "nav_msgs/msg/Odometry", ros2msg.odometry_msg(
                 stamp, p.x_m, p.y_m, p.yaw_rad, p.covariance, self.odom_frame, self.base_frame), stamp)
-            corrected = compose(self.map_odom, np.array([p.x_m, p.y_m, p.yaw_rad]))
-            self._send("pose", "geometry_msgs/msg/PoseWithCovarianceStamped", ros2msg.pose_with_covariance_msg(
-                stamp, self.map_frame, *corrected, p.covariance), stamp)
+            if "pose" in self.active:
+                (x, y, yaw), cov = self._corrected(p)
+                self._send("pose", "geometry_msgs/msg/PoseWithCovarianceStamped", ros2msg.pose_with_covariance_msg(
+                    stamp, self.map_frame, x, y, yaw, cov), stamp)
         self.cpu_ns += time.thread_time_ns() - t0
 
     def on_frame(self, frame: Frame) -> None:
@@ -302,11 +328,14 @@ class RosOutputStage:
         kf = msg.keyframe
         if self._hist:
             h = np.asarray(self._hist, dtype=np.float64)
-            odom_pose = interpolate_poses(h[:, 0].astype(np.int64), h[:, 1:], np.array([kf.stamp_ns]))[0]
+            stamps = h[:, 0].astype(np.int64)
+            odom_pose = interpolate_poses(stamps, h[:, 1:], np.array([kf.stamp_ns]))[0]
+            odom_cov = self._hist_cov[min(int(np.searchsorted(stamps, kf.stamp_ns)), len(stamps) - 1)]
         else:
             odom_pose = np.asarray(kf.pose_xyyaw, float)
+            odom_cov = np.zeros((3, 3))
         if kf.keyframe_id is not None:
-            self._last_kf = (kf.keyframe_id, odom_pose)
+            self._last_kf = (kf.keyframe_id, odom_pose, odom_cov)
         self._update_map_odom()
         self._path_dirty = True
         stamp = self._ros_ns(kf.stamp_ns)
@@ -367,8 +396,11 @@ class RosOutputStage:
         graph = self._graph()
         if graph is None or self._last_kf is None or self._last_kf[0] not in graph.graph:
             return
-        kf_id, odom_pose = self._last_kf
-        new = rosview.map_to_odom(graph.pose(kf_id), odom_pose)
+        kf_id, odom_pose, odom_cov = self._last_kf
+        map_pose = graph.pose(kf_id)
+        if "pose" in self.active:
+            self._marginal(graph, kf_id, map_pose, odom_pose, odom_cov)
+        new = rosview.map_to_odom(map_pose, odom_pose)
         if np.array_equal(new, self.map_odom):
             return
         self.map_odom = new
@@ -378,6 +410,36 @@ class RosOutputStage:
             self.tf_updates += 1
             if self.on_tf_update is not None:
                 self.on_tf_update(stamp)
+
+    def _marginal(self, graph: Any, kf_id: int, map_pose: np.ndarray, odom_pose: np.ndarray,
+                  odom_cov: np.ndarray) -> None:
+        """The keyframe's marginal covariance from the graph (iSAM2), once per keyframe or
+        accepted loop (timed: ``outputs_marginal_us``); on failure robotd/pose keeps the
+        odometry's covariance (counted, logged once)."""
+        t0 = time.perf_counter_ns()
+        try:
+            cov = tangent_to_world(map_pose, graph.marginal_covariance(kf_id))
+        except Exception as exc:  # noqa: BLE001 - GTSAM raises RuntimeError for an indeterminate system
+            self.marginal_failures += 1
+            if self.marginal_failures == 1:
+                log.warning("no marginal covariance of keyframe %d from the pose graph (%s): robotd/pose "
+                            "carries the odometry's covariance until the next one", kf_id, exc)
+            self._kf_map = None
+            return
+        finally:
+            self.marginal_ns += time.perf_counter_ns() - t0
+        self.marginals += 1
+        self._kf_map = (map_pose, cov, odom_pose, odom_cov)
+
+    def _corrected(self, p: Any) -> tuple[np.ndarray, np.ndarray]:
+        """robotd/pose: the fused pose in the map frame and its covariance, the graph's
+        (:func:`robotd.graph.covariance.corrected_pose`) once a keyframe is in it, else the
+        odometry's."""
+        now = np.array([p.x_m, p.y_m, p.yaw_rad])
+        if self._kf_map is None:
+            return compose(self.map_odom, now), p.covariance
+        map_pose, cov, odom_pose, odom_cov = self._kf_map
+        return corrected_pose(map_pose, cov, odom_pose, odom_cov, now, p.covariance)
 
     def _send_tf(self, stamp: int, *, with_odom: bool) -> None:
         tfs = [ros2msg.planar_transform_msg(stamp, self.map_frame, self.odom_frame, self.map_odom)]
@@ -433,7 +495,9 @@ class RosOutputStage:
             stamp, counters, drivers, dict(self.queue_drops()), localisation), stamp)
 
     def counters(self) -> dict[str, int]:
-        out = {"outputs_cpu_us": self.cpu_ns // 1000, "outputs_tf_updates": self.tf_updates}
+        out = {"outputs_cpu_us": self.cpu_ns // 1000, "outputs_tf_updates": self.tf_updates,
+               "outputs_marginals": self.marginals, "outputs_marginal_us": self.marginal_ns // 1000,
+               "outputs_marginal_failures": self.marginal_failures}
         out.update({f"published_{k}": n for k, n in sorted(self.published.items())})
         return out
 

@@ -5,9 +5,10 @@ main loop, between two turns, so no stage is in the middle of a message. The new
 read and validated completely before anything changes: a config or calibration file that
 does not read is one ERROR line, and the daemon runs on with everything it had.
 
-What changes live (:data:`LIVE_KEYS`) is what the running stages can take between two
-messages: the log level, the status interval, when a frame becomes a keyframe, the map
-query's sizes, the pose graph's gate and re-solve period, and the loop threshold of the
+What changes live is what the running stages can take between two messages, marked
+``live`` in the config's metadata (:func:`robotd.base.config.live_keys`, the one list: the
+configuration reference and ``robotd config default`` show it; :data:`LIVE_KEYS` says how
+each is applied, and a test keeps the two the same), and the loop threshold of the
 calibration file. Everything else (devices, the map file, the robot's geometry and noise
 model, the descriptor mode, the camera model, which stages exist, ...) is fixed when the
 daemon is assembled: a change there is logged as needing a restart and is not applied,
@@ -23,7 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from robotd.base.config import Config, load_config
+from robotd.base.config import Config, live_keys, load_config
 from robotd.base.errors import RobotdError
 
 __all__ = ["LIVE_KEYS", "ConfigReloader", "changed_keys"]
@@ -75,10 +76,11 @@ LIVE_KEYS: dict[Key, Callable[[Any, Any], None]] = {
     ("floor_detector", "shortlist"): _detector_param("shortlist"),
     ("floor_detector", "exclude_recent_s"): _detector_param("exclude_recent_s"),
     ("pose_graph", "gate_chi2"): _graph_call("set_gate"),
-    ("pose_graph", "save_every_keyframes"): _graph_call("set_save_every"),
+    ("pose_graph", "full_solve_every_keyframes"): _graph_call("set_save_every"),
     ("calibration", "path"): lambda daemon, value: None,  # its thresholds: see ConfigReloader
 }
-"""The config keys a reload applies to the running daemon, each with how."""
+"""How a reload applies each key the config's metadata marks live (its keys are
+:func:`~robotd.base.config.live_keys`)."""
 
 
 def _stage(daemon: Any, name: str) -> Any:
@@ -135,7 +137,7 @@ class ConfigReloader:
         for section, key in changed_keys(self.config, new):
             name = f"[{section}] {key}"
             value = getattr(getattr(new, section), key)
-            apply = LIVE_KEYS.get((section, key))
+            apply = LIVE_KEYS.get((section, key)) if (section, key) in live_keys() else None
             if apply is None:
                 restart.append(name)
                 continue

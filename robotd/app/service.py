@@ -8,11 +8,9 @@ while the other sources run on; the gap shows in STATUS (:func:`~robotd.app.daem
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any, Callable
 
 import numpy as np
@@ -20,7 +18,7 @@ import numpy as np
 from robotd.app.assemble import assemble_daemon, load_calibration, open_map
 from robotd.app.signals import StartupSignals, held_signals
 from robotd.base.clock import Clock, MonotonicClock
-from robotd.base.config import Config, to_toml
+from robotd.base.config import VIRTUAL_SOURCE, Config, to_toml
 from robotd.base.errors import ConfigError, DriverError
 from robotd.base.messages import OdometryUpdate
 
@@ -39,7 +37,7 @@ def open_sources(cfg: Config, clock: Clock) -> dict[str, Any]:
         # [robot]'s geometry.
         wanted.append(("base", "base", cfg.base.driver, cfg if cfg.base.driver in ("can", "ros2") else cfg.base))
     fc = cfg.floor_camera
-    if fc.source == "virtual":
+    if fc.source == VIRTUAL_SOURCE:  # set by code only (the demo, replay), never read from a file
         raise ConfigError("[floor_camera] source: 'virtual' exists only in `robotd demo`")
     if fc.source != "none":
         wanted.append(("floor", "floor_camera", fc.source, cfg if fc.source == "ros2" else fc))
@@ -48,10 +46,7 @@ def open_sources(cfg: Config, clock: Clock) -> dict[str, Any]:
         log.warning("[forward_camera] source = %r but [forward_detector] is off: the forward camera "
                     "is not opened", fw.source)
     elif fw.source != "none":
-        # The device section with the size the detector's camera model assumes.
-        section = SimpleNamespace(**dataclasses.asdict(fw), width_px=fd.width_px, height_px=fd.height_px)
-        if fw.source == "ros2":  # its topic is in [ros2]
-            section = cfg
+        section: Any = cfg if fw.source == "ros2" else fw  # a ros2 camera's topic is in [ros2]
         wanted.append(("forward", "forward_camera", fw.source, section))
     sources: dict[str, Any] = {}
     try:
@@ -166,8 +161,8 @@ def open_recording(cfg: Config, path: Path) -> Any:
                              png_compression=rc.png_compression, config_toml=to_toml(cfg))
     model = FloorCameraModel.from_config(cfg.floor_camera)
     writer.add_camera("floor", model.intrinsics, model.rotation_robot_from_camera, model.position_robot_m)
-    fw = cfg.forward_detector
-    if fw.enabled:  # a level camera looking along mount_yaw_deg
+    fw = cfg.forward_camera
+    if cfg.forward_detector.enabled:  # a level camera looking along mount_yaw_deg
         from robotd.base.camera import CameraIntrinsics
 
         c, s = math.cos(math.radians(fw.mount_yaw_deg)), math.sin(math.radians(fw.mount_yaw_deg))

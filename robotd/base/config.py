@@ -10,6 +10,7 @@ absent). Environment variables change nothing.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -18,14 +19,21 @@ from typing import Any
 
 from robotd.base.errors import ConfigError
 
+log = logging.getLogger(__name__)
+
 
 def _f(default: Any, doc: str, *, lo: float | None = None, hi: float | None = None,
        choices: tuple[str, ...] | None = None, length: int | None = None,
-       nonempty: bool = False) -> Any:
-    """A config field with its documentation and validity constraints (``nonempty``: a
-    string that must not be empty or blank, such as a file path)."""
+       nonempty: bool = False, live: bool = False, unit: str | None = None) -> Any:
+    """A config field with its documentation and validity constraints.
+
+    ``nonempty``: a string that must not be empty or blank, such as a file path.
+    ``live``: ``systemctl reload robotd`` (SIGHUP) applies a change at once (the reload
+    table of :mod:`robotd.app.reload` is checked against these). ``unit``: the unit when
+    the key's name does not end in one of :data:`UNIT_SUFFIXES` (``""``: unitless).
+    """
     meta = {"doc": doc, "lo": lo, "hi": hi, "choices": choices, "length": length,
-            "nonempty": nonempty}
+            "nonempty": nonempty, "live": live, "unit": unit}
     if isinstance(default, (list, tuple)):
         return field(default=tuple(default), metadata=meta)
     return field(default=default, metadata=meta)
@@ -33,11 +41,13 @@ def _f(default: Any, doc: str, *, lo: float | None = None, hi: float | None = No
 
 @dataclass(frozen=True)
 class RobotConfig:
-    """Differential-drive geometry (Kobuki defaults)."""
+    """Differential-drive geometry (Kobuki / TurtleBot 2 defaults); ``robotd calibrate
+    odometry`` measures this robot's wheel radii and wheel base into the calibration
+    file, which then replaces them."""
 
     wheel_radius_m: float = _f(0.035, "wheel radius", lo=0.005, hi=1.0)
     wheel_base_m: float = _f(0.23, "distance between the wheel contact points", lo=0.02, hi=5.0)
-    ticks_per_rev: float = _f(2578.33, "encoder ticks per wheel turn", lo=1.0, hi=1e7)
+    ticks_per_rev: float = _f(2578.33, "encoder ticks per wheel turn", lo=1.0, hi=1e7, unit="ticks")
 
 
 @dataclass(frozen=True)
@@ -47,11 +57,16 @@ class BaseConfig:
     driver: str = _f("kobuki", "base driver ('can': the [can] section; 'ros2': nav_msgs/Odometry "
                      "and sensor_msgs/Imu from the [ros2] input topics)",
                      choices=("kobuki", "can", "ros2", "none"))
-    port: str = _f("/dev/kobuki", "serial port: a device path or any pyserial URL", nonempty=True)
-    baudrate: int = _f(115200, "serial baud rate", lo=1200, hi=4_000_000)
-    yaw_source: str = _f("raw_gyro", "which gyro reading feeds the filter",
+    port: str = _f("/dev/kobuki", "serial port: a device path (the udev rule of systemd/ names the "
+                   "Kobuki /dev/kobuki) or any pyserial URL, e.g. spy:///dev/kobuki?file=/tmp/k.txt "
+                   "to log the traffic", nonempty=True)
+    baudrate: int = _f(115200, "serial baud rate", lo=1200, hi=4_000_000, unit="baud")
+    yaw_source: str = _f("raw_gyro", "which gyro reading feeds the filter: the Kobuki's raw gyro "
+                         "(sub-payload 13, ~100 Hz, 0.00875 deg/s) or its inertial heading rate "
+                         "(sub-payload 4)",
                          choices=("raw_gyro", "inertial"))
-    queue_size: int = _f(512, "samples buffered between the driver thread and the pipeline",
+    queue_size: int = _f(512, "samples buffered between the driver thread and the pipeline (drops "
+                         "are counted)",
                          lo=1, hi=1_000_000)
 
 
@@ -63,40 +78,59 @@ class CanConfig:
     A signal is ``"Message.Signal"`` of the DBC. A wheel signal in a unit of angle or
     distance is a position (cumulative), one per second a speed (integrated by the
     driver). ``left_scale``/``right_scale`` multiply the decoded value first: -1 for a
-    mirrored motor, 1/N for a gearbox of ratio N when the signal is motor turns."""
+    mirrored motor, 1/N for a gearbox of ratio N when the signal is motor turns. The
+    geometry is ``[robot]``'s.
+
+    On the robot, bring the interface up first (it survives bus-off by itself): ``ip link
+    set can0 type can bitrate 500000 restart-ms 100 && ip link set can0 up``. An ODrive
+    per wheel (CANSimple), motors mirrored, 1:1: ``dbc = "odrive_cansimple"``, ``left =
+    "Left_Encoder_Estimates.Pos_Estimate"``, ``right =
+    "Right_Encoder_Estimates.Pos_Estimate"``, ``wheel_unit = "turn"``, ``left_scale =
+    -1.0``, ``yaw = ""``."""
 
     interface: str = _f("socketcan", "python-can interface ('socketcan' on the robot, 'virtual' in tests)")
     channel: str = _f("can0", "python-can channel (the socketcan network interface)")
-    dbc: str = _f("diff_drive", "a DBC shipped with robotd ('diff_drive', 'odrive_cansimple') or a .dbc path")
+    dbc: str = _f("diff_drive", "a DBC shipped with robotd ('diff_drive': wheel angles in one frame, "
+                  "the yaw gyro in another; 'odrive_cansimple': one ODrive per wheel, node 0 left, "
+                  "node 1 right) or a .dbc path")
     left: str = _f("Base_Wheels.Left_Wheel_Pos", "left wheel signal, Message.Signal")
     right: str = _f("Base_Wheels.Right_Wheel_Pos", "right wheel signal, Message.Signal")
     wheel_unit: str = _f("rad", "unit of the wheel signals (per second: a speed)",
                          choices=("turn", "rad", "deg", "m", "turn/s", "rad/s", "deg/s", "m/s", "rpm"))
     left_scale: float = _f(1.0, "multiplies the left signal (-1: mirrored; 1/N: gear ratio N)", lo=-1e6, hi=1e6)
     right_scale: float = _f(1.0, "multiplies the right signal (-1: mirrored; 1/N: gear ratio N)", lo=-1e6, hi=1e6)
-    yaw: str = _f("Base_Gyro.Yaw_Rate", "yaw-rate signal, Message.Signal ('': no gyro)")
+    yaw: str = _f("Base_Gyro.Yaw_Rate", "yaw-rate signal, Message.Signal, counter-clockwise positive "
+                  "after yaw_scale ('': no gyro, wheel-only odometry)")
     yaw_unit: str = _f("deg/s", "unit of the yaw-rate signal", choices=("rad/s", "deg/s"))
     yaw_scale: float = _f(1.0, "multiplies the yaw signal (-1: clockwise positive)", lo=-1e6, hi=1e6)
     period_s: float = _f(0.02, "the wheel frames' nominal period", lo=1e-4, hi=10.0)
-    stale_periods: int = _f(5, "a wheel (or the bus) silent this many periods is stale", lo=1, hi=100_000)
+    stale_periods: int = _f(5, "a wheel (or the bus) silent this many periods is stale: counted, "
+                            "logged once, and the odometry is marked degraded in STATUS until it "
+                            "speaks again", lo=1, hi=100_000)
     max_frames_per_read: int = _f(2000, "frames taken per read; more waiting is a flood (counted)",
                                   lo=1, hi=1_000_000)
 
 
 @dataclass(frozen=True)
 class FloorCameraConfig:
-    """The downward-facing floor camera: device, intrinsics and mounting."""
+    """The downward-facing floor camera: device, intrinsics and mounting. The calibration
+    file's intrinsics and mount (``robotd calibrate intrinsics`` / ``floor-mount``), when
+    it has them, replace the ones here (logged at start-up)."""
 
-    source: str = _f("v4l2", "camera source ('virtual': the built-in virtual robot, demo only; "
-                     "'ros2': the [ros2] floor_camera_topic)",
-                     choices=("v4l2", "depthai", "none", "virtual", "ros2"))
+    source: str = _f("v4l2", "camera source: 'v4l2' the device below, 'depthai' a Luxonis OAK "
+                     "camera (the depthai_* keys), 'ros2' the [ros2] floor_camera_topic, 'none' "
+                     "odometry only. A camera that vanishes is reopened with backoff (0.5 s, "
+                     "doubling up to 8 s) while odometry runs on; the time without frames shows "
+                     "in STATUS", choices=("v4l2", "depthai", "none", "ros2"))
     device: str = _f("/dev/video0", "V4L2 device path")
     fourcc: str = _f("YUYV", "pixel format requested from the driver", choices=("YUYV", "MJPG", "GREY"))
     width_px: int = _f(640, "image width", lo=16, hi=8192)
     height_px: int = _f(480, "image height", lo=16, hi=8192)
-    fps: float = _f(30.0, "frame rate", lo=0.1, hi=1000.0)
-    buffer_size: int = _f(2, "driver-side frame buffers (small = low latency)", lo=1, hi=32)
-    queue_size: int = _f(8, "frames buffered between the camera thread and the pipeline", lo=1, hi=10_000)
+    fps: float = _f(30.0, "frame rate", lo=0.1, hi=1000.0, unit="Hz")
+    buffer_size: int = _f(2, "driver-side frame buffers (small = low latency; DepthAI: the host "
+                          "queue's length)", lo=1, hi=32, unit="frames")
+    queue_size: int = _f(8, "frames buffered between the camera thread and the pipeline (drops are "
+                         "counted)", lo=1, hi=10_000, unit="frames")
     fx_px: float = _f(400.0, "focal length x", lo=1.0, hi=1e5)
     fy_px: float = _f(400.0, "focal length y", lo=1.0, hi=1e5)
     cx_px: float = _f(319.5, "principal point x", lo=-1e5, hi=1e5)
@@ -109,7 +143,8 @@ class FloorCameraConfig:
     mount_yaw_deg: float = _f(0.0, "image rotation about the optical axis", lo=-180.0, hi=180.0)
     # DepthAI (source = "depthai"): width_px, height_px and fps as above, buffer_size is
     # the host queue's length in frames.
-    depthai_device: str = _f("", "DepthAI device id, IP address or USB name ('' = the first found)")
+    depthai_device: str = _f("", "DepthAI device id (e.g. 14442C10D13EABCE00), IP address or USB name "
+                             "('' = the first found)")
     depthai_socket: str = _f("CAM_A", "board socket of the camera (OAK-D: CAM_A colour, CAM_B/CAM_C mono)",
                              choices=("CAM_A", "CAM_B", "CAM_C", "CAM_D", "CAM_E", "CAM_F", "CAM_G", "CAM_H"))
     colour: bool = _f(False, "DepthAI: request colour (NV12) instead of mono (GRAY8); the floor "
@@ -120,51 +155,76 @@ class FloorCameraConfig:
 
 @dataclass(frozen=True)
 class OdometryConfig:
-    """Noise model of the wheel + gyro extended Kalman filter (1-sigma values)."""
+    """Noise model of the wheel + gyro extended Kalman filter: the process noises are
+    spectral densities (the variance they add grows with the time step), the
+    measurement noises 1-sigma per reading."""
 
-    accel_noise_mps2: float = _f(0.5, "process noise: linear acceleration", lo=1e-6, hi=100.0)
-    angular_accel_noise_radps2: float = _f(0.3, "process noise: angular acceleration", lo=1e-6, hi=1000.0)
-    gyro_bias_walk_radps_sqrt_s: float = _f(2e-5, "gyro bias random walk", lo=0.0, hi=1.0)
-    wheel_v_noise_mps: float = _f(0.01, "wheel speed noise at standstill", lo=1e-6, hi=10.0)
-    wheel_v_noise_frac: float = _f(0.02, "wheel speed noise growing with speed (slip)", lo=0.0, hi=1.0)
-    wheel_w_noise_radps: float = _f(0.05, "wheel yaw-rate noise", lo=1e-6, hi=10.0)
-    wheel_w_noise_frac: float = _f(0.05, "wheel yaw-rate noise growing with turn rate", lo=0.0, hi=1.0)
-    wheel_w_noise_per_mps: float = _f(0.5, "wheel yaw-rate noise growing with speed (unequal wheels)",
-                                      lo=0.0, hi=100.0)
-    gyro_noise_radps: float = _f(0.003, "gyro yaw-rate white noise per sample", lo=1e-7, hi=10.0)
-    initial_gyro_bias_sigma_radps: float = _f(0.01, "prior on the gyro bias", lo=1e-7, hi=10.0)
+    accel_noise_density_mps2_per_sqrt_hz: float = _f(
+        0.5, "process noise: white linear acceleration driving the speed (the speed's "
+        "variance grows by its square times the time step)", lo=1e-6, hi=100.0)
+    angular_accel_noise_density_radps2_per_sqrt_hz: float = _f(
+        0.3, "process noise: white angular acceleration driving the yaw rate", lo=1e-6, hi=1000.0)
+    gyro_bias_walk_radps_per_sqrt_s: float = _f(2e-5, "gyro bias random walk (the bias's variance "
+                                                "grows by its square times the time step)",
+                                                lo=0.0, hi=1.0)
+    wheel_v_noise_mps: float = _f(0.01, "1-sigma wheel speed noise at standstill", lo=1e-6, hi=10.0)
+    wheel_v_noise_frac: float = _f(0.02, "wheel speed noise growing with speed (slip), a fraction "
+                                   "of the speed", lo=0.0, hi=1.0)
+    wheel_w_noise_radps: float = _f(0.05, "1-sigma wheel yaw-rate noise", lo=1e-6, hi=10.0)
+    wheel_w_noise_frac: float = _f(0.05, "wheel yaw-rate noise growing with turn rate, a fraction of "
+                                   "the turn rate", lo=0.0, hi=1.0)
+    wheel_w_noise_per_mps: float = _f(0.5, "wheel yaw-rate noise growing with speed (unequal wheel "
+                                      "diameters turn a straight run), rad/s per m/s",
+                                      lo=0.0, hi=100.0, unit="rad/s per m/s")
+    gyro_noise_radps: float = _f(0.003, "1-sigma white noise of one gyro reading", lo=1e-7, hi=10.0)
+    initial_gyro_bias_sigma_radps: float = _f(0.01, "1-sigma prior on the gyro bias", lo=1e-7, hi=10.0)
 
 
 @dataclass(frozen=True)
 class KeyframeConfig:
-    """When a floor frame becomes a keyframe, and what of it is stored."""
+    """When a floor frame becomes a keyframe, and what of it is stored. 0.15 m is a third
+    of the floor camera's footprint: closer keyframes cost CPU per metre without closing
+    more revisits or improving the loop-corrected trajectory (docs/performance.md)."""
 
-    distance_m: float = _f(0.15, "distance travelled since the last keyframe", lo=0.001, hi=100.0)
-    rotation_deg: float = _f(10.0, "rotation since the last keyframe", lo=0.1, hi=360.0)
-    image_width_px: int = _f(160, "width of the stored downsampled image (0 = none)", lo=0, hi=8192)
+    distance_m: float = _f(0.15, "distance travelled since the last keyframe", lo=0.001, hi=100.0,
+                           live=True)
+    rotation_deg: float = _f(10.0, "rotation since the last keyframe", lo=0.1, hi=360.0, live=True)
+    image_width_px: int = _f(160, "width of the stored downsampled grey JPEG image (0 = none)", lo=0, hi=8192)
     jpeg_quality: int = _f(85, "JPEG quality of the stored image", lo=1, hi=100)
-    max_sync_wait_s: float = _f(0.5, "how long a frame waits for odometry at its stamp", lo=0.0, hi=60.0)
+    max_sync_wait_s: float = _f(0.5, "how long a frame waits for odometry at its stamp, then is "
+                                "dropped (counted)", lo=0.0, hi=60.0)
 
 
 @dataclass(frozen=True)
 class FloorDetectorConfig:
-    """Compact floor descriptors of every keyframe and the map query (paper 003)."""
+    """Compact floor descriptors of every keyframe and the map query (paper 003): each
+    keyframe's floor image gets a descriptor with a hard byte budget, stored in the map;
+    each new keyframe queries the map for earlier look-alikes: a global shortlist, then
+    local matching with a geometric check on the shortlist only."""
 
     enabled: bool = _f(True, "describe keyframes and query the map for look-alikes")
-    mode: int = _f(4, "descriptor mode: 1..6 = at most 512 B, 1, 2, 4, 8, 16 kB per image", lo=1, hi=6)
-    candidates: int = _f(5, "candidates returned per query", lo=1, hi=100)
+    descriptor_mode: int = _f(4, "descriptor mode of paper 003, the byte budget of a keyframe's "
+                              "descriptor: 1..6 = at most 512 B, 1, 2, 4, 8, 16 kB per image (floor "
+                              "visual odometry reuses it; a trained loop threshold is per mode)",
+                              lo=1, hi=6, unit="")
+    candidates: int = _f(5, "candidates returned per query", lo=1, hi=100, live=True, unit="")
     shortlist: int = _f(10, "keyframes scored locally per query (after the global shortlist)",
-                        lo=1, hi=100_000)
-    exclude_recent_s: float = _f(20.0, "keyframes younger than this are not candidates", lo=0.0, hi=1e6)
+                        lo=1, hi=100_000, live=True, unit="")
+    exclude_recent_s: float = _f(20.0, "keyframes younger than this are not candidates", lo=0.0, hi=1e6,
+                                 live=True)
 
 
 @dataclass(frozen=True)
 class VisualOdometryConfig:
-    """Floor visual odometry between consecutive keyframes (paper 003, Sec. IV-D); the
-    descriptor mode is ``[floor_detector] mode`` (the keyframe's descriptor is reused)."""
+    """Floor visual odometry between consecutive keyframes (paper 003, Sec. IV-D): the
+    matched keypoints of consecutive keyframes, mapped to the floor with the camera
+    calibration, give the rigid motion (RANSAC, then a least-squares fit) with a
+    covariance from the residuals. The
+    descriptor mode is ``[floor_detector] descriptor_mode`` (the keyframe's descriptor is
+    reused)."""
 
     enabled: bool = _f(True, "estimate the motion between consecutive keyframes from the floor camera")
-    mode: str = _f("fused", "'fused': a measurement in the wheel + gyro filter; 'vision_only': the "
+    role: str = _f("fused", "'fused': a measurement in the wheel + gyro filter; 'vision_only': the "
                    "chained steps are the odometry (no wheels; failed steps take the wheel + gyro "
                    "increment when there is one)", choices=("fused", "vision_only"))
     min_inliers: int = _f(8, "fewest metric inliers of a usable step", lo=3, hi=10_000)
@@ -173,18 +233,24 @@ class VisualOdometryConfig:
 
 @dataclass(frozen=True)
 class PoseGraphConfig:
-    """The live pose graph: keyframes, odometry edges and gated loop edges (GTSAM iSAM2)."""
+    """The live pose graph (GTSAM iSAM2): every keyframe with its odometry edge, and each
+    loop candidate that passes a chi-square gate against the graph's own prediction; the
+    optimised poses are stored in the map beside the odometry poses."""
 
     enabled: bool = _f(True, "keep a pose graph and store the loop-corrected poses in the map")
     gate_chi2: float = _f(16.27, "largest Mahalanobis distance squared of a loop against the graph's "
                           "prediction (16.27: 99.9 % of chi-square with 3 degrees of freedom)",
-                          lo=0.1, hi=1e6)
-    save_every_keyframes: int = _f(200, "re-solve the whole graph robustly and store the optimised "
-                                   "poses every this many keyframes (0: only at the end of a run)",
-                                   lo=0, hi=1_000_000)
+                          lo=0.1, hi=1e6, live=True, unit="")
+    full_solve_every_keyframes: int = _f(200, "re-solve the whole graph robustly (LAGO, then "
+                                         "DCS-weighted Levenberg-Marquardt) and store the optimised "
+                                         "poses every this many keyframes (0: only at the end of a run)",
+                                         lo=0, hi=1_000_000, live=True, unit="keyframes")
     localise_mapped: bool = _f(False, "over ground the map already holds, once a loop is accepted, "
                                "keyframes only re-localise the robot and are not stored: the map and "
-                               "the graph grow with the area covered, not the distance driven")
+                               "the graph grow with the area covered, not the distance driven (on "
+                               "in the service's config, for a robot that drives the same rooms for "
+                               "weeks; off by default: the demo and the paper's experiment keep every "
+                               "keyframe)")
     mapped_radius_m: float = _f(0.15, "a keyframe this close to a stored one (by the graph's estimate) "
                                 "is on mapped ground", lo=0.001, hi=100.0)
     max_unlocalised_m: float = _f(1.0, "on mapped ground, travel this far without an accepted match "
@@ -194,7 +260,8 @@ class PoseGraphConfig:
 @dataclass(frozen=True)
 class ForwardDetectorConfig:
     """The forward camera's Bayesian loop detector (paper 000) on forward keyframes; its
-    verified loops enter the pose graph with the range taken from the graph's prediction."""
+    verified loops enter the pose graph with the range taken from the graph's prediction.
+    The camera itself (device, size, intrinsics, mount) is ``[forward_camera]``."""
 
     enabled: bool = _f(False, "run the forward loop detector (needs a forward camera source)")
     method: str = _f("default", "the detector: 'default' (binary ORB features, an incremental Hamming "
@@ -204,66 +271,81 @@ class ForwardDetectorConfig:
     features: str = _f("auto", "local features: 'auto' (the method's: ORB for 'default', SIFT for "
                        "'paper'), 'sift' or 'orb'", choices=("auto", "sift", "orb"))
     max_features: int = _f(0, "strongest keypoints kept per image (0: the method's: 300 ORB, all SIFT)",
-                           lo=0, hi=100_000)
+                           lo=0, hi=100_000, unit="")
     distance_m: float = _f(0.5, "a forward keyframe every this far travelled", lo=0.01, hi=100.0)
     rotation_deg: float = _f(20.0, "or every this much turned", lo=0.1, hi=360.0)
     sync_tolerance_s: float = _f(0.04, "largest offset of the forward frame from its floor keyframe",
                                  lo=0.0, hi=1.0)
-    width_px: int = _f(640, "forward camera image width", lo=16, hi=8192)
-    height_px: int = _f(480, "forward camera image height", lo=16, hi=8192)
-    fx_px: float = _f(525.0, "forward camera focal length x", lo=1.0, hi=1e5)
-    fy_px: float = _f(525.0, "forward camera focal length y", lo=1.0, hi=1e5)
-    cx_px: float = _f(319.5, "forward camera principal point x", lo=-1e5, hi=1e5)
-    cy_px: float = _f(239.5, "forward camera principal point y", lo=-1e5, hi=1e5)
-    mount_x_m: float = _f(0.1, "forward camera position in the robot frame, forward", lo=-2.0, hi=2.0)
-    mount_y_m: float = _f(0.0, "forward camera position in the robot frame, left", lo=-2.0, hi=2.0)
-    mount_yaw_deg: float = _f(0.0, "forward camera heading in the robot frame", lo=-180.0, hi=180.0)
-    mount_height_m: float = _f(0.6, "forward camera lens height above the floor (level optical axis)",
-                               lo=0.0, hi=5.0)
     sigma_bearing_deg: float = _f(2.0, "1-sigma of a loop's translation direction", lo=0.01, hi=90.0)
     sigma_yaw_deg: float = _f(1.0, "1-sigma of a loop's heading change", lo=0.01, hi=90.0)
 
 
 @dataclass(frozen=True)
 class ForwardCameraConfig:
-    """The forward camera's device for `robotd run` (its size, intrinsics and mount are in
-    ``[forward_detector]``, which uses its frames). Opened only when the detector is on."""
+    """The forward camera: its device for `robotd run` (opened only when
+    ``[forward_detector]`` is enabled; frames are converted to grey), its image size and
+    pinhole intrinsics, and its mount (a level optical axis; the defaults are the virtual
+    robot's forward camera, ``robotd demo --forward``)."""
 
     source: str = _f("none", "camera source of the forward camera ('none': no forward camera; "
                      "'ros2': the [ros2] forward_camera_topic)",
                      choices=("v4l2", "depthai", "none", "ros2"))
     device: str = _f("/dev/video1", "V4L2 device path")
     fourcc: str = _f("YUYV", "pixel format requested from the driver", choices=("YUYV", "MJPG", "GREY"))
-    fps: float = _f(15.0, "frame rate (the detector takes a keyframe every few frames)", lo=0.1, hi=1000.0)
-    buffer_size: int = _f(2, "driver-side frame buffers (small = low latency)", lo=1, hi=32)
+    width_px: int = _f(640, "image width", lo=16, hi=8192)
+    height_px: int = _f(480, "image height", lo=16, hi=8192)
+    fps: float = _f(15.0, "frame rate (the detector takes a keyframe every few frames)", lo=0.1, hi=1000.0,
+                    unit="Hz")
+    buffer_size: int = _f(2, "driver-side frame buffers (small = low latency)", lo=1, hi=32, unit="frames")
+    fx_px: float = _f(525.0, "focal length x", lo=1.0, hi=1e5)
+    fy_px: float = _f(525.0, "focal length y", lo=1.0, hi=1e5)
+    cx_px: float = _f(319.5, "principal point x", lo=-1e5, hi=1e5)
+    cy_px: float = _f(239.5, "principal point y", lo=-1e5, hi=1e5)
+    mount_x_m: float = _f(0.1, "camera position in the robot frame, forward", lo=-2.0, hi=2.0)
+    mount_y_m: float = _f(0.0, "camera position in the robot frame, left", lo=-2.0, hi=2.0)
+    mount_yaw_deg: float = _f(0.0, "camera heading in the robot frame", lo=-180.0, hi=180.0)
+    mount_height_m: float = _f(0.6, "lens height above the floor (level optical axis); the range of "
+                               "a forward loop is measured on the floor from it (0: unknown, the "
+                               "pose graph's prediction instead)", lo=0.0, hi=5.0)
     depthai_device: str = _f("", "DepthAI device id, IP address or USB name ('' = the first found)")
     depthai_socket: str = _f("CAM_A", "board socket of the camera (OAK-D: CAM_A colour, CAM_B/CAM_C mono)",
                              choices=("CAM_A", "CAM_B", "CAM_C", "CAM_D", "CAM_E", "CAM_F", "CAM_G", "CAM_H"))
     colour: bool = _f(False, "DepthAI: request colour (NV12) instead of mono (GRAY8); converted to "
                       "grey either way")
     depthai_reconnection_attempts: int = _f(3, "times depthai reconnects a lost device itself before "
-                                            "the driver reopens it with backoff", lo=0, hi=1000)
+                                            "the driver reopens it with backoff", lo=0, hi=1000, unit="")
 
 
 @dataclass(frozen=True)
 class CalibrationConfig:
-    """Where the calibration file is (written by ``robotd calibrate``)."""
+    """Where the calibration file is (written by ``robotd calibrate intrinsics |
+    floor-mount | odometry | loop-curve``). Its calibrated values replace the config's
+    ``[floor_camera]`` intrinsics and mount and ``[robot]`` geometry (logged); its
+    trained loop thresholds let the daemon declare loops. Without the file the daemon
+    says so at start-up and declares no floor loops."""
 
     path: str = _f("/etc/robotd/calibration.yml",
-                   "OpenCV YAML: intrinsics, floor mount, trained loop thresholds (optional)",
-                   nonempty=True)
+                   "OpenCV YAML: intrinsics, floor mount, trained loop thresholds (optional; a "
+                   "reload reads the file again and applies its loop threshold live, its "
+                   "intrinsics and mount at a restart)",
+                   nonempty=True, live=True)
 
 
 @dataclass(frozen=True)
 class MapConfig:
-    """The SQLite map file."""
+    """The SQLite map file (WAL; the systemd unit's StateDirectory= is /var/lib/robotd)."""
 
     path: str = _f("/var/lib/robotd/map.sqlite", "map file (created if missing)", nonempty=True)
 
 
 @dataclass(frozen=True)
 class RecordingConfig:
-    """How ``robotd record`` (and the demo's ``--record``) stores camera frames."""
+    """How ``robotd record`` (and the demo's ``--record``) stores camera frames in the MCAP
+    file (sensor_msgs/CompressedImage). JPEG at quality 15 is 10x smaller than lossless PNG
+    on the 640x480 floor camera (41 MB instead of 413 MB per minute) but lowers the
+    descriptor scores: thresholds trained on a JPEG drive are 9-15 % lower
+    (docs/recordings.md). Record calibration drives as PNG, and train and replay on one
+    format."""
 
     image_format: str = _f("jpeg", "camera frames as 'jpeg' (lossy, compact) or 'png' (lossless, "
                            "about 10x larger)", choices=("jpeg", "png"))
@@ -273,10 +355,12 @@ class RecordingConfig:
 
 @dataclass(frozen=True)
 class DaemonConfig:
-    """Service behaviour."""
+    """Service behaviour: STATUS to systemd and a log line with rates and drops."""
 
-    status_interval_s: float = _f(5.0, "how often STATUS is sent to systemd and logged", lo=0.1, hi=3600.0)
-    log_level: str = _f("info", "logging level", choices=("debug", "info", "warning", "error"))
+    status_interval_s: float = _f(5.0, "how often STATUS is sent to systemd and logged", lo=0.1, hi=3600.0,
+                                  live=True)
+    log_level: str = _f("info", "logging level (--log-level on the command line wins)",
+                        choices=("debug", "info", "warning", "error"), live=True)
 
 
 @dataclass(frozen=True)
@@ -400,10 +484,91 @@ def _check_value(section: str, f: dataclasses.Field[Any], value: Any) -> Any:
     return value
 
 
-def config_from_dict(data: dict[str, Any]) -> Config:
-    """Build a :class:`Config` from parsed TOML, validating every key."""
+Key = tuple[str, str]
+"""A config key: ``(section, key)``."""
+
+_FORWARD_CAMERA_KEYS = ("width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "mount_x_m",
+                        "mount_y_m", "mount_yaw_deg", "mount_height_m")
+
+RENAMED: dict[Key, Key] = {
+    ("odometry", "accel_noise_mps2"): ("odometry", "accel_noise_density_mps2_per_sqrt_hz"),
+    ("odometry", "angular_accel_noise_radps2"):
+        ("odometry", "angular_accel_noise_density_radps2_per_sqrt_hz"),
+    ("odometry", "gyro_bias_walk_radps_sqrt_s"): ("odometry", "gyro_bias_walk_radps_per_sqrt_s"),
+    ("floor_detector", "mode"): ("floor_detector", "descriptor_mode"),
+    ("visual_odometry", "mode"): ("visual_odometry", "role"),
+    ("pose_graph", "save_every_keyframes"): ("pose_graph", "full_solve_every_keyframes"),
+    **{("forward_detector", k): ("forward_camera", k) for k in _FORWARD_CAMERA_KEYS},
+}
+"""Keys of earlier config files and their names now (CHANGELOG.md). A file with an old
+name still loads: the value is applied to the new key, with one warning per old key; a
+file with both is an error."""
+
+VIRTUAL_SOURCE = "virtual"
+"""``[floor_camera] source`` of the demo's built-in robot and of replays: set by
+:func:`with_virtual_floor_camera`, never read from a user's file (``robotd run`` has no
+virtual camera); accepted only in configs robotd stored itself (recordings, maps)."""
+
+
+def live_keys() -> frozenset[Key]:
+    """The keys ``systemctl reload robotd`` (SIGHUP) applies at once: those whose
+    metadata says ``live`` (:mod:`robotd.app.reload` applies them)."""
+    return frozenset((sf.name, f.name) for sf in dataclasses.fields(Config)
+                     for f in dataclasses.fields(sf.default_factory)  # type: ignore[arg-type]
+                     if f.metadata.get("live"))
+
+
+UNIT_SUFFIXES: tuple[tuple[str, str], ...] = (
+    ("_mps2_per_sqrt_hz", "m/s^2/sqrt(Hz)"), ("_radps2_per_sqrt_hz", "rad/s^2/sqrt(Hz)"),
+    ("_radps_per_sqrt_s", "rad/s/sqrt(s)"), ("_per_mps", "per m/s"), ("_radps", "rad/s"),
+    ("_mps", "m/s"), ("_frac", "fraction"), ("_deg", "deg"), ("_px", "px"), ("_hz", "Hz"),
+    ("_m", "m"), ("_s", "s"),
+)
+"""A key's unit from the end of its name (the project's naming rule: SI units in names)."""
+
+
+def unit_of(f: dataclasses.Field[Any]) -> str:
+    """The unit of a config field: its metadata's ``unit`` when given, else the one its
+    name ends in (:data:`UNIT_SUFFIXES`), else ``""`` (a count, a name, a choice)."""
+    unit = f.metadata.get("unit")
+    if unit is not None:
+        return str(unit)
+    if isinstance(f.default, str) or isinstance(f.default, bool):
+        return ""
+    return next((u for suffix, u in UNIT_SUFFIXES if f.name.endswith(suffix)), "")
+
+
+def _renamed(data: dict[str, Any], origin: str) -> dict[str, Any]:
+    """``data`` with the old keys of :data:`RENAMED` moved to their new names (one
+    warning each); both an old key and its new one is a :class:`ConfigError`."""
+    out = {name: dict(table) if isinstance(table, dict) else table for name, table in data.items()}
+    where = f"{origin}: " if origin else ""
+    for (old_sec, old_key), (new_sec, new_key) in RENAMED.items():
+        table = out.get(old_sec)
+        if not isinstance(table, dict) or old_key not in table:
+            continue
+        target = out.setdefault(new_sec, {})
+        if not isinstance(target, dict):
+            continue  # "[new_sec] must be a table" below
+        if new_key in target:
+            raise ConfigError(f"[{old_sec}] {old_key} and [{new_sec}] {new_key} are the same key "
+                              f"([{old_sec}] {old_key} is its old name): keep only [{new_sec}] {new_key}")
+        target[new_key] = table.pop(old_key)
+        log.warning("%s[%s] %s is now [%s] %s: its value is used; rename it in the file "
+                    "(CHANGELOG.md)", where, old_sec, old_key, new_sec, new_key)
+    return out
+
+
+def config_from_dict(data: dict[str, Any], *, origin: str = "", stored: bool = False) -> Config:
+    """Build a :class:`Config` from parsed TOML, validating every key.
+
+    Old key names (:data:`RENAMED`) are taken with a warning naming ``origin`` (the file).
+    ``stored``: the config robotd wrote itself into a recording or a map, where
+    ``[floor_camera] source`` may be :data:`VIRTUAL_SOURCE`."""
+    data = _renamed(data, origin)
     sections = {f.name: f for f in dataclasses.fields(Config)}
     built: dict[str, Any] = {}
+    virtual = False
     for name, table in data.items():
         if name not in sections:
             raise ConfigError(f"unknown section [{name}] (known: {', '.join(sections)})")
@@ -415,13 +580,29 @@ def config_from_dict(data: dict[str, Any]) -> Config:
         for key, value in table.items():
             if key not in fields:
                 raise ConfigError(f"unknown key [{name}] {key} (known: {', '.join(fields)})")
+            if (name, key) == ("floor_camera", "source") and value == VIRTUAL_SOURCE:
+                if not stored:
+                    raise ConfigError(
+                        "[floor_camera] source: 'virtual' is not a camera of `robotd run` (the "
+                        "virtual robot is built by `robotd demo` itself): use 'v4l2', 'depthai', "
+                        "'ros2' or 'none'")
+                virtual = True
+                continue
             values[key] = _check_value(name, fields[key], value)
         built[name] = cls(**values)
     cfg = Config(**built)
     fc = cfg.floor_camera
     if not (0 <= fc.cx_px < fc.width_px and 0 <= fc.cy_px < fc.height_px):
         raise ConfigError("[floor_camera] cx_px/cy_px: the principal point must lie inside the image")
-    return cfg
+    return with_virtual_floor_camera(cfg) if virtual else cfg
+
+
+def with_virtual_floor_camera(cfg: Config) -> Config:
+    """``cfg`` with ``[floor_camera] source`` the built-in virtual robot's (the demo) or a
+    recording's (replay): the floor frames come from a source the caller gives the
+    daemon, not from a device. Not a value a config file may hold."""
+    return dataclasses.replace(cfg, floor_camera=dataclasses.replace(cfg.floor_camera,
+                                                                      source=VIRTUAL_SOURCE))
 
 
 def load_config(path: str | Path) -> Config:
@@ -437,7 +618,7 @@ def load_config(path: str | Path) -> Config:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None
-    return config_from_dict(data)
+    return config_from_dict(data, origin=str(p))
 
 
 def replace(cfg: Config, section: str, **changes: Any) -> Config:
@@ -465,28 +646,84 @@ def to_toml(cfg: Config) -> str:
     return "\n".join(lines)
 
 
-def commented_toml(cfg: Config | None = None) -> str:
-    """``cfg`` (default: the defaults) as TOML with each section's and key's description,
-    unit and valid range as comments: what ``robotd config default`` prints, a config file
-    to start from."""
-    cfg = Config() if cfg is None else cfg
-    lines = ["# robotd configuration (robotd config default). Unknown keys and out-of-range",
-             "# values are errors that name the key. Units are in the key names.", ""]
+SERVICE_CHOICES: dict[Key, Any] = {("pose_graph", "localise_mapped"): True}
+"""Where the service's config (``systemd/robotd.toml``) differs from the defaults: a robot
+that drives the same rooms for weeks stops growing its map over mapped ground (the demo
+and the paper's experiment keep every keyframe)."""
+
+
+def service_config() -> Config:
+    """The defaults with :data:`SERVICE_CHOICES`: what ``systemd/robotd.toml`` holds."""
+    cfg = Config()
+    for (section, key), value in SERVICE_CHOICES.items():
+        cfg = replace(cfg, section, **{key: value})
+    return cfg
+
+
+def section_doc(cls: Any) -> list[str]:
+    """A section's docstring as paragraphs, each on one line."""
+    text = (cls.__doc__ or "").strip()
+    return [" ".join(par.split()).replace("``", "`") for par in text.split("\n\n") if par.strip()]
+
+
+_NBSP = "\u00a0"  # joins a range to its unit in field_note, for commented_toml's wrapping
+
+
+def field_note(f: dataclasses.Field[Any]) -> str:
+    """A key's description with its unit, range and liveness, on one line."""
+    meta = f.metadata
+    note = " ".join(str(meta.get("doc", "")).split())
+    unit = unit_of(f)
+    lo, hi, choices = meta.get("lo"), meta.get("hi"), meta.get("choices")
+    if choices:
+        note += f" (one of {', '.join(map(repr, choices))})"
+    elif lo is not None or hi is not None:
+        rng = f"{'' if lo is None else f'{lo:g}'}..{'' if hi is None else f'{hi:g}'}"
+        note += f" ({rng}{_NBSP + unit if unit else ''})"
+    elif unit:
+        note += f" ({unit})"
+    if meta.get("live"):
+        note += "; reload applies it live"
+    return note
+
+
+def commented_toml(cfg: Config | None = None, *, service: bool = False) -> str:
+    """``cfg`` (default: the defaults; ``service``: :func:`service_config`) as TOML with
+    each section's and key's description, unit, valid range and whether a reload applies
+    it live, as comments: what ``robotd config default`` prints, a config file to start
+    from. ``robotd config default --service`` is ``systemd/robotd.toml`` (a test keeps
+    them equal)."""
+    import textwrap
+
+    if cfg is None:
+        cfg = service_config() if service else Config()
+    if service:
+        lines = ["# robotd's service configuration (systemd/robotd.toml): copy to",
+                 "# /etc/robotd/robotd.toml and edit. Generated by `robotd config default --service`",
+                 "# from the definitions in robotd/base/config.py: the defaults but for the keys",
+                 "# marked as the service's choice."]
+    else:
+        lines = ["# robotd configuration (robotd config default): the defaults."]
+    lines += ["# Unknown keys and out-of-range values are errors that name the key, so a typo never",
+              "# silently falls back to a default. Units are in the key names and in brackets.",
+              "# `systemctl reload robotd` (SIGHUP) applies the keys marked 'reload applies it",
+              "# live' at once; any other change is logged as needing a restart.", ""]
+
+    def comment(text: str) -> list[str]:  # a range and its unit stay on one line
+        return [line.replace(_NBSP, " ") for line in textwrap.wrap(
+            text, 88, initial_indent="# ", subsequent_indent="# ", break_on_hyphens=False,
+            break_long_words=False)]
+
     for sf in dataclasses.fields(cfg):
         section = getattr(cfg, sf.name)
         lines.append(f"[{sf.name}]")
-        doc = " ".join((type(section).__doc__ or "").strip().split("\n\n")[0].split())
-        if doc:
-            lines.append(f"# {doc}")
+        for par in section_doc(type(section)):
+            lines += comment(par)
         for f in dataclasses.fields(section):
-            meta = f.metadata
-            note = " ".join(str(meta.get("doc", "")).split())
-            lo, hi, choices = meta.get("lo"), meta.get("hi"), meta.get("choices")
-            if choices:
-                note += f" (one of {', '.join(map(repr, choices))})"
-            elif lo is not None or hi is not None:
-                note += f" ({'' if lo is None else f'{lo:g} '}..{'' if hi is None else f' {hi:g}'})"
-            lines.append(f"# {note}")
+            note = field_note(f)
+            if service and (sf.name, f.name) in SERVICE_CHOICES:
+                note += f" [the service's choice; the default is {_toml_value(f.default)}]"
+            lines += comment(note)
             lines.append(f"{f.name} = {_toml_value(getattr(section, f.name))}")
         lines.append("")
     return "\n".join(lines)

@@ -20,21 +20,33 @@ class WheelTicks:
     ``left_ticks``/``right_ticks`` are the raw 16-bit counters (0..65535, wrapping);
     the odometry unwraps them. ``device_ms`` is the base's own 16-bit millisecond
     timestamp, kept for diagnostics.
+
+    ``speed_var_m2ps2`` / ``yaw_rate_var_rad2ps2``: the variances of the forward speed
+    and yaw rate these ticks measure, when the source states them (a ROS 2
+    ``nav_msgs/Odometry``'s twist covariance); None (the filter's own noise model) from a
+    base that does not.
     """
 
     stamp_ns: int
     left_ticks: int
     right_ticks: int
     device_ms: int = 0
+    speed_var_m2ps2: float | None = None
+    yaw_rate_var_rad2ps2: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
 class YawRate:
-    """Angular rate about the robot's z axis (REP-103: counter-clockwise positive), rad/s."""
+    """Angular rate about the robot's z axis (REP-103: counter-clockwise positive), rad/s.
+
+    ``yaw_rate_var_rad2ps2``: the reading's variance when the source states it (a ROS 2
+    ``sensor_msgs/Imu``'s angular velocity covariance); None: the filter's noise model.
+    """
 
     stamp_ns: int
     yaw_rate_radps: float
     source: str = "gyro"
+    yaw_rate_var_rad2ps2: float | None = None
 
 
 @dataclass(frozen=True, slots=True)

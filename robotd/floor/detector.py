@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from robotd.base.config import FloorDetectorConfig
 from robotd.floor.descriptor import decode, extract
 from robotd.floor.index import Candidate, FloorIndex
 from robotd.base.geometry import (between_error_covariance, information_from_covariance, rigid_fit_2d,
@@ -27,14 +28,20 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class FloorDetectorParams:
-    """``mode``: descriptor mode 1-6 (512 B .. 16 kB per image); ``candidates``: how many
+    """``descriptor_mode``: descriptor mode 1-6 (paper 003) (512 B .. 16 kB per image); ``candidates``: how many
     candidates a query returns; ``shortlist``: keyframes scored locally per query after the
     global shortlist; ``exclude_recent_s``: keyframes younger than this are not queried."""
 
-    mode: int = 4
-    candidates: int = 5
-    shortlist: int = 10
-    exclude_recent_s: float = 20.0
+    descriptor_mode: int = FloorDetectorConfig.descriptor_mode
+    candidates: int = FloorDetectorConfig.candidates
+    shortlist: int = FloorDetectorConfig.shortlist
+    exclude_recent_s: float = FloorDetectorConfig.exclude_recent_s
+
+    @classmethod
+    def from_config(cls, section: FloorDetectorConfig) -> FloorDetectorParams:
+        """The params of a ``[floor_detector]`` table (whose defaults these are)."""
+        return cls(descriptor_mode=section.descriptor_mode, candidates=section.candidates,
+                   shortlist=section.shortlist, exclude_recent_s=section.exclude_recent_s)
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,14 +121,14 @@ class FloorLoopDetector:
         """Rebuild the index from a map's stored descriptors of the same mode (a restart
         continues the same map: every stored keyframe is old to the new run). Descriptors
         that do not decode are skipped and counted."""
-        index = FloorIndex.from_store(store, params.mode)
+        index = FloorIndex.from_store(store, params.descriptor_mode)
         if len(index):
             log.info("floor index: %d keyframes loaded from the map", len(index))
         return cls(params, index, threshold, camera)
 
     def describe(self, image: np.ndarray) -> bytes:
         """The keyframe's compact descriptor (at most the mode's byte budget)."""
-        return extract(image, self.params.mode)
+        return extract(image, self.params.descriptor_mode)
 
     def query_and_add(self, keyframe_id: int, stamp_ns: int, descriptor: bytes) -> KeyframeQuery:
         """Query the map with a stored keyframe's descriptor, then add it to the index."""

@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from robotd.base.config import FloorDetectorConfig, VisualOdometryConfig
 from robotd.base.geometry import (compose, rigid_fit_2d, rigid_fit_2d_covariance,
                                   rigid_from_two_pairs, transform_points)
 from robotd.floor.descriptor import MODES, FloorDescriptor, decode, extract
@@ -61,7 +62,7 @@ class VoParams:
     """Parameters of floor visual odometry.
 
     Fields:
-        mode: descriptor mode 1-6 of images given to :meth:`FloorVisualOdometry.step`
+        descriptor_mode: descriptor mode 1-6 (``[floor_detector] descriptor_mode``) of images given to :meth:`FloorVisualOdometry.step`
             (descriptors carry their own mode; consecutive ones must share it).
         min_inliers: fewest metric inliers of a usable step (and fewest matches worth a
             RANSAC); at least 3, so the residuals say something about the noise.
@@ -79,18 +80,25 @@ class VoParams:
         match: the descriptor matcher's parameters (step 1).
     """
 
-    mode: int = 4
-    min_inliers: int = 8
-    ransac_threshold_m: float = 0.003
+    descriptor_mode: int = FloorDetectorConfig.descriptor_mode
+    min_inliers: int = VisualOdometryConfig.min_inliers
+    ransac_threshold_m: float = VisualOdometryConfig.ransac_threshold_m
     iterations: int = 100
     seed: int = 0
     min_spread_m: float = 0.02
     min_sigma_m: float = 0.0005
     match: MatchParams = field(default_factory=MatchParams)
 
+    @classmethod
+    def from_config(cls, section: VisualOdometryConfig, descriptor_mode: int) -> VoParams:
+        """The params of a ``[visual_odometry]`` table (whose defaults these are), on
+        descriptors of ``[floor_detector] descriptor_mode`` (the keyframe's are reused)."""
+        return cls(descriptor_mode=descriptor_mode, min_inliers=section.min_inliers,
+                   ransac_threshold_m=section.ransac_threshold_m)
+
     def __post_init__(self) -> None:
-        if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {sorted(MODES)}, got {self.mode!r}")
+        if self.descriptor_mode not in MODES:
+            raise ValueError(f"descriptor_mode must be one of {sorted(MODES)}, got {self.descriptor_mode!r}")
         if not (self.min_inliers >= 3 and self.ransac_threshold_m > 0 and self.iterations >= 1
                 and self.min_spread_m >= 0 and self.min_sigma_m > 0):
             raise ValueError(f"visual odometry parameters out of range: {self}")
@@ -224,12 +232,12 @@ class FloorVisualOdometry:
 
     def describe(self, keyframe: np.ndarray | bytes | FloorDescriptor) -> FloorDescriptor:
         """A keyframe as a decoded descriptor: an image ``(H, W) uint8`` is described in
-        ``params.mode``, bytes are decoded, a descriptor is passed through."""
+        ``params.descriptor_mode``, bytes are decoded, a descriptor is passed through."""
         if isinstance(keyframe, FloorDescriptor):
             return keyframe
         if isinstance(keyframe, (bytes, bytearray, memoryview)):
             return decode(bytes(keyframe))
-        return decode(extract(np.asarray(keyframe), self.params.mode))
+        return decode(extract(np.asarray(keyframe), self.params.descriptor_mode))
 
     def step(self, keyframe: np.ndarray | bytes | FloorDescriptor) -> VoResult:
         """The motion from the previous keyframe to ``keyframe``

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from robotd.base.config import ForwardDetectorConfig
 from robotd.base.geometry import compose, inverse, wrap_angle
 
 __all__ = ["PlanarLoopParams", "loop_edge", "planar_motion", "refine_motion"]
@@ -64,12 +65,18 @@ class PlanarLoopParams:
             and :func:`planar_motion` reports it.
     """
 
-    sigma_bearing_rad: float = math.radians(2.0)
-    sigma_yaw_rad: float = math.radians(1.0)
+    sigma_bearing_rad: float = math.radians(ForwardDetectorConfig.sigma_bearing_deg)
+    sigma_yaw_rad: float = math.radians(ForwardDetectorConfig.sigma_yaw_deg)
     sigma_log_range: float = 1.0
     sigma_log_range_measured: float = 0.5
     sigma_translation_m: float = 0.03
     max_tilt_rad: float = math.radians(10.0)
+
+    @classmethod
+    def from_config(cls, section: ForwardDetectorConfig) -> PlanarLoopParams:
+        """The loop noise of a ``[forward_detector]`` table (whose defaults these are)."""
+        return cls(sigma_bearing_rad=math.radians(section.sigma_bearing_deg),
+                   sigma_yaw_rad=math.radians(section.sigma_yaw_deg))
 
     def __post_init__(self) -> None:
         for name in ("sigma_bearing_rad", "sigma_yaw_rad", "sigma_log_range", "sigma_log_range_measured",

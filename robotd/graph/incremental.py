@@ -173,6 +173,12 @@ class IncrementalGraph:
         p = self._isam.calculateEstimatePose2(int(keyframe_id))
         return np.array([p.x(), p.y(), p.theta()])
 
+    def marginal_covariance(self, keyframe_id: int) -> np.ndarray:
+        """iSAM2's marginal covariance of one keyframe, ``(3, 3)``, in the pose's own tangent
+        space (x, y along its axes in m^2, yaw in rad^2; :func:`robotd.graph.covariance.tangent_to_world`
+        moves it to the map's axes)."""
+        return np.asarray(self._isam.marginalCovariance(int(keyframe_id)), dtype=float)
+
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
         """Every keyframe's current estimate: ``(ids (N,), poses (N, 3))`` (copies; computed
         once per change of the graph, which the mapped-ground test asks for at every

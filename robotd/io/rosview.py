@@ -57,15 +57,15 @@ def camera_mounts(cfg: Any) -> list[tuple[str, tuple[float, float, float], tuple
     """The static transforms of the cameras in ``base_link``: ``(child frame, xyz metres,
     quaternion xyzw)`` for ``<camera>_camera_optical_frame`` of the floor camera (from
     ``[floor_camera]``, when it has a source) and the forward camera (from
-    ``[forward_detector]``, when it is on). ``cfg``: a :class:`~robotd.base.config.Config`."""
+    ``[forward_camera]``, when the forward detector is on). ``cfg``: a :class:`~robotd.base.config.Config`."""
     out = []
     if cfg.floor_camera.source != "none":
         model = FloorCameraModel.from_config(cfg.floor_camera)
         p = model.position_robot_m
         out.append(("floor_camera_optical_frame", (float(p[0]), float(p[1]), float(p[2])),
                     quaternion_from_rotation(model.rotation_robot_from_camera)))
-    fw = cfg.forward_detector
-    if fw.enabled:
+    fw = cfg.forward_camera
+    if cfg.forward_detector.enabled:
         out.append(("forward_camera_optical_frame", (fw.mount_x_m, fw.mount_y_m, fw.mount_height_m),
                     quaternion_from_rotation(forward_camera_rotation(fw.mount_yaw_deg))))
     return out

@@ -52,12 +52,15 @@ The stream of messages is run through these functions by
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from robotd.base.config import OdometryConfig
 from robotd.base.geometry import wrap_angle
 from robotd.base.messages import PoseStamped
 
@@ -93,20 +96,23 @@ H_GYRO = np.zeros((1, STATE_SIZE))
 H_GYRO[0, IW] = 1.0
 H_GYRO[0, IB] = 1.0
 _EYE = np.eye(STATE_SIZE)
+_CONFIG = OdometryConfig()
 
 
 @dataclass(frozen=True, slots=True)
 class EkfParams:
-    """Noise model of the filter; all values are 1-sigma.
+    """Noise model of the filter: process noises as spectral densities (square roots of
+    the power spectral densities), measurement noises 1-sigma per reading.
 
-    The first nine fields have the names and defaults of the ``[odometry]`` table of the
-    configuration file, so ``EkfParams(**dataclasses.asdict(config.odometry))`` works.
+    The first ten fields are the keys of the ``[odometry]`` table of the configuration
+    file, defaults included (taken from :class:`~robotd.base.config.OdometryConfig`, the
+    one place they are written): :meth:`from_config` builds the params from that table.
 
-    - ``accel_noise_mps2``: white linear acceleration driving ``v``, m/s^2 per sqrt(Hz)
-      (the velocity's variance grows by ``accel_noise_mps2**2 * dt``).
-    - ``angular_accel_noise_radps2``: white angular acceleration driving ``w``,
-      rad/s^2 per sqrt(Hz).
-    - ``gyro_bias_walk_radps_sqrt_s``: gyro bias random walk, rad/s per sqrt(s).
+    - ``accel_noise_density_mps2_per_sqrt_hz``: white linear acceleration driving ``v``,
+      m/s^2 per sqrt(Hz) (the velocity's variance grows by its square times ``dt``).
+    - ``angular_accel_noise_density_radps2_per_sqrt_hz``: white angular acceleration
+      driving ``w``, rad/s^2 per sqrt(Hz).
+    - ``gyro_bias_walk_radps_per_sqrt_s``: gyro bias random walk, rad/s per sqrt(s).
     - ``wheel_v_noise_mps`` + ``wheel_v_noise_frac * |v|``: noise of the speed from
       one tick delta, m/s (tick quantisation, then scale error and slip growing with speed).
     - ``wheel_w_noise_radps`` + ``wheel_w_noise_frac * |w|`` + ``wheel_w_noise_per_mps *
@@ -133,22 +139,27 @@ class EkfParams:
       Moving, the optimal gain is kept.
     """
 
-    accel_noise_mps2: float = 0.5
-    angular_accel_noise_radps2: float = 0.3
-    gyro_bias_walk_radps_sqrt_s: float = 2e-5
-    wheel_v_noise_mps: float = 0.01
-    wheel_v_noise_frac: float = 0.02
-    wheel_w_noise_radps: float = 0.05
-    wheel_w_noise_frac: float = 0.05
-    gyro_noise_radps: float = 0.003
-    initial_gyro_bias_sigma_radps: float = 0.01
-    wheel_w_noise_per_mps: float = 0.5
+    accel_noise_density_mps2_per_sqrt_hz: float = _CONFIG.accel_noise_density_mps2_per_sqrt_hz
+    angular_accel_noise_density_radps2_per_sqrt_hz: float = _CONFIG.angular_accel_noise_density_radps2_per_sqrt_hz
+    gyro_bias_walk_radps_per_sqrt_s: float = _CONFIG.gyro_bias_walk_radps_per_sqrt_s
+    wheel_v_noise_mps: float = _CONFIG.wheel_v_noise_mps
+    wheel_v_noise_frac: float = _CONFIG.wheel_v_noise_frac
+    wheel_w_noise_radps: float = _CONFIG.wheel_w_noise_radps
+    wheel_w_noise_frac: float = _CONFIG.wheel_w_noise_frac
+    wheel_w_noise_per_mps: float = _CONFIG.wheel_w_noise_per_mps
+    gyro_noise_radps: float = _CONFIG.gyro_noise_radps
+    initial_gyro_bias_sigma_radps: float = _CONFIG.initial_gyro_bias_sigma_radps
     stationary_noise_mps: float = 1e-3
     stationary_noise_radps: float = 1e-3
     initial_speed_sigma_mps: float = 0.5
     initial_yaw_rate_sigma_radps: float = 1.0
     initial_pose_sigma: float = 1e-5
     smooth_pose: bool = True
+
+    @classmethod
+    def from_config(cls, section: OdometryConfig, **others: Any) -> EkfParams:
+        """The params of an ``[odometry]`` table; ``others``: the fields it does not hold."""
+        return cls(**{f.name: getattr(section, f.name) for f in dataclasses.fields(section)}, **others)
 
     def __post_init__(self) -> None:
         for name in self.__slots__:
@@ -263,8 +274,8 @@ def predict_with_jacobian(state: EkfState, t_ns: int,
     jac[IYAW, IW] = dt
 
     q = np.zeros((STATE_SIZE, STATE_SIZE))
-    qa = params.angular_accel_noise_radps2 ** 2
-    ql = params.accel_noise_mps2 ** 2
+    qa = params.angular_accel_noise_density_radps2_per_sqrt_hz ** 2
+    ql = params.accel_noise_density_mps2_per_sqrt_hz ** 2
     d2, d3 = dt * dt / 2.0, dt ** 3 / 3.0
     q[IYAW, IYAW] = qa * d3
     q[IYAW, IW] = q[IW, IYAW] = qa * d2
@@ -276,7 +287,7 @@ def predict_with_jacobian(state: EkfState, t_ns: int,
     q[IX, IV] = q[IV, IX] = ql * d2 * ux
     q[IY, IV] = q[IV, IY] = ql * d2 * uy
     q[IV, IV] = ql * dt
-    q[IB, IB] = params.gyro_bias_walk_radps_sqrt_s ** 2 * dt
+    q[IB, IB] = params.gyro_bias_walk_radps_per_sqrt_s ** 2 * dt
 
     cov = jac @ state.cov @ jac.T + q
     return EkfState(int(t_ns), mean, 0.5 * (cov + cov.T)), jac
@@ -306,24 +317,44 @@ def _update(state: EkfState, innovation: np.ndarray, h: np.ndarray, r: np.ndarra
 
 
 def wheel_noise(v_mps: float, w_radps: float, params: EkfParams,
-                stationary: bool = False) -> tuple[float, float]:
-    """1-sigma noise ``(sigma_v_mps, sigma_w_radps)`` of one wheel speed measurement."""
+                stationary: bool = False, speed_var_m2ps2: float | None = None,
+                yaw_rate_var_rad2ps2: float | None = None) -> tuple[float, float]:
+    """1-sigma noise ``(sigma_v_mps, sigma_w_radps)`` of one wheel speed measurement.
+
+    ``speed_var_m2ps2`` / ``yaw_rate_var_rad2ps2``: variances the source stated with the
+    measurement (a ROS 2 odometry's twist covariance, checked valid by its driver); each
+    replaces the noise model's value for its component. At standstill the zero-velocity
+    noise is used whatever the source said: it is the filter's own knowledge (no tick
+    moved), not the source's.
+    """
     if stationary:
         return params.stationary_noise_mps, params.stationary_noise_radps
-    sv = params.wheel_v_noise_mps + params.wheel_v_noise_frac * abs(v_mps)
+    sv = (params.wheel_v_noise_mps + params.wheel_v_noise_frac * abs(v_mps)
+          if speed_var_m2ps2 is None else math.sqrt(speed_var_m2ps2))
     sw = (params.wheel_w_noise_radps + params.wheel_w_noise_frac * abs(w_radps)
-          + params.wheel_w_noise_per_mps * abs(v_mps))
+          + params.wheel_w_noise_per_mps * abs(v_mps)
+          if yaw_rate_var_rad2ps2 is None else math.sqrt(yaw_rate_var_rad2ps2))
     return sv, sw
 
 
+def gyro_noise_var(params: EkfParams, yaw_rate_var_rad2ps2: float | None = None) -> np.ndarray:
+    """``(1, 1)`` noise covariance of one gyro reading, (rad/s)^2: the variance the source
+    stated (a ROS 2 IMU's, checked valid by its driver), else ``gyro_noise_radps**2``."""
+    var = params.gyro_noise_radps ** 2 if yaw_rate_var_rad2ps2 is None else yaw_rate_var_rad2ps2
+    return np.array([[var]])
+
+
 def update_wheels(state: EkfState, v_mps: float, w_radps: float,
-                  params: EkfParams = EkfParams(), stationary: bool = False) -> EkfState:
+                  params: EkfParams = EkfParams(), stationary: bool = False,
+                  speed_var_m2ps2: float | None = None,
+                  yaw_rate_var_rad2ps2: float | None = None) -> EkfState:
     """Measurement ``(v, w)`` from the encoders: ``h(x) = (x[v], x[w])``.
 
     ``stationary=True`` (no tick moved over the interval) uses the much smaller
     zero-velocity noise: the base is not moving, which is what makes the bias observable.
+    The variances, when given, are the source's (:func:`wheel_noise`).
     """
-    sv, sw = wheel_noise(v_mps, w_radps, params, stationary)
+    sv, sw = wheel_noise(v_mps, w_radps, params, stationary, speed_var_m2ps2, yaw_rate_var_rad2ps2)
     z = np.array([v_mps, w_radps], dtype=float)
     innovation = z - state.mean[[IV, IW]]
     return _update(state, innovation, H_WHEELS, np.diag([sv * sv, sw * sw]),
@@ -331,11 +362,12 @@ def update_wheels(state: EkfState, v_mps: float, w_radps: float,
 
 
 def update_gyro(state: EkfState, w_radps: float, params: EkfParams = EkfParams(),
-                at_rest: bool = False) -> EkfState:
+                at_rest: bool = False, yaw_rate_var_rad2ps2: float | None = None) -> EkfState:
     """Measurement of the gyro's yaw rate: ``h(x) = x[w] + x[bias]`` (``at_rest``: paired
-    with a zero-velocity update, see ``smooth_pose`` in :class:`EkfParams`)."""
+    with a zero-velocity update, see ``smooth_pose`` in :class:`EkfParams`; the variance,
+    when given, is the source's: :func:`gyro_noise_var`)."""
     innovation = np.array([w_radps - state.mean[IW] - state.mean[IB]])
-    r = np.array([[params.gyro_noise_radps ** 2]])
+    r = gyro_noise_var(params, yaw_rate_var_rad2ps2)
     return _update(state, innovation, H_GYRO, r, at_rest and params.smooth_pose)
 
 

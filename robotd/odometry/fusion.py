@@ -41,6 +41,7 @@ from robotd.odometry.ekf import (
     STATE_SIZE,
     EkfParams,
     EkfState,
+    gyro_noise_var,
     initial_state,
     predict_with_jacobian,
     rate_gain,
@@ -245,7 +246,7 @@ class OdometryFilter:
         self._flush_gyro(t, stationary)
         self.counters.still_updates += int(stationary)
         self._advance_to(t)
-        self._apply_wheels(v, w, stationary)
+        self._apply_wheels(v, w, stationary, msg)
         self._record()
         return True
 
@@ -292,20 +293,24 @@ class OdometryFilter:
             if at_rest:
                 self._apply_wheels(0.0, 0.0, True)
             prior = self._state
-            self._state = update_gyro(prior, rate, self.params, at_rest)
-            r = np.array([[self.params.gyro_noise_radps ** 2]])
+            var = msg.yaw_rate_var_rad2ps2
+            var = None if var is None else var / self.gyro_scale ** 2
+            self._state = update_gyro(prior, rate, self.params, at_rest, var)
+            r = gyro_noise_var(self.params, var)
             smooth = at_rest and self.params.smooth_pose
             self._map = (_EYE - rate_gain(prior.cov, H_GYRO, r, smooth) @ H_GYRO) @ self._map
             if self._clone is not None:
                 self._clone = clone_after_update(self._clone, prior.cov, H_GYRO, r, smooth)
             self._record()
 
-    def _apply_wheels(self, v: float, w: float, stationary: bool) -> None:
-        """The wheel update, carrying a pose clone's cross-covariance along."""
+    def _apply_wheels(self, v: float, w: float, stationary: bool, msg: WheelTicks | None = None) -> None:
+        """The wheel update, carrying a pose clone's cross-covariance along (``msg``: the
+        reading, whose stated variances replace the noise model's when it has them)."""
         prior = self._state
         assert prior is not None
-        self._state = update_wheels(prior, v, w, self.params, stationary=stationary)
-        sv, sw = wheel_noise(v, w, self.params, stationary)
+        var_v, var_w = (None, None) if msg is None else (msg.speed_var_m2ps2, msg.yaw_rate_var_rad2ps2)
+        self._state = update_wheels(prior, v, w, self.params, stationary, var_v, var_w)
+        sv, sw = wheel_noise(v, w, self.params, stationary, var_v, var_w)
         r = np.diag([sv * sv, sw * sw])
         smooth = stationary and self.params.smooth_pose
         self._map = (_EYE - rate_gain(prior.cov, H_WHEELS, r, smooth) @ H_WHEELS) @ self._map

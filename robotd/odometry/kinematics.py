@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from robotd.base.config import RobotConfig
 from robotd.base.geometry import compose, wrap_angle
 from robotd.base.messages import PoseStamped, WheelTicks
 
@@ -53,11 +54,20 @@ class DiffDriveParams:
     ``wheel_radius_m``.
     """
 
-    wheel_radius_m: float = 0.035
-    wheel_base_m: float = 0.23
-    ticks_per_rev: float = 2578.33
+    wheel_radius_m: float = RobotConfig.wheel_radius_m
+    wheel_base_m: float = RobotConfig.wheel_base_m
+    ticks_per_rev: float = RobotConfig.ticks_per_rev
     wheel_radius_left_m: float | None = None
     wheel_radius_right_m: float | None = None
+
+    @classmethod
+    def from_config(cls, section: RobotConfig, **calibrated: float | None) -> DiffDriveParams:
+        """The geometry of a ``[robot]`` table (the defaults are its defaults);
+        ``calibrated``: what the calibration file replaces (``wheel_base_m``, the wheel
+        radii)."""
+        values = {"wheel_radius_m": section.wheel_radius_m, "wheel_base_m": section.wheel_base_m,
+                  "ticks_per_rev": section.ticks_per_rev}
+        return cls(**{**values, **calibrated})  # type: ignore[arg-type]
 
     def __post_init__(self) -> None:
         for name in ("wheel_radius_m", "wheel_base_m", "ticks_per_rev", "wheel_radius_left_m",

@@ -579,6 +579,41 @@ def test_a_broken_config_is_named_on_one_line(tmp_path: Path):
         assert_refused(run("run", "--config", cfg), says)
 
 
+def test_a_config_with_an_old_and_a_new_name_of_one_key_or_a_virtual_camera_is_refused(
+        tmp_path: Path):
+    """Renamed keys (CHANGELOG.md): both names in one file is one line, for every command
+    that reads a config; so is the demo's virtual camera in a file for ``robotd run``."""
+    cfg = tmp_path / "robotd.toml"
+    m = tmp_path / "m.sqlite"
+    for text, says in [
+        ("[floor_detector]\nmode = 4\ndescriptor_mode = 4\n",
+         "[floor_detector] mode and [floor_detector] descriptor_mode are the same key"),
+        ("[forward_detector]\nfx_px = 500.0\n[forward_camera]\nfx_px = 500.0\n",
+         "[forward_detector] fx_px and [forward_camera] fx_px are the same key"),
+        ('[floor_camera]\nsource = "virtual"\n', "'virtual' is not a camera of `robotd run`"),
+    ]:
+        cfg.write_text(text)
+        before = snapshot(tmp_path)
+        assert_refused(run("config", "check", cfg), says)
+        assert_refused(run("run", "--config", cfg), says)
+        assert_refused(run("demo", "--config", cfg, "--no-plot", "--duration", "1",
+                           "--out", tmp_path / "demo"), says)
+        assert snapshot(tmp_path) == before and not m.exists()
+
+
+def test_an_old_config_checks_with_one_warning_per_renamed_key(tmp_path: Path):
+    cfg = tmp_path / "robotd.toml"
+    cfg.write_text("[odometry]\naccel_noise_mps2 = 0.7\n[pose_graph]\nsave_every_keyframes = 50\n")
+    r = subprocess.run([sys.executable, "-m", "robotd.app.cli", "--log-level", "warning", "config",
+                        "check", cfg], stdin=subprocess.DEVNULL, capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0 and r.stdout == f"{cfg}: OK\n", r.stderr
+    lines = r.stderr.splitlines()
+    assert len(lines) == 2 and "Traceback" not in r.stderr, r.stderr
+    assert "[odometry] accel_noise_mps2 is now [odometry] accel_noise_density_mps2_per_sqrt_hz" in lines[0]
+    assert "[pose_graph] save_every_keyframes is now [pose_graph] full_solve_every_keyframes" in lines[1]
+
+
 # -- 7. Ctrl-C during start-up, and mid-run ----------------------------------------------
 
 @pytest.mark.parametrize("command", ["replay", "demo"])

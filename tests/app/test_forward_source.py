@@ -20,7 +20,7 @@ from robotd.base.errors import DriverError
 def _cfg(tmp_path: Path, *, detector: bool, source: str = "v4l2") -> Config:
     cfg = replace(Config(), "base", driver="none")
     cfg = replace(cfg, "floor_camera", source="none")
-    cfg = replace(cfg, "forward_detector", enabled=detector, width_px=320, height_px=240)
+    cfg = replace(replace(cfg, "forward_detector", enabled=detector), "forward_camera", width_px=320, height_px=240)
     return replace(cfg, "forward_camera", source=source, device=str(tmp_path / "video7"), fps=10.0)
 
 

@@ -46,12 +46,13 @@ class RecordingSink:
 
 class FakeGraph:
     """What the output stage reads of the pose graph stage: ``graph.graph`` (ids),
-    ``graph.pose(id)`` and ``graph.estimate()``."""
+    ``graph.pose(id)``, ``graph.marginal_covariance(id)`` and ``graph.estimate()``."""
 
     name = "graph"
 
     def __init__(self) -> None:
         self.poses: dict[int, np.ndarray] = {}
+        self.marginals: dict[int, np.ndarray] = {}
         self.graph = self  # PoseGraphStage.graph is the IncrementalGraph
 
     def subscriptions(self):
@@ -62,6 +63,9 @@ class FakeGraph:
 
     def pose(self, k):
         return self.poses[k]
+
+    def marginal_covariance(self, k):
+        return self.marginals.get(k, np.diag([1e-4, 1e-4, 1e-5]))
 
     def estimate(self):
         ids = np.array(sorted(self.poses))
@@ -126,7 +130,60 @@ def test_map_to_odom_follows_the_graph_and_a_loop_moves_it_at_once() -> None:
     corrected = compose(stage.map_odom, np.array([1.1, 0.0, 0.0]))
     assert pose.header.frame_id == "map"
     assert np.allclose([pose.pose.pose.position.x, pose.pose.pose.position.y], corrected[:2])
-    assert np.allclose(pose.pose.covariance.reshape(6, 6)[np.ix_((0, 1, 5), (0, 1, 5))], np.diag([0.01, 0.02, 0.003]))
+
+
+def cov3(pose_msg) -> np.ndarray:
+    return pose_msg.pose.covariance.reshape(6, 6)[np.ix_((0, 1, 5), (0, 1, 5))]
+
+
+def test_pose_covariance_is_the_graphs_carried_by_the_odometry() -> None:
+    pipeline, stage, sink, graph, _ = make()
+    ms = 1_000_000
+    sigma_k = np.diag([0.01, 0.01, 0.001])  # the fused odometry's at the keyframe
+    q_per_m = np.diag([4e-4, 1e-4, 2e-5])  # what it adds per metre driven straight ahead
+
+    def odometry_cov(x: float) -> np.ndarray:  # dead reckoning from the keyframe at x = 0.5
+        d = x - 0.5
+        j = np.array([[1, 0, 0], [0, 1, d], [0, 0, 1]])
+        return j @ sigma_k @ j.T + d * q_per_m
+
+    def drive(i: int, x: float) -> None:
+        p = PoseStamped(i * 20 * ms, x, 0.0, 0.0, odometry_cov(x) if x >= 0.5 else sigma_k)
+        pipeline.publish(OdometryUpdate(p, p))
+
+    for i in range(51):
+        drive(i, 0.01 * i)
+    # before any keyframe: the odometry's own covariance
+    assert np.allclose(cov3(sink.decoded("pose")[-1]), sigma_k)
+    # keyframe 3 at x = 0.5 m (1.0 s); the graph has it at (2, 1) facing +y (90 deg), with a
+    # marginal of 1e-4 m^2 along and 4e-4 m^2 across its own axes and 1e-5 rad^2 in yaw
+    graph.poses[3] = np.array([2.0, 1.0, math.pi / 2])
+    graph.marginals[3] = np.diag([1e-4, 4e-4, 1e-5])
+    kf = StoredKeyframe(Frame(1000 * ms, "floor", np.zeros((8, 8), np.uint8)), PoseStamped(1000 * ms, 0.5, 0, 0),
+                        keyframe_id=3, run_id=1)
+    pipeline.publish(KeyframeStored(kf))
+    assert stage.marginals == 1
+    for i in range(51, 101):
+        drive(i, 0.01 * i)  # to x = 1.0: 0.5 m past the keyframe
+    pose = sink.decoded("pose")[-1]
+    assert (pose.pose.pose.position.x, pose.pose.pose.position.y) == pytest.approx((2.0, 1.5))
+    # by hand, map axes: the marginal turned by 90 deg is diag(4e-4, 1e-4, 1e-5); the
+    # keyframe's yaw swings the 0.5 m lever (+y) along -x: + 0.25 * 1e-5 on x, -0.5e-5 x/yaw;
+    # the odometry's own 0.5 m (along odom x = map y): 0.5 * q turned, diag(0.5e-4, 2e-4, 1e-5)
+    expected = np.array([[4e-4 + 0.25e-5 + 0.5e-4, 0.0, -0.5e-5],
+                         [0.0, 1e-4 + 2e-4, 0.0],
+                         [-0.5e-5, 0.0, 1e-5 + 1e-5]])
+    assert cov3(pose) == pytest.approx(expected, abs=1e-12)
+    # far smaller than the odometry's (which kept the 1e-2 m^2 it had at the keyframe)
+    assert np.trace(cov3(pose)) < 0.05 * np.trace(odometry_cov(1.0))
+    # a loop shrinks the keyframe's marginal: the published covariance follows at once
+    graph.marginals[3] = np.diag([1e-5, 1e-5, 1e-6])
+    graph.poses[0] = np.zeros(3)
+    pipeline.publish(Link("loop", 0, 3, np.zeros(3), np.eye(3)))
+    for i in range(101, 106):  # (the odometry goes out at [ros2] odometry_rate_hz)
+        drive(i, 0.01 * i)
+    assert np.trace(cov3(sink.decoded("pose")[-1])) < 0.8 * np.trace(expected)
+    assert stage.marginals == 2 and stage.counters()["outputs_marginal_failures"] == 0
 
 
 def test_odom_to_base_only_when_robotd_owns_the_base() -> None:

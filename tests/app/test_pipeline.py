@@ -195,7 +195,7 @@ def test_every_keyframe_after_the_first_is_linked_by_odometry(tmp_path: Path):
 
 
 def _floor_stages(store: MapStore, run_id: int) -> Pipeline:
-    det = FloorLoopDetector.from_store(store, FloorDetectorParams(mode=2, exclude_recent_s=20.0))
+    det = FloorLoopDetector.from_store(store, FloorDetectorParams(descriptor_mode=2, exclude_recent_s=20.0))
     p = Pipeline()
     p.add(FloorDetectorStage(det))
     p.add(MapWriterStage(store, run_id, image_width_px=0, takes=DescribedKeyframe))
@@ -290,14 +290,14 @@ def test_the_configured_jpeg_quality_reaches_the_map(tmp_path: Path):
 def _vo_demo(tmp_path: Path, mode: str) -> tuple[dict, Path]:
     from robotd.app.demo import run_demo
 
-    cfg = replace(Config(), "visual_odometry", enabled=True, mode=mode)
+    cfg = replace(Config(), "visual_odometry", enabled=True, role=mode)
     cfg = replace(cfg, "calibration", path=str(tmp_path / "none.yml"))
     out = tmp_path / mode
     return run_demo(cfg, out=out, route="square", duration_s=10.0, seed=1, plot=False), out
 
 
 def test_vision_only_odometry_edges_are_the_floor_motion(tmp_path: Path):
-    """With [visual_odometry] mode = "vision_only", the map's odometry links are the floor
+    """With [visual_odometry] role = "vision_only", the map's odometry links are the floor
     visual odometry's steps: the same numbers as visual odometry recomputed from the stored
     descriptors, and within 0.5 mm of the ground truth at the 95th percentile (the filter's
     own increments on this drive: 1.5 mm)."""
@@ -316,7 +316,7 @@ def test_vision_only_odometry_edges_are_the_floor_motion(tmp_path: Path):
         links = {(lk.from_id, lk.to_id): lk for lk in store.links("odometry")}
     assert len(links) == vo["vo_steps"]
     again = FloorVisualOdometry(FloorCameraModel.from_config(Config().floor_camera),
-                                VoParams(mode=Config().floor_detector.mode))
+                                VoParams(descriptor_mode=Config().floor_detector.descriptor_mode))
     true_kf = interpolate_poses(t_ns, truth, np.array([k.stamp_ns for k in kfs]))
     errors, same = [], 0
     again.step(kfs[0].descriptor)
@@ -574,7 +574,7 @@ def test_visual_odometry_status_and_its_own_chain():
     steps = iter([None, (0.1, 0.0, 0.0), None, (0.0, 0.1, 0.0)])
 
     class FakeVo:
-        params = SimpleNamespace(mode=4)
+        params = SimpleNamespace(descriptor_mode=4)
 
         def step(self, _image):
             d = next(steps)
@@ -607,7 +607,7 @@ def test_fused_step_that_disagrees_with_the_wheels_stays_out_of_the_edge():
     steps = iter([None, (0.0502, 0.0, 0.0), (0.0502, 0.02, 0.0)])
 
     class FakeVo:
-        params = SimpleNamespace(mode=4)
+        params = SimpleNamespace(descriptor_mode=4)
 
         def step(self, _image):
             d = next(steps)

@@ -13,12 +13,12 @@ import pytest
 from drivers.recording.reader import read_recording
 from robotd.app.demo import run_demo
 from robotd.app.service import run_replay
-from robotd.base.config import Config, replace
+from robotd.base.config import Config, replace, with_virtual_floor_camera
 from robotd.io.store import MapStore
 
 
 def _replay(rec: Path, map_path: Path) -> dict:
-    cfg = replace(replace(Config(), "map", path=str(map_path)), "floor_camera", source="virtual")
+    cfg = with_virtual_floor_camera(replace(Config(), "map", path=str(map_path)))
     return run_replay(cfg, rec, speed=None)
 
 

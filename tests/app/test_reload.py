@@ -21,7 +21,7 @@ from robotd.app.assemble import assemble_daemon, load_calibration
 from robotd.app.notify import Notifier
 from robotd.app.reload import LIVE_KEYS, ConfigReloader, changed_keys
 from robotd.base.clock import ManualClock
-from robotd.base.config import Config, load_config, replace
+from robotd.base.config import Config, live_keys, load_config, replace
 from robotd.io.calibfile import CalibrationFile, LoopThresholds, write_calibration
 from robotd.io.store import MapStore
 
@@ -31,7 +31,7 @@ def _thresholds(mode4: float) -> CalibrationFile:
 
 
 def _config(tmp_path: Path, extra: str = "") -> str:
-    return ('[base]\nport = "/dev/kobuki"\n[floor_camera]\nsource = "virtual"\n'
+    return ('[base]\nport = "/dev/kobuki"\n'
             f'[calibration]\npath = "{tmp_path / "calibration.yml"}"\n'
             f'[map]\npath = "{tmp_path / "map.sqlite"}"\n' + extra)
 
@@ -88,7 +88,7 @@ def test_sighup_applies_live_keys_and_reports_restart_keys(running, tmp_path, ca
         40.0, 16.27, Config().keyframes.distance_m)
     _datagrams(sock)
     path.write_text(_config(tmp_path, '[keyframes]\ndistance_m = 0.1\nrotation_deg = 20.0\n'
-                                      '[floor_detector]\nshortlist = 12\nmode = 5\n'
+                                      '[floor_detector]\nshortlist = 12\ndescriptor_mode = 5\n'
                                       '[pose_graph]\ngate_chi2 = 9.0\n'
                                       '[daemon]\nstatus_interval_s = 1.5\nlog_level = "warning"\n')
                     .replace('"/dev/kobuki"', '"/dev/ttyUSB7"'))
@@ -99,7 +99,7 @@ def test_sighup_applies_live_keys_and_reports_restart_keys(running, tmp_path, ca
     assert keyframes.selector.distance_m == 0.1
     assert keyframes.selector.rotation_rad == pytest.approx(math.radians(20.0))
     assert floor.detector.params.shortlist == 12
-    assert floor.detector.params.mode == 4  # needs a restart: not applied
+    assert floor.detector.params.descriptor_mode == 4  # needs a restart: not applied
     assert floor.detector.threshold == 55.5
     assert graph.gate_chi2 == 9.0
     assert daemon.status_interval_s == 1.5
@@ -110,7 +110,7 @@ def test_sighup_applies_live_keys_and_reports_restart_keys(running, tmp_path, ca
         "[floor_detector] shortlist = 12, [pose_graph] gate_chi2 = 9.0, "
         "[daemon] status_interval_s = 1.5, [daemon] log_level = 'warning', "
         "loop threshold (mode 4) 40.0 -> 55.5; "
-        "need a restart (not applied): [base] port, [floor_detector] mode")
+        "need a restart (not applied): [base] port, [floor_detector] descriptor_mode")
     got = _datagrams(sock)
     assert got[0].startswith("RELOADING=1\nMONOTONIC_USEC=") and got[1] == "READY=1"
     # The running config holds the live values and the old restart-only ones.
@@ -120,7 +120,7 @@ def test_sighup_applies_live_keys_and_reports_restart_keys(running, tmp_path, ca
     _hup(daemon)  # nothing new: only the pending restart is said again
     (line,) = [r.getMessage() for r in caplog.records if r.name == "robotd.app.reload"]
     assert line.endswith("applied live: none; need a restart (not applied): [base] port, "
-                         "[floor_detector] mode")
+                         "[floor_detector] descriptor_mode")
 
 
 @pytest.mark.parametrize(("broken", "error"), [
@@ -154,15 +154,18 @@ def test_a_broken_file_on_sighup_keeps_everything_and_is_one_error(running, tmp_
 
 
 def load_config_default(tmp_path: Path) -> Config:
-    cfg = replace(Config(), "floor_camera", source="virtual")
+    cfg = Config()
     cfg = replace(cfg, "calibration", path=str(tmp_path / "calibration.yml"))
     return replace(cfg, "map", path=str(tmp_path / "map.sqlite"))
 
 
-def test_every_live_key_exists_and_changed_keys_finds_each_difference():
-    """The live list names real keys (a renamed key would otherwise silently become
-    restart-only), and changed_keys reports exactly the keys that differ."""
+def test_the_reload_table_is_the_live_keys_of_the_config_metadata_and_changed_keys_finds_each_difference():
+    """Every key the config's metadata marks live has a way to be applied, and no other
+    key has one (a renamed key would otherwise silently become restart-only); and
+    changed_keys reports exactly the keys that differ."""
     cfg = Config()
+    assert set(LIVE_KEYS) == live_keys()
+    assert ("keyframes", "distance_m") in live_keys() and ("floor_detector", "descriptor_mode") not in live_keys()
     for section, key in LIVE_KEYS:
         assert hasattr(getattr(cfg, section), key), (section, key)
     new = replace(replace(cfg, "base", port="/dev/x"), "pose_graph", gate_chi2=3.0)

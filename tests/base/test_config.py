@@ -72,38 +72,35 @@ def test_round_trip_through_toml_and_replace():
 
 def test_visual_odometry_section(tmp_path):
     f = tmp_path / "c.toml"
-    f.write_text('[visual_odometry]\nenabled = true\nmode = "vision_only"\nmin_inliers = 12\n')
+    f.write_text('[visual_odometry]\nenabled = true\nrole = "vision_only"\nmin_inliers = 12\n')
     vo = load_config(f).visual_odometry
-    assert (vo.enabled, vo.mode, vo.min_inliers, vo.ransac_threshold_m) == (True, "vision_only", 12, 0.003)
-    f.write_text('[visual_odometry]\nmode = "wheels"\n')
-    with pytest.raises(ConfigError, match=r"\[visual_odometry\] mode"):
+    assert (vo.enabled, vo.role, vo.min_inliers, vo.ransac_threshold_m) == (True, "vision_only", 12, 0.003)
+    f.write_text('[visual_odometry]\nrole = "wheels"\n')
+    with pytest.raises(ConfigError, match=r"\[visual_odometry\] role"):
         load_config(f)
     f.write_text('[visual_odometry]\nmin_inliers = 2\n')
     with pytest.raises(ConfigError, match=r"\[visual_odometry\] min_inliers"):
         load_config(f)
 
 
-SERVICE_CHOICES = {("pose_graph", "localise_mapped"): True}
-"""Where systemd/robotd.toml deliberately differs from the code's defaults (a robot that
-drives the same rooms for weeks should stop growing its map over mapped ground)."""
+def test_the_shipped_service_config_is_generated_from_the_definitions(tmp_path):
+    """systemd/robotd.toml is `robotd config default --service`: every key with its
+    description, unit, range and liveness from the metadata, the defaults but for the
+    service's stated choices, so the file cannot drift from the code."""
+    from robotd.base.config import SERVICE_CHOICES, commented_toml, service_config
 
-
-def test_the_shipped_service_config_is_the_defaults_plus_its_stated_choices():
-    """systemd/robotd.toml names every key of the schema, and each value is the default
-    unless SERVICE_CHOICES says otherwise: the hand-commented file cannot drift."""
-    import tomllib
-
-    from robotd.base.config import Config, load_config
-
-    path = Path(__file__).resolve().parents[2] / "systemd" / "robotd.toml"
-    raw = tomllib.loads(path.read_text())
-    service, default = load_config(path), Config()
-    for sf in dataclasses.fields(Config):
-        keys = {f.name for f in dataclasses.fields(getattr(default, sf.name))}
-        assert set(raw.get(sf.name, {})) == keys, f"[{sf.name}] in robotd.toml"
-        for key in keys:
-            want = SERVICE_CHOICES.get((sf.name, key), getattr(getattr(default, sf.name), key))
-            assert getattr(getattr(service, sf.name), key) == want, f"[{sf.name}] {key}"
+    path = REPO / "systemd" / "robotd.toml"
+    assert path.read_text() == commented_toml(service=True), (
+        "systemd/robotd.toml is out of date: robotd config default --service > systemd/robotd.toml")
+    assert load_config(path) == service_config()
+    default = commented_toml()
+    (tmp_path / "d.toml").write_text(default)
+    assert load_config(tmp_path / "d.toml") == Config()
+    # The two texts differ in their header and the service's choices only.
+    differing = {line for line in set(path.read_text().splitlines()) ^ set(default.splitlines())
+                 if not line.startswith("#")}
+    assert differing == {f"{key} = {str(value).lower()}" for (_, key), value in SERVICE_CHOICES.items()} | {
+        f"{key} = {str(getattr(getattr(Config(), sec), key)).lower()}" for (sec, key) in SERVICE_CHOICES}
 
 
 def test_config_default_is_a_commented_file_that_loads_as_the_defaults(tmp_path):
@@ -112,7 +109,8 @@ def test_config_default_is_a_commented_file_that_loads_as_the_defaults(tmp_path)
     text = commented_toml()
     (tmp_path / "d.toml").write_text(text)
     assert load_config(tmp_path / "d.toml") == Config()
-    assert "# wheel radius (0.005 .. 1)\nwheel_radius_m = 0.035\n" in text
+    assert "# wheel radius (0.005..1 m)\nwheel_radius_m = 0.035\n" in text
+    assert "# how often STATUS is sent to systemd and logged (0.1..3600 s); reload applies it live\n" in text
     driver = {f.name: f for f in dataclasses.fields(Config().base)}["driver"]
     choices = ", ".join(map(repr, driver.metadata["choices"]))
     assert f"(one of {choices})\ndriver = \"kobuki\"" in text

@@ -116,7 +116,7 @@ def test_thresholds_hold_on_another_drive_against_ground_truth(trained):
 @pytest.mark.slow
 def test_the_daemon_declares_loops_with_the_trained_threshold(trained, tmp_path):
     cfg = replace(Config(), "calibration", path=str(trained["calib"]))
-    cfg = replace(cfg, "floor_detector", enabled=True, mode=4)
+    cfg = replace(cfg, "floor_detector", enabled=True, descriptor_mode=4)
     with MapStore.open(tmp_path / "map.sqlite") as store:
         det = build_floor_detector(cfg, store, load_calibration(cfg))
     assert det.threshold == pytest.approx(trained["train"]["modes"]["4"]["threshold"], rel=1e-12)

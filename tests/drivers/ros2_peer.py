@@ -2,7 +2,7 @@
 ``CYCLONEDDS_URI`` pinned to the loopback interface by the test).
 
 ``sub DOMAIN OUT.json TIMEOUT_S [MIN_TF [MIN_DISTINCT [MIN_ODOMETRY]]]``: subscribes to ``/tf`` and
-``robotd/odometry``; once a ``/tf`` sample has arrived (so the publisher has long sent
+``robotd/odometry`` (and ``ros_discovery_info``, in ``ROS_DISTRO``'s layout); once a ``/tf`` sample has arrived (so the publisher has long sent
 ``/tf_static``) it subscribes to ``/tf_static`` as a late joiner; it stops after MIN_TF
 map -> odom transforms with MIN_DISTINCT different values, MIN_ODOMETRY odometry
 messages and one static message (or at
@@ -29,11 +29,12 @@ from robotd.base import ros2msg
 
 
 def sub(domain: int, out: str, timeout_s: float, min_tf: int, min_distinct: int, min_odometry: int) -> None:
-    got: dict = {"tf": [], "static": [], "odometry": [], "tf_static_joined_after_s": None}
+    got: dict = {"tf": [], "static": [], "odometry": [], "tf_static_joined_after_s": None, "discovery": []}
     with dds.Participant(domain) as p:
         tf = p.reader("/tf", "tf2_msgs/msg/TFMessage", dds.QOS_TF)
         odom = p.reader("robotd/odometry", "nav_msgs/msg/Odometry")
-        readers = [tf, odom]
+        discovery = p.discovery_reader(dds.ros_distro())
+        readers = [tf, odom, discovery]
         ws = dds.WaitSet(p, readers)
         static = None
         t0 = time.monotonic()
@@ -45,6 +46,11 @@ def sub(domain: int, out: str, timeout_s: float, min_tf: int, min_distinct: int,
                     got["tf"].append([ros2msg.stamp_ns_of(t["header"]), t["header"]["frame_id"], t["child_frame_id"],
                                       tr["translation"]["x"], tr["translation"]["y"],
                                       ros2msg.yaw_of_quaternion(tr["rotation"]), time.time_ns()])
+            for data in discovery.take():
+                m = dds.discovery_codec(dds.ros_distro()).decode(data)
+                got["discovery"].append({"gid": m["gid"]["data"].hex(), "nodes": [
+                    [n["node_namespace"], n["node_name"], [g["data"].hex() for g in n["reader_gid_seq"]],
+                     [g["data"].hex() for g in n["writer_gid_seq"]]] for n in m["node_entities_info_seq"]]})
             for m in odom.take_decoded():
                 got["odometry"].append([ros2msg.stamp_ns_of(m["header"]), m["header"]["frame_id"],
                                         m["child_frame_id"], m["pose"]["covariance"][0]])

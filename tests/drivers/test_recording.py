@@ -418,10 +418,11 @@ def test_writer_rejects_bad_values_and_existing_files(tmp_path: Path) -> None:
         w.write_yaw_rate(YawRate(6, 0.25, "inertial"))
         w.write_yaw_rate(YawRate(7, 0.5, "raw_gyro"))  # a second source is stored as the first
         assert w.mixed_yaw_sources == 1
+        w.write_yaw_rate(YawRate(8, 0.5, "inertial", yaw_rate_var_rad2ps2=2.5e-5))  # kept in covariance[8]
     with pytest.raises(ValueError, match="closed"):
         w.write_wheel_ticks(WheelTicks(6, 1, 2, 3))
     with pytest.raises(ValueError, match="closed"):
-        w.write_yaw_rate(YawRate(8, 0.5, "raw_gyro"))
+        w.write_yaw_rate(YawRate(9, 0.5, "raw_gyro"))
     with pytest.raises(DriverError, match="x.mcap"):
         RecordingWriter(path)
     with pytest.raises(DriverError, match="cannot create"):
@@ -435,7 +436,8 @@ def test_writer_rejects_bad_values_and_existing_files(tmp_path: Path) -> None:
     RecordingWriter(crashed, overwrite=True).close()
     assert crashed.exists()
     assert [m for _, m in read_recording(path)] == [
-        WheelTicks(5, 1, 2, 3), YawRate(6, 0.25, "inertial"), YawRate(7, 0.5, "inertial")]
+        WheelTicks(5, 1, 2, 3), YawRate(6, 0.25, "inertial"), YawRate(7, 0.5, "inertial"),
+        YawRate(8, 0.5, "inertial", 2.5e-5)]
 
 
 def test_exception_in_with_block_still_finishes_the_file(tmp_path: Path) -> None:

@@ -41,7 +41,8 @@ def peer_env(domain: int) -> dict[str, str]:
 
 @pytest.mark.parametrize("typename", ["tf2_msgs/msg/TFMessage", "nav_msgs/msg/Odometry", "sensor_msgs/msg/Imu",
                                       "sensor_msgs/msg/Image", "visualization_msgs/msg/MarkerArray",
-                                      "diagnostic_msgs/msg/DiagnosticArray", "nav_msgs/msg/Path"])
+                                      "diagnostic_msgs/msg/DiagnosticArray", "nav_msgs/msg/Path",
+                                      "rmw_dds_common/msg/ParticipantEntitiesInfo"])
 def test_cyclone_types_serialise_as_the_model(typename: str) -> None:
     """The IdlStruct types (which name the DDS topics) read the model's bytes and write
     them back identically: ROS 2's DDS type and the model agree byte for byte."""
@@ -87,7 +88,9 @@ def test_outputs_reach_a_subscriber_in_another_process(tmp_path: Path) -> None:
     pipeline = Pipeline()
     graph = pipeline.add(FakeGraph())
     clock = ManualClock(0)
-    stage = pipeline.add(RosOutputStage(cfg, [DdsSink(cfg, dds_config=dds.loopback_config())], clock))
+    sink = DdsSink(cfg, dds_config=dds.loopback_config())
+    stage = pipeline.add(RosOutputStage(cfg, [sink], clock))
+    writer_gids = {k: w.guid.hex() for k, w in sink.writers.items()}
     try:
         t_end = time.monotonic() + 40
         i = 0
@@ -133,6 +136,15 @@ def test_outputs_reach_a_subscriber_in_another_process(tmp_path: Path) -> None:
     assert abs(int(stamps[-1] - stamps[0]) - 50_000_000 * (len(stamps) - 1)) <= 10_000_000
     assert {(o[1], o[2]) for o in got["odometry"]} == {("odom", "base_footprint")}
     assert got["odometry"][0][3] == pytest.approx(0.01)
+    # ros_discovery_info: robotd's participant holds one node, "robotd" in "/", whose
+    # writers are the topics' (what `ros2 node list` and `ros2 node info` read)
+    assert got["discovery"], "no ros_discovery_info received"
+    last = got["discovery"][-1]
+    assert last["gid"] == sink.participant.guid.hex()
+    (ns, name, readers, writers), = last["nodes"]
+    assert (ns, name, readers) == ("/", "robotd", [])
+    assert sorted(writers) == sorted(writer_gids.values())
+    assert writer_gids["tf"] in writers and len(writers) == len(sink.keys) == 7
 
 
 @pytest.mark.slow

@@ -71,8 +71,14 @@ def test_base_and_camera_from_a_publisher_process() -> None:
     # the gyro: every message the driver took is the published yaw rate, with its variance
     assert len(yaws) >= 0.8 * len(odom_sent) and {y.yaw_rate_radps for y in yaws} == {0.1}
     assert {y.source for y in yaws} == {"ros2"}
-    assert bstats["imu_yaw_rate_var_radps2"] == pytest.approx(2.5e-5)
+    assert bstats["imu_yaw_rate_var_rad2ps2"] == pytest.approx(2.5e-5)
     assert bstats["odometry_var_x_m2"] == pytest.approx(1e-4)
+    # the stated variances go with the readings to the filter: the IMU's yaw rate, the
+    # odometry's twist (forward speed [0], yaw rate [35])
+    assert {y.yaw_rate_var_rad2ps2 for y in yaws} == {2.5e-5}
+    assert bstats["imu_cov_used"] == bstats["imu_msgs"] and bstats["imu_cov_fallbacks"] == 0
+    assert {(t.speed_var_m2ps2, t.yaw_rate_var_rad2ps2) for t in ticks} == {(1e-4, 4e-4)}
+    assert bstats["odometry_cov_used"] == len(ticks) and bstats["odometry_cov_fallbacks"] == 0
     # the 0.5 s pause of the base's odometry is one gap, counted and ended
     # (the publisher's end may already be a second loss, still open)
     assert bstats["gaps"] == 1 and bstats["losses"] in (1, 2) and 0.1 < bstats["last_gap_s"] < 1.0
@@ -119,5 +125,47 @@ def test_undecodable_and_stale_messages_are_counted() -> None:
         assert base._on_odometry(m) is not None
         assert base._on_odometry(m) is None  # the same stamp again
         assert base.stats()["out_of_order"] == 1
+    finally:
+        base.close()
+
+
+def test_stated_variances_follow_the_ros_conventions() -> None:
+    covariance_problem, stated_variances = ros2msg.covariance_problem, ros2msg.stated_variances
+    diag = [0.0] * 36
+    diag[0], diag[35] = 4e-4, 9e-3
+    assert stated_variances(diag, (0, 35)) == (4e-4, 9e-3)
+    assert covariance_problem(diag, (0, 35)) is None
+    assert "no estimate" in covariance_problem([-1.0] + [0.0] * 8, (8,))
+    assert "unknown" in covariance_problem([0.0] * 9, (8,))
+    assert stated_variances([0.0] * 8 + [1e-4], (8,)) == (1e-4,)
+    one_missing = [0.0] * 36
+    one_missing[0] = 4e-4  # the yaw rate's variance is 0: not a usable measurement noise
+    assert "element 35" in covariance_problem(one_missing, (0, 35))
+    assert stated_variances([float("nan")] + [0.0] * 7 + [1e-4], (0, 8)) is None
+    assert stated_variances([1e-4] * 8 + [-1e-4], (8,)) is None
+
+
+def test_odometry_twist_covariance_goes_on_the_ticks(caplog: pytest.LogCaptureFixture) -> None:
+    domain = domain_for(6)
+    clock = MonotonicClock()
+    base = Ros2Base(clock, odometry_topic="/odom", imu_topic="/imu", wheel_radius_m=R, wheel_base_m=B,
+                    ticks_per_rev=TPR, domain_id=domain, dds_config=dds.loopback_config())
+    try:
+        stamp = base._offset_ns + clock.now_ns()
+        twist = np.diag([4e-4, 0.0, 9e-3])
+        m = ros2msg.odometry_msg(stamp, 0, 0, 0, np.eye(3), "odom", "base_footprint", twist_cov3=twist)
+        t = base._on_odometry(ros2msg.decode("nav_msgs/msg/Odometry", ros2msg.encode("nav_msgs/msg/Odometry", m)))
+        assert (t.speed_var_m2ps2, t.yaw_rate_var_rad2ps2) == (4e-4, 9e-3)
+        unknown = ros2msg.odometry_msg(stamp + 10**7, 0.01, 0, 0, np.eye(3), "odom", "base_footprint")
+        with caplog.at_level("INFO"):
+            for k in range(3):
+                unknown["header"] = ros2msg.header(stamp + (k + 1) * 10**7, "odom")
+                t = base._on_odometry(unknown)
+                assert (t.speed_var_m2ps2, t.yaw_rate_var_rad2ps2) == (None, None)
+        assert sum("no usable covariance" in r.message for r in caplog.records) == 1  # logged once
+        imu = ros2msg.imu_yaw_rate_msg(stamp, "imu", 0.1)  # all zeros: unknown
+        assert base._on_imu(imu).yaw_rate_var_rad2ps2 is None
+        st = base.stats()
+        assert (st["odometry_cov_used"], st["odometry_cov_fallbacks"], st["imu_cov_fallbacks"]) == (1, 3, 1)
     finally:
         base.close()

@@ -45,7 +45,7 @@ def test_relative_pose_of_rendered_pairs(renderer, mode):
     mode 1 (the paper's mode 1 found too few matches; ours keeps its 2-point RANSAC inliers
     and a 2 px coded position grid); median errors 0.05-0.2 mm and 0.006-0.03 deg."""
     p0, d = _pairs(12, seed=mode)
-    vo = FloorVisualOdometry(CAM, VoParams(mode=mode))
+    vo = FloorVisualOdometry(CAM, VoParams(descriptor_mode=mode))
     res = [_step_pair(vo, renderer, p0[k], d[k], 10.0 * k) for k in range(len(d))]
     assert [r.reason for r in res] == [""] * len(d)
     err = np.array([r.delta - dk for r, dk in zip(res, d)])
@@ -60,7 +60,7 @@ def test_covariance_agrees_with_the_errors(renderer):
     """Normalised estimation error squared over 30 pairs: 3 degrees of freedom, so a mean
     near 3 (measured 2.8 with mode 4); a covariance 10x too small or too large fails."""
     p0, d = _pairs(30, seed=11)
-    vo = FloorVisualOdometry(CAM, VoParams(mode=4))
+    vo = FloorVisualOdometry(CAM, VoParams(descriptor_mode=4))
     nees = []
     for k in range(len(d)):
         r = _step_pair(vo, renderer, p0[k], d[k], 10.0 * k)
@@ -72,7 +72,7 @@ def test_covariance_agrees_with_the_errors(renderer):
 
 
 def test_blank_and_unrelated_images_are_reasons(renderer):
-    vo = FloorVisualOdometry(CAM, VoParams(mode=4))
+    vo = FloorVisualOdometry(CAM, VoParams(descriptor_mode=4))
     assert vo.step(np.full((480, 640), 128, np.uint8)).reason == NO_PREVIOUS_KEYFRAME
     r = vo.step(renderer.render(np.array([0.0, 0.0, 0.0]), 0.0, 0.0, 0.0))
     assert (r.reason, r.detail) == (TOO_FEW_MATCHES, "TOO_FEW_FEATURES")
@@ -85,7 +85,7 @@ def test_blank_and_unrelated_images_are_reasons(renderer):
 def test_descriptor_bytes_and_decoded_descriptors_are_accepted(renderer):
     p0, d = np.array([0.5, -0.3, 0.7]), np.array([0.05, 0.0, 0.1])
     a, b = renderer.render(p0, 0.0, 0.0, 0.0), renderer.render(compose(p0, d), 0.0, 0.0, 0.0)
-    vo = FloorVisualOdometry(CAM, VoParams(mode=3))
+    vo = FloorVisualOdometry(CAM, VoParams(descriptor_mode=3))
     vo.step(describe(a, 3))
     from robotd.floor.descriptor import extract
     r = vo.step(extract(b, 3))
@@ -122,7 +122,7 @@ def test_floor_motion_failures():
 
 def test_params_are_checked():
     with pytest.raises(ValueError):
-        VoParams(mode=7)
+        VoParams(descriptor_mode=7)
     with pytest.raises(ValueError):
         VoParams(min_inliers=2)
     with pytest.raises(ValueError):
@@ -160,7 +160,7 @@ def test_vision_only_drive_stays_on_track(renderer):
     radius = 2.0 / (math.pi / 2)
     yaw = s / radius
     truth = np.column_stack([1.0 + radius * np.sin(yaw), -1.0 + radius * (1 - np.cos(yaw)), yaw])
-    vo = FloorVisualOdometry(CAM, VoParams(mode=4))
+    vo = FloorVisualOdometry(CAM, VoParams(descriptor_mode=4))
     steps = []
     for k, p in enumerate(truth):
         img = renderer.render(p, 0.3, 0.3 / radius, 0.17 * k)

@@ -43,8 +43,9 @@ def _state(mean, diag, stamp_ns=0):
 
 def test_predict_one_step_by_hand():
     """Driving straight along +x at 1 m/s, no turn, for 0.1 s."""
-    params = EkfParams(accel_noise_mps2=0.5, angular_accel_noise_radps2=2.0,
-                       gyro_bias_walk_radps_sqrt_s=0.001)
+    params = EkfParams(accel_noise_density_mps2_per_sqrt_hz=0.5,
+                       angular_accel_noise_density_radps2_per_sqrt_hz=2.0,
+                       gyro_bias_walk_radps_per_sqrt_s=0.001)
     s0 = _state([0, 0, 0, 1.0, 0.0, 0.01], [0.01, 0.02, 0.03, 0.04, 0.05, 0.06])
     s1 = predict(s0, 100 * MS, params)
     assert s1.stamp_ns == 100 * MS
@@ -147,8 +148,8 @@ def test_covariance_stays_symmetric_positive_definite():
 def test_params_reject_bad_values():
     with pytest.raises(ValueError, match="gyro_noise_radps"):
         EkfParams(gyro_noise_radps=0.0)
-    with pytest.raises(ValueError, match="accel_noise_mps2"):
-        EkfParams(accel_noise_mps2=float("nan"))
+    with pytest.raises(ValueError, match="accel_noise_density_mps2_per_sqrt_hz"):
+        EkfParams(accel_noise_density_mps2_per_sqrt_hz=float("nan"))
 
 
 # ---- the stream filter -------------------------------------------------------------------

@@ -48,7 +48,7 @@ class FloorDetectorStage(Publisher):
     @property
     def mode(self) -> int:
         """The descriptor mode (fixed for the daemon's life)."""
-        return self.detector.params.mode
+        return self.detector.params.descriptor_mode
 
     @property
     def threshold(self) -> float | None:
@@ -66,7 +66,7 @@ class FloorDetectorStage(Publisher):
 
     def describe(self, kf: Keyframe) -> None:
         self._publish(keyframe_as(DescribedKeyframe, kf, descriptor=(
-            self.detector.params.mode, self.detector.describe(kf.frame.image))))
+            self.detector.params.descriptor_mode, self.detector.describe(kf.frame.image))))
 
     def query_transient(self, msg: TransientKeyframe) -> None:
         kf = msg.keyframe

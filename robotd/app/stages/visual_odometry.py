@@ -67,7 +67,7 @@ class VisualOdometryStage(Publisher):
 
     def on_keyframe(self, kf: Keyframe) -> None:
         desc = kf.descriptor if isinstance(kf, DescribedKeyframe) else None
-        result = self.vo.step(desc[1] if desc is not None and desc[0] == self.vo.params.mode
+        result = self.vo.step(desc[1] if desc is not None and desc[0] == self.vo.params.descriptor_mode
                               else kf.frame.image)
         first = self._prev_stamp_ns is None
         if not first:
