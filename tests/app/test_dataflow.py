@@ -107,7 +107,7 @@ def test_the_pose_graph_registered_after_the_floor_stage_is_refused(tmp_path: Pa
 
     with MapStore.open(tmp_path / "map.sqlite") as store:
         p = Pipeline()
-        p.add(FloorDetectorStage(FloorLoopDetector.from_store(store, FloorDetectorParams(mode=2))))
+        p.add(FloorDetectorStage(FloorLoopDetector.from_store(store, FloorDetectorParams(descriptor_mode=2))))
         p.add(PoseGraphStage(IncrementalGraph(), store))
         assert p.misordered() == [("graph", "floor")]
         with pytest.raises(ValueError, match="stage 'graph' must be registered before 'floor'"):
