@@ -151,6 +151,9 @@ def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, obje
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--dir", type=Path, required=True, help="folder of the virtual office sequence")
     ap.add_argument("--full", action="store_true",

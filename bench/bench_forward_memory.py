@@ -122,6 +122,9 @@ def brute_force(feats: list, k: np.ndarray, n: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--images", type=int, default=2000)
     ap.add_argument("--full", action="store_true", help="10 000 images")

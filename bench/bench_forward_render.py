@@ -134,6 +134,9 @@ def _cpu_ms(runs: list[float]) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int, default=200, help="keyframes of the office route rendered (default 200)")
     ap.add_argument("--naive-frames", type=int, default=10, help="frames of the per-pixel baseline (default 10)")

@@ -34,6 +34,9 @@ DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "forward_sequence.js
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--dir", type=Path, required=True, help="folder for the images, gt.npy and the eval output")
     ap.add_argument("--route", default="office")

@@ -76,6 +76,9 @@ def fuzz(target: Target, examples: int, rng_seed: int) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--examples", type=int, default=20000, help="inputs per target (default 20000)")
     p.add_argument("--seed", type=int, default=0)

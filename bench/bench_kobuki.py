@@ -155,6 +155,9 @@ def naive_and_decode(stream: bytes) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--packets", type=int, default=20_000)
     ap.add_argument("--seed", type=int, default=2015)

@@ -10,7 +10,8 @@ chi-square gate and robust re-solves). Then, against ground truth at the keyfram
 
 * paper Table IV: the start-to-end error (dx, dy, dtheta) of the odometry alone and of
   the loop-corrected trajectory (the start is anchored to the truth, the end's error is
-  in the start's frame), plus ATE (RMS position error) and RPE (RMS step error);
+  in the start's frame), plus APE (RMS position error, anchored at the start: evo's
+  ``--align_origin``) and RPE (RMS step error);
 * the loop edges accepted, and how many of them are false by ground truth: the measured
   relative pose more than ``FALSE_LOOP_M`` from the true one (a look-alike), and how many
   of those kept their weight in the final graph; candidates the gate refused, and how
@@ -19,7 +20,7 @@ chi-square gate and robust re-solves). Then, against ground truth at the keyfram
 * false loops injected: ``--inject`` fractions (default 5 % and 20 %) of the accepted loop
   edges are replaced by wrong ones (random keyframe pairs at least 1 m apart by the
   truth, each carrying the replaced edge's measurement and information), and the stored
-  graph is re-solved with robotd's batch optimiser; ATE beside the clean re-solve's, and
+  graph is re-solved with robotd's batch optimiser; APE beside the clean re-solve's, and
   beside the re-solve with the same edges only removed (replacing 20 % of the true loops
   also loses their information: that part of the growth is not the wrong edges' harm),
   and beside the re-solve with the same wrong edges added to all the true ones (the
@@ -62,16 +63,18 @@ except ImportError:  # run as a script: bench/ is on sys.path
     from common import machine_info, print_table, write_json
 
 from robotd.app.cli import main as robotd
-from robotd.app.demo import LOOP_R, run_demo, shipped_calibration
+from robotd.app.demo import run_demo, shipped_calibration
 from robotd.app.graph_cli import graph_from_map
 from robotd.base.camera import FloorCameraModel, overlap_ratios
 from robotd.base.config import Config, replace
 from robotd.base.geometry import between, interpolate_poses, wrap_angle
-from robotd.base.messages import CandidateFate, LoopCandidate
+from robotd.base.messages import CandidateFate, LoopCandidate, LoopFate
 from robotd.graph import BatchParams, PoseGraph, optimize_batch
 from robotd.graph.model import chain_poses
 from robotd.io.store import MapStore
-from robotd.io.trajectory import anchor_to, read_tum, relative_pose_error, trajectory_errors
+from robotd.evaluation.groundtruth import LOOP_R
+from robotd.evaluation.metrics import align_origin, odometry_errors, rpe_per_step
+from robotd.io.trajectory import read_tum
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "loop_closure"
 #: A loop edge whose measured relative pose is farther than this from the truth is false.
@@ -103,7 +106,7 @@ class LoopWatcher:
         self.candidates.append((c.from_id, c.to_id, float(c.score), [float(v) for v in c.delta_xyyaw]))
 
     def on_fate(self, f: CandidateFate) -> None:
-        if f.fate != "below_threshold":
+        if f.fate != LoopFate.BELOW_THRESHOLD:
             self.fates.append((f.query_id, f.candidate_id, f.fate, f.detail))
 
     def finish(self) -> int:
@@ -186,9 +189,9 @@ def start_to_end(truth: np.ndarray, est: np.ndarray) -> dict[str, float]:
 
 
 def trajectory_figures(truth: np.ndarray, est: np.ndarray) -> dict[str, float]:
-    e = trajectory_errors(truth, est)
-    rpe_t, rpe_r = relative_pose_error(truth, est)
-    return {**start_to_end(truth, est), "end_m": e.end_position_error_m, "ate_m": e.rmse_position_m,
+    e = odometry_errors(truth, est)
+    rpe_t, rpe_r = rpe_per_step(truth, est)
+    return {**start_to_end(truth, est), "end_m": e.end_position_error_m, "ape_m": e.ape_origin_rmse_m,
             "rpe_mm": rpe_t * 1e3, "rpe_deg": float(math.degrees(rpe_r))}
 
 
@@ -260,7 +263,7 @@ def evaluate(d: Path, watcher: LoopWatcher, summary: dict[str, Any], wall_s: flo
     # The gate's refusals, judged by the truth: true loops (transform within FALSE_LOOP_M)
     # and look-alikes.
     measured = {(a, b): np.asarray(dl) for a, b, _s, dl in watcher.candidates}
-    refused = [(q, c, det) for q, c, f, det in watcher.fates if f == "failed_gate" and (c, q) in measured]
+    refused = [(q, c, det) for q, c, f, det in watcher.fates if f == LoopFate.FAILED_GATE and (c, q) in measured]
     ref_err = [_delta_error(truth, c, q, measured[(c, q)]) for q, c, _det in refused]
     ref_chi2 = [float(det.split()[1]) for _q, _c, det in refused if det.startswith("chi2 ")]
     true_ref = [t for t, _r in ref_err if t <= FALSE_LOOP_M]
@@ -316,7 +319,7 @@ def inject_wrong_loops(graph: PoseGraph, truth: dict[int, np.ndarray], fraction:
 
 
 def injection(d: Path, fractions: list[float], seed: int) -> dict[str, Any]:
-    """The stored graph re-solved clean and with wrong loops injected: ATE against the truth."""
+    """The stored graph re-solved clean and with wrong loops injected: APE (anchored) against the truth."""
     with MapStore.open(d / "map.sqlite", create=False) as store:
         graph, stamps = graph_from_map(store)
     truth_arr = _keyframe_truth(d, np.asarray(stamps, np.int64))
@@ -325,27 +328,27 @@ def injection(d: Path, fractions: list[float], seed: int) -> dict[str, Any]:
     if n_loops == 0:
         return {"loops": 0}
 
-    def ate(g: PoseGraph) -> tuple[float, float, int]:
+    def ape(g: PoseGraph) -> tuple[float, float, int]:
         r = optimize_batch(g, BatchParams())
         pos = r.pose_of()
         est = np.array([pos[int(k)] for k in graph.ids])
-        return trajectory_errors(truth_arr, est).rmse_position_m, r.time_s, int(np.sum(r.loop_weights < 0.5))
+        return odometry_errors(truth_arr, est).ape_origin_rmse_m, r.time_s, int(np.sum(r.loop_weights < 0.5))
 
-    clean, t_clean, dw_clean = ate(graph)
-    out: dict[str, Any] = {"loops": n_loops, "clean_ate_m": clean, "clean_time_s": t_clean,
+    clean, t_clean, dw_clean = ape(graph)
+    out: dict[str, Any] = {"loops": n_loops, "clean_ape_m": clean, "clean_time_s": t_clean,
                            "clean_down_weighted": dw_clean, "injected": []}
     rng = np.random.default_rng(seed)
     for frac in fractions:
         g, without, with_all, k = inject_wrong_loops(graph, truth, frac, rng)
-        a, t, dw = ate(g)
-        a0, _t0, _dw0 = ate(without)
-        a1, _t1, dw1 = ate(with_all)
-        out["injected"].append({"fraction": frac, "wrong_edges": k, "ate_m": a, "time_s": t,
-                                "down_weighted": dw, "ate_growth_pct": 100.0 * (a - clean) / clean,
-                                "ate_removed_only_m": a0,
-                                "ate_growth_from_wrong_edges_pct": 100.0 * (a - a0) / a0,
-                                "ate_added_m": a1, "added_down_weighted": dw1,
-                                "ate_growth_added_pct": 100.0 * (a1 - clean) / clean})
+        a, t, dw = ape(g)
+        a0, _t0, _dw0 = ape(without)
+        a1, _t1, dw1 = ape(with_all)
+        out["injected"].append({"fraction": frac, "wrong_edges": k, "ape_m": a, "time_s": t,
+                                "down_weighted": dw, "ape_growth_pct": 100.0 * (a - clean) / clean,
+                                "ape_removed_only_m": a0,
+                                "ape_growth_from_wrong_edges_pct": 100.0 * (a - a0) / a0,
+                                "ape_added_m": a1, "added_down_weighted": dw1,
+                                "ape_growth_added_pct": 100.0 * (a1 - clean) / clean})
     return out
 
 
@@ -369,10 +372,10 @@ def plot_runs(path: Path, title: str, runs: dict[int, dict[str, Any]]) -> None:
         r = runs[m]
         truth = np.asarray(r["_truth"])
         ax.plot(truth[:, 0], truth[:, 1], color="black", lw=1.0, label="ground truth")
-        odo = anchor_to(truth[0], np.asarray(r["_odometry"]))
+        odo = align_origin(truth[0], np.asarray(r["_odometry"]))
         ax.plot(odo[:, 0], odo[:, 1], color="tab:orange", lw=0.9, label="odometry alone")
         if "_optimized" in r:
-            opt = anchor_to(truth[0], np.asarray(r["_optimized"]))
+            opt = align_origin(truth[0], np.asarray(r["_optimized"]))
             ax.plot(opt[:, 0], opt[:, 1], color="tab:blue", lw=0.9, label="with loops")
         lp = r["loops"]
         ax.set_title(f"mode {m}: {lp['accepted']} loops, {lp['false']} false", fontsize=10)
@@ -399,13 +402,13 @@ def table_iv(results: list[dict[str, Any]]) -> None:
                      f"{c['dx_m']:+.3f}" if c else "-", f"{c['dy_m']:+.3f}" if c else "-",
                      f"{c['dtheta_deg']:+.2f}" if c else "-",
                      f"{o['end_m']:.3f}", f"{c['end_m']:.3f}" if c else "-",
-                     f"{o['ate_m']:.3f}", f"{c['ate_m']:.3f}" if c else "-",
+                     f"{o['ape_m']:.3f}", f"{c['ape_m']:.3f}" if c else "-",
                      f"{o['rpe_mm']:.2f}", f"{c['rpe_mm']:.2f}" if c else "-",
                      lp["accepted"], lp["false"], lp["false_with_weight"], lp["down_weighted"],
                      f"{r['gate']['refused']}/{r['gate']['refused_true']}",
                      f"{r['real_time_factor']:.2f}"])
     print_table(["floor", "odometry", "mode", "thr", "dx", "dy", "dth", "dx loop", "dy loop", "dth loop",
-                 "end", "end loop", "ATE", "ATE loop", "RPE mm", "RPE loop", "loops", "false",
+                 "end", "end loop", "APE", "APE loop", "RPE mm", "RPE loop", "loops", "false",
                  "false kept", "down-wt", "gate refused/true", "x real"], rows)
 
 
@@ -417,18 +420,21 @@ def injection_table(results: list[dict[str, Any]]) -> None:
             continue
         for i in inj["injected"]:
             rows.append([r["floor"], r["odometry"], r["mode"], inj["loops"], f"{100 * i['fraction']:.0f} %",
-                         i["wrong_edges"], f"{inj['clean_ate_m'] * 1e3:.3f}", f"{i['ate_m'] * 1e3:.3f}",
-                         f"{i['ate_growth_pct']:+.1f} %", f"{i.get('ate_removed_only_m', math.nan) * 1e3:.3f}",
-                         f"{i.get('ate_growth_from_wrong_edges_pct', math.nan):+.1f} %", i["down_weighted"],
-                         f"{i.get('ate_added_m', math.nan) * 1e3:.3f}",
-                         f"{i.get('ate_growth_added_pct', math.nan):+.1f} %"])
+                         i["wrong_edges"], f"{inj['clean_ape_m'] * 1e3:.3f}", f"{i['ape_m'] * 1e3:.3f}",
+                         f"{i['ape_growth_pct']:+.1f} %", f"{i.get('ape_removed_only_m', math.nan) * 1e3:.3f}",
+                         f"{i.get('ape_growth_from_wrong_edges_pct', math.nan):+.1f} %", i["down_weighted"],
+                         f"{i.get('ape_added_m', math.nan) * 1e3:.3f}",
+                         f"{i.get('ape_growth_added_pct', math.nan):+.1f} %"])
     if rows:
-        print_table(["floor", "odometry", "mode", "loops", "injected", "wrong edges", "ATE clean mm",
-                     "ATE replaced mm", "growth", "ATE edges removed mm", "growth from wrong", "down-weighted",
-                     "ATE added mm", "growth added"], rows)
+        print_table(["floor", "odometry", "mode", "loops", "injected", "wrong edges", "APE clean mm",
+                     "APE replaced mm", "growth", "APE edges removed mm", "growth from wrong", "down-weighted",
+                     "APE added mm", "growth added"], rows)
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--full", action="store_true", help="the office route (~110 m) with both odometries (~2 h)")
     ap.add_argument("--route", default=None, help="route (default square; office with --full)")
@@ -475,7 +481,7 @@ def main(argv: list[str] | None = None) -> int:
                         f"({r['loops']['false']} false), end {r['odometry_alone']['end_m']:.3f} m -> "
                         f"{lc.get('end_m', float('nan')):.3f} m, x{r['real_time_factor']:.2f} real time")
                 injected = r.get("injection", {}).get("injected") or [{}]
-                if "ate_added_m" not in injected[0] and (d / "map.sqlite").exists():
+                if "ape_added_m" not in injected[0] and (d / "map.sqlite").exists():
                     r["injection"] = injection(d, fractions, args.seed)
                     res_path.write_text(json.dumps(r) + "\n")
                 per_mode[mode] = r
@@ -484,7 +490,7 @@ def main(argv: list[str] | None = None) -> int:
             plot_runs(png, f"{route}, {floor} floor, {ODOMETRY[odometry]} odometry", per_mode)
             log(f"wrote {png}")
     print(f"\nroute {route}: start-to-end error (m, deg) of the odometry alone and with loops (paper Table IV), "
-          f"ATE/RPE at keyframes, loops accepted and false by ground truth (> {FALSE_LOOP_M * 1e3:.0f} mm off)")
+          f"APE (RMS, anchored at the first keyframe)/RPE at keyframes, loops accepted and false by ground truth (> {FALSE_LOOP_M * 1e3:.0f} mm off)")
     table_iv(results)
     print("\nwrong loop edges injected into the stored graph, re-solved by robotd's batch optimiser")
     injection_table(results)

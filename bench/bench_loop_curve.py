@@ -213,6 +213,9 @@ def report(results: list[dict[str, Any]], big: dict[str, Any] | None) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--floor", action="append", default=[], metavar="FILE", help="another floor photo")

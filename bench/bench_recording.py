@@ -86,6 +86,9 @@ def train(path: Path, out: Path) -> dict[str, object]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     from drivers.recording.transcode import transcode
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])

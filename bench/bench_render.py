@@ -138,6 +138,9 @@ def bench_overview(repeats: int, seed: int) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON output (default bench/results/render.json)")
     ap.add_argument("--repeats", type=int, default=3, help="warm passes over each path (default 3)")

@@ -442,6 +442,9 @@ def extra_sections(r: dict[str, Any]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--route", default="square")
     ap.add_argument("--duration", type=float, default=None, help="robot seconds (default: the whole route)")

@@ -249,6 +249,9 @@ def kill_rounds(recording: Path, map_path: Path, rounds: int, *, seed: int = 0,
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     try:
         from bench.common import machine_info, print_table, write_json
     except ImportError:  # run as a script: bench/ is on sys.path

@@ -353,6 +353,9 @@ def trend(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # as robotd's command line runs the daemon
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--frames", type=int, default=None, help="frames to soak (default 100000)")
     p.add_argument("--laps", type=int, default=None, help="soak this many laps instead")

@@ -1,7 +1,10 @@
 """Settings shared by the whole test suite."""
 
-import robotd  # noqa: F401  (first: one BLAS thread, as the daemon runs; see robotd/__init__.py)
 from hypothesis import settings
+
+from robotd.base.blas import one_blas_thread
+
+one_blas_thread()  # as the command line runs the daemon (robotd.base.blas)
 
 # Property tests check values, never speed: hypothesis' default 200 ms deadline per example
 # fails them on a loaded 2-core machine (CI included), so it is off. Speed is measured in

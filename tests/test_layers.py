@@ -46,4 +46,4 @@ def test_the_base_layer_importing_an_algorithm_breaks_the_build(tmp_path: Path):
     geometry.write_text(geometry.read_text() + "\n\ndef _late():\n    import robotd.floor.match  # noqa\n")
     r = _lint(root)
     assert r.returncode == 1
-    assert "robotd layers: app > io > algorithms (independent) > base BROKEN" in r.stdout
+    assert "robotd layers: app > io > evaluation > algorithms (independent) > base BROKEN" in r.stdout

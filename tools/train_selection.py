@@ -38,8 +38,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from robotd.floor.descriptor import (N_ATTRIBUTES, ExtractParams, Learned, _working,  # noqa: E402
-                                     candidates, raw_descriptors, transform)
+from robotd.floor.compression import transform  # noqa: E402
+from robotd.floor.descparams import N_ATTRIBUTES, ExtractParams, Learned  # noqa: E402
+from robotd.floor.keypoints import candidates, raw_descriptors, working  # noqa: E402
 from robotd.base.camera import FloorCameraModel, overlap_ratios  # noqa: E402
 from robotd.base.geometry import inverse, transform_points  # noqa: E402
 from sim.world.floor import Floor  # noqa: E402
@@ -108,8 +109,8 @@ def train(args: argparse.Namespace) -> dict[str, np.ndarray]:
         log(f"{photo}: {args.pairs} pairs rendered in {time.perf_counter() - t0:.0f} s, "
             f"J >= 0.33 in {np.mean(j >= 0.33):.0%}")
         for a_img, b_img, p_a, p_b in zip(ims_a, ims_b, pa, pb):
-            ca = candidates(_working(a_img, params), params, None)
-            cb = candidates(_working(b_img, params), params, None)
+            ca = candidates(working(a_img, params), params, None)
+            cb = candidates(working(b_img, params), params, None)
             m = args.per_image
             da, db = raw_descriptors(ca, len(ca.xy), params), raw_descriptors(cb, min(m, len(cb.xy)), params)
             if len(db) < 2 or len(da) < 2:

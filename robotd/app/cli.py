@@ -211,7 +211,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config) if args.config else Config()
     if args.virtual:
-        from robotd.app.demo import exit_status, print_summary, run_demo
+        from robotd.app.demo import exit_status, run_demo
+        from robotd.app.demo_report import print_summary
 
         out = args.output.with_name(args.output.stem + "-demo")
         s = run_demo(cfg, out=out, route=args.route, floor_files=tuple(str(f) for f in args.floor or ()),
@@ -359,7 +360,6 @@ def config_reference() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     from robotd.app.signals import Interrupted, StartupSignals
-
     # From the first line: building the parser imports the simulator and the calibration
     # tools, which takes a second on a loaded robot; a Ctrl-C then is held, not a traceback.
     startup = StartupSignals().__enter__()
@@ -374,6 +374,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None, startup: Any) -> int:
     from robotd.app.signals import Interrupted
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()  # the process's setting, made here rather than on import (robotd.base.blas)
 
     parser = build_parser()
     args = parser.parse_args(argv)

@@ -50,7 +50,10 @@ class StartupSignals:
 
     def __enter__(self) -> StartupSignals:
         if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGTERM, signal.SIGINT):
+            # SIGINT first: Python catches it from the start (KeyboardInterrupt), so a
+            # caught SIGTERM (/proc's SigCgt, what a supervisor or a test can see) must
+            # mean that both are held.
+            for sig in (signal.SIGINT, signal.SIGTERM):
                 self._old[sig] = signal.signal(sig, self._handler)
         return self
 

@@ -8,6 +8,7 @@ nothing else from robotd except :mod:`robotd.base.errors` and :mod:`robotd.base.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
+from enum import StrEnum
 from typing import TypeVar
 
 import numpy as np
@@ -276,14 +277,31 @@ class ForwardLoop:
     sigma_bearing_rad: float | None = None
 
 
+class LoopFate(StrEnum):
+    """What became of a loop candidate. A :class:`~enum.StrEnum`: each member is its own
+    value, the text stored in the map's ``loop_candidates.fate`` (unchanged since the column
+    exists) and compared equal to it."""
+
+    ACCEPTED = "accepted"
+    """Became a loop edge of the pose graph."""
+    BELOW_THRESHOLD = "below_threshold"
+    """Its score was under the calibrated threshold."""
+    FAILED_GATE = "failed_gate"
+    """Refused by the graph's chi-square gate (or from an earlier run, outside its graph)."""
+    NO_TRANSFORM = "no_transform"
+    """No relative pose could be estimated between the two keyframes."""
+    DOWN_WEIGHTED = "down_weighted"
+    """Accepted, then down-weighted by the robust optimiser."""
+
+
 @dataclass(frozen=True, slots=True)
 class CandidateFate:
     """What became of one loop candidate (as DLoopDetector reports its detections):
-    ``fate`` is ``accepted``, ``below_threshold``, ``no_transform``, ``failed_gate`` or
-    ``down_weighted``; ``detail`` says why in numbers (the chi-square, the weight)."""
+    ``fate`` is a :class:`LoopFate`; ``detail`` says why in numbers (the chi-square, the
+    weight)."""
 
     query_id: int
     candidate_id: int
     score: float
-    fate: str
+    fate: LoopFate
     detail: str = ""

@@ -35,18 +35,30 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 
 from robotd.base.geometry import wrap_angle
 from robotd.floor.descriptor import FloorDescriptor
 
-__all__ = ["Matcher", "MatchParams", "MatchResult", "global_score", "local_score"]
+__all__ = ["MatchReason", "Matcher", "MatchParams", "MatchResult", "global_score", "local_score"]
 
-TOO_FEW_FEATURES = "TOO_FEW_FEATURES"
-TOO_FEW_MATCHES = "TOO_FEW_MATCHES"
-NO_GEOMETRIC_CONSISTENCY = "NO_GEOMETRIC_CONSISTENCY"
-BELOW_MIN_SCORE = "BELOW_MIN_SCORE"
+class MatchReason(StrEnum):
+    """Why a pair was dismissed (a :class:`~enum.StrEnum`: equal to its text; ``OK``, the
+    empty text, is false)."""
+
+    OK = ""
+    TOO_FEW_FEATURES = "TOO_FEW_FEATURES"
+    TOO_FEW_MATCHES = "TOO_FEW_MATCHES"
+    NO_GEOMETRIC_CONSISTENCY = "NO_GEOMETRIC_CONSISTENCY"
+    BELOW_MIN_SCORE = "BELOW_MIN_SCORE"
+
+
+TOO_FEW_FEATURES = MatchReason.TOO_FEW_FEATURES
+TOO_FEW_MATCHES = MatchReason.TOO_FEW_MATCHES
+NO_GEOMETRIC_CONSISTENCY = MatchReason.NO_GEOMETRIC_CONSISTENCY
+BELOW_MIN_SCORE = MatchReason.BELOW_MIN_SCORE
 
 
 @dataclass(frozen=True)
@@ -113,7 +125,7 @@ class MatchResult:
     xy_a: np.ndarray
     xy_b: np.ndarray
     transform: np.ndarray | None
-    reason: str
+    reason: MatchReason
 
     @property
     def rotation_rad(self) -> float:
@@ -121,7 +133,7 @@ class MatchResult:
         return math.nan if self.transform is None else math.atan2(self.transform[1, 0], self.transform[0, 0])
 
 
-def _dismissed(reason: str, n_matches: int = 0) -> MatchResult:
+def _dismissed(reason: MatchReason, n_matches: int = 0) -> MatchResult:
     e = np.zeros(0, np.int64)
     xy = np.zeros((0, 2), np.float32)
     return MatchResult(0.0, n_matches, 0, e, e, xy, xy, None, reason)
@@ -276,7 +288,7 @@ def _score(a: FloorDescriptor, b: FloorDescriptor, p: MatchParams, aug_a: np.nda
         return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
     score = float(np.maximum(0.0, 1.0 - dm[sel] / p.weight_distance).sum())
     return MatchResult(score, n_matches, len(sel), ia[sel].astype(np.int64), ib[sel].astype(np.int64),
-                       a.xy_px[ia[sel]], b.xy_px[ib[sel]], transform, "")
+                       a.xy_px[ia[sel]], b.xy_px[ib[sel]], transform, MatchReason.OK)
 
 
 def global_score(a: FloorDescriptor, b: FloorDescriptor) -> float:

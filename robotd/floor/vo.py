@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
@@ -48,13 +49,24 @@ from robotd.floor.descriptor import MODES, FloorDescriptor, decode, extract
 from robotd.floor.match import MatchParams, local_score
 
 __all__ = ["DEGENERATE_GEOMETRY", "NO_PREVIOUS_KEYFRAME", "TOO_FEW_INLIERS", "TOO_FEW_MATCHES",
-           "FloorVisualOdometry", "VoParams", "VoResult", "VoTrack", "estimate_motion",
+           "FloorVisualOdometry", "VoParams", "VoReason", "VoResult", "VoTrack", "estimate_motion",
            "floor_motion", "floor_point_pairs", "integrate"]
 
-NO_PREVIOUS_KEYFRAME = "NO_PREVIOUS_KEYFRAME"
-TOO_FEW_MATCHES = "TOO_FEW_MATCHES"
-TOO_FEW_INLIERS = "TOO_FEW_INLIERS"
-DEGENERATE_GEOMETRY = "DEGENERATE_GEOMETRY"
+class VoReason(StrEnum):
+    """Why a visual step failed (a :class:`~enum.StrEnum`: equal to its text; ``OK``, the
+    empty text, is false)."""
+
+    OK = ""
+    NO_PREVIOUS_KEYFRAME = "NO_PREVIOUS_KEYFRAME"
+    TOO_FEW_MATCHES = "TOO_FEW_MATCHES"
+    TOO_FEW_INLIERS = "TOO_FEW_INLIERS"
+    DEGENERATE_GEOMETRY = "DEGENERATE_GEOMETRY"
+
+
+NO_PREVIOUS_KEYFRAME = VoReason.NO_PREVIOUS_KEYFRAME
+TOO_FEW_MATCHES = VoReason.TOO_FEW_MATCHES
+TOO_FEW_INLIERS = VoReason.TOO_FEW_INLIERS
+DEGENERATE_GEOMETRY = VoReason.DEGENERATE_GEOMETRY
 
 
 @dataclass(frozen=True)
@@ -124,7 +136,7 @@ class VoResult:
     n_matches: int
     n_inliers: int
     residual_m: float
-    reason: str
+    reason: VoReason
     detail: str = ""
 
     @property
@@ -133,7 +145,7 @@ class VoResult:
         return self.reason == ""
 
 
-def _failed(reason: str, n_matches: int = 0, detail: str = "") -> VoResult:
+def _failed(reason: VoReason, n_matches: int = 0, detail: str = "") -> VoResult:
     return VoResult(np.full(3, np.nan), np.full((3, 3), np.nan), n_matches, 0, math.nan, reason, detail)
 
 
@@ -196,7 +208,7 @@ def floor_motion(p_prev: np.ndarray, p_cur: np.ndarray, params: VoParams | None 
     if math.sqrt(float(np.mean(np.sum(centred * centred, axis=1)))) < p.min_spread_m:
         return _failed(DEGENERATE_GEOMETRY, n)
     cov, sigma = rigid_fit_2d_covariance(src[inl], dst[inl], pose, p.min_sigma_m)
-    return VoResult(pose, cov, n, k, sigma, "")
+    return VoResult(pose, cov, n, k, sigma, VoReason.OK)
 
 
 def estimate_motion(prev: FloorDescriptor, cur: FloorDescriptor, camera: Any,

@@ -32,6 +32,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 
@@ -43,15 +44,24 @@ from robotd.forward.memory import MemoryParams, WorkingMemory
 from robotd.forward.verify import Verification, VerifyParams, verify_pair
 from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams
 
-__all__ = ["Detection", "DetectorParams", "ForwardDetector", "LOOP", "METHODS", "NO_HYPOTHESES",
+__all__ = ["Detection", "DetectionStatus", "DetectorParams", "ForwardDetector", "LOOP", "METHODS", "NO_HYPOTHESES",
            "LOW_POSTERIOR", "NOT_CONSISTENT_YET", "NO_GEOMETRIC_CONSISTENCY", "STAGES", "method_params"]
 
-#: Why an image closed a loop or did not.
-LOOP = "LOOP"
-NO_HYPOTHESES = "NO_HYPOTHESES"          # t < p: no past image can be a loop yet
-LOW_POSTERIOR = "LOW_POSTERIOR"          # no neighbourhood's posterior above the threshold
-NO_GEOMETRIC_CONSISTENCY = "NO_GEOMETRIC_CONSISTENCY"  # the candidate failed verification
-NOT_CONSISTENT_YET = "NOT_CONSISTENT_YET"  # fewer than k consistent candidates in a row (issue 24)
+class DetectionStatus(StrEnum):
+    """Why an image closed a loop or did not (a :class:`~enum.StrEnum`: equal to its text)."""
+
+    LOOP = "LOOP"
+    NO_HYPOTHESES = "NO_HYPOTHESES"          # t < p: no past image can be a loop yet
+    LOW_POSTERIOR = "LOW_POSTERIOR"          # no neighbourhood's posterior above the threshold
+    NO_GEOMETRIC_CONSISTENCY = "NO_GEOMETRIC_CONSISTENCY"  # the candidate failed verification
+    NOT_CONSISTENT_YET = "NOT_CONSISTENT_YET"  # fewer than k consistent candidates in a row (issue 24)
+
+
+LOOP = DetectionStatus.LOOP
+NO_HYPOTHESES = DetectionStatus.NO_HYPOTHESES
+LOW_POSTERIOR = DetectionStatus.LOW_POSTERIOR
+NO_GEOMETRIC_CONSISTENCY = DetectionStatus.NO_GEOMETRIC_CONSISTENCY
+NOT_CONSISTENT_YET = DetectionStatus.NOT_CONSISTENT_YET
 
 #: The detectors ``[forward_detector] method`` and ``robotd eval forward --method`` select.
 METHODS = ("default", "paper")
@@ -147,7 +157,7 @@ class Detection:
     """
 
     image_id: int
-    status: str
+    status: DetectionStatus
     loop_id: int | None
     candidate_id: int | None
     candidate_probability: float

@@ -55,6 +55,7 @@ Expected failures are values (:class:`Verification` with a reason), not exceptio
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 import cv2
 import numpy as np
@@ -62,13 +63,22 @@ import numpy as np
 from robotd.forward.features import Features
 from robotd.forward.planar import refine_motion
 
-__all__ = ["ACCEPTED", "NO_GEOMETRIC_CONSISTENCY", "SMALL_SUPPORT", "TOO_FEW_MATCHES", "Verification",
+__all__ = ["ACCEPTED", "NO_GEOMETRIC_CONSISTENCY", "SMALL_SUPPORT", "TOO_FEW_MATCHES", "Verification", "VerifyReason",
            "VerifyParams", "camera_matrix_guess", "floor_range", "match_features", "support_area", "verify_pair"]
 
-ACCEPTED = "ACCEPTED"
-TOO_FEW_MATCHES = "TOO_FEW_MATCHES"
-NO_GEOMETRIC_CONSISTENCY = "NO_GEOMETRIC_CONSISTENCY"
-SMALL_SUPPORT = "SMALL_SUPPORT"  # enough inliers, but on one small plane (not in the paper)
+class VerifyReason(StrEnum):
+    """The outcome of a verification (a :class:`~enum.StrEnum`: equal to its text)."""
+
+    ACCEPTED = "ACCEPTED"
+    TOO_FEW_MATCHES = "TOO_FEW_MATCHES"
+    NO_GEOMETRIC_CONSISTENCY = "NO_GEOMETRIC_CONSISTENCY"
+    SMALL_SUPPORT = "SMALL_SUPPORT"  # enough inliers, but on one small plane (not in the paper)
+
+
+ACCEPTED = VerifyReason.ACCEPTED
+TOO_FEW_MATCHES = VerifyReason.TOO_FEW_MATCHES
+NO_GEOMETRIC_CONSISTENCY = VerifyReason.NO_GEOMETRIC_CONSISTENCY
+SMALL_SUPPORT = VerifyReason.SMALL_SUPPORT
 
 
 @dataclass(frozen=True)

@@ -63,7 +63,7 @@ from typing import Any
 import numpy as np
 
 from robotd.base.geometry import between
-from robotd.base.messages import CandidateFate, Link
+from robotd.base.messages import CandidateFate, Link, LoopFate
 from robotd.graph.incremental import IncrementalGraph
 from robotd.graph.mappedground import MappedGround, MappedGroundParams
 from robotd.graph.reloc import (
@@ -165,7 +165,7 @@ class GatedGraph:
             if w < DOWN_WEIGHTED and (a, b) in self._loops:
                 query, score = self._loops.pop((a, b))
                 self.down_weighted += 1
-                self._emit(CandidateFate(query, a, score, "down_weighted", f"weight {w:.3f}"))
+                self._emit(CandidateFate(query, a, score, LoopFate.DOWN_WEIGHTED, f"weight {w:.3f}"))
         return keep
 
     def finish(self) -> None:
@@ -203,12 +203,12 @@ class GatedGraph:
         ``(delta, information)`` once both keyframes are known to be in this run's graph."""
         prefix = "forward: " if source == "forward" else ""
 
-        def fate(f: str, detail: str) -> None:
+        def fate(f: LoopFate, detail: str) -> None:
             self._emit(CandidateFate(to_id, from_id, score, f, prefix + detail))
 
         if from_id not in self.graph.graph or to_id not in self.graph.graph:
             self.earlier_run += 1
-            fate("failed_gate", "keyframe of an earlier run: not in this run's graph")
+            fate(LoopFate.FAILED_GATE, "keyframe of an earlier run: not in this run's graph")
             return
         delta, info = edge()
         d2 = self.graph.loop_chi2(from_id, to_id, delta, info)
@@ -217,7 +217,7 @@ class GatedGraph:
                 self.forward_failed_gate += 1
             else:
                 self.failed_gate += 1
-            fate("failed_gate", f"chi2 {d2:.1f} > {self.gate_chi2:.2f}")
+            fate(LoopFate.FAILED_GATE, f"chi2 {d2:.1f} > {self.gate_chi2:.2f}")
             return
         t0 = time.perf_counter()
         self.graph.add_loop(from_id, to_id, delta, info)
@@ -229,7 +229,7 @@ class GatedGraph:
         self._loops[(from_id, to_id)] = (to_id, score)
         if self.mapped_ground is not None:
             self.mapped_ground.loop_accepted(to_id)
-        fate("accepted", f"chi2 {d2:.2f}")
+        fate(LoopFate.ACCEPTED, f"chi2 {d2:.2f}")
         self._emit(Link("loop", from_id, to_id, delta, info, source=source))
 
     # -- relocalisation (module notes) -----------------------------------------------------
@@ -337,7 +337,7 @@ class GatedGraph:
 
     def _refuse(self, query: int, old: int, score: float, detail: str) -> None:
         self.reloc_refused += 1
-        self._emit(CandidateFate(query, old, score, "failed_gate", detail))
+        self._emit(CandidateFate(query, old, score, LoopFate.FAILED_GATE, detail))
 
     def _relocalisation_takes(self, old: int, query: int, score: float, delta: np.ndarray | None,
                               info: np.ndarray | None, source: str) -> bool:
@@ -405,7 +405,7 @@ class GatedGraph:
         for m in d.members:
             self.accepted += 1
             self._loops[(m.old_id, m.query_id)] = (m.query_id, m.score)
-            self._emit(CandidateFate(m.query_id, m.old_id, m.score, "accepted", f"relocalisation: {d.detail}"))
+            self._emit(CandidateFate(m.query_id, m.old_id, m.score, LoopFate.ACCEPTED, f"relocalisation: {d.detail}"))
             self._emit(Link("loop", m.old_id, m.query_id, m.delta, m.information, source=m.source))
         self.relocalisations += 1
         newest = max(d.members, key=lambda m: m.query_id)

@@ -61,26 +61,32 @@ is left byte-for-byte untouched. An older schema is upgraded by :data:`MIGRATION
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
-import os
-import sqlite3
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
-from pathlib import Path
-from types import TracebackType
-from typing import Literal
+from typing import Any, Literal
 
 import cv2
 import numpy as np
 
 import robotd
-from robotd.base.clock import Clock, MonotonicClock
 from robotd.base.errors import MapStoreError
-from robotd.io.mapfile import MIGRATIONS, SCHEMA_VERSION, inspect_file, migrate
-from robotd.io.maplock import acquire_map_lock, release_map_lock
+from robotd.base.messages import LoopFate
+from robotd.io.mapconnection import MapConnection
+from robotd.io.mapfile import MIGRATIONS, SCHEMA_VERSION
+from robotd.io.maprecords import (
+    UNCLEAN_END_NOTE,
+    KeyframeRecord,
+    LinkRecord,
+    LoopCandidateRecord,
+    RunRecord,
+    blob_to_matrix,
+    candidate_record,
+    check_descriptor,
+    finite_triple,
+    matrix_to_blob,
+)
 
 __all__ = [
     "LOOP_CANDIDATE_FATES", "MIGRATIONS", "SCHEMA_VERSION", "UNCLEAN_END_NOTE", "KeyframeRecord",
@@ -90,388 +96,21 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 
-_MATRIX_DTYPE = np.dtype("<f8")
-_MATRIX_BYTES = 9 * _MATRIX_DTYPE.itemsize
 _LINK_KINDS = ("odometry", "loop")
 _PAGE_ROWS = 256  # rows fetched per query when iterating (see MapStore.keyframes)
-LOOP_CANDIDATE_FATES = (
-    "accepted", "below_threshold", "failed_gate", "no_transform", "down_weighted")
-"""The allowed ``loop_candidates.fate`` values (the table's CHECK constraint)."""
-
-UNCLEAN_END_NOTE = "did not end cleanly"
-"""Begins the note :meth:`MapStore.mark_unfinished_runs` adds to a run that never ended."""
+LOOP_CANDIDATE_FATES: tuple[LoopFate, ...] = tuple(LoopFate)
+"""The allowed ``loop_candidates.fate`` values (the table's CHECK constraint, spelled out
+in :mod:`robotd.io.mapfile`)."""
+_FATE_TEXTS = ", ".join(LOOP_CANDIDATE_FATES)
 
 
-@dataclass(frozen=True, slots=True)
-class RunRecord:
-    """One daemon run as stored in ``runs``; ``ended_ns`` is None while running, or for a
-    run that never ended (killed, power cut) until the next start marks it (see
-    :meth:`MapStore.mark_unfinished_runs` and :attr:`ended_cleanly`)."""
-
-    id: int
-    started_ns: int
-    ended_ns: int | None
-    config: str
-    robotd_version: str
-    notes: str
-    epoch_unix_ns: int | None = None
-
-    @property
-    def ended_cleanly(self) -> bool:
-        """True when the run recorded its own end."""
-        return self.ended_ns is not None and UNCLEAN_END_NOTE not in self.notes
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class KeyframeRecord:
-    """A keyframe without its image (fetch that with :meth:`MapStore.keyframe_image`).
-
-    ``covariance`` is ``(3, 3) float64`` over ``(x_m, y_m, yaw_rad)``, read-only.
-    ``image_width``/``image_height`` are pixels, None when no image was stored.
-    """
-
-    id: int
-    run_id: int
-    stamp_ns: int
-    x_m: float
-    y_m: float
-    yaw_rad: float
-    covariance: np.ndarray
-    image_width: int | None
-    image_height: int | None
-    descriptor: bytes | None
-    descriptor_mode: int | None
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class LinkRecord:
-    """A pose-graph edge: the pose of ``to_id`` in the frame of ``from_id``.
-
-    ``information`` is ``(3, 3) float64`` over ``(dx_m, dy_m, dyaw_rad)``, read-only.
-    """
-
-    id: int
-    kind: str
-    from_id: int
-    to_id: int
-    dx_m: float
-    dy_m: float
-    dyaw_rad: float
-    information: np.ndarray
-
-
-@dataclass(frozen=True, slots=True)
-class LoopCandidateRecord:
-    """A loop-closure candidate: keyframe ``candidate_id`` proposed for ``query_id`` with
-    the local ``score`` (unitless), its ``fate`` and free-form ``detail``."""
-
-    id: int
-    query_id: int
-    candidate_id: int
-    score: float
-    fate: str
-    detail: str
-
-
-def _matrix_to_blob(matrix: np.ndarray | Sequence[Sequence[float]], what: str) -> bytes:
-    array = np.asarray(matrix, dtype=np.float64)
-    if array.shape != (3, 3):
-        raise ValueError(f"{what} must have shape (3, 3), got {array.shape}")
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"{what} must be finite")
-    return array.astype(_MATRIX_DTYPE).tobytes()
-
-
-def _blob_to_matrix(blob: bytes) -> np.ndarray:
-    array = np.frombuffer(blob, dtype=_MATRIX_DTYPE).astype(np.float64).reshape(3, 3)
-    array.setflags(write=False)
-    return array
-
-
-def _finite_triple(values: Sequence[float], what: str) -> tuple[float, float, float]:
-    if len(values) != 3:
-        raise ValueError(f"{what} must have 3 elements, got {len(values)}")
-    triple = (float(values[0]), float(values[1]), float(values[2]))
-    if not all(math.isfinite(v) for v in triple):
-        raise ValueError(f"{what} must be finite, got {triple}")
-    return triple
-
-
-def _check_descriptor(descriptor: bytes | None, mode: int | None) -> None:
-    if (descriptor is None) != (mode is None):
-        raise ValueError("descriptor and descriptor_mode must be given together")
-    if descriptor is not None and not isinstance(descriptor, bytes | bytearray | memoryview):
-        raise TypeError(f"descriptor must be bytes, got {type(descriptor).__name__}")
-
-
-class MapStore:
+class MapStore(MapConnection):
     """The robot's map in one SQLite file; see the module docstring for the layout.
 
-    Create it with :meth:`MapStore.open`. A context manager; :meth:`close` may be called
+    Create it with :meth:`MapStore.open` (:class:`~robotd.io.mapconnection.MapConnection`:
+    opening, locking, migrating, closing). A context manager; :meth:`close` may be called
     more than once. Not shareable between threads (see the module docstring).
     """
-
-    def __init__(
-        self,
-        conn: sqlite3.Connection,
-        path: Path,
-        *,
-        image_codec: Literal["jpeg", "png"],
-        jpeg_quality: int,
-        clock: Clock,
-    ) -> None:
-        """Use :meth:`open`; this only wraps an already validated connection."""
-        self._conn: sqlite3.Connection | None = conn
-        self._path = path
-        self._clock = clock
-        self._image_codec = image_codec
-        self._jpeg_quality = int(jpeg_quality)
-        self._holds_lock = False  # set by open() for a writable store
-
-    # -- opening and closing -------------------------------------------------------
-
-    @classmethod
-    def open(
-        cls,
-        path: str | Path,
-        create: bool = True,
-        *,
-        image_codec: Literal["jpeg", "png"] = "jpeg",
-        jpeg_quality: int = 90,
-        synchronous: Literal["NORMAL", "FULL"] = "FULL",
-        clock: Clock | None = None,
-        read_only: bool = False,
-    ) -> MapStore:
-        """Open the map at ``path``, creating it if it does not exist and ``create``.
-
-        ``read_only`` opens an existing map of the current schema for reading only, never
-        writing to the file (a map on a read-only mount can be read and exported); its
-        write methods raise :class:`MapStoreError`. Opened for writing, a map whose file
-        or folder cannot be written (the map writes its ``-wal``/``-shm`` files beside it)
-        is refused with a MapStoreError saying so, after the read-only inspection.
-
-        ``image_codec`` encodes keyframe images added through this store (``"png"`` is
-        lossless, ``"jpeg"`` at ``jpeg_quality`` 0..100 is several times smaller); images
-        of either codec are read back regardless. ``synchronous`` trades commit latency
-        for power-cut durability (module docstring). ``clock`` (default: the host
-        monotonic clock, the time base of keyframe stamps) supplies the times that
-        :meth:`begin_run`, :meth:`end_run` and :meth:`put_calibration` are not given.
-
-        Raises :class:`MapStoreError` naming ``path`` if the file is missing (and not
-        ``create``), is not an SQLite database, fails ``PRAGMA quick_check``, is an
-        SQLite database of something else, or has a schema newer than
-        :data:`SCHEMA_VERSION`; in all these cases the file is not modified. The check
-        reads the whole file once (40 ms for 100 MB in the page cache; from a cold SD
-        card it is bound by the card's read speed, a few seconds).
-        """
-        if image_codec not in ("jpeg", "png"):
-            raise ValueError(f"image_codec must be 'jpeg' or 'png', got {image_codec!r}")
-        if not 0 <= jpeg_quality <= 100:
-            raise ValueError(f"jpeg_quality must be in 0..100, got {jpeg_quality}")
-        if synchronous not in ("NORMAL", "FULL"):
-            raise ValueError(f"synchronous must be 'NORMAL' or 'FULL', got {synchronous!r}")
-        path = Path(path).absolute()
-        if path.parent.is_dir() and not os.access(path.parent, os.X_OK):
-            raise MapStoreError(f"map file {path}: cannot enter its folder {path.parent} "
-                                "(permission denied: run as the user the map belongs to)")
-        migrations = MIGRATIONS
-        target = max(migrations)
-
-        if path.exists():
-            if not path.is_file():
-                raise MapStoreError(f"map file {path} is not a regular file")
-            if path.stat().st_size == 0 and (not create or read_only):
-                raise MapStoreError(f"map file {path} is empty")
-            version = inspect_file(path, target)
-        elif create and not read_only:
-            if not path.parent.is_dir():
-                raise MapStoreError(
-                    f"cannot create map file {path}: directory {path.parent} does not exist"
-                )
-            version = 0
-        else:
-            raise MapStoreError(f"map file {path} does not exist")
-        if read_only:
-            return cls._open_read_only(path, version, target, image_codec=image_codec,
-                                       jpeg_quality=jpeg_quality, clock=clock)
-        if not os.access(path.parent, os.W_OK | os.X_OK):
-            raise MapStoreError(
-                f"{'map file' if version else 'cannot create map file'} {path}: its folder"
-                f" {path.parent} is read-only (the map writes its -wal and -shm files beside it)"
-            )
-        if version and not os.access(path, os.W_OK):
-            raise MapStoreError(f"map file {path} is read-only")
-
-        acquire_map_lock(path)  # one writer per map (robotd.io.maplock); refused at once
-        try:
-            store = cls._open_writable(path, version, target, migrations, synchronous=synchronous,
-                                       image_codec=image_codec, jpeg_quality=jpeg_quality,
-                                       clock=clock)
-        except BaseException:
-            release_map_lock(path)
-            raise
-        store._holds_lock = True
-        return store
-
-    @classmethod
-    def _open_writable(cls, path: Path, version: int, target: int, migrations: dict, *,
-                       synchronous: str, image_codec: Literal["jpeg", "png"], jpeg_quality: int,
-                       clock: Clock | None) -> MapStore:
-        try:
-            conn = sqlite3.connect(
-                path.as_uri() + "?mode=rwc",
-                uri=True,
-                isolation_level=None,  # no implicit transactions: we BEGIN/COMMIT ourselves
-                check_same_thread=True,
-                timeout=5.0,  # wait this long (s) for another connection's write lock
-            )
-        except sqlite3.Error as exc:
-            raise MapStoreError(f"cannot open map file {path}: {exc}") from exc
-        try:
-            mode = conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
-            if str(mode).lower() != "wal":
-                raise MapStoreError(
-                    f"map file {path}: the file system does not support SQLite's WAL mode"
-                    f" (journal_mode is {mode!r})"
-                )
-            conn.execute(f"PRAGMA synchronous={synchronous}")
-            conn.execute("PRAGMA foreign_keys=ON")
-            migrate(conn, path, migrations, target)
-        except sqlite3.Error as exc:
-            conn.close()
-            raise MapStoreError(f"cannot open map file {path}: {exc}") from exc
-        except BaseException:
-            conn.close()
-            raise
-        if 0 < version < target:
-            _log.info("map %s migrated from schema version %d to %d", path, version, target)
-        _log.info("map store %s open (schema version %d)", path, target)
-        return cls(
-            conn,
-            path,
-            image_codec=image_codec,
-            jpeg_quality=jpeg_quality,
-            clock=MonotonicClock() if clock is None else clock,
-        )
-
-    @classmethod
-    def _open_read_only(cls, path: Path, version: int, target: int, *,
-                        image_codec: Literal["jpeg", "png"], jpeg_quality: int,
-                        clock: Clock | None) -> MapStore:
-        if version != target:
-            raise MapStoreError(
-                f"map file {path} has schema version {version}; open it once for writing to"
-                f" upgrade it to {target} before reading it read-only"
-            )
-        uri = path.as_uri() + "?mode=ro"
-        wal = path.with_name(path.name + "-wal")
-        if not os.access(path.parent, os.W_OK | os.X_OK) and not wal.exists():
-            uri += "&immutable=1"  # see mapfile.inspect_file
-        try:
-            conn = sqlite3.connect(uri, uri=True, isolation_level=None, check_same_thread=True,
-                                   timeout=5.0)
-        except sqlite3.Error as exc:
-            raise MapStoreError(f"cannot open map file {path}: {exc}") from exc
-        _log.info("map store %s open read-only (schema version %d)", path, version)
-        return cls(conn, path, image_codec=image_codec, jpeg_quality=jpeg_quality,
-                   clock=MonotonicClock() if clock is None else clock)
-
-    @property
-    def path(self) -> Path:
-        """Absolute path of the map file."""
-        return self._path
-
-    @property
-    def closed(self) -> bool:
-        """True after :meth:`close`."""
-        return self._conn is None
-
-    def close(self) -> None:
-        """Close the file (the last connection to close checkpoints and removes the WAL).
-
-        Safe to call more than once.
-        """
-        conn, self._conn = self._conn, None
-        if conn is not None:
-            try:
-                conn.execute("PRAGMA optimize")
-            except sqlite3.Error as exc:  # an optimisation hint: never fail close on it
-                _log.debug("PRAGMA optimize failed on %s: %s", self._path, exc)
-            conn.close()
-            if self._holds_lock:
-                self._holds_lock = False
-                release_map_lock(self._path)
-
-    def __enter__(self) -> MapStore:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-    # -- internals -----------------------------------------------------------------
-
-    def _connection(self) -> sqlite3.Connection:
-        if self._conn is None:
-            raise MapStoreError(f"map store {self._path} is closed")
-        return self._conn
-
-    @contextlib.contextmanager
-    def _write(self) -> Iterator[sqlite3.Connection]:
-        """One write transaction; SQLite errors become MapStoreError, constraint
-        violations (unknown ids) ValueError."""
-        conn = self._connection()
-        try:
-            conn.execute("BEGIN IMMEDIATE")
-            try:
-                yield conn
-            except BaseException:
-                conn.execute("ROLLBACK")
-                raise
-            conn.execute("COMMIT")
-        except sqlite3.ProgrammingError:
-            raise  # misuse (closed cursor, wrong thread): a bug, not a map problem
-        except sqlite3.IntegrityError as exc:
-            raise ValueError(f"map {self._path}: {exc}") from exc
-        except sqlite3.Error as exc:
-            raise MapStoreError(f"map {self._path}: write failed: {exc}") from exc
-
-    def _read(self, sql: str, params: Sequence[object] = ()) -> list[tuple]:
-        try:
-            return self._connection().execute(sql, params).fetchall()
-        except sqlite3.ProgrammingError:
-            raise  # misuse (wrong thread): a bug, not a map problem
-        except sqlite3.Error as exc:
-            raise MapStoreError(f"map {self._path}: read failed: {exc}") from exc
-
-    # -- meta ----------------------------------------------------------------------
-
-    @property
-    def schema_version(self) -> int:
-        """The schema version stored in the file."""
-        value = self.get_meta("schema_version")
-        assert value is not None  # written by every migration
-        return int(value)
-
-    def get_meta(self, key: str) -> str | None:
-        """Value stored under ``key`` in ``meta``, None if absent."""
-        rows = self._read("SELECT value FROM meta WHERE key = ?", (key,))
-        return rows[0][0] if rows else None
-
-    def set_meta(self, key: str, value: str) -> None:
-        """Store ``value`` under ``key``; ``schema_version`` is reserved."""
-        if key == "schema_version":
-            raise ValueError("schema_version is managed by the migrations")
-        with self._write() as conn:
-            conn.execute(
-                "INSERT INTO meta(key, value) VALUES (?, ?)"
-                " ON CONFLICT(key) DO UPDATE SET value = excluded.value",
-                (key, str(value)),
-            )
 
     # -- the map frame -------------------------------------------------------------
 
@@ -538,7 +177,8 @@ class MapStore:
                 " VALUES (?, ?, ?, ?, ?)",
                 (int(started_ns), str(config_text), str(robotd_version), str(notes), int(epoch_unix_ns)),
             )
-        run_id = int(cur.lastrowid)
+        assert cur.lastrowid is not None  # an INSERT's
+        run_id = cur.lastrowid
         _log.info("map %s: run %d started", self._path, run_id)
         return run_id
 
@@ -609,9 +249,9 @@ class MapStore:
         ``descriptor_mode`` come together or not at all (see :meth:`set_descriptor`).
         Raises ValueError for bad arguments or an unknown ``run_id``.
         """
-        x_m, y_m, yaw_rad = _finite_triple(pose_xyyaw, "pose_xyyaw")
-        cov_blob = _matrix_to_blob(covariance, "covariance")
-        _check_descriptor(descriptor, descriptor_mode)
+        x_m, y_m, yaw_rad = finite_triple(pose_xyyaw, "pose_xyyaw")
+        cov_blob = matrix_to_blob(covariance, "covariance")
+        check_descriptor(descriptor, descriptor_mode)
         image_blob: bytes | None = None
         width = height = None
         if image is not None:
@@ -625,11 +265,12 @@ class MapStore:
                  height, None if descriptor is None else bytes(descriptor),
                  None if descriptor_mode is None else int(descriptor_mode)),
             )
-        return int(cur.lastrowid)
+        assert cur.lastrowid is not None  # an INSERT's
+        return cur.lastrowid
 
     def set_descriptor(self, keyframe_id: int, descriptor: bytes, mode: int) -> None:
         """Store (or replace) the compact descriptor of a keyframe; KeyError if unknown."""
-        _check_descriptor(descriptor, mode)
+        check_descriptor(descriptor, mode)
         with self._write() as conn:
             cur = conn.execute(
                 "UPDATE keyframes SET descriptor = ?, descriptor_mode = ? WHERE id = ?",
@@ -644,10 +285,10 @@ class MapStore:
     )
 
     @staticmethod
-    def _keyframe_record(row: tuple) -> KeyframeRecord:
+    def _keyframe_record(row: tuple[Any, ...]) -> KeyframeRecord:
         kf_id, run_id, stamp_ns, x_m, y_m, yaw_rad, cov, width, height, desc, mode = row
         return KeyframeRecord(
-            kf_id, run_id, stamp_ns, x_m, y_m, yaw_rad, _blob_to_matrix(cov), width, height,
+            kf_id, run_id, stamp_ns, x_m, y_m, yaw_rad, blob_to_matrix(cov), width, height,
             None if desc is None else bytes(desc), mode,
         )
 
@@ -749,15 +390,16 @@ class MapStore:
         """
         if kind not in _LINK_KINDS:
             raise ValueError(f"link kind must be one of {_LINK_KINDS}, got {kind!r}")
-        dx_m, dy_m, dyaw_rad = _finite_triple(delta_xyyaw, "delta_xyyaw")
-        info_blob = _matrix_to_blob(information, "information")
+        dx_m, dy_m, dyaw_rad = finite_triple(delta_xyyaw, "delta_xyyaw")
+        info_blob = matrix_to_blob(information, "information")
         with self._write() as conn:
             cur = conn.execute(
                 "INSERT INTO links(kind, from_id, to_id, dx_m, dy_m, dyaw_rad, information)"
                 " VALUES (?, ?, ?, ?, ?, ?, ?)",
                 (kind, int(from_id), int(to_id), dx_m, dy_m, dyaw_rad, info_blob),
             )
-        return int(cur.lastrowid)
+        assert cur.lastrowid is not None  # an INSERT's
+        return cur.lastrowid
 
     def links(self, kind: Literal["odometry", "loop"] | None = None) -> list[LinkRecord]:
         """Every link (or every link of one kind), in id order."""
@@ -767,7 +409,8 @@ class MapStore:
             sql += " WHERE kind = ?"
             params = (kind,)
         rows = self._read(sql + " ORDER BY id", params)
-        return [LinkRecord(*r[:7], information=_blob_to_matrix(r[7])) for r in rows]
+        return [LinkRecord(i, kind_, a, b, dx, dy, dyaw, blob_to_matrix(info))
+                for i, kind_, a, b, dx, dy, dyaw, info in rows]
 
     # -- calibration ---------------------------------------------------------------
 
@@ -841,31 +484,31 @@ class MapStore:
         )
         return np.array(rows[0], dtype=np.float64) if rows else None
 
-    def add_loop_candidates(self, rows: Sequence[tuple[int, int, float, str, str]]) -> None:
+    def add_loop_candidates(self, rows: Sequence[tuple[int, int, float, LoopFate | str, str]]) -> None:
         """Record loop candidates ``(query_id, candidate_id, score, fate, detail)`` in one
         transaction. ValueError (nothing written) for a fate not in
         :data:`LOOP_CANDIDATE_FATES`, a non-finite score or an unknown keyframe id."""
         values = []
         for query_id, candidate_id, score, fate, detail in rows:  # ValueError if not 5
             if fate not in LOOP_CANDIDATE_FATES:
-                raise ValueError(f"fate must be one of {LOOP_CANDIDATE_FATES}, got {fate!r}")
+                raise ValueError(f"fate must be one of {_FATE_TEXTS}, got {fate!r}")
             if not math.isfinite(float(score)):
                 raise ValueError(f"score must be finite, got {score}")
-            values.append((int(query_id), int(candidate_id), float(score), fate, str(detail)))
+            values.append((int(query_id), int(candidate_id), float(score), str(fate), str(detail)))
         with self._write() as conn:
             conn.executemany(
                 "INSERT INTO loop_candidates(query_id, candidate_id, score, fate, detail)"
                 " VALUES (?, ?, ?, ?, ?)", values)
 
-    def loop_candidates(self, fate: str | None = None) -> list[LoopCandidateRecord]:
+    def loop_candidates(self, fate: LoopFate | str | None = None) -> list[LoopCandidateRecord]:
         """Every loop candidate (or those of one fate), in the order recorded."""
         sql = "SELECT id, query_id, candidate_id, score, fate, detail FROM loop_candidates"
         if fate is None:
-            return [LoopCandidateRecord(*r) for r in self._read(sql + " ORDER BY id")]
+            return [candidate_record(r) for r in self._read(sql + " ORDER BY id")]
         if fate not in LOOP_CANDIDATE_FATES:
-            raise ValueError(f"fate must be one of {LOOP_CANDIDATE_FATES}, got {fate!r}")
-        rows = self._read(sql + " WHERE fate = ? ORDER BY id", (fate,))
-        return [LoopCandidateRecord(*r) for r in rows]
+            raise ValueError(f"fate must be one of {_FATE_TEXTS}, got {fate!r}")
+        rows = self._read(sql + " WHERE fate = ? ORDER BY id", (str(fate),))
+        return [candidate_record(r) for r in rows]
 
 
     # -- the forward camera's memory (version 4) -----------------------------------
@@ -894,7 +537,7 @@ class MapStore:
                 conn.executemany("UPDATE forward_words SET purged = 1, descriptor = X'' WHERE id = ?",
                                  [(int(i),) for i in purged])
 
-    def forward_memory(self) -> tuple[list[tuple], list[tuple]]:
+    def forward_memory(self) -> tuple[list[tuple[Any, ...]], list[tuple[Any, ...]]]:
         """Everything :meth:`add_forward_image` stored: the images as ``(image_id,
         keyframe_id, kind, (width, height), words (N,) uint32, keypoints_q (N, 2) uint16,
         descriptors bytes)`` in image order, and the words as ``(id, kind, descriptor

@@ -1,20 +1,23 @@
-"""Trajectories: TUM text files (so ``evo`` can read them) and planar error metrics.
+"""Trajectories as TUM text files (so ``evo`` can read them), and the observer that writes
+the daemon's odometry to them as it comes.
 
 A trajectory is ``stamps_ns (N,) int64`` with ``poses (N, 3) float64`` as
-``(x_m, y_m, yaw_rad)``. TUM lines are ``t x y z qx qy qz qw`` with ``t`` in seconds.
+``(x_m, y_m, yaw_rad)``. TUM lines are ``t x y z qx qy qz qw`` with ``t`` in seconds. The
+error metrics against ground truth are :mod:`robotd.evaluation.metrics`'.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
+from collections.abc import Callable
 from pathlib import Path
 from typing import TextIO
 
 import numpy as np
 
 from robotd.base.files import replacing
-from robotd.base.geometry import between, compose, inverse, quaternion_to_yaw, wrap_angle, yaw_to_quaternion
+from robotd.base.geometry import quaternion_to_yaw, yaw_to_quaternion
+from robotd.base.messages import OdometryUpdate, WheelTicks
+from robotd.odometry.kinematics import DiffDriveParams, WheelOdometry
 
 
 def format_tum_line(stamp_ns: int, x_m: float, y_m: float, yaw_rad: float) -> str:
@@ -64,68 +67,37 @@ def read_tum(path: Path | str) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(stamps, dtype=np.int64), np.asarray(poses, dtype=float).reshape(-1, 3)
 
 
-@dataclass(frozen=True)
-class TrajectoryErrors:
-    """How far an estimated trajectory is from ground truth (same stamps)."""
+class TumRecorder:
+    """Pipeline observer: writes the fused and the wheel-only odometry to ``fused.tum`` and
+    ``wheel.tum`` in ``folder`` as the updates come. With ``nominal_drive`` (the nominal wheel
+    geometry, when the daemon runs a calibrated odometry model) it also integrates the wheel
+    ticks with that geometry into ``wheel_nominal.tum``: the odometry before calibration."""
 
-    distance_m: float
-    end_position_error_m: float
-    end_heading_error_deg: float
-    max_position_error_m: float
-    rmse_position_m: float
+    name = "tum_recorder"
 
-    @property
-    def end_drift_per_100m(self) -> float:
-        return 100.0 * self.end_position_error_m / self.distance_m if self.distance_m > 0 else math.nan
+    def __init__(self, folder: Path, nominal_drive: DiffDriveParams | None = None) -> None:
+        self.fused = TumWriter(folder / "fused.tum")
+        self.wheel = TumWriter(folder / "wheel.tum")
+        self.nominal = WheelOdometry(nominal_drive) if nominal_drive is not None else None
+        self.wheel_nominal = TumWriter(folder / "wheel_nominal.tum") if nominal_drive is not None else None
 
-    @property
-    def max_drift_per_100m(self) -> float:
-        return 100.0 * self.max_position_error_m / self.distance_m if self.distance_m > 0 else math.nan
+    def subscriptions(self) -> dict[type, Callable[..., None]]:
+        subs: dict[type, Callable[..., None]] = {OdometryUpdate: self.on_odometry}
+        if self.nominal is not None:
+            subs[WheelTicks] = self.on_ticks
+        return subs
 
-    def as_dict(self) -> dict[str, float]:
-        return {
-            "distance_m": self.distance_m,
-            "end_position_error_m": self.end_position_error_m,
-            "end_heading_error_deg": self.end_heading_error_deg,
-            "max_position_error_m": self.max_position_error_m,
-            "rmse_position_m": self.rmse_position_m,
-            "end_drift_per_100m_m": self.end_drift_per_100m,
-            "max_drift_per_100m_m": self.max_drift_per_100m,
-        }
+    def on_odometry(self, u: OdometryUpdate) -> None:
+        self.fused.write(u.fused.stamp_ns, u.fused.x_m, u.fused.y_m, u.fused.yaw_rad)
+        self.wheel.write(u.wheel.stamp_ns, u.wheel.x_m, u.wheel.y_m, u.wheel.yaw_rad)
 
+    def on_ticks(self, msg: WheelTicks) -> None:
+        assert self.nominal is not None and self.wheel_nominal is not None  # subscribed only then
+        p = self.nominal.update(msg)
+        self.wheel_nominal.write(p.stamp_ns, p.x_m, p.y_m, p.yaw_rad)
 
-def anchor_to(first_truth: np.ndarray, estimate: np.ndarray) -> np.ndarray:
-    """Express an odometry trajectory (which starts at its own origin) in the truth's frame.
-
-    Odometry starts at identity at its first sample; ground truth starts wherever the
-    route starts. This is the only alignment done: no fitting, so drift is not hidden.
-    """
-    return compose(compose(first_truth, inverse(estimate[0])), estimate)
-
-
-def trajectory_errors(truth: np.ndarray, estimate: np.ndarray) -> TrajectoryErrors:
-    """Errors of ``estimate`` against ``truth``, both ``(N, 3)`` at the same stamps."""
-    if truth.shape != estimate.shape or truth.ndim != 2 or len(truth) == 0:
-        raise ValueError("truth and estimate must be (N, 3) arrays of the same length")
-    est = anchor_to(truth[0], estimate)
-    err = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
-    distance = float(np.sum(np.hypot(np.diff(truth[:, 0]), np.diff(truth[:, 1]))))
-    return TrajectoryErrors(
-        distance_m=distance,
-        end_position_error_m=float(err[-1]),
-        end_heading_error_deg=float(math.degrees(abs(wrap_angle(float(est[-1, 2] - truth[-1, 2]))))),
-        max_position_error_m=float(err.max()),
-        rmse_position_m=float(np.sqrt(np.mean(err ** 2))),
-    )
-
-
-def relative_pose_error(truth: np.ndarray, estimate: np.ndarray) -> tuple[float, float]:
-    """RPE between consecutive poses: RMS of the translation error (m) and of the heading
-    error (rad) of each step ``between(p[i], p[i+1])``, both ``(N, 3)`` at the same stamps."""
-    if truth.shape != estimate.shape or len(truth) < 2:
-        raise ValueError("truth and estimate must be (N, 3) arrays of the same length, N >= 2")
-    dt = between(truth[:-1], truth[1:])
-    de = between(estimate[:-1], estimate[1:])
-    trans = np.hypot(de[:, 0] - dt[:, 0], de[:, 1] - dt[:, 1])
-    rot = wrap_angle(de[:, 2] - dt[:, 2])
-    return float(np.sqrt(np.mean(trans ** 2))), float(np.sqrt(np.mean(np.asarray(rot) ** 2)))
+    def close(self) -> None:
+        self.fused.close()
+        self.wheel.close()
+        if self.wheel_nominal is not None:
+            self.wheel_nominal.close()

@@ -37,7 +37,7 @@ def test_short_demo_writes_a_consistent_map_and_trajectories(tmp_path: Path):
     gt_stamps, gt = read_tum(tmp_path / "groundtruth.tum")
     assert len(gt_stamps) > 0 and abs(gt_stamps[-1] / 1e9 - 12.0) < 0.05
     # Over 12 s the fused odometry is within a few centimetres of the truth.
-    assert s["fused"]["max_position_error_m"] < 0.05
+    assert s["fused"]["ape_origin_max_m"] < 0.05
     # Keyframe poses in the map are the fused poses at the frame stamps: near the truth.
     motion = plan_motion(build_route("square"), MotionLimits())
     with MapStore.open(tmp_path / "map.sqlite", create=False) as store:
@@ -58,8 +58,8 @@ def test_short_demo_writes_a_consistent_map_and_trajectories(tmp_path: Path):
     assert len(kf_stamps) == s["pose_graph"]["keyframes"] and np.all(np.diff(kf_stamps) > 0)
     truth = motion.pose_at(kf_stamps / 1e9)
     for name, est in (("loop_corrected", corrected), ("odometry", at_keyframes)):
-        ate = float(np.sqrt(np.mean(np.sum((est[:, :2] - truth[:, :2]) ** 2, axis=1))))
-        assert ate == pytest.approx(s["pose_graph"][name]["ate_rmse_m"], abs=2e-6), name
+        ape = float(np.sqrt(np.mean(np.sum((est[:, :2] - truth[:, :2]) ** 2, axis=1))))
+        assert ape == pytest.approx(s["pose_graph"][name]["ape_origin_rmse_m"], abs=2e-6), name
 
 
 @pytest.mark.slow
@@ -67,7 +67,7 @@ def test_default_demo_from_the_command_line(tmp_path: Path):
     """What `./dev demo` runs: the whole office route (about 110 m), with the figures the
     README shows pinned: at least 1400 loop edges accepted and every one truly overlapping
     (README: 1636 of 1636), none of the true ones refused by the gate, the loop-corrected
-    ATE under 1 cm (README: 3 mm), the fused end error under 0.1 m (README: 0.022 m) and
+    APE (RMS, anchored at the start) under 1 cm (README: 3 mm), the fused end error under 0.1 m (README: 0.022 m) and
     far below the wheel-only one (README: 2.14 m)."""
     r = subprocess.run([sys.executable, "-m", "robotd.app.cli", "demo", "--out", str(tmp_path)],
                        capture_output=True, text=True, timeout=1800)
@@ -84,7 +84,7 @@ def test_default_demo_from_the_command_line(tmp_path: Path):
     assert fd["loops_accepted"] >= 1400
     assert fd["loops_truly_overlapping"] == fd["loops_accepted"]
     assert fd["refused_truly_overlapping"] == 0
-    assert pg["loop_corrected"]["ate_rmse_m"] < 0.01
+    assert pg["loop_corrected"]["ape_origin_rmse_m"] < 0.01
     assert s["fused"]["end_position_error_m"] < 0.1
     assert s["fused"]["end_position_error_m"] < 0.25 * s["wheel_only"]["end_position_error_m"]
 

@@ -47,7 +47,7 @@ def test_demo_on_a_can_base_matches_the_kobuki_path_and_survives_faults(tmp_path
     assert abs(can["wheel_only"]["end_position_error_m"]
                - kob["wheel_only"]["end_position_error_m"]) < TICK_BOUND_M
     assert can["fused"]["end_position_error_m"] < kob["fused"]["end_position_error_m"] + TICK_BOUND_M
-    assert can["fused"]["rmse_position_m"] < kob["fused"]["rmse_position_m"] + TICK_BOUND_M
+    assert can["fused"]["ape_origin_rmse_m"] < kob["fused"]["ape_origin_rmse_m"] + TICK_BOUND_M
 
     c = can["can"]
     assert c["frames"] == c["frames_sent"] == c["frames_used"]

@@ -334,9 +334,9 @@ def test_vision_only_odometry_edges_are_the_floor_motion(tmp_path: Path):
     # graph has no loop yet (10 s of the square), so its optimum is that same chain.
     g = s["pose_graph"]
     assert g["loops_in_graph"] == 0
-    for key in ("end_position_error_m", "ate_rmse_m", "rpe_rmse_mm"):
+    for key in ("end_position_error_m", "ape_origin_rmse_m", "rpe_rmse_mm"):
         assert g["vo_only"][key] == pytest.approx(g["loop_corrected"][key], rel=1e-4, abs=1e-7)
-    assert g["vo_only"]["ate_rmse_m"] != pytest.approx(g["odometry"]["ate_rmse_m"], rel=1e-3)
+    assert g["vo_only"]["ape_origin_rmse_m"] != pytest.approx(g["odometry"]["ape_origin_rmse_m"], rel=1e-3)
 
 
 def test_fused_visual_odometry_reaches_the_filter_and_the_edges(tmp_path: Path):

@@ -17,9 +17,10 @@ from hypothesis import strategies as st
 
 from robotd.base.errors import DescriptorError, RobotdError
 from robotd.base.geometry import wrap_angle
-from robotd.floor.descriptor import (ANGLE_BITS, MODE_BYTES, MODES, POSITION_STEP_PX, ExtractParams, candidates,
-                                     decode, describe, drop_repeats, extract, load_learned, raw_descriptors,
-                                     ternarise)
+from robotd.floor.compression import ternarise
+from robotd.floor.descriptor import (ANGLE_BITS, MODE_BYTES, MODES, POSITION_STEP_PX, ExtractParams, decode,
+                                     describe, drop_repeats, extract, load_learned)
+from robotd.floor.keypoints import candidates, raw_descriptors
 from robotd.base.camera import FloorCameraModel
 from sim.world.floor import Floor
 from sim.cameras.floor import FloorRenderer, RenderParams

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from robotd.io import mapconnection
 from robotd.io import store as store_module
 from robotd.base.errors import MapStoreError
 from robotd.io.store import (
@@ -253,7 +254,7 @@ def test_an_older_schema_is_migrated_keeping_the_data(tmp_path, monkeypatch) -> 
     path = tmp_path / "map.sqlite"
     _make_map(path, n_keyframes=2)
     monkeypatch.setattr(
-        store_module, "MIGRATIONS", {**store_module.MIGRATIONS, SCHEMA_VERSION + 1: _add_cameras_column}
+        mapconnection, "MIGRATIONS", {**mapconnection.MIGRATIONS, SCHEMA_VERSION + 1: _add_cameras_column}
     )
     with MapStore.open(path) as store:
         assert store.schema_version == SCHEMA_VERSION + 1
@@ -265,7 +266,7 @@ def test_a_failing_migration_leaves_the_old_version(tmp_path, monkeypatch) -> No
     path = tmp_path / "map.sqlite"
     _make_map(path, n_keyframes=2)
     monkeypatch.setattr(
-        store_module, "MIGRATIONS", {**store_module.MIGRATIONS, SCHEMA_VERSION + 1: _broken_migration}
+        mapconnection, "MIGRATIONS", {**mapconnection.MIGRATIONS, SCHEMA_VERSION + 1: _broken_migration}
     )
     with pytest.raises(RuntimeError, match="simulated failure"):
         MapStore.open(path)
@@ -468,8 +469,8 @@ def _all_rows(path: Path) -> dict[str, list[tuple]]:
 
 def test_a_version_2_map_written_by_the_current_code_is_migrated(tmp_path, monkeypatch) -> None:
     path = tmp_path / "map.sqlite"
-    migrations = store_module.MIGRATIONS
-    monkeypatch.setattr(store_module, "MIGRATIONS", {1: migrations[1], 2: migrations[2]})
+    migrations = mapconnection.MIGRATIONS
+    monkeypatch.setattr(mapconnection, "MIGRATIONS", {1: migrations[1], 2: migrations[2]})
     with MapStore.open(path, image_codec="png") as store:
         assert store.schema_version == 2
         run = store.begin_run("a = 1\n", started_ns=10, notes="v2", epoch_unix_ns=1_700_000_000)
@@ -685,7 +686,7 @@ def test_a_read_only_open_neither_creates_nor_migrates(tmp_path: Path, monkeypat
     assert not path.exists()
     _make_map(path)
     monkeypatch.setattr(
-        store_module, "MIGRATIONS", {**store_module.MIGRATIONS, SCHEMA_VERSION + 1: _add_cameras_column}
+        mapconnection, "MIGRATIONS", {**mapconnection.MIGRATIONS, SCHEMA_VERSION + 1: _add_cameras_column}
     )
     before = _digest(path)
     with pytest.raises(MapStoreError, match=f"schema version {SCHEMA_VERSION}; open it once for "
@@ -720,8 +721,8 @@ def test_a_version_3_map_gains_the_forward_memory_and_keeps_its_rows(tmp_path, m
     """Today's maps (version 3) are upgraded to version 4 (issue 24): the forward tables
     appear, empty; every earlier row is as it was."""
     path = tmp_path / "map.sqlite"
-    migrations = store_module.MIGRATIONS
-    monkeypatch.setattr(store_module, "MIGRATIONS", {v: migrations[v] for v in (1, 2, 3)})
+    migrations = mapconnection.MIGRATIONS
+    monkeypatch.setattr(mapconnection, "MIGRATIONS", {v: migrations[v] for v in (1, 2, 3)})
     with MapStore.open(path) as store:
         assert store.schema_version == 3
         run = store.begin_run("a = 1\n", started_ns=10)

@@ -12,6 +12,7 @@ from robotd.base.messages import (
     Keyframe,
     KeyframeStored,
     LoopCandidate,
+    LoopFate,
     MapMatch,
     TransientKeyframe,
     keyframe_as,
@@ -92,10 +93,10 @@ class FloorDetectorStage(Publisher):
             if threshold is None:
                 continue  # untrained: nothing is declared, nothing to record
             if score < threshold:
-                self._publish(CandidateFate(kf.keyframe_id, c.keyframe_id, score, "below_threshold",
+                self._publish(CandidateFate(kf.keyframe_id, c.keyframe_id, score, LoopFate.BELOW_THRESHOLD,
                                             f"score {score:.2f} < {threshold:.2f}"))
             elif c.keyframe_id not in declared:
-                self._publish(CandidateFate(kf.keyframe_id, c.keyframe_id, score, "no_transform",
+                self._publish(CandidateFate(kf.keyframe_id, c.keyframe_id, score, LoopFate.NO_TRANSFORM,
                                             "fewer than 3 inliers map onto the floor"))
         for loop in result.loops:
             self.loops += 1

@@ -35,7 +35,7 @@ import numpy as np
 
 from robotd.app.pipeline import Publisher
 from robotd.base.errors import MapStoreError
-from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored
+from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored, LoopFate
 from robotd.forward import LOOP, ForwardDetector
 from robotd.forward.features import CompactFeatures
 from robotd.forward.planar import planar_motion
@@ -184,7 +184,7 @@ class ForwardLoopStage(Publisher):
         dyaw, bearing, tilt = planar_motion(v.rotation, v.translation_dir)
         if tilt > self.max_tilt_rad:
             self.not_planar += 1
-            self._publish(CandidateFate(kf.keyframe_id, old, det.candidate_probability, "failed_gate",
+            self._publish(CandidateFate(kf.keyframe_id, old, det.candidate_probability, LoopFate.FAILED_GATE,
                                         f"forward: motion {math.degrees(tilt):.1f} deg out of the floor plane"))
             return
         self.loops += 1

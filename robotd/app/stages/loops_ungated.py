@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from robotd.app.pipeline import Handler, Publisher
-from robotd.base.messages import CandidateFate, Link, LoopCandidate
+from robotd.base.messages import CandidateFate, Link, LoopCandidate, LoopFate
 
 
 class LoopsUngated(Publisher):
@@ -20,5 +20,5 @@ class LoopsUngated(Publisher):
         return {LoopCandidate: self.on_candidate}
 
     def on_candidate(self, c: LoopCandidate) -> None:
-        self._publish(CandidateFate(c.to_id, c.from_id, c.score, "accepted", "no pose graph: not gated"))
+        self._publish(CandidateFate(c.to_id, c.from_id, c.score, LoopFate.ACCEPTED, "no pose graph: not gated"))
         self._publish(Link("loop", c.from_id, c.to_id, c.delta_xyyaw, c.information))

@@ -1,0 +1,127 @@
+"""The floor descriptor's format constants, modes, extraction parameters and learned tables
+(:mod:`robotd.floor.descriptor` describes the six steps they serve)."""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = ["ANGLE_BITS", "HEADER", "MAGIC", "MODE_BYTES", "MODES", "N_ATTRIBUTES", "N_ELEMENTS",
+           "POSITION_STEP_PX", "VERSION", "ExtractParams", "Learned", "ModeSpec", "load_learned",
+           "shipped_learned"]
+
+MODE_BYTES = {1: 512, 2: 1024, 3: 2048, 4: 4096, 5: 8192, 6: 16384}
+MAGIC = b"FD"
+VERSION = 1
+HEADER = struct.Struct("<2sBBHHHHHBBI")  # 20 bytes
+POSITION_STEP_PX = 2  # coordinate grid, pixels of the working image
+ANGLE_BITS = 5
+N_ELEMENTS = 128  # transformed elements per descriptor (16 cells x 8)
+N_ATTRIBUTES = 4  # selection attributes: response, edge ratio, centre distance, orientation strength
+
+
+class ModeSpec(NamedTuple):
+    """Per mode: byte bound, trits kept per local descriptor, global descriptor bits."""
+
+    bytes: int
+    length: int
+    global_bits: int
+
+
+MODES = {1: ModeSpec(512, 24, 256), 2: ModeSpec(1024, 32, 256), 3: ModeSpec(2048, 48, 512),
+         4: ModeSpec(4096, 64, 512), 5: ModeSpec(8192, 96, 1024), 6: ModeSpec(16384, 128, 1024)}
+
+
+@dataclass(frozen=True)
+class ExtractParams:
+    """Extraction parameters (lengths in pixels of the half-resolution image).
+
+    The shipped ``selection.npz`` was learned with the defaults; change them and retrain.
+
+    Fields:
+        max_side_px: inputs with a longer side are first downscaled (area averaging) to it.
+        detect_sigma_px: inner Gaussian of the difference of Gaussians.
+        dog_ratio: outer / inner sigma of the difference of Gaussians.
+        min_contrast: smallest |DoG| kept, in units of the image's standard deviation.
+        edge_ratio: Hessian ratio above which an extremum is an edge and dropped (Lowe: 10).
+        orientation_sigma_px: smoothing of the image whose gradient gives the orientation.
+        pool_sigma_px: Gaussian pooling of the gradient orientation maps (cell support).
+        cell_px: distance between the centres of neighbouring descriptor cells.
+        max_candidates: cap on the candidates ranked (strongest responses first).
+        repeat_distance: a keypoint whose own image holds another keypoint (beyond the
+            descriptor's patch, ``4 cell_px``) with a raw descriptor nearer than this (L2 of
+            the unit-norm 128-D descriptors) is a repeat and is not coded. 0.3 is about the
+            90th percentile of the distance between two views of one floor point (measured
+            on the virtual robot's floors; unrelated keypoints are 0.7-1.0 apart): the copy
+            is as alike as a re-observation. 0 keeps every keypoint.
+        repeat_pool: how many of the most relevant candidates are checked for repeats
+            (the pairwise distances cost ``repeat_pool**2 x 128`` multiply-adds); candidates
+            after them are kept unchecked. Enough for the largest mode's budget.
+        global_min_features: the global descriptor aggregates at least this many of the
+            best keypoints, even when fewer are coded (low modes).
+        learned: learned tables; None = the shipped ``selection.npz``.
+    """
+
+    max_side_px: int = 1280
+    detect_sigma_px: float = 1.8
+    dog_ratio: float = 1.6
+    min_contrast: float = 0.03
+    edge_ratio: float = 10.0
+    orientation_sigma_px: float = 4.0
+    pool_sigma_px: float = 2.5
+    cell_px: float = 6.0
+    max_candidates: int = 4000
+    repeat_distance: float = 0.3
+    repeat_pool: int = 1000
+    global_min_features: int = 200
+    learned: Learned | None = None
+
+    def __post_init__(self) -> None:
+        if not (self.max_side_px >= 32 and self.detect_sigma_px > 0 and self.dog_ratio > 1
+                and self.edge_ratio > 1 and self.orientation_sigma_px > 0 and self.pool_sigma_px > 0
+                and self.cell_px > 0 and self.max_candidates >= 1 and self.global_min_features >= 0
+                and self.repeat_distance >= 0 and self.repeat_pool >= 0):
+            raise ValueError(f"extraction parameters out of range: {self}")
+
+
+@dataclass(frozen=True, eq=False)
+class Learned:
+    """The learned tables (``selection.npz``, made by ``tools/train_selection.py``).
+
+    ``rel_edges (4, B-1)`` bin edges and ``rel_logp (4, B)`` log P(match | bin) of the
+    selection attributes; ``tern_lo``, ``tern_hi (128,)`` ternary thresholds of the
+    transformed elements; ``order (128,)`` element priority; ``pca_mean (128,)``,
+    ``pca_basis (128, 32)``, ``centroids (32, 32)`` and ``signs (1024,)`` (+-1) of the
+    global descriptor.
+    """
+
+    rel_edges: np.ndarray
+    rel_logp: np.ndarray
+    tern_lo: np.ndarray
+    tern_hi: np.ndarray
+    order: np.ndarray
+    pca_mean: np.ndarray
+    pca_basis: np.ndarray
+    centroids: np.ndarray
+    signs: np.ndarray
+
+
+def load_learned(path: str | Path | None = None) -> Learned:
+    """Read learned tables from ``path`` (default: the ``selection.npz`` shipped here)."""
+    if path is None:
+        return shipped_learned()
+    with np.load(path) as z:
+        return Learned(**{k: np.array(z[k]) for k in Learned.__dataclass_fields__})
+
+
+@lru_cache(maxsize=1)
+def shipped_learned() -> Learned:
+    """The learned tables shipped with robotd (read once)."""
+    with resources.as_file(resources.files("robotd.floor") / "selection.npz") as p:
+        return load_learned(p)

@@ -1,0 +1,259 @@
+"""Steps 1-3 of the floor descriptor (:mod:`robotd.floor.descriptor`): interest points and
+their orientation, selection by learned relevance with repeats dropped, and the raw local
+descriptors of the selected keypoints."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+from robotd.floor.desccoding import cells, fit
+from robotd.floor.descparams import N_ATTRIBUTES, N_ELEMENTS, ExtractParams, Learned, ModeSpec
+
+__all__ = ["Candidates", "candidates", "drop_repeats", "grey", "kept_for_budget", "raw_descriptors",
+           "working"]
+
+
+class Candidates(NamedTuple):
+    """Keypoint candidates of one image (working-image pixels, see :func:`candidates`).
+
+    ``xy (C, 2) float32``; ``angle (C,)`` radians; ``attributes (C, 4) float32``:
+    response, edge ratio, distance from the centre (0 centre, 1 corner), orientation
+    strength; ``relevance (C,)`` log-probability of matching (``-inf`` when not learned).
+    """
+
+    xy: np.ndarray
+    angle: np.ndarray
+    attributes: np.ndarray
+    relevance: np.ndarray
+    pooled: tuple[np.ndarray, np.ndarray]  # pooled orientation maps, 2 x (h, w, 4) float32
+
+
+def grey(image: np.ndarray) -> np.ndarray:
+    a = np.asarray(image)
+    if a.dtype != np.uint8:
+        raise ValueError(f"image must be uint8, got {a.dtype}")
+    if a.ndim == 3 and a.shape[2] in (3, 4):
+        a = cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    elif a.ndim == 3 and a.shape[2] == 1:
+        a = a[:, :, 0]
+    if a.ndim != 2 or a.shape[0] < 1 or a.shape[1] < 1:
+        raise ValueError(f"image must be (H, W) grey or (H, W, 3) BGR with H, W >= 1, got shape {a.shape}")
+    if max(a.shape) > 65535:
+        raise ValueError(f"image sides must be at most 65535 px, got {a.shape[1]}x{a.shape[0]}")
+    return np.ascontiguousarray(a)
+
+
+def working(grey: np.ndarray, params: ExtractParams) -> np.ndarray:
+    h, w = grey.shape
+    if max(h, w) > params.max_side_px:
+        f = params.max_side_px / max(h, w)
+        grey = cv2.resize(grey, (max(1, round(w * f)), max(1, round(h * f))), interpolation=cv2.INTER_AREA)
+    return grey
+
+
+def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None) -> Candidates:
+    """Steps 1 and 2: keypoints of a working image ``(h, w) uint8`` with their attributes.
+
+    Sorted by decreasing relevance (by response when ``learned`` is None).
+    """
+    h2, w2 = work.shape[0] // 2, work.shape[1] // 2
+    empty = Candidates(np.zeros((0, 2), np.float32), np.zeros(0, np.float32),
+                       np.zeros((0, N_ATTRIBUTES), np.float32), np.zeros(0, np.float32),
+                       (np.zeros((1, 1, 4), np.float32),) * 2)
+    border = int(math.ceil(params.cell_px))  # keep the inner cells inside the image
+    if min(h2, w2) < 2 * border + 3:
+        return empty
+    x = cv2.resize(work, (w2, h2), interpolation=cv2.INTER_AREA).astype(np.float32)
+    x *= np.float32(1.0 / max(float(x.std()), 1.0))  # flat images: no keypoint passes
+    s = params.detect_sigma_px
+    g1 = cv2.GaussianBlur(x, (0, 0), s)
+    d = g1 - cv2.GaussianBlur(g1, (0, 0), s * math.sqrt(params.dog_ratio**2 - 1.0))
+    ext = (d == cv2.dilate(d, None)) | (d == cv2.erode(d, None))
+    ext &= np.abs(d) > params.min_contrast
+    ext[:border], ext[-border:], ext[:, :border], ext[:, -border:] = False, False, False, False
+    ys, xs = np.nonzero(ext)
+    dc = d[ys, xs]
+    if len(dc) > params.max_candidates:
+        keep = np.argpartition(-np.abs(dc), params.max_candidates - 1)[: params.max_candidates]
+        ys, xs, dc = ys[keep], xs[keep], dc[keep]
+    # Hessian of the DoG: edge rejection (Lowe 2004, Sec. 4.1) and sub-pixel offset.
+    dxx = d[ys, xs + 1] + d[ys, xs - 1] - 2 * dc
+    dyy = d[ys + 1, xs] + d[ys - 1, xs] - 2 * dc
+    dxy = 0.25 * (d[ys + 1, xs + 1] - d[ys + 1, xs - 1] - d[ys - 1, xs + 1] + d[ys - 1, xs - 1])
+    det = dxx * dyy - dxy * dxy
+    edge = (dxx + dyy) ** 2 / np.where(det > 0, det, 1.0)
+    ok = (det > 0) & (edge < (params.edge_ratio + 1) ** 2 / params.edge_ratio)
+    ys, xs, dc, dxx, dyy, dxy, det, edge = (v[ok] for v in (ys, xs, dc, dxx, dyy, dxy, det, edge))
+    if len(xs) == 0:
+        return empty
+    gx = 0.5 * (d[ys, xs + 1] - d[ys, xs - 1])
+    gy = 0.5 * (d[ys + 1, xs] - d[ys - 1, xs])
+    ox = np.clip((-dyy * gx + dxy * gy) / det, -0.5, 0.5)
+    oy = np.clip((dxy * gx - dxx * gy) / det, -0.5, 0.5)
+    xy_half = np.column_stack([xs + ox, ys + oy]).astype(np.float32)
+    # Orientation: gradient of the image smoothed at orientation_sigma_px, at the keypoint.
+    go = cv2.GaussianBlur(x, (0, 0), params.orientation_sigma_px)
+    grad = cv2.merge([cv2.Sobel(go, cv2.CV_32F, 1, 0, ksize=1), cv2.Sobel(go, cv2.CV_32F, 0, 1, ksize=1)])
+    v = cv2.remap(grad, np.ascontiguousarray(xy_half[:, :1]), np.ascontiguousarray(xy_half[:, 1:]),
+                  cv2.INTER_LINEAR).reshape(-1, 2)
+    angle = np.arctan2(v[:, 1], v[:, 0]).astype(np.float32) % np.float32(2 * math.pi)
+    xy = xy_half * 2 + 0.5  # half-resolution pixel centre -> working-image pixels
+    hw = np.array([work.shape[1] - 1, work.shape[0] - 1], np.float32) * 0.5
+    attributes = np.column_stack([np.abs(dc), edge, np.linalg.norm((xy - hw) / hw, axis=1) / math.sqrt(2),
+                                  np.hypot(v[:, 0], v[:, 1])]).astype(np.float32)
+    if learned is None:
+        relevance = np.abs(dc).astype(np.float32)
+    else:
+        relevance = np.zeros(len(xy), np.float32)
+        for a in range(N_ATTRIBUTES):
+            relevance += learned.rel_logp[a][np.searchsorted(learned.rel_edges[a], attributes[:, a])]
+    order = np.argsort(-relevance, kind="stable")
+    pooled = _pooled_orientation_maps(g1, params.pool_sigma_px)
+    return Candidates(xy[order], angle[order], attributes[order], relevance[order], pooled)
+
+
+def _pooled_orientation_maps(g: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """8 gradient-orientation channels (each gradient's magnitude split linearly between
+    the two nearest of 8 directions), Gaussian-pooled: two ``(h, w, 4) float32`` images
+    (directions 0-3 and 4-7; OpenCV filters up to 4 channels fastest)."""
+    mag, ang = cv2.cartToPolar(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=1), cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=1))
+    b = ang.ravel() * np.float32(8 / (2 * math.pi))
+    b0 = b.astype(np.int32)
+    hi = mag.ravel() * (b - b0)
+    npx = len(b)
+    # Direction d of pixel p goes to plane d // 4, slot p * 4 + d % 4; both planes contiguous.
+    base = np.arange(0, 4 * npx, 4, dtype=np.int32)
+    ch = np.zeros(8 * npx, np.float32)
+    d0, d1 = b0 & 7, (b0 + 1) & 7
+    ch[base + (d0 >> 2) * (4 * npx) + (d0 & 3)] = mag.ravel() - hi
+    ch[base + (d1 >> 2) * (4 * npx) + (d1 & 3)] = hi  # never the slot just written
+    ch = ch.reshape((2,) + g.shape + (4,))
+    k = 2 * int(math.ceil(2 * sigma)) + 1
+    return cv2.GaussianBlur(ch[0], (k, k), sigma), cv2.GaussianBlur(ch[1], (k, k), sigma)
+
+
+_GRID = np.meshgrid(np.arange(4, dtype=np.float32) - 1.5, np.arange(4, dtype=np.float32) - 1.5)
+
+
+def raw_descriptors(c: Candidates, n: int, params: ExtractParams) -> np.ndarray:
+    """Step 3: SIFT-like ``(n, 128) float32`` descriptors of the first ``n`` candidates.
+
+    Cell-major (16 cells row by row in the keypoint's frame) x 8 relative orientation
+    bins; L2-normalised, clipped at 0.2 and renormalised (Lowe 2004, Sec. 6.1).
+    """
+    if n == 0:
+        return np.zeros((0, N_ELEMENTS), np.float32)
+    xy = (c.xy[:n] - 0.5) * 0.5  # back to half-resolution pixels
+    ang = c.angle[:n]
+    cs, sn = np.cos(ang)[:, None, None], np.sin(ang)[:, None, None]
+    u, v = _GRID
+    step = np.float32(params.cell_px)
+    mx = (xy[:, 0, None, None] + step * (cs * u - sn * v)).reshape(n, 16)
+    my = (xy[:, 1, None, None] + step * (sn * u + cs * v)).reshape(n, 16)
+    smp = np.concatenate([cv2.remap(p, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
+                          for p in c.pooled + c.pooled], axis=2)  # (n, 16, 16): directions 0-7 twice
+    # Turn the 8 absolute directions into directions relative to the keypoint: relative
+    # bin j is absolute direction angle + j * 45 deg, interpolated between whole bins.
+    a = ang * np.float32(8 / (2 * math.pi))
+    a0 = a.astype(np.intp) & 7
+    f = (a - np.floor(a))[:, None, None]
+    win = np.lib.stride_tricks.sliding_window_view(smp, 8, axis=2)  # (n, 16, 9, 8)
+    rows = np.arange(n)
+    d = win[rows, :, a0] * (1 - f) + win[rows, :, a0 + 1] * f
+    d = d.reshape(n, N_ELEMENTS)
+    d *= 1 / np.maximum(np.sqrt(np.einsum("ij,ij->i", d, d)), 1e-12)[:, None]
+    np.minimum(d, 0.2, out=d)
+    d *= 1 / np.maximum(np.sqrt(np.einsum("ij,ij->i", d, d)), 1e-12)[:, None]
+    return d
+
+
+def drop_repeats(c: Candidates, params: ExtractParams) -> tuple[Candidates, np.ndarray]:
+    """Step 2b: drop the candidates that repeat within their own image.
+
+    Of the first ``params.repeat_pool`` candidates (relevance order), each one whose raw
+    descriptor (:func:`raw_descriptors`) lies within ``params.repeat_distance`` of another
+    one's is dropped, both copies alike, unless the two are closer than the descriptor's
+    patch (``4 cell_px``; two extrema on one blob share their patch, they are not a
+    repeat). Which copy another view's keypoint is cannot be told from its descriptor, and
+    when that view holds both, the matcher's ratio test rejects either (Lowe 2004,
+    Sec. 7.1): a repeat spends budget and brings only false agreement.
+
+    That false agreement is what makes a printed floor (paper 003's worst case) alias. Two
+    views ``s`` apart, ``s`` a step of the plank lattice, see the same image at the same
+    pixels wherever the planks ``s`` apart carry the same print, and the matcher finds the
+    identity with most keypoints as inliers while the views are ``s`` apart. A keypoint at
+    ``u`` agrees so only if the floor at ``u`` and at ``u + s`` is the same print; when
+    ``u + s`` is in view too, the keypoint repeats in its own image and is dropped here. For
+    ``s`` under half the view, that leaves only keypoints near the corners.
+
+    Returns the kept candidates (same order) and the ``(K, 128) float32`` raw descriptors
+    of the first ``K`` of them (the checked ones that were kept), for reuse.
+    """
+    k = min(params.repeat_pool, len(c.xy))
+    raw = raw_descriptors(c, k, params)
+    if params.repeat_distance <= 0 or k < 2:
+        return c, raw
+    repeat = np.zeros(len(c.xy), bool)
+    repeat[:k] = _repeats(raw, c.xy[:k], 0, k, params)
+    keep = ~repeat
+    kept = Candidates(c.xy[keep], c.angle[keep], c.attributes[keep], c.relevance[keep], c.pooled)
+    return kept, raw[keep[:k]]
+
+
+def _repeats(raw: np.ndarray, xy: np.ndarray, start: int, stop: int, params: ExtractParams) -> np.ndarray:
+    """``(stop - start,) bool``: which of the checked candidates ``start:stop`` repeat
+    (:func:`drop_repeats`) among all ``K`` checked ones, given their ``(K, 128)`` raw
+    descriptors and ``(K, 2)`` working-image positions. Rows are independent, so the
+    rows can be decided a block at a time (:func:`extract` decides only as many as the
+    budget reaches)."""
+    sq = np.einsum("ij,ij->i", raw, raw)
+    d2 = raw[start:stop] @ raw.T  # |a - b|^2 = |a|^2 + |b|^2 - 2 a.b, in place
+    d2 *= -2.0
+    d2 += sq[start:stop, None]
+    d2 += sq[None, :]
+    i, j = np.nonzero(d2 < params.repeat_distance**2)  # the diagonal, neighbours on one blob, repeats
+    patch_px = 2 * 4 * params.cell_px  # the patch width, in working-image pixels (cells are half-resolution)
+    far = np.sum((xy[start + i] - xy[j]) ** 2, axis=1) >= patch_px**2
+    out = np.zeros(stop - start, bool)
+    out[i[far]] = True
+    return out
+
+
+def kept_for_budget(c: Candidates, params: ExtractParams, spec: ModeSpec, grid_w: int, grid_h: int,
+                     block: int = 256) -> tuple[Candidates, np.ndarray, int]:
+    """:func:`drop_repeats` and :func:`~robotd.floor.desccoding.fit` together, deciding only the rows needed.
+
+    The coded keypoints are the first ``n`` kept candidates and the global descriptor
+    aggregates the first ``max(n, global_min_features)``; whether a later candidate repeats
+    changes neither. So the candidates are checked (each against the whole pool, as
+    :func:`drop_repeats` does) a ``block`` at a time until the kept ones reach past what
+    the budget codes. The result is the same as ``drop_repeats`` then ``fit`` for
+    everything :func:`extract` uses: the returned candidates are exact up to the first
+    ``max(n + 1, global_min_features)`` kept ones, and end there when not all were checked.
+
+    Returns the kept candidates, the raw descriptors of the first of them (the checked
+    ones) and ``n``.
+    """
+    k = min(params.repeat_pool, len(c.xy))
+    if params.repeat_distance <= 0 or k < 2:
+        kept, raw = c, raw_descriptors(c, k, params)
+        return kept, raw, fit(spec, cells(kept.xy, grid_w, grid_h))
+    raw = raw_descriptors(c, k, params)
+    repeat = np.zeros(k, bool)
+    done = 0
+    while True:
+        stop = min(k, done + block)
+        repeat[done:stop] = _repeats(raw, c.xy[:k], done, stop, params)
+        done = stop
+        keep = np.flatnonzero(~repeat[:done])
+        if done == k:  # every checked row decided; unchecked candidates after the pool are kept
+            keep = np.concatenate([keep, np.arange(k, len(c.xy))])
+        n = fit(spec, cells(c.xy[keep], grid_w, grid_h))
+        if done == k or (n < len(keep) and len(keep) >= params.global_min_features):
+            break
+    kept = Candidates(c.xy[keep], c.angle[keep], c.attributes[keep], c.relevance[keep], c.pooled)
+    return kept, raw[keep[keep < k]], n
