@@ -84,7 +84,9 @@ def stage_row(stage: str, handler: str) -> str:
 class StageClock:
     """Charges the CPU time of the calling thread to (stage, handler), exclusive of the
     handlers it publishes to (they are timed themselves), and sums per keyframe the
-    inclusive time of every handler a :class:`~robotd.base.messages.Keyframe` reaches."""
+    inclusive time of the handlers of each :class:`~robotd.base.messages.Keyframe` (which
+    includes the later stages: the described, measured and stored keyframe are published
+    from within them)."""
 
     def __init__(self) -> None:
         self.cpu_s: collections.Counter[tuple[str, str]] = collections.Counter()
@@ -112,7 +114,7 @@ class StageClock:
                 self.samples[key].append(dt)
                 if self._children:
                     self._children[-1] += dt
-                if args and isinstance(args[0], Keyframe):
+                if args and type(args[0]) is Keyframe:  # its handlers' time includes the later stages
                     self.per_keyframe_s[id(args[0])] += dt
 
         return timed

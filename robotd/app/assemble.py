@@ -18,17 +18,16 @@ import numpy as np
 
 from robotd.app.daemon import Daemon, Source
 from robotd.app.notify import Notifier
-from robotd.app.pipeline import (
-    FloorDetectorStage,
-    KeyframeStage,
-    LoopsUngated,
-    MapWriterStage,
-    OdometryStage,
-    Pipeline,
-    VisualOdometryStage,
-)
+from robotd.app.pipeline import Pipeline
+from robotd.app.stages.floor import FloorDetectorStage
+from robotd.app.stages.keyframes import KeyframeStage
+from robotd.app.stages.loops_ungated import LoopsUngated
+from robotd.app.stages.map_writer import MapWriterStage
+from robotd.app.stages.odometry import OdometryStage
+from robotd.app.stages.visual_odometry import VisualOdometryStage
 from robotd.base.clock import Clock
 from robotd.base.config import Config, to_toml
+from robotd.base.messages import DescribedKeyframe, Keyframe, MeasuredKeyframe
 from robotd.floor.detector import FloorDetectorParams, FloorLoopDetector
 from robotd.forward.planar import PlanarLoopParams
 from robotd.io.calibfile import CalibrationFile
@@ -117,10 +116,12 @@ def build_floor_detector(cfg: Config, store: MapStore, calib: CalibrationFile | 
     return FloorLoopDetector.from_store(store, params, threshold, camera_model(calib, cfg.floor_camera))
 
 
-def build_visual_odometry(cfg: Config, odometry: OdometryFilter | None,
-                          calib: CalibrationFile | None = None) -> VisualOdometryStage:
+def build_visual_odometry(cfg: Config, odometry: OdometryStage,
+                          calib: CalibrationFile | None = None, *,
+                          takes: type[Keyframe] = DescribedKeyframe) -> VisualOdometryStage:
     """Floor visual odometry in the floor detector's descriptor mode (the keyframe's
-    descriptor is reused), with the calibrated camera model."""
+    descriptor is reused), with the calibrated camera model; its steps go to ``odometry``'s
+    filter (fused mode) and meet that filter's gate."""
     from robotd.floor.vo import FloorVisualOdometry, VoParams
     from robotd.io.calibfile import camera_model
 
@@ -128,7 +129,7 @@ def build_visual_odometry(cfg: Config, odometry: OdometryFilter | None,
     params = VoParams.from_config(v, cfg.floor_detector.descriptor_mode)
     vo = FloorVisualOdometry(camera_model(calib, cfg.floor_camera), params)
     log.info("floor visual odometry on (%s, mode %d)", v.role, params.descriptor_mode)
-    return VisualOdometryStage(vo, odometry, v.role)
+    return VisualOdometryStage(vo, v.role, gate_nis=odometry.vo_gate_nis, takes=takes)
 
 
 def forward_mount(cfg: Config) -> np.ndarray:
@@ -145,7 +146,7 @@ def forward_loop_params(cfg: Config) -> PlanarLoopParams:
 def build_forward_stage(cfg: Config, store: MapStore | None = None) -> Any:
     """The forward loop detector stage (paper 000) with the config's features and camera;
     with ``store``, its memory is kept in the map and taken up from earlier runs."""
-    from robotd.app.forwardloops import ForwardLoopStage
+    from robotd.app.stages.forward_loops import ForwardLoopStage
     from dataclasses import replace
 
     from robotd.forward import FeatureParams, ForwardDetector, method_params
@@ -174,35 +175,40 @@ def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, l
     kf = cfg.keyframes
     pipeline = Pipeline()
     odometry = build_odometry(cfg, calibration) if cfg.base.driver != "none" else None
-    if odometry is not None:
-        pipeline.add(OdometryStage(odometry))
-    keyframe_stage = pipeline.add(KeyframeStage(odometry, clock, distance_m=kf.distance_m,
-                                                rotation_rad=math.radians(kf.rotation_deg),
-                                                max_sync_wait_s=kf.max_sync_wait_s, lossless=lossless))
+    odometry_stage = pipeline.add(OdometryStage(odometry)) if odometry is not None else None
+    pipeline.add(KeyframeStage(odometry_stage.keyframe_odometry() if odometry_stage is not None else None,
+                               clock, distance_m=kf.distance_m, rotation_rad=math.radians(kf.rotation_deg),
+                               max_sync_wait_s=kf.max_sync_wait_s, lossless=lossless),
+                 reads={"odometry": "KeyframeOdometry"} if odometry_stage is not None else None)
     mapped_ground = None
     if cfg.pose_graph.enabled and pose_graph:
-        from robotd.app.mappedground import MappedGroundParams
-        from robotd.app.posegraph import PoseGraphStage
+        from robotd.app.stages.pose_graph import PoseGraphStage
         from robotd.graph.incremental import IncrementalGraph
+        from robotd.graph.mappedground import MappedGroundParams
 
         g = cfg.pose_graph
         graph_stage = pipeline.add(PoseGraphStage(
             IncrementalGraph(), store, gate_chi2=g.gate_chi2, save_every=g.full_solve_every_keyframes,
             forward_mount=forward_mount(cfg), forward_params=forward_loop_params(cfg),
             mapped_ground=MappedGroundParams(g.mapped_radius_m, g.max_unlocalised_m) if g.localise_mapped else None))
-        mapped_ground = graph_stage.mapped_ground
-        keyframe_stage.mapped_ground = mapped_ground
+        mapped_ground = graph_stage.mapped_ground  # owned by the graph stage; the writer's interface
     else:
         pipeline.add(LoopsUngated())
     if cfg.forward_detector.enabled:
         pipeline.add(build_forward_stage(cfg, store))
+    # Each keyframe message type is made by one stage and read by the next (robotd.app.pipeline).
+    last: type[Keyframe] = Keyframe
     detector = build_floor_detector(cfg, store, calibration) if floor_detector else None
     if detector is not None:
         pipeline.add(FloorDetectorStage(detector))
-    if cfg.visual_odometry.enabled and cfg.floor_camera.source != "none" and odometry is not None:
-        pipeline.add(build_visual_odometry(cfg, odometry, calibration))
-    writer = pipeline.add(MapWriterStage(store, run_id, image_width_px=kf.image_width_px))
-    writer.mapped_ground = mapped_ground
+        last = DescribedKeyframe
+    if cfg.visual_odometry.enabled and cfg.floor_camera.source != "none" and odometry_stage is not None:
+        pipeline.add(build_visual_odometry(cfg, odometry_stage, calibration, takes=last))
+        last = MeasuredKeyframe
+    pipeline.add(MapWriterStage(store, run_id, image_width_px=kf.image_width_px, takes=last,
+                                chain=mapped_ground),
+                 reads={"graph": "KeyframeChain"} if mapped_ground is not None else None)
+    pipeline.check()
     for o in observers:
         pipeline.add(o)
     return pipeline
@@ -256,3 +262,25 @@ def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store
 def open_map(cfg: Config, clock: Clock | None = None) -> MapStore:
     """The map store the config names, with the config's keyframe image quality."""
     return MapStore.open(cfg.map.path, jpeg_quality=cfg.keyframes.jpeg_quality, clock=clock)
+
+
+def data_flow_diagram() -> str:
+    """The daemon's data flow as a Mermaid flowchart, drawn from the registrations of a
+    pipeline with every optional stage on (a base, the pose graph with localisation over
+    mapped ground, the forward camera, the floor detector, fused visual odometry), built
+    over a scratch map (:meth:`robotd.app.pipeline.Pipeline.mermaid`). docs/concepts.md
+    holds it (``tools/dataflow_doc.py`` writes it; a test keeps the two equal)."""
+    import tempfile
+
+    from robotd.base.clock import ManualClock
+    from robotd.base.config import replace
+
+    cfg = replace(Config(), "base", driver="kobuki")
+    cfg = replace(cfg, "forward_detector", enabled=True)
+    cfg = replace(cfg, "pose_graph", localise_mapped=True)
+    cfg = replace(cfg, "visual_odometry", enabled=True, role="fused")
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = replace(cfg, "calibration", path=str(Path(tmp) / "none.yml"))
+        with MapStore.open(Path(tmp) / "map.sqlite") as store:
+            run = store.begin_run("")
+            return build_pipeline(cfg, ManualClock(), store, run, lossless=True).mermaid()

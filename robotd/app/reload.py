@@ -43,26 +43,27 @@ def _set_status_interval(daemon: Any, value: float) -> None:
 
 
 def _set_keyframe_distance(daemon: Any, value: float) -> None:
-    daemon.pipeline.stage("keyframes").selector.distance_m = value
+    daemon.pipeline.stage("keyframes").set_spacing(distance_m=value)
 
 
 def _set_keyframe_rotation(daemon: Any, value: float) -> None:
-    daemon.pipeline.stage("keyframes").selector.rotation_rad = math.radians(value)
+    daemon.pipeline.stage("keyframes").set_spacing(rotation_rad=math.radians(value))
 
 
 def _detector_param(name: str) -> Callable[[Any, Any], None]:
     def apply(daemon: Any, value: Any) -> None:
         stage = _stage(daemon, "floor")
         if stage is not None:
-            stage.detector.params = dataclasses.replace(stage.detector.params, **{name: value})
+            stage.set_query_params(**{name: value})
     return apply
 
 
-def _graph_attr(attr: str) -> Callable[[Any, Any], None]:
+def _graph_call(method: str) -> Callable[[Any, Any], None]:
+    """The pose graph stage's own reload method (``set_gate``, ``set_save_every``)."""
     def apply(daemon: Any, value: Any) -> None:
         stage = _stage(daemon, "graph")
         if stage is not None:
-            setattr(stage, attr, value)
+            getattr(stage, method)(value)
     return apply
 
 
@@ -74,8 +75,8 @@ LIVE_KEYS: dict[Key, Callable[[Any, Any], None]] = {
     ("floor_detector", "candidates"): _detector_param("candidates"),
     ("floor_detector", "shortlist"): _detector_param("shortlist"),
     ("floor_detector", "exclude_recent_s"): _detector_param("exclude_recent_s"),
-    ("pose_graph", "gate_chi2"): _graph_attr("gate_chi2"),
-    ("pose_graph", "full_solve_every_keyframes"): _graph_attr("save_every"),
+    ("pose_graph", "gate_chi2"): _graph_call("set_gate"),
+    ("pose_graph", "full_solve_every_keyframes"): _graph_call("set_save_every"),
     ("calibration", "path"): lambda daemon, value: None,  # its thresholds: see ConfigReloader
 }
 """How a reload applies each key the config's metadata marks live (its keys are
@@ -174,13 +175,13 @@ class ConfigReloader:
         stage = _stage(daemon, "floor")
         if stage is None:
             return []
-        mode = stage.detector.params.descriptor_mode
+        mode = stage.mode
         loop = calibration.loop if calibration is not None else None
         threshold = loop.for_mode(mode) if loop is not None else None
-        if threshold == stage.detector.threshold:
+        if threshold == stage.threshold:
             return []
-        before = stage.detector.threshold
-        stage.detector.threshold = threshold
+        before = stage.threshold
+        stage.set_threshold(threshold)
         if threshold is None:
             log.warning("the calibration file %s has no loop threshold for mode %d: no floor loops "
                         "are declared from now on", cfg.calibration.path, mode)

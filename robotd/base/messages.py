@@ -7,8 +7,9 @@ nothing else from robotd except :mod:`robotd.base.errors` and :mod:`robotd.base.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from enum import StrEnum
+from typing import TypeVar
 
 import numpy as np
 
@@ -101,6 +102,8 @@ class PoseStamped:
 # What the pipeline's stages hand each other (robotd.app.pipeline routes them by type).
 # --------------------------------------------------------------------------------------
 
+_K = TypeVar("_K", bound="Keyframe")
+
 
 @dataclass(frozen=True, slots=True, eq=False)
 class OdometryUpdate:
@@ -110,34 +113,27 @@ class OdometryUpdate:
     wheel: PoseStamped
 
 
-@dataclass(slots=True, eq=False)
+@dataclass(frozen=True, slots=True, eq=False)
 class Keyframe:
-    """A floor frame chosen as a keyframe, with the fused pose at its stamp.
+    """A floor frame chosen as a keyframe, with the wheel + gyro pose at its stamp (the
+    keyframe stage's output).
 
-    It is filled in on its way down the pipeline: stages that describe keyframes put
-    their descriptor in ``descriptors`` (name -> ``(mode, bytes)``) before the map writer
-    stores it; the writer then sets ``keyframe_id`` and ``run_id`` and publishes
-    :class:`KeyframeStored`. Nothing changes it after that.
+    Each later stage publishes a new message with what it adds, never changing this one
+    (:mod:`robotd.app.pipeline`): :class:`DescribedKeyframe` (the floor descriptor),
+    :class:`MeasuredKeyframe` (the visual odometry step), :class:`StoredKeyframe` (the map's
+    id). Each extends the previous one's fields, so a later stage reads all of them.
     """
 
     frame: Frame
     pose: PoseStamped
-    descriptors: dict[str, tuple[int, bytes]] = field(default_factory=dict)
-    keyframe_id: int | None = None
-    run_id: int | None = None
     odometry_edge: tuple[np.ndarray, np.ndarray] | None = None
     """``(delta (3,), covariance (3, 3))`` from the previous keyframe: the wheel + gyro
-    filter's increment (set by the keyframe stage), replaced by vision-only visual
-    odometry where it measured the step; the map writer links the keyframes with it."""
-    visual_pose: np.ndarray | None = None
-    """``(3,)`` floor visual odometry alone, dead-reckoned from the run's first keyframe
-    (which it starts at, in the odometry frame), set by the visual odometry stage when it
-    is on: each step chained, a failed one replaced by the wheel + gyro edge. For
-    comparison (the demo's "VO only" column); nothing else uses it."""
-    transient: bool = False
-    """Taken over mapped ground while the robot is localised (``[pose_graph]
-    localise_mapped``): described and queried against the map, never stored; the map
-    writer publishes :class:`TransientKeyframe` instead of :class:`KeyframeStored`."""
+    filter's increment, or in a :class:`MeasuredKeyframe` what visual odometry made of it;
+    None at the first keyframe or when the filter had none. The map writer links the
+    keyframes with it."""
+    carried: bool = False
+    """The robot was lifted (a wheel drop) since the previous keyframe: no odometry edge may
+    join the two (the wheels did not see the motion)."""
 
     @property
     def stamp_ns(self) -> int:
@@ -149,11 +145,63 @@ class Keyframe:
         return np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
 
 
+@dataclass(frozen=True, slots=True, eq=False, kw_only=True)
+class DescribedKeyframe(Keyframe):
+    """A :class:`Keyframe` with its floor descriptor ``(mode, bytes)`` (the floor detector
+    stage's output), which the map stores in the keyframe's row."""
+
+    descriptor: tuple[int, bytes] | None = None
+
+
+@dataclass(frozen=True, slots=True, eq=False, kw_only=True)
+class MeasuredKeyframe(DescribedKeyframe):
+    """A keyframe with its odometry edge as floor visual odometry left it (the visual
+    odometry stage's output): ``odometry_edge`` is the wheel + gyro edge combined with the
+    visual step (fused mode) or the step alone (vision only)."""
+
+    visual_pose: np.ndarray | None = None
+    """``(3,)`` floor visual odometry alone, dead-reckoned from the run's first keyframe
+    (which it starts at, in the odometry frame): each step chained, a failed one replaced by
+    the wheel + gyro edge. For comparison (the demo's "VO only" column); nothing else uses
+    it."""
+
+
+@dataclass(frozen=True, slots=True, eq=False, kw_only=True)
+class StoredKeyframe(MeasuredKeyframe):
+    """A keyframe the map writer stored: ``keyframe_id`` and ``run_id`` are the map's."""
+
+    keyframe_id: int
+    run_id: int
+
+
+def keyframe_as(cls: type[_K], kf: Keyframe, **added: object) -> _K:
+    """``kf``'s fields (whichever keyframe message it is) in a new message of type ``cls``
+    with ``added``: how a stage publishes its output without changing its input."""
+    values = {f.name: getattr(kf, f.name) for f in fields(kf)}
+    values.update(added)
+    return cls(**values)
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class TransientKeyframe:
-    """A transient keyframe (see :attr:`Keyframe.transient`) is ready to be queried."""
+    """A keyframe over mapped ground while the robot is localised (``[pose_graph]
+    localise_mapped``), which the map writer did not store: it is queried against the map
+    and never stored."""
 
     keyframe: Keyframe
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class VisualOdometryStep:
+    """Floor visual odometry's motion between the keyframes at ``prev_stamp_ns`` and
+    ``stamp_ns`` (paper 003 Sec. IV-D), for the odometry filter to fuse: ``delta_xyyaw``
+    ``(3,)`` the later pose in the earlier one's frame and its ``covariance`` ``(3, 3)``,
+    both None when the step failed (the filter then only moves its clone)."""
+
+    stamp_ns: int
+    prev_stamp_ns: int | None
+    delta_xyyaw: np.ndarray | None
+    covariance: np.ndarray | None
 
 
 @dataclass(frozen=True, slots=True)
@@ -170,9 +218,9 @@ class MapMatch:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class KeyframeStored:
-    """A keyframe is in the map (its ``keyframe_id`` and ``run_id`` are set)."""
+    """A keyframe is in the map."""
 
-    keyframe: Keyframe
+    keyframe: StoredKeyframe
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -4,7 +4,9 @@
 :class:`~robotd.base.messages.WheelTicks` and :class:`~robotd.base.messages.YawRate` in stamp order,
 with a wheel-only :class:`~robotd.odometry.kinematics.WheelOdometry` alongside for
 comparison and the last couple of seconds of fused poses, so a camera frame gets the pose
-at its own timestamp (paper 003, Sec. IV-C pairs floor images with this odometry).
+at its own timestamp (paper 003, Sec. IV-C pairs floor images with this odometry). The
+pose history and the keyframe edges are :mod:`robotd.odometry.history`'s; the journal that
+lets a late visual odometry step be applied at its own time is :mod:`robotd.odometry.journal`'s.
 Messages that cannot be used are values, not exceptions: ``on_wheels`` and
 ``on_yaw_rate`` return False and count why in :class:`FilterCounters`.
 
@@ -21,21 +23,14 @@ teaches the filter almost nothing about the bias.
 
 from __future__ import annotations
 
-import bisect
 import collections
 import dataclasses
 import logging
 from dataclasses import dataclass, field
-from typing import NamedTuple
 
 import numpy as np
 
-from robotd.base.geometry import (
-    between,
-    between_error_covariance,
-    interpolate_poses,
-    inverse,
-)
+from robotd.base.geometry import between
 from robotd.base.messages import PoseStamped, WheelTicks, YawRate
 from robotd.odometry.ekf import (
     H_GYRO,
@@ -54,7 +49,6 @@ from robotd.odometry.ekf import (
     update_wheels,
     wheel_noise,
 )
-from robotd.odometry.increments import floor_covariance
 from robotd.odometry.kinematics import (
     DiffDriveParams,
     WheelOdometry,
@@ -62,12 +56,13 @@ from robotd.odometry.kinematics import (
     unwrap_ticks_delta,
     wheel_increment,
 )
+from robotd.odometry.history import PoseHistory
+from robotd.odometry.journal import Journal, Snapshot
 from robotd.odometry.relative import (
     PoseClone,
     clone_after_predict,
     clone_after_update,
     clone_pose,
-    relative_pose_covariance,
     shift_measurement,
     update_relative_pose,
 )
@@ -110,23 +105,6 @@ class FilterCounters:
     vo_no_clone: int = 0
     vo_no_pose: int = 0
     vo_rejected: int = 0
-
-
-class _Snapshot(NamedTuple):
-    """Everything a wheel or gyro message changes in the fused filter, after that message
-    (the wheel-only odometry and the twin excepted: a replay does not touch them)."""
-
-    state: EkfState | None
-    wheel_ref: WheelTicks | None
-    last_yaw_ns: int | None
-    gyro_buf: tuple[YawRate, ...]
-    was_still: bool
-    clone: PoseClone | None
-    map: np.ndarray
-    n_rec: int  # records appended so far; the last one's entries, which _record may amend:
-    last_rec: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None
-    kf: tuple[int | None, bool, np.ndarray, tuple[int, np.ndarray, np.ndarray] | None]
-    counters: FilterCounters
 
 
 @dataclass
@@ -180,28 +158,11 @@ class OdometryFilter:
         self._was_still = False
         self._clone: PoseClone | None = None  # the pose at the last keyframe (relative.py)
         self._max_gyro_wait_ns = int(self.max_gyro_wait_s * 1e9)
-        self._hist_t: list[int] = []
-        self._hist_pose: list[np.ndarray] = []
-        self._hist_cov: list[np.ndarray] = []
-        # For keyframe_edge: each recorded state's mean and covariance, and the linear map
-        # of the error since the previous recorded state (the first one's: since _anchor).
-        self._hist_mean6: list[np.ndarray] = []
-        self._hist_cov6: list[np.ndarray] = []
-        self._hist_map: list[np.ndarray] = []
         self._map = np.eye(STATE_SIZE)  # the error's linear map since the last record
-        self._kf_t: int | None = None  # the recorded state the last keyframe's edge ends at
-        # A fused visual-odometry update since the last keyframe's edge: keyframe_edge then
-        # leaves the next edge to the fallback (see there).
-        self._vo_fused_since_keyframe = False
-        self._kf_offset = np.zeros(3)
-        self._anchor: tuple[int, np.ndarray, np.ndarray] | None = None  # it, once out of the history
-        self._n_rec = 0  # records appended, and dropped from the front, since the start
-        self._n_pruned = 0
+        self._history = PoseHistory(int(self.history_s * 1e9))  # pose_at, keyframe_edge
         # With visual odometry fused: each wheel or gyro message with the filter after it.
-        self._journal: collections.deque[tuple[WheelTicks | YawRate, _Snapshot]] | None = (
-            collections.deque() if self.vo_twin else None)
+        self._journal: Journal | None = Journal() if self.vo_twin else None
         self._replaying = False
-        self._history_ns = int(self.history_s * 1e9)
         # A wheel turning at max speed covers half the counter range in this time.
         half_range_m = 32767 * self.drive.metres_per_tick
         self._max_unwrap_ns = int(half_range_m / self.max_wheel_speed_mps * 1e9)
@@ -422,11 +383,11 @@ class OdometryFilter:
         if at is not None:
             journal = self._journal
             assert journal is not None
-            journal[at] = (journal[at][0], self._snapshot())  # a later rewind keeps the step
-            tail = [journal.pop()[0] for _ in range(len(journal) - at - 1)]
+            journal.amend(at, self._snapshot())  # a later rewind keeps the step
+            tail = journal.tail(at)
             self._replaying = True
             try:
-                for msg in reversed(tail):
+                for msg in tail:
                     self._journalled(msg, self._on_wheels(msg) if isinstance(msg, WheelTicks)
                                      else self._on_yaw_rate(msg))
             finally:
@@ -457,30 +418,23 @@ class OdometryFilter:
                 self._state = EkfState(s.stamp_ns, mean, cov)
                 self._record()
                 self.counters.vo_fused += 1
-                self._vo_fused_since_keyframe = True
+                self._history.mark_fused()
                 fused = True
-        self._clone = clone_pose(self._state.mean, self._state.cov, stamp_ns, offset)
+        now = self._state  # s, or s with the step fused
+        assert now is not None
+        self._clone = clone_pose(now.mean, now.cov, stamp_ns, offset)
         return fused
 
     def _journalled(self, msg: WheelTicks | YawRate, used: bool) -> bool:
         """Journal ``msg`` with the filter after it (with ``vo_twin``); returns ``used``."""
-        journal = self._journal
-        if journal is not None:
-            journal.append((msg, self._snapshot()))
-            oldest = self._hist_t[0] if self._hist_t else 0
-            while len(journal) > 1 and (journal[0][1].state is None or journal[0][1].state.stamp_ns < oldest):
-                journal.popleft()
+        if self._journal is not None:
+            self._journal.append(msg, self._snapshot(), self._history.oldest_stamp_ns())
         return used
 
-    def _snapshot(self) -> _Snapshot:
-        last = None
-        if self._hist_t:
-            last = (self._hist_pose[-1], self._hist_cov[-1], self._hist_mean6[-1],
-                    self._hist_cov6[-1], self._hist_map[-1])
-        return _Snapshot(self._state, self._wheel_ref, self._last_yaw_ns, tuple(self._gyro_buf),
-                         self._was_still, self._clone, self._map, self._n_rec, last,
-                         (self._kf_t, self._vo_fused_since_keyframe, self._kf_offset, self._anchor),
-                         dataclasses.replace(self.counters))
+    def _snapshot(self) -> Snapshot:
+        return Snapshot(self._state, self._wheel_ref, self._last_yaw_ns, tuple(self._gyro_buf),
+                        self._was_still, self._clone, self._map, self._history.save(),
+                        dataclasses.replace(self.counters))
 
     def _rewind(self, stamp_ns: int) -> int | None:
         """Go back to the journalled state after the first message that brought the filter
@@ -489,142 +443,39 @@ class OdometryFilter:
         journal = self._journal
         if not journal:
             return None
-        at = None
-        for i in range(len(journal) - 1, -1, -1):
-            state = journal[i][1].state
-            if state is None or state.stamp_ns < stamp_ns:
-                break
-            at = i
+        at = journal.rewind_point(stamp_ns)
         if at is None:
             return None
-        snap = journal[at][1]
-        keep = snap.n_rec - self._n_pruned
-        if keep < 2 or snap.last_rec is None:  # its records are gone: cannot go back
+        snap = journal.snapshot(at)
+        if not self._history.can_restore(snap.history):  # its records are gone: cannot go back
             return None
         self._state, self._wheel_ref, self._last_yaw_ns = snap.state, snap.wheel_ref, snap.last_yaw_ns
         self._gyro_buf = collections.deque(snap.gyro_buf)
         self._was_still, self._clone, self._map = snap.was_still, snap.clone, snap.map
-        self._kf_t, self._vo_fused_since_keyframe, self._kf_offset, self._anchor = snap.kf
         self.counters = dataclasses.replace(snap.counters)
-        for lst in (self._hist_t, self._hist_pose, self._hist_cov, self._hist_mean6,
-                    self._hist_cov6, self._hist_map):
-            del lst[keep:]
-        (self._hist_pose[-1], self._hist_cov[-1], self._hist_mean6[-1], self._hist_cov6[-1],
-         self._hist_map[-1]) = snap.last_rec
-        self._n_rec = snap.n_rec
+        self._history.restore(snap.history)
         return at
 
     def keyframe_edge(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
         """The odometry edge from the previous keyframe to the keyframe at ``stamp_ns``:
-        ``(delta (3,), covariance (3, 3))``, the pose at ``stamp_ns`` in the frame of the
-        previous keyframe's pose (``dx_m, dy_m, dyaw_rad``), the covariance that of the
-        error as the pose graph measures it (in the frame of the edge's end,
-        :func:`robotd.base.geometry.between_error_covariance`).
-
-        Call it once per keyframe, in order, with ``stamp_ns`` at most the filter's time
-        and inside the history (as :meth:`pose_at`); None at the first keyframe or when
-        ``stamp_ns`` is outside the history.
-
-        Why not the difference of the two absolute covariances: the increment's error is
-        correlated with the pose at the first keyframe through the speed, yaw-rate and
-        gyro-bias states (a bias error turned the heading before it and keeps turning it
-        after), and late in a run the two covariances are large numbers whose small
-        difference that formula takes. On the 110 m office route over planks it gave edges
-        whose smallest eigenvalue had to be raised to the 0.1 mm floor while their error in
-        that direction was millimetres (NEES 7.3, 75 % of it from 1 % of the edges, at turns
-        on the spot and stops). Here the cross-covariance of the two poses is the first
-        state's covariance carried through the linear map of every filter step between the
-        two recorded states at the keyframes' stamps (the stochastic cloning of
-        :mod:`robotd.odometry.relative`, done after the fact: the pipeline learns that a
-        frame is a keyframe when the filter may be a second past it, and a clone taken then
-        gives the covariance of another interval than the edge's). It is exact for the
-        filter as run; floored as the old edges were
-        (:func:`robotd.odometry.increments.floor_covariance`).
+        ``(delta (3,), covariance (3, 3))`` with the covariance of a pose clone taken after
+        the fact (:meth:`robotd.odometry.history.PoseHistory.keyframe_edge`, which says why).
+        Call it once per keyframe, in order; None at the first keyframe or when ``stamp_ns``
+        is outside the history.
 
         With visual odometry fused the edge is the wheel + gyro twin's (``vo_twin``). A
         filter fusing it without the twin returns None for an edge with a fused update in
-        it: its error map would need the clone's share of each update, and on the office
-        route the edges made without that term made iSAM2's system indeterminate after
-        about 400 keyframes.
+        it.
         """
         if self._twin is not None:
             return self._twin.keyframe_edge(stamp_ns)
-        ts = self._hist_t
-        kf = self.pose_at(stamp_ns)
-        if kf is None:
-            self._kf_t, self._anchor = None, None
-            return None
-        j = min(bisect.bisect_left(ts, stamp_ns), len(ts) - 1)  # the state at or after it
-        offset = between(np.array([kf.x_m, kf.y_m, kf.yaw_rad]), self._hist_pose[j])
-        edge = None
-        if self._kf_t is not None:
-            if self._anchor is not None:
-                _t, mean_a, cov_a = self._anchor
-                first = 0
-            else:
-                i = bisect.bisect_left(ts, self._kf_t)
-                mean_a, cov_a = self._hist_mean6[i], self._hist_cov6[i]
-                first = i + 1
-            step = np.eye(STATE_SIZE)
-            for m in self._hist_map[first:j + 1]:
-                step = m @ step
-            clone = PoseClone(self._kf_t, mean_a[:3], cov_a[:3, :3], step @ cov_a[:, :3], self._kf_offset)
-            h, cov_h = relative_pose_covariance(self._hist_pose[j], self._hist_cov[j], clone)
-            # From the recorded states back to the keyframes' stamps (offsets taken as exact).
-            delta, cov = shift_measurement(h, cov_h, inverse(self._kf_offset), inverse(offset))
-            edge = delta, floor_covariance(between_error_covariance(delta, cov))
-        if self._vo_fused_since_keyframe:  # no twin: see the docstring
-            edge = None
-        self._vo_fused_since_keyframe = False
-        self._kf_t, self._kf_offset, self._anchor = ts[j], offset, None
-        return edge
+        return self._history.keyframe_edge(stamp_ns)
 
     def _record(self) -> None:
         s = self._state
         assert s is not None
-        t = s.stamp_ns
-        pose, cov = s.mean[:3].copy(), s.cov[:3, :3].copy()
         step, self._map = self._map, np.eye(STATE_SIZE)
-        if self._hist_t and self._hist_t[-1] == t:
-            self._hist_pose[-1], self._hist_cov[-1] = pose, cov
-            self._hist_mean6[-1], self._hist_cov6[-1] = s.mean, s.cov  # read-only arrays
-            self._hist_map[-1] = step @ self._hist_map[-1]
-            return
-        self._n_rec += 1
-        self._hist_t.append(t)
-        self._hist_pose.append(pose)
-        self._hist_cov.append(cov)
-        self._hist_mean6.append(s.mean)
-        self._hist_cov6.append(s.cov)
-        self._hist_map.append(step)
-        if len(self._hist_t) > 64 and t - self._hist_t[0] > 2 * self._history_ns:
-            cut = bisect.bisect_left(self._hist_t, t - self._history_ns)
-            cut = min(cut, len(self._hist_t) - 2)
-            self._prune(cut)
-
-    def _prune(self, cut: int) -> None:
-        """Forget the recorded states before index ``cut``. The last keyframe's state, if
-        among them, becomes the anchor, and the maps of the forgotten states after it fold
-        into the first kept one (whose map is then relative to the anchor)."""
-        ts = self._hist_t
-        if self._kf_t is not None and self._anchor is None and self._kf_t < ts[cut]:
-            i = bisect.bisect_left(ts, self._kf_t)
-            if i < len(ts) and ts[i] == self._kf_t:
-                self._anchor = (self._kf_t, self._hist_mean6[i], self._hist_cov6[i])
-                first = i + 1
-            else:  # not recorded (cannot happen): no edge from it
-                self._kf_t = None
-                first = cut
-        else:
-            first = 0
-        if self._anchor is not None:
-            folded = self._hist_map[cut]
-            for m in reversed(self._hist_map[first:cut]):
-                folded = folded @ m
-            self._hist_map[cut] = folded
-        self._n_pruned += cut
-        del (ts[:cut], self._hist_pose[:cut], self._hist_cov[:cut], self._hist_mean6[:cut],
-             self._hist_cov6[:cut], self._hist_map[:cut])
+        self._history.record(s, step)
 
     # ---- output -------------------------------------------------------------------------
 
@@ -646,14 +497,9 @@ class OdometryFilter:
         return None if self._state is None else self._state.stamp_ns
 
     def settled_stamp_ns(self) -> int | None:
-        """The newest stamp up to which :meth:`pose_at` is final (None before two poses).
-
-        The newest recorded pose can still change: a gyro reading of its own stamp, or a
-        late one, is applied to it when the next wheel message arrives. Every pose before it
-        is fixed, so a frame stamped up to here gets the same pose whatever arrives later
-        (a replay then reproduces the live keyframes exactly).
-        """
-        return self._hist_t[-2] if len(self._hist_t) >= 2 else None
+        """The newest stamp up to which :meth:`pose_at` is final (None before two poses;
+        :meth:`robotd.odometry.history.PoseHistory.settled_stamp_ns`)."""
+        return self._history.settled_stamp_ns()
 
     def pose(self) -> PoseStamped:
         """The fused pose and its 3x3 covariance (the initial pose before any message)."""
@@ -666,22 +512,7 @@ class OdometryFilter:
         return self._wheel.pose()
 
     def pose_at(self, stamp_ns: int) -> PoseStamped | None:
-        """The fused pose at ``stamp_ns``, interpolated between the two recorded poses around it.
-
-        Position and covariance are interpolated linearly, yaw along the shorter arc.
-        None when ``stamp_ns`` is newer than the filter's time or older than the history.
-        """
-        ts = self._hist_t
-        if not ts or stamp_ns > ts[-1] or stamp_ns < ts[0]:
-            return None
-        i = bisect.bisect_left(ts, stamp_ns)
-        if ts[i] == stamp_ns:
-            p, c = self._hist_pose[i], self._hist_cov[i]
-            return PoseStamped(int(stamp_ns), float(p[0]), float(p[1]), float(p[2]), c.copy())
-        t0, t1 = ts[i - 1], ts[i]
-        f = (stamp_ns - t0) / (t1 - t0)
-        x, y, yaw = interpolate_poses(np.array([t0, t1], dtype=np.int64),
-                                      np.array([self._hist_pose[i - 1], self._hist_pose[i]]),
-                                      np.array([stamp_ns], dtype=np.int64))[0]
-        cov = (1.0 - f) * self._hist_cov[i - 1] + f * self._hist_cov[i]
-        return PoseStamped(int(stamp_ns), float(x), float(y), float(yaw), cov)
+        """The fused pose at ``stamp_ns``, interpolated between the two recorded poses around
+        it; None when ``stamp_ns`` is newer than the filter's time or older than the history
+        (:meth:`robotd.odometry.history.PoseHistory.pose_at`)."""
+        return self._history.pose_at(stamp_ns)

@@ -56,9 +56,9 @@ def test_changed_sections_reach_the_other_params():
 
 def test_the_stage_defaults_of_the_app_are_the_config_defaults():
     """Stages built in robotd/app with keyword defaults of their own: the same values."""
-    from robotd.app.forwardloops import ForwardLoopStage
-    from robotd.app.mappedground import MappedGroundParams
-    from robotd.app.posegraph import PoseGraphStage
+    from robotd.app.stages.forward_loops import ForwardLoopStage
+    from robotd.app.stages.pose_graph import PoseGraphStage
+    from robotd.graph.mappedground import MappedGroundParams
 
     cfg = Config()
     assert MappedGroundParams() == MappedGroundParams(cfg.pose_graph.mapped_radius_m,

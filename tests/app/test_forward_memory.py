@@ -10,9 +10,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from robotd.app.forwardloops import ForwardLoopStage
+from robotd.app.stages.forward_loops import ForwardLoopStage
 from robotd.app.pipeline import Pipeline
-from robotd.base.messages import ForwardLoop, Frame, Keyframe, KeyframeStored, PoseStamped
+from robotd.base.messages import ForwardLoop, Frame, KeyframeStored, PoseStamped, StoredKeyframe
 from robotd.forward import ForwardDetector, method_params
 from robotd.forward.verify import ACCEPTED, Verification
 from robotd.io.store import MapStore
@@ -45,8 +45,8 @@ def _run(store: MapStore, run: int, views: list[np.ndarray], t0_ms: int, monkeyp
         t_ms = t0_ms + 1000 * k
         kid = store.add_keyframe(run, t_ms * 10**6, (float(k), 0.0, 0.0), np.eye(3) * 1e-4, None)
         p.publish(Frame(t_ms * 10**6, "forward", img))
-        kf = Keyframe(Frame(t_ms * 10**6, "floor", np.zeros((4, 4), np.uint8)), PoseStamped(t_ms * 10**6, float(k), 0.0, 0.0))
-        kf.keyframe_id = kid
+        kf = StoredKeyframe(Frame(t_ms * 10**6, "floor", np.zeros((4, 4), np.uint8)),
+                            PoseStamped(t_ms * 10**6, float(k), 0.0, 0.0), keyframe_id=kid, run_id=run)
         p.publish(KeyframeStored(kf))
     return stage, got
 

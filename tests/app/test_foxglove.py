@@ -18,7 +18,7 @@ from robotd.app.outputs import FoxgloveSink, RosOutputStage, topic_specs  # noqa
 from robotd.app.pipeline import Pipeline  # noqa: E402
 from robotd.base.clock import ManualClock  # noqa: E402
 from robotd.base.config import Config, replace  # noqa: E402
-from robotd.base.messages import Frame, Keyframe, KeyframeStored, Link, OdometryUpdate, PoseStamped  # noqa: E402
+from robotd.base.messages import Frame, KeyframeStored, Link, OdometryUpdate, PoseStamped, StoredKeyframe  # noqa: E402
 from tests.app.test_outputs import FakeGraph  # noqa: E402
 
 TS = get_typestore(Stores.ROS2_HUMBLE)
@@ -67,7 +67,7 @@ def test_a_websockets_client_subscribes_and_decodes() -> None:
                 if i % 20 == 0:
                     k = i // 20
                     graph.poses[k] = np.array([0.01 * i, 0.002 * k, 0.0])
-                    pipeline.publish(KeyframeStored(Keyframe(Frame(stamp, "floor", img), p, keyframe_id=k)))
+                    pipeline.publish(KeyframeStored(StoredKeyframe(Frame(stamp, "floor", img), p, keyframe_id=k, run_id=1)))
                     if k >= 2:
                         pipeline.publish(Link("loop", 0, k, np.zeros(3), np.eye(3)))
                     stage.wall.advance_ns(1_100_000_000)

@@ -15,7 +15,7 @@ from robotd.app.pipeline import Pipeline
 from robotd.base.clock import ManualClock
 from robotd.base.config import Config, replace
 from robotd.base.geometry import compose
-from robotd.base.messages import Frame, Keyframe, KeyframeStored, Link, OdometryUpdate, PoseStamped
+from robotd.base.messages import Frame, KeyframeStored, Link, OdometryUpdate, PoseStamped, StoredKeyframe
 from robotd.io.rosview import map_to_odom
 
 TS = get_typestore(Stores.ROS2_JAZZY)
@@ -107,8 +107,8 @@ def test_map_to_odom_follows_the_graph_and_a_loop_moves_it_at_once() -> None:
     assert tf_pairs(sink)[0][:2] == ("map", "odom")
     # keyframe 7 at 1.0 s: the odometry says (0.5, 0, 0); the graph puts it elsewhere
     graph.poses[7] = np.array([0.6, 0.2, 0.1])
-    kf = Keyframe(Frame(1000 * ms, "floor", np.zeros((8, 8), np.uint8)), PoseStamped(1000 * ms, 0.5, 0, 0),
-                  keyframe_id=7)
+    kf = StoredKeyframe(Frame(1000 * ms, "floor", np.zeros((8, 8), np.uint8)), PoseStamped(1000 * ms, 0.5, 0, 0),
+                        keyframe_id=7, run_id=1)
     n_before = len(sink.sent)
     pipeline.publish(KeyframeStored(kf))
     expected = map_to_odom(np.array([0.6, 0.2, 0.1]), np.array([0.5, 0.0, 0.0]))
@@ -159,8 +159,8 @@ def test_pose_covariance_is_the_graphs_carried_by_the_odometry() -> None:
     # marginal of 1e-4 m^2 along and 4e-4 m^2 across its own axes and 1e-5 rad^2 in yaw
     graph.poses[3] = np.array([2.0, 1.0, math.pi / 2])
     graph.marginals[3] = np.diag([1e-4, 4e-4, 1e-5])
-    kf = Keyframe(Frame(1000 * ms, "floor", np.zeros((8, 8), np.uint8)), PoseStamped(1000 * ms, 0.5, 0, 0),
-                  keyframe_id=3)
+    kf = StoredKeyframe(Frame(1000 * ms, "floor", np.zeros((8, 8), np.uint8)), PoseStamped(1000 * ms, 0.5, 0, 0),
+                        keyframe_id=3, run_id=1)
     pipeline.publish(KeyframeStored(kf))
     assert stage.marginals == 1
     for i in range(51, 101):
@@ -249,7 +249,7 @@ def test_keyframe_images_only_to_the_sinks_that_want_them() -> None:
     pipeline.publish(odo(0, 0.0, 0.0, 0.0))
     img = (np.arange(64 * 48) % 251).astype(np.uint8).reshape(48, 64)
     graph.poses[1] = np.zeros(3)
-    pipeline.publish(KeyframeStored(Keyframe(Frame(0, "floor", img), PoseStamped(0, 0, 0, 0), keyframe_id=1)))
+    pipeline.publish(KeyframeStored(StoredKeyframe(Frame(0, "floor", img), PoseStamped(0, 0, 0, 0), keyframe_id=1, run_id=1)))
     images = sink.decoded("keyframe_floor")
     assert len(images) == 1 and images[0].format == "jpeg"
     import cv2

@@ -13,16 +13,22 @@ import pytest
 import skimage.data
 
 from robotd.app.assemble import build_odometry, build_pipeline
-from robotd.app.pipeline import (
-    FloorDetectorStage,
-    KeyframeStage,
-    MapWriterStage,
-    Pipeline,
-)
+from robotd.app.pipeline import Pipeline
+from robotd.app.stages.floor import FloorDetectorStage
+from robotd.app.stages.keyframes import KeyframeStage
+from robotd.app.stages.map_writer import MapWriterStage
 from robotd.base.clock import ManualClock
 from robotd.base.config import Config, replace
 from robotd.base.geometry import between
-from robotd.base.messages import Frame, Keyframe, PoseStamped, WheelTicks
+from robotd.base.messages import (
+    DescribedKeyframe,
+    Frame,
+    Keyframe,
+    MeasuredKeyframe,
+    PoseStamped,
+    StoredKeyframe,
+    WheelTicks,
+)
 from robotd.floor.detector import FloorDetectorParams, FloorLoopDetector, KeyframeQuery
 from robotd.io.store import MapStore
 
@@ -192,7 +198,7 @@ def _floor_stages(store: MapStore, run_id: int) -> Pipeline:
     det = FloorLoopDetector.from_store(store, FloorDetectorParams(descriptor_mode=2, exclude_recent_s=20.0))
     p = Pipeline()
     p.add(FloorDetectorStage(det))
-    p.add(MapWriterStage(store, run_id, image_width_px=0))
+    p.add(MapWriterStage(store, run_id, image_width_px=0, takes=DescribedKeyframe))
     return p
 
 
@@ -367,12 +373,12 @@ def test_fused_visual_odometry_reaches_the_filter_and_the_edges(tmp_path: Path):
 
 
 def _graph_pipeline(store: MapStore, run: int):
-    from robotd.app.posegraph import PoseGraphStage
+    from robotd.app.stages.pose_graph import PoseGraphStage
     from robotd.graph.incremental import IncrementalGraph
 
     p = Pipeline()
     graph = p.add(PoseGraphStage(IncrementalGraph(), store))
-    p.add(MapWriterStage(store, run, image_width_px=0))
+    p.add(MapWriterStage(store, run, image_width_px=0, takes=Keyframe))
     return p, graph
 
 
@@ -444,7 +450,7 @@ def test_forward_loops_enter_the_graph_by_bearing_and_heading(tmp_path: Path):
     heading change and the bearing of the new camera (no distance); the graph takes the range
     from its prediction, the loops still pull the drift back, and a look-alike whose bearing
     is 40 deg off (the same poster on another wall) is refused by the gate."""
-    from robotd.app.posegraph import PoseGraphStage
+    from robotd.app.stages.pose_graph import PoseGraphStage
     from robotd.base.geometry import compose
     from robotd.base.messages import ForwardLoop
     from robotd.graph.incremental import IncrementalGraph
@@ -455,7 +461,7 @@ def test_forward_loops_enter_the_graph_by_bearing_and_heading(tmp_path: Path):
         run = store.begin_run("")
         p = Pipeline()
         p.add(PoseGraphStage(IncrementalGraph(), store, forward_mount=mount))
-        p.add(MapWriterStage(store, run, image_width_px=0))
+        p.add(MapWriterStage(store, run, image_width_px=0, takes=Keyframe))
         odo = _publish_drifting_odometry(p, truth)
         ids = [k.id for k in store.keyframes()]
 
@@ -511,7 +517,7 @@ def test_the_forward_stage_pairs_each_due_keyframe_with_the_nearest_forward_fram
     """Forward keyframes every 0.5 m: the frame nearest the keyframe's stamp is used even when
     it arrives after the keyframe, a keyframe with no frame within the tolerance is skipped
     and counted, and a verified loop goes out under the floor keyframes' ids."""
-    from robotd.app.forwardloops import ForwardLoopStage
+    from robotd.app.stages.forward_loops import ForwardLoopStage
     from robotd.base.messages import ForwardLoop, KeyframeStored
 
     det = _ScriptedDetector({2: 0})
@@ -525,8 +531,8 @@ def test_the_forward_stage_pairs_each_due_keyframe_with_the_nearest_forward_fram
         p.publish(Frame(t_ms * 10**6, "forward", np.full((4, 4), t_ms // 10 % 256, np.uint8)))
 
     def keyframe(kid: int, t_ms: int, x: float) -> None:
-        kf = Keyframe(Frame(t_ms * 10**6, "floor", np.zeros((4, 4), np.uint8)), PoseStamped(t_ms * 10**6, x, 0.0, 0.0))
-        kf.keyframe_id = kid
+        kf = StoredKeyframe(Frame(t_ms * 10**6, "floor", np.zeros((4, 4), np.uint8)),
+                            PoseStamped(t_ms * 10**6, x, 0.0, 0.0), keyframe_id=kid, run_id=1)
         p.publish(KeyframeStored(kf))
 
     frame(0)
@@ -549,17 +555,26 @@ def test_the_forward_stage_pairs_each_due_keyframe_with_the_nearest_forward_fram
     assert got[0].bearing_rad == pytest.approx(-0.3, abs=1e-9)
 
 
+def _measured(stage) -> list:
+    """Registers ``stage`` in a pipeline; the list fills with the keyframes it publishes."""
+    got: list = []
+    p = Pipeline()
+    p.add(stage)
+    p.add(type("Sink", (), {"name": "sink", "subscriptions": lambda self: {MeasuredKeyframe: got.append}})())
+    return got
+
+
 def test_visual_odometry_status_and_its_own_chain():
     """STATUS says how many steps the floor measured; the VO-only chain takes each measured
     step and, where one failed, the keyframe's wheel + gyro edge."""
     from types import SimpleNamespace
 
-    from robotd.app.pipeline import VisualOdometryStage
+    from robotd.app.stages.visual_odometry import VisualOdometryStage
 
     steps = iter([None, (0.1, 0.0, 0.0), None, (0.0, 0.1, 0.0)])
 
     class FakeVo:
-        params = SimpleNamespace(mode=4)
+        params = SimpleNamespace(descriptor_mode=4)
 
         def step(self, _image):
             d = next(steps)
@@ -568,15 +583,15 @@ def test_visual_odometry_status_and_its_own_chain():
                                    delta=np.array(d if ok else [np.nan] * 3),
                                    covariance=np.eye(3) * 1e-6 if ok else np.full((3, 3), np.nan))
 
-    stage = VisualOdometryStage(FakeVo(), None, "vision_only")
+    stage = VisualOdometryStage(FakeVo(), "vision_only", takes=Keyframe)
+    measured = _measured(stage)
     assert stage.status_fragment() == ""
     pose = PoseStamped(0, 1.0, 2.0, 0.0, np.eye(3))
     wheel = (np.array([0.05, 0.0, 0.0]), np.eye(3) * 1e-6)
-    chain = []
     for k in range(4):
-        kf = Keyframe(Frame(k, "floor", np.zeros((4, 4), np.uint8)), pose, odometry_edge=wheel)
-        stage.on_keyframe(kf)
-        chain.append(kf.visual_pose)
+        stage.pipeline.publish(Keyframe(Frame(k, "floor", np.zeros((4, 4), np.uint8)), pose, odometry_edge=wheel))
+    chain = [kf.visual_pose for kf in measured]
+    assert [kf.odometry_edge is wheel for kf in measured] == [True, False, True, False]
     assert stage.status_fragment() == "floor VO 67 % of 3 steps"
     assert np.allclose(chain, [[1.0, 2.0, 0.0], [1.1, 2.0, 0.0], [1.15, 2.0, 0.0], [1.15, 2.1, 0.0]])
 
@@ -586,13 +601,13 @@ def test_fused_step_that_disagrees_with_the_wheels_stays_out_of_the_edge():
     off (a look-alike shift) leaves the edge as the wheels measured it, and is counted."""
     from types import SimpleNamespace
 
-    from robotd.app.pipeline import VisualOdometryStage
-    from robotd.odometry.fusion import OdometryFilter
+    from robotd.app.stages.visual_odometry import VisualOdometryStage
+    from robotd.base.messages import VisualOdometryStep
 
     steps = iter([None, (0.0502, 0.0, 0.0), (0.0502, 0.02, 0.0)])
 
     class FakeVo:
-        params = SimpleNamespace(mode=4)
+        params = SimpleNamespace(descriptor_mode=4)
 
         def step(self, _image):
             d = next(steps)
@@ -600,14 +615,19 @@ def test_fused_step_that_disagrees_with_the_wheels_stays_out_of_the_edge():
             return SimpleNamespace(ok=ok, reason="" if ok else "x", delta=np.array(d if ok else [np.nan] * 3),
                                    covariance=np.eye(3) * 1e-6 if ok else np.full((3, 3), np.nan))
 
-    stage = VisualOdometryStage(FakeVo(), OdometryFilter(), "fused")
+    stage = VisualOdometryStage(FakeVo(), "fused", takes=Keyframe)
+    measured = _measured(stage)
+    sent: list = []
+    stage.pipeline.add(type("Filter", (), {"name": "filter",
+                                           "subscriptions": lambda self: {VisualOdometryStep: sent.append}})())
     wheel = (np.array([0.05, 0.0, 0.0]), np.eye(3) * 1e-6)  # sigma 1 mm, 1 mrad
-    edges = []
     for k in range(3):
-        kf = Keyframe(Frame(k, "floor", np.zeros((4, 4), np.uint8)), PoseStamped(0, 0.0, 0.0, 0.0, np.eye(3)),
-                      odometry_edge=wheel)
-        stage.on_keyframe(kf)
-        edges.append(kf.odometry_edge)
+        stage.pipeline.publish(Keyframe(Frame(k, "floor", np.zeros((4, 4), np.uint8)),
+                                        PoseStamped(0, 0.0, 0.0, 0.0, np.eye(3)), odometry_edge=wheel))
+    edges = [kf.odometry_edge for kf in measured]
+    # Every step goes to the filter (a failed one as None), with the previous keyframe's stamp.
+    assert [(m.stamp_ns, m.prev_stamp_ns, m.delta_xyyaw is None) for m in sent] == \
+        [(0, None, True), (1, 0, False), (2, 1, False)]
     c = stage.counters()
     assert (c["vo_combined"], c["vo_disagreed"]) == (1, 1)
     assert edges[1][0] == pytest.approx([0.0501, 0.0, 0.0], abs=1e-6)  # the two averaged

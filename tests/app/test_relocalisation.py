@@ -10,8 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
-from robotd.app.pipeline import MapWriterStage, Pipeline
-from robotd.app.posegraph import PoseGraphStage
+from robotd.app.pipeline import Pipeline
+from robotd.app.stages.map_writer import MapWriterStage
+from robotd.app.stages.pose_graph import PoseGraphStage
 from robotd.base.geometry import between, compose, wrap_angle
 from robotd.base.messages import Frame, Keyframe, LoopCandidate, PoseStamped, WheelDrop
 from robotd.graph.incremental import IncrementalGraph
@@ -37,7 +38,7 @@ def _square_laps(laps: int, start: int = 0) -> np.ndarray:
 def _pipeline(store: MapStore, run: int) -> tuple[Pipeline, PoseGraphStage]:
     p = Pipeline()
     graph = p.add(PoseGraphStage(IncrementalGraph(), store))
-    p.add(MapWriterStage(store, run, image_width_px=0))
+    p.add(MapWriterStage(store, run, image_width_px=0, takes=Keyframe))
     return p, graph
 
 
@@ -52,6 +53,7 @@ class _Odometry:
         self.cov = np.zeros((3, 3))
         self.ids: list[int] = []
         self.truth: list[np.ndarray] = []
+        self.lifted = False  # since the previous keyframe (what the keyframe stage tells the writer)
 
     def keyframe(self, truth: np.ndarray, stamp_s: float) -> int:
         if self.odo is None:
@@ -62,7 +64,8 @@ class _Odometry:
         self.prev_truth = truth
         stamp = int(stamp_s * 1e9)
         self.p.publish(Keyframe(Frame(stamp, "floor", np.zeros((4, 4), np.uint8), len(self.ids)),
-                                PoseStamped(stamp, *self.odo, self.cov.copy())))
+                                PoseStamped(stamp, *self.odo, self.cov.copy()), carried=self.lifted))
+        self.lifted = False
         kid = max(k.id for k in self.store.keyframes(self.run))
         self.ids.append(kid)
         self.truth.append(truth)
@@ -71,6 +74,7 @@ class _Odometry:
     def carried(self) -> None:
         """The robot was lifted: the wheels stop, the odometry holds its pose."""
         self.prev_truth = None
+        self.lifted = True
 
 
 def _loop(p: Pipeline, old_id: int, old_truth: np.ndarray, new_id: int, new_truth: np.ndarray,

@@ -381,7 +381,8 @@ def test_the_registry_opens_a_can_base_from_the_config():
 def test_degraded_odometry_shows_in_the_counters_and_in_status():
     from robotd.app.daemon import Daemon
     from robotd.app.notify import Notifier
-    from robotd.app.pipeline import OdometryStage, Pipeline
+    from robotd.app.pipeline import Pipeline
+    from robotd.app.stages.odometry import OdometryStage
     from robotd.odometry.fusion import OdometryFilter
 
     pipe = Pipeline()

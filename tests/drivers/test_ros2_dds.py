@@ -80,7 +80,7 @@ def test_outputs_reach_a_subscriber_in_another_process(tmp_path: Path) -> None:
     from robotd.app.pipeline import Pipeline
     from robotd.base.clock import ManualClock
     from robotd.base.config import Config, replace
-    from robotd.base.messages import Frame, Keyframe, KeyframeStored, OdometryUpdate, PoseStamped
+    from robotd.base.messages import Frame, KeyframeStored, OdometryUpdate, PoseStamped, StoredKeyframe
     from robotd.io.rosview import map_to_odom
     from tests.app.test_outputs import FakeGraph
 
@@ -106,8 +106,8 @@ def test_outputs_reach_a_subscriber_in_another_process(tmp_path: Path) -> None:
             if i % 25 == 10:  # a keyframe every 0.5 s; the graph puts each one further left
                 k = i // 25 + 1
                 graph.poses[k] = np.array([p.x_m, 0.01 * k, 0.001 * k])
-                pipeline.publish(KeyframeStored(Keyframe(Frame(stamp, "floor", np.zeros((4, 4), np.uint8)),
-                                                         p, keyframe_id=k)))
+                pipeline.publish(KeyframeStored(StoredKeyframe(Frame(stamp, "floor", np.zeros((4, 4), np.uint8)),
+                                                               p, keyframe_id=k, run_id=1)))
             i += 1
             time.sleep(0.02)  # odometry time at the pace of the wall clock (ROS-time stamps)
     finally:

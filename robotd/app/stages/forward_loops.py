@@ -8,7 +8,7 @@ and a forward loop is an edge between two of them. The image runs through
 :class:`robotd.forward.ForwardDetector` (incremental vocabulary, Bayes filter, epipolar
 verification); a verified loop whose motion is planar is published as a
 :class:`~robotd.base.messages.ForwardLoop`, which the pose graph gates and adds
-(:mod:`robotd.app.posegraph`).
+(:mod:`robotd.app.stages.pose_graph`).
 
 With a map store the forward memory is durable (issue 24 item 4): each forward image is
 written to the map (its word ids, compact keypoints and descriptors, the words it made and
@@ -47,6 +47,7 @@ class ForwardLoopStage(Publisher):
     """Forward keyframes through the detector; verified planar loops out (module notes)."""
 
     name = "forward"
+    produces = (ForwardLoop, CandidateFate)
 
     def __init__(self, detector: ForwardDetector, *, distance_m: float = 0.5,
                  rotation_rad: float = math.radians(20.0), sync_tolerance_s: float = 0.04,

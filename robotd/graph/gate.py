@@ -1,5 +1,11 @@
-"""The pose graph as a pipeline stage: keyframes and odometry links in, loop candidates
-gated, the optimised trajectory out (paper 003 Sec. V; DESIGN.md "Pose graph").
+"""The live pose graph's decisions, as functions of its state (paper 003 Sec. V; DESIGN.md
+"Pose graph"): the chi-square gate on loop candidates, relocalisation of the run's
+trajectory segments against the map frame, and localisation over mapped ground
+(:mod:`robotd.graph.mappedground`). No I/O: the pipeline stage
+(:mod:`robotd.app.stages.pose_graph`) feeds it the keyframes, links and candidates, reads
+the map frame's stored poses for it, publishes what it emits (the candidates' fates
+and the loop links) and writes what it reports (``joined_map``: a run joined the map
+frame; :meth:`GatedGraph.after_solve`: which solved poses are in the map frame).
 
 Each stored keyframe enters an iSAM2 graph (:class:`robotd.graph.incremental.IncrementalGraph`)
 with its odometry edge: one incremental update per keyframe. A loop candidate (a local
@@ -11,10 +17,9 @@ their correlation left out, which makes ``S`` larger and the gate more lenient) 
 Mahalanobis distance ``e^T S^-1 e``; above ``gate_chi2`` (default: the 99.9 % point of
 chi-square with 3 degrees of freedom) the candidate is refused as ``failed_gate``. What
 passes (:meth:`robotd.graph.incremental.IncrementalGraph.loop_chi2`) becomes a loop :class:`~robotd.base.messages.Link` under the graph's robust
-kernel. At the end of a run (and every ``save_every`` keyframes) the whole graph is
-re-solved robustly (LAGO, DCS-weighted Levenberg-Marquardt, then GNC), the optimised poses go
-into the map beside the odometry poses, and loops the optimiser down-weighted are
-recorded as ``down_weighted``.
+kernel. When the stage re-solves the whole graph
+robustly (LAGO, DCS-weighted Levenberg-Marquardt, then GNC), loops the optimiser
+down-weighted are recorded as ``down_weighted`` (:meth:`GatedGraph.after_solve`).
 
 A forward-camera loop (:class:`~robotd.base.messages.ForwardLoop`: heading change and
 bearing, no distance) becomes an SE(2) edge whose range is the graph's own prediction with a
@@ -38,7 +43,7 @@ A kidnapping: the base reports a wheel drop (:class:`~robotd.base.messages.Wheel
 while the robot is carried; the keyframe stage takes no keyframes then and the map writer
 links no odometry edge across it, so the next keyframe starts a new segment of the
 trajectory in a frame of its own (:meth:`~robotd.graph.incremental.IncrementalGraph.add_segment`).
-The stage says "LOST" and relocalises that segment as above, against the map's keyframes
+It says "LOST" and relocalises that segment as above, against the map's keyframes
 of earlier runs and of this run's localised segments. A forward loop has no range of its
 own, so it cannot relocalise; one that reaches another frame is recorded with that reason.
 Only keyframes in the map frame get optimised poses in the map file: a segment that never
@@ -52,26 +57,15 @@ import collections
 import logging
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from robotd.app.mappedground import MappedGround, MappedGroundParams
-from robotd.app.pipeline import Publisher
 from robotd.base.geometry import between
-from robotd.base.messages import (
-    CandidateFate,
-    ForwardLoop,
-    KeyframeStored,
-    Link,
-    LoopCandidate,
-    LoopFate,
-    MapMatch,
-    WheelDrop,
-)
-from robotd.forward.planar import PlanarLoopParams, loop_edge
+from robotd.base.messages import CandidateFate, Link, LoopFate
 from robotd.graph.incremental import IncrementalGraph
+from robotd.graph.mappedground import MappedGround, MappedGroundParams
 from robotd.graph.reloc import (
     Relocaliser,
     RelocCandidate,
@@ -79,90 +73,128 @@ from robotd.graph.reloc import (
     RelocParams,
     chain_relative,
 )
-from robotd.io.store import MapStore
 
 log = logging.getLogger(__name__)
 
 GATE_CHI2_3DOF_999 = 16.27  # chi-square, 3 degrees of freedom, 99.9 %
 DOWN_WEIGHTED = 0.5  # a loop whose final weight is under this counts as down-weighted
 
+Emit = Callable[[CandidateFate | Link], None]
 
-class PoseGraphStage(Publisher):
-    """The live pose graph (see the module notes). Register it before ``floor`` (it must
-    hold a keyframe before that keyframe's loop candidates arrive) and before ``map``."""
 
-    name = "graph"
+def _given(edge: tuple[np.ndarray, np.ndarray]) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
+    """``edge`` as the gate takes a candidate's edge (a function giving it)."""
+    return lambda: edge
 
-    def __init__(self, graph: IncrementalGraph, store: MapStore, *, gate_chi2: float = GATE_CHI2_3DOF_999,
-                 save_every: int = 0, forward_mount: np.ndarray | None = None,
-                 forward_params: PlanarLoopParams | None = None,
-                 mapped_ground: MappedGroundParams | None = None,
+
+class GatedGraph:
+    """The gate, relocalisation and mapped ground over one :class:`IncrementalGraph` (see
+    the module notes). ``emit`` receives every :class:`CandidateFate` and loop
+    :class:`Link` decided; ``joined_map(run_id)`` is told when the run joins the map frame
+    (it starts the map, or relocalises into it). ``mapped_ground``: localisation over
+    mapped ground on, with these parameters (:attr:`mapped_ground` is then its state)."""
+
+    def __init__(self, graph: IncrementalGraph, emit: Emit, joined_map: Callable[[int], None], *,
+                 gate_chi2: float = GATE_CHI2_3DOF_999, mapped_ground: MappedGroundParams | None = None,
                  reloc_params: RelocParams | None = None) -> None:
         self.graph = graph
-        # Localisation over mapped ground (robotd.app.mappedground), when configured.
+        self._emit = emit
+        self._joined_map = joined_map
+        self.gate_chi2 = gate_chi2
         self.mapped_ground = None if mapped_ground is None else MappedGround(
             mapped_ground, graph.pose, lambda: graph.estimate()[1][:, :2], graph.loop_chi2)
-        self.forward_mount = np.zeros(3) if forward_mount is None else np.asarray(forward_mount, float)
-        self.forward_params = PlanarLoopParams() if forward_params is None else forward_params
-        self.forward_accepted = 0
-        self.forward_failed_gate = 0
-        self.store = store
-        self.gate_chi2 = gate_chi2
-        self.save_every = save_every
         self.accepted = 0
         self.failed_gate = 0
         self.earlier_run = 0
         self.down_weighted = 0
-        self.solves = 0
-        self.solve_failures = 0
-        self.update_ms: list[float] = []
-        self.last_solve_ms = 0.0
+        self.forward_accepted = 0
+        self.forward_failed_gate = 0
+        self.update_ms: list[float] = []  # each incremental update's time
         self._loops: dict[tuple[int, int], tuple[int, float]] = {}  # edge -> (query, score)
-        self._since_save = 0
         self._init_relocalisation(reloc_params)
 
-    def subscriptions(self) -> Mapping[type, Any]:
-        return {Link: self.on_link, KeyframeStored: self.on_keyframe, LoopCandidate: self.on_candidate,
-                ForwardLoop: self.on_forward_loop, MapMatch: self.on_map_match,
-                WheelDrop: self.on_wheel_drop}
+    # -- input -----------------------------------------------------------------------------
 
-    def on_map_match(self, m: MapMatch) -> None:
-        """A transient keyframe matched the map: gated, it re-localises the robot (the graph
-        is not changed)."""
-        if self.mapped_ground is not None and m.from_id in self.graph.graph:
-            # (A keyframe of an earlier run that is not in the graph cannot be gated against.)
-            self.mapped_ground.match(m.from_id, m.delta_xyyaw, m.information, self.gate_chi2)
-
-    def on_link(self, link: Link) -> None:
-        if link.kind != "odometry" or link.from_id not in self.graph.graph:
+    def odometry_link(self, from_id: int, to_id: int, delta: np.ndarray, information: np.ndarray) -> None:
+        """An odometry edge: ``to_id`` joins the graph (ignored when ``from_id`` is not in it)."""
+        if from_id not in self.graph.graph:
             return
         t0 = time.perf_counter()
-        self.graph.add_keyframe(link.to_id, link.from_id, link.delta_xyyaw, link.information)
+        self.graph.add_keyframe(to_id, from_id, delta, information)
         self.update_ms.append((time.perf_counter() - t0) * 1e3)
 
-    def on_keyframe(self, msg: KeyframeStored) -> None:
-        kf = msg.keyframe
-        self._track_keyframe(kf)
-        if kf.keyframe_id not in self.graph.graph and not len(self.graph.graph):
-            self.graph.add_first(kf.keyframe_id, kf.pose_xyyaw)
-        self._since_save += 1
-        if self.save_every and self._since_save >= self.save_every:
-            self.solve_and_save()
+    def keyframe(self, keyframe_id: int, run_id: int, pose: np.ndarray, stamp_ns: int,
+                 map_poses: Callable[[int], dict[int, tuple[np.ndarray, int]]]) -> None:
+        """A stored keyframe (after its odometry link, if any). ``map_poses(run_id)``: the map
+        frame's keyframes of earlier runs, ``id -> (pose (3,), run)``, asked once, at the
+        run's first keyframe."""
+        self._track_keyframe(int(keyframe_id), run_id, pose, stamp_ns, map_poses)
+        if keyframe_id not in self.graph.graph and not len(self.graph.graph):
+            self.graph.add_first(keyframe_id, pose)
 
-    def on_candidate(self, c: LoopCandidate) -> None:
-        if self._relocalisation_takes(c.from_id, c.to_id, c.score, c.delta_xyyaw, c.information, "floor"):
+    def floor_candidate(self, from_id: int, to_id: int, score: float, delta: np.ndarray,
+                        information: np.ndarray) -> None:
+        """A floor loop candidate: held for relocalisation, or gated."""
+        if self._relocalisation_takes(from_id, to_id, score, delta, information, "floor"):
             return
-        self._gate_and_add(c.from_id, c.to_id, c.score, lambda: (c.delta_xyyaw, c.information), "floor")
+        self._gate_and_add(from_id, to_id, score, lambda: (delta, information), "floor")
 
-    def on_forward_loop(self, c: ForwardLoop) -> None:
-        def edge() -> tuple[np.ndarray, np.ndarray]:
-            predicted = between(self.graph.pose(c.from_id), self.graph.pose(c.to_id))
-            return loop_edge(predicted, c.dyaw_rad, c.bearing_rad, self.forward_mount, self.forward_params,
-                             range_m=c.range_m, sigma_bearing_rad=c.sigma_bearing_rad)
-
-        if self._relocalisation_takes(c.from_id, c.to_id, c.probability, None, None, "forward"):
+    def forward_candidate(self, from_id: int, to_id: int, probability: float,
+                          edge: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]) -> None:
+        """A forward loop: ``edge(predicted)`` gives its ``(delta, information)`` from the
+        graph's predicted relative pose (the forward camera measures no range)."""
+        if self._relocalisation_takes(from_id, to_id, probability, None, None, "forward"):
             return
-        self._gate_and_add(c.from_id, c.to_id, c.probability, edge, "forward")
+        self._gate_and_add(from_id, to_id, probability,
+                           lambda: edge(between(self.graph.pose(from_id), self.graph.pose(to_id))), "forward")
+
+    def map_match(self, from_id: int, delta: np.ndarray, information: np.ndarray) -> None:
+        """A transient keyframe matched the map: gated, it re-localises the robot over mapped
+        ground (the graph is not changed)."""
+        if self.mapped_ground is not None and from_id in self.graph.graph:
+            # (A keyframe of an earlier run that is not in the graph cannot be gated against.)
+            self.mapped_ground.match(from_id, delta, information, self.gate_chi2)
+
+    def after_solve(self, ids: np.ndarray, loop_weights: np.ndarray) -> list[int]:
+        """After a full re-solve: the indices into ``ids`` whose poses belong in the map
+        (this run's keyframes in the map frame; earlier runs' keep theirs); loops the
+        optimiser down-weighted (weight under :data:`DOWN_WEIGHTED`) are emitted as such."""
+        keep = [n for n, i in enumerate(ids) if self._in_map_frame(int(i)) and int(i) not in self._map_poses]
+        loop_edges = [(e.from_id, e.to_id) for e in self.graph.graph.edges if e.kind == "loop"]
+        for (a, b), w in zip(loop_edges, loop_weights):
+            if w < DOWN_WEIGHTED and (a, b) in self._loops:
+                query, score = self._loops.pop((a, b))
+                self.down_weighted += 1
+                self._emit(CandidateFate(query, a, score, LoopFate.DOWN_WEIGHTED, f"weight {w:.3f}"))
+        return keep
+
+    def finish(self) -> None:
+        """End of the run: held candidates are refused; says if the run ends unlocalised."""
+        self._drop_pending("relocalisation: no agreeing candidate before the run ended")
+
+    def end_warning(self) -> str:
+        """"" or why the run's last keyframes keep their odometry poses only."""
+        if self._run_id is None or self._in_map_frame(self._segments[-1]):
+            return ""
+        last = len([k for k in self.graph.graph.ids if self._segment_of(int(k)) == len(self._segments) - 1])
+        return (f"the run ended {'not localised in the stored map' if self._state == 'not_localised' else 'lost'}: "
+                f"its last {last} keyframes keep their odometry poses only")
+
+    def localised(self) -> bool:
+        """Whether the newest segment is in the map frame."""
+        return self._run_id is not None and self._in_map_frame(self._segments[-1])
+
+    def counters(self) -> dict[str, int]:
+        return {"loops_accepted": self.accepted, "loops_failed_gate": self.failed_gate,
+                "loops_earlier_run": self.earlier_run, "loops_down_weighted": self.down_weighted,
+                "forward_loops_accepted": self.forward_accepted,
+                "forward_loops_failed_gate": self.forward_failed_gate,
+                "localised": int(self.localised()),
+                "relocalisations": self.relocalisations, "reloc_candidates_refused": self.reloc_refused,
+                "lifts": self.lifts,
+                **(self.mapped_ground.counters() if self.mapped_ground is not None else {})}
+
+    # -- the gate --------------------------------------------------------------------------
 
     def _gate_and_add(self, from_id: int, to_id: int, score: float,
                       edge: Callable[[], tuple[np.ndarray, np.ndarray]], source: str) -> None:
@@ -172,7 +204,7 @@ class PoseGraphStage(Publisher):
         prefix = "forward: " if source == "forward" else ""
 
         def fate(f: LoopFate, detail: str) -> None:
-            self._publish(CandidateFate(to_id, from_id, score, f, prefix + detail))
+            self._emit(CandidateFate(to_id, from_id, score, f, prefix + detail))
 
         if from_id not in self.graph.graph or to_id not in self.graph.graph:
             self.earlier_run += 1
@@ -198,61 +230,7 @@ class PoseGraphStage(Publisher):
         if self.mapped_ground is not None:
             self.mapped_ground.loop_accepted(to_id)
         fate(LoopFate.ACCEPTED, f"chi2 {d2:.2f}")
-        self._publish(Link("loop", from_id, to_id, delta, info, source=source))
-
-    def solve_and_save(self) -> None:
-        """Re-solve the whole graph robustly and store the optimised poses."""
-        if len(self.graph.graph) < 2:
-            return
-        t0 = time.perf_counter()
-        try:
-            result = self.graph.resolve()
-        except RuntimeError as exc:  # a solver failure must not stop the daemon
-            self.solve_failures += 1
-            log.warning("pose graph: the full solve failed (%s); the map keeps the last solution",
-                        str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
-            return
-        self.last_solve_ms = (time.perf_counter() - t0) * 1e3
-        self.solves += 1
-        self._since_save = 0
-        keep = [n for n, i in enumerate(result.ids) if self._in_map_frame(int(i)) and int(i) not in self._map_poses]
-        self.store.put_optimized_poses([int(result.ids[n]) for n in keep], result.poses[keep])
-        loop_edges = [(e.from_id, e.to_id) for e in self.graph.graph.edges if e.kind == "loop"]
-        for (a, b), w in zip(loop_edges, result.loop_weights):
-            if w < DOWN_WEIGHTED and (a, b) in self._loops:
-                query, score = self._loops.pop((a, b))
-                self.down_weighted += 1
-                self._publish(CandidateFate(query, a, score, LoopFate.DOWN_WEIGHTED, f"weight {w:.3f}"))
-        log.info("pose graph: %d keyframes, %d loops, solved in %.0f ms", len(self.graph.graph),
-                 self.accepted, self.last_solve_ms)
-
-    def finish(self) -> int:
-        self._drop_pending("relocalisation: no agreeing candidate before the run ended")
-        self.solve_and_save()
-        if self._run_id is not None and not self._in_map_frame(self._segments[-1]):
-            log.warning("the run ended %s: its last %d keyframes keep their odometry poses only",
-                        "not localised in the stored map" if self._state == "not_localised" else "lost",
-                        len([k for k in self.graph.graph.ids if self._segment_of(int(k)) == len(self._segments) - 1]))
-        return 0
-
-    def optimized(self) -> tuple[np.ndarray, np.ndarray]:
-        """The current estimate: ``(ids (N,), poses (N, 3))``."""
-        return self.graph.estimate()
-
-    def counters(self) -> dict[str, int]:
-        u = np.asarray(self.update_ms) if self.update_ms else np.zeros(1)
-        return {"loops_accepted": self.accepted, "loops_failed_gate": self.failed_gate,
-                "loops_earlier_run": self.earlier_run, "loops_down_weighted": self.down_weighted,
-                "forward_loops_accepted": self.forward_accepted,
-                "forward_loops_failed_gate": self.forward_failed_gate,
-                "graph_solves": self.solves, "graph_solve_failures": self.solve_failures,
-                "graph_update_median_us": int(np.median(u) * 1e3),
-                "graph_update_p99_us": int(np.percentile(u, 99) * 1e3),
-                "graph_solve_ms": int(self.last_solve_ms),
-                "localised": int(self._run_id is not None and self._in_map_frame(self._segments[-1])),
-                "relocalisations": self.relocalisations, "reloc_candidates_refused": self.reloc_refused,
-                "lifts": self.lifts,
-                **(self.mapped_ground.counters() if self.mapped_ground is not None else {})}
+        self._emit(Link("loop", from_id, to_id, delta, info, source=source))
 
     # -- relocalisation (module notes) -----------------------------------------------------
 
@@ -289,15 +267,15 @@ class PoseGraphStage(Publisher):
         seg = self._segment_of(keyframe_id)
         return seg >= 0 and seg in self._in_map
 
-    def _track_keyframe(self, kf: Any) -> None:
+    def _track_keyframe(self, kid: int, run_id: int, pose: np.ndarray, stamp_ns: int,
+                        map_poses: Callable[[int], dict[int, tuple[np.ndarray, int]]]) -> None:
         """Segments, distance driven and stamps; the run's first keyframe decides whether
         the run starts the map or must relocalise against it."""
-        kid = int(kf.keyframe_id)
-        pose = np.asarray(kf.pose_xyyaw, dtype=float)
+        pose = np.asarray(pose, dtype=float)
         if self._run_id is None:
-            self._run_id = int(kf.run_id) if kf.run_id is not None else 0
-            self._start_segment(kid, kf.stamp_ns)
-            self._map_poses = self.store.map_frame_poses(exclude_run=self._run_id)
+            self._run_id = int(run_id)
+            self._start_segment(kid, stamp_ns)
+            self._map_poses = map_poses(self._run_id)
             if self._map_poses:
                 runs = sorted({r for _p, r in self._map_poses.values()})
                 self._state = "not_localised"
@@ -307,11 +285,11 @@ class PoseGraphStage(Publisher):
                             ", ".join(map(str, runs)), self.reloc_params.min_agreeing)
             else:
                 self._in_map.add(0)
-                self.store.add_map_frame_run(self._run_id)
+                self._joined_map(self._run_id)
                 log.info("no keyframes in the map frame yet: run %d starts the map", self._run_id)
         elif kid not in self.graph.graph and len(self.graph.graph):
             # No odometry edge reached it: the chain was broken (the robot was carried).
-            self._start_segment(kid, self._put_down_ns if self._put_down_ns is not None else kf.stamp_ns)
+            self._start_segment(kid, self._put_down_ns if self._put_down_ns is not None else stamp_ns)
             self.graph.add_segment(kid, pose)
             if not self._lifted:
                 self._state = "lost"
@@ -322,7 +300,7 @@ class PoseGraphStage(Publisher):
             self._travelled[kid] = self._travelled.get(self._last_kf[0], 0.0) + step
         else:
             self._travelled[kid] = 0.0
-        self._stamps[kid] = int(kf.stamp_ns)
+        self._stamps[kid] = int(stamp_ns)
         self._last_kf = (kid, pose)
 
     def _start_segment(self, keyframe_id: int, start_ns: int) -> None:
@@ -334,16 +312,17 @@ class PoseGraphStage(Publisher):
         self._travelled = {}
         self._stamps = {}
 
-    def on_wheel_drop(self, msg: WheelDrop) -> None:
-        if msg.lifted and not self._lifted:
+    def wheel_drop(self, lifted: bool, stamp_ns: int) -> None:
+        """The base's wheel-drop switches: ``lifted`` (carried) or put down at ``stamp_ns``."""
+        if lifted and not self._lifted:
             self._lifted = True
             self.lifts += 1
             self._state = "lifted"
             log.warning("lifted (wheel drop): lost; no odometry edge will cross the carry, and the "
                         "trajectory relocalises after the robot is put down")
-        elif not msg.lifted and self._lifted:
+        elif not lifted and self._lifted:
             self._lifted = False
-            self._put_down_ns = msg.stamp_ns
+            self._put_down_ns = stamp_ns
             self._state = "lost"
             log.warning("put down: lost until %d floor loops agree on where", self.reloc_params.min_agreeing)
 
@@ -358,7 +337,7 @@ class PoseGraphStage(Publisher):
 
     def _refuse(self, query: int, old: int, score: float, detail: str) -> None:
         self.reloc_refused += 1
-        self._publish(CandidateFate(query, old, score, LoopFate.FAILED_GATE, detail))
+        self._emit(CandidateFate(query, old, score, LoopFate.FAILED_GATE, detail))
 
     def _relocalisation_takes(self, old: int, query: int, score: float, delta: np.ndarray | None,
                               info: np.ndarray | None, source: str) -> bool:
@@ -398,8 +377,7 @@ class PoseGraphStage(Publisher):
             for p, _why in decision.dropped:
                 if p.old_id not in self.graph.graph:
                     self.graph.add_fixed(p.old_id, p.old_pose)
-                self._gate_and_add(p.old_id, p.query_id, p.score,
-                                   lambda p=p: (p.delta, p.information), "floor")
+                self._gate_and_add(p.old_id, p.query_id, p.score, _given((p.delta, p.information)), "floor")
         else:
             for p, why in decision.dropped:
                 self._refuse(p.query_id, p.old_id, p.score, why)
@@ -418,15 +396,17 @@ class PoseGraphStage(Publisher):
         for m in d.members:
             if m.old_id not in self.graph.graph:
                 self.graph.add_fixed(m.old_id, m.old_pose)
+        assert d.transform is not None  # relocalised
+        transform = d.transform
         t0 = time.perf_counter()
-        self.graph.attach(ids, d.transform, [(m.old_id, m.query_id, m.delta, m.information) for m in d.members])
+        self.graph.attach(ids, transform, [(m.old_id, m.query_id, m.delta, m.information) for m in d.members])
         self.update_ms.append((time.perf_counter() - t0) * 1e3)
         self._in_map.add(seg)
         for m in d.members:
             self.accepted += 1
             self._loops[(m.old_id, m.query_id)] = (m.query_id, m.score)
-            self._publish(CandidateFate(m.query_id, m.old_id, m.score, LoopFate.ACCEPTED, f"relocalisation: {d.detail}"))
-            self._publish(Link("loop", m.old_id, m.query_id, m.delta, m.information, source=m.source))
+            self._emit(CandidateFate(m.query_id, m.old_id, m.score, LoopFate.ACCEPTED, f"relocalisation: {d.detail}"))
+            self._emit(Link("loop", m.old_id, m.query_id, m.delta, m.information, source=m.source))
         self.relocalisations += 1
         newest = max(d.members, key=lambda m: m.query_id)
         runs = collections.Counter(m.old_run for m in d.members)
@@ -440,10 +420,10 @@ class PoseGraphStage(Publisher):
                                     "candidates": len(d.members),
                                     "pose": [float(v) for v in self.graph.pose(newest.query_id)]})
         if self._run_id is not None:
-            self.store.add_map_frame_run(self._run_id)
+            self._joined_map(self._run_id)
         log.info("%s (%s; keyframes %s; the lost frame is at x %.2f m, y %.2f m, yaw %.1f deg in the map)",
                  self._reloc_text, d.detail, ", ".join(f"{m.query_id}->{m.old_id}" for m in d.members),
-                 d.transform[0], d.transform[1], math.degrees(d.transform[2]))
+                 transform[0], transform[1], math.degrees(transform[2]))
 
     def status_fragment(self) -> str:
         """Where the robot stands with the map, for the STATUS line ("" when it simply

@@ -1,4 +1,4 @@
-"""Localisation over mapped ground (robotd.app.mappedground): the edge algebra, and the
+"""Localisation over mapped ground (robotd.graph.mappedground): the edge algebra, and the
 state machine against a small graph of known poses."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from robotd.app.mappedground import MappedGround, MappedGroundParams, compose_edges, invert_edge
+from robotd.graph.mappedground import MappedGround, MappedGroundParams, compose_edges, invert_edge
 from robotd.base.geometry import between, compose, inverse
 
 

@@ -90,10 +90,10 @@ class MappedGroundParams:
 
 
 class MappedGround:
-    """The localisation state shared by the keyframe stage (which asks whether a keyframe is
-    transient), the map writer (which chains odometry edges and asks for the edge of the
-    next stored keyframe) and the pose graph stage (which reports accepted loops and gates
-    transient matches). ``pose_of(id)`` gives a graph node's current estimate ``(3,)``,
+    """The localisation state over mapped ground, owned by the pose graph stage (which
+    reports accepted loops and gates transient matches); the map writer reaches it through
+    :class:`robotd.app.stages.map_writer.KeyframeChain` (it asks whether a keyframe is
+    transient, chains odometry edges and asks for the edge of the next stored keyframe). ``pose_of(id)`` gives a graph node's current estimate ``(3,)``,
     ``positions()`` every node's ``(N, 2)`` position, ``chi2(from_id, to_id, delta,
     information)`` the graph's gate statistic of a relative pose between two nodes."""
 
@@ -121,7 +121,7 @@ class MappedGround:
         self.left_new_ground = 0
         self.left_unlocalised = 0
 
-    # --- the keyframe stage -------------------------------------------------------------
+    # --- the map writer -----------------------------------------------------------------
     def is_transient(self, odom_pose: np.ndarray) -> bool:
         """Whether a keyframe taken at ``odom_pose`` (the fused odometry pose) lies on mapped
         ground while the robot is localised: it is then not stored."""
@@ -144,7 +144,6 @@ class MappedGround:
             return False
         return True
 
-    # --- the map writer -----------------------------------------------------------------
     def extend(self, edge: tuple[np.ndarray, np.ndarray], odom_pose: np.ndarray) -> None:
         """A transient keyframe: its odometry edge from the previous keyframe ``(delta,
         covariance)`` extends the chain."""

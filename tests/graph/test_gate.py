@@ -1,0 +1,81 @@
+"""The live graph's decisions (robotd.graph.gate) as functions of its state: no store, no
+pipeline; what it decides comes out through ``emit`` and ``joined_map``."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from robotd.base.geometry import between, compose
+from robotd.base.messages import CandidateFate, Link
+from robotd.graph.gate import GatedGraph
+from robotd.graph.incremental import IncrementalGraph
+
+ODO_INFO = np.diag([1e6, 1e6, 5e4])
+LOOP_INFO = np.diag([1 / 0.003 ** 2] * 3)
+
+
+def _square(n: int) -> list[np.ndarray]:
+    """True poses of a 1 m square (0.25 m steps, a quarter turn at each corner)."""
+    steps = [np.array([0.25, 0.0, 0.0])] * 4 + [np.array([0.0, 0.0, math.pi / 2])]
+    out = [np.zeros(3)]
+    for k in range(n - 1):
+        out.append(compose(out[-1], steps[k % 5]))
+    return out
+
+
+def _drive(g: GatedGraph, truth: list[np.ndarray], first_id: int = 1) -> list[int]:
+    drift = np.array([0.0, 0.0, 0.004])
+    odo = truth[0]
+    ids = []
+    for k, t in enumerate(truth):
+        kid = first_id + k
+        if k:
+            step = between(truth[k - 1], t) + drift
+            odo = compose(odo, step)
+            g.odometry_link(kid - 1, kid, step, ODO_INFO)
+        g.keyframe(kid, 7, odo, k * 10**9, lambda run: {})
+        ids.append(kid)
+    return ids
+
+
+def test_the_gate_accepts_a_true_loop_refuses_a_lookalike_and_a_keyframe_outside_the_graph():
+    emitted: list = []
+    joined: list[int] = []
+    g = GatedGraph(IncrementalGraph(), emitted.append, joined.append)
+    truth = _square(21)
+    ids = _drive(g, truth)
+    assert joined == [7]  # an empty map: the run starts the map frame
+    assert g.status_fragment() == "" and g.localised()
+    g.floor_candidate(ids[0], ids[20], 200.0, between(truth[0], truth[20]), LOOP_INFO)
+    g.floor_candidate(ids[2], ids[18], 190.0, between(truth[2], truth[18]) + [0.35, 0.0, 0.0], LOOP_INFO)
+    g.floor_candidate(999, ids[18], 150.0, np.zeros(3), LOOP_INFO)
+    fates = [(m.query_id, m.candidate_id, m.fate) for m in emitted if isinstance(m, CandidateFate)]
+    assert fates == [(ids[20], ids[0], "accepted"), (ids[18], ids[2], "failed_gate"),
+                     (ids[18], 999, "failed_gate")]
+    [link] = [m for m in emitted if isinstance(m, Link)]
+    assert (link.kind, link.from_id, link.to_id) == ("loop", ids[0], ids[20])
+    refused = [m for m in emitted if isinstance(m, CandidateFate) and m.fate == "failed_gate"]
+    chi2 = float(refused[0].detail.split()[1])
+    assert chi2 > g.gate_chi2 and refused[1].detail.startswith("keyframe of an earlier run")
+    c = g.counters()
+    assert (c["loops_accepted"], c["loops_failed_gate"], c["loops_earlier_run"]) == (1, 1, 1)
+    # A stricter gate (a live reload) refuses what the default let through.
+    g.gate_chi2 = 1e-9
+    g.floor_candidate(ids[1], ids[20], 200.0, between(truth[1], truth[20]), LOOP_INFO)
+    assert emitted[-1].fate == "failed_gate"
+
+
+def test_a_run_on_a_stored_map_is_not_localised_and_a_lift_makes_it_lost():
+    emitted: list = []
+    joined: list[int] = []
+    g = GatedGraph(IncrementalGraph(), emitted.append, joined.append)
+    g.keyframe(50, 3, np.zeros(3), 0, lambda run: {1: (np.array([1.0, 0.0, 0.0]), 1)})
+    assert joined == [] and not g.localised()
+    assert g.status_fragment() == "not localised in the stored map"
+    g.wheel_drop(True, 10)
+    assert g.status_fragment() == "LOST (lifted)" and g.counters()["lifts"] == 1
+    g.wheel_drop(False, 20)
+    assert g.status_fragment() == "LOST (relocalising)"
+    assert g.end_warning().startswith("the run ended lost: its last 1 keyframes")
