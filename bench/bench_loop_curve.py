@@ -51,7 +51,8 @@ except ImportError:  # run as a script: bench/ is on sys.path
     from common import machine_info, print_table, write_json
 
 from robotd.app.cli import main as robotd
-from robotd.base.config import Config, replace, to_toml
+from robotd.base.config import Config, replace
+from robotd.base.configfile import to_toml
 
 HERRINGBONE = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "floor" / "brick_floor_herringbone_1k.png"
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "loop_curve"

@@ -132,7 +132,8 @@ def _describe_all(image: np.ndarray, modes: tuple[int, ...]) -> tuple[list[bytes
 def drive_config(config_path: Path | None, recording: Path) -> Any:
     """The config of a calibration command: the file ``--config`` names, else the one the
     recording was made with, else the defaults (logged)."""
-    from robotd.base.config import Config, load_config
+    from robotd.base.config import Config
+    from robotd.base.configfile import load_config
 
     if config_path is not None:
         return load_config(config_path)
@@ -148,7 +149,7 @@ def recording_config(path: Path) -> Any:
     import tomllib
 
     from drivers.recording.reader import RecordingReader
-    from robotd.base.config import config_from_dict
+    from robotd.base.configfile import config_from_dict
 
     with RecordingReader(path) as reader:
         text = reader.metadata.get("robotd", {}).get("config_toml", "")

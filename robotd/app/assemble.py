@@ -26,7 +26,8 @@ from robotd.app.stages.map_writer import MapWriterStage
 from robotd.app.stages.odometry import OdometryStage
 from robotd.app.stages.visual_odometry import VisualOdometryStage
 from robotd.base.clock import Clock
-from robotd.base.config import Config, to_toml
+from robotd.base.config import Config
+from robotd.base.configfile import to_toml
 from robotd.base.messages import DescribedKeyframe, Keyframe, MeasuredKeyframe
 from robotd.floor.detector import FloorDetectorParams, FloorLoopDetector
 from robotd.forward.planar import PlanarLoopParams

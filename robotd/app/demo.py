@@ -102,7 +102,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    from robotd.base.config import Config, load_config, replace
+    from robotd.base.config import Config, replace
+    from robotd.base.configfile import load_config
     from robotd.base.errors import ConfigError
 
     if args.floor_scale <= 0 or not math.isfinite(args.floor_scale):

@@ -24,7 +24,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from robotd.base.config import Config, live_keys, load_config
+from robotd.base.config import Config, live_keys
+from robotd.base.configfile import load_config
 from robotd.base.errors import RobotdError
 
 __all__ = ["LIVE_KEYS", "ConfigReloader", "changed_keys"]

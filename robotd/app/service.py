@@ -18,7 +18,8 @@ import numpy as np
 from robotd.app.assemble import assemble_daemon, load_calibration, open_map
 from robotd.app.signals import StartupSignals, held_signals
 from robotd.base.clock import Clock, MonotonicClock
-from robotd.base.config import VIRTUAL_SOURCE, Config, to_toml
+from robotd.base.config import Config, VIRTUAL_SOURCE
+from robotd.base.configfile import to_toml
 from robotd.base.errors import ConfigError, DriverError
 from robotd.base.messages import OdometryUpdate
 

@@ -6,7 +6,8 @@ import dataclasses
 from pathlib import Path
 
 from robotd.app.cli import config_reference
-from robotd.base.config import RENAMED, Config, live_keys, unit_of
+from robotd.base.config import Config, live_keys
+from robotd.base.configfile import RENAMED, unit_of
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "configuration.md"
 

@@ -56,7 +56,7 @@ def test_without_the_detector_the_forward_camera_is_not_opened_and_the_log_says_
 
 
 def test_an_unknown_forward_source_is_a_config_error_naming_the_key() -> None:
-    from robotd.base.config import config_from_dict
+    from robotd.base.configfile import config_from_dict
     from robotd.base.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"\[forward_camera\] source"):

@@ -21,7 +21,8 @@ from robotd.app.assemble import assemble_daemon, load_calibration
 from robotd.app.notify import Notifier
 from robotd.app.reload import LIVE_KEYS, ConfigReloader, changed_keys
 from robotd.base.clock import ManualClock
-from robotd.base.config import Config, live_keys, load_config, replace
+from robotd.base.config import Config, live_keys, replace
+from robotd.base.configfile import load_config
 from robotd.io.calibfile import CalibrationFile, LoopThresholds, write_calibration
 from robotd.io.store import MapStore
 

@@ -5,7 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from robotd.base.config import Config, config_from_dict, load_config, replace, to_toml
+from robotd.base.config import Config, replace
+from robotd.base.configfile import config_from_dict, load_config, to_toml
 from robotd.base.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -87,7 +88,7 @@ def test_the_shipped_service_config_is_generated_from_the_definitions(tmp_path):
     """systemd/robotd.toml is `robotd config default --service`: every key with its
     description, unit, range and liveness from the metadata, the defaults but for the
     service's stated choices, so the file cannot drift from the code."""
-    from robotd.base.config import SERVICE_CHOICES, commented_toml, service_config
+    from robotd.base.configfile import SERVICE_CHOICES, commented_toml, service_config
 
     path = REPO / "systemd" / "robotd.toml"
     assert path.read_text() == commented_toml(service=True), (
@@ -104,7 +105,8 @@ def test_the_shipped_service_config_is_generated_from_the_definitions(tmp_path):
 
 
 def test_config_default_is_a_commented_file_that_loads_as_the_defaults(tmp_path):
-    from robotd.base.config import Config, commented_toml, load_config
+    from robotd.base.config import Config
+    from robotd.base.configfile import commented_toml, load_config
 
     text = commented_toml()
     (tmp_path / "d.toml").write_text(text)

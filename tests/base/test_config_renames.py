@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from robotd.base.config import (RENAMED, VIRTUAL_SOURCE, Config, config_from_dict, live_keys,
-                                load_config, with_virtual_floor_camera)
+from robotd.base.config import Config, VIRTUAL_SOURCE, live_keys, with_virtual_floor_camera
+from robotd.base.configfile import RENAMED, config_from_dict, load_config
 from robotd.base.errors import ConfigError
 
 OLD = Path(__file__).resolve().parents[1] / "io" / "data" / "config_before_renames.toml"
@@ -21,7 +21,7 @@ keys."""
 
 def _warnings(caplog: pytest.LogCaptureFixture) -> list[str]:
     return [r.getMessage() for r in caplog.records
-            if r.name == "robotd.base.config" and r.levelno == logging.WARNING]
+            if r.name == "robotd.base.configfile" and r.levelno == logging.WARNING]
 
 
 def test_an_old_file_loads_with_its_values_and_one_warning_per_renamed_key(tmp_path, caplog):
@@ -32,7 +32,7 @@ def test_an_old_file_loads_with_its_values_and_one_warning_per_renamed_key(tmp_p
                     '[pose_graph]\nsave_every_keyframes = 50\n'
                     '[forward_detector]\nenabled = true\nfx_px = 500.0\nmount_height_m = 0.5\n'
                     '[forward_camera]\nsource = "v4l2"\n')
-    caplog.set_level(logging.WARNING, logger="robotd.base.config")
+    caplog.set_level(logging.WARNING, logger="robotd.base.configfile")
     cfg = load_config(path)
     o = cfg.odometry
     assert (o.accel_noise_density_mps2_per_sqrt_hz, o.angular_accel_noise_density_radps2_per_sqrt_hz,
@@ -53,7 +53,7 @@ def test_an_old_file_loads_with_its_values_and_one_warning_per_renamed_key(tmp_p
 def test_a_file_with_the_new_names_loads_without_a_warning(tmp_path, caplog):
     path = tmp_path / "new.toml"
     path.write_text('[floor_detector]\ndescriptor_mode = 2\n[forward_camera]\nfx_px = 500.0\n')
-    caplog.set_level(logging.WARNING, logger="robotd.base.config")
+    caplog.set_level(logging.WARNING, logger="robotd.base.configfile")
     cfg = load_config(path)
     assert cfg.floor_detector.descriptor_mode == 2 and cfg.forward_camera.fx_px == 500.0
     assert _warnings(caplog) == []
@@ -88,7 +88,7 @@ def test_renames_point_to_real_keys_and_old_names_are_gone():
 def test_a_config_robotd_stored_before_the_renames_reads_with_its_values(caplog):
     """Recordings and maps hold the config they were made with (``to_toml``): one written
     by the earlier schema, with the demo's virtual floor camera, still reads."""
-    caplog.set_level(logging.WARNING, logger="robotd.base.config")
+    caplog.set_level(logging.WARNING, logger="robotd.base.configfile")
     data = tomllib.loads(OLD.read_text())
     cfg = config_from_dict(data, origin="old.mcap", stored=True)
     assert cfg.floor_camera.source == VIRTUAL_SOURCE
@@ -102,7 +102,7 @@ def test_a_config_robotd_stored_before_the_renames_reads_with_its_values(caplog)
 
 
 def test_the_virtual_floor_camera_is_set_by_code_and_survives_a_stored_round_trip():
-    from robotd.base.config import to_toml
+    from robotd.base.configfile import to_toml
 
     cfg = with_virtual_floor_camera(Config())
     assert cfg.floor_camera.source == VIRTUAL_SOURCE

@@ -8,7 +8,8 @@ from pathlib import Path
 
 from calibration.train import drive_config
 from drivers.recording.writer import RecordingWriter
-from robotd.base.config import RENAMED, VIRTUAL_SOURCE
+from robotd.base.config import VIRTUAL_SOURCE
+from robotd.base.configfile import RENAMED
 
 OLD = Path(__file__).resolve().parents[1] / "io" / "data" / "config_before_renames.toml"
 
