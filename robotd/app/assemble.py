@@ -12,7 +12,7 @@ import logging
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -36,6 +36,9 @@ from robotd.io.store import MapStore
 from robotd.odometry.ekf import EkfParams
 from robotd.odometry.fusion import OdometryFilter
 from robotd.odometry.kinematics import DiffDriveParams
+
+if TYPE_CHECKING:
+    from robotd.forward.features import FeatureKind
 
 log = logging.getLogger(__name__)
 
@@ -155,7 +158,8 @@ def build_forward_stage(cfg: Config, store: MapStore | None = None) -> Any:
     f, cam = cfg.forward_detector, cfg.forward_camera
     k = np.array([[cam.fx_px, 0.0, cam.cx_px], [0.0, cam.fy_px, cam.cy_px], [0.0, 0.0, 1.0]])
     params = method_params(f.method)
-    kind = params.features.kind if f.features == "auto" else f.features
+    # [forward_detector] features is one of 'auto', 'sift', 'orb' (the config's choices).
+    kind = params.features.kind if f.features == "auto" else cast(FeatureKind, f.features)
     n_feat = f.max_features or (params.features.max_features if kind == params.features.kind else 0)
     # The camera's height gives the loops their range on the floor (robotd.forward.verify).
     params = replace(params, features=FeatureParams(kind=kind, max_features=n_feat),

@@ -23,7 +23,7 @@ import signal
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Protocol, runtime_checkable
 
 from robotd.app.pipeline import Pipeline
 from robotd.base.clock import Clock, MonotonicClock
@@ -106,6 +106,14 @@ def _driver_status(stats: Mapping[str, Any]) -> str:
         faults = ", ".join(f"{k} {st[k]}" for k in _STATUS_FAULTS if st.get(k))
         parts.append(f"; {name}: {st['status']}" + (f" ({faults})" if faults else ""))
     return "".join(parts)
+
+
+@runtime_checkable
+class StatusReporter(Protocol):
+    """A stage with something to add to the STATUS line (e.g. the pose graph's "not
+    localised in the stored map"); ``""`` when it has nothing to say."""
+
+    def status_fragment(self) -> str: ...
 
 
 def gap_text(driver_stats: Mapping[str, Mapping[str, Any]]) -> str:
@@ -302,7 +310,10 @@ class Daemon:
         committed to the map (the map stage counts a keyframe only after its transaction
         committed), so they survive a kill at any later moment."""
         c = self.pipeline.counters()
-        rate = lambda n: n / elapsed_s if elapsed_s > 0 else 0.0  # noqa: E731
+
+        def rate(n: int) -> float:
+            return n / elapsed_s if elapsed_s > 0 else 0.0
+
         drops = sum(q.dropped for q in self.queues.values())
         wheel, frames = c.get("wheel_msgs", 0), c.get("frames", 0)
         text = (f"odometry {rate(wheel):.1f}/s ({wheel}), frames {rate(frames):.1f}/s ({frames}), "
@@ -323,7 +334,8 @@ class Daemon:
             odo = self.pipeline.stage("odometry")
             text += f", odometry DEGRADED ({getattr(odo, 'degraded_detail', '')})"
         for stage in self.pipeline.stages:  # e.g. the pose graph: "not localised in the stored map"
-            fragment = stage.status_fragment() if hasattr(stage, "status_fragment") else ""
+            reporter: StatusReporter | None = stage if isinstance(stage, StatusReporter) else None
+            fragment = reporter.status_fragment() if reporter is not None else ""
             if fragment:
                 text += f", {fragment}"
         return text + _driver_status(stats)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 from enum import StrEnum
-from typing import TypeVar
+from typing import Literal, TypeVar
 
 import numpy as np
 
@@ -223,6 +223,10 @@ class KeyframeStored:
     keyframe: StoredKeyframe
 
 
+LinkKind = Literal["odometry", "loop"]
+"""What a pose-graph edge is: chained odometry, or a loop (floor or forward camera)."""
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class Link:
     """A pose-graph edge to store: the pose of ``to_id`` in the frame of ``from_id``.
@@ -232,7 +236,7 @@ class Link:
     measured a loop (``"floor"`` or ``"forward"``).
     """
 
-    kind: str
+    kind: LinkKind
     from_id: int
     to_id: int
     delta_xyyaw: np.ndarray

@@ -168,7 +168,8 @@ def transform_msg(stamp_ns: int, parent: str, child: str, xyz: Sequence[float],
                      "z": float(quat_xyzw[2]), "w": float(quat_xyzw[3])}}}
 
 
-def planar_transform_msg(stamp_ns: int, parent: str, child: str, pose_xyyaw: Sequence[float]) -> dict[str, Any]:
+def planar_transform_msg(stamp_ns: int, parent: str, child: str,
+                         pose_xyyaw: Sequence[float] | np.ndarray) -> dict[str, Any]:
     """``geometry_msgs/TransformStamped`` of a planar pose ``(x_m, y_m, yaw_rad)``."""
     q = yaw_quaternion(pose_xyyaw[2])
     return transform_msg(stamp_ns, parent, child, (pose_xyyaw[0], pose_xyyaw[1], 0.0),

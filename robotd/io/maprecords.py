@@ -116,7 +116,7 @@ def blob_to_matrix(blob: bytes) -> np.ndarray:
     return array
 
 
-def finite_triple(values: Sequence[float], what: str) -> tuple[float, float, float]:
+def finite_triple(values: Sequence[float] | np.ndarray, what: str) -> tuple[float, float, float]:
     if len(values) != 3:
         raise ValueError(f"{what} must have 3 elements, got {len(values)}")
     triple = (float(values[0]), float(values[1]), float(values[2]))

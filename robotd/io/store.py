@@ -235,7 +235,7 @@ class MapStore(MapConnection):
         self,
         run_id: int,
         stamp_ns: int,
-        pose_xyyaw: Sequence[float],
+        pose_xyyaw: Sequence[float] | np.ndarray,
         covariance: np.ndarray | Sequence[Sequence[float]],
         image: np.ndarray | None,
         descriptor: bytes | None = None,
@@ -379,7 +379,7 @@ class MapStore(MapConnection):
         kind: Literal["odometry", "loop"],
         from_id: int,
         to_id: int,
-        delta_xyyaw: Sequence[float],
+        delta_xyyaw: Sequence[float] | np.ndarray,
         information: np.ndarray | Sequence[Sequence[float]],
     ) -> int:
         """Store a pose-graph edge and commit it; returns its id.

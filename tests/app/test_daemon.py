@@ -342,7 +342,7 @@ def test_sigterm_while_the_main_loop_holds_the_wakeup_lock_stops_the_daemon():
 _SIGTERM_DURING_START_UP = """
 import signal, sys
 import robotd.app.service as service
-from robotd.base.config import load_config
+from robotd.base.configfile import load_config
 
 real_open_map = service.open_map
 
