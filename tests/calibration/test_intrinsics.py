@@ -47,7 +47,8 @@ def _photos() -> list[Path]:
 
 @pytest.fixture(scope="module")
 def published() -> dict:
-    fs = cv2.FileStorage(str(PHOTOS / "left_intrinsics.yml"), cv2.FILE_STORAGE_READ)
+    path = require(PHOTOS / "left_intrinsics.yml", "OpenCV sample photos")
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     out = {"K": fs.getNode("camera_matrix").mat(), "dist": fs.getNode("distortion_coefficients").mat().ravel(),
            "error": fs.getNode("avg_reprojection_error").real(), "flags": int(fs.getNode("flags").real()),
            "aspect": fs.getNode("aspectRatio").real(),
@@ -58,6 +59,7 @@ def published() -> dict:
 
 @pytest.fixture(scope="module")
 def opencv_left():
+    require(PHOTOS / "left_intrinsics.yml", "OpenCV sample photos")
     return calibrate_intrinsics(_photos(), board_inner_corners=(9, 6), square_size_m=0.025, fix_aspect_ratio=True)
 
 
