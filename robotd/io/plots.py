@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from robotd.base.files import replacing
+
 
 def _figure(size: tuple[float, float]) -> Any:
     import matplotlib
@@ -22,8 +24,11 @@ def _save(fig: Any, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    try:
+        with replacing(Path(path), "wb") as f:  # a full disk leaves no half-written PNG
+            fig.savefig(f, format="png")
+    finally:
+        plt.close(fig)
 
 
 def plot_trajectories(path: Path, floor: Any, truth: np.ndarray, estimates: dict[str, np.ndarray],

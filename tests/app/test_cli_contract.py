@@ -548,6 +548,19 @@ def test_eval_forward_refuses_bad_options(args: list[str], says: str, tmp_path: 
     assert snapshot(tmp_path) == before
 
 
+def test_eval_forward_refuses_an_out_that_is_a_file_before_the_run(tmp_path: Path):
+    seq = _sequence(tmp_path)
+    gt = tmp_path / "gt.csv"
+    np.savetxt(gt, np.eye(4), delimiter=",")
+    out = tmp_path / "results"
+    out.write_text("not a folder")
+    before = snapshot(tmp_path)
+    r = run("eval", "forward", "--images", seq, "--ground-truth", gt, "--out", out)
+    assert_refused(r, f"--out {out} is a regular file; give a folder")
+    assert "images" not in r.stdout  # refused before the sequence was read
+    assert snapshot(tmp_path) == before
+
+
 def test_eval_forward_refuses_a_damaged_mat_file(tmp_path: Path):
     seq = _sequence(tmp_path)
     gt = tmp_path / "gt.mat"
