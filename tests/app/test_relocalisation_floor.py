@@ -61,7 +61,7 @@ def test_a_restart_relocalises_against_the_first_run_from_real_floor_loops(tmp_p
     motion = plan_motion(build_route("square"), MotionLimits())
     floor = Floor.default(seed=0)
     clock = ManualClock()
-    caplog.set_level(logging.INFO, logger="robotd.app.stages.pose_graph")
+    caplog.set_level(logging.INFO, logger="robotd")  # the stage and the gate (robotd.graph.gate)
     with MapStore.open(tmp_path / "map.sqlite") as store:
         run1 = store.begin_run("")
         p1 = build_pipeline(cfg, clock, store, run1, lossless=True, calibration=calib)
