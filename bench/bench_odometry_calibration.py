@@ -31,9 +31,9 @@ from typing import Any
 import numpy as np
 
 try:
-    from bench.common import machine_info, print_table, write_json
+    from bench.common import machine_info, print_table, write_json, write_page
 except ImportError:  # run as a script: bench/ is on sys.path
-    from common import machine_info, print_table, write_json
+    from common import machine_info, print_table, write_json, write_page
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -158,8 +158,7 @@ def write_markdown(path: Path, rows: list[dict[str, Any]], route: str) -> None:
             f"{n['fused']['end_position_error_m']:.3f} | {c['fused']['end_position_error_m']:.3f} | "
             f"{n['fused']['ape_origin_rmse_m']:.3f} | {c['fused']['ape_origin_rmse_m']:.3f} |")
     lines.append("")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines))
+    write_page(path, lines)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -39,9 +39,9 @@ from typing import Any
 import numpy as np
 
 try:
-    from bench.common import machine_info, print_table, time_repeats, write_json
+    from bench.common import machine_info, print_table, time_repeats, write_json, write_page
 except ImportError:  # run as a script: bench/ is on sys.path
-    from common import machine_info, print_table, time_repeats, write_json
+    from common import machine_info, print_table, time_repeats, write_json, write_page
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -224,8 +224,7 @@ def write_markdown(path: Path, outl: list[dict[str, Any]]) -> None:
                      f"{o['cpu_ratio_ours_over_lm']:.2f} | {o['wrong_loops_kept']} | "
                      f"{o['true_loops_down_weighted']} of {o['true_loops']} |")
     lines.append("")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines))
+    write_page(path, lines)
 
 
 def main(argv: list[str] | None = None) -> int:

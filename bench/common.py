@@ -94,6 +94,15 @@ def write_json(path: str | Path, payload: Any) -> Path:
     return path
 
 
+def write_page(path: Path, lines: Sequence[str]) -> None:
+    """A benchmark's Markdown page from its lines (the folder made if needed), replaced
+    atomically."""
+    from robotd.base.files import write_text_replacing
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_text_replacing(path, "\n".join(lines))
+
+
 def print_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> None:
     """Print an aligned text table: text left-aligned, numbers right-aligned."""
     cells = [[str(h) for h in headers]] + [[str(c) for c in row] for row in rows]

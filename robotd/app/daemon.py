@@ -23,7 +23,7 @@ import signal
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol, runtime_checkable
+from typing import Any, Callable, Protocol
 
 from robotd.app.pipeline import Pipeline
 from robotd.base.clock import Clock, MonotonicClock
@@ -106,14 +106,6 @@ def _driver_status(stats: Mapping[str, Any]) -> str:
         faults = ", ".join(f"{k} {st[k]}" for k in _STATUS_FAULTS if st.get(k))
         parts.append(f"; {name}: {st['status']}" + (f" ({faults})" if faults else ""))
     return "".join(parts)
-
-
-@runtime_checkable
-class StatusReporter(Protocol):
-    """A stage with something to add to the STATUS line (e.g. the pose graph's "not
-    localised in the stored map"); ``""`` when it has nothing to say."""
-
-    def status_fragment(self) -> str: ...
 
 
 def gap_text(driver_stats: Mapping[str, Mapping[str, Any]]) -> str:
@@ -334,8 +326,7 @@ class Daemon:
             odo = self.pipeline.stage("odometry")
             text += f", odometry DEGRADED ({getattr(odo, 'degraded_detail', '')})"
         for stage in self.pipeline.stages:  # e.g. the pose graph: "not localised in the stored map"
-            reporter: StatusReporter | None = stage if isinstance(stage, StatusReporter) else None
-            fragment = reporter.status_fragment() if reporter is not None else ""
+            fragment = stage.status_fragment() if hasattr(stage, "status_fragment") else ""
             if fragment:
                 text += f", {fragment}"
         return text + _driver_status(stats)

@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from robotd.base.errors import OutputError, SequenceError
-from robotd.base.files import describe_path_kind, nonempty_path, replacing
+from robotd.base.errors import SequenceError
+from robotd.base.files import check_output_folder, nonempty_path, write_text_replacing
 
 log = logging.getLogger(__name__)
 
@@ -116,9 +116,8 @@ def run_forward(args: argparse.Namespace) -> int:
         raise SequenceError(f"--tolerance must be >= 0, got {args.tolerance}")
     if args.every < 1:
         raise SequenceError(f"--every must be at least 1, got {args.every}")
-    if args.out is not None and args.out.exists() and not args.out.is_dir():
-        raise OutputError(f"--out {args.out} is {describe_path_kind(args.out)}; give a folder (it gets "
-                          "forward_eval.json, pr_curve.json and the plots)")
+    if args.out is not None:
+        check_output_folder(args.out, "forward_eval.json, pr_curve.json and the plots")
     files = list_images(args.images, exclude=(args.ground_truth,))
     truth = load_ground_truth(args.ground_truth, len(files))
     files = files[::args.every]
@@ -260,8 +259,7 @@ def run_forward(args: argparse.Namespace) -> int:
                        "inverted_index_bytes": detector.index.memory_bytes() if detector else 0},
             "per_image": rows,
         }
-        with replacing(out / "forward_eval.json") as f:
-            f.write(json.dumps(report, indent=1))
+        write_text_replacing(out / "forward_eval.json", json.dumps(report, indent=1))
         extra = {"brute force (features + matching)": bf_total} if brute is not None else None
         plot_stage_times(out / "stage_times.png", {"features": stage_t["features"],
                                                    "word search": stage_t["words"],
@@ -276,9 +274,9 @@ def run_forward(args: argparse.Namespace) -> int:
         plot_pr_curves(out / "pr_curve.png", curves,
                        {"detector": (s_det.recall, s_det.precision)},
                        title=f"{args.images.name}: precision-recall ({args.method}, tolerance {tol})")
-        with replacing(out / "pr_curve.json") as f:
-            f.write(json.dumps({"method": args.method, "tolerance": tol, "curves": curves,
-                                "operating_point": s_det.as_dict()}, indent=1))
+        write_text_replacing(out / "pr_curve.json", json.dumps(
+            {"method": args.method, "tolerance": tol, "curves": curves,
+             "operating_point": s_det.as_dict()}, indent=1))
         written += [out / "pr_curve.png", out / "pr_curve.json"]
         if plot_data is not None and plot_k is not None:
             nh = len(plot_data["scores"])

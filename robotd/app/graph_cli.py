@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, TYPE_CHECKING
 
 from robotd.base.errors import GraphError, OutputError, RobotdError
-from robotd.base.files import check_output_file, describe_path_kind, nonempty_path
+from robotd.base.files import check_output_file, check_output_folder, nonempty_path
 
 if TYPE_CHECKING:  # the real imports happen in the commands, so `robotd --help` skips gtsam
     from robotd.graph import BatchResult, PoseGraph
@@ -132,9 +132,7 @@ def run_export(args: argparse.Namespace) -> int:
     from robotd.io.trajectory import write_tum
 
     out: Path = args.out
-    if out.exists() and not out.is_dir():
-        raise OutputError(f"--out {out} is {describe_path_kind(out)}; give a folder (it gets "
-                          "graph.g2o, odometry.tum and optimized.tum)")
+    check_output_folder(out, "graph.g2o, odometry.tum and optimized.tum")
     targets = [out / "graph.g2o", out / "odometry.tum", out / "optimized.tum"]
     if out.is_dir():
         for t in targets:

@@ -142,6 +142,14 @@ def replacing(path: Path, mode: str = "w", encoding: str | None = "utf-8") -> It
         raise
 
 
+def check_output_folder(path: Path, gets: str, option: str = "--out") -> None:
+    """:class:`OutputError` when ``path`` exists and is not a folder; ``gets`` says what the
+    folder would receive (checked before any work, so that nothing is spent on a run whose
+    output cannot be written)."""
+    if path.exists() and not path.is_dir():
+        raise OutputError(f"{option} {path} is {describe_path_kind(path)}; give a folder (it gets {gets})")
+
+
 def write_text_replacing(path: Path, text: str, encoding: str = "utf-8") -> None:
     """``path.write_text(text)`` through :func:`replacing`."""
     with replacing(path, "w", encoding) as f:
