@@ -721,6 +721,23 @@ def test_output_piped_into_head(material: Path):
     assert proc.wait(60) in (0, 141) and err == ""
 
 
+@pytest.mark.parametrize("args", [["config", "default"], ["config", "default", "--service"],
+                                  ["config", "reference"]])
+def test_generated_config_text_piped_into_head(args: list[str]):
+    """The generated config and reference end quietly when the reader has gone (closed
+    before robotd writes: the text would fit in the pipe's buffer otherwise)."""
+    proc = subprocess.Popen([*ROBOTD, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(60) in (0, 141) and err == ""
+
+
+def test_config_default_refuses_an_argument_it_does_not_take(tmp_path: Path):
+    before = snapshot(tmp_path)
+    assert_refused(run("config", "default", "--service", tmp_path / "robotd.toml"), "unrecognized arguments")
+    assert snapshot(tmp_path) == before
+
+
 def test_the_lock_file_names_its_holder_and_goes_away(material: Path, tmp_path: Path):
     """The lock file names its holder in one line, removed when the holder lets go."""
     m = tmp_path / "m.sqlite"
