@@ -42,6 +42,7 @@ except ImportError:  # run as a script: bench/ is on sys.path
 
 from robotd.forward import LOOP, FeatureExtractor, ForwardDetector, method_params
 from robotd.forward.evaluation import score_decisions
+from robotd.forward.detector import OdometryParams
 from robotd.forward.features import FeatureParams
 from robotd.forward.verify import camera_matrix_guess
 from robotd.forward.vocabulary import VocabularyParams
@@ -77,6 +78,21 @@ def configurations(full: bool) -> dict[str, object]:
                                                    consistency=2),
         "default": method_params("default"),
     }
+    # The keyframe's odometry (office only: rtabmap_samples has no poses, so there these
+    # rows are the rows without it).
+    odo = OdometryParams(use=True)
+    dflt = method_params("default")
+    tot = replace(f, rule="total", loop_threshold=0.5)
+    cfgs.update({
+        "ORB + odometry": replace(orb, odometry=odo),
+        "ORB + total p > 0.5 + odometry": replace(orb, filter=tot, odometry=odo),
+        "ORB + total p > 0.3 + odometry": replace(orb, filter=replace(tot, loop_threshold=0.3), odometry=odo),
+        "ORB score/previous > 0.3 + odometry": replace(sc, score_normalisation="previous", score_threshold=0.3,
+                                                       odometry=odo),
+        "old default + odometry": replace(dflt, odometry=odo),
+        "old default + odometry, total p > 0.3": replace(dflt, filter=replace(dflt.filter, loop_threshold=0.3),
+                                                         odometry=odo),
+    })
     if full:
         cfgs["ORB 1000"] = replace(orb, features=FeatureParams(kind="orb", max_features=1000))
     return cfgs
@@ -92,8 +108,70 @@ def office_sequence(folder: Path) -> Path:
     return folder
 
 
+def office_odometry(folder: Path, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The robot's own odometry at the office sequence's images: ``(N, 3)`` poses
+    ``(x_m, y_m, yaw_rad)`` and ``(N, 3, 3)`` their covariances, as the daemon's wheel + gyro
+    filter (:mod:`robotd.odometry.ekf`) estimates them from the virtual base's sensors
+    (:mod:`sim.sensors`: wheel radius, wheel base, slip, gyro bias and noise, drawn with
+    ``seed``) along the motion the sequence was rendered from, encoders quantised to ticks.
+    Never the true poses: those are only the ground truth. Cached in ``odometry.npz``
+    beside the images (the sequence's ``sequence.json`` names the route)."""
+    import json
+
+    cache = folder / "odometry.npz"
+    if cache.exists():
+        z = np.load(cache)
+        return z["pose"], z["cov"]
+    from robotd.odometry import ekf
+    from robotd.odometry.kinematics import DiffDriveParams
+    from sim.forward_sequence import _repeated_route
+    from sim.route import MotionLimits, plan_motion
+    from sim.sensors import BaseSensorParams, draw_errors, simulate_sensors
+
+    settings = json.loads((folder / "sequence.json").read_text())["settings"]
+    times = np.loadtxt(folder / "poses.csv", delimiter=",", skiprows=1, usecols=1)
+    motion = plan_motion(_repeated_route(settings["route"], settings["repeats"]), MotionLimits())
+    rng = np.random.default_rng(seed)
+    sp = BaseSensorParams()
+    s = simulate_sensors(motion, sp, draw_errors(sp, rng), rng)
+    geo = DiffDriveParams()
+    ticks = np.round(s.wheel_angle_rad * geo.ticks_per_rev / (2 * math.pi))
+    dist = ticks * geo.metres_per_tick_left  # the nominal geometry: the base's errors are unknown
+    params = ekf.EkfParams()
+    events = sorted([(float(t), 0, i) for i, t in enumerate(s.t_s[1:], 1)]
+                    + [(float(t), 1, i) for i, t in enumerate(s.gyro_t_s)])
+    state = ekf.initial_state(int(round(s.t_s[0] * 1e9)), params)
+    pose = np.zeros((len(times), 3))
+    cov = np.zeros((len(times), 3, 3))
+    k = 0
+    at_rest = False
+    for t, kind, i in events:
+        while k < len(times) and times[k] <= t:
+            st = ekf.predict(state, max(state.stamp_ns, int(round(times[k] * 1e9))), params)
+            pose[k], cov[k] = st.pose_xyyaw, st.pose_cov
+            k += 1
+        state = ekf.predict(state, max(state.stamp_ns, int(round(t * 1e9))), params)
+        if kind == 0:
+            dt = s.t_s[i] - s.t_s[i - 1]
+            dl, dr = dist[i] - dist[i - 1]
+            at_rest = dl == 0 and dr == 0
+            state = ekf.update_wheels(state, (dl + dr) / 2 / dt, (dr - dl) / geo.wheel_base_m / dt, params,
+                                      stationary=at_rest)
+        else:
+            state = ekf.update_gyro(state, float(s.gyro_radps[i, 2]), params, at_rest=at_rest)
+    while k < len(times):
+        pose[k], cov[k] = state.pose_xyyaw, state.pose_cov
+        k += 1
+    np.savez(cache, pose=pose, cov=cov)
+    return pose, cov
+
+
 def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, object], skip: set[str],
-                 recent: int = 10, only: set[str] | None = None) -> dict[str, object]:
+                 recent: int = 10, only: set[str] | None = None,
+                 odometry: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, object]:
+    """Every configuration of ``cfgs`` (but ``skip``, and only ``only`` when given) over the
+    sequence; ``odometry``: ``(N, 3)`` poses and ``(N, 3, 3)`` covariances given to the
+    detector with each image (None: the sequence has none)."""
     files = list_images(folder, exclude=(truth_path,))
     truth = load_ground_truth(truth_path, len(files))
     images = [read_image(p) for p in files]  # decoded once (grey office images: 300 kB each)
@@ -132,7 +210,8 @@ def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, obje
         cand, conf, decl = np.full(n, -1), np.zeros(n), np.zeros(n, bool)
         total = np.zeros(n)
         for t, (fe, fs) in enumerate(feats[fk]):
-            d = det.process_features(fe, fs)
+            d = (det.process_features(fe, fs) if odometry is None
+                 else det.process_features(fe, fs, odometry[0][t], odometry[1][t]))
             total[t] = d.times_s["total"] * 1e3
             if d.candidate_id is not None:
                 cand[t], conf[t], decl[t] = d.candidate_id, d.candidate_probability, d.status == LOOP
@@ -177,9 +256,10 @@ def main(argv: list[str] | None = None) -> int:
             "rtabmap_samples", rtabmap, rtabmap / "ground_truth.bmp", cfgs, set(), only=only)
     if args.only in (None, "office"):
         office = office_sequence(args.dir)
+        odo = office_odometry(office)
         office_only = only if (only is not None or args.full) else {"ORB 300", "default"}
         result["sequences"]["office"] = run_sequence("office", office, office / "gt.npy", cfgs, set(),
-                                                     only=office_only)
+                                                     only=office_only, odometry=odo)
     print(f"wrote {write_json(args.out, result)}")
     return 0
 

@@ -46,7 +46,8 @@ from robotd.forward.verify import Verification, VerifyParams, verify_pair
 from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams
 
 __all__ = ["Detection", "DetectionStatus", "DetectorParams", "ForwardDetector", "LOOP", "METHODS", "NO_HYPOTHESES",
-           "LOW_POSTERIOR", "NOT_CONSISTENT_YET", "NO_GEOMETRIC_CONSISTENCY", "STAGES", "method_params"]
+           "LOW_POSTERIOR", "NOT_CONSISTENT_YET", "NO_GEOMETRIC_CONSISTENCY", "OdometryParams", "STAGES",
+           "method_params", "odometry_factor"]
 
 class DetectionStatus(StrEnum):
     """Why an image closed a loop or did not (a :class:`~enum.StrEnum`: equal to its text)."""
@@ -69,6 +70,53 @@ METHODS = ("default", "paper")
 
 #: Timed stages, in order (seconds in :attr:`Detection.times_s`, plus ``"total"``).
 STAGES = ("features", "words", "likelihood", "filter", "verify", "memory")
+
+
+@dataclass(frozen=True)
+class OdometryParams:
+    """The keyframe's odometry as a second likelihood (beyond the paper: its Sec. VI names
+    the robot's metric pose as the next step; issue 24 item 2).
+
+    With ``use`` and a pose given to :meth:`ForwardDetector.process_features`, each image
+    hypothesis j's likelihood factor is multiplied by ``exp(-d^2 / 2)``, where d is the
+    Mahalanobis distance between the current pose and image j's pose, per component
+    (x, y, yaw; yaw wrapped), over the variance that odometry accumulated between the two
+    images (the current covariance's diagonal minus image j's, never negative: odometry
+    drift is a random walk, so what j already had does not separate them) plus the size of
+    a place (``place_sigma_m``, ``place_sigma_yaw_rad``: how far apart two views of one
+    place may be). The no-loop hypothesis keeps its factor: odometry says nothing about a
+    new place. A hypothesis far beyond the accumulated uncertainty (an aliased corridor at
+    the other end of the map) gets a factor near 0; as drift grows, the factor flattens
+    towards 1 and the detector falls back to appearance alone. Images without a pose get
+    factor 1.
+
+    Fields:
+        use: whether the odometry likelihood multiplies in (False: the paper).
+        place_sigma_m: metres, the spread in x and y of one place's views.
+        place_sigma_yaw_rad: radians, the spread of headings of one place's views.
+    """
+
+    use: bool = False
+    place_sigma_m: float = 1.0
+    place_sigma_yaw_rad: float = 0.6
+
+    def __post_init__(self) -> None:
+        if not (self.place_sigma_m > 0 and self.place_sigma_yaw_rad > 0):
+            raise ValueError("place_sigma_m and place_sigma_yaw_rad must be positive")
+
+
+def odometry_factor(pose: np.ndarray, pose_var: np.ndarray, poses: np.ndarray, poses_var: np.ndarray,
+                    params: OdometryParams) -> np.ndarray:
+    """The odometry likelihood factors of :class:`OdometryParams`: ``pose (3,)`` and
+    ``pose_var (3,)`` (x_m, y_m, yaw_rad and their variances) of the current image against
+    ``poses (n, 3)``, ``poses_var (n, 3)`` of the hypotheses; returns ``(n,)`` in (0, 1]
+    (1 where either pose is unknown: NaN)."""
+    d = np.asarray(poses, np.float64) - np.asarray(pose, np.float64)[None, :]
+    d[:, 2] = (d[:, 2] + np.pi) % (2.0 * np.pi) - np.pi
+    acc = np.maximum(np.asarray(pose_var, np.float64)[None, :] - np.asarray(poses_var, np.float64), 0.0)
+    place = np.array([params.place_sigma_m ** 2] * 2 + [params.place_sigma_yaw_rad ** 2])
+    d2 = (d * d / (acc + place[None, :])).sum(axis=1)
+    return np.where(np.isfinite(d2), np.exp(-0.5 * np.where(np.isfinite(d2), d2, 0.0)), 1.0)
 
 
 @dataclass(frozen=True)
@@ -99,6 +147,8 @@ class DetectorParams:
             image's vote; ``"previous"``: over the vote of the image just before
             (DLoopDetector's normalisation by the best score one can expect).
         score_threshold: the normalised score a candidate must exceed.
+        odometry: the keyframes' odometry as a second likelihood
+            (:class:`OdometryParams`; off by default, the paper).
     """
 
     features: FeatureParams = field(default_factory=FeatureParams)
@@ -113,6 +163,7 @@ class DetectorParams:
     decision: str = "filter"
     score_normalisation: str = "virtual"
     score_threshold: float = 1.0
+    odometry: OdometryParams = field(default_factory=OdometryParams)
 
     def __post_init__(self) -> None:
         if self.decision not in ("filter", "score"):
@@ -145,6 +196,7 @@ class DetectorOverrides(TypedDict, total=False):
     decision: str
     score_normalisation: str
     score_threshold: float
+    odometry: OdometryParams
 
 
 @dataclass(frozen=True, eq=False)
@@ -222,6 +274,8 @@ class ForwardDetector:
                                     protect_recent=params.recent_excluded + params.filter.neighbours,
                                     neighbours=params.filter.neighbours)
         self._features: list[CompactFeatures] = []
+        self._poses = np.zeros((0, 3))      # (t, 3) x_m, y_m, yaw_rad of each image (NaN: unknown)
+        self._poses_var = np.zeros((0, 3))  # (t, 3) their variances
         self._posterior = np.ones(1)
         self._hyp_ids = np.zeros(0, np.int64)
         self._run = 0                      # consecutive images with consistent candidates
@@ -253,6 +307,8 @@ class ForwardDetector:
             seen[np.unique(w)] += 1
             self.memory.add(t, w, t)
             self._features.append(f)
+        self._poses = np.full((len(self._features), 3), np.nan)  # no pose stored for them
+        self._poses_var = np.full((len(self._features), 3), np.nan)
         self.vocabulary.restore(word_descriptors, word_born, word_purged, seen, len(images))
         if not self.params.memory.bounded:
             self.index.drop_postings(np.flatnonzero(np.asarray(word_purged, bool)))
@@ -265,15 +321,21 @@ class ForwardDetector:
                 "index": self.index.memory_bytes(),
                 "vocabulary": self.vocabulary.memory_bytes()}
 
-    def process(self, image: np.ndarray) -> Detection:
-        """Run one image (``(H, W)`` gray or ``(H, W, 3)`` BGR uint8) through the detector."""
+    def process(self, image: np.ndarray, pose: np.ndarray | None = None,
+                pose_cov: np.ndarray | None = None) -> Detection:
+        """Run one image (``(H, W)`` gray or ``(H, W, 3)`` BGR uint8) through the detector;
+        ``pose``, ``pose_cov``: see :meth:`process_features`."""
         t0 = self._timer()
         feats = self._extract(image)
-        return self.process_features(feats, self._timer() - t0)
+        return self.process_features(feats, self._timer() - t0, pose, pose_cov)
 
-    def process_features(self, feats: Features, features_s: float = 0.0) -> Detection:
+    def process_features(self, feats: Features, features_s: float = 0.0, pose: np.ndarray | None = None,
+                         pose_cov: np.ndarray | None = None) -> Detection:
         """Run one image given its already extracted features (``features_s``: the time
-        that took, for the record)."""
+        that took, for the record). ``pose (3,)``: the robot's odometry pose when the image
+        was taken (x_m, y_m, yaw_rad; the fused odometry the daemon has, never a ground
+        truth), ``pose_cov (3, 3)`` its covariance; used by :class:`OdometryParams`, kept
+        with the image either way (None: unknown)."""
         p = self.params
         clock = self._timer
         t = len(self._features)
@@ -303,12 +365,17 @@ class ForwardDetector:
             hyp_scores = np.concatenate([[virtual], scores[hyp_ids]])
         n_hyp = len(hyp_ids)
         like = adjust_likelihood(hyp_scores, p.likelihood)
+        pose_now, var_now = _pose_row(pose, pose_cov)
+        odo = None
+        if p.odometry.use and n_hyp and np.isfinite(pose_now).all():
+            odo = odometry_factor(pose_now, var_now, self._poses[hyp_ids], self._poses_var[hyp_ids], p.odometry)
+            like[1:] *= odo
         t2 = clock()
         times["likelihood"] = t2 - t1
 
         best = None
         if p.decision == "score":  # no filter: the posterior shown is the normalised likelihood
-            candidate, prob = _best_normalised(scores, n_hyp, virtual, t, p)
+            candidate, prob = _best_normalised(scores, n_hyp, virtual, t, p, odo)
             self._posterior = like / like.sum()
         elif not bounded:
             prior = predict(self._posterior, n_hyp, p.filter)
@@ -326,6 +393,8 @@ class ForwardDetector:
         # that bookkeeping counts as word search.
         self.memory.add(t, words, t)
         self._features.append(compact(feats, words))
+        self._poses = np.vstack([self._poses, pose_now[None, :]])
+        self._poses_var = np.vstack([self._poses_var, var_now[None, :]])
         t3b = clock()
         times["words"] += t3b - t3
         t3 = t3b
@@ -376,13 +445,23 @@ class ForwardDetector:
             transferred=tuple(transferred))
 
 
+def _pose_row(pose: np.ndarray | None, pose_cov: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(3,)`` pose and ``(3,)`` variances (NaN when unknown) of one image."""
+    if pose is None:
+        return np.full(3, np.nan), np.full(3, np.nan)
+    xy = np.asarray(pose, np.float64).reshape(3)
+    var = np.zeros(3) if pose_cov is None else np.diag(np.asarray(pose_cov, np.float64).reshape(3, 3)).copy()
+    return xy, var
+
+
 def _best_normalised(scores: np.ndarray, n_hyp: int, virtual: float, t: int,
-                     p: DetectorParams) -> tuple[int | None, float]:
+                     p: DetectorParams, weights: np.ndarray | None = None) -> tuple[int | None, float]:
     """The score decision (:attr:`DetectorParams.decision`): ``(candidate or None,
-    normalised score)`` over the hypotheses 0 .. n_hyp - 1."""
+    normalised score)`` over the hypotheses 0 .. n_hyp - 1 (their scores multiplied by
+    ``weights (n_hyp,)``, the odometry factors, when given)."""
     if n_hyp == 0:
         return None, 0.0
-    s = scores[:n_hyp]
+    s = scores[:n_hyp] if weights is None else scores[:n_hyp] * weights
     best = int(np.argmax(s))
     if not s[best] > 0.0:
         return None, 0.0

@@ -8,8 +8,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from robotd.forward import (LOOP, LOW_POSTERIOR, NOT_CONSISTENT_YET, DetectorParams, ForwardDetector,
+from robotd.forward import (LOOP, LOW_POSTERIOR, NOT_CONSISTENT_YET, DetectorParams, FilterParams, ForwardDetector,
                             method_params)
+from robotd.forward.detector import OdometryParams, odometry_factor
 from robotd.forward.features import FeatureParams, Features
 from robotd.forward.verify import VerifyParams
 
@@ -89,3 +90,46 @@ def test_the_methods():
         method_params("best")
     with pytest.raises(ValueError):
         DetectorParams(decision="vote")
+
+
+def test_the_odometry_factor_by_hand():
+    p = OdometryParams(use=True, place_sigma_m=1.0, place_sigma_yaw_rad=0.6)
+    poses = np.array([[1.0, 0.0, 0.0],                     # 1 m ahead
+                      [0.0, 0.0, 2 * np.pi - 0.1],        # 0.2 rad of heading, across the wrap
+                      [3.0, 4.0, 0.0],                     # 5 m away, but more uncertain than now
+                      [np.nan, np.nan, np.nan]])           # no pose
+    var = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [9.0, 9.0, 0.0], [0.0, 0.0, 0.0]])
+    f = odometry_factor(np.array([0.0, 0.0, 0.1]), np.array([0.25, 0.25, 0.0]), poses, var, p)
+    # d^2 = 1 / (0.25 + 1) + 0.1^2 / 0.36; 0.2^2 / 0.36; (9 + 16) / 1 + 0.1^2 / 0.36 (the
+    # accumulated variance is never negative); unknown: 1.
+    assert f == pytest.approx(np.exp(-0.5 * np.array([1 / 1.25 + 0.01 / 0.36, 0.04 / 0.36, 25 + 0.01 / 0.36, 0.0])))
+
+
+def test_the_odometry_turns_away_an_aliased_place(monkeypatch):
+    """A revisit of place 5 seen where odometry puts the robot 20 m from it (an aliased
+    corridor elsewhere) is no loop with the odometry lever; the same images at place 5's pose
+    are one; without poses the lever changes nothing."""
+    views = _views(30, [5, 6, 7, 8])
+    along = [np.array([float(i), 0.0, 0.0]) for i in range(30)]
+    cov = np.diag([0.01, 0.01, 0.001])
+    base = DetectorParams(features=FeatureParams(kind="orb"), verify=ACCEPT_ALL,
+                          filter=FilterParams(rule="total", loop_threshold=0.5))
+    odo = replace(base, odometry=OdometryParams(use=True))
+
+    def run(params, revisit_x):
+        import robotd.forward.detector as det_mod
+        from robotd.forward.verify import ACCEPTED, Verification
+
+        monkeypatch.setattr(det_mod, "verify_pair", lambda old, new, p, k: Verification(True, ACCEPTED, 100, 100))
+        det = ForwardDetector(params)
+        poses = along + [np.array([x, 0.0, 0.0]) for x in revisit_x]
+        return [det.process_features(v, 0.0, q, cov) for v, q in zip(views, poses)][30:]
+
+    here, far = [5.0, 6.0, 7.0, 8.0], [25.0, 26.0, 27.0, 28.0]
+    plain = run(base, far)
+    assert [d.status for d in plain][-2:] == [LOOP, LOOP]  # appearance alone: a loop
+    assert [d.status for d in run(odo, here)][-2:] == [LOOP, LOOP]
+    assert all(d.status == LOW_POSTERIOR for d in run(odo, far))
+    no_pose = ForwardDetector(odo)  # verify_pair is still the accepting one run() put in
+    got = [no_pose.process_features(v) for v in views][30:]
+    assert [d.candidate_id for d in got] == [d.candidate_id for d in plain]

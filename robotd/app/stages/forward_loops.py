@@ -167,7 +167,7 @@ class ForwardLoopStage(Publisher):
             self.unsynced += 1
             return
         self._last_pose = pose
-        det = self.detector.process(frame.image)
+        det = self.detector.process(frame.image, pose, kf.pose.covariance)  # the keyframe's odometry pose
         self._keyframe_ids.append(kf.keyframe_id)
         if self.store is not None:
             self._store_image(kf.keyframe_id)
