@@ -168,10 +168,14 @@ def office_odometry(folder: Path, seed: int = 0) -> tuple[np.ndarray, np.ndarray
 
 def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, object], skip: set[str],
                  recent: int = 10, only: set[str] | None = None,
-                 odometry: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, object]:
+                 odometry: tuple[np.ndarray, np.ndarray] | None = None,
+                 brute_force: bool = False) -> dict[str, object]:
     """Every configuration of ``cfgs`` (but ``skip``, and only ``only`` when given) over the
     sequence; ``odometry``: ``(N, 3)`` poses and ``(N, 3, 3)`` covariances given to the
-    detector with each image (None: the sequence has none)."""
+    detector with each image (None: the sequence has none); ``brute_force``: also the
+    brute-force baseline of ``robotd eval forward`` (SIFT matching and RANSAC against every
+    past image, :class:`robotd.forward.baselines.BruteForceMatcher`; its time grows with the
+    square of the sequence)."""
     files = list_images(folder, exclude=(truth_path,))
     truth = load_ground_truth(truth_path, len(files))
     images = [read_image(p) for p in files]  # decoded once (grey office images: 300 kB each)
@@ -226,6 +230,33 @@ def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, obje
         print(f"{cname:<32}{s.recall_at_full_precision:>9.3f}{s.false_positives:>5}{s.precision:>7.3f}"
               f"{s.declared:>7}{med:>8.1f}{p99:>8.1f}{med / cv_median:>7.1f}{det.vocabulary.n_searchable:>8}"
               f"{per_image:>9.0f}", flush=True)
+    if brute_force:
+        from robotd.forward.baselines import BruteForceMatcher
+
+        sift = method_params("paper").features
+        fk = (sift.kind, sift.max_features)
+        if fk not in feats:
+            ex = FeatureExtractor(sift)
+            feats[fk] = []
+            for im in images:
+                t0 = time.perf_counter()
+                fe = ex(im)
+                feats[fk].append((fe, time.perf_counter() - t0))
+        bf = BruteForceMatcher(method_params("paper").verify, recent, k)
+        n = len(files)
+        cand, conf, decl = np.full(n, -1), np.zeros(n), np.zeros(n, bool)
+        total = np.zeros(n)
+        for t, (fe, fs) in enumerate(feats[fk]):
+            b = bf.process_features(fe)
+            total[t] = (fs + b.time_s) * 1e3
+            if b.candidate_id is not None:
+                cand[t], conf[t], decl[t] = b.candidate_id, b.n_inliers, b.loop
+        s = score_decisions(cand, conf, decl, truth, recent)
+        med, p99 = float(np.median(total)), float(np.percentile(total, 99))
+        out["brute_force"] = {**s.as_dict(), "ms_median": med, "ms_p99": p99,
+                              "ratio_to_opencv_orb": med / cv_median}
+        print(f"{'baseline: brute-force SIFT':<32}{s.recall_at_full_precision:>9.3f}{s.false_positives:>5}"
+              f"{s.precision:>7.3f}{s.declared:>7}{med:>8.1f}{p99:>8.1f}{med / cv_median:>7.1f}", flush=True)
     return out
 
 
@@ -253,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
     rtabmap = args.data / "forward" / "rtabmap_samples"
     if args.only in (None, "rtabmap"):
         result["sequences"]["rtabmap_samples"] = run_sequence(
-            "rtabmap_samples", rtabmap, rtabmap / "ground_truth.bmp", cfgs, set(), only=only)
+            "rtabmap_samples", rtabmap, rtabmap / "ground_truth.bmp", cfgs, set(), only=only, brute_force=True)
     if args.only in (None, "office"):
         office = office_sequence(args.dir)
         odo = office_odometry(office)

@@ -39,6 +39,14 @@ def render(result: dict) -> str:
         "compare a row's time with OpenCV's ORB *of the same run* (the `ORB ms` and `x ORB` "
         "columns), not rows of different runs with each other.",
         "",
+        "Rows with *odometry* give the detector each image's odometry pose and covariance: on "
+        "the office route the virtual base's own wheel + gyro filter (its simulated wheel, slip "
+        "and gyro errors; the heading drifts by tens of degrees over the four laps), never the "
+        "true pose, which is only the ground truth. rtabmap_samples has no poses: there those "
+        "rows run without, as the detector does when no pose is given. The brute-force row "
+        "is the baseline of `robotd eval forward` (SIFT matching and five-point RANSAC against "
+        "every past image).",
+        "",
     ]
     keys = ("machine", "cpu_count", "python", "numpy", "opencv", "usearch")
     info = ", ".join(f"{k} {m[k]}" for k in keys if k in m and m[k] is not None)
@@ -56,6 +64,13 @@ def render(result: dict) -> str:
                 f"| {r['declared']} | {r['ms_median']:.1f} | {r['ms_p99']:.1f} "
                 f"| {r['ms_median'] / r['ratio_to_opencv_orb']:.1f} | {r['ratio_to_opencv_orb']:.1f} "
                 f"| {r['searchable_words']} | {r['bytes_per_image']:.0f} |")
+        bf = seq.get("brute_force")
+        if bf:
+            lines.append(
+                f"| *baseline: brute-force SIFT + RANSAC* | {bf['recall_at_full_precision']:.3f} "
+                f"| {bf['false_positives']} | {bf['precision']:.3f} | {bf['declared']} | {bf['ms_median']:.1f} "
+                f"| {bf['ms_p99']:.1f} | {bf['ms_median'] / bf['ratio_to_opencv_orb']:.1f} "
+                f"| {bf['ratio_to_opencv_orb']:.1f} | - | - |")
         lines.append("")
     return "\n".join(lines)
 
@@ -72,6 +87,8 @@ def main(argv: list[str] | None = None) -> int:
         for name, seq in r.get("sequences", {}).items():
             merged["sequences"].setdefault(name, {**seq, "configurations": {}})
             merged["sequences"][name]["configurations"].update(seq.get("configurations", {}))
+            if "brute_force" in seq:
+                merged["sequences"][name]["brute_force"] = seq["brute_force"]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(render(merged))
     # The merged figures beside the page (bench/results/ is not kept in git).

@@ -141,7 +141,7 @@ def run_forward(args: argparse.Namespace) -> int:
     print(f"{args.images}: {n} images, {int(positives(truth, args.recent).sum())} of them revisit a "
           f"place at least {args.recent} images back; method {args.method} (features "
           f"{params.features.kind}, likelihood {params.likelihood}); tolerance {tol} images"
-          + (f", every {args.every}th image" if args.every > 1 else ""))
+          + (f", one image in {args.every}" if args.every > 1 else ""))
 
     extract = FeatureExtractor(params.features)
     k_matrix = None

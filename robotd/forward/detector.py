@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import TypedDict, Unpack
 
@@ -94,15 +94,28 @@ class OdometryParams:
         use: whether the odometry likelihood multiplies in (False: the paper).
         place_sigma_m: metres, the spread in x and y of one place's views.
         place_sigma_yaw_rad: radians, the spread of headings of one place's views.
+        agree_factor: a candidate whose odometry factor is at least this "agrees" with
+            odometry (0.6: within about one standard deviation).
+        agree_min_inliers, agree_min_support_area: the verification's ``min_inliers`` and
+            ``min_support_area`` (:class:`~robotd.forward.verify.VerifyParams`) for a
+            candidate that agrees with odometry (None: the verification's own): two
+            independent sensors agreeing need less geometric evidence than appearance alone.
     """
 
     use: bool = False
     place_sigma_m: float = 1.0
     place_sigma_yaw_rad: float = 0.6
+    agree_factor: float = 0.6
+    agree_min_inliers: int | None = None
+    agree_min_support_area: float | None = None
 
     def __post_init__(self) -> None:
         if not (self.place_sigma_m > 0 and self.place_sigma_yaw_rad > 0):
             raise ValueError("place_sigma_m and place_sigma_yaw_rad must be positive")
+        if not 0.0 < self.agree_factor <= 1.0:
+            raise ValueError(f"agree_factor must be in (0, 1], got {self.agree_factor}")
+        if self.agree_min_inliers is not None and self.agree_min_inliers < 5:
+            raise ValueError(f"agree_min_inliers must be >= 5 (the five-point solver), got {self.agree_min_inliers}")
 
 
 def odometry_factor(pose: np.ndarray, pose_var: np.ndarray, poses: np.ndarray, poses_var: np.ndarray,
@@ -129,6 +142,9 @@ class DetectorParams:
         filter: transition model and loop threshold (:class:`~robotd.forward.filter.FilterParams`).
         verify: epipolar check (:class:`~robotd.forward.verify.VerifyParams`; its
             ``min_support_area = 0`` is the paper's check without the support test).
+        verify_tries: when the candidate fails verification, the next most probable
+            hypotheses are verified in turn, up to this many images in all (1: the paper,
+            only the candidate); the first accepted is the loop.
         recent_excluded: p, the last images that are never hypotheses (10, Sec. IV).
         likelihood: ``"paper"`` (default) or RTAB-Map's ``"rtabmap"`` normalisation.
         memory: the working memory (:class:`~robotd.forward.memory.MemoryParams`; no bound
@@ -155,6 +171,7 @@ class DetectorParams:
     vocabulary: VocabularyParams = field(default_factory=VocabularyParams)
     filter: FilterParams = field(default_factory=FilterParams)
     verify: VerifyParams = field(default_factory=VerifyParams)
+    verify_tries: int = 1
     recent_excluded: int = 10
     likelihood: LikelihoodMethod = "paper"
     memory: MemoryParams = field(default_factory=MemoryParams)
@@ -176,6 +193,8 @@ class DetectorParams:
             raise ValueError(f"consistency must be >= 1, got {self.consistency}")
         if self.consistency_gap < 0:
             raise ValueError(f"consistency_gap must be >= 0, got {self.consistency_gap}")
+        if self.verify_tries < 1:
+            raise ValueError(f"verify_tries must be >= 1, got {self.verify_tries}")
         if self.recent_excluded < 1:
             raise ValueError(f"recent_excluded must be >= 1, got {self.recent_excluded}")
 
@@ -188,6 +207,7 @@ class DetectorOverrides(TypedDict, total=False):
     vocabulary: VocabularyParams
     filter: FilterParams
     verify: VerifyParams
+    verify_tries: int
     recent_excluded: int
     likelihood: LikelihoodMethod
     memory: MemoryParams
@@ -313,6 +333,33 @@ class ForwardDetector:
         if not self.params.memory.bounded:
             self.index.drop_postings(np.flatnonzero(np.asarray(word_purged, bool)))
 
+    def _verify(self, candidate: int, feats: Features, hyp_ids: np.ndarray,
+                odo: np.ndarray | None) -> tuple[int, Verification]:
+        """Verify ``candidate`` and, if it fails, the next most probable hypotheses (up to
+        ``verify_tries`` images): ``(image, its verification)``, the first accepted, else
+        the candidate's."""
+        p = self.params
+        order = [candidate]
+        if p.verify_tries > 1:
+            post = self._posterior[1:]
+            for i in np.argsort(-post, kind="stable")[:p.verify_tries].tolist():
+                if int(hyp_ids[i]) != candidate and post[i] > 0.0 and len(order) < p.verify_tries:
+                    order.append(int(hyp_ids[i]))
+        slot = {int(h): i for i, h in enumerate(hyp_ids.tolist())} if odo is not None else {}
+        failed: list[Verification] = []
+        for j in order:
+            vp = p.verify
+            o = p.odometry
+            if odo is not None and j in slot and odo[slot[j]] >= o.agree_factor:
+                vp = replace(vp, **{k: v for k, v in (("min_inliers", o.agree_min_inliers),
+                                                      ("min_support_area", o.agree_min_support_area))
+                                    if v is not None})
+            v = verify_pair(self._features[j], feats, vp, self.camera_matrix)
+            if v.accepted:
+                return j, v
+            failed.append(v)
+        return candidate, failed[0]
+
     def memory_bytes(self) -> dict[str, int]:
         """Bytes the detector holds, by part: ``images`` (word ids, keypoints, descriptors
         of every past image), ``index`` (the inverted index), ``vocabulary`` (the word
@@ -414,7 +461,7 @@ class ForwardDetector:
         elif self._run < p.consistency:
             status = NOT_CONSISTENT_YET
         else:
-            verification = verify_pair(self._features[candidate], feats, p.verify, self.camera_matrix)
+            candidate, verification = self._verify(candidate, feats, hyp_ids, odo)
             status = LOOP if verification.accepted else NO_GEOMETRIC_CONSISTENCY
         t4 = clock()
         times["verify"] = t4 - t3
@@ -480,8 +527,6 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
       words that never recur are purged, and the levers that the ablation of
       ``bench/bench_forward_ablation.py`` kept (``docs/forward.md``).
     """
-    from dataclasses import replace
-
     from robotd.forward.features import FeatureParams
     from robotd.forward.filter import FilterParams
     from robotd.forward.vocabulary import VocabularyParams

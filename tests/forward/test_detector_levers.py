@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from robotd.forward import (LOOP, LOW_POSTERIOR, NOT_CONSISTENT_YET, DetectorParams, FilterParams, ForwardDetector,
+from robotd.forward import (LOOP, LOW_POSTERIOR, NO_GEOMETRIC_CONSISTENCY, NOT_CONSISTENT_YET, DetectorParams, FilterParams, ForwardDetector,
                             method_params)
 from robotd.forward.detector import OdometryParams, odometry_factor
 from robotd.forward.features import FeatureParams, Features
@@ -133,3 +133,52 @@ def test_the_odometry_turns_away_an_aliased_place(monkeypatch):
     no_pose = ForwardDetector(odo)  # verify_pair is still the accepting one run() put in
     got = [no_pose.process_features(v) for v in views][30:]
     assert [d.candidate_id for d in got] == [d.candidate_id for d in plain]
+
+
+def test_the_next_hypotheses_are_verified_when_the_candidate_fails(monkeypatch):
+    """A revisit that shares most words with place 5 and the rest with place 6: place 5 is
+    the candidate; when only place 6 verifies, ``verify_tries = 2`` finds it, 1 does not."""
+    import robotd.forward.detector as det_mod
+    from robotd.forward.verify import ACCEPTED, NO_GEOMETRIC_CONSISTENCY as BAD, Verification
+
+    views = _views(30, [])
+    mixed = np.concatenate([views[5].descriptors[:70], views[6].descriptors[:50]])
+    mixed[:, 0] ^= 0x03
+    views.append(Features(views[5].keypoints_px[:120], mixed, (640, 480)))
+    params = DetectorParams(features=FeatureParams(kind="orb"), decision="score", verify=ACCEPT_ALL)
+
+    def run(p):
+        det = ForwardDetector(p)
+        good = []
+        monkeypatch.setattr(det_mod, "verify_pair", lambda old, new, vp, k: (
+            Verification(True, ACCEPTED, 100, 100) if any(old is g for g in good) else Verification(False, BAD, 3, 3)))
+        out = [det.process_features(v) for v in views[:30]]
+        good.append(det.features_of(6))
+        return out + [det.process_features(views[30])]
+
+    one = run(params)[30]
+    assert one.status == NO_GEOMETRIC_CONSISTENCY and one.candidate_id == 5 and one.loop_id is None
+    two = run(replace(params, verify_tries=2))[30]
+    assert two.status == LOOP and two.loop_id == 6 and two.candidate_id == 6
+    with pytest.raises(ValueError):
+        DetectorParams(verify_tries=0)
+
+
+def test_odometry_agreement_relaxes_the_verification(monkeypatch):
+    """The verification a candidate gets: the detector's own, or with ``agree_min_inliers``
+    when its odometry factor reaches ``agree_factor``."""
+    import robotd.forward.detector as det_mod
+    from robotd.forward.verify import ACCEPTED, Verification
+
+    seen = []
+    monkeypatch.setattr(det_mod, "verify_pair",
+                        lambda old, new, vp, k: seen.append(vp.min_inliers) or Verification(True, ACCEPTED, 100, 100))
+    views = _views(30, [5])
+    odo = OdometryParams(use=True, agree_min_inliers=12)
+    params = DetectorParams(features=FeatureParams(kind="orb"), decision="score", verify=ACCEPT_ALL, odometry=odo)
+    cov = np.diag([0.01, 0.01, 0.001])
+    for x in (5.0, 9.0):  # at place 5's pose: agrees; 4 m away (d = 4): factor 3e-4, does not
+        det = ForwardDetector(params)
+        for i, v in enumerate(views):
+            det.process_features(v, 0.0, np.array([float(i) if i < 30 else x, 0.0, 0.0]), cov)
+    assert seen == [12, ACCEPT_ALL.min_inliers]
