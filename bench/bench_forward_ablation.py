@@ -79,9 +79,10 @@ def configurations(full: bool) -> dict[str, object]:
         "default": method_params("default"),
     }
     # The keyframe's odometry (office only: rtabmap_samples has no poses, so there these
-    # rows are the rows without it).
+    # rows are the rows without it), more than one verification, and the previous default
+    # (ORB 300 + purge 50 + total p > 0.5 + k = 2) with each of them.
     odo = OdometryParams(use=True)
-    dflt = method_params("default")
+    old = method_params("default", odometry=OdometryParams(), verify_tries=1)
     tot = replace(f, rule="total", loop_threshold=0.5)
     cfgs.update({
         "ORB + odometry": replace(orb, odometry=odo),
@@ -89,10 +90,18 @@ def configurations(full: bool) -> dict[str, object]:
         "ORB + total p > 0.3 + odometry": replace(orb, filter=replace(tot, loop_threshold=0.3), odometry=odo),
         "ORB score/previous > 0.3 + odometry": replace(sc, score_normalisation="previous", score_threshold=0.3,
                                                        odometry=odo),
-        "old default + odometry": replace(dflt, odometry=odo),
-        "old default + odometry, total p > 0.3": replace(dflt, filter=replace(dflt.filter, loop_threshold=0.3),
+        "ORB + 3 verifications": replace(orb, verify_tries=3),
+        "old default": old,
+        "old default + odometry": replace(old, odometry=odo),
+        "old default + odometry, total p > 0.3": replace(old, filter=replace(old.filter, loop_threshold=0.3),
                                                          odometry=odo),
+        "old default + 3 verifications": replace(old, verify_tries=3),
+        "old default + odometry, 12 inliers when it agrees": replace(
+            old, odometry=replace(odo, agree_min_inliers=12, agree_min_support_area=0.01)),
+        "old default + odometry + 3 verifications, total p > 0.3": replace(
+            old, filter=replace(old.filter, loop_threshold=0.3), odometry=odo, verify_tries=3),
     })
+    cfgs["default"] = cfgs.pop("default")  # last
     if full:
         cfgs["ORB 1000"] = replace(orb, features=FeatureParams(kind="orb", max_features=1000))
     return cfgs

@@ -333,6 +333,13 @@ class ForwardDetector:
         if not self.params.memory.bounded:
             self.index.drop_postings(np.flatnonzero(np.asarray(word_purged, bool)))
 
+    def forget_poses(self) -> None:
+        """Odometry lost its continuity (the robot was carried, a kidnapping): the poses of
+        the images so far are not comparable with the ones to come, so they count as
+        unknown for :class:`OdometryParams` (appearance alone decides about them)."""
+        self._poses[:] = np.nan
+        self._poses_var[:] = np.nan
+
     def _verify(self, candidate: int, feats: Features, hyp_ids: np.ndarray,
                 odo: np.ndarray | None) -> tuple[int, Verification]:
         """Verify ``candidate`` and, if it fails, the next most probable hypotheses (up to
@@ -525,7 +532,9 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
       one neighbourhood's posterior, every candidate verified (the reference).
     - ``"default"``: binary ORB features (OpenCV) in an incremental Hamming vocabulary whose
       words that never recur are purged, and the levers that the ablation of
-      ``bench/bench_forward_ablation.py`` kept (``docs/forward.md``).
+      ``bench/bench_forward_ablation.py`` kept (``docs/forward.md``): the total loop
+      probability above 0.5, k = 2 consistent candidates, up to 3 hypotheses verified, and
+      the keyframe's odometry as a second likelihood when a pose is given.
     """
     from robotd.forward.features import FeatureParams
     from robotd.forward.filter import FilterParams
@@ -537,7 +546,8 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
         params = DetectorParams(features=FeatureParams(kind="orb", max_features=DEFAULT_ORB_FEATURES),
                                 vocabulary=VocabularyParams(purge_after=DEFAULT_PURGE_AFTER),
                                 filter=FilterParams(rule=DEFAULT_RULE, loop_threshold=DEFAULT_THRESHOLD),
-                                consistency=DEFAULT_CONSISTENCY)
+                                consistency=DEFAULT_CONSISTENCY, verify_tries=DEFAULT_VERIFY_TRIES,
+                                odometry=OdometryParams(use=True))
     else:
         raise ValueError(f"forward detector method must be one of {', '.join(METHODS)}, got {method!r}")
     return replace(params, **overrides) if overrides else params
@@ -551,3 +561,4 @@ DEFAULT_PURGE_AFTER = 50
 DEFAULT_RULE = "total"
 DEFAULT_THRESHOLD = 0.5
 DEFAULT_CONSISTENCY = 2
+DEFAULT_VERIFY_TRIES = 3

@@ -495,18 +495,23 @@ class _ScriptedDetector:
 
         self.loops = loops
         self.seen: list[int] = []
+        self.poses: list = []   # the odometry pose x_m each image came with; None: forget_poses()
         self.vocabulary: list = []
         c, s = math.cos(0.3), math.sin(0.3)
         rot = np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])  # a 0.3 rad turn, level
         self.verification = Verification(True, ACCEPTED, 80, 60, rot, np.array([0.0, 0.0, -1.0]))
 
-    def process(self, image: np.ndarray) -> object:
+    def forget_poses(self) -> None:
+        self.poses.append(None)
+
+    def process(self, image: np.ndarray, pose: np.ndarray | None = None, pose_cov: np.ndarray | None = None) -> object:
         from types import SimpleNamespace
 
         from robotd.forward import LOOP, LOW_POSTERIOR
 
         k = len(self.seen)
         self.seen.append(int(image[0, 0]))
+        self.poses.append(None if pose is None else float(pose[0]))
         loop = self.loops.get(k)
         return SimpleNamespace(status=LOOP if loop is not None else LOW_POSTERIOR, loop_id=loop,
                                verification=self.verification if loop is not None else None,
@@ -530,9 +535,9 @@ def test_the_forward_stage_pairs_each_due_keyframe_with_the_nearest_forward_fram
     def frame(t_ms: int) -> None:  # the image's first pixel says which frame it was
         p.publish(Frame(t_ms * 10**6, "forward", np.full((4, 4), t_ms // 10 % 256, np.uint8)))
 
-    def keyframe(kid: int, t_ms: int, x: float) -> None:
+    def keyframe(kid: int, t_ms: int, x: float, carried: bool = False) -> None:
         kf = StoredKeyframe(Frame(t_ms * 10**6, "floor", np.zeros((4, 4), np.uint8)),
-                            PoseStamped(t_ms * 10**6, x, 0.0, 0.0), keyframe_id=kid, run_id=1)
+                            PoseStamped(t_ms * 10**6, x, 0.0, 0.0), keyframe_id=kid, run_id=1, carried=carried)
         p.publish(KeyframeStored(kf))
 
     frame(0)
@@ -548,11 +553,14 @@ def test_the_forward_stage_pairs_each_due_keyframe_with_the_nearest_forward_fram
     frame(1490)
     frame(1520)
     assert det.seen == [10, 101, 149]  # the frames of 100, 1010 and 1490 ms
+    assert det.poses == [0.0, 0.7, 1.2]  # each with its keyframe's odometry pose
     assert stage.unsynced == 1
     assert len(got) == 1 and (got[0].from_id, got[0].to_id) == (10, 14)
     # The scripted motion: the camera turned 0.3 rad to the right and moved forward-right.
     assert got[0].dyaw_rad == pytest.approx(-0.3, abs=1e-9)
     assert got[0].bearing_rad == pytest.approx(-0.3, abs=1e-9)
+    keyframe(15, 1600, 1.3, carried=True)  # lifted: not due, but the detector forgets the poses
+    assert det.poses[-1] is None
 
 
 def _measured(stage) -> list:

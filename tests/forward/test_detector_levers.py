@@ -85,6 +85,8 @@ def test_the_methods():
     assert (paper.features.kind, paper.filter.loop_threshold, paper.filter.rule) == ("sift", 0.8, "neighbourhood")
     default = method_params("default")
     assert default.features.kind == "orb" and default.vocabulary.purge_after > 0
+    assert default.odometry.use and default.verify_tries == 3 and default.consistency == 2
+    assert not paper.odometry.use and paper.verify_tries == 1
     assert method_params("paper", recent_excluded=5).recent_excluded == 5
     with pytest.raises(ValueError):
         method_params("best")
@@ -116,20 +118,26 @@ def test_the_odometry_turns_away_an_aliased_place(monkeypatch):
                           filter=FilterParams(rule="total", loop_threshold=0.5))
     odo = replace(base, odometry=OdometryParams(use=True))
 
-    def run(params, revisit_x):
+    def run(params, revisit_x, forget=False):
         import robotd.forward.detector as det_mod
         from robotd.forward.verify import ACCEPTED, Verification
 
         monkeypatch.setattr(det_mod, "verify_pair", lambda old, new, p, k: Verification(True, ACCEPTED, 100, 100))
         det = ForwardDetector(params)
         poses = along + [np.array([x, 0.0, 0.0]) for x in revisit_x]
-        return [det.process_features(v, 0.0, q, cov) for v, q in zip(views, poses)][30:]
+        out = []
+        for i, (v, q) in enumerate(zip(views, poses)):
+            if forget and i == 30:
+                det.forget_poses()  # carried: the old poses say nothing any more
+            out.append(det.process_features(v, 0.0, q, cov))
+        return out[30:]
 
     here, far = [5.0, 6.0, 7.0, 8.0], [25.0, 26.0, 27.0, 28.0]
     plain = run(base, far)
     assert [d.status for d in plain][-2:] == [LOOP, LOOP]  # appearance alone: a loop
     assert [d.status for d in run(odo, here)][-2:] == [LOOP, LOOP]
     assert all(d.status == LOW_POSTERIOR for d in run(odo, far))
+    assert [d.status for d in run(odo, far, forget=True)][-2:] == [LOOP, LOOP]
     no_pose = ForwardDetector(odo)  # verify_pair is still the accepting one run() put in
     got = [no_pose.process_features(v) for v in views][30:]
     assert [d.candidate_id for d in got] == [d.candidate_id for d in plain]

@@ -149,6 +149,8 @@ class ForwardLoopStage(Publisher):
 
     def on_keyframe(self, msg: KeyframeStored) -> None:
         kf = msg.keyframe
+        if kf.carried:  # odometry cannot relate the images before the lift to the ones after
+            self.detector.forget_poses()
         pose = np.array(kf.pose_xyyaw, dtype=np.float64)
         if not self._due(pose):
             return
