@@ -1,23 +1,27 @@
 """The forward detector's levers, one at a time, on the development data (issue 24 item 2-3).
 
 Two sequences, never one alone: the real corridor of ``../shared/data/forward/rtabmap_samples``
-(84 images, its ``ground_truth.bmp``) and the virtual office route (1139 images: 0.4 m or
-30 deg keyframes, four laps, aliasing on; written with :func:`sim.forward_sequence.write_forward_sequence`
-into ``--dir`` unless it is there already). Every configuration runs over the same images;
-the features of each kind are extracted once per image and their extraction time is added
+(84 images, its ``ground_truth.bmp``; no poses) and the virtual office route (1139 images:
+0.4 m or 30 deg keyframes, four laps, aliasing on; written with
+:func:`sim.forward_sequence.write_forward_sequence` into ``--dir`` unless it is there
+already). The office images come with the robot's own odometry (:func:`office_odometry`:
+the virtual base's wheel and gyro errors through the daemon's wheel + gyro filter, never the
+true poses), which the detector gets with each image; rtabmap_samples has none. Every
+configuration runs over the same images; the features of each kind are extracted once per image and their extraction time is added
 to every configuration's time per image (features included, as the issue's targets count
 them). OpenCV's own ORB extraction of the same images (``cv2.ORB_create``,
 ``detectAndCompute``), timed in the same run, is the baseline column.
 
 Printed per sequence and configuration: recall at 100 % precision, false positives at the
 operating point, precision, and time per image (median, p99) with its ratio to OpenCV's
-ORB. Written: JSON (machine, versions, commit, every figure), read by
-``tools/forward_benchmark_doc.py`` to make ``docs/benchmarks/forward.md``.
+ORB; on rtabmap_samples also the brute-force baseline of ``robotd eval forward``
+(SIFT + RANSAC against every past image) in the same run. Written: JSON (machine,
+versions, commit, every figure), read by ``tools/forward_benchmark_doc.py`` to make ``docs/benchmarks/forward.md``.
 
 Run: ``.venv/bin/python bench/bench_forward_ablation.py --dir /tmp/office``. By default:
 every configuration on rtabmap_samples, and the default detector beside ORB with the
-paper's filter on the office route (on the shared 2-core development machine under load:
-about 4 minutes for rtabmap_samples and 4-6 minutes per office configuration, so about a
+paper's filter and the previous default on the office route (on the shared 2-core
+development machine under load: about 4 minutes for rtabmap_samples and 4-6 minutes per office configuration, so about a
 quarter of an hour; less on an idle machine). ``--full`` runs every configuration on the
 office route too, the paper's SIFT detector included (over an hour there).
 ``--configs "A;B"`` picks configurations.
@@ -123,14 +127,17 @@ def office_odometry(folder: Path, seed: int = 0) -> tuple[np.ndarray, np.ndarray
     filter (:mod:`robotd.odometry.ekf`) estimates them from the virtual base's sensors
     (:mod:`sim.sensors`: wheel radius, wheel base, slip, gyro bias and noise, drawn with
     ``seed``) along the motion the sequence was rendered from, encoders quantised to ticks.
-    Never the true poses: those are only the ground truth. Cached in ``odometry.npz``
-    beside the images (the sequence's ``sequence.json`` names the route)."""
+    Never the true poses: those are only the ground truth. Written beside the images as
+    ``odometry.csv``, the file ``robotd eval forward --odometry`` reads (the sequence's
+    ``sequence.json`` names the route), and read from there when it exists."""
     import json
 
-    cache = folder / "odometry.npz"
+    from robotd.app.forward_eval import read_odometry
+
+    cache = folder / "odometry.csv"
+    n = len(np.loadtxt(folder / "poses.csv", delimiter=",", skiprows=1, usecols=0, ndmin=1))
     if cache.exists():
-        z = np.load(cache)
-        return z["pose"], z["cov"]
+        return read_odometry(cache, n)
     from robotd.odometry import ekf
     from robotd.odometry.kinematics import DiffDriveParams
     from sim.forward_sequence import _repeated_route
@@ -171,20 +178,29 @@ def office_odometry(folder: Path, seed: int = 0) -> tuple[np.ndarray, np.ndarray
     while k < len(times):
         pose[k], cov[k] = state.pose_xyyaw, state.pose_cov
         k += 1
-    np.savez(cache, pose=pose, cov=cov)
+    write_odometry(cache, pose, cov)
     return pose, cov
 
 
+def write_odometry(path: Path, pose: np.ndarray, cov: np.ndarray) -> None:
+    """``pose (N, 3)`` and the diagonals of ``cov (N, 3, 3)`` as the CSV of ``robotd eval
+    forward --odometry``."""
+    var = np.stack([cov[:, 0, 0], cov[:, 1, 1], cov[:, 2, 2]], axis=1)
+    np.savetxt(path, np.column_stack([pose, var]), delimiter=",", fmt="%.9g",
+               header="x_m,y_m,yaw_rad,var_x_m2,var_y_m2,var_yaw_rad2", comments="")
+
+
 def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, object], skip: set[str],
-                 recent: int = 10, only: set[str] | None = None,
+                 recent: int = 10, only: list[str] | None = None,
                  odometry: tuple[np.ndarray, np.ndarray] | None = None,
-                 brute_force: bool = False) -> dict[str, object]:
+                 brute_force: bool = False, progress=None) -> dict[str, object]:
     """Every configuration of ``cfgs`` (but ``skip``, and only ``only`` when given) over the
     sequence; ``odometry``: ``(N, 3)`` poses and ``(N, 3, 3)`` covariances given to the
     detector with each image (None: the sequence has none); ``brute_force``: also the
     brute-force baseline of ``robotd eval forward`` (SIFT matching and RANSAC against every
     past image, :class:`robotd.forward.baselines.BruteForceMatcher`; its time grows with the
-    square of the sequence)."""
+    square of the sequence); ``progress``: called with the results so far after each row
+    (the JSON is written as the run goes, so an interrupted run keeps its rows)."""
     files = list_images(folder, exclude=(truth_path,))
     truth = load_ground_truth(truth_path, len(files))
     images = [read_image(p) for p in files]  # decoded once (grey office images: 300 kB each)
@@ -206,8 +222,10 @@ def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, obje
     print(f"\n{name}: {len(files)} images ({w}x{h}); OpenCV ORB (300) extraction: median {cv_median:.1f} ms")
     print(f"{'configuration':<32}{'R@100%P':>9}{'FP':>5}{'prec.':>7}{'loops':>7}{'ms med':>8}{'p99':>8}"
           f"{'x ORB':>7}{'words':>8}{'B/image':>9}")
-    for cname, params in cfgs.items():
-        if cname in skip or (only is not None and cname not in only):
+    names = list(cfgs) if only is None else [c for c in only if c in cfgs]  # in the order asked
+    for cname in names:
+        params = cfgs[cname]
+        if cname in skip:
             continue
         fk = (params.features.kind, params.features.max_features)
         if fk not in feats:
@@ -236,6 +254,8 @@ def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, obje
                "words": len(det.vocabulary), "searchable_words": det.vocabulary.n_searchable,
                "bytes_per_image": per_image, "bytes_per_image_by_part": {k: v / n for k, v in mem.items()}}
         out["configurations"][cname] = row
+        if progress is not None:
+            progress(out)
         print(f"{cname:<32}{s.recall_at_full_precision:>9.3f}{s.false_positives:>5}{s.precision:>7.3f}"
               f"{s.declared:>7}{med:>8.1f}{p99:>8.1f}{med / cv_median:>7.1f}{det.vocabulary.n_searchable:>8}"
               f"{per_image:>9.0f}", flush=True)
@@ -285,7 +305,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
     cfgs = configurations(args.full)
-    only = None if args.configs is None else {c.strip() for c in args.configs.split(";")}
+    only = None if args.configs is None else [c.strip() for c in args.configs.split(";")]
+    unknown = [c for c in only or () if c not in cfgs]
+    if unknown:
+        ap.error(f"unknown configuration(s): {', '.join(unknown)}")
     import usearch
 
     result: dict[str, object] = {"machine": {**machine_info(), "opencv": cv2.__version__,
@@ -293,13 +316,16 @@ def main(argv: list[str] | None = None) -> int:
     rtabmap = args.data / "forward" / "rtabmap_samples"
     if args.only in (None, "rtabmap"):
         result["sequences"]["rtabmap_samples"] = run_sequence(
-            "rtabmap_samples", rtabmap, rtabmap / "ground_truth.bmp", cfgs, set(), only=only, brute_force=True)
+            "rtabmap_samples", rtabmap, rtabmap / "ground_truth.bmp", cfgs, set(), only=only, brute_force=True,
+            progress=lambda o: (result["sequences"].__setitem__("rtabmap_samples", o), write_json(args.out, result)))
     if args.only in (None, "office"):
         office = office_sequence(args.dir)
         odo = office_odometry(office)
-        office_only = only if (only is not None or args.full) else {"ORB 300", "default"}
+        office_only = only if (only is not None or args.full) else ["default", "old default", "ORB 300"]
         result["sequences"]["office"] = run_sequence("office", office, office / "gt.npy", cfgs, set(),
-                                                     only=office_only, odometry=odo)
+                                                     only=office_only, odometry=odo,
+                                                     progress=lambda o: (result["sequences"].__setitem__("office", o),
+                                                                         write_json(args.out, result)))
     print(f"wrote {write_json(args.out, result)}")
     return 0
 

@@ -59,6 +59,10 @@ def add_arguments(sub: argparse._SubParsersAction[Any]) -> None:
                     help="a declared loop counts as right within K images of a true match (default 0)")
     fw.add_argument("--every", type=int, default=1, metavar="N",
                     help="take every N-th image (and the ground truth's rows and columns; default 1)")
+    fw.add_argument("--odometry", type=nonempty_path, default=None, metavar="FILE",
+                    help="the robot's odometry pose of each image (CSV with a header: x_m, y_m, yaw_rad and "
+                         "optionally var_x_m2, var_y_m2, var_yaw_rad2; one row per image in name order), "
+                         "given to the detector with its image (never a ground truth)")
     fw.add_argument("--out", type=nonempty_path, default=None, metavar="DIR",
                     help="write forward_eval.json and the plots here")
     fw.add_argument("--features", choices=("sift", "orb"), default=None,
@@ -93,6 +97,32 @@ def _versions() -> dict[str, str]:
             "system": platform.platform()}
 
 
+def read_odometry(path: Path, n_images: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``--odometry`` CSV: ``(n, 3)`` poses (x_m, y_m, yaw_rad) and ``(n, 3, 3)``
+    diagonal covariances (zero when the file has no variance columns). Raises
+    :class:`SequenceError` with one line for a file that is not that."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            header = [c.strip() for c in f.readline().split(",")]
+            rows = np.loadtxt(f, delimiter=",", ndmin=2)
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise SequenceError(f"cannot read odometry file {path}: {str(exc).splitlines()[0]}") from None
+    missing = [c for c in ("x_m", "y_m", "yaw_rad") if c not in header]
+    if missing:
+        raise SequenceError(f"odometry file {path}: no column {', '.join(missing)} in its header")
+    if rows.shape != (n_images, len(header)):
+        raise SequenceError(f"odometry file {path}: {rows.shape[0]} rows of {rows.shape[1]} values for "
+                            f"{n_images} images and {len(header)} columns")
+    pose = rows[:, [header.index(c) for c in ("x_m", "y_m", "yaw_rad")]]
+    cov = np.zeros((n_images, 3, 3))
+    for k, c in enumerate(("var_x_m2", "var_y_m2", "var_yaw_rad2")):
+        if c in header:
+            cov[:, k, k] = rows[:, header.index(c)]
+    if not (np.isfinite(pose).all() and np.isfinite(cov).all()) or (cov < 0).any():
+        raise SequenceError(f"odometry file {path}: values that are not finite, or a negative variance")
+    return pose, cov
+
+
 def _time_stats(t: np.ndarray) -> dict[str, float]:
     t = np.asarray(t, np.float64) * 1e3
     return {"median_ms": float(np.median(t)), "mean_ms": float(t.mean()),
@@ -120,8 +150,11 @@ def run_forward(args: argparse.Namespace) -> int:
         check_output_folder(args.out, "forward_eval.json, pr_curve.json and the plots")
     files = list_images(args.images, exclude=(args.ground_truth,))
     truth = load_ground_truth(args.ground_truth, len(files))
+    odometry = None if args.odometry is None else read_odometry(args.odometry, len(files))
     files = files[::args.every]
     truth = truth[::args.every, ::args.every]
+    if odometry is not None:
+        odometry = (odometry[0][::args.every], odometry[1][::args.every])
     n = len(files)
     tol = args.tolerance
     if args.plot_image is not None and not 0 <= args.plot_image < n:
@@ -141,7 +174,8 @@ def run_forward(args: argparse.Namespace) -> int:
     print(f"{args.images}: {n} images, {int(positives(truth, args.recent).sum())} of them revisit a "
           f"place at least {args.recent} images back; method {args.method} (features "
           f"{params.features.kind}, likelihood {params.likelihood}); tolerance {tol} images"
-          + (f", one image in {args.every}" if args.every > 1 else ""))
+          + (f", one image in {args.every}" if args.every > 1 else "")
+          + (f"; odometry from {args.odometry}" if odometry is not None else ""))
 
     extract = FeatureExtractor(params.features)
     k_matrix = None
@@ -171,7 +205,8 @@ def run_forward(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         feats = extract(image)
         t_feat = time.perf_counter() - t0
-        d = detector.process_features(feats, t_feat)
+        d = (detector.process_features(feats, t_feat) if odometry is None
+             else detector.process_features(feats, t_feat, odometry[0][t], odometry[1][t]))
         for s in STAGES:
             stage_t[s][t] = d.times_s[s]
         det_total[t] = d.times_s["total"]
@@ -249,6 +284,7 @@ def run_forward(args: argparse.Namespace) -> int:
         report = {
             "images": str(args.images), "ground_truth": str(args.ground_truth), "n_images": n,
             "method": args.method, "tolerance": tol, "every": args.every,
+            "odometry": None if args.odometry is None else str(args.odometry),
             "pr_curves": curves,
             "params": asdict(params), "camera_matrix": None if k_matrix is None else k_matrix.tolist(),
             "versions": _versions(),

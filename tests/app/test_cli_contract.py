@@ -561,6 +561,24 @@ def test_eval_forward_refuses_an_out_that_is_a_file_before_the_run(tmp_path: Pat
     assert snapshot(tmp_path) == before
 
 
+@pytest.mark.parametrize("text, says", [
+    ("x_m,y_m,yaw_rad\n0,0,0\n1,0,0\n", "2 rows of 3 values for 4 images"),
+    ("x_m,y_m\n0,0\n1,0\n2,0\n3,0\n", "no column yaw_rad in its header"),
+    ("x_m,y_m,yaw_rad\n0,0,0\n1,0,a\n2,0,0\n3,0,0\n", "cannot read odometry file"),
+    ("x_m,y_m,yaw_rad,var_x_m2\n0,0,0,1\n1,0,0,-1\n2,0,0,1\n3,0,0,1\n", "a negative variance"),
+])
+def test_eval_forward_refuses_a_bad_odometry_file(text: str, says: str, tmp_path: Path):
+    seq = _sequence(tmp_path)
+    gt = tmp_path / "gt.csv"
+    np.savetxt(gt, np.eye(4), delimiter=",")
+    odo = tmp_path / "odometry.csv"
+    odo.write_text(text)
+    before = snapshot(tmp_path)
+    r = run("eval", "forward", "--images", seq, "--ground-truth", gt, "--odometry", odo, "--out", tmp_path / "fw")
+    assert_refused(r, says)
+    assert snapshot(tmp_path) == before and not (tmp_path / "fw").exists()
+
+
 def test_eval_forward_refuses_a_damaged_mat_file(tmp_path: Path):
     seq = _sequence(tmp_path)
     gt = tmp_path / "gt.mat"
