@@ -100,6 +100,7 @@ def configurations(full: bool) -> dict[str, object]:
         "old default + odometry, total p > 0.3": replace(old, filter=replace(old.filter, loop_threshold=0.3),
                                                          odometry=odo),
         "old default + 3 verifications": replace(old, verify_tries=3),
+        "old default + odometry + 3 verifications": replace(old, odometry=odo, verify_tries=3),
         "old default + odometry, 12 inliers when it agrees": replace(
             old, odometry=replace(odo, agree_min_inliers=12, agree_min_support_area=0.01)),
         "old default + odometry + 3 verifications, total p > 0.3": replace(

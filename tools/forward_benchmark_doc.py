@@ -57,7 +57,10 @@ def render(result: dict) -> str:
                   "| configuration | R@100%P | FP | precision | loops | ms median | ms p99 | ORB ms | x ORB "
                   "| words | bytes/image |",
                   "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-        for cname, r in seq.get("configurations", {}).items():
+        cfgs = seq.get("configurations", {})
+        order = sorted(cfgs, key=lambda c: (c != "paper (SIFT)", c == "default"))  # paper first, default last
+        for cname in order:
+            r = cfgs[cname]
             r = {"bytes_per_image": float("nan"), **r}
             lines.append(
                 f"| {cname} | {r['recall_at_full_precision']:.3f} | {r['false_positives']} | {r['precision']:.3f} "

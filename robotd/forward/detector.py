@@ -533,7 +533,7 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
     - ``"default"``: binary ORB features (OpenCV) in an incremental Hamming vocabulary whose
       words that never recur are purged, and the levers that the ablation of
       ``bench/bench_forward_ablation.py`` kept (``docs/forward.md``): the total loop
-      probability above 0.5, k = 2 consistent candidates, up to 3 hypotheses verified, and
+      probability above 0.3, k = 2 consistent candidates, up to 3 hypotheses verified, and
       the keyframe's odometry as a second likelihood when a pose is given.
     """
     from robotd.forward.features import FeatureParams
@@ -559,6 +559,6 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
 DEFAULT_ORB_FEATURES = 300
 DEFAULT_PURGE_AFTER = 50
 DEFAULT_RULE = "total"
-DEFAULT_THRESHOLD = 0.5
+DEFAULT_THRESHOLD = 0.3
 DEFAULT_CONSISTENCY = 2
 DEFAULT_VERIFY_TRIES = 3
