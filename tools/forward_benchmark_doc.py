@@ -3,8 +3,8 @@
 Run: ``.venv/bin/python tools/forward_benchmark_doc.py bench/results/forward_ablation.json
 [--out docs/benchmarks/forward.md]``. The page holds only what the JSON holds (figures,
 machine, versions); nothing is typed in by hand. Several JSON files merge (a later file's
-configuration replaces an earlier one's of the same name); the merged JSON is written
-beside the page.
+configuration replaces an earlier one's of the same name; ``--drop SEQUENCE:NAME`` leaves a
+row out); the merged JSON is written beside the page.
 """
 
 from __future__ import annotations
@@ -82,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("json", type=Path, nargs="+", help="bench JSON file(s); sequences of later files are added")
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks" / "forward.md")
+    ap.add_argument("--drop", action="append", default=[], metavar="SEQUENCE:CONFIGURATION",
+                    help="leave out a row of the given files (one measured with code that has changed "
+                         "since, and not re-run); repeatable")
     args = ap.parse_args(argv)
     merged: dict = {"sequences": {}}
     for p in args.json:
@@ -92,6 +95,11 @@ def main(argv: list[str] | None = None) -> int:
             merged["sequences"][name]["configurations"].update(seq.get("configurations", {}))
             if "brute_force" in seq:
                 merged["sequences"][name]["brute_force"] = seq["brute_force"]
+    for d in args.drop:
+        seq_name, _, cname = d.partition(":")
+        if cname not in merged["sequences"].get(seq_name, {}).get("configurations", {}):
+            ap.error(f"--drop {d}: no such row")
+        del merged["sequences"][seq_name]["configurations"][cname]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(render(merged))
     # The merged figures beside the page (bench/results/ is not kept in git).

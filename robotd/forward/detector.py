@@ -142,9 +142,10 @@ class DetectorParams:
         filter: transition model and loop threshold (:class:`~robotd.forward.filter.FilterParams`).
         verify: epipolar check (:class:`~robotd.forward.verify.VerifyParams`; its
             ``min_support_area = 0`` is the paper's check without the support test).
-        verify_tries: when the candidate fails verification, the next most probable
-            hypotheses are verified in turn, up to this many images in all (1: the paper,
-            only the candidate); the first accepted is the loop.
+        verify_tries: when the candidate fails verification, its neighbours (the images
+            within ``filter.neighbours`` of it: other views of the same place) are verified
+            in turn, most probable first, up to this many images in all (1: the paper, only
+            the candidate); the first accepted is the loop.
         recent_excluded: p, the last images that are never hypotheses (10, Sec. IV).
         likelihood: ``"paper"`` (default) or RTAB-Map's ``"rtabmap"`` normalisation.
         memory: the working memory (:class:`~robotd.forward.memory.MemoryParams`; no bound
@@ -342,16 +343,16 @@ class ForwardDetector:
 
     def _verify(self, candidate: int, feats: Features, hyp_ids: np.ndarray,
                 odo: np.ndarray | None) -> tuple[int, Verification]:
-        """Verify ``candidate`` and, if it fails, the next most probable hypotheses (up to
-        ``verify_tries`` images): ``(image, its verification)``, the first accepted, else
-        the candidate's."""
+        """Verify ``candidate`` and, if it fails, its most probable neighbours (within
+        ``filter.neighbours`` images; up to ``verify_tries`` images in all): ``(image, its
+        verification)``, the first accepted, else the candidate's."""
         p = self.params
         order = [candidate]
-        if p.verify_tries > 1:
+        if p.verify_tries > 1:  # the candidate's neighbours (the same place), most probable first
             post = self._posterior[1:]
-            for i in np.argsort(-post, kind="stable")[:p.verify_tries].tolist():
-                if int(hyp_ids[i]) != candidate and post[i] > 0.0 and len(order) < p.verify_tries:
-                    order.append(int(hyp_ids[i]))
+            near = np.flatnonzero((np.abs(hyp_ids - candidate) <= p.filter.neighbours) & (hyp_ids != candidate)
+                                  & (post > 0.0))
+            order += hyp_ids[near[np.argsort(-post[near], kind="stable")]][:p.verify_tries - 1].tolist()
         slot = {int(h): i for i, h in enumerate(hyp_ids.tolist())} if odo is not None else {}
         failed: list[Verification] = []
         for j in order:
