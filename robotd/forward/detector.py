@@ -143,9 +143,10 @@ class DetectorParams:
         verify: epipolar check (:class:`~robotd.forward.verify.VerifyParams`; its
             ``min_support_area = 0`` is the paper's check without the support test).
         verify_tries: when the candidate fails verification, its neighbours (the images
-            within ``filter.neighbours`` of it: other views of the same place) are verified
-            in turn, most probable first, up to this many images in all (1: the paper, only
-            the candidate); the first accepted is the loop.
+            within ``filter.neighbours`` of it: other views of the same place) whose
+            odometry agrees (factor at least ``odometry.agree_factor``; none without
+            odometry) are verified in turn, most probable first, up to this many images in
+            all (1: the paper, only the candidate); the first accepted is the loop.
         recent_excluded: p, the last images that are never hypotheses (10, Sec. IV).
         likelihood: ``"paper"`` (default) or RTAB-Map's ``"rtabmap"`` normalisation.
         memory: the working memory (:class:`~robotd.forward.memory.MemoryParams`; no bound
@@ -343,15 +344,19 @@ class ForwardDetector:
 
     def _verify(self, candidate: int, feats: Features, hyp_ids: np.ndarray,
                 odo: np.ndarray | None) -> tuple[int, Verification]:
-        """Verify ``candidate`` and, if it fails, its most probable neighbours (within
-        ``filter.neighbours`` images; up to ``verify_tries`` images in all): ``(image, its
-        verification)``, the first accepted, else the candidate's."""
+        """Verify ``candidate`` and, if it fails, its most probable neighbours that odometry
+        agrees with (within ``filter.neighbours`` images; up to ``verify_tries`` images in
+        all; ``odo``: the hypotheses' odometry factors, None without odometry): ``(image,
+        its verification)``, the first accepted, else the candidate's."""
         p = self.params
         order = [candidate]
-        if p.verify_tries > 1:  # the candidate's neighbours (the same place), most probable first
+        if p.verify_tries > 1 and odo is not None:
+            # The candidate's neighbours (the same place) that odometry agrees with, most
+            # probable first; never without odometry (on the office route, appearance alone
+            # let false positives through this way).
             post = self._posterior[1:]
             near = np.flatnonzero((np.abs(hyp_ids - candidate) <= p.filter.neighbours) & (hyp_ids != candidate)
-                                  & (post > 0.0))
+                                  & (post > 0.0) & (odo >= p.odometry.agree_factor))
             order += hyp_ids[near[np.argsort(-post[near], kind="stable")]][:p.verify_tries - 1].tolist()
         slot = {int(h): i for i, h in enumerate(hyp_ids.tolist())} if odo is not None else {}
         failed: list[Verification] = []

@@ -146,23 +146,28 @@ def test_the_odometry_turns_away_an_aliased_place(monkeypatch):
 def test_the_next_hypotheses_are_verified_when_the_candidate_fails(monkeypatch):
     """A revisit that shares most words with place 5 and the rest with place 6: place 5 is
     the candidate; when only place 6 verifies, ``verify_tries = 2`` finds it, 1 does not.
-    Only the candidate's neighbours are tried: with place 20 instead of 6, none."""
+    Only the candidate's neighbours are tried (with place 20 instead of 6, none, though
+    odometry puts 20 there too), and only with odometry agreeing (without poses, none)."""
     import robotd.forward.detector as det_mod
     from robotd.forward.verify import ACCEPTED, NO_GEOMETRIC_CONSISTENCY as BAD, Verification
 
     views = _views(30, [])
-    params = DetectorParams(features=FeatureParams(kind="orb"), decision="score", verify=ACCEPT_ALL)
+    params = DetectorParams(features=FeatureParams(kind="orb"), decision="score", verify=ACCEPT_ALL,
+                            odometry=OdometryParams(use=True))
+    poses = [np.array([float(i) if i != 20 else 5.0, 0.0, 0.0]) for i in range(30)] + [np.array([5.5, 0.0, 0.0])]
+    cov = np.diag([0.01, 0.01, 0.001])
 
-    def run(p, other=6):
+    def run(p, other=6, with_poses=True):
         mixed = np.concatenate([views[5].descriptors[:70], views[other].descriptors[:50]])
         mixed[:, 0] ^= 0x03
         det = ForwardDetector(p)
         good = []
         monkeypatch.setattr(det_mod, "verify_pair", lambda old, new, vp, k: (
             Verification(True, ACCEPTED, 100, 100) if any(old is g for g in good) else Verification(False, BAD, 3, 3)))
-        out = [det.process_features(v) for v in views[:30]]
+        q = [(poses[i], cov) if with_poses else (None, None) for i in range(31)]
+        out = [det.process_features(v, 0.0, *q[i]) for i, v in enumerate(views[:30])]
         good.append(det.features_of(other))
-        return out + [det.process_features(Features(views[5].keypoints_px[:120], mixed, (640, 480)))]
+        return out + [det.process_features(Features(views[5].keypoints_px[:120], mixed, (640, 480)), 0.0, *q[30])]
 
     one = run(params)[30]
     assert one.status == NO_GEOMETRIC_CONSISTENCY and one.candidate_id == 5 and one.loop_id is None
@@ -170,6 +175,8 @@ def test_the_next_hypotheses_are_verified_when_the_candidate_fails(monkeypatch):
     assert two.status == LOOP and two.loop_id == 6 and two.candidate_id == 6
     far = run(replace(params, verify_tries=3), other=20)[30]
     assert far.status == NO_GEOMETRIC_CONSISTENCY and far.candidate_id == 5
+    blind = run(replace(params, verify_tries=3), with_poses=False)[30]
+    assert blind.status == NO_GEOMETRIC_CONSISTENCY and blind.candidate_id == 5
     with pytest.raises(ValueError):
         DetectorParams(verify_tries=0)
 
