@@ -86,7 +86,8 @@ def configurations(full: bool) -> dict[str, object]:
     # rows are the rows without it), more than one verification, and the previous default
     # (ORB 300 + purge 50 + total p > 0.5 + k = 2) with each of them.
     odo = OdometryParams(use=True)
-    old = method_params("default", odometry=OdometryParams(), verify_tries=1)
+    dflt = method_params("default")
+    old = replace(dflt, odometry=OdometryParams(), verify_tries=1, filter=replace(dflt.filter, loop_threshold=0.5))
     tot = replace(f, rule="total", loop_threshold=0.5)
     cfgs.update({
         "ORB + odometry": replace(orb, odometry=odo),
