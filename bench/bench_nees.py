@@ -204,10 +204,18 @@ def _joint_nees(d: dict[str, Any], i: int, j: int) -> tuple[float, float, float]
     return _nees_parts(e, c)
 
 
-def odometry_part(seeds: int, route: str, keyframe_m: float, no_gyro_bias: bool = False) -> dict[str, Any]:
+#: What ``--without`` can take out of the simulated base (:class:`sim.sensors.BaseSensorParams`).
+WITHOUT = {
+    "gyro_bias": {"gyro_bias_degps_range": (0.0, 0.0), "gyro_bias_walk_degps_sqrt_s": 0.0},
+    "scales": {"wheel_scale_error_max": 0.0, "wheel_diff_error_max": 0.0, "gyro_scale_error_max": 0.0},
+    "slip_events": {"slip_event_rate_hz": 0.0},
+}
+
+
+def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str, ...] = ()) -> dict[str, Any]:
     sensors = BaseSensorParams()
-    if no_gyro_bias:  # the same base without the gyro's turn-on bias and bias walk
-        sensors = dataclasses.replace(sensors, gyro_bias_degps_range=(0.0, 0.0), gyro_bias_walk_degps_sqrt_s=0.0)
+    for name in without:  # the same base without these errors: what each costs
+        sensors = dataclasses.replace(sensors, **WITHOUT[name])
     per_seed = []
     for seed in range(seeds):
         t0 = time.monotonic()
@@ -223,7 +231,7 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, no_gyro_bias: bool 
         log(f"seed {seed}: {len(d['delta'])} edges, " + ", ".join(
             f"N={h} {v['graph']:.2f} ({v['filter']:.2f})" for h, v in res.items())
             + f"  [{time.monotonic() - t0:.0f} s]")
-    return {"route": route, "keyframe_m": keyframe_m, "no_gyro_bias": no_gyro_bias, "per_seed": per_seed}
+    return {"route": route, "keyframe_m": keyframe_m, "without": list(without), "per_seed": per_seed}
 
 
 def odometry_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
@@ -369,7 +377,7 @@ def markdown(payload: dict[str, Any]) -> list[str]:
 
     odo = payload.get("odometry")
     if odo:
-        bias = ", the gyro without turn-on bias and bias walk" if odo.get("no_gyro_bias") else ""
+        bias = f", the base without {' and '.join(odo['without'])}" if odo.get("without") else ""
         lines += [f"## Odometry edges ({odo['route']} route, keyframes every {odo['keyframe_m']} m or 10 deg{bias})", "",
                   "Mean NEES of chains of N consecutive edges composed as independent edges (the pose "
                   "graph without loops); in brackets the filter's own joint covariance of the same "
@@ -402,19 +410,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pairs", type=int, default=None, help="rendered frame pairs per floor (default 120)")
     ap.add_argument("--floors", default="planks,mixed")
     ap.add_argument("--seed", type=int, default=0, help="seed of the rendered pairs")
-    ap.add_argument("--no-gyro-bias", action="store_true",
-                    help="odometry: the simulated gyro without turn-on bias and bias walk (what they cost)")
+    ap.add_argument("--without", default="",
+                    help="odometry: comma-separated errors the simulated base leaves out (what each costs): "
+                         + ", ".join(WITHOUT))
     ap.add_argument("--skip-odometry", action="store_true")
     ap.add_argument("--skip-loops", action="store_true")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--markdown", type=Path, default=None, help="also write this Markdown page")
     args = ap.parse_args(argv)
     seeds = args.seeds or (10 if args.full else 5)
+    without = tuple(w for w in args.without.split(",") if w)
+    if not set(without) <= set(WITHOUT):
+        ap.error(f"--without takes {', '.join(WITHOUT)}")
     n_pairs = args.pairs or (400 if args.full else 120)
     payload: dict[str, Any] = {"benchmark": "nees", "machine": machine_info(),
                                "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
     if not args.skip_odometry:
-        payload["odometry"] = odometry_part(seeds, args.route, args.keyframe_m, args.no_gyro_bias)
+        payload["odometry"] = odometry_part(seeds, args.route, args.keyframe_m, without)
         print(f"\nodometry edges, {args.route}: mean NEES of N chained edges (filter's joint covariance)")
         print_table(*odometry_rows(payload["odometry"]))
         print("\nmean over seeds, parts (independent edges)")

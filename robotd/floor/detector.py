@@ -96,7 +96,8 @@ def loop_transform(camera: Any, xy_query_px: np.ndarray, xy_old_px: np.ndarray,
     to the floor as a whole: in the simulator the resampling of the floor's texture and
     the camera's pixel grid, on a robot also the camera model). With the fit's alone the
     loop edges' NEES grew with the inliers, from 2.1 in mode 1 (26 inliers) to 5.6 in mode 6
-    (316) on the plank floor; the translation error levelled off at about 0.09 mm per axis.
+    (316) on the plank floor: the RMS translation error fell only from 0.30 to 0.13 mm while
+    the inliers grew twelvefold.
     """
     po, pq = floor_point_pairs(camera, xy_old_px, xy_query_px)
     if len(pq) < 3:
