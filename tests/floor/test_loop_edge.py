@@ -69,3 +69,47 @@ def test_loop_edges_with_a_shared_error_are_consistent():
     assert 2.4 < few < 3.6
     assert 2.4 < many < 3.6
     assert many_alone > 5.0
+
+
+@pytest.mark.slow
+def test_loop_edges_on_rendered_plank_pairs_are_consistent():
+    """Rendered pairs of the printed plank floor (the second frame within 0.25 m of the
+    first), declared loops in mode 6 (the most inliers, a few hundred) at the demo
+    calibration's threshold: the loop edges' mean NEES is near 3 (within 1.5-4.5 over a few
+    dozen edges), below that of the rigid fit's covariance alone (6.0 in the benchmark)."""
+    import skimage.data
+
+    from robotd.app.demo import shipped_calibration
+    from robotd.base.geometry import rigid_fit_2d, rigid_fit_2d_covariance, between_error_covariance
+    from robotd.floor.descriptor import decode, extract
+    from robotd.floor.match import local_score
+    from robotd.floor.vo import floor_point_pairs
+    from robotd.io.calibfile import read_calibration
+    from sim.pairs import random_pairs
+    from sim.world.pattern import PatternFloor, PatternParams
+
+    path = shipped_calibration()
+    if path is None:
+        pytest.skip("the demo's shipped calibration is absent")
+    threshold = read_calibration(path).loop.for_mode(6)
+    cam = FloorCameraModel.default()
+    floor = PatternFloor(skimage.data.gravel(), PatternParams(kind="planks"), seed=0)
+    pairs = random_pairs(floor, cam, 60, np.random.default_rng(0), near_fraction=1.0, max_offset_m=0.25)
+    model, alone = [], []
+    for k, (ia, ib) in enumerate(zip(pairs.images_a, pairs.images_b)):
+        if pairs.overlap[k] < 0.33:
+            continue
+        m = local_score(decode(extract(ia, 6)), decode(extract(ib, 6)))
+        if m.score < threshold:
+            continue
+        delta, info = loop_transform(cam, m.xy_a, m.xy_b)
+        e = between(between(pairs.poses_b[k], pairs.poses_a[k]), delta)
+        e[2] = wrap_angle(e[2])
+        assert np.hypot(e[0], e[1]) < 0.05  # a true transform
+        po, pq = floor_point_pairs(cam, m.xy_b, m.xy_a)
+        cov = between_error_covariance(delta, rigid_fit_2d_covariance(pq, po, rigid_fit_2d(pq, po), 0.001)[0])
+        model.append(float(e @ info @ e))
+        alone.append(float(e @ np.linalg.solve(cov, e)))
+    assert len(model) >= 15
+    assert 1.5 < np.mean(model) < 4.5
+    assert np.mean(alone) > np.mean(model)
