@@ -377,7 +377,7 @@ def markdown(payload: dict[str, Any]) -> list[str]:
 
     odo = payload.get("odometry")
     if odo:
-        bias = f", the base without {' and '.join(odo['without'])}" if odo.get("without") else ""
+        bias = f", the base without {', '.join(odo['without'])}" if odo.get("without") else ""
         lines += [f"## Odometry edges ({odo['route']} route, keyframes every {odo['keyframe_m']} m or 10 deg{bias})", "",
                   "Mean NEES of chains of N consecutive edges composed as independent edges (the pose "
                   "graph without loops); in brackets the filter's own joint covariance of the same "
