@@ -364,9 +364,10 @@ class ForwardDetector:
             vp = p.verify
             o = p.odometry
             if odo is not None and j in slot and odo[slot[j]] >= o.agree_factor:
-                vp = replace(vp, **{k: v for k, v in (("min_inliers", o.agree_min_inliers),
-                                                      ("min_support_area", o.agree_min_support_area))
-                                    if v is not None})
+                if o.agree_min_inliers is not None:
+                    vp = replace(vp, min_inliers=o.agree_min_inliers)
+                if o.agree_min_support_area is not None:
+                    vp = replace(vp, min_support_area=o.agree_min_support_area)
             v = verify_pair(self._features[j], feats, vp, self.camera_matrix)
             if v.accepted:
                 return j, v
