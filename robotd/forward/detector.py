@@ -540,8 +540,9 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
     - ``"default"``: binary ORB features (OpenCV) in an incremental Hamming vocabulary whose
       words that never recur are purged, and the levers that the ablation of
       ``bench/bench_forward_ablation.py`` kept (``docs/forward.md``): the total loop
-      probability above 0.3, k = 2 consistent candidates, up to 3 hypotheses verified, and
-      the keyframe's odometry as a second likelihood when a pose is given.
+      probability above 0.3, k = 2 consistent candidates, and when a pose is given the
+      keyframe's odometry as a second likelihood and up to 3 views of the candidate's place
+      verified.
     """
     from robotd.forward.features import FeatureParams
     from robotd.forward.filter import FilterParams
