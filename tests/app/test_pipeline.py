@@ -100,6 +100,36 @@ def test_instrument_wraps_every_handler_with_its_stage_and_name():
     assert calls == [("a", "on_ping"), ("a", "on_pong"), ("b", "on_pong"), ("b", "on_ping")]
 
 
+@dataclass
+class LoudPing(Ping):
+    """A subclass nobody subscribes to (as a replay's frames that decode when read)."""
+
+
+def test_a_subclass_goes_where_its_base_goes_also_when_instrumented():
+    log: list = []
+    calls: list = []
+    p = Pipeline()
+    p.add(Echo("a", log))
+    p.feed(LoudPing(1))
+    p.add(Echo("b", log))  # a stage added later is reached too
+
+    def wrap(stage, handler, fn):
+        def wrapped(*args):
+            calls.append((stage, handler))
+            return fn(*args)
+        return wrapped
+
+    p.instrument(wrap)
+    p.feed(LoudPing(2))
+    p.feed(Ping(3))
+    assert log == [("a", "ping", 1), ("a", "pong", 1),
+                   ("a", "ping", 2), ("a", "pong", 2), ("b", "pong", 2), ("b", "ping", 2),
+                   ("a", "ping", 3), ("a", "pong", 3), ("b", "pong", 3), ("b", "ping", 3)]
+    # each handler wrapped once, whichever type reached it first
+    assert calls == [("a", "on_ping"), ("a", "on_pong"), ("b", "on_pong"), ("b", "on_ping")] * 2
+    assert p.counters() == {"inputs": 3}
+
+
 def _wheels(k: int, stamp_ns: int) -> WheelTicks:
     """Straight ahead, 1 cm per message."""
     ticks = int(round(k * 0.01 * TICKS_PER_M))
