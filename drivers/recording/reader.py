@@ -398,7 +398,7 @@ class EncodedFrame(Frame):
     _encoded: np.ndarray | None
     _decoded: np.ndarray | None
 
-    def __init__(self, stamp_ns: int, camera: str, encoded: np.ndarray, seq: int = 0) -> None:
+    def __init__(self, stamp_ns: int, camera: str, encoded: np.ndarray | None, seq: int = 0) -> None:
         object.__setattr__(self, "stamp_ns", stamp_ns)
         object.__setattr__(self, "camera", camera)
         object.__setattr__(self, "seq", seq)
@@ -416,6 +416,13 @@ class EncodedFrame(Frame):
             object.__setattr__(self, "_decoded", image)
             object.__setattr__(self, "_encoded", None)
         return image
+
+    def restamped(self, stamp_ns: int) -> EncodedFrame:
+        """The same frame at another stamp, decoded only if this one was (a recording
+        replayed in a loop: ``bench/bench_daemon.py --memory``)."""
+        out = EncodedFrame(stamp_ns, self.camera, self._encoded, self.seq)
+        object.__setattr__(out, "_decoded", self._decoded)
+        return out
 
     def __reduce__(self) -> tuple[Any, ...]:
         return Frame, (self.stamp_ns, self.camera, self.image, self.seq)
