@@ -167,6 +167,34 @@ def test_frames_held_at_the_end_of_input_are_finished(tmp_path: Path):
         assert kf.x_m == pytest.approx(0.015, abs=1e-3)  # halfway between 1 and 2 cm
 
 
+def test_a_replayed_frame_is_decoded_once_it_becomes_a_keyframe_and_never_before(tmp_path: Path):
+    """A replay's frames decode their JPEG when first read (drivers.recording.reader's
+    EncodedFrame): the keyframe stage decodes only those it takes, and hands a plain
+    Frame with the pixels on."""
+    from drivers.recording.reader import EncodedFrame
+
+    clock = ManualClock(0)
+    pipe, store = _keyframe_pipeline(tmp_path, lossless=True, clock=clock)
+    seen: list = []
+    pipe.add(type("Probe", (), {"name": "probe", "subscriptions": lambda self: {Keyframe: seen.append}})())
+    img = (np.arange(48 * 64).reshape(48, 64) % 251).astype(np.uint8)
+    jpeg = np.frombuffer(cv2.imencode(".jpg", img)[1].tobytes(), np.uint8)
+    with store:
+        frames = []
+        for k in range(6):  # wheels 1 cm per 20 ms; keyframes every 5 mm: every frame 1 cm apart
+            pipe.feed(_wheels(k, k * 20_000_000))
+            if k in (1, 2, 3):
+                frames.append(EncodedFrame(k * 20_000_000, "floor", jpeg, k))
+                frames.append(EncodedFrame(k * 20_000_000 + 1, "floor", jpeg, k))  # 0 mm on: not a keyframe
+                pipe.feed(frames[-2])
+                pipe.feed(frames[-1])
+        pipe.finish()
+    assert [kf.stamp_ns for kf in seen] == [20_000_000, 40_000_000, 60_000_000]
+    assert all(type(kf.frame) is Frame for kf in seen)
+    assert np.array_equal(seen[0].frame.image, cv2.imdecode(jpeg, cv2.IMREAD_UNCHANGED))
+    assert [f._decoded is not None for f in frames] == [True, False] * 3
+
+
 @pytest.mark.parametrize("lossless", [False, True])
 def test_a_frame_waits_for_its_odometry_only_when_live_is_it_dropped(tmp_path: Path, lossless: bool):
     clock = ManualClock(0)
