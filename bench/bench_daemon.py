@@ -546,10 +546,12 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
             odo = TruthOdometry(truth, lap_ns)
             pipeline.stage("keyframes").odometry = odo
             floor = pipeline.stage("floor")
+            config = {"keyframe_distance_m": cfg.keyframes.distance_m, "mode": cfg.floor_detector.descriptor_mode,
+                      "shortlist": cfg.floor_detector.shortlist, "localise_mapped": cfg.pose_graph.localise_mapped}
             gc.collect()
             rss0 = rss_mb()
             t0 = os.times()
-            lap, frames, n = 0, 0, 0
+            lap, frames, n, c = 0, 0, 0, {}
             next_sample = args.memory_every
             while n < keyframes:
                 with RecordingReader(recording) as r:
@@ -564,10 +566,13 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                         pipeline.feed(frame)
                         pipeline.poll()
                         frames += 1
-                        n = pipeline.counters().get("keyframes_stored", 0) if frames % 10 == 0 else n
+                        if frames % 10 == 0:  # keyframes taken: stored, or transient (localise_mapped)
+                            c = pipeline.counters()
+                            n = c.get("keyframes_stored", 0) + c.get("keyframes_not_stored", 0)
                         if n >= next_sample:
                             t = os.times()
-                            samples.append({"keyframes": n, "rss_mb": rss_mb(), "laps": lap + 1,
+                            samples.append({"keyframes": n, "stored": c.get("keyframes_stored", 0),
+                                            "rss_mb": rss_mb(), "laps": lap + 1,
                                             "index_mb": floor.detector.index.nbytes / 1e6,
                                             "cpu_s": (t.user - t0.user) + (t.system - t0.system)})
                             print(f"memory: {n} keyframes, RSS {samples[-1]['rss_mb']:.0f} MB, index "
@@ -575,7 +580,8 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                                   flush=True)
                             next_sample += args.memory_every
                             if on_sample is not None:
-                                on_sample(samples)
+                                on_sample({"keyframes_target": keyframes, "laps": lap + 1, "frames": frames,
+                                           "rss_before_mb": rss0, "samples": samples, "config": config})
                         if n >= keyframes:
                             break
                 lap += 1
@@ -583,16 +589,13 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
             t1 = os.times()
             c = pipeline.counters()
             gc.collect()
-            out = {"keyframes_target": keyframes, "keyframes": int(c.get("keyframes_stored", 0)),
+            out = {"keyframes_target": keyframes, "keyframes_stored": int(c.get("keyframes_stored", 0)),
+                   "keyframes": int(c.get("keyframes_stored", 0) + c.get("keyframes_not_stored", 0)),
                    "frames": frames, "laps": lap, "rss_before_mb": rss0, "rss_after_mb": rss_mb(),
                    "peak_rss_mb": peak_rss_mb(), "index_mb": floor.detector.index.nbytes / 1e6,
                    "cpu_s": (t1.user - t0.user) + (t1.system - t0.system),
                    "loop_edges": int(c.get("links_loop", 0)), "samples": samples,
-                   "map_file_mb": (Path(tmp) / "map.sqlite").stat().st_size / 1e6,
-                   "config": {"keyframe_distance_m": cfg.keyframes.distance_m,
-                              "mode": cfg.floor_detector.descriptor_mode,
-                              "shortlist": cfg.floor_detector.shortlist,
-                              "localise_mapped": cfg.pose_graph.localise_mapped}}
+                   "map_file_mb": (Path(tmp) / "map.sqlite").stat().st_size / 1e6, "config": config}
     return out
 
 
@@ -609,13 +612,20 @@ def memory_markdown(p: dict[str, Any]) -> str:
              f"Recording: `{p['recording']}`, {r['laps']} laps, {r['frames']} frames; spacing "
              f"{c['keyframe_distance_m'] * 100:g} cm, mode {c['mode']}, shortlist {c['shortlist']}"
              f"{', localise_mapped' if c.get('localise_mapped') else ''}.", "",
-             "| keyframes stored | process RSS MB | of it the floor index MB | laps | CPU s so far |",
-             "|---:|---:|---:|---:|---:|"]
+             "| keyframes | of them stored | process RSS MB | of it the floor index MB | laps | CPU s so far |",
+             "|---:|---:|---:|---:|---:|---:|"]
     for row in r["samples"]:
-        lines.append(f"| {row['keyframes']} | {row['rss_mb']:.0f} | {row['index_mb']:.1f} | {row['laps']} | "
-                     f"{row['cpu_s']:.0f} |")
+        lines.append(f"| {row['keyframes']} | {row.get('stored', row['keyframes'])} | {row['rss_mb']:.0f} | "
+                     f"{row['index_mb']:.1f} | {row['laps']} | {row['cpu_s']:.0f} |")
+    if "rss_after_mb" not in r:  # the partial JSON of a run stopped before its target
+        last = r["samples"][-1] if r["samples"] else {"keyframes": 0}
+        lines += ["", f"Before the first frame: {r['rss_before_mb']:.0f} MB (the daemon assembled, its map "
+                      f"open). The run was stopped at {last['keyframes']} keyframes, before its target of "
+                      f"{r['keyframes_target']}."]
+        return "\n".join(lines) + "\n"
     lines += ["", f"Before the first frame: {r['rss_before_mb']:.0f} MB (the daemon assembled, its map open). "
-                  f"After {r['keyframes']} keyframes: {r['rss_after_mb']:.0f} MB resident, peak "
+                  f"After {r['keyframes']} keyframes ({r.get('keyframes_stored', r['keyframes'])} stored): "
+                  f"{r['rss_after_mb']:.0f} MB resident, peak "
                   f"{r['peak_rss_mb']:.0f} MB; the map file {r['map_file_mb']:.0f} MB; {r['loop_edges']} loop edges."]
     return "\n".join(lines) + "\n"
 
@@ -740,7 +750,16 @@ def main(argv: list[str] | None = None) -> int:
                          "(writes NAME-memory.json; --doc writes its page)")
     ap.add_argument("--memory-every", type=int, default=1000, metavar="K",
                     help="sample the memory every K keyframes (default 1000)")
+    ap.add_argument("--memory-page", type=Path, default=None, metavar="JSON",
+                    help="only write the memory page (--doc) from this --memory JSON, partial or not")
     args = ap.parse_args(argv)
+    if args.memory_page is not None:
+        page = memory_markdown(json.loads(args.memory_page.read_text(encoding="utf-8")))
+        if args.doc is not None:
+            args.doc.parent.mkdir(parents=True, exist_ok=True)
+            args.doc.write_text(page, encoding="utf-8")
+        print(page, end="")
+        return 0
     if args.memory:
         if args.duration == 60.0 and args.recording is None:
             args.duration = None  # the whole route: more ground per lap
@@ -748,11 +767,12 @@ def main(argv: list[str] | None = None) -> int:
         payload = {"machine": machine_info(), "recording": str(recording),
                    "args": {k: str(v) for k, v in vars(args).items()}}
 
-        def partial(samples: list[dict[str, float]]) -> None:  # kept if the run is stopped
-            write_json(args.out / f"{args.name}-memory-partial.json", {**payload, "samples": samples})
+        def partial(so_far: dict[str, Any]) -> None:  # kept if the run is stopped
+            write_json(args.out / f"{args.name}-memory-partial.json", {**payload, "memory": so_far})
 
         payload["memory"] = memory_run(args, recording, args.memory, partial)
         out = write_json(args.out / f"{args.name}-memory.json", payload)
+        (args.out / f"{args.name}-memory-partial.json").unlink(missing_ok=True)
         print(f"wrote {out}")
         if args.doc is not None:
             args.doc.parent.mkdir(parents=True, exist_ok=True)
