@@ -218,6 +218,19 @@ def rss_mb() -> float:
     return math.nan
 
 
+def trimmed_rss_mb() -> float:
+    """Resident memory after glibc's ``malloc_trim(0)`` (what the process holds, without
+    the free lists glibc keeps; as ``bench_soak``); ``rss_mb()`` where there is no glibc."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+    return rss_mb()
+
+
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
@@ -572,7 +585,7 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                         if n >= next_sample:
                             t = os.times()
                             samples.append({"keyframes": n, "stored": c.get("keyframes_stored", 0),
-                                            "rss_mb": rss_mb(), "laps": lap + 1,
+                                            "rss_mb": rss_mb(), "rss_trimmed_mb": trimmed_rss_mb(), "laps": lap + 1,
                                             "index_mb": floor.detector.index.nbytes / 1e6,
                                             "cpu_s": (t.user - t0.user) + (t.system - t0.system)})
                             print(f"memory: {n} keyframes, RSS {samples[-1]['rss_mb']:.0f} MB, index "
@@ -589,9 +602,10 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
             t1 = os.times()
             c = pipeline.counters()
             gc.collect()
-            out = {"keyframes_target": keyframes, "keyframes_stored": int(c.get("keyframes_stored", 0)),
+            rss_after = rss_mb()
+            out = {"rss_trimmed_after_mb": trimmed_rss_mb(), "keyframes_target": keyframes, "keyframes_stored": int(c.get("keyframes_stored", 0)),
                    "keyframes": int(c.get("keyframes_stored", 0) + c.get("keyframes_not_stored", 0)),
-                   "frames": frames, "laps": lap, "rss_before_mb": rss0, "rss_after_mb": rss_mb(),
+                   "frames": frames, "laps": lap, "rss_before_mb": rss0, "rss_after_mb": rss_after,
                    "peak_rss_mb": peak_rss_mb(), "index_mb": floor.detector.index.nbytes / 1e6,
                    "cpu_s": (t1.user - t0.user) + (t1.system - t0.system),
                    "loop_edges": int(c.get("links_loop", 0)), "samples": samples,
@@ -612,11 +626,13 @@ def memory_markdown(p: dict[str, Any]) -> str:
              f"Recording: `{p['recording']}`, {r['laps']} laps, {r['frames']} frames; spacing "
              f"{c['keyframe_distance_m'] * 100:g} cm, mode {c['mode']}, shortlist {c['shortlist']}"
              f"{', localise_mapped' if c.get('localise_mapped') else ''}.", "",
-             "| keyframes | of them stored | process RSS MB | of it the floor index MB | laps | CPU s so far |",
-             "|---:|---:|---:|---:|---:|---:|"]
+             "| keyframes | of them stored | process RSS MB | after malloc_trim MB | of it the floor index MB "
+             "| laps | CPU s so far |",
+             "|---:|---:|---:|---:|---:|---:|---:|"]
     for row in r["samples"]:
+        trimmed = f"{row['rss_trimmed_mb']:.0f}" if "rss_trimmed_mb" in row else "-"
         lines.append(f"| {row['keyframes']} | {row.get('stored', row['keyframes'])} | {row['rss_mb']:.0f} | "
-                     f"{row['index_mb']:.1f} | {row['laps']} | {row['cpu_s']:.0f} |")
+                     f"{trimmed} | {row['index_mb']:.1f} | {row['laps']} | {row['cpu_s']:.0f} |")
     if "rss_after_mb" not in r:  # the partial JSON of a run stopped before its target
         last = r["samples"][-1] if r["samples"] else {"keyframes": 0}
         lines += ["", f"Before the first frame: {r['rss_before_mb']:.0f} MB (the daemon assembled, its map "
@@ -625,7 +641,8 @@ def memory_markdown(p: dict[str, Any]) -> str:
         return "\n".join(lines) + "\n"
     lines += ["", f"Before the first frame: {r['rss_before_mb']:.0f} MB (the daemon assembled, its map open). "
                   f"After {r['keyframes']} keyframes ({r.get('keyframes_stored', r['keyframes'])} stored): "
-                  f"{r['rss_after_mb']:.0f} MB resident, peak "
+                  f"{r['rss_after_mb']:.0f} MB resident ({r.get('rss_trimmed_after_mb', math.nan):.0f} MB "
+                  f"after malloc_trim), peak "
                   f"{r['peak_rss_mb']:.0f} MB; the map file {r['map_file_mb']:.0f} MB; {r['loop_edges']} loop edges."]
     return "\n".join(lines) + "\n"
 
