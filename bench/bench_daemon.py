@@ -32,7 +32,12 @@ one core. This benchmark:
   the 20 s around it left out, as the detector does (beyond the distinct images, the
   descriptors are repeated under new ids: the cost of the scan and of the shortlist is
   measured, not the shortlist of a real map of that size); describe
-  and query medians, the index's memory and the process's at each size.
+  and query medians, the index's memory and the process's at each size;
+* ``--memory N`` (alone, in a process of its own): the whole daemon's resident memory as
+  its map grows to N keyframes (:func:`memory_run`; ``--localise-mapped`` as the service
+  runs it), sampled every ``--memory-every`` keyframes into ``NAME-memory.json`` (and a
+  partial JSON while it runs); ``--memory-page JSON...`` writes
+  ``docs/benchmarks/daemon-memory.md`` from such files.
 
 Run from the repo root: ``./dev bench daemon [--out DIR]`` (default ``bench/results``).
 Writes ``DIR/daemon.json``; ``--doc FILE`` also writes the markdown page generated from
