@@ -38,7 +38,7 @@ from robotd.base.errors import MapStoreError
 from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored, LoopFate
 from robotd.forward import LOOP, ForwardDetector
 from robotd.forward.features import CompactFeatures
-from robotd.forward.planar import planar_motion
+from robotd.forward.planar import planar_motion, planarity_bound
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +52,7 @@ class ForwardLoopStage(Publisher):
     def __init__(self, detector: ForwardDetector, *, distance_m: float = 0.5,
                  rotation_rad: float = math.radians(20.0), sync_tolerance_s: float = 0.04,
                  max_tilt_rad: float = math.radians(10.0), camera: str = "forward",
-                 store: Any = None) -> None:
+                 store: Any = None, planarity_bound: float = planarity_bound()) -> None:
         self.detector = detector
         self.store = store
         self.store_errors = 0
@@ -61,6 +61,7 @@ class ForwardLoopStage(Publisher):
         self.rotation_rad = rotation_rad
         self.sync_tolerance_ns = int(sync_tolerance_s * 1e9)
         self.max_tilt_rad = max_tilt_rad
+        self.planarity_bound = planarity_bound
         self.camera = camera
         self._frames: deque[Frame] = deque(maxlen=16)
         self._keyframe_ids: list[int] = []  # detector image id -> floor keyframe id
@@ -182,10 +183,11 @@ class ForwardLoopStage(Publisher):
             raise AssertionError("an accepted forward loop's verification has no relative pose")
         old = self._keyframe_ids[det.loop_id]
         dyaw, bearing, tilt = planar_motion(v.rotation, v.translation_dir)
-        if tilt > self.max_tilt_rad:
+        if tilt > self.max_tilt_rad or v.planarity_chi2 > self.planarity_bound:
             self.not_planar += 1
             self._publish(CandidateFate(kf.keyframe_id, old, det.candidate_probability, LoopFate.FAILED_GATE,
-                                        f"forward: motion {math.degrees(tilt):.1f} deg out of the floor plane"))
+                                        f"forward: motion {math.degrees(tilt):.1f} deg out of the floor plane "
+                                        f"(planarity chi2 {v.planarity_chi2:.0f}, bound {self.planarity_bound:.0f})"))
             return
         self.loops += 1
         log.debug("forward loop: keyframe %d sees keyframe %d (p %.2f, %d inliers)", kf.keyframe_id, old,
