@@ -89,6 +89,11 @@ DOWN_WEIGHTED = 0.5  # a loop whose final weight is under this counts as down-we
 Emit = Callable[[CandidateFate | Link], None]
 
 
+def _prefixed(source: str, detail: str) -> str:
+    """A fate's detail, prefixed ``forward: `` for a forward loop (as the gate's own)."""
+    return f"forward: {detail}" if source == "forward" else detail
+
+
 def _given(edge: tuple[np.ndarray, np.ndarray]) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
     """``edge`` as the gate takes a candidate's edge (a function giving it)."""
     return lambda: edge
@@ -400,14 +405,14 @@ class GatedGraph:
                     self._gate_and_add(p.old_id, p.query_id, p.score, _given((p.delta, p.information)), "floor")
         else:
             for p, why in decision.dropped:
-                self._refuse(p.query_id, p.old_id, p.score, why)
+                self._refuse(p.query_id, p.old_id, p.score, _prefixed(p.source, why))
             log.debug("relocalisation: keyframe %d sees keyframe %d of run %d: %s", query, old, old_run,
                       decision.detail)
         return True
 
     def _drop_pending(self, why: str) -> None:
         for p in self._relocaliser.reset():
-            self._refuse(p.query_id, p.old_id, p.score, why)
+            self._refuse(p.query_id, p.old_id, p.score, _prefixed(p.source, why))
 
     def _relocalise(self, d: RelocDecision) -> None:
         """Anchor the current segment in the map frame with the agreeing loops."""
@@ -428,7 +433,8 @@ class GatedGraph:
             else:
                 self.accepted += 1
             self._loops[(m.old_id, m.query_id)] = (m.query_id, m.score)
-            self._emit(CandidateFate(m.query_id, m.old_id, m.score, LoopFate.ACCEPTED, f"relocalisation: {d.detail}"))
+            self._emit(CandidateFate(m.query_id, m.old_id, m.score, LoopFate.ACCEPTED,
+                                     _prefixed(m.source, f"relocalisation: {d.detail}")))
             self._emit(Link("loop", m.old_id, m.query_id, m.delta, m.information, source=m.source))
         self.relocalisations += 1
         newest = max(d.members, key=lambda m: m.query_id)
