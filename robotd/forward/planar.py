@@ -229,8 +229,8 @@ class MotionFit:
     heading change from the inliers; ``noise_px``: the inliers' epipolar residual (pixels);
     ``planarity_chi2``: the motion's out-of-plane part (the new optical axis' elevation, the
     roll of its x axis, the translation's elevation: :func:`out_of_plane`) against its own
-    covariance, ``e^T C^-1 e`` (dimensionless, 3 degrees of freedom; ``inf`` when not
-    computed). A level robot's camera moves in the floor plane: under the inliers' noise
+    covariance, ``e^T C^-1 e`` (dimensionless, 3 degrees of freedom; NaN when not
+    computed: too few inliers or a degenerate geometry). A level robot's camera moves in the floor plane: under the inliers' noise
     model this is chi-square with 3 degrees of freedom.
     """
 
@@ -239,7 +239,7 @@ class MotionFit:
     sigma_bearing_rad: float = math.inf
     sigma_yaw_rad: float = math.inf
     noise_px: float = math.nan
-    planarity_chi2: float = math.inf
+    planarity_chi2: float = math.nan
 
 
 def out_of_plane(rotation: np.ndarray, translation_dir: np.ndarray) -> np.ndarray:
@@ -357,6 +357,6 @@ def fit_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarray,
     try:
         chi2 = float(e_out @ np.linalg.solve(c_out, e_out))
     except np.linalg.LinAlgError:
-        chi2 = math.inf
+        chi2 = math.nan
     return MotionFit(r, t, math.sqrt(max(float(var[0]), 0.0)), math.sqrt(max(float(var[1]), 0.0)), noise,
-                     chi2 if math.isfinite(chi2) and chi2 >= 0.0 else math.inf)
+                     chi2 if math.isfinite(chi2) and chi2 >= 0.0 else math.nan)

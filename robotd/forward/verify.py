@@ -148,7 +148,7 @@ class Verification:
     :func:`robotd.forward.planar.planar_motion` (1-sigma, from their epipolar errors
     ``noise_px``: :func:`robotd.forward.planar.motion_uncertainty`; ``inf`` when not
     computed); ``planarity_chi2`` the motion's out-of-plane part against its covariance
-    (:class:`robotd.forward.planar.MotionFit`). When a pose was recovered: ``rotation (3, 3)`` and
+    (:class:`robotd.forward.planar.MotionFit`; NaN when not computed). When a pose was recovered: ``rotation (3, 3)`` and
     ``translation_dir (3,)`` (unit length) such that a point X_old in the old image's
     camera frame is ``rotation @ X_old + s * translation_dir`` in the new image's camera
     frame, for an unknown scale s > 0 (OpenCV camera axes: x right, y down, z forward).
@@ -168,7 +168,7 @@ class Verification:
     sigma_bearing_rad: float = float("inf")
     sigma_yaw_rad: float = float("inf")
     noise_px: float = float("nan")
-    planarity_chi2: float = float("inf")
+    planarity_chi2: float = float("nan")
 
 
 def camera_matrix_guess(width_px: int, height_px: int, focal_px: float | None = None) -> np.ndarray:

@@ -17,6 +17,17 @@ the earlier runs' memory, so the detector goes on finding loops against them aft
 restart. A write that fails is logged and counted (``forward_store_errors``); detection
 goes on.
 
+A loop is published only when its motion is a level camera's: the out-of-plane part of the
+refined two-view motion must be within its own covariance, the inliers' noise scaled by the
+measured factor :data:`robotd.forward.planar.INLIER_NOISE_FACTOR`
+(:func:`robotd.forward.planar.planarity_bound`), and under ``max_tilt_rad``. At short
+baselines the five-point motion sometimes comes out with its bearing 10-130 deg wrong and
+the heading about right; it then leans out of the floor plane by more than the inliers
+allow, though often by less than a fixed tilt limit (the daemon's wrong forward loops were
+of this kind; rendered at the frames' own times, so not the frame's offset from its
+keyframe). Refused loops are ``failed_gate`` fates (``forward: motion ... out of the floor
+plane``) and ``forward_not_planar``.
+
 The detector runs in the pipeline's thread, once per forward keyframe (every half metre by
 default, about one image per 1.5 s at the demo's speed): a SIFT image costs tens of
 milliseconds, which the source queues absorb. The frame's offset from its keyframe (at most
@@ -183,6 +194,7 @@ class ForwardLoopStage(Publisher):
             raise AssertionError("an accepted forward loop's verification has no relative pose")
         old = self._keyframe_ids[det.loop_id]
         dyaw, bearing, tilt = planar_motion(v.rotation, v.translation_dir)
+        # (A planarity not computed, NaN, leaves the tilt limit alone to judge.)
         if tilt > self.max_tilt_rad or v.planarity_chi2 > self.planarity_bound:
             self.not_planar += 1
             self._publish(CandidateFate(kf.keyframe_id, old, det.candidate_probability, LoopFate.FAILED_GATE,
