@@ -304,10 +304,10 @@ def fit_transform(members: Iterable[RelocCandidate],
         if m is ref:
             odo.append((np.zeros(3), np.zeros((3, 3))))
             continue
-        rel = relative(ref.query_id, m.query_id)
-        if rel is None:
+        chain = relative(ref.query_id, m.query_id)
+        if chain is None:
             return None
-        odo.append((np.asarray(rel[0], float), np.asarray(rel[1], float)))
+        odo.append((np.asarray(chain[0], float), np.asarray(chain[1], float)))
     mcov = np.diag([params.map_sigma_m ** 2, params.map_sigma_m ** 2, params.map_sigma_rad ** 2])
 
     def whitened(t: np.ndarray, sqrt_infos: list[np.ndarray]) -> np.ndarray:
@@ -366,11 +366,11 @@ def fit_transform(members: Iterable[RelocCandidate],
     else:
         cov = np.linalg.inv(jtj)
     fitted = []
-    for m, (rel, _cov) in zip(group, odo):
+    for m, (rel_q, _cov) in zip(group, odo):
         if m.edge is None:
             fitted.append(m)
             continue
-        delta, info = m.edge(between(m.old_pose, compose(t, compose(ref.query_pose, rel))))
+        delta, info = m.edge(between(m.old_pose, compose(t, compose(ref.query_pose, rel_q))))
         fitted.append(replace(m, delta=np.asarray(delta, float), information=np.asarray(info, float)))
     dof = sum(m.measured_dims for m in group) - 3
     return TransformFit(t, 0.5 * (cov + cov.T), cost, dof, tuple(fitted))
