@@ -266,6 +266,28 @@ def test_a_kidnapping_relocalises_from_two_forward_loops_without_the_floor_camer
         assert np.hypot(odo.x_m - after[0][0], odo.y_m - after[0][1]) > 1.0
 
 
+def test_a_restart_relocalises_from_a_forward_and_a_floor_loop_that_agree(tmp_path: Path):
+    rng = np.random.default_rng(19)
+    with MapStore.open(tmp_path / "map.sqlite") as store:
+        old_ids, old_truth = _first_run(store, rng)
+        run = store.begin_run("")
+        p, graph = _pipeline(store, run)
+        drive = _Odometry(p, store, run)
+        truth = _square_laps(1, start=7)
+        for k in range(3):
+            drive.keyframe(truth[k], 100 + k)
+        _forward_loop(p, old_ids[5], old_truth[5], drive.ids[2], truth[2], rng)
+        assert graph.status_fragment() == "not localised in the stored map"
+        for k in range(3, 6):
+            drive.keyframe(truth[k], 100 + k)
+        _loop(p, old_ids[12], old_truth[12], drive.ids[5], truth[5], rng)  # 0.5 m further on: agrees
+        c = p.counters()
+        assert (c["localised"], c["relocalisations"], c["forward_loops_accepted"], c["loops_accepted"]) == (1, 1, 1, 1)
+        assert graph.status_fragment().endswith(" (floor and forward cameras)")
+        p.finish()
+        assert _error_m(store, drive.ids[:6], drive.truth[:6]) < 0.05
+
+
 def test_the_status_line_says_where_the_robot_stands_with_the_map(tmp_path: Path):
     from robotd.app.daemon import Daemon
     from robotd.app.notify import Notifier
