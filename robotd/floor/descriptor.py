@@ -147,7 +147,8 @@ def extract(image: np.ndarray, mode: int, params: ExtractParams | None = None) -
     work = working(grey_img, params)
     wh, ww = work.shape
     grid_w, grid_h = -(-ww // POSITION_STEP_PX), -(-wh // POSITION_STEP_PX)
-    c, raw_checked, n = kept_for_budget(candidates(work, params, learned), params, spec, grid_w, grid_h)
+    c, raw_checked, n = kept_for_budget(candidates(work, params, learned), params, spec, grid_w, grid_h,
+                                         basis=learned.pca_basis)
     coded = cells(c.xy, grid_w, grid_h)
     m = min(len(c.xy), max(n, params.global_min_features))
     raw = raw_checked[:m] if m <= len(raw_checked) else raw_descriptors(c, m, params)

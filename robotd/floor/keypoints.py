@@ -5,6 +5,7 @@ descriptors of the selected keypoints."""
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from typing import NamedTuple
 
 import cv2
@@ -113,28 +114,46 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None)
         for a in range(N_ATTRIBUTES):
             relevance += learned.rel_logp[a][np.searchsorted(learned.rel_edges[a], attributes[:, a])]
     order = np.argsort(-relevance, kind="stable")
-    pooled = _pooled_orientation_maps(g1, params.pool_sigma_px)
+    pooled = _pooled_orientation_maps(g1, params.pool_sigma_px, params.pool_step)
     return Candidates(xy[order], angle[order], attributes[order], relevance[order], pooled)
 
 
-def _pooled_orientation_maps(g: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+def _pooled_orientation_maps(g: np.ndarray, sigma: float, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """8 gradient-orientation channels (each gradient's magnitude split linearly between
     the two nearest of 8 directions), Gaussian-pooled: two ``(h, w, 4) float32`` images
-    (directions 0-3 and 4-7; OpenCV filters up to 4 channels fastest)."""
+    (directions 0-3 and 4-7; OpenCV filters and remaps up to 4 channels fastest).
+
+    ``step`` 2: the gradient of ``g`` halved (area averaging), the channels pooled there
+    at ``sigma / 2`` less the smoothing the halving and the sampling's bilinear
+    interpolation add; ``(h // 2, w // 2, 4)`` images.
+    """
+    if step == 2:
+        g = cv2.resize(g, (g.shape[1] // 2, g.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        sigma = math.sqrt(max(sigma * sigma - 1.0, 0.25)) / 2
     mag, ang = cv2.cartToPolar(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=1), cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=1))
-    b = ang.ravel() * np.float32(8 / (2 * math.pi))
+    b = ang * np.float32(8 / (2 * math.pi))
     b0 = b.astype(np.int32)
-    hi = mag.ravel() * (b - b0)
-    npx = len(b)
-    # Direction d of pixel p goes to plane d // 4, slot p * 4 + d % 4; both planes contiguous.
-    base = np.arange(0, 4 * npx, 4, dtype=np.int32)
-    ch = np.zeros(8 * npx, np.float32)
-    d0, d1 = b0 & 7, (b0 + 1) & 7
-    ch[base + (d0 >> 2) * (4 * npx) + (d0 & 3)] = mag.ravel() - hi
-    ch[base + (d1 >> 2) * (4 * npx) + (d1 & 3)] = hi  # never the slot just written
-    ch = ch.reshape((2,) + g.shape + (4,))
+    hi = mag * (b - b0)
+    h, w = g.shape
+    # Direction d of pixel p goes to plane d // 4, slot 4 p + d % 4; both planes contiguous.
+    base, slot = _slots(h, w)
+    ch = np.zeros(8 * h * w, np.float32)
+    b0 &= 7
+    ch[base + slot[b0]] = mag - hi
+    b0 += 1
+    b0 &= 7
+    ch[base + slot[b0]] = hi  # never the slot just written
+    ch = ch.reshape(2, h, w, 4)
     k = 2 * int(math.ceil(2 * sigma)) + 1
     return cv2.GaussianBlur(ch[0], (k, k), sigma), cv2.GaussianBlur(ch[1], (k, k), sigma)
+
+
+@lru_cache(maxsize=4)
+def _slots(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(h, w) int32`` ``4 p`` for pixel ``p`` (row-major), and ``(8,) int32`` the offset
+    of direction ``d`` from it in the two stacked ``(h, w, 4)`` planes."""
+    d = np.arange(8, dtype=np.int32)
+    return np.arange(0, 4 * h * w, 4, dtype=np.int32).reshape(h, w), (d >> 2) * (4 * h * w) + (d & 3)
 
 
 _GRID = np.meshgrid(np.arange(4, dtype=np.float32) - 1.5, np.arange(4, dtype=np.float32) - 1.5)
@@ -148,23 +167,35 @@ def raw_descriptors(c: Candidates, n: int, params: ExtractParams) -> np.ndarray:
     """
     if n == 0:
         return np.zeros((0, N_ELEMENTS), np.float32)
-    xy = (c.xy[:n] - 0.5) * 0.5  # back to half-resolution pixels
-    ang = c.angle[:n]
+    # Relative bin j is absolute direction angle + j * 45 deg, interpolated between whole
+    # bins: a circular shift of the 8 directions by a0 = floor(angle / 45 deg), then a
+    # blend with the next one. The keypoints are taken in order of a0 (a stable sort) so
+    # that each shift is one slice; the rows are put back in order at the end.
+    a = c.angle[:n] * np.float32(8 / (2 * math.pi))
+    a0 = a.astype(np.intp) & 7
+    by = np.argsort(a0, kind="stable")
+    a, a0 = a[by], a0[by]
+    xy = (c.xy[:n][by] - 0.5) * 0.5  # back to half-resolution pixels
+    ang = c.angle[:n][by]
     cs, sn = np.cos(ang)[:, None, None], np.sin(ang)[:, None, None]
     u, v = _GRID
     step = np.float32(params.cell_px)
     mx = (xy[:, 0, None, None] + step * (cs * u - sn * v)).reshape(n, 16)
     my = (xy[:, 1, None, None] + step * (sn * u + cs * v)).reshape(n, 16)
+    if params.pool_step == 2:  # pixel centres of the halved maps
+        mx = (mx - 0.5) * 0.5
+        my = (my - 0.5) * 0.5
     smp = np.concatenate([cv2.remap(p, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
                           for p in c.pooled + c.pooled], axis=2)  # (n, 16, 16): directions 0-7 twice
-    # Turn the 8 absolute directions into directions relative to the keypoint: relative
-    # bin j is absolute direction angle + j * 45 deg, interpolated between whole bins.
-    a = ang * np.float32(8 / (2 * math.pi))
-    a0 = a.astype(np.intp) & 7
     f = (a - np.floor(a))[:, None, None]
-    win = np.lib.stride_tricks.sliding_window_view(smp, 8, axis=2)  # (n, 16, 9, 8)
-    rows = np.arange(n)
-    d = win[rows, :, a0] * (1 - f) + win[rows, :, a0 + 1] * f
+    d = np.empty((n, 16, 8), np.float32)
+    edges = np.searchsorted(a0, np.arange(9))
+    for shift in range(8):
+        lo, hi = edges[shift], edges[shift + 1]
+        if lo < hi:
+            fs = f[lo:hi]
+            d[lo:hi] = smp[lo:hi, :, shift:shift + 8] * (1 - fs) + smp[lo:hi, :, shift + 1:shift + 9] * fs
+    d = d[np.argsort(by)]
     d = d.reshape(n, N_ELEMENTS)
     d *= 1 / np.maximum(np.sqrt(np.einsum("ij,ij->i", d, d)), 1e-12)[:, None]
     np.minimum(d, 0.2, out=d)
@@ -205,18 +236,40 @@ def drop_repeats(c: Candidates, params: ExtractParams) -> tuple[Candidates, np.n
     return kept, raw[keep[:k]]
 
 
-def _repeats(raw: np.ndarray, xy: np.ndarray, start: int, stop: int, params: ExtractParams) -> np.ndarray:
+def _repeats(raw: np.ndarray, xy: np.ndarray, start: int, stop: int, params: ExtractParams,
+             projected: np.ndarray | None = None) -> np.ndarray:
     """``(stop - start,) bool``: which of the checked candidates ``start:stop`` repeat
     (:func:`drop_repeats`) among all ``K`` checked ones, given their ``(K, 128)`` raw
     descriptors and ``(K, 2)`` working-image positions. Rows are independent, so the
     rows can be decided a block at a time (:func:`extract` decides only as many as the
-    budget reaches)."""
+    budget reaches).
+
+    ``projected``: the raw descriptors times a ``(128, P)`` matrix with orthonormal
+    columns (the learned PCA basis). A projection never lengthens a difference, so the
+    pairs within ``repeat_distance`` after it include every pair within it before; only
+    those few are measured in 128 dimensions. Same result, a quarter of the arithmetic.
+    """
+    t2 = params.repeat_distance**2
     sq = np.einsum("ij,ij->i", raw, raw)
-    d2 = raw[start:stop] @ raw.T  # |a - b|^2 = |a|^2 + |b|^2 - 2 a.b, in place
-    d2 *= -2.0
-    d2 += sq[start:stop, None]
-    d2 += sq[None, :]
-    i, j = np.nonzero(d2 < params.repeat_distance**2)  # the diagonal, neighbours on one blob, repeats
+    if projected is None:
+        d2 = raw[start:stop] @ raw.T  # |a - b|^2 = |a|^2 + |b|^2 - 2 a.b, in place
+        d2 *= -2.0
+        d2 += sq[start:stop, None]
+        d2 += sq[None, :]
+        i, j = np.nonzero(d2 < t2)  # the diagonal, neighbours on one blob, repeats
+    else:
+        zq = np.einsum("ij,ij->i", projected, projected)
+        d2 = projected[start:stop] @ projected.T
+        d2 *= -2.0
+        d2 += zq[start:stop, None]
+        d2 += zq[None, :]
+        i, j = np.nonzero(d2 < t2 * (1 + 1e-4) + 1e-5)  # margin for float32 rounding
+        exact = np.einsum("ij,ij->i", raw[start + i], raw[j])
+        exact *= -2.0
+        exact += sq[start + i]
+        exact += sq[j]
+        near = exact < t2
+        i, j = i[near], j[near]
     patch_px = 2 * 4 * params.cell_px  # the patch width, in working-image pixels (cells are half-resolution)
     far = np.sum((xy[start + i] - xy[j]) ** 2, axis=1) >= patch_px**2
     out = np.zeros(stop - start, bool)
@@ -225,16 +278,19 @@ def _repeats(raw: np.ndarray, xy: np.ndarray, start: int, stop: int, params: Ext
 
 
 def kept_for_budget(c: Candidates, params: ExtractParams, spec: ModeSpec, grid_w: int, grid_h: int,
-                     block: int = 256) -> tuple[Candidates, np.ndarray, int]:
+                     block: int = 256, basis: np.ndarray | None = None) -> tuple[Candidates, np.ndarray, int]:
     """:func:`drop_repeats` and :func:`~robotd.floor.desccoding.fit` together, deciding only the rows needed.
 
     The coded keypoints are the first ``n`` kept candidates and the global descriptor
     aggregates the first ``max(n, global_min_features)``; whether a later candidate repeats
     changes neither. So the candidates are checked (each against the whole pool, as
-    :func:`drop_repeats` does) a ``block`` at a time until the kept ones reach past what
-    the budget codes. The result is the same as ``drop_repeats`` then ``fit`` for
-    everything :func:`extract` uses: the returned candidates are exact up to the first
-    ``max(n + 1, global_min_features)`` kept ones, and end there when not all were checked.
+    :func:`drop_repeats` does) a block at a time until the kept ones reach past what
+    the budget codes. The first block is what the budget would code with no repeats
+    dropped, and a fifth more; then ``block`` at a time. The result is the same as
+    ``drop_repeats`` then ``fit`` for everything :func:`extract` uses: the returned
+    candidates are exact up to the first ``max(n + 1, global_min_features)`` kept ones,
+    and end there when not all were checked. ``basis``: a ``(128, P)`` matrix with
+    orthonormal columns that prefilters the pairs (:func:`_repeats`; same result).
 
     Returns the kept candidates, the raw descriptors of the first of them (the checked
     ones) and ``n``.
@@ -244,12 +300,16 @@ def kept_for_budget(c: Candidates, params: ExtractParams, spec: ModeSpec, grid_w
         kept, raw = c, raw_descriptors(c, k, params)
         return kept, raw, fit(spec, cells(kept.xy, grid_w, grid_h))
     raw = raw_descriptors(c, k, params)
+    projected = None if basis is None else raw @ basis
     repeat = np.zeros(k, bool)
     done = 0
+    first = max(fit(spec, cells(c.xy[:k], grid_w, grid_h)) + 1, params.global_min_features)
+    step = min(k, first + first // 5 + 8)
     while True:
-        stop = min(k, done + block)
-        repeat[done:stop] = _repeats(raw, c.xy[:k], done, stop, params)
+        stop = min(k, done + step)
+        repeat[done:stop] = _repeats(raw, c.xy[:k], done, stop, params, projected)
         done = stop
+        step = block
         keep = np.flatnonzero(~repeat[:done])
         if done == k:  # every checked row decided; unchecked candidates after the pool are kept
             keep = np.concatenate([keep, np.arange(k, len(c.xy))])
