@@ -288,6 +288,8 @@ class FloorIndex:
         predicate: Callable[[int], bool] | None = None
         if callable(exclude_ids):
             predicate = exclude_ids
+        elif isinstance(exclude_ids, np.ndarray):  # no Python loop over a large array of ids
+            valid &= ~np.isin(ids, exclude_ids.ravel().astype(np.int64, copy=False))
         elif exclude_ids is not None:
             excluded = np.fromiter((int(i) for i in exclude_ids), np.int64)
             valid &= ~np.isin(ids, excluded)
