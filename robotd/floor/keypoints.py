@@ -156,6 +156,8 @@ def _slots(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
     return np.arange(0, 4 * h * w, 4, dtype=np.int32).reshape(h, w), (d >> 2) * (4 * h * w) + (d & 3)
 
 
+_SHIFTS = np.stack([np.roll(np.eye(8, dtype=np.float32), s, axis=0) for s in range(9)])
+"""``(9, 8, 8)``: ``x @ _SHIFTS[s]`` is ``x`` with element ``j`` taken from ``(s + j) % 8``."""
 _GRID = np.meshgrid(np.arange(4, dtype=np.float32) - 1.5, np.arange(4, dtype=np.float32) - 1.5)
 
 
@@ -167,16 +169,8 @@ def raw_descriptors(c: Candidates, n: int, params: ExtractParams) -> np.ndarray:
     """
     if n == 0:
         return np.zeros((0, N_ELEMENTS), np.float32)
-    # Relative bin j is absolute direction angle + j * 45 deg, interpolated between whole
-    # bins: a circular shift of the 8 directions by a0 = floor(angle / 45 deg), then a
-    # blend with the next one. The keypoints are taken in order of a0 (a stable sort) so
-    # that each shift is one slice; the rows are put back in order at the end.
-    a = c.angle[:n] * np.float32(8 / (2 * math.pi))
-    a0 = a.astype(np.intp) & 7
-    by = np.argsort(a0, kind="stable")
-    a, a0 = a[by], a0[by]
-    xy = (c.xy[:n][by] - 0.5) * 0.5  # back to half-resolution pixels
-    ang = c.angle[:n][by]
+    xy = (c.xy[:n] - 0.5) * 0.5  # back to half-resolution pixels
+    ang = c.angle[:n]
     cs, sn = np.cos(ang)[:, None, None], np.sin(ang)[:, None, None]
     u, v = _GRID
     step = np.float32(params.cell_px)
@@ -186,16 +180,16 @@ def raw_descriptors(c: Candidates, n: int, params: ExtractParams) -> np.ndarray:
         mx = (mx - 0.5) * 0.5
         my = (my - 0.5) * 0.5
     smp = np.concatenate([cv2.remap(p, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
-                          for p in c.pooled + c.pooled], axis=2)  # (n, 16, 16): directions 0-7 twice
+                          for p in c.pooled], axis=2)  # (n, 16, 8): directions 0-7
+    # Turn the 8 absolute directions into directions relative to the keypoint: relative
+    # bin j is absolute direction angle + j * 45 deg, interpolated between whole bins,
+    # one 8 x 8 matrix per keypoint (a blend of two circular shifts).
+    a = ang * np.float32(8 / (2 * math.pi))
+    a0 = a.astype(np.intp) & 7
     f = (a - np.floor(a))[:, None, None]
-    d = np.empty((n, 16, 8), np.float32)
-    edges = np.searchsorted(a0, np.arange(9))
-    for shift in range(8):
-        lo, hi = edges[shift], edges[shift + 1]
-        if lo < hi:
-            fs = f[lo:hi]
-            d[lo:hi] = smp[lo:hi, :, shift:shift + 8] * (1 - fs) + smp[lo:hi, :, shift + 1:shift + 9] * fs
-    d = d[np.argsort(by)]
+    turn = _SHIFTS[a0] * (1 - f)
+    turn += _SHIFTS[a0 + 1] * f
+    d = np.matmul(smp, turn)
     d = d.reshape(n, N_ELEMENTS)
     d *= 1 / np.maximum(np.sqrt(np.einsum("ij,ij->i", d, d)), 1e-12)[:, None]
     np.minimum(d, 0.2, out=d)
@@ -303,7 +297,8 @@ def kept_for_budget(c: Candidates, params: ExtractParams, spec: ModeSpec, grid_w
     projected = None if basis is None else raw @ basis
     repeat = np.zeros(k, bool)
     done = 0
-    first = max(fit(spec, cells(c.xy[:k], grid_w, grid_h)) + 1, params.global_min_features)
+    n = fit(spec, cells(c.xy[:k], grid_w, grid_h))
+    first = max(n + 1, params.global_min_features)
     step = min(k, first + first // 5 + 8)
     while True:
         stop = min(k, done + step)
@@ -313,7 +308,7 @@ def kept_for_budget(c: Candidates, params: ExtractParams, spec: ModeSpec, grid_w
         keep = np.flatnonzero(~repeat[:done])
         if done == k:  # every checked row decided; unchecked candidates after the pool are kept
             keep = np.concatenate([keep, np.arange(k, len(c.xy))])
-        n = fit(spec, cells(c.xy[keep], grid_w, grid_h))
+        n = fit(spec, cells(c.xy[keep], grid_w, grid_h), hint=n)
         if done == k or (n < len(keep) and len(keep) >= params.global_min_features):
             break
     kept = Candidates(c.xy[keep], c.angle[keep], c.attributes[keep], c.relevance[keep], c.pooled)
