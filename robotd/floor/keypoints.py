@@ -98,9 +98,19 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None)
     oy = np.clip((dxy * gx - dxx * gy) / det, -0.5, 0.5)
     xy_half = np.column_stack([xs + ox, ys + oy]).astype(np.float32)
     # Orientation: gradient of the image smoothed at orientation_sigma_px, at the keypoint.
-    go = cv2.GaussianBlur(x, (0, 0), params.orientation_sigma_px)
-    grad = cv2.merge([cv2.Sobel(go, cv2.CV_32F, 1, 0, ksize=1), cv2.Sobel(go, cv2.CV_32F, 0, 1, ksize=1)])
-    v = cv2.remap(grad, np.ascontiguousarray(xy_half[:, :1]), np.ascontiguousarray(xy_half[:, 1:]),
+    # With orientation_step 2 it is taken on g1 halved (area averaging), smoothed by what
+    # the sigma lacks after g1's and the halving's smoothing, and scaled back to
+    # half-resolution pixels; the pooled maps start from the same halved image.
+    quarter = (cv2.resize(g1, (w2 // 2, h2 // 2), interpolation=cv2.INTER_AREA)
+               if 2 in (params.orientation_step, params.pool_step) else g1)
+    if params.orientation_step == 2:
+        so = math.sqrt(max(params.orientation_sigma_px**2 - s * s - 0.25, 0.25)) / 2
+        go, at, gain = cv2.GaussianBlur(quarter, (0, 0), so), (xy_half - 0.5) * 0.5, 0.5
+    else:
+        go, at, gain = cv2.GaussianBlur(x, (0, 0), params.orientation_sigma_px), xy_half, 1.0
+    grad = cv2.merge([cv2.Sobel(go, cv2.CV_32F, 1, 0, ksize=1, scale=gain),
+                      cv2.Sobel(go, cv2.CV_32F, 0, 1, ksize=1, scale=gain)])
+    v = cv2.remap(grad, np.ascontiguousarray(at[:, :1]), np.ascontiguousarray(at[:, 1:]),
                   cv2.INTER_LINEAR).reshape(-1, 2)
     angle = np.arctan2(v[:, 1], v[:, 0]).astype(np.float32) % np.float32(2 * math.pi)
     xy = xy_half * 2 + 0.5  # half-resolution pixel centre -> working-image pixels
@@ -114,22 +124,18 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None)
         for a in range(N_ATTRIBUTES):
             relevance += learned.rel_logp[a][np.searchsorted(learned.rel_edges[a], attributes[:, a])]
     order = np.argsort(-relevance, kind="stable")
-    pooled = _pooled_orientation_maps(g1, params.pool_sigma_px, params.pool_step)
+    if params.pool_step == 2:  # the halving's smoothing and the sampling's bilinear interpolation deducted
+        pooled = _pooled_orientation_maps(quarter, math.sqrt(max(params.pool_sigma_px**2 - 1.0, 0.25)) / 2)
+    else:
+        pooled = _pooled_orientation_maps(g1, params.pool_sigma_px)
     return Candidates(xy[order], angle[order], attributes[order], relevance[order], pooled)
 
 
-def _pooled_orientation_maps(g: np.ndarray, sigma: float, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """8 gradient-orientation channels (each gradient's magnitude split linearly between
-    the two nearest of 8 directions), Gaussian-pooled: two ``(h, w, 4) float32`` images
-    (directions 0-3 and 4-7; OpenCV filters and remaps up to 4 channels fastest).
-
-    ``step`` 2: the gradient of ``g`` halved (area averaging), the channels pooled there
-    at ``sigma / 2`` less the smoothing the halving and the sampling's bilinear
-    interpolation add; ``(h // 2, w // 2, 4)`` images.
-    """
-    if step == 2:
-        g = cv2.resize(g, (g.shape[1] // 2, g.shape[0] // 2), interpolation=cv2.INTER_AREA)
-        sigma = math.sqrt(max(sigma * sigma - 1.0, 0.25)) / 2
+def _pooled_orientation_maps(g: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """8 gradient-orientation channels of ``g`` (each gradient's magnitude split linearly
+    between the two nearest of 8 directions), Gaussian-pooled at ``sigma`` pixels of ``g``:
+    two ``(h, w, 4) float32`` images (directions 0-3 and 4-7; OpenCV filters and remaps up
+    to 4 channels fastest)."""
     mag, ang = cv2.cartToPolar(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=1), cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=1))
     b = ang * np.float32(8 / (2 * math.pi))
     b0 = b.astype(np.int32)
@@ -252,12 +258,18 @@ def _repeats(raw: np.ndarray, xy: np.ndarray, start: int, stop: int, params: Ext
         d2 += sq[None, :]
         i, j = np.nonzero(d2 < t2)  # the diagonal, neighbours on one blob, repeats
     else:
+        # [z_i, -|z_i|^2 / 2, 1] . [z_j, 1, (t - |z_j|^2) / 2] = (t - |z_i - z_j|^2) / 2: one
+        # product and one comparison; t has a margin for float32 rounding.
         zq = np.einsum("ij,ij->i", projected, projected)
-        d2 = projected[start:stop] @ projected.T
-        d2 *= -2.0
-        d2 += zq[start:stop, None]
-        d2 += zq[None, :]
-        i, j = np.nonzero(d2 < t2 * (1 + 1e-4) + 1e-5)  # margin for float32 rounding
+        rows = np.empty((stop - start, projected.shape[1] + 2), np.float32)
+        rows[:, :-2] = projected[start:stop]
+        rows[:, -2] = -0.5 * zq[start:stop]
+        rows[:, -1] = 1.0
+        cols = np.empty((len(projected), projected.shape[1] + 2), np.float32)
+        cols[:, :-2] = projected
+        cols[:, -2] = 1.0
+        cols[:, -1] = 0.5 * (t2 + 1e-3 - zq)
+        i, j = np.nonzero(rows @ cols.T > 0)
         exact = np.einsum("ij,ij->i", raw[start + i], raw[j])
         exact *= -2.0
         exact += sq[start + i]
