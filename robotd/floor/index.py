@@ -130,6 +130,7 @@ def _descriptor_nbytes(descriptor: FloorDescriptor) -> int:
 
 
 _ANGLE_STEP = 2 * math.pi / 2**ANGLE_BITS
+_ANGLES = (np.arange(2**ANGLE_BITS) * _ANGLE_STEP).astype(np.float32)  # code -> radians, as decode gives them
 
 
 class _PackedDescriptors:
@@ -221,15 +222,16 @@ class _PackedDescriptors:
         return row
 
     def get(self, row: int) -> FloorDescriptor:
-        """The descriptor of ``row``, rebuilt (read-only views of the shared arrays)."""
-        ci, r, k = (int(v) for v in self.where[row])
+        """The descriptor of ``row``, rebuilt (its bit planes are read-only views of the
+        shared arrays; a query rebuilds only the keyframes it scores)."""
+        ci, r, k = self.where[row].tolist()
         c = self.chunks[ci]
         pos, neg = c["pos"][r:r + k], c["neg"][r:r + k]
         pos.flags.writeable = neg.flags.writeable = False
         xy = c["xy"][r:r + k].astype(np.float32)
         a = c["angle"][r:r + k]
-        angle = (a.astype(np.int64) * _ANGLE_STEP).astype(np.float32) if self.angle_coded else a.copy()
-        mode, width, height, length = (int(v) for v in self.head[row])
+        angle = _ANGLES[a] if self.angle_coded else a.copy()
+        mode, width, height, length = self.head[row].tolist()
         return FloorDescriptor(mode, width, height, xy, angle, pos, neg, length, self.gbytes[row].copy(),
                                float(self.step[row]))
 
