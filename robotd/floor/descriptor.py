@@ -64,6 +64,7 @@ import math
 import struct
 import zlib
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -76,6 +77,7 @@ from robotd.floor.descparams import (
     MAGIC,
     MODE_BYTES,
     MODES,
+    N_ELEMENTS,
     POSITION_STEP_PX,
     VERSION,
     ExtractParams,
@@ -150,7 +152,7 @@ def extract(image: np.ndarray, mode: int, params: ExtractParams | None = None) -
     wh, ww = work.shape
     grid_w, grid_h = -(-ww // POSITION_STEP_PX), -(-wh // POSITION_STEP_PX)
     c, raw_checked, n = kept_for_budget(candidates(work, params, learned), params, spec, grid_w, grid_h,
-                                         basis=learned.pca_basis)
+                                         basis=_orthonormal_basis(learned))
     coded = cells(c.xy, grid_w, grid_h)
     m = min(len(c.xy), max(n, params.global_min_features))
     raw = raw_checked[:m] if m <= len(raw_checked) else raw_descriptors(c, m, params)
@@ -176,6 +178,15 @@ def extract(image: np.ndarray, mode: int, params: ExtractParams | None = None) -
     out = head[:16] + struct.pack("<I", crc) + body
     assert len(out) <= spec.bytes, "byte budget overrun"  # guaranteed by _fit
     return out
+
+
+@lru_cache(maxsize=8)
+def _orthonormal_basis(learned: Learned) -> np.ndarray | None:
+    """The learned PCA basis when its columns are orthonormal (an SVD's are), else None:
+    only then does it prefilter the repeat check exactly (:func:`kept_for_budget`)."""
+    b = np.asarray(learned.pca_basis, np.float64)
+    ok = b.ndim == 2 and b.shape[0] == N_ELEMENTS and np.allclose(b.T @ b, np.eye(b.shape[1]), atol=1e-4)
+    return np.asarray(learned.pca_basis, np.float32) if ok else None
 
 
 def _fail(msg: str) -> DescriptorError:

@@ -616,3 +616,18 @@ def test_forged_position_beyond_the_grid_is_caught():
     with pytest.raises(DescriptorError, match="outside the image"):
         decode(_hand_made(4))
     assert len(decode(_hand_made(6))) == 2  # three rows: cell 70 fits
+
+
+def test_only_an_orthonormal_pca_basis_prefilters_the_repeat_check():
+    """The prefilter is exact only for orthonormal columns (an SVD's): a learned table
+    with any other basis gets the full check."""
+    from dataclasses import replace
+
+    from robotd.floor.descriptor import _orthonormal_basis
+
+    learned = load_learned()
+    assert _orthonormal_basis(learned) is not None
+    assert _orthonormal_basis(replace(learned, pca_basis=learned.pca_basis * 1.5)) is None
+    skew = learned.pca_basis.copy()
+    skew[:, 1] += 0.3 * skew[:, 0]
+    assert _orthonormal_basis(replace(learned, pca_basis=skew)) is None
