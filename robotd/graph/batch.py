@@ -31,7 +31,6 @@ import dataclasses
 import logging
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -41,7 +40,7 @@ import numpy as np
 from robotd.base.geometry import compose, inverse
 from robotd.graph.factors import (RobustKernel, anchor_factor, between_factor, factor_graph, from_values,
                                   robust_kernel, to_values)
-from robotd.graph.model import PoseGraph, chi2, edge_chi2, isotropic_graph, isotropic_objective
+from robotd.graph.model import Edge, PoseGraph, chi2, edge_chi2, isotropic_graph, isotropic_objective
 
 
 log = logging.getLogger(__name__)
@@ -267,41 +266,17 @@ def refine_gnc(graph: PoseGraph, start: np.ndarray, params: BatchParams) -> tupl
     and the loops kept.
     """
     ids = graph.ids
-    is_loop = np.array([e.kind == "loop" for e in graph.edges], dtype=bool)
-    loops = [e for e in graph.edges if e.kind == "loop"]
-    fixed = gtsam.NonlinearFactorGraph()
-    for e in graph.edges:
-        if e.kind != "loop":
-            fixed.add(between_factor(e))
-    for kid in graph.anchors():
-        fixed.add(anchor_factor(kid, graph.pose(kid)))
-    c = float(params.inlier_chi2)
-    lm_params = gtsam.LevenbergMarquardtParams()
-    lm_params.setMaxIterations(params.max_iterations)
-    lm_params.setRelativeErrorTol(params.relative_tolerance)
-
-    def solve(weights: np.ndarray, values: gtsam.Values) -> tuple[gtsam.Values, gtsam.NonlinearFactorGraph]:
-        fg = gtsam.NonlinearFactorGraph(fixed)
-        for e, w in zip(loops, weights):
-            if w > 0.0:
-                d = e.delta
-                fg.add(gtsam.BetweenFactorPose2(
-                    e.from_id, e.to_id, gtsam.Pose2(d[0], d[1], d[2]),
-                    gtsam.noiseModel.Gaussian.Information(float(w) * np.asarray(e.information))))
-        return gtsam.LevenbergMarquardtOptimizer(fg, values, lm_params).optimize(), fg
-
-    def loop_chi2(poses: np.ndarray) -> np.ndarray:
-        return edge_chi2(graph, ids, poses)[is_loop]
-
+    sol = _LoopSolver(graph, params)
+    c = sol.c
     # Start: the loops beyond the threshold at ``start`` left out (GTSAM's first solve
     # would weigh every loop fully: plain least squares, as slow and as far off as plain LM).
-    weights = (loop_chi2(start) <= c).astype(float)
-    values, fg = solve(weights, to_values(ids, start))
+    weights = (sol.loop_chi2(start) <= c).astype(float)
+    values, fg = sol.solve(weights, to_values(ids, start))
     poses = from_values(values, ids)
-    r = loop_chi2(poses)
+    r = sol.loop_chi2(poses)
     r_max = float(r.max()) if len(r) else 0.0
     if r_max <= c:  # every loop within the threshold: TLS is least squares
-        return poses, np.ones(len(loops))
+        return poses, np.ones(len(sol.loops))
     # Candidate A: truncated least squares descent straight from there (the loops the
     # start puts within the threshold, re-solved until the set stops changing). Where the
     # start is already good (DCS from the odometry on manhattan with 1000 wrong loops) this
@@ -309,14 +284,14 @@ def refine_gnc(graph: PoseGraph, start: np.ndarray, params: BatchParams) -> tupl
     # of right loops on the way (there: 11, a corner of the map misplaced, 13 mm ATE). Where
     # the start is poor (DCS on CSAIL with 100 wrong loops, 3.5 m ATE) the schedule finds
     # what descent cannot. The lower truncated cost wins.
-    cand_a = _tls_descent(solve, loop_chi2, ids, values, poses, weights, r, c, params.max_iterations)
+    cand_a = sol.descent((values, poses, weights, r))
     mu = max(c / (2.0 * r_max - c), 1e-6)
     prev_cost = fg.error(values)
     for _ in range(params.max_iterations):
         weights = tls_weights(r, mu, c)
-        values, fg = solve(weights, values)
+        values, fg = sol.solve(weights, values)
         poses = from_values(values, ids)
-        r = loop_chi2(poses)
+        r = sol.loop_chi2(poses)
         cost = fg.error(values)
         binary = bool(np.all(np.minimum(weights, 1.0 - weights) < 1e-4))
         if binary or abs(cost - prev_cost) < 1e-5 * max(prev_cost, 1e-7):
@@ -327,34 +302,137 @@ def refine_gnc(graph: PoseGraph, start: np.ndarray, params: BatchParams) -> tupl
     # at the current solution, re-solve, until that set stops changing (each step lowers
     # the TLS cost). The schedule's last weights were set at the solution before the last
     # one, so a loop may sit just beyond or within the threshold of the final one.
-    cand_b = _tls_descent(solve, loop_chi2, ids, values, poses, weights, r, c, params.max_iterations)
-    cost_a = _tls_cost(graph, ids, cand_a[1], is_loop, c)
-    cost_b = _tls_cost(graph, ids, cand_b[1], is_loop, c)
-    best = cand_a if cost_a < cost_b else cand_b
+    cand_b = sol.descent((values, poses, weights, r))
+    cost_a, cost_b = sol.tls_cost(cand_a[1]), sol.tls_cost(cand_b[1])
     log.debug("GNC: truncated cost %.6g by descent from the start, %.6g after the schedule", cost_a, cost_b)
+    best = sol.readmit(cand_a if cost_a < cost_b else cand_b)
     return best[1], best[2]
 
 
-def _tls_descent(solve: Callable[[np.ndarray, gtsam.Values], tuple[gtsam.Values, gtsam.NonlinearFactorGraph]],
-                 loop_chi2: Callable[[np.ndarray], np.ndarray], ids: np.ndarray, values: gtsam.Values,
-                 poses: np.ndarray, weights: np.ndarray, r: np.ndarray, c: float, max_steps: int
-                 ) -> tuple[gtsam.Values, np.ndarray, np.ndarray, np.ndarray]:
-    """Keep exactly the loops within ``c`` at the current solution and re-solve, until the
-    kept set stops changing; returns ``(values, poses, weights, loop chi2)``."""
-    for _ in range(max_steps):
-        keep = (r <= c).astype(float)
-        if np.array_equal(keep, weights):
-            break
-        weights = keep
-        values, _fg = solve(weights, values)
-        poses = from_values(values, ids)
-        r = loop_chi2(poses)
-    return values, poses, weights, r
+#: A solution of :class:`_LoopSolver`: GTSAM values, poses ``(N, 3)``, loop weights ``(L,)``
+#: and loop chi2 ``(L,)``.
+_Solution = tuple[gtsam.Values, np.ndarray, np.ndarray, np.ndarray]
 
 
-def _tls_cost(graph: PoseGraph, ids: np.ndarray, poses: np.ndarray, is_loop: np.ndarray,
-              c: float) -> float:
-    """The truncated least squares objective: every non-loop edge's chi2 plus each loop's
-    chi2 capped at ``c``."""
-    e = edge_chi2(graph, ids, poses)
-    return float(e[~is_loop].sum() + np.minimum(e[is_loop], c).sum())
+class _LoopSolver:
+    """Least squares over a graph's odometry edges and anchors (known inliers) and its loop
+    edges, each loop weighted (0: left out); the truncated least squares steps of
+    :func:`refine_gnc` on top."""
+
+    def __init__(self, graph: PoseGraph, params: BatchParams) -> None:
+        self.graph, self.ids = graph, graph.ids
+        self.is_loop = np.array([e.kind == "loop" for e in graph.edges], dtype=bool)
+        self.loops = [e for e in graph.edges if e.kind == "loop"]
+        self.fixed = gtsam.NonlinearFactorGraph()
+        for e in graph.edges:
+            if e.kind != "loop":
+                self.fixed.add(between_factor(e))
+        for kid in graph.anchors():
+            self.fixed.add(anchor_factor(kid, graph.pose(kid)))
+        self.c = float(params.inlier_chi2)
+        self.max_steps = params.max_iterations
+        self.lm_params = gtsam.LevenbergMarquardtParams()
+        self.lm_params.setMaxIterations(params.max_iterations)
+        self.lm_params.setRelativeErrorTol(params.relative_tolerance)
+
+    def build(self, weights: np.ndarray) -> gtsam.NonlinearFactorGraph:
+        """The factor graph with each loop's information times its weight (0: left out)."""
+        fg = gtsam.NonlinearFactorGraph(self.fixed)
+        for e, w in zip(self.loops, weights):
+            if w > 0.0:
+                d = e.delta
+                fg.add(gtsam.BetweenFactorPose2(
+                    e.from_id, e.to_id, gtsam.Pose2(d[0], d[1], d[2]),
+                    gtsam.noiseModel.Gaussian.Information(float(w) * np.asarray(e.information))))
+        return fg
+
+    def solve(self, weights: np.ndarray, values: gtsam.Values) -> tuple[gtsam.Values, gtsam.NonlinearFactorGraph]:
+        """Levenberg-Marquardt from ``values`` on :meth:`build`'s graph: values and graph."""
+        fg = self.build(weights)
+        return gtsam.LevenbergMarquardtOptimizer(fg, values, self.lm_params).optimize(), fg
+
+    def loop_chi2(self, poses: np.ndarray) -> np.ndarray:
+        """Each loop edge's chi2 at ``poses`` ``(L,)``."""
+        return edge_chi2(self.graph, self.ids, poses)[self.is_loop]
+
+    def tls_cost(self, poses: np.ndarray) -> float:
+        """The truncated least squares objective: every non-loop edge's chi2 plus each
+        loop's chi2 capped at the threshold."""
+        e = edge_chi2(self.graph, self.ids, poses)
+        return float(e[~self.is_loop].sum() + np.minimum(e[self.is_loop], self.c).sum())
+
+    def descent(self, sol: _Solution) -> _Solution:
+        """Keep exactly the loops within the threshold at the current solution and re-solve,
+        until the kept set stops changing."""
+        values, poses, weights, r = sol
+        for _ in range(self.max_steps):
+            keep = (r <= self.c).astype(float)
+            if np.array_equal(keep, weights):
+                break
+            weights = keep
+            values, _fg = self.solve(weights, values)
+            poses = from_values(values, self.ids)
+            r = self.loop_chi2(poses)
+        return values, poses, weights, r
+
+    def readmit(self, best: _Solution) -> _Solution:
+        """Truncated least squares descent on the loops left out. A loop out of the set
+        whose *innovation* chi2 (:func:`innovation_chi2`) is within the threshold lowers the
+        truncated cost if it comes back in (to first order the least-squares part rises by
+        its innovation and the truncated part falls by the threshold), even where its own
+        chi2 at the solution is beyond the threshold - all that :meth:`descent` looks at, so
+        it stops with such loops out: a true loop whose poses the loops kept tie together
+        only loosely, from which the solution moved away once it was out. Those loops are
+        tried back in, all together and then one by one (lowest innovation first), each try
+        kept only when the truncated cost after re-solving and descending again is lower."""
+        cost = self.tls_cost(best[1])
+        for _ in range(self.max_steps):
+            values, _poses, weights, _r = best
+            out = np.flatnonzero(weights < 0.5)
+            if len(out) == 0:
+                break
+            innovation = innovation_chi2(self.build(weights), values, [self.loops[n] for n in out])
+            order = np.argsort(innovation)
+            tries = out[order[innovation[order] <= self.c]]
+            groups = [tries] + ([tries[n:n + 1] for n in range(len(tries))] if len(tries) > 1 else [])
+            improved = False
+            for group in groups if len(tries) else []:
+                w = weights.copy()
+                w[group] = 1.0
+                v2, _fg = self.solve(w, values)
+                p2 = from_values(v2, self.ids)
+                cand = self.descent((v2, p2, w, self.loop_chi2(p2)))
+                cost2 = self.tls_cost(cand[1])
+                if cost2 < cost - 1e-9 * max(abs(cost), 1.0):
+                    log.debug("GNC: %d loop(s) back in, truncated cost %.6g -> %.6g", len(group), cost, cost2)
+                    best, cost, improved = cand, cost2, True
+                    break
+            if not improved:
+                break
+        return best
+
+
+def innovation_chi2(fg: gtsam.NonlinearFactorGraph, values: gtsam.Values, edges: list[Edge]) -> np.ndarray:
+    """Each edge's innovation chi2 against the least-squares solution ``values`` of ``fg``
+    (``(len(edges),)``): ``e^T (Sigma + H P H^T)^-1 e``, ``e`` the edge's error, ``Sigma``
+    its covariance, ``H`` its Jacobian and ``P`` the joint marginal covariance of its two
+    poses. To first order this is how much the least-squares cost ``sum e^T I e`` would
+    rise if the edge were added and the graph re-solved: never more than the edge's own
+    chi2 at ``values``, much less where the solution is uncertain between its poses."""
+    if not edges:
+        return np.zeros(0)
+    marginals = gtsam.Marginals(fg, values)
+    out = np.empty(len(edges))
+    unit = gtsam.noiseModel.Unit.Create(3)
+    for n, e in enumerate(edges):
+        d = e.delta
+        a, b = gtsam.BetweenFactorPose2(e.from_id, e.to_id, gtsam.Pose2(d[0], d[1], d[2]),
+                                        unit).linearize(values).jacobian()
+        joint = marginals.jointMarginalCovariance(gtsam.KeyVector([e.from_id, e.to_id]))
+        p = np.block([[joint.at(e.from_id, e.from_id), joint.at(e.from_id, e.to_id)],
+                      [joint.at(e.to_id, e.from_id), joint.at(e.to_id, e.to_id)]])
+        s = np.linalg.inv(np.asarray(e.information, float)) + a @ p @ a.T
+        r = -np.asarray(b, float)
+        out[n] = float(r @ np.linalg.solve(s, r))
+    return out
+

@@ -222,3 +222,58 @@ def test_gnc_ends_at_the_least_squares_optimum_over_the_true_loops_alone(seed):
     err_gnc, err_dcs = err(gnc), err(dcs)
     assert err_gnc < 1e-5
     assert err_dcs > 10 * err_gnc
+
+
+def test_innovation_chi2_is_the_rise_of_the_least_squares_cost_when_the_edge_comes_in():
+    # The straight chain is linear: without its loop the optimum is the odometry (cost 0)
+    # and the loop is 0.3 m off (chi2 4 * 0.09 = 0.36); three odometry edges of variance
+    # 1/4 each and the loop's own 1/4 give the innovation 0.09 / 1 = 0.09, the cost of the
+    # optimum with the loop (test above: 4 edges * 4 * 0.075^2).
+    from robotd.graph.batch import _LoopSolver, innovation_chi2
+    from robotd.graph.factors import to_values
+
+    g = _straight_chain_with_loop(2.7)
+    sol = _LoopSolver(g, BatchParams())
+    values, fg = sol.solve(np.zeros(1), to_values(g.ids, g.poses()))
+    assert innovation_chi2(fg, values, sol.loops) == pytest.approx([0.09], rel=1e-6)
+    # The ring: the closing loop's own chi2 on the open ring is far beyond the rise it
+    # brings (the ring is loose between its ends); the rise, to first order.
+    g = _ring()
+    sol = _LoopSolver(g, BatchParams())
+    values, fg = sol.solve(np.array([0.0, 1.0]), to_values(g.ids, g.poses()))
+    open_cost = 2 * fg.error(values)
+    closed, fg2 = sol.solve(np.ones(2), values)
+    rise = 2 * fg2.error(closed) - open_cost
+    innovation = innovation_chi2(fg, values, sol.loops[:1])[0]
+    assert innovation == pytest.approx(rise, rel=0.05)
+    assert _loop_chi2_at(sol, values)[0] > 30 * innovation
+
+
+def _loop_chi2_at(sol, values):
+    from robotd.graph.factors import from_values
+
+    return sol.loop_chi2(from_values(values, sol.ids))
+
+
+def test_gnc_takes_back_a_true_loop_whose_own_chi2_is_beyond_the_threshold_but_its_innovation_is_not():
+    # The ring's closing loop left out: on the open ring its chi2 is 457, beyond the
+    # threshold (30), so keeping "the loops within the threshold" never brings it back;
+    # its innovation (11) says it would lower the truncated cost, and it does.
+    from robotd.graph.batch import _LoopSolver
+    from robotd.graph.factors import from_values, to_values
+
+    g = _ring()
+    sol = _LoopSolver(g, BatchParams())
+    w = np.array([0.0, 1.0])
+    values, _ = sol.solve(w, to_values(g.ids, g.poses()))
+    poses = from_values(values, g.ids)
+    start = (values, poses, w, sol.loop_chi2(poses))
+    assert start[3][0] > sol.c
+    stuck = sol.descent(start)
+    assert np.array_equal(stuck[2], w)
+    back = sol.readmit(start)
+    assert np.array_equal(back[2], [1.0, 1.0])
+    assert sol.tls_cost(back[1]) < sol.tls_cost(poses) - 10.0
+    # and the result is the ring's least-squares optimum with both loops
+    full = optimize_batch(g, BatchParams(robust=False))
+    assert np.abs(back[1][:, :2] - full.poses[:, :2]).max() < 1e-4
