@@ -305,7 +305,7 @@ def refine_gnc(graph: PoseGraph, start: np.ndarray, params: BatchParams) -> tupl
     cand_b = sol.descent((values, poses, weights, r))
     cost_a, cost_b = sol.tls_cost(cand_a[1]), sol.tls_cost(cand_b[1])
     log.debug("GNC: truncated cost %.6g by descent from the start, %.6g after the schedule", cost_a, cost_b)
-    best = sol.readmit(cand_a if cost_a < cost_b else cand_b)
+    best = sol.local_search(cand_a if cost_a < cost_b else cand_b)
     return best[1], best[2]
 
 
@@ -375,36 +375,48 @@ class _LoopSolver:
             r = self.loop_chi2(poses)
         return values, poses, weights, r
 
-    def readmit(self, best: _Solution) -> _Solution:
-        """Truncated least squares descent on the loops left out. A loop out of the set
-        whose *innovation* chi2 (:func:`innovation_chi2`) is within the threshold lowers the
-        truncated cost if it comes back in (to first order the least-squares part rises by
-        its innovation and the truncated part falls by the threshold), even where its own
-        chi2 at the solution is beyond the threshold - all that :meth:`descent` looks at, so
-        it stops with such loops out: a true loop whose poses the loops kept tie together
-        only loosely, from which the solution moved away once it was out. Those loops are
-        tried back in, all together and then one by one (lowest innovation first), each try
-        kept only when the truncated cost after re-solving and descending again is lower."""
+    def local_search(self, best: _Solution, max_tries: int = 10) -> _Solution:
+        """Truncated least squares descent one loop at a time, by what each loop would do
+        to the least-squares part: a loop left out whose *innovation* chi2
+        (:func:`innovation_chi2`) is within the threshold lowers the truncated cost if it
+        comes back in (to first order the least-squares part rises by its innovation and
+        the truncated part falls by the threshold), and a loop kept whose *leave-one-out*
+        chi2 (:func:`leave_one_out_chi2`) is beyond it lowers the cost if it goes. Both can
+        hold where the loop's own chi2 at the solution says the opposite, which is all
+        :meth:`descent` looks at: a true loop whose poses the other loops tie only
+        loosely, from which the solution moved away once it was out (manhattan with 1000
+        wrong loops: four true loops beyond the threshold, their innovation within it); a
+        kept loop that bends the solution towards itself. Each round tries the loops that
+        qualify all together, then one by one (at most ``max_tries`` of each kind, most
+        promising first), and keeps the first try whose truncated cost after re-solving
+        and descending again is lower."""
         cost = self.tls_cost(best[1])
         for _ in range(self.max_steps):
             values, _poses, weights, _r = best
-            out = np.flatnonzero(weights < 0.5)
-            if len(out) == 0:
-                break
-            innovation = innovation_chi2(self.build(weights), values, [self.loops[n] for n in out])
-            order = np.argsort(innovation)
-            tries = out[order[innovation[order] <= self.c]]
-            groups = [tries] + ([tries[n:n + 1] for n in range(len(tries))] if len(tries) > 1 else [])
+            fg = self.build(weights)
+            out, kept = np.flatnonzero(weights < 0.5), np.flatnonzero(weights >= 0.5)
+            marginals = gtsam.Marginals(fg, values)
+            inn = _edge_statistic(marginals, values, [self.loops[n] for n in out], +1.0)
+            loo = _edge_statistic(marginals, values, [self.loops[n] for n in kept], -1.0)
+            back = out[np.argsort(inn)][:int((inn <= self.c).sum())]
+            drop = kept[np.argsort(-loo)][:int((loo > self.c).sum())]
+            tries: list[tuple[np.ndarray, float]] = []
+            for group, w_to in ((back, 1.0), (drop, 0.0)):
+                if len(group):
+                    tries.append((group, w_to))
+                    if len(group) > 1:
+                        tries += [(group[n:n + 1], w_to) for n in range(min(len(group), max_tries))]
             improved = False
-            for group in groups if len(tries) else []:
+            for group, w_to in tries:
                 w = weights.copy()
-                w[group] = 1.0
+                w[group] = w_to
                 v2, _fg = self.solve(w, values)
                 p2 = from_values(v2, self.ids)
                 cand = self.descent((v2, p2, w, self.loop_chi2(p2)))
                 cost2 = self.tls_cost(cand[1])
                 if cost2 < cost - 1e-9 * max(abs(cost), 1.0):
-                    log.debug("GNC: %d loop(s) back in, truncated cost %.6g -> %.6g", len(group), cost, cost2)
+                    log.debug("GNC: %d loop(s) %s, truncated cost %.6g -> %.6g", len(group),
+                              "back in" if w_to else "out", cost, cost2)
                     best, cost, improved = cand, cost2, True
                     break
             if not improved:
@@ -414,14 +426,30 @@ class _LoopSolver:
 
 def innovation_chi2(fg: gtsam.NonlinearFactorGraph, values: gtsam.Values, edges: list[Edge]) -> np.ndarray:
     """Each edge's innovation chi2 against the least-squares solution ``values`` of ``fg``
-    (``(len(edges),)``): ``e^T (Sigma + H P H^T)^-1 e``, ``e`` the edge's error, ``Sigma``
-    its covariance, ``H`` its Jacobian and ``P`` the joint marginal covariance of its two
-    poses. To first order this is how much the least-squares cost ``sum e^T I e`` would
-    rise if the edge were added and the graph re-solved: never more than the edge's own
-    chi2 at ``values``, much less where the solution is uncertain between its poses."""
+    (which lacks the edges), ``(len(edges),)``: ``e^T (Sigma + H P H^T)^-1 e``, ``e`` the
+    edge's error, ``Sigma`` its covariance, ``H`` its Jacobian and ``P`` the joint marginal
+    covariance of its two poses. To first order this is how much the least-squares cost
+    ``sum e^T I e`` rises when the edge is added and the graph re-solved: never more than
+    the edge's own chi2 at ``values``, much less where the solution ties its poses loosely."""
     if not edges:
         return np.zeros(0)
-    marginals = gtsam.Marginals(fg, values)
+    return _edge_statistic(gtsam.Marginals(fg, values), values, edges, +1.0)
+
+
+def leave_one_out_chi2(fg: gtsam.NonlinearFactorGraph, values: gtsam.Values, edges: list[Edge]) -> np.ndarray:
+    """Each edge's leave-one-out chi2 at the least-squares solution ``values`` of ``fg``
+    (which holds the edges), ``(len(edges),)``: ``e^T (Sigma - H P H^T)^-1 e`` (as in
+    :func:`innovation_chi2`, ``P`` now with the edge in): to first order how much the
+    least-squares cost falls when the edge is removed and the graph re-solved, never less
+    than its own chi2 at ``values``."""
+    if not edges:
+        return np.zeros(0)
+    return _edge_statistic(gtsam.Marginals(fg, values), values, edges, -1.0)
+
+
+def _edge_statistic(marginals: gtsam.Marginals, values: gtsam.Values, edges: list[Edge],
+                    sign: float) -> np.ndarray:
+    """``e^T (Sigma + sign H P H^T)^-1 e`` of each edge (see :func:`innovation_chi2`)."""
     out = np.empty(len(edges))
     unit = gtsam.noiseModel.Unit.Create(3)
     for n, e in enumerate(edges):
@@ -431,8 +459,9 @@ def innovation_chi2(fg: gtsam.NonlinearFactorGraph, values: gtsam.Values, edges:
         joint = marginals.jointMarginalCovariance(gtsam.KeyVector([e.from_id, e.to_id]))
         p = np.block([[joint.at(e.from_id, e.from_id), joint.at(e.from_id, e.to_id)],
                       [joint.at(e.to_id, e.from_id), joint.at(e.to_id, e.to_id)]])
-        s = np.linalg.inv(np.asarray(e.information, float)) + a @ p @ a.T
+        s = np.linalg.inv(np.asarray(e.information, float)) + sign * (a @ p @ a.T)
         r = -np.asarray(b, float)
-        out[n] = float(r @ np.linalg.solve(s, r))
+        # lstsq: with the edge in, Sigma - H P H^T may be near singular (an edge that alone
+        # ties its poses), where its error is near zero too.
+        out[n] = float(r @ np.linalg.lstsq(s, r, rcond=1e-12)[0])
     return out
-
