@@ -8,18 +8,20 @@ kernel, Dynamic Covariance Scaling (Agarwal et al., ICRA 2013): a loop edge whos
 exceeds ``kernel_width`` is scaled by ``s = 2 Phi / (Phi + chi2)``, so a wrong loop loses
 most of its pull while a right one keeps full weight. By default (``kernel="gnc"``) that
 solution is then the start of graduated non-convexity with the truncated least squares
-loss (Yang et al., RA-L 2020; :func:`refine_gnc`), odometry edges known inliers, which ends
-at the least-squares optimum over the odometry and the loops it keeps: a wrong loop has no
-pull left at all. DCS alone left manhattan with 1000 wrong loops 0.026 m (ATE) from the
-outlier-free optimum; with GNC see docs/benchmarks/posegraph.md (issue 28's target: within
-1 mm, in at most 10 times plain LM's time).
+loss (Yang et al., RA-L 2020; :func:`refine_gnc`), odometry edges known inliers, and a
+local search on that loss one loop at a time by each loop's innovation and leave-one-out
+chi2 (:meth:`_LoopSolver.local_search`); it ends at the least-squares optimum over the
+odometry and the loops it keeps: a wrong loop has no pull left at all. DCS alone left
+manhattan with 1000 wrong loops 0.026 m (APE aligned) from the outlier-free optimum; with
+GNC see docs/benchmarks/posegraph.md (target: within 1 mm, in at most 10 times plain LM's
+time).
 
 Where DCS starts matters, and no one start is right for every graph, so by default
 (``initialisation="auto"``) it starts from LAGO and, when that solve leaves some loop
 down-weighted, once more from the odometry poses; the solution with the lower *robust*
 cost wins. LAGO is not robust itself: wrong loops bend its linear orientation estimate.
 Measured (bench/bench_posegraph.py, wrong loops carrying a true loop's information): on
-manhattan with 1000 wrong loops DCS from LAGO ended 1.1 m (ATE) from the outlier-free
+manhattan with 1000 wrong loops DCS from LAGO ended 1.1 m (APE aligned) from the outlier-free
 optimum with 96 of 1954 true loops down-weighted, from odometry 0.026 m with 4; on the
 clean CSAIL and manhattan graphs with full information it is the other way round (from
 odometry DCS stops in a local minimum at 144x and 9.7x LAGO's objective).
@@ -64,7 +66,7 @@ class BatchParams:
     kernel_width: edge chi2 up to which a loop keeps full weight (DCS Phi), default 30:
         on manhattan with 1000 wrong loops, Phi = 10 also down-weighted 23-36 true loops
         (the largest true-loop chi2 at the optimum is 26 isotropic) and Phi = 100 kept wrong
-        ones (18 m ATE with full information); 30 did neither.
+        ones (18 m APE aligned with full information); 30 did neither.
     inlier_chi2: GNC's inlier threshold on a loop edge's chi2 (``e^T I e``; GTSAM's
         ``barcSq`` is half of it), default 30 for the same reason.
     max_iterations: Levenberg-Marquardt iterations, default 100.
@@ -261,9 +263,11 @@ def refine_gnc(graph: PoseGraph, start: np.ndarray, params: BatchParams) -> tupl
     starts from the previous one's result, as in the paper's Algorithm 1, where GTSAM's
     restarts from the initial values every time. On manhattan with 1000 wrong loops GTSAM's
     own had not finished after 4 times plain LM's time from the odometry, nor after 7 from
-    the DCS solution (see docs/benchmarks/posegraph.md for this one's). At convergence
-    the weights are 0 or 1 and the result is the least-squares optimum over the odometry
-    and the loops kept.
+    the DCS solution (see docs/benchmarks/posegraph.md for this one's). The schedule and
+    the descents look at each loop's own chi2 at the solution; the end is a local search
+    by what a loop would do to the cost if it came in or went out
+    (:meth:`_LoopSolver.local_search`). At convergence the weights are 0 or 1 and the
+    result is the least-squares optimum over the odometry and the loops kept.
     """
     ids = graph.ids
     sol = _LoopSolver(graph, params)
@@ -281,8 +285,8 @@ def refine_gnc(graph: PoseGraph, start: np.ndarray, params: BatchParams) -> tupl
     # start puts within the threshold, re-solved until the set stops changing). Where the
     # start is already good (DCS from the odometry on manhattan with 1000 wrong loops) this
     # keeps its right loops; the graduated schedule below (candidate B) can lose a cluster
-    # of right loops on the way (there: 11, a corner of the map misplaced, 13 mm ATE). Where
-    # the start is poor (DCS on CSAIL with 100 wrong loops, 3.5 m ATE) the schedule finds
+    # of right loops on the way (there: 11, a corner of the map misplaced, 13 mm APE aligned). Where
+    # the start is poor (DCS on CSAIL with 100 wrong loops, 3.5 m APE aligned) the schedule finds
     # what descent cannot. The lower truncated cost wins.
     cand_a = sol.descent((values, poses, weights, r))
     mu = max(c / (2.0 * r_max - c), 1e-6)
