@@ -399,7 +399,11 @@ class _LoopSolver:
             values, _poses, weights, _r = best
             fg = self.build(weights)
             out, kept = np.flatnonzero(weights < 0.5), np.flatnonzero(weights >= 0.5)
-            marginals = gtsam.Marginals(fg, values)
+            try:
+                marginals = gtsam.Marginals(fg, values)
+            except RuntimeError as exc:  # e.g. a run tied to the rest by loops all left out
+                log.debug("GNC: no local search (%s)", str(exc).strip().splitlines()[0] if str(exc).strip() else exc)
+                break
             inn = _edge_statistic(marginals, values, [self.loops[n] for n in out], +1.0)
             loo = _edge_statistic(marginals, values, [self.loops[n] for n in kept], -1.0)
             back = out[np.argsort(inn)][:int((inn <= self.c).sum())]

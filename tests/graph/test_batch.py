@@ -307,3 +307,4 @@ def test_gnc_drops_a_kept_loop_whose_own_chi2_is_within_the_threshold_but_its_le
     assert np.array_equal(out[2], [0.0])
     assert sol.tls_cost(out[1]) == pytest.approx(30.0, abs=1e-6)
     assert np.allclose(out[1][:, 0], [0.0, 1.0, 2.0, 3.0], atol=1e-6)
+
