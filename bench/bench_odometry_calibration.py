@@ -15,8 +15,9 @@ N``), two parts:
    the calibrated model at most a fifth of the nominal one; fused better).
 
 Run: ``.venv/bin/python bench/bench_odometry_calibration.py --calibration '/tmp/cal{seed}.yml'
-[--seeds 0,1,2,3,4] [--markdown docs/benchmarks/odometry_calibration.md]``. About a minute
-per seed; ``--full`` is the same (the cost is in making the calibration drives, minutes
+[--seeds 0,1,2,3,4] [--markdown docs/benchmarks/odometry_calibration.md]``, or
+``--synthetic-reference figure8 [--laps 3]`` for the fit alone against the true trajectory
+(the route driven that many times). About a minute per seed; ``--full`` is the same (the cost is in making the calibration drives, minutes
 each, not here).
 """
 
