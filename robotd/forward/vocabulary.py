@@ -425,13 +425,8 @@ class BinaryWordTree:
             dist = hamming_bits(q[:, None, :], self._centre[cand])
             dist[cand < 0] = _FAR
             dist[rows, np.argmin(dist[:, :b], axis=1)] = -1           # the greedy child: kept, first
-            k = min(beam, cand.shape[1])
-            if k < cand.shape[1]:
-                keep = np.argpartition(dist, k - 1, axis=1)[:, :k]
-            else:
-                keep = np.broadcast_to(np.arange(k), (n, k))
-            keep = np.take_along_axis(keep, np.argsort(np.take_along_axis(dist, keep, axis=1), axis=1), axis=1)
-            front = np.take_along_axis(cand, keep, axis=1)
+            keep = np.argsort(dist, axis=1, kind="stable")[:, :beam]
+            front = cand[rows[:, None], keep]
 
     def nearest(self, q: np.ndarray, beam: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The nearest word found for each query (``(N, 4) uint64``): ``(word ids (N,)
@@ -447,14 +442,22 @@ class BinaryWordTree:
         if not n or not self.n_live:
             return none
         leaves = self._descend(q, beam or self.params.beam)
-        rows = np.where(leaves >= 0, self._leaf_row[np.maximum(leaves, 0)], -1)
-        rows = np.where(rows >= 0, rows, self._empty_row())
-        slots = self._pool[rows].reshape(n, -1)                      # (N, beam * leaf), -1 empty
-        d0 = np.bitwise_count(q[:, 0:1] ^ self._desc[slots, 0])      # slot -1: the spare last row
-        qi, kj = np.nonzero((d0 <= _PREFILTER_BITS) & (slots >= 0))
-        if not len(qi):
+        pair_q, pair_k = np.nonzero(leaves >= 0)                     # (query, leaf) pairs, by query
+        rows = self._leaf_row[leaves[pair_q, pair_k]]
+        fill = self._fill[rows]
+        total = int(fill.sum())
+        if not total:
             return none
-        s = slots[qi, kj]
+        # the filled part of each pair's leaf only: flat pool positions, and their query
+        first = np.cumsum(fill) - fill
+        pos = np.repeat(rows.astype(np.int64) * self.params.leaf_size - first, fill) + np.arange(total)
+        slots = self._pool.reshape(-1)[pos]
+        owner = np.repeat(pair_q, fill)
+        d0 = np.bitwise_count(q[owner, 0] ^ self._desc[slots, 0])
+        keep = np.flatnonzero(d0 <= _PREFILTER_BITS)
+        if not len(keep):
+            return none
+        qi, s = owner[keep], slots[keep]
         full = hamming_bits(q[qi], self._desc[s])
         # per query (qi comes sorted): the nearest, ties to the lowest slot
         key = (full.astype(np.int64) << 32) | s.astype(np.int64)
@@ -464,12 +467,6 @@ class BinaryWordTree:
         words[qi[start]] = self._slot_word[best & 0xFFFFFFFF]
         dist[qi[start]] = (best >> 32).astype(np.int32)
         return words, dist
-
-    def _empty_row(self) -> int:
-        """A pool row of no leaf, all -1 (the pool's spare last row, made when needed)."""
-        self._pool = self._grow(self._pool, self._n_rows + 1, -1)
-        self._pool[self._n_rows] = -1
-        return self._n_rows
 
     # -- changes --------------------------------------------------------------------------
     def add(self, words: np.ndarray, q: np.ndarray) -> None:
