@@ -276,7 +276,7 @@ def page(res: dict) -> list[str]:
              f"Machine and versions: {m.get('machine')}, cpu_count {m.get('cpu_count')}, python {m.get('python')}, "
              f"numpy {m.get('numpy')}, opencv {m.get('opencv')}. Command: `{res['command']}`.",
              "",
-             "## The default detector on the development sequences, two word searches",
+             "## The default detector on the development sequences, with each word search",
              "",
              "`tree`: robotd's own incremental k-medians tree over the binary words (the default, a beam of "
              "4 leaves); `tree, beam 8`: the same scanning 8 leaves; `usearch`: the HNSW graph it replaces. "
@@ -296,6 +296,12 @@ def page(res: dict) -> list[str]:
                          f"{r['words_ms_median']:.1f} | {r['searchable_words']} | {r['ram_bytes_per_image']:.0f} "
                          f"({parts['images']:.0f} + {parts['index']:.0f} + {parts['vocabulary']:.0f}) | "
                          + (f"{mf:.0f} |" if mf is not None else "- |"))
+    for sname, s in res.get("sequences", {}).items():
+        mf = s["variants"].get("tree", {}).get("map_file")
+        if mf:
+            lines += ["", f"{sname}: the map file read back and a new detector restored from it (its word "
+                          f"tree rebuilt from the stored words) in {mf['restore_s']:.1f} s, "
+                          f"{mf['restored_searchable_words']} searchable words."]
     sc = res.get("scale")
     if sc:
         lines += ["",
@@ -337,6 +343,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", choices=("sequences", "scale"), default=None)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--update", action="store_true",
+                    help="keep the parts of --out's earlier result that this run does not redo (with --only)")
     ap.add_argument("--page", type=Path, default=None, metavar="JSON",
                     help="only rewrite docs/benchmarks/forward_scale.md from this result")
     args = ap.parse_args(argv)
@@ -348,6 +356,12 @@ def main(argv: list[str] | None = None) -> int:
     res: dict[str, object] = {"benchmark": "forward_scale", "machine": {**machine_info(), "opencv": cv2.__version__},
                               "command": " ".join(["bench/bench_forward_scale.py", *(argv if argv is not None else sys.argv[1:])]),
                               "sequences": {}}
+    if args.update and args.out.exists():
+        earlier = json.loads(args.out.read_text(encoding="utf-8"))
+        res["sequences"] = earlier.get("sequences", {}) if args.only == "scale" else {}
+        if args.only == "sequences" and "scale" in earlier:
+            res["scale"] = earlier["scale"]
+        res["command"] = f"{earlier.get('command')}; then {res['command']}"
     office = office_sequence(args.dir)
     if args.only in (None, "sequences"):
         rt = args.data / "forward" / "rtabmap_samples"
