@@ -595,7 +595,7 @@ class _GrowingInts:
     """An integer array (int32 unless told) that grows by doubling (amortised O(1) append)."""
 
     def __init__(self, dtype: type = np.int32) -> None:
-        self._a = np.zeros(64, dtype)
+        self._a: np.ndarray = np.zeros(64, dtype)
         self.n = 0
 
     def resize(self, n: int) -> None:
