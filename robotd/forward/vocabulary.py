@@ -122,8 +122,8 @@ class Vocabulary:
             self._radius = float(params.word_radius_l2) ** 2  # usearch returns squared L2
         self._n_words = 0
         self._images = 0                        # add() calls so far (one per image)
-        self._born = _GrowingInts()             # per word: the image (add() call) that made it
-        self._seen = _GrowingInts()             # per word: images it was found in
+        self._first = _GrowingInts()            # per image (add() call): the first word id it made
+        self._seen = _GrowingInts(np.uint8)     # per word: images it was found in, counted to 2
         self._unpurged_from = 0                 # words below this id were all examined
         self.purged = 0
         # What the last add() changed, for a store to write (robotd.io.store, issue 24):
@@ -138,7 +138,7 @@ class Vocabulary:
         """Bytes of the word search (the tree's arrays, or usearch's own figure; reserved
         capacity included) and the per-word counters."""
         search = self._tree.memory_bytes() if self._tree is not None else int(self._index.memory_usage)
-        return search + self._born.nbytes + self._seen.nbytes
+        return search + self._first.nbytes + self._seen.nbytes
 
     @property
     def n_searchable(self) -> int:
@@ -212,11 +212,13 @@ class Vocabulary:
         """
         d = self._check(descriptors)
         words = self.quantize(d)
+        self._first.resize(self._images + 1)
+        self._first.view[self._images] = self._n_words
         self._images += 1
         self.last_new = (np.zeros(0, np.int64), d[:0])
         self.last_purged = np.zeros(0, np.int64)
         found = np.unique(words[words >= 0])
-        self._seen.view[found] += 1
+        self._seen.view[found] = np.minimum(self._seen.view[found], 1) + 1  # only "more than once" matters
         new = np.flatnonzero(words < 0)
         if not len(new):
             self._purge()
@@ -228,9 +230,7 @@ class Vocabulary:
         else:
             self._index.add(keys, d[new[founders]], threads=1)
         self._n_words += len(founders)
-        n0 = self._born.n
-        self._born.resize(n0 + len(founders))
-        self._born.view[n0:] = self._images - 1
+        n0 = self._seen.n
         self._seen.resize(n0 + len(founders))
         self._seen.view[n0:] = 1
         words[new] = self._n_words - len(founders) + owner
@@ -258,10 +258,12 @@ class Vocabulary:
         elif len(keep):
             self._index.add(keep.astype(np.int64), d[keep], threads=1)
         self._n_words = n
-        self._born.resize(n)
-        self._born.view[:] = born
+        if len(born) and (np.any(np.diff(born) < 0) or born[0] < 0 or born[-1] >= max(int(n_images), 1)):
+            raise ValueError("born must not decrease and must lie in 0 .. n_images - 1 (words are made in image order)")
+        self._first.resize(int(n_images))
+        self._first.view[:] = np.searchsorted(born, np.arange(int(n_images)), side="left")
         self._seen.resize(n)
-        self._seen.view[:] = np.asarray(seen, np.int64)
+        self._seen.view[:] = np.minimum(np.asarray(seen, np.int64), 2)
         self._images = int(n_images)
         self.purged = int(purged.sum())
         age = self.params.purge_after
@@ -275,8 +277,10 @@ class Vocabulary:
         if age <= 0:
             return
         limit = self._images - 1 - age          # words born at or before this image are due
+        if limit < 0:
+            return
         lo = self._unpurged_from
-        hi = lo + int(np.searchsorted(self._born.view[lo:], limit, side="right"))
+        hi = int(self._first.view[limit + 1])   # the first word made after image ``limit``
         if hi <= lo:
             return
         gone = lo + np.flatnonzero(self._seen.view[lo:hi] <= 1)
