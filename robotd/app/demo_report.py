@@ -132,8 +132,8 @@ def print_summary(s: Summary, f: TextIO) -> None:
         how = (f"{v.get('vo_combined', 0)} graph edges combined with the wheel + gyro edge, "
                f"{v.get('vo_disagreed', 0)} steps left out (disagreeing with it); the live filter "
                f"fused {v.get('vo_fused', 0)}, its gate refused {v.get('vo_rejected_by_filter', 0)}"
-               if v["mode"] == "fused" else f"{v.get('vo_fallback', 0)} fell back to the wheel + gyro edge")
-        print(f"floor visual odometry ({v['mode']}): {v.get('vo_ok', 0)} of {v.get('vo_steps', 0)} steps "
+               if v["role"] == "fused" else f"{v.get('vo_fallback', 0)} fell back to the wheel + gyro edge")
+        print(f"floor visual odometry ({v['role']}): {v.get('vo_ok', 0)} of {v.get('vo_steps', 0)} steps "
               f"measured; {how}", file=f)
     fw = s.get("forward_detector")
     if fw:

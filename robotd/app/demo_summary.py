@@ -97,7 +97,7 @@ def summarise(cfg: Config, cam_model: FloorCameraModel, robot: VirtualRobot, obs
                           "faults_injected": robot.base.frames.injected,
                           "odometry_degraded_episodes": c.get("odometry_degraded_episodes", 0)}
     if cfg.visual_odometry.enabled:
-        summary["visual_odometry"] = {"mode": cfg.visual_odometry.role,
+        summary["visual_odometry"] = {"role": cfg.visual_odometry.role,
                                       **{k: v for k, v in c.items() if k.startswith("vo_")}}
     fd = cfg.floor_detector
     if fd.enabled and obs.keyframe_ids:
