@@ -8,6 +8,8 @@ run, one thread (OpenCV and numpy's BLAS, :func:`floor_common.one_thread`):
 * Fig. 4: local features per frame and bytes per frame per mode, with the share of the
   mode's byte budget used (target: never above it, >= 85 % used on textured floors);
   SIFT's size as ``features x 128`` float32 (OpenCV's output) and as uint8;
+* OpenCV ORB (500 keypoints, ``cv2.ORB_create()``'s default) extraction on the same
+  frames, the cheap binary baseline a user might pick instead;
 * Table II: matching time per frame pair (``local_score`` on decoded descriptors; SIFT:
   2-NN ratio test and RANSAC) and the ratio SIFT / ours (target: >= 50x). Pairs are the
   consecutive frames of the run and as many random pairs of frames of it.
@@ -17,8 +19,11 @@ brick, the herringbone photo, the default mixed floor, and every ``--floor FILE`
 Times are the median over frames (or pairs) of each item's median over ``--repeats``
 timed calls after a warm-up; the spread is the interquartile range over items.
 
-Run from the repo root: ``.venv/bin/python bench/bench_floor_descriptor.py [--out DIR]``.
-Writes ``DIR/floor_descriptor.json`` and ``DIR/floor_descriptor_features.png``.
+Times are CPU seconds of the calling thread (:func:`floor_common.time_each`).
+
+Run from the repo root: ``.venv/bin/python bench/bench_floor_descriptor.py [--out DIR]
+[--doc docs/benchmarks/floor_descriptor.md]``. Writes ``DIR/floor_descriptor.json`` and
+``DIR/floor_descriptor_features.png``, and with ``--doc`` the Markdown page of the run.
 """
 
 from __future__ import annotations
@@ -27,14 +32,15 @@ import argparse
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 try:
-    from bench.common import print_table, write_json
+    from bench.common import print_table, write_json, write_page
     from bench.floor_common import (MODES, SiftBaseline, add_common_args, bench_floors, header,
                                     load_average, log, one_thread, pyplot, r, time_each)
 except ImportError:  # run as a script: bench/ is on sys.path
-    from common import print_table, write_json
+    from common import print_table, write_json, write_page
     from floor_common import (MODES, SiftBaseline, add_common_args, bench_floors, header,
                               load_average, log, one_thread, pyplot, r, time_each)
 
@@ -95,8 +101,14 @@ def bench_floor(name: str, floor: object, args: argparse.Namespace, sift: SiftBa
         "score_consecutive_mean": float(scores[: len(consecutive)].mean()),
         "score_random_mean": float(scores[len(consecutive):].mean()),
     }
+    log(f"  {name}: ORB")
+    orb = cv2.ORB_create()
+    t_orb = time_each(lambda im: orb.detectAndCompute(im, None), images, args.repeats, warmup=2)
+    out["orb"] = {"extract": t_orb,
+                  "features_mean": float(np.mean([len(orb.detect(im, None)) for im in images]))}
     for mode in MODES:
         m = out["modes"][str(mode)]
+        m["extract_ratio_orb"] = t_orb["median_ms"] / m["extract"]["median_ms"]
         m["extract_ratio_sift"] = t_ext["median_ms"] / m["extract"]["median_ms"]
         m["match_ratio_sift"] = t_match["median_ms"] / m["match"]["median_ms"]
         m["bytes_ratio_sift_uint8"] = out["sift"]["bytes_uint8_mean"] / m["bytes_mean"]
@@ -139,6 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     add_common_args(ap)
     ap.add_argument("--frames", type=int, default=30, help="frames per floor, 5 cm apart (default 30)")
     ap.add_argument("--repeats", type=int, default=3, help="timed calls per frame or pair, ours (default 3)")
+    ap.add_argument("--doc", type=Path, default=None, help="also write the Markdown page of the run here")
     ap.add_argument("--sift-repeats", type=int, default=1,
                     help="timed calls per frame or pair, SIFT (default 1: it is 10-1000x slower)")
     args = ap.parse_args(argv)
@@ -160,15 +173,17 @@ def main(argv: list[str] | None = None) -> int:
 
     mode_cols = [f"m{m}" for m in MODES]
     print("\nTable I: extraction time per 640x480 frame, ms (median over frames; one thread)")
-    print_table(["floor", *mode_cols, "SIFT"],
-                [[res["floor"], *per_mode(res, "extract", "median_ms"), r(res["sift"]["extract"]["median_ms"], 1)]
-                 for res in results])
+    print_table(["floor", *mode_cols, "SIFT", "ORB"],
+                [[res["floor"], *per_mode(res, "extract", "median_ms"), r(res["sift"]["extract"]["median_ms"], 1),
+                  r(res["orb"]["extract"]["median_ms"], 2)] for res in results])
     print("\n  spread (IQR over frames), ms")
     print_table(["floor", *mode_cols, "SIFT"],
                 [[res["floor"], *per_mode(res, "extract", "iqr_ms"), r(res["sift"]["extract"]["iqr_ms"], 1)]
                  for res in results])
     print("\n  SIFT / ours (target >= 10)")
     print_table(["floor", *mode_cols], [[res["floor"], *per_mode(res, "extract_ratio_sift", nd=1)] for res in results])
+    print("\n  ORB / ours")
+    print_table(["floor", *mode_cols], [[res["floor"], *per_mode(res, "extract_ratio_orb", nd=2)] for res in results])
 
     print("\nFig. 4: local features per frame (mean; SIFT: keypoints)")
     print_table(["floor", *mode_cols, "SIFT"],
@@ -220,7 +235,51 @@ def main(argv: list[str] | None = None) -> int:
     payload["floors"] = results
     out = write_json(args.out / "floor_descriptor.json", payload)
     print(f"\nwrote {out} and {png}")
+    if args.doc is not None:
+        write_page(args.doc, markdown(payload))
+        print(f"wrote {args.doc}")
     return 0
+
+
+def markdown(p: dict) -> list[str]:
+    """The page of a run: extraction against SIFT and ORB, bytes, matching."""
+    floors = p["floors"]
+    m = p["machine"]
+    cols = [f"m{k}" for k in MODES]
+
+    def row(cells: list[object]) -> str:
+        return "| " + " | ".join(str(c) for c in cells) + " |"
+
+    def head(names: list[str]) -> list[str]:
+        return [row(names), "|" + "---|" + "---:|" * (len(names) - 1)]
+
+    lines = ["# The floor descriptor against OpenCV SIFT and ORB (`./dev bench floor_descriptor`)", "",
+             "Generated from `floor_descriptor.json` by `bench/bench_floor_descriptor.py --doc`; the script's",
+             "docstring says what is measured. CPU ms of one thread per 640 x 480 frame of the virtual",
+             f"floor camera ({p['settings']['frames_per_floor']} frames 5 cm apart per floor), median over frames,",
+             "measured on a machine shared with other jobs: read the ratios, which come from one run.", "",
+             f"Machine: {m.get('platform', '')}, {m.get('cpu_count', '?')} CPUs, load average "
+             f"{m.get('load_average_start')} at the start.", "",
+             "Extraction, ms:", "", *head(["floor", *cols, "SIFT", "ORB (500)"])]
+    for res in floors:
+        lines.append(row([res["floor"], *[f"{res['modes'][str(k)]['extract']['median_ms']:.2f}" for k in MODES],
+                          f"{res['sift']['extract']['median_ms']:.1f}", f"{res['orb']['extract']['median_ms']:.2f}"]))
+    lines += ["", "SIFT / ours and ORB / ours (above 1: ours is faster):", "", *head(["floor", *cols])]
+    for res in floors:
+        lines.append(row([res["floor"], *[f"{res['modes'][str(k)]['extract_ratio_sift']:.1f} / "
+                                          f"{res['modes'][str(k)]['extract_ratio_orb']:.2f}" for k in MODES]]))
+    lines += ["", "Bytes per frame, mean (largest) against the bound, and local features:", "",
+              *head(["floor", *[f"m{k} / {MODE_BYTES[k]}" for k in MODES], "SIFT keypoints"])]
+    for res in floors:
+        lines.append(row([res["floor"], *[f"{res['modes'][str(k)]['bytes_mean']:.0f} ({res['modes'][str(k)]['bytes_max']}),"
+                                          f" {res['modes'][str(k)]['features_mean']:.0f} kp" for k in MODES],
+                          f"{res['sift']['features_mean']:.0f}"]))
+    lines += ["", "Matching a pair of decoded descriptors (`local_score`), ms, and SIFT's 2-NN + RANSAC:", "",
+              *head(["floor", *cols, "SIFT"])]
+    for res in floors:
+        lines.append(row([res["floor"], *[f"{res['modes'][str(k)]['match']['median_ms']:.3f}" for k in MODES],
+                          f"{res['sift']['match']['median_ms']:.1f}"]))
+    return lines + [""]
 
 
 if __name__ == "__main__":

@@ -141,7 +141,8 @@ def print_summary(s: Summary, f: TextIO) -> None:
         print(f"forward loops: {fw['images']} forward keyframes ({fw['unsynced']} without a frame in time), "
               f"{fw['verified_loops']} loops verified, {fw['verified_right']} of them right by the truth "
               f"(heading within {FORWARD_YAW_OK_DEG:g} deg, bearing within {FORWARD_BEARING_OK_DEG:g} deg)", file=f)
-        print(f"  into the pose graph: {fw['accepted']} accepted ({fw['accepted_right']} right), "
+        print(f"  into the pose graph: {fw['accepted']} accepted ({fw['accepted_right']} right, "
+              f"{fw['accepted'] - fw['accepted_right']} wrong), "
               f"{fw['refused_by_gate']} refused by the gate, {fw['not_planar']} not planar; "
               f"{fw['failed_verification']} candidates failed the epipolar check", file=f)
         print(f"  per forward keyframe: median {fw['ms_per_image_median']} ms, p99 {fw['ms_per_image_p99']} ms; "
@@ -153,7 +154,8 @@ def print_summary(s: Summary, f: TextIO) -> None:
               f"{rl['carried_m']:.1f} m; lifts detected {rl['lifts_detected']}, odometry chain broken "
               f"{rl['odometry_breaks']}x", file=f)
         if rl.get("relocalised"):
-            print(f"  relocalised against run {rl['against_run']} {rl['after_s']:.1f} s and "
+            print(f"  relocalised against run {rl['against_run']} by the {rl.get('cameras', 'floor')} camera "
+                  f"{rl['after_s']:.1f} s and "
                   f"{rl['after_m_true']:.2f} m (odometry: {rl['after_m_daemon']:.2f} m) after being put down, "
                   f"{rl['agreeing_candidates']} agreeing candidates; pose error then "
                   f"{rl['position_error_m']:.3f} m, {rl['heading_error_deg']:.2f} deg", file=f)

@@ -187,7 +187,7 @@ def relocalisation_evaluation(truth: GroundTruth, kidnap: tuple[float, float, fl
     err = between(truth.pose_at(t_s), compose(to_world, np.asarray(r["pose"])))
     out.update({"relocalised": True, "against_run": r["run"], "after_s": t_s - put_down_s,
                 "after_s_daemon": r["after_s"], "after_m_daemon": r["after_m"], "after_m_true": true_m,
-                "agreeing_candidates": r["candidates"],
+                "agreeing_candidates": r["candidates"], "cameras": r.get("cameras", "floor"),
                 "position_error_m": float(np.hypot(err[0], err[1])),
                 "heading_error_deg": float(abs(np.degrees(wrap_angle(err[2]))))})
     return out

@@ -32,21 +32,52 @@ def cells(xy: np.ndarray, grid_w: int, grid_h: int) -> np.ndarray:
 
 def size(spec: ModeSpec, cells_sorted: np.ndarray) -> int:
     n = len(cells_sorted)
-    gaps = np.diff(cells_sorted, prepend=0)
+    gaps = np.empty_like(cells_sorted)
+    if n:
+        gaps[0] = cells_sorted[0]
+        np.subtract(cells_sorted[1:], cells_sorted[:-1], out=gaps[1:])
     k, unary = rice_k(gaps)
     return (HEADER.size + spec.global_bits // 8 + -(-n * k // 8) + -(-n * ANGLE_BITS // 8)
             + -(-n * spec.length // 5) + -(-unary // 8))
 
 
-def fit(spec: ModeSpec, cells: np.ndarray) -> int:
+def fit(spec: ModeSpec, cells: np.ndarray, hint: int | None = None) -> int:
     """Largest prefix of ``cells`` (relevance order) whose encoding fits ``spec.bytes``.
 
-    The size grows strictly with every keypoint added (binary search is exact).
+    The size grows strictly with every keypoint added, so a search is exact: from
+    ``hint`` (default: the count an average keypoint's bytes would give) it gallops to a
+    bracket, then halves it.
     """
-    lo, hi = 0, min(len(cells), 65535)
+    top = min(len(cells), 65535)
+
+    def ok(m: int) -> bool:
+        return size(spec, np.sort(cells[:m])) <= spec.bytes
+
+    if hint is None:
+        hint = int((spec.bytes - HEADER.size - spec.global_bits // 8) * 8 / (1.6 * spec.length + ANGLE_BITS + 11))
+    h = min(max(hint, 0), top)
+    step = 4
+    if ok(h):  # answer in [h, top]
+        lo, hi = h, top
+        while lo < top:
+            probe = min(top, lo + step)
+            if not ok(probe):
+                hi = probe - 1
+                break
+            lo = probe
+            step *= 2
+    else:  # answer in [0, h - 1]
+        lo, hi = 0, h - 1
+        while hi > 0:
+            probe = max(0, hi - step + 1)
+            if ok(probe):
+                lo = probe
+                break
+            hi = probe - 1
+            step *= 2
     while lo < hi:
         mid = (lo + hi + 1) // 2
-        if size(spec, np.sort(cells[:mid])) <= spec.bytes:
+        if ok(mid):
             lo = mid
         else:
             hi = mid - 1

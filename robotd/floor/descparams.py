@@ -52,6 +52,10 @@ class ExtractParams:
         edge_ratio: Hessian ratio above which an extremum is an edge and dropped (Lowe: 10).
         orientation_sigma_px: smoothing of the image whose gradient gives the orientation.
         pool_sigma_px: Gaussian pooling of the gradient orientation maps (cell support).
+        pool_step: the pooled maps are kept at every ``pool_step``-th pixel (1 or 2): they
+            are smooth at ``pool_sigma_px``, and 2 pools a quarter of the pixels.
+        orientation_step: likewise for the gradient that gives the keypoints' orientation
+            (smooth at ``orientation_sigma_px``).
         cell_px: distance between the centres of neighbouring descriptor cells.
         max_candidates: cap on the candidates ranked (strongest responses first).
         repeat_distance: a keypoint whose own image holds another keypoint (beyond the
@@ -75,6 +79,8 @@ class ExtractParams:
     edge_ratio: float = 10.0
     orientation_sigma_px: float = 4.0
     pool_sigma_px: float = 2.5
+    pool_step: int = 2
+    orientation_step: int = 2
     cell_px: float = 6.0
     max_candidates: int = 4000
     repeat_distance: float = 0.3
@@ -85,6 +91,7 @@ class ExtractParams:
     def __post_init__(self) -> None:
         if not (self.max_side_px >= 32 and self.detect_sigma_px > 0 and self.dog_ratio > 1
                 and self.edge_ratio > 1 and self.orientation_sigma_px > 0 and self.pool_sigma_px > 0
+                and self.pool_step in (1, 2) and self.orientation_step in (1, 2)
                 and self.cell_px > 0 and self.max_candidates >= 1 and self.global_min_features >= 0
                 and self.repeat_distance >= 0 and self.repeat_pool >= 0):
             raise ValueError(f"extraction parameters out of range: {self}")

@@ -25,9 +25,11 @@ floor's scale barely changes between views, its rotation changes all the time.
    budget is filled greedily in that order.
 3. **Local descriptors** of the selected keypoints only: 4 x 4 cells x 8 orientation
    bins of gradients in a patch rotated to the keypoint's orientation (SIFT-like). The
-   gradient orientation maps are pooled once over the image (as DAISY does) and one
-   ``cv2.remap`` samples every keypoint's rotated 4 x 4 grid; the 8 bins are turned by
-   the keypoint's orientation (linear interpolation between whole-bin shifts).
+   gradient orientation maps are pooled once over the image (as DAISY does), at a quarter
+   of the half-resolution image's pixels (``pool_step``: they are smooth at the pooling
+   scale), and one ``cv2.remap`` samples every keypoint's rotated 4 x 4 grid; the 8 bins
+   are turned by the keypoint's orientation (linear interpolation between whole-bin
+   shifts).
 4. **Compression** (CDVS: a fixed transform of each cell's histogram, then ternary
    quantisation). Each cell's 8 bins become 8 Haar-like sums and differences of
    neighbouring bins (shifted by one bin in every other cell, as CDVS alternates two
@@ -62,6 +64,7 @@ import math
 import struct
 import zlib
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -74,6 +77,7 @@ from robotd.floor.descparams import (
     MAGIC,
     MODE_BYTES,
     MODES,
+    N_ELEMENTS,
     POSITION_STEP_PX,
     VERSION,
     ExtractParams,
@@ -147,7 +151,8 @@ def extract(image: np.ndarray, mode: int, params: ExtractParams | None = None) -
     work = working(grey_img, params)
     wh, ww = work.shape
     grid_w, grid_h = -(-ww // POSITION_STEP_PX), -(-wh // POSITION_STEP_PX)
-    c, raw_checked, n = kept_for_budget(candidates(work, params, learned), params, spec, grid_w, grid_h)
+    c, raw_checked, n = kept_for_budget(candidates(work, params, learned), params, spec, grid_w, grid_h,
+                                         basis=_orthonormal_basis(learned))
     coded = cells(c.xy, grid_w, grid_h)
     m = min(len(c.xy), max(n, params.global_min_features))
     raw = raw_checked[:m] if m <= len(raw_checked) else raw_descriptors(c, m, params)
@@ -173,6 +178,15 @@ def extract(image: np.ndarray, mode: int, params: ExtractParams | None = None) -
     out = head[:16] + struct.pack("<I", crc) + body
     assert len(out) <= spec.bytes, "byte budget overrun"  # guaranteed by _fit
     return out
+
+
+@lru_cache(maxsize=8)
+def _orthonormal_basis(learned: Learned) -> np.ndarray | None:
+    """The learned PCA basis when its columns are orthonormal (an SVD's are), else None:
+    only then does it prefilter the repeat check exactly (:func:`kept_for_budget`)."""
+    b = np.asarray(learned.pca_basis, np.float64)
+    ok = b.ndim == 2 and b.shape[0] == N_ELEMENTS and np.allclose(b.T @ b, np.eye(b.shape[1]), atol=1e-4)
+    return np.asarray(learned.pca_basis, np.float32) if ok else None
 
 
 def _fail(msg: str) -> DescriptorError:

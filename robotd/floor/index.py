@@ -18,7 +18,9 @@ as in CDVS retrieval (paper 003 Sec. II-B: a global score, then a local score):
 
 The cost of a query is therefore ``shortlist`` local matches plus a vectorised scan, so it
 grows far slower than the map (``bench/bench_floor_map.py`` measures it). Memory: the
-global array plus the decoded descriptors (:attr:`FloorIndex.nbytes`).
+global array plus the decoded descriptors (:attr:`FloorIndex.nbytes`), packed into shared
+arrays (:class:`_PackedDescriptors`: about 21 bytes per keypoint in mode 4, no Python
+object per keyframe) and rebuilt for the few keyframes a query scores.
 
 The index holds descriptors of one mode: the first descriptor added fixes the global
 descriptor's length, and a descriptor of another length is refused (ValueError).
@@ -27,6 +29,7 @@ descriptor's length, and a descriptor of another length is refused (ValueError).
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Collection, Iterable
 from dataclasses import dataclass, fields
 from typing import Any
@@ -34,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from robotd.base.errors import DescriptorError
-from robotd.floor.descriptor import FloorDescriptor, decode
+from robotd.floor.descriptor import ANGLE_BITS, FloorDescriptor, decode
 from robotd.floor.match import Matcher, MatchResult, local_score
 
 __all__ = ["Candidate", "FloorIndex", "IndexParams", "LoadReport"]
@@ -126,6 +129,119 @@ def _descriptor_nbytes(descriptor: FloorDescriptor) -> int:
     return total
 
 
+_ANGLE_STEP = 2 * math.pi / 2**ANGLE_BITS
+_ANGLES = (np.arange(2**ANGLE_BITS) * _ANGLE_STEP).astype(np.float32)  # code -> radians, as decode gives them
+
+
+class _PackedDescriptors:
+    """Decoded descriptors of one mode kept in a few shared arrays, not one object each.
+
+    Keypoints sit in chunks of at least ``CHUNK`` rows (a keyframe never straddles two),
+    so growing copies nothing and wastes under one chunk: bit planes as decoded, positions
+    as float16 and orientations as their ``ANGLE_BITS``-bit code while every descriptor
+    added is exactly so representable (a 640 x 480 image's grid positions are, to 1024 px;
+    otherwise float32 for all), and per keyframe its chunk, first row, keypoint count and
+    header fields. :meth:`get` rebuilds a :class:`FloorDescriptor` equal, array for array,
+    to the one added: 21 bytes per keypoint in mode 4 against 28, and no Python objects
+    per keyframe.
+    """
+
+    CHUNK = 1 << 16
+
+    def __init__(self) -> None:
+        self.words = -1  # uint64 words per bit plane, fixed by the first descriptor
+        self.xy_dtype: type = np.float16
+        self.angle_coded = True
+        self.chunks: list[dict[str, np.ndarray]] = []
+        self.used = 0  # rows used in the last chunk
+        self.where = np.zeros((0, 3), np.int64)  # per keyframe: chunk, first row, count
+        self.head = np.zeros((0, 4), np.int64)  # per keyframe: mode, width, height, length
+        self.step = np.zeros(0, np.float64)  # per keyframe: position_step_px
+        self.gbytes = np.zeros((0, 0), np.uint8)  # per keyframe: packed global bits
+        self.n = 0
+
+    def fits(self, d: FloorDescriptor) -> bool:
+        """Whether ``d`` can be packed (a decoded descriptor of this store's plane width)."""
+        return (isinstance(d, FloorDescriptor) and d.local_pos.ndim == 2 and d.local_pos.dtype == np.uint64
+                and d.local_neg.shape == d.local_pos.shape and d.local_neg.dtype == np.uint64
+                and self.words in (-1, d.local_pos.shape[1]) and np.asarray(d.global_bits).dtype == np.uint8
+                and (self.n == 0 or np.asarray(d.global_bits).size == self.gbytes.shape[1]))
+
+    def _chunk(self, words: int, rows: int) -> dict[str, np.ndarray]:
+        return {"pos": np.zeros((rows, words), np.uint64), "neg": np.zeros((rows, words), np.uint64),
+                "xy": np.zeros((rows, 2), self.xy_dtype),
+                "angle": np.zeros(rows, np.uint8 if self.angle_coded else np.float32)}
+
+    def _widen(self, xy: bool, angle: bool) -> None:
+        """Positions to float32, resp. orientations to radians, for every chunk."""
+        if xy:
+            self.xy_dtype = np.float32
+        for c in self.chunks:
+            if xy:
+                c["xy"] = c["xy"].astype(np.float32)
+            if angle:
+                c["angle"] = (c["angle"] * _ANGLE_STEP).astype(np.float32)
+        if angle:
+            self.angle_coded = False
+
+    def add(self, d: FloorDescriptor) -> int:
+        """Pack ``d`` (:meth:`fits` must hold); returns its row."""
+        k, words = len(d.xy_px), d.local_pos.shape[1]
+        self.words = words
+        xy = np.asarray(d.xy_px, np.float32)
+        angle = np.asarray(d.angle_rad, np.float32)
+        code = np.rint(angle / np.float32(_ANGLE_STEP)).astype(np.int64)
+        widen_xy = self.xy_dtype == np.float16 and not np.array_equal(xy.astype(np.float16).astype(np.float32), xy)
+        widen_angle = self.angle_coded and not (
+            np.all((code >= 0) & (code < 2**ANGLE_BITS))
+            and np.array_equal((code * _ANGLE_STEP).astype(np.float32), angle))
+        if widen_xy or widen_angle:
+            self._widen(widen_xy, widen_angle)
+        if not self.chunks or self.used + k > len(self.chunks[-1]["pos"]):
+            self.chunks.append(self._chunk(words, max(self.CHUNK, k)))
+            self.used = 0
+        c, r = self.chunks[-1], self.used
+        c["pos"][r:r + k] = d.local_pos
+        c["neg"][r:r + k] = d.local_neg
+        c["xy"][r:r + k] = xy
+        c["angle"][r:r + k] = code if self.angle_coded else angle
+        self.used += k
+        g = np.asarray(d.global_bits).ravel()
+        if self.n == len(self.where):
+            cap = max(256, 2 * self.n)
+            self.where = np.resize(self.where, (cap, 3))
+            self.head = np.resize(self.head, (cap, 4))
+            self.step = np.resize(self.step, cap)
+            self.gbytes = np.resize(self.gbytes, (cap, g.size))
+        row = self.n
+        self.where[row] = (len(self.chunks) - 1, r, k)
+        self.head[row] = (d.mode, d.width_px, d.height_px, d.length)
+        self.step[row] = d.position_step_px
+        self.gbytes[row] = g
+        self.n += 1
+        return row
+
+    def get(self, row: int) -> FloorDescriptor:
+        """The descriptor of ``row``, rebuilt (its bit planes are read-only views of the
+        shared arrays; a query rebuilds only the keyframes it scores)."""
+        ci, r, k = self.where[row].tolist()
+        c = self.chunks[ci]
+        pos, neg = c["pos"][r:r + k], c["neg"][r:r + k]
+        pos.flags.writeable = neg.flags.writeable = False
+        xy = c["xy"][r:r + k].astype(np.float32)
+        a = c["angle"][r:r + k]
+        angle = _ANGLES[a] if self.angle_coded else a.copy()
+        mode, width, height, length = self.head[row].tolist()
+        return FloorDescriptor(mode, width, height, xy, angle, pos, neg, length, self.gbytes[row].copy(),
+                               float(self.step[row]))
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of every array held (chunks whole)."""
+        return int(sum(a.nbytes for c in self.chunks for a in c.values()) + self.where.nbytes + self.head.nbytes
+                   + self.step.nbytes + self.gbytes.nbytes)
+
+
 class FloorIndex:
     """Keyframe descriptors of one mode, queried by global shortlist then local score.
 
@@ -150,16 +266,21 @@ class FloorIndex:
         self._bits = 0  # global descriptor length, bits
         self._global = np.zeros((0, 0), np.uint64)  # (capacity, words)
         self._ids = np.zeros(0, np.int64)  # (capacity,)
-        self._descriptors: list[FloorDescriptor] = []  # row -> descriptor
+        # row -> packed row (>= 0), or -1 - i for the i-th descriptor kept as it is
+        # (stand-ins and descriptors the packed store does not take).
+        self._slot = np.zeros(0, np.int64)
+        self._packed = _PackedDescriptors()
+        self._objects: list[Any] = []
+        self._n = 0
         self._row_of: dict[int, int] = {}
-        self._local_nbytes = 0
+        self._local_nbytes = 0  # of the descriptors kept as they are
         self.local_matches = 0
         self.load_report: LoadReport | None = None
 
     # ------------------------------------------------------------------ building
 
     def __len__(self) -> int:
-        return len(self._descriptors)
+        return self._n
 
     def __contains__(self, keyframe_id: object) -> bool:
         return keyframe_id in self._row_of
@@ -177,8 +298,10 @@ class FloorIndex:
     @property
     def nbytes(self) -> int:
         """Memory held by the index: the global array (whole capacity), the id array and
-        the decoded descriptors' arrays. Python object overhead is not counted."""
-        return int(self._global.nbytes + self._ids.nbytes + self._local_nbytes)
+        the decoded descriptors' arrays (packed: :class:`_PackedDescriptors`, whole
+        chunks). Python object overhead is not counted."""
+        return int(self._global.nbytes + self._ids.nbytes + self._slot.nbytes + self._packed.nbytes
+                   + self._local_nbytes)
 
     def add(self, keyframe_id: int, descriptor: FloorDescriptor) -> None:
         """Index a keyframe's decoded descriptor.
@@ -190,27 +313,37 @@ class FloorIndex:
         if keyframe_id in self._row_of:
             raise ValueError(f"keyframe {keyframe_id} is already in the index")
         g = _global_bytes(descriptor)
-        if not self._descriptors and self._words == 0:
+        if not self._n and self._words == 0:
             self._bits = 8 * g.size
             self._words = max(1, -(-g.size // 8))
             cap = self.params.initial_capacity
             self._global = np.zeros((cap, self._words), np.uint64)
             self._ids = np.zeros(cap, np.int64)
+            self._slot = np.zeros(cap, np.int64)
         elif 8 * g.size != self._bits:
             raise ValueError(
                 f"keyframe {keyframe_id}: global descriptor of {8 * g.size} bits, the index holds"
                 f" {self._bits}-bit descriptors (one mode per index)"
             )
-        row = len(self._descriptors)
+        row = self._n
         if row == self._global.shape[0]:
             self._grow()
         padded = np.zeros(8 * self._words, np.uint8)
         padded[: g.size] = g
         self._global[row] = padded.view(np.uint64)
         self._ids[row] = keyframe_id
-        self._descriptors.append(descriptor)
+        if self._packed.fits(descriptor):
+            self._slot[row] = self._packed.add(descriptor)
+        else:
+            self._slot[row] = -1 - len(self._objects)
+            self._objects.append(descriptor)
+            self._local_nbytes += _descriptor_nbytes(descriptor)
         self._row_of[keyframe_id] = row
-        self._local_nbytes += _descriptor_nbytes(descriptor)
+        self._n += 1
+
+    def _stored(self, row: int) -> Any:
+        slot = int(self._slot[row])
+        return self._packed.get(slot) if slot >= 0 else self._objects[-1 - slot]
 
     def _grow(self) -> None:
         cap = 2 * self._global.shape[0]
@@ -218,7 +351,9 @@ class FloorIndex:
         bigger[: self._global.shape[0]] = self._global
         ids = np.zeros(cap, np.int64)
         ids[: self._ids.shape[0]] = self._ids
-        self._global, self._ids = bigger, ids
+        slot = np.zeros(cap, np.int64)
+        slot[: self._slot.shape[0]] = self._slot
+        self._global, self._ids, self._slot = bigger, ids, slot
 
     @classmethod
     def from_store(cls, store: Any, mode: int, params: IndexParams | None = None,
@@ -288,6 +423,8 @@ class FloorIndex:
         predicate: Callable[[int], bool] | None = None
         if callable(exclude_ids):
             predicate = exclude_ids
+        elif isinstance(exclude_ids, np.ndarray):  # no Python loop over a large array of ids
+            valid &= ~np.isin(ids, exclude_ids.ravel().astype(np.int64, copy=False))
         elif exclude_ids is not None:
             excluded = np.fromiter((int(i) for i in exclude_ids), np.int64)
             valid &= ~np.isin(ids, excluded)
@@ -345,7 +482,7 @@ class FloorIndex:
         candidates = []
         matcher = Matcher(descriptor, self.params.match_params) if self._default_scorer and short else None
         for kf, g in short:
-            stored = self._descriptors[self._row_of[kf]]
+            stored = self._stored(self._row_of[kf])
             result = (matcher.score(stored, min_score) if matcher is not None
                       else self._scorer(descriptor, stored))
             self.local_matches += 1
@@ -362,7 +499,7 @@ class FloorIndex:
 
     def descriptor(self, keyframe_id: int) -> FloorDescriptor:
         """The indexed descriptor of a keyframe; KeyError if it is not indexed."""
-        return self._descriptors[self._row_of[int(keyframe_id)]]
+        return self._stored(self._row_of[int(keyframe_id)])
 
     def extend(self, items: Iterable[tuple[int, FloorDescriptor]]) -> None:
         """:meth:`add` each ``(keyframe_id, descriptor)``."""

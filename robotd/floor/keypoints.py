@@ -5,6 +5,7 @@ descriptors of the selected keypoints."""
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from typing import NamedTuple
 
 import cv2
@@ -97,9 +98,19 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None)
     oy = np.clip((dxy * gx - dxx * gy) / det, -0.5, 0.5)
     xy_half = np.column_stack([xs + ox, ys + oy]).astype(np.float32)
     # Orientation: gradient of the image smoothed at orientation_sigma_px, at the keypoint.
-    go = cv2.GaussianBlur(x, (0, 0), params.orientation_sigma_px)
-    grad = cv2.merge([cv2.Sobel(go, cv2.CV_32F, 1, 0, ksize=1), cv2.Sobel(go, cv2.CV_32F, 0, 1, ksize=1)])
-    v = cv2.remap(grad, np.ascontiguousarray(xy_half[:, :1]), np.ascontiguousarray(xy_half[:, 1:]),
+    # With orientation_step 2 it is taken on g1 halved (area averaging), smoothed by what
+    # the sigma lacks after g1's and the halving's smoothing, and scaled back to
+    # half-resolution pixels; the pooled maps start from the same halved image.
+    quarter = (cv2.resize(g1, (w2 // 2, h2 // 2), interpolation=cv2.INTER_AREA)
+               if 2 in (params.orientation_step, params.pool_step) else g1)
+    if params.orientation_step == 2:
+        so = math.sqrt(max(params.orientation_sigma_px**2 - s * s - 0.25, 0.25)) / 2
+        go, at, gain = cv2.GaussianBlur(quarter, (0, 0), so), (xy_half - 0.5) * 0.5, 0.5
+    else:
+        go, at, gain = cv2.GaussianBlur(x, (0, 0), params.orientation_sigma_px), xy_half, 1.0
+    grad = cv2.merge([cv2.Sobel(go, cv2.CV_32F, 1, 0, ksize=1, scale=gain),
+                      cv2.Sobel(go, cv2.CV_32F, 0, 1, ksize=1, scale=gain)])
+    v = cv2.remap(grad, np.ascontiguousarray(at[:, :1]), np.ascontiguousarray(at[:, 1:]),
                   cv2.INTER_LINEAR).reshape(-1, 2)
     angle = np.arctan2(v[:, 1], v[:, 0]).astype(np.float32) % np.float32(2 * math.pi)
     xy = xy_half * 2 + 0.5  # half-resolution pixel centre -> working-image pixels
@@ -113,30 +124,46 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None)
         for a in range(N_ATTRIBUTES):
             relevance += learned.rel_logp[a][np.searchsorted(learned.rel_edges[a], attributes[:, a])]
     order = np.argsort(-relevance, kind="stable")
-    pooled = _pooled_orientation_maps(g1, params.pool_sigma_px)
+    if params.pool_step == 2:  # the halving's smoothing and the sampling's bilinear interpolation deducted
+        pooled = _pooled_orientation_maps(quarter, math.sqrt(max(params.pool_sigma_px**2 - 1.0, 0.25)) / 2)
+    else:
+        pooled = _pooled_orientation_maps(g1, params.pool_sigma_px)
     return Candidates(xy[order], angle[order], attributes[order], relevance[order], pooled)
 
 
 def _pooled_orientation_maps(g: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
-    """8 gradient-orientation channels (each gradient's magnitude split linearly between
-    the two nearest of 8 directions), Gaussian-pooled: two ``(h, w, 4) float32`` images
-    (directions 0-3 and 4-7; OpenCV filters up to 4 channels fastest)."""
+    """8 gradient-orientation channels of ``g`` (each gradient's magnitude split linearly
+    between the two nearest of 8 directions), Gaussian-pooled at ``sigma`` pixels of ``g``:
+    two ``(h, w, 4) float32`` images (directions 0-3 and 4-7; OpenCV filters and remaps up
+    to 4 channels fastest)."""
     mag, ang = cv2.cartToPolar(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=1), cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=1))
-    b = ang.ravel() * np.float32(8 / (2 * math.pi))
+    b = ang * np.float32(8 / (2 * math.pi))
     b0 = b.astype(np.int32)
-    hi = mag.ravel() * (b - b0)
-    npx = len(b)
-    # Direction d of pixel p goes to plane d // 4, slot p * 4 + d % 4; both planes contiguous.
-    base = np.arange(0, 4 * npx, 4, dtype=np.int32)
-    ch = np.zeros(8 * npx, np.float32)
-    d0, d1 = b0 & 7, (b0 + 1) & 7
-    ch[base + (d0 >> 2) * (4 * npx) + (d0 & 3)] = mag.ravel() - hi
-    ch[base + (d1 >> 2) * (4 * npx) + (d1 & 3)] = hi  # never the slot just written
-    ch = ch.reshape((2,) + g.shape + (4,))
+    hi = mag * (b - b0)
+    h, w = g.shape
+    # Direction d of pixel p goes to plane d // 4, slot 4 p + d % 4; both planes contiguous.
+    base, slot = _slots(h, w)
+    ch = np.zeros(8 * h * w, np.float32)
+    b0 &= 7
+    ch[base + slot[b0]] = mag - hi
+    b0 += 1
+    b0 &= 7
+    ch[base + slot[b0]] = hi  # never the slot just written
+    ch = ch.reshape(2, h, w, 4)
     k = 2 * int(math.ceil(2 * sigma)) + 1
     return cv2.GaussianBlur(ch[0], (k, k), sigma), cv2.GaussianBlur(ch[1], (k, k), sigma)
 
 
+@lru_cache(maxsize=4)
+def _slots(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(h, w) int32`` ``4 p`` for pixel ``p`` (row-major), and ``(8,) int32`` the offset
+    of direction ``d`` from it in the two stacked ``(h, w, 4)`` planes."""
+    d = np.arange(8, dtype=np.int32)
+    return np.arange(0, 4 * h * w, 4, dtype=np.int32).reshape(h, w), (d >> 2) * (4 * h * w) + (d & 3)
+
+
+_SHIFTS = np.stack([np.roll(np.eye(8, dtype=np.float32), s, axis=0) for s in range(9)])
+"""``(9, 8, 8)``: ``x @ _SHIFTS[s]`` is ``x`` with element ``j`` taken from ``(s + j) % 8``."""
 _GRID = np.meshgrid(np.arange(4, dtype=np.float32) - 1.5, np.arange(4, dtype=np.float32) - 1.5)
 
 
@@ -155,16 +182,20 @@ def raw_descriptors(c: Candidates, n: int, params: ExtractParams) -> np.ndarray:
     step = np.float32(params.cell_px)
     mx = (xy[:, 0, None, None] + step * (cs * u - sn * v)).reshape(n, 16)
     my = (xy[:, 1, None, None] + step * (sn * u + cs * v)).reshape(n, 16)
+    if params.pool_step == 2:  # pixel centres of the halved maps
+        mx = (mx - 0.5) * 0.5
+        my = (my - 0.5) * 0.5
     smp = np.concatenate([cv2.remap(p, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
-                          for p in c.pooled + c.pooled], axis=2)  # (n, 16, 16): directions 0-7 twice
+                          for p in c.pooled], axis=2)  # (n, 16, 8): directions 0-7
     # Turn the 8 absolute directions into directions relative to the keypoint: relative
-    # bin j is absolute direction angle + j * 45 deg, interpolated between whole bins.
+    # bin j is absolute direction angle + j * 45 deg, interpolated between whole bins,
+    # one 8 x 8 matrix per keypoint (a blend of two circular shifts).
     a = ang * np.float32(8 / (2 * math.pi))
     a0 = a.astype(np.intp) & 7
     f = (a - np.floor(a))[:, None, None]
-    win = np.lib.stride_tricks.sliding_window_view(smp, 8, axis=2)  # (n, 16, 9, 8)
-    rows = np.arange(n)
-    d = win[rows, :, a0] * (1 - f) + win[rows, :, a0 + 1] * f
+    turn = _SHIFTS[a0] * (1 - f)
+    turn += _SHIFTS[a0 + 1] * f
+    d = np.matmul(smp, turn)
     d = d.reshape(n, N_ELEMENTS)
     d *= 1 / np.maximum(np.sqrt(np.einsum("ij,ij->i", d, d)), 1e-12)[:, None]
     np.minimum(d, 0.2, out=d)
@@ -205,18 +236,46 @@ def drop_repeats(c: Candidates, params: ExtractParams) -> tuple[Candidates, np.n
     return kept, raw[keep[:k]]
 
 
-def _repeats(raw: np.ndarray, xy: np.ndarray, start: int, stop: int, params: ExtractParams) -> np.ndarray:
+def _repeats(raw: np.ndarray, xy: np.ndarray, start: int, stop: int, params: ExtractParams,
+             projected: np.ndarray | None = None) -> np.ndarray:
     """``(stop - start,) bool``: which of the checked candidates ``start:stop`` repeat
     (:func:`drop_repeats`) among all ``K`` checked ones, given their ``(K, 128)`` raw
     descriptors and ``(K, 2)`` working-image positions. Rows are independent, so the
     rows can be decided a block at a time (:func:`extract` decides only as many as the
-    budget reaches)."""
+    budget reaches).
+
+    ``projected``: the raw descriptors times a ``(128, P)`` matrix with orthonormal
+    columns (the learned PCA basis). A projection never lengthens a difference, so the
+    pairs within ``repeat_distance`` after it include every pair within it before; only
+    those few are measured in 128 dimensions. Same result, a quarter of the arithmetic.
+    """
+    t2 = params.repeat_distance**2
     sq = np.einsum("ij,ij->i", raw, raw)
-    d2 = raw[start:stop] @ raw.T  # |a - b|^2 = |a|^2 + |b|^2 - 2 a.b, in place
-    d2 *= -2.0
-    d2 += sq[start:stop, None]
-    d2 += sq[None, :]
-    i, j = np.nonzero(d2 < params.repeat_distance**2)  # the diagonal, neighbours on one blob, repeats
+    if projected is None:
+        d2 = raw[start:stop] @ raw.T  # |a - b|^2 = |a|^2 + |b|^2 - 2 a.b, in place
+        d2 *= -2.0
+        d2 += sq[start:stop, None]
+        d2 += sq[None, :]
+        i, j = np.nonzero(d2 < t2)  # the diagonal, neighbours on one blob, repeats
+    else:
+        # [z_i, -|z_i|^2 / 2, 1] . [z_j, 1, (t - |z_j|^2) / 2] = (t - |z_i - z_j|^2) / 2: one
+        # product and one comparison; t has a margin for float32 rounding.
+        zq = np.einsum("ij,ij->i", projected, projected)
+        rows = np.empty((stop - start, projected.shape[1] + 2), np.float32)
+        rows[:, :-2] = projected[start:stop]
+        rows[:, -2] = -0.5 * zq[start:stop]
+        rows[:, -1] = 1.0
+        cols = np.empty((len(projected), projected.shape[1] + 2), np.float32)
+        cols[:, :-2] = projected
+        cols[:, -2] = 1.0
+        cols[:, -1] = 0.5 * (t2 + 1e-3 - zq)
+        i, j = np.nonzero(rows @ cols.T > 0)
+        exact = np.einsum("ij,ij->i", raw[start + i], raw[j])
+        exact *= -2.0
+        exact += sq[start + i]
+        exact += sq[j]
+        near = exact < t2
+        i, j = i[near], j[near]
     patch_px = 2 * 4 * params.cell_px  # the patch width, in working-image pixels (cells are half-resolution)
     far = np.sum((xy[start + i] - xy[j]) ** 2, axis=1) >= patch_px**2
     out = np.zeros(stop - start, bool)
@@ -225,16 +284,19 @@ def _repeats(raw: np.ndarray, xy: np.ndarray, start: int, stop: int, params: Ext
 
 
 def kept_for_budget(c: Candidates, params: ExtractParams, spec: ModeSpec, grid_w: int, grid_h: int,
-                     block: int = 256) -> tuple[Candidates, np.ndarray, int]:
+                     block: int = 256, basis: np.ndarray | None = None) -> tuple[Candidates, np.ndarray, int]:
     """:func:`drop_repeats` and :func:`~robotd.floor.desccoding.fit` together, deciding only the rows needed.
 
     The coded keypoints are the first ``n`` kept candidates and the global descriptor
     aggregates the first ``max(n, global_min_features)``; whether a later candidate repeats
     changes neither. So the candidates are checked (each against the whole pool, as
-    :func:`drop_repeats` does) a ``block`` at a time until the kept ones reach past what
-    the budget codes. The result is the same as ``drop_repeats`` then ``fit`` for
-    everything :func:`extract` uses: the returned candidates are exact up to the first
-    ``max(n + 1, global_min_features)`` kept ones, and end there when not all were checked.
+    :func:`drop_repeats` does) a block at a time until the kept ones reach past what
+    the budget codes. The first block is what the budget would code with no repeats
+    dropped, and a fifth more; then ``block`` at a time. The result is the same as
+    ``drop_repeats`` then ``fit`` for everything :func:`extract` uses: the returned
+    candidates are exact up to the first ``max(n + 1, global_min_features)`` kept ones,
+    and end there when not all were checked. ``basis``: a ``(128, P)`` matrix with
+    orthonormal columns that prefilters the pairs (:func:`_repeats`; same result).
 
     Returns the kept candidates, the raw descriptors of the first of them (the checked
     ones) and ``n``.
@@ -244,16 +306,21 @@ def kept_for_budget(c: Candidates, params: ExtractParams, spec: ModeSpec, grid_w
         kept, raw = c, raw_descriptors(c, k, params)
         return kept, raw, fit(spec, cells(kept.xy, grid_w, grid_h))
     raw = raw_descriptors(c, k, params)
+    projected = None if basis is None else raw @ basis
     repeat = np.zeros(k, bool)
     done = 0
+    n = fit(spec, cells(c.xy[:k], grid_w, grid_h))
+    first = max(n + 1, params.global_min_features)
+    step = min(k, first + first // 5 + 8)
     while True:
-        stop = min(k, done + block)
-        repeat[done:stop] = _repeats(raw, c.xy[:k], done, stop, params)
+        stop = min(k, done + step)
+        repeat[done:stop] = _repeats(raw, c.xy[:k], done, stop, params, projected)
         done = stop
+        step = block
         keep = np.flatnonzero(~repeat[:done])
         if done == k:  # every checked row decided; unchecked candidates after the pool are kept
             keep = np.concatenate([keep, np.arange(k, len(c.xy))])
-        n = fit(spec, cells(c.xy[keep], grid_w, grid_h))
+        n = fit(spec, cells(c.xy[keep], grid_w, grid_h), hint=n)
         if done == k or (n < len(keep) and len(keep) >= params.global_min_features):
             break
     kept = Candidates(c.xy[keep], c.angle[keep], c.attributes[keep], c.relevance[keep], c.pooled)

@@ -61,7 +61,7 @@ import cv2
 import numpy as np
 
 from robotd.forward.features import FeatureSet
-from robotd.forward.planar import refine_motion
+from robotd.forward.planar import fit_motion
 
 __all__ = ["ACCEPTED", "NO_GEOMETRIC_CONSISTENCY", "SMALL_SUPPORT", "TOO_FEW_MATCHES", "Verification", "VerifyReason",
            "VerifyParams", "camera_matrix_guess", "floor_range", "match_features", "support_area", "verify_pair"]
@@ -147,7 +147,8 @@ class Verification:
     ``sigma_yaw_rad`` how well the inliers fix the bearing and the heading change of
     :func:`robotd.forward.planar.planar_motion` (1-sigma, from their epipolar errors
     ``noise_px``: :func:`robotd.forward.planar.motion_uncertainty`; ``inf`` when not
-    computed). When a pose was recovered: ``rotation (3, 3)`` and
+    computed); ``planarity_chi2`` the motion's out-of-plane part against its covariance
+    (:class:`robotd.forward.planar.MotionFit`; NaN when not computed). When a pose was recovered: ``rotation (3, 3)`` and
     ``translation_dir (3,)`` (unit length) such that a point X_old in the old image's
     camera frame is ``rotation @ X_old + s * translation_dir`` in the new image's camera
     frame, for an unknown scale s > 0 (OpenCV camera axes: x right, y down, z forward).
@@ -167,6 +168,7 @@ class Verification:
     sigma_bearing_rad: float = float("inf")
     sigma_yaw_rad: float = float("inf")
     noise_px: float = float("nan")
+    planarity_chi2: float = float("nan")
 
 
 def camera_matrix_guess(width_px: int, height_px: int, focal_px: float | None = None) -> np.ndarray:
@@ -225,13 +227,15 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
         return Verification(False, NO_GEOMETRIC_CONSISTENCY, n, n_inl, r, t_dir)
     inl = np.asarray(mask2).ravel() > 0
     # Not in the paper: the motion refined on all the inliers, and its uncertainty.
-    r, t_dir, sig_b, sig_y, noise = refine_motion(p_old[inl], p_new[inl], r, t_dir, k)
+    fit = fit_motion(p_old[inl], p_new[inl], r, t_dir, k)
+    r, t_dir, sig_b, sig_y, noise = fit.rotation, fit.translation_dir, fit.sigma_bearing_rad, fit.sigma_yaw_rad, fit.noise_px
     range_m, n_floor = (None, 0)
     if params.camera_height_m is not None:
         range_m, n_floor = floor_range(p_old[inl], p_new[inl], r, t_dir, k, params)
     if params.min_support_area <= 0.0:  # the paper's verification
         return Verification(True, ACCEPTED, n, n_inl, r, t_dir, range_m=range_m, n_floor_points=n_floor,
-                            sigma_bearing_rad=sig_b, sigma_yaw_rad=sig_y, noise_px=noise)
+                            sigma_bearing_rad=sig_b, sigma_yaw_rad=sig_y, noise_px=noise,
+                            planarity_chi2=fit.planarity_chi2)
     # Not in the paper: the inliers must not be one small plane (module notes).
     s_old, s_new = p_old[inl], p_new[inl]
     _, hmask = cv2.findHomography(s_old, s_new, cv2.RANSAC, params.homography_threshold_px)
@@ -245,7 +249,7 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
     return Verification(ok, ACCEPTED if ok else SMALL_SUPPORT, n, n_inl, r, t_dir,
                         n_plane_inliers=n_plane, planar=bool(planar), support_area=area,
                         range_m=range_m, n_floor_points=n_floor, sigma_bearing_rad=sig_b,
-                        sigma_yaw_rad=sig_y, noise_px=noise)
+                        sigma_yaw_rad=sig_y, noise_px=noise, planarity_chi2=fit.planarity_chi2)
 
 
 def floor_range(p_old: np.ndarray, p_new: np.ndarray, rotation: np.ndarray, translation_dir: np.ndarray,

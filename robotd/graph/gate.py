@@ -29,7 +29,7 @@ Relocalisation (issue 14, item 7). The map frame is the frame of the run that st
 map; a run that relocalises against it joins it (``MapStore.map_frame_runs``). A run that
 starts on a map with keyframes in the map frame does not know where it is: it says so
 ("not localised in the stored map", in the log and STATUS), keeps running on odometry in
-its own frame, and holds the floor loop candidates that reach a map keyframe in a
+its own frame, and holds the loop candidates that reach a map keyframe in a
 :class:`robotd.graph.reloc.Relocaliser` until two or more independent ones agree on the
 transform to the map frame (the rule and why: :mod:`robotd.graph.reloc`). Then the old
 keyframes of the agreeing loops enter the graph fixed at their optimised map poses, the
@@ -44,8 +44,15 @@ while the robot is carried; the keyframe stage takes no keyframes then and the m
 links no odometry edge across it, so the next keyframe starts a new segment of the
 trajectory in a frame of its own (:meth:`~robotd.graph.incremental.IncrementalGraph.add_segment`).
 It says "LOST" and relocalises that segment as above, against the map's keyframes
-of earlier runs and of this run's localised segments. A forward loop has no range of its
-own, so it cannot relocalise; one that reaches another frame is recorded with that reason.
+of earlier runs and of this run's localised segments.
+
+Forward loops relocalise too (with the floor detector off as well): a verified forward loop
+from the lost trajectory to a keyframe with a map pose is held like a floor candidate, and
+the trajectory relocalises when a second, independent one agrees with it, a floor loop or
+a forward loop after odometry has moved the robot at least ``min_separation_m``; the two
+bearings then fix the range (:func:`robotd.graph.reloc.fit_transform`). The log and STATUS
+say which camera did it: "relocalised against run N after X s and Y m (forward camera)"
+(or "floor camera", "floor and forward cameras").
 Only keyframes in the map frame get optimised poses in the map file: a segment that never
 relocalised keeps its odometry poses only (its frame is its own).
 """
@@ -80,6 +87,11 @@ GATE_CHI2_3DOF_999 = 16.27  # chi-square, 3 degrees of freedom, 99.9 %
 DOWN_WEIGHTED = 0.5  # a loop whose final weight is under this counts as down-weighted
 
 Emit = Callable[[CandidateFate | Link], None]
+
+
+def _prefixed(source: str, detail: str) -> str:
+    """A fate's detail, prefixed ``forward: `` for a forward loop (as the gate's own)."""
+    return f"forward: {detail}" if source == "forward" else detail
 
 
 def _given(edge: tuple[np.ndarray, np.ndarray]) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
@@ -140,13 +152,20 @@ class GatedGraph:
         self._gate_and_add(from_id, to_id, score, lambda: (delta, information), "floor")
 
     def forward_candidate(self, from_id: int, to_id: int, probability: float,
-                          edge: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]) -> None:
+                          edge: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], *,
+                          range_measured: bool = False) -> None:
         """A forward loop: ``edge(predicted)`` gives its ``(delta, information)`` from the
-        graph's predicted relative pose (the forward camera measures no range)."""
-        if self._relocalisation_takes(from_id, to_id, probability, None, None, "forward"):
+        graph's predicted relative pose (the forward camera measures no range, unless the
+        floor gave it: ``range_measured``)."""
+        if self._relocalisation_takes(from_id, to_id, probability, None, None, "forward", edge=edge,
+                                      measured_dims=3 if range_measured else 2):
             return
-        self._gate_and_add(from_id, to_id, probability,
-                           lambda: edge(between(self.graph.pose(from_id), self.graph.pose(to_id))), "forward")
+        self._gate_and_add(from_id, to_id, probability, self._forward_edge(from_id, to_id, edge), "forward")
+
+    def _forward_edge(self, from_id: int, to_id: int, edge: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+                      ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
+        """A forward loop's edge at the graph's predicted relative pose (asked when gated)."""
+        return lambda: edge(between(self.graph.pose(from_id), self.graph.pose(to_id)))
 
     def map_match(self, from_id: int, delta: np.ndarray, information: np.ndarray) -> None:
         """A transient keyframe matched the map: gated, it re-localises the robot over mapped
@@ -280,8 +299,8 @@ class GatedGraph:
                 runs = sorted({r for _p, r in self._map_poses.values()})
                 self._state = "not_localised"
                 log.warning("not localised in the stored map (%d keyframes of run%s %s in the map "
-                            "frame): running on odometry in this run's own frame until %d floor loops "
-                            "agree on where it is", len(self._map_poses), "s" if len(runs) > 1 else "",
+                            "frame): running on odometry in this run's own frame until %d loops "
+                            "(floor or forward camera) agree on where it is", len(self._map_poses), "s" if len(runs) > 1 else "",
                             ", ".join(map(str, runs)), self.reloc_params.min_agreeing)
             else:
                 self._in_map.add(0)
@@ -294,7 +313,7 @@ class GatedGraph:
             if not self._lifted:
                 self._state = "lost"
             log.warning("keyframe %d starts a new trajectory segment in a frame of its own: lost until "
-                        "%d floor loops agree on where it is", kid, self.reloc_params.min_agreeing)
+                        "%d loops agree on where it is", kid, self.reloc_params.min_agreeing)
         if self._last_kf is not None and self._segment_of(self._last_kf[0]) == self._segment_of(kid):
             step = float(np.hypot(*(pose[:2] - self._last_kf[1][:2])))
             self._travelled[kid] = self._travelled.get(self._last_kf[0], 0.0) + step
@@ -324,7 +343,7 @@ class GatedGraph:
             self._lifted = False
             self._put_down_ns = stamp_ns
             self._state = "lost"
-            log.warning("put down: lost until %d floor loops agree on where", self.reloc_params.min_agreeing)
+            log.warning("put down: lost until %d loops agree on where", self.reloc_params.min_agreeing)
 
     def _odometry_between(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray] | None:
         edges = self.graph.graph.edges
@@ -340,7 +359,9 @@ class GatedGraph:
         self._emit(CandidateFate(query, old, score, LoopFate.FAILED_GATE, detail))
 
     def _relocalisation_takes(self, old: int, query: int, score: float, delta: np.ndarray | None,
-                              info: np.ndarray | None, source: str) -> bool:
+                              info: np.ndarray | None, source: str, *,
+                              edge: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
+                              measured_dims: int = 3) -> bool:
         """Handle a candidate whose two keyframes are not in one frame: hold it for
         relocalisation, or refuse it with the reason. False: the gate judges it (an old map
         keyframe it reaches is first added to the graph, fixed)."""
@@ -360,15 +381,15 @@ class GatedGraph:
         if not o_map:
             self._refuse(query, old, score, f"{prefix}keyframe of a trajectory not localised in the map")
             return True
-        if source != "floor" or delta is None or info is None:
-            self._refuse(query, old, score, "forward: not localised: a forward loop has no range of "
-                                            "its own and cannot relocalise")
-            return True
         old_pose, old_run = (self._map_poses[old] if earlier
                              else (self.graph.pose(old), int(self._run_id)))
+        if edge is not None:  # a forward loop: its edge at a first guess of the range, until the group's fit
+            delta, info = edge(np.array([1.0, 0.0, 0.0]))
+        if delta is None or info is None:
+            raise ValueError("a floor candidate needs its delta and information")
         cand = RelocCandidate(old, query, float(score), np.asarray(old_pose, float), np.asarray(delta, float),
                               np.asarray(info, float), self.graph.pose(query), self._travelled.get(query, 0.0),
-                              old_run, source)
+                              old_run, source, edge, measured_dims)
         decision = self._relocaliser.offer(cand)
         if decision.relocalised:
             self._relocalise(decision)
@@ -377,17 +398,21 @@ class GatedGraph:
             for p, _why in decision.dropped:
                 if p.old_id not in self.graph.graph:
                     self.graph.add_fixed(p.old_id, p.old_pose)
-                self._gate_and_add(p.old_id, p.query_id, p.score, _given((p.delta, p.information)), "floor")
+                if p.edge is not None:
+                    self._gate_and_add(p.old_id, p.query_id, p.score, self._forward_edge(p.old_id, p.query_id, p.edge),
+                                       "forward")
+                else:
+                    self._gate_and_add(p.old_id, p.query_id, p.score, _given((p.delta, p.information)), "floor")
         else:
             for p, why in decision.dropped:
-                self._refuse(p.query_id, p.old_id, p.score, why)
+                self._refuse(p.query_id, p.old_id, p.score, _prefixed(p.source, why))
             log.debug("relocalisation: keyframe %d sees keyframe %d of run %d: %s", query, old, old_run,
                       decision.detail)
         return True
 
     def _drop_pending(self, why: str) -> None:
         for p in self._relocaliser.reset():
-            self._refuse(p.query_id, p.old_id, p.score, why)
+            self._refuse(p.query_id, p.old_id, p.score, _prefixed(p.source, why))
 
     def _relocalise(self, d: RelocDecision) -> None:
         """Anchor the current segment in the map frame with the agreeing loops."""
@@ -403,9 +428,13 @@ class GatedGraph:
         self.update_ms.append((time.perf_counter() - t0) * 1e3)
         self._in_map.add(seg)
         for m in d.members:
-            self.accepted += 1
+            if m.source == "forward":
+                self.forward_accepted += 1
+            else:
+                self.accepted += 1
             self._loops[(m.old_id, m.query_id)] = (m.query_id, m.score)
-            self._emit(CandidateFate(m.query_id, m.old_id, m.score, LoopFate.ACCEPTED, f"relocalisation: {d.detail}"))
+            self._emit(CandidateFate(m.query_id, m.old_id, m.score, LoopFate.ACCEPTED,
+                                     _prefixed(m.source, f"relocalisation: {d.detail}")))
             self._emit(Link("loop", m.old_id, m.query_id, m.delta, m.information, source=m.source))
         self.relocalisations += 1
         newest = max(d.members, key=lambda m: m.query_id)
@@ -413,9 +442,11 @@ class GatedGraph:
         run = runs.most_common(1)[0][0]
         after_s = max(0.0, (self._stamps.get(newest.query_id, self._segment_start_ns) - self._segment_start_ns) / 1e9)
         after_m = self._travelled.get(newest.query_id, 0.0)
+        cameras = " and ".join(sorted({m.source for m in d.members}))
         self._state = "relocalised"
-        self._reloc_text = f"relocalised against run {run} after {after_s:.1f} s and {after_m:.1f} m"
-        self.relocalised_at.append({"run": run, "after_s": after_s, "after_m": after_m,
+        self._reloc_text = (f"relocalised against run {run} after {after_s:.1f} s and {after_m:.1f} m "
+                            f"({cameras} camera{'s' if ' and ' in cameras else ''})")
+        self.relocalised_at.append({"run": run, "after_s": after_s, "after_m": after_m, "cameras": cameras,
                                     "keyframe": newest.query_id, "stamp_ns": self._stamps.get(newest.query_id, 0),
                                     "candidates": len(d.members),
                                     "pose": [float(v) for v in self.graph.pose(newest.query_id)]})

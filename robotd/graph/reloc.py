@@ -31,6 +31,22 @@ and the trajectory is relocalised only when candidates **agree**. The rule chose
 * and unambiguous: no second group of agreeing candidates (two or more, separated) among
   the held ones that disagrees with the first.
 
+**Forward loops** (the forward camera, :mod:`robotd.forward.planar`) take part too. One
+measures the heading change and the bearing of the query as seen from the old keyframe,
+and the range only when the floor gave it (``measured_dims`` 3, else 2): its edge is a
+function of the predicted relative pose (:attr:`RelocCandidate.edge`), the range being the
+prediction's when not measured. A candidate alone cannot place the robot then; two
+candidates can, when odometry has moved the robot between their queries: the two bearings
+intersect (the range is fixed by the triangulation), or a floor loop gives the rest. For a
+group with a forward loop the transform is not one candidate's implied transform but the
+least-squares fit of all members (:func:`fit_transform`: Gauss-Newton over the transform,
+each member's residual whitened by its edge's covariance, the odometry between the queries
+and the map's own error). The group agrees when the fit's chi-square is under the 99.9 %
+point (the probability of ``agree_chi2`` at 3 degrees of freedom, taken at the fit's own
+degrees of freedom: the members' measured components minus the transform's 3), and the fit
+must fix the robot's position (1-sigma at most ``max_position_sigma_m``): two bearings
+along one line of sight do not.
+
 Why this rule: a false floor candidate above the trained threshold is rare (none in the
 demo's runs), and two independent false ones that imply the *same* map pose within their
 covariance are rarer still, because a false candidate's transform is effectively random. A
@@ -46,7 +62,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -58,10 +74,14 @@ from robotd.base.geometry import (
     wrap_angle,
 )
 
-__all__ = ["RelocCandidate", "RelocDecision", "RelocParams", "Relocaliser", "chain_relative",
-           "implied_transform", "pair_chi2"]
+__all__ = ["RelocCandidate", "RelocDecision", "RelocParams", "Relocaliser", "TransformFit", "chain_relative",
+           "fit_transform", "implied_transform", "pair_chi2"]
 
 AGREE_CHI2_3DOF_999 = 16.27  # chi-square, 3 degrees of freedom, 99.9 %
+
+ForwardEdge = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+"""A forward loop's edge ``(delta (3,), information (3, 3))`` given the predicted relative
+pose (3,) of its two keyframes (:func:`robotd.forward.planar.loop_edge`)."""
 
 
 @dataclass(frozen=True)
@@ -78,6 +98,9 @@ class RelocParams:
         between two nearby keyframes, not its global error.
     max_pending: candidates held while waiting for agreement; the oldest is dropped (and
         reported) beyond this, default 64.
+    max_position_sigma_m: a group with a forward loop relocalises only when its fit fixes
+        the robot's position to this (1-sigma, the larger axis), default 0.3 m: about the
+        distance at which the gate's later loops still find their places.
     """
 
     min_agreeing: int = 2
@@ -86,13 +109,14 @@ class RelocParams:
     map_sigma_m: float = 0.05
     map_sigma_rad: float = math.radians(1.0)
     max_pending: int = 64
+    max_position_sigma_m: float = 0.3
 
     def __post_init__(self) -> None:
         if self.min_agreeing < 1:
             raise ValueError(f"min_agreeing must be at least 1, got {self.min_agreeing}")
         if self.max_pending < 1:
             raise ValueError(f"max_pending must be at least 1, got {self.max_pending}")
-        for name in ("agree_chi2", "map_sigma_m", "map_sigma_rad"):
+        for name in ("agree_chi2", "map_sigma_m", "map_sigma_rad", "max_position_sigma_m"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be positive and finite, got {v}")
@@ -108,7 +132,11 @@ class RelocCandidate:
     the query keyframe in the old keyframe's frame, ``information (3, 3)`` its inverse
     covariance; ``query_pose (3,)``: the query keyframe in the lost trajectory's own frame;
     ``travelled_m``: odometry distance driven along the lost trajectory up to the query;
-    ``old_run``: the run the old keyframe belongs to (for the report).
+    ``old_run``: the run the old keyframe belongs to (for the report); ``source``: the
+    camera (``"floor"``, ``"forward"``). A forward loop has ``edge``: its ``(delta,
+    information)`` given the predicted relative pose, ``delta`` and ``information`` being
+    those at a first guess until the group's fit replaces them; ``measured_dims``: the
+    components the loop measures (3; 2 for a forward loop without a range of its own).
     """
 
     old_id: int
@@ -121,6 +149,8 @@ class RelocCandidate:
     travelled_m: float
     old_run: int = 0
     source: str = "floor"
+    edge: ForwardEdge | None = None
+    measured_dims: int = 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -206,6 +236,156 @@ def pair_chi2(a: RelocCandidate, b: RelocCandidate, relative: np.ndarray, relati
     return float(e0 @ np.linalg.solve(s, e0))
 
 
+@dataclass(frozen=True, eq=False)
+class TransformFit:
+    """The least-squares transform of a group (:func:`fit_transform`): ``transform (3,)``
+    (``map = transform (+) lost``), its ``covariance (3, 3)``, the fit's ``chi2``
+    (dimensionless) at ``dof`` degrees of freedom, and the members with their edges at the
+    fitted transform (a forward loop's ``delta`` and ``information`` replaced)."""
+
+    transform: np.ndarray
+    covariance: np.ndarray
+    chi2: float
+    dof: int
+    members: tuple[RelocCandidate, ...]
+
+    @property
+    def position_sigma_m(self) -> float:
+        """1-sigma of the position along its worst axis, metres."""
+        return math.sqrt(max(float(np.max(np.linalg.eigvalsh(self.covariance[:2, :2]))), 0.0))
+
+
+def _member_edge(c: RelocCandidate, predicted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return c.edge(predicted) if c.edge is not None else (c.delta, c.information)
+
+
+def _error(delta: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+    e = between(delta, predicted)
+    return np.array([e[0], e[1], float(wrap_angle(e[2]))])
+
+
+def _numeric_jacobian(f: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    cols = []
+    for k in range(len(x0)):
+        xp, xm = x0.copy(), x0.copy()
+        xp[k] += h
+        xm[k] -= h
+        cols.append((f(xp) - f(xm)) / (2.0 * h))
+    return np.stack(cols, axis=1)
+
+
+def _starts(c: RelocCandidate) -> list[np.ndarray]:
+    """First guesses of the transform from one candidate: its implied transform, or for a
+    forward loop without a range of its own, one per range from 0.3 to 6 m."""
+    if c.edge is None:
+        return [implied_transform(c)]
+    ranges = (1.0,) if c.measured_dims >= 3 else (0.3, 0.7, 1.5, 3.0, 6.0)
+    out = []
+    for r in ranges:
+        delta, _info = c.edge(np.array([r, 0.0, 0.0]))
+        out.append(compose(compose(c.old_pose, delta), inverse(c.query_pose)))
+    return out
+
+
+def fit_transform(members: Iterable[RelocCandidate],
+                  relative: Callable[[int, int], tuple[np.ndarray, np.ndarray] | None],
+                  params: RelocParams = RelocParams(), iterations: int = 15) -> TransformFit | None:
+    """The transform (lost frame -> map frame) that best explains all ``members`` (module
+    notes), or None when two of them are not on one odometry chain. Each member's error is
+    ``between(delta, predicted)`` with ``predicted = old_pose^-1 (+) transform (+) query_pose``
+    and ``delta`` its edge at that prediction; its covariance is the edge's plus the
+    odometry's from the first query (``relative``) and the map pose's error (``map_sigma_m``,
+    ``map_sigma_rad``), propagated to first order. Gauss-Newton from each member's first
+    guess that explains them best (:func:`_starts`)."""
+    group = list(members)
+    ref = min(group, key=lambda m: m.query_id)
+    odo: list[tuple[np.ndarray, np.ndarray]] = []
+    for m in group:
+        if m is ref:
+            odo.append((np.zeros(3), np.zeros((3, 3))))
+            continue
+        chain = relative(ref.query_id, m.query_id)
+        if chain is None:
+            return None
+        odo.append((np.asarray(chain[0], float), np.asarray(chain[1], float)))
+    mcov = np.diag([params.map_sigma_m ** 2, params.map_sigma_m ** 2, params.map_sigma_rad ** 2])
+
+    def whitened(t: np.ndarray, sqrt_infos: list[np.ndarray]) -> np.ndarray:
+        out = []
+        for m, (rel, _cov), w in zip(group, odo, sqrt_infos):
+            q = compose(ref.query_pose, rel)
+            pred = between(m.old_pose, compose(t, q))
+            out.append(w @ _error(_member_edge(m, pred)[0], pred))
+        return np.concatenate(out)
+
+    def noise(t: np.ndarray) -> list[np.ndarray]:
+        """Each member's whitening matrix at ``t`` (``L^T`` with ``L L^T = S^-1``)."""
+        out = []
+        for m, (rel, cov) in zip(group, odo):
+            pred0 = between(m.old_pose, compose(t, compose(ref.query_pose, rel)))
+            delta, info = _member_edge(m, pred0)
+
+            def err_of(x: np.ndarray, delta: np.ndarray = delta, rel: np.ndarray = rel) -> np.ndarray:
+                return _error(delta, between(x[:3], compose(t, compose(ref.query_pose, rel + x[3:]))))
+
+            jac = _numeric_jacobian(err_of, np.concatenate([np.asarray(m.old_pose, float), np.zeros(3)]))
+            s = np.linalg.inv(info) + jac[:, :3] @ mcov @ jac[:, :3].T + jac[:, 3:] @ cov @ jac[:, 3:].T
+            out.append(np.linalg.cholesky(np.linalg.inv(0.5 * (s + s.T))).T)
+        return out
+
+    def cost_at(t: np.ndarray) -> float:
+        r = whitened(t, noise(t))
+        return float(r @ r)
+
+    # Gauss-Newton from the first guess that explains the members best.
+    t = np.asarray(min((s for m in group for s in _starts(m)), key=cost_at), float).copy()
+    w = noise(t)
+    r = whitened(t, w)
+    cost = float(r @ r)
+    for _ in range(iterations):
+        jac = _numeric_jacobian(lambda x: whitened(x, w), t)
+        try:
+            step = -np.linalg.solve(jac.T @ jac + 1e-9 * np.eye(3), jac.T @ r)
+        except np.linalg.LinAlgError:
+            break
+        t_new = t + step
+        t_new[2] = float(wrap_angle(t_new[2]))
+        w_new = noise(t_new)
+        r_new = whitened(t_new, w_new)
+        cost_new = float(r_new @ r_new)
+        if not cost_new < cost:
+            break
+        done = cost - cost_new < 1e-6 * max(cost, 1.0)
+        t, w, r, cost = t_new, w_new, r_new, cost_new
+        if done:
+            break
+    jac = _numeric_jacobian(lambda x: whitened(x, w), t)
+    jtj = jac.T @ jac
+    if np.linalg.cond(jtj) > 1e12:  # an unobservable direction: not fixed at all
+        cov = np.linalg.pinv(jtj) + np.diag([1e6, 1e6, 1e6])
+    else:
+        cov = np.linalg.inv(jtj)
+    fitted = []
+    for m, (rel_q, _cov) in zip(group, odo):
+        if m.edge is None:
+            fitted.append(m)
+            continue
+        delta, info = m.edge(between(m.old_pose, compose(t, compose(ref.query_pose, rel_q))))
+        fitted.append(replace(m, delta=np.asarray(delta, float), information=np.asarray(info, float)))
+    dof = sum(m.measured_dims for m in group) - 3
+    return TransformFit(t, 0.5 * (cov + cov.T), cost, dof, tuple(fitted))
+
+
+def agreement_threshold(dof: int, params: RelocParams) -> float:
+    """The chi-square bound of a fit with ``dof`` degrees of freedom at the probability
+    ``params.agree_chi2`` has at 3 (99.9 % by default)."""
+    from scipy.stats import chi2
+
+    if dof <= 0:
+        return 0.0
+    return float(chi2.ppf(chi2.cdf(params.agree_chi2, 3), dof))
+
+
 class Relocaliser:
     """Holds the lost trajectory's candidates until enough of them agree (module notes).
 
@@ -222,10 +402,18 @@ class Relocaliser:
 
     def _chi2(self, a: RelocCandidate, b: RelocCandidate) -> float | None:
         """The pair's agreement distance, None when not independent (too close along the
-        trajectory) or not on one odometry chain."""
+        trajectory) or not on one odometry chain. Two floor loops: :func:`pair_chi2`; with a
+        forward loop, the pair's :func:`fit_transform` chi-square, scaled to the 3-dof
+        bound (``agree_chi2``) so that one threshold judges both."""
         if abs(a.travelled_m - b.travelled_m) < self.params.min_separation_m:
             return None
         first, second = (a, b) if a.query_id < b.query_id else (b, a)
+        if first.edge is not None or second.edge is not None:
+            fit = fit_transform((first, second), self.relative, self.params)
+            if fit is None:
+                return None
+            bound = agreement_threshold(fit.dof, self.params)
+            return fit.chi2 / bound * self.params.agree_chi2 if bound > 0.0 else 0.0
         rel = self.relative(first.query_id, second.query_id)
         if rel is None:
             return None
@@ -266,10 +454,24 @@ class Relocaliser:
         members = {id(m) for m in group}
         others = [p for p in self.pending if id(p) not in members]
         transform = implied_transform(c)
+        detail = f"{len(group)} candidates agree (of {len(others) + len(group)} held)"
+        if any(m.edge is not None for m in group):  # with a forward loop: the group's own fit
+            fit = fit_transform(group, self.relative, self.params)
+            bound = agreement_threshold(fit.dof, self.params) if fit is not None else 0.0
+            why = ("not on one odometry chain" if fit is None
+                   else f"the group's fit disagrees (chi2 {fit.chi2:.1f} > {bound:.2f})" if fit.chi2 > bound
+                   else f"the position is not fixed yet (1-sigma {fit.position_sigma_m:.2f} m > "
+                        f"{self.params.max_position_sigma_m:.2f} m)"
+                   if fit.position_sigma_m > self.params.max_position_sigma_m else "")
+            if why or fit is None:
+                self.pending.append(c)
+                return RelocDecision(False, f"{len(group)} candidates agree pairwise, but {why}")
+            group = list(fit.members)  # in the group's order, forward edges at the fitted transform
+            transform = fit.transform
+            detail += f", position 1-sigma {fit.position_sigma_m:.2f} m"
         left_out = tuple((p, self._why_not(c, p)) for p in others)
         self.pending = []
-        return RelocDecision(True, f"{len(group)} candidates agree (of {len(others) + len(group)} held)",
-                             transform, tuple(group), left_out)
+        return RelocDecision(True, detail, transform, tuple(group), left_out)
 
     def _why_not(self, c: RelocCandidate, p: RelocCandidate) -> str:
         """Why a held candidate ``p`` is not in the group that relocalised with ``c``."""

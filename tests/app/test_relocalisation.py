@@ -14,7 +14,7 @@ from robotd.app.pipeline import Pipeline
 from robotd.app.stages.map_writer import MapWriterStage
 from robotd.app.stages.pose_graph import PoseGraphStage
 from robotd.base.geometry import between, compose, wrap_angle
-from robotd.base.messages import Frame, Keyframe, LoopCandidate, PoseStamped, WheelDrop
+from robotd.base.messages import ForwardLoop, Frame, Keyframe, LoopCandidate, PoseStamped, WheelDrop
 from robotd.graph.incremental import IncrementalGraph
 from robotd.io.store import MapStore
 
@@ -132,7 +132,7 @@ def test_a_restart_relocalises_after_two_agreeing_loops_and_joins_the_map(tmp_pa
         _loop(p, old_ids[15], old_truth[15], drive.ids[8], truth[8], rng)  # 0.75 m further: agrees
         c = p.counters()
         assert (c["localised"], c["relocalisations"]) == (1, 1)
-        assert graph.status_fragment() == "relocalised against run 1 after 8.0 s and 1.5 m"
+        assert graph.status_fragment() == "relocalised against run 1 after 8.0 s and 1.5 m (floor camera)"
         # From now on the gate judges as usual: a true loop passes, a look-alike does not.
         for k in range(9, 21):
             drive.keyframe(truth[k], 100 + k)
@@ -205,7 +205,7 @@ def test_a_kidnapping_breaks_the_chain_and_relocalises_against_the_run_itself(tm
         _loop(p, drive.ids[11], lap[11], new_ids[4], after[4], rng)
         c = p.counters()
         assert (c["relocalisations"], c["localised"], c["loops_accepted"]) == (1, 1, 2)
-        assert graph.status_fragment() == "relocalised against run 1 after 5.0 s and 0.8 m"
+        assert graph.status_fragment() == "relocalised against run 1 after 5.0 s and 0.8 m (floor camera)"
         p.finish()
         opt = store.optimized_poses()
         # The map itself is off where the robot is put down: keyframes 8 and 11 of a lap
@@ -220,6 +220,72 @@ def test_a_kidnapping_breaks_the_chain_and_relocalises_against_the_run_itself(tm
         # robot was lifted: more than a metre off.
         odo = store.keyframe(new_ids[0])
         assert np.hypot(odo.x_m - after[0][0], odo.y_m - after[0][1]) > 1.0
+
+
+def _forward_loop(p: Pipeline, old_id: int, old_truth: np.ndarray, new_id: int, new_truth: np.ndarray,
+                  rng: np.random.Generator) -> None:
+    """A verified forward loop (the camera at the robot's origin, the stage's default mount):
+    the heading change and the bearing from the truth with noise, no range."""
+    rel = between(old_truth, new_truth)
+    p.publish(ForwardLoop(old_id, new_id, 0.9, float(rel[2] + rng.normal(0.0, math.radians(0.5))),
+                          float(math.atan2(rel[1], rel[0]) + rng.normal(0.0, math.radians(1.0))), 60))
+
+
+def test_a_kidnapping_relocalises_from_two_forward_loops_without_the_floor_camera(tmp_path: Path):
+    rng = np.random.default_rng(17)
+    with MapStore.open(tmp_path / "map.sqlite") as store:
+        run = store.begin_run("")
+        p, graph = _pipeline(store, run)
+        drive = _Odometry(p, store, run)
+        lap = _square_laps(2)
+        for k in range(21):
+            drive.keyframe(lap[k], k)
+        p.publish(WheelDrop(int(20.4e9), True, left=True, right=True))
+        p.publish(WheelDrop(int(24e9), False))
+        drive.carried()
+        after = _square_laps(1, start=7)
+        new_ids = [drive.keyframe(t, 25 + k) for k, t in enumerate(after[:12])]
+        # One forward loop places the robot on a ray only: it waits for a second one.
+        _forward_loop(p, drive.ids[5], lap[5], new_ids[1], after[1], rng)
+        c = p.counters()
+        assert (c["relocalisations"], c["forward_loops_accepted"]) == (0, 0)
+        assert graph.status_fragment() == "LOST (relocalising)"
+        # After 0.75 m and a turn, a second one sees another keyframe across the first ray.
+        _forward_loop(p, drive.ids[10], lap[10], new_ids[5], after[5], rng)
+        c = p.counters()
+        assert (c["relocalisations"], c["localised"], c["forward_loops_accepted"], c["loops_accepted"]) == (1, 1, 2, 0)
+        assert graph.status_fragment().startswith("relocalised against run 1 after ")
+        assert graph.status_fragment().endswith(" (forward camera)")
+        assert graph.relocalised_at[-1]["cameras"] == "forward"
+        p.finish()
+        opt = store.optimized_poses()
+        err = [float(np.hypot(*(opt[k][:2] - t[:2]))) for k, t in zip(new_ids[:6], after[:6])]
+        assert max(err) < 0.1, err
+        # The odometry alone went on from where the robot was lifted: more than a metre off.
+        odo = store.keyframe(new_ids[0])
+        assert np.hypot(odo.x_m - after[0][0], odo.y_m - after[0][1]) > 1.0
+
+
+def test_a_restart_relocalises_from_a_forward_and_a_floor_loop_that_agree(tmp_path: Path):
+    rng = np.random.default_rng(19)
+    with MapStore.open(tmp_path / "map.sqlite") as store:
+        old_ids, old_truth = _first_run(store, rng)
+        run = store.begin_run("")
+        p, graph = _pipeline(store, run)
+        drive = _Odometry(p, store, run)
+        truth = _square_laps(1, start=7)
+        for k in range(3):
+            drive.keyframe(truth[k], 100 + k)
+        _forward_loop(p, old_ids[5], old_truth[5], drive.ids[2], truth[2], rng)
+        assert graph.status_fragment() == "not localised in the stored map"
+        for k in range(3, 6):
+            drive.keyframe(truth[k], 100 + k)
+        _loop(p, old_ids[12], old_truth[12], drive.ids[5], truth[5], rng)  # 0.5 m further on: agrees
+        c = p.counters()
+        assert (c["localised"], c["relocalisations"], c["forward_loops_accepted"], c["loops_accepted"]) == (1, 1, 1, 1)
+        assert graph.status_fragment().endswith(" (floor and forward cameras)")
+        p.finish()
+        assert _error_m(store, drive.ids[:6], drive.truth[:6]) < 0.05
 
 
 def test_the_status_line_says_where_the_robot_stands_with_the_map(tmp_path: Path):
@@ -241,6 +307,6 @@ def test_the_status_line_says_where_the_robot_stands_with_the_map(tmp_path: Path
         assert d.status_text(1.0).endswith("unsynced 0, not localised in the stored map")
         _loop(p, old_ids[12], old_truth[12], drive.ids[5], truth[5], rng)
         _loop(p, old_ids[15], old_truth[15], drive.ids[8], truth[8], rng)
-        assert d.status_text(1.0).endswith("unsynced 0, relocalised against run 1 after 8.0 s and 1.5 m")
+        assert d.status_text(1.0).endswith("unsynced 0, relocalised against run 1 after 8.0 s and 1.5 m (floor camera)")
         p.publish(WheelDrop(int(109e9), True, left=True, right=True))
         assert d.status_text(1.0).endswith("unsynced 0, LOST (lifted)")

@@ -339,11 +339,82 @@ def test_drop_repeats_keeps_the_order_and_returns_the_kept_raw_descriptors():
     assert np.array_equal(kept_small.xy[len(raw_small):], c.xy[50:])
 
 
+@pytest.mark.parametrize("mode", [1, 4, 6])
+def test_kept_for_budget_prefiltered_by_the_pca_basis_decides_as_the_full_check(frames, mode):
+    """The prefilter only skips pairs a projection proves far: same candidates, same raw
+    descriptors, same count, with and without it; and the same as drop_repeats then fit."""
+    from robotd.floor.desccoding import cells, fit
+    from robotd.floor.keypoints import kept_for_budget
+
+    img = frames["gravel"]
+    params, learned = ExtractParams(), load_learned()
+    c = candidates(img, params, learned)
+    grid_w, grid_h = 320, 240
+    plain = kept_for_budget(c, params, MODES[mode], grid_w, grid_h)
+    pre = kept_for_budget(c, params, MODES[mode], grid_w, grid_h, basis=learned.pca_basis)
+    assert plain[2] == pre[2] > 0 and np.array_equal(plain[1], pre[1])
+    assert np.array_equal(plain[0].xy, pre[0].xy)
+    kept, _ = drop_repeats(c, params)
+    assert pre[2] == fit(MODES[mode], cells(kept.xy, grid_w, grid_h))
+    m = max(pre[2] + 1, params.global_min_features)
+    assert np.array_equal(pre[0].xy[:m], kept.xy[:m])
+
+
+def test_fit_from_any_hint_is_the_largest_prefix_that_fits():
+    from robotd.floor.desccoding import fit, size
+
+    def bisect(spec, cells):  # the size grows with every keypoint: plain bisection from [0, len]
+        lo, hi = 0, len(cells)
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            lo, hi = (mid, hi) if size(spec, np.sort(cells[:mid])) <= spec.bytes else (lo, mid - 1)
+        return lo
+
+    rng = np.random.default_rng(5)
+    for _ in range(15):
+        cells = rng.choice(320 * 240, size=int(rng.integers(0, 2500)), replace=False).astype(np.int64)
+        for mode in (1, 4, 6):
+            spec = MODES[mode]
+            want = bisect(spec, cells)
+            assert size(spec, np.sort(cells[:want])) <= spec.bytes
+            assert want == len(cells) or size(spec, np.sort(cells[:want + 1])) > spec.bytes
+            for hint in (None, 0, 7, len(cells), 10_000, int(rng.integers(0, 2500))):
+                assert fit(spec, cells, hint) == want
+
+
+@pytest.mark.parametrize("step", [1, 2])
+def test_orientation_maps_at_half_resolution_keep_the_descriptor_close(frames, step):
+    """The maps kept at every second pixel are a coarser sampling of the same smooth maps:
+    the raw descriptors of the same keypoints stay far closer to those at full resolution
+    than two views of one floor point are (0.3 apart is the 90th percentile of those)."""
+    img = frames["grass"]
+    learned = load_learned()
+    full = ExtractParams(pool_step=1, orientation_step=1)
+    half = ExtractParams(pool_step=2, orientation_step=step)
+    c1, c2 = candidates(img, full, learned), candidates(img, half, learned)
+    assert np.array_equal(c1.xy[np.argsort(c1.xy[:, 0] * 1e4 + c1.xy[:, 1])],
+                          c2.xy[np.argsort(c2.xy[:, 0] * 1e4 + c2.xy[:, 1])])  # same keypoints
+    if step == 1:
+        assert np.array_equal(c1.xy, c2.xy) and np.array_equal(c1.angle, c2.angle)
+    n = 300
+    # The same keypoints in c1's order, with c2's orientation and maps.
+    at = {tuple(p): i for i, p in enumerate(c2.xy.tolist())}
+    idx = np.array([at[tuple(p)] for p in c1.xy[:n].tolist()])
+    c2n = c2._replace(xy=c2.xy[idx], angle=c2.angle[idx])
+    dist = np.linalg.norm(raw_descriptors(c1, n, full) - raw_descriptors(c2n, n, half), axis=1)
+    assert np.median(dist) < 0.15 and np.mean(dist < 0.3) > 0.9
+    dang = np.abs(wrap_angle(c2.angle[idx] - c1.angle[:n]))
+    assert np.median(dang) < (0.01 if step == 1 else 0.05)
+
+
 def test_extract_params_repeat_fields_out_of_range():
     with pytest.raises(ValueError):
         ExtractParams(repeat_distance=-0.1)
     with pytest.raises(ValueError):
         ExtractParams(repeat_pool=-1)
+    for bad in ({"pool_step": 3}, {"pool_step": 0}, {"orientation_step": 4}):
+        with pytest.raises(ValueError, match="out of range"):
+            ExtractParams(**bad)
 
 
 # ----------------------------------------------------------------------------- bad arguments
@@ -427,7 +498,7 @@ def test_messages_name_the_problem(coded):
         (data[:3] + bytes([9]) + data[4:], "bad mode 9"),
         (data[:3] + bytes([1]) + data[4:], "exceed mode 1's bound of 512"),
         (data + bytes(MODE_BYTES[2] - len(data) + 1), "exceed mode 2's bound of 1024"),
-        (data + b"\x00", "checksum mismatch"),
+        (data[:-1] + bytes([data[-1] ^ 0x10]), "checksum mismatch"),  # (data may fill its bound exactly)
     ]
     for bad, message in cases:
         with pytest.raises(DescriptorError, match=re.escape(message)) as e:
@@ -545,3 +616,18 @@ def test_forged_position_beyond_the_grid_is_caught():
     with pytest.raises(DescriptorError, match="outside the image"):
         decode(_hand_made(4))
     assert len(decode(_hand_made(6))) == 2  # three rows: cell 70 fits
+
+
+def test_only_an_orthonormal_pca_basis_prefilters_the_repeat_check():
+    """The prefilter is exact only for orthonormal columns (an SVD's): a learned table
+    with any other basis gets the full check."""
+    from dataclasses import replace
+
+    from robotd.floor.descriptor import _orthonormal_basis
+
+    learned = load_learned()
+    assert _orthonormal_basis(learned) is not None
+    assert _orthonormal_basis(replace(learned, pca_basis=learned.pca_basis * 1.5)) is None
+    skew = learned.pca_basis.copy()
+    skew[:, 1] += 0.3 * skew[:, 0]
+    assert _orthonormal_basis(replace(learned, pca_basis=skew)) is None

@@ -242,3 +242,47 @@ def test_from_store_round_trip_skips_a_corrupt_descriptor(gravel_run, tmp_path, 
     b = direct.query(q, k=3, shortlist=6)
     assert [c.keyframe_id for c in a] == [c.keyframe_id for c in b] and a[0].keyframe_id == ids[4]
     assert [c.score for c in a] == [c.score for c in b]
+
+
+def _fields_equal(a, b) -> bool:
+    from dataclasses import fields
+
+    for f in fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, np.ndarray):
+            if x.dtype != y.dtype or x.shape != y.shape or not np.array_equal(x, y):
+                return False
+        elif x != y:
+            return False
+    return True
+
+
+def test_packed_descriptors_come_back_equal_and_widen_when_they_must(gravel_run):
+    from dataclasses import replace
+
+    from robotd.floor.descriptor import decode, extract
+
+    descs = [decode(extract(im, 2)) for im in gravel_run[0][:4]]
+    index = FloorIndex()
+    for kf, d in enumerate(descs):
+        index.add(kf, d)
+    assert index._packed.xy_dtype == np.float16 and index._packed.angle_coded
+    assert all(_fields_equal(d, index.descriptor(kf)) for kf, d in enumerate(descs))
+    # 2 bit planes + float16 x, y + an angle code per keypoint: about 21 of 28 bytes in mode 2 (one
+    # word per plane), the chunk's unused rows apart.
+    kp = sum(len(d) for d in descs)
+    assert index._packed.chunks[0]["pos"].nbytes == 8 * index._packed.CHUNK and index._packed.used == kp
+    # A position float16 cannot hold and an orientation off the 5-bit grid: everything widens,
+    # earlier keyframes still come back equal.
+    odd = replace(descs[0], xy_px=descs[0].xy_px + np.float32(0.001),
+                  angle_rad=descs[0].angle_rad + np.float32(0.01))
+    index.add(10, odd)
+    assert index._packed.xy_dtype == np.float32 and not index._packed.angle_coded
+    assert all(_fields_equal(d, index.descriptor(kf)) for kf, d in enumerate(descs))
+    assert _fields_equal(odd, index.descriptor(10))
+    # Queries score the packed descriptors as the originals.
+    from robotd.floor.match import local_score
+
+    got = {c.keyframe_id: c.score for c in index.query(descs[1], k=5, shortlist=5)}
+    want = {kf: local_score(descs[1], d).score for kf, d in enumerate(descs)} | {10: local_score(descs[1], odd).score}
+    assert got == want and got[1] > 0

@@ -201,3 +201,90 @@ def test_params_are_checked():
         RelocParams(min_agreeing=0)
     with pytest.raises(ValueError, match="map_sigma_m"):
         RelocParams(map_sigma_m=0.0)
+
+
+# -- forward loops: a heading change and a bearing, the range only from the floor ----------
+
+MOUNT = np.array([0.1, 0.0, 0.0])  # the forward camera on the robot
+BEARING_SIGMA = math.radians(1.0)
+YAW_SIGMA = math.radians(0.5)
+
+
+def _forward(q: int, rng: np.random.Generator, old_offset: np.ndarray, transform: np.ndarray = T_TRUE,
+             range_sigma: float | None = None, old_id: int | None = None) -> RelocCandidate:
+    """A forward loop from query ``q`` to an old keyframe that sees the query's camera at
+    ``old_offset`` (robot frame): bearing and heading change with noise; the range measured
+    on the floor with log-noise ``range_sigma``, or not at all."""
+    from robotd.forward.planar import PlanarLoopParams, loop_edge
+
+    truth_map = compose(transform, LOST[q])
+    old_pose = compose(truth_map, inverse(old_offset))
+    cam = compose(compose(inverse(MOUNT), old_offset), MOUNT)
+    bearing = math.atan2(cam[1], cam[0]) + rng.normal(0.0, BEARING_SIGMA)
+    dyaw = cam[2] + rng.normal(0.0, YAW_SIGMA)
+    range_m = None if range_sigma is None else math.hypot(cam[0], cam[1]) * math.exp(rng.normal(0.0, range_sigma))
+    params = PlanarLoopParams(sigma_bearing_rad=BEARING_SIGMA, sigma_yaw_rad=YAW_SIGMA)
+
+    def edge(predicted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return loop_edge(predicted, dyaw, bearing, MOUNT, params, range_m=range_m)
+
+    delta, info = edge(np.array([1.0, 0.0, 0.0]))
+    return RelocCandidate(old_id=2000 + q if old_id is None else old_id, query_id=q, score=0.9, old_pose=old_pose,
+                          delta=delta, information=info, query_pose=LOST[q], travelled_m=0.1 * q, old_run=1,
+                          source="forward", edge=edge, measured_dims=2 if range_m is None else 3)
+
+
+def test_one_forward_loop_cannot_relocalise_two_from_places_apart_fix_the_range():
+    errors = []
+    for seed in range(5):
+        rng = np.random.default_rng(100 + seed)
+        reloc = Relocaliser(_relative)
+        # Two old keyframes 1.6-1.8 m from queries 1.5 m apart, the bearings 54 deg apart in the map.
+        first = reloc.offer(_forward(5, rng, np.array([1.8, 0.4, 0.2])))
+        assert not first.relocalised
+        d = reloc.offer(_forward(20, rng, np.array([0.5, 1.5, 0.8])))
+        assert d.relocalised, d.detail
+        assert [m.source for m in d.members] == ["forward", "forward"]
+        errors.append(np.hypot(*(d.transform[:2] - T_TRUE[:2])))
+        assert abs(wrap_angle(d.transform[2] - T_TRUE[2])) < math.radians(3.0)
+        # The members' edges are re-evaluated at the fitted transform: their range is the fit's.
+        m = d.members[0]
+        pred = between(m.old_pose, compose(d.transform, m.query_pose))
+        assert np.allclose(m.delta[:2], pred[:2], atol=0.2)
+    # Without any range measured the two bearings alone place the robot to about a decimetre.
+    assert np.median(errors) < 0.15 and max(errors) < 0.4
+
+
+def test_a_forward_and_a_floor_loop_agree_and_a_forward_look_alike_does_not():
+    rng = np.random.default_rng(11)
+    reloc = Relocaliser(_relative)
+    wrong = compose(T_TRUE, np.array([0.0, 2.5, math.radians(-40.0)]))
+    assert not reloc.offer(_forward(3, rng, np.array([1.5, 0.3, 0.1]), transform=wrong)).relocalised
+    assert not reloc.offer(_forward(12, rng, np.array([1.5, 0.3, 0.1]))).relocalised  # disagrees with it
+    d = reloc.offer(_candidate(30, rng))
+    assert d.relocalised, d.detail
+    assert sorted(m.source for m in d.members) == ["floor", "forward"]
+    assert [c.query_id for c, _ in d.dropped] == [3]
+    assert np.hypot(*(d.transform[:2] - T_TRUE[:2])) < 0.05
+
+
+def test_two_forward_loops_along_one_line_of_sight_do_not_fix_the_position():
+    """Both queries on the line from the old keyframe, the robot driving along it: the two
+    bearings coincide, the range is not fixed, and the group waits."""
+    rng = np.random.default_rng(12)
+    straight = np.array([[0.1 * k, 0.0, 0.0] for k in range(60)])
+
+    def relative(a: int, b: int) -> tuple[np.ndarray, np.ndarray] | None:
+        return (between(straight[a], straight[b]), np.diag([1e-4, 1e-4, 1e-6])) if b > a else None
+
+    old = np.array([-1.0, 0.0, 0.0])  # in the lost frame: behind the queries, same heading
+    cands = []
+    for q in (5, 20):
+        c = _forward(q, rng, between(old, straight[q]))
+        cands.append(RelocCandidate(c.old_id, q, c.score, compose(T_TRUE, old), c.delta, c.information,
+                                    straight[q], 0.1 * q, 1, "forward", c.edge, 2))
+    reloc = Relocaliser(relative)
+    assert not reloc.offer(cands[0]).relocalised
+    d = reloc.offer(cands[1])
+    assert not d.relocalised
+    assert "the position is not fixed" in d.detail

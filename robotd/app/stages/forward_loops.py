@@ -17,6 +17,17 @@ the earlier runs' memory, so the detector goes on finding loops against them aft
 restart. A write that fails is logged and counted (``forward_store_errors``); detection
 goes on.
 
+A loop is published only when its motion is a level camera's: the out-of-plane part of the
+refined two-view motion must be within its own covariance, the inliers' noise scaled by the
+measured factor :data:`robotd.forward.planar.INLIER_NOISE_FACTOR`
+(:func:`robotd.forward.planar.planarity_bound`), and under ``max_tilt_rad``. At short
+baselines the five-point motion sometimes comes out with its bearing 10-130 deg wrong and
+the heading about right; it then leans out of the floor plane by more than the inliers
+allow, though often by less than a fixed tilt limit (the daemon's wrong forward loops were
+of this kind; rendered at the frames' own times, so not the frame's offset from its
+keyframe). Refused loops are ``failed_gate`` fates (``forward: motion ... out of the floor
+plane``) and ``forward_not_planar``.
+
 The detector runs in the pipeline's thread, once per forward keyframe (every half metre by
 default, about one image per 1.5 s at the demo's speed): a SIFT image costs tens of
 milliseconds, which the source queues absorb. The frame's offset from its keyframe (at most
@@ -38,7 +49,7 @@ from robotd.base.errors import MapStoreError
 from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored, LoopFate
 from robotd.forward import LOOP, ForwardDetector
 from robotd.forward.features import CompactFeatures
-from robotd.forward.planar import planar_motion
+from robotd.forward.planar import planar_motion, planarity_bound
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +63,7 @@ class ForwardLoopStage(Publisher):
     def __init__(self, detector: ForwardDetector, *, distance_m: float = 0.5,
                  rotation_rad: float = math.radians(20.0), sync_tolerance_s: float = 0.04,
                  max_tilt_rad: float = math.radians(10.0), camera: str = "forward",
-                 store: Any = None) -> None:
+                 store: Any = None, planarity_bound: float = planarity_bound()) -> None:
         self.detector = detector
         self.store = store
         self.store_errors = 0
@@ -61,6 +72,7 @@ class ForwardLoopStage(Publisher):
         self.rotation_rad = rotation_rad
         self.sync_tolerance_ns = int(sync_tolerance_s * 1e9)
         self.max_tilt_rad = max_tilt_rad
+        self.planarity_bound = planarity_bound
         self.camera = camera
         self._frames: deque[Frame] = deque(maxlen=16)
         self._keyframe_ids: list[int] = []  # detector image id -> floor keyframe id
@@ -182,10 +194,12 @@ class ForwardLoopStage(Publisher):
             raise AssertionError("an accepted forward loop's verification has no relative pose")
         old = self._keyframe_ids[det.loop_id]
         dyaw, bearing, tilt = planar_motion(v.rotation, v.translation_dir)
-        if tilt > self.max_tilt_rad:
+        # (A planarity not computed, NaN, leaves the tilt limit alone to judge.)
+        if tilt > self.max_tilt_rad or v.planarity_chi2 > self.planarity_bound:
             self.not_planar += 1
             self._publish(CandidateFate(kf.keyframe_id, old, det.candidate_probability, LoopFate.FAILED_GATE,
-                                        f"forward: motion {math.degrees(tilt):.1f} deg out of the floor plane"))
+                                        f"forward: motion {math.degrees(tilt):.1f} deg out of the floor plane "
+                                        f"(planarity chi2 {v.planarity_chi2:.0f}, bound {self.planarity_bound:.0f})"))
             return
         self.loops += 1
         log.debug("forward loop: keyframe %d sees keyframe %d (p %.2f, %d inliers)", kf.keyframe_id, old,

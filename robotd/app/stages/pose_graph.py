@@ -124,7 +124,7 @@ class PoseGraphStage(Publisher):
             return loop_edge(predicted, c.dyaw_rad, c.bearing_rad, self.forward_mount, self.forward_params,
                              range_m=c.range_m, sigma_bearing_rad=c.sigma_bearing_rad)
 
-        self.gated.forward_candidate(c.from_id, c.to_id, c.probability, edge)
+        self.gated.forward_candidate(c.from_id, c.to_id, c.probability, edge, range_measured=c.range_m is not None)
 
     def solve_and_save(self) -> None:
         """Re-solve the whole graph robustly and store the optimised poses."""

@@ -1,0 +1,483 @@
+"""Are the covariances the map's edges carry honest? NEES of odometry and loop edges
+against the virtual robot's truth.
+
+The normalised estimation error squared of an edge is ``e^T C^-1 e``, ``e`` its error
+against the truth in the frame the pose graph measures it in (the edge's end, as
+:func:`robotd.base.geometry.between_error_covariance`), ``C`` its covariance; over many
+edges its mean is 3 when the covariances are right (3 degrees of freedom), below when they
+are too cautious, above when too confident.
+
+**Odometry edges** (part 1). For each seed the office route (about 110 m, paper 003 Sec.
+V) is driven by the virtual Kobuki (:mod:`sim.sensors` defaults: per-seed wheel radii,
+wheel base, gyro scale and turn-on bias, bias walk, slip), its messages run through the
+wheel + gyro filter as the daemon builds it (nominal model), and keyframes are taken as the
+daemon takes them (``--keyframe-m`` or 10 deg, floor frames at 30 Hz) with their edges
+(:meth:`robotd.odometry.fusion.OdometryFilter.keyframe_edge`). Per horizon ``N``: every
+chain of ``N`` consecutive edges (a window every ``N/5`` edges) composed as the pose graph
+composes independent edges, its covariance the sum of theirs carried to the chain's end;
+the mean NEES over the windows, and of the yaw and the position parts alone (expected 1
+and 2). Beside it, the same windows with the filter's own covariance of the motion between
+the two keyframes (its joint covariance, carried through every filter step, so that what
+the edges share through the speed, yaw-rate and gyro-bias states is kept): what a graph
+could reach if it modelled the filter's correlations, against what independent edges give.
+
+**Loop edges** (part 2). Per floor (the printed planks, the paper's worst case, and the
+default floor of real photographs) ``--pairs`` frame pairs are rendered with the second
+frame within 0.25 m of the first at any heading (``sim.pairs.random_pairs``); per descriptor
+mode the pairs the floor loop detector would declare loops (local score at the demo
+calibration's threshold, footprint overlap at least ``LOOP_R``) and whose transform is
+right (within 5 cm of the truth, as the loop-closure benchmark counts a loop false) get
+their loop edge (:func:`robotd.floor.detector.loop_transform`). NEES of the covariance the
+detector gives now, and of the rigid fit's covariance alone (what it gave before the
+shared error of the frame pair was modelled: the baseline, in the same run).
+
+Run from the repo root: ``.venv/bin/python bench/bench_nees.py [--seeds 5] [--pairs 120]
+[--floors planks,mixed] [--skip-odometry] [--skip-loops] [--out bench/results/nees.json]
+[--markdown docs/benchmarks/nees.md]``. The default takes about 10 minutes on a quiet
+2-core machine (rendering the pairs is most of it); ``--full``: 10 seeds, 400 pairs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+try:
+    from bench.common import machine_info, print_table, write_json, write_page
+except ImportError:  # run as a script: bench/ is on sys.path
+    from common import machine_info, print_table, write_json, write_page
+
+from robotd.base.geometry import between, between_error_covariance, compose, wrap_angle
+from robotd.base.messages import WheelTicks
+from robotd.keyframes import KeyframeSelector
+from robotd.odometry.fusion import OdometryFilter
+from robotd.odometry.relative import PoseClone, relative_pose_covariance
+from sim.emulators.kobuki import driver_messages, simulate_kobuki
+from sim.route import MotionLimits, build_route, plan_motion
+from sim.sensors import BaseSensorParams
+
+DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "nees.json"
+HORIZONS = (1, 10, 50, 200, 500, 1000)
+FRAME_HZ = 30.0
+#: A loop edge farther than this from the truth is false (bench_loop_closure's rule).
+FALSE_LOOP_M = 0.05
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+# --------------------------------------------------------------------------- odometry
+
+
+class _Recorder:
+    """Every state the filter records, with the linear map of its error since the one
+    before (what :class:`robotd.odometry.history.PoseHistory` keeps for two seconds)."""
+
+    def __init__(self, f: OdometryFilter) -> None:
+        self.t: list[int] = []
+        self.mean: list[np.ndarray] = []
+        self.cov: list[np.ndarray] = []
+        self.step: list[np.ndarray] = []
+        hist = f._history  # the bench looks inside: the daemon never needs the whole run
+        orig = hist.record
+
+        def record(state: Any, step: np.ndarray) -> None:
+            if self.t and self.t[-1] == state.stamp_ns:
+                self.mean[-1], self.cov[-1] = state.mean, state.cov
+                self.step[-1] = step @ self.step[-1]
+            else:
+                self.t.append(state.stamp_ns)
+                self.mean.append(state.mean)
+                self.cov.append(state.cov)
+                self.step.append(step)
+            orig(state, step)
+
+        hist.record = record  # type: ignore[method-assign]
+
+
+def drive_edges(route: str, seed: int, keyframe_m: float, sensors: BaseSensorParams) -> dict[str, Any]:
+    """Drive ``route`` with seed ``seed``'s base; the keyframe edges, the truth at the
+    keyframes, and the filter's own states at them (for the joint covariance)."""
+    motion = plan_motion(build_route(route), MotionLimits())
+    stream = simulate_kobuki(motion, sensors, np.random.default_rng(seed))
+    msgs = driver_messages(stream)
+    f = OdometryFilter()
+    rec = _Recorder(f)
+    selector = KeyframeSelector(keyframe_m, math.radians(10.0))
+    frames_ns = (np.arange(0.0, float(motion.t_s[-1]), 1.0 / FRAME_HZ) * 1e9).round().astype(np.int64)
+    stamps, edges = [], []
+    i = 0
+    for n, m in enumerate(msgs):
+        (f.on_wheels if isinstance(m, WheelTicks) else f.on_yaw_rate)(m)
+        if n % 16:  # the daemon drains its queues in batches; the edges do not depend on it
+            continue
+        settled = f.settled_stamp_ns()
+        while settled is not None and i < len(frames_ns) and frames_ns[i] <= settled:
+            t = int(frames_ns[i])
+            p = f.pose_at(t)
+            if p is not None and selector.offer(np.array([p.x_m, p.y_m, p.yaw_rad])):
+                stamps.append(t)
+                edges.append(f.keyframe_edge(t))
+            i += 1
+    rec_t = np.asarray(rec.t, np.int64)
+    at = np.minimum(np.searchsorted(rec_t, np.asarray(stamps, np.int64)), len(rec_t) - 1)
+    # The error map from each keyframe's recorded state to the next one's.
+    maps = []
+    for a, b in zip(at[:-1], at[1:]):
+        m6 = np.eye(6)
+        for s in rec.step[a + 1:b + 1]:
+            m6 = s @ m6
+        maps.append(m6)
+    return {
+        "delta": np.array([e[0] for e in edges[1:]]), "cov": np.array([e[1] for e in edges[1:]]),
+        "truth": motion.pose_at(np.asarray(stamps) * 1e-9),
+        "rec_mean": np.array([rec.mean[k] for k in at]), "rec_cov": np.array([rec.cov[k] for k in at]),
+        "rec_truth": motion.pose_at(rec_t[at] * 1e-9), "maps": np.array(maps),
+        "drawn": stream.sensors.errors,
+    }
+
+
+def _adjoint(p: np.ndarray) -> np.ndarray:
+    """SE(2) adjoint of pose ``p``: moves a right perturbation at ``p`` into the parent frame."""
+    c, s = math.cos(float(p[2])), math.sin(float(p[2]))
+    return np.array([[c, -s, float(p[1])], [s, c, -float(p[0])], [0.0, 0.0, 1.0]])
+
+
+def _nees_parts(e: np.ndarray, c: np.ndarray) -> tuple[float, float, float]:
+    return (float(e @ np.linalg.solve(c, e)), float(e[2] ** 2 / c[2, 2]),
+            float(e[:2] @ np.linalg.solve(c[:2, :2], e[:2])))
+
+
+def chained_nees(d: dict[str, Any], horizons: tuple[int, ...] = HORIZONS) -> dict[int, dict[str, float]]:
+    """Per horizon ``N``: mean NEES (all, yaw, position) of chains of ``N`` edges taken as
+    independent (the pose graph without loops) and of the filter's joint covariance of the
+    same motion."""
+    delta, cov, truth = d["delta"], d["cov"], d["truth"]
+    m = len(delta)
+    pose = np.zeros((m + 1, 3))
+    acc = np.zeros((m + 1, 3, 3))  # sum of the edges' covariances in the start's frame
+    for k in range(m):
+        pose[k + 1] = compose(pose[k], delta[k])
+        a = _adjoint(pose[k + 1])
+        acc[k + 1] = acc[k] + a @ cov[k] @ a.T
+    out: dict[int, dict[str, float]] = {}
+    for h in horizons:
+        if h > m:
+            continue
+        graph, joint = [], []
+        for i in range(0, m - h + 1, max(1, h // 5)):
+            j = i + h
+            e = between(between(pose[i], pose[j]), between(truth[i], truth[j]))
+            e[2] = wrap_angle(e[2])
+            back = np.linalg.inv(_adjoint(pose[j]))
+            graph.append(_nees_parts(e, back @ (acc[j] - acc[i]) @ back.T))
+            joint.append(_joint_nees(d, i, j))
+        g, jn = np.array(graph), np.array(joint)
+        out[h] = {"windows": len(g), "graph": float(g[:, 0].mean()), "graph_yaw": float(g[:, 1].mean()),
+                  "graph_position": float(g[:, 2].mean()), "filter": float(jn[:, 0].mean()),
+                  "filter_yaw": float(jn[:, 1].mean()), "filter_position": float(jn[:, 2].mean())}
+    return out
+
+
+def _joint_nees(d: dict[str, Any], i: int, j: int) -> tuple[float, float, float]:
+    """NEES of the filter's motion between keyframes ``i`` and ``j`` (its recorded states)
+    against its joint covariance (the clone of :mod:`robotd.odometry.relative` over the
+    whole window)."""
+    phi = np.eye(6)
+    for m6 in d["maps"][i:j]:
+        phi = m6 @ phi
+    mean_a, cov_a = d["rec_mean"][i], d["rec_cov"][i]
+    clone = PoseClone(0, mean_a[:3], cov_a[:3, :3], phi @ cov_a[:, :3], np.zeros(3))
+    mean_b, cov_b = d["rec_mean"][j], d["rec_cov"][j]
+    h, c = relative_pose_covariance(mean_b[:3], cov_b[:3, :3], clone)
+    c = between_error_covariance(h, c)
+    e = between(h, between(d["rec_truth"][i], d["rec_truth"][j]))
+    e[2] = wrap_angle(e[2])
+    return _nees_parts(e, c)
+
+
+#: What ``--without`` can take out of the simulated base (:class:`sim.sensors.BaseSensorParams`).
+WITHOUT = {
+    "gyro_bias": {"gyro_bias_degps_range": (0.0, 0.0), "gyro_bias_walk_degps_sqrt_s": 0.0},
+    "scales": {"wheel_scale_error_max": 0.0, "wheel_diff_error_max": 0.0, "gyro_scale_error_max": 0.0},
+    "slip_events": {"slip_event_rate_hz": 0.0},
+}
+
+
+def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str, ...] = ()) -> dict[str, Any]:
+    sensors = BaseSensorParams()
+    for name in without:  # the same base without these errors: what each costs
+        sensors = dataclasses.replace(sensors, **WITHOUT[name])
+    per_seed = []
+    for seed in range(seeds):
+        t0 = time.monotonic()
+        d = drive_edges(route, seed, keyframe_m, sensors)
+        res = chained_nees(d)
+        e = d["drawn"]
+        per_seed.append({"seed": seed, "edges": len(d["delta"]), "horizons": {str(k): v for k, v in res.items()},
+                         "drawn": {"wheel_base_error": e.wheel_base_error,
+                                   "radius_error_left": e.left_radius_error,
+                                   "radius_error_right": e.right_radius_error,
+                                   "gyro_scale_error": e.gyro_scale_error,
+                                   "gyro_bias0_degps": math.degrees(e.gyro_bias0_radps)}})
+        log(f"seed {seed}: {len(d['delta'])} edges, " + ", ".join(
+            f"N={h} {v['graph']:.2f} ({v['filter']:.2f})" for h, v in res.items())
+            + f"  [{time.monotonic() - t0:.0f} s]")
+    return {"route": route, "keyframe_m": keyframe_m, "without": list(without), "per_seed": per_seed}
+
+
+def odometry_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
+    head = ["seed", "edges"] + [f"N={h}" for h in HORIZONS]
+    rows: list[list[Any]] = []
+    for r in part["per_seed"]:
+        hz = r["horizons"]
+        rows.append([r["seed"], r["edges"]] + [
+            f"{hz[str(h)]['graph']:.2f} ({hz[str(h)]['filter']:.2f})" if str(h) in hz else "-"
+            for h in HORIZONS])
+    means = []
+    for h in HORIZONS:
+        g = [r["horizons"][str(h)]["graph"] for r in part["per_seed"] if str(h) in r["horizons"]]
+        f = [r["horizons"][str(h)]["filter"] for r in part["per_seed"] if str(h) in r["horizons"]]
+        means.append(f"{np.mean(g):.2f} ({np.mean(f):.2f})" if g else "-")
+    rows.append(["mean", ""] + means)
+    return head, rows
+
+
+def odometry_part_rows(part: dict[str, Any], kind: str) -> list[list[Any]]:
+    """Mean over seeds per horizon of the yaw and position parts (``kind``: graph or filter)."""
+    rows = []
+    for h in HORIZONS:
+        rs = [r["horizons"][str(h)] for r in part["per_seed"] if str(h) in r["horizons"]]
+        if rs:
+            rows.append([h, f"{np.mean([r[kind] for r in rs]):.2f}", f"{np.mean([r[kind + '_yaw'] for r in rs]):.2f}",
+                         f"{np.mean([r[kind + '_position'] for r in rs]):.2f}"])
+    return rows
+
+
+# --------------------------------------------------------------------------- loops
+
+
+def _floor(name: str) -> Any:
+    try:
+        from bench.floor_common import bench_floors, printed_floor
+    except ImportError:  # run as a script
+        from floor_common import bench_floors, printed_floor
+    if name == "planks":
+        return printed_floor(0).floor
+    return next(f.floor for f in bench_floors() if f.name == name)
+
+
+def loop_part(floors: list[str], n_pairs: int, seed: int) -> dict[str, Any]:
+    """Per floor and mode: the NEES of the loop edges the detector would give for rendered
+    pairs, with its covariance and with the rigid fit's alone."""
+    from robotd.app.demo import shipped_calibration
+    from robotd.base.camera import FloorCameraModel
+    from robotd.base.geometry import rigid_fit_2d, rigid_fit_2d_covariance
+    from robotd.evaluation.groundtruth import LOOP_R
+    from robotd.floor.descriptor import decode, extract
+    from robotd.floor.detector import loop_transform
+    from robotd.floor.match import local_score
+    from robotd.floor.vo import floor_point_pairs
+    from robotd.io.calibfile import read_calibration
+    from sim.pairs import random_pairs
+
+    path = shipped_calibration()
+    loop_cal = read_calibration(path).loop if path is not None else None
+    if loop_cal is None:
+        raise SystemExit("the demo's shipped calibration (loop thresholds) is missing")
+    cam = FloorCameraModel.default()
+    out: dict[str, Any] = {}
+    shared: dict[str, float] = {}
+    for name in floors:
+        samples: list[tuple[np.ndarray, np.ndarray]] = []  # (error, the fit's covariance) of every loop
+        t0 = time.monotonic()
+        pairs = random_pairs(_floor(name), cam, n_pairs, np.random.default_rng(seed),
+                             near_fraction=1.0, max_offset_m=0.25)
+        log(f"{name}: {n_pairs} pairs rendered in {time.monotonic() - t0:.0f} s")
+        per_mode = {}
+        for mode in range(1, 7):
+            threshold = loop_cal.for_mode(mode)
+            if threshold is None:
+                continue
+            da = [decode(extract(im, mode)) for im in pairs.images_a]
+            db = [decode(extract(im, mode)) for im in pairs.images_b]
+            now, fit, inliers, false = [], [], [], 0
+            for k, (a, b) in enumerate(zip(da, db)):
+                if pairs.overlap[k] < LOOP_R:
+                    continue
+                match = local_score(a, b)
+                if match.score < threshold:
+                    continue
+                edge = loop_transform(cam, match.xy_a, match.xy_b)  # a: the query, b: the old frame
+                if edge is None:
+                    continue
+                delta, info = edge
+                e = between(between(pairs.poses_b[k], pairs.poses_a[k]), delta)
+                e[2] = wrap_angle(e[2])
+                if math.hypot(e[0], e[1]) > FALSE_LOOP_M:
+                    false += 1
+                    continue
+                po, pq = floor_point_pairs(cam, match.xy_b, match.xy_a)
+                cov_fit, _sigma = rigid_fit_2d_covariance(pq, po, rigid_fit_2d(pq, po), 0.001)
+                now.append(float(e @ info @ e))
+                cov_fit = between_error_covariance(delta, cov_fit)
+                fit.append(float(e @ np.linalg.solve(cov_fit, e)))
+                samples.append((e, cov_fit))
+                inliers.append(len(pq))
+            per_mode[str(mode)] = {
+                "loops": len(now), "false": false, "inliers_median": float(np.median(inliers)) if inliers else None,
+                "nees": float(np.mean(now)) if now else None, "nees_median": float(np.median(now)) if now else None,
+                "nees_fit_only": float(np.mean(fit)) if fit else None,
+                "nees_fit_only_median": float(np.median(fit)) if fit else None}
+            r = per_mode[str(mode)]
+            log(f"{name} mode {mode}: {len(now)} loops ({false} false), NEES {r['nees']} (fit alone {r['nees_fit_only']})")
+        out[name] = per_mode
+        shared[name] = shared_sigma_ml(samples)
+        log(f"{name}: shared translation error, maximum likelihood over modes 1-6: {shared[name] * 1e3:.3f} mm")
+    return {"pairs": n_pairs, "seed": seed, "max_offset_m": 0.25, "floors": out, "shared_sigma_ml_m": shared}
+
+
+def shared_sigma_ml(samples: list[tuple[np.ndarray, np.ndarray]]) -> float:
+    """The maximum-likelihood sigma ``s`` (metres per translation axis) of an error shared
+    by all the inliers of a pair, given each loop's error ``e (3,)`` and its fit's
+    covariance ``C (3, 3)`` (in the frame of the edge's end, where an isotropic translation
+    term stays ``diag(s^2, s^2, 0)``): ``e ~ N(0, C + diag(s^2, s^2, 0))``, searched on a
+    log grid from 1 um to 1 mm (0.5 % steps)."""
+    if not samples:
+        return math.nan
+    grid = np.exp(np.linspace(math.log(1e-6), math.log(1e-3), 1400))
+    best, best_ll = math.nan, -math.inf
+    for sig in grid:
+        add = np.diag([sig * sig, sig * sig, 0.0])
+        ll = 0.0
+        for e, c in samples:
+            cs = c + add
+            ll -= 0.5 * (float(e @ np.linalg.solve(cs, e)) + float(np.linalg.slogdet(cs)[1]))
+        if ll > best_ll:
+            best, best_ll = float(sig), ll
+    return best
+
+
+def loop_rows(part: dict[str, Any]) -> list[list[Any]]:
+    rows = []
+    for name, per_mode in part["floors"].items():
+        for mode, r in per_mode.items():
+            if not r["loops"]:
+                rows.append([name, mode, 0, r["false"], "-", "-", "-"])
+                continue
+            rows.append([name, int(mode), r["loops"], r["false"], round(r["inliers_median"]),
+                         f"{r['nees']:.2f} / {r['nees_median']:.2f}",
+                         f"{r['nees_fit_only']:.2f} / {r['nees_fit_only_median']:.2f}"])
+    return rows
+
+
+LOOP_HEAD = ["floor", "mode", "loops", "false", "inliers (median)", "NEES mean / median",
+             "rigid fit alone: mean / median"]
+ODO_PART_HEAD = ["N edges", "NEES", "yaw part", "position part"]
+
+
+# --------------------------------------------------------------------------- report
+
+
+def markdown(payload: dict[str, Any]) -> list[str]:
+    lines = ["# NEES of the map's edges", "",
+             "Generated by `bench/bench_nees.py` (see its docstring for the method); "
+             "3 is right (3 degrees of freedom; the yaw part alone 1, the position part 2), "
+             "below too cautious, above too confident.", ""]
+    m = payload["machine"]
+    lines += [f"Machine: {m['machine']}, {m['cpu_count']} cores, Python {m['python']}.", ""]
+
+    def table(head: list[str], rows: list[list[Any]]) -> None:
+        lines.append("| " + " | ".join(head) + " |")
+        lines.append("|" + "---|" * len(head))
+        for row in rows:
+            lines.append("| " + " | ".join(str(c) for c in row) + " |")
+        lines.append("")
+
+    odo = payload.get("odometry")
+    if odo:
+        bias = f", the base without {', '.join(odo['without'])}" if odo.get("without") else ""
+        lines += [f"## Odometry edges ({odo['route']} route, keyframes every {odo['keyframe_m']} m or 10 deg{bias})", "",
+                  "Mean NEES of chains of N consecutive edges composed as independent edges (the pose "
+                  "graph without loops); in brackets the filter's own joint covariance of the same "
+                  "motion (the correlations through its speed, yaw-rate and gyro-bias states kept).", ""]
+        table(*odometry_rows(odo))
+        lines += ["Mean over seeds, yaw and position parts, independent edges:", ""]
+        table(ODO_PART_HEAD, odometry_part_rows(odo, "graph"))
+        lines += ["The same, the filter's joint covariance:", ""]
+        table(ODO_PART_HEAD, odometry_part_rows(odo, "filter"))
+    loops = payload.get("loops")
+    if loops:
+        lines += [f"## Loop edges ({loops['pairs']} rendered pairs per floor, second frame within "
+                  f"{loops['max_offset_m']} m)", "",
+                  "Pairs declared loops at the demo calibration's thresholds whose transform is right "
+                  f"(within {FALSE_LOOP_M * 100:.0f} cm; the false ones counted apart).", ""]
+        table(LOOP_HEAD, loop_rows(loops))
+        ml = loops.get("shared_sigma_ml_m", {})
+        if ml:
+            lines += ["Maximum-likelihood sigma of the translation error the inliers of a pair share "
+                      "(modes 1-6 pooled; `robotd.floor.detector.SHARED_SIGMA_M` is the plank floor's "
+                      "on another sample): " + ", ".join(f"{k} {v * 1e3:.3f} mm" for k, v in ml.items()) + ".", ""]
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--full", action="store_true", help="10 seeds and 400 pairs per floor")
+    ap.add_argument("--seeds", type=int, default=None, help="seeds 0..N-1 of the virtual base (default 5)")
+    ap.add_argument("--route", default="office")
+    ap.add_argument("--keyframe-m", type=float, default=0.05,
+                    help="keyframe spacing for the odometry edges (0.05: the horizons of 1000 edges fit the route)")
+    ap.add_argument("--pairs", type=int, default=None, help="rendered frame pairs per floor (default 120)")
+    ap.add_argument("--floors", default="planks,mixed")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the rendered pairs")
+    ap.add_argument("--without", default="",
+                    help="odometry: comma-separated errors the simulated base leaves out (what each costs): "
+                         + ", ".join(WITHOUT))
+    ap.add_argument("--skip-odometry", action="store_true")
+    ap.add_argument("--skip-loops", action="store_true")
+    ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--markdown", type=Path, default=None, help="also write this Markdown page")
+    args = ap.parse_args(argv)
+    seeds = args.seeds or (10 if args.full else 5)
+    without = tuple(w for w in args.without.split(",") if w)
+    if not set(without) <= set(WITHOUT):
+        ap.error(f"--without takes {', '.join(WITHOUT)}")
+    n_pairs = args.pairs or (400 if args.full else 120)
+    payload: dict[str, Any] = {"benchmark": "nees", "machine": machine_info(),
+                               "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
+    if not args.skip_odometry:
+        payload["odometry"] = odometry_part(seeds, args.route, args.keyframe_m, without)
+        print(f"\nodometry edges, {args.route}: mean NEES of N chained edges (filter's joint covariance)")
+        print_table(*odometry_rows(payload["odometry"]))
+        print("\nmean over seeds, parts (independent edges)")
+        print_table(ODO_PART_HEAD, odometry_part_rows(payload["odometry"], "graph"))
+        print("\nmean over seeds, parts (the filter's joint covariance)")
+        print_table(ODO_PART_HEAD, odometry_part_rows(payload["odometry"], "filter"))
+    if not args.skip_loops:
+        payload["loops"] = loop_part([f for f in args.floors.split(",") if f], n_pairs, args.seed)
+        print("\nloop edges from rendered pairs")
+        print_table(LOOP_HEAD, loop_rows(payload["loops"]))
+        for k, v in payload["loops"]["shared_sigma_ml_m"].items():
+            print(f"{k}: shared translation error (maximum likelihood, modes 1-6): {v * 1e3:.3f} mm")
+    path = write_json(args.out, payload)
+    log(f"wrote {path}")
+    if args.markdown is not None:
+        write_page(args.markdown, markdown(payload))
+        log(f"wrote {args.markdown}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

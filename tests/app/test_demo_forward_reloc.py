@@ -1,0 +1,43 @@
+"""`robotd demo --forward --kidnap` with the floor detector off: the forward camera alone
+relocalises the kidnapped robot (two verified forward loops to stored places that agree,
+after odometry has moved the robot), and says so."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+
+@pytest.mark.slow
+def test_the_forward_camera_relocalises_a_kidnapped_robot_without_the_floor_detector(tmp_path: Path):
+    cfg = tmp_path / "nofloor.toml"
+    cfg.write_text("[floor_detector]\nenabled = false\n")
+    out = tmp_path / "out"
+    # The office route: lifted at 120 s, put down where the route was at 60 s (2.6 m away),
+    # a corridor it drove before.
+    r = subprocess.run([sys.executable, "-m", "robotd.app.cli", "--log-level", "info", "demo", "--route", "office",
+                        "--forward", "--config", str(cfg), "--kidnap", "120", "--kidnap-to", "60",
+                        "--duration", "150", "--no-plot", "--out", str(out)],
+                       capture_output=True, text=True, timeout=3600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "lifted (wheel drop): lost" in r.stderr
+    assert "relocalised against run 1 after" in r.stderr and "(forward camera)" in r.stderr
+    s = json.loads((out / "summary.json").read_text())
+    assert "floor_detector" not in s or not s["floor_detector"]
+    rl = s["relocalisation"]
+    assert (rl["lifts_detected"], rl["odometry_breaks"], rl["relocalisations"]) == (1, 1, 1)
+    assert rl["relocalised"] and rl["cameras"] == "forward" and rl["agreeing_candidates"] >= 2
+    # Measured (two runs): 10.5 s and 5.2 m after being put down, 0.15-0.20 m and 1.5-1.8 deg
+    # off (the odometry alone is off by the whole carry, 2.6 m).
+    assert rl["after_s"] < 25.0 and rl["after_m_true"] < 10.0
+    assert rl["position_error_m"] < 0.4 and rl["heading_error_deg"] < 5.0
+    fw = s["forward_detector"]
+    assert fw["accepted"] >= rl["agreeing_candidates"]
+    # (Not asserted: that every accepted forward loop is right. Right after a relocalisation
+    # from the forward camera the gate is lenient; one run of this test accepted 3 of 8 a hair
+    # outside the demo's judge: heading 5.5-5.7 deg at 0.14-0.18 m, bearing 10.2 deg.)
+    assert "by the forward camera" in r.stdout
