@@ -32,7 +32,12 @@ one core. This benchmark:
   the 20 s around it left out, as the detector does (beyond the distinct images, the
   descriptors are repeated under new ids: the cost of the scan and of the shortlist is
   measured, not the shortlist of a real map of that size); describe
-  and query medians, the index's memory and the process's at each size.
+  and query medians, the index's memory and the process's at each size;
+* ``--memory N`` (alone, in a process of its own): the whole daemon's resident memory as
+  its map grows to N keyframes (:func:`memory_run`; ``--localise-mapped`` as the service
+  runs it), sampled every ``--memory-every`` keyframes into ``NAME-memory.json`` (and a
+  partial JSON while it runs); ``--memory-page JSON...`` writes
+  ``docs/benchmarks/daemon-memory.md`` from such files.
 
 Run from the repo root: ``./dev bench daemon [--out DIR]`` (default ``bench/results``).
 Writes ``DIR/daemon.json``; ``--doc FILE`` also writes the markdown page generated from
@@ -216,6 +221,19 @@ def rss_mb() -> float:
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) / 1024
     return math.nan
+
+
+def trimmed_rss_mb() -> float:
+    """Resident memory after glibc's ``malloc_trim(0)`` (what the process holds, without
+    the free lists glibc keeps; as ``bench_soak``); ``rss_mb()`` where there is no glibc."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+    return rss_mb()
 
 
 def peak_rss_mb() -> float:
@@ -470,6 +488,181 @@ def scale(recording: Path, sizes: list[int], queries: int, mode: int, shortlist:
     return out
 
 
+# ---------------------------------------------------------------------------- memory
+
+
+class TruthOdometry:
+    """The keyframe stage's odometry (``KeyframeOdometry``) from the recording's ground
+    truth, for :func:`memory_run`: lap ``k`` of the drive is stamped ``k`` laps later and
+    has the first lap's poses, as a robot driving its round again; edges and poses carry
+    a covariance growing with the motion (1 % of it, 1 mm and 1 mrad at least)."""
+
+    def __init__(self, truth: tuple[np.ndarray, np.ndarray], lap_ns: int) -> None:
+        self.truth, self.lap_ns = truth, lap_ns
+        self.settled: int | None = None
+        self._previous: np.ndarray | None = None
+
+    def settled_stamp_ns(self) -> int | None:
+        return self.settled
+
+    def _at(self, stamp_ns: int) -> np.ndarray:
+        t0 = int(self.truth[0][0])
+        return truth_at(np.array([(stamp_ns - t0) % self.lap_ns + t0]), self.truth)[0]
+
+    def pose_at(self, stamp_ns: int) -> Any:
+        from robotd.base.geometry import wrap_angle
+        from robotd.base.messages import PoseStamped
+
+        p = self._at(stamp_ns)
+        return PoseStamped(stamp_ns, float(p[0]), float(p[1]), wrap_angle(float(p[2])), np.diag([1e-6, 1e-6, 1e-6]))
+
+    def keyframe_edge(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+        from robotd.base.geometry import between
+
+        p, prev = self._at(stamp_ns), self._previous
+        self._previous = p
+        if prev is None:
+            return None
+        d = between(prev, p)
+        sig = 0.01 * np.abs(d) + np.array([1e-3, 1e-3, 1e-3])
+        return d, np.diag(sig ** 2)
+
+
+def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
+               on_sample: Any = None) -> dict[str, Any]:
+    """The whole daemon's resident memory as its map grows to ``keyframes`` keyframes.
+
+    The daemon is assembled as for the replay (every stage, the map on disk) and the
+    recording's floor frames are fed to it lap after lap, each lap stamped after the
+    previous one, until that many keyframes are stored: the keyframe spacing, floor
+    describe and query, visual odometry, the pose graph (every later lap revisits: loops
+    are declared and closed) and the store run as on the robot. The keyframes' poses come
+    from the recorded ground truth (:class:`TruthOdometry`), so the wheel + gyro filter is
+    idle here; its history is bounded and is in the replay's figures. Resident memory,
+    the floor index's bytes and the CPU are sampled every ``--memory-every`` keyframes
+    (``on_sample(samples)`` after each, so a run stopped early keeps what it measured)."""
+    import gc
+
+    from drivers.recording.reader import EncodedFrame, RecordingReader
+    from robotd.app.assemble import assemble_daemon, open_map
+    from robotd.app.notify import Notifier
+    from robotd.base.clock import ManualClock
+    from robotd.base.messages import Frame
+
+    truth = read_truth(recording)
+    with RecordingReader(recording) as r:
+        span = r.time_range_ns
+    assert span is not None
+    lap_ns = span[1] - span[0] + 40_000_000
+    samples: list[dict[str, float]] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = make_config(args, Path(tmp) / "map.sqlite")
+        clock = ManualClock(span[0])
+        with open_map(cfg, clock=clock) as store:
+            daemon = assemble_daemon(cfg, clock, {}, store, Notifier(), lossless=True)
+            pipeline = daemon.pipeline
+            odo = TruthOdometry(truth, lap_ns)
+            pipeline.stage("keyframes").odometry = odo
+            floor = pipeline.stage("floor")
+            config = {"keyframe_distance_m": cfg.keyframes.distance_m, "mode": cfg.floor_detector.descriptor_mode,
+                      "shortlist": cfg.floor_detector.shortlist, "localise_mapped": cfg.pose_graph.localise_mapped}
+            gc.collect()
+            rss0 = rss_mb()
+            t0 = os.times()
+            lap, frames, n, c = 0, 0, 0, {}
+            next_sample = args.memory_every
+            while n < keyframes:
+                with RecordingReader(recording) as r:
+                    for _topic, msg in r.messages(only=(Frame,), lazy_images=True):
+                        if msg.camera != "floor":
+                            continue
+                        stamp = msg.stamp_ns + lap * lap_ns
+                        frame = (msg.restamped(stamp) if isinstance(msg, EncodedFrame)
+                                 else Frame(stamp, msg.camera, msg.image, msg.seq))
+                        clock.set_ns(stamp)
+                        odo.settled = stamp
+                        pipeline.feed(frame)
+                        pipeline.poll()
+                        frames += 1
+                        if frames % 10 == 0:  # keyframes taken: stored, or transient (localise_mapped)
+                            c = pipeline.counters()
+                            n = c.get("keyframes_stored", 0) + c.get("keyframes_not_stored", 0)
+                        if n >= next_sample:
+                            t = os.times()
+                            samples.append({"keyframes": n, "stored": c.get("keyframes_stored", 0),
+                                            "rss_mb": rss_mb(), "rss_trimmed_mb": trimmed_rss_mb(), "laps": lap + 1,
+                                            "index_mb": floor.detector.index.nbytes / 1e6,
+                                            "cpu_s": (t.user - t0.user) + (t.system - t0.system)})
+                            print(f"memory: {n} keyframes, RSS {samples[-1]['rss_mb']:.0f} MB, index "
+                                  f"{samples[-1]['index_mb']:.1f} MB, {samples[-1]['cpu_s']:.0f} s CPU",
+                                  flush=True)
+                            next_sample += args.memory_every
+                            if on_sample is not None:
+                                on_sample({"keyframes_target": keyframes, "laps": lap + 1, "frames": frames,
+                                           "rss_before_mb": rss0, "samples": samples, "config": config})
+                        if n >= keyframes:
+                            break
+                lap += 1
+            pipeline.finish()
+            t1 = os.times()
+            c = pipeline.counters()
+            gc.collect()
+            rss_after = rss_mb()
+            out = {"rss_trimmed_after_mb": trimmed_rss_mb(), "keyframes_target": keyframes, "keyframes_stored": int(c.get("keyframes_stored", 0)),
+                   "keyframes": int(c.get("keyframes_stored", 0) + c.get("keyframes_not_stored", 0)),
+                   "frames": frames, "laps": lap, "rss_before_mb": rss0, "rss_after_mb": rss_after,
+                   "peak_rss_mb": peak_rss_mb(), "index_mb": floor.detector.index.nbytes / 1e6,
+                   "cpu_s": (t1.user - t0.user) + (t1.system - t0.system),
+                   "loop_edges": int(c.get("links_loop", 0)), "samples": samples,
+                   "map_file_mb": (Path(tmp) / "map.sqlite").stat().st_size / 1e6, "config": config}
+    return out
+
+
+def memory_markdown(*payloads: dict[str, Any]) -> str:
+    """``docs/benchmarks/daemon-memory.md`` from ``--memory`` JSON payloads (a section each)."""
+    lines = ["# The whole daemon's memory as its map grows (`bench/bench_daemon.py --memory N`)", "",
+             "Generated by `bench/bench_daemon.py --memory-page JSON... --doc FILE` from the JSON files",
+             "beside it; see `memory_run` in the script. The daemon is assembled as `robotd replay`",
+             "assembles it and the recorded drive's floor frames are fed to it lap after lap (each lap a",
+             "revisit: loops are declared and closed, or, with `localise_mapped`, the keyframes over",
+             "mapped ground are matched and not stored), with the keyframe poses from the recorded",
+             "ground truth."]
+    for p in payloads:
+        lines += [""] + _memory_section(p)
+    return "\n".join(lines) + "\n"
+
+
+def _memory_section(p: dict[str, Any]) -> list[str]:
+    r, m = p["memory"], p["machine"]
+    c = r["config"]
+    setting = "localise_mapped on" if c.get("localise_mapped") else "every keyframe stored (the code's default)"
+    lines = [f"## {setting}", "",
+             f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.",
+             f"Recording: `{p['recording']}`, {r['laps']} laps; spacing "
+             f"{c['keyframe_distance_m'] * 100:g} cm, mode {c['mode']}, shortlist {c['shortlist']}"
+             f"{', localise_mapped' if c.get('localise_mapped') else ''}.", "",
+             "| keyframes | of them stored | process RSS MB | after malloc_trim MB | of it the floor index MB "
+             "| laps | CPU s so far |",
+             "|---:|---:|---:|---:|---:|---:|---:|"]
+    for row in r["samples"]:
+        trimmed = f"{row['rss_trimmed_mb']:.0f}" if "rss_trimmed_mb" in row else "-"
+        lines.append(f"| {row['keyframes']} | {row.get('stored', row['keyframes'])} | {row['rss_mb']:.0f} | "
+                     f"{trimmed} | {row['index_mb']:.1f} | {row['laps']} | {row['cpu_s']:.0f} |")
+    before = ("" if r.get("rss_before_mb") is None else
+              f"Before the first frame: {r['rss_before_mb']:.0f} MB (the daemon assembled, its map open). ")
+    if "rss_after_mb" not in r:  # the partial JSON of a run stopped before its target
+        last = r["samples"][-1] if r["samples"] else {"keyframes": 0}
+        lines += ["", f"{before}The run was stopped at {last['keyframes']} keyframes, before its target of "
+                      f"{r['keyframes_target']}."]
+        return lines
+    lines += ["", f"{before}"
+                  f"After {r['keyframes']} keyframes ({r.get('keyframes_stored', r['keyframes'])} stored): "
+                  f"{r['rss_after_mb']:.0f} MB resident ({r.get('rss_trimmed_after_mb', math.nan):.0f} MB "
+                  f"after malloc_trim), peak "
+                  f"{r['peak_rss_mb']:.0f} MB; the map file {r['map_file_mb']:.0f} MB; {r['loop_edges']} loop edges."]
+    return lines
+
+
 # ------------------------------------------------------------------------------ main
 
 
@@ -585,7 +778,40 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--doc", type=Path, default=None, help="also write the markdown page here")
     ap.add_argument("--compare", type=Path, nargs="+", default=None, metavar="JSON",
                     help="only print a markdown table comparing these runs' JSON (to --doc if given)")
+    ap.add_argument("--memory", type=int, default=0, metavar="N",
+                    help="only the memory part: the whole daemon fed until N keyframes are stored "
+                         "(writes NAME-memory.json; --doc writes its page)")
+    ap.add_argument("--memory-every", type=int, default=1000, metavar="K",
+                    help="sample the memory every K keyframes (default 1000)")
+    ap.add_argument("--memory-page", type=Path, nargs="+", default=None, metavar="JSON",
+                    help="only write the memory page (--doc) from these --memory JSON files, partial or not")
     args = ap.parse_args(argv)
+    if args.memory_page is not None:
+        page = memory_markdown(*(json.loads(f.read_text(encoding="utf-8")) for f in args.memory_page))
+        if args.doc is not None:
+            args.doc.parent.mkdir(parents=True, exist_ok=True)
+            args.doc.write_text(page, encoding="utf-8")
+        print(page, end="")
+        return 0
+    if args.memory:
+        if args.duration == 60.0 and args.recording is None:
+            args.duration = None  # the whole route: more ground per lap
+        recording = ensure_recording(args)
+        payload = {"machine": machine_info(), "recording": str(recording),
+                   "args": {k: str(v) for k, v in vars(args).items()}}
+
+        def partial(so_far: dict[str, Any]) -> None:  # kept if the run is stopped
+            write_json(args.out / f"{args.name}-memory-partial.json", {**payload, "memory": so_far})
+
+        payload["memory"] = memory_run(args, recording, args.memory, partial)
+        out = write_json(args.out / f"{args.name}-memory.json", payload)
+        (args.out / f"{args.name}-memory-partial.json").unlink(missing_ok=True)
+        print(f"wrote {out}")
+        if args.doc is not None:
+            args.doc.parent.mkdir(parents=True, exist_ok=True)
+            args.doc.write_text(memory_markdown(payload), encoding="utf-8")
+            print(f"wrote {args.doc}")
+        return 0
     if args.compare:
         table = comparison(args.compare)
         if args.doc is not None:

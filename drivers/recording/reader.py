@@ -8,7 +8,7 @@ import io
 import logging
 import os
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -100,6 +100,8 @@ class RecordingReader:
         self.damage = RecordingDamage()
         self.skipped: dict[str, int] = {}
         """Messages of topics or types robotd does not read, per topic (not damage)."""
+        self.unwanted: dict[str, int] = {}
+        """Messages of robotd's types left undecoded (``messages(only=...)``), per topic."""
         self.metadata: dict[str, dict[str, str]] = {}
         self._schemas: dict[int, Schema] = {}
         self._channels: dict[int, Channel] = {}
@@ -307,20 +309,33 @@ class RecordingReader:
             msg = heapq.heappop(heap)[3]
             yield self._channels[msg.channel_id], msg
 
-    def messages(self) -> Iterator[tuple[str, RobotdMessage]]:
+    def messages(self, only: Collection[type] | None = None, *,
+                 lazy_images: bool = False) -> Iterator[tuple[str, RobotdMessage]]:
         """``(topic, message)`` in log-time order, as robotd types.
 
         :class:`WheelTicks`, :class:`YawRate`, :class:`Frame` (image decoded) and
         :class:`PoseStamped` (every ``nav_msgs/msg/Odometry`` topic). Other types are
         skipped and counted in :attr:`skipped`; damage is counted in :attr:`damage`.
+        ``only``: the robotd types wanted; messages of the others are not decoded (a
+        replay has no use for ``/odom`` and ``/ground_truth``, about half the messages of
+        a virtual robot's recording) and are counted per topic in :attr:`unwanted`.
+        ``lazy_images``: a JPEG frame's pixels are decoded when first read
+        (:class:`EncodedFrame`); a replay hands out 30 frames a second, of which a few
+        become keyframes, and decoding was most of its reading time. Each is checked here
+        by a decode at 1/8 scale, which runs the whole entropy decoding (where damage
+        shows), so a frame that does not decode is still counted and skipped here.
         """
         decoders: dict[int, Callable[[bytes], Any] | None] = {}
         yaw_source = self.yaw_source
+        wanted = None if only is None else {k for k, t in _PRODUCES.items() if t in only}
         for channel, msg in self.raw_messages():
             schema = self._schemas.get(channel.schema_id)
             kind = _normalise_type(schema.name) if schema is not None else ""
             if schema is None or kind not in _CONVERTERS or channel.message_encoding != "cdr":
                 self.skipped[channel.topic] = self.skipped.get(channel.topic, 0) + 1
+                continue
+            if wanted is not None and kind not in wanted:
+                self.unwanted[channel.topic] = self.unwanted.get(channel.topic, 0) + 1
                 continue
             if channel.id not in decoders:
                 try:
@@ -335,7 +350,8 @@ class RecordingReader:
             try:
                 if decode is None:
                     raise ValueError("no decoder")
-                out = _CONVERTERS[kind](channel.topic, decode(msg.data), msg, yaw_source)
+                convert = _to_frame_lazy if lazy_images and kind == _IMAGE else _CONVERTERS[kind]
+                out = convert(channel.topic, decode(msg.data), msg, yaw_source)
             except Exception as exc:  # noqa: BLE001 - CDR or image bytes that do not decode
                 self.damage.undecodable_messages += 1
                 log.debug("%s: undecodable %s message at %d: %s", self.path, channel.topic,
@@ -373,11 +389,73 @@ def _to_frame(topic: str, m: Any, rec: Message, yaw_source: str) -> Frame:
     return Frame(_stamp_ns(m["header"]), camera, image, int(rec.sequence))
 
 
+class EncodedFrame(Frame):
+    """A :class:`~robotd.base.messages.Frame` that keeps its JPEG bytes and decodes them
+    the first time :attr:`image` is read (then keeps the pixels). The pipeline routes it as
+    a ``Frame``; pickled or copied, it becomes a plain ``Frame``."""
+
+    __slots__ = ("_encoded", "_decoded")
+    _encoded: np.ndarray | None
+    _decoded: np.ndarray | None
+
+    def __init__(self, stamp_ns: int, camera: str, encoded: np.ndarray | None, seq: int = 0) -> None:
+        object.__setattr__(self, "stamp_ns", stamp_ns)
+        object.__setattr__(self, "camera", camera)
+        object.__setattr__(self, "seq", seq)
+        object.__setattr__(self, "_encoded", encoded)
+        object.__setattr__(self, "_decoded", None)
+
+    @property
+    def image(self) -> np.ndarray:
+        """The pixels, as :func:`cv2.imdecode` gives them (``IMREAD_UNCHANGED``)."""
+        image = self._decoded
+        if image is None:
+            image = cv2.imdecode(self._encoded, cv2.IMREAD_UNCHANGED)  # type: ignore[arg-type]
+            if image is None:  # the 1/8-scale check passed: not seen in practice
+                raise ValueError(f"{self.camera} frame {self.seq}: image data does not decode")
+            object.__setattr__(self, "_decoded", image)
+            object.__setattr__(self, "_encoded", None)
+        return image
+
+    def restamped(self, stamp_ns: int) -> EncodedFrame:
+        """The same frame at another stamp, decoded only if this one was (a recording
+        replayed in a loop: ``bench/bench_daemon.py --memory``)."""
+        out = EncodedFrame(stamp_ns, self.camera, self._encoded, self.seq)
+        object.__setattr__(out, "_decoded", self._decoded)
+        return out
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return Frame, (self.stamp_ns, self.camera, self.image, self.seq)
+
+
+def _to_frame_lazy(topic: str, m: Any, rec: Message, yaw_source: str) -> Frame:
+    """:func:`_to_frame` with the decoding of a JPEG deferred (:class:`EncodedFrame`);
+    other formats are decoded at once."""
+    data = np.frombuffer(m["data"], np.uint8)
+    if data[:2].tobytes() != b"\xff\xd8":  # not JPEG (its start-of-image marker)
+        return _to_frame(topic, m, rec, yaw_source)
+    if cv2.imdecode(data, cv2.IMREAD_REDUCED_GRAYSCALE_8) is None:
+        raise ValueError(f"image data ({m['format']!r}) does not decode")
+    match = _CAMERA_TOPIC.match(topic)
+    camera = match.group(1) if match else topic.strip("/")
+    return EncodedFrame(_stamp_ns(m["header"]), camera, data, int(rec.sequence))
+
+
 def _to_pose(topic: str, m: Any, rec: Message, yaw_source: str) -> PoseStamped:
     p = m["pose"]["pose"]
     return PoseStamped(_stamp_ns(m["header"]), float(p["position"]["x"]), float(p["position"]["y"]),
                        _yaw_from_quaternion(p["orientation"]), ros2msg.covariance3(m["pose"]["covariance"]))
 
+
+_IMAGE = "sensor_msgs/msg/CompressedImage"
+
+_PRODUCES: dict[str, type] = {
+    "robotd_msgs/msg/WheelTicks": WheelTicks,
+    "sensor_msgs/msg/Imu": YawRate,
+    "sensor_msgs/msg/CompressedImage": Frame,
+    "nav_msgs/msg/Odometry": PoseStamped,
+}
+"""The robotd type each readable ROS 2 type becomes (:data:`_CONVERTERS`)."""
 
 _CONVERTERS: dict[str, Callable[[str, Any, Message, str], RobotdMessage]] = {
     "robotd_msgs/msg/WheelTicks": _to_wheel_ticks,

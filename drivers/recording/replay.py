@@ -88,19 +88,28 @@ class ReplayDriver(Driver):
         self._wall_clock = wall_clock
         self._sleep = sleep
         self._reader = RecordingReader(path)
-        self._messages: Iterator[tuple[str, RobotdMessage]] = self._reader.messages()
+        # Without on_other, what is not driver output is not even decoded.
+        self._messages: Iterator[tuple[str, RobotdMessage]] = self._reader.messages(
+            None if on_other is not None else (WheelTicks, YawRate, Frame), lazy_images=True)
         self._next: tuple[str, Message] | None = None
         self._exhausted = False
         self._pace_origin: tuple[float, int] | None = None  # (wall s, stamp ns) of the first
         self.counts: dict[str, int] = {}
         """Messages handed out, per topic."""
-        self.skipped: dict[str, int] = {}
-        """Messages of the recording not handed out (not driver output), per topic."""
+        self._skipped: dict[str, int] = {}
         self.on_other = on_other
         self.handed_out = 0
         """Messages handed out so far, all topics."""
         self.finished = False
         """Set by the reading thread once the last message was handed out."""
+
+    @property
+    def skipped(self) -> dict[str, int]:
+        """Messages of the recording not handed out (not driver output), per topic."""
+        out = dict(self._skipped)
+        for topic, n in self._reader.unwanted.items():
+            out[topic] = out.get(topic, 0) + n
+        return out
 
     @property
     def damage(self) -> RecordingDamage:
@@ -146,7 +155,7 @@ class ReplayDriver(Driver):
             elif isinstance(item[1], WheelTicks | YawRate | Frame):
                 self._next = (item[0], item[1])
             else:
-                self.skipped[item[0]] = self.skipped.get(item[0], 0) + 1
+                self._skipped[item[0]] = self._skipped.get(item[0], 0) + 1
                 if self.on_other is not None:
                     self.on_other(item[0], item[1])
         return self._next

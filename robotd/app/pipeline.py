@@ -69,6 +69,7 @@ class Pipeline:
         self._stages: dict[str, Any] = {}
         self._reads: dict[str, dict[str, str]] = {}  # stage -> {owner stage: interface}
         self._routes: dict[type, list[Handler]] = collections.defaultdict(list)
+        self._inherited: dict[type, list[Handler]] = {}  # subclass -> its base's handlers
         self.inputs = 0
         """Messages published from outside (the sources), a measure of progress."""
         self.unrouted: collections.Counter[str] = collections.Counter()
@@ -86,6 +87,7 @@ class Pipeline:
             if owner not in self._stages:
                 raise ValueError(f"stage {stage.name!r} reads stage {owner!r}, which is not registered")
         self._reads[stage.name] = dict(reads or {})
+        self._inherited.clear()
         self._stages[stage.name] = stage
         for msg_type, handler in stage.subscriptions().items():
             self._routes[msg_type].append(handler)
@@ -187,13 +189,23 @@ class Pipeline:
         self.publish(msg)
 
     def publish(self, msg: Any) -> None:
-        """Hand ``msg`` to every stage subscribed to its type, in registration order."""
-        handlers = self._routes.get(type(msg))
+        """Hand ``msg`` to every stage subscribed to its type, in registration order (a
+        subclass of a subscribed type goes where its nearest subscribed base goes: a
+        replay's frames that decode their image when first read)."""
+        handlers = self._routes.get(type(msg)) or self._subclass_routes(type(msg))
         if not handlers:
             self.unrouted[type(msg).__name__] += 1
             return
         for handler in handlers:
             handler(msg)
+
+    def _subclass_routes(self, msg_type: type) -> list[Handler]:
+        """The handlers of the nearest base of ``msg_type`` that has any (remembered)."""
+        got = self._inherited.get(msg_type)
+        if got is None:
+            got = next((self._routes[b] for b in msg_type.__mro__[1:] if self._routes.get(b)), [])
+            self._inherited[msg_type] = got  # the same list: instrument() wraps it in place
+        return got
 
     def poll(self) -> int:
         """Let every stage do waiting work; returns how many items were handled."""

@@ -194,6 +194,19 @@ class EkfState:
         object.__setattr__(self, "cov", cov)
         object.__setattr__(self, "stamp_ns", int(self.stamp_ns))
 
+    @classmethod
+    def _own(cls, stamp_ns: int, mean: np.ndarray, cov: np.ndarray) -> EkfState:
+        """A state of arrays the caller made for it and hands over (float64, of the
+        state's shapes, referenced nowhere else): made read-only, not copied. The filter's
+        own steps build their states this way; the constructor copies."""
+        mean.setflags(write=False)
+        cov.setflags(write=False)
+        state = object.__new__(cls)
+        object.__setattr__(state, "stamp_ns", stamp_ns)
+        object.__setattr__(state, "mean", mean)
+        object.__setattr__(state, "cov", cov)
+        return state
+
     @property
     def pose_xyyaw(self) -> np.ndarray:
         """``(3,)`` the pose ``(x_m, y_m, yaw_rad)``."""
@@ -289,15 +302,26 @@ def predict_with_jacobian(state: EkfState, t_ns: int,
     q[IV, IV] = ql * dt
     q[IB, IB] = params.gyro_bias_walk_radps_per_sqrt_s ** 2 * dt
 
-    cov = jac @ state.cov @ jac.T + q
-    return EkfState(int(t_ns), mean, 0.5 * (cov + cov.T)), jac
+    cov = jac @ state.cov @ jac.T
+    cov += q
+    cov += cov.T
+    cov *= 0.5
+    return EkfState._own(int(t_ns), mean, cov), jac
 
 
 def rate_gain(cov: np.ndarray, h: np.ndarray, r: np.ndarray, smooth_pose: bool) -> np.ndarray:
     """The gain of a rate measurement: ``P H^T S^-1``, with the pose rows zeroed when
     ``smooth_pose`` (:class:`EkfParams`)."""
     ph = cov @ h.T
-    gain = np.linalg.solve(h @ ph + r, ph.T).T  # = P H^T S^-1 (S is symmetric)
+    s = h @ ph + r
+    if s.shape == (1, 1):  # one reading (the gyro): S^-1 is a division
+        gain = ph / s[0, 0]
+    elif s.shape == (2, 2):  # the wheels' (v, w): the 2x2 inverse in closed form
+        a, b, c, d = s[0, 0], s[0, 1], s[1, 0], s[1, 1]
+        det = a * d - b * c
+        gain = ph @ (np.array([[d, -b], [-c, a]]) / det)
+    else:
+        gain = np.linalg.solve(s, ph.T).T  # = P H^T S^-1 (S is symmetric)
     if smooth_pose:
         gain[:3] = 0.0
     return gain
@@ -312,8 +336,11 @@ def _update(state: EkfState, innovation: np.ndarray, h: np.ndarray, r: np.ndarra
     mean = state.mean + gain @ innovation
     mean[IYAW] = wrap_angle(mean[IYAW])
     a = _EYE - gain @ h
-    cov = a @ p @ a.T + gain @ r @ gain.T
-    return EkfState(state.stamp_ns, mean, 0.5 * (cov + cov.T))
+    cov = a @ p @ a.T
+    cov += gain @ r @ gain.T
+    cov += cov.T
+    cov *= 0.5
+    return EkfState._own(state.stamp_ns, mean, cov)
 
 
 def wheel_noise(v_mps: float, w_radps: float, params: EkfParams,

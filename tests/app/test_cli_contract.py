@@ -174,7 +174,7 @@ def g2o(tmp_path: Path) -> Path:
 def test_a_second_replay_into_a_live_map_is_refused_and_readers_still_work(material: Path,
                                                                            tmp_path: Path):
     m = tmp_path / "m.sqlite"
-    first = start("replay", material / "drive.mcap", "--map", m, "--speed", "1")
+    first = start("replay", material / "drive.mcap", "--map", m, "--speed", "0.25")  # 12 s: the second must start while it runs, even on a loaded machine
     wait_for(lambda: lock_path(m).exists() and b"pid" in lock_path(m).read_bytes()
              and m.exists(), first, "the first replay's lock")
     second = run("replay", material / "drive.mcap", "--map", m)
@@ -228,7 +228,7 @@ def test_a_second_demo_into_a_running_demos_folder_is_refused(tmp_path: Path):
 def test_a_killed_writer_does_not_block_the_next(material: Path, tmp_path: Path):
     """SIGKILL leaves the lock file with a dead pid in it; the kernel dropped the lock."""
     m = tmp_path / "m.sqlite"
-    first = start("replay", material / "drive.mcap", "--map", m, "--speed", "1")
+    first = start("replay", material / "drive.mcap", "--map", m, "--speed", "0.25")  # 12 s: killed while it runs, even on a loaded machine
     wait_for(lambda: m.exists() and has_run(m), first, "the replay's run")
     first.kill()
     first.communicate(timeout=30)

@@ -100,6 +100,36 @@ def test_instrument_wraps_every_handler_with_its_stage_and_name():
     assert calls == [("a", "on_ping"), ("a", "on_pong"), ("b", "on_pong"), ("b", "on_ping")]
 
 
+@dataclass
+class LoudPing(Ping):
+    """A subclass nobody subscribes to (as a replay's frames that decode when read)."""
+
+
+def test_a_subclass_goes_where_its_base_goes_also_when_instrumented():
+    log: list = []
+    calls: list = []
+    p = Pipeline()
+    p.add(Echo("a", log))
+    p.feed(LoudPing(1))
+    p.add(Echo("b", log))  # a stage added later is reached too
+
+    def wrap(stage, handler, fn):
+        def wrapped(*args):
+            calls.append((stage, handler))
+            return fn(*args)
+        return wrapped
+
+    p.instrument(wrap)
+    p.feed(LoudPing(2))
+    p.feed(Ping(3))
+    assert log == [("a", "ping", 1), ("a", "pong", 1),
+                   ("a", "ping", 2), ("a", "pong", 2), ("b", "pong", 2), ("b", "ping", 2),
+                   ("a", "ping", 3), ("a", "pong", 3), ("b", "pong", 3), ("b", "ping", 3)]
+    # each handler wrapped once, whichever type reached it first
+    assert calls == [("a", "on_ping"), ("a", "on_pong"), ("b", "on_pong"), ("b", "on_ping")] * 2
+    assert p.counters() == {"inputs": 3}
+
+
 def _wheels(k: int, stamp_ns: int) -> WheelTicks:
     """Straight ahead, 1 cm per message."""
     ticks = int(round(k * 0.01 * TICKS_PER_M))
@@ -135,6 +165,34 @@ def test_frames_held_at_the_end_of_input_are_finished(tmp_path: Path):
         kf = list(store.keyframes())[-1]
         assert kf.stamp_ns == 30_000_000
         assert kf.x_m == pytest.approx(0.015, abs=1e-3)  # halfway between 1 and 2 cm
+
+
+def test_a_replayed_frame_is_decoded_once_it_becomes_a_keyframe_and_never_before(tmp_path: Path):
+    """A replay's frames decode their JPEG when first read (drivers.recording.reader's
+    EncodedFrame): the keyframe stage decodes only those it takes, and hands a plain
+    Frame with the pixels on."""
+    from drivers.recording.reader import EncodedFrame
+
+    clock = ManualClock(0)
+    pipe, store = _keyframe_pipeline(tmp_path, lossless=True, clock=clock)
+    seen: list = []
+    pipe.add(type("Probe", (), {"name": "probe", "subscriptions": lambda self: {Keyframe: seen.append}})())
+    img = (np.arange(48 * 64).reshape(48, 64) % 251).astype(np.uint8)
+    jpeg = np.frombuffer(cv2.imencode(".jpg", img)[1].tobytes(), np.uint8)
+    with store:
+        frames = []
+        for k in range(6):  # wheels 1 cm per 20 ms; keyframes every 5 mm: every frame 1 cm apart
+            pipe.feed(_wheels(k, k * 20_000_000))
+            if k in (1, 2, 3):
+                frames.append(EncodedFrame(k * 20_000_000, "floor", jpeg, k))
+                frames.append(EncodedFrame(k * 20_000_000 + 1, "floor", jpeg, k))  # 0 mm on: not a keyframe
+                pipe.feed(frames[-2])
+                pipe.feed(frames[-1])
+        pipe.finish()
+    assert [kf.stamp_ns for kf in seen] == [20_000_000, 40_000_000, 60_000_000]
+    assert all(type(kf.frame) is Frame for kf in seen)
+    assert np.array_equal(seen[0].frame.image, cv2.imdecode(jpeg, cv2.IMREAD_UNCHANGED))
+    assert [f._decoded is not None for f in frames] == [True, False] * 3
 
 
 @pytest.mark.parametrize("lossless", [False, True])

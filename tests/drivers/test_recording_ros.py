@@ -299,7 +299,7 @@ def test_replay_of_a_recording_with_ros_extras_hands_out_the_same_driver_message
         while not replay.done:
             out.extend(replay.read(0.0))
     kinds = [type(m).__name__ for m in out]
-    assert kinds.count("Frame") == len(run.frames) + len(run.forward)
+    assert sum(isinstance(m, Frame) for m in out) == len(run.frames) + len(run.forward)
     assert kinds.count("WheelTicks") + kinds.count("YawRate") == len(run.base_msgs)
     stamps = [m.stamp_ns for m in out if not isinstance(m, Frame)]
     assert stamps == [m.stamp_ns for m in run.base_msgs]

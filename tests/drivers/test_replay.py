@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -206,3 +207,47 @@ def test_messages_that_are_not_driver_output_go_to_on_other(tmp_path: Path) -> N
     assert [m.left_ticks for m in got] == [0, 1, 2, 3, 4]
     assert others == [("/ground_truth", pytest.approx(0.1 * k)) for k in range(5)]
     assert drv.skipped == {"/ground_truth": 5}
+
+
+def test_jpeg_frames_decode_when_read_and_damaged_ones_are_still_counted(tmp_path: Path) -> None:
+    """A replay defers the decoding of a JPEG frame to its first use (most frames never
+    become keyframes); the pixels are those an eager read gives, a frame whose data does
+    not decode is counted and skipped at read time as before, and a deferred frame pickles
+    as a plain Frame."""
+    import pickle
+
+    from drivers.recording.reader import EncodedFrame, RecordingReader
+    from drivers.recording.schemas import schema_text
+    from mcap_ros2.writer import Writer as Ros2Writer
+
+    rng = np.random.default_rng(3)
+    frames = [Frame(T0 + k * MS, "floor", rng.integers(0, 255, (48, 64), np.uint8), k) for k in range(3)]
+    good = tmp_path / "good.mcap"
+    with RecordingWriter(good, image_format="jpeg") as w:
+        for f in frames:
+            w.write_frame(f)
+    with RecordingReader(good) as r:
+        eager = [m for _, m in r.messages()]
+    with ReplayDriver(good, ManualClock()) as drv:
+        lazy = [m for _ in range(5) for m in drv.read(0.0)]
+    assert [type(m) for m in eager] == [Frame] * 3 and [type(m) for m in lazy] == [EncodedFrame] * 3
+    for a, b in zip(eager, lazy):
+        assert (b.stamp_ns, b.camera, b.seq) == (a.stamp_ns, a.camera, a.seq)
+        assert np.array_equal(b.image, a.image) and b.image is b.image  # decoded once
+    back = pickle.loads(pickle.dumps(lazy[1]))
+    assert type(back) is Frame and np.array_equal(back.image, eager[1].image)
+
+    # A JPEG cut in its entropy-coded data, and one that is not an image at all.
+    jpeg = cv2.imencode(".jpg", frames[0].image)[1].tobytes()
+    bad = tmp_path / "bad.mcap"
+    with open(bad, "wb") as f:
+        w2 = Ros2Writer(f)
+        image = w2.register_msgdef("sensor_msgs/msg/CompressedImage", schema_text("sensor_msgs/msg/CompressedImage"))
+        for k, data in enumerate((jpeg[:len(jpeg) // 3], b"\xff\xd8 not a jpeg", jpeg)):
+            w2.write_message(FLOOR, image, {"header": {"stamp": {"sec": 0, "nanosec": k + 1}},
+                                            "format": "jpeg", "data": data}, log_time=k + 1)
+        w2.finish()
+    with ReplayDriver(bad, ManualClock()) as drv:
+        got = [m for _ in range(5) for m in drv.read(0.0)]
+        assert drv.damage.undecodable_messages == 2
+    assert [m.stamp_ns for m in got] == [3] and got[0].image.shape == (48, 64)

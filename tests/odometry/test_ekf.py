@@ -20,6 +20,7 @@ from robotd.odometry.ekf import (
     EkfState,
     initial_state,
     predict,
+    rate_gain,
     update_gyro,
     update_wheels,
 )
@@ -341,3 +342,19 @@ def test_pose_at_interpolates_yaw_across_pi():
     mid = f.pose_at((crossing - 1) * 20 * MS + 10 * MS).yaw_rad
     assert before > 3.0 and after < -3.0
     assert abs(mid) > 3.0  # along the short arc through pi, not through 0
+
+
+@pytest.mark.parametrize("rows", [1, 2, 3])
+def test_rate_gain_is_p_ht_s_inverse_for_any_measurement_size(rows: int) -> None:
+    """One gyro reading and the wheels' pair take closed forms, larger measurements
+    (a model with more states) the general solve: all are ``P H^T (H P H^T + R)^-1``."""
+    rng = np.random.default_rng(rows)
+    a = rng.normal(size=(6, 6))
+    p = a @ a.T + 6 * np.eye(6)
+    h = rng.normal(size=(rows, 6))
+    b = rng.normal(size=(rows, rows))
+    r = b @ b.T + np.eye(rows)
+    want = p @ h.T @ np.linalg.inv(h @ p @ h.T + r)
+    assert np.allclose(rate_gain(p, h, r, False), want, rtol=1e-12, atol=1e-14)
+    frozen = rate_gain(p, h, r, True)
+    assert np.all(frozen[:3] == 0.0) and np.allclose(frozen[3:], want[3:], rtol=1e-12, atol=1e-14)

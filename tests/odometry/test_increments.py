@@ -57,3 +57,21 @@ def test_se2_exp_and_log_are_gtsams() -> None:
         p = gtsam.Pose2.Expmap(xi)
         assert se2_exp(xi) == pytest.approx([p.x(), p.y(), p.theta()], abs=1e-12)
         assert se2_log(se2_exp(xi)) == pytest.approx(gtsam.Pose2.Logmap(p), abs=1e-10)
+
+
+def test_error_and_jacobian_on_floats_is_the_geometry_of_robotd_base() -> None:
+    """The float arithmetic of the edge error is robotd.base.geometry's, bit for bit."""
+    from robotd.base.geometry import between, compose, se2_exp, se2_log
+    from robotd.odometry.increments import _error_and_jacobian
+
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        z = rng.normal(size=3) * [0.3, 0.3, 3.0]
+        x = z + rng.normal(size=3) * 0.02
+        r, jac = _error_and_jacobian(z, x)
+        assert np.array_equal(r, se2_log(between(z, x)))
+        for k in range(3):
+            d = np.zeros(3)
+            d[k] = 1e-7
+            col = (se2_log(between(z, compose(x, se2_exp(d)))) - se2_log(between(z, compose(x, se2_exp(-d))))) / 2e-7
+            assert np.array_equal(jac[:, k], col)

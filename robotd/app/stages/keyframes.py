@@ -176,6 +176,8 @@ class KeyframeStage(Publisher):
             previous, self._previous_ns = self._previous_ns, frame.stamp_ns
             carried = previous is not None and self.lifts.lifted_between(previous, frame.stamp_ns)
             edge = self.odometry.keyframe_edge(frame.stamp_ns) if self.odometry is not None else None
+            if type(frame) is not Frame:  # a replay's frame, decoded when read: here, once
+                frame = Frame(frame.stamp_ns, frame.camera, frame.image, frame.seq)
             self._publish(Keyframe(frame, pose, odometry_edge=edge, carried=carried))
 
     def counters(self) -> dict[str, int]:
