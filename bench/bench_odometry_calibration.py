@@ -15,8 +15,9 @@ N``), two parts:
    the calibrated model at most a fifth of the nominal one; fused better).
 
 Run: ``.venv/bin/python bench/bench_odometry_calibration.py --calibration '/tmp/cal{seed}.yml'
-[--seeds 0,1,2,3,4] [--markdown docs/benchmarks/odometry_calibration.md]``. About a minute
-per seed; ``--full`` is the same (the cost is in making the calibration drives, minutes
+[--seeds 0,1,2,3,4] [--markdown docs/benchmarks/odometry_calibration.md]``, or
+``--synthetic-reference figure8 [--laps 3]`` for the fit alone against the true trajectory
+(the route driven that many times). About a minute per seed; ``--full`` is the same (the cost is in making the calibration drives, minutes
 each, not here).
 """
 
@@ -66,10 +67,22 @@ def run(msgs: list[Any], drive: DiffDriveParams, gyro_scale: float) -> tuple[np.
     return np.asarray(w_out), np.asarray(f_out)
 
 
-def synthetic_model(seed: int, route: str, sigma_m: float, sigma_rad: float) -> Any:
-    """The model fitted to a drive of seed ``seed``'s base along ``route`` (its own seed
-    100 + seed for the drive's other draws) against the true keyframe poses plus white
-    noise (``sigma_m``, ``sigma_rad``): the fit alone, without the pipeline's reference."""
+def repeated_route(route: str, laps: int) -> Any:
+    """``route`` driven ``laps`` times over (a closed route: it ends where it starts)."""
+    import dataclasses
+
+    r = build_route(route)
+    pts = list(r.waypoints_m)
+    if laps > 1 and math.dist(pts[0], pts[-1]) > 1e-9:
+        raise SystemExit(f"route {route!r} does not end where it starts: no laps")
+    return dataclasses.replace(r, waypoints_m=tuple(pts + pts[1:] * (laps - 1)))
+
+
+def synthetic_model(seed: int, route: str, sigma_m: float, sigma_rad: float, laps: int = 1) -> Any:
+    """The model fitted to a drive of seed ``seed``'s base along ``route`` (``laps`` times;
+    its own seed 100 + seed for the drive's other draws) against the true keyframe poses
+    plus white noise (``sigma_m``, ``sigma_rad``): the fit alone, without the pipeline's
+    reference."""
     from calibration.odometry import model_from_fit
     from robotd.odometry.calibration import CalibrationDrive, fit_odometry
     from sim.sensors import simulate_sensors
@@ -78,7 +91,7 @@ def synthetic_model(seed: int, route: str, sigma_m: float, sigma_rad: float) -> 
     errors = draw_errors(p, np.random.default_rng(seed))
     rng = np.random.default_rng(100 + seed)
     draw_errors(p, rng)  # the drive's own draws follow, as with --base-seed
-    s = simulate_sensors(plan_motion(build_route(route)), p, errors, rng)
+    s = simulate_sensors(plan_motion(repeated_route(route, laps)), p, errors, rng)
     tp = s.true_pose
     idx = [0]
     for k in range(1, len(tp)):
@@ -172,6 +185,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="instead: fit each seed's base on a simulated drive along ROUTE against the "
                          "true poses plus --reference-noise (the fit alone, no pipeline)")
     ap.add_argument("--reference-noise", default="0.0005,0.0005", metavar="M,RAD")
+    ap.add_argument("--laps", type=int, default=1, help="with --synthetic-reference: drive the route this many times")
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--route", default="office")
     ap.add_argument("--full", action="store_true", help="the same as the default (see the module text)")
@@ -185,9 +199,11 @@ def main(argv: list[str] | None = None) -> int:
     for seed in (int(s) for s in args.seeds.split(",")):
         if args.synthetic_reference is not None:
             sm, sr = (float(v) for v in args.reference_noise.split(","))
-            model = synthetic_model(seed, args.synthetic_reference, sm, sr)
+            model = synthetic_model(seed, args.synthetic_reference, sm, sr, args.laps)
             rows.append(evaluate(seed, None, motion, model))
-            rows[-1]["calibration"] = f"synthetic: {args.synthetic_reference}, reference noise {sm} m, {sr} rad"
+            laps = f" x {args.laps} laps" if args.laps > 1 else ""
+            rows[-1]["calibration"] = (f"synthetic: {args.synthetic_reference}{laps}, reference noise {sm} m, "
+                                       f"{sr} rad")
             continue
         path = Path(args.calibration.format(seed=seed))
         if not path.is_file():

@@ -33,7 +33,7 @@ the votes and the Bayes filter grow with the run. :class:`WorkingMemory` bounds 
   place per image until the next image over the budget (or ``max_places``).
 
 With neither bound (the default) nothing ever leaves WM and the detector is exactly the
-paper's. The vocabulary itself (the word centres in the HNSW index) is not bounded:
+paper's. The vocabulary itself (the word centres in its search structure) is not bounded:
 its search time grows with the logarithm of the number of words (paper Fig. 7), and the
 words of LTM places must still be found when those places come back.
 """

@@ -5,11 +5,16 @@ paper's ref. [7]): a descriptor is quantised to its nearest word when that word 
 within ``word_radius``; otherwise it becomes a new word (its descriptor is the word's
 centre, which never moves afterwards). Descriptors of one image that found no word are
 grouped greedily among themselves first, so one image does not mint two words for one
-scene point. The nearest-word search is an HNSW graph (usearch): insertion and search are
-logarithmic in the number of words, where a flat search would be linear. The paper used a
-tree of its own (Sec. III); usearch is a kept library with incremental insertion, a
-Hamming metric for ORB and removal of keys (what a later working memory needs), so we do
-not write a tree.
+scene point. The paper used a tree of its own (Sec. III); so do we for binary (ORB) words:
+:class:`BinaryWordTree`, an incremental hierarchical k-medians tree over the packed 256-bit
+words (after iBoW-LCD's OBIndex2, written here), searched with a beam for all of an
+image's descriptors at once in numpy, whose cost follows the tree's depth and not the
+number of words, and from which purged words really leave (their memory is reused). It is
+approximate: on ORB words it finds a word within the radius for about 92-95 % of the
+descriptors an exact search finds one for (``bench/bench_forward_scale.py`` measures what
+that costs in recall). Float (SIFT) words are searched by an HNSW graph (usearch, kept as a
+library: incremental insertion, removal of keys); ``VocabularyParams.binary_search =
+"usearch"`` puts binary words there too, for comparison.
 
 **Inverted index** (:class:`InvertedIndex`). For every word, the images it was seen in and
 how often; for every image, its number of words. Nothing else is stored: the tf-idf weight
@@ -33,7 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["InvertedIndex", "Vocabulary", "VocabularyParams"]
+__all__ = ["BinaryWordTree", "InvertedIndex", "TreeParams", "Vocabulary", "VocabularyParams", "hamming_bits",
+           "pack_bits"]
 
 
 @dataclass(frozen=True)
@@ -54,6 +60,11 @@ class VocabularyParams:
             image never recur, and they would otherwise fill the search structure; 0 =
             never (the paper). A purged word keeps its id and its place in the inverted
             index (it still counts for its one image) but no later descriptor can find it.
+        binary_search: the nearest-word search for binary words: ``"tree"`` (our own
+            incremental k-medians tree, :class:`BinaryWordTree`; purged words free their
+            memory) or ``"usearch"`` (the HNSW graph, kept for comparison). Float (SIFT)
+            words always use usearch.
+        tree_branching, tree_leaf_size, tree_beam: the tree's :class:`TreeParams`.
     """
 
     word_radius_l2: float = 0.4
@@ -62,6 +73,14 @@ class VocabularyParams:
     expansion_add: int = 40
     expansion_search: int = 24
     purge_after: int = 0
+    binary_search: str = "tree"
+    tree_branching: int = 16
+    tree_leaf_size: int = 256
+    tree_beam: int = 4
+
+    def __post_init__(self) -> None:
+        if self.binary_search not in ("tree", "usearch"):
+            raise ValueError(f"binary_search must be 'tree' or 'usearch', got {self.binary_search!r}")
 
 
 class Vocabulary:
@@ -74,12 +93,19 @@ class Vocabulary:
 
     def __init__(self, dim: int = 128, binary: bool = False,
                  params: VocabularyParams = VocabularyParams()) -> None:
-        from usearch.index import Index
-
         self.params = params
         self.binary = binary
         self.dim = dim
-        if binary:
+        self._tree: BinaryWordTree | None = None
+        if binary and params.binary_search == "tree":
+            if dim != 32:
+                raise ValueError(f"the binary word tree takes 256-bit descriptors (dim 32), got dim {dim}")
+            self._tree = BinaryWordTree(TreeParams(branching=params.tree_branching, leaf_size=params.tree_leaf_size,
+                                                   beam=params.tree_beam))
+            self._radius = float(params.word_radius_bits)
+        elif binary:
+            from usearch.index import Index
+
             self._index = Index(ndim=dim * 8, metric="hamming", dtype="b1",
                                 connectivity=params.connectivity,
                                 expansion_add=params.expansion_add,
@@ -87,6 +113,8 @@ class Vocabulary:
             # usearch's Hamming distance is in bits; compare with the radius as is.
             self._radius = float(params.word_radius_bits)
         else:
+            from usearch.index import Index
+
             self._index = Index(ndim=dim, metric="l2sq", dtype="f32",
                                 connectivity=params.connectivity,
                                 expansion_add=params.expansion_add,
@@ -94,8 +122,8 @@ class Vocabulary:
             self._radius = float(params.word_radius_l2) ** 2  # usearch returns squared L2
         self._n_words = 0
         self._images = 0                        # add() calls so far (one per image)
-        self._born = _GrowingInts()             # per word: the image (add() call) that made it
-        self._seen = _GrowingInts()             # per word: images it was found in
+        self._first = _GrowingInts()            # per image (add() call): the first word id it made
+        self._seen = _GrowingInts(np.uint8)     # per word: images it was found in, counted to 2
         self._unpurged_from = 0                 # words below this id were all examined
         self.purged = 0
         # What the last add() changed, for a store to write (robotd.io.store, issue 24):
@@ -107,9 +135,10 @@ class Vocabulary:
         return self._n_words
 
     def memory_bytes(self) -> int:
-        """Bytes of the word search (usearch's own figure, its reserved capacity included)
-        and the per-word counters."""
-        return int(self._index.memory_usage) + 16 * self._n_words
+        """Bytes of the word search (the tree's arrays, or usearch's own figure; reserved
+        capacity included) and the per-word counters."""
+        search = self._tree.memory_bytes() if self._tree is not None else int(self._index.memory_usage)
+        return search + self._first.nbytes + self._seen.nbytes
 
     @property
     def n_searchable(self) -> int:
@@ -129,6 +158,11 @@ class Vocabulary:
         out = np.full(len(d), -1, np.int64)
         if not len(d) or not self._n_words:
             return out
+        if self._tree is not None:
+            keys_t, dist_t = self._tree.nearest(pack_bits(d))
+            found_t = (keys_t >= 0) & (dist_t <= self._radius)
+            out[found_t] = keys_t[found_t]
+            return out
         m = self._index.search(d, 1, threads=1)
         # usearch answers one query with a Matches (no counts), several with BatchMatches.
         counts = np.asarray(getattr(m, "counts", [len(np.atleast_1d(m.keys))])).reshape(-1)
@@ -140,13 +174,33 @@ class Vocabulary:
 
     def _pairwise(self, d: np.ndarray) -> np.ndarray:
         """Distances between the rows of ``d`` in the units of the radius (bits, or squared L2)."""
-        if self.binary:  # |a xor b| = |a| + |b| - 2 a.b over the bits: one float32 product,
-            # far faster than an (N, N, 32) xor array; exact (integers below 2^24)
-            bits = np.unpackbits(d, axis=1).astype(np.float32)
-            ones = bits.sum(axis=1)
-            return (ones[:, None] + ones[None, :] - 2.0 * (bits @ bits.T)).astype(np.float64)
+        if self.binary:
+            q = pack_bits(d)
+            return hamming_bits(q[:, None, :], q[None, :, :])
         sq = np.einsum("ij,ij->i", d, d).astype(np.float64)
         return np.maximum(sq[:, None] + sq[None, :] - 2.0 * (d.astype(np.float64) @ d.T.astype(np.float64)), 0.0)
+
+    def _group(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Group an image's unmatched descriptors ``d`` into new words: taken in order, each
+        one that no earlier new word covers founds a word that also takes every later
+        unclaimed descriptor within the radius. Returns each descriptor's word as a rank
+        among the founders (``(M,) int64``, 0 = the first founder) and the founders'
+        indices. Descriptors with no other within the radius found their own word without
+        entering the greedy loop, which so runs over the few that have neighbours only."""
+        m = len(d)
+        close = self._pairwise(d) <= self._radius
+        np.fill_diagonal(close, False)
+        owner = np.arange(m)
+        claimed = np.zeros(m, bool)
+        for k in np.flatnonzero(close.any(axis=1)).tolist():
+            if claimed[k]:
+                continue
+            claim = close[k] & ~claimed
+            claim[:k + 1] = False
+            owner[claim] = k
+            claimed[claim] = True
+        founders = np.flatnonzero(~claimed)
+        return np.searchsorted(founders, owner).astype(np.int64), founders
 
     def add(self, descriptors: np.ndarray) -> tuple[np.ndarray, int]:
         """Quantise one image's descriptors, creating words for those that found none.
@@ -158,36 +212,28 @@ class Vocabulary:
         """
         d = self._check(descriptors)
         words = self.quantize(d)
+        self._first.resize(self._images + 1)
+        self._first.view[self._images] = self._n_words
         self._images += 1
         self.last_new = (np.zeros(0, np.int64), d[:0])
         self.last_purged = np.zeros(0, np.int64)
         found = np.unique(words[words >= 0])
-        self._seen.view[found] += 1
+        self._seen.view[found] = np.minimum(self._seen.view[found], 1) + 1  # only "more than once" matters
         new = np.flatnonzero(words < 0)
         if not len(new):
             self._purge()
             return words, 0
-        dist = self._pairwise(d[new])
-        owner = np.full(len(new), -1, np.int64)
-        founders: list[int] = []
-        for k in range(len(new)):
-            if owner[k] >= 0:
-                continue
-            wid = self._n_words + len(founders)
-            founders.append(k)
-            claim = (owner < 0) & (dist[k] <= self._radius)
-            claim[:k] = False
-            owner[claim] = wid
-            owner[k] = wid
+        owner, founders = self._group(d[new])
         keys = np.arange(self._n_words, self._n_words + len(founders), dtype=np.int64)
-        self._index.add(keys, d[new[founders]], threads=1)
+        if self._tree is not None:
+            self._tree.add(keys, pack_bits(d[new[founders]]))
+        else:
+            self._index.add(keys, d[new[founders]], threads=1)
         self._n_words += len(founders)
-        n0 = self._born.n
-        self._born.resize(n0 + len(founders))
-        self._born.view[n0:] = self._images - 1
+        n0 = self._seen.n
         self._seen.resize(n0 + len(founders))
         self._seen.view[n0:] = 1
-        words[new] = owner
+        words[new] = self._n_words - len(founders) + owner
         self.last_new = (keys, d[new[founders]])
         self._purge()
         return words, len(founders)
@@ -207,13 +253,17 @@ class Vocabulary:
         if not (len(born) == len(purged) == len(seen) == n):
             raise ValueError("descriptors, born, purged and seen must have one row per word")
         keep = np.flatnonzero(~purged)
-        if len(keep):
+        if len(keep) and self._tree is not None:
+            self._tree.add(keep.astype(np.int64), pack_bits(d[keep]))
+        elif len(keep):
             self._index.add(keep.astype(np.int64), d[keep], threads=1)
         self._n_words = n
-        self._born.resize(n)
-        self._born.view[:] = born
+        if len(born) and (np.any(np.diff(born) < 0) or born[0] < 0 or born[-1] >= max(int(n_images), 1)):
+            raise ValueError("born must not decrease and must lie in 0 .. n_images - 1 (words are made in image order)")
+        self._first.resize(int(n_images))
+        self._first.view[:] = np.searchsorted(born, np.arange(int(n_images)), side="left")
         self._seen.resize(n)
-        self._seen.view[:] = np.asarray(seen, np.int64)
+        self._seen.view[:] = np.minimum(np.asarray(seen, np.int64), 2)
         self._images = int(n_images)
         self.purged = int(purged.sum())
         age = self.params.purge_after
@@ -227,28 +277,334 @@ class Vocabulary:
         if age <= 0:
             return
         limit = self._images - 1 - age          # words born at or before this image are due
+        if limit < 0:
+            return
         lo = self._unpurged_from
-        hi = lo + int(np.searchsorted(self._born.view[lo:], limit, side="right"))
+        hi = int(self._first.view[limit + 1])   # the first word made after image ``limit``
         if hi <= lo:
             return
         gone = lo + np.flatnonzero(self._seen.view[lo:hi] <= 1)
         if len(gone):
-            self._index.remove(gone.astype(np.int64))
+            if self._tree is not None:
+                self._tree.remove(gone)
+            else:
+                self._index.remove(gone.astype(np.int64))
             self.purged += len(gone)
             self.last_purged = gone.astype(np.int64)
         self._unpurged_from = hi
 
 
-class _GrowingInts:
-    """An int64 array that grows by doubling (amortised O(1) append)."""
+def hamming_bits(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Differing bits between packed 256-bit strings, ``(..., 4) uint64`` each (broadcast);
+    ``(...) int32``."""
+    c = np.bitwise_count(a ^ b)  # uint8 per 64 bits; summed by hand (a reduce over 4 is slow)
+    return (c[..., 0].astype(np.int32) + c[..., 1]) + (c[..., 2].astype(np.int32) + c[..., 3])
 
-    def __init__(self) -> None:
-        self._a = np.zeros(64, np.int64)
+
+def pack_bits(descriptors: np.ndarray) -> np.ndarray:
+    """``(N, 32) uint8`` binary descriptors as ``(N, 4) uint64`` (the same bits)."""
+    d = np.ascontiguousarray(descriptors, np.uint8)
+    return d.view(np.uint64)
+
+
+_FAR = np.int32(1 << 20)  # a distance no real pair reaches (256 bits at most)
+_PREFILTER_BITS = 20       # see BinaryWordTree.nearest
+
+
+@dataclass(frozen=True)
+class TreeParams:
+    """Parameters of :class:`BinaryWordTree`.
+
+    Fields:
+        branching: children a full leaf is split into (k of the k-medians).
+        leaf_size: words a leaf holds; one more splits it.
+        beam: leaves a query scans: at each level the ``beam`` nodes whose centres are
+            nearest to the query are kept (best-bin-first over the tree). More finds the
+            nearest word more often, for more time.
+        median_iterations: k-medians rounds when a leaf is split.
+    """
+
+    branching: int = 16
+    leaf_size: int = 256
+    beam: int = 4
+    median_iterations: int = 3
+
+    def __post_init__(self) -> None:
+        if self.branching < 2 or self.leaf_size < 2 or self.beam < 1 or self.median_iterations < 0:
+            raise ValueError("the word tree needs branching >= 2, leaf_size >= 2, beam >= 1, median_iterations >= 0")
+
+
+class BinaryWordTree:
+    """An incremental tree of binary words (Hamming distance; after the hierarchical
+    k-medians vocabulary of iBoW-LCD's OBIndex2, our own).
+
+    Every node has a centre (256 bits); a leaf holds up to ``leaf_size`` words. A word is
+    added to the leaf reached by going down to the child with the nearest centre; a leaf
+    that overflows becomes an inner node whose ``branching`` children are the k-medians
+    clusters of its words (centres: bitwise majorities; seeds: the farthest-first words,
+    so the tree is deterministic). A search goes down with a beam of ``beam`` nodes and
+    scans their leaves: all queries of an image at once, in numpy (packed ``uint64``
+    words, ``np.bitwise_count``), so its cost follows the depth and the beam, not the
+    number of words. Removal frees the word's slot (its descriptor row is reused by the
+    next word), so purged words do not hold memory.
+    """
+
+    def __init__(self, params: TreeParams = TreeParams()) -> None:
+        self.params = params
+        b, leaf = params.branching, params.leaf_size
+        # nodes
+        self._centre = np.zeros((16, 4), np.uint64)
+        self._child = np.full((16, b), -1, np.int32)
+        self._leaf_row = np.full(16, -1, np.int32)      # per node: its row in the pool, -1 inner
+        self._n_nodes = 1
+        # leaves: a pool of fixed-width rows of slots
+        self._pool = np.full((16, leaf), -1, np.int32)
+        self._fill = np.zeros(16, np.int32)
+        self._n_rows = 1
+        self._free_rows: list[int] = []
+        self._leaf_row[0] = 0
+        self._child[0, 0] = 0                            # the root, a leaf to begin with
+        # words: one slot each (descriptor, word id, leaf row, position in it)
+        self._desc = np.zeros((64, 4), np.uint64)
+        self._slot_word = np.full(64, -1, np.int64)
+        self._slot_row = np.zeros(64, np.int32)
+        self._slot_pos = np.zeros(64, np.int32)
+        self._n_slots = 0
+        self._free_slots: list[int] = []
+        self._word_slot = np.full(64, -1, np.int32)     # per word id: its slot, -1 when not held
+        self.n_live = 0
+
+    def __len__(self) -> int:
+        return self.n_live
+
+    def memory_bytes(self) -> int:
+        """Bytes of the tree's arrays (their spare capacity included)."""
+        arrays = (self._centre, self._child, self._leaf_row, self._pool, self._fill, self._desc,
+                  self._slot_word, self._slot_row, self._slot_pos, self._word_slot)
+        return sum(a.nbytes for a in arrays) + 8 * (len(self._free_rows) + len(self._free_slots))
+
+    # -- growing arrays -------------------------------------------------------------------
+    @staticmethod
+    def _grow(a: np.ndarray, n: int, fill: int = 0) -> np.ndarray:
+        if n <= len(a):
+            return a
+        b = np.full((max(n, 2 * len(a)),) + a.shape[1:], fill, a.dtype)
+        b[:len(a)] = a
+        return b
+
+    def _new_node(self, centre: np.ndarray) -> int:
+        """A new leaf with this centre (it lists itself as its child)."""
+        n = self._n_nodes
+        self._centre = self._grow(self._centre, n + 2)   # + 2: the spare row -1 (no child)
+        self._child = self._grow(self._child, n + 2, -1)
+        self._leaf_row = self._grow(self._leaf_row, n + 2, -1)
+        self._centre[n] = centre
+        self._child[n] = -1
+        self._child[n, 0] = n
+        self._n_nodes = n + 1
+        if self._free_rows:
+            row = self._free_rows.pop()
+        else:
+            row = self._n_rows
+            self._pool = self._grow(self._pool, row + 1, -1)
+            self._fill = self._grow(self._fill, row + 1)
+            self._n_rows = row + 1
+        self._pool[row] = -1
+        self._fill[row] = 0
+        self._leaf_row[n] = row
+        return n
+
+    # -- search ---------------------------------------------------------------------------
+    def _descend(self, q: np.ndarray, beam: int) -> np.ndarray:
+        """The ``beam`` leaves (node ids, ``(N, <= beam)``, -1 none) reached by each query.
+
+        The first of each row is the greedy path (the nearest child at every level): the
+        path a word took when it was added, so a stored word is always found. A leaf lists
+        itself as its only child, and row -1 of the node arrays is a spare with no child,
+        so one gather expands a whole front."""
+        n = len(q)
+        rows = np.arange(n)
+        front = np.zeros((n, 1), np.int32)
+        b = self.params.branching
+        while True:
+            kids = self._child[front]                                 # (N, F, b)
+            if np.array_equal(kids[:, :, 0], front):                  # all leaves (or -1)
+                return front
+            cand = kids.reshape(n, -1)
+            dist = hamming_bits(q[:, None, :], self._centre[cand])
+            dist[cand < 0] = _FAR
+            dist[rows, np.argmin(dist[:, :b], axis=1)] = -1           # the greedy child: kept, first
+            keep = np.argsort(dist, axis=1, kind="stable")[:, :beam]
+            front = cand[rows[:, None], keep]
+
+    def nearest(self, q: np.ndarray, beam: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The nearest word found for each query (``(N, 4) uint64``): ``(word ids (N,)
+        int64, -1 when none was found; distances (N,) int32 bits)``.
+
+        The leaves' words are first compared on their first 64 bits only: a word within
+        the radius (40 of 256 bits) differs there by 8 bits (median); of 24,435 such pairs of
+        ORB descriptors of a real corridor none differed by more than 18, so those above
+        :data:`_PREFILTER_BITS` (20) are skipped (an unrelated word differs by about 32);
+        the full distance is computed for the few percent that pass."""
+        n = len(q)
+        none = np.full(n, -1, np.int64), np.full(n, _FAR, np.int32)
+        if not n or not self.n_live:
+            return none
+        leaves = self._descend(q, beam or self.params.beam)
+        pair_q, pair_k = np.nonzero(leaves >= 0)                     # (query, leaf) pairs, by query
+        rows = self._leaf_row[leaves[pair_q, pair_k]]
+        fill = self._fill[rows]
+        total = int(fill.sum())
+        if not total:
+            return none
+        # the filled part of each pair's leaf only: flat pool positions, and their query
+        first = np.cumsum(fill) - fill
+        pos = np.repeat(rows.astype(np.int64) * self.params.leaf_size - first, fill) + np.arange(total)
+        slots = self._pool.reshape(-1)[pos]
+        owner = np.repeat(pair_q, fill)
+        d0 = np.bitwise_count(q[owner, 0] ^ self._desc[slots, 0])
+        keep = np.flatnonzero(d0 <= _PREFILTER_BITS)
+        if not len(keep):
+            return none
+        qi, s = owner[keep], slots[keep]
+        full = hamming_bits(q[qi], self._desc[s])
+        # per query (qi comes sorted): the nearest, ties to the lowest slot
+        key = (full.astype(np.int64) << 32) | s.astype(np.int64)
+        start = np.flatnonzero(np.diff(qi, prepend=-1))
+        best = np.minimum.reduceat(key, start)
+        words, dist = none
+        words[qi[start]] = self._slot_word[best & 0xFFFFFFFF]
+        dist[qi[start]] = (best >> 32).astype(np.int32)
+        return words, dist
+
+    # -- changes --------------------------------------------------------------------------
+    def add(self, words: np.ndarray, q: np.ndarray) -> None:
+        """Add words (ids ``(N,)`` int, new to the tree) with descriptors ``(N, 4) uint64``."""
+        words = np.asarray(words, np.int64)
+        if not len(words):
+            return
+        slots = self._new_slots(words, q)
+        leaves = self._descend(q, 1)[:, 0]
+        order = np.argsort(leaves, kind="stable")
+        leaves, slots = leaves[order], slots[order]
+        first = np.ones(len(leaves), bool)
+        first[1:] = leaves[1:] != leaves[:-1]
+        start = np.flatnonzero(first)
+        rank = np.arange(len(leaves)) - np.repeat(start, np.diff(np.append(start, len(leaves))))
+        rows = self._leaf_row[leaves]
+        pos = self._fill[rows] + rank
+        fits = np.repeat(np.add.reduceat(np.ones(len(leaves), np.int32), start), np.diff(np.append(start, len(leaves))))
+        fits = self._fill[rows] + fits <= self.params.leaf_size
+        # leaves with room: all at once; full ones one by one (they split)
+        self._pool[rows[fits], pos[fits]] = slots[fits]
+        self._slot_row[slots[fits]] = rows[fits]
+        self._slot_pos[slots[fits]] = pos[fits]
+        np.add.at(self._fill, rows[fits], 1)
+        over = ~fits
+        if over.any():
+            for node in np.unique(leaves[over]).tolist():
+                self._put(node, slots[over & (leaves == node)])
+        self.n_live += len(words)
+
+    def _new_slots(self, words: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Slots for new words (free ones first, then new rows), holding their descriptors."""
+        k = min(len(words), len(self._free_slots))
+        reused = [self._free_slots.pop() for _ in range(k)]
+        n0 = self._n_slots
+        fresh = np.arange(n0, n0 + len(words) - k, dtype=np.int64)
+        n1 = n0 + len(fresh)
+        self._desc = self._grow(self._desc, n1 + 1)  # + 1: a spare row, read for slot -1
+        self._slot_word = self._grow(self._slot_word, n1, -1)
+        self._slot_row = self._grow(self._slot_row, n1)
+        self._slot_pos = self._grow(self._slot_pos, n1)
+        self._n_slots = n1
+        slots = np.concatenate([np.asarray(reused, np.int64), fresh])
+        self._desc[slots] = q
+        self._slot_word[slots] = words
+        self._word_slot = self._grow(self._word_slot, int(words.max()) + 1, -1)
+        self._word_slot[words] = slots
+        return slots.astype(np.int32)
+
+    def _put(self, node: int, slots: np.ndarray) -> None:
+        """Place ``slots`` in leaf ``node``, splitting it when it overflows."""
+        row = int(self._leaf_row[node])
+        f = int(self._fill[row])
+        if f + len(slots) <= self.params.leaf_size:
+            self._pool[row, f:f + len(slots)] = slots
+            self._slot_row[slots] = row
+            self._slot_pos[slots] = np.arange(f, f + len(slots), dtype=np.int32)
+            self._fill[row] = f + len(slots)
+            return
+        members = np.concatenate([self._pool[row, :f], slots])
+        self._free_rows.append(row)
+        self._leaf_row[node] = -1
+        self._child[node] = -1
+        groups, centres = self._split(self._desc[members])
+        for j, (g, c) in enumerate(zip(groups, centres)):
+            child = self._new_node(c)
+            self._child[node, j] = child
+            self._put(child, members[g])
+
+    def _split(self, d: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """k-medians of ``d (M, 4) uint64``: index groups and their centres (bitwise
+        majorities); deterministic (farthest-first seeds from the first row)."""
+        b = self.params.branching
+        m = len(d)
+        seeds = [0]
+        near = hamming_bits(d, d[0])
+        while len(seeds) < min(b, m):
+            j = int(np.argmax(near))
+            if near[j] == 0:
+                break
+            seeds.append(j)
+            near = np.minimum(near, hamming_bits(d, d[j]))
+        centres = d[seeds]
+        bits = np.unpackbits(d.view(np.uint8).reshape(m, -1), axis=1)
+        for _ in range(self.params.median_iterations + 1):
+            assign = np.argmin(hamming_bits(d[:, None, :], centres[None]), axis=1)
+            used = np.unique(assign)
+            counts = np.bincount(assign, minlength=len(centres))[used]
+            sums = np.stack([bits[assign == j].sum(axis=0, dtype=np.int32) for j in used.tolist()])
+            maj = (2 * sums > counts[:, None]).astype(np.uint8)
+            centres = np.packbits(maj, axis=1).view(np.uint64).reshape(len(used), 4)
+        assign = np.argmin(hamming_bits(d[:, None, :], centres[None]), axis=1)
+        groups = [np.flatnonzero(assign == j) for j in range(len(centres))]
+        keep = [j for j, g in enumerate(groups) if len(g)]
+        groups, cents = [groups[j] for j in keep], [centres[j] for j in keep]
+        if len(groups) == 1:  # identical words: split them in order (a full leaf must shrink)
+            groups = np.array_split(np.arange(m), min(b, m))
+            cents = [cents[0]] * len(groups)
+        return groups, cents
+
+    def remove(self, words: np.ndarray) -> None:
+        """Take words out (ids held by the tree); their slots are reused."""
+        for w in np.asarray(words, np.int64).tolist():
+            s = int(self._word_slot[w]) if w < len(self._word_slot) else -1
+            if s < 0:
+                continue
+            row, pos = int(self._slot_row[s]), int(self._slot_pos[s])
+            last = int(self._fill[row]) - 1
+            moved = int(self._pool[row, last])
+            self._pool[row, pos] = moved
+            self._slot_pos[moved] = pos
+            self._pool[row, last] = -1
+            self._fill[row] = last
+            self._slot_word[s] = -1
+            self._word_slot[w] = -1
+            self._free_slots.append(s)
+            self.n_live -= 1
+
+
+class _GrowingInts:
+    """An integer array (int32 unless told) that grows by doubling (amortised O(1) append)."""
+
+    def __init__(self, dtype: type = np.int32) -> None:
+        self._a: np.ndarray = np.zeros(64, dtype)
         self.n = 0
 
     def resize(self, n: int) -> None:
         if n > len(self._a):
-            b = np.zeros(max(n, 2 * len(self._a)), np.int64)
+            b = np.zeros(max(n, 2 * len(self._a)), self._a.dtype)
             b[:self.n] = self._a[:self.n]
             self._a = b
         self.n = max(self.n, n)
@@ -257,8 +613,15 @@ class _GrowingInts:
     def view(self) -> np.ndarray:
         return self._a[:self.n]
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes held (the spare capacity included)."""
+        return int(self._a.nbytes)
 
-_NO_POSTINGS = array("i")  # shared by the words whose postings were dropped (never appended to)
+
+_NO_POSTINGS = array("q")  # shared by the words whose postings were dropped (never appended to)
+_COUNT_BITS = 24           # a posting is one int64: slot << _COUNT_BITS | n(w, i)
+_COUNT_MASK = (1 << _COUNT_BITS) - 1
 
 
 class InvertedIndex:
@@ -274,9 +637,9 @@ class InvertedIndex:
     """
 
     def __init__(self) -> None:
-        # Postings as C int arrays (4 bytes an entry, not a Python int object each).
-        self._post_slots: list[array[int]] = []  # per word: slots of the images containing it
-        self._post_counts: list[array[int]] = []  # per word: n(w, i) for those images
+        # Postings as one C int64 array per word (8 bytes an entry: the image's slot and
+        # n(w, i) packed, one array object per word, not a Python int object an entry).
+        self._post: list[array[int]] = []        # per word: slot << _COUNT_BITS | n(w, i), per image
         self._df = _GrowingInts()                # per word: images containing it
         self._occ = _GrowingInts()               # per word: total occurrences
         self._image_len = _GrowingInts()         # per slot: n(i), words (with repeats) in the image
@@ -345,19 +708,18 @@ class InvertedIndex:
         uw, cnt = np.unique(w, return_counts=True)
         top = int(uw[-1]) + 1
         if top > self._df.n:
-            for _ in range(top - len(self._post_slots)):
-                self._post_slots.append(array("i"))
-                self._post_counts.append(array("i"))
+            self._post.extend(array("q") for _ in range(top - len(self._post)))
             old = self._df.n
             self._df.resize(top)
             self._occ.resize(top)
             self._active_pos.resize(top)
             self._active_pos.view[old:] = -1
+        if int(cnt.max()) > _COUNT_MASK:
+            raise ValueError(f"a word occurs more than {_COUNT_MASK} times in image {image_id}")
         for wid, c in zip(uw.tolist(), cnt.tolist()):
-            if self._post_slots[wid] is _NO_POSTINGS:
-                self._post_slots[wid], self._post_counts[wid] = array("i"), array("i")
-            self._post_slots[wid].append(slot)
-            self._post_counts[wid].append(c)
+            if self._post[wid] is _NO_POSTINGS:
+                self._post[wid] = array("q")
+            self._post[wid].append(slot << _COUNT_BITS | c)
         born = uw[self._df.view[uw] == 0]
         self._df.view[uw] += 1
         self._occ.view[uw] += cnt
@@ -384,14 +746,13 @@ class InvertedIndex:
             raise ValueError(f"image {image_id}: word ids outside 0 .. {self._df.n - 1}")
         where = []
         for wid, c in zip(uw.tolist(), cnt.tolist()):
-            ps = self._post_slots[wid]
-            k = ps.index(slot) if slot in ps else -1
-            if k < 0 or self._post_counts[wid][k] != c:
+            ps = self._post[wid]
+            k = ps.index(slot << _COUNT_BITS | c) if (slot << _COUNT_BITS | c) in ps else -1
+            if k < 0:
                 raise ValueError(f"image {image_id} was not indexed with word {wid} x {c}")
             where.append(k)
         for wid, k in zip(uw.tolist(), where):
-            self._post_slots[wid].pop(k)
-            self._post_counts[wid].pop(k)
+            self._post[wid].pop(k)
         del self._slot_of[image_id]
         if len(uw):
             self._df.view[uw] -= 1
@@ -415,9 +776,8 @@ class InvertedIndex:
         their document frequencies, so every other score stays as it was. Not for an index
         whose images may be removed again (a bounded working memory checks postings)."""
         for wid in np.asarray(words, np.int64).tolist():
-            if 0 <= wid < len(self._post_slots):
-                self._post_slots[wid] = _NO_POSTINGS
-                self._post_counts[wid] = _NO_POSTINGS
+            if 0 <= wid < len(self._post):
+                self._post[wid] = _NO_POSTINGS
 
     def document_frequency(self, word: int) -> int:
         """df(w): indexed images that contain ``word``."""
@@ -425,7 +785,7 @@ class InvertedIndex:
 
     def occurrences(self) -> np.ndarray:
         """``(n_words,) int64``: total occurrences of each word over the indexed images."""
-        return self._occ.view.copy()
+        return self._occ.view.astype(np.int64)
 
     def idf(self, words: np.ndarray) -> np.ndarray:
         """``log(N / df(w))`` for each word, ``(K,) float64``; 0 for a word in no image."""
@@ -441,9 +801,11 @@ class InvertedIndex:
     def tfidf(self, word: int, image_id: int) -> float:
         """tf(w, i) * idf(w) with the current counts (0 when ``word`` is not in the image)."""
         slot = self._slot_of[image_id]
-        if word >= len(self._post_slots) or slot not in self._post_slots[word]:
+        post = np.frombuffer(self._post[word], np.int64) if word < len(self._post) else np.zeros(0, np.int64)
+        mine = post[(post >> _COUNT_BITS) == slot]
+        if not len(mine):
             return 0.0
-        n_wi = self._post_counts[word][self._post_slots[word].index(slot)]
+        n_wi = int(mine[0] & _COUNT_MASK)
         return n_wi / int(self._image_len.view[slot]) * float(self.idf(np.array([word]))[0])
 
     def virtual_image(self) -> np.ndarray:
@@ -487,9 +849,10 @@ class InvertedIndex:
             return scores, 0.0
         idf = np.log(self.n_images / df)
         ids = uw.tolist()
-        slots = np.concatenate([np.frombuffer(self._post_slots[k], np.int32) for k in ids]).astype(np.int64)
-        n_wi = np.concatenate([np.frombuffer(self._post_counts[k], np.int32) for k in ids])
-        held = np.fromiter((len(self._post_slots[k]) for k in ids), np.int64, len(ids))  # df, bar dropped postings
+        packed = np.concatenate([np.frombuffer(self._post[k], np.int64) for k in ids])
+        slots = packed >> _COUNT_BITS
+        n_wi = packed & _COUNT_MASK
+        held = np.fromiter((len(self._post[k]) for k in ids), np.int64, len(ids))  # df, bar dropped postings
         per_word = cq * idf
         weights = np.repeat(per_word, held) * n_wi / self._image_len.view[slots]
         scores += np.bincount(slots, weights=weights, minlength=self.n_slots)
@@ -501,7 +864,6 @@ class InvertedIndex:
     def memory_bytes(self) -> int:
         """Bytes held by the postings (the int arrays with their object overhead, and the
         lists holding them) and the per-word and per-slot counters."""
-        posting = sum(sys.getsizeof(a) for a in self._post_slots if a is not _NO_POSTINGS) + sum(
-            sys.getsizeof(a) for a in self._post_counts if a is not _NO_POSTINGS)
-        lists = sys.getsizeof(self._post_slots) + sys.getsizeof(self._post_counts)
-        return posting + lists + 8 * (4 * self._df.n + self._image_len.n)
+        posting = sum(sys.getsizeof(a) for a in self._post if a is not _NO_POSTINGS)
+        counters = sum(g.nbytes for g in (self._df, self._occ, self._image_len, self._active, self._active_pos))
+        return posting + sys.getsizeof(self._post) + counters

@@ -8,18 +8,20 @@ kernel, Dynamic Covariance Scaling (Agarwal et al., ICRA 2013): a loop edge whos
 exceeds ``kernel_width`` is scaled by ``s = 2 Phi / (Phi + chi2)``, so a wrong loop loses
 most of its pull while a right one keeps full weight. By default (``kernel="gnc"``) that
 solution is then the start of graduated non-convexity with the truncated least squares
-loss (Yang et al., RA-L 2020; :func:`refine_gnc`), odometry edges known inliers, which ends
-at the least-squares optimum over the odometry and the loops it keeps: a wrong loop has no
-pull left at all. DCS alone left manhattan with 1000 wrong loops 0.026 m (ATE) from the
-outlier-free optimum; with GNC see docs/benchmarks/posegraph.md (issue 28's target: within
-1 mm, in at most 10 times plain LM's time).
+loss (Yang et al., RA-L 2020; :func:`refine_gnc`), odometry edges known inliers, and a
+local search on that loss one loop at a time by each loop's innovation and leave-one-out
+chi2 (:meth:`_LoopSolver.local_search`); it ends at the least-squares optimum over the
+odometry and the loops it keeps: a wrong loop has no pull left at all. DCS alone left
+manhattan with 1000 wrong loops 0.026 m (APE aligned) from the outlier-free optimum; with
+GNC see docs/benchmarks/posegraph.md (target: within 1 mm, in at most 10 times plain LM's
+time).
 
 Where DCS starts matters, and no one start is right for every graph, so by default
 (``initialisation="auto"``) it starts from LAGO and, when that solve leaves some loop
 down-weighted, once more from the odometry poses; the solution with the lower *robust*
 cost wins. LAGO is not robust itself: wrong loops bend its linear orientation estimate.
 Measured (bench/bench_posegraph.py, wrong loops carrying a true loop's information): on
-manhattan with 1000 wrong loops DCS from LAGO ended 1.1 m (ATE) from the outlier-free
+manhattan with 1000 wrong loops DCS from LAGO ended 1.1 m (APE aligned) from the outlier-free
 optimum with 96 of 1954 true loops down-weighted, from odometry 0.026 m with 4; on the
 clean CSAIL and manhattan graphs with full information it is the other way round (from
 odometry DCS stops in a local minimum at 144x and 9.7x LAGO's objective).
@@ -31,7 +33,6 @@ import dataclasses
 import logging
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -41,7 +42,7 @@ import numpy as np
 from robotd.base.geometry import compose, inverse
 from robotd.graph.factors import (RobustKernel, anchor_factor, between_factor, factor_graph, from_values,
                                   robust_kernel, to_values)
-from robotd.graph.model import PoseGraph, chi2, edge_chi2, isotropic_graph, isotropic_objective
+from robotd.graph.model import Edge, PoseGraph, chi2, edge_chi2, isotropic_graph, isotropic_objective
 
 
 log = logging.getLogger(__name__)
@@ -65,7 +66,7 @@ class BatchParams:
     kernel_width: edge chi2 up to which a loop keeps full weight (DCS Phi), default 30:
         on manhattan with 1000 wrong loops, Phi = 10 also down-weighted 23-36 true loops
         (the largest true-loop chi2 at the optimum is 26 isotropic) and Phi = 100 kept wrong
-        ones (18 m ATE with full information); 30 did neither.
+        ones (18 m APE aligned with full information); 30 did neither.
     inlier_chi2: GNC's inlier threshold on a loop edge's chi2 (``e^T I e``; GTSAM's
         ``barcSq`` is half of it), default 30 for the same reason.
     max_iterations: Levenberg-Marquardt iterations, default 100.
@@ -262,61 +263,39 @@ def refine_gnc(graph: PoseGraph, start: np.ndarray, params: BatchParams) -> tupl
     starts from the previous one's result, as in the paper's Algorithm 1, where GTSAM's
     restarts from the initial values every time. On manhattan with 1000 wrong loops GTSAM's
     own had not finished after 4 times plain LM's time from the odometry, nor after 7 from
-    the DCS solution (see docs/benchmarks/posegraph.md for this one's). At convergence
-    the weights are 0 or 1 and the result is the least-squares optimum over the odometry
-    and the loops kept.
+    the DCS solution (see docs/benchmarks/posegraph.md for this one's). The schedule and
+    the descents look at each loop's own chi2 at the solution; the end is a local search
+    by what a loop would do to the cost if it came in or went out
+    (:meth:`_LoopSolver.local_search`). At convergence the weights are 0 or 1 and the
+    result is the least-squares optimum over the odometry and the loops kept.
     """
     ids = graph.ids
-    is_loop = np.array([e.kind == "loop" for e in graph.edges], dtype=bool)
-    loops = [e for e in graph.edges if e.kind == "loop"]
-    fixed = gtsam.NonlinearFactorGraph()
-    for e in graph.edges:
-        if e.kind != "loop":
-            fixed.add(between_factor(e))
-    for kid in graph.anchors():
-        fixed.add(anchor_factor(kid, graph.pose(kid)))
-    c = float(params.inlier_chi2)
-    lm_params = gtsam.LevenbergMarquardtParams()
-    lm_params.setMaxIterations(params.max_iterations)
-    lm_params.setRelativeErrorTol(params.relative_tolerance)
-
-    def solve(weights: np.ndarray, values: gtsam.Values) -> tuple[gtsam.Values, gtsam.NonlinearFactorGraph]:
-        fg = gtsam.NonlinearFactorGraph(fixed)
-        for e, w in zip(loops, weights):
-            if w > 0.0:
-                d = e.delta
-                fg.add(gtsam.BetweenFactorPose2(
-                    e.from_id, e.to_id, gtsam.Pose2(d[0], d[1], d[2]),
-                    gtsam.noiseModel.Gaussian.Information(float(w) * np.asarray(e.information))))
-        return gtsam.LevenbergMarquardtOptimizer(fg, values, lm_params).optimize(), fg
-
-    def loop_chi2(poses: np.ndarray) -> np.ndarray:
-        return edge_chi2(graph, ids, poses)[is_loop]
-
+    sol = _LoopSolver(graph, params)
+    c = sol.c
     # Start: the loops beyond the threshold at ``start`` left out (GTSAM's first solve
     # would weigh every loop fully: plain least squares, as slow and as far off as plain LM).
-    weights = (loop_chi2(start) <= c).astype(float)
-    values, fg = solve(weights, to_values(ids, start))
+    weights = (sol.loop_chi2(start) <= c).astype(float)
+    values, fg = sol.solve(weights, to_values(ids, start))
     poses = from_values(values, ids)
-    r = loop_chi2(poses)
+    r = sol.loop_chi2(poses)
     r_max = float(r.max()) if len(r) else 0.0
     if r_max <= c:  # every loop within the threshold: TLS is least squares
-        return poses, np.ones(len(loops))
+        return poses, np.ones(len(sol.loops))
     # Candidate A: truncated least squares descent straight from there (the loops the
     # start puts within the threshold, re-solved until the set stops changing). Where the
     # start is already good (DCS from the odometry on manhattan with 1000 wrong loops) this
     # keeps its right loops; the graduated schedule below (candidate B) can lose a cluster
-    # of right loops on the way (there: 11, a corner of the map misplaced, 13 mm ATE). Where
-    # the start is poor (DCS on CSAIL with 100 wrong loops, 3.5 m ATE) the schedule finds
+    # of right loops on the way (there: 11, a corner of the map misplaced, 13 mm APE aligned). Where
+    # the start is poor (DCS on CSAIL with 100 wrong loops, 3.5 m APE aligned) the schedule finds
     # what descent cannot. The lower truncated cost wins.
-    cand_a = _tls_descent(solve, loop_chi2, ids, values, poses, weights, r, c, params.max_iterations)
+    cand_a = sol.descent((values, poses, weights, r))
     mu = max(c / (2.0 * r_max - c), 1e-6)
     prev_cost = fg.error(values)
     for _ in range(params.max_iterations):
         weights = tls_weights(r, mu, c)
-        values, fg = solve(weights, values)
+        values, fg = sol.solve(weights, values)
         poses = from_values(values, ids)
-        r = loop_chi2(poses)
+        r = sol.loop_chi2(poses)
         cost = fg.error(values)
         binary = bool(np.all(np.minimum(weights, 1.0 - weights) < 1e-4))
         if binary or abs(cost - prev_cost) < 1e-5 * max(prev_cost, 1e-7):
@@ -327,34 +306,170 @@ def refine_gnc(graph: PoseGraph, start: np.ndarray, params: BatchParams) -> tupl
     # at the current solution, re-solve, until that set stops changing (each step lowers
     # the TLS cost). The schedule's last weights were set at the solution before the last
     # one, so a loop may sit just beyond or within the threshold of the final one.
-    cand_b = _tls_descent(solve, loop_chi2, ids, values, poses, weights, r, c, params.max_iterations)
-    cost_a = _tls_cost(graph, ids, cand_a[1], is_loop, c)
-    cost_b = _tls_cost(graph, ids, cand_b[1], is_loop, c)
-    best = cand_a if cost_a < cost_b else cand_b
+    cand_b = sol.descent((values, poses, weights, r))
+    cost_a, cost_b = sol.tls_cost(cand_a[1]), sol.tls_cost(cand_b[1])
     log.debug("GNC: truncated cost %.6g by descent from the start, %.6g after the schedule", cost_a, cost_b)
+    best = sol.local_search(cand_a if cost_a < cost_b else cand_b)
     return best[1], best[2]
 
 
-def _tls_descent(solve: Callable[[np.ndarray, gtsam.Values], tuple[gtsam.Values, gtsam.NonlinearFactorGraph]],
-                 loop_chi2: Callable[[np.ndarray], np.ndarray], ids: np.ndarray, values: gtsam.Values,
-                 poses: np.ndarray, weights: np.ndarray, r: np.ndarray, c: float, max_steps: int
-                 ) -> tuple[gtsam.Values, np.ndarray, np.ndarray, np.ndarray]:
-    """Keep exactly the loops within ``c`` at the current solution and re-solve, until the
-    kept set stops changing; returns ``(values, poses, weights, loop chi2)``."""
-    for _ in range(max_steps):
-        keep = (r <= c).astype(float)
-        if np.array_equal(keep, weights):
-            break
-        weights = keep
-        values, _fg = solve(weights, values)
-        poses = from_values(values, ids)
-        r = loop_chi2(poses)
-    return values, poses, weights, r
+#: A solution of :class:`_LoopSolver`: GTSAM values, poses ``(N, 3)``, loop weights ``(L,)``
+#: and loop chi2 ``(L,)``.
+_Solution = tuple[gtsam.Values, np.ndarray, np.ndarray, np.ndarray]
 
 
-def _tls_cost(graph: PoseGraph, ids: np.ndarray, poses: np.ndarray, is_loop: np.ndarray,
-              c: float) -> float:
-    """The truncated least squares objective: every non-loop edge's chi2 plus each loop's
-    chi2 capped at ``c``."""
-    e = edge_chi2(graph, ids, poses)
-    return float(e[~is_loop].sum() + np.minimum(e[is_loop], c).sum())
+class _LoopSolver:
+    """Least squares over a graph's odometry edges and anchors (known inliers) and its loop
+    edges, each loop weighted (0: left out); the truncated least squares steps of
+    :func:`refine_gnc` on top."""
+
+    def __init__(self, graph: PoseGraph, params: BatchParams) -> None:
+        self.graph, self.ids = graph, graph.ids
+        self.is_loop = np.array([e.kind == "loop" for e in graph.edges], dtype=bool)
+        self.loops = [e for e in graph.edges if e.kind == "loop"]
+        self.fixed = gtsam.NonlinearFactorGraph()
+        for e in graph.edges:
+            if e.kind != "loop":
+                self.fixed.add(between_factor(e))
+        for kid in graph.anchors():
+            self.fixed.add(anchor_factor(kid, graph.pose(kid)))
+        self.c = float(params.inlier_chi2)
+        self.max_steps = params.max_iterations
+        self.lm_params = gtsam.LevenbergMarquardtParams()
+        self.lm_params.setMaxIterations(params.max_iterations)
+        self.lm_params.setRelativeErrorTol(params.relative_tolerance)
+
+    def build(self, weights: np.ndarray) -> gtsam.NonlinearFactorGraph:
+        """The factor graph with each loop's information times its weight (0: left out)."""
+        fg = gtsam.NonlinearFactorGraph(self.fixed)
+        for e, w in zip(self.loops, weights):
+            if w > 0.0:
+                d = e.delta
+                fg.add(gtsam.BetweenFactorPose2(
+                    e.from_id, e.to_id, gtsam.Pose2(d[0], d[1], d[2]),
+                    gtsam.noiseModel.Gaussian.Information(float(w) * np.asarray(e.information))))
+        return fg
+
+    def solve(self, weights: np.ndarray, values: gtsam.Values) -> tuple[gtsam.Values, gtsam.NonlinearFactorGraph]:
+        """Levenberg-Marquardt from ``values`` on :meth:`build`'s graph: values and graph."""
+        fg = self.build(weights)
+        return gtsam.LevenbergMarquardtOptimizer(fg, values, self.lm_params).optimize(), fg
+
+    def loop_chi2(self, poses: np.ndarray) -> np.ndarray:
+        """Each loop edge's chi2 at ``poses`` ``(L,)``."""
+        return edge_chi2(self.graph, self.ids, poses)[self.is_loop]
+
+    def tls_cost(self, poses: np.ndarray) -> float:
+        """The truncated least squares objective: every non-loop edge's chi2 plus each
+        loop's chi2 capped at the threshold."""
+        e = edge_chi2(self.graph, self.ids, poses)
+        return float(e[~self.is_loop].sum() + np.minimum(e[self.is_loop], self.c).sum())
+
+    def descent(self, sol: _Solution) -> _Solution:
+        """Keep exactly the loops within the threshold at the current solution and re-solve,
+        until the kept set stops changing."""
+        values, poses, weights, r = sol
+        for _ in range(self.max_steps):
+            keep = (r <= self.c).astype(float)
+            if np.array_equal(keep, weights):
+                break
+            weights = keep
+            values, _fg = self.solve(weights, values)
+            poses = from_values(values, self.ids)
+            r = self.loop_chi2(poses)
+        return values, poses, weights, r
+
+    def local_search(self, best: _Solution, max_tries: int = 10) -> _Solution:
+        """Truncated least squares descent one loop at a time, by what each loop would do
+        to the least-squares part: a loop left out whose *innovation* chi2
+        (:func:`innovation_chi2`) is within the threshold lowers the truncated cost if it
+        comes back in (to first order the least-squares part rises by its innovation and
+        the truncated part falls by the threshold), and a loop kept whose *leave-one-out*
+        chi2 (:func:`leave_one_out_chi2`) is beyond it lowers the cost if it goes. Both can
+        hold where the loop's own chi2 at the solution says the opposite, which is all
+        :meth:`descent` looks at: a true loop whose poses the other loops tie only
+        loosely, from which the solution moved away once it was out (manhattan with 1000
+        wrong loops: four true loops beyond the threshold, their innovation within it); a
+        kept loop that bends the solution towards itself. Each round tries the loops that
+        qualify all together, then one by one (at most ``max_tries`` of each kind, most
+        promising first), and keeps the first try whose truncated cost after re-solving
+        and descending again is lower."""
+        cost = self.tls_cost(best[1])
+        for _ in range(self.max_steps):
+            values, _poses, weights, _r = best
+            fg = self.build(weights)
+            out, kept = np.flatnonzero(weights < 0.5), np.flatnonzero(weights >= 0.5)
+            try:
+                marginals = gtsam.Marginals(fg, values)
+            except RuntimeError as exc:  # e.g. a run tied to the rest by loops all left out
+                log.debug("GNC: no local search (%s)", str(exc).strip().splitlines()[0] if str(exc).strip() else exc)
+                break
+            inn = _edge_statistic(marginals, values, [self.loops[n] for n in out], +1.0)
+            loo = _edge_statistic(marginals, values, [self.loops[n] for n in kept], -1.0)
+            back = out[np.argsort(inn)][:int((inn <= self.c).sum())]
+            drop = kept[np.argsort(-loo)][:int((loo > self.c).sum())]
+            tries: list[tuple[np.ndarray, float]] = []
+            for group, w_to in ((back, 1.0), (drop, 0.0)):
+                if len(group):
+                    tries.append((group, w_to))
+                    if len(group) > 1:
+                        tries += [(group[n:n + 1], w_to) for n in range(min(len(group), max_tries))]
+            improved = False
+            for group, w_to in tries:
+                w = weights.copy()
+                w[group] = w_to
+                v2, _fg = self.solve(w, values)
+                p2 = from_values(v2, self.ids)
+                cand = self.descent((v2, p2, w, self.loop_chi2(p2)))
+                cost2 = self.tls_cost(cand[1])
+                if cost2 < cost - 1e-9 * max(abs(cost), 1.0):
+                    log.debug("GNC: %d loop(s) %s, truncated cost %.6g -> %.6g", len(group),
+                              "back in" if w_to else "out", cost, cost2)
+                    best, cost, improved = cand, cost2, True
+                    break
+            if not improved:
+                break
+        return best
+
+
+def innovation_chi2(fg: gtsam.NonlinearFactorGraph, values: gtsam.Values, edges: list[Edge]) -> np.ndarray:
+    """Each edge's innovation chi2 against the least-squares solution ``values`` of ``fg``
+    (which lacks the edges), ``(len(edges),)``: ``e^T (Sigma + H P H^T)^-1 e``, ``e`` the
+    edge's error, ``Sigma`` its covariance, ``H`` its Jacobian and ``P`` the joint marginal
+    covariance of its two poses. To first order this is how much the least-squares cost
+    ``sum e^T I e`` rises when the edge is added and the graph re-solved: never more than
+    the edge's own chi2 at ``values``, much less where the solution ties its poses loosely."""
+    if not edges:
+        return np.zeros(0)
+    return _edge_statistic(gtsam.Marginals(fg, values), values, edges, +1.0)
+
+
+def leave_one_out_chi2(fg: gtsam.NonlinearFactorGraph, values: gtsam.Values, edges: list[Edge]) -> np.ndarray:
+    """Each edge's leave-one-out chi2 at the least-squares solution ``values`` of ``fg``
+    (which holds the edges), ``(len(edges),)``: ``e^T (Sigma - H P H^T)^-1 e`` (as in
+    :func:`innovation_chi2`, ``P`` now with the edge in): to first order how much the
+    least-squares cost falls when the edge is removed and the graph re-solved, never less
+    than its own chi2 at ``values``."""
+    if not edges:
+        return np.zeros(0)
+    return _edge_statistic(gtsam.Marginals(fg, values), values, edges, -1.0)
+
+
+def _edge_statistic(marginals: gtsam.Marginals, values: gtsam.Values, edges: list[Edge],
+                    sign: float) -> np.ndarray:
+    """``e^T (Sigma + sign H P H^T)^-1 e`` of each edge (see :func:`innovation_chi2`)."""
+    out = np.empty(len(edges))
+    unit = gtsam.noiseModel.Unit.Create(3)
+    for n, e in enumerate(edges):
+        d = e.delta
+        a, b = gtsam.BetweenFactorPose2(e.from_id, e.to_id, gtsam.Pose2(d[0], d[1], d[2]),
+                                        unit).linearize(values).jacobian()
+        joint = marginals.jointMarginalCovariance(gtsam.KeyVector([e.from_id, e.to_id]))
+        p = np.block([[joint.at(e.from_id, e.from_id), joint.at(e.from_id, e.to_id)],
+                      [joint.at(e.to_id, e.from_id), joint.at(e.to_id, e.to_id)]])
+        s = np.linalg.inv(np.asarray(e.information, float)) + sign * (a @ p @ a.T)
+        r = -np.asarray(b, float)
+        # lstsq: with the edge in, Sigma - H P H^T may be near singular (an edge that alone
+        # ties its poses), where its error is near zero too.
+        out[n] = float(r @ np.linalg.lstsq(s, r, rcond=1e-12)[0])
+    return out

@@ -289,31 +289,65 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
         raise CalibrationError("the drive lacks " + "; ".join(lacks))
     t0 = int(drive.ref_stamp_ns[0])
     iv = _intervals(drive)
-    n = len(iv.dt_s)
+    gyro_density, b_still = _gyro_still(drive, params)
+    q_g = gyro_density ** 2
+    (s, b0, b1), cov_g = _fit_gyro(iv, q_g)
 
-    # -- gyro noise and turn-on level from the still periods.
+    def heading(t_s: np.ndarray) -> np.ndarray:
+        """The calibrated gyro's heading (rad, from 0 at the first keyframe)."""
+        tgi, gi = _gyro_integral(drive, t0)
+        return (np.interp(t_s, tgi, gi) - b0 * t_s - 0.5 * b1 * t_s ** 2) / s
+
+    wheels = _fit_wheels(drive, iv, _arc_regressors(drive, heading, t0), heading, nominal_radius_m,
+                         nominal_base_m, q_g, params)
+    p, cov_w = wheels.p, wheels.cov
+    # The wheel base is measured against the gyro: its scale's uncertainty carries over.
+    cov_w[2, 2] += (p[2] * math.sqrt(cov_g[0, 0]) / s) ** 2
+    before = _residuals_nominal(drive, iv, nominal_radius_m, nominal_base_m, b_still)
+    gyro_after = (iv.gyro - b0 * iv.dt_s - b1 * iv.tsq) / s - iv.dyaw_ref
+    after = np.column_stack([wheels.residuals, gyro_after])
+    left, right, dist = _turns_deg(drive)
+    still = sum(b - a for a, b in _still_periods(drive, params.still_margin_s)) * 1e-9
+    return OdometryFit(
+        wheel_radius_left_m=float(p[0]), wheel_radius_right_m=float(p[1]), wheel_base_m=float(p[2]),
+        wheel_radius_left_sigma=float(math.sqrt(cov_w[0, 0])),
+        wheel_radius_right_sigma=float(math.sqrt(cov_w[1, 1])),
+        wheel_base_sigma=float(math.sqrt(cov_w[2, 2])),
+        gyro_scale=s, gyro_scale_sigma=float(math.sqrt(cov_g[0, 0])),
+        gyro_bias_radps=b0, gyro_bias_sigma=float(math.sqrt(cov_g[1, 1])), gyro_bias_drift_radps2=b1,
+        gyro_noise_radps_sqrt_hz=gyro_density, wheel_noise_m_sqrt_m=float(math.sqrt(wheels.q_w)),
+        residuals_before=before, residuals_after=after, interval_end_s=iv.t_end_s, used=wheels.used,
+        slip_windows=wheels.slip_windows, heading_windows=wheels.heading_windows,
+        turn_left_deg=left, turn_right_deg=right, distance_m=dist, still_s=still,
+    )
+
+
+def _gyro_still(drive: CalibrationDrive, params: OdometryFitParams) -> tuple[float, float]:
+    """The gyro's white rate noise density (rad/s per sqrt(Hz)) from the spread of its
+    readings about each still period's own mean (the bias moves between them), and the
+    mean reading over all still periods (rad/s, 0 without any)."""
     tg = np.asarray(drive.gyro_stamp_ns, np.int64)
     w = np.asarray(drive.gyro_radps, float)
     still_sel = np.zeros(len(tg), bool)
-    for lo_ns, hi_ns in _still_periods(drive, params.still_margin_s):
-        still_sel |= (tg >= lo_ns) & (tg <= hi_ns)
-    fs = 1.0 / float(np.median(np.diff(tg)) * 1e-9)
-    # The spread about each still period's own mean (the bias moves between them).
     resid = []
     for lo_ns, hi_ns in _still_periods(drive, params.still_margin_s):
         sel = (tg >= lo_ns) & (tg <= hi_ns)
+        still_sel |= sel
         if sel.sum() >= 3:
             resid.append(w[sel] - w[sel].mean())
-    r = np.concatenate(resid)
-    gyro_density = float(np.std(r, ddof=1) / math.sqrt(fs / 2.0))
+    fs = 1.0 / float(np.median(np.diff(tg)) * 1e-9)
+    density = float(np.std(np.concatenate(resid), ddof=1) / math.sqrt(fs / 2.0))
+    return density, float(w[still_sel].mean()) if still_sel.any() else 0.0
 
-    # -- gyro: its integral from the first keyframe to keyframe k is
-    # G_k = s Y_k + b0 t_k + b1 t_k^2 / 2 + c (Y: the reference's unwrapped heading). The
-    # errors are the reference's own heading noise (white, sigma_ref per keyframe) and the
-    # gyro's white noise integrated (a random walk, q_g t): generalised least squares with
-    # that covariance, sigma_ref first estimated from the increments (their variance is
-    # 2 sigma_ref^2 + q_g dt).
-    q_g = gyro_density ** 2
+
+def _fit_gyro(iv: _Intervals, q_g: float) -> tuple[tuple[float, float, float], np.ndarray]:
+    """The gyro's scale ``s``, turn-on bias ``b0`` (rad/s) and drift ``b1`` (rad/s^2), and
+    the covariance ``(4, 4)`` of ``(s, b0, b1, c)``. Its integral from the first keyframe
+    to keyframe k is ``G_k = s Y_k + b0 t_k + b1 t_k^2 / 2 + c`` (Y: the reference's
+    unwrapped heading). The errors are the reference's own heading noise (white, sigma_ref
+    per keyframe) and the gyro's white noise integrated (a random walk, ``q_g t``):
+    generalised least squares with that covariance, sigma_ref first estimated from the
+    increments (their variance is ``2 sigma_ref^2 + q_g dt``)."""
     a_inc = np.column_stack([iv.dyaw_ref, iv.dt_s, iv.tsq])
     x_inc, *_ = np.linalg.lstsq(a_inc, iv.gyro, rcond=None)
     res = iv.gyro - a_inc @ x_inc
@@ -331,22 +365,35 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
     red_g = float(r_w @ r_w / max(len(g_w) - 4, 1))
     cov_g = np.linalg.inv(a_w.T @ a_w) * max(red_g, 1.0)
     s, b0, b1 = (float(v) for v in x_g[:3])
+    return (s, b0, b1), cov_g
 
-    def heading(t_s: np.ndarray) -> np.ndarray:
-        """The calibrated gyro's heading (rad, from 0 at the first keyframe)."""
-        tgi, gi = _gyro_integral(drive, t0)
-        return (np.interp(t_s, tgi, gi) - b0 * t_s - 0.5 * b1 * t_s ** 2) / s
 
-    arcs = _arc_regressors(drive, heading, t0)  # (J, 2 axes, 2 wheels)
+@dataclass(frozen=True, slots=True, eq=False)
+class _WheelFit:
+    p: np.ndarray            # (3,) r_L, r_R, B (m)
+    cov: np.ndarray          # (3, 3)
+    residuals: np.ndarray    # (J, 3) dx, dy (m), heading (rad) per keyframe interval
+    used: np.ndarray         # (J,) bool: intervals kept by the slip gate
+    q_w: float               # slip noise variance per metre (m^2 / m)
+    slip_windows: int
+    heading_windows: int
 
-    # -- wheels: unknowns (r_L, r_R, B), solved by Gauss-Newton over two blocks of residuals:
-    # the displacement over each keyframe interval against the reference (the radii), and
-    # the heading change over short windows of the wheel timeline against the calibrated
-    # gyro (the wheel base, and the radii's difference). The gyro, once calibrated, is
-    # better than the reference over a fraction of a second, and it shows a slip event (a
-    # wheel over- or under-rotating by a few percent for a fraction of a second) as a jump
-    # of tens of its own sigmas: such windows and their neighbours are left out of both
-    # blocks. Left in, a handful of them moves the wheel base by 0.1-0.4 % on a 26 m drive.
+
+def _fit_wheels(drive: CalibrationDrive, iv: _Intervals, arcs: np.ndarray,
+                heading: Callable[[np.ndarray], np.ndarray], nominal_radius_m: float,
+                nominal_base_m: float, q_g: float, params: OdometryFitParams) -> _WheelFit:
+    """The wheels: unknowns (r_L, r_R, B), solved by Gauss-Newton over two blocks of
+    residuals: the displacement over each keyframe interval against the reference (the
+    radii; ``arcs`` from :func:`_arc_regressors`), and the heading change over short
+    windows of the wheel timeline against the calibrated gyro (``heading``: the wheel base,
+    and the radii's difference). The gyro, once calibrated, is better than the reference
+    over a fraction of a second, and it shows a slip event (a wheel over- or under-rotating
+    by a few percent for a fraction of a second) as a jump of tens of its own sigmas: such
+    windows and their neighbours are left out of both blocks. Left in, a handful of them
+    moves the wheel base by 0.1-0.4 % on a 26 m drive."""
+    t0 = int(drive.ref_stamp_ns[0])
+    n = len(iv.dt_s)
+
     def residuals(p: np.ndarray) -> np.ndarray:
         rl, rr, bb = p
         pos = arcs[:, :, 0] * rl + arcs[:, :, 1] * rr - iv.d_ref      # (J, 2)
@@ -379,7 +426,6 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
     clean = np.ones(len(w_y), bool)
     sig_pos = np.full(n, 1e-3)
     sig_h = 1e-3
-    q_w = 0.0
 
     def system(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r_pos = residuals(p)[used, :2] / sig_pos[used, None]
@@ -391,7 +437,7 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
         a = np.concatenate([j_pos.reshape(-1, 3), heading_jac(p)[clean] / sig_h])
         return a, y
 
-    for rnd in range(4):
+    for _rnd in range(4):
         for _ in range(10):
             a, y = system(p)
             step, *_ = np.linalg.lstsq(a, -y, rcond=None)
@@ -411,8 +457,8 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
         e2 = 0.5 * (r[used, 0] ** 2 + r[used, 1] ** 2)
         design = np.column_stack([travel[used], np.ones(int(used.sum()))])
         coef, *_ = np.linalg.lstsq(design, e2, rcond=None)
-        q_w, c_pos = max(float(coef[0]), 1e-12), max(float(coef[1]), 1e-12)
-        sig_pos = np.sqrt(q_w * travel + c_pos)
+        c_pos = max(float(coef[1]), 1e-12)
+        sig_pos = np.sqrt(max(float(coef[0]), 1e-12) * travel + c_pos)
     a, y = system(p)
     red = float(y @ y / max(len(y) - 3, 1))
     cov_w = np.linalg.inv(a.T @ a) * max(red, 1.0)
@@ -422,37 +468,23 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
     w_travel = np.abs(w_dphi[clean]).mean(axis=1) * 0.5 * (p[0] + p[1])
     design = np.column_stack([2.0 * w_travel / p[2] ** 2, np.ones(len(e))])
     coef, *_ = np.linalg.lstsq(design, e ** 2 - q_g * (w_t1 - w_t0)[clean], rcond=None)
-    q_w = max(float(coef[0]), 0.0)
-    # The wheel base is measured against the gyro: its scale's uncertainty carries over.
-    cov_w[2, 2] += (p[2] * math.sqrt(cov_g[0, 0]) / s) ** 2
+    return _WheelFit(p=p, cov=cov_w, residuals=residuals(p), used=used, q_w=max(float(coef[0]), 0.0),
+                     slip_windows=int((~clean).sum()), heading_windows=len(clean))
 
-    # -- residuals before (nominal wheels, raw gyro but for the still periods' mean level)
-    # and after.
-    b_still = float(w[still_sel].mean()) if still_sel.any() else 0.0
-    p_nom = np.array([nominal_radius_m, nominal_radius_m, nominal_base_m])
+
+def _residuals_nominal(drive: CalibrationDrive, iv: _Intervals, nominal_radius_m: float,
+                       nominal_base_m: float, b_still: float) -> np.ndarray:
+    """The residuals ``(J, 4)`` of the nominal model (nominal wheels; the raw gyro but for
+    the still periods' mean level ``b_still``), as :attr:`OdometryFit.residuals_before`."""
+    t0 = int(drive.ref_stamp_ns[0])
+    r, b = nominal_radius_m, nominal_base_m
 
     def nominal_heading(t_s: np.ndarray) -> np.ndarray:
         tgi, gi = _gyro_integral(drive, t0)
         return np.interp(t_s, tgi, gi) - b_still * t_s
 
     arcs_nom = _arc_regressors(drive, nominal_heading, t0)
-    pos_nom = arcs_nom[:, :, 0] * p_nom[0] + arcs_nom[:, :, 1] * p_nom[1] - iv.d_ref
-    yaw_nom = (p_nom[1] * iv.dphi[:, 1] - p_nom[0] * iv.dphi[:, 0]) / p_nom[2] - iv.dyaw_ref
+    pos_nom = arcs_nom[:, :, 0] * r + arcs_nom[:, :, 1] * r - iv.d_ref
+    yaw_nom = (r * iv.dphi[:, 1] - r * iv.dphi[:, 0]) / b - iv.dyaw_ref
     gyro_nom = (iv.gyro - b_still * iv.dt_s) - iv.dyaw_ref
-    before = np.column_stack([pos_nom, yaw_nom, gyro_nom])
-    gyro_after = (iv.gyro - b0 * iv.dt_s - b1 * iv.tsq) / s - iv.dyaw_ref
-    after = np.column_stack([residuals(p), gyro_after])
-    left, right, dist = _turns_deg(drive)
-    still = sum(b - a for a, b in _still_periods(drive, params.still_margin_s)) * 1e-9
-    return OdometryFit(
-        wheel_radius_left_m=float(p[0]), wheel_radius_right_m=float(p[1]), wheel_base_m=float(p[2]),
-        wheel_radius_left_sigma=float(math.sqrt(cov_w[0, 0])),
-        wheel_radius_right_sigma=float(math.sqrt(cov_w[1, 1])),
-        wheel_base_sigma=float(math.sqrt(cov_w[2, 2])),
-        gyro_scale=s, gyro_scale_sigma=float(math.sqrt(cov_g[0, 0])),
-        gyro_bias_radps=b0, gyro_bias_sigma=float(math.sqrt(cov_g[1, 1])), gyro_bias_drift_radps2=b1,
-        gyro_noise_radps_sqrt_hz=gyro_density, wheel_noise_m_sqrt_m=float(math.sqrt(q_w)),
-        residuals_before=before, residuals_after=after, interval_end_s=iv.t_end_s, used=used,
-        slip_windows=int((~clean).sum()), heading_windows=len(clean),
-        turn_left_deg=left, turn_right_deg=right, distance_m=dist, still_s=still,
-    )
+    return np.column_stack([pos_nom, yaw_nom, gyro_nom])

@@ -222,3 +222,89 @@ def test_gnc_ends_at_the_least_squares_optimum_over_the_true_loops_alone(seed):
     err_gnc, err_dcs = err(gnc), err(dcs)
     assert err_gnc < 1e-5
     assert err_dcs > 10 * err_gnc
+
+
+def test_innovation_chi2_is_the_rise_of_the_least_squares_cost_when_the_edge_comes_in():
+    # The straight chain is linear: without its loop the optimum is the odometry (cost 0)
+    # and the loop is 0.3 m off (chi2 4 * 0.09 = 0.36); three odometry edges of variance
+    # 1/4 each and the loop's own 1/4 give the innovation 0.09 / 1 = 0.09, the cost of the
+    # optimum with the loop (test above: 4 edges * 4 * 0.075^2).
+    from robotd.graph.batch import _LoopSolver, innovation_chi2
+    from robotd.graph.factors import to_values
+
+    g = _straight_chain_with_loop(2.7)
+    sol = _LoopSolver(g, BatchParams())
+    values, fg = sol.solve(np.zeros(1), to_values(g.ids, g.poses()))
+    assert innovation_chi2(fg, values, sol.loops) == pytest.approx([0.09], rel=1e-6)
+    # The ring: the closing loop's own chi2 on the open ring is far beyond the rise it
+    # brings (the ring is loose between its ends); the rise, to first order.
+    g = _ring()
+    sol = _LoopSolver(g, BatchParams())
+    values, fg = sol.solve(np.array([0.0, 1.0]), to_values(g.ids, g.poses()))
+    open_cost = 2 * fg.error(values)
+    closed, fg2 = sol.solve(np.ones(2), values)
+    rise = 2 * fg2.error(closed) - open_cost
+    innovation = innovation_chi2(fg, values, sol.loops[:1])[0]
+    assert innovation == pytest.approx(rise, rel=0.05)
+    assert _loop_chi2_at(sol, values)[0] > 30 * innovation
+
+
+def _loop_chi2_at(sol, values):
+    from robotd.graph.factors import from_values
+
+    return sol.loop_chi2(from_values(values, sol.ids))
+
+
+def test_gnc_takes_back_a_true_loop_whose_own_chi2_is_beyond_the_threshold_but_its_innovation_is_not():
+    # The ring's closing loop left out: on the open ring its chi2 is 457, beyond the
+    # threshold (30), so keeping "the loops within the threshold" never brings it back;
+    # its innovation (11) says it would lower the truncated cost, and it does.
+    from robotd.graph.batch import _LoopSolver
+    from robotd.graph.factors import from_values, to_values
+
+    g = _ring()
+    sol = _LoopSolver(g, BatchParams())
+    w = np.array([0.0, 1.0])
+    values, _ = sol.solve(w, to_values(g.ids, g.poses()))
+    poses = from_values(values, g.ids)
+    start = (values, poses, w, sol.loop_chi2(poses))
+    assert start[3][0] > sol.c
+    stuck = sol.descent(start)
+    assert np.array_equal(stuck[2], w)
+    back = sol.local_search(start)
+    assert np.array_equal(back[2], [1.0, 1.0])
+    assert sol.tls_cost(back[1]) < sol.tls_cost(poses) - 10.0
+    # and the result is the ring's least-squares optimum with both loops
+    full = optimize_batch(g, BatchParams(robust=False))
+    assert np.abs(back[1][:, :2] - full.poses[:, :2]).max() < 1e-4
+
+
+def test_gnc_drops_a_kept_loop_whose_own_chi2_is_within_the_threshold_but_its_leave_one_out_is_not():
+    # The straight chain's loop measuring -3 m (6 m off): in the least-squares optimum with
+    # it each of the four edges takes a quarter of the 6 m, so its own chi2 is
+    # 4 * 1.5^2 = 9, within the threshold (30), and keeping "the loops within the
+    # threshold" keeps it; its leave-one-out chi2 is 36 (the whole cost it causes), and
+    # without it the truncated cost is 30 instead of 36.
+    from robotd.graph.batch import _LoopSolver, leave_one_out_chi2
+    from robotd.graph.factors import from_values, to_values
+
+    g = PoseGraph()
+    for k in range(4):
+        g.add_pose(k, (1.3 * k, 0.2 * k, 0.0))
+    stiff = np.diag([4.0, 4.0, 1e8])  # headings held: the problem stays linear
+    for k in range(3):
+        g.add_edge(k, k + 1, (1.0, 0.0, 0.0), stiff, "odometry")
+    g.add_edge(0, 3, (-3.0, 0.0, 0.0), stiff, "loop")
+    sol = _LoopSolver(g, BatchParams())
+    w = np.ones(1)
+    values, fg = sol.solve(w, to_values(g.ids, g.poses()))
+    poses = from_values(values, g.ids)
+    assert sol.loop_chi2(poses) == pytest.approx([9.0], rel=1e-6)
+    assert leave_one_out_chi2(fg, values, sol.loops) == pytest.approx([36.0], rel=1e-6)
+    start = (values, poses, w, sol.loop_chi2(poses))
+    assert np.array_equal(sol.descent(start)[2], w)
+    out = sol.local_search(start)
+    assert np.array_equal(out[2], [0.0])
+    assert sol.tls_cost(out[1]) == pytest.approx(30.0, abs=1e-6)
+    assert np.allclose(out[1][:, 0], [0.0, 1.0, 2.0, 3.0], atol=1e-6)
+

@@ -1,0 +1,388 @@
+"""The default forward detector's word search: time per image as the run grows, bytes per
+image in RAM and in the map file, and what its approximate search costs in recall.
+
+Two parts, each against a baseline of the same run:
+
+1. **Sequences** (the development data, as ``bench/bench_forward_ablation.py`` reads them):
+   the real corridor of ``../shared/data/forward/rtabmap_samples`` (84 images) and the
+   virtual office route (1139 images at 640x480, written into ``--dir`` when missing). The
+   default detector runs over the same extracted features with its own word search
+   (``binary_search = "tree"``, :class:`robotd.forward.vocabulary.BinaryWordTree`), the
+   same with a wider beam (8 leaves instead of 4: a more exact search for more time), and
+   with usearch's HNSW graph (the search it replaces). Reported: recall at 100 % precision,
+   false positives, time per image *features included* (median, p99) beside OpenCV's own
+   ORB extraction (300 keypoints) of the same images in the same run, the word stage's
+   time, bytes per image held in RAM by part, and bytes per image in the map file (the
+   detector's images and words written with :meth:`robotd.io.store.MapStore.add_forward_image`,
+   as the daemon does; the file's growth over the same keyframes without forward rows).
+2. **Scale**: ``--images`` images (default 2000; ``--full``: 10,000) made from the office
+   route's images, lap after lap, each lap changed so that words do not simply repeat:
+   every image shifted by a few pixels (the same random shift for a lap), mirrored on odd
+   laps, its brightness scaled and offset (per lap). The default detector (tree) runs over
+   them; reported: the median and p99 of the per-image time (features included) over the
+   200 images up to 1000 and up to the end, their ratio, OpenCV's ORB over the same
+   windows, and bytes per image in RAM (the detector's parts) and the process RSS.
+
+Run: ``PYTHONPATH=. .venv/bin/python bench/bench_forward_scale.py --dir /tmp/office``
+(about 10 minutes on the shared 2-core machine); ``--full`` for 10,000 images;
+``--page FILE.json`` rewrites ``docs/benchmarks/forward_scale.md`` from a result.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+try:
+    from bench.common import machine_info, write_json, write_page
+except ImportError:  # run as a script: bench/ is on sys.path
+    from common import machine_info, write_json, write_page
+
+from robotd.forward import LOOP, FeatureExtractor, ForwardDetector, method_params
+from robotd.forward.evaluation import score_decisions
+from robotd.forward.verify import camera_matrix_guess
+from robotd.io.sequence import list_images, load_ground_truth, read_image
+
+REPO = Path(__file__).resolve().parent.parent
+DATA = REPO.parent / "shared" / "data"
+DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "forward_scale.json"
+PAGE = REPO / "docs" / "benchmarks" / "forward_scale.md"
+WINDOW = 200
+#: The word searches compared: name -> fields of VocabularyParams replaced in the default.
+VARIANTS: dict[str, dict[str, object]] = {"tree": {}, "tree, beam 8": {"tree_beam": 8},
+                                          "usearch": {"binary_search": "usearch"}}
+
+
+def rss_bytes() -> int:
+    """Resident set size of this process (Linux /proc)."""
+    with open("/proc/self/statm", encoding="ascii") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def gray(im: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(im, cv2.COLOR_BGR2GRAY) if im.ndim == 3 else im
+
+
+def opencv_orb_ms(images: list[np.ndarray]) -> np.ndarray:
+    """OpenCV's own ORB (300 keypoints) per image, ms: the time column's baseline."""
+    orb = cv2.ORB_create(nfeatures=300)
+    out = np.zeros(len(images))
+    for i, im in enumerate(images):
+        g = gray(im)
+        t0 = time.perf_counter()
+        orb.detectAndCompute(g, None)
+        out[i] = (time.perf_counter() - t0) * 1e3
+    return out
+
+
+def office_sequence(folder: Path) -> Path:
+    """The virtual office sequence of the ablation (written when ``gt.npy`` is missing)."""
+    if not (folder / "gt.npy").exists():
+        from sim.forward_sequence import SequenceSettings, write_forward_sequence
+
+        print(f"writing the virtual office sequence to {folder} ...", flush=True)
+        write_forward_sequence(folder, SequenceSettings(step_m=0.4, turn_rad=math.radians(30.0), repeats=4))
+    return folder
+
+
+def map_file_bytes(det: ForwardDetector, kept_new: list, kept_purged: list) -> dict[str, float]:
+    """Bytes per image the detector's memory takes in a map file: the file's growth when
+    the forward rows are written over keyframes already there."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "map.sqlite"
+        from robotd.io.store import MapStore
+
+        n = len(det)
+        with MapStore.open(path, synchronous="NORMAL") as store:
+            run = store.begin_run("bench = 1\n", started_ns=1)
+            cov = np.eye(3) * 1e-4
+            kfs = [store.add_keyframe(run, 10 + i, (0.1 * i, 0.0, 0.0), cov, None) for i in range(n)]
+        before = path.stat().st_size
+        with MapStore.open(path, synchronous="NORMAL") as store:
+            kind = det.params.features.kind
+            for t in range(n):
+                f = det.features_of(t)
+                ids, descs = kept_new[t]
+                store.add_forward_image(t, kfs[t], kind, f.image_size_px, f.words, f.keypoints_q, f.descriptors,
+                                        new_words=[(int(i), d.tobytes()) for i, d in zip(ids, descs)],
+                                        purged=[int(i) for i in kept_purged[t]])
+        after = path.stat().st_size
+        # the restart: the memory read back and taken up by a fresh detector
+        t0 = time.perf_counter()
+        with MapStore.open(path, read_only=True) as store:
+            images, words = store.forward_memory()
+        restored = ForwardDetector(det.params, camera_matrix=det.camera_matrix)
+        from robotd.forward.features import CompactFeatures
+
+        dim = det.params.features.descriptor_size
+        feats = [CompactFeatures(w, kq, np.frombuffer(d, np.uint8).reshape(-1, dim), size)
+                 for (_, _, _, size, w, kq, d) in images]
+        wd = np.zeros((len(words), dim), np.uint8)
+        for k, w in enumerate(words):
+            if not w[4]:
+                wd[k] = np.frombuffer(w[2], np.uint8)
+        restored.restore(feats, wd, np.array([w[3] for w in words], np.int64), np.array([w[4] for w in words], bool))
+        restore_s = time.perf_counter() - t0
+    return {"bytes_per_image": (after - before) / max(n, 1), "file_bytes": after, "restore_s": restore_s,
+            "restored_searchable_words": restored.vocabulary.n_searchable}
+
+
+def run_sequence(name: str, folder: Path, truth_path: Path, recent: int = 10) -> dict[str, object]:
+    files = list_images(folder, exclude=(truth_path,))
+    truth = load_ground_truth(truth_path, len(files))
+    images = [read_image(p) for p in files]
+    h, w = images[0].shape[:2]
+    k = camera_matrix_guess(w, h, 525.0 if name == "office" else None)
+    cv_ms = opencv_orb_ms(images)
+    base = method_params("default")
+    ex = FeatureExtractor(base.features)
+    feats = []
+    for im in images:
+        t0 = time.perf_counter()
+        fe = ex(im)
+        feats.append((fe, time.perf_counter() - t0))
+    out: dict[str, object] = {"images": len(files), "image_size": [w, h],
+                              "opencv_orb_ms": {"median": float(np.median(cv_ms)),
+                                                "p99": float(np.percentile(cv_ms, 99))},
+                              "variants": {}}
+    print(f"\n{name}: {len(files)} images ({w}x{h}); OpenCV ORB (300): median {np.median(cv_ms):.1f} ms", flush=True)
+    for variant, change in VARIANTS.items():
+        params = replace(base, vocabulary=replace(base.vocabulary, **change))
+        det = ForwardDetector(params, camera_matrix=k)
+        n = len(files)
+        cand, conf, decl = np.full(n, -1), np.zeros(n), np.zeros(n, bool)
+        total, words_ms = np.zeros(n), np.zeros(n)
+        kept_new, kept_purged = [], []
+        for t, (fe, fs) in enumerate(feats):
+            d = det.process_features(fe, fs)
+            total[t] = d.times_s["total"] * 1e3
+            words_ms[t] = d.times_s["words"] * 1e3
+            kept_new.append(det.vocabulary.last_new)
+            kept_purged.append(det.vocabulary.last_purged)
+            if d.candidate_id is not None:
+                cand[t], conf[t], decl[t] = d.candidate_id, d.candidate_probability, d.status == LOOP
+        s = score_decisions(cand, conf, decl, truth, recent)
+        mem = det.memory_bytes()
+        row = {**s.as_dict(), "ms_median": float(np.median(total)), "ms_p99": float(np.percentile(total, 99)),
+               "words_ms_median": float(np.median(words_ms)), "words_ms_p99": float(np.percentile(words_ms, 99)),
+               "ratio_to_opencv_orb": float(np.median(total) / np.median(cv_ms)),
+               "words": len(det.vocabulary), "searchable_words": det.vocabulary.n_searchable,
+               "ram_bytes_per_image": sum(mem.values()) / n,
+               "ram_bytes_per_image_by_part": {p: v / n for p, v in mem.items()}}
+        if variant == "tree":
+            row["map_file"] = map_file_bytes(det, kept_new, kept_purged)
+        out["variants"][variant] = row
+        mf = row.get("map_file", {}).get("bytes_per_image", float("nan"))
+        print(f"  {variant:13s} R@100%P {s.recall_at_full_precision:.3f} FP {s.false_positives} "
+              f"ms {row['ms_median']:.1f} / p99 {row['ms_p99']:.1f} (words {row['words_ms_median']:.1f}) "
+              f"x ORB {row['ratio_to_opencv_orb']:.1f}  RAM {row['ram_bytes_per_image']:.0f} B/img "
+              f"{ {p: round(v) for p, v in row['ram_bytes_per_image_by_part'].items()} }  map {mf:.0f} B/img",
+              flush=True)
+    return out
+
+
+def changed(im: np.ndarray, lap: int, rng_seed: int) -> np.ndarray:
+    """Image ``im`` as lap ``lap`` shows it: lap 0 as is; later laps shifted (up to 12 px),
+    mirrored on odd laps, brightness scaled 0.75-1.25 and offset by up to 20 grey levels."""
+    g = gray(im)
+    if lap == 0:
+        return g
+    r = np.random.default_rng(rng_seed * 1000 + lap)
+    dx, dy = r.integers(-12, 13, 2)
+    a, b = r.uniform(0.75, 1.25), r.uniform(-20, 20)
+    m = np.float32([[1, 0, dx], [0, 1, dy]])
+    out = cv2.warpAffine(g, m, (g.shape[1], g.shape[0]), borderMode=cv2.BORDER_REPLICATE)
+    if lap % 2:
+        out = out[:, ::-1]
+    return np.clip(out.astype(np.float32) * a + b, 0, 255).astype(np.uint8)
+
+
+def run_scale(folder: Path, n: int, seed: int) -> dict[str, object]:
+    files = list_images(folder, exclude=(folder / "gt.npy",))
+    base_images = [read_image(p) for p in files]
+    params = method_params("default")
+    h, w = base_images[0].shape[:2]
+    det = ForwardDetector(params, camera_matrix=camera_matrix_guess(w, h, 525.0))
+    ex = FeatureExtractor(params.features)
+    orb = cv2.ORB_create(nfeatures=300)
+    total, orb_ms, words_ms = np.zeros(n), np.zeros(n), np.zeros(n)
+    samples = []
+    loops = 0
+    t_start = time.perf_counter()
+    print(f"\nscale: {n} images from {len(files)} office images, lap after lap (changed per lap)", flush=True)
+    for i in range(n):
+        im = changed(base_images[i % len(files)], i // len(files), seed)
+        t0 = time.perf_counter()
+        orb.detectAndCompute(im, None)
+        t1 = time.perf_counter()
+        fe = ex(im)
+        t2 = time.perf_counter()
+        d = det.process_features(fe, t2 - t1)
+        orb_ms[i] = (t1 - t0) * 1e3
+        total[i] = d.times_s["total"] * 1e3
+        words_ms[i] = d.times_s["words"] * 1e3
+        loops += d.status == LOOP
+        done = i + 1
+        if done % 500 == 0 or done == n:
+            mem = det.memory_bytes()
+            samples.append({"images": done, "rss_bytes": rss_bytes(), "ram_bytes_per_image": sum(mem.values()) / done,
+                            "ram_bytes_per_image_by_part": {p: v / done for p, v in mem.items()},
+                            "words": len(det.vocabulary), "searchable_words": det.vocabulary.n_searchable,
+                            "elapsed_s": time.perf_counter() - t_start})
+            print(f"  {done:6d} images {samples[-1]['elapsed_s']:6.0f} s  last 500: median {np.median(total[done - 500:done]):.1f} ms "
+                  f"(ORB {np.median(orb_ms[done - 500:done]):.1f}, words {np.median(words_ms[done - 500:done]):.1f})  "
+                  f"RAM {samples[-1]['ram_bytes_per_image']:.0f} B/img  searchable words {det.vocabulary.n_searchable}",
+                  flush=True)
+
+    def window(at: int) -> dict[str, float] | None:
+        if at < WINDOW or at > n:
+            return None
+        sl = slice(at - WINDOW, at)
+        return {"median_ms": float(np.median(total[sl])), "p99_ms": float(np.percentile(total[sl], 99)),
+                "opencv_orb_median_ms": float(np.median(orb_ms[sl])), "words_median_ms": float(np.median(words_ms[sl]))}
+
+    at = {str(z): window(z) for z in sorted({1000, 2000, 5000, 10000, n}) if z <= n}
+    first, last = at.get("1000"), at[str(n)]
+    return {"images": n, "base_images": len(files), "loops": int(loops), "window": WINDOW, "at": at,
+            "median_ratio_end_to_1000": (last["median_ms"] / first["median_ms"]) if first and last else None,
+            "whole_run": {"median_ms": float(np.median(total)), "p99_ms": float(np.percentile(total, 99)),
+                          "opencv_orb_median_ms": float(np.median(orb_ms))},
+            "samples": samples}
+
+
+def page(res: dict) -> list[str]:
+    """The Markdown page of a result."""
+    m = res["machine"]
+    lines = ["# Forward word search: time and memory per image",
+             "",
+             "Generated by `bench/bench_forward_scale.py` from its JSON (do not edit by hand; "
+             "`--page FILE.json` rewrites it). What is measured: [docs/forward.md](../forward.md), "
+             "\"Time and memory\".",
+             "",
+             "Times come from a shared 2-core machine under a varying load: compare a row with OpenCV's own "
+             "ORB extraction (300 keypoints) of the same images in the same run (the `ORB ms` and `x ORB` "
+             "columns), not rows of different runs with each other. Times include feature extraction.",
+             "",
+             f"Machine and versions: {m.get('machine')}, cpu_count {m.get('cpu_count')}, python {m.get('python')}, "
+             f"numpy {m.get('numpy')}, opencv {m.get('opencv')}. Command: `{res['command']}`.",
+             "",
+             "## The default detector on the development sequences, with each word search",
+             "",
+             "`tree`: robotd's own incremental k-medians tree over the binary words (the default, a beam of "
+             "4 leaves); `tree, beam 8`: the same scanning 8 leaves; `usearch`: the HNSW graph it replaces. "
+             "Same features, same run. RAM: what the detector holds per image (its stored images, the "
+             "inverted index, the word search); map file: the file's growth per image when the detector's "
+             "images and words are written as the daemon writes them.",
+             "",
+             "| sequence | search | R@100%P | FP | ms median | ms p99 | ORB ms | x ORB | words ms | searchable words | RAM B/image (images + index + search) | map file B/image |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
+    for sname, s in res.get("sequences", {}).items():
+        orb = s["opencv_orb_ms"]["median"]
+        for v, r in s["variants"].items():
+            parts = r["ram_bytes_per_image_by_part"]
+            mf = r.get("map_file", {}).get("bytes_per_image")
+            lines.append(f"| {sname} ({s['images']}) | {v} | {r['recall_at_full_precision']:.3f} | {r['false_positives']} | "
+                         f"{r['ms_median']:.1f} | {r['ms_p99']:.1f} | {orb:.1f} | {r['ratio_to_opencv_orb']:.1f} | "
+                         f"{r['words_ms_median']:.1f} | {r['searchable_words']} | {r['ram_bytes_per_image']:.0f} "
+                         f"({parts['images']:.0f} + {parts['index']:.0f} + {parts['vocabulary']:.0f}) | "
+                         + (f"{mf:.0f} |" if mf is not None else "- |"))
+    for sname, s in res.get("sequences", {}).items():
+        mf = s["variants"].get("tree", {}).get("map_file")
+        if mf:
+            lines += ["", f"{sname}: the map file read back and a new detector restored from it (its word "
+                          f"tree rebuilt from the stored words) in {mf['restore_s']:.1f} s, "
+                          f"{mf['restored_searchable_words']} searchable words."]
+    sc = res.get("scale")
+    if sc:
+        lines += ["",
+                  f"## Time as the run grows: {sc['images']} images",
+                  "",
+                  f"The office route's {sc['base_images']} images lap after lap, each lap shifted by up to 12 px, "
+                  "mirrored on odd laps and its brightness changed (`changed()` in the bench), so the words of a "
+                  f"lap are not those of the last one; the default detector (tree). Windows of the {sc['window']} "
+                  "images up to the given count.",
+                  "",
+                  "| images | ms median | ms p99 | ORB ms median | words ms median |",
+                  "|---:|---:|---:|---:|---:|"]
+        for z, wdw in sc["at"].items():
+            if wdw:
+                lines.append(f"| {z} | {wdw['median_ms']:.1f} | {wdw['p99_ms']:.1f} | {wdw['opencv_orb_median_ms']:.1f} | "
+                             f"{wdw['words_median_ms']:.1f} |")
+        a, z = sc["at"].get("1000"), sc["at"].get(str(sc["images"]))
+        if a and z and sc["images"] > 1000:
+            rel = (z["median_ms"] / z["opencv_orb_median_ms"]) / (a["median_ms"] / a["opencv_orb_median_ms"])
+            rel_w = (z["words_median_ms"] / z["opencv_orb_median_ms"]) / (a["words_median_ms"] / a["opencv_orb_median_ms"])
+            lines += ["", f"Median at {sc['images']} over the median at 1000: {sc['median_ratio_end_to_1000']:.2f} as "
+                          f"measured; {rel:.2f} with each window's time divided by OpenCV's ORB of the same window "
+                          f"(the load changed during the run); the word stage alone: {rel_w:.2f}. The process RSS "
+                          f"includes the bench's own {sc['base_images']} decoded images."]
+        lines += ["", "| images | RAM B/image (images + index + search) | searchable words | process RSS MB |",
+                  "|---:|---|---:|---:|"]
+        for smp in sc["samples"]:
+            p = smp["ram_bytes_per_image_by_part"]
+            lines.append(f"| {smp['images']} | {smp['ram_bytes_per_image']:.0f} ({p['images']:.0f} + {p['index']:.0f} + "
+                         f"{p['vocabulary']:.0f}) | {smp['searchable_words']} | {smp['rss_bytes'] / 1e6:.0f} |")
+    return lines + [""]
+
+
+def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--dir", type=Path, default=Path(tempfile.gettempdir()) / "robotd-office",
+                    help="folder of the virtual office sequence (written when missing)")
+    ap.add_argument("--data", type=Path, default=DATA)
+    ap.add_argument("--images", type=int, default=2000, help="images of the scale part")
+    ap.add_argument("--full", action="store_true", help="10,000 images in the scale part")
+    ap.add_argument("--only", choices=("sequences", "scale"), default=None)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--update", action="store_true",
+                    help="keep the parts of --out's earlier result that this run does not redo (with --only)")
+    ap.add_argument("--page", type=Path, default=None, metavar="JSON",
+                    help="only rewrite docs/benchmarks/forward_scale.md from this result")
+    args = ap.parse_args(argv)
+    if args.page is not None:
+        write_page(PAGE, page(json.loads(args.page.read_text(encoding="utf-8"))))
+        print(f"wrote {PAGE}")
+        return 0
+    n = 10000 if args.full else args.images
+    res: dict[str, object] = {"benchmark": "forward_scale", "machine": {**machine_info(), "opencv": cv2.__version__},
+                              "command": " ".join(["bench/bench_forward_scale.py", *(argv if argv is not None else sys.argv[1:])]),
+                              "sequences": {}}
+    if args.update and args.out.exists():
+        earlier = json.loads(args.out.read_text(encoding="utf-8"))
+        res["sequences"] = earlier.get("sequences", {}) if args.only == "scale" else {}
+        if args.only == "sequences" and "scale" in earlier:
+            res["scale"] = earlier["scale"]
+        res["command"] = f"{earlier.get('command')}; then {res['command']}"
+    office = office_sequence(args.dir)
+    if args.only in (None, "sequences"):
+        rt = args.data / "forward" / "rtabmap_samples"
+        res["sequences"]["rtabmap_samples"] = run_sequence("rtabmap_samples", rt, rt / "ground_truth.bmp")
+        write_json(args.out, res)
+        res["sequences"]["office"] = run_sequence("office", office, office / "gt.npy")
+        write_json(args.out, res)
+    if args.only in (None, "scale"):
+        res["scale"] = run_scale(office, n, args.seed)
+        sc = res["scale"]
+        print(f"median at {n} / median at 1000: {sc['median_ratio_end_to_1000']}")
+    print(f"wrote {write_json(args.out, res)}")
+    write_page(PAGE, page(res))
+    print(f"wrote {PAGE}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
