@@ -79,8 +79,8 @@ class ExtractParams:
     edge_ratio: float = 10.0
     orientation_sigma_px: float = 4.0
     pool_sigma_px: float = 2.5
-    pool_step: int = 2
-    orientation_step: int = 2
+    pool_step: int = 1
+    orientation_step: int = 1
     cell_px: float = 6.0
     max_candidates: int = 4000
     repeat_distance: float = 0.3
