@@ -540,9 +540,10 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
     - ``"default"``: binary ORB features (OpenCV) in an incremental Hamming vocabulary whose
       words that never recur are purged, and the levers that the ablation of
       ``bench/bench_forward_ablation.py`` kept (``docs/forward.md``): the total loop
-      probability above 0.3, k = 2 consistent candidates, and when a pose is given the
-      keyframe's odometry as a second likelihood and up to 3 views of the candidate's place
-      verified.
+      probability above 0.5 and k = 2 consistent candidates. The keyframe's odometry as a
+      second likelihood (``OdometryParams(use=True)``) and more than one verification
+      (``verify_tries``) stay selectable: with the vocabulary tree's words they let a
+      false loop through on the office route.
     """
     from robotd.forward.features import FeatureParams
     from robotd.forward.filter import FilterParams
@@ -554,8 +555,7 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
         params = DetectorParams(features=FeatureParams(kind="orb", max_features=DEFAULT_ORB_FEATURES),
                                 vocabulary=VocabularyParams(purge_after=DEFAULT_PURGE_AFTER),
                                 filter=FilterParams(rule=DEFAULT_RULE, loop_threshold=DEFAULT_THRESHOLD),
-                                consistency=DEFAULT_CONSISTENCY, verify_tries=DEFAULT_VERIFY_TRIES,
-                                odometry=OdometryParams(use=True))
+                                consistency=DEFAULT_CONSISTENCY, verify_tries=DEFAULT_VERIFY_TRIES)
     else:
         raise ValueError(f"forward detector method must be one of {', '.join(METHODS)}, got {method!r}")
     return replace(params, **overrides) if overrides else params
@@ -567,6 +567,6 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
 DEFAULT_ORB_FEATURES = 300
 DEFAULT_PURGE_AFTER = 50
 DEFAULT_RULE = "total"
-DEFAULT_THRESHOLD = 0.3
+DEFAULT_THRESHOLD = 0.5
 DEFAULT_CONSISTENCY = 2
-DEFAULT_VERIFY_TRIES = 3
+DEFAULT_VERIFY_TRIES = 1

@@ -84,8 +84,9 @@ def test_the_methods():
     assert paper == DetectorParams()
     assert (paper.features.kind, paper.filter.loop_threshold, paper.filter.rule) == ("sift", 0.8, "neighbourhood")
     default = method_params("default")
+    assert not default.odometry.use and default.verify_tries == 1 and default.consistency == 2
+    assert (default.filter.rule, default.filter.loop_threshold) == ("total", 0.5)
     assert default.features.kind == "orb" and default.vocabulary.purge_after > 0
-    assert default.odometry.use and default.verify_tries == 3 and default.consistency == 2
     assert not paper.odometry.use and paper.verify_tries == 1
     assert method_params("paper", recent_excluded=5).recent_excluded == 5
     with pytest.raises(ValueError):
