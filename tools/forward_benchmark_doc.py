@@ -47,6 +47,11 @@ def render(result: dict) -> str:
         "is the baseline of `robotd eval forward` (SIFT matching and five-point RANSAC against "
         "every past image).",
         "",
+        "The word search: `default` and the rows marked *(word tree)* ran with robotd's own "
+        "binary word tree (the default search); the rows marked *(usearch)* and the other "
+        "ablation rows ran with the usearch index it replaced (kept for SIFT words). Compare "
+        "a lever with the default of the same search.",
+        "",
     ]
     keys = ("machine", "cpu_count", "python", "numpy", "opencv", "usearch")
     info = ", ".join(f"{k} {m[k]}" for k in keys if k in m and m[k] is not None)
