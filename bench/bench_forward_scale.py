@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import tempfile
@@ -44,8 +43,10 @@ import cv2
 import numpy as np
 
 try:
+    from bench.bench_forward_ablation import office_sequence
     from bench.common import machine_info, write_json, write_page
 except ImportError:  # run as a script: bench/ is on sys.path
+    from bench_forward_ablation import office_sequence  # type: ignore[no-redef]
     from common import machine_info, write_json, write_page
 
 from robotd.forward import LOOP, FeatureExtractor, ForwardDetector, method_params
@@ -83,16 +84,6 @@ def opencv_orb_ms(images: list[np.ndarray]) -> np.ndarray:
         orb.detectAndCompute(g, None)
         out[i] = (time.perf_counter() - t0) * 1e3
     return out
-
-
-def office_sequence(folder: Path) -> Path:
-    """The virtual office sequence of the ablation (written when ``gt.npy`` is missing)."""
-    if not (folder / "gt.npy").exists():
-        from sim.forward_sequence import SequenceSettings, write_forward_sequence
-
-        print(f"writing the virtual office sequence to {folder} ...", flush=True)
-        write_forward_sequence(folder, SequenceSettings(step_m=0.4, turn_rad=math.radians(30.0), repeats=4))
-    return folder
 
 
 def map_file_bytes(det: ForwardDetector, kept_new: list, kept_purged: list) -> dict[str, float]:
