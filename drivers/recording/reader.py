@@ -392,18 +392,23 @@ def _to_frame(topic: str, m: Any, rec: Message, yaw_source: str) -> Frame:
 class EncodedFrame(Frame):
     """A :class:`~robotd.base.messages.Frame` that keeps its JPEG bytes and decodes them
     the first time :attr:`image` is read (then keeps the pixels). The pipeline routes it as
-    a ``Frame``; pickled or copied, it becomes a plain ``Frame``."""
+    a ``Frame``; pickled or copied, it becomes a plain ``Frame``. It takes a ``Frame``'s
+    fields too (``image``: the pixels, already decoded), so ``dataclasses.replace`` works on
+    it as on any frame (the copy holds the pixels)."""
 
     __slots__ = ("_encoded", "_decoded")
     _encoded: np.ndarray | None
     _decoded: np.ndarray | None
 
-    def __init__(self, stamp_ns: int, camera: str, encoded: np.ndarray | None, seq: int = 0) -> None:
+    def __init__(self, stamp_ns: int, camera: str, image: np.ndarray | None = None, seq: int = 0, *,
+                 encoded: np.ndarray | None = None) -> None:
+        if (image is None) == (encoded is None):
+            raise TypeError("EncodedFrame takes either image (decoded pixels) or encoded (JPEG bytes)")
         object.__setattr__(self, "stamp_ns", stamp_ns)
         object.__setattr__(self, "camera", camera)
         object.__setattr__(self, "seq", seq)
         object.__setattr__(self, "_encoded", encoded)
-        object.__setattr__(self, "_decoded", None)
+        object.__setattr__(self, "_decoded", image)
 
     @property
     def image(self) -> np.ndarray:
@@ -420,9 +425,9 @@ class EncodedFrame(Frame):
     def restamped(self, stamp_ns: int) -> EncodedFrame:
         """The same frame at another stamp, decoded only if this one was (a recording
         replayed in a loop: ``bench/bench_daemon.py --memory``)."""
-        out = EncodedFrame(stamp_ns, self.camera, self._encoded, self.seq)
-        object.__setattr__(out, "_decoded", self._decoded)
-        return out
+        if self._decoded is not None:
+            return EncodedFrame(stamp_ns, self.camera, self._decoded, self.seq)
+        return EncodedFrame(stamp_ns, self.camera, seq=self.seq, encoded=self._encoded)
 
     def __reduce__(self) -> tuple[Any, ...]:
         return Frame, (self.stamp_ns, self.camera, self.image, self.seq)
@@ -438,7 +443,7 @@ def _to_frame_lazy(topic: str, m: Any, rec: Message, yaw_source: str) -> Frame:
         raise ValueError(f"image data ({m['format']!r}) does not decode")
     match = _CAMERA_TOPIC.match(topic)
     camera = match.group(1) if match else topic.strip("/")
-    return EncodedFrame(_stamp_ns(m["header"]), camera, data, int(rec.sequence))
+    return EncodedFrame(_stamp_ns(m["header"]), camera, seq=int(rec.sequence), encoded=data)
 
 
 def _to_pose(topic: str, m: Any, rec: Message, yaw_source: str) -> PoseStamped:

@@ -184,8 +184,8 @@ def test_a_replayed_frame_is_decoded_once_it_becomes_a_keyframe_and_never_before
         for k in range(6):  # wheels 1 cm per 20 ms; keyframes every 5 mm: every frame 1 cm apart
             pipe.feed(_wheels(k, k * 20_000_000))
             if k in (1, 2, 3):
-                frames.append(EncodedFrame(k * 20_000_000, "floor", jpeg, k))
-                frames.append(EncodedFrame(k * 20_000_000 + 1, "floor", jpeg, k))  # 0 mm on: not a keyframe
+                frames.append(EncodedFrame(k * 20_000_000, "floor", seq=k, encoded=jpeg))
+                frames.append(EncodedFrame(k * 20_000_000 + 1, "floor", seq=k, encoded=jpeg))  # 0 mm on: not a keyframe
                 pipe.feed(frames[-2])
                 pipe.feed(frames[-1])
         pipe.finish()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import cv2
@@ -236,6 +237,16 @@ def test_jpeg_frames_decode_when_read_and_damaged_ones_are_still_counted(tmp_pat
         assert np.array_equal(b.image, a.image) and b.image is b.image  # decoded once
     back = pickle.loads(pickle.dumps(lazy[1]))
     assert type(back) is Frame and np.array_equal(back.image, eager[1].image)
+    # dataclasses.replace treats it as any Frame (a looping replay restamps frames so).
+    with ReplayDriver(good, ManualClock()) as drv:
+        fresh = [m for _ in range(5) for m in drv.read(0.0)]
+    moved = dataclasses.replace(fresh[2], stamp_ns=fresh[2].stamp_ns + 7, seq=9)
+    assert (moved.stamp_ns, moved.seq) == (eager[2].stamp_ns + 7, 9)
+    assert np.array_equal(moved.image, eager[2].image)
+    later = fresh[0].restamped(fresh[0].stamp_ns + 5)
+    assert later._decoded is None and np.array_equal(later.image, eager[0].image)
+    with pytest.raises(TypeError):
+        EncodedFrame(T0, "floor")
 
     # A JPEG cut in its entropy-coded data, and one that is not an image at all.
     jpeg = cv2.imencode(".jpg", frames[0].image)[1].tobytes()
