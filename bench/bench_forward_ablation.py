@@ -113,6 +113,17 @@ def configurations(full: bool) -> dict[str, object]:
     return cfgs
 
 
+def extract_timed(features: FeatureParams, images: list[np.ndarray]) -> list[tuple[object, float]]:
+    """Each image's features and the seconds their extraction took."""
+    ex = FeatureExtractor(features)
+    out = []
+    for im in images:
+        t0 = time.perf_counter()
+        fe = ex(im)
+        out.append((fe, time.perf_counter() - t0))
+    return out
+
+
 def office_sequence(folder: Path) -> Path:
     """The virtual office sequence in ``folder`` (written when ``gt.npy`` is missing)."""
     if not (folder / "gt.npy").exists():
@@ -231,13 +242,7 @@ def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, obje
             continue
         fk = (params.features.kind, params.features.max_features)
         if fk not in feats:
-            ex = FeatureExtractor(params.features)
-            lst = []
-            for im in images:
-                t0 = time.perf_counter()
-                fe = ex(im)
-                lst.append((fe, time.perf_counter() - t0))
-            feats[fk] = lst
+            feats[fk] = extract_timed(params.features, images)
         det = ForwardDetector(params, camera_matrix=k)
         n = len(files)
         cand, conf, decl = np.full(n, -1), np.zeros(n), np.zeros(n, bool)

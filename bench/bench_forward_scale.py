@@ -43,10 +43,10 @@ import cv2
 import numpy as np
 
 try:
-    from bench.bench_forward_ablation import office_sequence
+    from bench.bench_forward_ablation import extract_timed, office_sequence
     from bench.common import machine_info, write_json, write_page
 except ImportError:  # run as a script: bench/ is on sys.path
-    from bench_forward_ablation import office_sequence  # type: ignore[no-redef]
+    from bench_forward_ablation import extract_timed, office_sequence  # type: ignore[no-redef]
     from common import machine_info, write_json, write_page
 
 from robotd.forward import LOOP, FeatureExtractor, ForwardDetector, method_params
@@ -136,12 +136,7 @@ def run_sequence(name: str, folder: Path, truth_path: Path, recent: int = 10) ->
     k = camera_matrix_guess(w, h, 525.0 if name == "office" else None)
     cv_ms = opencv_orb_ms(images)
     base = method_params("default")
-    ex = FeatureExtractor(base.features)
-    feats = []
-    for im in images:
-        t0 = time.perf_counter()
-        fe = ex(im)
-        feats.append((fe, time.perf_counter() - t0))
+    feats = extract_timed(base.features, images)
     out: dict[str, object] = {"images": len(files), "image_size": [w, h],
                               "opencv_orb_ms": {"median": float(np.median(cv_ms)),
                                                 "p99": float(np.percentile(cv_ms, 99))},
