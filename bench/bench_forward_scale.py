@@ -369,8 +369,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--full", action="store_true", help="10,000 images in the scale part")
     ap.add_argument("--only", choices=("sequences", "scale"), default=None)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--variants", default=",".join(VARIANTS),
-                    help=f"comma-separated variants of the sequences part (default: all of {', '.join(VARIANTS)})")
+    ap.add_argument("--variants", default=";".join(VARIANTS),
+                    help=f"semicolon-separated variants of the sequences part (default: all of {', '.join(VARIANTS)})")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--update", action="store_true",
                     help="keep the parts of --out's earlier result that this run does not redo (with --only)")
@@ -394,7 +394,7 @@ def main(argv: list[str] | None = None) -> int:
     office = office_sequence(args.dir)
     if args.only in (None, "sequences"):
         rt = args.data / "forward" / "rtabmap_samples"
-        variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+        variants = [v.strip() for v in args.variants.split(";") if v.strip()]
         unknown = [v for v in variants if v not in VARIANTS]
         if unknown:
             ap.error(f"unknown variants {unknown}; choose from {list(VARIANTS)}")
