@@ -307,6 +307,13 @@ def pack_bits(descriptors: np.ndarray) -> np.ndarray:
     return d.view(np.uint64)
 
 
+def _grown(n: int) -> int:
+    """The capacity a growing array of capacity ``n`` takes next: a quarter more (amortised
+    O(1) appends as with doubling, but at most a fifth of the memory is spare room; the
+    per-word arrays hold every word ever made, about 90 per image on the office route)."""
+    return n + n // 4 + 16
+
+
 _FAR = np.int32(1 << 20)  # a distance no real pair reaches (256 bits at most)
 _PREFILTER_BITS = 20       # see BinaryWordTree.nearest
 
@@ -366,7 +373,7 @@ class BinaryWordTree:
         self._child[0, 0] = 0                            # the root, a leaf to begin with
         # words: one slot each (descriptor, word id, leaf row, position in it)
         self._desc = np.zeros((64, 4), np.uint64)
-        self._slot_word = np.full(64, -1, np.int64)
+        self._slot_word = np.full(64, -1, np.int32)
         self._slot_row = np.zeros(64, np.int32)
         self._slot_pos = np.zeros(64, np.int32)
         self._n_slots = 0
@@ -388,7 +395,7 @@ class BinaryWordTree:
     def _grow(a: np.ndarray, n: int, fill: int = 0) -> np.ndarray:
         if n <= len(a):
             return a
-        b = np.full((max(n, 2 * len(a)),) + a.shape[1:], fill, a.dtype)
+        b = np.full((max(n, _grown(len(a))),) + a.shape[1:], fill, a.dtype)
         b[:len(a)] = a
         return b
 
@@ -596,7 +603,7 @@ class BinaryWordTree:
 
 
 class _GrowingInts:
-    """An integer array (int32 unless told) that grows by doubling (amortised O(1) append)."""
+    """An integer array (int32 unless told) that grows by a quarter (:func:`_grown`; amortised O(1) append)."""
 
     def __init__(self, dtype: type = np.int32) -> None:
         self._a: np.ndarray = np.zeros(64, dtype)
@@ -604,7 +611,7 @@ class _GrowingInts:
 
     def resize(self, n: int) -> None:
         if n > len(self._a):
-            b = np.zeros(max(n, 2 * len(self._a)), self._a.dtype)
+            b = np.zeros(max(n, _grown(len(self._a))), self._a.dtype)
             b[:self.n] = self._a[:self.n]
             self._a = b
         self.n = max(self.n, n)
