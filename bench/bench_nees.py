@@ -56,7 +56,9 @@ except ImportError:  # run as a script: bench/ is on sys.path
 
 from robotd.base.geometry import between, between_error_covariance, compose, wrap_angle
 from robotd.base.messages import WheelTicks
+from robotd.graph.bias import scale_jacobian
 from robotd.keyframes import KeyframeSelector
+from robotd.odometry.ekf import EkfParams
 from robotd.odometry.fusion import OdometryFilter
 from robotd.odometry.relative import PoseClone, relative_pose_covariance
 from sim.emulators.kobuki import driver_messages, simulate_kobuki
@@ -103,13 +105,14 @@ class _Recorder:
         hist.record = record  # type: ignore[method-assign]
 
 
-def drive_edges(route: str, seed: int, keyframe_m: float, sensors: BaseSensorParams) -> dict[str, Any]:
+def drive_edges(route: str, seed: int, keyframe_m: float, sensors: BaseSensorParams,
+                params: EkfParams | None = None) -> dict[str, Any]:
     """Drive ``route`` with seed ``seed``'s base; the keyframe edges, the truth at the
     keyframes, and the filter's own states at them (for the joint covariance)."""
     motion = plan_motion(build_route(route), MotionLimits())
     stream = simulate_kobuki(motion, sensors, np.random.default_rng(seed))
     msgs = driver_messages(stream)
-    f = OdometryFilter()
+    f = OdometryFilter() if params is None else OdometryFilter(params=params)
     rec = _Recorder(f)
     selector = KeyframeSelector(keyframe_m, math.radians(10.0))
     frames_ns = (np.arange(0.0, float(motion.t_s[-1]), 1.0 / FRAME_HZ) * 1e9).round().astype(np.int64)
@@ -125,7 +128,7 @@ def drive_edges(route: str, seed: int, keyframe_m: float, sensors: BaseSensorPar
             p = f.pose_at(t)
             if p is not None and selector.offer(np.array([p.x_m, p.y_m, p.yaw_rad])):
                 stamps.append(t)
-                edges.append(f.keyframe_edge(t))
+                edges.append(f.keyframe_edge_terms(t))
             i += 1
     rec_t = np.asarray(rec.t, np.int64)
     at = np.minimum(np.searchsorted(rec_t, np.asarray(stamps, np.int64)), len(rec_t) - 1)
@@ -138,6 +141,7 @@ def drive_edges(route: str, seed: int, keyframe_m: float, sensors: BaseSensorPar
         maps.append(m6)
     return {
         "delta": np.array([e[0] for e in edges[1:]]), "cov": np.array([e[1] for e in edges[1:]]),
+        "terms": [e[2] for e in edges[1:]],
         "truth": motion.pose_at(np.asarray(stamps) * 1e-9),
         "rec_mean": np.array([rec.mean[k] for k in at]), "rec_cov": np.array([rec.cov[k] for k in at]),
         "rec_truth": motion.pose_at(rec_t[at] * 1e-9), "maps": np.array(maps),
@@ -168,23 +172,86 @@ def chained_nees(d: dict[str, Any], horizons: tuple[int, ...] = HORIZONS) -> dic
         pose[k + 1] = compose(pose[k], delta[k])
         a = _adjoint(pose[k + 1])
         acc[k + 1] = acc[k] + a @ cov[k] @ a.T
+    bacc, bu, bp, bar = bias_chain_covariances(d, pose)
+    sw, sg = scale_jacobians(delta, pose)
     out: dict[int, dict[str, float]] = {}
     for h in horizons:
         if h > m:
             continue
-        graph, joint = [], []
+        graph, joint, bias, scale = [], [], [], []
         for i in range(0, m - h + 1, max(1, h // 5)):
             j = i + h
             e = between(between(pose[i], pose[j]), between(truth[i], truth[j]))
             e[2] = wrap_angle(e[2])
             back = np.linalg.inv(_adjoint(pose[j]))
             graph.append(_nees_parts(e, back @ (acc[j] - acc[i]) @ back.T))
+            cb = _bias_window_cov(bacc, bu, bp, bar, i, j)
+            bias.append(_nees_parts(e, back @ cb @ back.T))
+            uw, ug = sw[j] - sw[i], sg[j] - sg[i]
+            cs = cb + SCALE_SIGMA["wheel"] ** 2 * np.outer(uw, uw) + SCALE_SIGMA["gyro"] ** 2 * np.outer(ug, ug)
+            scale.append(_nees_parts(e, back @ cs @ back.T))
             joint.append(_joint_nees(d, i, j))
-        g, jn = np.array(graph), np.array(joint)
+        g, jn, bn, sn = np.array(graph), np.array(joint), np.array(bias), np.array(scale)
         out[h] = {"windows": len(g), "graph": float(g[:, 0].mean()), "graph_yaw": float(g[:, 1].mean()),
                   "graph_position": float(g[:, 2].mean()), "filter": float(jn[:, 0].mean()),
-                  "filter_yaw": float(jn[:, 1].mean()), "filter_position": float(jn[:, 2].mean())}
+                  "filter_yaw": float(jn[:, 1].mean()), "filter_position": float(jn[:, 2].mean()),
+                  "bias": float(bn[:, 0].mean()), "bias_yaw": float(bn[:, 1].mean()),
+                  "bias_position": float(bn[:, 2].mean()), "scales": float(sn[:, 0].mean()),
+                  "scales_yaw": float(sn[:, 1].mean()), "scales_position": float(sn[:, 2].mean())}
     return out
+
+
+def bias_chain_covariances(d: dict[str, Any], pose: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], np.ndarray, np.ndarray]:
+    """What the pose graph with bias variables (:mod:`robotd.graph.bias`) gives a chain
+    without loops, the bias marginalised: per edge ``k`` its covariance given the bias
+    carried to the run's start frame (cumulated, ``(m + 1, 3, 3)``), the bias Jacobian so
+    carried ``u_k (3,)``, the bias error's variance at the edge's start ``P_k`` and the AR(1)
+    coefficient ``a_k`` to the next edge's."""
+    terms = d["terms"]
+    m = len(terms)
+    acc = np.zeros((m + 1, 3, 3))
+    u = []
+    for k, t in enumerate(terms):
+        a = _adjoint(pose[k + 1])
+        acc[k + 1] = acc[k] + a @ t.cov_given_bias @ a.T
+        u.append(a @ t.jac_bias)
+    p = np.array([t.bias_var for t in terms])
+    ar = np.array([t.bias_cov / t.bias_var for t in terms])
+    return acc, u, p, ar
+
+
+#: 1-sigma of the relative scale errors the scale-aware model marginalises, the uniform
+#: spreads of the simulated base (:class:`sim.sensors.BaseSensorParams`: wheels +-0.5 %,
+#: gyro +-0.3 %) as standard deviations: what an uncalibrated base is known to within.
+SCALE_SIGMA = {"wheel": 0.005 / math.sqrt(3.0), "gyro": 0.003 / math.sqrt(3.0)}
+
+
+def scale_jacobians(delta: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per edge the change of its error per unit relative scale error of the wheels'
+    distance and of the gyro (:func:`robotd.graph.bias.scale_jacobian`), carried to the
+    run's start frame as the edges' covariances are and cumulated: ``(m + 1, 3)`` each."""
+    jw, jg = [], []
+    for k, d in enumerate(delta):
+        j = _adjoint(pose[k + 1]) @ scale_jacobian(d)
+        jw.append(j[:, 0])
+        jg.append(j[:, 1])
+    return np.cumsum([np.zeros(3)] + jw, axis=0), np.cumsum([np.zeros(3)] + jg, axis=0)
+
+
+def _bias_window_cov(acc: np.ndarray, u: list[np.ndarray], p: np.ndarray, ar: np.ndarray,
+                     i: int, j: int) -> np.ndarray:
+    """Covariance (start frame) of edges ``i..j-1`` chained, the bias errors ``db_k``
+    (AR(1): ``db_{k+1} = a_k db_k + n_k``, ``Var db_k = P_k``) marginalised: the sum of the
+    conditional covariances plus ``Var(sum_k u_k db_k)``, by the recursion over ``k`` of
+    ``T_k = sum_{l<=k} u_l Cov(db_l, db_k)``."""
+    v = np.zeros((3, 3))
+    t = np.zeros(3)
+    for k in range(i, j):
+        tp = ar[k - 1] * t if k > i else np.zeros(3)
+        uk = u[k]
+        v += p[k] * np.outer(uk, uk) + np.outer(tp, uk) + np.outer(uk, tp)
+        t = tp + uk * p[k]
+    return acc[j] - acc[i] + v
 
 
 def _joint_nees(d: dict[str, Any], i: int, j: int) -> tuple[float, float, float]:
