@@ -279,54 +279,190 @@ WITHOUT = {
 }
 
 
-def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str, ...] = ()) -> dict[str, Any]:
+def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str, ...] = (),
+                  ekf: dict[str, float] | None = None, cost_seeds: int = 0) -> dict[str, Any]:
     sensors = BaseSensorParams()
     for name in without:  # the same base without these errors: what each costs
         sensors = dataclasses.replace(sensors, **WITHOUT[name])
+    params = EkfParams(**(ekf or {}))
     per_seed = []
     for seed in range(seeds):
         t0 = time.monotonic()
-        d = drive_edges(route, seed, keyframe_m, sensors)
+        d = drive_edges(route, seed, keyframe_m, sensors, params)
         res = chained_nees(d)
+        cost = graph_cost(d, seed, (SCALE_SIGMA["wheel"], SCALE_SIGMA["gyro"])) if seed < cost_seeds else None
         e = d["drawn"]
         per_seed.append({"seed": seed, "edges": len(d["delta"]), "horizons": {str(k): v for k, v in res.items()},
+                         "cost": cost,
                          "drawn": {"wheel_base_error": e.wheel_base_error,
                                    "radius_error_left": e.left_radius_error,
                                    "radius_error_right": e.right_radius_error,
                                    "gyro_scale_error": e.gyro_scale_error,
                                    "gyro_bias0_degps": math.degrees(e.gyro_bias0_radps)}})
         log(f"seed {seed}: {len(d['delta'])} edges, " + ", ".join(
-            f"N={h} {v['graph']:.2f} ({v['filter']:.2f})" for h, v in res.items())
+            f"N={h} {v['graph']:.2f}/{v['scales']:.2f}" for h, v in res.items())
             + f"  [{time.monotonic() - t0:.0f} s]")
-    return {"route": route, "keyframe_m": keyframe_m, "without": list(without), "per_seed": per_seed}
+    return {"route": route, "keyframe_m": keyframe_m, "without": list(without), "ekf": ekf or {},
+            "per_seed": per_seed}
 
 
-def odometry_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
+#: The chain models the bench compares (keys of a horizon's results) and their names.
+MODELS = {"graph": "independent edges", "bias": "bias variables", "scales": "bias + scale variables",
+          "filter": "filter's joint covariance"}
+
+
+def odometry_rows(part: dict[str, Any], kind: str = "scales") -> tuple[list[str], list[list[Any]]]:
+    """Per seed and horizon the mean NEES of the chains of ``kind`` (a key of :data:`MODELS`)."""
     head = ["seed", "edges"] + [f"N={h}" for h in HORIZONS]
     rows: list[list[Any]] = []
     for r in part["per_seed"]:
         hz = r["horizons"]
-        rows.append([r["seed"], r["edges"]] + [
-            f"{hz[str(h)]['graph']:.2f} ({hz[str(h)]['filter']:.2f})" if str(h) in hz else "-"
-            for h in HORIZONS])
+        rows.append([r["seed"], r["edges"]] + [f"{hz[str(h)][kind]:.2f}" if str(h) in hz else "-" for h in HORIZONS])
     means = []
     for h in HORIZONS:
-        g = [r["horizons"][str(h)]["graph"] for r in part["per_seed"] if str(h) in r["horizons"]]
-        f = [r["horizons"][str(h)]["filter"] for r in part["per_seed"] if str(h) in r["horizons"]]
-        means.append(f"{np.mean(g):.2f} ({np.mean(f):.2f})" if g else "-")
+        g = [r["horizons"][str(h)][kind] for r in part["per_seed"] if str(h) in r["horizons"]]
+        means.append(f"{np.mean(g):.2f}" if g else "-")
     rows.append(["mean", ""] + means)
     return head, rows
 
 
-def odometry_part_rows(part: dict[str, Any], kind: str) -> list[list[Any]]:
-    """Mean over seeds per horizon of the yaw and position parts (``kind``: graph or filter)."""
+def odometry_model_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
+    """Per horizon and model: the mean over seeds (yaw part, position part) and the seeds' range."""
+    head = ["N edges"] + list(MODELS.values())
     rows = []
     for h in HORIZONS:
         rs = [r["horizons"][str(h)] for r in part["per_seed"] if str(h) in r["horizons"]]
-        if rs:
-            rows.append([h, f"{np.mean([r[kind] for r in rs]):.2f}", f"{np.mean([r[kind + '_yaw'] for r in rs]):.2f}",
-                         f"{np.mean([r[kind + '_position'] for r in rs]):.2f}"])
-    return rows
+        if not rs:
+            continue
+        row: list[Any] = [h]
+        for k in MODELS:
+            v = [r[k] for r in rs]
+            row.append(f"{np.mean(v):.2f} ({np.mean([r[k + '_yaw'] for r in rs]):.2f}, "
+                       f"{np.mean([r[k + '_position'] for r in rs]):.2f}) [{min(v):.2f}-{max(v):.2f}]")
+        rows.append(row)
+    return head, rows
+
+
+def cost_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
+    head = ["seed", "keyframes", "loops", "model", "iSAM2 ms / keyframe", "batch LM s", "ATE iSAM2 (m)",
+            "ATE batch (m)", "ATE odometry (m)"]
+    rows: list[list[Any]] = []
+    for r in part["per_seed"]:
+        c = r.get("cost")
+        if not c:
+            continue
+        base = c["independent"]
+        for model in ("independent", "bias"):
+            m = c[model]
+            ratio = "" if model == "independent" else (
+                f" (x{m['isam2_ms_per_keyframe'] / base['isam2_ms_per_keyframe']:.1f})")
+            lm_ratio = "" if model == "independent" else f" (x{m['batch_lm_s'] / base['batch_lm_s']:.0f})"
+            rows.append([r["seed"], c["keyframes"], c["loops"], model,
+                         f"{m['isam2_ms_per_keyframe']:.2f}{ratio}", f"{m['batch_lm_s']:.2f}{lm_ratio}",
+                         f"{m['ate_isam2_m']:.4f}", f"{m['ate_batch_m']:.4f}", f"{m['ate_odometry_m']:.3f}"])
+    return head, rows
+
+
+# --------------------------------------------------------------------------- graph cost
+
+
+def _loops_from_truth(truth: np.ndarray, rng: np.random.Generator, every: int = 25,
+                      min_gap: int = 200, radius_m: float = 0.2, sigma: float = 1e-3
+                      ) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """Loop edges as the floor camera would give them on a revisit: every ``every``-th
+    keyframe, to the nearest one at least ``min_gap`` keyframes before it within
+    ``radius_m``, the true relative pose with ``sigma`` (m and rad) of noise."""
+    loops = []
+    cov = np.eye(3) * sigma * sigma
+    for j in range(min_gap, len(truth), every):
+        dist = np.hypot(truth[:j - min_gap, 0] - truth[j, 0], truth[:j - min_gap, 1] - truth[j, 1])
+        if not len(dist) or dist.min() > radius_m:
+            continue
+        i = int(np.argmin(dist))
+        delta = between(truth[i], truth[j]) + sigma * rng.standard_normal(3)
+        loops.append((i, j, delta, cov))
+    return loops
+
+
+def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float] | None) -> dict[str, Any]:
+    """Build the seed's keyframes one at a time into iSAM2 (with loop edges from the
+    truth, :func:`_loops_from_truth`), once with independent edges (``BetweenFactor``, the
+    daemon's) and once with the bias variables (:mod:`robotd.graph.bias`, with a shared
+    scale variable when ``scale_sigmas``): time per keyframe, the final batch
+    Levenberg-Marquardt's time from the odometry guess, and each estimate's ATE (m)."""
+    import gtsam
+
+    from robotd.graph.bias import (
+        BiasEdge,
+        bias_chain_factor,
+        bias_edge_factor,
+        bias_key,
+        bias_prior_factor,
+        scale_key,
+        scale_prior_factor,
+    )
+    from robotd.graph.factors import anchor_factor
+
+    truth = d["truth"]
+    deltas, covs, terms = d["delta"], d["cov"], d["terms"]
+    loops = _loops_from_truth(truth, np.random.default_rng(seed))
+    by_end: dict[int, list[tuple[int, int, np.ndarray, np.ndarray]]] = {}
+    for lp in loops:
+        by_end.setdefault(lp[1], []).append(lp)
+    # The pose graph's frame is the first keyframe's truth (the anchor).
+    out: dict[str, Any] = {"keyframes": len(deltas) + 1, "loops": len(loops)}
+    for model in ("independent", "bias"):
+        isam = gtsam.ISAM2()
+        batch = gtsam.NonlinearFactorGraph()
+        guess = gtsam.Values()
+        p = gtsam.Pose2(*map(float, truth[0]))
+        t_inc = 0.0
+        for k in range(len(deltas) + 1):
+            fg = gtsam.NonlinearFactorGraph()
+            vals = gtsam.Values()
+            if k == 0:
+                fg.add(anchor_factor(0, truth[0]))
+                vals.insert(0, p)
+                if model == "bias":
+                    fg.add(bias_prior_factor(0, terms[0].bias_radps, terms[0].bias_var))
+                    vals.insert(bias_key(0), np.array([terms[0].bias_radps]))
+                    if scale_sigmas is not None:
+                        fg.add(scale_prior_factor(0, scale_sigmas))
+                        vals.insert(scale_key(0), np.zeros(2))
+            else:
+                dk = deltas[k - 1]
+                p = p.compose(gtsam.Pose2(*map(float, dk)))
+                vals.insert(k, p)
+                if model == "independent":
+                    fg.add(gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*map(float, dk)),
+                                                    gtsam.noiseModel.Gaussian.Covariance(covs[k - 1])))
+                else:
+                    t = terms[k - 1]
+                    e = BiasEdge(k - 1, k, dk, t.cov_given_bias, t.jac_bias, t.bias_radps, t.bias_var,
+                                 t.bias_end_radps, t.bias_end_var, t.bias_cov)
+                    fg.add(bias_edge_factor(e, None if scale_sigmas is None else 0))
+                    fg.add(bias_chain_factor(e))
+                    vals.insert(bias_key(k), np.array([t.bias_end_radps]))
+            for i, j, delta, cov in by_end.get(k, []):
+                fg.add(gtsam.BetweenFactorPose2(i, j, gtsam.Pose2(*map(float, delta)),
+                                                gtsam.noiseModel.Gaussian.Covariance(cov)))
+            t0 = time.perf_counter()
+            isam.update(fg, vals)
+            t_inc += time.perf_counter() - t0
+            batch.push_back(fg)
+            guess.insert(vals)
+        est = isam.calculateEstimate()
+        t0 = time.perf_counter()
+        lm = gtsam.LevenbergMarquardtOptimizer(batch, guess).optimize()
+        t_lm = time.perf_counter() - t0
+
+        def ate(values: Any) -> float:
+            xy = np.array([[values.atPose2(k).x(), values.atPose2(k).y()] for k in range(len(truth))])
+            return float(np.sqrt(np.mean(np.sum((xy - truth[:, :2]) ** 2, axis=1))))
+
+        out[model] = {"isam2_ms_per_keyframe": 1e3 * t_inc / (len(deltas) + 1), "batch_lm_s": t_lm,
+                      "ate_isam2_m": ate(est), "ate_batch_m": ate(lm), "ate_odometry_m": ate(guess)}
+    return out
 
 
 # --------------------------------------------------------------------------- loops
@@ -454,6 +590,34 @@ ODO_PART_HEAD = ["N edges", "NEES", "yaw part", "position part"]
 # --------------------------------------------------------------------------- report
 
 
+def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None:
+    """The page's section of one odometry part."""
+    without = f", the base without {', '.join(odo['without'])}" if odo.get("without") else ""
+    ekf = odo.get("ekf") or {}
+    noise = ("the filter's default noise model" if not ekf else
+             "the filter's noise model with " + ", ".join(f"`{k}` = {v}" for k, v in ekf.items()))
+    lines += [f"## Odometry edges ({odo['route']} route, keyframes every {odo['keyframe_m']} m or 10 deg, "
+              f"{noise}{without})", "",
+              "Mean NEES over seeds of chains of N consecutive edges, per model of what the edges share "
+              "(in brackets the yaw and position parts, expected 1 and 2; in square brackets the "
+              "seeds' range): independent edges (the pose graph today); the edges given the gyro "
+              "bias at their start with the bias as variables (`robotd.graph.bias`), marginalised; "
+              "the same with the wheels' and the gyro's scale errors as variables of prior sigma "
+              + ", ".join(f"{k} {v * 100:.2f} %" for k, v in SCALE_SIGMA.items())
+              + " (the simulated base's spreads), marginalised; the filter's own joint covariance "
+              "of the motion.", ""]
+    table(*odometry_model_rows(odo))
+    lines += ["Per seed, bias + scale variables:", ""]
+    table(*odometry_rows(odo, "scales"))
+    head, rows = cost_rows(odo)
+    if rows:
+        lines += ["Cost in the pose graph: the seed's keyframes built one at a time into iSAM2 with loop "
+                  "edges from the truth (1 mm, every 25th keyframe that revisits a place), independent "
+                  "edges against the bias-sharing factors (bias + scale variables, Python "
+                  "`CustomFactor`s); in brackets the ratio, same run.", ""]
+        table(head, rows)
+
+
 def markdown(payload: dict[str, Any]) -> list[str]:
     lines = ["# NEES of the map's edges", "",
              "Generated by `bench/bench_nees.py` (see its docstring for the method); "
@@ -469,18 +633,9 @@ def markdown(payload: dict[str, Any]) -> list[str]:
             lines.append("| " + " | ".join(str(c) for c in row) + " |")
         lines.append("")
 
-    odo = payload.get("odometry")
-    if odo:
-        bias = f", the base without {', '.join(odo['without'])}" if odo.get("without") else ""
-        lines += [f"## Odometry edges ({odo['route']} route, keyframes every {odo['keyframe_m']} m or 10 deg{bias})", "",
-                  "Mean NEES of chains of N consecutive edges composed as independent edges (the pose "
-                  "graph without loops); in brackets the filter's own joint covariance of the same "
-                  "motion (the correlations through its speed, yaw-rate and gyro-bias states kept).", ""]
-        table(*odometry_rows(odo))
-        lines += ["Mean over seeds, yaw and position parts, independent edges:", ""]
-        table(ODO_PART_HEAD, odometry_part_rows(odo, "graph"))
-        lines += ["The same, the filter's joint covariance:", ""]
-        table(ODO_PART_HEAD, odometry_part_rows(odo, "filter"))
+    for odo in [payload.get("odometry")] + [c.get("odometry") for c in payload.get("compare", [])]:
+        if odo:
+            odometry_markdown(odo, table, lines)
     loops = payload.get("loops")
     if loops:
         lines += [f"## Loop edges ({loops['pairs']} rendered pairs per floor, second frame within "
@@ -512,6 +667,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--without", default="",
                     help="odometry: comma-separated errors the simulated base leaves out (what each costs): "
                          + ", ".join(WITHOUT))
+    ap.add_argument("--ekf", action="append", default=[], metavar="NAME=VALUE",
+                    help="odometry: a field of the filter's noise model (robotd.odometry.ekf.EkfParams) "
+                         "changed from its default (repeat for several)")
+    ap.add_argument("--cost-seeds", type=int, default=1,
+                    help="odometry: time the pose graph with each model on this many seeds (default 1)")
+    ap.add_argument("--compare", type=Path, action="append", default=[],
+                    help="another run's JSON whose odometry section the page shows too")
     ap.add_argument("--skip-odometry", action="store_true")
     ap.add_argument("--skip-loops", action="store_true")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
@@ -525,13 +687,19 @@ def main(argv: list[str] | None = None) -> int:
     payload: dict[str, Any] = {"benchmark": "nees", "machine": machine_info(),
                                "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
     if not args.skip_odometry:
-        payload["odometry"] = odometry_part(seeds, args.route, args.keyframe_m, without)
-        print(f"\nodometry edges, {args.route}: mean NEES of N chained edges (filter's joint covariance)")
+        ekf: dict[str, float] = {}
+        for item in args.ekf:
+            name, _, value = item.partition("=")
+            if name not in EkfParams.__dataclass_fields__ or not value:
+                ap.error(f"--ekf takes NAME=VALUE with NAME a field of EkfParams, got {item!r}")
+            ekf[name] = float(value)
+        payload["odometry"] = odometry_part(seeds, args.route, args.keyframe_m, without, ekf, args.cost_seeds)
+        print(f"\nodometry edges, {args.route}: mean NEES of N chained edges per model (yaw, position) [seeds]")
+        print_table(*odometry_model_rows(payload["odometry"]))
+        print("\nper seed, bias + scale variables")
         print_table(*odometry_rows(payload["odometry"]))
-        print("\nmean over seeds, parts (independent edges)")
-        print_table(ODO_PART_HEAD, odometry_part_rows(payload["odometry"], "graph"))
-        print("\nmean over seeds, parts (the filter's joint covariance)")
-        print_table(ODO_PART_HEAD, odometry_part_rows(payload["odometry"], "filter"))
+        print("\ngraph cost, same run")
+        print_table(*cost_rows(payload["odometry"]))
     if not args.skip_loops:
         payload["loops"] = loop_part([f for f in args.floors.split(",") if f], n_pairs, args.seed)
         print("\nloop edges from rendered pairs")
@@ -541,7 +709,10 @@ def main(argv: list[str] | None = None) -> int:
     path = write_json(args.out, payload)
     log(f"wrote {path}")
     if args.markdown is not None:
-        write_page(args.markdown, markdown(payload))
+        import json
+
+        page = dict(payload, compare=[json.loads(p.read_text()) for p in args.compare])
+        write_page(args.markdown, markdown(page))
         log(f"wrote {args.markdown}")
     return 0
 
