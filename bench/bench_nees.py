@@ -16,10 +16,16 @@ daemon takes them (``--keyframe-m`` or 10 deg, floor frames at 30 Hz) with their
 chain of ``N`` consecutive edges (a window every ``N/5`` edges) composed as the pose graph
 composes independent edges, its covariance the sum of theirs carried to the chain's end;
 the mean NEES over the windows, and of the yaw and the position parts alone (expected 1
-and 2). Beside it, the same windows with the filter's own covariance of the motion between
-the two keyframes (its joint covariance, carried through every filter step, so that what
-the edges share through the speed, yaw-rate and gyro-bias states is kept): what a graph
-could reach if it modelled the filter's correlations, against what independent edges give.
+and 2). The same windows under four models of what the edges share: independent edges (the
+pose graph today); the edges given the gyro bias at their start with the bias as variables
+of the graph (:mod:`robotd.graph.bias`: AR(1) bias steps from the filter), marginalised;
+the same with the wheels' and the gyro's scale errors as variables every edge shares
+(prior: the simulated base's spreads, :data:`SCALE_SIGMA`), marginalised; and the filter's
+own covariance of the motion between the two keyframes (its joint covariance, carried
+through every filter step). ``--ekf NAME=VALUE`` runs the filter with another noise model.
+The pose graph's cost of the bias-sharing factors (``--cost-seeds``): iSAM2 per keyframe
+and batch Levenberg-Marquardt against independent edges, loop edges from the truth, same
+run.
 
 **Loop edges** (part 2). Per floor (the printed planks, the paper's worst case, and the
 default floor of real photographs) ``--pairs`` frame pairs are rendered with the second
@@ -32,8 +38,9 @@ detector gives now, and of the rigid fit's covariance alone (what it gave before
 shared error of the frame pair was modelled: the baseline, in the same run).
 
 Run from the repo root: ``.venv/bin/python bench/bench_nees.py [--seeds 5] [--pairs 120]
-[--floors planks,mixed] [--skip-odometry] [--skip-loops] [--out bench/results/nees.json]
-[--markdown docs/benchmarks/nees.md]``. The default takes about 10 minutes on a quiet
+[--floors planks,mixed] [--ekf NAME=VALUE ...] [--cost-seeds 1] [--compare OTHER.json]
+[--skip-odometry] [--skip-loops] [--out bench/results/nees.json] [--markdown
+docs/benchmarks/nees.md]``. The default takes about 10 minutes on a quiet
 2-core machine (rendering the pairs is most of it); ``--full``: 10 seeds, 400 pairs.
 """
 
@@ -352,7 +359,9 @@ def cost_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
         if not c:
             continue
         base = c["independent"]
-        for model in ("independent", "bias"):
+        for model in ("independent", "bias", "bias_scales"):
+            if model not in c:
+                continue
             m = c[model]
             ratio = "" if model == "independent" else (
                 f" (x{m['isam2_ms_per_keyframe'] / base['isam2_ms_per_keyframe']:.1f})")
@@ -384,7 +393,7 @@ def _loops_from_truth(truth: np.ndarray, rng: np.random.Generator, every: int = 
     return loops
 
 
-def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float] | None) -> dict[str, Any]:
+def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float]) -> dict[str, Any]:
     """Build the seed's keyframes one at a time into iSAM2 (with loop edges from the
     truth, :func:`_loops_from_truth`), once with independent edges (``BetweenFactor``, the
     daemon's) and once with the bias variables (:mod:`robotd.graph.bias`, with a shared
@@ -411,7 +420,8 @@ def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float] |
         by_end.setdefault(lp[1], []).append(lp)
     # The pose graph's frame is the first keyframe's truth (the anchor).
     out: dict[str, Any] = {"keyframes": len(deltas) + 1, "loops": len(loops)}
-    for model in ("independent", "bias"):
+    for model in ("independent", "bias", "bias_scales"):
+        scales = scale_sigmas if model == "bias_scales" else None
         isam = gtsam.ISAM2()
         batch = gtsam.NonlinearFactorGraph()
         guess = gtsam.Values()
@@ -423,11 +433,11 @@ def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float] |
             if k == 0:
                 fg.add(anchor_factor(0, truth[0]))
                 vals.insert(0, p)
-                if model == "bias":
+                if model != "independent":
                     fg.add(bias_prior_factor(0, terms[0].bias_radps, terms[0].bias_var))
                     vals.insert(bias_key(0), np.array([terms[0].bias_radps]))
-                    if scale_sigmas is not None:
-                        fg.add(scale_prior_factor(0, scale_sigmas))
+                    if scales is not None:
+                        fg.add(scale_prior_factor(0, scales))
                         vals.insert(scale_key(0), np.zeros(2))
             else:
                 dk = deltas[k - 1]
@@ -440,7 +450,7 @@ def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float] |
                     t = terms[k - 1]
                     e = BiasEdge(k - 1, k, dk, t.cov_given_bias, t.jac_bias, t.bias_radps, t.bias_var,
                                  t.bias_end_radps, t.bias_end_var, t.bias_cov)
-                    fg.add(bias_edge_factor(e, None if scale_sigmas is None else 0))
+                    fg.add(bias_edge_factor(e, None if scales is None else 0))
                     fg.add(bias_chain_factor(e))
                     vals.insert(bias_key(k), np.array([t.bias_end_radps]))
             for i, j, delta, cov in by_end.get(k, []):
@@ -612,9 +622,10 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
     head, rows = cost_rows(odo)
     if rows:
         lines += ["Cost in the pose graph: the seed's keyframes built one at a time into iSAM2 with loop "
-                  "edges from the truth (1 mm, every 25th keyframe that revisits a place), independent "
-                  "edges against the bias-sharing factors (bias + scale variables, Python "
-                  "`CustomFactor`s); in brackets the ratio, same run.", ""]
+                  "edges from the truth (1 mm, every 25th keyframe that revisits a place): independent "
+                  "edges, the bias variables (`bias`) and the bias + scale variables (`bias_scales`), "
+                  "the latter two Python `CustomFactor`s; in brackets the ratio to independent edges, "
+                  "same run.", ""]
         table(head, rows)
 
 
@@ -674,6 +685,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="odometry: time the pose graph with each model on this many seeds (default 1)")
     ap.add_argument("--compare", type=Path, action="append", default=[],
                     help="another run's JSON whose odometry section the page shows too")
+    ap.add_argument("--page-from", type=Path, default=None,
+                    help="measure nothing: write --markdown from this run's JSON (and --compare)")
     ap.add_argument("--skip-odometry", action="store_true")
     ap.add_argument("--skip-loops", action="store_true")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
@@ -684,6 +697,16 @@ def main(argv: list[str] | None = None) -> int:
     if not set(without) <= set(WITHOUT):
         ap.error(f"--without takes {', '.join(WITHOUT)}")
     n_pairs = args.pairs or (400 if args.full else 120)
+    if args.page_from is not None:
+        import json
+
+        if args.markdown is None:
+            ap.error("--page-from needs --markdown")
+        page = dict(json.loads(args.page_from.read_text()),
+                    compare=[json.loads(p.read_text()) for p in args.compare])
+        write_page(args.markdown, markdown(page))
+        log(f"wrote {args.markdown}")
+        return 0
     payload: dict[str, Any] = {"benchmark": "nees", "machine": machine_info(),
                                "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
     if not args.skip_odometry:
