@@ -616,6 +616,10 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
               + ", ".join(f"{k} {v * 100:.2f} %" for k, v in SCALE_SIGMA.items())
               + " (the simulated base's spreads), marginalised; the filter's own joint covariance "
               "of the motion.", ""]
+    if ekf:
+        lines += ["Not the daemon's noise model: the filter run with these fields changed, to see what the "
+                  "models give when the white noise is about the simulated sensors' own (docs/concepts.md, "
+                  "\"Odometry edges the gate can trust\").", ""]
     table(*odometry_model_rows(odo))
     lines += ["Per seed, bias + scale variables:", ""]
     table(*odometry_rows(odo, "scales"))
@@ -708,7 +712,8 @@ def main(argv: list[str] | None = None) -> int:
         log(f"wrote {args.markdown}")
         return 0
     payload: dict[str, Any] = {"benchmark": "nees", "machine": machine_info(),
-                               "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
+                               "args": {k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if k == "compare" else v)
+                                        for k, v in vars(args).items()}}
     if not args.skip_odometry:
         ekf: dict[str, float] = {}
         for item in args.ekf:
