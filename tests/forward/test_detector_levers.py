@@ -251,3 +251,32 @@ def test_places_merged_by_pose_gather_the_views_of_one_spot_from_other_laps():
     cand, prob = _merged_candidate(post, ids, poses, var, replace(p, filter=FilterParams(rule="total",
                                                                                           loop_threshold=0.5)))
     assert cand in (3, 23) and prob == pytest.approx(0.9)
+
+
+def test_a_refused_acceptance_tries_the_next_view(monkeypatch):
+    """The detector's ``accept`` hook (the daemon's level-camera test): a verification it
+    refuses is no loop, and with ``verify_tries`` the candidate's neighbour that odometry
+    agrees with is verified next; the hook sees each image and its verification."""
+    import robotd.forward.detector as det_mod
+    from robotd.forward.detector import daemon_params
+    from robotd.forward.verify import ACCEPTED, Verification
+
+    monkeypatch.setattr(det_mod, "verify_pair", lambda old, new, vp, k: Verification(True, ACCEPTED, 100, 100))
+    views = _views(30, [5, 6, 7])
+    cov = np.diag([0.01, 0.01, 0.001])
+    poses = [np.array([float(i), 0.0, 0.0]) for i in range(30)] + [np.array([x, 0.0, 0.0]) for x in (5., 6., 7.)]
+    params = daemon_params(method_params("default"))
+    assert params.odometry.use and params.verify_tries == 3 and params.consistency == 1
+    assert params.odometry.agree_min_support_area == 0.0
+    seen: list[int] = []
+
+    def refuse_all(j, v):
+        seen.append(j)
+        return False
+
+    for accept, want in ((None, LOOP), (refuse_all, NO_GEOMETRIC_CONSISTENCY)):
+        det = ForwardDetector(replace(params, verify=ACCEPT_ALL, decision="score"), accept=accept)
+        got = [det.process_features(v, 0.0, q, cov) for v, q in zip(views, poses)][30:]
+        assert [d.status for d in got] == [want] * 3
+    # Each refused image had its candidate and then its agreeing neighbours tried (3 in all).
+    assert len(seen) == 9 and seen[:1] == [5] and all(abs(j - 5) <= 2 for j in seen[:3])
