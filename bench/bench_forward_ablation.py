@@ -46,7 +46,7 @@ except ImportError:  # run as a script: bench/ is on sys.path
 
 from robotd.forward import LOOP, FeatureExtractor, ForwardDetector, method_params
 from robotd.forward.evaluation import score_decisions
-from robotd.forward.detector import OdometryParams
+from robotd.forward.detector import OdometryParams, daemon_params
 from robotd.forward.features import FeatureParams
 from robotd.forward.verify import camera_matrix_guess
 from robotd.io.sequence import list_images, load_ground_truth, read_image
@@ -57,33 +57,41 @@ DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "forward_ablation.js
 
 
 def configurations(full: bool) -> dict[str, object]:
-    """Name -> DetectorParams: the paper, then the default, then the default with one lever
-    changed at a time (its name says which), then the levers of DLoopDetector's decision."""
+    """Name -> DetectorParams: the paper, the default, the previous default (k = 2) with
+    one lever changed at a time (its name says which; the default is its "k = 1" row),
+    then levers on the default."""
     paper = method_params("paper")
     dflt = method_params("default")
-    f = dflt.filter
+    prev = replace(dflt, consistency=2)
+    f = prev.filter
     odo = OdometryParams(use=True)
-    v = dflt.verify
+    v = prev.verify
     sc = replace(dflt, decision="score", score_normalisation="previous", score_threshold=0.3)
     cfgs = {
         "paper (SIFT)": paper,
         "default": dflt,
-        "default, total p > 0.3": replace(dflt, filter=replace(f, loop_threshold=0.3)),
-        "default, total p > 0.7": replace(dflt, filter=replace(f, loop_threshold=0.7)),
-        "default, k = 1": replace(dflt, consistency=1),
-        "default, k = 3": replace(dflt, consistency=3),
-        "default, no purge": replace(dflt, vocabulary=replace(dflt.vocabulary, purge_after=0)),
-        "default, ORB 500": replace(dflt, features=FeatureParams(kind="orb", max_features=500)),
-        "default, score/previous > 0.3": sc,
+        "previous default (k = 2)": prev,
+        "previous default, total p > 0.3": replace(prev, filter=replace(f, loop_threshold=0.3)),
+        "previous default, total p > 0.7": replace(prev, filter=replace(f, loop_threshold=0.7)),
+        "previous default, k = 3": replace(prev, consistency=3),
+        "previous default, no purge": replace(prev, vocabulary=replace(prev.vocabulary, purge_after=0)),
+        "previous default, ORB 500": replace(prev, features=FeatureParams(kind="orb", max_features=500)),
+        "previous default, score/previous > 0.3": replace(sc, consistency=2),
+        "previous default, score/previous > 0.3, islands": replace(sc, islands=True, consistency=2),
+        "previous default, places merged by pose": replace(prev, odometry=replace(OdometryParams(),
+                                                                                 merge_places=True)),
+        "previous default, odometry": replace(prev, odometry=odo),
+        "previous default, odometry x4 variance": replace(prev, odometry=replace(odo, variance_scale=4.0)),
+        "previous default, odometry, no support test when it agrees": replace(
+            prev, odometry=replace(odo, agree_min_support_area=0.0)),
+        "previous default, odometry, 3 verifications": replace(prev, odometry=odo, verify_tries=3),
+        "previous default, 15 inliers": replace(prev, verify=replace(v, min_inliers=15)),
+        "previous default, no support test": replace(prev, verify=replace(v, min_support_area=0.0)),
+        "default, total p > 0.3": replace(dflt, filter=replace(dflt.filter, loop_threshold=0.3)),
         "default, score/previous > 0.3, islands": replace(sc, islands=True),
         "default, places merged by pose": replace(dflt, odometry=replace(OdometryParams(), merge_places=True)),
         "default, odometry": replace(dflt, odometry=odo),
-        "default, odometry x4 variance": replace(dflt, odometry=replace(odo, variance_scale=4.0)),
-        "default, odometry, no support test when it agrees": replace(
-            dflt, odometry=replace(odo, agree_min_support_area=0.0)),
-        "default, odometry, 3 verifications": replace(dflt, odometry=odo, verify_tries=3),
-        "default, 15 inliers": replace(dflt, verify=replace(v, min_inliers=15)),
-        "default, no support test": replace(dflt, verify=replace(v, min_support_area=0.0)),
+        "default as the daemon runs it": daemon_params(dflt),
     }
     if full:
         cfgs["default, ORB 1000"] = replace(dflt, features=FeatureParams(kind="orb", max_features=1000))

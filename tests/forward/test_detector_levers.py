@@ -84,7 +84,7 @@ def test_the_methods():
     assert paper == DetectorParams()
     assert (paper.features.kind, paper.filter.loop_threshold, paper.filter.rule) == ("sift", 0.8, "neighbourhood")
     default = method_params("default")
-    assert not default.odometry.use and default.verify_tries == 1 and default.consistency == 2
+    assert not default.odometry.use and default.verify_tries == 1 and default.consistency == 1
     assert (default.filter.rule, default.filter.loop_threshold) == ("total", 0.5)
     assert default.features.kind == "orb" and default.vocabulary.purge_after > 0
     assert not paper.odometry.use and paper.verify_tries == 1
