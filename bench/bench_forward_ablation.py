@@ -276,6 +276,8 @@ def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, obje
         med, p99 = float(np.median(total)), float(np.percentile(total, 99))
         out["brute_force"] = {**s.as_dict(), "ms_median": med, "ms_p99": p99,
                               "ratio_to_opencv_orb": med / cv_median}
+        if progress is not None:
+            progress(out)
         print(f"{'baseline: brute-force SIFT':<32}{s.recall_at_full_precision:>9.3f}{s.false_positives:>5}"
               f"{s.precision:>7.3f}{s.declared:>7}{med:>8.1f}{p99:>8.1f}{med / cv_median:>7.1f}", flush=True)
     return out

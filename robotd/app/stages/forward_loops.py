@@ -25,8 +25,15 @@ baselines the five-point motion sometimes comes out with its bearing 10-130 deg 
 the heading about right; it then leans out of the floor plane by more than the inliers
 allow, though often by less than a fixed tilt limit (the daemon's wrong forward loops were
 of this kind; rendered at the frames' own times, so not the frame's offset from its
-keyframe). Refused loops are ``failed_gate`` fates (``forward: motion ... out of the floor
-plane``) and ``forward_not_planar``.
+keyframe). Such a motion is refitted with the motion kept in the floor plane
+(:func:`robotd.forward.planefit.fit_planar`, heading change and bearing only) from the two
+images' matches; the refit is the loop's motion when it keeps at least the verification's
+``min_inliers`` and half of its inliers. The test runs inside the detector's verification
+(its ``accept`` hook), so a candidate refused there lets the detector verify the next view
+it may try (``DetectorParams.verify_tries``). Refusals are counted (``forward_not_planar``,
+one per refused view) and, when no view was a loop, published as a ``failed_gate`` fate
+(``forward: motion ... out of the floor plane``); refits are counted
+(``forward_planar_refits``).
 
 The detector runs in the pipeline's thread, once per forward keyframe (every half metre by
 default, about one image per 1.5 s at the demo's speed): a SIFT image costs tens of
@@ -69,8 +76,8 @@ class ForwardLoopStage(Publisher):
         self.detector = detector
         self.planar_refit = planar_refit
         self.refits = 0
-        self._fits: dict[int, PlanarFit] = {}  # past image -> its refit, for the image being run
-        self._fit_points: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 2)), np.zeros((0, 2)))
+        # past image -> its refit and the refit's inlier pixels (old, new), for the image being run
+        self._fits: dict[int, tuple[PlanarFit, np.ndarray, np.ndarray]] = {}
         self._last_refused: tuple[int, float, float] | None = None  # (past image, tilt, chi2)
         # A candidate whose motion is not a level camera's is not a loop: the detector then
         # verifies the next view it may try (DetectorParams.verify_tries).
@@ -214,12 +221,15 @@ class ForwardLoopStage(Publisher):
         if v.rotation is None or v.translation_dir is None:
             raise AssertionError("an accepted forward loop's verification has no relative pose")
         old = self._keyframe_ids[det.loop_id]
-        fit = self._fits.pop(det.loop_id, None)
+        refit = self._fits.pop(det.loop_id, None)
         self._fits.clear()
         range_m, sigma_b = v.range_m, v.sigma_bearing_rad
-        if fit is not None:  # refitted in the floor plane (robotd.forward.planefit)
-            dyaw, bearing = fit.dyaw_rad, fit.bearing_rad
-            range_m, sigma_b = self._fit_range(det.loop_id, fit), fit.sigma_bearing_rad
+        fit = None
+        if refit is not None:  # refitted in the floor plane (robotd.forward.planefit)
+            fit, p_old, p_new = refit
+            dyaw, bearing, sigma_b = fit.dyaw_rad, fit.bearing_rad, fit.sigma_bearing_rad
+            range_m = floor_range(p_old, p_new, fit.rotation, fit.translation_dir, self.detector.camera_matrix,
+                                  self.detector.params.verify)[0]
         else:
             dyaw, bearing, _ = planar_motion(v.rotation, v.translation_dir)
         self.loops += 1
@@ -243,16 +253,21 @@ class ForwardLoopStage(Publisher):
         if ok:
             return True
         if self.planar_refit:
-            fit = self._refit(image_id, v)
-            if fit is not None:
-                self._fits[image_id] = fit
+            refit = self._refit(image_id, v)
+            if refit is not None:
+                self._fits[image_id] = refit
                 self.refits += 1
                 return True
         self.not_planar += 1
         self._last_refused = (image_id, tilt, v.planarity_chi2)
         return False
 
-    def _refit(self, image_id: int, v: Any) -> PlanarFit | None:
+    def _refit(self, image_id: int, v: Any) -> tuple[PlanarFit, np.ndarray, np.ndarray] | None:
+        """The motion of the current image against past image ``image_id`` fitted in the
+        floor plane from their matches (:func:`robotd.forward.planefit.fit_planar`, the
+        heading searched around the verification's), with its inlier pixels (old, new);
+        None when the planar motion keeps fewer than the verification's ``min_inliers`` or
+        half of its inliers."""
         det = self.detector
         vp: VerifyParams = det.params.verify
         k = det.camera_matrix
@@ -263,20 +278,13 @@ class ForwardLoopStage(Publisher):
         fit = fit_planar(p_old, p_new, k, dyaw, threshold_px=vp.ransac_threshold_px)
         if fit is None or fit.n_inliers < max(vp.min_inliers, 0.5 * v.n_inliers):
             return None
-        self._fit_points = (p_old[fit.inliers], p_new[fit.inliers])
-        return fit
-
-    def _fit_range(self, image_id: int, fit: PlanarFit) -> float | None:
-        """The refitted loop's range measured on the floor (robotd.forward.verify.floor_range)."""
-        det = self.detector
-        p_old, p_new = self._fit_points
-        return floor_range(p_old, p_new, fit.rotation, fit.translation_dir, det.camera_matrix, det.params.verify)[0]
+        return fit, p_old[fit.inliers], p_new[fit.inliers]
 
     def counters(self) -> dict[str, Any]:
         total = np.asarray(self.total_ms) if self.total_ms else np.zeros(1)
         return {"forward_frames": self.frames, "forward_images": self.images,
                 "forward_unsynced": self.unsynced, "forward_loops": self.loops,
-                "forward_not_planar": self.not_planar,
+                "forward_not_planar": self.not_planar, "forward_planar_refits": self.refits,
                 "forward_failed_verification": self.rejected_geometry,
                 "forward_vocabulary": len(self.detector.vocabulary),
                 "forward_restored_images": self.restored, "forward_store_errors": self.store_errors,
