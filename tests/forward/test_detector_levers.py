@@ -85,7 +85,7 @@ def test_the_methods():
     assert (paper.features.kind, paper.filter.loop_threshold, paper.filter.rule) == ("sift", 0.8, "neighbourhood")
     default = method_params("default")
     assert not default.odometry.use and default.verify_tries == 1 and default.consistency == 1
-    assert (default.filter.rule, default.filter.loop_threshold) == ("total", 0.5)
+    assert (default.filter.rule, default.filter.loop_threshold) == ("total", 0.3)
     assert default.features.kind == "orb" and default.vocabulary.purge_after > 0
     assert not paper.odometry.use and paper.verify_tries == 1
     assert method_params("paper", recent_excluded=5).recent_excluded == 5
@@ -267,7 +267,7 @@ def test_a_refused_acceptance_tries_the_next_view(monkeypatch):
     poses = [np.array([float(i), 0.0, 0.0]) for i in range(30)] + [np.array([x, 0.0, 0.0]) for x in (5., 6., 7.)]
     params = daemon_params(method_params("default"))
     assert params.odometry.use and params.verify_tries == 3 and params.consistency == 1
-    assert params.odometry.agree_min_support_area == 0.0
+    assert params.odometry.agree_min_support_area == 0.0 and params.filter.loop_threshold == 0.5
     seen: list[int] = []
 
     def refuse_all(j, v):
