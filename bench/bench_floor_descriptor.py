@@ -26,16 +26,16 @@ Times are CPU seconds of the calling thread (:func:`floor_common.time_each`).
 caches it; ``--recording`` names another), mode 4 as the daemon describes keyframes:
 
 * describe time per frame, interleaved frame by frame (each method sees the same load):
-  the default extraction, the previous default (``PREVIOUS``: the smooth maps at every
-  pixel and the repeat check over 1,000 candidates, whose bytes the current code still
-  gives exactly), OpenCV ORB (500) and SIFT, on ``--office-frames`` frames spread over
-  the drive;
+  the default extraction, two selectable cheaper ones that change the bytes (``RATIO``:
+  the repeat check's pool sized by the budget; ``QUARTER``: that and the pooled maps at
+  every second pixel), OpenCV ORB (500) and SIFT, on ``--office-frames`` frames spread
+  over the drive;
 * query time of the floor index (:class:`robotd.floor.index.FloorIndex`, the daemon's
   shortlist of 10 and the demo's loop threshold as ``min_score``) at 1,000 and 10,000
   keyframes, built as ``./dev bench daemon --scale`` builds it (the drive's first
   ``--office-distinct`` = 1,000 frames, repeated under new ids beyond that; ``--office-queries`` of those frames
-  queried with the 20 s around them excluded), for the default descriptors and the
-  previous ones; and, as a user might write it, ORB (500) + brute-force Hamming 2-NN
+  queried with the 20 s around them excluded), for the default descriptors; and, as a
+  user might write it, ORB (500) + brute-force Hamming 2-NN
   (ratio 0.8) + RANSAC similarity against the ORB features of the same 10 shortlisted
   frames (matching time only, the query frame's ORB extraction is in its describe time).
 
@@ -69,8 +69,10 @@ from robotd.base.camera import FloorCameraModel
 from sim.pairs import straight_run
 
 SPACING_M = 0.05
-#: The previous default extraction (maps at every pixel, repeat pool 1,000): its bytes exactly.
-PREVIOUS = ExtractParams(pool_step=1, repeat_pool_ratio=0.0)
+#: Selectable, not the default: the repeat check's pool sized by the budget ...
+RATIO = ExtractParams(repeat_pool_ratio=2.0)
+#: ... and with it the pooled maps at every second pixel.
+QUARTER = ExtractParams(pool_step=2, repeat_pool_ratio=2.0)
 OFFICE_MODE = 4  # the daemon's mode
 OFFICE_SHORTLIST = 10  # [floor_detector] shortlist
 OFFICE_SIZES = (1000, 10000)
@@ -164,10 +166,11 @@ def bench_office(args: argparse.Namespace, sift: SiftBaseline) -> dict:
         n_all = sum(1 for _t, msg in rd.messages() if isinstance(msg, Frame) and msg.camera == "floor")
     timed_at = set(np.linspace(0, n_all - 1, args.office_frames).astype(int).tolist())
     orb = cv2.ORB_create(nfeatures=500)
-    methods = {"ours": lambda im: extract(im, OFFICE_MODE), "previous": lambda im: extract(im, OFFICE_MODE, PREVIOUS),
+    methods = {"ours": lambda im: extract(im, OFFICE_MODE), "ratio": lambda im: extract(im, OFFICE_MODE, RATIO),
+               "quarter": lambda im: extract(im, OFFICE_MODE, QUARTER),
                "orb": lambda im: orb.detectAndCompute(im, None), "sift": sift.extract}
     times: dict[str, list[float]] = {k: [] for k in methods}
-    blobs: dict[str, list[bytes]] = {"ours": [], "previous": []}
+    blobs: dict[str, list[bytes]] = {"ours": []}
     orb_feats: list[tuple[np.ndarray, np.ndarray | None]] = []
     timed_frames: dict[int, np.ndarray] = {}
     warm = False
@@ -192,7 +195,6 @@ def bench_office(args: argparse.Namespace, sift: SiftBaseline) -> dict:
                     times[name].append(time.thread_time() - t0)
             if i < args.office_distinct:
                 blobs["ours"].append(extract(img, OFFICE_MODE))
-                blobs["previous"].append(extract(img, OFFICE_MODE, PREVIOUS))
                 kp, des = orb.detectAndCompute(img, None)
                 orb_feats.append((np.float32([k.pt for k in kp]).reshape(-1, 2), des))
             i += 1
@@ -209,7 +211,7 @@ def bench_office(args: argparse.Namespace, sift: SiftBaseline) -> dict:
     rng = np.random.default_rng(args.seed)
     qs = rng.choice(distinct, size=min(args.office_queries, distinct), replace=False)
     bf = cv2.BFMatcher(cv2.NORM_HAMMING)
-    for name in ("ours", "previous"):
+    for name in blobs:
         log(f"  office: index of the {name} descriptors")
         index = FloorIndex(IndexParams(shortlist=OFFICE_SHORTLIST))
         decoded = [decode(b) for b in blobs[name]]
@@ -248,7 +250,7 @@ def bench_office(args: argparse.Namespace, sift: SiftBaseline) -> dict:
         out["query"][name] = res
     out["queries"] = len(qs)
     out["describe_ratio_orb"] = out["describe"]["orb"]["median_ms"] / out["describe"]["ours"]["median_ms"]
-    out["describe_ratio_previous"] = out["describe"]["ours"]["median_ms"] / out["describe"]["previous"]["median_ms"]
+    out["describe_ratio_quarter"] = out["describe"]["quarter"]["median_ms"] / out["describe"]["ours"]["median_ms"]
     return out
 
 
@@ -349,7 +351,7 @@ def print_office(o: dict) -> None:
           "(median, IQR; interleaved)")
     print_table(["method", "median", "IQR"],
                 [[k, r(v["median_ms"], 2), r(v["iqr_ms"], 2)] for k, v in d.items()])
-    print(f"  ORB / ours {o['describe_ratio_orb']:.2f}; ours / previous {o['describe_ratio_previous']:.2f}")
+    print(f"  ORB / ours {o['describe_ratio_orb']:.2f}; quarter / ours {o['describe_ratio_quarter']:.2f}")
     print(f"\n  query, ms (median, IQR over {o['queries']} queries; shortlist {o['shortlist']}, "
           f"min_score {o['min_score']:.1f})")
     rows = []
@@ -439,21 +441,22 @@ def markdown(p: dict) -> list[str]:
     o = p.get("office")
     if o:
         d = o["describe"]
-        names = {"ours": "ours (default)", "previous": "previous default", "orb": "OpenCV ORB (500)",
+        names = {"ours": "ours (default)", "ratio": "ours, repeat pool sized by the budget (`repeat_pool_ratio=2`)",
+                 "quarter": "ours, that and the pooled maps at every second pixel (`pool_step=2`)",
+                 "orb": "OpenCV ORB (500)",
                  "sift": "OpenCV SIFT"}
         lines += ["## The office drive (the daemon's keyframes)", "",
                   f"{o['timed_frames']} floor frames spread over the recorded 60 s office drive ({o['frames']} "
-                  f"frames), mode {o['mode']}, the four methods interleaved frame by frame. The previous default "
-                  "(the smooth maps at every pixel of the half-resolution image, the repeat check over 1,000 "
-                  "candidates) is `ExtractParams(pool_step=1, repeat_pool_ratio=0)`.", "",
+                  f"frames), mode {o['mode']}, the methods interleaved frame by frame. The two selectable "
+                  "cheaper extractions change the bytes and are not the default: the demo's loops and visual "
+                  "odometry lost a little with each (docs/performance.md).", "",
                   "Describe, ms per frame:", "", *head(["method", "median", "IQR", "bytes (mean)"])]
         for k, v in d.items():
             b = o["bytes_mean"].get(k)
             lines.append(row([names.get(k, k), f"{v['median_ms']:.2f}", f"{v['iqr_ms']:.2f}",
                               f"{b:.0f}" if b is not None else ""]))
         lines += ["", f"ORB / ours {o['describe_ratio_orb']:.2f}, SIFT / ours "
-                      f"{d['sift']['median_ms'] / d['ours']['median_ms']:.1f}, ours / previous "
-                      f"{o['describe_ratio_previous']:.2f}.", "",
+                      f"{d['sift']['median_ms'] / d['ours']['median_ms']:.1f}.", "",
                   f"Query of the floor index, ms ({o['queries']} queries per size; shortlist {o['shortlist']}, "
                   f"the demo's loop threshold {o['min_score']:.1f} as `min_score`; {o['distinct']} distinct frames, "
                   "repeated under new ids beyond), and ORB's brute-force matching against the same "
