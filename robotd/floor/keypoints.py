@@ -63,8 +63,10 @@ class Workspace:
     Each full-image array of the detection is ``h2 x w2`` float32 (300 KB at 640 x 480),
     above the C allocator's threshold for handing memory back to the system: allocated
     afresh per frame, every page of every such array is faulted in again (about 1,500
-    page faults per frame, four tenths of the extraction's CPU time on the machine the
-    benchmarks run on). Kept per thread (:func:`workspace`), about 10 MB at 640 x 480.
+    page faults per frame in a process that only describes, four tenths of the
+    extraction's CPU time on the machine the benchmarks run on; fewer where other large
+    arrays have raised the allocator's threshold). Kept per thread (:func:`workspace`),
+    about 10 MB at 640 x 480.
     The pooled maps of the :class:`Candidates` that :func:`candidates` returns are these
     buffers: the next call on the same workspace overwrites them.
     """
