@@ -528,6 +528,13 @@ class TruthOdometry:
         return d, np.diag(sig ** 2)
 
 
+def graph_memory(graph: Any) -> dict[str, Any]:
+    """The pose graph's size: its edges (odometry and loop), the factors in iSAM2, and its
+    Bayes tree's cliques (count, largest, sum of frontal x separator sizes: the entries
+    of the conditionals it stores; :meth:`robotd.graph.incremental.IncrementalGraph.stats`)."""
+    return {f"graph_{k}": v for k, v in graph.stats().items()}
+
+
 def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                on_sample: Any = None) -> dict[str, Any]:
     """The whole daemon's resident memory as its map grows to ``keyframes`` keyframes.
@@ -592,7 +599,8 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                             samples.append({"keyframes": n, "stored": c.get("keyframes_stored", 0),
                                             "rss_mb": rss_mb(), "rss_trimmed_mb": trimmed_rss_mb(), "laps": lap + 1,
                                             "index_mb": floor.detector.index.nbytes / 1e6,
-                                            "cpu_s": (t.user - t0.user) + (t.system - t0.system)})
+                                            "cpu_s": (t.user - t0.user) + (t.system - t0.system),
+                                            **graph_memory(pipeline.stage("graph").graph)})
                             print(f"memory: {n} keyframes, RSS {samples[-1]['rss_mb']:.0f} MB, index "
                                   f"{samples[-1]['index_mb']:.1f} MB, {samples[-1]['cpu_s']:.0f} s CPU",
                                   flush=True)
@@ -615,6 +623,11 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                    "cpu_s": (t1.user - t0.user) + (t1.system - t0.system),
                    "loop_edges": int(c.get("links_loop", 0)), "samples": samples,
                    "map_file_mb": (Path(tmp) / "map.sqlite").stat().st_size / 1e6, "config": config}
+            out.update(graph_memory(pipeline.stage("graph").graph))
+        if args.keep_map is not None:
+            import shutil
+
+            shutil.copyfile(Path(tmp) / "map.sqlite", args.keep_map)
     return out
 
 

@@ -21,7 +21,7 @@ Two objectives (both are sums over every edge, without GTSAM's factor of 1/2):
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Collection, Iterable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -136,6 +136,16 @@ class PoseGraph:
                 if kid not in self._poses:
                     raise GraphError(f"edge {e.from_id} -> {e.to_id}: no vertex {kid}")
             self._edges.append(e)
+
+    def without_edges(self, skip: Collection[int]) -> PoseGraph:
+        """The same vertices, initial poses and fixed vertices with every edge but those
+        whose indices (into :attr:`edges`) are in ``skip``; the read-only arrays and edges
+        are shared, not copied."""
+        g = PoseGraph()
+        g._poses = dict(self._poses)
+        g._edges = [e for n, e in enumerate(self._edges) if n not in skip]
+        g._fixed = set(self._fixed)
+        return g
 
     def fix(self, keyframe_id: int) -> None:
         """Hold vertex ``keyframe_id`` at its pose (a prior); without any fixed vertex the

@@ -11,6 +11,8 @@ import pytest
 from robotd.base.errors import GraphError
 from robotd.base.geometry import between, compose, compose_jacobians, rot2
 from robotd.graph import BatchParams, IncrementalGraph, optimize_batch
+from robotd.graph.incremental import IncrementalParams
+from robotd.graph.model import PoseGraph
 from robotd.odometry.relative import relative_pose_jacobians
 
 INFO = np.diag([400.0, 400.0, 2500.0])
@@ -125,3 +127,79 @@ def test_the_gate_covariance_is_the_relative_poses_when_the_poses_are_uncorrelat
         measured = np.array([m.x(), m.y(), m.theta()])
         want = off @ np.linalg.solve(rel + loop_cov, off)
         assert inc.loop_chi2(a, b, measured, np.linalg.inv(loop_cov)) == pytest.approx(want, rel=1e-3)
+
+
+def _laps(inc: IncrementalGraph, laps: int, n: int = 20, seed: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """A ring of ``n`` keyframes driven ``laps`` times with noisy odometry; every keyframe
+    of a later lap loops (exact measurements) to the keyframe at the same place in each
+    earlier lap, as repeated passes over mapped ground do. Returns the true and the dead
+    reckoned positions ``(laps * n, 2)`` of the keyframes (ids ``0 .. laps * n - 1``)."""
+    rng = np.random.default_rng(seed)
+    step = 2 * math.pi / n
+    chord = 2 * 5 * math.sin(step / 2)
+    truth, odo = [np.zeros(3)], [np.zeros(3)]
+    inc.add_first(0)
+    for kid in range(1, laps * n):
+        d = np.array([chord + rng.normal(0, 0.03), rng.normal(0, 0.03), step + rng.normal(0, 0.01)])
+        inc.add_keyframe(kid, kid - 1, d, INFO)
+        truth.append(compose(truth[-1], (chord, 0.0, step)))
+        odo.append(compose(odo[-1], d))
+        for earlier in range(kid - n, -1, -n):
+            inc.add_loop(earlier, kid, (0.0, 0.0, 0.0), INFO)
+    return np.array(truth)[:, :2], np.array(odo)[:, :2]
+
+
+def test_loops_near_a_loop_in_isam2_are_held_out_of_it_but_kept_in_the_graph():
+    """Four laps of a ring of 20: 120 loops, each later keyframe to every earlier lap. With
+    ``loop_spacing`` 2 every other keyframe's loops enter iSAM2 (all of them: their older
+    ends are a lap apart); with ``loops_per_keyframe`` 1 a keyframe adds only its first
+    (to the lap before)."""
+    every = IncrementalGraph()
+    truth, odo = _laps(every, 4)
+    thin = IncrementalGraph(IncrementalParams(loop_spacing=2))
+    _laps(thin, 4)
+    one = IncrementalGraph(IncrementalParams(loops_per_keyframe=1))
+    _laps(one, 4)
+    loops = 20 * (1 + 2 + 3)
+    assert every.stats()["loops"] == thin.stats()["loops"] == one.stats()["loops"] == loops
+    assert not every.held_loops
+    assert every.stats()["factors"] == len(every.graph.edges) + 1  # and the anchor
+    kept = loops - len(thin.held_loops)
+    assert kept == 10 * (1 + 2 + 3)
+    assert all(e.to_id % 2 == 1 for n, e in enumerate(thin.graph.edges) if n in thin.held_loops)
+    assert thin.stats()["factors"] == len(thin.graph.edges) - len(thin.held_loops) + 1
+    held_one = [one.graph.edges[n] for n in sorted(one.held_loops)]
+    assert len(held_one) == 20 * (1 + 2) and all(e.to_id - e.from_id > 20 for e in held_one)
+    # iSAM2 with a third of the loops is about as close to the truth as with all of them
+    def rms(xy: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(np.sum((xy - truth) ** 2, axis=1))))
+
+    err_all, err_thin, err_odo = rms(every.estimate()[1][:, :2]), rms(thin.estimate()[1][:, :2]), rms(odo)
+    assert err_thin < 1.3 * err_all and err_all < 0.25 * err_odo
+    # the full solve leaves the held loops out too (their weights NaN: not judged), and
+    # iSAM2 restarts from its result without them
+    batch = optimize_batch(every.graph, BatchParams(robust=False))
+    held = PoseGraph()
+    for kid, pose in zip(thin.graph.ids, thin.graph.poses()):
+        held.add_pose(int(kid), pose)
+    held.fix(0)
+    held.add_edges(e for n, e in enumerate(thin.graph.edges) if n not in thin.held_loops)
+    thin_optimum = optimize_batch(held, BatchParams(robust=False)).poses
+    assert np.abs(thin_optimum[:, :2] - batch.poses[:, :2]).max() > 0.02
+    result = thin.resolve()
+    assert np.allclose(result.poses[:, :2], thin_optimum[:, :2], atol=1e-3)
+    loops = [n for n, e in enumerate(thin.graph.edges) if e.kind == "loop"]
+    assert [math.isnan(w) for w in result.loop_weights] == [n in thin.held_loops for n in loops]
+    assert np.all(result.loop_weights[~np.isnan(result.loop_weights)] == 1.0)
+    assert thin.stats()["factors"] == len(thin.graph.edges) - len(thin.held_loops) + 1
+    assert np.allclose(thin.estimate()[1], result.poses, atol=1e-4)
+
+
+def test_holding_loops_out_shrinks_the_bayes_tree():
+    """The point of holding loops out: over repeated laps, the tree's conditionals (and so
+    iSAM2's memory) grow with the loops it holds."""
+    every = IncrementalGraph()
+    _laps(every, 5)
+    thin = IncrementalGraph(IncrementalParams(loop_spacing=3, loops_per_keyframe=1))
+    _laps(thin, 5)
+    assert thin.stats()["tree_nnz"] < 0.6 * every.stats()["tree_nnz"]
