@@ -11,7 +11,6 @@ learnt since."""
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -35,10 +34,11 @@ class IncrementalParams:
     loop_updates: extra iSAM2 iterations after a loop edge (it moves many poses), default 5 (2 left 0.2 m errors on a 24-pose ring).
     batch: parameters of :meth:`IncrementalGraph.resolve` and of the loop edges' kernel
         (iSAM2 itself always uses each edge's full information).
-    loop_spacing: loop edges enter iSAM2 from one keyframe in this many (by id), spread
-        in time by as much (0: every loop enters); see :meth:`IncrementalGraph.add_loop`.
+    loop_spacing: loop edges enter the graph from one keyframe in this many (by id),
+        spread in time by as much (0: every loop enters); see
+        :meth:`IncrementalGraph.add_loop`. Default 10 (1.5 m of driving at 15 cm).
     loops_per_keyframe: at most this many loop edges per keyframe (by its newer end) enter
-        iSAM2 (0: no limit).
+        the graph (0: no limit), default 2.
     cache_linearized: iSAM2 keeps each factor's linearisation between updates (GTSAM's
         ``cacheLinearizedFactors``): faster updates, about 1.4 KB more per keyframe.
     """
@@ -47,8 +47,8 @@ class IncrementalParams:
     relinearize_skip: int = 1
     loop_updates: int = 5
     batch: BatchParams = field(default_factory=BatchParams)
-    loop_spacing: int = 0
-    loops_per_keyframe: int = 0
+    loop_spacing: int = 10
+    loops_per_keyframe: int = 2
     cache_linearized: bool = True
 
 
@@ -67,7 +67,7 @@ class IncrementalGraph:
         b = params.batch
         self._kernel = b.loop_kernel()
         self.rejected_loops: set[int] = set()  # edge indices the last GNC solve left out
-        self.held_loops: set[int] = set()  # edge indices of loops kept out of iSAM2 (add_loop)
+        self.held_loops = 0  # loop edges left out (add_loop)
         self._in_isam: list[tuple[int, int]] = []  # (newer, older) ends of the newest keyframe's loops in iSAM2
         self._isam = self._new_isam()
         self._version = 0  # bumped by every change of the estimate
@@ -118,20 +118,21 @@ class IncrementalGraph:
                  information: np.ndarray) -> bool:
         """Add a loop edge to :attr:`graph` and, under the robust kernel, to iSAM2, unless
         iSAM2 holds loops enough near it: every later pass over the same ground loops to
-        every earlier one, and all those edges in iSAM2 fill its Bayes tree in (its
-        memory and each update's time grow with the passes). The edge is held out of
-        iSAM2 (kept in :attr:`graph`, so in the full solve of :meth:`resolve`, and listed
-        in :attr:`held_loops`) when the last loop to enter iSAM2 came from a keyframe
+        every earlier one, and all those edges in iSAM2 fill its Bayes tree in (its memory
+        and each update's time grow with the passes). Such an edge is left out (of the
+        graph, iSAM2 and the full solve of :meth:`resolve`; the map stores it, and
+        :attr:`held_loops` counts it) when the last loop to enter came from a keyframe
         less than ``loop_spacing`` ids before its newer end, or from that same keyframe
-        but with an older end less than ``loop_spacing`` ids from its own (the loops kept
-        for one keyframe are spread in time), or when its newer end has
-        ``loops_per_keyframe`` loops in iSAM2 already. Loops come best first (the
-        detector's order), so the first loops of a keyframe enter. Returns whether it
-        entered iSAM2."""
-        edge = self.graph.add_edge(from_id, to_id, delta, information, "loop")
+        but with an older end less than ``loop_spacing`` ids from its own (one
+        keyframe's loops are spread in time), or when its newer end has
+        ``loops_per_keyframe`` loops in already. Loops come best first (the detector's
+        order), so a keyframe's first loops enter. GraphError for a bad edge either way.
+        Returns whether it entered."""
+        edge = self.graph.check_edge(from_id, to_id, delta, information, "loop")
         if not self._admit_loop(edge.from_id, edge.to_id):
-            self.held_loops.add(len(self.graph.edges) - 1)
+            self.held_loops += 1
             return False
+        self.graph.add_edges([edge])
         fg = gtsam.NonlinearFactorGraph()
         fg.add(between_factor(edge, self._kernel))
         self._update(fg, gtsam.Values())
@@ -212,7 +213,7 @@ class IncrementalGraph:
         for from_id, to_id, delta, info in loops:
             self.graph.add_edge(from_id, to_id, delta, info, "loop")
         isam = self._new_isam()
-        isam.update(factor_graph(self.graph, self._kernel, skip=self.rejected_loops | self.held_loops),
+        isam.update(factor_graph(self.graph, self._kernel, skip=self.rejected_loops),
                     to_values(ids, est))
         for _ in range(self.params.loop_updates):
             isam.update()
@@ -221,12 +222,15 @@ class IncrementalGraph:
 
     def stats(self) -> dict[str, int]:
         """The graph's size, for the memory benchmark: its edges (``edges``, ``loops``), the
-        factors iSAM2 holds (``factors``), its Bayes tree's cliques (``cliques``), the
-        non-zero entries of the tree's conditionals (``tree_nnz``: 8 bytes each, the bulk of
-        iSAM2's memory when loops fill the tree in) and the separator marginals it keeps
-        cached from :meth:`marginal_covariance` (``cached_marginals``)."""
+        loops :meth:`add_loop` left out (``held_loops``), the factors iSAM2 holds
+        (``factors``), its Bayes tree's cliques (``cliques``), the non-zero entries of the
+        tree's conditionals (``tree_nnz``, 8 bytes each; each clique also caches a dense
+        factor on its separator, not counted here, which is what grows when loops between
+        many passes fill the tree in) and the separator marginals it keeps cached from
+        :meth:`marginal_covariance` (``cached_marginals``)."""
         edges = self.graph.edges
         return {"edges": len(edges), "loops": sum(1 for e in edges if e.kind == "loop"),
+                "held_loops": self.held_loops,
                 "factors": int(self._isam.getFactorsUnsafe().nrFactors()), "cliques": int(self._isam.size()),
                 "tree_nnz": int(self._isam.treeNnz()),
                 "cached_marginals": int(self._isam.numCachedSeparatorMarginals())}
@@ -253,24 +257,16 @@ class IncrementalGraph:
         return c[1].copy(), c[2].copy()
 
     def resolve(self) -> BatchResult:
-        """Full robust batch re-solve (:func:`optimize_batch` from scratch) over the edges
-        iSAM2 holds or held (the loops :meth:`add_loop` held out of iSAM2 stay out: all of
-        them in the solve would fill its factorisation in as they would iSAM2's tree), then
-        restart iSAM2 from its result so that later updates build on it (without the loops
-        a GNC solve rejected). The result's ``loop_weights`` cover every loop of
-        :attr:`graph`, NaN for the held ones (not judged)."""
-        held = self.held_loops
-        result = optimize_batch(self.graph.without_edges(held) if held else self.graph, self.params.batch)
+        """Full robust batch re-solve (:func:`optimize_batch` from scratch), then restart
+        iSAM2 from its result so that later updates build on it (without the loops a GNC
+        solve rejected)."""
+        result = optimize_batch(self.graph, self.params.batch)
         loops = [n for n, e in enumerate(self.graph.edges) if e.kind == "loop"]
-        if held:
-            weights = np.full(len(loops), np.nan)
-            weights[[i for i, n in enumerate(loops) if n not in held]] = result.loop_weights
-            result = dataclasses.replace(result, loop_weights=weights)
         b = self.params.batch
         self.rejected_loops = ({n for n, w in zip(loops, result.loop_weights) if w < 0.5}
                                if b.robust and b.kernel == "gnc" else set())
         isam = self._new_isam()
-        isam.update(factor_graph(self.graph, self._kernel, skip=self.rejected_loops | self.held_loops),
+        isam.update(factor_graph(self.graph, self._kernel, skip=self.rejected_loops),
                     to_values(result.ids, result.poses))
         self._isam = isam
         self._version += 1

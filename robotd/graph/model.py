@@ -21,7 +21,7 @@ Two objectives (both are sums over every edge, without GTSAM's factor of 1/2):
 
 from __future__ import annotations
 
-from collections.abc import Collection, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -121,13 +121,18 @@ class PoseGraph:
     def add_edge(self, from_id: int, to_id: int, delta: Iterable[float],
                  information: np.ndarray | Iterable[Iterable[float]], kind: EdgeKind) -> Edge:
         """Add an edge between two existing vertices; returns it."""
+        edge = self.check_edge(from_id, to_id, delta, information, kind)
+        self._edges.append(edge)
+        return edge
+
+    def check_edge(self, from_id: int, to_id: int, delta: Iterable[float],
+                   information: np.ndarray | Iterable[Iterable[float]], kind: EdgeKind) -> Edge:
+        """The edge :meth:`add_edge` would add (the same GraphErrors), not added."""
         a, b = int(from_id), int(to_id)
         for kid in (a, b):
             if kid not in self._poses:
                 raise GraphError(f"edge {a} -> {b}: no vertex {kid}")
-        edge = make_edge(a, b, delta, information, kind)
-        self._edges.append(edge)
-        return edge
+        return make_edge(a, b, delta, information, kind)
 
     def add_edges(self, edges: Iterable[Edge]) -> None:
         """Add already-checked edges (from :func:`make_edge`) between existing vertices."""
@@ -136,16 +141,6 @@ class PoseGraph:
                 if kid not in self._poses:
                     raise GraphError(f"edge {e.from_id} -> {e.to_id}: no vertex {kid}")
             self._edges.append(e)
-
-    def without_edges(self, skip: Collection[int]) -> PoseGraph:
-        """The same vertices, initial poses and fixed vertices with every edge but those
-        whose indices (into :attr:`edges`) are in ``skip``; the read-only arrays and edges
-        are shared, not copied."""
-        g = PoseGraph()
-        g._poses = dict(self._poses)
-        g._edges = [e for n, e in enumerate(self._edges) if n not in skip]
-        g._fixed = set(self._fixed)
-        return g
 
     def fix(self, keyframe_id: int) -> None:
         """Hold vertex ``keyframe_id`` at its pose (a prior); without any fixed vertex the
