@@ -624,6 +624,8 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                    "loop_edges": int(c.get("links_loop", 0)), "samples": samples,
                    "map_file_mb": (Path(tmp) / "map.sqlite").stat().st_size / 1e6, "config": config}
             out.update(graph_memory(pipeline.stage("graph").graph))
+            out.update({k: int(c[k]) for k in ("graph_update_median_us", "graph_update_p99_us", "graph_solve_ms")
+                        if k in c})
         if args.keep_map is not None:
             import shutil
 
@@ -655,12 +657,13 @@ def _memory_section(p: dict[str, Any]) -> list[str]:
              f"{c['keyframe_distance_m'] * 100:g} cm, mode {c['mode']}, shortlist {c['shortlist']}"
              f"{', localise_mapped' if c.get('localise_mapped') else ''}.", "",
              "| keyframes | of them stored | process RSS MB | after malloc_trim MB | of it the floor index MB "
-             "| laps | CPU s so far |",
-             "|---:|---:|---:|---:|---:|---:|---:|"]
+             "| laps | CPU s so far | graph loops in / left out |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in r["samples"]:
         trimmed = f"{row['rss_trimmed_mb']:.0f}" if "rss_trimmed_mb" in row else "-"
+        graph = f"{row['graph_loops']} / {row.get('graph_held_loops', 0)}" if "graph_loops" in row else "-"
         lines.append(f"| {row['keyframes']} | {row.get('stored', row['keyframes'])} | {row['rss_mb']:.0f} | "
-                     f"{trimmed} | {row['index_mb']:.1f} | {row['laps']} | {row['cpu_s']:.0f} |")
+                     f"{trimmed} | {row['index_mb']:.1f} | {row['laps']} | {row['cpu_s']:.0f} | {graph} |")
     before = ("" if r.get("rss_before_mb") is None else
               f"Before the first frame: {r['rss_before_mb']:.0f} MB (the daemon assembled, its map open). ")
     if "rss_after_mb" not in r:  # the partial JSON of a run stopped before its target
@@ -673,6 +676,12 @@ def _memory_section(p: dict[str, Any]) -> list[str]:
                   f"{r['rss_after_mb']:.0f} MB resident ({r.get('rss_trimmed_after_mb', math.nan):.0f} MB "
                   f"after malloc_trim), peak "
                   f"{r['peak_rss_mb']:.0f} MB; the map file {r['map_file_mb']:.0f} MB; {r['loop_edges']} loop edges."]
+    if "graph_loops" in r:
+        lines[-1] += (f" The pose graph: {r['graph_loops']} loop edges in it, {r.get('graph_held_loops', 0)} left out"
+                      f" (in the map only); its Bayes tree {r['graph_cliques']} cliques, {r['graph_tree_nnz']} "
+                      f"conditional entries; an update {r.get('graph_update_median_us', 0) / 1e3:.1f} ms median, "
+                      f"{r.get('graph_update_p99_us', 0) / 1e3:.1f} ms p99; the last full solve "
+                      f"{r.get('graph_solve_ms', 0) / 1e3:.1f} s.")
     return lines
 
 

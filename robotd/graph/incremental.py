@@ -39,8 +39,6 @@ class IncrementalParams:
         :meth:`IncrementalGraph.add_loop`. Default 10 (1.5 m of driving at 15 cm).
     loops_per_keyframe: at most this many loop edges per keyframe (by its newer end) enter
         the graph (0: no limit), default 2.
-    cache_linearized: iSAM2 keeps each factor's linearisation between updates (GTSAM's
-        ``cacheLinearizedFactors``): faster updates, about 1.4 KB more per keyframe.
     """
 
     relinearize_threshold: float = 0.01
@@ -49,7 +47,6 @@ class IncrementalParams:
     batch: BatchParams = field(default_factory=BatchParams)
     loop_spacing: int = 10
     loops_per_keyframe: int = 2
-    cache_linearized: bool = True
 
 
 class IncrementalGraph:
@@ -86,7 +83,6 @@ class IncrementalGraph:
         p = gtsam.ISAM2Params()
         p.setRelinearizeThreshold(self.params.relinearize_threshold)
         p.relinearizeSkip = self.params.relinearize_skip
-        p.cacheLinearizedFactors = self.params.cache_linearized
         return gtsam.ISAM2(p)
 
     def add_first(self, keyframe_id: int, pose: Iterable[float] = (0.0, 0.0, 0.0)) -> None:
