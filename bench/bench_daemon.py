@@ -572,7 +572,9 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
             pipeline.stage("keyframes").odometry = odo
             floor = pipeline.stage("floor")
             config = {"keyframe_distance_m": cfg.keyframes.distance_m, "mode": cfg.floor_detector.descriptor_mode,
-                      "shortlist": cfg.floor_detector.shortlist, "localise_mapped": cfg.pose_graph.localise_mapped}
+                      "shortlist": cfg.floor_detector.shortlist, "localise_mapped": cfg.pose_graph.localise_mapped,
+                      "loop_spacing": pipeline.stage("graph").graph.params.loop_spacing,
+                      "loops_per_keyframe": pipeline.stage("graph").graph.params.loops_per_keyframe}
             gc.collect()
             rss0 = rss_mb()
             t0 = os.times()
@@ -651,6 +653,10 @@ def _memory_section(p: dict[str, Any]) -> list[str]:
     r, m = p["memory"], p["machine"]
     c = r["config"]
     setting = "localise_mapped on" if c.get("localise_mapped") else "every keyframe stored (the code's default)"
+    if not c.get("localise_mapped") and any("graph_loops" in row for row in r["samples"]):
+        thinned = c.get("loop_spacing", 0) or any("graph_held_loops" in row for row in r["samples"])
+        setting += (f", the pose graph's loops thinned (loop_spacing {c.get('loop_spacing', 10)}, loops_per_keyframe "
+                    f"{c.get('loops_per_keyframe', 2)})" if thinned else ", every loop in the pose graph")
     lines = [f"## {setting}", "",
              f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.",
              f"Recording: `{p['recording']}`, {r['laps']} laps; spacing "

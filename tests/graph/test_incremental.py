@@ -202,3 +202,31 @@ def test_holding_loops_out_shrinks_the_bayes_tree():
     thin = IncrementalGraph()  # the defaults
     _laps(thin, 5)
     assert thin.stats()["tree_nnz"] < 0.6 * every.stats()["tree_nnz"]
+
+
+def test_a_failed_restart_after_a_full_solve_leaves_the_graph_as_it_was(monkeypatch):
+    """resolve() lets the old iSAM2 go before building the new one: if the new one fails,
+    iSAM2 is rebuilt at the estimate from before the solve and the error is raised (the
+    graph stage logs it and goes on)."""
+    inc = IncrementalGraph()
+    _drive(inc)
+    before = inc.estimate()[1]
+    real = inc._new_isam
+    calls = []
+
+    class Failing:
+        def update(self, *args: object) -> None:
+            raise RuntimeError("indeterminate system")
+
+    def new_isam() -> object:
+        calls.append(1)
+        return Failing() if len(calls) == 1 else real()
+
+    monkeypatch.setattr(inc, "_new_isam", new_isam)
+    with pytest.raises(RuntimeError, match="indeterminate"):
+        inc.resolve()
+    assert len(calls) == 2
+    assert np.allclose(inc.estimate()[1], before, atol=1e-4)  # one iSAM2 step from it
+    ids = inc.estimate()[0]
+    inc.add_keyframe(999, int(ids[-1]), (1.0, 0.0, 0.0), INFO)
+    assert inc.pose(999) == pytest.approx(compose(inc.pose(int(ids[-1])), (1.0, 0.0, 0.0)), abs=1e-6)
