@@ -234,3 +234,20 @@ def test_a_failed_restart_after_a_full_solve_leaves_the_graph_as_it_was(monkeypa
     ids = inc.estimate()[0]
     inc.add_keyframe(999, int(ids[-1]), (1.0, 0.0, 0.0), INFO)
     assert inc.pose(999) == pytest.approx(compose(inc.pose(int(ids[-1])), (1.0, 0.0, 0.0)), abs=1e-6)
+
+
+def test_the_newest_loop_left_out_joins_the_graph_at_a_full_solve():
+    """The keyframes after the last loop in would end on odometry alone: a full solve
+    (periodic, and at the end of a run) first adds the newest loop left out, if no loop
+    entered after it."""
+    inc = IncrementalGraph(IncrementalParams(loop_spacing=5))
+    inc.add_first(0)
+    for k in range(1, 12):
+        inc.add_keyframe(k, k - 1, (1.0, 0.0, 0.0), INFO)
+    assert inc.add_loop(0, 6, (6.0, 0.0, 0.0), INFO)
+    assert not inc.add_loop(1, 8, (7.0, 0.0, 0.0), INFO)
+    assert not inc.add_loop(2, 9, (6.5, 0.0, 0.0), INFO)  # the newest left out
+    inc.resolve()
+    assert [(e.from_id, e.to_id) for e in inc.graph.edges if e.kind == "loop"] == [(0, 6), (2, 9)]
+    assert inc.held_loops == 1 and inc.stats()["factors"] == len(inc.graph.edges) + 1
+    assert not inc.add_loop(3, 11, (8.0, 0.0, 0.0), INFO)  # spaced from the one that joined
