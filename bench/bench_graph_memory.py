@@ -49,6 +49,7 @@ try:
 except ImportError:  # run as a script: bench/ is on sys.path
     from common import REPO_ROOT, machine_info, write_json
 
+DEFAULT_MAP = Path.home() / ".cache" / "robotd-bench" / "office-3laps-map.sqlite"
 SETTINGS = {"every loop": {"loop_spacing": 0, "loops_per_keyframe": 0}, "thinned": {}}
 
 
@@ -176,7 +177,9 @@ def markdown(payload: dict[str, Any]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--map", type=Path, required=True, help="a map file (its links table, in order)")
+    ap.add_argument("--map", type=Path, default=DEFAULT_MAP,
+                    help="a map file (its links table, in order; default: the cached three office laps, "
+                         "made by bench/bench_daemon.py --memory 1500 --keep-map FILE)")
     ap.add_argument("--synthetic", nargs=2, metavar=("laps|new", "N"), default=None,
                     help="a synthetic map of N keyframes from the map's first lap instead")
     ap.add_argument("--every", type=int, default=500, help="sample every this many keyframes (default 500)")
@@ -191,6 +194,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--full", action="store_true",
                     help="also the synthetic maps of 10,000 keyframes, laps and new ground (about an hour)")
     args = ap.parse_args(argv)
+    if not args.map.is_file():
+        ap.error(f"no map at {args.map}: make one with bench/bench_daemon.py --memory 1500 --keep-map {args.map}")
     if args.one is not None:
         print(json.dumps(replay(args.map, SETTINGS[args.one], args.every, args.solve_every, not args.no_gate)))
         return 0
