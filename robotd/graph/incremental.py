@@ -212,8 +212,7 @@ class IncrementalGraph:
         for from_id, to_id, delta, info in loops:
             self.graph.add_edge(from_id, to_id, delta, info, "loop")
         isam = self._new_isam()
-        isam.update(factor_graph(self.graph, self._kernel, skip=self.rejected_loops),
-                    to_values(ids, est))
+        isam.update(factor_graph(self.graph, self._kernel, skip=self.rejected_loops), to_values(ids, est))
         for _ in range(self.params.loop_updates):
             isam.update()
         self._isam = isam
