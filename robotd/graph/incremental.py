@@ -39,6 +39,11 @@ class IncrementalParams:
         :meth:`IncrementalGraph.add_loop`. Default 10 (1.5 m of driving at 15 cm).
     loops_per_keyframe: at most this many loop edges per keyframe (by its newer end) enter
         the graph (0: no limit), default 2.
+    factorization: iSAM2's ``"QR"`` (default) or ``"CHOLESKY"``. Over a long drive with no
+        loop the newest pose's marginal information is the small difference of large
+        edge informations; Cholesky squares that condition number and GTSAM raises an
+        indeterminate system after a few thousand keyframes (a 4762-keyframe chain of the
+        office drive's own edges), where QR goes on.
     """
 
     relinearize_threshold: float = 0.01
@@ -47,6 +52,11 @@ class IncrementalParams:
     batch: BatchParams = field(default_factory=BatchParams)
     loop_spacing: int = 10
     loops_per_keyframe: int = 2
+    factorization: str = "QR"
+
+    def __post_init__(self) -> None:
+        if self.factorization not in ("QR", "CHOLESKY"):
+            raise ValueError(f"factorization must be 'QR' or 'CHOLESKY', not {self.factorization!r}")
 
 
 class IncrementalGraph:
@@ -84,6 +94,7 @@ class IncrementalGraph:
         p = gtsam.ISAM2Params()
         p.setRelinearizeThreshold(self.params.relinearize_threshold)
         p.relinearizeSkip = self.params.relinearize_skip
+        p.setFactorization(self.params.factorization)
         return gtsam.ISAM2(p)
 
     def add_first(self, keyframe_id: int, pose: Iterable[float] = (0.0, 0.0, 0.0)) -> None:

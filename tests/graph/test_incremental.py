@@ -251,3 +251,27 @@ def test_the_newest_loop_left_out_joins_the_graph_at_a_full_solve():
     assert [(e.from_id, e.to_id) for e in inc.graph.edges if e.kind == "loop"] == [(0, 6), (2, 9)]
     assert inc.held_loops == 1 and inc.stats()["factors"] == len(inc.graph.edges) + 1
     assert not inc.add_loop(3, 11, (8.0, 0.0, 0.0), INFO)  # spaced from the one that joined
+
+
+def test_a_long_drive_without_loops_stays_solvable():
+    """A winding 150 m chain with no loop: the newest pose's marginal information becomes
+    the small difference of large edge informations. iSAM2's Cholesky loses it and GTSAM
+    raises an indeterminate system (the daemon would stop); the default QR goes on and keeps
+    the chain's own composition."""
+    info = np.diag([1e8, 1e8, 2e6])
+    steps = [(0.15, 0.0, 0.02 * np.sin(k / 40)) for k in range(1, 1000)]
+
+    def drive(params):
+        g = IncrementalGraph(params)
+        g.add_first(0)
+        for k, step in enumerate(steps, start=1):
+            g.add_keyframe(k, k - 1, step, info)
+        return g
+
+    with pytest.raises(RuntimeError, match="[Ii]ndeterminate"):
+        drive(IncrementalParams(factorization="CHOLESKY"))
+    g = drive(IncrementalParams())
+    expected = np.zeros(3)
+    for step in steps:
+        expected = compose(expected, np.array(step))
+    np.testing.assert_allclose(g.pose(len(steps)), expected, atol=1e-6)
