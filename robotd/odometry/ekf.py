@@ -270,16 +270,12 @@ def predict_with_jacobian(state: EkfState, t_ns: int,
     if dt_ns == 0:
         return state, _EYE.copy()
     dt = dt_ns * 1e-9
-    m = state.mean
-    yaw, v, w = m[IYAW], m[IV], m[IW]
+    x, y, yaw, v, w, bias = state.mean.tolist()  # Python floats: the same arithmetic, faster
     ds, dth = v * dt, w * dt
     f, df = _sinc_half_and_derivative(dth)
     phi = yaw + 0.5 * dth
     c, s = math.cos(phi), math.sin(phi)
-    mean = m.copy()
-    mean[IX] += ds * f * c
-    mean[IY] += ds * f * s
-    mean[IYAW] = wrap_angle(yaw + dth)
+    mean = np.array([x + ds * f * c, y + ds * f * s, wrap_angle(yaw + dth), v, w, bias])
 
     jac = _EYE.copy()
     jac[IX, IYAW] = -ds * f * s
@@ -290,21 +286,19 @@ def predict_with_jacobian(state: EkfState, t_ns: int,
     jac[IY, IW] = ds * dt * (df * s + 0.5 * f * c)
     jac[IYAW, IW] = dt
 
-    q = np.zeros((STATE_SIZE, STATE_SIZE))
     qa = params.angular_accel_noise_density_radps2_per_sqrt_hz ** 2
     ql = params.accel_noise_density_mps2_per_sqrt_hz ** 2
     d2, d3 = dt * dt / 2.0, dt ** 3 / 3.0
-    q[IYAW, IYAW] = qa * d3
-    q[IYAW, IW] = q[IW, IYAW] = qa * d2
-    q[IW, IW] = qa * dt
     ux, uy = c, s
-    q[IX, IX] = ql * d3 * ux * ux
-    q[IY, IY] = ql * d3 * uy * uy
-    q[IX, IY] = q[IY, IX] = ql * d3 * ux * uy
-    q[IX, IV] = q[IV, IX] = ql * d2 * ux
-    q[IY, IV] = q[IV, IY] = ql * d2 * uy
-    q[IV, IV] = ql * dt
-    q[IB, IB] = params.gyro_bias_walk_radps_per_sqrt_s ** 2 * dt
+    qxy, qxv, qyv = ql * d3 * ux * uy, ql * d2 * ux, ql * d2 * uy
+    qyw = qa * d2
+    # The rows of Q (IX, IY, IYAW, IV, IW, IB), one array built at once.
+    q = np.array([[ql * d3 * ux * ux, qxy, 0.0, qxv, 0.0, 0.0],
+                  [qxy, ql * d3 * uy * uy, 0.0, qyv, 0.0, 0.0],
+                  [0.0, 0.0, qa * d3, 0.0, qyw, 0.0],
+                  [qxv, qyv, 0.0, ql * dt, 0.0, 0.0],
+                  [0.0, 0.0, qyw, 0.0, qa * dt, 0.0],
+                  [0.0, 0.0, 0.0, 0.0, 0.0, params.gyro_bias_walk_radps_per_sqrt_s ** 2 * dt]])
 
     cov = jac @ state.cov @ jac.T
     cov += q
