@@ -18,7 +18,7 @@ one core. This benchmark:
   JPEG decoding, the queues and the main loop (on the robot: the drivers and the camera);
 * prints CPU seconds per robot second and per metre by stage, the pipeline's CPU per
   keyframe (median, p99; everything a keyframe causes), the floor describe and query times
-  per keyframe, resident memory (peak and after the replay), and what the run found
+  per keyframe (each handler alone, without the stages it publishes to), resident memory (peak and after the replay), and what the run found
   (loop edges judged by ground-truth footprint overlap, APE RMS anchored at the start of
   the loop-corrected keyframes against the recorded ground truth);
 * runs a baseline in the same process on the same keyframes: OpenCV ORB (500 features)
@@ -88,10 +88,12 @@ def stage_row(stage: str, handler: str) -> str:
 
 class StageClock:
     """Charges the CPU time of the calling thread to (stage, handler), exclusive of the
-    handlers it publishes to (they are timed themselves), and sums per keyframe the
-    inclusive time of the handlers of each :class:`~robotd.base.messages.Keyframe` (which
-    includes the later stages: the described, measured and stored keyframe are published
-    from within them)."""
+    handlers it publishes to (they are timed themselves), keeps each call's exclusive time
+    (``samples``: the per-call medians of the floor describe and query are of those
+    handlers alone, not of the visual odometry, pose graph and store they publish to), and
+    sums per keyframe the inclusive time of the handlers of each
+    :class:`~robotd.base.messages.Keyframe` (which includes the later stages: the
+    described, measured and stored keyframe are published from within them)."""
 
     def __init__(self) -> None:
         self.cpu_s: collections.Counter[tuple[str, str]] = collections.Counter()
@@ -116,7 +118,7 @@ class StageClock:
                 own = dt - self._children.pop()
                 self.cpu_s[key] += own
                 self.calls[key] += 1
-                self.samples[key].append(dt)
+                self.samples[key].append(own)  # the handler alone, as in the table
                 if self._children:
                     self._children[-1] += dt
                 if args and type(args[0]) is Keyframe:  # its handlers' time includes the later stages
@@ -718,8 +720,8 @@ def markdown(p: dict[str, Any]) -> str:
     lines += ["", "Per keyframe (CPU ms of the pipeline thread):", "",
               "| | median | p99 |", "|---|---:|---:|",
               f"| everything a keyframe causes | {r['keyframe_ms']['median']:.1f} | {r['keyframe_ms']['p99']:.1f} |",
-              f"| floor describe | {r['describe_ms']['median']:.2f} | {r['describe_ms']['p99']:.2f} |",
-              f"| floor query | {r['query_ms']['median']:.2f} | {r['query_ms']['p99']:.2f} |"]
+              f"| floor describe (alone) | {r['describe_ms']['median']:.2f} | {r['describe_ms']['p99']:.2f} |",
+              f"| floor query (alone) | {r['query_ms']['median']:.2f} | {r['query_ms']['p99']:.2f} |"]
     if b:
         lines += [f"| baseline: ORB extraction (500) | {b['orb_extract_ms']['median']:.2f} | "
                   f"{b['orb_extract_ms']['p99']:.2f} |",

@@ -7,7 +7,9 @@ import heapq
 import io
 import logging
 import os
+import struct
 import threading
+import zlib
 from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +21,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Chunk, Header, Message, Metadata, Schema
+from mcap import stream_reader as _mcap_stream
 from mcap.stream_reader import breakup_chunk
 
 from drivers.recording.schemas import (
@@ -283,7 +286,7 @@ class RecordingReader:
             stream = ReadDataStream(io.BytesIO(body))
             if opcode == Opcode.MESSAGE:
                 return [Message.read(stream, len(body))]
-            return breakup_chunk(Chunk.read(stream), validate_crc=True)
+            return _chunk_messages(Chunk.read(stream))
         except Exception as exc:  # noqa: BLE001 - damaged bytes: mcap, zstd or struct errors
             self.damage.damaged_chunks += 1
             log.warning("%s: skipping the damaged chunk at offset %d (%s)", self.path, ref.offset, exc)
@@ -368,6 +371,47 @@ class RecordingReader:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+_MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, record length, channel, sequence, log and publish time
+
+
+def _chunk_messages(chunk: Chunk) -> list[Message]:
+    """The message records of a chunk (its CRC checked), as ``mcap``'s ``breakup_chunk``
+    gives them, other records skipped: the records are cut from the decompressed bytes
+    with one ``struct`` call each instead of a read call per field (reading the 60 s drive
+    spent a third of its time there)."""
+    if chunk.compression == "zstd":
+        if _mcap_stream.zstandard is None:
+            raise ValueError("zstd chunk, and the zstandard module is missing")
+        data: bytes = _mcap_stream.zstandard.decompress(chunk.data, chunk.uncompressed_size)
+    elif chunk.compression == "lz4":
+        if _mcap_stream.lz4 is None:
+            raise ValueError("lz4 chunk, and the lz4 module is missing")
+        data = _mcap_stream.lz4.decompress(chunk.data)
+    elif chunk.compression == "":
+        data = chunk.data
+    else:
+        raise ValueError(f"unknown chunk compression {chunk.compression!r}")
+    if chunk.uncompressed_crc != 0 and zlib.crc32(data) != chunk.uncompressed_crc:
+        raise ValueError("chunk CRC does not match its records")
+    out: list[Message] = []
+    pos, end, head, message = 0, len(data), _MESSAGE_HEAD, int(Opcode.MESSAGE)
+    while pos < end:
+        if end - pos < 9:
+            raise ValueError("chunk records end inside a record header")
+        opcode, length = data[pos], int.from_bytes(data[pos + 1:pos + 9], "little")
+        stop = pos + 9 + length
+        if stop > end:
+            raise ValueError("chunk record runs past the chunk")
+        if opcode == message:
+            if length < 22:
+                raise ValueError("message record too short")
+            _op, _len, channel_id, sequence, log_time, publish_time = head.unpack_from(data, pos)
+            out.append(Message(channel_id=channel_id, sequence=sequence, log_time=log_time,
+                               publish_time=publish_time, data=data[pos + 31:stop]))
+        pos = stop
+    return out
 
 
 def _to_wheel_ticks(topic: str, m: Any, rec: Message, yaw_source: str) -> WheelTicks:

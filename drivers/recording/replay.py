@@ -54,7 +54,8 @@ class ReplayDriver(Driver):
     more than one frame. As a message is handed out, ``clock`` is moved to its stamp
     unless it is already later, so the clock never goes backwards and, after a read,
     equals the latest stamp handed out (the base stream's log time), never a time not
-    yet handed out. There is no thread: with ``speed=None`` a read returns at once;
+    yet handed out. There is no thread: with ``speed=None`` a read returns at once
+    (once the recording is over, after its timeout: nothing more will come);
     with ``speed=s`` a read waits (up to its timeout, on ``wall_clock``) until the next
     message is due at ``s`` times recorded speed, and returns ``[]`` if it is not due
     within the timeout. Topics that are not driver output (``/odom``,
@@ -179,6 +180,14 @@ class ReplayDriver(Driver):
         return True
 
     def _read_internal(self, timeout_s: float) -> list[Message]:
+        if self._peek() is None:
+            # Nothing will come: wait out the timeout as a live driver would, so that the
+            # source thread reading in a loop does not spin on empty reads until the daemon
+            # stops (a replay read ahead into a large queue spun for the rest of the run).
+            self.finished = True
+            if timeout_s > 0:
+                self._sleep(timeout_s)
+            return []
         batch: list[Message] = []
         has_frame = False
         while len(batch) < self.max_batch:

@@ -15,8 +15,9 @@ modes:
 
 from __future__ import annotations
 
-import queue
+import collections
 import threading
+import time
 from typing import Generic, Literal, TypeVar
 
 T = TypeVar("T")
@@ -30,6 +31,12 @@ class BoundedQueue(Generic[T]):
     ``wakeup`` (optional) is set after every successful put, so a consumer serving several
     queues can sleep on one event. Counters: ``put_count`` (items accepted), ``dropped``
     (items lost to a full lossy queue).
+
+    A lossless put that found the queue full resumes once the consumer has taken it down
+    to half (``maxsize // 2``), not after every item: a producer much faster than its
+    consumer (a replay read ahead of the pipeline) then hands over half a queue per
+    wake-up instead of waking, and taking the interpreter's lock from the consumer, for
+    each item.
     """
 
     def __init__(self, maxsize: int, *, lossless: bool, drop: Literal["oldest", "newest"] = "oldest",
@@ -42,57 +49,72 @@ class BoundedQueue(Generic[T]):
         self.maxsize = maxsize
         self.lossless = lossless
         self.drop = drop
-        self._q: queue.Queue[T] = queue.Queue(maxsize=maxsize)
-        self._wakeup = wakeup
+        self._items: collections.deque[T] = collections.deque()
         self._lock = threading.Lock()
+        self._not_empty = threading.Condition(self._lock)
+        self._room = threading.Condition(self._lock)
+        self._resume_at = maxsize // 2  # a blocked lossless put resumes at this many items
+        self._putters_waiting = 0
+        self._getters_waiting = 0
+        self._wakeup = wakeup
         self.put_count = 0
         self.dropped = 0
 
     def put(self, item: T, stop: threading.Event | None = None) -> bool:
         """Queue ``item``. Returns False when it was not queued: a lossless put whose
         ``stop`` was set while it waited, or a lossy ``drop="newest"`` put on a full queue."""
-        if self.lossless:
-            while True:
-                try:
-                    self._q.put(item, timeout=_POLL_S)
-                    break
-                except queue.Full:
-                    if stop is not None and stop.is_set():
-                        return False
-        elif self.drop == "newest":
-            try:
-                self._q.put_nowait(item)
-            except queue.Full:
-                with self._lock:
-                    self.dropped += 1
-                return False
-        else:
-            while True:
-                try:
-                    self._q.put_nowait(item)
-                    break
-                except queue.Full:
-                    try:
-                        self._q.get_nowait()
-                        with self._lock:
-                            self.dropped += 1
-                    except queue.Empty:
-                        pass
         with self._lock:
+            items = self._items
+            if len(items) >= self.maxsize:
+                if self.lossless:
+                    while len(items) > self._resume_at:
+                        if stop is not None and stop.is_set():
+                            return False
+                        self._putters_waiting += 1
+                        try:
+                            self._room.wait(_POLL_S)
+                        finally:
+                            self._putters_waiting -= 1
+                elif self.drop == "newest":
+                    self.dropped += 1
+                    return False
+                else:
+                    items.popleft()
+                    self.dropped += 1
+            items.append(item)
             self.put_count += 1
-        if self._wakeup is not None:
-            self._wakeup.set()
+            if self._getters_waiting:
+                self._not_empty.notify()
+        wakeup = self._wakeup
+        if wakeup is not None and not wakeup.is_set():
+            wakeup.set()
         return True
 
     def get(self, timeout_s: float | None = None) -> T | None:
         """The next item, waiting up to ``timeout_s`` (None: forever, 0: not at all);
         None when there is none by then."""
-        try:
-            if timeout_s is not None and timeout_s <= 0:
-                return self._q.get_nowait()
-            return self._q.get(timeout=timeout_s)
-        except queue.Empty:
-            return None
+        with self._lock:
+            items = self._items
+            if not items:
+                if timeout_s is not None and timeout_s <= 0:
+                    return None
+                deadline = None if timeout_s is None else time.monotonic() + timeout_s
+                self._getters_waiting += 1
+                try:
+                    while not items:
+                        if deadline is None:
+                            self._not_empty.wait()
+                        else:
+                            remaining = deadline - time.monotonic()
+                            if remaining <= 0:
+                                return None
+                            self._not_empty.wait(remaining)
+                finally:
+                    self._getters_waiting -= 1
+            item = items.popleft()
+            if self._putters_waiting and len(items) <= self._resume_at:
+                self._room.notify()
+            return item
 
     def get_nowait(self) -> T | None:
         """The next item, or None at once when the queue is empty."""
@@ -111,4 +133,4 @@ class BoundedQueue(Generic[T]):
 
     def qsize(self) -> int:
         """Items waiting now (a snapshot)."""
-        return self._q.qsize()
+        return len(self._items)

@@ -56,7 +56,7 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -76,11 +76,14 @@ __all__ = [
     "STATE_SIZE",
     "EkfParams",
     "EkfState",
+    "RateUpdate",
     "initial_state",
     "predict",
     "predict_with_jacobian",
     "update_gyro",
+    "update_gyro_with_gain",
     "update_wheels",
+    "update_wheels_with_gain",
     "wheel_noise",
 ]
 
@@ -96,6 +99,7 @@ H_GYRO = np.zeros((1, STATE_SIZE))
 H_GYRO[0, IW] = 1.0
 H_GYRO[0, IB] = 1.0
 _EYE = np.eye(STATE_SIZE)
+_WHEEL_COLUMNS = [IV, IW]
 _CONFIG = OdometryConfig()
 
 
@@ -266,16 +270,12 @@ def predict_with_jacobian(state: EkfState, t_ns: int,
     if dt_ns == 0:
         return state, _EYE.copy()
     dt = dt_ns * 1e-9
-    m = state.mean
-    yaw, v, w = m[IYAW], m[IV], m[IW]
+    x, y, yaw, v, w, bias = state.mean.tolist()  # Python floats: the same arithmetic, faster
     ds, dth = v * dt, w * dt
     f, df = _sinc_half_and_derivative(dth)
     phi = yaw + 0.5 * dth
     c, s = math.cos(phi), math.sin(phi)
-    mean = m.copy()
-    mean[IX] += ds * f * c
-    mean[IY] += ds * f * s
-    mean[IYAW] = wrap_angle(yaw + dth)
+    mean = np.array([x + ds * f * c, y + ds * f * s, wrap_angle(yaw + dth), v, w, bias])
 
     jac = _EYE.copy()
     jac[IX, IYAW] = -ds * f * s
@@ -286,21 +286,19 @@ def predict_with_jacobian(state: EkfState, t_ns: int,
     jac[IY, IW] = ds * dt * (df * s + 0.5 * f * c)
     jac[IYAW, IW] = dt
 
-    q = np.zeros((STATE_SIZE, STATE_SIZE))
     qa = params.angular_accel_noise_density_radps2_per_sqrt_hz ** 2
     ql = params.accel_noise_density_mps2_per_sqrt_hz ** 2
     d2, d3 = dt * dt / 2.0, dt ** 3 / 3.0
-    q[IYAW, IYAW] = qa * d3
-    q[IYAW, IW] = q[IW, IYAW] = qa * d2
-    q[IW, IW] = qa * dt
     ux, uy = c, s
-    q[IX, IX] = ql * d3 * ux * ux
-    q[IY, IY] = ql * d3 * uy * uy
-    q[IX, IY] = q[IY, IX] = ql * d3 * ux * uy
-    q[IX, IV] = q[IV, IX] = ql * d2 * ux
-    q[IY, IV] = q[IV, IY] = ql * d2 * uy
-    q[IV, IV] = ql * dt
-    q[IB, IB] = params.gyro_bias_walk_radps_per_sqrt_s ** 2 * dt
+    qxy, qxv, qyv = ql * d3 * ux * uy, ql * d2 * ux, ql * d2 * uy
+    qyw = qa * d2
+    # The rows of Q (IX, IY, IYAW, IV, IW, IB), one array built at once.
+    q = np.array([[ql * d3 * ux * ux, qxy, 0.0, qxv, 0.0, 0.0],
+                  [qxy, ql * d3 * uy * uy, 0.0, qyv, 0.0, 0.0],
+                  [0.0, 0.0, qa * d3, 0.0, qyw, 0.0],
+                  [qxv, qyv, 0.0, ql * dt, 0.0, 0.0],
+                  [0.0, 0.0, qyw, 0.0, qa * dt, 0.0],
+                  [0.0, 0.0, 0.0, 0.0, 0.0, params.gyro_bias_walk_radps_per_sqrt_s ** 2 * dt]])
 
     cov = jac @ state.cov @ jac.T
     cov += q
@@ -312,8 +310,15 @@ def predict_with_jacobian(state: EkfState, t_ns: int,
 def rate_gain(cov: np.ndarray, h: np.ndarray, r: np.ndarray, smooth_pose: bool) -> np.ndarray:
     """The gain of a rate measurement: ``P H^T S^-1``, with the pose rows zeroed when
     ``smooth_pose`` (:class:`EkfParams`)."""
-    ph = cov @ h.T
-    s = h @ ph + r
+    if h is H_WHEELS:  # P H^T and H P H^T are columns and entries of P (the same numbers)
+        ph = cov[:, _WHEEL_COLUMNS]
+        s = ph[_WHEEL_COLUMNS] + r
+    elif h is H_GYRO:
+        ph = cov[:, IW:IW + 1] + cov[:, IB:IB + 1]
+        s = ph[IW:IW + 1] + ph[IB:IB + 1] + r
+    else:
+        ph = cov @ h.T
+        s = h @ ph + r
     if s.shape == (1, 1):  # one reading (the gyro): S^-1 is a division
         gain = ph / s[0, 0]
     elif s.shape == (2, 2):  # the wheels' (v, w): the 2x2 inverse in closed form
@@ -327,8 +332,20 @@ def rate_gain(cov: np.ndarray, h: np.ndarray, r: np.ndarray, smooth_pose: bool) 
     return gain
 
 
+class RateUpdate(NamedTuple):
+    """A rate measurement's update with what the fused filter carries along: the new
+    ``state``, the ``gain`` ``(6, m)``, the measurement noise ``noise`` ``(m, m)`` and
+    ``error_map = I - K H`` ``(6, 6)``, the linear map of the state's error through it (a
+    pose clone's cross-covariance and the keyframe edges follow it)."""
+
+    state: EkfState
+    gain: np.ndarray
+    noise: np.ndarray
+    error_map: np.ndarray
+
+
 def _update(state: EkfState, innovation: np.ndarray, h: np.ndarray, r: np.ndarray,
-            smooth_pose: bool = False) -> EkfState:
+            smooth_pose: bool = False) -> RateUpdate:
     """Linear(ised) measurement update in Joseph form (valid for any gain, so also for the
     pose-frozen one of ``smooth_pose``)."""
     p = state.cov
@@ -340,7 +357,7 @@ def _update(state: EkfState, innovation: np.ndarray, h: np.ndarray, r: np.ndarra
     cov += gain @ r @ gain.T
     cov += cov.T
     cov *= 0.5
-    return EkfState._own(state.stamp_ns, mean, cov)
+    return RateUpdate(EkfState._own(state.stamp_ns, mean, cov), gain, r, a)
 
 
 def wheel_noise(v_mps: float, w_radps: float, params: EkfParams,
@@ -381,10 +398,19 @@ def update_wheels(state: EkfState, v_mps: float, w_radps: float,
     zero-velocity noise: the base is not moving, which is what makes the bias observable.
     The variances, when given, are the source's (:func:`wheel_noise`).
     """
+    return update_wheels_with_gain(state, v_mps, w_radps, params, stationary, speed_var_m2ps2,
+                                   yaw_rate_var_rad2ps2).state
+
+
+def update_wheels_with_gain(state: EkfState, v_mps: float, w_radps: float,
+                            params: EkfParams = EkfParams(), stationary: bool = False,
+                            speed_var_m2ps2: float | None = None,
+                            yaw_rate_var_rad2ps2: float | None = None) -> RateUpdate:
+    """:func:`update_wheels` with its gain, noise and error map (:class:`RateUpdate`)."""
     sv, sw = wheel_noise(v_mps, w_radps, params, stationary, speed_var_m2ps2, yaw_rate_var_rad2ps2)
-    z = np.array([v_mps, w_radps], dtype=float)
-    innovation = z - state.mean[[IV, IW]]
-    return _update(state, innovation, H_WHEELS, np.diag([sv * sv, sw * sw]),
+    m = state.mean
+    innovation = np.array([v_mps - m[IV], w_radps - m[IW]])
+    return _update(state, innovation, H_WHEELS, np.array([[sv * sv, 0.0], [0.0, sw * sw]]),
                    stationary and params.smooth_pose)
 
 
@@ -393,7 +419,14 @@ def update_gyro(state: EkfState, w_radps: float, params: EkfParams = EkfParams()
     """Measurement of the gyro's yaw rate: ``h(x) = x[w] + x[bias]`` (``at_rest``: paired
     with a zero-velocity update, see ``smooth_pose`` in :class:`EkfParams`; the variance,
     when given, is the source's: :func:`gyro_noise_var`)."""
-    innovation = np.array([w_radps - state.mean[IW] - state.mean[IB]])
+    return update_gyro_with_gain(state, w_radps, params, at_rest, yaw_rate_var_rad2ps2).state
+
+
+def update_gyro_with_gain(state: EkfState, w_radps: float, params: EkfParams = EkfParams(),
+                          at_rest: bool = False, yaw_rate_var_rad2ps2: float | None = None) -> RateUpdate:
+    """:func:`update_gyro` with its gain, noise and error map (:class:`RateUpdate`)."""
+    m = state.mean
+    innovation = np.array([w_radps - m[IW] - m[IB]])
     r = gyro_noise_var(params, yaw_rate_var_rad2ps2)
     return _update(state, innovation, H_GYRO, r, at_rest and params.smooth_pose)
 

@@ -41,13 +41,10 @@ from robotd.odometry.ekf import (
     STATE_SIZE,
     EkfParams,
     EkfState,
-    gyro_noise_var,
     initial_state,
     predict_with_jacobian,
-    rate_gain,
-    update_gyro,
-    update_wheels,
-    wheel_noise,
+    update_gyro_with_gain,
+    update_wheels_with_gain,
 )
 from robotd.odometry.kinematics import (
     DiffDriveParams,
@@ -71,6 +68,7 @@ __all__ = ["FilterCounters", "OdometryFilter"]
 
 _log = logging.getLogger(__name__)
 _EYE = np.eye(STATE_SIZE)
+_EYE.setflags(write=False)  # the error map of no step, shared: maps are replaced, never changed in place
 
 
 @dataclass
@@ -158,7 +156,7 @@ class OdometryFilter:
         self._was_still = False
         self._clone: PoseClone | None = None  # the pose at the last keyframe (relative.py)
         self._max_gyro_wait_ns = int(self.max_gyro_wait_s * 1e9)
-        self._map = np.eye(STATE_SIZE)  # the error's linear map since the last record
+        self._map = _EYE  # the error's linear map since the last record
         self._history = PoseHistory(int(self.history_s * 1e9))  # pose_at, keyframe_edge
         # With visual odometry fused: each wheel or gyro message with the filter after it.
         self._journal: Journal | None = Journal() if self.vo_twin else None
@@ -196,7 +194,7 @@ class OdometryFilter:
         self._wheel_ref = msg
         if ref is None:
             if not self._replaying:
-                self._wheel.update(msg)
+                self._wheel.advance(msg)
             self._flush_gyro(t, stationary=False)
             self._advance_to(t)
             self._record()
@@ -218,7 +216,7 @@ class OdometryFilter:
         dl = unwrap_ticks_delta(ref.left_ticks, msg.left_ticks)
         dr = unwrap_ticks_delta(ref.right_ticks, msg.right_ticks)
         if not self._replaying:
-            self._wheel.update(msg)
+            self._wheel.advance(msg)
         ds, dyaw = wheel_increment(dl, dr, self.drive)
         dt = dt_ns * 1e-9
         v, w = ds / dt, dyaw / dt
@@ -292,15 +290,13 @@ class OdometryFilter:
             at_rest = stationary and self._still_gate(rate)
             if at_rest:
                 self._apply_wheels(0.0, 0.0, True)
-            prior = self._state
             var = msg.yaw_rate_var_rad2ps2
             var = None if var is None else var / self.gyro_scale ** 2
-            self._state = update_gyro(prior, rate, self.params, at_rest, var)
-            r = gyro_noise_var(self.params, var)
-            smooth = at_rest and self.params.smooth_pose
-            self._map = (_EYE - rate_gain(prior.cov, H_GYRO, r, smooth) @ H_GYRO) @ self._map
+            up = update_gyro_with_gain(self._state, rate, self.params, at_rest, var)
+            self._state = up.state
+            self._map = up.error_map @ self._map
             if self._clone is not None:
-                self._clone = clone_after_update(self._clone, prior.cov, H_GYRO, r, smooth)
+                self._clone = clone_after_update(self._clone, None, H_GYRO, up.noise, gain=up.gain)
             self._record()
 
     def _apply_wheels(self, v: float, w: float, stationary: bool, msg: WheelTicks | None = None) -> None:
@@ -309,13 +305,11 @@ class OdometryFilter:
         prior = self._state
         assert prior is not None
         var_v, var_w = (None, None) if msg is None else (msg.speed_var_m2ps2, msg.yaw_rate_var_rad2ps2)
-        self._state = update_wheels(prior, v, w, self.params, stationary, var_v, var_w)
-        sv, sw = wheel_noise(v, w, self.params, stationary, var_v, var_w)
-        r = np.diag([sv * sv, sw * sw])
-        smooth = stationary and self.params.smooth_pose
-        self._map = (_EYE - rate_gain(prior.cov, H_WHEELS, r, smooth) @ H_WHEELS) @ self._map
+        up = update_wheels_with_gain(prior, v, w, self.params, stationary, var_v, var_w)
+        self._state = up.state
+        self._map = up.error_map @ self._map
         if self._clone is not None:
-            self._clone = clone_after_update(self._clone, prior.cov, H_WHEELS, r, smooth)
+            self._clone = clone_after_update(self._clone, None, H_WHEELS, up.noise, gain=up.gain)
 
     def _still_gate(self, rate_radps: float) -> bool:
         """True when the gyro agrees with a base at rest (within ``still_gate_sigma``).
@@ -434,7 +428,7 @@ class OdometryFilter:
     def _snapshot(self) -> Snapshot:
         return Snapshot(self._state, self._wheel_ref, self._last_yaw_ns, tuple(self._gyro_buf),
                         self._was_still, self._clone, self._map, self._history.save(),
-                        dataclasses.replace(self.counters))
+                        vars(self.counters).copy())
 
     def _rewind(self, stamp_ns: int) -> int | None:
         """Go back to the journalled state after the first message that brought the filter
@@ -452,7 +446,7 @@ class OdometryFilter:
         self._state, self._wheel_ref, self._last_yaw_ns = snap.state, snap.wheel_ref, snap.last_yaw_ns
         self._gyro_buf = collections.deque(snap.gyro_buf)
         self._was_still, self._clone, self._map = snap.was_still, snap.clone, snap.map
-        self.counters = dataclasses.replace(snap.counters)
+        self.counters = FilterCounters(**snap.counters)
         self._history.restore(snap.history)
         return at
 
@@ -482,7 +476,7 @@ class OdometryFilter:
     def _record(self) -> None:
         s = self._state
         assert s is not None
-        step, self._map = self._map, np.eye(STATE_SIZE)
+        step, self._map = self._map, _EYE
         self._history.record(s, step)
 
     # ---- output -------------------------------------------------------------------------

@@ -12,7 +12,7 @@ there, and the messages since are run once more (:meth:`Journal.rewind_point`,
 from __future__ import annotations
 
 import collections
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -20,9 +20,6 @@ from robotd.base.messages import WheelTicks, YawRate
 from robotd.odometry.ekf import EkfState
 from robotd.odometry.history import HistoryMark
 from robotd.odometry.relative import PoseClone
-
-if TYPE_CHECKING:
-    from robotd.odometry.fusion import FilterCounters
 
 __all__ = ["Journal", "Snapshot"]
 
@@ -39,7 +36,7 @@ class Snapshot(NamedTuple):
     clone: PoseClone | None
     map: np.ndarray
     history: HistoryMark
-    counters: FilterCounters
+    counters: dict[str, int]  # the FilterCounters' fields (a dict copies in a fraction of the time)
 
 
 class Journal:

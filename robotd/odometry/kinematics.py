@@ -114,6 +114,18 @@ def _sinc_half(dyaw: np.ndarray | float) -> np.ndarray | float:
     return np.sinc(np.asarray(dyaw, dtype=float) / (2.0 * math.pi))
 
 
+def _sinc_half_scalar(dyaw: float) -> float:
+    """:func:`_sinc_half` of one float, by the same arithmetic as ``np.sinc``."""
+    y = math.pi * (dyaw / (2.0 * math.pi) or 1.0e-20)
+    return math.sin(y) / y
+
+
+def _symmetric3(upper: tuple[float, ...]) -> np.ndarray:
+    """The ``(3, 3)`` symmetric matrix of an upper triangle ``(a00, a01, a02, a11, a12, a22)``."""
+    a00, a01, a02, a11, a12, a22 = upper
+    return np.array([[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]])
+
+
 def arc_increment(ds_m: float | np.ndarray, dyaw_rad: float | np.ndarray) -> np.ndarray:
     """The relative pose of a constant-curvature step, in the frame of its start pose.
 
@@ -152,8 +164,11 @@ class WheelOdometry:
     noise_m_per_sqrt_m: float = 0.003
 
     def __post_init__(self) -> None:
-        self._pose = np.array(self.initial_pose, dtype=float)
-        self._cov = np.zeros((3, 3))
+        # Scalars, not arrays: one step per wheel message, where NumPy's per-call overhead
+        # on 3-vectors and 3x3 matrices cost ten times the arithmetic.
+        x, y, yaw = (float(v) for v in self.initial_pose)
+        self._pose = (x, y, yaw)
+        self._cov = (0.0,) * 6  # the upper triangle: xx, xy, xyaw, yy, yyaw, yawyaw
         self._ref: tuple[int, int] | None = None
         self._stamp_ns: int | None = None
         self.distance_m = 0.0
@@ -170,43 +185,64 @@ class WheelOdometry:
 
     def update(self, msg: WheelTicks) -> PoseStamped:
         """Advance by the tick deltas since the previous message; return the new pose."""
+        self.advance(msg)
+        return self.pose()
+
+    def advance(self, msg: WheelTicks) -> None:
+        """:meth:`update` without building the pose (the fused filter's twin runs this per
+        wheel message and reads the pose only when asked)."""
         if self._ref is None:
             self.rebase(msg)
-            return self.pose()
+            return
         dl = unwrap_ticks_delta(self._ref[0], msg.left_ticks)
         dr = unwrap_ticks_delta(self._ref[1], msg.right_ticks)
         self._ref = (int(msg.left_ticks), int(msg.right_ticks))
         self._stamp_ns = int(msg.stamp_ns)
         if dl or dr:
             self._step(dl, dr)
-        return self.pose()
 
     def _step(self, dl: int, dr: int) -> None:
+        """One tick step: ``cov' = Jp cov Jp^T + Jw diag(q |s_l|, q |s_r|) Jw^T`` and the pose
+        composed with the arc (:func:`integrate_pose`), in scalars."""
         p = self.params
         s_l, s_r = dl * p.metres_per_tick_left, dr * p.metres_per_tick_right
         ds, dth = 0.5 * (s_l + s_r), (s_r - s_l) / p.wheel_base_m
-        phi = self._pose[2] + 0.5 * dth
+        x0, y0, yaw0 = self._pose
+        phi = yaw0 + 0.5 * dth
         c, s = math.cos(phi), math.sin(phi)
-        f = ds * float(_sinc_half(dth))
-        jac_pose = np.array([[1.0, 0.0, -f * s], [0.0, 1.0, f * c], [0.0, 0.0, 1.0]])
+        f = ds * _sinc_half_scalar(dth)
+        # Jp = I except Jp[0, 2] = u, Jp[1, 2] = v.
+        u, v = -f * s, f * c
+        cxx, cxy, cxt, cyy, cyt, ctt = self._cov
         # d(x, y, yaw) / d(s_l, s_r), midpoint approximation of the chord.
         a, b = 0.5, ds / (2.0 * p.wheel_base_m)
-        jac_wheels = np.array([
-            [a * c + b * s, a * c - b * s],
-            [a * s - b * c, a * s + b * c],
-            [-1.0 / p.wheel_base_m, 1.0 / p.wheel_base_m],
-        ])
+        w00, w01 = a * c + b * s, a * c - b * s
+        w10, w11 = a * s - b * c, a * s + b * c
+        w20, w21 = -1.0 / p.wheel_base_m, 1.0 / p.wheel_base_m
         q = self.noise_m_per_sqrt_m ** 2
-        wheel_cov = np.diag([q * abs(s_l), q * abs(s_r)])
-        cov = jac_pose @ self._cov @ jac_pose.T + jac_wheels @ wheel_cov @ jac_wheels.T
-        self._cov = 0.5 * (cov + cov.T)
-        self._pose = integrate_pose(self._pose, ds, dth)
+        ql, qr = q * abs(s_l), q * abs(s_r)
+        # Jp cov Jp^T (symmetric: the upper triangle).
+        pxt, pyt = cxt + u * ctt, cyt + v * ctt
+        nxx = cxx + u * cxt + u * pxt
+        nxy = cxy + v * cxt + u * pyt
+        nyy = cyy + v * cyt + v * pyt
+        self._cov = (nxx + w00 * ql * w00 + w01 * qr * w01,
+                     nxy + w00 * ql * w10 + w01 * qr * w11,
+                     pxt + w00 * ql * w20 + w01 * qr * w21,
+                     nyy + w10 * ql * w10 + w11 * qr * w11,
+                     pyt + w10 * ql * w20 + w11 * qr * w21,
+                     ctt + w20 * ql * w20 + w21 * qr * w21)
+        # integrate_pose: the pose composed with the arc's chord at the midpoint heading.
+        half = 0.5 * dth
+        ix, iy = f * math.cos(half), f * math.sin(half)
+        c0, s0 = math.cos(yaw0), math.sin(yaw0)
+        self._pose = (x0 + c0 * ix - s0 * iy, y0 + s0 * ix + c0 * iy, wrap_angle(yaw0 + dth))
         self.distance_m += abs(ds)
 
     def pose(self) -> PoseStamped:
         """The current dead-reckoned pose (stamp 0 before the first message)."""
         return PoseStamped(
             stamp_ns=self._stamp_ns if self._stamp_ns is not None else 0,
-            x_m=float(self._pose[0]), y_m=float(self._pose[1]),
-            yaw_rad=float(wrap_angle(float(self._pose[2]))), covariance=self._cov.copy(),
+            x_m=self._pose[0], y_m=self._pose[1], yaw_rad=wrap_angle(self._pose[2]),
+            covariance=_symmetric3(self._cov),
         )

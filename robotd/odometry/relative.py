@@ -87,12 +87,15 @@ def clone_after_predict(clone: PoseClone, jac: np.ndarray) -> PoseClone:
     return PoseClone(clone.keyframe_stamp_ns, clone.pose, clone.cov, jac @ clone.cross, clone.offset)
 
 
-def clone_after_update(clone: PoseClone, prior_cov: np.ndarray, h: np.ndarray, r: np.ndarray,
-                       smooth_pose: bool = False) -> PoseClone:
+def clone_after_update(clone: PoseClone, prior_cov: np.ndarray | None, h: np.ndarray, r: np.ndarray,
+                       smooth_pose: bool = False, *, gain: np.ndarray | None = None) -> PoseClone:
     """The clone after a measurement update of the state alone: ``X' = (I - K H) X`` with
     ``K = P H^T (H P H^T + R)^-1`` from the state's covariance ``P`` before the update (its
-    pose rows zeroed with ``smooth_pose``, as the filter's rate updates do)."""
-    gain = rate_gain(prior_cov, h, r, smooth_pose)
+    pose rows zeroed with ``smooth_pose``, as the filter's rate updates do); ``gain``: that
+    ``K`` when the caller has it (then ``prior_cov`` is not read)."""
+    if gain is None:
+        assert prior_cov is not None
+        gain = rate_gain(prior_cov, h, r, smooth_pose)
     cross = clone.cross - gain @ (h @ clone.cross)
     return PoseClone(clone.keyframe_stamp_ns, clone.pose, clone.cov, cross, clone.offset)
 
