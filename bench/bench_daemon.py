@@ -528,6 +528,13 @@ class TruthOdometry:
         return d, np.diag(sig ** 2)
 
 
+def graph_memory(graph: Any) -> dict[str, Any]:
+    """The pose graph's size: its edges (odometry and loop), the factors in iSAM2, and its
+    Bayes tree's cliques (count, largest, sum of frontal x separator sizes: the entries
+    of the conditionals it stores; :meth:`robotd.graph.incremental.IncrementalGraph.stats`)."""
+    return {f"graph_{k}": v for k, v in graph.stats().items()}
+
+
 def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                on_sample: Any = None) -> dict[str, Any]:
     """The whole daemon's resident memory as its map grows to ``keyframes`` keyframes.
@@ -565,7 +572,9 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
             pipeline.stage("keyframes").odometry = odo
             floor = pipeline.stage("floor")
             config = {"keyframe_distance_m": cfg.keyframes.distance_m, "mode": cfg.floor_detector.descriptor_mode,
-                      "shortlist": cfg.floor_detector.shortlist, "localise_mapped": cfg.pose_graph.localise_mapped}
+                      "shortlist": cfg.floor_detector.shortlist, "localise_mapped": cfg.pose_graph.localise_mapped,
+                      "loop_spacing": pipeline.stage("graph").graph.params.loop_spacing,
+                      "loops_per_keyframe": pipeline.stage("graph").graph.params.loops_per_keyframe}
             gc.collect()
             rss0 = rss_mb()
             t0 = os.times()
@@ -592,7 +601,8 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                             samples.append({"keyframes": n, "stored": c.get("keyframes_stored", 0),
                                             "rss_mb": rss_mb(), "rss_trimmed_mb": trimmed_rss_mb(), "laps": lap + 1,
                                             "index_mb": floor.detector.index.nbytes / 1e6,
-                                            "cpu_s": (t.user - t0.user) + (t.system - t0.system)})
+                                            "cpu_s": (t.user - t0.user) + (t.system - t0.system),
+                                            **graph_memory(pipeline.stage("graph").graph)})
                             print(f"memory: {n} keyframes, RSS {samples[-1]['rss_mb']:.0f} MB, index "
                                   f"{samples[-1]['index_mb']:.1f} MB, {samples[-1]['cpu_s']:.0f} s CPU",
                                   flush=True)
@@ -615,6 +625,13 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                    "cpu_s": (t1.user - t0.user) + (t1.system - t0.system),
                    "loop_edges": int(c.get("links_loop", 0)), "samples": samples,
                    "map_file_mb": (Path(tmp) / "map.sqlite").stat().st_size / 1e6, "config": config}
+            out.update(graph_memory(pipeline.stage("graph").graph))
+            out.update({k: int(c[k]) for k in ("graph_update_median_us", "graph_update_p99_us", "graph_solve_ms")
+                        if k in c})
+        if args.keep_map is not None:
+            import shutil
+
+            shutil.copyfile(Path(tmp) / "map.sqlite", args.keep_map)
     return out
 
 
@@ -636,18 +653,23 @@ def _memory_section(p: dict[str, Any]) -> list[str]:
     r, m = p["memory"], p["machine"]
     c = r["config"]
     setting = "localise_mapped on" if c.get("localise_mapped") else "every keyframe stored (the code's default)"
+    if not c.get("localise_mapped") and any("graph_loops" in row for row in r["samples"]):
+        thinned = c.get("loop_spacing", 0) or any("graph_held_loops" in row for row in r["samples"])
+        setting += (f", the pose graph's loops thinned (loop_spacing {c.get('loop_spacing', 10)}, loops_per_keyframe "
+                    f"{c.get('loops_per_keyframe', 2)})" if thinned else ", every loop in the pose graph")
     lines = [f"## {setting}", "",
              f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.",
              f"Recording: `{p['recording']}`, {r['laps']} laps; spacing "
              f"{c['keyframe_distance_m'] * 100:g} cm, mode {c['mode']}, shortlist {c['shortlist']}"
              f"{', localise_mapped' if c.get('localise_mapped') else ''}.", "",
              "| keyframes | of them stored | process RSS MB | after malloc_trim MB | of it the floor index MB "
-             "| laps | CPU s so far |",
-             "|---:|---:|---:|---:|---:|---:|---:|"]
+             "| laps | CPU s so far | graph loops in / left out |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in r["samples"]:
         trimmed = f"{row['rss_trimmed_mb']:.0f}" if "rss_trimmed_mb" in row else "-"
+        graph = f"{row['graph_loops']} / {row.get('graph_held_loops', 0)}" if "graph_loops" in row else "-"
         lines.append(f"| {row['keyframes']} | {row.get('stored', row['keyframes'])} | {row['rss_mb']:.0f} | "
-                     f"{trimmed} | {row['index_mb']:.1f} | {row['laps']} | {row['cpu_s']:.0f} |")
+                     f"{trimmed} | {row['index_mb']:.1f} | {row['laps']} | {row['cpu_s']:.0f} | {graph} |")
     before = ("" if r.get("rss_before_mb") is None else
               f"Before the first frame: {r['rss_before_mb']:.0f} MB (the daemon assembled, its map open). ")
     if "rss_after_mb" not in r:  # the partial JSON of a run stopped before its target
@@ -660,6 +682,12 @@ def _memory_section(p: dict[str, Any]) -> list[str]:
                   f"{r['rss_after_mb']:.0f} MB resident ({r.get('rss_trimmed_after_mb', math.nan):.0f} MB "
                   f"after malloc_trim), peak "
                   f"{r['peak_rss_mb']:.0f} MB; the map file {r['map_file_mb']:.0f} MB; {r['loop_edges']} loop edges."]
+    if "graph_loops" in r:
+        lines[-1] += (f" The pose graph: {r['graph_loops']} loop edges in it, {r.get('graph_held_loops', 0)} left out"
+                      f" (in the map only); its Bayes tree {r['graph_cliques']} cliques, {r['graph_tree_nnz']} "
+                      f"conditional entries; an update {r.get('graph_update_median_us', 0) / 1e3:.1f} ms median, "
+                      f"{r.get('graph_update_p99_us', 0) / 1e3:.1f} ms p99; the last full solve "
+                      f"{r.get('graph_solve_ms', 0) / 1e3:.1f} s.")
     return lines
 
 

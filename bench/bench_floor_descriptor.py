@@ -21,6 +21,24 @@ timed calls after a warm-up; the spread is the interquartile range over items.
 
 Times are CPU seconds of the calling thread (:func:`floor_common.time_each`).
 
+**The office drive** (the daemon's case): the floor frames of the recorded 60 s office drive
+(``robotd record --virtual --route office --duration 60``, cached as ``./dev bench daemon``
+caches it; ``--recording`` names another), mode 4 as the daemon describes keyframes:
+
+* describe time per frame, interleaved frame by frame (each method sees the same load):
+  the default extraction, two selectable cheaper ones that change the bytes (``RATIO``:
+  the repeat check's pool sized by the budget; ``QUARTER``: that and the pooled maps at
+  every second pixel), OpenCV ORB (500) and SIFT, on ``--office-frames`` frames spread
+  over the drive;
+* query time of the floor index (:class:`robotd.floor.index.FloorIndex`, the daemon's
+  shortlist of 10 and the demo's loop threshold as ``min_score``) at 1,000 and 10,000
+  keyframes, built as ``./dev bench daemon --scale`` builds it (the drive's first
+  ``--office-distinct`` = 1,000 frames, repeated under new ids beyond that; ``--office-queries`` of those frames
+  queried with the 20 s around them excluded), for the default descriptors; and, as a
+  user might write it, ORB (500) + brute-force Hamming 2-NN
+  (ratio 0.8) + RANSAC similarity against the ORB features of the same 10 shortlisted
+  frames (matching time only, the query frame's ORB extraction is in its describe time).
+
 Run from the repo root: ``.venv/bin/python bench/bench_floor_descriptor.py [--out DIR]
 [--doc docs/benchmarks/floor_descriptor.md]``. Writes ``DIR/floor_descriptor.json`` and
 ``DIR/floor_descriptor_features.png``, and with ``--doc`` the Markdown page of the run.
@@ -30,6 +48,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -38,18 +57,25 @@ import numpy as np
 try:
     from bench.common import print_table, write_json, write_page
     from bench.floor_common import (MODES, SiftBaseline, add_common_args, bench_floors, header,
-                                    load_average, log, one_thread, pyplot, r, time_each)
+                                    load_average, log, one_thread, pyplot, r, spread, time_each)
 except ImportError:  # run as a script: bench/ is on sys.path
     from common import print_table, write_json, write_page
     from floor_common import (MODES, SiftBaseline, add_common_args, bench_floors, header,
-                              load_average, log, one_thread, pyplot, r, time_each)
+                              load_average, log, one_thread, pyplot, r, spread, time_each)
 
-from robotd.floor.descriptor import MODE_BYTES, decode, extract
+from robotd.floor.descriptor import MODE_BYTES, ExtractParams, decode, extract
 from robotd.floor.match import local_score
 from robotd.base.camera import FloorCameraModel
 from sim.pairs import straight_run
 
 SPACING_M = 0.05
+#: Selectable, not the default: the repeat check's pool sized by the budget ...
+RATIO = ExtractParams(repeat_pool_ratio=2.0)
+#: ... and with it the pooled maps at every second pixel.
+QUARTER = ExtractParams(pool_step=2, repeat_pool_ratio=2.0)
+OFFICE_MODE = 4  # the daemon's mode
+OFFICE_SHORTLIST = 10  # [floor_detector] shortlist
+OFFICE_SIZES = (1000, 10000)
 
 
 def bench_floor(name: str, floor: object, args: argparse.Namespace, sift: SiftBaseline) -> dict:
@@ -115,6 +141,119 @@ def bench_floor(name: str, floor: object, args: argparse.Namespace, sift: SiftBa
     return out
 
 
+def office_recording(args: argparse.Namespace) -> Path:
+    """The recorded 60 s office drive (``--recording``, or the cache ``./dev bench daemon`` keeps)."""
+    try:
+        from bench.bench_daemon import ensure_recording
+    except ImportError:
+        from bench_daemon import ensure_recording
+    ns = argparse.Namespace(recording=args.recording, cache=Path.home() / ".cache" / "robotd-bench",
+                            route="office", duration=60.0, seed=0, forward=False)
+    return ensure_recording(ns)
+
+
+def bench_office(args: argparse.Namespace, sift: SiftBaseline) -> dict:
+    """Describe and query times on the office drive's floor frames (module docstring)."""
+    from drivers.recording.reader import RecordingReader
+    from robotd.app.demo import shipped_calibration
+    from robotd.base.messages import Frame
+    from robotd.floor.index import FloorIndex, IndexParams
+    from robotd.io.calibfile import read_calibration
+
+    recording = office_recording(args)
+    log(f"office drive: {recording}")
+    with RecordingReader(recording) as rd:
+        n_all = sum(1 for _t, msg in rd.messages() if isinstance(msg, Frame) and msg.camera == "floor")
+    timed_at = set(np.linspace(0, n_all - 1, args.office_frames).astype(int).tolist())
+    orb = cv2.ORB_create(nfeatures=500)
+    methods = {"ours": lambda im: extract(im, OFFICE_MODE), "ratio": lambda im: extract(im, OFFICE_MODE, RATIO),
+               "quarter": lambda im: extract(im, OFFICE_MODE, QUARTER),
+               "orb": lambda im: orb.detectAndCompute(im, None), "sift": sift.extract}
+    times: dict[str, list[float]] = {k: [] for k in methods}
+    blobs: dict[str, list[bytes]] = {"ours": []}
+    orb_feats: list[tuple[np.ndarray, np.ndarray | None]] = []
+    timed_frames: dict[int, np.ndarray] = {}
+    warm = False
+    with RecordingReader(recording) as rd:
+        i = 0
+        for _t, msg in rd.messages():
+            if not (isinstance(msg, Frame) and msg.camera == "floor"):
+                continue
+            if i >= args.office_distinct and i > max(timed_at):
+                break
+            img = msg.image
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
+            if not warm:
+                for fn in methods.values():
+                    fn(img)
+                warm = True
+            if i in timed_at:
+                timed_frames[i] = img
+                for name, fn in methods.items():
+                    t0 = time.thread_time()
+                    fn(img)
+                    times[name].append(time.thread_time() - t0)
+            if i < args.office_distinct:
+                blobs["ours"].append(extract(img, OFFICE_MODE))
+                kp, des = orb.detectAndCompute(img, None)
+                orb_feats.append((np.float32([k.pt for k in kp]).reshape(-1, 2), des))
+            i += 1
+    distinct = len(blobs["ours"])
+    out: dict = {"recording": recording.name, "frames": n_all, "timed_frames": len(timed_at), "mode": OFFICE_MODE,
+                 "describe": {k: spread(v) for k, v in times.items()},
+                 "bytes_mean": {k: float(np.mean([len(b) for b in v])) for k, v in blobs.items()},
+                 "distinct": distinct, "shortlist": OFFICE_SHORTLIST, "query": {}}
+    calib = read_calibration(shipped_calibration())
+    min_score = (calib.loop.for_mode(OFFICE_MODE) if calib.loop is not None else None) or 0.0
+    out["min_score"] = min_score
+    fps = n_all / 60.0
+    recent = int(20.0 * fps)
+    rng = np.random.default_rng(args.seed)
+    qs = rng.choice(distinct, size=min(args.office_queries, distinct), replace=False)
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+    for name in blobs:
+        log(f"  office: index of the {name} descriptors")
+        index = FloorIndex(IndexParams(shortlist=OFFICE_SHORTLIST))
+        decoded = [decode(b) for b in blobs[name]]
+        res = []
+        for size in OFFICE_SIZES:
+            for k in range(len(index), size):
+                index.add(k, decoded[k % distinct])
+            ids = np.arange(size)
+            q_ms, orb_ms, loops = [], [], 0
+            for q in qs:
+                excluded = ids[np.abs(ids % distinct - q) < recent]
+                t0 = time.thread_time()
+                cands = index.query(decoded[q], k=5, min_score=min_score, exclude_ids=excluded)
+                q_ms.append(time.thread_time() - t0)
+                loops += len(cands)
+                if name != "ours":
+                    continue
+                short = index.shortlist(decoded[q], exclude_ids=excluded)
+                pts, des = orb_feats[q]
+                t0 = time.thread_time()
+                for kf_id, _g in short:
+                    pts_b, des_b = orb_feats[kf_id % distinct]
+                    if des is None or des_b is None or len(des) < 2 or len(des_b) < 2:
+                        continue
+                    good = [m[0] for m in bf.knnMatch(des, des_b, k=2)
+                            if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
+                    if len(good) >= 4:
+                        cv2.estimateAffinePartial2D(pts[[m.queryIdx for m in good]], pts_b[[m.trainIdx for m in good]],
+                                                    method=cv2.RANSAC, ransacReprojThreshold=8.0)
+                orb_ms.append(time.thread_time() - t0)
+            row = {"keyframes": size, "query": spread(q_ms), "candidates_mean": loops / len(qs),
+                   "index_mb": index.nbytes / 1e6}
+            if orb_ms:
+                row["orb_match_shortlist"] = spread(orb_ms)
+            res.append(row)
+        out["query"][name] = res
+    out["queries"] = len(qs)
+    out["describe_ratio_orb"] = out["describe"]["orb"]["median_ms"] / out["describe"]["ours"]["median_ms"]
+    out["describe_ratio_quarter"] = out["describe"]["quarter"]["median_ms"] / out["describe"]["ours"]["median_ms"]
+    return out
+
+
 def plot_features(results: list[dict], path: Path) -> None:
     """Paper Fig. 4: local features per frame per mode and SIFT (bars, log scale) and floor
     (groups); beside it the share of each mode's byte bound used."""
@@ -146,26 +285,8 @@ def plot_features(results: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    add_common_args(ap)
-    ap.add_argument("--frames", type=int, default=30, help="frames per floor, 5 cm apart (default 30)")
-    ap.add_argument("--repeats", type=int, default=3, help="timed calls per frame or pair, ours (default 3)")
-    ap.add_argument("--doc", type=Path, default=None, help="also write the Markdown page of the run here")
-    ap.add_argument("--sift-repeats", type=int, default=1,
-                    help="timed calls per frame or pair, SIFT (default 1: it is 10-1000x slower)")
-    args = ap.parse_args(argv)
-    load_start = load_average()
-    blas = one_thread()
-    log(f"load average {load_start}; BLAS pools {blas}")
-    sift = SiftBaseline(args.seed)
-
-    results = []
-    for bf in bench_floors(args.floor, args.seed):
-        log(f"floor {bf.name} ({bf.source})")
-        res = bench_floor(bf.name, bf.floor, args, sift)
-        res["source"] = bf.source
-        results.append(res)
+def print_floors(results: list[dict]) -> None:
+    """The per-floor tables (paper 003 Tables I, II and Fig. 4)."""
 
     def per_mode(res: dict, key: str, sub: str | None = None, nd: int = 2) -> list[float]:
         vals = [res["modes"][str(m)][key] for m in MODES]
@@ -221,9 +342,66 @@ def main(argv: list[str] | None = None) -> int:
             for res in results]
     print_table(["floor", *mode_cols, "SIFT"], rows)
 
+
+
+def print_office(o: dict) -> None:
+    """The office drive's tables."""
+    d = o["describe"]
+    print(f"\nOffice drive ({o['timed_frames']} of {o['frames']} frames, mode {o['mode']}): describe, ms per frame "
+          "(median, IQR; interleaved)")
+    print_table(["method", "median", "IQR"],
+                [[k, r(v["median_ms"], 2), r(v["iqr_ms"], 2)] for k, v in d.items()])
+    print(f"  ORB / ours {o['describe_ratio_orb']:.2f}; quarter / ours {o['describe_ratio_quarter']:.2f}")
+    print(f"\n  query, ms (median, IQR over {o['queries']} queries; shortlist {o['shortlist']}, "
+          f"min_score {o['min_score']:.1f})")
+    rows = []
+    for name, res in o["query"].items():
+        for row in res:
+            orb_cell = (f"{row['orb_match_shortlist']['median_ms']:.2f}" if "orb_match_shortlist" in row else "")
+            rows.append([name, row["keyframes"], r(row["query"]["median_ms"], 2), r(row["query"]["iqr_ms"], 2),
+                         r(row["candidates_mean"], 2), r(row["index_mb"], 1), orb_cell])
+    print_table(["descriptors", "keyframes", "median", "IQR", "loops/query", "index MB", "ORB match shortlist"], rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_common_args(ap)
+    ap.add_argument("--frames", type=int, default=30, help="frames per floor, 5 cm apart (default 30)")
+    ap.add_argument("--repeats", type=int, default=3, help="timed calls per frame or pair, ours (default 3)")
+    ap.add_argument("--doc", type=Path, default=None, help="also write the Markdown page of the run here")
+    ap.add_argument("--sift-repeats", type=int, default=1,
+                    help="timed calls per frame or pair, SIFT (default 1: it is 10-1000x slower)")
+    ap.add_argument("--recording", type=Path, default=None,
+                    help="office drive MCAP (default: the one ./dev bench daemon caches, recorded if missing)")
+    ap.add_argument("--office-frames", type=int, default=100, help="office frames timed (default 100)")
+    ap.add_argument("--office-queries", type=int, default=100, help="index queries per size (default 100)")
+    ap.add_argument("--office-distinct", type=int, default=1000,
+                    help="distinct frames in the index, repeated beyond (default 1000)")
+    ap.add_argument("--skip", action="append", default=[], choices=["floors", "office"], help="leave a part out")
+    args = ap.parse_args(argv)
+    load_start = load_average()
+    blas = one_thread()
+    log(f"load average {load_start}; BLAS pools {blas}")
+    sift = SiftBaseline(args.seed)
+
+    office = None
+    if "office" not in args.skip:
+        office = bench_office(args, sift)
+        print_office(office)
+    results = []
+    for bf in ([] if "floors" in args.skip else bench_floors(args.floor, args.seed)):
+        log(f"floor {bf.name} ({bf.source})")
+        res = bench_floor(bf.name, bf.floor, args, sift)
+        res["source"] = bf.source
+        results.append(res)
+
+    if results:
+        print_floors(results)
+
     args.out.mkdir(parents=True, exist_ok=True)
     png = args.out / "floor_descriptor_features.png"
-    plot_features(results, png)
+    if results:
+        plot_features(results, png)
     payload = header("floor_descriptor", load_start=load_start, settings={
         "threads": 1, "image": [640, 480], "frames_per_floor": args.frames, "spacing_m": SPACING_M,
         "repeats": args.repeats, "sift_repeats": args.sift_repeats, "seed": args.seed,
@@ -233,6 +411,7 @@ def main(argv: list[str] | None = None) -> int:
         "timing": "median over items of the median of repeats, after warm-up; spread = IQR over items",
     })
     payload["floors"] = results
+    payload["office"] = office
     out = write_json(args.out / "floor_descriptor.json", payload)
     print(f"\nwrote {out} and {png}")
     if args.doc is not None:
@@ -255,12 +434,48 @@ def markdown(p: dict) -> list[str]:
 
     lines = ["# The floor descriptor against OpenCV SIFT and ORB (`./dev bench floor_descriptor`)", "",
              "Generated from `floor_descriptor.json` by `bench/bench_floor_descriptor.py --doc`; the script's",
-             "docstring says what is measured. CPU ms of one thread per 640 x 480 frame of the virtual",
-             f"floor camera ({p['settings']['frames_per_floor']} frames 5 cm apart per floor), median over frames,",
+             "docstring says what is measured. CPU ms of one thread per 640 x 480 frame,",
              "measured on a machine shared with other jobs: read the ratios, which come from one run.", "",
              f"Machine: {m.get('platform', '')}, {m.get('cpu_count', '?')} CPUs, load average "
-             f"{m.get('load_average_start')} at the start.", "",
-             "Extraction, ms:", "", *head(["floor", *cols, "SIFT", "ORB (500)"])]
+             f"{m.get('load_average_start')} at the start, {m.get('load_average_end')} at the end.", ""]
+    o = p.get("office")
+    if o:
+        d = o["describe"]
+        names = {"ours": "ours (default)", "ratio": "ours, repeat pool sized by the budget (`repeat_pool_ratio=2`)",
+                 "quarter": "ours, that and the pooled maps at every second pixel (`pool_step=2`)",
+                 "orb": "OpenCV ORB (500)",
+                 "sift": "OpenCV SIFT"}
+        lines += ["## The office drive (the daemon's keyframes)", "",
+                  f"{o['timed_frames']} floor frames spread over the recorded 60 s office drive ({o['frames']} "
+                  f"frames), mode {o['mode']}, the methods interleaved frame by frame. The two selectable "
+                  "cheaper extractions change the bytes and are not the default: the demo's loops and visual "
+                  "odometry lost a little with each (docs/performance.md).", "",
+                  "Describe, ms per frame:", "", *head(["method", "median", "IQR", "bytes (mean)"])]
+        for k, v in d.items():
+            b = o["bytes_mean"].get(k)
+            lines.append(row([names.get(k, k), f"{v['median_ms']:.2f}", f"{v['iqr_ms']:.2f}",
+                              f"{b:.0f}" if b is not None else ""]))
+        lines += ["", f"ORB / ours {o['describe_ratio_orb']:.2f}, SIFT / ours "
+                      f"{d['sift']['median_ms'] / d['ours']['median_ms']:.1f}.", "",
+                  f"Query of the floor index, ms ({o['queries']} queries per size; shortlist {o['shortlist']}, "
+                  f"the demo's loop threshold {o['min_score']:.1f} as `min_score`; {o['distinct']} distinct frames, "
+                  "repeated under new ids beyond), and ORB's brute-force matching against the same "
+                  "shortlisted frames:", "",
+                  *head(["descriptors", "keyframes", "query median", "IQR", "loops per query", "index MB",
+                         "ORB match of the shortlist"])]
+        for name, res in o["query"].items():
+            for q in res:
+                orb_cell = f"{q['orb_match_shortlist']['median_ms']:.2f}" if "orb_match_shortlist" in q else ""
+                lines.append(row([names.get(name, name), q["keyframes"], f"{q['query']['median_ms']:.2f}",
+                                  f"{q['query']['iqr_ms']:.2f}", f"{q['candidates_mean']:.2f}",
+                                  f"{q['index_mb']:.1f}", orb_cell]))
+        lines.append("")
+    if not floors:
+        return lines
+    lines += ["## The benchmark floors", "",
+              f"The virtual floor camera, {p['settings']['frames_per_floor']} frames 5 cm apart per floor, "
+              "median over frames.", "",
+              "Extraction, ms:", "", *head(["floor", *cols, "SIFT", "ORB (500)"])]
     for res in floors:
         lines.append(row([res["floor"], *[f"{res['modes'][str(k)]['extract']['median_ms']:.2f}" for k in MODES],
                           f"{res['sift']['extract']['median_ms']:.1f}", f"{res['orb']['extract']['median_ms']:.2f}"]))

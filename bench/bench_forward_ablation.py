@@ -19,11 +19,11 @@ ORB; on rtabmap_samples also the brute-force baseline of ``robotd eval forward``
 versions, commit, every figure), read by ``tools/forward_benchmark_doc.py`` to make ``docs/benchmarks/forward.md``.
 
 Run: ``.venv/bin/python bench/bench_forward_ablation.py --dir /tmp/office``. By default:
-every configuration on rtabmap_samples, and the default detector beside ORB with the
-paper's filter and the previous default on the office route (on the shared 2-core
-development machine under load: about 4 minutes for rtabmap_samples and 4-6 minutes per office configuration, so about a
-quarter of an hour; less on an idle machine). ``--full`` runs every configuration on the
-office route too, the paper's SIFT detector included (over an hour there).
+every configuration on rtabmap_samples (a few minutes), and on the office route the
+default, the previous default and the default at total p > 0.5 (about 2 minutes each on
+the shared 2-core development machine at moderate load; ten under heavy load).
+``--full`` runs every configuration on the office route too, the paper's SIFT detector
+included (about ten minutes more for it alone), and ORB 1000.
 ``--configs "A;B"`` picks configurations.
 """
 
@@ -46,10 +46,9 @@ except ImportError:  # run as a script: bench/ is on sys.path
 
 from robotd.forward import LOOP, FeatureExtractor, ForwardDetector, method_params
 from robotd.forward.evaluation import score_decisions
-from robotd.forward.detector import OdometryParams
+from robotd.forward.detector import OdometryParams, daemon_params
 from robotd.forward.features import FeatureParams
 from robotd.forward.verify import camera_matrix_guess
-from robotd.forward.vocabulary import VocabularyParams
 from robotd.io.sequence import list_images, load_ground_truth, read_image
 
 REPO = Path(__file__).resolve().parent.parent
@@ -58,58 +57,44 @@ DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "forward_ablation.js
 
 
 def configurations(full: bool) -> dict[str, object]:
-    """Name -> DetectorParams: the paper, ORB with the paper's filter, then one lever at a
-    time on top of ORB, then the default."""
+    """Name -> DetectorParams: the paper, the default, the previous default (k = 2, total
+    p > 0.5) with one lever changed at a time (its name says which), then levers on the
+    default."""
     paper = method_params("paper")
-    orb = replace(paper, features=FeatureParams(kind="orb", max_features=300))
-    f = orb.filter
-    sc = replace(orb, decision="score")
+    dflt = method_params("default")
+    prev = replace(dflt, consistency=2, filter=replace(dflt.filter, loop_threshold=0.5))
+    f = prev.filter
+    odo = OdometryParams(use=True)
+    v = prev.verify
+    sc = replace(dflt, decision="score", score_normalisation="previous", score_threshold=0.3)  # no filter
     cfgs = {
         "paper (SIFT)": paper,
-        "ORB 300": orb,
-        "ORB 500": replace(orb, features=FeatureParams(kind="orb", max_features=500)),
-        "ORB + purge 50": replace(orb, vocabulary=VocabularyParams(purge_after=50)),
-        "ORB + purge 200": replace(orb, vocabulary=VocabularyParams(purge_after=200)),
-        "ORB + rtabmap likelihood": replace(orb, likelihood="rtabmap"),
-        "ORB + total p > 0.8": replace(orb, filter=replace(f, rule="total")),
-        "ORB + total p > 0.5": replace(orb, filter=replace(f, rule="total", loop_threshold=0.5)),
-        "ORB + neighbourhood > 0.5": replace(orb, filter=replace(f, loop_threshold=0.5)),
-        "ORB + k = 2": replace(orb, consistency=2),
-        "ORB score/virtual > 1": sc,
-        "ORB score/virtual > 1, k = 2": replace(sc, consistency=2),
-        "ORB score/previous > 0.3": replace(sc, score_normalisation="previous", score_threshold=0.3),
-        "ORB score/previous > 0.3, k = 2": replace(sc, score_normalisation="previous", score_threshold=0.3,
-                                                   consistency=2),
-        "default": method_params("default"),
+        "default": dflt,
+        "previous default (k = 2)": prev,
+        "previous default, total p > 0.3": replace(prev, filter=replace(f, loop_threshold=0.3)),
+        "previous default, total p > 0.7": replace(prev, filter=replace(f, loop_threshold=0.7)),
+        "previous default, k = 3": replace(prev, consistency=3),
+        "previous default, no purge": replace(prev, vocabulary=replace(prev.vocabulary, purge_after=0)),
+        "previous default, ORB 500": replace(prev, features=FeatureParams(kind="orb", max_features=500)),
+        "previous default, score/previous > 0.3": replace(sc, consistency=2),
+        "previous default, score/previous > 0.3, islands": replace(sc, islands=True, consistency=2),
+        "previous default, places merged by pose": replace(prev, odometry=replace(OdometryParams(),
+                                                                                 merge_places=True)),
+        "previous default, odometry": replace(prev, odometry=odo),
+        "previous default, odometry x4 variance": replace(prev, odometry=replace(odo, variance_scale=4.0)),
+        "previous default, odometry, no support test when it agrees": replace(
+            prev, odometry=replace(odo, agree_min_support_area=0.0)),
+        "previous default, odometry, 3 verifications": replace(prev, odometry=odo, verify_tries=3),
+        "previous default, 15 inliers": replace(prev, verify=replace(v, min_inliers=15)),
+        "previous default, no support test": replace(prev, verify=replace(v, min_support_area=0.0)),
+        "default, total p > 0.5": replace(dflt, filter=replace(dflt.filter, loop_threshold=0.5)),
+        "default, score/previous > 0.3, islands": replace(sc, islands=True),
+        "default, places merged by pose": replace(dflt, odometry=replace(OdometryParams(), merge_places=True)),
+        "default, odometry": replace(dflt, odometry=odo),
+        "default as the daemon runs it": daemon_params(dflt),
     }
-    # The keyframe's odometry (office only: rtabmap_samples has no poses, so there these
-    # rows are the rows without it), more than one verification, and the previous default
-    # (ORB 300 + purge 50 + total p > 0.5 + k = 2) with each of them.
-    odo = OdometryParams(use=True)
-    dflt = method_params("default")
-    old = replace(dflt, odometry=OdometryParams(), verify_tries=1, filter=replace(dflt.filter, loop_threshold=0.5))
-    tot = replace(f, rule="total", loop_threshold=0.5)
-    cfgs.update({
-        "ORB + odometry": replace(orb, odometry=odo),
-        "ORB + total p > 0.5 + odometry": replace(orb, filter=tot, odometry=odo),
-        "ORB + total p > 0.3 + odometry": replace(orb, filter=replace(tot, loop_threshold=0.3), odometry=odo),
-        "ORB score/previous > 0.3 + odometry": replace(sc, score_normalisation="previous", score_threshold=0.3,
-                                                       odometry=odo),
-        "ORB + 3 verifications": replace(orb, verify_tries=3),
-        "old default": old,
-        "old default + odometry": replace(old, odometry=odo),
-        "old default + odometry, total p > 0.3": replace(old, filter=replace(old.filter, loop_threshold=0.3),
-                                                         odometry=odo),
-        "old default + 3 verifications": replace(old, verify_tries=3),
-        "old default + odometry + 3 verifications": replace(old, odometry=odo, verify_tries=3),
-        "old default + odometry, 12 inliers when it agrees": replace(
-            old, odometry=replace(odo, agree_min_inliers=12, agree_min_support_area=0.01)),
-        "old default + odometry + 3 verifications, total p > 0.3": replace(
-            old, filter=replace(old.filter, loop_threshold=0.3), odometry=odo, verify_tries=3),
-    })
-    cfgs["default"] = cfgs.pop("default")  # last
     if full:
-        cfgs["ORB 1000"] = replace(orb, features=FeatureParams(kind="orb", max_features=1000))
+        cfgs["default, ORB 1000"] = replace(dflt, features=FeatureParams(kind="orb", max_features=1000))
     return cfgs
 
 
@@ -291,6 +276,8 @@ def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, obje
         med, p99 = float(np.median(total)), float(np.percentile(total, 99))
         out["brute_force"] = {**s.as_dict(), "ms_median": med, "ms_p99": p99,
                               "ratio_to_opencv_orb": med / cv_median}
+        if progress is not None:
+            progress(out)
         print(f"{'baseline: brute-force SIFT':<32}{s.recall_at_full_precision:>9.3f}{s.false_positives:>5}"
               f"{s.precision:>7.3f}{s.declared:>7}{med:>8.1f}{p99:>8.1f}{med / cv_median:>7.1f}", flush=True)
     return out
@@ -328,7 +315,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.only in (None, "office"):
         office = office_sequence(args.dir)
         odo = office_odometry(office)
-        office_only = only if (only is not None or args.full) else ["default", "old default", "ORB 300"]
+        office_only = only if (only is not None or args.full) else ["default", "previous default (k = 2)",
+                                                                      "default, total p > 0.5"]
         result["sequences"]["office"] = run_sequence("office", office, office / "gt.npy", cfgs, set(),
                                                      only=office_only, odometry=odo,
                                                      progress=lambda o: (result["sequences"].__setitem__("office", o),

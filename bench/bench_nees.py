@@ -16,10 +16,16 @@ daemon takes them (``--keyframe-m`` or 10 deg, floor frames at 30 Hz) with their
 chain of ``N`` consecutive edges (a window every ``N/5`` edges) composed as the pose graph
 composes independent edges, its covariance the sum of theirs carried to the chain's end;
 the mean NEES over the windows, and of the yaw and the position parts alone (expected 1
-and 2). Beside it, the same windows with the filter's own covariance of the motion between
-the two keyframes (its joint covariance, carried through every filter step, so that what
-the edges share through the speed, yaw-rate and gyro-bias states is kept): what a graph
-could reach if it modelled the filter's correlations, against what independent edges give.
+and 2). The same windows under four models of what the edges share: independent edges (the
+pose graph today); the edges given the gyro bias at their start with the bias as variables
+of the graph (:mod:`robotd.graph.bias`: AR(1) bias steps from the filter), marginalised;
+the same with the wheels' and the gyro's scale errors as variables every edge shares
+(prior: the simulated base's spreads, :data:`SCALE_SIGMA`), marginalised; and the filter's
+own covariance of the motion between the two keyframes (its joint covariance, carried
+through every filter step). ``--ekf NAME=VALUE`` runs the filter with another noise model.
+The pose graph's cost of the bias-sharing factors (``--cost-seeds``): iSAM2 per keyframe
+and batch Levenberg-Marquardt against independent edges, loop edges from the truth, same
+run.
 
 **Loop edges** (part 2). Per floor (the printed planks, the paper's worst case, and the
 default floor of real photographs) ``--pairs`` frame pairs are rendered with the second
@@ -32,8 +38,9 @@ detector gives now, and of the rigid fit's covariance alone (what it gave before
 shared error of the frame pair was modelled: the baseline, in the same run).
 
 Run from the repo root: ``.venv/bin/python bench/bench_nees.py [--seeds 5] [--pairs 120]
-[--floors planks,mixed] [--skip-odometry] [--skip-loops] [--out bench/results/nees.json]
-[--markdown docs/benchmarks/nees.md]``. The default takes about 10 minutes on a quiet
+[--floors planks,mixed] [--ekf NAME=VALUE ...] [--cost-seeds 1] [--compare OTHER.json]
+[--skip-odometry] [--skip-loops] [--out bench/results/nees.json] [--markdown
+docs/benchmarks/nees.md]``. The default takes about 10 minutes on a quiet
 2-core machine (rendering the pairs is most of it); ``--full``: 10 seeds, 400 pairs.
 """
 
@@ -56,7 +63,9 @@ except ImportError:  # run as a script: bench/ is on sys.path
 
 from robotd.base.geometry import between, between_error_covariance, compose, wrap_angle
 from robotd.base.messages import WheelTicks
+from robotd.graph.bias import scale_jacobian
 from robotd.keyframes import KeyframeSelector
+from robotd.odometry.ekf import EkfParams
 from robotd.odometry.fusion import OdometryFilter
 from robotd.odometry.relative import PoseClone, relative_pose_covariance
 from sim.emulators.kobuki import driver_messages, simulate_kobuki
@@ -103,13 +112,14 @@ class _Recorder:
         hist.record = record  # type: ignore[method-assign]
 
 
-def drive_edges(route: str, seed: int, keyframe_m: float, sensors: BaseSensorParams) -> dict[str, Any]:
+def drive_edges(route: str, seed: int, keyframe_m: float, sensors: BaseSensorParams,
+                params: EkfParams | None = None) -> dict[str, Any]:
     """Drive ``route`` with seed ``seed``'s base; the keyframe edges, the truth at the
     keyframes, and the filter's own states at them (for the joint covariance)."""
     motion = plan_motion(build_route(route), MotionLimits())
     stream = simulate_kobuki(motion, sensors, np.random.default_rng(seed))
     msgs = driver_messages(stream)
-    f = OdometryFilter()
+    f = OdometryFilter() if params is None else OdometryFilter(params=params)
     rec = _Recorder(f)
     selector = KeyframeSelector(keyframe_m, math.radians(10.0))
     frames_ns = (np.arange(0.0, float(motion.t_s[-1]), 1.0 / FRAME_HZ) * 1e9).round().astype(np.int64)
@@ -125,7 +135,7 @@ def drive_edges(route: str, seed: int, keyframe_m: float, sensors: BaseSensorPar
             p = f.pose_at(t)
             if p is not None and selector.offer(np.array([p.x_m, p.y_m, p.yaw_rad])):
                 stamps.append(t)
-                edges.append(f.keyframe_edge(t))
+                edges.append(f.keyframe_edge_terms(t))
             i += 1
     rec_t = np.asarray(rec.t, np.int64)
     at = np.minimum(np.searchsorted(rec_t, np.asarray(stamps, np.int64)), len(rec_t) - 1)
@@ -138,6 +148,7 @@ def drive_edges(route: str, seed: int, keyframe_m: float, sensors: BaseSensorPar
         maps.append(m6)
     return {
         "delta": np.array([e[0] for e in edges[1:]]), "cov": np.array([e[1] for e in edges[1:]]),
+        "terms": [e[2] for e in edges[1:]],
         "truth": motion.pose_at(np.asarray(stamps) * 1e-9),
         "rec_mean": np.array([rec.mean[k] for k in at]), "rec_cov": np.array([rec.cov[k] for k in at]),
         "rec_truth": motion.pose_at(rec_t[at] * 1e-9), "maps": np.array(maps),
@@ -168,23 +179,86 @@ def chained_nees(d: dict[str, Any], horizons: tuple[int, ...] = HORIZONS) -> dic
         pose[k + 1] = compose(pose[k], delta[k])
         a = _adjoint(pose[k + 1])
         acc[k + 1] = acc[k] + a @ cov[k] @ a.T
+    bacc, bu, bp, bar = bias_chain_covariances(d, pose)
+    sw, sg = scale_jacobians(delta, pose)
     out: dict[int, dict[str, float]] = {}
     for h in horizons:
         if h > m:
             continue
-        graph, joint = [], []
+        graph, joint, bias, scale = [], [], [], []
         for i in range(0, m - h + 1, max(1, h // 5)):
             j = i + h
             e = between(between(pose[i], pose[j]), between(truth[i], truth[j]))
             e[2] = wrap_angle(e[2])
             back = np.linalg.inv(_adjoint(pose[j]))
             graph.append(_nees_parts(e, back @ (acc[j] - acc[i]) @ back.T))
+            cb = _bias_window_cov(bacc, bu, bp, bar, i, j)
+            bias.append(_nees_parts(e, back @ cb @ back.T))
+            uw, ug = sw[j] - sw[i], sg[j] - sg[i]
+            cs = cb + SCALE_SIGMA["wheel"] ** 2 * np.outer(uw, uw) + SCALE_SIGMA["gyro"] ** 2 * np.outer(ug, ug)
+            scale.append(_nees_parts(e, back @ cs @ back.T))
             joint.append(_joint_nees(d, i, j))
-        g, jn = np.array(graph), np.array(joint)
+        g, jn, bn, sn = np.array(graph), np.array(joint), np.array(bias), np.array(scale)
         out[h] = {"windows": len(g), "graph": float(g[:, 0].mean()), "graph_yaw": float(g[:, 1].mean()),
                   "graph_position": float(g[:, 2].mean()), "filter": float(jn[:, 0].mean()),
-                  "filter_yaw": float(jn[:, 1].mean()), "filter_position": float(jn[:, 2].mean())}
+                  "filter_yaw": float(jn[:, 1].mean()), "filter_position": float(jn[:, 2].mean()),
+                  "bias": float(bn[:, 0].mean()), "bias_yaw": float(bn[:, 1].mean()),
+                  "bias_position": float(bn[:, 2].mean()), "scales": float(sn[:, 0].mean()),
+                  "scales_yaw": float(sn[:, 1].mean()), "scales_position": float(sn[:, 2].mean())}
     return out
+
+
+def bias_chain_covariances(d: dict[str, Any], pose: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], np.ndarray, np.ndarray]:
+    """What the pose graph with bias variables (:mod:`robotd.graph.bias`) gives a chain
+    without loops, the bias marginalised: per edge ``k`` its covariance given the bias
+    carried to the run's start frame (cumulated, ``(m + 1, 3, 3)``), the bias Jacobian so
+    carried ``u_k (3,)``, the bias error's variance at the edge's start ``P_k`` and the AR(1)
+    coefficient ``a_k`` to the next edge's."""
+    terms = d["terms"]
+    m = len(terms)
+    acc = np.zeros((m + 1, 3, 3))
+    u = []
+    for k, t in enumerate(terms):
+        a = _adjoint(pose[k + 1])
+        acc[k + 1] = acc[k] + a @ t.cov_given_bias @ a.T
+        u.append(a @ t.jac_bias)
+    p = np.array([t.bias_var for t in terms])
+    ar = np.array([t.bias_cov / t.bias_var for t in terms])
+    return acc, u, p, ar
+
+
+#: 1-sigma of the relative scale errors the scale-aware model marginalises, the uniform
+#: spreads of the simulated base (:class:`sim.sensors.BaseSensorParams`: wheels +-0.5 %,
+#: gyro +-0.3 %) as standard deviations: what an uncalibrated base is known to within.
+SCALE_SIGMA = {"wheel": 0.005 / math.sqrt(3.0), "gyro": 0.003 / math.sqrt(3.0)}
+
+
+def scale_jacobians(delta: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per edge the change of its error per unit relative scale error of the wheels'
+    distance and of the gyro (:func:`robotd.graph.bias.scale_jacobian`), carried to the
+    run's start frame as the edges' covariances are and cumulated: ``(m + 1, 3)`` each."""
+    jw, jg = [], []
+    for k, d in enumerate(delta):
+        j = _adjoint(pose[k + 1]) @ scale_jacobian(d)
+        jw.append(j[:, 0])
+        jg.append(j[:, 1])
+    return np.cumsum([np.zeros(3)] + jw, axis=0), np.cumsum([np.zeros(3)] + jg, axis=0)
+
+
+def _bias_window_cov(acc: np.ndarray, u: list[np.ndarray], p: np.ndarray, ar: np.ndarray,
+                     i: int, j: int) -> np.ndarray:
+    """Covariance (start frame) of edges ``i..j-1`` chained, the bias errors ``db_k``
+    (AR(1): ``db_{k+1} = a_k db_k + n_k``, ``Var db_k = P_k``) marginalised: the sum of the
+    conditional covariances plus ``Var(sum_k u_k db_k)``, by the recursion over ``k`` of
+    ``T_k = sum_{l<=k} u_l Cov(db_l, db_k)``."""
+    v = np.zeros((3, 3))
+    t = np.zeros(3)
+    for k in range(i, j):
+        tp = ar[k - 1] * t if k > i else np.zeros(3)
+        uk = u[k]
+        v += p[k] * np.outer(uk, uk) + np.outer(tp, uk) + np.outer(uk, tp)
+        t = tp + uk * p[k]
+    return acc[j] - acc[i] + v
 
 
 def _joint_nees(d: dict[str, Any], i: int, j: int) -> tuple[float, float, float]:
@@ -212,54 +286,193 @@ WITHOUT = {
 }
 
 
-def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str, ...] = ()) -> dict[str, Any]:
+def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str, ...] = (),
+                  ekf: dict[str, float] | None = None, cost_seeds: int = 0) -> dict[str, Any]:
     sensors = BaseSensorParams()
     for name in without:  # the same base without these errors: what each costs
         sensors = dataclasses.replace(sensors, **WITHOUT[name])
+    params = EkfParams(**(ekf or {}))
     per_seed = []
     for seed in range(seeds):
         t0 = time.monotonic()
-        d = drive_edges(route, seed, keyframe_m, sensors)
+        d = drive_edges(route, seed, keyframe_m, sensors, params)
         res = chained_nees(d)
+        cost = graph_cost(d, seed, (SCALE_SIGMA["wheel"], SCALE_SIGMA["gyro"])) if seed < cost_seeds else None
         e = d["drawn"]
         per_seed.append({"seed": seed, "edges": len(d["delta"]), "horizons": {str(k): v for k, v in res.items()},
+                         "cost": cost,
                          "drawn": {"wheel_base_error": e.wheel_base_error,
                                    "radius_error_left": e.left_radius_error,
                                    "radius_error_right": e.right_radius_error,
                                    "gyro_scale_error": e.gyro_scale_error,
                                    "gyro_bias0_degps": math.degrees(e.gyro_bias0_radps)}})
         log(f"seed {seed}: {len(d['delta'])} edges, " + ", ".join(
-            f"N={h} {v['graph']:.2f} ({v['filter']:.2f})" for h, v in res.items())
+            f"N={h} {v['graph']:.2f}/{v['scales']:.2f}" for h, v in res.items())
             + f"  [{time.monotonic() - t0:.0f} s]")
-    return {"route": route, "keyframe_m": keyframe_m, "without": list(without), "per_seed": per_seed}
+    return {"route": route, "keyframe_m": keyframe_m, "without": list(without), "ekf": ekf or {},
+            "per_seed": per_seed}
 
 
-def odometry_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
+#: The chain models the bench compares (keys of a horizon's results) and their names.
+MODELS = {"graph": "independent edges", "bias": "bias variables", "scales": "bias + scale variables",
+          "filter": "filter's joint covariance"}
+
+
+def odometry_rows(part: dict[str, Any], kind: str = "scales") -> tuple[list[str], list[list[Any]]]:
+    """Per seed and horizon the mean NEES of the chains of ``kind`` (a key of :data:`MODELS`)."""
     head = ["seed", "edges"] + [f"N={h}" for h in HORIZONS]
     rows: list[list[Any]] = []
     for r in part["per_seed"]:
         hz = r["horizons"]
-        rows.append([r["seed"], r["edges"]] + [
-            f"{hz[str(h)]['graph']:.2f} ({hz[str(h)]['filter']:.2f})" if str(h) in hz else "-"
-            for h in HORIZONS])
+        rows.append([r["seed"], r["edges"]] + [f"{hz[str(h)][kind]:.2f}" if str(h) in hz else "-" for h in HORIZONS])
     means = []
     for h in HORIZONS:
-        g = [r["horizons"][str(h)]["graph"] for r in part["per_seed"] if str(h) in r["horizons"]]
-        f = [r["horizons"][str(h)]["filter"] for r in part["per_seed"] if str(h) in r["horizons"]]
-        means.append(f"{np.mean(g):.2f} ({np.mean(f):.2f})" if g else "-")
+        g = [r["horizons"][str(h)][kind] for r in part["per_seed"] if str(h) in r["horizons"]]
+        means.append(f"{np.mean(g):.2f}" if g else "-")
     rows.append(["mean", ""] + means)
     return head, rows
 
 
-def odometry_part_rows(part: dict[str, Any], kind: str) -> list[list[Any]]:
-    """Mean over seeds per horizon of the yaw and position parts (``kind``: graph or filter)."""
+def odometry_model_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
+    """Per horizon and model: the mean over seeds (yaw part, position part) and the seeds' range."""
+    head = ["N edges"] + list(MODELS.values())
     rows = []
     for h in HORIZONS:
         rs = [r["horizons"][str(h)] for r in part["per_seed"] if str(h) in r["horizons"]]
-        if rs:
-            rows.append([h, f"{np.mean([r[kind] for r in rs]):.2f}", f"{np.mean([r[kind + '_yaw'] for r in rs]):.2f}",
-                         f"{np.mean([r[kind + '_position'] for r in rs]):.2f}"])
-    return rows
+        if not rs:
+            continue
+        row: list[Any] = [h]
+        for k in MODELS:
+            v = [r[k] for r in rs]
+            row.append(f"{np.mean(v):.2f} ({np.mean([r[k + '_yaw'] for r in rs]):.2f}, "
+                       f"{np.mean([r[k + '_position'] for r in rs]):.2f}) [{min(v):.2f}-{max(v):.2f}]")
+        rows.append(row)
+    return head, rows
+
+
+def cost_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
+    head = ["seed", "keyframes", "loops", "model", "iSAM2 ms / keyframe", "batch LM s", "ATE iSAM2 (m)",
+            "ATE batch (m)", "ATE odometry (m)"]
+    rows: list[list[Any]] = []
+    for r in part["per_seed"]:
+        c = r.get("cost")
+        if not c:
+            continue
+        base = c["independent"]
+        for model in ("independent", "bias", "bias_scales"):
+            if model not in c:
+                continue
+            m = c[model]
+            ratio = "" if model == "independent" else (
+                f" (x{m['isam2_ms_per_keyframe'] / base['isam2_ms_per_keyframe']:.1f})")
+            lm_ratio = "" if model == "independent" else f" (x{m['batch_lm_s'] / base['batch_lm_s']:.0f})"
+            rows.append([r["seed"], c["keyframes"], c["loops"], model,
+                         f"{m['isam2_ms_per_keyframe']:.2f}{ratio}", f"{m['batch_lm_s']:.2f}{lm_ratio}",
+                         f"{m['ate_isam2_m']:.4f}", f"{m['ate_batch_m']:.4f}", f"{m['ate_odometry_m']:.3f}"])
+    return head, rows
+
+
+# --------------------------------------------------------------------------- graph cost
+
+
+def _loops_from_truth(truth: np.ndarray, rng: np.random.Generator, every: int = 25,
+                      min_gap: int = 200, radius_m: float = 0.2, sigma: float = 1e-3
+                      ) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """Loop edges as the floor camera would give them on a revisit: every ``every``-th
+    keyframe, to the nearest one at least ``min_gap`` keyframes before it within
+    ``radius_m``, the true relative pose with ``sigma`` (m and rad) of noise."""
+    loops = []
+    cov = np.eye(3) * sigma * sigma
+    for j in range(min_gap, len(truth), every):
+        dist = np.hypot(truth[:j - min_gap, 0] - truth[j, 0], truth[:j - min_gap, 1] - truth[j, 1])
+        if not len(dist) or dist.min() > radius_m:
+            continue
+        i = int(np.argmin(dist))
+        delta = between(truth[i], truth[j]) + sigma * rng.standard_normal(3)
+        loops.append((i, j, delta, cov))
+    return loops
+
+
+def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float]) -> dict[str, Any]:
+    """Build the seed's keyframes one at a time into iSAM2 (with loop edges from the
+    truth, :func:`_loops_from_truth`), once with independent edges (``BetweenFactor``, the
+    daemon's) and once with the bias variables (:mod:`robotd.graph.bias`, with a shared
+    scale variable when ``scale_sigmas``): time per keyframe, the final batch
+    Levenberg-Marquardt's time from the odometry guess, and each estimate's ATE (m)."""
+    import gtsam
+
+    from robotd.graph.bias import (
+        BiasEdge,
+        bias_chain_factor,
+        bias_edge_factor,
+        bias_key,
+        bias_prior_factor,
+        scale_key,
+        scale_prior_factor,
+    )
+    from robotd.graph.factors import anchor_factor
+
+    truth = d["truth"]
+    deltas, covs, terms = d["delta"], d["cov"], d["terms"]
+    loops = _loops_from_truth(truth, np.random.default_rng(seed))
+    by_end: dict[int, list[tuple[int, int, np.ndarray, np.ndarray]]] = {}
+    for lp in loops:
+        by_end.setdefault(lp[1], []).append(lp)
+    # The pose graph's frame is the first keyframe's truth (the anchor).
+    out: dict[str, Any] = {"keyframes": len(deltas) + 1, "loops": len(loops)}
+    for model in ("independent", "bias", "bias_scales"):
+        scales = scale_sigmas if model == "bias_scales" else None
+        isam = gtsam.ISAM2()
+        batch = gtsam.NonlinearFactorGraph()
+        guess = gtsam.Values()
+        p = gtsam.Pose2(*map(float, truth[0]))
+        t_inc = 0.0
+        for k in range(len(deltas) + 1):
+            fg = gtsam.NonlinearFactorGraph()
+            vals = gtsam.Values()
+            if k == 0:
+                fg.add(anchor_factor(0, truth[0]))
+                vals.insert(0, p)
+                if model != "independent":
+                    fg.add(bias_prior_factor(0, terms[0].bias_radps, terms[0].bias_var))
+                    vals.insert(bias_key(0), np.array([terms[0].bias_radps]))
+                    if scales is not None:
+                        fg.add(scale_prior_factor(0, scales))
+                        vals.insert(scale_key(0), np.zeros(2))
+            else:
+                dk = deltas[k - 1]
+                p = p.compose(gtsam.Pose2(*map(float, dk)))
+                vals.insert(k, p)
+                if model == "independent":
+                    fg.add(gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*map(float, dk)),
+                                                    gtsam.noiseModel.Gaussian.Covariance(covs[k - 1])))
+                else:
+                    t = terms[k - 1]
+                    e = BiasEdge(k - 1, k, dk, t.cov_given_bias, t.jac_bias, t.bias_radps, t.bias_var,
+                                 t.bias_end_radps, t.bias_end_var, t.bias_cov)
+                    fg.add(bias_edge_factor(e, None if scales is None else 0))
+                    fg.add(bias_chain_factor(e))
+                    vals.insert(bias_key(k), np.array([t.bias_end_radps]))
+            for i, j, delta, cov in by_end.get(k, []):
+                fg.add(gtsam.BetweenFactorPose2(i, j, gtsam.Pose2(*map(float, delta)),
+                                                gtsam.noiseModel.Gaussian.Covariance(cov)))
+            t0 = time.perf_counter()
+            isam.update(fg, vals)
+            t_inc += time.perf_counter() - t0
+            batch.push_back(fg)
+            guess.insert(vals)
+        est = isam.calculateEstimate()
+        t0 = time.perf_counter()
+        lm = gtsam.LevenbergMarquardtOptimizer(batch, guess).optimize()
+        t_lm = time.perf_counter() - t0
+
+        def ate(values: Any) -> float:
+            xy = np.array([[values.atPose2(k).x(), values.atPose2(k).y()] for k in range(len(truth))])
+            return float(np.sqrt(np.mean(np.sum((xy - truth[:, :2]) ** 2, axis=1))))
+
+        out[model] = {"isam2_ms_per_keyframe": 1e3 * t_inc / (len(deltas) + 1), "batch_lm_s": t_lm,
+                      "ate_isam2_m": ate(est), "ate_batch_m": ate(lm), "ate_odometry_m": ate(guess)}
+    return out
 
 
 # --------------------------------------------------------------------------- loops
@@ -387,6 +600,39 @@ ODO_PART_HEAD = ["N edges", "NEES", "yaw part", "position part"]
 # --------------------------------------------------------------------------- report
 
 
+def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None:
+    """The page's section of one odometry part."""
+    without = f", the base without {', '.join(odo['without'])}" if odo.get("without") else ""
+    ekf = odo.get("ekf") or {}
+    noise = ("the filter's default noise model" if not ekf else
+             "the filter's noise model with " + ", ".join(f"`{k}` = {v}" for k, v in ekf.items()))
+    lines += [f"## Odometry edges ({odo['route']} route, keyframes every {odo['keyframe_m']} m or 10 deg, "
+              f"{noise}{without})", "",
+              "Mean NEES over seeds of chains of N consecutive edges, per model of what the edges share "
+              "(in brackets the yaw and position parts, expected 1 and 2; in square brackets the "
+              "seeds' range): independent edges (the pose graph today); the edges given the gyro "
+              "bias at their start with the bias as variables (`robotd.graph.bias`), marginalised; "
+              "the same with the wheels' and the gyro's scale errors as variables of prior sigma "
+              + ", ".join(f"{k} {v * 100:.2f} %" for k, v in SCALE_SIGMA.items())
+              + " (the simulated base's spreads), marginalised; the filter's own joint covariance "
+              "of the motion.", ""]
+    if ekf:
+        lines += ["Not the daemon's noise model: the filter run with these fields changed, to see what the "
+                  "models give when the white noise is about the simulated sensors' own (docs/concepts.md, "
+                  "\"Odometry edges the gate can trust\").", ""]
+    table(*odometry_model_rows(odo))
+    lines += ["Per seed, bias + scale variables:", ""]
+    table(*odometry_rows(odo, "scales"))
+    head, rows = cost_rows(odo)
+    if rows:
+        lines += ["Cost in the pose graph: the seed's keyframes built one at a time into iSAM2 with loop "
+                  "edges from the truth (1 mm, every 25th keyframe that revisits a place): independent "
+                  "edges, the bias variables (`bias`) and the bias + scale variables (`bias_scales`), "
+                  "the latter two Python `CustomFactor`s; in brackets the ratio to independent edges, "
+                  "same run.", ""]
+        table(head, rows)
+
+
 def markdown(payload: dict[str, Any]) -> list[str]:
     lines = ["# NEES of the map's edges", "",
              "Generated by `bench/bench_nees.py` (see its docstring for the method); "
@@ -402,18 +648,9 @@ def markdown(payload: dict[str, Any]) -> list[str]:
             lines.append("| " + " | ".join(str(c) for c in row) + " |")
         lines.append("")
 
-    odo = payload.get("odometry")
-    if odo:
-        bias = f", the base without {', '.join(odo['without'])}" if odo.get("without") else ""
-        lines += [f"## Odometry edges ({odo['route']} route, keyframes every {odo['keyframe_m']} m or 10 deg{bias})", "",
-                  "Mean NEES of chains of N consecutive edges composed as independent edges (the pose "
-                  "graph without loops); in brackets the filter's own joint covariance of the same "
-                  "motion (the correlations through its speed, yaw-rate and gyro-bias states kept).", ""]
-        table(*odometry_rows(odo))
-        lines += ["Mean over seeds, yaw and position parts, independent edges:", ""]
-        table(ODO_PART_HEAD, odometry_part_rows(odo, "graph"))
-        lines += ["The same, the filter's joint covariance:", ""]
-        table(ODO_PART_HEAD, odometry_part_rows(odo, "filter"))
+    for odo in [payload.get("odometry")] + [c.get("odometry") for c in payload.get("compare", [])]:
+        if odo:
+            odometry_markdown(odo, table, lines)
     loops = payload.get("loops")
     if loops:
         lines += [f"## Loop edges ({loops['pairs']} rendered pairs per floor, second frame within "
@@ -445,6 +682,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--without", default="",
                     help="odometry: comma-separated errors the simulated base leaves out (what each costs): "
                          + ", ".join(WITHOUT))
+    ap.add_argument("--ekf", action="append", default=[], metavar="NAME=VALUE",
+                    help="odometry: a field of the filter's noise model (robotd.odometry.ekf.EkfParams) "
+                         "changed from its default (repeat for several)")
+    ap.add_argument("--cost-seeds", type=int, default=1,
+                    help="odometry: time the pose graph with each model on this many seeds (default 1)")
+    ap.add_argument("--compare", type=Path, action="append", default=[],
+                    help="another run's JSON whose odometry section the page shows too")
+    ap.add_argument("--page-from", type=Path, default=None,
+                    help="measure nothing: write --markdown from this run's JSON (and --compare)")
     ap.add_argument("--skip-odometry", action="store_true")
     ap.add_argument("--skip-loops", action="store_true")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
@@ -455,16 +701,33 @@ def main(argv: list[str] | None = None) -> int:
     if not set(without) <= set(WITHOUT):
         ap.error(f"--without takes {', '.join(WITHOUT)}")
     n_pairs = args.pairs or (400 if args.full else 120)
+    if args.page_from is not None:
+        import json
+
+        if args.markdown is None:
+            ap.error("--page-from needs --markdown")
+        page = dict(json.loads(args.page_from.read_text()),
+                    compare=[json.loads(p.read_text()) for p in args.compare])
+        write_page(args.markdown, markdown(page))
+        log(f"wrote {args.markdown}")
+        return 0
     payload: dict[str, Any] = {"benchmark": "nees", "machine": machine_info(),
-                               "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
+                               "args": {k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if k == "compare" else v)
+                                        for k, v in vars(args).items()}}
     if not args.skip_odometry:
-        payload["odometry"] = odometry_part(seeds, args.route, args.keyframe_m, without)
-        print(f"\nodometry edges, {args.route}: mean NEES of N chained edges (filter's joint covariance)")
+        ekf: dict[str, float] = {}
+        for item in args.ekf:
+            name, _, value = item.partition("=")
+            if name not in EkfParams.__dataclass_fields__ or not value:
+                ap.error(f"--ekf takes NAME=VALUE with NAME a field of EkfParams, got {item!r}")
+            ekf[name] = float(value)
+        payload["odometry"] = odometry_part(seeds, args.route, args.keyframe_m, without, ekf, args.cost_seeds)
+        print(f"\nodometry edges, {args.route}: mean NEES of N chained edges per model (yaw, position) [seeds]")
+        print_table(*odometry_model_rows(payload["odometry"]))
+        print("\nper seed, bias + scale variables")
         print_table(*odometry_rows(payload["odometry"]))
-        print("\nmean over seeds, parts (independent edges)")
-        print_table(ODO_PART_HEAD, odometry_part_rows(payload["odometry"], "graph"))
-        print("\nmean over seeds, parts (the filter's joint covariance)")
-        print_table(ODO_PART_HEAD, odometry_part_rows(payload["odometry"], "filter"))
+        print("\ngraph cost, same run")
+        print_table(*cost_rows(payload["odometry"]))
     if not args.skip_loops:
         payload["loops"] = loop_part([f for f in args.floors.split(",") if f], n_pairs, args.seed)
         print("\nloop edges from rendered pairs")
@@ -474,7 +737,10 @@ def main(argv: list[str] | None = None) -> int:
     path = write_json(args.out, payload)
     log(f"wrote {path}")
     if args.markdown is not None:
-        write_page(args.markdown, markdown(payload))
+        import json
+
+        page = dict(payload, compare=[json.loads(p.read_text()) for p in args.compare])
+        write_page(args.markdown, markdown(page))
         log(f"wrote {args.markdown}")
     return 0
 

@@ -32,8 +32,7 @@ def render(result: dict) -> str:
         "*features included* (median and 99th percentile) and its ratio to OpenCV's own ORB "
         "extraction (300 keypoints) of the same images in the same run, words the search "
         "holds at the end, and bytes per image held by the detector (stored images + "
-        "inverted index + word search, divided by the images; the word search is usearch's own "
-        "figure, its reserved capacity included, which dominates on a short sequence).",
+        "inverted index + word search, divided by the images).",
         "",
         "Times come from a shared 2-core machine whose load varied during and between runs: "
         "compare a row's time with OpenCV's ORB *of the same run* (the `ORB ms` and `x ORB` "
@@ -47,10 +46,16 @@ def render(result: dict) -> str:
         "is the baseline of `robotd eval forward` (SIFT matching and five-point RANSAC against "
         "every past image).",
         "",
-        "The word search: `default` and the rows marked *(word tree)* ran with robotd's own "
-        "binary word tree (the default search); the rows marked *(usearch)* and the other "
-        "ablation rows ran with the usearch index it replaced (kept for SIFT words). Compare "
-        "a lever with the default of the same search.",
+        "Rows: `default` is the default detector (ORB 300, purge 50, total p > 0.3, every "
+        "candidate verified); `previous default` the one before it (total p > 0.5, k = 2 "
+        "consistent candidates), and `previous default, X` that detector with one lever X "
+        "changed; `default, X` the default with X changed. `default as the daemon runs it` "
+        "adds the levers the daemon uses (`robotd.forward.detector.daemon_params`: the "
+        "odometry likelihood, no support test when odometry agrees, 3 verifications, "
+        "total p > 0.5). All "
+        "rows ran with robotd's binary word tree. Rows of one sequence may come from "
+        "different runs (the time columns then differ by the machine's load; the ratio to "
+        "OpenCV's ORB is of each row's own run).",
         "",
     ]
     keys = ("machine", "cpu_count", "python", "numpy", "opencv", "usearch")

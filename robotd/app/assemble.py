@@ -154,10 +154,13 @@ def build_forward_stage(cfg: Config, store: MapStore | None = None) -> Any:
     from dataclasses import replace
 
     from robotd.forward import FeatureParams, ForwardDetector, method_params
+    from robotd.forward.detector import daemon_params
 
     f, cam = cfg.forward_detector, cfg.forward_camera
     k = np.array([[cam.fx_px, 0.0, cam.cx_px], [0.0, cam.fy_px, cam.cy_px], [0.0, 0.0, 1.0]])
     params = method_params(f.method)
+    if f.method == "default":  # the keyframes' fused pose and the graph's gate behind it
+        params = daemon_params(params)
     # [forward_detector] features is one of 'auto', 'sift', 'orb' (the config's choices).
     kind = params.features.kind if f.features == "auto" else cast(FeatureKind, f.features)
     n_feat = f.max_features or (params.features.max_features if kind == params.features.kind else 0)

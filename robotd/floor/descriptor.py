@@ -25,9 +25,9 @@ floor's scale barely changes between views, its rotation changes all the time.
    budget is filled greedily in that order.
 3. **Local descriptors** of the selected keypoints only: 4 x 4 cells x 8 orientation
    bins of gradients in a patch rotated to the keypoint's orientation (SIFT-like). The
-   gradient orientation maps are pooled once over the image (as DAISY does), at a quarter
-   of the half-resolution image's pixels (``pool_step``: they are smooth at the pooling
-   scale), and one ``cv2.remap`` samples every keypoint's rotated 4 x 4 grid; the 8 bins
+   gradient orientation maps are pooled once over the image (as DAISY does; optionally at
+   a quarter of the half-resolution image's pixels, ``pool_step``: they are smooth at the
+   pooling scale), and one ``cv2.remap`` samples every keypoint's rotated 4 x 4 grid; the 8 bins
    are turned by the keypoint's orientation (linear interpolation between whole-bin
    shifts).
 4. **Compression** (CDVS: a fixed transform of each cell's histogram, then ternary
@@ -85,7 +85,8 @@ from robotd.floor.descparams import (
     load_learned,
     shipped_learned,
 )
-from robotd.floor.keypoints import candidates, drop_repeats, grey, kept_for_budget, raw_descriptors, working
+from robotd.floor.keypoints import (candidates, drop_repeats, grey, kept_for_budget, raw_descriptors, working,
+                                    workspace)
 
 __all__ = ["ANGLE_BITS", "MODE_BYTES", "MODES", "POSITION_STEP_PX", "ExtractParams", "FloorDescriptor",
            "Learned", "decode", "describe", "drop_repeats", "extract", "load_learned"]
@@ -151,8 +152,9 @@ def extract(image: np.ndarray, mode: int, params: ExtractParams | None = None) -
     work = working(grey_img, params)
     wh, ww = work.shape
     grid_w, grid_h = -(-ww // POSITION_STEP_PX), -(-wh // POSITION_STEP_PX)
-    c, raw_checked, n = kept_for_budget(candidates(work, params, learned), params, spec, grid_w, grid_h,
-                                         basis=_orthonormal_basis(learned))
+    ws = workspace(wh // 2, ww // 2)
+    c, raw_checked, n = kept_for_budget(candidates(work, params, learned, ws), params, spec, grid_w, grid_h,
+                                         basis=_orthonormal_basis(learned), ws=ws)
     coded = cells(c.xy, grid_w, grid_h)
     m = min(len(c.xy), max(n, params.global_min_features))
     raw = raw_checked[:m] if m <= len(raw_checked) else raw_descriptors(c, m, params)

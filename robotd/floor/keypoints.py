@@ -5,6 +5,7 @@ descriptors of the selected keypoints."""
 from __future__ import annotations
 
 import math
+import threading
 from functools import lru_cache
 from typing import NamedTuple
 
@@ -14,8 +15,8 @@ import numpy as np
 from robotd.floor.desccoding import cells, fit
 from robotd.floor.descparams import N_ATTRIBUTES, N_ELEMENTS, ExtractParams, Learned, ModeSpec
 
-__all__ = ["Candidates", "candidates", "drop_repeats", "grey", "kept_for_budget", "raw_descriptors",
-           "working"]
+__all__ = ["Candidates", "Workspace", "candidates", "drop_repeats", "grey", "kept_for_budget", "raw_descriptors",
+           "working", "workspace"]
 
 
 class Candidates(NamedTuple):
@@ -56,10 +57,78 @@ def working(grey: np.ndarray, params: ExtractParams) -> np.ndarray:
     return grey
 
 
-def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None) -> Candidates:
+class Workspace:
+    """Reusable buffers for :func:`candidates` on one half-resolution size ``(h2, w2)``.
+
+    Each full-image array of the detection is ``h2 x w2`` float32 (300 KB at 640 x 480),
+    above the C allocator's threshold for handing memory back to the system: allocated
+    afresh per frame, every page of every such array is faulted in again (about 1,500
+    page faults per frame in a process that only describes, four tenths of the
+    extraction's CPU time on the machine the benchmarks run on; fewer where other large
+    arrays have raised the allocator's threshold). Kept per thread (:func:`workspace`),
+    about 10 MB at 640 x 480.
+    The pooled maps of the :class:`Candidates` that :func:`candidates` returns are these
+    buffers: the next call on the same workspace overwrites them.
+    """
+
+    def __init__(self, h2: int, w2: int) -> None:
+        self.shape = (h2, w2)
+        f32 = [np.empty((h2, w2), np.float32) for _ in range(8)]
+        self.x, self.g1, self.d, self.t1, self.t2, self.gx, self.gy, self.mag = f32
+        self.ang = np.empty((h2, w2), np.float32)
+        self.e1, self.e2 = np.empty((h2, w2), bool), np.empty((h2, w2), bool)
+        self.grad = np.empty((h2, w2, 2), np.float32)
+        self.f64a, self.f64b = np.empty((h2, w2), np.float64), np.empty((h2, w2), np.float64)
+        self.i0, self.idx = np.empty((h2, w2), np.intp), np.empty((h2, w2), np.intp)
+        self.ch = np.empty(8 * h2 * w2, np.float32)
+        self.pooled = (np.empty((h2, w2, 4), np.float32), np.empty((h2, w2, 4), np.float32))
+        self._flat: dict[str, np.ndarray] = {}
+        self._half: Workspace | None = None
+
+    def half(self) -> Workspace:
+        """The workspace of this size halved (the maps at ``pool_step`` or ``orientation_step`` 2)."""
+        if self._half is None:
+            self._half = Workspace(self.shape[0] // 2, self.shape[1] // 2)
+        return self._half
+
+    def buffer(self, name: str, shape: tuple[int, ...], dtype: type = np.float32) -> np.ndarray:
+        """A C-contiguous ``shape`` array of ``dtype`` (uninitialised) in the reusable buffer
+        ``name``, which grows as needed."""
+        size = math.prod(shape)
+        b = self._flat.get(name)
+        if b is None or b.size < size or b.dtype != dtype:
+            b = self._flat[name] = np.empty(max(size, 1), dtype)
+        return b[:size].reshape(shape)
+
+
+_local = threading.local()
+
+
+def workspace(h2: int, w2: int) -> Workspace:
+    """This thread's :class:`Workspace` for half-resolution size ``(h2, w2)`` (one size kept)."""
+    ws = getattr(_local, "ws", None)
+    if ws is None or ws.shape != (h2, w2):
+        ws = _local.ws = Workspace(h2, w2)
+    return ws
+
+
+def _std(x: np.ndarray, tmp: np.ndarray) -> float:
+    """``float(x.std())`` of a float32 image, computed as numpy does (same rounding), with
+    ``tmp`` (same shape and type) for the deviations instead of a fresh array."""
+    mean = np.add.reduce(x, axis=None, keepdims=True)
+    np.true_divide(mean, x.size, out=mean, casting="unsafe")
+    np.subtract(x, mean, out=tmp)
+    np.multiply(tmp, tmp, out=tmp)
+    return float(np.sqrt(np.add.reduce(tmp, axis=None) / x.size))
+
+
+def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None,
+               ws: Workspace | None = None) -> Candidates:
     """Steps 1 and 2: keypoints of a working image ``(h, w) uint8`` with their attributes.
 
-    Sorted by decreasing relevance (by response when ``learned`` is None).
+    Sorted by decreasing relevance (by response when ``learned`` is None). ``ws``: the
+    buffers to compute in (:class:`Workspace`; the returned pooled maps are its buffers);
+    None allocates fresh ones.
     """
     h2, w2 = work.shape[0] // 2, work.shape[1] // 2
     empty = Candidates(np.zeros((0, 2), np.float32), np.zeros(0, np.float32),
@@ -68,16 +137,21 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None)
     border = int(math.ceil(params.cell_px))  # keep the inner cells inside the image
     if min(h2, w2) < 2 * border + 3:
         return empty
-    x = cv2.resize(work, (w2, h2), interpolation=cv2.INTER_AREA).astype(np.float32)
-    x *= np.float32(1.0 / max(float(x.std()), 1.0))  # flat images: no keypoint passes
+    if ws is None or ws.shape != (h2, w2):
+        ws = Workspace(h2, w2)
+    x = ws.x
+    np.copyto(x, cv2.resize(work, (w2, h2), interpolation=cv2.INTER_AREA), casting="unsafe")
+    x *= np.float32(1.0 / max(_std(x, ws.t1), 1.0))  # flat images: no keypoint passes
     s = params.detect_sigma_px
-    g1 = cv2.GaussianBlur(x, (0, 0), s)
-    d = g1 - cv2.GaussianBlur(g1, (0, 0), s * math.sqrt(params.dog_ratio**2 - 1.0))
+    g1 = cv2.GaussianBlur(x, (0, 0), s, dst=ws.g1)
+    d = np.subtract(g1, cv2.GaussianBlur(g1, (0, 0), s * math.sqrt(params.dog_ratio**2 - 1.0), dst=ws.t1),
+                    out=ws.d)
     square = np.ones((3, 3), np.uint8)  # OpenCV's default kernel (None): the 8-neighbourhood
-    ext = (d == cv2.dilate(d, square)) | (d == cv2.erode(d, square))
-    ext &= np.abs(d) > params.min_contrast
+    ext = np.equal(d, cv2.dilate(d, square, dst=ws.t1), out=ws.e1)
+    ext |= np.equal(d, cv2.erode(d, square, dst=ws.t1), out=ws.e2)
+    ext &= np.greater(np.abs(d, out=ws.t1), params.min_contrast, out=ws.e2)
     ext[:border], ext[-border:], ext[:, :border], ext[:, -border:] = False, False, False, False
-    ys, xs = np.nonzero(ext)
+    ys, xs = np.divmod(np.flatnonzero(ext), w2)  # np.nonzero's order, a third of its time
     dc = d[ys, xs]
     if len(dc) > params.max_candidates:
         keep = np.argpartition(-np.abs(dc), params.max_candidates - 1)[: params.max_candidates]
@@ -101,15 +175,18 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None)
     # With orientation_step 2 it is taken on g1 halved (area averaging), smoothed by what
     # the sigma lacks after g1's and the halving's smoothing, and scaled back to
     # half-resolution pixels; the pooled maps start from the same halved image.
-    quarter = (cv2.resize(g1, (w2 // 2, h2 // 2), interpolation=cv2.INTER_AREA)
+    half = ws.half() if 2 in (params.orientation_step, params.pool_step) else ws
+    quarter = (cv2.resize(g1, (w2 // 2, h2 // 2), dst=half.x, interpolation=cv2.INTER_AREA)
                if 2 in (params.orientation_step, params.pool_step) else g1)
     if params.orientation_step == 2:
         so = math.sqrt(max(params.orientation_sigma_px**2 - s * s - 0.25, 0.25)) / 2
-        go, at, gain = cv2.GaussianBlur(quarter, (0, 0), so), (xy_half - 0.5) * 0.5, 0.5
+        go, at, gain = cv2.GaussianBlur(quarter, (0, 0), so, dst=half.g1), (xy_half - 0.5) * 0.5, 0.5
+        grad = cv2.merge([cv2.Sobel(go, cv2.CV_32F, 1, 0, dst=half.gx, ksize=1, scale=gain),
+                          cv2.Sobel(go, cv2.CV_32F, 0, 1, dst=half.gy, ksize=1, scale=gain)], dst=half.grad)
     else:
-        go, at, gain = cv2.GaussianBlur(x, (0, 0), params.orientation_sigma_px), xy_half, 1.0
-    grad = cv2.merge([cv2.Sobel(go, cv2.CV_32F, 1, 0, ksize=1, scale=gain),
-                      cv2.Sobel(go, cv2.CV_32F, 0, 1, ksize=1, scale=gain)])
+        go, at = cv2.GaussianBlur(x, (0, 0), params.orientation_sigma_px, dst=ws.t1), xy_half
+        grad = cv2.merge([cv2.Sobel(go, cv2.CV_32F, 1, 0, dst=ws.gx, ksize=1),
+                          cv2.Sobel(go, cv2.CV_32F, 0, 1, dst=ws.gy, ksize=1)], dst=ws.grad)
     v = cv2.remap(grad, np.ascontiguousarray(at[:, :1]), np.ascontiguousarray(at[:, 1:]),
                   cv2.INTER_LINEAR).reshape(-1, 2)
     angle = np.arctan2(v[:, 1], v[:, 0]).astype(np.float32) % np.float32(2 * math.pi)
@@ -125,41 +202,52 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None)
             relevance += learned.rel_logp[a][np.searchsorted(learned.rel_edges[a], attributes[:, a])]
     order = np.argsort(-relevance, kind="stable")
     if params.pool_step == 2:  # the halving's smoothing and the sampling's bilinear interpolation deducted
-        pooled = _pooled_orientation_maps(quarter, math.sqrt(max(params.pool_sigma_px**2 - 1.0, 0.25)) / 2)
+        pooled = _pooled_orientation_maps(quarter, math.sqrt(max(params.pool_sigma_px**2 - 1.0, 0.25)) / 2, half)
     else:
-        pooled = _pooled_orientation_maps(g1, params.pool_sigma_px)
+        pooled = _pooled_orientation_maps(g1, params.pool_sigma_px, ws)
     return Candidates(xy[order], angle[order], attributes[order], relevance[order], pooled)
 
 
-def _pooled_orientation_maps(g: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+def _pooled_orientation_maps(g: np.ndarray, sigma: float, ws: Workspace | None = None) -> tuple[np.ndarray, np.ndarray]:
     """8 gradient-orientation channels of ``g`` (each gradient's magnitude split linearly
     between the two nearest of 8 directions), Gaussian-pooled at ``sigma`` pixels of ``g``:
     two ``(h, w, 4) float32`` images (directions 0-3 and 4-7; OpenCV filters and remaps up
-    to 4 channels fastest)."""
-    mag, ang = cv2.cartToPolar(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=1), cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=1))
-    b = ang * np.float32(8 / (2 * math.pi))
-    b0 = b.astype(np.int32)
-    hi = mag * (b - b0)
+    to 4 channels fastest). ``ws``: buffers of ``g``'s size (the result is its ``pooled``)."""
     h, w = g.shape
+    if ws is None or ws.shape != (h, w):
+        ws = Workspace(h, w)
+    mag, ang = cv2.cartToPolar(cv2.Sobel(g, cv2.CV_32F, 1, 0, dst=ws.gx, ksize=1),
+                               cv2.Sobel(g, cv2.CV_32F, 0, 1, dst=ws.gy, ksize=1), magnitude=ws.mag, angle=ws.ang)
+    b = np.multiply(ang, np.float32(8 / (2 * math.pi)), out=ws.t1)
+    b0 = ws.i0
+    np.copyto(b0, b, casting="unsafe")  # truncation, as astype
+    hi = np.subtract(b, b0, out=ws.f64a)  # float64, as the expression mag * (b - b0)
+    np.multiply(mag, hi, out=hi)
     # Direction d of pixel p goes to plane d // 4, slot 4 p + d % 4; both planes contiguous.
     base, slot = _slots(h, w)
-    ch = np.zeros(8 * h * w, np.float32)
+    ch = ws.ch
+    ch.fill(0.0)
+    idx = ws.idx
     b0 &= 7
-    ch[base + slot[b0]] = mag - hi
+    np.add(np.take(slot, b0, out=idx), base, out=idx)
+    ch[idx] = np.subtract(mag, hi, out=ws.t2, casting="same_kind")
     b0 += 1
     b0 &= 7
-    ch[base + slot[b0]] = hi  # never the slot just written
-    ch = ch.reshape(2, h, w, 4)
+    np.add(np.take(slot, b0, out=idx), base, out=idx)
+    np.copyto(ws.t2, hi, casting="same_kind")
+    ch[idx] = ws.t2  # never the slot just written
+    ch4 = ch.reshape(2, h, w, 4)
     k = 2 * int(math.ceil(2 * sigma)) + 1
-    return cv2.GaussianBlur(ch[0], (k, k), sigma), cv2.GaussianBlur(ch[1], (k, k), sigma)
+    return (cv2.GaussianBlur(ch4[0], (k, k), sigma, dst=ws.pooled[0]),
+            cv2.GaussianBlur(ch4[1], (k, k), sigma, dst=ws.pooled[1]))
 
 
 @lru_cache(maxsize=4)
 def _slots(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(h, w) int32`` ``4 p`` for pixel ``p`` (row-major), and ``(8,) int32`` the offset
+    """``(h, w) intp`` ``4 p`` for pixel ``p`` (row-major), and ``(8,) intp`` the offset
     of direction ``d`` from it in the two stacked ``(h, w, 4)`` planes."""
-    d = np.arange(8, dtype=np.int32)
-    return np.arange(0, 4 * h * w, 4, dtype=np.int32).reshape(h, w), (d >> 2) * (4 * h * w) + (d & 3)
+    d = np.arange(8, dtype=np.intp)
+    return np.arange(0, 4 * h * w, 4, dtype=np.intp).reshape(h, w), (d >> 2) * (4 * h * w) + (d & 3)
 
 
 _SHIFTS = np.stack([np.roll(np.eye(8, dtype=np.float32), s, axis=0) for s in range(9)])
@@ -167,11 +255,13 @@ _SHIFTS = np.stack([np.roll(np.eye(8, dtype=np.float32), s, axis=0) for s in ran
 _GRID = np.meshgrid(np.arange(4, dtype=np.float32) - 1.5, np.arange(4, dtype=np.float32) - 1.5)
 
 
-def raw_descriptors(c: Candidates, n: int, params: ExtractParams) -> np.ndarray:
+def raw_descriptors(c: Candidates, n: int, params: ExtractParams, ws: Workspace | None = None) -> np.ndarray:
     """Step 3: SIFT-like ``(n, 128) float32`` descriptors of the first ``n`` candidates.
 
     Cell-major (16 cells row by row in the keypoint's frame) x 8 relative orientation
     bins; L2-normalised, clipped at 0.2 and renormalised (Lowe 2004, Sec. 6.1).
+    ``ws``: compute in its buffers; the result is then one of them (valid until the
+    next call with ``ws``).
     """
     if n == 0:
         return np.zeros((0, N_ELEMENTS), np.float32)
@@ -185,17 +275,31 @@ def raw_descriptors(c: Candidates, n: int, params: ExtractParams) -> np.ndarray:
     if params.pool_step == 2:  # pixel centres of the halved maps
         mx = (mx - 0.5) * 0.5
         my = (my - 0.5) * 0.5
-    smp = np.concatenate([cv2.remap(p, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
-                          for p in c.pooled], axis=2)  # (n, 16, 8): directions 0-7
+    if ws is None:
+        smp = np.concatenate([cv2.remap(p, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
+                              for p in c.pooled], axis=2)  # (n, 16, 8): directions 0-7
+    else:
+        smp = ws.buffer("smp", (n, 16, 8))
+        for i, p in enumerate(c.pooled):
+            smp[:, :, 4 * i:4 * i + 4] = cv2.remap(p, mx, my, cv2.INTER_LINEAR, dst=ws.buffer(f"smp{i}", (n, 16, 4)),
+                                                   borderMode=cv2.BORDER_REFLECT_101)
     # Turn the 8 absolute directions into directions relative to the keypoint: relative
     # bin j is absolute direction angle + j * 45 deg, interpolated between whole bins,
     # one 8 x 8 matrix per keypoint (a blend of two circular shifts).
     a = ang * np.float32(8 / (2 * math.pi))
     a0 = a.astype(np.intp) & 7
     f = (a - np.floor(a))[:, None, None]
-    turn = _SHIFTS[a0] * (1 - f)
-    turn += _SHIFTS[a0 + 1] * f
-    d = np.matmul(smp, turn)
+    if ws is None:
+        turn = _SHIFTS[a0] * (1 - f)
+        turn += _SHIFTS[a0 + 1] * f
+        d = np.matmul(smp, turn)
+    else:
+        turn = np.take(_SHIFTS, a0, axis=0, out=ws.buffer("turn", (n, 8, 8)))
+        turn *= 1 - f
+        other = np.take(_SHIFTS, a0 + 1, axis=0, out=ws.buffer("turn1", (n, 8, 8)))
+        other *= f
+        turn += other
+        d = np.matmul(smp, turn, out=ws.buffer("raw", (n, 16, 8)))
     d = d.reshape(n, N_ELEMENTS)
     d *= 1 / np.maximum(np.sqrt(np.einsum("ij,ij->i", d, d)), 1e-12)[:, None]
     np.minimum(d, 0.2, out=d)
@@ -237,7 +341,7 @@ def drop_repeats(c: Candidates, params: ExtractParams) -> tuple[Candidates, np.n
 
 
 def _repeats(raw: np.ndarray, xy: np.ndarray, start: int, stop: int, params: ExtractParams,
-             projected: np.ndarray | None = None) -> np.ndarray:
+             projected: np.ndarray | None = None, ws: Workspace | None = None) -> np.ndarray:
     """``(stop - start,) bool``: which of the checked candidates ``start:stop`` repeat
     (:func:`drop_repeats`) among all ``K`` checked ones, given their ``(K, 128)`` raw
     descriptors and ``(K, 2)`` working-image positions. Rows are independent, so the
@@ -248,6 +352,7 @@ def _repeats(raw: np.ndarray, xy: np.ndarray, start: int, stop: int, params: Ext
     columns (the learned PCA basis). A projection never lengthens a difference, so the
     pairs within ``repeat_distance`` after it include every pair within it before; only
     those few are measured in 128 dimensions. Same result, a quarter of the arithmetic.
+    ``ws``: buffers for the ``(stop - start, K)`` products (same result).
     """
     t2 = params.repeat_distance**2
     sq = np.einsum("ij,ij->i", raw, raw)
@@ -269,7 +374,12 @@ def _repeats(raw: np.ndarray, xy: np.ndarray, start: int, stop: int, params: Ext
         cols[:, :-2] = projected
         cols[:, -2] = 1.0
         cols[:, -1] = 0.5 * (t2 + 1e-3 - zq)
-        i, j = np.nonzero(rows @ cols.T > 0)
+        if ws is None:
+            i, j = np.nonzero(rows @ cols.T > 0)
+        else:
+            shape = (stop - start, len(projected))
+            prod = np.matmul(rows, cols.T, out=ws.buffer("prod", shape))
+            i, j = np.divmod(np.flatnonzero(np.greater(prod, 0, out=ws.buffer("near", shape, bool))), shape[1])
         exact = np.einsum("ij,ij->i", raw[start + i], raw[j])
         exact *= -2.0
         exact += sq[start + i]
@@ -283,8 +393,20 @@ def _repeats(raw: np.ndarray, xy: np.ndarray, start: int, stop: int, params: Ext
     return out
 
 
+def repeat_pool(params: ExtractParams, first: int, available: int) -> int:
+    """How many candidates the repeat check takes (:func:`kept_for_budget`): ``repeat_pool``,
+    or with ``repeat_pool_ratio`` > 0 that many times ``first`` (what the budget codes with
+    no repeat dropped, or the global descriptor's minimum, plus one) when fewer; at most
+    ``available``."""
+    k = params.repeat_pool
+    if params.repeat_pool_ratio > 0:
+        k = min(k, math.ceil(params.repeat_pool_ratio * first))
+    return min(k, available)
+
+
 def kept_for_budget(c: Candidates, params: ExtractParams, spec: ModeSpec, grid_w: int, grid_h: int,
-                     block: int = 256, basis: np.ndarray | None = None) -> tuple[Candidates, np.ndarray, int]:
+                     block: int = 256, basis: np.ndarray | None = None,
+                     ws: Workspace | None = None) -> tuple[Candidates, np.ndarray, int]:
     """:func:`drop_repeats` and :func:`~robotd.floor.desccoding.fit` together, deciding only the rows needed.
 
     The coded keypoints are the first ``n`` kept candidates and the global descriptor
@@ -293,10 +415,12 @@ def kept_for_budget(c: Candidates, params: ExtractParams, spec: ModeSpec, grid_w
     :func:`drop_repeats` does) a block at a time until the kept ones reach past what
     the budget codes. The first block is what the budget would code with no repeats
     dropped, and a fifth more; then ``block`` at a time. The result is the same as
-    ``drop_repeats`` then ``fit`` for everything :func:`extract` uses: the returned
+    ``drop_repeats`` (with the pool of :func:`repeat_pool`) then ``fit`` for everything
+    :func:`extract` uses: the returned
     candidates are exact up to the first ``max(n + 1, global_min_features)`` kept ones,
     and end there when not all were checked. ``basis``: a ``(128, P)`` matrix with
     orthonormal columns that prefilters the pairs (:func:`_repeats`; same result).
+    ``ws``: buffers for the pool's raw descriptors and the pair products (same result).
 
     Returns the kept candidates, the raw descriptors of the first of them (the checked
     ones) and ``n``.
@@ -305,16 +429,17 @@ def kept_for_budget(c: Candidates, params: ExtractParams, spec: ModeSpec, grid_w
     if params.repeat_distance <= 0 or k < 2:
         kept, raw = c, raw_descriptors(c, k, params)
         return kept, raw, fit(spec, cells(kept.xy, grid_w, grid_h))
-    raw = raw_descriptors(c, k, params)
+    n = fit(spec, cells(c.xy[:k], grid_w, grid_h))
+    first = max(n + 1, params.global_min_features)
+    k = max(2, repeat_pool(params, first, k))
+    raw = raw_descriptors(c, k, params, ws)
     projected = None if basis is None else raw @ basis
     repeat = np.zeros(k, bool)
     done = 0
-    n = fit(spec, cells(c.xy[:k], grid_w, grid_h))
-    first = max(n + 1, params.global_min_features)
     step = min(k, first + first // 5 + 8)
     while True:
         stop = min(k, done + step)
-        repeat[done:stop] = _repeats(raw, c.xy[:k], done, stop, params, projected)
+        repeat[done:stop] = _repeats(raw, c.xy[:k], done, stop, params, projected, ws)
         done = stop
         step = block
         keep = np.flatnonzero(~repeat[:done])

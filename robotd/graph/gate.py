@@ -239,13 +239,14 @@ class GatedGraph:
             fate(LoopFate.FAILED_GATE, f"chi2 {d2:.1f} > {self.gate_chi2:.2f}")
             return
         t0 = time.perf_counter()
-        self.graph.add_loop(from_id, to_id, delta, info)
+        in_graph = self.graph.add_loop(from_id, to_id, delta, info)
         self.update_ms.append((time.perf_counter() - t0) * 1e3)
         if source == "forward":
             self.forward_accepted += 1
         else:
             self.accepted += 1
-        self._loops[(from_id, to_id)] = (to_id, score)
+        if in_graph:  # a loop left out of the graph (add_loop) is never down-weighted
+            self._loops[(from_id, to_id)] = (to_id, score)
         if self.mapped_ground is not None:
             self.mapped_ground.loop_accepted(to_id)
         fate(LoopFate.ACCEPTED, f"chi2 {d2:.2f}")

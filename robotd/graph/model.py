@@ -121,13 +121,18 @@ class PoseGraph:
     def add_edge(self, from_id: int, to_id: int, delta: Iterable[float],
                  information: np.ndarray | Iterable[Iterable[float]], kind: EdgeKind) -> Edge:
         """Add an edge between two existing vertices; returns it."""
+        edge = self.check_edge(from_id, to_id, delta, information, kind)
+        self._edges.append(edge)
+        return edge
+
+    def check_edge(self, from_id: int, to_id: int, delta: Iterable[float],
+                   information: np.ndarray | Iterable[Iterable[float]], kind: EdgeKind) -> Edge:
+        """The edge :meth:`add_edge` would add (the same GraphErrors), not added."""
         a, b = int(from_id), int(to_id)
         for kid in (a, b):
             if kid not in self._poses:
                 raise GraphError(f"edge {a} -> {b}: no vertex {kid}")
-        edge = make_edge(a, b, delta, information, kind)
-        self._edges.append(edge)
-        return edge
+        return make_edge(a, b, delta, information, kind)
 
     def add_edges(self, edges: Iterable[Edge]) -> None:
         """Add already-checked edges (from :func:`make_edge`) between existing vertices."""

@@ -56,7 +56,7 @@ from robotd.odometry.kinematics import (
     unwrap_ticks_delta,
     wheel_increment,
 )
-from robotd.odometry.history import PoseHistory
+from robotd.odometry.history import EdgeBiasTerms, PoseHistory
 from robotd.odometry.journal import Journal, Snapshot
 from robotd.odometry.relative import (
     PoseClone,
@@ -470,6 +470,14 @@ class OdometryFilter:
         if self._twin is not None:
             return self._twin.keyframe_edge(stamp_ns)
         return self._history.keyframe_edge(stamp_ns)
+
+    def keyframe_edge_terms(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray, EdgeBiasTerms] | None:
+        """:meth:`keyframe_edge` with what the edge shares with the gyro bias
+        (:meth:`robotd.odometry.history.PoseHistory.keyframe_edge_terms`; call one or the
+        other once per keyframe)."""
+        if self._twin is not None:
+            return self._twin.keyframe_edge_terms(stamp_ns)
+        return self._history.keyframe_edge_terms(stamp_ns)
 
     def _record(self) -> None:
         s = self._state

@@ -16,13 +16,49 @@ from typing import NamedTuple
 
 import numpy as np
 
-from robotd.base.geometry import between, between_error_covariance, interpolate_poses, inverse
+from robotd.base.geometry import between, between_error_covariance, interpolate_poses, inverse, rot2
 from robotd.base.messages import PoseStamped
-from robotd.odometry.ekf import STATE_SIZE, EkfState
+from robotd.odometry.ekf import IB, STATE_SIZE, EkfState
 from robotd.odometry.increments import floor_covariance
-from robotd.odometry.relative import PoseClone, relative_pose_covariance, shift_measurement
+from robotd.odometry.relative import (
+    PoseClone,
+    relative_pose_covariance,
+    relative_pose_jacobians,
+    shift_jacobian,
+    shift_measurement,
+)
 
-__all__ = ["HistoryMark", "PoseHistory"]
+__all__ = ["EdgeBiasTerms", "HistoryMark", "PoseHistory"]
+
+
+class EdgeBiasTerms(NamedTuple):
+    """What a keyframe edge shares with the gyro bias (:meth:`PoseHistory.keyframe_edge_terms`),
+    for a pose graph that keeps the bias as a variable (:mod:`robotd.graph.bias`).
+
+    The edge's error ``eps`` (the pose graph's, in the frame of its end, as its covariance)
+    and the filter's bias error ``db = b_hat - b`` at the edge's start are jointly Gaussian
+    in the filter; conditioned on ``db``, ``eps ~ N(jac_bias * db, cov_given_bias)``.
+
+    Fields:
+        cov_given_bias: ``(3, 3)`` the edge's covariance given the bias at its start
+            (``C - g g^T / P``, ``g = Cov(eps, db)``), floored as the edge's own.
+        jac_bias: ``(3,)`` ``g / P``: the edge's error per rad/s of bias error at its start
+            (m and rad per rad/s).
+        bias_radps: the filter's bias estimate ``b_hat`` at the edge's start, rad/s.
+        bias_var: its variance ``P``, (rad/s)^2.
+        bias_end_radps: the estimate at the edge's end, rad/s.
+        bias_end_var: its variance, (rad/s)^2.
+        bias_cov: the covariance of the bias errors at the start and the end, (rad/s)^2
+            (the filter's: the two are one random walk seen through the same readings).
+    """
+
+    cov_given_bias: np.ndarray
+    jac_bias: np.ndarray
+    bias_radps: float
+    bias_var: float
+    bias_end_radps: float
+    bias_end_var: float
+    bias_cov: float
 
 
 class HistoryMark(NamedTuple):
@@ -176,6 +212,14 @@ class PoseHistory:
         route the edges made without that term made iSAM2's system indeterminate after
         about 400 keyframes.
         """
+        got = self.keyframe_edge_terms(stamp_ns)
+        return None if got is None else (got[0], got[1])
+
+    def keyframe_edge_terms(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray, EdgeBiasTerms] | None:
+        """:meth:`keyframe_edge` (call one or the other once per keyframe) with the edge's
+        :class:`EdgeBiasTerms`: ``(delta (3,), covariance (3, 3), terms)``, from the same
+        joint covariance of the two keyframes' states (the bias's rows of the first
+        state's covariance carried through the same error maps)."""
         ts = self._hist_t
         kf = self.pose_at(stamp_ns)
         if kf is None:
@@ -183,7 +227,7 @@ class PoseHistory:
             return None
         j = min(bisect.bisect_left(ts, stamp_ns), len(ts) - 1)  # the state at or after it
         offset = between(np.array([kf.x_m, kf.y_m, kf.yaw_rad]), self._hist_pose[j])
-        edge = None
+        edge: tuple[np.ndarray, np.ndarray, EdgeBiasTerms] | None = None
         if self._kf_t is not None:
             if self._anchor is not None:
                 _t, mean_a, cov_a = self._anchor
@@ -195,16 +239,34 @@ class PoseHistory:
             step = np.eye(STATE_SIZE)
             for m in self._hist_map[first:j + 1]:
                 step = m @ step
-            clone = PoseClone(self._kf_t, mean_a[:3], cov_a[:3, :3], step @ cov_a[:, :3], self._kf_offset)
+            cross = step @ cov_a  # Cov(state at j, state at the previous keyframe)
+            clone = PoseClone(self._kf_t, mean_a[:3], cov_a[:3, :3], cross[:, :3], self._kf_offset)
             h, cov_h = relative_pose_covariance(self._hist_pose[j], self._hist_cov[j], clone)
             # From the recorded states back to the keyframes' stamps (offsets taken as exact).
             delta, cov = shift_measurement(h, cov_h, inverse(self._kf_offset), inverse(offset))
-            edge = delta, floor_covariance(between_error_covariance(delta, cov))
+            cov = between_error_covariance(delta, cov)
+            edge = delta, floor_covariance(cov), self._bias_terms(mean_a, cov_a, cross, j, delta, cov, offset)
         if self._vo_fused_since_keyframe:  # no twin: see the docstring
             edge = None
         self._vo_fused_since_keyframe = False
         self._kf_t, self._kf_offset, self._anchor = ts[j], offset, None
         return edge
+
+    def _bias_terms(self, mean_a: np.ndarray, cov_a: np.ndarray, cross: np.ndarray, j: int,
+                    delta: np.ndarray, cov: np.ndarray, offset: np.ndarray) -> EdgeBiasTerms:
+        """The edge's :class:`EdgeBiasTerms`: ``cross (6, 6)`` the covariance of the state
+        recorded at ``j`` with the previous keyframe's (``mean_a``, ``cov_a``), ``delta`` and
+        ``cov`` the edge and its covariance in the frame of its end (unfloored)."""
+        _h, j_pose, j_clone = relative_pose_jacobians(mean_a[:3], self._hist_pose[j])
+        g = j_pose @ cross[:3, IB] + j_clone @ cov_a[:3, IB]  # Cov(h, bias at the start)
+        _z, j_shift = shift_jacobian(_h, inverse(self._kf_offset), inverse(offset))
+        g = j_shift @ g
+        g[:2] = rot2(float(delta[2])).T @ g[:2]  # as between_error_covariance
+        p = float(cov_a[IB, IB])
+        cond = floor_covariance(cov - np.outer(g, g) / p)
+        end_cov = self._hist_cov6[j]
+        return EdgeBiasTerms(cond, g / p, float(mean_a[IB]), p, float(self._hist_mean6[j][IB]),
+                             float(end_cov[IB, IB]), float(cross[IB, IB]))
 
     def settled_stamp_ns(self) -> int | None:
         """The newest stamp up to which :meth:`pose_at` is final (None before two poses).

@@ -48,7 +48,7 @@ from robotd.odometry.ekf import rate_gain
 
 __all__ = ["PoseClone", "clone_after_predict", "clone_after_update", "clone_pose",
            "relative_pose_covariance", "relative_pose_jacobians",
-           "shift_measurement", "update_relative_pose"]
+           "shift_jacobian", "shift_measurement", "update_relative_pose"]
 
 _IYAW = 2
 
@@ -131,13 +131,21 @@ def shift_measurement(z: np.ndarray, r: np.ndarray, offset_prev: np.ndarray,
     """A measurement between two keyframe stamps moved to the filter times of the clones:
     ``offset_prev^-1 (+) z (+) offset_now``, its covariance ``J R J^T`` (the offsets, a
     few ms of the filter's own motion, are taken as exact)."""
+    shifted, j = shift_jacobian(z, offset_prev, offset_now)
+    return shifted, j @ np.asarray(r, float) @ j.T
+
+
+def shift_jacobian(z: np.ndarray, offset_prev: np.ndarray, offset_now: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """``offset_prev^-1 (+) z (+) offset_now`` ``(3,)`` and its ``(3, 3)`` Jacobian with
+    respect to ``z`` (:func:`shift_measurement` carries a covariance through it; the
+    keyframe edge's bias terms, a cross-covariance)."""
     z = np.asarray(z, float)
     inv_prev = inverse(np.asarray(offset_prev, float))
     w = compose(z, offset_now)
     j_z, _ = compose_jacobians(z, offset_now)
     _, j_w = compose_jacobians(inv_prev, w)
-    j = j_w @ j_z
-    return compose(inv_prev, w), j @ np.asarray(r, float) @ j.T
+    return compose(inv_prev, w), j_w @ j_z
 
 
 def update_relative_pose(mean: np.ndarray, cov: np.ndarray, clone: PoseClone, z: np.ndarray,

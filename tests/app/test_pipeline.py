@@ -511,14 +511,16 @@ def test_forward_loops_enter_the_graph_by_bearing_and_heading(tmp_path: Path):
     from robotd.app.stages.pose_graph import PoseGraphStage
     from robotd.base.geometry import compose
     from robotd.base.messages import ForwardLoop
-    from robotd.graph.incremental import IncrementalGraph
+    from robotd.graph.incremental import IncrementalGraph, IncrementalParams
 
     mount = np.array([0.1, 0.0, 0.0])
     truth = _drifting_square()
     with MapStore.open(tmp_path / "map.sqlite") as store:
         run = store.begin_run("")
         p = Pipeline()
-        p.add(PoseGraphStage(IncrementalGraph(), store, forward_mount=mount))
+        # every loop into the graph: five loops on 40 keyframes 0.25 m apart, not the
+        # repeated passes that loop_spacing (in keyframes) thins
+        p.add(PoseGraphStage(IncrementalGraph(IncrementalParams(loop_spacing=0)), store, forward_mount=mount))
         p.add(MapWriterStage(store, run, image_width_px=0, takes=Keyframe))
         odo = _publish_drifting_odometry(p, truth)
         ids = [k.id for k in store.keyframes()]

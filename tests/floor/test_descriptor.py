@@ -238,10 +238,16 @@ def test_describe_is_decode_of_extract(frames):
 def test_decoded_keypoints_are_the_most_relevant_candidates(frames, mode):
     """Positions within half a grid step, angles within half a quantisation step, and the
     trits exactly as ternarised, for the ``n`` most relevant candidates that do not repeat
-    in the image, in coded order."""
+    in the image (within the pool the budget sizes), in coded order."""
+    from robotd.floor.desccoding import cells, fit
+    from robotd.floor.keypoints import repeat_pool
+
     img = frames["brick"]  # 640 px: the working image is the image itself
     params, learned = ExtractParams(), load_learned()
-    c, _ = drop_repeats(candidates(img, params, learned), params)
+    c0 = candidates(img, params, learned)
+    first = max(fit(MODES[mode], cells(c0.xy[:params.repeat_pool], 320, 240)) + 1, params.global_min_features)
+    pool = ExtractParams(repeat_pool=repeat_pool(params, first, len(c0.xy)), repeat_pool_ratio=0.0)
+    c, _ = drop_repeats(c0, pool)
     d = decode(extract(img, mode))
     n = len(d)
     assert 0 < n < len(c.xy)
@@ -347,7 +353,7 @@ def test_kept_for_budget_prefiltered_by_the_pca_basis_decides_as_the_full_check(
     from robotd.floor.keypoints import kept_for_budget
 
     img = frames["gravel"]
-    params, learned = ExtractParams(), load_learned()
+    params, learned = ExtractParams(repeat_pool_ratio=0.0), load_learned()
     c = candidates(img, params, learned)
     grid_w, grid_h = 320, 240
     plain = kept_for_budget(c, params, MODES[mode], grid_w, grid_h)
@@ -358,6 +364,54 @@ def test_kept_for_budget_prefiltered_by_the_pca_basis_decides_as_the_full_check(
     assert pre[2] == fit(MODES[mode], cells(kept.xy, grid_w, grid_h))
     m = max(pre[2] + 1, params.global_min_features)
     assert np.array_equal(pre[0].xy[:m], kept.xy[:m])
+
+
+@pytest.mark.parametrize("mode", [1, 4, 6])
+def test_repeat_pool_ratio_checks_a_pool_sized_by_the_budget(frames, mode):
+    """With ``repeat_pool_ratio`` the repeat check takes that many times what the budget
+    codes (or the global minimum) plus one, capped by ``repeat_pool``: the same as
+    drop_repeats with that pool, then fit; on a frame of the repeated scene it drops
+    repeats as the full pool does."""
+    from robotd.floor.desccoding import cells, fit
+    from robotd.floor.keypoints import kept_for_budget, repeat_pool
+
+    img = frames["gravel"]
+    learned = load_learned()
+    params = ExtractParams(repeat_pool_ratio=1.5)
+    c = candidates(img, params, learned)
+    grid_w, grid_h = 320, 240
+    n0 = fit(MODES[mode], cells(c.xy[:params.repeat_pool], grid_w, grid_h))
+    first = max(n0 + 1, params.global_min_features)
+    pool = repeat_pool(params, first, len(c.xy))
+    assert pool == min(math.ceil(1.5 * first), params.repeat_pool, len(c.xy)) < len(c.xy)
+    kept, raw, n = kept_for_budget(c, params, MODES[mode], grid_w, grid_h, basis=learned.pca_basis)
+    ref, ref_raw = drop_repeats(c, ExtractParams(repeat_pool=pool, repeat_pool_ratio=0.0))
+    assert n == fit(MODES[mode], cells(ref.xy, grid_w, grid_h))
+    m = max(n + 1, params.global_min_features)
+    assert np.array_equal(kept.xy[:m], ref.xy[:m]) and np.array_equal(raw[:m], ref_raw[:m])
+    assert repeat_pool(ExtractParams(repeat_pool_ratio=0.0), first, len(c.xy)) == min(1000, len(c.xy))
+
+
+def test_workspace_gives_what_fresh_arrays_give(frames):
+    """Candidates computed in a reused workspace (as extract does) equal those computed in
+    fresh arrays, also after the workspace held another image and for the maps at half
+    resolution; and extract's bytes do not depend on what the thread described before."""
+    from robotd.floor.keypoints import Workspace
+
+    learned = load_learned()
+    ws = Workspace(240, 320)
+    for params in (ExtractParams(), ExtractParams(pool_step=1), ExtractParams(pool_step=2, orientation_step=2)):
+        for name in ("brick", "grass", "brick"):
+            fresh = candidates(frames[name], params, learned)
+            reused = candidates(frames[name], params, learned, ws)
+            for a, b in zip(fresh[:4], reused[:4]):
+                assert np.array_equal(a, b)
+            for a, b in zip(fresh.pooled, reused.pooled):
+                assert np.array_equal(a, b)
+            assert np.array_equal(raw_descriptors(fresh, 300, params), raw_descriptors(reused, 300, params, ws))
+    first = [extract(frames[n], 4) for n in ("gravel", "brick")]
+    assert [extract(frames[n], 4) for n in ("gravel", "brick")] == first
+    assert extract(frames["brick"], 4) == first[1]
 
 
 def test_fit_from_any_hint_is_the_largest_prefix_that_fits():
@@ -412,6 +466,8 @@ def test_extract_params_repeat_fields_out_of_range():
         ExtractParams(repeat_distance=-0.1)
     with pytest.raises(ValueError):
         ExtractParams(repeat_pool=-1)
+    with pytest.raises(ValueError):
+        ExtractParams(repeat_pool_ratio=-0.5)
     for bad in ({"pool_step": 3}, {"pool_step": 0}, {"orientation_step": 4}):
         with pytest.raises(ValueError, match="out of range"):
             ExtractParams(**bad)

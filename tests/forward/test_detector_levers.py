@@ -84,8 +84,8 @@ def test_the_methods():
     assert paper == DetectorParams()
     assert (paper.features.kind, paper.filter.loop_threshold, paper.filter.rule) == ("sift", 0.8, "neighbourhood")
     default = method_params("default")
-    assert not default.odometry.use and default.verify_tries == 1 and default.consistency == 2
-    assert (default.filter.rule, default.filter.loop_threshold) == ("total", 0.5)
+    assert not default.odometry.use and default.verify_tries == 1 and default.consistency == 1
+    assert (default.filter.rule, default.filter.loop_threshold) == ("total", 0.3)
     assert default.features.kind == "orb" and default.vocabulary.purge_after > 0
     assert not paper.odometry.use and paper.verify_tries == 1
     assert method_params("paper", recent_excluded=5).recent_excluded == 5
@@ -200,3 +200,83 @@ def test_odometry_agreement_relaxes_the_verification(monkeypatch):
         for i, v in enumerate(views):
             det.process_features(v, 0.0, np.array([float(i) if i < 30 else x, 0.0, 0.0]), cov)
     assert seen == [12, ACCEPT_ALL.min_inliers]
+
+
+def test_islands_pick_the_run_of_images_with_the_most_summed_score():
+    """DLoopDetector's islands by hand: normalised scores above the threshold grouped into
+    runs at most ``consistency_gap`` apart; the largest sum wins, its best image is the
+    candidate, the sum its probability; without islands the single best image wins."""
+    from robotd.forward.detector import _best_normalised
+
+    scores = np.zeros(40)
+    scores[[3, 4, 5]] = [0.5, 0.6, 0.5]     # island of 1.6 (normalised by 1)
+    scores[30] = 0.9                         # the best single image, alone
+    scores[[20, 24]] = [0.4, 0.4]            # 4 apart: two islands of 0.4 with gap 3
+    p = DetectorParams(features=FeatureParams(kind="orb"), decision="score", score_normalisation="previous",
+                       score_threshold=0.3, consistency_gap=3)
+    # ref: the previous image's score (t - 1 = 39), 1.0
+    scores[39] = 1.0
+    assert _best_normalised(scores, 35, 0.2, 40, p) == (30, pytest.approx(0.9))
+    cand, prob = _best_normalised(scores, 35, 0.2, 40, replace(p, islands=True))
+    assert cand == 4 and prob == pytest.approx(1.6)
+    # With a gap of 4 allowed, 20 and 24 join, but 0.8 < 1.6; nothing above 0.95: no candidate.
+    assert _best_normalised(scores, 35, 0.2, 40, replace(p, islands=True, consistency_gap=4))[0] == 4
+    assert _best_normalised(scores, 35, 0.2, 40, replace(p, islands=True, score_threshold=0.95)) == (
+        None, pytest.approx(0.9))
+
+
+def test_places_merged_by_pose_gather_the_views_of_one_spot_from_other_laps():
+    """The posterior split between two laps' views of one spot (images 3 and 23, the same
+    odometry pose) outweighs one image elsewhere with more mass alone (image 12); merged by
+    time only (no poses), the single image wins."""
+    from robotd.forward.detector import _merged_candidate
+
+    n = 30
+    post = np.zeros(1 + n)
+    post[0] = 0.1
+    post[1 + 12] = 0.4
+    post[1 + 3] = 0.25
+    post[1 + 23] = 0.25
+    ids = np.arange(n)
+    poses = np.array([[float(i), 0.0, 0.0] for i in range(n)])
+    poses[23] = poses[3]  # the same spot on the next lap
+    var = np.zeros((n, 3))
+    p = DetectorParams(features=FeatureParams(kind="orb"), filter=FilterParams(rule="neighbourhood", loop_threshold=0.3),
+                       odometry=OdometryParams(merge_places=True))
+    cand, prob = _merged_candidate(post, ids, poses, var, p)
+    assert cand in (3, 23) and prob == pytest.approx(0.5)
+    cand, prob = _merged_candidate(post, ids, np.full((n, 3), np.nan), var, p)
+    assert cand == 12 and prob == pytest.approx(0.4)
+    # The total rule: the probability is 1 - p(no loop) whatever the place.
+    cand, prob = _merged_candidate(post, ids, poses, var, replace(p, filter=FilterParams(rule="total",
+                                                                                          loop_threshold=0.5)))
+    assert cand in (3, 23) and prob == pytest.approx(0.9)
+
+
+def test_a_refused_acceptance_tries_the_next_view(monkeypatch):
+    """The detector's ``accept`` hook (the daemon's level-camera test): a verification it
+    refuses is no loop, and with ``verify_tries`` the candidate's neighbour that odometry
+    agrees with is verified next; the hook sees each image and its verification."""
+    import robotd.forward.detector as det_mod
+    from robotd.forward.detector import daemon_params
+    from robotd.forward.verify import ACCEPTED, Verification
+
+    monkeypatch.setattr(det_mod, "verify_pair", lambda old, new, vp, k: Verification(True, ACCEPTED, 100, 100))
+    views = _views(30, [5, 6, 7])
+    cov = np.diag([0.01, 0.01, 0.001])
+    poses = [np.array([float(i), 0.0, 0.0]) for i in range(30)] + [np.array([x, 0.0, 0.0]) for x in (5., 6., 7.)]
+    params = daemon_params(method_params("default"))
+    assert params.odometry.use and params.verify_tries == 3 and params.consistency == 1
+    assert params.odometry.agree_min_support_area == 0.0 and params.filter.loop_threshold == 0.5
+    seen: list[int] = []
+
+    def refuse_all(j, v):
+        seen.append(j)
+        return False
+
+    for accept, want in ((None, LOOP), (refuse_all, NO_GEOMETRIC_CONSISTENCY)):
+        det = ForwardDetector(replace(params, verify=ACCEPT_ALL, decision="score"), accept=accept)
+        got = [det.process_features(v, 0.0, q, cov) for v, q in zip(views, poses)][30:]
+        assert [d.status for d in got] == [want] * 3
+    # Each refused image had its candidate and then its agreeing neighbours tried (3 in all).
+    assert len(seen) == 9 and seen[:1] == [5] and all(abs(j - 5) <= 2 for j in seen[:3])

@@ -11,6 +11,7 @@ import pytest
 from robotd.base.errors import GraphError
 from robotd.base.geometry import between, compose, compose_jacobians, rot2
 from robotd.graph import BatchParams, IncrementalGraph, optimize_batch
+from robotd.graph.incremental import IncrementalParams
 from robotd.odometry.relative import relative_pose_jacobians
 
 INFO = np.diag([400.0, 400.0, 2500.0])
@@ -125,3 +126,128 @@ def test_the_gate_covariance_is_the_relative_poses_when_the_poses_are_uncorrelat
         measured = np.array([m.x(), m.y(), m.theta()])
         want = off @ np.linalg.solve(rel + loop_cov, off)
         assert inc.loop_chi2(a, b, measured, np.linalg.inv(loop_cov)) == pytest.approx(want, rel=1e-3)
+
+
+def _laps(inc: IncrementalGraph, laps: int, n: int = 20, seed: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """A ring of ``n`` keyframes driven ``laps`` times with noisy odometry; every keyframe
+    of a later lap loops (exact measurements) to the keyframe at the same place in each
+    earlier lap, as repeated passes over mapped ground do. Returns the true and the dead
+    reckoned positions ``(laps * n, 2)`` of the keyframes (ids ``0 .. laps * n - 1``)."""
+    rng = np.random.default_rng(seed)
+    step = 2 * math.pi / n
+    chord = 2 * 5 * math.sin(step / 2)
+    truth, odo = [np.zeros(3)], [np.zeros(3)]
+    inc.add_first(0)
+    for kid in range(1, laps * n):
+        d = np.array([chord + rng.normal(0, 0.03), rng.normal(0, 0.03), step + rng.normal(0, 0.01)])
+        inc.add_keyframe(kid, kid - 1, d, INFO)
+        truth.append(compose(truth[-1], (chord, 0.0, step)))
+        odo.append(compose(odo[-1], d))
+        for earlier in range(kid - n, -1, -n):
+            inc.add_loop(earlier, kid, (0.0, 0.0, 0.0), INFO)
+    return np.array(truth)[:, :2], np.array(odo)[:, :2]
+
+
+def test_loops_near_a_loop_in_the_graph_are_left_out():
+    """Four laps of a ring of 20: 120 loops, each later keyframe to every earlier lap. With
+    ``loop_spacing`` 2 every other keyframe's loops enter (all of them: their older ends
+    are a lap apart); with ``loops_per_keyframe`` 1 a keyframe adds only its first (to the
+    lap before). The graph with half the loops is about as close to the truth, and the
+    full solve and iSAM2 after it agree on it."""
+    every = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_keyframe=0))
+    truth, odo = _laps(every, 4)
+    thin = IncrementalGraph(IncrementalParams(loop_spacing=2, loops_per_keyframe=0))
+    _laps(thin, 4)
+    one = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_keyframe=1))
+    _laps(one, 4)
+    loops = 20 * (1 + 2 + 3)
+    assert every.stats()["loops"] == loops and every.held_loops == 0
+    assert every.stats()["factors"] == len(every.graph.edges) + 1  # and the anchor
+    assert thin.stats()["loops"] == 10 * (1 + 2 + 3) and thin.held_loops == loops - 60
+    assert all(e.to_id % 2 == 0 for e in thin.graph.edges if e.kind == "loop")
+    assert thin.stats()["factors"] == len(thin.graph.edges) + 1
+    kept_one = [e for e in one.graph.edges if e.kind == "loop"]
+    assert len(kept_one) == 60 and all(e.to_id - e.from_id == 20 for e in kept_one)
+
+    def rms(xy: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(np.sum((xy - truth) ** 2, axis=1))))
+
+    err_all, err_thin, err_odo = rms(every.estimate()[1][:, :2]), rms(thin.estimate()[1][:, :2]), rms(odo)
+    assert err_thin < 1.3 * err_all and err_all < 0.25 * err_odo
+    result = thin.resolve()
+    assert rms(result.poses[:, :2]) < 1.3 * err_all
+    assert thin.stats()["factors"] == len(thin.graph.edges) + 1
+    assert np.allclose(thin.estimate()[1], result.poses, atol=1e-4)
+
+
+def test_a_left_out_loop_is_checked_as_any_edge():
+    inc = IncrementalGraph(IncrementalParams(loop_spacing=5))
+    inc.add_first(0)
+    for k in range(1, 10):
+        inc.add_keyframe(k, k - 1, (1.0, 0.0, 0.0), INFO)
+    assert inc.add_loop(0, 8, (8.0, 0.0, 0.0), INFO)
+    assert not inc.add_loop(1, 9, (8.0, 0.0, 0.0), INFO)  # one keyframe after the last in
+    with pytest.raises(GraphError, match="no vertex 42"):
+        inc.add_loop(2, 42, (8.0, 0.0, 0.0), INFO)
+    with pytest.raises(GraphError, match="not positive definite"):
+        inc.add_loop(2, 9, (8.0, 0.0, 0.0), -INFO)
+    assert inc.held_loops == 1
+
+
+def test_holding_loops_out_shrinks_the_bayes_tree():
+    """The point of leaving loops out: over repeated laps, the tree's conditionals (and so
+    iSAM2's memory) grow with the loops it holds."""
+    every = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_keyframe=0))
+    _laps(every, 5)
+    thin = IncrementalGraph()  # the defaults
+    _laps(thin, 5)
+    assert thin.stats()["tree_nnz"] < 0.6 * every.stats()["tree_nnz"]
+
+
+def test_a_failed_restart_after_a_full_solve_leaves_the_graph_as_it_was(monkeypatch):
+    """resolve() lets the old iSAM2 go before building the new one: if the new one fails,
+    iSAM2 is rebuilt at the estimate from before the solve and the error is raised (the
+    graph stage logs it and goes on)."""
+    inc = IncrementalGraph()
+    _drive(inc)
+    inc.rejected_loops = {len(inc.graph.edges) - 1}  # as if the last solve had rejected the cross loop
+    inc.attach([], (0.0, 0.0, 0.0), [])  # iSAM2 rebuilt without it
+    before = inc.estimate()[1]
+    real = inc._new_isam
+    calls = []
+
+    class Failing:
+        def update(self, *args: object) -> None:
+            raise RuntimeError("indeterminate system")
+
+    def new_isam() -> object:
+        calls.append(1)
+        return Failing() if len(calls) == 1 else real()
+
+    monkeypatch.setattr(inc, "_new_isam", new_isam)
+    with pytest.raises(RuntimeError, match="indeterminate"):
+        inc.resolve()
+    assert len(calls) == 2
+    assert np.allclose(inc.estimate()[1], before, atol=1e-3)  # one iSAM2 step from it
+    assert inc.rejected_loops == {len(inc.graph.edges) - 1}
+    assert inc.stats()["factors"] == len(inc.graph.edges)  # the anchor, without the rejected loop
+    ids = inc.estimate()[0]
+    inc.add_keyframe(999, int(ids[-1]), (1.0, 0.0, 0.0), INFO)
+    assert inc.pose(999) == pytest.approx(compose(inc.pose(int(ids[-1])), (1.0, 0.0, 0.0)), abs=1e-6)
+
+
+def test_the_newest_loop_left_out_joins_the_graph_at_a_full_solve():
+    """The keyframes after the last loop in would end on odometry alone: a full solve
+    (periodic, and at the end of a run) first adds the newest loop left out, if no loop
+    entered after it."""
+    inc = IncrementalGraph(IncrementalParams(loop_spacing=5))
+    inc.add_first(0)
+    for k in range(1, 12):
+        inc.add_keyframe(k, k - 1, (1.0, 0.0, 0.0), INFO)
+    assert inc.add_loop(0, 6, (6.0, 0.0, 0.0), INFO)
+    assert not inc.add_loop(1, 8, (7.0, 0.0, 0.0), INFO)
+    assert not inc.add_loop(2, 9, (6.5, 0.0, 0.0), INFO)  # the newest left out
+    inc.resolve()
+    assert [(e.from_id, e.to_id) for e in inc.graph.edges if e.kind == "loop"] == [(0, 6), (2, 9)]
+    assert inc.held_loops == 1 and inc.stats()["factors"] == len(inc.graph.edges) + 1
+    assert not inc.add_loop(3, 11, (8.0, 0.0, 0.0), INFO)  # spaced from the one that joined

@@ -25,8 +25,15 @@ baselines the five-point motion sometimes comes out with its bearing 10-130 deg 
 the heading about right; it then leans out of the floor plane by more than the inliers
 allow, though often by less than a fixed tilt limit (the daemon's wrong forward loops were
 of this kind; rendered at the frames' own times, so not the frame's offset from its
-keyframe). Refused loops are ``failed_gate`` fates (``forward: motion ... out of the floor
-plane``) and ``forward_not_planar``.
+keyframe). Such a motion is refitted with the motion kept in the floor plane
+(:func:`robotd.forward.planefit.fit_planar`, heading change and bearing only) from the two
+images' matches; the refit is the loop's motion when it keeps at least the verification's
+``min_inliers`` and half of its inliers. The test runs inside the detector's verification
+(its ``accept`` hook), so a candidate refused there lets the detector verify the next view
+it may try (``DetectorParams.verify_tries``). Refusals are counted (``forward_not_planar``,
+one per refused view) and, when no view was a loop, published as a ``failed_gate`` fate
+(``forward: motion ... out of the floor plane``); refits are counted
+(``forward_planar_refits``).
 
 The detector runs in the pipeline's thread, once per forward keyframe (every half metre by
 default, about one image per 1.5 s at the demo's speed): a SIFT image costs tens of
@@ -50,6 +57,8 @@ from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStor
 from robotd.forward import LOOP, ForwardDetector
 from robotd.forward.features import CompactFeatures
 from robotd.forward.planar import planar_motion, planarity_bound
+from robotd.forward.planefit import PlanarFit, fit_planar
+from robotd.forward.verify import VerifyParams, floor_range, match_features
 
 log = logging.getLogger(__name__)
 
@@ -63,8 +72,16 @@ class ForwardLoopStage(Publisher):
     def __init__(self, detector: ForwardDetector, *, distance_m: float = 0.5,
                  rotation_rad: float = math.radians(20.0), sync_tolerance_s: float = 0.04,
                  max_tilt_rad: float = math.radians(10.0), camera: str = "forward",
-                 store: Any = None, planarity_bound: float = planarity_bound()) -> None:
+                 store: Any = None, planarity_bound: float = planarity_bound(), planar_refit: bool = True) -> None:
         self.detector = detector
+        self.planar_refit = planar_refit
+        self.refits = 0
+        # past image -> its refit and the refit's inlier pixels (old, new), for the image being run
+        self._fits: dict[int, tuple[PlanarFit, np.ndarray, np.ndarray]] = {}
+        self._last_refused: tuple[int, float, float] | None = None  # (past image, tilt, chi2)
+        # A candidate whose motion is not a level camera's is not a loop: the detector then
+        # verifies the next view it may try (DetectorParams.verify_tries).
+        detector.accept = self._level
         self.store = store
         self.store_errors = 0
         self.restored = 0
@@ -181,6 +198,7 @@ class ForwardLoopStage(Publisher):
             self.unsynced += 1
             return
         self._last_pose = pose
+        self._last_refused = None
         det = self.detector.process(frame.image, pose, kf.pose.covariance)  # the keyframe's odometry pose
         self._keyframe_ids.append(kf.keyframe_id)
         if self.store is not None:
@@ -188,33 +206,85 @@ class ForwardLoopStage(Publisher):
         self.images += 1
         self.total_ms.append(det.times_s["total"] * 1e3)
         if det.status != LOOP or det.verification is None or det.loop_id is None:
+            self._fits.clear()
             if det.verification is not None and not det.verification.accepted:
                 self.rejected_geometry += 1
+            elif det.verification is not None and self._last_refused is not None:
+                j, tilt, chi2 = self._last_refused
+                self._publish(CandidateFate(kf.keyframe_id, self._keyframe_ids[j], det.candidate_probability,
+                                            LoopFate.FAILED_GATE,
+                                            f"forward: motion {math.degrees(tilt):.1f} deg out of the floor plane "
+                                            f"(planarity chi2 {chi2:.0f}, bound {self.planarity_bound:.0f})"))
+            self._last_refused = None
             return
         v = det.verification
         if v.rotation is None or v.translation_dir is None:
             raise AssertionError("an accepted forward loop's verification has no relative pose")
         old = self._keyframe_ids[det.loop_id]
-        dyaw, bearing, tilt = planar_motion(v.rotation, v.translation_dir)
-        # (A planarity not computed, NaN, leaves the tilt limit alone to judge.)
-        if tilt > self.max_tilt_rad or v.planarity_chi2 > self.planarity_bound:
-            self.not_planar += 1
-            self._publish(CandidateFate(kf.keyframe_id, old, det.candidate_probability, LoopFate.FAILED_GATE,
-                                        f"forward: motion {math.degrees(tilt):.1f} deg out of the floor plane "
-                                        f"(planarity chi2 {v.planarity_chi2:.0f}, bound {self.planarity_bound:.0f})"))
-            return
+        refit = self._fits.pop(det.loop_id, None)
+        self._fits.clear()
+        range_m, sigma_b = v.range_m, v.sigma_bearing_rad
+        fit = None
+        if refit is not None:  # refitted in the floor plane (robotd.forward.planefit)
+            fit, p_old, p_new = refit
+            dyaw, bearing, sigma_b = fit.dyaw_rad, fit.bearing_rad, fit.sigma_bearing_rad
+            range_m = floor_range(p_old, p_new, fit.rotation, fit.translation_dir, self.detector.camera_matrix,
+                                  self.detector.params.verify)[0]
+        else:
+            dyaw, bearing, _ = planar_motion(v.rotation, v.translation_dir)
         self.loops += 1
-        log.debug("forward loop: keyframe %d sees keyframe %d (p %.2f, %d inliers)", kf.keyframe_id, old,
-                  det.candidate_probability, v.n_inliers)
+        log.debug("forward loop: keyframe %d sees keyframe %d (p %.2f, %d inliers%s)", kf.keyframe_id, old,
+                  det.candidate_probability, v.n_inliers, ", refitted in the plane" if fit is not None else "")
         self._publish(ForwardLoop(old, kf.keyframe_id, det.candidate_probability, dyaw, bearing, v.n_inliers,
-                                  range_m=v.range_m,
-                                  sigma_bearing_rad=v.sigma_bearing_rad if np.isfinite(v.sigma_bearing_rad) else None))
+                                  range_m=range_m, sigma_bearing_rad=sigma_b if np.isfinite(sigma_b) else None))
+
+    def _planar(self, v: Any) -> tuple[bool, float]:
+        """Whether a verification's motion is a level camera's (module notes), and its tilt."""
+        _, _, tilt = planar_motion(v.rotation, v.translation_dir)
+        # (A planarity not computed, NaN, leaves the tilt limit alone to judge.)
+        return not (tilt > self.max_tilt_rad or v.planarity_chi2 > self.planarity_bound), tilt
+
+    def _level(self, image_id: int, v: Any) -> bool:
+        """The detector's acceptance test (:class:`~robotd.forward.ForwardDetector` ``accept``):
+        the verified motion of the current image against past image ``image_id`` is a level
+        camera's, as verified or refitted in the floor plane (:func:`robotd.forward.planefit.fit_planar`:
+        its inliers at least the verification's minimum and half of its inliers)."""
+        ok, tilt = self._planar(v)
+        if ok:
+            return True
+        if self.planar_refit:
+            refit = self._refit(image_id, v)
+            if refit is not None:
+                self._fits[image_id] = refit
+                self.refits += 1
+                return True
+        self.not_planar += 1
+        self._last_refused = (image_id, tilt, v.planarity_chi2)
+        return False
+
+    def _refit(self, image_id: int, v: Any) -> tuple[PlanarFit, np.ndarray, np.ndarray] | None:
+        """The motion of the current image against past image ``image_id`` fitted in the
+        floor plane from their matches (:func:`robotd.forward.planefit.fit_planar`, the
+        heading searched around the verification's), with its inlier pixels (old, new);
+        None when the planar motion keeps fewer than the verification's ``min_inliers`` or
+        half of its inliers."""
+        det = self.detector
+        vp: VerifyParams = det.params.verify
+        k = det.camera_matrix
+        if k is None:
+            return None
+        p_old, p_new = match_features(det.features_of(image_id), det.features_of(len(det) - 1), vp.ratio)
+        dyaw, _, _ = planar_motion(v.rotation, v.translation_dir)
+        fit = fit_planar(p_old, p_new, k, dyaw, threshold_px=vp.ransac_threshold_px)
+        if fit is None or fit.n_inliers < max(vp.min_inliers, 0.5 * v.n_inliers):
+            return None
+        return fit, p_old[fit.inliers], p_new[fit.inliers]
 
     def counters(self) -> dict[str, Any]:
         total = np.asarray(self.total_ms) if self.total_ms else np.zeros(1)
         return {"forward_frames": self.frames, "forward_images": self.images,
                 "forward_unsynced": self.unsynced, "forward_loops": self.loops,
-                "forward_not_planar": self.not_planar,
+                "forward_not_planar": self.not_planar, "forward_planar_refits": self.refits,
                 "forward_failed_verification": self.rejected_geometry,
                 "forward_vocabulary": len(self.detector.vocabulary),
                 "forward_restored_images": self.restored, "forward_store_errors": self.store_errors,

@@ -1,0 +1,197 @@
+"""The two-view motion of a level camera, fitted with the motion kept in the floor plane.
+
+The epipolar verification (:mod:`robotd.forward.verify`) fits the general five-degree-of-
+freedom motion (rotation, translation direction). On a robot the forward camera only turns
+about its vertical axis and moves in the floor plane, so the motion has two degrees of
+freedom: the heading change ``dyaw`` and the bearing of the translation. When the views
+are close, or their inliers crowd on one wall, the general fit often leans out of the
+plane and its bearing is off by tens of degrees while the heading is right; the daemon then
+refuses the loop as not planar (:mod:`robotd.app.stages.forward_loops`). Fitting the two
+planar parameters instead is the model the robot's motion has: it cannot lean, and with
+three fewer unknowns the same inliers fix the bearing better. (Not in paper 000.)
+
+For a fixed heading change ``yaw`` (rotation ``R`` about the camera's y axis, OpenCV axes:
+x right, y down, z forward) the epipolar constraint ``x_new . (t x R x_old) = 0`` with
+``t = (sin psi, 0, cos psi)`` is one linear equation in ``(sin psi, cos psi)`` per match:
+each match votes for a translation direction ``psi`` (modulo pi). :func:`fit_planar` scans
+the heading over a window around a first guess, takes the directions most matches vote for
+at each heading, counts the matches within ``threshold_px`` (Sampson distance) of each
+(heading, direction) and keeps the best; the sign of the translation is the one that puts
+the matched points in front of both cameras. The uncertainty of the heading change and of
+the bearing comes from the inliers' epipolar errors (Gauss-Newton covariance at the
+optimum, scaled by :data:`robotd.forward.planar.INLIER_NOISE_FACTOR` as the general fit's).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from robotd.forward.planar import INLIER_NOISE_FACTOR
+
+__all__ = ["PlanarFit", "fit_planar", "planar_pose"]
+
+
+@dataclass(frozen=True, eq=False)
+class PlanarFit:
+    """A planar two-view motion (:func:`fit_planar`).
+
+    ``dyaw_rad``: the camera's heading change (positive: turned left); ``bearing_rad``: the
+    direction of the new camera centre in the old camera's planar frame (x along the
+    optical axis, y to the left), as :func:`robotd.forward.planar.planar_motion` gives them;
+    ``rotation (3, 3)``, ``translation_dir (3,)`` the same motion as
+    :class:`robotd.forward.verify.Verification` holds it; ``inliers (N,) bool`` the matches
+    within the threshold; ``sigma_yaw_rad``, ``sigma_bearing_rad`` their 1-sigma (``inf``
+    when the inliers do not fix them: too few, or no parallax).
+    """
+
+    dyaw_rad: float
+    bearing_rad: float
+    rotation: np.ndarray
+    translation_dir: np.ndarray
+    inliers: np.ndarray
+    sigma_yaw_rad: float = math.inf
+    sigma_bearing_rad: float = math.inf
+
+    @property
+    def n_inliers(self) -> int:
+        return int(self.inliers.sum())
+
+
+def planar_pose(yaw_rad: float, psi_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(rotation (3, 3), translation_dir (3,))`` of the heading change ``yaw_rad`` and the
+    translation direction ``t = (sin psi, 0, cos psi)`` (OpenCV camera axes)."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    # A left turn (positive yaw in the floor frame) turns the optical axis towards -x.
+    r = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    return r, np.array([math.sin(psi_rad), 0.0, math.cos(psi_rad)])
+
+
+def _sampson(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarray, focal: float) -> np.ndarray:
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    e = tx @ r
+    ex1 = x_old @ e.T
+    etx2 = x_new @ e
+    num = np.einsum("ij,ij->i", x_new, ex1)
+    den = np.sqrt(ex1[:, 0] ** 2 + ex1[:, 1] ** 2 + etx2[:, 0] ** 2 + etx2[:, 1] ** 2)
+    out: np.ndarray = focal * num / np.maximum(den, 1e-15)
+    return out
+
+
+def _in_front(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarray) -> int:
+    """Matches whose triangulated point is in front of both cameras (midpoint method)."""
+    d1 = x_old
+    d2 = x_new @ r  # the new rays in the old frame: R^T x_new
+    c2 = -r.T @ t
+    # Solve a d1 - b d2 = c2 for each match in the least-squares sense.
+    a11 = np.einsum("ij,ij->i", d1, d1)
+    a12 = -np.einsum("ij,ij->i", d1, d2)
+    a22 = np.einsum("ij,ij->i", d2, d2)
+    b1 = d1 @ c2
+    b2 = -(d2 @ c2)
+    det = a11 * a22 - a12 * a12
+    ok = np.abs(det) > 1e-12
+    det = np.where(ok, det, 1.0)
+    a = (a22 * b1 - a12 * b2) / det
+    b = (a11 * b2 - a12 * b1) / det
+    return int(np.sum(ok & (a > 0) & (b > 0)))
+
+
+def _bearing(yaw: float, psi: float) -> float:
+    r, t = planar_pose(yaw, psi)
+    centre = -r.T @ t
+    return math.atan2(-centre[0], centre[2])
+
+
+def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, yaw_guess_rad: float,
+               *, threshold_px: float = 1.0, window_rad: float = math.radians(8.0),
+               step_rad: float = math.radians(0.2)) -> PlanarFit | None:
+    """The planar motion (module notes) of matched pixels ``p_old_px, p_new_px (N, 2)``
+    (``camera_matrix (3, 3)`` shared), the heading change searched within ``window_rad``
+    of ``yaw_guess_rad`` in steps of ``step_rad``; None with fewer than 5 matches."""
+    p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
+    p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
+    n = len(p_old)
+    if n < 5:
+        return None
+    k = np.asarray(camera_matrix, np.float64)
+    kinv = np.linalg.inv(k)
+    focal = 0.5 * (k[0, 0] + k[1, 1])
+    x_old = np.hstack([p_old, np.ones((n, 1))]) @ kinv.T
+    x_new = np.hstack([p_new, np.ones((n, 1))]) @ kinv.T
+    best: tuple[int, float, float, float] | None = None  # (inliers, -cost, yaw, psi)
+    n_steps = int(round(window_rad / step_rad))
+    bins = 360  # half-degree bins over psi modulo pi
+    for i in range(-n_steps, n_steps + 1):
+        yaw = yaw_guess_rad + i * step_rad
+        r, _ = planar_pose(yaw, 0.0)
+        u = np.cross(x_old @ r.T, x_new)
+        # u . t = 0 with t = (sin psi, 0, cos psi): psi = atan2(-u_z, u_x) modulo pi.
+        psi = np.mod(np.arctan2(-u[:, 2], u[:, 0]), math.pi)
+        hist = np.bincount((psi / math.pi * bins).astype(np.int64) % bins, minlength=bins)
+        hist = hist + np.roll(hist, 1) + np.roll(hist, -1)
+        for b in np.argsort(-hist)[:2].tolist():
+            centre = (b + 0.5) * math.pi / bins
+            for cand in (centre - 0.5 * math.pi / bins, centre, centre + 0.5 * math.pi / bins):
+                r_, t_ = planar_pose(yaw, cand)
+                d = np.abs(_sampson(x_old, x_new, r_, t_, focal))
+                inl = d < threshold_px
+                score = (int(inl.sum()), -float(np.minimum(d, threshold_px) @ np.minimum(d, threshold_px)))
+                if best is None or score > best[:2]:
+                    best = (score[0], score[1], yaw, cand)
+    assert best is not None
+    _, _, yaw, psi = best
+    # Refine (yaw, psi) by Gauss-Newton on the inliers' Sampson distances.
+    r, t = planar_pose(yaw, psi)
+    inl = np.abs(_sampson(x_old, x_new, r, t, focal)) < threshold_px
+    theta = np.array([yaw, psi])
+
+    def res(th: np.ndarray, m: np.ndarray) -> np.ndarray:
+        rr, tt = planar_pose(float(th[0]), float(th[1]))
+        return _sampson(x_old[m], x_new[m], rr, tt, focal)
+
+    h = 1e-6
+    jac = np.zeros((int(inl.sum()), 2))
+    for _ in range(5):
+        if inl.sum() < 3:
+            break
+        r0 = res(theta, inl)
+        for j in range(2):
+            dth = np.zeros(2)
+            dth[j] = h
+            jac[:, j] = (res(theta + dth, inl) - res(theta - dth, inl)) / (2 * h)
+        jtj = jac.T @ jac
+        if not np.all(np.isfinite(jtj)) or np.linalg.cond(jtj) > 1e12:
+            break
+        step = -np.linalg.solve(jtj, jac.T @ r0)
+        if not float(res(theta + step, inl) @ res(theta + step, inl)) < float(r0 @ r0):
+            break
+        theta = theta + step
+    yaw, psi = float(theta[0]), float(theta[1])
+    r, t = planar_pose(yaw, psi)
+    inl = np.abs(_sampson(x_old, x_new, r, t, focal)) < threshold_px
+    # The sign of the translation: the points in front of both cameras.
+    if _in_front(x_old[inl], x_new[inl], r, -t) > _in_front(x_old[inl], x_new[inl], r, t):
+        psi += math.pi
+        r, t = planar_pose(yaw, psi)
+    m = int(inl.sum())
+    sig_y = sig_b = math.inf
+    if m > 2:
+        rr = res(np.array([yaw, psi]), inl)
+        noise = math.sqrt(float(rr @ rr) / (m - 2)) * INLIER_NOISE_FACTOR
+        jac = np.zeros((m, 2))
+        for j in range(2):
+            dth = np.zeros(2)
+            dth[j] = h
+            jac[:, j] = (res(np.array([yaw, psi]) + dth, inl) - res(np.array([yaw, psi]) - dth, inl)) / (2 * h)
+        jtj = jac.T @ jac
+        if np.all(np.isfinite(jtj)) and np.linalg.cond(jtj) < 1e12:
+            cov = noise ** 2 * np.linalg.inv(jtj)
+            g = np.array([[1.0, 0.0],
+                          [(_bearing(yaw + h, psi) - _bearing(yaw - h, psi)) / (2 * h),
+                           math.remainder(_bearing(yaw, psi + h) - _bearing(yaw, psi - h), math.tau) / (2 * h)]])
+            var = np.einsum("ij,jk,ik->i", g, cov, g)
+            sig_y, sig_b = math.sqrt(max(float(var[0]), 0.0)), math.sqrt(max(float(var[1]), 0.0))
+    return PlanarFit(yaw, _bearing(yaw, psi), r, t, inl, sig_y, sig_b)

@@ -1,0 +1,218 @@
+"""Odometry edges that share the gyro bias: the bias as a variable of the pose graph.
+
+The wheel + gyro filter's keyframe edges are not independent: the filter's bias error
+``db = b_hat - b`` turns every edge's heading the same way until a standstill teaches the
+filter the bias again, so a chain of independent edges is overconfident over long
+horizons (``docs/benchmarks/nees.md``). Here each keyframe ``k`` gets a bias variable
+``b_k`` (rad/s, a 1-vector, key :func:`bias_key`) and each odometry edge the factor
+
+    e = Log(delta^-1 (+) x_i^-1 (+) x_j) + J (b_hat_i - b_i),     e ~ N(0, C_given_bias)
+
+with ``J`` and ``C_given_bias`` from the filter's joint covariance of the edge and its
+bias at the start (:class:`robotd.odometry.history.EdgeBiasTerms`): the edge's error
+given the bias error is ``J db`` plus what the bias does not explain. Consecutive bias
+variables are tied by the filter's own model of its bias error, an AR(1) sequence
+
+    (b_j - b_hat_j) - a (b_i - b_hat_i) ~ N(0, P_j - a^2 P_i),    a = Cov(db_i, db_j) / P_i
+
+(``a`` about 1 while driving, where the bias is a random walk the filter cannot see; near
+0 over a standstill, where the filter learns it afresh), and the first one by the filter's
+``N(b_hat_0, P_0)``. Marginalised over the bias variables, a chain of edges then has the
+covariance the filter's joint covariance gives it (up to the speed and yaw-rate states'
+share, which the edges keep inside ``C_given_bias``), and a loop that corrects a heading
+also corrects the bias of the edges around it.
+
+The factors are GTSAM ``CustomFactor`` s (their error and Jacobians in Python); the bias
+chain's is linear. :func:`bias_factor_graph` builds a whole graph of them for the batch
+solve and the benchmarks; the daemon's live graph keeps independent edges
+(:func:`robotd.graph.factors.between_factor`) for now: see ``docs/benchmarks/nees.md``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+import math
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from robotd.graph.factors import anchor_factor
+
+__all__ = ["BIAS_VAR_FLOOR", "BiasEdge", "bias_chain_factor", "bias_edge_factor", "bias_factor_graph",
+           "bias_initial_values", "bias_key", "bias_prior_factor", "scale_jacobian", "scale_key",
+           "scale_prior_factor"]
+
+#: Smallest variance (rad/s)^2 of a bias-chain step: keeps a step the filter took as
+#: exact (a = 1, no walk) factorable. (1e-7 rad/s)^2, far below any bias walk over a keyframe.
+BIAS_VAR_FLOOR = 1e-14
+
+
+def bias_key(keyframe_id: int) -> int:
+    """The GTSAM key of keyframe ``keyframe_id``'s bias variable (symbol ``b``; the poses
+    are keyed by their ids, far below)."""
+    return int(gtsam.symbol("b", int(keyframe_id)))
+
+
+@dataclass(frozen=True, slots=True)
+class BiasEdge:
+    """An odometry edge with its bias terms.
+
+    from_id, to_id: the keyframes. delta: ``(3,)`` the edge (``to`` in ``from``'s frame).
+    cov_given_bias: ``(3, 3)`` its covariance given the bias at ``from``. jac_bias: ``(3,)``
+    the edge's error per rad/s of bias error at ``from`` (m, rad per rad/s). bias_radps,
+    bias_var: the filter's bias estimate at ``from`` and its variance. bias_end_radps,
+    bias_end_var: at ``to``. bias_cov: covariance of the two bias errors, (rad/s)^2.
+    """
+
+    from_id: int
+    to_id: int
+    delta: np.ndarray
+    cov_given_bias: np.ndarray
+    jac_bias: np.ndarray
+    bias_radps: float
+    bias_var: float
+    bias_end_radps: float
+    bias_end_var: float
+    bias_cov: float
+
+    def chain_step(self) -> tuple[float, float]:
+        """``(a, var)`` of the AR(1) step from the bias error at ``from`` to ``to``."""
+        a = self.bias_cov / self.bias_var
+        return a, max(self.bias_end_var - a * a * self.bias_var, BIAS_VAR_FLOOR)
+
+
+def scale_key(segment: int) -> int:
+    """The GTSAM key of the scale variable ``(s_wheel, s_gyro)`` of ``segment`` (symbol ``s``)."""
+    return int(gtsam.symbol("s", int(segment)))
+
+
+def scale_jacobian(delta: np.ndarray) -> np.ndarray:
+    """``(3, 2)`` an edge's error per unit relative scale error of the wheels' distance
+    (first column) and of the gyro's rate (second), in the frame of the edge's end (as its
+    covariance). A wheel scale error ``s`` stretches the translation by ``s``; a gyro scale
+    error ``s`` turns the yaw by ``s dyaw`` and, the heading drifting through the edge, the
+    translation by about ``s dyaw / 2`` sideways. The wheels' yaw rate, which the filter
+    barely weighs while driving (:mod:`robotd.odometry.ekf`), is left out."""
+    d = np.asarray(delta, float)
+    c, s = math.cos(float(d[2])), math.sin(float(d[2]))
+    rt = np.array([[c, s], [-s, c]])
+    j = np.zeros((3, 2))
+    j[:2, 0] = rt @ d[:2]
+    j[:2, 1] = rt @ (0.5 * d[2] * np.array([-d[1], d[0]]))
+    j[2, 1] = d[2]
+    return j
+
+
+def scale_prior_factor(segment: int, sigmas: tuple[float, float]) -> gtsam.PriorFactorVector:
+    """Zero-mean prior ``(sigma_wheel, sigma_gyro)`` on a segment's scale errors (what the
+    base is known to within: its tolerances uncalibrated, the calibration's uncertainty)."""
+    return gtsam.PriorFactorVector(scale_key(segment), np.zeros(2),
+                                   gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, float)))
+
+
+def _pose(values: gtsam.Values, key: int) -> gtsam.Pose2:
+    return values.atPose2(key)
+
+
+def bias_edge_factor(edge: BiasEdge, segment: int | None = None) -> gtsam.CustomFactor:
+    """The edge's factor on ``(x_from, x_to, b_from)`` (see the module doc), and on the
+    scale variable of ``segment`` when given: ``+ J_s s`` (:func:`scale_jacobian`)."""
+    d = np.asarray(edge.delta, float)
+    j_s = scale_jacobian(d)
+    meas_inv = gtsam.Pose2(float(d[0]), float(d[1]), float(d[2])).inverse()
+    jac = np.asarray(edge.jac_bias, float).reshape(3, 1)
+    b_hat = float(edge.bias_radps)
+    model = gtsam.noiseModel.Gaussian.Covariance(np.asarray(edge.cov_given_bias, float))
+    ki, kj, kb = int(edge.from_id), int(edge.to_id), bias_key(edge.from_id)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
+        xi, xj = _pose(values, ki), _pose(values, kj)
+        h = xi.between(xj)
+        err_pose = meas_inv.compose(h)
+        e = gtsam.Pose2.Logmap(err_pose)
+        b = float(values.atVector(kb)[0])
+        out = e + jac[:, 0] * (b_hat - b)
+        if segment is not None:
+            out = out + j_s @ values.atVector(ks)
+        if jacobians is not None:
+            jr_inv = gtsam.Pose2.LogmapDerivative(e)
+            jacobians[0] = -jr_inv @ h.inverse().AdjointMap()
+            jacobians[1] = jr_inv
+            jacobians[2] = -jac
+            if segment is not None:
+                jacobians[3] = j_s
+        return out
+
+    keys = [ki, kj, kb]
+    if segment is not None:
+        ks = scale_key(segment)
+        keys.append(ks)
+    return gtsam.CustomFactor(model, keys, error)
+
+
+def bias_chain_factor(edge: BiasEdge) -> gtsam.CustomFactor:
+    """The AR(1) factor between the bias variables at the edge's two keyframes."""
+    a, var = edge.chain_step()
+    ki, kj = bias_key(edge.from_id), bias_key(edge.to_id)
+    bi_hat, bj_hat = float(edge.bias_radps), float(edge.bias_end_radps)
+    model = gtsam.noiseModel.Isotropic.Sigma(1, float(np.sqrt(var)))
+    ja, jb = np.array([[-a]]), np.array([[1.0]])
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
+        bi, bj = float(values.atVector(ki)[0]), float(values.atVector(kj)[0])
+        if jacobians is not None:
+            jacobians[0], jacobians[1] = ja, jb
+        return np.array([(bj - bj_hat) - a * (bi - bi_hat)])
+
+    return gtsam.CustomFactor(model, [ki, kj], error)
+
+
+def bias_prior_factor(keyframe_id: int, bias_radps: float, bias_var: float) -> gtsam.PriorFactorVector:
+    """The filter's belief ``N(bias_radps, bias_var)`` on one keyframe's bias (the first one's)."""
+    return gtsam.PriorFactorVector(bias_key(keyframe_id), np.array([float(bias_radps)]),
+                                   gtsam.noiseModel.Isotropic.Sigma(1, float(np.sqrt(bias_var))))
+
+
+def bias_factor_graph(edges: Sequence[BiasEdge], anchor_pose: np.ndarray | None = None,
+                      loops: gtsam.NonlinearFactorGraph | None = None,
+                      scale_sigmas: tuple[float, float] | None = None) -> gtsam.NonlinearFactorGraph:
+    """A chain of odometry edges (in order, each starting where the one before ended) as
+    bias-sharing factors, the bias chain, the first bias's prior and the first pose's anchor
+    (at ``anchor_pose``, default the origin); ``loops``: further factors (loop edges) added
+    as they are. ``scale_sigmas``: one scale variable (segment 0) shared by every edge,
+    with this prior (:func:`scale_prior_factor`); None: no scale variable."""
+    fg = gtsam.NonlinearFactorGraph()
+    if not edges:
+        return fg
+    first = edges[0]
+    fg.add(anchor_factor(first.from_id, np.zeros(3) if anchor_pose is None else np.asarray(anchor_pose, float)))
+    fg.add(bias_prior_factor(first.from_id, first.bias_radps, first.bias_var))
+    segment = None if scale_sigmas is None else 0
+    if scale_sigmas is not None:
+        fg.add(scale_prior_factor(0, scale_sigmas))
+    for e in edges:
+        fg.add(bias_edge_factor(e, segment))
+        fg.add(bias_chain_factor(e))
+    if loops is not None:
+        fg.push_back(loops)
+    return fg
+
+
+def bias_initial_values(edges: Sequence[BiasEdge], anchor_pose: np.ndarray | None = None,
+                        scales: bool = False) -> gtsam.Values:
+    """Initial values of :func:`bias_factor_graph`: the edges composed from the anchor, each
+    bias at the filter's estimate (and the scale errors at zero, ``scales``)."""
+    values = gtsam.Values()
+    if not edges:
+        return values
+    if scales:
+        values.insert(scale_key(0), np.zeros(2))
+    p = gtsam.Pose2(*map(float, np.zeros(3) if anchor_pose is None else anchor_pose))
+    values.insert(int(edges[0].from_id), p)
+    values.insert(bias_key(edges[0].from_id), np.array([float(edges[0].bias_radps)]))
+    for e in edges:
+        p = p.compose(gtsam.Pose2(*map(float, e.delta)))
+        values.insert(int(e.to_id), p)
+        values.insert(bias_key(e.to_id), np.array([float(e.bias_end_radps)]))
+    return values

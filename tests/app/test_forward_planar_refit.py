@@ -1,0 +1,65 @@
+"""The forward stage's level-camera test inside the detector's verification: a verified
+motion that leans out of the floor plane is refitted in the plane from the two images'
+matches (robotd.forward.planefit), or refused."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from robotd.app.stages.forward_loops import ForwardLoopStage
+from robotd.forward import ForwardDetector, method_params
+from robotd.forward.features import Features
+from robotd.forward.planefit import planar_pose
+from robotd.forward.verify import ACCEPTED, Verification
+from tests.forward.test_planefit import K, _views
+
+
+def _stage(yaw_deg: float, bearing_deg: float, dist_m: float, same: bool = True) -> ForwardLoopStage:
+    """A stage whose detector holds two images: a view and the view after the motion (each
+    point with its own random ORB descriptor, the same in both; ``same=False``: unrelated
+    descriptors, nothing matches)."""
+    po, pn = _views(yaw_deg, bearing_deg, dist_m)
+    rng = np.random.default_rng(1)
+    d_old = rng.integers(0, 256, (len(po), 32), dtype=np.uint8)
+    d_new = d_old if same else rng.integers(0, 256, (len(po), 32), dtype=np.uint8)
+    det = ForwardDetector(method_params("default"), camera_matrix=K)
+    det.process_features(Features(po.astype(np.float32), d_old, (640, 480)))
+    det.process_features(Features(pn.astype(np.float32), d_new, (640, 480)))
+    return ForwardLoopStage(det)
+
+
+def _verification(yaw_deg: float, bearing_deg: float, lean_deg: float, chi2: float) -> Verification:
+    """A verification of the motion with the translation leaning ``lean_deg`` out of the
+    plane, its planarity statistic ``chi2``."""
+    r, _ = planar_pose(math.radians(yaw_deg), 0.0)
+    b, e = math.radians(bearing_deg), math.radians(lean_deg)
+    centre = np.array([-math.sin(b) * math.cos(e), math.sin(e), math.cos(b) * math.cos(e)])
+    return Verification(True, ACCEPTED, 150, 150, r, -r @ centre, planarity_chi2=chi2)
+
+
+def test_a_level_motion_is_taken_as_verified():
+    stage = _stage(10, 30, 0.5)
+    assert stage._level(0, _verification(10, 30, 0.0, 2.0))
+    assert stage.refits == 0 and stage.not_planar == 0 and not stage._fits
+
+
+def test_a_leaning_motion_is_refitted_in_the_plane():
+    """The verification says 60 deg of bearing and 20 deg of lean; the matches say 30."""
+    stage = _stage(10, 30, 0.5)
+    assert stage._level(0, _verification(11, 60, 20.0, 5000.0))
+    fit, p_old, p_new = stage._fits[0]
+    assert math.degrees(fit.dyaw_rad) == pytest.approx(10, abs=0.3)
+    assert math.degrees(fit.bearing_rad) == pytest.approx(30, abs=2.0)
+    assert stage.refits == 1 and stage.not_planar == 0 and len(p_old) == len(p_new) == fit.n_inliers
+
+
+def test_a_leaning_motion_without_planar_support_is_refused():
+    stage = _stage(10, 30, 0.5, same=False)
+    assert not stage._level(0, _verification(10, 60, 20.0, 5000.0))
+    assert stage.not_planar == 1 and stage.refits == 0 and not stage._fits
+    off = _stage(10, 30, 0.5)  # the refit off: the planarity test alone, as before it
+    off.planar_refit = False
+    assert not off._level(0, _verification(10, 60, 20.0, 5000.0)) and off.not_planar == 1

@@ -1,0 +1,64 @@
+"""The planar two-view motion fit (robotd.forward.planefit) against synthetic views of a
+level camera whose motion is known."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from robotd.forward.planar import planar_motion
+from robotd.forward.planefit import fit_planar, planar_pose
+
+K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
+
+
+def _views(yaw_deg: float, bearing_deg: float, dist_m: float, seed: int = 0, outliers: int = 20,
+           noise_px: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels of random points seen by a camera and by the same camera turned by ``yaw_deg``
+    and moved ``dist_m`` towards ``bearing_deg`` (planar frame: x forward, y left)."""
+    rng = np.random.default_rng(seed)
+    yaw, b = math.radians(yaw_deg), math.radians(bearing_deg)
+    centre = np.array([-math.sin(b), 0.0, math.cos(b)]) * dist_m
+    r, _ = planar_pose(yaw, 0.0)
+    t = -r @ centre
+    x = np.column_stack([rng.uniform(-3, 3, 200), rng.uniform(-1, 0.6, 200), rng.uniform(2, 8, 200)])
+    xn = x @ r.T + t
+    keep = xn[:, 2] > 0.5
+    x, xn = x[keep], xn[keep]
+    po = x @ K.T
+    pn = xn @ K.T
+    po, pn = po[:, :2] / po[:, 2:], pn[:, :2] / pn[:, 2:]
+    pn = pn + rng.normal(0.0, noise_px, pn.shape)
+    pn[:outliers] = rng.uniform(0, 600, (outliers, 2))
+    return po, pn
+
+
+@pytest.mark.parametrize("yaw_deg,bearing_deg,dist_m", [(10, 30, 0.5), (-20, -100, 0.4), (0, 180, 0.3),
+                                                        (5, 10, 1.0)])
+def test_the_planar_motion_is_recovered(yaw_deg, bearing_deg, dist_m):
+    po, pn = _views(yaw_deg, bearing_deg, dist_m)
+    fit = fit_planar(po, pn, K, math.radians(yaw_deg + 3.0))  # a guess 3 deg off
+    assert fit is not None
+    assert math.degrees(fit.dyaw_rad) == pytest.approx(yaw_deg, abs=0.2)
+    assert abs(math.degrees(math.remainder(fit.bearing_rad - math.radians(bearing_deg), math.tau))) < 2.0
+    # The outliers are not inliers; (almost) all the rest are.
+    assert not fit.inliers[:20].any() and fit.n_inliers >= 0.95 * (len(po) - 20)
+    # The same motion as planar_motion reads it from the rotation and translation given.
+    dyaw, bearing, tilt = planar_motion(fit.rotation, fit.translation_dir)
+    assert (dyaw, bearing, tilt) == pytest.approx((fit.dyaw_rad, fit.bearing_rad, 0.0), abs=1e-9)
+    assert 0.0 < fit.sigma_yaw_rad < math.radians(1.0) and 0.0 < fit.sigma_bearing_rad < math.radians(5.0)
+
+
+def test_the_bearing_is_uncertain_without_parallax():
+    """A 2 cm move: the heading change is still fixed, the bearing is not."""
+    po, pn = _views(8, 60, 0.02, outliers=0, noise_px=0.3)
+    fit = fit_planar(po, pn, K, math.radians(8.0))
+    assert fit is not None and math.degrees(fit.dyaw_rad) == pytest.approx(8, abs=0.3)
+    far = _views(8, 60, 0.5, outliers=0, noise_px=0.3)
+    assert fit.sigma_bearing_rad > 5 * fit_planar(*far, K, math.radians(8.0)).sigma_bearing_rad
+
+
+def test_too_few_matches():
+    assert fit_planar(np.zeros((4, 2)), np.zeros((4, 2)), K, 0.0) is None
