@@ -36,6 +36,7 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -59,9 +60,14 @@ DATA = REPO.parent / "shared" / "data"
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "forward_scale.json"
 PAGE = REPO / "docs" / "benchmarks" / "forward_scale.md"
 WINDOW = 200
-#: The word searches compared: name -> fields of VocabularyParams replaced in the default.
-VARIANTS: dict[str, dict[str, object]] = {"tree": {}, "tree, beam 8": {"tree_beam": 8},
-                                          "usearch": {"binary_search": "usearch"}}
+#: The variants compared: name -> fields of VocabularyParams and of VerifyParams replaced in
+#: the default (``--variants`` picks some).
+VARIANTS: dict[str, tuple[dict[str, object], dict[str, object]]] = {
+    "tree": ({}, {}),
+    "tree, beam 8": ({"tree_beam": 8}, {}),
+    "usearch": ({"binary_search": "usearch"}, {}),
+    "tree, USAC verification": ({}, {"estimator": "usac"}),
+}
 
 
 def rss_bytes() -> int:
@@ -128,7 +134,7 @@ def map_file_bytes(det: ForwardDetector, kept_new: list, kept_purged: list) -> d
             "restored_searchable_words": restored.vocabulary.n_searchable}
 
 
-def run_sequence(name: str, folder: Path, truth_path: Path, recent: int = 10) -> dict[str, object]:
+def run_sequence(name: str, folder: Path, truth_path: Path, variants: list[str], recent: int = 10) -> dict[str, object]:
     files = list_images(folder, exclude=(truth_path,))
     truth = load_ground_truth(truth_path, len(files))
     images = [read_image(p) for p in files]
@@ -142,17 +148,22 @@ def run_sequence(name: str, folder: Path, truth_path: Path, recent: int = 10) ->
                                                 "p99": float(np.percentile(cv_ms, 99))},
                               "variants": {}}
     print(f"\n{name}: {len(files)} images ({w}x{h}); OpenCV ORB (300): median {np.median(cv_ms):.1f} ms", flush=True)
-    for variant, change in VARIANTS.items():
-        params = replace(base, vocabulary=replace(base.vocabulary, **change))
+    for variant in variants:
+        voc_change, verify_change = VARIANTS[variant]
+        params = replace(base, vocabulary=replace(base.vocabulary, **voc_change),
+                         verify=replace(base.verify, **verify_change))
         det = ForwardDetector(params, camera_matrix=k)
         n = len(files)
         cand, conf, decl = np.full(n, -1), np.zeros(n), np.zeros(n, bool)
-        total, words_ms = np.zeros(n), np.zeros(n)
+        total, words_ms, verify_ms = np.zeros(n), np.zeros(n), np.zeros(n)
+        verified = np.zeros(n, bool)
         kept_new, kept_purged = [], []
         for t, (fe, fs) in enumerate(feats):
             d = det.process_features(fe, fs)
             total[t] = d.times_s["total"] * 1e3
             words_ms[t] = d.times_s["words"] * 1e3
+            verify_ms[t] = d.times_s["verify"] * 1e3
+            verified[t] = d.verification is not None
             kept_new.append(det.vocabulary.last_new)
             kept_purged.append(det.vocabulary.last_purged)
             if d.candidate_id is not None:
@@ -161,6 +172,11 @@ def run_sequence(name: str, folder: Path, truth_path: Path, recent: int = 10) ->
         mem = det.memory_bytes()
         row = {**s.as_dict(), "ms_median": float(np.median(total)), "ms_p99": float(np.percentile(total, 99)),
                "words_ms_median": float(np.median(words_ms)), "words_ms_p99": float(np.percentile(words_ms, 99)),
+               "verify_ms_median": float(np.median(verify_ms)), "verify_ms_p99": float(np.percentile(verify_ms, 99)),
+               "images_verified": int(verified.sum()),
+               # the images above the 99th percentile of the total: how much of them is verification
+               "verify_share_of_slowest": float(verify_ms[total >= np.percentile(total, 99)].sum()
+                                                / max(total[total >= np.percentile(total, 99)].sum(), 1e-9)),
                "ratio_to_opencv_orb": float(np.median(total) / np.median(cv_ms)),
                "words": len(det.vocabulary), "searchable_words": det.vocabulary.n_searchable,
                "ram_bytes_per_image": sum(mem.values()) / n,
@@ -170,7 +186,8 @@ def run_sequence(name: str, folder: Path, truth_path: Path, recent: int = 10) ->
         out["variants"][variant] = row
         mf = row.get("map_file", {}).get("bytes_per_image", float("nan"))
         print(f"  {variant:13s} R@100%P {s.recall_at_full_precision:.3f} FP {s.false_positives} "
-              f"ms {row['ms_median']:.1f} / p99 {row['ms_p99']:.1f} (words {row['words_ms_median']:.1f}) "
+              f"ms {row['ms_median']:.1f} / p99 {row['ms_p99']:.1f} (words {row['words_ms_median']:.1f}, verify p99 "
+              f"{row['verify_ms_p99']:.1f}) "
               f"x ORB {row['ratio_to_opencv_orb']:.1f}  RAM {row['ram_bytes_per_image']:.0f} B/img "
               f"{ {p: round(v) for p, v in row['ram_bytes_per_image_by_part'].items()} }  map {mf:.0f} B/img",
               flush=True)
@@ -193,10 +210,17 @@ def changed(im: np.ndarray, lap: int, rng_seed: int) -> np.ndarray:
     return np.clip(out.astype(np.float32) * a + b, 0, 255).astype(np.uint8)
 
 
-def run_scale(folder: Path, n: int, seed: int) -> dict[str, object]:
+def run_scale(folder: Path, n: int, seed: int, partial: Callable[[dict[str, object]], None] | None = None,
+              memory_only: bool = False) -> dict[str, object]:
+    """The scale part (module notes); ``partial`` gets the result so far every 1000 images.
+    ``memory_only``: no candidate is ever verified (k = 10^9 consistent candidates asked):
+    the detector's memory is the same (nothing in it depends on a verification without a
+    working memory bound) in a fraction of the time; its times are not the detector's."""
     files = list_images(folder, exclude=(folder / "gt.npy",))
     base_images = [read_image(p) for p in files]
     params = method_params("default")
+    if memory_only:
+        params = replace(params, consistency=10**9)
     h, w = base_images[0].shape[:2]
     det = ForwardDetector(params, camera_matrix=camera_matrix_guess(w, h, 525.0))
     ex = FeatureExtractor(params.features)
@@ -204,6 +228,23 @@ def run_scale(folder: Path, n: int, seed: int) -> dict[str, object]:
     total, orb_ms, words_ms = np.zeros(n), np.zeros(n), np.zeros(n)
     samples = []
     loops = 0
+
+    def window(at: int) -> dict[str, float] | None:
+        if at < WINDOW:
+            return None
+        sl = slice(at - WINDOW, at)
+        return {"median_ms": float(np.median(total[sl])), "p99_ms": float(np.percentile(total[sl], 99)),
+                "opencv_orb_median_ms": float(np.median(orb_ms[sl])), "words_median_ms": float(np.median(words_ms[sl]))}
+
+    def scale_result(done: int) -> dict[str, object]:
+        at = {str(z): window(z) for z in sorted({1000, 2000, 5000, 10000, done}) if z <= done}
+        first, last = at.get("1000"), at[str(done)]
+        return {"images": done, "images_planned": n, "base_images": len(files), "loops": int(loops), "window": WINDOW,
+                "at": at, "median_ratio_end_to_1000": (last["median_ms"] / first["median_ms"]) if first and last else None,
+                "whole_run": {"median_ms": float(np.median(total[:done])), "p99_ms": float(np.percentile(total[:done], 99)),
+                              "opencv_orb_median_ms": float(np.median(orb_ms[:done]))},
+                "samples": list(samples)}
+
     t_start = time.perf_counter()
     print(f"\nscale: {n} images from {len(files)} office images, lap after lap (changed per lap)", flush=True)
     for i in range(n):
@@ -230,20 +271,14 @@ def run_scale(folder: Path, n: int, seed: int) -> dict[str, object]:
                   f"RAM {samples[-1]['ram_bytes_per_image']:.0f} B/img  searchable words {det.vocabulary.n_searchable}",
                   flush=True)
 
-    def window(at: int) -> dict[str, float] | None:
-        if at < WINDOW or at > n:
-            return None
-        sl = slice(at - WINDOW, at)
-        return {"median_ms": float(np.median(total[sl])), "p99_ms": float(np.percentile(total[sl], 99)),
-                "opencv_orb_median_ms": float(np.median(orb_ms[sl])), "words_median_ms": float(np.median(words_ms[sl]))}
+        if partial is not None and done % 1000 == 0 and done < n:
+            partial(scale_result(done))
 
-    at = {str(z): window(z) for z in sorted({1000, 2000, 5000, 10000, n}) if z <= n}
-    first, last = at.get("1000"), at[str(n)]
-    return {"images": n, "base_images": len(files), "loops": int(loops), "window": WINDOW, "at": at,
-            "median_ratio_end_to_1000": (last["median_ms"] / first["median_ms"]) if first and last else None,
-            "whole_run": {"median_ms": float(np.median(total)), "p99_ms": float(np.percentile(total, 99)),
-                          "opencv_orb_median_ms": float(np.median(orb_ms))},
-            "samples": samples}
+    return scale_result(n)
+
+
+def fmt(x: float | None) -> str:
+    return "-" if x is None else f"{x:.1f}"
 
 
 def page(res: dict) -> list[str]:
@@ -262,16 +297,20 @@ def page(res: dict) -> list[str]:
              f"Machine and versions: {m.get('machine')}, cpu_count {m.get('cpu_count')}, python {m.get('python')}, "
              f"numpy {m.get('numpy')}, opencv {m.get('opencv')}. Command: `{res['command']}`.",
              "",
-             "## The default detector on the development sequences, with each word search",
+             "## The default detector on the development sequences, with each word search and verification",
              "",
-             "`tree`: robotd's own incremental k-medians tree over the binary words (the default, a beam of "
-             "4 leaves); `tree, beam 8`: the same scanning 8 leaves; `usearch`: the HNSW graph it replaces. "
-             "Same features, same run. RAM: what the detector holds per image (its stored images, the "
-             "inverted index, the word search); map file: the file's growth per image when the detector's "
-             "images and words are written as the daemon writes them.",
+             "`tree`: the default detector: robotd's own incremental k-medians tree over the binary words (a "
+             "beam of 4 leaves) and OpenCV's RANSAC for the essential matrix; `tree, beam 8`: the same "
+             "scanning 8 leaves; `usearch`: the HNSW graph the tree replaced; `tree, USAC verification`: the "
+             "default with the essential matrix searched by OpenCV's USAC (`estimator = \"usac\"`). Same "
+             "features, same run (rows that were not run are missing). `verify ms p99`: the verification's "
+             "own time at its 99th percentile; `verified`: images whose candidate was verified. RAM: what "
+             "the detector holds per image (its stored images, the inverted index, the word search); map "
+             "file: the file's growth per image when the detector's images and words are written as the "
+             "daemon writes them.",
              "",
-             "| sequence | search | R@100%P | FP | ms median | ms p99 | ORB ms | x ORB | words ms | searchable words | RAM B/image (images + index + search) | map file B/image |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
+             "| sequence | variant | R@100%P | FP | ms median | ms p99 | ORB ms | x ORB | words ms | verify ms p99 | verified | searchable words | RAM B/image (images + index + search) | map file B/image |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
     for sname, s in res.get("sequences", {}).items():
         orb = s["opencv_orb_ms"]["median"]
         for v, r in s["variants"].items():
@@ -279,7 +318,8 @@ def page(res: dict) -> list[str]:
             mf = r.get("map_file", {}).get("bytes_per_image")
             lines.append(f"| {sname} ({s['images']}) | {v} | {r['recall_at_full_precision']:.3f} | {r['false_positives']} | "
                          f"{r['ms_median']:.1f} | {r['ms_p99']:.1f} | {orb:.1f} | {r['ratio_to_opencv_orb']:.1f} | "
-                         f"{r['words_ms_median']:.1f} | {r['searchable_words']} | {r['ram_bytes_per_image']:.0f} "
+                         f"{r['words_ms_median']:.1f} | {fmt(r.get('verify_ms_p99'))} | {r.get('images_verified', '-')} | "
+                         f"{r['searchable_words']} | {r['ram_bytes_per_image']:.0f} "
                          f"({parts['images']:.0f} + {parts['index']:.0f} + {parts['vocabulary']:.0f}) | "
                          + (f"{mf:.0f} |" if mf is not None else "- |"))
     for sname, s in res.get("sequences", {}).items():
@@ -291,7 +331,9 @@ def page(res: dict) -> list[str]:
     sc = res.get("scale")
     if sc:
         lines += ["",
-                  f"## Time as the run grows: {sc['images']} images",
+                  f"## Time as the run grows: {sc['images']} images"
+                  + (f" (of {sc['images_planned']} planned: the run was stopped there)"
+                     if sc.get("images_planned", sc["images"]) > sc["images"] else ""),
                   "",
                   f"The office route's {sc['base_images']} images lap after lap, each lap shifted by up to 12 px, "
                   "mirrored on odd laps and its brightness changed (`changed()` in the bench), so the words of a "
@@ -318,6 +360,18 @@ def page(res: dict) -> list[str]:
             p = smp["ram_bytes_per_image_by_part"]
             lines.append(f"| {smp['images']} | {smp['ram_bytes_per_image']:.0f} ({p['images']:.0f} + {p['index']:.0f} + "
                          f"{p['vocabulary']:.0f}) | {smp['searchable_words']} | {smp['rss_bytes'] / 1e6:.0f} |")
+    sm = res.get("scale_memory")
+    if sm:
+        lines += ["", f"## Memory as the run grows, current arrays: {sm['images']} images", "",
+                  "The same images with no candidate ever verified (`--memory-only`: the detector's memory does "
+                  "not depend on its verifications), run after the word tree's and the index's growing arrays "
+                  "took a quarter more room instead of doubling; its times are not the detector's and are not "
+                  "shown.", "",
+                  "| images | RAM B/image (images + index + search) | searchable words |", "|---:|---|---:|"]
+        for smp in sm["samples"]:
+            p = smp["ram_bytes_per_image_by_part"]
+            lines.append(f"| {smp['images']} | {smp['ram_bytes_per_image']:.0f} ({p['images']:.0f} + {p['index']:.0f} + "
+                         f"{p['vocabulary']:.0f}) | {smp['searchable_words']} |")
     return lines + [""]
 
 
@@ -333,6 +387,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--full", action="store_true", help="10,000 images in the scale part")
     ap.add_argument("--only", choices=("sequences", "scale"), default=None)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--memory-only", action="store_true",
+                    help="the scale part without verification, for its memory only (kept as 'scale_memory')")
+    ap.add_argument("--variants", default=";".join(VARIANTS),
+                    help=f"semicolon-separated variants of the sequences part (default: all of {', '.join(VARIANTS)})")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--update", action="store_true",
                     help="keep the parts of --out's earlier result that this run does not redo (with --only)")
@@ -350,19 +408,28 @@ def main(argv: list[str] | None = None) -> int:
     if args.update and args.out.exists():
         earlier = json.loads(args.out.read_text(encoding="utf-8"))
         res["sequences"] = earlier.get("sequences", {}) if args.only == "scale" else {}
-        if args.only == "sequences" and "scale" in earlier:
-            res["scale"] = earlier["scale"]
+        for key in ("scale", "scale_memory"):
+            if key in earlier and (args.only == "sequences" or key != ("scale_memory" if args.memory_only else "scale")):
+                res[key] = earlier[key]
         res["command"] = f"{earlier.get('command')}; then {res['command']}"
     office = office_sequence(args.dir)
     if args.only in (None, "sequences"):
         rt = args.data / "forward" / "rtabmap_samples"
-        res["sequences"]["rtabmap_samples"] = run_sequence("rtabmap_samples", rt, rt / "ground_truth.bmp")
+        variants = [v.strip() for v in args.variants.split(";") if v.strip()]
+        unknown = [v for v in variants if v not in VARIANTS]
+        if unknown:
+            ap.error(f"unknown variants {unknown}; choose from {list(VARIANTS)}")
+        res["sequences"]["rtabmap_samples"] = run_sequence("rtabmap_samples", rt, rt / "ground_truth.bmp", variants)
         write_json(args.out, res)
-        res["sequences"]["office"] = run_sequence("office", office, office / "gt.npy")
+        res["sequences"]["office"] = run_sequence("office", office, office / "gt.npy", variants)
         write_json(args.out, res)
     if args.only in (None, "scale"):
-        res["scale"] = run_scale(office, n, args.seed)
-        sc = res["scale"]
+        def partial(sc: dict[str, object]) -> None:
+            write_json(args.out, {**res, "scale": sc})
+
+        key = "scale_memory" if args.memory_only else "scale"
+        res[key] = run_scale(office, n, args.seed, None if args.memory_only else partial, args.memory_only)
+        sc = res[key]
         print(f"median at {n} / median at 1000: {sc['median_ratio_end_to_1000']}")
     print(f"wrote {write_json(args.out, res)}")
     write_page(PAGE, page(res))

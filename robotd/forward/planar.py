@@ -206,16 +206,20 @@ def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
     return out
 
 
-def _sampson_px(x_old: np.ndarray, x_new: np.ndarray, rotation: np.ndarray, t: np.ndarray,
-                focal_px: float) -> np.ndarray:
-    """Sampson distances ``(N,)`` in pixels of normalised homogeneous points ``(N, 3)`` to
-    the epipolar geometry ``E = [t]x R``."""
+def _essential(rotation: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``E = [t]x R`` (3, 3)."""
     tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    e = tx @ rotation
-    ex1 = x_old @ e.T            # rows: E x_old
-    etx2 = x_new @ e             # rows: E^T x_new
-    num = np.einsum("ij,ij->i", x_new, ex1)
-    den = np.sqrt(ex1[:, 0]**2 + ex1[:, 1]**2 + etx2[:, 0]**2 + etx2[:, 1]**2)
+    out: np.ndarray = tx @ rotation
+    return out
+
+
+def _sampson_px_many(x_old: np.ndarray, x_new: np.ndarray, es: np.ndarray, focal_px: float) -> np.ndarray:
+    """Sampson distances ``(M, N)`` in pixels of normalised homogeneous points ``(N, 3)``
+    to each of the essential matrices ``es (M, 3, 3)``."""
+    ex1 = np.einsum("mij,nj->mni", es, x_old)      # E x_old
+    etx2 = np.einsum("mji,nj->mni", es, x_new)     # E^T x_new
+    num = np.einsum("nj,mnj->mn", x_new, ex1)
+    den = np.sqrt(ex1[..., 0]**2 + ex1[..., 1]**2 + etx2[..., 0]**2 + etx2[..., 1]**2)
     out: np.ndarray = focal_px * num / np.maximum(den, 1e-15)
     return out
 
@@ -311,13 +315,14 @@ def fit_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarray,
             tt = t + theta[3] * e1 + theta[4] * e2
             return _rotvec_matrix(theta[:3]) @ r, tt / np.linalg.norm(tt)
 
-        jac = np.zeros((n, 5))
+        # Central differences: the ten perturbed motions and the current one, their
+        # Sampson distances in one pass.
         h = 1e-6
-        for j in range(5):
-            d = np.zeros(5)
-            d[j] = h
-            jac[:, j] = (_sampson_px(x_old, x_new, *pose(d), focal) - _sampson_px(x_old, x_new, *pose(-d), focal)) / (2 * h)
-        return _sampson_px(x_old, x_new, r, t, focal), jac, pose
+        steps = np.vstack([np.eye(5) * h, -np.eye(5) * h])
+        es = np.stack([_essential(*pose(d)) for d in steps] + [_essential(r, t)])
+        s = _sampson_px_many(x_old, x_new, es, focal)             # (11, N)
+        jac = ((s[:5] - s[5:10]) / (2 * h)).T
+        return s[10], jac, pose
 
     r, t = r0, t0
     res, jac, pose = linearise(r, t)

@@ -13,6 +13,7 @@ from robotd.forward.verify import (
     TOO_FEW_MATCHES,
     VerifyParams,
     camera_matrix_guess,
+    ransac_iterations,
     support_area,
     verify_pair,
 )
@@ -128,3 +129,33 @@ def test_support_area_of_points():
 def test_bad_support_parameters_are_refused(kw):
     with pytest.raises(ValueError):
         VerifyParams(**kw)
+
+
+def test_ransac_stops_once_a_consensus_of_min_inliers_would_have_been_found():
+    # log(1 - 0.999) / log(1 - (20/28)^5) = 33.7: 34 samples instead of OpenCV's 1000
+    assert ransac_iterations(28, 20, 0.999) == 34
+    assert ransac_iterations(40, 20, 0.999) == 218
+    assert ransac_iterations(20, 20, 0.999) == 1       # every match must be an inlier
+    assert ransac_iterations(300, 20, 0.999) == 1000   # a small consensus among many: the cap
+    counts = [ransac_iterations(n, 20, 0.999) for n in range(20, 200)]
+    assert counts == sorted(counts)                    # more matches, never fewer samples
+
+
+@pytest.mark.parametrize("estimator", ["ransac", "usac"])
+def test_both_estimators_accept_a_true_pair_and_refuse_shuffled_points(estimator):
+    rng = np.random.default_rng(3)
+    x_old, x_new, r, t = _scene(rng)
+    desc = rng.standard_normal((150, 128)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    params = VerifyParams(estimator=estimator)
+    px_new = _project(x_new) + rng.normal(0, 0.3, (150, 2)).astype(np.float32)
+    v = verify_pair(_features(_project(x_old), desc), _features(px_new, desc), params)
+    assert v.accepted and v.n_inliers >= 130
+    assert np.dot(v.translation_dir, t / np.linalg.norm(t)) > 0.995
+    shuffled = px_new[rng.permutation(150)]
+    assert not verify_pair(_features(_project(x_old), desc), _features(shuffled, desc), params).accepted
+
+
+def test_an_unknown_estimator_is_refused():
+    with pytest.raises(ValueError, match="estimator"):
+        VerifyParams(estimator="lmeds")

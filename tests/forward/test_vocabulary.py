@@ -176,3 +176,22 @@ def test_dropped_postings_change_no_score_of_the_other_words():
     np.testing.assert_array_equal(idx.vote(query)[0], ref.vote(query)[0])
     idx.add_image(8, np.array(only_once[:2]))  # a dropped word coming back gets postings again
     assert idx.document_frequency(only_once[0]) == 2 and idx.vote(np.array(only_once[:1]))[0][8] > 0
+
+
+def test_postings_take_four_bytes_and_a_word_repeated_beyond_their_count_still_votes():
+    idx = InvertedIndex()
+    idx.add_image(0, np.array([3, 3, 5]))
+    before = idx.memory_bytes()
+    for i in range(1, 101):  # 100 more postings of word 3: 400 bytes of entries (plus the array's spare room)
+        idx.add_image(i, np.array([3]))
+    grown = idx.memory_bytes() - before
+    assert 400 <= grown < 800
+    # n(w, i) is kept up to 1023: an image holding word 5 1100 times counts it 1023 times ...
+    idx.add_image(101, np.array([5] * 1100 + [3]))
+    scores, _ = idx.vote(np.array([5]))
+    idf5 = math.log(idx.n_images / 2)
+    assert scores[101] == pytest.approx(1023 / 1101 * idf5)
+    assert scores[0] == pytest.approx(1 / 3 * idf5)
+    # ... and the image leaves the index as it came in
+    idx.remove_image(101, np.array([5] * 1100 + [3]))
+    assert idx.document_frequency(5) == 1 and idx.n_images == 101

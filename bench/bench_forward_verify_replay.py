@@ -1,0 +1,249 @@
+"""Verification without the stored descriptors: what each way costs in recall (the forward
+memory's largest part, 9.6 of about 11.3 kB per image on the office route).
+
+The default detector runs once over each development sequence (the real corridor of
+``../shared/data/forward/rtabmap_samples`` and the virtual office route, as
+``bench/bench_forward_ablation.py`` reads them); every verification it makes is recorded
+(the past image's stored features, the new image's, the candidate, its probability), with
+the image at which each word was purged. A verification's outcome does not change what the
+detector does next (a refused candidate is only dismissed for that image), so the run's
+decisions can be replayed with another matching of the past image: each recorded pair is
+verified again, the loop declared when it passes, and recall at 100 % precision and false
+positives scored as ``robotd eval forward`` does. Same candidates, same RANSAC, same seed;
+only what the past image keeps for matching changes:
+
+- ``stored descriptors``: the default (the whole 32-byte ORB descriptor, Lowe's ratio test);
+- ``word ids``: correspondences between features that share a word (as a direct index
+  does), at most 2 x 2 per word (more is a repeated texture);
+- ``first 16 bytes`` / ``first 8 bytes``: a shorter descriptor (ORB's tests are ordered by
+  decreasing variance), the same ratio test on it;
+- ``no descriptor for purged words``: a feature whose word was purged (seen in its image
+  only, 50 images on) loses its descriptor.
+
+Reported per variant and sequence: recall at 100 % precision, false positives, loops,
+verification time (median, p99; noisy on a loaded machine), and the bytes per image the
+variant would save. Run: ``PYTHONPATH=. .venv/bin/python bench/bench_forward_verify_replay.py
+--dir /tmp/office`` (about 10 minutes on a quiet 2-core machine, longer under load);
+``--page FILE.json`` rewrites ``docs/benchmarks/forward_verify_replay.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+try:
+    from bench.bench_forward_ablation import extract_timed, office_sequence
+    from bench.common import machine_info, write_json, write_page
+except ImportError:  # run as a script: bench/ is on sys.path
+    from bench_forward_ablation import extract_timed, office_sequence  # type: ignore[no-redef]
+    from common import machine_info, write_json, write_page
+
+from robotd.forward import LOOP, ForwardDetector, method_params
+from robotd.forward.evaluation import score_decisions
+from robotd.forward.verify import VerifyParams, camera_matrix_guess, match_features, verify_pair
+from robotd.io.sequence import list_images, load_ground_truth, read_image
+
+REPO = Path(__file__).resolve().parent.parent
+DATA = REPO.parent / "shared" / "data"
+DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "forward_verify_replay.json"
+PAGE = REPO / "docs" / "benchmarks" / "forward_verify_replay.md"
+
+
+class _View:
+    """A past image's keypoints with only some descriptors (``keep``) or shortened ones
+    (``width`` bytes): what a variant keeps, read as verify_pair reads features."""
+
+    def __init__(self, f: Any, keep: np.ndarray | None = None, width: int | None = None) -> None:
+        self.f, self.keep, self.width = f, keep, width
+        self.image_size_px = f.image_size_px
+        self.words = getattr(f, "words", None)
+
+    def __len__(self) -> int:
+        return len(self.keypoints_px)
+
+    @property
+    def keypoints_px(self) -> np.ndarray:
+        kp = self.f.keypoints_px
+        return kp if self.keep is None else kp[self.keep]
+
+    @property
+    def descriptors(self) -> np.ndarray:
+        d = self.f.descriptors if self.keep is None else self.f.descriptors[self.keep]
+        return np.ascontiguousarray(d if self.width is None else d[:, :self.width])
+
+
+class _Words:
+    """The new image's extracted features with their words (for the word-id matching)."""
+
+    def __init__(self, f: Any, words: np.ndarray) -> None:
+        self.keypoints_px, self.descriptors, self.image_size_px, self.words = f.keypoints_px, f.descriptors, f.image_size_px, words
+
+    def __len__(self) -> int:
+        return len(self.keypoints_px)
+
+
+def _word_matches(a: Any, b: Any, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
+    """Correspondences through word ids: every pair of features sharing a word, words held
+    at most twice by each image."""
+    wa, wb = np.asarray(a.words, np.int64), np.asarray(b.words, np.int64)
+    ia: list[int] = []
+    ib: list[int] = []
+    for w in np.intersect1d(wa, wb).tolist():
+        x, y = np.flatnonzero(wa == w), np.flatnonzero(wb == w)
+        if len(x) * len(y) <= 4:
+            for i in x.tolist():
+                for j in y.tolist():
+                    ia.append(i)
+                    ib.append(j)
+    return a.keypoints_px[np.asarray(ia, np.int64)], b.keypoints_px[np.asarray(ib, np.int64)]
+
+
+def record(name: str, folder: Path, truth_path: Path) -> dict[str, Any]:
+    """Run the default detector once and keep every verification it made."""
+    files = list_images(folder, exclude=(truth_path,))
+    truth = load_ground_truth(truth_path, len(files))
+    images = [read_image(p) for p in files]
+    h, w = images[0].shape[:2]
+    k = camera_matrix_guess(w, h, 525.0 if name == "office" else None)
+    params = method_params("default")
+    det = ForwardDetector(params, camera_matrix=k)
+    pairs: list[tuple[int, Any, Any, np.ndarray]] = []
+    purged_at: dict[int, int] = {}
+    inner = det._verify
+
+    def hook(candidate: int, feats: Any, hyp_ids: np.ndarray, odo: Any) -> Any:
+        # the new image as the detector verifies it (its extracted features) and its words
+        pairs.append((len(det) - 1, det.features_of(candidate), feats, det.features_of(len(det) - 1).words))
+        return inner(candidate, feats, hyp_ids, odo)
+
+    det._verify = hook  # type: ignore[method-assign]
+    n = len(files)
+    cand, conf, decl = np.full(n, -1), np.zeros(n), np.zeros(n, bool)
+    for t, (fe, fs) in enumerate(extract_timed(params.features, images)):
+        d = det.process_features(fe, fs)
+        purged_at.update({int(x): t for x in det.vocabulary.last_purged})
+        if d.candidate_id is not None:
+            cand[t], conf[t], decl[t] = d.candidate_id, d.candidate_probability, d.status == LOOP
+    return {"pairs": pairs, "purged_at": purged_at, "cand": cand, "conf": conf, "decl": decl, "truth": truth,
+            "k": k, "verify": params.verify, "features_per_image": float(np.mean([len(det.features_of(t)) for t in range(n)]))}
+
+
+def replay(rec: dict[str, Any], variant: str) -> dict[str, float | int]:
+    """Verify the recorded pairs again with ``variant``'s matching; score the decisions."""
+    import robotd.forward.verify as verify_mod
+
+    vp: VerifyParams = rec["verify"]
+    decl = rec["decl"].copy()
+    ms = []
+    matcher: Callable[..., tuple[np.ndarray, np.ndarray]] = match_features
+    if variant == "word ids":
+        matcher = _word_matches
+    saved = verify_mod.match_features
+    verify_mod.match_features = matcher
+    dropped = []
+    try:
+        for t, old, new, new_words in rec["pairs"]:
+            if variant == "word ids":
+                new = _Words(new, new_words)
+            elif variant.startswith("first "):  # both images compared on the first bytes
+                width = int(variant.split()[1])
+                old, new = _View(old, width=width), _View(new, width=width)
+            elif variant == "no descriptor for purged words":
+                keep = np.array([rec["purged_at"].get(int(w), 1 << 30) > t for w in old.words.tolist()], bool)
+                dropped.append(1.0 - keep.mean() if len(keep) else 0.0)
+                old = _View(old, keep=keep)
+            t0 = time.perf_counter()
+            decl[t] = verify_pair(old, new, vp, rec["k"]).accepted
+            ms.append((time.perf_counter() - t0) * 1e3)
+    finally:
+        verify_mod.match_features = saved
+    s = score_decisions(rec["cand"], rec["conf"], decl, rec["truth"], 10)
+    nf = rec["features_per_image"]
+    saved_b = {"stored descriptors": 0.0, "word ids": 32 * nf, "first 16 bytes": 16 * nf, "first 8 bytes": 24 * nf,
+               "no descriptor for purged words": 32 * nf * (float(np.mean(dropped)) if dropped else 0.0)}[variant]
+    return {"recall_at_full_precision": s.recall_at_full_precision, "false_positives": s.false_positives,
+            "loops": int(decl.sum()), "verify_ms_median": float(np.median(ms)) if ms else 0.0,
+            "verify_ms_p99": float(np.percentile(ms, 99)) if ms else 0.0, "bytes_saved_per_image": saved_b}
+
+
+VARIANTS = ("stored descriptors", "word ids", "first 16 bytes", "first 8 bytes", "no descriptor for purged words")
+
+
+def page(res: dict[str, Any]) -> list[str]:
+    m = res["machine"]
+    lines = ["# Forward verification without the stored descriptors",
+             "",
+             "Generated by `bench/bench_forward_verify_replay.py` from its JSON (do not edit by hand). The "
+             "default detector's verifications on each sequence, replayed with what each variant keeps of the "
+             "past image (same candidates, same RANSAC, same seed); what is measured: the bench's docstring and "
+             "[docs/forward.md](../forward.md), \"Time and memory per image\".",
+             "",
+             f"Machine and versions: {m.get('machine')}, cpu_count {m.get('cpu_count')}, python {m.get('python')}, "
+             f"numpy {m.get('numpy')}, opencv {m.get('opencv')}. Command: `{res['command']}`.",
+             "",
+             "| sequence | past image keeps | bytes saved per image | R@100%P | FP | loops | verify ms median | verify ms p99 |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for sname, s in res["sequences"].items():
+        for v, r in s["variants"].items():
+            lines.append(f"| {sname} ({s['verifications']} verifications) | {v} | {r['bytes_saved_per_image']:.0f} | "
+                         f"{r['recall_at_full_precision']:.3f} | {r['false_positives']} | {r['loops']} | "
+                         f"{r['verify_ms_median']:.1f} | {r['verify_ms_p99']:.1f} |")
+    return lines + [""]
+
+
+def main(argv: list[str] | None = None) -> int:
+    from robotd.base.blas import one_blas_thread
+
+    one_blas_thread()
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--dir", type=Path, default=Path(tempfile.gettempdir()) / "robotd-office",
+                    help="folder of the virtual office sequence (written when missing)")
+    ap.add_argument("--data", type=Path, default=DATA)
+    ap.add_argument("--only", choices=("rtabmap_samples", "office"), default=None)
+    ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--page", type=Path, default=None, metavar="JSON",
+                    help="only rewrite docs/benchmarks/forward_verify_replay.md from this result")
+    args = ap.parse_args(argv)
+    if args.page is not None:
+        write_page(PAGE, page(json.loads(args.page.read_text(encoding="utf-8"))))
+        print(f"wrote {PAGE}")
+        return 0
+    res: dict[str, Any] = {"benchmark": "forward_verify_replay", "machine": {**machine_info(), "opencv": cv2.__version__},
+                           "command": " ".join(["bench/bench_forward_verify_replay.py",
+                                                *(argv if argv is not None else sys.argv[1:])]),
+                           "sequences": {}}
+    rt = args.data / "forward" / "rtabmap_samples"
+    office = office_sequence(args.dir) if args.only != "rtabmap_samples" else args.dir
+    seqs = {"rtabmap_samples": (rt, rt / "ground_truth.bmp"), "office": (office, office / "gt.npy")}
+    for name, (folder, truth) in seqs.items():
+        if args.only not in (None, name):
+            continue
+        rec = record(name, folder, truth)
+        out: dict[str, Any] = {"verifications": len(rec["pairs"]), "variants": {}}
+        print(f"\n{name}: {len(rec['pairs'])} verifications recorded", flush=True)
+        for v in VARIANTS:
+            r = replay(rec, v)
+            out["variants"][v] = r
+            print(f"  {v:32s} R@100%P {r['recall_at_full_precision']:.3f} FP {r['false_positives']} loops {r['loops']} "
+                  f"saves {r['bytes_saved_per_image']:.0f} B/img  verify ms {r['verify_ms_median']:.1f} / p99 "
+                  f"{r['verify_ms_p99']:.1f}", flush=True)
+        res["sequences"][name] = out
+        write_json(args.out, res)
+    print(f"wrote {write_json(args.out, res)}")
+    write_page(PAGE, page(res))
+    print(f"wrote {PAGE}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
