@@ -10,7 +10,8 @@ N``), two parts:
    0.05 %).
 2. The office route (about 110 m) of that seed's base, run through the wheel-only
    integrator and the wheel + gyro filter twice: with the nominal ``[robot]`` geometry
-   (the baseline) and with the calibrated model. End position error and RMS position
+   (the baseline), with the calibrated model and with the simulator's true values (what a
+   perfect calibration would give). End position error and RMS position
    error (APE, anchored at the start) against ground truth, and their ratio (issue 28: wheel-only end error with
    the calibrated model at most a fifth of the nominal one; fused better).
 
@@ -133,8 +134,12 @@ def evaluate(seed: int, calib_path: Path | None, motion: Any, model: Any = None)
     calibrated = DiffDriveParams(wheel_radius_m=r0, wheel_base_m=model.wheel_base_m,
                                  wheel_radius_left_m=model.wheel_radius_left_m,
                                  wheel_radius_right_m=model.wheel_radius_right_m)
+    # The simulator's own values: what a perfect calibration would give (the filter's floor).
+    true = DiffDriveParams(wheel_radius_m=r0, wheel_base_m=true_b, wheel_radius_left_m=true_l,
+                           wheel_radius_right_m=true_r)
     out: dict[str, Any] = {"seed": seed, "calibration": str(calib_path), "fit": fit}
-    for name, drive, scale in (("nominal", nominal, 1.0), ("calibrated", calibrated, model.gyro_scale)):
+    for name, drive, scale in (("nominal", nominal, 1.0), ("calibrated", calibrated, model.gyro_scale),
+                               ("true", true, true_s)):
         wheel, fused = run(msgs, drive, scale)
         out[name] = {"wheel_only": odometry_errors(stream.true_pose, wheel).as_dict(),
                      "fused": odometry_errors(stream.true_pose, fused).as_dict()}
@@ -159,17 +164,21 @@ def write_markdown(path: Path, rows: list[dict[str, Any]], route: str) -> None:
             f"{f['gyro_scale_err_pct']:+.3f} % ({f['gyro_scale_sigma_pct']:.3f}) | "
             f"{f['nominal_wheel_base_err_pct']:+.2f} % |")
     lines += ["", f"Part 2: the {route} route, nominal model (baseline) against calibrated, same run.", "",
-              "| seed | wheel-only end error nominal (m) | calibrated (m) | ratio | fused end nominal (m) | "
-              "calibrated (m) | fused APE RMS anchored, nominal (m) | calibrated (m) |",
-              "|---|---|---|---|---|---|---|---|"]
+              "| seed | wheel-only end error nominal (m) | calibrated (m) | ratio | true values (m) | "
+              "fused end nominal (m) | calibrated (m) | true values (m) | fused APE RMS anchored, nominal (m) | "
+              "calibrated (m) | true values (m) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        n, c = r["nominal"], r["calibrated"]
+        n, c, t = r["nominal"], r["calibrated"], r["true"]
         lines.append(
             f"| {r['seed']} | {n['wheel_only']['end_position_error_m']:.3f} | "
             f"{c['wheel_only']['end_position_error_m']:.3f} | "
             f"{c['wheel_only']['end_position_error_m'] / n['wheel_only']['end_position_error_m']:.2f} | "
+            f"{t['wheel_only']['end_position_error_m']:.3f} | "
             f"{n['fused']['end_position_error_m']:.3f} | {c['fused']['end_position_error_m']:.3f} | "
-            f"{n['fused']['ape_origin_rmse_m']:.3f} | {c['fused']['ape_origin_rmse_m']:.3f} |")
+            f"{t['fused']['end_position_error_m']:.3f} | "
+            f"{n['fused']['ape_origin_rmse_m']:.3f} | {c['fused']['ape_origin_rmse_m']:.3f} | "
+            f"{t['fused']['ape_origin_rmse_m']:.3f} |")
     lines.append("")
     write_page(path, lines)
 

@@ -537,6 +537,20 @@ def _figure8() -> Route:
                  description=ROUTES["figure8"].description)
 
 
+#: Laps of the figure eight in the calibration drive (:func:`_calibration`).
+CALIBRATION_LAPS = 4
+
+
+def _calibration() -> Route:
+    # The figure eight driven CALIBRATION_LAPS times without stopping: the turns both ways
+    # and the straights that the odometry model needs (robotd calibrate odometry; one
+    # figure eight pins the wheel base to about 0.1 % only), and the revisits the loop
+    # curve learns from (robotd calibrate loop-curve trains no mode on one).
+    pts = list(_figure8().waypoints_m)
+    return Route("calibration", tuple(pts + pts[1:] * (CALIBRATION_LAPS - 1)), corner="arc",
+                 corner_radius_m=0.5, description=ROUTES["calibration"].description)
+
+
 def _straight() -> Route:
     return Route("straight", ((0.0, 0.0), (10.0, 0.0)), corner="turn",
                  description=ROUTES["straight"].description)
@@ -562,6 +576,8 @@ ROUTES: dict[str, RouteEntry] = {
                                   "place (16 m)"),
     "figure8": RouteEntry(_figure8, "a figure eight of two 4 x 4 m loops, one each way, "
                                     "rounded corners"),
+    "calibration": RouteEntry(_calibration, "the figure eight driven four times (about 100 m): a "
+                                            "calibration drive for the loop curve and the odometry model"),
     "straight": RouteEntry(_straight, "10 m straight ahead (paper 003 Sec. IV-A similarity "
                                       "matrices)"),
     "corridor": RouteEntry(_corridor, "8 m down a corridor, a U-turn in place, and back (16 m)"),

@@ -20,7 +20,7 @@ def motions() -> dict[str, Motion]:
 
 
 def test_every_route_has_a_description_and_the_expected_names():
-    assert set(ROUTES) == {"office", "square", "figure8", "straight", "corridor"}
+    assert set(ROUTES) == {"office", "square", "figure8", "calibration", "straight", "corridor"}
     for name, entry in ROUTES.items():
         assert entry.description and "\n" not in entry.description
         assert entry.build().name == name
@@ -41,6 +41,20 @@ def test_rounded_corners_shorten_the_path(motions):
     fig8 = build_route("figure8")
     assert fig8.polyline_length_m == pytest.approx(4 * math.sqrt(8) + 2 * (2 + 4 + 2))
     assert 0.9 * fig8.polyline_length_m < motions["figure8"].length_m < fig8.polyline_length_m
+
+
+def test_calibration_drive_is_the_figure_eight_driven_over_and_over(motions):
+    from sim.route import CALIBRATION_LAPS
+
+    laps, one = motions["calibration"], motions["figure8"]
+    assert CALIBRATION_LAPS >= 3
+    # Each lap after the first goes through the crossing without stopping: more than
+    # CALIBRATION_LAPS figure eights' length, less time than as many separate drives.
+    assert laps.length_m == pytest.approx(CALIBRATION_LAPS * one.length_m, rel=0.01)
+    assert laps.duration_s < CALIBRATION_LAPS * one.duration_s
+    # It turns the same amount each way (the gyro's scale apart from its bias).
+    turn = np.diff(laps.yaw_unwrapped_rad)
+    assert turn[turn > 0].sum() == pytest.approx(-turn[turn < 0].sum(), rel=0.01)
 
 
 def test_square_takes_the_trapezoid_times(motions):
@@ -75,6 +89,7 @@ def test_standstill_at_both_ends(motions, name):
 
 @pytest.mark.parametrize("name, end_xy", [("office", (0.0, 0.0)), ("square", (0.0, 0.0)),
                                            ("figure8", (0.0, 0.0)), ("corridor", (0.0, 0.0)),
+                                           ("calibration", (0.0, 0.0)),
                                            ("straight", (10.0, 0.0))])
 def test_routes_end_where_they_should(motions, name, end_xy):
     m = motions[name]
@@ -87,8 +102,9 @@ def test_routes_end_where_they_should(motions, name, end_xy):
 def test_path_stays_inside_the_documented_bounds(motions, name):
     x0, y0, x1, y1 = build_route(name).bounds_m()
     m = motions[name]
-    assert m.x_m.min() >= x0 - 1e-6 and m.x_m.max() <= x1 + 1e-6
-    assert m.y_m.min() >= y0 - 1e-6 and m.y_m.max() <= y1 + 1e-6
+    tol = 1e-5  # the poses integrate (v, w) over 10^5 steps: rounding, micrometres
+    assert m.x_m.min() >= x0 - tol and m.x_m.max() <= x1 + tol
+    assert m.y_m.min() >= y0 - tol and m.y_m.max() <= y1 + tol
     assert build_route(name).bounds_m(margin_m=1.0) == (x0 - 1, y0 - 1, x1 + 1, y1 + 1)
 
 
