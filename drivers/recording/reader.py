@@ -382,13 +382,15 @@ def _chunk_messages(chunk: Chunk) -> list[Message]:
     with one ``struct`` call each instead of a read call per field (reading the 60 s drive
     spent a third of its time there)."""
     if chunk.compression == "zstd":
-        if _mcap_stream.zstandard is None:
+        zstandard = getattr(_mcap_stream, "zstandard", None)  # mcap's optional import
+        if zstandard is None:
             raise ValueError("zstd chunk, and the zstandard module is missing")
-        data: bytes = _mcap_stream.zstandard.decompress(chunk.data, chunk.uncompressed_size)
+        data: bytes = zstandard.decompress(chunk.data, chunk.uncompressed_size)
     elif chunk.compression == "lz4":
-        if _mcap_stream.lz4 is None:
+        lz4 = getattr(_mcap_stream, "lz4", None)
+        if lz4 is None:
             raise ValueError("lz4 chunk, and the lz4 module is missing")
-        data = _mcap_stream.lz4.decompress(chunk.data)
+        data = lz4.decompress(chunk.data)
     elif chunk.compression == "":
         data = chunk.data
     else:

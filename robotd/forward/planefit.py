@@ -129,8 +129,8 @@ def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nda
         r, _ = planar_pose(yaw, 0.0)
         u = np.cross(x_old @ r.T, x_new)
         # u . t = 0 with t = (sin psi, 0, cos psi): psi = atan2(-u_z, u_x) modulo pi.
-        psi = np.mod(np.arctan2(-u[:, 2], u[:, 0]), math.pi)
-        hist = np.bincount((psi / math.pi * bins).astype(np.int64) % bins, minlength=bins)
+        psis = np.mod(np.arctan2(-u[:, 2], u[:, 0]), math.pi)
+        hist = np.bincount((psis / math.pi * bins).astype(np.int64) % bins, minlength=bins)
         hist = hist + np.roll(hist, 1) + np.roll(hist, -1)
         for b in np.argsort(-hist)[:2].tolist():
             centre = (b + 0.5) * math.pi / bins

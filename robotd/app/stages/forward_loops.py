@@ -227,8 +227,10 @@ class ForwardLoopStage(Publisher):
         fit = None
         if refit is not None:  # refitted in the floor plane (robotd.forward.planefit)
             fit, p_old, p_new = refit
+            k = self.detector.camera_matrix
+            assert k is not None  # _refit fits nothing without it
             dyaw, bearing, sigma_b = fit.dyaw_rad, fit.bearing_rad, fit.sigma_bearing_rad
-            range_m = floor_range(p_old, p_new, fit.rotation, fit.translation_dir, self.detector.camera_matrix,
+            range_m = floor_range(p_old, p_new, fit.rotation, fit.translation_dir, k,
                                   self.detector.params.verify)[0]
         else:
             dyaw, bearing, _ = planar_motion(v.rotation, v.translation_dir)
