@@ -49,6 +49,8 @@ class Round:
 
     delay_s: float
     killed: bool
+    """SIGKILLed before its run recorded its end (a kill that lands while the process
+    exits after ending its run is a clean round)."""
     acked: int
     """Largest ``stored N`` the daemon sent before it died."""
     in_map: int
@@ -169,6 +171,18 @@ def check_map(map_path: Path, run_id: int | None = None) -> tuple[str, int, int]
         return f"MapStore: {exc}", 0, -1
 
 
+def _run_ended(map_path: Path, run_id: int) -> bool:
+    """Whether run ``run_id`` recorded its end in the map (``runs.ended_ns`` set)."""
+    raw = sqlite3.connect(map_path)
+    try:
+        row = raw.execute("SELECT ended_ns FROM runs WHERE id = ?", (int(run_id),)).fetchone()
+    except sqlite3.DatabaseError:
+        return False
+    finally:
+        raw.close()
+    return row is not None and row[0] is not None
+
+
 def _recv_all(sock: socket.socket) -> list[str]:
     out = []
     while True:
@@ -226,6 +240,8 @@ def kill_rounds(recording: Path, map_path: Path, rounds: int, *, seed: int = 0,
         finally:
             sock.close()
         integrity, in_map, run_id = check_map(map_path)
+        if killed and _run_ended(map_path, run_id):
+            killed = False  # the kill landed after the run recorded its end (the process was exiting)
         text = log_path.read_text(errors="replace")
         acked = max([int(m.group(1)) for s in msgs for m in [_STORED.search(s)] if m]
                     + [int(m.group(2)) for m in _COMMITTED.finditer(text) if int(m.group(1)) == run_id]
