@@ -29,9 +29,11 @@ class GraphPlot:
 
 def plot_demo_trajectories(out: Path, robot: VirtualRobot, obs: RunObservations, truth: np.ndarray,
                            fused: np.ndarray, wheel: np.ndarray, distance_m: float,
-                           graph: GraphPlot | None = None) -> None:
+                           graph: GraphPlot | None = None, wheel_nominal: np.ndarray | None = None) -> None:
     """``out/trajectories.png``: the truth, the odometry (anchored at the truth's start, as
-    the errors are), the loop-corrected keyframes and their loop edges over the floor."""
+    the errors are; ``wheel_nominal``: wheel-only odometry with the nominal model, when
+    ``wheel`` is the calibrated model's), the loop-corrected keyframes and their loop edges
+    over the floor."""
     from robotd.base.geometry import compose, inverse, transform_points
     from robotd.evaluation.metrics import align_origin
     from robotd.io.plots import plot_trajectories
@@ -39,7 +41,11 @@ def plot_demo_trajectories(out: Path, robot: VirtualRobot, obs: RunObservations,
     # Odometry starts at its own origin; draw it from the route's start, as the errors do.
     to_world = compose(truth[0], inverse(fused[0]))
     kf = transform_points(to_world, np.asarray(obs.keyframe_poses).reshape(-1, 3)[:, :2])
-    estimates = {"wheel only": align_origin(truth[0], wheel), "fused (EKF)": align_origin(truth[0], fused)}
+    if wheel_nominal is None:
+        estimates = {"wheel only": align_origin(truth[0], wheel)}
+    else:
+        estimates = {"wheel only (calibrated model)": align_origin(truth[0], wheel)}
+    estimates["fused (EKF)"] = align_origin(truth[0], fused)
     loop_xy = None
     if graph is not None:
         opt = compose(to_world, graph.optimized)
@@ -49,6 +55,8 @@ def plot_demo_trajectories(out: Path, robot: VirtualRobot, obs: RunObservations,
         row = {k: i for i, k in enumerate(graph.ids)}
         pairs = [(row[a], row[b]) for a, b in graph.loops if a in row and b in row]
         loop_xy = np.array([[opt[a, :2], opt[b, :2]] for a, b in pairs]).reshape(-1, 2, 2)
+    if wheel_nominal is not None:
+        estimates["wheel only (nominal model)"] = align_origin(truth[0], wheel_nominal)
     plot_trajectories(out / "trajectories.png", robot.floor, truth, estimates,
                       keyframes_xy=kf, loop_edges_xy=loop_xy,
                       title=f"robotd demo: route {robot.settings.route}, {distance_m:.0f} m")

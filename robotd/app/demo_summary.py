@@ -56,9 +56,12 @@ def summarise(cfg: Config, cam_model: FloorCameraModel, robot: VirtualRobot, obs
     err_fused = odometry_errors(truth, fused)
     err_wheel = odometry_errors(truth, wheel)
     err_nominal = None
+    nominal = None
     if live.nominal_written and (out / "wheel_nominal.tum").exists():
         n_stamps, nominal = read_tum(out / "wheel_nominal.tum")
-        if len(n_stamps):
+        if not len(n_stamps):
+            nominal = None
+        else:
             err_nominal = odometry_errors(robot.motion.pose_at(n_stamps / 1e9), nominal).as_dict()
     report = live.report
     c = report.counters
@@ -118,7 +121,7 @@ def summarise(cfg: Config, cam_model: FloorCameraModel, robot: VirtualRobot, obs
                          and live.keyframes_stored == c["keyframes"])
     if plot:
         plot_demo_trajectories(out, robot, obs, truth, fused, wheel, err_fused.distance_m,
-                               graph[1] if graph is not None else None)
+                               graph[1] if graph is not None else None, wheel_nominal=nominal)
     return summary
 
 

@@ -51,7 +51,7 @@ def plot_trajectories(path: Path, floor: Any, truth: np.ndarray, estimates: dict
         ax.imshow(img, cmap="gray", extent=(lo[0], hi[0], lo[1], hi[1]), origin="upper",
                   vmin=0, vmax=255, alpha=0.55, interpolation="bilinear")
     ax.plot(truth[:, 0], truth[:, 1], color="black", lw=2.2, label="ground truth")
-    colours = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd"]
+    colours = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#8c564b", "#17becf"]
     for (name, est), col in zip(estimates.items(), colours):
         ax.plot(est[:, 0], est[:, 1], color=col, lw=1.4, label=name)
         ax.plot(est[-1, 0], est[-1, 1], "o", color=col, ms=6)
