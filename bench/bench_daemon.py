@@ -1,4 +1,4 @@
-"""The whole daemon's CPU per robot second, stage by stage, on a recorded drive (issue 27).
+"""The whole daemon's CPU per robot second, stage by stage, on a recorded drive.
 
 A Raspberry Pi 4/5 core is 2-3x slower than one here; the daemon's budget is a fraction of
 one core. This benchmark:

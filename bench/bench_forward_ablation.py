@@ -1,4 +1,4 @@
-"""The forward detector's levers, one at a time, on the development data (issue 24 item 2-3).
+"""The forward detector's levers, one at a time, on the development data.
 
 Two sequences, never one alone: the real corridor of ``../shared/data/forward/rtabmap_samples``
 (84 images, its ``ground_truth.bmp``; no poses) and the virtual office route (1139 images:

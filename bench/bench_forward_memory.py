@@ -1,5 +1,5 @@
 """Per-image time and memory of the forward detector as the run grows, with and without the
-working memory (issue 14 item 4 and its targets).
+working memory.
 
 The virtual robot drives the office route lap after lap; each keyframe (every 0.1 m or
 10 deg) is rendered at 640x480 by the forward camera (:mod:`sim.cameras.forward`), its SIFT

@@ -1,4 +1,4 @@
-"""The forward loop detector on the virtual robot's forward camera (issue 14, targets).
+"""The forward loop detector on the virtual robot's forward camera.
 
 Writes the forward-camera keyframes of a route in its textured world with their
 same-place ground truth (:func:`sim.forward_sequence.write_forward_sequence`: images,

@@ -6,13 +6,13 @@ N``), two parts:
 
 1. The fitted wheel radii, wheel base and gyro scale against the errors the simulator drew
    for that base (:func:`sim.sensors.draw_errors`, seed N), as relative errors, with the
-   fit's own 1-sigma (issue 28's targets: radii 0.05 %, wheel base 0.1 %, gyro scale
+   fit's own 1-sigma (the targets: radii 0.05 %, wheel base 0.1 %, gyro scale
    0.05 %).
 2. The office route (about 110 m) of that seed's base, run through the wheel-only
    integrator and the wheel + gyro filter twice: with the nominal ``[robot]`` geometry
    (the baseline), with the calibrated model and with the simulator's true values (what a
    perfect calibration would give). End position error and RMS position
-   error (APE, anchored at the start) against ground truth, and their ratio (issue 28: wheel-only end error with
+   error (APE, anchored at the start) against ground truth, and their ratio (wheel-only end error with
    the calibrated model at most a fifth of the nominal one; fused better).
 
 Run: ``.venv/bin/python bench/bench_odometry_calibration.py --calibration '/tmp/cal{seed}.yml'

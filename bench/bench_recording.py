@@ -1,5 +1,5 @@
 """Recording size and decoding cost: lossless PNG frames against JPEG at several qualities,
-on the same drive (issue 15, item 5).
+on the same drive.
 
 One drive of the virtual robot is recorded once with PNG frames (lossless: the pixels the
 daemon saw), then transcoded to JPEG at each quality (:func:`drivers.recording.transcode.transcode`,

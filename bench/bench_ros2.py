@@ -1,5 +1,5 @@
-"""ROS 2 output: latency from a loop closure to the /tf update, and what publishing costs
-(issue 25, item 5). One process runs the demo daemon on the virtual robot with [ros2]
+"""ROS 2 output: latency from a loop closure to the /tf update, and what publishing costs.
+One process runs the demo daemon on the virtual robot with [ros2]
 on; a second process subscribes to /tf, as Nav2's tf listener would.
 
 Per keyframe whose floor query closed a loop (the pose graph accepted it), three times:

@@ -1,5 +1,5 @@
 """SIGKILL during map writes, many times: is the map whole, and is every acknowledged
-keyframe in it? (issue 15, item 7)
+keyframe in it?
 
 Each round starts ``robotd replay`` (a separate process, the real CLI) on one recording
 into one map file that all rounds share, waits for READY on a real ``AF_UNIX`` notify

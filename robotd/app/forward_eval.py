@@ -1,5 +1,5 @@
 """``robotd eval forward``: the forward loop detector on an image sequence, scored against a
-ground-truth matrix, beside two baselines (issue 14 item 6).
+ground-truth matrix, beside two baselines.
 
 The images of ``--images`` run through :class:`robotd.forward.ForwardDetector` in natural
 name order. The same features also feed

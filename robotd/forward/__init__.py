@@ -1,7 +1,7 @@
 """The forward loop detector (paper 000, Angeli et al. 2008; algorithm layer, no I/O):
 local features, an incremental vocabulary with an inverted index, tf-idf voting, a Bayes
 filter over loop hypotheses and epipolar verification; optionally a working memory that
-bounds the per-image time (issue 14 item 4)."""
+bounds the per-image time."""
 
 from robotd.forward.detector import (LOOP, LOW_POSTERIOR, METHODS, NO_GEOMETRIC_CONSISTENCY, NO_HYPOTHESES,
                                      NOT_CONSISTENT_YET, method_params,

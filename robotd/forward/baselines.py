@@ -1,4 +1,4 @@
-"""The two baselines the forward detector is measured against (issue 14 item 6).
+"""The two baselines the forward detector is measured against.
 
 - :func:`best_score`: the detector's own likelihoods without the Bayes filter. Among the
   hypotheses -1, 0 .. t - p the highest tf-idf vote wins; a loop is declared when a past

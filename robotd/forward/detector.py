@@ -57,7 +57,7 @@ class DetectionStatus(StrEnum):
     NO_HYPOTHESES = "NO_HYPOTHESES"          # t < p: no past image can be a loop yet
     LOW_POSTERIOR = "LOW_POSTERIOR"          # no neighbourhood's posterior above the threshold
     NO_GEOMETRIC_CONSISTENCY = "NO_GEOMETRIC_CONSISTENCY"  # the candidate failed verification
-    NOT_CONSISTENT_YET = "NOT_CONSISTENT_YET"  # fewer than k consistent candidates in a row (issue 24)
+    NOT_CONSISTENT_YET = "NOT_CONSISTENT_YET"  # fewer than k consistent candidates in a row
 
 
 LOOP = DetectionStatus.LOOP
@@ -76,7 +76,7 @@ STAGES = ("features", "words", "likelihood", "filter", "verify", "memory")
 @dataclass(frozen=True)
 class OdometryParams:
     """The keyframe's odometry as a second likelihood (beyond the paper: its Sec. VI names
-    the robot's metric pose as the next step; issue 24 item 2).
+    the robot's metric pose as the next step).
 
     With ``use`` and a pose given to :meth:`ForwardDetector.process_features`, each image
     hypothesis j's likelihood factor is multiplied by ``exp(-d^2 / 2)``, where d is the
@@ -189,7 +189,7 @@ class DetectorParams:
             exceeds ``score_threshold`` into islands (runs of images at most
             ``consistency_gap`` apart, DLoopDetector's temporal islands); the island with the
             largest summed normalised score wins and its best image is the candidate, with
-            that sum as its probability. False: the single best image (issue 24).
+            that sum as its probability. False: the single best image.
         odometry: the keyframes' odometry as a second likelihood
             (:class:`OdometryParams`; off by default, the paper).
     """
@@ -348,7 +348,7 @@ class ForwardDetector:
 
     def restore(self, images: list[CompactFeatures], word_descriptors: np.ndarray, word_born: np.ndarray,
                 word_purged: np.ndarray) -> None:
-        """Take up the memory of an earlier run (issue 24 item 4): its images in order (as
+        """Take up the memory of an earlier run: its images in order (as
         :meth:`features_of` gave them) and its words (descriptors, the image that made each,
         purged or not). The inverted index is rebuilt from the images' words; the filter
         starts at "no loop" as at any start; the earlier images are hypotheses at once."""

@@ -95,7 +95,7 @@ KEYPOINT_SCALE = 16.0
 
 @dataclass(frozen=True, eq=False)
 class CompactFeatures:
-    """What the detector keeps of one past image for voting and verification (issue 24):
+    """What the detector keeps of one past image for voting and verification:
     ``words (N,) uint32`` (the vocabulary word of each keypoint), ``keypoints_q (N, 2)
     uint16`` (positions in 1/16 px), ``descriptors`` as extracted (``(N, 32) uint8`` ORB;
     SIFT stays ``(N, 128) float32``, the paper's reference), ``image_size_px``. It reads

@@ -22,7 +22,7 @@ Eq. 4), so it can be checked against a hand-derived answer:
   neighbourhood (the same +-2 images); when the largest sum exceeds the threshold (0.8)
   the most probable image of that neighbourhood is the loop candidate.
 
-With a working memory (issue 14 item 4, :mod:`robotd.forward.memory`) the hypotheses are
+With a working memory (:mod:`robotd.forward.memory`) the hypotheses are
 only some of the past images; :func:`predict_ids`, :func:`neighbourhood_sums_ids` and
 :func:`select_candidate_ids` take them as sorted image ids (see the note above them). The
 detector uses the dense functions as long as no place has left the working memory.
@@ -56,7 +56,7 @@ class FilterParams:
             loop probability does.
         rule: ``"neighbourhood"`` (the paper, Sec. IV-C) or ``"total"``: the total loop
             probability 1 - p(S_t = -1) against the threshold, as RTAB-Map thresholds it
-            (``Rtabmap/LoopThr``; issue 24), so that a place seen in several images far
+            (``Rtabmap/LoopThr``), so that a place seen in several images far
             apart in time does not split its probability below the threshold; the
             candidate is the same (the most probable image of the best neighbourhood).
     """

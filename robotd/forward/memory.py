@@ -1,4 +1,4 @@
-"""A working memory of places for the forward detector (issue 14 item 4; after RTAB-Map's
+"""A working memory of places for the forward detector (after RTAB-Map's
 working / long-term memory, Labbe and Michaud 2013). Algorithm layer: no I/O.
 
 The paper's detector (000) compares each image with every past image: the inverted index,

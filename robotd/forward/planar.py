@@ -1,4 +1,4 @@
-"""A verified forward-camera loop as a planar pose-graph edge (issue 14, item 7).
+"""A verified forward-camera loop as a planar pose-graph edge.
 
 Epipolar verification (:mod:`robotd.forward.verify`) gives the rotation between the two
 camera views and the *direction* of the translation; the distance between them is not

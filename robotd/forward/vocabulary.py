@@ -56,7 +56,7 @@ class VocabularyParams:
         expansion_search: HNSW candidate list size while searching (recall of the nearest
             word against speed).
         purge_after: words seen in one image only are removed from the search once that
-            many images have come after it (iBoW-LCD's purging, issue 24): most words of an
+            many images have come after it (iBoW-LCD's purging): most words of an
             image never recur, and they would otherwise fill the search structure; 0 =
             never (the paper). A purged word keeps its id and its place in the inverted
             index (it still counts for its one image) but no later descriptor can find it.
@@ -126,7 +126,7 @@ class Vocabulary:
         self._seen = _GrowingInts(np.uint8)     # per word: images it was found in, counted to 2
         self._unpurged_from = 0                 # words below this id were all examined
         self.purged = 0
-        # What the last add() changed, for a store to write (robotd.io.store, issue 24):
+        # What the last add() changed, for a store to write (robotd.io.store):
         self.last_new: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros((0, dim)))
         self.last_purged = np.zeros(0, np.int64)
 

@@ -25,7 +25,7 @@ A forward-camera loop (:class:`~robotd.base.messages.ForwardLoop`: heading chang
 bearing, no distance) becomes an SE(2) edge whose range is the graph's own prediction with a
 large uncertainty (:func:`robotd.forward.planar.loop_edge`), then meets the same gate.
 
-Relocalisation (issue 14, item 7). The map frame is the frame of the run that started the
+Relocalisation. The map frame is the frame of the run that started the
 map; a run that relocalises against it joins it (``MapStore.map_frame_runs``). A run that
 starts on a map with keyframes in the map frame does not know where it is: it says so
 ("not localised in the stored map", in the log and STATUS), keeps running on odometry in

@@ -1,5 +1,4 @@
-"""Relocalisation: where a trajectory that does not know its place lies in the map frame
-(issue 14, item 7).
+"""Relocalisation: where a trajectory that does not know its place lies in the map frame.
 
 After a restart on a stored map, or after the robot was carried while blind (a kidnapping),
 the daemon runs on odometry in a frame of its own: the *lost trajectory* (this run's

@@ -8,7 +8,7 @@ Version history:
    indexed by ``(run_id, stamp_ns)``;
 3. the pose graph's results: ``optimized_poses`` (the newest solved pose of each
    keyframe) and ``loop_candidates`` (every loop-closure candidate and its fate);
-4. the forward camera's memory (issue 24): ``forward_images`` (what the detector keeps of
+4. the forward camera's memory: ``forward_images`` (what the detector keeps of
    each forward keyframe: word ids, compact keypoints, descriptors) and ``forward_words``
    (the incremental vocabulary's words, with the image that made each one and whether it
    was purged), so a restarted daemon goes on detecting forward loops against earlier runs.

@@ -1,4 +1,4 @@
-"""The odometry model of one robot, fitted to a calibration drive (issue 28, item 1).
+"""The odometry model of one robot, fitted to a calibration drive.
 
 A calibration drive (the loop curve's drive: floor loops and floor visual odometry) gives a
 reference trajectory at its keyframes, the loop-corrected pose graph's, far better than

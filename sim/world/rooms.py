@@ -1,4 +1,4 @@
-"""The forward camera's world: corridors and rooms with textured walls (issue 14 item 5).
+"""The forward camera's world: corridors and rooms with textured walls.
 
 The world is 2.5-D: a flat floor, a flat ceiling at ``wall_height_m``, and vertical walls
 standing on 2-D line segments, which is what a column raycaster renders exactly

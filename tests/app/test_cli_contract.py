@@ -397,7 +397,7 @@ def test_a_foreign_file_in_the_demo_folder_is_left_alone(demo_out: Path):
     assert snapshot(demo_out) == before
 
 
-# -- robotd calibrate odometry (issue 28) ---------------------------------------------------
+# -- robotd calibrate odometry ---------------------------------------------------
 
 @pytest.mark.parametrize("case", ["drive_too_short", "drive_missing", "calibration_missing",
                                   "drive_is_a_folder", "passes_zero", "plot_folder_missing",

@@ -1,4 +1,4 @@
-"""The forward memory in the map (issue 24 item 4): each forward image is written as it is
+"""The forward memory in the map: each forward image is written as it is
 processed; a new stage on the same map takes the earlier run's memory up and closes a loop
 against it."""
 

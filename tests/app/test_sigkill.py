@@ -1,6 +1,6 @@
 """SIGKILL at random moments while ``robotd replay`` writes a map, several times into one
 map: the map stays whole and keeps every keyframe the daemon acknowledged, and the next
-start reports the killed run (issue 15, item 7). ``bench/bench_sigkill.py --kills 100``
+start reports the killed run. ``bench/bench_sigkill.py --kills 100``
 runs many more rounds."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""What the detector keeps per image (issue 24 item 4): word ids, keypoints in 1/16 px,
+"""What the detector keeps per image: word ids, keypoints in 1/16 px,
 binary descriptors; about 12 kB for 300 ORB keypoints."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The detector's levers beyond the paper (issue 24): temporal consistency, the score
+"""The detector's levers beyond the paper: temporal consistency, the score
 decision, the method presets."""
 
 from __future__ import annotations

@@ -82,7 +82,7 @@ def test_update_refuses_a_vanished_posterior():
 
 def test_the_total_rule_thresholds_one_minus_the_no_loop_probability():
     """A place seen twice far apart in time splits its probability between two
-    neighbourhoods: neither passes 0.8 alone, the total loop probability does (issue 24)."""
+    neighbourhoods: neither passes 0.8 alone, the total loop probability does."""
     post = np.zeros(21)
     post[0] = 0.11
     post[1 + 3] = 0.45   # image 3

@@ -1,4 +1,4 @@
-"""The working memory of the forward detector (issue 14 item 4): the inverted index's removal,
+"""The working memory of the forward detector: the inverted index's removal,
 the Bayes filter over hypothesis ids, and the detector on a synthetic two-pass scene."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Epipolar verification on the virtual forward camera's images (issue 14: no false forward
+"""Epipolar verification on the virtual forward camera's images (no false forward
 loops on the virtual route).
 
 The poses are keyframes of the office route (seed 0, the bench's 1139-image sequence:
@@ -78,7 +78,7 @@ def test_a_true_loop_on_the_next_lap_is_still_accepted(office):
     assert abs(math.degrees(dyaw)) < 2 and abs(math.degrees(bearing)) < 5 and math.degrees(tilt) < 3
 
 
-# --- issue 24 item 1: the relative pose a verified forward loop hands the pose graph ------
+# --- the relative pose a verified forward loop hands the pose graph ------
 # Two views of one corridor (the images of the same name in the office sequence above), and
 # two pairs of *different* places 2.4-2.6 m apart (images 671/839 and 269/956: no wall cell
 # in common) that see the same repeating floor tiles and ceiling panels.
@@ -128,7 +128,7 @@ def test_the_loop_edge_is_the_true_relative_pose_whichever_camera_is_ahead(offic
 
 @pytest.mark.parametrize("pair", sorted(ALIASED))
 def test_an_aliased_floor_and_ceiling_pass_the_epipolar_check_but_measure_the_wrong_range(office, pair):
-    """The daemon's wrong forward loops (issue 24): different places, the same floor and
+    """The daemon's wrong forward loops: different places, the same floor and
     ceiling; the five-point check accepts them with the heading right and the bearing far
     off, which looked like a reversed sign. The floor measures a range a fraction of the
     true one, and the edge built with it is refused by the pose graph's gate."""
@@ -164,7 +164,7 @@ def _overlap_poses(renderer, a: np.ndarray, b: np.ndarray) -> float:
     return float(view_overlap(view_histograms(renderer, np.array([a, b])))[0, 1])
 
 
-# --- the bearing's uncertainty handed to the pose graph (issue 24: short-baseline loops) ---
+# --- the bearing's uncertainty handed to the pose graph (short-baseline loops) ---
 # The daemon's two wrong accepted loops were true revisits 0.23-0.25 m apart with the bearing
 # 13-17 deg off under a fixed 2 deg sigma. New cameras around one corridor pose, at short
 # (0.12-0.25 m) and long (0.6-1.0 m) baselines, in all directions, turned by a few degrees.

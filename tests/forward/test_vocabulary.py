@@ -108,7 +108,7 @@ def test_votes_are_tfidf_sums_and_the_virtual_image_votes_too():
 
 
 def test_words_seen_in_one_image_only_are_purged_after_the_set_age():
-    """iBoW-LCD's purging (issue 24): a word no later image found leaves the search once
+    """iBoW-LCD's purging: a word no later image found leaves the search once
     ``purge_after`` images have come after the image that made it; a word that recurred
     stays; ids are never reused."""
     rng = np.random.default_rng(7)
@@ -134,7 +134,7 @@ def test_no_purging_by_default():
 
 
 def test_a_restored_vocabulary_finds_what_the_original_finds_and_purges_on():
-    """restore() (a restarted daemon, issue 24): the same searchable words, purged ones
+    """restore() (a restarted daemon): the same searchable words, purged ones
     not found, and purging goes on from where it was."""
     rng = np.random.default_rng(9)
     params = VocabularyParams(word_radius_bits=40, purge_after=3)

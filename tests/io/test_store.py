@@ -718,7 +718,7 @@ def test_runs_that_never_ended_are_marked_once_keeping_their_keyframes(tmp_path:
 
 
 def test_a_version_3_map_gains_the_forward_memory_and_keeps_its_rows(tmp_path, monkeypatch) -> None:
-    """Today's maps (version 3) are upgraded to version 4 (issue 24): the forward tables
+    """Today's maps (version 3) are upgraded to version 4: the forward tables
     appear, empty; every earlier row is as it was."""
     path = tmp_path / "map.sqlite"
     migrations = mapconnection.MIGRATIONS

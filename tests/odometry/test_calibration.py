@@ -41,7 +41,7 @@ def test_the_fit_finds_the_simulated_base_errors(seed):
     f = fit_odometry(drive, r0, b0)
     true_l, true_r = r0 * (1 + err.left_radius_error), r0 * (1 + err.right_radius_error)
     true_b = b0 * (1 + err.wheel_base_error)
-    # The radii to 0.05 % and the gyro scale to 0.05 % (issue 28's targets); the nominal
+    # The radii to 0.05 % and the gyro scale to 0.05 % (the targets); the nominal
     # values are off by up to 0.6 % and 0.3 %, so this needs the fit.
     assert abs(f.wheel_radius_left_m / true_l - 1) < 5e-4
     assert abs(f.wheel_radius_right_m / true_r - 1) < 5e-4

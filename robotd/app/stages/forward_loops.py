@@ -1,4 +1,4 @@
-"""The forward camera's loop detector as a pipeline stage (issue 14, item 7; paper 000).
+"""The forward camera's loop detector as a pipeline stage (paper 000).
 
 Forward frames are buffered; when a floor keyframe is stored and the robot has moved
 ``distance_m`` or turned ``rotation_rad`` since the last forward keyframe, the buffered
@@ -10,7 +10,7 @@ verification); a verified loop whose motion is planar is published as a
 :class:`~robotd.base.messages.ForwardLoop`, which the pose graph gates and adds
 (:mod:`robotd.app.stages.pose_graph`).
 
-With a map store the forward memory is durable (issue 24 item 4): each forward image is
+With a map store the forward memory is durable: each forward image is
 written to the map (its word ids, compact keypoints and descriptors, the words it made and
 the words purged after it) in one transaction, and a new stage on the same map takes up
 the earlier runs' memory, so the detector goes on finding loops against them after a
