@@ -537,6 +537,45 @@ def graph_memory(graph: Any) -> dict[str, Any]:
     return {f"graph_{k}": v for k, v in graph.stats().items()}
 
 
+def sqlite_memory_mb() -> float:
+    """Memory SQLite's allocator holds in this process (every connection's page cache,
+    schema and statements: ``sqlite3_memory_used``), MB; NaN where the library is not found."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        lib = ctypes.CDLL(ctypes.util.find_library("sqlite3") or "libsqlite3.so.0")
+        lib.sqlite3_memory_used.restype = ctypes.c_int64
+        return float(lib.sqlite3_memory_used()) / 1e6
+    except (OSError, AttributeError):
+        return math.nan
+
+
+def memory_breakdown(floor: Any, trace: bool) -> dict[str, Any]:
+    """Where the memory is, for :func:`memory_run`'s samples: the floor index's global
+    array and its descriptors in RAM (``index_global_mb``, ``index_descriptors_mb``),
+    SQLite's allocator (``sqlite_mb``) and, with ``trace`` (``tracemalloc`` running), the
+    Python side: every traced allocation (numpy's data included) by file, the largest
+    first (``traced_mb``, ``traced_by_file``), and tracemalloc's own overhead."""
+    index = floor.detector.index
+    packed = getattr(index, "_packed", None)
+    desc = getattr(index, "descriptors_nbytes", None)
+    desc_b = desc if desc is not None else (packed.nbytes if packed is not None else 0)
+    out: dict[str, Any] = {"index_descriptors_mb": desc_b / 1e6, "index_global_mb": (index.nbytes - desc_b) / 1e6,
+                           "sqlite_mb": sqlite_memory_mb()}
+    if trace:
+        import tracemalloc
+
+        snap = tracemalloc.take_snapshot()
+        stats = snap.statistics("filename")
+        out["traced_mb"] = sum(s.size for s in stats) / 1e6
+        out["tracemalloc_overhead_mb"] = tracemalloc.get_tracemalloc_memory() / 1e6
+        root = str(REPO_ROOT) + os.sep
+        out["traced_by_file"] = [[str(s.traceback[0].filename).replace(root, ""), round(s.size / 1e6, 2), s.count]
+                                 for s in stats[:12]]
+    return out
+
+
 def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                on_sample: Any = None) -> dict[str, Any]:
     """The whole daemon's resident memory as its map grows to ``keyframes`` keyframes.
@@ -579,6 +618,10 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                       "loops_per_keyframe": pipeline.stage("graph").graph.params.loops_per_keyframe}
             gc.collect()
             rss0 = rss_mb()
+            if args.memory_trace:
+                import tracemalloc
+
+                tracemalloc.start(1)
             t0 = os.times()
             lap, frames, n, c = 0, 0, 0, {}
             next_sample = args.memory_every
@@ -604,10 +647,14 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                                             "rss_mb": rss_mb(), "rss_trimmed_mb": trimmed_rss_mb(), "laps": lap + 1,
                                             "index_mb": floor.detector.index.nbytes / 1e6,
                                             "cpu_s": (t.user - t0.user) + (t.system - t0.system),
-                                            **graph_memory(pipeline.stage("graph").graph)})
-                            print(f"memory: {n} keyframes, RSS {samples[-1]['rss_mb']:.0f} MB, index "
-                                  f"{samples[-1]['index_mb']:.1f} MB, {samples[-1]['cpu_s']:.0f} s CPU",
-                                  flush=True)
+                                            **graph_memory(pipeline.stage("graph").graph),
+                                            **memory_breakdown(floor, args.memory_trace)})
+                            s = samples[-1]
+                            print(f"memory: {n} keyframes, RSS {s['rss_mb']:.0f} MB ({s['rss_trimmed_mb']:.0f} "
+                                  f"trimmed), index {s['index_mb']:.1f} MB (descriptors {s['index_descriptors_mb']:.1f})"
+                                  f", SQLite {s['sqlite_mb']:.1f} MB, graph {s.get('graph_factors', 0)} factors "
+                                  f"{s.get('graph_tree_nnz', 0)} nnz, {s['cpu_s']:.0f} s CPU"
+                                  + (f", traced {s['traced_mb']:.1f} MB" if "traced_mb" in s else ""), flush=True)
                             next_sample += args.memory_every
                             if on_sample is not None:
                                 on_sample({"keyframes_target": keyframes, "laps": lap + 1, "frames": frames,
@@ -628,6 +675,7 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                    "loop_edges": int(c.get("links_loop", 0)), "samples": samples,
                    "map_file_mb": (Path(tmp) / "map.sqlite").stat().st_size / 1e6, "config": config}
             out.update(graph_memory(pipeline.stage("graph").graph))
+            out.update(memory_breakdown(floor, args.memory_trace))
             out.update({k: int(c[k]) for k in ("graph_update_median_us", "graph_update_p99_us", "graph_solve_ms")
                         if k in c})
         if args.keep_map is not None:
@@ -813,6 +861,9 @@ def main(argv: list[str] | None = None) -> int:
                          "(writes NAME-memory.json; --doc writes its page)")
     ap.add_argument("--memory-every", type=int, default=1000, metavar="K",
                     help="sample the memory every K keyframes (default 1000)")
+    ap.add_argument("--memory-trace", action="store_true",
+                    help="with --memory: tracemalloc on, the Python side's allocations by file at each sample "
+                         "(slower; its own overhead is reported)")
     ap.add_argument("--memory-page", type=Path, nargs="+", default=None, metavar="JSON",
                     help="only write the memory page (--doc) from these --memory JSON files, partial or not")
     args = ap.parse_args(argv)
