@@ -616,6 +616,17 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                       "shortlist": cfg.floor_detector.shortlist, "localise_mapped": cfg.pose_graph.localise_mapped,
                       "loop_spacing": pipeline.stage("graph").graph.params.loop_spacing,
                       "loops_per_keyframe": pipeline.stage("graph").graph.params.loops_per_keyframe}
+            query_ms: list[float] = []  # each floor query's thread CPU since the last sample
+            index_query = floor.detector.index.query
+
+            def timed_query(*a: Any, **kw: Any) -> Any:
+                t = time.thread_time()
+                try:
+                    return index_query(*a, **kw)
+                finally:
+                    query_ms.append((time.thread_time() - t) * 1e3)
+
+            floor.detector.index.query = timed_query
             gc.collect()
             rss0 = rss_mb()
             if args.memory_trace:
@@ -648,12 +659,18 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                                             "index_mb": floor.detector.index.nbytes / 1e6,
                                             "cpu_s": (t.user - t0.user) + (t.system - t0.system),
                                             **graph_memory(pipeline.stage("graph").graph),
-                                            **memory_breakdown(floor, args.memory_trace)})
+                                            **memory_breakdown(floor, args.memory_trace),
+                                            "query_ms_median": statistics.median(query_ms) if query_ms else math.nan,
+                                            "query_ms_p99": float(np.quantile(query_ms, 0.99)) if query_ms else math.nan,
+                                            "index_loads": int(getattr(floor.detector.index, "loads", 0)),
+                                            "index_load_failures": int(getattr(floor.detector.index, "load_failures", 0))})
+                            query_ms.clear()
                             s = samples[-1]
                             print(f"memory: {n} keyframes, RSS {s['rss_mb']:.0f} MB ({s['rss_trimmed_mb']:.0f} "
                                   f"trimmed), index {s['index_mb']:.1f} MB (descriptors {s['index_descriptors_mb']:.1f})"
                                   f", SQLite {s['sqlite_mb']:.1f} MB, graph {s.get('graph_factors', 0)} factors "
-                                  f"{s.get('graph_tree_nnz', 0)} nnz, {s['cpu_s']:.0f} s CPU"
+                                  f"{s.get('graph_tree_nnz', 0)} nnz, query {s['query_ms_median']:.2f} ms median "
+                                  f"({s['index_loads']} descriptors read so far), {s['cpu_s']:.0f} s CPU"
                                   + (f", traced {s['traced_mb']:.1f} MB" if "traced_mb" in s else ""), flush=True)
                             next_sample += args.memory_every
                             if on_sample is not None:

@@ -28,6 +28,7 @@ descriptor's length, and a descriptor of another length is refused (ValueError).
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 from collections.abc import Callable, Collection, Iterable
@@ -36,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from robotd.base.errors import DescriptorError
+from robotd.base.errors import DescriptorError, RobotdError
 from robotd.floor.descriptor import ANGLE_BITS, FloorDescriptor, decode
 from robotd.floor.match import Matcher, MatchResult, local_score
 
@@ -62,12 +63,17 @@ class IndexParams:
         initial_capacity: rows of the global-descriptor array before its first doubling.
         match_params: passed to :func:`robotd.floor.match.local_score` as ``params``
             (None: the matcher's defaults).
+        resident: with a ``loader`` (:class:`FloorIndex`), how many decoded descriptors
+            stay in RAM, the most recently used (the newest keyframes and the last
+            shortlists'); the others are read again through the loader when a shortlist
+            names them. Without a loader every descriptor stays in RAM.
     """
 
     k: int = 5
     shortlist: int = 30
     initial_capacity: int = 256
     match_params: Any = None
+    resident: int = 1024
 
     def __post_init__(self) -> None:
         if self.k < 1:
@@ -76,6 +82,8 @@ class IndexParams:
             raise ValueError(f"shortlist must be >= 1, got {self.shortlist}")
         if self.initial_capacity < 1:
             raise ValueError(f"initial_capacity must be >= 1, got {self.initial_capacity}")
+        if self.resident < 1:
+            raise ValueError(f"resident must be >= 1, got {self.resident}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -128,6 +136,9 @@ def _descriptor_nbytes(descriptor: FloorDescriptor) -> int:
             total += len(value)
     return total
 
+
+_ON_DEMAND = np.iinfo(np.int64).min
+"""``FloorIndex._slot`` of a keyframe whose descriptor is read through the loader."""
 
 _ANGLE_STEP = 2 * math.pi / 2**ANGLE_BITS
 _ANGLES = (np.arange(2**ANGLE_BITS) * _ANGLE_STEP).astype(np.float32)  # code -> radians, as decode gives them
@@ -248,9 +259,19 @@ class FloorIndex:
     ``scorer`` replaces the local matcher (default :func:`robotd.floor.match.local_score`
     with ``params.match_params``); :attr:`local_matches` counts every local match the
     index has made, so the cost of queries can be checked.
+
+    ``loader(keyframe_id) -> FloorDescriptor`` (the map's stored descriptor, decoded) keeps
+    the local descriptors out of RAM: the index then holds the global descriptors (all a
+    shortlist needs) and the ``params.resident`` most recently used decoded descriptors,
+    and reads a shortlisted keyframe's through the loader when it is not among them
+    (:attr:`loads` counts those reads). A keyframe whose descriptor cannot be read then
+    (the loader raises a :class:`RobotdError`, KeyError or ValueError) is left out of that
+    query's candidates, logged and counted (:attr:`load_failures`). The candidates are the
+    same as with every descriptor in RAM: the loader gives back what was added.
     """
 
-    def __init__(self, params: IndexParams | None = None, scorer: LocalScorer | None = None) -> None:
+    def __init__(self, params: IndexParams | None = None, scorer: LocalScorer | None = None,
+                 loader: Callable[[int], FloorDescriptor] | None = None) -> None:
         self.params = params if params is not None else IndexParams()
         if scorer is None:
             match_params = self.params.match_params
@@ -274,6 +295,11 @@ class FloorIndex:
         self._n = 0
         self._row_of: dict[int, int] = {}
         self._local_nbytes = 0  # of the descriptors kept as they are
+        self._loader = loader
+        self._recent: collections.OrderedDict[int, FloorDescriptor] = collections.OrderedDict()
+        self._recent_nbytes = 0  # of the descriptors in _recent
+        self.loads = 0
+        self.load_failures = 0
         self.local_matches = 0
         self.load_report: LoadReport | None = None
 
@@ -299,9 +325,18 @@ class FloorIndex:
     def nbytes(self) -> int:
         """Memory held by the index: the global array (whole capacity), the id array and
         the decoded descriptors' arrays (packed: :class:`_PackedDescriptors`, whole
-        chunks). Python object overhead is not counted."""
-        return int(self._global.nbytes + self._ids.nbytes + self._slot.nbytes + self._packed.nbytes
-                   + self._local_nbytes)
+        chunks; with a loader, the resident ones'). Python object overhead is not counted."""
+        return int(self._global.nbytes + self._ids.nbytes + self._slot.nbytes + self.descriptors_nbytes)
+
+    @property
+    def descriptors_nbytes(self) -> int:
+        """The part of :attr:`nbytes` held by the decoded descriptors (local features)."""
+        return int(self._packed.nbytes + self._local_nbytes + self._recent_nbytes)
+
+    @property
+    def on_demand(self) -> bool:
+        """Whether the local descriptors are read through a loader (see the class)."""
+        return self._loader is not None
 
     def add(self, keyframe_id: int, descriptor: FloorDescriptor) -> None:
         """Index a keyframe's decoded descriptor.
@@ -332,7 +367,10 @@ class FloorIndex:
         padded[: g.size] = g
         self._global[row] = padded.view(np.uint64)
         self._ids[row] = keyframe_id
-        if self._packed.fits(descriptor):
+        if self._loader is not None:
+            self._slot[row] = _ON_DEMAND
+            self._remember(keyframe_id, descriptor)
+        elif self._packed.fits(descriptor):
             self._slot[row] = self._packed.add(descriptor)
         else:
             self._slot[row] = -1 - len(self._objects)
@@ -343,7 +381,29 @@ class FloorIndex:
 
     def _stored(self, row: int) -> Any:
         slot = int(self._slot[row])
+        if slot == _ON_DEMAND:
+            return self._on_demand(int(self._ids[row]))
         return self._packed.get(slot) if slot >= 0 else self._objects[-1 - slot]
+
+    def _remember(self, keyframe_id: int, descriptor: FloorDescriptor) -> None:
+        """Keep ``descriptor`` among the resident ones, the least recently used let go."""
+        self._recent[keyframe_id] = descriptor
+        self._recent_nbytes += _descriptor_nbytes(descriptor)
+        while len(self._recent) > self.params.resident:
+            _kf, old = self._recent.popitem(last=False)
+            self._recent_nbytes -= _descriptor_nbytes(old)
+
+    def _on_demand(self, keyframe_id: int) -> FloorDescriptor:
+        """A descriptor kept out of RAM: the resident copy, else the loader's (then kept)."""
+        d = self._recent.get(keyframe_id)
+        if d is not None:
+            self._recent.move_to_end(keyframe_id)
+            return d
+        assert self._loader is not None
+        d = self._loader(keyframe_id)
+        self.loads += 1
+        self._remember(keyframe_id, d)
+        return d
 
     def _grow(self) -> None:
         cap = 2 * self._global.shape[0]
@@ -357,15 +417,28 @@ class FloorIndex:
 
     @classmethod
     def from_store(cls, store: Any, mode: int, params: IndexParams | None = None,
-                   scorer: LocalScorer | None = None) -> FloorIndex:
+                   scorer: LocalScorer | None = None, on_demand: bool = True) -> FloorIndex:
         """Rebuild the index from the descriptors of ``mode`` stored in a
         :class:`~robotd.io.store.MapStore`, in keyframe-id order.
+
+        ``on_demand`` (default): the local descriptors stay in the map and are read back
+        (``store.keyframe(id)``, decoded) when a shortlist names one that is not resident
+        (the class's ``loader``); the store must then stay open as long as the index is
+        queried, and every keyframe added later must be in the store by then. Otherwise
+        every descriptor is kept in RAM.
 
         A stored descriptor that does not decode (or whose global descriptor does not fit
         the index) is skipped, logged with its keyframe id and counted in
         :attr:`load_report`; it never stops the load.
         """
-        index = cls(params, scorer)
+
+        def load(keyframe_id: int) -> FloorDescriptor:
+            rec = store.keyframe(keyframe_id)
+            if rec.descriptor is None or rec.descriptor_mode != mode:
+                raise KeyError(f"keyframe {keyframe_id} has no mode-{mode} descriptor in the map")
+            return decode(rec.descriptor)
+
+        index = cls(params, scorer, load if on_demand else None)
         corrupt: list[int] = []
         other = 0
         for rec in store.keyframes():
@@ -482,7 +555,15 @@ class FloorIndex:
         candidates = []
         matcher = Matcher(descriptor, self.params.match_params) if self._default_scorer and short else None
         for kf, g in short:
-            stored = self._stored(self._row_of[kf])
+            try:
+                stored = self._stored(self._row_of[kf])
+            except (RobotdError, KeyError, ValueError) as exc:
+                if self._loader is None:
+                    raise
+                self.load_failures += 1
+                log.warning("floor index: keyframe %d left out of a query, its descriptor could not be read: %s",
+                            kf, exc)
+                continue
             result = (matcher.score(stored, min_score) if matcher is not None
                       else self._scorer(descriptor, stored))
             self.local_matches += 1

@@ -286,3 +286,46 @@ def test_packed_descriptors_come_back_equal_and_widen_when_they_must(gravel_run)
     got = {c.keyframe_id: c.score for c in index.query(descs[1], k=5, shortlist=5)}
     want = {kf: local_score(descs[1], d).score for kf, d in enumerate(descs)} | {10: local_score(descs[1], odd).score}
     assert got == want and got[1] > 0
+
+
+def test_on_demand_descriptors_answer_as_resident_ones_and_count_reads(caplog):
+    from robotd.base.errors import DescriptorError
+
+    rng = np.random.default_rng(5)
+    descs = {100 + i: _Desc(rng.integers(0, 256, 16, dtype=np.uint8), tag=i) for i in range(40)}
+    reads: list[int] = []
+    broken: set[int] = set()
+
+    def loader(kf: int) -> _Desc:
+        reads.append(kf)
+        if kf in broken:
+            raise DescriptorError(f"keyframe {kf}: bad bytes")
+        return descs[kf]
+
+    resident = FloorIndex(IndexParams(shortlist=8), scorer=_CountingScorer())
+    lazy = FloorIndex(IndexParams(shortlist=8, resident=3), scorer=_CountingScorer(), loader=loader)
+    for kf, d in descs.items():
+        resident.add(kf, d)
+        lazy.add(kf, d)
+    assert lazy.on_demand and not resident.on_demand and not reads  # added: nothing read back
+    q = _Desc(descs[117].global_bits.copy())
+    want = [(c.keyframe_id, c.score) for c in resident.query(q, k=8)]
+    got = [(c.keyframe_id, c.score) for c in lazy.query(q, k=8)]
+    assert got == want
+    # Only the three newest were resident: every other shortlisted keyframe was read once.
+    short = {kf for kf, _ in lazy.shortlist(q)}
+    assert sorted(reads) == sorted(short - {137, 138, 139}) and lazy.loads == len(reads)
+    assert len(lazy._recent) == 3  # bounded, whatever was read
+    assert lazy.descriptor(want[0][0]) is descs[want[0][0]]
+    # A descriptor that cannot be read leaves that keyframe out of the query, logged and counted.
+    broken.add(want[0][0])
+    lazy._recent.clear()
+    with caplog.at_level(logging.WARNING):
+        got = [c.keyframe_id for c in lazy.query(q, k=8)]
+    assert want[0][0] not in got and got == [kf for kf, _ in want if kf != want[0][0]]
+    assert lazy.load_failures == 1 and any(str(want[0][0]) in r.getMessage() for r in caplog.records)
+
+
+def test_resident_must_be_positive():
+    with pytest.raises(ValueError):
+        IndexParams(resident=0)
