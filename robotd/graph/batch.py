@@ -166,7 +166,7 @@ def lago_initialise(graph: PoseGraph) -> np.ndarray:
 def loop_weights(graph: PoseGraph, ids: np.ndarray, poses: np.ndarray,
                  kernel: RobustKernel | None) -> np.ndarray:
     """Each loop edge's kernel weight at ``poses`` (``(L,)``, 1 without a kernel)."""
-    is_loop = np.array([e.kind == "loop" for e in graph.edges], dtype=bool)
+    is_loop = graph.is_loop
     if kernel is None or not is_loop.any():
         return np.ones(int(is_loop.sum()))
     c2 = edge_chi2(graph, ids, poses)[is_loop]
@@ -185,7 +185,7 @@ def optimize_batch(graph: PoseGraph, params: BatchParams = BatchParams()) -> Bat
     t0 = time.perf_counter()
     # Without a loop the odometry chain is already the optimum: nothing for LAGO to do (and
     # GTSAM's LAGO can fail on a bare chain, "indeterminate linear system").
-    has_loop = any(e.kind == "loop" for e in work.edges)
+    has_loop = work.loop_count > 0
     use_lago = params.initialisation in ("auto", "lago") and has_loop and len(work.components()) == 1
     starts = [("odometry", initial)]
     if use_lago:
@@ -325,7 +325,7 @@ class _LoopSolver:
 
     def __init__(self, graph: PoseGraph, params: BatchParams) -> None:
         self.graph, self.ids = graph, graph.ids
-        self.is_loop = np.array([e.kind == "loop" for e in graph.edges], dtype=bool)
+        self.is_loop = graph.is_loop
         self.loops = [e for e in graph.edges if e.kind == "loop"]
         self.fixed = gtsam.NonlinearFactorGraph()
         for e in graph.edges:

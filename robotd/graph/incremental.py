@@ -237,8 +237,7 @@ class IncrementalGraph:
         factor on its separator, not counted here, which is what grows when loops between
         many passes fill the tree in) and the separator marginals it keeps cached from
         :meth:`marginal_covariance` (``cached_marginals``)."""
-        edges = self.graph.edges
-        return {"edges": len(edges), "loops": sum(1 for e in edges if e.kind == "loop"),
+        return {"edges": self.graph.edge_count, "loops": self.graph.loop_count,
                 "held_loops": self.held_loops,
                 "factors": int(self._isam.getFactorsUnsafe().nrFactors()), "cliques": int(self._isam.size()),
                 "tree_nnz": int(self._isam.treeNnz()),
@@ -284,7 +283,7 @@ class IncrementalGraph:
             self._newest_held = None
             self.held_loops -= 1
         result = optimize_batch(self.graph, self.params.batch)
-        loops = [n for n, e in enumerate(self.graph.edges) if e.kind == "loop"]
+        loops = np.flatnonzero(self.graph.is_loop).tolist()
         b = self.params.batch
         rejected = ({n for n, w in zip(loops, result.loop_weights) if w < 0.5}
                     if b.robust and b.kernel == "gnc" else set())

@@ -94,3 +94,35 @@ def test_chain_poses_composes_odometry_then_reaches_the_rest_by_loops():
 def test_chain_poses_names_an_unreachable_vertex():
     with pytest.raises(GraphError, match="vertex 9 is not connected"):
         chain_poses([1, 2, 9], [make_edge(1, 2, (1, 0, 0), np.eye(3), "odometry")])
+
+
+def test_edges_read_back_as_added_and_a_taken_list_does_not_change():
+    """The graph keeps its edges in arrays: what :attr:`PoseGraph.edges` builds equals what
+    was added, in order, and a sequence taken before more edges (and a growth of the
+    arrays past their first 64 rows) still holds exactly the edges it had."""
+    g = PoseGraph()
+    rng = np.random.default_rng(3)
+    for k in range(100):
+        g.add_pose(10 + k, rng.normal(size=3))
+    added = []
+    for k in range(1, 50):
+        a = rng.normal(size=(3, 3))
+        added.append(g.add_edge(10 + k - 1, 10 + k, rng.normal(size=3), a @ a.T + np.eye(3),
+                                "loop" if k % 7 == 0 else "odometry"))
+    before = g.edges
+    for k in range(50, 100):
+        added.append(g.add_edge(10 + k - 1, 10 + k, (0.1, 0.0, 0.0), np.eye(3), "odometry"))
+    assert len(before) == 49 and len(g.edges) == 99 == g.edge_count
+    assert g.loop_count == 7 and np.flatnonzero(g.is_loop).tolist() == [k - 1 for k in range(7, 50, 7)]
+    for got, want in zip(list(before) + g.edges[49:], added):
+        assert (got.from_id, got.to_id, got.kind) == (want.from_id, want.to_id, want.kind)
+        assert np.array_equal(got.delta, want.delta) and np.array_equal(got.information, want.information)
+        assert not got.delta.flags.writeable and not got.information.flags.writeable
+    assert before[-1].to_id == 59 and g.edges[-1].to_id == 109
+    with pytest.raises(IndexError):
+        before[49]
+    p = g.pose(12)
+    assert not p.flags.writeable
+    g.set_pose(12, (1.0, 2.0, 0.5))
+    assert np.array_equal(g.pose(12), [1.0, 2.0, 0.5]) and not np.array_equal(p, g.pose(12))
+    assert g.poses()[2].tolist() == [1.0, 2.0, 0.5] and g.ids[2] == 12
