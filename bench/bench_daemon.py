@@ -702,6 +702,74 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
     return out
 
 
+def query_residency(map_path: Path, sizes: list[int], residents: list[int], queries: int,
+                    shortlist: int, exclude_recent_s: float = 20.0) -> dict[str, Any]:
+    """The floor query's time with the local descriptors in RAM against read back from the
+    map (``FloorIndex.from_store``'s loader, ``resident`` of them kept decoded), on a
+    map's keyframes queried in the order they were driven.
+
+    The index at each size holds the map's keyframes (``map_path``: a map written by the
+    daemon, e.g. ``--memory N --keep-map FILE``) repeated under new ids until it has that
+    many (each copy a further pass over the same floor); the last ``queries`` keyframes of
+    the map are the queries, in order, each leaving out every copy of the keyframes within
+    ``exclude_recent_s`` of it, with the demo's loop threshold as ``min_score``. The
+    variants are timed query by query in turn (thread CPU), the same queries for each."""
+    from robotd.app.demo import shipped_calibration
+    from robotd.floor.descriptor import decode
+    from robotd.floor.index import FloorIndex, IndexParams
+    from robotd.io.calibfile import read_calibration
+    from robotd.io.store import MapStore
+
+    out: dict[str, Any] = {"map": str(map_path), "sizes": []}
+    with MapStore.open(map_path, read_only=True) as store:
+        recs = [r for r in store.keyframes() if r.descriptor is not None]
+        mode = int(recs[0].descriptor_mode)
+        calib = read_calibration(shipped_calibration())
+        min_score = (calib.loop.for_mode(mode) if calib.loop is not None else None) or 0.0
+        n0 = len(recs)
+        src_ids = np.array([r.id for r in recs], np.int64)
+        stamps = np.array([r.stamp_ns for r in recs], np.int64)
+        decoded = [decode(r.descriptor) for r in recs]
+        out.update({"map_keyframes": n0, "mode": mode, "min_score": min_score, "queries": min(queries, n0)})
+
+        def loader(i: int) -> Any:
+            rec = store.keyframe(int(src_ids[i % n0]))
+            assert rec.descriptor is not None
+            return decode(rec.descriptor)
+
+        qrows = list(range(n0 - min(queries, n0), n0))
+        for n in sorted(sizes):
+            variants: dict[str, FloorIndex] = {"in RAM": FloorIndex(IndexParams(shortlist=shortlist))}
+            for r in residents:
+                variants[f"read back, {r} resident"] = FloorIndex(IndexParams(shortlist=shortlist, resident=r),
+                                                                  loader=loader)
+            for index in variants.values():
+                for i in range(n):
+                    index.add(i, decoded[i % n0])
+            ids = np.arange(n)
+            ms: dict[str, list[float]] = {k: [] for k in variants}
+            loads0 = {k: getattr(v, "loads", 0) for k, v in variants.items()}
+            for q in qrows:
+                excluded = ids[np.abs(stamps[ids % n0] - stamps[q]) < int(exclude_recent_s * 1e9)]
+                for name, index in variants.items():
+                    t0 = time.thread_time()
+                    index.query(decoded[q], k=5, min_score=min_score, exclude_ids=excluded)
+                    ms[name].append((time.thread_time() - t0) * 1e3)
+            row: dict[str, Any] = {"keyframes": n, "variants": {}}
+            for name, index in variants.items():
+                row["variants"][name] = {"query_ms": {"median": statistics.median(ms[name]),
+                                                      "p99": float(np.quantile(ms[name], 0.99))},
+                                         "reads_per_query": (index.loads - loads0[name]) / len(qrows),
+                                         "index_mb": index.nbytes / 1e6,
+                                         "descriptors_mb": index.descriptors_nbytes / 1e6}
+                print(f"residency: {n} keyframes, {name}: query {statistics.median(ms[name]):.2f} ms median, "
+                      f"{row['variants'][name]['reads_per_query']:.2f} reads per query, "
+                      f"index {index.nbytes / 1e6:.1f} MB", flush=True)
+            out["sizes"].append(row)
+            del variants
+    return out
+
+
 def memory_markdown(*payloads: dict[str, Any]) -> str:
     """``docs/benchmarks/daemon-memory.md`` from ``--memory`` JSON payloads (a section each)."""
     lines = ["# The whole daemon's memory as its map grows (`bench/bench_daemon.py --memory N`)", "",
@@ -881,6 +949,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--memory-trace", action="store_true",
                     help="with --memory: tracemalloc on, the Python side's allocations by file at each sample "
                          "(slower; its own overhead is reported)")
+    ap.add_argument("--residency", type=Path, default=None, metavar="MAP",
+                    help="only the floor query's time with its descriptors in RAM and read back from MAP "
+                         "(sizes from --scale; writes NAME-residency.json)")
+    ap.add_argument("--resident", default="256,1024", help="with --residency: decoded descriptors kept, "
+                                                          "comma-separated (default 256,1024)")
     ap.add_argument("--memory-page", type=Path, nargs="+", default=None, metavar="JSON",
                     help="only write the memory page (--doc) from these --memory JSON files, partial or not")
     args = ap.parse_args(argv)
@@ -890,6 +963,16 @@ def main(argv: list[str] | None = None) -> int:
             args.doc.parent.mkdir(parents=True, exist_ok=True)
             args.doc.write_text(page, encoding="utf-8")
         print(page, end="")
+        return 0
+    if args.residency is not None:
+        sizes = [int(v) for v in args.scale.split(",") if v.strip()]
+        residents = [int(v) for v in args.resident.split(",") if v.strip()]
+        from robotd.floor.detector import FloorDetectorParams
+
+        res = query_residency(args.residency, sizes, residents, args.queries,
+                              args.shortlist or FloorDetectorParams().shortlist)
+        out = write_json(args.out / f"{args.name}-residency.json", {"machine": machine_info(), "residency": res})
+        print(f"wrote {out}")
         return 0
     if args.memory:
         if args.duration == 60.0 and args.recording is None:
