@@ -242,6 +242,14 @@ def test_from_store_round_trip_skips_a_corrupt_descriptor(gravel_run, tmp_path, 
     b = direct.query(q, k=3, shortlist=6)
     assert [c.keyframe_id for c in a] == [c.keyframe_id for c in b] and a[0].keyframe_id == ids[4]
     assert [c.score for c in a] == [c.score for c in b]
+    # With two descriptors kept decoded the others are read back from the map, and score the same.
+    with MapStore.open(path, create=False) as store:
+        lazy = FloorIndex.from_store(store, mode, IndexParams(resident=2))
+        c = lazy.query(q, k=3, shortlist=6)
+        assert lazy.on_demand and lazy.loads >= 4 and lazy.load_failures == 0
+    assert [(x.keyframe_id, x.score) for x in c] == [(x.keyframe_id, x.score) for x in a]
+    with MapStore.open(path, create=False, read_only=True) as store:
+        assert not FloorIndex.from_store(store, mode, on_demand=False).on_demand
 
 
 def _fields_equal(a, b) -> bool:
