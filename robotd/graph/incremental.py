@@ -18,10 +18,10 @@ import gtsam
 import numpy as np
 
 from robotd.base.errors import GraphError
-from robotd.base.geometry import compose
+from robotd.base.geometry import between, compose, inverse
 from robotd.graph.batch import BatchParams, BatchResult, optimize_batch
 from robotd.graph.factors import anchor_factor, between_factor, factor_graph, from_values, to_values
-from robotd.graph.model import Edge, PoseGraph
+from robotd.graph.model import Edge, PoseGraph, make_edge
 
 
 @dataclass(frozen=True, slots=True)
@@ -44,6 +44,14 @@ class IncrementalParams:
         edge informations; Cholesky squares that condition number and GTSAM raises an
         indeterminate system after a few thousand keyframes (a 4762-keyframe chain of the
         office drive's own edges), where QR goes on.
+    fold: after a full solve (:meth:`IncrementalGraph.resolve`), iSAM2 is rebuilt with
+        only the keyframes it needs as variables: the anchors, both ends of every loop in
+        it, the newest ``fold`` keyframes and one in ``fold`` along each odometry chain;
+        the others are folded into their chain's odometry (one edge between the kept
+        keyframes, its delta and covariance composed from the edges between them) and
+        follow the kept keyframe before them (see :meth:`IncrementalGraph.pose`). Each
+        variable costs iSAM2 about 4-6 KB; the full solve and the map keep every keyframe.
+        1: every keyframe stays a variable. Default 10.
     """
 
     relinearize_threshold: float = 0.01
@@ -53,10 +61,13 @@ class IncrementalParams:
     loop_spacing: int = 10
     loops_per_keyframe: int = 2
     factorization: str = "QR"
+    fold: int = 10
 
     def __post_init__(self) -> None:
         if self.factorization not in ("QR", "CHOLESKY"):
             raise ValueError(f"factorization must be 'QR' or 'CHOLESKY', not {self.factorization!r}")
+        if self.fold < 1:
+            raise ValueError(f"fold must be >= 1, got {self.fold}")
 
 
 class IncrementalGraph:
@@ -80,6 +91,49 @@ class IncrementalGraph:
         self._isam = self._new_isam()
         self._version = 0  # bumped by every change of the estimate
         self._cached: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._clear_fold()
+
+    def _clear_fold(self) -> None:
+        """No keyframe folded: every keyframe of :attr:`graph` is an iSAM2 variable."""
+        # Folded keyframes (sorted ids), each: the kept keyframe it follows, its pose in that
+        # keyframe's frame (from the full solve) and the covariance of that relative pose
+        # (the chain's odometry composed, in the folded keyframe's own tangent space).
+        self._fold_ids = np.zeros(0, np.int64)
+        self._fold_anchor = np.zeros(0, np.int64)
+        self._fold_rel = np.zeros((0, 3))
+        self._fold_cov = np.zeros((0, 3, 3))
+
+    def _folded(self, keyframe_id: int) -> int | None:
+        """The row of a folded keyframe in the fold arrays, None for an iSAM2 variable."""
+        ids = self._fold_ids
+        i = int(np.searchsorted(ids, keyframe_id))
+        return i if i < len(ids) and int(ids[i]) == int(keyframe_id) else None
+
+    def _reexpress(self, from_id: int, to_id: int, delta: np.ndarray, information: np.ndarray
+                   ) -> tuple[int, int, np.ndarray, np.ndarray] | None:
+        """An edge between keyframes, either folded, as the edge between the iSAM2 variables
+        they follow (``a (+) r`` for a folded end: ``r`` composed into the delta, its
+        covariance added through the adjoint); None when both follow the same variable."""
+        d = np.asarray(delta, float)
+        i, j = self._folded(from_id), self._folded(to_id)
+        if i is None and j is None:
+            return from_id, to_id, d, np.asarray(information, float)
+        cov = np.linalg.inv(information)
+        if i is not None:  # from = a (+) r: a -> to is r (+) d
+            ad = gtsam.Pose2(*d).inverse().AdjointMap()
+            cov = ad @ self._fold_cov[i] @ ad.T + cov
+            d = compose(self._fold_rel[i], d)
+            from_id = int(self._fold_anchor[i])
+        if j is not None:  # to = b (+) s: from -> b is d (+) s^-1
+            s = self._fold_rel[j]
+            ad = gtsam.Pose2(*s).AdjointMap()
+            cov = ad @ (cov + self._fold_cov[j]) @ ad.T
+            d = compose(d, inverse(s))
+            to_id = int(self._fold_anchor[j])
+        if from_id == to_id:
+            return None
+        info = np.linalg.inv(cov)
+        return from_id, to_id, d, (info + info.T) / 2
 
     def _update(self, factors: gtsam.NonlinearFactorGraph | None = None,
                 values: gtsam.Values | None = None) -> None:
@@ -118,7 +172,9 @@ class IncrementalGraph:
         self.graph.add_pose(keyframe_id, guess)
         edge = self.graph.add_edge(from_id, keyframe_id, delta, information, "odometry")
         fg = gtsam.NonlinearFactorGraph()
-        fg.add(between_factor(edge))
+        live = self._reexpress(edge.from_id, edge.to_id, edge.delta, edge.information)
+        assert live is not None  # the new keyframe is not folded
+        fg.add(between_factor(edge if live[0] == edge.from_id else make_edge(*live, "odometry")))
         self._update(fg, to_values(np.array([keyframe_id]), guess[None]))
         return self.pose(keyframe_id)
 
@@ -143,8 +199,12 @@ class IncrementalGraph:
             return False
         self._newest_held = None
         self.graph.add_edges([edge])
+        live = self._reexpress(edge.from_id, edge.to_id, edge.delta, edge.information)
+        if live is None:  # both ends follow one iSAM2 variable: the full solve has it
+            return True
         fg = gtsam.NonlinearFactorGraph()
-        fg.add(between_factor(edge, self._kernel))
+        fg.add(between_factor(edge if live[:2] == (edge.from_id, edge.to_id) else make_edge(*live, "loop"),
+                              self._kernel))
         self._update(fg, gtsam.Values())
         for _ in range(self.params.loop_updates):
             self._update()
@@ -173,14 +233,13 @@ class IncrementalGraph:
         graph's prediction, dimensionless: the innovation ``e = log(predicted^-1 measured)``
         with covariance ``Ad P_from Ad^T + P_to + information^-1`` (the two marginals from
         iSAM2, their correlation left out: ``S`` is then larger, the test more lenient)."""
-        pa = self._isam.calculateEstimatePose2(int(from_id))
-        pb = self._isam.calculateEstimatePose2(int(to_id))
+        pa, pb = self._pose2(from_id), self._pose2(to_id)
         predicted = pa.between(pb)
         d = [float(v) for v in delta]
         e = gtsam.Pose2.Logmap(predicted.between(gtsam.Pose2(d[0], d[1], d[2])))
         ad = predicted.inverse().AdjointMap()
-        cov = (ad @ self._isam.marginalCovariance(int(from_id)) @ ad.T
-               + self._isam.marginalCovariance(int(to_id)) + np.linalg.inv(information))
+        cov = (ad @ self.marginal_covariance(from_id) @ ad.T
+               + self.marginal_covariance(to_id) + np.linalg.inv(information))
         return float(e @ np.linalg.solve(cov, e))
 
     def add_segment(self, keyframe_id: int, pose: Iterable[float]) -> None:
@@ -222,6 +281,7 @@ class IncrementalGraph:
                 self.graph.unfix(int(kid))
         for from_id, to_id, delta, info in loops:
             self.graph.add_edge(from_id, to_id, delta, info, "loop")
+        self._clear_fold()  # every keyframe a variable again, until the next full solve
         isam = self._new_isam()
         isam.update(factor_graph(self.graph, self._kernel, skip=self.rejected_loops), to_values(ids, est))
         for _ in range(self.params.loop_updates):
@@ -241,18 +301,33 @@ class IncrementalGraph:
                 "held_loops": self.held_loops,
                 "factors": int(self._isam.getFactorsUnsafe().nrFactors()), "cliques": int(self._isam.size()),
                 "tree_nnz": int(self._isam.treeNnz()),
-                "cached_marginals": int(self._isam.numCachedSeparatorMarginals())}
+                "cached_marginals": int(self._isam.numCachedSeparatorMarginals()),
+                "folded": len(self._fold_ids)}
+
+    def _pose2(self, keyframe_id: int) -> gtsam.Pose2:
+        i = self._folded(keyframe_id)
+        if i is None:
+            return self._isam.calculateEstimatePose2(int(keyframe_id))
+        return self._isam.calculateEstimatePose2(int(self._fold_anchor[i])).compose(gtsam.Pose2(*self._fold_rel[i]))
 
     def pose(self, keyframe_id: int) -> np.ndarray:
-        """The current estimate of one keyframe, ``(3,)`` (m, m, rad)."""
-        p = self._isam.calculateEstimatePose2(int(keyframe_id))
+        """The current estimate of one keyframe, ``(3,)`` (m, m, rad): iSAM2's, or for a
+        folded keyframe (:attr:`IncrementalParams.fold`) the kept keyframe's before it on
+        its chain composed with its pose relative to that one at the last full solve."""
+        p = self._pose2(keyframe_id)
         return np.array([p.x(), p.y(), p.theta()])
 
     def marginal_covariance(self, keyframe_id: int) -> np.ndarray:
         """iSAM2's marginal covariance of one keyframe, ``(3, 3)``, in the pose's own tangent
         space (x, y along its axes in m^2, yaw in rad^2; :func:`robotd.graph.covariance.tangent_to_world`
-        moves it to the map's axes)."""
-        return np.asarray(self._isam.marginalCovariance(int(keyframe_id)), dtype=float)
+        moves it to the map's axes). A folded keyframe's: the kept keyframe's it follows,
+        moved through the relative pose's adjoint, plus the chain's odometry covariance
+        from it (larger than the full graph's, which also holds it from the next one)."""
+        i = self._folded(keyframe_id)
+        if i is None:
+            return np.asarray(self._isam.marginalCovariance(int(keyframe_id)), dtype=float)
+        ad = gtsam.Pose2(*self._fold_rel[i]).inverse().AdjointMap()
+        return np.asarray(ad @ self._isam.marginalCovariance(int(self._fold_anchor[i])) @ ad.T + self._fold_cov[i])
 
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
         """Every keyframe's current estimate: ``(ids (N,), poses (N, 3))`` (copies; computed
@@ -261,7 +336,13 @@ class IncrementalGraph:
         c = self._cached
         if c is None or c[0] != self._version:
             ids = self.graph.ids
-            c = self._cached = (self._version, ids, from_values(self._isam.calculateEstimate(), ids))
+            values = self._isam.calculateEstimate()
+            folded = np.isin(ids, self._fold_ids)
+            poses = np.empty((len(ids), 3))
+            poses[~folded] = from_values(values, ids[~folded])
+            if folded.any():  # ids[folded] is _fold_ids: both sorted, the same keyframes
+                poses[folded] = compose(from_values(values, self._fold_anchor), self._fold_rel)
+            c = self._cached = (self._version, ids, poses)
         return c[1].copy(), c[2].copy()
 
     def resolve(self) -> BatchResult:
@@ -291,12 +372,73 @@ class IncrementalGraph:
         self._isam = self._new_isam()
         self._version += 1
         try:
-            self._isam.update(factor_graph(self.graph, self._kernel, skip=rejected),
-                              to_values(result.ids, result.poses))
+            self._isam.update(*self._folded_graph(result.ids, result.poses, rejected))
         except RuntimeError:
+            self._clear_fold()
             self._isam = self._new_isam()
             self._isam.update(factor_graph(self.graph, self._kernel, skip=self.rejected_loops),
                               to_values(*before))
             raise
         self.rejected_loops = rejected
         return result
+
+    def _folded_graph(self, ids: np.ndarray, poses: np.ndarray, skip: set[int]
+                      ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        """iSAM2's factors and values after a full solve at ``poses`` (aligned with the
+        sorted ``ids``), the loops ``skip`` (edge indices) left out, the keyframes folded
+        as :attr:`IncrementalParams.fold` says; sets the fold arrays. Every keyframe stays
+        a variable (nothing folded) with ``fold`` 1 or when an odometry edge does not run
+        from an older keyframe to a newer one with one edge into each."""
+        self._clear_fold()
+        fold = self.params.fold
+        src, dst, delta, info = self.graph.edge_arrays()
+        is_loop = self.graph.is_loop
+        odo = np.flatnonzero(~is_loop)
+        chain = (fold > 1 and bool(np.all(src[odo] < dst[odo]))
+                 and len(np.unique(dst[odo])) == len(odo))
+        if not chain:
+            return factor_graph(self.graph, self._kernel, skip=skip), to_values(ids, poses)
+        loops = [n for n in np.flatnonzero(is_loop).tolist() if n not in skip]
+        anchors = self.graph.anchors()
+        kept = set(anchors) | set(src[loops].tolist()) | set(dst[loops].tolist()) | set(ids[-fold:].tolist())
+        into = dict(zip(dst[odo].tolist(), odo.tolist()))
+        row = {k: n for n, k in enumerate(ids.tolist())}
+        # per keyframe, while walking the chains: the kept keyframe it follows, the odometry
+        # from it composed, that composition's covariance, and how many edges it spans
+        state: dict[int, tuple[int, np.ndarray, np.ndarray, int]] = {}
+        fg = gtsam.NonlinearFactorGraph()
+        f_ids: list[int] = []
+        f_anchor: list[int] = []
+        f_cov: list[np.ndarray] = []
+        zero = np.zeros(3)
+        for k in ids.tolist():
+            n = into.get(k)
+            if n is None:  # a chain starts here: kept
+                kept.add(k)
+                state[k] = (k, zero, np.zeros((3, 3)), 0)
+                continue
+            a, r, c, count = state[int(src[n])]
+            d = delta[n]
+            ad = gtsam.Pose2(*d).inverse().AdjointMap()
+            r2, c2 = compose(r, d), ad @ c @ ad.T + np.linalg.inv(info[n])
+            if k in kept or count + 1 >= fold:
+                kept.add(k)
+                i2 = np.linalg.inv(c2)
+                fg.add(between_factor(make_edge(a, k, r2, (i2 + i2.T) / 2, "odometry")))
+                state[k] = (k, zero, np.zeros((3, 3)), 0)
+            else:
+                state[k] = (a, r2, c2, count + 1)
+                f_ids.append(k)
+                f_anchor.append(a)
+                f_cov.append(c2)
+        for n in loops:
+            fg.add(between_factor(make_edge(int(src[n]), int(dst[n]), delta[n], info[n], "loop"), self._kernel))
+        for kid in anchors:
+            fg.add(anchor_factor(kid, self.graph.pose(kid)))
+        held = np.array(sorted(kept), np.int64)
+        self._fold_ids = np.array(f_ids, np.int64)
+        self._fold_anchor = np.array(f_anchor, np.int64)
+        if f_ids:
+            self._fold_rel = between(poses[[row[a] for a in f_anchor]], poses[[row[k] for k in f_ids]])
+            self._fold_cov = np.array(f_cov)
+        return fg, to_values(held, poses[[row[k] for k in held.tolist()]])

@@ -43,7 +43,7 @@ def test_incremental_matches_batch_on_a_small_graph():
 
 
 def test_resolve_returns_the_batch_result_and_keeps_going():
-    inc = IncrementalGraph()
+    inc = IncrementalGraph(IncrementalParams(fold=1))  # every keyframe stays in iSAM2
     _drive(inc)
     result = inc.resolve()
     ids, poses = inc.estimate()
@@ -156,7 +156,7 @@ def test_loops_near_a_loop_in_the_graph_are_left_out():
     full solve and iSAM2 after it agree on it."""
     every = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_keyframe=0))
     truth, odo = _laps(every, 4)
-    thin = IncrementalGraph(IncrementalParams(loop_spacing=2, loops_per_keyframe=0))
+    thin = IncrementalGraph(IncrementalParams(loop_spacing=2, loops_per_keyframe=0, fold=1))
     _laps(thin, 4)
     one = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_keyframe=1))
     _laps(one, 4)
@@ -240,7 +240,7 @@ def test_the_newest_loop_left_out_joins_the_graph_at_a_full_solve():
     """The keyframes after the last loop in would end on odometry alone: a full solve
     (periodic, and at the end of a run) first adds the newest loop left out, if no loop
     entered after it."""
-    inc = IncrementalGraph(IncrementalParams(loop_spacing=5))
+    inc = IncrementalGraph(IncrementalParams(loop_spacing=5, fold=1))
     inc.add_first(0)
     for k in range(1, 12):
         inc.add_keyframe(k, k - 1, (1.0, 0.0, 0.0), INFO)
@@ -275,3 +275,46 @@ def test_a_long_drive_without_loops_stays_solvable():
     for step in steps:
         expected = compose(expected, np.array(step))
     np.testing.assert_allclose(g.pose(len(steps)), expected, atol=1e-6)
+
+
+def test_a_full_solve_folds_the_keyframes_without_loops_into_their_odometry():
+    """After a full solve iSAM2 keeps the anchor, the loops' ends, the newest ``fold``
+    keyframes and one in ``fold`` along the chain; the others follow the kept keyframe
+    before them, as the full solve placed them relative to it. The estimate stays that of
+    the same graph with every keyframe in iSAM2 (within a few mm on this noisy ring), a
+    folded keyframe's covariance is at least its own, loops to folded keyframes are gated
+    and enter as with every keyframe kept, and the full solve still has every keyframe."""
+    full = IncrementalGraph(IncrementalParams(fold=1))
+    folded = IncrementalGraph(IncrementalParams(fold=4))
+    for inc in (full, folded):
+        _laps(inc, 3)
+    want, got = full.resolve(), folded.resolve()
+    assert np.array_equal(want.ids, got.ids) and np.allclose(want.poses, got.poses, atol=1e-9)
+    st = folded.stats()
+    loop_ends = {k for e in folded.graph.edges if e.kind == "loop" for k in (e.from_id, e.to_id)}
+    assert st["folded"] > 15 and st["factors"] < full.stats()["factors"] - 15
+    assert full.stats()["folded"] == 0 and not loop_ends & set(folded._fold_ids.tolist())
+    ids, est_full = full.estimate()
+    assert np.array_equal(folded.estimate()[0], ids)
+    assert np.allclose(folded.estimate()[1][:, :2], est_full[:, :2], atol=5e-3)
+    k = int(folded._fold_ids[0])
+    a = int(folded._fold_anchor[0])
+    assert np.allclose(folded.pose(k), compose(folded.pose(a), between(want.poses[a], want.poses[k])), atol=1e-9)
+    assert np.all(np.linalg.eigvalsh(folded.marginal_covariance(k) - full.marginal_covariance(k)) > -1e-9)
+    # New keyframes and a loop from the newest to a folded one: both graphs move alike.
+    for inc in (full, folded):
+        for kid in range(60, 76):  # past loop_spacing from the last loop in
+            inc.add_keyframe(kid, kid - 1, (2 * 5 * math.sin(math.pi / 20), 0.0, 2 * math.pi / 20), INFO)
+    old = int(next(i for i in folded._fold_ids.tolist() if i % 20 == 75 % 20))
+    chi = [inc.loop_chi2(old, 75, (0.0, 0.0, 0.0), INFO) for inc in (full, folded)]
+    assert chi[1] <= chi[0] * 1.05  # the folded keyframe's larger covariance: as lenient at least
+    for inc in (full, folded):
+        assert inc.add_loop(old, 75, (0.0, 0.0, 0.0), INFO)
+    assert np.allclose(folded.pose(75)[:2], full.pose(75)[:2], atol=5e-3)
+    assert np.allclose(folded.pose(old)[:2], full.pose(old)[:2], atol=5e-3)
+    assert len(folded.graph) == len(full.graph) == 76
+
+
+def test_fold_must_be_positive():
+    with pytest.raises(ValueError):
+        IncrementalParams(fold=0)
