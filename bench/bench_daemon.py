@@ -615,7 +615,10 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
             config = {"keyframe_distance_m": cfg.keyframes.distance_m, "mode": cfg.floor_detector.descriptor_mode,
                       "shortlist": cfg.floor_detector.shortlist, "localise_mapped": cfg.pose_graph.localise_mapped,
                       "loop_spacing": pipeline.stage("graph").graph.params.loop_spacing,
-                      "loops_per_keyframe": pipeline.stage("graph").graph.params.loops_per_keyframe}
+                      "loops_per_keyframe": pipeline.stage("graph").graph.params.loops_per_keyframe,
+                      "fold": getattr(pipeline.stage("graph").graph.params, "fold", 1),
+                      "resident": (floor.detector.index.params.resident
+                                   if getattr(floor.detector.index, "on_demand", False) else 0)}
             query_ms: list[float] = []  # each floor query's thread CPU since the last sample
             index_query = floor.detector.index.query
 
@@ -784,6 +787,16 @@ def memory_markdown(*payloads: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _labelled(arg: str) -> dict[str, Any]:
+    """A ``--memory-page`` argument, ``FILE`` or ``LABEL=FILE``: the JSON payload, with
+    the label (shown in its section's heading) if given."""
+    label, sep, path = arg.partition("=")
+    payload = json.loads(Path(path if sep else arg).read_text(encoding="utf-8"))
+    if sep:
+        payload["label"] = label
+    return payload
+
+
 def _memory_section(p: dict[str, Any]) -> list[str]:
     r, m = p["memory"], p["machine"]
     c = r["config"]
@@ -792,19 +805,31 @@ def _memory_section(p: dict[str, Any]) -> list[str]:
         thinned = c.get("loop_spacing", 0) or any("graph_held_loops" in row for row in r["samples"])
         setting += (f", the pose graph's loops thinned (loop_spacing {c.get('loop_spacing', 10)}, loops_per_keyframe "
                     f"{c.get('loops_per_keyframe', 2)})" if thinned else ", every loop in the pose graph")
+    if p.get("label"):
+        setting = f"{p['label']}: {setting}"
+    if c.get("fold", 1) > 1:
+        setting += f", iSAM2's keyframes folded after each full solve (fold {c['fold']})"
+    if c.get("resident"):
+        setting += f", floor descriptors read back from the map ({c['resident']} kept decoded)"
     lines = [f"## {setting}", "",
              f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.",
              f"Recording: `{p['recording']}`, {r['laps']} laps; spacing "
              f"{c['keyframe_distance_m'] * 100:g} cm, mode {c['mode']}, shortlist {c['shortlist']}"
              f"{', localise_mapped' if c.get('localise_mapped') else ''}.", "",
              "| keyframes | of them stored | process RSS MB | after malloc_trim MB | of it the floor index MB "
-             "| laps | CPU s so far | graph loops in / left out |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| laps | CPU s so far | graph loops in / left out | iSAM2 factors (keyframes folded) "
+             "| floor query ms median (descriptors read) |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in r["samples"]:
         trimmed = f"{row['rss_trimmed_mb']:.0f}" if "rss_trimmed_mb" in row else "-"
         graph = f"{row['graph_loops']} / {row.get('graph_held_loops', 0)}" if "graph_loops" in row else "-"
+        isam = (f"{row['graph_factors']}" + (f" ({row['graph_folded']})" if "graph_folded" in row else "")
+                if "graph_factors" in row else "-")
+        query = (f"{row['query_ms_median']:.1f} ({row.get('index_loads', 0)})"
+                 if not math.isnan(row.get("query_ms_median", math.nan)) else "-")
         lines.append(f"| {row['keyframes']} | {row.get('stored', row['keyframes'])} | {row['rss_mb']:.0f} | "
-                     f"{trimmed} | {row['index_mb']:.1f} | {row['laps']} | {row['cpu_s']:.0f} | {graph} |")
+                     f"{trimmed} | {row['index_mb']:.1f} | {row['laps']} | {row['cpu_s']:.0f} | {graph} | "
+                     f"{isam} | {query} |")
     before = ("" if r.get("rss_before_mb") is None else
               f"Before the first frame: {r['rss_before_mb']:.0f} MB (the daemon assembled, its map open). ")
     if "rss_after_mb" not in r:  # the partial JSON of a run stopped before its target
@@ -954,11 +979,12 @@ def main(argv: list[str] | None = None) -> int:
                          "(sizes from --scale; writes NAME-residency.json)")
     ap.add_argument("--resident", default="256,1024", help="with --residency: decoded descriptors kept, "
                                                           "comma-separated (default 256,1024)")
-    ap.add_argument("--memory-page", type=Path, nargs="+", default=None, metavar="JSON",
-                    help="only write the memory page (--doc) from these --memory JSON files, partial or not")
+    ap.add_argument("--memory-page", nargs="+", default=None, metavar="[LABEL=]JSON",
+                    help="only write the memory page (--doc) from these --memory JSON files, partial or not "
+                         "(LABEL= heads its section)")
     args = ap.parse_args(argv)
     if args.memory_page is not None:
-        page = memory_markdown(*(json.loads(f.read_text(encoding="utf-8")) for f in args.memory_page))
+        page = memory_markdown(*(_labelled(f) for f in args.memory_page))
         if args.doc is not None:
             args.doc.parent.mkdir(parents=True, exist_ok=True)
             args.doc.write_text(page, encoding="utf-8")
