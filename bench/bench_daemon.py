@@ -783,8 +783,27 @@ def memory_markdown(*payloads: dict[str, Any]) -> str:
              "mapped ground are matched and not stored), with the keyframe poses from the recorded",
              "ground truth."]
     for p in payloads:
-        lines += [""] + _memory_section(p)
+        lines += [""] + (_residency_section(p) if "residency" in p else _memory_section(p))
     return "\n".join(lines) + "\n"
+
+
+def _residency_section(p: dict[str, Any]) -> list[str]:
+    """A ``--residency`` payload's section of the memory page."""
+    r, m = p["residency"], p["machine"]
+    lines = [f"## {p.get('label') or 'The floor query with its descriptors read back from the map'}", "",
+             f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.",
+             f"`--residency`: the {r['map_keyframes']} keyframes of `{r['map']}` (mode {r['mode']}) repeated to "
+             f"each size, its last {r['queries']} keyframes queried in the order driven; thread CPU, the "
+             "variants in turn query by query.", "",
+             "| keyframes | descriptors | query ms median | p99 | against in RAM | reads per query | index MB |",
+             "|---:|---|---:|---:|---:|---:|---:|"]
+    for row in r["sizes"]:
+        base = row["variants"]["in RAM"]["query_ms"]["median"]
+        for name, v in row["variants"].items():
+            q = v["query_ms"]
+            lines.append(f"| {row['keyframes']} | {name} | {q['median']:.2f} | {q['p99']:.2f} | "
+                         f"{q['median'] / base:.2f} | {v['reads_per_query']:.2f} | {v['index_mb']:.1f} |")
+    return lines
 
 
 def _labelled(arg: str) -> dict[str, Any]:
