@@ -45,8 +45,8 @@ def render(result: dict) -> str:
         "errors; it drifts about 5 m sideways and tens of degrees over the four laps); `fused` "
         "is the pose the daemon gives its forward keyframes: the fused odometry (wheel + gyro "
         "+ the floor camera's visual odometry, the daemon's own pipeline and the demo's "
-        "calibration over the same motion, no loop correction; rows whose name ends in "
-        "`fused pose`). Never the true pose, which is only the ground truth. rtabmap_samples "
+        "calibration over the same motion, no loop correction), given with every office row "
+        "but those named `wheel + gyro pose` and those from runs before it. Never the true pose, which is only the ground truth. rtabmap_samples "
         "has no poses (`none`): there the metric levers run without, as the detector does "
         "when no pose is given. The brute-force row is the baseline of `robotd eval forward` "
         "(SIFT matching and five-point RANSAC against every past image).",
