@@ -63,19 +63,22 @@ DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "forward_ablation.js
 
 
 def configurations(full: bool) -> dict[str, object]:
-    """Name -> DetectorParams: the paper, the default, the previous default (k = 2, total
-    p > 0.5) with one lever changed at a time (its name says which), then levers on the
-    default."""
+    """Name -> DetectorParams: the paper, the default, the default without odometry (the
+    one before it), the default before that (k = 2, total p > 0.5, no odometry) with one
+    lever changed at a time (its name says which), then levers on the default without
+    odometry and on the default."""
     paper = method_params("paper")
     dflt = method_params("default")
-    prev = replace(dflt, consistency=2, filter=replace(dflt.filter, loop_threshold=0.5))
+    base = replace(dflt, odometry=OdometryParams())  # the default without odometry
+    prev = replace(base, consistency=2, filter=replace(base.filter, loop_threshold=0.5))
     f = prev.filter
     odo = OdometryParams(use=True)
     v = prev.verify
-    sc = replace(dflt, decision="score", score_normalisation="previous", score_threshold=0.3)  # no filter
+    sc = replace(base, decision="score", score_normalisation="previous", score_threshold=0.3)  # no filter
     cfgs = {
         "paper (SIFT)": paper,
         "default": dflt,
+        "default without odometry": base,
         "previous default (k = 2)": prev,
         "previous default, total p > 0.3": replace(prev, filter=replace(f, loop_threshold=0.3)),
         "previous default, total p > 0.7": replace(prev, filter=replace(f, loop_threshold=0.7)),
@@ -93,30 +96,32 @@ def configurations(full: bool) -> dict[str, object]:
         "previous default, odometry, 3 verifications": replace(prev, odometry=odo, verify_tries=3),
         "previous default, 15 inliers": replace(prev, verify=replace(v, min_inliers=15)),
         "previous default, no support test": replace(prev, verify=replace(v, min_support_area=0.0)),
-        "default, total p > 0.5": replace(dflt, filter=replace(dflt.filter, loop_threshold=0.5)),
-        "default, score/previous > 0.3, islands": replace(sc, islands=True),
-        "default, places merged by pose": replace(dflt, odometry=replace(OdometryParams(), merge_places=True)),
-        "default, odometry": replace(dflt, odometry=odo),
-        "default as the daemon runs it": daemon_params(dflt),
+        "default without odometry, total p > 0.5": replace(base, filter=replace(base.filter, loop_threshold=0.5)),
+        "default without odometry, score/previous > 0.3, islands": replace(sc, islands=True),
     }
-    # The metric levers with the pose the daemon gives its forward keyframes (the fused
-    # odometry: wheel + gyro + floor visual odometry), one at a time on the default, then
-    # together; and the odometry likelihood with the wheel + gyro pose (WHEEL in the name).
+    # The metric levers, one at a time on the default without odometry, with the pose the
+    # daemon gives its forward keyframes (the fused odometry: wheel + gyro + floor visual
+    # odometry) or the wheel + gyro pose (WHEEL in the name); then on the default, whose
+    # odometry likelihood with no support test when it agrees is the lever kept.
     fo = OdometryParams(use=True)
     cfgs.update({
-        f"default, odometry, {WHEEL}": replace(dflt, odometry=fo),
-        "default, odometry, no support test when it agrees": replace(
-            dflt, odometry=replace(fo, agree_min_support_area=0.0)),
-        "default, neighbours by distance": replace(dflt, odometry=replace(OdometryParams(),
-                                                                         metric_neighbours=True)),
-        "default, metric neighbours verified (3)": replace(
-            dflt, odometry=replace(OdometryParams(), verify_place=True), verify_tries=3),
-        "default, odometry, 3 verifications": replace(dflt, odometry=fo, verify_tries=3),
-        "default as the daemon runs it, total p > 0.3": replace(
-            daemon_params(dflt), filter=replace(dflt.filter, loop_threshold=0.3)),
-        "default, all metric levers": replace(
-            dflt, odometry=replace(fo, merge_places=True, metric_neighbours=True, verify_place=True),
+        "default without odometry, odometry": replace(base, odometry=fo),
+        f"default without odometry, odometry, {WHEEL}": replace(base, odometry=fo),
+        "default without odometry, places merged by pose": replace(base, odometry=replace(OdometryParams(),
+                                                                                         merge_places=True)),
+        "default without odometry, neighbours by distance": replace(
+            base, odometry=replace(OdometryParams(), metric_neighbours=True)),
+        "default without odometry, metric neighbours verified (3)": replace(
+            base, odometry=replace(OdometryParams(), verify_place=True), verify_tries=3),
+        "default without odometry, odometry, 3 verifications": replace(base, odometry=fo, verify_tries=3),
+        "default without odometry, all metric levers": replace(
+            base, odometry=replace(fo, merge_places=True, metric_neighbours=True, verify_place=True),
             verify_tries=3),
+        f"default, {WHEEL}": dflt,
+        "default, 3 verifications": replace(dflt, verify_tries=3),
+        "default, neighbours by distance": replace(dflt, odometry=replace(dflt.odometry, metric_neighbours=True)),
+        "default, places merged by pose": replace(dflt, odometry=replace(dflt.odometry, merge_places=True)),
+        "default as the daemon runs it": daemon_params(dflt),
     })
     if full:
         cfgs["default, ORB 1000"] = replace(dflt, features=FeatureParams(kind="orb", max_features=1000))
@@ -513,8 +518,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.only in (None, "office"):
         office = office_sequence(args.dir)
         office_only = only if (only is not None or args.full) else [
-            "default", f"default, odometry, {WHEEL}", "default, odometry",
-            "default, odometry, no support test when it agrees", "default as the daemon runs it"]
+            "default", f"default, {WHEEL}", "default without odometry", "default without odometry, odometry",
+            "default as the daemon runs it"]
         odo = {}
         if any(pose_source(c) == "wheel + gyro" for c in (office_only or cfgs)):
             odo["wheel + gyro"] = office_odometry(office)

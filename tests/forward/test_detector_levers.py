@@ -84,7 +84,11 @@ def test_the_methods():
     assert paper == DetectorParams()
     assert (paper.features.kind, paper.filter.loop_threshold, paper.filter.rule) == ("sift", 0.8, "neighbourhood")
     default = method_params("default")
-    assert not default.odometry.use and default.verify_tries == 1 and default.consistency == 1
+    assert default.verify_tries == 1 and default.consistency == 1
+    # The odometry likelihood, with no support test for a candidate it agrees with; no other
+    # metric lever.
+    assert default.odometry.use and default.odometry.agree_min_support_area == 0.0
+    assert not (default.odometry.merge_places or default.odometry.metric_neighbours or default.odometry.verify_place)
     assert (default.filter.rule, default.filter.loop_threshold) == ("total", 0.3)
     assert default.features.kind == "orb" and default.vocabulary.purge_after > 0
     assert not paper.odometry.use and paper.verify_tries == 1
@@ -340,3 +344,23 @@ def test_the_candidates_place_is_verified_when_the_candidate_fails(monkeypatch):
     assert run(replace(params, verify_tries=1)).status == NO_GEOMETRIC_CONSISTENCY
     blind = run(params, with_poses=False)
     assert blind.status == NO_GEOMETRIC_CONSISTENCY and blind.candidate_id == 5
+
+
+def test_the_default_without_poses_is_the_default_without_odometry(monkeypatch):
+    """The default's odometry levers act only when a pose comes with the image: without
+    one (the real corridor, ``eval forward`` without ``--odometry``) every decision is the
+    detector's without odometry; with poses that put the revisit far from its place, the
+    odometry likelihood changes them."""
+    views = _views(30, [5, 6, 7, 20])
+    dflt = replace(method_params("default"), verify=ACCEPT_ALL)
+    plain = replace(dflt, odometry=OdometryParams())
+    a = _run(dflt, views, monkeypatch)
+    b = _run(plain, views, monkeypatch)
+    assert [(d.status, d.candidate_id, d.candidate_probability) for d in a] == [
+        (d.status, d.candidate_id, d.candidate_probability) for d in b]
+    assert [d.loop_id for d in a[30:33]] == [5, 6, 7]
+    det = ForwardDetector(dflt)
+    cov = np.diag([0.01, 0.01, 0.001])
+    far = [det.process_features(v, 0.0, np.array([float(i) if i < 30 else 100.0, 0.0, 0.0]), cov)
+           for i, v in enumerate(views)][30:]
+    assert [d.candidate_probability for d in far] != [d.candidate_probability for d in a[30:]]
