@@ -102,7 +102,8 @@ def configurations(full: bool) -> dict[str, object]:
     # The metric levers, one at a time on the default without odometry, with the pose the
     # daemon gives its forward keyframes (the fused odometry: wheel + gyro + floor visual
     # odometry) or the wheel + gyro pose (WHEEL in the name); then on the default, whose
-    # odometry likelihood with no support test when it agrees is the lever kept.
+    # odometry likelihood with no support test when it agrees and 3 verifications are the
+    # levers kept.
     fo = OdometryParams(use=True)
     cfgs.update({
         "default without odometry, odometry": replace(base, odometry=fo),
@@ -118,7 +119,8 @@ def configurations(full: bool) -> dict[str, object]:
             base, odometry=replace(fo, merge_places=True, metric_neighbours=True, verify_place=True),
             verify_tries=3),
         f"default, {WHEEL}": dflt,
-        "default, 3 verifications": replace(dflt, verify_tries=3),
+        "default, 1 verification": replace(dflt, verify_tries=1),
+        f"default, 1 verification, {WHEEL}": replace(dflt, verify_tries=1),
         "default, neighbours by distance": replace(dflt, odometry=replace(dflt.odometry, metric_neighbours=True)),
         "default, places merged by pose": replace(dflt, odometry=replace(dflt.odometry, merge_places=True)),
         "default as the daemon runs it": daemon_params(dflt),

@@ -84,7 +84,7 @@ def test_the_methods():
     assert paper == DetectorParams()
     assert (paper.features.kind, paper.filter.loop_threshold, paper.filter.rule) == ("sift", 0.8, "neighbourhood")
     default = method_params("default")
-    assert default.verify_tries == 1 and default.consistency == 1
+    assert default.verify_tries == 3 and default.consistency == 1
     # The odometry likelihood, with no support test for a candidate it agrees with; no other
     # metric lever.
     assert default.odometry.use and default.odometry.agree_min_support_area == 0.0
