@@ -53,12 +53,12 @@ def render(result: dict) -> str:
         "",
         "Rows: `default` is the default detector (ORB 300, purge 50, total p > 0.3, every "
         "candidate verified, and when a pose comes with the image the odometry likelihood with "
-        "no support test for a candidate it agrees with); `default without odometry` the one "
-        "before it (the same without the pose: on rtabmap_samples, which has no poses, the two "
+        "no support test for a candidate it agrees with and up to 3 verifications); `default "
+        "without odometry` the one before it (the same without the pose: on rtabmap_samples, which has no poses, the two "
         "are the same detector); `previous default` the one before that (total p > 0.5, k = 2 "
         "consistent candidates, no odometry). `X, Y` is detector X with one lever Y changed. "
         "`default as the daemon runs it` is `robotd.forward.detector.daemon_params`: the "
-        "default with 3 verifications and total p > 0.5. All "
+        "default at total p > 0.5. All "
         "rows ran with robotd's binary word tree. Rows of one sequence may come from "
         "different runs (the time columns then differ by the machine's load; the ratio to "
         "OpenCV's ORB is of each row's own run).",
