@@ -92,9 +92,11 @@ def opencv_orb_ms(images: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-def map_file_bytes(det: ForwardDetector, kept_new: list, kept_purged: list) -> dict[str, float]:
+def map_file_bytes(det: ForwardDetector, kept_new: list, kept_purged: list, kept_words: list) -> dict[str, float]:
     """Bytes per image the detector's memory takes in a map file: the file's growth when
-    the forward rows are written over keyframes already there."""
+    the forward rows are written over keyframes already there (``kept_words``: each
+    image's word ids as the run gave them; the detector keeps them for its latest image
+    only)."""
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "map.sqlite"
         from robotd.io.store import MapStore
@@ -110,7 +112,7 @@ def map_file_bytes(det: ForwardDetector, kept_new: list, kept_purged: list) -> d
             for t in range(n):
                 f = det.features_of(t)
                 ids, descs = kept_new[t]
-                store.add_forward_image(t, kfs[t], kind, f.image_size_px, f.words, f.keypoints_q, f.descriptors,
+                store.add_forward_image(t, kfs[t], kind, f.image_size_px, kept_words[t], f.keypoints_q, f.descriptors,
                                         new_words=[(int(i), d.tobytes()) for i, d in zip(ids, descs)],
                                         purged=[int(i) for i in kept_purged[t]])
         after = path.stat().st_size
@@ -157,7 +159,7 @@ def run_sequence(name: str, folder: Path, truth_path: Path, variants: list[str],
         cand, conf, decl = np.full(n, -1), np.zeros(n), np.zeros(n, bool)
         total, words_ms, verify_ms = np.zeros(n), np.zeros(n), np.zeros(n)
         verified = np.zeros(n, bool)
-        kept_new, kept_purged = [], []
+        kept_new, kept_purged, kept_words = [], [], []
         for t, (fe, fs) in enumerate(feats):
             d = det.process_features(fe, fs)
             total[t] = d.times_s["total"] * 1e3
@@ -166,6 +168,7 @@ def run_sequence(name: str, folder: Path, truth_path: Path, variants: list[str],
             verified[t] = d.verification is not None
             kept_new.append(det.vocabulary.last_new)
             kept_purged.append(det.vocabulary.last_purged)
+            kept_words.append(det.features_of(t).words)
             if d.candidate_id is not None:
                 cand[t], conf[t], decl[t] = d.candidate_id, d.candidate_probability, d.status == LOOP
         s = score_decisions(cand, conf, decl, truth, recent)
@@ -182,7 +185,7 @@ def run_sequence(name: str, folder: Path, truth_path: Path, variants: list[str],
                "ram_bytes_per_image": sum(mem.values()) / n,
                "ram_bytes_per_image_by_part": {p: v / n for p, v in mem.items()}}
         if variant == "tree":
-            row["map_file"] = map_file_bytes(det, kept_new, kept_purged)
+            row["map_file"] = map_file_bytes(det, kept_new, kept_purged, kept_words)
         out["variants"][variant] = row
         mf = row.get("map_file", {}).get("bytes_per_image", float("nan"))
         print(f"  {variant:13s} R@100%P {s.recall_at_full_precision:.3f} FP {s.false_positives} "

@@ -35,6 +35,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -119,11 +120,15 @@ def record(name: str, folder: Path, truth_path: Path) -> dict[str, Any]:
     det = ForwardDetector(params, camera_matrix=k)
     pairs: list[tuple[int, Any, Any, np.ndarray]] = []
     purged_at: dict[int, int] = {}
+    words_of: list[np.ndarray] = []  # each image's word ids (the detector keeps the latest's only)
     inner = det._verify
 
     def hook(candidate: int, feats: Any, hyp_ids: np.ndarray, odo: Any) -> Any:
-        # the new image as the detector verifies it (its extracted features) and its words
-        pairs.append((len(det) - 1, det.features_of(candidate), feats, det.features_of(len(det) - 1).words))
+        # the past image as stored, with its words; the new image as the detector verifies
+        # it (its extracted features) and its words
+        words_of.append(det.features_of(len(det) - 1).words)
+        old = replace(det.features_of(candidate), words=words_of[candidate])
+        pairs.append((len(det) - 1, old, feats, words_of[-1]))
         return inner(candidate, feats, hyp_ids, odo)
 
     det._verify = hook  # type: ignore[method-assign]
@@ -131,6 +136,8 @@ def record(name: str, folder: Path, truth_path: Path) -> dict[str, Any]:
     cand, conf, decl = np.full(n, -1), np.zeros(n), np.zeros(n, bool)
     for t, (fe, fs) in enumerate(extract_timed(params.features, images)):
         d = det.process_features(fe, fs)
+        if len(words_of) < len(det):  # no verification this time: the hook did not record them
+            words_of.append(det.features_of(len(det) - 1).words)
         purged_at.update({int(x): t for x in det.vocabulary.last_purged})
         if d.candidate_id is not None:
             cand[t], conf[t], decl[t] = d.candidate_id, d.candidate_probability, d.status == LOOP
@@ -169,8 +176,11 @@ def replay(rec: dict[str, Any], variant: str) -> dict[str, float | int]:
         verify_mod.match_features = saved
     s = score_decisions(rec["cand"], rec["conf"], decl, rec["truth"], 10)
     nf = rec["features_per_image"]
-    saved_b = {"stored descriptors": 0.0, "word ids": 32 * nf, "first 16 bytes": 16 * nf, "first 8 bytes": 24 * nf,
-               "no descriptor for purged words": 32 * nf * (float(np.mean(dropped)) if dropped else 0.0)}[variant]
+    if variant.startswith("first "):
+        saved_b = (32 - int(variant.split()[1])) * nf
+    else:
+        saved_b = {"stored descriptors": 0.0, "word ids": 32 * nf,
+                   "no descriptor for purged words": 32 * nf * (float(np.mean(dropped)) if dropped else 0.0)}[variant]
     return {"recall_at_full_precision": s.recall_at_full_precision, "false_positives": s.false_positives,
             "loops": int(decl.sum()), "verify_ms_median": float(np.median(ms)) if ms else 0.0,
             "verify_ms_p99": float(np.percentile(ms, 99)) if ms else 0.0, "bytes_saved_per_image": saved_b}
