@@ -67,6 +67,7 @@ VARIANTS: dict[str, tuple[dict[str, object], dict[str, object]]] = {
     "tree, beam 8": ({"tree_beam": 8}, {}),
     "usearch": ({"binary_search": "usearch"}, {}),
     "tree, USAC verification": ({}, {"estimator": "usac"}),
+    "tree, RANSAC at most 200 samples": ({}, {"max_iterations": 200}),
 }
 
 
@@ -305,7 +306,9 @@ def page(res: dict) -> list[str]:
              "`tree`: the default detector: robotd's own incremental k-medians tree over the binary words (a "
              "beam of 4 leaves) and OpenCV's RANSAC for the essential matrix; `tree, beam 8`: the same "
              "scanning 8 leaves; `usearch`: the HNSW graph the tree replaced; `tree, USAC verification`: the "
-             "default with the essential matrix searched by OpenCV's USAC (`estimator = \"usac\"`). Same "
+             "default with the essential matrix searched by OpenCV's USAC (`estimator = \"usac\"`); `tree, RANSAC "
+             "at most 200 samples`: the default with RANSAC's samples capped at 200 instead of 1000 "
+             "(`max_iterations = 200`). Same "
              "features, same run (rows that were not run are missing). `verify ms p99`: the verification's "
              "own time at its 99th percentile; `verified`: images whose candidate was verified. RAM: what "
              "the detector holds per image (its stored images, the inverted index, the word search); map "
@@ -341,7 +344,7 @@ def page(res: dict) -> list[str]:
                   f"The office route's {sc['base_images']} images lap after lap, each lap shifted by up to 12 px, "
                   "mirrored on odd laps and its brightness changed (`changed()` in the bench), so the words of a "
                   f"lap are not those of the last one; the default detector (tree). Windows of the {sc['window']} "
-                  "images up to the given count.",
+                  "images up to the given count." + (f" {sc['note']}" if sc.get("note") else ""),
                   "",
                   "| images | ms median | ms p99 | ORB ms median | words ms median |",
                   "|---:|---:|---:|---:|---:|"]
@@ -367,9 +370,8 @@ def page(res: dict) -> list[str]:
     if sm:
         lines += ["", f"## Memory as the run grows, current arrays: {sm['images']} images", "",
                   "The same images with no candidate ever verified (`--memory-only`: the detector's memory does "
-                  "not depend on its verifications), run after the word tree's and the index's growing arrays "
-                  "took a quarter more room instead of doubling; its times are not the detector's and are not "
-                  "shown.", "",
+                  "not depend on its verifications); its times are not the detector's and are not shown."
+                  + (f" {sm['note']}" if sm.get("note") else ""), "",
                   "| images | RAM B/image (images + index + search) | searchable words |", "|---:|---|---:|"]
         for smp in sm["samples"]:
             p = smp["ram_bytes_per_image_by_part"]

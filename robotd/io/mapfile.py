@@ -138,7 +138,9 @@ def _migrate_3_to_4(conn: sqlite3.Connection) -> None:
     """Version 4: the forward camera's memory. ``forward_images``: one row per forward
     keyframe (``image_id``, the detector's image number, in arrival order over all runs;
     ``kind`` of features; ``words`` uint32, ``keypoints`` uint16 pairs in 1/16 px,
-    ``descriptors`` as extracted, all little-endian). ``forward_words``: one row per word
+    ``descriptors`` as extracted, all little-endian; ``words`` may instead hold those bytes
+    regrouped by significance and deflated when shorter, told apart by its length:
+    :func:`robotd.io.store.pack_word_ids`, readable by every version-4 reader of this code). ``forward_words``: one row per word
     (``descriptor``, ``born_image``, ``purged`` = 1 once it left the search, its descriptor
     then emptied). The inverted
     index and the Bayes filter are rebuilt from these at start (the filter starts at "no
