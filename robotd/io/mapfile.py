@@ -138,9 +138,7 @@ def _migrate_3_to_4(conn: sqlite3.Connection) -> None:
     """Version 4: the forward camera's memory. ``forward_images``: one row per forward
     keyframe (``image_id``, the detector's image number, in arrival order over all runs;
     ``kind`` of features; ``words`` uint32, ``keypoints`` uint16 pairs in 1/16 px,
-    ``descriptors`` as extracted, all little-endian; ``words`` may instead hold those bytes
-    regrouped by significance and deflated when shorter, told apart by its length:
-    :func:`robotd.io.store.pack_word_ids`, readable by every version-4 reader of this code). ``forward_words``: one row per word
+    ``descriptors`` as extracted, all little-endian). ``forward_words``: one row per word
     (``descriptor``, ``born_image``, ``purged`` = 1 once it left the search, its descriptor
     then emptied). The inverted
     index and the Bayes filter are rebuilt from these at start (the filter starts at "no
@@ -168,11 +166,24 @@ def _migrate_3_to_4(conn: sqlite3.Connection) -> None:
     )
 
 
+def _migrate_4_to_5(conn: sqlite3.Connection) -> None:
+    """Version 5: the same tables; two encodings of the forward memory that a version-4
+    reader would misread, so that one refuses the file instead. ``forward_images.words``
+    may hold the uint32 ids' bytes regrouped by significance and deflated, when shorter
+    than the raw ``4 N`` bytes (the value's length tells the two forms apart:
+    :func:`robotd.io.store.pack_word_ids`); a ``forward_words`` row that is not purged
+    may have an empty ``descriptor``, meaning its founder's (the first feature of image
+    ``born_image`` with that word). Rows written before stay as they are and read as
+    before."""
+    del conn  # no table changes: the version number is the whole step
+
+
 MIGRATIONS: Mapping[int, Migration] = {
     1: _migrate_0_to_1,
     2: _migrate_1_to_2,
     3: _migrate_2_to_3,
     4: _migrate_3_to_4,
+    5: _migrate_4_to_5,
 }
 """Schema migrations keyed by the version each one produces, contiguous from 1.
 

@@ -36,7 +36,9 @@ Tables (schema version :data:`SCHEMA_VERSION`):
     The forward camera's memory (:meth:`MapStore.add_forward_image`,
     :meth:`MapStore.forward_memory`): per forward keyframe its word ids, compact
     keypoints and descriptors; per word its descriptor, the image that made it and
-    whether it was purged. One image and its new words are one transaction.
+    whether it was purged. One image and its new words are one transaction. Since
+    version 5 the word ids may be deflated and a word's descriptor may be left to its
+    founder feature's (:func:`pack_word_ids`, :meth:`MapStore.add_forward_image`).
 
 Durability. Every write is its own transaction (``BEGIN IMMEDIATE`` ... ``COMMIT``), so
 a crash never leaves half a keyframe. The journal is a write-ahead log with
@@ -512,7 +514,7 @@ class MapStore(MapConnection):
         return [candidate_record(r) for r in rows]
 
 
-    # -- the forward camera's memory (version 4) -----------------------------------
+    # -- the forward camera's memory (version 4, encodings of version 5) -----------------------------------
 
     def add_forward_image(self, image_id: int, keyframe_id: int, kind: str, image_size_px: tuple[int, int],
                           words: np.ndarray, keypoints_q: np.ndarray, descriptors: np.ndarray,

@@ -427,7 +427,7 @@ def test_a_version_1_map_written_by_the_old_code_is_migrated(tmp_path: Path) -> 
         assert raw.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone() == ("1",)
     raw.close()
     with MapStore.open(path) as store:
-        assert store.schema_version == SCHEMA_VERSION == 4
+        assert store.schema_version == SCHEMA_VERSION == 5
         assert store.forward_memory() == ([], [])
         assert store.optimized_poses() == {}
         assert store.loop_candidates() == []
@@ -487,7 +487,7 @@ def test_a_version_2_map_written_by_the_current_code_is_migrated(tmp_path, monke
     monkeypatch.undo()
 
     with MapStore.open(path) as store:
-        assert store.schema_version == SCHEMA_VERSION == 4
+        assert store.schema_version == SCHEMA_VERSION == 5
         assert store.forward_memory() == ([], [])
         assert store.optimized_poses() == {} and store.loop_candidates() == []
         np.testing.assert_array_equal(store.keyframe_image(kfs[1]), image)
@@ -499,7 +499,7 @@ def test_a_version_2_map_written_by_the_current_code_is_migrated(tmp_path, monke
     # Every old row is still there, unchanged; only the schema version moved on.
     meta_before, meta_after = before.pop("meta"), after.pop("meta")
     assert after == before
-    assert dict(meta_after) == {**dict(meta_before), "schema_version": "4"}
+    assert dict(meta_after) == {**dict(meta_before), "schema_version": "5"}
 
     with MapStore.open(path) as store:  # and the new tables take rows
         store.put_optimized_poses(kfs, np.zeros((3, 3)), solved_unix_ns=1)
@@ -718,8 +718,8 @@ def test_runs_that_never_ended_are_marked_once_keeping_their_keyframes(tmp_path:
 
 
 def test_a_version_3_map_gains_the_forward_memory_and_keeps_its_rows(tmp_path, monkeypatch) -> None:
-    """Today's maps (version 3) are upgraded to version 4: the forward tables
-    appear, empty; every earlier row is as it was."""
+    """Version-3 maps are upgraded: the forward tables appear, empty; every earlier row
+    is as it was."""
     path = tmp_path / "map.sqlite"
     migrations = mapconnection.MIGRATIONS
     monkeypatch.setattr(mapconnection, "MIGRATIONS", {v: migrations[v] for v in (1, 2, 3)})
@@ -732,7 +732,7 @@ def test_a_version_3_map_gains_the_forward_memory_and_keeps_its_rows(tmp_path, m
     before = _all_rows(path)
     monkeypatch.undo()
     with MapStore.open(path) as store:
-        assert store.schema_version == 4
+        assert store.schema_version == SCHEMA_VERSION
         assert store.forward_memory() == ([], [])
     after = _all_rows(path)
     assert {k: v for k, v in after.items() if k != "meta"} == {
@@ -833,3 +833,40 @@ def test_a_new_words_descriptor_is_taken_from_its_founder_in_the_image_row(tmp_p
         conn.execute("UPDATE forward_words SET born_image = 5 WHERE id = 8")
     with MapStore.open(path) as store, pytest.raises(MapStoreError, match="forward word 8"):
         store.forward_memory()
+
+
+def test_a_version_4_map_with_forward_rows_is_marked_version_5_and_reads_as_before(tmp_path, monkeypatch) -> None:
+    """Version 5 changed no table, only what the forward rows may hold (deflated word ids, a
+    word without its own descriptor), which a version-4 reader would misread: the upgrade
+    moves the version number and nothing else, and the rows a version-4 store wrote (raw
+    ids, every descriptor written) read back the same; a version-4 build refuses a
+    version-5 file (the newer-schema test above)."""
+    import sqlite3
+
+    path = tmp_path / "map.sqlite"
+    migrations = mapconnection.MIGRATIONS
+    monkeypatch.setattr(mapconnection, "MIGRATIONS", {v: migrations[v] for v in (1, 2, 3, 4)})
+    rng = np.random.default_rng(8)
+    desc = rng.integers(0, 256, (3, 32), dtype=np.uint8)
+    kps = rng.integers(0, 10_000, (3, 2)).astype(np.uint16)
+    with MapStore.open(path) as store:
+        assert store.schema_version == 4
+        run = store.begin_run("a = 1\n", started_ns=10)
+        kf = store.add_keyframe(run, 100, (0.0, 0.0, 0.0), _cov(0), None)
+    with sqlite3.connect(path) as conn:  # the rows as a version-4 store wrote them
+        conn.execute("INSERT INTO forward_images VALUES (0, ?, 'orb', 640, 480, ?, ?, ?)",
+                     (kf, np.array([4, 5, 4], "<u4").tobytes(), kps.astype("<u2").tobytes(), desc.tobytes()))
+        conn.executemany("INSERT INTO forward_words (id, kind, descriptor, born_image) VALUES (?, 'orb', ?, 0)",
+                         [(4, desc[0].tobytes()), (5, desc[1].tobytes())])
+    conn.close()
+    before = _all_rows(path)
+    monkeypatch.undo()
+    with MapStore.open(path) as store:
+        assert store.schema_version == SCHEMA_VERSION == 5
+        images, words = store.forward_memory()
+    np.testing.assert_array_equal(images[0][4], [4, 5, 4])
+    assert [(w[0], w[2]) for w in words] == [(4, desc[0].tobytes()), (5, desc[1].tobytes())]
+    after = _all_rows(path)
+    meta_before, meta_after = before.pop("meta"), after.pop("meta")
+    assert after == before
+    assert dict(meta_after) == {**dict(meta_before), "schema_version": "5"}
