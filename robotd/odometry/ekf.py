@@ -234,12 +234,15 @@ class EkfState:
 
 
 def initial_state(stamp_ns: int, params: EkfParams = EkfParams(),
-                  pose: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> EkfState:
-    """The belief before any measurement: at ``pose``, speed and bias unknown (priors)."""
-    mean = np.array([pose[0], pose[1], wrap_angle(float(pose[2])), 0.0, 0.0, 0.0])
+                  pose: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                  bias: tuple[float, float] | None = None) -> EkfState:
+    """The belief before any measurement: at ``pose``, speed and bias unknown (priors).
+    ``bias``: the gyro bias's prior mean and 1-sigma, rad/s, in place of 0 and
+    ``initial_gyro_bias_sigma_radps``."""
+    b0, b_sigma = (0.0, params.initial_gyro_bias_sigma_radps) if bias is None else bias
+    mean = np.array([pose[0], pose[1], wrap_angle(float(pose[2])), 0.0, 0.0, float(b0)])
     sig = np.array([params.initial_pose_sigma] * 3 + [
-        params.initial_speed_sigma_mps, params.initial_yaw_rate_sigma_radps,
-        params.initial_gyro_bias_sigma_radps])
+        params.initial_speed_sigma_mps, params.initial_yaw_rate_sigma_radps, float(b_sigma)])
     return EkfState(stamp_ns, mean, np.diag(sig ** 2))
 
 

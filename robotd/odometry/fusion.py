@@ -130,6 +130,8 @@ class OdometryFilter:
     its keyframe's time however late it comes (see :meth:`on_visual_odometry`).
     ``gyro_scale``: the gyro's calibrated scale (measured over true yaw rate; ``robotd
     calibrate odometry``), by which every reading is divided; 1 uncalibrated.
+    ``initial_bias``: the gyro bias's prior ``(mean, sigma)`` in rad/s of the scaled
+    readings (default: 0 and ``params.initial_gyro_bias_sigma_radps``).
     """
 
     drive: DiffDriveParams = field(default_factory=DiffDriveParams)
@@ -144,6 +146,7 @@ class OdometryFilter:
     vo_gate_nis: float = 16.27
     vo_twin: bool = False
     gyro_scale: float = 1.0
+    initial_bias: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         self.counters = FilterCounters()
@@ -284,7 +287,7 @@ class OdometryFilter:
             msg = buf.popleft()
             ts = int(msg.stamp_ns)
             if self._state is None:
-                self._state = initial_state(ts, self.params, self.initial_pose)
+                self._state = initial_state(ts, self.params, self.initial_pose, self.initial_bias)
             self._advance_to(ts)
             rate = float(msg.yaw_rate_radps) / self.gyro_scale
             at_rest = stationary and self._still_gate(rate)
@@ -331,7 +334,7 @@ class OdometryFilter:
     def _admit(self, t: int) -> bool:
         """False (counted) when ``t`` is too far behind the filter's time."""
         if self._state is None:
-            self._state = initial_state(t, self.params, self.initial_pose)
+            self._state = initial_state(t, self.params, self.initial_pose, self.initial_bias)
             return True
         if t >= self._state.stamp_ns:
             return True
@@ -506,7 +509,7 @@ class OdometryFilter:
     def pose(self) -> PoseStamped:
         """The fused pose and its 3x3 covariance (the initial pose before any message)."""
         if self._state is None:
-            return initial_state(0, self.params, self.initial_pose).pose()
+            return initial_state(0, self.params, self.initial_pose, self.initial_bias).pose()
         return self._state.pose()
 
     def wheel_pose(self) -> PoseStamped:

@@ -173,6 +173,26 @@ def test_bias_converges_at_standstill_and_heading_does_not_drift():
     assert f.counters.still_updates >= 490
 
 
+def test_a_bias_prior_is_combined_with_the_standstill_readings_by_their_weights():
+    """The prior (mean, sigma) enters as one more measurement of the bias: with a prior
+    as good as the 100 readings at rest, the estimate lands halfway between them."""
+    rng = np.random.default_rng(5)
+    bias = math.radians(0.25)
+    s0 = initial_state(0, EkfParams(), bias=(0.001, 2e-5))
+    assert s0.gyro_bias_radps == 0.001 and s0.cov[IB, IB] == pytest.approx(4e-10)
+    readings = bias + rng.normal(0.0, 0.003, 100)
+    ests = {}
+    for name, prior in (("none", None), ("even", (0.0, 0.003 / math.sqrt(99)))):
+        f = OdometryFilter(initial_bias=prior)
+        for k in range(100):  # 2 s at rest: the first pair is not yet still (one interval)
+            stamp = k * 20 * MS
+            f.on_wheels(WheelTicks(stamp, 1234, 4321))
+            f.on_yaw_rate(YawRate(stamp, float(readings[k])))
+        ests[name] = f.state.gyro_bias_radps
+    assert ests["none"] == pytest.approx(bias, abs=1.2e-3)
+    assert ests["even"] == pytest.approx(0.5 * ests["none"], rel=0.05)
+
+
 def test_standstill_readings_that_disagree_are_not_used_to_pin_the_yaw_rate():
     """Ticks stop ~30 ms before a slowing turn does: such readings must not move the bias."""
     rng = np.random.default_rng(5)
