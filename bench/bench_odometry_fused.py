@@ -155,9 +155,15 @@ def replay(msgs: list[Any], steps: list[Any], drive: DiffDriveParams, gyro_scale
     their stamps; its poses ``(N, 3)`` and bias ``(N,)`` after each wheel message.
     ``bias_prior``: the bias's prior mean and sigma, rad/s (default: 0 and the params')."""
     f = OdometryFilter(drive, params, vo_twin=True, gyro_scale=gyro_scale, initial_bias=bias_prior)
+    from robotd.base.geometry import between_error_covariance, compose
+    from robotd.odometry.increments import combine_edges, edge_disagreement
+
     pending = list(steps)
     k = 0
     poses, bias, stamps = [], [], []
+    kf_stamps: list[int] = []
+    kf_fused: list[tuple[float, float, float]] = []
+    chained: list[np.ndarray] = []  # the graph's combined edges chained without loops
     for m in msgs:
         if isinstance(m, WheelTicks):
             f.on_wheels(m)
@@ -166,6 +172,24 @@ def replay(msgs: list[Any], steps: list[Any], drive: DiffDriveParams, gyro_scale
                 t, t_prev, delta, cov = pending[k]
                 f.on_visual_odometry(t, t_prev, None if delta is None else np.asarray(delta),
                                      None if cov is None else np.asarray(cov))
+                # As the visual odometry stage makes the graph's edge (combined when they agree).
+                edge = f.keyframe_edge(t)
+                if delta is not None and t_prev is not None:
+                    step = (np.asarray(delta), between_error_covariance(np.asarray(delta), np.asarray(cov)))
+                    if edge is None:
+                        edge = step
+                    elif edge_disagreement(edge, step) <= f.vo_gate_nis:
+                        edge = combine_edges(edge, step)
+                kp = f.pose_at(t)
+                if kp is not None:
+                    if not chained:
+                        chained.append(np.array([kp.x_m, kp.y_m, kp.yaw_rad]))
+                    elif edge is not None:
+                        chained.append(compose(chained[-1], edge[0]))
+                    else:
+                        chained.append(chained[-1])
+                    kf_stamps.append(t)
+                    kf_fused.append((kp.x_m, kp.y_m, kp.yaw_rad))
                 k += 1
             q = f.pose()
             poses.append((q.x_m, q.y_m, q.yaw_rad))
@@ -175,7 +199,8 @@ def replay(msgs: list[Any], steps: list[Any], drive: DiffDriveParams, gyro_scale
         else:
             f.on_yaw_rate(m)
     return {"poses": np.asarray(poses), "bias": np.asarray(bias), "stamp_ns": np.asarray(stamps),
-            "counters": vars(f.counters).copy()}
+            "counters": vars(f.counters).copy(), "kf_stamp_ns": np.asarray(kf_stamps),
+            "kf_fused": np.asarray(kf_fused), "kf_chained": np.asarray(chained)}
 
 
 def bias_errors(run: dict[str, Any], t_true_s: np.ndarray, bias_true: np.ndarray, t0_s: float) -> dict[str, float]:
@@ -187,6 +212,14 @@ def bias_errors(run: dict[str, Any], t_true_s: np.ndarray, bias_true: np.ndarray
     return {"bias_rms_degps": float(np.sqrt(np.mean(e ** 2))), "bias_end_degps": float(e[-1]),
             "bias_after_10s_degps": float(e[min(at10, len(e) - 1)]),
             "bias_true_walk_degps": float(np.degrees(bias_true[-1] - bias_true[0]))}
+
+
+def keyframe_ape(run: dict[str, Any], motion: Any) -> dict[str, float]:
+    """At the keyframes: APE anchored of the live fused pose and of the graph's combined
+    edges chained without loops (both from the same first keyframe pose)."""
+    truth = motion.pose_at(run["kf_stamp_ns"] * 1e-9)
+    return {"kf_ape_fused_m": odometry_errors(truth, run["kf_fused"]).ape_origin_rmse_m,
+            "kf_ape_chained_edges_m": odometry_errors(truth, run["kf_chained"]).ape_origin_rmse_m}
 
 
 def step_errors(steps: list[Any], motion: Any) -> dict[str, float]:
@@ -270,6 +303,7 @@ def evaluate(seed: int, route: str, cache: Path, model: Any, source: str,
     stream, t_g, bias_true = simulate_with_bias(route, seed, p)
     msgs = stream.messages("raw_gyro")
     truth = stream.true_pose
+    motion = plan_motion(build_route(route), MotionLimits())
     r0, b0 = p.drive.wheel_radius_m, p.drive.wheel_base_m
     nominal = DiffDriveParams(wheel_radius_m=r0, wheel_base_m=b0)
     calibrated = DiffDriveParams(wheel_radius_m=r0, wheel_base_m=model.wheel_base_m,
@@ -289,6 +323,7 @@ def evaluate(seed: int, route: str, cache: Path, model: Any, source: str,
                 **odometry_errors(truth[:n], r["poses"][:n]).as_dict(),
                 **bias_errors(r, t_g, bias_true, float(stream.sensors.t_s[0])),
                 "vo_fused": r["counters"]["vo_fused"], "vo_rejected": r["counters"]["vo_rejected"],
+                **keyframe_ape(r, motion),
                 "cpu_s": time.process_time() - t0}
     return out
 
@@ -318,17 +353,47 @@ def fitted_params(model: Any, base: EkfParams = EkfParams(), process: bool = Tru
 
 VARIANTS: dict[str, Any] = {
     "default noise": lambda model: (EkfParams(), None),
+    "pose without its own process noise": lambda model: (
+        dataclasses.replace(EkfParams(), rate_only_process=True), None),
+}
+#: Measured too (``--variants all``): the calibration drive's turn-on bias as the prior; the
+#: calibration's fitted noise densities with the sensor-level process noise.
+MORE_VARIANTS: dict[str, Any] = {
     "default noise, calibration's bias prior": lambda model: (
         EkfParams(), (model.gyro_bias_radps / model.gyro_scale, model.gyro_bias_sigma_radps / model.gyro_scale)),
     "fitted noise": lambda model: (fitted_params(model), None),
-    "fitted gyro noise, default wheel noise": lambda model: (
-        dataclasses.replace(fitted_params(model), wheel_v_noise_mps=EkfParams().wheel_v_noise_mps,
-                            wheel_v_noise_frac=EkfParams().wheel_v_noise_frac), None),
-    "sensor-level process noise only": lambda model: (
-        dataclasses.replace(EkfParams(), **SENSOR_PROCESS), None),
-    "fitted sensor noise, default process noise": lambda model: (
-        fitted_params(model, process=False), None),
 }
+
+
+def markdown(rows: list[dict[str, Any]], route: str) -> list[str]:
+    """The page: the visual steps per seed, then each noise model's errors."""
+    lines = ["# The fused filter with the calibrated model (generated by bench/bench_odometry_fused.py "
+             "--markdown)", "",
+             f"The {route} route per seed: the daemon's floor visual odometry steps (captured from `robotd "
+             "demo`, or synthetic at a capture's stamps with errors drawn from its covariances), replayed "
+             "with the seed's wheel and gyro messages through the fused filter (wheels, gyro, visual steps; "
+             "`vo_twin`) with the nominal model (the baseline) and the calibrated one, same steps, same "
+             "run. End error and APE anchored at the start; the filter's gyro bias against the "
+             "simulator's true bias (turn-on value plus walk), RMS over the drive.", "",
+             "| seed | visual steps | source | steps' NEES (3 honest) | yaw error RMS per step (mrad) | "
+             "calibrated model | true turn-on bias (deg/s) |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['seed']} | {r['vo_steps']} | {r['vo_source']} | {r['vo_nees_mean']:.2f} | "
+                     f"{1e3 * r['vo_yaw_err_rms_rad']:.2f} | {r['model']} | {r['turn_on_bias_degps']:+.3f} |")
+    names = [k.split("/")[0] for k in rows[0] if k.endswith("/nominal")]
+    for name in names:
+        lines += ["", f"## {name}", "",
+                  "| seed | end nominal (m) | end calibrated (m) | APE nominal (m) | APE calibrated (m) | "
+                  "bias error RMS nominal (deg/s) | calibrated (deg/s) | steps refused nominal / calibrated |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for r in rows:
+            n, c = r[f"{name}/nominal"], r[f"{name}/calibrated"]
+            lines.append(f"| {r['seed']} | {n['end_position_error_m']:.4f} | {c['end_position_error_m']:.4f} | "
+                         f"{n['ape_origin_rmse_m']:.4f} | {c['ape_origin_rmse_m']:.4f} | "
+                         f"{n['bias_rms_degps']:.4f} | {c['bias_rms_degps']:.4f} | "
+                         f"{n['vo_rejected']} / {c['vo_rejected']} |")
+    lines.append("")
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -346,16 +411,26 @@ def main(argv: list[str] | None = None) -> int:
                     help="for a seed without a calibration file: the fit alone on ROUTE (default calibration)")
     ap.add_argument("--synthetic-vo", action="store_true",
                     help="synthetic visual steps for every seed (on a capture's stamps and covariances)")
+    ap.add_argument("--variants", choices=("default", "all"), default="default",
+                    help="the filter's noise models to replay (all: also the bias prior and the fitted noise)")
     ap.add_argument("--full", action="store_true", help="the same as the default")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--markdown", type=Path, default=None)
+    ap.add_argument("--page-from", type=Path, default=None, help="measure nothing: write --markdown from this JSON")
     args = ap.parse_args(argv)
     seeds = [int(s) for s in args.seeds.split(",")]
+    if args.page_from is not None:
+        import json
+
+        if args.markdown is None:
+            ap.error("--page-from needs --markdown")
+        write_page(args.markdown, markdown(json.loads(args.page_from.read_text())["seeds"], args.route))
+        return 0
     if args.capture:
         for seed in seeds:
             capture(seed, args.route, args.cache)
         return 0
-    variants = VARIANTS
+    variants = VARIANTS if args.variants == "default" else {**VARIANTS, **MORE_VARIANTS}
     rows = []
     for seed in seeds:
         model, source = models(seed, args.calibration, args.synthetic_reference)
@@ -379,7 +454,7 @@ def main(argv: list[str] | None = None) -> int:
     path = write_json(args.out, {"machine": machine_info(), "route": args.route, "seeds": rows})
     print(f"\nwrote {path}")
     if args.markdown is not None:
-        write_page(args.markdown, ["# Fused odometry", "", "(see bench/bench_odometry_fused.py)", ""])
+        write_page(args.markdown, markdown(rows, args.route))
     return 0
 
 

@@ -69,6 +69,22 @@ def test_predict_one_step_by_hand():
     np.testing.assert_array_equal(p, p.T)
 
 
+def test_rate_only_process_puts_the_process_noise_on_the_rates_alone():
+    s = _state([0.0, 0.0, 0.3, 0.5, 0.2, 0.01], [1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-8])
+    full = predict(s, 100 * MS, EkfParams())
+    rates = predict(s, 100 * MS, EkfParams(rate_only_process=True))
+    np.testing.assert_array_equal(full.mean, rates.mean)
+    p = EkfParams()
+    # The rates' own process noise is the same...
+    assert rates.cov[IW, IW] == pytest.approx(1e-4 + p.angular_accel_noise_density_radps2_per_sqrt_hz ** 2 * 0.1)
+    assert rates.cov[IV, IV] == pytest.approx(full.cov[IV, IV])
+    # ...the yaw gets only what the yaw rate's uncertainty carries into it: 1e-6 + 1e-4 dt^2.
+    assert rates.cov[IYAW, IYAW] == pytest.approx(1e-6 + 1e-4 * 0.01)
+    qa = p.angular_accel_noise_density_radps2_per_sqrt_hz ** 2
+    assert full.cov[IYAW, IYAW] == pytest.approx(1e-6 + 1e-4 * 0.01 + qa * 0.1 ** 3 / 3)
+    assert rates.cov[IX, IX] < full.cov[IX, IX]
+
+
 def test_predict_along_an_arc_and_wraps_yaw():
     # A quarter circle of radius 1 m in 1 s, starting just below +pi.
     s0 = _state([0, 0, 3.0, math.pi / 2, math.pi / 2, 0], [1e-6] * 6)
