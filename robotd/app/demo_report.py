@@ -155,6 +155,12 @@ def print_summary(s: Summary, f: TextIO) -> None:
               f"{fw['failed_verification']} candidates failed the epipolar check", file=f)
         print(f"  per forward keyframe: median {fw['ms_per_image_median']} ms, p99 {fw['ms_per_image_p99']} ms; "
               f"vocabulary {fw['vocabulary_words']} words", file=f)
+        if fw.get("cpu_ms_per_image_median") is not None:
+            share = fw.get("verify_share")
+            print(f"  per forward keyframe in the pipeline thread's CPU time: median {fw['cpu_ms_per_image_median']} ms, "
+                  f"p99 {fw['cpu_ms_per_image_p99']} ms; verification median {fw['verify_ms_median']} ms, "
+                  f"p99 {fw['verify_ms_p99']} ms"
+                  + (f", {100 * share:.0f} % of the detector's time" if share is not None else ""), file=f)
     rl = s.get("relocalisation")
     if rl:
         print(file=f)

@@ -149,6 +149,11 @@ def forward_evaluation(truth: GroundTruth, mount: np.ndarray, obs: RunObservatio
             "not_planar": c.get("forward_not_planar", 0),
             "vocabulary_words": c.get("forward_vocabulary", 0),
             "ms_per_image_median": c.get("forward_ms_median"), "ms_per_image_p99": c.get("forward_ms_p99"),
+            "cpu_ms_per_image_median": c.get("forward_cpu_ms_median"),
+            "cpu_ms_per_image_p99": c.get("forward_cpu_ms_p99"),
+            "verify_ms_median": c.get("forward_verify_ms_median"), "verify_ms_p99": c.get("forward_verify_ms_p99"),
+            "verify_share": (round(c["forward_verify_ms_total"] / c["forward_ms_total"], 3)
+                             if c.get("forward_ms_total") else None),
             "loops": rows}
 
 
