@@ -168,6 +168,9 @@ def print_summary(s: Summary, f: TextIO) -> None:
                   f"p99 {fw['cpu_ms_per_image_p99']} ms; verification median {fw['verify_ms_median']} ms, "
                   f"p99 {fw['verify_ms_p99']} ms"
                   + (f", {100 * share:.0f} % of the detector's time" if share is not None else ""), file=f)
+            if fw.get("features_ms_median"):
+                print(f"  OpenCV's feature extraction of the same images: median {fw['features_ms_median']} ms "
+                      f"(the whole keyframe {fw['ms_per_image_median'] / fw['features_ms_median']:.1f} x that)", file=f)
     rl = s.get("relocalisation")
     if rl:
         print(file=f)

@@ -152,6 +152,7 @@ def forward_evaluation(truth: GroundTruth, mount: np.ndarray, obs: RunObservatio
             "ms_per_image_median": c.get("forward_ms_median"), "ms_per_image_p99": c.get("forward_ms_p99"),
             "cpu_ms_per_image_median": c.get("forward_cpu_ms_median"),
             "cpu_ms_per_image_p99": c.get("forward_cpu_ms_p99"),
+            "features_ms_median": c.get("forward_features_ms_median"),
             "verify_ms_median": c.get("forward_verify_ms_median"), "verify_ms_p99": c.get("forward_verify_ms_p99"),
             "verify_share": (round(c["forward_verify_ms_total"] / c["forward_ms_total"], 3)
                              if c.get("forward_ms_total") else None),
