@@ -139,7 +139,7 @@ def forward_evaluation(truth: GroundTruth, mount: np.ndarray, obs: RunObservatio
                      "bearing_error_deg": bearing_err if dist > 0.2 else None, "right": right,
                      "measured_range_m": m.range_m,
                      "fate": str(obs.forward_fates.get((m.from_id, m.to_id), "none")),
-                     "fate_detail": getattr(obs, "forward_fate_details", {}).get((m.from_id, m.to_id), "")})
+                     "fate_detail": obs.forward_fate_details.get((m.from_id, m.to_id), "")})
     accepted = [r for r in rows if r["fate"] == LoopFate.ACCEPTED]
     return {"images": c.get("forward_images", 0), "frames": c.get("forward_frames", 0),
             "unsynced": c.get("forward_unsynced", 0), "verified_loops": len(rows),
