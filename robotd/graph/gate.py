@@ -343,7 +343,8 @@ class GatedGraph:
             if not self._lifted:
                 self._state = "lost"
             log.warning("keyframe %d starts a new trajectory segment in a frame of its own: lost until "
-                        "%d loops agree on where it is", kid, self.reloc_params.min_agreeing)
+                        "%d loops agree on where it is (%d if all from the forward camera)", kid,
+                        self.reloc_params.min_agreeing, self.reloc_params.min_forward_only)
         if self._last_kf is not None and self._segment_of(self._last_kf[0]) == self._segment_of(kid):
             step = float(np.hypot(*(pose[:2] - self._last_kf[1][:2])))
             self._travelled[kid] = self._travelled.get(self._last_kf[0], 0.0) + step
@@ -373,7 +374,8 @@ class GatedGraph:
             self._lifted = False
             self._put_down_ns = stamp_ns
             self._state = "lost"
-            log.warning("put down: lost until %d loops agree on where", self.reloc_params.min_agreeing)
+            log.warning("put down: lost until %d loops agree on where (%d if all from the forward camera)",
+                        self.reloc_params.min_agreeing, self.reloc_params.min_forward_only)
 
     def _odometry_between(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray] | None:
         edges = self.graph.graph.edges
