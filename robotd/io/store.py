@@ -531,14 +531,15 @@ class MapStore(MapConnection):
         w, h = (int(v) for v in image_size_px)
         words = np.asarray(words)
         ids = words.tolist()
-        first = {}
-        for i, wid in enumerate(ids):
-            first.setdefault(int(wid), i)
+        first: dict[int, int] = {}
+        for at, wid in enumerate(ids):
+            first.setdefault(int(wid), at)
         raw = np.ascontiguousarray(descriptors, descriptors.dtype.newbyteorder("<"))
         rows = []
         for wid, d in new_words:
-            i = first.get(int(wid))
-            rows.append((int(wid), kind, b"" if i is not None and raw[i].tobytes() == bytes(d) else bytes(d), int(image_id)))
+            founder = first.get(int(wid))
+            own = founder is None or raw[founder].tobytes() != bytes(d)
+            rows.append((int(wid), kind, bytes(d) if own else b"", int(image_id)))
         with self._write() as conn:
             conn.execute(
                 "INSERT INTO forward_images (image_id, keyframe_id, kind, image_width, image_height, words,"
@@ -578,8 +579,8 @@ class MapStore(MapConnection):
             d = bytes(d)
             if not d and not p:  # written without it: the founder's descriptor
                 im = by_id.get(born)
-                at = np.flatnonzero(im[4] == i) if im is not None else ()
-                if not len(at):
+                at = np.flatnonzero(im[4] == i) if im is not None else np.empty(0, np.intp)
+                if im is None or not len(at):
                     raise MapStoreError(f"map {self._path}: forward word {i} has no descriptor and its image "
                                         f"{born} no feature of it")
                 size = len(im[6]) // max(len(im[4]), 1)
