@@ -73,6 +73,7 @@ from robotd.floor.compression import global_vector, hadamard_bits, ternarise
 from robotd.floor.desccoding import bits_msb, cells, pack_planes, pack_trits, rice_k, trit_table, unpack_planes
 from robotd.floor.descparams import (
     ANGLE_BITS,
+    FULL_RESOLUTION,
     HEADER,
     MAGIC,
     MODE_BYTES,
@@ -88,7 +89,7 @@ from robotd.floor.descparams import (
 from robotd.floor.keypoints import (candidates, drop_repeats, grey, kept_for_budget, raw_descriptors, working,
                                     workspace)
 
-__all__ = ["ANGLE_BITS", "MODE_BYTES", "MODES", "POSITION_STEP_PX", "ExtractParams", "FloorDescriptor",
+__all__ = ["ANGLE_BITS", "FULL_RESOLUTION", "MODE_BYTES", "MODES", "POSITION_STEP_PX", "ExtractParams", "FloorDescriptor",
            "Learned", "decode", "describe", "drop_repeats", "extract", "load_learned"]
 
 
