@@ -206,15 +206,16 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None,
             relevance += learned.rel_logp[a][np.searchsorted(learned.rel_edges[a], attributes[:, a])]
     order = np.argsort(-relevance, kind="stable")
     if params.pool_step == 2:  # the halving's smoothing and the sampling's bilinear interpolation deducted
-        pooled = _pooled_orientation_maps(quarter, math.sqrt(max(params.pool_sigma_px**2 - 1.0, 0.25)) / 2, half,
-                                          params.exact_maps)
+        sq = math.sqrt(max(params.pool_sigma_px**2 - 1.0, 0.25)) / 2
+        pooled = (_pooled_orientation_maps(quarter, sq, half) if params.exact_maps
+                  else _pooled_orientation_maps(g1, sq, ws, False, half))
     else:
         pooled = _pooled_orientation_maps(g1, params.pool_sigma_px, ws, params.exact_maps)
     return Candidates(xy[order], angle[order], attributes[order], relevance[order], pooled)
 
 
 def _pooled_orientation_maps(g: np.ndarray, sigma: float, ws: Workspace | None = None,
-                             exact: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                             exact: bool = True, halved: Workspace | None = None) -> tuple[np.ndarray, np.ndarray]:
     """8 gradient-orientation channels of ``g`` (each gradient's magnitude split linearly
     between the two nearest of 8 directions), Gaussian-pooled at ``sigma`` pixels of ``g``:
     two ``(h, w, 4) float32`` images (directions 0-3 and 4-7; OpenCV filters and remaps up
@@ -224,7 +225,10 @@ def _pooled_orientation_maps(g: np.ndarray, sigma: float, ws: Workspace | None =
     (:func:`_split_table`; the angle to 1/32 of a direction bin, each channel within 1/64
     of the magnitude of the exact split) and the channels are made by two table
     look-ups and two products instead of per-pixel scatters: about half the channel
-    building's time."""
+    building's time. ``halved`` (only with ``exact`` False): the channels of ``g``'s
+    gradients are halved (area averaging) into that workspace of half ``g``'s size and
+    pooled there, ``sigma`` in its pixels (the result is its ``pooled``): the maps at a
+    quarter of the pixels, from the gradients at every pixel."""
     h, w = g.shape
     if ws is None or ws.shape != (h, w):
         ws = Workspace(h, w)
@@ -238,10 +242,14 @@ def _pooled_orientation_maps(g: np.ndarray, sigma: float, ws: Workspace | None =
         mag4 = cv2.merge([mag] * 4, dst=ws.buffer("mag4", (h, w, 4)))
         planes = ws.ch.reshape(2, h, w, 4)
         out = []
+        dst = ws if halved is None else halved
+        hh, wh = dst.shape
         for i, table in enumerate(_split_table()):
             c = np.take(table, q, axis=0, out=planes[i])
             cv2.multiply(c, mag4, dst=c)
-            out.append(cv2.GaussianBlur(c, (k, k), sigma, dst=ws.pooled[i]))
+            if halved is not None:
+                c = cv2.resize(c, (wh, hh), dst=halved.ch.reshape(2, hh, wh, 4)[i], interpolation=cv2.INTER_AREA)
+            out.append(cv2.GaussianBlur(c, (k, k), sigma, dst=dst.pooled[i]))
         return out[0], out[1]
     b = np.multiply(ang, np.float32(8 / (2 * math.pi)), out=ws.t1)
     b0 = ws.i0
