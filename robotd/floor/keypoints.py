@@ -241,10 +241,23 @@ def _pooled_orientation_maps(g: np.ndarray, sigma: float, ws: Workspace | None =
         cv2.convertScaleAbs(ang, dst=q, alpha=_LUT_LEVELS / (2 * math.pi), beta=-0.5)
         mag4 = cv2.merge([mag] * 4, dst=ws.buffer("mag4", (h, w, 4)))
         planes = ws.ch.reshape(2, h, w, 4)
-        out = []
         dst = ws if halved is None else halved
         hh, wh = dst.shape
-        for i, table in enumerate(_split_table()):
+        tables = _split_table()
+        if halved is not None and h == 2 * hh and w == 2 * wh:
+            # Halving exactly 2 x 2 blocks is local: strips of _STRIP rows are split, weighted
+            # and halved while they are in the cache (same values as the whole image at once).
+            small = halved.ch.reshape(2, hh, wh, 4)
+            for r0 in range(0, h, _STRIP):
+                r1 = min(h, r0 + _STRIP)
+                for i in range(2):
+                    c = np.take(tables[i], q[r0:r1], axis=0, out=planes[i][r0:r1])
+                    cv2.multiply(c, mag4[r0:r1], dst=c)
+                    cv2.resize(c, (wh, (r1 - r0) // 2), dst=small[i][r0 // 2:r1 // 2], interpolation=cv2.INTER_AREA)
+            return (cv2.GaussianBlur(small[0], (k, k), sigma, dst=halved.pooled[0]),
+                    cv2.GaussianBlur(small[1], (k, k), sigma, dst=halved.pooled[1]))
+        out = []
+        for i, table in enumerate(tables):
             c = np.take(table, q, axis=0, out=planes[i])
             cv2.multiply(c, mag4, dst=c)
             if halved is not None:
@@ -274,6 +287,8 @@ def _pooled_orientation_maps(g: np.ndarray, sigma: float, ws: Workspace | None =
             cv2.GaussianBlur(ch4[1], (k, k), sigma, dst=ws.pooled[1]))
 
 
+_STRIP = 64
+"""Rows per strip of the channels halved strip by strip (even)."""
 _LUT_LEVELS = 256
 """Angles of the channel table (:func:`_pooled_orientation_maps` with ``exact`` False)."""
 
