@@ -712,11 +712,13 @@ def _memory_section(p: dict[str, Any]) -> list[str]:
 def markdown(p: dict[str, Any]) -> str:
     """``docs/benchmarks/daemon.md`` from the JSON payload."""
     r, m = p["replay"], p["machine"]
+    load = p.get("load_average")
     lines = ["# The whole daemon on a recorded drive (`./dev bench daemon`)", "",
              "Generated from `daemon.json` by `bench/bench_daemon.py --doc`; see the script's docstring for",
              "what is measured. Timings are CPU seconds of this machine's cores (a Raspberry Pi 4/5 core",
              "is 2-3x slower), under whatever else ran at the time: compare ratios within one run.", "",
-             f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.",
+             f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}"
+             + (f"; load average {load['start']} at the start, {load['end']} at the end." if load else "."),
              f"Recording: `{p['recording']}`: {r['robot_s']:.1f} s of robot time, "
              f"{p['judge']['distance_m']:.1f} m, {r['keyframes']} keyframes "
              f"(spacing {r['config']['keyframe_distance_m'] * 100:g} cm, mode {r['config']['mode']}, "
@@ -836,6 +838,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--memory-page", type=Path, nargs="+", default=None, metavar="JSON",
                     help="only write the memory page (--doc) from these --memory JSON files, partial or not")
     args = ap.parse_args(argv)
+    load_start = [round(v, 2) for v in os.getloadavg()]
     if args.memory_page is not None:
         page = memory_markdown(*(json.loads(f.read_text(encoding="utf-8")) for f in args.memory_page))
         if args.doc is not None:
@@ -891,7 +894,8 @@ def main(argv: list[str] | None = None) -> int:
                 args.distinct)
           if sizes else None)
     payload = {"machine": machine_info(), "recording": str(recording), "args": {k: str(v) for k, v in vars(args).items()},
-               "replay": r, "judge": j, "baseline": b, "scale": sc}
+               "replay": r, "judge": j, "baseline": b, "scale": sc,
+               "load_average": {"start": load_start, "end": [round(v, 2) for v in os.getloadavg()]}}
     rows = [(name, round(s, 2), round(s / r["robot_s"], 4), round(s / j["distance_m"], 4))
             for name, s in r["stage_cpu_s"].items()]
     rows.append(("whole process", round(r["process_cpu_s"], 2), round(r["process_cpu_s"] / r["robot_s"], 4),
