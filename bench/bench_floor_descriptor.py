@@ -476,7 +476,7 @@ def markdown(p: dict) -> list[str]:
                                   f"{q['index_mb']:.1f}", orb_cell]))
         lines.append("")
     if not floors:
-        return lines
+        return lines + ["The benchmark floors were not part of this run (`--skip floors`).", ""]
     lines += ["## The benchmark floors", "",
               f"The virtual floor camera, {p['settings']['frames_per_floor']} frames 5 cm apart per floor, "
               "median over frames.", "",
