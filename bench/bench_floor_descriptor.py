@@ -444,7 +444,7 @@ def markdown(p: dict) -> list[str]:
     if o:
         d = o["describe"]
         names = {"ours": "ours (default)",
-                 "full_resolution": "ours, `FULL_RESOLUTION` (the maps at every pixel, exact split, full repeat pool)",
+                 "full_resolution": "ours, `FULL_RESOLUTION` (the maps at every pixel, the exact split: the previous bytes)",
                  "coarse": "ours, `COARSE` (maps and orientation from the image halved: `orientation_step=2`, "
                            "`exact_maps`)",
                  "orb": "OpenCV ORB (500)",
