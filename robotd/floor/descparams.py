@@ -86,7 +86,7 @@ class ExtractParams:
             one: cheaper (2 checks about 550 candidates in mode 4 instead of 1000), but a
             copy ranked below the pool is not found, and on the printed plank floor the
             view a lattice step away then scores 0.6-0.95 of the true overlap instead of
-            0.25-0.35 (modes 2, 3, 5): not the default. 0: always ``repeat_pool``.
+            0.23-0.36 (modes 2, 3, 5): not the default. 0: always ``repeat_pool``.
         global_min_features: the global descriptor aggregates at least this many of the
             best keypoints, even when fewer are coded (low modes).
         learned: learned tables; None = the shipped ``selection.npz``.
