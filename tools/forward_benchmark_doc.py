@@ -38,21 +38,27 @@ def render(result: dict) -> str:
         "compare a row's time with OpenCV's ORB *of the same run* (the `ORB ms` and `x ORB` "
         "columns), not rows of different runs with each other.",
         "",
-        "Rows with *odometry* give the detector each image's odometry pose and covariance: on "
-        "the office route the virtual base's own wheel + gyro filter (its simulated wheel, slip "
-        "and gyro errors; the heading drifts by tens of degrees over the four laps), never the "
-        "true pose, which is only the ground truth. rtabmap_samples has no poses: there those "
-        "rows run without, as the detector does when no pose is given. The brute-force row "
-        "is the baseline of `robotd eval forward` (SIFT matching and five-point RANSAC against "
-        "every past image).",
+        "The `pose` column says which pose came with each image (the detector uses it only in "
+        "rows with a metric lever: odometry, places merged by pose, neighbours by distance, "
+        "metric neighbours verified, the daemon's levers). On the office route: `wheel + gyro` "
+        "is the virtual base's own wheel + gyro filter (its simulated wheel, slip and gyro "
+        "errors; it drifts about 5 m sideways and tens of degrees over the four laps); `fused` "
+        "is the pose the daemon gives its forward keyframes: the fused odometry (wheel + gyro "
+        "+ the floor camera's visual odometry, the daemon's own pipeline and the demo's "
+        "calibration over the same motion, no loop correction), given with every office row "
+        "but those named `wheel + gyro pose` and those from runs before it. Never the true pose, which is only the ground truth. rtabmap_samples "
+        "has no poses (`none`): there the metric levers run without, as the detector does "
+        "when no pose is given. The brute-force row is the baseline of `robotd eval forward` "
+        "(SIFT matching and five-point RANSAC against every past image).",
         "",
         "Rows: `default` is the default detector (ORB 300, purge 50, total p > 0.3, every "
-        "candidate verified); `previous default` the one before it (total p > 0.5, k = 2 "
-        "consistent candidates), and `previous default, X` that detector with one lever X "
-        "changed; `default, X` the default with X changed. `default as the daemon runs it` "
-        "adds the levers the daemon uses (`robotd.forward.detector.daemon_params`: the "
-        "odometry likelihood, no support test when odometry agrees, 3 verifications, "
-        "total p > 0.5). All "
+        "candidate verified, and when a pose comes with the image the odometry likelihood with "
+        "no support test for a candidate it agrees with and up to 3 verifications); `default "
+        "without odometry` the one before it (the same without the pose: on rtabmap_samples, which has no poses, the two "
+        "are the same detector); `previous default` the one before that (total p > 0.5, k = 2 "
+        "consistent candidates, no odometry). `X, Y` is detector X with one lever Y changed. "
+        "`default as the daemon runs it` is `robotd.forward.detector.daemon_params`: the "
+        "default at total p > 0.5. All "
         "rows ran with robotd's binary word tree. Rows of one sequence may come from "
         "different runs (the time columns then differ by the machine's load; the ratio to "
         "OpenCV's ORB is of each row's own run).",
@@ -64,23 +70,24 @@ def render(result: dict) -> str:
         lines += [f"Machine and versions: {info}.", ""]
     for name, seq in result.get("sequences", {}).items():
         lines += [f"## {name} ({seq.get('images')} images)", "",
-                  "| configuration | R@100%P | FP | precision | loops | ms median | ms p99 | ORB ms | x ORB "
-                  "| words | bytes/image |",
-                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                  "| configuration | pose | R@100%P | FP | precision | loops | ms median | ms p99 | ORB ms "
+                  "| x ORB | words | bytes/image |",
+                  "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         cfgs = seq.get("configurations", {})
         order = sorted(cfgs, key=lambda c: (c != "paper (SIFT)", c == "default"))  # paper first, default last
         for cname in order:
             r = cfgs[cname]
-            r = {"bytes_per_image": float("nan"), **r}
+            # Rows written before the column: the office route's came with the wheel + gyro pose.
+            r = {"bytes_per_image": float("nan"), "pose": "wheel + gyro" if name == "office" else "none", **r}
             lines.append(
-                f"| {cname} | {r['recall_at_full_precision']:.3f} | {r['false_positives']} | {r['precision']:.3f} "
+                f"| {cname} | {r['pose']} | {r['recall_at_full_precision']:.3f} | {r['false_positives']} | {r['precision']:.3f} "
                 f"| {r['declared']} | {r['ms_median']:.1f} | {r['ms_p99']:.1f} "
                 f"| {r['ms_median'] / r['ratio_to_opencv_orb']:.1f} | {r['ratio_to_opencv_orb']:.1f} "
                 f"| {r['searchable_words']} | {r['bytes_per_image']:.0f} |")
         bf = seq.get("brute_force")
         if bf:
             lines.append(
-                f"| *baseline: brute-force SIFT + RANSAC* | {bf['recall_at_full_precision']:.3f} "
+                f"| *baseline: brute-force SIFT + RANSAC* | - | {bf['recall_at_full_precision']:.3f} "
                 f"| {bf['false_positives']} | {bf['precision']:.3f} | {bf['declared']} | {bf['ms_median']:.1f} "
                 f"| {bf['ms_p99']:.1f} | {bf['ms_median'] / bf['ratio_to_opencv_orb']:.1f} "
                 f"| {bf['ratio_to_opencv_orb']:.1f} | - | - |")

@@ -84,7 +84,11 @@ def test_the_methods():
     assert paper == DetectorParams()
     assert (paper.features.kind, paper.filter.loop_threshold, paper.filter.rule) == ("sift", 0.8, "neighbourhood")
     default = method_params("default")
-    assert not default.odometry.use and default.verify_tries == 1 and default.consistency == 1
+    assert default.verify_tries == 3 and default.consistency == 1
+    # The odometry likelihood, with no support test for a candidate it agrees with; no other
+    # metric lever.
+    assert default.odometry.use and default.odometry.agree_min_support_area == 0.0
+    assert not (default.odometry.merge_places or default.odometry.metric_neighbours or default.odometry.verify_place)
     assert (default.filter.rule, default.filter.loop_threshold) == ("total", 0.3)
     assert default.features.kind == "orb" and default.vocabulary.purge_after > 0
     assert not paper.odometry.use and paper.verify_tries == 1
@@ -280,3 +284,83 @@ def test_a_refused_acceptance_tries_the_next_view(monkeypatch):
         assert [d.status for d in got] == [want] * 3
     # Each refused image had its candidate and then its agreeing neighbours tried (3 in all).
     assert len(seen) == 9 and seen[:1] == [5] and all(abs(j - 5) <= 2 for j in seen[:3])
+
+
+def test_neighbours_by_distance_move_mass_to_the_same_spot_on_another_lap():
+    """The metric transition: image 3's mass goes to its time neighbours (2, 4) and to
+    image 23, at image 3's pose on the next lap, which the paper's index transition never
+    reaches; images without a pose diffuse by index only, and the total mass is kept."""
+    from robotd.forward.detector import predict_metric
+    from robotd.forward.filter import predict
+
+    n = 30
+    post = np.zeros(1 + n)
+    post[0], post[1 + 3] = 0.2, 0.8
+    poses = np.array([[0.4 * i, 0.0, 0.0] for i in range(n)])
+    poses[23] = poses[3] + [0.05, 0.0, 0.0]
+    var = np.zeros((n, 3))
+    p = DetectorParams(features=FeatureParams(kind="orb"), odometry=OdometryParams(metric_neighbours=True))
+    metric = predict_metric(post, n, poses, var, p)
+    index = predict(post, n, p.filter)
+    assert metric.sum() == pytest.approx(1.0) and metric[0] == pytest.approx(index[0])
+    assert index[1 + 23] == pytest.approx(0.1 * 0.2 / n)  # only the no-loop share
+    assert metric[1 + 23] > 0.1 and metric[1 + 3] > metric[1 + 23]
+    assert metric[1 + 10] == pytest.approx(index[1 + 10])  # 2.8 m away: nothing more
+    # Image 3 heading the other way on the next lap: not the same view, not a neighbour.
+    poses[23, 2] = np.pi
+    assert predict_metric(post, n, poses, var, p)[1 + 23] == pytest.approx(index[1 + 23])
+    blind = predict_metric(post, n, np.full((n, 3), np.nan), var, p)
+    assert np.allclose(blind, index)
+
+
+def test_the_candidates_place_is_verified_when_the_candidate_fails(monkeypatch):
+    """``verify_place``: when candidate 5 fails, the image at its pose on another lap (20)
+    is tried next, though 20 is no time neighbour of 5; without poses only 5 is."""
+    import robotd.forward.detector as det_mod
+    from robotd.forward.verify import ACCEPTED, NO_GEOMETRIC_CONSISTENCY as BAD, Verification
+
+    views = _views(30, [])
+    params = DetectorParams(features=FeatureParams(kind="orb"), decision="score", verify=ACCEPT_ALL,
+                            odometry=OdometryParams(verify_place=True), verify_tries=3)
+    # 2 m apart (no image agrees with its time neighbours); 20 where 5 was, 0.1 m off.
+    poses = [np.array([2.0 * i if i != 20 else 10.1, 0.0, 0.0]) for i in range(30)] + [np.array([9.0, 0.0, 0.0])]
+    cov = np.diag([0.01, 0.01, 0.001])
+
+    def run(p, with_poses=True):
+        det = ForwardDetector(p)
+        good = []
+        monkeypatch.setattr(det_mod, "verify_pair", lambda old, new, vp, k: (
+            Verification(True, ACCEPTED, 100, 100) if any(old is g for g in good) else Verification(False, BAD, 3, 3)))
+        q = [(poses[i], cov) if with_poses else (None, None) for i in range(31)]
+        for i, v in enumerate(views):
+            det.process_features(v, 0.0, *q[i])
+        good.append(det.features_of(20))
+        d = views[5].descriptors.copy()
+        d[:, 0] ^= 0x03
+        return det.process_features(Features(views[5].keypoints_px, d, (640, 480)), 0.0, *q[30])
+
+    got = run(params)
+    assert got.status == LOOP and got.loop_id == 20
+    assert run(replace(params, verify_tries=1)).status == NO_GEOMETRIC_CONSISTENCY
+    blind = run(params, with_poses=False)
+    assert blind.status == NO_GEOMETRIC_CONSISTENCY and blind.candidate_id == 5
+
+
+def test_the_default_without_poses_is_the_default_without_odometry(monkeypatch):
+    """The default's odometry levers act only when a pose comes with the image: without
+    one (the real corridor, ``eval forward`` without ``--odometry``) every decision is the
+    detector's without odometry; with poses that put the revisit far from its place, the
+    odometry likelihood changes them."""
+    views = _views(30, [5, 6, 7, 20])
+    dflt = replace(method_params("default"), verify=ACCEPT_ALL)
+    plain = replace(dflt, odometry=OdometryParams())
+    a = _run(dflt, views, monkeypatch)
+    b = _run(plain, views, monkeypatch)
+    assert [(d.status, d.candidate_id, d.candidate_probability) for d in a] == [
+        (d.status, d.candidate_id, d.candidate_probability) for d in b]
+    assert [d.loop_id for d in a[30:33]] == [5, 6, 7]
+    det = ForwardDetector(dflt)
+    cov = np.diag([0.01, 0.01, 0.001])
+    far = [det.process_features(v, 0.0, np.array([float(i) if i < 30 else 100.0, 0.0, 0.0]), cov)
+           for i, v in enumerate(views)][30:]
+    assert [d.candidate_probability for d in far] != [d.candidate_probability for d in a[30:]]

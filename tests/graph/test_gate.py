@@ -79,3 +79,63 @@ def test_a_run_on_a_stored_map_is_not_localised_and_a_lift_makes_it_lost():
     g.wheel_drop(False, 20)
     assert g.status_fragment() == "LOST (relocalising)"
     assert g.end_warning().startswith("the run ended lost: its last 1 keyframes")
+
+
+def _office_like(n: int) -> list[np.ndarray]:
+    """True poses of a 6 x 3.75 m rectangle of 0.15 m steps (a quarter turn every 40 and
+    25 steps), driven on past its start."""
+    out = [np.zeros(3)]
+    sides = [40, 25, 40, 25]
+    turns = set(np.cumsum(sides * 3) - 1)
+    for k in range(n - 1):
+        out.append(compose(out[-1], np.array([0.15, 0.0, math.pi / 2 if k in turns else 0.0])))
+    return out
+
+
+def test_after_a_kidnapping_every_true_loop_passes_the_gate_and_a_look_alike_does_not():
+    """A drive whose heading drifts, lifted and put down on ground it drove 110 steps
+    before: the new segment relocalises against the run's own keyframes, then every true
+    loop from it passes the gate, and a look-alike 8 cm off (a repeated floor print) is
+    refused. Judged with the two poses' marginals alone, the relocalised segment's
+    ``S`` carries the drift of the whole first segment twice and the look-alikes pass."""
+    rng = np.random.default_rng(11)
+    odo_sigma = np.array([0.002, 0.002, 0.004])
+    odo_info = np.diag(1.0 / odo_sigma**2)
+    loop_sigma = np.array([0.003, 0.003, 0.003])
+    emitted: list = []
+    g = GatedGraph(IncrementalGraph(), emitted.append, lambda run: None)
+    truth = _office_like(150)
+    odo = truth[0]
+    for k, t in enumerate(truth):
+        if k:
+            step = between(truth[k - 1], t) + rng.normal(0.0, odo_sigma) + [0.0, 0.0, 0.002]
+            odo = compose(odo, step)
+            g.odometry_link(k - 1, k, step, odo_info)
+        g.keyframe(k, 7, odo, k * 10**9, lambda run: {})
+    g.wheel_drop(True, 150 * 10**9)
+    g.wheel_drop(False, 155 * 10**9)
+    first = 150
+    put_down = truth[40:100]
+    odo = np.array([4.0, -2.0, 1.0])  # the new segment's own frame: anywhere
+    look_alikes = []
+    for k, t in enumerate(put_down):
+        kid = first + k
+        if k:
+            step = between(put_down[k - 1], t) + rng.normal(0.0, odo_sigma) + [0.0, 0.0, 0.002]
+            odo = compose(odo, step)
+            g.odometry_link(kid - 1, kid, step, odo_info)
+        g.keyframe(kid, 7, odo, (156 + k) * 10**9, lambda run: {})
+        old = 40 + k
+        g.floor_candidate(old, kid, 200.0, between(truth[old], t) + rng.normal(0.0, loop_sigma),
+                          np.diag(1.0 / loop_sigma**2))
+        if k >= 10 and k % 5 == 0:
+            off = 0.08 * np.array([math.cos(k), math.sin(k), 0.0])
+            g.floor_candidate(old - 1, kid, 150.0, between(truth[old - 1], t) + off, np.diag(1.0 / loop_sigma**2))
+            look_alikes.append((kid, old - 1))
+    c = g.counters()
+    assert (c["lifts"], c["relocalisations"], c["localised"]) == (1, 1, 1)
+    fates = {(m.query_id, m.candidate_id): m.fate for m in emitted if isinstance(m, CandidateFate)}
+    true_loops = [(first + k, 40 + k) for k in range(len(put_down))]
+    assert [fates[q] for q in true_loops] == ["accepted"] * len(true_loops)
+    assert [fates[q] for q in look_alikes] == ["failed_gate"] * len(look_alikes)
+    assert c["loops_failed_gate"] == len(look_alikes) == 10
