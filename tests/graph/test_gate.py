@@ -139,3 +139,46 @@ def test_after_a_kidnapping_every_true_loop_passes_the_gate_and_a_look_alike_doe
     assert [fates[q] for q in true_loops] == ["accepted"] * len(true_loops)
     assert [fates[q] for q in look_alikes] == ["failed_gate"] * len(look_alikes)
     assert c["loops_failed_gate"] == len(look_alikes) == 10
+
+
+def test_a_forward_loop_without_a_range_is_gated_at_two_degrees_of_freedom():
+    """A forward loop's edge takes its range from the graph's prediction: the innovation
+    along the line of sight is zero, the statistic has 2 degrees of freedom, and the bound
+    is the 2-dof point of the gate's probability (13.8 for 99.9 %). A bearing error whose
+    statistic lies between 13.8 and 16.27 is refused; the same loop with a range measured
+    on the floor is gated at 3 degrees of freedom."""
+    from robotd.forward.planar import loop_edge
+    from robotd.graph.gate import gate_threshold
+
+    assert math.isclose(gate_threshold(16.27, 3), 16.27, rel_tol=1e-9)
+    assert math.isclose(gate_threshold(16.27, 2), 13.82, abs_tol=0.01)
+    g = GatedGraph(IncrementalGraph(), [].append, [].append)
+    truth = _square(21)
+    ids = _drive(g, truth)
+    a, b = ids[1], ids[19]  # 0.25 m apart along x, the same heading
+    rel = between(truth[1], truth[19])
+    bearing = math.atan2(rel[1], rel[0])
+
+    def d2(err: float, range_m: float | None) -> float:
+        def edge(pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return loop_edge(pred, rel[2], bearing + err, range_m=range_m)
+        delta, info = edge(between(g.graph.pose(a), g.graph.pose(b)))
+        return g.graph.loop_chi2(a, b, delta, info)
+
+    # the bearing error whose statistic is 15 (between the two bounds), by bisection
+    lo, hi = 0.0, math.radians(60.0)
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if d2(mid, None) < 15.0 else (lo, mid)
+    err = 0.5 * (lo + hi)
+    assert 14.9 < d2(err, None) < 15.1
+    emitted: list = []
+    g._emit = emitted.append
+    g.forward_candidate(a, b, 0.9, lambda pred: loop_edge(pred, rel[2], bearing + err))
+    assert emitted[-1].fate == "failed_gate" and emitted[-1].detail.endswith("> 13.82")
+    # Measured on the floor (the true range), 3 components: its statistic against 16.27.
+    r = float(np.hypot(rel[0], rel[1]))
+    g.forward_candidate(a, b, 0.9, lambda pred: loop_edge(pred, rel[2], bearing + err, range_m=r),
+                        range_measured=True)
+    expected = "accepted" if d2(err, r) <= 16.27 else "failed_gate"
+    assert [m.fate for m in emitted if isinstance(m, CandidateFate)][-1] == expected
