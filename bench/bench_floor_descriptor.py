@@ -26,10 +26,11 @@ Times are CPU seconds of the calling thread (:func:`floor_common.time_each`).
 caches it; ``--recording`` names another), mode 4 as the daemon describes keyframes:
 
 * describe time per frame, interleaved frame by frame (each method sees the same load):
-  the default extraction, two selectable cheaper ones that change the bytes (``RATIO``:
-  the repeat check's pool sized by the budget; ``QUARTER``: that and the pooled maps at
-  every second pixel), OpenCV ORB (500) and SIFT, on ``--office-frames`` frames spread
-  over the drive;
+  the default extraction, the selectable ``FULL_RESOLUTION`` one (the maps at every
+  pixel with the exact channel split and the full repeat pool: the bytes before the
+  faster defaults), the selectable cheaper ``COARSE`` one (the maps and the orientation
+  from the detection image halved), OpenCV ORB (500) and SIFT, on ``--office-frames``
+  frames spread over the drive;
 * query time of the floor index (:class:`robotd.floor.index.FloorIndex`, the daemon's
   shortlist of 10 and the demo's loop threshold as ``min_score``) at 1,000 and 10,000
   keyframes, built as ``./dev bench daemon --scale`` builds it (the drive's first
@@ -63,16 +64,15 @@ except ImportError:  # run as a script: bench/ is on sys.path
     from floor_common import (MODES, SiftBaseline, add_common_args, bench_floors, header,
                               load_average, log, one_thread, pyplot, r, spread, time_each)
 
-from robotd.floor.descriptor import MODE_BYTES, ExtractParams, decode, extract
+from robotd.floor.descriptor import FULL_RESOLUTION, MODE_BYTES, ExtractParams, decode, extract
 from robotd.floor.match import local_score
 from robotd.base.camera import FloorCameraModel
 from sim.pairs import straight_run
 
 SPACING_M = 0.05
-#: Selectable, not the default: the repeat check's pool sized by the budget ...
-RATIO = ExtractParams(repeat_pool_ratio=2.0)
-#: ... and with it the pooled maps at every second pixel.
-QUARTER = ExtractParams(pool_step=2, repeat_pool_ratio=2.0)
+#: Selectable, not the default: the pooled maps and the orientation from the detection image
+#: halved (cheaper; the demo's visual odometry lost accuracy with it).
+COARSE = ExtractParams(orientation_step=2, exact_maps=True)
 OFFICE_MODE = 4  # the daemon's mode
 OFFICE_SHORTLIST = 10  # [floor_detector] shortlist
 OFFICE_SIZES = (1000, 10000)
@@ -166,8 +166,9 @@ def bench_office(args: argparse.Namespace, sift: SiftBaseline) -> dict:
         n_all = sum(1 for _t, msg in rd.messages() if isinstance(msg, Frame) and msg.camera == "floor")
     timed_at = set(np.linspace(0, n_all - 1, args.office_frames).astype(int).tolist())
     orb = cv2.ORB_create(nfeatures=500)
-    methods = {"ours": lambda im: extract(im, OFFICE_MODE), "ratio": lambda im: extract(im, OFFICE_MODE, RATIO),
-               "quarter": lambda im: extract(im, OFFICE_MODE, QUARTER),
+    methods = {"ours": lambda im: extract(im, OFFICE_MODE),
+               "full_resolution": lambda im: extract(im, OFFICE_MODE, FULL_RESOLUTION),
+               "coarse": lambda im: extract(im, OFFICE_MODE, COARSE),
                "orb": lambda im: orb.detectAndCompute(im, None), "sift": sift.extract}
     times: dict[str, list[float]] = {k: [] for k in methods}
     blobs: dict[str, list[bytes]] = {"ours": []}
@@ -250,7 +251,8 @@ def bench_office(args: argparse.Namespace, sift: SiftBaseline) -> dict:
         out["query"][name] = res
     out["queries"] = len(qs)
     out["describe_ratio_orb"] = out["describe"]["orb"]["median_ms"] / out["describe"]["ours"]["median_ms"]
-    out["describe_ratio_quarter"] = out["describe"]["quarter"]["median_ms"] / out["describe"]["ours"]["median_ms"]
+    out["describe_ratio_full_resolution"] = (out["describe"]["full_resolution"]["median_ms"]
+                                             / out["describe"]["ours"]["median_ms"])
     return out
 
 
@@ -351,7 +353,7 @@ def print_office(o: dict) -> None:
           "(median, IQR; interleaved)")
     print_table(["method", "median", "IQR"],
                 [[k, r(v["median_ms"], 2), r(v["iqr_ms"], 2)] for k, v in d.items()])
-    print(f"  ORB / ours {o['describe_ratio_orb']:.2f}; quarter / ours {o['describe_ratio_quarter']:.2f}")
+    print(f"  ORB / ours {o['describe_ratio_orb']:.2f}; FULL_RESOLUTION / ours {o['describe_ratio_full_resolution']:.2f}")
     print(f"\n  query, ms (median, IQR over {o['queries']} queries; shortlist {o['shortlist']}, "
           f"min_score {o['min_score']:.1f})")
     rows = []
@@ -441,21 +443,24 @@ def markdown(p: dict) -> list[str]:
     o = p.get("office")
     if o:
         d = o["describe"]
-        names = {"ours": "ours (default)", "ratio": "ours, repeat pool sized by the budget (`repeat_pool_ratio=2`)",
-                 "quarter": "ours, that and the pooled maps at every second pixel (`pool_step=2`)",
+        names = {"ours": "ours (default)",
+                 "full_resolution": "ours, `FULL_RESOLUTION` (the maps at every pixel, the exact split: the previous bytes)",
+                 "coarse": "ours, `COARSE` (maps and orientation from the image halved: `orientation_step=2`, "
+                           "`exact_maps`)",
                  "orb": "OpenCV ORB (500)",
                  "sift": "OpenCV SIFT"}
         lines += ["## The office drive (the daemon's keyframes)", "",
                   f"{o['timed_frames']} floor frames spread over the recorded 60 s office drive ({o['frames']} "
-                  f"frames), mode {o['mode']}, the methods interleaved frame by frame. The two selectable "
-                  "cheaper extractions change the bytes and are not the default: the demo's loops and visual "
-                  "odometry lost a little with each (docs/performance.md).", "",
+                  f"frames), mode {o['mode']}, the methods interleaved frame by frame. `FULL_RESOLUTION` gives the "
+                  "bytes before the faster defaults; `COARSE` is cheaper and not the default: the demo's visual "
+                  "odometry lost accuracy with it (docs/performance.md).", "",
                   "Describe, ms per frame:", "", *head(["method", "median", "IQR", "bytes (mean)"])]
         for k, v in d.items():
             b = o["bytes_mean"].get(k)
             lines.append(row([names.get(k, k), f"{v['median_ms']:.2f}", f"{v['iqr_ms']:.2f}",
                               f"{b:.0f}" if b is not None else ""]))
-        lines += ["", f"ORB / ours {o['describe_ratio_orb']:.2f}, SIFT / ours "
+        lines += ["", f"ORB / ours {o['describe_ratio_orb']:.2f}, `FULL_RESOLUTION` / ours "
+                      f"{o['describe_ratio_full_resolution']:.2f}, SIFT / ours "
                       f"{d['sift']['median_ms'] / d['ours']['median_ms']:.1f}.", "",
                   f"Query of the floor index, ms ({o['queries']} queries per size; shortlist {o['shortlist']}, "
                   f"the demo's loop threshold {o['min_score']:.1f} as `min_score`; {o['distinct']} distinct frames, "
@@ -471,7 +476,7 @@ def markdown(p: dict) -> list[str]:
                                   f"{q['index_mb']:.1f}", orb_cell]))
         lines.append("")
     if not floors:
-        return lines
+        return lines + ["The benchmark floors were not part of this run (`--skip floors`).", ""]
     lines += ["## The benchmark floors", "",
               f"The virtual floor camera, {p['settings']['frames_per_floor']} frames 5 cm apart per floor, "
               "median over frames.", "",

@@ -20,6 +20,19 @@ only what the past image keeps for matching changes:
 - ``no descriptor for purged words``: a feature whose word was purged (seen in its image
   only, 50 images on) loses its descriptor.
 
+Then the search for the essential matrix, with the stored descriptors (what makes the
+verification's 99th percentile; ``docs/forward.md``, "Time and memory per image"):
+
+- ``USAC, no local optimisation``: OpenCV's USAC (its faster five-point solver) with the
+  same uniform samples, inlier count, threshold, confidence and bound as RANSAC, and no
+  refinement of the best model: the same test with a cheaper sample;
+- ``USAC, PROSAC order``: the same drawing its samples from the matches ordered by
+  descriptor distance first (PROSAC);
+- ``USAC screen, then RANSAC``: the cheap search first, refusing the candidate when its
+  best model has fewer than ``min_inliers`` inliers in front of both cameras, RANSAC as the
+  default otherwise (it accepts a subset of what the default accepts);
+- ``RANSAC, at most 200 samples``: the default with ``max_iterations = 200``.
+
 Reported per variant and sequence: recall at 100 % precision, false positives, loops,
 verification time (median, p99; noisy on a loaded machine), and the bytes per image the
 variant would save. Run: ``PYTHONPATH=. .venv/bin/python bench/bench_forward_verify_replay.py
@@ -35,6 +48,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -50,7 +64,7 @@ except ImportError:  # run as a script: bench/ is on sys.path
 
 from robotd.forward import LOOP, ForwardDetector, method_params
 from robotd.forward.evaluation import score_decisions
-from robotd.forward.verify import VerifyParams, camera_matrix_guess, match_features, verify_pair
+from robotd.forward.verify import VerifyParams, camera_matrix_guess, match_features, ransac_iterations, verify_pair
 from robotd.io.sequence import list_images, load_ground_truth, read_image
 
 REPO = Path(__file__).resolve().parent.parent
@@ -119,11 +133,15 @@ def record(name: str, folder: Path, truth_path: Path) -> dict[str, Any]:
     det = ForwardDetector(params, camera_matrix=k)
     pairs: list[tuple[int, Any, Any, np.ndarray]] = []
     purged_at: dict[int, int] = {}
+    words_of: list[np.ndarray] = []  # each image's word ids (the detector keeps the latest's only)
     inner = det._verify
 
     def hook(candidate: int, feats: Any, hyp_ids: np.ndarray, odo: Any) -> Any:
-        # the new image as the detector verifies it (its extracted features) and its words
-        pairs.append((len(det) - 1, det.features_of(candidate), feats, det.features_of(len(det) - 1).words))
+        # the past image as stored, with its words; the new image as the detector verifies
+        # it (its extracted features) and its words
+        words_of.append(det.features_of(len(det) - 1).words)
+        old = replace(det.features_of(candidate), words=words_of[candidate])
+        pairs.append((len(det) - 1, old, feats, words_of[-1]))
         return inner(candidate, feats, hyp_ids, odo)
 
     det._verify = hook  # type: ignore[method-assign]
@@ -131,6 +149,8 @@ def record(name: str, folder: Path, truth_path: Path) -> dict[str, Any]:
     cand, conf, decl = np.full(n, -1), np.zeros(n), np.zeros(n, bool)
     for t, (fe, fs) in enumerate(extract_timed(params.features, images)):
         d = det.process_features(fe, fs)
+        if len(words_of) < len(det):  # no verification this time: the hook did not record them
+            words_of.append(det.features_of(len(det) - 1).words)
         purged_at.update({int(x): t for x in det.vocabulary.last_purged})
         if d.candidate_id is not None:
             cand[t], conf[t], decl[t] = d.candidate_id, d.candidate_probability, d.status == LOOP
@@ -138,16 +158,88 @@ def record(name: str, folder: Path, truth_path: Path) -> dict[str, Any]:
             "k": k, "verify": params.verify, "features_per_image": float(np.mean([len(det.features_of(t)) for t in range(n)]))}
 
 
+_NO_DISTORTION = np.zeros(5)
+
+
+def _usac(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params: VerifyParams,
+          sampler: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """OpenCV's USAC set to RANSAC's test (module notes), without local optimisation."""
+    u = cv2.UsacParams()
+    u.confidence = params.ransac_confidence
+    u.threshold = params.ransac_threshold_px
+    u.maxIterations = ransac_iterations(len(p_old), params.min_inliers, params.ransac_confidence,
+                                        cap=params.max_iterations)
+    u.sampler = sampler
+    u.score = cv2.SCORE_METHOD_RANSAC
+    u.loMethod = cv2.LOCAL_OPTIM_NULL
+    u.final_polisher = cv2.NONE_POLISHER
+    u.randomGeneratorState = params.seed
+    u.isParallel = False
+    kk = np.asarray(k, np.float64)
+    return cv2.findEssentialMat(p_old, p_new, kk, kk, _NO_DISTORTION, _NO_DISTORTION, u)
+
+
+def _searches() -> dict[str, Callable[..., tuple[np.ndarray | None, np.ndarray | None]]]:
+    """The essential-matrix searches of the estimator variants (replacing
+    ``robotd.forward.verify.essential_matrix``)."""
+    import robotd.forward.verify as verify_mod
+
+    ransac = verify_mod.essential_matrix
+
+    def prosac(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params: VerifyParams) -> Any:
+        return _usac(p_old, p_new, k, params, cv2.SAMPLING_PROSAC)  # matches come sorted by distance
+
+    def screened(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params: VerifyParams) -> Any:
+        e, mask = _usac(p_old, p_new, k, params, cv2.SAMPLING_UNIFORM)
+        if e is None or mask is None or int(mask.sum()) < params.min_inliers:
+            return None, None
+        if cv2.recoverPose(e[:3], p_old, p_new, np.asarray(k, np.float64), mask=mask.copy())[0] < params.min_inliers:
+            return None, None
+        return ransac(p_old, p_new, k, params)
+
+    return {"USAC, no local optimisation": lambda a, b, k, p: _usac(a, b, k, p, cv2.SAMPLING_UNIFORM),
+            "USAC, PROSAC order": prosac, "USAC screen, then RANSAC": screened}
+
+
+def _by_distance(a: Any, b: Any, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`match_features`' matches (the same ratio test, one per keypoint of ``b``),
+    ordered by descriptor distance, nearest first (PROSAC's order)."""
+    empty = np.zeros((0, 2), np.float32)
+    if len(a) < 2 or len(b) < 2:
+        return empty, empty
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING if a.descriptors.dtype == np.uint8 else cv2.NORM_L2)
+    best: dict[int, tuple[float, int]] = {}
+    for p in matcher.knnMatch(a.descriptors, b.descriptors, k=2):
+        if len(p) == 2 and p[0].distance < ratio * p[1].distance:
+            m = p[0]
+            if m.trainIdx not in best or m.distance < best[m.trainIdx][0]:
+                best[m.trainIdx] = (m.distance, m.queryIdx)
+    if not best:
+        return empty, empty
+    ib = np.fromiter(best.keys(), np.int64, len(best))
+    ia = np.fromiter((v[1] for v in best.values()), np.int64, len(best))
+    order = np.argsort(np.fromiter((v[0] for v in best.values()), np.float64, len(best)), kind="stable")
+    return a.keypoints_px[ia[order]], b.keypoints_px[ib[order]]
+
+
 def replay(rec: dict[str, Any], variant: str) -> dict[str, float | int]:
-    """Verify the recorded pairs again with ``variant``'s matching; score the decisions."""
+    """Verify the recorded pairs again with ``variant``'s matching or search; score the decisions."""
     import robotd.forward.verify as verify_mod
 
     vp: VerifyParams = rec["verify"]
+    if variant == "RANSAC, at most 200 samples":
+        vp = replace(vp, max_iterations=200)
+    searches = _searches()
+    saved_search = verify_mod.essential_matrix
+    if variant in searches:
+        verify_mod.essential_matrix = searches[variant]
     decl = rec["decl"].copy()
     ms = []
     matcher: Callable[..., tuple[np.ndarray, np.ndarray]] = match_features
     if variant == "word ids":
         matcher = _word_matches
+    elif variant == "USAC, PROSAC order":
+        matcher = _by_distance
     saved = verify_mod.match_features
     verify_mod.match_features = matcher
     dropped = []
@@ -167,31 +259,39 @@ def replay(rec: dict[str, Any], variant: str) -> dict[str, float | int]:
             ms.append((time.perf_counter() - t0) * 1e3)
     finally:
         verify_mod.match_features = saved
+        verify_mod.essential_matrix = saved_search
     s = score_decisions(rec["cand"], rec["conf"], decl, rec["truth"], 10)
     nf = rec["features_per_image"]
-    saved_b = {"stored descriptors": 0.0, "word ids": 32 * nf, "first 16 bytes": 16 * nf, "first 8 bytes": 24 * nf,
-               "no descriptor for purged words": 32 * nf * (float(np.mean(dropped)) if dropped else 0.0)}[variant]
+    if variant.startswith("first "):
+        saved_b = (32 - int(variant.split()[1])) * nf
+    elif variant in searches or variant.startswith("RANSAC"):
+        saved_b = 0.0
+    else:
+        saved_b = {"stored descriptors": 0.0, "word ids": 32 * nf,
+                   "no descriptor for purged words": 32 * nf * (float(np.mean(dropped)) if dropped else 0.0)}[variant]
     return {"recall_at_full_precision": s.recall_at_full_precision, "false_positives": s.false_positives,
             "loops": int(decl.sum()), "verify_ms_median": float(np.median(ms)) if ms else 0.0,
             "verify_ms_p99": float(np.percentile(ms, 99)) if ms else 0.0, "bytes_saved_per_image": saved_b}
 
 
-VARIANTS = ("stored descriptors", "word ids", "first 16 bytes", "first 8 bytes", "no descriptor for purged words")
+VARIANTS = ("stored descriptors", "word ids", "first 16 bytes", "first 8 bytes", "no descriptor for purged words",
+            "USAC, no local optimisation", "USAC, PROSAC order", "USAC screen, then RANSAC", "RANSAC, at most 200 samples")
 
 
 def page(res: dict[str, Any]) -> list[str]:
     m = res["machine"]
-    lines = ["# Forward verification without the stored descriptors",
+    lines = ["# Forward verification without the stored descriptors, and other searches for the essential matrix",
              "",
              "Generated by `bench/bench_forward_verify_replay.py` from its JSON (do not edit by hand). The "
              "default detector's verifications on each sequence, replayed with what each variant keeps of the "
-             "past image (same candidates, same RANSAC, same seed); what is measured: the bench's docstring and "
+             "past image (same candidates, same RANSAC, same seed), or with another search for the essential matrix (the "
+             "stored descriptors; the `USAC` and `RANSAC` rows); what is measured: the bench's docstring and "
              "[docs/forward.md](../forward.md), \"Time and memory per image\".",
              "",
              f"Machine and versions: {m.get('machine')}, cpu_count {m.get('cpu_count')}, python {m.get('python')}, "
              f"numpy {m.get('numpy')}, opencv {m.get('opencv')}. Command: `{res['command']}`.",
              "",
-             "| sequence | past image keeps | bytes saved per image | R@100%P | FP | loops | verify ms median | verify ms p99 |",
+             "| sequence | variant | bytes saved per image | R@100%P | FP | loops | verify ms median | verify ms p99 |",
              "|---|---|---:|---:|---:|---:|---:|---:|"]
     for sname, s in res["sequences"].items():
         for v, r in s["variants"].items():

@@ -155,6 +155,22 @@ def print_summary(s: Summary, f: TextIO) -> None:
               f"{fw['failed_verification']} candidates failed the epipolar check", file=f)
         print(f"  per forward keyframe: median {fw['ms_per_image_median']} ms, p99 {fw['ms_per_image_p99']} ms; "
               f"vocabulary {fw['vocabulary_words']} words", file=f)
+        for r in fw.get("loops", []):
+            if r["fate"] == "accepted" and not r["right"]:
+                bearing = "-" if r["bearing_error_deg"] is None else f"{r['bearing_error_deg']:.1f}"
+                rng = "none" if r.get("measured_range_m") is None else f"{r['measured_range_m']:.2f} m"
+                print(f"  wrong, accepted: keyframe {r['to']} -> {r['from']}, {r['true_distance_m']:.2f} m apart, "
+                      f"{r['inliers']} inliers, heading {r['yaw_error_deg']:.1f} deg and bearing {bearing} deg off, "
+                      f"range on the floor {rng}; gate {r.get('fate_detail', '')}", file=f)
+        if fw.get("cpu_ms_per_image_median") is not None:
+            share = fw.get("verify_share")
+            print(f"  per forward keyframe in the pipeline thread's CPU time: median {fw['cpu_ms_per_image_median']} ms, "
+                  f"p99 {fw['cpu_ms_per_image_p99']} ms; verification median {fw['verify_ms_median']} ms, "
+                  f"p99 {fw['verify_ms_p99']} ms"
+                  + (f", {100 * share:.0f} % of the detector's time" if share is not None else ""), file=f)
+            if fw.get("features_ms_median"):
+                print(f"  OpenCV's feature extraction of the same images: median {fw['features_ms_median']} ms "
+                      f"(the whole keyframe {fw['ms_per_image_median'] / fw['features_ms_median']:.1f} x that)", file=f)
     rl = s.get("relocalisation")
     if rl:
         print(file=f)

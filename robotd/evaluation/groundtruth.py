@@ -138,7 +138,8 @@ def forward_evaluation(truth: GroundTruth, mount: np.ndarray, obs: RunObservatio
                      "inliers": m.inliers, "true_distance_m": dist, "yaw_error_deg": yaw_err,
                      "bearing_error_deg": bearing_err if dist > 0.2 else None, "right": right,
                      "measured_range_m": m.range_m,
-                     "fate": str(obs.forward_fates.get((m.from_id, m.to_id), "none"))})
+                     "fate": str(obs.forward_fates.get((m.from_id, m.to_id), "none")),
+                     "fate_detail": obs.forward_fate_details.get((m.from_id, m.to_id), "")})
     accepted = [r for r in rows if r["fate"] == LoopFate.ACCEPTED]
     return {"images": c.get("forward_images", 0), "frames": c.get("forward_frames", 0),
             "unsynced": c.get("forward_unsynced", 0), "verified_loops": len(rows),
@@ -149,6 +150,12 @@ def forward_evaluation(truth: GroundTruth, mount: np.ndarray, obs: RunObservatio
             "not_planar": c.get("forward_not_planar", 0),
             "vocabulary_words": c.get("forward_vocabulary", 0),
             "ms_per_image_median": c.get("forward_ms_median"), "ms_per_image_p99": c.get("forward_ms_p99"),
+            "cpu_ms_per_image_median": c.get("forward_cpu_ms_median"),
+            "cpu_ms_per_image_p99": c.get("forward_cpu_ms_p99"),
+            "features_ms_median": c.get("forward_features_ms_median"),
+            "verify_ms_median": c.get("forward_verify_ms_median"), "verify_ms_p99": c.get("forward_verify_ms_p99"),
+            "verify_share": (round(c["forward_verify_ms_total"] / c["forward_ms_total"], 3)
+                             if c.get("forward_ms_total") else None),
             "loops": rows}
 
 

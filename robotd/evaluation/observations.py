@@ -34,6 +34,7 @@ class RunObservations:
         self.refused: list[tuple[int, int]] = []  # refused by the graph's chi-square gate: (older, newer)
         self.forward_loops: list[ForwardLoop] = []  # verified by the forward camera
         self.forward_fates: dict[tuple[int, int], LoopFate] = {}  # (older, newer) -> fate
+        self.forward_fate_details: dict[tuple[int, int], str] = {}  # (older, newer) -> why (the gate's chi2)
 
     def subscriptions(self) -> dict[type, Callable[..., None]]:
         return {KeyframeStored: self.on_keyframe, KeyframeQuery: self.on_floor_query, Link: self.on_link,
@@ -42,6 +43,7 @@ class RunObservations:
     def on_fate(self, fate: CandidateFate) -> None:
         if fate.detail.startswith("forward: "):
             self.forward_fates[(fate.candidate_id, fate.query_id)] = fate.fate
+            self.forward_fate_details[(fate.candidate_id, fate.query_id)] = fate.detail[len("forward: "):]
         elif fate.fate == LoopFate.FAILED_GATE and fate.detail.startswith("chi2"):  # not an earlier run's
             self.refused.append((fate.candidate_id, fate.query_id))
 

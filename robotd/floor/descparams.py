@@ -13,8 +13,8 @@ from typing import NamedTuple
 import numpy as np
 
 __all__ = ["ANGLE_BITS", "HEADER", "MAGIC", "MODE_BYTES", "MODES", "N_ATTRIBUTES", "N_ELEMENTS",
-           "POSITION_STEP_PX", "VERSION", "ExtractParams", "Learned", "ModeSpec", "load_learned",
-           "shipped_learned"]
+           "POSITION_STEP_PX", "VERSION", "FULL_RESOLUTION", "ExtractParams", "Learned", "ModeSpec",
+           "load_learned", "shipped_learned"]
 
 MODE_BYTES = {1: 512, 2: 1024, 3: 2048, 4: 4096, 5: 8192, 6: 16384}
 MAGIC = b"FD"
@@ -53,13 +53,23 @@ class ExtractParams:
         orientation_sigma_px: smoothing of the image whose gradient gives the orientation.
         pool_sigma_px: Gaussian pooling of the gradient orientation maps (cell support).
         pool_step: the pooled maps are kept at every ``pool_step``-th pixel (1 or 2): they
-            are smooth at ``pool_sigma_px``, and 2 pools a quarter of the pixels (describe
-            at about 0.65 of the time with ``repeat_pool_ratio`` 2). Not the default: the
-            demo's visual odometry drifts more with it (office route, with
-            ``repeat_pool_ratio`` 2: end error 0.046 m against 0.020, 1615 loop edges
-            against 1636).
+            are smooth at ``pool_sigma_px``. With 2 (the default) the orientation channels
+            are split from the gradients at every pixel and halved (area averaging)
+            before pooling, a quarter of the pixels pooled and sampled; with
+            ``exact_maps`` the channels come from the gradients of the image halved
+            instead (cheaper, coarser: the raw descriptors of the same keypoints lie a
+            median 0.11 from those at every pixel against 0.03, and the demo's visual
+            odometry lost accuracy with it).
         orientation_step: likewise for the gradient that gives the keypoints' orientation
-            (smooth at ``orientation_sigma_px``).
+            (smooth at ``orientation_sigma_px``; 2 takes it from the image halved, a median
+            1.1 degrees off).
+        exact_maps: True splits each gradient between the orientation channels exactly
+            (per-pixel arithmetic and scatters); False (the default) looks the split up in a
+            table of 256 angles, within 1/64 of the gradient's magnitude of the exact split:
+            about half the time of building the channels.
+            :data:`FULL_RESOLUTION` (``pool_step`` 1, ``exact_maps``) gives the bytes of
+            the extraction before these defaults, exactly (docs/performance.md compares
+            the two).
         cell_px: distance between the centres of neighbouring descriptor cells.
         max_candidates: cap on the candidates ranked (strongest responses first).
         repeat_distance: a keypoint whose own image holds another keypoint (beyond the
@@ -73,12 +83,10 @@ class ExtractParams:
             after them are kept unchecked. Enough for the largest mode's budget.
         repeat_pool_ratio: when > 0, the pool is at most this many times what the mode's
             budget codes with no repeat dropped (at least ``global_min_features``), plus
-            one: a copy ranked far below everything coded is rarely coded in another
-            view either. 2 checks about 550 candidates in mode 4 instead of 1000
-            (describe at about 0.9 of the time) and changes under 1 % of the coded
-            keypoints of the office drive's frames, yet the demo (office route) found 1631
-            loop edges instead of 1636 and its visual odometry ended 0.025 m off instead
-            of 0.020: not the default. 0: always ``repeat_pool``.
+            one: cheaper (2 checks about 550 candidates in mode 4 instead of 1000), but a
+            copy ranked below the pool is not found, and on the printed plank floor the
+            view a lattice step away then scores 0.6-0.95 of the true overlap instead of
+            0.23-0.36 (modes 2, 3, 5): not the default. 0: always ``repeat_pool``.
         global_min_features: the global descriptor aggregates at least this many of the
             best keypoints, even when fewer are coded (low modes).
         learned: learned tables; None = the shipped ``selection.npz``.
@@ -91,8 +99,9 @@ class ExtractParams:
     edge_ratio: float = 10.0
     orientation_sigma_px: float = 4.0
     pool_sigma_px: float = 2.5
-    pool_step: int = 1
+    pool_step: int = 2
     orientation_step: int = 1
+    exact_maps: bool = False
     cell_px: float = 6.0
     max_candidates: int = 4000
     repeat_distance: float = 0.3
@@ -108,6 +117,12 @@ class ExtractParams:
                 and self.cell_px > 0 and self.max_candidates >= 1 and self.global_min_features >= 0
                 and self.repeat_distance >= 0 and self.repeat_pool >= 0 and self.repeat_pool_ratio >= 0):
             raise ValueError(f"extraction parameters out of range: {self}")
+
+
+FULL_RESOLUTION = ExtractParams(pool_step=1, exact_maps=True)
+"""The maps at every pixel of the detection image with the exact channel split, and the
+full repeat pool: the bytes the extraction gave before the faster defaults (selectable,
+slower; the benchmarks time it beside the default)."""
 
 
 @dataclass(frozen=True, eq=False)

@@ -25,9 +25,11 @@ floor's scale barely changes between views, its rotation changes all the time.
    budget is filled greedily in that order.
 3. **Local descriptors** of the selected keypoints only: 4 x 4 cells x 8 orientation
    bins of gradients in a patch rotated to the keypoint's orientation (SIFT-like). The
-   gradient orientation maps are pooled once over the image (as DAISY does; optionally at
-   a quarter of the half-resolution image's pixels, ``pool_step``: they are smooth at the
-   pooling scale), and one ``cv2.remap`` samples every keypoint's rotated 4 x 4 grid; the 8 bins
+   gradient orientation maps are pooled once over the image (as DAISY does; by default at
+   a quarter of the half-resolution image's pixels, ``pool_step`` 2: each pixel's gradient
+   is split between the two nearest directions, the channels are halved by area
+   averaging, then pooled; they are smooth at the pooling scale), and one ``cv2.remap``
+   samples every keypoint's rotated 4 x 4 grid; the 8 bins
    are turned by the keypoint's orientation (linear interpolation between whole-bin
    shifts).
 4. **Compression** (CDVS: a fixed transform of each cell's histogram, then ternary
@@ -73,6 +75,7 @@ from robotd.floor.compression import global_vector, hadamard_bits, ternarise
 from robotd.floor.desccoding import bits_msb, cells, pack_planes, pack_trits, rice_k, trit_table, unpack_planes
 from robotd.floor.descparams import (
     ANGLE_BITS,
+    FULL_RESOLUTION,
     HEADER,
     MAGIC,
     MODE_BYTES,
@@ -88,7 +91,7 @@ from robotd.floor.descparams import (
 from robotd.floor.keypoints import (candidates, drop_repeats, grey, kept_for_budget, raw_descriptors, working,
                                     workspace)
 
-__all__ = ["ANGLE_BITS", "MODE_BYTES", "MODES", "POSITION_STEP_PX", "ExtractParams", "FloorDescriptor",
+__all__ = ["ANGLE_BITS", "FULL_RESOLUTION", "MODE_BYTES", "MODES", "POSITION_STEP_PX", "ExtractParams", "FloorDescriptor",
            "Learned", "decode", "describe", "drop_repeats", "extract", "load_learned"]
 
 

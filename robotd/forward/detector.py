@@ -38,7 +38,7 @@ from typing import TypedDict, Unpack
 
 import numpy as np
 
-from robotd.forward.features import CompactFeatures, FeatureExtractor, FeatureParams, Features, compact
+from robotd.forward.features import CompactFeatures, FeatureExtractor, FeatureParams, Features, compact, without_words
 from robotd.forward.filter import (FilterParams, diffusion_weights, predict, predict_ids, select_candidate,
                                    select_candidate_ids, update)
 from robotd.forward.likelihood import LikelihoodMethod, adjust_likelihood
@@ -417,7 +417,8 @@ class ForwardDetector:
 
     def features_of(self, image_id: int) -> CompactFeatures:
         """The stored features of a processed image (compact: word ids, keypoints in 1/16
-        px, descriptors; they read like :class:`Features`)."""
+        px, descriptors; they read like :class:`Features`); the word ids for the latest
+        image only (empty for the others: the inverted index holds them)."""
         return self._features[image_id]
 
     def restore(self, images: list[CompactFeatures], word_descriptors: np.ndarray, word_born: np.ndarray,
@@ -436,7 +437,7 @@ class ForwardDetector:
                 raise ValueError(f"stored image {t} has word {int(w.max())}, beyond the {n_words} stored words")
             seen[np.unique(w)] += 1
             self.memory.add(t, w, t)
-            self._features.append(f)
+            self._features.append(without_words(f))
         self._poses = np.full((len(self._features), 3), np.nan)  # no pose stored for them
         self._poses_var = np.full((len(self._features), 3), np.nan)
         self.vocabulary.restore(word_descriptors, word_born, word_purged, seen, len(images))
@@ -580,6 +581,8 @@ class ForwardDetector:
         # that bookkeeping counts as word search.
         self.memory.add(t, words, t)
         self._features.append(compact(feats, words))
+        if t:  # the word ids of older images live on in the index (and a map file) only
+            self._features[t - 1] = without_words(self._features[t - 1])
         self._poses = np.vstack([self._poses, pose_now[None, :]])
         self._poses_var = np.vstack([self._poses_var, var_now[None, :]])
         t3b = clock()

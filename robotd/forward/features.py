@@ -9,13 +9,13 @@ or more. ORB descriptors stay packed 256-bit strings compared by Hamming distanc
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal, Protocol
 
 import cv2
 import numpy as np
 
-__all__ = ["CompactFeatures", "FeatureExtractor", "FeatureParams", "Features", "compact", "extract_features",
+__all__ = ["CompactFeatures", "FeatureExtractor", "FeatureParams", "Features", "compact", "extract_features", "without_words",
            "to_gray"]
 
 FeatureKind = Literal["sift", "orb"]
@@ -100,7 +100,9 @@ class CompactFeatures:
     uint16`` (positions in 1/16 px), ``descriptors`` as extracted (``(N, 32) uint8`` ORB;
     SIFT stays ``(N, 128) float32``, the paper's reference), ``image_size_px``. It reads
     like :class:`Features` (``keypoints_px``, ``descriptors``, ``len``), so the
-    verification takes it as is. 300 ORB keypoints: 12,000 bytes."""
+    verification takes it as is. 300 ORB keypoints: 12,000 bytes; 10,800 once the words
+    are dropped (:func:`without_words`: a detector keeps the word ids of its latest image
+    only, the inverted index and the map file hold them for the others)."""
 
     words: np.ndarray
     keypoints_q: np.ndarray
@@ -128,6 +130,15 @@ def compact(feats: Features, words: np.ndarray) -> CompactFeatures:
         raise ValueError(f"images up to {int(np.iinfo(np.uint16).max / KEYPOINT_SCALE)} px wide are kept, got {w}x{h}")
     q = np.rint(np.clip(feats.keypoints_px, 0.0, None) * KEYPOINT_SCALE).astype(np.uint16)
     return CompactFeatures(np.asarray(words, np.uint32), q, feats.descriptors, feats.image_size_px)
+
+
+_NO_WORDS = np.zeros(0, np.uint32)
+
+
+def without_words(f: CompactFeatures) -> CompactFeatures:
+    """``f`` without its word ids (``words`` empty; keypoints and descriptors, which the
+    verification reads, are the same arrays)."""
+    return replace(f, words=_NO_WORDS)
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:

@@ -197,12 +197,37 @@ def loop_edge(predicted: np.ndarray, dyaw_rad: float, bearing_rad: float,
 
 def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
     """Rotation matrix of the rotation vector ``w (3,)`` (Rodrigues)."""
-    a = float(np.linalg.norm(w))
+    a = math.sqrt(float(w @ w))
     if a < 1e-15:
         return np.eye(3)
     k = w / a
     kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
     out: np.ndarray = np.eye(3) + math.sin(a) * kx + (1.0 - math.cos(a)) * (kx @ kx)
+    return out
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a x b`` of two ``(3,)`` vectors (``np.cross`` costs tens of microseconds a call)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _skews(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices ``(M, 3, 3)`` of the vectors ``v (M, 3)``."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
+
+
+def _rotvec_matrices(w: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``(M, 3, 3)`` of the rotation vectors ``w (M, 3)`` (Rodrigues, as
+    :func:`_rotvec_matrix` row by row, in one pass)."""
+    a = np.sqrt(np.einsum("ij,ij->i", w, w))
+    small = a < 1e-15
+    kx = _skews(w / np.where(small, 1.0, a)[:, None])
+    out: np.ndarray = (np.eye(3) + np.sin(a)[:, None, None] * kx
+                       + (1.0 - np.cos(a))[:, None, None] * (kx @ kx))
+    out[small] = np.eye(3)
     return out
 
 
@@ -216,10 +241,10 @@ def _essential(rotation: np.ndarray, t: np.ndarray) -> np.ndarray:
 def _sampson_px_many(x_old: np.ndarray, x_new: np.ndarray, es: np.ndarray, focal_px: float) -> np.ndarray:
     """Sampson distances ``(M, N)`` in pixels of normalised homogeneous points ``(N, 3)``
     to each of the essential matrices ``es (M, 3, 3)``."""
-    ex1 = np.einsum("mij,nj->mni", es, x_old)      # E x_old
-    etx2 = np.einsum("mji,nj->mni", es, x_new)     # E^T x_new
-    num = np.einsum("nj,mnj->mn", x_new, ex1)
-    den = np.sqrt(ex1[..., 0]**2 + ex1[..., 1]**2 + etx2[..., 0]**2 + etx2[..., 1]**2)
+    ex1 = es @ x_old.T                             # E x_old, (M, 3, N)
+    etx2 = es.transpose(0, 2, 1) @ x_new.T         # E^T x_new
+    num = (ex1 * x_new.T).sum(axis=1)
+    den = np.sqrt(ex1[:, 0]**2 + ex1[:, 1]**2 + etx2[:, 0]**2 + etx2[:, 1]**2)
     out: np.ndarray = focal_px * num / np.maximum(den, 1e-15)
     return out
 
@@ -307,19 +332,21 @@ def fit_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarray,
     def linearise(r: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]]:
         # Two unit vectors orthogonal to t: the translation's tangent plane on the sphere.
         a = np.eye(3)[int(np.argmin(np.abs(t)))]
-        e1 = np.cross(t, a)
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(t, e1)
+        e1 = _cross(t, a)
+        e1 /= math.sqrt(float(e1 @ e1))
+        e2 = _cross(t, e1)
 
         def pose(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             tt = t + theta[3] * e1 + theta[4] * e2
-            return _rotvec_matrix(theta[:3]) @ r, tt / np.linalg.norm(tt)
+            return _rotvec_matrix(theta[:3]) @ r, tt / math.sqrt(float(tt @ tt))
 
-        # Central differences: the ten perturbed motions and the current one, their
-        # Sampson distances in one pass.
+        # Central differences: the ten perturbed motions and the current one (rows of
+        # ``steps``), built and their Sampson distances computed in one pass each.
         h = 1e-6
-        steps = np.vstack([np.eye(5) * h, -np.eye(5) * h])
-        es = np.stack([_essential(*pose(d)) for d in steps] + [_essential(r, t)])
+        steps = np.vstack([np.eye(5) * h, -np.eye(5) * h, np.zeros((1, 5))])
+        tt = t + steps[:, 3:4] * e1 + steps[:, 4:5] * e2
+        tt /= np.sqrt(np.einsum("ij,ij->i", tt, tt))[:, None]
+        es = _skews(tt) @ (_rotvec_matrices(steps[:, :3]) @ r)
         s = _sampson_px_many(x_old, x_new, es, focal)             # (11, N)
         jac = ((s[:5] - s[5:10]) / (2 * h)).T
         return s[10], jac, pose
@@ -349,13 +376,12 @@ def fit_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarray,
     grad = np.zeros((2, 5))
     g_out = np.zeros((3, 5))
     h = 1e-6
+    plus, minus = [pose(d) for d in np.eye(5) * h], [pose(d) for d in np.eye(5) * -h]
     for j in range(5):
-        d = np.zeros(5)
-        d[j] = h
-        yp, bp, _ = planar_motion(*pose(d))
-        ym, bm, _ = planar_motion(*pose(-d))
+        yp, bp, _ = planar_motion(*plus[j])
+        ym, bm, _ = planar_motion(*minus[j])
         grad[:, j] = (wrap_angle(bp - bm) / (2 * h), wrap_angle(yp - ym) / (2 * h))
-        g_out[:, j] = (out_of_plane(*pose(d)) - out_of_plane(*pose(-d))) / (2 * h)
+        g_out[:, j] = (out_of_plane(*plus[j]) - out_of_plane(*minus[j])) / (2 * h)
     var = np.einsum("ij,jk,ik->i", grad, cov, grad)
     c_out = g_out @ cov @ g_out.T
     e_out = out_of_plane(r, t)

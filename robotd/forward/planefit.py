@@ -80,6 +80,25 @@ def _sampson(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarray,
     return out
 
 
+def _sampson_many(x_old: np.ndarray, x_new: np.ndarray, yaws: np.ndarray, psis: np.ndarray,
+                  focal: float) -> np.ndarray:
+    """:func:`_sampson` of the planar poses ``(yaws[m], psis[m])``, all at once: ``(M, N)``."""
+    c, s = np.cos(yaws), np.sin(yaws)
+    tx_, tz = np.sin(psis), np.cos(psis)
+    # E = [t]x R with R = [[c, 0, s], [0, 1, 0], [-s, 0, c]] and t = (sin psi, 0, cos psi).
+    e = np.zeros((len(yaws), 3, 3))
+    e[:, 0, 1] = -tz
+    e[:, 1, 0] = tz * c + tx_ * s
+    e[:, 1, 2] = tz * s - tx_ * c
+    e[:, 2, 1] = tx_
+    ex1 = np.einsum("mij,nj->mni", e, x_old)
+    etx2 = np.einsum("mji,nj->mni", e, x_new)
+    num = np.einsum("nj,mnj->mn", x_new, ex1)
+    den = np.sqrt(ex1[..., 0] ** 2 + ex1[..., 1] ** 2 + etx2[..., 0] ** 2 + etx2[..., 1] ** 2)
+    out: np.ndarray = focal * num / np.maximum(den, 1e-15)
+    return out
+
+
 def _in_front(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarray) -> int:
     """Matches whose triangulated point is in front of both cameras (midpoint method)."""
     d1 = x_old
@@ -121,28 +140,31 @@ def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nda
     focal = 0.5 * (k[0, 0] + k[1, 1])
     x_old = np.hstack([p_old, np.ones((n, 1))]) @ kinv.T
     x_new = np.hstack([p_new, np.ones((n, 1))]) @ kinv.T
-    best: tuple[int, float, float, float] | None = None  # (inliers, -cost, yaw, psi)
     n_steps = int(round(window_rad / step_rad))
     bins = 360  # half-degree bins over psi modulo pi
-    for i in range(-n_steps, n_steps + 1):
-        yaw = yaw_guess_rad + i * step_rad
-        r, _ = planar_pose(yaw, 0.0)
-        u = np.cross(x_old @ r.T, x_new)
-        # u . t = 0 with t = (sin psi, 0, cos psi): psi = atan2(-u_z, u_x) modulo pi.
-        psis = np.mod(np.arctan2(-u[:, 2], u[:, 0]), math.pi)
-        hist = np.bincount((psis / math.pi * bins).astype(np.int64) % bins, minlength=bins)
-        hist = hist + np.roll(hist, 1) + np.roll(hist, -1)
-        for b in np.argsort(-hist)[:2].tolist():
-            centre = (b + 0.5) * math.pi / bins
-            for cand in (centre - 0.5 * math.pi / bins, centre, centre + 0.5 * math.pi / bins):
-                r_, t_ = planar_pose(yaw, cand)
-                d = np.abs(_sampson(x_old, x_new, r_, t_, focal))
-                inl = d < threshold_px
-                score = (int(inl.sum()), -float(np.minimum(d, threshold_px) @ np.minimum(d, threshold_px)))
-                if best is None or score > best[:2]:
-                    best = (score[0], score[1], yaw, cand)
-    assert best is not None
-    _, _, yaw, psi = best
+    # Every heading of the scan at once: each match's translation direction per heading,
+    # a histogram per heading, its two fullest bins, three directions per bin.
+    yaws = yaw_guess_rad + np.arange(-n_steps, n_steps + 1) * step_rad
+    c, s_ = np.cos(yaws), np.sin(yaws)
+    rots = np.zeros((len(yaws), 3, 3))
+    rots[:, 0, 0], rots[:, 0, 2], rots[:, 1, 1], rots[:, 2, 0], rots[:, 2, 2] = c, s_, 1.0, -s_, c
+    u = np.cross(np.einsum("yij,nj->yni", rots, x_old), x_new[None])
+    # u . t = 0 with t = (sin psi, 0, cos psi): psi = atan2(-u_z, u_x) modulo pi.
+    psis = np.mod(np.arctan2(-u[..., 2], u[..., 0]), math.pi)
+    idx = (psis / math.pi * bins).astype(np.int64) % bins + bins * np.arange(len(yaws))[:, None]
+    hist = np.bincount(idx.ravel(), minlength=bins * len(yaws)).reshape(len(yaws), bins)
+    hist = hist + np.roll(hist, 1, axis=1) + np.roll(hist, -1, axis=1)
+    top = np.argsort(-hist, axis=1)[:, :2]
+    centres = (top + 0.5) * math.pi / bins
+    cands = centres[..., None] + np.array([-0.5, 0.0, 0.5]) * math.pi / bins  # (yaws, 2, 3)
+    cand_yaw = np.broadcast_to(yaws[:, None, None], cands.shape).ravel()
+    cand_psi = cands.ravel()
+    d = np.abs(_sampson_many(x_old, x_new, cand_yaw, cand_psi, focal))  # (candidates, N)
+    inl_n = (d < threshold_px).sum(axis=1)
+    cost = -np.einsum("ij,ij->i", np.minimum(d, threshold_px), np.minimum(d, threshold_px))
+    # The most inliers, then the least cost; the first in scan order among equals.
+    best_i = int(np.flatnonzero(inl_n == inl_n.max())[np.argmax(cost[inl_n == inl_n.max()])])
+    yaw, psi = float(cand_yaw[best_i]), float(cand_psi[best_i])
     # Refine (yaw, psi) by Gauss-Newton on the inliers' Sampson distances.
     r, t = planar_pose(yaw, psi)
     inl = np.abs(_sampson(x_old, x_new, r, t, focal)) < threshold_px

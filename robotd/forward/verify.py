@@ -135,6 +135,10 @@ class VerifyParams:
             within ``ransac_threshold_px``, the same confidence and iteration bound) with
             its local optimisation of each new best model and its faster five-point solver
             (module notes, "Time").
+        max_iterations: the most samples either search draws (OpenCV's own cap, 1000,
+            by default); fewer bound the verification's time at the cost of missing more
+            consensus sets of few inliers among many matches (measured on both development
+            sequences by ``bench/bench_forward_scale.py``, not the default).
     """
 
     ratio: float = 0.8
@@ -149,6 +153,7 @@ class VerifyParams:
     min_floor_points: int = 4
     floor_band_log: float = 0.1
     estimator: str = "ransac"
+    max_iterations: int = 1000
 
     def __post_init__(self) -> None:
         if self.camera_height_m is not None and not self.camera_height_m > 0.0:
@@ -161,6 +166,8 @@ class VerifyParams:
             raise ValueError(f"planar_fraction must be in (0, 1], got {self.planar_fraction}")
         if not self.homography_threshold_px > 0.0:
             raise ValueError(f"homography_threshold_px must be positive, got {self.homography_threshold_px}")
+        if self.max_iterations < 1:
+            raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
         if self.estimator not in ESTIMATORS:
             raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {self.estimator!r}")
 
@@ -291,7 +298,7 @@ def essential_matrix(p_old: np.ndarray, p_new: np.ndarray, camera_matrix: np.nda
     (E may stack several solutions; None when none was found), searched with
     ``params.estimator``, ``ransac_confidence``, ``ransac_threshold_px`` and at most
     :func:`ransac_iterations` samples; OpenCV's generator seeded with ``params.seed``."""
-    iters = ransac_iterations(len(p_old), params.min_inliers, params.ransac_confidence)
+    iters = ransac_iterations(len(p_old), params.min_inliers, params.ransac_confidence, cap=params.max_iterations)
     if params.estimator == "ransac":
         cv2.setRNGSeed(params.seed)
         e, mask = cv2.findEssentialMat(p_old, p_new, camera_matrix, cv2.RANSAC, params.ransac_confidence,

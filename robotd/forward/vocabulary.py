@@ -301,6 +301,21 @@ def hamming_bits(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (c[..., 0].astype(np.int32) + c[..., 1]) + (c[..., 2].astype(np.int32) + c[..., 3])
 
 
+def _first_k(dist: np.ndarray, k: int) -> np.ndarray:
+    """The columns of the ``k`` smallest values of each row of ``dist (N, M)`` int, in
+    order, ties to the lower column: ``np.argsort(dist, axis=1, kind="stable")[:, :k]``,
+    by a partial selection on keys made unique by the column (a full sort of every row
+    is most of a tree descent's time)."""
+    n, m = dist.shape
+    if k >= m:
+        return np.argsort(dist, axis=1, kind="stable")
+    key = dist.astype(np.int64) * m + np.arange(m)
+    part = np.argpartition(key, k - 1, axis=1)[:, :k]
+    order = np.argsort(np.take_along_axis(key, part, axis=1), axis=1)
+    out: np.ndarray = np.take_along_axis(part, order, axis=1)
+    return out
+
+
 def pack_bits(descriptors: np.ndarray) -> np.ndarray:
     """``(N, 32) uint8`` binary descriptors as ``(N, 4) uint64`` (the same bits)."""
     d = np.ascontiguousarray(descriptors, np.uint8)
@@ -378,7 +393,6 @@ class BinaryWordTree:
         self._slot_pos = np.zeros(64, np.int32)
         self._n_slots = 0
         self._free_slots: list[int] = []
-        self._word_slot = np.full(64, -1, np.int32)     # per word id: its slot, -1 when not held
         self.n_live = 0
 
     def __len__(self) -> int:
@@ -387,7 +401,7 @@ class BinaryWordTree:
     def memory_bytes(self) -> int:
         """Bytes of the tree's arrays (their spare capacity included)."""
         arrays = (self._centre, self._child, self._leaf_row, self._pool, self._fill, self._desc,
-                  self._slot_word, self._slot_row, self._slot_pos, self._word_slot)
+                  self._slot_word, self._slot_row, self._slot_pos)
         return sum(a.nbytes for a in arrays) + 8 * (len(self._free_rows) + len(self._free_slots))
 
     # -- growing arrays -------------------------------------------------------------------
@@ -441,8 +455,7 @@ class BinaryWordTree:
             dist = hamming_bits(q[:, None, :], self._centre[cand])
             dist[cand < 0] = _FAR
             dist[rows, np.argmin(dist[:, :b], axis=1)] = -1           # the greedy child: kept, first
-            keep = np.argsort(dist, axis=1, kind="stable")[:, :beam]
-            front = cand[rows[:, None], keep]
+            front = cand[rows[:, None], _first_k(dist, beam)]
 
     def nearest(self, q: np.ndarray, beam: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The nearest word found for each query (``(N, 4) uint64``): ``(word ids (N,)
@@ -528,8 +541,6 @@ class BinaryWordTree:
         slots = np.concatenate([np.asarray(reused, np.int64), fresh])
         self._desc[slots] = q
         self._slot_word[slots] = words
-        self._word_slot = self._grow(self._word_slot, int(words.max()) + 1, -1)
-        self._word_slot[words] = slots
         return slots.astype(np.int32)
 
     def _put(self, node: int, slots: np.ndarray) -> None:
@@ -584,9 +595,20 @@ class BinaryWordTree:
         return groups, cents
 
     def remove(self, words: np.ndarray) -> None:
-        """Take words out (ids held by the tree); their slots are reused."""
-        for w in np.asarray(words, np.int64).tolist():
-            s = int(self._word_slot[w]) if w < len(self._word_slot) else -1
+        """Take words out (ids held by the tree; others are ignored); their slots are reused.
+
+        The slots are found by a pass over the slots' word ids restricted to the ids'
+        range (a vocabulary purges words of one image's age at a time, a narrow range), so
+        the tree keeps no per-word array over every word id ever made (about 90 per image
+        on the office route, 4 bytes each)."""
+        w_all = np.asarray(words, np.int64)
+        if not len(w_all):
+            return
+        held = self._slot_word[:self._n_slots]
+        near = np.flatnonzero((held >= w_all.min()) & (held <= w_all.max()))
+        slot_of = dict(zip(held[near].tolist(), near.tolist()))
+        for w in w_all.tolist():
+            s = slot_of.pop(w, -1)
             if s < 0:
                 continue
             row, pos = int(self._slot_row[s]), int(self._slot_pos[s])
@@ -597,7 +619,6 @@ class BinaryWordTree:
             self._pool[row, last] = -1
             self._fill[row] = last
             self._slot_word[s] = -1
-            self._word_slot[w] = -1
             self._free_slots.append(s)
             self.n_live -= 1
 
@@ -658,10 +679,10 @@ class InvertedIndex:
         self._last_added = -1                    # the highest image id added
         self._removed: set[int] = set()          # ids removed (they may be added again)
         self._total = 0                          # sum of n(i) over the indexed images
-        # Words with df > 0, packed (the virtual image is chosen among them only, so its
-        # cost follows the indexed images' words, not every word ever made).
-        self._active = _GrowingInts()            # the words with df > 0, in no order
-        self._active_pos = _GrowingInts()        # per word: its position in _active, or -1
+        # Word ids below n_words with df == 0 (ids skipped, or words whose images all
+        # left): while there is none, the virtual image is chosen among all the words
+        # without listing them (no per-word list of the words in use).
+        self._n_unused = 0
 
     @property
     def n_images(self) -> int:
@@ -720,25 +741,18 @@ class InvertedIndex:
         top = int(uw[-1]) + 1
         if top > self._df.n:
             self._post.extend(array(_POSTING) for _ in range(top - len(self._post)))
-            old = self._df.n
+            self._n_unused += top - self._df.n
             self._df.resize(top)
             self._occ.resize(top)
-            self._active_pos.resize(top)
-            self._active_pos.view[old:] = -1
         # n(w, i) is kept up to 1023 (a word more often in one image counts 1023 times in
         # its vote: not reached with a few hundred features per image).
         for wid, c in zip(uw.tolist(), np.minimum(cnt, _COUNT_MASK).tolist()):
             if self._post[wid] is _NO_POSTINGS:
                 self._post[wid] = array(_POSTING)
             self._post[wid].append(slot << _COUNT_BITS | c)
-        born = uw[self._df.view[uw] == 0]
+        self._n_unused -= int(np.count_nonzero(self._df.view[uw] == 0))
         self._df.view[uw] += 1
         self._occ.view[uw] += cnt
-        if len(born):
-            a = self._active.n
-            self._active.resize(a + len(born))
-            self._active.view[a:] = born
-            self._active_pos.view[born] = np.arange(a, a + len(born))
 
     def remove_image(self, image_id: int, words: np.ndarray) -> None:
         """Take image ``image_id`` out of the index, given the words it was added with
@@ -768,13 +782,7 @@ class InvertedIndex:
         if len(uw):
             self._df.view[uw] -= 1
             self._occ.view[uw] -= cnt
-            for wid in uw[self._df.view[uw] == 0].tolist():  # swap-remove from the active list
-                pos = int(self._active_pos.view[wid])
-                last = int(self._active.view[self._active.n - 1])
-                self._active.view[pos] = last
-                self._active_pos.view[last] = pos
-                self._active_pos.view[wid] = -1
-                self._active.n -= 1
+            self._n_unused += int(np.count_nonzero(self._df.view[uw] == 0))
         self._total -= len(w)
         self._image_len.view[slot] = 0
         self._image_ids[slot] = -1
@@ -826,13 +834,14 @@ class InvertedIndex:
         if not self.n_images or not self._total:
             return np.zeros(0, np.int64)
         n = max(1, int(round(self._total / self.n_images)))
-        act = self._active.view              # the words with df > 0 (occurrences > 0)
-        occ = self._occ.view[act]
-        n = min(n, len(act))
+        # the words with df > 0 (occurrences > 0): all of them unless some are unused
+        act = None if not self._n_unused else np.flatnonzero(self._df.view > 0)
+        occ = self._occ.view if act is None else self._occ.view[act]
+        n = min(n, len(occ))
         # Stable sort on -occurrences: equal counts keep word-id order.
         part = np.argpartition(-occ, n - 1)[:n] if n < len(occ) else np.arange(len(occ))
         kth = occ[part].min()
-        cand = act[occ >= kth]
+        cand = np.flatnonzero(occ >= kth) if act is None else act[occ >= kth]
         occ_c = self._occ.view[cand]
         order = cand[np.lexsort((cand, -occ_c))]
         return order[:n].astype(np.int64)
@@ -876,5 +885,5 @@ class InvertedIndex:
         """Bytes held by the postings (the int arrays with their object overhead, and the
         lists holding them) and the per-word and per-slot counters."""
         posting = sum(sys.getsizeof(a) for a in self._post if a is not _NO_POSTINGS)
-        counters = sum(g.nbytes for g in (self._df, self._occ, self._image_len, self._active, self._active_pos))
+        counters = sum(g.nbytes for g in (self._df, self._occ, self._image_len))
         return posting + sys.getsizeof(self._post) + counters

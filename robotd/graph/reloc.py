@@ -44,7 +44,12 @@ and the map's own error). The group agrees when the fit's chi-square is under th
 point (the probability of ``agree_chi2`` at 3 degrees of freedom, taken at the fit's own
 degrees of freedom: the members' measured components minus the transform's 3), and the fit
 must fix the robot's position (1-sigma at most ``max_position_sigma_m``): two bearings
-along one line of sight do not.
+along one line of sight do not. A group of forward loops only needs ``min_forward_only`` (3)
+members: two bearings from places apart always cross, so a wrong bearing among two forward
+loops moves the fitted position without showing in the fit; a third loop (or a floor loop)
+over-determines it. When the whole group's fit disagrees, its subsets are fitted (one
+wrong member must not keep the right ones from agreeing), and two subsets that agree on
+different places leave the trajectory lost, as an ambiguous group does.
 
 Why this rule: a false floor candidate above the trained threshold is rare (none in the
 demo's runs), and two independent false ones that imply the *same* map pose within their
@@ -77,6 +82,7 @@ __all__ = ["RelocCandidate", "RelocDecision", "RelocParams", "Relocaliser", "Tra
            "fit_transform", "implied_transform", "pair_chi2"]
 
 AGREE_CHI2_3DOF_999 = 16.27  # chi-square, 3 degrees of freedom, 99.9 %
+MAX_GROUP_FITS = 32  # subsets of a group with a forward loop fitted per offered candidate
 
 ForwardEdge = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 """A forward loop's edge ``(delta (3,), information (3, 3))`` given the predicted relative
@@ -100,6 +106,11 @@ class RelocParams:
     max_position_sigma_m: a group with a forward loop relocalises only when its fit fixes
         the robot's position to this (1-sigma, the larger axis), default 0.3 m: about the
         distance at which the gate's later loops still find their places.
+    min_forward_only: a group of forward loops only (no floor loop) relocalises with at
+        least this many members, default 3: two bearings from places apart always cross
+        somewhere, so the fit of two forward loops has no freedom left to show that one
+        bearing is wrong (only their heading changes are compared); a third loop, or a
+        floor loop, over-determines the position.
     """
 
     min_agreeing: int = 2
@@ -109,10 +120,13 @@ class RelocParams:
     map_sigma_rad: float = math.radians(1.0)
     max_pending: int = 64
     max_position_sigma_m: float = 0.3
+    min_forward_only: int = 3
 
     def __post_init__(self) -> None:
         if self.min_agreeing < 1:
             raise ValueError(f"min_agreeing must be at least 1, got {self.min_agreeing}")
+        if self.min_forward_only < 1:
+            raise ValueError(f"min_forward_only must be at least 1, got {self.min_forward_only}")
         if self.max_pending < 1:
             raise ValueError(f"max_pending must be at least 1, got {self.max_pending}")
         for name in ("agree_chi2", "map_sigma_m", "map_sigma_rad", "max_position_sigma_m"):
@@ -455,22 +469,73 @@ class Relocaliser:
         transform = implied_transform(c)
         detail = f"{len(group)} candidates agree (of {len(others) + len(group)} held)"
         if any(m.edge is not None for m in group):  # with a forward loop: the group's own fit
-            fit = fit_transform(group, self.relative, self.params)
-            bound = agreement_threshold(fit.dof, self.params) if fit is not None else 0.0
-            why = ("not on one odometry chain" if fit is None
-                   else f"the group's fit disagrees (chi2 {fit.chi2:.1f} > {bound:.2f})" if fit.chi2 > bound
-                   else f"the position is not fixed yet (1-sigma {fit.position_sigma_m:.2f} m > "
-                        f"{self.params.max_position_sigma_m:.2f} m)"
-                   if fit.position_sigma_m > self.params.max_position_sigma_m else "")
-            if why or fit is None:
+            fit, why = self._forward_fit(group)
+            if fit is None:
                 self.pending.append(c)
                 return RelocDecision(False, f"{len(group)} candidates agree pairwise, but {why}")
+            if len(fit.members) < len(group):  # a member the others' fit disagrees with stays out
+                kept = {(m.old_id, m.query_id) for m in fit.members}
+                others += [m for m in group if (m.old_id, m.query_id) not in kept]
             group = list(fit.members)  # in the group's order, forward edges at the fitted transform
             transform = fit.transform
-            detail += f", position 1-sigma {fit.position_sigma_m:.2f} m"
+            detail = (f"{len(group)} candidates agree (of {len(others) + len(group)} held), "
+                      f"position 1-sigma {fit.position_sigma_m:.2f} m")
         left_out = tuple((p, self._why_not(c, p)) for p in others)
         self.pending = []
         return RelocDecision(True, detail, transform, tuple(group), left_out)
+
+    def _forward_fit(self, group: list[RelocCandidate]) -> tuple[TransformFit | None, str]:
+        """The fit of a pairwise-agreeing group with a forward loop, or None and why not.
+
+        The group's fit must agree (chi-square), fix the position, and, with forward loops
+        only, have ``min_forward_only`` members (:class:`RelocParams`). When the whole
+        group's fit disagrees, its subsets with the offered candidate (first), one member
+        fewer at a time down to the size the rule needs, are tried (the largest size at
+        which one agrees; when two of that size agree on different places, none is taken,
+        as for the unambiguous rule of the module notes): pairs of forward loops
+        agree almost always (their bearings cross), so one wrong bearing among them shows
+        only in the group's fit, and must not keep the right ones from ever agreeing (at most
+        :data:`MAX_GROUP_FITS` fits per offered candidate)."""
+        from itertools import combinations
+
+        p = self.params
+        first, rest = group[0], group[1:]
+        why = ""
+        tries = 0
+        for size in range(len(group), max(p.min_agreeing, 2) - 1, -1):
+            passing: list[tuple[float, TransformFit]] = []
+            for others in combinations(rest, size - 1):
+                members = [first, *others]
+                forward_only = all(m.source == "forward" for m in members)
+                if forward_only and len(members) < p.min_forward_only:
+                    why = why or (f"{len(members)} forward loops only: two bearings always cross, so a third "
+                                  f"forward loop or a floor loop must confirm")
+                    continue
+                tries += 1
+                if tries > MAX_GROUP_FITS:
+                    break
+                fit = fit_transform(members, self.relative, p)
+                if fit is None:
+                    why = why or "not on one odometry chain"
+                    continue
+                bound = agreement_threshold(fit.dof, p)
+                if fit.chi2 > bound:
+                    why = why or f"the group's fit disagrees (chi2 {fit.chi2:.1f} > {bound:.2f})"
+                    continue
+                if fit.position_sigma_m > p.max_position_sigma_m:
+                    why = why or (f"the position is not fixed yet (1-sigma {fit.position_sigma_m:.2f} m > "
+                                  f"{p.max_position_sigma_m:.2f} m)")
+                    continue
+                passing.append((fit.chi2 / bound if bound > 0.0 else 0.0, fit))
+            if passing:  # the largest agreeing subsets: one place, or none
+                for (_s, f1), (_s2, f2) in combinations(passing, 2):
+                    d = f1.transform - f2.transform
+                    d[2] = float(wrap_angle(d[2]))
+                    if float(d @ np.linalg.solve(f1.covariance + f2.covariance, d)) > p.agree_chi2:
+                        return None, (f"ambiguous: subsets of {size} agree on places "
+                                      f"{float(np.hypot(d[0], d[1])):.2f} m apart")
+                return min(passing, key=lambda t: t[0])[1], ""
+        return None, why
 
     def _why_not(self, c: RelocCandidate, p: RelocCandidate) -> str:
         """Why a held candidate ``p`` is not in the group that relocalised with ``c``."""

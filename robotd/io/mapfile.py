@@ -166,11 +166,24 @@ def _migrate_3_to_4(conn: sqlite3.Connection) -> None:
     )
 
 
+def _migrate_4_to_5(conn: sqlite3.Connection) -> None:
+    """Version 5: the same tables; two encodings of the forward memory that a version-4
+    reader would misread, so that one refuses the file instead. ``forward_images.words``
+    may hold the uint32 ids' bytes regrouped by significance and deflated, when shorter
+    than the raw ``4 N`` bytes (the value's length tells the two forms apart:
+    :func:`robotd.io.store.pack_word_ids`); a ``forward_words`` row that is not purged
+    may have an empty ``descriptor``, meaning its founder's (the first feature of image
+    ``born_image`` with that word). Rows written before stay as they are and read as
+    before."""
+    del conn  # no table changes: the version number is the whole step
+
+
 MIGRATIONS: Mapping[int, Migration] = {
     1: _migrate_0_to_1,
     2: _migrate_1_to_2,
     3: _migrate_2_to_3,
     4: _migrate_3_to_4,
+    5: _migrate_4_to_5,
 }
 """Schema migrations keyed by the version each one produces, contiguous from 1.
 

@@ -36,7 +36,9 @@ Tables (schema version :data:`SCHEMA_VERSION`):
     The forward camera's memory (:meth:`MapStore.add_forward_image`,
     :meth:`MapStore.forward_memory`): per forward keyframe its word ids, compact
     keypoints and descriptors; per word its descriptor, the image that made it and
-    whether it was purged. One image and its new words are one transaction.
+    whether it was purged. One image and its new words are one transaction. Since
+    version 5 the word ids may be deflated and a word's descriptor may be left to its
+    founder feature's (:func:`pack_word_ids`, :meth:`MapStore.add_forward_image`).
 
 Durability. Every write is its own transaction (``BEGIN IMMEDIATE`` ... ``COMMIT``), so
 a crash never leaves half a keyframe. The journal is a write-ahead log with
@@ -64,6 +66,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+import zlib
 from collections.abc import Iterator, Sequence
 from typing import Any, Literal
 
@@ -511,7 +514,7 @@ class MapStore(MapConnection):
         return [candidate_record(r) for r in rows]
 
 
-    # -- the forward camera's memory (version 4) -----------------------------------
+    # -- the forward camera's memory (version 4, encodings of version 5) -----------------------------------
 
     def add_forward_image(self, image_id: int, keyframe_id: int, kind: str, image_size_px: tuple[int, int],
                           words: np.ndarray, keypoints_q: np.ndarray, descriptors: np.ndarray,
@@ -519,19 +522,34 @@ class MapStore(MapConnection):
         """Store one forward image (``words (N,) uint32``, ``keypoints_q (N, 2) uint16`` in
         1/16 px, ``descriptors``), the words it made (``(word id, descriptor bytes)``) and
         the words purged after it (their descriptors are dropped), in one transaction (a
-        power cut loses at most this image). ValueError for an unknown keyframe or a repeated id."""
+        power cut loses at most this image). ValueError for an unknown keyframe or a repeated id.
+
+        A new word whose descriptor is that of its founder, the image's first feature with
+        that word (as :class:`robotd.forward.vocabulary.Vocabulary` makes words), is written
+        without it: :meth:`forward_memory` takes it from the image row (a word row then
+        holds a few bytes instead of a descriptor more)."""
         w, h = (int(v) for v in image_size_px)
+        words = np.asarray(words)
+        ids = words.tolist()
+        first: dict[int, int] = {}
+        for at, wid in enumerate(ids):
+            first.setdefault(int(wid), at)
+        raw = np.ascontiguousarray(descriptors, descriptors.dtype.newbyteorder("<"))
+        rows = []
+        for wid, d in new_words:
+            founder = first.get(int(wid))
+            own = founder is None or raw[founder].tobytes() != bytes(d)
+            rows.append((int(wid), kind, bytes(d) if own else b"", int(image_id)))
         with self._write() as conn:
             conn.execute(
                 "INSERT INTO forward_images (image_id, keyframe_id, kind, image_width, image_height, words,"
                 " keypoints, descriptors) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                (int(image_id), int(keyframe_id), kind, w, h,
-                 np.ascontiguousarray(words, "<u4").tobytes(),
+                (int(image_id), int(keyframe_id), kind, w, h, pack_word_ids(words),
                  np.ascontiguousarray(keypoints_q, "<u2").tobytes(),
-                 np.ascontiguousarray(descriptors, descriptors.dtype.newbyteorder("<")).tobytes()))
-            if new_words:
+                 raw.tobytes()))
+            if rows:
                 conn.executemany("INSERT INTO forward_words (id, kind, descriptor, born_image) VALUES (?, ?, ?, ?)",
-                                 [(int(i), kind, bytes(d), int(image_id)) for i, d in new_words])
+                                 rows)
             if purged:
                 # A purged word is never searched again: its descriptor is dropped.
                 conn.executemany("UPDATE forward_words SET purged = 1, descriptor = X'' WHERE id = ?",
@@ -542,13 +560,57 @@ class MapStore(MapConnection):
         keyframe_id, kind, (width, height), words (N,) uint32, keypoints_q (N, 2) uint16,
         descriptors bytes)`` in image order, and the words as ``(id, kind, descriptor
         bytes, born_image, purged)`` in id order (the caller knows the descriptor type; a
-        purged word's descriptor is empty)."""
+        purged word's descriptor is empty; a word written without its descriptor gets its
+        founder's from the image row). MapStoreError when a stored row does not decode."""
         images = []
         for image_id, kf, kind, w, h, words, kps, desc in self._read(
                 "SELECT image_id, keyframe_id, kind, image_width, image_height, words, keypoints, descriptors"
                 " FROM forward_images ORDER BY image_id"):
-            images.append((image_id, kf, kind, (w, h), np.frombuffer(words, "<u4").astype(np.uint32),
+            try:
+                ids = unpack_word_ids(bytes(words), len(kps) // 4)
+            except ValueError as exc:
+                raise MapStoreError(f"map {self._path}: forward image {image_id}: {exc}") from exc
+            images.append((image_id, kf, kind, (w, h), ids,
                            np.frombuffer(kps, "<u2").astype(np.uint16).reshape(-1, 2), bytes(desc)))
-        words = [(i, kind, bytes(d), born, bool(p)) for i, kind, d, born, p in self._read(
-            "SELECT id, kind, descriptor, born_image, purged FROM forward_words ORDER BY id")]
+        by_id = {im[0]: im for im in images}
+        words = []
+        for i, kind, d, born, p in self._read(
+                "SELECT id, kind, descriptor, born_image, purged FROM forward_words ORDER BY id"):
+            d = bytes(d)
+            if not d and not p:  # written without it: the founder's descriptor
+                im = by_id.get(born)
+                at = np.flatnonzero(im[4] == i) if im is not None else np.empty(0, np.intp)
+                if im is None or not len(at):
+                    raise MapStoreError(f"map {self._path}: forward word {i} has no descriptor and its image "
+                                        f"{born} no feature of it")
+                size = len(im[6]) // max(len(im[4]), 1)
+                d = im[6][int(at[0]) * size:(int(at[0]) + 1) * size]
+            words.append((i, kind, d, born, bool(p)))
         return images, words
+
+
+def pack_word_ids(words: np.ndarray) -> bytes:
+    """An image's word ids ``(N,)`` as ``forward_images.words`` stores them: the ids'
+    little-endian uint32 bytes regrouped by significance (all lowest bytes, then the next,
+    ...) and deflated (zlib), when that is shorter than the ``4 N`` raw bytes (the high
+    bytes of ids below 2^24 are mostly alike: about half the size on the office route);
+    else the raw bytes, as every map before this encoding has them. The length tells the
+    two apart (:func:`unpack_word_ids`)."""
+    raw = np.ascontiguousarray(words, "<u4")
+    packed = zlib.compress(raw.view(np.uint8).reshape(-1, 4).T.tobytes(), 6)
+    return packed if len(packed) < raw.nbytes else raw.tobytes()
+
+
+def unpack_word_ids(blob: bytes, n: int) -> np.ndarray:
+    """The ``n`` word ids ``(n,) uint32`` of a ``forward_images.words`` value
+    (:func:`pack_word_ids`: raw when it is ``4 n`` bytes long, else deflated). ValueError
+    when it holds no ``n`` ids."""
+    if len(blob) == 4 * n:
+        return np.frombuffer(blob, "<u4").astype(np.uint32)
+    try:
+        planes = zlib.decompress(blob)
+    except zlib.error as exc:
+        raise ValueError(f"word ids are neither {n} raw ids nor deflated ({exc})") from None
+    if len(planes) != 4 * n:
+        raise ValueError(f"word ids hold {len(planes) // 4} ids, the keypoints {n}")
+    return np.frombuffer(planes, np.uint8).reshape(4, n).T.copy().view("<u4").reshape(n).astype(np.uint32)

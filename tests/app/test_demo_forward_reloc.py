@@ -1,6 +1,7 @@
 """`robotd demo --forward --kidnap` with the floor detector off: the forward camera alone
-relocalises the kidnapped robot (two verified forward loops to stored places that agree,
-after odometry has moved the robot), and says so."""
+relocalises the kidnapped robot (three verified forward loops to stored places that agree,
+after odometry has moved the robot: two bearings always cross, so two cannot check each
+other), and says so."""
 
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ def test_the_forward_camera_relocalises_a_kidnapped_robot_without_the_floor_dete
     assert "floor_detector" not in s or not s["floor_detector"]
     rl = s["relocalisation"]
     assert (rl["lifts_detected"], rl["odometry_breaks"], rl["relocalisations"]) == (1, 1, 1)
-    assert rl["relocalised"] and rl["cameras"] == "forward" and rl["agreeing_candidates"] >= 2
+    assert rl["relocalised"] and rl["cameras"] == "forward" and rl["agreeing_candidates"] >= 3
     # Measured (two runs): 10.5 s and 5.2 m after being put down, 0.15-0.20 m and 1.5-1.8 deg
     # off (the odometry alone is off by the whole carry, 2.6 m).
     assert rl["after_s"] < 25.0 and rl["after_m_true"] < 10.0

@@ -621,6 +621,10 @@ def test_the_forward_stage_pairs_each_due_keyframe_with_the_nearest_forward_fram
     assert got[0].bearing_rad == pytest.approx(-0.3, abs=1e-9)
     keyframe(15, 1600, 1.3, carried=True)  # lifted: not due, but the detector forgets the poses
     assert det.poses[-1] is None
+    # The time per forward keyframe: the detector's own (10 ms each here), and the thread's CPU time.
+    c = stage.counters()
+    assert c["forward_ms_median"] == pytest.approx(10.0) and c["forward_ms_total"] == pytest.approx(30.0)
+    assert c["forward_cpu_ms_median"] >= 0.0 and len(stage.cpu_ms) == 3
 
 
 def _measured(stage) -> list:

@@ -231,7 +231,7 @@ def _forward_loop(p: Pipeline, old_id: int, old_truth: np.ndarray, new_id: int, 
                           float(math.atan2(rel[1], rel[0]) + rng.normal(0.0, math.radians(1.0))), 60))
 
 
-def test_a_kidnapping_relocalises_from_two_forward_loops_without_the_floor_camera(tmp_path: Path):
+def test_a_kidnapping_relocalises_from_three_forward_loops_without_the_floor_camera(tmp_path: Path):
     rng = np.random.default_rng(17)
     with MapStore.open(tmp_path / "map.sqlite") as store:
         run = store.begin_run("")
@@ -250,10 +250,14 @@ def test_a_kidnapping_relocalises_from_two_forward_loops_without_the_floor_camer
         c = p.counters()
         assert (c["relocalisations"], c["forward_loops_accepted"]) == (0, 0)
         assert graph.status_fragment() == "LOST (relocalising)"
-        # After 0.75 m and a turn, a second one sees another keyframe across the first ray.
+        # After 0.75 m and a turn, a second one sees another keyframe across the first ray:
+        # two bearings always cross, so two forward loops alone cannot check each other.
         _forward_loop(p, drive.ids[10], lap[10], new_ids[5], after[5], rng)
+        assert p.counters()["relocalisations"] == 0
+        # A third, further on, over-determines the position.
+        _forward_loop(p, drive.ids[14], lap[14], new_ids[9], after[9], rng)
         c = p.counters()
-        assert (c["relocalisations"], c["localised"], c["forward_loops_accepted"], c["loops_accepted"]) == (1, 1, 2, 0)
+        assert (c["relocalisations"], c["localised"], c["forward_loops_accepted"], c["loops_accepted"]) == (1, 1, 3, 0)
         assert graph.status_fragment().startswith("relocalised against run 1 after ")
         assert graph.status_fragment().endswith(" (forward camera)")
         assert graph.relocalised_at[-1]["cameras"] == "forward"

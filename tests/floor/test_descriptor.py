@@ -400,7 +400,8 @@ def test_workspace_gives_what_fresh_arrays_give(frames):
 
     learned = load_learned()
     ws = Workspace(240, 320)
-    for params in (ExtractParams(), ExtractParams(pool_step=1), ExtractParams(pool_step=2, orientation_step=2)):
+    for params in (ExtractParams(), ExtractParams(pool_step=1), ExtractParams(pool_step=2, orientation_step=2),
+                   ExtractParams(exact_maps=True), ExtractParams(pool_step=1, orientation_step=1, exact_maps=True)):
         for name in ("brick", "grass", "brick"):
             fresh = candidates(frames[name], params, learned)
             reused = candidates(frames[name], params, learned, ws)
@@ -687,3 +688,65 @@ def test_only_an_orthonormal_pca_basis_prefilters_the_repeat_check():
     skew = learned.pca_basis.copy()
     skew[:, 1] += 0.3 * skew[:, 0]
     assert _orthonormal_basis(replace(learned, pca_basis=skew)) is None
+
+
+@pytest.mark.parametrize("name", ["brick", "gravel"])
+def test_table_split_is_within_a_64th_of_the_magnitude_of_the_exact_split(frames, name):
+    """The orientation channels looked up in the 256-angle table differ from the exact
+    linear split by at most 1/64 of the gradient's magnitude in each channel (the angle is
+    off by at most half a level, 1/64 of a direction bin), so the pooled maps differ by at
+    most the pooled magnitude / 64; and they are not the exact maps (the table is used)."""
+    from robotd.floor.keypoints import Workspace, _pooled_orientation_maps
+
+    x = cv2.GaussianBlur(cv2.resize(frames[name], (320, 240), interpolation=cv2.INTER_AREA).astype(np.float32),
+                         (0, 0), 1.8)
+    sigma = 2.5
+    exact = [m.copy() for m in _pooled_orientation_maps(x, sigma, Workspace(240, 320), exact=True)]
+    table = _pooled_orientation_maps(x, sigma, Workspace(240, 320), exact=False)
+    k = 2 * math.ceil(2 * sigma) + 1
+    mag = cv2.GaussianBlur(cv2.magnitude(cv2.Sobel(x, cv2.CV_32F, 1, 0, ksize=1), cv2.Sobel(x, cv2.CV_32F, 0, 1, ksize=1)),
+                           (k, k), sigma)
+    for e, t in zip(exact, table):
+        err = np.abs(e - t).max(axis=2)
+        assert np.all(err <= mag / 64 + 1e-4 * (1 + mag))
+        assert err.max() > 0
+    # The 8 channels of each pixel still sum to its pooled magnitude.
+    total = exact[0].sum(2) + exact[1].sum(2)
+    assert np.allclose(table[0].sum(2) + table[1].sum(2), total, rtol=1e-4, atol=1e-4)
+
+
+def test_default_and_full_resolution_descriptors_of_one_frame_match(frames):
+    """A map described with :data:`FULL_RESOLUTION` (the bytes before the faster defaults)
+    still matches frames described with the defaults: the same frame described both ways
+    keeps most keypoints (positions identical: the detection is the same) and scores
+    nearly what it scores against itself, and another floor does not match it."""
+    from robotd.floor.descriptor import FULL_RESOLUTION
+    from robotd.floor.match import local_score
+
+    for name in ("brick", "grass"):
+        new, old = decode(extract(frames[name], 4)), decode(extract(frames[name], 4, FULL_RESOLUTION))
+        shared = {tuple(p) for p in new.xy_px.tolist()} & {tuple(p) for p in old.xy_px.tolist()}
+        assert len(shared) >= 0.8 * len(old)
+        self_score = local_score(old, old).score
+        assert local_score(new, old).score >= 0.7 * self_score > 0
+    other = decode(extract(frames["gravel"], 4, FULL_RESOLUTION))
+    assert local_score(decode(extract(frames["brick"], 4)), other).score < 0.1 * local_score(other, other).score
+
+
+def test_maps_halved_from_every_pixels_gradients_stay_closer_than_maps_of_the_halved_image(frames):
+    """With ``pool_step`` 2 the default splits the gradients of every pixel and halves the
+    channels; ``exact_maps`` takes the gradients of the halved image. Both pool a quarter of
+    the pixels, but the first keeps the fine gradients: the raw descriptors of the same
+    keypoints stay well under half as far from those pooled at every pixel."""
+    img = frames["gravel"]
+    learned = load_learned()
+    full = ExtractParams(pool_step=1, exact_maps=True)
+    c_full = candidates(img, full, learned)
+    ref = raw_descriptors(c_full, 300, full)
+    dist = {}
+    for name, params in (("halved", ExtractParams()), ("coarse", ExtractParams(exact_maps=True))):
+        c = candidates(img, params, learned)
+        assert np.array_equal(c.xy, c_full.xy) and np.array_equal(c.angle, c_full.angle)  # same keypoints
+        dist[name] = np.median(np.linalg.norm(raw_descriptors(c, 300, params) - ref, axis=1))
+    assert dist["halved"] < 0.5 * dist["coarse"]
+    assert dist["halved"] < 0.06

@@ -218,3 +218,23 @@ def test_a_measured_bearing_sigma_loosens_the_edge_across_the_baseline():
     assert sig_y_default == pytest.approx(math.hypot(0.03, 0.25 * math.radians(2.0)), rel=0.05)
     with pytest.raises(ValueError, match="sigma_bearing_rad"):
         loop_edge(true, dyaw, bearing, sigma_bearing_rad=math.nan)
+
+
+def test_batched_rotations_and_essentials_equal_the_one_at_a_time_ones() -> None:
+    """fit_motion builds its perturbed motions in one pass (_rotvec_matrices, _skews): each
+    row must equal the single-vector Rodrigues and [t]x R it replaced, the zero vector
+    included (identity), and the cross product the helper computes must be numpy's."""
+    from robotd.forward.planar import _cross, _essential, _rotvec_matrices, _rotvec_matrix, _skews
+
+    rng = np.random.default_rng(3)
+    w = np.vstack([rng.normal(size=(6, 3)) * 0.7, np.zeros((1, 3)), np.eye(3) * 1e-6])
+    batch = _rotvec_matrices(w)
+    for i in range(len(w)):
+        np.testing.assert_allclose(batch[i], _rotvec_matrix(w[i]), rtol=0, atol=1e-14)
+    r = _rotvec_matrix(np.array([0.1, -0.3, 0.2]))
+    t = rng.normal(size=(len(w), 3))
+    es = _skews(t) @ (batch @ r)
+    for i in range(len(w)):
+        np.testing.assert_allclose(es[i], _essential(batch[i] @ r, t[i]), rtol=0, atol=1e-12)
+    a, b = rng.normal(size=3), rng.normal(size=3)
+    np.testing.assert_allclose(_cross(a, b), np.cross(a, b), rtol=0, atol=1e-15)

@@ -62,3 +62,49 @@ def test_the_bearing_is_uncertain_without_parallax():
 
 def test_too_few_matches():
     assert fit_planar(np.zeros((4, 2)), np.zeros((4, 2)), K, 0.0) is None
+
+
+def _scan_one_by_one(p_old: np.ndarray, p_new: np.ndarray, yaw_guess: float) -> tuple[float, float]:
+    """The heading scan of :func:`fit_planar` written as a loop over headings and candidate
+    directions (as it was before it was batched): ``(yaw, psi)`` of the best candidate."""
+    from robotd.forward.planefit import _sampson
+
+    kinv = np.linalg.inv(K)
+    focal = 0.5 * (K[0, 0] + K[1, 1])
+    x_old = np.hstack([p_old, np.ones((len(p_old), 1))]) @ kinv.T
+    x_new = np.hstack([p_new, np.ones((len(p_new), 1))]) @ kinv.T
+    best = None
+    step, bins = math.radians(0.2), 360
+    for i in range(-40, 41):
+        yaw = yaw_guess + i * step
+        r, _ = planar_pose(yaw, 0.0)
+        u = np.cross(x_old @ r.T, x_new)
+        psis = np.mod(np.arctan2(-u[:, 2], u[:, 0]), math.pi)
+        hist = np.bincount((psis / math.pi * bins).astype(np.int64) % bins, minlength=bins)
+        hist = hist + np.roll(hist, 1) + np.roll(hist, -1)
+        for b in np.argsort(-hist)[:2].tolist():
+            centre = (b + 0.5) * math.pi / bins
+            for cand in (centre - 0.5 * math.pi / bins, centre, centre + 0.5 * math.pi / bins):
+                d = np.abs(_sampson(x_old, x_new, *planar_pose(yaw, cand), focal))
+                score = (int((d < 1.0).sum()), -float(np.minimum(d, 1.0) @ np.minimum(d, 1.0)))
+                if best is None or score > best[:2]:
+                    best = (*score, yaw, cand)
+    assert best is not None
+    return best[2], best[3]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_batched_heading_scan_picks_what_the_loop_over_headings_picks(seed):
+    from robotd.forward.planefit import _sampson_many
+
+    po, pn = _views(8.0 - 5 * seed, 40.0 * seed - 60.0, 0.3 + 0.2 * seed, seed=seed)
+    guess = math.radians(8.0 - 5 * seed) + 0.03
+    yaw, psi = _scan_one_by_one(po, pn, guess)
+    fit = fit_planar(po, pn, K, guess)
+    assert fit is not None
+    # the batched scan's best candidate, refined: it starts from the loop's (yaw, psi)
+    x = np.hstack([po, np.ones((len(po), 1))]) @ np.linalg.inv(K).T
+    xn = np.hstack([pn, np.ones((len(pn), 1))]) @ np.linalg.inv(K).T
+    start = np.abs(_sampson_many(x, xn, np.array([yaw]), np.array([psi]), 525.0))[0] < 1.0
+    assert fit.n_inliers >= start.sum() - 2
+    assert abs(math.remainder(fit.dyaw_rad - yaw, math.tau)) < math.radians(0.5)

@@ -159,3 +159,15 @@ def test_both_estimators_accept_a_true_pair_and_refuse_shuffled_points(estimator
 def test_an_unknown_estimator_is_refused():
     with pytest.raises(ValueError, match="estimator"):
         VerifyParams(estimator="lmeds")
+
+
+def test_max_iterations_caps_the_sample_budget_and_must_be_positive() -> None:
+    """VerifyParams.max_iterations bounds what ransac_iterations allows (few matches need
+    fewer samples than the cap and keep their own bound); 0 is refused."""
+    from robotd.forward.verify import VerifyParams, ransac_iterations
+
+    assert ransac_iterations(200, 20, 0.999, cap=VerifyParams(max_iterations=200).max_iterations) == 200
+    assert ransac_iterations(200, 20, 0.999) == 1000
+    assert ransac_iterations(28, 20, 0.999, cap=200) == ransac_iterations(28, 20, 0.999) < 200
+    with pytest.raises(ValueError, match="max_iterations"):
+        VerifyParams(max_iterations=0)

@@ -195,3 +195,32 @@ def test_postings_take_four_bytes_and_a_word_repeated_beyond_their_count_still_v
     # ... and the image leaves the index as it came in
     idx.remove_image(101, np.array([5] * 1100 + [3]))
     assert idx.document_frequency(5) == 1 and idx.n_images == 101
+
+
+def test_virtual_image_skips_unused_word_ids_and_words_whose_images_left():
+    """The virtual image is chosen among the words in use without a list of them: ids
+    never added (gaps) and words whose every image was removed must not enter it, and the
+    result equals a brute-force ranking (most occurrences first, ties: the lower id)."""
+    rng = np.random.default_rng(5)
+    idx = InvertedIndex()
+    images = {i: rng.choice(np.arange(0, 400, 3), size=40) for i in range(30)}  # ids 1, 2, 4, ... never used
+    for i, w in images.items():
+        idx.add_image(i, w)
+    for i in (3, 8, 9, 20):
+        idx.remove_image(i, images.pop(i))
+
+    def brute() -> list[int]:
+        occ: dict[int, int] = {}
+        for w in images.values():
+            for x in w.tolist():
+                occ[x] = occ.get(x, 0) + 1
+        n = round(sum(len(w) for w in images.values()) / len(images))
+        return sorted(occ, key=lambda x: (-occ[x], x))[:n]
+
+    assert list(idx.virtual_image()) == brute()
+    for i in list(images)[:20]:  # most images leave: many words fall to df 0
+        idx.remove_image(i, images.pop(i))
+    assert list(idx.virtual_image()) == brute()
+    idx.add_image(40, np.array([1, 1, 1, 2]))  # a gap id comes into use
+    images[40] = np.array([1, 1, 1, 2])
+    assert list(idx.virtual_image()) == brute()

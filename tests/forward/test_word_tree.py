@@ -146,3 +146,15 @@ def test_grouping_an_images_new_descriptors_is_the_greedy_pass():
     assert len(founders) == ref.max() + 1 < len(d)
     words, new = voc.add(d)
     np.testing.assert_array_equal(words, ref)
+
+
+def test_first_k_is_the_stable_argsorts_first_columns() -> None:
+    """The descent's partial selection equals the stable sort it replaces, ties (many in
+    Hamming distances) to the lower column, the -1 of the greedy child first."""
+    from robotd.forward.vocabulary import _first_k
+
+    rng = np.random.default_rng(8)
+    for m, k in ((64, 4), (16, 4), (5, 8), (48, 1)):
+        d = rng.integers(0, 6, (200, m)).astype(np.int32)
+        d[np.arange(200), rng.integers(0, m, 200)] = -1
+        np.testing.assert_array_equal(_first_k(d, k), np.argsort(d, axis=1, kind="stable")[:, :k])

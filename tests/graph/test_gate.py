@@ -79,3 +79,106 @@ def test_a_run_on_a_stored_map_is_not_localised_and_a_lift_makes_it_lost():
     g.wheel_drop(False, 20)
     assert g.status_fragment() == "LOST (relocalising)"
     assert g.end_warning().startswith("the run ended lost: its last 1 keyframes")
+
+
+def _office_like(n: int) -> list[np.ndarray]:
+    """True poses of a 6 x 3.75 m rectangle of 0.15 m steps (a quarter turn every 40 and
+    25 steps), driven on past its start."""
+    out = [np.zeros(3)]
+    sides = [40, 25, 40, 25]
+    turns = set(np.cumsum(sides * 3) - 1)
+    for k in range(n - 1):
+        out.append(compose(out[-1], np.array([0.15, 0.0, math.pi / 2 if k in turns else 0.0])))
+    return out
+
+
+def test_after_a_kidnapping_every_true_loop_passes_the_gate_and_a_look_alike_does_not():
+    """A drive whose heading drifts, lifted and put down on ground it drove 110 steps
+    before: the new segment relocalises against the run's own keyframes, then every true
+    loop from it passes the gate, and a look-alike 8 cm off (a repeated floor print) is
+    refused. Judged with the two poses' marginals alone, the relocalised segment's
+    ``S`` carries the drift of the whole first segment twice and the look-alikes pass."""
+    rng = np.random.default_rng(11)
+    odo_sigma = np.array([0.002, 0.002, 0.004])
+    odo_info = np.diag(1.0 / odo_sigma**2)
+    loop_sigma = np.array([0.003, 0.003, 0.003])
+    emitted: list = []
+    g = GatedGraph(IncrementalGraph(), emitted.append, lambda run: None)
+    truth = _office_like(150)
+    odo = truth[0]
+    for k, t in enumerate(truth):
+        if k:
+            step = between(truth[k - 1], t) + rng.normal(0.0, odo_sigma) + [0.0, 0.0, 0.002]
+            odo = compose(odo, step)
+            g.odometry_link(k - 1, k, step, odo_info)
+        g.keyframe(k, 7, odo, k * 10**9, lambda run: {})
+    g.wheel_drop(True, 150 * 10**9)
+    g.wheel_drop(False, 155 * 10**9)
+    first = 150
+    put_down = truth[40:100]
+    odo = np.array([4.0, -2.0, 1.0])  # the new segment's own frame: anywhere
+    look_alikes = []
+    for k, t in enumerate(put_down):
+        kid = first + k
+        if k:
+            step = between(put_down[k - 1], t) + rng.normal(0.0, odo_sigma) + [0.0, 0.0, 0.002]
+            odo = compose(odo, step)
+            g.odometry_link(kid - 1, kid, step, odo_info)
+        g.keyframe(kid, 7, odo, (156 + k) * 10**9, lambda run: {})
+        old = 40 + k
+        g.floor_candidate(old, kid, 200.0, between(truth[old], t) + rng.normal(0.0, loop_sigma),
+                          np.diag(1.0 / loop_sigma**2))
+        if k >= 10 and k % 5 == 0:
+            off = 0.08 * np.array([math.cos(k), math.sin(k), 0.0])
+            g.floor_candidate(old - 1, kid, 150.0, between(truth[old - 1], t) + off, np.diag(1.0 / loop_sigma**2))
+            look_alikes.append((kid, old - 1))
+    c = g.counters()
+    assert (c["lifts"], c["relocalisations"], c["localised"]) == (1, 1, 1)
+    fates = {(m.query_id, m.candidate_id): m.fate for m in emitted if isinstance(m, CandidateFate)}
+    true_loops = [(first + k, 40 + k) for k in range(len(put_down))]
+    assert [fates[q] for q in true_loops] == ["accepted"] * len(true_loops)
+    assert [fates[q] for q in look_alikes] == ["failed_gate"] * len(look_alikes)
+    assert c["loops_failed_gate"] == len(look_alikes) == 10
+
+
+def test_a_forward_loop_without_a_range_is_gated_at_two_degrees_of_freedom():
+    """A forward loop's edge takes its range from the graph's prediction: the innovation
+    along the line of sight is zero, the statistic has 2 degrees of freedom, and the bound
+    is the 2-dof point of the gate's probability (13.8 for 99.9 %). A bearing error whose
+    statistic lies between 13.8 and 16.27 is refused; the same loop with a range measured
+    on the floor is gated at 3 degrees of freedom."""
+    from robotd.forward.planar import loop_edge
+    from robotd.graph.gate import gate_threshold
+
+    assert math.isclose(gate_threshold(16.27, 3), 16.27, rel_tol=1e-9)
+    assert math.isclose(gate_threshold(16.27, 2), 13.82, abs_tol=0.01)
+    g = GatedGraph(IncrementalGraph(), [].append, [].append)
+    truth = _square(21)
+    ids = _drive(g, truth)
+    a, b = ids[1], ids[19]  # 0.25 m apart along x, the same heading
+    rel = between(truth[1], truth[19])
+    bearing = math.atan2(rel[1], rel[0])
+
+    def d2(err: float, range_m: float | None) -> float:
+        def edge(pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return loop_edge(pred, rel[2], bearing + err, range_m=range_m)
+        delta, info = edge(between(g.graph.pose(a), g.graph.pose(b)))
+        return g.graph.loop_chi2(a, b, delta, info)
+
+    # the bearing error whose statistic is 15 (between the two bounds), by bisection
+    lo, hi = 0.0, math.radians(60.0)
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if d2(mid, None) < 15.0 else (lo, mid)
+    err = 0.5 * (lo + hi)
+    assert 14.9 < d2(err, None) < 15.1
+    emitted: list = []
+    g._emit = emitted.append
+    g.forward_candidate(a, b, 0.9, lambda pred: loop_edge(pred, rel[2], bearing + err))
+    assert emitted[-1].fate == "failed_gate" and emitted[-1].detail.endswith("> 13.82")
+    # Measured on the floor (the true range), 3 components: its statistic against 16.27.
+    r = float(np.hypot(rel[0], rel[1]))
+    g.forward_candidate(a, b, 0.9, lambda pred: loop_edge(pred, rel[2], bearing + err, range_m=r),
+                        range_measured=True)
+    expected = "accepted" if d2(err, r) <= 16.27 else "failed_gate"
+    assert [m.fate for m in emitted if isinstance(m, CandidateFate)][-1] == expected

@@ -318,3 +318,37 @@ def test_a_full_solve_folds_the_keyframes_without_loops_into_their_odometry():
 def test_fold_must_be_positive():
     with pytest.raises(ValueError):
         IncrementalParams(fold=0)
+
+
+def test_the_joint_gate_covariance_is_the_relative_poses_on_one_chain():
+    """Two poses on one chain from the anchor share the chain's first part: their relative
+    pose's covariance is that of the edges between them alone. With ``joint`` the gate's
+    ``S`` is exactly that (the same chi-square as in a graph anchored at the first pose);
+    the marginals alone count the shared part twice and judge the same loop far more
+    leniently."""
+    rng = np.random.default_rng(5)
+    inc = IncrementalGraph()
+    inc.add_first(0)
+    a, _pose_a, _cov_a = _branch(inc, 1, 40, rng)  # the shared part
+    ref = IncrementalGraph()  # the same edges from ``a`` on, anchored at ``a``'s estimate
+    ref.add_first(a, inc.pose(a))
+    prev = a
+    for k in range(30):
+        d = np.array([0.05, 0.0, 0.3 * rng.standard_normal()])
+        c = np.diag([1e-6, 2e-6, 4e-6])
+        inc.add_keyframe(500 + k, prev, d, np.linalg.inv(c))
+        ref.add_keyframe(500 + k, prev, d, np.linalg.inv(c))
+        prev = 500 + k
+    b = prev
+    assert inc.pose(b) == pytest.approx(ref.pose(b), abs=1e-9)
+    rel = ref.marginal_covariance(b)  # the relative pose's covariance, in b's frame
+    loop_cov = np.diag([1e-6, 1e-6, 1e-5])
+    predicted = gtsam.Pose2(*between(inc.pose(a), inc.pose(b)))
+    for axis in np.linalg.eigh(rel + loop_cov)[1].T:
+        off = 3.0 * axis * math.sqrt(axis @ (rel + loop_cov) @ axis)
+        m = predicted.compose(gtsam.Pose2.Expmap(off))
+        measured = np.array([m.x(), m.y(), m.theta()])
+        want = ref.loop_chi2(a, b, measured, np.linalg.inv(loop_cov))
+        assert want == pytest.approx(9.0, rel=0.02)  # 3 sigma (the anchor's own prior is tiny)
+        assert inc.loop_chi2(a, b, measured, np.linalg.inv(loop_cov), joint=True) == pytest.approx(want, rel=1e-3)
+        assert inc.loop_chi2(a, b, measured, np.linalg.inv(loop_cov)) < 0.7 * want

@@ -238,7 +238,7 @@ def test_one_forward_loop_cannot_relocalise_two_from_places_apart_fix_the_range(
     errors = []
     for seed in range(5):
         rng = np.random.default_rng(100 + seed)
-        reloc = Relocaliser(_relative)
+        reloc = Relocaliser(_relative, RelocParams(min_forward_only=2))
         # Two old keyframes 1.6-1.8 m from queries 1.5 m apart, the bearings 54 deg apart in the map.
         first = reloc.offer(_forward(5, rng, np.array([1.8, 0.4, 0.2])))
         assert not first.relocalised
@@ -283,8 +283,72 @@ def test_two_forward_loops_along_one_line_of_sight_do_not_fix_the_position():
         c = _forward(q, rng, between(old, straight[q]))
         cands.append(RelocCandidate(c.old_id, q, c.score, compose(T_TRUE, old), c.delta, c.information,
                                     straight[q], 0.1 * q, 1, "forward", c.edge, 2))
-    reloc = Relocaliser(relative)
+    reloc = Relocaliser(relative, RelocParams(min_forward_only=2))
     assert not reloc.offer(cands[0]).relocalised
     d = reloc.offer(cands[1])
     assert not d.relocalised
     assert "the position is not fixed" in d.detail
+
+
+def _wrong_bearing(q: int, rng: np.random.Generator, old_offset: np.ndarray, off_rad: float) -> RelocCandidate:
+    """A forward loop to the right old keyframe whose bearing came out ``off_rad`` wrong
+    (the heading right): the kind the five-point motion gives at short baselines."""
+    c = _forward(q, rng, old_offset)
+    edge = c.edge
+    assert edge is not None
+
+    def wrong(predicted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        delta, info = edge(predicted)
+        rng_m = float(np.hypot(delta[0], delta[1]))
+        b = math.atan2(delta[1], delta[0]) + off_rad
+        return np.array([rng_m * math.cos(b), rng_m * math.sin(b), delta[2]]), info
+
+    return RelocCandidate(c.old_id, c.query_id, c.score, c.old_pose, *wrong(np.array([1.0, 0.0, 0.0])),
+                          c.query_pose, c.travelled_m, c.old_run, "forward", wrong, 2)
+
+
+def test_two_forward_loops_cannot_check_each_others_bearing_so_a_third_must_agree():
+    """Two bearings from places apart always cross: with one of them 30 deg wrong, the two
+    loops' fit still agrees and puts the robot 0.4-0.5 m off. By default a group of forward
+    loops only waits for a third member (or a floor loop): the groups the wrong loop joins
+    then either disagree, are ambiguous against the right ones, or stay within 0.3 m."""
+    for seed in range(5):
+        def cands(rng: np.random.Generator) -> list[RelocCandidate]:
+            return [_forward(5, rng, np.array([1.8, 0.4, 0.2])),
+                    _wrong_bearing(20, rng, np.array([0.8, 0.3, 0.2]), math.radians(30.0)),
+                    _forward(40, rng, np.array([0.5, 1.5, 0.8])),
+                    _forward(55, rng, np.array([1.6, -0.6, -0.3]))]
+
+        two = Relocaliser(_relative, RelocParams(min_forward_only=2))
+        c = cands(np.random.default_rng(300 + seed))
+        assert not two.offer(c[0]).relocalised
+        d = two.offer(c[1])
+        assert d.relocalised, d.detail  # what two members allow: a wrong place
+        assert np.hypot(*(d.transform[:2] - T_TRUE[:2])) > 0.4
+        reloc = Relocaliser(_relative)
+        c = cands(np.random.default_rng(300 + seed))
+        assert not reloc.offer(c[0]).relocalised
+        d = reloc.offer(c[1])
+        assert not d.relocalised
+        assert "2 forward loops only" in d.detail
+        for k in (2, 3):
+            d = reloc.offer(c[k])
+            if d.relocalised:
+                break
+        if d.relocalised:
+            assert np.hypot(*(d.transform[:2] - T_TRUE[:2])) < 0.3
+        else:
+            assert "ambiguous" in d.detail or "disagrees" in d.detail
+
+
+def test_three_right_forward_loops_relocalise_together():
+    rng = np.random.default_rng(41)
+    reloc = Relocaliser(_relative)
+    assert not reloc.offer(_forward(5, rng, np.array([1.8, 0.4, 0.2]))).relocalised
+    assert not reloc.offer(_forward(20, rng, np.array([0.5, 1.5, 0.8]))).relocalised
+    d = reloc.offer(_forward(40, rng, np.array([1.6, -0.6, -0.3])))
+    assert d.relocalised, d.detail
+    assert sorted(m.query_id for m in d.members) == [5, 20, 40]
+    assert np.hypot(*(d.transform[:2] - T_TRUE[:2])) < 0.15
+    with pytest.raises(ValueError, match="min_forward_only"):
+        RelocParams(min_forward_only=0)

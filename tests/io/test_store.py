@@ -427,7 +427,7 @@ def test_a_version_1_map_written_by_the_old_code_is_migrated(tmp_path: Path) -> 
         assert raw.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone() == ("1",)
     raw.close()
     with MapStore.open(path) as store:
-        assert store.schema_version == SCHEMA_VERSION == 4
+        assert store.schema_version == SCHEMA_VERSION == 5
         assert store.forward_memory() == ([], [])
         assert store.optimized_poses() == {}
         assert store.loop_candidates() == []
@@ -487,7 +487,7 @@ def test_a_version_2_map_written_by_the_current_code_is_migrated(tmp_path, monke
     monkeypatch.undo()
 
     with MapStore.open(path) as store:
-        assert store.schema_version == SCHEMA_VERSION == 4
+        assert store.schema_version == SCHEMA_VERSION == 5
         assert store.forward_memory() == ([], [])
         assert store.optimized_poses() == {} and store.loop_candidates() == []
         np.testing.assert_array_equal(store.keyframe_image(kfs[1]), image)
@@ -499,7 +499,7 @@ def test_a_version_2_map_written_by_the_current_code_is_migrated(tmp_path, monke
     # Every old row is still there, unchanged; only the schema version moved on.
     meta_before, meta_after = before.pop("meta"), after.pop("meta")
     assert after == before
-    assert dict(meta_after) == {**dict(meta_before), "schema_version": "4"}
+    assert dict(meta_after) == {**dict(meta_before), "schema_version": "5"}
 
     with MapStore.open(path) as store:  # and the new tables take rows
         store.put_optimized_poses(kfs, np.zeros((3, 3)), solved_unix_ns=1)
@@ -718,8 +718,8 @@ def test_runs_that_never_ended_are_marked_once_keeping_their_keyframes(tmp_path:
 
 
 def test_a_version_3_map_gains_the_forward_memory_and_keeps_its_rows(tmp_path, monkeypatch) -> None:
-    """Today's maps (version 3) are upgraded to version 4: the forward tables
-    appear, empty; every earlier row is as it was."""
+    """Version-3 maps are upgraded: the forward tables appear, empty; every earlier row
+    is as it was."""
     path = tmp_path / "map.sqlite"
     migrations = mapconnection.MIGRATIONS
     monkeypatch.setattr(mapconnection, "MIGRATIONS", {v: migrations[v] for v in (1, 2, 3)})
@@ -732,7 +732,7 @@ def test_a_version_3_map_gains_the_forward_memory_and_keeps_its_rows(tmp_path, m
     before = _all_rows(path)
     monkeypatch.undo()
     with MapStore.open(path) as store:
-        assert store.schema_version == 4
+        assert store.schema_version == SCHEMA_VERSION
         assert store.forward_memory() == ([], [])
     after = _all_rows(path)
     assert {k: v for k, v in after.items() if k != "meta"} == {
@@ -763,3 +763,110 @@ def test_the_forward_memory_round_trips_one_image_per_transaction(tmp_path) -> N
     assert [(w[0], w[3], w[4]) for w in words] == [(0, 0, False), (1, 0, False), (2, 0, False), (3, 0, True),
                                                    (4, 0, True), (5, 1, False)]
     assert words[2][2] == desc[2].tobytes() and words[3][2] == b"" and words[4][2] == b""  # purged: dropped
+
+
+def test_forward_word_ids_are_stored_deflated_when_shorter_and_raw_rows_still_read(tmp_path) -> None:
+    """An image's word ids go into the map deflated by byte significance when that is
+    shorter (300 ids below 2^17: well under the 1200 raw bytes); rows written raw (as
+    every earlier map has them) read back the same; a damaged value is one clear error."""
+    import sqlite3
+
+    from robotd.base.errors import MapStoreError
+    from robotd.io.store import pack_word_ids, unpack_word_ids
+
+    rng = np.random.default_rng(4)
+    ids = rng.integers(0, 1 << 17, 300).astype(np.uint32)
+    blob = pack_word_ids(ids)
+    assert len(blob) < 0.8 * 4 * len(ids)
+    np.testing.assert_array_equal(unpack_word_ids(blob, len(ids)), ids)
+    few = np.array([7], np.uint32)  # deflating one id does not pay: raw bytes
+    assert pack_word_ids(few) == few.astype("<u4").tobytes()
+    np.testing.assert_array_equal(unpack_word_ids(pack_word_ids(few), 1), few)
+    with pytest.raises(ValueError):
+        unpack_word_ids(blob, len(ids) + 1)  # the keypoints say another count
+    path = tmp_path / "map.sqlite"
+    kps = rng.integers(0, 10_000, (300, 2)).astype(np.uint16)
+    desc = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+    with MapStore.open(path) as store:
+        run = store.begin_run("a = 1\n", started_ns=10)
+        kfs = [store.add_keyframe(run, 100 + i, (i, 0.0, 0.0), _cov(i), None) for i in range(2)]
+        store.add_forward_image(0, kfs[0], "orb", (640, 480), ids, kps, desc)
+        store.add_forward_image(1, kfs[1], "orb", (640, 480), ids[::-1].copy(), kps, desc)
+    with sqlite3.connect(path) as conn:  # image 1 as an earlier map wrote it: raw uint32
+        conn.execute("UPDATE forward_images SET words = ? WHERE image_id = 1", (ids[::-1].astype("<u4").tobytes(),))
+    with MapStore.open(path) as store:
+        images, _ = store.forward_memory()
+    np.testing.assert_array_equal(images[0][4], ids)
+    np.testing.assert_array_equal(images[1][4], ids[::-1])
+    with sqlite3.connect(path) as conn:
+        conn.execute("UPDATE forward_images SET words = ? WHERE image_id = 0", (b"not deflated",))
+    with MapStore.open(path) as store, pytest.raises(MapStoreError, match="forward image 0"):
+        store.forward_memory()
+
+
+def test_a_new_words_descriptor_is_taken_from_its_founder_in_the_image_row(tmp_path) -> None:
+    """A word whose descriptor is its founder's (the image's first feature with it) is
+    written without one and read back with the founder's; one that is not keeps its own;
+    a word row left without a descriptor and without a feature to take it from is one
+    clear error, not a wrong descriptor."""
+    import sqlite3
+
+    from robotd.base.errors import MapStoreError
+
+    rng = np.random.default_rng(6)
+    desc = rng.integers(0, 256, (4, 32), dtype=np.uint8)
+    kps = rng.integers(0, 10_000, (4, 2)).astype(np.uint16)
+    path = tmp_path / "map.sqlite"
+    with MapStore.open(path) as store:
+        run = store.begin_run("a = 1\n", started_ns=10)
+        kf = store.add_keyframe(run, 100, (0.0, 0.0, 0.0), _cov(0), None)
+        # features 1 and 3 share word 8 (founded by feature 1); word 9 is not any feature's descriptor
+        store.add_forward_image(0, kf, "orb", (640, 480), np.array([7, 8, 2, 8], np.uint32), kps, desc,
+                                new_words=[(7, desc[0].tobytes()), (8, desc[1].tobytes()), (9, desc[3].tobytes())])
+    with sqlite3.connect(path) as conn:
+        stored = dict(conn.execute("SELECT id, descriptor FROM forward_words").fetchall())
+    assert stored[7] == b"" and stored[8] == b"" and stored[9] == desc[3].tobytes()
+    with MapStore.open(path) as store:
+        _, words = store.forward_memory()
+    assert [(w[0], w[2]) for w in words] == [(7, desc[0].tobytes()), (8, desc[1].tobytes()), (9, desc[3].tobytes())]
+    with sqlite3.connect(path) as conn:
+        conn.execute("UPDATE forward_words SET born_image = 5 WHERE id = 8")
+    with MapStore.open(path) as store, pytest.raises(MapStoreError, match="forward word 8"):
+        store.forward_memory()
+
+
+def test_a_version_4_map_with_forward_rows_is_marked_version_5_and_reads_as_before(tmp_path, monkeypatch) -> None:
+    """Version 5 changed no table, only what the forward rows may hold (deflated word ids, a
+    word without its own descriptor), which a version-4 reader would misread: the upgrade
+    moves the version number and nothing else, and the rows a version-4 store wrote (raw
+    ids, every descriptor written) read back the same; a version-4 build refuses a
+    version-5 file (the newer-schema test above)."""
+    import sqlite3
+
+    path = tmp_path / "map.sqlite"
+    migrations = mapconnection.MIGRATIONS
+    monkeypatch.setattr(mapconnection, "MIGRATIONS", {v: migrations[v] for v in (1, 2, 3, 4)})
+    rng = np.random.default_rng(8)
+    desc = rng.integers(0, 256, (3, 32), dtype=np.uint8)
+    kps = rng.integers(0, 10_000, (3, 2)).astype(np.uint16)
+    with MapStore.open(path) as store:
+        assert store.schema_version == 4
+        run = store.begin_run("a = 1\n", started_ns=10)
+        kf = store.add_keyframe(run, 100, (0.0, 0.0, 0.0), _cov(0), None)
+    with sqlite3.connect(path) as conn:  # the rows as a version-4 store wrote them
+        conn.execute("INSERT INTO forward_images VALUES (0, ?, 'orb', 640, 480, ?, ?, ?)",
+                     (kf, np.array([4, 5, 4], "<u4").tobytes(), kps.astype("<u2").tobytes(), desc.tobytes()))
+        conn.executemany("INSERT INTO forward_words (id, kind, descriptor, born_image) VALUES (?, 'orb', ?, 0)",
+                         [(4, desc[0].tobytes()), (5, desc[1].tobytes())])
+    conn.close()
+    before = _all_rows(path)
+    monkeypatch.undo()
+    with MapStore.open(path) as store:
+        assert store.schema_version == SCHEMA_VERSION == 5
+        images, words = store.forward_memory()
+    np.testing.assert_array_equal(images[0][4], [4, 5, 4])
+    assert [(w[0], w[2]) for w in words] == [(4, desc[0].tobytes()), (5, desc[1].tobytes())]
+    after = _all_rows(path)
+    meta_before, meta_after = before.pop("meta"), after.pop("meta")
+    assert after == before
+    assert dict(meta_after) == {**dict(meta_before), "schema_version": "5"}

@@ -69,6 +69,22 @@ def test_predict_one_step_by_hand():
     np.testing.assert_array_equal(p, p.T)
 
 
+def test_rate_only_process_puts_the_process_noise_on_the_rates_alone():
+    s = _state([0.0, 0.0, 0.3, 0.5, 0.2, 0.01], [1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-8])
+    full = predict(s, 100 * MS, EkfParams())
+    rates = predict(s, 100 * MS, EkfParams(rate_only_process=True))
+    np.testing.assert_array_equal(full.mean, rates.mean)
+    p = EkfParams()
+    # The rates' own process noise is the same...
+    assert rates.cov[IW, IW] == pytest.approx(1e-4 + p.angular_accel_noise_density_radps2_per_sqrt_hz ** 2 * 0.1)
+    assert rates.cov[IV, IV] == pytest.approx(full.cov[IV, IV])
+    # ...the yaw gets only what the yaw rate's uncertainty carries into it: 1e-6 + 1e-4 dt^2.
+    assert rates.cov[IYAW, IYAW] == pytest.approx(1e-6 + 1e-4 * 0.01)
+    qa = p.angular_accel_noise_density_radps2_per_sqrt_hz ** 2
+    assert full.cov[IYAW, IYAW] == pytest.approx(1e-6 + 1e-4 * 0.01 + qa * 0.1 ** 3 / 3)
+    assert rates.cov[IX, IX] < full.cov[IX, IX]
+
+
 def test_predict_along_an_arc_and_wraps_yaw():
     # A quarter circle of radius 1 m in 1 s, starting just below +pi.
     s0 = _state([0, 0, 3.0, math.pi / 2, math.pi / 2, 0], [1e-6] * 6)
@@ -171,6 +187,26 @@ def test_bias_converges_at_standstill_and_heading_does_not_drift():
     # Integrating the raw rate would have turned the heading by bias * 10 s = 0.044 rad.
     assert abs(f.pose().yaw_rad) < 0.003
     assert f.counters.still_updates >= 490
+
+
+def test_a_bias_prior_is_combined_with_the_standstill_readings_by_their_weights():
+    """The prior (mean, sigma) enters as one more measurement of the bias: with a prior
+    as good as the 100 readings at rest, the estimate lands halfway between them."""
+    rng = np.random.default_rng(5)
+    bias = math.radians(0.25)
+    s0 = initial_state(0, EkfParams(), bias=(0.001, 2e-5))
+    assert s0.gyro_bias_radps == 0.001 and s0.cov[IB, IB] == pytest.approx(4e-10)
+    readings = bias + rng.normal(0.0, 0.003, 100)
+    ests = {}
+    for name, prior in (("none", None), ("even", (0.0, 0.003 / math.sqrt(99)))):
+        f = OdometryFilter(initial_bias=prior)
+        for k in range(100):  # 2 s at rest: the first pair is not yet still (one interval)
+            stamp = k * 20 * MS
+            f.on_wheels(WheelTicks(stamp, 1234, 4321))
+            f.on_yaw_rate(YawRate(stamp, float(readings[k])))
+        ests[name] = f.state.gyro_bias_radps
+    assert ests["none"] == pytest.approx(bias, abs=1.2e-3)
+    assert ests["even"] == pytest.approx(0.5 * ests["none"], rel=0.05)
 
 
 def test_standstill_readings_that_disagree_are_not_used_to_pin_the_yaw_rate():

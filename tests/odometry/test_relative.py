@@ -9,7 +9,7 @@ import pytest
 
 from robotd.base.geometry import between
 from robotd.base.messages import WheelTicks, YawRate
-from robotd.odometry.ekf import IYAW
+from robotd.odometry.ekf import IYAW, EkfParams
 from robotd.odometry.fusion import OdometryFilter
 from robotd.odometry.relative import (
     clone_after_predict,
@@ -234,7 +234,9 @@ def test_a_late_visual_step_gives_the_same_filter_as_an_immediate_one():
     assert now.wheel_gyro.counters == later.wheel_gyro.counters
     assert now.wheel_pose().x_m == later.wheel_pose().x_m  # (PoseStamped has no ==)
     # Without the journal the late steps land on the current state: another end pose.
-    bare_now, bare_late = OdometryFilter(), OdometryFilter()
+    # (The same noise model as the fused filter's: with vo_twin its pose follows its rates.)
+    rates = EkfParams(rate_only_process=True)
+    bare_now, bare_late = OdometryFilter(params=rates), OdometryFilter(params=rates)
     _run_with_latency(bare_now, [0])
     _run_with_latency(bare_late, late)
     # (Here its chi-square gate even refuses some of them: the motion since the frame,
@@ -243,3 +245,18 @@ def test_a_late_visual_step_gives_the_same_filter_as_an_immediate_one():
     assert np.abs(bare_now.state.mean[:3] - bare_late.state.mean[:3]).max() > 1e-4
     # Immediate steps: the journal changes nothing.
     assert np.allclose(bare_now.state.mean, now.state.mean, atol=1e-12)
+
+
+def test_visual_steps_teach_the_fused_filter_the_gyro_bias_and_the_twin_keeps_its_noise_model():
+    """The gyro reads 0.04 rad/s too much and the drive has no standstill: the twin (wheels
+    and gyro) learns it only slowly from the wheels; the fused filter learns it from the
+    visual steps' heading through the clone's cross-covariance. With visual odometry fused
+    the filter's pose follows its rates (``rate_only_process``); the twin, whose edges the
+    pose graph uses, keeps the noise model it was given."""
+    f = OdometryFilter(vo_twin=True)
+    assert f.params.rate_only_process and not f.wheel_gyro.params.rate_only_process
+    assert not OdometryFilter(vo_twin=True, vo_rate_only=False).params.rate_only_process
+    assert not OdometryFilter().params.rate_only_process
+    _run_with_latency(f, [0], n_packets=600)
+    assert abs(f.state.gyro_bias_radps - 0.04) < 1e-3
+    assert abs(f.wheel_gyro.state.gyro_bias_radps - 0.04) > 5e-3
