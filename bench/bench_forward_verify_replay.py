@@ -202,24 +202,9 @@ def _searches() -> dict[str, Callable[..., tuple[np.ndarray | None, np.ndarray |
 
 
 def _by_distance(a: Any, b: Any, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`match_features`' matches (the same ratio test, one per keypoint of ``b``),
-    ordered by descriptor distance, nearest first (PROSAC's order)."""
-    empty = np.zeros((0, 2), np.float32)
-    if len(a) < 2 or len(b) < 2:
-        return empty, empty
-    matcher = cv2.BFMatcher(cv2.NORM_HAMMING if a.descriptors.dtype == np.uint8 else cv2.NORM_L2)
-    best: dict[int, tuple[float, int]] = {}
-    for p in matcher.knnMatch(a.descriptors, b.descriptors, k=2):
-        if len(p) == 2 and p[0].distance < ratio * p[1].distance:
-            m = p[0]
-            if m.trainIdx not in best or m.distance < best[m.trainIdx][0]:
-                best[m.trainIdx] = (m.distance, m.queryIdx)
-    if not best:
-        return empty, empty
-    ib = np.fromiter(best.keys(), np.int64, len(best))
-    ia = np.fromiter((v[1] for v in best.values()), np.int64, len(best))
-    order = np.argsort(np.fromiter((v[0] for v in best.values()), np.float64, len(best)), kind="stable")
-    return a.keypoints_px[ia[order]], b.keypoints_px[ib[order]]
+    """:func:`match_features`' matches ordered by descriptor distance, nearest first
+    (PROSAC's order)."""
+    return match_features(a, b, ratio, by_distance=True)
 
 
 def replay(rec: dict[str, Any], variant: str) -> dict[str, float | int]:

@@ -218,10 +218,13 @@ def camera_matrix_guess(width_px: int, height_px: int, focal_px: float | None = 
     return np.array([[f, 0.0, width_px / 2.0], [0.0, f, height_px / 2.0], [0.0, 0.0, 1.0]])
 
 
-def match_features(a: FeatureSet, b: FeatureSet, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
+def match_features(a: FeatureSet, b: FeatureSet, ratio: float = 0.8,
+                   by_distance: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Matched keypoints ``(M, 2), (M, 2)`` float32 of ``a`` and ``b``: each of ``a``'s
     descriptors against ``b``'s, kept when the nearest is clearly nearer than the second
-    (Lowe's ratio test), at most one match per keypoint of ``b`` (the nearer one)."""
+    (Lowe's ratio test), at most one match per keypoint of ``b`` (the nearer one); in
+    ``b``'s order of first match, or nearest descriptor first with ``by_distance``
+    (PROSAC's order)."""
     empty = np.zeros((0, 2), np.float32)
     if len(a) < 2 or len(b) < 2:
         return empty, empty
@@ -238,6 +241,9 @@ def match_features(a: FeatureSet, b: FeatureSet, ratio: float = 0.8) -> tuple[np
         return empty, empty
     ib = np.fromiter(best.keys(), np.int64, len(best))
     ia = np.fromiter((v[1] for v in best.values()), np.int64, len(best))
+    if by_distance:
+        order = np.argsort(np.fromiter((v[0] for v in best.values()), np.float64, len(best)), kind="stable")
+        ia, ib = ia[order], ib[order]
     return a.keypoints_px[ia], b.keypoints_px[ib]
 
 
