@@ -173,22 +173,19 @@ def office_odometry(folder: Path, seed: int = 0) -> tuple[np.ndarray, np.ndarray
     Never the true poses: those are only the ground truth. Written beside the images as
     ``odometry.csv``, the file ``robotd eval forward --odometry`` reads (the sequence's
     ``sequence.json`` names the route), and read from there when it exists."""
-    import json
 
     from robotd.app.forward_eval import read_odometry
 
     cache = folder / "odometry.csv"
-    n = len(np.loadtxt(folder / "poses.csv", delimiter=",", skiprows=1, usecols=0, ndmin=1))
+    settings, times = _sequence_settings_and_times(folder)
     if cache.exists():
-        return read_odometry(cache, n)
+        return read_odometry(cache, len(times))
     from robotd.odometry import ekf
     from robotd.odometry.kinematics import DiffDriveParams
     from sim.forward_sequence import _repeated_route
     from sim.route import MotionLimits, plan_motion
     from sim.sensors import BaseSensorParams, draw_errors, simulate_sensors
 
-    settings = json.loads((folder / "sequence.json").read_text())["settings"]
-    times = np.loadtxt(folder / "poses.csv", delimiter=",", skiprows=1, usecols=1)
     motion = plan_motion(_repeated_route(settings["route"], settings["repeats"]), MotionLimits())
     rng = np.random.default_rng(seed)
     sp = BaseSensorParams()
@@ -362,22 +359,28 @@ def office_fused_odometry(folder: Path, seed: int = 0, work: Path | None = None)
     at or before its time (wheel readings every 20 ms). Never the true pose. Written
     beside the images as ``odometry_fused.csv`` (the ``--odometry`` format) and read from
     there when it exists. ``work``: folder for the demo's outputs (default a temporary one)."""
-    import json
 
     from robotd.app.forward_eval import read_odometry
 
     cache = folder / "odometry_fused.csv"
-    n = len(np.loadtxt(folder / "poses.csv", delimiter=",", skiprows=1, usecols=0, ndmin=1))
+    settings, times = _sequence_settings_and_times(folder)
     if cache.exists():
-        return read_odometry(cache, n)
-    settings = json.loads((folder / "sequence.json").read_text())["settings"]
-    times = np.loadtxt(folder / "poses.csv", delimiter=",", skiprows=1, usecols=1)
+        return read_odometry(cache, len(times))
     stamps, allp, allc = fused_odometry_stream(settings["route"], settings["repeats"], seed, work)
     k = np.searchsorted(stamps, np.round(times * 1e9).astype(np.int64), side="right") - 1
     k = np.clip(k, 0, len(stamps) - 1)
     pose, cov = allp[k], allc[k]
     write_odometry(cache, pose, cov)
-    return read_odometry(cache, n)
+    return read_odometry(cache, len(times))
+
+
+def _sequence_settings_and_times(folder: Path) -> tuple[dict, np.ndarray]:
+    """A rendered sequence's settings (``sequence.json``) and its images' times ``(N,)`` in
+    seconds (``poses.csv``'s second column)."""
+    import json
+
+    settings = json.loads((folder / "sequence.json").read_text())["settings"]
+    return settings, np.loadtxt(folder / "poses.csv", delimiter=",", skiprows=1, usecols=1, ndmin=1)
 
 
 def write_odometry(path: Path, pose: np.ndarray, cov: np.ndarray) -> None:
