@@ -138,6 +138,11 @@ def forward_evaluation(truth: GroundTruth, mount: np.ndarray, obs: RunObservatio
                      "inliers": m.inliers, "true_distance_m": dist, "yaw_error_deg": yaw_err,
                      "bearing_error_deg": bearing_err if dist > 0.2 else None, "right": right,
                      "measured_range_m": m.range_m,
+                     "dyaw_deg": math.degrees(m.dyaw_rad), "true_dyaw_deg": math.degrees(rel[2]),
+                     "bearing_deg": math.degrees(m.bearing_rad),
+                     "true_bearing_deg": math.degrees(math.atan2(rel[1], rel[0])),
+                     "sigma_bearing_deg": (None if m.sigma_bearing_rad is None
+                                           else math.degrees(m.sigma_bearing_rad)),
                      "fate": str(obs.forward_fates.get((m.from_id, m.to_id), "none")),
                      "fate_detail": obs.forward_fate_details.get((m.from_id, m.to_id), "")})
     accepted = [r for r in rows if r["fate"] == LoopFate.ACCEPTED]

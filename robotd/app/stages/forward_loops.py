@@ -37,8 +37,19 @@ one per refused view) and, when no view was a loop, published as a ``failed_gate
 
 The detector runs in the pipeline's thread, once per forward keyframe (every half metre by
 default, about one image per 1.5 s at the demo's speed): a SIFT image costs tens of
-milliseconds, which the source queues absorb. The frame's offset from its keyframe (at most
-``sync_tolerance_s``) is left in the edge's noise (:class:`robotd.forward.planar.PlanarLoopParams`).
+milliseconds, which the source queues absorb.
+
+The forward frame is up to ``sync_tolerance_s`` off its keyframe's stamp (33 ms at the
+demo's 15 frames a second: 1 cm and 1 deg at its speeds), while the loop is an edge
+between the two keyframes. The stage keeps the last seconds of the wheel odometry
+(:class:`~robotd.base.messages.OdometryUpdate`, the wheel-only pose: no visual step moves it)
+and takes the robot's motion from each keyframe's stamp to its frame's (interpolated, or
+extrapolated at the last speed for a frame newer than the odometry; none without odometry).
+A loop's motion, measured between the two frames, is carried to the two keyframes through
+these offsets before it is published: the heading change exactly, the bearing at the
+measured range on the floor or else at the range the keyframes' poses predict (same
+odometry chain); with neither, the bearing is left as measured. Images taken up from the
+map by a later run have no offset (zero).
 """
 
 from __future__ import annotations
@@ -54,7 +65,8 @@ import numpy as np
 
 from robotd.app.pipeline import Publisher
 from robotd.base.errors import MapStoreError
-from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored, LoopFate
+from robotd.base.geometry import between, compose, inverse, wrap_angle
+from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored, LoopFate, OdometryUpdate
 from robotd.forward import LOOP, ForwardDetector
 from robotd.forward.features import CompactFeatures
 from robotd.forward.planar import planar_motion, planarity_bound
@@ -69,12 +81,26 @@ class ForwardLoopStage(Publisher):
 
     name = "forward"
     produces = (ForwardLoop, CandidateFate)
+    optional_inputs = (OdometryUpdate,)  # without it the frames' offsets are taken as zero
 
     def __init__(self, detector: ForwardDetector, *, distance_m: float = 0.5,
                  rotation_rad: float = math.radians(20.0), sync_tolerance_s: float = 0.04,
                  max_tilt_rad: float = math.radians(10.0), camera: str = "forward",
-                 store: Any = None, planarity_bound: float = planarity_bound(), planar_refit: bool = True) -> None:
+                 store: Any = None, planarity_bound: float = planarity_bound(), planar_refit: bool = True,
+                 mount: np.ndarray | None = None) -> None:
         self.detector = detector
+        self.mount = np.zeros(3) if mount is None else np.asarray(mount, np.float64).reshape(3)
+        # The wheel odometry's last seconds, (stamp_ns, (x_m, y_m, yaw_rad)), for the frames' offsets.
+        self._odom: deque[tuple[int, np.ndarray]] = deque(maxlen=512)
+        # Per detector image: the camera's motion from its keyframe's stamp to its frame's
+        # (camera frame, x forward, y left: (x_m, y_m, yaw_rad)), the keyframe's pose, and the
+        # odometry chain it belongs to (a lift starts a new one).
+        self._offsets: list[np.ndarray] = []
+        self._poses: list[np.ndarray | None] = []
+        self._chains: list[int] = []
+        self._chain = 0
+        self.frame_offsets_ms: list[float] = []  # frame stamp minus keyframe stamp, per forward keyframe
+        self.no_offset = 0  # forward keyframes whose frame had no odometry around it
         self.planar_refit = planar_refit
         self.refits = 0
         # past image -> its refit and the refit's inlier pixels (old, new), for the image being run
@@ -135,6 +161,9 @@ class ForwardLoopStage(Publisher):
             d = np.frombuffer(desc, dtype).reshape(-1, dim)
             feats.append(CompactFeatures(w, kq, d, size))
             self._keyframe_ids.append(kf_id)
+            self._offsets.append(np.zeros(3))
+            self._poses.append(None)
+            self._chains.append(-1)
         word_desc = np.zeros((len(words), dim), dtype)  # purged words' descriptors are not kept
         for n, w in enumerate(words):
             if not w[4]:
@@ -161,7 +190,40 @@ class ForwardLoopStage(Publisher):
             log.warning("forward image %d (keyframe %d) not stored: %s", t, keyframe_id, exc)
 
     def subscriptions(self) -> Mapping[type, Any]:
-        return {Frame: self.on_frame, KeyframeStored: self.on_keyframe}
+        return {Frame: self.on_frame, KeyframeStored: self.on_keyframe, OdometryUpdate: self.on_odometry}
+
+    def on_odometry(self, msg: OdometryUpdate) -> None:
+        w = msg.wheel
+        if self._odom and w.stamp_ns <= self._odom[-1][0]:
+            if w.stamp_ns < self._odom[-1][0]:  # time went back (a new run's clock): start again
+                self._odom.clear()
+            else:
+                return
+        self._odom.append((w.stamp_ns, np.array([w.x_m, w.y_m, w.yaw_rad])))
+
+    def _odom_at(self, stamp_ns: int) -> np.ndarray | None:
+        """The wheel odometry's pose at ``stamp_ns``: interpolated between its two samples
+        around it, or extrapolated at the last two samples' speed up to 0.1 s past the newest;
+        None without odometry there."""
+        od = self._odom
+        if len(od) < 2 or stamp_ns < od[0][0] or stamp_ns > od[-1][0] + 100_000_000:
+            return None
+        k = len(od) - 1
+        while k > 1 and od[k - 1][0] > stamp_ns:
+            k -= 1
+        (t0, p0), (t1, p1) = od[k - 1], od[k]
+        q = (stamp_ns - t0) / max(t1 - t0, 1)
+        d = p1 - p0
+        d[2] = wrap_angle(d[2])
+        return p0 + q * d
+
+    def _frame_offset(self, kf_stamp_ns: int, frame_stamp_ns: int) -> np.ndarray | None:
+        """The camera's motion ``(3,)`` from the keyframe's stamp to the frame's, in the
+        camera's planar frame at the keyframe (module notes); None without odometry."""
+        a, b = self._odom_at(kf_stamp_ns), self._odom_at(frame_stamp_ns)
+        if a is None or b is None:
+            return None
+        return compose(compose(inverse(self.mount), between(a, b)), self.mount)
 
     def on_frame(self, frame: Frame) -> None:
         if frame.camera != self.camera:
@@ -184,6 +246,7 @@ class ForwardLoopStage(Publisher):
         kf = msg.keyframe
         if kf.carried:  # odometry cannot relate the images before the lift to the ones after
             self.detector.forget_poses()
+            self._chain += 1
         pose = np.array(kf.pose_xyyaw, dtype=np.float64)
         if not self._due(pose):
             return
@@ -207,6 +270,13 @@ class ForwardLoopStage(Publisher):
         det = self.detector.process(frame.image, pose, kf.pose.covariance)  # the keyframe's odometry pose
         self.cpu_ms.append((time.thread_time() - cpu0) * 1e3)
         self._keyframe_ids.append(kf.keyframe_id)
+        offset = self._frame_offset(kf.stamp_ns, frame.stamp_ns)
+        if offset is None:
+            self.no_offset += 1
+        self._offsets.append(np.zeros(3) if offset is None else offset)
+        self._poses.append(pose)
+        self._chains.append(self._chain)
+        self.frame_offsets_ms.append((frame.stamp_ns - kf.stamp_ns) / 1e6)
         if self.store is not None:
             self._store_image(kf.keyframe_id)
         self.images += 1
@@ -242,11 +312,31 @@ class ForwardLoopStage(Publisher):
                                   self.detector.params.verify)[0]
         else:
             dyaw, bearing, _ = planar_motion(v.rotation, v.translation_dir)
+        dyaw, bearing, range_m = self._to_keyframes(det.loop_id, len(self._offsets) - 1, dyaw, bearing, range_m)
         self.loops += 1
         log.debug("forward loop: keyframe %d sees keyframe %d (p %.2f, %d inliers%s)", kf.keyframe_id, old,
                   det.candidate_probability, v.n_inliers, ", refitted in the plane" if fit is not None else "")
         self._publish(ForwardLoop(old, kf.keyframe_id, det.candidate_probability, dyaw, bearing, v.n_inliers,
                                   range_m=range_m, sigma_bearing_rad=sigma_b if np.isfinite(sigma_b) else None))
+
+    def _to_keyframes(self, i_old: int, i_new: int, dyaw: float, bearing: float,
+                      range_m: float | None) -> tuple[float, float, float | None]:
+        """The loop's ``(dyaw_rad, bearing_rad, range_m)`` measured between the frames of
+        detector images ``i_old`` and ``i_new``, carried to their keyframes (module notes)."""
+        e_old, e_new = self._offsets[i_old], self._offsets[i_new]
+        dyaw_kf = float(wrap_angle(dyaw + e_old[2] - e_new[2]))
+        r = range_m
+        p_old, p_new = self._poses[i_old], self._poses[i_new]
+        if r is None and p_old is not None and p_new is not None and self._chains[i_old] == self._chains[i_new]:
+            cam_kf = compose(compose(inverse(self.mount), between(p_old, p_new)), self.mount)
+            pred = compose(compose(inverse(e_old), cam_kf), e_new)  # between the frames
+            r = float(math.hypot(pred[0], pred[1]))
+        if r is None or not (math.isfinite(r) and r > 0.0):
+            return dyaw_kf, bearing, range_m
+        cam_fr = np.array([r * math.cos(bearing), r * math.sin(bearing), dyaw])
+        cam = compose(compose(e_old, cam_fr), inverse(e_new))
+        return (dyaw_kf, float(math.atan2(cam[1], cam[0])),
+                None if range_m is None else max(float(math.hypot(cam[0], cam[1])), 1e-3))
 
     def _planar(self, v: Any) -> tuple[bool, float]:
         """Whether a verification's motion is a level camera's (module notes), and its tilt."""
@@ -297,6 +387,9 @@ class ForwardLoopStage(Publisher):
         feat = np.asarray(self.features_ms) if self.features_ms else np.zeros(1)
         return {"forward_frames": self.frames, "forward_images": self.images,
                 "forward_unsynced": self.unsynced, "forward_loops": self.loops,
+                "forward_frames_without_odometry": self.no_offset,
+                "forward_frame_offset_ms_max": round(float(np.max(np.abs(self.frame_offsets_ms))), 1)
+                if self.frame_offsets_ms else 0.0,
                 "forward_not_planar": self.not_planar, "forward_planar_refits": self.refits,
                 "forward_failed_verification": self.rejected_geometry,
                 "forward_vocabulary": len(self.detector.vocabulary),
