@@ -364,7 +364,8 @@ def daemon_params() -> EkfParams:
 
 def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str, ...] = (),
                   ekf: dict[str, float] | None = None, cost_seeds: int = 0,
-                  true_model: bool = False, daemon_model: bool = False) -> dict[str, Any]:
+                  true_model: bool = False, daemon_model: bool = False,
+                  cost_models: tuple[str, ...] = ("independent", "bias_window", "bias")) -> dict[str, Any]:
     sensors = BaseSensorParams()
     for name in without:  # the same base without these errors: what each costs
         sensors = dataclasses.replace(sensors, **WITHOUT[name])
@@ -374,7 +375,7 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str,
         t0 = time.monotonic()
         d = drive_edges(route, seed, keyframe_m, sensors, params, true_model)
         res = chained_nees(d)
-        cost = graph_cost(d, seed, (SCALE_SIGMA["wheel"], SCALE_SIGMA["gyro"])) if seed < cost_seeds else None
+        cost = graph_cost(d, seed, (SCALE_SIGMA["wheel"], SCALE_SIGMA["gyro"]), cost_models) if seed < cost_seeds else None
         e = d["drawn"]
         per_seed.append({"seed": seed, "edges": len(d["delta"]), "horizons": {str(k): v for k, v in res.items()},
                          "cost": cost,
@@ -749,9 +750,11 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
     if rows:
         lines += ["Cost in the pose graph: the seed's keyframes built one at a time into iSAM2 with loop "
                   "edges from the truth (1 mm, every 25th keyframe that revisits a place): independent "
-                  "edges, the bias variables (`bias`) and the bias + scale variables (`bias_scales`), "
-                  "the latter two Python `CustomFactor`s; in brackets the ratio to independent edges, "
-                  "same run.", ""]
+                  "edges; the bias per window of 10 edges (`bias_window`: the open window's edges "
+                  "independent, replaced by one factor on its 11 poses and the bias at its start when it "
+                  "closes, `robotd.graph.bias.bias_window_factor`); the bias variables per edge (`bias`) "
+                  "and the bias + scale variables (`bias_scales`); all but the first Python "
+                  "`CustomFactor`s; in brackets the ratio to independent edges, same run.", ""]
         table(head, rows)
 
 
@@ -815,6 +818,8 @@ def main(argv: list[str] | None = None) -> int:
                          "[odometry] and the calibration's gyro noise density), --ekf changes on top")
     ap.add_argument("--cost-seeds", type=int, default=1,
                     help="odometry: time the pose graph with each model on this many seeds (default 1)")
+    ap.add_argument("--cost-models", default="independent,bias_window,bias",
+                    help="odometry: the graph-cost models timed (of independent, bias_window, bias, bias_scales)")
     ap.add_argument("--compare", type=Path, action="append", default=[],
                     help="another run's JSON whose odometry section the page shows too")
     ap.add_argument("--page-from", type=Path, default=None,
@@ -850,7 +855,8 @@ def main(argv: list[str] | None = None) -> int:
                 ap.error(f"--ekf takes NAME=VALUE with NAME a field of EkfParams, got {item!r}")
             ekf[name] = float(value)
         payload["odometry"] = odometry_part(seeds, args.route, args.keyframe_m, without, ekf, args.cost_seeds,
-                                            args.true_model, args.daemon_model)
+                                            args.true_model, args.daemon_model,
+                                            tuple(m for m in args.cost_models.split(",") if m))
         print(f"\nodometry edges, {args.route}: mean NEES of N chained edges per model (yaw, position) [seeds]")
         print_table(*odometry_model_rows(payload["odometry"]))
         print("\nper seed, bias + scale variables")
