@@ -359,7 +359,8 @@ def daemon_params() -> EkfParams:
     path = shipped_calibration()
     if path is None:
         raise SystemExit("the demo's shipped calibration is missing")
-    return build_odometry(Config(), read_calibration(path)).params
+    # the wheel + gyro filter whose edges the graph gets (the twin when visual odometry is fused)
+    return build_odometry(Config(), read_calibration(path)).wheel_gyro.params
 
 
 def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str, ...] = (),
