@@ -16,16 +16,19 @@ daemon takes them (``--keyframe-m`` or 10 deg, floor frames at 30 Hz) with their
 chain of ``N`` consecutive edges (a window every ``N/5`` edges) composed as the pose graph
 composes independent edges, its covariance the sum of theirs carried to the chain's end;
 the mean NEES over the windows, and of the yaw and the position parts alone (expected 1
-and 2). The same windows under four models of what the edges share: independent edges (the
-pose graph today); the edges given the gyro bias at their start with the bias as variables
-of the graph (:mod:`robotd.graph.bias`: AR(1) bias steps from the filter), marginalised;
+and 2). The same windows under five models of what the edges share: independent edges (the
+pose graph today); the bias as one variable per window of :data:`WINDOW_EDGES` edges from
+the first (:func:`robotd.graph.bias.bias_window_factor`), marginalised; the edges given the
+gyro bias at their start with the bias as variables of the graph (:mod:`robotd.graph.bias`:
+AR(1) bias steps from the filter), marginalised;
 the same with the wheels' and the gyro's scale errors as variables every edge shares
 (prior: the simulated base's spreads, :data:`SCALE_SIGMA`), marginalised; and the filter's
 own covariance of the motion between the two keyframes (its joint covariance, carried
-through every filter step). ``--ekf NAME=VALUE`` runs the filter with another noise model.
-The pose graph's cost of the bias-sharing factors (``--cost-seeds``): iSAM2 per keyframe
-and batch Levenberg-Marquardt against independent edges, loop edges from the truth, same
-run.
+through every filter step). ``--ekf NAME=VALUE`` runs the filter with another noise model;
+``--daemon-model`` starts from the daemon's (the wheel + gyro twin's, with the demo's
+calibration). The pose graph's cost of the bias-sharing factors (``--cost-seeds``,
+``--cost-models``): iSAM2 per keyframe and batch Levenberg-Marquardt against independent
+edges, loop edges from the truth, same run.
 
 **Loop edges** (part 2). Per floor (the printed planks, the paper's worst case, and the
 default floor of real photographs) ``--pairs`` frame pairs are rendered with the second
@@ -728,8 +731,9 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
               f"{noise}{without}{model})", "",
               "Mean NEES over seeds of chains of N consecutive edges, per model of what the edges share "
               "(in brackets the yaw and position parts, expected 1 and 2; in square brackets the "
-              "seeds' range): independent edges (the pose graph today); the edges given the gyro "
-              "bias at their start with the bias as variables (`robotd.graph.bias`), marginalised; "
+              "seeds' range): independent edges (the pose graph today); the gyro bias as one variable "
+              "per window of 10 edges (`robotd.graph.bias.bias_window_factor`), marginalised; the edges "
+              "given the gyro bias at their start with the bias as variables (`robotd.graph.bias`), marginalised; "
               "the same with the wheels' and the gyro's scale errors as variables of prior sigma "
               + ", ".join(f"{k} {v * 100:.2f} %" for k, v in SCALE_SIGMA.items())
               + " (the simulated base's spreads), marginalised; the filter's own joint covariance "
