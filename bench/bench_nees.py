@@ -751,6 +751,11 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
     table(*odometry_model_rows(odo))
     lines += ["Per seed, bias + scale variables:", ""]
     table(*odometry_rows(odo, "scales"))
+    if all("window" in r["horizons"]["1"] for r in odo["per_seed"]):
+        lines += ["Per seed, bias per window of 10 edges:", ""]
+        table(*odometry_rows(odo, "window"))
+        lines += ["Per seed, independent edges:", ""]
+        table(*odometry_rows(odo, "graph"))
     head, rows = cost_rows(odo)
     if rows:
         lines += ["Cost in the pose graph: the seed's keyframes built one at a time into iSAM2 with loop "
