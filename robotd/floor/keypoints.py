@@ -453,6 +453,8 @@ def _repeats(raw: np.ndarray, xy: np.ndarray, start: int, stop: int, params: Ext
             shape = (stop - start, len(projected))
             prod = np.matmul(rows, cols.T, out=ws.buffer("prod", shape))
             i, j = np.divmod(np.flatnonzero(np.greater(prod, 0, out=ws.buffer("near", shape, bool))), shape[1])
+        other = j != start + i  # most pairs are a candidate with itself: never a repeat (same position)
+        i, j = i[other], j[other]
         exact = np.einsum("ij,ij->i", raw[start + i], raw[j])
         exact *= -2.0
         exact += sq[start + i]
