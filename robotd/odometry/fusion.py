@@ -41,7 +41,9 @@ from robotd.odometry.ekf import (
     STATE_SIZE,
     EkfParams,
     EkfState,
+    advance_pose,
     initial_state,
+    predict_rates,
     predict_with_jacobian,
     update_gyro_with_gain,
     update_wheels_with_gain,
@@ -138,6 +140,17 @@ class OdometryFilter:
     unmodelled turning; the twin, whose edges the pose graph and its gate use, keeps
     ``params`` as given. On the office route (seeds 0-4, the daemon's own visual steps,
     ``bench/bench_odometry_fused.py``) it lowers the fused APE on four seeds of five.
+    ``pose_after_rates`` (default True): a filter whose pose follows its rates
+    (``rate_only_process``, which ``vo_twin`` with ``vo_rate_only`` sets) moves its pose
+    over each interval between two readings by the trapezoid rule: the first half with the
+    rates before the reading, the second half with the rates the reading left
+    (:func:`robotd.odometry.ekf.advance_pose`, :func:`robotd.odometry.ekf.predict_rates`).
+    Moved by the rates before the reading alone, the pose lagged the truth by about 5 ms
+    of yaw rate while the base turned (the Kobuki's readings: the raw gyro's mean stamped
+    in the middle of its packet, the ticks at its end); on the office route (seed 0, no
+    visual odometry) the heading change over a keyframe interval was then 0.72 mrad RMS
+    off the truth, and 0.26 mrad with the trapezoid. The twin (``rate_only_process``
+    off) is unchanged.
     """
 
     drive: DiffDriveParams = field(default_factory=DiffDriveParams)
@@ -154,12 +167,16 @@ class OdometryFilter:
     gyro_scale: float = 1.0
     initial_bias: tuple[float, float] | None = None
     vo_rate_only: bool = True
+    pose_after_rates: bool = True
 
     def __post_init__(self) -> None:
         self.counters = FilterCounters()
         self._twin = dataclasses.replace(self, vo_twin=False) if self.vo_twin else None
         if self.vo_twin and self.vo_rate_only:
             self.params = dataclasses.replace(self.params, rate_only_process=True)
+        # The pose's move over the interval since the rates' prediction, made by _settle.
+        self._deferred = self.pose_after_rates and self.params.rate_only_process
+        self._pending_ns = 0
         self._state: EkfState | None = None
         self._wheel = WheelOdometry(self.drive, self.initial_pose)
         self._wheel_ref: WheelTicks | None = None
@@ -355,7 +372,15 @@ class OdometryFilter:
 
     def _advance_to(self, t: int) -> None:
         assert self._state is not None
-        if t > self._state.stamp_ns:
+        if t > self._state.stamp_ns and self._deferred:
+            self._settle()  # a move still pending goes with the rates it had
+            dt_ns = t - self._state.stamp_ns
+            # The first half of the interval with the rates before the readings at t, the
+            # second (_settle) with the rates after them: the trapezoid rule.
+            self._move_pose(dt_ns // 2)
+            self._pending_ns = dt_ns - dt_ns // 2
+            self._state = predict_rates(self._state, t, self.params)  # Jacobian: identity
+        elif t > self._state.stamp_ns:
             self._state, jac = predict_with_jacobian(self._state, t, self.params)
             self._map = jac @ self._map
             if self._clone is not None:
@@ -433,6 +458,8 @@ class OdometryFilter:
 
     def _journalled(self, msg: WheelTicks | YawRate, used: bool) -> bool:
         """Journal ``msg`` with the filter after it (with ``vo_twin``); returns ``used``."""
+        if self._pending_ns:  # every path that advances records; kept safe all the same
+            self._record()
         if self._journal is not None:
             self._journal.append(msg, self._snapshot(), self._history.oldest_stamp_ns())
         return used
@@ -485,7 +512,23 @@ class OdometryFilter:
             return self._twin.keyframe_edge_terms(stamp_ns)
         return self._history.keyframe_edge_terms(stamp_ns)
 
+    def _settle(self) -> None:
+        """Move the pose over the interval of the last :func:`predict_rates` with the rates
+        as the readings at its end left them (``pose_after_rates``)."""
+        if self._pending_ns:
+            self._move_pose(self._pending_ns)
+            self._pending_ns = 0
+
+    def _move_pose(self, dt_ns: int) -> None:
+        """The pose along the state's rates over ``dt_ns`` (:func:`robotd.odometry.ekf.advance_pose`)."""
+        assert self._state is not None
+        self._state, jac = advance_pose(self._state, dt_ns * 1e-9)
+        self._map = jac @ self._map
+        if self._clone is not None:
+            self._clone = clone_after_predict(self._clone, jac)
+
     def _record(self) -> None:
+        self._settle()
         s = self._state
         assert s is not None
         step, self._map = self._map, _EYE
