@@ -151,6 +151,17 @@ class OdometryFilter:
     visual odometry) the heading change over a keyframe interval was then 0.72 mrad RMS
     off the truth, and 0.26 mrad with the trapezoid. The twin (``rate_only_process``
     off) is unchanged.
+    ``vo_angular_accel_noise_radps2_per_sqrt_hz`` (default 0.1; None: the params'): with
+    ``vo_twin`` and ``vo_rate_only``, the fused filter's white angular acceleration. The
+    configuration's 0.3 is also the twin's pose noise (its edges, the graph's gate); in a
+    filter whose pose follows its rates it only says how far the yaw rate may wander
+    between two readings, and with 0.3 the fused filter's heading change over a keyframe
+    interval claimed 0.83 mrad (1-sigma) where it was 0.21 mrad off the truth (office,
+    seeds 0-1, the daemon's visual steps: NEES of the heading component 0.06 against 1),
+    so the visual steps' heading, 0.47 mrad off per step, outweighed the gyro's and the
+    fused heading followed their random walk. With 0.1 that NEES is 0.33 and no step is
+    refused; with 0.05 it is 0.6 but the lateral component becomes overconfident (5-6
+    steps of 760 refused by the gate), with 0.03 24 are.
     """
 
     drive: DiffDriveParams = field(default_factory=DiffDriveParams)
@@ -168,12 +179,15 @@ class OdometryFilter:
     initial_bias: tuple[float, float] | None = None
     vo_rate_only: bool = True
     pose_after_rates: bool = True
+    vo_angular_accel_noise_radps2_per_sqrt_hz: float | None = 0.1
 
     def __post_init__(self) -> None:
         self.counters = FilterCounters()
         self._twin = dataclasses.replace(self, vo_twin=False) if self.vo_twin else None
         if self.vo_twin and self.vo_rate_only:
-            self.params = dataclasses.replace(self.params, rate_only_process=True)
+            q = self.vo_angular_accel_noise_radps2_per_sqrt_hz
+            more = {} if q is None else {"angular_accel_noise_density_radps2_per_sqrt_hz": q}
+            self.params = dataclasses.replace(self.params, rate_only_process=True, **more)
         # The pose's move over the interval since the rates' prediction, made by _settle.
         self._deferred = self.pose_after_rates and self.params.rate_only_process
         self._pending_ns = 0

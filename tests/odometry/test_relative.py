@@ -9,7 +9,7 @@ import pytest
 
 from robotd.base.geometry import between
 from robotd.base.messages import WheelTicks, YawRate
-from robotd.odometry.ekf import IYAW, EkfParams
+from robotd.odometry.ekf import IYAW
 from robotd.odometry.fusion import OdometryFilter
 from robotd.odometry.relative import (
     clone_after_predict,
@@ -234,8 +234,10 @@ def test_a_late_visual_step_gives_the_same_filter_as_an_immediate_one():
     assert now.wheel_gyro.counters == later.wheel_gyro.counters
     assert now.wheel_pose().x_m == later.wheel_pose().x_m  # (PoseStamped has no ==)
     # Without the journal the late steps land on the current state: another end pose.
-    # (The same noise model as the fused filter's: with vo_twin its pose follows its rates.)
-    rates = EkfParams(rate_only_process=True)
+    # (The same noise model as the fused filter's: with vo_twin its pose follows its rates,
+    # with its own angular process noise.)
+    rates = now.params
+    assert rates.rate_only_process
     bare_now, bare_late = OdometryFilter(params=rates), OdometryFilter(params=rates)
     _run_with_latency(bare_now, [0])
     _run_with_latency(bare_late, late)
