@@ -452,17 +452,17 @@ def update_gyro_with_gain(state: EkfState, w_radps: float, params: EkfParams = E
 def predict_rates(state: EkfState, t_ns: int, params: EkfParams = EkfParams()) -> EkfState:
     """The rates' half of a prediction to ``t_ns`` (>= its stamp): ``v``, ``w`` and the bias
     get their process noise (``ql dt``, ``qa dt``, ``gyro_bias_walk^2 dt``), the pose stays
-    where it is; :func:`advance_pose` then moves it over the same ``dt`` with the rates as
-    the readings at ``t_ns`` left them. The state Jacobian of this half is the identity.
+    where it is; :func:`advance_pose` moves it. The state Jacobian of this half is the
+    identity. Only for a filter whose pose has no process noise of its own
+    (``rate_only_process``).
 
-    Why: a rate reading is the mean over the interval it closes (the encoders' ticks over a
-    20 ms packet, the Kobuki's raw gyro samples since the last packet), so the pose's change
-    over that interval is the reading's rate times ``dt``. :func:`predict` moves the pose with
-    the rates *before* the reading (the previous packet's), which makes the pose lag the
-    truth by about half a packet in yaw and a whole one along the track while the base
-    speeds up or turns (on the office route: -5 ms x yaw-rate change and -15 ms x speed
-    change over a keyframe interval, 70 % of the interval's yaw error). Only for a filter
-    whose pose has no process noise of its own (``rate_only_process``)."""
+    Why: the fused filter (:class:`robotd.odometry.fusion.OdometryFilter`, ``pose_after_rates``)
+    moves its pose over the interval to a reading by the trapezoid rule, half with the rates
+    before the reading and half with the rates the reading leaves. :func:`predict` moves it
+    with the rates before the reading alone, and the Kobuki's readings are means over their
+    packet (the raw gyro's stamped in its middle, the ticks at its end): the heading then
+    lagged the truth by about 5 ms of yaw rate while the base turned faster (on the office
+    route, 70 % of the heading error of a keyframe interval)."""
     dt_ns = int(t_ns) - state.stamp_ns
     if dt_ns < 0:
         raise ValueError(f"cannot predict backwards ({t_ns} < {state.stamp_ns})")
@@ -477,9 +477,10 @@ def predict_rates(state: EkfState, t_ns: int, params: EkfParams = EkfParams()) -
 
 
 def advance_pose(state: EkfState, dt_s: float) -> tuple[EkfState, np.ndarray]:
-    """The pose moved along the arc of the state's ``v``, ``w`` over the ``dt_s`` seconds
-    that end at its stamp (the second half of :func:`predict_rates`; no noise), and the
-    ``(6, 6)`` state Jacobian of that move (the same arc and Jacobian as :func:`predict`)."""
+    """The pose moved along the arc of the state's ``v``, ``w`` over ``dt_s`` seconds (no
+    noise; the stamp is left as it is, the caller knows which interval it moves over:
+    :func:`predict_rates`), and the ``(6, 6)`` state Jacobian of that move (the same arc and
+    Jacobian as :func:`predict`)."""
     if dt_s <= 0.0:
         return state, _EYE.copy()
     x, y, yaw, v, w, bias = state.mean.tolist()
