@@ -139,7 +139,10 @@ class OdometryFilter:
     so that a visual step's heading reaches the gyro bias instead of being taken for
     unmodelled turning; the twin, whose edges the pose graph and its gate use, keeps
     ``params`` as given. On the office route (seeds 0-4, the daemon's own visual steps,
-    ``bench/bench_odometry_fused.py``) it lowers the fused APE on four seeds of five.
+    ``bench/bench_odometry_fused.py``), with the calibrated model, it alone lowers the fused
+    APE on seeds 0 and 2 of 0-4; with ``pose_after_rates`` and the fused filter's angular
+    noise below, on seeds 0, 1 and 3 (seeds 2 and 4 are worse than the config's noise
+    model: the fused heading follows the visual steps' heading random walk).
     ``pose_after_rates`` (default True): a filter whose pose follows its rates
     (``rate_only_process``, which ``vo_twin`` with ``vo_rate_only`` sets) moves its pose
     over each interval between two readings by the trapezoid rule: the first half with the
