@@ -188,9 +188,10 @@ class OdometryFilter:
         self.counters = FilterCounters()
         self._twin = dataclasses.replace(self, vo_twin=False) if self.vo_twin else None
         if self.vo_twin and self.vo_rate_only:
+            self.params = dataclasses.replace(self.params, rate_only_process=True)
             q = self.vo_angular_accel_noise_radps2_per_sqrt_hz
-            more = {} if q is None else {"angular_accel_noise_density_radps2_per_sqrt_hz": q}
-            self.params = dataclasses.replace(self.params, rate_only_process=True, **more)
+            if q is not None:
+                self.params = dataclasses.replace(self.params, angular_accel_noise_density_radps2_per_sqrt_hz=q)
         # The pose's move over the interval since the rates' prediction, made by _settle.
         self._deferred = self.pose_after_rates and self.params.rate_only_process
         self._pending_ns = 0
