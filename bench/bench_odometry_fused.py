@@ -357,12 +357,12 @@ def fitted_params(model: Any, base: EkfParams = EkfParams(), process: bool = Tru
 #: Each variant: the filter's noise model, the bias prior and more of
 #: :class:`~robotd.odometry.fusion.OdometryFilter`'s fields.
 BEFORE = {"vo_rate_only": False}
-PREVIOUS = {"vo_rate_only": True, "pose_after_rates": False, "vo_angular_accel_noise_radps2_per_sqrt_hz": None}
+TRAPEZOID = {"pose_after_rates": True, "vo_angular_accel_noise_radps2_per_sqrt_hz": 0.1}
 VARIANTS: dict[str, Any] = {
     "the config's noise model (before)": lambda model: (EkfParams(), None, BEFORE),
-    "the fused pose follows its rates (the previous filter)": lambda model: (EkfParams(), None, PREVIOUS),
-    "the pose by the trapezoid rule, angular process noise 0.1 (the daemon now)": lambda model: (
-        EkfParams(), None, {}),
+    "the fused pose follows its rates (the daemon)": lambda model: (EkfParams(), None, {}),
+    "the pose by the trapezoid rule, angular process noise 0.1 (not the default)": lambda model: (
+        EkfParams(), None, TRAPEZOID),
 }
 #: Measured too (``--variants all``): the calibration drive's turn-on bias as the prior; the
 #: calibration's fitted noise densities with the sensor-level process noise.
@@ -372,7 +372,7 @@ MORE_VARIANTS: dict[str, Any] = {
         BEFORE),
     "fitted noise": lambda model: (fitted_params(model), None, BEFORE),
     "trapezoid rule, the config's angular process noise": lambda model: (
-        EkfParams(), None, {"vo_angular_accel_noise_radps2_per_sqrt_hz": None}),
+        EkfParams(), None, {"pose_after_rates": True}),
 }
 
 

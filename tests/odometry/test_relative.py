@@ -285,8 +285,8 @@ def test_the_fused_pose_follows_the_readings_by_the_trapezoid_rule():
     follows the truth to a tenth of that. (The gyro bias is known here, so that only the
     integration differs.)"""
     known = (0.0, 1e-7)
-    now = OdometryFilter(vo_twin=True, initial_bias=known)
-    before = OdometryFilter(vo_twin=True, initial_bias=known, pose_after_rates=False)
+    now = OdometryFilter(vo_twin=True, initial_bias=known, pose_after_rates=True)
+    before = OdometryFilter(vo_twin=True, initial_bias=known)
     assert now.params.rate_only_process and before.params.rate_only_process
     errors = []
     for f in (now, before):
