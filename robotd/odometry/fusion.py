@@ -169,6 +169,8 @@ class OdometryFilter:
     seeds 0-4 is 0.0545 m on average against 0.0607 m without them, but the demo's end
     error (seed 0) is 0.045 m against 0.038 m, and the fused filter beats the graph's
     combined edges on 2 seeds of 5 instead of 3 (``bench/bench_odometry_fused.py``).
+    ``twin_params``: with ``vo_twin``, the twin's noise model in place of ``params`` (the
+    calibration's gyro noise goes to the graph's edges only: :func:`robotd.app.assemble.build_odometry`).
     """
 
     drive: DiffDriveParams = field(default_factory=DiffDriveParams)
@@ -187,10 +189,12 @@ class OdometryFilter:
     vo_rate_only: bool = True
     pose_after_rates: bool = False
     vo_angular_accel_noise_radps2_per_sqrt_hz: float | None = None
+    twin_params: EkfParams | None = None
 
     def __post_init__(self) -> None:
         self.counters = FilterCounters()
-        self._twin = dataclasses.replace(self, vo_twin=False) if self.vo_twin else None
+        self._twin = dataclasses.replace(self, vo_twin=False, twin_params=None, params=(
+            self.params if self.twin_params is None else self.twin_params)) if self.vo_twin else None
         if self.vo_twin and self.vo_rate_only:
             self.params = dataclasses.replace(self.params, rate_only_process=True)
             q = self.vo_angular_accel_noise_radps2_per_sqrt_hz
