@@ -22,9 +22,7 @@ poster on another wall as easily as for the same one. Measured on the virtual of
 was of that kind: 43-73 inliers, 90-100 % of them on one homography, covering 0.5-1.4 % of
 the image (the checker strip under a repeated poster). A true revisit is recognised by the
 scene around the object as well. So, after the paper's test, :func:`verify_pair` fits a
-homography to the essential matrix's inliers (their largest plane, :func:`plane_mask`: a
-search that draws all its samples, so that the decision does not depend on where a search
-happened to stop; ``homography_threshold_px``); when it
+homography to the essential matrix's inliers (RANSAC, ``homography_threshold_px``); when it
 holds at least ``planar_fraction`` of them, the inliers are taken to be one plane and only
 the homography's inliers count as support; otherwise (real parallax: points off the plane
 fix the epipolar geometry) all inliers do. The support must cover at least
@@ -84,8 +82,8 @@ from robotd.forward.features import FeatureSet
 from robotd.forward.planar import fit_motion
 
 __all__ = ["ACCEPTED", "NO_GEOMETRIC_CONSISTENCY", "SMALL_SUPPORT", "TOO_FEW_MATCHES", "Verification", "VerifyReason",
-           "VerifyParams", "camera_matrix_guess", "essential_matrix", "floor_range", "match_features", "plane_mask",
-           "ransac_iterations", "support_area",
+           "VerifyParams", "camera_matrix_guess", "essential_matrix", "floor_range", "match_features", "ransac_iterations",
+           "support_area",
            "verify_pair"]
 
 class VerifyReason(StrEnum):
@@ -287,7 +285,7 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
                             planarity_chi2=fit.planarity_chi2)
     # Not in the paper: the inliers must not be one small plane (module notes).
     s_old, s_new = p_old[inl], p_new[inl]
-    hmask = plane_mask(s_old, s_new, params)
+    _, hmask = cv2.findHomography(s_old, s_new, cv2.RANSAC, params.homography_threshold_px)
     on_plane = np.zeros(len(s_old), bool) if hmask is None else np.asarray(hmask).ravel() > 0
     n_plane = int(on_plane.sum())
     planar = n_plane >= params.planar_fraction * len(s_old)
@@ -299,32 +297,6 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
                         n_plane_inliers=n_plane, planar=bool(planar), support_area=area,
                         range_m=range_m, n_floor_points=n_floor, sigma_bearing_rad=sig_b,
                         sigma_yaw_rad=sig_y, noise_px=noise, planarity_chi2=fit.planarity_chi2)
-
-
-def plane_mask(p_old: np.ndarray, p_new: np.ndarray, params: VerifyParams) -> np.ndarray | None:
-    """The matches ``p_old, p_new (N, 2)`` (pixels) on their largest plane: the inlier mask
-    ``(N, 1) uint8`` of the homography with the most matches within
-    ``params.homography_threshold_px`` (None when none was found). Searched by OpenCV's
-    USAC with uniform samples of four and the inlier count, all of
-    :data:`MAX_RANSAC_ITERATIONS` samples drawn (no adaptive stop), seeded with
-    ``params.seed``. A search that stops at its confidence stops at the first plane that
-    makes it: on these inlier sets, where a few planes of close size overlap, often a
-    smaller one (40 of 50 inliers covering 2.4 % of the image where 44-46 cover 5.4 %), so
-    whether a set was "one plane" and what its support covered depended on the samples
-    drawn, and the same candidate was accepted or refused by chance. A four-point sample
-    costs little: the whole budget is a millisecond or two."""
-    u = cv2.UsacParams()
-    u.confidence = 1.0  # never stop early: draw every sample
-    u.threshold = params.homography_threshold_px
-    u.maxIterations = MAX_RANSAC_ITERATIONS
-    u.sampler = cv2.SAMPLING_UNIFORM
-    u.score = cv2.SCORE_METHOD_RANSAC
-    u.loMethod = cv2.LOCAL_OPTIM_NULL
-    u.final_polisher = cv2.NONE_POLISHER
-    u.randomGeneratorState = params.seed
-    u.isParallel = False
-    _, mask = cv2.findHomography(np.asarray(p_old, np.float32), np.asarray(p_new, np.float32), u)
-    return None if mask is None else np.asarray(mask)
 
 
 _NO_DISTORTION = np.zeros(5)
