@@ -724,8 +724,7 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
       is given, as a second likelihood (``OdometryParams(use=True)``) with no support test
       for a candidate it agrees with (``agree_min_support_area = 0``) and, when the
       candidate fails, up to two of its time neighbours that odometry agrees with verified
-      (``verify_tries = 3``), the essential matrix searched by USAC (``estimator = "usac"``:
-      the verification's 99th percentile about a seventh of RANSAC's): with the daemon's fused pose (wheel + gyro + floor visual
+      (``verify_tries = 3``): with the daemon's fused pose (wheel + gyro + floor visual
       odometry) on the office route they raised recall at 100 % precision from 0.534 to
       0.818 with no false positive; without a pose (the real corridor, ``robotd eval
       forward`` without ``--odometry``) the detector is the one without odometry. The
@@ -742,7 +741,6 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
                                 vocabulary=VocabularyParams(purge_after=DEFAULT_PURGE_AFTER),
                                 filter=FilterParams(rule=DEFAULT_RULE, loop_threshold=DEFAULT_THRESHOLD),
                                 consistency=DEFAULT_CONSISTENCY, verify_tries=DEFAULT_VERIFY_TRIES,
-                                verify=VerifyParams(estimator=DEFAULT_ESTIMATOR),
                                 odometry=OdometryParams(use=True, agree_min_support_area=0.0))
     else:
         raise ValueError(f"forward detector method must be one of {', '.join(METHODS)}, got {method!r}")
@@ -777,6 +775,3 @@ DEFAULT_RULE = "total"
 DEFAULT_THRESHOLD = 0.3
 DEFAULT_CONSISTENCY = 1
 DEFAULT_VERIFY_TRIES = 3
-#: The essential matrix searched by OpenCV's USAC (VerifyParams.estimator): the same test as
-#: RANSAC with a cheaper sample; bench/bench_forward_scale.py measures both.
-DEFAULT_ESTIMATOR = "usac"
