@@ -138,6 +138,8 @@ class OdometryFilter:
     unmodelled turning; the twin, whose edges the pose graph and its gate use, keeps
     ``params`` as given. On the office route (seeds 0-4, the daemon's own visual steps,
     ``bench/bench_odometry_fused.py``) it lowers the fused APE on four seeds of five.
+    ``twin_params``: with ``vo_twin``, the twin's noise model in place of ``params`` (the
+    calibration's gyro noise goes to the graph's edges only: :func:`robotd.app.assemble.build_odometry`).
     """
 
     drive: DiffDriveParams = field(default_factory=DiffDriveParams)
@@ -154,10 +156,12 @@ class OdometryFilter:
     gyro_scale: float = 1.0
     initial_bias: tuple[float, float] | None = None
     vo_rate_only: bool = True
+    twin_params: EkfParams | None = None
 
     def __post_init__(self) -> None:
         self.counters = FilterCounters()
-        self._twin = dataclasses.replace(self, vo_twin=False) if self.vo_twin else None
+        self._twin = dataclasses.replace(self, vo_twin=False, twin_params=None, params=(
+            self.params if self.twin_params is None else self.twin_params)) if self.vo_twin else None
         if self.vo_twin and self.vo_rate_only:
             self.params = dataclasses.replace(self.params, rate_only_process=True)
         self._state: EkfState | None = None
