@@ -241,6 +241,40 @@ def trimmed_rss_mb() -> float:
     return rss_mb()
 
 
+def process_memory() -> dict[str, float]:
+    """Where the resident memory is, MB: ``RssAnon`` (heap, mmaps: what the code allocates),
+    ``RssFile`` (mapped libraries and files) from ``/proc/self/status``, and glibc's
+    ``mallinfo2``: bytes in use (``malloc_used_mb``: live allocations), held free in its
+    arenas (``malloc_free_mb``: fragmentation), in its own mmaps (``malloc_mmap_mb``), and
+    the arena count as the main arena plus its others' size; empty where not Linux glibc."""
+    import ctypes
+    import ctypes.util
+
+    out: dict[str, float] = {}
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                k = line.split(":")[0]
+                if k in ("RssAnon", "RssFile", "RssShmem", "VmData"):
+                    out[k] = int(line.split()[1]) / 1024
+    except OSError:
+        pass
+
+    class MallInfo2(ctypes.Structure):
+        _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                   "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.mallinfo2.restype = MallInfo2
+        m = libc.mallinfo2()
+        out.update({"malloc_used_mb": m.uordblks / 1e6, "malloc_free_mb": m.fordblks / 1e6,
+                    "malloc_mmap_mb": m.hblkhd / 1e6, "malloc_arena_mb": m.arena / 1e6})
+    except (OSError, AttributeError):
+        pass
+    return out
+
+
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
@@ -670,8 +704,10 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                             n = c.get("keyframes_stored", 0) + c.get("keyframes_not_stored", 0)
                         if n >= next_sample:
                             t = os.times()
+                            pm = process_memory()
                             samples.append({"keyframes": n, "stored": c.get("keyframes_stored", 0),
                                             "rss_mb": rss_mb(), "rss_trimmed_mb": trimmed_rss_mb(), "laps": lap + 1,
+                                            **pm, **{f"{k}_trimmed": v for k, v in process_memory().items()},
                                             "index_mb": floor.detector.index.nbytes / 1e6,
                                             "cpu_s": (t.user - t0.user) + (t.system - t0.system),
                                             **graph_memory(pipeline.stage("graph").graph),
@@ -684,7 +720,11 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                             s = samples[-1]
                             print(f"memory: {n} keyframes, RSS {s['rss_mb']:.0f} MB ({s['rss_trimmed_mb']:.0f} "
                                   f"trimmed), index {s['index_mb']:.1f} MB (descriptors {s['index_descriptors_mb']:.1f})"
-                                  f", SQLite {s['sqlite_mb']:.1f} MB, graph {s.get('graph_factors', 0)} factors "
+                                  f", SQLite {s['sqlite_mb']:.1f} MB, anon {s.get('RssAnon', math.nan):.0f} MB"
+                                  f" file {s.get('RssFile', math.nan):.0f} MB, malloc used "
+                                  f"{s.get('malloc_used_mb', math.nan):.0f} free {s.get('malloc_free_mb', math.nan):.0f}"
+                                  f" (after trim {s.get('malloc_free_mb_trimmed', math.nan):.0f}) mmap "
+                                  f"{s.get('malloc_mmap_mb', math.nan):.0f} MB, graph {s.get('graph_factors', 0)} factors "
                                   f"{s.get('graph_tree_nnz', 0)} nnz, query {s['query_ms_median']:.2f} ms median "
                                   f"({s['index_loads']} descriptors read so far), {s['cpu_s']:.0f} s CPU"
                                   + (f", traced {s['traced_mb']:.1f} MB" if "traced_mb" in s else ""), flush=True)
