@@ -35,7 +35,9 @@ one core. This benchmark:
   the 20 s around it left out, as the detector does (beyond the distinct images, the
   descriptors are repeated under new ids: the cost of the scan and of the shortlist is
   measured, not the shortlist of a real map of that size); describe
-  and query medians, the index's memory and the process's at each size;
+  and query medians, the index's memory and the process's at each size, and the same
+  queries on the daemon's index (``IndexParams.resident`` descriptors kept decoded, the
+  others decoded again when shortlisted, as ``FloorIndex.from_store`` reads them back);
 * ``--memory N`` (alone, in a process of its own): the whole daemon's resident memory as
   its map grows to N keyframes (:func:`memory_run`; ``--localise-mapped`` as the service
   runs it), sampled every ``--memory-every`` keyframes into ``NAME-memory.json`` (and a
@@ -179,9 +181,11 @@ def read_truth(path: Path) -> tuple[np.ndarray, np.ndarray]:
     from drivers.recording.reader import RecordingReader
     from drivers.recording.schemas import TOPIC_GROUND_TRUTH
 
+    from robotd.base.messages import PoseStamped
+
     stamps, poses = [], []
     with RecordingReader(path) as r:
-        for topic, msg in r.messages():
+        for topic, msg in r.messages(only=(PoseStamped,)):  # the frames not decoded
             if topic == TOPIC_GROUND_TRUTH:
                 stamps.append(msg.stamp_ns)
                 poses.append((msg.x_m, msg.y_m, msg.yaw_rad))
@@ -516,23 +520,36 @@ def scale(recording: Path, sizes: list[int], queries: int, mode: int, shortlist:
                                            "p99": float(np.quantile(describe_ms, 0.99)),
                                            "n": len(describe_ms)}, "sizes": []}
     index = FloorIndex(IndexParams(shortlist=shortlist))
+    # The daemon's index (FloorIndex.from_store): IndexParams.resident descriptors kept
+    # decoded, the others read back when shortlisted (decoded from their bytes here: the
+    # map's read itself is about 0.03 ms, the decode most of a read back's cost).
+    lazy = FloorIndex(IndexParams(shortlist=shortlist), loader=lambda i: decode(blobs[i % distinct]))
     rss0 = rss_mb()
     decoded = [decode(b) for b in blobs[:n_frames]]  # queries: the drive's own frames
     recent = int(20.0 * n_frames / max(1.0, duration_s))  # frames in 20 s
     for n in sorted(sizes):
         for i in range(len(index), n):
             index.add(i, decode(blobs[i % distinct]))
+            lazy.add(i, index.descriptor(i))
         qs = rng.choice(len(decoded), size=min(queries, len(decoded)), replace=False)
-        ms = []
+        ms, ms_lazy = [], []
+        loads0 = lazy.loads
         ids = np.arange(n)
         for q in qs:
             # As the detector: nothing from the last (or next) 20 s of the drive, in any copy.
             excluded = ids[np.abs(ids % distinct % n_frames - q) < recent]
             t0 = time.thread_time()
             index.query(decoded[q], k=5, min_score=min_score, exclude_ids=excluded)
-            ms.append((time.thread_time() - t0) * 1e3)
+            t1 = time.thread_time()
+            lazy.query(decoded[q], k=5, min_score=min_score, exclude_ids=excluded)
+            ms_lazy.append((time.thread_time() - t1) * 1e3)
+            ms.append((t1 - t0) * 1e3)
         out["sizes"].append({"keyframes": n, "distinct": min(n, distinct), "query_ms": {"median": statistics.median(ms),
                                                           "p99": float(np.quantile(ms, 0.99)), "n": len(ms)},
+                             "query_read_back_ms": {"median": statistics.median(ms_lazy),
+                                                    "p99": float(np.quantile(ms_lazy, 0.99)),
+                                                    "reads_per_query": (lazy.loads - loads0) / len(qs),
+                                                    "resident": lazy.params.resident},
                              "index_mb": index.nbytes / 1e6, "rss_mb": rss_mb(), "rss_growth_mb": rss_mb() - rss0})
     return out
 
@@ -621,6 +638,50 @@ def memory_breakdown(floor: Any, trace: bool) -> dict[str, Any]:
         out["traced_by_file"] = [[str(s.traceback[0].filename).replace(root, ""), round(s.size / 1e6, 2), s.count]
                                  for s in stats[:12]]
     return out
+
+
+def release_breakdown(pipeline: Any, trace: bool) -> list[dict[str, Any]]:
+    """Attribution by removal, at the end of :func:`memory_run`: the daemon's large parts
+    let go one after the other (iSAM2, then the rest of the pose graph and its gate, then
+    the floor index), each followed by a collection and ``malloc_trim(0)``; per step the
+    C allocator's bytes in use, the resident memory and (with ``trace``) the Python side's
+    traced bytes. What each step frees is what that part held (GTSAM's C++ included,
+    which tracemalloc does not see). Destructive: the daemon is not used afterwards."""
+    import gc
+
+    from robotd.floor.index import FloorIndex
+    from robotd.graph.model import PoseGraph
+
+    def sample(what: str) -> dict[str, Any]:
+        gc.collect()
+        rss = trimmed_rss_mb()
+        pm = process_memory()
+        row = {"what": what, "rss_mb": rss, "malloc_used_mb": pm.get("malloc_used_mb", math.nan),
+               "malloc_free_mb": pm.get("malloc_free_mb", math.nan), "RssAnon": pm.get("RssAnon", math.nan)}
+        if trace:
+            import tracemalloc
+
+            row["traced_mb"] = tracemalloc.get_traced_memory()[0] / 1e6
+        return row
+
+    stage = pipeline.stage("graph")
+    graph = stage.graph
+    rows = [sample("at the end")]
+    graph._isam = graph._new_isam()
+    graph._cached = None
+    rows.append(sample("iSAM2 let go"))
+    graph.graph = PoseGraph()
+    graph._clear_fold()
+    gated = getattr(stage, "gated", None)
+    if gated is not None:
+        for name in ("update_ms", "_loops", "_travelled", "_stamps", "_edges_into"):
+            if hasattr(gated, name):
+                getattr(gated, name).clear()
+    rows.append(sample("the pose graph and its gate let go"))
+    floor = pipeline.stage("floor")
+    floor.detector.index = FloorIndex()
+    rows.append(sample("the floor index let go"))
+    return rows
 
 
 def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
@@ -751,6 +812,10 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
             out.update(memory_breakdown(floor, args.memory_trace))
             out.update({k: int(c[k]) for k in ("graph_update_median_us", "graph_update_p99_us", "graph_solve_ms")
                         if k in c})
+            out["released"] = release_breakdown(pipeline, args.memory_trace)
+            print("memory released at the end, MB (malloc in use, RSS after malloc_trim): "
+                  + "; ".join(f"{r['what']} {r['malloc_used_mb']:.1f} {r['rss_mb']:.1f}" for r in out["released"]),
+                  flush=True)
         if args.keep_map is not None:
             import shutil
 
@@ -993,12 +1058,15 @@ def markdown(p: dict[str, Any]) -> str:
         lines += ["", f"Floor index at larger maps (frames of the recording and their turned and mirrored "
                       f"copies; describe median {s['describe_ms']['median']:.2f} ms, p99 "
                       f"{s['describe_ms']['p99']:.2f} ms over {s['describe_ms']['n']} images):", "",
-                  "| keyframes | of them distinct | query median ms | query p99 ms | index MB | process RSS MB |",
-                  "|---:|---:|---:|---:|---:|---:|"]
+                  "| keyframes | of them distinct | query median ms | query p99 ms | as the daemon: read back, "
+                  "median ms (reads per query) | index MB | process RSS MB |",
+                  "|---:|---:|---:|---:|---:|---:|---:|"]
         for row in s["sizes"]:
+            rb = row.get("query_read_back_ms")
             lines.append(f"| {row['keyframes']} | {row.get('distinct', row['keyframes'])} | "
                          f"{row['query_ms']['median']:.2f} | {row['query_ms']['p99']:.2f} | "
-                         f"{row['index_mb']:.1f} | {row['rss_mb']:.0f} |")
+                         + (f"{rb['median']:.2f} ({rb['reads_per_query']:.1f}) | " if rb else "- | ")
+                         + f"{row['index_mb']:.1f} | {row['rss_mb']:.0f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -1055,6 +1123,8 @@ def main(argv: list[str] | None = None) -> int:
                                                          "(default 1000,10000; '' for none)")
     ap.add_argument("--distinct", type=int, default=1000,
                     help="images described for the index-scale maps (default 1000; --full: 10000)")
+    ap.add_argument("--scale-only", action="store_true",
+                    help="only the index at larger maps (--scale), without the replay (writes NAME-scale.json)")
     ap.add_argument("--queries", type=int, default=100, help="queries per index size (default 100)")
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "bench" / "results")
     ap.add_argument("--name", default="daemon", help="JSON file name (default daemon)")
@@ -1126,6 +1196,26 @@ def main(argv: list[str] | None = None) -> int:
         args.duration = None
         args.distinct = max(args.distinct, 10000)
     recording = ensure_recording(args)
+    if args.scale_only:
+        from drivers.recording.reader import RecordingReader
+        from robotd.floor.detector import FloorDetectorParams
+
+        fd = FloorDetectorParams()
+        with RecordingReader(recording) as rr:
+            span = rr.time_range_ns
+        assert span is not None
+        sizes = [int(v) for v in args.scale.split(",") if v.strip()]
+        sc = scale(recording, sizes, args.queries, fd.descriptor_mode, args.shortlist or fd.shortlist,
+                   (span[1] - span[0]) / 1e9, args.distinct)
+        for row in sc["sizes"]:
+            print(f"index {row['keyframes']}: query {row['query_ms']['median']:.2f} ms median "
+                  f"({row['query_read_back_ms']['median']:.2f} ms as the daemon, "
+                  f"{row['query_read_back_ms']['reads_per_query']:.1f} descriptors read back per query)")
+        out = write_json(args.out / f"{args.name}-scale.json", {"machine": machine_info(), "recording": str(recording),
+                                                                 "args": {k: str(v) for k, v in vars(args).items()},
+                                                                 "scale": sc})
+        print(f"wrote {out}")
+        return 0
     with tempfile.TemporaryDirectory() as tmp:
         map_path = Path(tmp) / "map.sqlite"
         r = replay(args, recording, map_path)
@@ -1166,7 +1256,8 @@ def main(argv: list[str] | None = None) -> int:
           f"loop-corrected {(j['ate_loop_corrected_m'] or math.nan) * 1e3:.1f} mm")
     if sc:
         for row in sc["sizes"]:
-            print(f"index {row['keyframes']}: query {row['query_ms']['median']:.2f} ms median, "
+            print(f"index {row['keyframes']}: query {row['query_ms']['median']:.2f} ms median "
+                  f"({row['query_read_back_ms']['median']:.2f} ms as the daemon, descriptors read back), "
                   f"index {row['index_mb']:.1f} MB, RSS {row['rss_mb']:.0f} MB")
     out = write_json(args.out / f"{args.name}.json", payload)
     print(f"wrote {out}")
