@@ -675,8 +675,11 @@ def release_breakdown(pipeline: Any, trace: bool) -> list[dict[str, Any]]:
     gated = getattr(stage, "gated", None)
     if gated is not None:
         for name in ("update_ms", "_loops", "_travelled", "_stamps", "_edges_into"):
-            if hasattr(gated, name):
-                getattr(gated, name).clear()
+            part = getattr(gated, name, None)
+            if isinstance(part, dict):
+                part.clear()
+            elif part is not None:
+                del part[:]
     rows.append(sample("the pose graph and its gate let go"))
     floor = pipeline.stage("floor")
     floor.detector.index = FloorIndex()
