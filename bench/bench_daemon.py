@@ -984,6 +984,29 @@ def _memory_section(p: dict[str, Any]) -> list[str]:
         lines.append(f"| {row['keyframes']} | {row.get('stored', row['keyframes'])} | {row['rss_mb']:.0f} | "
                      f"{trimmed} | {row['index_mb']:.1f} | {row['laps']} | {row['cpu_s']:.0f} | {graph} | "
                      f"{isam} | {query} |")
+    if any("malloc_used_mb" in row for row in r["samples"]):
+        lines += ["", "Where the resident memory is (`/proc/self/status` and glibc's `mallinfo2`, MB): anonymous "
+                      "(the heap, mappings, Python's own arenas) and file-backed (the libraries' pages); of the C "
+                      "allocator's heap, the bytes in use (live allocations: GTSAM's C++, numpy's arrays, Python's "
+                      "objects over 512 bytes, SQLite) and the bytes it holds free, before and after "
+                      "`malloc_trim(0)` (the trim hands the free pages back, so RSS falls, but leaves them counted "
+                      "free), and its own mappings (arrays above its threshold).", "",
+                  "| keyframes | RSS anonymous | RSS file | malloc in use | malloc free (after the trim) | malloc mmap "
+                  "| SQLite | iSAM2 factors | Bayes tree entries |",
+                  "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        for row in r["samples"]:
+            if "malloc_used_mb" not in row:
+                continue
+            lines.append(f"| {row['keyframes']} | {row.get('RssAnon', math.nan):.0f} | "
+                         f"{row.get('RssFile', math.nan):.0f} | {row['malloc_used_mb']:.0f} | "
+                         f"{row.get('malloc_free_mb', math.nan):.0f} ({row.get('malloc_free_mb_trimmed', math.nan):.0f})"
+                         f" | {row.get('malloc_mmap_mb', math.nan):.0f} | {row.get('sqlite_mb', math.nan):.1f} | "
+                         f"{row.get('graph_factors', '-')} | {row.get('graph_tree_nnz', '-')} |")
+    if r.get("released"):
+        lines += ["", "Attribution by removal at the end of the run (each part let go in turn, then a "
+                      "collection and `malloc_trim`): " + "; ".join(
+                          f"{x['what']}: malloc in use {x['malloc_used_mb']:.1f} MB, RSS {x['rss_mb']:.1f} MB"
+                          for x in r["released"]) + "."]
     before = ("" if r.get("rss_before_mb") is None else
               f"Before the first frame: {r['rss_before_mb']:.0f} MB (the daemon assembled, its map open). ")
     if "rss_after_mb" not in r:  # the partial JSON of a run stopped before its target
