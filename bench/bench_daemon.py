@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import gc
 import json
 import math
 import os
@@ -826,6 +827,68 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
     return out
 
 
+def forward_memory_run(args: argparse.Namespace, images: int, forward_dir: Path,
+                       on_sample: Any = None) -> dict[str, Any]:
+    """The whole daemon's resident memory as its forward detector takes ``images`` images.
+
+    The daemon is assembled with the forward detector on (``robotd run``'s stages, its map
+    on disk) and the forward detector of its ``forward`` stage is given the images of
+    ``forward_dir`` (a rendered office sequence of ``bench_forward_scale.py``: PNGs and
+    ``poses.csv``) lap after lap, each lap changed as ``bench_forward_scale.changed`` does
+    (shifted, mirrored on odd laps, brightness changed), with the lap's poses, read from
+    disk one at a time (no image kept). The images are not written to the map (the stage
+    writes each under its floor keyframe, which this drive has none of): the detector's
+    memory, the process's and the allocator's are sampled every ``--memory-every`` images."""
+    import cv2
+
+    from robotd.app.assemble import assemble_daemon, open_map
+    from robotd.app.notify import Notifier
+    from robotd.base.clock import ManualClock
+
+    try:
+        from bench.bench_forward_scale import changed
+    except ImportError:  # run as a script: bench/ is on sys.path
+        from bench_forward_scale import changed
+
+    files = sorted(forward_dir.glob("*.png"))
+    poses = np.loadtxt(forward_dir / "poses.csv", delimiter=",", skiprows=1)[:, 2:5]
+    if not files or len(poses) != len(files):
+        raise SystemExit(f"{forward_dir}: {len(files)} PNGs and {len(poses)} poses")
+    args.forward = True
+    samples: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = make_config(args, Path(tmp) / "map.sqlite")
+        clock = ManualClock(0)
+        with open_map(cfg, clock=clock) as store:
+            daemon = assemble_daemon(cfg, clock, {}, store, Notifier(), lossless=True)
+            det = daemon.pipeline.stage("forward").detector
+            gc.collect()
+            rss0 = rss_mb()
+            t0 = os.times()
+            cov = np.diag([1e-4, 1e-4, 1e-5])
+            loops = 0
+            for i in range(images):
+                lap, j = divmod(i, len(files))
+                im = changed(cv2.imread(str(files[j]), cv2.IMREAD_GRAYSCALE), lap, 0)
+                d = det.process(im, poses[j], cov)
+                loops += d.loop_id is not None
+                if (i + 1) % args.memory_every == 0 or i + 1 == images:
+                    t = os.times()
+                    pm = process_memory()
+                    row = {"images": i + 1, "laps": lap + 1, "rss_mb": rss_mb(), "rss_trimmed_mb": trimmed_rss_mb(),
+                           **pm, "loops": loops, "cpu_s": (t.user - t0.user) + (t.system - t0.system)}
+                    if hasattr(det, "memory_bytes"):
+                        row["detector_bytes"] = det.memory_bytes()
+                    samples.append(row)
+                    print(f"forward memory: {i + 1} images, RSS {row['rss_mb']:.0f} MB ({row['rss_trimmed_mb']:.0f} "
+                          f"trimmed), anon {pm.get('RssAnon', math.nan):.0f} MB, malloc used "
+                          f"{pm.get('malloc_used_mb', math.nan):.0f} MB, {loops} loops, {row['cpu_s']:.0f} s CPU",
+                          flush=True)
+                    if on_sample is not None:
+                        on_sample({"images_target": images, "rss_before_mb": rss0, "samples": samples})
+    return {"images_target": images, "rss_before_mb": rss0, "samples": samples, "forward_dir": str(forward_dir)}
+
+
 def query_residency(map_path: Path, sizes: list[int], residents: list[int], queries: int,
                     shortlist: int, exclude_recent_s: float = 20.0) -> dict[str, Any]:
     """The floor query's time with the local descriptors in RAM against read back from the
@@ -1170,6 +1233,11 @@ def main(argv: list[str] | None = None) -> int:
                          "(sizes from --scale; writes NAME-residency.json)")
     ap.add_argument("--resident", default="256,1024", help="with --residency: decoded descriptors kept, "
                                                           "comma-separated (default 256,1024)")
+    ap.add_argument("--forward-memory", type=int, default=0, metavar="N",
+                    help="only the whole daemon's memory as its forward detector takes N images of --forward-dir "
+                         "(writes NAME-forward-memory.json)")
+    ap.add_argument("--forward-dir", type=Path, default=Path("/tmp/fwd/office"),
+                    help="a rendered forward sequence (bench_forward_scale.py's): PNGs and poses.csv")
     ap.add_argument("--memory-page", nargs="+", default=None, metavar="[LABEL=]JSON",
                     help="only write the memory page (--doc) from these --memory JSON files, partial or not "
                          "(LABEL= heads its section)")
@@ -1181,6 +1249,15 @@ def main(argv: list[str] | None = None) -> int:
             args.doc.parent.mkdir(parents=True, exist_ok=True)
             args.doc.write_text(page, encoding="utf-8")
         print(page, end="")
+        return 0
+    if args.forward_memory:
+        fpayload: dict[str, Any] = {"machine": machine_info(), "args": {k: str(v) for k, v in vars(args).items()}}
+
+        def fpartial(so_far: dict[str, Any]) -> None:
+            write_json(args.out / f"{args.name}-forward-memory.json", {**fpayload, "forward_memory": so_far})
+
+        fpayload["forward_memory"] = forward_memory_run(args, args.forward_memory, args.forward_dir, fpartial)
+        print(f"wrote {write_json(args.out / f'{args.name}-forward-memory.json', fpayload)}")
         return 0
     if args.residency is not None:
         sizes = [int(v) for v in args.scale.split(",") if v.strip()]
