@@ -976,8 +976,33 @@ def memory_markdown(*payloads: dict[str, Any]) -> str:
              "mapped ground are matched and not stored), with the keyframe poses from the recorded",
              "ground truth."]
     for p in payloads:
-        lines += [""] + (_residency_section(p) if "residency" in p else _memory_section(p))
+        lines += [""] + (_residency_section(p) if "residency" in p else
+                         _forward_section(p) if "forward_memory" in p else _memory_section(p))
     return "\n".join(lines) + "\n"
+
+
+def _forward_section(p: dict[str, Any]) -> list[str]:
+    """A ``--forward-memory`` payload's section of the memory page."""
+    r, m = p["forward_memory"], p["machine"]
+    lines = [f"## {p.get('label') or 'The forward detector on: the whole daemon as its forward memory grows'}", "",
+             f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.",
+             f"`--forward-memory`: the daemon assembled with the forward detector on, its detector given the "
+             f"images of `{r.get('forward_dir', '?')}` lap after lap (each lap changed), target "
+             f"{r['images_target']} images; the floor stages idle. Before the first image: "
+             f"{r['rss_before_mb']:.0f} MB.", "",
+             "| images | laps | process RSS MB | after malloc_trim MB | RSS anonymous | malloc in use | "
+             "the detector's own MB | loops | CPU s so far |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for row in r["samples"]:
+        own = row.get("detector_bytes")
+        own_mb = f"{sum(own.values()) / 1e6:.1f}" if isinstance(own, dict) else "-"
+        lines.append(f"| {row['images']} | {row['laps']} | {row['rss_mb']:.0f} | {row['rss_trimmed_mb']:.0f} | "
+                     f"{row.get('RssAnon', math.nan):.0f} | {row.get('malloc_used_mb', math.nan):.0f} | {own_mb} | "
+                     f"{row['loops']} | {row['cpu_s']:.0f} |")
+    last = r["samples"][-1]["images"] if r["samples"] else 0
+    if last < r["images_target"]:
+        lines += ["", f"The run was stopped at {last} images, before its target of {r['images_target']}."]
+    return lines
 
 
 def _residency_section(p: dict[str, Any]) -> list[str]:
