@@ -688,6 +688,12 @@ def release_breakdown(pipeline: Any, trace: bool) -> list[dict[str, Any]]:
     return rows
 
 
+def _tracing() -> bool:
+    import tracemalloc
+
+    return tracemalloc.is_tracing()
+
+
 def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                on_sample: Any = None) -> dict[str, Any]:
     """The whole daemon's resident memory as its map grows to ``keyframes`` keyframes.
@@ -776,7 +782,7 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                                             "index_mb": floor.detector.index.nbytes / 1e6,
                                             "cpu_s": (t.user - t0.user) + (t.system - t0.system),
                                             **graph_memory(pipeline.stage("graph").graph),
-                                            **memory_breakdown(floor, args.memory_trace),
+                                            **memory_breakdown(floor, _tracing()),
                                             "query_ms_median": statistics.median(query_ms) if query_ms else math.nan,
                                             "query_ms_p99": float(np.quantile(query_ms, 0.99)) if query_ms else math.nan,
                                             "index_loads": int(getattr(floor.detector.index, "loads", 0)),
@@ -794,6 +800,10 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                                   f"({s['index_loads']} descriptors read so far), {s['cpu_s']:.0f} s CPU"
                                   + (f", traced {s['traced_mb']:.1f} MB" if "traced_mb" in s else ""), flush=True)
                             next_sample += args.memory_every
+                            if args.memory_trace_from and n >= args.memory_trace_from and not _tracing():
+                                import tracemalloc
+
+                                tracemalloc.start(1)  # from here on: what is allocated and stays
                             if on_sample is not None:
                                 on_sample({"keyframes_target": keyframes, "laps": lap + 1, "frames": frames,
                                            "rss_before_mb": rss0, "samples": samples, "config": config})
@@ -813,10 +823,10 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                    "loop_edges": int(c.get("links_loop", 0)), "samples": samples,
                    "map_file_mb": (Path(tmp) / "map.sqlite").stat().st_size / 1e6, "config": config}
             out.update(graph_memory(pipeline.stage("graph").graph))
-            out.update(memory_breakdown(floor, args.memory_trace))
+            out.update(memory_breakdown(floor, _tracing()))
             out.update({k: int(c[k]) for k in ("graph_update_median_us", "graph_update_p99_us", "graph_solve_ms")
                         if k in c})
-            out["released"] = release_breakdown(pipeline, args.memory_trace)
+            out["released"] = release_breakdown(pipeline, _tracing())
             print("memory released at the end, MB (malloc in use, RSS after malloc_trim): "
                   + "; ".join(f"{r['what']} {r['malloc_used_mb']:.1f} {r['rss_mb']:.1f}" for r in out["released"]),
                   flush=True)
@@ -1253,6 +1263,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--memory-trace", action="store_true",
                     help="with --memory: tracemalloc on, the Python side's allocations by file at each sample "
                          "(slower; its own overhead is reported)")
+    ap.add_argument("--memory-trace-from", type=int, default=0, metavar="K",
+                    help="with --memory: tracemalloc on from the first sample at K keyframes or more, so that "
+                         "the traced allocations of later samples are those made since and still alive")
     ap.add_argument("--residency", type=Path, default=None, metavar="MAP",
                     help="only the floor query's time with its descriptors in RAM and read back from MAP "
                          "(sizes from --scale; writes NAME-residency.json)")
