@@ -987,8 +987,33 @@ def memory_markdown(*payloads: dict[str, Any]) -> str:
              "ground truth."]
     for p in payloads:
         lines += [""] + (_residency_section(p) if "residency" in p else
-                         _forward_section(p) if "forward_memory" in p else _memory_section(p))
+                         _forward_section(p) if "forward_memory" in p else
+                         _scale_section(p) if "scale" in p and "memory" not in p else _memory_section(p))
     return "\n".join(lines) + "\n"
+
+
+def _scale_section(p: dict[str, Any]) -> list[str]:
+    """A ``--scale-only`` payload's section of the memory page: the floor query of
+    ``./dev bench daemon`` in RAM and on the daemon's index (descriptors read back)."""
+    sc, m = p["scale"], p["machine"]
+    lines = [f"## {p.get('label') or 'The floor query at 1,000 and 10,000 keyframes, as the daemon holds them'}", "",
+             f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.",
+             f"`--scale-only` on `{p['recording']}`: the recording's frames described (and turned or mirrored "
+             "copies, repeated beyond the distinct ones), the drive's own frames queried with the loop threshold, "
+             "the 20 s around each left out; each query timed (thread CPU) on an index with every descriptor in "
+             "RAM and then on the daemon's (the 1024 most recently used decoded, the others decoded again when "
+             "shortlisted).", "",
+             "| keyframes | of them distinct | in RAM, median ms | p99 | as the daemon, median ms | p99 | "
+             "against in RAM | descriptors read back per query |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for row in sc["sizes"]:
+        q, rb = row["query_ms"], row.get("query_read_back_ms")
+        if rb is None:
+            continue
+        lines.append(f"| {row['keyframes']} | {row.get('distinct', row['keyframes'])} | {q['median']:.2f} | "
+                     f"{q['p99']:.2f} | {rb['median']:.2f} | {rb['p99']:.2f} | {rb['median'] / q['median']:.2f} | "
+                     f"{rb['reads_per_query']:.1f} |")
+    return lines
 
 
 def _forward_section(p: dict[str, Any]) -> list[str]:
