@@ -54,7 +54,8 @@ except ImportError:  # run as a script: bench/ is on sys.path
 
 DEFAULT_MAP = Path.home() / ".cache" / "robotd-bench" / "office-3laps-map.sqlite"
 SETTINGS = {"every loop": {"loop_spacing": 0, "loops_per_keyframe": 0, "fold": 1},
-            "every keyframe in iSAM2": {"fold": 1}, "thinned": {}}
+            "every keyframe in iSAM2": {"fold": 1}, "thinned": {},
+            "one loop per place": {"loops_per_place": 1}}
 
 
 def trimmed_rss_mb() -> float:
