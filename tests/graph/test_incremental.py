@@ -180,6 +180,28 @@ def test_loops_near_a_loop_in_the_graph_are_left_out():
     assert np.allclose(thin.estimate()[1], result.poses, atol=1e-4)
 
 
+def test_one_loop_per_place_chains_the_laps():
+    """With ``loops_per_place`` 1 a place's keyframe receives one loop in iSAM2: each lap
+    ties to the lap before (the first offered to each older place) and the later laps'
+    loops to that place are left out, so the tree stays smaller than with every pass tied
+    to every earlier one, and the estimate about as close to the truth."""
+    every = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_keyframe=0))
+    truth, _odo = _laps(every, 5)
+    chained = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_keyframe=0, loops_per_place=1))
+    _laps(chained, 5)
+    loops = [e for e in chained.graph.edges if e.kind == "loop"]
+    assert len(loops) == 20 * 4 and all(e.to_id - e.from_id == 20 for e in loops)
+    assert chained.held_loops == 20 * (1 + 2 + 3 + 4) - 80
+    assert chained.stats()["tree_nnz"] < every.stats()["tree_nnz"]
+
+    def rms(xy: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(np.sum((xy - truth) ** 2, axis=1))))
+
+    assert rms(chained.estimate()[1][:, :2]) < 1.5 * rms(every.estimate()[1][:, :2])
+    with pytest.raises(ValueError, match="loops_per_place"):
+        IncrementalParams(loops_per_place=-1)
+
+
 def test_a_left_out_loop_is_checked_as_any_edge():
     inc = IncrementalGraph(IncrementalParams(loop_spacing=5))
     inc.add_first(0)
