@@ -16,16 +16,19 @@ daemon takes them (``--keyframe-m`` or 10 deg, floor frames at 30 Hz) with their
 chain of ``N`` consecutive edges (a window every ``N/5`` edges) composed as the pose graph
 composes independent edges, its covariance the sum of theirs carried to the chain's end;
 the mean NEES over the windows, and of the yaw and the position parts alone (expected 1
-and 2). The same windows under four models of what the edges share: independent edges (the
-pose graph today); the edges given the gyro bias at their start with the bias as variables
-of the graph (:mod:`robotd.graph.bias`: AR(1) bias steps from the filter), marginalised;
+and 2). The same windows under five models of what the edges share: independent edges (the
+pose graph today); the bias as one variable per window of :data:`WINDOW_EDGES` edges from
+the first (:func:`robotd.graph.bias.bias_window_factor`), marginalised; the edges given the
+gyro bias at their start with the bias as variables of the graph (:mod:`robotd.graph.bias`:
+AR(1) bias steps from the filter), marginalised;
 the same with the wheels' and the gyro's scale errors as variables every edge shares
 (prior: the simulated base's spreads, :data:`SCALE_SIGMA`), marginalised; and the filter's
 own covariance of the motion between the two keyframes (its joint covariance, carried
-through every filter step). ``--ekf NAME=VALUE`` runs the filter with another noise model.
-The pose graph's cost of the bias-sharing factors (``--cost-seeds``): iSAM2 per keyframe
-and batch Levenberg-Marquardt against independent edges, loop edges from the truth, same
-run.
+through every filter step). ``--ekf NAME=VALUE`` runs the filter with another noise model;
+``--daemon-model`` starts from the daemon's (the wheel + gyro twin's, with the demo's
+calibration). The pose graph's cost of the bias-sharing factors (``--cost-seeds``,
+``--cost-models``): iSAM2 per keyframe and batch Levenberg-Marquardt against independent
+edges, loop edges from the truth, same run.
 
 **Loop edges** (part 2). Per floor (the printed planks, the paper's worst case, and the
 default floor of real photographs) ``--pairs`` frame pairs are rendered with the second
@@ -193,11 +196,12 @@ def chained_nees(d: dict[str, Any], horizons: tuple[int, ...] = HORIZONS) -> dic
         acc[k + 1] = acc[k] + a @ cov[k] @ a.T
     bacc, bu, bp, bar = bias_chain_covariances(d, pose)
     sw, sg = scale_jacobians(delta, pose)
+    wm = _window_model(bp, bar, WINDOW_EDGES)
     out: dict[int, dict[str, float]] = {}
     for h in horizons:
         if h > m:
             continue
-        graph, joint, bias, scale = [], [], [], []
+        graph, joint, bias, scale, win = [], [], [], [], []
         for i in range(0, m - h + 1, max(1, h // 5)):
             j = i + h
             e = between(between(pose[i], pose[j]), between(truth[i], truth[j]))
@@ -210,14 +214,62 @@ def chained_nees(d: dict[str, Any], horizons: tuple[int, ...] = HORIZONS) -> dic
             cs = cb + SCALE_SIGMA["wheel"] ** 2 * np.outer(uw, uw) + SCALE_SIGMA["gyro"] ** 2 * np.outer(ug, ug)
             scale.append(_nees_parts(e, back @ cs @ back.T))
             joint.append(_joint_nees(d, i, j))
+            cw = _window_chain_cov(bacc, bu, wm, i, j)
+            win.append(_nees_parts(e, back @ cw @ back.T))
         g, jn, bn, sn = np.array(graph), np.array(joint), np.array(bias), np.array(scale)
+        wn = np.array(win)
         out[h] = {"windows": len(g), "graph": float(g[:, 0].mean()), "graph_yaw": float(g[:, 1].mean()),
                   "graph_position": float(g[:, 2].mean()), "filter": float(jn[:, 0].mean()),
                   "filter_yaw": float(jn[:, 1].mean()), "filter_position": float(jn[:, 2].mean()),
                   "bias": float(bn[:, 0].mean()), "bias_yaw": float(bn[:, 1].mean()),
                   "bias_position": float(bn[:, 2].mean()), "scales": float(sn[:, 0].mean()),
-                  "scales_yaw": float(sn[:, 1].mean()), "scales_position": float(sn[:, 2].mean())}
+                  "scales_yaw": float(sn[:, 1].mean()), "scales_position": float(sn[:, 2].mean()),
+                  "window": float(wn[:, 0].mean()), "window_yaw": float(wn[:, 1].mean()),
+                  "window_position": float(wn[:, 2].mean())}
     return out
+
+
+def _window_model(p: np.ndarray, ar: np.ndarray, w: int) -> dict[str, np.ndarray]:
+    """The bias model of :func:`robotd.graph.bias.bias_window_factor` over windows of ``w``
+    edges from the first: per edge ``alpha`` (its bias error's coefficient on the window
+    start's) and ``nu`` (the variance of the walk since the window's start); per window
+    the start's variance ``P``, the AR(1) coefficient ``A`` to the next window's start and
+    the step's variance ``V`` (:func:`robotd.graph.bias.window_chain_edge`)."""
+    m = len(p)
+    alpha, nu = np.ones(m), np.zeros(m)
+    for k in range(m):
+        if k % w:
+            alpha[k] = alpha[k - 1] * ar[k - 1]
+            nu[k] = ar[k - 1] ** 2 * nu[k - 1] + max(p[k] - ar[k - 1] ** 2 * p[k - 1], 1e-14)
+    starts = np.arange(0, m, w)
+    big_a = np.array([alpha[min(s + w, m) - 1] * ar[min(s + w, m) - 1] for s in starts])
+    return {"alpha": alpha, "nu": nu, "ar": ar, "P": p[starts], "A": big_a, "w": np.array([w])}
+
+
+def _window_chain_cov(acc: np.ndarray, u: list[np.ndarray], wm: dict[str, np.ndarray], i: int, j: int) -> np.ndarray:
+    """Covariance (start frame) of edges ``i..j-1`` chained under the windowed bias model
+    (:func:`_window_model`), the bias errors marginalised: the edges' conditional
+    covariances, the walk inside each window, and the window starts' AR(1) errors."""
+    w = int(wm["w"][0])
+    alpha, nu, ar = wm["alpha"], wm["nu"], wm["ar"]
+    v = acc[j] - acc[i]
+    t = np.zeros(3)
+    for win in range(i // w, (j - 1) // w + 1):
+        ks = range(max(i, win * w), min(j, (win + 1) * w))
+        big_u = np.zeros(3)
+        for k in ks:
+            big_u += u[k] * alpha[k]
+            c = nu[k]
+            for mm in range(k, ks.stop):  # Cov(nu_k, nu_mm) = nu_k * prod(a_k .. a_{mm-1})
+                if c:
+                    blk = c * np.outer(u[k], u[mm])
+                    v += blk if mm == k else blk + blk.T
+                c *= ar[mm]
+        pw = wm["P"][win]
+        tp = wm["A"][win - 1] * t if win > i // w else np.zeros(3)
+        v += pw * np.outer(big_u, big_u) + np.outer(tp, big_u) + np.outer(big_u, tp)
+        t = tp + big_u * pw
+    return v
 
 
 def bias_chain_covariances(d: dict[str, Any], pose: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], np.ndarray, np.ndarray]:
@@ -298,19 +350,36 @@ WITHOUT = {
 }
 
 
+def daemon_params() -> EkfParams:
+    """The noise model of the daemon's wheel + gyro filter with the demo's calibration
+    (:func:`robotd.app.assemble.build_odometry`: the config's ``[odometry]`` with the
+    calibration's gyro noise density)."""
+    from robotd.app.assemble import build_odometry
+    from robotd.app.demo import shipped_calibration
+    from robotd.base.config import Config
+    from robotd.io.calibfile import read_calibration
+
+    path = shipped_calibration()
+    if path is None:
+        raise SystemExit("the demo's shipped calibration is missing")
+    # the wheel + gyro filter whose edges the graph gets (the twin when visual odometry is fused)
+    return build_odometry(Config(), read_calibration(path)).wheel_gyro.params
+
+
 def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str, ...] = (),
                   ekf: dict[str, float] | None = None, cost_seeds: int = 0,
-                  true_model: bool = False) -> dict[str, Any]:
+                  true_model: bool = False, daemon_model: bool = False,
+                  cost_models: tuple[str, ...] = ("independent", "bias_window", "bias")) -> dict[str, Any]:
     sensors = BaseSensorParams()
     for name in without:  # the same base without these errors: what each costs
         sensors = dataclasses.replace(sensors, **WITHOUT[name])
-    params = EkfParams(**(ekf or {}))
+    params = EkfParams(**(ekf or {})) if not daemon_model else dataclasses.replace(daemon_params(), **(ekf or {}))
     per_seed = []
     for seed in range(seeds):
         t0 = time.monotonic()
         d = drive_edges(route, seed, keyframe_m, sensors, params, true_model)
         res = chained_nees(d)
-        cost = graph_cost(d, seed, (SCALE_SIGMA["wheel"], SCALE_SIGMA["gyro"])) if seed < cost_seeds else None
+        cost = graph_cost(d, seed, (SCALE_SIGMA["wheel"], SCALE_SIGMA["gyro"]), cost_models) if seed < cost_seeds else None
         e = d["drawn"]
         per_seed.append({"seed": seed, "edges": len(d["delta"]), "horizons": {str(k): v for k, v in res.items()},
                          "cost": cost,
@@ -323,12 +392,12 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str,
             f"N={h} {v['graph']:.2f}/{v['scales']:.2f}" for h, v in res.items())
             + f"  [{time.monotonic() - t0:.0f} s]")
     return {"route": route, "keyframe_m": keyframe_m, "without": list(without), "ekf": ekf or {},
-            "true_model": true_model, "per_seed": per_seed}
+            "true_model": true_model, "daemon_model": daemon_model, "per_seed": per_seed}
 
 
 #: The chain models the bench compares (keys of a horizon's results) and their names.
-MODELS = {"graph": "independent edges", "bias": "bias variables", "scales": "bias + scale variables",
-          "filter": "filter's joint covariance"}
+MODELS = {"graph": "independent edges", "window": "bias per window of 10 edges", "bias": "bias variables",
+          "scales": "bias + scale variables", "filter": "filter's joint covariance"}
 
 
 def odometry_rows(part: dict[str, Any], kind: str = "scales") -> tuple[list[str], list[list[Any]]]:
@@ -372,7 +441,7 @@ def cost_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
         if not c:
             continue
         base = c["independent"]
-        for model in ("independent", "bias", "bias_scales"):
+        for model in ("independent", "bias_window", "bias", "bias_scales"):
             if model not in c:
                 continue
             m = c[model]
@@ -406,7 +475,13 @@ def _loops_from_truth(truth: np.ndarray, rng: np.random.Generator, every: int = 
     return loops
 
 
-def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float]) -> dict[str, Any]:
+#: Edges per window of the windowed bias model (``bias_window``): iSAM2's fold (:class:`robotd.graph.incremental.IncrementalParams`).
+WINDOW_EDGES = 10
+
+
+def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float],
+               models: tuple[str, ...] = ("independent", "bias_window", "bias", "bias_scales"),
+               window_edges: int = WINDOW_EDGES) -> dict[str, Any]:
     """Build the seed's keyframes one at a time into iSAM2 (with loop edges from the
     truth, :func:`_loops_from_truth`), once with independent edges (``BetweenFactor``, the
     daemon's) and once with the bias variables (:mod:`robotd.graph.bias`, with a shared
@@ -420,8 +495,10 @@ def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float]) 
         bias_edge_factor,
         bias_key,
         bias_prior_factor,
+        bias_window_factor,
         scale_key,
         scale_prior_factor,
+        window_chain_edge,
     )
     from robotd.graph.factors import anchor_factor
 
@@ -433,8 +510,10 @@ def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float]) 
         by_end.setdefault(lp[1], []).append(lp)
     # The pose graph's frame is the first keyframe's truth (the anchor).
     out: dict[str, Any] = {"keyframes": len(deltas) + 1, "loops": len(loops)}
-    for model in ("independent", "bias", "bias_scales"):
+    for model in models:
         scales = scale_sigmas if model == "bias_scales" else None
+        window: list[tuple[BiasEdge, int]] = []  # the open window's edges, their plain factors' indices
+        prev_window: list[BiasEdge] = []
         isam = gtsam.ISAM2()
         batch = gtsam.NonlinearFactorGraph()
         guess = gtsam.Values()
@@ -443,10 +522,11 @@ def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float]) 
         for k in range(len(deltas) + 1):
             fg = gtsam.NonlinearFactorGraph()
             vals = gtsam.Values()
+            remove: list[int] = []
             if k == 0:
                 fg.add(anchor_factor(0, truth[0]))
                 vals.insert(0, p)
-                if model != "independent":
+                if model in ("bias", "bias_scales"):
                     fg.add(bias_prior_factor(0, terms[0].bias_radps, terms[0].bias_var))
                     vals.insert(bias_key(0), np.array([terms[0].bias_radps]))
                     if scales is not None:
@@ -456,10 +536,25 @@ def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float]) 
                 dk = deltas[k - 1]
                 p = p.compose(gtsam.Pose2(*map(float, dk)))
                 vals.insert(k, p)
-                if model == "independent":
+                if model == "independent" or (model == "bias_window" and len(window) + 1 < window_edges):
                     fg.add(gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*map(float, dk)),
                                                     gtsam.noiseModel.Gaussian.Covariance(covs[k - 1])))
-                else:
+                if model == "bias_window":
+                    t = terms[k - 1]
+                    window.append((BiasEdge(k - 1, k, dk, t.cov_given_bias, t.jac_bias, t.bias_radps, t.bias_var,
+                                            t.bias_end_radps, t.bias_end_var, t.bias_cov), -1))
+                    if len(window) == window_edges:  # closed: one factor replaces the window's plain edges
+                        w_edges = [e for e, _ in window]
+                        remove = [i for _, i in window[:-1]]
+                        fg.add(bias_window_factor(w_edges))
+                        start = w_edges[0].from_id
+                        vals.insert(bias_key(start), np.array([w_edges[0].bias_radps]))
+                        if prev_window:
+                            fg.add(bias_chain_factor(window_chain_edge(prev_window)))
+                        else:
+                            fg.add(bias_prior_factor(start, w_edges[0].bias_radps, w_edges[0].bias_var))
+                        prev_window, window = w_edges, []
+                elif model != "independent":
                     t = terms[k - 1]
                     e = BiasEdge(k - 1, k, dk, t.cov_given_bias, t.jac_bias, t.bias_radps, t.bias_var,
                                  t.bias_end_radps, t.bias_end_var, t.bias_cov)
@@ -470,10 +565,18 @@ def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float]) 
                 fg.add(gtsam.BetweenFactorPose2(i, j, gtsam.Pose2(*map(float, delta)),
                                                 gtsam.noiseModel.Gaussian.Covariance(cov)))
             t0 = time.perf_counter()
-            isam.update(fg, vals)
+            res = isam.update(fg, vals, remove) if remove else isam.update(fg, vals)
             t_inc += time.perf_counter() - t0
-            batch.push_back(fg)
+            if model == "bias_window" and k > 0 and window:  # the open window's newest plain edge
+                window[-1] = (window[-1][0], int(res.getNewFactorsIndices()[0]))
+            for n in range(fg.size()):
+                # the batch keeps what iSAM2 ends with: a closed window's factor, not its plain edges
+                if not (model == "bias_window" and n == 0 and k > 0 and window):
+                    batch.add(fg.at(n))
             guess.insert(vals)
+        for e, _ in window:  # the open window's plain edges stay
+            batch.add(gtsam.BetweenFactorPose2(e.from_id, e.to_id, gtsam.Pose2(*map(float, e.delta)),
+                                               gtsam.noiseModel.Gaussian.Covariance(covs[e.from_id])))
         est = isam.calculateEstimate()
         t0 = time.perf_counter()
         lm = gtsam.LevenbergMarquardtOptimizer(batch, guess).optimize()
@@ -619,19 +722,25 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
     ekf = odo.get("ekf") or {}
     noise = ("the filter's default noise model" if not ekf else
              "the filter's noise model with " + ", ".join(f"`{k}` = {v}" for k, v in ekf.items()))
+    if odo.get("daemon_model"):
+        noise = ("the daemon's noise model with the demo's calibration (`[odometry]` and the calibration's "
+                 "gyro noise density)" + (", and " + ", ".join(f"`{k}` = {v}" for k, v in ekf.items()) if ekf else ""))
     model = (", the filter with each base's true wheel radii, wheel base and gyro scale (a calibrated model)"
              if odo.get("true_model") else "")
     lines += [f"## Odometry edges ({odo['route']} route, keyframes every {odo['keyframe_m']} m or 10 deg, "
               f"{noise}{without}{model})", "",
               "Mean NEES over seeds of chains of N consecutive edges, per model of what the edges share "
               "(in brackets the yaw and position parts, expected 1 and 2; in square brackets the "
-              "seeds' range): independent edges (the pose graph today); the edges given the gyro "
-              "bias at their start with the bias as variables (`robotd.graph.bias`), marginalised; "
+              "seeds' range): independent edges (the pose graph today); the gyro bias as one variable "
+              "per window of 10 edges (`robotd.graph.bias.bias_window_factor`), marginalised; the edges "
+              "given the gyro bias at their start with the bias as variables (`robotd.graph.bias`), marginalised; "
               "the same with the wheels' and the gyro's scale errors as variables of prior sigma "
               + ", ".join(f"{k} {v * 100:.2f} %" for k, v in SCALE_SIGMA.items())
               + " (the simulated base's spreads), marginalised; the filter's own joint covariance "
               "of the motion.", ""]
-    if ekf and "gyro_noise_radps" in ekf:
+    if odo.get("daemon_model"):
+        pass
+    elif ekf and "gyro_noise_radps" in ekf:
         lines += ["Not the daemon's noise model: the calibration's fitted densities (demo calibration: gyro "
                   "noise density 0.00056 rad/s per sqrt(Hz), i.e. 2.8 mrad/s per 50 Hz reading; wheel slip "
                   "noise 0, leaving the tick quantisation) with the sensor-level process noise.", ""]
@@ -642,13 +751,20 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
     table(*odometry_model_rows(odo))
     lines += ["Per seed, bias + scale variables:", ""]
     table(*odometry_rows(odo, "scales"))
+    if all("window" in r["horizons"]["1"] for r in odo["per_seed"]):
+        lines += ["Per seed, bias per window of 10 edges:", ""]
+        table(*odometry_rows(odo, "window"))
+        lines += ["Per seed, independent edges:", ""]
+        table(*odometry_rows(odo, "graph"))
     head, rows = cost_rows(odo)
     if rows:
         lines += ["Cost in the pose graph: the seed's keyframes built one at a time into iSAM2 with loop "
                   "edges from the truth (1 mm, every 25th keyframe that revisits a place): independent "
-                  "edges, the bias variables (`bias`) and the bias + scale variables (`bias_scales`), "
-                  "the latter two Python `CustomFactor`s; in brackets the ratio to independent edges, "
-                  "same run.", ""]
+                  "edges; the bias per window of 10 edges (`bias_window`: the open window's edges "
+                  "independent, replaced by one factor on its 11 poses and the bias at its start when it "
+                  "closes, `robotd.graph.bias.bias_window_factor`); the bias variables per edge (`bias`) "
+                  "and the bias + scale variables (`bias_scales`); all but the first Python "
+                  "`CustomFactor`s; in brackets the ratio to independent edges, same run.", ""]
         table(head, rows)
 
 
@@ -707,8 +823,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--true-model", action="store_true",
                     help="odometry: the filter with each base's true wheel radii, wheel base and gyro scale "
                          "(a calibrated model) instead of the nominal ones")
+    ap.add_argument("--daemon-model", action="store_true",
+                    help="odometry: the daemon's noise model with the demo's calibration (the config's "
+                         "[odometry] and the calibration's gyro noise density), --ekf changes on top")
     ap.add_argument("--cost-seeds", type=int, default=1,
                     help="odometry: time the pose graph with each model on this many seeds (default 1)")
+    ap.add_argument("--cost-models", default="independent,bias_window,bias",
+                    help="odometry: the graph-cost models timed (of independent, bias_window, bias, bias_scales)")
     ap.add_argument("--compare", type=Path, action="append", default=[],
                     help="another run's JSON whose odometry section the page shows too")
     ap.add_argument("--page-from", type=Path, default=None,
@@ -744,7 +865,8 @@ def main(argv: list[str] | None = None) -> int:
                 ap.error(f"--ekf takes NAME=VALUE with NAME a field of EkfParams, got {item!r}")
             ekf[name] = float(value)
         payload["odometry"] = odometry_part(seeds, args.route, args.keyframe_m, without, ekf, args.cost_seeds,
-                                            args.true_model)
+                                            args.true_model, args.daemon_model,
+                                            tuple(m for m in args.cost_models.split(",") if m))
         print(f"\nodometry edges, {args.route}: mean NEES of N chained edges per model (yaw, position) [seeds]")
         print_table(*odometry_model_rows(payload["odometry"]))
         print("\nper seed, bias + scale variables")

@@ -151,13 +151,13 @@ def simulate_with_bias(route: str, seed: int, p: BaseSensorParams) -> tuple[Any,
 
 def replay(msgs: list[Any], steps: list[Any], drive: DiffDriveParams, gyro_scale: float,
            params: EkfParams, bias_prior: tuple[float, float] | None = None,
-           vo_rate_only: bool = True) -> dict[str, np.ndarray]:
+           **flags: Any) -> dict[str, np.ndarray]:
     """The fused filter over ``msgs`` with the visual ``steps`` applied as the filter reaches
     their stamps; its poses ``(N, 3)`` and bias ``(N,)`` after each wheel message.
     ``bias_prior``: the bias's prior mean and sigma, rad/s (default: 0 and the params').
-    ``vo_rate_only``: :attr:`robotd.odometry.fusion.OdometryFilter.vo_rate_only`."""
-    f = OdometryFilter(drive, params, vo_twin=True, gyro_scale=gyro_scale, initial_bias=bias_prior,
-                       vo_rate_only=vo_rate_only)
+    ``flags``: more of :class:`robotd.odometry.fusion.OdometryFilter`'s fields (default: the
+    daemon's)."""
+    f = OdometryFilter(drive, params, vo_twin=True, gyro_scale=gyro_scale, initial_bias=bias_prior, **flags)
     from robotd.base.geometry import between_error_covariance, compose
     from robotd.odometry.increments import combine_edges, edge_disagreement
 
@@ -318,9 +318,9 @@ def evaluate(seed: int, route: str, cache: Path, model: Any, source: str,
                            **step_errors(cap["steps"], plan_motion(build_route(route), MotionLimits()))}
     for vname, make in variants.items():
         for mname, drive, scale in (("nominal", nominal, 1.0), ("calibrated", calibrated, model.gyro_scale)):
-            params, prior, rate_only = make(model)
+            params, prior, flags = make(model)
             t0 = time.process_time()
-            r = replay(msgs, cap["steps"], drive, scale, params, prior, rate_only)
+            r = replay(msgs, cap["steps"], drive, scale, params, prior, **flags)
             n = min(len(r["poses"]), len(truth))
             out[f"{vname}/{mname}"] = {
                 **odometry_errors(truth[:n], r["poses"][:n]).as_dict(),
@@ -354,17 +354,25 @@ def fitted_params(model: Any, base: EkfParams = EkfParams(), process: bool = Tru
         **(SENSOR_PROCESS if process else {}))
 
 
+#: Each variant: the filter's noise model, the bias prior and more of
+#: :class:`~robotd.odometry.fusion.OdometryFilter`'s fields.
+BEFORE = {"vo_rate_only": False}
+TRAPEZOID = {"pose_after_rates": True, "vo_angular_accel_noise_radps2_per_sqrt_hz": 0.1}
 VARIANTS: dict[str, Any] = {
-    "the config's noise model (before)": lambda model: (EkfParams(), None, False),
-    "the fused pose follows its rates (the daemon now)": lambda model: (EkfParams(), None, True),
+    "the config's noise model (before)": lambda model: (EkfParams(), None, BEFORE),
+    "the fused pose follows its rates (the daemon)": lambda model: (EkfParams(), None, {}),
+    "the pose by the trapezoid rule, angular process noise 0.1 (not the default)": lambda model: (
+        EkfParams(), None, TRAPEZOID),
 }
 #: Measured too (``--variants all``): the calibration drive's turn-on bias as the prior; the
 #: calibration's fitted noise densities with the sensor-level process noise.
 MORE_VARIANTS: dict[str, Any] = {
     "default noise, calibration's bias prior": lambda model: (
         EkfParams(), (model.gyro_bias_radps / model.gyro_scale, model.gyro_bias_sigma_radps / model.gyro_scale),
-        False),
-    "fitted noise": lambda model: (fitted_params(model), None, False),
+        BEFORE),
+    "fitted noise": lambda model: (fitted_params(model), None, BEFORE),
+    "trapezoid rule, the config's angular process noise": lambda model: (
+        EkfParams(), None, {"pose_after_rates": True}),
 }
 
 

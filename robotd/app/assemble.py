@@ -8,6 +8,7 @@ and the observers they add.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -43,26 +44,45 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
+#: Gyro readings a second from the base (the Kobuki driver's one mean rate per 50 Hz
+#: feedback packet): the rate at which ``robotd calibrate odometry`` measured the gyro's
+#: noise density, whose reading's 1-sigma is ``density * sqrt(rate / 2)``
+#: (:func:`robotd.odometry.calibration.fit_odometry`).
+GYRO_READINGS_HZ = 50.0
+
+
 def build_odometry(cfg: Config, calibration: CalibrationFile | None = None) -> OdometryFilter:
     """The wheel + gyro filter with the config's robot geometry and noise model; with a
     calibrated odometry model (``robotd calibrate odometry``), its wheel radii, wheel base
-    and gyro scale instead of the nominal ``[robot]`` values."""
+    and gyro scale instead of the nominal ``[robot]`` values, and its gyro noise density
+    as the gyro's reading noise (``gyro_noise_radps``) of the filter whose edges the pose
+    graph gets (the wheel + gyro twin when visual odometry is fused; the fused filter keeps
+    the config's, as ``docs/calibration.md`` explains). The fitted wheel slip density is
+    not used: the calibration drive's reference resolves no slip below its own noise (the
+    demo's fits 0), and the config's wheel noise covers the tick quantisation and slip."""
     params = EkfParams.from_config(cfg.odometry)
     drive = DiffDriveParams.from_config(cfg.robot)
     gyro_scale = 1.0
+    edge_params = params  # the noise model of the filter whose edges the graph gets
     model = calibration.odometry if calibration is not None else None
     if model is not None:
         drive = DiffDriveParams.from_config(cfg.robot, wheel_base_m=model.wheel_base_m,
                                             wheel_radius_left_m=model.wheel_radius_left_m,
                                             wheel_radius_right_m=model.wheel_radius_right_m)
         gyro_scale = model.gyro_scale
+        if model.gyro_noise_radps_sqrt_hz > 0.0:
+            edge_params = dataclasses.replace(params, gyro_noise_radps=model.gyro_noise_radps_sqrt_hz
+                                              * math.sqrt(GYRO_READINGS_HZ / 2.0))
         log.info("odometry model from the calibration: wheel radii %.5f / %.5f m, wheel base %.4f m, "
-                 "gyro scale %.5f", model.wheel_radius_left_m, model.wheel_radius_right_m,
-                 model.wheel_base_m, model.gyro_scale)
+                 "gyro scale %.5f, gyro noise %.5f rad/s per reading (the graph's edges)",
+                 model.wheel_radius_left_m, model.wheel_radius_right_m, model.wheel_base_m,
+                 model.gyro_scale, edge_params.gyro_noise_radps)
     v = cfg.visual_odometry
     # Fusing visual odometry: the graph's edges come from a wheel + gyro twin (fusion.py).
     twin = v.enabled and v.role == "fused" and cfg.floor_camera.source != "none"
-    return OdometryFilter(drive, params, vo_twin=twin, gyro_scale=gyro_scale)
+    if twin:
+        return OdometryFilter(drive, params, vo_twin=True, gyro_scale=gyro_scale, twin_params=edge_params)
+    return OdometryFilter(drive, edge_params, gyro_scale=gyro_scale)
 
 
 def load_calibration(cfg: Config) -> CalibrationFile | None:

@@ -158,13 +158,13 @@ def extract(image: np.ndarray, mode: int, params: ExtractParams | None = None) -
     ws = workspace(wh // 2, ww // 2)
     c, raw_checked, n = kept_for_budget(candidates(work, params, learned, ws), params, spec, grid_w, grid_h,
                                          basis=_orthonormal_basis(learned), ws=ws)
-    coded = cells(c.xy, grid_w, grid_h)
+    coded = cells(c.xy[:n], grid_w, grid_h)
     m = min(len(c.xy), max(n, params.global_min_features))
     raw = raw_checked[:m] if m <= len(raw_checked) else raw_descriptors(c, m, params)
     trits = ternarise(raw[:n], learned, spec.length)
     gbits = hadamard_bits(global_vector(raw, learned), learned.signs, spec.global_bits)
-    order = np.argsort(coded[:n], kind="stable")
-    cs = coded[:n][order]
+    order = np.argsort(coded, kind="stable")
+    cs = coded[order]
     gaps = np.diff(cs, prepend=0)
     k, _ = rice_k(gaps)
     q = np.round(c.angle[:n][order] * (2**ANGLE_BITS / (2 * math.pi))).astype(np.int64) % 2**ANGLE_BITS

@@ -180,8 +180,10 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None,
     # the sigma lacks after g1's and the halving's smoothing, and scaled back to
     # half-resolution pixels; the pooled maps start from the same halved image.
     half = ws.half() if 2 in (params.orientation_step, params.pool_step) else ws
+    # g1 halved: for the orientation at orientation_step 2 and the exact maps at pool_step 2
+    # (the table-split maps at pool_step 2 halve their channels instead).
     quarter = (cv2.resize(g1, (w2 // 2, h2 // 2), dst=half.x, interpolation=cv2.INTER_AREA)
-               if 2 in (params.orientation_step, params.pool_step) else g1)
+               if params.orientation_step == 2 or (params.pool_step == 2 and params.exact_maps) else g1)
     if params.orientation_step == 2:
         so = math.sqrt(max(params.orientation_sigma_px**2 - s * s - 0.25, 0.25)) / 2
         go, at, gain = cv2.GaussianBlur(quarter, (0, 0), so, dst=half.g1), (xy_half - 0.5) * 0.5, 0.5
@@ -196,14 +198,18 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None,
     angle = np.arctan2(v[:, 1], v[:, 0]).astype(np.float32) % np.float32(2 * math.pi)
     xy = xy_half * 2 + 0.5  # half-resolution pixel centre -> working-image pixels
     hw = np.array([work.shape[1] - 1, work.shape[0] - 1], np.float32) * 0.5
-    attributes = np.column_stack([np.abs(dc), edge, np.linalg.norm((xy - hw) / hw, axis=1) / math.sqrt(2),
-                                  np.hypot(v[:, 0], v[:, 1])]).astype(np.float32)
+    attributes = np.empty((N_ATTRIBUTES, len(xy)), np.float32)  # attribute-major while binned: contiguous rows
+    np.abs(dc, out=attributes[0], casting="same_kind")
+    attributes[1] = edge
+    attributes[2] = np.linalg.norm((xy - hw) / hw, axis=1) / math.sqrt(2)
+    attributes[3] = np.hypot(v[:, 0], v[:, 1])
     if learned is None:
-        relevance = np.abs(dc).astype(np.float32)
+        relevance = attributes[0].copy()
     else:
         relevance = np.zeros(len(xy), np.float32)
         for a in range(N_ATTRIBUTES):
-            relevance += learned.rel_logp[a][np.searchsorted(learned.rel_edges[a], attributes[:, a])]
+            relevance += learned.rel_logp[a][np.searchsorted(learned.rel_edges[a], attributes[a])]
+    attributes = attributes.T
     order = np.argsort(-relevance, kind="stable")
     if params.pool_step == 2:  # the halving's smoothing and the sampling's bilinear interpolation deducted
         sq = math.sqrt(max(params.pool_sigma_px**2 - 1.0, 0.25)) / 2
@@ -239,6 +245,7 @@ def _pooled_orientation_maps(g: np.ndarray, sigma: float, ws: Workspace | None =
         q = ws.buffer("q8", (h, w), np.uint8)
         # floor(angle * 256 / 2 pi) (rounding |x - 0.5|), the level whose centre is nearest
         cv2.convertScaleAbs(ang, dst=q, alpha=_LUT_LEVELS / (2 * math.pi), beta=-0.5)
+        q = cv2.merge([q] * 4, dst=ws.buffer("q8x4", (h, w, 4), np.uint8))  # cv2.LUT looks up channel by channel
         mag4 = cv2.merge([mag] * 4, dst=ws.buffer("mag4", (h, w, 4)))
         planes = ws.ch.reshape(2, h, w, 4)
         dst = ws if halved is None else halved
@@ -251,14 +258,14 @@ def _pooled_orientation_maps(g: np.ndarray, sigma: float, ws: Workspace | None =
             for r0 in range(0, h, _STRIP):
                 r1 = min(h, r0 + _STRIP)
                 for i in range(2):
-                    c = np.take(tables[i], q[r0:r1], axis=0, out=planes[i][r0:r1])
+                    c = cv2.LUT(q[r0:r1], tables[i], dst=planes[i][r0:r1])
                     cv2.multiply(c, mag4[r0:r1], dst=c)
                     cv2.resize(c, (wh, (r1 - r0) // 2), dst=small[i][r0 // 2:r1 // 2], interpolation=cv2.INTER_AREA)
             return (cv2.GaussianBlur(small[0], (k, k), sigma, dst=halved.pooled[0]),
                     cv2.GaussianBlur(small[1], (k, k), sigma, dst=halved.pooled[1]))
         out = []
         for i, table in enumerate(tables):
-            c = np.take(table, q, axis=0, out=planes[i])
+            c = cv2.LUT(q, table, dst=planes[i])
             cv2.multiply(c, mag4, dst=c)
             if halved is not None:
                 c = cv2.resize(c, (wh, hh), dst=halved.ch.reshape(2, hh, wh, 4)[i], interpolation=cv2.INTER_AREA)
@@ -295,7 +302,7 @@ _LUT_LEVELS = 256
 
 @lru_cache(maxsize=1)
 def _split_table() -> tuple[np.ndarray, np.ndarray]:
-    """``2 x (_LUT_LEVELS, 4) float32``: row ``q`` splits a unit gradient at angle
+    """``2 x (_LUT_LEVELS, 1, 4) float32`` (``cv2.LUT``'s 4-channel tables): row ``q`` splits a unit gradient at angle
     ``2 pi (q + 0.5) / _LUT_LEVELS`` (the centre of the angles ``[q, q + 1) 2 pi / _LUT_LEVELS``)
     between the two nearest of 8 directions (linearly, as the exact maps do); directions
     0-3 and 4-7."""
@@ -306,7 +313,7 @@ def _split_table() -> tuple[np.ndarray, np.ndarray]:
     t[rows, b0 % 8] += 1.0 - (b - b0)
     t[rows, (b0 + 1) % 8] += b - b0
     t = t.astype(np.float32)
-    return np.ascontiguousarray(t[:, :4]), np.ascontiguousarray(t[:, 4:])
+    return np.ascontiguousarray(t[:, None, :4]), np.ascontiguousarray(t[:, None, 4:])
 
 
 @lru_cache(maxsize=4)
@@ -343,13 +350,12 @@ def raw_descriptors(c: Candidates, n: int, params: ExtractParams, ws: Workspace 
         mx = (mx - 0.5) * 0.5
         my = (my - 0.5) * 0.5
     if ws is None:
-        smp = np.concatenate([cv2.remap(p, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
-                              for p in c.pooled], axis=2)  # (n, 16, 8): directions 0-7
-    else:
-        smp = ws.buffer("smp", (n, 16, 8))
-        for i, p in enumerate(c.pooled):
-            smp[:, :, 4 * i:4 * i + 4] = cv2.remap(p, mx, my, cv2.INTER_LINEAR, dst=ws.buffer(f"smp{i}", (n, 16, 4)),
-                                                   borderMode=cv2.BORDER_REFLECT_101)
+        smp = cv2.merge([cv2.remap(p, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
+                         for p in c.pooled])  # (n, 16, 8): directions 0-7
+    else:  # cv2.merge interleaves the two halves a fraction of a strided copy's time
+        smp = cv2.merge([cv2.remap(p, mx, my, cv2.INTER_LINEAR, dst=ws.buffer(f"smp{i}", (n, 16, 4)),
+                                   borderMode=cv2.BORDER_REFLECT_101) for i, p in enumerate(c.pooled)],
+                        dst=ws.buffer("smp", (n, 16, 8)))
     # Turn the 8 absolute directions into directions relative to the keypoint: relative
     # bin j is absolute direction angle + j * 45 deg, interpolated between whole bins,
     # one 8 x 8 matrix per keypoint (a blend of two circular shifts).
@@ -447,6 +453,8 @@ def _repeats(raw: np.ndarray, xy: np.ndarray, start: int, stop: int, params: Ext
             shape = (stop - start, len(projected))
             prod = np.matmul(rows, cols.T, out=ws.buffer("prod", shape))
             i, j = np.divmod(np.flatnonzero(np.greater(prod, 0, out=ws.buffer("near", shape, bool))), shape[1])
+        other = j != start + i  # most pairs are a candidate with itself: never a repeat (same position)
+        i, j = i[other], j[other]
         exact = np.einsum("ij,ij->i", raw[start + i], raw[j])
         exact *= -2.0
         exact += sq[start + i]
@@ -496,7 +504,8 @@ def kept_for_budget(c: Candidates, params: ExtractParams, spec: ModeSpec, grid_w
     if params.repeat_distance <= 0 or k < 2:
         kept, raw = c, raw_descriptors(c, k, params)
         return kept, raw, fit(spec, cells(kept.xy, grid_w, grid_h))
-    n = fit(spec, cells(c.xy[:k], grid_w, grid_h))
+    coded = cells(c.xy, grid_w, grid_h)  # every candidate's grid cell, once
+    n = fit(spec, coded[:k])
     first = max(n + 1, params.global_min_features)
     k = max(2, repeat_pool(params, first, k))
     raw = raw_descriptors(c, k, params, ws)
@@ -512,7 +521,7 @@ def kept_for_budget(c: Candidates, params: ExtractParams, spec: ModeSpec, grid_w
         keep = np.flatnonzero(~repeat[:done])
         if done == k:  # every checked row decided; unchecked candidates after the pool are kept
             keep = np.concatenate([keep, np.arange(k, len(c.xy))])
-        n = fit(spec, cells(c.xy[keep], grid_w, grid_h), hint=n)
+        n = fit(spec, coded[keep], hint=n)
         if done == k or (n < len(keep) and len(keep) >= params.global_min_features):
             break
     kept = Candidates(c.xy[keep], c.angle[keep], c.attributes[keep], c.relevance[keep], c.pooled)

@@ -24,8 +24,14 @@ also corrects the bias of the edges around it.
 
 The factors are GTSAM ``CustomFactor`` s (their error and Jacobians in Python); the bias
 chain's is linear. :func:`bias_factor_graph` builds a whole graph of them for the batch
-solve and the benchmarks; the daemon's live graph keeps independent edges
-(:func:`robotd.graph.factors.between_factor`) for now: see ``docs/benchmarks/nees.md``.
+solve and the benchmarks. Per edge they cost iSAM2 18-41 times its time per keyframe;
+:func:`bias_window_factor` takes ``W`` consecutive edges (iSAM2's fold, 10) as one factor
+with one bias variable at the window's start, the walk inside the window marginalised into
+the window's joint noise (:func:`window_covariance`; over one window the end pose's
+marginal is the per-edge model's exactly), and the window starts chained by
+:func:`window_chain_edge`: about 3 times the time of independent edges. The daemon's live
+graph keeps independent edges (:func:`robotd.graph.factors.between_factor`) for now: see
+``docs/concepts.md``, "Odometry edges the gate can trust".
 """
 
 from __future__ import annotations
@@ -40,8 +46,8 @@ import numpy as np
 from robotd.graph.factors import anchor_factor
 
 __all__ = ["BIAS_VAR_FLOOR", "BiasEdge", "bias_chain_factor", "bias_edge_factor", "bias_factor_graph",
-           "bias_initial_values", "bias_key", "bias_prior_factor", "scale_jacobian", "scale_key",
-           "scale_prior_factor"]
+           "bias_initial_values", "bias_key", "bias_prior_factor", "bias_window_factor", "scale_jacobian",
+           "scale_key", "scale_prior_factor", "window_chain_edge", "window_covariance"]
 
 #: Smallest variance (rad/s)^2 of a bias-chain step: keeps a step the filter took as
 #: exact (a = 1, no walk) factorable. (1e-7 rad/s)^2, far below any bias walk over a keyframe.
@@ -216,3 +222,96 @@ def bias_initial_values(edges: Sequence[BiasEdge], anchor_pose: np.ndarray | Non
         values.insert(int(e.to_id), p)
         values.insert(bias_key(e.to_id), np.array([float(e.bias_end_radps)]))
     return values
+
+
+# --------------------------------------------------------------------------------------
+# A window of edges, one factor: the bias variable at the window's start only.
+# --------------------------------------------------------------------------------------
+
+
+def window_covariance(edges: Sequence[BiasEdge]) -> tuple[np.ndarray, np.ndarray]:
+    """The stacked errors of ``W`` consecutive edges given the bias error ``db_0`` at the
+    first one's start: ``(jac (3W,), cov (3W, 3W))`` with ``eps = jac db_0 + n``,
+    ``n ~ N(0, cov)``. Edge ``k``'s bias error is ``db_k = alpha_k db_0 + nu_k`` (the AR(1)
+    steps of :meth:`BiasEdge.chain_step`, ``alpha_k`` their product, ``nu_k`` the walk
+    since the window's start), so ``jac_k = J_k alpha_k`` and ``cov`` is the edges' own
+    ``C_given_bias`` on the diagonal blocks plus ``J_k Cov(nu_k, nu_l) J_l^T``."""
+    w = len(edges)
+    jac = np.zeros(3 * w)
+    cov = np.zeros((3 * w, 3 * w))
+    alpha = 1.0
+    nu_var = np.zeros(w)  # Var(nu_k)
+    for k, e in enumerate(edges):
+        jk = np.asarray(e.jac_bias, float)
+        jac[3 * k:3 * k + 3] = jk * alpha
+        cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] = np.asarray(e.cov_given_bias, float)
+        a, var = e.chain_step()
+        alpha *= a
+        if k + 1 < w:
+            nu_var[k + 1] = a * a * nu_var[k] + var
+    # Cov(nu_k, nu_l) = (prod of a from k to l) Var(nu_k), k <= l
+    for k in range(w):
+        c = nu_var[k]
+        jk = np.asarray(edges[k].jac_bias, float)
+        for m in range(k, w):
+            if c != 0.0:
+                jm = np.asarray(edges[m].jac_bias, float)
+                block = c * np.outer(jk, jm)
+                cov[3 * k:3 * k + 3, 3 * m:3 * m + 3] += block
+                if m != k:
+                    cov[3 * m:3 * m + 3, 3 * k:3 * k + 3] += block.T
+            c *= edges[m].chain_step()[0]
+    return jac, 0.5 * (cov + cov.T)
+
+
+def window_chain_edge(edges: Sequence[BiasEdge]) -> BiasEdge:
+    """The window as one :class:`BiasEdge` for the bias chain between window starts
+    (:func:`bias_chain_factor`): the AR(1) step over the whole window (the product of the
+    edges' coefficients, the variance left at its end). The walk inside the window also
+    enters the window's own errors (:func:`window_covariance`); that shared part is left
+    out of the chain (it is below 1 % of an edge's bias variance while driving)."""
+    first, last = edges[0], edges[-1]
+    alpha = 1.0
+    for e in edges:
+        alpha *= e.chain_step()[0]
+    return BiasEdge(first.from_id, last.to_id, np.zeros(3), np.eye(3), np.zeros(3), first.bias_radps,
+                    first.bias_var, last.bias_end_radps, last.bias_end_var, alpha * first.bias_var)
+
+
+def bias_window_factor(edges: Sequence[BiasEdge]) -> gtsam.CustomFactor:
+    """One factor over ``W`` consecutive edges (keyframes ``x_0 .. x_W`` and the bias
+    variable at ``x_0``): the edges' errors stacked, each ``Log(delta_k^-1 (+) x_{k-1}^-1
+    (+) x_k)``, plus ``jac (b_hat_0 - b_0)``, with the joint noise of
+    :func:`window_covariance`. What :func:`bias_edge_factor` and :func:`bias_chain_factor`
+    give per edge, with one Python call (and one bias variable) per window instead of two
+    calls per edge."""
+    w = len(edges)
+    jac, cov = window_covariance(edges)
+    meas_inv = [gtsam.Pose2(*map(float, e.delta)).inverse() for e in edges]
+    b_hat = float(edges[0].bias_radps)
+    keys = [int(edges[0].from_id)] + [int(e.to_id) for e in edges]
+    kb = bias_key(edges[0].from_id)
+    jb = -jac.reshape(3 * w, 1)
+    model = gtsam.noiseModel.Gaussian.Covariance(cov)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
+        xs = [values.atPose2(k) for k in keys]
+        db = b_hat - float(values.atVector(kb)[0])
+        out = jac * db
+        if jacobians is not None:
+            blocks = [np.zeros((3 * w, 3)) for _ in range(w + 1)]
+        for k in range(w):
+            h = xs[k].between(xs[k + 1])
+            e = gtsam.Pose2.Logmap(meas_inv[k].compose(h))
+            out[3 * k:3 * k + 3] += e
+            if jacobians is not None:
+                jr_inv = gtsam.Pose2.LogmapDerivative(e)
+                blocks[k][3 * k:3 * k + 3] = -jr_inv @ h.inverse().AdjointMap()
+                blocks[k + 1][3 * k:3 * k + 3] = jr_inv
+        if jacobians is not None:
+            for i, b in enumerate(blocks):
+                jacobians[i] = b
+            jacobians[w + 1] = jb
+        return out
+
+    return gtsam.CustomFactor(model, keys + [kb], error)

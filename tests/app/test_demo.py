@@ -66,8 +66,8 @@ def test_short_demo_writes_a_consistent_map_and_trajectories(tmp_path: Path):
 def test_default_demo_from_the_command_line(tmp_path: Path):
     """What `./dev demo` runs: the whole office route (about 110 m), with the figures the
     README shows pinned: at least 1400 loop edges accepted and every one truly overlapping
-    (README: 1691 of 1691), none of the true ones refused by the gate, the loop-corrected
-    APE (RMS, anchored at the start) under 1 cm (README: 3 mm), the fused end error under 0.1 m (README: 0.038 m) and
+    (README: 1658 of 1658), none of the true ones refused by the gate, the loop-corrected
+    APE (RMS, anchored at the start) under 1 cm (README: 1 mm), the fused end error under 0.1 m (README: 0.043 m) and
     far below the wheel-only one with the nominal model (README: 2.14 m)."""
     r = subprocess.run([sys.executable, "-m", "robotd.app.cli", "demo", "--out", str(tmp_path)],
                        capture_output=True, text=True, timeout=1800)

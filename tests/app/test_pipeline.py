@@ -321,6 +321,39 @@ def test_build_pipeline_orders_the_stages(tmp_path: Path):
     assert build_odometry(cfg).drive.wheel_base_m == cfg.robot.wheel_base_m
 
 
+def test_build_odometry_takes_the_calibrated_model_and_gyro_noise():
+    """A calibration's odometry model replaces the geometry and the gyro's reading noise
+    (its density at the 50 Hz readings it was measured at) of the filter whose edges the
+    graph gets; the config's wheel noise stays, and the fused filter keeps the config's."""
+    import math
+
+    from robotd.app.assemble import GYRO_READINGS_HZ
+    from robotd.app.demo import shipped_calibration
+    from robotd.io.calibfile import read_calibration
+
+    path = shipped_calibration()
+    assert path is not None
+    cal = read_calibration(path)
+    model = cal.odometry
+    assert model is not None and model.gyro_noise_radps_sqrt_hz > 0.0
+    cfg = Config()
+    expected = model.gyro_noise_radps_sqrt_hz * math.sqrt(GYRO_READINGS_HZ / 2)
+    assert expected != pytest.approx(cfg.odometry.gyro_noise_radps)
+    f = build_odometry(cfg, cal)
+    assert f.vo_twin  # fused by default: the twin gives the edges
+    for g in (f, f.wheel_gyro):
+        assert g.drive.wheel_base_m == model.wheel_base_m
+        assert g.gyro_scale == model.gyro_scale
+    assert f.wheel_gyro is not f
+    assert f.wheel_gyro.params.gyro_noise_radps == pytest.approx(expected)
+    assert not f.wheel_gyro.params.rate_only_process
+    assert f.wheel_gyro.params.wheel_v_noise_mps == cfg.odometry.wheel_v_noise_mps
+    assert f.params.gyro_noise_radps == cfg.odometry.gyro_noise_radps
+    alone = build_odometry(replace(cfg, "visual_odometry", enabled=False), cal)
+    assert not alone.vo_twin and alone.params.gyro_noise_radps == pytest.approx(expected)
+    assert build_odometry(cfg).wheel_gyro.params.gyro_noise_radps == cfg.odometry.gyro_noise_radps
+
+
 def test_the_configured_jpeg_quality_reaches_the_map(tmp_path: Path):
     """[keyframes] jpeg_quality is what the map stores its keyframe images with."""
     import sqlite3

@@ -15,8 +15,10 @@ from robotd.graph.bias import (
     bias_factor_graph,
     bias_initial_values,
     bias_key,
+    bias_window_factor,
     scale_jacobian,
     scale_key,
+    window_chain_edge,
 )
 
 
@@ -105,3 +107,48 @@ def test_chain_marginal_with_a_shared_scale():
     ad2 = gtsam.Pose2(*e2.delta).inverse().AdjointMap()
     u = ad2 @ scale_jacobian(e1.delta) + scale_jacobian(e2.delta)
     assert got == pytest.approx(plain + u @ np.diag(np.square(sig)) @ u.T, rel=1e-4, abs=1e-14)
+
+
+def _chain3() -> list[BiasEdge]:
+    return [_edge(0, (0.05, 0.0, 0.1), (0.0, -0.01, -0.2), 0.003, 4e-5, 0.0031, 3e-5, 3.3e-5),
+            _edge(1, (0.04, 0.01, -0.3), (0.002, -0.008, -0.15), 0.0031, 3e-5, 0.0030, 2e-5, 2.4e-5),
+            _edge(2, (0.06, -0.01, 0.2), (0.001, 0.01, -0.25), 0.0030, 2e-5, 0.0029, 2.5e-5, 1.9e-5)]
+
+
+def test_window_factor_jacobians_match_finite_differences():
+    edges = _chain3()
+    values = gtsam.Values()
+    for k, p in enumerate([(1.0, -2.0, 0.7), (1.04, -1.96, 0.81), (1.07, -1.93, 0.5), (1.13, -1.9, 0.72)]):
+        values.insert(k, gtsam.Pose2(*p))
+    values.insert(bias_key(0), np.array([0.0045]))
+    factor = bias_window_factor(edges)
+    keys = [0, 1, 2, 3, bias_key(0)]
+    a = np.linalg.solve(factor.noiseModel().R(), factor.linearize(values).jacobian()[0])
+    got = np.split(a, np.cumsum([3, 3, 3, 3, 1])[:-1], axis=1)
+    for g, n in zip(got, _numeric(factor, values, keys)):
+        assert g == pytest.approx(n, abs=1e-6)
+
+
+def test_one_window_gives_the_per_edge_factors_marginals():
+    """A window factor over the whole chain is the per-edge model with the biases inside
+    the window marginalised: the end pose's marginal covariance is the same."""
+    edges = _chain3()
+    per_edge = bias_factor_graph(edges)
+    values = bias_initial_values(edges)
+    a = gtsam.Marginals(per_edge, gtsam.LevenbergMarquardtOptimizer(per_edge, values).optimize())
+    win = gtsam.NonlinearFactorGraph()
+    win.add(per_edge.at(0))  # the anchor
+    win.add(per_edge.at(1))  # the first bias's prior
+    win.add(bias_window_factor(edges))
+    wv = gtsam.Values()
+    for k in range(4):
+        wv.insert(k, values.atPose2(k))
+    wv.insert(bias_key(0), values.atVector(bias_key(0)))
+    b = gtsam.Marginals(win, gtsam.LevenbergMarquardtOptimizer(win, wv).optimize())
+    assert b.marginalCovariance(3) == pytest.approx(a.marginalCovariance(3), rel=1e-6, abs=1e-14)
+    assert b.marginalCovariance(bias_key(0)) == pytest.approx(a.marginalCovariance(bias_key(0)), rel=1e-6)
+    # The chain over windows: the step's coefficient is the product of the edges'.
+    step = window_chain_edge(edges)
+    alpha = np.prod([e.chain_step()[0] for e in edges])
+    assert step.chain_step()[0] == pytest.approx(alpha)
+    assert (step.from_id, step.to_id) == (0, 3)

@@ -18,8 +18,11 @@ from robotd.odometry.ekf import (
     IYAW,
     EkfParams,
     EkfState,
+    advance_pose,
     initial_state,
     predict,
+    predict_rates,
+    predict_with_jacobian,
     rate_gain,
     update_gyro,
     update_wheels,
@@ -84,6 +87,35 @@ def test_rate_only_process_puts_the_process_noise_on_the_rates_alone():
     assert full.cov[IYAW, IYAW] == pytest.approx(1e-6 + 1e-4 * 0.01 + qa * 0.1 ** 3 / 3)
     assert rates.cov[IX, IX] < full.cov[IX, IX]
 
+
+
+def test_predict_rates_then_advance_pose_is_predict_split_around_a_reading():
+    """The rates' half of a prediction leaves the pose and adds the rates' and the bias's
+    process noise; moving the pose afterwards gives predict's arc and Jacobian (the fused
+    filter puts the readings at the new stamp in between, :class:`OdometryFilter`'s
+    ``pose_after_rates``)."""
+    s = _state([0.2, -0.1, 0.3, 0.5, 0.4, 0.01], [1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-8])
+    p = EkfParams(rate_only_process=True)
+    r = predict_rates(s, 100 * MS, p)
+    assert r.stamp_ns == 100 * MS
+    np.testing.assert_array_equal(r.mean, s.mean)
+    q = np.zeros(6)
+    q[IV] = p.accel_noise_density_mps2_per_sqrt_hz ** 2 * 0.1
+    q[IW] = p.angular_accel_noise_density_radps2_per_sqrt_hz ** 2 * 0.1
+    q[IB] = p.gyro_bias_walk_radps_per_sqrt_s ** 2 * 0.1
+    np.testing.assert_allclose(r.cov, s.cov + np.diag(q), rtol=0, atol=1e-18)
+    moved, jac = advance_pose(s, 0.1)
+    full, full_jac = predict_with_jacobian(s, 100 * MS, p)
+    np.testing.assert_allclose(moved.mean, full.mean, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(jac, full_jac, rtol=0, atol=1e-15)
+    assert moved.stamp_ns == s.stamp_ns  # the move ends at the state's stamp
+    # Without process noise in between, the two halves are predict itself.
+    np.testing.assert_allclose(advance_pose(predict_rates(s, 100 * MS, EkfParams(
+        rate_only_process=True, accel_noise_density_mps2_per_sqrt_hz=0.0,
+        angular_accel_noise_density_radps2_per_sqrt_hz=0.0, gyro_bias_walk_radps_per_sqrt_s=0.0)), 0.1)[0].cov,
+        full.cov - np.diag(q), rtol=1e-9, atol=1e-15)
+    with pytest.raises(ValueError):
+        predict_rates(r, 50 * MS, p)
 
 def test_predict_along_an_arc_and_wraps_yaw():
     # A quarter circle of radius 1 m in 1 s, starting just below +pi.
