@@ -202,7 +202,8 @@ class IncrementalGraph:
         less than ``loop_spacing`` ids before its newer end, or from that same keyframe
         but with an older end less than ``loop_spacing`` ids from its own (one
         keyframe's loops are spread in time), or when its newer end has
-        ``loops_per_keyframe`` loops in already. Loops come best first (the detector's
+        ``loops_per_keyframe`` loops in already, or its older end's place has
+        ``loops_per_place`` (an older end within ``loop_spacing`` ids of its own). Loops come best first (the detector's
         order), so a keyframe's first loops enter. GraphError for a bad edge either way.
         Returns whether it entered."""
         edge = self.graph.check_edge(from_id, to_id, delta, information, "loop")
