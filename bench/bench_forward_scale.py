@@ -51,6 +51,7 @@ except ImportError:  # run as a script: bench/ is on sys.path
     from common import machine_info, write_json, write_page
 
 from robotd.forward import LOOP, FeatureExtractor, ForwardDetector, method_params
+from robotd.forward.detector import STAGES
 from robotd.forward.evaluation import score_decisions
 from robotd.forward.verify import camera_matrix_guess
 from robotd.io.sequence import list_images, load_ground_truth, read_image
@@ -67,6 +68,7 @@ VARIANTS: dict[str, tuple[dict[str, object], dict[str, object]]] = {
     "tree, beam 8": ({"tree_beam": 8}, {}),
     "usearch": ({"binary_search": "usearch"}, {}),
     "tree, USAC verification": ({}, {"estimator": "usac"}),
+    "tree, USAC without local optimisation": ({}, {"estimator": "usac", "local_optimisation": False}),
     "tree, RANSAC at most 200 samples": ({}, {"max_iterations": 200}),
 }
 
@@ -159,6 +161,7 @@ def run_sequence(name: str, folder: Path, truth_path: Path, variants: list[str],
         n = len(files)
         cand, conf, decl = np.full(n, -1), np.zeros(n), np.zeros(n, bool)
         total, words_ms, verify_ms = np.zeros(n), np.zeros(n), np.zeros(n)
+        stage_ms = {st: np.zeros(n) for st in STAGES}
         verified = np.zeros(n, bool)
         kept_new, kept_purged, kept_words = [], [], []
         for t, (fe, fs) in enumerate(feats):
@@ -166,6 +169,8 @@ def run_sequence(name: str, folder: Path, truth_path: Path, variants: list[str],
             total[t] = d.times_s["total"] * 1e3
             words_ms[t] = d.times_s["words"] * 1e3
             verify_ms[t] = d.times_s["verify"] * 1e3
+            for st in STAGES:
+                stage_ms[st][t] = d.times_s[st] * 1e3
             verified[t] = d.verification is not None
             kept_new.append(det.vocabulary.last_new)
             kept_purged.append(det.vocabulary.last_purged)
@@ -178,6 +183,11 @@ def run_sequence(name: str, folder: Path, truth_path: Path, variants: list[str],
                "words_ms_median": float(np.median(words_ms)), "words_ms_p99": float(np.percentile(words_ms, 99)),
                "verify_ms_median": float(np.median(verify_ms)), "verify_ms_p99": float(np.percentile(verify_ms, 99)),
                "images_verified": int(verified.sum()),
+               # each stage's own median, p99 and mean (ms), and its share of the slowest 1 %
+               "stages_ms": {st: {"median": float(np.median(v)), "p99": float(np.percentile(v, 99)),
+                                  "mean": float(v.mean()),
+                                  "slowest_1pct_mean": float(v[total >= np.percentile(total, 99)].mean())}
+                             for st, v in stage_ms.items()},
                # the images above the 99th percentile of the total: how much of them is verification
                "verify_share_of_slowest": float(verify_ms[total >= np.percentile(total, 99)].sum()
                                                 / max(total[total >= np.percentile(total, 99)].sum(), 1e-9)),
@@ -229,7 +239,7 @@ def run_scale(folder: Path, n: int, seed: int, partial: Callable[[dict[str, obje
     det = ForwardDetector(params, camera_matrix=camera_matrix_guess(w, h, 525.0))
     ex = FeatureExtractor(params.features)
     orb = cv2.ORB_create(nfeatures=300)
-    total, orb_ms, words_ms = np.zeros(n), np.zeros(n), np.zeros(n)
+    total, orb_ms, words_ms, verify_ms = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
     samples = []
     loops = 0
 
@@ -238,7 +248,8 @@ def run_scale(folder: Path, n: int, seed: int, partial: Callable[[dict[str, obje
             return None
         sl = slice(at - WINDOW, at)
         return {"median_ms": float(np.median(total[sl])), "p99_ms": float(np.percentile(total[sl], 99)),
-                "opencv_orb_median_ms": float(np.median(orb_ms[sl])), "words_median_ms": float(np.median(words_ms[sl]))}
+                "opencv_orb_median_ms": float(np.median(orb_ms[sl])), "words_median_ms": float(np.median(words_ms[sl])),
+                "verify_p99_ms": float(np.percentile(verify_ms[sl], 99))}
 
     def scale_result(done: int) -> dict[str, object]:
         at = {str(z): window(z) for z in sorted({1000, 2000, 5000, 10000, done}) if z <= done}
@@ -262,6 +273,7 @@ def run_scale(folder: Path, n: int, seed: int, partial: Callable[[dict[str, obje
         orb_ms[i] = (t1 - t0) * 1e3
         total[i] = d.times_s["total"] * 1e3
         words_ms[i] = d.times_s["words"] * 1e3
+        verify_ms[i] = d.times_s["verify"] * 1e3
         loops += d.status == LOOP
         done = i + 1
         if done % 500 == 0 or done == n:
@@ -306,8 +318,9 @@ def page(res: dict) -> list[str]:
              "`tree`: the default detector: robotd's own incremental k-medians tree over the binary words (a "
              "beam of 4 leaves) and OpenCV's RANSAC for the essential matrix; `tree, beam 8`: the same "
              "scanning 8 leaves; `usearch`: the HNSW graph the tree replaced; `tree, USAC verification`: the "
-             "default with the essential matrix searched by OpenCV's USAC (`estimator = \"usac\"`); `tree, RANSAC "
-             "at most 200 samples`: the default with RANSAC's samples capped at 200 instead of 1000 "
+             "default with the essential matrix searched by OpenCV's USAC (`estimator = \"usac\"`, with its local "
+             "optimisation); `tree, USAC without local optimisation`: the same with `local_optimisation = False`; "
+             "`tree, RANSAC at most 200 samples`: the default with RANSAC's samples capped at 200 instead of 1000 "
              "(`max_iterations = 200`). Same "
              "features, same run (rows that were not run are missing). `verify ms p99`: the verification's "
              "own time at its 99th percentile; `verified`: images whose candidate was verified. RAM: what "
@@ -334,6 +347,21 @@ def page(res: dict) -> list[str]:
             lines += ["", f"{sname}: the map file read back and a new detector restored from it (its word "
                           f"tree rebuilt from the stored words) in {mf['restore_s']:.1f} s, "
                           f"{mf['restored_searchable_words']} searchable words."]
+    staged = [(sname, s, v, r) for sname, s in res.get("sequences", {}).items() for v, r in s["variants"].items()
+              if "stages_ms" in r]
+    if staged:
+        lines += ["", "### Where the time goes: each stage's median / p99 (ms), and its mean over the slowest 1 % of images",
+                  "", "Stages as the detector times them (`Detection.times_s`): `features` ORB extraction, `words` "
+                  "the word search, new words, purging and adding the image to the inverted index, `likelihood` the "
+                  "vote and the likelihood, `filter` the Bayes filter and the candidate, `verify` the epipolar "
+                  "check (matching, the essential matrix, the motion refinement, the planar check), `memory` the "
+                  "working memory (none without a bound).", "",
+                  "| sequence | variant | " + " | ".join(STAGES) + " | total |",
+                  "|---|---|" + "---:|" * (len(STAGES) + 1)]
+        for sname, s, v, r in staged:
+            st = r["stages_ms"]
+            cells = [f"{st[k]['median']:.1f} / {st[k]['p99']:.1f} ({st[k]['slowest_1pct_mean']:.1f})" for k in STAGES]
+            lines.append(f"| {sname} | {v} | " + " | ".join(cells) + f" | {r['ms_median']:.1f} / {r['ms_p99']:.1f} |")
     sc = res.get("scale")
     if sc:
         lines += ["",
@@ -346,12 +374,12 @@ def page(res: dict) -> list[str]:
                   f"lap are not those of the last one; the default detector (tree). Windows of the {sc['window']} "
                   "images up to the given count." + (f" {sc['note']}" if sc.get("note") else ""),
                   "",
-                  "| images | ms median | ms p99 | ORB ms median | words ms median |",
-                  "|---:|---:|---:|---:|---:|"]
+                  "| images | ms median | ms p99 | ORB ms median | words ms median | verify ms p99 |",
+                  "|---:|---:|---:|---:|---:|---:|"]
         for z, wdw in sc["at"].items():
             if wdw:
                 lines.append(f"| {z} | {wdw['median_ms']:.1f} | {wdw['p99_ms']:.1f} | {wdw['opencv_orb_median_ms']:.1f} | "
-                             f"{wdw['words_median_ms']:.1f} |")
+                             f"{wdw['words_median_ms']:.1f} | {fmt(wdw.get('verify_p99_ms'))} |")
         a, z = sc["at"].get("1000"), sc["at"].get(str(sc["images"]))
         if a and z and sc["images"] > 1000:
             rel = (z["median_ms"] / z["opencv_orb_median_ms"]) / (a["median_ms"] / a["opencv_orb_median_ms"])

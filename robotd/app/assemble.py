@@ -192,7 +192,7 @@ def build_forward_stage(cfg: Config, store: MapStore | None = None) -> Any:
              f.method, kind, f.distance_m, f.rotation_deg)
     return ForwardLoopStage(ForwardDetector(params, camera_matrix=k), distance_m=f.distance_m,
                             rotation_rad=math.radians(f.rotation_deg), sync_tolerance_s=f.sync_tolerance_s,
-                            store=store)
+                            store=store, mount=forward_mount(cfg))
 
 
 def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, lossless: bool,

@@ -153,6 +153,9 @@ def print_summary(s: Summary, f: TextIO) -> None:
               f"{fw['accepted'] - fw['accepted_right']} wrong), "
               f"{fw['refused_by_gate']} refused by the gate, {fw['not_planar']} not planar; "
               f"{fw['failed_verification']} candidates failed the epipolar check", file=f)
+        if fw.get("accepted_outside_own_noise") is not None:
+            print(f"  accepted edges whose truth lies outside their own noise (chi2, 99.9 %): "
+                  f"{fw['accepted_outside_own_noise']}", file=f)
         print(f"  per forward keyframe: median {fw['ms_per_image_median']} ms, p99 {fw['ms_per_image_p99']} ms; "
               f"vocabulary {fw['vocabulary_words']} words", file=f)
         for r in fw.get("loops", []):
@@ -161,7 +164,8 @@ def print_summary(s: Summary, f: TextIO) -> None:
                 rng = "none" if r.get("measured_range_m") is None else f"{r['measured_range_m']:.2f} m"
                 print(f"  wrong, accepted: keyframe {r['to']} -> {r['from']}, {r['true_distance_m']:.2f} m apart, "
                       f"{r['inliers']} inliers, heading {r['yaw_error_deg']:.1f} deg and bearing {bearing} deg off, "
-                      f"range on the floor {rng}; gate {r.get('fate_detail', '')}", file=f)
+                      f"range on the floor {rng}; gate {r.get('fate_detail', '')}"
+                      + (f"; truth chi2 {r['truth_chi2']:.1f}" if "truth_chi2" in r else ""), file=f)
         if fw.get("cpu_ms_per_image_median") is not None:
             share = fw.get("verify_share")
             print(f"  per forward keyframe in the pipeline thread's CPU time: median {fw['cpu_ms_per_image_median']} ms, "

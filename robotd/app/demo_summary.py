@@ -44,7 +44,7 @@ def summarise(cfg: Config, cam_model: FloorCameraModel, robot: VirtualRobot, obs
                floor_pattern: str | None, record: Path | None) -> Summary:
     """The demo's figures against ground truth (:mod:`robotd.evaluation`), and its plots
     (with ``plot``) in ``out``."""
-    from robotd.app.assemble import forward_mount
+    from robotd.app.assemble import forward_loop_params, forward_mount
     from robotd.app.demo_report import plot_demo_trajectories, plot_floor_similarity
     from robotd.evaluation.groundtruth import floor_evaluation, forward_evaluation, relocalisation_evaluation
     from robotd.evaluation.metrics import odometry_errors
@@ -113,7 +113,8 @@ def summarise(cfg: Config, cam_model: FloorCameraModel, robot: VirtualRobot, obs
     if graph is not None:
         summary["pose_graph"] = graph[0]
     if cfg.forward_detector.enabled:
-        summary["forward_detector"] = forward_evaluation(robot.motion, forward_mount(cfg), obs, c)
+        summary["forward_detector"] = forward_evaluation(robot.motion, forward_mount(cfg), obs, c,
+                                                           forward_loop_params(cfg))
     if robot.settings.kidnap is not None:
         summary["relocalisation"] = relocalisation_evaluation(robot.motion, robot.settings.kidnap, obs,
                                                               live.relocalisations, c)

@@ -22,6 +22,7 @@ from robotd.base.messages import LoopFate
 from robotd.evaluation.metrics import odometry_errors, rpe_per_step
 from robotd.evaluation.observations import RunObservations
 from robotd.floor.evaluation import CandidateReport, candidate_report, overlap_matrix
+from robotd.forward.planar import PlanarLoopParams, loop_edge
 
 LOOP_R = 0.33
 """The loop definition's overlap ratio r (paper 003 Sec. III-A): two keyframes show the same
@@ -31,6 +32,12 @@ FORWARD_YAW_OK_DEG = 5.0
 FORWARD_BEARING_OK_DEG = 10.0
 """A forward loop's measured heading change and bearing are "right" when within these of the
 truth (the bearing is judged only when the true cameras are more than 0.2 m apart)."""
+
+FORWARD_OWN_NOISE_CHI2 = {2: 13.82, 3: 16.27}
+"""The second measure beside that judge: a forward loop edge is outside its own noise when
+the true relative pose of its keyframes is further from the edge than these chi-square
+bounds (99.9 %) under the edge's own information matrix, by the degrees of freedom it
+measures (2 without a range on the floor, 3 with one), as the graph's gate counts them."""
 
 Summary = dict[str, Any]
 """A JSON-ready section of the demo's summary (values: numbers, strings, lists, dicts)."""
@@ -118,10 +125,13 @@ def floor_evaluation(camera: FloorCameraModel, truth: GroundTruth, obs: RunObser
 
 
 def forward_evaluation(truth: GroundTruth, mount: np.ndarray, obs: RunObservations,
-                       counters: Mapping[str, float]) -> Summary:
+                       counters: Mapping[str, float], loop_params: PlanarLoopParams | None = None) -> Summary:
     """The forward loops judged by the truth: each verified loop's heading change and bearing
     against the true camera poses (``mount (3,)``: the forward camera on the robot) of its
-    two keyframes, and what the pose graph did with it."""
+    two keyframes, and what the pose graph did with it. Beside that judge, each loop's edge
+    (:func:`robotd.forward.planar.loop_edge` with ``loop_params``, the range the truth's where
+    none was measured) against the true relative pose of its keyframes: ``truth_chi2`` under
+    the edge's own information, outside its noise past :data:`FORWARD_OWN_NOISE_CHI2`."""
     stamp_of = dict(zip(obs.keyframe_ids, obs.keyframe_stamps))
     c = counters
     rows = []
@@ -134,10 +144,23 @@ def forward_evaluation(truth: GroundTruth, mount: np.ndarray, obs: RunObservatio
         yaw_err = abs(math.degrees(wrap_angle(m.dyaw_rad - rel[2])))
         bearing_err = abs(math.degrees(wrap_angle(m.bearing_rad - math.atan2(rel[1], rel[0]))))
         right = yaw_err <= FORWARD_YAW_OK_DEG and (dist <= 0.2 or bearing_err <= FORWARD_BEARING_OK_DEG)
+        robot_rel = between(truth.pose_at(stamp_of[m.from_id] / 1e9), truth.pose_at(stamp_of[m.to_id] / 1e9))
+        delta, info = loop_edge(robot_rel, m.dyaw_rad, m.bearing_rad, mount, loop_params, range_m=m.range_m,
+                                sigma_bearing_rad=m.sigma_bearing_rad)
+        cos, sin = math.cos(delta[2]), math.sin(delta[2])  # the edge's error coordinates (the gate's)
+        d = robot_rel[:2] - delta[:2]
+        e = np.array([cos * d[0] + sin * d[1], -sin * d[0] + cos * d[1], wrap_angle(robot_rel[2] - delta[2])])
+        chi2 = float(e @ info @ e)
         rows.append({"from": m.from_id, "to": m.to_id, "probability": m.probability,
                      "inliers": m.inliers, "true_distance_m": dist, "yaw_error_deg": yaw_err,
                      "bearing_error_deg": bearing_err if dist > 0.2 else None, "right": right,
-                     "measured_range_m": m.range_m,
+                     "measured_range_m": m.range_m, "truth_chi2": chi2,
+                     "outside_own_noise": chi2 > FORWARD_OWN_NOISE_CHI2[3 if m.range_m is not None else 2],
+                     "dyaw_deg": math.degrees(m.dyaw_rad), "true_dyaw_deg": math.degrees(rel[2]),
+                     "bearing_deg": math.degrees(m.bearing_rad),
+                     "true_bearing_deg": math.degrees(math.atan2(rel[1], rel[0])),
+                     "sigma_bearing_deg": (None if m.sigma_bearing_rad is None
+                                           else math.degrees(m.sigma_bearing_rad)),
                      "fate": str(obs.forward_fates.get((m.from_id, m.to_id), "none")),
                      "fate_detail": obs.forward_fate_details.get((m.from_id, m.to_id), "")})
     accepted = [r for r in rows if r["fate"] == LoopFate.ACCEPTED]
@@ -145,6 +168,7 @@ def forward_evaluation(truth: GroundTruth, mount: np.ndarray, obs: RunObservatio
             "unsynced": c.get("forward_unsynced", 0), "verified_loops": len(rows),
             "verified_right": sum(r["right"] for r in rows),
             "accepted": len(accepted), "accepted_right": sum(r["right"] for r in accepted),
+            "accepted_outside_own_noise": sum(r["outside_own_noise"] for r in accepted),
             "refused_by_gate": c.get("forward_loops_failed_gate", 0),
             "failed_verification": c.get("forward_failed_verification", 0),
             "not_planar": c.get("forward_not_planar", 0),

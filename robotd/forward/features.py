@@ -173,7 +173,7 @@ class FeatureExtractor:
             shape = (0, self.params.descriptor_size)
             return Features(np.zeros((0, 2), np.float32),
                             np.zeros(shape, np.uint8 if self.params.binary else np.float32), size)
-        xy = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
+        xy = np.asarray(cv2.KeyPoint.convert(kps), np.float32).reshape(-1, 2)
         if self.params.binary:
             return Features(xy, np.ascontiguousarray(desc, np.uint8), size)
         d = np.asarray(desc, np.float32)

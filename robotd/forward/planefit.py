@@ -31,7 +31,7 @@ import numpy as np
 
 from robotd.forward.planar import INLIER_NOISE_FACTOR
 
-__all__ = ["PlanarFit", "fit_planar", "planar_pose"]
+__all__ = ["PlanarFit", "fit_planar", "planar_inliers", "planar_pose"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -217,3 +217,22 @@ def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nda
             var = np.einsum("ij,jk,ik->i", g, cov, g)
             sig_y, sig_b = math.sqrt(max(float(var[0]), 0.0)), math.sqrt(max(float(var[1]), 0.0))
     return PlanarFit(yaw, _bearing(yaw, psi), r, t, inl, sig_y, sig_b)
+
+
+def planar_inliers(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, dyaw_rad: float,
+                   bearing_rad: float, *, threshold_px: float = 1.0) -> np.ndarray:
+    """``(N,) bool``: the matched pixels ``p_old_px, p_new_px (N, 2)`` within ``threshold_px``
+    (Sampson distance) of the planar motion with heading change ``dyaw_rad`` and bearing
+    ``bearing_rad`` (as :class:`PlanarFit` holds them), ``camera_matrix (3, 3)`` shared."""
+    p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
+    p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
+    if not len(p_old):
+        return np.zeros(0, bool)
+    k = np.asarray(camera_matrix, np.float64)
+    kinv = np.linalg.inv(k)
+    x_old = np.hstack([p_old, np.ones((len(p_old), 1))]) @ kinv.T
+    x_new = np.hstack([p_new, np.ones((len(p_new), 1))]) @ kinv.T
+    r, _ = planar_pose(dyaw_rad, 0.0)
+    centre = np.array([-math.sin(bearing_rad), 0.0, math.cos(bearing_rad)])  # the new camera, old frame
+    out: np.ndarray = np.abs(_sampson(x_old, x_new, r, -r @ centre, 0.5 * (k[0, 0] + k[1, 1]))) < threshold_px
+    return out

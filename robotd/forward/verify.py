@@ -135,6 +135,9 @@ class VerifyParams:
             within ``ransac_threshold_px``, the same confidence and iteration bound) with
             its local optimisation of each new best model and its faster five-point solver
             (module notes, "Time").
+        local_optimisation: with ``estimator = "usac"``, each new best model is refined
+            on its inliers (OpenCV's inner local optimisation); False: none, the same test
+            as RANSAC with only the cheaper sample.
         max_iterations: the most samples either search draws (OpenCV's own cap, 1000,
             by default); fewer bound the verification's time at the cost of missing more
             consensus sets of few inliers among many matches (measured on both development
@@ -153,6 +156,7 @@ class VerifyParams:
     min_floor_points: int = 4
     floor_band_log: float = 0.1
     estimator: str = "ransac"
+    local_optimisation: bool = True
     max_iterations: int = 1000
 
     def __post_init__(self) -> None:
@@ -316,7 +320,8 @@ def essential_matrix(p_old: np.ndarray, p_new: np.ndarray, camera_matrix: np.nda
     u.maxIterations = iters
     u.sampler = cv2.SAMPLING_UNIFORM
     u.score = cv2.SCORE_METHOD_RANSAC          # the inlier count, as RANSAC
-    u.loMethod = cv2.LOCAL_OPTIM_INNER_LO      # each new best model refined on its inliers
+    # each new best model refined on its inliers, or none (RANSAC's test, a cheaper sample)
+    u.loMethod = cv2.LOCAL_OPTIM_INNER_LO if params.local_optimisation else cv2.LOCAL_OPTIM_NULL
     u.final_polisher = cv2.NONE_POLISHER
     u.randomGeneratorState = params.seed
     u.isParallel = False

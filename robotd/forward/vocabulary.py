@@ -211,6 +211,8 @@ class Vocabulary:
         descriptor within the radius.
         """
         d = self._check(descriptors)
+        if self._tree is not None:
+            self._tree.last_greedy = None
         words = self.quantize(d)
         self._first.resize(self._images + 1)
         self._first.view[self._images] = self._n_words
@@ -226,7 +228,10 @@ class Vocabulary:
         owner, founders = self._group(d[new])
         keys = np.arange(self._n_words, self._n_words + len(founders), dtype=np.int64)
         if self._tree is not None:
-            self._tree.add(keys, pack_bits(d[new[founders]]))
+            # the search above left the tree as it was: its greedy leaves are where they go
+            greedy = self._tree.last_greedy
+            self._tree.add(keys, pack_bits(d[new[founders]]),
+                           None if greedy is None else greedy[new[founders]])
         else:
             self._index.add(keys, d[new[founders]], threads=1)
         self._n_words += len(founders)
@@ -297,8 +302,12 @@ class Vocabulary:
 def hamming_bits(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Differing bits between packed 256-bit strings, ``(..., 4) uint64`` each (broadcast);
     ``(...) int32``."""
-    c = np.bitwise_count(a ^ b)  # uint8 per 64 bits; summed by hand (a reduce over 4 is slow)
-    return (c[..., 0].astype(np.int32) + c[..., 1]) + (c[..., 2].astype(np.int32) + c[..., 3])
+    # uint8 per 64 bits, summed as one uint32 per string (a reduce over 4 is slow): bytes 0
+    # and 2, and 1 and 3, add without carry (64 + 64 < 256) in either byte order
+    x = np.bitwise_count(a ^ b).view(np.uint32)[..., 0]
+    y = x + (x >> 16)
+    out: np.ndarray = ((y & 0xFF) + ((y >> 8) & 0xFF)).astype(np.int32)
+    return out
 
 
 def _first_k(dist: np.ndarray, k: int) -> np.ndarray:
@@ -394,6 +403,7 @@ class BinaryWordTree:
         self._n_slots = 0
         self._free_slots: list[int] = []
         self.n_live = 0
+        self.last_greedy: np.ndarray | None = None  # (N,) greedy leaves of the last search
 
     def __len__(self) -> int:
         return self.n_live
@@ -460,6 +470,8 @@ class BinaryWordTree:
     def nearest(self, q: np.ndarray, beam: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The nearest word found for each query (``(N, 4) uint64``): ``(word ids (N,)
         int64, -1 when none was found; distances (N,) int32 bits)``.
+        :attr:`last_greedy` keeps each query's greedy leaf (the one :meth:`add` would put
+        it in while the tree is unchanged; None when the tree was empty).
 
         The leaves' words are first compared on their first 64 bits only: a word within
         the radius (40 of 256 bits) differs there by 8 bits (median); of 24,435 such pairs of
@@ -468,9 +480,11 @@ class BinaryWordTree:
         the full distance is computed for the few percent that pass."""
         n = len(q)
         none = np.full(n, -1, np.int64), np.full(n, _FAR, np.int32)
+        self.last_greedy = None
         if not n or not self.n_live:
             return none
         leaves = self._descend(q, beam or self.params.beam)
+        self.last_greedy = leaves[:, 0]
         pair_q, pair_k = np.nonzero(leaves >= 0)                     # (query, leaf) pairs, by query
         rows = self._leaf_row[leaves[pair_q, pair_k]]
         fill = self._fill[rows]
@@ -487,7 +501,9 @@ class BinaryWordTree:
         if not len(keep):
             return none
         qi, s = owner[keep], slots[keep]
-        full = hamming_bits(q[qi], self._desc[s])
+        # the other 192 bits: at most 20 + 3 * 64 = 212 in all, so uint8 sums do not wrap
+        c = np.bitwise_count(q[qi, 1:] ^ self._desc[s, 1:])
+        full = (d0[keep] + c[:, 0] + c[:, 1] + c[:, 2]).astype(np.int32)
         # per query (qi comes sorted): the nearest, ties to the lowest slot
         key = (full.astype(np.int64) << 32) | s.astype(np.int64)
         start = np.flatnonzero(np.diff(qi, prepend=-1))
@@ -498,13 +514,15 @@ class BinaryWordTree:
         return words, dist
 
     # -- changes --------------------------------------------------------------------------
-    def add(self, words: np.ndarray, q: np.ndarray) -> None:
-        """Add words (ids ``(N,)`` int, new to the tree) with descriptors ``(N, 4) uint64``."""
+    def add(self, words: np.ndarray, q: np.ndarray, leaves: np.ndarray | None = None) -> None:
+        """Add words (ids ``(N,)`` int, new to the tree) with descriptors ``(N, 4) uint64``;
+        ``leaves (N,)``: their greedy leaves when known (:attr:`last_greedy` of a search of
+        the unchanged tree), else they are found here."""
         words = np.asarray(words, np.int64)
         if not len(words):
             return
         slots = self._new_slots(words, q)
-        leaves = self._descend(q, 1)[:, 0]
+        leaves = self._descend(q, 1)[:, 0] if leaves is None else np.asarray(leaves, np.int32)
         order = np.argsort(leaves, kind="stable")
         leaves, slots = leaves[order], slots[order]
         first = np.ones(len(leaves), bool)

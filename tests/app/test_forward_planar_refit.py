@@ -43,7 +43,23 @@ def _verification(yaw_deg: float, bearing_deg: float, lean_deg: float, chi2: flo
 def test_a_level_motion_is_taken_as_verified():
     stage = _stage(10, 30, 0.5)
     assert stage._level(0, _verification(10, 30, 0.0, 2.0))
-    assert stage.refits == 0 and stage.not_planar == 0 and not stage._fits
+    assert stage.not_planar == 0
+    # Fitted in the plane too: kept only where it explains more matches, and then the same motion.
+    for fit, _, _ in stage._fits.values():
+        assert math.degrees(fit.dyaw_rad) == pytest.approx(10, abs=0.3)
+        assert math.degrees(fit.bearing_rad) == pytest.approx(30, abs=2.0)
+
+
+def test_a_level_motion_off_along_the_heading_bearing_ridge_takes_the_planar_fit():
+    """Straight ahead, 0.31 m: the verification says the bearing is 12 deg off with the
+    heading 1.5 deg, inside the planarity test (the daemon's wrong loops of this kind); the
+    matches say straight ahead."""
+    stage = _stage(0, 0, 0.31)
+    assert stage._level(0, _verification(1.5, -12, 0.0, 2.0))
+    fit, _, _ = stage._fits[0]
+    assert math.degrees(fit.bearing_rad) == pytest.approx(0, abs=2.0)
+    assert math.degrees(fit.dyaw_rad) == pytest.approx(0, abs=0.3)
+    assert stage.level_refits == stage.refits == 1 and stage.not_planar == 0
 
 
 def test_a_leaning_motion_is_refitted_in_the_plane():

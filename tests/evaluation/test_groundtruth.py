@@ -82,3 +82,18 @@ def test_relocalisation_timing_and_pose_error():
     assert out["after_m_true"] == pytest.approx(1.5, abs=0.01)
     assert out["position_error_m"] == pytest.approx(0.05, abs=1e-9)
     assert relocalisation_evaluation(truth, kidnap, obs, [], {})["relocalised"] is False
+
+
+def test_forward_loops_beside_the_judge_the_truth_against_the_edges_own_noise():
+    obs = _observed([10.0, 10.42, 30.0])  # keyframes 1 and 2 are 0.21 m apart along x
+    # 12 deg of bearing at 0.21 m (2.2 cm sideways): wrong by the judge, inside the edge's own
+    # noise (3 cm in the camera frame, 2 deg of bearing); 90 deg at 10 m is outside it.
+    obs.forward_loops.append(ForwardLoop(1, 2, 0.9, 0.0, math.radians(12.0), 40))
+    obs.forward_loops.append(ForwardLoop(1, 3, 0.9, 0.0, math.radians(90.0), 40))
+    obs.on_fate(CandidateFate(2, 1, 0.9, LoopFate.ACCEPTED, "forward: chi2 1.0"))
+    obs.on_fate(CandidateFate(3, 1, 0.9, LoopFate.ACCEPTED, "forward: chi2 99"))
+    out = forward_evaluation(Straight(), np.zeros(3), obs, {"forward_images": 3})
+    near, far = out["loops"]
+    assert not near["right"] and not near["outside_own_noise"] and near["truth_chi2"] < 2.0
+    assert not far["right"] and far["outside_own_noise"] and far["truth_chi2"] > 100.0
+    assert out["accepted"] == 2 and out["accepted_right"] == 0 and out["accepted_outside_own_noise"] == 1

@@ -158,3 +158,24 @@ def test_first_k_is_the_stable_argsorts_first_columns() -> None:
         d = rng.integers(0, 6, (200, m)).astype(np.int32)
         d[np.arange(200), rng.integers(0, m, 200)] = -1
         np.testing.assert_array_equal(_first_k(d, k), np.argsort(d, axis=1, kind="stable")[:, :k])
+
+
+def test_words_added_at_the_searchs_greedy_leaves_build_the_same_tree():
+    """A vocabulary passes the search's greedy leaves to ``add`` instead of descending
+    again: the tree must come out the same as when ``add`` finds them itself (including
+    the leaves that split)."""
+    rng = np.random.default_rng(3)
+    words = _clustered(rng, 200, 12, 25)
+    a = BinaryWordTree(TreeParams(branching=8, leaf_size=32, beam=4))
+    b = BinaryWordTree(TreeParams(branching=8, leaf_size=32, beam=4))
+    for k in range(0, len(words), 300):
+        q = pack_bits(words[k:k + 300])
+        ids = np.arange(k, k + len(q))
+        a.nearest(q)
+        a.add(ids, q, a.last_greedy)
+        b.add(ids, q)
+    assert a._n_nodes == b._n_nodes > 20
+    probe = pack_bits(_clustered(rng, 100, 3, 20))
+    for x, y in zip(a.nearest(probe), b.nearest(probe)):
+        assert (x == y).all()
+    assert (a.nearest(pack_bits(words))[0] == np.arange(len(words))).all()

@@ -28,7 +28,17 @@ of this kind; rendered at the frames' own times, so not the frame's offset from 
 keyframe). Such a motion is refitted with the motion kept in the floor plane
 (:func:`robotd.forward.planefit.fit_planar`, heading change and bearing only) from the two
 images' matches; the refit is the loop's motion when it keeps at least the verification's
-``min_inliers`` and half of its inliers. The test runs inside the detector's verification
+``min_inliers`` and half of its inliers.
+
+A motion that passes the test is fitted in the floor plane too, and the planar fit is the
+loop's motion when it explains more of the two images' matches than the verified motion
+brought into the plane (its heading change and bearing,
+:func:`robotd.forward.planefit.planar_inliers`), under the same conditions. For a camera
+moving along its optical axis the general fit trades a heading change against a bearing
+and a little tilt: loops 0.3-0.65 m apart came out with the bearing 10-13 deg off and the
+heading 1.3-2.7 deg, leaning 2-7 deg (inside the planarity test), while the true planar
+motion fitted their inliers to 0.5-0.7 px and the verified one, brought into the plane, to
+9-26 px. The test runs inside the detector's verification
 (its ``accept`` hook), so a candidate refused there lets the detector verify the next view
 it may try (``DetectorParams.verify_tries``). Refusals are counted (``forward_not_planar``,
 one per refused view) and, when no view was a loop, published as a ``failed_gate`` fate
@@ -37,8 +47,19 @@ one per refused view) and, when no view was a loop, published as a ``failed_gate
 
 The detector runs in the pipeline's thread, once per forward keyframe (every half metre by
 default, about one image per 1.5 s at the demo's speed): a SIFT image costs tens of
-milliseconds, which the source queues absorb. The frame's offset from its keyframe (at most
-``sync_tolerance_s``) is left in the edge's noise (:class:`robotd.forward.planar.PlanarLoopParams`).
+milliseconds, which the source queues absorb.
+
+The forward frame is up to ``sync_tolerance_s`` off its keyframe's stamp (33 ms at the
+demo's 15 frames a second: 1 cm and 1 deg at its speeds), while the loop is an edge
+between the two keyframes. The stage keeps the last seconds of the wheel odometry
+(:class:`~robotd.base.messages.OdometryUpdate`, the wheel-only pose: no visual step moves it)
+and takes the robot's motion from each keyframe's stamp to its frame's (interpolated, or
+extrapolated at the last speed for a frame newer than the odometry; none without odometry).
+A loop's motion, measured between the two frames, is carried to the two keyframes through
+these offsets before it is published: the heading change exactly, the bearing at the
+measured range on the floor or else at the range the keyframes' poses predict (same
+odometry chain); with neither, the bearing is left as measured. Images taken up from the
+map by a later run have no offset (zero).
 """
 
 from __future__ import annotations
@@ -54,11 +75,12 @@ import numpy as np
 
 from robotd.app.pipeline import Publisher
 from robotd.base.errors import MapStoreError
-from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored, LoopFate
+from robotd.base.geometry import between, compose, inverse, wrap_angle
+from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored, LoopFate, OdometryUpdate
 from robotd.forward import LOOP, ForwardDetector
 from robotd.forward.features import CompactFeatures
-from robotd.forward.planar import planar_motion, planarity_bound
-from robotd.forward.planefit import PlanarFit, fit_planar
+from robotd.forward.planar import INLIER_NOISE_FACTOR, planar_motion, planarity_bound
+from robotd.forward.planefit import PlanarFit, fit_planar, planar_inliers
 from robotd.forward.verify import VerifyParams, floor_range, match_features
 
 log = logging.getLogger(__name__)
@@ -69,14 +91,29 @@ class ForwardLoopStage(Publisher):
 
     name = "forward"
     produces = (ForwardLoop, CandidateFate)
+    optional_inputs = (OdometryUpdate,)  # without it the frames' offsets are taken as zero
 
     def __init__(self, detector: ForwardDetector, *, distance_m: float = 0.5,
                  rotation_rad: float = math.radians(20.0), sync_tolerance_s: float = 0.04,
                  max_tilt_rad: float = math.radians(10.0), camera: str = "forward",
-                 store: Any = None, planarity_bound: float = planarity_bound(), planar_refit: bool = True) -> None:
+                 store: Any = None, planarity_bound: float = planarity_bound(), planar_refit: bool = True,
+                 mount: np.ndarray | None = None) -> None:
         self.detector = detector
+        self.mount = np.zeros(3) if mount is None else np.asarray(mount, np.float64).reshape(3)
+        # The wheel odometry's last seconds, (stamp_ns, (x_m, y_m, yaw_rad)), for the frames' offsets.
+        self._odom: deque[tuple[int, np.ndarray]] = deque(maxlen=512)
+        # Per detector image: the camera's motion from its keyframe's stamp to its frame's
+        # (camera frame, x forward, y left: (x_m, y_m, yaw_rad)), the keyframe's pose, and the
+        # odometry chain it belongs to (a lift starts a new one).
+        self._offsets: list[np.ndarray] = []
+        self._poses: list[np.ndarray | None] = []
+        self._chains: list[int] = []
+        self._chain = 0
+        self.frame_offsets_ms: list[float] = []  # frame stamp minus keyframe stamp, per forward keyframe
+        self.no_offset = 0  # forward keyframes whose frame had no odometry around it
         self.planar_refit = planar_refit
         self.refits = 0
+        self.level_refits = 0  # of them, motions that passed the planarity test (module notes)
         # past image -> its refit and the refit's inlier pixels (old, new), for the image being run
         self._fits: dict[int, tuple[PlanarFit, np.ndarray, np.ndarray]] = {}
         self._last_refused: tuple[int, float, float] | None = None  # (past image, tilt, chi2)
@@ -135,6 +172,9 @@ class ForwardLoopStage(Publisher):
             d = np.frombuffer(desc, dtype).reshape(-1, dim)
             feats.append(CompactFeatures(w, kq, d, size))
             self._keyframe_ids.append(kf_id)
+            self._offsets.append(np.zeros(3))
+            self._poses.append(None)
+            self._chains.append(-1)
         word_desc = np.zeros((len(words), dim), dtype)  # purged words' descriptors are not kept
         for n, w in enumerate(words):
             if not w[4]:
@@ -161,7 +201,40 @@ class ForwardLoopStage(Publisher):
             log.warning("forward image %d (keyframe %d) not stored: %s", t, keyframe_id, exc)
 
     def subscriptions(self) -> Mapping[type, Any]:
-        return {Frame: self.on_frame, KeyframeStored: self.on_keyframe}
+        return {Frame: self.on_frame, KeyframeStored: self.on_keyframe, OdometryUpdate: self.on_odometry}
+
+    def on_odometry(self, msg: OdometryUpdate) -> None:
+        w = msg.wheel
+        if self._odom and w.stamp_ns <= self._odom[-1][0]:
+            if w.stamp_ns < self._odom[-1][0]:  # time went back (a new run's clock): start again
+                self._odom.clear()
+            else:
+                return
+        self._odom.append((w.stamp_ns, np.array([w.x_m, w.y_m, w.yaw_rad])))
+
+    def _odom_at(self, stamp_ns: int) -> np.ndarray | None:
+        """The wheel odometry's pose at ``stamp_ns``: interpolated between its two samples
+        around it, or extrapolated at the last two samples' speed up to 0.1 s past the newest;
+        None without odometry there."""
+        od = self._odom
+        if len(od) < 2 or stamp_ns < od[0][0] or stamp_ns > od[-1][0] + 100_000_000:
+            return None
+        k = len(od) - 1
+        while k > 1 and od[k - 1][0] > stamp_ns:
+            k -= 1
+        (t0, p0), (t1, p1) = od[k - 1], od[k]
+        q = (stamp_ns - t0) / max(t1 - t0, 1)
+        d = p1 - p0
+        d[2] = wrap_angle(d[2])
+        return p0 + q * d
+
+    def _frame_offset(self, kf_stamp_ns: int, frame_stamp_ns: int) -> np.ndarray | None:
+        """The camera's motion ``(3,)`` from the keyframe's stamp to the frame's, in the
+        camera's planar frame at the keyframe (module notes); None without odometry."""
+        a, b = self._odom_at(kf_stamp_ns), self._odom_at(frame_stamp_ns)
+        if a is None or b is None:
+            return None
+        return compose(compose(inverse(self.mount), between(a, b)), self.mount)
 
     def on_frame(self, frame: Frame) -> None:
         if frame.camera != self.camera:
@@ -184,6 +257,7 @@ class ForwardLoopStage(Publisher):
         kf = msg.keyframe
         if kf.carried:  # odometry cannot relate the images before the lift to the ones after
             self.detector.forget_poses()
+            self._chain += 1
         pose = np.array(kf.pose_xyyaw, dtype=np.float64)
         if not self._due(pose):
             return
@@ -207,6 +281,13 @@ class ForwardLoopStage(Publisher):
         det = self.detector.process(frame.image, pose, kf.pose.covariance)  # the keyframe's odometry pose
         self.cpu_ms.append((time.thread_time() - cpu0) * 1e3)
         self._keyframe_ids.append(kf.keyframe_id)
+        offset = self._frame_offset(kf.stamp_ns, frame.stamp_ns)
+        if offset is None:
+            self.no_offset += 1
+        self._offsets.append(np.zeros(3) if offset is None else offset)
+        self._poses.append(pose)
+        self._chains.append(self._chain)
+        self.frame_offsets_ms.append((frame.stamp_ns - kf.stamp_ns) / 1e6)
         if self.store is not None:
             self._store_image(kf.keyframe_id)
         self.images += 1
@@ -231,7 +312,9 @@ class ForwardLoopStage(Publisher):
         old = self._keyframe_ids[det.loop_id]
         refit = self._fits.pop(det.loop_id, None)
         self._fits.clear()
-        range_m, sigma_b = v.range_m, v.sigma_bearing_rad
+        # The general fit's bearing sigma is the inliers' own noise; scaled as the planarity
+        # test and the planar fit scale it (robotd.forward.planar.INLIER_NOISE_FACTOR).
+        range_m, sigma_b = v.range_m, v.sigma_bearing_rad * INLIER_NOISE_FACTOR
         fit = None
         if refit is not None:  # refitted in the floor plane (robotd.forward.planefit)
             fit, p_old, p_new = refit
@@ -242,11 +325,31 @@ class ForwardLoopStage(Publisher):
                                   self.detector.params.verify)[0]
         else:
             dyaw, bearing, _ = planar_motion(v.rotation, v.translation_dir)
+        dyaw, bearing, range_m = self._to_keyframes(det.loop_id, len(self._offsets) - 1, dyaw, bearing, range_m)
         self.loops += 1
         log.debug("forward loop: keyframe %d sees keyframe %d (p %.2f, %d inliers%s)", kf.keyframe_id, old,
                   det.candidate_probability, v.n_inliers, ", refitted in the plane" if fit is not None else "")
         self._publish(ForwardLoop(old, kf.keyframe_id, det.candidate_probability, dyaw, bearing, v.n_inliers,
                                   range_m=range_m, sigma_bearing_rad=sigma_b if np.isfinite(sigma_b) else None))
+
+    def _to_keyframes(self, i_old: int, i_new: int, dyaw: float, bearing: float,
+                      range_m: float | None) -> tuple[float, float, float | None]:
+        """The loop's ``(dyaw_rad, bearing_rad, range_m)`` measured between the frames of
+        detector images ``i_old`` and ``i_new``, carried to their keyframes (module notes)."""
+        e_old, e_new = self._offsets[i_old], self._offsets[i_new]
+        dyaw_kf = float(wrap_angle(dyaw + e_old[2] - e_new[2]))
+        r = range_m
+        p_old, p_new = self._poses[i_old], self._poses[i_new]
+        if r is None and p_old is not None and p_new is not None and self._chains[i_old] == self._chains[i_new]:
+            cam_kf = compose(compose(inverse(self.mount), between(p_old, p_new)), self.mount)
+            pred = compose(compose(inverse(e_old), cam_kf), e_new)  # between the frames
+            r = float(math.hypot(pred[0], pred[1]))
+        if r is None or not (math.isfinite(r) and r > 0.0):
+            return dyaw_kf, bearing, range_m
+        cam_fr = np.array([r * math.cos(bearing), r * math.sin(bearing), dyaw])
+        cam = compose(compose(e_old, cam_fr), inverse(e_new))
+        return (dyaw_kf, float(math.atan2(cam[1], cam[0])),
+                None if range_m is None else max(float(math.hypot(cam[0], cam[1])), 1e-3))
 
     def _planar(self, v: Any) -> tuple[bool, float]:
         """Whether a verification's motion is a level camera's (module notes), and its tilt."""
@@ -261,6 +364,12 @@ class ForwardLoopStage(Publisher):
         its inliers at least the verification's minimum and half of its inliers)."""
         ok, tilt = self._planar(v)
         if ok:
+            if self.planar_refit:  # the planar fit, if it explains more of the matches (module notes)
+                refit = self._refit(image_id, v, level=True)
+                if refit is not None:
+                    self._fits[image_id] = refit
+                    self.refits += 1
+                    self.level_refits += 1
             return True
         if self.planar_refit:
             refit = self._refit(image_id, v)
@@ -272,12 +381,13 @@ class ForwardLoopStage(Publisher):
         self._last_refused = (image_id, tilt, v.planarity_chi2)
         return False
 
-    def _refit(self, image_id: int, v: Any) -> tuple[PlanarFit, np.ndarray, np.ndarray] | None:
+    def _refit(self, image_id: int, v: Any, level: bool = False) -> tuple[PlanarFit, np.ndarray, np.ndarray] | None:
         """The motion of the current image against past image ``image_id`` fitted in the
         floor plane from their matches (:func:`robotd.forward.planefit.fit_planar`, the
         heading searched around the verification's), with its inlier pixels (old, new);
         None when the planar motion keeps fewer than the verification's ``min_inliers`` or
-        half of its inliers."""
+        half of its inliers, or, with ``level`` (the verified motion passed the planarity
+        test), no more of the matches than the verified motion brought into the plane."""
         det = self.detector
         vp: VerifyParams = det.params.verify
         k = det.camera_matrix
@@ -288,6 +398,11 @@ class ForwardLoopStage(Publisher):
         fit = fit_planar(p_old, p_new, k, dyaw, threshold_px=vp.ransac_threshold_px)
         if fit is None or fit.n_inliers < max(vp.min_inliers, 0.5 * v.n_inliers):
             return None
+        if level:
+            _, bearing, _ = planar_motion(v.rotation, v.translation_dir)
+            n_level = int(planar_inliers(p_old, p_new, k, dyaw, bearing, threshold_px=vp.ransac_threshold_px).sum())
+            if fit.n_inliers <= n_level:
+                return None
         return fit, p_old[fit.inliers], p_new[fit.inliers]
 
     def counters(self) -> dict[str, Any]:
@@ -297,7 +412,11 @@ class ForwardLoopStage(Publisher):
         feat = np.asarray(self.features_ms) if self.features_ms else np.zeros(1)
         return {"forward_frames": self.frames, "forward_images": self.images,
                 "forward_unsynced": self.unsynced, "forward_loops": self.loops,
+                "forward_frames_without_odometry": self.no_offset,
+                "forward_frame_offset_ms_max": round(float(np.max(np.abs(self.frame_offsets_ms))), 1)
+                if self.frame_offsets_ms else 0.0,
                 "forward_not_planar": self.not_planar, "forward_planar_refits": self.refits,
+                "forward_level_refits": self.level_refits,
                 "forward_failed_verification": self.rejected_geometry,
                 "forward_vocabulary": len(self.detector.vocabulary),
                 "forward_restored_images": self.restored, "forward_store_errors": self.store_errors,
