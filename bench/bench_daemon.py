@@ -35,7 +35,9 @@ one core. This benchmark:
   the 20 s around it left out, as the detector does (beyond the distinct images, the
   descriptors are repeated under new ids: the cost of the scan and of the shortlist is
   measured, not the shortlist of a real map of that size); describe
-  and query medians, the index's memory and the process's at each size;
+  and query medians, the index's memory and the process's at each size, and the same
+  queries on the daemon's index (``IndexParams.resident`` descriptors kept decoded, the
+  others decoded again when shortlisted, as ``FloorIndex.from_store`` reads them back);
 * ``--memory N`` (alone, in a process of its own): the whole daemon's resident memory as
   its map grows to N keyframes (:func:`memory_run`; ``--localise-mapped`` as the service
   runs it), sampled every ``--memory-every`` keyframes into ``NAME-memory.json`` (and a
@@ -54,6 +56,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import gc
 import json
 import math
 import os
@@ -179,9 +182,11 @@ def read_truth(path: Path) -> tuple[np.ndarray, np.ndarray]:
     from drivers.recording.reader import RecordingReader
     from drivers.recording.schemas import TOPIC_GROUND_TRUTH
 
+    from robotd.base.messages import PoseStamped
+
     stamps, poses = [], []
     with RecordingReader(path) as r:
-        for topic, msg in r.messages():
+        for topic, msg in r.messages(only=(PoseStamped,)):  # the frames not decoded
             if topic == TOPIC_GROUND_TRUTH:
                 stamps.append(msg.stamp_ns)
                 poses.append((msg.x_m, msg.y_m, msg.yaw_rad))
@@ -239,6 +244,40 @@ def trimmed_rss_mb() -> float:
     except (OSError, AttributeError):
         pass
     return rss_mb()
+
+
+def process_memory() -> dict[str, float]:
+    """Where the resident memory is, MB: ``RssAnon`` (heap, mmaps: what the code allocates),
+    ``RssFile`` (mapped libraries and files) from ``/proc/self/status``, and glibc's
+    ``mallinfo2``: bytes in use (``malloc_used_mb``: live allocations), held free in its
+    arenas (``malloc_free_mb``: fragmentation), in its own mmaps (``malloc_mmap_mb``), and
+    the arena count as the main arena plus its others' size; empty where not Linux glibc."""
+    import ctypes
+    import ctypes.util
+
+    out: dict[str, float] = {}
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                k = line.split(":")[0]
+                if k in ("RssAnon", "RssFile", "RssShmem", "VmData"):
+                    out[k] = int(line.split()[1]) / 1024
+    except OSError:
+        pass
+
+    class MallInfo2(ctypes.Structure):
+        _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                   "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.mallinfo2.restype = MallInfo2
+        m = libc.mallinfo2()
+        out.update({"malloc_used_mb": m.uordblks / 1e6, "malloc_free_mb": m.fordblks / 1e6,
+                    "malloc_mmap_mb": m.hblkhd / 1e6, "malloc_arena_mb": m.arena / 1e6})
+    except (OSError, AttributeError):
+        pass
+    return out
 
 
 def peak_rss_mb() -> float:
@@ -482,23 +521,36 @@ def scale(recording: Path, sizes: list[int], queries: int, mode: int, shortlist:
                                            "p99": float(np.quantile(describe_ms, 0.99)),
                                            "n": len(describe_ms)}, "sizes": []}
     index = FloorIndex(IndexParams(shortlist=shortlist))
+    # The daemon's index (FloorIndex.from_store): IndexParams.resident descriptors kept
+    # decoded, the others read back when shortlisted (decoded from their bytes here: the
+    # map's read itself is about 0.03 ms, the decode most of a read back's cost).
+    lazy = FloorIndex(IndexParams(shortlist=shortlist), loader=lambda i: decode(blobs[i % distinct]))
     rss0 = rss_mb()
     decoded = [decode(b) for b in blobs[:n_frames]]  # queries: the drive's own frames
     recent = int(20.0 * n_frames / max(1.0, duration_s))  # frames in 20 s
     for n in sorted(sizes):
         for i in range(len(index), n):
             index.add(i, decode(blobs[i % distinct]))
+            lazy.add(i, index.descriptor(i))
         qs = rng.choice(len(decoded), size=min(queries, len(decoded)), replace=False)
-        ms = []
+        ms, ms_lazy = [], []
+        loads0 = lazy.loads
         ids = np.arange(n)
         for q in qs:
             # As the detector: nothing from the last (or next) 20 s of the drive, in any copy.
             excluded = ids[np.abs(ids % distinct % n_frames - q) < recent]
             t0 = time.thread_time()
             index.query(decoded[q], k=5, min_score=min_score, exclude_ids=excluded)
-            ms.append((time.thread_time() - t0) * 1e3)
+            t1 = time.thread_time()
+            lazy.query(decoded[q], k=5, min_score=min_score, exclude_ids=excluded)
+            ms_lazy.append((time.thread_time() - t1) * 1e3)
+            ms.append((t1 - t0) * 1e3)
         out["sizes"].append({"keyframes": n, "distinct": min(n, distinct), "query_ms": {"median": statistics.median(ms),
                                                           "p99": float(np.quantile(ms, 0.99)), "n": len(ms)},
+                             "query_read_back_ms": {"median": statistics.median(ms_lazy),
+                                                    "p99": float(np.quantile(ms_lazy, 0.99)),
+                                                    "reads_per_query": (lazy.loads - loads0) / len(qs),
+                                                    "resident": lazy.params.resident},
                              "index_mb": index.nbytes / 1e6, "rss_mb": rss_mb(), "rss_growth_mb": rss_mb() - rss0})
     return out
 
@@ -589,6 +641,59 @@ def memory_breakdown(floor: Any, trace: bool) -> dict[str, Any]:
     return out
 
 
+def release_breakdown(pipeline: Any, trace: bool) -> list[dict[str, Any]]:
+    """Attribution by removal, at the end of :func:`memory_run`: the daemon's large parts
+    let go one after the other (iSAM2, then the rest of the pose graph and its gate, then
+    the floor index), each followed by a collection and ``malloc_trim(0)``; per step the
+    C allocator's bytes in use, the resident memory and (with ``trace``) the Python side's
+    traced bytes. What each step frees is what that part held (GTSAM's C++ included,
+    which tracemalloc does not see). Destructive: the daemon is not used afterwards."""
+    import gc
+
+    from robotd.floor.index import FloorIndex
+    from robotd.graph.model import PoseGraph
+
+    def sample(what: str) -> dict[str, Any]:
+        gc.collect()
+        rss = trimmed_rss_mb()
+        pm = process_memory()
+        row = {"what": what, "rss_mb": rss, "malloc_used_mb": pm.get("malloc_used_mb", math.nan),
+               "malloc_free_mb": pm.get("malloc_free_mb", math.nan), "RssAnon": pm.get("RssAnon", math.nan)}
+        if trace:
+            import tracemalloc
+
+            row["traced_mb"] = tracemalloc.get_traced_memory()[0] / 1e6
+        return row
+
+    stage = pipeline.stage("graph")
+    graph = stage.graph
+    rows = [sample("at the end")]
+    graph._isam = graph._new_isam()
+    graph._cached = None
+    rows.append(sample("iSAM2 let go"))
+    graph.graph = PoseGraph()
+    graph._clear_fold()
+    gated = getattr(stage, "gated", None)
+    if gated is not None:
+        for name in ("update_ms", "_loops", "_travelled", "_stamps", "_edges_into"):
+            part = getattr(gated, name, None)
+            if isinstance(part, dict):
+                part.clear()
+            elif part is not None:
+                del part[:]
+    rows.append(sample("the pose graph and its gate let go"))
+    floor = pipeline.stage("floor")
+    floor.detector.index = FloorIndex()
+    rows.append(sample("the floor index let go"))
+    return rows
+
+
+def _tracing() -> bool:
+    import tracemalloc
+
+    return tracemalloc.is_tracing()
+
+
 def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                on_sample: Any = None) -> dict[str, Any]:
     """The whole daemon's resident memory as its map grows to ``keyframes`` keyframes.
@@ -670,12 +775,14 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                             n = c.get("keyframes_stored", 0) + c.get("keyframes_not_stored", 0)
                         if n >= next_sample:
                             t = os.times()
+                            pm = process_memory()
                             samples.append({"keyframes": n, "stored": c.get("keyframes_stored", 0),
                                             "rss_mb": rss_mb(), "rss_trimmed_mb": trimmed_rss_mb(), "laps": lap + 1,
+                                            **pm, **{f"{k}_trimmed": v for k, v in process_memory().items()},
                                             "index_mb": floor.detector.index.nbytes / 1e6,
                                             "cpu_s": (t.user - t0.user) + (t.system - t0.system),
                                             **graph_memory(pipeline.stage("graph").graph),
-                                            **memory_breakdown(floor, args.memory_trace),
+                                            **memory_breakdown(floor, _tracing()),
                                             "query_ms_median": statistics.median(query_ms) if query_ms else math.nan,
                                             "query_ms_p99": float(np.quantile(query_ms, 0.99)) if query_ms else math.nan,
                                             "index_loads": int(getattr(floor.detector.index, "loads", 0)),
@@ -684,11 +791,19 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                             s = samples[-1]
                             print(f"memory: {n} keyframes, RSS {s['rss_mb']:.0f} MB ({s['rss_trimmed_mb']:.0f} "
                                   f"trimmed), index {s['index_mb']:.1f} MB (descriptors {s['index_descriptors_mb']:.1f})"
-                                  f", SQLite {s['sqlite_mb']:.1f} MB, graph {s.get('graph_factors', 0)} factors "
+                                  f", SQLite {s['sqlite_mb']:.1f} MB, anon {s.get('RssAnon', math.nan):.0f} MB"
+                                  f" file {s.get('RssFile', math.nan):.0f} MB, malloc used "
+                                  f"{s.get('malloc_used_mb', math.nan):.0f} free {s.get('malloc_free_mb', math.nan):.0f}"
+                                  f" (after trim {s.get('malloc_free_mb_trimmed', math.nan):.0f}) mmap "
+                                  f"{s.get('malloc_mmap_mb', math.nan):.0f} MB, graph {s.get('graph_factors', 0)} factors "
                                   f"{s.get('graph_tree_nnz', 0)} nnz, query {s['query_ms_median']:.2f} ms median "
                                   f"({s['index_loads']} descriptors read so far), {s['cpu_s']:.0f} s CPU"
                                   + (f", traced {s['traced_mb']:.1f} MB" if "traced_mb" in s else ""), flush=True)
                             next_sample += args.memory_every
+                            if args.memory_trace_from and n >= args.memory_trace_from and not _tracing():
+                                import tracemalloc
+
+                                tracemalloc.start(1)  # from here on: what is allocated and stays
                             if on_sample is not None:
                                 on_sample({"keyframes_target": keyframes, "laps": lap + 1, "frames": frames,
                                            "rss_before_mb": rss0, "samples": samples, "config": config})
@@ -708,14 +823,80 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                    "loop_edges": int(c.get("links_loop", 0)), "samples": samples,
                    "map_file_mb": (Path(tmp) / "map.sqlite").stat().st_size / 1e6, "config": config}
             out.update(graph_memory(pipeline.stage("graph").graph))
-            out.update(memory_breakdown(floor, args.memory_trace))
+            out.update(memory_breakdown(floor, _tracing()))
             out.update({k: int(c[k]) for k in ("graph_update_median_us", "graph_update_p99_us", "graph_solve_ms")
                         if k in c})
+            out["released"] = release_breakdown(pipeline, _tracing())
+            print("memory released at the end, MB (malloc in use, RSS after malloc_trim): "
+                  + "; ".join(f"{r['what']} {r['malloc_used_mb']:.1f} {r['rss_mb']:.1f}" for r in out["released"]),
+                  flush=True)
         if args.keep_map is not None:
             import shutil
 
             shutil.copyfile(Path(tmp) / "map.sqlite", args.keep_map)
     return out
+
+
+def forward_memory_run(args: argparse.Namespace, images: int, forward_dir: Path,
+                       on_sample: Any = None) -> dict[str, Any]:
+    """The whole daemon's resident memory as its forward detector takes ``images`` images.
+
+    The daemon is assembled with the forward detector on (``robotd run``'s stages, its map
+    on disk) and the forward detector of its ``forward`` stage is given the images of
+    ``forward_dir`` (a rendered office sequence of ``bench_forward_scale.py``: PNGs and
+    ``poses.csv``) lap after lap, each lap changed as ``bench_forward_scale.changed`` does
+    (shifted, mirrored on odd laps, brightness changed), with the lap's poses, read from
+    disk one at a time (no image kept). The images are not written to the map (the stage
+    writes each under its floor keyframe, which this drive has none of): the detector's
+    memory, the process's and the allocator's are sampled every ``--memory-every`` images."""
+    import cv2
+
+    from robotd.app.assemble import assemble_daemon, open_map
+    from robotd.app.notify import Notifier
+    from robotd.base.clock import ManualClock
+
+    try:
+        from bench.bench_forward_scale import changed
+    except ImportError:  # run as a script: bench/ is on sys.path
+        from bench_forward_scale import changed
+
+    files = sorted(forward_dir.glob("*.png"))
+    poses = np.loadtxt(forward_dir / "poses.csv", delimiter=",", skiprows=1)[:, 2:5]
+    if not files or len(poses) != len(files):
+        raise SystemExit(f"{forward_dir}: {len(files)} PNGs and {len(poses)} poses")
+    args.forward = True
+    samples: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = make_config(args, Path(tmp) / "map.sqlite")
+        clock = ManualClock(0)
+        with open_map(cfg, clock=clock) as store:
+            daemon = assemble_daemon(cfg, clock, {}, store, Notifier(), lossless=True)
+            det = daemon.pipeline.stage("forward").detector
+            gc.collect()
+            rss0 = rss_mb()
+            t0 = os.times()
+            cov = np.diag([1e-4, 1e-4, 1e-5])
+            loops = 0
+            for i in range(images):
+                lap, j = divmod(i, len(files))
+                im = changed(cv2.imread(str(files[j]), cv2.IMREAD_GRAYSCALE), lap, 0)
+                d = det.process(im, poses[j], cov)
+                loops += d.loop_id is not None
+                if (i + 1) % args.memory_every == 0 or i + 1 == images:
+                    t = os.times()
+                    pm = process_memory()
+                    row = {"images": i + 1, "laps": lap + 1, "rss_mb": rss_mb(), "rss_trimmed_mb": trimmed_rss_mb(),
+                           **pm, "loops": loops, "cpu_s": (t.user - t0.user) + (t.system - t0.system)}
+                    if hasattr(det, "memory_bytes"):
+                        row["detector_bytes"] = det.memory_bytes()
+                    samples.append(row)
+                    print(f"forward memory: {i + 1} images, RSS {row['rss_mb']:.0f} MB ({row['rss_trimmed_mb']:.0f} "
+                          f"trimmed), anon {pm.get('RssAnon', math.nan):.0f} MB, malloc used "
+                          f"{pm.get('malloc_used_mb', math.nan):.0f} MB, {loops} loops, {row['cpu_s']:.0f} s CPU",
+                          flush=True)
+                    if on_sample is not None:
+                        on_sample({"images_target": images, "rss_before_mb": rss0, "samples": samples})
+    return {"images_target": images, "rss_before_mb": rss0, "samples": samples, "forward_dir": str(forward_dir)}
 
 
 def query_residency(map_path: Path, sizes: list[int], residents: list[int], queries: int,
@@ -755,8 +936,14 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
 
         qrows = list(range(n0 - min(queries, n0), n0))
         for n in sorted(sizes):
-            variants: dict[str, FloorIndex] = {"in RAM": FloorIndex(IndexParams(shortlist=shortlist))}
+            # each setting with the whole shortlist scored (IndexParams.enough off: the code
+            # before the query stopped at k candidates reaching min_score) and as the default
+            variants: dict[str, FloorIndex] = {
+                "in RAM, whole shortlist": FloorIndex(IndexParams(shortlist=shortlist, enough=False)),
+                "in RAM": FloorIndex(IndexParams(shortlist=shortlist))}
             for r in residents:
+                variants[f"read back, {r} resident, whole shortlist"] = FloorIndex(
+                    IndexParams(shortlist=shortlist, resident=r, enough=False), loader=loader)
                 variants[f"read back, {r} resident"] = FloorIndex(IndexParams(shortlist=shortlist, resident=r),
                                                                   loader=loader)
             for index in variants.values():
@@ -765,21 +952,24 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
             ids = np.arange(n)
             ms: dict[str, list[float]] = {k: [] for k in variants}
             loads0 = {k: getattr(v, "loads", 0) for k, v in variants.items()}
+            loops = {k: 0 for k in variants}  # candidates at or above min_score: the loops declared
             for q in qrows:
                 excluded = ids[np.abs(stamps[ids % n0] - stamps[q]) < int(exclude_recent_s * 1e9)]
                 for name, index in variants.items():
                     t0 = time.thread_time()
-                    index.query(decoded[q], k=5, min_score=min_score, exclude_ids=excluded)
+                    got = index.query(decoded[q], k=5, min_score=min_score, exclude_ids=excluded)
                     ms[name].append((time.thread_time() - t0) * 1e3)
+                    loops[name] += sum(c.score >= min_score for c in got)
             row: dict[str, Any] = {"keyframes": n, "variants": {}}
             for name, index in variants.items():
                 row["variants"][name] = {"query_ms": {"median": statistics.median(ms[name]),
                                                       "p99": float(np.quantile(ms[name], 0.99))},
                                          "reads_per_query": (index.loads - loads0[name]) / len(qrows),
+                                         "loops": loops[name],
                                          "index_mb": index.nbytes / 1e6,
                                          "descriptors_mb": index.descriptors_nbytes / 1e6}
                 print(f"residency: {n} keyframes, {name}: query {statistics.median(ms[name]):.2f} ms median, "
-                      f"{row['variants'][name]['reads_per_query']:.2f} reads per query, "
+                      f"{row['variants'][name]['reads_per_query']:.2f} reads per query, {loops[name]} loops, "
                       f"index {index.nbytes / 1e6:.1f} MB", flush=True)
             out["sizes"].append(row)
             del variants
@@ -796,8 +986,58 @@ def memory_markdown(*payloads: dict[str, Any]) -> str:
              "mapped ground are matched and not stored), with the keyframe poses from the recorded",
              "ground truth."]
     for p in payloads:
-        lines += [""] + (_residency_section(p) if "residency" in p else _memory_section(p))
+        lines += [""] + (_residency_section(p) if "residency" in p else
+                         _forward_section(p) if "forward_memory" in p else
+                         _scale_section(p) if "scale" in p and "memory" not in p else _memory_section(p))
     return "\n".join(lines) + "\n"
+
+
+def _scale_section(p: dict[str, Any]) -> list[str]:
+    """A ``--scale-only`` payload's section of the memory page: the floor query of
+    ``./dev bench daemon`` in RAM and on the daemon's index (descriptors read back)."""
+    sc, m = p["scale"], p["machine"]
+    lines = [f"## {p.get('label') or 'The floor query at 1,000 and 10,000 keyframes, as the daemon holds them'}", "",
+             f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.",
+             f"`--scale-only` on `{p['recording']}`: the recording's frames described (and turned or mirrored "
+             "copies, repeated beyond the distinct ones), the drive's own frames queried with the loop threshold, "
+             "the 20 s around each left out; each query timed (thread CPU) on an index with every descriptor in "
+             "RAM and then on the daemon's (the 1024 most recently used decoded, the others decoded again when "
+             "shortlisted).", "",
+             "| keyframes | of them distinct | in RAM, median ms | p99 | as the daemon, median ms | p99 | "
+             "against in RAM | descriptors read back per query |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for row in sc["sizes"]:
+        q, rb = row["query_ms"], row.get("query_read_back_ms")
+        if rb is None:
+            continue
+        lines.append(f"| {row['keyframes']} | {row.get('distinct', row['keyframes'])} | {q['median']:.2f} | "
+                     f"{q['p99']:.2f} | {rb['median']:.2f} | {rb['p99']:.2f} | {rb['median'] / q['median']:.2f} | "
+                     f"{rb['reads_per_query']:.1f} |")
+    return lines
+
+
+def _forward_section(p: dict[str, Any]) -> list[str]:
+    """A ``--forward-memory`` payload's section of the memory page."""
+    r, m = p["forward_memory"], p["machine"]
+    lines = [f"## {p.get('label') or 'The forward detector on: the whole daemon as its forward memory grows'}", "",
+             f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.",
+             f"`--forward-memory`: the daemon assembled with the forward detector on, its detector given the "
+             f"images of `{r.get('forward_dir', '?')}` lap after lap (each lap changed), target "
+             f"{r['images_target']} images; the floor stages idle. Before the first image: "
+             f"{r['rss_before_mb']:.0f} MB.", "",
+             "| images | laps | process RSS MB | after malloc_trim MB | RSS anonymous | malloc in use | "
+             "the detector's own MB | loops | CPU s so far |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for row in r["samples"]:
+        own = row.get("detector_bytes")
+        own_mb = f"{sum(own.values()) / 1e6:.1f}" if isinstance(own, dict) else "-"
+        lines.append(f"| {row['images']} | {row['laps']} | {row['rss_mb']:.0f} | {row['rss_trimmed_mb']:.0f} | "
+                     f"{row.get('RssAnon', math.nan):.0f} | {row.get('malloc_used_mb', math.nan):.0f} | {own_mb} | "
+                     f"{row['loops']} | {row['cpu_s']:.0f} |")
+    last = r["samples"][-1]["images"] if r["samples"] else 0
+    if last < r["images_target"]:
+        lines += ["", f"The run was stopped at {last} images, before its target of {r['images_target']}."]
+    return lines
 
 
 def _residency_section(p: dict[str, Any]) -> list[str]:
@@ -808,14 +1048,19 @@ def _residency_section(p: dict[str, Any]) -> list[str]:
              f"`--residency`: the {r['map_keyframes']} keyframes of `{r['map']}` (mode {r['mode']}) repeated to "
              f"each size, its last {r['queries']} keyframes queried in the order driven; thread CPU, the "
              "variants in turn query by query.", "",
-             "| keyframes | descriptors | query ms median | p99 | against in RAM | reads per query | index MB |",
-             "|---:|---|---:|---:|---:|---:|---:|"]
+             "The ratio is against the descriptors in RAM with the whole shortlist scored where the run has "
+             "that variant; \"whole shortlist\": `IndexParams.enough` off (every shortlisted keyframe "
+             "scored), otherwise a query stops once 5 candidates reach the loop threshold. Loops: the "
+             "candidates at or above the threshold over all the queries.", "",
+             "| keyframes | descriptors | query ms median | p99 | against in RAM | reads per query | loops | index MB |",
+             "|---:|---|---:|---:|---:|---:|---:|---:|"]
     for row in r["sizes"]:
-        base = row["variants"]["in RAM"]["query_ms"]["median"]
+        base = row["variants"].get("in RAM, whole shortlist", row["variants"]["in RAM"])["query_ms"]["median"]
         for name, v in row["variants"].items():
             q = v["query_ms"]
             lines.append(f"| {row['keyframes']} | {name} | {q['median']:.2f} | {q['p99']:.2f} | "
-                         f"{q['median'] / base:.2f} | {v['reads_per_query']:.2f} | {v['index_mb']:.1f} |")
+                         f"{q['median'] / base:.2f} | {v['reads_per_query']:.2f} | {v.get('loops', '-')} | "
+                         f"{v['index_mb']:.1f} |")
     return lines
 
 
@@ -862,6 +1107,29 @@ def _memory_section(p: dict[str, Any]) -> list[str]:
         lines.append(f"| {row['keyframes']} | {row.get('stored', row['keyframes'])} | {row['rss_mb']:.0f} | "
                      f"{trimmed} | {row['index_mb']:.1f} | {row['laps']} | {row['cpu_s']:.0f} | {graph} | "
                      f"{isam} | {query} |")
+    if any("malloc_used_mb" in row for row in r["samples"]):
+        lines += ["", "Where the resident memory is (`/proc/self/status` and glibc's `mallinfo2`, MB): anonymous "
+                      "(the heap, mappings, Python's own arenas) and file-backed (the libraries' pages); of the C "
+                      "allocator's heap, the bytes in use (live allocations: GTSAM's C++, numpy's arrays, Python's "
+                      "objects over 512 bytes, SQLite) and the bytes it holds free, before and after "
+                      "`malloc_trim(0)` (the trim hands the free pages back, so RSS falls, but leaves them counted "
+                      "free), and its own mappings (arrays above its threshold).", "",
+                  "| keyframes | RSS anonymous | RSS file | malloc in use | malloc free (after the trim) | malloc mmap "
+                  "| SQLite | iSAM2 factors | Bayes tree entries |",
+                  "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        for row in r["samples"]:
+            if "malloc_used_mb" not in row:
+                continue
+            lines.append(f"| {row['keyframes']} | {row.get('RssAnon', math.nan):.0f} | "
+                         f"{row.get('RssFile', math.nan):.0f} | {row['malloc_used_mb']:.0f} | "
+                         f"{row.get('malloc_free_mb', math.nan):.0f} ({row.get('malloc_free_mb_trimmed', math.nan):.0f})"
+                         f" | {row.get('malloc_mmap_mb', math.nan):.0f} | {row.get('sqlite_mb', math.nan):.1f} | "
+                         f"{row.get('graph_factors', '-')} | {row.get('graph_tree_nnz', '-')} |")
+    if r.get("released"):
+        lines += ["", "Attribution by removal at the end of the run (each part let go in turn, then a "
+                      "collection and `malloc_trim`): " + "; ".join(
+                          f"{x['what']}: malloc in use {x['malloc_used_mb']:.1f} MB, RSS {x['rss_mb']:.1f} MB"
+                          for x in r["released"]) + "."]
     before = ("" if r.get("rss_before_mb") is None else
               f"Before the first frame: {r['rss_before_mb']:.0f} MB (the daemon assembled, its map open). ")
     if "rss_after_mb" not in r:  # the partial JSON of a run stopped before its target
@@ -939,12 +1207,15 @@ def markdown(p: dict[str, Any]) -> str:
         lines += ["", f"Floor index at larger maps (frames of the recording and their turned and mirrored "
                       f"copies; describe median {s['describe_ms']['median']:.2f} ms, p99 "
                       f"{s['describe_ms']['p99']:.2f} ms over {s['describe_ms']['n']} images):", "",
-                  "| keyframes | of them distinct | query median ms | query p99 ms | index MB | process RSS MB |",
-                  "|---:|---:|---:|---:|---:|---:|"]
+                  "| keyframes | of them distinct | query median ms | query p99 ms | as the daemon: read back, "
+                  "median ms (reads per query) | index MB | process RSS MB |",
+                  "|---:|---:|---:|---:|---:|---:|---:|"]
         for row in s["sizes"]:
+            rb = row.get("query_read_back_ms")
             lines.append(f"| {row['keyframes']} | {row.get('distinct', row['keyframes'])} | "
                          f"{row['query_ms']['median']:.2f} | {row['query_ms']['p99']:.2f} | "
-                         f"{row['index_mb']:.1f} | {row['rss_mb']:.0f} |")
+                         + (f"{rb['median']:.2f} ({rb['reads_per_query']:.1f}) | " if rb else "- | ")
+                         + f"{row['index_mb']:.1f} | {row['rss_mb']:.0f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -1001,6 +1272,8 @@ def main(argv: list[str] | None = None) -> int:
                                                          "(default 1000,10000; '' for none)")
     ap.add_argument("--distinct", type=int, default=1000,
                     help="images described for the index-scale maps (default 1000; --full: 10000)")
+    ap.add_argument("--scale-only", action="store_true",
+                    help="only the index at larger maps (--scale), without the replay (writes NAME-scale.json)")
     ap.add_argument("--queries", type=int, default=100, help="queries per index size (default 100)")
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "bench" / "results")
     ap.add_argument("--name", default="daemon", help="JSON file name (default daemon)")
@@ -1015,11 +1288,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--memory-trace", action="store_true",
                     help="with --memory: tracemalloc on, the Python side's allocations by file at each sample "
                          "(slower; its own overhead is reported)")
+    ap.add_argument("--memory-trace-from", type=int, default=0, metavar="K",
+                    help="with --memory: tracemalloc on from the first sample at K keyframes or more, so that "
+                         "the traced allocations of later samples are those made since and still alive")
     ap.add_argument("--residency", type=Path, default=None, metavar="MAP",
                     help="only the floor query's time with its descriptors in RAM and read back from MAP "
                          "(sizes from --scale; writes NAME-residency.json)")
     ap.add_argument("--resident", default="256,1024", help="with --residency: decoded descriptors kept, "
                                                           "comma-separated (default 256,1024)")
+    ap.add_argument("--forward-memory", type=int, default=0, metavar="N",
+                    help="only the whole daemon's memory as its forward detector takes N images of --forward-dir "
+                         "(writes NAME-forward-memory.json)")
+    ap.add_argument("--forward-dir", type=Path, default=Path("/tmp/fwd/office"),
+                    help="a rendered forward sequence (bench_forward_scale.py's): PNGs and poses.csv")
     ap.add_argument("--memory-page", nargs="+", default=None, metavar="[LABEL=]JSON",
                     help="only write the memory page (--doc) from these --memory JSON files, partial or not "
                          "(LABEL= heads its section)")
@@ -1031,6 +1312,15 @@ def main(argv: list[str] | None = None) -> int:
             args.doc.parent.mkdir(parents=True, exist_ok=True)
             args.doc.write_text(page, encoding="utf-8")
         print(page, end="")
+        return 0
+    if args.forward_memory:
+        fpayload: dict[str, Any] = {"machine": machine_info(), "args": {k: str(v) for k, v in vars(args).items()}}
+
+        def fpartial(so_far: dict[str, Any]) -> None:
+            write_json(args.out / f"{args.name}-forward-memory.json", {**fpayload, "forward_memory": so_far})
+
+        fpayload["forward_memory"] = forward_memory_run(args, args.forward_memory, args.forward_dir, fpartial)
+        print(f"wrote {write_json(args.out / f'{args.name}-forward-memory.json', fpayload)}")
         return 0
     if args.residency is not None:
         sizes = [int(v) for v in args.scale.split(",") if v.strip()]
@@ -1072,6 +1362,26 @@ def main(argv: list[str] | None = None) -> int:
         args.duration = None
         args.distinct = max(args.distinct, 10000)
     recording = ensure_recording(args)
+    if args.scale_only:
+        from drivers.recording.reader import RecordingReader
+        from robotd.floor.detector import FloorDetectorParams
+
+        fd = FloorDetectorParams()
+        with RecordingReader(recording) as rr:
+            span = rr.time_range_ns
+        assert span is not None
+        sizes = [int(v) for v in args.scale.split(",") if v.strip()]
+        sc = scale(recording, sizes, args.queries, fd.descriptor_mode, args.shortlist or fd.shortlist,
+                   (span[1] - span[0]) / 1e9, args.distinct)
+        for row in sc["sizes"]:
+            print(f"index {row['keyframes']}: query {row['query_ms']['median']:.2f} ms median "
+                  f"({row['query_read_back_ms']['median']:.2f} ms as the daemon, "
+                  f"{row['query_read_back_ms']['reads_per_query']:.1f} descriptors read back per query)")
+        out = write_json(args.out / f"{args.name}-scale.json", {"machine": machine_info(), "recording": str(recording),
+                                                                 "args": {k: str(v) for k, v in vars(args).items()},
+                                                                 "scale": sc})
+        print(f"wrote {out}")
+        return 0
     with tempfile.TemporaryDirectory() as tmp:
         map_path = Path(tmp) / "map.sqlite"
         r = replay(args, recording, map_path)
@@ -1112,7 +1422,8 @@ def main(argv: list[str] | None = None) -> int:
           f"loop-corrected {(j['ate_loop_corrected_m'] or math.nan) * 1e3:.1f} mm")
     if sc:
         for row in sc["sizes"]:
-            print(f"index {row['keyframes']}: query {row['query_ms']['median']:.2f} ms median, "
+            print(f"index {row['keyframes']}: query {row['query_ms']['median']:.2f} ms median "
+                  f"({row['query_read_back_ms']['median']:.2f} ms as the daemon, descriptors read back), "
                   f"index {row['index_mb']:.1f} MB, RSS {row['rss_mb']:.0f} MB")
     out = write_json(args.out / f"{args.name}.json", payload)
     print(f"wrote {out}")

@@ -14,8 +14,11 @@ size (loops in it and left out, iSAM2's factors, cliques and tree entries) every
 * ``every loop``: ``loop_spacing 0, loops_per_keyframe 0, fold 1`` (every accepted loop
   enters, every keyframe an iSAM2 variable);
 * ``every keyframe in iSAM2``: ``fold 1``, the loops thinned as by default;
-* ``thinned``: the code's defaults (the loops thinned, and after each full solve the
-  keyframes iSAM2 does not need folded into their odometry: ``IncrementalParams.fold``).
+* ``thinned``: the loops thinned, and after each full solve the keyframes iSAM2 does
+  not need folded into their odometry (``IncrementalParams.fold``), every place taking
+  loops from every later pass (``loops_per_place`` 0);
+* ``one loop per place``: the code's defaults, as ``thinned`` but with one loop in iSAM2
+  per older place (``IncrementalParams.loops_per_place``).
 
 ``--synthetic laps|new N`` builds the map instead from the first 515 keyframes of
 ``--map`` (one lap of the office route at 15 cm): ``laps`` drives that lap again and
@@ -53,8 +56,9 @@ except ImportError:  # run as a script: bench/ is on sys.path
     from common import REPO_ROOT, machine_info, write_json
 
 DEFAULT_MAP = Path.home() / ".cache" / "robotd-bench" / "office-3laps-map.sqlite"
-SETTINGS = {"every loop": {"loop_spacing": 0, "loops_per_keyframe": 0, "fold": 1},
-            "every keyframe in iSAM2": {"fold": 1}, "thinned": {}}
+SETTINGS = {"every loop": {"loop_spacing": 0, "loops_per_keyframe": 0, "fold": 1, "loops_per_place": 0},
+            "every keyframe in iSAM2": {"fold": 1, "loops_per_place": 0}, "thinned": {"loops_per_place": 0},
+            "one loop per place": {"loops_per_place": 1}}
 
 
 def trimmed_rss_mb() -> float:

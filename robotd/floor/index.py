@@ -67,6 +67,14 @@ class IndexParams:
             stay in RAM, the most recently used (the newest keyframes and the last
             shortlists'); the others are read again through the loader when a shortlist
             names them. Without a loader every descriptor stays in RAM.
+        enough: with a ``min_score`` (:meth:`FloorIndex.query`), a query stops scoring its
+            shortlist once ``k`` candidates have reached it: the loop detector declares a
+            loop for every candidate at or above its threshold, so the query then returns
+            ``k`` loops either way, the first ``k`` in order of global similarity instead of
+            the best ``k`` by local score, and the rest of the shortlist is not matched. On
+            ground driven many times most of the shortlist are true matches, each verified
+            geometrically (the costly case): stopping there keeps the query's time near
+            that of a first pass. False: every shortlisted keyframe is scored.
     """
 
     k: int = 5
@@ -74,6 +82,7 @@ class IndexParams:
     initial_capacity: int = 256
     match_params: Any = None
     resident: int = 1024
+    enough: bool = True
 
     def __post_init__(self) -> None:
         if self.k < 1:
@@ -548,13 +557,19 @@ class FloorIndex:
         checked geometrically and come back with score 0 and reason ``BELOW_MIN_SCORE``
         (:func:`robotd.floor.match.local_score`); a candidate at or above it is scored
         exactly as without it. The query's own side of the descriptor distance is prepared
-        once for the whole shortlist (:class:`robotd.floor.match.Matcher`).
+        once for the whole shortlist (:class:`robotd.floor.match.Matcher`). With
+        ``params.enough`` and a ``min_score``, the shortlist is scored in order of global
+        similarity only until ``k`` candidates reach ``min_score`` (:class:`IndexParams`).
         """
         k = self.params.k if k is None else int(k)
         short = self.shortlist(descriptor, shortlist, exclude_ids, exclude_after_id)
         candidates = []
         matcher = Matcher(descriptor, self.params.match_params) if self._default_scorer and short else None
+        stop_at = k if self.params.enough and min_score > 0 else None
+        reached = 0
         for kf, g in short:
+            if stop_at is not None and reached >= stop_at:
+                break
             try:
                 stored = self._stored(self._row_of[kf])
             except (RobotdError, KeyError, ValueError) as exc:
@@ -568,6 +583,7 @@ class FloorIndex:
                       else self._scorer(descriptor, stored))
             self.local_matches += 1
             candidates.append(Candidate(kf, g, result))
+            reached += result.score >= min_score
         candidates.sort(key=lambda c: (-c.score, -c.global_score, c.keyframe_id))
         return candidates[:k]
 

@@ -68,6 +68,7 @@ relocalised keeps its odometry poses only (its frame is its own).
 
 from __future__ import annotations
 
+import array
 import bisect
 import collections
 import logging
@@ -144,7 +145,7 @@ class GatedGraph:
         self.down_weighted = 0
         self.forward_accepted = 0
         self.forward_failed_gate = 0
-        self.update_ms: list[float] = []  # each incremental update's time
+        self.update_ms = array.array("d")  # each incremental update's time (8 bytes each, no float objects)
         self._loops: dict[tuple[int, int], tuple[int, float]] = {}  # edge -> (query, score)
         self._init_relocalisation(reloc_params)
 

@@ -334,6 +334,42 @@ def test_on_demand_descriptors_answer_as_resident_ones_and_count_reads(caplog):
     assert lazy.load_failures == 1 and any(str(want[0][0]) in r.getMessage() for r in caplog.records)
 
 
+def test_a_query_stops_once_k_candidates_reach_min_score():
+    """With ``enough`` (the default) and a ``min_score``, the shortlist is scored in global
+    order until ``k`` candidates reach it: the rest is not scored (nor read back); without
+    ``min_score``, or with ``enough`` off, every shortlisted keyframe is scored."""
+    rng = np.random.default_rng(9)
+    q = rng.integers(0, 256, 16, dtype=np.uint8)
+    # global bits at 0, 1, 2, ... flipped bits from the query: shortlist order is the id order;
+    # local score (the tag): 5 for every keyframe but the second and the fifth (1).
+    tags = [5, 1, 5, 5, 1, 5, 5, 5, 5, 5]
+    descs = []
+    for i, tag in enumerate(tags):
+        g = np.unpackbits(q.copy())
+        g[:i] ^= 1
+        descs.append(_Desc(np.packbits(g), tag=tag))
+
+    def index(**params: object) -> tuple[FloorIndex, _CountingScorer]:
+        scorer = _CountingScorer()
+        ix = FloorIndex(IndexParams(shortlist=10, **params), scorer=scorer)
+        for i, d in enumerate(descs):
+            ix.add(i, d)
+        return ix, scorer
+
+    ix, scorer = index()
+    got = ix.query(_Desc(q), k=3, min_score=3.0)
+    # 0, 2, 3 reach 3.0 (1 does not): 4 scored, not 10
+    assert [c.keyframe_id for c in got] == [0, 2, 3] and len(scorer.calls) == 4
+    ix, scorer = index()
+    assert len(ix.query(_Desc(q), k=3)) == 3 and len(scorer.calls) == 10  # no min_score: all scored
+    ix, scorer = index(enough=False)
+    full = ix.query(_Desc(q), k=3, min_score=3.0)
+    assert len(scorer.calls) == 10 and [c.score for c in full] == [5.0] * 3
+    ix, scorer = index()
+    few = ix.query(_Desc(q), k=9, min_score=3.0)  # only 8 reach it: the whole shortlist is scored
+    assert len(scorer.calls) == 10 and sum(c.score >= 3.0 for c in few) == 8
+
+
 def test_resident_must_be_positive():
     with pytest.raises(ValueError):
         IndexParams(resident=0)

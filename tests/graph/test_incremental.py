@@ -154,11 +154,11 @@ def test_loops_near_a_loop_in_the_graph_are_left_out():
     are a lap apart); with ``loops_per_keyframe`` 1 a keyframe adds only its first (to the
     lap before). The graph with half the loops is about as close to the truth, and the
     full solve and iSAM2 after it agree on it."""
-    every = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_keyframe=0))
+    every = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_keyframe=0, loops_per_place=0))
     truth, odo = _laps(every, 4)
-    thin = IncrementalGraph(IncrementalParams(loop_spacing=2, loops_per_keyframe=0, fold=1))
+    thin = IncrementalGraph(IncrementalParams(loop_spacing=2, loops_per_keyframe=0, fold=1, loops_per_place=0))
     _laps(thin, 4)
-    one = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_keyframe=1))
+    one = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_keyframe=1, loops_per_place=0))
     _laps(one, 4)
     loops = 20 * (1 + 2 + 3)
     assert every.stats()["loops"] == loops and every.held_loops == 0
@@ -180,6 +180,28 @@ def test_loops_near_a_loop_in_the_graph_are_left_out():
     assert np.allclose(thin.estimate()[1], result.poses, atol=1e-4)
 
 
+def test_one_loop_per_place_chains_the_laps():
+    """With ``loops_per_place`` 1 a place's keyframe receives one loop in iSAM2: each lap
+    ties to the lap before (the first offered to each older place) and the later laps'
+    loops to that place are left out, so the tree stays smaller than with every pass tied
+    to every earlier one, and the estimate about as close to the truth."""
+    every = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_keyframe=0, loops_per_place=0))
+    truth, _odo = _laps(every, 5)
+    chained = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_keyframe=0, loops_per_place=1))
+    _laps(chained, 5)
+    loops = [e for e in chained.graph.edges if e.kind == "loop"]
+    assert len(loops) == 20 * 4 and all(e.to_id - e.from_id == 20 for e in loops)
+    assert chained.held_loops == 20 * (1 + 2 + 3 + 4) - 80
+    assert chained.stats()["tree_nnz"] < every.stats()["tree_nnz"]
+
+    def rms(xy: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(np.sum((xy - truth) ** 2, axis=1))))
+
+    assert rms(chained.estimate()[1][:, :2]) < 1.5 * rms(every.estimate()[1][:, :2])
+    with pytest.raises(ValueError, match="loops_per_place"):
+        IncrementalParams(loops_per_place=-1)
+
+
 def test_a_left_out_loop_is_checked_as_any_edge():
     inc = IncrementalGraph(IncrementalParams(loop_spacing=5))
     inc.add_first(0)
@@ -197,7 +219,7 @@ def test_a_left_out_loop_is_checked_as_any_edge():
 def test_holding_loops_out_shrinks_the_bayes_tree():
     """The point of leaving loops out: over repeated laps, the tree's conditionals (and so
     iSAM2's memory) grow with the loops it holds."""
-    every = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_keyframe=0))
+    every = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_keyframe=0, loops_per_place=0))
     _laps(every, 5)
     thin = IncrementalGraph()  # the defaults
     _laps(thin, 5)
@@ -284,8 +306,8 @@ def test_a_full_solve_folds_the_keyframes_without_loops_into_their_odometry():
     the same graph with every keyframe in iSAM2 (within a few mm on this noisy ring), a
     folded keyframe's covariance is at least its own, loops to folded keyframes are gated
     and enter as with every keyframe kept, and the full solve still has every keyframe."""
-    full = IncrementalGraph(IncrementalParams(fold=1))
-    folded = IncrementalGraph(IncrementalParams(fold=4))
+    full = IncrementalGraph(IncrementalParams(fold=1, loops_per_place=0))
+    folded = IncrementalGraph(IncrementalParams(fold=4, loops_per_place=0))
     for inc in (full, folded):
         _laps(inc, 3)
     want, got = full.resolve(), folded.resolve()
