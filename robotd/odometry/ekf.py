@@ -267,6 +267,27 @@ def _sinc_half_and_derivative(dth: float) -> tuple[float, float]:
     return s / u, 0.5 * (u * c - s) / (u * u)
 
 
+def _arc(mean_in: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """The state moved along the arc of its ``v``, ``w`` over ``dt`` seconds: the new mean,
+    the ``(6, 6)`` Jacobian of the move, and the cosine and sine of the arc's mid heading
+    (the direction of travel, which the process noise of :func:`predict` follows)."""
+    x, y, yaw, v, w, bias = mean_in.tolist()  # Python floats: the same arithmetic, faster
+    ds, dth = v * dt, w * dt
+    f, df = _sinc_half_and_derivative(dth)
+    phi = yaw + 0.5 * dth
+    c, s = math.cos(phi), math.sin(phi)
+    mean = np.array([x + ds * f * c, y + ds * f * s, wrap_angle(yaw + dth), v, w, bias])
+    jac = _EYE.copy()
+    jac[IX, IYAW] = -ds * f * s
+    jac[IY, IYAW] = ds * f * c
+    jac[IX, IV] = dt * f * c
+    jac[IY, IV] = dt * f * s
+    jac[IX, IW] = ds * dt * (df * c - 0.5 * f * s)
+    jac[IY, IW] = ds * dt * (df * s + 0.5 * f * c)
+    jac[IYAW, IW] = dt
+    return mean, jac, c, s
+
+
 def predict(state: EkfState, t_ns: int, params: EkfParams = EkfParams()) -> EkfState:
     """Propagate ``state`` to ``t_ns`` (>= its stamp) with the constant-rate model.
 
@@ -285,21 +306,7 @@ def predict_with_jacobian(state: EkfState, t_ns: int,
     if dt_ns == 0:
         return state, _EYE.copy()
     dt = dt_ns * 1e-9
-    x, y, yaw, v, w, bias = state.mean.tolist()  # Python floats: the same arithmetic, faster
-    ds, dth = v * dt, w * dt
-    f, df = _sinc_half_and_derivative(dth)
-    phi = yaw + 0.5 * dth
-    c, s = math.cos(phi), math.sin(phi)
-    mean = np.array([x + ds * f * c, y + ds * f * s, wrap_angle(yaw + dth), v, w, bias])
-
-    jac = _EYE.copy()
-    jac[IX, IYAW] = -ds * f * s
-    jac[IY, IYAW] = ds * f * c
-    jac[IX, IV] = dt * f * c
-    jac[IY, IV] = dt * f * s
-    jac[IX, IW] = ds * dt * (df * c - 0.5 * f * s)
-    jac[IY, IW] = ds * dt * (df * s + 0.5 * f * c)
-    jac[IYAW, IW] = dt
+    mean, jac, c, s = _arc(state.mean, dt)
 
     qa = params.angular_accel_noise_density_radps2_per_sqrt_hz ** 2
     ql = params.accel_noise_density_mps2_per_sqrt_hz ** 2
@@ -483,19 +490,7 @@ def advance_pose(state: EkfState, dt_s: float) -> tuple[EkfState, np.ndarray]:
     Jacobian as :func:`predict`)."""
     if dt_s <= 0.0:
         return state, _EYE.copy()
-    x, y, yaw, v, w, bias = state.mean.tolist()
-    ds, dth = v * dt_s, w * dt_s
-    f, df = _sinc_half_and_derivative(dth)
-    c, s = math.cos(yaw + 0.5 * dth), math.sin(yaw + 0.5 * dth)
-    mean = np.array([x + ds * f * c, y + ds * f * s, wrap_angle(yaw + dth), v, w, bias])
-    jac = _EYE.copy()
-    jac[IX, IYAW] = -ds * f * s
-    jac[IY, IYAW] = ds * f * c
-    jac[IX, IV] = dt_s * f * c
-    jac[IY, IV] = dt_s * f * s
-    jac[IX, IW] = ds * dt_s * (df * c - 0.5 * f * s)
-    jac[IY, IW] = ds * dt_s * (df * s + 0.5 * f * c)
-    jac[IYAW, IW] = dt_s
+    mean, jac, _, _ = _arc(state.mean, dt_s)
     cov = jac @ state.cov @ jac.T
     cov += cov.T
     cov *= 0.5
