@@ -23,12 +23,14 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 
 
 def git_commit(repo_dir: Path = REPO_ROOT) -> str | None:
-    """``git rev-parse HEAD`` of ``repo_dir``, or ``None`` when git or the repo is missing."""
+    """``git rev-parse HEAD`` of ``repo_dir``; outside a git work tree (a tree exported by
+    ``git archive`` to run a long benchmark while the work tree changes) the commit named by
+    the ``ROBOTD_GIT_COMMIT`` environment variable; else ``None``."""
     try:
         done = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo_dir, capture_output=True,
                               text=True, timeout=10, check=True)
     except (OSError, subprocess.SubprocessError):
-        return None
+        return os.environ.get("ROBOTD_GIT_COMMIT") or None
     return done.stdout.strip() or None
 
 
