@@ -130,3 +130,13 @@ def test_a_clear_loop_ignores_the_odometry_heading():
     stage = _stage(po, pn, prior_yaw_deg=16.0)
     assert stage._level(0, _verification(math.radians(10), math.radians(30)))
     assert stage.ridge_settled == stage.ridge_refused == stage.ridge_unsettled == 0 and not stage._ridge_sigma
+
+
+def test_the_ridge_test_takes_the_edge_heading_sigma_from_the_config():
+    from robotd.app.assemble import build_forward_stage
+    from robotd.base.config import Config, replace
+
+    cfg = Config()
+    assert build_forward_stage(cfg).ridge.edge_sigma_yaw_rad == pytest.approx(math.radians(1.0))
+    wide = replace(cfg, "forward_detector", sigma_yaw_deg=2.5)
+    assert build_forward_stage(wide).ridge.edge_sigma_yaw_rad == pytest.approx(math.radians(2.5))
