@@ -78,7 +78,7 @@ from robotd.app.pipeline import Publisher
 from robotd.base.config import ForwardDetectorConfig
 from robotd.base.errors import MapStoreError
 from robotd.base.geometry import between, compose, inverse, wrap_angle
-from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored, LoopFate, OdometryUpdate
+from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored, Link, LoopFate, OdometryUpdate
 from robotd.forward import LOOP, ForwardDetector
 from robotd.forward.features import CompactFeatures
 from robotd.forward.planar import INLIER_NOISE_FACTOR, planar_motion, planarity_bound
@@ -115,12 +115,104 @@ class RidgeParams:
     slope_step_rad: float = math.radians(0.5)
 
 
+class HeadingGraph:
+    """The pose graph's headings alone: the keyframes' yaw tied by the yaw part of its edges
+    (the odometry's and the floor loops' :class:`~robotd.base.messages.Link` messages; a
+    relative pose's yaw is the difference of the two yaws, so this part of the graph is
+    linear and solves exactly). It gives the relative heading of two keyframes and its
+    1-sigma as the graph knows it (:meth:`relative`). The forward loops' own edges are left
+    out: the heading is asked to judge one of them."""
+
+    def __init__(self) -> None:
+        self._edges: list[tuple[int, int, float, float]] = []  # (from, to, dyaw_rad, variance_rad2)
+        # keyframe -> (odometry yaw_rad, its variance): joins keyframes the links have not reached yet
+        self._odom: dict[int, tuple[float, float]] = {}
+
+    def add_link(self, link: Link) -> None:
+        if link.kind == "loop" and link.source == "forward":
+            return
+        info = np.asarray(link.information, np.float64)
+        try:
+            var = float(np.linalg.inv(info)[2, 2])
+        except np.linalg.LinAlgError:
+            return
+        if math.isfinite(var) and var > 0.0:
+            self._edges.append((link.from_id, link.to_id, float(link.delta_xyyaw[2]), var))
+
+    def add_keyframe(self, keyframe_id: int, yaw_rad: float, yaw_var_rad2: float) -> None:
+        self._odom[keyframe_id] = (yaw_rad, yaw_var_rad2)
+
+    def relative(self, a: int, b: int) -> tuple[float, float] | None:
+        """``(yaw_b - yaw_a, 1-sigma)`` in radians by the graph's yaw edges (a keyframe not
+        yet linked is joined to the newest linked one older than it by the odometry's
+        poses); None when the two are not connected."""
+        edges = list(self._edges)
+        linked = {i for e in edges for i in e[:2]}
+        for k in (a, b):
+            if k not in linked and k in self._odom:
+                older = [i for i in linked if i < k and i in self._odom]
+                if older:
+                    m = max(older)
+                    (ya, va), (yb, vb) = self._odom[m], self._odom[k]
+                    edges.append((m, k, float(wrap_angle(yb - ya)), max(vb - va, 1e-8)))
+        nodes = sorted({i for e in edges for i in e[:2]})
+        if a not in nodes or b not in nodes or a == b:
+            return None
+        import scipy.sparse as sp
+        from scipy.sparse.csgraph import connected_components
+        from scipy.sparse.linalg import splu
+
+        idx = {n: i for i, n in enumerate(nodes)}
+        fi = np.array([idx[e[0]] for e in edges])
+        ti = np.array([idx[e[1]] for e in edges])
+        d = np.array([e[2] for e in edges])
+        w = 1.0 / np.array([e[3] for e in edges])
+        n = len(nodes)
+        adj = sp.coo_matrix((np.ones(len(edges)), (fi, ti)), shape=(n, n))
+        _, comp = connected_components(adj, directed=False)
+        if comp[idx[a]] != comp[idx[b]]:
+            return None
+        keep = comp == comp[idx[a]]
+        # The yaws by a spanning walk (the linearisation point), then the weighted least
+        # squares of the wrapped residuals with node a held at 0.
+        y0 = np.full(n, np.nan)
+        y0[idx[a]] = 0.0
+        adjl: dict[int, list[tuple[int, float]]] = {}
+        for f, t, dd in zip(fi, ti, d):
+            adjl.setdefault(int(f), []).append((int(t), float(dd)))
+            adjl.setdefault(int(t), []).append((int(f), -float(dd)))
+        stack = [idx[a]]
+        while stack:
+            u = stack.pop()
+            for v, dd in adjl.get(u, []):
+                if np.isnan(y0[v]):
+                    y0[v] = y0[u] + dd
+                    stack.append(v)
+        ok = keep[fi] & keep[ti]
+        fi, ti, d, w = fi[ok], ti[ok], d[ok], w[ok]
+        r = np.array([math.remainder(float(x), math.tau) for x in d - (y0[ti] - y0[fi])])
+        h = sp.coo_matrix((np.concatenate([w, w, -w, -w]),
+                           (np.concatenate([fi, ti, fi, ti]), np.concatenate([fi, ti, ti, fi]))), shape=(n, n)).tocsc()
+        g = np.zeros(n)
+        np.add.at(g, ti, w * r)
+        np.add.at(g, fi, -w * r)
+        free = np.flatnonzero(keep & (np.arange(n) != idx[a]))
+        lu = splu(h[free][:, free].tocsc())
+        dy = np.zeros(n)
+        dy[free] = lu.solve(g[free])
+        e = np.zeros(len(free))
+        jb = int(np.flatnonzero(free == idx[b])[0])
+        e[jb] = 1.0
+        var = float(lu.solve(e)[jb])
+        return float(wrap_angle(y0[idx[b]] + dy[idx[b]])), math.sqrt(max(var, 0.0))
+
+
 class ForwardLoopStage(Publisher):
     """Forward keyframes through the detector; verified planar loops out (module notes)."""
 
     name = "forward"
     produces = (ForwardLoop, CandidateFate)
-    optional_inputs = (OdometryUpdate,)  # without it the frames' offsets are taken as zero
+    optional_inputs = (OdometryUpdate, Link)  # without them the frames' offsets are zero, the ridges unsettled
 
     def __init__(self, detector: ForwardDetector, *, distance_m: float = 0.5,
                  rotation_rad: float = math.radians(20.0), sync_tolerance_s: float = 0.04,
@@ -134,10 +226,11 @@ class ForwardLoopStage(Publisher):
         self.ridge_unsettled = 0  # loops on a ridge without an odometry heading: the bearing's sigma the ridge's
         # Per detector image: the keyframe pose's heading variance (rad^2), None when not known.
         self._yaw_vars: list[float | None] = []
-        # The image being run: (offset, keyframe pose, its heading variance, chain), for _level.
-        self._current: tuple[np.ndarray, np.ndarray, float | None, int] | None = None
+        # The image being run: (offset, keyframe pose, its heading variance, chain, keyframe id), for _level.
+        self._current: tuple[np.ndarray, np.ndarray, float | None, int, int] | None = None
         # past image -> the bearing's sigma of a ridge loop (replaces its fit's)
         self._ridge_sigma: dict[int, float] = {}
+        self.headings = HeadingGraph()  # the graph's headings, for a ridge loop's prior
         self.mount = np.zeros(3) if mount is None else np.asarray(mount, np.float64).reshape(3)
         # The wheel odometry's last seconds, (stamp_ns, (x_m, y_m, yaw_rad)), for the frames' offsets.
         self._odom: deque[tuple[int, np.ndarray]] = deque(maxlen=512)
@@ -241,7 +334,8 @@ class ForwardLoopStage(Publisher):
             log.warning("forward image %d (keyframe %d) not stored: %s", t, keyframe_id, exc)
 
     def subscriptions(self) -> Mapping[type, Any]:
-        return {Frame: self.on_frame, KeyframeStored: self.on_keyframe, OdometryUpdate: self.on_odometry}
+        return {Frame: self.on_frame, KeyframeStored: self.on_keyframe, OdometryUpdate: self.on_odometry,
+                Link: self.headings.add_link}
 
     def on_odometry(self, msg: OdometryUpdate) -> None:
         w = msg.wheel
@@ -295,6 +389,9 @@ class ForwardLoopStage(Publisher):
 
     def on_keyframe(self, msg: KeyframeStored) -> None:
         kf = msg.keyframe
+        cov = np.asarray(kf.pose.covariance, np.float64)
+        self.headings.add_keyframe(kf.keyframe_id, float(kf.pose_xyyaw[2]),
+                                   float(cov[2, 2]) if cov.shape == (3, 3) else 0.0)
         if kf.carried:  # odometry cannot relate the images before the lift to the ones after
             self.detector.forget_poses()
             self._chain += 1
@@ -320,7 +417,7 @@ class ForwardLoopStage(Publisher):
         offset = self._frame_offset(kf.stamp_ns, frame.stamp_ns)
         cov = np.asarray(kf.pose.covariance, np.float64)
         yaw_var = float(cov[2, 2]) if cov.shape == (3, 3) and math.isfinite(float(cov[2, 2])) else None
-        self._current = (np.zeros(3) if offset is None else offset, pose, yaw_var, self._chain)
+        self._current = (np.zeros(3) if offset is None else offset, pose, yaw_var, self._chain, kf.keyframe_id)
         cpu0 = time.thread_time()
         det = self.detector.process(frame.image, pose, kf.pose.covariance)  # the keyframe's odometry pose
         self.cpu_ms.append((time.thread_time() - cpu0) * 1e3)
@@ -478,18 +575,23 @@ class ForwardLoopStage(Publisher):
 
     def _prior_yaw(self, image_id: int) -> tuple[float, float] | None:
         """The camera's heading change from past image ``image_id``'s frame to the current
-        image's that the odometry predicts (the keyframes' poses, carried to the frames by
-        their offsets), and its 1-sigma (the growth of the odometry's heading variance
-        between the two keyframes); None when the two are not on one odometry chain."""
+        image's that the pose graph predicts (:class:`HeadingGraph`: its odometry and floor
+        loop edges) or else the odometry (the keyframes' poses on one chain), carried to the
+        frames by their offsets, and its 1-sigma (the graph's; the odometry's: the growth of
+        its heading variance between the two keyframes); None with neither."""
         cur = self._current
         if cur is None or image_id >= len(self._poses):
             return None
-        e_new, pose_new, var_new, chain = cur
+        e_new, pose_new, var_new, chain, kf_new = cur
+        e_old = self._offsets[image_id]
+        graph = self.headings.relative(self._keyframe_ids[image_id], kf_new)
+        if graph is not None:
+            return float(wrap_angle(graph[0] - e_old[2] + e_new[2])), graph[1]
         pose_old = self._poses[image_id]
         if pose_old is None or self._chains[image_id] != chain:
             return None
         yaw_kf = float(between(pose_old, pose_new)[2])  # the mount's yaw cancels
-        yaw_fr = float(wrap_angle(yaw_kf - self._offsets[image_id][2] + e_new[2]))
+        yaw_fr = float(wrap_angle(yaw_kf - e_old[2] + e_new[2]))
         var_old = self._yaw_vars[image_id]
         sigma = math.sqrt(max(var_new - var_old, 0.0)) if var_new is not None and var_old is not None else 0.0
         return yaw_fr, sigma
