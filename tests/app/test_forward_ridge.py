@@ -10,7 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from robotd.app.stages.forward_loops import ForwardLoopStage
+from robotd.app.stages.forward_loops import ForwardLoopStage, HeadingGraph
+from robotd.base.messages import Link
 from robotd.forward import ForwardDetector, method_params
 from robotd.forward.features import Features
 from robotd.forward.planefit import fit_planar, planar_pose, ridge_span
@@ -140,3 +141,32 @@ def test_the_ridge_test_takes_the_edge_heading_sigma_from_the_config():
     assert build_forward_stage(cfg).ridge.edge_sigma_yaw_rad == pytest.approx(math.radians(1.0))
     wide = replace(cfg, "forward_detector", sigma_yaw_deg=2.5)
     assert build_forward_stage(wide).ridge.edge_sigma_yaw_rad == pytest.approx(math.radians(2.5))
+
+
+def _link(kind: str, a: int, b: int, dyaw_deg: float, sigma_deg: float, source: str = "floor") -> Link:
+    info = np.diag([1e4, 1e4, 1.0 / math.radians(sigma_deg) ** 2])
+    return Link(kind, a, b, np.array([0.1, 0.0, math.radians(dyaw_deg)]), info, source=source)
+
+
+def test_the_heading_graph_knows_a_relative_heading_better_than_the_odometry():
+    """Odometry edges 0->1->...->10 each 1 deg off (sigma 1 deg), a floor loop 0->10 saying
+    the truth (0 deg, sigma 0.1 deg): the graph puts 10 relative to 0 at about 0 deg, and 5
+    too (the loop spreads the drift along the chain), with the sigmas of the weighted mean."""
+    g = HeadingGraph()
+    for k in range(10):
+        g.add_link(_link("odometry", k, k + 1, 1.0, 1.0))
+    g.add_link(_link("loop", 0, 10, 0.0, 0.1))
+    g.add_link(_link("loop", 0, 10, 40.0, 0.01, source="forward"))  # forward loops: left out
+    yaw, sigma = g.relative(0, 10)
+    assert math.degrees(yaw) == pytest.approx(10.0 * 0.01 / 10.01, abs=1e-4)  # nearly the loop's 0
+    assert math.degrees(sigma) == pytest.approx(1.0 / math.sqrt(1.0 / 10.0 + 1.0 / 0.01), rel=1e-3)
+    yaw5, sigma5 = g.relative(0, 5)
+    assert math.degrees(yaw5) == pytest.approx(5.0 - 5.0 * 10.0 / 10.01, abs=0.01)
+    assert math.degrees(sigma5) < math.sqrt(5.0)  # the loop tightens the middle too
+    # A keyframe the links have not reached yet joins the newest linked one by the odometry.
+    g.add_keyframe(10, 0.2, math.radians(3.0) ** 2)
+    g.add_keyframe(11, 0.2 + math.radians(2.0), math.radians(3.0) ** 2 + math.radians(0.5) ** 2)
+    yaw11, sigma11 = g.relative(0, 11)
+    assert math.degrees(yaw11) == pytest.approx(math.degrees(yaw) + 2.0, abs=1e-6)
+    assert math.degrees(sigma11) == pytest.approx(math.hypot(math.degrees(sigma), 0.5), rel=1e-3)
+    assert g.relative(0, 99) is None  # not connected
