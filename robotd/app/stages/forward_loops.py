@@ -60,6 +60,26 @@ these offsets before it is published: the heading change exactly, the bearing at
 measured range on the floor or else at the range the keyframes' poses predict (same
 odometry chain); with neither, the bearing is left as measured. Images taken up from the
 map by a later run have no offset (zero).
+
+For a camera moving along its optical axis towards a far wall, a small turn and a small
+sideways shift move the points alike: the planar motion keeps nearly as many matches at
+every heading change over a few degrees, its bearing moving 4-10 deg per degree of heading,
+and the fit's best count picks a place on that ridge by the inliers' noise (the daemon's
+last wrong forward loops: the heading 1.4 deg and the bearing 12-15 deg off, 0.2-0.3 m
+apart). The images cannot settle such a loop; the pose graph knows the two keyframes'
+relative heading far better than the edge's heading sigma (its floor loops tie them). So
+when the planar fit's inlier profile over the heading (:attr:`robotd.forward.planefit.PlanarFit.scan_inliers`)
+stays within one counting sigma (``sqrt`` of the best count) of its best over a half-width
+wider than the edge's heading sigma (:class:`RidgeParams`, :func:`robotd.forward.planefit.ridge_span`),
+the stage takes the relative heading the graph predicts (:class:`HeadingGraph`: the yaw
+part of the odometry and floor loop :class:`~robotd.base.messages.Link` messages, solved
+exactly; the odometry's poses where the graph has not linked the two) and, if it lies on
+the ridge (within three of its sigmas), publishes the ridge's motion at that heading (the
+planar fit with the heading held, :func:`robotd.forward.planefit.fit_planar` ``fix_yaw``),
+its bearing's sigma the fixed-heading fit's and the graph heading's sigma times the ridge's
+slope; off the ridge, the view is refused (``forward_ridge_refused``, a log line) and the
+detector may verify the next. Without any prior heading the loop keeps its motion and its
+bearing's sigma spans the ridge (``forward_ridge_unsettled``).
 """
 
 from __future__ import annotations
@@ -221,9 +241,9 @@ class ForwardLoopStage(Publisher):
                  mount: np.ndarray | None = None, ridge: RidgeParams | None = None) -> None:
         self.detector = detector
         self.ridge = RidgeParams() if ridge is None else ridge
-        self.ridge_settled = 0  # loops on a ridge, settled at the odometry's heading (module notes)
-        self.ridge_refused = 0  # loops on a ridge the odometry's heading lies off
-        self.ridge_unsettled = 0  # loops on a ridge without an odometry heading: the bearing's sigma the ridge's
+        self.ridge_settled = 0  # loops on a ridge, settled at the graph's heading (module notes)
+        self.ridge_refused = 0  # loops on a ridge the graph's heading lies off
+        self.ridge_unsettled = 0  # loops on a ridge without a graph or odometry heading: the bearing's sigma the ridge's
         # Per detector image: the keyframe pose's heading variance (rad^2), None when not known.
         self._yaw_vars: list[float | None] = []
         # The image being run: (offset, keyframe pose, its heading variance, chain, keyframe id), for _level.
@@ -511,7 +531,7 @@ class ForwardLoopStage(Publisher):
         the verified motion of the current image against past image ``image_id`` is a level
         camera's, as verified or refitted in the floor plane (:func:`robotd.forward.planefit.fit_planar`:
         its inliers at least the verification's minimum and half of its inliers); and when
-        the planar fit lies on a heading-bearing ridge, the odometry's heading lies on it
+        the planar fit lies on a heading-bearing ridge, the graph's heading lies on it
         (:meth:`_settle`)."""
         ok, tilt = self._planar(v)
         scan = self._scan(image_id, v) if self.planar_refit else None
@@ -600,10 +620,10 @@ class ForwardLoopStage(Publisher):
                 ) -> tuple[tuple[PlanarFit, np.ndarray, np.ndarray], float] | float | bool | None:
         """A planar fit on a heading-bearing ridge (module notes, :class:`RidgeParams`):
         None when ``scan``'s inlier profile is no ridge (half-width within the edge's heading
-        sigma); else, with the odometry's heading on the ridge, the ridge's motion at that
+        sigma); else, with the graph's heading (:meth:`_prior_yaw`) on the ridge, the ridge's motion at that
         heading with its inlier pixels and the bearing's sigma along the ridge; False (the
         loop refused) with it off the ridge; the bearing's sigma over the whole ridge (a
-        float) without an odometry heading."""
+        float) without a graph or odometry heading."""
         fit, p_old, p_new = scan
         rp = self.ridge
         k = self.detector.camera_matrix
@@ -633,7 +653,7 @@ class ForwardLoopStage(Publisher):
         if not lo - gate <= yaw_p <= hi + gate:
             self.ridge_refused += 1
             log.info("forward loop to keyframe %d refused: its motion lies on a heading-bearing ridge "
-                     "(%.1f to %.1f deg) and the odometry's heading change %.1f deg (sigma %.2f) lies off it",
+                     "(%.1f to %.1f deg) and the graph's heading change %.1f deg (sigma %.2f) lies off it",
                      old_kf, math.degrees(lo), math.degrees(hi), math.degrees(yaw_p), math.degrees(sigma_p))
             return False
         yaw = min(max(yaw_p, lo), hi)
@@ -641,7 +661,7 @@ class ForwardLoopStage(Publisher):
         if best is None or best.n_inliers < vp.min_inliers:
             self.ridge_refused += 1
             log.info("forward loop to keyframe %d refused: on a heading-bearing ridge, too few matches at the "
-                     "odometry's heading change %.1f deg", old_kf, math.degrees(yaw_p))
+                     "graph's heading change %.1f deg", old_kf, math.degrees(yaw_p))
             return False
         # How fast the ridge's bearing moves with the heading, there: the prior's heading
         # sigma becomes the bearing's along the ridge.
@@ -653,7 +673,7 @@ class ForwardLoopStage(Publisher):
         sigma_b = float(math.hypot(sig_fixed, slope * sigma_p))
         self.ridge_settled += 1
         log.info("forward loop to keyframe %d on a heading-bearing ridge (%.1f to %.1f deg, fit %.1f deg bearing "
-                 "%.1f): taken at the odometry's heading change %.1f deg (sigma %.2f): bearing %.1f deg, "
+                 "%.1f): taken at the graph's heading change %.1f deg (sigma %.2f): bearing %.1f deg, "
                  "%.1f deg of bearing per deg of heading", old_kf, math.degrees(lo), math.degrees(hi),
                  math.degrees(fit.dyaw_rad), math.degrees(fit.bearing_rad), math.degrees(yaw_p),
                  math.degrees(sigma_p), math.degrees(best.bearing_rad), slope)
