@@ -170,7 +170,7 @@ def forward_loop_params(cfg: Config) -> PlanarLoopParams:
 def build_forward_stage(cfg: Config, store: MapStore | None = None) -> Any:
     """The forward loop detector stage (paper 000) with the config's features and camera;
     with ``store``, its memory is kept in the map and taken up from earlier runs."""
-    from robotd.app.stages.forward_loops import ForwardLoopStage
+    from robotd.app.stages.forward_loops import ForwardLoopStage, RidgeParams
     from dataclasses import replace
 
     from robotd.forward import FeatureParams, ForwardDetector, method_params
@@ -192,7 +192,8 @@ def build_forward_stage(cfg: Config, store: MapStore | None = None) -> Any:
              f.method, kind, f.distance_m, f.rotation_deg)
     return ForwardLoopStage(ForwardDetector(params, camera_matrix=k), distance_m=f.distance_m,
                             rotation_rad=math.radians(f.rotation_deg), sync_tolerance_s=f.sync_tolerance_s,
-                            store=store, mount=forward_mount(cfg))
+                            store=store, mount=forward_mount(cfg),
+                            ridge=RidgeParams(edge_sigma_yaw_rad=math.radians(f.sigma_yaw_deg)))
 
 
 def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, lossless: bool,

@@ -25,13 +25,13 @@ optimum, scaled by :data:`robotd.forward.planar.INLIER_NOISE_FACTOR` as the gene
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from robotd.forward.planar import INLIER_NOISE_FACTOR
 
-__all__ = ["PlanarFit", "fit_planar", "planar_inliers", "planar_pose"]
+__all__ = ["PlanarFit", "fit_planar", "planar_inliers", "planar_pose", "ridge_span"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,7 +44,10 @@ class PlanarFit:
     ``rotation (3, 3)``, ``translation_dir (3,)`` the same motion as
     :class:`robotd.forward.verify.Verification` holds it; ``inliers (N,) bool`` the matches
     within the threshold; ``sigma_yaw_rad``, ``sigma_bearing_rad`` their 1-sigma (``inf``
-    when the inliers do not fix them: too few, or no parallax).
+    when the inliers do not fix them: too few, or no parallax; ``sigma_yaw_rad`` 0 when the
+    heading was held fixed). ``scan_yaw_rad (H,)``, ``scan_inliers (H,)``: the headings the
+    fit scanned and the most matches a translation direction keeps at each (the inlier
+    count's profile over the heading, :func:`ridge_span`).
     """
 
     dyaw_rad: float
@@ -54,6 +57,8 @@ class PlanarFit:
     inliers: np.ndarray
     sigma_yaw_rad: float = math.inf
     sigma_bearing_rad: float = math.inf
+    scan_yaw_rad: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    scan_inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def n_inliers(self) -> int:
@@ -126,10 +131,14 @@ def _bearing(yaw: float, psi: float) -> float:
 
 def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, yaw_guess_rad: float,
                *, threshold_px: float = 1.0, window_rad: float = math.radians(8.0),
-               step_rad: float = math.radians(0.2)) -> PlanarFit | None:
+               step_rad: float = math.radians(0.2), fix_yaw: bool = False) -> PlanarFit | None:
     """The planar motion (module notes) of matched pixels ``p_old_px, p_new_px (N, 2)``
     (``camera_matrix (3, 3)`` shared), the heading change searched within ``window_rad``
-    of ``yaw_guess_rad`` in steps of ``step_rad``; None with fewer than 5 matches."""
+    of ``yaw_guess_rad`` in steps of ``step_rad``; None with fewer than 5 matches. With
+    ``fix_yaw`` the heading change is held at ``yaw_guess_rad`` (``window_rad`` unused) and
+    only the translation direction is fitted: the motion on a heading-bearing ridge at a
+    heading known from elsewhere (:func:`ridge_span`); its ``sigma_bearing_rad`` is then the
+    bearing's given the heading."""
     p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
     p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
     n = len(p_old)
@@ -140,7 +149,7 @@ def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nda
     focal = 0.5 * (k[0, 0] + k[1, 1])
     x_old = np.hstack([p_old, np.ones((n, 1))]) @ kinv.T
     x_new = np.hstack([p_new, np.ones((n, 1))]) @ kinv.T
-    n_steps = int(round(window_rad / step_rad))
+    n_steps = 0 if fix_yaw else int(round(window_rad / step_rad))
     bins = 360  # half-degree bins over psi modulo pi
     # Every heading of the scan at once: each match's translation direction per heading,
     # a histogram per heading, its two fullest bins, three directions per bin.
@@ -164,6 +173,7 @@ def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nda
     cost = -np.einsum("ij,ij->i", np.minimum(d, threshold_px), np.minimum(d, threshold_px))
     # The most inliers, then the least cost; the first in scan order among equals.
     best_i = int(np.flatnonzero(inl_n == inl_n.max())[np.argmax(cost[inl_n == inl_n.max()])])
+    scan_n = inl_n.reshape(len(yaws), -1).max(axis=1)
     yaw, psi = float(cand_yaw[best_i]), float(cand_psi[best_i])
     # Refine (yaw, psi) by Gauss-Newton on the inliers' Sampson distances.
     r, t = planar_pose(yaw, psi)
@@ -175,19 +185,21 @@ def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nda
         return _sampson(x_old[m], x_new[m], rr, tt, focal)
 
     h = 1e-6
-    jac = np.zeros((int(inl.sum()), 2))
+    free = [1] if fix_yaw else [0, 1]  # the parameters fitted: (yaw, psi) or psi alone
+    jac = np.zeros((int(inl.sum()), len(free)))
     for _ in range(5):
         if inl.sum() < 3:
             break
         r0 = res(theta, inl)
-        for j in range(2):
+        for col, j in enumerate(free):
             dth = np.zeros(2)
             dth[j] = h
-            jac[:, j] = (res(theta + dth, inl) - res(theta - dth, inl)) / (2 * h)
+            jac[:, col] = (res(theta + dth, inl) - res(theta - dth, inl)) / (2 * h)
         jtj = jac.T @ jac
         if not np.all(np.isfinite(jtj)) or np.linalg.cond(jtj) > 1e12:
             break
-        step = -np.linalg.solve(jtj, jac.T @ r0)
+        step = np.zeros(2)
+        step[free] = -np.linalg.solve(jtj, jac.T @ r0)
         if not float(res(theta + step, inl) @ res(theta + step, inl)) < float(r0 @ r0):
             break
         theta = theta + step
@@ -200,23 +212,50 @@ def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nda
         r, t = planar_pose(yaw, psi)
     m = int(inl.sum())
     sig_y = sig_b = math.inf
-    if m > 2:
+    if m > len(free):
         rr = res(np.array([yaw, psi]), inl)
-        noise = math.sqrt(float(rr @ rr) / (m - 2)) * INLIER_NOISE_FACTOR
+        noise = math.sqrt(float(rr @ rr) / (m - len(free))) * INLIER_NOISE_FACTOR
         jac = np.zeros((m, 2))
         for j in range(2):
             dth = np.zeros(2)
             dth[j] = h
             jac[:, j] = (res(np.array([yaw, psi]) + dth, inl) - res(np.array([yaw, psi]) - dth, inl)) / (2 * h)
         jtj = jac.T @ jac
-        if np.all(np.isfinite(jtj)) and np.linalg.cond(jtj) < 1e12:
+        cov: np.ndarray | None = None
+        if fix_yaw:  # the heading known: psi's variance alone, the heading's none
+            if math.isfinite(float(jtj[1, 1])) and jtj[1, 1] > 0:
+                cov = noise ** 2 * np.diag([0.0, 1.0 / jtj[1, 1]])
+        elif np.all(np.isfinite(jtj)) and np.linalg.cond(jtj) < 1e12:
             cov = noise ** 2 * np.linalg.inv(jtj)
+        if cov is not None:
             g = np.array([[1.0, 0.0],
                           [(_bearing(yaw + h, psi) - _bearing(yaw - h, psi)) / (2 * h),
                            math.remainder(_bearing(yaw, psi + h) - _bearing(yaw, psi - h), math.tau) / (2 * h)]])
             var = np.einsum("ij,jk,ik->i", g, cov, g)
             sig_y, sig_b = math.sqrt(max(float(var[0]), 0.0)), math.sqrt(max(float(var[1]), 0.0))
-    return PlanarFit(yaw, _bearing(yaw, psi), r, t, inl, sig_y, sig_b)
+    return PlanarFit(yaw, _bearing(yaw, psi), r, t, inl, sig_y, sig_b, yaws, scan_n)
+
+
+def ridge_span(fit: PlanarFit, margin: float) -> tuple[float, float]:
+    """``(lowest, highest)`` heading change (rad) of the ridge around ``fit``'s best heading:
+    the contiguous run of scanned headings whose best translation direction keeps at least
+    ``fit``'s scan maximum less ``margin`` matches (:attr:`PlanarFit.scan_inliers`). Along
+    such a ridge the images cannot tell the headings apart, and each heading has its own
+    bearing (for a camera moving along its optical axis, a small turn and a small sideways
+    shift move the far points alike). ``(dyaw_rad, dyaw_rad)`` without a scan."""
+    n, yaws = fit.scan_inliers, fit.scan_yaw_rad
+    if len(n) == 0:
+        return fit.dyaw_rad, fit.dyaw_rad
+    on = n >= n.max() - margin
+    i = int(np.argmin(np.abs(yaws - fit.dyaw_rad)))
+    if not on[i]:  # the refined heading between scan steps: start from the best scan step
+        i = int(np.argmax(n))
+    lo = hi = i
+    while lo > 0 and on[lo - 1]:
+        lo -= 1
+    while hi < len(n) - 1 and on[hi + 1]:
+        hi += 1
+    return float(yaws[lo]), float(yaws[hi])
 
 
 def planar_inliers(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, dyaw_rad: float,

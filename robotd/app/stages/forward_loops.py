@@ -60,6 +60,26 @@ these offsets before it is published: the heading change exactly, the bearing at
 measured range on the floor or else at the range the keyframes' poses predict (same
 odometry chain); with neither, the bearing is left as measured. Images taken up from the
 map by a later run have no offset (zero).
+
+For a camera moving along its optical axis towards a far wall, a small turn and a small
+sideways shift move the points alike: the planar motion keeps nearly as many matches at
+every heading change over a few degrees, its bearing moving 4-10 deg per degree of heading,
+and the fit's best count picks a place on that ridge by the inliers' noise (the daemon's
+last wrong forward loops: the heading 1.4 deg and the bearing 12-15 deg off, 0.2-0.3 m
+apart). The images cannot settle such a loop; the pose graph knows the two keyframes'
+relative heading far better than the edge's heading sigma (its floor loops tie them). So
+when the planar fit's inlier profile over the heading (:attr:`robotd.forward.planefit.PlanarFit.scan_inliers`)
+stays within one counting sigma (``sqrt`` of the best count) of its best over a half-width
+wider than the edge's heading sigma (:class:`RidgeParams`, :func:`robotd.forward.planefit.ridge_span`),
+the stage takes the relative heading the graph predicts (:class:`HeadingGraph`: the yaw
+part of the odometry and floor loop :class:`~robotd.base.messages.Link` messages, solved
+exactly; the odometry's poses where the graph has not linked the two) and, if it lies on
+the ridge (within three of its sigmas), publishes the ridge's motion at that heading (the
+planar fit with the heading held, :func:`robotd.forward.planefit.fit_planar` ``fix_yaw``),
+its bearing's sigma the fixed-heading fit's and the graph heading's sigma times the ridge's
+slope; off the ridge, the view is refused (``forward_ridge_refused``, a log line) and the
+detector may verify the next. Without any prior heading the loop keeps its motion and its
+bearing's sigma spans the ridge (``forward_ridge_unsettled``).
 """
 
 from __future__ import annotations
@@ -69,21 +89,142 @@ import math
 import time
 from collections import deque
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from robotd.app.pipeline import Publisher
+from robotd.base.config import ForwardDetectorConfig
 from robotd.base.errors import MapStoreError
 from robotd.base.geometry import between, compose, inverse, wrap_angle
-from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored, LoopFate, OdometryUpdate
+from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored, Link, LoopFate, OdometryUpdate
 from robotd.forward import LOOP, ForwardDetector
 from robotd.forward.features import CompactFeatures
 from robotd.forward.planar import INLIER_NOISE_FACTOR, planar_motion, planarity_bound
-from robotd.forward.planefit import PlanarFit, fit_planar, planar_inliers
+from robotd.forward.planefit import PlanarFit, fit_planar, planar_inliers, ridge_span
 from robotd.forward.verify import VerifyParams, floor_range, match_features
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RidgeParams:
+    """When a loop's planar fit lies on a heading-bearing ridge, and how the odometry's
+    heading settles it (module notes).
+
+    Fields:
+        edge_sigma_yaw_rad: the heading sigma the pose graph gives a forward loop edge
+            (``[forward_detector] sigma_yaw_deg``): a ridge whose half-width exceeds it
+            claims a heading the images do not fix, so the edge would be overconfident.
+        count_sigmas: the ridge is the headings whose best motion keeps at least the best
+            count less this many times ``sqrt(best count)``: an inlier count is a count,
+            its one-sigma noise about its square root; counts closer than that are not
+            told apart by the images.
+        prior_gate_sigmas: the odometry's relative heading lies on the ridge when within
+            this many of its sigmas of the ridge's ends (3: the 99.7 % point of a normal).
+        slope_step_rad: the heading step either side of the prior at which the ridge's
+            motion is fitted again to measure how fast its bearing moves with the heading
+            (well inside a ridge wider than ``edge_sigma_yaw_rad``, well above the inlier
+            noise's effect on a fixed-heading fit).
+    """
+
+    edge_sigma_yaw_rad: float = math.radians(ForwardDetectorConfig.sigma_yaw_deg)
+    count_sigmas: float = 1.0
+    prior_gate_sigmas: float = 3.0
+    slope_step_rad: float = math.radians(0.5)
+
+
+class HeadingGraph:
+    """The pose graph's headings alone: the keyframes' yaw tied by the yaw part of its edges
+    (the odometry's and the floor loops' :class:`~robotd.base.messages.Link` messages; a
+    relative pose's yaw is the difference of the two yaws, so this part of the graph is
+    linear and solves exactly). It gives the relative heading of two keyframes and its
+    1-sigma as the graph knows it (:meth:`relative`). The forward loops' own edges are left
+    out: the heading is asked to judge one of them."""
+
+    def __init__(self) -> None:
+        self._edges: list[tuple[int, int, float, float]] = []  # (from, to, dyaw_rad, variance_rad2)
+        # keyframe -> (odometry yaw_rad, its variance): joins keyframes the links have not reached yet
+        self._odom: dict[int, tuple[float, float]] = {}
+
+    def add_link(self, link: Link) -> None:
+        if link.kind == "loop" and link.source == "forward":
+            return
+        info = np.asarray(link.information, np.float64)
+        try:
+            var = float(np.linalg.inv(info)[2, 2])
+        except np.linalg.LinAlgError:
+            return
+        if math.isfinite(var) and var > 0.0:
+            self._edges.append((link.from_id, link.to_id, float(link.delta_xyyaw[2]), var))
+
+    def add_keyframe(self, keyframe_id: int, yaw_rad: float, yaw_var_rad2: float) -> None:
+        self._odom[keyframe_id] = (yaw_rad, yaw_var_rad2)
+
+    def relative(self, a: int, b: int) -> tuple[float, float] | None:
+        """``(yaw_b - yaw_a, 1-sigma)`` in radians by the graph's yaw edges (a keyframe not
+        yet linked is joined to the newest linked one older than it by the odometry's
+        poses); None when the two are not connected."""
+        edges = list(self._edges)
+        linked = {i for e in edges for i in e[:2]}
+        for k in (a, b):
+            if k not in linked and k in self._odom:
+                older = [i for i in linked if i < k and i in self._odom]
+                if older:
+                    m = max(older)
+                    (ya, va), (yb, vb) = self._odom[m], self._odom[k]
+                    edges.append((m, k, float(wrap_angle(yb - ya)), max(vb - va, 1e-8)))
+        nodes = sorted({i for e in edges for i in e[:2]})
+        if a not in nodes or b not in nodes or a == b:
+            return None
+        import scipy.sparse as sp
+        from scipy.sparse.csgraph import connected_components
+        from scipy.sparse.linalg import splu
+
+        idx = {n: i for i, n in enumerate(nodes)}
+        fi = np.array([idx[e[0]] for e in edges])
+        ti = np.array([idx[e[1]] for e in edges])
+        d = np.array([e[2] for e in edges])
+        w = 1.0 / np.array([e[3] for e in edges])
+        n = len(nodes)
+        adj = sp.coo_matrix((np.ones(len(edges)), (fi, ti)), shape=(n, n))
+        _, comp = connected_components(adj, directed=False)
+        if comp[idx[a]] != comp[idx[b]]:
+            return None
+        keep = comp == comp[idx[a]]
+        # The yaws by a spanning walk (the linearisation point), then the weighted least
+        # squares of the wrapped residuals with node a held at 0.
+        y0 = np.full(n, np.nan)
+        y0[idx[a]] = 0.0
+        adjl: dict[int, list[tuple[int, float]]] = {}
+        for f, t, dd in zip(fi, ti, d):
+            adjl.setdefault(int(f), []).append((int(t), float(dd)))
+            adjl.setdefault(int(t), []).append((int(f), -float(dd)))
+        stack = [idx[a]]
+        while stack:
+            u = stack.pop()
+            for v, dd in adjl.get(u, []):
+                if np.isnan(y0[v]):
+                    y0[v] = y0[u] + dd
+                    stack.append(v)
+        ok = keep[fi] & keep[ti]
+        fi, ti, d, w = fi[ok], ti[ok], d[ok], w[ok]
+        r = np.array([math.remainder(float(x), math.tau) for x in d - (y0[ti] - y0[fi])])
+        h = sp.coo_matrix((np.concatenate([w, w, -w, -w]),
+                           (np.concatenate([fi, ti, fi, ti]), np.concatenate([fi, ti, ti, fi]))), shape=(n, n)).tocsc()
+        g = np.zeros(n)
+        np.add.at(g, ti, w * r)
+        np.add.at(g, fi, -w * r)
+        free = np.flatnonzero(keep & (np.arange(n) != idx[a]))
+        lu = splu(h[free][:, free].tocsc())
+        dy = np.zeros(n)
+        dy[free] = lu.solve(g[free])
+        e = np.zeros(len(free))
+        jb = int(np.flatnonzero(free == idx[b])[0])
+        e[jb] = 1.0
+        var = float(lu.solve(e)[jb])
+        return float(wrap_angle(y0[idx[b]] + dy[idx[b]])), math.sqrt(max(var, 0.0))
 
 
 class ForwardLoopStage(Publisher):
@@ -91,14 +232,25 @@ class ForwardLoopStage(Publisher):
 
     name = "forward"
     produces = (ForwardLoop, CandidateFate)
-    optional_inputs = (OdometryUpdate,)  # without it the frames' offsets are taken as zero
+    optional_inputs = (OdometryUpdate, Link)  # without them the frames' offsets are zero, the ridges unsettled
 
     def __init__(self, detector: ForwardDetector, *, distance_m: float = 0.5,
                  rotation_rad: float = math.radians(20.0), sync_tolerance_s: float = 0.04,
                  max_tilt_rad: float = math.radians(10.0), camera: str = "forward",
                  store: Any = None, planarity_bound: float = planarity_bound(), planar_refit: bool = True,
-                 mount: np.ndarray | None = None) -> None:
+                 mount: np.ndarray | None = None, ridge: RidgeParams | None = None) -> None:
         self.detector = detector
+        self.ridge = RidgeParams() if ridge is None else ridge
+        self.ridge_settled = 0  # loops on a ridge, settled at the graph's heading (module notes)
+        self.ridge_refused = 0  # loops on a ridge the graph's heading lies off
+        self.ridge_unsettled = 0  # loops on a ridge without a graph or odometry heading: the bearing's sigma the ridge's
+        # Per detector image: the keyframe pose's heading variance (rad^2), None when not known.
+        self._yaw_vars: list[float | None] = []
+        # The image being run: (offset, keyframe pose, its heading variance, chain, keyframe id), for _level.
+        self._current: tuple[np.ndarray, np.ndarray, float | None, int, int] | None = None
+        # past image -> the bearing's sigma of a ridge loop (replaces its fit's)
+        self._ridge_sigma: dict[int, float] = {}
+        self.headings = HeadingGraph()  # the graph's headings, for a ridge loop's prior
         self.mount = np.zeros(3) if mount is None else np.asarray(mount, np.float64).reshape(3)
         # The wheel odometry's last seconds, (stamp_ns, (x_m, y_m, yaw_rad)), for the frames' offsets.
         self._odom: deque[tuple[int, np.ndarray]] = deque(maxlen=512)
@@ -174,6 +326,7 @@ class ForwardLoopStage(Publisher):
             self._keyframe_ids.append(kf_id)
             self._offsets.append(np.zeros(3))
             self._poses.append(None)
+            self._yaw_vars.append(None)
             self._chains.append(-1)
         word_desc = np.zeros((len(words), dim), dtype)  # purged words' descriptors are not kept
         for n, w in enumerate(words):
@@ -201,7 +354,8 @@ class ForwardLoopStage(Publisher):
             log.warning("forward image %d (keyframe %d) not stored: %s", t, keyframe_id, exc)
 
     def subscriptions(self) -> Mapping[type, Any]:
-        return {Frame: self.on_frame, KeyframeStored: self.on_keyframe, OdometryUpdate: self.on_odometry}
+        return {Frame: self.on_frame, KeyframeStored: self.on_keyframe, OdometryUpdate: self.on_odometry,
+                Link: self.headings.add_link}
 
     def on_odometry(self, msg: OdometryUpdate) -> None:
         w = msg.wheel
@@ -255,6 +409,9 @@ class ForwardLoopStage(Publisher):
 
     def on_keyframe(self, msg: KeyframeStored) -> None:
         kf = msg.keyframe
+        cov = np.asarray(kf.pose.covariance, np.float64)
+        self.headings.add_keyframe(kf.keyframe_id, float(kf.pose_xyyaw[2]),
+                                   float(cov[2, 2]) if cov.shape == (3, 3) else 0.0)
         if kf.carried:  # odometry cannot relate the images before the lift to the ones after
             self.detector.forget_poses()
             self._chain += 1
@@ -277,15 +434,20 @@ class ForwardLoopStage(Publisher):
             return
         self._last_pose = pose
         self._last_refused = None
+        offset = self._frame_offset(kf.stamp_ns, frame.stamp_ns)
+        cov = np.asarray(kf.pose.covariance, np.float64)
+        yaw_var = float(cov[2, 2]) if cov.shape == (3, 3) and math.isfinite(float(cov[2, 2])) else None
+        self._current = (np.zeros(3) if offset is None else offset, pose, yaw_var, self._chain, kf.keyframe_id)
         cpu0 = time.thread_time()
         det = self.detector.process(frame.image, pose, kf.pose.covariance)  # the keyframe's odometry pose
         self.cpu_ms.append((time.thread_time() - cpu0) * 1e3)
+        self._current = None
         self._keyframe_ids.append(kf.keyframe_id)
-        offset = self._frame_offset(kf.stamp_ns, frame.stamp_ns)
         if offset is None:
             self.no_offset += 1
         self._offsets.append(np.zeros(3) if offset is None else offset)
         self._poses.append(pose)
+        self._yaw_vars.append(yaw_var)
         self._chains.append(self._chain)
         self.frame_offsets_ms.append((frame.stamp_ns - kf.stamp_ns) / 1e6)
         if self.store is not None:
@@ -296,6 +458,7 @@ class ForwardLoopStage(Publisher):
         self.features_ms.append(det.times_s.get("features", 0.0) * 1e3)
         if det.status != LOOP or det.verification is None or det.loop_id is None:
             self._fits.clear()
+            self._ridge_sigma.clear()
             if det.verification is not None and not det.verification.accepted:
                 self.rejected_geometry += 1
             elif det.verification is not None and self._last_refused is not None:
@@ -311,7 +474,9 @@ class ForwardLoopStage(Publisher):
             raise AssertionError("an accepted forward loop's verification has no relative pose")
         old = self._keyframe_ids[det.loop_id]
         refit = self._fits.pop(det.loop_id, None)
+        ridge_sigma = self._ridge_sigma.pop(det.loop_id, None)
         self._fits.clear()
+        self._ridge_sigma.clear()
         # The general fit's bearing sigma is the inliers' own noise; scaled as the planarity
         # test and the planar fit scale it (robotd.forward.planar.INLIER_NOISE_FACTOR).
         range_m, sigma_b = v.range_m, v.sigma_bearing_rad * INLIER_NOISE_FACTOR
@@ -321,10 +486,14 @@ class ForwardLoopStage(Publisher):
             k = self.detector.camera_matrix
             assert k is not None  # _refit fits nothing without it
             dyaw, bearing, sigma_b = fit.dyaw_rad, fit.bearing_rad, fit.sigma_bearing_rad
+            if ridge_sigma is not None:
+                sigma_b = ridge_sigma
             range_m = floor_range(p_old, p_new, fit.rotation, fit.translation_dir, k,
                                   self.detector.params.verify)[0]
         else:
             dyaw, bearing, _ = planar_motion(v.rotation, v.translation_dir)
+            if ridge_sigma is not None:
+                sigma_b = ridge_sigma
         dyaw, bearing, range_m = self._to_keyframes(det.loop_id, len(self._offsets) - 1, dyaw, bearing, range_m)
         self.loops += 1
         log.debug("forward loop: keyframe %d sees keyframe %d (p %.2f, %d inliers%s)", kf.keyframe_id, old,
@@ -361,49 +530,154 @@ class ForwardLoopStage(Publisher):
         """The detector's acceptance test (:class:`~robotd.forward.ForwardDetector` ``accept``):
         the verified motion of the current image against past image ``image_id`` is a level
         camera's, as verified or refitted in the floor plane (:func:`robotd.forward.planefit.fit_planar`:
-        its inliers at least the verification's minimum and half of its inliers)."""
+        its inliers at least the verification's minimum and half of its inliers); and when
+        the planar fit lies on a heading-bearing ridge, the graph's heading lies on it
+        (:meth:`_settle`)."""
         ok, tilt = self._planar(v)
-        if ok:
-            if self.planar_refit:  # the planar fit, if it explains more of the matches (module notes)
-                refit = self._refit(image_id, v, level=True)
-                if refit is not None:
-                    self._fits[image_id] = refit
-                    self.refits += 1
-                    self.level_refits += 1
-            return True
-        if self.planar_refit:
-            refit = self._refit(image_id, v)
-            if refit is not None:
-                self._fits[image_id] = refit
-                self.refits += 1
-                return True
-        self.not_planar += 1
-        self._last_refused = (image_id, tilt, v.planarity_chi2)
-        return False
+        scan = self._scan(image_id, v) if self.planar_refit else None
+        refit = None if scan is None else self._choose(scan, v, level=ok)
+        if not ok and refit is None:
+            self.not_planar += 1
+            self._last_refused = (image_id, tilt, v.planarity_chi2)
+            return False
+        if scan is not None:
+            settled = self._settle(image_id, scan)
+            if settled is False:
+                return False
+            if isinstance(settled, tuple):
+                self._fits[image_id] = settled[0]
+                self._ridge_sigma[image_id] = settled[1]
+            elif isinstance(settled, float):  # unsettled: the motion as chosen, the bearing's sigma the ridge's
+                self._ridge_sigma[image_id] = settled
+        if refit is not None:
+            self.refits += 1
+            self.level_refits += ok
+            self._fits.setdefault(image_id, refit)
+        return True
 
-    def _refit(self, image_id: int, v: Any, level: bool = False) -> tuple[PlanarFit, np.ndarray, np.ndarray] | None:
+    def _scan(self, image_id: int, v: Any) -> tuple[PlanarFit, np.ndarray, np.ndarray] | None:
         """The motion of the current image against past image ``image_id`` fitted in the
-        floor plane from their matches (:func:`robotd.forward.planefit.fit_planar`, the
-        heading searched around the verification's), with its inlier pixels (old, new);
-        None when the planar motion keeps fewer than the verification's ``min_inliers`` or
-        half of its inliers, or, with ``level`` (the verified motion passed the planarity
-        test), no more of the matches than the verified motion brought into the plane."""
+        floor plane from all their matches (:func:`robotd.forward.planefit.fit_planar`, the
+        heading searched around the verification's), with the matched pixels (old, new);
+        None without a camera matrix or enough matches."""
         det = self.detector
-        vp: VerifyParams = det.params.verify
         k = det.camera_matrix
         if k is None:
             return None
-        p_old, p_new = match_features(det.features_of(image_id), det.features_of(len(det) - 1), vp.ratio)
+        p_old, p_new = match_features(det.features_of(image_id), det.features_of(len(det) - 1), det.params.verify.ratio)
         dyaw, _, _ = planar_motion(v.rotation, v.translation_dir)
-        fit = fit_planar(p_old, p_new, k, dyaw, threshold_px=vp.ransac_threshold_px)
-        if fit is None or fit.n_inliers < max(vp.min_inliers, 0.5 * v.n_inliers):
+        fit = fit_planar(p_old, p_new, k, dyaw, threshold_px=det.params.verify.ransac_threshold_px)
+        return None if fit is None else (fit, p_old, p_new)
+
+    def _choose(self, scan: tuple[PlanarFit, np.ndarray, np.ndarray], v: Any,
+                level: bool = False) -> tuple[PlanarFit, np.ndarray, np.ndarray] | None:
+        """The planar fit ``scan`` as the loop's motion, with its inlier pixels (old, new);
+        None when it keeps fewer than the verification's ``min_inliers`` or half of its
+        inliers, or, with ``level`` (the verified motion passed the planarity test), no more
+        of the matches than the verified motion brought into the plane."""
+        fit, p_old, p_new = scan
+        vp: VerifyParams = self.detector.params.verify
+        k = self.detector.camera_matrix
+        if k is None or fit.n_inliers < max(vp.min_inliers, 0.5 * v.n_inliers):
             return None
         if level:
-            _, bearing, _ = planar_motion(v.rotation, v.translation_dir)
+            dyaw, bearing, _ = planar_motion(v.rotation, v.translation_dir)
             n_level = int(planar_inliers(p_old, p_new, k, dyaw, bearing, threshold_px=vp.ransac_threshold_px).sum())
             if fit.n_inliers <= n_level:
                 return None
         return fit, p_old[fit.inliers], p_new[fit.inliers]
+
+    def _refit(self, image_id: int, v: Any, level: bool = False) -> tuple[PlanarFit, np.ndarray, np.ndarray] | None:
+        """:meth:`_scan` then :meth:`_choose`: the planar refit of the current image against
+        past image ``image_id`` when it is to be the loop's motion, else None."""
+        scan = self._scan(image_id, v)
+        return None if scan is None else self._choose(scan, v, level)
+
+    def _prior_yaw(self, image_id: int) -> tuple[float, float] | None:
+        """The camera's heading change from past image ``image_id``'s frame to the current
+        image's that the pose graph predicts (:class:`HeadingGraph`: its odometry and floor
+        loop edges) or else the odometry (the keyframes' poses on one chain), carried to the
+        frames by their offsets, and its 1-sigma (the graph's; the odometry's: the growth of
+        its heading variance between the two keyframes); None with neither."""
+        cur = self._current
+        if cur is None or image_id >= len(self._poses):
+            return None
+        e_new, pose_new, var_new, chain, kf_new = cur
+        e_old = self._offsets[image_id]
+        graph = self.headings.relative(self._keyframe_ids[image_id], kf_new)
+        if graph is not None:
+            return float(wrap_angle(graph[0] - e_old[2] + e_new[2])), graph[1]
+        pose_old = self._poses[image_id]
+        if pose_old is None or self._chains[image_id] != chain:
+            return None
+        yaw_kf = float(between(pose_old, pose_new)[2])  # the mount's yaw cancels
+        yaw_fr = float(wrap_angle(yaw_kf - e_old[2] + e_new[2]))
+        var_old = self._yaw_vars[image_id]
+        sigma = math.sqrt(max(var_new - var_old, 0.0)) if var_new is not None and var_old is not None else 0.0
+        return yaw_fr, sigma
+
+    def _settle(self, image_id: int, scan: tuple[PlanarFit, np.ndarray, np.ndarray]
+                ) -> tuple[tuple[PlanarFit, np.ndarray, np.ndarray], float] | float | bool | None:
+        """A planar fit on a heading-bearing ridge (module notes, :class:`RidgeParams`):
+        None when ``scan``'s inlier profile is no ridge (half-width within the edge's heading
+        sigma); else, with the graph's heading (:meth:`_prior_yaw`) on the ridge, the ridge's motion at that
+        heading with its inlier pixels and the bearing's sigma along the ridge; False (the
+        loop refused) with it off the ridge; the bearing's sigma over the whole ridge (a
+        float) without a graph or odometry heading."""
+        fit, p_old, p_new = scan
+        rp = self.ridge
+        k = self.detector.camera_matrix
+        if k is None or len(fit.scan_inliers) == 0:
+            return None
+        lo, hi = ridge_span(fit, rp.count_sigmas * math.sqrt(float(fit.scan_inliers.max())))
+        if 0.5 * (hi - lo) <= rp.edge_sigma_yaw_rad:
+            return None
+        vp: VerifyParams = self.detector.params.verify
+        thr = vp.ransac_threshold_px
+
+        def at(yaw: float) -> PlanarFit | None:
+            return fit_planar(p_old, p_new, k, yaw, threshold_px=thr, fix_yaw=True)
+
+        prior = self._prior_yaw(image_id)
+        if prior is None:
+            ends = at(lo), at(hi)
+            if ends[0] is None or ends[1] is None:
+                return None
+            spread = 0.5 * abs(math.remainder(ends[1].bearing_rad - ends[0].bearing_rad, math.tau))
+            self.ridge_unsettled += 1
+            return float(math.hypot(fit.sigma_bearing_rad, spread)) if math.isfinite(fit.sigma_bearing_rad) \
+                else float(spread)
+        yaw_p, sigma_p = prior
+        gate = rp.prior_gate_sigmas * sigma_p
+        old_kf = self._keyframe_ids[image_id]
+        if not lo - gate <= yaw_p <= hi + gate:
+            self.ridge_refused += 1
+            log.info("forward loop to keyframe %d refused: its motion lies on a heading-bearing ridge "
+                     "(%.1f to %.1f deg) and the graph's heading change %.1f deg (sigma %.2f) lies off it",
+                     old_kf, math.degrees(lo), math.degrees(hi), math.degrees(yaw_p), math.degrees(sigma_p))
+            return False
+        yaw = min(max(yaw_p, lo), hi)
+        best = at(yaw)
+        if best is None or best.n_inliers < vp.min_inliers:
+            self.ridge_refused += 1
+            log.info("forward loop to keyframe %d refused: on a heading-bearing ridge, too few matches at the "
+                     "graph's heading change %.1f deg", old_kf, math.degrees(yaw_p))
+            return False
+        # How fast the ridge's bearing moves with the heading, there: the prior's heading
+        # sigma becomes the bearing's along the ridge.
+        side = at(yaw - rp.slope_step_rad), at(yaw + rp.slope_step_rad)
+        slope = 0.0
+        if side[0] is not None and side[1] is not None:
+            slope = math.remainder(side[1].bearing_rad - side[0].bearing_rad, math.tau) / (2 * rp.slope_step_rad)
+        sig_fixed = best.sigma_bearing_rad if math.isfinite(best.sigma_bearing_rad) else 0.0
+        sigma_b = float(math.hypot(sig_fixed, slope * sigma_p))
+        self.ridge_settled += 1
+        log.info("forward loop to keyframe %d on a heading-bearing ridge (%.1f to %.1f deg, fit %.1f deg bearing "
+                 "%.1f): taken at the graph's heading change %.1f deg (sigma %.2f): bearing %.1f deg, "
+                 "%.1f deg of bearing per deg of heading", old_kf, math.degrees(lo), math.degrees(hi),
+                 math.degrees(fit.dyaw_rad), math.degrees(fit.bearing_rad), math.degrees(yaw_p),
+                 math.degrees(sigma_p), math.degrees(best.bearing_rad), slope)
+        return (best, p_old[best.inliers], p_new[best.inliers]), sigma_b
 
     def counters(self) -> dict[str, Any]:
         total = np.asarray(self.total_ms) if self.total_ms else np.zeros(1)
@@ -417,6 +691,8 @@ class ForwardLoopStage(Publisher):
                 if self.frame_offsets_ms else 0.0,
                 "forward_not_planar": self.not_planar, "forward_planar_refits": self.refits,
                 "forward_level_refits": self.level_refits,
+                "forward_ridge_settled": self.ridge_settled, "forward_ridge_refused": self.ridge_refused,
+                "forward_ridge_unsettled": self.ridge_unsettled,
                 "forward_failed_verification": self.rejected_geometry,
                 "forward_vocabulary": len(self.detector.vocabulary),
                 "forward_restored_images": self.restored, "forward_store_errors": self.store_errors,
