@@ -53,7 +53,9 @@ class PlanarLoopParams:
 
     Fields:
         sigma_bearing_rad: direction of the translation (the five-point solution on a level
-            camera; 2 deg covers a frame taken up to 40 ms from its keyframe at 0.5 rad/s).
+            camera; 2 deg, chosen when it also had to cover a frame taken up to 40 ms from
+            its keyframe at 0.5 rad/s; the daemon's forward stage now carries each loop from
+            its frames to its keyframes through the odometry, and keeps this floor).
         sigma_yaw_rad: heading change.
         sigma_log_range: the range is the prediction's, uncertain by this much in log units.
         sigma_log_range_measured: a range measured on the floor, uncertain by this much in
@@ -160,8 +162,7 @@ def loop_edge(predicted: np.ndarray, dyaw_rad: float, bearing_rad: float,
     at the robot's origin, looking forward); ``params``: the noise (default
     :class:`PlanarLoopParams`); ``sigma_bearing_rad``: how well the verification's inliers
     fixed the bearing (:func:`refine_motion`), added in quadrature to
-    ``params.sigma_bearing_rad`` (which covers what the images cannot: the frame's offset
-    from its keyframe).
+    ``params.sigma_bearing_rad`` (a floor for what the inliers do not show).
     """
     mount = np.zeros(3) if mount is None else np.asarray(mount, np.float64).reshape(3)
     params = PlanarLoopParams() if params is None else params
