@@ -261,7 +261,7 @@ class ForwardLoopStage(Publisher):
         self._poses: list[np.ndarray | None] = []
         self._chains: list[int] = []
         self._chain = 0
-        self.frame_offsets_ms: list[float] = []  # frame stamp minus keyframe stamp, per forward keyframe
+        self.frame_offset_ms_max = 0.0  # the largest |frame stamp - keyframe stamp| of a forward keyframe
         self.no_offset = 0  # forward keyframes whose frame had no odometry around it
         self.planar_refit = planar_refit
         self.refits = 0
@@ -449,7 +449,7 @@ class ForwardLoopStage(Publisher):
         self._poses.append(pose)
         self._yaw_vars.append(yaw_var)
         self._chains.append(self._chain)
-        self.frame_offsets_ms.append((frame.stamp_ns - kf.stamp_ns) / 1e6)
+        self.frame_offset_ms_max = max(self.frame_offset_ms_max, abs(frame.stamp_ns - kf.stamp_ns) / 1e6)
         if self.store is not None:
             self._store_image(kf.keyframe_id)
         self.images += 1
@@ -587,12 +587,6 @@ class ForwardLoopStage(Publisher):
                 return None
         return fit, p_old[fit.inliers], p_new[fit.inliers]
 
-    def _refit(self, image_id: int, v: Any, level: bool = False) -> tuple[PlanarFit, np.ndarray, np.ndarray] | None:
-        """:meth:`_scan` then :meth:`_choose`: the planar refit of the current image against
-        past image ``image_id`` when it is to be the loop's motion, else None."""
-        scan = self._scan(image_id, v)
-        return None if scan is None else self._choose(scan, v, level)
-
     def _prior_yaw(self, image_id: int) -> tuple[float, float] | None:
         """The camera's heading change from past image ``image_id``'s frame to the current
         image's that the pose graph predicts (:class:`HeadingGraph`: its odometry and floor
@@ -687,8 +681,7 @@ class ForwardLoopStage(Publisher):
         return {"forward_frames": self.frames, "forward_images": self.images,
                 "forward_unsynced": self.unsynced, "forward_loops": self.loops,
                 "forward_frames_without_odometry": self.no_offset,
-                "forward_frame_offset_ms_max": round(float(np.max(np.abs(self.frame_offsets_ms))), 1)
-                if self.frame_offsets_ms else 0.0,
+                "forward_frame_offset_ms_max": round(self.frame_offset_ms_max, 1),
                 "forward_not_planar": self.not_planar, "forward_planar_refits": self.refits,
                 "forward_level_refits": self.level_refits,
                 "forward_ridge_settled": self.ridge_settled, "forward_ridge_refused": self.ridge_refused,
