@@ -992,12 +992,18 @@ def memory_markdown(*payloads: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _section_head(title: str, m: dict[str, Any]) -> list[str]:
+    """A memory page section's first lines: its title and the machine it ran on."""
+    return [f"## {title}", "",
+            f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}."]
+
+
 def _scale_section(p: dict[str, Any]) -> list[str]:
     """A ``--scale-only`` payload's section of the memory page: the floor query of
     ``./dev bench daemon`` in RAM and on the daemon's index (descriptors read back)."""
     sc, m = p["scale"], p["machine"]
-    lines = [f"## {p.get('label') or 'The floor query at 1,000 and 10,000 keyframes, as the daemon holds them'}", "",
-             f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.",
+    lines = _section_head(p.get('label') or 'The floor query at 1,000 and 10,000 keyframes, as the daemon holds them',
+                          m) + [
              f"`--scale-only` on `{p['recording']}`: the recording's frames described (and turned or mirrored "
              "copies, repeated beyond the distinct ones), the drive's own frames queried with the loop threshold, "
              "the 20 s around each left out; each query timed (thread CPU) on an index with every descriptor in "
@@ -1019,8 +1025,8 @@ def _scale_section(p: dict[str, Any]) -> list[str]:
 def _forward_section(p: dict[str, Any]) -> list[str]:
     """A ``--forward-memory`` payload's section of the memory page."""
     r, m = p["forward_memory"], p["machine"]
-    lines = [f"## {p.get('label') or 'The forward detector on: the whole daemon as its forward memory grows'}", "",
-             f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.",
+    lines = _section_head(p.get('label') or 'The forward detector on: the whole daemon as its forward memory grows',
+                          m) + [
              f"`--forward-memory`: the daemon assembled with the forward detector on, its detector given the "
              f"images of `{r.get('forward_dir', '?')}` lap after lap (each lap changed), target "
              f"{r['images_target']} images; the floor stages idle. Before the first image: "
@@ -1043,8 +1049,7 @@ def _forward_section(p: dict[str, Any]) -> list[str]:
 def _residency_section(p: dict[str, Any]) -> list[str]:
     """A ``--residency`` payload's section of the memory page."""
     r, m = p["residency"], p["machine"]
-    lines = [f"## {p.get('label') or 'The floor query with its descriptors read back from the map'}", "",
-             f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.",
+    lines = _section_head(p.get('label') or 'The floor query with its descriptors read back from the map', m) + [
              f"`--residency`: the {r['map_keyframes']} keyframes of `{r['map']}` (mode {r['mode']}) repeated to "
              f"each size, its last {r['queries']} keyframes queried in the order driven; thread CPU, the "
              "variants in turn query by query.", "",
@@ -1088,8 +1093,7 @@ def _memory_section(p: dict[str, Any]) -> list[str]:
         setting += f", iSAM2's keyframes folded after each full solve (fold {c['fold']})"
     if c.get("resident"):
         setting += f", floor descriptors read back from the map ({c['resident']} kept decoded)"
-    lines = [f"## {setting}", "",
-             f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.",
+    lines = _section_head(setting, m) + [
              f"Recording: `{p['recording']}`, {r['laps']} laps; spacing "
              f"{c['keyframe_distance_m'] * 100:g} cm, mode {c['mode']}, shortlist {c['shortlist']}"
              f"{', localise_mapped' if c.get('localise_mapped') else ''}.", "",
