@@ -158,6 +158,11 @@ def print_summary(s: Summary, f: TextIO) -> None:
                   f"{fw['accepted_outside_own_noise']}", file=f)
         print(f"  per forward keyframe: median {fw['ms_per_image_median']} ms, p99 {fw['ms_per_image_p99']} ms; "
               f"vocabulary {fw['vocabulary_words']} words", file=f)
+        od = fw.get("order_dependent")
+        if od is not None:
+            print(f"  decided by arrival order, not by the data (0 when the run does not depend on the "
+                  f"machine's load): {od['late']} forward keyframes published late, "
+                  f"{od['frames_evicted']} frames pushed out of the buffer", file=f)
         for r in fw.get("loops", []):
             if r["fate"] == "accepted" and not r["right"]:
                 bearing = "-" if r["bearing_error_deg"] is None else f"{r['bearing_error_deg']:.1f}"

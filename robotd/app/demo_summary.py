@@ -115,6 +115,10 @@ def summarise(cfg: Config, cam_model: FloorCameraModel, robot: VirtualRobot, obs
     if cfg.forward_detector.enabled:
         summary["forward_detector"] = forward_evaluation(robot.motion, forward_mount(cfg), obs, c,
                                                            forward_loop_params(cfg))
+        # The arrival-order cases the forward stage cannot hide (its module notes): 0 when the
+        # run's forward loops do not depend on the machine's load.
+        summary["forward_detector"]["order_dependent"] = {
+            "late": c.get("forward_late", 0), "frames_evicted": c.get("forward_frames_evicted", 0)}
     if robot.settings.kidnap is not None:
         summary["relocalisation"] = relocalisation_evaluation(robot.motion, robot.settings.kidnap, obs,
                                                               live.relocalisations, c)

@@ -48,6 +48,7 @@ def _run(store: MapStore, run: int, views: list[np.ndarray], t0_ms: int, monkeyp
         kf = StoredKeyframe(Frame(t_ms * 10**6, "floor", np.zeros((4, 4), np.uint8)),
                             PoseStamped(t_ms * 10**6, float(k), 0.0, 0.0), keyframe_id=kid, run_id=run)
         p.publish(KeyframeStored(kf))
+    p.finish()  # the end of the input: the loops held for the delay go out
     return stage, got
 
 

@@ -51,7 +51,7 @@ def _stage(po: np.ndarray, pn: np.ndarray, prior_yaw_deg: float | None, sigma_de
     yaw = 0.3 + math.radians(prior_yaw_deg or 0.0)
     new_pose = np.array([1.0 + 0.3 * math.cos(yaw), 2.0 + 0.3 * math.sin(yaw), yaw])
     var_new = math.radians(0.5) ** 2 + math.radians(sigma_deg) ** 2
-    stage._current = (np.zeros(3), new_pose, var_new, 0 if prior_yaw_deg is not None else 1, 8)
+    stage._current = (np.zeros(3), new_pose, var_new, 0 if prior_yaw_deg is not None else 1, 8, len(stage.headings))
     return stage
 
 

@@ -648,12 +648,15 @@ def test_the_forward_stage_pairs_each_due_keyframe_with_the_nearest_forward_fram
     assert det.seen == [10, 101, 149]  # the frames of 100, 1010 and 1490 ms
     assert det.poses == [0.0, 0.7, 1.2]  # each with its keyframe's odometry pose
     assert stage.unsynced == 1
+    assert got == []  # held until the keyframes pass keyframe 14's stamp plus the delay (1 s)
+    keyframe(15, 1600, 1.3, carried=True)  # lifted: not due, but the detector forgets the poses
+    assert det.poses[-1] is None and got == []
+    keyframe(16, 2500, 1.4)  # not due; 1 s after keyframe 14: its loop goes out
     assert len(got) == 1 and (got[0].from_id, got[0].to_id) == (10, 14)
     # The scripted motion: the camera turned 0.3 rad to the right and moved forward-right.
     assert got[0].dyaw_rad == pytest.approx(-0.3, abs=1e-9)
     assert got[0].bearing_rad == pytest.approx(-0.3, abs=1e-9)
-    keyframe(15, 1600, 1.3, carried=True)  # lifted: not due, but the detector forgets the poses
-    assert det.poses[-1] is None
+    assert stage.late == 0 and stage.evicted == 0
     # The time per forward keyframe: the detector's own (10 ms each here), and the thread's CPU time.
     c = stage.counters()
     assert c["forward_ms_median"] == pytest.approx(10.0) and c["forward_ms_total"] == pytest.approx(30.0)

@@ -80,6 +80,27 @@ its bearing's sigma the fixed-heading fit's and the graph heading's sigma times 
 slope; off the ridge, the view is refused (``forward_ridge_refused``, a log line) and the
 detector may verify the next. Without any prior heading the loop keeps its motion and its
 bearing's sigma spans the ridge (``forward_ridge_unsettled``).
+
+**The same input gives the same loops, whatever the machine's load.** The daemon's sources
+are read by their own threads, so how the forward frames interleave with the wheel
+odometry and the stored keyframes (with the links the pose graph publishes beside them)
+changes with the load; the demo once accepted 31 forward loops on a seed under load where
+it had accepted 27 quiet. The stage took a keyframe's image when its frame happened to
+arrive: the heading graph had the links that had come by then, the frame's offset was
+interpolated or extrapolated as far as the odometry had got, a due keyframe still waiting
+for its frame was dropped when the next due one came, and the loop reached the pose graph's
+gate with the graph as far as it had got. Now every stored keyframe is queued and decided in
+order (whether it is due, once the ones before it are); a due one runs when a frame at or
+after its stamp has come (the nearest frame is then known) and the wheel odometry has passed
+that frame; the heading graph answers from the links it had when the keyframe was stored
+(``HeadingGraph.relative(..., upto)``); and what the image publishes (its loop, or the fate
+of a view out of the floor plane) is held until the first stored keyframe at or after its
+stamp plus ``publish_delay_s`` (1 s), so the gate always sees the graph at the same place in
+the keyframes' stream. Two cases remain order-dependent, and are counted instead: a frame
+later than the delay (``forward_late``: its loop is the same but reaches the graph later)
+and a frame pushed out of the 16-frame buffer by frames running ahead of the keyframes
+(``forward_frames_evicted``). The loops of the last ``publish_delay_s`` of a run go out at
+the end of the input (:meth:`ForwardLoopStage.finish`), after the pose graph's last solve.
 """
 
 from __future__ import annotations
@@ -162,11 +183,17 @@ class HeadingGraph:
     def add_keyframe(self, keyframe_id: int, yaw_rad: float, yaw_var_rad2: float) -> None:
         self._odom[keyframe_id] = (yaw_rad, yaw_var_rad2)
 
-    def relative(self, a: int, b: int) -> tuple[float, float] | None:
+    def __len__(self) -> int:
+        """The links kept so far."""
+        return len(self._edges)
+
+    def relative(self, a: int, b: int, upto: int | None = None) -> tuple[float, float] | None:
         """``(yaw_b - yaw_a, 1-sigma)`` in radians by the graph's yaw edges (a keyframe not
         yet linked is joined to the newest linked one older than it by the odometry's
-        poses); None when the two are not connected."""
-        edges = list(self._edges)
+        poses); None when the two are not connected. ``upto``: only the first this many
+        links (those the graph had when keyframe ``b`` was stored: the answer then does not
+        depend on how far the pipeline has gone since)."""
+        edges = self._edges[:upto] if upto is not None else list(self._edges)
         linked = {i for e in edges for i in e[:2]}
         for k in (a, b):
             if k not in linked and k in self._odom:
@@ -238,7 +265,8 @@ class ForwardLoopStage(Publisher):
                  rotation_rad: float = math.radians(20.0), sync_tolerance_s: float = 0.04,
                  max_tilt_rad: float = math.radians(10.0), camera: str = "forward",
                  store: Any = None, planarity_bound: float = planarity_bound(), planar_refit: bool = True,
-                 mount: np.ndarray | None = None, ridge: RidgeParams | None = None) -> None:
+                 mount: np.ndarray | None = None, ridge: RidgeParams | None = None,
+                 publish_delay_s: float = 1.0) -> None:
         self.detector = detector
         self.ridge = RidgeParams() if ridge is None else ridge
         self.ridge_settled = 0  # loops on a ridge, settled at the graph's heading (module notes)
@@ -246,8 +274,9 @@ class ForwardLoopStage(Publisher):
         self.ridge_unsettled = 0  # loops on a ridge without a graph or odometry heading: the bearing's sigma the ridge's
         # Per detector image: the keyframe pose's heading variance (rad^2), None when not known.
         self._yaw_vars: list[float | None] = []
-        # The image being run: (offset, keyframe pose, its heading variance, chain, keyframe id), for _level.
-        self._current: tuple[np.ndarray, np.ndarray, float | None, int, int] | None = None
+        # The image being run: (offset, keyframe pose, its heading variance, chain, keyframe id,
+        # the heading graph's links when the keyframe was stored), for _level.
+        self._current: tuple[np.ndarray, np.ndarray, float | None, int, int, int] | None = None
         # past image -> the bearing's sigma of a ridge loop (replaces its fit's)
         self._ridge_sigma: dict[int, float] = {}
         self.headings = HeadingGraph()  # the graph's headings, for a ridge loop's prior
@@ -284,7 +313,19 @@ class ForwardLoopStage(Publisher):
         self._frames: deque[Frame] = deque(maxlen=16)
         self._keyframe_ids: list[int] = []  # detector image id -> floor keyframe id
         self._last_pose: np.ndarray | None = None
-        self._pending: tuple[Any, np.ndarray] | None = None  # a due keyframe awaiting its frame
+        # Stored keyframes not yet decided, in order: (keyframe, pose, chain, the heading graph's
+        # links when it was stored); None marks a lift (forget the poses). A due one waits for
+        # its frame and the odometry past it (module notes).
+        self._due_kfs: deque[tuple[Any, np.ndarray, int, int] | None] = deque()
+        # What each forward keyframe publishes, held until the stream passes its stamp plus
+        # publish_delay_s (module notes): (release stamp_ns, messages).
+        self.publish_delay_ns = int(publish_delay_s * 1e9)
+        self._outbox: deque[tuple[int, list[Any]]] = deque()
+        self._released_ns = -1  # the newest stored keyframe's stamp the held messages were released at
+        self._out: list[Any] | None = None  # the messages of the image being run
+        self.late = 0  # forward keyframes whose messages came after their release point (order-dependent)
+        self.evicted = 0  # forward keyframes whose nearest frame had been pushed out of the buffer
+        self._evicted_ns: int | None = None
         self.frames = 0
         self.images = 0
         self.unsynced = 0
@@ -365,6 +406,8 @@ class ForwardLoopStage(Publisher):
             else:
                 return
         self._odom.append((w.stamp_ns, np.array([w.x_m, w.y_m, w.yaw_rad])))
+        if self._due_kfs:
+            self._drain()
 
     def _odom_at(self, stamp_ns: int) -> np.ndarray | None:
         """The wheel odometry's pose at ``stamp_ns``: interpolated between its two samples
@@ -394,11 +437,36 @@ class ForwardLoopStage(Publisher):
         if frame.camera != self.camera:
             return
         self.frames += 1
+        if len(self._frames) == self._frames.maxlen:  # the newest frame pushed out, for _take_frame
+            self._evicted_ns = self._frames[0].stamp_ns
         self._frames.append(frame)
-        if self._pending is not None and frame.stamp_ns >= self._pending[0].stamp_ns:
-            kf, pose = self._pending
-            self._pending = None
-            self._take(kf, pose)
+        if self._due_kfs:
+            self._drain()
+
+    def _drain(self, force: bool = False) -> None:
+        """Run the due keyframes, oldest first, whose frame is decided (a frame at or after
+        the keyframe's stamp has come) and whose frame the wheel odometry has reached (so
+        the frame's offset is interpolated, not extrapolated); with ``force`` (the end of
+        the input) all of them. What they publish does not depend on when this runs
+        (module notes)."""
+        while self._due_kfs:
+            head = self._due_kfs[0]
+            if head is None:  # a lift: odometry cannot relate the images before it to those after
+                self._due_kfs.popleft()
+                self.detector.forget_poses()
+                continue
+            kf, pose = head[0], head[1]
+            if not self._due(pose):
+                self._due_kfs.popleft()
+                continue
+            if not force:
+                if not self._frames or self._frames[-1].stamp_ns < kf.stamp_ns:
+                    return
+                frame = min(self._frames, key=lambda f: abs(f.stamp_ns - kf.stamp_ns))
+                if self._odom and self._odom[-1][0] < max(frame.stamp_ns, kf.stamp_ns):
+                    return
+            self._due_kfs.popleft()
+            self._take(*head)
 
     def _due(self, pose: np.ndarray) -> bool:
         if self._last_pose is None:
@@ -413,22 +481,60 @@ class ForwardLoopStage(Publisher):
         self.headings.add_keyframe(kf.keyframe_id, float(kf.pose_xyyaw[2]),
                                    float(cov[2, 2]) if cov.shape == (3, 3) else 0.0)
         if kf.carried:  # odometry cannot relate the images before the lift to the ones after
-            self.detector.forget_poses()
+            self._due_kfs.append(None)
             self._chain += 1
         pose = np.array(kf.pose_xyyaw, dtype=np.float64)
-        if not self._due(pose):
-            return
-        if self._pending is not None:  # the forward frames stopped coming in time
-            self.unsynced += 1
-        self._pending = None
-        if self._frames and self._frames[-1].stamp_ns >= kf.stamp_ns:
-            self._take(kf, pose)
-        else:  # the frame after the keyframe has not arrived yet: decide when it does
-            self._pending = (kf, pose)
+        # Whether it is due is decided in the keyframes' order, once the ones before it are.
+        self._due_kfs.append((kf, pose, self._chain, len(self.headings)))
+        self._drain()
+        self._release(kf.stamp_ns)
 
-    def _take(self, kf: Any, pose: np.ndarray) -> None:
-        """Run the forward frame nearest ``kf``'s stamp through the detector, if near enough."""
+    def _release(self, stamp_ns: int) -> None:
+        """Publish the held messages due by the stored keyframe of ``stamp_ns``."""
+        self._released_ns = max(self._released_ns, stamp_ns)
+        while self._outbox and self._outbox[0][0] <= self._released_ns:
+            for m in self._outbox.popleft()[1]:
+                self._publish(m)
+
+    def finish(self) -> int:
+        """End of the input: the keyframes still waiting for their frame run with what came,
+        and every held message is published."""
+        self._drain(force=True)
+        n = len(self._outbox)
+        self._release(2**62)
+        return n
+
+    def _take(self, kf: Any, pose: np.ndarray, chain: int, links: int) -> None:
+        """Run the forward frame nearest ``kf``'s stamp through the detector, if near enough;
+        what it publishes is held until the stream passes ``kf``'s stamp plus the delay."""
+        self._out = []
+        try:
+            self._take_frame(kf, pose, chain, links)
+        finally:
+            out, self._out = self._out, None
+        if not out:
+            return
+        release = kf.stamp_ns + self.publish_delay_ns
+        if release <= self._released_ns:  # its slot has passed: published now, counted
+            self.late += 1
+            for m in out:
+                self._publish(m)
+        else:
+            self._outbox.append((release, out))
+
+    def _emit(self, msg: Any) -> None:
+        if self._out is not None:
+            self._out.append(msg)
+        else:
+            self._publish(msg)
+
+    def _take_frame(self, kf: Any, pose: np.ndarray, chain: int, links: int) -> None:
+        if not self._frames:
+            self.unsynced += 1
+            return
         frame = min(self._frames, key=lambda f: abs(f.stamp_ns - kf.stamp_ns))
+        if self._evicted_ns is not None and abs(self._evicted_ns - kf.stamp_ns) < abs(frame.stamp_ns - kf.stamp_ns):
+            self.evicted += 1  # the frames ran ahead of the keyframes by more than the buffer holds
         if abs(frame.stamp_ns - kf.stamp_ns) > self.sync_tolerance_ns:
             self.unsynced += 1
             return
@@ -437,7 +543,7 @@ class ForwardLoopStage(Publisher):
         offset = self._frame_offset(kf.stamp_ns, frame.stamp_ns)
         cov = np.asarray(kf.pose.covariance, np.float64)
         yaw_var = float(cov[2, 2]) if cov.shape == (3, 3) and math.isfinite(float(cov[2, 2])) else None
-        self._current = (np.zeros(3) if offset is None else offset, pose, yaw_var, self._chain, kf.keyframe_id)
+        self._current = (np.zeros(3) if offset is None else offset, pose, yaw_var, chain, kf.keyframe_id, links)
         cpu0 = time.thread_time()
         det = self.detector.process(frame.image, pose, kf.pose.covariance)  # the keyframe's odometry pose
         self.cpu_ms.append((time.thread_time() - cpu0) * 1e3)
@@ -448,7 +554,7 @@ class ForwardLoopStage(Publisher):
         self._offsets.append(np.zeros(3) if offset is None else offset)
         self._poses.append(pose)
         self._yaw_vars.append(yaw_var)
-        self._chains.append(self._chain)
+        self._chains.append(chain)
         self.frame_offset_ms_max = max(self.frame_offset_ms_max, abs(frame.stamp_ns - kf.stamp_ns) / 1e6)
         if self.store is not None:
             self._store_image(kf.keyframe_id)
@@ -463,7 +569,7 @@ class ForwardLoopStage(Publisher):
                 self.rejected_geometry += 1
             elif det.verification is not None and self._last_refused is not None:
                 j, tilt, chi2 = self._last_refused
-                self._publish(CandidateFate(kf.keyframe_id, self._keyframe_ids[j], det.candidate_probability,
+                self._emit(CandidateFate(kf.keyframe_id, self._keyframe_ids[j], det.candidate_probability,
                                             LoopFate.FAILED_GATE,
                                             f"forward: motion {math.degrees(tilt):.1f} deg out of the floor plane "
                                             f"(planarity chi2 {chi2:.0f}, bound {self.planarity_bound:.0f})"))
@@ -498,7 +604,7 @@ class ForwardLoopStage(Publisher):
         self.loops += 1
         log.debug("forward loop: keyframe %d sees keyframe %d (p %.2f, %d inliers%s)", kf.keyframe_id, old,
                   det.candidate_probability, v.n_inliers, ", refitted in the plane" if fit is not None else "")
-        self._publish(ForwardLoop(old, kf.keyframe_id, det.candidate_probability, dyaw, bearing, v.n_inliers,
+        self._emit(ForwardLoop(old, kf.keyframe_id, det.candidate_probability, dyaw, bearing, v.n_inliers,
                                   range_m=range_m, sigma_bearing_rad=sigma_b if np.isfinite(sigma_b) else None))
 
     def _to_keyframes(self, i_old: int, i_new: int, dyaw: float, bearing: float,
@@ -596,9 +702,9 @@ class ForwardLoopStage(Publisher):
         cur = self._current
         if cur is None or image_id >= len(self._poses):
             return None
-        e_new, pose_new, var_new, chain, kf_new = cur
+        e_new, pose_new, var_new, chain, kf_new, links = cur
         e_old = self._offsets[image_id]
-        graph = self.headings.relative(self._keyframe_ids[image_id], kf_new)
+        graph = self.headings.relative(self._keyframe_ids[image_id], kf_new, upto=links)
         if graph is not None:
             return float(wrap_angle(graph[0] - e_old[2] + e_new[2])), graph[1]
         pose_old = self._poses[image_id]
@@ -680,6 +786,7 @@ class ForwardLoopStage(Publisher):
         feat = np.asarray(self.features_ms) if self.features_ms else np.zeros(1)
         return {"forward_frames": self.frames, "forward_images": self.images,
                 "forward_unsynced": self.unsynced, "forward_loops": self.loops,
+                "forward_late": self.late, "forward_frames_evicted": self.evicted,
                 "forward_frames_without_odometry": self.no_offset,
                 "forward_frame_offset_ms_max": round(self.frame_offset_ms_max, 1),
                 "forward_not_planar": self.not_planar, "forward_planar_refits": self.refits,
