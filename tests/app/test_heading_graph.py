@@ -1,0 +1,81 @@
+"""The forward stage's heading graph solves the yaw part of the pose graph's links exactly,
+and stays bounded as the map grows: links among the last ``window`` keyframes are solved,
+wholly older ones forgotten (robotd.app.stages.forward_loops.HeadingGraph)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from robotd.app.stages.forward_loops import HeadingGraph
+from robotd.base.messages import Link
+
+
+def _feed(g: HeadingGraph, n: int, lap: int, seed: int = 0) -> list[tuple[int, int, float, float]]:
+    """A chain of ``n`` keyframes turning 0.01 rad each, with loops to the same place of the
+    earlier laps; returns the links ``(from, to, dyaw, variance)``."""
+    rng = np.random.default_rng(seed)
+    out = []
+    g.add_keyframe(0, 0.0, 0.0)
+    for k in range(1, n):
+        d = 0.01 + rng.normal(0.0, 1e-3)
+        g.add_link(Link("odometry", k - 1, k, np.array([0.1, 0.0, d]), np.diag([1e4, 1e4, 1e4])))
+        out.append((k - 1, k, d, 1e-4))
+        if k >= lap and k % 3 == 0:
+            old = k - lap
+            dy = math.remainder(0.01 * lap + rng.normal(0.0, 3e-3), math.tau)
+            g.add_link(Link("loop", old, k, np.array([0.0, 0.0, dy]), np.diag([1e4, 1e4, 1e5])))
+            out.append((old, k, dy, 1e-5))
+        g.add_link(Link("loop", k - 1, k, np.zeros(3), np.eye(3), source="forward"))  # never taken
+        g.add_keyframe(k, 0.01 * k, 1e-4 * k)
+    return out
+
+
+def _dense(links: list[tuple[int, int, float, float]], a: int, b: int) -> tuple[float, float]:
+    """The weighted least squares of the yaws, unwrapped about the true turn (0.01 rad per keyframe)."""
+    nodes = sorted({i for e in links for i in e[:2]})
+    idx = {v: i for i, v in enumerate(nodes)}
+    y0 = 0.01 * np.array(nodes, float)
+    h, g = np.zeros((len(nodes), len(nodes))), np.zeros(len(nodes))
+    for f, t, d, v in links:
+        i, j = idx[f], idx[t]
+        r = math.remainder(d - (y0[j] - y0[i]), math.tau)
+        h[i, i] += 1 / v; h[j, j] += 1 / v; h[i, j] -= 1 / v; h[j, i] -= 1 / v  # noqa: E702
+        g[j] += r / v; g[i] -= r / v  # noqa: E702
+    free = [i for i in range(len(nodes)) if i != idx[a]]
+    cov = np.linalg.inv(h[np.ix_(free, free)])
+    dy = np.zeros(len(nodes))
+    dy[free] = cov @ g[free]
+    jb = free.index(idx[b])
+    return math.remainder(y0[idx[b]] + dy[idx[b]] - y0[idx[a]], math.tau), math.sqrt(cov[jb, jb])
+
+
+def test_inside_its_window_it_is_the_exact_least_squares():
+    g = HeadingGraph(window=2000)
+    links = _feed(g, 400, lap=150)
+    for a, b in [(5, 390), (150, 399), (0, 1)]:
+        got = g.relative(a, b)
+        assert got is not None
+        want = _dense(links, a, b)
+        assert got[0] == pytest.approx(want[0], abs=1e-9) and got[1] == pytest.approx(want[1], rel=1e-6)
+
+
+def test_a_keyframe_the_links_have_not_reached_is_joined_by_the_odometry():
+    g = HeadingGraph()
+    _feed(g, 50, lap=1000)
+    g.add_keyframe(60, 0.7, 1e-4 * 49 + 4e-4)  # 0.21 rad on from keyframe 49 (odometry yaw 0.49), 0.02 sigma
+    yaw, sigma = g.relative(49, 60)
+    assert yaw == pytest.approx(0.21) and sigma == pytest.approx(0.02)
+
+
+def test_it_keeps_a_bounded_number_of_links_and_answers_within_its_window_only():
+    g = HeadingGraph(window=100)
+    _feed(g, 3000, lap=60)
+    assert len(g) > 3900  # every link counted ...
+    assert g._n <= 2 * 100 * 2 + 1024 + 64  # ... but only those of the last two windows (and a block) held
+    assert len(g._odom) <= 4 * 100 + 1
+    assert g.relative(2999 - 150, 2999) is None  # beyond the window: no graph heading
+    got = g.relative(2999 - 90, 2999)
+    assert got is not None and got[0] == pytest.approx(math.remainder(0.9, math.tau), abs=0.02)
