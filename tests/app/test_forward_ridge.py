@@ -170,3 +170,24 @@ def test_the_heading_graph_knows_a_relative_heading_better_than_the_odometry():
     assert math.degrees(yaw11) == pytest.approx(math.degrees(yaw) + 2.0, abs=1e-6)
     assert math.degrees(sigma11) == pytest.approx(math.hypot(math.degrees(sigma), 0.5), rel=1e-3)
     assert g.relative(0, 99) is None  # not connected
+
+
+def test_the_ridge_is_every_heading_the_counts_cannot_tell_from_the_best_not_only_the_run_around_it():
+    """A profile like the demo's loop 736 -> 162 of seed 2: a plateau of 28 matches from -3
+    to +0.4 deg, a dip of 24, and a peak of 32 at +1.5 deg. The plateau is within one counting
+    sigma (sqrt(32) = 5.7) of the peak, so the images cannot tell it from the peak; the run
+    around the peak alone is 0.6 deg wide and would call the heading fixed."""
+    from types import SimpleNamespace
+
+    from robotd.app.stages.forward_loops import ridge_headings
+
+    deg = np.arange(-4.0, 4.01, 0.2)
+    n = np.where(deg < -3.05, 20, np.where(deg < 0.45, 28, np.where(deg < 1.05, 24, np.where(deg < 1.75, 32, 22))))
+    n[np.isclose(deg, 1.2)] = 29
+    fit = SimpleNamespace(scan_inliers=n, scan_yaw_rad=np.radians(deg), dyaw_rad=math.radians(1.4))
+    margin = math.sqrt(32.0)
+    lo, hi, on = ridge_headings(fit, margin)
+    assert math.degrees(lo) == pytest.approx(-3.0) and math.degrees(hi) == pytest.approx(1.6)
+    assert not np.any(np.isclose(np.degrees(on), 0.8))  # the dip is not on it
+    lo_r, hi_r, _ = ridge_headings(fit, margin, span="run")
+    assert math.degrees(lo_r) == pytest.approx(1.2) and math.degrees(hi_r) == pytest.approx(1.6)

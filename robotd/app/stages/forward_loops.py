@@ -68,13 +68,16 @@ and the fit's best count picks a place on that ridge by the inliers' noise (the 
 last wrong forward loops: the heading 1.4 deg and the bearing 12-15 deg off, 0.2-0.3 m
 apart). The images cannot settle such a loop; the pose graph knows the two keyframes'
 relative heading far better than the edge's heading sigma (its floor loops tie them). So
-when the planar fit's inlier profile over the heading (:attr:`robotd.forward.planefit.PlanarFit.scan_inliers`)
-stays within one counting sigma (``sqrt`` of the best count) of its best over a half-width
-wider than the edge's heading sigma (:class:`RidgeParams`, :func:`robotd.forward.planefit.ridge_span`),
+when the headings whose count in the planar fit's inlier profile (:attr:`robotd.forward.planefit.PlanarFit.scan_inliers`)
+stays within one counting sigma (``sqrt`` of the best count) of its best span a half-width
+wider than the edge's heading sigma (:class:`RidgeParams`, :func:`ridge_headings`: every such
+heading, not only the contiguous run around the best; over the 171 verified loops of five
+demo runs the truth lay within one counting sigma of the best in 134 of the 161 right ones,
+inside the run around the best in 122),
 the stage takes the relative heading the graph predicts (:class:`HeadingGraph`: the yaw
 part of the odometry and floor loop :class:`~robotd.base.messages.Link` messages, solved
 exactly; the odometry's poses where the graph has not linked the two) and, if it lies on
-the ridge (within three of its sigmas), publishes the ridge's motion at that heading (the
+the ridge (within three of its sigmas of one of its headings), publishes the ridge's motion at that heading (the
 planar fit with the heading held, :func:`robotd.forward.planefit.fit_planar` ``fix_yaw``),
 its bearing's sigma the fixed-heading fit's and the graph heading's sigma times the ridge's
 slope; off the ridge, the view is refused (``forward_ridge_refused``, a log line) and the
@@ -148,12 +151,35 @@ class RidgeParams:
             motion is fitted again to measure how fast its bearing moves with the heading
             (well inside a ridge wider than ``edge_sigma_yaw_rad``, well above the inlier
             noise's effect on a fixed-heading fit).
+        span: which headings the ridge is (:func:`ridge_headings`): ``"within"`` (default)
+            every scanned heading whose count is within the margin of the best, wherever it
+            lies (the ridge spans them, and the graph's heading must be near one of them);
+            ``"run"`` only the contiguous run of them around the best
+            (:func:`robotd.forward.planefit.ridge_span`, the rule before), which leaves out a
+            heading the counts cannot tell from the best when a dip lies between them.
     """
 
     edge_sigma_yaw_rad: float = math.radians(ForwardDetectorConfig.sigma_yaw_deg)
     count_sigmas: float = 1.0
     prior_gate_sigmas: float = 3.0
     slope_step_rad: float = math.radians(0.5)
+    span: str = "within"
+
+
+def ridge_headings(fit: PlanarFit, margin: float, span: str = "within") -> tuple[float, float, np.ndarray]:
+    """The ridge of ``fit``'s inlier profile over the heading (:attr:`PlanarFit.scan_inliers`):
+    ``(lowest, highest, headings)`` in radians, ``headings`` the scanned ones whose best
+    translation direction keeps at least the scan's maximum less ``margin`` matches (with
+    ``span="run"`` only the contiguous run of them around the best heading,
+    :func:`robotd.forward.planefit.ridge_span`). Without a scan, the fit's own heading."""
+    n, yaws = np.asarray(fit.scan_inliers), np.asarray(fit.scan_yaw_rad)
+    if len(n) == 0:
+        return fit.dyaw_rad, fit.dyaw_rad, np.array([fit.dyaw_rad])
+    if span == "run":
+        lo, hi = ridge_span(fit, margin)
+        return lo, hi, yaws[(yaws >= lo) & (yaws <= hi)]
+    on = yaws[n >= n.max() - margin]
+    return float(on.min()), float(on.max()), on
 
 
 class HeadingGraph:
@@ -781,7 +807,7 @@ class ForwardLoopStage(Publisher):
         k = self.detector.camera_matrix
         if k is None or len(fit.scan_inliers) == 0:
             return None
-        lo, hi = ridge_span(fit, rp.count_sigmas * math.sqrt(float(fit.scan_inliers.max())))
+        lo, hi, on = ridge_headings(fit, rp.count_sigmas * math.sqrt(float(fit.scan_inliers.max())), rp.span)
         if 0.5 * (hi - lo) <= rp.edge_sigma_yaw_rad:
             return None
         vp: VerifyParams = self.detector.params.verify
@@ -802,7 +828,12 @@ class ForwardLoopStage(Publisher):
         yaw_p, sigma_p = prior
         gate = rp.prior_gate_sigmas * sigma_p
         old_kf = self._keyframe_ids[image_id]
-        if not lo - gate <= yaw_p <= hi + gate:
+        if rp.span == "run":
+            off = not lo - gate <= yaw_p <= hi + gate
+        else:  # near one of the headings the counts cannot tell from the best (within half a scan step)
+            step = float(np.median(np.diff(fit.scan_yaw_rad))) if len(fit.scan_yaw_rad) > 1 else 0.0
+            off = not bool(np.any(np.abs(on - yaw_p) <= gate + 0.5 * step + 1e-12))
+        if off:
             self.ridge_refused += 1
             log.info("forward loop to keyframe %d refused: its motion lies on a heading-bearing ridge "
                      "(%.1f to %.1f deg) and the graph's heading change %.1f deg (sigma %.2f) lies off it",
