@@ -191,3 +191,22 @@ def test_the_ridge_is_every_heading_the_counts_cannot_tell_from_the_best_not_onl
     assert not np.any(np.isclose(np.degrees(on), 0.8))  # the dip is not on it
     lo_r, hi_r, _ = ridge_headings(fit, margin, span="run")
     assert math.degrees(lo_r) == pytest.approx(1.2) and math.degrees(hi_r) == pytest.approx(1.6)
+
+
+@pytest.mark.parametrize("prior_deg, settled", [(10.5, True), (16.0, False)])
+def test_narrow_graph_takes_a_clear_loop_at_a_graph_heading_known_better_than_the_edge_claims(prior_deg, settled):
+    """``RidgeParams(narrow="graph")`` (not the default): a loop without a ridge is taken at
+    the graph's heading when that heading's 3 sigmas (0.3 deg here) are within the edge's
+    heading sigma (1 deg) and it is within 3 edge sigmas of the fit's; else it is kept as
+    fitted, for the pose graph's gate."""
+    from robotd.app.stages.forward_loops import RidgeParams
+
+    po, pn = _views(10, 30, 0.5)
+    stage = _stage(po, pn, prior_yaw_deg=prior_deg)
+    stage.ridge = RidgeParams(narrow="graph")
+    assert stage._level(0, _verification(math.radians(10), math.radians(30)))
+    assert stage.ridge_settled == stage.narrow_settled == int(settled) and stage.ridge_refused == 0
+    if settled:
+        assert math.degrees(stage._fits[0][0].dyaw_rad) == pytest.approx(prior_deg, abs=0.05)
+    else:
+        assert not stage._ridge_sigma

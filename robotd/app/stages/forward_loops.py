@@ -157,6 +157,12 @@ class RidgeParams:
             ``"run"`` only the contiguous run of them around the best
             (:func:`robotd.forward.planefit.ridge_span`, the rule before), which leaves out a
             heading the counts cannot tell from the best when a dip lies between them.
+        narrow: a loop whose ridge is no wider than ``edge_sigma_yaw_rad``: ``"keep"``
+            (default) keeps the fit's heading, left to the pose graph's gate; ``"graph"``
+            takes it, as a ridge loop, at the graph's heading when the graph knows the
+            heading better than the edge claims (``prior_gate_sigmas`` of its sigmas within
+            ``edge_sigma_yaw_rad``) and within ``prior_gate_sigmas`` edge sigmas of the
+            fit's (what the gate would let through anyway); measured, not the default.
     """
 
     edge_sigma_yaw_rad: float = math.radians(ForwardDetectorConfig.sigma_yaw_deg)
@@ -164,6 +170,7 @@ class RidgeParams:
     prior_gate_sigmas: float = 3.0
     slope_step_rad: float = math.radians(0.5)
     span: str = "within"
+    narrow: str = "keep"
 
 
 def ridge_headings(fit: PlanarFit, margin: float, span: str = "within") -> tuple[float, float, np.ndarray]:
@@ -350,6 +357,7 @@ class ForwardLoopStage(Publisher):
         self.ridge_settled = 0  # loops on a ridge, settled at the graph's heading (module notes)
         self.ridge_refused = 0  # loops on a ridge the graph's heading lies off
         self.ridge_unsettled = 0  # loops on a ridge without a graph or odometry heading: the bearing's sigma the ridge's
+        self.narrow_settled = 0  # of the settled, loops with no ridge taken at the graph's heading (RidgeParams.narrow)
         # Per detector image: the keyframe pose's heading variance (rad^2), None when not known.
         self._yaw_vars: list[float | None] = []
         # The image being run: (offset, keyframe pose, its heading variance, chain, keyframe id,
@@ -847,7 +855,8 @@ class ForwardLoopStage(Publisher):
         if k is None or len(fit.scan_inliers) == 0:
             return None
         lo, hi, on = ridge_headings(fit, rp.count_sigmas * math.sqrt(float(fit.scan_inliers.max())), rp.span)
-        if 0.5 * (hi - lo) <= rp.edge_sigma_yaw_rad:
+        narrow = 0.5 * (hi - lo) <= rp.edge_sigma_yaw_rad
+        if narrow and rp.narrow != "graph":
             return None
         vp: VerifyParams = self.detector.params.verify
         thr = vp.ransac_threshold_px
@@ -856,6 +865,12 @@ class ForwardLoopStage(Publisher):
             return fit_planar(p_old, p_new, k, yaw, threshold_px=thr, fix_yaw=True)
 
         prior = self._prior_yaw(image_id)
+        if narrow:  # RidgeParams.narrow == "graph"
+            if prior is None or rp.prior_gate_sigmas * prior[1] >= rp.edge_sigma_yaw_rad or \
+                    abs(math.remainder(prior[0] - fit.dyaw_rad, math.tau)) > rp.prior_gate_sigmas * rp.edge_sigma_yaw_rad:
+                return None
+            lo = hi = prior[0]
+            on = np.array([prior[0]])
         if prior is None:
             ends = at(lo), at(hi)
             if ends[0] is None or ends[1] is None:
@@ -894,6 +909,7 @@ class ForwardLoopStage(Publisher):
         sig_fixed = best.sigma_bearing_rad if math.isfinite(best.sigma_bearing_rad) else 0.0
         sigma_b = float(math.hypot(sig_fixed, slope * sigma_p))
         self.ridge_settled += 1
+        self.narrow_settled += narrow
         log.info("forward loop to keyframe %d on a heading-bearing ridge (%.1f to %.1f deg, fit %.1f deg bearing "
                  "%.1f): taken at the graph's heading change %.1f deg (sigma %.2f): bearing %.1f deg, "
                  "%.1f deg of bearing per deg of heading", old_kf, math.degrees(lo), math.degrees(hi),
@@ -914,7 +930,7 @@ class ForwardLoopStage(Publisher):
                 "forward_not_planar": self.not_planar, "forward_planar_refits": self.refits,
                 "forward_level_refits": self.level_refits,
                 "forward_ridge_settled": self.ridge_settled, "forward_ridge_refused": self.ridge_refused,
-                "forward_ridge_unsettled": self.ridge_unsettled,
+                "forward_ridge_unsettled": self.ridge_unsettled, "forward_narrow_settled": self.narrow_settled,
                 "forward_failed_verification": self.rejected_geometry,
                 "forward_vocabulary": len(self.detector.vocabulary),
                 "forward_restored_images": self.restored, "forward_store_errors": self.store_errors,
