@@ -124,7 +124,7 @@ class PoseGraphStage(Publisher):
 
     def on_link(self, link: Link) -> None:
         if link.kind == "odometry":
-            self.gated.odometry_link(link.from_id, link.to_id, link.delta_xyyaw, link.information)
+            self.gated.odometry_link(link.from_id, link.to_id, link.delta_xyyaw, link.information, link.bias)
 
     def on_wheel_drop(self, msg: WheelDrop) -> None:
         self.gated.wheel_drop(msg.lifted, msg.stamp_ns)
