@@ -414,6 +414,12 @@ class IncrementalGraph:
         ad = gtsam.Pose2(*self._fold_rel[i]).inverse().AdjointMap()
         return np.asarray(ad @ self._isam.marginalCovariance(int(self._fold_anchor[i])) @ ad.T + self._fold_cov[i])
 
+    def joint_marginal_covariance(self, a: int, b: int) -> np.ndarray:
+        """iSAM2's joint marginal covariance ``(6, 6)`` of two keyframes that are variables
+        (not folded), each in its own tangent space as :meth:`marginal_covariance`."""
+        keys = gtsam.KeyVector([int(a), int(b)])
+        return np.asarray(self._isam.jointMarginalCovariance(keys).fullMatrix(), dtype=float)
+
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
         """Every keyframe's current estimate: ``(ids (N,), poses (N, 3))`` (copies; computed
         once per change of the graph, which the mapped-ground test asks for at every
