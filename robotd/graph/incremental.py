@@ -128,6 +128,7 @@ class IncrementalGraph:
         # odometry_model "bias_window": the edges' bias terms by edge index, the live windows
         self._bias: dict[int, BiasEdge] = {}
         self._windows = WindowChain(params.window_edges)
+        self.bias_windows = 0  # windows closed by add_keyframe
         self._clear_fold()
 
     def _clear_fold(self) -> None:
@@ -231,6 +232,7 @@ class IncrementalGraph:
         if closed is not None:
             fg, bias_values, remove = closed
             values.insert(bias_values)
+            self.bias_windows += 1
             self._update(fg, values, remove)
         else:
             fg.add(between_factor(edge if live[0] == edge.from_id else make_edge(*live, "odometry")))

@@ -78,6 +78,7 @@ def test_the_open_windows_edges_are_replaced_not_counted_twice():
     stats = g.stats()
     # anchor + window factor + bias prior + the open window's 3 independent edges
     assert stats["factors"] == 1 + 2 + 3
+    assert g.bias_windows == 1
     assert g.marginal_covariance(N) == pytest.approx(_per_edge_marginal(edges[:N], N), rel=1e-5, abs=1e-14)
 
 

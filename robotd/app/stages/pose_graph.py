@@ -189,6 +189,7 @@ class PoseGraphStage(Publisher):
         return {**self.gated.counters(),
                 "graph_solves": self.solves, "graph_solve_failures": self.solve_failures,
                 "graph_loops_left_out": self.graph.held_loops,  # accepted and stored, not in the graph
+                "graph_bias_windows": self.graph.bias_windows,  # [pose_graph] odometry_model "bias_window"
                 "graph_update_median_us": int(np.median(u) * 1e3),
                 "graph_update_p99_us": int(np.percentile(u, 99) * 1e3),
                 "graph_solve_ms": int(self.last_solve_ms)}
