@@ -599,13 +599,14 @@ def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float],
 DAEMON_MODELS = ("independent", "bias_window")
 
 
-def daemon_graph(d: dict[str, Any], seed: int, max_chains: int = 60, solve_every: int = 200,
+def daemon_graph(d: dict[str, Any], seed: int, max_chains: int = 400, solve_every: int = 200,
                  horizons: tuple[int, ...] = HORIZONS) -> dict[str, Any]:
     """The seed's edges (with their bias terms) in the daemon's own graph,
     :class:`robotd.graph.incremental.IncrementalGraph`, once per ``odometry_model``.
 
-    NEES: the keyframes added one at a time without loops; per horizon ``N`` up to
-    ``max_chains`` chains ``i -> i + N`` spread over the drive, the relative pose's
+    NEES: the keyframes added one at a time without loops; per horizon ``N`` the chains
+    ``i -> i + N`` of :func:`chained_nees` (one every ``N/5`` edges), at most ``max_chains``
+    of them evenly spread over the drive (over 1 and 10 edges), the relative pose's
     covariance from iSAM2's joint marginal of the two keyframes (in the end's frame, as
     :meth:`IncrementalGraph.loop_chi2` forms it), its error against the truth.
     Cost: the same keyframes with loop edges from the truth (:func:`_loops_from_truth`)
@@ -634,7 +635,10 @@ def daemon_graph(d: dict[str, Any], seed: int, max_chains: int = 60, solve_every
             if h > m:
                 continue
             parts = []
-            for i in np.unique(np.linspace(0, m - h, min(max_chains, m - h + 1)).round().astype(int)).tolist():
+            starts = np.arange(0, m - h + 1, max(1, h // 5))
+            if len(starts) > max_chains:
+                starts = starts[np.linspace(0, len(starts) - 1, max_chains).round().astype(int)]
+            for i in starts.tolist():
                 j = i + h
                 hp = between(est[i], est[j])
                 jm = g.joint_marginal_covariance(i, j)
@@ -902,8 +906,8 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
     if rows:
         lines += ["In the daemon's own graph (`robotd.graph.incremental.IncrementalGraph`, each "
                   "`[pose_graph] odometry_model`): the seed's edges with their bias terms added one keyframe "
-                  "at a time. NEES without loops, from iSAM2's joint marginal of a chain's two ends (up to 60 "
-                  "chains per horizon spread over the drive; in brackets the yaw and position parts, in square "
+                  "at a time. NEES without loops, from iSAM2's joint marginal of a chain's two ends (the chains "
+                  "above, at most 400 per horizon spread over the drive; in brackets the yaw and position parts, in square "
                   "brackets the seeds' range):", ""]
         table(*daemon_graph_rows(odo))
         lines += ["Per seed, `bias_window` in the daemon's graph:", ""]
