@@ -29,9 +29,12 @@ solve and the benchmarks. Per edge they cost iSAM2 18-41 times its time per keyf
 with one bias variable at the window's start, the walk inside the window marginalised into
 the window's joint noise (:func:`window_covariance`; over one window the end pose's
 marginal is the per-edge model's exactly), and the window starts chained by
-:func:`window_chain_edge`: about 3 times the time of independent edges. The daemon's live
-graph keeps independent edges (:func:`robotd.graph.factors.between_factor`) for now: see
-``docs/concepts.md``, "Odometry edges the gate can trust".
+:func:`window_chain_edge`: about 3 times the time of independent edges. The daemon's graph
+uses the windows with ``[pose_graph] odometry_model = "bias_window"``
+(:class:`robotd.graph.incremental.IncrementalParams`: :class:`WindowChain` groups the live
+edges, :func:`span_edge` and :func:`span_factors` keep them through iSAM2's fold), and
+independent edges (:func:`robotd.graph.factors.between_factor`) by default: see
+``docs/concepts.md``, "The bias windows in the daemon".
 """
 
 from __future__ import annotations
