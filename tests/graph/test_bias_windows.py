@@ -185,3 +185,20 @@ def test_a_visual_step_keeps_the_bias_through_the_twins_share():
     assert want[3, 3] < got[3, 3]
     # the bias share is not the wheel + gyro edge's own: the step took part of it
     assert np.linalg.norm(t.jac_bias) < 0.9 * np.linalg.norm(e.jac_bias)
+
+
+def test_a_rebuild_from_the_whole_graph_keeps_the_windows_and_goes_on():
+    """What a relocalisation does (:meth:`IncrementalGraph.attach` rebuilds iSAM2 from the
+    whole graph): the closed window stays the per-edge model, the open one's edges stay
+    independent and are replaced when it closes, not counted twice."""
+    edges = _edges(N + 4)
+    g = _live(edges)
+    g.attach([], np.zeros(3), [])
+    assert g.marginal_covariance(N) == pytest.approx(_per_edge_marginal(edges[:N], N), rel=1e-5, abs=1e-14)
+    assert g.stats()["factors"] == 1 + 2 + 4
+    more = _edges(6, start=N + 4)
+    for e in more:
+        g.add_keyframe(e.to_id, e.from_id, e.delta, np.linalg.inv(_marginal_cov(e)), _terms(e))
+    # the second window closed: its 9 independent edges out, one window factor and its chain in
+    assert g.stats()["factors"] == 1 + 2 + 2 + 0
+    assert g.bias_windows == 2
