@@ -311,17 +311,14 @@ def hamming_bits(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _first_k(dist: np.ndarray, k: int) -> np.ndarray:
-    """The columns of the ``k`` smallest values of each row of ``dist (N, M)`` int, in
-    order, ties to the lower column: ``np.argsort(dist, axis=1, kind="stable")[:, :k]``,
-    by a partial selection on keys made unique by the column (a full sort of every row
-    is most of a tree descent's time)."""
-    n, m = dist.shape
-    if k >= m:
-        return np.argsort(dist, axis=1, kind="stable")
-    key = dist.astype(np.int64) * m + np.arange(m)
-    part = np.argpartition(key, k - 1, axis=1)[:, :k]
-    order = np.argsort(np.take_along_axis(key, part, axis=1), axis=1)
-    out: np.ndarray = np.take_along_axis(part, order, axis=1)
+    """The columns of the ``k`` smallest values of each row of ``dist (N, M)`` int (values
+    -1 .. 2**20), in order, ties to the lower column: ``np.argsort(dist, axis=1,
+    kind="stable")[:, :k]``, by one sort of int32 keys made unique by the column (numpy's
+    sort of int32 rows is vectorised; an argsort or argpartition and the gathers after
+    them took most of a tree descent's time)."""
+    m = dist.shape[1]
+    key = dist.astype(np.int32) * np.int32(m) + np.arange(m, dtype=np.int32)
+    out: np.ndarray = np.sort(key, axis=1)[:, :k] % np.int32(m)
     return out
 
 
@@ -458,14 +455,14 @@ class BinaryWordTree:
         front = np.zeros((n, 1), np.int32)
         b = self.params.branching
         while True:
-            kids = self._child[front]                                 # (N, F, b)
+            kids = self._child.take(front, axis=0)                    # (N, F, b)
             if np.array_equal(kids[:, :, 0], front):                  # all leaves (or -1)
                 return front
             cand = kids.reshape(n, -1)
-            dist = hamming_bits(q[:, None, :], self._centre[cand])
+            dist = hamming_bits(q[:, None, :], self._centre.take(cand, axis=0))
             dist[cand < 0] = _FAR
             dist[rows, np.argmin(dist[:, :b], axis=1)] = -1           # the greedy child: kept, first
-            front = cand[rows[:, None], _first_k(dist, beam)]
+            front = np.take_along_axis(cand, _first_k(dist, beam), axis=1)
 
     def nearest(self, q: np.ndarray, beam: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The nearest word found for each query (``(N, 4) uint64``): ``(word ids (N,)
@@ -491,19 +488,19 @@ class BinaryWordTree:
         total = int(fill.sum())
         if not total:
             return none
-        # the filled part of each pair's leaf only: flat pool positions, and their query
+        # the filled part of each pair's leaf only: flat pool positions, their slots and
+        # query (np.take and np.repeat: numpy's fancy indexing of a 2-d array by an index
+        # array and a scalar takes several times as long)
         first = np.cumsum(fill) - fill
         pos = np.repeat(rows.astype(np.int64) * self.params.leaf_size - first, fill) + np.arange(total)
-        slots = self._pool.reshape(-1)[pos]
-        owner = np.repeat(pair_q, fill)
-        d0 = np.bitwise_count(q[owner, 0] ^ self._desc[slots, 0])
+        slots = self._pool.reshape(-1).take(pos)
+        d0 = np.bitwise_count(np.repeat(q[pair_q, 0], fill) ^ self._desc[:, 0].take(slots))
         keep = np.flatnonzero(d0 <= _PREFILTER_BITS)
         if not len(keep):
             return none
-        qi, s = owner[keep], slots[keep]
-        # the other 192 bits: at most 20 + 3 * 64 = 212 in all, so uint8 sums do not wrap
-        c = np.bitwise_count(q[qi, 1:] ^ self._desc[s, 1:])
-        full = (d0[keep] + c[:, 0] + c[:, 1] + c[:, 2]).astype(np.int32)
+        s = slots.take(keep)
+        qi = np.repeat(pair_q.astype(np.int32), fill).take(keep)
+        full = hamming_bits(q.take(qi, axis=0), self._desc.take(s, axis=0))
         # per query (qi comes sorted): the nearest, ties to the lowest slot
         key = (full.astype(np.int64) << 32) | s.astype(np.int64)
         start = np.flatnonzero(np.diff(qi, prepend=-1))
@@ -625,18 +622,23 @@ class BinaryWordTree:
         held = self._slot_word[:self._n_slots]
         near = np.flatnonzero((held >= w_all.min()) & (held <= w_all.max()))
         slot_of = dict(zip(held[near].tolist(), near.tolist()))
+        # one word at a time (a removal moves the leaf's last entry into the hole, and the
+        # entries' order decides a later split), through memoryviews: numpy's scalar
+        # indexing costs several times a memoryview's
+        pool, fill = self._pool.data, self._fill.data
+        slot_row, slot_pos, slot_word = self._slot_row.data, self._slot_pos.data, self._slot_word.data
         for w in w_all.tolist():
             s = slot_of.pop(w, -1)
             if s < 0:
                 continue
-            row, pos = int(self._slot_row[s]), int(self._slot_pos[s])
-            last = int(self._fill[row]) - 1
-            moved = int(self._pool[row, last])
-            self._pool[row, pos] = moved
-            self._slot_pos[moved] = pos
-            self._pool[row, last] = -1
-            self._fill[row] = last
-            self._slot_word[s] = -1
+            row, pos = slot_row[s], slot_pos[s]
+            last = fill[row] - 1
+            moved = pool[row, last]
+            pool[row, pos] = moved
+            slot_pos[moved] = pos
+            pool[row, last] = -1
+            fill[row] = last
+            slot_word[s] = -1
             self._free_slots.append(s)
             self.n_live -= 1
 
