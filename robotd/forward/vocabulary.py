@@ -687,6 +687,7 @@ _NO_POSTINGS = array(_POSTING)  # shared by the words whose postings were droppe
 _COUNT_BITS = 10            # n(w, i) up to 1023
 _COUNT_MASK = (1 << _COUNT_BITS) - 1
 _MAX_SLOTS = 1 << (8 * array(_POSTING).itemsize - _COUNT_BITS)  # 4,194,304 images indexed at once
+_VIRTUAL_MARGIN = 256       # candidates kept for the virtual image beyond its n words
 
 
 class InvertedIndex:
@@ -718,6 +719,10 @@ class InvertedIndex:
         # left): while there is none, the virtual image is chosen among all the words
         # without listing them (no per-word list of the words in use).
         self._n_unused = 0
+        # The virtual image's candidates (:meth:`virtual_image`): every word seen at least
+        # _v_floor times; None: to be chosen again over all words.
+        self._v_cand: np.ndarray | None = None
+        self._v_floor = 1
 
     @property
     def n_images(self) -> int:
@@ -788,6 +793,10 @@ class InvertedIndex:
         self._n_unused -= int(np.count_nonzero(self._df.view[uw] == 0))
         self._df.view[uw] += 1
         self._occ.view[uw] += cnt
+        if self._v_cand is not None:  # words now seen often enough join the candidates
+            up = uw[self._occ.view[uw] >= self._v_floor]
+            if len(up):
+                self._v_cand = np.union1d(self._v_cand, up)
 
     def remove_image(self, image_id: int, words: np.ndarray) -> None:
         """Take image ``image_id`` out of the index, given the words it was added with
@@ -819,6 +828,7 @@ class InvertedIndex:
             self._occ.view[uw] -= cnt
             self._n_unused += int(np.count_nonzero(self._df.view[uw] == 0))
         self._total -= len(w)
+        self._v_cand = None  # counts fell: the candidates are chosen again
         self._image_len.view[slot] = 0
         self._image_ids[slot] = -1
         heapq.heappush(self._free, slot)
@@ -865,21 +875,39 @@ class InvertedIndex:
     def virtual_image(self) -> np.ndarray:
         """The words of the virtual "no loop" image I_-1: the ``n`` most frequently seen
         words, ``n`` = round(mean words per image); ``(n,) int64``, most frequent first
-        (ties: the older word first). Empty before the first word."""
+        (ties: the older word first). Empty before the first word.
+
+        Chosen among candidates, not all words: every word seen at least ``floor`` times
+        (kept as images add occurrences). While they number ``n`` or more, the ``n``-th
+        most frequent word is seen at least ``floor`` times, so every word that can be
+        among the ``n`` (ties included) is a candidate and the choice is the one over all
+        words. The candidates are chosen again over all words after a removal (counts
+        fall), or when they number fewer than ``n`` or many more."""
         if not self.n_images or not self._total:
             return np.zeros(0, np.int64)
         n = max(1, int(round(self._total / self.n_images)))
-        # the words with df > 0 (occurrences > 0): all of them unless some are unused
-        act = None if not self._n_unused else np.flatnonzero(self._df.view > 0)
-        occ = self._occ.view if act is None else self._occ.view[act]
-        n = min(n, len(occ))
+        cand = self._v_cand
+        if cand is None or len(cand) < n or len(cand) > 4 * n + _VIRTUAL_MARGIN:
+            cand = self._virtual_candidates(n + _VIRTUAL_MARGIN)
+        occ = self._occ.view[cand]
+        n = min(n, len(cand))  # fewer candidates only when fewer words are in use
         # Stable sort on -occurrences: equal counts keep word-id order.
         part = np.argpartition(-occ, n - 1)[:n] if n < len(occ) else np.arange(len(occ))
-        kth = occ[part].min()
-        cand = np.flatnonzero(occ >= kth) if act is None else act[occ >= kth]
-        occ_c = self._occ.view[cand]
-        order = cand[np.lexsort((cand, -occ_c))]
+        top = cand[occ >= occ[part].min()]
+        order = top[np.lexsort((top, -self._occ.view[top]))]
         return order[:n].astype(np.int64)
+
+    def _virtual_candidates(self, k: int) -> np.ndarray:
+        """The words seen at least as often as the ``k``-th most frequent (all the words in
+        use when fewer), ``(M,) int64`` sorted, M >= min(k, words in use); kept as the
+        candidates with that count as their floor (at least 1: words in use only)."""
+        occ = self._occ.view
+        floor = 1
+        if k < len(occ):
+            floor = max(1, int(np.partition(occ, len(occ) - k)[len(occ) - k]))
+        self._v_floor = floor
+        self._v_cand = np.flatnonzero(occ >= floor).astype(np.int64)
+        return self._v_cand
 
     def vote(self, words: np.ndarray) -> tuple[np.ndarray, float]:
         """The voting scores of Sec. IV-B for a query image with ``words`` (``(K,) int``,
