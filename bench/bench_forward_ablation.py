@@ -127,6 +127,10 @@ def configurations(full: bool) -> dict[str, object]:
     })
     if full:
         cfgs["default, ORB 1000"] = replace(dflt, features=FeatureParams(kind="orb", max_features=1000))
+    # cheaper ORB settings (docs/forward.md, "Time and memory": the features)
+    for name, change in (("ORB 4 levels", {"orb_levels": 4}), ("ORB 5 levels x1.3", {"orb_levels": 5, "orb_scale_factor": 1.3}),
+                         ("image x0.75", {"image_scale": 0.75}), ("image x0.8, 6 levels", {"image_scale": 0.8, "orb_levels": 6})):
+        cfgs[f"default, {name}"] = replace(dflt, features=replace(dflt.features, **change))
     return cfgs
 
 

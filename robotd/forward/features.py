@@ -34,8 +34,8 @@ class FeatureParams:
             finds more keypoints on bare corridor walls.
         orb_levels, orb_scale_factor, orb_fast_threshold: OpenCV's ORB ``nlevels``,
             ``scaleFactor`` and ``fastThreshold`` (its defaults 8, 1.2, 20): fewer or
-            coarser pyramid levels take less time (``bench/bench_forward_scale.py``
-            ``--orb-study`` measures them).
+            coarser pyramid levels take less time, and lost recall on the real corridor
+            (docs/forward.md, "Time and memory").
         image_scale: the image is resized by this factor (area interpolation) before
             detection, and the keypoints scaled back to the full image's pixels (1.0: as
             it is).
