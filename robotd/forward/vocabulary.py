@@ -317,8 +317,9 @@ def _first_k(dist: np.ndarray, k: int) -> np.ndarray:
     sort of int32 rows is vectorised; an argsort or argpartition and the gathers after
     them took most of a tree descent's time)."""
     m = dist.shape[1]
-    key = dist.astype(np.int32) * np.int32(m) + np.arange(m, dtype=np.int32)
-    out: np.ndarray = np.sort(key, axis=1)[:, :k] % np.int32(m)
+    kt = np.dtype(np.int32 if (int(_FAR) + 1) * m < 2**31 else np.int64)  # int64 only for a very wide beam
+    key: np.ndarray = dist.astype(kt) * m + np.arange(m, dtype=kt)
+    out: np.ndarray = np.sort(key, axis=1)[:, :k] % m
     return out
 
 

@@ -154,8 +154,9 @@ def test_first_k_is_the_stable_argsorts_first_columns() -> None:
     from robotd.forward.vocabulary import _first_k
 
     rng = np.random.default_rng(8)
-    for m, k in ((64, 4), (16, 4), (5, 8), (48, 1)):
+    for m, k in ((64, 4), (16, 4), (5, 8), (48, 1), (4096, 6)):
         d = rng.integers(0, 6, (200, m)).astype(np.int32)
+        d[rng.random(d.shape) < 0.1] = 1 << 20      # missing children (the descent's _FAR)
         d[np.arange(200), rng.integers(0, m, 200)] = -1
         np.testing.assert_array_equal(_first_k(d, k), np.argsort(d, axis=1, kind="stable")[:, :k])
 
