@@ -82,6 +82,7 @@ from robotd.floor.descparams import (
     MODES,
     N_ELEMENTS,
     POSITION_STEP_PX,
+    QUARTER,
     VERSION,
     ExtractParams,
     Learned,
@@ -91,7 +92,7 @@ from robotd.floor.descparams import (
 from robotd.floor.keypoints import (candidates, drop_repeats, grey, kept_for_budget, raw_descriptors, working,
                                     workspace)
 
-__all__ = ["ANGLE_BITS", "FULL_RESOLUTION", "MODE_BYTES", "MODES", "POSITION_STEP_PX", "ExtractParams", "FloorDescriptor",
+__all__ = ["ANGLE_BITS", "FULL_RESOLUTION", "MODE_BYTES", "MODES", "POSITION_STEP_PX", "QUARTER", "ExtractParams", "FloorDescriptor",
            "Learned", "decode", "describe", "drop_repeats", "extract", "load_learned"]
 
 
