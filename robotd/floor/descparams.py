@@ -67,12 +67,13 @@ class ExtractParams:
             quarter of its pixels; the difference of Gaussians at the same scale, so at
             half the sigmas in its pixels), positions back in half-resolution pixels, the
             orientation (and with ``exact_maps`` the pooled maps) from its Gaussian image:
-            :data:`QUARTER`. About 0.7 of the default's time, but the extrema of a
+            :data:`QUARTER`. About 0.75 of the default's time, but the extrema of a
             difference of Gaussians at 0.9 px are sampled too coarsely to repeat across
             copies of one print, so the repeat check misses copies and the printed plank
-            floor aliases (the view a lattice step away scores 0.77-1.2 of the true
+            floor aliases (the view a lattice step away scores 0.76-1.2 of the true
             overlap in modes 2, 3 and 5 against 0.23-0.36; selection tables re-learned on
-            such candidates do not change that): not the default.
+            such candidates do not change that), and the visual odometry's error
+            per step grows by about a fifth: not the default.
         exact_maps: True splits each gradient between the orientation channels exactly
             (per-pixel arithmetic and scatters); False (the default) looks the split up in a
             table of 256 angles, within 1/64 of the gradient's magnitude of the exact split:
