@@ -456,8 +456,9 @@ def markdown(p: dict) -> list[str]:
                   f"{o['timed_frames']} floor frames spread over the recorded 60 s office drive ({o['frames']} "
                   f"frames), mode {o['mode']}, the methods interleaved frame by frame. `FULL_RESOLUTION` gives the "
                   "bytes before the faster defaults; `COARSE` is cheaper and not the default: the demo's visual "
-                  "odometry lost accuracy with it; `QUARTER` is cheaper still and not the default: the printed "
-                  "plank floor aliases with it (docs/performance.md).", "",
+                  "odometry lost accuracy with it"
+                  + ("; `QUARTER` is cheaper still and not the default: the printed plank floor aliases with it"
+                     if "quarter" in d else "") + " (docs/performance.md).", "",
                   "Describe, ms per frame:", "", *head(["method", "median", "IQR", "bytes (mean)"])]
         for k, v in d.items():
             b = o["bytes_mean"].get(k)
