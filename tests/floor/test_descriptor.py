@@ -771,6 +771,8 @@ def test_candidates_of_the_quarter_image_land_on_the_default_keypoints(frames):
         assert np.mean(d < 2.0) >= 0.7, np.mean(d < 2.0)
         assert np.median(d) < 1.0
         assert raw_descriptors(c, 300, QUARTER).shape == (min(300, len(c.xy)), 128)
+    for mode in MODES:  # the byte bound holds for it too
+        assert len(extract(frames["grass"], mode, QUARTER)) <= MODE_BYTES[mode]
     quarter = decode(extract(frames["brick"], 4, QUARTER))
     default = decode(extract(frames["brick"], 4))
     other = decode(extract(frames["gravel"], 4, QUARTER))
