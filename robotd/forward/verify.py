@@ -79,7 +79,8 @@ import cv2
 import numpy as np
 
 from robotd.forward.features import FeatureSet
-from robotd.forward.planar import fit_motion
+from robotd.forward.planar import INLIER_NOISE_FACTOR, fit_motion
+from robotd.forward.planefit import ransac_planar
 
 __all__ = ["ACCEPTED", "NO_GEOMETRIC_CONSISTENCY", "SMALL_SUPPORT", "TOO_FEW_MATCHES", "Verification", "VerifyReason",
            "VerifyParams", "camera_matrix_guess", "essential_matrix", "floor_range", "match_features", "ransac_iterations",
@@ -103,6 +104,9 @@ SMALL_SUPPORT = VerifyReason.SMALL_SUPPORT
 
 #: The searches for the essential matrix (:attr:`VerifyParams.estimator`).
 ESTIMATORS = ("ransac", "usac")
+
+#: The motion models of the verification (:attr:`VerifyParams.model`).
+MODELS = ("general", "planar")
 
 
 @dataclass(frozen=True)
@@ -142,6 +146,18 @@ class VerifyParams:
             by default); fewer bound the verification's time at the cost of missing more
             consensus sets of few inliers among many matches (measured on both development
             sequences by ``bench/bench_forward_scale.py``, not the default).
+        model: the motion searched for: ``"general"``, the essential matrix of any
+            rigid motion (five-point RANSAC, ``estimator``; the paper's), or ``"planar"``,
+            a level camera's motion in the floor plane (heading change and bearing:
+            :func:`robotd.forward.planefit.ransac_planar`, samples of two matches), with
+            the general model tried after it when the planar search fails with at least
+            ``fallback_inliers`` inliers (module notes, "The planar model").
+        planar_max_samples: the most samples of two matches the planar search draws (its
+            work is at most twice this many hypotheses, each scored against every match).
+        fallback_inliers: with ``model = "planar"``, the general model is tried when the
+            planar search's best consensus (before the cheirality check) has fewer than
+            ``min_inliers`` but at least this many inliers; None: never (a camera known
+            to be level); 0: after every planar failure.
     """
 
     ratio: float = 0.8
@@ -158,6 +174,9 @@ class VerifyParams:
     estimator: str = "ransac"
     local_optimisation: bool = True
     max_iterations: int = 1000
+    model: str = "general"
+    planar_max_samples: int = 500
+    fallback_inliers: int | None = 10
 
     def __post_init__(self) -> None:
         if self.camera_height_m is not None and not self.camera_height_m > 0.0:
@@ -172,6 +191,12 @@ class VerifyParams:
             raise ValueError(f"homography_threshold_px must be positive, got {self.homography_threshold_px}")
         if self.max_iterations < 1:
             raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
+        if self.model not in MODELS:
+            raise ValueError(f"model must be one of {', '.join(MODELS)}, got {self.model!r}")
+        if self.planar_max_samples < 1:
+            raise ValueError(f"planar_max_samples must be >= 1, got {self.planar_max_samples}")
+        if self.fallback_inliers is not None and self.fallback_inliers < 0:
+            raise ValueError(f"fallback_inliers must be >= 0 or None, got {self.fallback_inliers}")
         if self.estimator not in ESTIMATORS:
             raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {self.estimator!r}")
 
@@ -261,6 +286,66 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
     if n < max(5, params.min_inliers):
         return Verification(False, TOO_FEW_MATCHES, n, 0)
     k = camera_matrix if camera_matrix is not None else camera_matrix_guess(*new.image_size_px)
+    if params.model == "planar":
+        motion = _planar_motion(p_old, p_new, k, params)
+        if isinstance(motion, int):
+            best = motion
+            refused = Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
+        else:
+            refused = _checked(old, new, p_old, p_new, k, params, motion)
+            if refused.accepted:
+                return refused
+            best = refused.n_inliers
+        # Not level, or no consensus: the general model only where the planar search found
+        # a consensus of at least fallback_inliers (module notes, "The planar model").
+        if params.fallback_inliers is None or best < params.fallback_inliers:
+            return refused
+    general = _general_motion(p_old, p_new, k, params, n)
+    if isinstance(general, Verification):
+        return general
+    return _checked(old, new, p_old, p_new, k, params, general)
+
+
+def _checked(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray,
+             params: VerifyParams, motion: _Motion) -> Verification:
+    """The verification of a motion with at least ``min_inliers`` inliers: the range on the
+    floor, the support check (module notes)."""
+    n = len(p_old)
+    inl, r, t_dir, sig_b, sig_y, noise, chi2 = motion
+    n_inl = int(inl.sum())
+    range_m, n_floor = (None, 0)
+    if params.camera_height_m is not None:
+        range_m, n_floor = floor_range(p_old[inl], p_new[inl], r, t_dir, k, params)
+    if params.min_support_area <= 0.0:  # the paper's verification
+        return Verification(True, ACCEPTED, n, n_inl, r, t_dir, range_m=range_m, n_floor_points=n_floor,
+                            sigma_bearing_rad=sig_b, sigma_yaw_rad=sig_y, noise_px=noise,
+                            planarity_chi2=chi2)
+    # Not in the paper: the inliers must not be one small plane (module notes).
+    s_old, s_new = p_old[inl], p_new[inl]
+    _, hmask = cv2.findHomography(s_old, s_new, cv2.RANSAC, params.homography_threshold_px)
+    on_plane = np.zeros(len(s_old), bool) if hmask is None else np.asarray(hmask).ravel() > 0
+    n_plane = int(on_plane.sum())
+    planar = n_plane >= params.planar_fraction * len(s_old)
+    if planar:
+        s_old, s_new = s_old[on_plane], s_new[on_plane]
+    area = min(support_area(s_old, old.image_size_px), support_area(s_new, new.image_size_px))
+    ok = area >= params.min_support_area
+    return Verification(ok, ACCEPTED if ok else SMALL_SUPPORT, n, n_inl, r, t_dir,
+                        n_plane_inliers=n_plane, planar=bool(planar), support_area=area,
+                        range_m=range_m, n_floor_points=n_floor, sigma_bearing_rad=sig_b,
+                        sigma_yaw_rad=sig_y, noise_px=noise, planarity_chi2=chi2)
+
+
+#: A verified motion: (inlier mask (N,), rotation (3, 3), translation_dir (3,), sigma_bearing_rad,
+#: sigma_yaw_rad, noise_px, planarity_chi2), as :class:`Verification` holds them.
+_Motion = tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float, float]
+
+
+def _general_motion(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params: VerifyParams,
+                    n: int) -> _Motion | Verification:
+    """The general model: the essential matrix (``params.estimator``), ``cv2.recoverPose``'s
+    cheirality check, the motion refined on the inliers (:func:`robotd.forward.planar.fit_motion`);
+    a refused :class:`Verification` when it fails."""
     e, mask = essential_matrix(p_old, p_new, k, params)
     if e is None or mask is None or e.shape[0] < 3:
         return Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
@@ -275,28 +360,34 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
     inl = np.asarray(mask2).ravel() > 0
     # Not in the paper: the motion refined on all the inliers, and its uncertainty.
     fit = fit_motion(p_old[inl], p_new[inl], r, t_dir, k)
-    r, t_dir, sig_b, sig_y, noise = fit.rotation, fit.translation_dir, fit.sigma_bearing_rad, fit.sigma_yaw_rad, fit.noise_px
-    range_m, n_floor = (None, 0)
-    if params.camera_height_m is not None:
-        range_m, n_floor = floor_range(p_old[inl], p_new[inl], r, t_dir, k, params)
-    if params.min_support_area <= 0.0:  # the paper's verification
-        return Verification(True, ACCEPTED, n, n_inl, r, t_dir, range_m=range_m, n_floor_points=n_floor,
-                            sigma_bearing_rad=sig_b, sigma_yaw_rad=sig_y, noise_px=noise,
-                            planarity_chi2=fit.planarity_chi2)
-    # Not in the paper: the inliers must not be one small plane (module notes).
-    s_old, s_new = p_old[inl], p_new[inl]
-    _, hmask = cv2.findHomography(s_old, s_new, cv2.RANSAC, params.homography_threshold_px)
-    on_plane = np.zeros(len(s_old), bool) if hmask is None else np.asarray(hmask).ravel() > 0
-    n_plane = int(on_plane.sum())
-    planar = n_plane >= params.planar_fraction * len(s_old)
-    if planar:
-        s_old, s_new = s_old[on_plane], s_new[on_plane]
-    area = min(support_area(s_old, old.image_size_px), support_area(s_new, new.image_size_px))
-    ok = area >= params.min_support_area
-    return Verification(ok, ACCEPTED if ok else SMALL_SUPPORT, n, n_inl, r, t_dir,
-                        n_plane_inliers=n_plane, planar=bool(planar), support_area=area,
-                        range_m=range_m, n_floor_points=n_floor, sigma_bearing_rad=sig_b,
-                        sigma_yaw_rad=sig_y, noise_px=noise, planarity_chi2=fit.planarity_chi2)
+    return (inl, fit.rotation, fit.translation_dir, fit.sigma_bearing_rad, fit.sigma_yaw_rad, fit.noise_px,
+            fit.planarity_chi2)
+
+
+def _planar_motion(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params: VerifyParams) -> _Motion | int:
+    """The planar model (:func:`robotd.forward.planefit.ransac_planar`), or the best planar
+    consensus' size when it has fewer than ``min_inliers`` in front of both cameras. Its
+    sigmas are given as the general fit gives them, the inliers' own noise (the planar
+    fit's divided by :data:`robotd.forward.planar.INLIER_NOISE_FACTOR`, which its user
+    applies); its out-of-plane part is zero by construction (``planarity_chi2`` 0)."""
+    fit, search = ransac_planar(p_old, p_new, k, threshold_px=params.ransac_threshold_px,
+                                min_inliers=params.min_inliers, confidence=params.ransac_confidence,
+                                max_samples=params.planar_max_samples, seed=params.seed)
+    if fit is None or fit.n_inliers < params.min_inliers:
+        return search.best_inliers
+    inl = fit.inliers
+    kinv = np.linalg.inv(k)
+    xo = np.hstack([p_old[inl], np.ones((int(inl.sum()), 1))]) @ kinv.T
+    xn = np.hstack([p_new[inl], np.ones((int(inl.sum()), 1))]) @ kinv.T
+    e = np.cross(fit.translation_dir, fit.rotation.T).T  # [t]x R, column by column
+    ex = xo @ e.T
+    etx = xn @ e
+    focal = 0.5 * (k[0, 0] + k[1, 1])
+    d = focal * np.einsum("ij,ij->i", xn, ex) / np.sqrt(np.maximum(ex[:, 0] ** 2 + ex[:, 1] ** 2 + etx[:, 0] ** 2
+                                                                     + etx[:, 1] ** 2, 1e-30))
+    noise = float(np.sqrt(float(d @ d) / max(len(d) - 2, 1)))
+    return (inl, fit.rotation, fit.translation_dir, fit.sigma_bearing_rad / INLIER_NOISE_FACTOR,
+            fit.sigma_yaw_rad / INLIER_NOISE_FACTOR, noise, 0.0)
 
 
 _NO_DISTORTION = np.zeros(5)
