@@ -34,11 +34,15 @@ verification's 99th percentile; ``docs/forward.md``, "Time and memory per image"
   default otherwise (it accepts a subset of what the default accepts);
 - ``RANSAC, at most 200 samples``: the general model with ``max_iterations = 200``.
 
-Then the motion model (``VerifyParams.model``): ``planar model`` (a level camera's motion,
-two-point RANSAC, the general model tried after it when its best consensus reaches
-``fallback_inliers``) and ``planar model, no fallback``; every other row uses the general
-model (the five-point RANSAC of the paper; ``stored descriptors`` is that model as it is,
-the rows above replace its matching or its search).
+Then the motion model (``VerifyParams.model``): ``planar model`` (the default detector's: a
+level camera's motion found by two-point RANSAC, the essential matrix searched among the
+matches near it, the general search capped at 200 samples after it when that fails and the
+level motion's consensus reached ``fallback_inliers``), ``planar model, no fallback``, and
+``planar motion decides`` (``model = "planar_motion"``: the level motion itself verified);
+every other row uses the general model (the five-point RANSAC of the paper over all the
+matches; ``stored descriptors`` is that model as it is, the rows above replace its
+matching or its search). The detector whose verifications are recorded is the default
+(the candidates do not depend on the verification's model).
 
 Reported per variant and sequence: recall at 100 % precision, false positives, loops,
 verification time (median, p99; noisy on a loaded machine), and the bytes per image the
@@ -306,9 +310,10 @@ def _pose_error(v: Any, old_pose: np.ndarray, new_pose: np.ndarray, mount: np.nd
 MODEL_VARIANTS: dict[str, dict[str, Any]] = {
     "planar model": {"model": "planar"},
     "planar model, no fallback": {"model": "planar", "fallback_inliers": None},
+    "planar motion decides": {"model": "planar_motion"},
 }
 
-VARIANTS = ("planar model", "planar model, no fallback", "stored descriptors", "word ids", "first 16 bytes", "first 8 bytes",
+VARIANTS = ("planar model", "planar model, no fallback", "planar motion decides", "stored descriptors", "word ids", "first 16 bytes", "first 8 bytes",
             "no descriptor for purged words",
             "USAC, no local optimisation", "USAC, PROSAC order", "USAC screen, then RANSAC", "RANSAC, at most 200 samples")
 

@@ -288,9 +288,12 @@ def _sampson_terms(x_old: np.ndarray, x_new: np.ndarray) -> np.ndarray:
     return np.stack([y1 * y1 + x2 * x2, one, -2.0 * x2, x1 * x1 + y2 * y2, -2.0 * x1, one], axis=1)
 
 
-def front_mask(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarray) -> np.ndarray:
+def front_mask(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarray,
+               max_depth: float = math.inf) -> np.ndarray:
     """``(N,) bool``: the normalised matches ``x_old, x_new (N, 3)`` whose triangulated point
-    is in front of both cameras of the motion ``r, t`` (midpoint method)."""
+    is in front of both cameras of the motion ``r, t`` (midpoint method) and nearer than
+    ``max_depth`` times the baseline ``|t|`` to both (``cv2.recoverPose``'s ``distanceThresh``,
+    50 by default there: a point further away has no parallax to show the motion)."""
     d1 = x_old
     d2 = x_new @ r
     c2 = -r.T @ t
@@ -302,24 +305,45 @@ def front_mask(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarra
     det = a11 * a22 - a12 * a12
     ok = np.abs(det) > 1e-12
     det = np.where(ok, det, 1.0)
-    out: np.ndarray = ok & ((a22 * b1 - a12 * b2) / det > 0) & ((a11 * b2 - a12 * b1) / det > 0)
+    za = (a22 * b1 - a12 * b2) / det   # depth in the old camera (x_old's z is 1)
+    zb = (a11 * b2 - a12 * b1) / det   # depth in the new camera
+    lim = max_depth * math.sqrt(float(t @ t))
+    out: np.ndarray = ok & (za > 0) & (zb > 0) & (za < lim) & (zb < lim)
     return out
 
 
 @dataclass(frozen=True)
 class PlanarSearch:
     """What :func:`ransac_planar` did: ``samples`` drawn (pairs of matches), ``hypotheses``
-    scored against every match, ``best_inliers`` of the best hypothesis before refinement."""
+    scored against every match, ``best_inliers`` of the best hypothesis before refinement,
+    and that hypothesis, ``yaw_rad`` and ``psi_rad`` as :func:`planar_pose` takes them (0
+    when there was none)."""
 
     samples: int
     hypotheses: int
     best_inliers: int
+    yaw_rad: float = 0.0
+    psi_rad: float = 0.0
+
+    def inliers(self, p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray,
+                threshold_px: float) -> np.ndarray:
+        """``(N,) bool``: the matched pixels within ``threshold_px`` (Sampson distance) of the
+        best hypothesis."""
+        p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
+        p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
+        k = np.asarray(camera_matrix, np.float64)
+        kinv = np.linalg.inv(k)
+        x_old = np.hstack([p_old, np.ones((len(p_old), 1))]) @ kinv.T
+        x_new = np.hstack([p_new, np.ones((len(p_new), 1))]) @ kinv.T
+        r, t = planar_pose(self.yaw_rad, self.psi_rad)
+        out: np.ndarray = np.abs(_sampson(x_old, x_new, r, t, 0.5 * (k[0, 0] + k[1, 1]))) < threshold_px
+        return out
 
 
 def ransac_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, *,
                   threshold_px: float = 1.0, min_inliers: int = 20, confidence: float = 0.999,
-                  max_samples: int = 500, batch: int = 64,
-                  seed: int = 0) -> tuple[PlanarFit | None, PlanarSearch]:
+                  max_samples: int = 500, batch: int = 64, seed: int = 0,
+                  refine: bool = True) -> tuple[PlanarFit | None, PlanarSearch]:
     """The planar motion of the matched pixels ``p_old_px, p_new_px (N, 2)`` found without
     a first guess: RANSAC over pairs of matches (the two-point solver of a level camera's
     motion; not in paper 000).
@@ -338,9 +362,10 @@ def ransac_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.
     on its inliers as :func:`fit_planar` refines its own (Gauss-Newton, the translation's
     sign from the points in front of both cameras, sigmas scaled by
     :data:`robotd.forward.planar.INLIER_NOISE_FACTOR`); its ``inliers`` are then those
-    within the threshold *and* in front of both cameras (as ``cv2.recoverPose`` counts).
-    ``(None, search)`` with fewer than 5 matches. Samples from ``numpy``'s generator
-    seeded with ``seed`` (reproducible)."""
+    within the threshold *and* in front of both cameras.
+    ``(None, search)`` with fewer than 5 matches, or without ``refine`` (the search's
+    size alone: a screen). Samples from ``numpy``'s generator seeded with ``seed``
+    (reproducible)."""
     p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
     p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
     n = len(p_old)
@@ -378,12 +403,13 @@ def ransac_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.
         top = int(np.argmax(counts))
         if counts[top] > best_n:
             best_n, best_v = int(counts[top]), v[top]
-    search = PlanarSearch(drawn, hyps, max(best_n, 0))
     if best_n < 0:
-        return None, search
+        return None, PlanarSearch(drawn, hyps, 0)
     psi = math.atan2(best_v[1], best_v[0])
-    yaw = psi - math.atan2(best_v[3], best_v[2])
-    yaw = math.remainder(yaw, math.tau)
+    yaw = math.remainder(psi - math.atan2(best_v[3], best_v[2]), math.tau)
+    search = PlanarSearch(drawn, hyps, best_n, yaw, psi)
+    if not refine:
+        return None, search
     fit = _refine(x_old, x_new, focal, yaw, psi, threshold_px, False, np.zeros(0), np.zeros(0, np.int64))
     front = fit.inliers & front_mask(x_old, x_new, fit.rotation, fit.translation_dir)
     return PlanarFit(fit.dyaw_rad, fit.bearing_rad, fit.rotation, fit.translation_dir, front,

@@ -72,7 +72,7 @@ Expected failures are values (:class:`Verification` with a reason), not exceptio
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 
 import cv2
@@ -106,7 +106,7 @@ SMALL_SUPPORT = VerifyReason.SMALL_SUPPORT
 ESTIMATORS = ("ransac", "usac")
 
 #: The motion models of the verification (:attr:`VerifyParams.model`).
-MODELS = ("general", "planar")
+MODELS = ("general", "planar", "planar_motion")
 
 
 @dataclass(frozen=True)
@@ -146,18 +146,29 @@ class VerifyParams:
             by default); fewer bound the verification's time at the cost of missing more
             consensus sets of few inliers among many matches (measured on both development
             sequences by ``bench/bench_forward_scale.py``, not the default).
-        model: the motion searched for: ``"general"``, the essential matrix of any
-            rigid motion (five-point RANSAC, ``estimator``; the paper's), or ``"planar"``,
-            a level camera's motion in the floor plane (heading change and bearing:
-            :func:`robotd.forward.planefit.ransac_planar`, samples of two matches), with
-            the general model tried after it when the planar search fails with at least
-            ``fallback_inliers`` inliers (module notes, "The planar model").
+        model: how the motion is searched for (module notes, "The planar model"):
+            ``"general"``, the essential matrix of any rigid motion over all the matches
+            (five-point RANSAC, ``estimator``; the paper's check); ``"planar"`` (the default
+            detector's), a level camera's motion (heading change and bearing,
+            :func:`robotd.forward.planefit.ransac_planar`, samples of two matches) found
+            first, the essential matrix then searched among the matches within
+            ``guide_threshold_px`` of it and checked over all the matches as the general
+            model's, and the general search after it, at most ``fallback_max_iterations``
+            samples, when that fails and the planar consensus reached ``fallback_inliers``;
+            ``"planar_motion"``: the planar motion itself is the verified motion when it
+            passes the checks (the general search after it as in ``"planar"``, its
+            consensus counted within ``ransac_threshold_px``): measured, not the default
+            (it passes aliased views the general check refuses).
         planar_max_samples: the most samples of two matches the planar search draws (its
             work is at most twice this many hypotheses, each scored against every match).
-        fallback_inliers: with ``model = "planar"``, the general model is tried when the
-            planar search's best consensus (before the cheirality check) has fewer than
-            ``min_inliers`` but at least this many inliers; None: never (a camera known
-            to be level); 0: after every planar failure.
+        guide_threshold_px: with ``"planar"``, the planar search's inlier threshold and
+            the neighbourhood of the level motion in which the essential matrix is
+            searched, pixels (wider than ``ransac_threshold_px``: a camera a few degrees
+            off level still has its inliers within it).
+        fallback_inliers: with a planar model, the general search over all the matches
+            is tried only when the planar search's best consensus has at least this many
+            matches; None: never (a camera known to be level); 0: always.
+        fallback_max_iterations: the most samples that general search draws.
     """
 
     ratio: float = 0.8
@@ -176,7 +187,9 @@ class VerifyParams:
     max_iterations: int = 1000
     model: str = "general"
     planar_max_samples: int = 500
+    guide_threshold_px: float = 3.0
     fallback_inliers: int | None = 10
+    fallback_max_iterations: int = 200
 
     def __post_init__(self) -> None:
         if self.camera_height_m is not None and not self.camera_height_m > 0.0:
@@ -195,6 +208,10 @@ class VerifyParams:
             raise ValueError(f"model must be one of {', '.join(MODELS)}, got {self.model!r}")
         if self.planar_max_samples < 1:
             raise ValueError(f"planar_max_samples must be >= 1, got {self.planar_max_samples}")
+        if not self.guide_threshold_px > 0.0:
+            raise ValueError(f"guide_threshold_px must be positive, got {self.guide_threshold_px}")
+        if self.fallback_max_iterations < 1:
+            raise ValueError(f"fallback_max_iterations must be >= 1, got {self.fallback_max_iterations}")
         if self.fallback_inliers is not None and self.fallback_inliers < 0:
             raise ValueError(f"fallback_inliers must be >= 0 or None, got {self.fallback_inliers}")
         if self.estimator not in ESTIMATORS:
@@ -287,6 +304,22 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
         return Verification(False, TOO_FEW_MATCHES, n, 0)
     k = camera_matrix if camera_matrix is not None else camera_matrix_guess(*new.image_size_px)
     if params.model == "planar":
+        _, search = ransac_planar(p_old, p_new, k, threshold_px=params.guide_threshold_px,
+                                  min_inliers=params.min_inliers, confidence=params.ransac_confidence,
+                                  max_samples=params.planar_max_samples, seed=params.seed, refine=False)
+        near = search.inliers(p_old, p_new, k, params.guide_threshold_px) if search.best_inliers else None
+        guided: _Motion | Verification = Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
+        if near is not None and int(near.sum()) >= params.min_inliers:
+            guided = _general_motion(p_old, p_new, k, params, n, near)
+            if not isinstance(guided, Verification):
+                guided = _checked(old, new, p_old, p_new, k, params, guided)
+        assert isinstance(guided, Verification)
+        if guided.accepted or params.fallback_inliers is None or search.best_inliers < params.fallback_inliers:
+            return guided
+        # Not found near a level motion: the general search over all the matches, with at
+        # most fallback_max_iterations samples (the stated cap on the work per image).
+        params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations))
+    elif params.model == "planar_motion":
         motion = _planar_motion(p_old, p_new, k, params)
         if isinstance(motion, int):
             best = motion
@@ -300,6 +333,7 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
         # a consensus of at least fallback_inliers (module notes, "The planar model").
         if params.fallback_inliers is None or best < params.fallback_inliers:
             return refused
+        params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations))
     general = _general_motion(p_old, p_new, k, params, n)
     if isinstance(general, Verification):
         return general
@@ -342,11 +376,21 @@ _Motion = tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float, float]
 
 
 def _general_motion(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params: VerifyParams,
-                    n: int) -> _Motion | Verification:
+                    n: int, near: np.ndarray | None = None) -> _Motion | Verification:
     """The general model: the essential matrix (``params.estimator``), ``cv2.recoverPose``'s
     cheirality check, the motion refined on the inliers (:func:`robotd.forward.planar.fit_motion`);
-    a refused :class:`Verification` when it fails."""
-    e, mask = essential_matrix(p_old, p_new, k, params)
+    a refused :class:`Verification` when it fails. With ``near (N,) bool`` the essential
+    matrix is searched among those matches only and its inliers then counted among all
+    (``"planar_guided"``)."""
+    if near is None:
+        e, mask = essential_matrix(p_old, p_new, k, params)
+    else:
+        # Samples enough to draw five of the subset's inliers were half of it inliers.
+        m = int(near.sum())
+        sub = replace(params, max_iterations=min(params.max_iterations, ransac_iterations(
+            m, max(params.min_inliers, (m + 1) // 2), params.ransac_confidence)))
+        e, _ = essential_matrix(p_old[near], p_new[near], k, sub)
+        mask = None if e is None or e.shape[0] < 3 else _epipolar_mask(p_old, p_new, k, e[:3], params.ransac_threshold_px)
     if e is None or mask is None or e.shape[0] < 3:
         return Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
     e = e[:3]  # the five-point method may return up to ten solutions stacked; RANSAC keeps one
@@ -362,6 +406,20 @@ def _general_motion(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params:
     fit = fit_motion(p_old[inl], p_new[inl], r, t_dir, k)
     return (inl, fit.rotation, fit.translation_dir, fit.sigma_bearing_rad, fit.sigma_yaw_rad, fit.noise_px,
             fit.planarity_chi2)
+
+
+def _epipolar_mask(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, e: np.ndarray,
+                   threshold_px: float) -> np.ndarray:
+    """``(N, 1) uint8``: the matches within ``threshold_px`` (Sampson distance) of the essential
+    matrix ``e (3, 3)``, as OpenCV's inlier masks."""
+    kinv = np.linalg.inv(k)
+    xo = np.hstack([p_old, np.ones((len(p_old), 1))]) @ kinv.T
+    xn = np.hstack([p_new, np.ones((len(p_new), 1))]) @ kinv.T
+    ex = xo @ e.T
+    etx = xn @ e
+    d = 0.5 * (k[0, 0] + k[1, 1]) * np.abs(np.einsum("ij,ij->i", xn, ex)) / np.sqrt(
+        np.maximum(ex[:, 0] ** 2 + ex[:, 1] ** 2 + etx[:, 0] ** 2 + etx[:, 1] ** 2, 1e-30))
+    return (d < threshold_px).astype(np.uint8).reshape(-1, 1)
 
 
 def _planar_motion(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params: VerifyParams) -> _Motion | int:
