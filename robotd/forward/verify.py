@@ -67,6 +67,31 @@ changes, each the same test as before:
   each new best model on its inliers (which finds the consensus in fewer samples, so the
   adaptive stop comes earlier). The paper's detector keeps ``"ransac"``.
 
+**The planar model (not in the paper).** A robot's forward camera turns about its vertical
+axis and moves in the floor plane: two degrees of freedom (heading change, bearing of the
+translation) instead of the essential matrix's five. With ``model = "planar"`` (the default
+detector's) the verification first finds the level motion most matches agree with
+(:func:`robotd.forward.planefit.ransac_planar`: samples of two matches, at most two motions
+each, every batch of hypotheses scored against every match at once, within
+``guide_threshold_px``): for a quarter of the matches to be inliers it needs about 100
+samples where five-point RANSAC needs about 7000 (so it stops, where the five-point search
+ran to its cap of 1000). The essential matrix is then searched among the matches within
+``guide_threshold_px`` of that motion only (mostly inliers: the five-point search stops
+after a few samples; at most the samples that would draw five inliers were half of them
+inliers), its inliers counted over all the matches, and the rest is the general model's
+test (cheirality, support, the refined motion): the planar search only chooses where the
+five-point search looks. A camera a few degrees off level (the real corridor of
+rtabmap_samples, held by hand) leaves some inliers outside the neighbourhood: when the
+search there fails and the level motion's consensus reached ``fallback_inliers`` (10), the
+general search runs over all the matches with at most ``fallback_max_iterations`` (200)
+samples. The work per verification is so bounded by rule, not by a timer: at most
+``2 planar_max_samples`` level hypotheses times the matches, 218 five-point samples near the
+level motion and 200 over all the matches. ``model = "planar_motion"`` takes the level
+motion itself as the verified motion (no five-point search when it passes): measured, it
+passes aliased views (a wall's repeated pattern seen from a sideways shift) that the
+general test refuses, so it is not the default. ``model = "general"`` is the paper's
+search over all the matches (the paper's detector and the baselines keep it).
+
 Expected failures are values (:class:`Verification` with a reason), not exceptions.
 """
 
