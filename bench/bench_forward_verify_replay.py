@@ -248,7 +248,7 @@ def replay(rec: dict[str, Any], variant: str) -> dict[str, float | int]:
     saved = verify_mod.match_features
     verify_mod.match_features = matcher
     dropped = []
-    errors: list[tuple[float, float, float]] = []  # true loops: (heading error, bearing error, distance)
+    errors: dict[int, tuple[float, float, float]] = {}  # true loops: (heading error, bearing error, distance)
     try:
         for t, old, new, new_words in rec["pairs"]:
             if variant == "word ids":
@@ -266,7 +266,7 @@ def replay(rec: dict[str, Any], variant: str) -> dict[str, float | int]:
             decl[t] = v.accepted
             c = int(rec["cand"][t])
             if v.accepted and rec.get("poses") is not None and c >= 0 and rec["truth"][t, c]:
-                errors.append(_pose_error(v, rec["poses"][c], rec["poses"][t], rec["mount"]))
+                errors[t] = _pose_error(v, rec["poses"][c], rec["poses"][t], rec["mount"])
     finally:
         verify_mod.match_features = saved
         verify_mod.essential_matrix = saved_search
@@ -284,12 +284,36 @@ def replay(rec: dict[str, Any], variant: str) -> dict[str, float | int]:
         "loops": int(decl.sum()), "verify_ms_median": float(np.median(ms)) if ms else 0.0,
         "verify_ms_p99": float(np.percentile(ms, 99)) if ms else 0.0, "bytes_saved_per_image": saved_b}
     if errors:
-        e = np.abs(np.asarray(errors))
-        far = e[:, 2] >= 0.3
-        out.update(pose_loops=len(e), yaw_err_deg_median=float(np.median(e[:, 0])),
-                   yaw_err_deg_p90=float(np.percentile(e[:, 0], 90)), bearing_loops=int(far.sum()),
-                   bearing_err_deg_median=float(np.median(e[far, 1])) if far.any() else float("nan"),
-                   bearing_err_deg_p90=float(np.percentile(e[far, 1], 90)) if far.any() else float("nan"))
+        out.update(_error_stats(list(errors.values())))
+        if variant in MODEL_VARIANTS or variant == "stored descriptors":  # kept to compare on common loops
+            out["pose_errors"] = {str(t): list(e) for t, e in errors.items()}  # type: ignore[assignment]
+    return out
+
+
+def _error_stats(errors: list[tuple[float, float, float]]) -> dict[str, float | int]:
+    """Median and 90th percentile of the heading errors, and of the bearing errors of the
+    views at least 0.3 m apart (degrees)."""
+    e = np.abs(np.asarray(errors, np.float64).reshape(-1, 3))
+    far = e[:, 2] >= 0.3
+    return {"pose_loops": len(e), "yaw_err_deg_median": float(np.median(e[:, 0])),
+            "yaw_err_deg_p90": float(np.percentile(e[:, 0], 90)), "bearing_loops": int(far.sum()),
+            "bearing_err_deg_median": float(np.median(e[far, 1])) if far.any() else float("nan"),
+            "bearing_err_deg_p90": float(np.percentile(e[far, 1], 90)) if far.any() else float("nan")}
+
+
+def common_loops(variants: dict[str, Any]) -> dict[str, Any]:
+    """Each model variant's pose errors beside the general model's (``stored descriptors``)
+    on the true loops both verified: ``{variant: {"loops": n, "model": stats, "general": stats}}``."""
+    general = variants.get("stored descriptors", {}).get("pose_errors")
+    out: dict[str, Any] = {}
+    for name in MODEL_VARIANTS:
+        mine = variants.get(name, {}).get("pose_errors")
+        if general is None or mine is None:
+            continue
+        both = sorted(set(general) & set(mine), key=int)
+        if both:
+            out[name] = {"loops": len(both), "model": _error_stats([tuple(mine[t]) for t in both]),
+                         "general": _error_stats([tuple(general[t]) for t in both])}
     return out
 
 
@@ -345,6 +369,20 @@ def page(res: dict[str, Any]) -> list[str]:
             lines.append(f"| {sname} ({s['verifications']} verifications) | {v} | {r['bytes_saved_per_image']:.0f} | "
                          f"{r['recall_at_full_precision']:.3f} | {r['false_positives']} | {r['loops']} | "
                          f"{r['verify_ms_median']:.1f} | {r['verify_ms_p99']:.1f} | {pose} |")
+    common = [(sname, v, c) for sname, s in res["sequences"].items() for v, c in s.get("common_loops", {}).items()]
+    if common:
+        lines += ["", "On the true loops both verified, each planar row against the general model (`stored descriptors`): "
+                  "heading change error, and bearing error of the views 0.3 m or more apart, degrees, median / 90th "
+                  "percentile.", "",
+                  "| sequence | variant | loops | heading err, planar | heading err, general | far loops | "
+                  "bearing err, planar | bearing err, general |",
+                  "|---|---|---:|---:|---:|---:|---:|---:|"]
+        for sname, v, c in common:
+            a, b = c["model"], c["general"]
+            lines.append(f"| {sname} | {v} | {c['loops']} | {a['yaw_err_deg_median']:.2f} / {a['yaw_err_deg_p90']:.2f} | "
+                         f"{b['yaw_err_deg_median']:.2f} / {b['yaw_err_deg_p90']:.2f} | {a['bearing_loops']} | "
+                         f"{a['bearing_err_deg_median']:.1f} / {a['bearing_err_deg_p90']:.1f} | "
+                         f"{b['bearing_err_deg_median']:.1f} / {b['bearing_err_deg_p90']:.1f} |")
     return lines + [""]
 
 
@@ -390,6 +428,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {v:32s} R@100%P {r['recall_at_full_precision']:.3f} FP {r['false_positives']} loops {r['loops']} "
                   f"saves {r['bytes_saved_per_image']:.0f} B/img  verify ms {r['verify_ms_median']:.1f} / p99 "
                   f"{r['verify_ms_p99']:.1f}", flush=True)
+        common = common_loops(out["variants"])
+        if common:
+            out["common_loops"] = common
         res["sequences"][name] = out
         write_json(args.out, res)
     print(f"wrote {write_json(args.out, res)}")
