@@ -7,11 +7,19 @@ batch result, and when that was a GNC solve, without the loop edges GNC rejected
 below one half), so that iSAM2's later updates build on the same inliers instead of
 letting a rejected loop pull again through its kernel. The rejected loops stay in
 :attr:`IncrementalGraph.graph`: the next full solve judges them again, with everything
-learnt since."""
+learnt since.
+
+Should iSAM2 give up (GTSAM raises an indeterminate system for an ill-conditioned
+update, e.g. under Cholesky over a long chain without loops), the graph is not lost:
+:meth:`IncrementalGraph._recover` re-solves the whole graph it keeps (every keyframe and
+every loop in it, :func:`optimize_batch`), rebuilds iSAM2 from that solution by QR,
+logs it and counts it (:attr:`IncrementalGraph.isam_failures`), and the update goes on.
+"""
 
 from __future__ import annotations
 
 import bisect
+import logging
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -23,6 +31,8 @@ from robotd.base.geometry import between, compose, inverse
 from robotd.graph.batch import BatchParams, BatchResult, optimize_batch
 from robotd.graph.factors import anchor_factor, between_factor, factor_graph, from_values, to_values
 from robotd.graph.model import Edge, PoseGraph, make_edge
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,6 +111,8 @@ class IncrementalGraph:
         self._newest_held: Edge | None = None  # the last loop left out, if none entered since
         self._in_isam: list[tuple[int, int]] = []  # (newer, older) ends of the newest keyframe's loops in iSAM2
         self._older_ends: list[int] = []  # sorted older ends of the loops admitted (loops_per_place)
+        self.factorization = params.factorization  # iSAM2's; QR after a failure under Cholesky
+        self.isam_failures = 0  # iSAM2 updates that raised, each recovered (_recover)
         self._isam = self._new_isam()
         self._version = 0  # bumped by every change of the estimate
         self._cached: tuple[int, np.ndarray, np.ndarray] | None = None
@@ -150,18 +162,56 @@ class IncrementalGraph:
 
     def _update(self, factors: gtsam.NonlinearFactorGraph | None = None,
                 values: gtsam.Values | None = None) -> None:
-        """One iSAM2 step with the new ``factors`` and ``values`` (none: one more relinearisation)."""
-        if factors is None or values is None:
-            self._isam.update()
-        else:
-            self._isam.update(factors, values)
+        """One iSAM2 step with the new ``factors`` and ``values`` (none: one more
+        relinearisation). The factors' edges are already in :attr:`graph`: should iSAM2
+        raise, :meth:`_recover` rebuilds it from the whole graph, these included."""
+        try:
+            if factors is None or values is None:
+                self._isam.update()
+            else:
+                self._isam.update(factors, values)
+        except RuntimeError as exc:  # GTSAM's IndeterminantLinearSystemException, among others
+            self._recover(exc)
         self._version += 1
+
+    def _recover(self, exc: Exception) -> None:
+        """iSAM2 raised: re-solve the whole graph (every keyframe, every loop it holds; the
+        robust batch solve from scratch, or the odometry poses should that fail too),
+        rebuild iSAM2 from that solution with every keyframe a variable (nothing folded
+        until the next :meth:`resolve`), by QR from now on, and count and log it. The
+        graph loses nothing. GraphError if iSAM2 cannot be rebuilt even so."""
+        self.isam_failures += 1
+        detail = next((line for line in str(exc).splitlines() if line.strip()), type(exc).__name__).strip()
+        rejected = self.rejected_loops
+        try:
+            result = optimize_batch(self.graph, self.params.batch)
+            ids, poses, how = result.ids, result.poses, "a full solve"
+            b = self.params.batch
+            if b.robust and b.kernel == "gnc":
+                loops = np.flatnonzero(self.graph.is_loop).tolist()
+                rejected = {n for n, w in zip(loops, result.loop_weights) if w < 0.5}
+        except RuntimeError:
+            ids, poses, how = self.graph.ids, self.graph.poses(), "the odometry poses (the full solve failed too)"
+        was = self.factorization
+        self.factorization = "QR"
+        self._clear_fold()
+        self._isam = self._new_isam()
+        try:
+            self._isam.update(factor_graph(self.graph, self._kernel, skip=rejected), to_values(ids, poses))
+        except RuntimeError as again:
+            raise GraphError(f"iSAM2 failed ({detail}) and could not be rebuilt from the graph: "
+                             f"{str(again).strip().splitlines()[0] if str(again).strip() else again}") from again
+        self.rejected_loops = rejected
+        self._version += 1
+        log.warning("pose graph: iSAM2 failed at %d keyframes (%s); rebuilt from %s%s (%d failure%s so far)",
+                    len(self.graph), detail, how, ", QR from now on" if was != "QR" else "",
+                    self.isam_failures, "" if self.isam_failures == 1 else "s")
 
     def _new_isam(self) -> gtsam.ISAM2:
         p = gtsam.ISAM2Params()
         p.setRelinearizeThreshold(self.params.relinearize_threshold)
         p.relinearizeSkip = self.params.relinearize_skip
-        p.setFactorization(self.params.factorization)
+        p.setFactorization(self.factorization)
         return gtsam.ISAM2(p)
 
     def add_first(self, keyframe_id: int, pose: Iterable[float] = (0.0, 0.0, 0.0)) -> None:
@@ -262,7 +312,16 @@ class IncrementalGraph:
         relative pose little of it) the marginals alone overstate ``S`` many times, and a
         look-alike a few centimetres off passes. It costs one Bayes-tree query more than the
         two marginals (0.1-0.7 ms on the office demo's graphs). With either keyframe folded
-        (:attr:`IncrementalParams.fold`) the two marginals are used, as without ``joint``."""
+        (:attr:`IncrementalParams.fold`) the two marginals are used, as without ``joint``.
+        Should iSAM2 raise on the marginals, it is rebuilt (:meth:`_recover`) and asked again."""
+        try:
+            return self._loop_chi2(from_id, to_id, delta, information, joint)
+        except RuntimeError as exc:
+            self._recover(exc)
+            return self._loop_chi2(from_id, to_id, delta, information, joint)
+
+    def _loop_chi2(self, from_id: int, to_id: int, delta: Iterable[float], information: np.ndarray,
+                   joint: bool) -> float:
         pa, pb = self._pose2(from_id), self._pose2(to_id)
         predicted = pa.between(pb)
         d = [float(v) for v in delta]
