@@ -28,7 +28,8 @@ lays the lap's shape on new ground, each copy 20 m from the others (loops only w
 a lap).
 
 Run: ``python bench/bench_graph_memory.py --map MAP [--synthetic laps|new N] [--doc FILE]``;
-writes ``NAME.json`` under ``--out`` (default bench/results). The default replays the map
+writes ``NAME.json`` under ``--out`` (default bench/results); ``--page JSON... --doc FILE``
+writes the page from several such files' runs. The default replays the map
 given (a 1,500-keyframe map of three office laps: a few minutes); ``--full`` adds the two
 synthetic maps of 10,000 keyframes.
 """
@@ -200,9 +201,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "bench" / "results")
     ap.add_argument("--name", default="graph_memory")
     ap.add_argument("--doc", type=Path, default=None, help="also write the markdown page here")
+    ap.add_argument("--page", type=Path, nargs="+", default=None, metavar="JSON",
+                    help="only write the page (--doc) from these JSON files' runs, in order")
     ap.add_argument("--full", action="store_true",
                     help="also the synthetic maps of 10,000 keyframes, laps and new ground (about an hour)")
     args = ap.parse_args(argv)
+    if args.page is not None:
+        payloads = [json.loads(f.read_text(encoding="utf-8")) for f in args.page]
+        page = markdown({"machine": payloads[0]["machine"], "runs": [r for p in payloads for r in p["runs"]]})
+        if args.doc is not None:
+            args.doc.write_text(page, encoding="utf-8")
+            print(f"wrote {args.doc}")
+        else:
+            print(page, end="")
+        return 0
     if not args.map.is_file():
         ap.error(f"no map at {args.map}: make one with bench/bench_daemon.py --memory 1500 --keep-map {args.map}")
     if args.one is not None:

@@ -80,8 +80,11 @@ class IndexParams:
             of global similarity), so that a query that finds its ``k`` loops among them
             reads nothing back: over ground driven lap after lap the previous pass is
             resident, the older passes are not. The shortlist is the same, and so is every
-            score; which ``k`` of the shortlist's loops are returned may differ. False: the
-            shortlist in order of global similarity, as without a loader.
+            score; which ``k`` of the shortlist's loops are returned may differ (the previous
+            pass's rather than the globally most similar). On the three office laps
+            (``bench_daemon.py --residency``, 1,024 resident) the same 500 loops with no
+            read per query instead of 2.4; measured on that one map only, so off by default
+            (False: the shortlist in order of global similarity, as without a loader).
     """
 
     k: int = 5
@@ -90,7 +93,7 @@ class IndexParams:
     match_params: Any = None
     resident: int = 1024
     enough: bool = True
-    resident_first: bool = True
+    resident_first: bool = False
 
     def __post_init__(self) -> None:
         if self.k < 1:
@@ -567,7 +570,7 @@ class FloorIndex:
         exactly as without it. The query's own side of the descriptor distance is prepared
         once for the whole shortlist (:class:`robotd.floor.match.Matcher`). With
         ``params.enough`` and a ``min_score``, the shortlist is scored in order of global
-        similarity (the resident descriptors first, ``params.resident_first``) only until
+        similarity (with ``params.resident_first`` the resident descriptors first) only until
         ``k`` candidates reach ``min_score`` (:class:`IndexParams`).
         """
         k = self.params.k if k is None else int(k)

@@ -374,7 +374,7 @@ def test_a_query_that_stops_at_k_scores_the_resident_descriptors_first():
     """With a loader and ``enough`` stopping the query, the resident shortlisted keyframes
     are scored first: a query that finds its ``k`` loops among them reads nothing back
     (the same scores, the loops among the resident ones); ``resident_first`` off, the
-    shortlist goes in global order and reads the older keyframes it scores."""
+    shortlist goes in global order (the default) and reads the older keyframes it scores."""
     rng = np.random.default_rng(9)
     q = rng.integers(0, 256, 16, dtype=np.uint8)
     descs = {}
@@ -394,13 +394,13 @@ def test_a_query_that_stops_at_k_scores_the_resident_descriptors_first():
             ix.add(kf, d)  # 16-19 stay resident
         return ix
 
-    first = index().query(_Desc(q), k=3, min_score=3.0)
+    first = index(resident_first=True).query(_Desc(q), k=3, min_score=3.0)
     assert not reads and [c.keyframe_id for c in first] == [16, 17, 18]
     assert [c.score for c in first] == [5.0] * 3
-    plain = index(resident_first=False).query(_Desc(q), k=3, min_score=3.0)
+    plain = index().query(_Desc(q), k=3, min_score=3.0)  # the default: global order
     assert reads == [0, 1, 2] and [c.keyframe_id for c in plain] == [0, 1, 2]
     reads.clear()
-    more = index().query(_Desc(q), k=6, min_score=3.0)  # 4 resident, then the best two read back
+    more = index(resident_first=True).query(_Desc(q), k=6, min_score=3.0)  # 4 resident, then the best two read back
     assert reads == [0, 1] and sorted(c.keyframe_id for c in more) == [0, 1, 16, 17, 18, 19]
 
 
