@@ -71,6 +71,14 @@ class IncrementalParams:
         grows with the square of the passes): on 4,000 keyframes of repeated office laps
         the graph alone held 18.7 MB instead of 29.7 (``bench/bench_graph_memory.py``);
         the demo's loops and errors as without it. Default 1; 0: no such limit.
+    tie_to: which earlier pass a later pass's loops in iSAM2 tie it to. ``"previous"``
+        (default): as ``loops_per_place`` admits them, the pass before (passes chained
+        place by place: a lattice of laps x places, whose Bayes tree's separators hold a
+        pose of every pass, so each lap costs more than the one before). ``"first"``: a
+        loop enters only when its older end is on a first pass, not within
+        ``loop_spacing`` ids of the newer end of a loop in iSAM2 (``loops_per_place`` is
+        then not applied): every pass ties to the ground as first mapped, a star whose
+        separators stay small however many laps.
     """
 
     relinearize_threshold: float = 0.01
@@ -82,6 +90,7 @@ class IncrementalParams:
     factorization: str = "QR"
     fold: int = 10
     loops_per_place: int = 1
+    tie_to: str = "previous"
 
     def __post_init__(self) -> None:
         if self.factorization not in ("QR", "CHOLESKY"):
@@ -90,6 +99,8 @@ class IncrementalParams:
             raise ValueError(f"fold must be >= 1, got {self.fold}")
         if self.loops_per_place < 0:
             raise ValueError(f"loops_per_place must be >= 0, got {self.loops_per_place}")
+        if self.tie_to not in ("previous", "first"):
+            raise ValueError(f"tie_to must be 'previous' or 'first', not {self.tie_to!r}")
 
 
 class IncrementalGraph:
@@ -111,6 +122,7 @@ class IncrementalGraph:
         self._newest_held: Edge | None = None  # the last loop left out, if none entered since
         self._in_isam: list[tuple[int, int]] = []  # (newer, older) ends of the newest keyframe's loops in iSAM2
         self._older_ends: list[int] = []  # sorted older ends of the loops admitted (loops_per_place)
+        self._newer_ends: list[int] = []  # sorted newer ends of the loops admitted (tie_to "first")
         self.factorization = params.factorization  # iSAM2's; QR after a failure under Cholesky
         self.isam_failures = 0  # iSAM2 updates that raised, each recovered (_recover)
         self._isam = self._new_isam()
@@ -288,7 +300,12 @@ class IncrementalGraph:
             return False
         if s and any(abs(o - older) < s for _n, o in self._in_isam):
             return False
-        if self.params.loops_per_place:
+        if self.params.tie_to == "first":
+            ne, w = self._newer_ends, max(s, 1)
+            if bisect.bisect_left(ne, older + w) - bisect.bisect_right(ne, older - w) > 0:
+                return False  # the older end was itself tied back: not a first pass
+            bisect.insort(ne, newer)
+        elif self.params.loops_per_place:
             ends = self._older_ends
             near = bisect.bisect_left(ends, older + max(s, 1)) - bisect.bisect_right(ends, older - max(s, 1))
             if near >= self.params.loops_per_place:
