@@ -450,3 +450,28 @@ def test_the_joint_gate_covariance_is_the_relative_poses_on_one_chain():
         assert want == pytest.approx(9.0, rel=0.02)  # 3 sigma (the anchor's own prior is tiny)
         assert inc.loop_chi2(a, b, measured, np.linalg.inv(loop_cov), joint=True) == pytest.approx(want, rel=1e-3)
         assert inc.loop_chi2(a, b, measured, np.linalg.inv(loop_cov)) < 0.7 * want
+
+
+def _three_passes(params: IncrementalParams) -> list[tuple[int, int]]:
+    """Three passes over 30 places (ids 0-29, 30-59, 60-89), each later pass offering, at
+    every tenth keyframe, a loop to the pass before and then to the first; the loops that
+    entered iSAM2, as (newer, older)."""
+    g = IncrementalGraph(params)
+    g.add_first(0)
+    for k in range(1, 90):
+        g.add_keyframe(k, k - 1, (0.1, 0.0, 0.0) if k % 30 else (-2.9, 0.0, 0.0), INFO)
+        if k >= 30 and k % 10 == 0:
+            for older in sorted({k - 30, k % 30}, reverse=True):
+                g.add_loop(older, k, (0.0, 0.0, 0.0), INFO)
+    return sorted((e.to_id, e.from_id) for e in g.graph.edges if e.kind == "loop")
+
+
+def test_later_passes_tie_to_the_previous_pass_or_to_the_first():
+    """``tie_to="previous"`` (with one loop per place): the third pass ties to the second
+    (the first's places are taken); ``"first"``: every pass ties to the first, the second
+    pass's keyframes being newer ends of loops themselves."""
+    second = [(30, 0), (40, 10), (50, 20)]
+    assert _three_passes(IncrementalParams(loops_per_place=1)) == second + [(60, 30), (70, 40), (80, 50)]
+    assert _three_passes(IncrementalParams(tie_to="first")) == second + [(60, 0), (70, 10), (80, 20)]
+    with pytest.raises(ValueError):
+        IncrementalParams(tie_to="nearest")
