@@ -179,7 +179,7 @@ def markdown(payload: dict[str, Any]) -> str:
     """The page: a table per map, a row per sample and setting."""
     m = payload["machine"]
     lines = ["# The live pose graph's memory and CPU (`bench/bench_graph_memory.py`)", "",
-             "Generated from the JSON beside it; see the script's notes. Memory: resident after "
+             "Generated from the JSON files beside it (`--page`); see the script's notes. Memory: resident after "
              "`malloc_trim`, less the process's before the first keyframe. CPU: process time of "
              "the iSAM2 updates (with the gate's marginals for each loop) and of the full solves.", "",
              f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.", ""]
