@@ -77,8 +77,11 @@ class IncrementalParams:
         pose of every pass, so each lap costs more than the one before). ``"first"``: a
         loop enters only when its older end is on a first pass, not within
         ``loop_spacing`` ids of the newer end of a loop in iSAM2 (``loops_per_place`` is
-        then not applied): every pass ties to the ground as first mapped, a star whose
-        separators stay small however many laps.
+        then not applied): every pass ties to the ground as first mapped, a star rather
+        than a lattice. Measured (``bench/bench_graph_memory.py``, 10,000 keyframes of
+        synthetic office laps with noisy odometry, the graph alone): 97.1 MB against 52.5
+        with ``"previous"`` (iSAM2's incremental ordering still fills the tree in), the
+        last full solve 1.9 mm APE RMS from the truth against 2.7; so not the default.
     """
 
     relinearize_threshold: float = 0.01
