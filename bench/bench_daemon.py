@@ -846,9 +846,11 @@ def forward_memory_run(args: argparse.Namespace, images: int, forward_dir: Path,
     ``forward_dir`` (a rendered office sequence of ``bench_forward_scale.py``: PNGs and
     ``poses.csv``) lap after lap, each lap changed as ``bench_forward_scale.changed`` does
     (shifted, mirrored on odd laps, brightness changed), with the lap's poses, read from
-    disk one at a time (no image kept). The images are not written to the map (the stage
-    writes each under its floor keyframe, which this drive has none of): the detector's
-    memory, the process's and the allocator's are sampled every ``--memory-every`` images."""
+    disk one at a time (no image kept). Each image is written to the map as the stage
+    writes it, under a keyframe row of its own (this drive has no floor keyframes), so
+    the detector keeps only its newest images' features in memory and reads older ones
+    back when it verifies them, as the daemon does: the detector's memory, the process's
+    and the allocator's are sampled every ``--memory-every`` images."""
     import cv2
 
     from robotd.app.assemble import assemble_daemon, open_map
@@ -871,7 +873,8 @@ def forward_memory_run(args: argparse.Namespace, images: int, forward_dir: Path,
         clock = ManualClock(0)
         with open_map(cfg, clock=clock) as store:
             daemon = assemble_daemon(cfg, clock, {}, store, Notifier(), lossless=True)
-            det = daemon.pipeline.stage("forward").detector
+            stage = daemon.pipeline.stage("forward")
+            det = stage.detector
             gc.collect()
             rss0 = rss_mb()
             t0 = os.times()
@@ -882,11 +885,14 @@ def forward_memory_run(args: argparse.Namespace, images: int, forward_dir: Path,
                 im = changed(cv2.imread(str(files[j]), cv2.IMREAD_GRAYSCALE), lap, 0)
                 d = det.process(im, poses[j], cov)
                 loops += d.loop_id is not None
+                kid = store.add_keyframe(daemon.run_id, (i + 1) * 10**8, poses[j], cov, None)
+                stage._store_image(kid)  # as the stage stores each forward keyframe's image
                 if (i + 1) % args.memory_every == 0 or i + 1 == images:
                     t = os.times()
                     pm = process_memory()
                     row = {"images": i + 1, "laps": lap + 1, "rss_mb": rss_mb(), "rss_trimmed_mb": trimmed_rss_mb(),
-                           **pm, "loops": loops, "cpu_s": (t.user - t0.user) + (t.system - t0.system)}
+                           **pm, "loops": loops, "cpu_s": (t.user - t0.user) + (t.system - t0.system),
+                           "read_back": det.read_back, "store_errors": stage.store_errors}
                     if hasattr(det, "memory_bytes"):
                         row["detector_bytes"] = det.memory_bytes()
                     samples.append(row)
@@ -1033,16 +1039,20 @@ def _forward_section(p: dict[str, Any]) -> list[str]:
              f"`--forward-memory`: the daemon assembled with the forward detector on, its detector given the "
              f"images of `{r.get('forward_dir', '?')}` lap after lap (each lap changed), target "
              f"{r['images_target']} images; the floor stages idle. Before the first image: "
-             f"{r['rss_before_mb']:.0f} MB.", "",
+             f"{r['rss_before_mb']:.0f} MB." + (
+                 " Each image is written to the map as the stage writes it, and the detector keeps the "
+                 "features of its newest images only, reading older ones back when it verifies them "
+                 "(`read back`: images read back so far)." if any("read_back" in row for row in r["samples"])
+                 else " The images were not written to the map: every image's features stayed in memory."), "",
              "| images | laps | process RSS MB | after malloc_trim MB | RSS anonymous | malloc in use | "
-             "the detector's own MB | loops | CPU s so far |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "the detector's own MB | loops | read back | CPU s so far |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in r["samples"]:
         own = row.get("detector_bytes")
         own_mb = f"{sum(own.values()) / 1e6:.1f}" if isinstance(own, dict) else "-"
         lines.append(f"| {row['images']} | {row['laps']} | {row['rss_mb']:.0f} | {row['rss_trimmed_mb']:.0f} | "
                      f"{row.get('RssAnon', math.nan):.0f} | {row.get('malloc_used_mb', math.nan):.0f} | {own_mb} | "
-                     f"{row['loops']} | {row['cpu_s']:.0f} |")
+                     f"{row['loops']} | {row.get('read_back', '-')} | {row['cpu_s']:.0f} |")
     last = r["samples"][-1]["images"] if r["samples"] else 0
     if last < r["images_target"]:
         lines += ["", f"The run was stopped at {last} images, before its target of {r['images_target']}."]

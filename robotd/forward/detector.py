@@ -18,7 +18,9 @@ For image I_t (t = 0, 1, 2, ... in arrival order), :meth:`ForwardDetector.proces
 Then I_t is added to the inverted index. Each stage is timed with the injected timer (paper
 Fig. 7). The :class:`Detection` says why an image closed no loop, as DLoopDetector does.
 
-Everything is in memory (features of every image are kept for the verification). By
+The features of every image are kept for the verification: in memory, or, with a
+``loader`` (the daemon's map), only those of the last ``resident`` images and of the few
+read back lately, the older ones read back from the map when a candidate needs them. By
 default the inverted index, the votes and the filter grow with the run, as in the paper.
 With ``DetectorParams.memory.max_places`` (or ``time_budget_s``) set, a working memory
 (:mod:`robotd.forward.memory`) bounds them: only the places in it vote and are hypotheses
@@ -31,6 +33,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
@@ -43,7 +46,7 @@ from robotd.forward.filter import (FilterParams, diffusion_weights, predict, pre
                                    select_candidate_ids, update)
 from robotd.forward.likelihood import LikelihoodMethod, adjust_likelihood
 from robotd.forward.memory import MemoryParams, WorkingMemory
-from robotd.forward.verify import Verification, VerifyParams, verify_pair
+from robotd.forward.verify import TOO_FEW_MATCHES, Verification, VerifyParams, verify_pair
 from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams
 
 __all__ = ["Detection", "DetectionStatus", "DetectorParams", "ForwardDetector", "LOOP", "METHODS", "NO_HYPOTHESES",
@@ -375,6 +378,11 @@ class Detection:
         return len(self.posterior) - 1
 
 
+READ_BACK_KEPT = 32
+"""Past images whose features, read back by a :class:`ForwardDetector`'s loader, it keeps
+(the most recently used): a place being revisited is verified again image after image."""
+
+
 class ForwardDetector:
     """The incremental Bayesian loop-closure detector of paper 000.
 
@@ -386,16 +394,30 @@ class ForwardDetector:
     :mod:`robotd.app.stages.forward_loops`); one that fails it counts as a failed
     verification, so the next image of ``verify_tries`` is tried (None: none). It runs
     after the current image joined the detector (``features_of(len(self) - 1)``).
+
+    ``loader(image)``: the stored features of a past image that :meth:`mark_stored` named
+    (the daemon's: read from the map); with one, only the features of the last ``resident``
+    images and of the :data:`READ_BACK_KEPT` read back most recently stay in memory. It
+    raises LookupError when it cannot give them (then that image fails its verification).
     """
 
     def __init__(self, params: DetectorParams = DetectorParams(),
                  camera_matrix: np.ndarray | None = None,
                  timer: Callable[[], float] = time.perf_counter,
-                 accept: Callable[[int, Verification], bool] | None = None) -> None:
+                 accept: Callable[[int, Verification], bool] | None = None,
+                 loader: Callable[[int], CompactFeatures] | None = None, resident: int = 1024) -> None:
+        if resident < 1:
+            raise ValueError(f"resident must be >= 1, got {resident}")
         self.params = params
         self.camera_matrix = camera_matrix
         self._timer = timer
         self.accept = accept
+        self.loader = loader
+        self.resident = resident
+        self._in_store = bytearray()  # per image: 1 once the loader can give its features
+        self._read_back: OrderedDict[int, CompactFeatures] = OrderedDict()  # the latest read back
+        self.read_back = 0  # images whose features the loader gave
+        self.read_back_failed = 0  # images it could not give (their verification failed)
         self._extract = FeatureExtractor(params.features)
         fp = params.features
         self.vocabulary = Vocabulary(dim=fp.descriptor_size, binary=fp.binary, params=params.vocabulary)
@@ -403,7 +425,7 @@ class ForwardDetector:
         self.memory = WorkingMemory(self.index, params.memory,
                                     protect_recent=params.recent_excluded + params.filter.neighbours,
                                     neighbours=params.filter.neighbours)
-        self._features: list[CompactFeatures] = []
+        self._features: list[CompactFeatures | None] = []  # None: out of memory, the loader's
         self._poses = np.zeros((0, 3))      # (t, 3) x_m, y_m, yaw_rad of each image (NaN: unknown)
         self._poses_var = np.zeros((0, 3))  # (t, 3) their variances
         self._posterior = np.ones(1)
@@ -418,15 +440,48 @@ class ForwardDetector:
     def features_of(self, image_id: int) -> CompactFeatures:
         """The stored features of a processed image (compact: word ids, keypoints in 1/16
         px, descriptors; they read like :class:`Features`); the word ids for the latest
-        image only (empty for the others: the inverted index holds them)."""
-        return self._features[image_id]
+        image only (empty for the others: the inverted index holds them). Those out of
+        memory come from the :attr:`loader` (LookupError when it cannot give them)."""
+        f = self._features[image_id]
+        if f is not None:
+            return f
+        f = self._read_back.get(image_id)
+        if f is not None:
+            self._read_back.move_to_end(image_id)
+            return f
+        if self.loader is None:  # never: only a loader's images leave memory
+            raise LookupError(f"forward image {image_id} is not in memory")
+        f = without_words(self.loader(image_id))
+        self.read_back += 1
+        self._read_back[image_id] = f
+        if len(self._read_back) > READ_BACK_KEPT:
+            self._read_back.popitem(last=False)
+        return f
+
+    def mark_stored(self, image_id: int) -> None:
+        """The :attr:`loader` can now give ``image_id``'s features: they may leave memory
+        once ``resident`` newer images have come."""
+        if self.loader is None:
+            return
+        self._in_store[image_id] = 1
+        self._release(image_id)
+
+    def _release(self, image_id: int) -> None:
+        """Let ``image_id``'s features go when the loader has them and they are not recent."""
+        if (self.loader is not None and 0 <= image_id < len(self._features) - self.resident
+                and self._in_store[image_id]):
+            self._features[image_id] = None
 
     def restore(self, images: list[CompactFeatures], word_descriptors: np.ndarray, word_born: np.ndarray,
-                word_purged: np.ndarray) -> None:
+                word_purged: np.ndarray, stored: bool = False) -> None:
         """Take up the memory of an earlier run: its images in order (as
         :meth:`features_of` gave them) and its words (descriptors, the image that made each,
         purged or not). The inverted index is rebuilt from the images' words; the filter
-        starts at "no loop" as at any start; the earlier images are hypotheses at once."""
+        starts at "no loop" as at any start; the earlier images are hypotheses at once.
+        ``stored``: the :attr:`loader` gives every one of these images (they came from its
+        map), and an image without keypoints here is one left there (only its words given)."""
+        if stored and self.loader is None:
+            raise ValueError("restore(stored=True) needs a loader")
         if len(self._features):
             raise ValueError("restore() needs a detector that has seen no image")
         n_words = len(word_descriptors)
@@ -437,7 +492,10 @@ class ForwardDetector:
                 raise ValueError(f"stored image {t} has word {int(w.max())}, beyond the {n_words} stored words")
             seen[np.unique(w)] += 1
             self.memory.add(t, w, t)
-            self._features.append(without_words(f))
+            self._features.append(None if stored and not len(f) else without_words(f))
+        self._in_store = bytearray((b"\x01" if stored else b"\x00") * len(images))
+        for t in range(len(images) if stored else 0):
+            self._release(t)
         self._poses = np.full((len(self._features), 3), np.nan)  # no pose stored for them
         self._poses_var = np.full((len(self._features), 3), np.nan)
         self.vocabulary.restore(word_descriptors, word_born, word_purged, seen, len(images))
@@ -489,17 +547,25 @@ class ForwardDetector:
                     vp = replace(vp, min_inliers=o.agree_min_inliers)
                 if o.agree_min_support_area is not None:
                     vp = replace(vp, min_support_area=o.agree_min_support_area)
-            v = verify_pair(self._features[j], feats, vp, self.camera_matrix)
+            try:
+                old = self.features_of(j)
+            except LookupError:
+                self.read_back_failed += 1
+                continue
+            v = verify_pair(old, feats, vp, self.camera_matrix)
             if v.accepted and (self.accept is None or self.accept(j, v)):
                 return j, v, True
             failed.append(v)
+        if not failed:  # not one of them could be read back (counted): as if nothing matched
+            return candidate, Verification(False, TOO_FEW_MATCHES, 0, 0), False
         return candidate, failed[0], False
 
     def memory_bytes(self) -> dict[str, int]:
         """Bytes the detector holds, by part: ``images`` (word ids, keypoints, descriptors
-        of every past image), ``index`` (the inverted index), ``vocabulary`` (the word
+        of every past image in memory, those read back lately included), ``index`` (the inverted index), ``vocabulary`` (the word
         search, as usearch reports it, reserved capacity included)."""
-        return {"images": sum(f.nbytes for f in self._features),
+        kept = [f for f in self._features if f is not None] + list(self._read_back.values())
+        return {"images": sum(f.nbytes for f in kept),
                 "index": self.index.memory_bytes(),
                 "vocabulary": self.vocabulary.memory_bytes()}
 
@@ -581,8 +647,12 @@ class ForwardDetector:
         # that bookkeeping counts as word search.
         self.memory.add(t, words, t)
         self._features.append(compact(feats, words))
+        self._in_store.append(0)
         if t:  # the word ids of older images live on in the index (and a map file) only
-            self._features[t - 1] = without_words(self._features[t - 1])
+            prev = self._features[t - 1]
+            if prev is not None:
+                self._features[t - 1] = without_words(prev)
+            self._release(t - self.resident)
         self._poses = np.vstack([self._poses, pose_now[None, :]])
         self._poses_var = np.vstack([self._poses_var, var_now[None, :]])
         t3b = clock()

@@ -555,24 +555,30 @@ class MapStore(MapConnection):
                 conn.executemany("UPDATE forward_words SET purged = 1, descriptor = X'' WHERE id = ?",
                                  [(int(i),) for i in purged])
 
-    def forward_memory(self) -> tuple[list[tuple[Any, ...]], list[tuple[Any, ...]]]:
+    def forward_memory(self, features_from: int = 0) -> tuple[list[tuple[Any, ...]], list[tuple[Any, ...]]]:
         """Everything :meth:`add_forward_image` stored: the images as ``(image_id,
         keyframe_id, kind, (width, height), words (N,) uint32, keypoints_q (N, 2) uint16,
         descriptors bytes)`` in image order, and the words as ``(id, kind, descriptor
         bytes, born_image, purged)`` in id order (the caller knows the descriptor type; a
         purged word's descriptor is empty; a word written without its descriptor gets its
-        founder's from the image row). MapStoreError when a stored row does not decode."""
+        founder's from the image row). Images before ``features_from`` come without their
+        keypoints and descriptors (``(0, 2)`` and empty bytes; :meth:`forward_image` reads
+        them when needed), so a long memory is taken up without holding every image's
+        features at once. MapStoreError when a stored row does not decode."""
         images = []
-        for image_id, kf, kind, w, h, words, kps, desc in self._read(
-                "SELECT image_id, keyframe_id, kind, image_width, image_height, words, keypoints, descriptors"
-                " FROM forward_images ORDER BY image_id"):
+        for image_id, kf, kind, w, h, words, n_kps, kps, desc in self._read(
+                "SELECT image_id, keyframe_id, kind, image_width, image_height, words, length(keypoints),"
+                " CASE WHEN image_id >= ? THEN keypoints ELSE X'' END,"
+                " CASE WHEN image_id >= ? THEN descriptors ELSE X'' END"
+                " FROM forward_images ORDER BY image_id", (int(features_from), int(features_from))):
             try:
-                ids = unpack_word_ids(bytes(words), len(kps) // 4)
+                ids = unpack_word_ids(bytes(words), int(n_kps) // 4)
             except ValueError as exc:
                 raise MapStoreError(f"map {self._path}: forward image {image_id}: {exc}") from exc
             images.append((image_id, kf, kind, (w, h), ids,
                            np.frombuffer(kps, "<u2").astype(np.uint16).reshape(-1, 2), bytes(desc)))
         by_id = {im[0]: im for im in images}
+        founder_desc: tuple[int, bytes] = (-1, b"")  # the last image read back for its founders (words come by image)
         words = []
         for i, kind, d, born, p in self._read(
                 "SELECT id, kind, descriptor, born_image, purged FROM forward_words ORDER BY id"):
@@ -583,10 +589,30 @@ class MapStore(MapConnection):
                 if im is None or not len(at):
                     raise MapStoreError(f"map {self._path}: forward word {i} has no descriptor and its image "
                                         f"{born} no feature of it")
-                size = len(im[6]) // max(len(im[4]), 1)
-                d = im[6][int(at[0]) * size:(int(at[0]) + 1) * size]
+                desc = im[6]
+                if len(im[4]) and not desc:  # not read above: this image's descriptors alone
+                    if founder_desc[0] != born:
+                        row = self._read("SELECT descriptors FROM forward_images WHERE image_id = ?", (int(born),))
+                        founder_desc = (born, bytes(row[0][0]))
+                    desc = founder_desc[1]
+                size = len(desc) // max(len(im[4]), 1)
+                d = desc[int(at[0]) * size:(int(at[0]) + 1) * size]
             words.append((i, kind, d, born, bool(p)))
         return images, words
+
+    def forward_image_count(self) -> int:
+        """How many forward images the map holds."""
+        return int(self._read("SELECT COUNT(*) FROM forward_images")[0][0])
+
+    def forward_image(self, image_id: int) -> tuple[str, tuple[int, int], np.ndarray, bytes] | None:
+        """One stored forward image's features: ``(kind, (width, height), keypoints_q (N, 2)
+        uint16, descriptors bytes)``; None when the map has no such image."""
+        rows = self._read("SELECT kind, image_width, image_height, keypoints, descriptors FROM forward_images"
+                          " WHERE image_id = ?", (int(image_id),))
+        if not rows:
+            return None
+        kind, w, h, kps, desc = rows[0]
+        return kind, (w, h), np.frombuffer(kps, "<u2").astype(np.uint16).reshape(-1, 2), bytes(desc)
 
 
 def pack_word_ids(words: np.ndarray) -> bytes:

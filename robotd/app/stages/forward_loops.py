@@ -274,7 +274,11 @@ class ForwardLoopStage(Publisher):
         detector.accept = self._level
         self.store = store
         self.store_errors = 0
+        self.read_errors = 0  # reads of a past image's stored features that failed (logged once per image)
+        self._unreadable: set[int] = set()
         self.restored = 0
+        if store is not None:  # the past images' features stay in the map, read back when verified
+            detector.loader = self._load
         self.distance_m = distance_m
         self.rotation_rad = rotation_rad
         self.sync_tolerance_ns = int(sync_tolerance_s * 1e9)
@@ -300,7 +304,7 @@ class ForwardLoopStage(Publisher):
 
     def _restore(self) -> None:
         """Take up the forward memory stored in the map by earlier runs."""
-        images, words = self.store.forward_memory()
+        images, words = self.store.forward_memory(features_from=self._features_from())
         if not images and not words:
             return
         kind = self.detector.params.features.kind
@@ -321,7 +325,7 @@ class ForwardLoopStage(Publisher):
                             "are not stored")
                 self.store = None
                 return
-            d = np.frombuffer(desc, dtype).reshape(-1, dim)
+            d = np.frombuffer(desc, dtype).reshape(-1, dim)  # (0, dim) for one left in the map
             feats.append(CompactFeatures(w, kq, d, size))
             self._keyframe_ids.append(kf_id)
             self._offsets.append(np.zeros(3))
@@ -333,7 +337,7 @@ class ForwardLoopStage(Publisher):
             if not w[4]:
                 word_desc[n] = np.frombuffer(w[2], dtype)
         self.detector.restore(feats, word_desc, np.array([w[3] for w in words], np.int64),
-                              np.array([w[4] for w in words], bool))
+                              np.array([w[4] for w in words], bool), stored=True)
         self.restored = len(feats)
         log.info("forward memory taken up from the map: %d images, %d words (%d purged)", len(feats),
                  len(words), self.detector.vocabulary.purged)
@@ -352,6 +356,41 @@ class ForwardLoopStage(Publisher):
         except (ValueError, MapStoreError) as exc:
             self.store_errors += 1
             log.warning("forward image %d (keyframe %d) not stored: %s", t, keyframe_id, exc)
+            return
+        self.detector.mark_stored(t)
+
+    def _features_from(self) -> int:
+        """The first stored image whose features a restart reads into memory (the
+        detector's ``resident`` newest; the older ones are read back when verified)."""
+        rows = self.store.forward_image_count()
+        return max(0, rows - self.detector.resident)
+
+    def _load(self, image_id: int) -> CompactFeatures:
+        """The detector's loader: a past image's features read back from the map (a read
+        that fails is logged and counted, and that image is not verified)."""
+        try:
+            row = self.store.forward_image(image_id) if self.store is not None else None
+        except MapStoreError as exc:
+            row, why = None, str(exc)
+        else:
+            why = "not in the map"
+        if row is not None and row[0] == self.detector.params.features.kind:
+            kind, size, kq, desc = row
+            fp = self.detector.params.features
+            dtype = np.uint8 if fp.binary else np.float32
+            try:
+                d = np.frombuffer(desc, dtype).reshape(-1, fp.descriptor_size)
+            except ValueError as exc:
+                why = str(exc)
+            else:
+                if len(d) == len(kq):
+                    return CompactFeatures(np.zeros(0, np.uint32), kq, d, size)
+                why = f"{len(kq)} keypoints but {len(d)} descriptors"
+        self.read_errors += 1
+        (log.debug if image_id in self._unreadable else log.warning)(
+            "forward image %d: its stored features could not be read back (%s): not verified", image_id, why)
+        self._unreadable.add(image_id)
+        raise LookupError(image_id)
 
     def subscriptions(self) -> Mapping[type, Any]:
         return {Frame: self.on_frame, KeyframeStored: self.on_keyframe, OdometryUpdate: self.on_odometry,
