@@ -399,9 +399,14 @@ class IncrementalGraph:
             self.graph.add_edge(from_id, to_id, delta, info, "loop")
         self._clear_fold()  # every keyframe a variable again, until the next full solve
         isam = self._new_isam()
-        isam.update(factor_graph(self.graph, self._kernel, skip=self.rejected_loops), to_values(ids, est))
-        for _ in range(self.params.loop_updates):
-            isam.update()
+        try:
+            isam.update(factor_graph(self.graph, self._kernel, skip=self.rejected_loops), to_values(ids, est))
+            for _ in range(self.params.loop_updates):
+                isam.update()
+        except RuntimeError as exc:  # as for any update: the whole graph re-solved (_recover)
+            self._isam = isam
+            self._recover(exc)
+            return
         self._isam = isam
         self._version += 1
 

@@ -343,6 +343,49 @@ def test_an_isam2_failure_is_recovered_from_the_whole_graph(caplog):
     assert g.isam_failures == 1
 
 
+class _Failing:
+    """iSAM2 raising GTSAM's indeterminate system on a call of ``what``."""
+
+    def __init__(self, isam, what):
+        self.isam, self.what = isam, what
+
+    def __getattr__(self, name):
+        if name == self.what:
+            raise RuntimeError("\nIndeterminate linear system detected while working near variable\n140")
+        return getattr(self.isam, name)
+
+
+def test_a_failing_relocalisation_rebuild_is_recovered(monkeypatch):
+    """A segment attached (relocalised) while iSAM2's rebuild raises: recovered from the
+    whole graph, the segment moved and tied as without the failure."""
+    graphs = []
+    for fail in (False, True):
+        g = IncrementalGraph()
+        g.add_first(0)
+        for k in range(1, 6):
+            g.add_keyframe(k, k - 1, (1.0, 0.0, 0.0), INFO)
+        g.add_segment(10, (0.0, 0.0, 0.0))
+        for k in range(11, 14):
+            g.add_keyframe(k, k - 1, (1.0, 0.0, 0.0), INFO)
+        if fail:
+            real, made = g._new_isam, []
+
+            def failing_once():  # the attach's rebuild fails, the recovery's does not
+                made.append(1)
+                return _Failing(real(), "update") if len(made) == 1 else real()
+
+            monkeypatch.setattr(g, "_new_isam", failing_once)
+            g.attach([10, 11, 12, 13], (5.0, 0.0, 0.0), [(5, 10, np.zeros(3), INFO)])
+            monkeypatch.undo()
+        else:
+            g.attach([10, 11, 12, 13], (5.0, 0.0, 0.0), [(5, 10, np.zeros(3), INFO)])
+        graphs.append(g)
+    ok, bad = graphs
+    assert ok.isam_failures == 0 and bad.isam_failures == 1
+    np.testing.assert_allclose(bad.estimate()[1], ok.estimate()[1], atol=1e-6)
+    np.testing.assert_allclose(bad.pose(13), (8.0, 0.0, 0.0), atol=1e-6)
+
+
 def test_a_failing_update_keeps_its_edge_and_the_marginals_recover(monkeypatch):
     """Any iSAM2 failure, a loop's update or the gate's marginals: the edge that was being
     added is in the rebuilt iSAM2 (the estimate equals a graph that took it without a
@@ -354,21 +397,12 @@ def test_a_failing_update_keeps_its_edge_and_the_marginals_recover(monkeypatch):
     a, b = 100 + 2 * 2, 100 + 2 * 13
     loop = (a, b, tuple(between(ok.pose(a), ok.pose(b)) + [0.1, -0.1, 0.02]), INFO)
 
-    class Failing:  # iSAM2 raising once, on its next call of ``what``
-        def __init__(self, isam, what):
-            self.isam, self.what = isam, what
-
-        def __getattr__(self, name):
-            if name == self.what:
-                raise RuntimeError("\nIndeterminate linear system detected while working near variable\n140")
-            return getattr(self.isam, name)
-
     expected = ok.loop_chi2(*loop)
-    bad._isam = Failing(bad._isam, "marginalCovariance")
+    bad._isam = _Failing(bad._isam, "marginalCovariance")
     assert bad.loop_chi2(*loop) == pytest.approx(expected, rel=1e-3)
     assert bad.isam_failures == 1
     assert ok.add_loop(*loop)
-    bad._isam = Failing(bad._isam, "update")
+    bad._isam = _Failing(bad._isam, "update")
     assert bad.add_loop(*loop)
     assert bad.isam_failures == 2 and bad.factorization == "QR"
     assert bad.graph.loop_count == ok.graph.loop_count
