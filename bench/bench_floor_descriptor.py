@@ -29,7 +29,8 @@ caches it; ``--recording`` names another), mode 4 as the daemon describes keyfra
   the default extraction, the selectable ``FULL_RESOLUTION`` one (the maps at every
   pixel with the exact channel split and the full repeat pool: the bytes before the
   faster defaults), the selectable cheaper ``COARSE`` one (the maps and the orientation
-  from the detection image halved), OpenCV ORB (500) and SIFT, on ``--office-frames``
+  from the detection image halved), the selectable ``QUARTER`` one (the candidates found on
+  the detection image halved too: a quarter of its pixels), OpenCV ORB (500) and SIFT, on ``--office-frames``
   frames spread over the drive;
 * query time of the floor index (:class:`robotd.floor.index.FloorIndex`, the daemon's
   shortlist of 10 and the demo's loop threshold as ``min_score``) at 1,000 and 10,000
@@ -64,7 +65,7 @@ except ImportError:  # run as a script: bench/ is on sys.path
     from floor_common import (MODES, SiftBaseline, add_common_args, bench_floors, header,
                               load_average, log, one_thread, pyplot, r, spread, time_each)
 
-from robotd.floor.descriptor import FULL_RESOLUTION, MODE_BYTES, ExtractParams, decode, extract
+from robotd.floor.descriptor import FULL_RESOLUTION, MODE_BYTES, QUARTER, ExtractParams, decode, extract
 from robotd.floor.match import local_score
 from robotd.base.camera import FloorCameraModel
 from sim.pairs import straight_run
@@ -169,6 +170,7 @@ def bench_office(args: argparse.Namespace, sift: SiftBaseline) -> dict:
     methods = {"ours": lambda im: extract(im, OFFICE_MODE),
                "full_resolution": lambda im: extract(im, OFFICE_MODE, FULL_RESOLUTION),
                "coarse": lambda im: extract(im, OFFICE_MODE, COARSE),
+               "quarter": lambda im: extract(im, OFFICE_MODE, QUARTER),
                "orb": lambda im: orb.detectAndCompute(im, None), "sift": sift.extract}
     times: dict[str, list[float]] = {k: [] for k in methods}
     blobs: dict[str, list[bytes]] = {"ours": []}
@@ -447,13 +449,16 @@ def markdown(p: dict) -> list[str]:
                  "full_resolution": "ours, `FULL_RESOLUTION` (the maps at every pixel, the exact split: the previous bytes)",
                  "coarse": "ours, `COARSE` (maps and orientation from the image halved: `orientation_step=2`, "
                            "`exact_maps`)",
+                 "quarter": "ours, `QUARTER` (candidates too from the image halved: `detect_step=2`, `exact_maps`)",
                  "orb": "OpenCV ORB (500)",
                  "sift": "OpenCV SIFT"}
         lines += ["## The office drive (the daemon's keyframes)", "",
                   f"{o['timed_frames']} floor frames spread over the recorded 60 s office drive ({o['frames']} "
                   f"frames), mode {o['mode']}, the methods interleaved frame by frame. `FULL_RESOLUTION` gives the "
                   "bytes before the faster defaults; `COARSE` is cheaper and not the default: the demo's visual "
-                  "odometry lost accuracy with it (docs/performance.md).", "",
+                  "odometry lost accuracy with it"
+                  + ("; `QUARTER` is cheaper still and not the default: the printed plank floor aliases with it"
+                     if "quarter" in d else "") + " (docs/performance.md).", "",
                   "Describe, ms per frame:", "", *head(["method", "median", "IQR", "bytes (mean)"])]
         for k, v in d.items():
             b = o["bytes_mean"].get(k)

@@ -127,6 +127,10 @@ def configurations(full: bool) -> dict[str, object]:
     })
     if full:
         cfgs["default, ORB 1000"] = replace(dflt, features=FeatureParams(kind="orb", max_features=1000))
+    # cheaper ORB settings (docs/forward.md, "Time and memory": the features)
+    for name, change in (("ORB 4 levels", {"orb_levels": 4}), ("ORB 5 levels x1.3", {"orb_levels": 5, "orb_scale_factor": 1.3}),
+                         ("image x0.75", {"image_scale": 0.75}), ("image x0.8, 6 levels", {"image_scale": 0.8, "orb_levels": 6})):
+        cfgs[f"default, {name}"] = replace(dflt, features=replace(dflt.features, **change))
     return cfgs
 
 
@@ -417,7 +421,7 @@ def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, obje
         orb.detectAndCompute(g, None)
         cv_ms.append((time.perf_counter() - t0) * 1e3)
     cv_median = float(np.median(cv_ms))
-    feats: dict[tuple, list] = {}
+    feats: dict[FeatureParams, list] = {}
     out: dict[str, object] = {"images": len(files), "opencv_orb_ms": {"median": cv_median,
                                                                        "p99": float(np.percentile(cv_ms, 99))},
                               "configurations": {}}
@@ -429,7 +433,7 @@ def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, obje
         params = cfgs[cname]
         if cname in skip:
             continue
-        fk = (params.features.kind, params.features.max_features)
+        fk = params.features  # every field: the extraction differs with any of them
         if fk not in feats:
             feats[fk] = extract_timed(params.features, images)
         src = pose_source(cname) if odometry is not None else "none"
@@ -463,7 +467,7 @@ def run_sequence(name: str, folder: Path, truth_path: Path, cfgs: dict[str, obje
         from robotd.forward.baselines import BruteForceMatcher
 
         sift = method_params("paper").features
-        fk = (sift.kind, sift.max_features)
+        fk = sift
         if fk not in feats:
             ex = FeatureExtractor(sift)
             feats[fk] = []

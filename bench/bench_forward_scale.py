@@ -95,6 +95,19 @@ def opencv_orb_ms(images: list[np.ndarray]) -> np.ndarray:
     return out
 
 
+def opencv_orb_cpu_ms(images: list[np.ndarray]) -> np.ndarray:
+    """OpenCV's own ORB (300 keypoints) per image, CPU ms of the process (all its threads):
+    beside the wall times, which a loaded machine stretches."""
+    orb = cv2.ORB_create(nfeatures=300)
+    out = np.zeros(len(images))
+    for i, im in enumerate(images):
+        g = gray(im)
+        t0 = time.process_time()
+        orb.detectAndCompute(g, None)
+        out[i] = (time.process_time() - t0) * 1e3
+    return out
+
+
 def map_file_bytes(det: ForwardDetector, kept_new: list, kept_purged: list, kept_words: list) -> dict[str, float]:
     """Bytes per image the detector's memory takes in a map file: the file's growth when
     the forward rows are written over keyframes already there (``kept_words``: each
@@ -146,11 +159,13 @@ def run_sequence(name: str, folder: Path, truth_path: Path, variants: list[str],
     h, w = images[0].shape[:2]
     k = camera_matrix_guess(w, h, 525.0 if name == "office" else None)
     cv_ms = opencv_orb_ms(images)
+    cv_cpu = opencv_orb_cpu_ms(images)
     base = method_params("default")
     feats = extract_timed(base.features, images)
     out: dict[str, object] = {"images": len(files), "image_size": [w, h],
                               "opencv_orb_ms": {"median": float(np.median(cv_ms)),
                                                 "p99": float(np.percentile(cv_ms, 99))},
+                              "opencv_orb_cpu_ms_median": float(np.median(cv_cpu)),
                               "variants": {}}
     print(f"\n{name}: {len(files)} images ({w}x{h}); OpenCV ORB (300): median {np.median(cv_ms):.1f} ms", flush=True)
     for variant in variants:
@@ -164,8 +179,11 @@ def run_sequence(name: str, folder: Path, truth_path: Path, variants: list[str],
         stage_ms = {st: np.zeros(n) for st in STAGES}
         verified = np.zeros(n, bool)
         kept_new, kept_purged, kept_words = [], [], []
+        cpu_ms = np.zeros(n)  # the detector's CPU per image, features excluded
         for t, (fe, fs) in enumerate(feats):
+            c0 = time.process_time()
             d = det.process_features(fe, fs)
+            cpu_ms[t] = (time.process_time() - c0) * 1e3
             total[t] = d.times_s["total"] * 1e3
             words_ms[t] = d.times_s["words"] * 1e3
             verify_ms[t] = d.times_s["verify"] * 1e3
@@ -183,6 +201,7 @@ def run_sequence(name: str, folder: Path, truth_path: Path, variants: list[str],
                "words_ms_median": float(np.median(words_ms)), "words_ms_p99": float(np.percentile(words_ms, 99)),
                "verify_ms_median": float(np.median(verify_ms)), "verify_ms_p99": float(np.percentile(verify_ms, 99)),
                "images_verified": int(verified.sum()),
+               "cpu_ms_without_features": {"median": float(np.median(cpu_ms)), "p99": float(np.percentile(cpu_ms, 99))},
                # each stage's own median, p99 and mean (ms), and its share of the slowest 1 %
                "stages_ms": {st: {"median": float(np.median(v)), "p99": float(np.percentile(v, 99)),
                                   "mean": float(v.mean()),
@@ -362,6 +381,16 @@ def page(res: dict) -> list[str]:
             st = r["stages_ms"]
             cells = [f"{st[k]['median']:.1f} / {st[k]['p99']:.1f} ({st[k]['slowest_1pct_mean']:.1f})" for k in STAGES]
             lines.append(f"| {sname} | {v} | " + " | ".join(cells) + f" | {r['ms_median']:.1f} / {r['ms_p99']:.1f} |")
+    cpu = [(sname, s, v, r) for sname, s, v, r in staged if "cpu_ms_without_features" in r]
+    if cpu:
+        lines += ["", "CPU time beside the wall times above (the process's CPU, `time.process_time`; a loaded "
+                  "machine stretches wall times, not these): the detector per image without the features, median "
+                  "/ p99 ms, and OpenCV's ORB of the same images.", "",
+                  "| sequence | variant | detector CPU ms, features excluded | OpenCV ORB CPU ms median |",
+                  "|---|---|---:|---:|"]
+        for sname, s, v, r in cpu:
+            c = r["cpu_ms_without_features"]
+            lines.append(f"| {sname} | {v} | {c['median']:.1f} / {c['p99']:.1f} | {s['opencv_orb_cpu_ms_median']:.1f} |")
     sc = res.get("scale")
     if sc:
         lines += ["",

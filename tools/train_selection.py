@@ -39,7 +39,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from robotd.floor.compression import transform  # noqa: E402
-from robotd.floor.descparams import N_ATTRIBUTES, ExtractParams, Learned  # noqa: E402
+from robotd.floor.descparams import N_ATTRIBUTES, ExtractParams, Learned, load_learned  # noqa: E402
 from robotd.floor.keypoints import candidates, raw_descriptors, working  # noqa: E402
 from robotd.base.camera import FloorCameraModel, overlap_ratios  # noqa: E402
 from robotd.base.geometry import inverse, transform_points  # noqa: E402
@@ -98,7 +98,7 @@ def kmeans(x: np.ndarray, k: int, rng: np.random.Generator, iters: int = 40) -> 
 
 
 def train(args: argparse.Namespace) -> dict[str, np.ndarray]:
-    params = ExtractParams()
+    params = ExtractParams(detect_step=args.detect_step)
     cam = FloorCameraModel.default()
     attrs, labels, elems, raws = [], [], [], []
     corr_a, corr_b, rand_a, rand_b = [], [], [], []
@@ -179,12 +179,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--match-px", type=float, default=4.0, help="ground-truth tolerance of a correct match")
     ap.add_argument("--bins", type=int, default=12, help="quantile bins per selection attribute")
     ap.add_argument("--tail", type=float, default=1 / 3, help="ternary thresholds at these quantiles")
+    ap.add_argument("--detect-step", type=int, default=1, choices=[1, 2],
+                    help="ExtractParams.detect_step of the keypoints learned on (2: detection on the image halved)")
+    ap.add_argument("--selection-only", type=Path, default=None, metavar="NPZ",
+                    help="learn only the selection tables (rel_edges, rel_logp) and take every other table "
+                         "from this file: descriptors stay comparable with those made with it")
     args = ap.parse_args(argv)
     tables = train(args)
+    if args.selection_only is not None:
+        kept = load_learned(args.selection_only)
+        tables = {k: (tables[k] if k in ("rel_edges", "rel_logp") else getattr(kept, k))
+                  for k in Learned.__dataclass_fields__}
     Learned(**tables)  # every field present
     meta = np.array(f"tools/train_selection.py seed={args.seed} pairs={args.pairs} max_offset={args.max_offset} "
                     f"per_image={args.per_image} match_px={args.match_px} bins={args.bins} tail={args.tail:.4f} "
-                    f"floors={','.join(FLOORS)}")
+                    f"floors={','.join(FLOORS)} detect_step={args.detect_step}"
+                    + (f" selection_only={args.selection_only.name}" if args.selection_only else ""))
     np.savez_compressed(args.out, meta=meta, **tables)
     log(f"wrote {args.out} ({args.out.stat().st_size} bytes)")
     return 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
@@ -78,7 +79,7 @@ def _print_comparison(f: TextIO, title: str, columns: list[tuple[str, dict[str, 
     """A table: ``rows`` of (label, key, format) looked up in each column's dict."""
     print(f"{title:<26}" + "".join(f"{name:>12}" for name, _ in columns), file=f)
     for label, key, fmt in rows:
-        print(f"{label:<26}" + "".join(f"{fmt.format(col[key]):>12}" for _, col in columns), file=f)
+        print(f"{label:<26}" + "".join(f"{fmt.format(col.get(key, math.nan)):>12}" for _, col in columns), file=f)
 
 
 def print_summary(s: Summary, f: TextIO) -> None:
@@ -128,6 +129,7 @@ def print_summary(s: Summary, f: TextIO) -> None:
             ("end position error (m)", "end_position_error_m", "{:.3f}"),
             ("end heading error (deg)", "end_heading_error_deg", "{:.2f}"),
             ("APE RMS, anchored (m)", "ape_origin_rmse_m", "{:.3f}"),
+            ("ATE RMS, aligned (m)", "ate_aligned_rmse_m", "{:.3f}"),
             ("RPE per step, RMS (mm)", "rpe_rmse_mm", "{:.2f}"),
         ))
         print(f"pose graph: {g['loops_in_graph']} loop edges accepted, {g.get('loops_failed_gate', 0)} "

@@ -19,7 +19,7 @@ import numpy as np
 from robotd.base.camera import FloorCameraModel
 from robotd.base.geometry import between, compose, inverse, wrap_angle
 from robotd.base.messages import LoopFate
-from robotd.evaluation.metrics import odometry_errors, rpe_per_step
+from robotd.evaluation.metrics import Alignment, ape_translation_rmse, odometry_errors, rpe_per_step
 from robotd.evaluation.observations import RunObservations
 from robotd.floor.evaluation import CandidateReport, candidate_report, overlap_matrix
 from robotd.forward.planar import PlanarLoopParams, loop_edge
@@ -63,15 +63,19 @@ def keyframe_errors(truth: np.ndarray, columns: Sequence[tuple[str, np.ndarray]]
     """Each estimate of the keyframe poses (``columns``: name, ``(K, 3)``) against the
     ``truth (K, 3)`` at the same keyframes: end errors, APE (translation, RMS, anchored at
     the first keyframe: :attr:`~robotd.evaluation.metrics.Alignment.ORIGIN`) and RPE per
-    keyframe-to-keyframe step (RMS)."""
+    keyframe-to-keyframe step (RMS), and the ATE (translation RMS after the rigid
+    least-squares fit of all positions, :attr:`~robotd.evaluation.metrics.Alignment.ALIGNED`:
+    the shape of the trajectory, whatever error the first keyframe's pose carries into the
+    rest; NaN for fewer than two keyframes)."""
     out = {}
     for name, est in columns:
         e = odometry_errors(truth, est)
         rpe_t, rpe_r = rpe_per_step(truth, est)
+        ate = ape_translation_rmse(truth, est, Alignment.ALIGNED) if len(truth) >= 2 else math.nan
         out[name] = {"end_position_error_m": e.end_position_error_m,
                      "end_heading_error_deg": e.end_heading_error_deg,
-                     "ape_origin_rmse_m": e.ape_origin_rmse_m, "rpe_rmse_mm": rpe_t * 1e3,
-                     "rpe_rmse_deg": float(np.degrees(rpe_r))}
+                     "ape_origin_rmse_m": e.ape_origin_rmse_m, "ate_aligned_rmse_m": ate,
+                     "rpe_rmse_mm": rpe_t * 1e3, "rpe_rmse_deg": float(np.degrees(rpe_r))}
     return out
 
 

@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 __all__ = ["ANGLE_BITS", "HEADER", "MAGIC", "MODE_BYTES", "MODES", "N_ATTRIBUTES", "N_ELEMENTS",
-           "POSITION_STEP_PX", "VERSION", "FULL_RESOLUTION", "ExtractParams", "Learned", "ModeSpec",
+           "POSITION_STEP_PX", "QUARTER", "VERSION", "FULL_RESOLUTION", "ExtractParams", "Learned", "ModeSpec",
            "load_learned", "shipped_learned"]
 
 MODE_BYTES = {1: 512, 2: 1024, 3: 2048, 4: 4096, 5: 8192, 6: 16384}
@@ -63,6 +63,17 @@ class ExtractParams:
         orientation_step: likewise for the gradient that gives the keypoints' orientation
             (smooth at ``orientation_sigma_px``; 2 takes it from the image halved, a median
             1.1 degrees off).
+        detect_step: 2 finds the candidates on the half-resolution image halved again (a
+            quarter of its pixels; the difference of Gaussians at the same scale, so at
+            half the sigmas in its pixels), positions back in half-resolution pixels, the
+            orientation (and with ``exact_maps`` the pooled maps) from its Gaussian image:
+            :data:`QUARTER`. About 0.75 of the default's time, but the extrema of a
+            difference of Gaussians at 0.9 px are sampled too coarsely to repeat across
+            copies of one print, so the repeat check misses copies and the printed plank
+            floor aliases (the view a lattice step away scores 0.76-1.2 of the true
+            overlap in modes 2, 3 and 5 against 0.23-0.36; selection tables re-learned on
+            such candidates do not change that), and the visual odometry's error
+            per step grows by about a fifth: not the default.
         exact_maps: True splits each gradient between the orientation channels exactly
             (per-pixel arithmetic and scatters); False (the default) looks the split up in a
             table of 256 angles, within 1/64 of the gradient's magnitude of the exact split:
@@ -101,6 +112,7 @@ class ExtractParams:
     pool_sigma_px: float = 2.5
     pool_step: int = 2
     orientation_step: int = 1
+    detect_step: int = 1
     exact_maps: bool = False
     cell_px: float = 6.0
     max_candidates: int = 4000
@@ -113,7 +125,7 @@ class ExtractParams:
     def __post_init__(self) -> None:
         if not (self.max_side_px >= 32 and self.detect_sigma_px > 0 and self.dog_ratio > 1
                 and self.edge_ratio > 1 and self.orientation_sigma_px > 0 and self.pool_sigma_px > 0
-                and self.pool_step in (1, 2) and self.orientation_step in (1, 2)
+                and self.pool_step in (1, 2) and self.orientation_step in (1, 2) and self.detect_step in (1, 2)
                 and self.cell_px > 0 and self.max_candidates >= 1 and self.global_min_features >= 0
                 and self.repeat_distance >= 0 and self.repeat_pool >= 0 and self.repeat_pool_ratio >= 0):
             raise ValueError(f"extraction parameters out of range: {self}")
@@ -123,6 +135,13 @@ FULL_RESOLUTION = ExtractParams(pool_step=1, exact_maps=True)
 """The maps at every pixel of the detection image with the exact channel split, and the
 full repeat pool: the bytes the extraction gave before the faster defaults (selectable,
 slower; the benchmarks time it beside the default)."""
+
+
+QUARTER = ExtractParams(detect_step=2, exact_maps=True)
+"""The candidates, their orientation and the pooled maps from the image halved again (a
+quarter of the half-resolution pixels; ``detect_step``): the cheapest extraction, which
+fails the printed plank floor's alias suppression (selectable, not the default; the
+benchmarks time it beside the default)."""
 
 
 @dataclass(frozen=True, eq=False)

@@ -8,9 +8,10 @@ bitstream-compatible with the standard. It is built for a downward floor camera:
 floor's scale barely changes between views, its rotation changes all the time.
 
 1. **Interest points.** One difference of Gaussians (sigma ``detect_sigma_px`` and
-   ``dog_ratio`` times it) on the half-resolution image, instead of the CDVS/SIFT scale
-   space: local extrema over 3x3 above ``min_contrast`` (the image is normalised by its
-   standard deviation, so exposure drift does not matter), edge responses rejected by
+   ``dog_ratio`` times it) on the half-resolution image (``detect_step`` 2: on that image
+   halved, the selectable :data:`QUARTER`), instead of the CDVS/SIFT scale space: local
+   extrema over 3x3 above ``min_contrast`` (the image is normalised by its standard
+   deviation, so exposure drift does not matter), edge responses rejected by
    the Hessian ratio (Lowe 2004, Sec. 4.1), sub-pixel refinement by a quadratic fit.
    Orientation: the direction of the gradient of the image smoothed at
    ``orientation_sigma_px``, at the keypoint (the intensity centroid of ORB with a
@@ -82,6 +83,7 @@ from robotd.floor.descparams import (
     MODES,
     N_ELEMENTS,
     POSITION_STEP_PX,
+    QUARTER,
     VERSION,
     ExtractParams,
     Learned,
@@ -91,7 +93,7 @@ from robotd.floor.descparams import (
 from robotd.floor.keypoints import (candidates, drop_repeats, grey, kept_for_budget, raw_descriptors, working,
                                     workspace)
 
-__all__ = ["ANGLE_BITS", "FULL_RESOLUTION", "MODE_BYTES", "MODES", "POSITION_STEP_PX", "ExtractParams", "FloorDescriptor",
+__all__ = ["ANGLE_BITS", "FULL_RESOLUTION", "MODE_BYTES", "MODES", "POSITION_STEP_PX", "QUARTER", "ExtractParams", "FloorDescriptor",
            "Learned", "decode", "describe", "drop_repeats", "extract", "load_learned"]
 
 

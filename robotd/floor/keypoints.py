@@ -139,52 +139,49 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None,
         return empty
     if ws is None or ws.shape != (h2, w2):
         ws = Workspace(h2, w2)
-    x = ws.x
-    np.copyto(x, cv2.resize(work, (w2, h2), interpolation=cv2.INTER_AREA), casting="unsafe")
-    x *= np.float32(1.0 / max(_std(x, ws.t1), 1.0))  # flat images: no keypoint passes
     s = params.detect_sigma_px
-    g1 = cv2.GaussianBlur(x, (0, 0), s, dst=ws.g1)
-    d = np.subtract(g1, cv2.GaussianBlur(g1, (0, 0), s * math.sqrt(params.dog_ratio**2 - 1.0), dst=ws.t1),
-                    out=ws.d)
-    square = np.ones((3, 3), np.uint8)  # OpenCV's default kernel (None): the 8-neighbourhood
-    ext = np.equal(d, cv2.dilate(d, square, dst=ws.t1), out=ws.e1)
-    ext |= np.equal(d, cv2.erode(d, square, dst=ws.t1), out=ws.e2)
-    ext &= np.greater(np.abs(d, out=ws.t1), params.min_contrast, out=ws.e2)
-    ext[:border], ext[-border:], ext[:, :border], ext[:, -border:] = False, False, False, False
-    i = np.flatnonzero(ext)  # np.nonzero's order, a third of its time
-    df = d.ravel()  # pixels read by flat index (d[y, x + 1] is df[i + 1]): a fraction of 2-D indexing's time
-    dc = df[i]
-    if len(dc) > params.max_candidates:
-        keep = np.argpartition(-np.abs(dc), params.max_candidates - 1)[: params.max_candidates]
-        i, dc = i[keep], dc[keep]
-    ys, xs = np.divmod(i, w2)
-    # Hessian of the DoG: edge rejection (Lowe 2004, Sec. 4.1) and sub-pixel offset.
-    right, left, down, up = df[i + 1], df[i - 1], df[i + w2], df[i - w2]
-    dxx = right + left - 2 * dc
-    dyy = down + up - 2 * dc
-    dxy = 0.25 * (df[i + w2 + 1] - df[i + w2 - 1] - df[i - w2 + 1] + df[i - w2 - 1])
-    det = dxx * dyy - dxy * dxy
-    edge = (dxx + dyy) ** 2 / np.where(det > 0, det, 1.0)
-    ok = (det > 0) & (edge < (params.edge_ratio + 1) ** 2 / params.edge_ratio)
-    ys, xs, dc, dxx, dyy, dxy, det, edge, right, left, down, up = (
-        v[ok] for v in (ys, xs, dc, dxx, dyy, dxy, det, edge, right, left, down, up))
-    if len(xs) == 0:
-        return empty
-    gx = 0.5 * (right - left)
-    gy = 0.5 * (down - up)
-    ox = np.clip((-dyy * gx + dxy * gy) / det, -0.5, 0.5)
-    oy = np.clip((dxy * gx - dxx * gy) / det, -0.5, 0.5)
-    xy_half = np.column_stack([xs + ox, ys + oy]).astype(np.float32)
+    coarse = params.detect_step == 2
+    half = ws.half() if coarse or 2 in (params.orientation_step, params.pool_step) else ws
+    x = ws.x
+    if not coarse or not params.exact_maps or params.pool_step == 1:  # g1 at every pixel: detection or maps
+        np.copyto(x, cv2.resize(work, (w2, h2), interpolation=cv2.INTER_AREA), casting="unsafe")
+        if not coarse:  # (the maps' scale does not matter: each raw descriptor is normalised)
+            x *= np.float32(1.0 / max(_std(x, ws.t1), 1.0))  # flat images: no keypoint passes
+        g1 = cv2.GaussianBlur(x, (0, 0), s, dst=ws.g1)
+    if coarse:
+        # Detection on the image halved again (a quarter of the pixels), the same sigmas in
+        # its pixels; positions back in half-resolution pixels. The orientation and the
+        # exact maps start from its Gaussian image (``quarter``).
+        h4, w4 = half.shape
+        xq = half.t2
+        np.copyto(xq, cv2.resize(work, (w4, h4), interpolation=cv2.INTER_AREA), casting="unsafe")
+        xq *= np.float32(1.0 / max(_std(xq, half.t1), 1.0))
+        sq1 = 0.5 * s
+        quarter = cv2.GaussianBlur(xq, (0, 0), sq1, dst=half.x)
+        d = np.subtract(quarter, cv2.GaussianBlur(quarter, (0, 0), sq1 * math.sqrt(params.dog_ratio**2 - 1.0),
+                                                  dst=half.t1), out=half.d)
+        found = _extrema(d, int(math.ceil(0.5 * params.cell_px)), params, half)
+        if found is None:
+            return empty
+        dc, edge, xy_half = found
+        xy_half = xy_half * 2 + 0.5
+    else:
+        d = np.subtract(g1, cv2.GaussianBlur(g1, (0, 0), s * math.sqrt(params.dog_ratio**2 - 1.0), dst=ws.t1),
+                        out=ws.d)
+        found = _extrema(d, border, params, ws)
+        if found is None:
+            return empty
+        dc, edge, xy_half = found
+        # g1 halved: for the orientation at orientation_step 2 and the exact maps at pool_step 2
+        # (the table-split maps at pool_step 2 halve their channels instead).
+        quarter = (cv2.resize(g1, (w2 // 2, h2 // 2), dst=half.x, interpolation=cv2.INTER_AREA)
+                   if params.orientation_step == 2 or (params.pool_step == 2 and params.exact_maps) else g1)
     # Orientation: gradient of the image smoothed at orientation_sigma_px, at the keypoint.
-    # With orientation_step 2 it is taken on g1 halved (area averaging), smoothed by what
-    # the sigma lacks after g1's and the halving's smoothing, and scaled back to
-    # half-resolution pixels; the pooled maps start from the same halved image.
-    half = ws.half() if 2 in (params.orientation_step, params.pool_step) else ws
-    # g1 halved: for the orientation at orientation_step 2 and the exact maps at pool_step 2
-    # (the table-split maps at pool_step 2 halve their channels instead).
-    quarter = (cv2.resize(g1, (w2 // 2, h2 // 2), dst=half.x, interpolation=cv2.INTER_AREA)
-               if params.orientation_step == 2 or (params.pool_step == 2 and params.exact_maps) else g1)
-    if params.orientation_step == 2:
+    # With orientation_step 2 (always with detect_step 2) it is taken on g1 halved (area
+    # averaging), smoothed by what the sigma lacks after g1's and the halving's smoothing,
+    # and scaled back to half-resolution pixels; the pooled maps start from the same
+    # halved image.
+    if params.orientation_step == 2 or coarse:
         so = math.sqrt(max(params.orientation_sigma_px**2 - s * s - 0.25, 0.25)) / 2
         go, at, gain = cv2.GaussianBlur(quarter, (0, 0), so, dst=half.g1), (xy_half - 0.5) * 0.5, 0.5
         grad = cv2.merge([cv2.Sobel(go, cv2.CV_32F, 1, 0, dst=half.gx, ksize=1, scale=gain),
@@ -218,6 +215,46 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None,
     else:
         pooled = _pooled_orientation_maps(g1, params.pool_sigma_px, ws, params.exact_maps)
     return Candidates(xy[order], angle[order], attributes[order], relevance[order], pooled)
+
+
+def _extrema(d: np.ndarray, border: int, params: ExtractParams,
+             ws: Workspace) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Step 1's interest points in a difference of Gaussians ``d (h, w) float32`` (a
+    buffer of ``ws``, whose ``t1``, ``e1`` and ``e2`` it overwrites): 3 x 3 extrema above
+    ``min_contrast`` at least ``border`` pixels inside, edges rejected by the Hessian
+    ratio and offsets refined to sub-pixel by its quadratic fit (Lowe 2004, Sec. 4).
+    Returns the DoG value ``(K,)``, the edge ratio ``(K,)`` and the ``(K, 2) float32``
+    sub-pixel positions in ``d``'s pixels, or None when nothing passes."""
+    w2 = d.shape[1]
+    square = np.ones((3, 3), np.uint8)  # OpenCV's default kernel (None): the 8-neighbourhood
+    ext = np.equal(d, cv2.dilate(d, square, dst=ws.t1), out=ws.e1)
+    ext |= np.equal(d, cv2.erode(d, square, dst=ws.t1), out=ws.e2)
+    ext &= np.greater(np.abs(d, out=ws.t1), params.min_contrast, out=ws.e2)
+    ext[:border], ext[-border:], ext[:, :border], ext[:, -border:] = False, False, False, False
+    i = np.flatnonzero(ext)  # np.nonzero's order, a third of its time
+    df = d.ravel()  # pixels read by flat index (d[y, x + 1] is df[i + 1]): a fraction of 2-D indexing's time
+    dc = df[i]
+    if len(dc) > params.max_candidates:
+        keep = np.argpartition(-np.abs(dc), params.max_candidates - 1)[: params.max_candidates]
+        i, dc = i[keep], dc[keep]
+    ys, xs = np.divmod(i, w2)
+    # Hessian of the DoG: edge rejection (Lowe 2004, Sec. 4.1) and sub-pixel offset.
+    right, left, down, up = df[i + 1], df[i - 1], df[i + w2], df[i - w2]
+    dxx = right + left - 2 * dc
+    dyy = down + up - 2 * dc
+    dxy = 0.25 * (df[i + w2 + 1] - df[i + w2 - 1] - df[i - w2 + 1] + df[i - w2 - 1])
+    det = dxx * dyy - dxy * dxy
+    edge = (dxx + dyy) ** 2 / np.where(det > 0, det, 1.0)
+    ok = (det > 0) & (edge < (params.edge_ratio + 1) ** 2 / params.edge_ratio)
+    ys, xs, dc, dxx, dyy, dxy, det, edge, right, left, down, up = (
+        v[ok] for v in (ys, xs, dc, dxx, dyy, dxy, det, edge, right, left, down, up))
+    if len(xs) == 0:
+        return None
+    gx = 0.5 * (right - left)
+    gy = 0.5 * (down - up)
+    ox = np.clip((-dyy * gx + dxy * gy) / det, -0.5, 0.5)
+    oy = np.clip((dxy * gx - dxx * gy) / det, -0.5, 0.5)
+    return dc, edge, np.column_stack([xs + ox, ys + oy]).astype(np.float32)
 
 
 def _pooled_orientation_maps(g: np.ndarray, sigma: float, ws: Workspace | None = None,

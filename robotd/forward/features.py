@@ -32,17 +32,32 @@ class FeatureParams:
             (0 = no limit for SIFT; ORB always needs a cap and uses 1000 then).
         sift_contrast_threshold: OpenCV's SIFT ``contrastThreshold`` (default 0.04); lower
             finds more keypoints on bare corridor walls.
+        orb_levels, orb_scale_factor, orb_fast_threshold: OpenCV's ORB ``nlevels``,
+            ``scaleFactor`` and ``fastThreshold`` (its defaults 8, 1.2, 20): fewer or
+            coarser pyramid levels take less time, and lost recall on the real corridor
+            (docs/forward.md, "Time and memory").
+        image_scale: the image is resized by this factor (area interpolation) before
+            detection, and the keypoints scaled back to the full image's pixels (1.0: as
+            it is).
     """
 
     kind: FeatureKind = "sift"
     max_features: int = 0
     sift_contrast_threshold: float = 0.04
+    orb_levels: int = 8
+    orb_scale_factor: float = 1.2
+    orb_fast_threshold: int = 20
+    image_scale: float = 1.0
 
     def __post_init__(self) -> None:
         if self.kind not in ("sift", "orb"):
             raise ValueError(f"feature kind must be 'sift' or 'orb', got {self.kind!r}")
         if self.max_features < 0:
             raise ValueError(f"max_features must be >= 0, got {self.max_features}")
+        if self.orb_levels < 1 or not self.orb_scale_factor > 1.0 or self.orb_fast_threshold < 1:
+            raise ValueError("ORB needs orb_levels >= 1, orb_scale_factor > 1 and orb_fast_threshold >= 1")
+        if not 0.1 <= self.image_scale <= 1.0:
+            raise ValueError(f"image_scale must lie in 0.1 .. 1, got {self.image_scale}")
 
     @property
     def binary(self) -> bool:
@@ -163,17 +178,25 @@ class FeatureExtractor:
             self._detector = cv2.SIFT.create(nfeatures=params.max_features,
                                               contrastThreshold=params.sift_contrast_threshold)
         else:
-            self._detector = cv2.ORB.create(nfeatures=params.max_features or 1000)
+            self._detector = cv2.ORB.create(nfeatures=params.max_features or 1000, scaleFactor=params.orb_scale_factor,
+                                            nlevels=params.orb_levels, fastThreshold=params.orb_fast_threshold)
 
     def __call__(self, image: np.ndarray) -> Features:
         gray = to_gray(image)
-        kps, desc = self._detector.detectAndCompute(gray, None)
         size = (int(gray.shape[1]), int(gray.shape[0]))
+        scale = self.params.image_scale
+        if scale != 1.0:
+            gray = cv2.resize(gray, (max(1, round(size[0] * scale)), max(1, round(size[1] * scale))),
+                              interpolation=cv2.INTER_AREA)
+        kps, desc = self._detector.detectAndCompute(gray, None)
         if desc is None or not kps:
             shape = (0, self.params.descriptor_size)
             return Features(np.zeros((0, 2), np.float32),
                             np.zeros(shape, np.uint8 if self.params.binary else np.float32), size)
         xy = np.asarray(cv2.KeyPoint.convert(kps), np.float32).reshape(-1, 2)
+        if scale != 1.0:  # back to the full image's pixels (pixel centres at integers)
+            back = np.array([size[0] / gray.shape[1], size[1] / gray.shape[0]], np.float32)
+            xy = (xy + np.float32(0.5)) * back - np.float32(0.5)
         if self.params.binary:
             return Features(xy, np.ascontiguousarray(desc, np.uint8), size)
         d = np.asarray(desc, np.float32)

@@ -311,17 +311,15 @@ def hamming_bits(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _first_k(dist: np.ndarray, k: int) -> np.ndarray:
-    """The columns of the ``k`` smallest values of each row of ``dist (N, M)`` int, in
-    order, ties to the lower column: ``np.argsort(dist, axis=1, kind="stable")[:, :k]``,
-    by a partial selection on keys made unique by the column (a full sort of every row
-    is most of a tree descent's time)."""
-    n, m = dist.shape
-    if k >= m:
-        return np.argsort(dist, axis=1, kind="stable")
-    key = dist.astype(np.int64) * m + np.arange(m)
-    part = np.argpartition(key, k - 1, axis=1)[:, :k]
-    order = np.argsort(np.take_along_axis(key, part, axis=1), axis=1)
-    out: np.ndarray = np.take_along_axis(part, order, axis=1)
+    """The columns of the ``k`` smallest values of each row of ``dist (N, M)`` int (values
+    -1 .. 2**20), in order, ties to the lower column: ``np.argsort(dist, axis=1,
+    kind="stable")[:, :k]``, by one sort of int32 keys made unique by the column (numpy's
+    sort of int32 rows is vectorised; an argsort or argpartition and the gathers after
+    them took most of a tree descent's time)."""
+    m = dist.shape[1]
+    kt = np.dtype(np.int32 if (int(_FAR) + 1) * m < 2**31 else np.int64)  # int64 only for a very wide beam
+    key: np.ndarray = dist.astype(kt) * m + np.arange(m, dtype=kt)
+    out: np.ndarray = np.sort(key, axis=1)[:, :k] % m
     return out
 
 
@@ -340,6 +338,7 @@ def _grown(n: int) -> int:
 
 _FAR = np.int32(1 << 20)  # a distance no real pair reaches (256 bits at most)
 _PREFILTER_BITS = 20       # see BinaryWordTree.nearest
+_NO_KEY = np.int64(np.iinfo(np.int64).max)  # no word found yet (BinaryWordTree._scan)
 
 
 @dataclass(frozen=True)
@@ -458,14 +457,14 @@ class BinaryWordTree:
         front = np.zeros((n, 1), np.int32)
         b = self.params.branching
         while True:
-            kids = self._child[front]                                 # (N, F, b)
+            kids = self._child.take(front, axis=0)                    # (N, F, b)
             if np.array_equal(kids[:, :, 0], front):                  # all leaves (or -1)
                 return front
             cand = kids.reshape(n, -1)
-            dist = hamming_bits(q[:, None, :], self._centre[cand])
+            dist = hamming_bits(q[:, None, :], self._centre.take(cand, axis=0))
             dist[cand < 0] = _FAR
             dist[rows, np.argmin(dist[:, :b], axis=1)] = -1           # the greedy child: kept, first
-            front = cand[rows[:, None], _first_k(dist, beam)]
+            front = np.take_along_axis(cand, _first_k(dist, beam), axis=1)
 
     def nearest(self, q: np.ndarray, beam: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The nearest word found for each query (``(N, 4) uint64``): ``(word ids (N,)
@@ -477,7 +476,10 @@ class BinaryWordTree:
         the radius (40 of 256 bits) differs there by 8 bits (median); of 24,435 such pairs of
         ORB descriptors of a real corridor none differed by more than 18, so those above
         :data:`_PREFILTER_BITS` (20) are skipped (an unrelated word differs by about 32);
-        the full distance is computed for the few percent that pass."""
+        the full distance is computed for the few percent that pass. (Scanning the greedy
+        leaf first and stopping there when it holds a word within the radius was tried:
+        it changed 9 % of the office route's answers and took longer, as most queries
+        then scan twice.)"""
         n = len(q)
         none = np.full(n, -1, np.int64), np.full(n, _FAR, np.int32)
         self.last_greedy = None
@@ -485,33 +487,44 @@ class BinaryWordTree:
             return none
         leaves = self._descend(q, beam or self.params.beam)
         self.last_greedy = leaves[:, 0]
+        best = np.full(n, _NO_KEY, np.int64)
         pair_q, pair_k = np.nonzero(leaves >= 0)                     # (query, leaf) pairs, by query
-        rows = self._leaf_row[leaves[pair_q, pair_k]]
+        self._scan(q, pair_q, leaves[pair_q, pair_k], best)
+        found = best != _NO_KEY
+        words, dist = none
+        words[found] = self._slot_word[best[found] & 0xFFFFFFFF]
+        dist[found] = (best[found] >> 32).astype(np.int32)
+        return words, dist
+
+    def _scan(self, q: np.ndarray, pair_q: np.ndarray, nodes: np.ndarray, best: np.ndarray) -> None:
+        """Scan leaf ``nodes[j]`` for query ``pair_q[j]`` (``pair_q`` not decreasing);
+        ``best (N,) int64``: each query's nearest so far as ``distance << 32 | slot``
+        (:data:`_NO_KEY` none), lowered in place (ties to the lowest slot)."""
+        if not len(pair_q):
+            return
+        rows = self._leaf_row[nodes]
         fill = self._fill[rows]
         total = int(fill.sum())
         if not total:
-            return none
-        # the filled part of each pair's leaf only: flat pool positions, and their query
+            return
+        # the filled part of each pair's leaf only: flat pool positions, their slots and
+        # query (np.take and np.repeat: numpy's fancy indexing of a 2-d array by an index
+        # array and a scalar takes several times as long)
         first = np.cumsum(fill) - fill
         pos = np.repeat(rows.astype(np.int64) * self.params.leaf_size - first, fill) + np.arange(total)
-        slots = self._pool.reshape(-1)[pos]
-        owner = np.repeat(pair_q, fill)
-        d0 = np.bitwise_count(q[owner, 0] ^ self._desc[slots, 0])
+        slots = self._pool.reshape(-1).take(pos)
+        d0 = np.bitwise_count(np.repeat(q.take(pair_q, axis=0)[:, 0], fill) ^ self._desc[:, 0].take(slots))
         keep = np.flatnonzero(d0 <= _PREFILTER_BITS)
         if not len(keep):
-            return none
-        qi, s = owner[keep], slots[keep]
-        # the other 192 bits: at most 20 + 3 * 64 = 212 in all, so uint8 sums do not wrap
-        c = np.bitwise_count(q[qi, 1:] ^ self._desc[s, 1:])
-        full = (d0[keep] + c[:, 0] + c[:, 1] + c[:, 2]).astype(np.int32)
+            return
+        s = slots.take(keep)
+        qi = np.repeat(pair_q.astype(np.int32), fill).take(keep)
+        full = hamming_bits(q.take(qi, axis=0), self._desc.take(s, axis=0))
         # per query (qi comes sorted): the nearest, ties to the lowest slot
         key = (full.astype(np.int64) << 32) | s.astype(np.int64)
         start = np.flatnonzero(np.diff(qi, prepend=-1))
-        best = np.minimum.reduceat(key, start)
-        words, dist = none
-        words[qi[start]] = self._slot_word[best & 0xFFFFFFFF]
-        dist[qi[start]] = (best >> 32).astype(np.int32)
-        return words, dist
+        at = qi[start]
+        best[at] = np.minimum(best[at], np.minimum.reduceat(key, start))
 
     # -- changes --------------------------------------------------------------------------
     def add(self, words: np.ndarray, q: np.ndarray, leaves: np.ndarray | None = None) -> None:
@@ -625,18 +638,23 @@ class BinaryWordTree:
         held = self._slot_word[:self._n_slots]
         near = np.flatnonzero((held >= w_all.min()) & (held <= w_all.max()))
         slot_of = dict(zip(held[near].tolist(), near.tolist()))
+        # one word at a time (a removal moves the leaf's last entry into the hole, and the
+        # entries' order decides a later split), through memoryviews: numpy's scalar
+        # indexing costs several times a memoryview's
+        pool, fill = self._pool.data, self._fill.data
+        slot_row, slot_pos, slot_word = self._slot_row.data, self._slot_pos.data, self._slot_word.data
         for w in w_all.tolist():
             s = slot_of.pop(w, -1)
             if s < 0:
                 continue
-            row, pos = int(self._slot_row[s]), int(self._slot_pos[s])
-            last = int(self._fill[row]) - 1
-            moved = int(self._pool[row, last])
-            self._pool[row, pos] = moved
-            self._slot_pos[moved] = pos
-            self._pool[row, last] = -1
-            self._fill[row] = last
-            self._slot_word[s] = -1
+            row, pos = slot_row[s], slot_pos[s]
+            last = fill[row] - 1
+            moved = pool[row, last]
+            pool[row, pos] = moved
+            slot_pos[moved] = pos
+            pool[row, last] = -1
+            fill[row] = last
+            slot_word[s] = -1
             self._free_slots.append(s)
             self.n_live -= 1
 
@@ -670,6 +688,7 @@ _NO_POSTINGS = array(_POSTING)  # shared by the words whose postings were droppe
 _COUNT_BITS = 10            # n(w, i) up to 1023
 _COUNT_MASK = (1 << _COUNT_BITS) - 1
 _MAX_SLOTS = 1 << (8 * array(_POSTING).itemsize - _COUNT_BITS)  # 4,194,304 images indexed at once
+_VIRTUAL_MARGIN = 256       # candidates kept for the virtual image beyond its n words
 
 
 class InvertedIndex:
@@ -701,6 +720,10 @@ class InvertedIndex:
         # left): while there is none, the virtual image is chosen among all the words
         # without listing them (no per-word list of the words in use).
         self._n_unused = 0
+        # The virtual image's candidates (:meth:`virtual_image`): every word seen at least
+        # _v_floor times; None: to be chosen again over all words.
+        self._v_cand: np.ndarray | None = None
+        self._v_floor = 1
 
     @property
     def n_images(self) -> int:
@@ -764,13 +787,19 @@ class InvertedIndex:
             self._occ.resize(top)
         # n(w, i) is kept up to 1023 (a word more often in one image counts 1023 times in
         # its vote: not reached with a few hundred features per image).
-        for wid, c in zip(uw.tolist(), np.minimum(cnt, _COUNT_MASK).tolist()):
-            if self._post[wid] is _NO_POSTINGS:
-                self._post[wid] = array(_POSTING)
-            self._post[wid].append(slot << _COUNT_BITS | c)
+        post = self._post
+        for wid, v in zip(uw.tolist(), ((slot << _COUNT_BITS) | np.minimum(cnt, _COUNT_MASK)).tolist()):
+            ps = post[wid]
+            if ps is _NO_POSTINGS:
+                ps = post[wid] = array(_POSTING)
+            ps.append(v)
         self._n_unused -= int(np.count_nonzero(self._df.view[uw] == 0))
         self._df.view[uw] += 1
         self._occ.view[uw] += cnt
+        if self._v_cand is not None:  # words now seen often enough join the candidates
+            up = uw[self._occ.view[uw] >= self._v_floor]
+            if len(up):
+                self._v_cand = np.union1d(self._v_cand, up)
 
     def remove_image(self, image_id: int, words: np.ndarray) -> None:
         """Take image ``image_id`` out of the index, given the words it was added with
@@ -802,6 +831,7 @@ class InvertedIndex:
             self._occ.view[uw] -= cnt
             self._n_unused += int(np.count_nonzero(self._df.view[uw] == 0))
         self._total -= len(w)
+        self._v_cand = None  # counts fell: the candidates are chosen again
         self._image_len.view[slot] = 0
         self._image_ids[slot] = -1
         heapq.heappush(self._free, slot)
@@ -848,21 +878,39 @@ class InvertedIndex:
     def virtual_image(self) -> np.ndarray:
         """The words of the virtual "no loop" image I_-1: the ``n`` most frequently seen
         words, ``n`` = round(mean words per image); ``(n,) int64``, most frequent first
-        (ties: the older word first). Empty before the first word."""
+        (ties: the older word first). Empty before the first word.
+
+        Chosen among candidates, not all words: every word seen at least ``floor`` times
+        (kept as images add occurrences). While they number ``n`` or more, the ``n``-th
+        most frequent word is seen at least ``floor`` times, so every word that can be
+        among the ``n`` (ties included) is a candidate and the choice is the one over all
+        words. The candidates are chosen again over all words after a removal (counts
+        fall), or when they number fewer than ``n`` or many more."""
         if not self.n_images or not self._total:
             return np.zeros(0, np.int64)
         n = max(1, int(round(self._total / self.n_images)))
-        # the words with df > 0 (occurrences > 0): all of them unless some are unused
-        act = None if not self._n_unused else np.flatnonzero(self._df.view > 0)
-        occ = self._occ.view if act is None else self._occ.view[act]
-        n = min(n, len(occ))
+        cand = self._v_cand
+        if cand is None or len(cand) < n or len(cand) > 4 * n + _VIRTUAL_MARGIN:
+            cand = self._virtual_candidates(n + _VIRTUAL_MARGIN)
+        occ = self._occ.view[cand]
+        n = min(n, len(cand))  # fewer candidates only when fewer words are in use
         # Stable sort on -occurrences: equal counts keep word-id order.
         part = np.argpartition(-occ, n - 1)[:n] if n < len(occ) else np.arange(len(occ))
-        kth = occ[part].min()
-        cand = np.flatnonzero(occ >= kth) if act is None else act[occ >= kth]
-        occ_c = self._occ.view[cand]
-        order = cand[np.lexsort((cand, -occ_c))]
+        top = cand[occ >= occ[part].min()]
+        order = top[np.lexsort((top, -self._occ.view[top]))]
         return order[:n].astype(np.int64)
+
+    def _virtual_candidates(self, k: int) -> np.ndarray:
+        """The words seen at least as often as the ``k``-th most frequent (all the words in
+        use when fewer), ``(M,) int64`` sorted, M >= min(k, words in use); kept as the
+        candidates with that count as their floor (at least 1: words in use only)."""
+        occ = self._occ.view
+        floor = 1
+        if k < len(occ):
+            floor = max(1, int(np.partition(occ, len(occ) - k)[len(occ) - k]))
+        self._v_floor = floor
+        self._v_cand = np.flatnonzero(occ >= floor).astype(np.int64)
+        return self._v_cand
 
     def vote(self, words: np.ndarray) -> tuple[np.ndarray, float]:
         """The voting scores of Sec. IV-B for a query image with ``words`` (``(K,) int``,
@@ -886,11 +934,13 @@ class InvertedIndex:
         if not len(uw):
             return scores, 0.0
         idf = np.log(self.n_images / df)
-        ids = uw.tolist()
-        packed = np.concatenate([np.frombuffer(self._post[k], np.uint32) for k in ids]).astype(np.int64)
+        post = self._post
+        bufs = [post[k] for k in uw.tolist()]
+        # the postings' bytes joined once (one numpy array per word took several times longer)
+        packed = np.frombuffer(b"".join(bufs), np.uint32).astype(np.int64)
         slots = packed >> _COUNT_BITS
         n_wi = packed & _COUNT_MASK
-        held = np.fromiter((len(self._post[k]) for k in ids), np.int64, len(ids))  # df, bar dropped postings
+        held = np.fromiter(map(len, bufs), np.int64, len(bufs))  # df, bar dropped postings
         per_word = cq * idf
         weights = np.repeat(per_word, held) * n_wi / self._image_len.view[slots]
         scores += np.bincount(slots, weights=weights, minlength=self.n_slots)

@@ -55,6 +55,20 @@ def test_keyframe_errors_of_a_scaled_estimate():
     assert e["ape_origin_rmse_m"] == pytest.approx(0.01 * math.sqrt(np.mean(np.arange(11.0) ** 2)))
 
 
+def test_the_aligned_ate_forgives_the_first_keyframes_heading_and_the_anchored_ape_does_not():
+    truth = Straight().pose_at(np.arange(11.0))  # 5 m along x
+    turn = math.radians(1.0)
+    est = truth.copy()
+    est[0, 2] += turn  # only the first keyframe's heading wrong: anchoring on it turns the rest
+    e = keyframe_errors(truth, [("odometry", est)])["odometry"]
+    assert e["ate_aligned_rmse_m"] == pytest.approx(0.0, abs=1e-9)
+    chord = 2 * math.sin(turn / 2) * 0.5 * np.arange(11.0)
+    assert e["ape_origin_rmse_m"] == pytest.approx(math.sqrt(np.mean(chord ** 2)), rel=1e-6)
+    bent = est.copy()
+    bent[-1, 1] += 0.01  # the shape itself wrong at one keyframe
+    assert keyframe_errors(truth, [("o", bent)])["o"]["ate_aligned_rmse_m"] > 0.002
+
+
 def test_forward_loops_judged_right_and_wrong():
     obs = _observed([10.0, 20.0, 30.0])
     # Keyframe 3 sees keyframe 1's place 10 m behind it... as the truth says: 10 m ahead of 1.

@@ -401,7 +401,8 @@ def test_workspace_gives_what_fresh_arrays_give(frames):
     learned = load_learned()
     ws = Workspace(240, 320)
     for params in (ExtractParams(), ExtractParams(pool_step=1), ExtractParams(pool_step=2, orientation_step=2),
-                   ExtractParams(exact_maps=True), ExtractParams(pool_step=1, orientation_step=1, exact_maps=True)):
+                   ExtractParams(exact_maps=True), ExtractParams(pool_step=1, orientation_step=1, exact_maps=True),
+                   ExtractParams(detect_step=2), ExtractParams(detect_step=2, exact_maps=True)):
         for name in ("brick", "grass", "brick"):
             fresh = candidates(frames[name], params, learned)
             reused = candidates(frames[name], params, learned, ws)
@@ -469,7 +470,7 @@ def test_extract_params_repeat_fields_out_of_range():
         ExtractParams(repeat_pool=-1)
     with pytest.raises(ValueError):
         ExtractParams(repeat_pool_ratio=-0.5)
-    for bad in ({"pool_step": 3}, {"pool_step": 0}, {"orientation_step": 4}):
+    for bad in ({"pool_step": 3}, {"pool_step": 0}, {"orientation_step": 4}, {"detect_step": 0}, {"detect_step": 3}):
         with pytest.raises(ValueError, match="out of range"):
             ExtractParams(**bad)
 
@@ -750,3 +751,31 @@ def test_maps_halved_from_every_pixels_gradients_stay_closer_than_maps_of_the_ha
         dist[name] = np.median(np.linalg.norm(raw_descriptors(c, 300, params) - ref, axis=1))
     assert dist["halved"] < 0.5 * dist["coarse"]
     assert dist["halved"] < 0.06
+
+
+def test_candidates_of_the_quarter_image_land_on_the_default_keypoints(frames):
+    """``detect_step`` 2 (:data:`QUARTER`) finds the candidates on the detection image
+    halved, at the same scale, and gives positions in working-image pixels as the default
+    does: most of the default's most relevant keypoints have a quarter-image candidate
+    within 2 px (a position off by the factor of the halving would land far away), and
+    the same frame described both ways keeps much of its self-score, another floor none."""
+    from robotd.floor.descriptor import QUARTER
+    from robotd.floor.match import local_score
+
+    learned = load_learned()
+    for name in ("brick", "grass", "gravel"):
+        ref = candidates(frames[name], ExtractParams(), learned)
+        c = candidates(frames[name], QUARTER, learned)
+        assert 0.5 * len(ref.xy) < len(c.xy) < 1.5 * len(ref.xy)
+        d = np.linalg.norm(ref.xy[:300, None, :] - c.xy[None, :, :], axis=2).min(axis=1)
+        assert np.mean(d < 2.0) >= 0.7, np.mean(d < 2.0)
+        assert np.median(d) < 1.0
+        assert raw_descriptors(c, 300, QUARTER).shape == (min(300, len(c.xy)), 128)
+    for mode in MODES:  # the byte bound holds for it too
+        assert len(extract(frames["grass"], mode, QUARTER)) <= MODE_BYTES[mode]
+    quarter = decode(extract(frames["brick"], 4, QUARTER))
+    default = decode(extract(frames["brick"], 4))
+    other = decode(extract(frames["gravel"], 4, QUARTER))
+    self_score = local_score(default, default).score
+    assert local_score(quarter, default).score >= 0.4 * self_score > 0
+    assert local_score(other, default).score < 0.1 * self_score

@@ -224,3 +224,33 @@ def test_virtual_image_skips_unused_word_ids_and_words_whose_images_left():
     idx.add_image(40, np.array([1, 1, 1, 2]))  # a gap id comes into use
     images[40] = np.array([1, 1, 1, 2])
     assert list(idx.virtual_image()) == brute()
+
+
+def test_virtual_image_from_its_candidates_is_the_choice_over_all_words():
+    """The virtual image is chosen among kept candidates: it must be the ``n`` most frequent
+    words over all words (ties to the older word), image after image, after removals too
+    (counts fall) and as ``n`` (the mean words per image) changes."""
+    rng = np.random.default_rng(5)
+    idx = InvertedIndex()
+    occ: dict[int, int] = {}
+    kept: dict[int, np.ndarray] = {}
+
+    def reference() -> np.ndarray:
+        n = max(1, round(sum(len(w) for w in kept.values()) / len(kept)))
+        used = sorted((-c, w) for w, c in occ.items() if c > 0)
+        return np.array([w for _, w in used[:n]], np.int64)
+
+    for t in range(400):
+        size = int(rng.integers(5, 40 if t < 200 else 80))  # n grows in the second half
+        # a few frequent words, many rare ones, and new words: ties everywhere
+        w = np.concatenate([rng.integers(0, 30, size // 4), rng.integers(0, 3 * t + 50, size - size // 4)])
+        idx.add_image(t, w)
+        kept[t] = w
+        for x in w.tolist():
+            occ[x] = occ.get(x, 0) + 1
+        if t % 50 == 49:  # a working memory moving places out: two, or most of them once
+            for gone in ([t - 30, t - 10] if t != 299 else [g for g in list(kept) if g < 290]):
+                idx.remove_image(gone, kept[gone])
+                for x in kept.pop(gone).tolist():
+                    occ[x] -= 1
+        np.testing.assert_array_equal(idx.virtual_image(), reference())

@@ -154,8 +154,9 @@ def test_first_k_is_the_stable_argsorts_first_columns() -> None:
     from robotd.forward.vocabulary import _first_k
 
     rng = np.random.default_rng(8)
-    for m, k in ((64, 4), (16, 4), (5, 8), (48, 1)):
+    for m, k in ((64, 4), (16, 4), (5, 8), (48, 1), (4096, 6)):
         d = rng.integers(0, 6, (200, m)).astype(np.int32)
+        d[rng.random(d.shape) < 0.1] = 1 << 20      # missing children (the descent's _FAR)
         d[np.arange(200), rng.integers(0, m, 200)] = -1
         np.testing.assert_array_equal(_first_k(d, k), np.argsort(d, axis=1, kind="stable")[:, :k])
 
@@ -179,3 +180,46 @@ def test_words_added_at_the_searchs_greedy_leaves_build_the_same_tree():
     for x, y in zip(a.nearest(probe), b.nearest(probe)):
         assert (x == y).all()
     assert (a.nearest(pack_bits(words))[0] == np.arange(len(words))).all()
+
+
+def _scan_reference(tree: BinaryWordTree, q: np.ndarray, beam: int) -> tuple[np.ndarray, np.ndarray]:
+    """What :meth:`BinaryWordTree.nearest` must answer, one query at a time in plain loops:
+    the leaves the descent reaches, their words whose first 64 bits differ by at most the
+    prefilter's 20, the nearest of those, ties to the lowest slot."""
+    leaves = tree._descend(q, beam)
+    words, dist = np.full(len(q), -1, np.int64), np.full(len(q), 1 << 20, np.int32)
+    for i in range(len(q)):
+        best = None
+        for node in leaves[i].tolist():
+            if node < 0:
+                continue
+            row = int(tree._leaf_row[node])
+            for s in tree._pool[row, :tree._fill[row]].tolist():
+                if int(np.bitwise_count(q[i, 0] ^ tree._desc[s, 0])) > 20:
+                    continue
+                d = int(np.bitwise_count(q[i] ^ tree._desc[s]).sum())
+                if best is None or (d, s) < best:
+                    best = (d, s)
+        if best is not None:
+            words[i], dist[i] = tree._slot_word[best[1]], best[0]
+    return words, dist
+
+
+def test_the_vectorised_leaf_scan_is_the_plain_scan_after_removals():
+    """The search's gathers over the leaves (prefilter, full distance, nearest per query
+    with ties to the lowest slot) answer what a plain per-query scan of the same leaves
+    does, also once removals have moved words inside their leaves and freed slots were
+    reused."""
+    rng = np.random.default_rng(11)
+    tree = BinaryWordTree(TreeParams(branching=4, leaf_size=24, beam=3))
+    a = _clustered(rng, 60, 12, 12)
+    tree.add(np.arange(len(a)), pack_bits(a))
+    tree.remove(rng.choice(len(a), 300, replace=False))
+    b = _clustered(rng, 30, 8, 12)
+    tree.add(np.arange(len(a), len(a) + len(b)), pack_bits(b))
+    q = pack_bits(np.concatenate([_clustered(rng, 20, 5, 10), a[::7], b[::5]]))
+    got = tree.nearest(q)
+    ref = _scan_reference(tree, q, 3)
+    assert (ref[0] >= 0).sum() > len(q) // 2         # the prefilter lets words through
+    np.testing.assert_array_equal(got[0], ref[0])
+    np.testing.assert_array_equal(got[1], ref[1])
