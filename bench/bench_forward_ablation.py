@@ -120,6 +120,7 @@ def configurations(full: bool) -> dict[str, object]:
             verify_tries=3),
         f"default, {WHEEL}": dflt,
         "default, 1 verification": replace(dflt, verify_tries=1),
+        "default, general verification": replace(dflt, verify=replace(dflt.verify, model="general")),
         f"default, 1 verification, {WHEEL}": replace(dflt, verify_tries=1),
         "default, neighbours by distance": replace(dflt, odometry=replace(dflt.odometry, metric_neighbours=True)),
         "default, places merged by pose": replace(dflt, odometry=replace(dflt.odometry, merge_places=True)),

@@ -67,9 +67,10 @@ VARIANTS: dict[str, tuple[dict[str, object], dict[str, object]]] = {
     "tree": ({}, {}),
     "tree, beam 8": ({"tree_beam": 8}, {}),
     "usearch": ({"binary_search": "usearch"}, {}),
-    "tree, USAC verification": ({}, {"estimator": "usac"}),
-    "tree, USAC without local optimisation": ({}, {"estimator": "usac", "local_optimisation": False}),
-    "tree, RANSAC at most 200 samples": ({}, {"max_iterations": 200}),
+    "tree, general verification": ({}, {"model": "general"}),
+    "tree, USAC verification": ({}, {"model": "general", "estimator": "usac"}),
+    "tree, USAC without local optimisation": ({}, {"model": "general", "estimator": "usac", "local_optimisation": False}),
+    "tree, RANSAC at most 200 samples": ({}, {"model": "general", "max_iterations": 200}),
 }
 
 
@@ -335,12 +336,15 @@ def page(res: dict) -> list[str]:
              "## The default detector on the development sequences, with each word search and verification",
              "",
              "`tree`: the default detector: robotd's own incremental k-medians tree over the binary words (a "
-             "beam of 4 leaves) and OpenCV's RANSAC for the essential matrix; `tree, beam 8`: the same "
-             "scanning 8 leaves; `usearch`: the HNSW graph the tree replaced; `tree, USAC verification`: the "
-             "default with the essential matrix searched by OpenCV's USAC (`estimator = \"usac\"`, with its local "
-             "optimisation); `tree, USAC without local optimisation`: the same with `local_optimisation = False`; "
-             "`tree, RANSAC at most 200 samples`: the default with RANSAC's samples capped at 200 instead of 1000 "
-             "(`max_iterations = 200`). Same "
+             "beam of 4 leaves) and the planar verification (a level camera's motion first, the essential "
+             "matrix searched near it: `VerifyParams.model = \"planar\"`); `tree, beam 8`: the same "
+             "scanning 8 leaves; `usearch`: the HNSW graph the tree replaced; `tree, general verification`: the "
+             "default with the general verification (OpenCV's five-point RANSAC over all the matches, "
+             "`model = \"general\"`, the default before the planar one); `tree, USAC verification`: the "
+             "general verification with the essential matrix searched by OpenCV's USAC (`estimator = \"usac\"`, "
+             "with its local optimisation); `tree, USAC without local optimisation`: the same with "
+             "`local_optimisation = False`; `tree, RANSAC at most 200 samples`: the general verification with "
+             "RANSAC's samples capped at 200 instead of 1000 (`max_iterations = 200`). Same "
              "features, same run (rows that were not run are missing). `verify ms p99`: the verification's "
              "own time at its 99th percentile; `verified`: images whose candidate was verified. RAM: what "
              "the detector holds per image (its stored images, the inverted index, the word search); map "

@@ -12,7 +12,8 @@ verified again, the loop declared when it passes, and recall at 100 % precision 
 positives scored as ``robotd eval forward`` does. Same candidates, same RANSAC, same seed;
 only what the past image keeps for matching changes:
 
-- ``stored descriptors``: the default (the whole 32-byte ORB descriptor, Lowe's ratio test);
+- ``stored descriptors``: the whole 32-byte ORB descriptor, Lowe's ratio test (the general
+  model's verification as it is);
 - ``word ids``: correspondences between features that share a word (as a direct index
   does), at most 2 x 2 per word (more is a repeated texture);
 - ``first 16 bytes`` / ``first 8 bytes``: a shorter descriptor (ORB's tests are ordered by
@@ -31,11 +32,24 @@ verification's 99th percentile; ``docs/forward.md``, "Time and memory per image"
 - ``USAC screen, then RANSAC``: the cheap search first, refusing the candidate when its
   best model has fewer than ``min_inliers`` inliers in front of both cameras, RANSAC as the
   default otherwise (it accepts a subset of what the default accepts);
-- ``RANSAC, at most 200 samples``: the default with ``max_iterations = 200``.
+- ``RANSAC, at most 200 samples``: the general model with ``max_iterations = 200``.
+
+Then the motion model (``VerifyParams.model``): ``planar model`` (the default detector's: a
+level camera's motion found by two-point RANSAC, the essential matrix searched among the
+matches near it, the general search capped at 200 samples after it when that fails and the
+level motion's consensus reached ``fallback_inliers``), ``planar model, no fallback``, and
+``planar motion decides`` (``model = "planar_motion"``: the level motion itself verified);
+every other row uses the general model (the five-point RANSAC of the paper over all the
+matches; ``stored descriptors`` is that model as it is, the rows above replace its
+matching or its search). The detector whose verifications are recorded is the default
+(the candidates do not depend on the verification's model).
 
 Reported per variant and sequence: recall at 100 % precision, false positives, loops,
 verification time (median, p99; noisy on a loaded machine), and the bytes per image the
-variant would save. Run: ``PYTHONPATH=. .venv/bin/python bench/bench_forward_verify_replay.py
+variant would save; on the office route also the verified motion of the true loops
+against the truth (the sequence's ``poses.csv`` and camera mount): the heading change's
+error, and the bearing's for views at least 0.3 m apart (median and 90th percentile,
+degrees). Run: ``PYTHONPATH=. .venv/bin/python bench/bench_forward_verify_replay.py
 --dir /tmp/office`` (about 10 minutes on a quiet 2-core machine, longer under load);
 ``--page FILE.json`` rewrites ``docs/benchmarks/forward_verify_replay.md``.
 """
@@ -44,6 +58,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import tempfile
 import time
@@ -154,8 +169,13 @@ def record(name: str, folder: Path, truth_path: Path) -> dict[str, Any]:
         purged_at.update({int(x): t for x in det.vocabulary.last_purged})
         if d.candidate_id is not None:
             cand[t], conf[t], decl[t] = d.candidate_id, d.candidate_probability, d.status == LOOP
+    poses = mount = None
+    if (folder / "poses.csv").exists() and (folder / "sequence.json").exists():
+        poses = np.loadtxt(folder / "poses.csv", delimiter=",", skiprows=1)[:, 2:5]
+        cam = json.loads((folder / "sequence.json").read_text(encoding="utf-8"))["camera"]
+        mount = np.array([cam.get("x_m", 0.0), cam.get("y_m", 0.0), cam.get("yaw_rad", 0.0)])
     return {"pairs": pairs, "purged_at": purged_at, "cand": cand, "conf": conf, "decl": decl, "truth": truth,
-            "k": k, "verify": params.verify, "features_per_image": float(np.mean([len(det.features_of(t)) for t in range(n)]))}
+            "k": k, "verify": params.verify, "poses": poses, "mount": mount, "features_per_image": float(np.mean([len(det.features_of(t)) for t in range(n)]))}
 
 
 _NO_DISTORTION = np.zeros(5)
@@ -211,7 +231,7 @@ def replay(rec: dict[str, Any], variant: str) -> dict[str, float | int]:
     """Verify the recorded pairs again with ``variant``'s matching or search; score the decisions."""
     import robotd.forward.verify as verify_mod
 
-    vp: VerifyParams = rec["verify"]
+    vp: VerifyParams = replace(rec["verify"], **MODEL_VARIANTS.get(variant, {"model": "general"}))
     if variant == "RANSAC, at most 200 samples":
         vp = replace(vp, max_iterations=200)
     searches = _searches()
@@ -228,6 +248,7 @@ def replay(rec: dict[str, Any], variant: str) -> dict[str, float | int]:
     saved = verify_mod.match_features
     verify_mod.match_features = matcher
     dropped = []
+    errors: dict[int, tuple[float, float, float]] = {}  # true loops: (heading error, bearing error, distance)
     try:
         for t, old, new, new_words in rec["pairs"]:
             if variant == "word ids":
@@ -240,8 +261,12 @@ def replay(rec: dict[str, Any], variant: str) -> dict[str, float | int]:
                 dropped.append(1.0 - keep.mean() if len(keep) else 0.0)
                 old = _View(old, keep=keep)
             t0 = time.perf_counter()
-            decl[t] = verify_pair(old, new, vp, rec["k"]).accepted
+            v = verify_pair(old, new, vp, rec["k"])
             ms.append((time.perf_counter() - t0) * 1e3)
+            decl[t] = v.accepted
+            c = int(rec["cand"][t])
+            if v.accepted and rec.get("poses") is not None and c >= 0 and rec["truth"][t, c]:
+                errors[t] = _pose_error(v, rec["poses"][c], rec["poses"][t], rec["mount"])
     finally:
         verify_mod.match_features = saved
         verify_mod.essential_matrix = saved_search
@@ -249,17 +274,71 @@ def replay(rec: dict[str, Any], variant: str) -> dict[str, float | int]:
     nf = rec["features_per_image"]
     if variant.startswith("first "):
         saved_b = (32 - int(variant.split()[1])) * nf
-    elif variant in searches or variant.startswith("RANSAC"):
+    elif variant in searches or variant.startswith("RANSAC") or variant in MODEL_VARIANTS:
         saved_b = 0.0
     else:
         saved_b = {"stored descriptors": 0.0, "word ids": 32 * nf,
                    "no descriptor for purged words": 32 * nf * (float(np.mean(dropped)) if dropped else 0.0)}[variant]
-    return {"recall_at_full_precision": s.recall_at_full_precision, "false_positives": s.false_positives,
-            "loops": int(decl.sum()), "verify_ms_median": float(np.median(ms)) if ms else 0.0,
-            "verify_ms_p99": float(np.percentile(ms, 99)) if ms else 0.0, "bytes_saved_per_image": saved_b}
+    out: dict[str, float | int] = {
+        "recall_at_full_precision": s.recall_at_full_precision, "false_positives": s.false_positives,
+        "loops": int(decl.sum()), "verify_ms_median": float(np.median(ms)) if ms else 0.0,
+        "verify_ms_p99": float(np.percentile(ms, 99)) if ms else 0.0, "bytes_saved_per_image": saved_b}
+    if errors:
+        out.update(_error_stats(list(errors.values())))
+        if variant in MODEL_VARIANTS or variant == "stored descriptors":  # kept to compare on common loops
+            out["pose_errors"] = {str(t): list(e) for t, e in errors.items()}  # type: ignore[assignment]
+    return out
 
 
-VARIANTS = ("stored descriptors", "word ids", "first 16 bytes", "first 8 bytes", "no descriptor for purged words",
+def _error_stats(errors: list[tuple[float, float, float]]) -> dict[str, float | int]:
+    """Median and 90th percentile of the heading errors, and of the bearing errors of the
+    views at least 0.3 m apart (degrees)."""
+    e = np.abs(np.asarray(errors, np.float64).reshape(-1, 3))
+    far = e[:, 2] >= 0.3
+    return {"pose_loops": len(e), "yaw_err_deg_median": float(np.median(e[:, 0])),
+            "yaw_err_deg_p90": float(np.percentile(e[:, 0], 90)), "bearing_loops": int(far.sum()),
+            "bearing_err_deg_median": float(np.median(e[far, 1])) if far.any() else float("nan"),
+            "bearing_err_deg_p90": float(np.percentile(e[far, 1], 90)) if far.any() else float("nan")}
+
+
+def common_loops(variants: dict[str, Any]) -> dict[str, Any]:
+    """Each model variant's pose errors beside the general model's (``stored descriptors``)
+    on the true loops both verified: ``{variant: {"loops": n, "model": stats, "general": stats}}``."""
+    general = variants.get("stored descriptors", {}).get("pose_errors")
+    out: dict[str, Any] = {}
+    for name in MODEL_VARIANTS:
+        mine = variants.get(name, {}).get("pose_errors")
+        if general is None or mine is None:
+            continue
+        both = sorted(set(general) & set(mine), key=int)
+        if both:
+            out[name] = {"loops": len(both), "model": _error_stats([tuple(mine[t]) for t in both]),
+                         "general": _error_stats([tuple(general[t]) for t in both])}
+    return out
+
+
+def _pose_error(v: Any, old_pose: np.ndarray, new_pose: np.ndarray, mount: np.ndarray) -> tuple[float, float, float]:
+    """``(heading error, bearing error, distance)`` of a verified motion against the truth:
+    degrees, degrees, metres (the new camera in the old camera's planar frame)."""
+    from robotd.base.geometry import between, compose
+    from robotd.forward.planar import planar_motion
+
+    rel = between(compose(old_pose, mount), compose(new_pose, mount))
+    dyaw, bearing, _ = planar_motion(v.rotation, v.translation_dir)
+    return (math.degrees(math.remainder(dyaw - float(rel[2]), math.tau)),
+            math.degrees(math.remainder(bearing - math.atan2(float(rel[1]), float(rel[0])), math.tau)),
+            float(math.hypot(float(rel[0]), float(rel[1]))))
+
+
+#: The motion-model variants: fields of VerifyParams replaced in the recorded detector's.
+MODEL_VARIANTS: dict[str, dict[str, Any]] = {
+    "planar model": {"model": "planar"},
+    "planar model, no fallback": {"model": "planar", "fallback_inliers": None},
+    "planar motion decides": {"model": "planar_motion"},
+}
+
+VARIANTS = ("planar model", "planar model, no fallback", "planar motion decides", "stored descriptors", "word ids", "first 16 bytes", "first 8 bytes",
+            "no descriptor for purged words",
             "USAC, no local optimisation", "USAC, PROSAC order", "USAC screen, then RANSAC", "RANSAC, at most 200 samples")
 
 
@@ -270,19 +349,40 @@ def page(res: dict[str, Any]) -> list[str]:
              "Generated by `bench/bench_forward_verify_replay.py` from its JSON (do not edit by hand). The "
              "default detector's verifications on each sequence, replayed with what each variant keeps of the "
              "past image (same candidates, same RANSAC, same seed), or with another search for the essential matrix (the "
-             "stored descriptors; the `USAC` and `RANSAC` rows); what is measured: the bench's docstring and "
-             "[docs/forward.md](../forward.md), \"Time and memory per image\".",
+             "stored descriptors; the `USAC` and `RANSAC` rows), or with the planar motion model (the `planar model` "
+             "rows; every other row is the general five-point model); what is measured: the bench's docstring and "
+             "[docs/forward.md](../forward.md), \"Time and memory per image\". The last four columns: the true loops' "
+             "verified motion against the truth (office only), heading change error and bearing error (views 0.3 m or "
+             "more apart), degrees, median / 90th percentile.",
              "",
              f"Machine and versions: {m.get('machine')}, cpu_count {m.get('cpu_count')}, python {m.get('python')}, "
              f"numpy {m.get('numpy')}, opencv {m.get('opencv')}. Command: `{res['command']}`.",
              "",
-             "| sequence | variant | bytes saved per image | R@100%P | FP | loops | verify ms median | verify ms p99 |",
-             "|---|---|---:|---:|---:|---:|---:|---:|"]
+             "| sequence | variant | bytes saved per image | R@100%P | FP | loops | verify ms median | verify ms p99 "
+             "| true loops | heading err deg | far loops | bearing err deg |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for sname, s in res["sequences"].items():
         for v, r in s["variants"].items():
+            pose = (f"{r['pose_loops']} | {r['yaw_err_deg_median']:.2f} / {r['yaw_err_deg_p90']:.2f} | "
+                    f"{r['bearing_loops']} | {r['bearing_err_deg_median']:.1f} / {r['bearing_err_deg_p90']:.1f}"
+                    if "pose_loops" in r else "- | - | - | -")
             lines.append(f"| {sname} ({s['verifications']} verifications) | {v} | {r['bytes_saved_per_image']:.0f} | "
                          f"{r['recall_at_full_precision']:.3f} | {r['false_positives']} | {r['loops']} | "
-                         f"{r['verify_ms_median']:.1f} | {r['verify_ms_p99']:.1f} |")
+                         f"{r['verify_ms_median']:.1f} | {r['verify_ms_p99']:.1f} | {pose} |")
+    common = [(sname, v, c) for sname, s in res["sequences"].items() for v, c in s.get("common_loops", {}).items()]
+    if common:
+        lines += ["", "On the true loops both verified, each planar row against the general model (`stored descriptors`): "
+                  "heading change error, and bearing error of the views 0.3 m or more apart, degrees, median / 90th "
+                  "percentile.", "",
+                  "| sequence | variant | loops | heading err, planar | heading err, general | far loops | "
+                  "bearing err, planar | bearing err, general |",
+                  "|---|---|---:|---:|---:|---:|---:|---:|"]
+        for sname, v, c in common:
+            a, b = c["model"], c["general"]
+            lines.append(f"| {sname} | {v} | {c['loops']} | {a['yaw_err_deg_median']:.2f} / {a['yaw_err_deg_p90']:.2f} | "
+                         f"{b['yaw_err_deg_median']:.2f} / {b['yaw_err_deg_p90']:.2f} | {a['bearing_loops']} | "
+                         f"{a['bearing_err_deg_median']:.1f} / {a['bearing_err_deg_p90']:.1f} | "
+                         f"{b['bearing_err_deg_median']:.1f} / {b['bearing_err_deg_p90']:.1f} |")
     return lines + [""]
 
 
@@ -295,6 +395,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="folder of the virtual office sequence (written when missing)")
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--only", choices=("rtabmap_samples", "office"), default=None)
+    ap.add_argument("--variants", default=";".join(VARIANTS),
+                    help=f"semicolon-separated variants (default: all of {'; '.join(VARIANTS)})")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--page", type=Path, default=None, metavar="JSON",
                     help="only rewrite docs/benchmarks/forward_verify_replay.md from this result")
@@ -307,6 +409,10 @@ def main(argv: list[str] | None = None) -> int:
                            "command": " ".join(["bench/bench_forward_verify_replay.py",
                                                 *(argv if argv is not None else sys.argv[1:])]),
                            "sequences": {}}
+    variants = [v.strip() for v in args.variants.split(";") if v.strip()]
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        ap.error(f"unknown variants {unknown}; choose from {list(VARIANTS)}")
     rt = args.data / "forward" / "rtabmap_samples"
     office = office_sequence(args.dir) if args.only != "rtabmap_samples" else args.dir
     seqs = {"rtabmap_samples": (rt, rt / "ground_truth.bmp"), "office": (office, office / "gt.npy")}
@@ -316,12 +422,15 @@ def main(argv: list[str] | None = None) -> int:
         rec = record(name, folder, truth)
         out: dict[str, Any] = {"verifications": len(rec["pairs"]), "variants": {}}
         print(f"\n{name}: {len(rec['pairs'])} verifications recorded", flush=True)
-        for v in VARIANTS:
+        for v in variants:
             r = replay(rec, v)
             out["variants"][v] = r
             print(f"  {v:32s} R@100%P {r['recall_at_full_precision']:.3f} FP {r['false_positives']} loops {r['loops']} "
                   f"saves {r['bytes_saved_per_image']:.0f} B/img  verify ms {r['verify_ms_median']:.1f} / p99 "
                   f"{r['verify_ms_p99']:.1f}", flush=True)
+        common = common_loops(out["variants"])
+        if common:
+            out["common_loops"] = common
         res["sequences"][name] = out
         write_json(args.out, res)
     print(f"wrote {write_json(args.out, res)}")

@@ -369,7 +369,8 @@ def daemon_params() -> EkfParams:
 def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str, ...] = (),
                   ekf: dict[str, float] | None = None, cost_seeds: int = 0,
                   true_model: bool = False, daemon_model: bool = False,
-                  cost_models: tuple[str, ...] = ("independent", "bias_window", "bias")) -> dict[str, Any]:
+                  cost_models: tuple[str, ...] = ("independent", "bias_window", "bias"),
+                  daemon_graph_seeds: int = 0) -> dict[str, Any]:
     sensors = BaseSensorParams()
     for name in without:  # the same base without these errors: what each costs
         sensors = dataclasses.replace(sensors, **WITHOUT[name])
@@ -383,6 +384,7 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str,
         e = d["drawn"]
         per_seed.append({"seed": seed, "edges": len(d["delta"]), "horizons": {str(k): v for k, v in res.items()},
                          "cost": cost,
+                         "daemon_graph": daemon_graph(d, seed) if seed < daemon_graph_seeds else None,
                          "drawn": {"wheel_base_error": e.wheel_base_error,
                                    "radius_error_left": e.left_radius_error,
                                    "radius_error_right": e.right_radius_error,
@@ -591,6 +593,140 @@ def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float],
     return out
 
 
+# --------------------------------------------------------------------------- the daemon's graph
+
+#: The daemon's odometry models (``[pose_graph] odometry_model``) the daemon-graph part runs.
+DAEMON_MODELS = ("independent", "bias_window")
+
+
+def daemon_graph(d: dict[str, Any], seed: int, max_chains: int = 400, solve_every: int = 200,
+                 horizons: tuple[int, ...] = HORIZONS) -> dict[str, Any]:
+    """The seed's edges (with their bias terms) in the daemon's own graph,
+    :class:`robotd.graph.incremental.IncrementalGraph`, once per ``odometry_model``.
+
+    NEES: the keyframes added one at a time without loops; per horizon ``N`` the chains
+    ``i -> i + N`` of :func:`chained_nees` (one every ``N/5`` edges), at most ``max_chains``
+    of them evenly spread over the drive (over 1 and 10 edges), the relative pose's
+    covariance from iSAM2's joint marginal of the two keyframes (in the end's frame, as
+    :meth:`IncrementalGraph.loop_chi2` forms it), its error against the truth.
+    Cost: the same keyframes with loop edges from the truth (:func:`_loops_from_truth`)
+    and a full solve every ``solve_every`` keyframes and at the end (which folds iSAM2),
+    as the pose-graph stage runs it: CPU seconds (this process) of the keyframe and loop
+    updates per keyframe, of the full solves, and the final ATE (m)."""
+    from robotd.graph.incremental import IncrementalGraph, IncrementalParams
+
+    deltas, covs, terms, truth = d["delta"], d["cov"], d["terms"], d["truth"]
+    m = len(deltas)
+    loops = _loops_from_truth(truth, np.random.default_rng(seed))
+    by_end: dict[int, list[tuple[int, int, np.ndarray, np.ndarray]]] = {}
+    for lp in loops:
+        by_end.setdefault(lp[1], []).append(lp)
+    infos = [np.linalg.inv(c) for c in covs]
+    out: dict[str, Any] = {"keyframes": m + 1, "loops": len(loops)}
+    for model in DAEMON_MODELS:
+        res: dict[str, Any] = {}
+        g = IncrementalGraph(IncrementalParams(odometry_model=model))
+        g.add_first(0, truth[0])
+        for k in range(m):
+            g.add_keyframe(k + 1, k, deltas[k], infos[k], tuple(terms[k]))
+        ids, est = g.estimate()
+        nees: dict[str, dict[str, float]] = {}
+        for h in horizons:
+            if h > m:
+                continue
+            parts = []
+            starts = np.arange(0, m - h + 1, max(1, h // 5))
+            if len(starts) > max_chains:
+                starts = starts[np.linspace(0, len(starts) - 1, max_chains).round().astype(int)]
+            for i in starts.tolist():
+                j = i + h
+                hp = between(est[i], est[j])
+                jm = g.joint_marginal_covariance(i, j)
+                a = np.hstack([-np.linalg.inv(_adjoint(hp)), np.eye(3)])  # [-Ad(h^-1), I]
+                c = a @ jm @ a.T
+                e = between(hp, between(truth[i], truth[j]))
+                e[2] = wrap_angle(e[2])
+                parts.append(_nees_parts(e, c))
+            pn = np.array(parts)
+            nees[str(h)] = {"chains": len(pn), "all": float(pn[:, 0].mean()), "yaw": float(pn[:, 1].mean()),
+                            "position": float(pn[:, 2].mean())}
+        res["nees"] = nees
+        g = IncrementalGraph(IncrementalParams(odometry_model=model))
+        t_kf = t_solve = 0.0
+        solves = 0
+        t0 = time.process_time()
+        g.add_first(0, truth[0])
+        t_kf += time.process_time() - t0
+        for k in range(m):
+            t0 = time.process_time()
+            g.add_keyframe(k + 1, k, deltas[k], infos[k], tuple(terms[k]))
+            for i, j, delta, cov in by_end.get(k + 1, []):
+                g.add_loop(i, j, delta, np.linalg.inv(cov))
+            t_kf += time.process_time() - t0
+            if (k + 1) % solve_every == 0 or k + 1 == m:
+                t0 = time.process_time()
+                g.resolve()
+                t_solve += time.process_time() - t0
+                solves += 1
+        ids, est = g.estimate()
+        res["cpu_ms_per_keyframe"] = 1e3 * t_kf / (m + 1)
+        res["solve_cpu_s"] = t_solve
+        res["solves"] = solves
+        res["ate_m"] = float(np.sqrt(np.mean(np.sum((est[:, :2] - truth[ids, :2]) ** 2, axis=1))))
+        out[model] = res
+        log(f"seed {seed} daemon graph {model}: " + ", ".join(f"N={h} {v['all']:.2f}" for h, v in nees.items())
+            + f"; {res['cpu_ms_per_keyframe']:.2f} ms/keyframe, solves {t_solve:.1f} s, ATE {res['ate_m']:.4f} m")
+    return out
+
+
+def daemon_graph_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
+    """Per horizon and model: the mean NEES over seeds in the daemon's graph (yaw, position) [seeds]."""
+    runs = [r["daemon_graph"] for r in part["per_seed"] if r.get("daemon_graph")]
+    head = ["N edges"] + [f"`{m}`" for m in DAEMON_MODELS]
+    rows: list[list[Any]] = []
+    for h in HORIZONS:
+        row: list[Any] = [h]
+        for model in DAEMON_MODELS:
+            v = [r[model]["nees"][str(h)] for r in runs if str(h) in r[model]["nees"]]
+            if not v:
+                row.append("-")
+                continue
+            a = [x["all"] for x in v]
+            row.append(f"{np.mean(a):.2f} ({np.mean([x['yaw'] for x in v]):.2f}, "
+                       f"{np.mean([x['position'] for x in v]):.2f}) [{min(a):.2f}-{max(a):.2f}]")
+        rows.append(row)
+    return head, rows
+
+
+def daemon_graph_seed_rows(part: dict[str, Any], model: str) -> tuple[list[str], list[list[Any]]]:
+    head = ["seed"] + [f"N={h}" for h in HORIZONS]
+    rows: list[list[Any]] = []
+    for r in part["per_seed"]:
+        dg = r.get("daemon_graph")
+        if dg:
+            rows.append([r["seed"]] + [f"{dg[model]['nees'][str(h)]['all']:.2f}" if str(h) in dg[model]["nees"]
+                                       else "-" for h in HORIZONS])
+    return head, rows
+
+
+def daemon_cost_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
+    head = ["seed", "keyframes", "loops", "model", "CPU ms / keyframe", "full solves CPU s", "ATE (m)"]
+    rows: list[list[Any]] = []
+    for r in part["per_seed"]:
+        dg = r.get("daemon_graph")
+        if not dg:
+            continue
+        base = dg["independent"]
+        for model in DAEMON_MODELS:
+            m = dg[model]
+            ratio = "" if model == "independent" else f" (x{m['cpu_ms_per_keyframe'] / base['cpu_ms_per_keyframe']:.2f})"
+            sratio = "" if model == "independent" else f" (x{m['solve_cpu_s'] / base['solve_cpu_s']:.1f})"
+            rows.append([r["seed"], dg["keyframes"], dg["loops"], f"`{model}`",
+                         f"{m['cpu_ms_per_keyframe']:.2f}{ratio}", f"{m['solve_cpu_s']:.2f}{sratio} ({m['solves']})",
+                         f"{m['ate_m']:.4f}"])
+    return head, rows
+
+
 # --------------------------------------------------------------------------- loops
 
 
@@ -766,6 +902,22 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
                   "and the bias + scale variables (`bias_scales`); all but the first Python "
                   "`CustomFactor`s; in brackets the ratio to independent edges, same run.", ""]
         table(head, rows)
+    head, rows = daemon_cost_rows(odo)
+    if rows:
+        lines += ["In the daemon's own graph (`robotd.graph.incremental.IncrementalGraph`, each "
+                  "`[pose_graph] odometry_model`): the seed's edges with their bias terms added one keyframe "
+                  "at a time. NEES without loops, from iSAM2's joint marginal of a chain's two ends (the chains "
+                  "above, at most 400 per horizon spread over the drive; in brackets the yaw and position parts, in square "
+                  "brackets the seeds' range):", ""]
+        table(*daemon_graph_rows(odo))
+        lines += ["Per seed, `bias_window` in the daemon's graph:", ""]
+        table(*daemon_graph_seed_rows(odo, "bias_window"))
+        lines += ["CPU in the daemon's graph, with loop edges from the truth (as above) and a full solve every "
+                  "200 keyframes and at the end, as the pose-graph stage runs it (the fold after each): CPU "
+                  "time of this process per keyframe (keyframe and loop updates), of the full solves (their "
+                  "count in brackets), the ATE at the end; in brackets the ratio to independent edges, same "
+                  "run.", ""]
+        table(head, rows)
 
 
 def markdown(payload: dict[str, Any]) -> list[str]:
@@ -828,6 +980,10 @@ def main(argv: list[str] | None = None) -> int:
                          "[odometry] and the calibration's gyro noise density), --ekf changes on top")
     ap.add_argument("--cost-seeds", type=int, default=1,
                     help="odometry: time the pose graph with each model on this many seeds (default 1)")
+    ap.add_argument("--daemon-graph", type=int, default=0, metavar="SEEDS",
+                    help="odometry: on this many seeds also feed the edges to the daemon's own graph "
+                         "(IncrementalGraph, each [pose_graph] odometry_model): NEES from iSAM2's marginals, "
+                         "CPU per keyframe with loops and full solves")
     ap.add_argument("--cost-models", default="independent,bias_window,bias",
                     help="odometry: the graph-cost models timed (of independent, bias_window, bias, bias_scales)")
     ap.add_argument("--compare", type=Path, action="append", default=[],
@@ -866,13 +1022,18 @@ def main(argv: list[str] | None = None) -> int:
             ekf[name] = float(value)
         payload["odometry"] = odometry_part(seeds, args.route, args.keyframe_m, without, ekf, args.cost_seeds,
                                             args.true_model, args.daemon_model,
-                                            tuple(m for m in args.cost_models.split(",") if m))
+                                            tuple(m for m in args.cost_models.split(",") if m), args.daemon_graph)
         print(f"\nodometry edges, {args.route}: mean NEES of N chained edges per model (yaw, position) [seeds]")
         print_table(*odometry_model_rows(payload["odometry"]))
         print("\nper seed, bias + scale variables")
         print_table(*odometry_rows(payload["odometry"]))
         print("\ngraph cost, same run")
         print_table(*cost_rows(payload["odometry"]))
+        if args.daemon_graph:
+            print("\nthe daemon's graph: mean NEES per [pose_graph] odometry_model (yaw, position) [seeds]")
+            print_table(*daemon_graph_rows(payload["odometry"]))
+            print("\nthe daemon's graph: CPU, same run")
+            print_table(*daemon_cost_rows(payload["odometry"]))
     if not args.skip_loops:
         payload["loops"] = loop_part([f for f in args.floors.split(",") if f], n_pairs, args.seed)
         print("\nloop edges from rendered pairs")

@@ -207,17 +207,19 @@ def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, l
     odometry_stage = pipeline.add(OdometryStage(odometry)) if odometry is not None else None
     pipeline.add(KeyframeStage(odometry_stage.keyframe_odometry() if odometry_stage is not None else None,
                                clock, distance_m=kf.distance_m, rotation_rad=math.radians(kf.rotation_deg),
-                               max_sync_wait_s=kf.max_sync_wait_s, lossless=lossless),
+                               max_sync_wait_s=kf.max_sync_wait_s, lossless=lossless,
+                               bias_terms=(cfg.pose_graph.enabled and pose_graph
+                                           and cfg.pose_graph.odometry_model == "bias_window")),
                  reads={"odometry": "KeyframeOdometry"} if odometry_stage is not None else None)
     mapped_ground = None
     if cfg.pose_graph.enabled and pose_graph:
         from robotd.app.stages.pose_graph import PoseGraphStage
-        from robotd.graph.incremental import IncrementalGraph
+        from robotd.graph.incremental import IncrementalGraph, IncrementalParams
         from robotd.graph.mappedground import MappedGroundParams
 
         g = cfg.pose_graph
         graph_stage = pipeline.add(PoseGraphStage(
-            IncrementalGraph(), store, gate_chi2=g.gate_chi2, save_every=g.full_solve_every_keyframes,
+            IncrementalGraph(IncrementalParams(odometry_model=g.odometry_model)), store, gate_chi2=g.gate_chi2, save_every=g.full_solve_every_keyframes,
             forward_mount=forward_mount(cfg), forward_params=forward_loop_params(cfg),
             mapped_ground=MappedGroundParams(g.mapped_radius_m, g.max_unlocalised_m) if g.localise_mapped else None))
         mapped_ground = graph_stage.mapped_ground  # owned by the graph stage; the writer's interface

@@ -252,6 +252,10 @@ class PoseGraphConfig:
                                 "is on mapped ground", lo=0.001, hi=100.0)
     max_unlocalised_m: float = _f(1.0, "on mapped ground, travel this far without an accepted match "
                                   "and the robot stores keyframes again", lo=0.01, hi=1000.0)
+    odometry_model: str = _f("independent", "what the odometry edges share: 'independent' (each edge its "
+                             "own covariance) or 'bias_window' (the wheel + gyro edges share the gyro "
+                             "bias: one factor per 10 edges with a bias variable, the windows chained; "
+                             "docs/concepts.md)", choices=("independent", "bias_window"))
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 from enum import StrEnum
-from typing import Literal, TypeVar
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 
@@ -131,6 +131,10 @@ class Keyframe:
     filter's increment, or in a :class:`MeasuredKeyframe` what visual odometry made of it;
     None at the first keyframe or when the filter had none. The map writer links the
     keyframes with it."""
+    odometry_bias: tuple[Any, ...] | None = None
+    """What ``odometry_edge`` shares with the gyro bias (the fields of
+    :class:`robotd.odometry.history.EdgeBiasTerms`), when the pose graph keeps the bias
+    (``[pose_graph] odometry_model``); None otherwise or when the edge has none."""
     carried: bool = False
     """The robot was lifted (a wheel drop) since the previous keyframe: no odometry edge may
     join the two (the wheels did not see the motion)."""
@@ -242,6 +246,8 @@ class Link:
     delta_xyyaw: np.ndarray
     information: np.ndarray
     source: str = "floor"
+    bias: tuple[Any, ...] | None = None
+    """An odometry link's bias terms (:attr:`Keyframe.odometry_bias`), None without."""
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -798,7 +798,9 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
       odometry) on the office route they raised recall at 100 % precision from 0.534 to
       0.818 with no false positive; without a pose (the real corridor, ``robotd eval
       forward`` without ``--odometry``) the detector is the one without odometry. The
-      other metric levers (:class:`OdometryParams`) stay selectable.
+      other metric levers (:class:`OdometryParams`) stay selectable. Its verification
+      searches a level camera's motion first (``VerifyParams(model="planar")``; the
+      paper's general search stays selectable as ``model="general"``).
     """
     from robotd.forward.features import FeatureParams
     from robotd.forward.filter import FilterParams
@@ -811,7 +813,8 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
                                 vocabulary=VocabularyParams(purge_after=DEFAULT_PURGE_AFTER),
                                 filter=FilterParams(rule=DEFAULT_RULE, loop_threshold=DEFAULT_THRESHOLD),
                                 consistency=DEFAULT_CONSISTENCY, verify_tries=DEFAULT_VERIFY_TRIES,
-                                odometry=OdometryParams(use=True, agree_min_support_area=0.0))
+                                odometry=OdometryParams(use=True, agree_min_support_area=0.0),
+                                verify=VerifyParams(model=DEFAULT_VERIFY_MODEL))
     else:
         raise ValueError(f"forward detector method must be one of {', '.join(METHODS)}, got {method!r}")
     return replace(params, **overrides) if overrides else params
@@ -845,3 +848,4 @@ DEFAULT_RULE = "total"
 DEFAULT_THRESHOLD = 0.3
 DEFAULT_CONSISTENCY = 1
 DEFAULT_VERIFY_TRIES = 3
+DEFAULT_VERIFY_MODEL = "planar"

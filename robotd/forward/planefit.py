@@ -31,7 +31,8 @@ import numpy as np
 
 from robotd.forward.planar import INLIER_NOISE_FACTOR
 
-__all__ = ["PlanarFit", "fit_planar", "planar_inliers", "planar_pose", "ridge_span"]
+__all__ = ["PlanarFit", "PlanarSearch", "fit_planar", "front_mask", "planar_inliers", "planar_pose",
+           "ransac_planar", "ridge_span"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,6 +176,15 @@ def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nda
     best_i = int(np.flatnonzero(inl_n == inl_n.max())[np.argmax(cost[inl_n == inl_n.max()])])
     scan_n = inl_n.reshape(len(yaws), -1).max(axis=1)
     yaw, psi = float(cand_yaw[best_i]), float(cand_psi[best_i])
+    return _refine(x_old, x_new, focal, yaw, psi, threshold_px, fix_yaw, yaws, scan_n)
+
+
+def _refine(x_old: np.ndarray, x_new: np.ndarray, focal: float, yaw: float, psi: float, threshold_px: float,
+            fix_yaw: bool, yaws: np.ndarray, scan_n: np.ndarray) -> PlanarFit:
+    """The planar motion ``(yaw, psi)`` refined by Gauss-Newton on the Sampson distances of
+    the normalised matches ``x_old, x_new (N, 3)`` within ``threshold_px`` of it, the
+    translation's sign chosen by the points in front of both cameras, and its sigmas
+    (:func:`fit_planar`, :func:`ransac_planar`)."""
     # Refine (yaw, psi) by Gauss-Newton on the inliers' Sampson distances.
     r, t = planar_pose(yaw, psi)
     inl = np.abs(_sampson(x_old, x_new, r, t, focal)) < threshold_px
@@ -234,6 +244,176 @@ def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nda
             var = np.einsum("ij,jk,ik->i", g, cov, g)
             sig_y, sig_b = math.sqrt(max(float(var[0]), 0.0)), math.sqrt(max(float(var[1]), 0.0))
     return PlanarFit(yaw, _bearing(yaw, psi), r, t, inl, sig_y, sig_b, yaws, scan_n)
+
+
+def _two_point_motions(a: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """The planar motions through the match pairs ``(i[s], j[s])``: ``(2 S, 4)`` vectors
+    ``v = (cos psi, sin psi, cos(psi - yaw), sin(psi - yaw))`` up to scale (rows of NaN
+    where a pair fixes none), from the epipolar rows ``a (N, 4)`` (:func:`ransac_planar`)."""
+    pair = np.stack([a[i], a[j]], axis=1)                      # (S, 2, 4)
+    null = np.linalg.svd(pair)[2][:, 2:, :]                    # (S, 2, 4): the null space
+    n1, n2 = null[:, 0], null[:, 1]
+    q = np.array([1.0, 1.0, -1.0, -1.0])  # |(v0, v1)| = |(v2, v3)|: both halves unit vectors
+    q11, q12, q22 = (n1 * q * n1).sum(1), (n1 * q * n2).sum(1), (n2 * q * n2).sum(1)
+    disc = q12 * q12 - q11 * q22
+    root = np.sqrt(np.maximum(disc, 0.0))
+    by_a = np.abs(q11) >= np.abs(q22)
+    # q11 al^2 + 2 q12 al be + q22 be^2 = 0, solved for the better-conditioned ratio
+    al = np.where(by_a, np.stack([-q12 + root, -q12 - root]), q22[None])
+    be = np.where(by_a, q11[None], np.stack([-q12 + root, -q12 - root]))
+    v = al[..., None] * n1[None] + be[..., None] * n2[None]   # (2, S, 4)
+    v = v.reshape(-1, 4)
+    bad = np.repeat((disc < 0.0)[None], 2, 0).ravel() | (np.hypot(v[:, 0], v[:, 1]) < 1e-12)
+    v[bad] = np.nan
+    return v
+
+
+def _inlier_counts(a: np.ndarray, b: np.ndarray, v: np.ndarray, threshold: float) -> np.ndarray:
+    """``(M,)`` matches within ``threshold`` (Sampson distance, normalised units) of each of
+    the planar motions ``v (M, 4)`` of :func:`_two_point_motions` (any scale): the squared
+    distance is ``(a . v)^2 / (w(v) . b)`` with ``w(v)`` the six products of ``v`` below and
+    ``b (N, 6)`` from the matches (:func:`_sampson_terms`), so the test is two matrix
+    products."""
+    num = v @ a.T
+    w = np.stack([v[:, 0] ** 2, v[:, 1] ** 2, v[:, 0] * v[:, 1], v[:, 2] ** 2, v[:, 2] * v[:, 3], v[:, 3] ** 2], axis=1)
+    out: np.ndarray = (num * num < threshold * threshold * (w @ b.T)).sum(axis=1)
+    return out
+
+
+def _sampson_terms(x_old: np.ndarray, x_new: np.ndarray) -> np.ndarray:
+    """``(N, 6)``: the Sampson denominator's terms of each match (:func:`_inlier_counts`):
+    ``|E x|^2`` and ``|E^T x'|^2``'s first two components, expanded in ``v``."""
+    x1, y1, x2, y2 = x_old[:, 0], x_old[:, 1], x_new[:, 0], x_new[:, 1]
+    one = np.ones(len(x_old))
+    return np.stack([y1 * y1 + x2 * x2, one, -2.0 * x2, x1 * x1 + y2 * y2, -2.0 * x1, one], axis=1)
+
+
+def front_mask(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarray,
+               max_depth: float = math.inf) -> np.ndarray:
+    """``(N,) bool``: the normalised matches ``x_old, x_new (N, 3)`` whose triangulated point
+    is in front of both cameras of the motion ``r, t`` (midpoint method) and nearer than
+    ``max_depth`` times the baseline ``|t|`` to both (``cv2.recoverPose``'s ``distanceThresh``,
+    50 by default there: a point further away has no parallax to show the motion)."""
+    d1 = x_old
+    d2 = x_new @ r
+    c2 = -r.T @ t
+    a11 = np.einsum("ij,ij->i", d1, d1)
+    a12 = -np.einsum("ij,ij->i", d1, d2)
+    a22 = np.einsum("ij,ij->i", d2, d2)
+    b1 = d1 @ c2
+    b2 = -(d2 @ c2)
+    det = a11 * a22 - a12 * a12
+    ok = np.abs(det) > 1e-12
+    det = np.where(ok, det, 1.0)
+    za = (a22 * b1 - a12 * b2) / det   # depth in the old camera (x_old's z is 1)
+    zb = (a11 * b2 - a12 * b1) / det   # depth in the new camera
+    lim = max_depth * math.sqrt(float(t @ t))
+    out: np.ndarray = ok & (za > 0) & (zb > 0) & (za < lim) & (zb < lim)
+    return out
+
+
+@dataclass(frozen=True)
+class PlanarSearch:
+    """What :func:`ransac_planar` did: ``samples`` drawn (pairs of matches), ``hypotheses``
+    scored against every match, ``best_inliers`` of the best hypothesis before refinement,
+    and that hypothesis, ``yaw_rad`` and ``psi_rad`` as :func:`planar_pose` takes them (0
+    when there was none)."""
+
+    samples: int
+    hypotheses: int
+    best_inliers: int
+    yaw_rad: float = 0.0
+    psi_rad: float = 0.0
+
+    def inliers(self, p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray,
+                threshold_px: float) -> np.ndarray:
+        """``(N,) bool``: the matched pixels within ``threshold_px`` (Sampson distance) of the
+        best hypothesis."""
+        p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
+        p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
+        k = np.asarray(camera_matrix, np.float64)
+        kinv = np.linalg.inv(k)
+        x_old = np.hstack([p_old, np.ones((len(p_old), 1))]) @ kinv.T
+        x_new = np.hstack([p_new, np.ones((len(p_new), 1))]) @ kinv.T
+        r, t = planar_pose(self.yaw_rad, self.psi_rad)
+        out: np.ndarray = np.abs(_sampson(x_old, x_new, r, t, 0.5 * (k[0, 0] + k[1, 1]))) < threshold_px
+        return out
+
+
+def ransac_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, *,
+                  threshold_px: float = 1.0, min_inliers: int = 20, confidence: float = 0.999,
+                  max_samples: int = 500, batch: int = 64, seed: int = 0,
+                  refine: bool = True) -> tuple[PlanarFit | None, PlanarSearch]:
+    """The planar motion of the matched pixels ``p_old_px, p_new_px (N, 2)`` found without
+    a first guess: RANSAC over pairs of matches (the two-point solver of a level camera's
+    motion; not in paper 000).
+
+    With ``v = (cos psi, sin psi, cos(psi - yaw), sin(psi - yaw))`` the epipolar constraint
+    of the motion of :func:`planar_pose` is linear, ``a_i . v = 0`` with
+    ``a_i = (-x'_i y_i, y_i, y'_i x_i, -y'_i)`` (normalised coordinates, ``'`` the new
+    image). Two matches leave a two-dimensional null space; the two halves of ``v`` being
+    unit vectors of equal length gives a quadratic in it, so each pair of matches gives at
+    most two motions. All hypotheses of a batch of ``batch`` samples are scored against
+    every match at once (Sampson distance within ``threshold_px``); sampling stops when
+    a consensus as large as the best found, and at least ``min_inliers``, would have been
+    drawn with ``confidence`` (the adaptive RANSAC bound with a sample of two), and after
+    at most ``max_samples`` samples: the work per verification is at most ``2 max_samples``
+    hypotheses times N matches (the stated cap, no timer). The best hypothesis is refined
+    on its inliers as :func:`fit_planar` refines its own (Gauss-Newton, the translation's
+    sign from the points in front of both cameras, sigmas scaled by
+    :data:`robotd.forward.planar.INLIER_NOISE_FACTOR`); its ``inliers`` are then those
+    within the threshold *and* in front of both cameras.
+    ``(None, search)`` with fewer than 5 matches, or without ``refine`` (the search's
+    size alone: a screen). Samples from ``numpy``'s generator seeded with ``seed``
+    (reproducible)."""
+    p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
+    p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
+    n = len(p_old)
+    if n < 5:
+        return None, PlanarSearch(0, 0, 0)
+    k = np.asarray(camera_matrix, np.float64)
+    kinv = np.linalg.inv(k)
+    focal = 0.5 * (k[0, 0] + k[1, 1])
+    x_old = np.hstack([p_old, np.ones((n, 1))]) @ kinv.T
+    x_new = np.hstack([p_new, np.ones((n, 1))]) @ kinv.T
+    a = np.stack([-x_new[:, 0] * x_old[:, 1], x_old[:, 1], x_new[:, 1] * x_old[:, 0], -x_new[:, 1]], axis=1)
+    terms = _sampson_terms(x_old, x_new)
+    thr = threshold_px / focal
+    rng = np.random.default_rng(seed)
+    log_miss = math.log(1.0 - confidence)
+
+    def needed(count: int) -> int:
+        w = min(1.0, max(count, min_inliers) / n)
+        miss = 1.0 - w * w
+        return 1 if miss <= 0.0 else int(math.ceil(log_miss / math.log(miss)))
+
+    drawn = hyps = 0
+    best_n, best_v = -1, np.full(4, np.nan)
+    while drawn < min(max_samples, needed(best_n)):
+        m = min(batch, max_samples - drawn)
+        i = rng.integers(0, n, m)
+        j = (i + 1 + rng.integers(0, n - 1, m)) % n
+        v = _two_point_motions(a, i, j)
+        v = v[np.all(np.isfinite(v), axis=1)]
+        drawn += m
+        if not len(v):
+            continue
+        hyps += len(v)
+        counts = _inlier_counts(a, terms, v, thr)
+        top = int(np.argmax(counts))
+        if counts[top] > best_n:
+            best_n, best_v = int(counts[top]), v[top]
+    if best_n < 0:
+        return None, PlanarSearch(drawn, hyps, 0)
+    psi = math.atan2(best_v[1], best_v[0])
+    yaw = math.remainder(psi - math.atan2(best_v[3], best_v[2]), math.tau)
+    search = PlanarSearch(drawn, hyps, best_n, yaw, psi)
+    if not refine:
+        return None, search
+    fit = _refine(x_old, x_new, focal, yaw, psi, threshold_px, False, np.zeros(0), np.zeros(0, np.int64))
+    front = fit.inliers & front_mask(x_old, x_new, fit.rotation, fit.translation_dir)
+    return PlanarFit(fit.dyaw_rad, fit.bearing_rad, fit.rotation, fit.translation_dir, front,
+                     fit.sigma_yaw_rad, fit.sigma_bearing_rad), search
 
 
 def ridge_span(fit: PlanarFit, margin: float) -> tuple[float, float]:

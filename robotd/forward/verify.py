@@ -67,19 +67,45 @@ changes, each the same test as before:
   each new best model on its inliers (which finds the consensus in fewer samples, so the
   adaptive stop comes earlier). The paper's detector keeps ``"ransac"``.
 
+**The planar model (not in the paper).** A robot's forward camera turns about its vertical
+axis and moves in the floor plane: two degrees of freedom (heading change, bearing of the
+translation) instead of the essential matrix's five. With ``model = "planar"`` (the default
+detector's) the verification first finds the level motion most matches agree with
+(:func:`robotd.forward.planefit.ransac_planar`: samples of two matches, at most two motions
+each, every batch of hypotheses scored against every match at once, within
+``guide_threshold_px``): for a quarter of the matches to be inliers it needs about 100
+samples where five-point RANSAC needs about 7000 (so it stops, where the five-point search
+ran to its cap of 1000). The essential matrix is then searched among the matches within
+``guide_threshold_px`` of that motion only (mostly inliers: the five-point search stops
+after a few samples; at most the samples that would draw five inliers were half of them
+inliers), its inliers counted over all the matches, and the rest is the general model's
+test (cheirality, support, the refined motion): the planar search only chooses where the
+five-point search looks. A camera a few degrees off level (the real corridor of
+rtabmap_samples, held by hand) leaves some inliers outside the neighbourhood: when the
+search there fails and the level motion's consensus reached ``fallback_inliers`` (10), the
+general search runs over all the matches with at most ``fallback_max_iterations`` (200)
+samples. The work per verification is so bounded by rule, not by a timer: at most
+``2 planar_max_samples`` level hypotheses times the matches, 218 five-point samples near the
+level motion and 200 over all the matches. ``model = "planar_motion"`` takes the level
+motion itself as the verified motion (no five-point search when it passes): measured, it
+passes aliased views (a wall's repeated pattern seen from a sideways shift) that the
+general test refuses, so it is not the default. ``model = "general"`` is the paper's
+search over all the matches (the paper's detector and the baselines keep it).
+
 Expected failures are values (:class:`Verification` with a reason), not exceptions.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 
 import cv2
 import numpy as np
 
 from robotd.forward.features import FeatureSet
-from robotd.forward.planar import fit_motion
+from robotd.forward.planar import INLIER_NOISE_FACTOR, fit_motion
+from robotd.forward.planefit import ransac_planar
 
 __all__ = ["ACCEPTED", "NO_GEOMETRIC_CONSISTENCY", "SMALL_SUPPORT", "TOO_FEW_MATCHES", "Verification", "VerifyReason",
            "VerifyParams", "camera_matrix_guess", "essential_matrix", "floor_range", "match_features", "ransac_iterations",
@@ -103,6 +129,9 @@ SMALL_SUPPORT = VerifyReason.SMALL_SUPPORT
 
 #: The searches for the essential matrix (:attr:`VerifyParams.estimator`).
 ESTIMATORS = ("ransac", "usac")
+
+#: The motion models of the verification (:attr:`VerifyParams.model`).
+MODELS = ("general", "planar", "planar_motion")
 
 
 @dataclass(frozen=True)
@@ -142,6 +171,29 @@ class VerifyParams:
             by default); fewer bound the verification's time at the cost of missing more
             consensus sets of few inliers among many matches (measured on both development
             sequences by ``bench/bench_forward_scale.py``, not the default).
+        model: how the motion is searched for (module notes, "The planar model"):
+            ``"general"``, the essential matrix of any rigid motion over all the matches
+            (five-point RANSAC, ``estimator``; the paper's check); ``"planar"`` (the default
+            detector's), a level camera's motion (heading change and bearing,
+            :func:`robotd.forward.planefit.ransac_planar`, samples of two matches) found
+            first, the essential matrix then searched among the matches within
+            ``guide_threshold_px`` of it and checked over all the matches as the general
+            model's, and the general search after it, at most ``fallback_max_iterations``
+            samples, when that fails and the planar consensus reached ``fallback_inliers``;
+            ``"planar_motion"``: the planar motion itself is the verified motion when it
+            passes the checks (the general search after it as in ``"planar"``, its
+            consensus counted within ``ransac_threshold_px``): measured, not the default
+            (it passes aliased views the general check refuses).
+        planar_max_samples: the most samples of two matches the planar search draws (its
+            work is at most twice this many hypotheses, each scored against every match).
+        guide_threshold_px: with ``"planar"``, the planar search's inlier threshold and
+            the neighbourhood of the level motion in which the essential matrix is
+            searched, pixels (wider than ``ransac_threshold_px``: a camera a few degrees
+            off level still has its inliers within it).
+        fallback_inliers: with a planar model, the general search over all the matches
+            is tried only when the planar search's best consensus has at least this many
+            matches; None: never (a camera known to be level); 0: always.
+        fallback_max_iterations: the most samples that general search draws.
     """
 
     ratio: float = 0.8
@@ -158,6 +210,11 @@ class VerifyParams:
     estimator: str = "ransac"
     local_optimisation: bool = True
     max_iterations: int = 1000
+    model: str = "general"
+    planar_max_samples: int = 500
+    guide_threshold_px: float = 3.0
+    fallback_inliers: int | None = 10
+    fallback_max_iterations: int = 200
 
     def __post_init__(self) -> None:
         if self.camera_height_m is not None and not self.camera_height_m > 0.0:
@@ -172,6 +229,16 @@ class VerifyParams:
             raise ValueError(f"homography_threshold_px must be positive, got {self.homography_threshold_px}")
         if self.max_iterations < 1:
             raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
+        if self.model not in MODELS:
+            raise ValueError(f"model must be one of {', '.join(MODELS)}, got {self.model!r}")
+        if self.planar_max_samples < 1:
+            raise ValueError(f"planar_max_samples must be >= 1, got {self.planar_max_samples}")
+        if not self.guide_threshold_px > 0.0:
+            raise ValueError(f"guide_threshold_px must be positive, got {self.guide_threshold_px}")
+        if self.fallback_max_iterations < 1:
+            raise ValueError(f"fallback_max_iterations must be >= 1, got {self.fallback_max_iterations}")
+        if self.fallback_inliers is not None and self.fallback_inliers < 0:
+            raise ValueError(f"fallback_inliers must be >= 0 or None, got {self.fallback_inliers}")
         if self.estimator not in ESTIMATORS:
             raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {self.estimator!r}")
 
@@ -261,28 +328,57 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
     if n < max(5, params.min_inliers):
         return Verification(False, TOO_FEW_MATCHES, n, 0)
     k = camera_matrix if camera_matrix is not None else camera_matrix_guess(*new.image_size_px)
-    e, mask = essential_matrix(p_old, p_new, k, params)
-    if e is None or mask is None or e.shape[0] < 3:
-        return Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
-    e = e[:3]  # the five-point method may return up to ten solutions stacked; RANSAC keeps one
-    n_inl, r, t, mask2 = cv2.recoverPose(e, p_old, p_new, k, mask=mask.copy())
-    n_inl = int(n_inl)
-    t = np.asarray(t, np.float64).reshape(3)
-    t_dir = t / max(float(np.linalg.norm(t)), 1e-12)
-    r = np.asarray(r, np.float64)
-    if n_inl < params.min_inliers:
-        return Verification(False, NO_GEOMETRIC_CONSISTENCY, n, n_inl, r, t_dir)
-    inl = np.asarray(mask2).ravel() > 0
-    # Not in the paper: the motion refined on all the inliers, and its uncertainty.
-    fit = fit_motion(p_old[inl], p_new[inl], r, t_dir, k)
-    r, t_dir, sig_b, sig_y, noise = fit.rotation, fit.translation_dir, fit.sigma_bearing_rad, fit.sigma_yaw_rad, fit.noise_px
+    if params.model == "planar":
+        _, search = ransac_planar(p_old, p_new, k, threshold_px=params.guide_threshold_px,
+                                  min_inliers=params.min_inliers, confidence=params.ransac_confidence,
+                                  max_samples=params.planar_max_samples, seed=params.seed, refine=False)
+        near = search.inliers(p_old, p_new, k, params.guide_threshold_px) if search.best_inliers else None
+        guided: _Motion | Verification = Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
+        if near is not None and int(near.sum()) >= params.min_inliers:
+            guided = _general_motion(p_old, p_new, k, params, n, near)
+            if not isinstance(guided, Verification):
+                guided = _checked(old, new, p_old, p_new, k, params, guided)
+        assert isinstance(guided, Verification)
+        if guided.accepted or params.fallback_inliers is None or search.best_inliers < params.fallback_inliers:
+            return guided
+        # Not found near a level motion: the general search over all the matches, with at
+        # most fallback_max_iterations samples (the stated cap on the work per image).
+        params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations))
+    elif params.model == "planar_motion":
+        motion = _planar_motion(p_old, p_new, k, params)
+        if isinstance(motion, int):
+            best = motion
+            refused = Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
+        else:
+            refused = _checked(old, new, p_old, p_new, k, params, motion)
+            if refused.accepted:
+                return refused
+            best = refused.n_inliers
+        # Not level, or no consensus: the general model only where the planar search found
+        # a consensus of at least fallback_inliers (module notes, "The planar model").
+        if params.fallback_inliers is None or best < params.fallback_inliers:
+            return refused
+        params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations))
+    general = _general_motion(p_old, p_new, k, params, n)
+    if isinstance(general, Verification):
+        return general
+    return _checked(old, new, p_old, p_new, k, params, general)
+
+
+def _checked(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray,
+             params: VerifyParams, motion: _Motion) -> Verification:
+    """The verification of a motion with at least ``min_inliers`` inliers: the range on the
+    floor, the support check (module notes)."""
+    n = len(p_old)
+    inl, r, t_dir, sig_b, sig_y, noise, chi2 = motion
+    n_inl = int(inl.sum())
     range_m, n_floor = (None, 0)
     if params.camera_height_m is not None:
         range_m, n_floor = floor_range(p_old[inl], p_new[inl], r, t_dir, k, params)
     if params.min_support_area <= 0.0:  # the paper's verification
         return Verification(True, ACCEPTED, n, n_inl, r, t_dir, range_m=range_m, n_floor_points=n_floor,
                             sigma_bearing_rad=sig_b, sigma_yaw_rad=sig_y, noise_px=noise,
-                            planarity_chi2=fit.planarity_chi2)
+                            planarity_chi2=chi2)
     # Not in the paper: the inliers must not be one small plane (module notes).
     s_old, s_new = p_old[inl], p_new[inl]
     _, hmask = cv2.findHomography(s_old, s_new, cv2.RANSAC, params.homography_threshold_px)
@@ -296,7 +392,85 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
     return Verification(ok, ACCEPTED if ok else SMALL_SUPPORT, n, n_inl, r, t_dir,
                         n_plane_inliers=n_plane, planar=bool(planar), support_area=area,
                         range_m=range_m, n_floor_points=n_floor, sigma_bearing_rad=sig_b,
-                        sigma_yaw_rad=sig_y, noise_px=noise, planarity_chi2=fit.planarity_chi2)
+                        sigma_yaw_rad=sig_y, noise_px=noise, planarity_chi2=chi2)
+
+
+#: A verified motion: (inlier mask (N,), rotation (3, 3), translation_dir (3,), sigma_bearing_rad,
+#: sigma_yaw_rad, noise_px, planarity_chi2), as :class:`Verification` holds them.
+_Motion = tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float, float]
+
+
+def _general_motion(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params: VerifyParams,
+                    n: int, near: np.ndarray | None = None) -> _Motion | Verification:
+    """The general model: the essential matrix (``params.estimator``), ``cv2.recoverPose``'s
+    cheirality check, the motion refined on the inliers (:func:`robotd.forward.planar.fit_motion`);
+    a refused :class:`Verification` when it fails. With ``near (N,) bool`` the essential
+    matrix is searched among those matches only and its inliers then counted among all
+    (``"planar_guided"``)."""
+    if near is None:
+        e, mask = essential_matrix(p_old, p_new, k, params)
+    else:
+        # Samples enough to draw five of the subset's inliers were half of it inliers.
+        m = int(near.sum())
+        sub = replace(params, max_iterations=min(params.max_iterations, ransac_iterations(
+            m, max(params.min_inliers, (m + 1) // 2), params.ransac_confidence)))
+        e, _ = essential_matrix(p_old[near], p_new[near], k, sub)
+        mask = None if e is None or e.shape[0] < 3 else _epipolar_mask(p_old, p_new, k, e[:3], params.ransac_threshold_px)
+    if e is None or mask is None or e.shape[0] < 3:
+        return Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
+    e = e[:3]  # the five-point method may return up to ten solutions stacked; RANSAC keeps one
+    n_inl, r, t, mask2 = cv2.recoverPose(e, p_old, p_new, k, mask=mask.copy())
+    n_inl = int(n_inl)
+    t = np.asarray(t, np.float64).reshape(3)
+    t_dir = t / max(float(np.linalg.norm(t)), 1e-12)
+    r = np.asarray(r, np.float64)
+    if n_inl < params.min_inliers:
+        return Verification(False, NO_GEOMETRIC_CONSISTENCY, n, n_inl, r, t_dir)
+    inl = np.asarray(mask2).ravel() > 0
+    # Not in the paper: the motion refined on all the inliers, and its uncertainty.
+    fit = fit_motion(p_old[inl], p_new[inl], r, t_dir, k)
+    return (inl, fit.rotation, fit.translation_dir, fit.sigma_bearing_rad, fit.sigma_yaw_rad, fit.noise_px,
+            fit.planarity_chi2)
+
+
+def _epipolar_mask(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, e: np.ndarray,
+                   threshold_px: float) -> np.ndarray:
+    """``(N, 1) uint8``: the matches within ``threshold_px`` (Sampson distance) of the essential
+    matrix ``e (3, 3)``, as OpenCV's inlier masks."""
+    kinv = np.linalg.inv(k)
+    xo = np.hstack([p_old, np.ones((len(p_old), 1))]) @ kinv.T
+    xn = np.hstack([p_new, np.ones((len(p_new), 1))]) @ kinv.T
+    ex = xo @ e.T
+    etx = xn @ e
+    d = 0.5 * (k[0, 0] + k[1, 1]) * np.abs(np.einsum("ij,ij->i", xn, ex)) / np.sqrt(
+        np.maximum(ex[:, 0] ** 2 + ex[:, 1] ** 2 + etx[:, 0] ** 2 + etx[:, 1] ** 2, 1e-30))
+    return (d < threshold_px).astype(np.uint8).reshape(-1, 1)
+
+
+def _planar_motion(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params: VerifyParams) -> _Motion | int:
+    """The planar model (:func:`robotd.forward.planefit.ransac_planar`), or the best planar
+    consensus' size when it has fewer than ``min_inliers`` in front of both cameras. Its
+    sigmas are given as the general fit gives them, the inliers' own noise (the planar
+    fit's divided by :data:`robotd.forward.planar.INLIER_NOISE_FACTOR`, which its user
+    applies); its out-of-plane part is zero by construction (``planarity_chi2`` 0)."""
+    fit, search = ransac_planar(p_old, p_new, k, threshold_px=params.ransac_threshold_px,
+                                min_inliers=params.min_inliers, confidence=params.ransac_confidence,
+                                max_samples=params.planar_max_samples, seed=params.seed)
+    if fit is None or fit.n_inliers < params.min_inliers:
+        return search.best_inliers
+    inl = fit.inliers
+    kinv = np.linalg.inv(k)
+    xo = np.hstack([p_old[inl], np.ones((int(inl.sum()), 1))]) @ kinv.T
+    xn = np.hstack([p_new[inl], np.ones((int(inl.sum()), 1))]) @ kinv.T
+    e = np.cross(fit.translation_dir, fit.rotation.T).T  # [t]x R, column by column
+    ex = xo @ e.T
+    etx = xn @ e
+    focal = 0.5 * (k[0, 0] + k[1, 1])
+    d = focal * np.einsum("ij,ij->i", xn, ex) / np.sqrt(np.maximum(ex[:, 0] ** 2 + ex[:, 1] ** 2 + etx[:, 0] ** 2
+                                                                     + etx[:, 1] ** 2, 1e-30))
+    noise = float(np.sqrt(float(d @ d) / max(len(d) - 2, 1)))
+    return (inl, fit.rotation, fit.translation_dir, fit.sigma_bearing_rad / INLIER_NOISE_FACTOR,
+            fit.sigma_yaw_rad / INLIER_NOISE_FACTOR, noise, 0.0)
 
 
 _NO_DISTORTION = np.zeros(5)

@@ -29,23 +29,28 @@ solve and the benchmarks. Per edge they cost iSAM2 18-41 times its time per keyf
 with one bias variable at the window's start, the walk inside the window marginalised into
 the window's joint noise (:func:`window_covariance`; over one window the end pose's
 marginal is the per-edge model's exactly), and the window starts chained by
-:func:`window_chain_edge`: about 3 times the time of independent edges. The daemon's live
-graph keeps independent edges (:func:`robotd.graph.factors.between_factor`) for now: see
-``docs/concepts.md``, "Odometry edges the gate can trust".
+:func:`window_chain_edge`: about 3 times the time of independent edges. The daemon's graph
+uses the windows with ``[pose_graph] odometry_model = "bias_window"``
+(:class:`robotd.graph.incremental.IncrementalParams`: :class:`WindowChain` groups the live
+edges, :func:`span_edge` and :func:`span_factors` keep them through iSAM2's fold), and
+independent edges (:func:`robotd.graph.factors.between_factor`) by default: see
+``docs/concepts.md``, "The bias windows in the daemon".
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import gtsam
 import numpy as np
 
 from robotd.graph.factors import anchor_factor
 
-__all__ = ["BIAS_VAR_FLOOR", "BiasEdge", "bias_chain_factor", "bias_edge_factor", "bias_factor_graph",
+__all__ = ["BIAS_VAR_FLOOR", "BiasEdge", "WindowChain", "bias_chain_factor", "bias_edge", "bias_edge_factor",
+           "bias_factor_graph", "span_edge", "span_factors",
            "bias_initial_values", "bias_key", "bias_prior_factor", "bias_window_factor", "scale_jacobian",
            "scale_key", "scale_prior_factor", "window_chain_edge", "window_covariance"]
 
@@ -315,3 +320,112 @@ def bias_window_factor(edges: Sequence[BiasEdge]) -> gtsam.CustomFactor:
         return out
 
     return gtsam.CustomFactor(model, keys + [kb], error)
+
+
+# --------------------------------------------------------------------------------------
+# The daemon's graph: edges with bias terms grouped into windows, spans for the fold.
+# --------------------------------------------------------------------------------------
+
+
+def bias_edge(from_id: int, to_id: int, delta: np.ndarray, terms: Sequence[Any]) -> BiasEdge:
+    """A :class:`BiasEdge` from an edge and the filter's terms (the fields of
+    :class:`robotd.odometry.history.EdgeBiasTerms`, in its order)."""
+    cov_given, jac, b, p, b_end, p_end, c = terms
+    return BiasEdge(int(from_id), int(to_id), np.asarray(delta, float), np.asarray(cov_given, float),
+                    np.asarray(jac, float), float(b), float(p), float(b_end), float(p_end), float(c))
+
+
+def span_edge(edges: Sequence[BiasEdge]) -> BiasEdge:
+    """Consecutive edges composed into one :class:`BiasEdge` from the first one's start to
+    the last one's end, given the bias at the start: the composed delta, and the stacked
+    errors of :func:`window_covariance` carried to the end's frame (an error at edge ``k``'s
+    end moves to the span's end through the adjoint of the inverse of the rest of the
+    span, as iSAM2's fold composes covariances): ``jac = A jac_w``, ``cov = A cov_w A^T``.
+    Its factor on the span's two ends and the start's bias is the window's factor with
+    the inner poses eliminated (to first order); its chain step, :func:`window_chain_edge`'s."""
+    w = len(edges)
+    if w == 1:
+        return edges[0]
+    jac_w, cov_w = window_covariance(edges)
+    a = np.zeros((3, 3 * w))
+    rest = gtsam.Pose2()  # the span after edge k
+    for k in range(w - 1, -1, -1):
+        a[:, 3 * k:3 * k + 3] = rest.inverse().AdjointMap()
+        rest = gtsam.Pose2(*map(float, edges[k].delta)).compose(rest)
+    total = rest
+    chain = window_chain_edge(edges)
+    cov = a @ cov_w @ a.T
+    return BiasEdge(edges[0].from_id, edges[-1].to_id, np.array([total.x(), total.y(), total.theta()]),
+                    0.5 * (cov + cov.T), a @ jac_w, chain.bias_radps, chain.bias_var, chain.bias_end_radps,
+                    chain.bias_end_var, chain.bias_cov)
+
+
+@dataclass
+class WindowChain:
+    """The live grouping of odometry edges with bias terms into windows of ``size`` edges
+    (:func:`bias_window_factor`), as the daemon's iSAM2 takes them: each edge first as an
+    independent edge (its own, marginal covariance; ``slot`` the caller's handle of that
+    factor), and when ``size`` consecutive edges are in, the window's factor replaces them.
+
+    open: the open window's edges and their slots. previous: the last closed window's (or
+    fold span's) edges, whose start has a bias variable: the next window chains to it.
+    """
+
+    size: int = 10
+    open: list[tuple[BiasEdge, int]] = field(default_factory=list)
+    previous: list[BiasEdge] | None = None
+
+    def reset(self) -> None:
+        """The bias chain ends here (an edge without terms, a broken odometry chain)."""
+        self.open, self.previous = [], None
+
+    def continues(self, edge: BiasEdge) -> bool:
+        """Whether ``edge`` extends the open window (or starts one at the previous one's end)."""
+        if self.open:
+            return self.open[-1][0].to_id == edge.from_id
+        return self.previous is None or self.previous[-1].to_id == edge.from_id
+
+    def offer(self, edge: BiasEdge) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, list[int]] | None:
+        """Take ``edge`` (which must :meth:`continues`). None: it goes in as an independent
+        edge (call :meth:`placed` with its slot). Else the window closed: ``(factors,
+        bias values, slots to remove)``: the window's factor (which includes ``edge``), the
+        bias variable at its start with its chain factor or prior."""
+        if len(self.open) + 1 < self.size:
+            self.open.append((edge, -1))
+            return None
+        edges = [e for e, _ in self.open] + [edge]
+        remove = [s for _, s in self.open]
+        fg = gtsam.NonlinearFactorGraph()
+        fg.add(bias_window_factor(edges))
+        values = gtsam.Values()
+        start = edges[0]
+        values.insert(bias_key(start.from_id), np.array([start.bias_radps]))
+        if self.previous is not None:
+            fg.add(bias_chain_factor(window_chain_edge(self.previous)))
+        else:
+            fg.add(bias_prior_factor(start.from_id, start.bias_radps, start.bias_var))
+        self.open, self.previous = [], edges
+        return fg, values, remove
+
+    def placed(self, slot: int) -> None:
+        """The slot of the open window's newest edge's independent factor."""
+        edge, _ = self.open[-1]
+        self.open[-1] = (edge, int(slot))
+
+
+def span_factors(span: Sequence[BiasEdge], previous: Sequence[BiasEdge] | None,
+                 values: gtsam.Values) -> gtsam.NonlinearFactorGraph:
+    """A fold span of consecutive edges as factors: its :func:`span_edge` factor on its two
+    ends and the bias at its start, and that bias's chain factor to ``previous`` (the span
+    before it on its chain, ending where it starts) or, without one, the filter's prior;
+    the bias value goes into ``values``."""
+    fg = gtsam.NonlinearFactorGraph()
+    s = span_edge(span)
+    fg.add(bias_edge_factor(s))
+    if not values.exists(bias_key(s.from_id)):
+        values.insert(bias_key(s.from_id), np.array([s.bias_radps]))
+    if previous is not None and previous[-1].to_id == s.from_id:
+        fg.add(bias_chain_factor(window_chain_edge(previous)))
+    else:
+        fg.add(bias_prior_factor(s.from_id, s.bias_radps, s.bias_var))
+    return fg

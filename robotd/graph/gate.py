@@ -151,12 +151,14 @@ class GatedGraph:
 
     # -- input -----------------------------------------------------------------------------
 
-    def odometry_link(self, from_id: int, to_id: int, delta: np.ndarray, information: np.ndarray) -> None:
-        """An odometry edge: ``to_id`` joins the graph (ignored when ``from_id`` is not in it)."""
+    def odometry_link(self, from_id: int, to_id: int, delta: np.ndarray, information: np.ndarray,
+                      bias: tuple[Any, ...] | None = None) -> None:
+        """An odometry edge: ``to_id`` joins the graph (ignored when ``from_id`` is not in it);
+        ``bias``: its bias terms (:meth:`robotd.graph.incremental.IncrementalGraph.add_keyframe`)."""
         if from_id not in self.graph.graph:
             return
         t0 = time.perf_counter()
-        self.graph.add_keyframe(to_id, from_id, delta, information)
+        self.graph.add_keyframe(to_id, from_id, delta, information, bias)
         self.update_ms.append((time.perf_counter() - t0) * 1e3)
 
     def keyframe(self, keyframe_id: int, run_id: int, pose: np.ndarray, stamp_ns: int,

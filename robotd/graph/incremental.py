@@ -19,8 +19,10 @@ logs it and counts it (:attr:`IncrementalGraph.isam_failures`), and the update g
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import logging
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
+from typing import Any
 from dataclasses import dataclass, field
 
 import gtsam
@@ -29,10 +31,15 @@ import numpy as np
 from robotd.base.errors import GraphError
 from robotd.base.geometry import between, compose, inverse
 from robotd.graph.batch import BatchParams, BatchResult, optimize_batch
+from robotd.graph.bias import BiasEdge, WindowChain, bias_edge, span_factors
 from robotd.graph.factors import anchor_factor, between_factor, factor_graph, from_values, to_values
 from robotd.graph.model import Edge, PoseGraph, make_edge
 
 log = logging.getLogger(__name__)
+
+
+#: What :attr:`IncrementalParams.odometry_model` takes.
+ODOMETRY_MODELS = ("independent", "bias_window")
 
 
 @dataclass(frozen=True, slots=True)
@@ -82,6 +89,14 @@ class IncrementalParams:
         synthetic office laps with noisy odometry, the graph alone): 97.1 MB against 52.5
         with ``"previous"`` (iSAM2's incremental ordering still fills the tree in), the
         last full solve 1.9 mm APE RMS from the truth against 2.7; so not the default.
+    odometry_model: ``"independent"`` (default): every odometry edge its own factor with
+        its covariance. ``"bias_window"``: an edge given with the filter's bias terms
+        (:meth:`IncrementalGraph.add_keyframe`'s ``bias``) shares the gyro bias with its
+        neighbours: ``window_edges`` consecutive ones become one
+        :func:`robotd.graph.bias.bias_window_factor` with a bias variable at the window's
+        start, the windows chained; the full solve is refined with them and the fold keeps
+        them (docs/concepts.md, "The bias windows in the daemon").
+    window_edges: the edges of a bias window, default 10.
     """
 
     relinearize_threshold: float = 0.01
@@ -94,6 +109,8 @@ class IncrementalParams:
     fold: int = 10
     loops_per_place: int = 1
     tie_to: str = "previous"
+    odometry_model: str = "independent"
+    window_edges: int = 10
 
     def __post_init__(self) -> None:
         if self.factorization not in ("QR", "CHOLESKY"):
@@ -104,6 +121,10 @@ class IncrementalParams:
             raise ValueError(f"loops_per_place must be >= 0, got {self.loops_per_place}")
         if self.tie_to not in ("previous", "first"):
             raise ValueError(f"tie_to must be 'previous' or 'first', not {self.tie_to!r}")
+        if self.odometry_model not in ODOMETRY_MODELS:
+            raise ValueError(f"odometry_model must be one of {', '.join(ODOMETRY_MODELS)}, not {self.odometry_model!r}")
+        if self.window_edges < 1:
+            raise ValueError(f"window_edges must be >= 1, got {self.window_edges}")
 
 
 class IncrementalGraph:
@@ -131,6 +152,10 @@ class IncrementalGraph:
         self._isam = self._new_isam()
         self._version = 0  # bumped by every change of the estimate
         self._cached: tuple[int, np.ndarray, np.ndarray] | None = None
+        # odometry_model "bias_window": the edges' bias terms by edge index, the live windows
+        self._bias: dict[int, BiasEdge] = {}
+        self._windows = WindowChain(params.window_edges)
+        self.bias_windows = 0  # windows closed by add_keyframe
         self._clear_fold()
 
     def _clear_fold(self) -> None:
@@ -176,18 +201,23 @@ class IncrementalGraph:
         return from_id, to_id, d, (info + info.T) / 2
 
     def _update(self, factors: gtsam.NonlinearFactorGraph | None = None,
-                values: gtsam.Values | None = None) -> None:
+                values: gtsam.Values | None = None, remove: list[int] | None = None) -> gtsam.ISAM2Result | None:
         """One iSAM2 step with the new ``factors`` and ``values`` (none: one more
-        relinearisation). The factors' edges are already in :attr:`graph`: should iSAM2
-        raise, :meth:`_recover` rebuilds it from the whole graph, these included."""
+        relinearisation), the factors of indices ``remove`` taken out. The factors' edges
+        are already in :attr:`graph`: should iSAM2 raise, :meth:`_recover` rebuilds it from
+        the whole graph, these included, and None is returned."""
         try:
             if factors is None or values is None:
-                self._isam.update()
+                res = self._isam.update()
+            elif remove:
+                res = self._isam.update(factors, values, remove)
             else:
-                self._isam.update(factors, values)
+                res = self._isam.update(factors, values)
         except RuntimeError as exc:  # GTSAM's IndeterminantLinearSystemException, among others
             self._recover(exc)
+            return None
         self._version += 1
+        return res
 
     def _recover(self, exc: Exception) -> None:
         """iSAM2 raised: re-solve the whole graph (every keyframe, every loop it holds; the
@@ -212,7 +242,7 @@ class IncrementalGraph:
         self._clear_fold()
         self._isam = self._new_isam()
         try:
-            self._isam.update(factor_graph(self.graph, self._kernel, skip=rejected), to_values(ids, poses))
+            self._isam.update(*self._whole_graph(rejected, ids, poses))
         except RuntimeError as again:
             raise GraphError(f"iSAM2 failed ({detail}) and could not be rebuilt from the graph: "
                              f"{str(again).strip().splitlines()[0] if str(again).strip() else again}") from again
@@ -240,20 +270,41 @@ class IncrementalGraph:
         self._update(fg, to_values(np.array([keyframe_id]), self.graph.pose(keyframe_id)[None]))
 
     def add_keyframe(self, keyframe_id: int, from_id: int, delta: Iterable[float],
-                     information: np.ndarray) -> np.ndarray:
+                     information: np.ndarray, bias: Sequence[Any] | None = None) -> np.ndarray:
         """Add a keyframe with its odometry edge from ``from_id`` (delta ``(dx_m, dy_m,
-        dyaw_rad)`` in ``from_id``'s frame, ``(3, 3)`` information); one iSAM2 update.
-        Returns the new keyframe's estimated pose ``(3,)``."""
+        dyaw_rad)`` in ``from_id``'s frame, ``(3, 3)`` information, the edge's marginal);
+        one iSAM2 update. ``bias``: the edge's bias terms
+        (:class:`robotd.odometry.history.EdgeBiasTerms`), used with ``odometry_model``
+        ``"bias_window"`` (:class:`robotd.graph.bias.WindowChain`). Returns the new
+        keyframe's estimated pose ``(3,)``."""
         if from_id not in self.graph:
             raise GraphError(f"odometry edge to keyframe {keyframe_id} from unknown keyframe {from_id}")
         guess = compose(self.pose(from_id), np.asarray(delta, dtype=float))
+        index = self.graph.edge_count
         self.graph.add_pose(keyframe_id, guess)
         edge = self.graph.add_edge(from_id, keyframe_id, delta, information, "odometry")
         fg = gtsam.NonlinearFactorGraph()
         live = self._reexpress(edge.from_id, edge.to_id, edge.delta, edge.information)
         assert live is not None  # the new keyframe is not folded
-        fg.add(between_factor(edge if live[0] == edge.from_id else make_edge(*live, "odometry")))
-        self._update(fg, to_values(np.array([keyframe_id]), guess[None]))
+        values = to_values(np.array([keyframe_id]), guess[None])
+        windows = self._windows
+        be = None
+        if bias is not None and self.params.odometry_model == "bias_window":
+            be = bias_edge(edge.from_id, edge.to_id, edge.delta, bias)
+            self._bias[index] = be
+        if be is None or live[0] != edge.from_id or not windows.continues(be):
+            windows.reset()
+        closed = None if be is None or live[0] != edge.from_id else windows.offer(be)
+        if closed is not None:
+            fg, bias_values, remove = closed
+            values.insert(bias_values)
+            self.bias_windows += 1
+            self._update(fg, values, remove)
+        else:
+            fg.add(between_factor(edge if live[0] == edge.from_id else make_edge(*live, "odometry")))
+            res = self._update(fg, values)
+            if res is not None and windows.open and windows.open[-1][0] is be:  # (None: rebuilt whole)
+                windows.placed(int(res.getNewFactorsIndices()[0]))
         return self.pose(keyframe_id)
 
     def add_loop(self, from_id: int, to_id: int, delta: Iterable[float],
@@ -400,7 +451,7 @@ class IncrementalGraph:
         self._clear_fold()  # every keyframe a variable again, until the next full solve
         isam = self._new_isam()
         try:
-            isam.update(factor_graph(self.graph, self._kernel, skip=self.rejected_loops), to_values(ids, est))
+            isam.update(*self._whole_graph(self.rejected_loops, ids, est))
             for _ in range(self.params.loop_updates):
                 isam.update()
         except RuntimeError as exc:  # as for any update: the whole graph re-solved (_recover)
@@ -450,6 +501,12 @@ class IncrementalGraph:
         ad = gtsam.Pose2(*self._fold_rel[i]).inverse().AdjointMap()
         return np.asarray(ad @ self._isam.marginalCovariance(int(self._fold_anchor[i])) @ ad.T + self._fold_cov[i])
 
+    def joint_marginal_covariance(self, a: int, b: int) -> np.ndarray:
+        """iSAM2's joint marginal covariance ``(6, 6)`` of two keyframes that are variables
+        (not folded), each in its own tangent space as :meth:`marginal_covariance`."""
+        keys = gtsam.KeyVector([int(a), int(b)])
+        return np.asarray(self._isam.jointMarginalCovariance(keys).fullMatrix(), dtype=float)
+
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
         """Every keyframe's current estimate: ``(ids (N,), poses (N, 3))`` (copies; computed
         once per change of the graph, which the mapped-ground test asks for at every
@@ -489,6 +546,10 @@ class IncrementalGraph:
         b = self.params.batch
         rejected = ({n for n, w in zip(loops, result.loop_weights) if w < 0.5}
                     if b.robust and b.kernel == "gnc" else set())
+        if self._bias:  # odometry_model "bias_window": the same loops, the odometry as bias windows
+            fg, values = self._whole_graph(rejected, result.ids, result.poses)
+            refined = gtsam.LevenbergMarquardtOptimizer(fg, values).optimize()
+            result = dataclasses.replace(result, poses=from_values(refined, result.ids))
         before = self.estimate()
         self._isam = self._new_isam()
         self._version += 1
@@ -497,8 +558,7 @@ class IncrementalGraph:
         except RuntimeError:
             self._clear_fold()
             self._isam = self._new_isam()
-            self._isam.update(factor_graph(self.graph, self._kernel, skip=self.rejected_loops),
-                              to_values(*before))
+            self._isam.update(*self._whole_graph(self.rejected_loops, *before))
             raise
         self.rejected_loops = rejected
         return result
@@ -518,15 +578,18 @@ class IncrementalGraph:
         chain = (fold > 1 and bool(np.all(src[odo] < dst[odo]))
                  and len(np.unique(dst[odo])) == len(odo))
         if not chain:
-            return factor_graph(self.graph, self._kernel, skip=skip), to_values(ids, poses)
+            return self._whole_graph(skip, ids, poses)
         loops = [n for n in np.flatnonzero(is_loop).tolist() if n not in skip]
         anchors = self.graph.anchors()
         kept = set(anchors) | set(src[loops].tolist()) | set(dst[loops].tolist()) | set(ids[-fold:].tolist())
         into = dict(zip(dst[odo].tolist(), odo.tolist()))
         row = {k: n for n, k in enumerate(ids.tolist())}
         # per keyframe, while walking the chains: the kept keyframe it follows, the odometry
-        # from it composed, that composition's covariance, and how many edges it spans
-        state: dict[int, tuple[int, np.ndarray, np.ndarray, int]] = {}
+        # from it composed, that composition's covariance, how many edges it spans, and
+        # their bias terms (None: one has none)
+        state: dict[int, tuple[int, np.ndarray, np.ndarray, int, list[BiasEdge] | None]] = {}
+        span_into: dict[int, list[BiasEdge]] = {}  # odometry_model "bias_window": a kept span by its end
+        bias_values = gtsam.Values()
         fg = gtsam.NonlinearFactorGraph()
         f_ids: list[int] = []
         f_anchor: list[int] = []
@@ -536,19 +599,25 @@ class IncrementalGraph:
             n = into.get(k)
             if n is None:  # a chain starts here: kept
                 kept.add(k)
-                state[k] = (k, zero, np.zeros((3, 3)), 0)
+                state[k] = (k, zero, np.zeros((3, 3)), 0, [])
                 continue
-            a, r, c, count = state[int(src[n])]
+            a, r, c, count, span = state[int(src[n])]
             d = delta[n]
             ad = gtsam.Pose2(*d).inverse().AdjointMap()
             r2, c2 = compose(r, d), ad @ c @ ad.T + np.linalg.inv(info[n])
+            be = self._bias.get(n)
+            span2 = None if span is None or be is None else span + [be]
             if k in kept or count + 1 >= fold:
                 kept.add(k)
-                i2 = np.linalg.inv(c2)
-                fg.add(between_factor(make_edge(a, k, r2, (i2 + i2.T) / 2, "odometry")))
-                state[k] = (k, zero, np.zeros((3, 3)), 0)
+                if span2:  # the span's factor given the bias at its start (robotd.graph.bias.span_edge)
+                    fg.push_back(span_factors(span2, span_into.get(a), bias_values))
+                    span_into[k] = span2
+                else:
+                    i2 = np.linalg.inv(c2)
+                    fg.add(between_factor(make_edge(a, k, r2, (i2 + i2.T) / 2, "odometry")))
+                state[k] = (k, zero, np.zeros((3, 3)), 0, [])
             else:
-                state[k] = (a, r2, c2, count + 1)
+                state[k] = (a, r2, c2, count + 1, span2)
                 f_ids.append(k)
                 f_anchor.append(a)
                 f_cov.append(c2)
@@ -562,4 +631,54 @@ class IncrementalGraph:
         if f_ids:
             self._fold_rel = between(poses[[row[a] for a in f_anchor]], poses[[row[k] for k in f_ids]])
             self._fold_cov = np.array(f_cov)
-        return fg, to_values(held, poses[[row[k] for k in held.tolist()]])
+        self._windows.reset()
+        self._windows.previous = span_into.get(int(ids[-1]))  # the live windows chain on from the newest
+        values = to_values(held, poses[[row[k] for k in held.tolist()]])
+        values.insert(bias_values)
+        return fg, values
+
+    def _whole_graph(self, skip: set[int], ids: np.ndarray, poses: np.ndarray
+                     ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        """Every edge but ``skip`` (indices) and the anchors as iSAM2's factors, every
+        keyframe a variable, at ``poses`` (aligned with ``ids``); with bias terms
+        (``odometry_model`` ``"bias_window"``) the odometry in closed windows and the open
+        one's edges independent, as :meth:`add_keyframe` would have left them (the live
+        windows set to go on from there)."""
+        self._windows.reset()
+        if not self._bias:
+            return factor_graph(self.graph, self._kernel, skip=skip), to_values(ids, poses)
+        values = to_values(ids, poses)
+        items: list[gtsam.NonlinearFactor | None] = []
+        windows = WindowChain(self.params.window_edges)
+        for n, e in enumerate(self.graph.edges):
+            if n in skip:
+                continue
+            be = self._bias.get(n)
+            if e.kind == "loop" or be is None:
+                if e.kind != "loop":
+                    windows.reset()
+                items.append(between_factor(e, self._kernel if e.kind == "loop" else None))
+                continue
+            if not windows.continues(be):
+                windows.reset()
+            closed = windows.offer(be)
+            if closed is None:
+                items.append(between_factor(e))
+                windows.placed(len(items) - 1)
+                continue
+            wfg, bias_values, remove = closed
+            for r in remove:
+                items[r] = None
+            items.extend(wfg.at(i) for i in range(wfg.size()))
+            values.insert(bias_values)
+        for kid in self.graph.anchors():
+            items.append(anchor_factor(kid, self.graph.pose(kid)))
+        fg = gtsam.NonlinearFactorGraph()
+        slot: dict[int, int] = {}
+        for i, f in enumerate(items):
+            if f is not None:
+                slot[i] = fg.size()
+                fg.add(f)
+        windows.open = [(e, slot[i]) for e, i in windows.open]
+        self._windows = windows
+        return fg, values

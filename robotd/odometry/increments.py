@@ -26,6 +26,7 @@ for a keyframe the filter has no clone for, and :func:`floor_covariance` is shar
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -38,6 +39,9 @@ from robotd.base.geometry import (
     se2_log,
     wrap_angle,
 )
+
+if TYPE_CHECKING:
+    from robotd.odometry.history import EdgeBiasTerms
 
 
 def increment_covariance(pose_a: np.ndarray, cov_a: np.ndarray, pose_b: np.ndarray,
@@ -116,6 +120,23 @@ def combine_edges(a: tuple[np.ndarray, np.ndarray],
 
 
 _COMBINE_STEPS = 5
+
+
+def combine_bias_terms(a_cov: np.ndarray, combined_cov: np.ndarray, terms: EdgeBiasTerms) -> EdgeBiasTerms:
+    """The bias terms of an edge combined from the wheel + gyro edge (covariance ``a_cov``
+    ``(3, 3)``, its terms ``terms``) and an independent measurement that does not see the
+    gyro bias (a visual step) by :func:`combine_edges` (covariance ``combined_cov``).
+
+    To first order the combined edge moves by ``K = C_c I_a`` per unit of the wheel + gyro
+    edge's error (``I_a`` its information), so its error per rad/s of bias error is
+    ``K J`` and its covariance given the bias ``C_c - P (K J)(K J)^T``: what is left of the
+    combined covariance once the bias's share is taken out (``K C_given K^T`` plus the
+    other measurement's share, never below zero). The bias's own figures (estimate,
+    variance, chain step) are the filter's, unchanged."""
+    k = np.asarray(combined_cov, float) @ information_from_covariance(np.asarray(a_cov, float))
+    jac = k @ np.asarray(terms.jac_bias, float)
+    cond = np.asarray(combined_cov, float) - terms.bias_var * np.outer(jac, jac)
+    return terms._replace(cov_given_bias=floor_covariance(0.5 * (cond + cond.T)), jac_bias=jac)
 
 
 def edge_disagreement(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> float:

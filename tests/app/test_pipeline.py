@@ -24,6 +24,7 @@ from robotd.base.messages import (
     DescribedKeyframe,
     Frame,
     Keyframe,
+    Link,
     MeasuredKeyframe,
     PoseStamped,
     StoredKeyframe,
@@ -738,6 +739,53 @@ def test_fused_step_that_disagrees_with_the_wheels_stays_out_of_the_edge():
     assert edges[1][0] == pytest.approx([0.0501, 0.0, 0.0], abs=1e-6)  # the two averaged
     assert edges[1][1] == pytest.approx(np.eye(3) * 0.5e-6, rel=1e-3)
     assert edges[2] is wheel
+
+
+def test_the_bias_terms_travel_through_the_visual_combine_to_the_odometry_link(tmp_path: Path):
+    """``[pose_graph] odometry_model = "bias_window"``: a step combined with the wheel + gyro
+    edge keeps the edge's bias Jacobian by the twin's share (equal covariances: a half), a
+    step left out leaves the terms as they were, a vision-only edge has none; the map
+    writer's odometry link carries them to the graph."""
+    from types import SimpleNamespace
+
+    from robotd.app.stages.visual_odometry import VisualOdometryStage
+    from robotd.odometry.history import EdgeBiasTerms
+
+    steps = iter([None, (0.0502, 0.0, 0.0), (0.0502, 0.02, 0.0)])
+
+    class FakeVo:
+        params = SimpleNamespace(descriptor_mode=4)
+
+        def step(self, _image):
+            d = next(steps)
+            ok = d is not None
+            return SimpleNamespace(ok=ok, reason="" if ok else "x", delta=np.array(d if ok else [np.nan] * 3),
+                                   covariance=np.eye(3) * 1e-6 if ok else np.full((3, 3), np.nan))
+
+    stage = VisualOdometryStage(FakeVo(), "fused", takes=Keyframe)
+    measured = _measured(stage)
+    wheel = (np.array([0.05, 0.0, 0.0]), np.eye(3) * 1e-6)
+    terms = EdgeBiasTerms(np.eye(3) * 1e-6 - 1e-4 * np.outer([0, 0, 0.05], [0, 0, 0.05]), np.array([0.0, 0.0, 0.05]),
+                          0.001, 1e-4, 0.001, 1e-4, 1e-4)
+    for k in range(3):
+        stage.pipeline.publish(Keyframe(Frame(k, "floor", np.zeros((4, 4), np.uint8)),
+                                        PoseStamped(0, 0.0, 0.0, 0.0, np.eye(3)), odometry_edge=wheel,
+                                        odometry_bias=tuple(terms)))
+    combined = EdgeBiasTerms(*measured[1].odometry_bias)
+    assert combined.jac_bias == pytest.approx([0.0, 0.0, 0.025], rel=1e-3)
+    assert combined.bias_var == terms.bias_var
+    assert measured[2].odometry_bias == tuple(terms)  # the step disagreed: the wheels' edge and terms
+    with MapStore.open(tmp_path / "m.sqlite", create=True) as store:
+        run = store.begin_run("[test]")
+        p = Pipeline()
+        writer = p.add(MapWriterStage(store, run, image_width_px=0, takes=MeasuredKeyframe))
+        links: list[Link] = []
+        p.add(type("Graph", (), {"name": "graph", "subscriptions": lambda self: {Link: links.append}})())
+        for kf in measured:
+            p.publish(kf)
+        assert writer.stored == 3
+        assert [lk.bias for lk in links if lk.kind == "odometry"] == [measured[1].odometry_bias,
+                                                                       measured[2].odometry_bias]
 
 
 def test_the_calibration_file_says_which_floor_camera_keys_it_replaces(tmp_path, caplog):

@@ -108,3 +108,32 @@ def test_the_batched_heading_scan_picks_what_the_loop_over_headings_picks(seed):
     start = np.abs(_sampson_many(x, xn, np.array([yaw]), np.array([psi]), 525.0))[0] < 1.0
     assert fit.n_inliers >= start.sum() - 2
     assert abs(math.remainder(fit.dyaw_rad - yaw, math.tau)) < math.radians(0.5)
+
+
+@pytest.mark.parametrize("yaw_deg,bearing_deg,dist_m", [(10, 30, 0.5), (-20, -100, 0.4), (0, 180, 0.3),
+                                                        (25, 10, 1.0)])
+def test_two_point_ransac_finds_the_planar_motion_without_a_guess(yaw_deg, bearing_deg, dist_m):
+    from robotd.forward.planefit import ransac_planar
+
+    po, pn = _views(yaw_deg, bearing_deg, dist_m, outliers=60)
+    fit, search = ransac_planar(po, pn, K)
+    assert fit is not None
+    assert math.degrees(fit.dyaw_rad) == pytest.approx(yaw_deg, abs=0.2)
+    assert abs(math.degrees(math.remainder(fit.bearing_rad - math.radians(bearing_deg), math.tau))) < 2.0
+    # (a random outlier may fall within 1 px of its epipolar line by chance)
+    assert fit.inliers[:60].sum() <= 2 and fit.n_inliers >= 0.9 * (len(po) - 60)
+    # The adaptive stop: a large consensus is found in the first batch of 64 samples.
+    assert search.samples == 64 and search.best_inliers >= fit.n_inliers - 5
+    assert planar_motion(fit.rotation, fit.translation_dir) == pytest.approx(
+        (fit.dyaw_rad, fit.bearing_rad, 0.0), abs=1e-9)
+
+
+def test_two_point_ransac_draws_at_most_its_cap_on_matches_without_consensus():
+    from robotd.forward.planefit import ransac_planar
+
+    rng = np.random.default_rng(2)
+    po, pn = rng.uniform(0, 600, (300, 2)), rng.uniform(0, 600, (300, 2))
+    fit, search = ransac_planar(po, pn, K, max_samples=200)
+    assert search.samples == 200 and search.hypotheses <= 400
+    assert fit is None or fit.n_inliers < 20
+    assert ransac_planar(po[:4], pn[:4], K)[0] is None

@@ -171,3 +171,96 @@ def test_max_iterations_caps_the_sample_budget_and_must_be_positive() -> None:
     assert ransac_iterations(28, 20, 0.999, cap=200) == ransac_iterations(28, 20, 0.999) < 200
     with pytest.raises(ValueError, match="max_iterations"):
         VerifyParams(max_iterations=0)
+
+
+def _tilted_scene(rng: np.random.Generator, tilt_deg: float, n: int = 150):
+    """As :func:`_scene`, the new camera also rolled by ``tilt_deg`` about its optical axis
+    (not a level camera's motion)."""
+    x_old, _, r, t = _scene(rng, n)
+    c, s = np.cos(np.radians(tilt_deg)), np.sin(np.radians(tilt_deg))
+    roll = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    r = roll @ r
+    return x_old, x_old @ r.T + t, r, t
+
+
+def test_the_planar_motion_model_recovers_a_level_motion_without_the_five_point_search(monkeypatch):
+    """A level camera's motion: ``planar_motion`` finds it alone (the general search is never
+    called) with the same rotation and translation direction as the truth."""
+    import robotd.forward.verify as verify_mod
+
+    def no_general(*args, **kwargs):
+        raise AssertionError("the general model was tried")
+
+    rng = np.random.default_rng(4)
+    x_old, x_new, r, t = _scene(rng)
+    desc = rng.standard_normal((150, 128)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    px_new = _project(x_new) + rng.normal(0, 0.3, (150, 2)).astype(np.float32)
+    monkeypatch.setattr(verify_mod, "essential_matrix", no_general)
+    v = verify_pair(_features(_project(x_old), desc), _features(px_new, desc), VerifyParams(model="planar_motion"))
+    assert v.accepted and v.n_inliers >= 130
+    angle = np.degrees(np.arccos(np.clip((np.trace(v.rotation.T @ r) - 1) / 2, -1, 1)))
+    assert angle < 0.3
+    assert np.dot(v.translation_dir, t / np.linalg.norm(t)) > 0.995
+    assert v.planarity_chi2 == 0.0 and 0.0 < v.sigma_bearing_rad < np.radians(2.0)
+    shuffled = px_new[rng.permutation(150)]
+    refused = verify_pair(_features(_project(x_old), desc), _features(shuffled, desc),
+                          VerifyParams(model="planar_motion", fallback_inliers=None))
+    assert not refused.accepted and refused.reason == NO_GEOMETRIC_CONSISTENCY
+
+
+def test_the_planar_model_searches_the_essential_matrix_among_the_level_motions_matches(monkeypatch):
+    """``"planar"``: the five-point search runs once, on the matches near the level motion
+    (the 40 shuffled ones left out), and gives the general model's motion and inliers."""
+    import robotd.forward.verify as verify_mod
+
+    rng = np.random.default_rng(6)
+    x_old, x_new, r, t = _scene(rng)
+    desc = rng.standard_normal((150, 128)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    px_new = _project(x_new) + rng.normal(0, 0.3, (150, 2)).astype(np.float32)
+    px_new[:40] = px_new[:40][rng.permutation(40)]
+    searched: list[int] = []
+    inner = verify_mod.essential_matrix
+
+    def counted(p_old, p_new, k, params):
+        searched.append(len(p_old))
+        return inner(p_old, p_new, k, params)
+
+    monkeypatch.setattr(verify_mod, "essential_matrix", counted)
+    old, new = _features(_project(x_old), desc), _features(px_new, desc)
+    v = verify_pair(old, new, VerifyParams(model="planar"))
+    assert v.accepted and v.n_inliers >= 100
+    assert len(searched) == 1 and 100 <= searched[0] < 115   # the 110 true matches, few of the 40
+    angle = np.degrees(np.arccos(np.clip((np.trace(v.rotation.T @ r) - 1) / 2, -1, 1)))
+    assert angle < 0.3 and np.dot(v.translation_dir, t / np.linalg.norm(t)) > 0.995
+    general = verify_pair(old, new, VerifyParams(model="general"))
+    assert abs(general.n_inliers - v.n_inliers) <= 3
+
+
+def test_a_motion_out_of_the_plane_falls_back_to_the_general_model_only_when_allowed():
+    """A 6 deg roll: no level motion explains 20 matches within 1 px, so the planar motion
+    alone refuses the pair; with the fallback (its planar consensus reaches
+    ``fallback_inliers``) the general model accepts it with the true rotation, and so does
+    ``"planar"`` (its essential matrix found near the level motion or by the fallback)."""
+    rng = np.random.default_rng(5)
+    x_old, x_new, r, t = _tilted_scene(rng, 6.0)
+    desc = rng.standard_normal((150, 128)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    old, new = _features(_project(x_old), desc), _features(_project(x_new), desc)
+    alone = verify_pair(old, new, VerifyParams(model="planar_motion", fallback_inliers=None))
+    assert not alone.accepted
+    for model in ("planar_motion", "planar"):
+        v = verify_pair(old, new, VerifyParams(model=model, fallback_inliers=0))
+        assert v.accepted and v.n_inliers >= 130
+        angle = np.degrees(np.arccos(np.clip((np.trace(v.rotation.T @ r) - 1) / 2, -1, 1)))
+        assert angle < 0.3
+    # A fallback threshold above any planar consensus here: refused as the planar motion alone.
+    assert not verify_pair(old, new, VerifyParams(model="planar_motion", fallback_inliers=150)).accepted
+
+
+@pytest.mark.parametrize("kw", [{"model": "affine"}, {"planar_max_samples": 0}, {"fallback_inliers": -1},
+                                {"guide_threshold_px": 0.0}, {"fallback_max_iterations": 0}])
+def test_bad_model_parameters_are_refused(kw):
+    with pytest.raises(ValueError, match=next(iter(kw))):
+        VerifyParams(**kw)

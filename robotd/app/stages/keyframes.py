@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import collections
 from collections.abc import Mapping
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -25,6 +25,8 @@ class KeyframeOdometry(Protocol):
     def pose_at(self, stamp_ns: int) -> PoseStamped | None: ...
 
     def keyframe_edge(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray] | None: ...
+
+    def keyframe_edge_terms(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray, Any] | None: ...
 
 
 class LiftIntervals:
@@ -83,8 +85,9 @@ class KeyframeStage(Publisher):
 
     def __init__(self, odometry: KeyframeOdometry | None, clock: Clock, *, distance_m: float, rotation_rad: float,
                  max_sync_wait_s: float, lossless: bool, camera: str = "floor",
-                 max_pending: int = 64) -> None:
+                 max_pending: int = 64, bias_terms: bool = False) -> None:
         self.odometry = odometry  # None: no base, frames cannot get a pose
+        self.bias_terms = bias_terms  # the edges' bias terms too ([pose_graph] odometry_model)
         self.clock = clock
         self.selector = KeyframeSelector(distance_m, rotation_rad)
         self.camera = camera
@@ -175,10 +178,17 @@ class KeyframeStage(Publisher):
             self.keyframes += 1
             previous, self._previous_ns = self._previous_ns, frame.stamp_ns
             carried = previous is not None and self.lifts.lifted_between(previous, frame.stamp_ns)
-            edge = self.odometry.keyframe_edge(frame.stamp_ns) if self.odometry is not None else None
+            edge: tuple[np.ndarray, np.ndarray] | None = None
+            bias = None
+            if self.odometry is not None and self.bias_terms:
+                got = self.odometry.keyframe_edge_terms(frame.stamp_ns)
+                if got is not None:
+                    edge, bias = (got[0], got[1]), tuple(got[2])
+            elif self.odometry is not None:
+                edge = self.odometry.keyframe_edge(frame.stamp_ns)
             if type(frame) is not Frame:  # a replay's frame, decoded when read: here, once
                 frame = Frame(frame.stamp_ns, frame.camera, frame.image, frame.seq)
-            self._publish(Keyframe(frame, pose, odometry_edge=edge, carried=carried))
+            self._publish(Keyframe(frame, pose, odometry_edge=edge, odometry_bias=bias, carried=carried))
 
     def counters(self) -> dict[str, int]:
         return {"frames": self.frames, "frames_unsynced": self.frames_unsynced,

@@ -134,8 +134,9 @@ class MapWriterStage(Publisher):
             if mapped is not None:  # from the chain's start when transient keyframes came between
                 from_id, delta, cov = mapped.edge_for_stored(previous_id, (delta, np.linalg.inv(info)))
                 info = information_from_covariance(cov)
-            if from_id is not None:
-                self._publish(Link("odometry", from_id, stored.keyframe_id, delta, info))
+            if from_id is not None:  # the bias terms only for the filter's own edge, not a chain's
+                bias = kf.odometry_bias if from_id == previous_id and kf.odometry_edge is not None else None
+                self._publish(Link("odometry", from_id, stored.keyframe_id, delta, info, bias=bias))
         if mapped is not None:
             mapped.stored(stored.keyframe_id, kf.pose_xyyaw)
         self._publish(KeyframeStored(stored))

@@ -124,7 +124,7 @@ class PoseGraphStage(Publisher):
 
     def on_link(self, link: Link) -> None:
         if link.kind == "odometry":
-            self.gated.odometry_link(link.from_id, link.to_id, link.delta_xyyaw, link.information)
+            self.gated.odometry_link(link.from_id, link.to_id, link.delta_xyyaw, link.information, link.bias)
 
     def on_wheel_drop(self, msg: WheelDrop) -> None:
         self.gated.wheel_drop(msg.lifted, msg.stamp_ns)
@@ -190,6 +190,7 @@ class PoseGraphStage(Publisher):
                 "graph_solves": self.solves, "graph_solve_failures": self.solve_failures,
                 "graph_isam_failures": self.graph.isam_failures,  # each recovered: iSAM2 rebuilt whole
                 "graph_loops_left_out": self.graph.held_loops,  # accepted and stored, not in the graph
+                "graph_bias_windows": self.graph.bias_windows,  # [pose_graph] odometry_model "bias_window"
                 "graph_update_median_us": int(np.median(u) * 1e3),
                 "graph_update_p99_us": int(np.percentile(u, 99) * 1e3),
                 "graph_solve_ms": int(self.last_solve_ms)}

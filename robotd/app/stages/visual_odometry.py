@@ -17,7 +17,8 @@ from robotd.base.messages import (
     keyframe_as,
 )
 from robotd.floor.vo import FloorVisualOdometry
-from robotd.odometry.increments import combine_edges, edge_disagreement
+from robotd.odometry.history import EdgeBiasTerms
+from robotd.odometry.increments import combine_bias_terms, combine_edges, edge_disagreement
 
 
 class VisualOdometryStage(Publisher):
@@ -80,6 +81,7 @@ class VisualOdometryStage(Publisher):
         if result.ok and not first:
             step = (result.delta, between_error_covariance(result.delta, result.covariance))
         edge = kf.odometry_edge
+        bias = kf.odometry_bias
         if first or self._visual_pose is None:
             self._visual_pose = kf.pose_xyyaw
         elif step is not None or edge is not None:
@@ -91,18 +93,24 @@ class VisualOdometryStage(Publisher):
             if step is not None:
                 if edge is None:
                     edge = step
+                    bias = None
                 elif edge_disagreement(edge, step) > self.gate_nis:
                     self.disagreed += 1  # a wrong step (a look-alike lattice shift): wheels only
                 else:
-                    edge = combine_edges(edge, step)
+                    combined = combine_edges(edge, step)
+                    if bias is not None:  # the step does not see the gyro bias: the twin's share keeps it
+                        bias = tuple(combine_bias_terms(edge[1], combined[1], EdgeBiasTerms(*bias)))
+                    edge = combined
                     self.combined += 1
         elif not first:  # vision only
             if step is not None:
                 edge = step
+                bias = None
             else:
                 self.fallback += 1
         self._prev_stamp_ns = kf.stamp_ns
-        self._publish(keyframe_as(MeasuredKeyframe, kf, odometry_edge=edge, visual_pose=self._visual_pose))
+        self._publish(keyframe_as(MeasuredKeyframe, kf, odometry_edge=edge, odometry_bias=bias,
+                                  visual_pose=self._visual_pose))
 
     def status_fragment(self) -> str:
         """For STATUS: how many steps the floor measured (a dirty lens or a bare floor shows
