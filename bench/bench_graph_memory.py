@@ -28,7 +28,8 @@ lays the lap's shape on new ground, each copy 20 m from the others (loops only w
 a lap).
 
 Run: ``python bench/bench_graph_memory.py --map MAP [--synthetic laps|new N] [--doc FILE]``;
-writes ``NAME.json`` under ``--out`` (default bench/results). The default replays the map
+writes ``NAME.json`` under ``--out`` (default bench/results); ``--page JSON... --doc FILE``
+writes the page from several such files' runs. The default replays the map
 given (a 1,500-keyframe map of three office laps: a few minutes); ``--full`` adds the two
 synthetic maps of 10,000 keyframes.
 """
@@ -58,7 +59,8 @@ except ImportError:  # run as a script: bench/ is on sys.path
 DEFAULT_MAP = Path.home() / ".cache" / "robotd-bench" / "office-3laps-map.sqlite"
 SETTINGS = {"every loop": {"loop_spacing": 0, "loops_per_keyframe": 0, "fold": 1, "loops_per_place": 0},
             "every keyframe in iSAM2": {"fold": 1, "loops_per_place": 0}, "thinned": {"loops_per_place": 0},
-            "one loop per place": {"loops_per_place": 1}}
+            "one loop per place": {"loops_per_place": 1},
+            "tied to the first pass": {"tie_to": "first"}}
 
 
 def trimmed_rss_mb() -> float:
@@ -74,9 +76,11 @@ def trimmed_rss_mb() -> float:
     return float("nan")
 
 
-def synthetic(source: Path, out: Path, n: int, kind: str, seed: int = 0) -> None:
+def synthetic(source: Path, out: Path, n: int, kind: str, seed: int = 0, noisy: bool = False) -> None:
     """Write a synthetic map (``keyframes`` and ``links`` tables only) of ``n`` keyframes
-    to ``out`` (see the module notes)."""
+    to ``out`` (see the module notes); ``noisy``: each odometry edge also drawn from its
+    own information (otherwise exact), so that the solved map's error against the true
+    poses (the ``keyframes`` table) measures what the loops correct."""
     from robotd.base.geometry import between
 
     rng = np.random.default_rng(seed)
@@ -100,7 +104,10 @@ def synthetic(source: Path, out: Path, n: int, kind: str, seed: int = 0) -> None
     rows = []
     for k in range(1, n):
         info = odo_infos[k % len(odo_infos)]
-        rows.append(("odometry", k, k + 1, *map(float, between(poses[k - 1], poses[k])), info.tobytes()))
+        d = between(poses[k - 1], poses[k])
+        if noisy:
+            d = d + np.random.default_rng([seed, k]).multivariate_normal(np.zeros(3), np.linalg.inv(info))
+        rows.append(("odometry", k, k + 1, *map(float, d), info.tobytes()))
         if k <= 100:
             continue
         dist = np.hypot(*(poses[:k - 100, :2] - poses[k, :2]).T)
@@ -117,8 +124,10 @@ def synthetic(source: Path, out: Path, n: int, kind: str, seed: int = 0) -> None
 
 
 def replay(map_path: Path, params: dict[str, Any], every: int, solve_every: int,
-           gate: bool = True) -> dict[str, Any]:
-    """One setting, in this process: the map's links through an IncrementalGraph."""
+           gate: bool = True, truth: bool = False) -> dict[str, Any]:
+    """One setting, in this process: the map's links through an IncrementalGraph
+    (``truth``: the map's keyframe poses are the truth, and the last full solve's error
+    against them is reported, ``ape_rms_m``)."""
     from robotd.graph.incremental import IncrementalGraph, IncrementalParams
 
     db = sqlite3.connect(f"file:{map_path}?mode=ro", uri=True)
@@ -157,15 +166,20 @@ def replay(map_path: Path, params: dict[str, Any], every: int, solve_every: int,
                             "solve_cpu_s": solve_s, **graph.stats()})
             print(json.dumps(samples[-1]), file=sys.stderr, flush=True)
     db.close()
-    return {"params": params, "samples": samples,
-            "keyframes": n, "update_cpu_s": update_s, "solve_cpu_s": solve_s}
+    out = {"params": params, "samples": samples, "keyframes": n, "update_cpu_s": update_s, "solve_cpu_s": solve_s}
+    if truth:  # the final full solve against the true poses: APE RMS, anchored at the first keyframe
+        result = graph.resolve()
+        true = np.array([poses[int(k)] for k in result.ids])
+        out["ape_rms_m"] = float(np.sqrt(np.mean(np.sum((result.poses[:, :2] - true[:, :2]) ** 2, axis=1))))
+        out["loops_in_full_solve"] = int(graph.graph.loop_count)
+    return out
 
 
 def markdown(payload: dict[str, Any]) -> str:
     """The page: a table per map, a row per sample and setting."""
     m = payload["machine"]
     lines = ["# The live pose graph's memory and CPU (`bench/bench_graph_memory.py`)", "",
-             "Generated from the JSON beside it; see the script's notes. Memory: resident after "
+             "Generated from the JSON files beside it (`--page`); see the script's notes. Memory: resident after "
              "`malloc_trim`, less the process's before the first keyframe. CPU: process time of "
              "the iSAM2 updates (with the gate's marginals for each loop) and of the full solves.", "",
              f"Machine: {m['platform']}, {m['cpu_count']} CPUs, Python {m['python']}, numpy {m['numpy']}.", ""]
@@ -181,6 +195,11 @@ def markdown(payload: dict[str, Any]) -> str:
                              f"{s['loops']} / {s['held_loops']} | {s['cliques']} | {s['tree_nnz']} | "
                              f"{s.get('folded', 0)} |")
         lines.append("")
+        apes = [(name, r) for name, r in run["settings"].items() if "ape_rms_m" in r]
+        if apes:
+            lines += ["The last full solve against the true poses (APE RMS, anchored at the first keyframe): "
+                      + "; ".join(f"{name} {r['ape_rms_m'] * 1e3:.1f} mm ({r['loops_in_full_solve']} loops in the "
+                                  f"graph)" for name, r in apes) + ".", ""]
     return "\n".join(lines)
 
 
@@ -193,6 +212,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="a synthetic map of N keyframes from the map's first lap instead")
     ap.add_argument("--every", type=int, default=500, help="sample every this many keyframes (default 500)")
     ap.add_argument("--solve-every", type=int, default=200, help="full solve every this many keyframes")
+    ap.add_argument("--noisy", action="store_true",
+                    help="with --synthetic: odometry edges drawn from their information too, and each setting's "
+                         "last full solve against the true poses (APE RMS)")
+    ap.add_argument("--truth", action="store_true", help=argparse.SUPPRESS)  # the child: the map's poses are true
     ap.add_argument("--no-gate", action="store_true",
                     help="leave out the gate's marginals (loop_chi2) before each loop: faster, memory alike")
     ap.add_argument("--settings", default=",".join(SETTINGS), help="comma-separated, of: " + ", ".join(SETTINGS))
@@ -200,13 +223,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "bench" / "results")
     ap.add_argument("--name", default="graph_memory")
     ap.add_argument("--doc", type=Path, default=None, help="also write the markdown page here")
+    ap.add_argument("--page", type=Path, nargs="+", default=None, metavar="JSON",
+                    help="only write the page (--doc) from these JSON files' runs, in order")
     ap.add_argument("--full", action="store_true",
                     help="also the synthetic maps of 10,000 keyframes, laps and new ground (about an hour)")
     args = ap.parse_args(argv)
+    if args.page is not None:
+        payloads = [json.loads(f.read_text(encoding="utf-8")) for f in args.page]
+        page = markdown({"machine": payloads[0]["machine"], "runs": [r for p in payloads for r in p["runs"]]})
+        if args.doc is not None:
+            args.doc.write_text(page, encoding="utf-8")
+            print(f"wrote {args.doc}")
+        else:
+            print(page, end="")
+        return 0
     if not args.map.is_file():
         ap.error(f"no map at {args.map}: make one with bench/bench_daemon.py --memory 1500 --keep-map {args.map}")
     if args.one is not None:
-        print(json.dumps(replay(args.map, SETTINGS[args.one], args.every, args.solve_every, not args.no_gate)))
+        print(json.dumps(replay(args.map, SETTINGS[args.one], args.every, args.solve_every, not args.no_gate,
+                                args.truth)))
         return 0
     maps = [None] if args.synthetic is None else [(args.synthetic[0], int(args.synthetic[1]))]
     if args.full:
@@ -217,15 +252,16 @@ def main(argv: list[str] | None = None) -> int:
             map_path, label = args.map, str(args.map)
             if which is not None:
                 map_path = Path(tmp) / "synthetic.sqlite"
-                synthetic(args.map, map_path, which[1], which[0])
+                synthetic(args.map, map_path, which[1], which[0], noisy=args.noisy)
                 label = f"synthetic, {which[1]} keyframes, " + (
                     "the office lap driven again and again" if which[0] == "laps"
-                    else "the office lap's shape over new ground")
+                    else "the office lap's shape over new ground") + (", odometry noisy" if args.noisy else "")
             runs: dict[str, Any] = {}
             for name in args.settings.split(","):
                 out = subprocess.run([sys.executable, __file__, "--map", str(map_path), "--one", name,
                                       "--every", str(args.every), "--solve-every", str(args.solve_every)]
-                                     + (["--no-gate"] if args.no_gate else []),
+                                     + (["--no-gate"] if args.no_gate else [])
+                                     + (["--truth"] if args.noisy and which is not None else []),
                                      check=True, stdout=subprocess.PIPE, text=True)
                 runs[name] = json.loads(out.stdout.strip().splitlines()[-1])
             results.append({"map": label + ("" if not args.no_gate else ", without the gate's marginals"),

@@ -370,6 +370,40 @@ def test_a_query_stops_once_k_candidates_reach_min_score():
     assert len(scorer.calls) == 10 and sum(c.score >= 3.0 for c in few) == 8
 
 
+def test_a_query_that_stops_at_k_scores_the_resident_descriptors_first():
+    """With a loader and ``enough`` stopping the query, the resident shortlisted keyframes
+    are scored first: a query that finds its ``k`` loops among them reads nothing back
+    (the same scores, the loops among the resident ones); ``resident_first`` off, the
+    shortlist goes in global order (the default) and reads the older keyframes it scores."""
+    rng = np.random.default_rng(9)
+    q = rng.integers(0, 256, 16, dtype=np.uint8)
+    descs = {}
+    for i in range(20):  # global order = id order; every keyframe a loop (tag 5)
+        g = np.unpackbits(q.copy())
+        g[:i] ^= 1
+        descs[i] = _Desc(np.packbits(g), tag=5)
+    reads: list[int] = []
+
+    def loader(kf: int) -> _Desc:
+        reads.append(kf)
+        return descs[kf]
+
+    def index(**params: object) -> FloorIndex:
+        ix = FloorIndex(IndexParams(shortlist=20, resident=4, **params), scorer=_CountingScorer(), loader=loader)
+        for kf, d in descs.items():
+            ix.add(kf, d)  # 16-19 stay resident
+        return ix
+
+    first = index(resident_first=True).query(_Desc(q), k=3, min_score=3.0)
+    assert not reads and [c.keyframe_id for c in first] == [16, 17, 18]
+    assert [c.score for c in first] == [5.0] * 3
+    plain = index().query(_Desc(q), k=3, min_score=3.0)  # the default: global order
+    assert reads == [0, 1, 2] and [c.keyframe_id for c in plain] == [0, 1, 2]
+    reads.clear()
+    more = index(resident_first=True).query(_Desc(q), k=6, min_score=3.0)  # 4 resident, then the best two read back
+    assert reads == [0, 1] and sorted(c.keyframe_id for c in more) == [0, 1, 16, 17, 18, 19]
+
+
 def test_resident_must_be_positive():
     with pytest.raises(ValueError):
         IndexParams(resident=0)

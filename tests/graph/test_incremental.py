@@ -275,28 +275,138 @@ def test_the_newest_loop_left_out_joins_the_graph_at_a_full_solve():
     assert not inc.add_loop(3, 11, (8.0, 0.0, 0.0), INFO)  # spaced from the one that joined
 
 
+LONG_CHAIN_INFO = np.diag([1e8, 1e8, 2e6])
+LONG_CHAIN = [(0.15, 0.0, 0.02 * np.sin(k / 40)) for k in range(1, 1000)]
+
+
+def _long_chain(params: IncrementalParams) -> IncrementalGraph:
+    g = IncrementalGraph(params)
+    g.add_first(0)
+    for k, step in enumerate(LONG_CHAIN, start=1):
+        g.add_keyframe(k, k - 1, step, LONG_CHAIN_INFO)
+    return g
+
+
+def _chain_end() -> np.ndarray:
+    expected = np.zeros(3)
+    for step in LONG_CHAIN:
+        expected = compose(expected, np.array(step))
+    return expected
+
+
 def test_a_long_drive_without_loops_stays_solvable():
     """A winding 150 m chain with no loop: the newest pose's marginal information becomes
     the small difference of large edge informations. iSAM2's Cholesky loses it and GTSAM
-    raises an indeterminate system (the daemon would stop); the default QR goes on and keeps
-    the chain's own composition."""
-    info = np.diag([1e8, 1e8, 2e6])
-    steps = [(0.15, 0.0, 0.02 * np.sin(k / 40)) for k in range(1, 1000)]
-
-    def drive(params):
-        g = IncrementalGraph(params)
-        g.add_first(0)
-        for k, step in enumerate(steps, start=1):
-            g.add_keyframe(k, k - 1, step, info)
-        return g
-
+    raises an indeterminate system (here GTSAM's own iSAM2, fed as IncrementalGraph feeds
+    it); the default QR goes on and keeps the chain's own composition, without a failure."""
+    p = gtsam.ISAM2Params()
+    p.setRelinearizeThreshold(0.01)
+    p.setFactorization("CHOLESKY")
+    isam = gtsam.ISAM2(p)
+    fg = gtsam.NonlinearFactorGraph()
+    fg.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(), gtsam.noiseModel.Isotropic.Sigma(3, 1e-8)))
+    v = gtsam.Values()
+    v.insert(0, gtsam.Pose2())
+    isam.update(fg, v)
+    pose = np.zeros(3)
     with pytest.raises(RuntimeError, match="[Ii]ndeterminate"):
-        drive(IncrementalParams(factorization="CHOLESKY"))
-    g = drive(IncrementalParams())
-    expected = np.zeros(3)
-    for step in steps:
-        expected = compose(expected, np.array(step))
-    np.testing.assert_allclose(g.pose(len(steps)), expected, atol=1e-6)
+        for k, step in enumerate(LONG_CHAIN, start=1):
+            fg = gtsam.NonlinearFactorGraph()
+            fg.add(gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*step),
+                                            gtsam.noiseModel.Gaussian.Information(LONG_CHAIN_INFO)))
+            pose = compose(pose, np.array(step))
+            v = gtsam.Values()
+            v.insert(k, gtsam.Pose2(*pose))
+            isam.update(fg, v)
+    g = _long_chain(IncrementalParams())
+    np.testing.assert_allclose(g.pose(len(LONG_CHAIN)), _chain_end(), atol=1e-6)
+    assert g.isam_failures == 0
+
+
+def test_an_isam2_failure_is_recovered_from_the_whole_graph(caplog):
+    """When iSAM2 raises (the chain above under Cholesky), the graph is re-solved whole and
+    iSAM2 rebuilt from it by QR: counted, logged, the chain's own composition kept, every
+    keyframe still in the graph, and the updates go on (a loop after it enters and moves
+    the estimate as in a graph that never failed)."""
+    with caplog.at_level("WARNING", logger="robotd.graph.incremental"):
+        g = _long_chain(IncrementalParams(factorization="CHOLESKY"))
+    assert g.isam_failures == 1 and g.factorization == "QR"
+    assert "iSAM2 failed" in caplog.text and "rebuilt from a full solve, QR from now on" in caplog.text
+    assert len(g.graph) == len(LONG_CHAIN) + 1
+    np.testing.assert_allclose(g.pose(len(LONG_CHAIN)), _chain_end(), atol=1e-6)
+    ok = _long_chain(IncrementalParams())
+    for graph in (g, ok):  # the chain's end tied back near its start
+        end = len(LONG_CHAIN)
+        graph.add_loop(end - 500, end, tuple(between(ok.pose(end - 500), ok.pose(end)) + [0.05, 0.0, 0.0]),
+                       np.diag([1e4, 1e4, 1e4]))
+    np.testing.assert_allclose(g.estimate()[1], ok.estimate()[1], atol=1e-6)
+    assert g.isam_failures == 1
+
+
+class _Failing:
+    """iSAM2 raising GTSAM's indeterminate system on a call of ``what``."""
+
+    def __init__(self, isam, what):
+        self.isam, self.what = isam, what
+
+    def __getattr__(self, name):
+        if name == self.what:
+            raise RuntimeError("\nIndeterminate linear system detected while working near variable\n140")
+        return getattr(self.isam, name)
+
+
+def test_a_failing_relocalisation_rebuild_is_recovered(monkeypatch):
+    """A segment attached (relocalised) while iSAM2's rebuild raises: recovered from the
+    whole graph, the segment moved and tied as without the failure."""
+    graphs = []
+    for fail in (False, True):
+        g = IncrementalGraph()
+        g.add_first(0)
+        for k in range(1, 6):
+            g.add_keyframe(k, k - 1, (1.0, 0.0, 0.0), INFO)
+        g.add_segment(10, (0.0, 0.0, 0.0))
+        for k in range(11, 14):
+            g.add_keyframe(k, k - 1, (1.0, 0.0, 0.0), INFO)
+        if fail:
+            real, made = g._new_isam, []
+
+            def failing_once():  # the attach's rebuild fails, the recovery's does not
+                made.append(1)
+                return _Failing(real(), "update") if len(made) == 1 else real()
+
+            monkeypatch.setattr(g, "_new_isam", failing_once)
+            g.attach([10, 11, 12, 13], (5.0, 0.0, 0.0), [(5, 10, np.zeros(3), INFO)])
+            monkeypatch.undo()
+        else:
+            g.attach([10, 11, 12, 13], (5.0, 0.0, 0.0), [(5, 10, np.zeros(3), INFO)])
+        graphs.append(g)
+    ok, bad = graphs
+    assert ok.isam_failures == 0 and bad.isam_failures == 1
+    np.testing.assert_allclose(bad.estimate()[1], ok.estimate()[1], atol=1e-6)
+    np.testing.assert_allclose(bad.pose(13), (8.0, 0.0, 0.0), atol=1e-6)
+
+
+def test_a_failing_update_keeps_its_edge_and_the_marginals_recover(monkeypatch):
+    """Any iSAM2 failure, a loop's update or the gate's marginals: the edge that was being
+    added is in the rebuilt iSAM2 (the estimate equals a graph that took it without a
+    failure) and the gate gets its chi2."""
+    ok, bad = IncrementalGraph(IncrementalParams(loops_per_place=0)), IncrementalGraph(
+        IncrementalParams(loops_per_place=0))
+    _drive(ok)
+    _drive(bad)
+    a, b = 100 + 2 * 2, 100 + 2 * 13
+    loop = (a, b, tuple(between(ok.pose(a), ok.pose(b)) + [0.1, -0.1, 0.02]), INFO)
+
+    expected = ok.loop_chi2(*loop)
+    bad._isam = _Failing(bad._isam, "marginalCovariance")
+    assert bad.loop_chi2(*loop) == pytest.approx(expected, rel=1e-3)
+    assert bad.isam_failures == 1
+    assert ok.add_loop(*loop)
+    bad._isam = _Failing(bad._isam, "update")
+    assert bad.add_loop(*loop)
+    assert bad.isam_failures == 2 and bad.factorization == "QR"
+    assert bad.graph.loop_count == ok.graph.loop_count
+    np.testing.assert_allclose(bad.estimate()[1], ok.estimate()[1], atol=2e-3)
 
 
 def test_a_full_solve_folds_the_keyframes_without_loops_into_their_odometry():
@@ -374,3 +484,28 @@ def test_the_joint_gate_covariance_is_the_relative_poses_on_one_chain():
         assert want == pytest.approx(9.0, rel=0.02)  # 3 sigma (the anchor's own prior is tiny)
         assert inc.loop_chi2(a, b, measured, np.linalg.inv(loop_cov), joint=True) == pytest.approx(want, rel=1e-3)
         assert inc.loop_chi2(a, b, measured, np.linalg.inv(loop_cov)) < 0.7 * want
+
+
+def _three_passes(params: IncrementalParams) -> list[tuple[int, int]]:
+    """Three passes over 30 places (ids 0-29, 30-59, 60-89), each later pass offering, at
+    every tenth keyframe, a loop to the pass before and then to the first; the loops that
+    entered iSAM2, as (newer, older)."""
+    g = IncrementalGraph(params)
+    g.add_first(0)
+    for k in range(1, 90):
+        g.add_keyframe(k, k - 1, (0.1, 0.0, 0.0) if k % 30 else (-2.9, 0.0, 0.0), INFO)
+        if k >= 30 and k % 10 == 0:
+            for older in sorted({k - 30, k % 30}, reverse=True):
+                g.add_loop(older, k, (0.0, 0.0, 0.0), INFO)
+    return sorted((e.to_id, e.from_id) for e in g.graph.edges if e.kind == "loop")
+
+
+def test_later_passes_tie_to_the_previous_pass_or_to_the_first():
+    """``tie_to="previous"`` (with one loop per place): the third pass ties to the second
+    (the first's places are taken); ``"first"``: every pass ties to the first, the second
+    pass's keyframes being newer ends of loops themselves."""
+    second = [(30, 0), (40, 10), (50, 20)]
+    assert _three_passes(IncrementalParams(loops_per_place=1)) == second + [(60, 30), (70, 40), (80, 50)]
+    assert _three_passes(IncrementalParams(tie_to="first")) == second + [(60, 0), (70, 10), (80, 20)]
+    with pytest.raises(ValueError):
+        IncrementalParams(tie_to="nearest")

@@ -188,6 +188,7 @@ class PoseGraphStage(Publisher):
         u = np.asarray(self.gated.update_ms) if self.gated.update_ms else np.zeros(1)
         return {**self.gated.counters(),
                 "graph_solves": self.solves, "graph_solve_failures": self.solve_failures,
+                "graph_isam_failures": self.graph.isam_failures,  # each recovered: iSAM2 rebuilt whole
                 "graph_loops_left_out": self.graph.held_loops,  # accepted and stored, not in the graph
                 "graph_bias_windows": self.graph.bias_windows,  # [pose_graph] odometry_model "bias_window"
                 "graph_update_median_us": int(np.median(u) * 1e3),
