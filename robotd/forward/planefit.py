@@ -107,21 +107,7 @@ def _sampson_many(x_old: np.ndarray, x_new: np.ndarray, yaws: np.ndarray, psis: 
 
 def _in_front(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarray) -> int:
     """Matches whose triangulated point is in front of both cameras (midpoint method)."""
-    d1 = x_old
-    d2 = x_new @ r  # the new rays in the old frame: R^T x_new
-    c2 = -r.T @ t
-    # Solve a d1 - b d2 = c2 for each match in the least-squares sense.
-    a11 = np.einsum("ij,ij->i", d1, d1)
-    a12 = -np.einsum("ij,ij->i", d1, d2)
-    a22 = np.einsum("ij,ij->i", d2, d2)
-    b1 = d1 @ c2
-    b2 = -(d2 @ c2)
-    det = a11 * a22 - a12 * a12
-    ok = np.abs(det) > 1e-12
-    det = np.where(ok, det, 1.0)
-    a = (a22 * b1 - a12 * b2) / det
-    b = (a11 * b2 - a12 * b1) / det
-    return int(np.sum(ok & (a > 0) & (b > 0)))
+    return int(np.count_nonzero(front_mask(x_old, x_new, r, t)))
 
 
 def _bearing(yaw: float, psi: float) -> float:
