@@ -705,15 +705,14 @@ def test_visual_odometry_status_and_its_own_chain():
     assert np.allclose(chain, [[1.0, 2.0, 0.0], [1.1, 2.0, 0.0], [1.15, 2.0, 0.0], [1.15, 2.1, 0.0]])
 
 
-def test_fused_step_that_disagrees_with_the_wheels_stays_out_of_the_edge():
-    """Fused: a step within the gate is combined with the wheel + gyro edge; one 20 sigma
-    off (a look-alike shift) leaves the edge as the wheels measured it, and is counted."""
+def _fused_vo_stage(deltas: list):
+    """A fused visual odometry stage over keyframes whose floor steps are ``deltas`` in turn
+    (``(dx_m, dy_m, dyaw_rad)``, each with 1 mm / 1 mrad sigma; None: the step failed)."""
     from types import SimpleNamespace
 
     from robotd.app.stages.visual_odometry import VisualOdometryStage
-    from robotd.base.messages import VisualOdometryStep
 
-    steps = iter([None, (0.0502, 0.0, 0.0), (0.0502, 0.02, 0.0)])
+    steps = iter(deltas)
 
     class FakeVo:
         params = SimpleNamespace(descriptor_mode=4)
@@ -724,7 +723,16 @@ def test_fused_step_that_disagrees_with_the_wheels_stays_out_of_the_edge():
             return SimpleNamespace(ok=ok, reason="" if ok else "x", delta=np.array(d if ok else [np.nan] * 3),
                                    covariance=np.eye(3) * 1e-6 if ok else np.full((3, 3), np.nan))
 
-    stage = VisualOdometryStage(FakeVo(), "fused", takes=Keyframe)
+    return VisualOdometryStage(FakeVo(), "fused", takes=Keyframe)
+
+
+def test_fused_step_that_disagrees_with_the_wheels_stays_out_of_the_edge():
+    """Fused: a step within the gate is combined with the wheel + gyro edge; one 20 sigma
+    off (a look-alike shift) leaves the edge as the wheels measured it, and is counted."""
+
+    from robotd.base.messages import VisualOdometryStep
+
+    stage = _fused_vo_stage([None, (0.0502, 0.0, 0.0), (0.0502, 0.02, 0.0)])
     measured = _measured(stage)
     sent: list = []
     stage.pipeline.add(type("Filter", (), {"name": "filter",
@@ -749,23 +757,10 @@ def test_the_bias_terms_travel_through_the_visual_combine_to_the_odometry_link(t
     edge keeps the edge's bias Jacobian by the twin's share (equal covariances: a half), a
     step left out leaves the terms as they were, a vision-only edge has none; the map
     writer's odometry link carries them to the graph."""
-    from types import SimpleNamespace
 
-    from robotd.app.stages.visual_odometry import VisualOdometryStage
     from robotd.odometry.history import EdgeBiasTerms
 
-    steps = iter([None, (0.0502, 0.0, 0.0), (0.0502, 0.02, 0.0)])
-
-    class FakeVo:
-        params = SimpleNamespace(descriptor_mode=4)
-
-        def step(self, _image):
-            d = next(steps)
-            ok = d is not None
-            return SimpleNamespace(ok=ok, reason="" if ok else "x", delta=np.array(d if ok else [np.nan] * 3),
-                                   covariance=np.eye(3) * 1e-6 if ok else np.full((3, 3), np.nan))
-
-    stage = VisualOdometryStage(FakeVo(), "fused", takes=Keyframe)
+    stage = _fused_vo_stage([None, (0.0502, 0.0, 0.0), (0.0502, 0.02, 0.0)])
     measured = _measured(stage)
     wheel = (np.array([0.05, 0.0, 0.0]), np.eye(3) * 1e-6)
     terms = EdgeBiasTerms(np.eye(3) * 1e-6 - 1e-4 * np.outer([0, 0, 0.05], [0, 0, 0.05]), np.array([0.0, 0.0, 0.05]),
