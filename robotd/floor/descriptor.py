@@ -73,7 +73,7 @@ import numpy as np
 
 from robotd.base.errors import DescriptorError
 from robotd.floor.compression import global_vector, hadamard_bits, ternarise
-from robotd.floor.desccoding import bits_msb, cells, pack_planes, pack_trits, rice_k, trit_table, unpack_planes
+from robotd.floor.desccoding import bits_msb, cells, pack_trits, rice_k, trit_table, unpack_planes
 from robotd.floor.descparams import (
     ANGLE_BITS,
     FULL_RESOLUTION,
@@ -200,6 +200,38 @@ def _fail(msg: str) -> DescriptorError:
     return DescriptorError(f"floor descriptor: {msg}")
 
 
+_ANGLE_WEIGHTS = 1 << np.arange(ANGLE_BITS - 1, -1, -1)  # an angle code's bits, most significant first
+_ANGLE_RAD = (np.arange(2**ANGLE_BITS) * (2 * math.pi / 2**ANGLE_BITS)).astype(np.float32)  # code -> radians
+
+
+@lru_cache(maxsize=1)
+def _trit_bits() -> np.ndarray:
+    """``(2, 256, 5) uint8``: per trit byte (5 base-3 digits, as
+    :func:`~robotd.floor.desccoding.pack_trits` packs them), which of its 5 elements are
+    +1 (``[0]``) and which are -1 (``[1]``); bytes above 242 are refused before a look-up."""
+    digits = trit_table()  # (243, 5): element + 1
+    out = np.zeros((2, 256, 5), np.uint8)
+    out[0, :243] = digits == 2
+    out[1, :243] = digits == 0
+    return out
+
+
+def _bit_planes(trit_bytes: np.ndarray, n: int, length: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``(n, ceil(length / 64)) uint64`` bit planes of the +1 and of the -1 elements
+    (as :func:`~robotd.floor.desccoding.pack_planes` packs them) straight from the packed
+    trit bytes: one table look-up gives both planes' bits, one ``packbits`` packs them
+    (every mode's length is a whole number of bytes), without a ternary array between."""
+    bits = np.take(_trit_bits(), trit_bytes, axis=1).reshape(2, -1)[:, : n * length]
+    packed = np.packbits(bits, axis=1, bitorder="little").reshape(2, n, length // 8)
+    words = -(-length // 64)
+    if length != 64 * words:
+        padded = np.zeros((2, n, 8 * words), np.uint8)
+        padded[:, :, : length // 8] = packed
+        packed = padded
+    planes = packed.view("<u8").astype(np.uint64, copy=False)
+    return planes[0], planes[1]
+
+
 def decode(data: bytes) -> FloorDescriptor:
     """Parse :func:`extract`'s bytes. Raises :class:`DescriptorError` for anything else:
     bad magic, unknown version or mode, wrong length, checksum mismatch, bad codes."""
@@ -231,26 +263,38 @@ def decode(data: bytes) -> FloorDescriptor:
         parts.append(np.frombuffer(data, np.uint8, s, pos))
         pos += s
     gbits, rem_b, ang_b, trit_b = parts
-    unary = np.unpackbits(np.frombuffer(data, np.uint8, offset=pos))
-    zeros = np.flatnonzero(unary == 0)
-    if len(zeros) != n or (n and len(unary) - zeros[-1] - 1 >= 8) or (not n and len(unary)):
+    # The unary parts: q_i one bits then a zero each, padded with ones to a whole byte.
+    zeros = np.flatnonzero(np.unpackbits(~np.frombuffer(data, np.uint8, offset=pos)))
+    n_unary = 8 * (len(data) - pos)
+    if len(zeros) != n or (n and n_unary - zeros[-1] - 1 >= 8) or (not n and n_unary):
         raise _fail("bad position code")
-    quot = np.diff(zeros, prepend=-1) - 1
-    rem = np.unpackbits(rem_b)[: n * k].reshape(n, k) @ (1 << np.arange(k - 1, -1, -1)) if k else np.zeros(n, int)
-    cell_ids = np.cumsum((quot.astype(np.int64) << k) + rem)
+    gaps = np.empty(n, np.int64)  # quotients, then the whole gaps
+    if n:
+        gaps[0] = zeros[0]
+        np.subtract(zeros[1:], zeros[:-1] + 1, out=gaps[1:])
+    if k:
+        gaps <<= k
+        gaps += np.unpackbits(rem_b, count=n * k).reshape(n, k) @ (1 << np.arange(k - 1, -1, -1))
+    cell_ids = np.cumsum(gaps)
     grid_w, grid_h = -(-ww // POSITION_STEP_PX), -(-wh // POSITION_STEP_PX)
     if n and cell_ids[-1] >= grid_w * grid_h:
         raise _fail("keypoint position outside the image")
-    q = np.unpackbits(ang_b)[: n * ANGLE_BITS].reshape(n, ANGLE_BITS) @ (1 << np.arange(ANGLE_BITS - 1, -1, -1))
+    q = np.unpackbits(ang_b, count=n * ANGLE_BITS).reshape(n, ANGLE_BITS) @ _ANGLE_WEIGHTS
     if np.any(trit_b > 242):
         raise _fail("bad descriptor code")
-    trits = (trit_table()[trit_b].ravel()[: n * spec.length] - 1).reshape(n, spec.length)
     sx, sy = width / ww, height / wh
-    xy = np.column_stack([(cell_ids % grid_w) * POSITION_STEP_PX + (POSITION_STEP_PX - 1) / 2,
-                          (cell_ids // grid_w) * POSITION_STEP_PX + (POSITION_STEP_PX - 1) / 2])
-    xy = ((xy + 0.5) * [sx, sy] - 0.5).astype(np.float32)
-    return FloorDescriptor(mode, width, height, xy, (q * (2 * math.pi / 2**ANGLE_BITS)).astype(np.float32),
-                           pack_planes(trits > 0), pack_planes(trits < 0), spec.length, gbits.copy(),
+    # Cell centres, then to pixels of the described image (the float64 steps of the
+    # coordinates' definition, rounded to float32 once).
+    row_col = np.divmod(cell_ids, grid_w)
+    xy = np.empty((n, 2), np.float64)
+    np.multiply(row_col[1], POSITION_STEP_PX, out=xy[:, 0])
+    np.multiply(row_col[0], POSITION_STEP_PX, out=xy[:, 1])
+    xy += (POSITION_STEP_PX - 1) / 2
+    xy += 0.5
+    xy *= (sx, sy)
+    xy -= 0.5
+    return FloorDescriptor(mode, width, height, xy.astype(np.float32), _ANGLE_RAD[q],
+                           *_bit_planes(trit_b, n, spec.length), spec.length, gbits.copy(),
                            POSITION_STEP_PX * max(sx, sy))
 
 

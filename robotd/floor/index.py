@@ -6,7 +6,7 @@ a query that does not compare against every keyframe. A query here runs in two s
 as in CDVS retrieval (paper 003 Sec. II-B: a global score, then a local score):
 
 1. **Global shortlist.** Every keyframe's global descriptor (a packed binary vector) sits
-   in one contiguous ``(capacity, words) uint64`` array that grows by doubling. The query's
+   in one contiguous ``(words, capacity) uint64`` array that grows by doubling. The query's
    global descriptor is compared with all of them at once: XOR and popcount
    (``numpy.bitwise_count``), a similarity ``1 - hamming / bits`` in [0, 1]. This is
    linear in the map but costs well under a microsecond per keyframe. The ``shortlist``
@@ -305,7 +305,9 @@ class FloorIndex:
         self._scorer: LocalScorer = scorer
         self._words = 0  # uint64 words per global descriptor, fixed by the first add
         self._bits = 0  # global descriptor length, bits
-        self._global = np.zeros((0, 0), np.uint64)  # (capacity, words)
+        # (words, capacity): word w of every keyframe's global descriptor in one row, so that
+        # the scan's popcounts are summed across rows (whole-row adds, not a short axis).
+        self._global = np.zeros((0, 0), np.uint64)
         self._ids = np.zeros(0, np.int64)  # (capacity,)
         # row -> packed row (>= 0), or -1 - i for the i-th descriptor kept as it is
         # (stand-ins and descriptors the packed store does not take).
@@ -339,7 +341,7 @@ class FloorIndex:
     @property
     def capacity(self) -> int:
         """Rows allocated in the global-descriptor array (doubles when full)."""
-        return int(self._global.shape[0])
+        return int(self._global.shape[1])
 
     @property
     def nbytes(self) -> int:
@@ -372,7 +374,7 @@ class FloorIndex:
             self._bits = 8 * g.size
             self._words = max(1, -(-g.size // 8))
             cap = self.params.initial_capacity
-            self._global = np.zeros((cap, self._words), np.uint64)
+            self._global = np.zeros((self._words, cap), np.uint64)
             self._ids = np.zeros(cap, np.int64)
             self._slot = np.zeros(cap, np.int64)
         elif 8 * g.size != self._bits:
@@ -381,11 +383,11 @@ class FloorIndex:
                 f" {self._bits}-bit descriptors (one mode per index)"
             )
         row = self._n
-        if row == self._global.shape[0]:
+        if row == self._global.shape[1]:
             self._grow()
         padded = np.zeros(8 * self._words, np.uint8)
         padded[: g.size] = g
-        self._global[row] = padded.view(np.uint64)
+        self._global[:, row] = padded.view(np.uint64)
         self._ids[row] = keyframe_id
         if self._loader is not None:
             self._slot[row] = _ON_DEMAND
@@ -426,9 +428,9 @@ class FloorIndex:
         return d
 
     def _grow(self) -> None:
-        cap = 2 * self._global.shape[0]
-        bigger = np.zeros((cap, self._words), np.uint64)
-        bigger[: self._global.shape[0]] = self._global
+        cap = 2 * self._global.shape[1]
+        bigger = np.zeros((self._words, cap), np.uint64)
+        bigger[:, : self._global.shape[1]] = self._global
         ids = np.zeros(cap, np.int64)
         ids[: self._ids.shape[0]] = self._ids
         slot = np.zeros(cap, np.int64)
@@ -442,7 +444,7 @@ class FloorIndex:
         :class:`~robotd.io.store.MapStore`, in keyframe-id order.
 
         ``on_demand`` (default): the local descriptors stay in the map and are read back
-        (``store.keyframe(id)``, decoded) when a shortlist names one that is not resident
+        (``store.keyframe_descriptor(id)``, decoded) when a shortlist names one that is not resident
         (the class's ``loader``); the store must then stay open as long as the index is
         queried, and every keyframe added later must be in the store by then. Otherwise
         every descriptor is kept in RAM.
@@ -453,10 +455,10 @@ class FloorIndex:
         """
 
         def load(keyframe_id: int) -> FloorDescriptor:
-            rec = store.keyframe(keyframe_id)
-            if rec.descriptor is None or rec.descriptor_mode != mode:
+            blob, blob_mode = store.keyframe_descriptor(keyframe_id)
+            if blob is None or blob_mode != mode:
                 raise KeyError(f"keyframe {keyframe_id} has no mode-{mode} descriptor in the map")
-            return decode(rec.descriptor)
+            return decode(blob)
 
         index = cls(params, scorer, load if on_demand else None)
         corrupt: list[int] = []
@@ -482,17 +484,18 @@ class FloorIndex:
     def global_scores(self, descriptor: FloorDescriptor) -> np.ndarray:
         """Global similarity of ``descriptor`` to every indexed keyframe, ``(N,) float64``
         in [0, 1], in the order of :attr:`ids`: ``1 - hamming / bits``."""
-        n = len(self)
-        if n == 0:
-            return np.zeros(0)
+        return np.asarray(1.0 - self._hamming(descriptor) / float(self._bits)) if len(self) else np.zeros(0)
+
+    def _hamming(self, descriptor: FloorDescriptor) -> np.ndarray:
+        """Hamming distance of ``descriptor``'s global bits to every indexed keyframe's,
+        ``(N,) int64`` in the order of :attr:`ids` (the index must not be empty)."""
         g = _global_bytes(descriptor)
         if 8 * g.size != self._bits:
             raise ValueError(f"query global descriptor has {8 * g.size} bits, the index holds {self._bits}")
         padded = np.zeros(8 * self._words, np.uint8)
         padded[: g.size] = g
         q = padded.view(np.uint64)
-        dist = np.bitwise_count(np.bitwise_xor(self._global[:n], q)).sum(axis=1, dtype=np.int64)
-        return np.asarray(1.0 - dist / float(self._bits))
+        return np.bitwise_count(np.bitwise_xor(self._global[:, : len(self)], q[:, None])).sum(axis=0, dtype=np.int64)
 
     def shortlist(self, descriptor: FloorDescriptor, size: int | None = None,
                   exclude_ids: Callable[[int], bool] | Collection[int] | None = None,
@@ -505,52 +508,56 @@ class FloorIndex:
         most recent ones, which overlap the query trivially).
         """
         size = self.params.shortlist if size is None else int(size)
-        sims = self.global_scores(descriptor)
-        n = len(sims)
+        n = len(self)
         if n == 0 or size < 1:
             return []
+        # Ranked by Hamming distance, the global score's order (1 - hamming / bits).
+        dist = self._hamming(descriptor)
+        bits = float(self._bits)
         ids = self._ids[:n]
-        valid = np.ones(n, bool)
+        valid: np.ndarray | None = None
         if exclude_after_id is not None:
-            valid &= ids <= int(exclude_after_id)
+            valid = ids <= int(exclude_after_id)
         predicate: Callable[[int], bool] | None = None
         if callable(exclude_ids):
             predicate = exclude_ids
-        elif isinstance(exclude_ids, np.ndarray):  # no Python loop over a large array of ids
-            valid &= ~np.isin(ids, exclude_ids.ravel().astype(np.int64, copy=False))
         elif exclude_ids is not None:
-            excluded = np.fromiter((int(i) for i in exclude_ids), np.int64)
-            valid &= ~np.isin(ids, excluded)
-        rows = np.flatnonzero(valid)
+            if isinstance(exclude_ids, np.ndarray):  # no Python loop over a large array of ids
+                excluded = exclude_ids.ravel().astype(np.int64, copy=False)
+            else:
+                excluded = np.fromiter((int(i) for i in exclude_ids), np.int64)
+            kept = ~np.isin(ids, excluded)
+            valid = kept if valid is None else valid & kept
+        rows = np.arange(n) if valid is None else np.flatnonzero(valid)
         if rows.size == 0:
             return []
+        d = dist if valid is None else dist[rows]
         # Best first; ties broken by row (= insertion order) through the stable sort.
         # Only the top of the list is sorted unless a predicate rejects many of it.
         want = size if predicate is None else 2 * size
         if rows.size > want:
-            top = np.argpartition(-sims[rows], want - 1)[:want]
-            cut = sims[rows[top]].min()
-            top = np.flatnonzero(sims[rows] >= cut)  # keep every tie at the cut
-            ordered = rows[top[np.argsort(-sims[rows[top]], kind="stable")]]
+            top = np.argpartition(d, want - 1)[:want]
+            top = np.flatnonzero(d <= d[top].max())  # keep every tie at the cut
+            ordered = rows[top[np.argsort(d[top], kind="stable")]]
         else:
-            ordered = rows[np.argsort(-sims[rows], kind="stable")]
+            ordered = rows[np.argsort(d, kind="stable")]
         out: list[tuple[int, float]] = []
         for row in ordered:
             kf = int(ids[row])
             if predicate is not None and predicate(kf):
                 continue
-            out.append((kf, float(sims[row])))
+            out.append((kf, float(1.0 - dist[row] / bits)))
             if len(out) == size:
                 return out
         if predicate is not None and len(ordered) < rows.size:
             # The predicate rejected too many of the top rows: walk the rest in order.
             seen = set(ordered.tolist())
-            rest = [r for r in rows[np.argsort(-sims[rows], kind="stable")] if int(r) not in seen]
+            rest = [r for r in rows[np.argsort(d, kind="stable")] if int(r) not in seen]
             for row in rest:
                 kf = int(ids[row])
                 if predicate(kf):
                     continue
-                out.append((kf, float(sims[row])))
+                out.append((kf, float(1.0 - dist[row] / bits)))
                 if len(out) == size:
                     break
         return out

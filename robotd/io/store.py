@@ -304,6 +304,16 @@ class MapStore(MapConnection):
             raise KeyError(f"no keyframe {keyframe_id} in map {self._path}")
         return self._keyframe_record(rows[0])
 
+    def keyframe_descriptor(self, keyframe_id: int) -> tuple[bytes | None, int | None]:
+        """One keyframe's compact descriptor and its mode, ``(None, None)`` if it has none
+        (the floor index's read back: the descriptor columns alone, no record built);
+        KeyError if there is no such keyframe."""
+        rows = self._read("SELECT descriptor, descriptor_mode FROM keyframes WHERE id = ?", (int(keyframe_id),))
+        if not rows:
+            raise KeyError(f"no keyframe {keyframe_id} in map {self._path}")
+        desc, mode = rows[0]
+        return (None if desc is None else bytes(desc)), mode
+
     def keyframes(self, run_id: int | None = None) -> Iterator[KeyframeRecord]:
         """Keyframes in id order, of one run or of the whole map, without images.
 

@@ -669,6 +669,65 @@ def test_hand_made_descriptor_decodes_to_its_values():
     assert np.array_equal(d.global_bits, np.arange(32, dtype=np.uint8))
 
 
+def _read_bit_by_bit(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray, bytes]:
+    """The byte layout of the module docstring read one bit, one trit, one keypoint at a
+    time (no numpy): positions ``(n, 2)``, angles ``(n,)``, trits ``(n, length)`` and the
+    global bits, for :func:`decode` to match."""
+    _magic, _version, mode, width, height, ww, wh, n, k, _reserved, _crc = struct.unpack_from(
+        "<2sBBHHHHHBBI", data)
+    length, pos = MODES[mode].length, HEADER_BYTES
+
+    def section(size: int) -> bytes:
+        nonlocal pos
+        pos += size
+        return data[pos - size:pos]
+
+    def msb_bits(raw: bytes) -> list[int]:
+        return [(byte >> (7 - i)) & 1 for byte in raw for i in range(8)]
+
+    glob = section(MODES[mode].global_bits // 8)
+    rem = msb_bits(section(-(-n * k // 8)))
+    ang = msb_bits(section(-(-n * ANGLE_BITS // 8)))
+    trits = [(byte // 3**i) % 3 - 1 for byte in section(-(-n * length // 5)) for i in range(5)]
+    unary = msb_bits(data[pos:])
+    grid_w, step = -(-ww // POSITION_STEP_PX), POSITION_STEP_PX
+    xy, angles, ternary = [], [], np.zeros((n, length), np.float32)
+    cell = u = 0
+    for i in range(n):
+        quotient = 0
+        while unary[u]:
+            quotient, u = quotient + 1, u + 1
+        u += 1
+        cell += (quotient << k) + sum(b << (k - 1 - j) for j, b in enumerate(rem[i * k:(i + 1) * k]))
+        col, row = cell % grid_w, cell // grid_w
+        xy.append(((col * step + (step - 1) / 2 + 0.5) * (width / ww) - 0.5,
+                   (row * step + (step - 1) / 2 + 0.5) * (height / wh) - 0.5))
+        level = sum(b << (ANGLE_BITS - 1 - j) for j, b in enumerate(ang[i * ANGLE_BITS:(i + 1) * ANGLE_BITS]))
+        angles.append(level * (2 * math.pi / 2**ANGLE_BITS))
+        ternary[i] = trits[i * length:(i + 1) * length]
+    return (np.array(xy, np.float32).reshape(n, 2), np.array(angles, np.float32), ternary, glob)
+
+
+@pytest.mark.parametrize("mode", ALL_MODES)
+def test_decode_gives_what_the_layout_read_bit_by_bit_gives(frames, coded, mode):
+    """The whole-array decode against the layout read one bit at a time: every position,
+    angle and trit exactly, and the bit planes' padding beyond ``length`` zero."""
+    for data in (coded[mode], extract(frames["gravel"], mode), _hand_made(48) if mode == 1 else coded[mode]):
+        d = decode(data)
+        xy, angles, ternary, glob = _read_bit_by_bit(data)
+        assert len(d) > 1
+        assert d.xy_px.dtype == np.float32 and np.array_equal(d.xy_px, xy)
+        assert d.angle_rad.dtype == np.float32 and np.array_equal(d.angle_rad, angles)
+        assert np.array_equal(d.ternary(), ternary)
+        assert d.global_bits.tobytes() == glob
+        words = -(-d.length // 64)
+        for plane in (d.local_pos, d.local_neg):
+            assert plane.dtype == np.uint64 and plane.shape == (len(d), words) and plane.flags.c_contiguous
+            every_bit = np.unpackbits(plane.astype("<u8").view(np.uint8), axis=1, bitorder="little")
+            assert not every_bit[:, d.length:].any()
+        assert not (d.local_pos & d.local_neg).any()
+
+
 def test_forged_position_beyond_the_grid_is_caught():
     """Cell 70 needs three rows of 32 cells: a 64 x 4 image has two."""
     with pytest.raises(DescriptorError, match="outside the image"):

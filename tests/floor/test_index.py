@@ -252,6 +252,43 @@ def test_from_store_round_trip_skips_a_corrupt_descriptor(gravel_run, tmp_path, 
         assert not FloorIndex.from_store(store, mode, on_demand=False).on_demand
 
 
+def test_read_back_from_a_map_finds_the_loops_of_the_index_in_ram(gravel_run, tmp_path):
+    """Two passes over the gravel run stored in a map, every keyframe of the second queried
+    as the detector queries (the loop threshold as ``min_score``, the stop at ``k``): the
+    index that reads its descriptors back (4 kept decoded) returns the same candidates, with
+    the same scores and matched points, as the one holding every descriptor."""
+    from robotd.app.demo import shipped_calibration
+    from robotd.floor.descriptor import decode, extract
+    from robotd.io.calibfile import read_calibration
+    from robotd.io.store import MapStore
+
+    mode = 4
+    threshold = read_calibration(shipped_calibration()).loop.for_mode(mode)
+    blobs = [extract(im, mode) for im in gravel_run[0]]
+    path = tmp_path / "map.db"
+    with MapStore.open(path, synchronous="NORMAL") as store:
+        run = store.begin_run("", started_ns=0)
+        ids = [store.add_keyframe(run, k, (0.1 * k, 0.0, 0.0), np.eye(3), None, b, mode)
+               for k, b in enumerate(blobs + blobs[::-1])]
+    in_ram = FloorIndex(IndexParams(shortlist=10))
+    for kf, b in zip(ids, blobs + blobs[::-1]):
+        in_ram.add(kf, decode(b))
+    loops = 0
+    with MapStore.open(path, create=False, read_only=True) as store:
+        lazy = FloorIndex.from_store(store, mode, IndexParams(shortlist=10, resident=4))
+        for kf in ids[len(blobs):]:
+            q = decode(store.keyframe_descriptor(kf)[0])
+            want = in_ram.query(q, k=5, exclude_after_id=ids[len(blobs) - 1], min_score=threshold)
+            got = lazy.query(q, k=5, exclude_after_id=ids[len(blobs) - 1], min_score=threshold)
+            assert [(c.keyframe_id, c.global_score, c.score, c.local.reason) for c in got] == \
+                [(c.keyframe_id, c.global_score, c.score, c.local.reason) for c in want]
+            assert all(np.array_equal(a.local.xy_a, b.local.xy_a) and np.array_equal(a.local.xy_b, b.local.xy_b)
+                       for a, b in zip(got, want))
+            loops += sum(c.score >= threshold for c in got)
+    assert lazy.loads > len(blobs) and lazy.load_failures == 0  # most of the first pass was read back
+    assert loops >= len(blobs)  # every keyframe of the second pass finds its first-pass self, at least
+
+
 def _fields_equal(a, b) -> bool:
     from dataclasses import fields
 

@@ -148,6 +148,21 @@ def test_reopen_continues_the_same_map(tmp_path: Path) -> None:
         assert [k.x_m for k in store.keyframes()] == [0.0, 1.0, 2.0, 9.0]
 
 
+def test_keyframe_descriptor_reads_the_descriptor_columns_alone(tmp_path: Path) -> None:
+    """The floor index's read back: the stored bytes and mode, as the full record has them."""
+    path = tmp_path / "map.sqlite"
+    ids = _make_map(path)
+    with MapStore.open(path) as store:
+        store.set_descriptor(ids[1], b"\x00\x01\xff", 6)
+    with MapStore.open(path, read_only=True) as store:
+        assert store.keyframe_descriptor(ids[1]) == (b"\x00\x01\xff", 6)
+        rec = store.keyframe(ids[1])
+        assert (rec.descriptor, rec.descriptor_mode) == store.keyframe_descriptor(ids[1])
+        assert store.keyframe_descriptor(ids[0]) == (None, None)
+        with pytest.raises(KeyError, match="no keyframe 999"):
+            store.keyframe_descriptor(999)
+
+
 def test_keyframe_iteration_crosses_page_boundaries(tmp_path: Path) -> None:
     n = 2 * store_module._PAGE_ROWS + 3
     with MapStore.open(tmp_path / "map.sqlite") as store:
