@@ -475,11 +475,85 @@ def baseline(recording: Path, map_path: Path, exclude_recent_s: float, shortlist
 # ----------------------------------------------------------------------------- scale
 
 
+class _QueryParts:
+    """Where a floor query's CPU time goes (thread CPU, summed by part): the shortlist
+    (global scan and ranking), the read back (the index's loader: the map's read and the
+    decode), the decode alone, and the local score (the query side's preparation included).
+    :meth:`timed` wraps an index; :meth:`patched` times the decode and the local matcher of
+    :mod:`robotd.floor.index` (by name, so it times the code of any checkout)."""
+
+    def __init__(self) -> None:
+        self.s: collections.Counter[str] = collections.Counter()
+
+    def wrap(self, part: str, fn: Any) -> Any:
+        def timed(*a: Any, **kw: Any) -> Any:
+            t0 = time.thread_time()
+            try:
+                return fn(*a, **kw)
+            finally:
+                self.s[part] += time.thread_time() - t0
+        return timed
+
+    def timed(self, index: Any) -> Any:
+        index.shortlist = self.wrap("shortlist", index.shortlist)
+        if getattr(index, "_loader", None) is not None:
+            index._loader = self.wrap("read back", index._loader)
+        return index
+
+    def patched(self) -> Any:
+        import contextlib
+
+        import robotd.floor.index as fi
+
+        parts = self
+
+        class TimedMatcher(fi.Matcher):  # type: ignore[misc, name-defined]
+            def __init__(self, *a: Any, **kw: Any) -> None:
+                t0 = time.thread_time()
+                super().__init__(*a, **kw)
+                parts.s["local score"] += time.thread_time() - t0
+
+            def score(self, *a: Any, **kw: Any) -> Any:
+                t0 = time.thread_time()
+                try:
+                    return super().score(*a, **kw)
+                finally:
+                    parts.s["local score"] += time.thread_time() - t0
+
+        @contextlib.contextmanager
+        def cm() -> Any:
+            matcher, decode = fi.Matcher, fi.decode
+            fi.Matcher, fi.decode = TimedMatcher, self.wrap("decode", decode)
+            try:
+                yield self
+            finally:
+                fi.Matcher, fi.decode = matcher, decode
+        return cm()
+
+    def per_query_ms(self, total_s: float, queries: int) -> dict[str, float]:
+        """Mean CPU ms per query by part; ``read`` is the read back less its decode, ``other``
+        what the parts do not cover (the candidates' bookkeeping, the resident set)."""
+        s = self.s
+        out = {"shortlist": s["shortlist"], "read": max(0.0, s["read back"] - s["decode"]), "decode": s["decode"],
+               "local score": s["local score"]}
+        out["other"] = total_s - s["shortlist"] - s["read back"] - s["local score"]
+        out["total"] = total_s
+        return {k: v * 1e3 / queries for k, v in out.items()}
+
+
 def scale(recording: Path, sizes: list[int], queries: int, mode: int, shortlist: int,
           duration_s: float, max_distinct: int) -> dict[str, Any]:
     """Describe the recording's frames (and turned or mirrored copies) until the largest
     size is reached; index them and time queries at each size, with the demo's loop
-    threshold for ``mode`` as the detector passes it (``min_score``)."""
+    threshold for ``mode`` as the detector passes it (``min_score``).
+
+    Three indexes answer the same queries in turn: every descriptor in RAM; the daemon's
+    index with its descriptors decoded again from their bytes when read back (as before the
+    map read was timed); and the daemon's index as it is built from a map
+    (``FloorIndex.from_store`` on a map of the same descriptors: the map's read and the
+    decode). A first pass times the queries; a second, on indexes built afresh, times
+    each part of them (:class:`_QueryParts`), and every query's candidates are compared
+    across the three."""
     from robotd.app.demo import shipped_calibration
     from robotd.io.calibfile import read_calibration
 
@@ -491,6 +565,7 @@ def scale(recording: Path, sizes: list[int], queries: int, mode: int, shortlist:
     from robotd.base.messages import Frame
     from robotd.floor.descriptor import decode, extract
     from robotd.floor.index import FloorIndex, IndexParams
+    from robotd.io.store import MapStore
 
     need = min(max(sizes), max_distinct)
     variants = [lambda im: im, lambda im: cv2.rotate(im, cv2.ROTATE_180), lambda im: cv2.flip(im, 1),
@@ -518,42 +593,92 @@ def scale(recording: Path, sizes: list[int], queries: int, mode: int, shortlist:
         # global scan still covers every row and the shortlist scores as many keyframes, so
         # the cost is measured; which keyframes are shortlisted is not that of a real map.
         print(f"scale: {distinct} distinct images; larger maps repeat them", flush=True)
-    rng = np.random.default_rng(0)
     out: dict[str, Any] = {"min_score": min_score, "describe_ms": {"median": statistics.median(describe_ms),
                                            "p99": float(np.quantile(describe_ms, 0.99)),
                                            "n": len(describe_ms)}, "sizes": []}
     index = FloorIndex(IndexParams(shortlist=shortlist))
-    # The daemon's index (FloorIndex.from_store): IndexParams.resident descriptors kept
-    # decoded, the others read back when shortlisted (decoded from their bytes here: the
-    # map's read itself is about 0.03 ms, the decode most of a read back's cost).
-    lazy = FloorIndex(IndexParams(shortlist=shortlist), loader=lambda i: decode(blobs[i % distinct]))
+    rng = np.random.default_rng(0)
     rss0 = rss_mb()
     decoded = [decode(b) for b in blobs[:n_frames]]  # queries: the drive's own frames
     recent = int(20.0 * n_frames / max(1.0, duration_s))  # frames in 20 s
-    for n in sorted(sizes):
-        for i in range(len(index), n):
-            index.add(i, decode(blobs[i % distinct]))
-            lazy.add(i, index.descriptor(i))
-        qs = rng.choice(len(decoded), size=min(queries, len(decoded)), replace=False)
-        ms, ms_lazy = [], []
-        loads0 = lazy.loads
-        ids = np.arange(n)
-        for q in qs:
-            # As the detector: nothing from the last (or next) 20 s of the drive, in any copy.
-            excluded = ids[np.abs(ids % distinct % n_frames - q) < recent]
-            t0 = time.thread_time()
-            index.query(decoded[q], k=5, min_score=min_score, exclude_ids=excluded)
-            t1 = time.thread_time()
-            lazy.query(decoded[q], k=5, min_score=min_score, exclude_ids=excluded)
-            ms_lazy.append((time.thread_time() - t1) * 1e3)
-            ms.append((t1 - t0) * 1e3)
-        out["sizes"].append({"keyframes": n, "distinct": min(n, distinct), "query_ms": {"median": statistics.median(ms),
-                                                          "p99": float(np.quantile(ms, 0.99)), "n": len(ms)},
-                             "query_read_back_ms": {"median": statistics.median(ms_lazy),
-                                                    "p99": float(np.quantile(ms_lazy, 0.99)),
-                                                    "reads_per_query": (lazy.loads - loads0) / len(qs),
-                                                    "resident": lazy.params.resident},
-                             "index_mb": index.nbytes / 1e6, "rss_mb": rss_mb(), "rss_growth_mb": rss_mb() - rss0})
+    import robotd.floor.index as fi
+
+    def copy(on_demand: bool) -> Any:
+        # on_demand: the daemon's index (IndexParams.resident descriptors kept decoded), the
+        # others decoded again from their bytes when shortlisted (decode looked up at call
+        # time, so that _QueryParts times it); otherwise every descriptor in RAM.
+        loader = (lambda i: fi.decode(blobs[i % distinct])) if on_demand else None
+        ix = FloorIndex(IndexParams(shortlist=shortlist), loader=loader)
+        for i in range(len(index)):
+            ix.add(i, index.descriptor(i))
+        return ix
+
+    with tempfile.TemporaryDirectory() as tmp:
+        map_path = Path(tmp) / "scale-map.sqlite"
+        kf_ids: list[int] = []
+        for n in sorted(sizes):
+            for i in range(len(index), n):
+                index.add(i, decode(blobs[i % distinct]))
+            with MapStore.open(map_path, synchronous="NORMAL") as store:  # the map of the same descriptors
+                run = store.begin_run("", started_ns=0)
+                for i in range(len(kf_ids), n):
+                    kf_ids.append(store.add_keyframe(run, i, (0.0, 0.0, 0.0), np.eye(3), None,
+                                                     blobs[i % distinct], mode))
+            qs = rng.choice(len(decoded), size=min(queries, len(decoded)), replace=False)
+            ids = np.arange(n)
+            kf_of = np.asarray(kf_ids, np.int64)
+            row: dict[str, Any] = {"keyframes": n, "distinct": min(n, distinct), "resident": IndexParams().resident}
+            with MapStore.open(map_path, create=False, read_only=True) as store:
+                for timing_pass in ("times", "parts"):
+                    parts = {k: _QueryParts() for k in ("in RAM", "read back", "from the map")}
+                    built = {"in RAM": index if timing_pass == "times" else copy(False), "read back": copy(True),
+                             "from the map": FloorIndex.from_store(store, mode, IndexParams(shortlist=shortlist))}
+                    if timing_pass == "parts":
+                        built = {k: parts[k].timed(v) for k, v in built.items()}
+                    loads0 = {k: getattr(v, "loads", 0) for k, v in built.items()}
+                    ms: dict[str, list[float]] = {k: [] for k in built}
+                    same = True
+                    for q in qs:
+                        # As the detector: nothing from the last (or next) 20 s of the drive, in any copy.
+                        excluded = ids[np.abs(ids % distinct % n_frames - q) < recent]
+                        got = {}
+                        for name, ix in built.items():
+                            ex = kf_of[excluded] if name == "from the map" else excluded
+                            if timing_pass == "parts":
+                                with parts[name].patched():
+                                    t0 = time.thread_time()
+                                    cands = ix.query(decoded[q], k=5, min_score=min_score, exclude_ids=ex)
+                                    parts[name].s["total"] += time.thread_time() - t0
+                            else:
+                                t0 = time.thread_time()
+                                cands = ix.query(decoded[q], k=5, min_score=min_score, exclude_ids=ex)
+                                ms[name].append((time.thread_time() - t0) * 1e3)
+                            back = (lambda kf: int(np.searchsorted(kf_of, kf))) if name == "from the map" else int
+                            got[name] = [(back(c.keyframe_id), c.global_score, c.score) for c in cands]
+                        same &= got["in RAM"] == got["read back"] == got["from the map"]
+                    reads = {k: (getattr(v, "loads", 0) - loads0[k]) / len(qs) for k, v in built.items()}
+                    if timing_pass == "times":
+                        def stats(v: list[float]) -> dict[str, float]:
+                            return {"median": statistics.median(v), "p99": float(np.quantile(v, 0.99)), "n": len(v)}
+
+                        row["query_ms"] = stats(ms["in RAM"])
+                        row["query_read_back_ms"] = {**stats(ms["read back"]), "reads_per_query": reads["read back"],
+                                                     "resident": built["read back"].params.resident}
+                        row["query_from_map_ms"] = {**stats(ms["from the map"]),
+                                                    "reads_per_query": reads["from the map"]}
+                        row["same_candidates"] = same
+                    else:
+                        row["parts_ms"] = {k: p.per_query_ms(p.s["total"], len(qs)) for k, p in parts.items()}
+                        row["same_candidates"] = bool(row["same_candidates"] and same)
+                    del built
+            row.update({"index_mb": index.nbytes / 1e6, "rss_mb": rss_mb(), "rss_growth_mb": rss_mb() - rss0})
+            print(f"scale: {n} keyframes: in RAM {row['query_ms']['median']:.2f} ms, read back "
+                  f"{row['query_read_back_ms']['median']:.2f} ms, from the map {row['query_from_map_ms']['median']:.2f}"
+                  f" ms ({row['query_from_map_ms']['reads_per_query']:.1f} reads per query), same candidates: "
+                  f"{row['same_candidates']}; parts (ms per query): "
+                  + "; ".join(f"{k}: " + ", ".join(f"{pk} {pv:.2f}" for pk, pv in v.items())
+                              for k, v in row["parts_ms"].items()), flush=True)
+            out["sizes"].append(row)
     return out
 
 
@@ -938,9 +1063,12 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
         out.update({"map_keyframes": n0, "mode": mode, "min_score": min_score, "queries": min(queries, n0)})
 
         def loader(i: int) -> Any:
-            rec = store.keyframe(int(src_ids[i % n0]))
-            assert rec.descriptor is not None
-            return decode(rec.descriptor)
+            if hasattr(store, "keyframe_descriptor"):  # as FloorIndex.from_store reads it back
+                blob = store.keyframe_descriptor(int(src_ids[i % n0]))[0]
+            else:  # the code before it (a baseline run from an older checkout)
+                blob = store.keyframe(int(src_ids[i % n0])).descriptor
+            assert blob is not None
+            return decode(blob)
 
         qrows = list(range(n0 - min(queries, n0), n0))
         for n in sorted(sizes):
@@ -1019,17 +1147,50 @@ def _scale_section(p: dict[str, Any]) -> list[str]:
              "copies, repeated beyond the distinct ones), the drive's own frames queried with the loop threshold, "
              "the 20 s around each left out; each query timed (thread CPU) on an index with every descriptor in "
              "RAM and then on the daemon's (the 1024 most recently used decoded, the others decoded again when "
-             "shortlisted).", "",
-             "| keyframes | of them distinct | in RAM, median ms | p99 | as the daemon, median ms | p99 | "
-             "against in RAM | descriptors read back per query |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "shortlisted)" + (", decoded from their bytes (\"read back\") and as `FloorIndex.from_store` holds "
+                               "them, read from a map of the same descriptors (\"from the map\")."
+                               if any("query_from_map_ms" in row for row in sc["sizes"]) else "."), ""]
+    lines += _scale_table(sc)
+    return lines
+
+
+def _scale_table(sc: dict[str, Any]) -> list[str]:
+    """The scale part's tables: query times by index, and where the time goes by part."""
+    from_map = any("query_from_map_ms" in row for row in sc["sizes"])
+    lines = ["| keyframes | of them distinct | in RAM, median ms | p99 | as the daemon, median ms | p99 | "
+             "against in RAM | descriptors read back per query |"
+             + (" from the map, median ms | p99 | against in RAM | reads per query | same candidates |"
+                if from_map else ""),
+             "|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|---:|---:|---:|---|" if from_map else "")]
     for row in sc["sizes"]:
-        q, rb = row["query_ms"], row.get("query_read_back_ms")
+        q, rb, fm = row["query_ms"], row.get("query_read_back_ms"), row.get("query_from_map_ms")
         if rb is None:
             continue
-        lines.append(f"| {row['keyframes']} | {row.get('distinct', row['keyframes'])} | {q['median']:.2f} | "
-                     f"{q['p99']:.2f} | {rb['median']:.2f} | {rb['p99']:.2f} | {rb['median'] / q['median']:.2f} | "
-                     f"{rb['reads_per_query']:.1f} |")
+        line = (f"| {row['keyframes']} | {row.get('distinct', row['keyframes'])} | {q['median']:.2f} | "
+                f"{q['p99']:.2f} | {rb['median']:.2f} | {rb['p99']:.2f} | {rb['median'] / q['median']:.2f} | "
+                f"{rb['reads_per_query']:.1f} |")
+        if from_map:
+            line += (f" {fm['median']:.2f} | {fm['p99']:.2f} | {fm['median'] / q['median']:.2f} | "
+                     f"{fm['reads_per_query']:.1f} | {'yes' if row.get('same_candidates') else 'no'} |"
+                     if fm else " - | - | - | - | - |")
+        lines.append(line)
+    return lines + _parts_table(sc)
+
+
+def _parts_table(sc: dict[str, Any]) -> list[str]:
+    """Where the scale part's queries spend their time, by index and part (empty for a run without it)."""
+    lines: list[str] = []
+    if any("parts_ms" in row for row in sc["sizes"]):
+        lines += ["", "Where a query's time goes (a second pass on indexes built afresh, each part timed; CPU ms "
+                      "per query, mean): the shortlist (global scan and ranking), the map's read, the decode, the "
+                      "local score (with the query side's preparation) and the rest (candidates, the resident set, "
+                      "the timers themselves).", "",
+                  "| keyframes | index | shortlist | read | decode | local score | other | total |",
+                  "|---:|---|---:|---:|---:|---:|---:|---:|"]
+        for row in sc["sizes"]:
+            for name, v in row.get("parts_ms", {}).items():
+                lines.append(f"| {row['keyframes']} | {name} | {v['shortlist']:.2f} | {v['read']:.2f} | "
+                             f"{v['decode']:.2f} | {v['local score']:.2f} | {v['other']:.2f} | {v['total']:.2f} |")
     return lines
 
 
@@ -1232,14 +1393,17 @@ def markdown(p: dict[str, Any]) -> str:
                       f"copies; describe median {s['describe_ms']['median']:.2f} ms, p99 "
                       f"{s['describe_ms']['p99']:.2f} ms over {s['describe_ms']['n']} images):", "",
                   "| keyframes | of them distinct | query median ms | query p99 ms | as the daemon: read back, "
-                  "median ms (reads per query) | index MB | process RSS MB |",
-                  "|---:|---:|---:|---:|---:|---:|---:|"]
+                  "median ms (reads per query) | from the map, median ms | index MB | process RSS MB |",
+                  "|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for row in s["sizes"]:
-            rb = row.get("query_read_back_ms")
+            rb, fm = row.get("query_read_back_ms"), row.get("query_from_map_ms")
             lines.append(f"| {row['keyframes']} | {row.get('distinct', row['keyframes'])} | "
                          f"{row['query_ms']['median']:.2f} | {row['query_ms']['p99']:.2f} | "
                          + (f"{rb['median']:.2f} ({rb['reads_per_query']:.1f}) | " if rb else "- | ")
+                         + (f"{fm['median']:.2f} | " if fm else "- | ")
                          + f"{row['index_mb']:.1f} | {row['rss_mb']:.0f} |")
+        if any("parts_ms" in row for row in s["sizes"]):
+            lines += _parts_table(s)
     return "\n".join(lines) + "\n"
 
 
