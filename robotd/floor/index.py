@@ -318,7 +318,8 @@ class FloorIndex:
         self._row_of: dict[int, int] = {}
         self._local_nbytes = 0  # of the descriptors kept as they are
         self._loader = loader
-        self._recent: collections.OrderedDict[int, FloorDescriptor] = collections.OrderedDict()
+        # keyframe id -> (decoded descriptor, its bytes), least recently used first
+        self._recent: collections.OrderedDict[int, tuple[FloorDescriptor, int]] = collections.OrderedDict()
         self._recent_nbytes = 0  # of the descriptors in _recent
         self.loads = 0
         self.load_failures = 0
@@ -409,18 +410,19 @@ class FloorIndex:
 
     def _remember(self, keyframe_id: int, descriptor: FloorDescriptor) -> None:
         """Keep ``descriptor`` among the resident ones, the least recently used let go."""
-        self._recent[keyframe_id] = descriptor
-        self._recent_nbytes += _descriptor_nbytes(descriptor)
+        nbytes = _descriptor_nbytes(descriptor)
+        self._recent[keyframe_id] = (descriptor, nbytes)
+        self._recent_nbytes += nbytes
         while len(self._recent) > self.params.resident:
-            _kf, old = self._recent.popitem(last=False)
-            self._recent_nbytes -= _descriptor_nbytes(old)
+            _kf, (_old, old_nbytes) = self._recent.popitem(last=False)
+            self._recent_nbytes -= old_nbytes
 
     def _on_demand(self, keyframe_id: int) -> FloorDescriptor:
         """A descriptor kept out of RAM: the resident copy, else the loader's (then kept)."""
-        d = self._recent.get(keyframe_id)
-        if d is not None:
+        kept = self._recent.get(keyframe_id)
+        if kept is not None:
             self._recent.move_to_end(keyframe_id)
-            return d
+            return kept[0]
         assert self._loader is not None
         d = self._loader(keyframe_id)
         self.loads += 1
