@@ -204,6 +204,21 @@ _ANGLE_WEIGHTS = 1 << np.arange(ANGLE_BITS - 1, -1, -1)  # an angle code's bits,
 _ANGLE_RAD = (np.arange(2**ANGLE_BITS) * (2 * math.pi / 2**ANGLE_BITS)).astype(np.float32)  # code -> radians
 
 
+@lru_cache(maxsize=4)
+def _cell_centres(width: int, height: int, ww: int, wh: int) -> tuple[np.ndarray, np.ndarray]:
+    """The coordinate grid's column and row centres in pixels of the described image
+    (``width`` x ``height``, described at ``ww`` x ``wh``), ``(grid_w,)`` and ``(grid_h,)
+    float32`` (read-only): computed in float64 as the coordinates are defined and rounded
+    to float32 once, so that decode looks them up instead of computing every keypoint's."""
+    grid_w, grid_h = -(-ww // POSITION_STEP_PX), -(-wh // POSITION_STEP_PX)
+    out = []
+    for count, scale in ((grid_w, width / ww), (grid_h, height / wh)):
+        c = ((np.arange(count) * POSITION_STEP_PX + (POSITION_STEP_PX - 1) / 2 + 0.5) * scale - 0.5).astype(np.float32)
+        c.flags.writeable = False
+        out.append(c)
+    return out[0], out[1]
+
+
 @lru_cache(maxsize=1)
 def _trit_bits() -> np.ndarray:
     """``(2, 256, 5) uint8``: per trit byte (5 base-3 digits, as
@@ -280,20 +295,14 @@ def decode(data: bytes) -> FloorDescriptor:
     if n and cell_ids[-1] >= grid_w * grid_h:
         raise _fail("keypoint position outside the image")
     q = np.unpackbits(ang_b, count=n * ANGLE_BITS).reshape(n, ANGLE_BITS) @ _ANGLE_WEIGHTS
-    if np.any(trit_b > 242):
+    if n and int(trit_b.max()) > 242:
         raise _fail("bad descriptor code")
     sx, sy = width / ww, height / wh
-    # Cell centres, then to pixels of the described image (the float64 steps of the
-    # coordinates' definition, rounded to float32 once).
-    row_col = np.divmod(cell_ids, grid_w)
-    xy = np.empty((n, 2), np.float64)
-    np.multiply(row_col[1], POSITION_STEP_PX, out=xy[:, 0])
-    np.multiply(row_col[0], POSITION_STEP_PX, out=xy[:, 1])
-    xy += (POSITION_STEP_PX - 1) / 2
-    xy += 0.5
-    xy *= (sx, sy)
-    xy -= 0.5
-    return FloorDescriptor(mode, width, height, xy.astype(np.float32), _ANGLE_RAD[q],
+    col_x, row_y = _cell_centres(width, height, ww, wh)
+    row, col = np.divmod(cell_ids, grid_w)
+    xy = np.empty((n, 2), np.float32)
+    xy[:, 0], xy[:, 1] = col_x[col], row_y[row]
+    return FloorDescriptor(mode, width, height, xy, _ANGLE_RAD[q],
                            *_bit_planes(trit_b, n, spec.length), spec.length, gbits.copy(),
                            POSITION_STEP_PX * max(sx, sy))
 
