@@ -37,7 +37,10 @@ one core. This benchmark:
   measured, not the shortlist of a real map of that size); describe
   and query medians, the index's memory and the process's at each size, and the same
   queries on the daemon's index (``IndexParams.resident`` descriptors kept decoded, the
-  others decoded again when shortlisted, as ``FloorIndex.from_store`` reads them back);
+  others decoded again from their bytes when shortlisted) and on the index
+  ``FloorIndex.from_store`` builds from a map of the same descriptors (read back through
+  the map); then, on indexes built afresh, each query's CPU time by part (shortlist, the
+  map's read, decode, local score), and whether the three returned the same candidates;
 * ``--memory N`` (alone, in a process of its own): the whole daemon's resident memory as
   its map grows to N keyframes (:func:`memory_run`; ``--localise-mapped`` as the service
   runs it), sampled every ``--memory-every`` keyframes into ``NAME-memory.json`` (and a
