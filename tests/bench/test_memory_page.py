@@ -41,3 +41,21 @@ def test_the_page_has_a_section_per_payload_with_its_rows(tmp_path):
     # loops: "-" where the run did not count them (runs before the column)
     assert "| 10000 | read back, 1024 resident | 2.50 | 4.00 | 1.25 | 8.80 | - | 9.2 |" in page
     assert _labelled(str(path)).get("label") is None
+
+
+def test_a_scale_section_shows_the_map_read_and_the_parts_where_the_run_has_them():
+    parts = {"shortlist": 0.5, "read": 0.3, "decode": 1.0, "local score": 2.5, "other": 0.2, "total": 4.5}
+    new = {"keyframes": 10000, "distinct": 1000, "query_ms": {"median": 3.0, "p99": 5.0},
+           "query_read_back_ms": {"median": 4.0, "p99": 7.0, "reads_per_query": 7.25},
+           "query_from_map_ms": {"median": 4.5, "p99": 8.0, "reads_per_query": 7.25}, "same_candidates": True,
+           "parts_ms": {"from the map": parts}}
+    old = {"keyframes": 1000, "distinct": 1000, "query_ms": {"median": 3.0, "p99": 4.0},
+           "query_read_back_ms": {"median": 3.3, "p99": 4.5, "reads_per_query": 0.0}}
+    page = memory_markdown({"machine": MACHINE, "recording": "office.mcap", "scale": {"sizes": [old, new]}})
+    assert "| 10000 | 1000 | 3.00 | 5.00 | 4.00 | 7.00 | 1.33 | 7.2 | 4.50 | 8.00 | 1.50 | 7.2 | yes |" in page
+    assert "| 1000 | 1000 | 3.00 | 4.00 | 3.30 | 4.50 | 1.10 | 0.0 | - | - | - | - | - |" in page
+    assert "| 10000 | from the map | 0.50 | 0.30 | 1.00 | 2.50 | 0.20 | 4.50 |" in page
+    # a run before the map's column: its table as it was, no parts
+    page = memory_markdown({"machine": MACHINE, "recording": "office.mcap", "scale": {"sizes": [old]}})
+    assert "| 1000 | 1000 | 3.00 | 4.00 | 3.30 | 4.50 | 1.10 | 0.0 |" in page
+    assert "from the map" not in page and "Where a query's time goes" not in page
