@@ -194,6 +194,13 @@ class VerifyParams:
             is tried only when the planar search's best consensus has at least this many
             matches; None: never (a camera known to be level); 0: always.
         fallback_max_iterations: the most samples that general search draws.
+        guided_estimator: with a planar model, the estimator of the five-point search
+            among the matches near the level motion (None: ``estimator``). ``"usac"``:
+            OpenCV's USAC with the same test (module notes, "Time"), whose five-point
+            solve costs about a tenth of RANSAC's per sample; that search is most of the
+            median image's verification.
+        fallback_estimator: with a planar model, the estimator of the general search over
+            all the matches after it (None: ``estimator``); that search is the tail.
     """
 
     ratio: float = 0.8
@@ -215,6 +222,8 @@ class VerifyParams:
     guide_threshold_px: float = 3.0
     fallback_inliers: int | None = 10
     fallback_max_iterations: int = 200
+    guided_estimator: str | None = None
+    fallback_estimator: str | None = None
 
     def __post_init__(self) -> None:
         if self.camera_height_m is not None and not self.camera_height_m > 0.0:
@@ -239,8 +248,10 @@ class VerifyParams:
             raise ValueError(f"fallback_max_iterations must be >= 1, got {self.fallback_max_iterations}")
         if self.fallback_inliers is not None and self.fallback_inliers < 0:
             raise ValueError(f"fallback_inliers must be >= 0 or None, got {self.fallback_inliers}")
-        if self.estimator not in ESTIMATORS:
-            raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {self.estimator!r}")
+        for name in ("estimator", "guided_estimator", "fallback_estimator"):
+            value = getattr(self, name)
+            if (value is not None or name == "estimator") and value not in ESTIMATORS:
+                raise ValueError(f"{name} must be one of {', '.join(ESTIMATORS)}, got {value!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -259,7 +270,8 @@ class Verification:
     :func:`robotd.forward.planar.planar_motion` (1-sigma, from their epipolar errors
     ``noise_px``: :func:`robotd.forward.planar.motion_uncertainty`; ``inf`` when not
     computed); ``planarity_chi2`` the motion's out-of-plane part against its covariance
-    (:class:`robotd.forward.planar.MotionFit`; NaN when not computed). When a pose was recovered: ``rotation (3, 3)`` and
+    (:class:`robotd.forward.planar.MotionFit`; NaN when not computed); ``fallback`` whether
+    a planar model's general search over all the matches ran. When a pose was recovered: ``rotation (3, 3)`` and
     ``translation_dir (3,)`` (unit length) such that a point X_old in the old image's
     camera frame is ``rotation @ X_old + s * translation_dir`` in the new image's camera
     frame, for an unknown scale s > 0 (OpenCV camera axes: x right, y down, z forward).
@@ -280,6 +292,7 @@ class Verification:
     sigma_yaw_rad: float = float("inf")
     noise_px: float = float("nan")
     planarity_chi2: float = float("nan")
+    fallback: bool = False
 
 
 def camera_matrix_guess(width_px: int, height_px: int, focal_px: float | None = None) -> np.ndarray:
@@ -335,7 +348,8 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
         near = search.inliers(p_old, p_new, k, params.guide_threshold_px) if search.best_inliers else None
         guided: _Motion | Verification = Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
         if near is not None and int(near.sum()) >= params.min_inliers:
-            guided = _general_motion(p_old, p_new, k, params, n, near)
+            gp = params if params.guided_estimator is None else replace(params, estimator=params.guided_estimator)
+            guided = _general_motion(p_old, p_new, k, gp, n, near)
             if not isinstance(guided, Verification):
                 guided = _checked(old, new, p_old, p_new, k, params, guided)
         assert isinstance(guided, Verification)
@@ -343,7 +357,9 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
             return guided
         # Not found near a level motion: the general search over all the matches, with at
         # most fallback_max_iterations samples (the stated cap on the work per image).
-        params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations))
+        params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations),
+                         estimator=params.fallback_estimator or params.estimator)
+        return replace(_general_verification(old, new, p_old, p_new, k, params, n), fallback=True)
     elif params.model == "planar_motion":
         motion = _planar_motion(p_old, p_new, k, params)
         if isinstance(motion, int):
@@ -358,7 +374,15 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
         # a consensus of at least fallback_inliers (module notes, "The planar model").
         if params.fallback_inliers is None or best < params.fallback_inliers:
             return refused
-        params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations))
+        params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations),
+                         estimator=params.fallback_estimator or params.estimator)
+        return replace(_general_verification(old, new, p_old, p_new, k, params, n), fallback=True)
+    return _general_verification(old, new, p_old, p_new, k, params, n)
+
+
+def _general_verification(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray,
+                          params: VerifyParams, n: int) -> Verification:
+    """The general model over all the matches, checked (:func:`_checked`)."""
     general = _general_motion(p_old, p_new, k, params, n)
     if isinstance(general, Verification):
         return general
