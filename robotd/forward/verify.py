@@ -201,6 +201,11 @@ class VerifyParams:
             median image's verification.
         fallback_estimator: with a planar model, the estimator of the general search over
             all the matches after it (None: ``estimator``); that search is the tail.
+        fallback_band_px: with a planar model, that general search draws its samples
+            among the matches within this distance of the level motion only (a camera a
+            few degrees off level keeps its inliers near the level motion; fewer outliers
+            among the samples let RANSAC's adaptive stop come earlier), its inliers still
+            counted over all the matches; None: among all the matches.
     """
 
     ratio: float = 0.8
@@ -224,6 +229,7 @@ class VerifyParams:
     fallback_max_iterations: int = 200
     guided_estimator: str | None = None
     fallback_estimator: str | None = None
+    fallback_band_px: float | None = None
 
     def __post_init__(self) -> None:
         if self.camera_height_m is not None and not self.camera_height_m > 0.0:
@@ -246,6 +252,8 @@ class VerifyParams:
             raise ValueError(f"guide_threshold_px must be positive, got {self.guide_threshold_px}")
         if self.fallback_max_iterations < 1:
             raise ValueError(f"fallback_max_iterations must be >= 1, got {self.fallback_max_iterations}")
+        if self.fallback_band_px is not None and not self.fallback_band_px > 0.0:
+            raise ValueError(f"fallback_band_px must be positive or None, got {self.fallback_band_px}")
         if self.fallback_inliers is not None and self.fallback_inliers < 0:
             raise ValueError(f"fallback_inliers must be >= 0 or None, got {self.fallback_inliers}")
         for name in ("estimator", "guided_estimator", "fallback_estimator"):
@@ -359,6 +367,14 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
         # most fallback_max_iterations samples (the stated cap on the work per image).
         params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations),
                          estimator=params.fallback_estimator or params.estimator)
+        if params.fallback_band_px is not None:
+            band = search.inliers(p_old, p_new, k, params.fallback_band_px)
+            if int(band.sum()) < params.min_inliers:
+                return replace(guided, fallback=True)
+            motion = _general_motion(p_old, p_new, k, params, n, band, half_inliers=False)
+            checked = motion if isinstance(motion, Verification) else _checked(old, new, p_old, p_new, k, params,
+                                                                                motion)
+            return replace(checked, fallback=True)
         return replace(_general_verification(old, new, p_old, p_new, k, params, n), fallback=True)
     elif params.model == "planar_motion":
         motion = _planar_motion(p_old, p_new, k, params)
@@ -425,19 +441,21 @@ _Motion = tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float, float]
 
 
 def _general_motion(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params: VerifyParams,
-                    n: int, near: np.ndarray | None = None) -> _Motion | Verification:
+                    n: int, near: np.ndarray | None = None, half_inliers: bool = True) -> _Motion | Verification:
     """The general model: the essential matrix (``params.estimator``), ``cv2.recoverPose``'s
     cheirality check, the motion refined on the inliers (:func:`robotd.forward.planar.fit_motion`);
     a refused :class:`Verification` when it fails. With ``near (N,) bool`` the essential
     matrix is searched among those matches only and its inliers then counted among all
-    (``"planar_guided"``)."""
+    (``"planar_guided"``): at most the samples that would draw five inliers were half of
+    them inliers, or with ``half_inliers`` False RANSAC's own bound for ``min_inliers``
+    (:func:`ransac_iterations`) up to ``params.max_iterations``."""
     if near is None:
         e, mask = essential_matrix(p_old, p_new, k, params)
     else:
         # Samples enough to draw five of the subset's inliers were half of it inliers.
         m = int(near.sum())
-        sub = replace(params, max_iterations=min(params.max_iterations, ransac_iterations(
-            m, max(params.min_inliers, (m + 1) // 2), params.ransac_confidence)))
+        sub = params if not half_inliers else replace(params, max_iterations=min(
+            params.max_iterations, ransac_iterations(m, max(params.min_inliers, (m + 1) // 2), params.ransac_confidence)))
         e, _ = essential_matrix(p_old[near], p_new[near], k, sub)
         mask = None if e is None or e.shape[0] < 3 else _epipolar_mask(p_old, p_new, k, e[:3], params.ransac_threshold_px)
     if e is None or mask is None or e.shape[0] < 3:
