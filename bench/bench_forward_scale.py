@@ -72,11 +72,13 @@ VARIANTS: dict[str, tuple[dict[str, object], dict[str, object], dict[str, object
     "tree, USAC without local optimisation": ({}, {"model": "general", "estimator": "usac", "local_optimisation": False},
                                               {}),
     "tree, RANSAC at most 200 samples": ({}, {"model": "general", "max_iterations": 200}, {}),
-    "tree, USAC near the level motion": ({}, {"guided_estimator": "usac"}, {}),
-    "tree, USAC in both planar searches": ({}, {"guided_estimator": "usac", "fallback_estimator": "usac"}, {}),
-    "tree, one fallback per image": ({}, {}, {"verify_fallbacks": 1}),
-    "tree, USAC in both planar searches, one fallback per image": (
-        {}, {"guided_estimator": "usac", "fallback_estimator": "usac"}, {"verify_fallbacks": 1}),
+    # the default's verification levers, one at a time, and all of them off (the previous default)
+    "tree, previous planar verification": ({}, {"guided_estimator": None, "fallback_band_px": None},
+                                           {"verify_fallbacks": None}),
+    "tree, RANSAC near the level motion": ({}, {"guided_estimator": None}, {}),
+    "tree, fallback over all matches": ({}, {"fallback_band_px": None}, {}),
+    "tree, fallbacks unbounded": ({}, {}, {"verify_fallbacks": None}),
+    "tree, USAC in the fallback": ({}, {"fallback_estimator": "usac"}, {}),
 }
 
 

@@ -827,7 +827,13 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
       forward`` without ``--odometry``) the detector is the one without odometry. The
       other metric levers (:class:`OdometryParams`) stay selectable. Its verification
       searches a level camera's motion first (``VerifyParams(model="planar")``; the
-      paper's general search stays selectable as ``model="general"``).
+      paper's general search stays selectable as ``model="general"``), the essential
+      matrix near it by OpenCV's USAC (``guided_estimator="usac"``), the general search
+      after a failed one drawing its samples within 10 px of the level motion
+      (``fallback_band_px``) and run at most once per image (``verify_fallbacks=1``): the
+      stated bound on the verification's work per image (``docs/forward.md``, "Time and
+      memory per image"). The previous planar verification stays selectable
+      (``guided_estimator=None, fallback_band_px=None``, ``verify_fallbacks=None``).
     """
     from robotd.forward.features import FeatureParams
     from robotd.forward.filter import FilterParams
@@ -841,7 +847,9 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
                                 filter=FilterParams(rule=DEFAULT_RULE, loop_threshold=DEFAULT_THRESHOLD),
                                 consistency=DEFAULT_CONSISTENCY, verify_tries=DEFAULT_VERIFY_TRIES,
                                 odometry=OdometryParams(use=True, agree_min_support_area=0.0),
-                                verify=VerifyParams(model=DEFAULT_VERIFY_MODEL))
+                                verify=VerifyParams(model=DEFAULT_VERIFY_MODEL, guided_estimator=DEFAULT_GUIDED_ESTIMATOR,
+                                                    fallback_band_px=DEFAULT_FALLBACK_BAND_PX),
+                                verify_fallbacks=DEFAULT_VERIFY_FALLBACKS)
     else:
         raise ValueError(f"forward detector method must be one of {', '.join(METHODS)}, got {method!r}")
     return replace(params, **overrides) if overrides else params
@@ -876,3 +884,6 @@ DEFAULT_THRESHOLD = 0.3
 DEFAULT_CONSISTENCY = 1
 DEFAULT_VERIFY_TRIES = 3
 DEFAULT_VERIFY_MODEL = "planar"
+DEFAULT_GUIDED_ESTIMATOR = "usac"
+DEFAULT_FALLBACK_BAND_PX = 10.0
+DEFAULT_VERIFY_FALLBACKS = 1

@@ -91,6 +91,11 @@ def test_the_methods():
     assert not (default.odometry.merge_places or default.odometry.metric_neighbours or default.odometry.verify_place)
     assert (default.filter.rule, default.filter.loop_threshold) == ("total", 0.3)
     assert default.features.kind == "orb" and default.vocabulary.purge_after > 0
+    # The verification's work per image bounded: USAC near the level motion, the general
+    # search within 10 px of it and once per image.
+    v = default.verify
+    assert (v.model, v.guided_estimator, v.fallback_estimator, v.fallback_band_px) == ("planar", "usac", None, 10.0)
+    assert default.verify_fallbacks == 1 and paper.verify_fallbacks is None and paper.verify.model == "general"
     assert not paper.odometry.use and paper.verify_tries == 1
     assert method_params("paper", recent_excluded=5).recent_excluded == 5
     with pytest.raises(ValueError):
