@@ -86,7 +86,15 @@ search there fails and the level motion's consensus reached ``fallback_inliers``
 general search runs over all the matches with at most ``fallback_max_iterations`` (200)
 samples. The work per verification is so bounded by rule, not by a timer: at most
 ``2 planar_max_samples`` level hypotheses times the matches, 218 five-point samples near the
-level motion and 200 over all the matches. ``model = "planar_motion"`` takes the level
+level motion and 200 over all the matches. The default detector makes both searches
+cheaper: the one near the level motion by OpenCV's USAC (``guided_estimator``: the same
+test, a tenth of RANSAC's cost per sample; it is most of the median image's verification),
+the fallback's samples drawn within ``fallback_band_px`` (10) of the level motion (fewer
+outliers among them; its inliers still counted over all the matches), and the detector runs
+the fallback for at most one view per image
+(:attr:`robotd.forward.detector.DetectorParams.verify_fallbacks`): the fallback was the
+99th percentile of the time per image. USAC in the fallback let a false loop through on
+the office route without a pose, so the fallback keeps RANSAC. ``model = "planar_motion"`` takes the level
 motion itself as the verified motion (no five-point search when it passes): measured, it
 passes aliased views (a wall's repeated pattern seen from a sideways shift) that the
 general test refuses, so it is not the default. ``model = "general"`` is the paper's
