@@ -269,10 +269,10 @@ class DetectorParams:
             that sum as its probability. False: the single best image.
         odometry: the keyframes' odometry as a second likelihood
             (:class:`OdometryParams`; off by default, the paper).
-        verify_fallbacks: the most general searches over all the matches (a planar
-            verification's fallback, :class:`~robotd.forward.verify.VerifyParams`) one image
-            runs over its ``verify_tries`` candidates; once they ran, the candidates after
-            are verified near their level motion only. None: no bound (each may fall back).
+        verify_fallbacks: the most fallbacks (a planar verification's general search,
+            :class:`~robotd.forward.verify.VerifyParams`; ``Verification.fallback``) one image
+            runs over its ``verify_tries`` views; once they ran, the views after are verified
+            near their level motion only. None: no bound (each may fall back).
     """
 
     features: FeatureParams = field(default_factory=FeatureParams)

@@ -287,7 +287,9 @@ class Verification:
     ``noise_px``: :func:`robotd.forward.planar.motion_uncertainty`; ``inf`` when not
     computed); ``planarity_chi2`` the motion's out-of-plane part against its covariance
     (:class:`robotd.forward.planar.MotionFit`; NaN when not computed); ``fallback`` whether
-    a planar model's general search over all the matches ran. When a pose was recovered: ``rotation (3, 3)`` and
+    a planar model's general search was due (it ran, or with ``fallback_band_px`` the band
+    held fewer than ``min_inliers`` matches to run it on; either counts against
+    :attr:`robotd.forward.detector.DetectorParams.verify_fallbacks`). When a pose was recovered: ``rotation (3, 3)`` and
     ``translation_dir (3,)`` (unit length) such that a point X_old in the old image's
     camera frame is ``rotation @ X_old + s * translation_dir`` in the new image's camera
     frame, for an unknown scale s > 0 (OpenCV camera axes: x right, y down, z forward).
@@ -379,9 +381,9 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
             band = search.inliers(p_old, p_new, k, params.fallback_band_px)
             if int(band.sum()) < params.min_inliers:
                 return replace(guided, fallback=True)
-            motion = _general_motion(p_old, p_new, k, params, n, band, half_inliers=False)
-            checked = motion if isinstance(motion, Verification) else _checked(old, new, p_old, p_new, k, params,
-                                                                                motion)
+            banded = _general_motion(p_old, p_new, k, params, n, band, half_inliers=False)
+            checked = banded if isinstance(banded, Verification) else _checked(old, new, p_old, p_new, k, params,
+                                                                                banded)
             return replace(checked, fallback=True)
         return replace(_general_verification(old, new, p_old, p_new, k, params, n), fallback=True)
     elif params.model == "planar_motion":
