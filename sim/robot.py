@@ -149,7 +149,8 @@ class VirtualRobot:
             from sim.sensors import draw_errors
 
             own = draw_errors(sp, np.random.default_rng(settings.base_seed))
-        feedback = simulate_kobuki(self.motion, sp, rng, base_params, errors=own, draws_of=plain)
+        feedback = simulate_kobuki(self.motion, sp, rng, base_params, errors=own,
+                                   draws_of=plain if settings.kidnap is not None else None)
         self.floor = _make_floor(settings)
         self.camera_model = camera_model
         self.renderer = FloorRenderer(self.floor, camera_model, render_params or RenderParams(),
