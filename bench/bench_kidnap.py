@@ -145,13 +145,14 @@ def expected_errors(out: Path) -> dict[str, float]:
     for lk in links:
         g.add_edge(lk.from_id, lk.to_id, np.array([lk.dx_m, lk.dy_m, lk.dyaw_rad]), lk.information, lk.kind)
     marginals = gtsam.Marginals(factor_graph(g), to_values(g.ids, g.poses()))
-    pos, yaw = [], []
+    pos, yaw = [0.0], [0.0]  # the first keyframe is held
     for k in kfs[1:]:
         c = np.asarray(marginals.marginalCovariance(int(k.id)))
         pos.append(c[0, 0] + c[1, 1])
         yaw.append(c[2, 2])
     return {"expected_ape_anchored_m": float(np.sqrt(np.mean(pos))),
-            "expected_heading_sigma_deg": float(np.degrees(np.sqrt(np.mean(yaw))))}
+            "expected_heading_sigma_deg": float(np.degrees(np.sqrt(np.mean(yaw)))),
+            "sigma_t_s": np.array([k.stamp_ns for k in kfs]) / 1e9, "sigma_m": np.sqrt(pos)}
 
 
 def route_time(t_s: np.ndarray, kidnap: tuple[float, float]) -> np.ndarray:
@@ -179,6 +180,8 @@ def row_of(seed: int, kid: dict[str, Any], plain: dict[str, Any], kid_err: dict[
     # (the demo's stamps are robot time from 0, which is route time until the lift)
     sampled = np.interp(route_time(kid_err["t_s"], kidnap), plain_err["t_s"], plain_err["err_m"])
     same_ground = float(np.sqrt(np.mean(sampled ** 2)))
+    sigma = np.interp(route_time(kid_err["sigma_t_s"], kidnap), plain_err["sigma_t_s"], plain_err["sigma_m"])
+    sigma_same_ground = float(np.sqrt(np.mean(sigma ** 2)))
     ka, pa = kid_err["ape_anchored_m"], plain_err["ape_anchored_m"]
     return {
         "seed": seed,
@@ -202,6 +205,9 @@ def row_of(seed: int, kid: dict[str, Any], plain: dict[str, Any], kid_err: dict[
         "ratio_aligned": kid_err["ate_aligned_m"] / plain_err["ate_aligned_m"] if plain_err["ate_aligned_m"] > 0 else math.inf,
         "plain_at_kidnapped_route_times_m": same_ground,
         "ratio_same_ground": ka / same_ground if same_ground > 0 else math.inf,
+        "expected_plain_at_kidnapped_route_times_m": sigma_same_ground,
+        "expected_ratio": kid_err["expected_ape_anchored_m"] / plain_err["expected_ape_anchored_m"],
+        "expected_ratio_same_ground": kid_err["expected_ape_anchored_m"] / sigma_same_ground,
         "met": bool(r.get("relocalised", False) and loops(ks)["refused_truly_overlapping"] == 0 and ka <= 2 * pa),
     }
 
@@ -222,8 +228,9 @@ def markdown(payload: dict[str, Any]) -> list[str]:
              "refused by the gate (truly overlapping) | APE anchored, kidnapped / plain (mm) | ratio | met | "
              "ATE aligned, kidnapped / plain (mm) | ratio | map turned by (kidnapped / plain, deg) | "
              "plain at the kidnapped drive's route times (mm) | ratio | the graph's own 1-sigma: anchored APE "
-             "(kidnapped / plain, mm) | heading (kidnapped / plain, deg) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "(kidnapped / plain, mm) | ratio | plain at the kidnapped drive's route times (mm) | ratio | "
+             "heading (kidnapped / plain, deg) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         k, pl = r["kidnapped"], r["plain"]
         rel = (f"{r['reloc_after_s']:.1f} s, {r['reloc_after_m_true']:.2f} m" if r["relocalised"] else "never")
@@ -240,6 +247,8 @@ def markdown(payload: dict[str, Any]) -> list[str]:
             f"{k['fit_turn_deg']:+.4f} / {pl['fit_turn_deg']:+.4f} | "
             f"{1e3 * r['plain_at_kidnapped_route_times_m']:.1f} | {r['ratio_same_ground']:.2f}x | "
             f"{1e3 * k['expected_ape_anchored_m']:.1f} / {1e3 * pl['expected_ape_anchored_m']:.1f} | "
+            f"{r['expected_ratio']:.2f}x | {1e3 * r['expected_plain_at_kidnapped_route_times_m']:.1f} | "
+            f"{r['expected_ratio_same_ground']:.2f}x | "
             f"{k['expected_heading_sigma_deg']:.3f} / {pl['expected_heading_sigma_deg']:.3f} |")
     met = sum(r["met"] for r in rows)
     lines += ["", f"Met on {met} of {len(rows)} seeds. Loops: the floor loops the gate accepted, and of "
@@ -252,7 +261,8 @@ def markdown(payload: dict[str, Any]) -> list[str]:
               "baseline beside the judge. The graph's own 1-sigma: the RMS over the keyframes of "
               "their marginal position and heading standard deviations with the first keyframe "
               "held (every stored odometry and loop edge at the stored solution): what the map "
-              "itself knows of the anchored error.", ""]
+              "itself knows of the anchored error, over all its keyframes and, for the plain drive, "
+              "at the kidnapped drive's route times.", ""]
     cpu = [x for r in rows for x in (r["kidnapped"]["cpu_s"], r["plain"]["cpu_s"]) if x is not None]
     if cpu:
         lines += [f"CPU per demo {min(cpu):.0f}-{max(cpu):.0f} s (user + system).", ""]
@@ -296,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
         log(f"seed {seed}: APE anchored {1e3 * r['kidnapped']['ape_anchored_m']:.2f} / "
             f"{1e3 * r['plain']['ape_anchored_m']:.2f} mm ({r['ratio_anchored']:.2f}x)")
     head = ["seed", "reloc s", "reloc err cm", "refused (true)", "APE k/p mm", "ratio", "ATE k/p mm", "ratio",
-            "turn k deg", "same ground ratio", "1-sigma APE k/p mm"]
+            "turn k deg", "same ground ratio", "1-sigma APE k/p mm", "1-sigma ratio", "same ground"]
     print_table(head, [[r["seed"], round(r["reloc_after_s"] or math.nan, 2),
                         round(100 * (r["reloc_position_error_m"] or math.nan), 2),
                         f"{r['kidnapped']['loops']['refused_by_gate']} ({r['kidnapped']['loops']['refused_truly_overlapping']})",
@@ -306,7 +316,8 @@ def main(argv: list[str] | None = None) -> int:
                         round(r["ratio_aligned"], 2), round(r["kidnapped"]["fit_turn_deg"], 4),
                         round(r["ratio_same_ground"], 2),
                         f"{1e3 * r['kidnapped']['expected_ape_anchored_m']:.2f}/"
-                        f"{1e3 * r['plain']['expected_ape_anchored_m']:.2f}"] for r in rows])
+                        f"{1e3 * r['plain']['expected_ape_anchored_m']:.2f}", round(r["expected_ratio"], 2),
+                        round(r["expected_ratio_same_ground"], 2)] for r in rows])
     payload = {"machine": machine_info(), "params": {"duration_s": duration, "kidnap_at_s": at, "kidnap_to_s": to,
                                                      "carry_s": CARRY_S, "config": str(args.config) if args.config else None},
                "seeds": rows}
