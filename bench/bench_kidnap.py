@@ -307,8 +307,8 @@ def markdown(payload: dict[str, Any]) -> list[str]:
               "at the kidnapped drive's route times.", ""]
     lines += ["## Where the anchored error comes from", "",
               "Each drive's map re-solved (plain least squares, the first keyframe held, every stored "
-              "odometry and loop edge; the daemon's full solve holds fewer loops, so its figure differs "
-              f"a little) as it is, with the odometry edges of the first {p['kidnap_to_s']:g} s (the "
+              "odometry and loop edge; the daemon's full solve holds one loop per place, about 20, so its "
+              f"figures differ) as it is, with the odometry edges of the first {p['kidnap_to_s']:g} s (the "
               "stretch the kidnapped drive drives once, before the ground it is put down on) from the "
               "truth, with the loops from the truth, and with all odometry from the truth: the "
               "anchored APE (mm), kidnapped / plain.", "",
