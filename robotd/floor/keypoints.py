@@ -399,26 +399,37 @@ def raw_descriptors(c: Candidates, n: int, params: ExtractParams, ws: Workspace 
     # Turn the 8 absolute directions into directions relative to the keypoint: relative
     # bin j is absolute direction angle + j * 45 deg, interpolated between whole bins,
     # one 8 x 8 matrix per keypoint (a blend of two circular shifts).
-    a = ang * np.float32(8 / (2 * math.pi))
-    a0 = a.astype(np.intp) & 7
-    f = a - np.floor(a)
-    # The blend _SHIFTS[a0] (1 - f) + _SHIFTS[a0 + 1] f has exactly two non-zero entries
-    # per column, 1 - f and f (every product with 0 or 1 and every sum with 0 is exact):
-    # written in place into zeros, the same matrix at a fraction of the arithmetic.
-    turn = np.zeros((n, 64), np.float32) if ws is None else ws.buffer("turn", (n, 64))
-    if ws is not None:
-        turn.fill(0.0)
-    flat = turn.ravel()
-    at = np.arange(0, 64 * n, 64)[:, None]
-    flat[at + _TURN_SLOTS[0][a0]] = (1 - f)[:, None]
-    flat[at + _TURN_SLOTS[1][a0]] = f[:, None]
-    turn = turn.reshape(n, 8, 8)
+    turn = _turns(ang, None if ws is None else ws.buffer("turn", (n, 8, 8)))
     d = np.matmul(smp, turn) if ws is None else np.matmul(smp, turn, out=ws.buffer("raw", (n, 16, 8)))
     d = d.reshape(n, N_ELEMENTS)
     d *= 1 / np.maximum(np.sqrt(np.einsum("ij,ij->i", d, d)), 1e-12)[:, None]
     np.minimum(d, 0.2, out=d)
     d *= 1 / np.maximum(np.sqrt(np.einsum("ij,ij->i", d, d)), 1e-12)[:, None]
     return d
+
+
+def _turns(ang: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """``(n, 8, 8) float32``: for each orientation in ``ang (n,) float32`` (radians, in
+    [0, 2 pi]), the matrix that turns 8 absolute direction bins into bins relative to it,
+    ``_SHIFTS[a0] (1 - f) + _SHIFTS[a0 + 1] f`` with ``a0 + f`` the orientation in bins.
+
+    That blend has exactly two non-zero entries per column, ``1 - f`` and ``f`` (every
+    product with 0 or 1 and every sum with 0 is exact), so they are written into zeros:
+    the same matrices, bit for bit, at a fraction of the arithmetic. ``out``: an
+    ``(n, 8, 8) float32`` C-contiguous buffer to write them in.
+    """
+    n = len(ang)
+    a = ang * np.float32(8 / (2 * math.pi))
+    a0 = a.astype(np.intp) & 7
+    f = a - np.floor(a)
+    turn = np.zeros((n, 8, 8), np.float32) if out is None else out
+    if out is not None:
+        turn.fill(0.0)
+    flat = turn.reshape(-1)
+    at = np.arange(0, 64 * n, 64)[:, None]
+    flat[at + _TURN_SLOTS[0][a0]] = (1 - f)[:, None]
+    flat[at + _TURN_SLOTS[1][a0]] = f[:, None]
+    return turn
 
 
 def drop_repeats(c: Candidates, params: ExtractParams) -> tuple[Candidates, np.ndarray]:
