@@ -282,12 +282,19 @@ def _pooled_orientation_maps(g: np.ndarray, sigma: float, ws: Workspace | None =
         q = ws.buffer("q8", (h, w), np.uint8)
         # floor(angle * 256 / 2 pi) (rounding |x - 0.5|), the level whose centre is nearest
         cv2.convertScaleAbs(ang, dst=q, alpha=_LUT_LEVELS / (2 * math.pi), beta=-0.5)
-        q = cv2.merge([q] * 4, dst=ws.buffer("q8x4", (h, w, 4), np.uint8))  # cv2.LUT looks up channel by channel
+        # Direction d's share at level q is direction 0's at level q - 32 d (mod 256: the
+        # table turns with the angle), so each plane's 4 channels are the level shifted by
+        # 32 d and one single-channel table serves all 8 directions (cv2.LUT with one
+        # table: about 0.6 of the time of a table per channel, the same values).
+        levels = [q] + [np.add(q, shift, out=ws.buffer(f"q8_{d}", (h, w), np.uint8))
+                        for d, shift in enumerate(_LEVEL_SHIFTS[1:4], 1)]  # uint8: mod 256
+        q0 = cv2.merge(levels, dst=ws.buffer("q8x4_0", (h, w, 4), np.uint8))
+        qs = [q0, np.add(q0, _LEVEL_SHIFTS[4], out=ws.buffer("q8x4_1", (h, w, 4), np.uint8))]  # directions 4-7
         mag4 = cv2.merge([mag] * 4, dst=ws.buffer("mag4", (h, w, 4)))
         planes = ws.ch.reshape(2, h, w, 4)
         dst = ws if halved is None else halved
         hh, wh = dst.shape
-        tables = _split_table()
+        table = _level_table()
         if halved is not None and h == 2 * hh and w == 2 * wh:
             # Halving exactly 2 x 2 blocks is local: strips of _STRIP rows are split, weighted
             # and halved while they are in the cache (same values as the whole image at once).
@@ -295,14 +302,14 @@ def _pooled_orientation_maps(g: np.ndarray, sigma: float, ws: Workspace | None =
             for r0 in range(0, h, _STRIP):
                 r1 = min(h, r0 + _STRIP)
                 for i in range(2):
-                    c = cv2.LUT(q[r0:r1], tables[i], dst=planes[i][r0:r1])
+                    c = cv2.LUT(qs[i][r0:r1], table, dst=planes[i][r0:r1])
                     cv2.multiply(c, mag4[r0:r1], dst=c)
                     cv2.resize(c, (wh, (r1 - r0) // 2), dst=small[i][r0 // 2:r1 // 2], interpolation=cv2.INTER_AREA)
             return (cv2.GaussianBlur(small[0], (k, k), sigma, dst=halved.pooled[0]),
                     cv2.GaussianBlur(small[1], (k, k), sigma, dst=halved.pooled[1]))
         out = []
-        for i, table in enumerate(tables):
-            c = cv2.LUT(q, table, dst=planes[i])
+        for i in range(2):
+            c = cv2.LUT(qs[i], table, dst=planes[i])
             cv2.multiply(c, mag4, dst=c)
             if halved is not None:
                 c = cv2.resize(c, (wh, hh), dst=halved.ch.reshape(2, hh, wh, 4)[i], interpolation=cv2.INTER_AREA)
@@ -334,6 +341,8 @@ def _pooled_orientation_maps(g: np.ndarray, sigma: float, ws: Workspace | None =
 _STRIP = 64
 """Rows per strip of the channels halved strip by strip (even)."""
 _LUT_LEVELS = 256
+_LEVEL_SHIFTS = [np.uint8((-32 * d) % _LUT_LEVELS) for d in range(8)]
+"""Added to the angle's level (mod 256) for directions 0-3 and 4-7 (:func:`_pooled_orientation_maps`)."""
 """Angles of the channel table (:func:`_pooled_orientation_maps` with ``exact`` False)."""
 
 
@@ -351,6 +360,13 @@ def _split_table() -> tuple[np.ndarray, np.ndarray]:
     t[rows, (b0 + 1) % 8] += b - b0
     t = t.astype(np.float32)
     return np.ascontiguousarray(t[:, None, :4]), np.ascontiguousarray(t[:, None, 4:])
+
+
+@lru_cache(maxsize=1)
+def _level_table() -> np.ndarray:
+    """``(256,) float32``: direction 0's share of a unit gradient at each angle level
+    (:func:`_split_table`'s first column; direction ``d``'s is it at the level ``- 32 d``)."""
+    return np.ascontiguousarray(_split_table()[0][:, 0, 0])
 
 
 @lru_cache(maxsize=4)

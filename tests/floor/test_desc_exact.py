@@ -14,7 +14,7 @@ import pytest
 
 from robotd.floor.compression import hadamard_bits
 from robotd.floor.desccoding import cells, rice_k
-from robotd.floor.keypoints import _SHIFTS, _turns
+from robotd.floor.keypoints import _LEVEL_SHIFTS, _SHIFTS, _level_table, _split_table, _turns
 
 
 def _rice_k_all(gaps: np.ndarray) -> tuple[int, int]:
@@ -105,3 +105,14 @@ def test_turning_matrices_are_the_blend_of_two_shifts_bit_for_bit() -> None:
     assert got.view(np.uint32).tolist() == blend.view(np.uint32).tolist()  # signs of zeros included
     buf = np.full((len(ang), 8, 8), 7.0, np.float32)
     assert _turns(ang, buf) is buf and np.array_equal(buf, blend)
+
+
+def test_one_level_table_serves_every_direction() -> None:
+    """The pooled maps look every direction's share up in direction 0's table at the level
+    shifted by 32 per direction (mod 256): the same values as a table per direction."""
+    split = _split_table()
+    table = _level_table()
+    q = np.arange(256)
+    for d in range(8):
+        shifted = (q + _LEVEL_SHIFTS[d].astype(np.int64)) % 256
+        assert np.array_equal(table[shifted], split[d // 4][q, 0, d % 4]), d
