@@ -341,9 +341,9 @@ def _pooled_orientation_maps(g: np.ndarray, sigma: float, ws: Workspace | None =
 _STRIP = 64
 """Rows per strip of the channels halved strip by strip (even)."""
 _LUT_LEVELS = 256
-_LEVEL_SHIFTS = [np.uint8((-32 * d) % _LUT_LEVELS) for d in range(8)]
-"""Added to the angle's level (mod 256) for directions 0-3 and 4-7 (:func:`_pooled_orientation_maps`)."""
 """Angles of the channel table (:func:`_pooled_orientation_maps` with ``exact`` False)."""
+_LEVEL_SHIFTS = [np.uint8((-32 * d) % _LUT_LEVELS) for d in range(8)]
+"""Added to the angle's level (mod 256) for direction ``d`` (:func:`_level_table`)."""
 
 
 @lru_cache(maxsize=1)
