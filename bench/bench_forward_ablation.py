@@ -121,6 +121,10 @@ def configurations(full: bool) -> dict[str, object]:
         f"default, {WHEEL}": dflt,
         "default, 1 verification": replace(dflt, verify_tries=1),
         "default, general verification": replace(dflt, verify=replace(dflt.verify, model="general")),
+        # the previous planar verification: RANSAC near the level motion, the fallback over
+        # all the matches for every view tried
+        "default, previous planar verification": replace(
+            dflt, verify=replace(dflt.verify, guided_estimator=None, fallback_band_px=None), verify_fallbacks=None),
         f"default, 1 verification, {WHEEL}": replace(dflt, verify_tries=1),
         "default, neighbours by distance": replace(dflt, odometry=replace(dflt.odometry, metric_neighbours=True)),
         "default, places merged by pose": replace(dflt, odometry=replace(dflt.odometry, merge_places=True)),

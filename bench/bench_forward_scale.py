@@ -61,16 +61,24 @@ DATA = REPO.parent / "shared" / "data"
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "forward_scale.json"
 PAGE = REPO / "docs" / "benchmarks" / "forward_scale.md"
 WINDOW = 200
-#: The variants compared: name -> fields of VocabularyParams and of VerifyParams replaced in
-#: the default (``--variants`` picks some).
-VARIANTS: dict[str, tuple[dict[str, object], dict[str, object]]] = {
-    "tree": ({}, {}),
-    "tree, beam 8": ({"tree_beam": 8}, {}),
-    "usearch": ({"binary_search": "usearch"}, {}),
-    "tree, general verification": ({}, {"model": "general"}),
-    "tree, USAC verification": ({}, {"model": "general", "estimator": "usac"}),
-    "tree, USAC without local optimisation": ({}, {"model": "general", "estimator": "usac", "local_optimisation": False}),
-    "tree, RANSAC at most 200 samples": ({}, {"model": "general", "max_iterations": 200}),
+#: The variants compared: name -> fields of VocabularyParams, of VerifyParams and of
+#: DetectorParams replaced in the default (``--variants`` picks some).
+VARIANTS: dict[str, tuple[dict[str, object], dict[str, object], dict[str, object]]] = {
+    "tree": ({}, {}, {}),
+    "tree, beam 8": ({"tree_beam": 8}, {}, {}),
+    "usearch": ({"binary_search": "usearch"}, {}, {}),
+    "tree, general verification": ({}, {"model": "general"}, {}),
+    "tree, USAC verification": ({}, {"model": "general", "estimator": "usac"}, {}),
+    "tree, USAC without local optimisation": ({}, {"model": "general", "estimator": "usac", "local_optimisation": False},
+                                              {}),
+    "tree, RANSAC at most 200 samples": ({}, {"model": "general", "max_iterations": 200}, {}),
+    # the default's verification levers, one at a time, and all of them off (the previous default)
+    "tree, previous planar verification": ({}, {"guided_estimator": None, "fallback_band_px": None},
+                                           {"verify_fallbacks": None}),
+    "tree, RANSAC near the level motion": ({}, {"guided_estimator": None}, {}),
+    "tree, fallback over all matches": ({}, {"fallback_band_px": None}, {}),
+    "tree, fallbacks unbounded": ({}, {}, {"verify_fallbacks": None}),
+    "tree, USAC in the fallback": ({}, {"fallback_estimator": "usac"}, {}),
 }
 
 
@@ -142,26 +150,37 @@ def map_file_bytes(det: ForwardDetector, kept_new: list, kept_purged: list, kept
             "restored_searchable_words": restored.vocabulary.n_searchable}
 
 
-def run_sequence(name: str, folder: Path, truth_path: Path, variants: list[str], recent: int = 10) -> dict[str, object]:
+def run_sequence(name: str, folder: Path, truth_path: Path, variants: list[str], recent: int = 10,
+                 odometry: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, object]:
+    """Each variant over one sequence (``odometry``: ``(N, 3)`` poses and ``(N, 3, 3)``
+    covariances given with the images, the office route's fused pose; None: no pose)."""
     files = list_images(folder, exclude=(truth_path,))
     truth = load_ground_truth(truth_path, len(files))
     images = [read_image(p) for p in files]
     h, w = images[0].shape[:2]
-    k = camera_matrix_guess(w, h, 525.0 if name == "office" else None)
+    k = camera_matrix_guess(w, h, 525.0 if name.startswith("office") else None)
     cv_ms = opencv_orb_ms(images)
     cv_cpu = opencv_orb_ms(images, time.process_time)
     base = method_params("default")
     feats = extract_timed(base.features, images)
-    out: dict[str, object] = {"images": len(files), "image_size": [w, h],
+    # the features' CPU (the process's, all its threads), for the CPU time per image
+    ex = FeatureExtractor(base.features)
+    feat_cpu = np.zeros(len(images))
+    for i, im in enumerate(images):
+        c0 = time.process_time()
+        ex(im)
+        feat_cpu[i] = (time.process_time() - c0) * 1e3
+    out: dict[str, object] = {"images": len(files), "image_size": [w, h], "pose": odometry is not None,
+                              "opencv_orb_cpu_ms_p99": float(np.percentile(cv_cpu, 99)),
                               "opencv_orb_ms": {"median": float(np.median(cv_ms)),
                                                 "p99": float(np.percentile(cv_ms, 99))},
                               "opencv_orb_cpu_ms_median": float(np.median(cv_cpu)),
                               "variants": {}}
     print(f"\n{name}: {len(files)} images ({w}x{h}); OpenCV ORB (300): median {np.median(cv_ms):.1f} ms", flush=True)
     for variant in variants:
-        voc_change, verify_change = VARIANTS[variant]
+        voc_change, verify_change, det_change = VARIANTS[variant]
         params = replace(base, vocabulary=replace(base.vocabulary, **voc_change),
-                         verify=replace(base.verify, **verify_change))
+                         verify=replace(base.verify, **verify_change), **det_change)  # type: ignore[arg-type]
         det = ForwardDetector(params, camera_matrix=k)
         n = len(files)
         cand, conf, decl = np.full(n, -1), np.zeros(n), np.zeros(n, bool)
@@ -172,7 +191,8 @@ def run_sequence(name: str, folder: Path, truth_path: Path, variants: list[str],
         cpu_ms = np.zeros(n)  # the detector's CPU per image, features excluded
         for t, (fe, fs) in enumerate(feats):
             c0 = time.process_time()
-            d = det.process_features(fe, fs)
+            d = (det.process_features(fe, fs) if odometry is None
+                 else det.process_features(fe, fs, odometry[0][t], odometry[1][t]))
             cpu_ms[t] = (time.process_time() - c0) * 1e3
             total[t] = d.times_s["total"] * 1e3
             words_ms[t] = d.times_s["words"] * 1e3
@@ -192,6 +212,9 @@ def run_sequence(name: str, folder: Path, truth_path: Path, variants: list[str],
                "verify_ms_median": float(np.median(verify_ms)), "verify_ms_p99": float(np.percentile(verify_ms, 99)),
                "images_verified": int(verified.sum()),
                "cpu_ms_without_features": {"median": float(np.median(cpu_ms)), "p99": float(np.percentile(cpu_ms, 99))},
+               # the CPU per image with the features (the same images' extraction CPU added)
+               "cpu_ms": {"median": float(np.median(cpu_ms + feat_cpu)),
+                          "p99": float(np.percentile(cpu_ms + feat_cpu, 99))},
                # each stage's own median, p99 and mean (ms), and its share of the slowest 1 %
                "stages_ms": {st: {"median": float(np.median(v)), "p99": float(np.percentile(v, 99)),
                                   "mean": float(v.mean()),
@@ -204,7 +227,7 @@ def run_sequence(name: str, folder: Path, truth_path: Path, variants: list[str],
                "words": len(det.vocabulary), "searchable_words": det.vocabulary.n_searchable,
                "ram_bytes_per_image": sum(mem.values()) / n,
                "ram_bytes_per_image_by_part": {p: v / n for p, v in mem.items()}}
-        if variant == "tree":
+        if variant == "tree" and odometry is None:
             row["map_file"] = map_file_bytes(det, kept_new, kept_purged, kept_words)
         out["variants"][variant] = row
         mf = row.get("map_file", {}).get("bytes_per_image", float("nan"))
@@ -325,20 +348,27 @@ def page(res: dict) -> list[str]:
              "## The default detector on the development sequences, with each word search and verification",
              "",
              "`tree`: the default detector: robotd's own incremental k-medians tree over the binary words (a "
-             "beam of 4 leaves) and the planar verification (a level camera's motion first, the essential "
-             "matrix searched near it: `VerifyParams.model = \"planar\"`); `tree, beam 8`: the same "
-             "scanning 8 leaves; `usearch`: the HNSW graph the tree replaced; `tree, general verification`: the "
-             "default with the general verification (OpenCV's five-point RANSAC over all the matches, "
-             "`model = \"general\"`, the default before the planar one); `tree, USAC verification`: the "
-             "general verification with the essential matrix searched by OpenCV's USAC (`estimator = \"usac\"`, "
-             "with its local optimisation); `tree, USAC without local optimisation`: the same with "
-             "`local_optimisation = False`; `tree, RANSAC at most 200 samples`: the general verification with "
-             "RANSAC's samples capped at 200 instead of 1000 (`max_iterations = 200`). Same "
-             "features, same run (rows that were not run are missing). `verify ms p99`: the verification's "
-             "own time at its 99th percentile; `verified`: images whose candidate was verified. RAM: what "
-             "the detector holds per image (its stored images, the inverted index, the word search); map "
-             "file: the file's growth per image when the detector's images and words are written as the "
-             "daemon writes them.",
+             "beam of 4 leaves) and the planar verification with its work per image bounded (a level camera's "
+             "motion first, the essential matrix searched near it by OpenCV's USAC, the general search after a "
+             "failed one drawing its samples within 10 px of the level motion and run at most once per image: "
+             "`VerifyParams(model=\"planar\", guided_estimator=\"usac\", fallback_band_px=10)`, "
+             "`DetectorParams.verify_fallbacks = 1`); `tree, previous planar verification`: the planar "
+             "verification before that bound (RANSAC near the level motion, the general search over all the "
+             "matches for every view tried); `tree, RANSAC near the level motion`, `tree, fallback over all "
+             "matches`, `tree, fallbacks unbounded`, `tree, USAC in the fallback`: one of the default's "
+             "verification levers changed; `tree, beam 8`: the default scanning 8 leaves; `usearch`: the HNSW "
+             "graph the tree replaced; `tree, general verification`: OpenCV's five-point RANSAC over all the "
+             "matches (`model = \"general\"`, the paper's); `tree, USAC verification`: the general verification "
+             "with the essential matrix searched by OpenCV's USAC (`estimator = \"usac\"`, with its local "
+             "optimisation); `tree, USAC without local optimisation`: the same with `local_optimisation = False`; "
+             "`tree, RANSAC at most 200 samples`: the general verification with RANSAC's samples capped at 200 "
+             "(`max_iterations = 200`). Same features, same run (rows that were not run are missing). The "
+             "sequences: rtabmap_samples and the office route without a pose, and (`--fused`) the office route "
+             "with the daemon's fused pose, the office target's configuration (up to three views verified per "
+             "image). `verify ms p99`: the verification's own time at its 99th percentile; `verified`: images "
+             "whose candidate was verified. RAM: what the detector holds per image (its stored images, the "
+             "inverted index, the word search); map file: the file's growth per image when the detector's "
+             "images and words are written as the daemon writes them.",
              "",
              "| sequence | variant | R@100%P | FP | ms median | ms p99 | ORB ms | x ORB | words ms | verify ms p99 | verified | searchable words | RAM B/image (images + index + search) | map file B/image |",
              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
@@ -377,13 +407,19 @@ def page(res: dict) -> list[str]:
     cpu = [(sname, s, v, r) for sname, s, v, r in staged if "cpu_ms_without_features" in r]
     if cpu:
         lines += ["", "CPU time beside the wall times above (the process's CPU, `time.process_time`; a loaded "
-                  "machine stretches wall times, not these): the detector per image without the features, median "
-                  "/ p99 ms, and OpenCV's ORB of the same images.", "",
-                  "| sequence | variant | detector CPU ms, features excluded | OpenCV ORB CPU ms median |",
-                  "|---|---|---:|---:|"]
+                  "machine stretches wall times, not these): per image with the features (median / p99 ms, and "
+                  "the median over OpenCV's ORB CPU of the same images), the detector without the features, and "
+                  "OpenCV's ORB of the same images.", "",
+                  "| sequence | variant | CPU ms, features included | x ORB CPU | detector CPU ms, features excluded "
+                  "| OpenCV ORB CPU ms median |",
+                  "|---|---|---:|---:|---:|---:|"]
         for sname, s, v, r in cpu:
             c = r["cpu_ms_without_features"]
-            lines.append(f"| {sname} | {v} | {c['median']:.1f} / {c['p99']:.1f} | {s['opencv_orb_cpu_ms_median']:.1f} |")
+            orb_cpu = s["opencv_orb_cpu_ms_median"]
+            w = r.get("cpu_ms")
+            with_f = f"{w['median']:.1f} / {w['p99']:.1f}" if w else "-"
+            ratio = f"{w['median'] / orb_cpu:.1f}" if w else "-"
+            lines.append(f"| {sname} | {v} | {with_f} | {ratio} | {c['median']:.1f} / {c['p99']:.1f} | {orb_cpu:.1f} |")
     sc = res.get("scale")
     if sc:
         lines += ["",
@@ -444,6 +480,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--memory-only", action="store_true",
                     help="the scale part without verification, for its memory only (kept as 'scale_memory')")
+    ap.add_argument("--fused", action="store_true",
+                    help="also the office route with the daemon's fused pose (bench_forward_ablation's "
+                         "odometry_fused.csv beside the images; computed when missing, which takes long)")
     ap.add_argument("--variants", default=";".join(VARIANTS),
                     help=f"semicolon-separated variants of the sequences part (default: all of {', '.join(VARIANTS)})")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
@@ -478,6 +517,14 @@ def main(argv: list[str] | None = None) -> int:
         write_json(args.out, res)
         res["sequences"]["office"] = run_sequence("office", office, office / "gt.npy", variants)
         write_json(args.out, res)
+        if args.fused:
+            try:
+                from bench.bench_forward_ablation import office_fused_odometry
+            except ImportError:  # run as a script
+                from bench_forward_ablation import office_fused_odometry  # type: ignore[no-redef]
+            res["sequences"]["office, fused pose"] = run_sequence("office, fused pose", office, office / "gt.npy",
+                                                                  variants, odometry=office_fused_odometry(office))
+            write_json(args.out, res)
     if args.only in (None, "scale"):
         def partial(sc: dict[str, object]) -> None:
             write_json(args.out, {**res, "scale": sc})

@@ -350,10 +350,12 @@ WITHOUT = {
 }
 
 
-def daemon_params() -> EkfParams:
+def daemon_params(noise_model: str = "config") -> EkfParams:
     """The noise model of the daemon's wheel + gyro filter with the demo's calibration
     (:func:`robotd.app.assemble.build_odometry`: the config's ``[odometry]`` with the
-    calibration's gyro noise density)."""
+    calibration's gyro noise density; ``noise_model``: ``[odometry] noise_model``, with
+    "calibration" the calibration's fitted sensor noise and white accelerations)."""
+    from robotd.base.config import replace
     from robotd.app.assemble import build_odometry
     from robotd.app.demo import shipped_calibration
     from robotd.base.config import Config
@@ -363,18 +365,20 @@ def daemon_params() -> EkfParams:
     if path is None:
         raise SystemExit("the demo's shipped calibration is missing")
     # the wheel + gyro filter whose edges the graph gets (the twin when visual odometry is fused)
-    return build_odometry(Config(), read_calibration(path)).wheel_gyro.params
+    cfg = replace(Config(), "odometry", noise_model=noise_model)
+    return build_odometry(cfg, read_calibration(path)).wheel_gyro.params
 
 
 def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str, ...] = (),
                   ekf: dict[str, float] | None = None, cost_seeds: int = 0,
                   true_model: bool = False, daemon_model: bool = False,
                   cost_models: tuple[str, ...] = ("independent", "bias_window", "bias"),
-                  daemon_graph_seeds: int = 0) -> dict[str, Any]:
+                  daemon_graph_seeds: int = 0, noise_model: str = "config") -> dict[str, Any]:
     sensors = BaseSensorParams()
     for name in without:  # the same base without these errors: what each costs
         sensors = dataclasses.replace(sensors, **WITHOUT[name])
-    params = EkfParams(**(ekf or {})) if not daemon_model else dataclasses.replace(daemon_params(), **(ekf or {}))
+    params = (EkfParams(**(ekf or {})) if not daemon_model
+              else dataclasses.replace(daemon_params(noise_model), **(ekf or {})))
     per_seed = []
     for seed in range(seeds):
         t0 = time.monotonic()
@@ -394,7 +398,8 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str,
             f"N={h} {v['graph']:.2f}/{v['scales']:.2f}" for h, v in res.items())
             + f"  [{time.monotonic() - t0:.0f} s]")
     return {"route": route, "keyframe_m": keyframe_m, "without": list(without), "ekf": ekf or {},
-            "true_model": true_model, "daemon_model": daemon_model, "per_seed": per_seed}
+            "true_model": true_model, "daemon_model": daemon_model, "noise_model": noise_model,
+            "params": dataclasses.asdict(params), "per_seed": per_seed}
 
 
 #: The chain models the bench compares (keys of a horizon's results) and their names.
@@ -682,20 +687,29 @@ def daemon_graph(d: dict[str, Any], seed: int, max_chains: int = 400, solve_ever
 def daemon_graph_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
     """Per horizon and model: the mean NEES over seeds in the daemon's graph (yaw, position) [seeds]."""
     runs = [r["daemon_graph"] for r in part["per_seed"] if r.get("daemon_graph")]
-    head = ["N edges"] + [f"`{m}`" for m in DAEMON_MODELS]
+    head = ["N edges"] + [f"`{m}`" for m in DAEMON_MODELS] + [f"`{m}` pooled" for m in DAEMON_MODELS]
     rows: list[list[Any]] = []
     for h in HORIZONS:
         row: list[Any] = [h]
+        pooled: list[Any] = []
         for model in DAEMON_MODELS:
             v = [r[model]["nees"][str(h)] for r in runs if str(h) in r[model]["nees"]]
             if not v:
                 row.append("-")
+                pooled.append("-")
                 continue
             a = [x["all"] for x in v]
             row.append(f"{np.mean(a):.2f} ({np.mean([x['yaw'] for x in v]):.2f}, "
                        f"{np.mean([x['position'] for x in v]):.2f}) [{min(a):.2f}-{max(a):.2f}]")
-        rows.append(row)
+            pooled.append(f"{pooled_nees(v):.2f}")
+        rows.append(row + pooled)
     return head, rows
+
+
+def pooled_nees(per_seed: list[dict[str, float]]) -> float:
+    """The NEES of all the seeds' chains together (each seed's mean weighted by its chains)."""
+    n = np.array([x["chains"] for x in per_seed], float)
+    return float(np.sum(n * np.array([x["all"] for x in per_seed])) / np.sum(n))
 
 
 def daemon_graph_seed_rows(part: dict[str, Any], model: str) -> tuple[list[str], list[list[Any]]]:
@@ -861,6 +875,14 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
     if odo.get("daemon_model"):
         noise = ("the daemon's noise model with the demo's calibration (`[odometry]` and the calibration's "
                  "gyro noise density)" + (", and " + ", ".join(f"`{k}` = {v}" for k, v in ekf.items()) if ekf else ""))
+        if odo.get("noise_model", "config") != "config":
+            p = odo["params"]
+            noise = (f"the daemon's noise model with `[odometry] noise_model = \"{odo['noise_model']}\"` and the "
+                     "demo's calibration (its fitted sensor noise and white accelerations: "
+                     f"{p['accel_noise_density_mps2_per_sqrt_hz']:.4f} m/s^2 and "
+                     f"{p['angular_accel_noise_density_radps2_per_sqrt_hz']:.4f} rad/s^2 per sqrt(Hz), wheel "
+                     f"speed {p['wheel_v_noise_mps']:.5f} m/s, gyro {p['gyro_noise_radps']:.5f} rad/s per reading)"
+                     + (", and " + ", ".join(f"`{k}` = {v}" for k, v in ekf.items()) if ekf else ""))
     model = (", the filter with each base's true wheel radii, wheel base and gyro scale (a calibrated model)"
              if odo.get("true_model") else "")
     lines += [f"## Odometry edges ({odo['route']} route, keyframes every {odo['keyframe_m']} m or 10 deg, "
@@ -908,7 +930,7 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
                   "`[pose_graph] odometry_model`): the seed's edges with their bias terms added one keyframe "
                   "at a time. NEES without loops, from iSAM2's joint marginal of a chain's two ends (the chains "
                   "above, at most 400 per horizon spread over the drive; in brackets the yaw and position parts, in square "
-                  "brackets the seeds' range):", ""]
+                  "brackets the seeds' range; pooled: all the seeds' chains together):", ""]
         table(*daemon_graph_rows(odo))
         lines += ["Per seed, `bias_window` in the daemon's graph:", ""]
         table(*daemon_graph_seed_rows(odo, "bias_window"))
@@ -978,6 +1000,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--daemon-model", action="store_true",
                     help="odometry: the daemon's noise model with the demo's calibration (the config's "
                          "[odometry] and the calibration's gyro noise density), --ekf changes on top")
+    ap.add_argument("--noise-model", choices=("config", "calibration"), default="config",
+                    help="with --daemon-model: [odometry] noise_model (calibration: the demo calibration's "
+                         "fitted sensor noise and white accelerations)")
     ap.add_argument("--cost-seeds", type=int, default=1,
                     help="odometry: time the pose graph with each model on this many seeds (default 1)")
     ap.add_argument("--daemon-graph", type=int, default=0, metavar="SEEDS",
@@ -1022,7 +1047,8 @@ def main(argv: list[str] | None = None) -> int:
             ekf[name] = float(value)
         payload["odometry"] = odometry_part(seeds, args.route, args.keyframe_m, without, ekf, args.cost_seeds,
                                             args.true_model, args.daemon_model,
-                                            tuple(m for m in args.cost_models.split(",") if m), args.daemon_graph)
+                                            tuple(m for m in args.cost_models.split(",") if m), args.daemon_graph,
+                                            args.noise_model)
         print(f"\nodometry edges, {args.route}: mean NEES of N chained edges per model (yaw, position) [seeds]")
         print_table(*odometry_model_rows(payload["odometry"]))
         print("\nper seed, bias + scale variables")

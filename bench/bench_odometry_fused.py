@@ -358,11 +358,25 @@ def fitted_params(model: Any, base: EkfParams = EkfParams(), process: bool = Tru
 #: :class:`~robotd.odometry.fusion.OdometryFilter`'s fields.
 BEFORE = {"vo_rate_only": False}
 TRAPEZOID = {"pose_after_rates": True, "vo_angular_accel_noise_radps2_per_sqrt_hz": 0.1}
+
+
+def calibration_params(model: Any) -> EkfParams:
+    """The calibration's noise model as ``[odometry] noise_model = "calibration"`` builds it
+    (:func:`robotd.app.assemble.calibration_noise`, the Kobuki's ticks per turn)."""
+    from robotd.app.assemble import calibration_noise
+
+    return calibration_noise(EkfParams(), model, 2578.33)
+
+
 VARIANTS: dict[str, Any] = {
     "the config's noise model (before)": lambda model: (EkfParams(), None, BEFORE),
     "the fused pose follows its rates (the daemon)": lambda model: (EkfParams(), None, {}),
     "the pose by the trapezoid rule, angular process noise 0.1 (not the default)": lambda model: (
         EkfParams(), None, TRAPEZOID),
+    "the calibration's noise model for the edges (noise_model = \"calibration\")": lambda model: (
+        EkfParams(), None, {"twin_params": calibration_params(model)}),
+    "the calibration's noise model for the edges and the fused filter (\"calibration_fused\")": lambda model: (
+        calibration_params(model), None, {}),
 }
 #: Measured too (``--variants all``): the calibration drive's turn-on bias as the prior; the
 #: calibration's fitted noise densities with the sensor-level process noise.

@@ -142,7 +142,13 @@ def model_from_fit(fit: Any) -> Any:
     """The calibration file's :class:`~robotd.io.calibfile.OdometryModel` of a fit."""
     from robotd.io.calibfile import OdometryModel
 
+    pr = fit.process
+    process = {} if pr is None else {
+        "accel_noise_mps2_sqrt_hz": pr.accel_mps2_sqrt_hz, "accel_noise_sigma": pr.accel_sigma,
+        "angular_accel_noise_radps2_sqrt_hz": pr.angular_accel_radps2_sqrt_hz,
+        "angular_accel_noise_sigma": pr.angular_accel_sigma}
     return OdometryModel(
+        **process,
         wheel_radius_left_m=fit.wheel_radius_left_m, wheel_radius_right_m=fit.wheel_radius_right_m,
         wheel_base_m=fit.wheel_base_m, gyro_scale=fit.gyro_scale, gyro_bias_radps=fit.gyro_bias_radps,
         gyro_noise_radps_sqrt_hz=fit.gyro_noise_radps_sqrt_hz, wheel_noise_m_sqrt_m=fit.wheel_noise_m_sqrt_m,
@@ -169,6 +175,12 @@ def format_fit(fit: Any, nominal_radius_m: float, nominal_base_m: float) -> str:
                  f"{math.degrees(fit.gyro_bias_drift_radps2) * 60:+.4f} deg/s per minute)")
     lines.append(f"{'gyro noise':<20}{math.degrees(fit.gyro_noise_radps_sqrt_hz):>12.4f} deg/s/sqrt(Hz)")
     lines.append(f"{'wheel slip noise':<20}{1e3 * fit.wheel_noise_m_sqrt_m:>12.3f} mm/sqrt(m)")
+    if fit.process is not None:
+        pr = fit.process
+        lines.append(f"{'white acceleration':<20}{pr.accel_mps2_sqrt_hz:>12.5f}{pr.accel_sigma:>12.5f} "
+                     "m/s^2/sqrt(Hz) (maximum likelihood)")
+        lines.append(f"{'white angular acc.':<20}{pr.angular_accel_radps2_sqrt_hz:>12.5f}"
+                     f"{pr.angular_accel_sigma:>12.5f} rad/s^2/sqrt(Hz) (maximum likelihood)")
     rms_b = np.sqrt(np.mean(fit.residuals_before ** 2, axis=0))
     rms_a = np.sqrt(np.mean(fit.residuals_after[fit.used] ** 2, axis=0))
     lines.append(f"residuals per keyframe interval (RMS), nominal -> fitted: wheel dx "
@@ -219,6 +231,7 @@ def run_odometry(args: Any) -> int:
     from robotd.base.files import check_output_file
     from robotd.io.calibfile import CalibrationFile, read_calibration, update_calibration
     from robotd.odometry.calibration import fit_odometry
+    from robotd.odometry.ekf import EkfParams
 
     cfg = drive_config(args.config, args.recording)
     if not args.calibration.exists():
@@ -244,7 +257,8 @@ def run_odometry(args: Any) -> int:
         # odometry, so a reference made with the wrong model pulls the fit towards it.
         data = load_drive(args.recording, cfg, dc_replace(calib, odometry=model))
         try:
-            fit = fit_odometry(data.drive, nominal_r, nominal_b)
+            fit = fit_odometry(data.drive, nominal_r, nominal_b, noise=EkfParams.from_config(cfg.odometry),
+                               ticks_per_rev=cfg.robot.ticks_per_rev)
         except CalibrationError as exc:
             raise CalibrationError(f"{args.recording}: {exc}; {args.calibration} is left as it was") from None
         model = model_from_fit(fit)
@@ -269,7 +283,9 @@ def run_odometry(args: Any) -> int:
                 "wheel_radius_left_m", "wheel_radius_right_m", "wheel_base_m", "gyro_scale", "gyro_bias_radps",
                 "gyro_noise_radps_sqrt_hz", "wheel_noise_m_sqrt_m", "wheel_radius_left_sigma_m",
                 "wheel_radius_right_sigma_m", "wheel_base_sigma_m", "gyro_scale_sigma",
-                "gyro_bias_sigma_radps")},
+                "gyro_bias_sigma_radps", "accel_noise_mps2_sqrt_hz", "accel_noise_sigma",
+                "angular_accel_noise_radps2_sqrt_hz", "angular_accel_noise_sigma")
+                if getattr(model_from_fit(fit), k) is not None},
             "residual_rms_before": np.sqrt(np.mean(fit.residuals_before ** 2, axis=0)).tolist(),
             "residual_rms_after": np.sqrt(np.mean(fit.residuals_after[fit.used] ** 2, axis=0)).tolist(),
         }, indent=2) + "\n")

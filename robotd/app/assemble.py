@@ -32,7 +32,7 @@ from robotd.base.configfile import to_toml
 from robotd.base.messages import DescribedKeyframe, Keyframe, MeasuredKeyframe
 from robotd.floor.detector import FloorDetectorParams, FloorLoopDetector
 from robotd.forward.planar import PlanarLoopParams
-from robotd.io.calibfile import CalibrationFile
+from robotd.io.calibfile import CalibrationFile, OdometryModel
 from robotd.io.store import MapStore
 from robotd.odometry.ekf import EkfParams
 from robotd.odometry.fusion import OdometryFilter
@@ -59,7 +59,12 @@ def build_odometry(cfg: Config, calibration: CalibrationFile | None = None) -> O
     graph gets (the wheel + gyro twin when visual odometry is fused; the fused filter keeps
     the config's, as ``docs/calibration.md`` explains). The fitted wheel slip density is
     not used: the calibration drive's reference resolves no slip below its own noise (the
-    demo's fits 0), and the config's wheel noise covers the tick quantisation and slip."""
+    demo's fits 0), and the config's wheel noise covers the tick quantisation and slip.
+    ``[odometry] noise_model = "calibration"`` gives that filter the calibration's whole
+    sensor-level noise model instead (:func:`calibration_noise`: the fitted densities, the
+    tick quantisation and the white accelerations fitted by maximum likelihood);
+    ``"calibration_fused"`` gives it to the fused filter too. Without a calibration's
+    odometry model both keep the config's (logged)."""
     params = EkfParams.from_config(cfg.odometry)
     drive = DiffDriveParams.from_config(cfg.robot)
     gyro_scale = 1.0
@@ -80,9 +85,37 @@ def build_odometry(cfg: Config, calibration: CalibrationFile | None = None) -> O
     v = cfg.visual_odometry
     # Fusing visual odometry: the graph's edges come from a wheel + gyro twin (fusion.py).
     twin = v.enabled and v.role == "fused" and cfg.floor_camera.source != "none"
+    if cfg.odometry.noise_model != "config" and model is not None:
+        edge_params = calibration_noise(params, model, cfg.robot.ticks_per_rev)
+        if cfg.odometry.noise_model == "calibration_fused" or not twin:
+            params = edge_params
+        log.info("noise model from the calibration (%s): white accelerations %.4f m/s^2 and %.4f rad/s^2 "
+                 "per sqrt(Hz), wheel speed noise %.5f m/s + %.4f of the speed, gyro %.5f rad/s per reading",
+                 cfg.odometry.noise_model, edge_params.accel_noise_density_mps2_per_sqrt_hz,
+                 edge_params.angular_accel_noise_density_radps2_per_sqrt_hz, edge_params.wheel_v_noise_mps,
+                 edge_params.wheel_v_noise_frac, edge_params.gyro_noise_radps)
+    elif cfg.odometry.noise_model != "config":
+        log.warning("[odometry] noise_model = %r but no calibration's odometry model: the [odometry] noise "
+                    "model is used", cfg.odometry.noise_model)
     if twin:
         return OdometryFilter(drive, params, vo_twin=True, gyro_scale=gyro_scale, twin_params=edge_params)
     return OdometryFilter(drive, edge_params, gyro_scale=gyro_scale)
+
+
+def calibration_noise(params: EkfParams, model: OdometryModel, ticks_per_rev: float) -> EkfParams:
+    """``params`` with the calibration's noise model (``[odometry] noise_model =
+    "calibration"``): the sensors' fitted densities (:func:`robotd.odometry.calibration.sensor_noise_params`)
+    and the white accelerations fitted by maximum likelihood. A calibration written before
+    they were fitted keeps ``params``' accelerations (logged)."""
+    from robotd.odometry.calibration import sensor_noise_params
+
+    if not model.has_process_noise:
+        log.warning("the calibration's odometry model has no white accelerations (written before they "
+                    "were fitted; run `robotd calibrate odometry` again): the [odometry] ones are used")
+    tick_m = 2.0 * math.pi * 0.5 * (model.wheel_radius_left_m + model.wheel_radius_right_m) / ticks_per_rev
+    return sensor_noise_params(params, model.gyro_noise_radps_sqrt_hz, model.wheel_noise_m_sqrt_m, tick_m,
+                               model.accel_noise_mps2_sqrt_hz, model.angular_accel_noise_radps2_sqrt_hz,
+                               readings_hz=GYRO_READINGS_HZ)
 
 
 def load_calibration(cfg: Config) -> CalibrationFile | None:

@@ -176,7 +176,7 @@ def print_summary(s: Summary, f: TextIO) -> None:
         if fw.get("cpu_ms_per_image_median") is not None:
             share = fw.get("verify_share")
             print(f"  per forward keyframe in the pipeline thread's CPU time: median {fw['cpu_ms_per_image_median']} ms, "
-                  f"p99 {fw['cpu_ms_per_image_p99']} ms; verification median {fw['verify_ms_median']} ms, "
+                  f"p99 {fw['cpu_ms_per_image_p99']} ms; verification in wall time median {fw['verify_ms_median']} ms, "
                   f"p99 {fw['verify_ms_p99']} ms"
                   + (f", {100 * share:.0f} % of the detector's time" if share is not None else ""), file=f)
             if fw.get("features_ms_median"):

@@ -175,6 +175,12 @@ class OdometryConfig:
                                       lo=0.0, hi=100.0, unit="rad/s per m/s")
     gyro_noise_radps: float = _f(0.003, "1-sigma white noise of one gyro reading", lo=1e-7, hi=10.0)
     initial_gyro_bias_sigma_radps: float = _f(0.01, "1-sigma prior on the gyro bias", lo=1e-7, hi=10.0)
+    noise_model: str = _f("config", "which noise model the filters use: 'config' (this table's), "
+                          "'calibration' (the graph's wheel + gyro edges take the calibration's fitted "
+                          "sensor noise and white accelerations; the fused pose keeps this table's) or "
+                          "'calibration_fused' (the fused filter too); without a calibration's odometry "
+                          "model this table's (docs/odometry.md)",
+                          choices=("config", "calibration", "calibration_fused"))
 
 
 @dataclass(frozen=True)

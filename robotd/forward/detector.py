@@ -269,6 +269,10 @@ class DetectorParams:
             that sum as its probability. False: the single best image.
         odometry: the keyframes' odometry as a second likelihood
             (:class:`OdometryParams`; off by default, the paper).
+        verify_fallbacks: the most fallbacks (a planar verification's general search,
+            :class:`~robotd.forward.verify.VerifyParams`; ``Verification.fallback``) one image
+            runs over its ``verify_tries`` views; once they ran, the views after are verified
+            near their level motion only. None: no bound (each may fall back).
     """
 
     features: FeatureParams = field(default_factory=FeatureParams)
@@ -286,8 +290,11 @@ class DetectorParams:
     score_threshold: float = 1.0
     islands: bool = False
     odometry: OdometryParams = field(default_factory=OdometryParams)
+    verify_fallbacks: int | None = None
 
     def __post_init__(self) -> None:
+        if self.verify_fallbacks is not None and self.verify_fallbacks < 0:
+            raise ValueError(f"verify_fallbacks must be >= 0 or None, got {self.verify_fallbacks}")
         if self.decision not in ("filter", "score"):
             raise ValueError(f"decision must be 'filter' or 'score', got {self.decision!r}")
         if self.score_normalisation not in ("virtual", "previous"):
@@ -323,6 +330,7 @@ class DetectorOverrides(TypedDict, total=False):
     score_threshold: float
     islands: bool
     odometry: OdometryParams
+    verify_fallbacks: int | None
 
 
 @dataclass(frozen=True, eq=False)
@@ -426,8 +434,12 @@ class ForwardDetector:
                                     protect_recent=params.recent_excluded + params.filter.neighbours,
                                     neighbours=params.filter.neighbours)
         self._features: list[CompactFeatures | None] = []  # None: out of memory, the loader's
-        self._poses = np.zeros((0, 3))      # (t, 3) x_m, y_m, yaw_rad of each image (NaN: unknown)
-        self._poses_var = np.zeros((0, 3))  # (t, 3) their variances
+        # (t, 3) x_m, y_m, yaw_rad of each image (NaN: unknown) and their variances: views
+        # of the first t rows of growing buffers (no copy of every pose per image)
+        self._pose_buf = np.zeros((0, 3))
+        self._var_buf = np.zeros((0, 3))
+        self._poses = self._pose_buf
+        self._poses_var = self._var_buf
         self._posterior = np.ones(1)
         self._hyp_ids = np.zeros(0, np.int64)
         self._run = 0                      # consecutive images with consistent candidates
@@ -496,11 +508,23 @@ class ForwardDetector:
         self._in_store = bytearray((b"\x01" if stored else b"\x00") * len(images))
         for t in range(len(images) if stored else 0):
             self._release(t)
-        self._poses = np.full((len(self._features), 3), np.nan)  # no pose stored for them
-        self._poses_var = np.full((len(self._features), 3), np.nan)
+        self._pose_buf = np.full((len(self._features), 3), np.nan)  # no pose stored for them
+        self._var_buf = np.full((len(self._features), 3), np.nan)
+        self._poses, self._poses_var = self._pose_buf, self._var_buf
         self.vocabulary.restore(word_descriptors, word_born, word_purged, seen, len(images))
         if not self.params.memory.bounded:
             self.index.drop_postings(np.flatnonzero(np.asarray(word_purged, bool)))
+
+    def _append_pose(self, pose: np.ndarray, var: np.ndarray) -> None:
+        """The next image's pose and variances ``(3,)`` each (NaN: unknown)."""
+        n = len(self._poses)
+        if n == len(self._pose_buf):
+            cap = max(64, 2 * n)
+            self._pose_buf = np.concatenate([self._pose_buf, np.full((cap - n, 3), np.nan)])
+            self._var_buf = np.concatenate([self._var_buf, np.full((cap - n, 3), np.nan)])
+        self._pose_buf[n] = pose
+        self._var_buf[n] = var
+        self._poses, self._poses_var = self._pose_buf[:n + 1], self._var_buf[:n + 1]
 
     def forget_poses(self) -> None:
         """Odometry lost its continuity (the robot was carried, a kidnapping): the poses of
@@ -540,8 +564,11 @@ class ForwardDetector:
             order += hyp_ids[near[np.argsort(-post[near], kind="stable")]][:p.verify_tries - 1].tolist()
         slot = {int(h): i for i, h in enumerate(hyp_ids.tolist())} if odo is not None else {}
         failed: list[Verification] = []
+        fallbacks = 0
         for j in order:
             vp = p.verify
+            if p.verify_fallbacks is not None and fallbacks >= p.verify_fallbacks:
+                vp = replace(vp, fallback_inliers=None)  # the bound on the image's work
             if odo is not None and j in slot and odo[slot[j]] >= o.agree_factor:
                 if o.agree_min_inliers is not None:
                     vp = replace(vp, min_inliers=o.agree_min_inliers)
@@ -553,6 +580,7 @@ class ForwardDetector:
                 self.read_back_failed += 1
                 continue
             v = verify_pair(old, feats, vp, self.camera_matrix)
+            fallbacks += v.fallback
             if v.accepted and (self.accept is None or self.accept(j, v)):
                 return j, v, True
             failed.append(v)
@@ -653,8 +681,7 @@ class ForwardDetector:
             if prev is not None:
                 self._features[t - 1] = without_words(prev)
             self._release(t - self.resident)
-        self._poses = np.vstack([self._poses, pose_now[None, :]])
-        self._poses_var = np.vstack([self._poses_var, var_now[None, :]])
+        self._append_pose(pose_now, var_now)
         t3b = clock()
         times["words"] += t3b - t3
         t3 = t3b
@@ -800,7 +827,13 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
       forward`` without ``--odometry``) the detector is the one without odometry. The
       other metric levers (:class:`OdometryParams`) stay selectable. Its verification
       searches a level camera's motion first (``VerifyParams(model="planar")``; the
-      paper's general search stays selectable as ``model="general"``).
+      paper's general search stays selectable as ``model="general"``), the essential
+      matrix near it by OpenCV's USAC (``guided_estimator="usac"``), the general search
+      after a failed one drawing its samples within 10 px of the level motion
+      (``fallback_band_px``) and run at most once per image (``verify_fallbacks=1``): the
+      stated bound on the verification's work per image (``docs/forward.md``, "Time and
+      memory per image"). The previous planar verification stays selectable
+      (``guided_estimator=None, fallback_band_px=None``, ``verify_fallbacks=None``).
     """
     from robotd.forward.features import FeatureParams
     from robotd.forward.filter import FilterParams
@@ -814,7 +847,9 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
                                 filter=FilterParams(rule=DEFAULT_RULE, loop_threshold=DEFAULT_THRESHOLD),
                                 consistency=DEFAULT_CONSISTENCY, verify_tries=DEFAULT_VERIFY_TRIES,
                                 odometry=OdometryParams(use=True, agree_min_support_area=0.0),
-                                verify=VerifyParams(model=DEFAULT_VERIFY_MODEL))
+                                verify=VerifyParams(model=DEFAULT_VERIFY_MODEL, guided_estimator=DEFAULT_GUIDED_ESTIMATOR,
+                                                    fallback_band_px=DEFAULT_FALLBACK_BAND_PX),
+                                verify_fallbacks=DEFAULT_VERIFY_FALLBACKS)
     else:
         raise ValueError(f"forward detector method must be one of {', '.join(METHODS)}, got {method!r}")
     return replace(params, **overrides) if overrides else params
@@ -849,3 +884,6 @@ DEFAULT_THRESHOLD = 0.3
 DEFAULT_CONSISTENCY = 1
 DEFAULT_VERIFY_TRIES = 3
 DEFAULT_VERIFY_MODEL = "planar"
+DEFAULT_GUIDED_ESTIMATOR = "usac"
+DEFAULT_FALLBACK_BAND_PX = 10.0
+DEFAULT_VERIFY_FALLBACKS = 1

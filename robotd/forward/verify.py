@@ -86,7 +86,15 @@ search there fails and the level motion's consensus reached ``fallback_inliers``
 general search runs over all the matches with at most ``fallback_max_iterations`` (200)
 samples. The work per verification is so bounded by rule, not by a timer: at most
 ``2 planar_max_samples`` level hypotheses times the matches, 218 five-point samples near the
-level motion and 200 over all the matches. ``model = "planar_motion"`` takes the level
+level motion and 200 over all the matches. The default detector makes both searches
+cheaper: the one near the level motion by OpenCV's USAC (``guided_estimator``: the same
+test, a tenth of RANSAC's cost per sample; it is most of the median image's verification),
+the fallback's samples drawn within ``fallback_band_px`` (10) of the level motion (fewer
+outliers among them; its inliers still counted over all the matches), and the detector runs
+the fallback for at most one view per image
+(:attr:`robotd.forward.detector.DetectorParams.verify_fallbacks`): the fallback was the
+99th percentile of the time per image. USAC in the fallback let a false loop through on
+the office route without a pose, so the fallback keeps RANSAC. ``model = "planar_motion"`` takes the level
 motion itself as the verified motion (no five-point search when it passes): measured, it
 passes aliased views (a wall's repeated pattern seen from a sideways shift) that the
 general test refuses, so it is not the default. ``model = "general"`` is the paper's
@@ -194,6 +202,18 @@ class VerifyParams:
             is tried only when the planar search's best consensus has at least this many
             matches; None: never (a camera known to be level); 0: always.
         fallback_max_iterations: the most samples that general search draws.
+        guided_estimator: with a planar model, the estimator of the five-point search
+            among the matches near the level motion (None: ``estimator``). ``"usac"``:
+            OpenCV's USAC with the same test (module notes, "Time"), whose five-point
+            solve costs about a tenth of RANSAC's per sample; that search is most of the
+            median image's verification.
+        fallback_estimator: with a planar model, the estimator of the general search over
+            all the matches after it (None: ``estimator``); that search is the tail.
+        fallback_band_px: with a planar model, that general search draws its samples
+            among the matches within this distance of the level motion only (a camera a
+            few degrees off level keeps its inliers near the level motion; fewer outliers
+            among the samples let RANSAC's adaptive stop come earlier), its inliers still
+            counted over all the matches; None: among all the matches.
     """
 
     ratio: float = 0.8
@@ -215,6 +235,9 @@ class VerifyParams:
     guide_threshold_px: float = 3.0
     fallback_inliers: int | None = 10
     fallback_max_iterations: int = 200
+    guided_estimator: str | None = None
+    fallback_estimator: str | None = None
+    fallback_band_px: float | None = None
 
     def __post_init__(self) -> None:
         if self.camera_height_m is not None and not self.camera_height_m > 0.0:
@@ -237,10 +260,14 @@ class VerifyParams:
             raise ValueError(f"guide_threshold_px must be positive, got {self.guide_threshold_px}")
         if self.fallback_max_iterations < 1:
             raise ValueError(f"fallback_max_iterations must be >= 1, got {self.fallback_max_iterations}")
+        if self.fallback_band_px is not None and not self.fallback_band_px > 0.0:
+            raise ValueError(f"fallback_band_px must be positive or None, got {self.fallback_band_px}")
         if self.fallback_inliers is not None and self.fallback_inliers < 0:
             raise ValueError(f"fallback_inliers must be >= 0 or None, got {self.fallback_inliers}")
-        if self.estimator not in ESTIMATORS:
-            raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {self.estimator!r}")
+        for name in ("estimator", "guided_estimator", "fallback_estimator"):
+            value = getattr(self, name)
+            if (value is not None or name == "estimator") and value not in ESTIMATORS:
+                raise ValueError(f"{name} must be one of {', '.join(ESTIMATORS)}, got {value!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -259,7 +286,10 @@ class Verification:
     :func:`robotd.forward.planar.planar_motion` (1-sigma, from their epipolar errors
     ``noise_px``: :func:`robotd.forward.planar.motion_uncertainty`; ``inf`` when not
     computed); ``planarity_chi2`` the motion's out-of-plane part against its covariance
-    (:class:`robotd.forward.planar.MotionFit`; NaN when not computed). When a pose was recovered: ``rotation (3, 3)`` and
+    (:class:`robotd.forward.planar.MotionFit`; NaN when not computed); ``fallback`` whether
+    a planar model's general search was due (it ran, or with ``fallback_band_px`` the band
+    held fewer than ``min_inliers`` matches to run it on; either counts against
+    :attr:`robotd.forward.detector.DetectorParams.verify_fallbacks`). When a pose was recovered: ``rotation (3, 3)`` and
     ``translation_dir (3,)`` (unit length) such that a point X_old in the old image's
     camera frame is ``rotation @ X_old + s * translation_dir`` in the new image's camera
     frame, for an unknown scale s > 0 (OpenCV camera axes: x right, y down, z forward).
@@ -280,6 +310,7 @@ class Verification:
     sigma_yaw_rad: float = float("inf")
     noise_px: float = float("nan")
     planarity_chi2: float = float("nan")
+    fallback: bool = False
 
 
 def camera_matrix_guess(width_px: int, height_px: int, focal_px: float | None = None) -> np.ndarray:
@@ -335,7 +366,8 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
         near = search.inliers(p_old, p_new, k, params.guide_threshold_px) if search.best_inliers else None
         guided: _Motion | Verification = Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
         if near is not None and int(near.sum()) >= params.min_inliers:
-            guided = _general_motion(p_old, p_new, k, params, n, near)
+            gp = params if params.guided_estimator is None else replace(params, estimator=params.guided_estimator)
+            guided = _general_motion(p_old, p_new, k, gp, n, near)
             if not isinstance(guided, Verification):
                 guided = _checked(old, new, p_old, p_new, k, params, guided)
         assert isinstance(guided, Verification)
@@ -343,7 +375,17 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
             return guided
         # Not found near a level motion: the general search over all the matches, with at
         # most fallback_max_iterations samples (the stated cap on the work per image).
-        params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations))
+        params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations),
+                         estimator=params.fallback_estimator or params.estimator)
+        if params.fallback_band_px is not None:
+            band = search.inliers(p_old, p_new, k, params.fallback_band_px)
+            if int(band.sum()) < params.min_inliers:
+                return replace(guided, fallback=True)
+            banded = _general_motion(p_old, p_new, k, params, n, band, half_inliers=False)
+            checked = banded if isinstance(banded, Verification) else _checked(old, new, p_old, p_new, k, params,
+                                                                                banded)
+            return replace(checked, fallback=True)
+        return replace(_general_verification(old, new, p_old, p_new, k, params, n), fallback=True)
     elif params.model == "planar_motion":
         motion = _planar_motion(p_old, p_new, k, params)
         if isinstance(motion, int):
@@ -358,7 +400,15 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
         # a consensus of at least fallback_inliers (module notes, "The planar model").
         if params.fallback_inliers is None or best < params.fallback_inliers:
             return refused
-        params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations))
+        params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations),
+                         estimator=params.fallback_estimator or params.estimator)
+        return replace(_general_verification(old, new, p_old, p_new, k, params, n), fallback=True)
+    return _general_verification(old, new, p_old, p_new, k, params, n)
+
+
+def _general_verification(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray,
+                          params: VerifyParams, n: int) -> Verification:
+    """The general model over all the matches, checked (:func:`_checked`)."""
     general = _general_motion(p_old, p_new, k, params, n)
     if isinstance(general, Verification):
         return general
@@ -401,19 +451,21 @@ _Motion = tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float, float]
 
 
 def _general_motion(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params: VerifyParams,
-                    n: int, near: np.ndarray | None = None) -> _Motion | Verification:
+                    n: int, near: np.ndarray | None = None, half_inliers: bool = True) -> _Motion | Verification:
     """The general model: the essential matrix (``params.estimator``), ``cv2.recoverPose``'s
     cheirality check, the motion refined on the inliers (:func:`robotd.forward.planar.fit_motion`);
     a refused :class:`Verification` when it fails. With ``near (N,) bool`` the essential
     matrix is searched among those matches only and its inliers then counted among all
-    (``"planar_guided"``)."""
+    (``"planar_guided"``): at most the samples that would draw five inliers were half of
+    them inliers, or with ``half_inliers`` False RANSAC's own bound for ``min_inliers``
+    (:func:`ransac_iterations`) up to ``params.max_iterations``."""
     if near is None:
         e, mask = essential_matrix(p_old, p_new, k, params)
     else:
         # Samples enough to draw five of the subset's inliers were half of it inliers.
         m = int(near.sum())
-        sub = replace(params, max_iterations=min(params.max_iterations, ransac_iterations(
-            m, max(params.min_inliers, (m + 1) // 2), params.ransac_confidence)))
+        sub = params if not half_inliers else replace(params, max_iterations=min(
+            params.max_iterations, ransac_iterations(m, max(params.min_inliers, (m + 1) // 2), params.ransac_confidence)))
         e, _ = essential_matrix(p_old[near], p_new[near], k, sub)
         mask = None if e is None or e.shape[0] < 3 else _epipolar_mask(p_old, p_new, k, e[:3], params.ransac_threshold_px)
     if e is None or mask is None or e.shape[0] < 3:

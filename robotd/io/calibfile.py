@@ -77,7 +77,16 @@ _ODOMETRY_FIELDS = (
     ("gyro_scale_sigma", "odometry_gyro_scale_sigma"),
     ("gyro_bias_sigma_radps", "odometry_gyro_bias_sigma_radps"),
 )
-_ODOMETRY_KEYS = tuple(k for _f, k in _ODOMETRY_FIELDS)
+#: Optional (a calibration written before they were fitted has none): the filter's white
+#: accelerations by maximum likelihood, with their 1-sigma; all four or none.
+_PROCESS_FIELDS = (
+    ("accel_noise_mps2_sqrt_hz", "odometry_accel_noise_mps2_sqrt_hz"),
+    ("angular_accel_noise_radps2_sqrt_hz", "odometry_angular_accel_noise_radps2_sqrt_hz"),
+    ("accel_noise_sigma", "odometry_accel_noise_sigma"),
+    ("angular_accel_noise_sigma", "odometry_angular_accel_noise_sigma"),
+)
+_PROCESS_KEYS = tuple(k for _f, k in _PROCESS_FIELDS)
+_ODOMETRY_KEYS = tuple(k for _f, k in _ODOMETRY_FIELDS) + _PROCESS_KEYS
 _INTRINSIC_KEYS = ("camera_matrix", "distortion_coefficients", "image_width", "image_height",
                    "avg_reprojection_error")
 
@@ -177,7 +186,9 @@ class OdometryModel:
     rad/s: the firmware or the filter learns each power-on's own at standstill, so this is
     a record of the drive and a scale for the prior, not a correction);
     gyro_noise_radps_sqrt_hz (white rate noise density); wheel_noise_m_sqrt_m (slip noise
-    per sqrt(m) of travel).
+    per sqrt(m) of travel); accel_noise_mps2_sqrt_hz, angular_accel_noise_radps2_sqrt_hz
+    (the filter's white linear and angular accelerations, m/s^2 and rad/s^2 per sqrt(Hz),
+    with their 1-sigma ``*_noise_sigma``): None in a file written before they were fitted.
     """
 
     wheel_radius_left_m: float
@@ -192,8 +203,26 @@ class OdometryModel:
     wheel_base_sigma_m: float
     gyro_scale_sigma: float
     gyro_bias_sigma_radps: float
+    accel_noise_mps2_sqrt_hz: float | None = None
+    angular_accel_noise_radps2_sqrt_hz: float | None = None
+    accel_noise_sigma: float | None = None
+    angular_accel_noise_sigma: float | None = None
+
+    @property
+    def has_process_noise(self) -> bool:
+        """True when the file holds the fitted white accelerations."""
+        return self.accel_noise_mps2_sqrt_hz is not None
 
     def __post_init__(self) -> None:
+        given = [getattr(self, f) is not None for f, _k in _PROCESS_FIELDS]
+        if any(given) and not all(given):
+            raise CalibrationError("the odometry's white accelerations need all of " + ", ".join(_PROCESS_KEYS))
+        for field_name, key in _PROCESS_FIELDS:
+            if given[0]:
+                v = _finite(key, getattr(self, field_name))
+                if not (v > 0.0 if "sigma" not in key else v >= 0.0):
+                    raise CalibrationError(f"{key} must be {'>= 0' if 'sigma' in key else 'positive'}, got {v}")
+                object.__setattr__(self, field_name, v)
         for field_name, key in _ODOMETRY_FIELDS:
             v = _finite(key, getattr(self, field_name))
             if field_name in ("wheel_radius_left_m", "wheel_radius_right_m", "wheel_base_m",
@@ -428,8 +457,9 @@ def _read_loop(r: _Reader) -> LoopThresholds | None:
 def _read_odometry(r: _Reader) -> OdometryModel | None:
     if not any(r.has(k) for k in _ODOMETRY_KEYS):
         return None
-    _require(r, "the odometry section", _ODOMETRY_KEYS)
-    return OdometryModel(**{f: r.number(k) for f, k in _ODOMETRY_FIELDS})
+    _require(r, "the odometry section", tuple(k for _f, k in _ODOMETRY_FIELDS))
+    process = {f: r.number(k) for f, k in _PROCESS_FIELDS if r.has(k)}
+    return OdometryModel(**{f: r.number(k) for f, k in _ODOMETRY_FIELDS}, **process)
 
 
 # ------------------------------------------------------------------------ writing
@@ -472,6 +502,11 @@ def format_calibration(calib: CalibrationFile) -> str:
                         "(rad/s/sqrt(Hz), m/sqrt(m)), each value's 1-sigma uncertainty.")
         for field_name, key in _ODOMETRY_FIELDS:
             fs.write(key, float(getattr(od, field_name)))
+        if od.has_process_noise:
+            fs.writeComment("The filter's white accelerations (m/s^2, rad/s^2 per sqrt(Hz)) by maximum "
+                            "likelihood on the drive's readings, each with its 1-sigma.")
+            for field_name, key in _PROCESS_FIELDS:
+                fs.write(key, float(getattr(od, field_name)))
     return fs.releaseAndGetString()
 
 

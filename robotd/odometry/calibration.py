@@ -22,6 +22,13 @@ over every keyframe interval) and the random ones:
   of its readings while the base stands still (no tick moved); the wheels' slip noise
   (m per sqrt(m) of travel), from the distance residuals after the fit, whose variance
   grows with the interval's travel (``var = q |ds| + c``, ``c`` the reference's own).
+- the filter's white accelerations (its process noise: m/s^2 and rad/s^2 per sqrt(Hz),
+  :class:`robotd.odometry.ekf.EkfParams`), by maximum likelihood on the innovations of the
+  wheels' and the gyro's readings through the filter's rate states with the calibrated
+  geometry and the fitted sensor noise (:func:`fit_process_noise`; Mehra 1970's
+  innovation likelihood). No measurement involves the pose, so the rate states ``v`` and
+  ``(w, bias)`` form two small linear filters whose likelihood depends on one density
+  each; their uncertainty is the likelihood's curvature.
 
 Uncertainties are the least-squares covariances, each scaled by the fit's reduced chi2
 when that exceeds one (the weights then understated the residuals). A drive that cannot
@@ -33,6 +40,7 @@ No I/O here: the caller reads the recording and the reference trajectory
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -41,14 +49,26 @@ import numpy as np
 
 from robotd.base.errors import CalibrationError
 from robotd.base.geometry import rot2
+from robotd.odometry.ekf import EkfParams
 
 __all__ = [
     "CalibrationDrive",
     "OdometryFit",
     "OdometryFitParams",
+    "ProcessNoiseFit",
     "fit_odometry",
+    "fit_process_noise",
     "missing_observability",
+    "sensor_noise_params",
 ]
+
+#: Readings a second of the Kobuki's wheel packets and of its raw gyro (one mean rate per
+#: packet): the rate at which the fit's densities become per-reading noises.
+READINGS_HZ = 50.0
+#: The Kobuki's encoder ticks per wheel turn (``[robot] ticks_per_rev``'s default).
+TICKS_PER_REV = 2578.33
+#: The speed at which the fitted slip density becomes a fraction of the speed.
+CRUISE_MPS = 0.5
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -137,6 +157,175 @@ class OdometryFit:
     turn_right_deg: float
     distance_m: float
     still_s: float
+    process: ProcessNoiseFit | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class ProcessNoiseFit:
+    """The filter's white accelerations fitted to a drive, with 1-sigma uncertainties.
+
+    accel_mps2_sqrt_hz: white linear acceleration density (m/s^2 per sqrt(Hz));
+    angular_accel_radps2_sqrt_hz: white angular acceleration density (rad/s^2 per
+    sqrt(Hz)); ``*_sigma``: their 1-sigma from the log-likelihood's curvature in the log
+    of the density. wheel_v_noise_mps, wheel_v_noise_frac, gyro_noise_radps: the
+    measurement noise the likelihood was computed with (:func:`sensor_noise_params`).
+    """
+
+    accel_mps2_sqrt_hz: float
+    accel_sigma: float
+    angular_accel_radps2_sqrt_hz: float
+    angular_accel_sigma: float
+    wheel_v_noise_mps: float
+    wheel_v_noise_frac: float
+    gyro_noise_radps: float
+
+
+def sensor_noise_params(base: EkfParams, gyro_noise_radps_sqrt_hz: float, wheel_noise_m_sqrt_m: float,
+                        tick_m: float, accel_mps2_sqrt_hz: float | None = None,
+                        angular_accel_radps2_sqrt_hz: float | None = None,
+                        readings_hz: float = READINGS_HZ) -> EkfParams:
+    """``base`` with the sensors' own noise: the gyro's white noise per reading (``density
+    * sqrt(fs / 2)``, the convention :func:`fit_odometry` measures the density in), the
+    wheel speed's tick quantisation (``tick_m``: m of travel per tick; the difference of
+    two quantised counts over one packet, ``tick / dt / sqrt(6)``), the slip density as a
+    fraction of the speed at :data:`CRUISE_MPS` (``sqrt(q v / dt) / v``), and the white
+    accelerations when given (else ``base``'s). The wheel yaw-rate noise and the bias walk
+    stay ``base``'s."""
+    dt = 1.0 / readings_hz
+    q = wheel_noise_m_sqrt_m ** 2
+    out = dataclasses.replace(
+        base, gyro_noise_radps=gyro_noise_radps_sqrt_hz * math.sqrt(readings_hz / 2.0),
+        wheel_v_noise_mps=tick_m / dt / math.sqrt(6.0),
+        wheel_v_noise_frac=math.sqrt(q * CRUISE_MPS / dt) / CRUISE_MPS)
+    if accel_mps2_sqrt_hz is not None:
+        out = dataclasses.replace(out, accel_noise_density_mps2_per_sqrt_hz=accel_mps2_sqrt_hz)
+    if angular_accel_radps2_sqrt_hz is not None:
+        out = dataclasses.replace(out, angular_accel_noise_density_radps2_per_sqrt_hz=angular_accel_radps2_sqrt_hz)
+    return out
+
+
+def _rate_readings(drive: CalibrationDrive, radius_left_m: float, radius_right_m: float,
+                   base_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per wheel interval: its end (s), the speed (m/s) and yaw rate (rad/s) the wheels
+    give, and whether the base stood still (no tick over it and the one before, as
+    :class:`robotd.odometry.fusion.OdometryFilter` decides)."""
+    t = np.asarray(drive.wheel_stamp_ns, np.int64)
+    dphi = np.diff(np.asarray(drive.wheel_angle_rad, float), axis=0)
+    dt = np.diff(t) * 1e-9
+    v = 0.5 * (radius_left_m * dphi[:, 0] + radius_right_m * dphi[:, 1]) / dt
+    w = (radius_right_m * dphi[:, 1] - radius_left_m * dphi[:, 0]) / base_m / dt
+    still_now = ~np.any(np.abs(dphi) > 1e-12, axis=1)
+    stationary = still_now & np.concatenate([[False], still_now[:-1]])
+    return (t[1:] - t[0]) * 1e-9, v, w, stationary
+
+
+def _nll_speed(q_l: float, t_s: np.ndarray, v: np.ndarray, r_var: np.ndarray, p0: float) -> float:
+    """Negative log-likelihood (up to a constant) of the wheel speeds under a random-walk
+    speed of density ``q_l`` (variance per s) read with noise ``r_var``."""
+    x, p, prev, nll = 0.0, p0, 0.0, 0.0
+    for tk, z, r in zip(t_s.tolist(), v.tolist(), r_var.tolist()):
+        p += q_l * (tk - prev)
+        prev = tk
+        s = p + r
+        nu = z - x
+        nll += math.log(s) + nu * nu / s
+        k = p / s
+        x += k * nu
+        p -= k * p
+    return 0.5 * nll
+
+
+def _nll_turn(q_a: float, q_b: float, events: list[tuple[float, int, float, float]],
+              p0: tuple[float, float]) -> float:
+    """The same for the yaw rate ``w`` (density ``q_a``) and the gyro bias (random walk
+    ``q_b``): ``events`` in time order, ``(t_s, kind, reading, noise variance)`` with kind 0
+    a gyro reading of ``w + bias`` and 1 a wheel reading of ``w``."""
+    w = b = 0.0
+    pww, pwb, pbb = p0[0], 0.0, p0[1]
+    prev, nll = 0.0, 0.0
+    for tk, kind, z, r in events:
+        dt = tk - prev
+        prev = tk
+        pww += q_a * dt
+        pbb += q_b * dt
+        if kind == 0:  # H = [1, 1]
+            hp_w, hp_b = pww + pwb, pwb + pbb
+            s = hp_w + hp_b + r
+            nu = z - w - b
+        else:  # H = [1, 0]
+            hp_w, hp_b = pww, pwb
+            s = pww + r
+            nu = z - w
+        nll += math.log(s) + nu * nu / s
+        kw, kb = hp_w / s, hp_b / s
+        w += kw * nu
+        b += kb * nu
+        pww -= kw * hp_w
+        pwb -= kw * hp_b
+        pbb -= kb * hp_b
+    return 0.5 * nll
+
+
+def _ml_density(nll: Callable[[float], float], lo: float = 1e-4, hi: float = 10.0) -> tuple[float, float]:
+    """The density ``sigma`` in ``[lo, hi]`` minimising ``nll(sigma^2)`` (golden section in
+    ``ln sigma`` after a coarse grid) and its 1-sigma from the curvature in ``ln sigma``."""
+    grid = np.linspace(math.log(lo), math.log(hi), 15)
+    vals = [nll(math.exp(2 * u)) for u in grid]
+    i = int(np.argmin(vals))
+    a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+    g = (math.sqrt(5.0) - 1.0) / 2.0
+    c, d = b - g * (b - a), a + g * (b - a)
+    fc, fd = nll(math.exp(2 * c)), nll(math.exp(2 * d))
+    while b - a > 1e-3:
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - g * (b - a)
+            fc = nll(math.exp(2 * c))
+        else:
+            a, c, fc = c, d, fd
+            d = a + g * (b - a)
+            fd = nll(math.exp(2 * d))
+    u = 0.5 * (a + b)
+    h = 0.05
+    f0 = nll(math.exp(2 * u))
+    curv = (nll(math.exp(2 * (u + h))) - 2 * f0 + nll(math.exp(2 * (u - h)))) / (h * h)
+    sigma = math.exp(u)
+    return sigma, (sigma / math.sqrt(curv) if curv > 0 else math.inf)
+
+
+def fit_process_noise(drive: CalibrationDrive, radius_left_m: float, radius_right_m: float, base_m: float,
+                      gyro_scale: float, gyro_noise_radps_sqrt_hz: float, wheel_noise_m_sqrt_m: float,
+                      ticks_per_rev: float, noise: EkfParams = EkfParams()) -> ProcessNoiseFit:
+    """The white accelerations of the filter by maximum likelihood on the drive's readings
+    (module notes): the wheels' speed and yaw rate with the calibrated radii and base, the
+    gyro's readings divided by ``gyro_scale``, the measurement noise of
+    :func:`sensor_noise_params` (``ticks_per_rev``: the encoders') on ``noise``'s wheel
+    yaw-rate noise, bias walk and zero-velocity noise."""
+    t_w, v, w, still = _rate_readings(drive, radius_left_m, radius_right_m, base_m)
+    tick_rad = 2.0 * math.pi / ticks_per_rev
+    dt_w = float(np.median(np.diff(np.asarray(drive.wheel_stamp_ns, np.int64)))) * 1e-9
+    params = sensor_noise_params(noise, gyro_noise_radps_sqrt_hz, wheel_noise_m_sqrt_m,
+                                 tick_rad * 0.5 * (radius_left_m + radius_right_m), readings_hz=1.0 / dt_w)
+    sv = np.where(still, params.stationary_noise_mps, params.wheel_v_noise_mps + params.wheel_v_noise_frac * np.abs(v))
+    sw = np.where(still, params.stationary_noise_radps, params.wheel_w_noise_radps
+                  + params.wheel_w_noise_frac * np.abs(w) + params.wheel_w_noise_per_mps * np.abs(v))
+    t0 = int(drive.wheel_stamp_ns[0])
+    t_g = (np.asarray(drive.gyro_stamp_ns, np.int64) - t0) * 1e-9
+    keep = (t_g >= 0.0) & (t_g <= t_w[-1])
+    g = np.asarray(drive.gyro_radps, float)[keep] / gyro_scale
+    fs_g = 1.0 / (float(np.median(np.diff(np.asarray(drive.gyro_stamp_ns, np.int64)))) * 1e-9)
+    r_g = gyro_noise_radps_sqrt_hz ** 2 * fs_g / 2.0  # per reading at the drive's own gyro rate
+    events = sorted([(float(t), 0, float(z), r_g) for t, z in zip(t_g[keep], g)]
+                    + [(float(t), 1, float(z), float(s) ** 2) for t, z, s in zip(t_w, w, sw)],
+                    key=lambda e: (e[0], e[1]))
+    accel, accel_sigma = _ml_density(lambda q: _nll_speed(q, t_w, v, sv ** 2, params.initial_speed_sigma_mps ** 2))
+    q_b = params.gyro_bias_walk_radps_per_sqrt_s ** 2
+    p0 = (params.initial_yaw_rate_sigma_radps ** 2, params.initial_gyro_bias_sigma_radps ** 2)
+    angular, angular_sigma = _ml_density(lambda q: _nll_turn(q, q_b, events, p0))
+    return ProcessNoiseFit(accel_mps2_sqrt_hz=accel, accel_sigma=accel_sigma,
+                           angular_accel_radps2_sqrt_hz=angular, angular_accel_sigma=angular_sigma,
+                           wheel_v_noise_mps=params.wheel_v_noise_mps,
+                           wheel_v_noise_frac=params.wheel_v_noise_frac, gyro_noise_radps=params.gyro_noise_radps)
 
 
 def _unwrap_yaw(yaw: np.ndarray) -> np.ndarray:
@@ -280,9 +469,13 @@ def _weighted_lstsq(a: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.nda
 
 
 def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_m: float,
-                 params: OdometryFitParams = OdometryFitParams()) -> OdometryFit:
+                 params: OdometryFitParams = OdometryFitParams(), noise: EkfParams = EkfParams(),
+                 ticks_per_rev: float = TICKS_PER_REV) -> OdometryFit:
     """Fit the odometry model to ``drive`` (see the module notes); the nominal radius and
-    wheel base (m) give the "before" residuals and the first linearisation. Raises
+    wheel base (m) give the "before" residuals and the first linearisation; ``noise``: the
+    filter's noise model (the ``[odometry]`` table) whose wheel yaw-rate noise, bias walk
+    and priors the white accelerations' likelihood keeps, ``ticks_per_rev`` the encoders'
+    (:func:`fit_process_noise`). Raises
     :class:`CalibrationError` naming what the drive lacks when it cannot be fitted."""
     lacks = missing_observability(drive, params)
     if lacks:
@@ -308,6 +501,8 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
     after = np.column_stack([wheels.residuals, gyro_after])
     left, right, dist = _turns_deg(drive)
     still = sum(b - a for a, b in _still_periods(drive, params.still_margin_s)) * 1e-9
+    process = fit_process_noise(drive, float(p[0]), float(p[1]), float(p[2]), s, gyro_density,
+                                float(math.sqrt(wheels.q_w)), ticks_per_rev, noise)
     return OdometryFit(
         wheel_radius_left_m=float(p[0]), wheel_radius_right_m=float(p[1]), wheel_base_m=float(p[2]),
         wheel_radius_left_sigma=float(math.sqrt(cov_w[0, 0])),
@@ -318,7 +513,7 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
         gyro_noise_radps_sqrt_hz=gyro_density, wheel_noise_m_sqrt_m=float(math.sqrt(wheels.q_w)),
         residuals_before=before, residuals_after=after, interval_end_s=iv.t_end_s, used=wheels.used,
         slip_windows=wheels.slip_windows, heading_windows=wheels.heading_windows,
-        turn_left_deg=left, turn_right_deg=right, distance_m=dist, still_s=still,
+        turn_left_deg=left, turn_right_deg=right, distance_m=dist, still_s=still, process=process,
     )
 
 

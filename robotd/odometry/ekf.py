@@ -111,7 +111,7 @@ class EkfParams:
     the power spectral densities), measurement noises 1-sigma per reading.
 
     The first ten fields are the keys of the ``[odometry]`` table of the configuration
-    file, defaults included (taken from :class:`~robotd.base.config.OdometryConfig`, the
+    file (but its ``noise_model``, which :func:`robotd.app.assemble.build_odometry` reads), defaults included (taken from :class:`~robotd.base.config.OdometryConfig`, the
     one place they are written): :meth:`from_config` builds the params from that table.
 
     - ``accel_noise_density_mps2_per_sqrt_hz``: white linear acceleration driving ``v``,
@@ -175,7 +175,8 @@ class EkfParams:
     @classmethod
     def from_config(cls, section: OdometryConfig, **others: Any) -> EkfParams:
         """The params of an ``[odometry]`` table; ``others``: the fields it does not hold."""
-        return cls(**{f.name: getattr(section, f.name) for f in dataclasses.fields(section)}, **others)
+        return cls(**{f.name: getattr(section, f.name) for f in dataclasses.fields(section)
+                      if f.name != "noise_model"}, **others)
 
     def __post_init__(self) -> None:
         for name in self.__slots__:

@@ -170,7 +170,8 @@ class OdometryFilter:
     error (seed 0) is 0.045 m against 0.038 m, and the fused filter beats the graph's
     combined edges on 2 seeds of 5 instead of 3 (``bench/bench_odometry_fused.py``).
     ``twin_params``: with ``vo_twin``, the twin's noise model in place of ``params`` (the
-    calibration's gyro noise goes to the graph's edges only: :func:`robotd.app.assemble.build_odometry`).
+    calibration's gyro noise goes to the graph's edges only, and with ``[odometry] noise_model =
+    "calibration"`` its whole sensor-level noise model: :func:`robotd.app.assemble.build_odometry`).
     """
 
     drive: DiffDriveParams = field(default_factory=DiffDriveParams)

@@ -91,6 +91,11 @@ def test_the_methods():
     assert not (default.odometry.merge_places or default.odometry.metric_neighbours or default.odometry.verify_place)
     assert (default.filter.rule, default.filter.loop_threshold) == ("total", 0.3)
     assert default.features.kind == "orb" and default.vocabulary.purge_after > 0
+    # The verification's work per image bounded: USAC near the level motion, the general
+    # search within 10 px of it and once per image.
+    v = default.verify
+    assert (v.model, v.guided_estimator, v.fallback_estimator, v.fallback_band_px) == ("planar", "usac", None, 10.0)
+    assert default.verify_fallbacks == 1 and paper.verify_fallbacks is None and paper.verify.model == "general"
     assert not paper.odometry.use and paper.verify_tries == 1
     assert method_params("paper", recent_excluded=5).recent_excluded == 5
     with pytest.raises(ValueError):
@@ -364,3 +369,42 @@ def test_the_default_without_poses_is_the_default_without_odometry(monkeypatch):
     far = [det.process_features(v, 0.0, np.array([float(i) if i < 30 else 100.0, 0.0, 0.0]), cov)
            for i, v in enumerate(views)][30:]
     assert [d.candidate_probability for d in far] != [d.candidate_probability for d in a[30:]]
+
+
+def test_the_fallbacks_per_image_are_bounded(monkeypatch):
+    """``verify_fallbacks``: of the three views a failed candidate's image verifies, only
+    the first may run the general search after the planar one (the later ones get
+    ``fallback_inliers = None``); None: each may; 0: none."""
+    import robotd.forward.detector as det_mod
+    from robotd.forward.verify import NO_GEOMETRIC_CONSISTENCY as BAD, Verification
+
+    views = _views(30, [])
+    params = DetectorParams(features=FeatureParams(kind="orb"), decision="score",
+                            verify=replace(ACCEPT_ALL, model="planar", fallback_inliers=10),
+                            odometry=OdometryParams(use=True), verify_tries=3)
+    poses = [np.array([0.3 * i, 0.0, 0.0]) for i in range(30)] + [np.array([1.5, 0.0, 0.0])]
+    cov = np.diag([0.01, 0.01, 0.001])
+
+    def run(p):
+        seen: list[int | None] = []
+
+        def refused(old, new, vp, k):
+            seen.append(vp.fallback_inliers)
+            return replace(Verification(False, BAD, 50, 12), fallback=vp.fallback_inliers is not None)
+
+        monkeypatch.setattr(det_mod, "verify_pair", refused)
+        det = ForwardDetector(p)
+        for i, v in enumerate(views):
+            det.process_features(v, 0.0, poses[i], cov)
+        seen.clear()
+        d = views[5].descriptors.copy()
+        d[:, 0] ^= 0x03
+        got = det.process_features(Features(views[5].keypoints_px, d, (640, 480)), 0.0, poses[30], cov)
+        assert got.candidate_id == 5 and got.status == NO_GEOMETRIC_CONSISTENCY
+        return seen
+
+    assert run(params) == [10, 10, 10]
+    assert run(replace(params, verify_fallbacks=1)) == [10, None, None]
+    assert run(replace(params, verify_fallbacks=0)) == [None, None, None]
+    with pytest.raises(ValueError, match="verify_fallbacks"):
+        DetectorParams(verify_fallbacks=-1)

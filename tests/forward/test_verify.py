@@ -259,8 +259,46 @@ def test_a_motion_out_of_the_plane_falls_back_to_the_general_model_only_when_all
     assert not verify_pair(old, new, VerifyParams(model="planar_motion", fallback_inliers=150)).accepted
 
 
+def test_the_planar_models_searches_take_their_own_estimators(monkeypatch):
+    """``guided_estimator`` is the five-point search's near the level motion,
+    ``fallback_estimator`` the general search's over all the matches (at most
+    ``fallback_max_iterations`` samples); ``Verification.fallback`` says the latter ran. A
+    level pair needs no fallback; a 15 deg roll does. Each accepts with the true rotation."""
+    import robotd.forward.verify as verify_mod
+
+    calls: list[tuple[int, str, int]] = []
+    inner = verify_mod.essential_matrix
+
+    def counted(p_old, p_new, k, params):
+        calls.append((len(p_old), params.estimator, params.max_iterations))
+        return inner(p_old, p_new, k, params)
+
+    monkeypatch.setattr(verify_mod, "essential_matrix", counted)
+    rng = np.random.default_rng(6)
+    x_old, x_new, r, _ = _scene(rng)
+    desc = rng.standard_normal((150, 128)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    px_new = _project(x_new) + rng.normal(0, 0.3, (150, 2)).astype(np.float32)
+    px_new[:40] = px_new[:40][rng.permutation(40)]
+    level = verify_pair(_features(_project(x_old), desc), _features(px_new, desc),
+                        VerifyParams(model="planar", guided_estimator="usac", fallback_inliers=0))
+    assert level.accepted and not level.fallback and level.n_inliers >= 100
+    assert [c[1] for c in calls] == ["usac"] and calls[0][0] < 115
+    angle = np.degrees(np.arccos(np.clip((np.trace(level.rotation.T @ r) - 1) / 2, -1, 1)))
+    assert angle < 0.3
+    calls.clear()
+    x_old, x_new, r, _ = _tilted_scene(np.random.default_rng(5), 15.0)
+    old, new = _features(_project(x_old), desc), _features(_project(x_new), desc)
+    tilted = verify_pair(old, new, VerifyParams(model="planar", fallback_inliers=0, fallback_estimator="usac"))
+    assert tilted.accepted and tilted.fallback and tilted.n_inliers >= 130
+    assert calls[-1] == (150, "usac", 200) and all(c[1] == "ransac" for c in calls[:-1])
+    angle = np.degrees(np.arccos(np.clip((np.trace(tilted.rotation.T @ r) - 1) / 2, -1, 1)))
+    assert angle < 0.3
+
+
 @pytest.mark.parametrize("kw", [{"model": "affine"}, {"planar_max_samples": 0}, {"fallback_inliers": -1},
-                                {"guide_threshold_px": 0.0}, {"fallback_max_iterations": 0}])
+                                {"guide_threshold_px": 0.0}, {"fallback_max_iterations": 0},
+                                {"guided_estimator": "lmeds"}, {"fallback_estimator": "prosac"}])
 def test_bad_model_parameters_are_refused(kw):
     with pytest.raises(ValueError, match=next(iter(kw))):
         VerifyParams(**kw)

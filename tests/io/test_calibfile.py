@@ -274,3 +274,32 @@ def test_paths_may_be_strings(tmp_path):
     path = str(tmp_path / "c.yml")
     write_calibration(path, CalibrationFile(mount=MOUNT))
     assert read_calibration(Path(path)).mount == MOUNT
+
+
+def test_the_odometry_models_white_accelerations_are_optional(tmp_path):
+    """A file written before the accelerations were fitted loads without them; one with
+    them round-trips; half of them is refused naming the keys."""
+    import dataclasses
+
+    from robotd.io.calibfile import OdometryModel
+
+    old = OdometryModel(wheel_radius_left_m=0.035, wheel_radius_right_m=0.0351, wheel_base_m=0.232,
+                        gyro_scale=1.0004, gyro_bias_radps=0.005, gyro_noise_radps_sqrt_hz=5.6e-4,
+                        wheel_noise_m_sqrt_m=0.0, wheel_radius_left_sigma_m=1e-6,
+                        wheel_radius_right_sigma_m=1e-6, wheel_base_sigma_m=1e-4, gyro_scale_sigma=1e-4,
+                        gyro_bias_sigma_radps=7e-5)
+    path = tmp_path / "old.yml"
+    write_calibration(path, CalibrationFile(odometry=old))
+    assert "accel" not in path.read_text()
+    back = read_calibration(path).odometry
+    assert back == old and not back.has_process_noise and back.accel_noise_mps2_sqrt_hz is None
+    new = dataclasses.replace(old, accel_noise_mps2_sqrt_hz=0.0154, angular_accel_noise_radps2_sqrt_hz=0.0766,
+                              accel_noise_sigma=1.8e-4, angular_accel_noise_sigma=5.3e-4)
+    write_calibration(path, CalibrationFile(odometry=new))
+    assert read_calibration(path).odometry == new and new.has_process_noise
+    half = path.read_text().replace("odometry_angular_accel_noise_sigma", "odometry_unknown_x")
+    path.write_text("\n".join(ln for ln in half.splitlines() if "odometry_unknown_x" not in ln) + "\n")
+    with pytest.raises(CalibrationError, match="odometry_angular_accel_noise_sigma"):
+        read_calibration(path)
+    with pytest.raises(CalibrationError, match="positive"):
+        dataclasses.replace(new, angular_accel_noise_radps2_sqrt_hz=0.0)

@@ -118,3 +118,62 @@ def test_the_command_refuses_such_a_drive_in_one_line_and_keeps_the_file(tmp_pat
     assert len(err) == 1 and "the drive lacks turns to the right" in err[0]
     assert "is left as it was" in err[0]
     assert calib.read_bytes() == before
+
+
+def _model_drive(q_l: float, q_a: float, seconds: float = 60.0, seed: int = 5):
+    """Readings drawn from the filter's own model: speed and yaw rate random walks of
+    densities ``q_l``, ``q_a`` (1-sigma per sqrt(s)), a constant gyro bias, the wheels
+    read every 20 ms with the noise of :func:`sensor_noise_params` (default [odometry]
+    yaw-rate noise), the gyro every 20 ms (offset by 10 ms) with its density's noise."""
+    from robotd.odometry.calibration import TICKS_PER_REV, sensor_noise_params
+    from robotd.odometry.ekf import EkfParams
+
+    rng = np.random.default_rng(seed)
+    r, b, dens = 0.035, 0.23, 5e-4
+    params = sensor_noise_params(EkfParams(), dens, 0.0, 2 * math.pi * r / TICKS_PER_REV)
+    n = int(seconds / 0.01)
+    t = np.arange(1, n + 1) * 0.01  # wheels at even steps, gyro at odd ones
+    v = 0.3 + np.cumsum(rng.normal(0.0, q_l * math.sqrt(0.01), n))
+    w = np.cumsum(rng.normal(0.0, q_a * math.sqrt(0.01), n))
+    wheel = slice(1, None, 2)
+    tw, vw, ww = t[wheel], v[wheel], w[wheel]
+    sv = params.wheel_v_noise_mps + params.wheel_v_noise_frac * np.abs(vw)
+    sw = params.wheel_w_noise_radps + params.wheel_w_noise_frac * np.abs(ww) + params.wheel_w_noise_per_mps * np.abs(vw)
+    vm, wm = vw + rng.normal(0.0, 1.0, len(vw)) * sv, ww + rng.normal(0.0, 1.0, len(ww)) * sw
+    # Wheel angles whose increments over each 20 ms give exactly these readings.
+    dl, dr = (vm - 0.5 * b * wm) * 0.02 / r, (vm + 0.5 * b * wm) * 0.02 / r
+    ang = np.concatenate([np.zeros((1, 2)), np.cumsum(np.column_stack([dl, dr]), axis=0)])
+    stamps = np.round(np.concatenate([[0.0], tw]) * 1e9).astype(np.int64)
+    tg = t[0::2]
+    g = w[0::2] + 0.003 + rng.normal(0.0, dens * math.sqrt(50.0 / 2.0), len(tg))
+    drive = CalibrationDrive(stamps, ang, np.round(tg * 1e9).astype(np.int64), g, stamps[:2], np.zeros((2, 3)))
+    return drive, r, b, dens
+
+
+@pytest.mark.parametrize(("q_l", "q_a"), [(0.02, 0.01), (0.05, 0.08)])
+def test_the_white_accelerations_are_found_by_maximum_likelihood(q_l, q_a):
+    """Readings drawn from the filter's own model give back its white accelerations within
+    a few of their stated sigmas (and those sigmas are a few percent)."""
+    from robotd.odometry.calibration import TICKS_PER_REV, fit_process_noise
+
+    drive, r, b, dens = _model_drive(q_l, q_a)
+    f = fit_process_noise(drive, r, r, b, 1.0, dens, 0.0, TICKS_PER_REV)
+    assert abs(f.accel_mps2_sqrt_hz - q_l) < max(3 * f.accel_sigma, 0.03 * q_l)
+    assert abs(f.angular_accel_radps2_sqrt_hz - q_a) < max(3 * f.angular_accel_sigma, 0.03 * q_a)
+    assert f.accel_sigma < 0.1 * q_l and f.angular_accel_sigma < 0.15 * q_a
+    # Ten times the true density is far less likely: the fit is not its starting point.
+    assert f.accel_mps2_sqrt_hz < 2 * q_l and f.angular_accel_radps2_sqrt_hz < 2 * q_a
+
+
+def test_the_fit_writes_its_accelerations_into_the_model():
+    from calibration.odometry import format_fit, model_from_fit
+
+    drive, p, _err = _drive("office", 0)
+    f = fit_odometry(drive, p.drive.wheel_radius_m, p.drive.wheel_base_m)
+    assert f.process is not None
+    m = model_from_fit(f)
+    assert m.has_process_noise
+    assert (m.accel_noise_mps2_sqrt_hz, m.angular_accel_noise_radps2_sqrt_hz) == (
+        f.process.accel_mps2_sqrt_hz, f.process.angular_accel_radps2_sqrt_hz)
+    assert 0.0 < m.accel_noise_sigma < m.accel_noise_mps2_sqrt_hz
+    assert "white angular acc." in format_fit(f, p.drive.wheel_radius_m, p.drive.wheel_base_m)

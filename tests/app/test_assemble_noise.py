@@ -1,0 +1,81 @@
+"""``[odometry] noise_model``: which filter takes the calibration's noise model."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+
+from robotd.app.assemble import GYRO_READINGS_HZ, build_odometry
+from robotd.app.demo import shipped_calibration
+from robotd.base.config import Config, replace
+from robotd.io.calibfile import CalibrationFile, read_calibration
+
+
+def _shipped() -> CalibrationFile:
+    path = shipped_calibration()
+    assert path is not None
+    cal = read_calibration(path)
+    assert cal.odometry is not None and cal.odometry.has_process_noise
+    return cal
+
+
+def _accel(p):
+    return p.accel_noise_density_mps2_per_sqrt_hz, p.angular_accel_noise_density_radps2_per_sqrt_hz
+
+
+def test_calibration_noise_goes_to_the_edges_and_the_fused_filter_keeps_the_config():
+    cal = _shipped()
+    m = cal.odometry
+    cfg = replace(Config(), "odometry", noise_model="calibration")
+    f = build_odometry(cfg, cal)
+    assert f.vo_twin
+    twin = f.wheel_gyro.params
+    assert _accel(twin) == (m.accel_noise_mps2_sqrt_hz, m.angular_accel_noise_radps2_sqrt_hz)
+    assert twin.gyro_noise_radps == pytest.approx(m.gyro_noise_radps_sqrt_hz * math.sqrt(GYRO_READINGS_HZ / 2))
+    # The wheel speed's noise: one tick of quantisation over a 20 ms packet (difference of
+    # two quantised counts), no slip (the demo's fitted slip density is 0).
+    tick_m = 2 * math.pi * 0.5 * (m.wheel_radius_left_m + m.wheel_radius_right_m) / cfg.robot.ticks_per_rev
+    assert twin.wheel_v_noise_mps == pytest.approx(tick_m / 0.02 / math.sqrt(6))
+    assert twin.wheel_v_noise_frac == (0.0 if m.wheel_noise_m_sqrt_m == 0.0 else pytest.approx(
+        math.sqrt(m.wheel_noise_m_sqrt_m ** 2 * 0.5 / 0.02) / 0.5))
+    assert twin.wheel_w_noise_per_mps == cfg.odometry.wheel_w_noise_per_mps  # the config's
+    # The fused filter: the config's white accelerations and reading noise.
+    assert _accel(f.params) == (cfg.odometry.accel_noise_density_mps2_per_sqrt_hz,
+                                cfg.odometry.angular_accel_noise_density_radps2_per_sqrt_hz)
+    assert f.params.gyro_noise_radps == cfg.odometry.gyro_noise_radps
+    # Without visual odometry the one filter gives the edges: it takes the calibration's.
+    alone = build_odometry(replace(cfg, "visual_odometry", enabled=False), cal)
+    assert not alone.vo_twin and _accel(alone.params) == _accel(twin)
+
+
+def test_calibration_fused_gives_the_fused_filter_the_same_noise():
+    cal = _shipped()
+    f = build_odometry(replace(Config(), "odometry", noise_model="calibration_fused"), cal)
+    twin = f.wheel_gyro.params
+    assert _accel(f.params) == _accel(twin)
+    assert f.params.gyro_noise_radps == twin.gyro_noise_radps
+    assert f.params.rate_only_process and not twin.rate_only_process  # the fused pose follows its rates
+
+
+def test_without_a_calibration_or_its_accelerations_the_config_is_kept(caplog):
+    cfg = replace(Config(), "odometry", noise_model="calibration")
+    f = build_odometry(cfg, None)
+    assert f.wheel_gyro.params == build_odometry(Config()).wheel_gyro.params
+    assert _accel(f.wheel_gyro.params) == (0.5, 0.3)
+    assert "no calibration's odometry model" in caplog.text
+    # A calibration written before the accelerations were fitted: its densities, the
+    # config's accelerations, a warning.
+    cal = _shipped()
+    old = dataclasses.replace(cal, odometry=dataclasses.replace(
+        cal.odometry, accel_noise_mps2_sqrt_hz=None, angular_accel_noise_radps2_sqrt_hz=None,
+        accel_noise_sigma=None, angular_accel_noise_sigma=None))
+    g = build_odometry(cfg, old)
+    assert _accel(g.wheel_gyro.params) == (0.5, 0.3)
+    assert g.wheel_gyro.params.wheel_v_noise_mps < cfg.odometry.wheel_v_noise_mps  # the tick's, not the config's
+    assert "no white accelerations" in caplog.text
+    # The default, "config": today's filters, calibration or not.
+    assert build_odometry(Config(), cal).wheel_gyro.params == build_odometry(
+        replace(Config(), "odometry", noise_model="config"), cal).wheel_gyro.params
+    assert _accel(build_odometry(Config(), cal).wheel_gyro.params) == (0.5, 0.3)
