@@ -131,6 +131,7 @@ class VirtualRobot:
         self.clock = clock
         rng = np.random.default_rng(settings.seed)
         self.motion = plan_motion(build_route(settings.route), MotionLimits())
+        plain = self.motion  # a kidnapped drive's gyro draws are this drive's (simulate_sensors)
         if settings.kidnap is not None:
             from robotd.base.errors import ConfigError
 
@@ -141,13 +142,15 @@ class VirtualRobot:
                 raise ConfigError(str(exc)) from None
         if settings.duration_s is not None:
             self.motion = self.motion.truncated(settings.duration_s)
+            plain = plain.truncated(settings.duration_s)
         sp = sensor_params or BaseSensorParams()
         own = None
         if settings.base_seed is not None and settings.base_seed != settings.seed:
             from sim.sensors import draw_errors
 
             own = draw_errors(sp, np.random.default_rng(settings.base_seed))
-        feedback = simulate_kobuki(self.motion, sp, rng, base_params, errors=own)
+        feedback = simulate_kobuki(self.motion, sp, rng, base_params, errors=own,
+                                   draws_of=plain if settings.kidnap is not None else None)
         self.floor = _make_floor(settings)
         self.camera_model = camera_model
         self.renderer = FloorRenderer(self.floor, camera_model, render_params or RenderParams(),

@@ -58,6 +58,7 @@ state between :func:`draw_errors` and :func:`simulate_sensors`, as the model alw
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 
@@ -243,14 +244,30 @@ def _gyro(motion: Motion, params: BaseSensorParams, errors: BaseErrors, t0_s: fl
 
 
 def simulate_sensors(motion: Motion, params: BaseSensorParams, errors: BaseErrors,
-                     rng: np.random.Generator, rate_hz: float = 50.0) -> BaseSensorStreams:
+                     rng: np.random.Generator, rate_hz: float = 50.0,
+                     draws_of: Motion | None = None) -> BaseSensorStreams:
     """What a base with ``errors`` measures along ``motion``, wheels sampled at ``rate_hz``;
-    see the module doc. Draws the slip, then the gyro's phase, bias walk and noise."""
+    see the module doc. Draws the slip, then the gyro's phase, bias walk and noise.
+
+    ``draws_of``: the motion whose slip draws the gyro's follow (default ``motion``). A
+    kidnapped drive (:func:`sim.route.kidnapped`) passes the same drive without the
+    kidnapping: the number of slip draws depends on the whole motion, so the gyro's phase,
+    bias walk and noise would otherwise be other draws than that drive's from the first
+    sample on; so they are that drive's (the same sample for sample when both motions
+    are as long, as under the demo's ``--duration``). The wheels' own draws are
+    ``motion``'s either way (the same as that drive's until the lift)."""
     t_end = float(motion.t_s[-1])
     n = int(math.floor(t_end * rate_hz + 1e-9)) + 1
     t_s = motion.t_s[0] + np.arange(n) / rate_hz
+    gyro_rng = rng
+    if draws_of is not None and draws_of is not motion:
+        gyro_rng = copy.deepcopy(rng)
+        n_of = int(math.floor(float(draws_of.t_s[-1]) * rate_hz + 1e-9)) + 1
+        _wheel_angles(draws_of, params, errors, draws_of.t_s[0] + np.arange(n_of) / rate_hz, gyro_rng)
     wheel_angle_rad, n_events = _wheel_angles(motion, params, errors, t_s, rng)
-    gyro_t_s, gyro_radps = _gyro(motion, params, errors, float(t_s[0]), 1.0 / rate_hz, rng)
+    gyro_t_s, gyro_radps = _gyro(motion, params, errors, float(t_s[0]), 1.0 / rate_hz, gyro_rng)
+    if gyro_rng is not rng:  # the caller's generator ends where that drive's would
+        rng.bit_generator.state = gyro_rng.bit_generator.state
     return BaseSensorStreams(
         t_s=t_s, stamp_ns=np.round(t_s * 1e9).astype(np.int64), device_clock_s=t_s - t_s[0],
         wheel_angle_rad=wheel_angle_rad, true_pose=motion.pose_at(t_s),

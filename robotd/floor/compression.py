@@ -67,9 +67,15 @@ def global_vector(raw: np.ndarray, learned: Learned) -> np.ndarray:
 def hadamard_bits(vec: np.ndarray, signs: np.ndarray, bits: int) -> np.ndarray:
     """Signs of the first ``bits`` rows of the Walsh-Hadamard transform of ``signs * vec``."""
     h = vec * signs
+    other = np.empty_like(h)
     step = len(h) // 2
     while step >= 1:  # fast Walsh-Hadamard transform, one vectorised butterfly per stage
-        h = h.reshape(-1, 2, step)
-        h = np.stack([h[:, 0] + h[:, 1], h[:, 0] - h[:, 1]], axis=1)
+        # Output j of a stage reads only its own block of 2 step inputs: once those blocks
+        # cover the first ``bits``, the rest is never read again.
+        m = min(len(h), -(-bits // (2 * step)) * 2 * step)
+        a, o = h[:m].reshape(-1, 2, step), other[:m].reshape(-1, 2, step)
+        np.add(a[:, 0], a[:, 1], out=o[:, 0])
+        np.subtract(a[:, 0], a[:, 1], out=o[:, 1])
+        h, other = other, h
         step //= 2
-    return np.packbits(h.ravel()[:bits] > 0)
+    return np.packbits(h[:bits] > 0)

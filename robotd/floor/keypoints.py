@@ -282,12 +282,19 @@ def _pooled_orientation_maps(g: np.ndarray, sigma: float, ws: Workspace | None =
         q = ws.buffer("q8", (h, w), np.uint8)
         # floor(angle * 256 / 2 pi) (rounding |x - 0.5|), the level whose centre is nearest
         cv2.convertScaleAbs(ang, dst=q, alpha=_LUT_LEVELS / (2 * math.pi), beta=-0.5)
-        q = cv2.merge([q] * 4, dst=ws.buffer("q8x4", (h, w, 4), np.uint8))  # cv2.LUT looks up channel by channel
+        # Direction d's share at level q is direction 0's at level q - 32 d (mod 256: the
+        # table turns with the angle), so each plane's 4 channels are the level shifted by
+        # 32 d and one single-channel table serves all 8 directions (cv2.LUT with one
+        # table: about 0.6 of the time of a table per channel, the same values).
+        levels = [q] + [np.add(q, shift, out=ws.buffer(f"q8_{d}", (h, w), np.uint8))
+                        for d, shift in enumerate(_LEVEL_SHIFTS[1:4], 1)]  # uint8: mod 256
+        q0 = cv2.merge(levels, dst=ws.buffer("q8x4_0", (h, w, 4), np.uint8))
+        qs = [q0, np.add(q0, _LEVEL_SHIFTS[4], out=ws.buffer("q8x4_1", (h, w, 4), np.uint8))]  # directions 4-7
         mag4 = cv2.merge([mag] * 4, dst=ws.buffer("mag4", (h, w, 4)))
         planes = ws.ch.reshape(2, h, w, 4)
         dst = ws if halved is None else halved
         hh, wh = dst.shape
-        tables = _split_table()
+        table = _level_table()
         if halved is not None and h == 2 * hh and w == 2 * wh:
             # Halving exactly 2 x 2 blocks is local: strips of _STRIP rows are split, weighted
             # and halved while they are in the cache (same values as the whole image at once).
@@ -295,14 +302,14 @@ def _pooled_orientation_maps(g: np.ndarray, sigma: float, ws: Workspace | None =
             for r0 in range(0, h, _STRIP):
                 r1 = min(h, r0 + _STRIP)
                 for i in range(2):
-                    c = cv2.LUT(q[r0:r1], tables[i], dst=planes[i][r0:r1])
+                    c = cv2.LUT(qs[i][r0:r1], table, dst=planes[i][r0:r1])
                     cv2.multiply(c, mag4[r0:r1], dst=c)
                     cv2.resize(c, (wh, (r1 - r0) // 2), dst=small[i][r0 // 2:r1 // 2], interpolation=cv2.INTER_AREA)
             return (cv2.GaussianBlur(small[0], (k, k), sigma, dst=halved.pooled[0]),
                     cv2.GaussianBlur(small[1], (k, k), sigma, dst=halved.pooled[1]))
         out = []
-        for i, table in enumerate(tables):
-            c = cv2.LUT(q, table, dst=planes[i])
+        for i in range(2):
+            c = cv2.LUT(qs[i], table, dst=planes[i])
             cv2.multiply(c, mag4, dst=c)
             if halved is not None:
                 c = cv2.resize(c, (wh, hh), dst=halved.ch.reshape(2, hh, wh, 4)[i], interpolation=cv2.INTER_AREA)
@@ -335,6 +342,8 @@ _STRIP = 64
 """Rows per strip of the channels halved strip by strip (even)."""
 _LUT_LEVELS = 256
 """Angles of the channel table (:func:`_pooled_orientation_maps` with ``exact`` False)."""
+_LEVEL_SHIFTS = [np.uint8((-32 * d) % _LUT_LEVELS) for d in range(8)]
+"""Added to the angle's level (mod 256) for direction ``d`` (:func:`_level_table`)."""
 
 
 @lru_cache(maxsize=1)
@@ -353,6 +362,13 @@ def _split_table() -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(t[:, None, :4]), np.ascontiguousarray(t[:, None, 4:])
 
 
+@lru_cache(maxsize=1)
+def _level_table() -> np.ndarray:
+    """``(256,) float32``: direction 0's share of a unit gradient at each angle level
+    (:func:`_split_table`'s first column; direction ``d``'s is it at the level ``- 32 d``)."""
+    return np.ascontiguousarray(_split_table()[0][:, 0, 0])
+
+
 @lru_cache(maxsize=4)
 def _slots(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
     """``(h, w) intp`` ``4 p`` for pixel ``p`` (row-major), and ``(8,) intp`` the offset
@@ -363,6 +379,9 @@ def _slots(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
 
 _SHIFTS = np.stack([np.roll(np.eye(8, dtype=np.float32), s, axis=0) for s in range(9)])
 """``(9, 8, 8)``: ``x @ _SHIFTS[s]`` is ``x`` with element ``j`` taken from ``(s + j) % 8``."""
+_TURN_SLOTS = np.stack([[((np.arange(8) + s + o) % 8) * 8 + np.arange(8) for s in range(8)] for o in (0, 1)])
+"""``(2, 8, 8)``: flat positions in an 8 x 8 matrix of the entries of ``_SHIFTS[s]`` (``[0, s]``)
+and ``_SHIFTS[s + 1]`` (``[1, s]``) that are 1, one per column."""
 _GRID = np.meshgrid(np.arange(4, dtype=np.float32) - 1.5, np.arange(4, dtype=np.float32) - 1.5)
 
 
@@ -396,25 +415,37 @@ def raw_descriptors(c: Candidates, n: int, params: ExtractParams, ws: Workspace 
     # Turn the 8 absolute directions into directions relative to the keypoint: relative
     # bin j is absolute direction angle + j * 45 deg, interpolated between whole bins,
     # one 8 x 8 matrix per keypoint (a blend of two circular shifts).
-    a = ang * np.float32(8 / (2 * math.pi))
-    a0 = a.astype(np.intp) & 7
-    f = (a - np.floor(a))[:, None, None]
-    if ws is None:
-        turn = _SHIFTS[a0] * (1 - f)
-        turn += _SHIFTS[a0 + 1] * f
-        d = np.matmul(smp, turn)
-    else:
-        turn = np.take(_SHIFTS, a0, axis=0, out=ws.buffer("turn", (n, 8, 8)))
-        turn *= 1 - f
-        other = np.take(_SHIFTS, a0 + 1, axis=0, out=ws.buffer("turn1", (n, 8, 8)))
-        other *= f
-        turn += other
-        d = np.matmul(smp, turn, out=ws.buffer("raw", (n, 16, 8)))
+    turn = _turns(ang, None if ws is None else ws.buffer("turn", (n, 8, 8)))
+    d = np.matmul(smp, turn) if ws is None else np.matmul(smp, turn, out=ws.buffer("raw", (n, 16, 8)))
     d = d.reshape(n, N_ELEMENTS)
     d *= 1 / np.maximum(np.sqrt(np.einsum("ij,ij->i", d, d)), 1e-12)[:, None]
     np.minimum(d, 0.2, out=d)
     d *= 1 / np.maximum(np.sqrt(np.einsum("ij,ij->i", d, d)), 1e-12)[:, None]
     return d
+
+
+def _turns(ang: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """``(n, 8, 8) float32``: for each orientation in ``ang (n,) float32`` (radians, in
+    [0, 2 pi]), the matrix that turns 8 absolute direction bins into bins relative to it,
+    ``_SHIFTS[a0] (1 - f) + _SHIFTS[a0 + 1] f`` with ``a0 + f`` the orientation in bins.
+
+    That blend has exactly two non-zero entries per column, ``1 - f`` and ``f`` (every
+    product with 0 or 1 and every sum with 0 is exact), so they are written into zeros:
+    the same matrices, bit for bit, at a fraction of the arithmetic. ``out``: an
+    ``(n, 8, 8) float32`` C-contiguous buffer to write them in.
+    """
+    n = len(ang)
+    a = ang * np.float32(8 / (2 * math.pi))
+    a0 = a.astype(np.intp) & 7
+    f = a - np.floor(a)
+    turn = np.zeros((n, 8, 8), np.float32) if out is None else out
+    if out is not None:
+        turn.fill(0.0)
+    flat = turn.reshape(-1)
+    at = np.arange(0, 64 * n, 64)[:, None]
+    flat[at + _TURN_SLOTS[0][a0]] = (1 - f)[:, None]
+    flat[at + _TURN_SLOTS[1][a0]] = f[:, None]
+    return turn
 
 
 def drop_repeats(c: Candidates, params: ExtractParams) -> tuple[Candidates, np.ndarray]:

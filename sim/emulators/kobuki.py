@@ -240,11 +240,13 @@ def encode(sensors: BaseSensorStreams, state: KobukiState,
 
 def simulate_kobuki(motion: Motion, sensor_params: BaseSensorParams, rng: np.random.Generator,
                     params: KobukiParams | None = None, rate_hz: float = 50.0,
-                    errors: BaseErrors | None = None) -> KobukiFeedback:
+                    errors: BaseErrors | None = None, draws_of: Motion | None = None) -> KobukiFeedback:
     """A Kobuki's packets at ``rate_hz`` along ``motion``: draws the sensors' errors, the
     base's power-on state, then the sensor streams (in that order, see the module doc).
     ``errors``: the base's own errors instead of the drawn ones (the same robot on another
-    drive: the draws are still made, so the rest of the run is the seed's as ever)."""
+    drive: the draws are still made, so the rest of the run is the seed's as ever).
+    ``draws_of``: a kidnapped drive's motion without the kidnapping, whose gyro draws it
+    shares (:func:`sim.sensors.simulate_sensors`)."""
     params = params or KobukiParams()
     drawn = draw_errors(sensor_params, rng)
     if errors is None:
@@ -252,7 +254,7 @@ def simulate_kobuki(motion: Motion, sensor_params: BaseSensorParams, rng: np.ran
     else:  # the turn-on bias is the drive's own; the rest is the base's
         errors = dataclasses.replace(errors, gyro_bias0_radps=drawn.gyro_bias0_radps)
     state = KobukiState.draw(errors, params, rng)
-    sensors = simulate_sensors(motion, sensor_params, errors, rng, rate_hz)
+    sensors = simulate_sensors(motion, sensor_params, errors, rng, rate_hz, draws_of=draws_of)
     feedback = encode(sensors, state, params)
     if motion.lifted is not None:  # carried: both wheels hang free
         drop = np.where(np.asarray(motion.lifted_at(feedback.t_s)), 0x03, 0x00).astype(np.uint8)

@@ -509,3 +509,29 @@ def test_later_passes_tie_to_the_previous_pass_or_to_the_first():
     assert _three_passes(IncrementalParams(tie_to="first")) == second + [(60, 0), (70, 10), (80, 20)]
     with pytest.raises(ValueError):
         IncrementalParams(tie_to="nearest")
+
+
+def test_a_relocalised_segment_is_held_by_its_loops_alone():
+    """A new segment is held at its first keyframe until it relocalises; after that only
+    the map's first keyframe is held (a prior left on the segment would claim a pose it
+    does not know): its heading relative to the map is then as uncertain as its loops
+    leave it, and a full solve moves its first keyframe."""
+    inc = IncrementalGraph(IncrementalParams(loop_spacing=0, loops_per_place=0))
+    inc.add_first(0)
+    for k in range(1, 10):
+        inc.add_keyframe(k, k - 1, [0.1, 0.0, 0.0], INFO)
+    inc.add_segment(10, [0.0, 0.0, 0.0])
+    for k in range(11, 20):
+        inc.add_keyframe(k, k - 1, [0.1, 0.0, 0.0], INFO)
+    assert inc.graph.anchors() == [0, 10]
+    assert inc.marginal_covariance(10)[2, 2] < 1e-8  # held in iSAM2 until it relocalises
+    # put down 0.5 m along: keyframe 10 is where 5 was; the loops say 2 mm and 0.2 deg more
+    loop = np.array([0.002, 0.0, math.radians(0.2)])
+    inc.attach(range(10, 20), [0.5, 0.0, 0.0], [(5, 10, loop, INFO), (7, 12, loop, INFO)])
+    assert inc.graph.anchors() == [0]
+    assert inc.stats()["factors"] == 18 + 2 + 1  # odometry, the two loops, the first keyframe's anchor
+    yaw_sigma = math.sqrt(inc.marginal_covariance(10)[2, 2])
+    assert yaw_sigma > math.sqrt(1 / INFO[2, 2])  # at least one loop's and the chain's
+    result = inc.resolve()
+    first = result.poses[list(result.ids).index(10)]
+    assert abs(first[2] - math.radians(0.2)) < math.radians(0.05)  # the loops placed it, no prior

@@ -73,3 +73,18 @@ def test_without_the_forward_camera_nothing_changes():
     settings = VirtualRobotSettings(route="square", duration_s=0.2)
     with VirtualRobot(settings, FloorCameraModel.default(), ManualClock()) as robot:
         assert robot.forward is None and robot.cameras == [robot.camera]
+
+
+def test_a_kidnapped_robot_measures_what_the_same_drive_without_the_kidnapping_does_until_the_lift():
+    """``robotd demo --kidnap`` is judged against the same drive without it: same seed,
+    same wheel and gyro readings until the lift (sim.sensors.simulate_sensors' ``draws_of``)."""
+    def feedback(kidnap):
+        settings = VirtualRobotSettings(route="office", seed=2, duration_s=40.0, kidnap=kidnap)
+        with VirtualRobot(settings, FloorCameraModel.default(), ManualClock()) as robot:
+            return robot.base.feedback
+
+    plain, kid = feedback(None), feedback((20.0, 8.0, 5.0))
+    before = plain.t_s < 20.0
+    for name in ("left_ticks", "right_ticks", "angle_cdeg", "gyro_digits"):
+        np.testing.assert_array_equal(getattr(plain, name)[before], getattr(kid, name)[before])
+    assert not np.array_equal(plain.left_ticks, kid.left_ticks)

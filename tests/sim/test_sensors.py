@@ -61,6 +61,34 @@ def test_same_seed_same_streams(square):
     assert not np.array_equal(a.wheel_angle_rad, c.wheel_angle_rad)
 
 
+def test_a_kidnapped_drive_has_the_same_gyro_noise_as_the_drive_without_it():
+    """The kidnapped drive is compared with the same drive without the kidnapping: until the
+    lift both must measure the same (wheels and gyro). The slip draws after the lift differ
+    in number, so without ``draws_of`` the gyro's draws (drawn after them) differ from the
+    first sample on."""
+    from sim.route import kidnapped
+
+    plain = plan_motion(build_route("office")).truncated(120.0)
+    kid = kidnapped(plan_motion(build_route("office")), 60.0, 20.0, 5.0).truncated(120.0)
+    p = BaseSensorParams()
+
+    def run(motion, draws_of):
+        rng = np.random.default_rng(0)
+        return simulate_sensors(motion, p, draw_errors(p, rng), rng, draws_of=draws_of), rng.random()
+
+    (a, after_a), (b, after_b), (c, _) = run(plain, None), run(kid, plain), run(kid, None)
+    wheels = a.t_s < 60.0
+    np.testing.assert_array_equal(a.wheel_angle_rad[wheels], b.wheel_angle_rad[wheels])
+    np.testing.assert_array_equal(a.gyro_t_s, b.gyro_t_s)
+    gyro = a.gyro_t_s < 60.0
+    np.testing.assert_array_equal(a.gyro_radps[gyro], b.gyro_radps[gyro])
+    assert after_a == after_b  # the generator goes on as the plain drive's
+    assert not np.array_equal(a.gyro_radps[gyro], c.gyro_radps[gyro])  # what draws_of is for
+    assert not np.array_equal(a.wheel_angle_rad, b.wheel_angle_rad)  # after the lift: another drive
+    # draws_of a drive's own motion changes nothing
+    np.testing.assert_array_equal(run(plain, plain)[0].gyro_radps, a.gyro_radps)
+
+
 def test_samples_at_50_hz_with_the_true_pose_and_device_clock(square):
     s = _simulate(square, IDEAL, 0)
     assert len(s.t_s) == math.floor(square.duration_s * 50) + 1
