@@ -153,6 +153,22 @@ def _augmented(d: FloorDescriptor, scale: float, last: np.ndarray | None) -> np.
     return out
 
 
+def _augmented_b(d: FloorDescriptor) -> np.ndarray:
+    """``_augmented(d, -2.0, d.nonzero_trits())``, built from the bit planes in int8 (the
+    trits times -2 are exact there) and cast once: the candidate's side of every local score."""
+    n, length = len(d), d.length
+    pos = np.unpackbits(np.ascontiguousarray(d.local_pos).astype("<u8", copy=False).view(np.uint8), axis=1,
+                        bitorder="little")
+    neg = np.unpackbits(np.ascontiguousarray(d.local_neg).astype("<u8", copy=False).view(np.uint8), axis=1,
+                        bitorder="little")
+    t = neg.view(np.int8)[:, :length] - pos.view(np.int8)[:, :length]
+    t += t
+    out = np.empty((n, length + 1), np.float32)
+    out[:, :-1] = t
+    out[:, -1] = d.nonzero_trits()
+    return out
+
+
 def _rigid(xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
     """``[R | t]`` (2 x 3) of the least-squares rigid fit ``xb ~ R xa + t`` (as
     :func:`robotd.base.geometry.rigid_fit_2d`, from raw sums: this runs twice per match)."""
@@ -178,6 +194,26 @@ def _ransac_rng(seed: int) -> np.random.Generator:
     g, start = entry
     g.bit_generator.state = start
     return g
+
+
+def _ransac_pairs(seed: int, m: int, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """RANSAC's sample indices ``(i, j)`` (``(iterations,) int64`` each, ``i != j``) among
+    ``m`` matches: the draws of a generator started at ``seed``, which depend only on
+    ``m`` and ``iterations``, so they are kept per thread (read-only arrays)."""
+    cache = getattr(_RNGS, "pairs", None)
+    if cache is None:
+        cache = _RNGS.pairs = {}
+    key = (seed, m, iterations)
+    hit = cache.get(key)
+    if hit is None:
+        rng = _ransac_rng(seed)
+        i = rng.integers(m, size=iterations)
+        j = (i + 1 + rng.integers(m - 1, size=iterations)) % m
+        i.flags.writeable = j.flags.writeable = False
+        if len(cache) >= 4096:
+            cache.clear()
+        hit = cache[key] = (i, j)
+    return hit
 
 
 _RNGS = threading.local()
@@ -220,7 +256,7 @@ def _score(a: FloorDescriptor, b: FloorDescriptor, p: MatchParams, aug_a: np.nda
     # non-zero trits. |ta|^2 is the same along a row, so the search needs only the rest,
     # |tb|^2 - 2 ta.tb = [ta, 1] . [-2 tb, |tb|^2]: one matrix product (integers, exact in
     # float32), which is most of the time in mode 6.
-    dist = aug_a @ _augmented(b, -2.0, b.nonzero_trits()).T
+    dist = aug_a @ _augmented_b(b).T
     rows = np.arange(len(a))
     nn = np.argmin(dist, axis=1)
     d1 = dist[rows, nn] + norm_a
@@ -249,10 +285,8 @@ def _score(a: FloorDescriptor, b: FloorDescriptor, p: MatchParams, aug_a: np.nda
     xa, xb = a.xy_px[ka].astype(np.float64), b.xy_px[kb].astype(np.float64)
     weight = np.maximum(0.0, 1.0 - kd / p.weight_distance)
     # Step 3: RANSAC over 2-point rigid hypotheses.
-    rng = _ransac_rng(p.seed)
     m = len(ka)
-    i = rng.integers(m, size=p.iterations)
-    j = (i + 1 + rng.integers(m - 1, size=p.iterations)) % m
+    i, j = _ransac_pairs(p.seed, m, p.iterations)
     va, vb = xa[j] - xa[i], xb[j] - xb[i]
     la, lb = np.hypot(va[:, 0], va[:, 1]), np.hypot(vb[:, 0], vb[:, 1])
     phi = np.arctan2(vb[:, 1], vb[:, 0]) - np.arctan2(va[:, 1], va[:, 0])
