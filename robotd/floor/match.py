@@ -257,15 +257,17 @@ def _score(a: FloorDescriptor, b: FloorDescriptor, p: MatchParams, aug_a: np.nda
     # |tb|^2 - 2 ta.tb = [ta, 1] . [-2 tb, |tb|^2]: one matrix product (integers, exact in
     # float32), which is most of the time in mode 6.
     dist = aug_a @ _augmented_b(b).T
-    rows = np.arange(len(a))
     nn = np.argmin(dist, axis=1)
-    d1 = dist[rows, nn] + norm_a
-    dist[rows, nn] = np.inf
+    flat = dist.reshape(-1)  # the nearest's entries by flat index: cheaper than a 2-D gather
+    at = np.arange(0, flat.size, dist.shape[1]) + nn
+    d1 = flat.take(at) + norm_a
+    flat.put(at, np.inf)
     d2 = dist.min(axis=1) + norm_a
     d1 *= 1.0 / a.length
     d2 *= 1.0 / a.length
     keep = (d1 <= p.max_distance) & (d1 < p.ratio * p.ratio * d2)
-    ia, ib, dm = rows[keep], nn[keep], d1[keep]
+    ia = np.flatnonzero(keep)
+    ib, dm = nn[ia], d1[ia]
     if len(ia) < p.min_matches:
         return _dismissed(TOO_FEW_MATCHES, len(ia))
     # The bound, with room for the rounding of a sum taken in another order.
