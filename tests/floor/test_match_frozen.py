@@ -17,7 +17,7 @@ from robotd.base.geometry import wrap_angle
 from robotd.floor.descriptor import FloorDescriptor, decode, extract
 from robotd.floor.match import (BELOW_MIN_SCORE, NO_GEOMETRIC_CONSISTENCY, TOO_FEW_FEATURES, TOO_FEW_MATCHES,
                                 Matcher, MatchParams, MatchReason, MatchResult, _augmented, _dismissed,
-                                _ransac_rng, _rigid, _augmented_b)
+                                _ransac_pairs, _ransac_rng, _rigid, _augmented_b)
 from sim.world.floor import Floor
 
 _PREV_BIN = np.roll(np.arange(32), 1)
@@ -162,8 +162,22 @@ def test_candidate_side_equals_the_augmented_trits(views: list[np.ndarray]) -> N
         assert np.array_equal(_augmented_b(d), _augmented(d, -2.0, d.nonzero_trits()))
 
 
+@pytest.mark.parametrize("m", [2, 3, 57, 186])
+def test_ransac_pairs_are_the_seeded_draws(m: int) -> None:
+    """The kept sample pairs are those a generator seeded afresh draws (as the previous
+    ``_score`` drew them), also after other counts and seeds were asked for."""
+    for seed in (0, 7):
+        rng = np.random.default_rng(seed)
+        i = rng.integers(m, size=100)
+        j = (i + 1 + rng.integers(m - 1, size=100)) % m
+        _ransac_pairs(seed, m + 1, 100)
+        for _ in range(2):
+            got_i, got_j = _ransac_pairs(seed, m, 100)
+            assert np.array_equal(got_i, i) and np.array_equal(got_j, j)
+            assert not np.any(got_i == got_j)
+
+
 def test_too_few_features_unchanged() -> None:
     empty = decode(extract(np.zeros((H, W), np.uint8), 4))
     assert len(empty) < 2
     assert Matcher(empty).score(empty).reason == TOO_FEW_FEATURES
-    _ = FloorDescriptor, wrap_angle, _dismissed, _ransac_rng, _rigid
