@@ -643,6 +643,13 @@ class ForwardLoopStage(Publisher):
         self._drain(force=True)
         n = len(self._outbox)
         self._release(2**62)
+        if self.cpu_ms:
+            c = self.counters()
+            log.info("forward keyframes' CPU time: median %.2f ms, p99 %.2f ms; parts (p99 / total ms): %s; "
+                     "the three costliest keyframes: %s", c["forward_cpu_ms_median"], c["forward_cpu_ms_p99"],
+                     ", ".join(f"{k} {c[f'forward_{k}_cpu_ms_p99']} / {c[f'forward_{k}_cpu_ms_total']}"
+                               for k in PARTS if f"forward_{k}_cpu_ms_p99" in c),
+                     c.get("forward_cpu_top_keyframes"))
         return n
 
     def _take(self, kf: Any, pose: np.ndarray, chain: int, links: int) -> None:
