@@ -86,12 +86,39 @@ def _sampson(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarray,
     return out
 
 
+_BLOCK = 32  # candidates scored at once by fit_planar's heading scan
+
+
 def _sampson_many(x_old: np.ndarray, x_new: np.ndarray, yaws: np.ndarray, psis: np.ndarray,
                   focal: float) -> np.ndarray:
-    """:func:`_sampson` of the planar poses ``(yaws[m], psis[m])``, all at once: ``(M, N)``."""
+    """:func:`_sampson` of the planar poses ``(yaws[m], psis[m])``, all at once: ``(M, N)``.
+
+    ``E = [t]x R`` has four nonzero entries, so ``E x`` and ``E^T x'`` are written out
+    entry by entry on ``(M, N)`` arrays instead of contracting the ``(M, 3, 3)`` matrices
+    (4-5 x faster); the sums are taken in the order ``numpy.einsum`` took them, so the
+    distances are the same to the bit (``tests/forward/test_planefit.py``)."""
     c, s = np.cos(yaws), np.sin(yaws)
     tx_, tz = np.sin(psis), np.cos(psis)
-    # E = [t]x R with R = [[c, 0, s], [0, 1, 0], [-s, 0, c]] and t = (sin psi, 0, cos psi).
+    # E = [t]x R with R = [[c, 0, s], [0, 1, 0], [-s, 0, c]] and t = (sin psi, 0, cos psi):
+    # E[0, 1] = -tz, E[1, 0] = e10, E[1, 2] = e12, E[2, 1] = tx, the others 0.
+    e01, e10 = (-tz)[:, None], (tz * c + tx_ * s)[:, None]
+    e12, e21 = (tz * s - tx_ * c)[:, None], tx_[:, None]
+    x1, y1, z1 = x_old[:, 0], x_old[:, 1], x_old[:, 2]
+    x2, y2, z2 = x_new[:, 0], x_new[:, 1], x_new[:, 2]
+    ex1_0, ex1_1, ex1_2 = e01 * y1, e10 * x1 + e12 * z1, e21 * y1  # E x_old
+    etx2_0, etx2_1 = e10 * y2, e01 * x2 + e21 * z2  # E^T x_new's first two
+    num = (x2 * ex1_0 + z2 * ex1_2) + y2 * ex1_1
+    den = np.sqrt(ex1_0 ** 2 + ex1_1 ** 2 + etx2_0 ** 2 + etx2_1 ** 2)
+    out: np.ndarray = focal * num / np.maximum(den, 1e-15)
+    return out
+
+
+def _sampson_many_einsum(x_old: np.ndarray, x_new: np.ndarray, yaws: np.ndarray, psis: np.ndarray,
+                         focal: float) -> np.ndarray:
+    """:func:`_sampson_many` by contracting the ``(M, 3, 3)`` essential matrices (the
+    reference it is tested against)."""
+    c, s = np.cos(yaws), np.sin(yaws)
+    tx_, tz = np.sin(psis), np.cos(psis)
     e = np.zeros((len(yaws), 3, 3))
     e[:, 0, 1] = -tz
     e[:, 1, 0] = tz * c + tx_ * s
@@ -155,9 +182,16 @@ def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nda
     cands = centres[..., None] + np.array([-0.5, 0.0, 0.5]) * math.pi / bins  # (yaws, 2, 3)
     cand_yaw = np.broadcast_to(yaws[:, None, None], cands.shape).ravel()
     cand_psi = cands.ravel()
-    d = np.abs(_sampson_many(x_old, x_new, cand_yaw, cand_psi, focal))  # (candidates, N)
-    inl_n = (d < threshold_px).sum(axis=1)
-    cost = -np.einsum("ij,ij->i", np.minimum(d, threshold_px), np.minimum(d, threshold_px))
+    # Each candidate's inliers and cost, a block of candidates at a time (the block's
+    # distances stay in the cache; each row's figures are those of the whole at once).
+    inl_n = np.zeros(len(cand_psi), np.int64)
+    cost = np.zeros(len(cand_psi))
+    for at in range(0, len(cand_psi), _BLOCK):
+        sl = slice(at, at + _BLOCK)
+        d = np.abs(_sampson_many(x_old, x_new, cand_yaw[sl], cand_psi[sl], focal))  # (block, N)
+        inl_n[sl] = (d < threshold_px).sum(axis=1)
+        dm = np.minimum(d, threshold_px)
+        cost[sl] = -np.einsum("ij,ij->i", dm, dm)
     # The most inliers, then the least cost; the first in scan order among equals.
     best_i = int(np.flatnonzero(inl_n == inl_n.max())[np.argmax(cost[inl_n == inl_n.max()])])
     scan_n = inl_n.reshape(len(yaws), -1).max(axis=1)

@@ -62,6 +62,17 @@ def test_inside_its_window_it_is_the_exact_least_squares():
         assert got[0] == pytest.approx(want[0], abs=1e-9) and got[1] == pytest.approx(want[1], rel=1e-6)
 
 
+def test_both_orderings_of_the_solve_give_the_exact_least_squares():
+    new, old = HeadingGraph(), HeadingGraph(ordering="COLAMD")
+    links = _feed(new, 400, lap=150)
+    _feed(old, 400, lap=150)
+    for a, b in [(5, 390), (150, 399), (37, 211)]:
+        got, before, want = new.relative(a, b), old.relative(a, b), _dense(links, a, b)
+        assert got is not None and before is not None
+        assert got[0] == pytest.approx(want[0], abs=1e-9) and got[1] == pytest.approx(want[1], rel=1e-6)
+        assert got[0] == pytest.approx(before[0], abs=1e-12) and got[1] == pytest.approx(before[1], rel=1e-9)
+
+
 def test_a_keyframe_the_links_have_not_reached_is_joined_by_the_odometry():
     g = HeadingGraph()
     _feed(g, 50, lap=1000)

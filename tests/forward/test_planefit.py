@@ -137,3 +137,22 @@ def test_two_point_ransac_draws_at_most_its_cap_on_matches_without_consensus():
     assert search.samples == 200 and search.hypotheses <= 400
     assert fit is None or fit.n_inliers < 20
     assert ransac_planar(po[:4], pn[:4], K)[0] is None
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_written_out_sampson_distances_are_the_contracted_ones_to_the_bit(seed):
+    from robotd.forward.planefit import _sampson, _sampson_many, _sampson_many_einsum
+
+    po, pn = _views(6.0 - 4 * seed, 50.0 * seed - 40.0, 0.4, seed=seed)
+    kinv = np.linalg.inv(K)
+    x = np.hstack([po, np.ones((len(po), 1))]) @ kinv.T
+    xn = np.hstack([pn, np.ones((len(pn), 1))]) @ kinv.T
+    rng = np.random.default_rng(seed)
+    yaws, psis = rng.uniform(-0.4, 0.4, 300), rng.uniform(0.0, math.pi, 300)
+    fast = _sampson_many(x, xn, yaws, psis, 525.0)
+    assert fast.shape == (300, len(po))
+    assert np.array_equal(fast, _sampson_many_einsum(x, xn, yaws, psis, 525.0))
+    # and they are the Sampson distances of the poses one by one
+    for m in (0, 117, 299):
+        assert np.allclose(fast[m], _sampson(x, xn, *planar_pose(float(yaws[m]), float(psis[m])), 525.0),
+                           rtol=1e-9, atol=1e-9)

@@ -131,6 +131,9 @@ from robotd.forward.verify import VerifyParams, floor_range, match_features
 
 log = logging.getLogger(__name__)
 
+# The stage's parts timed per forward keyframe (ForwardLoopStage.part_cpu_ms).
+PARTS = ("match", "scan", "level", "ridge", "graph", "readback", "store", "stage")
+
 
 @dataclass(frozen=True)
 class RidgeParams:
@@ -202,10 +205,20 @@ class HeadingGraph:
     links are kept in arrays, 24 bytes each). A loop to a keyframe further back gets no
     graph heading (the stage then takes the odometry's). ``window`` (2,000 keyframes, about
     1 km at the demo's spacing) is larger than any run of the demo, whose figures it does
-    not change; at 10,000 keyframes it keeps the time per call and the memory flat."""
+    not change; at 10,000 keyframes it keeps the time per call and the memory flat.
 
-    def __init__(self, window: int = 2000) -> None:
+    ``ordering``: SuperLU's column ordering of the solve (``splu``'s ``permc_spec``):
+    ``"MMD_AT_PLUS_A"`` (default: the system is symmetric, and its factorisation takes
+    about half the time of ``"COLAMD"``'s, the ordering before, on the demo's graphs; the
+    headings agree to 1e-15 rad). SciPy's sparse modules are imported when the graph is made
+    (at the stage's start), not at the first loop on a ridge, which paid for the import."""
+
+    def __init__(self, window: int = 2000, ordering: str = "MMD_AT_PLUS_A") -> None:
+        import scipy.sparse.csgraph
+        import scipy.sparse.linalg  # noqa: F401  (imported here, not at a keyframe: see above)
+
         self.window = int(window)
+        self.ordering = ordering
         self._f = np.zeros(0, np.int64)  # the links' from and to keyframes, yaw change (rad), variance (rad^2)
         self._t = np.zeros(0, np.int64)
         self._d = np.zeros(0, np.float64)
@@ -329,7 +342,7 @@ class HeadingGraph:
         np.add.at(g, ti, w * r)
         np.add.at(g, fi, -w * r)
         free = np.flatnonzero(keep & (np.arange(nn) != ia))
-        lu = splu(h[free][:, free].tocsc())
+        lu = splu(h[free][:, free].tocsc(), permc_spec=self.ordering)
         dy = np.zeros(nn)
         dy[free] = lu.solve(g[free])
         e = np.zeros(len(free))
@@ -426,6 +439,12 @@ class ForwardLoopStage(Publisher):
         self.cpu_ms: list[float] = []  # the same, in the pipeline thread's CPU time
         self.verify_ms: list[float] = []  # its verification part (wall clock)
         self.features_ms: list[float] = []  # its feature extraction (OpenCV's ORB, wall clock): the baseline
+        # The stage's parts per forward keyframe in the pipeline thread's CPU time (ms): the
+        # planar refit's matches and heading scan, the level test against the verified motion,
+        # the ridge's fits, the graph's heading, the read-back of evicted images, the map write,
+        # and the whole keyframe (detector and stage).
+        self.part_cpu_ms: dict[str, list[float]] = {k: [] for k in PARTS}
+        self._part: dict[str, float] = {}
         if store is not None:
             self._restore()
 
@@ -495,6 +514,13 @@ class ForwardLoopStage(Publisher):
     def _load(self, image_id: int) -> CompactFeatures:
         """The detector's loader: a past image's features read back from the map (a read
         that fails is logged and counted, and that image is not verified)."""
+        t0 = time.thread_time()
+        try:
+            return self._read_back(image_id)
+        finally:
+            self._add_cpu("readback", t0)
+
+    def _read_back(self, image_id: int) -> CompactFeatures:
         try:
             row = self.store.forward_image(image_id) if self.store is not None else None
         except MapStoreError as exc:
@@ -627,16 +653,30 @@ class ForwardLoopStage(Publisher):
         self._drain(force=True)
         n = len(self._outbox)
         self._release(2**62)
+        if self.cpu_ms:
+            c = self.counters()
+            log.info("forward keyframes' CPU time: median %.2f ms, p99 %.2f ms; parts (p99 / total ms): %s; "
+                     "the three costliest keyframes: %s", c["forward_cpu_ms_median"], c["forward_cpu_ms_p99"],
+                     ", ".join(f"{k} {c[f'forward_{k}_cpu_ms_p99']} / {c[f'forward_{k}_cpu_ms_total']}"
+                               for k in PARTS if f"forward_{k}_cpu_ms_p99" in c),
+                     c.get("forward_cpu_top_keyframes"))
         return n
 
     def _take(self, kf: Any, pose: np.ndarray, chain: int, links: int) -> None:
         """Run the forward frame nearest ``kf``'s stamp through the detector, if near enough;
         what it publishes is held until the stream passes ``kf``'s stamp plus the delay."""
         self._out = []
+        self._part = {}
+        n_images = self.images
+        cpu0 = time.thread_time()
         try:
             self._take_frame(kf, pose, chain, links)
         finally:
             out, self._out = self._out, None
+            if self.images > n_images:  # a forward keyframe was run: its parts
+                self._add_cpu("stage", cpu0)
+                for part in PARTS:
+                    self.part_cpu_ms[part].append(self._part.get(part, 0.0))
         if not out:
             return
         release = kf.stamp_ns + self.publish_delay_ns
@@ -646,6 +686,11 @@ class ForwardLoopStage(Publisher):
                 self._publish(m)
         else:
             self._outbox.append((release, out))
+
+    def _add_cpu(self, part: str, since: float) -> None:
+        """Add the thread's CPU time since ``since`` (``time.thread_time``) to ``part`` of
+        the keyframe being run."""
+        self._part[part] = self._part.get(part, 0.0) + (time.thread_time() - since) * 1e3
 
     def _emit(self, msg: Any) -> None:
         if self._out is not None:
@@ -682,7 +727,9 @@ class ForwardLoopStage(Publisher):
         self._chains.append(chain)
         self.frame_offset_ms_max = max(self.frame_offset_ms_max, abs(frame.stamp_ns - kf.stamp_ns) / 1e6)
         if self.store is not None:
+            t0 = time.thread_time()
             self._store_image(kf.keyframe_id)
+            self._add_cpu("store", t0)
         self.images += 1
         self.total_ms.append(det.times_s["total"] * 1e3)
         self.verify_ms.append(det.times_s.get("verify", 0.0) * 1e3)
@@ -772,7 +819,9 @@ class ForwardLoopStage(Publisher):
             self._last_refused = (image_id, tilt, v.planarity_chi2)
             return False
         if scan is not None:
+            t0 = time.thread_time()
             settled = self._settle(image_id, scan)
+            self._add_cpu("ridge", t0)
             if settled is False:
                 return False
             if isinstance(settled, tuple):
@@ -795,9 +844,13 @@ class ForwardLoopStage(Publisher):
         k = det.camera_matrix
         if k is None:
             return None
+        t0 = time.thread_time()
         p_old, p_new = match_features(det.features_of(image_id), det.features_of(len(det) - 1), det.params.verify.ratio)
+        self._add_cpu("match", t0)
+        t0 = time.thread_time()
         dyaw, _, _ = planar_motion(v.rotation, v.translation_dir)
         fit = fit_planar(p_old, p_new, k, dyaw, threshold_px=det.params.verify.ransac_threshold_px)
+        self._add_cpu("scan", t0)
         return None if fit is None else (fit, p_old, p_new)
 
     def _choose(self, scan: tuple[PlanarFit, np.ndarray, np.ndarray], v: Any,
@@ -812,8 +865,10 @@ class ForwardLoopStage(Publisher):
         if k is None or fit.n_inliers < max(vp.min_inliers, 0.5 * v.n_inliers):
             return None
         if level:
+            t0 = time.thread_time()
             dyaw, bearing, _ = planar_motion(v.rotation, v.translation_dir)
             n_level = int(planar_inliers(p_old, p_new, k, dyaw, bearing, threshold_px=vp.ransac_threshold_px).sum())
+            self._add_cpu("level", t0)
             if fit.n_inliers <= n_level:
                 return None
         return fit, p_old[fit.inliers], p_new[fit.inliers]
@@ -829,7 +884,9 @@ class ForwardLoopStage(Publisher):
             return None
         e_new, pose_new, var_new, chain, kf_new, links = cur
         e_old = self._offsets[image_id]
+        t0 = time.thread_time()
         graph = self.headings.relative(self._keyframe_ids[image_id], kf_new, upto=links)
+        self._add_cpu("graph", t0)
         if graph is not None:
             return float(wrap_angle(graph[0] - e_old[2] + e_new[2])), graph[1]
         pose_old = self._poses[image_id]
@@ -942,4 +999,21 @@ class ForwardLoopStage(Publisher):
                 "forward_verify_ms_p99": round(float(np.percentile(verify, 99)), 2),
                 "forward_verify_ms_total": round(float(np.sum(verify)), 1),
                 "forward_features_ms_median": round(float(np.median(feat)), 2),
-                "forward_ms_total": round(float(np.sum(total)), 1)}
+                "forward_ms_total": round(float(np.sum(total)), 1),
+                **self._part_counters(cpu)}
+
+    def _part_counters(self, cpu: np.ndarray) -> dict[str, Any]:
+        """The stage's parts in CPU time (:attr:`part_cpu_ms`): each one's p99 and total over
+        the run, and the parts of the three keyframes that cost the detector the most CPU
+        (those that make its p99), in ms."""
+        out: dict[str, Any] = {}
+        parts = {k: np.asarray(v) for k, v in self.part_cpu_ms.items() if len(v) == len(self.cpu_ms) and len(v)}
+        for k, a in parts.items():
+            out[f"forward_{k}_cpu_ms_p99"] = round(float(np.percentile(a, 99)), 2)
+            out[f"forward_{k}_cpu_ms_total"] = round(float(np.sum(a)), 1)
+        if parts:
+            top = np.argsort(-cpu)[:3] if len(self.cpu_ms) else np.zeros(0, np.int64)
+            out["forward_cpu_top_keyframes"] = [
+                {"cpu_ms": round(float(cpu[i]), 1), "verify_ms": round(float(self.verify_ms[i]), 1),
+                 **{k: round(float(a[i]), 1) for k, a in parts.items()}} for i in top]
+        return out
