@@ -52,7 +52,7 @@ except ImportError:  # run as a script: bench/ is on sys.path
 
 from robotd.forward import LOOP, FeatureExtractor, ForwardDetector, method_params
 from robotd.forward.evaluation import score_decisions
-from robotd.forward.detector import OdometryParams, daemon_params
+from robotd.forward.detector import OdometryParams, bounded_verification, daemon_params
 from robotd.forward.features import FeatureParams
 from robotd.forward.verify import camera_matrix_guess
 from robotd.io.sequence import list_images, load_ground_truth, read_image
@@ -121,8 +121,10 @@ def configurations(full: bool) -> dict[str, object]:
         f"default, {WHEEL}": dflt,
         "default, 1 verification": replace(dflt, verify_tries=1),
         "default, general verification": replace(dflt, verify=replace(dflt.verify, model="general")),
-        # the previous planar verification: RANSAC near the level motion, the fallback over
-        # all the matches for every view tried
+        # the planar verification with its work per image bounded (USAC near the level motion,
+        # the fallback in a 10 px band, once per image), and without it (RANSAC near the level
+        # motion, the fallback over all the matches for every view tried: the default's own)
+        "default, bounded verification": bounded_verification(dflt),
         "default, previous planar verification": replace(
             dflt, verify=replace(dflt.verify, guided_estimator=None, fallback_band_px=None), verify_fallbacks=None),
         f"default, 1 verification, {WHEEL}": replace(dflt, verify_tries=1),
