@@ -215,7 +215,15 @@ def row_of(seed: int, kid: dict[str, Any], plain: dict[str, Any], kid_err: dict[
                 "accepted": g.get("loops_accepted"), "in_graph": g.get("loops_in_graph"),
                 "down_weighted": g.get("loops_down_weighted", 0)}
 
-    ks, ps = kid["summary"], plain["summary"]
+    def drive(run: dict[str, Any], err: dict[str, Any]) -> dict[str, Any]:
+        s = run["summary"]
+        return {"loops": loops(s), **{k: err[k] for k in ("ape_anchored_m", "ate_aligned_m", "fit_turn_deg",
+                                                          "fit_shift_at_first_m", "expected_ape_anchored_m",
+                                                          "expected_heading_sigma_deg", "replays")},
+                "ape_anchored_m_demo": s.get("pose_graph", {}).get("loop_corrected", {}).get("ape_origin_rmse_m"),
+                "keyframes": s.get("keyframes"), "wall_s": run["wall_s"], "cpu_s": run["cpu_s"]}
+
+    ks = kid["summary"]
     r = ks.get("relocalisation", {})
     # the plain drive's own errors at the kidnapped drive's route times
     # (the demo's stamps are robot time from 0, which is route time until the lift)
@@ -230,20 +238,8 @@ def row_of(seed: int, kid: dict[str, Any], plain: dict[str, Any], kid_err: dict[
         "reloc_after_s": r.get("after_s"), "reloc_after_m_true": r.get("after_m_true"),
         "reloc_position_error_m": r.get("position_error_m"), "reloc_heading_error_deg": r.get("heading_error_deg"),
         "lifts_detected": r.get("lifts_detected"), "relocalisations": r.get("relocalisations"),
-        "kidnapped": {"loops": loops(ks), **{k: kid_err[k] for k in ("ape_anchored_m", "ate_aligned_m",
-                                                                        "fit_turn_deg", "fit_shift_at_first_m",
-                                                                        "expected_ape_anchored_m",
-                                                                        "expected_heading_sigma_deg",
-                                                                        "replays")},
-                      "ape_anchored_m_demo": ks.get("pose_graph", {}).get("loop_corrected", {}).get("ape_origin_rmse_m"),
-                      "keyframes": ks.get("keyframes"), "wall_s": kid["wall_s"], "cpu_s": kid["cpu_s"]},
-        "plain": {"loops": loops(ps), **{k: plain_err[k] for k in ("ape_anchored_m", "ate_aligned_m",
-                                                                      "fit_turn_deg", "fit_shift_at_first_m",
-                                                                      "expected_ape_anchored_m",
-                                                                      "expected_heading_sigma_deg",
-                                                                      "replays")},
-                  "ape_anchored_m_demo": ps.get("pose_graph", {}).get("loop_corrected", {}).get("ape_origin_rmse_m"),
-                  "keyframes": ps.get("keyframes"), "wall_s": plain["wall_s"], "cpu_s": plain["cpu_s"]},
+        "kidnapped": drive(kid, kid_err),
+        "plain": drive(plain, plain_err),
         "ratio_anchored": ka / pa if pa > 0 else math.inf,
         "ratio_aligned": kid_err["ate_aligned_m"] / plain_err["ate_aligned_m"] if plain_err["ate_aligned_m"] > 0 else math.inf,
         "plain_at_kidnapped_route_times_m": same_ground,

@@ -45,6 +45,22 @@ def _features(xy: np.ndarray, desc: np.ndarray) -> Features:
     return Features(xy, desc, (640, 480))
 
 
+def _angle_deg(r_est: np.ndarray, r: np.ndarray) -> float:
+    """The angle of the rotation between ``r_est`` and ``r`` (deg)."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(r_est.T @ r) - 1) / 2, -1, 1))))
+
+
+def _level_pair_with_shuffled(rng: np.random.Generator):
+    """``_scene``'s pair with 0.3 px of noise in the new view and its first 40 matches
+    shuffled among themselves (110 true matches): old and new features, R, t."""
+    x_old, x_new, r, t = _scene(rng)
+    desc = rng.standard_normal((150, 128)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    px_new = _project(x_new) + rng.normal(0, 0.3, (150, 2)).astype(np.float32)
+    px_new[:40] = px_new[:40][rng.permutation(40)]
+    return _features(_project(x_old), desc), _features(px_new, desc), r, t
+
+
 def test_a_true_pair_is_accepted_with_its_rotation_and_translation_direction():
     rng = np.random.default_rng(0)
     x_old, x_new, r, t = _scene(rng)
@@ -56,7 +72,7 @@ def test_a_true_pair_is_accepted_with_its_rotation_and_translation_direction():
     assert v.n_matches == 150 and v.n_inliers >= 130
     assert not v.planar and v.n_plane_inliers < 0.8 * v.n_inliers  # depths 3-8 m: parallax
     assert v.support_area > 0.3
-    angle = np.degrees(np.arccos(np.clip((np.trace(v.rotation.T @ r) - 1) / 2, -1, 1)))
+    angle = _angle_deg(v.rotation, r)
     assert angle < 0.5
     assert np.dot(v.translation_dir, t / np.linalg.norm(t)) > 0.995  # within 6 degrees
 
@@ -199,7 +215,7 @@ def test_the_planar_motion_model_recovers_a_level_motion_without_the_five_point_
     monkeypatch.setattr(verify_mod, "essential_matrix", no_general)
     v = verify_pair(_features(_project(x_old), desc), _features(px_new, desc), VerifyParams(model="planar_motion"))
     assert v.accepted and v.n_inliers >= 130
-    angle = np.degrees(np.arccos(np.clip((np.trace(v.rotation.T @ r) - 1) / 2, -1, 1)))
+    angle = _angle_deg(v.rotation, r)
     assert angle < 0.3
     assert np.dot(v.translation_dir, t / np.linalg.norm(t)) > 0.995
     assert v.planarity_chi2 == 0.0 and 0.0 < v.sigma_bearing_rad < np.radians(2.0)
@@ -214,12 +230,7 @@ def test_the_planar_model_searches_the_essential_matrix_among_the_level_motions_
     (the 40 shuffled ones left out), and gives the general model's motion and inliers."""
     import robotd.forward.verify as verify_mod
 
-    rng = np.random.default_rng(6)
-    x_old, x_new, r, t = _scene(rng)
-    desc = rng.standard_normal((150, 128)).astype(np.float32)
-    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
-    px_new = _project(x_new) + rng.normal(0, 0.3, (150, 2)).astype(np.float32)
-    px_new[:40] = px_new[:40][rng.permutation(40)]
+    old, new, r, t = _level_pair_with_shuffled(np.random.default_rng(6))
     searched: list[int] = []
     inner = verify_mod.essential_matrix
 
@@ -228,11 +239,10 @@ def test_the_planar_model_searches_the_essential_matrix_among_the_level_motions_
         return inner(p_old, p_new, k, params)
 
     monkeypatch.setattr(verify_mod, "essential_matrix", counted)
-    old, new = _features(_project(x_old), desc), _features(px_new, desc)
     v = verify_pair(old, new, VerifyParams(model="planar"))
     assert v.accepted and v.n_inliers >= 100
     assert len(searched) == 1 and 100 <= searched[0] < 115   # the 110 true matches, few of the 40
-    angle = np.degrees(np.arccos(np.clip((np.trace(v.rotation.T @ r) - 1) / 2, -1, 1)))
+    angle = _angle_deg(v.rotation, r)
     assert angle < 0.3 and np.dot(v.translation_dir, t / np.linalg.norm(t)) > 0.995
     general = verify_pair(old, new, VerifyParams(model="general"))
     assert abs(general.n_inliers - v.n_inliers) <= 3
@@ -253,7 +263,7 @@ def test_a_motion_out_of_the_plane_falls_back_to_the_general_model_only_when_all
     for model in ("planar_motion", "planar"):
         v = verify_pair(old, new, VerifyParams(model=model, fallback_inliers=0))
         assert v.accepted and v.n_inliers >= 130
-        angle = np.degrees(np.arccos(np.clip((np.trace(v.rotation.T @ r) - 1) / 2, -1, 1)))
+        angle = _angle_deg(v.rotation, r)
         assert angle < 0.3
     # A fallback threshold above any planar consensus here: refused as the planar motion alone.
     assert not verify_pair(old, new, VerifyParams(model="planar_motion", fallback_inliers=150)).accepted
@@ -274,25 +284,20 @@ def test_the_planar_models_searches_take_their_own_estimators(monkeypatch):
         return inner(p_old, p_new, k, params)
 
     monkeypatch.setattr(verify_mod, "essential_matrix", counted)
-    rng = np.random.default_rng(6)
-    x_old, x_new, r, _ = _scene(rng)
-    desc = rng.standard_normal((150, 128)).astype(np.float32)
-    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
-    px_new = _project(x_new) + rng.normal(0, 0.3, (150, 2)).astype(np.float32)
-    px_new[:40] = px_new[:40][rng.permutation(40)]
-    level = verify_pair(_features(_project(x_old), desc), _features(px_new, desc),
-                        VerifyParams(model="planar", guided_estimator="usac", fallback_inliers=0))
+    old, new, r, _ = _level_pair_with_shuffled(np.random.default_rng(6))
+    level = verify_pair(old, new, VerifyParams(model="planar", guided_estimator="usac", fallback_inliers=0))
     assert level.accepted and not level.fallback and level.n_inliers >= 100
     assert [c[1] for c in calls] == ["usac"] and calls[0][0] < 115
-    angle = np.degrees(np.arccos(np.clip((np.trace(level.rotation.T @ r) - 1) / 2, -1, 1)))
+    angle = _angle_deg(level.rotation, r)
     assert angle < 0.3
     calls.clear()
     x_old, x_new, r, _ = _tilted_scene(np.random.default_rng(5), 15.0)
+    desc = old.descriptors  # the level pair's descriptors again
     old, new = _features(_project(x_old), desc), _features(_project(x_new), desc)
     tilted = verify_pair(old, new, VerifyParams(model="planar", fallback_inliers=0, fallback_estimator="usac"))
     assert tilted.accepted and tilted.fallback and tilted.n_inliers >= 130
     assert calls[-1] == (150, "usac", 200) and all(c[1] == "ransac" for c in calls[:-1])
-    angle = np.degrees(np.arccos(np.clip((np.trace(tilted.rotation.T @ r) - 1) / 2, -1, 1)))
+    angle = _angle_deg(tilted.rotation, r)
     assert angle < 0.3
 
 
