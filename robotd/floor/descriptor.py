@@ -68,6 +68,7 @@ import struct
 import zlib
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
@@ -94,7 +95,7 @@ from robotd.floor.keypoints import (candidates, drop_repeats, grey, kept_for_bud
                                     workspace)
 
 __all__ = ["ANGLE_BITS", "FULL_RESOLUTION", "MODE_BYTES", "MODES", "POSITION_STEP_PX", "QUARTER", "ExtractParams", "FloorDescriptor",
-           "Learned", "decode", "describe", "drop_repeats", "extract", "load_learned"]
+           "Learned", "PartialDescriptor", "decode", "decode_local", "describe", "drop_repeats", "extract", "load_learned"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -247,9 +248,9 @@ def _bit_planes(trit_bytes: np.ndarray, n: int, length: int) -> tuple[np.ndarray
     return planes[0], planes[1]
 
 
-def decode(data: bytes) -> FloorDescriptor:
-    """Parse :func:`extract`'s bytes. Raises :class:`DescriptorError` for anything else:
-    bad magic, unknown version or mode, wrong length, checksum mismatch, bad codes."""
+def _parse(data: bytes) -> tuple[Any, ...]:
+    """:func:`decode`'s checks of the header, checksum and section lengths; the header's
+    fields and the sections as ``uint8`` views of ``data`` (the unary parts: to its end)."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise _fail(f"expected bytes, got {type(data).__name__}")
     data = bytes(data)
@@ -277,10 +278,17 @@ def decode(data: bytes) -> FloorDescriptor:
     for s in sections:
         parts.append(np.frombuffer(data, np.uint8, s, pos))
         pos += s
-    gbits, rem_b, ang_b, trit_b = parts
+    parts.append(np.frombuffer(data, np.uint8, offset=pos))
+    return (mode, width, height, ww, wh, n, k, *parts)
+
+
+def _positions(width: int, height: int, ww: int, wh: int, n: int, k: int, rem_b: np.ndarray, ang_b: np.ndarray,
+               unary_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The keypoints' positions ``(n, 2) float32`` and orientation codes ``(n,)`` from the
+    Rice remainders, the angle bits and the Rice unary parts (:func:`decode`'s sections)."""
     # The unary parts: q_i one bits then a zero each, padded with ones to a whole byte.
-    zeros = np.flatnonzero(np.unpackbits(~np.frombuffer(data, np.uint8, offset=pos)))
-    n_unary = 8 * (len(data) - pos)
+    zeros = np.flatnonzero(np.unpackbits(~unary_b))
+    n_unary = 8 * len(unary_b)
     if len(zeros) != n or (n and n_unary - zeros[-1] - 1 >= 8) or (not n and n_unary):
         raise _fail("bad position code")
     gaps = np.empty(n, np.int64)  # quotients, then the whole gaps
@@ -295,16 +303,103 @@ def decode(data: bytes) -> FloorDescriptor:
     if n and cell_ids[-1] >= grid_w * grid_h:
         raise _fail("keypoint position outside the image")
     q = np.unpackbits(ang_b, count=n * ANGLE_BITS).reshape(n, ANGLE_BITS) @ _ANGLE_WEIGHTS
-    if n and int(trit_b.max()) > 242:
-        raise _fail("bad descriptor code")
-    sx, sy = width / ww, height / wh
     col_x, row_y = _cell_centres(width, height, ww, wh)
     row, col = np.divmod(cell_ids, grid_w)
     xy = np.empty((n, 2), np.float32)
     xy[:, 0], xy[:, 1] = col_x[col], row_y[row]
-    return FloorDescriptor(mode, width, height, xy, _ANGLE_RAD[q],
-                           *_bit_planes(trit_b, n, spec.length), spec.length, gbits.copy(),
-                           POSITION_STEP_PX * max(sx, sy))
+    return xy, q
+
+
+def decode(data: bytes) -> FloorDescriptor:
+    """Parse :func:`extract`'s bytes. Raises :class:`DescriptorError` for anything else:
+    bad magic, unknown version or mode, wrong length, checksum mismatch, bad codes."""
+    mode, width, height, ww, wh, n, k, gbits, rem_b, ang_b, trit_b, unary_b = _parse(data)
+    xy, q = _positions(width, height, ww, wh, n, k, rem_b, ang_b, unary_b)
+    if n and int(trit_b.max()) > 242:
+        raise _fail("bad descriptor code")
+    length = MODES[mode].length
+    return FloorDescriptor(mode, width, height, xy, _ANGLE_RAD[q], *_bit_planes(trit_b, n, length), length,
+                           gbits.copy(), POSITION_STEP_PX * max(width / ww, height / wh))
+
+
+class PartialDescriptor:
+    """A stored descriptor decoded in two steps (:func:`decode_local`, the floor index's
+    read back): every check and the header, the global bits and the packed trits at once,
+    which is all the local score's descriptor distances and its ``min_score`` bound read
+    (:func:`robotd.floor.match.local_score` builds its side of the distance straight from
+    the trits); the keypoints' positions and orientations only when :meth:`positions` is
+    called, by the geometric check of a pair that passed the bound. Most read-back
+    candidates of a query fail the bound: their positions are never decoded, nor their
+    bit planes built.
+
+    Attributes: ``mode``, ``width_px``, ``height_px``, ``length``, ``global_bits`` and
+    ``position_step_px`` as :class:`FloorDescriptor`'s; ``trits``: ``(ceil(N length / 5),)
+    uint8`` the local descriptors' elements as stored, 5 base-3 digits (element + 1) per
+    byte, keypoint after keypoint (read-only). :meth:`full` gives the
+    :class:`FloorDescriptor` :func:`decode` gives for the same bytes, array for array.
+    """
+
+    __slots__ = ("mode", "width_px", "height_px", "length", "global_bits", "position_step_px", "trits", "_n",
+                 "_rest", "_positions")
+
+    def __init__(self, data: bytes) -> None:
+        mode, width, height, ww, wh, n, k, gbits, rem_b, ang_b, trit_b, unary_b = _parse(data)
+        if n and int(trit_b.max()) > 242:
+            raise _fail("bad descriptor code")
+        self.mode, self.width_px, self.height_px, self._n = mode, width, height, n
+        self.length: int = MODES[mode].length
+        self.global_bits: np.ndarray = gbits.copy()
+        self.position_step_px = POSITION_STEP_PX * max(width / ww, height / wh)
+        self.trits: np.ndarray = trit_b.copy()
+        self.trits.flags.writeable = False
+        # The positions' sections copied out of ``data`` (a few hundred bytes: the rest is let go).
+        self._rest: tuple[Any, ...] | None = (ww, wh, k, rem_b.copy(), ang_b.copy(), unary_b.copy())
+        self._positions: tuple[np.ndarray, np.ndarray] | None = None
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def positions_decoded(self) -> bool:
+        """Whether :meth:`positions` has run (they are then kept)."""
+        return self._positions is not None
+
+    def positions(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(xy_px, angle_rad)`` as :class:`FloorDescriptor`'s (decoded once, then kept and
+        the positions' code let go). Raises :class:`DescriptorError` if that code is bad
+        (bytes forged with a valid checksum)."""
+        if self._positions is None:
+            assert self._rest is not None
+            ww, wh, k, rem_b, ang_b, unary_b = self._rest
+            xy, q = _positions(self.width_px, self.height_px, ww, wh, self._n, k, rem_b, ang_b, unary_b)
+            self._positions = (xy, _ANGLE_RAD[q])
+            self._rest = None
+        return self._positions
+
+    def full(self) -> FloorDescriptor:
+        """The whole descriptor, as :func:`decode` gives it (built anew: not kept)."""
+        xy, angle = self.positions()
+        return FloorDescriptor(self.mode, self.width_px, self.height_px, xy, angle,
+                               *_bit_planes(self.trits, self._n, self.length), self.length, self.global_bits,
+                               self.position_step_px)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the arrays: the trits, the global bits, and the positions' code or
+        the decoded positions and orientations."""
+        held = self.trits.nbytes + self.global_bits.nbytes
+        if self._rest is not None:
+            held += sum(a.nbytes for a in self._rest[3:])
+        if self._positions is not None:
+            held += self._positions[0].nbytes + self._positions[1].nbytes
+        return int(held)
+
+
+def decode_local(data: bytes) -> PartialDescriptor:
+    """:func:`decode` in two steps (:class:`PartialDescriptor`): every check but the
+    positions' code now, the positions when :meth:`~PartialDescriptor.positions` is called.
+    Raises :class:`DescriptorError` as :func:`decode` does."""
+    return PartialDescriptor(data)
 
 
 def describe(image: np.ndarray, mode: int, params: ExtractParams | None = None) -> FloorDescriptor:

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from robotd.base.errors import DescriptorError, RobotdError
-from robotd.floor.descriptor import ANGLE_BITS, FloorDescriptor, decode
+from robotd.floor.descriptor import ANGLE_BITS, FloorDescriptor, PartialDescriptor, decode, decode_local
 from robotd.floor.match import Matcher, MatchResult, local_score
 
 __all__ = ["Candidate", "FloorIndex", "IndexParams", "LoadReport"]
@@ -47,6 +47,9 @@ log = logging.getLogger(__name__)
 
 LocalScorer = Callable[[FloorDescriptor, FloorDescriptor], MatchResult]
 """``scorer(query, stored) -> MatchResult``: how a shortlisted keyframe is scored locally."""
+
+Loader = Callable[[int], FloorDescriptor | PartialDescriptor]
+"""``loader(keyframe_id)``: a descriptor kept out of RAM, read back (:class:`FloorIndex`)."""
 
 
 @dataclass(frozen=True)
@@ -145,8 +148,10 @@ def _global_bytes(descriptor: FloorDescriptor) -> np.ndarray:
     return np.ascontiguousarray(bits).view(np.uint8).ravel()
 
 
-def _descriptor_nbytes(descriptor: FloorDescriptor) -> int:
+def _descriptor_nbytes(descriptor: FloorDescriptor | PartialDescriptor) -> int:
     """Bytes held by a decoded descriptor's arrays (and byte strings)."""
+    if isinstance(descriptor, PartialDescriptor):
+        return descriptor.nbytes
     total = 0
     for f in fields(descriptor):
         value = getattr(descriptor, f.name)
@@ -280,7 +285,9 @@ class FloorIndex:
     with ``params.match_params``); :attr:`local_matches` counts every local match the
     index has made, so the cost of queries can be checked.
 
-    ``loader(keyframe_id) -> FloorDescriptor`` (the map's stored descriptor, decoded) keeps
+    ``loader(keyframe_id)`` (the map's stored descriptor, decoded, or decoded in two steps:
+    a :class:`~robotd.floor.descriptor.PartialDescriptor`, whose positions the local score
+    decodes only for a pair that passes its ``min_score`` bound) keeps
     the local descriptors out of RAM: the index then holds the global descriptors (all a
     shortlist needs) and the ``params.resident`` most recently used decoded descriptors,
     and reads a shortlisted keyframe's through the loader when it is not among them
@@ -291,7 +298,7 @@ class FloorIndex:
     """
 
     def __init__(self, params: IndexParams | None = None, scorer: LocalScorer | None = None,
-                 loader: Callable[[int], FloorDescriptor] | None = None) -> None:
+                 loader: Loader | None = None) -> None:
         self.params = params if params is not None else IndexParams()
         if scorer is None:
             match_params = self.params.match_params
@@ -319,7 +326,8 @@ class FloorIndex:
         self._local_nbytes = 0  # of the descriptors kept as they are
         self._loader = loader
         # keyframe id -> (decoded descriptor, its bytes), least recently used first
-        self._recent: collections.OrderedDict[int, tuple[FloorDescriptor, int]] = collections.OrderedDict()
+        self._recent: collections.OrderedDict[int, tuple[FloorDescriptor | PartialDescriptor, int]] = \
+            collections.OrderedDict()
         self._recent_nbytes = 0  # of the descriptors in _recent
         self.loads = 0
         self.load_failures = 0
@@ -408,7 +416,7 @@ class FloorIndex:
             return self._on_demand(int(self._ids[row]))
         return self._packed.get(slot) if slot >= 0 else self._objects[-1 - slot]
 
-    def _remember(self, keyframe_id: int, descriptor: FloorDescriptor) -> None:
+    def _remember(self, keyframe_id: int, descriptor: FloorDescriptor | PartialDescriptor) -> None:
         """Keep ``descriptor`` among the resident ones, the least recently used let go."""
         nbytes = _descriptor_nbytes(descriptor)
         self._recent[keyframe_id] = (descriptor, nbytes)
@@ -417,7 +425,7 @@ class FloorIndex:
             _kf, (_old, old_nbytes) = self._recent.popitem(last=False)
             self._recent_nbytes -= old_nbytes
 
-    def _on_demand(self, keyframe_id: int) -> FloorDescriptor:
+    def _on_demand(self, keyframe_id: int) -> FloorDescriptor | PartialDescriptor:
         """A descriptor kept out of RAM: the resident copy, else the loader's (then kept)."""
         kept = self._recent.get(keyframe_id)
         if kept is not None:
@@ -428,6 +436,15 @@ class FloorIndex:
         self.loads += 1
         self._remember(keyframe_id, d)
         return d
+
+    def _resize(self, keyframe_id: int, descriptor: PartialDescriptor) -> None:
+        """Count a resident read-back descriptor's bytes again (its positions may have been
+        decoded since)."""
+        kept = self._recent.get(keyframe_id)
+        if kept is not None and kept[0] is descriptor and kept[1] != descriptor.nbytes:
+            nbytes = descriptor.nbytes
+            self._recent_nbytes += nbytes - kept[1]
+            self._recent[keyframe_id] = (descriptor, nbytes)
 
     def _grow(self) -> None:
         cap = 2 * self._global.shape[1]
@@ -446,7 +463,9 @@ class FloorIndex:
         :class:`~robotd.io.store.MapStore`, in keyframe-id order.
 
         ``on_demand`` (default): the local descriptors stay in the map and are read back
-        (``store.keyframe_descriptor(id)``, decoded) when a shortlist names one that is not resident
+        (``store.keyframe_descriptor(id)``, decoded in two steps:
+        :func:`~robotd.floor.descriptor.decode_local`, the positions only for a pair that
+        passes the local score's bound) when a shortlist names one that is not resident
         (the class's ``loader``); the store must then stay open as long as the index is
         queried, and every keyframe added later must be in the store by then. Otherwise
         every descriptor is kept in RAM.
@@ -456,11 +475,11 @@ class FloorIndex:
         :attr:`load_report`; it never stops the load.
         """
 
-        def load(keyframe_id: int) -> FloorDescriptor:
+        def load(keyframe_id: int) -> PartialDescriptor:
             blob, blob_mode = store.keyframe_descriptor(keyframe_id)
             if blob is None or blob_mode != mode:
                 raise KeyError(f"keyframe {keyframe_id} has no mode-{mode} descriptor in the map")
-            return decode(blob)
+            return decode_local(blob)
 
         index = cls(params, scorer, load if on_demand else None)
         corrupt: list[int] = []
@@ -603,8 +622,21 @@ class FloorIndex:
                 log.warning("floor index: keyframe %d left out of a query, its descriptor could not be read: %s",
                             kf, exc)
                 continue
-            result = (matcher.score(stored, min_score) if matcher is not None
-                      else self._scorer(descriptor, stored))
+            try:
+                if matcher is not None:
+                    result = matcher.score(stored, min_score)
+                else:
+                    result = self._scorer(descriptor, stored.full() if isinstance(stored, PartialDescriptor)
+                                          else stored)
+            except DescriptorError as exc:  # a read-back descriptor's positions (decoded last)
+                if not isinstance(stored, PartialDescriptor):
+                    raise
+                self.load_failures += 1
+                log.warning("floor index: keyframe %d left out of a query, its descriptor could not be read: %s",
+                            kf, exc)
+                continue
+            if isinstance(stored, PartialDescriptor):
+                self._resize(kf, stored)
             self.local_matches += 1
             candidates.append(Candidate(kf, g, result))
             reached += result.score >= min_score
@@ -620,7 +652,12 @@ class FloorIndex:
 
     def descriptor(self, keyframe_id: int) -> FloorDescriptor:
         """The indexed descriptor of a keyframe; KeyError if it is not indexed."""
-        return self._stored(self._row_of[int(keyframe_id)])
+        d = self._stored(self._row_of[int(keyframe_id)])
+        if isinstance(d, PartialDescriptor):
+            full = d.full()
+            self._resize(int(keyframe_id), d)
+            return full
+        return d
 
     def extend(self, items: Iterable[tuple[int, FloorDescriptor]]) -> None:
         """:meth:`add` each ``(keyframe_id, descriptor)``."""

@@ -35,12 +35,14 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
+from functools import lru_cache
 from enum import StrEnum
 
 import numpy as np
 
 from robotd.base.geometry import wrap_angle
-from robotd.floor.descriptor import FloorDescriptor
+from robotd.floor.desccoding import trit_table
+from robotd.floor.descriptor import FloorDescriptor, PartialDescriptor
 
 __all__ = ["MatchReason", "Matcher", "MatchParams", "MatchResult", "global_score", "local_score"]
 
@@ -153,10 +155,28 @@ def _augmented(d: FloorDescriptor, scale: float, last: np.ndarray | None) -> np.
     return out
 
 
-def _augmented_b(d: FloorDescriptor) -> np.ndarray:
+@lru_cache(maxsize=1)
+def _minus_two_trits() -> np.ndarray:
+    """``(256, 5) float32``: per stored trit byte (5 base-3 digits, element + 1), its 5
+    elements times -2; bytes above 242 (refused by the decoder) give zeros."""
+    out = np.zeros((256, 5), np.float32)
+    out[:243] = -2.0 * (trit_table().astype(np.float32) - 1.0)
+    return out
+
+
+def _augmented_b(d: FloorDescriptor | PartialDescriptor) -> np.ndarray:
     """``_augmented(d, -2.0, d.nonzero_trits())``, built from the bit planes in int8 (the
-    trits times -2 are exact there) and cast once: the candidate's side of every local score."""
+    trits times -2 are exact there) and cast once: the candidate's side of every local score.
+    A :class:`~robotd.floor.descriptor.PartialDescriptor`'s straight from its stored trit
+    bytes (one table look-up; the squared norms from the same floats, exact: each element
+    is -2, 0 or 2), without its bit planes."""
     n, length = len(d), d.length
+    if isinstance(d, PartialDescriptor):
+        out = np.empty((n, length + 1), np.float32)
+        t = _minus_two_trits().take(d.trits, axis=0).reshape(-1)[: n * length].reshape(n, length)
+        out[:, :-1] = t
+        out[:, -1] = np.einsum("ij,ij->i", t, t) * np.float32(0.25)
+        return out
     pos = np.unpackbits(np.ascontiguousarray(d.local_pos).astype("<u8", copy=False).view(np.uint8), axis=1,
                         bitorder="little")
     neg = np.unpackbits(np.ascontiguousarray(d.local_neg).astype("<u8", copy=False).view(np.uint8), axis=1,
@@ -241,12 +261,14 @@ class Matcher:
         self._aug = _augmented(a, 1.0, None) if len(a) >= 2 else None
         self._norm = a.nonzero_trits()
 
-    def score(self, b: FloorDescriptor, min_score: float = 0.0) -> MatchResult:
-        """``local_score(a, b, params, min_score)``."""
+    def score(self, b: FloorDescriptor | PartialDescriptor, min_score: float = 0.0) -> MatchResult:
+        """``local_score(a, b, params, min_score)``; ``b`` may be a
+        :class:`~robotd.floor.descriptor.PartialDescriptor`, whose positions are then decoded
+        only if the pair passes the ``min_score`` bound (the same result as for ``b.full()``)."""
         return _score(self.a, b, self.params, self._aug, self._norm, min_score)
 
 
-def _score(a: FloorDescriptor, b: FloorDescriptor, p: MatchParams, aug_a: np.ndarray | None,
+def _score(a: FloorDescriptor, b: FloorDescriptor | PartialDescriptor, p: MatchParams, aug_a: np.ndarray | None,
            norm_a: np.ndarray, min_score: float) -> MatchResult:
     if a.length != b.length:
         raise ValueError(f"descriptors of different lengths ({a.length} and {b.length} trits): modes differ")
@@ -273,8 +295,10 @@ def _score(a: FloorDescriptor, b: FloorDescriptor, p: MatchParams, aug_a: np.nda
     # The bound, with room for the rounding of a sum taken in another order.
     if min_score > 0 and float(np.maximum(0.0, 1.0 - dm / p.weight_distance).sum()) * (1 + 1e-6) + 1e-6 < min_score:
         return _dismissed(BELOW_MIN_SCORE, len(ia))
+    # b's positions and orientations, read from here on (a read-back descriptor's decoded now)
+    xy_b, angle_b = b.positions() if isinstance(b, PartialDescriptor) else (b.xy_px, b.angle_rad)
     # Step 2: dominant orientation change (histogram over the 2**ANGLE_BITS levels).
-    dth = (b.angle_rad[ib] - a.angle_rad[ia]) % (2 * math.pi)
+    dth = (angle_b[ib] - a.angle_rad[ia]) % (2 * math.pi)
     nbins = len(_PREV_BIN)
     hist = np.bincount((dth * (nbins / (2 * math.pi))).astype(np.intp) % nbins, minlength=nbins).astype(float)
     hist = hist + 0.5 * (hist[_PREV_BIN] + hist[_NEXT_BIN])
@@ -284,7 +308,7 @@ def _score(a: FloorDescriptor, b: FloorDescriptor, p: MatchParams, aug_a: np.nda
     n_matches = len(ia)
     if len(ka) < p.min_inliers:
         return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
-    xa, xb = a.xy_px[ka].astype(np.float64), b.xy_px[kb].astype(np.float64)
+    xa, xb = a.xy_px[ka].astype(np.float64), xy_b[kb].astype(np.float64)
     weight = np.maximum(0.0, 1.0 - kd / p.weight_distance)
     # Step 3: RANSAC over 2-point rigid hypotheses.
     m = len(ka)
@@ -311,7 +335,7 @@ def _score(a: FloorDescriptor, b: FloorDescriptor, p: MatchParams, aug_a: np.nda
     best = int(np.argmax(inl @ (weight + 1e-6)))
     mask = inl[best]
     # Refine on all descriptor matches (not only those near the orientation peak).
-    fa, fb = a.xy_px[ia].astype(np.float64), b.xy_px[ib].astype(np.float64)
+    fa, fb = a.xy_px[ia].astype(np.float64), xy_b[ib].astype(np.float64)
     sel = np.flatnonzero(near)[mask]
     transform = None
     for _ in range(2):
@@ -324,7 +348,7 @@ def _score(a: FloorDescriptor, b: FloorDescriptor, p: MatchParams, aug_a: np.nda
         return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
     score = float(np.maximum(0.0, 1.0 - dm[sel] / p.weight_distance).sum())
     return MatchResult(score, n_matches, len(sel), ia[sel].astype(np.int64), ib[sel].astype(np.int64),
-                       a.xy_px[ia[sel]], b.xy_px[ib[sel]], transform, MatchReason.OK)
+                       a.xy_px[ia[sel]], xy_b[ib[sel]], transform, MatchReason.OK)
 
 
 def global_score(a: FloorDescriptor, b: FloorDescriptor) -> float:

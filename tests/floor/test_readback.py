@@ -1,0 +1,167 @@
+"""The floor index's read back in two steps (``decode_local``): the local descriptors from the
+stored bytes at once, the keypoints' positions only for a pair that passes the local score's
+bound; the same descriptor, the same scores and the same candidates as a whole decode."""
+
+from __future__ import annotations
+
+import logging
+import struct
+import zlib
+
+import numpy as np
+import pytest
+
+from robotd.base.errors import DescriptorError
+from robotd.floor.descriptor import MODES, FloorDescriptor, PartialDescriptor, decode, decode_local, extract
+from robotd.floor.index import FloorIndex, IndexParams
+from robotd.floor.match import Matcher
+
+@pytest.fixture(scope="module")
+def run_images() -> list[np.ndarray]:
+    """Frames every 0.1 m along a 2 m straight run on a gravel floor, and the same run
+    again 0.02 m aside and turned by 0.3 rad: pairs that pass the bound and pairs that fail."""
+    import skimage.data
+
+    from sim.cameras.floor import FloorRenderer, RenderParams
+    from sim.world.floor import Floor
+    from robotd.base.camera import FloorCameraModel
+
+    floor = Floor.from_photos([skimage.data.gravel()], seed=3)
+    renderer = FloorRenderer(floor, FloorCameraModel.default(), RenderParams(), np.random.default_rng(1))
+    return [renderer.render(np.array([0.1 * i, dy, th]), 0.1, 0.0, 30.0)
+            for dy, th in ((0.0, 0.0), (0.02, 0.3)) for i in range(20)]
+
+
+def _with_crc(data: bytes | bytearray) -> bytes:
+    """``data`` with its CRC-32 recomputed (a forgery the checksum cannot catch)."""
+    b = bytearray(data)
+    b[16:20] = struct.pack("<I", zlib.crc32(bytes(b[20:]), zlib.crc32(bytes(b[:16]))))
+    return bytes(b)
+
+
+def _bad_positions(data: bytes) -> bytes:
+    """``data`` with one more zero in the Rice unary parts (one position code too many),
+    checksum recomputed: every section but the positions' still reads."""
+    b = bytearray(data)
+    b[-1] = 0x00  # the last byte of the unary parts: its padding ones become code zeros
+    return _with_crc(b)
+
+
+@pytest.mark.parametrize("mode", sorted(MODES))
+def test_partial_descriptor_completes_to_the_decoded_one_in_every_mode(run_images, mode):
+    data = extract(run_images[3], mode)
+    whole, part = decode(data), decode_local(data)
+    assert len(part) == len(whole) > 10 and not part.positions_decoded
+    full = part.full()
+    assert isinstance(full, FloorDescriptor) and part.positions_decoded
+    for name in ("mode", "width_px", "height_px", "length", "position_step_px"):
+        assert getattr(full, name) == getattr(whole, name)
+    for name in ("xy_px", "angle_rad", "local_pos", "local_neg", "global_bits"):
+        x, y = getattr(full, name), getattr(whole, name)
+        assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y), name
+    # The trits are the stored section: element j of keypoint i is digit (i L + j) % 5 of byte (i L + j) // 5.
+    i, j = len(whole) - 1, whole.length - 1
+    flat = i * whole.length + j
+    digit = (int(part.trits[flat // 5]) // 3 ** (flat % 5)) % 3 - 1
+    assert digit == whole.ternary()[i, j]
+
+
+def test_partial_descriptor_is_smaller_than_the_decoded_one_until_its_positions_are_read(run_images):
+    part = decode_local(extract(run_images[0], 4))
+    held = part.nbytes
+    whole = decode(extract(run_images[0], 4))
+    decoded_bytes = sum(getattr(whole, n).nbytes for n in ("xy_px", "angle_rad", "local_pos", "local_neg",
+                                                           "global_bits"))
+    assert held < 0.7 * decoded_bytes
+    part.positions()
+    assert part.nbytes > held  # the positions and orientations are kept once decoded
+
+
+def test_decode_local_refuses_what_decode_refuses_and_defers_only_the_positions(run_images):
+    data = extract(run_images[0], 4)
+    for bad in (data[: len(data) // 2], b"XX" + data[2:], data[:30] + bytes([data[30] ^ 1]) + data[31:]):
+        with pytest.raises(DescriptorError):
+            decode(bad)
+        with pytest.raises(DescriptorError):
+            decode_local(bad)
+    forged = _bad_positions(data)
+    with pytest.raises(DescriptorError, match="position"):
+        decode(forged)
+    part = decode_local(forged)  # header, checksum, trits: fine
+    with pytest.raises(DescriptorError, match="position"):
+        part.positions()
+
+
+def test_a_trit_byte_above_242_is_refused_at_once():
+    from robotd.floor.descparams import HEADER
+
+    data = extract(np.random.default_rng(0).integers(0, 256, (480, 640), dtype=np.uint8), 4)
+    n, k = struct.unpack_from("<2sBBHHHHHBBI", data)[7:9]
+    spec = MODES[4]
+    trits_at = HEADER.size + spec.global_bits // 8 + -(-n * k // 8) + -(-n * 5 // 8)
+    bad = bytearray(data)
+    bad[trits_at + 3] = 243
+    with pytest.raises(DescriptorError, match="descriptor code"):
+        decode_local(_with_crc(bad))
+
+
+def test_matcher_scores_a_partial_descriptor_exactly_as_the_decoded_one(run_images):
+    """Every pair of the two runs, with and without the loop threshold: the same result field
+    for field; the pairs dismissed at the bound leave the positions undecoded."""
+    from robotd.app.demo import shipped_calibration
+    from robotd.io.calibfile import read_calibration
+
+    threshold = read_calibration(shipped_calibration()).loop.for_mode(4)
+    blobs = [extract(im, 4) for im in run_images]
+    reasons: set[str] = set()
+    for qi in (2, 11, 25, 37):
+        matcher = Matcher(decode(blobs[qi]))
+        for b in blobs:
+            for min_score in (0.0, threshold):
+                want = matcher.score(decode(b), min_score)
+                part = decode_local(b)
+                got = matcher.score(part, min_score)
+                assert (got.score, got.n_matches, got.n_inliers, got.reason) == \
+                    (want.score, want.n_matches, want.n_inliers, want.reason)
+                for name in ("inliers_a", "inliers_b", "xy_a", "xy_b"):
+                    assert np.array_equal(getattr(got, name), getattr(want, name))
+                assert (got.transform is None) == (want.transform is None)
+                if want.transform is not None:
+                    assert np.array_equal(got.transform, want.transform)
+                if want.reason in ("BELOW_MIN_SCORE", "TOO_FEW_MATCHES"):
+                    assert not part.positions_decoded
+                reasons.add(str(want.reason))
+    assert {"", "BELOW_MIN_SCORE"} <= reasons  # both kinds of pair were seen
+
+
+def test_a_read_back_descriptor_with_a_bad_position_code_is_left_out_and_counted(run_images, tmp_path, caplog):
+    """Bytes forged with a valid checksum whose positions do not decode: the map index's
+    query leaves that keyframe out (logged, counted) and returns the others as before."""
+    from robotd.io.store import MapStore
+
+    blobs = [extract(im, 4) for im in run_images[:20]]
+    good = FloorIndex(IndexParams(shortlist=20))
+    for i, b in enumerate(blobs):
+        good.add(i + 1, decode(b))
+    query = decode(extract(run_images[25], 4))
+    want = good.query(query, k=20)
+    target = want[0].keyframe_id  # a pair that passes the bound: its positions are read
+    path = tmp_path / "map.db"
+    with MapStore.open(path, synchronous="NORMAL") as store:
+        run = store.begin_run("", started_ns=0)
+        ids = [store.add_keyframe(run, i, (0.1 * i, 0.0, 0.0), np.eye(3), None, b, 4) for i, b in enumerate(blobs)]
+    assert ids == list(range(1, 21))
+    with MapStore.open(path, create=False, read_only=True) as store:
+        index = FloorIndex.from_store(store, 4, IndexParams(shortlist=20, resident=1))
+        index.add(100, decode(blobs[0]))  # pushes every stored keyframe out of the resident set
+    forged = {target: _bad_positions(blobs[target - 1])}
+
+    def load(keyframe_id: int) -> PartialDescriptor:
+        return decode_local(forged.get(keyframe_id, blobs[keyframe_id - 1]))
+
+    index._loader = load
+    with caplog.at_level(logging.WARNING):
+        got = index.query(query, k=20, exclude_ids=[100])
+    assert index.load_failures == 1 and any(str(target) in r.getMessage() for r in caplog.records)
+    assert [(c.keyframe_id, c.score) for c in got] == [(c.keyframe_id, c.score) for c in want
+                                                        if c.keyframe_id != target]
