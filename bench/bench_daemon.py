@@ -517,29 +517,41 @@ class _QueryParts:
                 parts.s["local score"] += time.thread_time() - t0
 
             def score(self, *a: Any, **kw: Any) -> Any:
-                t0 = time.thread_time()
+                t0, p0 = time.thread_time(), parts.s["positions"]
                 try:
                     return super().score(*a, **kw)
-                finally:
-                    parts.s["local score"] += time.thread_time() - t0
+                finally:  # a read-back descriptor's positions, decoded within: counted as decode
+                    parts.s["local score"] += time.thread_time() - t0 - (parts.s["positions"] - p0)
 
         @contextlib.contextmanager
         def cm() -> Any:
             matcher, decode = fi.Matcher, fi.decode
             fi.Matcher, fi.decode = TimedMatcher, self.wrap("decode", decode)
+            local = getattr(fi, "decode_local", None)  # the read back in two steps, where the code has it
+            partial = getattr(fi, "PartialDescriptor", None)
+            positions = partial.positions if partial is not None else None
+            if local is not None:
+                fi.decode_local = self.wrap("decode", local)
+            if partial is not None:
+                partial.positions = self.wrap("positions", positions)
             try:
                 yield self
             finally:
                 fi.Matcher, fi.decode = matcher, decode
+                if local is not None:
+                    fi.decode_local = local
+                if partial is not None:
+                    partial.positions = positions
         return cm()
 
     def per_query_ms(self, total_s: float, queries: int) -> dict[str, float]:
-        """Mean CPU ms per query by part; ``read`` is the read back less its decode, ``other``
-        what the parts do not cover (the candidates' bookkeeping, the resident set)."""
+        """Mean CPU ms per query by part; ``read`` is the read back less its decode, ``decode``
+        that and (read back in two steps) the positions decoded within the local score,
+        ``other`` what the parts do not cover (the candidates' bookkeeping, the resident set)."""
         s = self.s
-        out = {"shortlist": s["shortlist"], "read": max(0.0, s["read back"] - s["decode"]), "decode": s["decode"],
-               "local score": s["local score"]}
-        out["other"] = total_s - s["shortlist"] - s["read back"] - s["local score"]
+        out = {"shortlist": s["shortlist"], "read": max(0.0, s["read back"] - s["decode"]),
+               "decode": s["decode"] + s["positions"], "local score": s["local score"]}
+        out["other"] = total_s - s["shortlist"] - s["read back"] - s["local score"] - s["positions"]
         out["total"] = total_s
         return {k: v * 1e3 / queries for k, v in out.items()}
 
@@ -610,7 +622,8 @@ def scale(recording: Path, sizes: list[int], queries: int, mode: int, shortlist:
         # on_demand: the daemon's index (IndexParams.resident descriptors kept decoded), the
         # others decoded again from their bytes when shortlisted (decode looked up at call
         # time, so that _QueryParts times it); otherwise every descriptor in RAM.
-        loader = (lambda i: fi.decode(blobs[i % distinct])) if on_demand else None
+        # As FloorIndex.from_store reads them back: in two steps (decode_local) where the code has it.
+        loader = (lambda i: getattr(fi, "decode_local", fi.decode)(blobs[i % distinct])) if on_demand else None
         ix = FloorIndex(IndexParams(shortlist=shortlist), loader=loader)
         for i in range(len(index)):
             ix.add(i, index.descriptor(i))
