@@ -681,7 +681,8 @@ def scale(recording: Path, sizes: list[int], queries: int, mode: int, shortlist:
                         row["query_read_back_ms"] = {**stats(ms["read back"]), "reads_per_query": reads["read back"],
                                                      "resident": built["read back"].params.resident}
                         row["query_from_map_ms"] = {**stats(ms["from the map"]),
-                                                    "reads_per_query": reads["from the map"]}
+                                                    "reads_per_query": reads["from the map"],
+                                                    "index_mb": built["from the map"].nbytes / 1e6}
                         row["same_candidates"] = same
                     else:
                         row["parts_ms"] = {k: p.per_query_ms(p.s["total"], len(qs)) for k, p in parts.items()}
@@ -1173,11 +1174,13 @@ def _scale_section(p: dict[str, Any]) -> list[str]:
 def _scale_table(sc: dict[str, Any]) -> list[str]:
     """The scale part's tables: query times by index, and where the time goes by part."""
     from_map = any("query_from_map_ms" in row for row in sc["sizes"])
+    held = any("index_mb" in row.get("query_from_map_ms", {}) for row in sc["sizes"])
     lines = ["| keyframes | of them distinct | in RAM, median ms | p99 | as the daemon, median ms | p99 | "
              "against in RAM | descriptors read back per query |"
              + (" from the map, median ms | p99 | against in RAM | reads per query | same candidates |"
-                if from_map else ""),
-             "|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|---:|---:|---:|---|" if from_map else "")]
+                if from_map else "") + (" from the map, index MB after the queries |" if held else ""),
+             "|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|---:|---:|---:|---|" if from_map else "")
+             + ("---:|" if held else "")]
     for row in sc["sizes"]:
         q, rb, fm = row["query_ms"], row.get("query_read_back_ms"), row.get("query_from_map_ms")
         if rb is None:
@@ -1189,6 +1192,8 @@ def _scale_table(sc: dict[str, Any]) -> list[str]:
             line += (f" {fm['median']:.2f} | {fm['p99']:.2f} | {fm['median'] / q['median']:.2f} | "
                      f"{fm['reads_per_query']:.1f} | {'yes' if row.get('same_candidates') else 'no'} |"
                      if fm else " - | - | - | - | - |")
+        if held:
+            line += f" {fm['index_mb']:.1f} |" if fm and "index_mb" in fm else " - |"
         lines.append(line)
     return lines + _parts_table(sc)
 
