@@ -2,7 +2,8 @@
 
 ``extract(image, mode) -> bytes`` never returns more than ``MODE_BYTES[mode]`` bytes;
 ``decode(bytes) -> FloorDescriptor`` gives what matching (:mod:`robotd.floor.match`)
-needs. It follows the six steps of CDVS (ISO/IEC 15938-13, paper 003 Sec. II-A) and keeps
+needs (``decode_local``: the same in two steps, the positions last, for the floor index's
+read back). It follows the six steps of CDVS (ISO/IEC 15938-13, paper 003 Sec. II-A) and keeps
 its trade-offs (more bytes: more and longer local descriptors), but is not
 bitstream-compatible with the standard. It is built for a downward floor camera: the
 floor's scale barely changes between views, its rotation changes all the time.
