@@ -118,6 +118,7 @@ from typing import Any
 
 import numpy as np
 
+from robotd.app import gcwatch
 from robotd.app.pipeline import Publisher
 from robotd.base.config import ForwardDetectorConfig
 from robotd.base.errors import MapStoreError
@@ -132,7 +133,7 @@ from robotd.forward.verify import VerifyParams, floor_range, match_features
 log = logging.getLogger(__name__)
 
 # The stage's parts timed per forward keyframe (ForwardLoopStage.part_cpu_ms).
-PARTS = ("match", "scan", "level", "ridge", "graph", "readback", "store", "stage")
+PARTS = ("match", "scan", "level", "ridge", "graph", "readback", "store", "gc", "stage")
 
 
 @dataclass(frozen=True)
@@ -442,7 +443,9 @@ class ForwardLoopStage(Publisher):
         # The stage's parts per forward keyframe in the pipeline thread's CPU time (ms): the
         # planar refit's matches and heading scan, the level test against the verified motion,
         # the ridge's fits, the graph's heading, the read-back of evicted images, the map write,
-        # and the whole keyframe (detector and stage).
+        # Python's garbage collections run in this thread meanwhile (wall clock, with a
+        # robotd.app.gcwatch installed; they are inside the other parts), and the whole
+        # keyframe (detector and stage).
         self.part_cpu_ms: dict[str, list[float]] = {k: [] for k in PARTS}
         self._part: dict[str, float] = {}
         if store is not None:
@@ -668,6 +671,8 @@ class ForwardLoopStage(Publisher):
         self._out = []
         self._part = {}
         n_images = self.images
+        watch = gcwatch.installed()
+        gc0 = watch.thread_ms() if watch is not None else 0.0
         cpu0 = time.thread_time()
         try:
             self._take_frame(kf, pose, chain, links)
@@ -675,6 +680,8 @@ class ForwardLoopStage(Publisher):
             out, self._out = self._out, None
             if self.images > n_images:  # a forward keyframe was run: its parts
                 self._add_cpu("stage", cpu0)
+                if watch is not None:  # the collections run in this thread meanwhile (wall clock)
+                    self._part["gc"] = watch.thread_ms() - gc0
                 for part in PARTS:
                     self.part_cpu_ms[part].append(self._part.get(part, 0.0))
         if not out:
