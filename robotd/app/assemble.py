@@ -315,6 +315,13 @@ def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store
              "forward": cfg.floor_camera.queue_size}
     if outputs is not None:
         pipeline.add(outputs)
+    # Python's garbage collections timed (counters gc_*, the forward stage's gc part); with
+    # [daemon] gc_freeze, the objects of the start-up and the map's load frozen out of them.
+    from robotd.app import gcwatch
+
+    watch = pipeline.add(gcwatch.GcWatch().install())
+    if cfg.daemon.gc_freeze:
+        watch.freeze()
     daemon = Daemon(clock, pipeline, sources, notifier, store=store, run_id=run_id, lossless=lossless,
                     status_interval_s=cfg.daemon.status_interval_s, queue_sizes=sizes,
                     driver_stats=driver_stats)

@@ -467,7 +467,7 @@ class ForwardLoopStage(Publisher):
         # The stage's parts per forward keyframe in the pipeline thread's CPU time (ms): the
         # planar refit's matches and heading scan, the level test against the verified motion,
         # the ridge's fits, the graph's heading, the read-back of evicted images, the map write,
-        # Python's garbage collections run in this thread meanwhile (wall clock, with a
+        # Python's garbage collections run in this thread meanwhile (with a
         # robotd.app.gcwatch installed; they are inside the other parts), and the whole
         # keyframe (detector and stage).
         self.part_cpu_ms: dict[str, list[float]] = {k: [] for k in PARTS}
@@ -696,7 +696,7 @@ class ForwardLoopStage(Publisher):
         self._part = {}
         n_images = self.images
         watch = gcwatch.installed()
-        gc0 = watch.thread_ms() if watch is not None else 0.0
+        gc0 = watch.thread_cpu_ms() if watch is not None else 0.0
         cpu0 = time.thread_time()
         try:
             self._take_frame(kf, pose, chain, links)
@@ -704,8 +704,8 @@ class ForwardLoopStage(Publisher):
             out, self._out = self._out, None
             if self.images > n_images:  # a forward keyframe was run: its parts
                 self._add_cpu("stage", cpu0)
-                if watch is not None:  # the collections run in this thread meanwhile (wall clock)
-                    self._part["gc"] = watch.thread_ms() - gc0
+                if watch is not None:  # the collections run in this thread meanwhile
+                    self._part["gc"] = watch.thread_cpu_ms() - gc0
                 for part in PARTS:
                     self.part_cpu_ms[part].append(self._part.get(part, 0.0))
         if not out:
