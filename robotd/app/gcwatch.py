@@ -95,7 +95,12 @@ class GcWatch:
         return self.frozen_at_start
 
     def finish(self) -> int:
-        """End of the daemon's input: what :meth:`freeze` froze goes back to the collector."""
+        """End of the daemon's input: the collections of the run logged; what :meth:`freeze`
+        froze goes back to the collector."""
+        log.info("garbage collections over the run (generation: count, CPU ms, largest wall ms): %s; "
+                 "%d objects frozen at start", ", ".join(
+                     f"{g}: {self.collections[g]}, {self.cpu_ms_total[g]:.0f}, {self.ms_max[g]:.1f}" for g in range(3)),
+                 self.frozen_at_start)
         if self.frozen_at_start:
             gc.unfreeze()
         return 0
