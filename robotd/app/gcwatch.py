@@ -5,9 +5,11 @@ threshold, holding the GIL: every thread waits for it, and the thread that trigg
 pays for it in its own CPU time. A full collection (generation 2) walks every container
 object the process holds, which in the daemon grows with the run (the stages' per-keyframe
 lists, the map's rows, the detector's images). :class:`GcWatch` times each collection
-through :data:`gc.callbacks` (wall clock and CPU time, by generation and by thread), so a stage can
-take the collector's share out of its own time (the forward stage's ``gc`` part) and the
-counters say what the collector cost over the run.
+through :data:`gc.callbacks` (wall clock and CPU time, by generation and by thread), so a
+stage can tell the collector's share of its own time (the forward stage's ``gc`` part) and
+the counters say what the collector cost over the run. :func:`freeze_startup` takes the
+objects alive after the start-up out of the collections (``[daemon] gc_freeze``;
+docs/performance.md, "The garbage collector").
 """
 
 from __future__ import annotations
@@ -75,7 +77,8 @@ class GcWatch:
 
     def counters(self) -> dict[str, Any]:
         """``gc_collections_gen<g>``, ``gc_ms_total_gen<g>``, ``gc_ms_max_gen<g>`` (wall
-        clock) and ``gc_cpu_ms_total_gen<g>`` (the collecting threads' CPU) for generations 0-2, ``gc_frozen_objects`` (:func:`gc.get_freeze_count` now) and
+        clock) and ``gc_cpu_ms_total_gen<g>`` (the collecting threads' CPU) for generations
+        0-2, ``gc_frozen_objects`` (:func:`gc.get_freeze_count` now) and
         ``gc_frozen_at_start`` (:meth:`freeze`)."""
         out: dict[str, Any] = {}
         for g in range(3):
@@ -132,9 +135,9 @@ def freeze_startup() -> int:
     """Collect, then move every object the process holds now out of the collector's reach
     (:func:`gc.freeze`): the daemon's start-up (its imports, the stages, the map's load)
     makes most of the objects a full collection would otherwise walk again and again over
-    the run, although they live as long as the process. Garbage they become later is never
-    collected (they are not freed by a cycle's collection; reference counting still frees
-    the rest). Returns the objects frozen, logged."""
+    the run, although they live as long as the process. Garbage they become while frozen
+    is not collected if it is a cycle (reference counting still frees the rest) until
+    :func:`gc.unfreeze` (:meth:`GcWatch.finish`). Returns the objects frozen, logged."""
     gc.collect()
     gc.freeze()
     n = gc.get_freeze_count()
