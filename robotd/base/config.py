@@ -368,9 +368,9 @@ class DaemonConfig:
                                   live=True)
     log_level: str = _f("info", "logging level (--log-level on the command line wins)",
                         choices=("debug", "info", "warning", "error"), live=True)
-    gc_freeze: bool = _f(True, "move the objects made at start-up (the map's load included) out of "
+    gc_freeze: bool = _f(False, "move the objects made at start-up (the map's load included) out of "
                          "Python's garbage collector for the run: its full collections then walk only "
-                         "what the run made (docs/performance.md)")
+                         "what the run made (measured, not yet the default: docs/performance.md)")
 
 
 @dataclass(frozen=True)
