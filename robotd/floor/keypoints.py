@@ -143,21 +143,29 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None,
     coarse = params.detect_step == 2
     half = ws.half() if coarse or 2 in (params.orientation_step, params.pool_step) else ws
     x = ws.x
-    if not coarse or not params.exact_maps or params.pool_step == 1:  # g1 at every pixel: detection or maps
+    prefiltered = coarse and params.detect_prefilter
+    if not coarse or prefiltered or not params.exact_maps or params.pool_step == 1:  # g1 at every pixel
         np.copyto(x, cv2.resize(work, (w2, h2), interpolation=cv2.INTER_AREA), casting="unsafe")
-        if not coarse:  # (the maps' scale does not matter: each raw descriptor is normalised)
+        if not coarse or prefiltered:  # (the maps' scale does not matter: each raw descriptor is normalised)
             x *= np.float32(1.0 / max(_std(x, ws.t1), 1.0))  # flat images: no keypoint passes
         g1 = cv2.GaussianBlur(x, (0, 0), s, dst=ws.g1)
     if coarse:
         # Detection on the image halved again (a quarter of the pixels), the same sigmas in
         # its pixels; positions back in half-resolution pixels. The orientation and the
-        # exact maps start from its Gaussian image (``quarter``).
+        # exact maps start from its Gaussian image (``quarter``). With ``detect_prefilter``
+        # that image is g1 halved (2 x 2 area averages of the half-resolution image already
+        # low-passed at detect_sigma_px, about the same sigma in quarter pixels) instead of a
+        # 4 x 4 box average of the working image smoothed: the box folds the fine texture
+        # back into the detection's band.
         h4, w4 = half.shape
-        xq = half.t2
-        np.copyto(xq, cv2.resize(work, (w4, h4), interpolation=cv2.INTER_AREA), casting="unsafe")
-        xq *= np.float32(1.0 / max(_std(xq, half.t1), 1.0))
         sq1 = 0.5 * s
-        quarter = cv2.GaussianBlur(xq, (0, 0), sq1, dst=half.x)
+        if prefiltered:
+            quarter = cv2.resize(g1, (w4, h4), dst=half.x, interpolation=cv2.INTER_AREA)
+        else:
+            xq = half.t2
+            np.copyto(xq, cv2.resize(work, (w4, h4), interpolation=cv2.INTER_AREA), casting="unsafe")
+            xq *= np.float32(1.0 / max(_std(xq, half.t1), 1.0))
+            quarter = cv2.GaussianBlur(xq, (0, 0), sq1, dst=half.x)
         d = np.subtract(quarter, cv2.GaussianBlur(quarter, (0, 0), sq1 * math.sqrt(params.dog_ratio**2 - 1.0),
                                                   dst=half.t1), out=half.d)
         found = _extrema(d, int(math.ceil(0.5 * params.cell_px)), params, half)

@@ -812,16 +812,25 @@ def test_maps_halved_from_every_pixels_gradients_stay_closer_than_maps_of_the_ha
     assert dist["halved"] < 0.06
 
 
-def test_candidates_of_the_quarter_image_land_on_the_default_keypoints(frames):
+@pytest.mark.parametrize("prefilter", [False, True])
+def test_candidates_of_the_quarter_image_land_on_the_default_keypoints(frames, prefilter):
     """``detect_step`` 2 (:data:`QUARTER`) finds the candidates on the detection image
     halved, at the same scale, and gives positions in working-image pixels as the default
     does: most of the default's most relevant keypoints have a quarter-image candidate
     within 2 px (a position off by the factor of the halving would land far away), and
-    the same frame described both ways keeps much of its self-score, another floor none."""
-    from robotd.floor.descriptor import QUARTER
+    the same frame described both ways keeps much of its self-score, another floor none.
+    So with ``detect_prefilter`` (the quarter image from the low-passed detection image),
+    whose candidates are not those of the box-averaged quarter image."""
+    import dataclasses
+
+    from robotd.floor.descriptor import QUARTER as PLAIN
     from robotd.floor.match import local_score
 
+    QUARTER = dataclasses.replace(PLAIN, detect_prefilter=prefilter)  # noqa: N806
     learned = load_learned()
+    if prefilter:
+        a, b = candidates(frames["brick"], PLAIN, learned), candidates(frames["brick"], QUARTER, learned)
+        assert len(a.xy) != len(b.xy) or not np.array_equal(a.xy, b.xy)
     for name in ("brick", "grass", "gravel"):
         ref = candidates(frames[name], ExtractParams(), learned)
         c = candidates(frames[name], QUARTER, learned)
