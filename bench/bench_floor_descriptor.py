@@ -31,7 +31,8 @@ caches it; ``--recording`` names another), mode 4 as the daemon describes keyfra
   faster defaults), the selectable cheaper ``COARSE`` one (the maps and the orientation
   from the detection image halved), the selectable ``QUARTER`` one (the candidates found on
   the detection image halved too: a quarter of its pixels), that one with ``detect_prefilter``
-  (its quarter image the low-passed detection image halved), OpenCV ORB (500) and SIFT, on ``--office-frames``
+  (its quarter image the low-passed detection image halved), the default with
+  ``orientation_from_maps`` (the orientation read from the pooled maps), OpenCV ORB (500) and SIFT, on ``--office-frames``
   frames spread over the drive;
 * query time of the floor index (:class:`robotd.floor.index.FloorIndex`, the daemon's
   shortlist of 10 and the demo's loop threshold as ``min_score``) at 1,000 and 10,000
@@ -77,6 +78,7 @@ SPACING_M = 0.05
 #: halved (cheaper; the demo's visual odometry lost accuracy with it).
 COARSE = ExtractParams(orientation_step=2, exact_maps=True)
 QUARTER_PREFILTERED = dataclasses.replace(QUARTER, detect_prefilter=True)
+ORIENTATION_FROM_MAPS = ExtractParams(orientation_from_maps=True)
 OFFICE_MODE = 4  # the daemon's mode
 OFFICE_SHORTLIST = 10  # [floor_detector] shortlist
 OFFICE_SIZES = (1000, 10000)
@@ -175,6 +177,7 @@ def bench_office(args: argparse.Namespace, sift: SiftBaseline) -> dict:
                "coarse": lambda im: extract(im, OFFICE_MODE, COARSE),
                "quarter": lambda im: extract(im, OFFICE_MODE, QUARTER),
                "quarter_prefiltered": lambda im: extract(im, OFFICE_MODE, QUARTER_PREFILTERED),
+               "orientation_from_maps": lambda im: extract(im, OFFICE_MODE, ORIENTATION_FROM_MAPS),
                "orb": lambda im: orb.detectAndCompute(im, None), "sift": sift.extract}
     times: dict[str, list[float]] = {k: [] for k in methods}
     blobs: dict[str, list[bytes]] = {"ours": []}
@@ -455,6 +458,7 @@ def markdown(p: dict) -> list[str]:
                            "`exact_maps`)",
                  "quarter": "ours, `QUARTER` (candidates too from the image halved: `detect_step=2`, `exact_maps`)",
                  "quarter_prefiltered": "ours, `QUARTER` with `detect_prefilter` (the halved image low-passed first)",
+                 "orientation_from_maps": "ours, `orientation_from_maps` (the orientation read from the pooled maps)",
                  "orb": "OpenCV ORB (500)",
                  "sift": "OpenCV SIFT"}
         lines += ["## The office drive (the daemon's keyframes)", "",

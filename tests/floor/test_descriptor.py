@@ -879,3 +879,28 @@ def test_prefiltered_quarter_image_aliases_less_on_the_printed_planks():
         plain = alias_ratio(QUARTER, mode)
         prefiltered = alias_ratio(dataclasses.replace(QUARTER, detect_prefilter=True), mode)
         assert prefiltered < 0.85 * plain, (mode, prefiltered, plain)
+
+
+def test_orientation_read_from_the_pooled_maps_is_near_the_smoothed_gradients(frames):
+    """``orientation_from_maps``: the 8 pooled direction maps summed as vectors and smoothed
+    by what the orientation's sigma lacks are the gradient of the image smoothed at
+    ``orientation_sigma_px``, up to the linear split's error: the same candidates (positions,
+    responses) with orientations within a degree at the median and a few at the 90th
+    percentile of those at every pixel (a wrong direction vector, sign or axis would put
+    them tens of degrees off), and strengths within a tenth."""
+    learned = load_learned()
+    maps = ExtractParams(orientation_from_maps=True)
+    for name in ("brick", "grass", "gravel"):
+        ref = candidates(frames[name], ExtractParams(), learned)
+        c = candidates(frames[name], maps, learned)
+        ia, ib = np.lexsort(ref.xy.T[::-1]), np.lexsort(c.xy.T[::-1])
+        assert np.array_equal(ref.xy[ia], c.xy[ib])
+        assert np.array_equal(ref.attributes[ia, :3], c.attributes[ib, :3])
+        off = np.abs(wrap_angle(c.angle[ib].astype(np.float64) - ref.angle[ia]))
+        strength = c.attributes[ib, 3] / ref.attributes[ia, 3]
+        top = np.argsort(-ref.relevance[ia])[:300]
+        assert np.degrees(np.median(off[top])) < 1.0, np.degrees(np.median(off[top]))
+        assert np.degrees(np.percentile(off[top], 90)) < 4.0
+        assert 0.9 < np.median(strength[top]) < 1.0
+    with pytest.raises(ValueError):
+        ExtractParams(orientation_from_maps=True, detect_step=2)
