@@ -91,9 +91,9 @@ class ExtractParams:
             not re-learned), at about half the orientation's time (0.87-0.95 of the
             extraction's). Only with ``detect_step`` 1 and the table-split maps. The ROC
             AUC on the benchmark floors and the printed planks within -0.0015..+0.0024 of
-            the default's, the plank alias test held; but in the demo (office, seed 0) the
-            visual odometry's APE 0.057 against 0.049 m (loops the same, all true): not the
-            default.
+            the default's, the plank alias test held; but in the demo (office, seeds 0 and 1)
+            the visual odometry's APE 0.057 and 0.104 against 0.049 and 0.086 m (the loops
+            all true, none refused): not the default.
         exact_maps: True splits each gradient between the orientation channels exactly
             (per-pixel arithmetic and scatters); False (the default) looks the split up in a
             table of 256 angles, within 1/64 of the gradient's magnitude of the exact split:
