@@ -158,7 +158,7 @@ def replay(msgs: list[Any], steps: list[Any], drive: DiffDriveParams, gyro_scale
     ``flags``: more of :class:`robotd.odometry.fusion.OdometryFilter`'s fields (default: the
     daemon's)."""
     f = OdometryFilter(drive, params, vo_twin=True, gyro_scale=gyro_scale, initial_bias=bias_prior, **flags)
-    from robotd.base.geometry import between_error_covariance, compose
+    from robotd.base.geometry import between, between_error_covariance, compose
     from robotd.odometry.increments import combine_edges, edge_disagreement
 
     pending = list(steps)
@@ -167,6 +167,11 @@ def replay(msgs: list[Any], steps: list[Any], drive: DiffDriveParams, gyro_scale
     kf_stamps: list[int] = []
     kf_fused: list[tuple[float, float, float]] = []
     chained: list[np.ndarray] = []  # the graph's combined edges chained without loops
+    # The combined edges as a live pose: the chain up to the last keyframe, then the twin's
+    # motion since that keyframe (its pose there and now).
+    combined: list[tuple[float, float, float]] = []
+    twin_at_kf: np.ndarray | None = None
+    twin = f.wheel_gyro
     for m in msgs:
         if isinstance(m, WheelTicks):
             f.on_wheels(m)
@@ -193,9 +198,17 @@ def replay(msgs: list[Any], steps: list[Any], drive: DiffDriveParams, gyro_scale
                         chained.append(chained[-1])
                     kf_stamps.append(t)
                     kf_fused.append((kp.x_m, kp.y_m, kp.yaw_rad))
+                    tp = twin.pose_at(t)
+                    twin_at_kf = None if tp is None else np.array([tp.x_m, tp.y_m, tp.yaw_rad])
                 k += 1
             q = f.pose()
             poses.append((q.x_m, q.y_m, q.yaw_rad))
+            if chained and twin_at_kf is not None:
+                tq = twin.pose()
+                c = compose(chained[-1], between(twin_at_kf, np.array([tq.x_m, tq.y_m, tq.yaw_rad])))
+                combined.append((float(c[0]), float(c[1]), float(c[2])))
+            else:
+                combined.append((q.x_m, q.y_m, q.yaw_rad))
             s = f.state
             bias.append(s.gyro_bias_radps if s is not None else 0.0)
             stamps.append(int(m.stamp_ns))
@@ -203,7 +216,8 @@ def replay(msgs: list[Any], steps: list[Any], drive: DiffDriveParams, gyro_scale
             f.on_yaw_rate(m)
     return {"poses": np.asarray(poses), "bias": np.asarray(bias), "stamp_ns": np.asarray(stamps),
             "counters": vars(f.counters).copy(), "kf_stamp_ns": np.asarray(kf_stamps),
-            "kf_fused": np.asarray(kf_fused), "kf_chained": np.asarray(chained)}
+            "kf_fused": np.asarray(kf_fused), "kf_chained": np.asarray(chained),
+            "combined": np.asarray(combined)}
 
 
 def bias_errors(run: dict[str, Any], t_true_s: np.ndarray, bias_true: np.ndarray, t0_s: float) -> dict[str, float]:
@@ -327,6 +341,8 @@ def evaluate(seed: int, route: str, cache: Path, model: Any, source: str,
                 **bias_errors(r, t_g, bias_true, float(stream.sensors.t_s[0])),
                 "vo_fused": r["counters"]["vo_fused"], "vo_rejected": r["counters"]["vo_rejected"],
                 **keyframe_ape(r, motion),
+                **{f"combined_live_{k}": v for k, v in odometry_errors(truth[:n], r["combined"][:n]).as_dict().items()
+                   if k in ("end_position_error_m", "ape_origin_rmse_m")},
                 "cpu_s": time.process_time() - t0}
     return out
 
@@ -377,6 +393,21 @@ VARIANTS: dict[str, Any] = {
         EkfParams(), None, {"twin_params": calibration_params(model)}),
     "the calibration's noise model for the edges and the fused filter (\"calibration_fused\")": lambda model: (
         calibration_params(model), None, {}),
+}
+#: The fused filter's designs against the combined edges (``--variants designs``): the
+#: baseline, the daemon, the trapezoid rule with 0.1, and the visual step as a relative-pose
+#: update that leaves the gyro bias alone (a Schmidt "consider" bias, ``vo_bias_update``).
+NO_BIAS = {"vo_bias_update": False}
+DESIGNS: dict[str, Any] = {
+    "the config's noise model (before)": VARIANTS["the config's noise model (before)"],
+    "the fused pose follows its rates (the daemon)": VARIANTS["the fused pose follows its rates (the daemon)"],
+    "the pose by the trapezoid rule, angular process noise 0.1 (not the default)":
+        VARIANTS["the pose by the trapezoid rule, angular process noise 0.1 (not the default)"],
+    "the visual step leaves the bias alone": lambda model: (EkfParams(), None, NO_BIAS),
+    "the visual step leaves the bias alone, trapezoid rule and 0.1": lambda model: (
+        EkfParams(), None, {**TRAPEZOID, **NO_BIAS}),
+    "the visual step leaves the bias alone, the pose's own process noise": lambda model: (
+        EkfParams(), None, {**BEFORE, **NO_BIAS}),
 }
 #: Measured too (``--variants all``): the calibration drive's turn-on bias as the prior; the
 #: calibration's fitted noise densities with the sensor-level process noise.
@@ -439,8 +470,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="for a seed without a calibration file: the fit alone on ROUTE (default calibration)")
     ap.add_argument("--synthetic-vo", action="store_true",
                     help="synthetic visual steps for every seed (on a capture's stamps and covariances)")
-    ap.add_argument("--variants", choices=("default", "all"), default="default",
-                    help="the filter's noise models to replay (all: also the bias prior and the fitted noise)")
+    ap.add_argument("--variants", choices=("default", "all", "designs"), default="default",
+                    help="the filter's noise models to replay (all: also the bias prior and the fitted noise; "
+                         "designs: the fused filter's designs against the combined edges)")
     ap.add_argument("--full", action="store_true", help="the same as the default")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--markdown", type=Path, default=None)
@@ -458,7 +490,7 @@ def main(argv: list[str] | None = None) -> int:
         for seed in seeds:
             capture(seed, args.route, args.cache)
         return 0
-    variants = VARIANTS if args.variants == "default" else {**VARIANTS, **MORE_VARIANTS}
+    variants = {"default": VARIANTS, "all": {**VARIANTS, **MORE_VARIANTS}, "designs": DESIGNS}[args.variants]
     rows = []
     for seed in seeds:
         model, source = models(seed, args.calibration, args.synthetic_reference)

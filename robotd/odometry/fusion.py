@@ -191,6 +191,7 @@ class OdometryFilter:
     pose_after_rates: bool = False
     vo_angular_accel_noise_radps2_per_sqrt_hz: float | None = None
     twin_params: EkfParams | None = None
+    vo_bias_update: bool = True
 
     def __post_init__(self) -> None:
         self.counters = FilterCounters()
@@ -469,7 +470,7 @@ class OdometryFilter:
             self.counters.vo_no_clone += 1
         else:
             z, r = shift_measurement(delta, covariance, c.offset, offset)
-            mean, cov, nis = update_relative_pose(s.mean, s.cov, c, z, r)
+            mean, cov, nis = update_relative_pose(s.mean, s.cov, c, z, r, () if self.vo_bias_update else (IB,))
             if nis > self.vo_gate_nis:
                 self.counters.vo_rejected += 1
             else:
