@@ -189,6 +189,8 @@ def replay(msgs: list[Any], steps: list[Any], drive: DiffDriveParams, gyro_scale
                     elif edge_disagreement(edge, step) <= f.vo_gate_nis:
                         edge = combine_edges(edge, step)
                 kp = f.pose_at(t)
+                if f.live_pose == "combined_edges":  # the live pose at a keyframe: the chain's
+                    kp = f.chain_pose()
                 if kp is not None:
                     if not chained:
                         chained.append(np.array([kp.x_m, kp.y_m, kp.yaw_rad]))
@@ -408,6 +410,8 @@ DESIGNS: dict[str, Any] = {
         EkfParams(), None, {**TRAPEZOID, **NO_BIAS}),
     "the visual step leaves the bias alone, the pose's own process noise": lambda model: (
         EkfParams(), None, {**BEFORE, **NO_BIAS}),
+    "the combined edges as the live pose (live_pose = \"combined_edges\")": lambda model: (
+        EkfParams(), None, {"live_pose": "combined_edges"}),
 }
 #: Measured too (``--variants all``): the calibration drive's turn-on bias as the prior; the
 #: calibration's fitted noise densities with the sensor-level process noise.
