@@ -176,6 +176,26 @@ class OdometryFilter:
     ``twin_params``: with ``vo_twin``, the twin's noise model in place of ``params`` (the
     calibration's gyro noise goes to the graph's edges only, and with ``[odometry] noise_model =
     "calibration"`` its whole sensor-level noise model: :func:`robotd.app.assemble.build_odometry`).
+    ``vo_bias_update`` (default True): False makes a visual step a relative-pose update
+    that leaves the gyro bias alone (its gain row zeroed, a Schmidt "consider" bias:
+    :func:`robotd.odometry.relative.update_relative_pose`), so that the bias is learnt from
+    the wheels and the standstills only and the fused heading no longer follows the visual
+    steps' heading random walk through it. On the office route (seeds 0-4, the daemon's
+    visual steps, ``bench/bench_odometry_fused.py --variants designs``) it is no better
+    than the default: fused end error and APE better than the nominal model's on 1 seed
+    of 5, no worse than the combined edges on 3 (as the default), mean keyframe ATE 0.0609
+    against 0.0611 m.
+    ``live_pose`` (default ``"fused"``): ``"combined_edges"`` (with ``vo_twin``) makes
+    :meth:`pose` the graph's combined edges chained without loops from the first
+    keyframe's fused pose (at each keyframe the twin's edge over the interval and the
+    visual step, combined when they agree within ``vo_gate_nis``, as the visual odometry
+    stage makes the graph's edge) followed by the twin's motion since the last keyframe
+    (:meth:`chain_pose` is the chain's end). The twin keeps a second edge history for it,
+    since :meth:`keyframe_edge` is the pipeline's. :meth:`pose_at` stays the fused
+    filter's. Same bench: at the keyframes it is the combined edges by construction; end
+    error and APE better than the nominal model's on seeds 1, 2 and 4, the best mean of
+    the designs measured; but on seed 0, the demo's, it ends 0.113 m off against the
+    default's 0.043 m, so it is not the default.
     """
 
     drive: DiffDriveParams = field(default_factory=DiffDriveParams)

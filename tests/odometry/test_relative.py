@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.base.geometry import between
+from robotd.base.geometry import between, compose
 from robotd.base.messages import WheelTicks, YawRate
 from robotd.odometry.ekf import IYAW
 from robotd.odometry.fusion import OdometryFilter
@@ -336,3 +336,30 @@ def test_visual_steps_that_leave_the_bias_alone_still_hold_the_heading():
     known = _run_with_latency(OdometryFilter(initial_bias=(0.04, 1e-9)), [0], n_packets=600)
     end, twin_end = track[-1][3], f.wheel_gyro.state.mean[IYAW]
     assert abs(end - known[-1][3]) < 0.2 * abs(twin_end - known[-1][3])
+
+
+def test_the_combined_edges_as_the_live_pose_do_not_depend_on_when_the_steps_come():
+    """``live_pose = "combined_edges"``: the live pose is the chain of the graph's combined
+    edges (the twin's edge and the visual step) up to the last keyframe, then the twin's
+    motion since. The chain is the same whenever the steps arrive; the live pose is its
+    end composed with the twin's motion; the precise steps hold the heading that the
+    twin, 0.04 rad/s of unknown gyro bias, loses."""
+    with pytest.raises(ValueError, match="live_pose"):
+        OdometryFilter(vo_twin=True, live_pose="graph")
+    now = OdometryFilter(vo_twin=True, live_pose="combined_edges")
+    late = OdometryFilter(vo_twin=True, live_pose="combined_edges")
+    _run_with_latency(now, [0])
+    _run_with_latency(late, [0, 3, 1, 7])
+    a, b = now.chain_pose(), late.chain_pose()
+    assert a is not None and b is not None and a.stamp_ns == b.stamp_ns
+    assert (a.x_m, a.y_m, a.yaw_rad) == (b.x_m, b.y_m, b.yaw_rad)
+    assert np.array_equal(a.covariance, b.covariance) and np.all(np.linalg.eigvalsh(a.covariance) > 0)
+    twin = now.wheel_gyro
+    at_kf = twin.pose_at(a.stamp_ns)
+    motion = between(np.array([at_kf.x_m, at_kf.y_m, at_kf.yaw_rad]), twin.state.mean[:3])
+    live = now.pose()
+    expected = compose(np.array([a.x_m, a.y_m, a.yaw_rad]), motion)
+    assert np.array([live.x_m, live.y_m, live.yaw_rad]) == pytest.approx(expected, abs=1e-12)
+    assert OdometryFilter(vo_twin=True).chain_pose() is None
+    known = _run_with_latency(OdometryFilter(initial_bias=(0.04, 1e-9)), [0], n_packets=600)
+    assert abs(live.yaw_rad - known[-1][3]) < 0.2 * abs(twin.state.mean[IYAW] - known[-1][3])
