@@ -28,6 +28,10 @@ every seed).
 Run: ``.venv/bin/python bench/bench_odometry_fused.py --capture [--seeds 0,1,2,3,4]``
 (minutes per seed), then ``bench/bench_odometry_fused.py [--markdown
 docs/benchmarks/odometry_fused.md]`` (seconds per seed). ``--full`` is the same.
+``--variants designs --out docs/benchmarks/odometry_fused_designs.json --markdown
+docs/benchmarks/odometry_fused_designs.md``: the fused filter's designs against the
+combined edges, with the two fused targets per design (about 10 replays per seed; 6 s of
+CPU each).
 """
 
 from __future__ import annotations
