@@ -14,7 +14,7 @@ run, one thread (OpenCV and numpy's BLAS, :func:`floor_common.one_thread`):
   2-NN ratio test and RANSAC) and the ratio SIFT / ours (target: >= 50x). Pairs are the
   consecutive frames of the run and as many random pairs of frames of it.
 
-Frames: a straight run of ``--frames`` frames 5 cm apart on each floor (gravel, grass,
+Frames: a straight run of ``--frames`` frames 5 cm apart (12 by default, 30 with ``--full``) on each floor (gravel, grass,
 brick, the herringbone photo, the default mixed floor, and every ``--floor FILE``).
 Times are the median over frames (or pairs) of each item's median over ``--repeats``
 timed calls after a warm-up; the spread is the interquartile range over items.
@@ -377,7 +377,10 @@ def print_office(o: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_common_args(ap)
-    ap.add_argument("--frames", type=int, default=30, help="frames per floor, 5 cm apart (default 30)")
+    ap.add_argument("--frames", type=int, default=None,
+                    help="frames per floor, 5 cm apart (default 12, with --full 30: SIFT's matching on the rich "
+                         "floors takes minutes per floor)")
+    ap.add_argument("--full", action="store_true", help="the paper-sized run: 30 frames per floor")
     ap.add_argument("--repeats", type=int, default=3, help="timed calls per frame or pair, ours (default 3)")
     ap.add_argument("--doc", type=Path, default=None, help="also write the Markdown page of the run here")
     ap.add_argument("--sift-repeats", type=int, default=1,
@@ -390,6 +393,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="distinct frames in the index, repeated beyond (default 1000)")
     ap.add_argument("--skip", action="append", default=[], choices=["floors", "office"], help="leave a part out")
     args = ap.parse_args(argv)
+    if args.frames is None:
+        args.frames = 30 if args.full else 12
     load_start = load_average()
     blas = one_thread()
     log(f"load average {load_start}; BLAS pools {blas}")
