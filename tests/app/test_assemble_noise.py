@@ -79,3 +79,15 @@ def test_without_a_calibration_or_its_accelerations_the_config_is_kept(caplog):
     assert build_odometry(Config(), cal).wheel_gyro.params == build_odometry(
         replace(Config(), "odometry", noise_model="config"), cal).wheel_gyro.params
     assert _accel(build_odometry(Config(), cal).wheel_gyro.params) == (0.5, 0.3)
+
+
+def test_the_live_pose_key_reaches_the_fused_filter():
+    """``[visual_odometry] live_pose``: the daemon's fused filter gets it (default: its own
+    fused pose); without visual odometry there is no twin and no combined edges."""
+    cal = _shipped()
+    assert build_odometry(Config(), cal).live_pose == "fused"
+    f = build_odometry(replace(Config(), "visual_odometry", live_pose="combined_edges"), cal)
+    assert f.live_pose == "combined_edges" and f.wheel_gyro is not f
+    off = build_odometry(replace(replace(Config(), "visual_odometry", live_pose="combined_edges"),
+                                 "visual_odometry", enabled=False), cal)
+    assert off.wheel_gyro is off and off.live_pose == "fused"
