@@ -24,8 +24,10 @@ from robotd.odometry.ekf import (
     predict_rates,
     predict_with_jacobian,
     rate_gain,
+    slip_variances,
     update_gyro,
     update_wheels,
+    update_wheels_with_gain,
 )
 from robotd.odometry.fusion import OdometryFilter
 from robotd.odometry.kinematics import DiffDriveParams
@@ -426,3 +428,39 @@ def test_rate_gain_is_p_ht_s_inverse_for_any_measurement_size(rows: int) -> None
     assert np.allclose(rate_gain(p, h, r, False), want, rtol=1e-12, atol=1e-14)
     frozen = rate_gain(p, h, r, True)
     assert np.all(frozen[:3] == 0.0) and np.allclose(frozen[3:], want[3:], rtol=1e-12, atol=1e-14)
+
+
+# ---- the wheel slip test ----------------------------------------------------------------
+
+
+def test_slip_variances_by_hand():
+    """Below the gate nothing; above it one wheel's extra travel: the speed gets (b/2 z)^2,
+    the yaw rate z^2."""
+    params = EkfParams(slip_gate_sigma=3.0, slip_half_base_m=0.115, slip_yaw_rate_noise_radps=0.01)
+    # sigma of the disagreement: sqrt(0.0002 + 0.0001) = 0.0173; the gate at 0.052 rad/s
+    assert slip_variances(0.05, 2e-4, params) == (0.0, 0.0)
+    assert slip_variances(-0.05, 2e-4, params) == (0.0, 0.0)
+    v, w = slip_variances(-0.06, 2e-4, params)
+    assert v == pytest.approx((0.115 * 0.06) ** 2)
+    assert w == pytest.approx(0.06 ** 2)
+    off = dataclasses.replace(params, slip_gate_sigma=0.0)
+    assert slip_variances(1.0, 2e-4, off) == (0.0, 0.0)
+
+
+def test_a_slipping_wheel_reading_widens_its_speed_noise_and_moves_the_speed_less():
+    params = EkfParams(wheel_v_noise_mps=0.002, wheel_v_noise_frac=0.0, slip_gate_sigma=3.0,
+                       slip_half_base_m=0.115, slip_yaw_rate_noise_radps=0.01)
+    s0 = _state([0, 0, 0, 0.3, 0.0, 0.0], [1e-6, 1e-6, 1e-6, 1e-5, 1e-5, 1e-6])
+    # One wheel over-rotating by 6 % of its 0.3 m/s: speed +0.009 m/s, yaw rate +0.078 rad/s
+    slipped = update_wheels_with_gain(s0, 0.309, 0.078, params)
+    plain = update_wheels_with_gain(s0, 0.309, 0.078, dataclasses.replace(params, slip_gate_sigma=0.0))
+    assert slipped.noise[0, 0] == pytest.approx(0.002 ** 2 + (0.115 * 0.078) ** 2)
+    assert plain.noise[0, 0] == pytest.approx(0.002 ** 2)
+    # K_v = 1e-5 / (1e-5 + R): the slipped reading moves the speed by ~11 % of the step, not ~71 %
+    assert slipped.state.mean[IV] - 0.3 == pytest.approx(0.009 * 1e-5 / (1e-5 + slipped.noise[0, 0]))
+    assert plain.state.mean[IV] - 0.3 == pytest.approx(0.009 * 1e-5 / (1e-5 + 0.002 ** 2))
+    # a reading the gyro agrees with is not touched, nor one at standstill
+    agree = update_wheels_with_gain(s0, 0.309, 0.001, params)
+    assert agree.noise[0, 0] == pytest.approx(0.002 ** 2)
+    still = update_wheels_with_gain(s0, 0.0, 0.078, params, stationary=True)
+    assert still.noise[0, 0] == pytest.approx(params.stationary_noise_mps ** 2)
