@@ -98,7 +98,8 @@ def build_odometry(cfg: Config, calibration: CalibrationFile | None = None) -> O
         log.warning("[odometry] noise_model = %r but no calibration's odometry model: the [odometry] noise "
                     "model is used", cfg.odometry.noise_model)
     if twin:
-        return OdometryFilter(drive, params, vo_twin=True, gyro_scale=gyro_scale, twin_params=edge_params)
+        return OdometryFilter(drive, params, vo_twin=True, gyro_scale=gyro_scale, twin_params=edge_params,
+                              live_pose=v.live_pose)
     return OdometryFilter(drive, edge_params, gyro_scale=gyro_scale)
 
 

@@ -234,6 +234,10 @@ class VisualOdometryConfig:
     role: str = _f("fused", "'fused': a measurement in the wheel + gyro filter; 'vision_only': the "
                    "chained steps are the odometry (no wheels; failed steps take the wheel + gyro "
                    "increment when there is one)", choices=("fused", "vision_only"))
+    live_pose: str = _f("fused", "with role 'fused', the live odometry pose: 'fused' (the filter's: wheels, "
+                        "gyro and each step) or 'combined_edges' (the graph's wheel + gyro edges combined "
+                        "with the steps, chained without loops, then the wheel + gyro motion since the "
+                        "last keyframe; docs/odometry.md)", choices=("fused", "combined_edges"))
     min_inliers: int = _f(8, "fewest metric inliers of a usable step", lo=3, hi=10_000)
     ransac_threshold_m: float = _f(0.003, "RANSAC inlier distance on the floor", lo=1e-5, hi=0.1)
 

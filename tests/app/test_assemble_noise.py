@@ -95,3 +95,15 @@ def test_the_slip_test_goes_with_the_calibration_noise_over_the_calibrated_wheel
     assert build_odometry(replace(cfg, "odometry", slip_gate_sigma=0.0), cal).params.slip_gate_sigma == 0.0
     plain = build_odometry(replace(cfg, "odometry", noise_model="config"), cal).params
     assert (plain.slip_gate_sigma, plain.slip_half_base_m) == (0.0, 0.0)
+
+
+def test_the_live_pose_key_reaches_the_fused_filter():
+    """``[visual_odometry] live_pose``: the daemon's fused filter gets it (default: its own
+    fused pose); without visual odometry there is no twin and no combined edges."""
+    cal = _shipped()
+    assert build_odometry(Config(), cal).live_pose == "fused"
+    f = build_odometry(replace(Config(), "visual_odometry", live_pose="combined_edges"), cal)
+    assert f.live_pose == "combined_edges" and f.wheel_gyro is not f
+    off = build_odometry(replace(replace(Config(), "visual_odometry", live_pose="combined_edges"),
+                                 "visual_odometry", enabled=False), cal)
+    assert off.wheel_gyro is off and off.live_pose == "fused"
