@@ -86,7 +86,7 @@ def build_odometry(cfg: Config, calibration: CalibrationFile | None = None) -> O
     # Fusing visual odometry: the graph's edges come from a wheel + gyro twin (fusion.py).
     twin = v.enabled and v.role == "fused" and cfg.floor_camera.source != "none"
     if cfg.odometry.noise_model != "config" and model is not None:
-        edge_params = calibration_noise(params, model, cfg.robot.ticks_per_rev)
+        edge_params = calibration_noise(params, model, cfg.robot.ticks_per_rev, cfg.odometry.slip_gate_sigma)
         if cfg.odometry.noise_model == "calibration_fused" or not twin:
             params = edge_params
         log.info("noise model from the calibration (%s): white accelerations %.4f m/s^2 and %.4f rad/s^2 "
@@ -103,11 +103,13 @@ def build_odometry(cfg: Config, calibration: CalibrationFile | None = None) -> O
     return OdometryFilter(drive, edge_params, gyro_scale=gyro_scale)
 
 
-def calibration_noise(params: EkfParams, model: OdometryModel, ticks_per_rev: float) -> EkfParams:
+def calibration_noise(params: EkfParams, model: OdometryModel, ticks_per_rev: float,
+                      slip_gate_sigma: float = 0.0) -> EkfParams:
     """``params`` with the calibration's noise model (``[odometry] noise_model =
     "calibration"``): the sensors' fitted densities (:func:`robotd.odometry.calibration.sensor_noise_params`)
-    and the white accelerations fitted by maximum likelihood. A calibration written before
-    they were fitted keeps ``params``' accelerations (logged)."""
+    and the white accelerations fitted by maximum likelihood; with ``slip_gate_sigma`` > 0
+    (``[odometry] slip_gate_sigma``) the wheel slip test, over the calibrated wheel base.
+    A calibration written before they were fitted keeps ``params``' accelerations (logged)."""
     from robotd.odometry.calibration import sensor_noise_params
 
     if not model.has_process_noise:
@@ -116,7 +118,8 @@ def calibration_noise(params: EkfParams, model: OdometryModel, ticks_per_rev: fl
     tick_m = 2.0 * math.pi * 0.5 * (model.wheel_radius_left_m + model.wheel_radius_right_m) / ticks_per_rev
     return sensor_noise_params(params, model.gyro_noise_radps_sqrt_hz, model.wheel_noise_m_sqrt_m, tick_m,
                                model.accel_noise_mps2_sqrt_hz, model.angular_accel_noise_radps2_sqrt_hz,
-                               readings_hz=GYRO_READINGS_HZ)
+                               readings_hz=GYRO_READINGS_HZ, wheel_base_m=model.wheel_base_m,
+                               slip_gate_sigma=slip_gate_sigma)
 
 
 def load_calibration(cfg: Config) -> CalibrationFile | None:

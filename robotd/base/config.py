@@ -181,6 +181,10 @@ class OdometryConfig:
                           "'calibration_fused' (the fused filter too); without a calibration's odometry "
                           "model this table's (docs/odometry.md)",
                           choices=("config", "calibration", "calibration_fused"))
+    slip_gate_sigma: float = _f(0.0, "with the calibration's noise model: a moving wheel reading whose yaw "
+                                "rate disagrees with the gyro's by more than this many sigma is taken as "
+                                "wheel slip and its speed and yaw-rate variances widened; 0 turns the test "
+                                "off (docs/odometry.md)", lo=0.0, hi=100.0)
 
 
 @dataclass(frozen=True)
