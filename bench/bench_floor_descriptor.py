@@ -14,7 +14,7 @@ run, one thread (OpenCV and numpy's BLAS, :func:`floor_common.one_thread`):
   2-NN ratio test and RANSAC) and the ratio SIFT / ours (target: >= 50x). Pairs are the
   consecutive frames of the run and as many random pairs of frames of it.
 
-Frames: a straight run of ``--frames`` frames 5 cm apart on each floor (gravel, grass,
+Frames: a straight run of ``--frames`` frames 5 cm apart (12 by default, 30 with ``--full``) on each floor (gravel, grass,
 brick, the herringbone photo, the default mixed floor, and every ``--floor FILE``).
 Times are the median over frames (or pairs) of each item's median over ``--repeats``
 timed calls after a warm-up; the spread is the interquartile range over items.
@@ -30,7 +30,9 @@ caches it; ``--recording`` names another), mode 4 as the daemon describes keyfra
   pixel with the exact channel split and the full repeat pool: the bytes before the
   faster defaults), the selectable cheaper ``COARSE`` one (the maps and the orientation
   from the detection image halved), the selectable ``QUARTER`` one (the candidates found on
-  the detection image halved too: a quarter of its pixels), OpenCV ORB (500) and SIFT, on ``--office-frames``
+  the detection image halved too: a quarter of its pixels), that one with ``detect_prefilter``
+  (its quarter image the low-passed detection image halved), the default with
+  ``orientation_from_maps`` (the orientation read from the pooled maps), OpenCV ORB (500) and SIFT, on ``--office-frames``
   frames spread over the drive;
 * query time of the floor index (:class:`robotd.floor.index.FloorIndex`, the daemon's
   shortlist of 10 and the demo's loop threshold as ``min_score``) at 1,000 and 10,000
@@ -49,6 +51,7 @@ Run from the repo root: ``.venv/bin/python bench/bench_floor_descriptor.py [--ou
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -74,6 +77,8 @@ SPACING_M = 0.05
 #: Selectable, not the default: the pooled maps and the orientation from the detection image
 #: halved (cheaper; the demo's visual odometry lost accuracy with it).
 COARSE = ExtractParams(orientation_step=2, exact_maps=True)
+QUARTER_PREFILTERED = dataclasses.replace(QUARTER, detect_prefilter=True)
+ORIENTATION_FROM_MAPS = ExtractParams(orientation_from_maps=True)
 OFFICE_MODE = 4  # the daemon's mode
 OFFICE_SHORTLIST = 10  # [floor_detector] shortlist
 OFFICE_SIZES = (1000, 10000)
@@ -171,6 +176,8 @@ def bench_office(args: argparse.Namespace, sift: SiftBaseline) -> dict:
                "full_resolution": lambda im: extract(im, OFFICE_MODE, FULL_RESOLUTION),
                "coarse": lambda im: extract(im, OFFICE_MODE, COARSE),
                "quarter": lambda im: extract(im, OFFICE_MODE, QUARTER),
+               "quarter_prefiltered": lambda im: extract(im, OFFICE_MODE, QUARTER_PREFILTERED),
+               "orientation_from_maps": lambda im: extract(im, OFFICE_MODE, ORIENTATION_FROM_MAPS),
                "orb": lambda im: orb.detectAndCompute(im, None), "sift": sift.extract}
     times: dict[str, list[float]] = {k: [] for k in methods}
     blobs: dict[str, list[bytes]] = {"ours": []}
@@ -370,7 +377,10 @@ def print_office(o: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_common_args(ap)
-    ap.add_argument("--frames", type=int, default=30, help="frames per floor, 5 cm apart (default 30)")
+    ap.add_argument("--frames", type=int, default=None,
+                    help="frames per floor, 5 cm apart (default 12, with --full 30: SIFT's matching on the rich "
+                         "floors takes minutes per floor)")
+    ap.add_argument("--full", action="store_true", help="the paper-sized run: 30 frames per floor")
     ap.add_argument("--repeats", type=int, default=3, help="timed calls per frame or pair, ours (default 3)")
     ap.add_argument("--doc", type=Path, default=None, help="also write the Markdown page of the run here")
     ap.add_argument("--sift-repeats", type=int, default=1,
@@ -383,6 +393,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="distinct frames in the index, repeated beyond (default 1000)")
     ap.add_argument("--skip", action="append", default=[], choices=["floors", "office"], help="leave a part out")
     args = ap.parse_args(argv)
+    if args.frames is None:
+        args.frames = 30 if args.full else 12
     load_start = load_average()
     blas = one_thread()
     log(f"load average {load_start}; BLAS pools {blas}")
@@ -450,6 +462,8 @@ def markdown(p: dict) -> list[str]:
                  "coarse": "ours, `COARSE` (maps and orientation from the image halved: `orientation_step=2`, "
                            "`exact_maps`)",
                  "quarter": "ours, `QUARTER` (candidates too from the image halved: `detect_step=2`, `exact_maps`)",
+                 "quarter_prefiltered": "ours, `QUARTER` with `detect_prefilter` (the halved image low-passed first)",
+                 "orientation_from_maps": "ours, `orientation_from_maps` (the orientation read from the pooled maps)",
                  "orb": "OpenCV ORB (500)",
                  "sift": "OpenCV SIFT"}
         lines += ["## The office drive (the daemon's keyframes)", "",
@@ -458,7 +472,9 @@ def markdown(p: dict) -> list[str]:
                   "bytes before the faster defaults; `COARSE` is cheaper and not the default: the demo's visual "
                   "odometry lost accuracy with it"
                   + ("; `QUARTER` is cheaper still and not the default: the printed plank floor aliases with it"
-                     if "quarter" in d else "") + " (docs/performance.md).", "",
+                     if "quarter" in d else "")
+                  + (" (less with `detect_prefilter`, but still above the alias test's bound)"
+                     if "quarter_prefiltered" in d else "") + " (docs/performance.md).", "",
                   "Describe, ms per frame:", "", *head(["method", "median", "IQR", "bytes (mean)"])]
         for k, v in d.items():
             b = o["bytes_mean"].get(k)

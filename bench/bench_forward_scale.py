@@ -74,9 +74,9 @@ VARIANTS: dict[str, tuple[dict[str, object], dict[str, object], dict[str, object
     "tree, USAC without local optimisation": ({}, {"model": "general", "estimator": "usac", "local_optimisation": False},
                                               {}),
     "tree, RANSAC at most 200 samples": ({}, {"model": "general", "max_iterations": 200}, {}),
-    # the bounded verification (robotd.forward.detector.bounded_verification), and its levers
-    # one at a time left out; "previous planar verification" is the default's own (the name
-    # kept from when the bound was the default, so that the pages measured then read the same)
+    # the bounded verification (robotd.forward.detector.bounded_verification, the default), and
+    # its levers one at a time left out; "previous planar verification" is the verification
+    # without the bound (robotd.forward.detector.unbounded_verification)
     "tree, bounded verification": ({}, _BOUNDED[0], _BOUNDED[1]),
     "tree, previous planar verification": ({}, {"guided_estimator": None, "fallback_band_px": None},
                                            {"verify_fallbacks": None}),
@@ -357,8 +357,10 @@ def page(res: dict) -> list[str]:
              "planar verification; `tree, bounded verification`: its work per image bounded (the essential "
              "matrix near the level motion searched by OpenCV's USAC, the general search after a failed one "
              "drawing its samples within 10 px of the level motion and run at most once per image: "
-             "`robotd.forward.detector.bounded_verification`); `tree, previous planar verification`: RANSAC "
-             "near the level motion, the general search over all the matches for every view tried; `tree, "
+             "`robotd.forward.detector.bounded_verification`, the default since the run that measured it as "
+             "`tree`); `tree, previous planar verification`: the verification without the bound "
+             "(`unbounded_verification`): RANSAC near the level motion, the general search over all the "
+             "matches for every view tried; `tree, "
              "RANSAC near the level motion`, `tree, fallback over all matches`, `tree, fallbacks unbounded`, "
              "`tree, USAC in the fallback`: one of the bound's levers changed; `tree, beam 8`: the default scanning 8 leaves; `usearch`: the HNSW "
              "graph the tree replaced; `tree, general verification`: OpenCV's five-point RANSAC over all the "

@@ -350,11 +350,12 @@ WITHOUT = {
 }
 
 
-def daemon_params(noise_model: str = "config") -> EkfParams:
+def daemon_params(noise_model: str = "config", slip_gate_sigma: float = 0.0) -> EkfParams:
     """The noise model of the daemon's wheel + gyro filter with the demo's calibration
     (:func:`robotd.app.assemble.build_odometry`: the config's ``[odometry]`` with the
     calibration's gyro noise density; ``noise_model``: ``[odometry] noise_model``, with
-    "calibration" the calibration's fitted sensor noise and white accelerations)."""
+    "calibration" the calibration's fitted sensor noise and white accelerations;
+    ``slip_gate_sigma``: ``[odometry] slip_gate_sigma``, the wheel slip test)."""
     from robotd.base.config import replace
     from robotd.app.assemble import build_odometry
     from robotd.app.demo import shipped_calibration
@@ -365,7 +366,7 @@ def daemon_params(noise_model: str = "config") -> EkfParams:
     if path is None:
         raise SystemExit("the demo's shipped calibration is missing")
     # the wheel + gyro filter whose edges the graph gets (the twin when visual odometry is fused)
-    cfg = replace(Config(), "odometry", noise_model=noise_model)
+    cfg = replace(Config(), "odometry", noise_model=noise_model, slip_gate_sigma=slip_gate_sigma)
     return build_odometry(cfg, read_calibration(path)).wheel_gyro.params
 
 
@@ -373,12 +374,13 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str,
                   ekf: dict[str, float] | None = None, cost_seeds: int = 0,
                   true_model: bool = False, daemon_model: bool = False,
                   cost_models: tuple[str, ...] = ("independent", "bias_window", "bias"),
-                  daemon_graph_seeds: int = 0, noise_model: str = "config") -> dict[str, Any]:
+                  daemon_graph_seeds: int = 0, noise_model: str = "config",
+                  slip_gate_sigma: float = 0.0) -> dict[str, Any]:
     sensors = BaseSensorParams()
     for name in without:  # the same base without these errors: what each costs
         sensors = dataclasses.replace(sensors, **WITHOUT[name])
     params = (EkfParams(**(ekf or {})) if not daemon_model
-              else dataclasses.replace(daemon_params(noise_model), **(ekf or {})))
+              else dataclasses.replace(daemon_params(noise_model, slip_gate_sigma), **(ekf or {})))
     per_seed = []
     for seed in range(seeds):
         t0 = time.monotonic()
@@ -399,6 +401,7 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str,
             + f"  [{time.monotonic() - t0:.0f} s]")
     return {"route": route, "keyframe_m": keyframe_m, "without": list(without), "ekf": ekf or {},
             "true_model": true_model, "daemon_model": daemon_model, "noise_model": noise_model,
+            "slip_gate_sigma": slip_gate_sigma,
             "params": dataclasses.asdict(params), "per_seed": per_seed}
 
 
@@ -882,6 +885,8 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
                      f"{p['accel_noise_density_mps2_per_sqrt_hz']:.4f} m/s^2 and "
                      f"{p['angular_accel_noise_density_radps2_per_sqrt_hz']:.4f} rad/s^2 per sqrt(Hz), wheel "
                      f"speed {p['wheel_v_noise_mps']:.5f} m/s, gyro {p['gyro_noise_radps']:.5f} rad/s per reading)"
+                     + (f", the wheel slip test at `slip_gate_sigma = {odo['slip_gate_sigma']:g}`"
+                        if odo.get("slip_gate_sigma") else ", no slip test")
                      + (", and " + ", ".join(f"`{k}` = {v}" for k, v in ekf.items()) if ekf else ""))
     model = (", the filter with each base's true wheel radii, wheel base and gyro scale (a calibrated model)"
              if odo.get("true_model") else "")
@@ -1003,6 +1008,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--noise-model", choices=("config", "calibration"), default="config",
                     help="with --daemon-model: [odometry] noise_model (calibration: the demo calibration's "
                          "fitted sensor noise and white accelerations)")
+    ap.add_argument("--slip-gate", type=float, default=0.0, metavar="SIGMA",
+                    help="with --daemon-model and --noise-model calibration: [odometry] slip_gate_sigma, "
+                         "the wheel slip test (default 0: off)")
     ap.add_argument("--cost-seeds", type=int, default=1,
                     help="odometry: time the pose graph with each model on this many seeds (default 1)")
     ap.add_argument("--daemon-graph", type=int, default=0, metavar="SEEDS",
@@ -1048,7 +1056,7 @@ def main(argv: list[str] | None = None) -> int:
         payload["odometry"] = odometry_part(seeds, args.route, args.keyframe_m, without, ekf, args.cost_seeds,
                                             args.true_model, args.daemon_model,
                                             tuple(m for m in args.cost_models.split(",") if m), args.daemon_graph,
-                                            args.noise_model)
+                                            args.noise_model, args.slip_gate)
         print(f"\nodometry edges, {args.route}: mean NEES of N chained edges per model (yaw, position) [seeds]")
         print_table(*odometry_model_rows(payload["odometry"]))
         print("\nper seed, bias + scale variables")

@@ -28,6 +28,10 @@ every seed).
 Run: ``.venv/bin/python bench/bench_odometry_fused.py --capture [--seeds 0,1,2,3,4]``
 (minutes per seed), then ``bench/bench_odometry_fused.py [--markdown
 docs/benchmarks/odometry_fused.md]`` (seconds per seed). ``--full`` is the same.
+``--variants designs --out docs/benchmarks/odometry_fused_designs.json --markdown
+docs/benchmarks/odometry_fused_designs.md``: the fused filter's designs against the
+combined edges, with the two fused targets per design (about 10 replays per seed; 6 s of
+CPU each).
 """
 
 from __future__ import annotations
@@ -158,7 +162,7 @@ def replay(msgs: list[Any], steps: list[Any], drive: DiffDriveParams, gyro_scale
     ``flags``: more of :class:`robotd.odometry.fusion.OdometryFilter`'s fields (default: the
     daemon's)."""
     f = OdometryFilter(drive, params, vo_twin=True, gyro_scale=gyro_scale, initial_bias=bias_prior, **flags)
-    from robotd.base.geometry import between_error_covariance, compose
+    from robotd.base.geometry import between, between_error_covariance, compose
     from robotd.odometry.increments import combine_edges, edge_disagreement
 
     pending = list(steps)
@@ -167,6 +171,11 @@ def replay(msgs: list[Any], steps: list[Any], drive: DiffDriveParams, gyro_scale
     kf_stamps: list[int] = []
     kf_fused: list[tuple[float, float, float]] = []
     chained: list[np.ndarray] = []  # the graph's combined edges chained without loops
+    # The combined edges as a live pose: the chain up to the last keyframe, then the twin's
+    # motion since that keyframe (its pose there and now).
+    combined: list[tuple[float, float, float]] = []
+    twin_at_kf: np.ndarray | None = None
+    twin = f.wheel_gyro
     for m in msgs:
         if isinstance(m, WheelTicks):
             f.on_wheels(m)
@@ -184,6 +193,8 @@ def replay(msgs: list[Any], steps: list[Any], drive: DiffDriveParams, gyro_scale
                     elif edge_disagreement(edge, step) <= f.vo_gate_nis:
                         edge = combine_edges(edge, step)
                 kp = f.pose_at(t)
+                if f.live_pose == "combined_edges":  # the live pose at a keyframe: the chain's
+                    kp = f.chain_pose()
                 if kp is not None:
                     if not chained:
                         chained.append(np.array([kp.x_m, kp.y_m, kp.yaw_rad]))
@@ -193,9 +204,17 @@ def replay(msgs: list[Any], steps: list[Any], drive: DiffDriveParams, gyro_scale
                         chained.append(chained[-1])
                     kf_stamps.append(t)
                     kf_fused.append((kp.x_m, kp.y_m, kp.yaw_rad))
+                    tp = twin.pose_at(t)
+                    twin_at_kf = None if tp is None else np.array([tp.x_m, tp.y_m, tp.yaw_rad])
                 k += 1
             q = f.pose()
             poses.append((q.x_m, q.y_m, q.yaw_rad))
+            if chained and twin_at_kf is not None:
+                tq = twin.pose()
+                c = compose(chained[-1], between(twin_at_kf, np.array([tq.x_m, tq.y_m, tq.yaw_rad])))
+                combined.append((float(c[0]), float(c[1]), float(c[2])))
+            else:
+                combined.append((q.x_m, q.y_m, q.yaw_rad))
             s = f.state
             bias.append(s.gyro_bias_radps if s is not None else 0.0)
             stamps.append(int(m.stamp_ns))
@@ -203,7 +222,8 @@ def replay(msgs: list[Any], steps: list[Any], drive: DiffDriveParams, gyro_scale
             f.on_yaw_rate(m)
     return {"poses": np.asarray(poses), "bias": np.asarray(bias), "stamp_ns": np.asarray(stamps),
             "counters": vars(f.counters).copy(), "kf_stamp_ns": np.asarray(kf_stamps),
-            "kf_fused": np.asarray(kf_fused), "kf_chained": np.asarray(chained)}
+            "kf_fused": np.asarray(kf_fused), "kf_chained": np.asarray(chained),
+            "combined": np.asarray(combined)}
 
 
 def bias_errors(run: dict[str, Any], t_true_s: np.ndarray, bias_true: np.ndarray, t0_s: float) -> dict[str, float]:
@@ -327,6 +347,8 @@ def evaluate(seed: int, route: str, cache: Path, model: Any, source: str,
                 **bias_errors(r, t_g, bias_true, float(stream.sensors.t_s[0])),
                 "vo_fused": r["counters"]["vo_fused"], "vo_rejected": r["counters"]["vo_rejected"],
                 **keyframe_ape(r, motion),
+                **{f"combined_live_{k}": v for k, v in odometry_errors(truth[:n], r["combined"][:n]).as_dict().items()
+                   if k in ("end_position_error_m", "ape_origin_rmse_m")},
                 "cpu_s": time.process_time() - t0}
     return out
 
@@ -378,6 +400,23 @@ VARIANTS: dict[str, Any] = {
     "the calibration's noise model for the edges and the fused filter (\"calibration_fused\")": lambda model: (
         calibration_params(model), None, {}),
 }
+#: The fused filter's designs against the combined edges (``--variants designs``): the
+#: baseline, the daemon, the trapezoid rule with 0.1, and the visual step as a relative-pose
+#: update that leaves the gyro bias alone (a Schmidt "consider" bias, ``vo_bias_update``).
+NO_BIAS = {"vo_bias_update": False}
+DESIGNS: dict[str, Any] = {
+    "the config's noise model (before)": VARIANTS["the config's noise model (before)"],
+    "the fused pose follows its rates (the daemon)": VARIANTS["the fused pose follows its rates (the daemon)"],
+    "the pose by the trapezoid rule, angular process noise 0.1 (not the default)":
+        VARIANTS["the pose by the trapezoid rule, angular process noise 0.1 (not the default)"],
+    "the visual step leaves the bias alone": lambda model: (EkfParams(), None, NO_BIAS),
+    "the visual step leaves the bias alone, trapezoid rule and 0.1": lambda model: (
+        EkfParams(), None, {**TRAPEZOID, **NO_BIAS}),
+    "the visual step leaves the bias alone, the pose's own process noise": lambda model: (
+        EkfParams(), None, {**BEFORE, **NO_BIAS}),
+    "the combined edges as the live pose (live_pose = \"combined_edges\")": lambda model: (
+        EkfParams(), None, {"live_pose": "combined_edges"}),
+}
 #: Measured too (``--variants all``): the calibration drive's turn-on bias as the prior; the
 #: calibration's fitted noise densities with the sensor-level process noise.
 MORE_VARIANTS: dict[str, Any] = {
@@ -388,6 +427,66 @@ MORE_VARIANTS: dict[str, Any] = {
     "trapezoid rule, the config's angular process noise": lambda model: (
         EkfParams(), None, {"pose_after_rates": True}),
 }
+
+
+BASELINE = "the config's noise model (before)"
+
+
+def targets(rows: list[dict[str, Any]]) -> list[str]:
+    """The issue's two fused targets per variant (calibrated model), from the rows:
+    end error and APE anchored both below the baseline's (the nominal model with the
+    config's noise model, before), and the fused ATE at the keyframes no worse than the
+    graph's combined edges chained without loops; with the combined edges as a live pose
+    (the chain to the last keyframe, then the twin's motion) as a candidate of its own."""
+    names = [k.split("/")[0] for k in rows[0] if k.endswith("/calibrated")]
+    if BASELINE not in names:
+        return []
+    lines = ["", "## The targets per design (calibrated model; baseline: the nominal model, the config's noise "
+             "model, before)", "",
+             "End error / APE anchored (m), bold where both are better than the baseline's; at the keyframes, "
+             "the fused ATE against the combined edges chained without loops (m), bold where no worse. The "
+             "combined edges as a live pose are the chain up to the last keyframe followed by the twin's motion "
+             "since (at the keyframes they are the chain itself).", "",
+             "| design | " + " | ".join(f"seed {r['seed']}" for r in rows)
+             + " | better than the baseline (seeds) | no worse than the combined edges (seeds) | mean end / APE / "
+             "keyframe ATE (m) |",
+             "|---|" + "---|" * (len(rows) + 3)]
+
+    def fmt(end: float, ape: float, base: dict[str, Any], kf: float | None, chained: float) -> tuple[str, bool, bool]:
+        better = end < base["end_position_error_m"] and ape < base["ape_origin_rmse_m"]
+        txt = f"{end:.4f} / {ape:.4f}"
+        txt = f"**{txt}**" if better else txt
+        ok = kf is not None and kf <= chained
+        if kf is not None:
+            txt += f"; {'**' if ok else ''}{kf:.4f}{'**' if ok else ''} against {chained:.4f}"
+        return txt, better, ok
+
+    def row(label: str, cells: list[tuple[float, float, float | None, float]]) -> str:
+        out, n_better, n_ok = [], 0, 0
+        for r, (end, ape, kf, chained) in zip(rows, cells):
+            txt, better, ok = fmt(end, ape, r[f"{BASELINE}/nominal"], kf, chained)
+            out.append(txt)
+            n_better += better
+            n_ok += ok
+        mean = np.mean([[c[0], c[1], c[3] if c[2] is None else c[2]] for c in cells], axis=0)
+        return (f"| {label} | " + " | ".join(out) + f" | {n_better} of {len(rows)} | "
+                + (f"{n_ok} of {len(rows)}" if cells[0][2] is not None else "(itself)")
+                + f" | {mean[0]:.4f} / {mean[1]:.4f} / {mean[2]:.4f} |")
+
+    base = [(r[f"{BASELINE}/nominal"]["end_position_error_m"], r[f"{BASELINE}/nominal"]["ape_origin_rmse_m"],
+             r[f"{BASELINE}/nominal"]["kf_ape_fused_m"], r[f"{BASELINE}/nominal"]["kf_ape_chained_edges_m"])
+            for r in rows]
+    lines.append(row("the baseline (nominal model, before)", base))
+    for name in names:
+        lines.append(row(name, [(r[f"{name}/calibrated"]["end_position_error_m"],
+                                 r[f"{name}/calibrated"]["ape_origin_rmse_m"],
+                                 r[f"{name}/calibrated"]["kf_ape_fused_m"],
+                                 r[f"{name}/calibrated"]["kf_ape_chained_edges_m"]) for r in rows]))
+    d = f"{names[1] if len(names) > 1 else names[0]}/calibrated"
+    lines.append(row("the combined edges as a live pose", [
+        (r[d]["combined_live_end_position_error_m"], r[d]["combined_live_ape_origin_rmse_m"], None,
+         r[d]["kf_ape_chained_edges_m"]) for r in rows]))
+    return lines
 
 
 def markdown(rows: list[dict[str, Any]], route: str) -> list[str]:
@@ -420,6 +519,8 @@ def markdown(rows: list[dict[str, Any]], route: str) -> list[str]:
                          f"{n['bias_rms_degps']:.4f} | {c['bias_rms_degps']:.4f} | "
                          f"{n['vo_rejected']} / {c['vo_rejected']} | {c['kf_ape_fused_m']:.4f} | "
                          f"{c['kf_ape_chained_edges_m']:.4f} |")
+    if "combined_live_end_position_error_m" in rows[0].get(f"{BASELINE}/calibrated", {}):
+        lines += targets(rows)
     lines.append("")
     return lines
 
@@ -439,8 +540,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="for a seed without a calibration file: the fit alone on ROUTE (default calibration)")
     ap.add_argument("--synthetic-vo", action="store_true",
                     help="synthetic visual steps for every seed (on a capture's stamps and covariances)")
-    ap.add_argument("--variants", choices=("default", "all"), default="default",
-                    help="the filter's noise models to replay (all: also the bias prior and the fitted noise)")
+    ap.add_argument("--variants", choices=("default", "all", "designs"), default="default",
+                    help="the filter's noise models to replay (all: also the bias prior and the fitted noise; "
+                         "designs: the fused filter's designs against the combined edges)")
     ap.add_argument("--full", action="store_true", help="the same as the default")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--markdown", type=Path, default=None)
@@ -458,7 +560,7 @@ def main(argv: list[str] | None = None) -> int:
         for seed in seeds:
             capture(seed, args.route, args.cache)
         return 0
-    variants = VARIANTS if args.variants == "default" else {**VARIANTS, **MORE_VARIANTS}
+    variants = {"default": VARIANTS, "all": {**VARIANTS, **MORE_VARIANTS}, "designs": DESIGNS}[args.variants]
     rows = []
     for seed in seeds:
         model, source = models(seed, args.calibration, args.synthetic_reference)

@@ -86,7 +86,7 @@ def build_odometry(cfg: Config, calibration: CalibrationFile | None = None) -> O
     # Fusing visual odometry: the graph's edges come from a wheel + gyro twin (fusion.py).
     twin = v.enabled and v.role == "fused" and cfg.floor_camera.source != "none"
     if cfg.odometry.noise_model != "config" and model is not None:
-        edge_params = calibration_noise(params, model, cfg.robot.ticks_per_rev)
+        edge_params = calibration_noise(params, model, cfg.robot.ticks_per_rev, cfg.odometry.slip_gate_sigma)
         if cfg.odometry.noise_model == "calibration_fused" or not twin:
             params = edge_params
         log.info("noise model from the calibration (%s): white accelerations %.4f m/s^2 and %.4f rad/s^2 "
@@ -98,15 +98,18 @@ def build_odometry(cfg: Config, calibration: CalibrationFile | None = None) -> O
         log.warning("[odometry] noise_model = %r but no calibration's odometry model: the [odometry] noise "
                     "model is used", cfg.odometry.noise_model)
     if twin:
-        return OdometryFilter(drive, params, vo_twin=True, gyro_scale=gyro_scale, twin_params=edge_params)
+        return OdometryFilter(drive, params, vo_twin=True, gyro_scale=gyro_scale, twin_params=edge_params,
+                              live_pose=v.live_pose)
     return OdometryFilter(drive, edge_params, gyro_scale=gyro_scale)
 
 
-def calibration_noise(params: EkfParams, model: OdometryModel, ticks_per_rev: float) -> EkfParams:
+def calibration_noise(params: EkfParams, model: OdometryModel, ticks_per_rev: float,
+                      slip_gate_sigma: float = 0.0) -> EkfParams:
     """``params`` with the calibration's noise model (``[odometry] noise_model =
     "calibration"``): the sensors' fitted densities (:func:`robotd.odometry.calibration.sensor_noise_params`)
-    and the white accelerations fitted by maximum likelihood. A calibration written before
-    they were fitted keeps ``params``' accelerations (logged)."""
+    and the white accelerations fitted by maximum likelihood; with ``slip_gate_sigma`` > 0
+    (``[odometry] slip_gate_sigma``) the wheel slip test, over the calibrated wheel base.
+    A calibration written before they were fitted keeps ``params``' accelerations (logged)."""
     from robotd.odometry.calibration import sensor_noise_params
 
     if not model.has_process_noise:
@@ -115,7 +118,8 @@ def calibration_noise(params: EkfParams, model: OdometryModel, ticks_per_rev: fl
     tick_m = 2.0 * math.pi * 0.5 * (model.wheel_radius_left_m + model.wheel_radius_right_m) / ticks_per_rev
     return sensor_noise_params(params, model.gyro_noise_radps_sqrt_hz, model.wheel_noise_m_sqrt_m, tick_m,
                                model.accel_noise_mps2_sqrt_hz, model.angular_accel_noise_radps2_sqrt_hz,
-                               readings_hz=GYRO_READINGS_HZ)
+                               readings_hz=GYRO_READINGS_HZ, wheel_base_m=model.wheel_base_m,
+                               slip_gate_sigma=slip_gate_sigma)
 
 
 def load_calibration(cfg: Config) -> CalibrationFile | None:
@@ -315,6 +319,13 @@ def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store
              "forward": cfg.floor_camera.queue_size}
     if outputs is not None:
         pipeline.add(outputs)
+    # Python's garbage collections timed (counters gc_*, the forward stage's gc part); with
+    # [daemon] gc_freeze, the objects of the start-up and the map's load frozen out of them.
+    from robotd.app import gcwatch
+
+    watch = pipeline.add(gcwatch.GcWatch().install())
+    if cfg.daemon.gc_freeze:
+        watch.freeze()
     daemon = Daemon(clock, pipeline, sources, notifier, store=store, run_id=run_id, lossless=lossless,
                     status_interval_s=cfg.daemon.status_interval_s, queue_sizes=sizes,
                     driver_stats=driver_stats)

@@ -181,6 +181,10 @@ class OdometryConfig:
                           "'calibration_fused' (the fused filter too); without a calibration's odometry "
                           "model this table's (docs/odometry.md)",
                           choices=("config", "calibration", "calibration_fused"))
+    slip_gate_sigma: float = _f(0.0, "with the calibration's noise model: a moving wheel reading whose yaw "
+                                "rate disagrees with the gyro's by more than this many sigma is taken as "
+                                "wheel slip and its speed and yaw-rate variances widened; 0 turns the test "
+                                "off (docs/odometry.md)", lo=0.0, hi=100.0)
 
 
 @dataclass(frozen=True)
@@ -230,6 +234,10 @@ class VisualOdometryConfig:
     role: str = _f("fused", "'fused': a measurement in the wheel + gyro filter; 'vision_only': the "
                    "chained steps are the odometry (no wheels; failed steps take the wheel + gyro "
                    "increment when there is one)", choices=("fused", "vision_only"))
+    live_pose: str = _f("fused", "with role 'fused', the live odometry pose: 'fused' (the filter's: wheels, "
+                        "gyro and each step) or 'combined_edges' (the graph's wheel + gyro edges combined "
+                        "with the steps, chained without loops, then the wheel + gyro motion since the "
+                        "last keyframe; docs/odometry.md)", choices=("fused", "combined_edges"))
     min_inliers: int = _f(8, "fewest metric inliers of a usable step", lo=3, hi=10_000)
     ransac_threshold_m: float = _f(0.003, "RANSAC inlier distance on the floor", lo=1e-5, hi=0.1)
 
@@ -368,6 +376,9 @@ class DaemonConfig:
                                   live=True)
     log_level: str = _f("info", "logging level (--log-level on the command line wins)",
                         choices=("debug", "info", "warning", "error"), live=True)
+    gc_freeze: bool = _f(False, "move the objects made at start-up (the map's load included) out of "
+                         "Python's garbage collector for the run: its full collections then walk only "
+                         "what the run made (measured, not yet the default: docs/performance.md)")
 
 
 @dataclass(frozen=True)

@@ -74,6 +74,26 @@ class ExtractParams:
             overlap in modes 2, 3 and 5 against 0.23-0.36; selection tables re-learned on
             such candidates do not change that), and the visual odometry's error
             per step grows by about a fifth: not the default.
+        detect_prefilter: with ``detect_step`` 2, the image the candidates are found on is
+            the half-resolution image smoothed at ``detect_sigma_px`` and halved (2 x 2 area
+            averages), instead of the working image averaged over 4 x 4 blocks and smoothed:
+            the box average folds fine texture back into the detection's band, which moves
+            the extrema between copies of one print. On the printed plank floor's alias test
+            the view a lattice step away scores 0.45-0.66 of the true overlap in modes 2, 3
+            and 5 (without it 0.76-1.17; the default detection 0.23-0.36), at the same time
+            as ``QUARTER``: still not under the test's half, so not the default.
+        orientation_from_maps: the keypoints' orientation read from the pooled orientation
+            maps (their 8 directions summed as vectors, smoothed by what
+            ``orientation_sigma_px`` lacks, sampled at the keypoint) instead of the gradient
+            of the image smoothed at ``orientation_sigma_px`` at every pixel: on office
+            frames a median 0.6 degrees from it (90th percentile 2.1; ``orientation_step``
+            2: 1.1 and 4.0), its strength 0.96 of it at the median (the selection tables
+            not re-learned), at about half the orientation's time (0.87-0.95 of the
+            extraction's). Only with ``detect_step`` 1 and the table-split maps. The ROC
+            AUC on the benchmark floors and the printed planks within -0.0015..+0.0024 of
+            the default's, the plank alias test held; but in the demo (office, seeds 0 and 1)
+            the visual odometry's APE 0.057 and 0.104 against 0.049 and 0.086 m (the loops
+            all true, none refused): not the default.
         exact_maps: True splits each gradient between the orientation channels exactly
             (per-pixel arithmetic and scatters); False (the default) looks the split up in a
             table of 256 angles, within 1/64 of the gradient's magnitude of the exact split:
@@ -113,6 +133,8 @@ class ExtractParams:
     pool_step: int = 2
     orientation_step: int = 1
     detect_step: int = 1
+    detect_prefilter: bool = False
+    orientation_from_maps: bool = False
     exact_maps: bool = False
     cell_px: float = 6.0
     max_candidates: int = 4000
@@ -127,7 +149,8 @@ class ExtractParams:
                 and self.edge_ratio > 1 and self.orientation_sigma_px > 0 and self.pool_sigma_px > 0
                 and self.pool_step in (1, 2) and self.orientation_step in (1, 2) and self.detect_step in (1, 2)
                 and self.cell_px > 0 and self.max_candidates >= 1 and self.global_min_features >= 0
-                and self.repeat_distance >= 0 and self.repeat_pool >= 0 and self.repeat_pool_ratio >= 0):
+                and self.repeat_distance >= 0 and self.repeat_pool >= 0 and self.repeat_pool_ratio >= 0
+                and not (self.orientation_from_maps and (self.detect_step != 1 or self.exact_maps))):
             raise ValueError(f"extraction parameters out of range: {self}")
 
 

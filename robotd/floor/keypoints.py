@@ -143,21 +143,30 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None,
     coarse = params.detect_step == 2
     half = ws.half() if coarse or 2 in (params.orientation_step, params.pool_step) else ws
     x = ws.x
-    if not coarse or not params.exact_maps or params.pool_step == 1:  # g1 at every pixel: detection or maps
+    prefiltered = coarse and params.detect_prefilter
+    made_g1 = not coarse or prefiltered or not params.exact_maps or params.pool_step == 1
+    if made_g1:  # g1 at every pixel: for the detection or the maps
         np.copyto(x, cv2.resize(work, (w2, h2), interpolation=cv2.INTER_AREA), casting="unsafe")
-        if not coarse:  # (the maps' scale does not matter: each raw descriptor is normalised)
+        if not coarse or prefiltered:  # (the maps' scale does not matter: each raw descriptor is normalised)
             x *= np.float32(1.0 / max(_std(x, ws.t1), 1.0))  # flat images: no keypoint passes
         g1 = cv2.GaussianBlur(x, (0, 0), s, dst=ws.g1)
     if coarse:
         # Detection on the image halved again (a quarter of the pixels), the same sigmas in
         # its pixels; positions back in half-resolution pixels. The orientation and the
-        # exact maps start from its Gaussian image (``quarter``).
+        # exact maps start from its Gaussian image (``quarter``). With ``detect_prefilter``
+        # that image is g1 halved (2 x 2 area averages of the half-resolution image already
+        # low-passed at detect_sigma_px, about the same sigma in quarter pixels) instead of a
+        # 4 x 4 box average of the working image smoothed: the box folds the fine texture
+        # back into the detection's band.
         h4, w4 = half.shape
-        xq = half.t2
-        np.copyto(xq, cv2.resize(work, (w4, h4), interpolation=cv2.INTER_AREA), casting="unsafe")
-        xq *= np.float32(1.0 / max(_std(xq, half.t1), 1.0))
         sq1 = 0.5 * s
-        quarter = cv2.GaussianBlur(xq, (0, 0), sq1, dst=half.x)
+        if prefiltered:
+            quarter = cv2.resize(g1, (w4, h4), dst=half.x, interpolation=cv2.INTER_AREA)
+        else:
+            xq = half.t2
+            np.copyto(xq, cv2.resize(work, (w4, h4), interpolation=cv2.INTER_AREA), casting="unsafe")
+            xq *= np.float32(1.0 / max(_std(xq, half.t1), 1.0))
+            quarter = cv2.GaussianBlur(xq, (0, 0), sq1, dst=half.x)
         d = np.subtract(quarter, cv2.GaussianBlur(quarter, (0, 0), sq1 * math.sqrt(params.dog_ratio**2 - 1.0),
                                                   dst=half.t1), out=half.d)
         found = _extrema(d, int(math.ceil(0.5 * params.cell_px)), params, half)
@@ -181,17 +190,22 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None,
     # averaging), smoothed by what the sigma lacks after g1's and the halving's smoothing,
     # and scaled back to half-resolution pixels; the pooled maps start from the same
     # halved image.
-    if params.orientation_step == 2 or coarse:
-        so = math.sqrt(max(params.orientation_sigma_px**2 - s * s - 0.25, 0.25)) / 2
-        go, at, gain = cv2.GaussianBlur(quarter, (0, 0), so, dst=half.g1), (xy_half - 0.5) * 0.5, 0.5
-        grad = cv2.merge([cv2.Sobel(go, cv2.CV_32F, 1, 0, dst=half.gx, ksize=1, scale=gain),
-                          cv2.Sobel(go, cv2.CV_32F, 0, 1, dst=half.gy, ksize=1, scale=gain)], dst=half.grad)
+    pooled: tuple[np.ndarray, np.ndarray] | None = None
+    if params.orientation_from_maps:  # the pooled maps first: the orientation is read from them
+        pooled = _pooled_maps(g1 if made_g1 else None, quarter, params, ws, half)
+        v = _orientation_of_maps(pooled, xy_half, params, ws)
     else:
-        go, at = cv2.GaussianBlur(x, (0, 0), params.orientation_sigma_px, dst=ws.t1), xy_half
-        grad = cv2.merge([cv2.Sobel(go, cv2.CV_32F, 1, 0, dst=ws.gx, ksize=1),
-                          cv2.Sobel(go, cv2.CV_32F, 0, 1, dst=ws.gy, ksize=1)], dst=ws.grad)
-    v = cv2.remap(grad, np.ascontiguousarray(at[:, :1]), np.ascontiguousarray(at[:, 1:]),
-                  cv2.INTER_LINEAR).reshape(-1, 2)
+        if params.orientation_step == 2 or coarse:
+            so = math.sqrt(max(params.orientation_sigma_px**2 - s * s - 0.25, 0.25)) / 2
+            go, at, gain = cv2.GaussianBlur(quarter, (0, 0), so, dst=half.g1), (xy_half - 0.5) * 0.5, 0.5
+            grad = cv2.merge([cv2.Sobel(go, cv2.CV_32F, 1, 0, dst=half.gx, ksize=1, scale=gain),
+                              cv2.Sobel(go, cv2.CV_32F, 0, 1, dst=half.gy, ksize=1, scale=gain)], dst=half.grad)
+        else:
+            go, at = cv2.GaussianBlur(x, (0, 0), params.orientation_sigma_px, dst=ws.t1), xy_half
+            grad = cv2.merge([cv2.Sobel(go, cv2.CV_32F, 1, 0, dst=ws.gx, ksize=1),
+                              cv2.Sobel(go, cv2.CV_32F, 0, 1, dst=ws.gy, ksize=1)], dst=ws.grad)
+        v = cv2.remap(grad, np.ascontiguousarray(at[:, :1]), np.ascontiguousarray(at[:, 1:]),
+                      cv2.INTER_LINEAR).reshape(-1, 2)
     angle = np.arctan2(v[:, 1], v[:, 0]).astype(np.float32) % np.float32(2 * math.pi)
     xy = xy_half * 2 + 0.5  # half-resolution pixel centre -> working-image pixels
     hw = np.array([work.shape[1] - 1, work.shape[0] - 1], np.float32) * 0.5
@@ -208,13 +222,49 @@ def candidates(work: np.ndarray, params: ExtractParams, learned: Learned | None,
             relevance += learned.rel_logp[a][np.searchsorted(learned.rel_edges[a], attributes[a])]
     attributes = attributes.T
     order = np.argsort(-relevance, kind="stable")
-    if params.pool_step == 2:  # the halving's smoothing and the sampling's bilinear interpolation deducted
-        sq = math.sqrt(max(params.pool_sigma_px**2 - 1.0, 0.25)) / 2
-        pooled = (_pooled_orientation_maps(quarter, sq, half) if params.exact_maps
-                  else _pooled_orientation_maps(g1, sq, ws, False, half))
-    else:
-        pooled = _pooled_orientation_maps(g1, params.pool_sigma_px, ws, params.exact_maps)
+    if pooled is None:
+        pooled = _pooled_maps(g1 if made_g1 else None, quarter, params, ws, half)
     return Candidates(xy[order], angle[order], attributes[order], relevance[order], pooled)
+
+
+def _pooled_maps(g1: np.ndarray | None, quarter: np.ndarray, params: ExtractParams, ws: Workspace,
+                 half: Workspace) -> tuple[np.ndarray, np.ndarray]:
+    """Step 3's pooled orientation maps as ``params`` asks (:func:`_pooled_orientation_maps`)
+    from the detection image smoothed at every pixel ``g1`` (None when only the exact maps
+    of the halved image ``quarter`` are asked for)."""
+    if params.pool_step == 2 and params.exact_maps:  # the halving's smoothing and the bilinear sampling deducted
+        return _pooled_orientation_maps(quarter, math.sqrt(max(params.pool_sigma_px**2 - 1.0, 0.25)) / 2, half)
+    assert g1 is not None
+    if params.pool_step == 2:
+        return _pooled_orientation_maps(g1, math.sqrt(max(params.pool_sigma_px**2 - 1.0, 0.25)) / 2, ws, False, half)
+    return _pooled_orientation_maps(g1, params.pool_sigma_px, ws, params.exact_maps)
+
+
+_DIRECTIONS = np.array([[math.cos(d * math.pi / 4) for d in range(4)],
+                        [math.sin(d * math.pi / 4) for d in range(4)]], np.float32)
+"""``(2, 4)``: the unit vectors of directions 0-3 (directions 4-7 are their opposites)."""
+
+
+def _orientation_of_maps(pooled: tuple[np.ndarray, np.ndarray], xy_half: np.ndarray, params: ExtractParams,
+                         ws: Workspace) -> np.ndarray:
+    """``(K, 2) float32``: the orientation vectors of the keypoints at ``xy_half`` (half-resolution
+    pixels) read from the pooled orientation maps (``params.orientation_from_maps``).
+
+    Each map holds one direction's share of the gradients of the detection image smoothed
+    at ``detect_sigma_px``, pooled at ``pool_sigma_px``: the sum of the 8 maps weighted by
+    their directions' unit vectors is that gradient field pooled (the linear split between
+    two directions gives back the gradient's direction and 0.92-1 of its length), smoothed
+    by what ``orientation_sigma_px`` lacks after both (none when nothing lacks) and sampled
+    at each keypoint: the gradient of the image smoothed at ``orientation_sigma_px``, without
+    a Gaussian of that width over every pixel."""
+    opposite = cv2.subtract(pooled[0], pooled[1], dst=ws.buffer("om_diff", pooled[0].shape))
+    vec = cv2.transform(opposite, _DIRECTIONS, dst=ws.buffer("om_vec", opposite.shape[:2] + (2,)))
+    lack = params.orientation_sigma_px**2 - params.detect_sigma_px**2 - params.pool_sigma_px**2
+    if lack > 0:
+        vec = cv2.GaussianBlur(vec, (0, 0), math.sqrt(lack) / params.pool_step, dst=ws.buffer("om_blur", vec.shape))
+    at = (xy_half - 0.5) * 0.5 if params.pool_step == 2 else xy_half  # pixel centres of the halved maps
+    return cv2.remap(vec, np.ascontiguousarray(at[:, :1]), np.ascontiguousarray(at[:, 1:]),
+                     cv2.INTER_LINEAR).reshape(-1, 2)
 
 
 def _extrema(d: np.ndarray, border: int, params: ExtractParams,

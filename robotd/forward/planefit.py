@@ -167,7 +167,10 @@ def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nda
     bins = 360  # half-degree bins over psi modulo pi
     # Every heading of the scan at once: each match's translation direction per heading,
     # a histogram per heading, its two fullest bins, three directions per bin.
-    yaws = yaw_guess_rad + np.arange(-n_steps, n_steps + 1) * step_rad
+    # The scanned headings lie on one lattice of step_rad (the guess rounded to it), so the
+    # inlier profile is the matches' alone, not where the guess fell within a step.
+    centre = yaw_guess_rad if fix_yaw else round(yaw_guess_rad / step_rad) * step_rad
+    yaws = centre + np.arange(-n_steps, n_steps + 1) * step_rad
     c, s_ = np.cos(yaws), np.sin(yaws)
     rots = np.zeros((len(yaws), 3, 3))
     rots[:, 0, 0], rots[:, 0, 2], rots[:, 1, 1], rots[:, 2, 0], rots[:, 2, 2] = c, s_, 1.0, -s_, c

@@ -61,7 +61,8 @@ changes, each the same test as before:
   inliers, so the search stops once a consensus of that size would have been found with
   ``ransac_confidence`` (:func:`ransac_iterations`): 34 samples for 28 matches instead of
   1000;
-- ``estimator = "usac"`` (the default detector's): OpenCV's USAC framework set to the same
+- ``estimator = "usac"`` (the default detector's search near the level motion,
+  ``guided_estimator``, below): OpenCV's USAC framework set to the same
   test (uniform samples, the inlier count within ``ransac_threshold_px``) whose five-point
   solver costs about a tenth of the classic one per sample, with a local optimisation of
   each new best model on its inliers (which finds the consensus in fewer samples, so the

@@ -183,20 +183,28 @@ class ProcessNoiseFit:
 def sensor_noise_params(base: EkfParams, gyro_noise_radps_sqrt_hz: float, wheel_noise_m_sqrt_m: float,
                         tick_m: float, accel_mps2_sqrt_hz: float | None = None,
                         angular_accel_radps2_sqrt_hz: float | None = None,
-                        readings_hz: float = READINGS_HZ) -> EkfParams:
+                        readings_hz: float = READINGS_HZ, wheel_base_m: float = 0.0,
+                        slip_gate_sigma: float = 0.0) -> EkfParams:
     """``base`` with the sensors' own noise: the gyro's white noise per reading (``density
     * sqrt(fs / 2)``, the convention :func:`fit_odometry` measures the density in), the
     wheel speed's tick quantisation (``tick_m``: m of travel per tick; the difference of
     two quantised counts over one packet, ``tick / dt / sqrt(6)``), the slip density as a
     fraction of the speed at :data:`CRUISE_MPS` (``sqrt(q v / dt) / v``), and the white
     accelerations when given (else ``base``'s). The wheel yaw-rate noise and the bias walk
-    stay ``base``'s."""
+    stay ``base``'s. With ``wheel_base_m`` (m) and ``slip_gate_sigma`` both above 0, the
+    wheel slip test (``slip_gate_sigma`` in :class:`~robotd.odometry.ekf.EkfParams`): the
+    slipping wheel's lever is half the wheel base, and the wheels' own yaw-rate noise is
+    their tick quantisation (each wheel's ``tick / dt / sqrt(6)``, the yaw rate
+    ``sqrt(2)`` times it over the wheel base)."""
     dt = 1.0 / readings_hz
     q = wheel_noise_m_sqrt_m ** 2
     out = dataclasses.replace(
         base, gyro_noise_radps=gyro_noise_radps_sqrt_hz * math.sqrt(readings_hz / 2.0),
         wheel_v_noise_mps=tick_m / dt / math.sqrt(6.0),
         wheel_v_noise_frac=math.sqrt(q * CRUISE_MPS / dt) / CRUISE_MPS)
+    if wheel_base_m > 0.0 and slip_gate_sigma > 0.0:
+        out = dataclasses.replace(out, slip_gate_sigma=slip_gate_sigma, slip_half_base_m=0.5 * wheel_base_m,
+                                  slip_yaw_rate_noise_radps=math.sqrt(2.0) * out.wheel_v_noise_mps / wheel_base_m)
     if accel_mps2_sqrt_hz is not None:
         out = dataclasses.replace(out, accel_noise_density_mps2_per_sqrt_hz=accel_mps2_sqrt_hz)
     if angular_accel_radps2_sqrt_hz is not None:

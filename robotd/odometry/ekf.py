@@ -82,6 +82,7 @@ __all__ = [
     "predict",
     "predict_rates",
     "predict_with_jacobian",
+    "slip_variances",
     "update_gyro",
     "update_gyro_with_gain",
     "update_wheels",
@@ -111,7 +112,8 @@ class EkfParams:
     the power spectral densities), measurement noises 1-sigma per reading.
 
     The first ten fields are the keys of the ``[odometry]`` table of the configuration
-    file (but its ``noise_model``, which :func:`robotd.app.assemble.build_odometry` reads), defaults included (taken from :class:`~robotd.base.config.OdometryConfig`, the
+    file (but its ``noise_model`` and ``slip_gate_sigma``, which
+    :func:`robotd.app.assemble.build_odometry` reads), defaults included (taken from :class:`~robotd.base.config.OdometryConfig`, the
     one place they are written): :meth:`from_config` builds the params from that table.
 
     - ``accel_noise_density_mps2_per_sqrt_hz``: white linear acceleration driving ``v``,
@@ -152,6 +154,17 @@ class EkfParams:
       have already measured. On the office route it is most of an edge's yaw variance
       with the default noise model, which makes a floor visual odometry step's heading
       look 10 times less surprising than it is and keeps it from the bias.
+    - ``slip_gate_sigma`` (default 0: off), ``slip_half_base_m``, ``slip_yaw_rate_noise_radps``:
+      the wheel slip test (:func:`slip_variances`). A wheel that slips (over-rotates while
+      the base speeds up, under-rotates while it brakes) reports a yaw rate the gyro does
+      not see, and half its extra travel as speed. A moving wheel reading whose yaw rate
+      disagrees with the filter's (the gyro's, bias-corrected) by more than
+      ``slip_gate_sigma`` times that difference's 1-sigma (the filter's yaw-rate variance
+      plus ``slip_yaw_rate_noise_radps`` squared, the wheels' own yaw-rate noise: their
+      tick quantisation) is taken as slip: its speed variance grows by ``(slip_half_base_m
+      * z)^2`` (``z`` the disagreement; one wheel's extra travel ``b z`` moves the base by
+      half of it, on either wheel), its yaw-rate variance by ``z^2``. Used with the
+      calibration's noise model, whose wheel speed noise is the ticks' alone.
     """
 
     accel_noise_density_mps2_per_sqrt_hz: float = _CONFIG.accel_noise_density_mps2_per_sqrt_hz
@@ -171,12 +184,15 @@ class EkfParams:
     initial_pose_sigma: float = 1e-5
     smooth_pose: bool = True
     rate_only_process: bool = False
+    slip_gate_sigma: float = 0.0
+    slip_half_base_m: float = 0.0
+    slip_yaw_rate_noise_radps: float = 0.0
 
     @classmethod
     def from_config(cls, section: OdometryConfig, **others: Any) -> EkfParams:
         """The params of an ``[odometry]`` table; ``others``: the fields it does not hold."""
         return cls(**{f.name: getattr(section, f.name) for f in dataclasses.fields(section)
-                      if f.name != "noise_model"}, **others)
+                      if f.name not in ("noise_model", "slip_gate_sigma")}, **others)
 
     def __post_init__(self) -> None:
         for name in self.__slots__:
@@ -436,8 +452,32 @@ def update_wheels_with_gain(state: EkfState, v_mps: float, w_radps: float,
     sv, sw = wheel_noise(v_mps, w_radps, params, stationary, speed_var_m2ps2, yaw_rate_var_rad2ps2)
     m = state.mean
     innovation = np.array([v_mps - m[IV], w_radps - m[IW]])
-    return _update(state, innovation, H_WHEELS, np.array([[sv * sv, 0.0], [0.0, sw * sw]]),
+    var_v, var_w = sv * sv, sw * sw
+    if not stationary and params.slip_gate_sigma > 0.0 and speed_var_m2ps2 is None:
+        add_v, add_w = slip_variances(float(innovation[1]), float(state.cov[IW, IW]), params)
+        var_v += add_v
+        var_w += add_w
+    return _update(state, innovation, H_WHEELS, np.array([[var_v, 0.0], [0.0, var_w]]),
                    stationary and params.smooth_pose)
+
+
+def slip_variances(yaw_rate_innovation_radps: float, yaw_rate_var_rad2ps2: float,
+                   params: EkfParams) -> tuple[float, float]:
+    """The variances ``(m^2/s^2, rad^2/s^2)`` a slipping wheel adds to a moving wheel
+    reading's speed and yaw rate, ``(0, 0)`` when the reading passes the slip test
+    (``slip_gate_sigma`` in :class:`EkfParams`).
+
+    ``yaw_rate_innovation_radps``: the wheels' yaw rate minus the filter's (after the gyro's
+    readings up to it); ``yaw_rate_var_rad2ps2``: the filter's yaw-rate variance. One wheel
+    slipping by ``d`` metres over the reading's interval ``dt`` adds ``+-d / b / dt`` to the
+    wheels' yaw rate and ``d / 2 / dt`` to their speed (``b`` the wheel base): the speed's
+    error is ``+-(b / 2) z``, its sign the slipping wheel's, which the reading cannot tell
+    (so the variance, not the mean, takes it)."""
+    z2 = yaw_rate_innovation_radps * yaw_rate_innovation_radps
+    s = yaw_rate_var_rad2ps2 + params.slip_yaw_rate_noise_radps ** 2
+    if params.slip_gate_sigma <= 0.0 or z2 <= params.slip_gate_sigma ** 2 * s:
+        return 0.0, 0.0
+    return params.slip_half_base_m ** 2 * z2, z2
 
 
 def update_gyro(state: EkfState, w_radps: float, params: EkfParams = EkfParams(),

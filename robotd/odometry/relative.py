@@ -152,13 +152,15 @@ def shift_jacobian(z: np.ndarray, offset_prev: np.ndarray, offset_now: np.ndarra
 
 
 def update_relative_pose(mean: np.ndarray, cov: np.ndarray, clone: PoseClone, z: np.ndarray,
-                         r: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+                         r: np.ndarray, consider: tuple[int, ...] = ()) -> tuple[np.ndarray, np.ndarray, float]:
     """EKF update of the joint ``(state, clone)`` with ``z = clone^-1 (+) pose``, ``(3,)``,
     covariance ``r (3, 3)``.
 
-    ``mean (n,)``, ``cov (n, n)``: the state (pose first). Returns the updated state's
-    mean and covariance and the normalised innovation squared (chi-square, 3 degrees of
-    freedom) for gating by the caller.
+    ``mean (n,)``, ``cov (n, n)``: the state (pose first). ``consider``: indices of state
+    entries the measurement does not update (their gain rows zeroed, a Schmidt "consider"
+    update; the Joseph form keeps the covariance right for that gain). Returns the updated
+    state's mean and covariance and the normalised innovation squared (chi-square, 3
+    degrees of freedom) for gating by the caller.
     """
     mean = np.asarray(mean, float)
     n = len(mean)
@@ -169,6 +171,8 @@ def update_relative_pose(mean: np.ndarray, cov: np.ndarray, clone: PoseClone, z:
     s = hm @ phT + r
     nis = float(innovation @ np.linalg.solve(s, innovation))
     gain = np.linalg.solve(s, phT.T).T
+    if consider:
+        gain[list(consider)] = 0.0
     a = np.eye(n + 3) - gain @ hm
     joint = a @ pj @ a.T + gain @ r @ gain.T
     new_mean = mean + (gain @ innovation)[:n]

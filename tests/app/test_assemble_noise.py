@@ -79,3 +79,31 @@ def test_without_a_calibration_or_its_accelerations_the_config_is_kept(caplog):
     assert build_odometry(Config(), cal).wheel_gyro.params == build_odometry(
         replace(Config(), "odometry", noise_model="config"), cal).wheel_gyro.params
     assert _accel(build_odometry(Config(), cal).wheel_gyro.params) == (0.5, 0.3)
+
+
+def test_the_slip_test_goes_with_the_calibration_noise_over_the_calibrated_wheel_base():
+    cal = _shipped()
+    m = cal.odometry
+    cfg = replace(replace(Config(), "odometry", noise_model="calibration", slip_gate_sigma=3.0),
+                  "visual_odometry", enabled=False)
+    p = build_odometry(cfg, cal).params
+    assert p.slip_gate_sigma == 3.0
+    assert p.slip_half_base_m == pytest.approx(0.5 * m.wheel_base_m)
+    # the wheels' own yaw-rate noise: each wheel's tick quantisation, sqrt(2) of it over the base
+    assert p.slip_yaw_rate_noise_radps == pytest.approx(math.sqrt(2) * p.wheel_v_noise_mps / m.wheel_base_m)
+    # off (0), or with the config's noise model, no slip test
+    assert build_odometry(replace(cfg, "odometry", slip_gate_sigma=0.0), cal).params.slip_gate_sigma == 0.0
+    plain = build_odometry(replace(cfg, "odometry", noise_model="config"), cal).params
+    assert (plain.slip_gate_sigma, plain.slip_half_base_m) == (0.0, 0.0)
+
+
+def test_the_live_pose_key_reaches_the_fused_filter():
+    """``[visual_odometry] live_pose``: the daemon's fused filter gets it (default: its own
+    fused pose); without visual odometry there is no twin and no combined edges."""
+    cal = _shipped()
+    assert build_odometry(Config(), cal).live_pose == "fused"
+    f = build_odometry(replace(Config(), "visual_odometry", live_pose="combined_edges"), cal)
+    assert f.live_pose == "combined_edges" and f.wheel_gyro is not f
+    off = build_odometry(replace(replace(Config(), "visual_odometry", live_pose="combined_edges"),
+                                 "visual_odometry", enabled=False), cal)
+    assert off.wheel_gyro is off and off.live_pose == "fused"

@@ -90,3 +90,37 @@ def test_it_keeps_a_bounded_number_of_links_and_answers_within_its_window_only()
     assert g.relative(2999 - 150, 2999) is None  # beyond the window: no graph heading
     got = g.relative(2999 - 90, 2999)
     assert got is not None and got[0] == pytest.approx(math.remainder(0.9, math.tau), abs=0.02)
+
+
+def _tree_yaws_before(fi, ti, d, order, pred, nn):
+    """The spanning tree's yaws as the graph computed them before (a dictionary of every
+    link both ways, first link wins): the frozen reference of :func:`tree_yaws`."""
+    step: dict[tuple[int, int], float] = {}
+    for x, y, dd in zip(fi.tolist(), ti.tolist(), d.tolist()):
+        step.setdefault((x, y), dd)
+        step.setdefault((y, x), -dd)
+    y0 = np.zeros(nn)
+    for u in order[1:].tolist():
+        p = int(pred[u])
+        y0[u] = y0[p] + step[(p, u)]
+    return y0
+
+
+def test_the_tree_yaws_are_those_of_the_dictionary_before_to_the_bit():
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import breadth_first_order
+
+    from robotd.app.stages.forward_loops import tree_yaws
+
+    rng = np.random.default_rng(3)
+    for nn, m in [(2, 1), (30, 80), (400, 1500)]:
+        fi, ti = rng.integers(0, nn, m), rng.integers(0, nn, m)
+        fi[: nn - 1], ti[: nn - 1] = np.arange(nn - 1), np.arange(1, nn)  # connected
+        swap = rng.random(m) < 0.3  # links both ways, repeated pairs with other yaws
+        fi[swap], ti[swap] = ti[swap].copy(), fi[swap].copy()
+        d = rng.normal(0.0, 1.0, m)
+        adj = sp.coo_matrix((np.ones(m), (fi, ti)), shape=(nn, nn)).tocsr()
+        root = int(rng.integers(0, nn))
+        order, pred = breadth_first_order((adj + adj.T).tocsr(), root, directed=False, return_predecessors=True)
+        got, want = tree_yaws(fi, ti, d, order, pred, nn), _tree_yaws_before(fi, ti, d, order, pred, nn)
+        assert got[root] == 0.0 and np.array_equal(got, want)

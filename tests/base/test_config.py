@@ -42,6 +42,7 @@ def test_values_are_read_and_converted(tmp_path):
     ("[keyframes]\ndistance_m = nan\n", "[keyframes] distance_m: must be finite"),
     ("robot = 3\n", "[robot] must be a table"),
     ("[recording]\nimage_format = \"webp\"\n", "[recording] image_format: 'webp' is not one of"),
+    ("[visual_odometry]\nlive_pose = \"graph\"\n", "[visual_odometry] live_pose: 'graph' is not one of"),
     ("[recording]\njpeg_quality = 0\n", "[recording] jpeg_quality: 0 is below the minimum"),
     ("[recording]\npng_compression = 10\n", "[recording] png_compression: 10 is above the maximum"),
 ])

@@ -812,16 +812,25 @@ def test_maps_halved_from_every_pixels_gradients_stay_closer_than_maps_of_the_ha
     assert dist["halved"] < 0.06
 
 
-def test_candidates_of_the_quarter_image_land_on_the_default_keypoints(frames):
+@pytest.mark.parametrize("prefilter", [False, True])
+def test_candidates_of_the_quarter_image_land_on_the_default_keypoints(frames, prefilter):
     """``detect_step`` 2 (:data:`QUARTER`) finds the candidates on the detection image
     halved, at the same scale, and gives positions in working-image pixels as the default
     does: most of the default's most relevant keypoints have a quarter-image candidate
     within 2 px (a position off by the factor of the halving would land far away), and
-    the same frame described both ways keeps much of its self-score, another floor none."""
-    from robotd.floor.descriptor import QUARTER
+    the same frame described both ways keeps much of its self-score, another floor none.
+    So with ``detect_prefilter`` (the quarter image from the low-passed detection image),
+    whose candidates are not those of the box-averaged quarter image."""
+    import dataclasses
+
+    from robotd.floor.descriptor import QUARTER as PLAIN
     from robotd.floor.match import local_score
 
+    QUARTER = dataclasses.replace(PLAIN, detect_prefilter=prefilter)  # noqa: N806
     learned = load_learned()
+    if prefilter:
+        a, b = candidates(frames["brick"], PLAIN, learned), candidates(frames["brick"], QUARTER, learned)
+        assert len(a.xy) != len(b.xy) or not np.array_equal(a.xy, b.xy)
     for name in ("brick", "grass", "gravel"):
         ref = candidates(frames[name], ExtractParams(), learned)
         c = candidates(frames[name], QUARTER, learned)
@@ -838,3 +847,60 @@ def test_candidates_of_the_quarter_image_land_on_the_default_keypoints(frames):
     self_score = local_score(default, default).score
     assert local_score(quarter, default).score >= 0.4 * self_score > 0
     assert local_score(other, default).score < 0.1 * self_score
+
+
+def test_prefiltered_quarter_image_aliases_less_on_the_printed_planks():
+    """The printed plank floor's views a lattice step apart (as ``tests/floor/test_match.py``
+    renders them): the quarter image box-averaged from the working image (:data:`QUARTER`)
+    folds the print's fine texture into the detection's band, its extrema move between
+    copies of one print, the repeat check misses them, and the view a lattice step away
+    scores about as much as the true 5 cm overlap. With ``detect_prefilter`` it scores
+    markedly less in every mode the alias test checks (yet not under its half: the default
+    detection's is)."""
+    import dataclasses
+
+    from robotd.floor.descriptor import QUARTER, describe
+    from robotd.floor.match import local_score
+    from sim.world.pattern import PatternFloor, PatternParams
+
+    floor = PatternFloor(skimage.data.gravel(), PatternParams(kind="planks"), 0.001, seed=1)
+    renderer = FloorRenderer(floor, FloorCameraModel.default(), RenderParams(), np.random.default_rng(0))
+    here = np.array([1.108, 0.255, -1.926])
+    ahead = 0.05 * np.array([math.cos(here[2]), math.sin(here[2]), 0.0])
+    views = {name: renderer.render(here + d, 0.0, 0.0, 0.0)
+             for name, d in (("here", np.zeros(3)), ("lattice", np.array([0.15, 0.12, 0.0])), ("near", ahead))}
+
+    def alias_ratio(params: ExtractParams, mode: int) -> float:
+        h = describe(views["here"], mode, params)
+        return (local_score(h, describe(views["lattice"], mode, params)).score
+                / local_score(h, describe(views["near"], mode, params)).score)
+
+    for mode in (2, 3, 5):
+        plain = alias_ratio(QUARTER, mode)
+        prefiltered = alias_ratio(dataclasses.replace(QUARTER, detect_prefilter=True), mode)
+        assert prefiltered < 0.85 * plain, (mode, prefiltered, plain)
+
+
+def test_orientation_read_from_the_pooled_maps_is_near_the_smoothed_gradients(frames):
+    """``orientation_from_maps``: the 8 pooled direction maps summed as vectors and smoothed
+    by what the orientation's sigma lacks are the gradient of the image smoothed at
+    ``orientation_sigma_px``, up to the linear split's error: the same candidates (positions,
+    responses) with orientations within a degree at the median and a few at the 90th
+    percentile of those at every pixel (a wrong direction vector, sign or axis would put
+    them tens of degrees off), and strengths within a tenth."""
+    learned = load_learned()
+    maps = ExtractParams(orientation_from_maps=True)
+    for name in ("brick", "grass", "gravel"):
+        ref = candidates(frames[name], ExtractParams(), learned)
+        c = candidates(frames[name], maps, learned)
+        ia, ib = np.lexsort(ref.xy.T[::-1]), np.lexsort(c.xy.T[::-1])
+        assert np.array_equal(ref.xy[ia], c.xy[ib])
+        assert np.array_equal(ref.attributes[ia, :3], c.attributes[ib, :3])
+        off = np.abs(wrap_angle(c.angle[ib].astype(np.float64) - ref.angle[ia]))
+        strength = c.attributes[ib, 3] / ref.attributes[ia, 3]
+        top = np.argsort(-ref.relevance[ia])[:300]
+        assert np.degrees(np.median(off[top])) < 1.0, np.degrees(np.median(off[top]))
+        assert np.degrees(np.percentile(off[top], 90)) < 4.0
+        assert 0.9 < np.median(strength[top]) < 1.0
+    with pytest.raises(ValueError):
+        ExtractParams(orientation_from_maps=True, detect_step=2)

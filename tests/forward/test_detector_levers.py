@@ -10,7 +10,7 @@ import pytest
 
 from robotd.forward import (LOOP, LOW_POSTERIOR, NO_GEOMETRIC_CONSISTENCY, NOT_CONSISTENT_YET, DetectorParams, FilterParams, ForwardDetector,
                             method_params)
-from robotd.forward.detector import OdometryParams, bounded_verification, odometry_factor
+from robotd.forward.detector import OdometryParams, bounded_verification, odometry_factor, unbounded_verification
 from robotd.forward.features import FeatureParams, Features
 from robotd.forward.verify import VerifyParams
 
@@ -91,14 +91,18 @@ def test_the_methods():
     assert not (default.odometry.merge_places or default.odometry.metric_neighbours or default.odometry.verify_place)
     assert (default.filter.rule, default.filter.loop_threshold) == ("total", 0.3)
     assert default.features.kind == "orb" and default.vocabulary.purge_after > 0
-    # The planar verification, its work per image not bounded (the bound is selectable:
-    # USAC near the level motion, the general search within 10 px of it and once per image).
+    # The planar verification with its work per image bounded: USAC near the level motion,
+    # the general search within 10 px of it and once per image (the unbounded one is
+    # selectable: RANSAC near the level motion, the general search over all the matches).
     v = default.verify
-    assert (v.model, v.guided_estimator, v.fallback_estimator, v.fallback_band_px) == ("planar", None, None, None)
-    assert default.verify_fallbacks is None and paper.verify_fallbacks is None and paper.verify.model == "general"
-    b = bounded_verification(default)
-    assert (b.verify.guided_estimator, b.verify.fallback_band_px, b.verify_fallbacks) == ("usac", 10.0, 1)
-    assert replace(b, verify=default.verify, verify_fallbacks=None) == default
+    assert (v.model, v.estimator, v.guided_estimator, v.fallback_estimator, v.fallback_band_px) == (
+        "planar", "ransac", "usac", None, 10.0)
+    assert default.verify_fallbacks == 1 and paper.verify_fallbacks is None and paper.verify.model == "general"
+    assert bounded_verification(default) == default
+    u = unbounded_verification(default)
+    assert (u.verify.guided_estimator, u.verify.fallback_band_px, u.verify_fallbacks) == (None, None, None)
+    assert bounded_verification(u) == default
+    assert replace(u, verify=default.verify, verify_fallbacks=1) == default
     assert not paper.odometry.use and paper.verify_tries == 1
     assert method_params("paper", recent_excluded=5).recent_excluded == 5
     with pytest.raises(ValueError):

@@ -76,7 +76,7 @@ def _scan_one_by_one(p_old: np.ndarray, p_new: np.ndarray, yaw_guess: float) -> 
     best = None
     step, bins = math.radians(0.2), 360
     for i in range(-40, 41):
-        yaw = yaw_guess + i * step
+        yaw = round(yaw_guess / step) * step + i * step  # the scan's lattice
         r, _ = planar_pose(yaw, 0.0)
         u = np.cross(x_old @ r.T, x_new)
         psis = np.mod(np.arctan2(-u[:, 2], u[:, 0]), math.pi)
@@ -108,6 +108,24 @@ def test_the_batched_heading_scan_picks_what_the_loop_over_headings_picks(seed):
     start = np.abs(_sampson_many(x, xn, np.array([yaw]), np.array([psi]), 525.0))[0] < 1.0
     assert fit.n_inliers >= start.sum() - 2
     assert abs(math.remainder(fit.dyaw_rad - yaw, math.tau)) < math.radians(0.5)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_heading_scan_lies_on_one_lattice_whatever_the_guess_within_a_step(seed):
+    """Two guesses that round to the same multiple of the scan step (two estimators'
+    headings a hundredth of a degree apart) scan the same headings and give the same
+    inlier profile; the scanned headings are multiples of the step."""
+    po, pn = _views(1.5 + seed, 170.0 - 40 * seed, 0.3, seed=seed, noise_px=0.8)
+    step = math.radians(0.2)
+    a = fit_planar(po, pn, K, math.radians(1.62 + seed))
+    b = fit_planar(po, pn, K, math.radians(1.63 + seed))
+    assert a is not None and b is not None
+    assert np.array_equal(a.scan_yaw_rad, b.scan_yaw_rad) and np.array_equal(a.scan_inliers, b.scan_inliers)
+    assert np.allclose(np.asarray(a.scan_yaw_rad) / step, np.round(np.asarray(a.scan_yaw_rad) / step), atol=1e-9)
+    assert (a.dyaw_rad, a.bearing_rad, a.n_inliers) == (b.dyaw_rad, b.bearing_rad, b.n_inliers)
+    # a fixed heading is held where it is given, not rounded
+    held = fit_planar(po, pn, K, math.radians(1.63 + seed), fix_yaw=True)
+    assert held is not None and held.dyaw_rad == pytest.approx(math.radians(1.63 + seed), abs=1e-12)
 
 
 @pytest.mark.parametrize("yaw_deg,bearing_deg,dist_m", [(10, 30, 0.5), (-20, -100, 0.4), (0, 180, 0.3),

@@ -24,8 +24,10 @@ from robotd.odometry.ekf import (
     predict_rates,
     predict_with_jacobian,
     rate_gain,
+    slip_variances,
     update_gyro,
     update_wheels,
+    update_wheels_with_gain,
 )
 from robotd.odometry.fusion import OdometryFilter
 from robotd.odometry.kinematics import DiffDriveParams
@@ -426,3 +428,79 @@ def test_rate_gain_is_p_ht_s_inverse_for_any_measurement_size(rows: int) -> None
     assert np.allclose(rate_gain(p, h, r, False), want, rtol=1e-12, atol=1e-14)
     frozen = rate_gain(p, h, r, True)
     assert np.all(frozen[:3] == 0.0) and np.allclose(frozen[3:], want[3:], rtol=1e-12, atol=1e-14)
+
+
+# ---- the wheel slip test ----------------------------------------------------------------
+
+
+def test_slip_variances_by_hand():
+    """Below the gate nothing; above it one wheel's extra travel: the speed gets (b/2 z)^2,
+    the yaw rate z^2."""
+    params = EkfParams(slip_gate_sigma=3.0, slip_half_base_m=0.115, slip_yaw_rate_noise_radps=0.01)
+    # sigma of the disagreement: sqrt(0.0002 + 0.0001) = 0.0173; the gate at 0.052 rad/s
+    assert slip_variances(0.05, 2e-4, params) == (0.0, 0.0)
+    assert slip_variances(-0.05, 2e-4, params) == (0.0, 0.0)
+    v, w = slip_variances(-0.06, 2e-4, params)
+    assert v == pytest.approx((0.115 * 0.06) ** 2)
+    assert w == pytest.approx(0.06 ** 2)
+    off = dataclasses.replace(params, slip_gate_sigma=0.0)
+    assert slip_variances(1.0, 2e-4, off) == (0.0, 0.0)
+
+
+def test_a_slipping_wheel_reading_widens_its_speed_noise_and_moves_the_speed_less():
+    params = EkfParams(wheel_v_noise_mps=0.002, wheel_v_noise_frac=0.0, slip_gate_sigma=3.0,
+                       slip_half_base_m=0.115, slip_yaw_rate_noise_radps=0.01)
+    s0 = _state([0, 0, 0, 0.3, 0.0, 0.0], [1e-6, 1e-6, 1e-6, 1e-5, 1e-5, 1e-6])
+    # One wheel over-rotating by 6 % of its 0.3 m/s: speed +0.009 m/s, yaw rate +0.078 rad/s
+    slipped = update_wheels_with_gain(s0, 0.309, 0.078, params)
+    plain = update_wheels_with_gain(s0, 0.309, 0.078, dataclasses.replace(params, slip_gate_sigma=0.0))
+    assert slipped.noise[0, 0] == pytest.approx(0.002 ** 2 + (0.115 * 0.078) ** 2)
+    assert plain.noise[0, 0] == pytest.approx(0.002 ** 2)
+    # K_v = 1e-5 / (1e-5 + R): the slipped reading moves the speed by ~11 % of the step, not ~71 %
+    assert slipped.state.mean[IV] - 0.3 == pytest.approx(0.009 * 1e-5 / (1e-5 + slipped.noise[0, 0]))
+    assert plain.state.mean[IV] - 0.3 == pytest.approx(0.009 * 1e-5 / (1e-5 + 0.002 ** 2))
+    # a reading the gyro agrees with is not touched, nor one at standstill
+    agree = update_wheels_with_gain(s0, 0.309, 0.001, params)
+    assert agree.noise[0, 0] == pytest.approx(0.002 ** 2)
+    still = update_wheels_with_gain(s0, 0.0, 0.078, params, stationary=True)
+    assert still.noise[0, 0] == pytest.approx(params.stationary_noise_mps ** 2)
+
+
+def _circle_end_nees(slip_rate_hz: float, gate: float, seed: int) -> tuple[float, OdometryFilter]:
+    """Position NEES at the end of one lap of a 1 m circle at 0.3 m/s (turning: slip events
+    possible throughout) on an otherwise ideal base with a real gyro's noise, the filter
+    with the calibration's kind of noise model (tick quantisation, small accelerations)."""
+    from robotd.odometry.calibration import sensor_noise_params
+
+    sp = dataclasses.replace(BaseSensorParams.ideal(), slip_event_rate_hz=slip_rate_hz,
+                             gyro_noise_density_degps_sqrt_hz=0.03)
+    stream = simulate_kobuki(_circle_motion(laps=1.0), sp, np.random.default_rng(seed))
+    d = sp.drive
+    params = sensor_noise_params(EkfParams(), math.radians(0.03), 0.0, 2 * math.pi * d.wheel_radius_m / d.ticks_per_rev,
+                                 0.02, 0.08, wheel_base_m=d.wheel_base_m, slip_gate_sigma=gate)
+    f = OdometryFilter(d, params)
+    for msg in stream.messages():
+        (f.on_wheels if isinstance(msg, WheelTicks) else f.on_yaw_rate)(msg)
+    end = stream.true_pose[-1]
+    e = np.array([f.pose().x_m - end[0], f.pose().y_m - end[1]])
+    return float(e @ np.linalg.solve(f.state.pose_cov[:2, :2], e)), f
+
+
+def test_the_slip_test_leaves_a_drive_without_slip_events_alone():
+    nees_on, on = _circle_end_nees(0.0, 3.0, 0)
+    nees_off, off = _circle_end_nees(0.0, 0.0, 0)
+    assert nees_on == nees_off
+    np.testing.assert_array_equal(on.state.cov, off.state.cov)
+
+
+@pytest.mark.slow
+def test_the_slip_test_brings_the_error_after_slip_events_back_towards_its_covariance():
+    """Slip events at 1 per second of turning (the simulator's size: 2-8 % of one wheel's
+    motion for 0.05-0.3 s): without the test the end position is far outside its
+    covariance (NEES 10-19 on these seeds, 2 expected); with it, closer on every seed (3.5
+    to 11: the slips below the gate stay in the speed)."""
+    for seed in range(3):
+        off = _circle_end_nees(1.0, 0.0, seed)[0]
+        on = _circle_end_nees(1.0, 3.0, seed)[0]
+        assert off > 8.0
+        assert on < off

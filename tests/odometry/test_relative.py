@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.base.geometry import between
+from robotd.base.geometry import between, compose
 from robotd.base.messages import WheelTicks, YawRate
 from robotd.odometry.ekf import IYAW
 from robotd.odometry.fusion import OdometryFilter
@@ -294,3 +294,72 @@ def test_the_fused_pose_follows_the_readings_by_the_trapezoid_rule():
         errors.append(float(f.state.mean[IYAW]) - truth)
     assert abs(errors[0]) < 1e-3
     assert errors[1] < -4e-3
+
+
+def test_a_consider_update_leaves_the_bias_and_gives_the_yaw_its_optimal_gain():
+    """The yaw drifted by delta since the clone and is correlated with the bias (the gyro's
+    integral): the optimal update moves the bias too; with the bias considered (its gain
+    row zeroed) the bias's mean and variance stay as they were, and the yaw gets the same
+    correction as with the optimal gain (a gain row depends only on its own row of P H^T)."""
+    b, q, r, delta = 0.04, 1e-4, 1e-4, 0.02
+    mean0 = np.array([1.0, 2.0, 0.3, 0.2, 0.0, 0.01])
+    cov0 = np.diag([1e-3, 1e-3, b, 0.01, 0.01, 1e-4])
+    clone = clone_pose(mean0, cov0, keyframe_stamp_ns=5)
+    mean1 = mean0.copy()
+    mean1[IYAW] += delta
+    cov1 = cov0.copy()
+    cov1[IYAW, IYAW] += q
+    cov1[IYAW, 5] = cov1[5, IYAW] = 0.5e-4  # the yaw since the clone knows the bias
+    z, rr = np.zeros(3), np.diag([1e-6, 1e-6, r])
+    opt_mean, _, nis = update_relative_pose(mean1, cov1, clone, z, rr)
+    con_mean, con_cov, nis_c = update_relative_pose(mean1, cov1, clone, z, rr, consider=(5,))
+    assert abs(opt_mean[5] - mean1[5]) > 1e-3  # the optimal update moves the bias
+    assert con_mean[5] == mean1[5] and con_cov[5, 5] == pytest.approx(cov1[5, 5], rel=1e-12)
+    assert con_mean[IYAW] == pytest.approx(opt_mean[IYAW], abs=1e-12)
+    assert nis_c == nis
+    assert np.all(np.linalg.eigvalsh(con_cov) > 0)
+
+
+def test_visual_steps_that_leave_the_bias_alone_still_hold_the_heading():
+    """``vo_bias_update=False``: the same drive as above (the gyro 0.04 rad/s off, no
+    standstill); the visual steps no longer teach the fused filter the bias, but they still
+    correct its heading, which ends far nearer the one of a filter that knows the bias than
+    the twin's does."""
+    f = OdometryFilter(vo_twin=True, vo_bias_update=False)
+    learnt = OdometryFilter(vo_twin=True)
+    track = _run_with_latency(f, [0], n_packets=600)
+    _run_with_latency(learnt, [0], n_packets=600)
+    assert f.counters.vo_fused == learnt.counters.vo_fused == 23
+    assert abs(learnt.state.gyro_bias_radps - 0.04) < 1e-3
+    assert abs(f.state.gyro_bias_radps - 0.04) > 5e-3
+    # The reference: wheels and gyro with the bias known (no visual steps).
+    known = _run_with_latency(OdometryFilter(initial_bias=(0.04, 1e-9)), [0], n_packets=600)
+    end, twin_end = track[-1][3], f.wheel_gyro.state.mean[IYAW]
+    assert abs(end - known[-1][3]) < 0.2 * abs(twin_end - known[-1][3])
+
+
+def test_the_combined_edges_as_the_live_pose_do_not_depend_on_when_the_steps_come():
+    """``live_pose = "combined_edges"``: the live pose is the chain of the graph's combined
+    edges (the twin's edge and the visual step) up to the last keyframe, then the twin's
+    motion since. The chain is the same whenever the steps arrive; the live pose is its
+    end composed with the twin's motion; the precise steps hold the heading that the
+    twin, 0.04 rad/s of unknown gyro bias, loses."""
+    with pytest.raises(ValueError, match="live_pose"):
+        OdometryFilter(vo_twin=True, live_pose="graph")
+    now = OdometryFilter(vo_twin=True, live_pose="combined_edges")
+    late = OdometryFilter(vo_twin=True, live_pose="combined_edges")
+    _run_with_latency(now, [0])
+    _run_with_latency(late, [0, 3, 1, 7])
+    a, b = now.chain_pose(), late.chain_pose()
+    assert a is not None and b is not None and a.stamp_ns == b.stamp_ns
+    assert (a.x_m, a.y_m, a.yaw_rad) == (b.x_m, b.y_m, b.yaw_rad)
+    assert np.array_equal(a.covariance, b.covariance) and np.all(np.linalg.eigvalsh(a.covariance) > 0)
+    twin = now.wheel_gyro
+    at_kf = twin.pose_at(a.stamp_ns)
+    motion = between(np.array([at_kf.x_m, at_kf.y_m, at_kf.yaw_rad]), twin.state.mean[:3])
+    live = now.pose()
+    expected = compose(np.array([a.x_m, a.y_m, a.yaw_rad]), motion)
+    assert np.array([live.x_m, live.y_m, live.yaw_rad]) == pytest.approx(expected, abs=1e-12)
+    assert OdometryFilter(vo_twin=True).chain_pose() is None
+    known = _run_with_latency(OdometryFilter(initial_bias=(0.04, 1e-9)), [0], n_packets=600)
+    assert abs(live.yaw_rad - known[-1][3]) < 0.2 * abs(twin.state.mean[IYAW] - known[-1][3])

@@ -118,6 +118,7 @@ from typing import Any
 
 import numpy as np
 
+from robotd.app import gcwatch
 from robotd.app.pipeline import Publisher
 from robotd.base.config import ForwardDetectorConfig
 from robotd.base.errors import MapStoreError
@@ -132,7 +133,7 @@ from robotd.forward.verify import VerifyParams, floor_range, match_features
 log = logging.getLogger(__name__)
 
 # The stage's parts timed per forward keyframe (ForwardLoopStage.part_cpu_ms).
-PARTS = ("match", "scan", "level", "ridge", "graph", "readback", "store", "stage")
+PARTS = ("match", "scan", "level", "ridge", "graph", "readback", "store", "gc", "stage")
 
 
 @dataclass(frozen=True)
@@ -190,6 +191,31 @@ def ridge_headings(fit: PlanarFit, margin: float, span: str = "within") -> tuple
         return lo, hi, yaws[(yaws >= lo) & (yaws <= hi)]
     on = yaws[n >= n.max() - margin]
     return float(on.min()), float(on.max()), on
+
+
+def tree_yaws(fi: np.ndarray, ti: np.ndarray, d: np.ndarray, order: np.ndarray, pred: np.ndarray,
+              nn: int) -> np.ndarray:
+    """The yaws ``(nn,)`` (radians) of ``nn`` nodes along a spanning tree, the tree's root at
+    0: ``y[u] = y[pred[u]] + step(pred[u], u)`` in ``order`` (parents first, as
+    :func:`scipy.sparse.csgraph.breadth_first_order` gives it; nodes not in it stay 0).
+    The step from ``p`` to ``u`` is that of the first of the links ``fi -> ti (M,)`` (yaw
+    change ``d (M,)``) between them, ``d`` from ``p`` to ``u`` or ``-d`` from ``u`` to ``p``.
+    Found by sorting the links' keys, without a Python object per link: the links are
+    thousands, and every tuple a dictionary of them made was a container the garbage
+    collector then counted (and paid for at a full collection)."""
+    m = len(fi)
+    src, dst, val = np.empty(2 * m, np.int64), np.empty(2 * m, np.int64), np.empty(2 * m, np.float64)
+    src[0::2], src[1::2] = fi, ti  # each link both ways, the forward one first (as found first)
+    dst[0::2], dst[1::2] = ti, fi
+    val[0::2], val[1::2] = d, -np.asarray(d, np.float64)
+    keys, first = np.unique(src * nn + dst, return_index=True)  # the first occurrence of each pair
+    child = np.asarray(order[1:], np.int64)
+    parent = np.asarray(pred, np.int64)[child]
+    steps = val[first[np.searchsorted(keys, parent * nn + child)]]
+    y = [0.0] * nn
+    for u, p, s in zip(child.tolist(), parent.tolist(), steps.tolist()):
+        y[u] = y[p] + s
+    return np.array(y, np.float64)
 
 
 class HeadingGraph:
@@ -325,24 +351,23 @@ class HeadingGraph:
         # least squares of the wrapped residuals with node a held at 0.
         sym = (adj + adj.T).tocsr()
         order, pred = breadth_first_order(sym, ia, directed=False, return_predecessors=True)
-        step: dict[tuple[int, int], float] = {}
-        for x, y, dd in zip(fi.tolist(), ti.tolist(), d.tolist()):
-            step.setdefault((x, y), dd)
-            step.setdefault((y, x), -dd)
-        y0 = np.zeros(nn)
-        for u in order[1:].tolist():
-            p = int(pred[u])
-            y0[u] = y0[p] + step[(p, u)]
+        y0 = tree_yaws(fi, ti, d, order, pred, nn)
         ok = keep[fi] & keep[ti]
         fi, ti, d, w = fi[ok], ti[ok], d[ok], w[ok]
         r = np.remainder(d - (y0[ti] - y0[fi]) + math.pi, math.tau) - math.pi
-        h = sp.coo_matrix((np.concatenate([w, w, -w, -w]),
-                           (np.concatenate([fi, ti, fi, ti]), np.concatenate([fi, ti, ti, fi]))), shape=(nn, nn)).tocsc()
         g = np.zeros(nn)
         np.add.at(g, ti, w * r)
         np.add.at(g, fi, -w * r)
         free = np.flatnonzero(keep & (np.arange(nn) != ia))
-        lu = splu(h[free][:, free].tocsc(), permc_spec=self.ordering)
+        # The normal matrix over the free nodes only, built in their numbering (the
+        # entries in the order the whole matrix had them: the same sums).
+        pos = np.full(nn, -1, np.int64)
+        pos[free] = np.arange(len(free))
+        rows, cols = pos[np.concatenate([fi, ti, fi, ti])], pos[np.concatenate([fi, ti, ti, fi])]
+        inner = (rows >= 0) & (cols >= 0)
+        h = sp.csc_matrix((np.concatenate([w, w, -w, -w])[inner], (rows[inner], cols[inner])),
+                          shape=(len(free), len(free)))
+        lu = splu(h, permc_spec=self.ordering)
         dy = np.zeros(nn)
         dy[free] = lu.solve(g[free])
         e = np.zeros(len(free))
@@ -442,7 +467,9 @@ class ForwardLoopStage(Publisher):
         # The stage's parts per forward keyframe in the pipeline thread's CPU time (ms): the
         # planar refit's matches and heading scan, the level test against the verified motion,
         # the ridge's fits, the graph's heading, the read-back of evicted images, the map write,
-        # and the whole keyframe (detector and stage).
+        # Python's garbage collections run in this thread meanwhile (with a
+        # robotd.app.gcwatch installed; they are inside the other parts), and the whole
+        # keyframe (detector and stage).
         self.part_cpu_ms: dict[str, list[float]] = {k: [] for k in PARTS}
         self._part: dict[str, float] = {}
         if store is not None:
@@ -668,6 +695,8 @@ class ForwardLoopStage(Publisher):
         self._out = []
         self._part = {}
         n_images = self.images
+        watch = gcwatch.installed()
+        gc0 = watch.thread_cpu_ms() if watch is not None else 0.0
         cpu0 = time.thread_time()
         try:
             self._take_frame(kf, pose, chain, links)
@@ -675,6 +704,8 @@ class ForwardLoopStage(Publisher):
             out, self._out = self._out, None
             if self.images > n_images:  # a forward keyframe was run: its parts
                 self._add_cpu("stage", cpu0)
+                if watch is not None:  # the collections run in this thread meanwhile
+                    self._part["gc"] = watch.thread_cpu_ms() - gc0
                 for part in PARTS:
                     self.part_cpu_ms[part].append(self._part.get(part, 0.0))
         if not out:
