@@ -290,7 +290,10 @@ class Verification:
     (:class:`robotd.forward.planar.MotionFit`; NaN when not computed); ``fallback`` whether
     a planar model's general search was due (it ran, or with ``fallback_band_px`` the band
     held fewer than ``min_inliers`` matches to run it on; either counts against
-    :attr:`robotd.forward.detector.DetectorParams.verify_fallbacks`). When a pose was recovered: ``rotation (3, 3)`` and
+    :attr:`robotd.forward.detector.DetectorParams.verify_fallbacks`); ``level_yaw_rad`` the
+    heading change of the level motion the planar model's search found first (the two-point
+    search that guides the others, :func:`robotd.forward.planefit.ransac_planar`; NaN when
+    it found none or the model is not ``"planar"``). When a pose was recovered: ``rotation (3, 3)`` and
     ``translation_dir (3,)`` (unit length) such that a point X_old in the old image's
     camera frame is ``rotation @ X_old + s * translation_dir`` in the new image's camera
     frame, for an unknown scale s > 0 (OpenCV camera axes: x right, y down, z forward).
@@ -312,6 +315,7 @@ class Verification:
     noise_px: float = float("nan")
     planarity_chi2: float = float("nan")
     fallback: bool = False
+    level_yaw_rad: float = float("nan")
 
 
 def camera_matrix_guess(width_px: int, height_px: int, focal_px: float | None = None) -> np.ndarray:
@@ -372,6 +376,8 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
             if not isinstance(guided, Verification):
                 guided = _checked(old, new, p_old, p_new, k, params, guided)
         assert isinstance(guided, Verification)
+        if search.best_inliers:
+            guided = replace(guided, level_yaw_rad=search.yaw_rad)
         if guided.accepted or params.fallback_inliers is None or search.best_inliers < params.fallback_inliers:
             return guided
         # Not found near a level motion: the general search over all the matches, with at
@@ -385,8 +391,9 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
             banded = _general_motion(p_old, p_new, k, params, n, band, half_inliers=False)
             checked = banded if isinstance(banded, Verification) else _checked(old, new, p_old, p_new, k, params,
                                                                                 banded)
-            return replace(checked, fallback=True)
-        return replace(_general_verification(old, new, p_old, p_new, k, params, n), fallback=True)
+            return replace(checked, fallback=True, level_yaw_rad=guided.level_yaw_rad)
+        return replace(_general_verification(old, new, p_old, p_new, k, params, n), fallback=True,
+                       level_yaw_rad=guided.level_yaw_rad)
     elif params.model == "planar_motion":
         motion = _planar_motion(p_old, p_new, k, params)
         if isinstance(motion, int):

@@ -27,8 +27,12 @@ allow, though often by less than a fixed tilt limit (the daemon's wrong forward 
 of this kind; rendered at the frames' own times, so not the frame's offset from its
 keyframe). Such a motion is refitted with the motion kept in the floor plane
 (:func:`robotd.forward.planefit.fit_planar`, heading change and bearing only) from the two
-images' matches; the refit is the loop's motion when it keeps at least the verification's
-``min_inliers`` and half of its inliers.
+images' matches, its heading scanned around the heading of the level motion the
+verification's search found first (``scan_centre="level"``; the verified motion's own
+heading with ``"verified"``, or when there is none: a five-point motion found near the
+level motion can be tens of degrees off it, beyond the scan's window); the refit is the
+loop's motion when it keeps at least the verification's ``min_inliers`` and half of its
+inliers.
 
 A motion that passes the test is fitted in the floor plane too, and the planar fit is the
 loop's motion when it explains more of the two images' matches than the verified motion
@@ -121,7 +125,7 @@ import numpy as np
 from robotd.app import gcwatch
 from robotd.app.pipeline import Publisher
 from robotd.base.config import ForwardDetectorConfig
-from robotd.base.errors import MapStoreError
+from robotd.base.errors import ConfigError, MapStoreError
 from robotd.base.geometry import between, compose, inverse, wrap_angle
 from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored, Link, LoopFate, OdometryUpdate
 from robotd.forward import LOOP, ForwardDetector
@@ -134,6 +138,10 @@ log = logging.getLogger(__name__)
 
 # The stage's parts timed per forward keyframe (ForwardLoopStage.part_cpu_ms).
 PARTS = ("match", "scan", "level", "ridge", "graph", "readback", "store", "gc", "stage")
+
+#: Where the planar refit's heading scan is centred (ForwardLoopStage ``scan_centre``): the
+#: level motion the verification's search found first, or the verified motion's heading.
+SCAN_CENTRES = ("level", "verified")
 
 
 @dataclass(frozen=True)
@@ -389,7 +397,11 @@ class ForwardLoopStage(Publisher):
                  max_tilt_rad: float = math.radians(10.0), camera: str = "forward",
                  store: Any = None, planarity_bound: float = planarity_bound(), planar_refit: bool = True,
                  mount: np.ndarray | None = None, ridge: RidgeParams | None = None,
-                 publish_delay_s: float = 1.0) -> None:
+                 publish_delay_s: float = 1.0, scan_centre: str = "level") -> None:
+        if scan_centre not in SCAN_CENTRES:
+            raise ConfigError(f"forward stage: scan_centre must be one of {', '.join(SCAN_CENTRES)}, "
+                              f"not {scan_centre!r}")
+        self.scan_centre = scan_centre
         self.detector = detector
         self.ridge = RidgeParams() if ridge is None else ridge
         self.ridge_settled = 0  # loops on a ridge, settled at the graph's heading (module notes)
@@ -869,8 +881,9 @@ class ForwardLoopStage(Publisher):
     def _scan(self, image_id: int, v: Any) -> tuple[PlanarFit, np.ndarray, np.ndarray] | None:
         """The motion of the current image against past image ``image_id`` fitted in the
         floor plane from all their matches (:func:`robotd.forward.planefit.fit_planar`, the
-        heading searched around the verification's), with the matched pixels (old, new);
-        None without a camera matrix or enough matches."""
+        heading searched around the level motion's, :attr:`scan_centre`, or else the verified
+        motion's), with the matched pixels (old, new); None without a camera matrix or enough
+        matches."""
         det = self.detector
         k = det.camera_matrix
         if k is None:
@@ -879,7 +892,9 @@ class ForwardLoopStage(Publisher):
         p_old, p_new = match_features(det.features_of(image_id), det.features_of(len(det) - 1), det.params.verify.ratio)
         self._add_cpu("match", t0)
         t0 = time.thread_time()
-        dyaw, _, _ = planar_motion(v.rotation, v.translation_dir)
+        dyaw = float(getattr(v, "level_yaw_rad", math.nan)) if self.scan_centre == "level" else math.nan
+        if not math.isfinite(dyaw):
+            dyaw, _, _ = planar_motion(v.rotation, v.translation_dir)
         fit = fit_planar(p_old, p_new, k, dyaw, threshold_px=det.params.verify.ransac_threshold_px)
         self._add_cpu("scan", t0)
         return None if fit is None else (fit, p_old, p_new)
