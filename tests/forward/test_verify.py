@@ -307,3 +307,41 @@ def test_the_planar_models_searches_take_their_own_estimators(monkeypatch):
 def test_bad_model_parameters_are_refused(kw):
     with pytest.raises(ValueError, match=next(iter(kw))):
         VerifyParams(**kw)
+
+
+def test_the_planar_model_carries_the_level_motions_heading(monkeypatch):
+    """``level_yaw_rad``: the heading of the two-point search's best level motion (the one
+    that guided the five-point search), the scene's 10 deg; carried through a fallback; NaN
+    for the general model."""
+    import math
+
+    from robotd.forward.planefit import ransac_planar
+    from robotd.forward.verify import match_features
+
+    old, new, _, _ = _level_pair_with_shuffled(np.random.default_rng(6))
+    params = VerifyParams(model="planar")
+    v = verify_pair(old, new, params)
+    p_old, p_new = match_features(old, new, params.ratio)
+    _, search = ransac_planar(p_old, p_new, K, threshold_px=params.guide_threshold_px,
+                              min_inliers=params.min_inliers, confidence=params.ransac_confidence,
+                              max_samples=params.planar_max_samples, seed=params.seed, refine=False)
+    assert v.accepted and v.level_yaw_rad == search.yaw_rad
+    assert math.degrees(v.level_yaw_rad) == pytest.approx(10.0, abs=0.5)
+    assert math.isnan(verify_pair(old, new, VerifyParams(model="general")).level_yaw_rad)
+    # The search near the level motion made to fail: the fallback's verification keeps it.
+    import robotd.forward.verify as verify_mod
+
+    inner = verify_mod._general_motion
+    calls: list[int] = []
+
+    def first_fails(p_o, p_n, k, prm, n, near=None, half_inliers=True):
+        calls.append(n)
+        if len(calls) == 1:
+            return verify_mod.Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
+        return inner(p_o, p_n, k, prm, n, near, half_inliers)
+
+    monkeypatch.setattr(verify_mod, "_general_motion", first_fails)
+    for band in (None, 10.0):
+        calls.clear()
+        fell = verify_pair(old, new, VerifyParams(model="planar", fallback_inliers=0, fallback_band_px=band))
+        assert len(calls) == 2 and fell.fallback and fell.accepted and fell.level_yaw_rad == search.yaw_rad
