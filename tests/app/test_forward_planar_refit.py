@@ -84,26 +84,38 @@ def test_a_leaning_motion_without_planar_support_is_refused():
 def test_the_refit_scans_around_the_level_motion_the_verification_found():
     """The five-point motion 25 deg off the heading (as USAC's near the level motion came out
     on the office route), the level motion the search found first at the true 10 deg: the
-    scan around the level motion finds the true motion; around the verified heading
-    (``scan_centre="verified"``, the rule before) its +-8 deg never reach it."""
+    scan around the level motion (``scan_centre="level"``, or ``"both"``: the better-supported
+    of the two scans) finds the true motion; around the verified heading (``"verified"``, the
+    default) its +-8 deg never reach it."""
     from dataclasses import replace
 
     from robotd.base.errors import ConfigError
 
     v = replace(_verification(35, 30, 20.0, 5000.0), level_yaw_rad=math.radians(10.3))
-    stage = _stage(10, 30, 0.5)
-    assert stage.scan_centre == "level" and stage._level(0, v)
-    fit, _, _ = stage._fits[0]
-    assert math.degrees(fit.dyaw_rad) == pytest.approx(10, abs=0.3)
-    assert math.degrees(fit.bearing_rad) == pytest.approx(30, abs=2.0)
-    assert math.degrees(fit.scan_yaw_rad.min()) == pytest.approx(10.4 - 8.0, abs=1e-9)
+    for centre in ("level", "both"):
+        stage = _stage(10, 30, 0.5)
+        stage.scan_centre = centre
+        assert stage._level(0, v)
+        fit, _, _ = stage._fits[0]
+        assert math.degrees(fit.dyaw_rad) == pytest.approx(10, abs=0.3)
+        assert math.degrees(fit.bearing_rad) == pytest.approx(30, abs=2.0)
+        assert math.degrees(fit.scan_yaw_rad.min()) == pytest.approx(10.4 - 8.0, abs=1e-9)
     old = _stage(10, 30, 0.5)
-    old.scan_centre = "verified"
+    assert old.scan_centre == "verified"
     scan = old._scan(0, v)
     assert scan is not None and math.degrees(scan[0].scan_yaw_rad.min()) == pytest.approx(35.0 - 8.0, abs=1e-9)
     assert abs(math.degrees(scan[0].dyaw_rad) - 10) > 10
+    # "both" keeps the verified heading's scan when it has the more inliers.
+    near = replace(_verification(10.5, 30, 20.0, 5000.0), level_yaw_rad=math.radians(-20.0))
+    both = _stage(10, 30, 0.5)
+    both.scan_centre = "both"
+    kept = both._scan(0, near)
+    assert kept is not None and math.degrees(kept[0].dyaw_rad) == pytest.approx(10, abs=0.3)
     # Without a level motion (NaN: the general model) the verified heading, as before.
-    plain = _stage(10, 30, 0.5)._scan(0, _verification(35, 30, 20.0, 5000.0))
-    assert plain is not None and np.array_equal(plain[0].scan_yaw_rad, scan[0].scan_yaw_rad)
+    for centre in ("level", "both"):
+        plain = _stage(10, 30, 0.5)
+        plain.scan_centre = centre
+        got = plain._scan(0, _verification(35, 30, 20.0, 5000.0))
+        assert got is not None and np.array_equal(got[0].scan_yaw_rad, scan[0].scan_yaw_rad)
     with pytest.raises(ConfigError, match="scan_centre"):
         ForwardLoopStage(ForwardDetector(method_params("default"), camera_matrix=K), scan_centre="middle")

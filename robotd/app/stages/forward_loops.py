@@ -27,11 +27,11 @@ allow, though often by less than a fixed tilt limit (the daemon's wrong forward 
 of this kind; rendered at the frames' own times, so not the frame's offset from its
 keyframe). Such a motion is refitted with the motion kept in the floor plane
 (:func:`robotd.forward.planefit.fit_planar`, heading change and bearing only) from the two
-images' matches, its heading scanned around the heading of the level motion the
-verification's search found first (``scan_centre="level"``; the verified motion's own
-heading with ``"verified"``, or when there is none: a five-point motion found near the
-level motion can be tens of degrees off it, beyond the scan's window); the refit is the
-loop's motion when it keeps at least the verification's ``min_inliers`` and half of its
+images' matches, its heading scanned around the verified motion's heading
+(``scan_centre="verified"``), or around the heading of the level motion the verification's
+search found first (``"level"``: a five-point motion found near the level motion can be
+tens of degrees off it, beyond the scan's window), or around both, the fit with more
+inliers kept (``"both"``); the refit is the loop's motion when it keeps at least the verification's ``min_inliers`` and half of its
 inliers.
 
 A motion that passes the test is fitted in the floor plane too, and the planar fit is the
@@ -140,8 +140,9 @@ log = logging.getLogger(__name__)
 PARTS = ("match", "scan", "level", "ridge", "graph", "readback", "store", "gc", "stage")
 
 #: Where the planar refit's heading scan is centred (ForwardLoopStage ``scan_centre``): the
-#: level motion the verification's search found first, or the verified motion's heading.
-SCAN_CENTRES = ("level", "verified")
+#: verified motion's heading, the level motion's the verification's search found first, or
+#: both (two scans, the fit with more inliers kept; the verified one's on a tie).
+SCAN_CENTRES = ("verified", "level", "both")
 
 
 @dataclass(frozen=True)
@@ -397,7 +398,7 @@ class ForwardLoopStage(Publisher):
                  max_tilt_rad: float = math.radians(10.0), camera: str = "forward",
                  store: Any = None, planarity_bound: float = planarity_bound(), planar_refit: bool = True,
                  mount: np.ndarray | None = None, ridge: RidgeParams | None = None,
-                 publish_delay_s: float = 1.0, scan_centre: str = "level") -> None:
+                 publish_delay_s: float = 1.0, scan_centre: str = "both") -> None:
         if scan_centre not in SCAN_CENTRES:
             raise ConfigError(f"forward stage: scan_centre must be one of {', '.join(SCAN_CENTRES)}, "
                               f"not {scan_centre!r}")
@@ -881,9 +882,9 @@ class ForwardLoopStage(Publisher):
     def _scan(self, image_id: int, v: Any) -> tuple[PlanarFit, np.ndarray, np.ndarray] | None:
         """The motion of the current image against past image ``image_id`` fitted in the
         floor plane from all their matches (:func:`robotd.forward.planefit.fit_planar`, the
-        heading searched around the level motion's, :attr:`scan_centre`, or else the verified
-        motion's), with the matched pixels (old, new); None without a camera matrix or enough
-        matches."""
+        heading searched around the verified motion's, the level motion's or both,
+        :attr:`scan_centre`; the verified motion's without a level motion), with the matched
+        pixels (old, new); None without a camera matrix or enough matches."""
         det = self.detector
         k = det.camera_matrix
         if k is None:
@@ -892,10 +893,19 @@ class ForwardLoopStage(Publisher):
         p_old, p_new = match_features(det.features_of(image_id), det.features_of(len(det) - 1), det.params.verify.ratio)
         self._add_cpu("match", t0)
         t0 = time.thread_time()
-        dyaw = float(getattr(v, "level_yaw_rad", math.nan)) if self.scan_centre == "level" else math.nan
-        if not math.isfinite(dyaw):
-            dyaw, _, _ = planar_motion(v.rotation, v.translation_dir)
-        fit = fit_planar(p_old, p_new, k, dyaw, threshold_px=det.params.verify.ransac_threshold_px)
+        thr = det.params.verify.ransac_threshold_px
+        verified, _, _ = planar_motion(v.rotation, v.translation_dir)
+        level = float(getattr(v, "level_yaw_rad", math.nan)) if self.scan_centre != "verified" else math.nan
+        step = math.radians(0.2)  # fit_planar's heading step: both scans on one lattice
+        if not math.isfinite(level) or (self.scan_centre == "both" and round(level / step) == round(verified / step)):
+            fit = fit_planar(p_old, p_new, k, verified, threshold_px=thr)
+        elif self.scan_centre == "level":
+            fit = fit_planar(p_old, p_new, k, level, threshold_px=thr)
+        else:  # "both": the better-supported scan, the verified one's on a tie
+            fit = fit_planar(p_old, p_new, k, verified, threshold_px=thr)
+            other = fit_planar(p_old, p_new, k, level, threshold_px=thr)
+            if other is not None and (fit is None or other.n_inliers > fit.n_inliers):
+                fit = other
         self._add_cpu("scan", t0)
         return None if fit is None else (fit, p_old, p_new)
 
