@@ -398,7 +398,7 @@ class ForwardLoopStage(Publisher):
                  max_tilt_rad: float = math.radians(10.0), camera: str = "forward",
                  store: Any = None, planarity_bound: float = planarity_bound(), planar_refit: bool = True,
                  mount: np.ndarray | None = None, ridge: RidgeParams | None = None,
-                 publish_delay_s: float = 1.0, scan_centre: str = "both") -> None:
+                 publish_delay_s: float = 1.0, scan_centre: str = "verified") -> None:
         if scan_centre not in SCAN_CENTRES:
             raise ConfigError(f"forward stage: scan_centre must be one of {', '.join(SCAN_CENTRES)}, "
                               f"not {scan_centre!r}")
