@@ -84,9 +84,9 @@ def test_a_leaning_motion_without_planar_support_is_refused():
 def test_the_refit_scans_around_the_level_motion_the_verification_found():
     """The five-point motion 25 deg off the heading (as USAC's near the level motion came out
     on the office route), the level motion the search found first at the true 10 deg: the
-    scan around the level motion (``scan_centre="level"``, or ``"both"``: the better-supported
-    of the two scans) finds the true motion; around the verified heading (``"verified"``, the
-    default) its +-8 deg never reach it."""
+    scan around the level motion (``scan_centre="level"``, or ``"both"``, the default: the
+    better-supported of the two scans) finds the true motion; around the verified heading
+    (``"verified"``, the rule before) its +-8 deg never reach it."""
     from dataclasses import replace
 
     from robotd.base.errors import ConfigError
@@ -100,8 +100,9 @@ def test_the_refit_scans_around_the_level_motion_the_verification_found():
         assert math.degrees(fit.dyaw_rad) == pytest.approx(10, abs=0.3)
         assert math.degrees(fit.bearing_rad) == pytest.approx(30, abs=2.0)
         assert math.degrees(fit.scan_yaw_rad.min()) == pytest.approx(10.4 - 8.0, abs=1e-9)
+    assert _stage(10, 30, 0.5).scan_centre == "both"  # the default
     old = _stage(10, 30, 0.5)
-    assert old.scan_centre == "verified"
+    old.scan_centre = "verified"
     scan = old._scan(0, v)
     assert scan is not None and math.degrees(scan[0].scan_yaw_rad.min()) == pytest.approx(35.0 - 8.0, abs=1e-9)
     assert abs(math.degrees(scan[0].dyaw_rad) - 10) > 10

@@ -27,12 +27,14 @@ allow, though often by less than a fixed tilt limit (the daemon's wrong forward 
 of this kind; rendered at the frames' own times, so not the frame's offset from its
 keyframe). Such a motion is refitted with the motion kept in the floor plane
 (:func:`robotd.forward.planefit.fit_planar`, heading change and bearing only) from the two
-images' matches, its heading scanned around the verified motion's heading
-(``scan_centre="verified"``), or around the heading of the level motion the verification's
-search found first (``"level"``: a five-point motion found near the level motion can be
-tens of degrees off it, beyond the scan's window), or around both, the fit with more
-inliers kept (``"both"``); the refit is the loop's motion when it keeps at least the verification's ``min_inliers`` and half of its
-inliers.
+images' matches, its heading scanned around both the verified motion's heading and the
+heading of the level motion the verification's search found first, the fit with more
+inliers kept (``scan_centre="both"``, the default: a five-point motion found near the
+level motion can be tens of degrees off the truth, beyond the scan's +-8 deg, while the
+level motion is near it; on the office route's five seeds this accepted no fewer loops on
+any seed than the verified heading's scan, 4 more in all, none wrong); ``"verified"`` (the
+rule before) or ``"level"`` scan around one of them; the refit is the loop's motion when it
+keeps at least the verification's ``min_inliers`` and half of its inliers.
 
 A motion that passes the test is fitted in the floor plane too, and the planar fit is the
 loop's motion when it explains more of the two images' matches than the verified motion
@@ -398,7 +400,7 @@ class ForwardLoopStage(Publisher):
                  max_tilt_rad: float = math.radians(10.0), camera: str = "forward",
                  store: Any = None, planarity_bound: float = planarity_bound(), planar_refit: bool = True,
                  mount: np.ndarray | None = None, ridge: RidgeParams | None = None,
-                 publish_delay_s: float = 1.0, scan_centre: str = "verified") -> None:
+                 publish_delay_s: float = 1.0, scan_centre: str = "both") -> None:
         if scan_centre not in SCAN_CENTRES:
             raise ConfigError(f"forward stage: scan_centre must be one of {', '.join(SCAN_CENTRES)}, "
                               f"not {scan_centre!r}")
