@@ -185,9 +185,6 @@ class OdometryConfig:
                                 "rate disagrees with the gyro's by more than this many sigma is taken as "
                                 "wheel slip and its speed and yaw-rate variances widened; 0 turns the test "
                                 "off (docs/odometry.md)", lo=0.0, hi=100.0)
-    smooth_pose_moving: bool = _f(False, "the wheel and gyro readings update the speeds and the gyro bias "
-                                  "but never move the pose, moving as at rest (a Schmidt update); false: "
-                                  "moving, the optimal gain moves it (docs/odometry.md)")
 
 
 @dataclass(frozen=True)

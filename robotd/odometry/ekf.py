@@ -111,7 +111,7 @@ class EkfParams:
     """Noise model of the filter: process noises as spectral densities (square roots of
     the power spectral densities), measurement noises 1-sigma per reading.
 
-    The first ten fields and ``smooth_pose_moving`` are the keys of the ``[odometry]`` table of the configuration
+    The first ten fields are the keys of the ``[odometry]`` table of the configuration
     file (but its ``noise_model`` and ``slip_gate_sigma``, which
     :func:`robotd.app.assemble.build_odometry` reads), defaults included (taken from :class:`~robotd.base.config.OdometryConfig`, the
     one place they are written): :meth:`from_config` builds the params from that table.
@@ -144,20 +144,7 @@ class EkfParams:
       robot stood still and keyframes taken at rest got those jumps as odometry edges. An
       odometry frame must be continuous (REP 105): the gain with the pose rows zeroed is a
       Schmidt ("consider") update, and the Joseph form keeps the covariance right for it.
-      Moving, the optimal gain is kept, unless ``smooth_pose_moving``.
-    - ``smooth_pose_moving`` (default False; ``[odometry] smooth_pose_moving``): the same
-      Schmidt update while moving too: the wheel and gyro readings update ``v``, ``w`` and
-      the bias, and the pose follows them by integration only. Moving, the optimal gain
-      moves the pose along its correlation with the rates and the bias, and that
-      correlation spans the run as at rest: where the readings disagree with the model's
-      prediction for many readings in a row (the yaw rate ramping up and down in a turn on
-      the spot, far faster than the fitted white angular acceleration predicts), each
-      reading's innovation shifts the heading and, through it, the position, though the
-      base's centre did not move. With the calibration's noise model the twin then moved
-      its position by 5-9 mm and its heading by 3 mrad over the office route's turn on the
-      spot at 184-186 s (seed 0; the wheels and the gyro alone move it by under 1 mm), and
-      the keyframe edge across the turn carried that as motion (docs/odometry.md, "Known
-      limits").
+      Moving, the optimal gain is kept.
     - ``rate_only_process`` (default False): the pose gets no process noise of its own;
       only the rates ``v`` and ``w`` (and the bias) do, and the pose follows them. The
       white acceleration's exact discretisation gives the pose ``q dt^3 / 3`` for how the
@@ -196,7 +183,6 @@ class EkfParams:
     initial_yaw_rate_sigma_radps: float = 1.0
     initial_pose_sigma: float = 1e-5
     smooth_pose: bool = True
-    smooth_pose_moving: bool = _CONFIG.smooth_pose_moving
     rate_only_process: bool = False
     slip_gate_sigma: float = 0.0
     slip_half_base_m: float = 0.0
@@ -472,7 +458,7 @@ def update_wheels_with_gain(state: EkfState, v_mps: float, w_radps: float,
         var_v += add_v
         var_w += add_w
     return _update(state, innovation, H_WHEELS, np.array([[var_v, 0.0], [0.0, var_w]]),
-                   _frozen_pose(params, stationary))
+                   stationary and params.smooth_pose)
 
 
 def slip_variances(yaw_rate_innovation_radps: float, yaw_rate_var_rad2ps2: float,
@@ -508,13 +494,7 @@ def update_gyro_with_gain(state: EkfState, w_radps: float, params: EkfParams = E
     m = state.mean
     innovation = np.array([w_radps - m[IW] - m[IB]])
     r = gyro_noise_var(params, yaw_rate_var_rad2ps2)
-    return _update(state, innovation, H_GYRO, r, _frozen_pose(params, at_rest))
-
-
-def _frozen_pose(params: EkfParams, at_rest: bool) -> bool:
-    """Whether a rate update leaves the pose alone (``smooth_pose`` at rest,
-    ``smooth_pose_moving`` while moving: :class:`EkfParams`)."""
-    return params.smooth_pose_moving if not at_rest else params.smooth_pose
+    return _update(state, innovation, H_GYRO, r, at_rest and params.smooth_pose)
 
 
 def predict_rates(state: EkfState, t_ns: int, params: EkfParams = EkfParams()) -> EkfState:

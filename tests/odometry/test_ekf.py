@@ -504,34 +504,3 @@ def test_the_slip_test_brings_the_error_after_slip_events_back_towards_its_covar
         on = _circle_end_nees(1.0, 3.0, seed)[0]
         assert off > 8.0
         assert on < off
-
-
-def _correlated_state():
-    # A pose correlated with the yaw rate and the bias (as a long run leaves it).
-    cov = np.diag([0.04, 0.04, 0.01, 0.01, 0.04, 0.01])
-    for i, c in ((IX, 0.01), (IY, -0.01), (IYAW, 0.005)):
-        cov[i, IW] = cov[IW, i] = c
-        cov[i, IB] = cov[IB, i] = 0.5 * c
-    return EkfState(0, np.array([1.0, 2.0, 0.5, 0.0, 1.0, 0.02]), cov)
-
-
-def test_smooth_pose_moving_leaves_the_pose_to_the_rates_while_moving():
-    s0 = _correlated_state()
-    plain = EkfParams(gyro_noise_radps=0.1)
-    frozen = dataclasses.replace(plain, smooth_pose_moving=True)
-    # Moving: the optimal gain moves the pose along its correlation with w and the bias.
-    moved = update_gyro(s0, 1.4, plain)
-    assert abs(moved.mean[IX] - 1.0) > 1e-3 and abs(moved.mean[IYAW] - 0.5) > 1e-3
-    kept = update_gyro(s0, 1.4, frozen)
-    np.testing.assert_array_equal(kept.mean[[IX, IY, IYAW]], s0.mean[[IX, IY, IYAW]])
-    # The rates take the same gain (P_ww + P_wb over S) as without it.
-    assert kept.mean[IW] == pytest.approx(moved.mean[IW]) and kept.mean[IB] == pytest.approx(moved.mean[IB])
-    kept_w = update_wheels(s0, 0.0, 1.4, frozen)
-    np.testing.assert_array_equal(kept_w.mean[:3], s0.mean[:3])
-    assert kept_w.mean[IW] > 1.0
-    # The pose's variance is not reduced by a reading that does not update it.
-    assert np.all(np.diag(kept.cov)[:3] >= np.diag(s0.cov)[:3] - 1e-12)
-    # At rest the flag changes nothing (smooth_pose decides there).
-    a = update_gyro(s0, 1.4, plain, at_rest=True)
-    b = update_gyro(s0, 1.4, frozen, at_rest=True)
-    np.testing.assert_array_equal(a.mean, b.mean)
