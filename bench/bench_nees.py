@@ -168,7 +168,35 @@ def drive_edges(route: str, seed: int, keyframe_m: float, sensors: BaseSensorPar
         "rec_mean": np.array([rec.mean[k] for k in at]), "rec_cov": np.array([rec.cov[k] for k in at]),
         "rec_truth": motion.pose_at(rec_t[at] * 1e-9), "maps": np.array(maps),
         "drawn": stream.sensors.errors,
+        "speed_mps": np.interp(np.asarray(stamps) * 1e-9, motion.t_s[:-1], motion.v_mps[:-1]),
     }
+
+
+#: An edge whose two keyframes' true speeds differ by more than this spans a start or a stop.
+SPEED_CHANGE_MPS = 0.05
+
+
+def speed_change_edges(d: dict[str, Any], min_dv_mps: float = SPEED_CHANGE_MPS) -> dict[str, float]:
+    """Single edges across a change of speed (their two keyframes' true speeds differ by
+    more than ``min_dv_mps``: the starts and stops) against the others: their count, mean
+    NEES (all, position part) and the lag ``tau_ms`` that fits their error along the track
+    as ``-tau * dv`` (least squares; a pose that trails the truth by ``tau`` gives it)."""
+    delta, cov, truth, v = d["delta"], d["cov"], d["truth"], d["speed_mps"]
+    dv = np.diff(v)
+    parts, along = [], []
+    for k in range(len(delta)):
+        e = between(delta[k], between(truth[k], truth[k + 1]))
+        e[2] = wrap_angle(e[2])
+        parts.append(_nees_parts(e, cov[k]))
+        along.append(-e[0])  # the edge's error along its own track (delta minus truth)
+    n, a = np.array(parts), np.array(along)
+    big = np.abs(dv) > min_dv_mps
+    tau = -float(np.sum(a[big] * dv[big]) / np.sum(dv[big] ** 2)) if big.any() else float("nan")
+    return {"edges": int(big.sum()), "nees": float(n[big, 0].mean()) if big.any() else float("nan"),
+            "nees_position": float(n[big, 2].mean()) if big.any() else float("nan"),
+            "others": int((~big).sum()), "others_nees": float(n[~big, 0].mean()),
+            "others_nees_position": float(n[~big, 2].mean()), "all_nees": float(n[:, 0].mean()),
+            "tau_ms": 1e3 * tau}
 
 
 def _adjoint(p: np.ndarray) -> np.ndarray:
@@ -388,8 +416,9 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str,
         res = chained_nees(d)
         cost = graph_cost(d, seed, (SCALE_SIGMA["wheel"], SCALE_SIGMA["gyro"]), cost_models) if seed < cost_seeds else None
         e = d["drawn"]
+        sc = speed_change_edges(d)
         per_seed.append({"seed": seed, "edges": len(d["delta"]), "horizons": {str(k): v for k, v in res.items()},
-                         "cost": cost,
+                         "cost": cost, "speed_change": sc,
                          "daemon_graph": daemon_graph(d, seed) if seed < daemon_graph_seeds else None,
                          "drawn": {"wheel_base_error": e.wheel_base_error,
                                    "radius_error_left": e.left_radius_error,
@@ -399,6 +428,9 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str,
         log(f"seed {seed}: {len(d['delta'])} edges, " + ", ".join(
             f"N={h} {v['graph']:.2f}/{v['scales']:.2f}" for h, v in res.items())
             + f"  [{time.monotonic() - t0:.0f} s]")
+        log(f"seed {seed}: {sc['edges']} single edges across a start or stop (speed change > {SPEED_CHANGE_MPS} m/s): "
+            f"NEES {sc['nees']:.2f} (position {sc['nees_position']:.2f}), lag {sc['tau_ms']:.1f} ms; "
+            f"the other {sc['others']}: {sc['others_nees']:.2f} ({sc['others_nees_position']:.2f})")
     return {"route": route, "keyframe_m": keyframe_m, "without": list(without), "ekf": ekf or {},
             "true_model": true_model, "daemon_model": daemon_model, "noise_model": noise_model,
             "slip_gate_sigma": slip_gate_sigma,

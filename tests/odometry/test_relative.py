@@ -21,6 +21,17 @@ from robotd.odometry.relative import (
 )
 
 
+def _drifted_since_clone(mean0: np.ndarray, b: float, q: float, delta: float):
+    """A keyframe clone of ``mean0`` (yaw variance ``b``), then the state after the yaw
+    drifted by ``delta`` and gained independent variance ``q`` (cross terms unchanged)."""
+    cov0 = np.diag([1e-3, 1e-3, b, 0.01, 0.01, 1e-4])
+    clone = clone_pose(mean0, cov0, keyframe_stamp_ns=5)
+    mean1 = mean0.copy()
+    mean1[IYAW] += delta
+    cov1 = cov0.copy()
+    cov1[IYAW, IYAW] += q
+    return clone, mean1, cov1
+
 def test_yaw_drift_pulled_back_by_the_hand_derived_gain():
     """Clone at yaw 0.3 with variance b; since then the yaw gained variance q and drifted
     by delta. VO says the yaw did not change (variance r). In the joint (pose, clone)
@@ -28,13 +39,7 @@ def test_yaw_drift_pulled_back_by_the_hand_derived_gain():
     current yaw is (b + q - b) / (q + r) = q / (q + r): it does not depend on b. (Treating
     the clone as known with R inflated by b would give (b + q) / (2 b + q + r).)"""
     b, q, r, delta = 0.04, 1e-4, 1e-4, 0.02
-    mean0 = np.array([1.0, 2.0, 0.3, 0.2, 0.0, 0.0])
-    cov0 = np.diag([1e-3, 1e-3, b, 0.01, 0.01, 1e-4])
-    clone = clone_pose(mean0, cov0, keyframe_stamp_ns=5)
-    mean1 = mean0.copy()
-    mean1[IYAW] += delta
-    cov1 = cov0.copy()
-    cov1[IYAW, IYAW] += q  # independent yaw noise since the keyframe: cross unchanged
+    clone, mean1, cov1 = _drifted_since_clone(np.array([1.0, 2.0, 0.3, 0.2, 0.0, 0.0]), b, q, delta)
     new_mean, new_cov, nis = update_relative_pose(mean1, cov1, clone, np.zeros(3), np.diag([1e-6, 1e-6, r]))
     k = q / (q + r)
     assert new_mean[IYAW] == pytest.approx(0.3 + delta - k * delta, abs=1e-12)
@@ -302,13 +307,7 @@ def test_a_consider_update_leaves_the_bias_and_gives_the_yaw_its_optimal_gain():
     row zeroed) the bias's mean and variance stay as they were, and the yaw gets the same
     correction as with the optimal gain (a gain row depends only on its own row of P H^T)."""
     b, q, r, delta = 0.04, 1e-4, 1e-4, 0.02
-    mean0 = np.array([1.0, 2.0, 0.3, 0.2, 0.0, 0.01])
-    cov0 = np.diag([1e-3, 1e-3, b, 0.01, 0.01, 1e-4])
-    clone = clone_pose(mean0, cov0, keyframe_stamp_ns=5)
-    mean1 = mean0.copy()
-    mean1[IYAW] += delta
-    cov1 = cov0.copy()
-    cov1[IYAW, IYAW] += q
+    clone, mean1, cov1 = _drifted_since_clone(np.array([1.0, 2.0, 0.3, 0.2, 0.0, 0.01]), b, q, delta)
     cov1[IYAW, 5] = cov1[5, IYAW] = 0.5e-4  # the yaw since the clone knows the bias
     z, rr = np.zeros(3), np.diag([1e-6, 1e-6, r])
     opt_mean, _, nis = update_relative_pose(mean1, cov1, clone, z, rr)
