@@ -218,6 +218,15 @@ def compose_jacobians(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndar
     return j_a, j_b
 
 
+def compose_with_covariance(a: np.ndarray, cov_a: np.ndarray, b: np.ndarray,
+                            cov_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``a (+) b`` ``(3,)`` and its covariance ``(3, 3)`` to first order
+    (:func:`compose_jacobians`), ``a`` and ``b`` independent, ``cov_b`` of errors added in
+    the frame of ``a``."""
+    j_a, j_b = compose_jacobians(a, b)
+    return compose(a, b), j_a @ cov_a @ j_a.T + j_b @ cov_b @ j_b.T
+
+
 def se2_exp(xi: np.ndarray) -> np.ndarray:
     """The pose ``(x_m, y_m, yaw_rad)`` of the tangent vector ``xi = (u, v, w)`` of SE(2)
     (GTSAM's ``Pose2.Expmap``: translation ``V(w) (u, v)``)."""

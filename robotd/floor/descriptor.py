@@ -311,13 +311,18 @@ def _positions(width: int, height: int, ww: int, wh: int, n: int, k: int, rem_b:
     return xy, q
 
 
+def _check_trits(trit_b: np.ndarray, n: int) -> None:
+    """Refuse packed trits that are not 5 base-3 digits (a byte above 242)."""
+    if n and int(trit_b.max()) > 242:
+        raise _fail("bad descriptor code")
+
+
 def decode(data: bytes) -> FloorDescriptor:
     """Parse :func:`extract`'s bytes. Raises :class:`DescriptorError` for anything else:
     bad magic, unknown version or mode, wrong length, checksum mismatch, bad codes."""
     mode, width, height, ww, wh, n, k, gbits, rem_b, ang_b, trit_b, unary_b = _parse(data)
     xy, q = _positions(width, height, ww, wh, n, k, rem_b, ang_b, unary_b)
-    if n and int(trit_b.max()) > 242:
-        raise _fail("bad descriptor code")
+    _check_trits(trit_b, n)
     length = MODES[mode].length
     return FloorDescriptor(mode, width, height, xy, _ANGLE_RAD[q], *_bit_planes(trit_b, n, length), length,
                            gbits.copy(), POSITION_STEP_PX * max(width / ww, height / wh))
@@ -345,8 +350,7 @@ class PartialDescriptor:
 
     def __init__(self, data: bytes) -> None:
         mode, width, height, ww, wh, n, k, gbits, rem_b, ang_b, trit_b, unary_b = _parse(data)
-        if n and int(trit_b.max()) > 242:
-            raise _fail("bad descriptor code")
+        _check_trits(trit_b, n)
         self.mode, self.width_px, self.height_px, self._n = mode, width, height, n
         self.length: int = MODES[mode].length
         self.global_bits: np.ndarray = gbits.copy()

@@ -31,7 +31,7 @@ import numpy as np
 
 from robotd.forward.planar import INLIER_NOISE_FACTOR
 
-__all__ = ["PlanarFit", "PlanarSearch", "fit_planar", "front_mask", "planar_inliers", "planar_pose",
+__all__ = ["SCAN_STEP_RAD", "PlanarFit", "PlanarSearch", "fit_planar", "front_mask", "planar_inliers", "planar_pose",
            "ransac_planar", "ridge_span"]
 
 
@@ -143,9 +143,13 @@ def _bearing(yaw: float, psi: float) -> float:
     return math.atan2(-centre[0], centre[2])
 
 
+#: :func:`fit_planar`'s heading step (rad): its scanned headings lie on this lattice.
+SCAN_STEP_RAD = math.radians(0.2)
+
+
 def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, yaw_guess_rad: float,
                *, threshold_px: float = 1.0, window_rad: float = math.radians(8.0),
-               step_rad: float = math.radians(0.2), fix_yaw: bool = False) -> PlanarFit | None:
+               step_rad: float = SCAN_STEP_RAD, fix_yaw: bool = False) -> PlanarFit | None:
     """The planar motion (module notes) of matched pixels ``p_old_px, p_new_px (N, 2)``
     (``camera_matrix (3, 3)`` shared), the heading change searched within ``window_rad``
     of ``yaw_guess_rad`` in steps of ``step_rad``; None with fewer than 5 matches. With

@@ -73,7 +73,7 @@ import numpy as np
 from robotd.base.geometry import (
     between,
     compose,
-    compose_jacobians,
+    compose_with_covariance,
     inverse,
     wrap_angle,
 )
@@ -197,7 +197,7 @@ def chain_relative(edges_into: Mapping[int, tuple[int, np.ndarray, np.ndarray]],
 
     ``edges_into``: keyframe id -> ``(previous id, delta (3,), information (3, 3))`` of its
     odometry edge. The covariance of the composed delta is propagated edge by edge
-    (:func:`robotd.base.geometry.compose_jacobians`), each edge independent.
+    (:func:`robotd.base.geometry.compose_with_covariance`), each edge independent.
     """
     steps = []
     k = int(to_id)
@@ -210,9 +210,7 @@ def chain_relative(edges_into: Mapping[int, tuple[int, np.ndarray, np.ndarray]],
     rel = np.zeros(3)
     cov = np.zeros((3, 3))
     for delta, info in reversed(steps):
-        j_a, j_b = compose_jacobians(rel, delta)
-        cov = j_a @ cov @ j_a.T + j_b @ np.linalg.inv(info) @ j_b.T
-        rel = compose(rel, delta)
+        rel, cov = compose_with_covariance(rel, cov, delta, np.linalg.inv(info))
     return rel, 0.5 * (cov + cov.T)
 
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robotd.base.geometry import between, between_error_covariance, compose, compose_jacobians, rot2
+from robotd.base.geometry import between, between_error_covariance, compose_with_covariance, rot2
 from robotd.base.messages import PoseStamped, WheelTicks, YawRate
 from robotd.odometry.ekf import (
     H_GYRO,
@@ -714,8 +714,6 @@ def _start_frame(delta: np.ndarray, cov: np.ndarray) -> np.ndarray:
 
 def _compose_with_covariance(a: np.ndarray, cov_a: np.ndarray, b: np.ndarray,
                              cov_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``a (+) b`` ``(3,)`` and its covariance ``(3, 3)`` to first order (``a`` and ``b``
-    independent; ``cov_b`` in the frame of ``a``)."""
-    ja, jb = compose_jacobians(a, b)
-    cov = ja @ cov_a @ ja.T + jb @ cov_b @ jb.T
-    return compose(a, b), 0.5 * (cov + cov.T)
+    """:func:`robotd.base.geometry.compose_with_covariance`, the covariance kept symmetric."""
+    pose, cov = compose_with_covariance(a, cov_a, b, cov_b)
+    return pose, 0.5 * (cov + cov.T)

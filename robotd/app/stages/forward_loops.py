@@ -133,7 +133,7 @@ from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStor
 from robotd.forward import LOOP, ForwardDetector
 from robotd.forward.features import CompactFeatures
 from robotd.forward.planar import INLIER_NOISE_FACTOR, planar_motion, planarity_bound
-from robotd.forward.planefit import PlanarFit, fit_planar, planar_inliers, ridge_span
+from robotd.forward.planefit import SCAN_STEP_RAD, PlanarFit, fit_planar, planar_inliers, ridge_span
 from robotd.forward.verify import VerifyParams, floor_range, match_features
 
 log = logging.getLogger(__name__)
@@ -895,19 +895,18 @@ class ForwardLoopStage(Publisher):
         p_old, p_new = match_features(det.features_of(image_id), det.features_of(len(det) - 1), det.params.verify.ratio)
         self._add_cpu("match", t0)
         t0 = time.thread_time()
-        thr = det.params.verify.ransac_threshold_px
         verified, _, _ = planar_motion(v.rotation, v.translation_dir)
         level = float(getattr(v, "level_yaw_rad", math.nan)) if self.scan_centre != "verified" else math.nan
-        step = math.radians(0.2)  # fit_planar's heading step: both scans on one lattice
-        if not math.isfinite(level) or (self.scan_centre == "both" and round(level / step) == round(verified / step)):
-            fit = fit_planar(p_old, p_new, k, verified, threshold_px=thr)
-        elif self.scan_centre == "level":
-            fit = fit_planar(p_old, p_new, k, level, threshold_px=thr)
-        else:  # "both": the better-supported scan, the verified one's on a tie
-            fit = fit_planar(p_old, p_new, k, verified, threshold_px=thr)
-            other = fit_planar(p_old, p_new, k, level, threshold_px=thr)
-            if other is not None and (fit is None or other.n_inliers > fit.n_inliers):
-                fit = other
+        if not math.isfinite(level) or (self.scan_centre == "both" and
+                                        round(level / SCAN_STEP_RAD) == round(verified / SCAN_STEP_RAD)):
+            centres = [verified]  # one scan: the two would scan the same lattice points
+        else:
+            centres = [level] if self.scan_centre == "level" else [verified, level]
+        fit = None  # the better-supported scan, the first's on a tie
+        for centre in centres:
+            f = fit_planar(p_old, p_new, k, centre, threshold_px=det.params.verify.ransac_threshold_px)
+            if f is not None and (fit is None or f.n_inliers > fit.n_inliers):
+                fit = f
         self._add_cpu("scan", t0)
         return None if fit is None else (fit, p_old, p_new)
 
