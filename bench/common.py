@@ -44,21 +44,45 @@ def git_dirty(repo_dir: Path = REPO_ROOT) -> bool | None:
     return bool(done.stdout.strip())
 
 
+def cpu_model() -> str | None:
+    """The CPU's model name from ``/proc/cpuinfo`` (Linux), else None.
+
+    Two machines of one kind can differ here (an instruction set, a clock), which moves
+    absolute times as much as the load does; the ratios against a baseline do not move.
+    """
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key.strip() in ("model name", "Model") and value.strip():
+                    return value.strip()
+    except OSError:
+        return None
+    return None
+
+
 def machine_info() -> dict[str, Any]:
-    """Platform, CPU count, Python and numpy versions, git commit, and the UTC date."""
+    """Platform, CPU model and count, Python, numpy and OpenCV versions, git commit, UTC date."""
     try:
         import numpy
         numpy_version: str | None = numpy.__version__
     except ImportError:
         numpy_version = None
+    try:
+        import cv2
+        opencv_version: str | None = cv2.__version__
+    except ImportError:
+        opencv_version = None
     return {
         "platform": platform.platform(),
         "machine": platform.machine(),
         "processor": platform.processor() or None,
+        "cpu_model": cpu_model(),
         "cpu_count": os.cpu_count(),
         "python": sys.version.split()[0],
         "python_implementation": platform.python_implementation(),
         "numpy": numpy_version,
+        "opencv": opencv_version,
         "git_commit": git_commit(),
         "git_dirty": git_dirty(),
         "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),

@@ -1,4 +1,4 @@
-"""``bench/common.py``: the commit a benchmark's JSON records."""
+"""``bench/common.py``: the commit and the machine a benchmark's JSON records."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.common import git_commit
+from bench.common import git_commit, machine_info
 
 
 def test_an_exported_tree_records_the_commit_it_is_told(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -27,3 +27,15 @@ def test_a_work_tree_records_its_own_head_not_the_variable(tmp_path: Path, monke
     head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=tmp_path, check=True, capture_output=True,
                           text=True, env=env).stdout.strip()
     assert git_commit(tmp_path) == head
+
+
+def test_the_machine_record_names_the_cpu_model_the_kernel_reports() -> None:
+    try:
+        lines = Path("/proc/cpuinfo").read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        pytest.skip("no /proc/cpuinfo")
+    names = [ln.partition(":")[2].strip() for ln in lines
+             if ln.partition(":")[0].strip() in ("model name", "Model") and ln.partition(":")[2].strip()]
+    if not names:
+        pytest.skip("/proc/cpuinfo names no model")
+    assert machine_info()["cpu_model"] == names[0]
