@@ -1132,6 +1132,119 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
     return out
 
 
+_LOAD_CHILD = r"""
+import ctypes, json, sys, time
+import numpy as np
+from robotd.floor.descriptor import decode
+from robotd.floor.index import FloorIndex
+from robotd.io.store import MapStore
+
+def rss():
+    with open("/proc/self/status", encoding="ascii") as f:
+        return next(int(l.split()[1]) / 1024 for l in f if l.startswith("VmRSS:"))
+
+path, mode, queries, min_score, exclude = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), int(sys.argv[5])
+with MapStore.open(path, create=False, read_only=True) as store:
+    ids = [r.id for r in store.keyframes()]
+    qblobs = [store.keyframe_descriptor(i)[0] for i in ids[-queries:]]
+    rss0 = rss()
+    c0, w0 = time.process_time(), time.perf_counter()
+    index = FloorIndex.from_store(store, mode)
+    c1, w1 = time.process_time(), time.perf_counter()
+    rss1 = rss()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except OSError:
+        pass
+    rss1t = rss()
+    nbytes, dbytes = index.nbytes, index.descriptors_nbytes
+    got, ms = [], []
+    for i, b in zip(ids[-queries:], qblobs):
+        q = decode(b)
+        t0 = time.thread_time()
+        cands = index.query(q, k=5, min_score=min_score, exclude_after_id=i - exclude)
+        ms.append((time.thread_time() - t0) * 1e3)
+        got.append([(c.keyframe_id, c.global_score, c.score) for c in cands])
+    print(json.dumps({"load_cpu_s": c1 - c0, "load_wall_s": w1 - w0, "rss_before_mb": rss0, "rss_after_mb": rss1,
+                      "rss_after_trim_mb": rss1t, "index_mb": nbytes / 1e6, "descriptors_mb": dbytes / 1e6,
+                      "rss_after_queries_mb": rss(), "query_ms_median": float(np.median(ms)), "loads": index.loads,
+                      "candidates": got}))
+"""
+
+
+def map_load(map_path: Path, sizes: list[int], trees: dict[str, Path], rounds: int, queries: int,
+             exclude: int = 200) -> dict[str, Any]:
+    """``FloorIndex.from_store``'s load of a map at each size: CPU and wall time, the
+    process's resident memory before and after it (and after ``malloc_trim``), the index's
+    bytes, then ``queries`` queries of the map's last keyframes (the loop threshold, the
+    ``exclude`` keyframes before each left out) to check that every code tree returns the
+    same candidates. Each measurement in a fresh process, the trees (``label -> checkout``)
+    alternating round by round, on maps of ``map_path``'s descriptors repeated under new ids."""
+    from robotd.app.demo import shipped_calibration
+    from robotd.io.calibfile import read_calibration
+    from robotd.io.store import MapStore
+
+    with MapStore.open(map_path, create=False, read_only=True) as store:
+        recs = [(r.descriptor, int(r.descriptor_mode)) for r in store.keyframes() if r.descriptor is not None]
+    mode = recs[0][1]
+    calib = read_calibration(shipped_calibration())
+    min_score = (calib.loop.for_mode(mode) if calib.loop is not None else None) or 0.0
+    out: dict[str, Any] = {"map": str(map_path), "map_keyframes": len(recs), "mode": mode, "rounds": rounds,
+                           "queries": queries, "trees": {k: str(v) for k, v in trees.items()}, "sizes": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in sorted(sizes):
+            path = Path(tmp) / f"map-{n}.sqlite"
+            with MapStore.open(path, synchronous="NORMAL") as store:
+                run = store.begin_run("", started_ns=0)
+                for i in range(n):
+                    blob, m = recs[i % len(recs)]
+                    store.add_keyframe(run, i, (0.0, 0.0, 0.0), np.eye(3), None, blob, m)
+            runs: dict[str, list[dict[str, Any]]] = {k: [] for k in trees}
+            for r in range(rounds):
+                for label, tree in (list(trees.items()) if r % 2 == 0 else list(trees.items())[::-1]):
+                    res = subprocess.run([sys.executable, "-c", _LOAD_CHILD, str(path), str(mode), str(queries),
+                                          repr(min_score), str(exclude)], check=True, capture_output=True,
+                                         text=True, env={**os.environ, "PYTHONPATH": str(tree)})
+                    runs[label].append(json.loads(res.stdout.strip().splitlines()[-1]))
+                    x = runs[label][-1]
+                    print(f"load: {n} keyframes, {label}: {x['load_cpu_s']:.2f} s CPU, RSS {x['rss_before_mb']:.0f}"
+                          f" -> {x['rss_after_mb']:.0f} MB ({x['rss_after_trim_mb']:.0f} trimmed), index "
+                          f"{x['index_mb']:.1f} MB", flush=True)
+            first = next(iter(runs.values()))[0]["candidates"]
+            same = all(x["candidates"] == first for v in runs.values() for x in v)
+            row: dict[str, Any] = {"keyframes": n, "same_candidates": same, "trees": {}}
+            for label, v in runs.items():
+                row["trees"][label] = {k: [x[k] for x in v] for k in v[0] if k != "candidates"}
+            out["sizes"].append(row)
+    return out
+
+
+def _load_section(p: dict[str, Any]) -> list[str]:
+    """A ``--load`` payload's section of the memory page."""
+    r, m = p["load"], p["machine"]
+    labels = list(r["trees"])
+    lines = _section_head(p.get("label") or "The map's load (`FloorIndex.from_store`)", m) + [
+        f"`--load`: the {r['map_keyframes']} keyframes of `{r['map']}` (mode {r['mode']}) repeated to each "
+        f"size in a map; `FloorIndex.from_store` (the daemon's index, descriptors read back) run in a fresh "
+        f"process, {r['rounds']} rounds alternating " + " and ".join(f"{k} (`{v}`)" for k, v in r["trees"].items())
+        + f"; medians over the rounds. Resident memory of the process before the load and after it; then "
+        f"{r['queries']} queries of the map's last keyframes with the loop threshold, whose candidates and "
+        "scores are compared across every run.", "",
+        "| keyframes | code | load CPU s | load wall s | RSS before MB | RSS after MB | growth MB | after malloc_trim MB "
+        "| index MB | of it descriptors MB | query ms median | same candidates |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+    med = statistics.median
+    for row in r["sizes"]:
+        for label in labels:
+            t = row["trees"][label]
+            growth = [a - b for a, b in zip(t["rss_after_mb"], t["rss_before_mb"])]
+            lines.append(f"| {row['keyframes']} | {label} | {med(t['load_cpu_s']):.3f} | {med(t['load_wall_s']):.3f} | "
+                         f"{med(t['rss_before_mb']):.1f} | {med(t['rss_after_mb']):.1f} | {med(growth):.1f} | "
+                         f"{med(t['rss_after_trim_mb']):.1f} | {med(t['index_mb']):.1f} | {med(t['descriptors_mb']):.1f} | "
+                         f"{med(t['query_ms_median']):.2f} | {'yes' if row['same_candidates'] else 'no'} |")
+    return lines
+
+
 def memory_markdown(*payloads: dict[str, Any]) -> str:
     """``docs/benchmarks/daemon-memory.md`` from ``--memory`` JSON payloads (a section each)."""
     lines = ["# The whole daemon's memory as its map grows (`bench/bench_daemon.py --memory N`)", "",
@@ -1143,6 +1256,7 @@ def memory_markdown(*payloads: dict[str, Any]) -> str:
              "ground truth."]
     for p in payloads:
         lines += [""] + (_residency_section(p) if "residency" in p else
+                         _load_section(p) if "load" in p else
                          _forward_section(p) if "forward_memory" in p else
                          _scale_section(p) if "scale" in p and "memory" not in p else _memory_section(p))
     return "\n".join(lines) + "\n"
@@ -1505,6 +1619,12 @@ def main(argv: list[str] | None = None) -> int:
                          "(sizes from --scale; writes NAME-residency.json)")
     ap.add_argument("--resident", default="256,1024", help="with --residency: decoded descriptors kept, "
                                                           "comma-separated (default 256,1024)")
+    ap.add_argument("--load", type=Path, default=None, metavar="MAP",
+                    help="only the map's load (FloorIndex.from_store) at the --scale sizes, MAP's descriptors "
+                         "repeated, each in a fresh process (writes NAME-load.json)")
+    ap.add_argument("--before", type=Path, default=None, metavar="DIR",
+                    help="with --load: a checkout of the code before, alternated with this one")
+    ap.add_argument("--rounds", type=int, default=3, help="with --load: rounds per tree (default 3)")
     ap.add_argument("--forward-memory", type=int, default=0, metavar="N",
                     help="only the whole daemon's memory as its forward detector takes N images of --forward-dir "
                          "(writes NAME-forward-memory.json)")
@@ -1530,6 +1650,13 @@ def main(argv: list[str] | None = None) -> int:
 
         fpayload["forward_memory"] = forward_memory_run(args, args.forward_memory, args.forward_dir, fpartial)
         print(f"wrote {write_json(args.out / f'{args.name}-forward-memory.json', fpayload)}")
+        return 0
+    if args.load is not None:
+        trees = {"this code": REPO_ROOT} if args.before is None else {"before": args.before, "this code": REPO_ROOT}
+        ld = map_load(args.load, [int(v) for v in args.scale.split(",") if v.strip()], trees, args.rounds,
+                      args.queries)
+        out = write_json(args.out / f"{args.name}-load.json", {"machine": machine_info(), "load": ld})
+        print(f"wrote {out}")
         return 0
     if args.residency is not None:
         sizes = [int(v) for v in args.scale.split(",") if v.strip()]
