@@ -45,7 +45,13 @@ one core. This benchmark:
   its map grows to N keyframes (:func:`memory_run`; ``--localise-mapped`` as the service
   runs it), sampled every ``--memory-every`` keyframes into ``NAME-memory.json`` (and a
   partial JSON while it runs); ``--memory-page JSON...`` writes
-  ``docs/benchmarks/daemon-memory.md`` from such files.
+  ``docs/benchmarks/daemon-memory.md`` from such files;
+* ``--residency MAP``: the floor query on a daemon's map (e.g. three laps kept with
+  ``--memory 1500 --keep-map FILE``) repeated to the ``--scale`` sizes, its descriptors in
+  RAM, read back, and as ``FloorIndex.from_store`` holds them (:func:`query_residency`);
+* ``--load MAP [--before DIR]``: ``FloorIndex.from_store``'s load time and the process's
+  resident memory around it, each load in a fresh process, alternating with the checkout
+  of the code before in ``DIR`` (:func:`map_load`).
 
 Run from the repo root: ``./dev bench daemon [--out DIR]`` (default ``bench/results``).
 Writes ``DIR/daemon.json``; ``--doc FILE`` also writes the markdown page generated from
@@ -60,6 +66,7 @@ from __future__ import annotations
 import argparse
 import collections
 import gc
+import hashlib
 import json
 import math
 import os
@@ -1061,6 +1068,7 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
     the map are the queries, in order, each leaving out every copy of the keyframes within
     ``exclude_recent_s`` of it, with the demo's loop threshold as ``min_score``. The
     variants are timed query by query in turn (thread CPU), the same queries for each."""
+    import robotd.floor.descriptor as fi
     from robotd.app.demo import shipped_calibration
     from robotd.floor.descriptor import decode
     from robotd.floor.index import FloorIndex, IndexParams
@@ -1085,10 +1093,20 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
             else:  # the code before it (a baseline run from an older checkout)
                 blob = store.keyframe(int(src_ids[i % n0])).descriptor
             assert blob is not None
-            return decode(blob)
+            return getattr(fi, "decode_local", decode)(blob)  # in two steps where the code has it
 
         qrows = list(range(n0 - min(queries, n0), n0))
+        tmp = tempfile.TemporaryDirectory()
+        big = Path(tmp.name) / "repeated.sqlite"
+        kf_ids: list[int] = []
         for n in sorted(sizes):
+            with MapStore.open(big, synchronous="NORMAL") as bstore:  # the map repeated, as the daemon loads it
+                run = bstore.begin_run("", started_ns=0)
+                for i in range(len(kf_ids), n):
+                    kf_ids.append(bstore.add_keyframe(run, i, (0.0, 0.0, 0.0), np.eye(3), None,
+                                                      recs[i % n0].descriptor, mode))
+            kf_of = np.asarray(kf_ids, np.int64)
+            mstore = MapStore.open(big, create=False, read_only=True)
             # each setting with the whole shortlist scored (IndexParams.enough off: the code
             # before the query stopped at k candidates reaching min_score), with the resident
             # descriptors scored first (IndexParams.resident_first) and as the default
@@ -1105,23 +1123,30 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
             for index in variants.values():
                 for i in range(n):
                     index.add(i, decoded[i % n0])
+            for r in residents:  # as the daemon holds it: FloorIndex.from_store on the map
+                variants[f"from the map, {r} resident"] = FloorIndex.from_store(
+                    mstore, mode, IndexParams(shortlist=shortlist, resident=r))
             ids = np.arange(n)
             ms: dict[str, list[float]] = {k: [] for k in variants}
             loads0 = {k: getattr(v, "loads", 0) for k, v in variants.items()}
             loops = {k: 0 for k in variants}  # candidates at or above min_score: the loops declared
+            digest = {k: hashlib.sha256() for k in variants}  # every query's candidates and scores
             for q in qrows:
                 excluded = ids[np.abs(stamps[ids % n0] - stamps[q]) < int(exclude_recent_s * 1e9)]
                 for name, index in variants.items():
+                    ex = kf_of[excluded] if name.startswith("from the map") else excluded
                     t0 = time.thread_time()
-                    got = index.query(decoded[q], k=5, min_score=min_score, exclude_ids=excluded)
+                    got = index.query(decoded[q], k=5, min_score=min_score, exclude_ids=ex)
                     ms[name].append((time.thread_time() - t0) * 1e3)
                     loops[name] += sum(c.score >= min_score for c in got)
+                    back = (lambda kf: int(np.searchsorted(kf_of, kf))) if name.startswith("from the map") else int
+                    digest[name].update(repr([(back(c.keyframe_id), c.global_score, c.score) for c in got]).encode())
             row: dict[str, Any] = {"keyframes": n, "variants": {}}
             for name, index in variants.items():
                 row["variants"][name] = {"query_ms": {"median": statistics.median(ms[name]),
                                                       "p99": float(np.quantile(ms[name], 0.99))},
                                          "reads_per_query": (index.loads - loads0[name]) / len(qrows),
-                                         "loops": loops[name],
+                                         "loops": loops[name], "candidates_sha256": digest[name].hexdigest(),
                                          "index_mb": index.nbytes / 1e6,
                                          "descriptors_mb": index.descriptors_nbytes / 1e6}
                 print(f"residency: {n} keyframes, {name}: query {statistics.median(ms[name]):.2f} ms median, "
@@ -1129,6 +1154,8 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
                       f"index {index.nbytes / 1e6:.1f} MB", flush=True)
             out["sizes"].append(row)
             del variants
+            mstore.close()
+        tmp.cleanup()
     return out
 
 
@@ -1203,7 +1230,7 @@ def map_load(map_path: Path, sizes: list[int], trees: dict[str, Path], rounds: i
             for r in range(rounds):
                 for label, tree in (list(trees.items()) if r % 2 == 0 else list(trees.items())[::-1]):
                     res = subprocess.run([sys.executable, "-c", _LOAD_CHILD, str(path), str(mode), str(queries),
-                                          repr(min_score), str(exclude)], check=True, capture_output=True,
+                                          repr(min_score), str(exclude)], check=True, capture_output=True, cwd=tree,
                                          text=True, env={**os.environ, "PYTHONPATH": str(tree)})
                     runs[label].append(json.loads(res.stdout.strip().splitlines()[-1]))
                     x = runs[label][-1]
