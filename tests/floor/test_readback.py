@@ -222,3 +222,30 @@ def test_a_map_loaded_in_two_steps_answers_as_one_decoded_whole(run_images, tmp_
         assert index.load_failures == 0
     assert checked > 100 and reasons >= len(ids) // 2  # every second-pass keyframe finds loops
     assert {"", "BELOW_MIN_SCORE"} <= seen
+
+
+def test_matchers_in_two_threads_score_as_one_thread(run_images):
+    """The local score's scratch buffers are per thread: two threads scoring different
+    pairs at once get exactly what one thread gets scoring them in turn."""
+    import threading
+
+    descs = [decode(extract(im, 4)) for im in run_images[:20]]
+    queries = [decode(extract(im, 4)) for im in run_images[20:24]]
+    jobs = [(q, d) for q in queries for d in descs]
+    want = [Matcher(q).score(d) for q, d in jobs]
+    got: list = [None] * len(jobs)
+
+    def work(start: int) -> None:
+        for _ in range(3):
+            for i in range(start, len(jobs), 2):
+                got[i] = Matcher(jobs[i][0]).score(jobs[i][1])
+
+    threads = [threading.Thread(target=work, args=(s,)) for s in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sum(w.reason == "" for w in want) >= 4  # pairs checked geometrically among them
+    for g, w in zip(got, want):
+        assert (g.score, g.reason, g.n_matches, g.n_inliers) == (w.score, w.reason, w.n_matches, w.n_inliers)
+        assert np.array_equal(g.inliers_a, w.inliers_a) and np.array_equal(g.xy_b, w.xy_b)
