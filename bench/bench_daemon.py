@@ -45,7 +45,13 @@ one core. This benchmark:
   its map grows to N keyframes (:func:`memory_run`; ``--localise-mapped`` as the service
   runs it), sampled every ``--memory-every`` keyframes into ``NAME-memory.json`` (and a
   partial JSON while it runs); ``--memory-page JSON...`` writes
-  ``docs/benchmarks/daemon-memory.md`` from such files.
+  ``docs/benchmarks/daemon-memory.md`` from such files;
+* ``--residency MAP``: the floor query on a daemon's map (e.g. three laps kept with
+  ``--memory 1500 --keep-map FILE``) repeated to the ``--scale`` sizes, its descriptors in
+  RAM, read back, and as ``FloorIndex.from_store`` holds them (:func:`query_residency`);
+* ``--load MAP [--before DIR]``: ``FloorIndex.from_store``'s load time and the process's
+  resident memory around it, each load in a fresh process, alternating with the checkout
+  of the code before in ``DIR`` (:func:`map_load`).
 
 Run from the repo root: ``./dev bench daemon [--out DIR]`` (default ``bench/results``).
 Writes ``DIR/daemon.json``; ``--doc FILE`` also writes the markdown page generated from
@@ -60,6 +66,7 @@ from __future__ import annotations
 import argparse
 import collections
 import gc
+import hashlib
 import json
 import math
 import os
@@ -1061,6 +1068,7 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
     the map are the queries, in order, each leaving out every copy of the keyframes within
     ``exclude_recent_s`` of it, with the demo's loop threshold as ``min_score``. The
     variants are timed query by query in turn (thread CPU), the same queries for each."""
+    import robotd.floor.descriptor as fi
     from robotd.app.demo import shipped_calibration
     from robotd.floor.descriptor import decode
     from robotd.floor.index import FloorIndex, IndexParams
@@ -1085,10 +1093,20 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
             else:  # the code before it (a baseline run from an older checkout)
                 blob = store.keyframe(int(src_ids[i % n0])).descriptor
             assert blob is not None
-            return decode(blob)
+            return getattr(fi, "decode_local", decode)(blob)  # in two steps where the code has it
 
         qrows = list(range(n0 - min(queries, n0), n0))
+        tmp = tempfile.TemporaryDirectory()
+        big = Path(tmp.name) / "repeated.sqlite"
+        kf_ids: list[int] = []
         for n in sorted(sizes):
+            with MapStore.open(big, synchronous="NORMAL") as bstore:  # the map repeated, as the daemon loads it
+                run = bstore.begin_run("", started_ns=0)
+                for i in range(len(kf_ids), n):
+                    kf_ids.append(bstore.add_keyframe(run, i, (0.0, 0.0, 0.0), np.eye(3), None,
+                                                      recs[i % n0].descriptor, mode))
+            kf_of = np.asarray(kf_ids, np.int64)
+            mstore = MapStore.open(big, create=False, read_only=True)
             # each setting with the whole shortlist scored (IndexParams.enough off: the code
             # before the query stopped at k candidates reaching min_score), with the resident
             # descriptors scored first (IndexParams.resident_first) and as the default
@@ -1105,23 +1123,30 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
             for index in variants.values():
                 for i in range(n):
                     index.add(i, decoded[i % n0])
+            for r in residents:  # as the daemon holds it: FloorIndex.from_store on the map
+                variants[f"from the map, {r} resident"] = FloorIndex.from_store(
+                    mstore, mode, IndexParams(shortlist=shortlist, resident=r))
             ids = np.arange(n)
             ms: dict[str, list[float]] = {k: [] for k in variants}
             loads0 = {k: getattr(v, "loads", 0) for k, v in variants.items()}
             loops = {k: 0 for k in variants}  # candidates at or above min_score: the loops declared
+            digest = {k: hashlib.sha256() for k in variants}  # every query's candidates and scores
             for q in qrows:
                 excluded = ids[np.abs(stamps[ids % n0] - stamps[q]) < int(exclude_recent_s * 1e9)]
                 for name, index in variants.items():
+                    ex = kf_of[excluded] if name.startswith("from the map") else excluded
                     t0 = time.thread_time()
-                    got = index.query(decoded[q], k=5, min_score=min_score, exclude_ids=excluded)
+                    got = index.query(decoded[q], k=5, min_score=min_score, exclude_ids=ex)
                     ms[name].append((time.thread_time() - t0) * 1e3)
                     loops[name] += sum(c.score >= min_score for c in got)
+                    back = (lambda kf: int(np.searchsorted(kf_of, kf))) if name.startswith("from the map") else int
+                    digest[name].update(repr([(back(c.keyframe_id), c.global_score, c.score) for c in got]).encode())
             row: dict[str, Any] = {"keyframes": n, "variants": {}}
             for name, index in variants.items():
                 row["variants"][name] = {"query_ms": {"median": statistics.median(ms[name]),
                                                       "p99": float(np.quantile(ms[name], 0.99))},
                                          "reads_per_query": (index.loads - loads0[name]) / len(qrows),
-                                         "loops": loops[name],
+                                         "loops": loops[name], "candidates_sha256": digest[name].hexdigest(),
                                          "index_mb": index.nbytes / 1e6,
                                          "descriptors_mb": index.descriptors_nbytes / 1e6}
                 print(f"residency: {n} keyframes, {name}: query {statistics.median(ms[name]):.2f} ms median, "
@@ -1129,7 +1154,122 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
                       f"index {index.nbytes / 1e6:.1f} MB", flush=True)
             out["sizes"].append(row)
             del variants
+            mstore.close()
+        tmp.cleanup()
     return out
+
+
+_LOAD_CHILD = r"""
+import ctypes, json, sys, time
+import numpy as np
+from robotd.floor.descriptor import decode
+from robotd.floor.index import FloorIndex
+from robotd.io.store import MapStore
+
+def rss():
+    with open("/proc/self/status", encoding="ascii") as f:
+        return next(int(l.split()[1]) / 1024 for l in f if l.startswith("VmRSS:"))
+
+path, mode, queries, min_score, exclude = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), int(sys.argv[5])
+with MapStore.open(path, create=False, read_only=True) as store:
+    ids = [r.id for r in store.keyframes()]
+    qblobs = [store.keyframe_descriptor(i)[0] for i in ids[-queries:]]
+    rss0 = rss()
+    c0, w0 = time.process_time(), time.perf_counter()
+    index = FloorIndex.from_store(store, mode)
+    c1, w1 = time.process_time(), time.perf_counter()
+    rss1 = rss()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except OSError:
+        pass
+    rss1t = rss()
+    nbytes, dbytes = index.nbytes, index.descriptors_nbytes
+    got, ms = [], []
+    for i, b in zip(ids[-queries:], qblobs):
+        q = decode(b)
+        t0 = time.thread_time()
+        cands = index.query(q, k=5, min_score=min_score, exclude_after_id=i - exclude)
+        ms.append((time.thread_time() - t0) * 1e3)
+        got.append([(c.keyframe_id, c.global_score, c.score) for c in cands])
+    print(json.dumps({"load_cpu_s": c1 - c0, "load_wall_s": w1 - w0, "rss_before_mb": rss0, "rss_after_mb": rss1,
+                      "rss_after_trim_mb": rss1t, "index_mb": nbytes / 1e6, "descriptors_mb": dbytes / 1e6,
+                      "rss_after_queries_mb": rss(), "query_ms_median": float(np.median(ms)), "loads": index.loads,
+                      "candidates": got}))
+"""
+
+
+def map_load(map_path: Path, sizes: list[int], trees: dict[str, Path], rounds: int, queries: int,
+             exclude: int = 200) -> dict[str, Any]:
+    """``FloorIndex.from_store``'s load of a map at each size: CPU and wall time, the
+    process's resident memory before and after it (and after ``malloc_trim``), the index's
+    bytes, then ``queries`` queries of the map's last keyframes (the loop threshold, the
+    ``exclude`` keyframes before each left out) to check that every code tree returns the
+    same candidates. Each measurement in a fresh process, the trees (``label -> checkout``)
+    alternating round by round, on maps of ``map_path``'s descriptors repeated under new ids."""
+    from robotd.app.demo import shipped_calibration
+    from robotd.io.calibfile import read_calibration
+    from robotd.io.store import MapStore
+
+    with MapStore.open(map_path, create=False, read_only=True) as store:
+        recs = [(r.descriptor, int(r.descriptor_mode)) for r in store.keyframes() if r.descriptor is not None]
+    mode = recs[0][1]
+    calib = read_calibration(shipped_calibration())
+    min_score = (calib.loop.for_mode(mode) if calib.loop is not None else None) or 0.0
+    out: dict[str, Any] = {"map": str(map_path), "map_keyframes": len(recs), "mode": mode, "rounds": rounds,
+                           "queries": queries, "trees": {k: str(v) for k, v in trees.items()}, "sizes": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in sorted(sizes):
+            path = Path(tmp) / f"map-{n}.sqlite"
+            with MapStore.open(path, synchronous="NORMAL") as store:
+                run = store.begin_run("", started_ns=0)
+                for i in range(n):
+                    blob, m = recs[i % len(recs)]
+                    store.add_keyframe(run, i, (0.0, 0.0, 0.0), np.eye(3), None, blob, m)
+            runs: dict[str, list[dict[str, Any]]] = {k: [] for k in trees}
+            for r in range(rounds):
+                for label, tree in (list(trees.items()) if r % 2 == 0 else list(trees.items())[::-1]):
+                    res = subprocess.run([sys.executable, "-c", _LOAD_CHILD, str(path), str(mode), str(queries),
+                                          repr(min_score), str(exclude)], check=True, capture_output=True, cwd=tree,
+                                         text=True, env={**os.environ, "PYTHONPATH": str(tree)})
+                    runs[label].append(json.loads(res.stdout.strip().splitlines()[-1]))
+                    x = runs[label][-1]
+                    print(f"load: {n} keyframes, {label}: {x['load_cpu_s']:.2f} s CPU, RSS {x['rss_before_mb']:.0f}"
+                          f" -> {x['rss_after_mb']:.0f} MB ({x['rss_after_trim_mb']:.0f} trimmed), index "
+                          f"{x['index_mb']:.1f} MB", flush=True)
+            first = next(iter(runs.values()))[0]["candidates"]
+            same = all(x["candidates"] == first for v in runs.values() for x in v)
+            row: dict[str, Any] = {"keyframes": n, "same_candidates": same, "trees": {}}
+            for label, v in runs.items():
+                row["trees"][label] = {k: [x[k] for x in v] for k in v[0] if k != "candidates"}
+            out["sizes"].append(row)
+    return out
+
+
+def _load_section(p: dict[str, Any]) -> list[str]:
+    """A ``--load`` payload's section of the memory page."""
+    r, m = p["load"], p["machine"]
+    labels = list(r["trees"])
+    lines = _section_head(p.get("label") or "The map's load (`FloorIndex.from_store`)", m) + [
+        f"`--load`: the {r['map_keyframes']} keyframes of `{r['map']}` (mode {r['mode']}) repeated to each "
+        f"size in a map; `FloorIndex.from_store` (the daemon's index, descriptors read back) run in a fresh "
+        f"process, {r['rounds']} rounds alternating " + " and ".join(f"{k} (`{v}`)" for k, v in r["trees"].items())
+        + f"; medians over the rounds. Resident memory of the process before the load and after it; then "
+        f"{r['queries']} queries of the map's last keyframes with the loop threshold, whose candidates and "
+        "scores are compared across every run.", "",
+        "| keyframes | code | load CPU s | load wall s | RSS before MB | RSS after MB | growth MB | after malloc_trim MB "
+        "| index MB | of it descriptors MB | query ms median | same candidates |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+    med = statistics.median
+    for row in r["sizes"]:
+        for label in labels:
+            t = row["trees"][label]
+            growth = [a - b for a, b in zip(t["rss_after_mb"], t["rss_before_mb"])]
+            lines.append(f"| {row['keyframes']} | {label} | {med(t['load_cpu_s']):.3f} | {med(t['load_wall_s']):.3f} | "
+                         f"{med(t['rss_before_mb']):.1f} | {med(t['rss_after_mb']):.1f} | {med(growth):.1f} | "
+                         f"{med(t['rss_after_trim_mb']):.1f} | {med(t['index_mb']):.1f} | {med(t['descriptors_mb']):.1f} | "
+                         f"{med(t['query_ms_median']):.2f} | {'yes' if row['same_candidates'] else 'no'} |")
+    return lines
 
 
 def memory_markdown(*payloads: dict[str, Any]) -> str:
@@ -1143,6 +1283,7 @@ def memory_markdown(*payloads: dict[str, Any]) -> str:
              "ground truth."]
     for p in payloads:
         lines += [""] + (_residency_section(p) if "residency" in p else
+                         _load_section(p) if "load" in p else
                          _forward_section(p) if "forward_memory" in p else
                          _scale_section(p) if "scale" in p and "memory" not in p else _memory_section(p))
     return "\n".join(lines) + "\n"
@@ -1505,6 +1646,12 @@ def main(argv: list[str] | None = None) -> int:
                          "(sizes from --scale; writes NAME-residency.json)")
     ap.add_argument("--resident", default="256,1024", help="with --residency: decoded descriptors kept, "
                                                           "comma-separated (default 256,1024)")
+    ap.add_argument("--load", type=Path, default=None, metavar="MAP",
+                    help="only the map's load (FloorIndex.from_store) at the --scale sizes, MAP's descriptors "
+                         "repeated, each in a fresh process (writes NAME-load.json)")
+    ap.add_argument("--before", type=Path, default=None, metavar="DIR",
+                    help="with --load: a checkout of the code before, alternated with this one")
+    ap.add_argument("--rounds", type=int, default=3, help="with --load: rounds per tree (default 3)")
     ap.add_argument("--forward-memory", type=int, default=0, metavar="N",
                     help="only the whole daemon's memory as its forward detector takes N images of --forward-dir "
                          "(writes NAME-forward-memory.json)")
@@ -1530,6 +1677,13 @@ def main(argv: list[str] | None = None) -> int:
 
         fpayload["forward_memory"] = forward_memory_run(args, args.forward_memory, args.forward_dir, fpartial)
         print(f"wrote {write_json(args.out / f'{args.name}-forward-memory.json', fpayload)}")
+        return 0
+    if args.load is not None:
+        trees = {"this code": REPO_ROOT} if args.before is None else {"before": args.before, "this code": REPO_ROOT}
+        ld = map_load(args.load, [int(v) for v in args.scale.split(",") if v.strip()], trees, args.rounds,
+                      args.queries)
+        out = write_json(args.out / f"{args.name}-load.json", {"machine": machine_info(), "load": ld})
+        print(f"wrote {out}")
         return 0
     if args.residency is not None:
         sizes = [int(v) for v in args.scale.split(",") if v.strip()]

@@ -140,7 +140,7 @@ class LoadReport:
     other_mode: int
 
 
-def _global_bytes(descriptor: FloorDescriptor) -> np.ndarray:
+def _global_bytes(descriptor: FloorDescriptor | PartialDescriptor) -> np.ndarray:
     """The packed global descriptor as ``(B,) uint8`` (bool arrays are packed first)."""
     bits = np.asarray(descriptor.global_bits)
     if bits.dtype == np.bool_:
@@ -369,8 +369,9 @@ class FloorIndex:
         """Whether the local descriptors are read through a loader (see the class)."""
         return self._loader is not None
 
-    def add(self, keyframe_id: int, descriptor: FloorDescriptor) -> None:
-        """Index a keyframe's decoded descriptor.
+    def add(self, keyframe_id: int, descriptor: FloorDescriptor | PartialDescriptor) -> None:
+        """Index a keyframe's decoded descriptor (or one decoded in two steps, a
+        :class:`~robotd.floor.descriptor.PartialDescriptor`, kept as it is).
 
         Raises ValueError if ``keyframe_id`` is already indexed or the global descriptor's
         length differs from the first one added (another mode).
@@ -401,7 +402,7 @@ class FloorIndex:
         if self._loader is not None:
             self._slot[row] = _ON_DEMAND
             self._remember(keyframe_id, descriptor)
-        elif self._packed.fits(descriptor):
+        elif isinstance(descriptor, FloorDescriptor) and self._packed.fits(descriptor):
             self._slot[row] = self._packed.add(descriptor)
         else:
             self._slot[row] = -1 - len(self._objects)
@@ -470,9 +471,17 @@ class FloorIndex:
         queried, and every keyframe added later must be in the store by then. Otherwise
         every descriptor is kept in RAM.
 
+        With ``on_demand`` the load itself decodes each stored descriptor in the same two
+        steps (:func:`~robotd.floor.descriptor.decode_local`): the index needs only the
+        global bits of most of them, and the ``params.resident`` newest stay resident as
+        the query reads them back, their positions decoded the first time a pair passes
+        the local score's bound. The candidates and scores are those of the whole decode.
+
         A stored descriptor that does not decode (or whose global descriptor does not fit
         the index) is skipped, logged with its keyframe id and counted in
-        :attr:`load_report`; it never stops the load.
+        :attr:`load_report`; it never stops the load. With ``on_demand`` the positions'
+        code is not decoded at load: a position code forged with a valid checksum is found
+        by the query that reads it (left out, logged and counted as the class says).
         """
 
         def load(keyframe_id: int) -> PartialDescriptor:
@@ -489,8 +498,7 @@ class FloorIndex:
                 other += 1
                 continue
             try:
-                desc = decode(rec.descriptor)
-                index.add(rec.id, desc)
+                index.add(rec.id, decode_local(rec.descriptor) if on_demand else decode(rec.descriptor))
             except (DescriptorError, ValueError) as exc:
                 log.warning("floor index: keyframe %d skipped, its descriptor is unusable: %s", rec.id, exc)
                 corrupt.append(int(rec.id))

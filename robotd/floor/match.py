@@ -238,6 +238,22 @@ def _ransac_pairs(seed: int, m: int, iterations: int) -> tuple[np.ndarray, np.nd
 
 _RNGS = threading.local()
 
+_SCRATCH = threading.local()
+
+
+def _scratch(name: str, shape: tuple[int, int], dtype: type) -> np.ndarray:
+    """A C-contiguous ``shape`` array of ``dtype`` (contents undefined) over a buffer kept
+    per thread and name, grown as needed: the local score's large temporaries (a few
+    hundred kB in mode 4), valid until the thread's next call for the same name."""
+    bufs = getattr(_SCRATCH, "bufs", None)
+    if bufs is None:
+        bufs = _SCRATCH.bufs = {}
+    size = shape[0] * shape[1]
+    buf = bufs.get(name)
+    if buf is None or buf.size < size or buf.dtype != dtype:
+        buf = bufs[name] = np.empty(max(size, 1), dtype)
+    return buf[:size].reshape(shape)
+
 
 def local_score(a: FloorDescriptor, b: FloorDescriptor, params: MatchParams | None = None,
                 min_score: float = 0.0) -> MatchResult:
@@ -278,7 +294,10 @@ def _score(a: FloorDescriptor, b: FloorDescriptor | PartialDescriptor, p: MatchP
     # non-zero trits. |ta|^2 is the same along a row, so the search needs only the rest,
     # |tb|^2 - 2 ta.tb = [ta, 1] . [-2 tb, |tb|^2]: one matrix product (integers, exact in
     # float32), which is most of the time in mode 6.
-    dist = aug_a @ _augmented_b(b).T
+    aug_b = _augmented_b(b)
+    # Into a scratch buffer of this thread (the same product, BLAS's, written in place):
+    # a fresh array of this size is mapped and faulted in afresh on every pair.
+    dist = np.matmul(aug_a, aug_b.T, out=_scratch("dist", (len(aug_a), len(aug_b)), np.float32))
     nn = np.argmin(dist, axis=1)
     flat = dist.reshape(-1)  # the nearest's entries by flat index: cheaper than a 2-D gather
     at = np.arange(0, flat.size, dist.shape[1]) + nn
@@ -326,12 +345,17 @@ def _score(a: FloorDescriptor, b: FloorDescriptor | PartialDescriptor, p: MatchP
     tx = cb[:, 0] - (c * ca[:, 0] - s * ca[:, 1])
     ty = cb[:, 1] - (s * ca[:, 0] + c * ca[:, 1])
     # Residuals of every hypothesis at every match: rows of [R | t] times [x; y; 1].
+    # (The same products and operations as written out, in scratch buffers and in place.)
     xa1 = np.vstack([xa.T, np.ones(m)])
-    rx = np.stack([c, -s, tx], axis=1) @ xa1
+    h = len(c)
+    rx = np.matmul(np.stack([c, -s, tx], axis=1), xa1, out=_scratch("rx", (h, m), np.float64))
     rx -= xb[:, 0]
-    ry = np.stack([s, c, ty], axis=1) @ xa1
+    ry = np.matmul(np.stack([s, c, ty], axis=1), xa1, out=_scratch("ry", (h, m), np.float64))
     ry -= xb[:, 1]
-    inl = rx * rx + ry * ry <= p.inlier_px**2
+    np.multiply(rx, rx, out=rx)
+    np.multiply(ry, ry, out=ry)
+    rx += ry
+    inl = np.less_equal(rx, p.inlier_px**2, out=_scratch("inl", (h, m), np.bool_))
     best = int(np.argmax(inl @ (weight + 1e-6)))
     mask = inl[best]
     # Refine on all descriptor matches (not only those near the orientation peak).

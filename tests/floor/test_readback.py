@@ -165,3 +165,87 @@ def test_a_read_back_descriptor_with_a_bad_position_code_is_left_out_and_counted
     assert index.load_failures == 1 and any(str(target) in r.getMessage() for r in caplog.records)
     assert [(c.keyframe_id, c.score) for c in got] == [(c.keyframe_id, c.score) for c in want
                                                         if c.keyframe_id != target]
+
+
+@pytest.mark.parametrize("resident", [6, 64])
+def test_a_map_loaded_in_two_steps_answers_as_one_decoded_whole(run_images, tmp_path, resident):
+    """``FloorIndex.from_store`` decodes the stored descriptors in two steps at load (the
+    resident ones kept so, their positions decoded when first needed): on a map of the two
+    rendered passes, every query of the second pass, with the loop threshold and without,
+    returns what the index loaded by decoding every descriptor whole returns: the same
+    candidates, scores, reasons, counts, matched points and transforms."""
+    from robotd.app.demo import shipped_calibration
+    from robotd.io.calibfile import read_calibration
+    from robotd.io.store import MapStore
+
+    mode = 4
+    threshold = read_calibration(shipped_calibration()).loop.for_mode(mode)
+    blobs = [extract(im, mode) for im in run_images]
+    path = tmp_path / "map.db"
+    with MapStore.open(path, synchronous="NORMAL") as store:
+        run = store.begin_run("", started_ns=0)
+        ids = [store.add_keyframe(run, i, (0.1 * i, 0.0, 0.0), np.eye(3), None, b, mode) for i, b in enumerate(blobs)]
+    blob_of = dict(zip(ids, blobs))
+    params = IndexParams(shortlist=12, resident=resident)
+    # The load as it was: every stored descriptor decoded whole, the newest kept so.
+    whole = FloorIndex(params, loader=lambda kf: decode(blob_of[kf]))
+    for kf in ids:
+        whole.add(kf, decode(blob_of[kf]))
+    first = ids[len(ids) // 2 - 1]
+    with MapStore.open(path, create=False, read_only=True) as store:
+        index = FloorIndex.from_store(store, mode, params)
+        assert index.load_report.loaded == len(ids) and index.loads == 0
+        kept = [d for d, _ in index._recent.values()]
+        assert len(kept) == min(resident, len(ids))
+        assert all(isinstance(d, PartialDescriptor) and not d.positions_decoded for d in kept)
+        assert index.descriptors_nbytes < whole.descriptors_nbytes
+        checked = reasons = 0
+        seen: set[str] = set()
+        for kf in ids[len(ids) // 2:]:
+            q = decode(blob_of[kf])
+            for k, min_score in ((5, threshold), (12, 0.0)):
+                want = whole.query(q, k=k, exclude_after_id=first, min_score=min_score)
+                got = index.query(q, k=k, exclude_after_id=first, min_score=min_score)
+                assert [(c.keyframe_id, c.global_score, c.score, c.local.reason, c.local.n_matches,
+                         c.local.n_inliers) for c in got] == \
+                    [(c.keyframe_id, c.global_score, c.score, c.local.reason, c.local.n_matches,
+                      c.local.n_inliers) for c in want]
+                for a, b in zip(got, want):
+                    assert np.array_equal(a.local.xy_a, b.local.xy_a) and np.array_equal(a.local.xy_b, b.local.xy_b)
+                    assert np.array_equal(a.local.inliers_b, b.local.inliers_b)
+                    assert (a.local.transform is None) == (b.local.transform is None)
+                    if a.local.transform is not None:
+                        assert np.array_equal(a.local.transform, b.local.transform)
+                    seen.add(str(a.local.reason))
+                checked += len(got)
+                reasons += sum(c.score >= threshold for c in got)
+        assert index.load_failures == 0
+    assert checked > 100 and reasons >= len(ids) // 2  # every second-pass keyframe finds loops
+    assert {"", "BELOW_MIN_SCORE"} <= seen
+
+
+def test_matchers_in_two_threads_score_as_one_thread(run_images):
+    """The local score's scratch buffers are per thread: two threads scoring different
+    pairs at once get exactly what one thread gets scoring them in turn."""
+    import threading
+
+    descs = [decode(extract(im, 4)) for im in run_images[:20]]
+    queries = [decode(extract(im, 4)) for im in run_images[20:24]]
+    jobs = [(q, d) for q in queries for d in descs]
+    want = [Matcher(q).score(d) for q, d in jobs]
+    got: list = [None] * len(jobs)
+
+    def work(start: int) -> None:
+        for _ in range(3):
+            for i in range(start, len(jobs), 2):
+                got[i] = Matcher(jobs[i][0]).score(jobs[i][1])
+
+    threads = [threading.Thread(target=work, args=(s,)) for s in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sum(w.reason == "" for w in want) >= 4  # pairs checked geometrically among them
+    for g, w in zip(got, want):
+        assert (g.score, g.reason, g.n_matches, g.n_inliers) == (w.score, w.reason, w.n_matches, w.n_inliers)
+        assert np.array_equal(g.inliers_a, w.inliers_a) and np.array_equal(g.xy_b, w.xy_b)
