@@ -149,18 +149,22 @@ SCAN_STEP_RAD = math.radians(0.2)
 
 def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, yaw_guess_rad: float,
                *, threshold_px: float = 1.0, window_rad: float = math.radians(8.0),
-               step_rad: float = SCAN_STEP_RAD, fix_yaw: bool = False) -> PlanarFit | None:
+               step_rad: float = SCAN_STEP_RAD, fix_yaw: bool = False, sigmas: bool = True) -> PlanarFit | None:
     """The planar motion (module notes) of matched pixels ``p_old_px, p_new_px (N, 2)``
     (``camera_matrix (3, 3)`` shared), the heading change searched within ``window_rad``
     of ``yaw_guess_rad`` in steps of ``step_rad``; None with fewer than 5 matches. With
     ``fix_yaw`` the heading change is held at ``yaw_guess_rad`` (``window_rad`` unused) and
     only the translation direction is fitted: the motion on a heading-bearing ridge at a
     heading known from elsewhere (:func:`ridge_span`); its ``sigma_bearing_rad`` is then the
-    bearing's given the heading."""
+    bearing's given the heading. Without ``sigmas`` the sigmas are not computed (left
+    ``inf``; the motion and its inliers are the same): for a caller that reads the motion
+    alone."""
     if fix_yaw:
-        return _fit_planar(p_old_px, p_new_px, camera_matrix, [yaw_guess_rad], threshold_px, 0, step_rad, True)[0]
+        return _fit_planar(p_old_px, p_new_px, camera_matrix, [yaw_guess_rad], threshold_px, 0, step_rad, True,
+                           sigmas)[0]
     n_steps = int(round(window_rad / step_rad))
-    return _fit_planar(p_old_px, p_new_px, camera_matrix, [yaw_guess_rad], threshold_px, n_steps, step_rad)[0]
+    return _fit_planar(p_old_px, p_new_px, camera_matrix, [yaw_guess_rad], threshold_px, n_steps, step_rad,
+                       sigmas=sigmas)[0]
 
 
 def fit_planar_scans(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray,
@@ -175,7 +179,8 @@ def fit_planar_scans(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: 
 
 
 def _fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, guesses: list[float],
-                threshold_px: float, n_steps: int, step_rad: float, fix_yaw: bool = False) -> list[PlanarFit | None]:
+                threshold_px: float, n_steps: int, step_rad: float, fix_yaw: bool = False,
+                sigmas: bool = True) -> list[PlanarFit | None]:
     """:func:`fit_planar` (``fix_yaw``: one guess, ``n_steps`` 0) and :func:`fit_planar_scans`:
     one fit per guess, each scanning ``n_steps`` lattice headings either side of it."""
     p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
@@ -240,7 +245,7 @@ def _fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nd
         w_yaws, scan_n = yaws[r], w_n.reshape(len(r), -1).max(axis=1)
         if best_i not in refined:
             refined[best_i] = _refine(x_old, x_new, focal, float(cand_yaw[best_i]), float(cand_psi[best_i]),
-                                      threshold_px, fix_yaw, w_yaws, scan_n)
+                                      threshold_px, fix_yaw, w_yaws, scan_n, sigmas)
             fits.append(refined[best_i])
         else:
             fits.append(replace(refined[best_i], scan_yaw_rad=w_yaws, scan_inliers=scan_n))
@@ -248,11 +253,11 @@ def _fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nd
 
 
 def _refine(x_old: np.ndarray, x_new: np.ndarray, focal: float, yaw: float, psi: float, threshold_px: float,
-            fix_yaw: bool, yaws: np.ndarray, scan_n: np.ndarray) -> PlanarFit:
+            fix_yaw: bool, yaws: np.ndarray, scan_n: np.ndarray, sigmas: bool = True) -> PlanarFit:
     """The planar motion ``(yaw, psi)`` refined by Gauss-Newton on the Sampson distances of
     the normalised matches ``x_old, x_new (N, 3)`` within ``threshold_px`` of it, the
     translation's sign chosen by the points in front of both cameras, and its sigmas
-    (:func:`fit_planar`, :func:`ransac_planar`)."""
+    (with ``sigmas``; else left ``inf``) (:func:`fit_planar`, :func:`ransac_planar`)."""
     # Refine (yaw, psi) by Gauss-Newton on the inliers' Sampson distances.
     r, t = planar_pose(yaw, psi)
     inl = np.abs(_sampson(x_old, x_new, r, t, focal)) < threshold_px
@@ -293,7 +298,7 @@ def _refine(x_old: np.ndarray, x_new: np.ndarray, focal: float, yaw: float, psi:
         r, t = planar_pose(yaw, psi)
     m = int(inl.sum())
     sig_y = sig_b = math.inf
-    if m > len(free):
+    if sigmas and m > len(free):
         rr = res(np.array([yaw, psi]))
         noise = math.sqrt(float(rr @ rr) / (m - len(free))) * INLIER_NOISE_FACTOR
         jac = np.zeros((m, 2))

@@ -232,3 +232,17 @@ def test_the_written_out_directions_are_those_of_the_rotated_cross_product(seed)
     fit = fit_planar(po, pn, K, guess)
     assert fit is not None
     assert np.array_equal(fit.scan_yaw_rad, yaws) and np.array_equal(fit.scan_inliers, profile)
+
+
+@pytest.mark.parametrize("fix_yaw", [False, True])
+def test_without_sigmas_the_fit_is_the_same_motion(fix_yaw):
+    """``sigmas=False`` (the ridge's side fits, whose bearing alone is read) leaves the
+    sigmas out and the motion, its inliers and its scan as they are with them."""
+    po, pn = _views(3.0, 120.0, 0.4, seed=2, outliers=30)
+    a = fit_planar(po, pn, K, math.radians(4.1), fix_yaw=fix_yaw)
+    b = fit_planar(po, pn, K, math.radians(4.1), fix_yaw=fix_yaw, sigmas=False)
+    assert a is not None and b is not None
+    assert math.isfinite(a.sigma_bearing_rad) and b.sigma_bearing_rad == b.sigma_yaw_rad == math.inf
+    assert (a.dyaw_rad, a.bearing_rad) == (b.dyaw_rad, b.bearing_rad)
+    assert np.array_equal(a.inliers, b.inliers) and np.array_equal(a.translation_dir, b.translation_dir)
+    assert np.array_equal(a.scan_inliers, b.scan_inliers)

@@ -983,8 +983,8 @@ class ForwardLoopStage(Publisher):
         vp: VerifyParams = self.detector.params.verify
         thr = vp.ransac_threshold_px
 
-        def at(yaw: float) -> PlanarFit | None:
-            return fit_planar(p_old, p_new, k, yaw, threshold_px=thr, fix_yaw=True)
+        def at(yaw: float, sigmas: bool = True) -> PlanarFit | None:  # sigmas False: its bearing alone is read
+            return fit_planar(p_old, p_new, k, yaw, threshold_px=thr, fix_yaw=True, sigmas=sigmas)
 
         prior = self._prior_yaw(image_id)
         if narrow:  # RidgeParams.narrow == "graph"
@@ -994,7 +994,7 @@ class ForwardLoopStage(Publisher):
             lo = hi = prior[0]
             on = np.array([prior[0]])
         if prior is None:
-            ends = at(lo), at(hi)
+            ends = at(lo, False), at(hi, False)
             if ends[0] is None or ends[1] is None:
                 return None
             spread = 0.5 * abs(math.remainder(ends[1].bearing_rad - ends[0].bearing_rad, math.tau))
@@ -1024,7 +1024,7 @@ class ForwardLoopStage(Publisher):
             return False
         # How fast the ridge's bearing moves with the heading, there: the prior's heading
         # sigma becomes the bearing's along the ridge.
-        side = at(yaw - rp.slope_step_rad), at(yaw + rp.slope_step_rad)
+        side = at(yaw - rp.slope_step_rad, False), at(yaw + rp.slope_step_rad, False)
         slope = 0.0
         if side[0] is not None and side[1] is not None:
             slope = math.remainder(side[1].bearing_rad - side[0].bearing_rad, math.tau) / (2 * rp.slope_step_rad)
