@@ -271,10 +271,12 @@ def _refine(x_old: np.ndarray, x_new: np.ndarray, focal: float, yaw: float, psi:
     h = 1e-6
     free = [1] if fix_yaw else [0, 1]  # the parameters fitted: (yaw, psi) or psi alone
     jac = np.zeros((int(inl.sum()), len(free)))
+    r0 = None  # the residuals at theta, kept from the step that moved there
     for _ in range(5):
         if inl.sum() < 3:
             break
-        r0 = res(theta)
+        if r0 is None:
+            r0 = res(theta)
         for col, j in enumerate(free):
             dth = np.zeros(2)
             dth[j] = h
@@ -287,7 +289,7 @@ def _refine(x_old: np.ndarray, x_new: np.ndarray, focal: float, yaw: float, psi:
         trial = res(theta + step)
         if not float(trial @ trial) < float(r0 @ r0):
             break
-        theta = theta + step
+        theta, r0 = theta + step, trial
     yaw, psi = float(theta[0]), float(theta[1])
     r, t = planar_pose(yaw, psi)
     inl = np.abs(_sampson(x_old, x_new, r, t, focal)) < threshold_px
