@@ -25,13 +25,13 @@ optimum, scaled by :data:`robotd.forward.planar.INLIER_NOISE_FACTOR` as the gene
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from robotd.forward.planar import INLIER_NOISE_FACTOR
 
-__all__ = ["SCAN_STEP_RAD", "PlanarFit", "PlanarSearch", "fit_planar", "front_mask", "planar_inliers", "planar_pose",
+__all__ = ["SCAN_STEP_RAD", "PlanarFit", "PlanarSearch", "fit_planar", "fit_planar_scans", "front_mask", "planar_inliers", "planar_pose",
            "ransac_planar", "ridge_span"]
 
 
@@ -149,44 +149,79 @@ SCAN_STEP_RAD = math.radians(0.2)
 
 def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, yaw_guess_rad: float,
                *, threshold_px: float = 1.0, window_rad: float = math.radians(8.0),
-               step_rad: float = SCAN_STEP_RAD, fix_yaw: bool = False) -> PlanarFit | None:
+               step_rad: float = SCAN_STEP_RAD, fix_yaw: bool = False, sigmas: bool = True) -> PlanarFit | None:
     """The planar motion (module notes) of matched pixels ``p_old_px, p_new_px (N, 2)``
     (``camera_matrix (3, 3)`` shared), the heading change searched within ``window_rad``
     of ``yaw_guess_rad`` in steps of ``step_rad``; None with fewer than 5 matches. With
     ``fix_yaw`` the heading change is held at ``yaw_guess_rad`` (``window_rad`` unused) and
     only the translation direction is fitted: the motion on a heading-bearing ridge at a
     heading known from elsewhere (:func:`ridge_span`); its ``sigma_bearing_rad`` is then the
-    bearing's given the heading."""
+    bearing's given the heading. Without ``sigmas`` the sigmas are not computed (left
+    ``inf``; the motion and its inliers are the same): for a caller that reads the motion
+    alone."""
+    if fix_yaw:
+        return _fit_planar(p_old_px, p_new_px, camera_matrix, [yaw_guess_rad], threshold_px, 0, step_rad, True,
+                           sigmas)[0]
+    n_steps = int(round(window_rad / step_rad))
+    return _fit_planar(p_old_px, p_new_px, camera_matrix, [yaw_guess_rad], threshold_px, n_steps, step_rad,
+                       sigmas=sigmas)[0]
+
+
+def fit_planar_scans(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray,
+                     yaw_guesses_rad: list[float], *, threshold_px: float = 1.0,
+                     window_rad: float = math.radians(8.0), step_rad: float = SCAN_STEP_RAD) -> list[PlanarFit | None]:
+    """:func:`fit_planar` of the same matches around each of ``yaw_guesses_rad``: the same
+    fits, but a heading on the lattice that two windows share is scored once (the scans
+    lie on one lattice, and a heading's candidates and counts are the matches' alone), and
+    a best candidate two windows share is refined once."""
+    n_steps = int(round(window_rad / step_rad))
+    return _fit_planar(p_old_px, p_new_px, camera_matrix, list(yaw_guesses_rad), threshold_px, n_steps, step_rad)
+
+
+def _fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, guesses: list[float],
+                threshold_px: float, n_steps: int, step_rad: float, fix_yaw: bool = False,
+                sigmas: bool = True) -> list[PlanarFit | None]:
+    """:func:`fit_planar` (``fix_yaw``: one guess, ``n_steps`` 0) and :func:`fit_planar_scans`:
+    one fit per guess, each scanning ``n_steps`` lattice headings either side of it."""
     p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
     p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
     n = len(p_old)
     if n < 5:
-        return None
+        return [None] * len(guesses)
     k = np.asarray(camera_matrix, np.float64)
     kinv = np.linalg.inv(k)
     focal = 0.5 * (k[0, 0] + k[1, 1])
     x_old = np.hstack([p_old, np.ones((n, 1))]) @ kinv.T
     x_new = np.hstack([p_new, np.ones((n, 1))]) @ kinv.T
-    n_steps = 0 if fix_yaw else int(round(window_rad / step_rad))
     bins = 360  # half-degree bins over psi modulo pi
     # Every heading of the scan at once: each match's translation direction per heading,
     # a histogram per heading, its two fullest bins, three directions per bin.
     # The scanned headings lie on one lattice of step_rad (the guess rounded to it), so the
-    # inlier profile is the matches' alone, not where the guess fell within a step.
-    centre = yaw_guess_rad if fix_yaw else round(yaw_guess_rad / step_rad) * step_rad
-    yaws = centre + np.arange(-n_steps, n_steps + 1) * step_rad
-    c, s_ = np.cos(yaws), np.sin(yaws)
-    rots = np.zeros((len(yaws), 3, 3))
-    rots[:, 0, 0], rots[:, 0, 2], rots[:, 1, 1], rots[:, 2, 0], rots[:, 2, 2] = c, s_, 1.0, -s_, c
-    u = np.cross(np.einsum("yij,nj->yni", rots, x_old), x_new[None])
+    # inlier profile is the matches' alone, not where the guess fell within a step. The
+    # windows of several guesses share the headings they both scan (those equal to the
+    # bit: a window's headings are its rounded guess plus multiples of the step, as one
+    # window's always were, so each fit is the one its window alone gives).
+    if fix_yaw:
+        wanted = [np.array([float(guesses[0])])]
+    else:
+        steps = np.arange(-n_steps, n_steps + 1) * step_rad
+        wanted = [round(g / step_rad) * step_rad + steps for g in guesses]
+    yaws = np.unique(np.concatenate(wanted))
+    rows = [np.searchsorted(yaws, w) for w in wanted]
+    c, s_ = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
+    x1, y1, z1 = x_old[:, 0], x_old[:, 1], x_old[:, 2]
+    x2, y2, z2 = x_new[:, 0], x_new[:, 1], x_new[:, 2]
+    # u = (R x_old) x x_new with R x_old = (c x1 + s z1, y1, -s x1 + c z1), written out (its
+    # first and last components are the ones the direction needs).
+    u0 = y1 * z2 - (-s_ * x1 + c * z1) * y2
+    u2 = (c * x1 + s_ * z1) * y2 - y1 * x2
     # u . t = 0 with t = (sin psi, 0, cos psi): psi = atan2(-u_z, u_x) modulo pi.
-    psis = np.mod(np.arctan2(-u[..., 2], u[..., 0]), math.pi)
+    psis = np.mod(np.arctan2(-u2, u0), math.pi)
     idx = (psis / math.pi * bins).astype(np.int64) % bins + bins * np.arange(len(yaws))[:, None]
     hist = np.bincount(idx.ravel(), minlength=bins * len(yaws)).reshape(len(yaws), bins)
     hist = hist + np.roll(hist, 1, axis=1) + np.roll(hist, -1, axis=1)
     top = np.argsort(-hist, axis=1)[:, :2]
-    centres = (top + 0.5) * math.pi / bins
-    cands = centres[..., None] + np.array([-0.5, 0.0, 0.5]) * math.pi / bins  # (yaws, 2, 3)
+    cands = ((top + 0.5) * math.pi / bins)[..., None] + np.array([-0.5, 0.0, 0.5]) * math.pi / bins  # (yaws, 2, 3)
     cand_yaw = np.broadcast_to(yaws[:, None, None], cands.shape).ravel()
     cand_psi = cands.ravel()
     # Each candidate's inliers and cost, a block of candidates at a time (the block's
@@ -199,64 +234,80 @@ def fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nda
         inl_n[sl] = (d < threshold_px).sum(axis=1)
         dm = np.minimum(d, threshold_px)
         cost[sl] = -np.einsum("ij,ij->i", dm, dm)
-    # The most inliers, then the least cost; the first in scan order among equals.
-    best_i = int(np.flatnonzero(inl_n == inl_n.max())[np.argmax(cost[inl_n == inl_n.max()])])
-    scan_n = inl_n.reshape(len(yaws), -1).max(axis=1)
-    yaw, psi = float(cand_yaw[best_i]), float(cand_psi[best_i])
-    return _refine(x_old, x_new, focal, yaw, psi, threshold_px, fix_yaw, yaws, scan_n)
+    per = cands.shape[1] * cands.shape[2]  # candidates per heading
+    fits: list[PlanarFit | None] = []
+    refined: dict[int, PlanarFit] = {}  # a best candidate's refinement, for a window sharing it
+    for r in rows:
+        ci = (r[:, None] * per + np.arange(per)).ravel()  # this window's candidates, in scan order
+        w_n, w_cost = inl_n[ci], cost[ci]
+        # The most inliers, then the least cost; the first in scan order among equals.
+        best_i = int(ci[np.flatnonzero(w_n == w_n.max())[np.argmax(w_cost[w_n == w_n.max()])]])
+        w_yaws, scan_n = yaws[r], w_n.reshape(len(r), -1).max(axis=1)
+        if best_i not in refined:
+            refined[best_i] = _refine(x_old, x_new, focal, float(cand_yaw[best_i]), float(cand_psi[best_i]),
+                                      threshold_px, fix_yaw, w_yaws, scan_n, sigmas)
+            fits.append(refined[best_i])
+        else:
+            fits.append(replace(refined[best_i], scan_yaw_rad=w_yaws, scan_inliers=scan_n))
+    return fits
 
 
 def _refine(x_old: np.ndarray, x_new: np.ndarray, focal: float, yaw: float, psi: float, threshold_px: float,
-            fix_yaw: bool, yaws: np.ndarray, scan_n: np.ndarray) -> PlanarFit:
+            fix_yaw: bool, yaws: np.ndarray, scan_n: np.ndarray, sigmas: bool = True) -> PlanarFit:
     """The planar motion ``(yaw, psi)`` refined by Gauss-Newton on the Sampson distances of
     the normalised matches ``x_old, x_new (N, 3)`` within ``threshold_px`` of it, the
     translation's sign chosen by the points in front of both cameras, and its sigmas
-    (:func:`fit_planar`, :func:`ransac_planar`)."""
+    (with ``sigmas``; else left ``inf``) (:func:`fit_planar`, :func:`ransac_planar`)."""
     # Refine (yaw, psi) by Gauss-Newton on the inliers' Sampson distances.
     r, t = planar_pose(yaw, psi)
     inl = np.abs(_sampson(x_old, x_new, r, t, focal)) < threshold_px
     theta = np.array([yaw, psi])
+    xo_in, xn_in = x_old[inl], x_new[inl]  # the inliers' rows, taken once per inlier set
 
-    def res(th: np.ndarray, m: np.ndarray) -> np.ndarray:
+    def res(th: np.ndarray) -> np.ndarray:  # the Sampson distances of the current inliers
         rr, tt = planar_pose(float(th[0]), float(th[1]))
-        return _sampson(x_old[m], x_new[m], rr, tt, focal)
+        return _sampson(xo_in, xn_in, rr, tt, focal)
 
     h = 1e-6
     free = [1] if fix_yaw else [0, 1]  # the parameters fitted: (yaw, psi) or psi alone
     jac = np.zeros((int(inl.sum()), len(free)))
+    r0 = None  # the residuals at theta, kept from the step that moved there
     for _ in range(5):
         if inl.sum() < 3:
             break
-        r0 = res(theta, inl)
+        if r0 is None:
+            r0 = res(theta)
         for col, j in enumerate(free):
             dth = np.zeros(2)
             dth[j] = h
-            jac[:, col] = (res(theta + dth, inl) - res(theta - dth, inl)) / (2 * h)
+            jac[:, col] = (res(theta + dth) - res(theta - dth)) / (2 * h)
         jtj = jac.T @ jac
         if not np.all(np.isfinite(jtj)) or np.linalg.cond(jtj) > 1e12:
             break
         step = np.zeros(2)
         step[free] = -np.linalg.solve(jtj, jac.T @ r0)
-        if not float(res(theta + step, inl) @ res(theta + step, inl)) < float(r0 @ r0):
+        trial = res(theta + step)
+        if not float(trial @ trial) < float(r0 @ r0):
             break
-        theta = theta + step
+        theta, r0 = theta + step, trial
     yaw, psi = float(theta[0]), float(theta[1])
     r, t = planar_pose(yaw, psi)
     inl = np.abs(_sampson(x_old, x_new, r, t, focal)) < threshold_px
+    xo_in, xn_in = x_old[inl], x_new[inl]
     # The sign of the translation: the points in front of both cameras.
-    if _in_front(x_old[inl], x_new[inl], r, -t) > _in_front(x_old[inl], x_new[inl], r, t):
+    if _in_front(xo_in, xn_in, r, -t) > _in_front(xo_in, xn_in, r, t):
         psi += math.pi
         r, t = planar_pose(yaw, psi)
     m = int(inl.sum())
     sig_y = sig_b = math.inf
-    if m > len(free):
-        rr = res(np.array([yaw, psi]), inl)
+    if sigmas and m > len(free):
+        rr = res(np.array([yaw, psi]))
         noise = math.sqrt(float(rr @ rr) / (m - len(free))) * INLIER_NOISE_FACTOR
         jac = np.zeros((m, 2))
         for j in range(2):
             dth = np.zeros(2)
             dth[j] = h
-            jac[:, j] = (res(np.array([yaw, psi]) + dth, inl) - res(np.array([yaw, psi]) - dth, inl)) / (2 * h)
+            jac[:, j] = (res(np.array([yaw, psi]) + dth) - res(np.array([yaw, psi]) - dth)) / (2 * h)
         jtj = jac.T @ jac
         cov: np.ndarray | None = None
         if fix_yaw:  # the heading known: psi's variance alone, the heading's none

@@ -117,9 +117,8 @@ from robotd.forward.planar import INLIER_NOISE_FACTOR, fit_motion
 from robotd.forward.planefit import ransac_planar
 
 __all__ = ["ACCEPTED", "NO_GEOMETRIC_CONSISTENCY", "SMALL_SUPPORT", "TOO_FEW_MATCHES", "Verification", "VerifyReason",
-           "VerifyParams", "camera_matrix_guess", "essential_matrix", "floor_range", "match_features", "ransac_iterations",
-           "support_area",
-           "verify_pair"]
+           "VerifyParams", "camera_matrix_guess", "essential_matrix", "floor_range", "match_features", "match_indices",
+           "ransac_iterations", "support_area", "verify_pair"]
 
 class VerifyReason(StrEnum):
     """The outcome of a verification (a :class:`~enum.StrEnum`: equal to its text)."""
@@ -293,7 +292,10 @@ class Verification:
     :attr:`robotd.forward.detector.DetectorParams.verify_fallbacks`); ``level_yaw_rad`` the
     heading change of the level motion the planar model's search found first (the two-point
     search that guides the others, :func:`robotd.forward.planefit.ransac_planar`; NaN when
-    it found none or the model is not ``"planar"``). When a pose was recovered: ``rotation (3, 3)`` and
+    it found none or the model is not ``"planar"``); ``match_index`` the matches' indices
+    into the old and the new image's keypoints (two ``(M,)`` int arrays, the order of the
+    matched pixels the search ran on: :func:`match_indices`; None when not matched here), so
+    that a user of the verification reads the same matches without matching again. When a pose was recovered: ``rotation (3, 3)`` and
     ``translation_dir (3,)`` (unit length) such that a point X_old in the old image's
     camera frame is ``rotation @ X_old + s * translation_dir`` in the new image's camera
     frame, for an unknown scale s > 0 (OpenCV camera axes: x right, y down, z forward).
@@ -316,6 +318,7 @@ class Verification:
     planarity_chi2: float = float("nan")
     fallback: bool = False
     level_yaw_rad: float = float("nan")
+    match_index: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def camera_matrix_guess(width_px: int, height_px: int, focal_px: float | None = None) -> np.ndarray:
@@ -325,14 +328,14 @@ def camera_matrix_guess(width_px: int, height_px: int, focal_px: float | None = 
     return np.array([[f, 0.0, width_px / 2.0], [0.0, f, height_px / 2.0], [0.0, 0.0, 1.0]])
 
 
-def match_features(a: FeatureSet, b: FeatureSet, ratio: float = 0.8,
-                   by_distance: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Matched keypoints ``(M, 2), (M, 2)`` float32 of ``a`` and ``b``: each of ``a``'s
-    descriptors against ``b``'s, kept when the nearest is clearly nearer than the second
-    (Lowe's ratio test), at most one match per keypoint of ``b`` (the nearer one); in
-    ``b``'s order of first match, or nearest descriptor first with ``by_distance``
-    (PROSAC's order)."""
-    empty = np.zeros((0, 2), np.float32)
+def match_indices(a: FeatureSet, b: FeatureSet, ratio: float = 0.8,
+                  by_distance: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The matches of ``a`` and ``b`` as indices into their keypoints, ``(M,), (M,)``
+    int64: each of ``a``'s descriptors against ``b``'s, kept when the nearest is clearly
+    nearer than the second (Lowe's ratio test), at most one match per keypoint of ``b``
+    (the nearer one); in ``b``'s order of first match, or nearest descriptor first with
+    ``by_distance`` (PROSAC's order)."""
+    empty = np.zeros(0, np.int64)
     if len(a) < 2 or len(b) < 2:
         return empty, empty
     binary = a.descriptors.dtype == np.uint8
@@ -351,6 +354,17 @@ def match_features(a: FeatureSet, b: FeatureSet, ratio: float = 0.8,
     if by_distance:
         order = np.argsort(np.fromiter((v[0] for v in best.values()), np.float64, len(best)), kind="stable")
         ia, ib = ia[order], ib[order]
+    return ia, ib
+
+
+def match_features(a: FeatureSet, b: FeatureSet, ratio: float = 0.8,
+                   by_distance: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Matched keypoints ``(M, 2), (M, 2)`` float32 of ``a`` and ``b``
+    (:func:`match_indices`)."""
+    ia, ib = match_indices(a, b, ratio, by_distance)
+    if not len(ia):
+        empty = np.zeros((0, 2), np.float32)
+        return empty, empty
     return a.keypoints_px[ia], b.keypoints_px[ib]
 
 
@@ -358,8 +372,19 @@ def verify_pair(old: FeatureSet, new: FeatureSet, params: VerifyParams = VerifyP
                 camera_matrix: np.ndarray | None = None) -> Verification:
     """Check that ``new`` and ``old`` see one 3D scene (epipolar geometry) and return the
     relative pose. ``camera_matrix (3, 3)``: intrinsics shared by both images (default
-    :func:`camera_matrix_guess` for ``new``'s size)."""
-    p_old, p_new = match_features(old, new, params.ratio)
+    :func:`camera_matrix_guess` for ``new``'s size). The matches' indices come back with it
+    (:attr:`Verification.match_index`)."""
+    ia, ib = match_indices(old, new, params.ratio)
+    if len(ia):
+        p_old, p_new = old.keypoints_px[ia], new.keypoints_px[ib]
+    else:
+        p_old = p_new = np.zeros((0, 2), np.float32)
+    return replace(_verify_matched(old, new, p_old, p_new, params, camera_matrix), match_index=(ia, ib))
+
+
+def _verify_matched(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: np.ndarray, params: VerifyParams,
+                    camera_matrix: np.ndarray | None) -> Verification:
+    """:func:`verify_pair` of the matched pixels ``p_old, p_new (N, 2)``."""
     n = len(p_old)
     if n < max(5, params.min_inliers):
         return Verification(False, TOO_FEW_MATCHES, n, 0)

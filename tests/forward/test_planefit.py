@@ -174,3 +174,75 @@ def test_the_written_out_sampson_distances_are_the_contracted_ones_to_the_bit(se
     for m in (0, 117, 299):
         assert np.allclose(fast[m], _sampson(x, xn, *planar_pose(float(yaws[m]), float(psis[m])), 525.0),
                            rtol=1e-9, atol=1e-9)
+
+
+def _same_fit(a, b) -> bool:
+    return (a.dyaw_rad == b.dyaw_rad and a.bearing_rad == b.bearing_rad and np.array_equal(a.inliers, b.inliers)
+            and a.sigma_yaw_rad == b.sigma_yaw_rad and a.sigma_bearing_rad == b.sigma_bearing_rad
+            and np.array_equal(a.rotation, b.rotation) and np.array_equal(a.translation_dir, b.translation_dir)
+            and np.array_equal(a.scan_yaw_rad, b.scan_yaw_rad) and np.array_equal(a.scan_inliers, b.scan_inliers))
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("offset_deg", [0.0, 0.1, 0.3, 2.9, 15.8, 16.2, 40.0])
+def test_the_scans_around_several_guesses_are_each_guess_s_own_fit(seed, offset_deg):
+    """:func:`fit_planar_scans`, which scores the headings two windows share once and
+    refines a best candidate they share once, gives each guess the fit :func:`fit_planar`
+    gives it alone, to the bit: windows that overlap in part, round to one lattice
+    heading, touch (16 deg apart: one shared heading) or lie apart."""
+    from robotd.forward.planefit import fit_planar_scans
+
+    po, pn = _views(4.0 - 3 * seed, 150.0 - 55 * seed, 0.15 + 0.15 * seed, seed=seed, outliers=10 + 15 * seed,
+                    noise_px=0.4 + 0.2 * seed)
+    g1 = math.radians(4.0 - 3 * seed + 1.3 - 0.6 * seed)
+    g2 = g1 + math.radians(offset_deg)
+    both = fit_planar_scans(po, pn, K, [g1, g2])
+    alone = [fit_planar(po, pn, K, g1), fit_planar(po, pn, K, g2)]
+    assert all(f is not None for f in both + alone)
+    assert all(_same_fit(a, b) for a, b in zip(both, alone))
+    assert fit_planar_scans(po[:4], pn[:4], K, [g1, g2]) == [None, None]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_written_out_directions_are_those_of_the_rotated_cross_product(seed):
+    """The scan's translation directions per heading, written out from the rotation's
+    entries, give the inlier profile of rotating the rays and taking their cross product
+    with ``numpy`` (the scan before), to the bit."""
+    from robotd.forward.planefit import _sampson_many
+
+    po, pn = _views(6.0 - 4 * seed, 30.0 + 50 * seed, 0.3 + 0.1 * seed, seed=seed, outliers=30)
+    guess = math.radians(6.0 - 4 * seed + 2.0)
+    step, bins = math.radians(0.2), 360
+    kinv = np.linalg.inv(K)
+    x_old = np.hstack([po, np.ones((len(po), 1))]) @ kinv.T
+    x_new = np.hstack([pn, np.ones((len(pn), 1))]) @ kinv.T
+    yaws = round(guess / step) * step + np.arange(-40, 41) * step
+    c, s = np.cos(yaws), np.sin(yaws)
+    rots = np.zeros((len(yaws), 3, 3))
+    rots[:, 0, 0], rots[:, 0, 2], rots[:, 1, 1], rots[:, 2, 0], rots[:, 2, 2] = c, s, 1.0, -s, c
+    u = np.cross(np.einsum("yij,nj->yni", rots, x_old), x_new[None])
+    psis = np.mod(np.arctan2(-u[..., 2], u[..., 0]), math.pi)
+    idx = (psis / math.pi * bins).astype(np.int64) % bins + bins * np.arange(len(yaws))[:, None]
+    hist = np.bincount(idx.ravel(), minlength=bins * len(yaws)).reshape(len(yaws), bins)
+    hist = hist + np.roll(hist, 1, axis=1) + np.roll(hist, -1, axis=1)
+    top = np.argsort(-hist, axis=1)[:, :2]
+    cands = ((top + 0.5) * math.pi / bins)[..., None] + np.array([-0.5, 0.0, 0.5]) * math.pi / bins
+    d = np.abs(_sampson_many(x_old, x_new, np.repeat(yaws, 6), cands.ravel(), 525.0))
+    profile = (d < 1.0).sum(axis=1).reshape(len(yaws), -1).max(axis=1)
+    fit = fit_planar(po, pn, K, guess)
+    assert fit is not None
+    assert np.array_equal(fit.scan_yaw_rad, yaws) and np.array_equal(fit.scan_inliers, profile)
+
+
+@pytest.mark.parametrize("fix_yaw", [False, True])
+def test_without_sigmas_the_fit_is_the_same_motion(fix_yaw):
+    """``sigmas=False`` (the ridge's side fits, whose bearing alone is read) leaves the
+    sigmas out and the motion, its inliers and its scan as they are with them."""
+    po, pn = _views(3.0, 120.0, 0.4, seed=2, outliers=30)
+    a = fit_planar(po, pn, K, math.radians(4.1), fix_yaw=fix_yaw)
+    b = fit_planar(po, pn, K, math.radians(4.1), fix_yaw=fix_yaw, sigmas=False)
+    assert a is not None and b is not None
+    assert math.isfinite(a.sigma_bearing_rad) and b.sigma_bearing_rad == b.sigma_yaw_rad == math.inf
+    assert (a.dyaw_rad, a.bearing_rad) == (b.dyaw_rad, b.bearing_rad)
+    assert np.array_equal(a.inliers, b.inliers) and np.array_equal(a.translation_dir, b.translation_dir)
+    assert np.array_equal(a.scan_inliers, b.scan_inliers)

@@ -345,3 +345,30 @@ def test_the_planar_model_carries_the_level_motions_heading(monkeypatch):
         calls.clear()
         fell = verify_pair(old, new, VerifyParams(model="planar", fallback_inliers=0, fallback_band_px=band))
         assert len(calls) == 2 and fell.fallback and fell.accepted and fell.level_yaw_rad == search.yaw_rad
+
+
+@pytest.mark.parametrize("model", ["planar", "general"])
+def test_the_verification_returns_the_indices_of_the_matches_it_ran_on(model):
+    """``match_index``: the matches as indices into the two images' keypoints, the pixels
+    :func:`match_features` gives (the new image's features in another order than the old
+    one's); the daemon's stage reads its planar refit's matches from them, through the
+    detector's compact copy of the new image, where it matched that copy again before."""
+    from robotd.forward.features import compact
+    from robotd.forward.verify import match_features
+
+    rng = np.random.default_rng(4)
+    old, new, _, _ = _level_pair_with_shuffled(rng)
+    perm = rng.permutation(len(new))
+    new = Features(new.keypoints_px[perm], new.descriptors[perm], new.image_size_px)
+    v = verify_pair(old, new, VerifyParams(model=model), K)
+    assert v.accepted and v.match_index is not None
+    ia, ib = v.match_index
+    assert len(ia) == v.n_matches and not np.array_equal(ia, ib)
+    p_old, p_new = match_features(old, new)
+    assert np.array_equal(old.keypoints_px[ia], p_old) and np.array_equal(new.keypoints_px[ib], p_new)
+    kept = compact(new, np.zeros(len(new), np.uint32))  # what the detector keeps of the new image
+    c_old, c_new = match_features(old, kept)
+    assert np.array_equal(old.keypoints_px[ia], c_old) and np.array_equal(kept.keypoints_px[ib], c_new)
+    # too few matches: empty indices
+    few = verify_pair(Features(old.keypoints_px[:3], old.descriptors[:3], (640, 480)), new)
+    assert few.reason == TOO_FEW_MATCHES and few.match_index is not None and len(few.match_index[0]) <= 3

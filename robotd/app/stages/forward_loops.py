@@ -133,7 +133,7 @@ from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStor
 from robotd.forward import LOOP, ForwardDetector
 from robotd.forward.features import CompactFeatures
 from robotd.forward.planar import INLIER_NOISE_FACTOR, planar_motion, planarity_bound
-from robotd.forward.planefit import SCAN_STEP_RAD, PlanarFit, fit_planar, planar_inliers, ridge_span
+from robotd.forward.planefit import SCAN_STEP_RAD, PlanarFit, fit_planar, fit_planar_scans, planar_inliers, ridge_span
 from robotd.forward.verify import VerifyParams, floor_range, match_features
 
 log = logging.getLogger(__name__)
@@ -892,7 +892,14 @@ class ForwardLoopStage(Publisher):
         if k is None:
             return None
         t0 = time.thread_time()
-        p_old, p_new = match_features(det.features_of(image_id), det.features_of(len(det) - 1), det.params.verify.ratio)
+        old, new = det.features_of(image_id), det.features_of(len(det) - 1)
+        index = getattr(v, "match_index", None)
+        if index is not None:  # the verification's matches (the same), not matched again
+            ia, ib = index
+            empty = np.zeros((0, 2), np.float32)
+            p_old, p_new = (old.keypoints_px[ia], new.keypoints_px[ib]) if len(ia) else (empty, empty)
+        else:
+            p_old, p_new = match_features(old, new, det.params.verify.ratio)
         self._add_cpu("match", t0)
         t0 = time.thread_time()
         verified, _, _ = planar_motion(v.rotation, v.translation_dir)
@@ -903,8 +910,9 @@ class ForwardLoopStage(Publisher):
         else:
             centres = [level] if self.scan_centre == "level" else [verified, level]
         fit = None  # the better-supported scan, the first's on a tie
-        for centre in centres:
-            f = fit_planar(p_old, p_new, k, centre, threshold_px=det.params.verify.ransac_threshold_px)
+        # The scans share their common lattice headings (fit_planar_scans: each fit as
+        # fit_planar gives it around its centre).
+        for f in fit_planar_scans(p_old, p_new, k, centres, threshold_px=det.params.verify.ransac_threshold_px):
             if f is not None and (fit is None or f.n_inliers > fit.n_inliers):
                 fit = f
         self._add_cpu("scan", t0)
@@ -975,8 +983,8 @@ class ForwardLoopStage(Publisher):
         vp: VerifyParams = self.detector.params.verify
         thr = vp.ransac_threshold_px
 
-        def at(yaw: float) -> PlanarFit | None:
-            return fit_planar(p_old, p_new, k, yaw, threshold_px=thr, fix_yaw=True)
+        def at(yaw: float, sigmas: bool = True) -> PlanarFit | None:  # sigmas False: its bearing alone is read
+            return fit_planar(p_old, p_new, k, yaw, threshold_px=thr, fix_yaw=True, sigmas=sigmas)
 
         prior = self._prior_yaw(image_id)
         if narrow:  # RidgeParams.narrow == "graph"
@@ -986,7 +994,7 @@ class ForwardLoopStage(Publisher):
             lo = hi = prior[0]
             on = np.array([prior[0]])
         if prior is None:
-            ends = at(lo), at(hi)
+            ends = at(lo, False), at(hi, False)
             if ends[0] is None or ends[1] is None:
                 return None
             spread = 0.5 * abs(math.remainder(ends[1].bearing_rad - ends[0].bearing_rad, math.tau))
@@ -1016,7 +1024,7 @@ class ForwardLoopStage(Publisher):
             return False
         # How fast the ridge's bearing moves with the heading, there: the prior's heading
         # sigma becomes the bearing's along the ridge.
-        side = at(yaw - rp.slope_step_rad), at(yaw + rp.slope_step_rad)
+        side = at(yaw - rp.slope_step_rad, False), at(yaw + rp.slope_step_rad, False)
         slope = 0.0
         if side[0] is not None and side[1] is not None:
             slope = math.remainder(side[1].bearing_rad - side[0].bearing_rad, math.tau) / (2 * rp.slope_step_rad)
