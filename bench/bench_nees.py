@@ -457,6 +457,20 @@ def odometry_rows(part: dict[str, Any], kind: str = "scales") -> tuple[list[str]
     return head, rows
 
 
+def speed_change_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
+    """Per seed the single edges across a start or a stop against the others
+    (:func:`speed_change_edges`); empty for a result written before they were stored."""
+    head = ["seed", "edges across a start or stop", "their NEES (position part)", "lag tau (ms)",
+            "other edges", "their NEES (position part)"]
+    rows: list[list[Any]] = []
+    for r in part["per_seed"]:
+        sc = r.get("speed_change")
+        if sc:
+            rows.append([r["seed"], sc["edges"], f"{sc['nees']:.2f} ({sc['nees_position']:.2f})", f"{sc['tau_ms']:.1f}",
+                         sc["others"], f"{sc['others_nees']:.2f} ({sc['others_nees_position']:.2f})"])
+    return head, rows
+
+
 def odometry_model_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
     """Per horizon and model: the mean over seeds (yaw part, position part) and the seeds' range."""
     head = ["N edges"] + list(MODELS.values())
@@ -951,6 +965,13 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
         table(*odometry_rows(odo, "window"))
         lines += ["Per seed, independent edges:", ""]
         table(*odometry_rows(odo, "graph"))
+    head, rows = speed_change_rows(odo)
+    if rows:
+        lines += [f"Single edges whose two keyframes' true speeds differ by more than {SPEED_CHANGE_MPS} m/s "
+                  "(the starts and stops) against the others: mean NEES over one edge (position part), and "
+                  "the lag `tau` that fits their error along the track as `-tau * dv` (`dv` the change of "
+                  "speed over the edge):", ""]
+        table(head, rows)
     head, rows = cost_rows(odo)
     if rows:
         lines += ["Cost in the pose graph: the seed's keyframes built one at a time into iSAM2 with loop "

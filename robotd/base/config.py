@@ -185,6 +185,11 @@ class OdometryConfig:
                                 "rate disagrees with the gyro's by more than this many sigma is taken as "
                                 "wheel slip and its speed and yaw-rate variances widened; 0 turns the test "
                                 "off (docs/odometry.md)", lo=0.0, hi=100.0)
+    wheel_increments: bool = _f(False, "the wheel + gyro filter whose edges the pose graph gets advances its "
+                                "pose by the distance and heading change each wheel reading's ticks measured "
+                                "over their packet (an integrated measurement) instead of taking them as the "
+                                "rates at the reading, which trail the truth where the speed changes "
+                                "(docs/odometry.md)")
 
 
 @dataclass(frozen=True)

@@ -165,6 +165,14 @@ class EkfParams:
       * z)^2`` (``z`` the disagreement; one wheel's extra travel ``b z`` moves the base by
       half of it, on either wheel), its yaw-rate variance by ``z^2``. Used with the
       calibration's noise model, whose wheel speed noise is the ticks' alone.
+    - ``wheel_increments`` (default False): a moving wheel reading is the distance and the
+      heading change its ticks measured over their packet, an integrated measurement of
+      the state augmented over the packet (:mod:`robotd.odometry.packet`), and the pose
+      advances by them; otherwise the ticks' mean rates update ``v`` and ``w`` as the rates
+      at the reading, and the pose, moved over the packet with the rates before it, trails
+      the truth where the speed changes. Only a filter that keeps no journal (the wheel +
+      gyro twin, or the filter without visual odometry:
+      :class:`robotd.odometry.fusion.OdometryFilter`) uses it.
     """
 
     accel_noise_density_mps2_per_sqrt_hz: float = _CONFIG.accel_noise_density_mps2_per_sqrt_hz
@@ -187,6 +195,7 @@ class EkfParams:
     slip_gate_sigma: float = 0.0
     slip_half_base_m: float = 0.0
     slip_yaw_rate_noise_radps: float = 0.0
+    wheel_increments: bool = False
 
     @classmethod
     def from_config(cls, section: OdometryConfig, **others: Any) -> EkfParams:

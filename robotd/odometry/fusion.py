@@ -58,6 +58,7 @@ from robotd.odometry.kinematics import (
 from robotd.odometry.history import EdgeBiasTerms, PoseHistory
 from robotd.odometry.increments import combine_edges, edge_disagreement
 from robotd.odometry.journal import Journal, Snapshot
+from robotd.odometry.packet import close_packet, open_packet, packet_gyro, packet_predict, packet_wheels
 from robotd.odometry.relative import (
     PoseClone,
     clone_after_predict,
@@ -250,6 +251,10 @@ class OdometryFilter:
         self._history = PoseHistory(int(self.history_s * 1e9))  # pose_at, keyframe_edge
         # With visual odometry fused: each wheel or gyro message with the filter after it.
         self._journal: Journal | None = Journal() if self.vo_twin else None
+        # wheel_increments: the wheel readings as integrated measurements (packet.py), in a
+        # filter without the journal (whose snapshots hold the six-entry state between steps)
+        # and without the trapezoid's deferred move.
+        self._increments = self.params.wheel_increments and self._journal is None and not self._deferred
         self._replaying = False
         # A wheel turning at max speed covers half the counter range in this time.
         half_range_m = 32767 * self.drive.metres_per_tick
@@ -331,6 +336,12 @@ class OdometryFilter:
                 self._map = jac @ self._map
                 if self._clone is not None:
                     self._clone = clone_after_predict(self._clone, jac)
+        state = self._state
+        if (self._increments and not stationary and dt_ns <= self.max_gap_s * 1e9 and self._clone is None
+                and state is not None and state.stamp_ns == ref.stamp_ns):
+            self._packet(t, ds, dyaw, dt, msg)
+            self._record()
+            return True
         self._flush_gyro(t, stationary)
         self.counters.still_updates += int(stationary)
         self._advance_to(t)
@@ -388,6 +399,25 @@ class OdometryFilter:
             if self._clone is not None:
                 self._clone = clone_after_update(self._clone, None, H_GYRO, up.noise, gain=up.gain)
             self._record()
+
+    def _packet(self, t: int, ds: float, dyaw: float, dt: float, msg: WheelTicks) -> None:
+        """``wheel_increments``: the packet from the last wheel reading to ``t`` as one
+        augmented state (:mod:`robotd.odometry.packet`): the gyro readings up to ``t``, then
+        the ticks' distance ``ds`` and heading change ``dyaw`` over ``dt`` seconds; the pose
+        moves by them, and the error map of the whole packet joins the filter's."""
+        assert self._state is not None
+        p = open_packet(self._state)
+        buf = self._gyro_buf
+        while buf and buf[0].stamp_ns <= t:
+            g = buf.popleft()
+            packet_predict(p, int(g.stamp_ns), self.params)
+            var = g.yaw_rate_var_rad2ps2
+            packet_gyro(p, float(g.yaw_rate_radps) / self.gyro_scale, self.params,
+                        None if var is None else var / self.gyro_scale ** 2)
+        packet_predict(p, t, self.params)
+        packet_wheels(p, ds, dyaw, dt, self.params, msg.speed_var_m2ps2, msg.yaw_rate_var_rad2ps2)
+        self._state, step = close_packet(p)
+        self._map = step @ self._map
 
     def _apply_wheels(self, v: float, w: float, stationary: bool, msg: WheelTicks | None = None) -> None:
         """The wheel update, carrying a pose clone's cross-covariance along (``msg``: the

@@ -36,7 +36,8 @@ def test_every_odometry_key_reaches_the_filter():
     for f in dataclasses.fields(cfg.odometry):
         if f.name in ("noise_model", "slip_gate_sigma"):  # build_odometry reads them (test_assemble_noise.py)
             continue
-        changed = replace(cfg, "odometry", **{f.name: getattr(cfg.odometry, f.name) * 1.5 + 1e-6})
+        value = getattr(cfg.odometry, f.name)
+        changed = replace(cfg, "odometry", **{f.name: (not value) if isinstance(value, bool) else value * 1.5 + 1e-6})
         params = EkfParams.from_config(changed.odometry)
         assert getattr(params, f.name) == getattr(changed.odometry, f.name), f.name
         assert getattr(params, f.name) != getattr(EkfParams(), f.name), f.name

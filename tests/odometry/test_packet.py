@@ -1,0 +1,112 @@
+"""The wheel reading as an integrated measurement (``wheel_increments``,
+:mod:`robotd.odometry.packet`): the pose advances by the distance the ticks measured, so
+it does not trail the truth where the speed changes, and the packet's error map is the
+Jacobian of what it does to the state (the keyframe edges' covariances rest on it)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from robotd.base.messages import WheelTicks, YawRate
+from robotd.odometry.ekf import EkfParams, EkfState
+from robotd.odometry.fusion import OdometryFilter
+from robotd.odometry.kinematics import DiffDriveParams
+from robotd.odometry.packet import close_packet, open_packet, packet_gyro, packet_predict, packet_wheels
+
+_CALIBRATION_LIKE = EkfParams(accel_noise_density_mps2_per_sqrt_hz=0.0154,
+                              angular_accel_noise_density_radps2_per_sqrt_hz=0.0766,
+                              wheel_v_noise_mps=0.00174, wheel_v_noise_frac=0.0,
+                              wheel_w_noise_radps=0.0153, wheel_w_noise_frac=0.0, wheel_w_noise_per_mps=0.0,
+                              gyro_noise_radps=0.0028)
+
+
+def _braking_stream(drive: DiffDriveParams) -> tuple[list[WheelTicks | YawRate], float, int]:
+    """A straight at 0.4 m/s, braking at 0.4 m/s^2 from 3 s to rest, then standing: the
+    Kobuki's readings every 20 ms (ticks counted from the true distance, a still gyro).
+    Returns the messages, the distance driven while braking and the stamp of the first
+    reading at rest."""
+    v0, a, t_brake = 0.4, 0.4, 3.0
+    def dist(t: float) -> float:
+        if t <= t_brake:
+            return v0 * t
+        tb = min(t - t_brake, v0 / a)
+        return v0 * t_brake + v0 * tb - 0.5 * a * tb * tb
+    msgs: list[WheelTicks | YawRate] = []
+    per_tick = drive.metres_per_tick
+    stop_ns = 0
+    for k in range(1, 301):
+        t = 0.02 * k
+        ticks = int(math.floor(dist(t) / per_tick)) % 65536
+        stamp = int(round(t * 1e9))
+        msgs.append(YawRate(stamp - 10_000_000, 0.0))
+        msgs.append(WheelTicks(stamp, ticks, ticks))
+        if not stop_ns and t >= t_brake + v0 / a:
+            stop_ns = stamp
+    return msgs, dist(10.0) - dist(t_brake), stop_ns
+
+
+@pytest.mark.parametrize("increments", [False, True])
+def test_the_pose_at_a_stop_is_the_distance_the_ticks_measured(increments: bool):
+    """Braking from 0.4 m/s to rest with the calibration's small white acceleration: with
+    the integrated measurement the distance driven while braking is the truth's within two
+    ticks; the rates' update overshoots it by millimetres (the pose trails the truth while
+    the speed changes, and the update moves it back only part of the way)."""
+    drive = DiffDriveParams()
+    msgs, braking_m, stop_ns = _braking_stream(drive)
+    f = OdometryFilter(drive, dataclasses.replace(_CALIBRATION_LIKE, wheel_increments=increments))
+    for m in msgs:
+        (f.on_wheels if isinstance(m, WheelTicks) else f.on_yaw_rate)(m)
+    start, at_stop = f.pose_at(3_000_000_000), f.pose_at(stop_ns)
+    assert start is not None and at_stop is not None
+    err = at_stop.x_m - start.x_m - braking_m
+    if increments:
+        assert abs(err) < 2.0 * drive.metres_per_tick
+    else:
+        assert err > 10 * drive.metres_per_tick  # the lag the integrated measurement removes
+
+
+def test_the_packet_error_map_is_the_jacobian_of_its_mean():
+    """The packet's map of the error of the state it opened on (what the keyframe edges'
+    cross-covariances are carried through) is the derivative of its end state's mean by the
+    start's (gains depend on the covariance only: the map is exact, bar the arc's curvature)."""
+    params = _CALIBRATION_LIKE
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(6, 6)) * 1e-3
+    cov = a @ a.T + np.diag([1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 1e-6])
+    mean = np.array([1.0, -2.0, 0.7, 0.35, 0.4, 0.002])
+
+    def run(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = open_packet(EkfState(0, m, cov))
+        packet_predict(p, 7_000_000, params)
+        packet_gyro(p, 0.41, params)
+        packet_predict(p, 17_000_000, params)
+        packet_gyro(p, 0.43, params)
+        packet_predict(p, 20_000_000, params)
+        packet_wheels(p, 0.0072, 0.0081, 0.02, params)
+        state, emap = close_packet(p)
+        assert state.stamp_ns == 20_000_000
+        return state.mean.copy(), emap
+
+    base, emap = run(mean)
+    numeric = np.zeros((6, 6))
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = 1e-6
+        numeric[:, k] = (run(mean + d)[0] - run(mean - d)[0]) / 2e-6
+    assert emap == pytest.approx(numeric, abs=1e-6)
+    assert np.all(np.linalg.eigvalsh(run(mean)[1] @ cov @ run(mean)[1].T) > -1e-15)
+
+
+def test_only_the_filter_without_a_journal_takes_the_increments():
+    """The twin (the graph's edges) measures increments; the fused filter, which replays its
+    journal with six-entry snapshots, keeps the rates' update."""
+    params = dataclasses.replace(_CALIBRATION_LIKE, wheel_increments=True)
+    fused = OdometryFilter(params=params, vo_twin=True)
+    assert fused.wheel_gyro is not fused
+    assert fused.wheel_gyro._increments and not fused._increments
+    assert OdometryFilter(params=params)._increments
+    assert not OdometryFilter(params=_CALIBRATION_LIKE)._increments
