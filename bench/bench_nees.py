@@ -101,16 +101,18 @@ class _Recorder:
         hist = f._history  # the bench looks inside: the daemon never needs the whole run
         orig = hist.record
 
-        def record(state: Any, step: np.ndarray) -> None:
+        def record(state: Any, step: np.ndarray, ext_cov: np.ndarray | None = None) -> None:
+            # ext_cov (wheel_rounding): the covariance of [state, rounding], step its map
+            cov = state.cov if ext_cov is None else ext_cov
             if self.t and self.t[-1] == state.stamp_ns:
-                self.mean[-1], self.cov[-1] = state.mean, state.cov
+                self.mean[-1], self.cov[-1] = state.mean, cov
                 self.step[-1] = step @ self.step[-1]
             else:
                 self.t.append(state.stamp_ns)
                 self.mean.append(state.mean)
-                self.cov.append(state.cov)
+                self.cov.append(cov)
                 self.step.append(step)
-            orig(state, step)
+            orig(state, step, ext_cov)
 
         hist.record = record  # type: ignore[method-assign]
 
@@ -157,7 +159,7 @@ def drive_edges(route: str, seed: int, keyframe_m: float, sensors: BaseSensorPar
     # The error map from each keyframe's recorded state to the next one's.
     maps = []
     for a, b in zip(at[:-1], at[1:]):
-        m6 = np.eye(6)
+        m6 = np.eye(rec.step[0].shape[0])
         for s in rec.step[a + 1:b + 1]:
             m6 = s @ m6
         maps.append(m6)
@@ -357,11 +359,12 @@ def _joint_nees(d: dict[str, Any], i: int, j: int) -> tuple[float, float, float]
     """NEES of the filter's motion between keyframes ``i`` and ``j`` (its recorded states)
     against its joint covariance (the clone of :mod:`robotd.odometry.relative` over the
     whole window)."""
-    phi = np.eye(6)
+    phi = np.eye(d["maps"].shape[1])
     for m6 in d["maps"][i:j]:
         phi = m6 @ phi
     mean_a, cov_a = d["rec_mean"][i], d["rec_cov"][i]
-    clone = PoseClone(0, mean_a[:3], cov_a[:3, :3], phi @ cov_a[:, :3], np.zeros(3))
+    # (the records' error may be longer than the state's: wheel_rounding's [state, rounding])
+    clone = PoseClone(0, mean_a[:3], cov_a[:3, :3], (phi @ cov_a[:, :3])[:6], np.zeros(3))
     mean_b, cov_b = d["rec_mean"][j], d["rec_cov"][j]
     h, c = relative_pose_covariance(mean_b[:3], cov_b[:3, :3], clone)
     c = between_error_covariance(h, c)

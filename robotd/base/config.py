@@ -190,6 +190,10 @@ class OdometryConfig:
                                 "over their packet (an integrated measurement) instead of taking them as the "
                                 "rates at the reading, which trail the truth where the speed changes "
                                 "(docs/odometry.md)")
+    wheel_rounding: bool = _f(False, "with wheel_increments: the ticks' quantisation as the rounding of each "
+                              "count, carried from one wheel reading to the next (it enters two neighbouring "
+                              "readings with opposite signs and does not add up over many), instead of white "
+                              "noise per reading (docs/odometry.md)")
 
 
 @dataclass(frozen=True)

@@ -173,6 +173,15 @@ class EkfParams:
       the truth where the speed changes. Only a filter that keeps no journal (the wheel +
       gyro twin, or the filter without visual odometry:
       :class:`robotd.odometry.fusion.OdometryFilter`) uses it.
+    - ``wheel_rounding`` (default False; with ``wheel_increments`` only): the ticks'
+      quantisation as what it is rather than white noise per packet. A count is the wheel's
+      travel rounded to a tick, so the distance over a packet is the true one minus the
+      rounding at its end plus the rounding at its start: each rounding enters two
+      neighbouring packets with opposite signs, and over many packets only the end ones
+      remain. The filter carries the last count's roundings of the distance and the heading
+      change as state from packet to packet (each fresh one uniform, variance ``tick^2 /
+      12`` per wheel: :func:`robotd.odometry.packet.rounding_variances`), and the wheel
+      noise keeps only what exceeds the two roundings' variance.
     """
 
     accel_noise_density_mps2_per_sqrt_hz: float = _CONFIG.accel_noise_density_mps2_per_sqrt_hz
@@ -196,6 +205,7 @@ class EkfParams:
     slip_half_base_m: float = 0.0
     slip_yaw_rate_noise_radps: float = 0.0
     wheel_increments: bool = False
+    wheel_rounding: bool = False
 
     @classmethod
     def from_config(cls, section: OdometryConfig, **others: Any) -> EkfParams:

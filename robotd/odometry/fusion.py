@@ -58,7 +58,16 @@ from robotd.odometry.kinematics import (
 from robotd.odometry.history import EdgeBiasTerms, PoseHistory
 from robotd.odometry.increments import combine_edges, edge_disagreement
 from robotd.odometry.journal import Journal, Snapshot
-from robotd.odometry.packet import close_packet, open_packet, packet_gyro, packet_predict, packet_wheels
+from robotd.odometry.packet import (
+    PACKET_SIZE,
+    Rounding,
+    close_packet,
+    open_packet,
+    packet_gyro,
+    packet_predict,
+    packet_wheels,
+    rounding_variances,
+)
 from robotd.odometry.relative import (
     PoseClone,
     clone_after_predict,
@@ -76,6 +85,16 @@ LIVE_POSES = ("fused", "combined_edges")
 _log = logging.getLogger(__name__)
 _EYE = np.eye(STATE_SIZE)
 _EYE.setflags(write=False)  # the error map of no step, shared: maps are replaced, never changed in place
+_EYE8 = np.eye(STATE_SIZE + 2)
+_EYE8.setflags(write=False)
+
+
+def _pad8(step: np.ndarray) -> np.ndarray:
+    """A six-entry step's error map ``(6, 6)`` on the error ``[state, rounding]`` (the
+    rounding of the count unchanged by it): ``(8, 8)``."""
+    out = np.eye(STATE_SIZE + 2)
+    out[:STATE_SIZE, :STATE_SIZE] = step
+    return out
 
 
 @dataclass
@@ -255,6 +274,15 @@ class OdometryFilter:
         # filter without the journal (whose snapshots hold the six-entry state between steps)
         # and without the trapezoid's deferred move.
         self._increments = self.params.wheel_increments and self._journal is None and not self._deferred
+        # wheel_rounding: the last count's roundings carried from packet to packet, and the
+        # error map since the last record of the eight-entry error [state, rounding] (the
+        # six-entry steps' maps, self._map, join it at the record).
+        self._rounding: Rounding | None = None
+        self._xmap = _EYE8
+        if self._increments and self.params.wheel_rounding:
+            self._rounding = Rounding(rounding_variances(self.drive.metres_per_tick_left,
+                                                         self.drive.metres_per_tick_right,
+                                                         self.drive.wheel_base_m))
         self._replaying = False
         # A wheel turning at max speed covers half the counter range in this time.
         half_range_m = 32767 * self.drive.metres_per_tick
@@ -336,6 +364,7 @@ class OdometryFilter:
                 self._map = jac @ self._map
                 if self._clone is not None:
                     self._clone = clone_after_predict(self._clone, jac)
+                self._new_count()
         state = self._state
         if (self._increments and not stationary and dt_ns <= self.max_gap_s * 1e9 and self._clone is None
                 and state is not None and state.stamp_ns == ref.stamp_ns):
@@ -346,6 +375,8 @@ class OdometryFilter:
         self.counters.still_updates += int(stationary)
         self._advance_to(t)
         self._apply_wheels(v, w, stationary, msg)
+        if not still_now:
+            self._new_count()
         self._record()
         return True
 
@@ -406,7 +437,12 @@ class OdometryFilter:
         the ticks' distance ``ds`` and heading change ``dyaw`` over ``dt`` seconds; the pose
         moves by them, and the error map of the whole packet joins the filter's."""
         assert self._state is not None
-        p = open_packet(self._state)
+        r = self._rounding
+        if r is not None:  # the six-entry steps since the last record first
+            r.cross = self._map @ r.cross
+            self._xmap = _pad8(self._map) @ self._xmap
+            self._map = _EYE
+        p = open_packet(self._state, r)
         buf = self._gyro_buf
         while buf and buf[0].stamp_ns <= t:
             g = buf.popleft()
@@ -416,8 +452,24 @@ class OdometryFilter:
                         None if var is None else var / self.gyro_scale ** 2)
         packet_predict(p, t, self.params)
         packet_wheels(p, ds, dyaw, dt, self.params, msg.speed_var_m2ps2, msg.yaw_rate_var_rad2ps2)
-        self._state, step = close_packet(p)
-        self._map = step @ self._map
+        self._state, step = close_packet(p, r)
+        if r is None:
+            self._map = step @ self._map
+        else:
+            self._xmap = step @ self._xmap
+
+    def _new_count(self) -> None:
+        """``wheel_rounding``: the ticks moved outside a packet (a rate update, a gap): the
+        new count's roundings are fresh, independent of the state (what the old ones did is
+        in that update's white noise)."""
+        r = self._rounding
+        if r is None:
+            return
+        r.cross = self._map @ r.cross
+        xmap = _pad8(self._map) @ self._xmap
+        xmap[PACKET_SIZE - 2:, :] = 0.0
+        self._xmap, self._map = xmap, _EYE
+        r.reset()
 
     def _apply_wheels(self, v: float, w: float, stationary: bool, msg: WheelTicks | None = None) -> None:
         """The wheel update, carrying a pose clone's cross-covariance along (``msg``: the
@@ -677,9 +729,15 @@ class OdometryFilter:
         s = self._state
         assert s is not None
         step, self._map = self._map, _EYE
-        self._history.record(s, step)
+        r = self._rounding
+        ext_cov = None
+        if r is not None:  # the history keeps the eight-entry error [state, rounding]
+            r.cross = step @ r.cross
+            step, self._xmap = _pad8(step) @ self._xmap, _EYE8
+            ext_cov = np.block([[s.cov, r.cross], [r.cross.T, r.cov]])
+        self._history.record(s, step, ext_cov)
         if self._edge_history is not None:
-            self._edge_history.record(s, step)
+            self._edge_history.record(s, step, ext_cov)
 
     # ---- output -------------------------------------------------------------------------
 

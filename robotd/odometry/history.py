@@ -136,15 +136,19 @@ class PoseHistory:
          self._hist_map[-1]) = mark.last_rec
         self._n_rec = mark.n_rec
 
-    def record(self, state: EkfState, step: np.ndarray) -> None:
+    def record(self, state: EkfState, step: np.ndarray, ext_cov: np.ndarray | None = None) -> None:
         """Record ``state`` (its stamp's pose, or the newest record amended when the stamp is
-        the same); ``step``: the linear map of the error since the previous record."""
+        the same); ``step``: the linear map of the error since the previous record.
+        ``ext_cov``: the covariance of a longer error whose first six entries are the
+        state's (``wheel_rounding``: ``[state, rounding]``, ``(8, 8)``), ``step`` then that
+        error's map; every record of a history has the same length."""
         s = state
         t = s.stamp_ns
         pose, cov = s.mean[:3].copy(), s.cov[:3, :3].copy()
+        full_cov = s.cov if ext_cov is None else ext_cov
         if self._hist_t and self._hist_t[-1] == t:
             self._hist_pose[-1], self._hist_cov[-1] = pose, cov
-            self._hist_mean6[-1], self._hist_cov6[-1] = s.mean, s.cov  # read-only arrays
+            self._hist_mean6[-1], self._hist_cov6[-1] = s.mean, full_cov  # not changed in place
             self._hist_map[-1] = step @ self._hist_map[-1]
             return
         self._n_rec += 1
@@ -152,7 +156,7 @@ class PoseHistory:
         self._hist_pose.append(pose)
         self._hist_cov.append(cov)
         self._hist_mean6.append(s.mean)
-        self._hist_cov6.append(s.cov)
+        self._hist_cov6.append(full_cov)
         self._hist_map.append(step)
         if len(self._hist_t) > 64 and t - self._hist_t[0] > 2 * self._history_ns:
             cut = bisect.bisect_left(self._hist_t, t - self._history_ns)
@@ -240,10 +244,13 @@ class PoseHistory:
                 i = bisect.bisect_left(ts, self._kf_t)
                 mean_a, cov_a = self._hist_mean6[i], self._hist_cov6[i]
                 first = i + 1
-            step = np.eye(STATE_SIZE)
+            step = np.eye(cov_a.shape[0])
             for m in self._hist_map[first:j + 1]:
                 step = m @ step
-            cross = step @ cov_a  # Cov(state at j, state at the previous keyframe)
+            # Cov(state at j, state at the previous keyframe), over the longer error when
+            # the records carry one (its entries past the state's are marginalised here)
+            cross = (step @ cov_a)[:STATE_SIZE, :STATE_SIZE]
+            cov_a = cov_a[:STATE_SIZE, :STATE_SIZE]
             clone = PoseClone(self._kf_t, mean_a[:3], cov_a[:3, :3], cross[:, :3], self._kf_offset)
             h, cov_h = relative_pose_covariance(self._hist_pose[j], self._hist_cov[j], clone)
             # From the recorded states back to the keyframes' stamps (offsets taken as exact).

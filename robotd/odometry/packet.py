@@ -51,18 +51,65 @@ from robotd.odometry.ekf import (
 )
 from robotd.base.geometry import wrap_angle
 
-__all__ = ["ID", "ITH", "PACKET_SIZE", "Packet", "close_packet", "open_packet", "packet_gyro",
-           "packet_predict", "packet_wheels"]
+__all__ = ["ID", "ITH", "PACKET_SIZE", "ROUNDING_SIZE", "Packet", "Rounding", "close_packet",
+           "open_packet", "packet_gyro", "packet_predict", "packet_wheels", "rounding_variances"]
 
 PACKET_SIZE = STATE_SIZE + 2
 ID, ITH = STATE_SIZE, STATE_SIZE + 1
-_EYE8 = np.eye(PACKET_SIZE)
-_H_GYRO8 = np.zeros((1, PACKET_SIZE))
-_H_GYRO8[0, IW] = 1.0
-_H_GYRO8[0, IB] = 1.0
-_H_INC = np.zeros((2, PACKET_SIZE))
-_H_INC[0, ID] = 1.0
-_H_INC[1, ITH] = 1.0
+# wheel_rounding: the roundings of the distance and the heading change at the packet's
+# start (carried from the packet before) and at its end (drawn fresh inside it).
+ROUNDING_SIZE = PACKET_SIZE + 4
+IDO, ITO, IDN, ITN = PACKET_SIZE, PACKET_SIZE + 1, PACKET_SIZE + 2, PACKET_SIZE + 3
+
+
+def _gyro_row(n: int) -> np.ndarray:
+    h = np.zeros((1, n))
+    h[0, IW] = h[0, IB] = 1.0
+    return h
+
+
+def _inc_rows(n: int) -> np.ndarray:
+    h = np.zeros((2, n))
+    h[0, ID] = h[1, ITH] = 1.0
+    if n == ROUNDING_SIZE:  # counted = true - rounding at the end + rounding at the start
+        h[0, IDO], h[0, IDN] = 1.0, -1.0
+        h[1, ITO], h[1, ITN] = 1.0, -1.0
+    return h
+
+
+_H_GYRO = {n: _gyro_row(n) for n in (PACKET_SIZE, ROUNDING_SIZE)}
+_H_INC = {n: _inc_rows(n) for n in (PACKET_SIZE, ROUNDING_SIZE)}
+_EYE = {n: np.eye(n) for n in (PACKET_SIZE, ROUNDING_SIZE)}
+
+
+def rounding_variances(metres_per_tick_left: float, metres_per_tick_right: float,
+                       wheel_base_m: float) -> np.ndarray:
+    """``(2,)`` the variances of one count's rounding carried into the distance (m^2) and the
+    heading change (rad^2): each wheel's count is its travel rounded to a tick, the residual
+    uniform over the tick (variance ``tick^2 / 12``), the two wheels' independent; the
+    distance takes their mean, the heading change their difference over the wheel base."""
+    vl, vr = metres_per_tick_left ** 2 / 12.0, metres_per_tick_right ** 2 / 12.0
+    return np.array([(vl + vr) / 4.0, (vl + vr) / wheel_base_m ** 2])
+
+
+class Rounding:
+    """``wheel_rounding``: the roundings of the distance and the heading change the last
+    count left (the filter's estimate, carried from packet to packet): ``mean (2,)``, m and
+    rad, ``cov (2, 2)``, ``cross (6, 2)`` the covariance of the six-entry state's error with
+    theirs, and ``fresh (2,)`` the variances of a new count's (:func:`rounding_variances`)."""
+
+    __slots__ = ("cov", "cross", "fresh", "mean")
+
+    def __init__(self, fresh: np.ndarray) -> None:
+        self.fresh = fresh
+        self.reset()
+
+    def reset(self) -> None:
+        """A count whose rounding nothing else has seen: zero mean, fresh variance, no
+        correlation with the state."""
+        self.mean = np.zeros(2)
+        self.cov = np.diag(self.fresh)
+        self.cross = np.zeros((STATE_SIZE, 2))
 
 
 class Packet:
@@ -79,13 +126,31 @@ class Packet:
         self.error_map = error_map
 
 
-def open_packet(state: EkfState) -> Packet:
-    """The packet that starts at ``state``: ``D`` and ``Th`` zero and exactly known."""
-    mean = np.zeros(PACKET_SIZE)
+def open_packet(state: EkfState, rounding: Rounding | None = None) -> Packet:
+    """The packet that starts at ``state``: ``D`` and ``Th`` zero and exactly known. With
+    ``rounding`` (``wheel_rounding``) the last count's roundings join it, and the roundings
+    of the count that will close it (fresh, independent of all before); its error map then
+    starts from the eight-entry error ``[state, rounding]``."""
+    if rounding is None:
+        mean = np.zeros(PACKET_SIZE)
+        mean[:STATE_SIZE] = state.mean
+        cov = np.zeros((PACKET_SIZE, PACKET_SIZE))
+        cov[:STATE_SIZE, :STATE_SIZE] = state.cov
+        return Packet(state.stamp_ns, mean, cov, _EYE[PACKET_SIZE][:, :STATE_SIZE].copy())
+    n = ROUNDING_SIZE
+    mean = np.zeros(n)
     mean[:STATE_SIZE] = state.mean
-    cov = np.zeros((PACKET_SIZE, PACKET_SIZE))
+    mean[IDO:ITO + 1] = rounding.mean
+    cov = np.zeros((n, n))
     cov[:STATE_SIZE, :STATE_SIZE] = state.cov
-    return Packet(state.stamp_ns, mean, cov, _EYE8[:, :STATE_SIZE].copy())
+    cov[:STATE_SIZE, IDO:ITO + 1] = rounding.cross
+    cov[IDO:ITO + 1, :STATE_SIZE] = rounding.cross.T
+    cov[IDO:ITO + 1, IDO:ITO + 1] = rounding.cov
+    cov[IDN, IDN], cov[ITN, ITN] = rounding.fresh
+    emap = np.zeros((n, PACKET_SIZE))
+    emap[:STATE_SIZE, :STATE_SIZE] = np.eye(STATE_SIZE)
+    emap[IDO, STATE_SIZE] = emap[ITO, STATE_SIZE + 1] = 1.0
+    return Packet(state.stamp_ns, mean, cov, emap)
 
 
 def packet_predict(p: Packet, t_ns: int, params: EkfParams) -> None:
@@ -96,7 +161,8 @@ def packet_predict(p: Packet, t_ns: int, params: EkfParams) -> None:
     if dt_ns <= 0:
         return
     dt = dt_ns * 1e-9
-    jac = _EYE8.copy()
+    n = p.mean.shape[0]
+    jac = _EYE[n].copy()
     jac[ID, IV] = dt
     jac[ITH, IW] = dt
     m = p.mean
@@ -107,7 +173,7 @@ def packet_predict(p: Packet, t_ns: int, params: EkfParams) -> None:
     d2, d3 = dt * dt / 2.0, dt ** 3 / 3.0
     if params.rate_only_process:
         d2 = d3 = 0.0
-    q = np.zeros((PACKET_SIZE, PACKET_SIZE))
+    q = np.zeros((n, n))
     q[ID, ID], q[ID, IV], q[IV, ID], q[IV, IV] = ql * d3, ql * d2, ql * d2, ql * dt
     q[ITH, ITH], q[ITH, IW], q[IW, ITH], q[IW, IW] = qa * d3, qa * d2, qa * d2, qa * dt
     q[IB, IB] = params.gyro_bias_walk_radps_per_sqrt_s ** 2 * dt
@@ -123,7 +189,7 @@ def _update(p: Packet, innovation: np.ndarray, h: np.ndarray, r: np.ndarray) -> 
     s = h @ ph + r
     gain = np.linalg.solve(s, ph.T).T
     p.mean = p.mean + gain @ innovation
-    a = _EYE8 - gain @ h
+    a = _EYE[p.mean.shape[0]] - gain @ h
     cov = a @ p.cov @ a.T + gain @ r @ gain.T
     p.cov = 0.5 * (cov + cov.T)
     p.error_map = a @ p.error_map
@@ -132,7 +198,7 @@ def _update(p: Packet, innovation: np.ndarray, h: np.ndarray, r: np.ndarray) -> 
 def packet_gyro(p: Packet, w_radps: float, params: EkfParams, yaw_rate_var_rad2ps2: float | None = None) -> None:
     """A gyro reading inside the packet: ``h = w + bias`` (:func:`robotd.odometry.ekf.update_gyro`)."""
     innovation = np.array([w_radps - p.mean[IW] - p.mean[IB]])
-    _update(p, innovation, _H_GYRO8, gyro_noise_var(params, yaw_rate_var_rad2ps2))
+    _update(p, innovation, _H_GYRO[p.mean.shape[0]], gyro_noise_var(params, yaw_rate_var_rad2ps2))
 
 
 def packet_wheels(p: Packet, ds_m: float, dyaw_rad: float, dt_s: float, params: EkfParams,
@@ -141,34 +207,59 @@ def packet_wheels(p: Packet, ds_m: float, dyaw_rad: float, dt_s: float, params: 
     change ``dyaw_rad`` over ``dt_s`` measure ``(D, Th)``, with the rate noise of
     :func:`robotd.odometry.ekf.wheel_noise` at the mean rates times ``dt_s`` (and the slip
     test's widening, :func:`robotd.odometry.ekf.slip_variances`, on the yaw rate's
-    disagreement over the packet)."""
+    disagreement over the packet).
+
+    With the roundings in the packet (:func:`open_packet` with a :class:`Rounding`) the
+    ticks measure ``D`` and ``Th`` plus the start's rounding minus the end's, and the white
+    noise keeps only what exceeds the two roundings' variance (``2 fresh``): the rate noise
+    of the calibration's model is the ticks' own, which the roundings now carry."""
     v, w = ds_m / dt_s, dyaw_rad / dt_s
     sv, sw = wheel_noise(v, w, params, False, speed_var_m2ps2, yaw_rate_var_rad2ps2)
-    innovation = np.array([ds_m - p.mean[ID], dyaw_rad - p.mean[ITH]])
+    n = p.mean.shape[0]
+    h = _H_INC[n]
+    predicted = h @ p.mean
+    innovation = np.array([ds_m - predicted[0], dyaw_rad - predicted[1]])
     var_v, var_w = sv * sv, sw * sw
+    dt2 = dt_s * dt_s
+    if n == ROUNDING_SIZE and speed_var_m2ps2 is None and yaw_rate_var_rad2ps2 is None:
+        fresh_d, fresh_t = p.cov[IDN, IDN], p.cov[ITN, ITN]
+        var_v = max(var_v - 2.0 * fresh_d / dt2, 0.0)
+        var_w = max(var_w - 2.0 * fresh_t / dt2, 0.0)
     if params.slip_gate_sigma > 0.0 and speed_var_m2ps2 is None:
         add_v, add_w = slip_variances(float(innovation[1]) / dt_s, float(p.cov[ITH, ITH]) / dt_s ** 2, params)
         var_v += add_v
         var_w += add_w
-    dt2 = dt_s * dt_s
-    _update(p, innovation, _H_INC, np.array([[var_v * dt2, 0.0], [0.0, var_w * dt2]]))
+    _update(p, innovation, h, np.array([[var_v * dt2, 0.0], [0.0, var_w * dt2]]))
 
 
-def close_packet(p: Packet) -> tuple[EkfState, np.ndarray]:
+def close_packet(p: Packet, rounding: Rounding | None = None) -> tuple[EkfState, np.ndarray]:
     """The six-entry state at the packet's end (the pose moved along the arc of ``(D, Th)``
     from the packet's start) and the ``(6, 6)`` linear map of the error from the state the
-    packet opened on to it."""
+    packet opened on to it. With the roundings in the packet, ``rounding`` (the one it
+    opened with) becomes the closing count's, and the map is ``(8, 8)``, of the error
+    ``[state, rounding]`` from the packet's start to its end."""
     m = p.mean
     base = np.array([m[IX], m[IY], m[IYAW], m[ID], m[ITH], m[IB]])
     moved, jac, _c, _s = _arc(base, 1.0)  # dt = 1: "v" is D, "w" is Th
-    g = np.zeros((STATE_SIZE, PACKET_SIZE))
+    n = p.mean.shape[0]
+    out = STATE_SIZE if n == PACKET_SIZE else PACKET_SIZE
+    g = np.zeros((out, n))
     g[:3, :3] = jac[:3, :3]
     g[:3, ID] = jac[:3, IV]
     g[:3, ITH] = jac[:3, IW]
     g[IV, IV] = g[IW, IW] = g[IB, IB] = 1.0
+    if n == ROUNDING_SIZE:
+        g[STATE_SIZE, IDN] = g[STATE_SIZE + 1, ITN] = 1.0
     mean = np.array([moved[IX], moved[IY], wrap_angle(float(moved[IYAW])), m[IV], m[IW], m[IB]])
     cov = g @ p.cov @ g.T
     cov = 0.5 * (cov + cov.T)
     if not (np.all(np.isfinite(mean)) and math.isfinite(float(cov.trace()))):
         raise FloatingPointError("the packet's state is not finite")
+    if n == ROUNDING_SIZE:
+        if rounding is None:
+            raise ValueError("a packet with the roundings closes into a Rounding")
+        rounding.mean = np.array([m[IDN], m[ITN]])
+        rounding.cov = cov[STATE_SIZE:, STATE_SIZE:].copy()
+        rounding.cross = cov[:STATE_SIZE, STATE_SIZE:].copy()
+        cov = cov[:STATE_SIZE, :STATE_SIZE].copy()
     return EkfState._own(p.stamp_ns, mean, cov), g @ p.error_map
