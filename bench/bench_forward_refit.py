@@ -22,7 +22,7 @@ show``); everything else is this checkout's. Before and after alternate per view
 part timed by the thread's CPU clock, ``--repeats`` times. The fits are compared to the
 bit (heading, bearing, inliers, the scan's profile and sigmas; the ridge fits' bearings).
 
-Run: ``python bench/bench_forward_refit.py --map DEMO_OUT/map.sqlite [--baseline-rev main]
+Run: ``python bench/bench_forward_refit.py --map DEMO_OUT/map.sqlite --baseline-rev REV
 [--pairs 80] [--repeats 5] [--label TEXT] [--out DIR] [--page FILE.md]`` (a few minutes).
 Writes ``forward_refit.json`` and, with ``--page``, its Markdown page.
 """
@@ -182,7 +182,9 @@ def page_lines(out: dict[str, Any]) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--map", type=Path, required=True, help="a forward demo's map.sqlite")
-    ap.add_argument("--baseline-rev", default="main", help="git revision of the baseline's planefit.py")
+    ap.add_argument("--baseline-rev", required=True,
+                    help="git revision of the baseline's planefit.py (the code before the change measured; "
+                         "the current branch against itself measures nothing)")
     ap.add_argument("--pairs", type=int, default=80)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--label", default=None, help="what the map is, for the page (default: its path)")
