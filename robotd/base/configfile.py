@@ -96,6 +96,10 @@ def config_from_dict(data: dict[str, Any], *, origin: str = "", stored: bool = F
     fc = cfg.floor_camera
     if not (0 <= fc.cx_px < fc.width_px and 0 <= fc.cy_px < fc.height_px):
         raise ConfigError("[floor_camera] cx_px/cy_px: the principal point must lie inside the image")
+    if cfg.odometry.wheel_rounding and not cfg.odometry.wheel_increments:
+        # The roundings are carried between the packets of wheel_increments; alone the key
+        # would do nothing, which a user who set it would not expect.
+        raise ConfigError("[odometry] wheel_rounding: works only with wheel_increments = true")
     return with_virtual_floor_camera(cfg) if virtual else cfg
 
 
