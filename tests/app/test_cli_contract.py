@@ -604,7 +604,9 @@ def test_empty_map_paths_are_refused(material: Path, tmp_path: Path):
 def test_a_broken_config_is_named_on_one_line(tmp_path: Path):
     cfg = tmp_path / "robotd.toml"
     for text, says in [("[map\n", "not valid TOML"), ("[base]\nbaudrate = 'fast'\n", "[base] baudrate"),
-                       ("[nosuch]\n", "unknown section [nosuch]")]:
+                       ("[nosuch]\n", "unknown section [nosuch]"),
+                       ("[odometry]\nwheel_rounding = true\n",
+                        "[odometry] wheel_rounding: works only with wheel_increments")]:
         cfg.write_text(text)
         assert_refused(run("config", "check", cfg), says)
         assert_refused(run("run", "--config", cfg), says)
