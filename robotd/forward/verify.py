@@ -118,7 +118,7 @@ from robotd.forward.planefit import ransac_planar
 
 __all__ = ["ACCEPTED", "NO_GEOMETRIC_CONSISTENCY", "SMALL_SUPPORT", "TOO_FEW_MATCHES", "Verification", "VerifyReason",
            "VerifyParams", "camera_matrix_guess", "essential_matrix", "floor_range", "match_features", "match_indices",
-           "ransac_iterations", "support_area", "verify_pair"]
+           "matched_points", "ransac_iterations", "support_area", "verify_pair"]
 
 class VerifyReason(StrEnum):
     """The outcome of a verification (a :class:`~enum.StrEnum`: equal to its text)."""
@@ -361,7 +361,14 @@ def match_features(a: FeatureSet, b: FeatureSet, ratio: float = 0.8,
                    by_distance: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Matched keypoints ``(M, 2), (M, 2)`` float32 of ``a`` and ``b``
     (:func:`match_indices`)."""
-    ia, ib = match_indices(a, b, ratio, by_distance)
+    return matched_points(a, b, match_indices(a, b, ratio, by_distance))
+
+
+def matched_points(a: FeatureSet, b: FeatureSet,
+                   index: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The keypoints ``(M, 2), (M, 2)`` float32 of ``a`` and ``b`` at the matches' indices
+    ``index`` (:func:`match_indices`, or a :class:`Verification`'s ``match_index``)."""
+    ia, ib = index
     if not len(ia):
         empty = np.zeros((0, 2), np.float32)
         return empty, empty

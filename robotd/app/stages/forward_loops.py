@@ -134,7 +134,7 @@ from robotd.forward import LOOP, ForwardDetector
 from robotd.forward.features import CompactFeatures
 from robotd.forward.planar import INLIER_NOISE_FACTOR, planar_motion, planarity_bound
 from robotd.forward.planefit import SCAN_STEP_RAD, PlanarFit, fit_planar, fit_planar_scans, planar_inliers, ridge_span
-from robotd.forward.verify import VerifyParams, floor_range, match_features
+from robotd.forward.verify import VerifyParams, floor_range, match_features, matched_points
 
 log = logging.getLogger(__name__)
 
@@ -895,9 +895,7 @@ class ForwardLoopStage(Publisher):
         old, new = det.features_of(image_id), det.features_of(len(det) - 1)
         index = getattr(v, "match_index", None)
         if index is not None:  # the verification's matches (the same), not matched again
-            ia, ib = index
-            empty = np.zeros((0, 2), np.float32)
-            p_old, p_new = (old.keypoints_px[ia], new.keypoints_px[ib]) if len(ia) else (empty, empty)
+            p_old, p_new = matched_points(old, new, index)
         else:
             p_old, p_new = match_features(old, new, det.params.verify.ratio)
         self._add_cpu("match", t0)
