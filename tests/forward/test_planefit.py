@@ -246,3 +246,75 @@ def test_without_sigmas_the_fit_is_the_same_motion(fix_yaw):
     assert (a.dyaw_rad, a.bearing_rad) == (b.dyaw_rad, b.bearing_rad)
     assert np.array_equal(a.inliers, b.inliers) and np.array_equal(a.translation_dir, b.translation_dir)
     assert np.array_equal(a.scan_inliers, b.scan_inliers)
+
+
+def test_the_smoothed_histogram_is_the_rolled_one():
+    from robotd.forward.planefit import _with_neighbours
+
+    hist = np.random.default_rng(0).integers(0, 50, (7, 360))
+    expected = hist + np.roll(hist, 1, axis=1) + np.roll(hist, -1, axis=1)
+    assert np.array_equal(_with_neighbours(hist), expected)
+
+
+def test_the_condition_number_falls_on_the_svd_s_side_of_the_limit():
+    """The cheap condition number decides as ``np.linalg.cond`` does, down to matrices
+    whose condition number is within a part in a million of the limit."""
+    from robotd.forward.planefit import _COND_LIMIT, _cond
+
+    rng = np.random.default_rng(1)
+    mats = [np.array([[rng.normal() * 10 ** rng.uniform(-8, 8)]]) for _ in range(50)]
+    for _ in range(2000):
+        # symmetric positive semi-definite 2 x 2 (a J^T J), condition numbers 1 .. 1e16
+        q, _ = np.linalg.qr(rng.normal(size=(2, 2)))
+        big = 10 ** rng.uniform(-6, 6)
+        mats.append(q @ np.diag([big, big / 10 ** rng.uniform(0, 16)]) @ q.T)
+    for c in (1e12 * (1 - 1e-6), 1e12 * (1 + 1e-6), 1e11, 1e11 * 1.01):  # at the lines
+        mats.append(np.diag([1.0, 1.0 / c]))
+    mats += [np.zeros((2, 2)), np.array([[1.0, 2.0], [2.0, 4.0]]), np.array([[0.0]])]
+    for m in mats:
+        with np.errstate(all="ignore"):
+            ref = float(np.linalg.cond(m))
+            got = _cond(m)
+        assert (got > _COND_LIMIT) == (ref > _COND_LIMIT) and (got < _COND_LIMIT) == (ref < _COND_LIMIT), m
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_sampson_distances_of_several_poses_at_once_are_each_pose_s_to_the_bit(seed):
+    from robotd.forward.planefit import _sampson, _sampson_poses
+
+    rng = np.random.default_rng(seed)
+    po, pn = _views(5.0 - 4 * seed, 30.0 + 50 * seed, 0.4, seed=seed)
+    kinv = np.linalg.inv(K)
+    x = np.hstack([po, np.ones((len(po), 1))]) @ kinv.T
+    xn = np.hstack([pn, np.ones((len(pn), 1))]) @ kinv.T
+    for n in (len(x), 7, 0):
+        thetas = [rng.normal(size=2) for _ in range(5)]
+        got = _sampson_poses(x[:n], xn[:n], thetas, 525.0)
+        assert got.shape == (5, n) and got.flags["C_CONTIGUOUS"]
+        for k, th in enumerate(thetas):
+            assert np.array_equal(got[k], _sampson(x[:n], xn[:n], *planar_pose(float(th[0]), float(th[1])), 525.0))
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_the_batched_refinement_is_the_reference_s_to_the_bit(seed):
+    """The refinement with its residuals batched (one call per point and its neighbours)
+    gives the fit of the one-call-per-evaluation reference: heading, bearing, inliers and
+    sigmas equal, with the heading fitted or held, with and without sigmas."""
+    from robotd.forward.planefit import _refine, _refine_reference
+
+    rng = np.random.default_rng(seed)
+    yaw = rng.uniform(-25, 25)
+    po, pn = _views(yaw, rng.uniform(-180, 180), rng.uniform(0.05, 1.0), seed=seed,
+                    outliers=int(rng.integers(0, 80)), noise_px=rng.uniform(0.2, 2.0))
+    kinv = np.linalg.inv(K)
+    x = np.hstack([po, np.ones((len(po), 1))]) @ kinv.T
+    xn = np.hstack([pn, np.ones((len(pn), 1))]) @ kinv.T
+    for fix_yaw in (False, True):
+        for sigmas in (True, False):
+            start = (math.radians(yaw) + rng.normal(0, 0.02), rng.uniform(0, math.pi))
+            args = (x, xn, 525.0, *start, 1.0, fix_yaw, np.zeros(0), np.zeros(0, np.int64), sigmas)
+            a, b = _refine(*args), _refine_reference(*args)
+            assert (a.dyaw_rad, a.bearing_rad) == (b.dyaw_rad, b.bearing_rad)
+            assert np.array_equal(a.inliers, b.inliers)
+            assert np.array_equal([a.sigma_yaw_rad, a.sigma_bearing_rad], [b.sigma_yaw_rad, b.sigma_bearing_rad],
+                                  equal_nan=True)
