@@ -7,22 +7,24 @@ nearest older image by the keyframes' poses (at least 20 images older, within 0.
 25 deg) is verified as the daemon's detector verifies (its default parameters, the map's
 camera); each accepted view is refitted as the stage refits it:
 
-- ``match``: the two images' matches (baseline: matched again, as the stage did; now: read
-  from the verification's ``match_index``);
+- ``match``: the two images' matches (read from the verification's ``match_index``);
 - ``scan``: the heading scan around the verified and the level motion's heading (one scan
-  when both round to one lattice heading; baseline: one ``fit_planar`` per centre; now:
-  ``fit_planar_scans``), the fit with more inliers kept;
+  when both round to one lattice heading; ``fit_planar_scans``), the fit with more inliers
+  kept;
 - ``ridge``: the fixed-heading fits of a loop on a heading-bearing ridge (at the kept fit's
-  heading with its sigmas, and 0.5 deg either side for the bearing's slope; baseline: all
-  three with their sigmas; now: the sides without), run for every view here (in the daemon
-  only ridge loops run them).
+  heading with its sigmas, and 0.5 deg either side for the bearing's slope without them),
+  run for every view here (in the daemon only ridge loops run them).
 
 The baseline's ``robotd/forward/planefit.py`` is read from ``--baseline-rev`` (``git
-show``); everything else is this checkout's. Before and after alternate per view, each
-part timed by the thread's CPU clock, ``--repeats`` times. The fits are compared to the
-bit (heading, bearing, inliers, the scan's profile and sigmas; the ridge fits' bearings).
+show``); everything else is this checkout's. With ``--baseline-calls current`` (default)
+the baseline's side makes the same calls, so the ratio is ``planefit.py``'s alone; with
+``earlier`` it makes the stage's calls from before its refit read the verification's
+matches (matched again, one ``fit_planar`` per centre, the ridge's side fits with their
+sigmas). Before and after alternate per view, each part timed by the thread's CPU clock,
+``--repeats`` times. The fits are compared to the bit (heading, bearing, inliers, the
+scan's profile and sigmas; the ridge fits' bearings).
 
-Run: ``python bench/bench_forward_refit.py --map DEMO_OUT/map.sqlite --baseline-rev REV
+Run: ``python bench/bench_forward_refit.py --map DEMO_OUT/map.sqlite --baseline-rev REV [--baseline-calls C]
 [--pairs 80] [--repeats 5] [--label TEXT] [--out DIR] [--page FILE.md]`` (a few minutes).
 Writes ``forward_refit.json`` and, with ``--page``, its Markdown page.
 """
@@ -163,8 +165,11 @@ def page_lines(out: dict[str, Any]) -> list[str]:
              "[forward.md](../forward.md), \"The time target\"). The stage's refit of each view verified on "
              f"{out['label']} ({out['views']} views, {out['two_scans']} of them scanned around two headings; the level "
              f"motion's heading {off['median']} deg from the verified one at the median, {off['p90']} at the 90th "
-             f"percentile), the current code against the baseline revision's `planefit.py` in the same run, "
-             f"alternating per view, {out['repeats']} times each; CPU ms per view (the thread's clock). "
+             f"percentile), the current code against the baseline revision's `planefit.py` in the same run "
+             + ("(the same calls on both sides), " if out.get("baseline_calls", "earlier") == "current" else
+                "(the baseline making the stage's earlier calls: matched again, one scan per centre, the ridge's "
+                "side fits with sigmas), ")
+             + f"alternating per view, {out['repeats']} times each; CPU ms per view (the thread's clock). "
              f"Machine: {m.get('machine')}, {m.get('cpu_count')} cores, numpy {m.get('numpy')}; load average "
              f"{out['load'][0]} at the start, {out['load'][1]} at the end.", "",
              "| part | baseline | now | now / baseline |", "|---|---:|---:|---:|"]
@@ -185,6 +190,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--baseline-rev", required=True,
                     help="git revision of the baseline's planefit.py (the code before the change measured; "
                          "the current branch against itself measures nothing)")
+    ap.add_argument("--baseline-calls", choices=("current", "earlier"), default="current",
+                    help="the stage's calls on the baseline's side: 'current' (the same calls as now, so the "
+                         "ratio is planefit.py's alone) or 'earlier' (matched again, one fit_planar per centre, "
+                         "the ridge's side fits with sigmas: the stage before its refit read the verification's "
+                         "matches)")
     ap.add_argument("--pairs", type=int, default=80)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--label", default=None, help="what the map is, for the page (default: its path)")
@@ -210,7 +220,9 @@ def main(argv: list[str] | None = None) -> int:
             for now in ((False, True) if (n + r) % 2 == 0 else (True, False)):
                 t = after if now else before
                 s0 = sum(t.values())
-                got = refit(now_pf if now else base_pf, now, old, new, v, k, vp.ransac_threshold_px, vp.ratio, t)
+                calls_now = now or args.baseline_calls == "current"
+                got = refit(now_pf if now else base_pf, calls_now, old, new, v, k, vp.ransac_threshold_px, vp.ratio,
+                            t)
                 if now:
                     va += sum(t.values()) - s0
                     got_now = got
@@ -235,6 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     tot_b, tot_a = sum(before.values()), sum(after.values())
     pv = np.array(per_view) if per_view else np.zeros((0, 2))
     out = {"machine": machine_info(), "commit": git_commit(), "baseline_rev": args.baseline_rev,
+           "baseline_calls": args.baseline_calls,
            "baseline_commit": subprocess.run(["git", "rev-parse", args.baseline_rev], cwd=REPO_ROOT,
                                              capture_output=True, text=True).stdout.strip(),
            "load": [load0, round(os.getloadavg()[0], 1)], "map": str(args.map), "label": args.label or str(args.map), "views": len(views), "repeats": reps, "identical_fits": identical,
