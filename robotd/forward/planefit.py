@@ -355,7 +355,10 @@ def _refine(x_old: np.ndarray, x_new: np.ndarray, focal: float, yaw: float, psi:
             if not np.all(np.isfinite(jtj)) or _cond(jtj) > _COND_LIMIT:
                 break
             step = np.zeros(2)
-            step[free] = -np.linalg.solve(jtj, jac.T @ r0)
+            if len(free) == 1:  # a scalar: LAPACK's solve of a 1 x 1 system is this division
+                step[1] = -(float((jac.T @ r0)[0]) / float(jtj[0, 0]))
+            else:
+                step[free] = -np.linalg.solve(jtj, jac.T @ r0)
             trial, jac_trial = around(theta + step)
             if not float(trial @ trial) < float(r0 @ r0):
                 break

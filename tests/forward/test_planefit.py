@@ -318,3 +318,11 @@ def test_the_batched_refinement_is_the_reference_s_to_the_bit(seed):
             assert np.array_equal(a.inliers, b.inliers)
             assert np.array_equal([a.sigma_yaw_rad, a.sigma_bearing_rad], [b.sigma_yaw_rad, b.sigma_bearing_rad],
                                   equal_nan=True)
+
+
+def test_a_one_by_one_solve_is_the_division():
+    """The held-heading refinement divides where it solved a 1 x 1 system: the same number."""
+    rng = np.random.default_rng(3)
+    for _ in range(2000):
+        a, b = rng.normal(size=2) * 10 ** rng.uniform(-8, 8, size=2)
+        assert float(np.linalg.solve(np.array([[a]]), np.array([b]))[0]) == b / a
