@@ -105,9 +105,16 @@ def _sampson_many(x_old: np.ndarray, x_new: np.ndarray, yaws: np.ndarray, psis: 
     e12, e21 = (tz * s - tx_ * c)[:, None], tx_[:, None]
     x1, y1, z1 = x_old[:, 0], x_old[:, 1], x_old[:, 2]
     x2, y2, z2 = x_new[:, 0], x_new[:, 1], x_new[:, 2]
-    ex1_0, ex1_1, ex1_2 = e01 * y1, e10 * x1 + e12 * z1, e21 * y1  # E x_old
-    etx2_0, etx2_1 = e10 * y2, e01 * x2 + e21 * z2  # E^T x_new's first two
-    num = (x2 * ex1_0 + z2 * ex1_2) + y2 * ex1_1
+    if (z1 == 1.0).all() and (z2 == 1.0).all():
+        # pixels through K^-1 (its last row 0, 0, 1): a product by z is the factor itself,
+        # exactly, so the same distances without three (M, N) products
+        ex1_0, ex1_1, ex1_2 = e01 * y1, e10 * x1 + e12, e21 * y1
+        etx2_0, etx2_1 = e10 * y2, e01 * x2 + e21
+        num = (x2 * ex1_0 + ex1_2) + y2 * ex1_1
+    else:
+        ex1_0, ex1_1, ex1_2 = e01 * y1, e10 * x1 + e12 * z1, e21 * y1  # E x_old
+        etx2_0, etx2_1 = e10 * y2, e01 * x2 + e21 * z2  # E^T x_new's first two
+        num = (x2 * ex1_0 + z2 * ex1_2) + y2 * ex1_1
     den = np.sqrt(ex1_0 ** 2 + ex1_1 ** 2 + etx2_0 ** 2 + etx2_1 ** 2)
     out: np.ndarray = focal * num / np.maximum(den, 1e-15)
     return out

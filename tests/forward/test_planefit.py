@@ -170,6 +170,9 @@ def test_the_written_out_sampson_distances_are_the_contracted_ones_to_the_bit(se
     fast = _sampson_many(x, xn, yaws, psis, 525.0)
     assert fast.shape == (300, len(po))
     assert np.array_equal(fast, _sampson_many_einsum(x, xn, yaws, psis, 525.0))
+    assert (x[:, 2] == 1.0).all()  # the unit-depth case (pixels through K^-1); and one without it:
+    assert np.array_equal(_sampson_many(2.0 * x, xn, yaws, psis, 525.0),
+                          _sampson_many_einsum(2.0 * x, xn, yaws, psis, 525.0))
     # and they are the Sampson distances of the poses one by one
     for m in (0, 117, 299):
         assert np.allclose(fast[m], _sampson(x, xn, *planar_pose(float(yaws[m]), float(psis[m])), 525.0),
