@@ -176,14 +176,8 @@ def _augmented_b(d: FloorDescriptor | PartialDescriptor) -> np.ndarray:
     n, length = len(d), d.length
     if isinstance(d, PartialDescriptor):
         out = np.empty((n, length + 1), np.float32)
-        t = out[:, :-1]
-        if length % 5 == 0:  # a keypoint's elements fill whole bytes: looked up in place
-            view = t.view()
-            view.shape = (n, length // 5, 5)  # a view of the same memory (raises rather than copy)
-            _minus_two_trits().take(d.trits[: n * length // 5].reshape(n, length // 5), axis=0, out=view,
-                                    mode="clip")
-        else:
-            t[:] = _minus_two_trits().take(d.trits, axis=0).reshape(-1)[: n * length].reshape(n, length)
+        t = _minus_two_trits().take(d.trits, axis=0).reshape(-1)[: n * length].reshape(n, length)
+        out[:, :-1] = t
         out[:, -1] = np.einsum("ij,ij->i", t, t) * np.float32(0.25)
         return out
     pos = np.unpackbits(np.ascontiguousarray(d.local_pos).astype("<u8", copy=False).view(np.uint8), axis=1,
