@@ -135,10 +135,13 @@ class MatchResult:
         return math.nan if self.transform is None else math.atan2(self.transform[1, 0], self.transform[0, 0])
 
 
+_NO_INDEX = np.zeros(0, np.int64)
+_NO_XY = np.zeros((0, 2), np.float32)
+_NO_INDEX.flags.writeable = _NO_XY.flags.writeable = False
+
+
 def _dismissed(reason: MatchReason, n_matches: int = 0) -> MatchResult:
-    e = np.zeros(0, np.int64)
-    xy = np.zeros((0, 2), np.float32)
-    return MatchResult(0.0, n_matches, 0, e, e, xy, xy, None, reason)
+    return MatchResult(0.0, n_matches, 0, _NO_INDEX, _NO_INDEX, _NO_XY, _NO_XY, None, reason)
 
 
 _PREV_BIN = np.roll(np.arange(32), 1)  # the orientation histogram's 32 bins, circularly
@@ -194,7 +197,7 @@ def _rigid(xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
     :func:`robotd.base.geometry.rigid_fit_2d`, from raw sums: this runs twice per match)."""
     n = len(xa)
     sa, sb = xa.sum(axis=0), xb.sum(axis=0)
-    h = xa.T @ xb - np.outer(sa, sb) / n
+    h = xa.T @ xb - sa[:, None] * sb[None, :] / n
     yaw = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
     c, s = math.cos(yaw), math.sin(yaw)
     ca, cb = sa / n, sb / n
@@ -332,25 +335,37 @@ def _score(a: FloorDescriptor, b: FloorDescriptor | PartialDescriptor, p: MatchP
     # Step 3: RANSAC over 2-point rigid hypotheses.
     m = len(ka)
     i, j = _ransac_pairs(p.seed, m, p.iterations)
-    va, vb = xa[j] - xa[i], xb[j] - xb[i]
-    la, lb = np.hypot(va[:, 0], va[:, 1]), np.hypot(vb[:, 0], vb[:, 1])
-    phi = np.arctan2(vb[:, 1], vb[:, 0]) - np.arctan2(va[:, 1], va[:, 0])
+    xab = np.concatenate([xa, xb], axis=1)  # (m, 4): x, y in A, then in B
+    v = xab[j] - xab[i]
+    lab = np.hypot(v[:, 0::2], v[:, 1::2])  # sample lengths in A, in B
+    la, lb = lab[:, 0], lab[:, 1]
+    ang = np.arctan2(v[:, 1::2], v[:, 0::2])
+    phi = ang[:, 1] - ang[:, 0]
     ok = (la >= p.min_sample_px) & (np.abs(np.log(np.maximum(lb, 1e-9) / np.maximum(la, 1e-9))) <= p.max_log_scale)
     ok &= np.abs(wrap_angle(phi - peak)) <= p.angle_tol_rad + math.pi / nbins
     if not np.any(ok):
         return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
     i, j, phi = i[ok], j[ok], phi[ok]
-    c, s = np.cos(phi), np.sin(phi)
-    ca, cb = 0.5 * (xa[i] + xa[j]), 0.5 * (xb[i] + xb[j])
-    tx = cb[:, 0] - (c * ca[:, 0] - s * ca[:, 1])
-    ty = cb[:, 1] - (s * ca[:, 0] + c * ca[:, 1])
+    h = len(phi)
+    # Rows [c, -s, tx] and [s, c, ty] of each hypothesis's [R | t], C-ordered as
+    # np.stack(..., axis=1) gives them (the products below see the same layout).
+    rows_x, rows_y = np.empty((h, 3)), np.empty((h, 3))
+    c, s = np.cos(phi, out=rows_x[:, 0]), np.sin(phi, out=rows_y[:, 0])
+    np.negative(s, out=rows_x[:, 1])
+    rows_y[:, 1] = c
+    mid = xab[i]
+    mid += xab[j]
+    mid *= 0.5  # sample midpoints: x, y in A, then in B
+    np.subtract(mid[:, 2], c * mid[:, 0] - s * mid[:, 1], out=rows_x[:, 2])
+    np.subtract(mid[:, 3], s * mid[:, 0] + c * mid[:, 1], out=rows_y[:, 2])
     # Residuals of every hypothesis at every match: rows of [R | t] times [x; y; 1].
     # (The same products and operations as written out, in scratch buffers and in place.)
-    xa1 = np.vstack([xa.T, np.ones(m)])
-    h = len(c)
-    rx = np.matmul(np.stack([c, -s, tx], axis=1), xa1, out=_scratch("rx", (h, m), np.float64))
+    xa1 = np.empty((3, m))
+    xa1[:2] = xa.T
+    xa1[2] = 1.0
+    rx = np.matmul(rows_x, xa1, out=_scratch("rx", (h, m), np.float64))
     rx -= xb[:, 0]
-    ry = np.matmul(np.stack([s, c, ty], axis=1), xa1, out=_scratch("ry", (h, m), np.float64))
+    ry = np.matmul(rows_y, xa1, out=_scratch("ry", (h, m), np.float64))
     ry -= xb[:, 1]
     np.multiply(rx, rx, out=rx)
     np.multiply(ry, ry, out=ry)
@@ -367,11 +382,14 @@ def _score(a: FloorDescriptor, b: FloorDescriptor | PartialDescriptor, p: MatchP
             break
         transform = _rigid(fa[sel], fb[sel])
         res = fa @ transform[:, :2].T + transform[:, 2] - fb
-        sel = np.flatnonzero((res * res).sum(1) <= p.inlier_px**2)
+        fitted, sel = sel, np.flatnonzero((res * res).sum(1) <= p.inlier_px**2)
+        if np.array_equal(sel, fitted):
+            break  # a fixed point: a further step would fit these inliers again, to the same transform
     if len(sel) < p.min_inliers or transform is None:
         return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
     score = float(np.maximum(0.0, 1.0 - dm[sel] / p.weight_distance).sum())
-    return MatchResult(score, n_matches, len(sel), ia[sel].astype(np.int64), ib[sel].astype(np.int64),
+    return MatchResult(score, n_matches, len(sel), ia[sel].astype(np.int64, copy=False),
+                       ib[sel].astype(np.int64, copy=False),
                        a.xy_px[ia[sel]], xy_b[ib[sel]], transform, MatchReason.OK)
 
 
