@@ -303,7 +303,7 @@ def test_the_batched_refinement_is_the_reference_s_to_the_bit(seed):
     """The refinement with its residuals batched (one call per point and its neighbours)
     gives the fit of the one-call-per-evaluation reference: heading, bearing, inliers and
     sigmas equal, with the heading fitted or held, with and without sigmas."""
-    from robotd.forward.planefit import _refine, _refine_reference
+    from robotd.forward.planefit import _refine
 
     rng = np.random.default_rng(seed)
     yaw = rng.uniform(-25, 25)
@@ -329,3 +329,75 @@ def test_a_one_by_one_solve_is_the_division():
     for _ in range(2000):
         a, b = rng.normal(size=2) * 10 ** rng.uniform(-8, 8, size=2)
         assert float(np.linalg.solve(np.array([[a]]), np.array([b]))[0]) == b / a
+
+def _refine_reference(x_old, x_new, focal, yaw, psi, threshold_px, fix_yaw, yaws, scan_n, sigmas=True):
+    """:func:`robotd.forward.planefit._refine` one Sampson evaluation at a time (the
+    reference it is tested against: the same fit; the module's code before it batched the
+    evaluations)."""
+    from robotd.forward.planefit import (
+        _COND_LIMIT, INLIER_NOISE_FACTOR, PlanarFit, _bearing, _cond, _in_front, _sampson, planar_pose)
+
+    # Refine (yaw, psi) by Gauss-Newton on the inliers' Sampson distances.
+    r, t = planar_pose(yaw, psi)
+    inl = np.abs(_sampson(x_old, x_new, r, t, focal)) < threshold_px
+    theta = np.array([yaw, psi])
+    xo_in, xn_in = x_old[inl], x_new[inl]  # the inliers' rows, taken once per inlier set
+
+    def res(th: np.ndarray) -> np.ndarray:  # the Sampson distances of the current inliers
+        rr, tt = planar_pose(float(th[0]), float(th[1]))
+        return _sampson(xo_in, xn_in, rr, tt, focal)
+
+    h = 1e-6
+    free = [1] if fix_yaw else [0, 1]  # the parameters fitted: (yaw, psi) or psi alone
+    jac = np.zeros((int(inl.sum()), len(free)))
+    r0 = None  # the residuals at theta, kept from the step that moved there
+    for _ in range(5):
+        if inl.sum() < 3:
+            break
+        if r0 is None:
+            r0 = res(theta)
+        for col, j in enumerate(free):
+            dth = np.zeros(2)
+            dth[j] = h
+            jac[:, col] = (res(theta + dth) - res(theta - dth)) / (2 * h)
+        jtj = jac.T @ jac
+        if not np.all(np.isfinite(jtj)) or _cond(jtj) > _COND_LIMIT:
+            break
+        step = np.zeros(2)
+        step[free] = -np.linalg.solve(jtj, jac.T @ r0)
+        trial = res(theta + step)
+        if not float(trial @ trial) < float(r0 @ r0):
+            break
+        theta, r0 = theta + step, trial
+    yaw, psi = float(theta[0]), float(theta[1])
+    r, t = planar_pose(yaw, psi)
+    inl = np.abs(_sampson(x_old, x_new, r, t, focal)) < threshold_px
+    xo_in, xn_in = x_old[inl], x_new[inl]
+    # The sign of the translation: the points in front of both cameras.
+    if _in_front(xo_in, xn_in, r, -t) > _in_front(xo_in, xn_in, r, t):
+        psi += math.pi
+        r, t = planar_pose(yaw, psi)
+    m = int(inl.sum())
+    sig_y = sig_b = math.inf
+    if sigmas and m > len(free):
+        rr = res(np.array([yaw, psi]))
+        noise = math.sqrt(float(rr @ rr) / (m - len(free))) * INLIER_NOISE_FACTOR
+        jac = np.zeros((m, 2))
+        for j in range(2):
+            dth = np.zeros(2)
+            dth[j] = h
+            jac[:, j] = (res(np.array([yaw, psi]) + dth) - res(np.array([yaw, psi]) - dth)) / (2 * h)
+        jtj = jac.T @ jac
+        cov: np.ndarray | None = None
+        if fix_yaw:  # the heading known: psi's variance alone, the heading's none
+            if math.isfinite(float(jtj[1, 1])) and jtj[1, 1] > 0:
+                cov = noise ** 2 * np.diag([0.0, 1.0 / jtj[1, 1]])
+        elif np.all(np.isfinite(jtj)) and _cond(jtj) < _COND_LIMIT:
+            cov = noise ** 2 * np.linalg.inv(jtj)
+        if cov is not None:
+            g = np.array([[1.0, 0.0],
+                          [(_bearing(yaw + h, psi) - _bearing(yaw - h, psi)) / (2 * h),
+                           math.remainder(_bearing(yaw, psi + h) - _bearing(yaw, psi - h), math.tau) / (2 * h)]])
+            var = np.einsum("ij,jk,ik->i", g, cov, g)
+            sig_y, sig_b = math.sqrt(max(float(var[0]), 0.0)), math.sqrt(max(float(var[1]), 0.0))
+    return PlanarFit(yaw, _bearing(yaw, psi), r, t, inl, sig_y, sig_b, yaws, scan_n)
