@@ -26,7 +26,11 @@ the same with the wheels' and the gyro's scale errors as variables every edge sh
 own covariance of the motion between the two keyframes (its joint covariance, carried
 through every filter step). ``--ekf NAME=VALUE`` runs the filter with another noise model;
 ``--daemon-model`` starts from the daemon's (the wheel + gyro twin's, with the demo's
-calibration). The pose graph's cost of the bias-sharing factors (``--cost-seeds``,
+calibration); ``--shipped-geometry`` gives the filter the shipped calibration's wheel radii,
+wheel base and gyro scale on every seed's base, as ``robotd demo --seed N`` runs it, and
+``--daemon-models`` picks the ``[pose_graph] odometry_model`` values ``--daemon-graph``
+feeds (``bias_scale_window``: with the scale variable's prior of the shipped calibration
+and the default ``scale_wear``). The pose graph's cost of the bias-sharing factors (``--cost-seeds``,
 ``--cost-models``): iSAM2 per keyframe and batch Levenberg-Marquardt against independent
 edges, loop edges from the truth, same run.
 
