@@ -26,7 +26,11 @@ the same with the wheels' and the gyro's scale errors as variables every edge sh
 own covariance of the motion between the two keyframes (its joint covariance, carried
 through every filter step). ``--ekf NAME=VALUE`` runs the filter with another noise model;
 ``--daemon-model`` starts from the daemon's (the wheel + gyro twin's, with the demo's
-calibration). The pose graph's cost of the bias-sharing factors (``--cost-seeds``,
+calibration); ``--shipped-geometry`` gives the filter the shipped calibration's wheel radii,
+wheel base and gyro scale on every seed's base, as ``robotd demo --seed N`` runs it, and
+``--daemon-models`` picks the ``[pose_graph] odometry_model`` values ``--daemon-graph``
+feeds (``bias_scale_window``: with the scale variable's prior of the shipped calibration
+and the default ``scale_wear``). The pose graph's cost of the bias-sharing factors (``--cost-seeds``,
 ``--cost-models``): iSAM2 per keyframe and batch Levenberg-Marquardt against independent
 edges, loop edges from the truth, same run.
 
@@ -118,11 +122,14 @@ class _Recorder:
 
 
 def drive_edges(route: str, seed: int, keyframe_m: float, sensors: BaseSensorParams,
-                params: EkfParams | None = None, true_model: bool = False) -> dict[str, Any]:
+                params: EkfParams | None = None, true_model: bool = False,
+                geometry: tuple[Any, float] | None = None) -> dict[str, Any]:
     """Drive ``route`` with seed ``seed``'s base; the keyframe edges, the truth at the
     keyframes, and the filter's own states at them (for the joint covariance).
     ``true_model``: the filter has the base's true wheel radii, wheel base and gyro scale
-    (what a calibration within its targets gives) instead of the nominal ones."""
+    (what a calibration within its targets gives) instead of the nominal ones.
+    ``geometry``: ``(DiffDriveParams, gyro_scale)`` the filter has instead (the demo's
+    shipped calibration, :func:`shipped_geometry`: seed 0's base, on every seed's)."""
     from robotd.odometry.kinematics import DiffDriveParams
 
     motion = plan_motion(build_route(route), MotionLimits())
@@ -136,6 +143,8 @@ def drive_edges(route: str, seed: int, keyframe_m: float, sensors: BaseSensorPar
                                       wheel_radius_left_m=r0 * (1 + e.left_radius_error),
                                       wheel_radius_right_m=r0 * (1 + e.right_radius_error))
         kw["gyro_scale"] = 1 + e.gyro_scale_error
+    elif geometry is not None:
+        kw["drive"], kw["gyro_scale"] = geometry
     f = OdometryFilter(**kw)
     rec = _Recorder(f)
     selector = KeyframeSelector(keyframe_m, math.radians(10.0))
@@ -401,12 +410,44 @@ def daemon_params(noise_model: str = "config", slip_gate_sigma: float = 0.0) -> 
     return build_odometry(cfg, read_calibration(path)).wheel_gyro.params
 
 
+def shipped_geometry() -> tuple[Any, float]:
+    """The wheel radii, wheel base and gyro scale the daemon's filter takes from the demo's
+    shipped calibration (:func:`robotd.app.assemble.build_odometry`): ``(DiffDriveParams,
+    gyro_scale)``."""
+    from robotd.app.demo import shipped_calibration
+    from robotd.base.config import Config
+    from robotd.io.calibfile import read_calibration
+    from robotd.odometry.kinematics import DiffDriveParams
+
+    path = shipped_calibration()
+    model = read_calibration(path).odometry if path is not None else None
+    if model is None:
+        raise SystemExit("the demo's shipped calibration (with its odometry model) is missing")
+    drive = DiffDriveParams.from_config(Config().robot, wheel_base_m=model.wheel_base_m,
+                                        wheel_radius_left_m=model.wheel_radius_left_m,
+                                        wheel_radius_right_m=model.wheel_radius_right_m)
+    return drive, model.gyro_scale
+
+
+def daemon_scale_sigmas() -> tuple[float, float]:
+    """The prior of the daemon graph's scale variable with the demo's shipped calibration
+    and the default ``[pose_graph] scale_wear`` (:func:`robotd.app.assemble.scale_prior_sigmas`)."""
+    from robotd.app.assemble import scale_prior_sigmas
+    from robotd.app.demo import shipped_calibration
+    from robotd.base.config import Config
+    from robotd.io.calibfile import read_calibration
+
+    path = shipped_calibration()
+    return scale_prior_sigmas(Config(), read_calibration(path) if path is not None else None)
+
+
 def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str, ...] = (),
                   ekf: dict[str, float] | None = None, cost_seeds: int = 0,
                   true_model: bool = False, daemon_model: bool = False,
                   cost_models: tuple[str, ...] = ("independent", "bias_window", "bias"),
                   daemon_graph_seeds: int = 0, noise_model: str = "config",
-                  slip_gate_sigma: float = 0.0) -> dict[str, Any]:
+                  slip_gate_sigma: float = 0.0, shipped: bool = False,
+                  daemon_models: tuple[str, ...] = ("independent", "bias_window")) -> dict[str, Any]:
     sensors = BaseSensorParams()
     for name in without:  # the same base without these errors: what each costs
         sensors = dataclasses.replace(sensors, **WITHOUT[name])
@@ -415,14 +456,16 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str,
     per_seed = []
     for seed in range(seeds):
         t0 = time.monotonic()
-        d = drive_edges(route, seed, keyframe_m, sensors, params, true_model)
+        d = drive_edges(route, seed, keyframe_m, sensors, params, true_model,
+                        shipped_geometry() if shipped else None)
         res = chained_nees(d)
         cost = graph_cost(d, seed, (SCALE_SIGMA["wheel"], SCALE_SIGMA["gyro"]), cost_models) if seed < cost_seeds else None
         e = d["drawn"]
         sc = speed_change_edges(d)
         per_seed.append({"seed": seed, "edges": len(d["delta"]), "horizons": {str(k): v for k, v in res.items()},
                          "cost": cost, "speed_change": sc,
-                         "daemon_graph": daemon_graph(d, seed) if seed < daemon_graph_seeds else None,
+                         "daemon_graph": (daemon_graph(d, seed, models=daemon_models)
+                                          if seed < daemon_graph_seeds else None),
                          "drawn": {"wheel_base_error": e.wheel_base_error,
                                    "radius_error_left": e.left_radius_error,
                                    "radius_error_right": e.right_radius_error,
@@ -436,7 +479,8 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str,
             f"the other {sc['others']}: {sc['others_nees']:.2f} ({sc['others_nees_position']:.2f})")
     return {"route": route, "keyframe_m": keyframe_m, "without": list(without), "ekf": ekf or {},
             "true_model": true_model, "daemon_model": daemon_model, "noise_model": noise_model,
-            "slip_gate_sigma": slip_gate_sigma,
+            "slip_gate_sigma": slip_gate_sigma, "shipped_geometry": shipped,
+            "daemon_models": list(daemon_models), "scale_sigmas": list(daemon_scale_sigmas()),
             "params": dataclasses.asdict(params), "per_seed": per_seed}
 
 
@@ -653,11 +697,12 @@ def graph_cost(d: dict[str, Any], seed: int, scale_sigmas: tuple[float, float],
 # --------------------------------------------------------------------------- the daemon's graph
 
 #: The daemon's odometry models (``[pose_graph] odometry_model``) the daemon-graph part runs.
-DAEMON_MODELS = ("independent", "bias_window")
+DAEMON_MODELS = ("independent", "bias_window", "bias_scale_window")
 
 
 def daemon_graph(d: dict[str, Any], seed: int, max_chains: int = 400, solve_every: int = 200,
-                 horizons: tuple[int, ...] = HORIZONS) -> dict[str, Any]:
+                 horizons: tuple[int, ...] = HORIZONS,
+                 models: tuple[str, ...] = ("independent", "bias_window")) -> dict[str, Any]:
     """The seed's edges (with their bias terms) in the daemon's own graph,
     :class:`robotd.graph.incremental.IncrementalGraph`, once per ``odometry_model``.
 
@@ -669,7 +714,9 @@ def daemon_graph(d: dict[str, Any], seed: int, max_chains: int = 400, solve_ever
     Cost: the same keyframes with loop edges from the truth (:func:`_loops_from_truth`)
     and a full solve every ``solve_every`` keyframes and at the end (which folds iSAM2),
     as the pose-graph stage runs it: CPU seconds (this process) of the keyframe and loop
-    updates per keyframe, of the full solves, and the final ATE (m)."""
+    updates per keyframe, of the full solves, and the final ATE (m). ``models``: of
+    :data:`DAEMON_MODELS`; ``"bias_scale_window"`` with the prior :func:`daemon_scale_sigmas`
+    (the scale variable's estimate at the end is reported, ``scale``)."""
     from robotd.graph.incremental import IncrementalGraph, IncrementalParams
 
     deltas, covs, terms, truth = d["delta"], d["cov"], d["terms"], d["truth"]
@@ -680,9 +727,10 @@ def daemon_graph(d: dict[str, Any], seed: int, max_chains: int = 400, solve_ever
         by_end.setdefault(lp[1], []).append(lp)
     infos = [np.linalg.inv(c) for c in covs]
     out: dict[str, Any] = {"keyframes": m + 1, "loops": len(loops)}
-    for model in DAEMON_MODELS:
+    gp = {"scale_sigmas": daemon_scale_sigmas()}
+    for model in models:
         res: dict[str, Any] = {}
-        g = IncrementalGraph(IncrementalParams(odometry_model=model))
+        g = IncrementalGraph(IncrementalParams(odometry_model=model, **gp))
         g.add_first(0, truth[0])
         for k in range(m):
             g.add_keyframe(k + 1, k, deltas[k], infos[k], tuple(terms[k]))
@@ -708,7 +756,7 @@ def daemon_graph(d: dict[str, Any], seed: int, max_chains: int = 400, solve_ever
             nees[str(h)] = {"chains": len(pn), "all": float(pn[:, 0].mean()), "yaw": float(pn[:, 1].mean()),
                             "position": float(pn[:, 2].mean())}
         res["nees"] = nees
-        g = IncrementalGraph(IncrementalParams(odometry_model=model))
+        g = IncrementalGraph(IncrementalParams(odometry_model=model, **gp))
         t_kf = t_solve = 0.0
         solves = 0
         t0 = time.process_time()
@@ -730,6 +778,8 @@ def daemon_graph(d: dict[str, Any], seed: int, max_chains: int = 400, solve_ever
         res["solve_cpu_s"] = t_solve
         res["solves"] = solves
         res["ate_m"] = float(np.sqrt(np.mean(np.sum((est[:, :2] - truth[ids, :2]) ** 2, axis=1))))
+        scale = g.scale_estimate()
+        res["scale"] = None if scale is None else [float(x) for x in scale]
         out[model] = res
         log(f"seed {seed} daemon graph {model}: " + ", ".join(f"N={h} {v['all']:.2f}" for h, v in nees.items())
             + f"; {res['cpu_ms_per_keyframe']:.2f} ms/keyframe, solves {t_solve:.1f} s, ATE {res['ate_m']:.4f} m")
@@ -739,12 +789,13 @@ def daemon_graph(d: dict[str, Any], seed: int, max_chains: int = 400, solve_ever
 def daemon_graph_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
     """Per horizon and model: the mean NEES over seeds in the daemon's graph (yaw, position) [seeds]."""
     runs = [r["daemon_graph"] for r in part["per_seed"] if r.get("daemon_graph")]
-    head = ["N edges"] + [f"`{m}`" for m in DAEMON_MODELS] + [f"`{m}` pooled" for m in DAEMON_MODELS]
+    models = _daemon_models(part)
+    head = ["N edges"] + [f"`{m}`" for m in models] + [f"`{m}` pooled" for m in models]
     rows: list[list[Any]] = []
     for h in HORIZONS:
         row: list[Any] = [h]
         pooled: list[Any] = []
-        for model in DAEMON_MODELS:
+        for model in models:
             v = [r[model]["nees"][str(h)] for r in runs if str(h) in r[model]["nees"]]
             if not v:
                 row.append("-")
@@ -756,6 +807,11 @@ def daemon_graph_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]
             pooled.append(f"{pooled_nees(v):.2f}")
         rows.append(row + pooled)
     return head, rows
+
+
+def _daemon_models(part: dict[str, Any]) -> list[str]:
+    """The daemon-graph models a run measured (runs before ``--daemon-models``: the first two)."""
+    return list(part.get("daemon_models", DAEMON_MODELS[:2]))
 
 
 def pooled_nees(per_seed: list[dict[str, float]]) -> float:
@@ -776,20 +832,22 @@ def daemon_graph_seed_rows(part: dict[str, Any], model: str) -> tuple[list[str],
 
 
 def daemon_cost_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
-    head = ["seed", "keyframes", "loops", "model", "CPU ms / keyframe", "full solves CPU s", "ATE (m)"]
+    head = ["seed", "keyframes", "loops", "model", "CPU ms / keyframe", "full solves CPU s", "ATE (m)",
+            "scale estimate (wheel, gyro)"]
     rows: list[list[Any]] = []
     for r in part["per_seed"]:
         dg = r.get("daemon_graph")
         if not dg:
             continue
         base = dg["independent"]
-        for model in DAEMON_MODELS:
+        for model in _daemon_models(part):
             m = dg[model]
             ratio = "" if model == "independent" else f" (x{m['cpu_ms_per_keyframe'] / base['cpu_ms_per_keyframe']:.2f})"
             sratio = "" if model == "independent" else f" (x{m['solve_cpu_s'] / base['solve_cpu_s']:.1f})"
             rows.append([r["seed"], dg["keyframes"], dg["loops"], f"`{model}`",
                          f"{m['cpu_ms_per_keyframe']:.2f}{ratio}", f"{m['solve_cpu_s']:.2f}{sratio} ({m['solves']})",
-                         f"{m['ate_m']:.4f}"])
+                         f"{m['ate_m']:.4f}",
+                         "-" if m.get("scale") is None else f"{100 * m['scale'][0]:+.3f} %, {100 * m['scale'][1]:+.3f} %"])
     return head, rows
 
 
@@ -938,7 +996,9 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
                         if odo.get("slip_gate_sigma") else ", no slip test")
                      + (", and " + ", ".join(f"`{k}` = {v}" for k, v in ekf.items()) if ekf else ""))
     model = (", the filter with each base's true wheel radii, wheel base and gyro scale (a calibrated model)"
-             if odo.get("true_model") else "")
+             if odo.get("true_model") else
+             ", the filter with the demo's shipped calibration's wheel radii, wheel base and gyro scale (seed 0's "
+             "base) on every seed's base, as `robotd demo --seed N` runs it" if odo.get("shipped_geometry") else "")
     lines += [f"## Odometry edges ({odo['route']} route, keyframes every {odo['keyframe_m']} m or 10 deg, "
               f"{noise}{without}{model})", "",
               "Mean NEES over seeds of chains of N consecutive edges, per model of what the edges share "
@@ -993,13 +1053,18 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
                   "above, at most 400 per horizon spread over the drive; in brackets the yaw and position parts, in square "
                   "brackets the seeds' range; pooled: all the seeds' chains together):", ""]
         table(*daemon_graph_rows(odo))
-        lines += ["Per seed, `bias_window` in the daemon's graph:", ""]
-        table(*daemon_graph_seed_rows(odo, "bias_window"))
+        for m in _daemon_models(odo)[1:]:
+            lines += [f"Per seed, `{m}` in the daemon's graph"
+                      + (" (the scale variable's prior: wheels {:.3f} %, gyro {:.4f} %, the shipped calibration's "
+                         "uncertainty and the default `[pose_graph] scale_wear`)".format(
+                             *(100 * x for x in odo["scale_sigmas"])) if m == "bias_scale_window" else "")
+                      + ":", ""]
+            table(*daemon_graph_seed_rows(odo, m))
         lines += ["CPU in the daemon's graph, with loop edges from the truth (as above) and a full solve every "
                   "200 keyframes and at the end, as the pose-graph stage runs it (the fold after each): CPU "
                   "time of this process per keyframe (keyframe and loop updates), of the full solves (their "
-                  "count in brackets), the ATE at the end; in brackets the ratio to independent edges, same "
-                  "run.", ""]
+                  "count in brackets), the ATE at the end (and with `bias_scale_window` the scale variable's "
+                  "estimate); in brackets the ratio to independent edges, same run.", ""]
         table(head, rows)
 
 
@@ -1073,6 +1138,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="odometry: on this many seeds also feed the edges to the daemon's own graph "
                          "(IncrementalGraph, each [pose_graph] odometry_model): NEES from iSAM2's marginals, "
                          "CPU per keyframe with loops and full solves")
+    ap.add_argument("--daemon-models", default="independent,bias_window",
+                    help="with --daemon-graph: the [pose_graph] odometry_model values run (of "
+                         + ", ".join(DAEMON_MODELS) + "; the first is the cost baseline, keep it independent)")
+    ap.add_argument("--shipped-geometry", action="store_true",
+                    help="odometry: the filter with the demo's shipped calibration's wheel radii, wheel base and "
+                         "gyro scale (seed 0's base) on every seed's base, as the demo runs it")
     ap.add_argument("--cost-models", default="independent,bias_window,bias",
                     help="odometry: the graph-cost models timed (of independent, bias_window, bias, bias_scales)")
     ap.add_argument("--compare", type=Path, action="append", default=[],
@@ -1112,7 +1183,8 @@ def main(argv: list[str] | None = None) -> int:
         payload["odometry"] = odometry_part(seeds, args.route, args.keyframe_m, without, ekf, args.cost_seeds,
                                             args.true_model, args.daemon_model,
                                             tuple(m for m in args.cost_models.split(",") if m), args.daemon_graph,
-                                            args.noise_model, args.slip_gate)
+                                            args.noise_model, args.slip_gate, args.shipped_geometry,
+                                            tuple(m for m in args.daemon_models.split(",") if m))
         print(f"\nodometry edges, {args.route}: mean NEES of N chained edges per model (yaw, position) [seeds]")
         print_table(*odometry_model_rows(payload["odometry"]))
         print("\nper seed, bias + scale variables")

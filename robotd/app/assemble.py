@@ -182,7 +182,9 @@ def build_visual_odometry(cfg: Config, odometry: OdometryStage,
                           takes: type[Keyframe] = DescribedKeyframe) -> VisualOdometryStage:
     """Floor visual odometry in the floor detector's descriptor mode (the keyframe's
     descriptor is reused), with the calibrated camera model; its steps go to ``odometry``'s
-    filter (fused mode) and meet that filter's gate."""
+    filter (fused mode) and meet that filter's gate. With ``[pose_graph] odometry_model =
+    "bias_scale_window"`` the wheel + gyro edge meets the step with the graph's scale prior
+    in its covariance (:func:`scale_prior_sigmas`)."""
     from robotd.floor.vo import FloorVisualOdometry, VoParams
     from robotd.io.calibfile import camera_model
 
@@ -190,7 +192,9 @@ def build_visual_odometry(cfg: Config, odometry: OdometryStage,
     params = VoParams.from_config(v, cfg.floor_detector.descriptor_mode)
     vo = FloorVisualOdometry(camera_model(calib, cfg.floor_camera), params)
     log.info("floor visual odometry on (%s, mode %d)", v.role, params.descriptor_mode)
-    return VisualOdometryStage(vo, v.role, gate_nis=odometry.vo_gate_nis, takes=takes)
+    g = cfg.pose_graph
+    scale = scale_prior_sigmas(cfg, calib) if g.enabled and g.odometry_model == "bias_scale_window" else None
+    return VisualOdometryStage(vo, v.role, gate_nis=odometry.vo_gate_nis, takes=takes, scale_sigmas=scale)
 
 
 def forward_mount(cfg: Config) -> np.ndarray:
@@ -233,6 +237,32 @@ def build_forward_stage(cfg: Config, store: MapStore | None = None) -> Any:
                             ridge=RidgeParams(edge_sigma_yaw_rad=math.radians(f.sigma_yaw_deg)))
 
 
+#: The relative scale errors ``(wheel distance, gyro)`` (1-sigma) of a base run on its
+#: nominal ``[robot]`` geometry, without an odometry calibration: a tyre's and a gyro's
+#: manufacturing tolerance.
+UNCALIBRATED_SCALE_SIGMAS = (0.005, 0.003)
+
+#: Smallest gyro scale sigma of the prior (a calibration may give 0).
+_MIN_SCALE_SIGMA = 1e-5
+
+
+def scale_prior_sigmas(cfg: Config, calibration: CalibrationFile | None = None) -> tuple[float, float]:
+    """The prior ``(wheel, gyro)`` 1-sigma relative scale errors of the pose graph's scale
+    variable (``[pose_graph] odometry_model = "bias_scale_window"``): the calibration's own
+    uncertainty of the mean wheel radius and of the gyro scale (without an odometry
+    calibration :data:`UNCALIBRATED_SCALE_SIGMAS`), the wheels' widened by ``[pose_graph]
+    scale_wear`` (what load, tyre wear and floor move them by since the calibration)."""
+    odo = calibration.odometry if calibration is not None else None
+    if odo is None:
+        wheel, gyro = UNCALIBRATED_SCALE_SIGMAS
+    else:
+        wheel = 0.5 * math.hypot(odo.wheel_radius_left_sigma_m / odo.wheel_radius_left_m,
+                                 odo.wheel_radius_right_sigma_m / odo.wheel_radius_right_m)
+        gyro = odo.gyro_scale_sigma / odo.gyro_scale
+    wear = cfg.pose_graph.scale_wear
+    return math.hypot(wheel, wear), max(gyro, _MIN_SCALE_SIGMA)
+
+
 def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, lossless: bool,
                    calibration: CalibrationFile | None = None, observers: Sequence[Any] = (),
                    floor_detector: bool = True, pose_graph: bool = True) -> Pipeline:
@@ -246,7 +276,7 @@ def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, l
                                clock, distance_m=kf.distance_m, rotation_rad=math.radians(kf.rotation_deg),
                                max_sync_wait_s=kf.max_sync_wait_s, lossless=lossless,
                                bias_terms=(cfg.pose_graph.enabled and pose_graph
-                                           and cfg.pose_graph.odometry_model == "bias_window")),
+                                           and cfg.pose_graph.odometry_model != "independent")),
                  reads={"odometry": "KeyframeOdometry"} if odometry_stage is not None else None)
     mapped_ground = None
     if cfg.pose_graph.enabled and pose_graph:
@@ -256,7 +286,8 @@ def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, l
 
         g = cfg.pose_graph
         graph_stage = pipeline.add(PoseGraphStage(
-            IncrementalGraph(IncrementalParams(odometry_model=g.odometry_model)), store, gate_chi2=g.gate_chi2, save_every=g.full_solve_every_keyframes,
+            IncrementalGraph(IncrementalParams(odometry_model=g.odometry_model,
+                                               scale_sigmas=scale_prior_sigmas(cfg, calibration))), store, gate_chi2=g.gate_chi2, save_every=g.full_solve_every_keyframes,
             forward_mount=forward_mount(cfg), forward_params=forward_loop_params(cfg),
             mapped_ground=MappedGroundParams(g.mapped_radius_m, g.max_unlocalised_m) if g.localise_mapped else None))
         mapped_ground = graph_stage.mapped_ground  # owned by the graph stage; the writer's interface

@@ -278,7 +278,14 @@ class PoseGraphConfig:
     odometry_model: str = _f("independent", "what the odometry edges share: 'independent' (each edge its "
                              "own covariance) or 'bias_window' (the wheel + gyro edges share the gyro "
                              "bias: one factor per 10 edges with a bias variable, the windows chained; "
-                             "docs/concepts.md)", choices=("independent", "bias_window"))
+                             "docs/concepts.md) or 'bias_scale_window' (the same windows also sharing "
+                             "one variable of the wheels' distance scale and the gyro scale errors, with "
+                             "a prior of the calibration's uncertainty and scale_wear; docs/odometry.md)",
+                             choices=("independent", "bias_window", "bias_scale_window"))
+    scale_wear: float = _f(0.003, "with odometry_model 'bias_scale_window': how far (1-sigma, a "
+                           "fraction) the wheels' distance scale may have moved from the calibration "
+                           "with load, tyre wear and floor; added to the calibration's own uncertainty "
+                           "in the scale variable's prior (0.003: 0.3 %)", lo=1e-6, hi=0.5, unit="")
 
 
 @dataclass(frozen=True)

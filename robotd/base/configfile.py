@@ -15,6 +15,7 @@ from robotd.base.config import (
     VIRTUAL_SOURCE,
     Config,
     Key,
+    PoseGraphConfig,
     check_value,
     replace,
     with_virtual_floor_camera,
@@ -100,6 +101,10 @@ def config_from_dict(data: dict[str, Any], *, origin: str = "", stored: bool = F
         # The roundings are carried between the packets of wheel_increments; alone the key
         # would do nothing, which a user who set it would not expect.
         raise ConfigError("[odometry] wheel_rounding: works only with wheel_increments = true")
+    pg = cfg.pose_graph
+    if pg.odometry_model != "bias_scale_window" and pg.scale_wear != PoseGraphConfig().scale_wear:
+        # The wear widens the scale variable's prior; without the variable it would do nothing.
+        raise ConfigError("[pose_graph] scale_wear: works only with odometry_model = \"bias_scale_window\"")
     return with_virtual_floor_camera(cfg) if virtual else cfg
 
 

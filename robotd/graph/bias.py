@@ -74,6 +74,9 @@ class BiasEdge:
     the edge's error per rad/s of bias error at ``from`` (m, rad per rad/s). bias_radps,
     bias_var: the filter's bias estimate at ``from`` and its variance. bias_end_radps,
     bias_end_var: at ``to``. bias_cov: covariance of the two bias errors, (rad/s)^2.
+    jac_scale: ``(3, 2)`` the edge's error per unit relative scale error of the wheels'
+    distance and of the gyro (:func:`scale_jacobian`, through the edge's ``scale_gain``
+    when it was combined with a visual step); None: the edge's own :func:`scale_jacobian`.
     """
 
     from_id: int
@@ -86,6 +89,11 @@ class BiasEdge:
     bias_end_radps: float
     bias_end_var: float
     bias_cov: float
+    jac_scale: np.ndarray | None = None
+
+    def scale_jac(self) -> np.ndarray:
+        """``(3, 2)`` :attr:`jac_scale`, or the delta's own :func:`scale_jacobian`."""
+        return scale_jacobian(self.delta) if self.jac_scale is None else np.asarray(self.jac_scale, float)
 
     def chain_step(self) -> tuple[float, float]:
         """``(a, var)`` of the AR(1) step from the bias error at ``from`` to ``to``."""
@@ -130,7 +138,7 @@ def bias_edge_factor(edge: BiasEdge, segment: int | None = None) -> gtsam.Custom
     """The edge's factor on ``(x_from, x_to, b_from)`` (see the module doc), and on the
     scale variable of ``segment`` when given: ``+ J_s s`` (:func:`scale_jacobian`)."""
     d = np.asarray(edge.delta, float)
-    j_s = scale_jacobian(d)
+    j_s = edge.scale_jac()
     meas_inv = gtsam.Pose2(float(d[0]), float(d[1]), float(d[2])).inverse()
     jac = np.asarray(edge.jac_bias, float).reshape(3, 1)
     b_hat = float(edge.bias_radps)
@@ -283,15 +291,18 @@ def window_chain_edge(edges: Sequence[BiasEdge]) -> BiasEdge:
                     first.bias_var, last.bias_end_radps, last.bias_end_var, alpha * first.bias_var)
 
 
-def bias_window_factor(edges: Sequence[BiasEdge]) -> gtsam.CustomFactor:
+def bias_window_factor(edges: Sequence[BiasEdge], segment: int | None = None) -> gtsam.CustomFactor:
     """One factor over ``W`` consecutive edges (keyframes ``x_0 .. x_W`` and the bias
     variable at ``x_0``): the edges' errors stacked, each ``Log(delta_k^-1 (+) x_{k-1}^-1
     (+) x_k)``, plus ``jac (b_hat_0 - b_0)``, with the joint noise of
     :func:`window_covariance`. What :func:`bias_edge_factor` and :func:`bias_chain_factor`
     give per edge, with one Python call (and one bias variable) per window instead of two
-    calls per edge."""
+    calls per edge. ``segment``: the edges also share that segment's scale variable
+    (``+ J_s s`` on each edge's error, :attr:`BiasEdge.jac_scale`)."""
     w = len(edges)
     jac, cov = window_covariance(edges)
+    js = None if segment is None else np.vstack([e.scale_jac() for e in edges])
+    ks = None if segment is None else scale_key(segment)
     meas_inv = [gtsam.Pose2(*map(float, e.delta)).inverse() for e in edges]
     b_hat = float(edges[0].bias_radps)
     keys = [int(edges[0].from_id)] + [int(e.to_id) for e in edges]
@@ -303,6 +314,8 @@ def bias_window_factor(edges: Sequence[BiasEdge]) -> gtsam.CustomFactor:
         xs = [values.atPose2(k) for k in keys]
         db = b_hat - float(values.atVector(kb)[0])
         out = jac * db
+        if js is not None and ks is not None:
+            out = out + js @ values.atVector(ks)
         if jacobians is not None:
             blocks = [np.zeros((3 * w, 3)) for _ in range(w + 1)]
         for k in range(w):
@@ -317,9 +330,11 @@ def bias_window_factor(edges: Sequence[BiasEdge]) -> gtsam.CustomFactor:
             for i, b in enumerate(blocks):
                 jacobians[i] = b
             jacobians[w + 1] = jb
+            if js is not None:
+                jacobians[w + 2] = js
         return out
 
-    return gtsam.CustomFactor(model, keys + [kb], error)
+    return gtsam.CustomFactor(model, keys + [kb] + ([] if ks is None else [ks]), error)
 
 
 # --------------------------------------------------------------------------------------
@@ -329,10 +344,14 @@ def bias_window_factor(edges: Sequence[BiasEdge]) -> gtsam.CustomFactor:
 
 def bias_edge(from_id: int, to_id: int, delta: np.ndarray, terms: Sequence[Any]) -> BiasEdge:
     """A :class:`BiasEdge` from an edge and the filter's terms (the fields of
-    :class:`robotd.odometry.history.EdgeBiasTerms`, in its order)."""
-    cov_given, jac, b, p, b_end, p_end, c = terms
-    return BiasEdge(int(from_id), int(to_id), np.asarray(delta, float), np.asarray(cov_given, float),
-                    np.asarray(jac, float), float(b), float(p), float(b_end), float(p_end), float(c))
+    :class:`robotd.odometry.history.EdgeBiasTerms`, in its order; its ``scale_gain``, when
+    given, turns the delta's :func:`scale_jacobian` into the edge's)."""
+    cov_given, jac, b, p, b_end, p_end, c = terms[:7]
+    gain = terms[7] if len(terms) > 7 else None
+    d = np.asarray(delta, float)
+    js = None if gain is None else np.asarray(gain, float) @ scale_jacobian(d)
+    return BiasEdge(int(from_id), int(to_id), d, np.asarray(cov_given, float),
+                    np.asarray(jac, float), float(b), float(p), float(b_end), float(p_end), float(c), js)
 
 
 def span_edge(edges: Sequence[BiasEdge]) -> BiasEdge:
@@ -342,7 +361,8 @@ def span_edge(edges: Sequence[BiasEdge]) -> BiasEdge:
     end moves to the span's end through the adjoint of the inverse of the rest of the
     span, as iSAM2's fold composes covariances): ``jac = A jac_w``, ``cov = A cov_w A^T``.
     Its factor on the span's two ends and the start's bias is the window's factor with
-    the inner poses eliminated (to first order); its chain step, :func:`window_chain_edge`'s."""
+    the inner poses eliminated (to first order); its chain step, :func:`window_chain_edge`'s;
+    its scale Jacobian, the edges' carried to the end the same way (``A J_s``)."""
     w = len(edges)
     if w == 1:
         return edges[0]
@@ -355,9 +375,10 @@ def span_edge(edges: Sequence[BiasEdge]) -> BiasEdge:
     total = rest
     chain = window_chain_edge(edges)
     cov = a @ cov_w @ a.T
+    js = a @ np.vstack([e.scale_jac() for e in edges])
     return BiasEdge(edges[0].from_id, edges[-1].to_id, np.array([total.x(), total.y(), total.theta()]),
                     0.5 * (cov + cov.T), a @ jac_w, chain.bias_radps, chain.bias_var, chain.bias_end_radps,
-                    chain.bias_end_var, chain.bias_cov)
+                    chain.bias_end_var, chain.bias_cov, js)
 
 
 @dataclass
@@ -369,11 +390,13 @@ class WindowChain:
 
     open: the open window's edges and their slots. previous: the last closed window's (or
     fold span's) edges, whose start has a bias variable: the next window chains to it.
+    segment: the scale variable the windows share (:func:`scale_key`), None for none.
     """
 
     size: int = 10
     open: list[tuple[BiasEdge, int]] = field(default_factory=list)
     previous: list[BiasEdge] | None = None
+    segment: int | None = None
 
     def reset(self) -> None:
         """The bias chain ends here (an edge without terms, a broken odometry chain)."""
@@ -396,7 +419,7 @@ class WindowChain:
         edges = [e for e, _ in self.open] + [edge]
         remove = [s for _, s in self.open]
         fg = gtsam.NonlinearFactorGraph()
-        fg.add(bias_window_factor(edges))
+        fg.add(bias_window_factor(edges, self.segment))
         values = gtsam.Values()
         start = edges[0]
         values.insert(bias_key(start.from_id), np.array([start.bias_radps]))
@@ -414,14 +437,14 @@ class WindowChain:
 
 
 def span_factors(span: Sequence[BiasEdge], previous: Sequence[BiasEdge] | None,
-                 values: gtsam.Values) -> gtsam.NonlinearFactorGraph:
+                 values: gtsam.Values, segment: int | None = None) -> gtsam.NonlinearFactorGraph:
     """A fold span of consecutive edges as factors: its :func:`span_edge` factor on its two
     ends and the bias at its start, and that bias's chain factor to ``previous`` (the span
     before it on its chain, ending where it starts) or, without one, the filter's prior;
-    the bias value goes into ``values``."""
+    the bias value goes into ``values``. ``segment``: the span shares that scale variable."""
     fg = gtsam.NonlinearFactorGraph()
     s = span_edge(span)
-    fg.add(bias_edge_factor(s))
+    fg.add(bias_edge_factor(s, segment))
     if not values.exists(bias_key(s.from_id)):
         values.insert(bias_key(s.from_id), np.array([s.bias_radps]))
     if previous is not None and previous[-1].to_id == s.from_id:

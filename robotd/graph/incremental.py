@@ -31,7 +31,7 @@ import numpy as np
 from robotd.base.errors import GraphError
 from robotd.base.geometry import between, compose, inverse
 from robotd.graph.batch import BatchParams, BatchResult, optimize_batch
-from robotd.graph.bias import BiasEdge, WindowChain, bias_edge, span_factors
+from robotd.graph.bias import BiasEdge, WindowChain, bias_edge, scale_key, scale_prior_factor, span_factors
 from robotd.graph.factors import anchor_factor, between_factor, factor_graph, from_values, to_values
 from robotd.graph.model import Edge, PoseGraph, make_edge
 
@@ -39,7 +39,11 @@ log = logging.getLogger(__name__)
 
 
 #: What :attr:`IncrementalParams.odometry_model` takes.
-ODOMETRY_MODELS = ("independent", "bias_window")
+ODOMETRY_MODELS = ("independent", "bias_window", "bias_scale_window")
+
+#: The segment number of the run's scale variable (:func:`robotd.graph.bias.scale_key`):
+#: one for the whole graph, the base's scale errors being the same before and after a carry.
+SCALE_SEGMENT = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -95,8 +99,15 @@ class IncrementalParams:
         neighbours: ``window_edges`` consecutive ones become one
         :func:`robotd.graph.bias.bias_window_factor` with a bias variable at the window's
         start, the windows chained; the full solve is refined with them and the fold keeps
-        them (docs/concepts.md, "The bias windows in the daemon").
+        them (docs/concepts.md, "The bias windows in the daemon"). ``"bias_scale_window"``:
+        the same windows, and every one of them (and every fold span) also shares one
+        variable of the base's relative scale errors, the wheels' distance and the gyro's
+        rate (:func:`robotd.graph.bias.scale_jacobian`), with the prior ``scale_sigmas``:
+        a wheel scale a few tenths of a percent off its calibration is then estimated by
+        the loops instead of stretching every edge that lacks a visual step.
     window_edges: the edges of a bias window, default 10.
+    scale_sigmas: ``(wheel, gyro)`` 1-sigma relative scale errors of the prior on the scale
+        variable (``"bias_scale_window"``), default 0.3 % and 0.02 %.
     """
 
     relinearize_threshold: float = 0.01
@@ -111,6 +122,7 @@ class IncrementalParams:
     tie_to: str = "previous"
     odometry_model: str = "independent"
     window_edges: int = 10
+    scale_sigmas: tuple[float, float] = (0.003, 0.0002)
 
     def __post_init__(self) -> None:
         if self.factorization not in ("QR", "CHOLESKY"):
@@ -125,6 +137,18 @@ class IncrementalParams:
             raise ValueError(f"odometry_model must be one of {', '.join(ODOMETRY_MODELS)}, not {self.odometry_model!r}")
         if self.window_edges < 1:
             raise ValueError(f"window_edges must be >= 1, got {self.window_edges}")
+        if len(self.scale_sigmas) != 2 or not all(s > 0 for s in self.scale_sigmas):
+            raise ValueError(f"scale_sigmas must be two positive sigmas, got {self.scale_sigmas}")
+
+    @property
+    def bias_terms(self) -> bool:
+        """Whether the model takes the edges' bias terms (a bias window model)."""
+        return self.odometry_model != "independent"
+
+    @property
+    def scale_segment(self) -> int | None:
+        """The scale variable's segment with ``"bias_scale_window"``, else None."""
+        return SCALE_SEGMENT if self.odometry_model == "bias_scale_window" else None
 
 
 class IncrementalGraph:
@@ -154,7 +178,9 @@ class IncrementalGraph:
         self._cached: tuple[int, np.ndarray, np.ndarray] | None = None
         # odometry_model "bias_window": the edges' bias terms by edge index, the live windows
         self._bias: dict[int, BiasEdge] = {}
-        self._windows = WindowChain(params.window_edges)
+        self._windows = WindowChain(params.window_edges, segment=params.scale_segment)
+        self._scale_in = False  # the scale variable is in iSAM2 (odometry_model "bias_scale_window")
+        self._scale_value = np.zeros(2)  # its estimate at the last full solve
         self.bias_windows = 0  # windows closed by add_keyframe
         self._clear_fold()
 
@@ -257,7 +283,28 @@ class IncrementalGraph:
         p.setRelinearizeThreshold(self.params.relinearize_threshold)
         p.relinearizeSkip = self.params.relinearize_skip
         p.setFactorization(self.factorization)
+        self._scale_in = False
         return gtsam.ISAM2(p)
+
+    def _add_scale(self, fg: gtsam.NonlinearFactorGraph, values: gtsam.Values, whole: bool = False) -> None:
+        """With ``"bias_scale_window"``: the scale variable (at the last full solve's
+        estimate, zero before one) and its prior into ``fg`` and ``values``: for a whole
+        graph (``whole``) always, for an update unless iSAM2 has it already."""
+        seg = self.params.scale_segment
+        if seg is None or (self._scale_in and not whole) or values.exists(scale_key(seg)):
+            return
+        fg.add(scale_prior_factor(seg, self.params.scale_sigmas))
+        values.insert(scale_key(seg), self._scale_value.copy())
+        self._scale_in = True
+
+    def scale_estimate(self) -> np.ndarray | None:
+        """iSAM2's estimate of the base's relative scale errors ``(wheel, gyro)`` (the
+        calibration's distance and gyro rate are too large by these fractions), None without
+        the scale variable (or before the first window)."""
+        seg = self.params.scale_segment
+        if seg is None or not self._scale_in:
+            return None
+        return np.asarray(self._isam.calculateEstimateVector(scale_key(seg)), float)
 
     def add_first(self, keyframe_id: int, pose: Iterable[float] = (0.0, 0.0, 0.0)) -> None:
         """Start the graph with keyframe ``keyframe_id`` fixed at ``pose`` (m, m, rad)."""
@@ -289,7 +336,7 @@ class IncrementalGraph:
         values = to_values(np.array([keyframe_id]), guess[None])
         windows = self._windows
         be = None
-        if bias is not None and self.params.odometry_model == "bias_window":
+        if bias is not None and self.params.bias_terms:
             be = bias_edge(edge.from_id, edge.to_id, edge.delta, bias)
             self._bias[index] = be
         if be is None or live[0] != edge.from_id or not windows.continues(be):
@@ -298,6 +345,7 @@ class IncrementalGraph:
         if closed is not None:
             fg, bias_values, remove = closed
             values.insert(bias_values)
+            self._add_scale(fg, values)
             self.bias_windows += 1
             self._update(fg, values, remove)
         else:
@@ -550,6 +598,9 @@ class IncrementalGraph:
             fg, values = self._whole_graph(rejected, result.ids, result.poses)
             refined = gtsam.LevenbergMarquardtOptimizer(fg, values).optimize()
             result = dataclasses.replace(result, poses=from_values(refined, result.ids))
+            seg = self.params.scale_segment
+            if seg is not None and refined.exists(scale_key(seg)):
+                self._scale_value = np.asarray(refined.atVector(scale_key(seg)), float)
         before = self.estimate()
         self._isam = self._new_isam()
         self._version += 1
@@ -610,7 +661,7 @@ class IncrementalGraph:
             if k in kept or count + 1 >= fold:
                 kept.add(k)
                 if span2:  # the span's factor given the bias at its start (robotd.graph.bias.span_edge)
-                    fg.push_back(span_factors(span2, span_into.get(a), bias_values))
+                    fg.push_back(span_factors(span2, span_into.get(a), bias_values, self.params.scale_segment))
                     span_into[k] = span2
                 else:
                     i2 = np.linalg.inv(c2)
@@ -635,6 +686,8 @@ class IncrementalGraph:
         self._windows.previous = span_into.get(int(ids[-1]))  # the live windows chain on from the newest
         values = to_values(held, poses[[row[k] for k in held.tolist()]])
         values.insert(bias_values)
+        if span_into:
+            self._add_scale(fg, values, whole=True)
         return fg, values
 
     def _whole_graph(self, skip: set[int], ids: np.ndarray, poses: np.ndarray
@@ -649,7 +702,7 @@ class IncrementalGraph:
             return factor_graph(self.graph, self._kernel, skip=skip), to_values(ids, poses)
         values = to_values(ids, poses)
         items: list[gtsam.NonlinearFactor | None] = []
-        windows = WindowChain(self.params.window_edges)
+        windows = WindowChain(self.params.window_edges, segment=self.params.scale_segment)
         for n, e in enumerate(self.graph.edges):
             if n in skip:
                 continue
@@ -679,6 +732,8 @@ class IncrementalGraph:
             if f is not None:
                 slot[i] = fg.size()
                 fg.add(f)
+        if any(f is not None and f.size() > 2 for f in items):  # a window: the scale variable too
+            self._add_scale(fg, values, whole=True)
         windows.open = [(e, slot[i]) for e, i in windows.open]
         self._windows = windows
         return fg, values

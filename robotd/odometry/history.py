@@ -51,6 +51,12 @@ class EdgeBiasTerms(NamedTuple):
         bias_end_var: its variance, (rad/s)^2.
         bias_cov: the covariance of the bias errors at the start and the end, (rad/s)^2
             (the filter's: the two are one random walk seen through the same readings).
+        scale_gain: ``(3, 3)`` how much of the wheel + gyro edge's own error the edge
+            carries (the edge moves by ``scale_gain e`` for an error ``e`` of the twin's
+            edge): None for the twin's edge itself (the identity); an edge combined with a
+            visual step carries ``K`` (:func:`robotd.odometry.increments.combine_bias_terms`).
+            A pose graph with scale variables gives the edge ``scale_gain`` times the
+            twin's scale Jacobian.
     """
 
     cov_given_bias: np.ndarray
@@ -60,6 +66,7 @@ class EdgeBiasTerms(NamedTuple):
     bias_end_radps: float
     bias_end_var: float
     bias_cov: float
+    scale_gain: np.ndarray | None = None
 
 
 _TWO_PI = 2.0 * math.pi

@@ -122,7 +122,8 @@ def combine_edges(a: tuple[np.ndarray, np.ndarray],
 _COMBINE_STEPS = 5
 
 
-def combine_bias_terms(a_cov: np.ndarray, combined_cov: np.ndarray, terms: EdgeBiasTerms) -> EdgeBiasTerms:
+def combine_bias_terms(a_cov: np.ndarray, combined_cov: np.ndarray, terms: EdgeBiasTerms,
+                       scale_share: np.ndarray | None = None) -> EdgeBiasTerms:
     """The bias terms of an edge combined from the wheel + gyro edge (covariance ``a_cov``
     ``(3, 3)``, its terms ``terms``) and an independent measurement that does not see the
     gyro bias (a visual step) by :func:`combine_edges` (covariance ``combined_cov``).
@@ -132,11 +133,18 @@ def combine_bias_terms(a_cov: np.ndarray, combined_cov: np.ndarray, terms: EdgeB
     ``K J`` and its covariance given the bias ``C_c - P (K J)(K J)^T``: what is left of the
     combined covariance once the bias's share is taken out (``K C_given K^T`` plus the
     other measurement's share, never below zero). The bias's own figures (estimate,
-    variance, chain step) are the filter's, unchanged."""
+    variance, chain step) are the filter's, unchanged. The twin's scale errors reach the
+    combined edge through the same ``K`` (``scale_gain``). ``scale_share``: ``(3, 3)`` the
+    twin's edge's covariance from a pose graph's scale variable (``J_s Sigma_s J_s^T``),
+    already in ``a_cov`` (the combination weighed the twin by its marginal over the scale,
+    as over the bias); its share ``K S K^T`` is taken out of the combined covariance too."""
     k = np.asarray(combined_cov, float) @ information_from_covariance(np.asarray(a_cov, float))
     jac = k @ np.asarray(terms.jac_bias, float)
     cond = np.asarray(combined_cov, float) - terms.bias_var * np.outer(jac, jac)
-    return terms._replace(cov_given_bias=floor_covariance(0.5 * (cond + cond.T)), jac_bias=jac)
+    if scale_share is not None:
+        cond = cond - k @ np.asarray(scale_share, float) @ k.T
+    gain = k if terms.scale_gain is None else k @ np.asarray(terms.scale_gain, float)
+    return terms._replace(cov_given_bias=floor_covariance(0.5 * (cond + cond.T)), jac_bias=jac, scale_gain=gain)
 
 
 def edge_disagreement(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> float:

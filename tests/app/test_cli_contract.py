@@ -606,7 +606,9 @@ def test_a_broken_config_is_named_on_one_line(tmp_path: Path):
     for text, says in [("[map\n", "not valid TOML"), ("[base]\nbaudrate = 'fast'\n", "[base] baudrate"),
                        ("[nosuch]\n", "unknown section [nosuch]"),
                        ("[odometry]\nwheel_rounding = true\n",
-                        "[odometry] wheel_rounding: works only with wheel_increments")]:
+                        "[odometry] wheel_rounding: works only with wheel_increments"),
+                       ("[pose_graph]\nscale_wear = 0.005\n",
+                        "[pose_graph] scale_wear: works only with odometry_model = \"bias_scale_window\"")]:
         cfg.write_text(text)
         assert_refused(run("config", "check", cfg), says)
         assert_refused(run("run", "--config", cfg), says)

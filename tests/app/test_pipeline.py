@@ -705,9 +705,10 @@ def test_visual_odometry_status_and_its_own_chain():
     assert np.allclose(chain, [[1.0, 2.0, 0.0], [1.1, 2.0, 0.0], [1.15, 2.0, 0.0], [1.15, 2.1, 0.0]])
 
 
-def _fused_vo_stage(deltas: list):
+def _fused_vo_stage(deltas: list, scale_sigmas: tuple[float, float] | None = None):
     """A fused visual odometry stage over keyframes whose floor steps are ``deltas`` in turn
-    (``(dx_m, dy_m, dyaw_rad)``, each with 1 mm / 1 mrad sigma; None: the step failed)."""
+    (``(dx_m, dy_m, dyaw_rad)``, each with 1 mm / 1 mrad sigma; None: the step failed);
+    ``scale_sigmas``: the pose graph's scale prior (``"bias_scale_window"``)."""
     from types import SimpleNamespace
 
     from robotd.app.stages.visual_odometry import VisualOdometryStage
@@ -723,7 +724,7 @@ def _fused_vo_stage(deltas: list):
             return SimpleNamespace(ok=ok, reason="" if ok else "x", delta=np.array(d if ok else [np.nan] * 3),
                                    covariance=np.eye(3) * 1e-6 if ok else np.full((3, 3), np.nan))
 
-    return VisualOdometryStage(FakeVo(), "fused", takes=Keyframe)
+    return VisualOdometryStage(FakeVo(), "fused", takes=Keyframe, scale_sigmas=scale_sigmas)
 
 
 def test_fused_step_that_disagrees_with_the_wheels_stays_out_of_the_edge():
@@ -784,6 +785,36 @@ def test_the_bias_terms_travel_through_the_visual_combine_to_the_odometry_link(t
         assert writer.stored == 3
         assert [lk.bias for lk in links if lk.kind == "odometry"] == [measured[1].odometry_bias,
                                                                        measured[2].odometry_bias]
+
+
+def test_with_the_scale_variable_a_step_meets_the_wheels_edge_widened_by_the_scale_prior():
+    """``[pose_graph] odometry_model = "bias_scale_window"``: a step 6 mm longer than a 0.5 m
+    wheel + gyro edge of 0.1 mm sigma (a wheel scale 1.2 % off) disagrees with the edge as
+    the filter gives it, but not with the edge widened by a 1 % scale prior, and the
+    combined edge carries its share of the scale (``scale_gain``); a step 20 mm to the side
+    still disagrees (no scale error explains it)."""
+
+    from robotd.odometry.history import EdgeBiasTerms
+
+    wheel = (np.array([0.5, 0.0, 0.0]), np.eye(3) * 1e-8)
+    terms = EdgeBiasTerms(np.eye(3) * 1e-8, np.zeros(3), 0.001, 1e-4, 0.001, 1e-4, 1e-4)
+    for sigmas, combined in ((None, 0), ((0.01, 1e-4), 1)):
+        stage = _fused_vo_stage([None, (0.506, 0.0, 0.0), (0.5, 0.02, 0.0)], sigmas)
+        measured = _measured(stage)
+        for k in range(3):
+            stage.pipeline.publish(Keyframe(Frame(k, "floor", np.zeros((4, 4), np.uint8)),
+                                            PoseStamped(0, 0.0, 0.0, 0.0, np.eye(3)), odometry_edge=wheel,
+                                            odometry_bias=tuple(terms)))
+        c = stage.counters()
+        assert (c["vo_combined"], c["vo_disagreed"]) == (combined, 2 - combined)
+        assert measured[2].odometry_edge is wheel
+    t = EdgeBiasTerms(*measured[1].odometry_bias)
+    # the step (1 mm) outweighs the widened wheels along the track (5 mm): most of it
+    assert measured[1].odometry_edge[0][0] == pytest.approx(0.506, abs=3e-4)
+    assert t.scale_gain[0, 0] == pytest.approx(1 / 26, rel=0.05)
+    # the combined edge's covariance given the scale: its share K S K^T taken out (S = (5 mm)^2)
+    c = measured[1].odometry_edge[1][0, 0]
+    assert t.cov_given_bias[0, 0] == pytest.approx(c - t.scale_gain[0, 0] ** 2 * 2.5e-5, rel=1e-3)
 
 
 def test_the_calibration_file_says_which_floor_camera_keys_it_replaces(tmp_path, caplog):

@@ -193,4 +193,15 @@ class PoseGraphStage(Publisher):
                 "graph_bias_windows": self.graph.bias_windows,  # [pose_graph] odometry_model "bias_window"
                 "graph_update_median_us": int(np.median(u) * 1e3),
                 "graph_update_p99_us": int(np.percentile(u, 99) * 1e3),
-                "graph_solve_ms": int(self.last_solve_ms)}
+                "graph_solve_ms": int(self.last_solve_ms),
+                **self._scale_counters()}
+
+    def _scale_counters(self) -> dict[str, int]:
+        """The scale variable's estimate in parts per million ([pose_graph] odometry_model
+        "bias_scale_window"): how much too large the calibration's wheel distance and gyro
+        rate are by the graph's loops."""
+        s = self.graph.scale_estimate()
+        if s is None:
+            return {}
+        return {"graph_scale_wheel_ppm": int(round(float(s[0]) * 1e6)),
+                "graph_scale_gyro_ppm": int(round(float(s[1]) * 1e6))}

@@ -17,6 +17,7 @@ from robotd.base.messages import (
     keyframe_as,
 )
 from robotd.floor.vo import FloorVisualOdometry
+from robotd.graph.bias import scale_jacobian
 from robotd.odometry.history import EdgeBiasTerms
 from robotd.odometry.increments import combine_bias_terms, combine_edges, edge_disagreement
 
@@ -47,13 +48,16 @@ class VisualOdometryStage(Publisher):
     produces = (MeasuredKeyframe, VisualOdometryStep)
 
     def __init__(self, vo: FloorVisualOdometry, mode: str, *, gate_nis: float = 16.27,
-                 takes: type[Keyframe] = DescribedKeyframe) -> None:
+                 takes: type[Keyframe] = DescribedKeyframe,
+                 scale_sigmas: tuple[float, float] | None = None) -> None:
         if mode not in ("fused", "vision_only"):
             raise ValueError(f"visual odometry mode must be 'fused' or 'vision_only', not {mode!r}")
         self.vo = vo
         self.mode = mode
         self.gate_nis = gate_nis
         self.takes = takes
+        # [pose_graph] odometry_model "bias_scale_window": the graph's scale prior, (wheel, gyro)
+        self.scale_var = None if scale_sigmas is None else np.square(np.asarray(scale_sigmas, float))
         self._prev_stamp_ns: int | None = None
         self._visual_pose: np.ndarray | None = None
         self.steps = 0
@@ -94,14 +98,22 @@ class VisualOdometryStage(Publisher):
                 if edge is None:
                     edge = step
                     bias = None
-                elif edge_disagreement(edge, step) > self.gate_nis:
-                    self.disagreed += 1  # a wrong step (a look-alike lattice shift): wheels only
                 else:
-                    combined = combine_edges(edge, step)
-                    if bias is not None:  # the step does not see the gyro bias: the twin's share keeps it
-                        bias = tuple(combine_bias_terms(edge[1], combined[1], EdgeBiasTerms(*bias)))
-                    edge = combined
-                    self.combined += 1
+                    share = None
+                    twin = edge
+                    if self.scale_var is not None and bias is not None:
+                        # the twin's edge as the graph holds it: marginal over the scale too
+                        js = scale_jacobian(edge[0])
+                        share = (js * self.scale_var) @ js.T
+                        twin = (edge[0], edge[1] + share)
+                    if edge_disagreement(twin, step) > self.gate_nis:
+                        self.disagreed += 1  # a wrong step (a look-alike lattice shift): wheels only
+                    else:
+                        combined = combine_edges(twin, step)
+                        if bias is not None:  # the step does not see the gyro bias: the twin's share keeps it
+                            bias = tuple(combine_bias_terms(twin[1], combined[1], EdgeBiasTerms(*bias), share))
+                        edge = combined
+                        self.combined += 1
         elif not first:  # vision only
             if step is not None:
                 edge = step
