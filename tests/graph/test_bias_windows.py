@@ -26,16 +26,19 @@ from robotd.odometry.increments import combine_bias_terms, combine_edges
 N = 10  # one window
 
 
-def _edges(n: int, start: int = 0) -> list[BiasEdge]:
-    """A turning chain whose edges share a large gyro bias share (jac on yaw and lateral)."""
+def _edges(n: int, start: int = 0, *, var: float = 1e-6, step_m: float = 0.05) -> list[BiasEdge]:
+    """A turning chain whose edges share a large gyro bias share (jac on yaw and lateral),
+    its covariances and bias variances in units of ``var``, each edge ``step_m`` forward
+    (tests/graph/test_scale_variables.py takes it tighter and longer)."""
     out = []
     rng = np.random.default_rng(3)
     for k in range(start, start + n):
-        cov = np.diag([3e-6, 1e-6, 2e-6])
-        cov[1, 2] = cov[2, 1] = 4e-7
+        cov = np.diag([3.0, 1.0, 2.0]) * var
+        cov[1, 2] = cov[2, 1] = 0.4 * var
         jac = np.array([0.0, -0.01, -0.2]) * (1 + 0.1 * rng.standard_normal())
-        p = 4e-5 - 1e-6 * (k - start)
-        out.append(BiasEdge(k, k + 1, np.array([0.05, 0.002, 0.08]), cov, jac, 0.003, p, 0.003, p - 1e-6, p - 5e-7))
+        p = (40.0 - (k - start)) * var
+        out.append(BiasEdge(k, k + 1, np.array([step_m, 0.002, 0.08]), cov, jac, 0.003, p, 0.003, p - var,
+                            p - 0.5 * var))
     return out
 
 

@@ -25,32 +25,17 @@ from robotd.graph.factors import anchor_factor
 from robotd.graph.incremental import IncrementalGraph, IncrementalParams
 from robotd.odometry.history import EdgeBiasTerms
 from robotd.odometry.increments import combine_bias_terms, combine_edges
+from tests.graph.test_bias_windows import _edges as bias_window_edges
+from tests.graph.test_bias_windows import _marginal_cov, _terms
 
 N = 10  # one window
 SIGMAS = (0.003, 0.0005)
 
 
 def _edges(n: int, start: int = 0) -> list[BiasEdge]:
-    """A turning chain (as tests/graph/test_bias_windows.py's) with tight covariances, so
-    that the scale's share of the chain is large."""
-    out = []
-    rng = np.random.default_rng(3)
-    for k in range(start, start + n):
-        cov = np.diag([3e-8, 1e-8, 2e-8])
-        jac = np.array([0.0, -0.01, -0.2]) * (1 + 0.1 * rng.standard_normal())
-        p = 4e-7 - 1e-8 * (k - start)
-        out.append(BiasEdge(k, k + 1, np.array([0.15, 0.002, 0.08]), cov, jac, 0.003, p, 0.003, p - 1e-8,
-                            p - 5e-9))
-    return out
-
-
-def _terms(e: BiasEdge) -> EdgeBiasTerms:
-    return EdgeBiasTerms(e.cov_given_bias, e.jac_bias, e.bias_radps, e.bias_var, e.bias_end_radps,
-                         e.bias_end_var, e.bias_cov)
-
-
-def _marginal_cov(e: BiasEdge) -> np.ndarray:
-    return e.cov_given_bias + e.bias_var * np.outer(e.jac_bias, e.jac_bias)
+    """tests/graph/test_bias_windows.py's turning chain with tight covariances and 15 cm
+    edges, so that the scale's share of the chain is large."""
+    return bias_window_edges(n, start, var=1e-8, step_m=0.15)
 
 
 def _per_edge_marginal(edges: list[BiasEdge], key: int) -> np.ndarray:
