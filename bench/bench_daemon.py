@@ -859,8 +859,10 @@ def memory_run(args: argparse.Namespace, recording: Path | list[Path], keyframes
     recording's floor frames are fed to it lap after lap, each lap stamped after the
     previous one, until that many keyframes are stored. Given several recordings (the
     same route driven with other seeds, ``--memory-seeds``), lap ``k`` is the ``k``-th of
-    them (in turn), with its own ground truth, and starts at its floor frame ``k mod 3``
-    (its keyframes then fall between the earlier laps' rather than on them): every lap
+    them (in turn), with its own ground truth, and only every third floor frame is fed, on
+    lap ``k`` those whose count is ``k mod 3`` (each seed's frames are taken at the same
+    places of the route; so three laps in a row have no keyframe at the same place, as a
+    robot's laps do not): every lap
     sees new frames, as a robot driving its round again does; with one recording every
     lap is that recording again, each query's best candidate a byte-identical image of
     an earlier lap. The keyframe spacing, floor
@@ -927,13 +929,17 @@ def memory_run(args: argparse.Namespace, recording: Path | list[Path], keyframes
             next_sample = args.memory_every
             while n < keyframes:
                 odo.truth = truths[lap % len(recordings)]
-                skip = lap % 3 if len(recordings) > 1 else 0  # this lap's first frames not fed
+                # laps of new frames: every third frame, lap k those whose count is k mod 3 (the
+                # recordings' frames are taken at the same places on every seed): three laps in
+                # a row have no frame, and so no keyframe, at the same place
+                parity = lap % 3 if len(recordings) > 1 else None
+                floor_frames = 0
                 with RecordingReader(recordings[lap % len(recordings)]) as r:
                     for _topic, msg in r.messages(only=(Frame,), lazy_images=True):
                         if msg.camera != "floor":
                             continue
-                        if skip:
-                            skip -= 1
+                        floor_frames += 1
+                        if parity is not None and floor_frames % 3 != parity:
                             continue
                         stamp = msg.stamp_ns + lap * lap_ns
                         frame = (msg.restamped(stamp) if isinstance(msg, EncodedFrame)
@@ -1757,8 +1763,9 @@ def main(argv: list[str] | None = None) -> int:
                          "(writes NAME-memory.json; --doc writes its page)")
     ap.add_argument("--memory-seeds", default=None, metavar="S,S,...",
                     help="with --memory: lap k is the route recorded with the k-th of these seeds in turn, on "
-                         "the robot of --seed (robotd record --seed S --base-seed SEED; cached), starting at "
-                         "its floor frame k mod 3: laps of new frames (default: the one recording every lap)")
+                         "the robot of --seed (robotd record --seed S --base-seed SEED; cached), every third "
+                         "frame fed (lap k: frame counts k mod 3): laps of new frames (default: the one "
+                         "recording every lap, every frame)")
     ap.add_argument("--memory-every", type=int, default=1000, metavar="K",
                     help="sample the memory every K keyframes (default 1000)")
     ap.add_argument("--memory-trace", action="store_true",
