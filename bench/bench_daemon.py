@@ -857,12 +857,15 @@ def memory_run(args: argparse.Namespace, recording: Path | list[Path], keyframes
 
     The daemon is assembled as for the replay (every stage, the map on disk) and the
     recording's floor frames are fed to it lap after lap, each lap stamped after the
-    previous one, until that many keyframes are stored. Given several recordings (the
-    same route driven with other seeds, ``--memory-seeds``), lap ``k`` is the ``k``-th of
-    them (in turn), with its own ground truth, and only every third floor frame is fed, on
-    lap ``k`` those whose count is ``k mod 3`` (each seed's frames are taken at the same
-    places of the route; so three laps in a row have no keyframe at the same place, as a
-    robot's laps do not): every lap
+    previous one, until that many keyframes are stored. Given several recordings
+    (``--memory-seeds``: the same recording again, or the route driven with other seeds),
+    lap ``k`` is the ``k``-th of them (in turn), with its own ground truth, and only every
+    third floor frame is fed, on lap ``k`` those whose count is ``k mod 3`` (the virtual
+    robot takes its frames at the same places on every drive of a route; so three laps in
+    a row have no frame, and no keyframe, at the same place, as a robot's laps do not).
+    The virtual floor is drawn from the seed: other seeds are other floors (laps that
+    revisit nothing), so laps of the same rooms give the same seed again (``0,0,0``):
+    every lap
     sees new frames, as a robot driving its round again does; with one recording every
     lap is that recording again, each query's best candidate a byte-identical image of
     an earlier lap. The keyframe spacing, floor
@@ -1764,8 +1767,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--memory-seeds", default=None, metavar="S,S,...",
                     help="with --memory: lap k is the route recorded with the k-th of these seeds in turn, on "
                          "the robot of --seed (robotd record --seed S --base-seed SEED; cached), every third "
-                         "frame fed (lap k: frame counts k mod 3): laps of new frames (default: the one "
-                         "recording every lap, every frame)")
+                         "frame fed (lap k: frame counts k mod 3); the floor is drawn from the seed, so laps "
+                         "of the same rooms repeat it: 0,0,0 gives laps of new frames of one floor (default: "
+                         "the one recording every lap, every frame)")
     ap.add_argument("--memory-every", type=int, default=1000, metavar="K",
                     help="sample the memory every K keyframes (default 1000)")
     ap.add_argument("--memory-trace", action="store_true",
