@@ -49,6 +49,10 @@ one core. This benchmark:
 * ``--residency MAP``: the floor query on a daemon's map (e.g. three laps kept with
   ``--memory 1500 --keep-map FILE``) repeated to the ``--scale`` sizes, its descriptors in
   RAM, read back, and as ``FloorIndex.from_store`` holds them (:func:`query_residency`);
+  several maps (``LABEL=MAP ...``): each in turn, ``--rounds`` times, with how each map's
+  queries repeat its keyframes and the local scores and geometric checks per query; a map
+  of laps of new frames comes from ``--memory N --memory-seeds 0,0,0 --keep-map FILE``
+  (each lap every third frame of the drive, lap k the frame counts k mod 3);
 * ``--load MAP [--before DIR]``: ``FloorIndex.from_store``'s load time and the process's
   resident memory around it, each load in a fresh process, alternating with the checkout
   of the code before in ``DIR`` (:func:`map_load`).
