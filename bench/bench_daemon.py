@@ -49,6 +49,10 @@ one core. This benchmark:
 * ``--residency MAP``: the floor query on a daemon's map (e.g. three laps kept with
   ``--memory 1500 --keep-map FILE``) repeated to the ``--scale`` sizes, its descriptors in
   RAM, read back, and as ``FloorIndex.from_store`` holds them (:func:`query_residency`);
+  several maps (``LABEL=MAP ...``): each in turn, ``--rounds`` times, with how each map's
+  queries repeat its keyframes and the local scores and geometric checks per query; a map
+  of laps of new frames comes from ``--memory N --memory-seeds 0,0,0 --keep-map FILE``
+  (each lap every third frame of the drive, lap k the frame counts k mod 3);
 * ``--load MAP [--before DIR]``: ``FloorIndex.from_store``'s load time and the process's
   resident memory around it, each load in a fresh process, alternating with the checkout
   of the code before in ``DIR`` (:func:`map_load`).
@@ -152,13 +156,18 @@ class StageClock:
 # ------------------------------------------------------------------------- recording
 
 
-def ensure_recording(args: argparse.Namespace) -> Path:
-    """The cached recording of the drive, made with ``robotd record --virtual`` if missing."""
-    if args.recording is not None:
+def ensure_recording(args: argparse.Namespace, seed: int | None = None) -> Path:
+    """The cached recording of the drive, made with ``robotd record --virtual`` if missing.
+
+    ``seed``: the drive recorded with that seed (other camera and sensor noise) on the robot
+    of ``args.seed`` (``--base-seed``: the same wheel and gyro errors); default ``args.seed``."""
+    if args.recording is not None and seed is None:
         return args.recording
+    seed = args.seed if seed is None else int(seed)
     dur = "full" if args.duration is None else f"{args.duration:g}s"
     fwd = "-forward" if args.forward else ""
-    path = args.cache / f"{args.route}-{dur}-seed{args.seed}{fwd}.mcap"
+    base = "" if seed == args.seed else f"-base{args.seed}"
+    path = args.cache / f"{args.route}-{dur}-seed{seed}{base}{fwd}.mcap"
     if path.exists():
         print(f"recording: {path} (cached)")
         return path
@@ -178,7 +187,7 @@ def ensure_recording(args: argparse.Namespace) -> Path:
                        check=True, stdout=subprocess.DEVNULL, env={**os.environ, "PYTHONPATH": str(REPO_ROOT)})
         return path
     cmd = [sys.executable, "-m", "robotd.app.cli", "record", "--virtual", "--route", args.route,
-           "--seed", str(args.seed), str(path)]
+           "--seed", str(seed), *(["--base-seed", str(args.seed)] if base else []), str(path)]
     if args.duration is not None:
         cmd[-1:-1] = ["--duration", str(args.duration)]
     with tempfile.TemporaryDirectory() as tmp:
@@ -712,7 +721,8 @@ def scale(recording: Path, sizes: list[int], queries: int, mode: int, shortlist:
 class TruthOdometry:
     """The keyframe stage's odometry (``KeyframeOdometry``) from the recording's ground
     truth, for :func:`memory_run`: lap ``k`` of the drive is stamped ``k`` laps later and
-    has the first lap's poses, as a robot driving its round again; edges and poses carry
+    has the first lap's poses (``truth``: the lap's own recording's, set by the run), as a
+    robot driving its round again; edges and poses carry
     a covariance growing with the motion (1 % of it, 1 mm and 1 mrad at least)."""
 
     def __init__(self, truth: tuple[np.ndarray, np.ndarray], lap_ns: int) -> None:
@@ -845,13 +855,24 @@ def _tracing() -> bool:
     return tracemalloc.is_tracing()
 
 
-def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
+def memory_run(args: argparse.Namespace, recording: Path | list[Path], keyframes: int,
                on_sample: Any = None) -> dict[str, Any]:
     """The whole daemon's resident memory as its map grows to ``keyframes`` keyframes.
 
     The daemon is assembled as for the replay (every stage, the map on disk) and the
     recording's floor frames are fed to it lap after lap, each lap stamped after the
-    previous one, until that many keyframes are stored: the keyframe spacing, floor
+    previous one, until that many keyframes are stored. Given several recordings
+    (``--memory-seeds``: the same recording again, or the route driven with other seeds),
+    lap ``k`` is the ``k``-th of them (in turn), with its own ground truth, and only every
+    third floor frame is fed, on lap ``k`` those whose count is ``k mod 3`` (the virtual
+    robot takes its frames at the same places on every drive of a route; so three laps in
+    a row have no frame, and no keyframe, at the same place, as a robot's laps do not).
+    The virtual floor is drawn from the seed: other seeds are other floors (laps that
+    revisit nothing), so laps of the same rooms give the same seed again (``0,0,0``):
+    every lap
+    sees new frames, as a robot driving its round again does; with one recording every
+    lap is that recording again, each query's best candidate a byte-identical image of
+    an earlier lap. The keyframe spacing, floor
     describe and query, visual odometry, the pose graph (every later lap revisits: loops
     are declared and closed) and the store run as on the robot. The keyframes' poses come
     from the recorded ground truth (:class:`TruthOdometry`), so the wheel + gyro filter is
@@ -866,11 +887,16 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
     from robotd.base.clock import ManualClock
     from robotd.base.messages import Frame
 
-    truth = read_truth(recording)
-    with RecordingReader(recording) as r:
-        span = r.time_range_ns
-    assert span is not None
+    recordings = [recording] if isinstance(recording, Path) else list(recording)
+    truths = [read_truth(rec) for rec in recordings]
+    spans = []
+    for rec in recordings:
+        with RecordingReader(rec) as r:
+            spans.append(r.time_range_ns)
+    assert all(sp is not None for sp in spans)
+    span = (min(sp[0] for sp in spans), max(sp[1] for sp in spans))
     lap_ns = span[1] - span[0] + 40_000_000
+    truth = truths[0]
     samples: list[dict[str, float]] = []
     with tempfile.TemporaryDirectory() as tmp:
         cfg = make_config(args, Path(tmp) / "map.sqlite")
@@ -909,9 +935,18 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
             lap, frames, n, c = 0, 0, 0, {}
             next_sample = args.memory_every
             while n < keyframes:
-                with RecordingReader(recording) as r:
+                odo.truth = truths[lap % len(recordings)]
+                # laps of new frames: every third frame, lap k those whose count is k mod 3 (the
+                # recordings' frames are taken at the same places on every seed): three laps in
+                # a row have no frame, and so no keyframe, at the same place
+                parity = lap % 3 if len(recordings) > 1 else None
+                floor_frames = 0
+                with RecordingReader(recordings[lap % len(recordings)]) as r:
                     for _topic, msg in r.messages(only=(Frame,), lazy_images=True):
                         if msg.camera != "floor":
+                            continue
+                        floor_frames += 1
+                        if parity is not None and floor_frames % 3 != parity:
                             continue
                         stamp = msg.stamp_ns + lap * lap_ns
                         frame = (msg.restamped(stamp) if isinstance(msg, EncodedFrame)
@@ -972,7 +1007,8 @@ def memory_run(args: argparse.Namespace, recording: Path, keyframes: int,
                    "peak_rss_mb": peak_rss_mb(), "index_mb": floor.detector.index.nbytes / 1e6,
                    "cpu_s": (t1.user - t0.user) + (t1.system - t0.system),
                    "loop_edges": int(c.get("links_loop", 0)), "samples": samples,
-                   "map_file_mb": (Path(tmp) / "map.sqlite").stat().st_size / 1e6, "config": config}
+                   "map_file_mb": (Path(tmp) / "map.sqlite").stat().st_size / 1e6, "config": config,
+                   "recordings": [str(rec) for rec in recordings]}
             out.update(graph_memory(pipeline.stage("graph").graph))
             out.update(memory_breakdown(floor, _tracing()))
             out.update({k: int(c[k]) for k in ("graph_update_median_us", "graph_update_p99_us", "graph_solve_ms")
@@ -1086,6 +1122,7 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
         stamps = np.array([r.stamp_ns for r in recs], np.int64)
         decoded = [decode(r.descriptor) for r in recs]
         out.update({"map_keyframes": n0, "mode": mode, "min_score": min_score, "queries": min(queries, n0)})
+        out.update(map_laps(recs, queries, exclude_recent_s))
 
         def loader(i: int) -> Any:
             if hasattr(store, "keyframe_descriptor"):  # as FloorIndex.from_store reads it back
@@ -1141,7 +1178,9 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
                     loops[name] += sum(c.score >= min_score for c in got)
                     back = (lambda kf: int(np.searchsorted(kf_of, kf))) if name.startswith("from the map") else int
                     digest[name].update(repr([(back(c.keyframe_id), c.global_score, c.score) for c in got]).encode())
-            row: dict[str, Any] = {"keyframes": n, "variants": {}}
+            row: dict[str, Any] = {"keyframes": n, "variants": {},
+                                   **pairs_per_query(variants["in RAM"], qrows, decoded, ids, stamps, n0,
+                                                     min_score, exclude_recent_s)}
             for name, index in variants.items():
                 row["variants"][name] = {"query_ms": {"median": statistics.median(ms[name]),
                                                       "p99": float(np.quantile(ms[name], 0.99))},
@@ -1152,11 +1191,61 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
                 print(f"residency: {n} keyframes, {name}: query {statistics.median(ms[name]):.2f} ms median, "
                       f"{row['variants'][name]['reads_per_query']:.2f} reads per query, {loops[name]} loops, "
                       f"index {index.nbytes / 1e6:.1f} MB", flush=True)
+            print(f"residency: {n} keyframes, per query (in RAM): {row['local_scores_per_query']:.2f} local scores, "
+                  f"{row['geometric_checks_per_query']:.2f} checked geometrically", flush=True)
             out["sizes"].append(row)
             del variants
             mstore.close()
         tmp.cleanup()
     return out
+
+
+def map_laps(recs: list[Any], queries: int, exclude_recent_s: float) -> dict[str, Any]:
+    """How a map's last ``queries`` keyframes repeat its earlier ones: the map's distinct
+    descriptors, the queries with a byte-identical keyframe outside their ``exclude_recent_s``
+    window, and each query's distance to the nearest keyframe there (stored poses, m)."""
+    blobs = [r.descriptor for r in recs]
+    xy = np.array([(r.x_m, r.y_m) for r in recs])
+    stamps = np.array([r.stamp_ns for r in recs], np.int64)
+    same, nearest = 0, []
+    for q in range(len(recs) - min(queries, len(recs)), len(recs)):
+        other = np.flatnonzero(np.abs(stamps - stamps[q]) >= int(exclude_recent_s * 1e9))
+        if not len(other):
+            continue
+        same += any(blobs[i] == blobs[q] for i in other)
+        nearest.append(float(np.min(np.hypot(*(xy[other] - xy[q]).T))))
+    return {"distinct_descriptors": len(set(blobs)), "queries_with_identical_keyframe": same,
+            "nearest_keyframe_m": ({"median": statistics.median(nearest), "max": max(nearest)} if nearest else None)}
+
+
+def pairs_per_query(index: Any, qrows: list[int], decoded: list[Any], ids: np.ndarray, stamps: np.ndarray,
+                    n0: int, min_score: float, exclude_recent_s: float) -> dict[str, float]:
+    """The queries of :func:`query_residency` again (untimed) on ``index``, each local score
+    counted: pairs scored per query, and those checked geometrically (past the ``min_score``
+    bound: a loop, or refused by the geometric check)."""
+    from robotd.floor import match
+
+    reasons: collections.Counter[str] = collections.Counter()
+    score = match.Matcher.score
+
+    def counted(self: Any, b: Any, min_score: float = 0.0) -> Any:
+        r = score(self, b, min_score)
+        reasons[str(r.reason)] += 1
+        return r
+
+    match.Matcher.score = counted  # type: ignore[method-assign]
+    try:
+        for q in qrows:
+            excluded = ids[np.abs(stamps[ids % n0] - stamps[q]) < int(exclude_recent_s * 1e9)]
+            index.query(decoded[q], k=5, min_score=min_score, exclude_ids=excluded)
+    finally:
+        match.Matcher.score = score  # type: ignore[method-assign]
+    dismissed = {str(match.BELOW_MIN_SCORE), str(match.MatchReason.TOO_FEW_MATCHES),
+                 str(match.MatchReason.TOO_FEW_FEATURES)}
+    total = sum(reasons.values())
+    return {"local_scores_per_query": total / len(qrows),
+            "geometric_checks_per_query": sum(v for k, v in reasons.items() if k not in dismissed) / len(qrows),
+            "local_score_reasons": dict(reasons)}
 
 
 _LOAD_CHILD = r"""
@@ -1283,6 +1372,7 @@ def memory_markdown(*payloads: dict[str, Any]) -> str:
              "ground truth."]
     for p in payloads:
         lines += [""] + (_residency_section(p) if "residency" in p else
+                         _residency_maps_section(p) if "residency_maps" in p else
                          _load_section(p) if "load" in p else
                          _forward_section(p) if "forward_memory" in p else
                          _scale_section(p) if "scale" in p and "memory" not in p else _memory_section(p))
@@ -1406,6 +1496,51 @@ def _residency_section(p: dict[str, Any]) -> list[str]:
             lines.append(f"| {row['keyframes']} | {name} | {q['median']:.2f} | {q['p99']:.2f} | "
                          f"{q['median'] / base:.2f} | {v['reads_per_query']:.2f} | {v.get('loops', '-')} | "
                          f"{v['index_mb']:.1f} |")
+    return lines
+
+
+def _residency_maps_section(p: dict[str, Any]) -> list[str]:
+    """A ``--residency`` payload of several maps: each map's floor query as the daemon holds
+    it (from the map) and in RAM, round by round, and the medians' ratio to the first map's."""
+    runs, m = p["residency_maps"], p["machine"]
+    labels = list(dict.fromkeys(r["label"] for r in runs))
+    lines = _section_head(p.get("label") or "The floor query on several maps, in turn", m)
+    lines += ["", "`--residency` of several maps in the same run: each map's keyframes repeated to each "
+              "size, its last keyframes queried in the order driven, the maps in turn, round after round "
+              "(thread CPU). \"From the map\": `FloorIndex.from_store` on the map, as the daemon holds it; "
+              "loops: candidates at or above the loop threshold per query; local scores and geometric "
+              "checks per query counted on the in-RAM index (the same candidates).", "",
+              "| map | keyframes in the map | distinct descriptors | queries with a byte-identical keyframe | "
+              "nearest other keyframe, median / max m |", "|---|---:|---:|---:|---|"]
+    for label in labels:
+        r = next(x for x in runs if x["label"] == label)
+        near = r.get("nearest_keyframe_m") or {}
+        lines.append(f"| {label} | {r['map_keyframes']} | {r.get('distinct_descriptors', '-')} | "
+                     f"{r.get('queries_with_identical_keyframe', '-')} of {r['queries']} | "
+                     f"{near.get('median', math.nan):.3f} / {near.get('max', math.nan):.3f} |")
+    lines += ["", "| keyframes | map | round | load | from the map, ms median | in RAM, ms median | "
+              f"from the map / {labels[0]}'s | loops per query | local scores per query | "
+              "geometric checks per query |", "|---:|---|---:|---|---:|---:|---:|---:|---:|---:|"]
+    sizes = sorted({row["keyframes"] for r in runs for row in r["sizes"]})
+
+    def from_map(row: dict[str, Any]) -> dict[str, Any]:
+        return next(v for k, v in row["variants"].items() if k.startswith("from the map"))
+
+    for n in sizes:
+        for r in runs:
+            row = next(x for x in r["sizes"] if x["keyframes"] == n)
+            first = next(x for x in runs if x["label"] == labels[0] and x["round"] == r["round"])
+            base = from_map(next(x for x in first["sizes"] if x["keyframes"] == n))["query_ms"]["median"]
+            fm = from_map(row)
+            lines.append(f"| {n} | {r['label']} | {r['round']} | {r['load_average'][0]:.1f} | "
+                         f"{fm['query_ms']['median']:.2f} | {row['variants']['in RAM']['query_ms']['median']:.2f} | "
+                         f"{fm['query_ms']['median'] / base:.2f} | {fm['loops'] / r['queries']:.2f} | "
+                         f"{row.get('local_scores_per_query', math.nan):.2f} | "
+                         f"{row.get('geometric_checks_per_query', math.nan):.2f} |")
+        for label in labels:
+            med = statistics.median(from_map(next(x for x in r["sizes"] if x["keyframes"] == n))["query_ms"]["median"]
+                                    for r in runs if r["label"] == label)
+            lines.append(f"| {n} | {label} | median of the rounds | | **{med:.2f}** | | | | | |")
     return lines
 
 
@@ -1633,6 +1768,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--memory", type=int, default=0, metavar="N",
                     help="only the memory part: the whole daemon fed until N keyframes are stored "
                          "(writes NAME-memory.json; --doc writes its page)")
+    ap.add_argument("--memory-seeds", default=None, metavar="S,S,...",
+                    help="with --memory: lap k is the route recorded with the k-th of these seeds in turn, on "
+                         "the robot of --seed (robotd record --seed S --base-seed SEED; cached), every third "
+                         "frame fed (lap k: frame counts k mod 3); the floor is drawn from the seed, so laps "
+                         "of the same rooms repeat it: 0,0,0 gives laps of new frames of one floor (default: "
+                         "the one recording every lap, every frame)")
     ap.add_argument("--memory-every", type=int, default=1000, metavar="K",
                     help="sample the memory every K keyframes (default 1000)")
     ap.add_argument("--memory-trace", action="store_true",
@@ -1641,9 +1782,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--memory-trace-from", type=int, default=0, metavar="K",
                     help="with --memory: tracemalloc on from the first sample at K keyframes or more, so that "
                          "the traced allocations of later samples are those made since and still alive")
-    ap.add_argument("--residency", type=Path, default=None, metavar="MAP",
+    ap.add_argument("--residency", nargs="+", default=None, metavar="[LABEL=]MAP",
                     help="only the floor query's time with its descriptors in RAM and read back from MAP "
-                         "(sizes from --scale; writes NAME-residency.json)")
+                         "(sizes from --scale; writes NAME-residency.json); several maps: each in turn, "
+                         "--rounds times, in the same run")
     ap.add_argument("--resident", default="256,1024", help="with --residency: decoded descriptors kept, "
                                                           "comma-separated (default 256,1024)")
     ap.add_argument("--load", type=Path, default=None, metavar="MAP",
@@ -1651,7 +1793,8 @@ def main(argv: list[str] | None = None) -> int:
                          "repeated, each in a fresh process (writes NAME-load.json)")
     ap.add_argument("--before", type=Path, default=None, metavar="DIR",
                     help="with --load: a checkout of the code before, alternated with this one")
-    ap.add_argument("--rounds", type=int, default=3, help="with --load: rounds per tree (default 3)")
+    ap.add_argument("--rounds", type=int, default=3, help="with --load: rounds per tree (default 3); with "
+                                                          "--residency of several maps: rounds of the maps")
     ap.add_argument("--forward-memory", type=int, default=0, metavar="N",
                     help="only the whole daemon's memory as its forward detector takes N images of --forward-dir "
                          "(writes NAME-forward-memory.json)")
@@ -1690,15 +1833,45 @@ def main(argv: list[str] | None = None) -> int:
         residents = [int(v) for v in args.resident.split(",") if v.strip()]
         from robotd.floor.detector import FloorDetectorParams
 
-        res = query_residency(args.residency, sizes, residents, args.queries,
-                              args.shortlist or FloorDetectorParams().shortlist)
-        out = write_json(args.out / f"{args.name}-residency.json", {"machine": machine_info(), "residency": res})
+        maps = [(a.partition("=")[0], Path(a.partition("=")[2])) if "=" in a else (a, Path(a))
+                for a in args.residency]
+        for _label, path in maps:
+            if not path.is_file():
+                ap.error(f"--residency: no map at {path}")
+        shortlist = args.shortlist or FloorDetectorParams().shortlist
+        if len(maps) == 1:
+            res = query_residency(maps[0][1], sizes, residents, args.queries, shortlist)
+            out = write_json(args.out / f"{args.name}-residency.json", {"machine": machine_info(), "residency": res})
+            print(f"wrote {out}")
+            return 0
+        runs: list[dict[str, Any]] = []
+        for rnd in range(args.rounds):  # the maps in turn, round after round: the same load for each
+            for label, path in maps:
+                print(f"residency: round {rnd + 1}, map {label}", flush=True)
+                runs.append({"label": label, "round": rnd + 1, "load_average": [round(v, 2) for v in os.getloadavg()],
+                             **query_residency(path, sizes, residents, args.queries, shortlist)})
+                write_json(args.out / f"{args.name}-residency.json",
+                           {"machine": machine_info(), "residency_maps": runs, "load_start": load_start})
+        out = write_json(args.out / f"{args.name}-residency.json",
+                         {"machine": machine_info(), "residency_maps": runs, "load_start": load_start,
+                          "load_end": [round(v, 2) for v in os.getloadavg()]})
         print(f"wrote {out}")
+        print("\n".join(_residency_maps_section({"residency_maps": runs, "machine": machine_info()})))
         return 0
     if args.memory:
         if args.duration == 60.0 and args.recording is None:
             args.duration = None  # the whole route: more ground per lap
-        recording = ensure_recording(args)
+        recording: Path | list[Path]
+        if args.memory_seeds is not None:
+            try:
+                seeds = [int(v) for v in args.memory_seeds.split(",") if v.strip()]
+            except ValueError:
+                ap.error(f"--memory-seeds: comma-separated integers, not {args.memory_seeds!r}")
+            if not seeds or args.forward or args.recording is not None:
+                ap.error("--memory-seeds: at least one seed, and neither --forward nor --recording")
+            recording = [ensure_recording(args, s) for s in seeds]
+        else:
+            recording = ensure_recording(args)
         payload = {"machine": machine_info(), "recording": str(recording),
                    "args": {k: str(v) for k, v in vars(args).items()}}
 
