@@ -371,7 +371,8 @@ def fit_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarray,
     x_old = np.hstack([p_old, np.ones((n, 1))]) @ kinv.T
     x_new = np.hstack([p_new, np.ones((n, 1))]) @ kinv.T
 
-    def linearise(r: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]]:
+    def linearise(r: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                        Callable[..., tuple[np.ndarray, np.ndarray]]]:
         # Two unit vectors orthogonal to t: the translation's tangent plane on the sphere.
         a = np.eye(3)[int(np.argmin(np.abs(t)))]
         e1 = _cross(t, a)
