@@ -250,6 +250,47 @@ def _sampson_px_many(x_old: np.ndarray, x_new: np.ndarray, es: np.ndarray, focal
     return out
 
 
+#: :func:`fit_motion`'s central-difference step on each of its five parameters.
+_STEP = 1e-6
+
+#: The ten perturbations of :func:`fit_motion`'s parameters (plus, then minus) and the
+#: unperturbed one, as rows ``(11, 5)``; and the rotations of their first three.
+_STEPS = np.vstack([np.eye(5) * _STEP, -np.eye(5) * _STEP, np.zeros((1, 5))])
+_STEP_ROTATIONS = _rotvec_matrices(_STEPS[:, :3])
+#: The same rotations one by one as :func:`_rotvec_matrix` gives them (the ten perturbed
+#: poses of the sigmas).
+_STEP_ROTATION_LIST = [_rotvec_matrix(d[:3]) for d in _STEPS[:10]]
+
+
+#: :func:`fit_motion`'s limit on the condition number of its normal matrix.
+_COND_LIMIT = 1e14
+
+
+def _ill_conditioned(m: np.ndarray) -> bool:
+    """``np.linalg.cond(m) > _COND_LIMIT`` for a finite symmetric positive semi-definite
+    ``m (5, 5)`` (``J^T J``), without the SVD where the answer is clear. The symmetric
+    eigenvalues' ratio is the same condition number up to a rounding error of about
+    ``1e-15`` of the largest eigenvalue in the smallest (and the matrix's asymmetry from
+    rounding, as small); where that ratio is below a hundredth of the limit, the smallest
+    eigenvalue is fixed to a thousandth and the SVD's figure is below the limit too;
+    otherwise the SVD's figure decides. (The SVD took about a sixth of the refinement's
+    time, once per Gauss-Newton step.)"""
+    w = np.linalg.eigvalsh(m)
+    if w[0] > 0.0 and w[-1] < 0.01 * _COND_LIMIT * w[0]:
+        return False
+    return bool(np.linalg.cond(m) > _COND_LIMIT)
+
+
+def _planar_angles(rotation: np.ndarray, translation_dir: np.ndarray) -> tuple[float, float, float, float, float]:
+    """``(bearing_rad, dyaw_rad)`` of :func:`planar_motion` and the three sines of
+    :func:`out_of_plane` of one motion, computed once for both (the same arithmetic)."""
+    centre = -rotation.T @ translation_dir
+    forward, right = rotation[2], rotation[0]   # r.T times the unit z and x axes
+    norm = max(float(np.linalg.norm(centre)), 1e-12)
+    return (math.atan2(-centre[0], centre[2]), math.atan2(-forward[0], forward[2]),
+            float(forward[1]), float(right[1]), float(centre[1] / norm))
+
+
 @dataclass(frozen=True, eq=False)
 class MotionFit:
     """The two-view motion refined on the inliers (:func:`fit_motion`).
@@ -330,26 +371,27 @@ def fit_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarray,
     x_old = np.hstack([p_old, np.ones((n, 1))]) @ kinv.T
     x_new = np.hstack([p_new, np.ones((n, 1))]) @ kinv.T
 
-    def linearise(r: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]]:
+    def linearise(r: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                        Callable[..., tuple[np.ndarray, np.ndarray]]]:
         # Two unit vectors orthogonal to t: the translation's tangent plane on the sphere.
         a = np.eye(3)[int(np.argmin(np.abs(t)))]
         e1 = _cross(t, a)
         e1 /= math.sqrt(float(e1 @ e1))
         e2 = _cross(t, e1)
 
-        def pose(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def pose(theta: np.ndarray, rotation: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+            # rotation: _rotvec_matrix(theta[:3]) when the caller has it already
             tt = t + theta[3] * e1 + theta[4] * e2
-            return _rotvec_matrix(theta[:3]) @ r, tt / math.sqrt(float(tt @ tt))
+            rot = _rotvec_matrix(theta[:3]) if rotation is None else rotation
+            return rot @ r, tt / math.sqrt(float(tt @ tt))
 
         # Central differences: the ten perturbed motions and the current one (rows of
-        # ``steps``), built and their Sampson distances computed in one pass each.
-        h = 1e-6
-        steps = np.vstack([np.eye(5) * h, -np.eye(5) * h, np.zeros((1, 5))])
-        tt = t + steps[:, 3:4] * e1 + steps[:, 4:5] * e2
+        # ``_STEPS``), built and their Sampson distances computed in one pass each.
+        tt = t + _STEPS[:, 3:4] * e1 + _STEPS[:, 4:5] * e2
         tt /= np.sqrt(np.einsum("ij,ij->i", tt, tt))[:, None]
-        es = _skews(tt) @ (_rotvec_matrices(steps[:, :3]) @ r)
+        es = _skews(tt) @ (_STEP_ROTATIONS @ r)
         s = _sampson_px_many(x_old, x_new, es, focal)             # (11, N)
-        jac = ((s[:5] - s[5:10]) / (2 * h)).T
+        jac = ((s[:5] - s[5:10]) / (2 * _STEP)).T
         return s[10], jac, pose
 
     r, t = r0, t0
@@ -357,7 +399,7 @@ def fit_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarray,
     cost = float(res @ res)
     for _ in range(iterations):
         jtj = jac.T @ jac
-        if not np.all(np.isfinite(jtj)) or np.linalg.cond(jtj) > 1e14:
+        if not np.all(np.isfinite(jtj)) or _ill_conditioned(jtj):
             return MotionFit(r0, t0, noise_px=math.sqrt(cost / (n - 5)))
         step = -np.linalg.solve(jtj, jac.T @ res)
         r_new, t_new = pose(step)
@@ -371,21 +413,20 @@ def fit_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarray,
             break
     noise = math.sqrt(cost / (n - 5))
     jtj = jac.T @ jac
-    if not np.all(np.isfinite(jtj)) or np.linalg.cond(jtj) > 1e14:
+    if not np.all(np.isfinite(jtj)) or _ill_conditioned(jtj):
         return MotionFit(r, t, noise_px=noise)
     cov = noise**2 * np.linalg.inv(jtj)
-    grad = np.zeros((2, 5))
-    g_out = np.zeros((3, 5))
-    h = 1e-6
-    plus, minus = [pose(d) for d in np.eye(5) * h], [pose(d) for d in np.eye(5) * -h]
-    for j in range(5):
-        yp, bp, _ = planar_motion(*plus[j])
-        ym, bm, _ = planar_motion(*minus[j])
-        grad[:, j] = (wrap_angle(bp - bm) / (2 * h), wrap_angle(yp - ym) / (2 * h))
-        g_out[:, j] = (out_of_plane(*plus[j]) - out_of_plane(*minus[j])) / (2 * h)
+    # The bearing, heading change and out-of-plane sines of the ten perturbed motions
+    # (rows of ``_STEPS``, plus then minus), each as planar_motion and out_of_plane give them.
+    h = _STEP
+    angles = np.array([_planar_angles(*pose(d, rot)) for d, rot in zip(_STEPS[:10], _STEP_ROTATION_LIST)])  # (10, 5)
+    diff = (angles[:5] - angles[5:]).T                                   # (5, 5)
+    grad = np.array([[wrap_angle(float(d)) / (2 * h) for d in diff[0]],
+                     [wrap_angle(float(d)) / (2 * h) for d in diff[1]]])
+    g_out = diff[2:] / (2 * h)
     var = np.einsum("ij,jk,ik->i", grad, cov, grad)
     c_out = g_out @ cov @ g_out.T
-    e_out = out_of_plane(r, t)
+    e_out = np.array(_planar_angles(r, t)[2:])
     try:
         chi2 = float(e_out @ np.linalg.solve(c_out, e_out))
     except np.linalg.LinAlgError:

@@ -343,10 +343,14 @@ def match_indices(a: FeatureSet, b: FeatureSet, ratio: float = 0.8,
     pairs = matcher.knnMatch(a.descriptors, b.descriptors, k=2)
     best: dict[int, tuple[float, int]] = {}
     for p in pairs:
-        if len(p) == 2 and p[0].distance < ratio * p[1].distance:
-            m = p[0]
-            if m.trainIdx not in best or m.distance < best[m.trainIdx][0]:
-                best[m.trainIdx] = (m.distance, m.queryIdx)
+        if len(p) == 2:
+            m, second = p
+            d = m.distance
+            if d < ratio * second.distance:
+                j = m.trainIdx
+                held = best.get(j)
+                if held is None or d < held[0]:
+                    best[j] = (d, m.queryIdx)
     if not best:
         return empty, empty
     ib = np.fromiter(best.keys(), np.int64, len(best))

@@ -238,3 +238,149 @@ def test_batched_rotations_and_essentials_equal_the_one_at_a_time_ones() -> None
         np.testing.assert_allclose(es[i], _essential(batch[i] @ r, t[i]), rtol=0, atol=1e-12)
     a, b = rng.normal(size=3), rng.normal(size=3)
     np.testing.assert_allclose(_cross(a, b), np.cross(a, b), rtol=0, atol=1e-15)
+
+
+# --- fit_motion in fewer calls, against the code before it (a reference kept here) ---------
+
+def _fit_motion_reference(p_old_px, p_new_px, rotation, translation_dir, camera_matrix, iterations=5):
+    """:func:`robotd.forward.planar.fit_motion` as it was before its constant perturbations
+    were made once, the sigma part's angles computed once per pose and the condition number
+    tested without the SVD where it is clear: the reference it must equal to the bit."""
+    from robotd.base.geometry import wrap_angle
+    from robotd.forward.planar import (MotionFit, _cross, _rotvec_matrices, _rotvec_matrix, _sampson_px_many,
+                                       _skews, out_of_plane)
+
+    p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
+    p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
+    r0 = np.asarray(rotation, np.float64).reshape(3, 3)
+    t0 = np.asarray(translation_dir, np.float64).reshape(3)
+    t0 = t0 / max(float(np.linalg.norm(t0)), 1e-15)
+    n = len(p_old)
+    if n < 6:
+        return MotionFit(r0, t0)
+    k = np.asarray(camera_matrix, np.float64)
+    kinv = np.linalg.inv(k)
+    focal = 0.5 * (k[0, 0] + k[1, 1])
+    x_old = np.hstack([p_old, np.ones((n, 1))]) @ kinv.T
+    x_new = np.hstack([p_new, np.ones((n, 1))]) @ kinv.T
+
+    def linearise(r, t):
+        a = np.eye(3)[int(np.argmin(np.abs(t)))]
+        e1 = _cross(t, a)
+        e1 /= math.sqrt(float(e1 @ e1))
+        e2 = _cross(t, e1)
+
+        def pose(theta):
+            tt = t + theta[3] * e1 + theta[4] * e2
+            return _rotvec_matrix(theta[:3]) @ r, tt / math.sqrt(float(tt @ tt))
+
+        h = 1e-6
+        steps = np.vstack([np.eye(5) * h, -np.eye(5) * h, np.zeros((1, 5))])
+        tt = t + steps[:, 3:4] * e1 + steps[:, 4:5] * e2
+        tt /= np.sqrt(np.einsum("ij,ij->i", tt, tt))[:, None]
+        es = _skews(tt) @ (_rotvec_matrices(steps[:, :3]) @ r)
+        s = _sampson_px_many(x_old, x_new, es, focal)
+        jac = ((s[:5] - s[5:10]) / (2 * h)).T
+        return s[10], jac, pose
+
+    r, t = r0, t0
+    res, jac, pose = linearise(r, t)
+    cost = float(res @ res)
+    for _ in range(iterations):
+        jtj = jac.T @ jac
+        if not np.all(np.isfinite(jtj)) or np.linalg.cond(jtj) > 1e14:
+            return MotionFit(r0, t0, noise_px=math.sqrt(cost / (n - 5)))
+        step = -np.linalg.solve(jtj, jac.T @ res)
+        r_new, t_new = pose(step)
+        res_new, jac_new, pose_new = linearise(r_new, t_new)
+        cost_new = float(res_new @ res_new)
+        if not cost_new < cost:
+            break
+        converged = cost - cost_new < 1e-6 * cost
+        r, t, res, jac, pose, cost = r_new, t_new, res_new, jac_new, pose_new, cost_new
+        if converged:
+            break
+    noise = math.sqrt(cost / (n - 5))
+    jtj = jac.T @ jac
+    if not np.all(np.isfinite(jtj)) or np.linalg.cond(jtj) > 1e14:
+        return MotionFit(r, t, noise_px=noise)
+    cov = noise**2 * np.linalg.inv(jtj)
+    grad = np.zeros((2, 5))
+    g_out = np.zeros((3, 5))
+    h = 1e-6
+    plus, minus = [pose(d) for d in np.eye(5) * h], [pose(d) for d in np.eye(5) * -h]
+    for j in range(5):
+        yp, bp, _ = planar_motion(*plus[j])
+        ym, bm, _ = planar_motion(*minus[j])
+        grad[:, j] = (wrap_angle(bp - bm) / (2 * h), wrap_angle(yp - ym) / (2 * h))
+        g_out[:, j] = (out_of_plane(*plus[j]) - out_of_plane(*minus[j])) / (2 * h)
+    var = np.einsum("ij,jk,ik->i", grad, cov, grad)
+    c_out = g_out @ cov @ g_out.T
+    e_out = out_of_plane(r, t)
+    try:
+        chi2 = float(e_out @ np.linalg.solve(c_out, e_out))
+    except np.linalg.LinAlgError:
+        chi2 = math.nan
+    return MotionFit(r, t, math.sqrt(max(float(var[0]), 0.0)), math.sqrt(max(float(var[1]), 0.0)), noise,
+                     chi2 if math.isfinite(chi2) and chi2 >= 0.0 else math.nan)
+
+
+def _motion_bytes(f) -> list[bytes]:
+    return [np.asarray(getattr(f, name), np.float64).tobytes() for name in
+            ("rotation", "translation_dir", "sigma_bearing_rad", "sigma_yaw_rad", "noise_px", "planarity_chi2")]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_fit_motion_is_the_reference_s_to_the_bit(seed):
+    """The refinement in fewer calls gives the reference's motion, sigmas, noise and
+    planarity to the bit: level and tilted motions, short and long baselines, few and many
+    points, clean and noisy, with outliers, started off the truth, and degenerate sets
+    (pure rotation, every point one match: the condition number's SVD path)."""
+    from robotd.forward.planar import fit_motion
+
+    rng = np.random.default_rng(seed)
+    cases = 0
+    for _ in range(30):
+        rel = np.array([rng.uniform(-1.5, 1.5), rng.uniform(-1.0, 1.0), rng.uniform(-0.6, 0.6)])
+        if rng.random() < 0.15:
+            rel[:2] = 0.0  # a pure turn: the translation's direction is not fixed
+        noise = float(rng.choice([0.0, 0.3, 1.0, 3.0]))
+        n = int(rng.choice([8, 20, 60, 150]))
+        p_old, p_new, r, t, k = _synthetic_pair(rel if rel[:2].any() else rel + [1e-9, 0, 0], noise, rng, n)
+        if rng.random() < 0.3:  # outliers
+            m = max(1, len(p_new) // 5)
+            p_new[:m] = rng.uniform([0, 0], [640, 480], (m, 2))
+        if rng.random() < 0.1:  # every point the same match: a singular normal matrix
+            p_old[:] = p_old[0]
+            p_new[:] = p_new[0]
+        tilt = _rotvec_matrix_of(rng.normal(size=3) * float(rng.choice([0.0, 0.02, 0.2])))
+        t0 = t + rng.normal(size=3) * 0.05
+        a, b = fit_motion(p_old, p_new, tilt @ r, t0, k), _fit_motion_reference(p_old, p_new, tilt @ r, t0, k)
+        assert _motion_bytes(a) == _motion_bytes(b)
+        cases += math.isfinite(b.sigma_bearing_rad)
+    assert cases >= 10  # most cases reach the sigma part
+
+
+def _rotvec_matrix_of(w):
+    from robotd.forward.planar import _rotvec_matrix
+
+    return _rotvec_matrix(np.asarray(w, np.float64))
+
+
+def test_the_condition_test_without_the_svd_decides_as_the_svd():
+    """fit_motion's condition test (the SVD only where the eigenvalues leave it open) says
+    what ``np.linalg.cond(m) > 1e14`` says, on normal matrices from well to badly
+    conditioned and singular."""
+    from robotd.forward.planar import _COND_LIMIT, _ill_conditioned
+
+    rng = np.random.default_rng(7)
+    seen = set()
+    for scale in (0.0, 1e-3, 1e-6, 1e-7, 1e-8, 1e-9, 1e-12):
+        for _ in range(40):
+            jac = rng.normal(size=(30, 5))
+            jac[:, 4] = jac[:, 3] + scale * rng.normal(size=30)  # two columns alike, to the scale
+            m = jac.T @ jac
+            expected = bool(np.linalg.cond(m) > _COND_LIMIT)
+            assert _ill_conditioned(m) == expected
+            seen.add(expected)
+    assert seen == {True, False}

@@ -13,6 +13,7 @@ from robotd.forward.verify import (
     TOO_FEW_MATCHES,
     VerifyParams,
     camera_matrix_guess,
+    match_indices,
     ransac_iterations,
     support_area,
     verify_pair,
@@ -372,3 +373,46 @@ def test_the_verification_returns_the_indices_of_the_matches_it_ran_on(model):
     # too few matches: empty indices
     few = verify_pair(Features(old.keypoints_px[:3], old.descriptors[:3], (640, 480)), new)
     assert few.reason == TOO_FEW_MATCHES and few.match_index is not None and len(few.match_index[0]) <= 3
+
+
+def _match_indices_reference(a, b, ratio=0.8):
+    """:func:`robotd.forward.verify.match_indices`'s ratio-test loop as it was before it read
+    each match's fields once: the reference it must equal (the same pairs, the same order)."""
+    import cv2
+
+    empty = np.zeros(0, np.int64)
+    if len(a) < 2 or len(b) < 2:
+        return empty, empty
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING if a.descriptors.dtype == np.uint8 else cv2.NORM_L2)
+    best = {}
+    for p in matcher.knnMatch(a.descriptors, b.descriptors, k=2):
+        if len(p) == 2 and p[0].distance < ratio * p[1].distance:
+            m = p[0]
+            if m.trainIdx not in best or m.distance < best[m.trainIdx][0]:
+                best[m.trainIdx] = (m.distance, m.queryIdx)
+    if not best:
+        return empty, empty
+    return (np.fromiter((v[1] for v in best.values()), np.int64, len(best)),
+            np.fromiter(best.keys(), np.int64, len(best)))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_ratio_test_loop_gives_the_reference_s_matches_in_its_order(seed):
+    """Binary descriptors with many shared and tied ones (several old keypoints nearest to
+    one new keypoint, equal distances) and float ones: the same index pairs in the same
+    order as the loop before."""
+    rng = np.random.default_rng(seed)
+    base = rng.integers(0, 256, (40, 32), dtype=np.uint8)
+    a = base[rng.integers(0, 40, 300)].copy()
+    a[rng.random(a.shape) < 0.02] ^= np.uint8(1)   # near copies: several old keypoints per new one
+    b = base[rng.integers(0, 40, 250)].copy()
+    b[rng.random(b.shape) < 0.01] ^= np.uint8(4)
+    fa = Features(rng.uniform(0, 640, (300, 2)).astype(np.float32), a, (640, 480))
+    fb = Features(rng.uniform(0, 640, (250, 2)).astype(np.float32), b, (640, 480))
+    ff = Features(rng.uniform(0, 640, (80, 2)).astype(np.float32), rng.normal(size=(80, 16)).astype(np.float32),
+                  (640, 480))
+    for x, y in ((fa, fb), (fb, fa), (ff, ff)):
+        for ratio in (0.8, 0.95, 1.0):
+            got, ref = match_indices(x, y, ratio), _match_indices_reference(x, y, ratio)
+            assert len(ref[0]) > 0
+            assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])
