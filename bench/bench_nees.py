@@ -431,7 +431,8 @@ def shipped_geometry() -> tuple[Any, float]:
 
 def daemon_scale_sigmas() -> tuple[float, float]:
     """The prior of the daemon graph's scale variable with the demo's shipped calibration
-    and the default ``[pose_graph] scale_wear`` (:func:`robotd.app.assemble.scale_prior_sigmas`)."""
+    and the default ``[pose_graph] scale_wear`` and ``scale_wear_gyro``
+    (:func:`robotd.app.assemble.scale_prior_sigmas`)."""
     from robotd.app.assemble import scale_prior_sigmas
     from robotd.app.demo import shipped_calibration
     from robotd.base.config import Config

@@ -251,7 +251,8 @@ def scale_prior_sigmas(cfg: Config, calibration: CalibrationFile | None = None) 
     variable (``[pose_graph] odometry_model = "bias_scale_window"``): the calibration's own
     uncertainty of the mean wheel radius and of the gyro scale (without an odometry
     calibration :data:`UNCALIBRATED_SCALE_SIGMAS`), the wheels' widened by ``[pose_graph]
-    scale_wear`` (what load, tyre wear and floor move them by since the calibration)."""
+    scale_wear`` (what load, tyre wear and floor move them by since the calibration) and the
+    gyro's by ``[pose_graph] scale_wear_gyro`` (what temperature moves it by)."""
     odo = calibration.odometry if calibration is not None else None
     if odo is None:
         wheel, gyro = UNCALIBRATED_SCALE_SIGMAS
@@ -259,8 +260,8 @@ def scale_prior_sigmas(cfg: Config, calibration: CalibrationFile | None = None) 
         wheel = 0.5 * math.hypot(odo.wheel_radius_left_sigma_m / odo.wheel_radius_left_m,
                                  odo.wheel_radius_right_sigma_m / odo.wheel_radius_right_m)
         gyro = odo.gyro_scale_sigma / odo.gyro_scale
-    wear = cfg.pose_graph.scale_wear
-    return math.hypot(wheel, wear), max(gyro, _MIN_SCALE_SIGMA)
+    g = cfg.pose_graph
+    return math.hypot(wheel, g.scale_wear), max(math.hypot(gyro, g.scale_wear_gyro), _MIN_SCALE_SIGMA)
 
 
 def build_pipeline(cfg: Config, clock: Clock, store: MapStore, run_id: int, *, lossless: bool,

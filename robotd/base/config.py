@@ -286,6 +286,12 @@ class PoseGraphConfig:
                            "fraction) the wheels' distance scale may have moved from the calibration "
                            "with load, tyre wear and floor; added to the calibration's own uncertainty "
                            "in the scale variable's prior (0.003: 0.3 %)", lo=1e-6, hi=0.5, unit="")
+    scale_wear_gyro: float = _f(0.002, "with odometry_model 'bias_scale_window': how far (1-sigma, a "
+                                "fraction) the gyro's scale may have moved from the calibration with "
+                                "temperature (MEMS gyro datasheets give about 0.02-0.03 % per kelvin; "
+                                "0.002: 0.2 %, about 10 K from the calibration's); added to the "
+                                "calibration's own uncertainty in the scale variable's prior",
+                                lo=1e-6, hi=0.5, unit="")
 
 
 @dataclass(frozen=True)

@@ -105,6 +105,8 @@ def config_from_dict(data: dict[str, Any], *, origin: str = "", stored: bool = F
     if pg.odometry_model != "bias_scale_window" and pg.scale_wear != PoseGraphConfig().scale_wear:
         # The wear widens the scale variable's prior; without the variable it would do nothing.
         raise ConfigError("[pose_graph] scale_wear: works only with odometry_model = \"bias_scale_window\"")
+    if pg.odometry_model != "bias_scale_window" and pg.scale_wear_gyro != PoseGraphConfig().scale_wear_gyro:
+        raise ConfigError("[pose_graph] scale_wear_gyro: works only with odometry_model = \"bias_scale_window\"")
     return with_virtual_floor_camera(cfg) if virtual else cfg
 
 

@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from robotd.app.assemble import GYRO_READINGS_HZ, build_odometry
+from robotd.app.assemble import GYRO_READINGS_HZ, build_odometry, scale_prior_sigmas
 from robotd.app.demo import shipped_calibration
 from robotd.base.config import Config, replace
 from robotd.io.calibfile import CalibrationFile, read_calibration
@@ -107,3 +107,19 @@ def test_the_live_pose_key_reaches_the_fused_filter():
     off = build_odometry(replace(replace(Config(), "visual_odometry", live_pose="combined_edges"),
                                  "visual_odometry", enabled=False), cal)
     assert off.wheel_gyro is off and off.live_pose == "fused"
+
+
+def test_the_scale_prior_adds_each_wear_to_its_own_sensor():
+    """``[pose_graph] scale_wear`` widens the wheels' scale prior, ``scale_wear_gyro`` the
+    gyro's, each in quadrature with the calibration's own uncertainty."""
+    cal = _shipped()
+    m = cal.odometry
+    wheel = 0.5 * math.hypot(m.wheel_radius_left_sigma_m / m.wheel_radius_left_m,
+                             m.wheel_radius_right_sigma_m / m.wheel_radius_right_m)
+    gyro = m.gyro_scale_sigma / m.gyro_scale
+    cfg = replace(Config(), "pose_graph", odometry_model="bias_scale_window", scale_wear=0.004,
+                  scale_wear_gyro=0.001)
+    assert scale_prior_sigmas(cfg, cal) == pytest.approx((math.hypot(wheel, 0.004), math.hypot(gyro, 0.001)))
+    wider = replace(cfg, "pose_graph", scale_wear_gyro=0.005)
+    assert scale_prior_sigmas(wider, cal)[0] == scale_prior_sigmas(cfg, cal)[0]
+    assert scale_prior_sigmas(wider, cal)[1] == pytest.approx(math.hypot(gyro, 0.005))

@@ -608,7 +608,9 @@ def test_a_broken_config_is_named_on_one_line(tmp_path: Path):
                        ("[odometry]\nwheel_rounding = true\n",
                         "[odometry] wheel_rounding: works only with wheel_increments"),
                        ("[pose_graph]\nscale_wear = 0.005\n",
-                        "[pose_graph] scale_wear: works only with odometry_model = \"bias_scale_window\"")]:
+                        "[pose_graph] scale_wear: works only with odometry_model = \"bias_scale_window\""),
+                       ("[pose_graph]\nscale_wear_gyro = 0.001\n",
+                        "[pose_graph] scale_wear_gyro: works only with odometry_model = \"bias_scale_window\"")]:
         cfg.write_text(text)
         assert_refused(run("config", "check", cfg), says)
         assert_refused(run("run", "--config", cfg), says)

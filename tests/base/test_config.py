@@ -41,6 +41,7 @@ def test_values_are_read_and_converted(tmp_path):
     ("[floor_camera]\ncx_px = 700.0\n", "principal point must lie inside the image"),
     ("[odometry]\nwheel_rounding = true\n", "[odometry] wheel_rounding: works only with wheel_increments"),
     ("[pose_graph]\nscale_wear = 0.005\n", "[pose_graph] scale_wear: works only with odometry_model"),
+    ("[pose_graph]\nscale_wear_gyro = 0.001\n", "[pose_graph] scale_wear_gyro: works only with odometry_model"),
     ("[keyframes]\ndistance_m = nan\n", "[keyframes] distance_m: must be finite"),
     ("robot = 3\n", "[robot] must be a table"),
     ("[recording]\nimage_format = \"webp\"\n", "[recording] image_format: 'webp' is not one of"),
