@@ -51,14 +51,17 @@ def _marginal_cov(e: BiasEdge) -> np.ndarray:
     return e.cov_given_bias + e.bias_var * np.outer(e.jac_bias, e.jac_bias)
 
 
-def _per_edge_marginal(edges: list[BiasEdge], key: int) -> np.ndarray:
-    fg = bias_factor_graph(edges)
-    values = bias_initial_values(edges)
+def _per_edge_marginal(edges: list[BiasEdge], key: int,
+                       scale_sigmas: tuple[float, float] | None = None) -> np.ndarray:
+    """The marginal of ``key`` in the per-edge model (with a scale variable of prior
+    ``scale_sigmas`` when given)."""
+    fg = bias_factor_graph(edges, scale_sigmas=scale_sigmas)
+    values = bias_initial_values(edges, scales=scale_sigmas is not None)
     return np.asarray(gtsam.Marginals(fg, values).marginalCovariance(key))
 
 
-def _live(edges: list[BiasEdge], model: str = "bias_window", fold: int = 10) -> IncrementalGraph:
-    g = IncrementalGraph(IncrementalParams(odometry_model=model, fold=fold))
+def _live(edges: list[BiasEdge], model: str = "bias_window", fold: int = 10, **params) -> IncrementalGraph:
+    g = IncrementalGraph(IncrementalParams(odometry_model=model, fold=fold, **params))
     g.add_first(0)
     for e in edges:
         g.add_keyframe(e.to_id, e.from_id, e.delta, np.linalg.inv(_marginal_cov(e)), _terms(e))

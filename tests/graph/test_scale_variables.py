@@ -14,8 +14,6 @@ from robotd.graph.bias import (
     BiasEdge,
     bias_edge,
     bias_edge_factor,
-    bias_factor_graph,
-    bias_initial_values,
     bias_key,
     bias_prior_factor,
     scale_key,
@@ -26,7 +24,9 @@ from robotd.graph.incremental import IncrementalGraph, IncrementalParams
 from robotd.odometry.history import EdgeBiasTerms
 from robotd.odometry.increments import combine_bias_terms, combine_edges
 from tests.graph.test_bias_windows import _edges as bias_window_edges
+from tests.graph.test_bias_windows import _live as bias_window_live
 from tests.graph.test_bias_windows import _marginal_cov, _terms
+from tests.graph.test_bias_windows import _per_edge_marginal as bias_window_marginal
 
 N = 10  # one window
 SIGMAS = (0.003, 0.0005)
@@ -39,17 +39,11 @@ def _edges(n: int, start: int = 0) -> list[BiasEdge]:
 
 
 def _per_edge_marginal(edges: list[BiasEdge], key: int) -> np.ndarray:
-    fg = bias_factor_graph(edges, scale_sigmas=SIGMAS)
-    values = bias_initial_values(edges, scales=True)
-    return np.asarray(gtsam.Marginals(fg, values).marginalCovariance(key))
+    return bias_window_marginal(edges, key, SIGMAS)
 
 
 def _live(edges: list[BiasEdge], model: str = "bias_scale_window") -> IncrementalGraph:
-    g = IncrementalGraph(IncrementalParams(odometry_model=model, scale_sigmas=SIGMAS))
-    g.add_first(0)
-    for e in edges:
-        g.add_keyframe(e.to_id, e.from_id, e.delta, np.linalg.inv(_marginal_cov(e)), _terms(e))
-    return g
+    return bias_window_live(edges, model, scale_sigmas=SIGMAS)
 
 
 def test_a_closed_window_with_the_scale_is_the_per_edge_model():
