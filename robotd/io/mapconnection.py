@@ -19,7 +19,7 @@ from typing import Any, Literal, Self
 from robotd.base.clock import Clock, MonotonicClock
 from robotd.base.errors import MapStoreError
 from robotd.io.mapfile import MIGRATIONS, inspect_file, migrate
-from robotd.io.maplock import acquire_map_lock, release_map_lock
+from robotd.io.maplock import acquire_map_lock, live_holder, release_map_lock
 
 __all__ = ["MapConnection"]
 
@@ -105,6 +105,7 @@ class MapConnection:
             if not path.is_file():
                 raise MapStoreError(f"map file {path} is not a regular file")
             if path.stat().st_size == 0 and (not create or read_only):
+                _refuse_if_being_created(path)
                 raise MapStoreError(f"map file {path} is empty")
             version = inspect_file(path, target)
         elif create and not read_only:
@@ -183,6 +184,8 @@ class MapConnection:
     def _open_read_only(cls, path: Path, version: int, target: int, *,
                         image_codec: Literal["jpeg", "png"], jpeg_quality: int,
                         clock: Clock | None) -> Self:
+        if version == 0:
+            _refuse_if_being_created(path)
         if version != target:
             raise MapStoreError(
                 f"map file {path} has schema version {version}; open it once for writing to"
@@ -298,3 +301,12 @@ class MapConnection:
                 " ON CONFLICT(key) DO UPDATE SET value = excluded.value",
                 (key, str(value)),
             )
+
+
+def _refuse_if_being_created(path: Path) -> None:
+    """A reader that finds a map without its schema while a live writer holds the lock has
+    met a map being created, not an empty or old one: say so."""
+    who = live_holder(path)
+    if who:
+        raise MapStoreError(f"map file {path} is being created by another process ({who}); "
+                            "read it once that process has started")

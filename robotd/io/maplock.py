@@ -67,6 +67,23 @@ def holder_of(map_path: Path) -> str:
         return ""
 
 
+def live_holder(map_path: Path) -> str:
+    """The lock file's line when the process it names is alive, else ``""``: for a reader to
+    tell a map being created from an empty or damaged one, without touching the lock (a
+    reader taking it, even shared for a moment, could make a starting writer refused)."""
+    line = holder_of(map_path)
+    parts = line.split(":", 1)[0].split()
+    if len(parts) != 2 or parts[0] != "pid" or not parts[1].isdigit():
+        return ""
+    try:
+        os.kill(int(parts[1]), 0)
+    except ProcessLookupError:
+        return ""
+    except OSError:
+        pass  # alive, owned by another user
+    return line
+
+
 def _acquire(map_path: Path) -> int:
     path = lock_path(map_path)
     folder = map_path.parent

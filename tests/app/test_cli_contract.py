@@ -174,12 +174,18 @@ def g2o(tmp_path: Path) -> Path:
 def test_a_second_replay_into_a_live_map_is_refused_and_readers_still_work(material: Path,
                                                                            tmp_path: Path):
     m = tmp_path / "m.sqlite"
-    first = start("replay", material / "drive.mcap", "--map", m, "--speed", "0.25")  # 12 s: the second must start while it runs, even on a loaded machine
+    first = start("replay", material / "drive.mcap", "--map", m, "--speed", "0.25")  # 12 s: stopped below while it holds the lock
     wait_for(lambda: lock_path(m).exists() and b"pid" in lock_path(m).read_bytes()
-             and m.exists(), first, "the first replay's lock")
-    second = run("replay", material / "drive.mcap", "--map", m)
+             and m.exists() and has_run(m), first, "the first replay's run")
+    # Held stopped (the lock stays held) while the others start: on a loaded machine their own
+    # start-up could otherwise outlast the first replay, and the second would find no writer.
+    first.send_signal(signal.SIGSTOP)
+    try:
+        second = run("replay", material / "drive.mcap", "--map", m)
+        export = run("graph", "export", m, "--out", tmp_path / "export")  # a reader: no lock
+    finally:
+        first.send_signal(signal.SIGCONT)
     assert_refused(second, f"map {m} is being written by another process (pid {first.pid}")
-    export = run("graph", "export", m, "--out", tmp_path / "export")  # a reader: no lock
     out, err = first.communicate(timeout=120)
     assert first.returncode == 0, err[-3000:]
     assert export.returncode == 0 or "has no keyframes" in export.stderr, export.stderr

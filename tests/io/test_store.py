@@ -885,3 +885,34 @@ def test_a_version_4_map_with_forward_rows_is_marked_version_5_and_reads_as_befo
     meta_before, meta_after = before.pop("meta"), after.pop("meta")
     assert after == before
     assert dict(meta_after) == {**dict(meta_before), "schema_version": "5"}
+
+
+@pytest.mark.parametrize("schema_less", ["empty file", "database without tables"])
+def test_a_reader_meeting_a_map_being_created_says_so(tmp_path: Path, schema_less: str) -> None:
+    """Between a writer's lock and its schema the file is empty or has no tables: a reader
+    then says the map is being created (by whom), not that it is empty or old; once that
+    writer is gone the old messages come back."""
+    from robotd.io.maplock import hold_map_lock, lock_path
+
+    m = tmp_path / "m.sqlite"
+    if schema_less == "empty file":
+        m.write_bytes(b"")
+        after = "is empty"
+    else:
+        conn = sqlite3.connect(m)
+        conn.execute("PRAGMA user_version = 0")
+        conn.execute("CREATE TABLE t (x)")  # a real SQLite file, none of the map's tables
+        conn.execute("DROP TABLE t")
+        conn.commit()
+        conn.close()
+        after = "has schema version 0"
+    before = m.read_bytes()
+    with hold_map_lock(m):
+        with pytest.raises(MapStoreError, match=rf"being created by another process \(pid {os.getpid()}"):
+            MapStore.open(m, create=False, read_only=True)
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    lock_path(m).write_text(f"pid {dead.stdout.strip()}: robotd run\n")  # left by a killed writer
+    with pytest.raises(MapStoreError, match=after):
+        MapStore.open(m, create=False, read_only=True)
+    assert m.read_bytes() == before
