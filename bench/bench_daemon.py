@@ -74,6 +74,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import resource
 import statistics
 import subprocess
@@ -1379,6 +1380,15 @@ def memory_markdown(*payloads: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _recordings(value: str | list[str]) -> str:
+    """The run's recording(s) for a page, each distinct one once (older JSON holds a list of
+    paths printed as one string)."""
+    if isinstance(value, str) and value.startswith("[") and "Path(" in value:
+        value = re.findall(r"Path\('([^']*)'\)", value)
+    paths = [value] if isinstance(value, str) else value
+    return ", ".join(f"`{path}`" for path in dict.fromkeys(paths))
+
+
 def _section_head(title: str, m: dict[str, Any]) -> list[str]:
     """A memory page section's first lines: its title and the machine it ran on."""
     return [f"## {title}", "",
@@ -1569,7 +1579,7 @@ def _memory_section(p: dict[str, Any]) -> list[str]:
     if c.get("resident"):
         setting += f", floor descriptors read back from the map ({c['resident']} kept decoded)"
     lines = _section_head(setting, m) + [
-             f"Recording: `{p['recording']}`, {r['laps']} laps; spacing "
+             f"Recording: {_recordings(p['recording'])}, {r['laps']} laps; spacing "
              f"{c['keyframe_distance_m'] * 100:g} cm, mode {c['mode']}, shortlist {c['shortlist']}"
              f"{', localise_mapped' if c.get('localise_mapped') else ''}.", "",
              "| keyframes | of them stored | process RSS MB | after malloc_trim MB | of it the floor index MB "
@@ -1872,7 +1882,8 @@ def main(argv: list[str] | None = None) -> int:
             recording = [ensure_recording(args, s) for s in seeds]
         else:
             recording = ensure_recording(args)
-        payload = {"machine": machine_info(), "recording": str(recording),
+        payload = {"machine": machine_info(),
+                   "recording": [str(r) for r in recording] if isinstance(recording, list) else str(recording),
                    "args": {k: str(v) for k, v in vars(args).items()}}
 
         def partial(so_far: dict[str, Any]) -> None:  # kept if the run is stopped
