@@ -183,3 +183,62 @@ def test_the_roundings_cancel_over_many_packets():
         assert s1 is not None and s2 is not None
         var_x[rounding] = s2.covariance[0, 0] - s1.covariance[0, 0]
     assert var_x[True] < 0.5 * var_x[False]
+
+
+def test_the_wheels_heading_change_leaves_the_pose_at_the_packets_start():
+    """The ticks' heading change corrects the packet's own heading change, the rates and
+    the bias, but not the pose the packet opened on, however that pose correlates with the
+    yaw rate and the bias: two readings that differ in it alone leave the same pose and the
+    same pose covariance (a Schmidt update of that row), and a different heading change."""
+    params = EkfParams()  # the config's wheel yaw-rate noise, a bound for systematic errors
+    rng = np.random.default_rng(7)
+    a = rng.normal(size=(6, 6)) * 1e-3
+    cov = a @ a.T + np.diag([1e-2, 1e-2, 1e-3, 1e-5, 1e-5, 1e-7])
+    cov[1, 5] = cov[5, 1] = 2e-5  # a lateral error the bias since the last stop has made
+    cov[1, 4] = cov[4, 1] = -2e-5
+
+    def read(dyaw: float) -> tuple[np.ndarray, np.ndarray, float]:
+        p = open_packet(EkfState(0, np.array([3.0, 1.0, 0.2, 0.5, 0.0, 0.003]), cov))
+        packet_predict(p, 10_000_000, params)
+        packet_gyro(p, 0.004, params)
+        packet_predict(p, 20_000_000, params)
+        packet_wheels(p, 0.0102, dyaw, 0.02, params)
+        return p.mean[:3].copy(), p.cov[:3, :3].copy(), float(p.mean[7])
+
+    pose_a, cov_a, th_a = read(0.0004)
+    pose_b, cov_b, th_b = read(0.0104)
+    assert pose_b == pytest.approx(pose_a, abs=1e-15)
+    assert cov_b == pytest.approx(cov_a, rel=1e-12)
+    assert th_b - th_a > 1e-7  # the packet's heading change took it
+
+
+def test_an_edges_covariance_does_not_grow_with_the_time_since_the_last_stop():
+    """A straight at 0.5 m/s for 20 s after a stop, ticks from the true travel, a still
+    gyro, the config's wheel yaw-rate noise: the bias error since the stop turns the
+    heading and moves the position by a lever arm that grows with the drive, but a
+    keyframe edge over the same 0.2 s of motion is known as well late in the drive as
+    early. With the wheels' reading correcting the pose along that lever arm, the late
+    edge claimed several times the early one's lateral and along-track variance."""
+    drive = DiffDriveParams()
+    params = dataclasses.replace(EkfParams(accel_noise_density_mps2_per_sqrt_hz=0.0154,
+                                           angular_accel_noise_density_radps2_per_sqrt_hz=0.0766,
+                                           wheel_v_noise_mps=0.00174, wheel_v_noise_frac=0.0,
+                                           gyro_noise_radps=0.0028), wheel_increments=True)
+    f = OdometryFilter(drive, params)
+    v0, t_still = 0.5, 1.0
+    edges: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for k in range(1, 1051):
+        t = 0.02 * k
+        travel = max(t - t_still, 0.0) * v0
+        ticks = int(math.floor(travel / drive.metres_per_tick)) % 65536
+        stamp = int(round(t * 1e9))
+        f.on_yaw_rate(YawRate(stamp - 10_000_000, 0.0))
+        f.on_wheels(WheelTicks(stamp, ticks, ticks))
+        if k in (150, 160, 1030, 1040):  # 2.0-2.2 s and 19.6-19.8 s into the drive
+            e = f.keyframe_edge(stamp)
+            if k in (160, 1040):
+                assert e is not None
+                edges[k] = e
+    early, late = edges[160][1], edges[1040][1]
+    assert early[0, 0] > 0.0 and late[0, 0] < 1.5 * early[0, 0]  # along the track
+    assert late[1, 1] < 1.5 * early[1, 1]  # across it
