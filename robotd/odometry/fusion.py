@@ -64,6 +64,7 @@ from robotd.odometry.packet import (
     close_packet,
     open_packet,
     packet_gyro,
+    packet_gyro_mean,
     packet_predict,
     packet_wheels,
     rounding_variances,
@@ -87,6 +88,26 @@ _EYE = np.eye(STATE_SIZE)
 _EYE.setflags(write=False)  # the error map of no step, shared: maps are replaced, never changed in place
 _EYE8 = np.eye(STATE_SIZE + 2)
 _EYE8.setflags(write=False)
+
+
+#: The source of the Kobuki driver's raw-gyro reading: the mean of the packet's samples.
+PACKET_MEAN_SOURCE = "raw_gyro"
+#: How far from the packet's middle such a reading may be stamped and still be its mean.
+_MEAN_STAMP_TOLERANCE_NS = 2_000_000
+
+
+def _packet_mean_reading(buf: collections.deque[YawRate], start_ns: int, end_ns: int) -> bool:
+    """Whether the gyro readings buffered for the packet ``(start_ns, end_ns]`` are one
+    reading of the packet's mean rate: one reading in it, from the Kobuki driver's raw gyro
+    (:data:`PACKET_MEAN_SOURCE`: the mean of the samples since the previous packet, stamped
+    in the middle of that interval), stamped in the packet's middle (a packet after a lost
+    one is longer than the samples' interval; a source of point samples has several)."""
+    if not buf or buf[0].stamp_ns > end_ns or (len(buf) > 1 and buf[1].stamp_ns <= end_ns):
+        return False
+    g = buf[0]
+    mid = (start_ns + end_ns) // 2
+    return (g.source == PACKET_MEAN_SOURCE and g.stamp_ns > start_ns
+            and abs(g.stamp_ns - mid) <= _MEAN_STAMP_TOLERANCE_NS)
 
 
 def _pad8(step: np.ndarray) -> np.ndarray:
@@ -444,12 +465,17 @@ class OdometryFilter:
             self._map = _EYE
         p = open_packet(self._state, r)
         buf = self._gyro_buf
+        mean = _packet_mean_reading(buf, p.stamp_ns, t)
         while buf and buf[0].stamp_ns <= t:
             g = buf.popleft()
-            packet_predict(p, int(g.stamp_ns), self.params)
             var = g.yaw_rate_var_rad2ps2
-            packet_gyro(p, float(g.yaw_rate_radps) / self.gyro_scale, self.params,
-                        None if var is None else var / self.gyro_scale ** 2)
+            var = None if var is None else var / self.gyro_scale ** 2
+            if mean:  # the packet's mean rate: an integrated measurement at its end
+                packet_predict(p, t, self.params)
+                packet_gyro_mean(p, float(g.yaw_rate_radps) / self.gyro_scale, dt, self.params, var)
+                continue
+            packet_predict(p, int(g.stamp_ns), self.params)
+            packet_gyro(p, float(g.yaw_rate_radps) / self.gyro_scale, self.params, var)
         packet_predict(p, t, self.params)
         packet_wheels(p, ds, dyaw, dt, self.params, msg.speed_var_m2ps2, msg.yaw_rate_var_rad2ps2)
         self._state, step = close_packet(p, r)

@@ -52,7 +52,8 @@ from robotd.odometry.ekf import (
 from robotd.base.geometry import wrap_angle
 
 __all__ = ["ID", "ITH", "PACKET_SIZE", "ROUNDING_SIZE", "Packet", "Rounding", "close_packet",
-           "open_packet", "packet_gyro", "packet_predict", "packet_wheels", "rounding_variances"]
+           "open_packet", "packet_gyro", "packet_gyro_mean", "packet_predict", "packet_wheels",
+           "rounding_variances"]
 
 PACKET_SIZE = STATE_SIZE + 2
 ID, ITH = STATE_SIZE, STATE_SIZE + 1
@@ -183,11 +184,16 @@ def packet_predict(p: Packet, t_ns: int, params: EkfParams) -> None:
     p.stamp_ns = int(t_ns)
 
 
-def _update(p: Packet, innovation: np.ndarray, h: np.ndarray, r: np.ndarray) -> None:
-    """The Joseph-form update of ``p`` (the optimal gain: the base is moving)."""
+def _update(p: Packet, innovation: np.ndarray, h: np.ndarray, r: np.ndarray,
+            hold_pose: bool = False) -> None:
+    """The Joseph-form update of ``p`` (the optimal gain: the base is moving); ``hold_pose``:
+    with the gain's pose rows zeroed, a Schmidt ("consider") update that leaves the pose at
+    the packet's start where it is (the Joseph form keeps the covariance exact for it)."""
     ph = p.cov @ h.T
     s = h @ ph + r
     gain = np.linalg.solve(s, ph.T).T
+    if hold_pose:
+        gain[IX:IYAW + 1] = 0.0
     p.mean = p.mean + gain @ innovation
     a = _EYE[p.mean.shape[0]] - gain @ h
     cov = a @ p.cov @ a.T + gain @ r @ gain.T
@@ -201,6 +207,29 @@ def packet_gyro(p: Packet, w_radps: float, params: EkfParams, yaw_rate_var_rad2p
     _update(p, innovation, _H_GYRO[p.mean.shape[0]], gyro_noise_var(params, yaw_rate_var_rad2ps2))
 
 
+def packet_gyro_mean(p: Packet, w_radps: float, dt_s: float, params: EkfParams,
+                     yaw_rate_var_rad2ps2: float | None = None) -> None:
+    """The packet's one gyro reading when it is the mean rate over the packet (``p`` at its
+    end, ``dt_s`` long): ``h = Th / dt + bias``, an integrated measurement of the heading
+    change, as the ticks' reading is of the distance. Its noise is the reading's
+    (:func:`robotd.odometry.ekf.gyro_noise_var`).
+
+    Why: :func:`packet_gyro` takes a reading for the rate at its stamp, and the packet's
+    heading change integrates the rate before it up to the stamp and the one after. The
+    Kobuki's raw-gyro reading is the mean of the samples since the previous packet (stamped
+    in the middle of that interval): its rate times the packet's length is the heading
+    change, up to the reading's noise. Taken at its stamp, half the packet got the previous
+    packet's rate, and the white angular acceleration's ``dt^3 / 3`` term stood for that
+    half; on a straight it made a keyframe edge's heading variance about twice what the
+    heading's error was."""
+    n = p.mean.shape[0]
+    h = np.zeros((1, n))
+    h[0, ITH] = 1.0 / dt_s
+    h[0, IB] = 1.0
+    innovation = np.array([w_radps - float(h[0] @ p.mean)])
+    _update(p, innovation, h, gyro_noise_var(params, yaw_rate_var_rad2ps2))
+
+
 def packet_wheels(p: Packet, ds_m: float, dyaw_rad: float, dt_s: float, params: EkfParams,
                   speed_var_m2ps2: float | None = None, yaw_rate_var_rad2ps2: float | None = None) -> None:
     """The wheel reading of the packet (``p`` at its end): the distance ``ds_m`` and heading
@@ -212,7 +241,20 @@ def packet_wheels(p: Packet, ds_m: float, dyaw_rad: float, dt_s: float, params: 
     With the roundings in the packet (:func:`open_packet` with a :class:`Rounding`) the
     ticks measure ``D`` and ``Th`` plus the start's rounding minus the end's, and the white
     noise keeps only what exceeds the two roundings' variance (``2 fresh``): the rate noise
-    of the calibration's model is the ticks' own, which the roundings now carry."""
+    of the calibration's model is the ticks' own, which the roundings now carry.
+
+    The heading change corrects ``Th``, the rates and the bias, not the pose held at the
+    packet's start (a Schmidt update of that row, as the filter's at rest; the distance's
+    row keeps the optimal gain, which moves the pose along its correlation with the speed).
+    The optimal gain would move that pose along its correlation with the yaw rate and the
+    bias, which spans the run (a bias error since the last stop has turned the heading,
+    and the heading the position, by metres of lever arm), by the wheels' heading change:
+    a reading whose modelled yaw-rate noise (``wheel_w_noise_*``, 0.3 rad/s at 0.5 m/s) is
+    a bound for the wheels' systematic errors, not their white noise (a few tenths of a
+    milliradian per packet: the ticks' quantisation and slip). Each reading then added
+    ``K R K^T`` of 0.1-0.35 mm to the pose (the more the later in a run), which the
+    keyframe edges claimed as motion noise while the true corrections were a twentieth of
+    it."""
     v, w = ds_m / dt_s, dyaw_rad / dt_s
     sv, sw = wheel_noise(v, w, params, False, speed_var_m2ps2, yaw_rate_var_rad2ps2)
     n = p.mean.shape[0]
@@ -229,7 +271,10 @@ def packet_wheels(p: Packet, ds_m: float, dyaw_rad: float, dt_s: float, params: 
         add_v, add_w = slip_variances(float(innovation[1]) / dt_s, float(p.cov[ITH, ITH]) / dt_s ** 2, params)
         var_v += add_v
         var_w += add_w
-    _update(p, innovation, h, np.array([[var_v * dt2, 0.0], [0.0, var_w * dt2]]))
+    # the two rows one after the other (their noises are independent: the same update as
+    # both at once), the heading change's with the pose held
+    _update(p, innovation[:1], h[:1], np.array([[var_v * dt2]]))
+    _update(p, np.array([dyaw_rad - h[1] @ p.mean]), h[1:], np.array([[var_w * dt2]]), hold_pose=True)
 
 
 def close_packet(p: Packet, rounding: Rounding | None = None) -> tuple[EkfState, np.ndarray]:

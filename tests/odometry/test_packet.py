@@ -30,6 +30,11 @@ _CALIBRATION_LIKE = EkfParams(accel_noise_density_mps2_per_sqrt_hz=0.0154,
                               wheel_v_noise_mps=0.00174, wheel_v_noise_frac=0.0,
                               wheel_w_noise_radps=0.0153, wheel_w_noise_frac=0.0, wheel_w_noise_per_mps=0.0,
                               gyro_noise_radps=0.0028)
+#: What ``noise_model = "calibration"`` gives the wheel + gyro filter: the calibration's
+#: sensor noise with the config's wheel yaw-rate noise (a bound for systematic errors).
+_DAEMON_LIKE = dataclasses.replace(_CALIBRATION_LIKE, wheel_w_noise_radps=EkfParams().wheel_w_noise_radps,
+                                   wheel_w_noise_frac=EkfParams().wheel_w_noise_frac,
+                                   wheel_w_noise_per_mps=EkfParams().wheel_w_noise_per_mps)
 
 
 def _braking_stream(drive: DiffDriveParams) -> tuple[list[WheelTicks | YawRate], float, int]:
@@ -183,3 +188,122 @@ def test_the_roundings_cancel_over_many_packets():
         assert s1 is not None and s2 is not None
         var_x[rounding] = s2.covariance[0, 0] - s1.covariance[0, 0]
     assert var_x[True] < 0.5 * var_x[False]
+
+
+def test_the_wheels_heading_change_leaves_the_pose_at_the_packets_start():
+    """The ticks' heading change corrects the packet's own heading change, the rates and
+    the bias, but not the pose the packet opened on, however that pose correlates with the
+    yaw rate and the bias: two readings that differ in it alone leave the same pose and the
+    same pose covariance (a Schmidt update of that row), and a different heading change."""
+    params = EkfParams()  # the config's wheel yaw-rate noise, a bound for systematic errors
+    rng = np.random.default_rng(7)
+    a = rng.normal(size=(6, 6)) * 1e-3
+    cov = a @ a.T + np.diag([1e-2, 1e-2, 1e-3, 1e-5, 1e-5, 1e-7])
+    cov[1, 5] = cov[5, 1] = 2e-5  # a lateral error the bias since the last stop has made
+    cov[1, 4] = cov[4, 1] = -2e-5
+
+    def read(dyaw: float) -> tuple[np.ndarray, np.ndarray, float]:
+        p = open_packet(EkfState(0, np.array([3.0, 1.0, 0.2, 0.5, 0.0, 0.003]), cov))
+        packet_predict(p, 10_000_000, params)
+        packet_gyro(p, 0.004, params)
+        packet_predict(p, 20_000_000, params)
+        packet_wheels(p, 0.0102, dyaw, 0.02, params)
+        return p.mean[:3].copy(), p.cov[:3, :3].copy(), float(p.mean[7])
+
+    pose_a, cov_a, th_a = read(0.0004)
+    pose_b, cov_b, th_b = read(0.0104)
+    assert pose_b == pytest.approx(pose_a, abs=1e-15)
+    assert cov_b == pytest.approx(cov_a, rel=1e-12)
+    assert th_b - th_a > 1e-7  # the packet's heading change took it
+
+
+def test_an_edges_covariance_does_not_grow_with_the_time_since_the_last_stop():
+    """A straight at 0.5 m/s for 20 s after a stop, ticks from the true travel, a still
+    gyro, the config's wheel yaw-rate noise: the bias error since the stop turns the
+    heading and moves the position by a lever arm that grows with the drive, but a
+    keyframe edge over the same 0.2 s of motion is known as well late in the drive as
+    early. With the wheels' reading correcting the pose along that lever arm, the late
+    edge claimed several times the early one's lateral and along-track variance."""
+    drive = DiffDriveParams()
+    params = dataclasses.replace(_DAEMON_LIKE, wheel_increments=True)
+    f = OdometryFilter(drive, params)
+    v0, t_still = 0.5, 1.0
+    edges: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for k in range(1, 1051):
+        t = 0.02 * k
+        travel = max(t - t_still, 0.0) * v0
+        ticks = int(math.floor(travel / drive.metres_per_tick)) % 65536
+        stamp = int(round(t * 1e9))
+        f.on_yaw_rate(YawRate(stamp - 10_000_000, 0.0))
+        f.on_wheels(WheelTicks(stamp, ticks, ticks))
+        if k in (150, 160, 1030, 1040):  # 2.0-2.2 s and 19.6-19.8 s into the drive
+            e = f.keyframe_edge(stamp)
+            if k in (160, 1040):
+                assert e is not None
+                edges[k] = e
+    early, late = edges[160][1], edges[1040][1]
+    assert early[0, 0] > 0.0 and late[0, 0] < 1.5 * early[0, 0]  # along the track
+    assert late[1, 1] < 1.5 * early[1, 1]  # across it
+
+
+def _turning_stream(drive: DiffDriveParams, source: str) -> tuple[list[WheelTicks | YawRate], float]:
+    """Standing 1 s, then the yaw rate ramping from 0 to 1 rad/s over 1 s on the spot, and
+    holding it 1 s: the Kobuki's readings every 20 ms, the gyro's the mean rate over the
+    packet stamped in its middle (``source``), the ticks from the true wheel travel.
+    Returns the messages and the true heading at the end."""
+    def heading(t: float) -> float:
+        u = min(max(t - 1.0, 0.0), 1.0)
+        return 0.5 * u * u + max(t - 2.0, 0.0)
+    msgs: list[WheelTicks | YawRate] = []
+    for k in range(1, 151):
+        t = 0.02 * k
+        wheel = heading(t) * drive.wheel_base_m / 2.0  # each wheel's travel, opposite signs
+        right = int(math.floor(wheel / drive.metres_per_tick)) % 65536
+        left = int(math.floor(-wheel / drive.metres_per_tick)) % 65536
+        stamp = int(round(t * 1e9))
+        msgs.append(YawRate(stamp - 10_000_000, (heading(t) - heading(t - 0.02)) / 0.02, source))
+        msgs.append(WheelTicks(stamp, left, right))
+    return msgs, heading(3.0)
+
+
+def test_the_packets_mean_gyro_reading_is_its_heading_change():
+    """The Kobuki's raw-gyro reading (the packet's mean rate, stamped in its middle) as an
+    integrated measurement of the packet's heading change: through a yaw-rate ramp on the
+    spot the heading follows the readings' integral to a fraction of a milliradian."""
+    drive = DiffDriveParams()
+    params = dataclasses.replace(_DAEMON_LIKE, wheel_increments=True)
+    msgs, truth = _turning_stream(drive, "raw_gyro")
+    f = OdometryFilter(drive, params)
+    for m in msgs:
+        (f.on_wheels if isinstance(m, WheelTicks) else f.on_yaw_rate)(m)
+    end = f.pose_at(3_000_000_000)
+    assert end is not None
+    assert abs(math.remainder(end.yaw_rad - truth, 2 * math.pi)) < 2e-4
+
+
+@pytest.mark.parametrize("source", ["raw_gyro", "gyro"])
+def test_an_edges_heading_variance_is_the_gyro_readings_own(source: str):
+    """On a straight, a keyframe edge's heading variance is what the packets' mean
+    readings leave (their noise times the packet's length, summed over the packets): no
+    white angular acceleration on top for the rate within a packet, which the mean has
+    measured (it made the variance about twice that). A source of rates at their stamps
+    (another driver's) keeps it: its readings say nothing of the rate between them."""
+    drive = DiffDriveParams()
+    params = dataclasses.replace(_DAEMON_LIKE, wheel_increments=True)
+    f = OdometryFilter(drive, params)
+    v0 = 0.5
+    edges = []
+    for k in range(1, 201):
+        t = 0.02 * k
+        ticks = int(math.floor(max(t - 1.0, 0.0) * v0 / drive.metres_per_tick)) % 65536
+        stamp = int(round(t * 1e9))
+        f.on_yaw_rate(YawRate(stamp - 10_000_000, 0.0, source))
+        f.on_wheels(WheelTicks(stamp, ticks, ticks))
+        if k in (150, 160):  # 10 packets at speed
+            edges.append(f.keyframe_edge(stamp))
+    assert edges[1] is not None
+    readings = 10 * (params.gyro_noise_radps * 0.02) ** 2
+    if source == "raw_gyro":
+        assert edges[1][1][2, 2] == pytest.approx(readings, rel=0.25)
+    else:
+        assert edges[1][1][2, 2] > 1.5 * readings
