@@ -47,8 +47,9 @@ def test_changed_sections_reach_the_other_params():
     cfg = replace(Config(), "robot", wheel_radius_m=0.05, wheel_base_m=0.3, ticks_per_rev=1000.0)
     assert DiffDriveParams.from_config(cfg.robot) == DiffDriveParams(0.05, 0.3, 1000.0)
     assert DiffDriveParams.from_config(cfg.robot, wheel_base_m=0.31).wheel_base_m == 0.31
-    cfg = replace(cfg, "floor_detector", descriptor_mode=2, candidates=7, shortlist=20, exclude_recent_s=3.0)
-    assert FloorDetectorParams.from_config(cfg.floor_detector) == FloorDetectorParams(2, 7, 20, 3.0)
+    cfg = replace(cfg, "floor_detector", descriptor_mode=2, candidates=7, shortlist=20, exclude_recent_s=3.0,
+                  ransac_confidence=0.95)
+    assert FloorDetectorParams.from_config(cfg.floor_detector) == FloorDetectorParams(2, 7, 20, 3.0, 0.95)
     cfg = replace(cfg, "visual_odometry", min_inliers=11, ransac_threshold_m=0.004)
     vo = VoParams.from_config(cfg.visual_odometry, 2)
     assert (vo.descriptor_mode, vo.min_inliers, vo.ransac_threshold_m) == (2, 11, 0.004)
