@@ -84,7 +84,8 @@ class MatchParams:
         seed: seed of RANSAC's sampling (results are deterministic).
         confidence: 0 scores every hypothesis (the default). In (0, 1): RANSAC stops
             early, adaptively (Fischler and Bolles 1981; Hartley and Zisserman, Sec. 4.7.1):
-            the hypotheses are scored in blocks of ``_BLOCK`` and the check stops once
+            the hypotheses are scored in blocks (10 draws, then 3 times as many in all
+            each time: 30, 90, ``iterations``) and the check stops once
             ``log(1 - confidence) / log(1 - w**2)`` have been scored, ``w`` the best
             hypothesis's inlier fraction so far. A true loop (nearly every match an
             inlier) stops after the first block; the best hypothesis is then the first
@@ -248,7 +249,7 @@ def _ransac_pairs(seed: int, m: int, iterations: int) -> tuple[np.ndarray, np.nd
     return hit
 
 
-_BLOCK = 10  # RANSAC's draws taken at a time when it stops adaptively (MatchParams.confidence)
+_BLOCK = 10  # RANSAC's first draws when it stops adaptively (MatchParams.confidence), then 3x as many each time
 _NBINS = len(_PREV_BIN)
 
 
@@ -285,18 +286,20 @@ def _hypotheses(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: float,
 def _adaptive_best(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: float, xa1: np.ndarray, xb: np.ndarray,
                    weight: np.ndarray, p: MatchParams) -> tuple[np.ndarray | None, int]:
     """``(m,) bool`` the inliers of RANSAC's best hypothesis (the first of the highest
-    weighted inlier count), the draws ``(i, j)`` taken ``_BLOCK`` at a time until as many
-    hypotheses have been scored as ``p.confidence`` asks for the best inlier fraction so
-    far (:class:`MatchParams`); None when no draw makes a hypothesis. And how many
-    hypotheses were scored."""
+    weighted inlier count), the draws ``(i, j)`` taken in blocks (the first ``_BLOCK``,
+    then up to 3, 9, ... times as many in all) until as many hypotheses have been scored as
+    ``p.confidence`` asks for the best inlier fraction so far (:class:`MatchParams`); None
+    when no draw makes a hypothesis. And how many hypotheses were scored."""
     m = xa1.shape[1]
     w = weight + 1e-6
     log_miss = math.log(1.0 - p.confidence)
     tol2 = p.inlier_px**2
     best_count, best_inliers, scored = -1.0, 0, 0
     best_mask: np.ndarray | None = None
-    for b0 in range(0, len(i), _BLOCK):
-        hyp = _hypotheses(xab, i[b0:b0 + _BLOCK], j[b0:b0 + _BLOCK], peak, p)
+    b0, b1 = 0, _BLOCK
+    while b0 < len(i):
+        hyp = _hypotheses(xab, i[b0:b1], j[b0:b1], peak, p)
+        b0, b1 = b1, 3 * b1
         if hyp is None:
             continue
         rows_x, rows_y = hyp
