@@ -236,6 +236,8 @@ def make_config(args: argparse.Namespace, map_path: Path) -> Any:
         cfg = replace(cfg, "keyframes", distance_m=args.keyframe_distance)
     if args.shortlist is not None:
         cfg = replace(cfg, "floor_detector", shortlist=args.shortlist)
+    if args.ransac_confidence:
+        cfg = replace(cfg, "floor_detector", ransac_confidence=args.ransac_confidence)
     if args.localise_mapped:
         cfg = replace(cfg, "pose_graph", localise_mapped=True)
     if args.forward:
@@ -346,6 +348,7 @@ def replay(args: argparse.Namespace, recording: Path, map_path: Path) -> dict[st
             "counters": {k: v for k, v in c.items() if isinstance(v, (int, float))},
             "config": {"keyframe_distance_m": cfg.keyframes.distance_m, "mode": cfg.floor_detector.descriptor_mode,
                        "shortlist": cfg.floor_detector.shortlist,
+                       "ransac_confidence": cfg.floor_detector.ransac_confidence,
                        "localise_mapped": cfg.pose_graph.localise_mapped,
                        "forward": cfg.forward_detector.enabled}}
 
@@ -1502,16 +1505,20 @@ def _residency_section(p: dict[str, Any]) -> list[str]:
              "that variant; \"whole shortlist\": `IndexParams.enough` off (every shortlisted keyframe "
              "scored), otherwise a query stops once 5 candidates reach the loop threshold; \"resident "
              "first\": `IndexParams.resident_first` on (the resident descriptors scored first), otherwise "
-             "the shortlist in order of global similarity. Loops: the "
-             "candidates at or above the threshold over all the queries.", "",
-             "| keyframes | descriptors | query ms median | p99 | against in RAM | reads per query | loops | index MB |",
-             "|---:|---|---:|---:|---:|---:|---:|---:|"]
+             "the shortlist in order of global similarity; \"ransac C\": RANSAC's adaptive stop at "
+             "confidence C (`MatchParams.confidence`). Loops: the candidates at or above the threshold "
+             "over all the queries; digests (first 8 hex digits): every query's candidates and scores, "
+             "and every loop's inlier pairs.", "",
+             "| keyframes | descriptors | query ms median | p99 | against in RAM | reads per query | loops | "
+             "candidates digest | loops digest | index MB |",
+             "|---:|---|---:|---:|---:|---:|---:|---|---|---:|"]
     for row in r["sizes"]:
         base = row["variants"].get("in RAM, whole shortlist", row["variants"]["in RAM"])["query_ms"]["median"]
         for name, v in row["variants"].items():
             q = v["query_ms"]
             lines.append(f"| {row['keyframes']} | {name} | {q['median']:.2f} | {q['p99']:.2f} | "
                          f"{q['median'] / base:.2f} | {v['reads_per_query']:.2f} | {v.get('loops', '-')} | "
+                         f"{v.get('candidates_sha256', '-')[:8]} | {v.get('loops_sha256', '-')[:8]} | "
                          f"{v['index_mb']:.1f} |")
     return lines
 
@@ -1804,8 +1811,9 @@ def main(argv: list[str] | None = None) -> int:
                          "(sizes from --scale; writes NAME-residency.json); several maps: each in turn, "
                          "--rounds times, in the same run")
     ap.add_argument("--ransac-confidence", type=float, default=0.0, metavar="C",
-                    help="with --residency: also time the query with RANSAC's adaptive stop at confidence C "
-                         "(MatchParams.confidence, in (0, 1); the variants '..., ransac C')")
+                    help="[floor_detector] ransac_confidence of the replay; with --residency: also time the "
+                         "query with RANSAC's adaptive stop at confidence C (MatchParams.confidence, in (0, 1); "
+                         "the variants '..., ransac C')")
     ap.add_argument("--resident", default="256,1024", help="with --residency: decoded descriptors kept, "
                                                           "comma-separated (default 256,1024)")
     ap.add_argument("--load", type=Path, default=None, metavar="MAP",
@@ -1848,9 +1856,9 @@ def main(argv: list[str] | None = None) -> int:
         out = write_json(args.out / f"{args.name}-load.json", {"machine": machine_info(), "load": ld})
         print(f"wrote {out}")
         return 0
+    if not 0 <= args.ransac_confidence < 1:
+        ap.error(f"--ransac-confidence: in [0, 1), not {args.ransac_confidence}")
     if args.residency is not None:
-        if not 0 <= args.ransac_confidence < 1:
-            ap.error(f"--ransac-confidence: in [0, 1), not {args.ransac_confidence}")
         sizes = [int(v) for v in args.scale.split(",") if v.strip()]
         residents = [int(v) for v in args.resident.split(",") if v.strip()]
         from robotd.floor.detector import FloorDetectorParams
