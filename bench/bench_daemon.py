@@ -1811,7 +1811,7 @@ def main(argv: list[str] | None = None) -> int:
                          "(sizes from --scale; writes NAME-residency.json); several maps: each in turn, "
                          "--rounds times, in the same run")
     ap.add_argument("--ransac-confidence", type=float, default=0.0, metavar="C",
-                    help="[floor_detector] ransac_confidence of the replay; with --residency: also time the "
+                    help="[floor_detector] ransac_confidence of the replay (0: the config's); with --residency: also time the "
                          "query with RANSAC's adaptive stop at confidence C (MatchParams.confidence, in (0, 1); "
                          "the variants '..., ransac C')")
     ap.add_argument("--resident", default="256,1024", help="with --residency: decoded descriptors kept, "
