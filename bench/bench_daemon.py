@@ -237,6 +237,8 @@ def make_config(args: argparse.Namespace, map_path: Path) -> Any:
         cfg = replace(cfg, "keyframes", distance_m=args.keyframe_distance)
     if args.shortlist is not None:
         cfg = replace(cfg, "floor_detector", shortlist=args.shortlist)
+    if args.ransac_confidence:
+        cfg = replace(cfg, "floor_detector", ransac_confidence=args.ransac_confidence)
     if args.localise_mapped:
         cfg = replace(cfg, "pose_graph", localise_mapped=True)
     if args.forward:
@@ -347,6 +349,7 @@ def replay(args: argparse.Namespace, recording: Path, map_path: Path) -> dict[st
             "counters": {k: v for k, v in c.items() if isinstance(v, (int, float))},
             "config": {"keyframe_distance_m": cfg.keyframes.distance_m, "mode": cfg.floor_detector.descriptor_mode,
                        "shortlist": cfg.floor_detector.shortlist,
+                       "ransac_confidence": cfg.floor_detector.ransac_confidence,
                        "localise_mapped": cfg.pose_graph.localise_mapped,
                        "forward": cfg.forward_detector.enabled}}
 
@@ -1094,7 +1097,7 @@ def forward_memory_run(args: argparse.Namespace, images: int, forward_dir: Path,
 
 
 def query_residency(map_path: Path, sizes: list[int], residents: list[int], queries: int,
-                    shortlist: int, exclude_recent_s: float = 20.0) -> dict[str, Any]:
+                    shortlist: int, exclude_recent_s: float = 20.0, confidence: float = 0.0) -> dict[str, Any]:
     """The floor query's time with the local descriptors in RAM against read back from the
     map (``FloorIndex.from_store``'s loader, ``resident`` of them kept decoded), on a
     map's keyframes queried in the order they were driven.
@@ -1104,15 +1107,21 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
     many (each copy a further pass over the same floor); the last ``queries`` keyframes of
     the map are the queries, in order, each leaving out every copy of the keyframes within
     ``exclude_recent_s`` of it, with the demo's loop threshold as ``min_score``. The
-    variants are timed query by query in turn (thread CPU), the same queries for each."""
+    variants are timed query by query in turn (thread CPU), the same queries for each.
+    ``confidence`` > 0: also in RAM and from the map with RANSAC's adaptive stop at that
+    confidence (``MatchParams.confidence``, the variants named ``..., ransac C``). Each
+    variant's digests: every query's candidates and scores, and its loops' inlier pairs."""
     import robotd.floor.descriptor as fi
     from robotd.app.demo import shipped_calibration
     from robotd.floor.descriptor import decode
     from robotd.floor.index import FloorIndex, IndexParams
+    from robotd.floor.match import MatchParams
     from robotd.io.calibfile import read_calibration
     from robotd.io.store import MapStore
 
-    out: dict[str, Any] = {"map": str(map_path), "sizes": []}
+    out: dict[str, Any] = {"map": str(map_path), "sizes": [], "ransac_confidence": confidence}
+    adaptive = MatchParams(confidence=confidence) if confidence > 0 else None
+    tag = f", ransac {confidence:g}"
     with MapStore.open(map_path, read_only=True) as store:
         recs = [r for r in store.keyframes() if r.descriptor is not None]
         mode = int(recs[0].descriptor_mode)
@@ -1158,27 +1167,37 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
                     IndexParams(shortlist=shortlist, resident=r, resident_first=True), loader=loader)
                 variants[f"read back, {r} resident"] = FloorIndex(IndexParams(shortlist=shortlist, resident=r),
                                                                   loader=loader)
+            if adaptive is not None:
+                variants["in RAM" + tag] = FloorIndex(IndexParams(shortlist=shortlist))
             for index in variants.values():
                 for i in range(n):
                     index.add(i, decoded[i % n0])
             for r in residents:  # as the daemon holds it: FloorIndex.from_store on the map
                 variants[f"from the map, {r} resident"] = FloorIndex.from_store(
                     mstore, mode, IndexParams(shortlist=shortlist, resident=r))
+                if adaptive is not None:
+                    variants[f"from the map, {r} resident" + tag] = FloorIndex.from_store(
+                        mstore, mode, IndexParams(shortlist=shortlist, resident=r))
             ids = np.arange(n)
             ms: dict[str, list[float]] = {k: [] for k in variants}
             loads0 = {k: getattr(v, "loads", 0) for k, v in variants.items()}
             loops = {k: 0 for k in variants}  # candidates at or above min_score: the loops declared
             digest = {k: hashlib.sha256() for k in variants}  # every query's candidates and scores
+            loop_digest = {k: hashlib.sha256() for k in variants}  # every loop's inlier pairs
             for q in qrows:
                 excluded = ids[np.abs(stamps[ids % n0] - stamps[q]) < int(exclude_recent_s * 1e9)]
                 for name, index in variants.items():
                     ex = kf_of[excluded] if name.startswith("from the map") else excluded
                     t0 = time.thread_time()
-                    got = index.query(decoded[q], k=5, min_score=min_score, exclude_ids=ex)
+                    got = index.query(decoded[q], k=5, min_score=min_score, exclude_ids=ex,
+                                      **({"match_params": adaptive} if name.endswith(tag) else {}))
                     ms[name].append((time.thread_time() - t0) * 1e3)
                     loops[name] += sum(c.score >= min_score for c in got)
                     back = (lambda kf: int(np.searchsorted(kf_of, kf))) if name.startswith("from the map") else int
                     digest[name].update(repr([(back(c.keyframe_id), c.global_score, c.score) for c in got]).encode())
+                    for c in got:
+                        if c.score >= min_score:
+                            loop_digest[name].update(np.stack([c.local.inliers_a, c.local.inliers_b]).tobytes())
             row: dict[str, Any] = {"keyframes": n, "variants": {},
                                    **pairs_per_query(variants["in RAM"], qrows, decoded, ids, stamps, n0,
                                                      min_score, exclude_recent_s)}
@@ -1187,6 +1206,7 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
                                                       "p99": float(np.quantile(ms[name], 0.99))},
                                          "reads_per_query": (index.loads - loads0[name]) / len(qrows),
                                          "loops": loops[name], "candidates_sha256": digest[name].hexdigest(),
+                                         "loops_sha256": loop_digest[name].hexdigest(),
                                          "index_mb": index.nbytes / 1e6,
                                          "descriptors_mb": index.descriptors_nbytes / 1e6}
                 print(f"residency: {n} keyframes, {name}: query {statistics.median(ms[name]):.2f} ms median, "
@@ -1495,16 +1515,20 @@ def _residency_section(p: dict[str, Any]) -> list[str]:
              "that variant; \"whole shortlist\": `IndexParams.enough` off (every shortlisted keyframe "
              "scored), otherwise a query stops once 5 candidates reach the loop threshold; \"resident "
              "first\": `IndexParams.resident_first` on (the resident descriptors scored first), otherwise "
-             "the shortlist in order of global similarity. Loops: the "
-             "candidates at or above the threshold over all the queries.", "",
-             "| keyframes | descriptors | query ms median | p99 | against in RAM | reads per query | loops | index MB |",
-             "|---:|---|---:|---:|---:|---:|---:|---:|"]
+             "the shortlist in order of global similarity; \"ransac C\": RANSAC's adaptive stop at "
+             "confidence C (`MatchParams.confidence`). Loops: the candidates at or above the threshold "
+             "over all the queries; digests (first 8 hex digits): every query's candidates and scores, "
+             "and every loop's inlier pairs.", "",
+             "| keyframes | descriptors | query ms median | p99 | against in RAM | reads per query | loops | "
+             "candidates digest | loops digest | index MB |",
+             "|---:|---|---:|---:|---:|---:|---:|---|---|---:|"]
     for row in r["sizes"]:
         base = row["variants"].get("in RAM, whole shortlist", row["variants"]["in RAM"])["query_ms"]["median"]
         for name, v in row["variants"].items():
             q = v["query_ms"]
             lines.append(f"| {row['keyframes']} | {name} | {q['median']:.2f} | {q['p99']:.2f} | "
                          f"{q['median'] / base:.2f} | {v['reads_per_query']:.2f} | {v.get('loops', '-')} | "
+                         f"{v.get('candidates_sha256', '-')[:8]} | {v.get('loops_sha256', '-')[:8]} | "
                          f"{v['index_mb']:.1f} |")
     return lines
 
@@ -1796,6 +1820,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="only the floor query's time with its descriptors in RAM and read back from MAP "
                          "(sizes from --scale; writes NAME-residency.json); several maps: each in turn, "
                          "--rounds times, in the same run")
+    ap.add_argument("--ransac-confidence", type=float, default=0.0, metavar="C",
+                    help="[floor_detector] ransac_confidence of the replay (0: the config's); with --residency: also time the "
+                         "query with RANSAC's adaptive stop at confidence C (MatchParams.confidence, in (0, 1); "
+                         "the variants '..., ransac C')")
     ap.add_argument("--resident", default="256,1024", help="with --residency: decoded descriptors kept, "
                                                           "comma-separated (default 256,1024)")
     ap.add_argument("--load", type=Path, default=None, metavar="MAP",
@@ -1838,6 +1866,8 @@ def main(argv: list[str] | None = None) -> int:
         out = write_json(args.out / f"{args.name}-load.json", {"machine": machine_info(), "load": ld})
         print(f"wrote {out}")
         return 0
+    if not 0 <= args.ransac_confidence < 1:
+        ap.error(f"--ransac-confidence: in [0, 1), not {args.ransac_confidence}")
     if args.residency is not None:
         sizes = [int(v) for v in args.scale.split(",") if v.strip()]
         residents = [int(v) for v in args.resident.split(",") if v.strip()]
@@ -1850,7 +1880,8 @@ def main(argv: list[str] | None = None) -> int:
                 ap.error(f"--residency: no map at {path}")
         shortlist = args.shortlist or FloorDetectorParams().shortlist
         if len(maps) == 1:
-            res = query_residency(maps[0][1], sizes, residents, args.queries, shortlist)
+            res = query_residency(maps[0][1], sizes, residents, args.queries, shortlist,
+                                  confidence=args.ransac_confidence)
             out = write_json(args.out / f"{args.name}-residency.json", {"machine": machine_info(), "residency": res})
             print(f"wrote {out}")
             return 0
@@ -1859,7 +1890,8 @@ def main(argv: list[str] | None = None) -> int:
             for label, path in maps:
                 print(f"residency: round {rnd + 1}, map {label}", flush=True)
                 runs.append({"label": label, "round": rnd + 1, "load_average": [round(v, 2) for v in os.getloadavg()],
-                             **query_residency(path, sizes, residents, args.queries, shortlist)})
+                             **query_residency(path, sizes, residents, args.queries, shortlist,
+                                               confidence=args.ransac_confidence)})
                 write_json(args.out / f"{args.name}-residency.json",
                            {"machine": machine_info(), "residency_maps": runs, "load_start": load_start})
         out = write_json(args.out / f"{args.name}-residency.json",

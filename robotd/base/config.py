@@ -228,6 +228,10 @@ class FloorDetectorConfig:
                         lo=1, hi=100_000, live=True, unit="")
     exclude_recent_s: float = _f(20.0, "keyframes younger than this are not candidates", lo=0.0, hi=1e6,
                                  live=True)
+    ransac_confidence: float = _f(0.99, "the floor query's geometric check stops RANSAC once the best inlier "
+                                  "fraction so far says this confidence is reached (a true loop after its first "
+                                  "ten draws; docs/performance.md); 0: every hypothesis scored", lo=0.0,
+                                  hi=0.999999, unit="")
 
 
 @dataclass(frozen=True)

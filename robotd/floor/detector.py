@@ -19,6 +19,7 @@ import numpy as np
 from robotd.base.config import FloorDetectorConfig
 from robotd.floor.descriptor import decode, extract
 from robotd.floor.index import Candidate, FloorIndex
+from robotd.floor.match import MatchParams
 from robotd.base.geometry import (between_error_covariance, information_from_covariance, rigid_fit_2d,
                                   rigid_fit_2d_covariance)
 from robotd.floor.vo import floor_point_pairs
@@ -30,18 +31,22 @@ log = logging.getLogger(__name__)
 class FloorDetectorParams:
     """``descriptor_mode``: descriptor mode 1-6 (paper 003) (512 B .. 16 kB per image); ``candidates``: how many
     candidates a query returns; ``shortlist``: keyframes scored locally per query after the
-    global shortlist; ``exclude_recent_s``: keyframes younger than this are not queried."""
+    global shortlist; ``exclude_recent_s``: keyframes younger than this are not queried;
+    ``ransac_confidence``: :attr:`robotd.floor.match.MatchParams.confidence` of the query's
+    local scores (0: every RANSAC hypothesis scored)."""
 
     descriptor_mode: int = FloorDetectorConfig.descriptor_mode
     candidates: int = FloorDetectorConfig.candidates
     shortlist: int = FloorDetectorConfig.shortlist
     exclude_recent_s: float = FloorDetectorConfig.exclude_recent_s
+    ransac_confidence: float = FloorDetectorConfig.ransac_confidence
 
     @classmethod
     def from_config(cls, section: FloorDetectorConfig) -> FloorDetectorParams:
         """The params of a ``[floor_detector]`` table (whose defaults these are)."""
         return cls(descriptor_mode=section.descriptor_mode, candidates=section.candidates,
-                   shortlist=section.shortlist, exclude_recent_s=section.exclude_recent_s)
+                   shortlist=section.shortlist, exclude_recent_s=section.exclude_recent_s,
+                   ransac_confidence=section.ransac_confidence)
 
 
 @dataclass(frozen=True, eq=False)
@@ -172,7 +177,9 @@ class FloorLoopDetector:
             candidates = self.index.query(desc, k=self.params.candidates,
                                           exclude_after_id=last_old_id,
                                           shortlist=self.params.shortlist,
-                                          min_score=self.threshold or 0.0)
+                                          min_score=self.threshold or 0.0,
+                                          match_params=(MatchParams(confidence=self.params.ransac_confidence)
+                                                        if self.params.ransac_confidence > 0 else None))
         if add:
             self.index.add(keyframe_id, desc)
             if self._run_stamps and stamp_ns < self._run_stamps[-1][0]:

@@ -594,7 +594,7 @@ class FloorIndex:
     def query(self, descriptor: FloorDescriptor, k: int | None = None,
               exclude_ids: Callable[[int], bool] | Collection[int] | None = None,
               exclude_after_id: int | None = None, shortlist: int | None = None,
-              min_score: float = 0.0) -> list[Candidate]:
+              min_score: float = 0.0, match_params: Any = None) -> list[Candidate]:
         """The best ``k`` earlier keyframes for ``descriptor``, by local score (best first;
         ties by global score, then by id).
 
@@ -607,12 +607,15 @@ class FloorIndex:
         once for the whole shortlist (:class:`robotd.floor.match.Matcher`). With
         ``params.enough`` and a ``min_score``, the shortlist is scored in order of global
         similarity (with ``params.resident_first`` the resident descriptors first) only until
-        ``k`` candidates reach ``min_score`` (:class:`IndexParams`).
+        ``k`` candidates reach ``min_score`` (:class:`IndexParams`). ``match_params`` (the
+        default matcher only): the local scores' parameters for this query (None:
+        ``params.match_params``).
         """
         k = self.params.k if k is None else int(k)
         short = self.shortlist(descriptor, shortlist, exclude_ids, exclude_after_id)
         candidates = []
-        matcher = Matcher(descriptor, self.params.match_params) if self._default_scorer and short else None
+        matcher = (Matcher(descriptor, self.params.match_params if match_params is None else match_params)
+                   if self._default_scorer and short else None)
         stop_at = k if self.params.enough and min_score > 0 else None
         if stop_at is not None and self._loader is not None and self.params.resident_first:
             recent = self._recent  # resident first: a query that finds enough there reads nothing

@@ -82,6 +82,14 @@ class MatchParams:
         min_inliers: fewer inliers dismiss the pair (NO_GEOMETRIC_CONSISTENCY).
         weight_distance: distance at which an inlier's weight in the score reaches 0.
         seed: seed of RANSAC's sampling (results are deterministic).
+        confidence: 0 scores every hypothesis (the default). In (0, 1): RANSAC stops
+            early, adaptively (Fischler and Bolles 1981; Hartley and Zisserman, Sec. 4.7.1):
+            the hypotheses are scored in blocks (10 draws, then 3 times as many in all
+            each time: 30, 90, ``iterations``) and the check stops once
+            ``log(1 - confidence) / log(1 - w**2)`` have been scored, ``w`` the best
+            hypothesis's inlier fraction so far. A true loop (nearly every match an
+            inlier) stops after the first block; the best hypothesis is then the first
+            block's, which may differ from the best of all (and so may the refined inliers).
     """
 
     ratio: float = 0.9
@@ -95,11 +103,13 @@ class MatchParams:
     min_inliers: int = 4
     weight_distance: float = 1.2
     seed: int = 0
+    confidence: float = 0.0
 
     def __post_init__(self) -> None:
         if not (0 < self.ratio <= 1 and self.max_distance > 0 and self.angle_tol_rad > 0 and self.inlier_px > 0
                 and self.max_log_scale > 0 and self.min_sample_px >= 0 and self.iterations >= 1
-                and self.min_matches >= 2 and self.min_inliers >= 2 and self.weight_distance > 0):
+                and self.min_matches >= 2 and self.min_inliers >= 2 and self.weight_distance > 0
+                and 0 <= self.confidence < 1):
             raise ValueError(f"match parameters out of range: {self}")
 
 
@@ -239,6 +249,80 @@ def _ransac_pairs(seed: int, m: int, iterations: int) -> tuple[np.ndarray, np.nd
     return hit
 
 
+_BLOCK = 10  # RANSAC's first draws when it stops adaptively (MatchParams.confidence), then 3x as many each time
+_NBINS = len(_PREV_BIN)
+
+
+def _hypotheses(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: float,
+                p: MatchParams) -> tuple[np.ndarray, np.ndarray] | None:
+    """RANSAC's rigid hypotheses from the samples ``(i, j)`` of the ``(m, 4)`` matches
+    ``xab`` (x, y in A, then in B) that pass the sample tests (length, scale, rotation near
+    the orientation ``peak``): the ``(h, 3)`` rows ``[c, -s, tx]`` and ``[s, c, ty]`` of
+    each ``[R | t]`` (None when no sample passes)."""
+    v = xab[j] - xab[i]
+    lab = np.hypot(v[:, 0::2], v[:, 1::2])  # sample lengths in A, in B
+    la, lb = lab[:, 0], lab[:, 1]
+    ang = np.arctan2(v[:, 1::2], v[:, 0::2])
+    phi = ang[:, 1] - ang[:, 0]
+    ok = (la >= p.min_sample_px) & (np.abs(np.log(np.maximum(lb, 1e-9) / np.maximum(la, 1e-9))) <= p.max_log_scale)
+    ok &= np.abs(wrap_angle(phi - peak)) <= p.angle_tol_rad + math.pi / _NBINS
+    if not np.any(ok):
+        return None
+    i, j, phi = i[ok], j[ok], phi[ok]
+    h = len(phi)
+    # C-ordered as np.stack(..., axis=1) gives them (the products see the same layout).
+    rows_x, rows_y = np.empty((h, 3)), np.empty((h, 3))
+    c, s = np.cos(phi, out=rows_x[:, 0]), np.sin(phi, out=rows_y[:, 0])
+    np.negative(s, out=rows_x[:, 1])
+    rows_y[:, 1] = c
+    mid = xab[i]
+    mid += xab[j]
+    mid *= 0.5  # sample midpoints: x, y in A, then in B
+    np.subtract(mid[:, 2], c * mid[:, 0] - s * mid[:, 1], out=rows_x[:, 2])
+    np.subtract(mid[:, 3], s * mid[:, 0] + c * mid[:, 1], out=rows_y[:, 2])
+    return rows_x, rows_y
+
+
+def _adaptive_best(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: float, xa1: np.ndarray, xb: np.ndarray,
+                   weight: np.ndarray, p: MatchParams) -> tuple[np.ndarray | None, int]:
+    """``(m,) bool`` the inliers of RANSAC's best hypothesis (the first of the highest
+    weighted inlier count), the draws ``(i, j)`` taken in blocks (the first ``_BLOCK``,
+    then up to 3, 9, ... times as many in all) until as many hypotheses have been scored as
+    ``p.confidence`` asks for the best inlier fraction so far (:class:`MatchParams`); None
+    when no draw makes a hypothesis. And how many hypotheses were scored."""
+    m = xa1.shape[1]
+    w = weight + 1e-6
+    log_miss = math.log(1.0 - p.confidence)
+    tol2 = p.inlier_px**2
+    best_count, best_inliers, scored = -1.0, 0, 0
+    best_mask: np.ndarray | None = None
+    b0, b1 = 0, _BLOCK
+    while b0 < len(i):
+        hyp = _hypotheses(xab, i[b0:b1], j[b0:b1], peak, p)
+        b0, b1 = b1, 3 * b1
+        if hyp is None:
+            continue
+        rows_x, rows_y = hyp
+        rx = rows_x @ xa1
+        rx -= xb[:, 0]
+        ry = rows_y @ xa1
+        ry -= xb[:, 1]
+        rx *= rx
+        ry *= ry
+        rx += ry
+        inl = rx <= tol2
+        counts = inl @ w
+        k = int(np.argmax(counts))
+        if counts[k] > best_count:
+            best_count, best_mask = float(counts[k]), inl[k]
+            best_inliers = int(np.count_nonzero(best_mask))
+        scored += len(rows_x)
+        frac = best_inliers / m
+        if frac >= 1.0 or (frac > 0 and scored >= log_miss / math.log(1.0 - frac * frac)):
+            break
+    return best_mask, scored
+
+
 _RNGS = threading.local()
 
 _SCRATCH = threading.local()
@@ -336,43 +420,31 @@ def _score(a: FloorDescriptor, b: FloorDescriptor | PartialDescriptor, p: MatchP
     m = len(ka)
     i, j = _ransac_pairs(p.seed, m, p.iterations)
     xab = np.concatenate([xa, xb], axis=1)  # (m, 4): x, y in A, then in B
-    v = xab[j] - xab[i]
-    lab = np.hypot(v[:, 0::2], v[:, 1::2])  # sample lengths in A, in B
-    la, lb = lab[:, 0], lab[:, 1]
-    ang = np.arctan2(v[:, 1::2], v[:, 0::2])
-    phi = ang[:, 1] - ang[:, 0]
-    ok = (la >= p.min_sample_px) & (np.abs(np.log(np.maximum(lb, 1e-9) / np.maximum(la, 1e-9))) <= p.max_log_scale)
-    ok &= np.abs(wrap_angle(phi - peak)) <= p.angle_tol_rad + math.pi / nbins
-    if not np.any(ok):
-        return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
-    i, j, phi = i[ok], j[ok], phi[ok]
-    h = len(phi)
-    # Rows [c, -s, tx] and [s, c, ty] of each hypothesis's [R | t], C-ordered as
-    # np.stack(..., axis=1) gives them (the products below see the same layout).
-    rows_x, rows_y = np.empty((h, 3)), np.empty((h, 3))
-    c, s = np.cos(phi, out=rows_x[:, 0]), np.sin(phi, out=rows_y[:, 0])
-    np.negative(s, out=rows_x[:, 1])
-    rows_y[:, 1] = c
-    mid = xab[i]
-    mid += xab[j]
-    mid *= 0.5  # sample midpoints: x, y in A, then in B
-    np.subtract(mid[:, 2], c * mid[:, 0] - s * mid[:, 1], out=rows_x[:, 2])
-    np.subtract(mid[:, 3], s * mid[:, 0] + c * mid[:, 1], out=rows_y[:, 2])
     # Residuals of every hypothesis at every match: rows of [R | t] times [x; y; 1].
-    # (The same products and operations as written out, in scratch buffers and in place.)
     xa1 = np.empty((3, m))
     xa1[:2] = xa.T
     xa1[2] = 1.0
-    rx = np.matmul(rows_x, xa1, out=_scratch("rx", (h, m), np.float64))
-    rx -= xb[:, 0]
-    ry = np.matmul(rows_y, xa1, out=_scratch("ry", (h, m), np.float64))
-    ry -= xb[:, 1]
-    np.multiply(rx, rx, out=rx)
-    np.multiply(ry, ry, out=ry)
-    rx += ry
-    inl = np.less_equal(rx, p.inlier_px**2, out=_scratch("inl", (h, m), np.bool_))
-    best = int(np.argmax(inl @ (weight + 1e-6)))
-    mask = inl[best]
+    if p.confidence > 0:
+        mask = _adaptive_best(xab, i, j, peak, xa1, xb, weight, p)[0]
+        if mask is None:
+            return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
+    else:
+        hyp = _hypotheses(xab, i, j, peak, p)
+        if hyp is None:
+            return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
+        rows_x, rows_y = hyp
+        h = len(rows_x)
+        # (The same products and operations as written out, in scratch buffers and in place.)
+        rx = np.matmul(rows_x, xa1, out=_scratch("rx", (h, m), np.float64))
+        rx -= xb[:, 0]
+        ry = np.matmul(rows_y, xa1, out=_scratch("ry", (h, m), np.float64))
+        ry -= xb[:, 1]
+        np.multiply(rx, rx, out=rx)
+        np.multiply(ry, ry, out=ry)
+        rx += ry
+        inl = np.less_equal(rx, p.inlier_px**2, out=_scratch("inl", (h, m), np.bool_))
+        best = int(np.argmax(inl @ (weight + 1e-6)))
+        mask = inl[best]
     # Refine on all descriptor matches (not only those near the orientation peak).
     fa, fb = a.xy_px[ia].astype(np.float64), xy_b[ib].astype(np.float64)
     sel = np.flatnonzero(near)[mask]

@@ -8,6 +8,7 @@ import dataclasses
 import inspect
 import math
 
+import numpy as np
 import pytest
 
 from robotd.base.config import Config, replace
@@ -47,8 +48,9 @@ def test_changed_sections_reach_the_other_params():
     cfg = replace(Config(), "robot", wheel_radius_m=0.05, wheel_base_m=0.3, ticks_per_rev=1000.0)
     assert DiffDriveParams.from_config(cfg.robot) == DiffDriveParams(0.05, 0.3, 1000.0)
     assert DiffDriveParams.from_config(cfg.robot, wheel_base_m=0.31).wheel_base_m == 0.31
-    cfg = replace(cfg, "floor_detector", descriptor_mode=2, candidates=7, shortlist=20, exclude_recent_s=3.0)
-    assert FloorDetectorParams.from_config(cfg.floor_detector) == FloorDetectorParams(2, 7, 20, 3.0)
+    cfg = replace(cfg, "floor_detector", descriptor_mode=2, candidates=7, shortlist=20, exclude_recent_s=3.0,
+                  ransac_confidence=0.95)
+    assert FloorDetectorParams.from_config(cfg.floor_detector) == FloorDetectorParams(2, 7, 20, 3.0, 0.95)
     cfg = replace(cfg, "visual_odometry", min_inliers=11, ransac_threshold_m=0.004)
     vo = VoParams.from_config(cfg.visual_odometry, 2)
     assert (vo.descriptor_mode, vo.min_inliers, vo.ransac_threshold_m) == (2, 11, 0.004)
@@ -89,3 +91,30 @@ def test_driver_keyword_defaults_that_are_config_keys_are_the_config_defaults():
     for name in shared:
         assert params[name].default == defaults[name], name
     assert BAUDRATE == cfg.base.baudrate
+
+
+def test_ransac_confidence_reaches_the_floor_query():
+    """``[floor_detector] ransac_confidence`` is the confidence of every query's matcher;
+    0 leaves the index's own match parameters."""
+    from robotd.floor.descriptor import extract
+    from robotd.floor.detector import FloorLoopDetector
+    from robotd.floor.index import FloorIndex
+
+    seen = []
+
+    class Spy(FloorIndex):
+        @property
+        def ids(self) -> np.ndarray:
+            return np.array([0])  # one keyframe of an earlier run: every query asks the index
+
+        def query(self, *args, **kwargs):
+            seen.append(kwargs.get("match_params"))
+            return []
+
+    image = (np.random.default_rng(0).random((240, 320)) * 255).astype(np.uint8)
+    blob = extract(image, 1)
+    for confidence in (0.95, 0.0):
+        spy = Spy()
+        FloorLoopDetector(FloorDetectorParams(descriptor_mode=1, ransac_confidence=confidence), spy).query(0, blob)
+        got = seen[-1]
+        assert (got.confidence if got is not None else 0.0) == confidence

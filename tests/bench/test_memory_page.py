@@ -28,7 +28,8 @@ def test_the_page_has_a_section_per_payload_with_its_rows(tmp_path):
     residency = {"machine": MACHINE, "residency": {
         "map": "m.sqlite", "map_keyframes": 1549, "mode": 4, "queries": 300, "sizes": [
             {"keyframes": 10000, "variants": {
-                "in RAM": {"query_ms": {"median": 2.0, "p99": 3.0}, "reads_per_query": 0.0, "index_mb": 61.2},
+                "in RAM": {"query_ms": {"median": 2.0, "p99": 3.0}, "reads_per_query": 0.0, "index_mb": 61.2,
+                           "loops": 500, "candidates_sha256": "0123456789ab", "loops_sha256": "fedcba987654"},
                 "read back, 1024 resident": {"query_ms": {"median": 2.5, "p99": 4.0}, "reads_per_query": 8.8,
                                              "index_mb": 9.2}}}]}}
     page = memory_markdown(_labelled(f"this code={path}"), residency)
@@ -38,8 +39,9 @@ def test_the_page_has_a_section_per_payload_with_its_rows(tmp_path):
     assert "| 1000 | 1000 | 152 | 149 | 8.1 | 2 | 50 | 120 / 2581 | 316 (804) | 6.0 (2586) |" in page
     assert "| 2000 | 1000 |" not in page and "| 2000 | 2000 | 161 | 158 |" in page
     assert "stopped at 2000 keyframes, before its target of 10000" in page
-    # loops: "-" where the run did not count them (runs before the column)
-    assert "| 10000 | read back, 1024 resident | 2.50 | 4.00 | 1.25 | 8.80 | - | 9.2 |" in page
+    # loops and digests: "-" where the run did not count them (runs before the columns)
+    assert "| 10000 | read back, 1024 resident | 2.50 | 4.00 | 1.25 | 8.80 | - | - | - | 9.2 |" in page
+    assert "| 10000 | in RAM | 2.00 | 3.00 | 1.00 | 0.00 | 500 | 01234567 | fedcba98 | 61.2 |" in page
     assert _labelled(str(path)).get("label") is None
 
 

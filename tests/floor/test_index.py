@@ -444,3 +444,25 @@ def test_a_query_that_stops_at_k_scores_the_resident_descriptors_first():
 def test_resident_must_be_positive():
     with pytest.raises(ValueError):
         IndexParams(resident=0)
+
+
+def test_a_query_scores_with_its_own_match_params(gravel_run):
+    """``match_params`` of a query replaces the index's for that query only: with a match
+    count no pair reaches every candidate is dismissed, the next query scores as before;
+    RANSAC's adaptive stop finds the same revisit."""
+    from robotd.floor.descriptor import decode, extract
+    from robotd.floor.match import MatchParams
+
+    images, q_image, overlap = gravel_run
+    index = FloorIndex()
+    for kf, image in enumerate(images):
+        index.add(kf, decode(extract(image, 4)))
+    query = decode(extract(q_image, 4))
+    before = index.query(query, k=3, shortlist=8)
+    refused = index.query(query, k=3, shortlist=8, match_params=MatchParams(min_matches=10_000))
+    assert before[0].score > 0 and overlap[before[0].keyframe_id] >= 0.33
+    assert [c.local.reason for c in refused] == ["TOO_FEW_MATCHES"] * 3
+    again = index.query(query, k=3, shortlist=8)
+    assert [(c.keyframe_id, c.score) for c in again] == [(c.keyframe_id, c.score) for c in before]
+    adaptive = index.query(query, k=3, shortlist=8, match_params=MatchParams(confidence=0.99))
+    assert adaptive[0].keyframe_id == before[0].keyframe_id and adaptive[0].local.n_inliers >= 10

@@ -14,7 +14,8 @@ import skimage.data
 
 from robotd.floor.descriptor import describe
 from robotd.floor.match import (BELOW_MIN_SCORE, NO_GEOMETRIC_CONSISTENCY, TOO_FEW_FEATURES, TOO_FEW_MATCHES,
-                                Matcher, MatchParams, global_score, local_score)
+                                Matcher, MatchParams, _adaptive_best, _hypotheses, _ransac_pairs, global_score,
+                                local_score)
 from robotd.base.camera import FloorCameraModel
 from robotd.base.geometry import inverse, rigid_fit_2d, transform_points
 from sim.world.floor import Floor
@@ -235,7 +236,7 @@ def test_different_modes_are_refused(textures):
 
 @pytest.mark.parametrize("field, value", [("ratio", 0.0), ("ratio", 1.5), ("max_distance", 0.0),
                                           ("iterations", 0), ("min_inliers", 1), ("min_matches", 1),
-                                          ("inlier_px", -1.0)])
+                                          ("inlier_px", -1.0), ("confidence", 1.0), ("confidence", -0.1)])
 def test_match_params_out_of_range(field, value):
     with pytest.raises(ValueError, match="out of range"):
         MatchParams(**{field: value})
@@ -346,3 +347,71 @@ def test_plank_views_a_lattice_step_apart_do_not_match_like_a_true_overlap(plank
             assert np.linalg.norm(alias.transform[:, 2]) < 5.0  # the identity; the truth is 192 px away
         else:
             assert alias.score < 0.5 * true.score
+
+
+# ----------------------------------------------------------------------------- adaptive RANSAC
+
+def _synthetic_matches(n: int, inlier_fraction: float, yaw_rad: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(n, 4)`` matches (x, y in A, then in B, px): the first ``inlier_fraction`` of them
+    moved by one rigid motion (turned by ``yaw_rad``), the rest anywhere in B; and the
+    ``(n,) bool`` truth of which are inliers."""
+    rng = np.random.default_rng(seed)
+    xa = rng.uniform((0, 0), (W, H), (n, 2))
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    xb = xa @ np.array([[c, -s], [s, c]]).T + (35.0, -20.0)
+    truth = np.arange(n) < round(inlier_fraction * n)
+    xb[~truth] = rng.uniform((0, 0), (W, H), (int(np.sum(~truth)), 2))
+    return np.concatenate([xa, xb], axis=1), truth
+
+
+def _adaptive(xab: np.ndarray, yaw_rad: float, p: MatchParams) -> tuple[np.ndarray | None, int]:
+    m = len(xab)
+    i, j = _ransac_pairs(p.seed, m, p.iterations)
+    xa1 = np.vstack([xab[:, :2].T, np.ones(m)])
+    return _adaptive_best(xab, i, j, yaw_rad, xa1, xab[:, 2:], np.ones(m), p)
+
+
+def _all_hypotheses(xab: np.ndarray, yaw_rad: float, p: MatchParams) -> int:
+    i, j = _ransac_pairs(p.seed, len(xab), p.iterations)
+    hyp = _hypotheses(xab, i, j, yaw_rad, p)
+    return 0 if hyp is None else len(hyp[0])
+
+
+@pytest.mark.parametrize("fraction, needed", [(1.0, 1), (0.8, 5), (0.6, 11)])
+def test_adaptive_ransac_stops_when_the_inlier_fraction_says_enough(fraction, needed):
+    """A 0.99 confidence asks for log(0.01) / log(1 - w**2) hypotheses at an inlier
+    fraction w: 4.5 at 80 % (the first block decides), 10.3 at 60 % (a later block); the
+    check stops at the first block that reaches it, fewer than all the draws give, and the
+    mask is the true inliers."""
+    p = MatchParams(confidence=0.99)
+    xab, truth = _synthetic_matches(200, fraction, 0.6, seed=3)
+    mask, scored = _adaptive(xab, 0.6, p)
+    assert mask is not None and np.array_equal(mask, truth)
+    assert needed <= scored < _all_hypotheses(xab, 0.6, p)
+    assert fraction < 0.8 or scored <= 10
+
+
+def test_adaptive_ransac_scores_every_hypothesis_without_a_consensus():
+    """Matches without a common motion, or with too few inliers for the draws to give the
+    hypotheses the confidence asks for: every draw's hypothesis is scored, as without the
+    adaptive stop."""
+    p = MatchParams(confidence=0.99)
+    for fraction, seed in [(0.0, 4), (0.4, 3)]:  # at 40 % the draws give 17 hypotheses, 26.4 are asked for
+        xab, truth = _synthetic_matches(200, fraction, 0.6, seed=seed)
+        mask, scored = _adaptive(xab, 0.6, p)
+        assert mask is not None and scored == _all_hypotheses(xab, 0.6, p) > 0
+        assert np.count_nonzero(mask) < 0.1 * len(xab) if fraction == 0 else np.array_equal(mask, truth)
+
+
+@pytest.mark.parametrize("mode", [1, 4])
+def test_adaptive_ransac_finds_the_same_overlap(textures, mode):
+    """A turned and shifted view: with the adaptive stop the pair is matched with the same
+    inliers and transform as with every hypothesis scored (the first block holds a best
+    hypothesis whose refinement converges to the same inliers)."""
+    tex = textures["gravel"]
+    a = describe(_view(tex, 0.0, CENTRE)[0], mode)
+    b = describe(_view(tex, 0.7, (660.0, 560.0))[0], mode)
+    full, adaptive = local_score(a, b), local_score(a, b, MatchParams(confidence=0.99))
+    assert full.reason == adaptive.reason == "" and full.n_inliers >= 15
+    assert adaptive.score == full.score and np.array_equal(adaptive.inliers_a, full.inliers_a)
+    assert np.array_equal(adaptive.transform, full.transform)
