@@ -335,11 +335,11 @@ def test_the_planar_model_carries_the_level_motions_heading(monkeypatch):
     inner = verify_mod._general_motion
     calls: list[int] = []
 
-    def first_fails(p_o, p_n, k, prm, n, near=None, half_inliers=True):
+    def first_fails(p_o, p_n, k, prm, n, near=None, half_inliers=True, normalised=None):
         calls.append(n)
         if len(calls) == 1:
             return verify_mod.Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
-        return inner(p_o, p_n, k, prm, n, near, half_inliers)
+        return inner(p_o, p_n, k, prm, n, near, half_inliers, normalised)
 
     monkeypatch.setattr(verify_mod, "_general_motion", first_fails)
     for band in (None, 10.0):
