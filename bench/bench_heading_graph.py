@@ -12,6 +12,13 @@ fed, and the peak of one call.
 
 Run: ``python bench/bench_heading_graph.py [--sizes 1000 3000 10000] [--out DIR]``
 (about a minute); ``--full`` adds 30,000 keyframes. Writes ``heading_graph.json``.
+
+``--baseline-rev REV`` measures the solve against the code of git revision ``REV`` instead
+(its ``forward_loops.py`` read from git, its ``HeadingGraph`` fed the same links): on graphs
+of ``--sizes`` keyframes (the demo's office route has about 800), ``--calls`` calls of
+either code alternating in one process, each call's pair of keyframes drawn within the
+window, thread CPU time; every answer must be the same to the bit. Writes
+``heading_graph_vs_baseline.json`` with the median ratio current / baseline.
 """
 
 from __future__ import annotations
@@ -77,12 +84,78 @@ def measure(n: int, window: int, repeats: int = 5) -> dict[str, Any]:
             "answer": None if got is None else [round(got[0], 6), round(got[1], 6)]}
 
 
+def _baseline_class(rev: str) -> Any:
+    """``HeadingGraph`` as it is at git revision ``rev`` (its module read from git)."""
+    import importlib.util
+    import subprocess
+    import tempfile
+
+    src = subprocess.run(["git", "show", f"{rev}:robotd/app/stages/forward_loops.py"], cwd=REPO_ROOT, check=True,
+                         capture_output=True, text=True).stdout
+    path = Path(tempfile.mkdtemp()) / "baseline_forward_loops.py"
+    path.write_text(src)
+    spec = importlib.util.spec_from_file_location("baseline_forward_loops", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # its dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod.HeadingGraph
+
+
+def against_baseline(rev: str, sizes: list[int], calls: int, out: Path) -> int:
+    """The solve of the current code against ``rev``'s (module notes)."""
+    import subprocess
+
+    from robotd.app.stages.forward_loops import HeadingGraph
+
+    base_cls = _baseline_class(rev)
+    rows = []
+    for n in sizes:
+        cur = build(n, HeadingGraph().window)
+        base = base_cls(window=cur.window)
+        base._f, base._t, base._d, base._v = cur._f.copy(), cur._t.copy(), cur._d.copy(), cur._v.copy()
+        base._n, base._dropped, base._newest, base._odom = cur._n, cur._dropped, cur._newest, dict(cur._odom)
+        rng = np.random.default_rng(n)
+        lo = max(0, n - 1 - cur.window)
+        pairs = [(int(a), n - 1 - int(k)) for a, k in zip(rng.integers(lo, n - 1, calls), rng.integers(0, 3, calls))]
+        cur.relative(*pairs[0])
+        base.relative(*pairs[0])  # warm-up (imports)
+        t_cur, t_base, same = [], [], True
+        for i, (a, b) in enumerate(pairs):
+            order = (cur, base) if i % 2 == 0 else (base, cur)
+            got = {}
+            for g in order:
+                t0 = time.thread_time()
+                got[id(g)] = g.relative(a, b)
+                (t_cur if g is cur else t_base).append((time.thread_time() - t0) * 1e3)
+            x, y = got[id(cur)], got[id(base)]
+            same &= (x is None and y is None) or (x is not None and y is not None and
+                                                  x[0].hex() == y[0].hex() and x[1].hex() == y[1].hex())
+        ratios = [c / b for c, b in zip(t_cur, t_base) if b > 0]
+        r = {"keyframes": n, "links": len(cur), "calls": calls, "same_answers": bool(same),
+             "current_cpu_ms_median": round(float(np.median(t_cur)), 3),
+             "baseline_cpu_ms_median": round(float(np.median(t_base)), 3),
+             "ratio_median": round(float(np.median(ratios)), 3)}
+        rows.append(r)
+        print(f"{n:>6} keyframes, {r['links']} links: current {r['current_cpu_ms_median']:.3f} ms, baseline "
+              f"{r['baseline_cpu_ms_median']:.3f} ms per call, ratio {r['ratio_median']:.3f}, same answers: {same}")
+    commit = subprocess.run(["git", "rev-parse", rev], cwd=REPO_ROOT, capture_output=True, text=True).stdout.strip()
+    path = write_json(out / "heading_graph_vs_baseline.json",
+                      {"machine": machine_info(), "baseline_rev": rev, "baseline_commit": commit, "rows": rows})
+    print(f"wrote {path}")
+    return 0 if all(r["same_answers"] for r in rows) else 1
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 3000, 10000])
     ap.add_argument("--full", action="store_true", help="also 30,000 keyframes")
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "bench" / "results")
+    ap.add_argument("--baseline-rev", help="measure the solve against this git revision's (module notes)")
+    ap.add_argument("--calls", type=int, default=200, help="with --baseline-rev: calls per size")
     args = ap.parse_args(argv)
+    if args.baseline_rev:
+        return against_baseline(args.baseline_rev, args.sizes, args.calls, args.out)
     from robotd.app.stages.forward_loops import HeadingGraph
 
     sizes = args.sizes + ([30000] if args.full else [])

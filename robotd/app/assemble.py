@@ -352,12 +352,15 @@ def assemble_daemon(cfg: Config, clock: Clock, sources: dict[str, Source], store
     if outputs is not None:
         pipeline.add(outputs)
     # Python's garbage collections timed (counters gc_*, the forward stage's gc part); with
-    # [daemon] gc_freeze, the objects of the start-up and the map's load frozen out of them.
+    # [daemon] gc_freeze, the objects of the start-up and the map's load frozen out of them;
+    # [daemon] gc_full_between_messages, the full collections run by the watch between messages.
     from robotd.app import gcwatch
 
     watch = pipeline.add(gcwatch.GcWatch().install())
     if cfg.daemon.gc_freeze:
         watch.freeze()
+    if cfg.daemon.gc_full_between_messages:
+        watch.defer_full()
     daemon = Daemon(clock, pipeline, sources, notifier, store=store, run_id=run_id, lossless=lossless,
                     status_interval_s=cfg.daemon.status_interval_s, queue_sizes=sizes,
                     driver_stats=driver_stats)

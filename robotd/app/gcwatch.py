@@ -10,6 +10,18 @@ stage can tell the collector's share of its own time (the forward stage's ``gc``
 the counters say what the collector cost over the run. :func:`freeze_startup` takes the
 objects alive after the start-up out of the collections (``[daemon] gc_freeze``;
 docs/performance.md, "The garbage collector").
+
+A full collection lands in whichever message's work allocates when one is due, and on a
+forward keyframe it was the costliest keyframe of a run (docs/forward.md, "The time
+target"). :meth:`GcWatch.defer_full` (``[daemon] gc_full_between_messages``) moves them out
+of the stages' work: CPython's automatic full collection is turned off (its generation-2
+threshold set out of reach) and the watch, the pipeline's last stage, runs one in its
+:meth:`GcWatch.poll` (after the pipeline has handed on a batch of messages, never inside a
+stage's handling of one) once :data:`FULL_AFTER` collections of generation 1 have run since
+the last full one: CPython's own count, without its second condition (that the objects
+promoted since the last full collection exceed a quarter of those it kept), so no fewer
+full collections than CPython's. The collections' work is the same; it runs between
+messages.
 """
 
 from __future__ import annotations
@@ -25,6 +37,14 @@ log = logging.getLogger(__name__)
 
 # The watch installed in this process (install()/uninstall()); None when none is.
 _installed: GcWatch | None = None
+
+#: Collections of generation 1 after which a deferred full collection runs (CPython's default
+#: generation-2 threshold; :meth:`GcWatch.defer_full`).
+FULL_AFTER = 10
+
+# The generation-2 threshold while full collections are deferred: never reached by the
+# count of generation-1 collections since the last full one.
+_OUT_OF_REACH = 1 << 30
 
 
 class GcWatch:
@@ -50,6 +70,8 @@ class GcWatch:
         self._t0 = 0.0  # the running collection's start (the collector is never re-entered)
         self._c0 = 0.0  # ... in the thread's CPU time
         self.frozen_at_start = 0  # objects frozen by freeze_startup() for this daemon (gc_frozen_at_start)
+        self.deferred_full = 0  # full collections run by poll() (gc_deferred_full)
+        self._thresholds: tuple[int, int, int] | None = None  # gc.get_threshold() before defer_full()
 
     def _callback(self, phase: str, info: dict[str, Any]) -> None:
         if phase == "start":
@@ -71,6 +93,23 @@ class GcWatch:
     def subscriptions(self) -> dict[type, Any]:
         return {}
 
+    def defer_full(self) -> None:
+        """Turn CPython's automatic full collection off for the daemon (module notes):
+        :meth:`poll` runs them between messages; :meth:`finish` turns it back on."""
+        if self._thresholds is None:
+            self._thresholds = gc.get_threshold()
+            t0, t1, _ = self._thresholds
+            gc.set_threshold(t0, t1, _OUT_OF_REACH)
+
+    def poll(self) -> int:
+        """With :meth:`defer_full`: a full collection when :data:`FULL_AFTER` collections of
+        generation 1 have run since the last one (``gc.get_count()[2]``). Returns 0 (no
+        message handled)."""
+        if self._thresholds is not None and gc.get_count()[2] >= FULL_AFTER:
+            gc.collect(2)
+            self.deferred_full += 1
+        return 0
+
     def thread_cpu_ms(self) -> float:
         """The collections run in the calling thread so far, in its CPU time, ms."""
         return self._thread_cpu_ms.get(threading.get_ident(), 0.0)
@@ -88,6 +127,7 @@ class GcWatch:
             out[f"gc_cpu_ms_total_gen{g}"] = round(self.cpu_ms_total[g], 1)
         out["gc_frozen_objects"] = gc.get_freeze_count()
         out["gc_frozen_at_start"] = self.frozen_at_start
+        out["gc_deferred_full"] = self.deferred_full
         return out
 
     def freeze(self) -> int:
@@ -99,13 +139,17 @@ class GcWatch:
 
     def finish(self) -> int:
         """End of the daemon's input: the collections of the run logged; what :meth:`freeze`
-        froze goes back to the collector."""
+        froze goes back to the collector, and the automatic full collection that
+        :meth:`defer_full` turned off comes back."""
         log.info("garbage collections over the run (generation: count, CPU ms, largest wall ms): %s; "
-                 "%d objects frozen at start", ", ".join(
+                 "%d objects frozen at start; %d full collections run between messages", ", ".join(
                      f"{g}: {self.collections[g]}, {self.cpu_ms_total[g]:.0f}, {self.ms_max[g]:.1f}" for g in range(3)),
-                 self.frozen_at_start)
+                 self.frozen_at_start, self.deferred_full)
         if self.frozen_at_start:
             gc.unfreeze()
+        if self._thresholds is not None:
+            gc.set_threshold(*self._thresholds)
+            self._thresholds = None
         return 0
 
     def install(self) -> GcWatch:

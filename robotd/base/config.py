@@ -405,6 +405,10 @@ class DaemonConfig:
     gc_freeze: bool = _f(False, "move the objects made at start-up (the map's load included) out of "
                          "Python's garbage collector for the run: its full collections then walk only "
                          "what the run made (measured, not yet the default: docs/performance.md)")
+    gc_full_between_messages: bool = _f(False, "run Python's full garbage collections between the pipeline's "
+                                        "messages instead of inside whichever stage's work allocates when one "
+                                        "is due (after ten collections of generation 1, as CPython counts; "
+                                        "measured, not yet the default: docs/forward.md)")
 
 
 @dataclass(frozen=True)

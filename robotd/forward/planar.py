@@ -43,8 +43,8 @@ import numpy as np
 from robotd.base.config import ForwardDetectorConfig
 from robotd.base.geometry import compose, inverse, wrap_angle
 
-__all__ = ["MotionFit", "PlanarLoopParams", "fit_motion", "loop_edge", "out_of_plane", "planar_motion",
-           "planarity_bound", "refine_motion"]
+__all__ = ["MotionFit", "PlanarLoopParams", "fit_motion", "loop_edge", "normalised_points", "out_of_plane",
+           "planar_motion", "planarity_bound", "refine_motion"]
 
 
 @dataclass(frozen=True)
@@ -325,6 +325,19 @@ def out_of_plane(rotation: np.ndarray, translation_dir: np.ndarray) -> np.ndarra
                      centre[1] / max(float(np.linalg.norm(centre)), 1e-12)])
 
 
+def normalised_points(p_old_px: np.ndarray, p_new_px: np.ndarray,
+                      camera_matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The matched pixels ``p_old_px, p_new_px (N, 2)`` through ``K^-1``: ``(N, 3), (N, 3)``
+    homogeneous normalised coordinates, the rows the verification's steps compute from
+    them (each row the same whichever rows are taken with it)."""
+    kinv = np.linalg.inv(np.asarray(camera_matrix, np.float64))
+    p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
+    p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
+    x_old: np.ndarray = np.hstack([p_old, np.ones((len(p_old), 1))]) @ kinv.T
+    x_new: np.ndarray = np.hstack([p_new, np.ones((len(p_new), 1))]) @ kinv.T
+    return x_old, x_new
+
+
 def refine_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarray,
                   translation_dir: np.ndarray, camera_matrix: np.ndarray,
                   iterations: int = 5) -> tuple[np.ndarray, np.ndarray, float, float, float]:
@@ -335,7 +348,8 @@ def refine_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarr
 
 
 def fit_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarray,
-               translation_dir: np.ndarray, camera_matrix: np.ndarray, iterations: int = 5) -> MotionFit:
+               translation_dir: np.ndarray, camera_matrix: np.ndarray, iterations: int = 5,
+               normalised: tuple[np.ndarray, np.ndarray] | None = None) -> MotionFit:
     """The two-view motion refined on all the inliers, and how well they fix it (not in
     paper 000).
 
@@ -355,7 +369,9 @@ def fit_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarray,
     ``p_old_px, p_new_px (N, 2)``: the inliers, pixels; ``rotation (3, 3)``,
     ``translation_dir (3,)`` as :class:`robotd.forward.verify.Verification`;
     ``camera_matrix (3, 3)``. With fewer than six inliers or a degenerate geometry the
-    motion is returned as given and the sigmas are ``inf``.
+    motion is returned as given and the sigmas are ``inf``. ``normalised``: the same pixels
+    already through ``K^-1`` (:func:`normalised_points`), so a caller that has them does
+    not compute them again (the same rows).
     """
     p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
     p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
@@ -366,10 +382,11 @@ def fit_motion(p_old_px: np.ndarray, p_new_px: np.ndarray, rotation: np.ndarray,
     if n < 6:
         return MotionFit(r0, t0)
     k = np.asarray(camera_matrix, np.float64)
-    kinv = np.linalg.inv(k)
     focal = 0.5 * (k[0, 0] + k[1, 1])
-    x_old = np.hstack([p_old, np.ones((n, 1))]) @ kinv.T
-    x_new = np.hstack([p_new, np.ones((n, 1))]) @ kinv.T
+    if normalised is None:
+        x_old, x_new = normalised_points(p_old, p_new, k)
+    else:
+        x_old, x_new = normalised
 
     def linearise(r: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray,
                                                         Callable[..., tuple[np.ndarray, np.ndarray]]]:

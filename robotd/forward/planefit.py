@@ -29,7 +29,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from robotd.forward.planar import INLIER_NOISE_FACTOR
+from robotd.forward.planar import INLIER_NOISE_FACTOR, normalised_points
 
 __all__ = ["SCAN_STEP_RAD", "PlanarFit", "PlanarSearch", "fit_planar", "fit_planar_scans", "front_mask", "planar_inliers", "planar_pose",
            "ransac_planar", "ridge_span"]
@@ -484,15 +484,12 @@ class PlanarSearch:
     psi_rad: float = 0.0
 
     def inliers(self, p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray,
-                threshold_px: float) -> np.ndarray:
+                threshold_px: float, normalised: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """``(N,) bool``: the matched pixels within ``threshold_px`` (Sampson distance) of the
-        best hypothesis."""
-        p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
-        p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
+        best hypothesis (``normalised``: the pixels already through ``K^-1``,
+        :func:`robotd.forward.planar.normalised_points`)."""
         k = np.asarray(camera_matrix, np.float64)
-        kinv = np.linalg.inv(k)
-        x_old = np.hstack([p_old, np.ones((len(p_old), 1))]) @ kinv.T
-        x_new = np.hstack([p_new, np.ones((len(p_new), 1))]) @ kinv.T
+        x_old, x_new = normalised_points(p_old_px, p_new_px, k) if normalised is None else normalised
         r, t = planar_pose(self.yaw_rad, self.psi_rad)
         out: np.ndarray = np.abs(_sampson(x_old, x_new, r, t, 0.5 * (k[0, 0] + k[1, 1]))) < threshold_px
         return out
@@ -500,8 +497,8 @@ class PlanarSearch:
 
 def ransac_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, *,
                   threshold_px: float = 1.0, min_inliers: int = 20, confidence: float = 0.999,
-                  max_samples: int = 500, batch: int = 64, seed: int = 0,
-                  refine: bool = True) -> tuple[PlanarFit | None, PlanarSearch]:
+                  max_samples: int = 500, batch: int = 64, seed: int = 0, refine: bool = True,
+                  normalised: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[PlanarFit | None, PlanarSearch]:
     """The planar motion of the matched pixels ``p_old_px, p_new_px (N, 2)`` found without
     a first guess: RANSAC over pairs of matches (the two-point solver of a level camera's
     motion; not in paper 000).
@@ -523,17 +520,14 @@ def ransac_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.
     within the threshold *and* in front of both cameras.
     ``(None, search)`` with fewer than 5 matches, or without ``refine`` (the search's
     size alone: a screen). Samples from ``numpy``'s generator seeded with ``seed``
-    (reproducible)."""
-    p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
-    p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
-    n = len(p_old)
+    (reproducible). ``normalised``: the pixels already through ``K^-1``
+    (:func:`robotd.forward.planar.normalised_points`), not computed again."""
+    n = len(p_old_px)
     if n < 5:
         return None, PlanarSearch(0, 0, 0)
     k = np.asarray(camera_matrix, np.float64)
-    kinv = np.linalg.inv(k)
     focal = 0.5 * (k[0, 0] + k[1, 1])
-    x_old = np.hstack([p_old, np.ones((n, 1))]) @ kinv.T
-    x_new = np.hstack([p_new, np.ones((n, 1))]) @ kinv.T
+    x_old, x_new = normalised_points(p_old_px, p_new_px, k) if normalised is None else normalised
     a = np.stack([-x_new[:, 0] * x_old[:, 1], x_old[:, 1], x_new[:, 1] * x_old[:, 0], -x_new[:, 1]], axis=1)
     terms = _sampson_terms(x_old, x_new)
     thr = threshold_px / focal

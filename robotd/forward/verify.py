@@ -113,7 +113,7 @@ import cv2
 import numpy as np
 
 from robotd.forward.features import FeatureSet
-from robotd.forward.planar import INLIER_NOISE_FACTOR, fit_motion
+from robotd.forward.planar import INLIER_NOISE_FACTOR, fit_motion, normalised_points
 from robotd.forward.planefit import ransac_planar
 
 __all__ = ["ACCEPTED", "NO_GEOMETRIC_CONSISTENCY", "SMALL_SUPPORT", "TOO_FEW_MATCHES", "Verification", "VerifyReason",
@@ -400,15 +400,18 @@ def _verify_matched(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: 
     if n < max(5, params.min_inliers):
         return Verification(False, TOO_FEW_MATCHES, n, 0)
     k = camera_matrix if camera_matrix is not None else camera_matrix_guess(*new.image_size_px)
+    # The matches through K^-1 once: every step below reads these rows (or a subset of them).
+    xs = normalised_points(p_old, p_new, k)
     if params.model == "planar":
         _, search = ransac_planar(p_old, p_new, k, threshold_px=params.guide_threshold_px,
                                   min_inliers=params.min_inliers, confidence=params.ransac_confidence,
-                                  max_samples=params.planar_max_samples, seed=params.seed, refine=False)
-        near = search.inliers(p_old, p_new, k, params.guide_threshold_px) if search.best_inliers else None
+                                  max_samples=params.planar_max_samples, seed=params.seed, refine=False,
+                                  normalised=xs)
+        near = search.inliers(p_old, p_new, k, params.guide_threshold_px, xs) if search.best_inliers else None
         guided: _Motion | Verification = Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
         if near is not None and int(near.sum()) >= params.min_inliers:
             gp = params if params.guided_estimator is None else replace(params, estimator=params.guided_estimator)
-            guided = _general_motion(p_old, p_new, k, gp, n, near)
+            guided = _general_motion(p_old, p_new, k, gp, n, near, normalised=xs)
             if not isinstance(guided, Verification):
                 guided = _checked(old, new, p_old, p_new, k, params, guided)
         assert isinstance(guided, Verification)
@@ -421,14 +424,14 @@ def _verify_matched(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: 
         params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations),
                          estimator=params.fallback_estimator or params.estimator)
         if params.fallback_band_px is not None:
-            band = search.inliers(p_old, p_new, k, params.fallback_band_px)
+            band = search.inliers(p_old, p_new, k, params.fallback_band_px, xs)
             if int(band.sum()) < params.min_inliers:
                 return replace(guided, fallback=True)
-            banded = _general_motion(p_old, p_new, k, params, n, band, half_inliers=False)
+            banded = _general_motion(p_old, p_new, k, params, n, band, half_inliers=False, normalised=xs)
             checked = banded if isinstance(banded, Verification) else _checked(old, new, p_old, p_new, k, params,
                                                                                 banded)
             return replace(checked, fallback=True, level_yaw_rad=guided.level_yaw_rad)
-        return replace(_general_verification(old, new, p_old, p_new, k, params, n), fallback=True,
+        return replace(_general_verification(old, new, p_old, p_new, k, params, n, xs), fallback=True,
                        level_yaw_rad=guided.level_yaw_rad)
     elif params.model == "planar_motion":
         motion = _planar_motion(p_old, p_new, k, params)
@@ -451,9 +454,10 @@ def _verify_matched(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: 
 
 
 def _general_verification(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray,
-                          params: VerifyParams, n: int) -> Verification:
+                          params: VerifyParams, n: int,
+                          normalised: tuple[np.ndarray, np.ndarray] | None = None) -> Verification:
     """The general model over all the matches, checked (:func:`_checked`)."""
-    general = _general_motion(p_old, p_new, k, params, n)
+    general = _general_motion(p_old, p_new, k, params, n, normalised=normalised)
     if isinstance(general, Verification):
         return general
     return _checked(old, new, p_old, p_new, k, params, general)
@@ -495,14 +499,16 @@ _Motion = tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float, float]
 
 
 def _general_motion(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params: VerifyParams,
-                    n: int, near: np.ndarray | None = None, half_inliers: bool = True) -> _Motion | Verification:
+                    n: int, near: np.ndarray | None = None, half_inliers: bool = True,
+                    normalised: tuple[np.ndarray, np.ndarray] | None = None) -> _Motion | Verification:
     """The general model: the essential matrix (``params.estimator``), ``cv2.recoverPose``'s
     cheirality check, the motion refined on the inliers (:func:`robotd.forward.planar.fit_motion`);
     a refused :class:`Verification` when it fails. With ``near (N,) bool`` the essential
     matrix is searched among those matches only and its inliers then counted among all
     (``"planar_guided"``): at most the samples that would draw five inliers were half of
     them inliers, or with ``half_inliers`` False RANSAC's own bound for ``min_inliers``
-    (:func:`ransac_iterations`) up to ``params.max_iterations``."""
+    (:func:`ransac_iterations`) up to ``params.max_iterations``. ``normalised``: the matches
+    through ``K^-1`` (:func:`robotd.forward.planar.normalised_points`), not computed again."""
     if near is None:
         e, mask = essential_matrix(p_old, p_new, k, params)
     else:
@@ -511,7 +517,8 @@ def _general_motion(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params:
         sub = params if not half_inliers else replace(params, max_iterations=min(
             params.max_iterations, ransac_iterations(m, max(params.min_inliers, (m + 1) // 2), params.ransac_confidence)))
         e, _ = essential_matrix(p_old[near], p_new[near], k, sub)
-        mask = None if e is None or e.shape[0] < 3 else _epipolar_mask(p_old, p_new, k, e[:3], params.ransac_threshold_px)
+        mask = None if e is None or e.shape[0] < 3 else _epipolar_mask(p_old, p_new, k, e[:3], params.ransac_threshold_px,
+                                                                       normalised)
     if e is None or mask is None or e.shape[0] < 3:
         return Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
     e = e[:3]  # the five-point method may return up to ten solutions stacked; RANSAC keeps one
@@ -524,18 +531,18 @@ def _general_motion(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params:
         return Verification(False, NO_GEOMETRIC_CONSISTENCY, n, n_inl, r, t_dir)
     inl = np.asarray(mask2).ravel() > 0
     # Not in the paper: the motion refined on all the inliers, and its uncertainty.
-    fit = fit_motion(p_old[inl], p_new[inl], r, t_dir, k)
+    fit = fit_motion(p_old[inl], p_new[inl], r, t_dir, k,
+                     normalised=None if normalised is None else (normalised[0][inl], normalised[1][inl]))
     return (inl, fit.rotation, fit.translation_dir, fit.sigma_bearing_rad, fit.sigma_yaw_rad, fit.noise_px,
             fit.planarity_chi2)
 
 
 def _epipolar_mask(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, e: np.ndarray,
-                   threshold_px: float) -> np.ndarray:
+                   threshold_px: float, normalised: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """``(N, 1) uint8``: the matches within ``threshold_px`` (Sampson distance) of the essential
-    matrix ``e (3, 3)``, as OpenCV's inlier masks."""
-    kinv = np.linalg.inv(k)
-    xo = np.hstack([p_old, np.ones((len(p_old), 1))]) @ kinv.T
-    xn = np.hstack([p_new, np.ones((len(p_new), 1))]) @ kinv.T
+    matrix ``e (3, 3)``, as OpenCV's inlier masks (``normalised``: the matches through
+    ``K^-1``, :func:`robotd.forward.planar.normalised_points`)."""
+    xo, xn = normalised_points(p_old, p_new, k) if normalised is None else normalised
     ex = xo @ e.T
     etx = xn @ e
     d = 0.5 * (k[0, 0] + k[1, 1]) * np.abs(np.einsum("ij,ij->i", xn, ex)) / np.sqrt(

@@ -49,6 +49,42 @@ def test_it_times_each_collection_by_generation_and_thread_and_uninstalls():
     assert w.collections[2] == n
 
 
+def test_deferred_full_collections_run_only_in_poll_after_ten_of_generation_1_and_finish_restores():
+    before = gc.get_threshold()
+    w = GcWatch().install()
+    try:
+        w.defer_full()
+        assert gc.get_threshold()[:2] == before[:2] and gc.get_threshold()[2] > 1_000_000
+        gc.collect(2)  # the count of generation-1 collections since the last full one starts at 0
+        full = w.collections[2]
+        for _ in range(gcwatch.FULL_AFTER - 1):
+            gc.collect(1)
+            assert w.poll() == 0
+        assert w.collections[2] == full and w.deferred_full == 0  # nine: not yet due
+        # the automatic rule would have run one by now; allocations alone run none
+        _garbage(20 * before[0] * before[1])
+        assert w.collections[2] == full
+        gc.collect(1)
+        assert gc.get_count()[2] >= gcwatch.FULL_AFTER
+        assert w.poll() == 0 and w.collections[2] == full + 1 and w.deferred_full == 1
+        assert gc.get_count()[2] == 0 and w.poll() == 0 and w.deferred_full == 1
+        assert w.counters()["gc_deferred_full"] == 1
+        w.finish()
+        assert gc.get_threshold() == before
+        w.finish()  # twice: nothing more to restore
+        assert gc.get_threshold() == before
+    finally:
+        w.uninstall()
+        gc.set_threshold(*before)
+
+
+def test_without_deferral_poll_runs_nothing():
+    w = GcWatch()
+    for _ in range(gcwatch.FULL_AFTER + 1):
+        gc.collect(1)
+    assert w.poll() == 0 and w.deferred_full == 0 and w.collections == [0, 0, 0]
+
+
 class _Collecting(_Recorder):
     """The stage-order test's stand-in detector, collecting the youngest generation on every third image."""
 
@@ -78,7 +114,8 @@ def test_the_forward_stage_counts_the_collections_in_its_keyframes(monkeypatch):
 
 
 @pytest.mark.parametrize("freeze", [True, False])
-def test_the_daemon_freezes_its_start_up_for_the_run_and_gives_it_back_at_the_end(tmp_path: Path, freeze: bool):
+def test_the_daemon_freezes_its_start_up_and_defers_full_collections_for_the_run_and_undoes_both_at_the_end(tmp_path: Path, freeze: bool):
+    thresholds = gc.get_threshold()
     from robotd.app.assemble import assemble_daemon
     from robotd.app.notify import Notifier
     from robotd.base.clock import ManualClock
@@ -90,7 +127,8 @@ def test_the_daemon_freezes_its_start_up_for_the_run_and_gives_it_back_at_the_en
                       CalibrationFile(loop=LoopThresholds(thresholds=(None, None, None, 40.0, None, None))))
     path = tmp_path / "robotd.toml"
     path.write_text(f'[base]\nport = "/dev/kobuki"\n[calibration]\npath = "{tmp_path / "calibration.yml"}"\n'
-                    f'[map]\npath = "{tmp_path / "map.sqlite"}"\n[daemon]\ngc_freeze = {str(freeze).lower()}\n')
+                    f'[map]\npath = "{tmp_path / "map.sqlite"}"\n[daemon]\ngc_freeze = {str(freeze).lower()}\n'
+                    f'gc_full_between_messages = {str(freeze).lower()}\n')
     cfg = load_config(path)
     assert gc.get_freeze_count() == 0
     store = MapStore.open(cfg.map.path)
@@ -100,12 +138,14 @@ def test_the_daemon_freezes_its_start_up_for_the_run_and_gives_it_back_at_the_en
         c = daemon.pipeline.counters()
         assert (frozen > 1000) == freeze and c["gc_frozen_at_start"] >= frozen  # (a few freed since)
         assert gcwatch.installed() is not None and "gc_collections_gen2" in c
+        assert (gc.get_threshold()[2] > thresholds[2]) == freeze  # the full collections deferred with it
         daemon.start()
         daemon.shutdown()
-        assert gc.get_freeze_count() == 0
+        assert gc.get_freeze_count() == 0 and gc.get_threshold() == thresholds
     finally:
         store.close()
         gc.unfreeze()
+        gc.set_threshold(*thresholds)
         w = gcwatch.installed()
         if w is not None:
             w.uninstall()

@@ -9,7 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from robotd.app.stages.forward_loops import HeadingGraph
+from robotd.app.stages.forward_loops import HeadingGraph, tree_yaws
+from robotd.base.geometry import wrap_angle
 from robotd.base.messages import Link
 
 
@@ -124,3 +125,100 @@ def test_the_tree_yaws_are_those_of_the_dictionary_before_to_the_bit():
         order, pred = breadth_first_order((adj + adj.T).tocsr(), root, directed=False, return_predecessors=True)
         got, want = tree_yaws(fi, ti, d, order, pred, nn), _tree_yaws_before(fi, ti, d, order, pred, nn)
         assert got[root] == 0.0 and np.array_equal(got, want)
+
+def _relative_before(self: HeadingGraph, a: int, b: int, upto: int | None = None) -> tuple[float, float] | None:
+    """``HeadingGraph.relative`` as it was before its solve was cut (the frozen reference:
+    the adjacency added to its transpose, the components found apart, the gradient by
+    ``np.add.at``)."""
+    n = self._n if upto is None else max(0, min(self._n, upto - self._dropped))
+    lo = max(a, b) - self.window
+    f, t, d, v = self._f[:n], self._t[:n], self._d[:n], self._v[:n]
+    inside = (f >= lo) & (t >= lo)
+    f, t, d, v = f[inside], t[inside], d[inside], v[inside]
+    linked = np.unique(np.concatenate([f, t]))
+    extra: list[tuple[int, int, float, float]] = []
+    for k in (a, b):
+        at = int(np.searchsorted(linked, k))
+        if k >= lo and k in self._odom and not (at < len(linked) and int(linked[at]) == k):
+            older = linked[linked < k]
+            older = older[[int(i) in self._odom for i in older]] if len(older) else older
+            if len(older):
+                m = int(older.max())
+                (ya, va), (yb, vb) = self._odom[m], self._odom[k]
+                extra.append((m, k, float(wrap_angle(yb - ya)), max(vb - va, 1e-8)))
+    if extra:
+        ex = np.array(extra, np.float64)
+        f = np.concatenate([f, ex[:, 0].astype(np.int64)])
+        t = np.concatenate([t, ex[:, 1].astype(np.int64)])
+        d, v = np.concatenate([d, ex[:, 2]]), np.concatenate([v, ex[:, 3]])
+    nodes = np.unique(np.concatenate([f, t]))
+    if a == b or len(nodes) == 0:
+        return None
+    ia, ib = int(np.searchsorted(nodes, a)), int(np.searchsorted(nodes, b))
+    if ia >= len(nodes) or ib >= len(nodes) or nodes[ia] != a or nodes[ib] != b:
+        return None
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import breadth_first_order, connected_components
+    from scipy.sparse.linalg import splu
+
+    fi, ti = np.searchsorted(nodes, f), np.searchsorted(nodes, t)
+    w = 1.0 / v
+    nn = len(nodes)
+    adj = sp.coo_matrix((np.ones(len(fi)), (fi, ti)), shape=(nn, nn)).tocsr()
+    _, comp = connected_components(adj, directed=False)
+    if comp[ia] != comp[ib]:
+        return None
+    keep = comp == comp[ia]
+    # The yaws by a spanning tree from a (the linearisation point), then the weighted
+    # least squares of the wrapped residuals with node a held at 0.
+    sym = (adj + adj.T).tocsr()
+    order, pred = breadth_first_order(sym, ia, directed=False, return_predecessors=True)
+    y0 = tree_yaws(fi, ti, d, order, pred, nn)
+    ok = keep[fi] & keep[ti]
+    fi, ti, d, w = fi[ok], ti[ok], d[ok], w[ok]
+    r = np.remainder(d - (y0[ti] - y0[fi]) + math.pi, math.tau) - math.pi
+    g = np.zeros(nn)
+    np.add.at(g, ti, w * r)
+    np.add.at(g, fi, -w * r)
+    free = np.flatnonzero(keep & (np.arange(nn) != ia))
+    # The normal matrix over the free nodes only, built in their numbering (the
+    # entries in the order the whole matrix had them: the same sums).
+    pos = np.full(nn, -1, np.int64)
+    pos[free] = np.arange(len(free))
+    rows, cols = pos[np.concatenate([fi, ti, fi, ti])], pos[np.concatenate([fi, ti, ti, fi])]
+    inner = (rows >= 0) & (cols >= 0)
+    h = sp.csc_matrix((np.concatenate([w, w, -w, -w])[inner], (rows[inner], cols[inner])),
+                      shape=(len(free), len(free)))
+    lu = splu(h, permc_spec=self.ordering)
+    dy = np.zeros(nn)
+    dy[free] = lu.solve(g[free])
+    e = np.zeros(len(free))
+    jb = int(np.flatnonzero(free == ib)[0])
+    e[jb] = 1.0
+    var = float(lu.solve(e)[jb])
+    return float(wrap_angle(y0[ib] + dy[ib])), math.sqrt(max(var, 0.0))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_solve_gives_the_headings_and_sigmas_before_to_the_bit(seed):
+    """The solve with the components read from the tree's search and the gradient by one
+    ``bincount`` against the solve before it (:func:`_relative_before`): the same headings
+    and sigmas to the bit, the same None outside a's component or the window."""
+    rng = np.random.default_rng(seed)
+    g = HeadingGraph(window=300)
+    _feed(g, 700, lap=120 + 7 * seed, seed=seed)
+    for k in range(700, 720, 3):  # a part the links do not join: its own component
+        g.add_link(Link("odometry", k, k + 1, np.array([0.1, 0.0, 0.02]), np.diag([1e4, 1e4, 1e4])))
+    g.add_keyframe(730, 7.3, 0.08)  # joined by the odometry only
+    pairs = [(int(a), int(b)) for a, b in rng.integers(350, 700, (25, 2))]
+    pairs += [(650, 730), (690, 701), (703, 704), (701, 710), (400, 699), (699, 699), (10, 699)]
+    answered = 0
+    for a, b in pairs:
+        for upto in (None, len(g) - 50):
+            got, want = g.relative(a, b, upto), _relative_before(g, a, b, upto)
+            assert (got is None) == (want is None), (a, b, upto)
+            if got is not None:
+                answered += 1
+                assert got[0].hex() == want[0].hex() and got[1].hex() == want[1].hex(), (a, b, upto)
+    assert answered >= 40
+    assert g.relative(690, 701) is None and g.relative(703, 704) is not None

@@ -335,11 +335,11 @@ def test_the_planar_model_carries_the_level_motions_heading(monkeypatch):
     inner = verify_mod._general_motion
     calls: list[int] = []
 
-    def first_fails(p_o, p_n, k, prm, n, near=None, half_inliers=True):
+    def first_fails(p_o, p_n, k, prm, n, near=None, half_inliers=True, normalised=None):
         calls.append(n)
         if len(calls) == 1:
             return verify_mod.Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
-        return inner(p_o, p_n, k, prm, n, near, half_inliers)
+        return inner(p_o, p_n, k, prm, n, near, half_inliers, normalised)
 
     monkeypatch.setattr(verify_mod, "_general_motion", first_fails)
     for band in (None, 10.0):
@@ -416,3 +416,75 @@ def test_the_ratio_test_loop_gives_the_reference_s_matches_in_its_order(seed):
             got, ref = match_indices(x, y, ratio), _match_indices_reference(x, y, ratio)
             assert len(ref[0]) > 0
             assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])
+
+
+def _outcome(v) -> tuple:
+    """Every field of a verification, arrays as bytes (the same to the bit or not)."""
+    out = []
+    for name in v.__dataclass_fields__:
+        x = getattr(v, name)
+        if isinstance(x, np.ndarray):
+            x = (x.dtype.str, x.shape, x.tobytes())
+        elif isinstance(x, tuple):
+            x = tuple(a.tobytes() for a in x)
+        out.append((name, x))
+    return tuple(out)
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("model", ["planar", "general"])
+def test_the_matches_through_k_inverse_once_give_the_outcome_of_each_step_computing_its_own(monkeypatch, seed, model):
+    """The verification computes the matches' normalised coordinates once and hands them
+    (or the inliers' rows of them) to every step; the reference is each step computing its
+    own from the pixels, as before: every field of the outcome the same to the bit, on level,
+    tilted (the fallback in its band) and shuffled pairs."""
+    import robotd.forward.planefit as planefit_mod
+    import robotd.forward.verify as verify_mod
+
+    rng = np.random.default_rng(100 + seed)
+    cases = []
+    old, new, _, _ = _level_pair_with_shuffled(rng)
+    cases.append((old, new))
+    x_old, x_new, _, _ = _tilted_scene(rng, 3.0 + seed)
+    desc = rng.standard_normal((150, 128)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    px_new = _project(x_new) + rng.normal(0, 0.5, (150, 2)).astype(np.float32)
+    cases.append((_features(_project(x_old), desc), _features(px_new, desc)))
+    cases.append((_features(_project(x_old), desc), _features(px_new[rng.permutation(150)], desc)))
+    params = [VerifyParams(model=model, seed=seed),
+              VerifyParams(model=model, seed=seed, guided_estimator="usac", fallback_band_px=10.0,
+                           camera_height_m=0.3)]
+    got = [_outcome(verify_pair(a, b, p)) for a, b in cases for p in params]
+
+    def dropping(f):
+        def call(*args, normalised=None, **kwargs):
+            return f(*args, **kwargs)
+        return call
+
+    inliers = planefit_mod.PlanarSearch.inliers
+    monkeypatch.setattr(verify_mod, "ransac_planar", dropping(verify_mod.ransac_planar))
+    monkeypatch.setattr(verify_mod, "fit_motion", dropping(verify_mod.fit_motion))
+    monkeypatch.setattr(planefit_mod.PlanarSearch, "inliers",
+                        lambda self, a, b, k, thr, normalised=None: inliers(self, a, b, k, thr))
+    mask = verify_mod._epipolar_mask
+    monkeypatch.setattr(verify_mod, "_epipolar_mask", lambda a, b, k, e, thr, normalised=None: mask(a, b, k, e, thr))
+    reference = [_outcome(verify_pair(a, b, p)) for a, b in cases for p in params]
+    assert got == reference
+    assert any(dict(g)["accepted"] for g in got) and not all(dict(g)["accepted"] for g in got)
+
+
+def test_normalised_points_of_a_subset_are_the_rows_of_the_whole():
+    """Each row of :func:`robotd.forward.planar.normalised_points` does not depend on the
+    rows computed with it (the verification takes the inliers' rows of the whole)."""
+    from robotd.forward.planar import normalised_points
+
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 5, 17, 64, 65, 255, 256, 257, 300):
+        p_old = (rng.random((n, 2)) * [640, 480]).astype(np.float32)
+        p_new = (rng.random((n, 2)) * [640, 480]).astype(np.float32)
+        xo, xn = normalised_points(p_old, p_new, K)
+        keep = rng.random(n) < 0.5
+        so, sn = normalised_points(p_old[keep], p_new[keep], K)
+        assert xo[keep].tobytes() == so.tobytes() and xn[keep].tobytes() == sn.tobytes()
+        kinv = np.linalg.inv(K)
+        assert xo.tobytes() == (np.hstack([p_old, np.ones((n, 1))]) @ kinv.T).tobytes()

@@ -347,28 +347,33 @@ class HeadingGraph:
         if ia >= len(nodes) or ib >= len(nodes) or nodes[ia] != a or nodes[ib] != b:
             return None
         import scipy.sparse as sp
-        from scipy.sparse.csgraph import breadth_first_order, connected_components
+        from scipy.sparse.csgraph import breadth_first_order
         from scipy.sparse.linalg import splu
 
         fi, ti = np.searchsorted(nodes, f), np.searchsorted(nodes, t)
         w = 1.0 / v
         nn = len(nodes)
-        adj = sp.coo_matrix((np.ones(len(fi)), (fi, ti)), shape=(nn, nn)).tocsr()
-        _, comp = connected_components(adj, directed=False)
-        if comp[ia] != comp[ib]:
-            return None
-        keep = comp == comp[ia]
+        # The links both ways as one symmetric adjacency (sorted, duplicates summed: the
+        # structure of adj + adj.T, so the search below visits the nodes in the same order).
+        both_f, both_t = np.concatenate([fi, ti]), np.concatenate([ti, fi])
+        sym = sp.csr_matrix((np.ones(len(both_f)), (both_f, both_t)), shape=(nn, nn))
+        sym.sum_duplicates()
         # The yaws by a spanning tree from a (the linearisation point), then the weighted
-        # least squares of the wrapped residuals with node a held at 0.
-        sym = (adj + adj.T).tocsr()
+        # least squares of the wrapped residuals with node a held at 0. The tree reaches
+        # a's connected component, no further: b outside it has no graph heading.
         order, pred = breadth_first_order(sym, ia, directed=False, return_predecessors=True)
+        keep = np.zeros(nn, bool)
+        keep[order] = True
+        if not keep[ib]:
+            return None
         y0 = tree_yaws(fi, ti, d, order, pred, nn)
         ok = keep[fi] & keep[ti]
         fi, ti, d, w = fi[ok], ti[ok], d[ok], w[ok]
         r = np.remainder(d - (y0[ti] - y0[fi]) + math.pi, math.tau) - math.pi
-        g = np.zeros(nn)
-        np.add.at(g, ti, w * r)
-        np.add.at(g, fi, -w * r)
+        wr = w * r
+        # The gradient summed link by link, the to-ends first, then the from-ends (the
+        # order of two np.add.at calls: the same sums).
+        g = np.bincount(np.concatenate([ti, fi]), np.concatenate([wr, -wr]), nn)
         free = np.flatnonzero(keep & (np.arange(nn) != ia))
         # The normal matrix over the free nodes only, built in their numbering (the
         # entries in the order the whole matrix had them: the same sums).
