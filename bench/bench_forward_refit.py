@@ -32,13 +32,11 @@ Writes ``forward_refit.json`` and, with ``--page``, its Markdown page.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import math
 import os
 import sqlite3
 import subprocess
 import sys
-import tempfile
 import time
 import tomllib
 from pathlib import Path
@@ -48,25 +46,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # this checkout
 import numpy as np  # noqa: E402
 
 try:
-    from bench.common import REPO_ROOT, git_commit, machine_info, write_json, write_page
+    from bench.common import REPO_ROOT, git_commit, machine_info, module_at_revision, write_json, write_page
 except ImportError:  # run as a script: bench/ is on sys.path
-    from common import REPO_ROOT, git_commit, machine_info, write_json, write_page
+    from common import REPO_ROOT, git_commit, machine_info, module_at_revision, write_json, write_page
 
 PARTS = ("match", "scan", "ridge")
 
 
 def baseline_planefit(rev: str) -> Any:
     """``robotd/forward/planefit.py`` as it is at git revision ``rev``, as a module."""
-    src = subprocess.run(["git", "show", f"{rev}:robotd/forward/planefit.py"], cwd=REPO_ROOT, check=True,
-                         capture_output=True, text=True).stdout
-    path = Path(tempfile.mkdtemp()) / "baseline_planefit.py"
-    path.write_text(src)
-    spec = importlib.util.spec_from_file_location("baseline_planefit", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["baseline_planefit"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return module_at_revision(rev, "robotd/forward/planefit.py", "baseline_planefit")
 
 
 def load_views(map_path: Path, max_pairs: int) -> tuple[np.ndarray, list[tuple[Any, Any, Any]]]:

@@ -34,9 +34,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # this checkout
 import numpy as np  # noqa: E402
 
 try:
-    from bench.common import REPO_ROOT, machine_info, write_json
+    from bench.common import REPO_ROOT, machine_info, module_at_revision, write_json
 except ImportError:  # run as a script: bench/ is on sys.path
-    from common import REPO_ROOT, machine_info, write_json
+    from common import REPO_ROOT, machine_info, module_at_revision, write_json
 
 LAP = 500
 
@@ -86,20 +86,7 @@ def measure(n: int, window: int, repeats: int = 5) -> dict[str, Any]:
 
 def _baseline_class(rev: str) -> Any:
     """``HeadingGraph`` as it is at git revision ``rev`` (its module read from git)."""
-    import importlib.util
-    import subprocess
-    import tempfile
-
-    src = subprocess.run(["git", "show", f"{rev}:robotd/app/stages/forward_loops.py"], cwd=REPO_ROOT, check=True,
-                         capture_output=True, text=True).stdout
-    path = Path(tempfile.mkdtemp()) / "baseline_forward_loops.py"
-    path.write_text(src)
-    spec = importlib.util.spec_from_file_location("baseline_forward_loops", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # its dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod.HeadingGraph
+    return module_at_revision(rev, "robotd/app/stages/forward_loops.py", "baseline_forward_loops").HeadingGraph
 
 
 def against_baseline(rev: str, sizes: list[int], calls: int, out: Path) -> int:

@@ -44,6 +44,24 @@ def git_dirty(repo_dir: Path = REPO_ROOT) -> bool | None:
     return bool(done.stdout.strip())
 
 
+def module_at_revision(rev: str, relpath: str, name: str) -> Any:
+    """The module at ``relpath`` as it is at git revision ``rev``, imported as ``name``
+    (for a bench's baseline: the code before, run in the same process as the code now)."""
+    import importlib.util
+    import tempfile
+
+    src = subprocess.run(["git", "show", f"{rev}:{relpath}"], cwd=REPO_ROOT, check=True,
+                         capture_output=True, text=True).stdout
+    path = Path(tempfile.mkdtemp()) / f"{name}.py"
+    path.write_text(src)
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod  # its dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def cpu_model() -> str | None:
     """The CPU's model name from ``/proc/cpuinfo`` (Linux), else None.
 
