@@ -616,7 +616,11 @@ def test_a_broken_config_is_named_on_one_line(tmp_path: Path):
                        ("[pose_graph]\nscale_wear = 0.005\n",
                         "[pose_graph] scale_wear: works only with odometry_model = \"bias_scale_window\""),
                        ("[pose_graph]\nscale_wear_gyro = 0.001\n",
-                        "[pose_graph] scale_wear_gyro: works only with odometry_model = \"bias_scale_window\"")]:
+                        "[pose_graph] scale_wear_gyro: works only with odometry_model = \"bias_scale_window\""),
+                       ("[floor_detector]\nransac_confidence = 1.5\n",
+                        "[floor_detector] ransac_confidence: 1.5 is above the maximum"),
+                       ("[daemon]\ngc_full_between_messages = \"yes\"\n",
+                        "[daemon] gc_full_between_messages: expected true or false")]:
         cfg.write_text(text)
         assert_refused(run("config", "check", cfg), says)
         assert_refused(run("run", "--config", cfg), says)
