@@ -283,42 +283,46 @@ def _hypotheses(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: float,
     return rows_x, rows_y
 
 
-def _adaptive_best(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: float, xa1: np.ndarray, xb: np.ndarray,
+def _ransac_best(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: float, xa1: np.ndarray, xb: np.ndarray,
                    weight: np.ndarray, p: MatchParams) -> tuple[np.ndarray | None, int]:
     """``(m,) bool`` the inliers of RANSAC's best hypothesis (the first of the highest
-    weighted inlier count), the draws ``(i, j)`` taken in blocks (the first ``_BLOCK``,
-    then up to 3, 9, ... times as many in all) until as many hypotheses have been scored as
-    ``p.confidence`` asks for the best inlier fraction so far (:class:`MatchParams`); None
-    when no draw makes a hypothesis. And how many hypotheses were scored."""
+    weighted inlier count) and how many hypotheses were scored; None when no draw makes a
+    hypothesis. With ``p.confidence`` 0 every draw ``(i, j)`` is scored at once; otherwise
+    the draws are taken in blocks (the first ``_BLOCK``, then up to 3, 9, ... times as many
+    in all) until as many hypotheses have been scored as ``p.confidence`` asks for the best
+    inlier fraction so far (:class:`MatchParams`)."""
     m = xa1.shape[1]
     w = weight + 1e-6
-    log_miss = math.log(1.0 - p.confidence)
+    adaptive = p.confidence > 0
+    log_miss = math.log(1.0 - p.confidence) if adaptive else 0.0
     tol2 = p.inlier_px**2
     best_count, best_inliers, scored = -1.0, 0, 0
     best_mask: np.ndarray | None = None
-    b0, b1 = 0, _BLOCK
+    b0, b1 = 0, (_BLOCK if adaptive else len(i))
     while b0 < len(i):
         hyp = _hypotheses(xab, i[b0:b1], j[b0:b1], peak, p)
         b0, b1 = b1, 3 * b1
         if hyp is None:
             continue
         rows_x, rows_y = hyp
-        rx = rows_x @ xa1
+        h = len(rows_x)
+        # Residuals of every hypothesis at every match, in scratch buffers and in place.
+        rx = np.matmul(rows_x, xa1, out=_scratch("rx", (h, m), np.float64))
         rx -= xb[:, 0]
-        ry = rows_y @ xa1
+        ry = np.matmul(rows_y, xa1, out=_scratch("ry", (h, m), np.float64))
         ry -= xb[:, 1]
-        rx *= rx
-        ry *= ry
+        np.multiply(rx, rx, out=rx)
+        np.multiply(ry, ry, out=ry)
         rx += ry
-        inl = rx <= tol2
+        inl = np.less_equal(rx, tol2, out=_scratch("inl", (h, m), np.bool_))
         counts = inl @ w
         k = int(np.argmax(counts))
         if counts[k] > best_count:
-            best_count, best_mask = float(counts[k]), inl[k]
+            best_count, best_mask = float(counts[k]), inl[k].copy()  # the scratch is reused by the next block
             best_inliers = int(np.count_nonzero(best_mask))
-        scored += len(rows_x)
+        scored += h
         frac = best_inliers / m
-        if frac >= 1.0 or (frac > 0 and scored >= log_miss / math.log(1.0 - frac * frac)):
+        if adaptive and (frac >= 1.0 or (frac > 0 and scored >= log_miss / math.log(1.0 - frac * frac))):
             break
     return best_mask, scored
 
@@ -424,27 +428,9 @@ def _score(a: FloorDescriptor, b: FloorDescriptor | PartialDescriptor, p: MatchP
     xa1 = np.empty((3, m))
     xa1[:2] = xa.T
     xa1[2] = 1.0
-    if p.confidence > 0:
-        mask = _adaptive_best(xab, i, j, peak, xa1, xb, weight, p)[0]
-        if mask is None:
-            return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
-    else:
-        hyp = _hypotheses(xab, i, j, peak, p)
-        if hyp is None:
-            return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
-        rows_x, rows_y = hyp
-        h = len(rows_x)
-        # (The same products and operations as written out, in scratch buffers and in place.)
-        rx = np.matmul(rows_x, xa1, out=_scratch("rx", (h, m), np.float64))
-        rx -= xb[:, 0]
-        ry = np.matmul(rows_y, xa1, out=_scratch("ry", (h, m), np.float64))
-        ry -= xb[:, 1]
-        np.multiply(rx, rx, out=rx)
-        np.multiply(ry, ry, out=ry)
-        rx += ry
-        inl = np.less_equal(rx, p.inlier_px**2, out=_scratch("inl", (h, m), np.bool_))
-        best = int(np.argmax(inl @ (weight + 1e-6)))
-        mask = inl[best]
+    mask = _ransac_best(xab, i, j, peak, xa1, xb, weight, p)[0]
+    if mask is None:
+        return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
     # Refine on all descriptor matches (not only those near the orientation peak).
     fa, fb = a.xy_px[ia].astype(np.float64), xy_b[ib].astype(np.float64)
     sel = np.flatnonzero(near)[mask]

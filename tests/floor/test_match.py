@@ -14,7 +14,7 @@ import skimage.data
 
 from robotd.floor.descriptor import describe
 from robotd.floor.match import (BELOW_MIN_SCORE, NO_GEOMETRIC_CONSISTENCY, TOO_FEW_FEATURES, TOO_FEW_MATCHES,
-                                Matcher, MatchParams, _adaptive_best, _hypotheses, _ransac_pairs, global_score,
+                                Matcher, MatchParams, _ransac_best, _hypotheses, _ransac_pairs, global_score,
                                 local_score)
 from robotd.base.camera import FloorCameraModel
 from robotd.base.geometry import inverse, rigid_fit_2d, transform_points
@@ -368,7 +368,7 @@ def _adaptive(xab: np.ndarray, yaw_rad: float, p: MatchParams) -> tuple[np.ndarr
     m = len(xab)
     i, j = _ransac_pairs(p.seed, m, p.iterations)
     xa1 = np.vstack([xab[:, :2].T, np.ones(m)])
-    return _adaptive_best(xab, i, j, yaw_rad, xa1, xab[:, 2:], np.ones(m), p)
+    return _ransac_best(xab, i, j, yaw_rad, xa1, xab[:, 2:], np.ones(m), p)
 
 
 def _all_hypotheses(xab: np.ndarray, yaw_rad: float, p: MatchParams) -> int:
