@@ -1,7 +1,7 @@
 """``robotd graph optimize|export``: the pose graph from the command line.
 
-``optimize`` reads a g2o file, runs the batch solver (LAGO, then robust Levenberg-Marquardt)
-and writes the optimised graph; ``export`` turns a map file into g2o and TUM files.
+``optimize`` reads a g2o file, runs the batch solver (LAGO, robust Levenberg-Marquardt, then graduated
+non-convexity) and writes the optimised graph; ``export`` turns a map file into g2o and TUM files.
 """
 
 from __future__ import annotations

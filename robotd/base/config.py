@@ -265,8 +265,9 @@ class PoseGraphConfig:
     gate_chi2: float = _f(16.27, "largest Mahalanobis distance squared of a loop against the graph's "
                           "prediction (16.27: 99.9 % of chi-square with 3 degrees of freedom)",
                           lo=0.1, hi=1e6, live=True, unit="")
-    full_solve_every_keyframes: int = _f(200, "re-solve the whole graph robustly (LAGO, then "
-                                         "DCS-weighted Levenberg-Marquardt) and store the optimised "
+    full_solve_every_keyframes: int = _f(200, "re-solve the whole graph robustly (LAGO, "
+                                         "DCS-weighted Levenberg-Marquardt, then graduated non-convexity) "
+                                         "and store the optimised "
                                          "poses every this many keyframes (0: only at the end of a run)",
                                          lo=0, hi=1_000_000, live=True, unit="keyframes")
     localise_mapped: bool = _f(False, "over ground the map already holds, once a loop is accepted, "

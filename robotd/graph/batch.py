@@ -174,7 +174,7 @@ def loop_weights(graph: PoseGraph, ids: np.ndarray, poses: np.ndarray,
 
 
 def optimize_batch(graph: PoseGraph, params: BatchParams = BatchParams()) -> BatchResult:
-    """Optimise ``graph``: LAGO (or odometry) start, then robust Levenberg-Marquardt.
+    """Optimise ``graph``: LAGO (or odometry) start, robust Levenberg-Marquardt, then GNC.
 
     Fixed vertices (or, without any, the smallest id) are held at their poses. The graph
     is not modified.
