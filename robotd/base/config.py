@@ -199,8 +199,9 @@ class OdometryConfig:
 @dataclass(frozen=True)
 class KeyframeConfig:
     """When a floor frame becomes a keyframe, and what of it is stored. 0.15 m is a third
-    of the floor camera's footprint: closer keyframes cost CPU per metre without closing
-    more revisits or improving the loop-corrected trajectory (docs/performance.md)."""
+    of the floor camera's footprint: closer keyframes cost more CPU per metre for more loop
+    edges, farther ones save CPU for fewer (the trade-off measured: docs/performance.md,
+    "Keyframe spacing and mapped-ground localisation")."""
 
     distance_m: float = _f(0.15, "distance travelled since the last keyframe", lo=0.001, hi=100.0,
                            live=True)
