@@ -12,8 +12,8 @@ objects alive after the start-up out of the collections (``[daemon] gc_freeze``;
 docs/performance.md, "The garbage collector").
 
 A full collection lands in whichever message's work allocates when one is due, and on a
-forward keyframe it was the costliest keyframe of a run (docs/forward.md, "The time
-target"). :meth:`GcWatch.defer_full` (``[daemon] gc_full_between_messages``) moves them out
+forward keyframe it was the costliest keyframe of a run (docs/forward.md, "The p99 in
+the daemon now"). :meth:`GcWatch.defer_full` (``[daemon] gc_full_between_messages``) moves them out
 of the stages' work: CPython's automatic full collection is turned off (its generation-2
 threshold set out of reach) and the watch, the pipeline's last stage, runs one in its
 :meth:`GcWatch.poll` (after the pipeline has handed on a batch of messages, never inside a
