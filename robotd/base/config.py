@@ -303,7 +303,9 @@ class PoseGraphConfig:
 @dataclass(frozen=True)
 class ForwardDetectorConfig:
     """The forward camera's Bayesian loop detector (paper 000) on forward keyframes; its
-    verified loops enter the pose graph with the range taken from the graph's prediction.
+    verified loops enter the pose graph with the range measured on the floor where the
+    camera sees it ([forward_camera] mount_height_m), else the range the keyframes' poses
+    predict.
     The camera itself (device, size, intrinsics, mount) is ``[forward_camera]``."""
 
     enabled: bool = _f(False, "run the forward loop detector (needs a forward camera source)")
