@@ -208,12 +208,15 @@ def _rigid(xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
     """``[R | t]`` (2 x 3) of the least-squares rigid fit ``xb ~ R xa + t`` (as
     :func:`robotd.base.geometry.rigid_fit_2d`, from raw sums: this runs twice per match)."""
     n = len(xa)
-    sa, sb = xa.sum(axis=0), xb.sum(axis=0)
-    h = xa.T @ xb - sa[:, None] * sb[None, :] / n
-    yaw = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
+    (sax, say), (sbx, sby) = xa.sum(axis=0).tolist(), xb.sum(axis=0).tolist()
+    (h00, h01), (h10, h11) = (xa.T @ xb).tolist()
+    # The cross-covariance's corrections in Python floats: the same IEEE operations as the
+    # array expression h - sa[:, None] * sb[None, :] / n, element by element.
+    h00, h01, h10, h11 = h00 - sax * sbx / n, h01 - sax * sby / n, h10 - say * sbx / n, h11 - say * sby / n
+    yaw = math.atan2(h01 - h10, h00 + h11)
     c, s = math.cos(yaw), math.sin(yaw)
-    ca, cb = sa / n, sb / n
-    return np.array([[c, -s, cb[0] - (c * ca[0] - s * ca[1])], [s, c, cb[1] - (s * ca[0] + c * ca[1])]])
+    cax, cay, cbx, cby = sax / n, say / n, sbx / n, sby / n
+    return np.array([[c, -s, cbx - (c * cax - s * cay)], [s, c, cby - (s * cax + c * cay)]])
 
 
 def _ransac_rng(seed: int) -> np.random.Generator:
@@ -442,15 +445,16 @@ def _score(a: FloorDescriptor, b: FloorDescriptor | PartialDescriptor, p: MatchP
     mask = _ransac_best(xab, i, j, peak, xa1, xb, weight, p)[0]
     if mask is None:
         return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
-    return _refined(a, ia, ib, dm, xy_b, np.flatnonzero(near)[mask], n_matches, p)
+    return _refined(a, ia, ib, a.xy_px[ia].astype(np.float64), xy_b[ib].astype(np.float64),
+                    np.maximum(0.0, 1.0 - dm / p.weight_distance), xy_b, np.flatnonzero(near)[mask], n_matches, p)
 
 
-def _refined(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, dm: np.ndarray, xy_b: np.ndarray, sel: np.ndarray,
-             n_matches: int, p: MatchParams) -> MatchResult:
+def _refined(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, fa: np.ndarray, fb: np.ndarray, wm: np.ndarray,
+             xy_b: np.ndarray, sel: np.ndarray, n_matches: int, p: MatchParams) -> MatchResult:
     """The end of a local score: the rigid fit refined on all ``n_matches`` descriptor
-    matches ``(ia, ib)`` (distances ``dm``; not only those near the orientation peak) from
-    RANSAC's inliers ``sel`` (rows of the matches), twice, and the result."""
-    fa, fb = a.xy_px[ia].astype(np.float64), xy_b[ib].astype(np.float64)
+    matches ``(ia, ib)`` (``fa``, ``fb``: their points as float64; ``wm``: their weights in
+    the score; not only those near the orientation peak) from RANSAC's inliers ``sel``
+    (rows of the matches), twice, and the result."""
     transform = None
     for _ in range(2):
         if len(sel) < 2:
@@ -458,11 +462,11 @@ def _refined(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, dm: np.ndarray,
         transform = _rigid(fa[sel], fb[sel])
         res = fa @ transform[:, :2].T + transform[:, 2] - fb
         fitted, sel = sel, np.flatnonzero((res * res).sum(1) <= p.inlier_px**2)
-        if np.array_equal(sel, fitted):
+        if len(sel) == len(fitted) and not (sel != fitted).any():
             break  # a fixed point: a further step would fit these inliers again, to the same transform
     if len(sel) < p.min_inliers or transform is None:
         return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
-    score = float(np.maximum(0.0, 1.0 - dm[sel] / p.weight_distance).sum())
+    score = float(wm[sel].sum())
     return MatchResult(score, n_matches, len(sel), ia[sel].astype(np.int64, copy=False),
                        ib[sel].astype(np.int64, copy=False),
                        a.xy_px[ia[sel]], xy_b[ib[sel]], transform, MatchReason.OK)
@@ -602,6 +606,8 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
     draws += np.asarray(m_off[:-1], np.intp)[:, None, None]
     peak_of = peaks[check]
     masks = _ransac_many(xab, draws, peak_of, xa1_all, xb, w_all, ms, m_off, p)
+    fa_all, fb_all = a.xy_px[ia].astype(np.float64), xy_all[ib_all].astype(np.float64)
+    wm_all = np.maximum(0.0, 1.0 - dm / p.weight_distance)
     for q, g in enumerate(check):
         r = go[g]
         c = live[r]
@@ -611,8 +617,8 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
             out[c] = _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
             continue
         lo, hi = go_starts[g], go_starts[g + 1]
-        out[c] = _refined(a, ia[lo:hi], ib[lo:hi], dm[lo:hi], xys[g], np.flatnonzero(near[lo:hi])[mask], n_matches,
-                          p)
+        out[c] = _refined(a, ia[lo:hi], ib[lo:hi], fa_all[lo:hi], fb_all[lo:hi], wm_all[lo:hi], xys[g],
+                          np.flatnonzero(near[lo:hi])[mask], n_matches, p)
     return out  # type: ignore[return-value]
 
 
@@ -675,7 +681,7 @@ def _ransac_many(xab: np.ndarray, draws: np.ndarray, peaks: np.ndarray, xa1_all:
                 k = int(np.argmax(counts))
                 if counts[k] > best_count[q]:
                     best_count[q], best[q] = float(counts[k]), inl[k].copy()
-                    best_inliers[q] = int(np.count_nonzero(best[q]))
+                    best_inliers[q] = int(np.count_nonzero(inl[k]))
                 scored[q] += h
                 frac = best_inliers[q] / m
                 if adaptive and (frac >= 1.0 or (frac > 0 and scored[q] >= log_miss / math.log(1.0 - frac * frac))):
