@@ -513,9 +513,10 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
             big[lo + nbs[r]: lo + nbmax, -1] = _PAD_NORM
     dist = np.matmul(aug_a, big.T, out=_scratch("dist", (na, n_live * nbmax), np.float32)).reshape(na, n_live, nbmax)
     nn = np.argmin(dist, axis=2)
-    at = nn[:, :, None]
-    d1 = np.take_along_axis(dist, at, axis=2)[:, :, 0] + norm_a[:, None]
-    np.put_along_axis(dist, at, np.inf, axis=2)
+    flat = dist.reshape(-1)  # the nearest's entries by flat index, as in _score
+    at = np.arange(0, flat.size, nbmax).reshape(na, n_live) + nn
+    d1 = flat.take(at) + norm_a[:, None]
+    flat.put(at, np.inf)
     d2 = dist.min(axis=2) + norm_a[:, None]
     d1 *= 1.0 / a.length
     d2 *= 1.0 / a.length
