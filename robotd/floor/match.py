@@ -664,10 +664,10 @@ def _ransac_many(xab: np.ndarray, draws: np.ndarray, peaks: np.ndarray, xa1_all:
             spans.append((e0, h, m))
             if h:
                 xa1 = xa1_all[3 * m_off[q]: 3 * m_off[q + 1]].reshape(3, m)
-                np.matmul(rows_x[h0: h0 + h], xa1, out=rx_all[e0: e0 + size].reshape(h, m)).__isub__(
-                    xb[m_off[q]: m_off[q + 1], 0])
-                np.matmul(rows_y[h0: h0 + h], xa1, out=ry_all[e0: e0 + size].reshape(h, m)).__isub__(
-                    xb[m_off[q]: m_off[q + 1], 1])
+                rx = np.matmul(rows_x[h0: h0 + h], xa1, out=rx_all[e0: e0 + size].reshape(h, m))
+                rx -= xb[m_off[q]: m_off[q + 1], 0]
+                ry = np.matmul(rows_y[h0: h0 + h], xa1, out=ry_all[e0: e0 + size].reshape(h, m))
+                ry -= xb[m_off[q]: m_off[q + 1], 1]
             e0 += size
             h0 += h
         np.multiply(rx_all, rx_all, out=rx_all)
