@@ -543,6 +543,13 @@ class _QueryParts:
                 finally:  # a read-back descriptor's positions, decoded within: counted as decode
                     parts.s["local score"] += time.thread_time() - t0 - (parts.s["positions"] - p0)
 
+            def score_many(self, *a: Any, **kw: Any) -> Any:  # the code since the query scores in batches
+                t0, p0 = time.thread_time(), parts.s["positions"]
+                try:
+                    return super().score_many(*a, **kw)
+                finally:
+                    parts.s["local score"] += time.thread_time() - t0 - (parts.s["positions"] - p0)
+
         @contextlib.contextmanager
         def cm() -> Any:
             matcher, decode = fi.Matcher, fi.decode
@@ -1254,13 +1261,26 @@ def pairs_per_query(index: Any, qrows: list[int], decoded: list[Any], ids: np.nd
         reasons[str(r.reason)] += 1
         return r
 
+    many = getattr(match.Matcher, "score_many", None)  # the code since the query scores in batches
+
+    def counted_many(self: Any, bs: Any, min_score: float = 0.0) -> Any:
+        out = many(self, bs, min_score)  # type: ignore[misc]
+        for r in out:
+            if isinstance(r, match.MatchResult):
+                reasons[str(r.reason)] += 1
+        return out
+
     match.Matcher.score = counted  # type: ignore[method-assign]
+    if many is not None:
+        match.Matcher.score_many = counted_many  # type: ignore[attr-defined]
     try:
         for q in qrows:
             excluded = ids[np.abs(stamps[ids % n0] - stamps[q]) < int(exclude_recent_s * 1e9)]
             index.query(decoded[q], k=5, min_score=min_score, exclude_ids=excluded)
     finally:
         match.Matcher.score = score  # type: ignore[method-assign]
+        if many is not None:
+            match.Matcher.score_many = many  # type: ignore[attr-defined]
     dismissed = {str(match.BELOW_MIN_SCORE), str(match.MatchReason.TOO_FEW_MATCHES),
                  str(match.MatchReason.TOO_FEW_FEATURES)}
     total = sum(reasons.values())

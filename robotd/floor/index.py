@@ -162,6 +162,10 @@ def _descriptor_nbytes(descriptor: FloorDescriptor | PartialDescriptor) -> int:
     return total
 
 
+_BATCH = 8
+"""Most shortlisted keyframes a query scores in one :meth:`~robotd.floor.match.Matcher.score_many`
+(its temporaries grow with the pairs: about 0.3 MB each in mode 4)."""
+
 _ON_DEMAND = np.iinfo(np.int64).min
 """``FloorIndex._slot`` of a keyframe whose descriptor is read through the loader."""
 
@@ -621,36 +625,47 @@ class FloorIndex:
             recent = self._recent  # resident first: a query that finds enough there reads nothing
             short = [c for c in short if c[0] in recent] + [c for c in short if c[0] not in recent]
         reached = 0
-        for kf, g in short:
-            if stop_at is not None and reached >= stop_at:
-                break
-            try:
-                stored = self._stored(self._row_of[kf])
-            except (RobotdError, KeyError, ValueError) as exc:
-                if self._loader is None:
-                    raise
-                self.load_failures += 1
-                log.warning("floor index: keyframe %d left out of a query, its descriptor could not be read: %s",
-                            kf, exc)
-                continue
-            try:
-                if matcher is not None:
-                    result = matcher.score(stored, min_score)
-                else:
-                    result = self._scorer(descriptor, stored.full() if isinstance(stored, PartialDescriptor)
-                                          else stored)
-            except DescriptorError as exc:  # a read-back descriptor's positions (decoded last)
-                if not isinstance(stored, PartialDescriptor):
-                    raise
-                self.load_failures += 1
-                log.warning("floor index: keyframe %d left out of a query, its descriptor could not be read: %s",
-                            kf, exc)
-                continue
-            if isinstance(stored, PartialDescriptor):
-                self._resize(kf, stored)
-            self.local_matches += 1
-            candidates.append(Candidate(kf, g, result))
-            reached += result.score >= min_score
+        pos = 0
+        while pos < len(short) and (stop_at is None or reached < stop_at):
+            # The next pairs in turn, scored together (Matcher.score_many: the same results
+            # as one by one): as many as could all be scored before the query stops (each
+            # pair adds at most one to ``reached``), at most _BATCH.
+            take = min(_BATCH, len(short) - pos) if stop_at is None else min(_BATCH, stop_at - reached)
+            chunk, pos = short[pos: pos + take], pos + take
+            loaded = []
+            for kf, g in chunk:
+                try:
+                    loaded.append((kf, g, self._stored(self._row_of[kf])))
+                except (RobotdError, KeyError, ValueError) as exc:
+                    if self._loader is None:
+                        raise
+                    self.load_failures += 1
+                    log.warning("floor index: keyframe %d left out of a query, its descriptor could not be read: %s",
+                                kf, exc)
+            results: list[MatchResult | DescriptorError]
+            if matcher is not None:
+                results = matcher.score_many([stored for _kf, _g, stored in loaded], min_score)
+            else:
+                results = []
+                for _kf, _g, stored in loaded:
+                    try:
+                        results.append(self._scorer(descriptor, stored.full() if isinstance(stored, PartialDescriptor)
+                                                    else stored))
+                    except DescriptorError as exc:
+                        results.append(exc)
+            for (kf, g, stored), result in zip(loaded, results):
+                if isinstance(result, DescriptorError):  # a read-back descriptor's positions (decoded last)
+                    if not isinstance(stored, PartialDescriptor):
+                        raise result
+                    self.load_failures += 1
+                    log.warning("floor index: keyframe %d left out of a query, its descriptor could not be read: %s",
+                                kf, result)
+                    continue
+                if isinstance(stored, PartialDescriptor):
+                    self._resize(kf, stored)
+                self.local_matches += 1
+                candidates.append(Candidate(kf, g, result))
+                reached += result.score >= min_score
         candidates.sort(key=lambda c: (-c.score, -c.global_score, c.keyframe_id))
         return candidates[:k]
 

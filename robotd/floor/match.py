@@ -40,6 +40,7 @@ from enum import StrEnum
 
 import numpy as np
 
+from robotd.base.errors import DescriptorError
 from robotd.base.geometry import wrap_angle
 from robotd.floor.desccoding import trit_table
 from robotd.floor.descriptor import FloorDescriptor, PartialDescriptor
@@ -177,15 +178,17 @@ def _minus_two_trits() -> np.ndarray:
     return out
 
 
-def _augmented_b(d: FloorDescriptor | PartialDescriptor) -> np.ndarray:
+def _augmented_b(d: FloorDescriptor | PartialDescriptor, out: np.ndarray | None = None) -> np.ndarray:
     """``_augmented(d, -2.0, d.nonzero_trits())``, built from the bit planes in int8 (the
     trits times -2 are exact there) and cast once: the candidate's side of every local score.
     A :class:`~robotd.floor.descriptor.PartialDescriptor`'s straight from its stored trit
     bytes (one table look-up; the squared norms from the same floats, exact: each element
-    is -2, 0 or 2), without its bit planes."""
+    is -2, 0 or 2), without its bit planes. ``out``: a ``(N, length + 1) float32`` array
+    to write it into (returned)."""
     n, length = len(d), d.length
-    if isinstance(d, PartialDescriptor):
+    if out is None:
         out = np.empty((n, length + 1), np.float32)
+    if isinstance(d, PartialDescriptor):
         t = _minus_two_trits().take(d.trits, axis=0).reshape(-1)[: n * length].reshape(n, length)
         out[:, :-1] = t
         out[:, -1] = np.einsum("ij,ij->i", t, t) * np.float32(0.25)
@@ -196,7 +199,6 @@ def _augmented_b(d: FloorDescriptor | PartialDescriptor) -> np.ndarray:
                         bitorder="little")
     t = neg.view(np.int8)[:, :length] - pos.view(np.int8)[:, :length]
     t += t
-    out = np.empty((n, length + 1), np.float32)
     out[:, :-1] = t
     out[:, -1] = d.nonzero_trits()
     return out
@@ -206,12 +208,15 @@ def _rigid(xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
     """``[R | t]`` (2 x 3) of the least-squares rigid fit ``xb ~ R xa + t`` (as
     :func:`robotd.base.geometry.rigid_fit_2d`, from raw sums: this runs twice per match)."""
     n = len(xa)
-    sa, sb = xa.sum(axis=0), xb.sum(axis=0)
-    h = xa.T @ xb - sa[:, None] * sb[None, :] / n
-    yaw = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
+    (sax, say), (sbx, sby) = xa.sum(axis=0).tolist(), xb.sum(axis=0).tolist()
+    (h00, h01), (h10, h11) = (xa.T @ xb).tolist()
+    # The cross-covariance's corrections in Python floats: the same IEEE operations as the
+    # array expression h - sa[:, None] * sb[None, :] / n, element by element.
+    h00, h01, h10, h11 = h00 - sax * sbx / n, h01 - sax * sby / n, h10 - say * sbx / n, h11 - say * sby / n
+    yaw = math.atan2(h01 - h10, h00 + h11)
     c, s = math.cos(yaw), math.sin(yaw)
-    ca, cb = sa / n, sb / n
-    return np.array([[c, -s, cb[0] - (c * ca[0] - s * ca[1])], [s, c, cb[1] - (s * ca[0] + c * ca[1])]])
+    cax, cay, cbx, cby = sax / n, say / n, sbx / n, sby / n
+    return np.array([[c, -s, cbx - (c * cax - s * cay)], [s, c, cby - (s * cax + c * cay)]])
 
 
 def _ransac_rng(seed: int) -> np.random.Generator:
@@ -374,6 +379,15 @@ class Matcher:
         only if the pair passes the ``min_score`` bound (the same result as for ``b.full()``)."""
         return _score(self.a, b, self.params, self._aug, self._norm, min_score)
 
+    def score_many(self, bs: list[FloorDescriptor | PartialDescriptor],
+                   min_score: float = 0.0) -> list[MatchResult | DescriptorError]:
+        """``[self.score(b, min_score) for b in bs]``, the same results bit for bit, the
+        pairs' per-match work done for all of them at once (fewer, larger array operations:
+        a query's few candidates cost less than one by one). A read-back descriptor whose
+        positions do not decode gives the :class:`~robotd.base.errors.DescriptorError`
+        :meth:`score` would raise, in its place (the others are scored)."""
+        return _score_many(self.a, list(bs), self.params, self._aug, self._norm, min_score)
+
 
 def _score(a: FloorDescriptor, b: FloorDescriptor | PartialDescriptor, p: MatchParams, aug_a: np.ndarray | None,
            norm_a: np.ndarray, min_score: float) -> MatchResult:
@@ -431,9 +445,16 @@ def _score(a: FloorDescriptor, b: FloorDescriptor | PartialDescriptor, p: MatchP
     mask = _ransac_best(xab, i, j, peak, xa1, xb, weight, p)[0]
     if mask is None:
         return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
-    # Refine on all descriptor matches (not only those near the orientation peak).
-    fa, fb = a.xy_px[ia].astype(np.float64), xy_b[ib].astype(np.float64)
-    sel = np.flatnonzero(near)[mask]
+    return _refined(a, ia, ib, a.xy_px[ia].astype(np.float64), xy_b[ib].astype(np.float64),
+                    np.maximum(0.0, 1.0 - dm / p.weight_distance), xy_b, np.flatnonzero(near)[mask], n_matches, p)
+
+
+def _refined(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, fa: np.ndarray, fb: np.ndarray, wm: np.ndarray,
+             xy_b: np.ndarray, sel: np.ndarray, n_matches: int, p: MatchParams) -> MatchResult:
+    """The end of a local score: the rigid fit refined on all ``n_matches`` descriptor
+    matches ``(ia, ib)`` (``fa``, ``fb``: their points as float64; ``wm``: their weights in
+    the score; not only those near the orientation peak) from RANSAC's inliers ``sel``
+    (rows of the matches), twice, and the result."""
     transform = None
     for _ in range(2):
         if len(sel) < 2:
@@ -441,14 +462,261 @@ def _score(a: FloorDescriptor, b: FloorDescriptor | PartialDescriptor, p: MatchP
         transform = _rigid(fa[sel], fb[sel])
         res = fa @ transform[:, :2].T + transform[:, 2] - fb
         fitted, sel = sel, np.flatnonzero((res * res).sum(1) <= p.inlier_px**2)
-        if np.array_equal(sel, fitted):
+        if len(sel) == len(fitted) and not (sel != fitted).any():
             break  # a fixed point: a further step would fit these inliers again, to the same transform
     if len(sel) < p.min_inliers or transform is None:
         return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
-    score = float(np.maximum(0.0, 1.0 - dm[sel] / p.weight_distance).sum())
+    score = float(wm[sel].sum())
     return MatchResult(score, n_matches, len(sel), ia[sel].astype(np.int64, copy=False),
                        ib[sel].astype(np.int64, copy=False),
                        a.xy_px[ia[sel]], xy_b[ib[sel]], transform, MatchReason.OK)
+
+
+_PAD_NORM = np.float32(1e30)  # a padding row's |tb|^2: farther than any keypoint, finite
+
+
+def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor], p: MatchParams,
+                aug_a: np.ndarray | None, norm_a: np.ndarray,
+                min_score: float) -> list[MatchResult | DescriptorError]:
+    """``[_score(a, b, p, aug_a, norm_a, min_score) for b in bs]``, the same results bit
+    for bit, with the per-pair work done for all pairs at once wherever that leaves every
+    value as it was: one product for all the descriptor distances (integers, exact in
+    float32 in any order), the nearest neighbours, histograms, RANSAC's samples and the
+    residuals' element-wise steps over the pairs' matches stacked (each pair's rows at an
+    offset). What sums floats in an order that depends on the array's shape stays one
+    call per pair, on arrays shaped as :func:`_score`'s: the bound's sum, the hypotheses'
+    products and weighted counts, and the refinement. A read-back descriptor whose
+    positions do not decode gives its :class:`DescriptorError` in its place."""
+    out: list[MatchResult | DescriptorError | None] = [None] * len(bs)
+    for b in bs:
+        if a.length != b.length:
+            raise ValueError(f"descriptors of different lengths ({a.length} and {b.length} trits): modes differ")
+    live = [c for c, b in enumerate(bs) if len(a) >= 2 and len(b) >= 2 and aug_a is not None]
+    for c in set(range(len(bs))) - set(live):
+        out[c] = _dismissed(TOO_FEW_FEATURES)
+    if not live:
+        return out  # type: ignore[return-value]
+    assert aug_a is not None
+    n_live = len(live)
+    na, width = aug_a.shape
+    nbs = [len(bs[c]) for c in live]
+    nbmax = max(nbs)
+    # Step 1 for every pair: each candidate's side in its block of rows, padded to the
+    # longest with rows no keypoint is near (never the nearest, nor the second nearest:
+    # every candidate has at least two real rows).
+    big = _scratch("aug_many", (n_live * nbmax, width), np.float32)
+    for r, c in enumerate(live):
+        lo = r * nbmax
+        _augmented_b(bs[c], big[lo: lo + nbs[r]])
+        if nbs[r] < nbmax:
+            big[lo + nbs[r]: lo + nbmax] = 0.0
+            big[lo + nbs[r]: lo + nbmax, -1] = _PAD_NORM
+    dist = np.matmul(aug_a, big.T, out=_scratch("dist", (na, n_live * nbmax), np.float32)).reshape(na, n_live, nbmax)
+    nn = np.argmin(dist, axis=2)
+    flat = dist.reshape(-1)  # the nearest's entries by flat index, as in _score
+    at = np.arange(0, flat.size, nbmax).reshape(na, n_live) + nn
+    d1 = flat.take(at) + norm_a[:, None]
+    flat.put(at, np.inf)
+    d2 = dist.min(axis=2) + norm_a[:, None]
+    d1 *= 1.0 / a.length
+    d2 *= 1.0 / a.length
+    keep = (d1 <= p.max_distance) & (d1 < p.ratio * p.ratio * d2)
+    seg, ia = np.nonzero(keep.T)  # by pair, then by A's keypoint: each pair's matches as _score orders them
+    ib, dm = nn[ia, seg], d1[ia, seg]
+    n_of = np.bincount(seg, minlength=n_live).tolist()
+    starts = [0]
+    for n in n_of:
+        starts.append(starts[-1] + n)
+    bound = np.maximum(0.0, 1.0 - dm / p.weight_distance) if min_score > 0 else None
+    go: list[int] = []  # rows of live that go on to the geometric check
+    xys, angles = [], []
+    for r, c in enumerate(live):
+        n = n_of[r]
+        if n < p.min_matches:
+            out[c] = _dismissed(TOO_FEW_MATCHES, n)
+            continue
+        if bound is not None and float(bound[starts[r]: starts[r + 1]].sum()) * (1 + 1e-6) + 1e-6 < min_score:
+            out[c] = _dismissed(BELOW_MIN_SCORE, n)
+            continue
+        b = bs[c]
+        if isinstance(b, PartialDescriptor):
+            try:
+                xy_b, angle_b = b.positions()
+            except DescriptorError as exc:
+                out[c] = exc
+                continue
+        else:
+            xy_b, angle_b = b.xy_px, b.angle_rad
+        go.append(r)
+        xys.append(xy_b)
+        angles.append(angle_b)
+    if not go:
+        return out  # type: ignore[return-value]
+    n_go = len(go)
+    # The matches of the pairs that go on, stacked; s: their pair, 0 .. n_go - 1.
+    slot = np.full(n_live, -1, np.intp)
+    slot[go] = np.arange(n_go)
+    s_all = slot[seg]
+    take = s_all >= 0
+    if not take.all():
+        ia, ib, dm, s_all = ia[take], ib[take], dm[take], s_all[take]
+    b_off = np.zeros(n_go, np.intp)
+    np.cumsum([len(x) for x in xys[:-1]], out=b_off[1:])
+    xy_all = np.concatenate(xys) if n_go > 1 else xys[0]
+    angle_all = np.concatenate(angles) if n_go > 1 else angles[0]
+    ib_all = ib + b_off[s_all]
+    # Step 2 for every pair: the histograms side by side.
+    dth = (angle_all[ib_all] - a.angle_rad[ia]) % (2 * math.pi)
+    nbins = _NBINS
+    bins = (dth * (nbins / (2 * math.pi))).astype(np.intp) % nbins
+    bins += nbins * s_all
+    hist = np.bincount(bins, minlength=nbins * n_go).reshape(n_go, nbins).astype(float)
+    hist = hist + 0.5 * (hist[:, _PREV_BIN] + hist[:, _NEXT_BIN])
+    peaks = (np.argmax(hist, axis=1) + 0.5) * (2 * math.pi / nbins)
+    near = np.abs(wrap_angle(dth - peaks[s_all])) <= p.angle_tol_rad + math.pi / nbins
+    m_of = np.bincount(s_all[near], minlength=n_go).tolist()
+    n_match = [n_of[r] for r in go]
+    go_starts = [0]
+    for r in go:
+        go_starts.append(go_starts[-1] + n_of[r])
+    check = [g for g in range(n_go) if m_of[g] >= p.min_inliers]
+    for g in range(n_go):
+        if m_of[g] < p.min_inliers:
+            out[live[go[g]]] = _dismissed(NO_GEOMETRIC_CONSISTENCY, n_match[g])
+    if not check:
+        return out  # type: ignore[return-value]
+    # Step 3 for the pairs checked: their matches near the peak, stacked (offset per pair).
+    inc = near & np.isin(s_all, check) if len(check) < n_go else near
+    ka, kb_all, kd = ia[inc], ib_all[inc], dm[inc]
+    xa, xb = a.xy_px[ka].astype(np.float64), xy_all[kb_all].astype(np.float64)
+    weight = np.maximum(0.0, 1.0 - kd / p.weight_distance)
+    w_all = weight + 1e-6
+    xab = np.concatenate([xa, xb], axis=1)
+    n_check = len(check)
+    ms = [m_of[g] for g in check]
+    m_off = [0]
+    for m in ms:
+        m_off.append(m_off[-1] + m)
+    # Each pair's [x; y; 1] as the C-ordered (3, m) block _score builds, one after the other.
+    xa1_all = np.empty(3 * m_off[-1])
+    for q in range(n_check):
+        blk = xa1_all[3 * m_off[q]: 3 * m_off[q + 1]].reshape(3, ms[q])
+        blk[:2] = xa[m_off[q]: m_off[q + 1]].T
+        blk[2] = 1.0
+    draws = np.stack([np.stack(_ransac_pairs(p.seed, m, p.iterations)) for m in ms])  # (pairs, 2, iterations)
+    draws += np.asarray(m_off[:-1], np.intp)[:, None, None]
+    peak_of = peaks[check]
+    masks = _ransac_many(xab, draws, peak_of, xa1_all, xb, w_all, ms, m_off, p)
+    fa_all, fb_all = a.xy_px[ia].astype(np.float64), xy_all[ib_all].astype(np.float64)
+    wm_all = np.maximum(0.0, 1.0 - dm / p.weight_distance)
+    for q, g in enumerate(check):
+        r = go[g]
+        c = live[r]
+        mask = masks[q]
+        n_matches = n_match[g]
+        if mask is None:
+            out[c] = _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
+            continue
+        lo, hi = go_starts[g], go_starts[g + 1]
+        out[c] = _refined(a, ia[lo:hi], ib[lo:hi], fa_all[lo:hi], fb_all[lo:hi], wm_all[lo:hi], xys[g],
+                          np.flatnonzero(near[lo:hi])[mask], n_matches, p)
+    return out  # type: ignore[return-value]
+
+
+def _ransac_many(xab: np.ndarray, draws: np.ndarray, peaks: np.ndarray, xa1_all: np.ndarray, xb: np.ndarray,
+                 w_all: np.ndarray, ms: list[int], m_off: list[int], p: MatchParams) -> list[np.ndarray | None]:
+    """:func:`_ransac_best`'s masks for several pairs at once: ``xab``, ``xb``, ``w_all``
+    their matches stacked (pair ``q``'s rows ``m_off[q]:m_off[q + 1]``), ``draws``
+    ``(pairs, 2, iterations)`` their samples as rows of the stack, ``xa1_all`` each pair's
+    ``(3, m)`` block in turn. Each pair is scored in the same blocks and stops where
+    :func:`_ransac_best` does; the hypotheses' element-wise steps run over every pair's at
+    once, the products and counts per pair (as :func:`_ransac_best` shapes them)."""
+    n = len(ms)
+    adaptive = p.confidence > 0
+    log_miss = math.log(1.0 - p.confidence) if adaptive else 0.0
+    tol2 = p.inlier_px**2
+    best_count = [-1.0] * n
+    best_inliers = [0] * n
+    scored = [0] * n
+    best: list[np.ndarray | None] = [None] * n
+    active = list(range(n))
+    iterations = draws.shape[2]
+    b0, b1 = 0, (_BLOCK if adaptive else iterations)
+    while b0 < iterations and active:
+        blk = draws[active, :, b0:b1]
+        hyp_of = np.repeat(np.asarray(active, np.intp), blk.shape[2])
+        b0, b1 = b1, 3 * b1
+        hyp = _hypotheses_many(xab, blk[:, 0].ravel(), blk[:, 1].ravel(), peaks[hyp_of], p)
+        if hyp is None:
+            continue
+        rows_x, rows_y, ok = hyp
+        h_of = np.bincount(hyp_of[ok], minlength=n).tolist()
+        sizes = [h_of[q] * ms[q] for q in active]
+        total = sum(sizes)
+        # Each pair's residuals in its own C-ordered (h, m) block of one buffer, by the
+        # product _ransac_best makes (the same shapes: the same sums); the rest at once.
+        rx_all = _scratch("rx", (1, total), np.float64)[0]
+        ry_all = _scratch("ry", (1, total), np.float64)[0]
+        e0, h0 = 0, 0
+        spans = []
+        for q, size in zip(active, sizes):
+            h, m = h_of[q], ms[q]
+            spans.append((e0, h, m))
+            if h:
+                xa1 = xa1_all[3 * m_off[q]: 3 * m_off[q + 1]].reshape(3, m)
+                rx = np.matmul(rows_x[h0: h0 + h], xa1, out=rx_all[e0: e0 + size].reshape(h, m))
+                rx -= xb[m_off[q]: m_off[q + 1], 0]
+                ry = np.matmul(rows_y[h0: h0 + h], xa1, out=ry_all[e0: e0 + size].reshape(h, m))
+                ry -= xb[m_off[q]: m_off[q + 1], 1]
+            e0 += size
+            h0 += h
+        np.multiply(rx_all, rx_all, out=rx_all)
+        np.multiply(ry_all, ry_all, out=ry_all)
+        rx_all += ry_all
+        inl_all = np.less_equal(rx_all, tol2, out=_scratch("inl", (1, total), np.bool_)[0])
+        still = []
+        for q, (e0, h, m) in zip(active, spans):
+            if h:
+                inl = inl_all[e0: e0 + h * m].reshape(h, m)
+                counts = inl @ w_all[m_off[q]: m_off[q + 1]]
+                k = int(np.argmax(counts))
+                if counts[k] > best_count[q]:
+                    best_count[q], best[q] = float(counts[k]), inl[k].copy()
+                    best_inliers[q] = int(np.count_nonzero(inl[k]))
+                scored[q] += h
+                frac = best_inliers[q] / m
+                if adaptive and (frac >= 1.0 or (frac > 0 and scored[q] >= log_miss / math.log(1.0 - frac * frac))):
+                    continue
+            still.append(q)
+        active = still
+    return best
+
+
+def _hypotheses_many(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: np.ndarray,
+                     p: MatchParams) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """:func:`_hypotheses` of several pairs' samples at once (``peak`` per sample): the
+    rows of the samples that pass, and the ``(len(i),) bool`` mask of those."""
+    v = xab[j] - xab[i]
+    lab = np.hypot(v[:, 0::2], v[:, 1::2])
+    la, lb = lab[:, 0], lab[:, 1]
+    ang = np.arctan2(v[:, 1::2], v[:, 0::2])
+    phi = ang[:, 1] - ang[:, 0]
+    ok = (la >= p.min_sample_px) & (np.abs(np.log(np.maximum(lb, 1e-9) / np.maximum(la, 1e-9))) <= p.max_log_scale)
+    ok &= np.abs(wrap_angle(phi - peak)) <= p.angle_tol_rad + math.pi / _NBINS
+    if not np.any(ok):
+        return None
+    i, j, phi = i[ok], j[ok], phi[ok]
+    h = len(phi)
+    rows_x, rows_y = np.empty((h, 3)), np.empty((h, 3))
+    c, s = np.cos(phi, out=rows_x[:, 0]), np.sin(phi, out=rows_y[:, 0])
+    np.negative(s, out=rows_x[:, 1])
+    rows_y[:, 1] = c
+    mid = xab[i]
+    mid += xab[j]
+    mid *= 0.5
+    np.subtract(mid[:, 2], c * mid[:, 0] - s * mid[:, 1], out=rows_x[:, 2])
+    np.subtract(mid[:, 3], s * mid[:, 0] + c * mid[:, 1], out=rows_y[:, 2])
+    return rows_x, rows_y, ok
 
 
 def global_score(a: FloorDescriptor, b: FloorDescriptor) -> float:

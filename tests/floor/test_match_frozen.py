@@ -7,14 +7,17 @@ match and inlier counts, inlier indices, matched points and transform, bit for b
 from __future__ import annotations
 
 import math
+import struct
+import zlib
 
 import cv2
 import numpy as np
 import pytest
 import skimage.data
 
+from robotd.base.errors import DescriptorError
 from robotd.base.geometry import wrap_angle
-from robotd.floor.descriptor import FloorDescriptor, decode, extract
+from robotd.floor.descriptor import FloorDescriptor, decode, decode_local, extract
 from robotd.floor.match import (BELOW_MIN_SCORE, NO_GEOMETRIC_CONSISTENCY, TOO_FEW_FEATURES, TOO_FEW_MATCHES,
                                 Matcher, MatchParams, MatchReason, MatchResult, _augmented, _dismissed,
                                 _ransac_pairs, _ransac_rng, _rigid, _augmented_b)
@@ -181,3 +184,90 @@ def test_too_few_features_unchanged() -> None:
     empty = decode(extract(np.zeros((H, W), np.uint8), 4))
     assert len(empty) < 2
     assert Matcher(empty).score(empty).reason == TOO_FEW_FEATURES
+
+
+def _bad_positions(data: bytes) -> bytes:
+    """``data`` with one more zero in the Rice unary parts, its checksum recomputed: every
+    section but the positions' still reads (as tests/floor/test_readback.py forges it)."""
+    b = bytearray(data)
+    b[-1] = 0x00
+    b[16:20] = struct.pack("<I", zlib.crc32(bytes(b[20:]), zlib.crc32(bytes(b[:16]))))
+    return bytes(b)
+
+
+@pytest.mark.parametrize("mode", [4, 6])
+@pytest.mark.parametrize("confidence", [0.0, 0.99])
+def test_score_many_equals_scoring_one_by_one(views: list[np.ndarray], mode: int, confidence: float) -> None:
+    """``Matcher.score_many`` gives, pair for pair, what ``Matcher.score`` gives (and, at
+    confidence 0, the frozen ``_score``), bit for bit, whatever else is in the batch: every
+    view against every other, a descriptor without features, read-back descriptors (one
+    whose positions do not decode, which gives its error in its place) and the batch cut
+    into pieces of every size."""
+    blobs = [extract(v, mode) for v in views] + [extract(np.zeros((H, W), np.uint8), mode)]
+    descs = [decode(b) for b in blobs]
+    p = MatchParams(confidence=confidence)
+    reasons = set()
+    for a in descs[:-1]:
+        matcher = Matcher(a, p)
+        for min_score in (0.0, 20.0, 60.0):
+            want = [matcher.score(b, min_score) for b in descs]
+            if confidence == 0.0:
+                for w, b in zip(want, descs):
+                    _same(w, _old_score(a, b, p, _augmented(a, 1.0, None), a.nonzero_trits(), min_score))
+            reasons |= {w.reason for w in want}
+            for size in (1, 2, 3, len(descs)):
+                got = []
+                for k in range(0, len(descs), size):
+                    got += matcher.score_many(descs[k:k + size], min_score)
+                assert len(got) == len(want)
+                for g, w in zip(got, want):
+                    assert isinstance(g, MatchResult)
+                    _same(g, w)
+            # Read back: the same results, and a forged positions code fails alone.
+            parts = [decode_local(b) for b in blobs]
+            forged = len(descs) // 2
+            parts[forged] = decode_local(_bad_positions(blobs[forged]))
+            got = matcher.score_many(parts, min_score)
+            for i, (g, w) in enumerate(zip(got, want)):
+                if i == forged and w.reason in (MatchReason.OK, NO_GEOMETRIC_CONSISTENCY):
+                    assert isinstance(g, DescriptorError)  # its positions were needed
+                else:
+                    assert isinstance(g, MatchResult)
+                    _same(g, w)
+    assert {MatchReason.OK, BELOW_MIN_SCORE, TOO_FEW_FEATURES} <= reasons
+    assert {TOO_FEW_MATCHES, NO_GEOMETRIC_CONSISTENCY} & reasons
+
+
+def test_score_many_refuses_another_mode(views: list[np.ndarray]) -> None:
+    a, b = decode(extract(views[0], 4)), decode(extract(views[1], 6))
+    with pytest.raises(ValueError, match="lengths"):
+        Matcher(a).score_many([a, b])
+    assert Matcher(a).score_many([]) == []
+
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_a_query_scores_what_one_by_one_would(views: list[np.ndarray], k: int) -> None:
+    """A query stopping at ``k`` loops scores its shortlist in batches: the same keyframes
+    as scoring them one at a time until ``k`` reach ``min_score``, with the same results."""
+    from robotd.floor.index import FloorIndex, IndexParams
+
+    descs = [decode(extract(v, 4)) for v in views]
+    index = FloorIndex(IndexParams(shortlist=len(descs)))
+    for i, d in enumerate(descs):
+        index.add(i, d)
+    for q, query in enumerate(descs):
+        for min_score in (5.0, 20.0):
+            before = index.local_matches
+            got = index.query(query, k=k, exclude_ids=[q], min_score=min_score)
+            matcher, scored, reached = Matcher(query), [], 0
+            for kf, _g in index.shortlist(query, exclude_ids=[q]):
+                if reached >= k:
+                    break
+                r = matcher.score(descs[kf], min_score)
+                scored.append((kf, r))
+                reached += r.score >= min_score
+            assert index.local_matches - before == len(scored)
+            by_id = dict(scored)
+            assert {c.keyframe_id for c in got} <= set(by_id)
+            for c in got:
+                _same(c.local, by_id[c.keyframe_id])
