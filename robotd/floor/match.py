@@ -263,29 +263,10 @@ def _hypotheses(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: float,
     """RANSAC's rigid hypotheses from the samples ``(i, j)`` of the ``(m, 4)`` matches
     ``xab`` (x, y in A, then in B) that pass the sample tests (length, scale, rotation near
     the orientation ``peak``): the ``(h, 3)`` rows ``[c, -s, tx]`` and ``[s, c, ty]`` of
-    each ``[R | t]`` (None when no sample passes)."""
-    v = xab[j] - xab[i]
-    lab = np.hypot(v[:, 0::2], v[:, 1::2])  # sample lengths in A, in B
-    la, lb = lab[:, 0], lab[:, 1]
-    ang = np.arctan2(v[:, 1::2], v[:, 0::2])
-    phi = ang[:, 1] - ang[:, 0]
-    ok = (la >= p.min_sample_px) & (np.abs(np.log(np.maximum(lb, 1e-9) / np.maximum(la, 1e-9))) <= p.max_log_scale)
-    ok &= np.abs(wrap_angle(phi - peak)) <= p.angle_tol_rad + math.pi / _NBINS
-    if not np.any(ok):
-        return None
-    i, j, phi = i[ok], j[ok], phi[ok]
-    h = len(phi)
-    # C-ordered as np.stack(..., axis=1) gives them (the products see the same layout).
-    rows_x, rows_y = np.empty((h, 3)), np.empty((h, 3))
-    c, s = np.cos(phi, out=rows_x[:, 0]), np.sin(phi, out=rows_y[:, 0])
-    np.negative(s, out=rows_x[:, 1])
-    rows_y[:, 1] = c
-    mid = xab[i]
-    mid += xab[j]
-    mid *= 0.5  # sample midpoints: x, y in A, then in B
-    np.subtract(mid[:, 2], c * mid[:, 0] - s * mid[:, 1], out=rows_x[:, 2])
-    np.subtract(mid[:, 3], s * mid[:, 0] + c * mid[:, 1], out=rows_y[:, 2])
-    return rows_x, rows_y
+    each ``[R | t]`` (None when no sample passes). One pair's case of
+    :func:`_hypotheses_many` (a scalar peak broadcasts: the same arithmetic)."""
+    out = _hypotheses_many(xab, i, j, np.asarray(peak, np.float64), p)
+    return None if out is None else (out[0], out[1])
 
 
 def _ransac_best(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: float, xa1: np.ndarray, xb: np.ndarray,
@@ -694,8 +675,8 @@ def _ransac_many(xab: np.ndarray, draws: np.ndarray, peaks: np.ndarray, xa1_all:
 
 def _hypotheses_many(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: np.ndarray,
                      p: MatchParams) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """:func:`_hypotheses` of several pairs' samples at once (``peak`` per sample): the
-    rows of the samples that pass, and the ``(len(i),) bool`` mask of those."""
+    """:func:`_hypotheses` of several pairs' samples at once (``peak`` per sample, or one
+    for all): the rows of the samples that pass, and the ``(len(i),) bool`` mask of those."""
     v = xab[j] - xab[i]
     lab = np.hypot(v[:, 0::2], v[:, 1::2])
     la, lb = lab[:, 0], lab[:, 1]
@@ -707,13 +688,14 @@ def _hypotheses_many(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: np.nda
         return None
     i, j, phi = i[ok], j[ok], phi[ok]
     h = len(phi)
+    # C-ordered as np.stack(..., axis=1) gives them (the products see the same layout).
     rows_x, rows_y = np.empty((h, 3)), np.empty((h, 3))
     c, s = np.cos(phi, out=rows_x[:, 0]), np.sin(phi, out=rows_y[:, 0])
     np.negative(s, out=rows_x[:, 1])
     rows_y[:, 1] = c
     mid = xab[i]
     mid += xab[j]
-    mid *= 0.5
+    mid *= 0.5  # sample midpoints: x, y in A, then in B
     np.subtract(mid[:, 2], c * mid[:, 0] - s * mid[:, 1], out=rows_x[:, 2])
     np.subtract(mid[:, 3], s * mid[:, 0] + c * mid[:, 1], out=rows_y[:, 2])
     return rows_x, rows_y, ok
