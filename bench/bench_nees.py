@@ -824,11 +824,17 @@ def pooled_nees(per_seed: list[dict[str, float]]) -> float:
 def daemon_graph_seed_rows(part: dict[str, Any], model: str) -> tuple[list[str], list[list[Any]]]:
     head = ["seed"] + [f"N={h}" for h in HORIZONS]
     rows: list[list[Any]] = []
+    per_h: dict[int, list[float]] = {h: [] for h in HORIZONS}
     for r in part["per_seed"]:
         dg = r.get("daemon_graph")
         if dg:
-            rows.append([r["seed"]] + [f"{dg[model]['nees'][str(h)]['all']:.2f}" if str(h) in dg[model]["nees"]
-                                       else "-" for h in HORIZONS])
+            nees = dg[model]["nees"]
+            rows.append([r["seed"]] + [f"{nees[str(h)]['all']:.2f}" if str(h) in nees else "-" for h in HORIZONS])
+            for h in HORIZONS:
+                if str(h) in nees:
+                    per_h[h].append(nees[str(h)]["all"])
+    if len(rows) > 1:
+        rows.append(["mean"] + [f"{np.mean(per_h[h]):.2f}" if per_h[h] else "-" for h in HORIZONS])
     return head, rows
 
 
