@@ -639,9 +639,7 @@ class FloorIndex:
                 except (RobotdError, KeyError, ValueError) as exc:
                     if self._loader is None:
                         raise
-                    self.load_failures += 1
-                    log.warning("floor index: keyframe %d left out of a query, its descriptor could not be read: %s",
-                                kf, exc)
+                    self._left_out(kf, exc)
             results: list[MatchResult | DescriptorError]
             if matcher is not None:
                 results = matcher.score_many([stored for _kf, _g, stored in loaded], min_score)
@@ -657,9 +655,7 @@ class FloorIndex:
                 if isinstance(result, DescriptorError):  # a read-back descriptor's positions (decoded last)
                     if not isinstance(stored, PartialDescriptor):
                         raise result
-                    self.load_failures += 1
-                    log.warning("floor index: keyframe %d left out of a query, its descriptor could not be read: %s",
-                                kf, result)
+                    self._left_out(kf, result)
                     continue
                 if isinstance(stored, PartialDescriptor):
                     self._resize(kf, stored)
@@ -668,6 +664,11 @@ class FloorIndex:
                 reached += result.score >= min_score
         candidates.sort(key=lambda c: (-c.score, -c.global_score, c.keyframe_id))
         return candidates[:k]
+
+    def _left_out(self, kf: int, exc: Exception) -> None:
+        """A keyframe whose stored descriptor could not be read, left out of a query: counted, logged."""
+        self.load_failures += 1
+        log.warning("floor index: keyframe %d left out of a query, its descriptor could not be read: %s", kf, exc)
 
     def brute_force(self, descriptor: FloorDescriptor, k: int | None = None,
                     exclude_ids: Callable[[int], bool] | Collection[int] | None = None,

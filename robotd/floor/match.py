@@ -32,6 +32,7 @@ VLAD: about 0.5 for unrelated images, 1 for identical ones).
 
 from __future__ import annotations
 
+import itertools
 import math
 import threading
 from dataclasses import dataclass
@@ -258,6 +259,12 @@ _BLOCK = 10  # RANSAC's first draws when it stops adaptively (MatchParams.confid
 _NBINS = len(_PREV_BIN)
 
 
+def _enough(scored: int, frac: float, log_miss: float) -> bool:
+    """Whether ``scored`` hypotheses are enough at the best inlier fraction ``frac`` so far
+    for the adaptive stop (``log_miss``: ``log(1 - confidence)``; :class:`MatchParams`)."""
+    return frac >= 1.0 or (frac > 0 and scored >= log_miss / math.log(1.0 - frac * frac))
+
+
 def _hypotheses(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: float,
                 p: MatchParams) -> tuple[np.ndarray, np.ndarray] | None:
     """RANSAC's rigid hypotheses from the samples ``(i, j)`` of the ``(m, 4)`` matches
@@ -307,8 +314,7 @@ def _ransac_best(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: float, xa1
             best_count, best_mask = float(counts[k]), inl[k].copy()  # the scratch is reused by the next block
             best_inliers = int(np.count_nonzero(best_mask))
         scored += h
-        frac = best_inliers / m
-        if adaptive and (frac >= 1.0 or (frac > 0 and scored >= log_miss / math.log(1.0 - frac * frac))):
+        if adaptive and _enough(scored, best_inliers / m, log_miss):
             break
     return best_mask, scored
 
@@ -505,9 +511,7 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
     seg, ia = np.nonzero(keep.T)  # by pair, then by A's keypoint: each pair's matches as _score orders them
     ib, dm = nn[ia, seg], d1[ia, seg]
     n_of = np.bincount(seg, minlength=n_live).tolist()
-    starts = [0]
-    for n in n_of:
-        starts.append(starts[-1] + n)
+    starts = [0, *itertools.accumulate(n_of)]
     bound = np.maximum(0.0, 1.0 - dm / p.weight_distance) if min_score > 0 else None
     go: list[int] = []  # rows of live that go on to the geometric check
     xys, angles = [], []
@@ -557,9 +561,7 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
     near = np.abs(wrap_angle(dth - peaks[s_all])) <= p.angle_tol_rad + math.pi / nbins
     m_of = np.bincount(s_all[near], minlength=n_go).tolist()
     n_match = [n_of[r] for r in go]
-    go_starts = [0]
-    for r in go:
-        go_starts.append(go_starts[-1] + n_of[r])
+    go_starts = [0, *itertools.accumulate(n_match)]
     check = [g for g in range(n_go) if m_of[g] >= p.min_inliers]
     for g in range(n_go):
         if m_of[g] < p.min_inliers:
@@ -575,9 +577,7 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
     xab = np.concatenate([xa, xb], axis=1)
     n_check = len(check)
     ms = [m_of[g] for g in check]
-    m_off = [0]
-    for m in ms:
-        m_off.append(m_off[-1] + m)
+    m_off = [0, *itertools.accumulate(ms)]
     # Each pair's [x; y; 1] as the C-ordered (3, m) block _score builds, one after the other.
     xa1_all = np.empty(3 * m_off[-1])
     for q in range(n_check):
@@ -665,8 +665,7 @@ def _ransac_many(xab: np.ndarray, draws: np.ndarray, peaks: np.ndarray, xa1_all:
                     best_count[q], best[q] = float(counts[k]), inl[k].copy()
                     best_inliers[q] = int(np.count_nonzero(inl[k]))
                 scored[q] += h
-                frac = best_inliers[q] / m
-                if adaptive and (frac >= 1.0 or (frac > 0 and scored[q] >= log_miss / math.log(1.0 - frac * frac))):
+                if adaptive and _enough(scored[q], best_inliers[q] / m, log_miss):
                     continue
             still.append(q)
         active = still

@@ -184,19 +184,21 @@ def packet_predict(p: Packet, t_ns: int, params: EkfParams) -> None:
     p.stamp_ns = int(t_ns)
 
 
+#: The rows a Schmidt update may hold (:func:`_update`): the pose at the packet's start, its position.
+_POSE, _POSITION = slice(IX, IYAW + 1), slice(IX, IY + 1)
+
+
 def _update(p: Packet, innovation: np.ndarray, h: np.ndarray, r: np.ndarray,
-            hold_pose: bool = False, hold_position: bool = False) -> None:
-    """The Joseph-form update of ``p`` (the optimal gain: the base is moving); ``hold_pose``:
-    with the gain's pose rows zeroed, a Schmidt ("consider") update that leaves the pose at
-    the packet's start where it is (the Joseph form keeps the covariance exact for it);
-    ``hold_position``: the same for the position rows alone (the heading takes its gain)."""
+            hold: slice | None = None) -> None:
+    """The Joseph-form update of ``p`` (the optimal gain: the base is moving); ``hold``:
+    these rows of the gain zeroed, a Schmidt ("consider") update that leaves them where
+    they are (the Joseph form keeps the covariance exact for it): :data:`_POSE` the pose at
+    the packet's start, :data:`_POSITION` its position alone (the heading takes its gain)."""
     ph = p.cov @ h.T
     s = h @ ph + r
     gain = np.linalg.solve(s, ph.T).T
-    if hold_pose:
-        gain[IX:IYAW + 1] = 0.0
-    if hold_position:
-        gain[IX:IY + 1] = 0.0
+    if hold is not None:
+        gain[hold] = 0.0
     p.mean = p.mean + gain @ innovation
     a = _EYE[p.mean.shape[0]] - gain @ h
     cov = a @ p.cov @ a.T + gain @ r @ gain.T
@@ -239,7 +241,7 @@ def packet_gyro_mean(p: Packet, w_radps: float, dt_s: float, params: EkfParams,
     h[0, ITH] = 1.0 / dt_s
     h[0, IB] = 1.0
     innovation = np.array([w_radps - float(h[0] @ p.mean)])
-    _update(p, innovation, h, gyro_noise_var(params, yaw_rate_var_rad2ps2), hold_position=True)
+    _update(p, innovation, h, gyro_noise_var(params, yaw_rate_var_rad2ps2), hold=_POSITION)
 
 
 def packet_wheels(p: Packet, ds_m: float, dyaw_rad: float, dt_s: float, params: EkfParams,
@@ -286,7 +288,7 @@ def packet_wheels(p: Packet, ds_m: float, dyaw_rad: float, dt_s: float, params: 
     # the two rows one after the other (their noises are independent: the same update as
     # both at once), the heading change's with the pose held
     _update(p, innovation[:1], h[:1], np.array([[var_v * dt2]]))
-    _update(p, np.array([dyaw_rad - h[1] @ p.mean]), h[1:], np.array([[var_w * dt2]]), hold_pose=True)
+    _update(p, np.array([dyaw_rad - h[1] @ p.mean]), h[1:], np.array([[var_w * dt2]]), hold=_POSE)
 
 
 def close_packet(p: Packet, rounding: Rounding | None = None) -> tuple[EkfState, np.ndarray]:

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from robotd.app.stages.forward_loops import HeadingGraph, tree_yaws
-from robotd.base.geometry import wrap_angle
 from robotd.base.messages import Link
 
 
@@ -127,50 +126,23 @@ def test_the_tree_yaws_are_those_of_the_dictionary_before_to_the_bit():
         assert got[root] == 0.0 and np.array_equal(got, want)
 
 def _relative_before(self: HeadingGraph, a: int, b: int, upto: int | None = None) -> tuple[float, float] | None:
-    """``HeadingGraph.relative`` as it was before its solve was cut (the frozen reference:
-    the adjacency added to its transpose, the components found apart, the gradient by
-    ``np.add.at``)."""
-    n = self._n if upto is None else max(0, min(self._n, upto - self._dropped))
-    lo = max(a, b) - self.window
-    f, t, d, v = self._f[:n], self._t[:n], self._d[:n], self._v[:n]
-    inside = (f >= lo) & (t >= lo)
-    f, t, d, v = f[inside], t[inside], d[inside], v[inside]
-    linked = np.unique(np.concatenate([f, t]))
-    extra: list[tuple[int, int, float, float]] = []
-    for k in (a, b):
-        at = int(np.searchsorted(linked, k))
-        if k >= lo and k in self._odom and not (at < len(linked) and int(linked[at]) == k):
-            older = linked[linked < k]
-            older = older[[int(i) in self._odom for i in older]] if len(older) else older
-            if len(older):
-                m = int(older.max())
-                (ya, va), (yb, vb) = self._odom[m], self._odom[k]
-                extra.append((m, k, float(wrap_angle(yb - ya)), max(vb - va, 1e-8)))
-    if extra:
-        ex = np.array(extra, np.float64)
-        f = np.concatenate([f, ex[:, 0].astype(np.int64)])
-        t = np.concatenate([t, ex[:, 1].astype(np.int64)])
-        d, v = np.concatenate([d, ex[:, 2]]), np.concatenate([v, ex[:, 3]])
-    nodes = np.unique(np.concatenate([f, t]))
-    if a == b or len(nodes) == 0:
+    """``HeadingGraph.relative`` as it was before its solve was cut (the frozen reference
+    of the part that changed: the adjacency added to its transpose, the components found
+    apart, the gradient by ``np.add.at``; the links gathered and the step after the
+    gradient are the class's own, which the cut did not touch)."""
+    links = self._links(a, b, upto)
+    if links is None:
         return None
-    ia, ib = int(np.searchsorted(nodes, a)), int(np.searchsorted(nodes, b))
-    if ia >= len(nodes) or ib >= len(nodes) or nodes[ia] != a or nodes[ib] != b:
-        return None
+    nodes, fi, ti, d, w, ia, ib = links
     import scipy.sparse as sp
     from scipy.sparse.csgraph import breadth_first_order, connected_components
-    from scipy.sparse.linalg import splu
 
-    fi, ti = np.searchsorted(nodes, f), np.searchsorted(nodes, t)
-    w = 1.0 / v
     nn = len(nodes)
     adj = sp.coo_matrix((np.ones(len(fi)), (fi, ti)), shape=(nn, nn)).tocsr()
     _, comp = connected_components(adj, directed=False)
     if comp[ia] != comp[ib]:
         return None
     keep = comp == comp[ia]
-    # The yaws by a spanning tree from a (the linearisation point), then the weighted
-    # least squares of the wrapped residuals with node a held at 0.
     sym = (adj + adj.T).tocsr()
     order, pred = breadth_first_order(sym, ia, directed=False, return_predecessors=True)
     y0 = tree_yaws(fi, ti, d, order, pred, nn)
@@ -180,23 +152,7 @@ def _relative_before(self: HeadingGraph, a: int, b: int, upto: int | None = None
     g = np.zeros(nn)
     np.add.at(g, ti, w * r)
     np.add.at(g, fi, -w * r)
-    free = np.flatnonzero(keep & (np.arange(nn) != ia))
-    # The normal matrix over the free nodes only, built in their numbering (the
-    # entries in the order the whole matrix had them: the same sums).
-    pos = np.full(nn, -1, np.int64)
-    pos[free] = np.arange(len(free))
-    rows, cols = pos[np.concatenate([fi, ti, fi, ti])], pos[np.concatenate([fi, ti, ti, fi])]
-    inner = (rows >= 0) & (cols >= 0)
-    h = sp.csc_matrix((np.concatenate([w, w, -w, -w])[inner], (rows[inner], cols[inner])),
-                      shape=(len(free), len(free)))
-    lu = splu(h, permc_spec=self.ordering)
-    dy = np.zeros(nn)
-    dy[free] = lu.solve(g[free])
-    e = np.zeros(len(free))
-    jb = int(np.flatnonzero(free == ib)[0])
-    e[jb] = 1.0
-    var = float(lu.solve(e)[jb])
-    return float(wrap_angle(y0[ib] + dy[ib])), math.sqrt(max(var, 0.0))
+    return self._step(fi, ti, w, g, y0, keep, ia, ib)
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -229,6 +229,10 @@ def tree_yaws(fi: np.ndarray, ti: np.ndarray, d: np.ndarray, order: np.ndarray, 
     return np.array(y, np.float64)
 
 
+#: What :meth:`HeadingGraph._links` gives: nodes, link ends (indexes), yaw changes, weights, a's and b's indexes.
+_Links = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, int]
+
+
 class HeadingGraph:
     """The pose graph's headings alone: the keyframes' yaw tied by the yaw part of its edges
     (the odometry's and the floor loops' :class:`~robotd.base.messages.Link` messages; a
@@ -319,6 +323,41 @@ class HeadingGraph:
         poses); None when the two are not connected within the window. ``upto``: only the
         first this many links received (those the graph had when keyframe ``b`` was stored:
         the answer then does not depend on how far the pipeline has gone since)."""
+        links = self._links(a, b, upto)
+        if links is None:
+            return None
+        nodes, fi, ti, d, w, ia, ib = links
+        import scipy.sparse as sp
+        from scipy.sparse.csgraph import breadth_first_order
+
+        nn = len(nodes)
+        # The links both ways as one symmetric adjacency (sorted, duplicates summed: the
+        # structure of adj + adj.T, so the search below visits the nodes in the same order).
+        both_f, both_t = np.concatenate([fi, ti]), np.concatenate([ti, fi])
+        sym = sp.csr_matrix((np.ones(len(both_f)), (both_f, both_t)), shape=(nn, nn))
+        sym.sum_duplicates()
+        # The yaws by a spanning tree from a (the linearisation point), then the weighted
+        # least squares of the wrapped residuals with node a held at 0. The tree reaches
+        # a's connected component, no further: b outside it has no graph heading.
+        order, pred = breadth_first_order(sym, ia, directed=False, return_predecessors=True)
+        keep = np.zeros(nn, bool)
+        keep[order] = True
+        if not keep[ib]:
+            return None
+        y0 = tree_yaws(fi, ti, d, order, pred, nn)
+        ok = keep[fi] & keep[ti]
+        fi, ti, d, w = fi[ok], ti[ok], d[ok], w[ok]
+        r = np.remainder(d - (y0[ti] - y0[fi]) + math.pi, math.tau) - math.pi
+        wr = w * r
+        # The gradient summed link by link, the to-ends first, then the from-ends (the
+        # order of two np.add.at calls: the same sums).
+        g = np.bincount(np.concatenate([ti, fi]), np.concatenate([wr, -wr]), nn)
+        return self._step(fi, ti, w, g, y0, keep, ia, ib)
+
+    def _links(self, a: int, b: int, upto: int | None) -> _Links | None:
+        """The yaw links :meth:`relative` solves over: ``(nodes, fi, ti, d, w, ia, ib)``,
+        the links' ends as indexes into the sorted ``nodes``, their yaw changes and weights,
+        and a's and b's indexes (None when either is not in the window's links)."""
         n = self._n if upto is None else max(0, min(self._n, upto - self._dropped))
         lo = max(a, b) - self.window
         f, t, d, v = self._f[:n], self._t[:n], self._d[:n], self._v[:n]
@@ -346,34 +385,16 @@ class HeadingGraph:
         ia, ib = int(np.searchsorted(nodes, a)), int(np.searchsorted(nodes, b))
         if ia >= len(nodes) or ib >= len(nodes) or nodes[ia] != a or nodes[ib] != b:
             return None
+        return nodes, np.searchsorted(nodes, f), np.searchsorted(nodes, t), d, 1.0 / v, ia, ib
+
+    def _step(self, fi: np.ndarray, ti: np.ndarray, w: np.ndarray, g: np.ndarray, y0: np.ndarray,
+              keep: np.ndarray, ia: int, ib: int) -> tuple[float, float]:
+        """The Gauss-Newton step from the tree's yaws ``y0`` with gradient ``g`` (node ``ia``
+        held, the nodes outside ``keep`` left out): b's yaw and its 1-sigma."""
         import scipy.sparse as sp
-        from scipy.sparse.csgraph import breadth_first_order
         from scipy.sparse.linalg import splu
 
-        fi, ti = np.searchsorted(nodes, f), np.searchsorted(nodes, t)
-        w = 1.0 / v
-        nn = len(nodes)
-        # The links both ways as one symmetric adjacency (sorted, duplicates summed: the
-        # structure of adj + adj.T, so the search below visits the nodes in the same order).
-        both_f, both_t = np.concatenate([fi, ti]), np.concatenate([ti, fi])
-        sym = sp.csr_matrix((np.ones(len(both_f)), (both_f, both_t)), shape=(nn, nn))
-        sym.sum_duplicates()
-        # The yaws by a spanning tree from a (the linearisation point), then the weighted
-        # least squares of the wrapped residuals with node a held at 0. The tree reaches
-        # a's connected component, no further: b outside it has no graph heading.
-        order, pred = breadth_first_order(sym, ia, directed=False, return_predecessors=True)
-        keep = np.zeros(nn, bool)
-        keep[order] = True
-        if not keep[ib]:
-            return None
-        y0 = tree_yaws(fi, ti, d, order, pred, nn)
-        ok = keep[fi] & keep[ti]
-        fi, ti, d, w = fi[ok], ti[ok], d[ok], w[ok]
-        r = np.remainder(d - (y0[ti] - y0[fi]) + math.pi, math.tau) - math.pi
-        wr = w * r
-        # The gradient summed link by link, the to-ends first, then the from-ends (the
-        # order of two np.add.at calls: the same sums).
-        g = np.bincount(np.concatenate([ti, fi]), np.concatenate([wr, -wr]), nn)
+        nn = len(y0)
         free = np.flatnonzero(keep & (np.arange(nn) != ia))
         # The normal matrix over the free nodes only, built in their numbering (the
         # entries in the order the whole matrix had them: the same sums).
