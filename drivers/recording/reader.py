@@ -10,7 +10,7 @@ import os
 import struct
 import threading
 import zlib
-from collections.abc import Callable, Collection, Iterator
+from collections.abc import Callable, Collection, Container, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -269,7 +269,10 @@ class RecordingReader:
 
     # -- messages ----------------------------------------------------------------------
 
-    def _load_chunk(self, ref: _ChunkRef) -> list[Any]:
+    def _load_chunk(self, ref: _ChunkRef, keep: Container[int], others: dict[int, int]) -> list[Message]:
+        """The message records at ``ref`` of the channels ``keep``, in file order; those of
+        other channels counted per channel id in ``others``. A damaged chunk is counted
+        and gives none."""
         try:
             with self._lock:
                 self._f.seek(ref.offset)
@@ -285,8 +288,12 @@ class RecordingReader:
                 raise ValueError("no complete chunk at this offset")
             stream = ReadDataStream(io.BytesIO(body))
             if opcode == Opcode.MESSAGE:
-                return [Message.read(stream, len(body))]
-            return _chunk_messages(Chunk.read(stream))
+                records = [Message.read(stream, len(body))]
+                if records[0].channel_id not in keep:
+                    others[records[0].channel_id] = others.get(records[0].channel_id, 0) + 1
+                    return []
+                return records
+            return _chunk_messages(Chunk.read(stream), keep, others)
         except Exception as exc:  # noqa: BLE001 - damaged bytes: mcap, zstd or struct errors
             self.damage.damaged_chunks += 1
             log.warning("%s: skipping the damaged chunk at offset %d (%s)", self.path, ref.offset, exc)
@@ -294,23 +301,36 @@ class RecordingReader:
 
     def raw_messages(self) -> Iterator[tuple[Channel, Message]]:
         """Every intact MCAP message in log-time order (ties: file order)."""
+        channels = self._channels
+        for msg in self._merged(None, lambda _others: None):
+            yield channels[msg.channel_id], msg
+
+    def _merged(self, keep: Collection[int] | None,
+                on_others: Callable[[dict[int, int]], None]) -> Iterator[Message]:
+        """The message records of the channels ``keep`` (None: every channel the file
+        defines) in log-time order (ties: file order). The records of other channels are
+        only counted as their chunk is read, and ``on_others`` gets those counts per channel
+        id after each chunk (no record object, no place in the merge: a replay wants fewer
+        than half of a virtual robot's messages); a record of a channel the file does not
+        define counts as undecodable (:attr:`damage`), as it always did."""
         refs = sorted(self._chunks, key=lambda r: (r.start_ns, r.offset))
         heap: list[tuple[int, int, int, Message]] = []
+        channels = self._channels
+        kept = channels if keep is None else keep
         for ref in refs:
             # Later chunks start no earlier than this one, so anything before its start
             # is final.
             while heap and heap[0][:3] < (ref.start_ns, ref.offset, 0):
-                msg = heapq.heappop(heap)[3]
-                yield self._channels[msg.channel_id], msg
-            for i, rec in enumerate(self._load_chunk(ref)):
-                if isinstance(rec, Message):
-                    if rec.channel_id not in self._channels:
-                        self.damage.undecodable_messages += 1
-                        continue
-                    heapq.heappush(heap, (rec.log_time, ref.offset, i, rec))
+                yield heapq.heappop(heap)[3]
+            others: dict[int, int] = {}
+            for i, rec in enumerate(self._load_chunk(ref, kept, others)):
+                heapq.heappush(heap, (rec.log_time, ref.offset, i, rec))
+            if others:
+                for cid in [c for c in others if c not in channels]:
+                    self.damage.undecodable_messages += others.pop(cid)
+                on_others(others)
         while heap:
-            msg = heapq.heappop(heap)[3]
-            yield self._channels[msg.channel_id], msg
+            yield heapq.heappop(heap)[3]
 
     def messages(self, only: Collection[type] | None = None, *,
                  lazy_images: bool = False) -> Iterator[tuple[str, RobotdMessage]]:
@@ -328,33 +348,48 @@ class RecordingReader:
         by a decode at 1/8 scale, which runs the whole entropy decoding (where damage
         shows), so a frame that does not decode is still counted and skipped here.
         """
-        decoders: dict[int, Callable[[bytes], Any] | None] = {}
         yaw_source = self.yaw_source
         wanted = None if only is None else {k for k, t in _PRODUCES.items() if t in only}
-        for channel, msg in self.raw_messages():
+        # What becomes of each channel's messages, settled once per channel (not per
+        # message): counted in ``skipped`` or ``unwanted`` by topic (never decoded), or
+        # decoded (the decoder compiled at the channel's first message) and converted.
+        counted: dict[int, tuple[dict[str, int], str]] = {}
+        kinds: dict[int, str] = {}
+        for cid, channel in self._channels.items():
             schema = self._schemas.get(channel.schema_id)
             kind = _normalise_type(schema.name) if schema is not None else ""
             if schema is None or kind not in _CONVERTERS or channel.message_encoding != "cdr":
-                self.skipped[channel.topic] = self.skipped.get(channel.topic, 0) + 1
-                continue
-            if wanted is not None and kind not in wanted:
-                self.unwanted[channel.topic] = self.unwanted.get(channel.topic, 0) + 1
-                continue
-            if channel.id not in decoders:
+                counted[cid] = (self.skipped, channel.topic)
+            elif wanted is not None and kind not in wanted:
+                counted[cid] = (self.unwanted, channel.topic)
+            else:
+                kinds[cid] = kind
+
+        def count(others: dict[int, int]) -> None:
+            for cid, n in others.items():
+                into, topic = counted[cid]
+                into[topic] = into.get(topic, 0) + n
+
+        decoders: dict[int, tuple[Callable[[bytes], Any], Callable[..., RobotdMessage]] | None] = {}
+        for msg in self._merged(kinds, count):
+            cid = msg.channel_id
+            channel = self._channels[cid]
+            if cid not in decoders:
+                kind = kinds[cid]
                 try:
                     # Decoded with the file's own definitions (a file from another
                     # version of robotd, or from ros2 bag), by robotd's one CDR codec.
-                    decoders[channel.id] = ros2msg.Codec(kind, ros2msg.parse_schema_text(
-                        kind, schema.data.decode())).decode
+                    decoders[cid] = (ros2msg.Codec(kind, ros2msg.parse_schema_text(
+                        kind, self._schemas[channel.schema_id].data.decode())).decode,
+                        _to_frame_lazy if lazy_images and kind == _IMAGE else _CONVERTERS[kind])
                 except Exception:  # noqa: BLE001 - a broken schema text in the file
                     log.warning("%s: cannot parse the schema of %s", self.path, channel.topic)
-                    decoders[channel.id] = None
-            decode = decoders[channel.id]
+                    decoders[cid] = None
+            plan = decoders[cid]
             try:
-                if decode is None:
+                if plan is None:
                     raise ValueError("no decoder")
-                convert = _to_frame_lazy if lazy_images and kind == _IMAGE else _CONVERTERS[kind]
-                out = convert(channel.topic, decode(msg.data), msg, yaw_source)
+                out = plan[1](channel.topic, plan[0](msg.data), msg, yaw_source)
             except Exception as exc:  # noqa: BLE001 - CDR or image bytes that do not decode
                 self.damage.undecodable_messages += 1
                 log.debug("%s: undecodable %s message at %d: %s", self.path, channel.topic,
@@ -376,11 +411,12 @@ class RecordingReader:
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, record length, channel, sequence, log and publish time
 
 
-def _chunk_messages(chunk: Chunk) -> list[Message]:
-    """The message records of a chunk (its CRC checked), as ``mcap``'s ``breakup_chunk``
-    gives them, other records skipped: the records are cut from the decompressed bytes
-    with one ``struct`` call each instead of a read call per field (reading the 60 s drive
-    spent a third of its time there)."""
+def _chunk_messages(chunk: Chunk, keep: Container[int], others: dict[int, int]) -> list[Message]:
+    """The message records of a chunk (its CRC checked) on the channels ``keep``, as
+    ``mcap``'s ``breakup_chunk`` gives them, other records skipped: the records are cut from
+    the decompressed bytes with one ``struct`` call each instead of a read call per field
+    (reading the 60 s drive spent a third of its time there). Messages of other channels
+    are counted per channel id in ``others``, with no record made."""
     if chunk.compression == "zstd":
         zstandard = getattr(_mcap_stream, "zstandard", None)  # mcap's optional import
         if zstandard is None:
@@ -398,6 +434,7 @@ def _chunk_messages(chunk: Chunk) -> list[Message]:
     if chunk.uncompressed_crc != 0 and zlib.crc32(data) != chunk.uncompressed_crc:
         raise ValueError("chunk CRC does not match its records")
     out: list[Message] = []
+    skipped: dict[int, int] = {}  # into ``others`` once the whole chunk was read
     pos, end, head, message = 0, len(data), _MESSAGE_HEAD, int(Opcode.MESSAGE)
     while pos < end:
         if end - pos < 9:
@@ -410,9 +447,15 @@ def _chunk_messages(chunk: Chunk) -> list[Message]:
             if length < 22:
                 raise ValueError("message record too short")
             _op, _len, channel_id, sequence, log_time, publish_time = head.unpack_from(data, pos)
+            if channel_id not in keep:
+                skipped[channel_id] = skipped.get(channel_id, 0) + 1
+                pos = stop
+                continue
             out.append(Message(channel_id=channel_id, sequence=sequence, log_time=log_time,
                                publish_time=publish_time, data=data[pos + 31:stop]))
         pos = stop
+    for channel_id, n in skipped.items():
+        others[channel_id] = others.get(channel_id, 0) + n
     return out
 
 

@@ -91,9 +91,8 @@ class SourceThread(threading.Thread):
                 return
             if got is None:
                 continue
-            for item in got if isinstance(got, list) else (got,):
-                if not self.out.put(item, self.stop):
-                    return
+            if not (self.out.put_many(got, self.stop) if isinstance(got, list) else self.out.put(got, self.stop)):
+                return
 
 
 def _driver_status(stats: Mapping[str, Any]) -> str:
@@ -287,13 +286,12 @@ class Daemon:
     def step(self) -> int:
         """Drain the queues into the pipeline once; returns how many items were handled."""
         handled = 0
+        feed = self.pipeline.feed
         for q in self.queues.values():
-            for _ in range(_BATCH):
-                item = q.get_nowait()
-                if item is None:
-                    break
-                self.pipeline.feed(item)
-                handled += 1
+            items = q.take(_BATCH)  # what is waiting now, in one taking of the queue's lock
+            for item in items:
+                feed(item)
+            handled += len(items)
         handled += self.pipeline.poll()
         return handled
 

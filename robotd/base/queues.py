@@ -18,6 +18,7 @@ from __future__ import annotations
 import collections
 import threading
 import time
+from collections.abc import Iterable
 from typing import Generic, Literal, TypeVar
 
 T = TypeVar("T")
@@ -90,6 +91,56 @@ class BoundedQueue(Generic[T]):
             wakeup.set()
         return True
 
+    def put_many(self, items: Iterable[T], stop: threading.Event | None = None) -> bool:
+        """Queue ``items`` in order, each as :meth:`put` would (the same waits, drops and
+        counts), under one taking of the lock and with one wake-up of the consumer instead
+        of one per item (a driver's read gives several messages at once: a replay up to
+        64). Returns False when one was not queued (see :meth:`put`); the items after it
+        are then not queued either."""
+        queued = 0
+        ok = True
+        with self._lock:
+            queue = self._items
+            for item in items:
+                if len(queue) >= self.maxsize:
+                    if self.lossless:
+                        if queued:
+                            self._wake(queued)  # the consumer makes the room we wait for
+                            queued = 0
+                        while len(queue) > self._resume_at:
+                            if stop is not None and stop.is_set():
+                                ok = False
+                                break
+                            self._putters_waiting += 1
+                            try:
+                                self._room.wait(_POLL_S)
+                            finally:
+                                self._putters_waiting -= 1
+                        if not ok:
+                            break
+                    elif self.drop == "newest":
+                        self.dropped += 1
+                        ok = False
+                        break
+                    else:
+                        queue.popleft()
+                        self.dropped += 1
+                queue.append(item)
+                self.put_count += 1
+                queued += 1
+            if queued:
+                self._wake(queued)
+        return ok
+
+    def _wake(self, queued: int) -> None:
+        """With the lock held: tell waiting getters and the consumer's wake-up event that
+        ``queued`` items came."""
+        if self._getters_waiting:
+            self._not_empty.notify(queued)
+        wakeup = self._wakeup
+        if wakeup is not None and not wakeup.is_set():
+            wakeup.set()
+
     def get(self, timeout_s: float | None = None) -> T | None:
         """The next item, waiting up to ``timeout_s`` (None: forever, 0: not at all);
         None when there is none by then."""
@@ -119,6 +170,19 @@ class BoundedQueue(Generic[T]):
     def get_nowait(self) -> T | None:
         """The next item, or None at once when the queue is empty."""
         return self.get(0)
+
+    def take(self, max_items: int) -> list[T]:
+        """Up to ``max_items`` of the items waiting now, oldest first, without waiting (an
+        empty list when there are none): one taking of the lock for all of them."""
+        with self._lock:
+            queue = self._items
+            n = min(max_items, len(queue))
+            if n == 0:
+                return []
+            items = [queue.popleft() for _ in range(n)]
+            if self._putters_waiting and len(queue) <= self._resume_at:
+                self._room.notify()
+            return items
 
     def get_batch(self, first_timeout_s: float, max_items: int) -> list[T]:
         """Up to ``max_items`` items: waits up to ``first_timeout_s`` for the first, then
