@@ -95,8 +95,9 @@ class BoundedQueue(Generic[T]):
         """Queue ``items`` in order, each as :meth:`put` would (the same waits, drops and
         counts), under one taking of the lock and with one wake-up of the consumer instead
         of one per item (a driver's read gives several messages at once: a replay up to
-        64). Returns False when one was not queued (see :meth:`put`); the items after it
-        are then not queued either."""
+        64). Returns False when one was not queued (see :meth:`put`): refused by a full
+        ``drop="newest"`` queue (the others are still offered, each counted), or a lossless
+        put stopped while it waited (the items after it are not queued)."""
         queued = 0
         ok = True
         with self._lock:
@@ -121,7 +122,7 @@ class BoundedQueue(Generic[T]):
                     elif self.drop == "newest":
                         self.dropped += 1
                         ok = False
-                        break
+                        continue
                     else:
                         queue.popleft()
                         self.dropped += 1

@@ -240,17 +240,69 @@ class Codec:
         return enc
 
     def _struct_decoder(self, name: str) -> Decode:
+        """The decoder of a struct: its fields in order, each run of consecutive fixed-size
+        fields (scalars, fixed arrays of numbers, nested messages of those) read by one
+        ``struct`` call (:class:`_Run`) where the padding inside the run does not depend on
+        where it starts; the other fields one by one. The values, and the dict's key order,
+        are those of a field-by-field decoding."""
         if name in self._dec:
             return self._dec[name]
-        parts: list[tuple[str, Decode]] = []
+        steps: list[tuple[str, Decode] | _Run] = []
 
         def dec(r: _Reader) -> dict[str, Any]:
-            return {fname: fdec(r) for fname, fdec in parts}
+            out: dict[str, Any] = {}
+            for step in steps:
+                if type(step) is _Run:
+                    step.read(r, out)
+                else:
+                    out[step[0]] = step[1](r)  # type: ignore[index]
+            return out
 
         self._dec[name] = dec
+        run: _Run | None = None
         for f in self._fields(name):
-            parts.append((f.name, self._field_decoder(f)))
+            shape = self._fixed_shape(f)
+            if shape is not None and run is not None and run.takes(shape[0]):
+                run.add(f.name, shape)
+                continue
+            if run is not None:
+                steps.append(run.close())
+                run = None
+            if shape is not None and shape[0] and max(size for _c, size in shape[0]) == shape[0][0][1]:
+                run = _Run()
+                run.add(f.name, shape)
+                continue
+            steps.append((f.name, self._field_decoder(f)))
+        if run is not None:
+            steps.append(run.close())
         return dec
+
+    def _fixed_shape(self, f: Field) -> tuple[list[tuple[str, int]], Any] | None:
+        """A fixed-size field as ``(elements, shape)``: the ``(struct code, size)`` of each
+        primitive in wire order and how their values make the field's value (``None``: one
+        scalar; an int: a list of that many; a list of ``(name, shape)``: a dict). None for a
+        field of variable size, bytes (``uint8[N]``), an empty array or an array of
+        messages, which decode one by one."""
+        if f.type in _STRINGS or f.array == "sequence":
+            return None
+        if f.type in _PRIMITIVES:
+            code, size = _PRIMITIVES[f.type]
+            if f.array is None:
+                return [(code, size)], None
+            if f.type in ("uint8", "byte", "char") or f.length <= 0:
+                return None
+            return [(code, size)] * f.length, f.length
+        if f.array is not None:
+            return None
+        elements: list[tuple[str, int]] = []
+        fields: list[tuple[str, Any]] = []
+        for sub in self._fields(f.type):
+            got = self._fixed_shape(sub)
+            if got is None:
+                return None
+            elements += got[0]
+            fields.append((sub.name, got[1]))
+        return elements, fields
 
     def _field_decoder(self, f: Field) -> Decode:
         if f.type in _PRIMITIVES:
@@ -302,6 +354,64 @@ class Codec:
                 n = n_fixed
             return [one(r) for _ in range(n)]
         return dec
+
+
+class _Run:
+    """Consecutive fixed-size fields of a struct read by one ``struct`` call.
+
+    Each primitive of CDR is aligned to its own size (1, 2, 4 or 8) from the end of the
+    encapsulation header. A run starts with the field decoding would align first, to
+    ``align`` bytes, and takes only primitives no larger than that: every later one's
+    padding is then the same wherever the run starts, so it is written into the format once.
+    """
+
+    __slots__ = ("align", "fmt", "pos", "fields", "unpack", "size")
+
+    def __init__(self) -> None:
+        self.align = 0
+        self.fmt = "<"
+        self.pos = 0
+        self.fields: list[tuple[str, Any]] = []
+        self.unpack: Callable[[Any], tuple[Any, ...]] = struct.Struct("<").unpack
+        self.size = 0
+
+    def takes(self, elements: list[tuple[str, int]]) -> bool:
+        """Whether a field of these elements can join the run."""
+        return bool(elements) and all(size <= self.align for _c, size in elements)
+
+    def add(self, name: str, shape: tuple[list[tuple[str, int]], Any]) -> None:
+        elements, how = shape
+        if not self.align:
+            self.align = elements[0][1]
+        for code, size in elements:
+            pad = -self.pos % size
+            self.fmt += "x" * pad + code
+            self.pos += pad + size
+        self.fields.append((name, how))
+
+    def close(self) -> _Run:
+        packer = struct.Struct(self.fmt)
+        self.unpack, self.size = packer.unpack, packer.size
+        return self
+
+    def read(self, r: _Reader, out: dict[str, Any]) -> None:
+        r.align(self.align)
+        values = self.unpack(r.take(self.size))
+        i = 0
+        for name, how in self.fields:
+            out[name], i = _made(how, values, i)
+
+
+def _made(how: Any, values: tuple[Any, ...], i: int) -> tuple[Any, int]:
+    """The value of one field of a :class:`_Run` from ``values[i:]`` and the index after it."""
+    if how is None:
+        return values[i], i + 1
+    if type(how) is int:
+        return list(values[i:i + how]), i + how
+    out: dict[str, Any] = {}
+    for name, sub in how:
+        out[name], i = _made(sub, values, i)
+    return out, i
 
 
 _CODECS: dict[str, Codec] = {}

@@ -193,3 +193,31 @@ def test_schema_text_parses_back() -> None:
     c = r.Codec("visualization_msgs/msg/MarkerArray", defs)
     msg = SAMPLES["visualization_msgs/msg/MarkerArray"]
     assert c.encode(msg) == r.encode("visualization_msgs/msg/MarkerArray", msg)
+
+
+def test_runs_of_fixed_fields_decode_as_rosbags_reads_them_wherever_they_start() -> None:
+    """The decoder reads consecutive fixed-size fields with one ``struct`` call where their
+    padding does not depend on where they start. A type that mixes sizes, shifted by a
+    string of every length mod 8 before it, decodes to what rosbags reads from the same
+    bytes: the runs break where a larger primitive follows a smaller one (``c`` after ``b``,
+    ``a`` after ``c``; ``m``, whose ``y`` is larger than its ``x``, cannot start one), bytes,
+    empty arrays and sequences are read one by one."""
+    inner = "int8 x\nfloat64 y\n"
+    mixed = ("string s\nint16 b\nint32 c\nfloat64 a\nuint16[3] u\nbool f\nfloat32[2] g\n"
+             "robotd_test/msg/Inner n\nuint8[2] raw\nint32[0] none\nfloat64[] seq\n"
+             "string s2\nrobotd_test/msg/Inner m\ngeometry_msgs/msg/Vector3 v\nint8 last\n")
+    defs = {**r.DEFINITIONS, "robotd_test/msg/Mixed": mixed, "robotd_test/msg/Inner": inner}
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    ts.register({**get_types_from_msg(inner, "robotd_test/msg/Inner"),
+                 **get_types_from_msg(mixed, "robotd_test/msg/Mixed")})
+    codec = r.Codec("robotd_test/msg/Mixed", defs)
+    for k in range(9):
+        msg = {"s": "x" * k, "a": 1.5 + k, "b": -3 - k, "c": 70000 + k, "u": [1, 2, 3 + k], "f": bool(k % 2),
+               "g": [0.5, -0.25 * k], "n": {"x": -k, "y": 2.0 ** -k}, "raw": bytes([k, 255]),
+               "none": [], "seq": [0.1 * k] * (k % 3), "s2": "y" * (k // 2), "m": {"x": k, "y": -1.0 / (k + 1)}, "v": {"x": 1.0, "y": -2.0, "z": 3.0 * k}, "last": k}
+        data = codec.encode(msg)
+        got = codec.decode(data)
+        assert got == msg and list(got) == [line.split()[1] for line in mixed.splitlines()]
+        assert got == from_rosbags(ts.deserialize_cdr(data, "robotd_test/msg/Mixed")), k
+        with pytest.raises(ValueError, match="CDR data end"):
+            codec.decode(data[:len(data) - 1])
