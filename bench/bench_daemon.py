@@ -1787,6 +1787,49 @@ def comparison(paths: list[Path]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def stage_comparison(args: list[str]) -> str:
+    """A markdown page of runs of two or more trees alternated (``LABEL=JSON ...``, e.g.
+    the code before and after a change, each run a separate process): each run's CPU by
+    stage, then the mean of each label's runs and its ratio to the first label's."""
+    runs = []
+    for arg in args:
+        label, sep, path = arg.partition("=")
+        if not sep:
+            label, path = "", arg
+        runs.append((label, Path(path).name, json.loads(Path(path).read_text(encoding="utf-8"))))
+    rows = ("input (replay, queues, main loop)", "keyframes", "store", "odometry", "floor describe",
+            "floor query", "visual odometry", "pose graph")
+    machine = runs[0][2].get("machine", {})
+    lines = ["# The whole daemon, trees alternated (`bench/bench_daemon.py --compare-stages`)", "",
+             "Generated from the JSON files named in the table; each row is a run in a process of its",
+             f"own, the labels' runs alternated on one machine ({machine.get('platform', '?')}), so read",
+             "the ratio of the means, not absolute figures. CPU seconds over the whole replay",
+             "(`--no-baseline --scale=`); \"input\" is the process's CPU less the stages' (the",
+             "recording's reading and decoding in the source thread, the queues, the main loop, and",
+             "any thread of a library's own, such as OpenCV's worker).", "",
+             "| label | run | load (1 min) | " + " | ".join(rows) + " | whole process | per robot s |",
+             "|---|---|---:|" + "---:|" * (len(rows) + 2)]
+    sums: dict[str, list[list[float]]] = collections.defaultdict(list)
+    for label, name, p in runs:
+        r = p["replay"]
+        values = [r["stage_cpu_s"][k] for k in rows] + [r["process_cpu_s"], r["process_cpu_s"] / r["robot_s"]]
+        sums[label].append(values)
+        load = p.get("load_average", {})
+        first = load.get("start", [None])[0] if isinstance(load, dict) else None
+        lines.append(f"| {label} | {name} | {'-' if first is None else f'{first:.1f}'} | "
+                     + " | ".join(f"{v:.3f}" for v in values) + " |")
+    lines += ["", "| label | runs | " + " | ".join(rows) + " | whole process | per robot s |",
+              "|---|---:|" + "---:|" * (len(rows) + 2)]
+    base = None
+    for label, vals in sums.items():
+        mean = [statistics.mean(col) for col in zip(*vals)]
+        base = base or mean
+        lines.append(f"| {label} | {len(vals)} | " + " | ".join(
+            f"{m:.3f}" + ("" if m is base[i] else f" ({m / base[i]:.2f}x)" if base[i] else "")
+            for i, m in enumerate(mean)) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     from robotd.base.blas import one_blas_thread
 
@@ -1858,6 +1901,9 @@ def main(argv: list[str] | None = None) -> int:
                          "(writes NAME-forward-memory.json)")
     ap.add_argument("--forward-dir", type=Path, default=Path("/tmp/fwd/office"),
                     help="a rendered forward sequence (bench_forward_scale.py's): PNGs and poses.csv")
+    ap.add_argument("--compare-stages", nargs="+", default=None, metavar="LABEL=JSON",
+                    help="only write a page (--doc) of runs of trees alternated: CPU by stage per run, "
+                         "each label's mean and its ratio to the first label's")
     ap.add_argument("--memory-page", nargs="+", default=None, metavar="[LABEL=]JSON",
                     help="only write the memory page (--doc) from these --memory JSON files, partial or not "
                          "(LABEL= heads its section)")
@@ -1949,6 +1995,13 @@ def main(argv: list[str] | None = None) -> int:
             args.doc.parent.mkdir(parents=True, exist_ok=True)
             args.doc.write_text(memory_markdown(payload), encoding="utf-8")
             print(f"wrote {args.doc}")
+        return 0
+    if args.compare_stages:
+        page = stage_comparison(args.compare_stages)
+        if args.doc is not None:
+            args.doc.parent.mkdir(parents=True, exist_ok=True)
+            args.doc.write_text(page, encoding="utf-8")
+        print(page, end="")
         return 0
     if args.compare:
         table = comparison(args.compare)
