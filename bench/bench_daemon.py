@@ -1806,7 +1806,8 @@ def stage_comparison(args: list[str]) -> str:
              "the ratio of the means, not absolute figures. CPU seconds over the whole replay",
              "(`--no-baseline --scale=`); \"input\" is the process's CPU less the stages' (the",
              "recording's reading and decoding in the source thread, the queues, the main loop, and",
-             "any thread of a library's own, such as OpenCV's worker).", "",
+             "any thread of a library's own, such as OpenCV's worker). Each JSON names its tree's",
+             "commit.", "",
              "| label | run | load (1 min) | " + " | ".join(rows) + " | whole process | per robot s |",
              "|---|---|---:|" + "---:|" * (len(rows) + 2)]
     sums: dict[str, list[list[float]]] = collections.defaultdict(list)
