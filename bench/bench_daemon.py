@@ -53,6 +53,9 @@ one core. This benchmark:
   queries repeat its keyframes and the local scores and geometric checks per query; a map
   of laps of new frames comes from ``--memory N --memory-seeds 0,0,0 --keep-map FILE``
   (each lap every third frame of the drive, lap k the frame counts k mod 3);
+* ``--compare-stages LABEL=JSON ...``: a page of replays of two trees alternated (e.g. the
+  code before a change and after it, each run a process of its own): CPU by stage per run,
+  each label's mean and its ratio to the first label's (:func:`stage_comparison`);
 * ``--load MAP [--before DIR]``: ``FloorIndex.from_store``'s load time and the process's
   resident memory around it, each load in a fresh process, alternating with the checkout
   of the code before in ``DIR`` (:func:`map_load`).
