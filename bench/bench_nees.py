@@ -892,6 +892,36 @@ def daemon_graph_seed_rows(part: dict[str, Any], model: str) -> tuple[list[str],
     return head, rows
 
 
+def honest_spread(edges: int, horizon: int) -> dict[str, float]:
+    """What an honest model's mean NEES over one drive's chains of ``horizon`` edges can
+    be: the drive holds ``k = edges // horizon`` disjoint chains, each error's NEES chi2 with
+    3 degrees of freedom, so their mean is chi2(3k) / k (the overlapping chains the bench
+    also takes add little; an error every chain shares, as the scale, widens it further).
+    ``k``, its 5 and 95 % points and the chance it falls within 2-4."""
+    from scipy.stats import chi2
+
+    k = max(1, edges // horizon)
+    return {"k": k, "p5": float(chi2.ppf(0.05, 3 * k) / k), "p95": float(chi2.ppf(0.95, 3 * k) / k),
+            "within_2_4": float(chi2.cdf(4 * k, 3 * k) - chi2.cdf(2 * k, 3 * k))}
+
+
+def honest_spread_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
+    """Per horizon the spread of an honest per-seed mean (:func:`honest_spread`) at the
+    seeds' fewest edges, and the chance that every seed falls within 2-4."""
+    edges = min(r["edges"] for r in part["per_seed"])
+    n = len(part["per_seed"])
+    head = ["N edges", "disjoint chains per seed", "90 % of an honest seed's mean", "chance within 2-4",
+            f"chance all {n} seeds within 2-4"]
+    rows: list[list[Any]] = []
+    for h in HORIZONS:
+        if h > edges:
+            continue
+        sp = honest_spread(edges, h)
+        rows.append([h, sp["k"], f"{sp['p5']:.2f}-{sp['p95']:.2f}", f"{sp['within_2_4']:.2f}",
+                     f"{sp['within_2_4'] ** n:.2f}"])
+    return head, rows
+
+
 def daemon_cost_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
     head = ["seed", "keyframes", "loops", "model", "CPU ms / keyframe", "full solves CPU s", "ATE (m)",
             "scale estimate (wheel, gyro)"]
@@ -1135,6 +1165,10 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
                              *(100 * x for x in odo["scale_sigmas"])) if m == "bias_scale_window" else "")
                       + ":", ""]
             table(*daemon_graph_seed_rows(odo, m))
+        lines += ["How far one seed's mean can be from 3 when the covariances are right: a drive of the seeds' "
+                  "fewest edges holds this many disjoint chains per horizon, whose NEES are independent chi2 "
+                  "with 3 degrees of freedom (`honest_spread`; an error all of a seed's chains share widens it):", ""]
+        table(*honest_spread_rows(odo))
         lines += ["CPU in the daemon's graph, with loop edges from the truth (as above) and a full solve every "
                   "200 keyframes and at the end, as the pose-graph stage runs it (the fold after each): CPU "
                   "time of this process per keyframe (keyframe and loop updates), of the full solves (their "

@@ -86,3 +86,16 @@ def test_own_calibration_refuses_what_it_cannot_run(args, says, tmp_path, monkey
     assert exc.value.code == 2
     assert says in capsys.readouterr().err
     assert not (tmp_path / "out.json").exists()
+
+
+def test_an_honest_seeds_spread_is_the_chi_square_of_its_disjoint_chains():
+    from bench.bench_nees import honest_spread
+
+    two = honest_spread(2100, 1000)  # two disjoint chains: chi2 with 6 degrees of freedom, halved
+    assert two["k"] == 2
+    assert two["p5"] == pytest.approx(1.635 / 2, abs=1e-3) and two["p95"] == pytest.approx(12.592 / 2, abs=1e-3)
+    assert 0.4 < two["within_2_4"] < 0.5
+    assert honest_spread(2100, 1)["within_2_4"] > 0.999
+    rng = np.random.default_rng(1)  # the same chance by drawing two chains' chi2(3) and averaging
+    means = rng.chisquare(3, (200_000, 2)).mean(axis=1)
+    assert np.mean((means >= 2) & (means <= 4)) == pytest.approx(two["within_2_4"], abs=0.005)
