@@ -1092,9 +1092,9 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
              if odo.get("true_model") else
              ", the filter with the demo's shipped calibration's wheel radii, wheel base and gyro scale (seed 0's "
              "base) on every seed's base, as `robotd demo --seed N` runs it" if odo.get("shipped_geometry") else
-             ", each seed's base with its own calibration (`" + str(odo["own_calibration"]) + "`: what `robotd "
-             "calibrate odometry` made of that base's calibration drive), its wheel radii, wheel base and gyro "
-             "scale, noise model and scale prior, as `robotd demo --seed N` runs with that file"
+             ", each seed's base with its own calibration file (`" + str(odo["own_calibration"]) + "`), its wheel "
+             "radii, wheel base and gyro scale, noise model and scale prior, as `robotd demo --seed N` runs with "
+             "that file"
              if odo.get("own_calibration") else "")
     lines += [f"## Odometry edges ({odo['route']} route, keyframes every {odo['keyframe_m']} m or 10 deg, "
               f"{noise}{without}{model})", "",
