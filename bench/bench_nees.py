@@ -390,56 +390,74 @@ WITHOUT = {
 }
 
 
-def daemon_params(noise_model: str = "config", slip_gate_sigma: float = 0.0) -> EkfParams:
+def _calibration(path: Path | None = None) -> Any:
+    """The calibration file at ``path`` (default: the demo's shipped one), read."""
+    from robotd.app.demo import shipped_calibration
+    from robotd.io.calibfile import read_calibration
+
+    path = path if path is not None else shipped_calibration()
+    if path is None:
+        raise SystemExit("the demo's shipped calibration is missing")
+    if not Path(path).is_file():
+        raise SystemExit(f"{path}: no such calibration file")
+    return read_calibration(path)
+
+
+def daemon_params(noise_model: str = "config", slip_gate_sigma: float = 0.0,
+                  calibration: Path | None = None) -> EkfParams:
     """The noise model of the daemon's wheel + gyro filter with the demo's calibration
     (:func:`robotd.app.assemble.build_odometry`: the config's ``[odometry]`` with the
     calibration's gyro noise density; ``noise_model``: ``[odometry] noise_model``, with
     "calibration" the calibration's fitted sensor noise and white accelerations;
-    ``slip_gate_sigma``: ``[odometry] slip_gate_sigma``, the wheel slip test)."""
+    ``slip_gate_sigma``: ``[odometry] slip_gate_sigma``, the wheel slip test);
+    ``calibration``: another calibration file than the demo's."""
     from robotd.base.config import replace
     from robotd.app.assemble import build_odometry
-    from robotd.app.demo import shipped_calibration
     from robotd.base.config import Config
-    from robotd.io.calibfile import read_calibration
 
-    path = shipped_calibration()
-    if path is None:
-        raise SystemExit("the demo's shipped calibration is missing")
     # the wheel + gyro filter whose edges the graph gets (the twin when visual odometry is fused)
     cfg = replace(Config(), "odometry", noise_model=noise_model, slip_gate_sigma=slip_gate_sigma)
-    return build_odometry(cfg, read_calibration(path)).wheel_gyro.params
+    return build_odometry(cfg, _calibration(calibration)).wheel_gyro.params
 
 
-def shipped_geometry() -> tuple[Any, float]:
+def shipped_geometry(calibration: Path | None = None) -> tuple[Any, float]:
     """The wheel radii, wheel base and gyro scale the daemon's filter takes from the demo's
-    shipped calibration (:func:`robotd.app.assemble.build_odometry`): ``(DiffDriveParams,
-    gyro_scale)``."""
-    from robotd.app.demo import shipped_calibration
+    shipped calibration (or the file ``calibration``; :func:`robotd.app.assemble.build_odometry`):
+    ``(DiffDriveParams, gyro_scale)``."""
     from robotd.base.config import Config
-    from robotd.io.calibfile import read_calibration
     from robotd.odometry.kinematics import DiffDriveParams
 
-    path = shipped_calibration()
-    model = read_calibration(path).odometry if path is not None else None
+    model = _calibration(calibration).odometry
     if model is None:
-        raise SystemExit("the demo's shipped calibration (with its odometry model) is missing")
+        raise SystemExit(f"{calibration or 'the shipped calibration'}: no odometry model")
     drive = DiffDriveParams.from_config(Config().robot, wheel_base_m=model.wheel_base_m,
                                         wheel_radius_left_m=model.wheel_radius_left_m,
                                         wheel_radius_right_m=model.wheel_radius_right_m)
     return drive, model.gyro_scale
 
 
-def daemon_scale_sigmas() -> tuple[float, float]:
+def daemon_scale_sigmas(calibration: Path | None = None) -> tuple[float, float]:
     """The prior of the daemon graph's scale variable with the demo's shipped calibration
-    and the default ``[pose_graph] scale_wear`` and ``scale_wear_gyro``
-    (:func:`robotd.app.assemble.scale_prior_sigmas`)."""
+    (or the file ``calibration``) and the default ``[pose_graph] scale_wear`` and
+    ``scale_wear_gyro`` (:func:`robotd.app.assemble.scale_prior_sigmas`)."""
     from robotd.app.assemble import scale_prior_sigmas
-    from robotd.app.demo import shipped_calibration
     from robotd.base.config import Config
-    from robotd.io.calibfile import read_calibration
 
-    path = shipped_calibration()
-    return scale_prior_sigmas(Config(), read_calibration(path) if path is not None else None)
+    return scale_prior_sigmas(Config(), _calibration(calibration))
+
+
+def geometry_errors(calibration: Path | None, drawn: Any) -> dict[str, float]:
+    """The calibration's wheel radii, wheel base and gyro scale against the base's drawn
+    values (relative errors), its mean radius (the wheels' distance scale) and gyro scale
+    against theirs, and its own 1-sigmas of the wheel base and gyro scale."""
+    r0, b0 = BaseSensorParams().drive.wheel_radius_m, BaseSensorParams().drive.wheel_base_m
+    m = _calibration(calibration).odometry
+    tl, tr = r0 * (1 + drawn.left_radius_error), r0 * (1 + drawn.right_radius_error)
+    tb, ts = b0 * (1 + drawn.wheel_base_error), 1 + drawn.gyro_scale_error
+    return {"left_radius": m.wheel_radius_left_m / tl - 1, "right_radius": m.wheel_radius_right_m / tr - 1,
+            "distance": (m.wheel_radius_left_m + m.wheel_radius_right_m) / (tl + tr) - 1,
+            "wheel_base": m.wheel_base_m / tb - 1, "gyro_scale": m.gyro_scale / ts - 1,
+            "wheel_base_sigma": m.wheel_base_sigma_m / m.wheel_base_m, "gyro_scale_sigma": m.gyro_scale_sigma / m.gyro_scale}
 
 
 def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str, ...] = (),
@@ -448,25 +466,42 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str,
                   cost_models: tuple[str, ...] = ("independent", "bias_window", "bias"),
                   daemon_graph_seeds: int = 0, noise_model: str = "config",
                   slip_gate_sigma: float = 0.0, shipped: bool = False,
-                  daemon_models: tuple[str, ...] = ("independent", "bias_window")) -> dict[str, Any]:
+                  daemon_models: tuple[str, ...] = ("independent", "bias_window"),
+                  own_calibration: str | None = None) -> dict[str, Any]:
+    """``own_calibration``: a calibration file per seed (``{seed}`` in the name: what that
+    seed's own calibration drive gave, ``robotd calibrate odometry``), whose wheel radii,
+    wheel base and gyro scale the filter takes on that seed's base, with its noise model
+    (``daemon_model``) and its scale prior (``daemon_graph``), as ``robotd demo --seed N``
+    runs with that file; ``shipped``: the demo's shipped file on every seed."""
     sensors = BaseSensorParams()
     for name in without:  # the same base without these errors: what each costs
         sensors = dataclasses.replace(sensors, **WITHOUT[name])
-    params = (EkfParams(**(ekf or {})) if not daemon_model
-              else dataclasses.replace(daemon_params(noise_model, slip_gate_sigma), **(ekf or {})))
+
+    def seed_params(cal: Path | None) -> EkfParams:
+        return (EkfParams(**(ekf or {})) if not daemon_model
+                else dataclasses.replace(daemon_params(noise_model, slip_gate_sigma, cal), **(ekf or {})))
+
+    params = seed_params(None)
     per_seed = []
     for seed in range(seeds):
         t0 = time.monotonic()
-        d = drive_edges(route, seed, keyframe_m, sensors, params, true_model,
-                        shipped_geometry() if shipped else None)
+        cal = Path(own_calibration.format(seed=seed)) if own_calibration is not None else None
+        p_seed = seed_params(cal) if cal is not None else params
+        d = drive_edges(route, seed, keyframe_m, sensors, p_seed, true_model,
+                        shipped_geometry(cal) if (shipped or cal is not None) else None)
         res = chained_nees(d)
         cost = graph_cost(d, seed, (SCALE_SIGMA["wheel"], SCALE_SIGMA["gyro"]), cost_models) if seed < cost_seeds else None
         e = d["drawn"]
         sc = speed_change_edges(d)
         per_seed.append({"seed": seed, "edges": len(d["delta"]), "horizons": {str(k): v for k, v in res.items()},
                          "cost": cost, "speed_change": sc,
-                         "daemon_graph": (daemon_graph(d, seed, models=daemon_models)
+                         "daemon_graph": (daemon_graph(d, seed, models=daemon_models,
+                                                       scale_sigmas=daemon_scale_sigmas(cal))
                                           if seed < daemon_graph_seeds else None),
+                         "calibration": str(cal) if cal is not None else ("shipped" if shipped else None),
+                         "scale_sigmas": list(daemon_scale_sigmas(cal)),
+                         "params": dataclasses.asdict(p_seed) if cal is not None else None,
+                         "geometry_errors": (geometry_errors(cal, e) if (shipped or cal is not None) else None),
                          "drawn": {"wheel_base_error": e.wheel_base_error,
                                    "radius_error_left": e.left_radius_error,
                                    "radius_error_right": e.right_radius_error,
@@ -480,7 +515,7 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str,
             f"the other {sc['others']}: {sc['others_nees']:.2f} ({sc['others_nees_position']:.2f})")
     return {"route": route, "keyframe_m": keyframe_m, "without": list(without), "ekf": ekf or {},
             "true_model": true_model, "daemon_model": daemon_model, "noise_model": noise_model,
-            "slip_gate_sigma": slip_gate_sigma, "shipped_geometry": shipped,
+            "slip_gate_sigma": slip_gate_sigma, "shipped_geometry": shipped, "own_calibration": own_calibration,
             "daemon_models": list(daemon_models), "scale_sigmas": list(daemon_scale_sigmas()),
             "params": dataclasses.asdict(params), "per_seed": per_seed}
 
@@ -502,6 +537,24 @@ def odometry_rows(part: dict[str, Any], kind: str = "scales") -> tuple[list[str]
         g = [r["horizons"][str(h)][kind] for r in part["per_seed"] if str(h) in r["horizons"]]
         means.append(f"{np.mean(g):.2f}" if g else "-")
     rows.append(["mean", ""] + means)
+    return head, rows
+
+
+def geometry_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
+    """Per seed the calibration's geometry against the base's drawn values and the scale prior
+    (empty for a run with the nominal or the true geometry, or written before they were stored)."""
+    head = ["seed", "calibration", "left radius", "right radius", "distance (mean radius)", "wheel base",
+            "gyro scale", "scale prior (wheels, gyro)"]
+    rows: list[list[Any]] = []
+    for r in part["per_seed"]:
+        g = r.get("geometry_errors")
+        if not g:
+            continue
+        rows.append([r["seed"], f"`{r['calibration']}`", f"{100 * g['left_radius']:+.3f} %",
+                     f"{100 * g['right_radius']:+.3f} %", f"{100 * g['distance']:+.3f} %",
+                     f"{100 * g['wheel_base']:+.3f} % ({100 * g['wheel_base_sigma']:.3f})",
+                     f"{100 * g['gyro_scale']:+.3f} % ({100 * g['gyro_scale_sigma']:.3f})",
+                     f"{100 * r['scale_sigmas'][0]:.3f} %, {100 * r['scale_sigmas'][1]:.3f} %"])
     return head, rows
 
 
@@ -703,7 +756,8 @@ DAEMON_MODELS = ("independent", "bias_window", "bias_scale_window")
 
 def daemon_graph(d: dict[str, Any], seed: int, max_chains: int = 400, solve_every: int = 200,
                  horizons: tuple[int, ...] = HORIZONS,
-                 models: tuple[str, ...] = ("independent", "bias_window")) -> dict[str, Any]:
+                 models: tuple[str, ...] = ("independent", "bias_window"),
+                 scale_sigmas: tuple[float, float] | None = None) -> dict[str, Any]:
     """The seed's edges (with their bias terms) in the daemon's own graph,
     :class:`robotd.graph.incremental.IncrementalGraph`, once per ``odometry_model``.
 
@@ -716,8 +770,8 @@ def daemon_graph(d: dict[str, Any], seed: int, max_chains: int = 400, solve_ever
     and a full solve every ``solve_every`` keyframes and at the end (which folds iSAM2),
     as the pose-graph stage runs it: CPU seconds (this process) of the keyframe and loop
     updates per keyframe, of the full solves, and the final ATE (m). ``models``: of
-    :data:`DAEMON_MODELS`; ``"bias_scale_window"`` with the prior :func:`daemon_scale_sigmas`
-    (the scale variable's estimate at the end is reported, ``scale``)."""
+    :data:`DAEMON_MODELS`; ``"bias_scale_window"`` with the prior ``scale_sigmas`` (default
+    :func:`daemon_scale_sigmas`; the scale variable's estimate at the end is reported, ``scale``)."""
     from robotd.graph.incremental import IncrementalGraph, IncrementalParams
 
     deltas, covs, terms, truth = d["delta"], d["cov"], d["terms"], d["truth"]
@@ -728,7 +782,7 @@ def daemon_graph(d: dict[str, Any], seed: int, max_chains: int = 400, solve_ever
         by_end.setdefault(lp[1], []).append(lp)
     infos = [np.linalg.inv(c) for c in covs]
     out: dict[str, Any] = {"keyframes": m + 1, "loops": len(loops)}
-    gp = {"scale_sigmas": daemon_scale_sigmas()}
+    gp = {"scale_sigmas": scale_sigmas if scale_sigmas is not None else daemon_scale_sigmas()}
     for model in models:
         res: dict[str, Any] = {}
         g = IncrementalGraph(IncrementalParams(odometry_model=model, **gp))
@@ -835,6 +889,36 @@ def daemon_graph_seed_rows(part: dict[str, Any], model: str) -> tuple[list[str],
                     per_h[h].append(nees[str(h)]["all"])
     if len(rows) > 1:
         rows.append(["mean"] + [f"{np.mean(per_h[h]):.2f}" if per_h[h] else "-" for h in HORIZONS])
+    return head, rows
+
+
+def honest_spread(edges: int, horizon: int) -> dict[str, float]:
+    """What an honest model's mean NEES over one drive's chains of ``horizon`` edges can
+    be: the drive holds ``k = edges // horizon`` disjoint chains, each error's NEES chi2 with
+    3 degrees of freedom, so their mean is chi2(3k) / k (the overlapping chains the bench
+    also takes add little; an error every chain shares, as the scale, widens it further).
+    ``k``, its 5 and 95 % points and the chance it falls within 2-4."""
+    from scipy.stats import chi2
+
+    k = max(1, edges // horizon)
+    return {"k": k, "p5": float(chi2.ppf(0.05, 3 * k) / k), "p95": float(chi2.ppf(0.95, 3 * k) / k),
+            "within_2_4": float(chi2.cdf(4 * k, 3 * k) - chi2.cdf(2 * k, 3 * k))}
+
+
+def honest_spread_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
+    """Per horizon the spread of an honest per-seed mean (:func:`honest_spread`) at the
+    seeds' fewest edges, and the chance that every seed falls within 2-4."""
+    edges = min(r["edges"] for r in part["per_seed"])
+    n = len(part["per_seed"])
+    head = ["N edges", "disjoint chains per seed", "90 % of an honest seed's mean", "chance within 2-4",
+            f"chance all {n} seeds within 2-4"]
+    rows: list[list[Any]] = []
+    for h in HORIZONS:
+        if h > edges:
+            continue
+        sp = honest_spread(edges, h)
+        rows.append([h, sp["k"], f"{sp['p5']:.2f}-{sp['p95']:.2f}", f"{sp['within_2_4']:.2f}",
+                     f"{sp['within_2_4'] ** n:.2f}"])
     return head, rows
 
 
@@ -995,8 +1079,10 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
         if odo.get("noise_model", "config") != "config":
             p = odo["params"]
             noise = (f"the daemon's noise model with `[odometry] noise_model = \"{odo['noise_model']}\"` and the "
-                     "demo's calibration (its fitted sensor noise and white accelerations: "
-                     f"{p['accel_noise_density_mps2_per_sqrt_hz']:.4f} m/s^2 and "
+                     + ("seed's own calibration (its own fitted sensor noise and white accelerations; the demo's: "
+                        if odo.get("own_calibration") else
+                        "demo's calibration (its fitted sensor noise and white accelerations: ")
+                     + f"{p['accel_noise_density_mps2_per_sqrt_hz']:.4f} m/s^2 and "
                      f"{p['angular_accel_noise_density_radps2_per_sqrt_hz']:.4f} rad/s^2 per sqrt(Hz), wheel "
                      f"speed {p['wheel_v_noise_mps']:.5f} m/s, gyro {p['gyro_noise_radps']:.5f} rad/s per reading)"
                      + (f", the wheel slip test at `slip_gate_sigma = {odo['slip_gate_sigma']:g}`"
@@ -1005,7 +1091,11 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
     model = (", the filter with each base's true wheel radii, wheel base and gyro scale (a calibrated model)"
              if odo.get("true_model") else
              ", the filter with the demo's shipped calibration's wheel radii, wheel base and gyro scale (seed 0's "
-             "base) on every seed's base, as `robotd demo --seed N` runs it" if odo.get("shipped_geometry") else "")
+             "base) on every seed's base, as `robotd demo --seed N` runs it" if odo.get("shipped_geometry") else
+             ", each seed's base with its own calibration file (`" + str(odo["own_calibration"]) + "`), its wheel "
+             "radii, wheel base and gyro scale, noise model and scale prior, as `robotd demo --seed N` runs with "
+             "that file"
+             if odo.get("own_calibration") else "")
     lines += [f"## Odometry edges ({odo['route']} route, keyframes every {odo['keyframe_m']} m or 10 deg, "
               f"{noise}{without}{model})", "",
               "Mean NEES over seeds of chains of N consecutive edges, per model of what the edges share "
@@ -1028,6 +1118,12 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
                   "models give when the white noise is about the simulated sensors' own (docs/concepts.md, "
                   "\"Odometry edges the gate can trust\").", ""]
     table(*odometry_model_rows(odo))
+    head, rows = geometry_rows(odo)
+    if rows:
+        lines += ["The calibration's geometry on each seed's base, relative to the base's drawn values (its own "
+                  "1-sigma in brackets), and the daemon graph's scale prior (wheels, gyro: the calibration's "
+                  "uncertainty with the default `[pose_graph] scale_wear` and `scale_wear_gyro`):", ""]
+        table(head, rows)
     lines += ["Per seed, bias + scale variables:", ""]
     table(*odometry_rows(odo, "scales"))
     if all("window" in r["horizons"]["1"] for r in odo["per_seed"]):
@@ -1062,11 +1158,17 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
         table(*daemon_graph_rows(odo))
         for m in _daemon_models(odo)[1:]:
             lines += [f"Per seed, `{m}` in the daemon's graph"
-                      + (" (the scale variable's prior: wheels {:.3f} %, gyro {:.4f} %, the shipped calibration's "
+                      + ((" (the scale variable's prior: each seed's calibration's uncertainty and the default "
+                          "`[pose_graph] scale_wear`, above)") if m == "bias_scale_window" and odo.get("own_calibration")
+                         else " (the scale variable's prior: wheels {:.3f} %, gyro {:.4f} %, the shipped calibration's "
                          "uncertainty and the default `[pose_graph] scale_wear`)".format(
                              *(100 * x for x in odo["scale_sigmas"])) if m == "bias_scale_window" else "")
                       + ":", ""]
             table(*daemon_graph_seed_rows(odo, m))
+        lines += ["How far one seed's mean can be from 3 when the covariances are right: a drive of the seeds' "
+                  "fewest edges holds this many disjoint chains per horizon, whose NEES are independent chi2 "
+                  "with 3 degrees of freedom (`honest_spread`; an error all of a seed's chains share widens it):", ""]
+        table(*honest_spread_rows(odo))
         lines += ["CPU in the daemon's graph, with loop edges from the truth (as above) and a full solve every "
                   "200 keyframes and at the end, as the pose-graph stage runs it (the fold after each): CPU "
                   "time of this process per keyframe (keyframe and loop updates), of the full solves (their "
@@ -1151,6 +1253,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--shipped-geometry", action="store_true",
                     help="odometry: the filter with the demo's shipped calibration's wheel radii, wheel base and "
                          "gyro scale (seed 0's base) on every seed's base, as the demo runs it")
+    ap.add_argument("--own-calibration", default=None, metavar="PATTERN",
+                    help="odometry: each seed's base with its own calibration file (PATTERN with {seed}: what "
+                         "`robotd calibrate odometry` made from that base's calibration drive): its wheel radii, "
+                         "wheel base and gyro scale, its noise model (--daemon-model) and scale prior")
     ap.add_argument("--cost-models", default="independent,bias_window,bias",
                     help="odometry: the graph-cost models timed (of independent, bias_window, bias, bias_scales)")
     ap.add_argument("--compare", type=Path, action="append", default=[],
@@ -1167,6 +1273,15 @@ def main(argv: list[str] | None = None) -> int:
     if not set(without) <= set(WITHOUT):
         ap.error(f"--without takes {', '.join(WITHOUT)}")
     n_pairs = args.pairs or (400 if args.full else 120)
+    if args.own_calibration is not None:
+        if args.shipped_geometry or args.true_model:
+            ap.error("--own-calibration takes the place of --shipped-geometry and --true-model")
+        if "{seed}" not in args.own_calibration:
+            ap.error("--own-calibration needs {seed} in its PATTERN")
+        missing = [args.own_calibration.format(seed=n) for n in range(seeds)
+                   if not Path(args.own_calibration.format(seed=n)).is_file()]
+        if missing and args.page_from is None and not args.skip_odometry:
+            ap.error(f"--own-calibration: no calibration file {missing[0]}")
     if args.page_from is not None:
         import json
 
@@ -1191,7 +1306,8 @@ def main(argv: list[str] | None = None) -> int:
                                             args.true_model, args.daemon_model,
                                             tuple(m for m in args.cost_models.split(",") if m), args.daemon_graph,
                                             args.noise_model, args.slip_gate, args.shipped_geometry,
-                                            tuple(m for m in args.daemon_models.split(",") if m))
+                                            tuple(m for m in args.daemon_models.split(",") if m),
+                                            args.own_calibration)
         print(f"\nodometry edges, {args.route}: mean NEES of N chained edges per model (yaw, position) [seeds]")
         print_table(*odometry_model_rows(payload["odometry"]))
         print("\nper seed, bias + scale variables")

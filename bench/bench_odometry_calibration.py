@@ -105,6 +105,27 @@ def synthetic_model(seed: int, route: str, sigma_m: float, sigma_rad: float, lap
     return model_from_fit(fit_odometry(drive, p.drive.wheel_radius_m, p.drive.wheel_base_m))
 
 
+#: The fields of a fit :func:`write_geometry` puts into the shipped file.
+GEOMETRY_FIELDS = ("wheel_radius_left_m", "wheel_radius_right_m", "wheel_base_m", "gyro_scale",
+                   "wheel_radius_left_sigma_m", "wheel_radius_right_sigma_m", "wheel_base_sigma_m", "gyro_scale_sigma")
+
+
+def write_geometry(path: Path, model: Any) -> None:
+    """The demo's shipped calibration with ``model``'s wheel radii, wheel base and gyro
+    scale and their 1-sigmas (:data:`GEOMETRY_FIELDS`), its noise model kept, at ``path``."""
+    import dataclasses
+
+    from robotd.app.demo import shipped_calibration
+    from robotd.io.calibfile import write_calibration
+
+    ship_path = shipped_calibration()
+    ship = read_calibration(ship_path) if ship_path is not None else None
+    if ship is None or ship.odometry is None:
+        raise SystemExit("the demo's shipped calibration (with its odometry model) is missing")
+    odo = dataclasses.replace(ship.odometry, **{k: getattr(model, k) for k in GEOMETRY_FIELDS})
+    write_calibration(path, dataclasses.replace(ship, odometry=odo))
+
+
 def evaluate(seed: int, calib_path: Path | None, motion: Any, model: Any = None) -> dict[str, Any]:
     p = BaseSensorParams()
     truth = draw_errors(p, np.random.default_rng(seed))
@@ -195,6 +216,10 @@ def main(argv: list[str] | None = None) -> int:
                          "true poses plus --reference-noise (the fit alone, no pipeline)")
     ap.add_argument("--reference-noise", default="0.0005,0.0005", metavar="M,RAD")
     ap.add_argument("--laps", type=int, default=1, help="with --synthetic-reference: drive the route this many times")
+    ap.add_argument("--write-calibration", default=None, metavar="PATTERN",
+                    help="with --synthetic-reference: write each seed's fit ({seed} in PATTERN) as a calibration "
+                         "file: the demo's shipped file with the fitted wheel radii, wheel base and gyro scale and "
+                         "their 1-sigmas (its noise model kept), for bench_nees.py --own-calibration")
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--route", default="office")
     ap.add_argument("--full", action="store_true", help="the same as the default (see the module text)")
@@ -205,10 +230,15 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     if (args.calibration is None) == (args.synthetic_reference is None):
         ap.error("give --calibration or --synthetic-reference")
+    if args.write_calibration is not None and (args.synthetic_reference is None
+                                               or "{seed}" not in args.write_calibration):
+        ap.error("--write-calibration needs --synthetic-reference and {seed} in its PATTERN")
     for seed in (int(s) for s in args.seeds.split(",")):
         if args.synthetic_reference is not None:
             sm, sr = (float(v) for v in args.reference_noise.split(","))
             model = synthetic_model(seed, args.synthetic_reference, sm, sr, args.laps)
+            if args.write_calibration is not None:
+                write_geometry(Path(args.write_calibration.format(seed=seed)), model)
             rows.append(evaluate(seed, None, motion, model))
             laps = f" x {args.laps} laps" if args.laps > 1 else ""
             rows[-1]["calibration"] = (f"synthetic: {args.synthetic_reference}{laps}, reference noise {sm} m, "

@@ -35,3 +35,67 @@ def test_the_lag_of_the_edges_across_a_speed_change_is_recovered():
 def test_a_leading_pose_gives_a_negative_lag():
     speeds = np.array([0.0, 0.3, 0.3, 0.0])
     assert speed_change_edges(_straight_edges(speeds, tau_s=-0.004))["tau_ms"] == pytest.approx(-4.0, rel=1e-9)
+
+
+def _calibration_file(path, left_m: float, right_m: float, base_m: float, gyro_scale: float) -> None:
+    from robotd.io.calibfile import CalibrationFile, OdometryModel, write_calibration
+
+    write_calibration(path, CalibrationFile(odometry=OdometryModel(
+        wheel_radius_left_m=left_m, wheel_radius_right_m=right_m, wheel_base_m=base_m, gyro_scale=gyro_scale,
+        gyro_bias_radps=0.0, gyro_noise_radps_sqrt_hz=5e-4, wheel_noise_m_sqrt_m=0.0,
+        wheel_radius_left_sigma_m=3.5e-6, wheel_radius_right_sigma_m=3.5e-6, wheel_base_sigma_m=2.3e-4,
+        gyro_scale_sigma=1e-4, gyro_bias_sigma_radps=1e-4)))
+
+
+def test_a_calibration_is_measured_against_the_base_it_was_made_for(tmp_path):
+    from types import SimpleNamespace
+
+    from bench.bench_nees import geometry_errors
+    from sim.sensors import BaseSensorParams
+
+    d = BaseSensorParams().drive
+    r0, b0 = d.wheel_radius_m, d.wheel_base_m
+    drawn = SimpleNamespace(left_radius_error=0.002, right_radius_error=-0.001, wheel_base_error=0.015,
+                            gyro_scale_error=-0.002)
+    # the calibration: left radius right, right 0.1 % long, wheel base 1.5 % short of the truth
+    path = tmp_path / "cal.yml"
+    _calibration_file(path, r0 * 1.002, r0 * 0.999 * 1.001, b0 * 1.015 * 0.985, 0.998 * 1.0005)
+    g = geometry_errors(path, drawn)
+    assert g["left_radius"] == pytest.approx(0.0, abs=1e-12)
+    assert g["right_radius"] == pytest.approx(0.001, rel=1e-9)
+    assert g["distance"] == pytest.approx(0.999 * 0.001 / (1.002 + 0.999), rel=1e-9)
+    assert g["wheel_base"] == pytest.approx(-0.015, rel=1e-9)
+    assert g["gyro_scale"] == pytest.approx(0.0005, rel=1e-9)
+    assert g["wheel_base_sigma"] == pytest.approx(2.3e-4 / (b0 * 1.015 * 0.985), rel=1e-9)
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--own-calibration", "cal.yml"], "needs {seed}"),
+    (["--own-calibration", "cal{seed}.yml", "--shipped-geometry"], "takes the place of"),
+    (["--own-calibration", "cal{seed}.yml", "--seeds", "2"], "no calibration file"),
+])
+def test_own_calibration_refuses_what_it_cannot_run(args, says, tmp_path, monkeypatch, capsys):
+    from bench.bench_nees import main
+    from sim.sensors import BaseSensorParams
+
+    monkeypatch.chdir(tmp_path)
+    d = BaseSensorParams().drive
+    _calibration_file(tmp_path / "cal0.yml", d.wheel_radius_m, d.wheel_radius_m, d.wheel_base_m, 1.0)
+    with pytest.raises(SystemExit) as exc:
+        main(args + ["--skip-loops", "--out", str(tmp_path / "out.json")])
+    assert exc.value.code == 2
+    assert says in capsys.readouterr().err
+    assert not (tmp_path / "out.json").exists()
+
+
+def test_an_honest_seeds_spread_is_the_chi_square_of_its_disjoint_chains():
+    from bench.bench_nees import honest_spread
+
+    two = honest_spread(2100, 1000)  # two disjoint chains: chi2 with 6 degrees of freedom, halved
+    assert two["k"] == 2
+    assert two["p5"] == pytest.approx(1.635 / 2, abs=1e-3) and two["p95"] == pytest.approx(12.592 / 2, abs=1e-3)
+    assert 0.4 < two["within_2_4"] < 0.5
+    assert honest_spread(2100, 1)["within_2_4"] > 0.999
+    rng = np.random.default_rng(1)  # the same chance by drawing two chains' chi2(3) and averaging
+    means = rng.chisquare(3, (200_000, 2)).mean(axis=1)
+    assert np.mean((means >= 2) & (means <= 4)) == pytest.approx(two["within_2_4"], abs=0.005)
