@@ -31,7 +31,7 @@ import numpy as np
 
 from robotd.forward.planar import INLIER_NOISE_FACTOR, normalised_points
 
-__all__ = ["SCAN_STEP_RAD", "PlanarFit", "PlanarSearch", "fit_planar", "fit_planar_scans", "front_mask", "planar_inliers", "planar_pose",
+__all__ = ["SCAN_STEP_RAD", "PlanarFit", "PlanarSearch", "fit_planar", "fit_planar_fixed", "fit_planar_scans", "front_mask", "planar_inliers", "planar_pose",
            "ransac_planar", "ridge_span"]
 
 
@@ -223,11 +223,22 @@ def fit_planar_scans(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: 
     return _fit_planar(p_old_px, p_new_px, camera_matrix, list(yaw_guesses_rad), threshold_px, n_steps, step_rad)
 
 
+def fit_planar_fixed(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, yaws_rad: list[float],
+                     sigmas: list[bool], *, threshold_px: float = 1.0) -> list[PlanarFit | None]:
+    """:func:`fit_planar` with ``fix_yaw`` of the same matches at each of ``yaws_rad`` (with
+    its sigmas where ``sigmas`` says): the matches are normalised once and every heading's
+    candidates scored together (the ridge's fit and its two side fits)."""
+    return _fit_planar(p_old_px, p_new_px, camera_matrix, list(yaws_rad), threshold_px, 0, SCAN_STEP_RAD, True,
+                       list(sigmas))
+
+
 def _fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, guesses: list[float],
                 threshold_px: float, n_steps: int, step_rad: float, fix_yaw: bool = False,
-                sigmas: bool = True) -> list[PlanarFit | None]:
-    """:func:`fit_planar` (``fix_yaw``: one guess, ``n_steps`` 0) and :func:`fit_planar_scans`:
-    one fit per guess, each scanning ``n_steps`` lattice headings either side of it."""
+                sigmas: bool | list[bool] = True) -> list[PlanarFit | None]:
+    """:func:`fit_planar` (``fix_yaw``: each guess's heading held, ``n_steps`` 0),
+    :func:`fit_planar_scans` and :func:`fit_planar_fixed`: one fit per guess, each scanning
+    ``n_steps`` lattice headings either side of it; ``sigmas`` one for all or one per guess."""
+    each = list(sigmas) if isinstance(sigmas, list) else [sigmas] * len(guesses)
     p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
     p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
     n = len(p_old)
@@ -247,7 +258,7 @@ def _fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nd
     # bit: a window's headings are its rounded guess plus multiples of the step, as one
     # window's always were, so each fit is the one its window alone gives).
     if fix_yaw:
-        wanted = [np.array([float(guesses[0])])]
+        wanted = [np.array([float(g)]) for g in guesses]
     else:
         steps = np.arange(-n_steps, n_steps + 1) * step_rad
         wanted = [round(g / step_rad) * step_rad + steps for g in guesses]
@@ -275,19 +286,19 @@ def _fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nd
     inl_n, cost = _scores(terms, cand_yaw, cand_psi, focal, threshold_px)
     per = cands.shape[1] * cands.shape[2]  # candidates per heading
     fits: list[PlanarFit | None] = []
-    refined: dict[int, PlanarFit] = {}  # a best candidate's refinement, for a window sharing it
-    for r in rows:
+    refined: dict[tuple[int, bool], PlanarFit] = {}  # a best candidate's refinement, for a window sharing it
+    for r, sg in zip(rows, each):
         ci = (r[:, None] * per + np.arange(per)).ravel()  # this window's candidates, in scan order
         w_n, w_cost = inl_n[ci], cost[ci]
         # The most inliers, then the least cost; the first in scan order among equals.
         best_i = int(ci[np.flatnonzero(w_n == w_n.max())[np.argmax(w_cost[w_n == w_n.max()])]])
         w_yaws, scan_n = yaws[r], w_n.reshape(len(r), -1).max(axis=1)
-        if best_i not in refined:
-            refined[best_i] = _refine(x_old, x_new, focal, float(cand_yaw[best_i]), float(cand_psi[best_i]),
-                                      threshold_px, fix_yaw, w_yaws, scan_n, sigmas, terms)
-            fits.append(refined[best_i])
+        if (best_i, sg) not in refined:
+            refined[best_i, sg] = _refine(x_old, x_new, focal, float(cand_yaw[best_i]), float(cand_psi[best_i]),
+                                          threshold_px, fix_yaw, w_yaws, scan_n, sg, terms)
+            fits.append(refined[best_i, sg])
         else:
-            fits.append(replace(refined[best_i], scan_yaw_rad=w_yaws, scan_inliers=scan_n))
+            fits.append(replace(refined[best_i, sg], scan_yaw_rad=w_yaws, scan_inliers=scan_n))
     return fits
 
 

@@ -133,7 +133,8 @@ from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStor
 from robotd.forward import LOOP, ForwardDetector
 from robotd.forward.features import CompactFeatures
 from robotd.forward.planar import INLIER_NOISE_FACTOR, planar_motion, planarity_bound
-from robotd.forward.planefit import SCAN_STEP_RAD, PlanarFit, fit_planar, fit_planar_scans, planar_inliers, ridge_span
+from robotd.forward.planefit import (SCAN_STEP_RAD, PlanarFit, fit_planar_fixed, fit_planar_scans, planar_inliers,
+                                    ridge_span)
 from robotd.forward.verify import VerifyParams, floor_range, match_features, matched_points
 
 log = logging.getLogger(__name__)
@@ -1044,9 +1045,6 @@ class ForwardLoopStage(Publisher):
         vp: VerifyParams = self.detector.params.verify
         thr = vp.ransac_threshold_px
 
-        def at(yaw: float, sigmas: bool = True) -> PlanarFit | None:  # sigmas False: its bearing alone is read
-            return fit_planar(p_old, p_new, k, yaw, threshold_px=thr, fix_yaw=True, sigmas=sigmas)
-
         prior = self._prior_yaw(image_id)
         if narrow:  # RidgeParams.narrow == "graph"
             if prior is None or rp.prior_gate_sigmas * prior[1] >= rp.edge_sigma_yaw_rad or \
@@ -1055,7 +1053,7 @@ class ForwardLoopStage(Publisher):
             lo = hi = prior[0]
             on = np.array([prior[0]])
         if prior is None:
-            ends = at(lo, False), at(hi, False)
+            ends = fit_planar_fixed(p_old, p_new, k, [lo, hi], [False, False], threshold_px=thr)
             if ends[0] is None or ends[1] is None:
                 return None
             spread = 0.5 * abs(math.remainder(ends[1].bearing_rad - ends[0].bearing_rad, math.tau))
@@ -1077,7 +1075,9 @@ class ForwardLoopStage(Publisher):
                      old_kf, math.degrees(lo), math.degrees(hi), math.degrees(yaw_p), math.degrees(sigma_p))
             return False
         yaw = min(max(yaw_p, lo), hi)
-        best = at(yaw)
+        # the fit there and, 0.5 deg either side, the two whose bearings give the ridge's slope (below)
+        best, *side = fit_planar_fixed(p_old, p_new, k, [yaw, yaw - rp.slope_step_rad, yaw + rp.slope_step_rad],
+                                       [True, False, False], threshold_px=thr)
         if best is None or best.n_inliers < vp.min_inliers:
             self.ridge_refused += 1
             log.info("forward loop to keyframe %d refused: on a heading-bearing ridge, too few matches at the "
@@ -1085,7 +1085,6 @@ class ForwardLoopStage(Publisher):
             return False
         # How fast the ridge's bearing moves with the heading, there: the prior's heading
         # sigma becomes the bearing's along the ridge.
-        side = at(yaw - rp.slope_step_rad, False), at(yaw + rp.slope_step_rad, False)
         slope = 0.0
         if side[0] is not None and side[1] is not None:
             slope = math.remainder(side[1].bearing_rad - side[0].bearing_rad, math.tau) / (2 * rp.slope_step_rad)
