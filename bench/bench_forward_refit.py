@@ -125,10 +125,14 @@ def refit(pf: Any, now: bool, old: Any, new: Any, v: Any, k: np.ndarray, thr: fl
     bearings: list[float] = []
     if fit is not None:
         yaw, side = fit.dyaw_rad, math.radians(0.5)
-        best = pf.fit_planar(p_old, p_new, k, yaw, threshold_px=thr, fix_yaw=True)
-        extra = {"sigmas": False} if now else {}
-        sides = [pf.fit_planar(p_old, p_new, k, y, threshold_px=thr, fix_yaw=True, **extra)
-                 for y in (yaw - side, yaw + side)]
+        if now and hasattr(pf, "fit_planar_fixed"):  # the three in one call, as the stage makes them
+            best, *sides = pf.fit_planar_fixed(p_old, p_new, k, [yaw, yaw - side, yaw + side], [True, False, False],
+                                               threshold_px=thr)
+        else:
+            best = pf.fit_planar(p_old, p_new, k, yaw, threshold_px=thr, fix_yaw=True)
+            extra = {"sigmas": False} if now else {}
+            sides = [pf.fit_planar(p_old, p_new, k, y, threshold_px=thr, fix_yaw=True, **extra)
+                     for y in (yaw - side, yaw + side)]
         bearings = [f.bearing_rad if f is not None else math.nan for f in [best, *sides]]
         if best is not None:
             bearings.append(best.sigma_bearing_rad)
@@ -144,6 +148,23 @@ def same(a: Any, b: Any) -> bool:
     return bool(a.dyaw_rad == b.dyaw_rad and a.bearing_rad == b.bearing_rad and np.array_equal(a.inliers, b.inliers)
                 and a.sigma_bearing_rad == b.sigma_bearing_rad and a.sigma_yaw_rad == b.sigma_yaw_rad
                 and np.array_equal(a.scan_yaw_rad, b.scan_yaw_rad) and np.array_equal(a.scan_inliers, b.scan_inliers))
+
+
+def close(a: Any, b: Any, tol: float = 1e-6) -> bool:
+    """The same fit up to rounding: the same inliers and scan profile, heading, bearing and
+    sigmas within ``tol`` (radians; the sigmas relative)."""
+    if a is None or b is None:
+        return a is b
+
+    def near(x: float, y: float, rel: bool = False) -> bool:
+        if not (math.isfinite(x) and math.isfinite(y)):
+            return x == y or (math.isnan(x) and math.isnan(y))
+        return abs(x - y) <= tol * (max(abs(x), abs(y)) if rel else 1.0)
+
+    return bool(np.array_equal(a.inliers, b.inliers) and np.array_equal(a.scan_yaw_rad, b.scan_yaw_rad)
+                and np.array_equal(a.scan_inliers, b.scan_inliers) and near(a.dyaw_rad, b.dyaw_rad)
+                and abs(math.remainder(a.bearing_rad - b.bearing_rad, math.tau)) <= tol
+                and near(a.sigma_bearing_rad, b.sigma_bearing_rad, True) and near(a.sigma_yaw_rad, b.sigma_yaw_rad, True))
 
 
 def page_lines(out: dict[str, Any]) -> list[str]:
@@ -168,8 +189,11 @@ def page_lines(out: dict[str, Any]) -> list[str]:
     lines += [f"| **all three** | {pv['baseline_median']} (median) | {pv['now_median']} (median) | "
               f"**{out['ratio_total']:.2f}** (totals) |", "",
               f"Fits identical to the bit (heading, bearing, inliers, sigmas, the scan's profile; the ridge fits' "
-              f"bearings): {out['identical_fits']} of {out['views']} views. The ridge's fits run here for every view; "
-              "in the daemon only for loops on a heading-bearing ridge.", ""]
+              f"bearings): {out['identical_fits']} of {out['views']} views"
+              + (f"; the same up to rounding (the same inliers and profile, heading, bearings and sigmas within "
+                 f"1e-6): {out['same_fits_to_rounding']}" if "same_fits_to_rounding" in out else "")
+              + ". The ridge's fits run here for every view; in the daemon only for loops on a heading-bearing "
+              "ridge.", ""]
     return lines
 
 
@@ -201,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     before = {p: 0.0 for p in PARTS}
     after = {p: 0.0 for p in PARTS}
     per_view: list[tuple[float, float]] = []
-    identical = two_scans = 0
+    identical = rounding = two_scans = 0
     offsets = []
     for n, (old, new, v) in enumerate(views):
         vb, va = 0.0, 0.0
@@ -222,6 +246,10 @@ def main(argv: list[str] | None = None) -> int:
         bear_b, bear_n = got_base[1], got_now[1]
         sides_equal = bear_b[:3] == bear_n[:3] and (len(bear_b) < 4 or bear_b[3] == bear_n[3])
         identical += same(got_base[0], got_now[0]) and sides_equal
+        sides_close = len(bear_b) == len(bear_n) and all(
+            (math.isnan(x) and math.isnan(y)) or abs(math.remainder(x - y, math.tau)) <= 1e-6 * max(1.0, abs(x))
+            for x, y in zip(bear_b, bear_n))
+        rounding += close(got_base[0], got_now[0]) and sides_close
         from robotd.forward.planar import planar_motion
 
         verified = planar_motion(v.rotation, v.translation_dir)[0]
@@ -240,6 +268,7 @@ def main(argv: list[str] | None = None) -> int:
            "baseline_commit": subprocess.run(["git", "rev-parse", args.baseline_rev], cwd=REPO_ROOT,
                                              capture_output=True, text=True).stdout.strip(),
            "load": [load0, round(os.getloadavg()[0], 1)], "map": str(args.map), "label": args.label or str(args.map), "views": len(views), "repeats": reps, "identical_fits": identical,
+           "same_fits_to_rounding": rounding,
            "two_scans": two_scans,
            "level_minus_verified_deg": {"median": round(float(np.median(offsets)), 2) if offsets else None,
                                         "p90": round(float(np.percentile(offsets, 90)), 2) if offsets else None,
@@ -249,7 +278,8 @@ def main(argv: list[str] | None = None) -> int:
                            "now_median": round(float(np.median(pv[:, 1])), 2) if len(pv) else None,
                            "baseline_max": round(float(pv[:, 0].max()), 2) if len(pv) else None,
                            "now_max": round(float(pv[:, 1].max()), 2) if len(pv) else None}}
-    print(f"{len(views)} verified views, {two_scans} with two scans; fits identical in {identical}")
+    print(f"{len(views)} verified views, {two_scans} with two scans; fits identical in {identical}, "
+          f"the same to rounding in {rounding}")
     print(f"{'part':>6} | {'baseline ms/view':>16} | {'now ms/view':>11} | ratio")
     for r in rows:
         print(f"{r['part']:>6} | {r['baseline_cpu_ms_per_view']:>16.3f} | {r['now_cpu_ms_per_view']:>11.3f} | "
