@@ -330,8 +330,8 @@ class HeadingGraph:
         the answer then does not depend on how far the pipeline has gone since)."""
         n_eff = self._n if upto is None else max(0, min(self._n, upto - self._dropped))
         key = (b, self._dropped, n_eff, len(self._odom))
-        again = self._again(key, a)
-        if again is not False:
+        hit, again = self._again(key, a)
+        if hit:
             return again
         self._last = None
         links = self._links(a, b, upto)
@@ -427,29 +427,30 @@ class HeadingGraph:
         self._last = (self._nodes, y0 + dy, keep, pos, lu, ia, ib)
         return float(wrap_angle(y0[ib] + dy[ib])), math.sqrt(max(var, 0.0))
 
-    def _again(self, key: tuple[int, int, int, int], a: int) -> tuple[float, float] | None | bool:
+    def _again(self, key: tuple[int, int, int, int], a: int) -> tuple[bool, tuple[float, float] | None]:
         """The answer for ``a`` from the last solve when it was for the same newer keyframe
         with the same links (``key``: the stage asks once per view of one forward keyframe,
         all against that keyframe, with the links it had when stored) and ``a`` is one of its
         nodes: the solution is the same least squares (a node the last pair joined by the
         odometry is a leaf, which moves no other node), so its yaws give ``a``'s heading and
         the factorisation its sigma, by one more back-substitution instead of a new solve
-        (the same figures up to rounding). False when there is no such solve."""
+        (the same figures up to rounding): ``(True, answer)``; ``(False, None)`` when there is
+        no such solve."""
         last = self._last
         if last is None or key != self._key:
-            return False
+            return False, None
         nodes, y, keep, pos, lu, ia0, ib = last
         ia = int(np.searchsorted(nodes, a))
         if ia >= len(nodes) or int(nodes[ia]) != a:
-            return False
+            return False, None
         if not keep[ia]:
-            return None
+            return True, None
         e = np.zeros(lu.shape[0])
         if ia != ia0:
             e[pos[ia]] = -1.0
         e[pos[ib]] += 1.0
         var = float(e @ lu.solve(e))
-        return float(wrap_angle(y[ib] - y[ia])), math.sqrt(max(var, 0.0))
+        return True, (float(wrap_angle(y[ib] - y[ia])), math.sqrt(max(var, 0.0)))
 
 
 class ForwardLoopStage(Publisher):
