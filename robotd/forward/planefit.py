@@ -31,7 +31,7 @@ import numpy as np
 
 from robotd.forward.planar import INLIER_NOISE_FACTOR, normalised_points
 
-__all__ = ["SCAN_STEP_RAD", "PlanarFit", "PlanarSearch", "fit_planar", "fit_planar_scans", "front_mask", "planar_inliers", "planar_pose",
+__all__ = ["SCAN_STEP_RAD", "PlanarFit", "PlanarSearch", "fit_planar", "fit_planar_fixed", "fit_planar_scans", "front_mask", "planar_inliers", "planar_pose",
            "ransac_planar", "ridge_span"]
 
 
@@ -86,62 +86,100 @@ def _sampson(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarray,
     return out
 
 
-_BLOCK = 32  # candidates scored at once by fit_planar's heading scan
-
-
-def _sampson_many(x_old: np.ndarray, x_new: np.ndarray, yaws: np.ndarray, psis: np.ndarray,
-                  focal: float) -> np.ndarray:
-    """:func:`_sampson` of the planar poses ``(yaws[m], psis[m])``, all at once: ``(M, N)``.
-
-    ``E = [t]x R`` has four nonzero entries, so ``E x`` and ``E^T x'`` are written out
-    entry by entry on ``(M, N)`` arrays instead of contracting the ``(M, 3, 3)`` matrices
-    (4-5 x faster); the sums are taken in the order ``numpy.einsum`` took them, so the
-    distances are the same to the bit (``tests/forward/test_planefit.py``)."""
-    c, s = np.cos(yaws), np.sin(yaws)
-    tx_, tz = np.sin(psis), np.cos(psis)
-    # E = [t]x R with R = [[c, 0, s], [0, 1, 0], [-s, 0, c]] and t = (sin psi, 0, cos psi):
-    # E[0, 1] = -tz, E[1, 0] = e10, E[1, 2] = e12, E[2, 1] = tx, the others 0.
-    e01, e10 = (-tz)[:, None], (tz * c + tx_ * s)[:, None]
-    e12, e21 = (tz * s - tx_ * c)[:, None], tx_[:, None]
+def _linear_terms(x_old: np.ndarray, x_new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The matches' factors of the Sampson distance of a planar pose (:func:`_scores`,
+    :func:`_sampson_linear`): ``(4, N)`` of the numerator, linear in the pose's
+    ``v = (cos psi, sin psi, cos(psi - yaw), sin(psi - yaw))``, and ``(6, N)`` of the
+    denominator squared, linear in ``v``'s six products (:func:`_pose_terms`)."""
     x1, y1, z1 = x_old[:, 0], x_old[:, 1], x_old[:, 2]
     x2, y2, z2 = x_new[:, 0], x_new[:, 1], x_new[:, 2]
-    if (z1 == 1.0).all() and (z2 == 1.0).all():
-        # pixels through K^-1 (its last row 0, 0, 1): a product by z is the factor itself,
-        # exactly, so the same distances without three (M, N) products
-        ex1_0, ex1_1, ex1_2 = e01 * y1, e10 * x1 + e12, e21 * y1
-        etx2_0, etx2_1 = e10 * y2, e01 * x2 + e21
-        num = (x2 * ex1_0 + ex1_2) + y2 * ex1_1
-    else:
-        ex1_0, ex1_1, ex1_2 = e01 * y1, e10 * x1 + e12 * z1, e21 * y1  # E x_old
-        etx2_0, etx2_1 = e10 * y2, e01 * x2 + e21 * z2  # E^T x_new's first two
-        num = (x2 * ex1_0 + z2 * ex1_2) + y2 * ex1_1
-    den = np.sqrt(ex1_0 ** 2 + ex1_1 ** 2 + etx2_0 ** 2 + etx2_1 ** 2)
-    out: np.ndarray = focal * num / np.maximum(den, 1e-15)
+    n = len(x_old)
+    # num = -cos psi (x2 y1) + sin psi (z2 y1) + cos(psi - yaw) (y2 x1) - sin(psi - yaw) (y2 z1)
+    a = np.empty((4, n))
+    np.multiply(x2, y1, out=a[0])
+    np.negative(a[0], out=a[0])
+    np.multiply(z2, y1, out=a[1])
+    np.multiply(y2, x1, out=a[2])
+    np.multiply(y2, z1, out=a[3])
+    np.negative(a[3], out=a[3])
+    # den^2 = |E x_old|_01^2 + |E^T x_new|_01^2 = (cos psi y1)^2 + (cos(psi - yaw) x1 - sin(psi - yaw) z1)^2
+    #         + (cos(psi - yaw) y2)^2 + (sin psi z2 - cos psi x2)^2, multiplied out
+    b = np.empty((6, n))
+    b[0] = y1 * y1 + x2 * x2
+    np.multiply(z2, z2, out=b[1])
+    b[2] = -2.0 * x2 * z2
+    b[3] = x1 * x1 + y2 * y2
+    b[4] = -2.0 * x1 * z1
+    np.multiply(z1, z1, out=b[5])
+    return a, b
+
+
+def _pose_terms(yaws: np.ndarray, psis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The poses' ``v (M, 4)`` and its products ``(M, 6)`` (:func:`_linear_terms`)."""
+    cp, sp_ = np.cos(psis), np.sin(psis)
+    cd, sd = np.cos(psis - yaws), np.sin(psis - yaws)
+    v = np.stack([cp, sp_, cd, sd], axis=1)
+    w = np.stack([cp * cp, sp_ * sp_, cp * sp_, cd * cd, cd * sd, sd * sd], axis=1)
+    return v, w
+
+
+def _sampson_linear(a: np.ndarray, b: np.ndarray, thetas: list[tuple[float, float]], focal: float) -> np.ndarray:
+    """``(P, N)``: row ``k`` the Sampson distance (signed, as :func:`_sampson`'s) of the
+    planar pose ``thetas[k] = (yaw, psi)`` for the matches of :func:`_linear_terms`'s
+    ``a, b``: two matrix products (the few poses' terms by ``math``). The same distances
+    as :func:`_sampson`'s up to rounding (:func:`_refine`)."""
+    v, w = [], []
+    for yaw, psi in thetas:
+        cp, sp_, cd, sd = math.cos(psi), math.sin(psi), math.cos(psi - yaw), math.sin(psi - yaw)
+        v.append((cp, sp_, cd, sd))
+        w.append((cp * cp, sp_ * sp_, cp * sp_, cd * cd, cd * sd, sd * sd))
+    den = np.array(w) @ b
+    np.maximum(den, 0.0, out=den)
+    np.sqrt(den, out=den)
+    np.maximum(den, 1e-15, out=den)
+    out: np.ndarray = np.array(v) @ a
+    out *= focal
+    out /= den
     return out
 
 
-def _sampson_many_einsum(x_old: np.ndarray, x_new: np.ndarray, yaws: np.ndarray, psis: np.ndarray,
-                         focal: float) -> np.ndarray:
-    """:func:`_sampson_many` by contracting the ``(M, 3, 3)`` essential matrices (the
-    reference it is tested against)."""
-    c, s = np.cos(yaws), np.sin(yaws)
-    tx_, tz = np.sin(psis), np.cos(psis)
-    e = np.zeros((len(yaws), 3, 3))
-    e[:, 0, 1] = -tz
-    e[:, 1, 0] = tz * c + tx_ * s
-    e[:, 1, 2] = tz * s - tx_ * c
-    e[:, 2, 1] = tx_
-    ex1 = np.einsum("mij,nj->mni", e, x_old)
-    etx2 = np.einsum("mji,nj->mni", e, x_new)
-    num = np.einsum("nj,mnj->mn", x_new, ex1)
-    den = np.sqrt(ex1[..., 0] ** 2 + ex1[..., 1] ** 2 + etx2[..., 0] ** 2 + etx2[..., 1] ** 2)
-    out: np.ndarray = focal * num / np.maximum(den, 1e-15)
-    return out
+#: :func:`_refine` stops once a Gauss-Newton step moves neither parameter by more than this
+#: (rad): the steps then shrink by orders of magnitude each, far below the fit's sigmas.
+_STEP_TOL_RAD = 1e-9
 
 
-def _in_front(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarray) -> int:
-    """Matches whose triangulated point is in front of both cameras (midpoint method)."""
-    return int(np.count_nonzero(front_mask(x_old, x_new, r, t)))
+_SCORE_BLOCK = 256  # candidates scored at once by _scores
+
+
+def _scores(terms: tuple[np.ndarray, np.ndarray], yaws: np.ndarray, psis: np.ndarray, focal: float,
+            threshold_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each planar pose ``(yaws[m], psis[m])``'s inliers (matches within ``threshold_px``,
+    Sampson distance) and cost (minus the sum of the distances squared, each capped at the
+    threshold): ``(M,) int``, ``(M,)``.
+
+    With ``v = (cos psi, sin psi, cos(psi - yaw), sin(psi - yaw))`` the Sampson numerator
+    ``x_new . E x_old`` is linear in ``v`` and its denominator squared quadratic
+    (:func:`_linear_terms`), so the squared distances of every pose and match are two
+    matrix products, ``(M, 4) @ (4, N)`` and ``(M, 6) @ (6, N)``, and a few element-wise
+    passes, where the essential matrices' entries written out took about twenty-five. The
+    same distances as :func:`_sampson`'s up to rounding (the sums in another order): a
+    count differs only for a match within rounding of the threshold."""
+    a, b = terms  # (_linear_terms of the matches)
+    v, w = _pose_terms(yaws, psis)
+    thr2 = threshold_px * threshold_px
+    f2 = focal * focal
+    inl_n = np.zeros(len(psis), np.int64)
+    cost = np.zeros(len(psis))
+    for at in range(0, len(psis), _SCORE_BLOCK):
+        sl = slice(at, at + _SCORE_BLOCK)
+        q = v[sl] @ a
+        q *= q
+        q *= f2
+        q /= np.maximum(w[sl] @ b, 1e-30)  # the distances squared, (block, N)
+        inl_n[sl] = np.count_nonzero(q < thr2, axis=1)
+        np.minimum(q, thr2, out=q)
+        cost[sl] = -q.sum(axis=1)
+    return inl_n, cost
 
 
 def _bearing(yaw: float, psi: float) -> float:
@@ -185,11 +223,22 @@ def fit_planar_scans(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: 
     return _fit_planar(p_old_px, p_new_px, camera_matrix, list(yaw_guesses_rad), threshold_px, n_steps, step_rad)
 
 
+def fit_planar_fixed(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, yaws_rad: list[float],
+                     sigmas: list[bool], *, threshold_px: float = 1.0) -> list[PlanarFit | None]:
+    """:func:`fit_planar` with ``fix_yaw`` of the same matches at each of ``yaws_rad`` (with
+    its sigmas where ``sigmas`` says): the matches are normalised once and every heading's
+    candidates scored together (the ridge's fit and its two side fits)."""
+    return _fit_planar(p_old_px, p_new_px, camera_matrix, list(yaws_rad), threshold_px, 0, SCAN_STEP_RAD, True,
+                       list(sigmas))
+
+
 def _fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.ndarray, guesses: list[float],
                 threshold_px: float, n_steps: int, step_rad: float, fix_yaw: bool = False,
-                sigmas: bool = True) -> list[PlanarFit | None]:
-    """:func:`fit_planar` (``fix_yaw``: one guess, ``n_steps`` 0) and :func:`fit_planar_scans`:
-    one fit per guess, each scanning ``n_steps`` lattice headings either side of it."""
+                sigmas: bool | list[bool] = True) -> list[PlanarFit | None]:
+    """:func:`fit_planar` (``fix_yaw``: each guess's heading held, ``n_steps`` 0),
+    :func:`fit_planar_scans` and :func:`fit_planar_fixed`: one fit per guess, each scanning
+    ``n_steps`` lattice headings either side of it; ``sigmas`` one for all or one per guess."""
+    each = list(sigmas) if isinstance(sigmas, list) else [sigmas] * len(guesses)
     p_old = np.asarray(p_old_px, np.float64).reshape(-1, 2)
     p_new = np.asarray(p_new_px, np.float64).reshape(-1, 2)
     n = len(p_old)
@@ -209,7 +258,7 @@ def _fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nd
     # bit: a window's headings are its rounded guess plus multiples of the step, as one
     # window's always were, so each fit is the one its window alone gives).
     if fix_yaw:
-        wanted = [np.array([float(guesses[0])])]
+        wanted = [np.array([float(g)]) for g in guesses]
     else:
         steps = np.arange(-n_steps, n_steps + 1) * step_rad
         wanted = [round(g / step_rad) * step_rad + steps for g in guesses]
@@ -233,29 +282,23 @@ def _fit_planar(p_old_px: np.ndarray, p_new_px: np.ndarray, camera_matrix: np.nd
     cand_psi = cands.ravel()
     # Each candidate's inliers and cost, a block of candidates at a time (the block's
     # distances stay in the cache; each row's figures are those of the whole at once).
-    inl_n = np.zeros(len(cand_psi), np.int64)
-    cost = np.zeros(len(cand_psi))
-    for at in range(0, len(cand_psi), _BLOCK):
-        sl = slice(at, at + _BLOCK)
-        d = np.abs(_sampson_many(x_old, x_new, cand_yaw[sl], cand_psi[sl], focal))  # (block, N)
-        inl_n[sl] = (d < threshold_px).sum(axis=1)
-        dm = np.minimum(d, threshold_px)
-        cost[sl] = -np.einsum("ij,ij->i", dm, dm)
+    terms = _linear_terms(x_old, x_new)
+    inl_n, cost = _scores(terms, cand_yaw, cand_psi, focal, threshold_px)
     per = cands.shape[1] * cands.shape[2]  # candidates per heading
     fits: list[PlanarFit | None] = []
-    refined: dict[int, PlanarFit] = {}  # a best candidate's refinement, for a window sharing it
-    for r in rows:
+    refined: dict[tuple[int, bool], PlanarFit] = {}  # a best candidate's refinement, for a window sharing it
+    for r, sg in zip(rows, each):
         ci = (r[:, None] * per + np.arange(per)).ravel()  # this window's candidates, in scan order
         w_n, w_cost = inl_n[ci], cost[ci]
         # The most inliers, then the least cost; the first in scan order among equals.
         best_i = int(ci[np.flatnonzero(w_n == w_n.max())[np.argmax(w_cost[w_n == w_n.max()])]])
         w_yaws, scan_n = yaws[r], w_n.reshape(len(r), -1).max(axis=1)
-        if best_i not in refined:
-            refined[best_i] = _refine(x_old, x_new, focal, float(cand_yaw[best_i]), float(cand_psi[best_i]),
-                                      threshold_px, fix_yaw, w_yaws, scan_n, sigmas)
-            fits.append(refined[best_i])
+        if (best_i, sg) not in refined:
+            refined[best_i, sg] = _refine(x_old, x_new, focal, float(cand_yaw[best_i]), float(cand_psi[best_i]),
+                                          threshold_px, fix_yaw, w_yaws, scan_n, sg, terms)
+            fits.append(refined[best_i, sg])
         else:
-            fits.append(replace(refined[best_i], scan_yaw_rad=w_yaws, scan_inliers=scan_n))
+            fits.append(replace(refined[best_i, sg], scan_yaw_rad=w_yaws, scan_inliers=scan_n))
     return fits
 
 
@@ -296,99 +339,69 @@ def _cond(m: np.ndarray) -> float:
     return float(np.linalg.cond(m))
 
 
-def _sampson_poses(x_old: np.ndarray, x_new: np.ndarray, thetas: list[np.ndarray], focal: float) -> np.ndarray:
-    """``(P, N)``: row ``k`` is :func:`_sampson` of the planar pose ``thetas[k] = (yaw, psi)``
-    (:func:`planar_pose`), all in a few calls: the poses' essential matrices as one stacked
-    product, their ``E x`` and ``E^T x'`` as one matrix product each (the matrices side by
-    side) and the numerators as one ``einsum``. Each entry comes from the same operations
-    on the same numbers as :func:`_sampson`'s (each product's entry the same dot product of
-    three terms; the tests hold the rows equal to :func:`_sampson`'s)."""
-    rot, skew = [], []
-    for th in thetas:  # planar_pose's rotation and [t]x, entry by entry (math's sin and cos)
-        c, s = math.cos(float(th[0])), math.sin(float(th[0]))
-        tx_, tz = math.sin(float(th[1])), math.cos(float(th[1]))
-        rot.append([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-        skew.append([[0.0, -tz, 0.0], [tz, 0.0, -tx_], [-0.0, tx_, 0.0]])
-    e = np.array(skew) @ np.array(rot)                        # (P, 3, 3)
-    n, p = len(x_old), len(thetas)
-    ex1 = x_old @ e.transpose(2, 0, 1).reshape(3, 3 * p)      # column 3k + i: (E_k x_old)_i
-    etx2 = x_new @ e.transpose(1, 0, 2).reshape(3, 3 * p)     # column 3k + i: (E_k^T x_new)_i
-    num = np.einsum("ij,ikj->ki", x_new, ex1.reshape(n, p, 3))
-    den = np.sqrt(ex1[:, 0::3] ** 2 + ex1[:, 1::3] ** 2 + etx2[:, 0::3] ** 2 + etx2[:, 1::3] ** 2).T
-    # rows contiguous: a row is then read by a matrix product (the refinement's J^T r) as
-    # _sampson's own array is (a strided vector takes BLAS's other loop, summed otherwise)
-    out: np.ndarray = np.ascontiguousarray(focal * num / np.maximum(den, 1e-15))
-    return out
-
-
 def _refine(x_old: np.ndarray, x_new: np.ndarray, focal: float, yaw: float, psi: float, threshold_px: float,
-            fix_yaw: bool, yaws: np.ndarray, scan_n: np.ndarray, sigmas: bool = True) -> PlanarFit:
+            fix_yaw: bool, yaws: np.ndarray, scan_n: np.ndarray, sigmas: bool = True,
+            terms: tuple[np.ndarray, np.ndarray] | None = None) -> PlanarFit:
     """The planar motion ``(yaw, psi)`` refined by Gauss-Newton on the Sampson distances of
     the normalised matches ``x_old, x_new (N, 3)`` within ``threshold_px`` of it, the
     translation's sign chosen by the points in front of both cameras, and its sigmas
     (with ``sigmas``; else left ``inf``) (:func:`fit_planar`, :func:`ransac_planar`).
 
-    The residuals at a point and at its central-difference neighbours are computed in one
-    call (:func:`_sampson_poses`), and those around a trial step with the trial itself (used
-    when the step is taken, which is the rule): the same evaluations, points and arithmetic
-    as one call per point (the reference in the tests), in a fifth of the calls."""
-    r, t = planar_pose(yaw, psi)
-    inl = np.abs(_sampson(x_old, x_new, r, t, focal)) < threshold_px
-    theta = np.array([yaw, psi])
-    xo_in, xn_in = x_old[inl], x_new[inl]  # the inliers' rows, taken once per inlier set
+    The residuals at a point and at its central-difference neighbours are two matrix
+    products from the matches' terms (:func:`_linear_terms`, ``terms`` when the caller has
+    them), those around a trial step computed with the trial itself (used when the step is
+    taken, which is the rule); the steps stop when both parameters move by at most
+    :data:`_STEP_TOL_RAD` (or after five). The sign of the translation from one
+    triangulation (:func:`front_masks`)."""
+    a_all, b_all = _linear_terms(x_old, x_new) if terms is None else terms
+    inl = np.abs(_sampson_linear(a_all, b_all, [(yaw, psi)], focal)[0]) < threshold_px
+    a_in, b_in = a_all[:, inl], b_all[:, inl]  # the inliers' columns, taken once per inlier set
     h = 1e-6
-    free = [1] if fix_yaw else [0, 1]  # the parameters fitted: (yaw, psi) or psi alone
-    shifts = []
-    for j in free:
-        dth = np.zeros(2)
-        dth[j] = h
-        shifts.append(dth)
+    n_free = 1 if fix_yaw else 2  # the parameters fitted: psi alone or (yaw, psi)
 
-    def around(th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The residuals at ``th`` and the central-difference Jacobian there."""
-        pts = [th]
-        for dth in shifts:
-            pts += [th + dth, th - dth]
-        s = _sampson_poses(xo_in, xn_in, pts, focal)
-        jac = np.zeros((len(xo_in), len(free)))
-        for col in range(len(free)):
-            jac[:, col] = (s[1 + 2 * col] - s[2 + 2 * col]) / (2 * h)
-        return s[0], jac
+    def around(y: float, p: float) -> tuple[np.ndarray, np.ndarray]:
+        """The residuals at ``(y, p)`` and the central-difference Jacobian there ``(n_free, N)``."""
+        pts = [(y, p), (y, p + h), (y, p - h)] if fix_yaw else [(y, p), (y + h, p), (y - h, p), (y, p + h), (y, p - h)]
+        s = _sampson_linear(a_in, b_in, pts, focal)
+        jt = (s[1::2] - s[2::2]) / (2 * h)
+        return s[0], jt
 
     if inl.sum() >= 3:
-        r0, jac = around(theta)
+        r0, jt = around(yaw, psi)
         for _ in range(5):
-            jtj = jac.T @ jac
+            jtj = jt @ jt.T
             if not np.all(np.isfinite(jtj)) or _cond(jtj) > _COND_LIMIT:
                 break
-            step = np.zeros(2)
-            if len(free) == 1:  # a scalar: LAPACK's solve of a 1 x 1 system is this division
-                step[1] = -(float((jac.T @ r0)[0]) / float(jtj[0, 0]))
+            g = jt @ r0
+            if fix_yaw:  # a scalar: LAPACK's solve of a 1 x 1 system is this division
+                dy, dp = 0.0, -(float(g[0]) / float(jtj[0, 0]))
             else:
-                step[free] = -np.linalg.solve(jtj, jac.T @ r0)
-            trial, jac_trial = around(theta + step)
+                dy, dp = (float(x) for x in -np.linalg.solve(jtj, g))
+            trial, jt_trial = around(yaw + dy, psi + dp)
             if not float(trial @ trial) < float(r0 @ r0):
                 break
-            theta, r0, jac = theta + step, trial, jac_trial
-    yaw, psi = float(theta[0]), float(theta[1])
+            yaw, psi, r0, jt = yaw + dy, psi + dp, trial, jt_trial
+            if abs(dy) <= _STEP_TOL_RAD and abs(dp) <= _STEP_TOL_RAD:
+                break
     r, t = planar_pose(yaw, psi)
-    inl = np.abs(_sampson(x_old, x_new, r, t, focal)) < threshold_px
+    inl = np.abs(_sampson_linear(a_all, b_all, [(yaw, psi)], focal)[0]) < threshold_px
     xo_in, xn_in = x_old[inl], x_new[inl]
-    # The sign of the translation: the points in front of both cameras.
-    if _in_front(xo_in, xn_in, r, -t) > _in_front(xo_in, xn_in, r, t):
+    a_in, b_in = a_all[:, inl], b_all[:, inl]
+    # The sign of the translation: the points in front of both cameras (the opposite
+    # translation's are those behind both).
+    front, back = front_masks(xo_in, xn_in, r, t)
+    if int(np.count_nonzero(back)) > int(np.count_nonzero(front)):
         psi += math.pi
         r, t = planar_pose(yaw, psi)
     m = int(inl.sum())
     sig_y = sig_b = math.inf
-    if sigmas and m > len(free):
-        at = np.array([yaw, psi])
-        s = _sampson_poses(xo_in, xn_in, [at, at + [h, 0.0], at - [h, 0.0], at + [0.0, h], at - [0.0, h]], focal)
+    if sigmas and m > n_free:
+        s = _sampson_linear(a_in, b_in, [(yaw, psi), (yaw + h, psi), (yaw - h, psi), (yaw, psi + h), (yaw, psi - h)],
+                            focal)
         rr = s[0]
-        noise = math.sqrt(float(rr @ rr) / (m - len(free))) * INLIER_NOISE_FACTOR
-        jac = np.zeros((m, 2))
-        for j in range(2):
-            jac[:, j] = (s[1 + 2 * j] - s[2 + 2 * j]) / (2 * h)
-        jtj = jac.T @ jac
+        noise = math.sqrt(float(rr @ rr) / (m - n_free)) * INLIER_NOISE_FACTOR
+        jt = (s[1::2] - s[2::2]) / (2 * h)
+        jtj = jt @ jt.T
         cov: np.ndarray | None = None
         if fix_yaw:  # the heading known: psi's variance alone, the heading's none
             if math.isfinite(float(jtj[1, 1])) and jtj[1, 1] > 0:
@@ -446,12 +459,20 @@ def _sampson_terms(x_old: np.ndarray, x_new: np.ndarray) -> np.ndarray:
     return np.stack([y1 * y1 + x2 * x2, one, -2.0 * x2, x1 * x1 + y2 * y2, -2.0 * x1, one], axis=1)
 
 
-def front_mask(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarray,
-               max_depth: float = math.inf) -> np.ndarray:
-    """``(N,) bool``: the normalised matches ``x_old, x_new (N, 3)`` whose triangulated point
-    is in front of both cameras of the motion ``r, t`` (midpoint method) and nearer than
-    ``max_depth`` times the baseline ``|t|`` to both (``cv2.recoverPose``'s ``distanceThresh``,
-    50 by default there: a point further away has no parallax to show the motion)."""
+def front_masks(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarray,
+                max_depth: float = math.inf) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`front_mask` of the motion ``r, t`` and of ``r, -t`` at once: the second's depths
+    are the first's negated, exactly (the camera centre enters the triangulation linearly)."""
+    za, zb, ok, lim = _depths(x_old, x_new, r, t, max_depth)
+    front: np.ndarray = ok & (za > 0) & (zb > 0) & (za < lim) & (zb < lim)
+    back: np.ndarray = ok & (za < 0) & (zb < 0) & (-za < lim) & (-zb < lim)
+    return front, back
+
+
+def _depths(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarray,
+            max_depth: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """:func:`front_mask`'s depths in the old and the new camera, where they are defined, and
+    the depth limit."""
     d1 = x_old
     d2 = x_new @ r
     c2 = -r.T @ t
@@ -466,6 +487,16 @@ def front_mask(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarra
     za = (a22 * b1 - a12 * b2) / det   # depth in the old camera (x_old's z is 1)
     zb = (a11 * b2 - a12 * b1) / det   # depth in the new camera
     lim = max_depth * math.sqrt(float(t @ t))
+    return za, zb, ok, lim
+
+
+def front_mask(x_old: np.ndarray, x_new: np.ndarray, r: np.ndarray, t: np.ndarray,
+               max_depth: float = math.inf) -> np.ndarray:
+    """``(N,) bool``: the normalised matches ``x_old, x_new (N, 3)`` whose triangulated point
+    is in front of both cameras of the motion ``r, t`` (midpoint method) and nearer than
+    ``max_depth`` times the baseline ``|t|`` to both (``cv2.recoverPose``'s ``distanceThresh``,
+    50 by default there: a point further away has no parallax to show the motion)."""
+    za, zb, ok, lim = _depths(x_old, x_new, r, t, max_depth)
     out: np.ndarray = ok & (za > 0) & (zb > 0) & (za < lim) & (zb < lim)
     return out
 

@@ -178,3 +178,32 @@ def test_the_solve_gives_the_headings_and_sigmas_before_to_the_bit(seed):
                 assert got[0].hex() == want[0].hex() and got[1].hex() == want[1].hex(), (a, b, upto)
     assert answered >= 40
     assert g.relative(690, 701) is None and g.relative(703, 704) is not None
+
+
+def test_a_keyframe_s_further_views_are_answered_from_its_solve_as_a_new_solve_answers():
+    """The stage asks once per view of a forward keyframe, all against that keyframe with the
+    same links: the second and later answers come from the first's solve (one more
+    back-substitution) and equal a new solve's to rounding; the first is the new solve's
+    to the bit. A keyframe outside the solve's component, an unlinked one and another
+    newer keyframe or link count are solved anew."""
+    g = HeadingGraph()
+    links = _feed(g, 400, lap=150)
+    g.add_keyframe(420, 0.3, 1e-4 * 420)  # not yet linked: joined by the odometry
+    upto = len(g)
+    for b in (399, 420):
+        answers = [g.relative(a, b, upto=upto) for a in (5, 150, 37, 211, 398)]
+        assert g._key is not None and g._key[0] == b
+        for a, got in zip((5, 150, 37, 211, 398), answers):
+            g._last = None  # a new solve
+            want = g.relative(a, b, upto=upto)
+            assert got is not None and want is not None
+            assert got[0] == pytest.approx(want[0], abs=1e-12) and got[1] == pytest.approx(want[1], rel=1e-9)
+            if b == 399:
+                exact = _dense(links, a, b)
+                assert got[0] == pytest.approx(exact[0], abs=1e-9) and got[1] == pytest.approx(exact[1], rel=1e-6)
+    first = g.relative(5, 399, upto=upto)
+    g._last = None
+    assert first == g.relative(5, 399, upto=upto)
+    g.relative(5, 399, upto=upto)
+    assert g.relative(7, 399, upto=upto - 1) is not None and g._key[2] == upto - 1 - g._dropped  # other links: anew
+    assert g.relative(1000, 399, upto=upto) is None  # not a node of the solve, not in the graph

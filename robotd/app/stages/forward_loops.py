@@ -133,7 +133,8 @@ from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStor
 from robotd.forward import LOOP, ForwardDetector
 from robotd.forward.features import CompactFeatures
 from robotd.forward.planar import INLIER_NOISE_FACTOR, planar_motion, planarity_bound
-from robotd.forward.planefit import SCAN_STEP_RAD, PlanarFit, fit_planar, fit_planar_scans, planar_inliers, ridge_span
+from robotd.forward.planefit import (SCAN_STEP_RAD, PlanarFit, fit_planar_fixed, fit_planar_scans, planar_inliers,
+                                    ridge_span)
 from robotd.forward.verify import VerifyParams, floor_range, match_features, matched_points
 
 log = logging.getLogger(__name__)
@@ -269,6 +270,10 @@ class HeadingGraph:
         self._newest = -1  # the newest keyframe id seen
         # keyframe -> (odometry yaw_rad, its variance): joins keyframes the links have not reached yet
         self._odom: dict[int, tuple[float, float]] = {}
+        # the last solve (_again): its key, nodes, yaws, component, free numbering, factorisation, a's and b's indexes
+        self._key: tuple[int, int, int, int] | None = None
+        self._nodes = np.zeros(0, np.int64)
+        self._last: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Any, int, int] | None = None
 
     def __len__(self) -> int:
         """The links received so far (forgotten ones included): a count for ``upto``."""
@@ -323,10 +328,17 @@ class HeadingGraph:
         poses); None when the two are not connected within the window. ``upto``: only the
         first this many links received (those the graph had when keyframe ``b`` was stored:
         the answer then does not depend on how far the pipeline has gone since)."""
+        n_eff = self._n if upto is None else max(0, min(self._n, upto - self._dropped))
+        key = (b, self._dropped, n_eff, len(self._odom))
+        hit, again = self._again(key, a)
+        if hit:
+            return again
+        self._last = None
         links = self._links(a, b, upto)
         if links is None:
             return None
         nodes, fi, ti, d, w, ia, ib = links
+        self._key = key
         import scipy.sparse as sp
         from scipy.sparse.csgraph import breadth_first_order
 
@@ -344,6 +356,7 @@ class HeadingGraph:
         keep[order] = True
         if not keep[ib]:
             return None
+        self._nodes = nodes
         y0 = tree_yaws(fi, ti, d, order, pred, nn)
         ok = keep[fi] & keep[ti]
         fi, ti, d, w = fi[ok], ti[ok], d[ok], w[ok]
@@ -411,7 +424,33 @@ class HeadingGraph:
         jb = int(np.flatnonzero(free == ib)[0])
         e[jb] = 1.0
         var = float(lu.solve(e)[jb])
+        self._last = (self._nodes, y0 + dy, keep, pos, lu, ia, ib)
         return float(wrap_angle(y0[ib] + dy[ib])), math.sqrt(max(var, 0.0))
+
+    def _again(self, key: tuple[int, int, int, int], a: int) -> tuple[bool, tuple[float, float] | None]:
+        """The answer for ``a`` from the last solve when it was for the same newer keyframe
+        with the same links (``key``: the stage asks once per view of one forward keyframe,
+        all against that keyframe, with the links it had when stored) and ``a`` is one of its
+        nodes: the solution is the same least squares (a node the last pair joined by the
+        odometry is a leaf, which moves no other node), so its yaws give ``a``'s heading and
+        the factorisation its sigma, by one more back-substitution instead of a new solve
+        (the same figures up to rounding): ``(True, answer)``; ``(False, None)`` when there is
+        no such solve."""
+        last = self._last
+        if last is None or key != self._key:
+            return False, None
+        nodes, y, keep, pos, lu, ia0, ib = last
+        ia = int(np.searchsorted(nodes, a))
+        if ia >= len(nodes) or int(nodes[ia]) != a:
+            return False, None
+        if not keep[ia]:
+            return True, None
+        e = np.zeros(lu.shape[0])
+        if ia != ia0:
+            e[pos[ia]] = -1.0
+        e[pos[ib]] += 1.0
+        var = float(e @ lu.solve(e))
+        return True, (float(wrap_angle(y[ib] - y[ia])), math.sqrt(max(var, 0.0)))
 
 
 class ForwardLoopStage(Publisher):
@@ -1007,9 +1046,6 @@ class ForwardLoopStage(Publisher):
         vp: VerifyParams = self.detector.params.verify
         thr = vp.ransac_threshold_px
 
-        def at(yaw: float, sigmas: bool = True) -> PlanarFit | None:  # sigmas False: its bearing alone is read
-            return fit_planar(p_old, p_new, k, yaw, threshold_px=thr, fix_yaw=True, sigmas=sigmas)
-
         prior = self._prior_yaw(image_id)
         if narrow:  # RidgeParams.narrow == "graph"
             if prior is None or rp.prior_gate_sigmas * prior[1] >= rp.edge_sigma_yaw_rad or \
@@ -1018,7 +1054,7 @@ class ForwardLoopStage(Publisher):
             lo = hi = prior[0]
             on = np.array([prior[0]])
         if prior is None:
-            ends = at(lo, False), at(hi, False)
+            ends = fit_planar_fixed(p_old, p_new, k, [lo, hi], [False, False], threshold_px=thr)
             if ends[0] is None or ends[1] is None:
                 return None
             spread = 0.5 * abs(math.remainder(ends[1].bearing_rad - ends[0].bearing_rad, math.tau))
@@ -1040,7 +1076,9 @@ class ForwardLoopStage(Publisher):
                      old_kf, math.degrees(lo), math.degrees(hi), math.degrees(yaw_p), math.degrees(sigma_p))
             return False
         yaw = min(max(yaw_p, lo), hi)
-        best = at(yaw)
+        # the fit there and, 0.5 deg either side, the two whose bearings give the ridge's slope (below)
+        best, *side = fit_planar_fixed(p_old, p_new, k, [yaw, yaw - rp.slope_step_rad, yaw + rp.slope_step_rad],
+                                       [True, False, False], threshold_px=thr)
         if best is None or best.n_inliers < vp.min_inliers:
             self.ridge_refused += 1
             log.info("forward loop to keyframe %d refused: on a heading-bearing ridge, too few matches at the "
@@ -1048,7 +1086,6 @@ class ForwardLoopStage(Publisher):
             return False
         # How fast the ridge's bearing moves with the heading, there: the prior's heading
         # sigma becomes the bearing's along the ridge.
-        side = at(yaw - rp.slope_step_rad, False), at(yaw + rp.slope_step_rad, False)
         slope = 0.0
         if side[0] is not None and side[1] is not None:
             slope = math.remainder(side[1].bearing_rad - side[0].bearing_rad, math.tau) / (2 * rp.slope_step_rad)
