@@ -102,6 +102,7 @@ H_GYRO = np.zeros((1, STATE_SIZE))
 H_GYRO[0, IW] = 1.0
 H_GYRO[0, IB] = 1.0
 _EYE = np.eye(STATE_SIZE)
+_EYE_LOWER = tuple(_EYE[3:].ravel().tolist())  # the rows v, w, bias of the identity
 _WHEEL_COLUMNS = [IV, IW]
 _CONFIG = OdometryConfig()
 
@@ -356,9 +357,8 @@ def predict_with_jacobian(state: EkfState, t_ns: int,
     f02, f12 = -ds * f * s, ds * f * c
     f03, f13 = dt * f * c, dt * f * s
     f04, f14 = ds * dt * (df * c - 0.5 * f * s), ds * dt * (df * s + 0.5 * f * c)
-    jac = _EYE.copy()
-    jac[IX, IYAW], jac[IY, IYAW], jac[IX, IV], jac[IY, IV] = f02, f12, f03, f13
-    jac[IX, IW], jac[IY, IW], jac[IYAW, IW] = f04, f14, dt
+    jac = np.fromiter((1.0, 0.0, f02, f03, f04, 0.0, 0.0, 1.0, f12, f13, f14, 0.0,
+                       0.0, 0.0, 1.0, 0.0, dt, 0.0) + _EYE_LOWER, float, 36).reshape(6, 6)
 
     qa = params.angular_accel_noise_density_radps2_per_sqrt_hz ** 2
     ql = params.accel_noise_density_mps2_per_sqrt_hz ** 2
