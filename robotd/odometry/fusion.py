@@ -658,9 +658,7 @@ class OdometryFilter:
             return False
         offset = between(np.array([kf.x_m, kf.y_m, kf.yaw_rad]), s.mean[:3])
         fused = False
-        c = self._clone
-        if c is not None and self._map is not _EYE:  # the clone as of now (it follows at records)
-            c = clone_after_predict(c, self._map)
+        c = self._clone_now()
         if delta is None or covariance is None or not np.all(np.isfinite(delta)):
             self.counters.vo_missing += 1
         elif c is None or c.keyframe_stamp_ns != prev_stamp_ns:
@@ -750,6 +748,12 @@ class OdometryFilter:
         self._state, jac = advance_pose(self._state, dt_ns * 1e-9)
         self._step_map(jac)
 
+    def _clone_now(self) -> PoseClone | None:
+        """The pose clone with its cross-covariance as of the current state (it follows the
+        map at records, :meth:`_clone_follows_map`; every message ends with one)."""
+        c = self._clone
+        return c if c is None or self._map is _EYE else clone_after_predict(c, self._map)
+
     def _clone_follows_map(self) -> None:
         """The pose clone's cross-covariance carried through the map since the last record
         (the clone lags the state by that map until a record, :meth:`_step_map`)."""
@@ -760,9 +764,8 @@ class OdometryFilter:
         self._settle()
         s = self._state
         assert s is not None
+        self._clone_follows_map()
         step, self._map = self._map, _EYE
-        if self._clone is not None and step is not _EYE:  # X' = (the steps' map) X
-            self._clone = clone_after_predict(self._clone, step)
         r = self._rounding
         ext_cov = None
         if r is not None:  # the history keeps the eight-entry error [state, rounding]
