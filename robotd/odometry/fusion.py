@@ -33,8 +33,6 @@ import numpy as np
 from robotd.base.geometry import between, between_error_covariance, compose_with_covariance, rot2
 from robotd.base.messages import PoseStamped, WheelTicks, YawRate
 from robotd.odometry.ekf import (
-    H_GYRO,
-    H_WHEELS,
     IB,
     IV,
     IW,
@@ -72,7 +70,6 @@ from robotd.odometry.packet import (
 from robotd.odometry.relative import (
     PoseClone,
     clone_after_predict,
-    clone_after_update,
     clone_pose,
     shift_measurement,
     update_relative_pose,
@@ -281,6 +278,9 @@ class OdometryFilter:
         self._pending_ns = 0
         self._state: EkfState | None = None
         self._wheel = WheelOdometry(self.drive, self.initial_pose)
+        self._dead_reckons = True  # this filter advances _wheel (the twin shares its owner's)
+        if self._twin is not None:  # one wheel-only odometry, the owner's: the twin's would be the same
+            self._twin._wheel, self._twin._dead_reckons = self._wheel, False
         self._wheel_ref: WheelTicks | None = None
         self._last_yaw_ns: int | None = None
         self._gyro_buf: collections.deque[YawRate] = collections.deque()
@@ -337,7 +337,7 @@ class OdometryFilter:
         self.counters.wheel_msgs += 1
         self._wheel_ref = msg
         if ref is None:
-            if not self._replaying:
+            if self._dead_reckons and not self._replaying:
                 self._wheel.advance(msg)
             self._flush_gyro(t, stationary=False)
             self._advance_to(t)
@@ -351,7 +351,8 @@ class OdometryFilter:
             if not self._replaying:
                 _log.warning("wheel gap of %.1f s: tick counters may have wrapped; restarting "
                              "the wheel reference", dt_ns * 1e-9)
-                self._wheel.rebase(msg)
+                if self._dead_reckons:
+                    self._wheel.rebase(msg)
             self._flush_gyro(t, stationary=False)
             self._advance_to(t)
             self._record()
@@ -359,7 +360,7 @@ class OdometryFilter:
 
         dl = unwrap_ticks_delta(ref.left_ticks, msg.left_ticks)
         dr = unwrap_ticks_delta(ref.right_ticks, msg.right_ticks)
-        if not self._replaying:
+        if self._dead_reckons and not self._replaying:
             self._wheel.advance(msg)
         ds, dyaw = wheel_increment(dl, dr, self.drive)
         dt = dt_ns * 1e-9
@@ -382,9 +383,7 @@ class OdometryFilter:
                 mean[:3] = integrate_pose(state.mean[:3], ds, dyaw)
                 mean[IV], mean[IW] = v, w
                 self._state = EkfState(t, mean, pred.cov)
-                self._map = jac @ self._map
-                if self._clone is not None:
-                    self._clone = clone_after_predict(self._clone, jac)
+                self._step_map(jac)
                 self._new_count()
         state = self._state
         if (self._increments and not stationary and dt_ns <= self.max_gap_s * 1e9 and self._clone is None
@@ -447,9 +446,7 @@ class OdometryFilter:
             var = None if var is None else var / self.gyro_scale ** 2
             up = update_gyro_with_gain(self._state, rate, self.params, at_rest, var)
             self._state = up.state
-            self._map = up.error_map @ self._map
-            if self._clone is not None:
-                self._clone = clone_after_update(self._clone, None, H_GYRO, up.noise, gain=up.gain)
+            self._step_map(up.error_map)
             self._record()
 
     def _packet(self, t: int, ds: float, dyaw: float, dt: float, msg: WheelTicks) -> None:
@@ -460,6 +457,7 @@ class OdometryFilter:
         assert self._state is not None
         r = self._rounding
         if r is not None:  # the six-entry steps since the last record first
+            self._clone_follows_map()
             r.cross = self._map @ r.cross
             self._xmap = _pad8(self._map) @ self._xmap
             self._map = _EYE
@@ -491,6 +489,7 @@ class OdometryFilter:
         r = self._rounding
         if r is None:
             return
+        self._clone_follows_map()
         r.cross = self._map @ r.cross
         xmap = _pad8(self._map) @ self._xmap
         xmap[PACKET_SIZE - 2:, :] = 0.0
@@ -505,9 +504,7 @@ class OdometryFilter:
         var_v, var_w = (None, None) if msg is None else (msg.speed_var_m2ps2, msg.yaw_rate_var_rad2ps2)
         up = update_wheels_with_gain(prior, v, w, self.params, stationary, var_v, var_w)
         self._state = up.state
-        self._map = up.error_map @ self._map
-        if self._clone is not None:
-            self._clone = clone_after_update(self._clone, None, H_WHEELS, up.noise, gain=up.gain)
+        self._step_map(up.error_map)
 
     def _still_gate(self, rate_radps: float) -> bool:
         """True when the gyro agrees with a base at rest (within ``still_gate_sigma``).
@@ -551,9 +548,12 @@ class OdometryFilter:
             self._state = predict_rates(self._state, t, self.params)  # Jacobian: identity
         elif t > self._state.stamp_ns:
             self._state, jac = predict_with_jacobian(self._state, t, self.params)
-            self._map = jac @ self._map
-            if self._clone is not None:
-                self._clone = clone_after_predict(self._clone, jac)
+            self._step_map(jac)
+
+    def _step_map(self, step: np.ndarray) -> None:
+        """One filter step's error map ``step (6, 6)`` joins the map since the last record
+        (a pose clone's cross-covariance follows the whole map at :meth:`_record`)."""
+        self._map = step if self._map is _EYE else step @ self._map
 
     def on_visual_odometry(self, stamp_ns: int, prev_stamp_ns: int | None, delta: np.ndarray | None,
                            covariance: np.ndarray | None) -> bool:
@@ -658,7 +658,7 @@ class OdometryFilter:
             return False
         offset = between(np.array([kf.x_m, kf.y_m, kf.yaw_rad]), s.mean[:3])
         fused = False
-        c = self._clone
+        c = self._clone_now()
         if delta is None or covariance is None or not np.all(np.isfinite(delta)):
             self.counters.vo_missing += 1
         elif c is None or c.keyframe_stamp_ns != prev_stamp_ns:
@@ -746,14 +746,25 @@ class OdometryFilter:
         """The pose along the state's rates over ``dt_ns`` (:func:`robotd.odometry.ekf.advance_pose`)."""
         assert self._state is not None
         self._state, jac = advance_pose(self._state, dt_ns * 1e-9)
-        self._map = jac @ self._map
-        if self._clone is not None:
-            self._clone = clone_after_predict(self._clone, jac)
+        self._step_map(jac)
+
+    def _clone_now(self) -> PoseClone | None:
+        """The pose clone with its cross-covariance as of the current state (it follows the
+        map at records, :meth:`_clone_follows_map`; every message ends with one)."""
+        c = self._clone
+        return c if c is None or self._map is _EYE else clone_after_predict(c, self._map)
+
+    def _clone_follows_map(self) -> None:
+        """The pose clone's cross-covariance carried through the map since the last record
+        (the clone lags the state by that map until a record, :meth:`_step_map`)."""
+        if self._clone is not None and self._map is not _EYE:
+            self._clone = clone_after_predict(self._clone, self._map)
 
     def _record(self) -> None:
         self._settle()
         s = self._state
         assert s is not None
+        self._clone_follows_map()
         step, self._map = self._map, _EYE
         r = self._rounding
         ext_cov = None

@@ -151,7 +151,7 @@ class PoseHistory:
         error's map; every record of a history has the same length."""
         s = state
         t = s.stamp_ns
-        pose, cov = s.mean[:3].copy(), s.cov[:3, :3].copy()
+        pose, cov = s.mean[:3], s.cov[:3, :3]  # views: a state's arrays are read-only, never changed
         full_cov = s.cov if ext_cov is None else ext_cov
         if self._hist_t and self._hist_t[-1] == t:
             self._hist_pose[-1], self._hist_cov[-1] = pose, cov
