@@ -2000,19 +2000,12 @@ def main(argv: list[str] | None = None) -> int:
             args.doc.write_text(memory_markdown(payload), encoding="utf-8")
             print(f"wrote {args.doc}")
         return 0
-    if args.compare_stages:
-        page = stage_comparison(args.compare_stages)
+    if args.compare_stages or args.compare:
+        page = stage_comparison(args.compare_stages) if args.compare_stages else comparison(args.compare)
         if args.doc is not None:
             args.doc.parent.mkdir(parents=True, exist_ok=True)
             args.doc.write_text(page, encoding="utf-8")
         print(page, end="")
-        return 0
-    if args.compare:
-        table = comparison(args.compare)
-        if args.doc is not None:
-            args.doc.parent.mkdir(parents=True, exist_ok=True)
-            args.doc.write_text(table, encoding="utf-8")
-        print(table, end="")
         return 0
     if args.full:
         args.duration = None
