@@ -26,7 +26,6 @@ from robotd.odometry.relative import (
     relative_pose_covariance,
     relative_pose_jacobians,
     shift_jacobian,
-    shift_measurement,
 )
 
 __all__ = ["EdgeBiasTerms", "HistoryMark", "PoseHistory"]
@@ -259,11 +258,15 @@ class PoseHistory:
             cross = (step @ cov_a)[:STATE_SIZE, :STATE_SIZE]
             cov_a = cov_a[:STATE_SIZE, :STATE_SIZE]
             clone = PoseClone(self._kf_t, mean_a[:3], cov_a[:3, :3], cross[:, :3], self._kf_offset)
-            h, cov_h = relative_pose_covariance(self._hist_pose[j], self._hist_cov[j], clone)
-            # From the recorded states back to the keyframes' stamps (offsets taken as exact).
-            delta, cov = shift_measurement(h, cov_h, inverse(self._kf_offset), inverse(offset))
-            cov = between_error_covariance(delta, cov)
-            edge = delta, floor_covariance(cov), self._bias_terms(mean_a, cov_a, cross, j, delta, cov, offset)
+            # The Jacobians of the motion and of the shift serve the covariance and the bias
+            # terms alike: computed once.
+            jac = relative_pose_jacobians(mean_a[:3], self._hist_pose[j])
+            h, cov_h = relative_pose_covariance(self._hist_pose[j], self._hist_cov[j], clone, jac)
+            # From the recorded states back to the keyframes' stamps (offsets taken as exact;
+            # shift_measurement's arithmetic).
+            delta, j_shift = shift_jacobian(h, inverse(self._kf_offset), inverse(offset))
+            cov = between_error_covariance(delta, j_shift @ cov_h @ j_shift.T)
+            edge = delta, floor_covariance(cov), self._bias_terms(mean_a, cov_a, cross, j, delta, cov, jac, j_shift)
         if self._vo_fused_since_keyframe:  # no twin: see the docstring
             edge = None
         self._vo_fused_since_keyframe = False
@@ -271,13 +274,15 @@ class PoseHistory:
         return edge
 
     def _bias_terms(self, mean_a: np.ndarray, cov_a: np.ndarray, cross: np.ndarray, j: int,
-                    delta: np.ndarray, cov: np.ndarray, offset: np.ndarray) -> EdgeBiasTerms:
+                    delta: np.ndarray, cov: np.ndarray,
+                    jac: tuple[np.ndarray, np.ndarray, np.ndarray], j_shift: np.ndarray) -> EdgeBiasTerms:
         """The edge's :class:`EdgeBiasTerms`: ``cross (6, 6)`` the covariance of the state
         recorded at ``j`` with the previous keyframe's (``mean_a``, ``cov_a``), ``delta`` and
-        ``cov`` the edge and its covariance in the frame of its end (unfloored)."""
-        _h, j_pose, j_clone = relative_pose_jacobians(mean_a[:3], self._hist_pose[j])
+        ``cov`` the edge and its covariance in the frame of its end (unfloored); ``jac`` the
+        motion's :func:`~robotd.odometry.relative.relative_pose_jacobians`, ``j_shift`` the
+        shift's Jacobian (:func:`~robotd.odometry.relative.shift_jacobian`)."""
+        _h, j_pose, j_clone = jac
         g = j_pose @ cross[:3, IB] + j_clone @ cov_a[:3, IB]  # Cov(h, bias at the start)
-        _z, j_shift = shift_jacobian(_h, inverse(self._kf_offset), inverse(offset))
         g = j_shift @ g
         g[:2] = rot2(float(delta[2])).T @ g[:2]  # as between_error_covariance
         p = float(cov_a[IB, IB])

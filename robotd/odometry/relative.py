@@ -115,15 +115,19 @@ def relative_pose_jacobians(clone_xyyaw: np.ndarray, pose_xyyaw: np.ndarray
     return h, j_pose, j_clone
 
 
-def relative_pose_covariance(pose_xyyaw: np.ndarray, pose_cov: np.ndarray, clone: PoseClone
+def relative_pose_covariance(pose_xyyaw: np.ndarray, pose_cov: np.ndarray, clone: PoseClone,
+                             jacobians: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
                              ) -> tuple[np.ndarray, np.ndarray]:
     """The filter's motion since the clone, ``h = clone^-1 (+) pose`` ``(3,)``, and its
     covariance ``(3, 3)`` from the joint covariance of ``(pose, clone)``: ``pose_cov``, the
     clone's own and their cross-covariance (the first three rows of ``clone.cross``),
     ``J_p P J_p^T + J_c P_c J_c^T + J_p X J_c^T + (J_p X J_c^T)^T``. Everything the pose
     and the clone share (the error accumulated before the clone, the gyro bias's part in
-    both) cancels here, which the difference of two absolute covariances cannot do."""
-    h, j_pose, j_clone = relative_pose_jacobians(clone.pose, np.asarray(pose_xyyaw, float))
+    both) cancels here, which the difference of two absolute covariances cannot do.
+    ``jacobians``: :func:`relative_pose_jacobians` of ``(clone.pose, pose_xyyaw)`` when the
+    caller has them already (the same numbers)."""
+    h, j_pose, j_clone = (relative_pose_jacobians(clone.pose, np.asarray(pose_xyyaw, float))
+                          if jacobians is None else jacobians)
     cross = j_pose @ clone.cross[:3] @ j_clone.T
     cov = j_pose @ np.asarray(pose_cov, float) @ j_pose.T + j_clone @ clone.cov @ j_clone.T + cross + cross.T
     return h, 0.5 * (cov + cov.T)
