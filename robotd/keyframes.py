@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from robotd.base.geometry import wrap_angle
+from robotd.base.geometry import between_floats as relative_pose
 
 
 @dataclass
@@ -35,23 +35,6 @@ class KeyframeSelector:
             self.last_pose = pose_xyyaw.copy()
             return True
         return False
-
-
-def relative_pose(a: np.ndarray, b: np.ndarray) -> tuple[float, float, float]:
-    """``between(a, b)`` of two single ``(3,)`` poses as three floats, bit for bit.
-
-    :func:`robotd.base.geometry.between` builds and stacks numpy arrays for one pose (about
-    0.1 ms on a slow core, and the keyframe stage asks once per floor frame, 30 a second);
-    here the same operations in the same order run on floats: the sines and cosines from
-    numpy's ``sin``/``cos`` (as ``between`` takes them; the C library's may differ in the
-    last bit), the products and sums in IEEE double either way.
-    """
-    ax, ay, ayaw = float(a[0]), float(a[1]), float(a[2])
-    c, s = float(np.cos(ayaw)), float(np.sin(ayaw))
-    ix, iy, iyaw = -c * ax - s * ay, s * ax - c * ay, wrap_angle(-ayaw)  # inverse(a)
-    c, s = float(np.cos(iyaw)), float(np.sin(iyaw))
-    bx, by, byaw = float(b[0]), float(b[1]), float(b[2])
-    return ix + c * bx - s * by, iy + s * bx + c * by, wrap_angle(iyaw + byaw)  # compose(inverse(a), b)
 
 
 def downsample(image: np.ndarray, width_px: int) -> np.ndarray | None:
