@@ -65,24 +65,9 @@ class BoundedQueue(Generic[T]):
         """Queue ``item``. Returns False when it was not queued: a lossless put whose
         ``stop`` was set while it waited, or a lossy ``drop="newest"`` put on a full queue."""
         with self._lock:
-            items = self._items
-            if len(items) >= self.maxsize:
-                if self.lossless:
-                    while len(items) > self._resume_at:
-                        if stop is not None and stop.is_set():
-                            return False
-                        self._putters_waiting += 1
-                        try:
-                            self._room.wait(_POLL_S)
-                        finally:
-                            self._putters_waiting -= 1
-                elif self.drop == "newest":
-                    self.dropped += 1
-                    return False
-                else:
-                    items.popleft()
-                    self.dropped += 1
-            items.append(item)
+            if self._make_room(stop) <= 0:
+                return False
+            self._items.append(item)
             self.put_count += 1
             if self._getters_waiting:
                 self._not_empty.notify()
@@ -90,6 +75,30 @@ class BoundedQueue(Generic[T]):
         if wakeup is not None and not wakeup.is_set():
             wakeup.set()
         return True
+
+    def _make_room(self, stop: threading.Event | None) -> int:
+        """With the lock held, before one item goes in: room made as the queue's mode says
+        when it is full (a lossless put waits until the consumer has taken it down to half, a
+        lossy one drops the oldest). 1: the item may go in; 0: refused by a full
+        ``drop="newest"`` queue (counted); -1: a lossless wait stopped by ``stop``."""
+        items = self._items
+        if len(items) < self.maxsize:
+            return 1
+        if self.lossless:
+            while len(items) > self._resume_at:
+                if stop is not None and stop.is_set():
+                    return -1
+                self._putters_waiting += 1
+                try:
+                    self._room.wait(_POLL_S)
+                finally:
+                    self._putters_waiting -= 1
+            return 1
+        self.dropped += 1
+        if self.drop == "newest":
+            return 0
+        items.popleft()
+        return 1
 
     def put_many(self, items: Iterable[T], stop: threading.Event | None = None) -> bool:
         """Queue ``items`` in order, each as :meth:`put` would (the same waits, drops and
@@ -103,29 +112,16 @@ class BoundedQueue(Generic[T]):
         with self._lock:
             queue = self._items
             for item in items:
-                if len(queue) >= self.maxsize:
-                    if self.lossless:
-                        if queued:
-                            self._wake(queued)  # the consumer makes the room we wait for
-                            queued = 0
-                        while len(queue) > self._resume_at:
-                            if stop is not None and stop.is_set():
-                                ok = False
-                                break
-                            self._putters_waiting += 1
-                            try:
-                                self._room.wait(_POLL_S)
-                            finally:
-                                self._putters_waiting -= 1
-                        if not ok:
-                            break
-                    elif self.drop == "newest":
-                        self.dropped += 1
-                        ok = False
-                        continue
-                    else:
-                        queue.popleft()
-                        self.dropped += 1
+                if queued and self.lossless and len(queue) >= self.maxsize:
+                    self._wake(queued)  # the consumer makes the room we wait for
+                    queued = 0
+                room = self._make_room(stop)
+                if room < 0:
+                    ok = False
+                    break
+                if room == 0:
+                    ok = False
+                    continue
                 queue.append(item)
                 self.put_count += 1
                 queued += 1
