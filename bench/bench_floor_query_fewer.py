@@ -18,7 +18,7 @@ passes (copies of the map) per query, and how many queries found none.
 
 Run: ``python bench/bench_floor_query_fewer.py [--map MAP] [--variants "k 3,k 2,place 10"]``
 (several minutes). Writes ``floor_query_fewer.json`` (``--out``, ``--name``); ``--doc PAGE``
-renders it (``--page JSON`` only renders).
+renders it (``--page JSON ...`` only renders, one section per run).
 """
 
 from __future__ import annotations
@@ -158,11 +158,19 @@ def run(map_path: Path, sizes: list[int], variants: list[str], queries: int, rou
     return out
 
 
-def page(payload: dict[str, Any]) -> str:
-    """The benchmark page of a run."""
+def page(payloads: list[dict[str, Any]]) -> str:
+    """The benchmark page of one or more runs, each its own section."""
+    lines = ["# Floor query: fewer pairs on repeated laps", ""]
+    for i, payload in enumerate(payloads):
+        if len(payloads) > 1:
+            lines += [f"## Run {i + 1}", ""]
+        lines += _run_section(payload, "###" if len(payloads) > 1 else "##")
+    return "\n".join(lines)
+
+
+def _run_section(payload: dict[str, Any], head: str) -> list[str]:
     r, m = payload["result"], payload["machine"]
-    lines = ["# Floor query: fewer pairs on repeated laps", "",
-             f"`bench/bench_floor_query_fewer.py`: the {r['map_keyframes']} keyframes of `{r['map']}` (mode "
+    lines = [f"`bench/bench_floor_query_fewer.py`: the {r['map_keyframes']} keyframes of `{r['map']}` (mode "
              f"{r['mode']}, laps of new frames) repeated to each size and read from the map as the daemon holds "
              f"them (1,024 resident), the last {r['queries']} queried in the order driven (loop threshold "
              f"{r['min_score']:.2f}, shortlist {r['shortlist']}, RANSAC confidence {r['confidence']}); the variants "
@@ -171,7 +179,7 @@ def page(payload: dict[str, Any]) -> str:
              "", f"Machine: {m['platform']} ({m.get('cpu_model')}), commit {str(m.get('git_commit'))[:10]}, "
              f"load {payload.get('load_start')} -> {payload.get('load_end')}.", ""]
     for row in r["sizes"]:
-        lines += [f"## {row['keyframes']} keyframes", "",
+        lines += [f"{head} {row['keyframes']} keyframes", "",
                   "| variant | median ms | ratio (by round) | p90 ms | pairs / query | loops / query | places / query "
                   "| queries without a loop |",
                   "|---|---:|---|---:|---:|---:|---:|---:|"]
@@ -181,7 +189,7 @@ def page(payload: dict[str, Any]) -> str:
                          f"{v['pairs_per_query']:.2f} | {v['loops_per_query']:.2f} | {v['places_per_query']:.2f} | "
                          f"{v['queries_without_loop']} |")
         lines.append("")
-    return "\n".join(lines)
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -198,11 +206,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("bench-out"))
     ap.add_argument("--name", default="floor_query_fewer")
     ap.add_argument("--doc", type=Path, default=None, help="also write the page here")
-    ap.add_argument("--page", type=Path, default=None, metavar="JSON", help="only render this run's page")
+    ap.add_argument("--page", type=Path, nargs="+", default=None, metavar="JSON",
+                    help="only render the page of these runs")
     args = ap.parse_args(argv)
     if args.page is not None:
         import json
-        text = page(json.loads(args.page.read_text(encoding="utf-8")))
+        text = page([json.loads(p.read_text(encoding="utf-8")) for p in args.page])
     else:
         load_start = [round(v, 2) for v in os.getloadavg()]
         variants = [v.strip() for v in args.variants.split(",") if v.strip()]
@@ -211,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
         payload = {"machine": machine_info(), "load_start": load_start,
                    "load_end": [round(v, 2) for v in os.getloadavg()], "result": res}
         print(f"wrote {write_json(args.out / f'{args.name}.json', payload)}")
-        text = page(payload)
+        text = page([payload])
     if args.doc is not None:
         args.doc.write_text(text, encoding="utf-8")
     print(text)
