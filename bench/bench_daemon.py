@@ -240,6 +240,8 @@ def make_config(args: argparse.Namespace, map_path: Path) -> Any:
         cfg = replace(cfg, "keyframes", distance_m=args.keyframe_distance)
     if args.shortlist is not None:
         cfg = replace(cfg, "floor_detector", shortlist=args.shortlist)
+    if getattr(args, "candidates", None) is not None:
+        cfg = replace(cfg, "floor_detector", candidates=args.candidates)
     if args.ransac_confidence:
         cfg = replace(cfg, "floor_detector", ransac_confidence=args.ransac_confidence)
     if args.localise_mapped:
@@ -1850,6 +1852,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--keyframe-distance", type=float, default=None, metavar="M",
                     help="[keyframes] distance_m (default: the config's)")
     ap.add_argument("--shortlist", type=int, default=None, help="[floor_detector] shortlist (default: the config's)")
+    ap.add_argument("--candidates", type=int, default=None,
+                    help="[floor_detector] candidates, the loops a query stops at (default: the config's)")
     ap.add_argument("--localise-mapped", action="store_true", help="[pose_graph] localise_mapped = true")
     ap.add_argument("--no-baseline", action="store_true")
     ap.add_argument("--keep-map", type=Path, default=None, metavar="FILE",
