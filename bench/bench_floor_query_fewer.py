@@ -9,7 +9,7 @@ query (which goes first rotates by round), thread CPU time:
 
 * ``default``: ``k`` 5, the shortlist in order (the daemon's default);
 * ``k N``: the query stops at ``N`` loops (``[floor_detector] candidates``);
-* ``place S``: one loop per place (``[floor_detector] place_spacing``, ``S`` ids), ``k`` 5;
+* ``place S``: one loop per place (``IndexParams.place_spacing``, ``S`` ids; library only, no config key), ``k`` 5;
 * ``k N place S``: both.
 
 Per variant: median and p90 ms per query and their ratio to ``default``, pairs scored and
