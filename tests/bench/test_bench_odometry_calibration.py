@@ -40,3 +40,51 @@ def test_write_calibration_refuses_without_the_fit_alone_or_a_seed(args, tmp_pat
     assert exc.value.code == 2
     assert "--write-calibration needs" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+def test_the_fit_alone_on_a_recorded_drive_reads_that_very_drive():
+    """``--drive-seeds``: the wheel ticks, yaw rates and truth the virtual robot of ``robotd
+    record --virtual --seed 12 --base-seed 1`` plays, as the Kobuki driver reads them."""
+    import numpy as np
+
+    from bench.bench_odometry_calibration import recorded_drive
+    from calibration.odometry import unwrapped_angles
+    from robotd.base.camera import FloorCameraModel
+    from robotd.base.clock import ManualClock
+    from sim.robot import VirtualRobot, VirtualRobotSettings
+    from sim.sensors import BaseSensorParams, draw_errors
+
+    p = BaseSensorParams()
+    settings = VirtualRobotSettings(route="figure8", seed=12, base_seed=1, duration_s=4.0)
+    with VirtualRobot(settings, FloorCameraModel.default(), ManualClock()) as robot:
+        fb = robot.base.feedback
+        drive = recorded_drive(robot.motion, p, draw_errors(p, np.random.default_rng(1)), 12, 0.0, 0.0, 0)
+    np.testing.assert_array_equal(drive.wheel_stamp_ns, fb.stamp_ns)
+    ticks = np.column_stack([fb.left_ticks, fb.right_ticks])
+    np.testing.assert_array_equal(drive.wheel_angle_rad, unwrapped_angles(ticks, p.drive.ticks_per_rev))
+    # one yaw rate per packet with raw gyro samples, their mean (in the driver's digits)
+    has = fb.gyro_count > 0
+    assert len(drive.gyro_radps) == int(has.sum())
+    z = np.where(np.arange(fb.gyro_digits.shape[1])[None, :] < fb.gyro_count[:, None], fb.gyro_digits[:, :, 2], 0)
+    np.testing.assert_allclose(drive.gyro_radps, np.deg2rad(z.sum(axis=1)[has] / fb.gyro_count[has] * 0.00875),
+                               rtol=1e-12, atol=1e-15)
+    # the reference: the true poses at wheel packets, without noise here
+    rows = np.searchsorted(fb.stamp_ns, drive.ref_stamp_ns)
+    np.testing.assert_array_equal(drive.ref_pose, fb.true_pose[rows])
+    assert len(drive.ref_stamp_ns) > 5 and drive.ref_stamp_ns[0] == fb.stamp_ns[0]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--calibration", "cal{seed}.yml", "--drive-seeds", "11"], "--drive-seeds needs --synthetic-reference"),
+    (["--synthetic-reference", "figure8", "--seeds", "0,1", "--drive-seeds", "11"],
+     "--drive-seeds gives 1 drive seeds for 2 seeds"),
+])
+def test_drive_seeds_refused_without_the_fit_alone_or_one_per_seed(args, message, tmp_path, monkeypatch, capsys):
+    from bench.bench_odometry_calibration import main
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        main(args + ["--out", str(tmp_path / "o.json")])
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
