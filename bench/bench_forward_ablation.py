@@ -131,6 +131,11 @@ def configurations(full: bool) -> dict[str, object]:
         "default, neighbours by distance": replace(dflt, odometry=replace(dflt.odometry, metric_neighbours=True)),
         "default, places merged by pose": replace(dflt, odometry=replace(dflt.odometry, merge_places=True)),
         "default as the daemon runs it": daemon_params(dflt),
+        # the bounded fallback's cap (the tail of the daemon's forward keyframes: docs/forward.md,
+        # "The p99 in the daemon now"), and no fallback at all
+        "default, fallback 100 samples": replace(dflt, verify=replace(dflt.verify, fallback_max_iterations=100)),
+        "default, fallback 50 samples": replace(dflt, verify=replace(dflt.verify, fallback_max_iterations=50)),
+        "default, no fallback": replace(dflt, verify=replace(dflt.verify, fallback_inliers=None)),
     })
     if full:
         cfgs["default, ORB 1000"] = replace(dflt, features=FeatureParams(kind="orb", max_features=1000))
