@@ -233,12 +233,13 @@ def run_odometry(args: Any) -> int:
     from robotd.odometry.calibration import fit_odometry
     from robotd.odometry.ekf import EkfParams
 
-    cfg = drive_config(args.config, args.recording)
+    # The arguments checked before the recording is opened (a damaged one logs a warning).
     if not args.calibration.exists():
         raise CalibrationError(f"{args.calibration}: no such calibration file (run `robotd calibrate "
                                "loop-curve` on the drive first: the reference trajectory needs its loops)")
     if args.passes < 1:
         raise CalibrationError(f"--passes must be at least 1, got {args.passes}")
+    cfg = drive_config(args.config, args.recording)
     # The outputs are checked before the replay (minutes), not when they are written.
     for option, path in (("--plot", args.plot), ("--json", args.json)):
         if path is not None:
