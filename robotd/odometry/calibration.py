@@ -346,11 +346,9 @@ def _gyro_integral(drive: CalibrationDrive, t0_ns: int) -> tuple[np.ndarray, np.
     previous reading's stamp to the midpoint to the next one's (the first and last spans
     as wide on both sides): the Kobuki driver's raw-gyro reading is its packet's mean rate,
     stamped at the packet's middle, so its span is the packet; a reading of one instant
-    gets the midpoint rule. The trapezoid rule between the readings spread each change of
-    rate over two packets, which at every turn's start and end moved the heading at the
-    keyframes there with the turn: on the driver's readings of figure eights with a tenth
-    of the gyro's noise against their true poses the gyro scale came out 0.012-0.016 % low
-    (seeds 0-4), with the spans 0.002-0.006 %."""
+    gets the midpoint rule. The trapezoid rule between the readings would spread each
+    change of rate over two packets and bias the gyro scale low at every turn's ends
+    (docs/odometry.md, "The fit against the simulator's known errors")."""
     t = (np.asarray(drive.gyro_stamp_ns, np.int64) - t0_ns) * 1e-9
     w = np.asarray(drive.gyro_radps, float)
     mid = 0.5 * (t[1:] + t[:-1])
