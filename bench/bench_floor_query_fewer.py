@@ -9,14 +9,17 @@ query (which goes first rotates by round), thread CPU time:
 
 * ``default``: ``k`` 5, the shortlist in order (the daemon's default);
 * ``k N``: the query stops at ``N`` loops (``[floor_detector] candidates``);
-* ``place S``: one loop per place (``IndexParams.place_spacing``, ``S`` ids; library only, no config key), ``k`` 5;
-* ``k N place S``: both.
+
+One loop per place (a shortlisted keyframe within ``S`` ids of one that gave the query a loop
+left unscored) was a third lever here; measured at 0.89x / 1.00x of the default's query at
+1,000 / 10,000 keyframes, it was removed from the index (docs/performance.md, "Tried and not
+taken"), and the pages of those runs keep its rows.
 
 Per variant: median and p90 ms per query and their ratio to ``default``, pairs scored and
 loops per query, the loops' distinct places (older ends ``--place-ids`` ids apart) and
 passes (copies of the map) per query, and how many queries found none.
 
-Run: ``python bench/bench_floor_query_fewer.py [--map MAP] [--variants "k 3,k 2,place 10"]``
+Run: ``python bench/bench_floor_query_fewer.py [--map MAP] [--variants "k 3,k 2"]``
 (several minutes). Writes ``floor_query_fewer.json`` (``--out``, ``--name``); ``--doc PAGE``
 renders it (``--page JSON ...`` only renders, one section per run).
 """
@@ -42,20 +45,18 @@ except ImportError:  # run as a script: bench/ is on sys.path
 DEFAULT_MAP = Path.home() / ".cache" / "robotd-bench" / "office-3laps-new-frames-map.sqlite"
 
 
-def parse_variant(text: str) -> tuple[int, int]:
-    """``"k 3, place 10"``-style names (``k`` 5 and no place rule unless named) -> ``(k, spacing)``."""
-    k, spacing = 5, 0
+def parse_variant(text: str) -> int:
+    """``"k 3"``-style names (``default``: ``k`` 5) -> ``k``."""
+    k = 5
     words = [] if text == "default" else text.split()
     if len(words) % 2:
         raise ValueError(f"variant {text!r}: pairs of lever and value")
     for key, value in zip(words[::2], words[1::2]):
         if key == "k":
             k = int(value)
-        elif key == "place":
-            spacing = int(value)
         else:
             raise ValueError(f"unknown lever {key!r} in {text!r}")
-    return k, spacing
+    return k
 
 
 def places(ids: list[int], spacing: int) -> int:
@@ -108,8 +109,7 @@ def run(map_path: Path, sizes: list[int], variants: list[str], queries: int, rou
                                                   recs[i % n0].descriptor, mode))
         kf_of = np.asarray(kf_ids, np.int64)
         mstore = MapStore.open(big, create=False, read_only=True)
-        idx = {name: FloorIndex.from_store(mstore, mode, IndexParams(shortlist=shortlist, match_params=mp,
-                                                                      place_spacing=levers[name][1]))
+        idx = {name: FloorIndex.from_store(mstore, mode, IndexParams(shortlist=shortlist, match_params=mp))
                for name in names}
         ids = np.arange(n)
         excluded = [kf_of[ids[np.abs(stamps[ids % n0] - stamps[q]) < int(exclude_recent_s * 1e9)]] for q in qrows]
@@ -122,7 +122,7 @@ def run(map_path: Path, sizes: list[int], variants: list[str], queries: int, rou
                     index = idx[name]
                     m0 = index.local_matches
                     t0 = time.thread_time()
-                    got = index.query(decoded[q], k=levers[name][0], min_score=min_score, exclude_ids=ex)
+                    got = index.query(decoded[q], k=levers[name], min_score=min_score, exclude_ids=ex)
                     ms[name].append((time.thread_time() - t0) * 1e3)
                     if r == 0:
                         rows = [int(np.searchsorted(kf_of, c.keyframe_id)) for c in got if c.score >= min_score]
@@ -136,7 +136,7 @@ def run(map_path: Path, sizes: list[int], variants: list[str], queries: int, rou
             med = statistics.median(ms[name])
             st = stats[name]
             row["variants"][name] = {
-                "k": levers[name][0], "place_spacing": levers[name][1],
+                "k": levers[name],
                 "query_ms": {"median": med, "p90": float(np.quantile(ms[name], 0.9))},
                 "ratio": med / base,
                 "ratio_by_round": [statistics.median(ms[name][i * len(qrows): (i + 1) * len(qrows)]) /
@@ -198,8 +198,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--map", type=Path, default=DEFAULT_MAP, help=f"a map of laps (default {DEFAULT_MAP})")
     ap.add_argument("--sizes", default="1000,10000", help="keyframes in the index, comma-separated")
-    ap.add_argument("--variants", default="k 3,k 2,place 10,k 2 place 10",
-                    help="comma-separated; each 'k N', 'place S' or both ('k 2 place 10')")
+    ap.add_argument("--variants", default="k 3,k 2,k 1",
+                    help="comma-separated; each 'k N'")
     ap.add_argument("--queries", type=int, default=100)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--place-ids", type=int, default=10, help="ids apart that make two loops' older ends two places")

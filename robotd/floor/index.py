@@ -88,14 +88,6 @@ class IndexParams:
             (``bench_daemon.py --residency``, 1,024 resident) the same 500 loops with no
             read per query instead of 2.4; measured on that one map only, so off by default
             (False: the shortlist in order of global similarity, as without a loader).
-        place_spacing: with ``enough`` stopping a query, one loop per place: a shortlisted
-            keyframe less than this many ids from one that has already reached ``min_score``
-            in this query is not scored (and not returned), and the pairs scored together
-            are taken at most one per place (by the same spacing; the others wait for a later
-            batch, scored only if their place's first gave no loop). Ids grow with time, so
-            close ids are one pass over one place. Fewer pairs a query on ground driven many
-            times, and its loops spread over the passes; the loops differ from the default's.
-            0 (default): every shortlisted keyframe in turn.
     """
 
     k: int = 5
@@ -105,7 +97,6 @@ class IndexParams:
     resident: int = 1024
     enough: bool = True
     resident_first: bool = False
-    place_spacing: int = 0
 
     def __post_init__(self) -> None:
         if self.k < 1:
@@ -116,8 +107,6 @@ class IndexParams:
             raise ValueError(f"initial_capacity must be >= 1, got {self.initial_capacity}")
         if self.resident < 1:
             raise ValueError(f"resident must be >= 1, got {self.resident}")
-        if self.place_spacing < 0:
-            raise ValueError(f"place_spacing must be >= 0, got {self.place_spacing}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -291,24 +280,6 @@ class _PackedDescriptors:
         """Bytes of every array held (chunks whole)."""
         return int(sum(a.nbytes for c in self.chunks for a in c.values()) + self.where.nbytes + self.head.nbytes
                    + self.step.nbytes + self.gbytes.nbytes)
-
-
-def _one_per_place(rest: list[tuple[int, float]], take: int, looped: list[int],
-                   spacing: int) -> tuple[list[tuple[int, float]], list[tuple[int, float]]]:
-    """The next pairs of a query with one loop per place (:attr:`IndexParams.place_spacing`):
-    from the shortlist's unscored ``rest`` (best first), those less than ``spacing`` ids
-    from a keyframe in ``looped`` dropped; then up to ``take`` of the others, in order, at
-    most one per place (less than ``spacing`` ids from one taken before waits). Returns the
-    pairs taken and what is left, in order."""
-    kept = [c for c in rest if all(abs(c[0] - kf) >= spacing for kf in looped)]
-    chunk: list[tuple[int, float]] = []
-    left: list[tuple[int, float]] = []
-    for c in kept:
-        if len(chunk) < take and all(abs(c[0] - t[0]) >= spacing for t in chunk):
-            chunk.append(c)
-        else:
-            left.append(c)
-    return chunk, left
 
 
 class FloorIndex:
@@ -627,8 +598,7 @@ class FloorIndex:
     def query(self, descriptor: FloorDescriptor, k: int | None = None,
               exclude_ids: Callable[[int], bool] | Collection[int] | None = None,
               exclude_after_id: int | None = None, shortlist: int | None = None,
-              min_score: float = 0.0, match_params: Any = None,
-              place_spacing: int | None = None) -> list[Candidate]:
+              min_score: float = 0.0, match_params: Any = None) -> list[Candidate]:
         """The best ``k`` earlier keyframes for ``descriptor``, by local score (best first;
         ties by global score, then by id).
 
@@ -643,8 +613,7 @@ class FloorIndex:
         similarity (with ``params.resident_first`` the resident descriptors first) only until
         ``k`` candidates reach ``min_score`` (:class:`IndexParams`). ``match_params`` (the
         default matcher only): the local scores' parameters for this query (None:
-        ``params.match_params``); ``place_spacing``: one loop per place for this query (None:
-        ``params.place_spacing``; :class:`IndexParams`).
+        ``params.match_params``).
         """
         k = self.params.k if k is None else int(k)
         short = self.shortlist(descriptor, shortlist, exclude_ids, exclude_after_id)
@@ -655,10 +624,6 @@ class FloorIndex:
         if stop_at is not None and self._loader is not None and self.params.resident_first:
             recent = self._recent  # resident first: a query that finds enough there reads nothing
             short = [c for c in short if c[0] in recent] + [c for c in short if c[0] not in recent]
-        spacing = self.params.place_spacing if place_spacing is None else int(place_spacing)
-        if stop_at is None:
-            spacing = 0
-        looped: list[int] = []  # with spacing: the ids that reached min_score
         reached = 0
         pos = 0
         while pos < len(short) and (stop_at is None or reached < stop_at):
@@ -666,11 +631,7 @@ class FloorIndex:
             # as one by one): as many as could all be scored before the query stops (each
             # pair adds at most one to ``reached``), at most _BATCH.
             take = min(_BATCH, len(short) - pos) if stop_at is None else min(_BATCH, stop_at - reached)
-            if spacing:
-                chunk, short = _one_per_place(short[pos:], take, looped, spacing)
-                pos = 0
-            else:
-                chunk, pos = short[pos: pos + take], pos + take
+            chunk, pos = short[pos: pos + take], pos + take
             loaded = []
             for kf, g in chunk:
                 try:
@@ -702,8 +663,6 @@ class FloorIndex:
                 candidates.append(Candidate(kf, g, result))
                 if result.score >= min_score:
                     reached += 1
-                    if spacing:
-                        looped.append(kf)
         candidates.sort(key=lambda c: (-c.score, -c.global_score, c.keyframe_id))
         return candidates[:k]
 

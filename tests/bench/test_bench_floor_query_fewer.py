@@ -9,14 +9,13 @@ from bench.bench_floor_query_fewer import page, parse_variant, places
 
 
 def test_a_variant_names_its_levers_and_defaults_to_the_query_as_it_is():
-    assert parse_variant("default") == (5, 0)
-    assert parse_variant("k 2") == (2, 0)
-    assert parse_variant("place 10") == (5, 10)
-    assert parse_variant("k 3 place 12") == (3, 12)
+    assert parse_variant("default") == 5
+    assert parse_variant("k 2") == 2
+    assert parse_variant("k 3 k 1") == 1  # the last one named
     with pytest.raises(ValueError):
         parse_variant("k")
     with pytest.raises(ValueError):
-        parse_variant("shortlist 4")
+        parse_variant("place 10")  # one loop per place: removed from the index
 
 
 def test_places_are_runs_of_ids_closer_than_the_spacing():

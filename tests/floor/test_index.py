@@ -441,40 +441,6 @@ def test_a_query_that_stops_at_k_scores_the_resident_descriptors_first():
     assert reads == [0, 1] and sorted(c.keyframe_id for c in more) == [0, 1, 16, 17, 18, 19]
 
 
-def test_one_loop_per_place_skips_the_places_that_gave_a_loop():
-    """``place_spacing``: the pairs scored together are one per place (ids closer than the
-    spacing), a place that gave a loop is not scored again, and one that gave none lets
-    its next keyframe be scored; off, the shortlist goes in global order."""
-    rng = np.random.default_rng(4)
-    q = rng.integers(0, 256, 16, dtype=np.uint8)
-    ids = [0, 1, 2, 3, 20, 21, 40]  # global order = this order; places 0-3, 20-21, 40
-    tags = {20: 1}  # keyframe 20 is no loop; the others score 5
-
-    def index(**params: object) -> tuple[FloorIndex, _CountingScorer]:
-        scorer = _CountingScorer()
-        ix = FloorIndex(IndexParams(shortlist=10, **params), scorer=scorer)
-        for i, kf in enumerate(ids):
-            g = np.unpackbits(q.copy())
-            g[:i] ^= 1
-            ix.add(kf, _Desc(np.packbits(g), tag=tags.get(kf, 5)))
-        return ix, scorer
-
-    ix, scorer = index(place_spacing=10)
-    got = ix.query(_Desc(q), k=3, min_score=3.0)
-    # first 0, 20, 40 together (1-3 wait behind 0); 0 and 40 loop, 20 not: then 21 (1-3 dropped)
-    assert scorer.calls == [5, 1, 5, 5] and ix.local_matches == 4
-    assert sorted(c.keyframe_id for c in got if c.score >= 3.0) == [0, 21, 40]
-    ix, scorer = index()
-    assert [c.keyframe_id for c in ix.query(_Desc(q), k=3, min_score=3.0)] == [0, 1, 2]
-    ix, scorer = index()  # the query's own spacing
-    assert sorted(c.keyframe_id for c in ix.query(_Desc(q), k=3, min_score=3.0, place_spacing=10)) == [0, 21, 40]
-    ix, scorer = index(place_spacing=10)  # without min_score every shortlisted keyframe is scored
-    ix.query(_Desc(q), k=3)
-    assert len(scorer.calls) == len(ids)
-    with pytest.raises(ValueError):
-        IndexParams(place_spacing=-1)
-
-
 def test_resident_must_be_positive():
     with pytest.raises(ValueError):
         IndexParams(resident=0)
