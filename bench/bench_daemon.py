@@ -91,9 +91,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # this checkout
 import numpy as np  # noqa: E402
 
 try:
-    from bench.common import REPO_ROOT, machine_info, print_table, write_json
+    from bench.common import REPO_ROOT, grow_repeated_map, machine_info, print_table, write_json
 except ImportError:  # run as a script: bench/ is on sys.path
-    from common import REPO_ROOT, machine_info, print_table, write_json
+    from common import REPO_ROOT, grow_repeated_map, machine_info, print_table, write_json
 
 STAGES = ("odometry", "keyframes", "floor describe", "floor query", "visual odometry", "pose graph",
           "forward detector", "store", "other stages", "input (replay, queues, main loop)")
@@ -1159,12 +1159,8 @@ def query_residency(map_path: Path, sizes: list[int], residents: list[int], quer
         big = Path(tmp.name) / "repeated.sqlite"
         kf_ids: list[int] = []
         for n in sorted(sizes):
-            with MapStore.open(big, synchronous="NORMAL") as bstore:  # the map repeated, as the daemon loads it
-                run = bstore.begin_run("", started_ns=0)
-                for i in range(len(kf_ids), n):
-                    kf_ids.append(bstore.add_keyframe(run, i, (0.0, 0.0, 0.0), np.eye(3), None,
-                                                      recs[i % n0].descriptor, mode))
-            kf_of = np.asarray(kf_ids, np.int64)
+            kf_of = np.asarray(grow_repeated_map(big, [r.descriptor for r in recs], mode, n, kf_ids),
+                               np.int64)  # the map repeated, as the daemon loads it
             mstore = MapStore.open(big, create=False, read_only=True)
             # each setting with the whole shortlist scored (IndexParams.enough off: the code
             # before the query stopped at k candidates reaching min_score), with the resident

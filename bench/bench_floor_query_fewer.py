@@ -38,9 +38,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # this checkout
 import numpy as np  # noqa: E402
 
 try:
-    from bench.common import machine_info, write_json
+    from bench.common import grow_repeated_map, machine_info, write_json
 except ImportError:  # run as a script: bench/ is on sys.path
-    from common import machine_info, write_json
+    from common import grow_repeated_map, machine_info, write_json
 
 DEFAULT_MAP = Path.home() / ".cache" / "robotd-bench" / "office-3laps-new-frames-map.sqlite"
 
@@ -92,6 +92,7 @@ def run(map_path: Path, sizes: list[int], variants: list[str], queries: int, rou
     n0 = len(recs)
     stamps = np.array([r.stamp_ns for r in recs], np.int64)
     decoded = [decode(r.descriptor) for r in recs]
+    blobs = [r.descriptor for r in recs]
     qrows = list(range(n0 - min(queries, n0), n0))
     out: dict[str, Any] = {"map": str(map_path), "map_keyframes": n0, "mode": mode, "min_score": min_score,
                            "confidence": confidence, "shortlist": shortlist, "queries": len(qrows),
@@ -102,12 +103,7 @@ def run(map_path: Path, sizes: list[int], variants: list[str], queries: int, rou
     big = Path(tmp.name) / "repeated.sqlite"
     kf_ids: list[int] = []
     for n in sorted(sizes):
-        with MapStore.open(big, synchronous="NORMAL") as bstore:  # the map repeated, as the daemon loads it
-            run_id = bstore.begin_run("", started_ns=0)
-            for i in range(len(kf_ids), n):
-                kf_ids.append(bstore.add_keyframe(run_id, i, (0.0, 0.0, 0.0), np.eye(3), None,
-                                                  recs[i % n0].descriptor, mode))
-        kf_of = np.asarray(kf_ids, np.int64)
+        kf_of = np.asarray(grow_repeated_map(big, blobs, mode, n, kf_ids), np.int64)  # as the daemon loads it
         mstore = MapStore.open(big, create=False, read_only=True)
         idx = {name: FloorIndex.from_store(mstore, mode, IndexParams(shortlist=shortlist, match_params=mp))
                for name in names}

@@ -147,6 +147,22 @@ def write_page(path: Path, lines: Sequence[str]) -> None:
     write_text_replacing(path, "\n".join(lines))
 
 
+def grow_repeated_map(path: Path, blobs: Sequence[bytes], mode: int, n: int, kf_ids: list[int]) -> list[int]:
+    """Grow the map at ``path`` to ``n`` keyframes, as the daemon stores them: the floor
+    descriptors ``blobs`` (of ``mode``) repeated in order under new ids, each copy one more
+    pass over the same floor. ``kf_ids`` holds the ids stored so far (grown in place), so
+    one map grows through increasing sizes; it is returned."""
+    import numpy as np
+
+    from robotd.io.store import MapStore
+
+    with MapStore.open(path, synchronous="NORMAL") as store:
+        run = store.begin_run("", started_ns=0)
+        for i in range(len(kf_ids), n):
+            kf_ids.append(store.add_keyframe(run, i, (0.0, 0.0, 0.0), np.eye(3), None, blobs[i % len(blobs)], mode))
+    return kf_ids
+
+
 def print_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> None:
     """Print an aligned text table: text left-aligned, numbers right-aligned."""
     cells = [[str(h) for h in headers]] + [[str(c) for c in row] for row in rows]

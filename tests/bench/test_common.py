@@ -39,3 +39,17 @@ def test_the_machine_record_names_the_cpu_model_the_kernel_reports() -> None:
     if not names:
         pytest.skip("/proc/cpuinfo names no model")
     assert machine_info()["cpu_model"] == names[0]
+
+
+def test_a_repeated_map_grows_through_sizes_with_the_descriptors_in_order(tmp_path: Path) -> None:
+    from bench.common import grow_repeated_map
+    from robotd.io.store import MapStore
+
+    blobs = [bytes([i]) * 8 for i in range(3)]
+    ids: list[int] = []
+    assert len(grow_repeated_map(tmp_path / "m.sqlite", blobs, 4, 4, ids)) == 4
+    assert grow_repeated_map(tmp_path / "m.sqlite", blobs, 4, 7, ids) is ids and len(ids) == 7
+    assert len(set(ids)) == 7
+    with MapStore.open(tmp_path / "m.sqlite", create=False, read_only=True) as store:
+        got = {r.id: (r.descriptor, r.descriptor_mode) for r in store.keyframes()}
+    assert [got[i] for i in ids] == [(blobs[i % 3], 4) for i in range(7)]
