@@ -95,7 +95,12 @@ outliers among them; its inliers still counted over all the matches), and the de
 the fallback for at most one view per image
 (:attr:`robotd.forward.detector.DetectorParams.verify_fallbacks`): the fallback was the
 99th percentile of the time per image. USAC in the fallback let a false loop through on
-the office route without a pose, so the fallback keeps RANSAC. ``model = "planar_motion"`` takes the level
+the office route without a pose, so the fallback keeps RANSAC. ``fallback_screen = "usac"``
+runs USAC in the band first and refuses the candidate when its best essential matrix has
+fewer than ``min_inliers`` inliers in front of both cameras, RANSAC deciding otherwise (so no
+acceptance is USAC's): measured, it refuses most of the fallbacks RANSAC accepts on the
+office route (views with little parallax, where many essential matrices fit the matches and
+the one drawn decides how many points lie in front) and one on rtabmap_samples, so it is off. ``model = "planar_motion"`` takes the level
 motion itself as the verified motion (no five-point search when it passes): measured, it
 passes aliased views (a wall's repeated pattern seen from a sideways shift) that the
 general test refuses, so it is not the default. ``model = "general"`` is the paper's
