@@ -136,6 +136,10 @@ def configurations(full: bool) -> dict[str, object]:
         "default, fallback 100 samples": replace(dflt, verify=replace(dflt.verify, fallback_max_iterations=100)),
         "default, fallback 50 samples": replace(dflt, verify=replace(dflt.verify, fallback_max_iterations=50)),
         "default, no fallback": replace(dflt, verify=replace(dflt.verify, fallback_inliers=None)),
+        # the band fallback screened by USAC first (it can only refuse: RANSAC decides what passes)
+        "default, fallback screened": replace(dflt, verify=replace(dflt.verify, fallback_screen="usac")),
+        "default as the daemon runs it, fallback screened": daemon_params(
+            replace(dflt, verify=replace(dflt.verify, fallback_screen="usac"))),
     })
     if full:
         cfgs["default, ORB 1000"] = replace(dflt, features=FeatureParams(kind="orb", max_features=1000))

@@ -84,6 +84,8 @@ VARIANTS: dict[str, tuple[dict[str, object], dict[str, object], dict[str, object
     "tree, fallback over all matches": ({}, {**_BOUNDED[0], "fallback_band_px": None}, _BOUNDED[1]),
     "tree, fallbacks unbounded": ({}, _BOUNDED[0], {}),
     "tree, USAC in the fallback": ({}, {**_BOUNDED[0], "fallback_estimator": "usac"}, _BOUNDED[1]),
+    # the band fallback's screen (VerifyParams.fallback_screen: USAC first, which can only refuse)
+    "tree, band fallback screened": ({}, {**_BOUNDED[0], "fallback_screen": "usac"}, _BOUNDED[1]),
 }
 
 

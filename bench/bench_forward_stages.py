@@ -5,7 +5,7 @@ The detector's stage timer is the process's CPU clock (``ForwardDetector(timer=
 time.process_time)``: a loaded machine stretches wall times far more than these), and the
 verification's parts are timed around their functions (``match_features``, the level
 motion's ``ransac_planar``, the five-point search near it with its refinement, the fallback
-over all the matches or the band, the support check). Sequences: rtabmap_samples (no pose),
+over all the matches or the band, the band's screen when on, the support check). Sequences: rtabmap_samples (no pose),
 the virtual office route without a pose and with the daemon's fused pose
 (``bench/bench_forward_ablation.py``'s ``odometry_fused.csv``, computed when missing);
 variants by the names of ``bench/bench_forward_scale.py``'s ``VARIANTS``, each over the same
@@ -159,6 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     parts.wrap(verify_mod, "ransac_planar", "level motion (two-point)")
     parts.wrap(verify_mod, "_general_motion", _search_name)
     parts.wrap(verify_mod, "_checked", "support check")
+    parts.wrap(verify_mod, "_screen_passes", "band screen")
     parts.wrap(detector_mod, "verify_pair", "verify_pair")
     res: dict[str, Any] = {"benchmark": "forward_stages", "machine": machine_info(),
                            "command": " ".join(["bench/bench_forward_stages.py", *(argv if argv is not None

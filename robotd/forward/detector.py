@@ -851,7 +851,8 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
                                 consistency=DEFAULT_CONSISTENCY, verify_tries=DEFAULT_VERIFY_TRIES,
                                 odometry=OdometryParams(use=True, agree_min_support_area=0.0),
                                 verify=VerifyParams(model=DEFAULT_VERIFY_MODEL, guided_estimator=DEFAULT_GUIDED_ESTIMATOR,
-                                                    fallback_band_px=DEFAULT_FALLBACK_BAND_PX),
+                                                    fallback_band_px=DEFAULT_FALLBACK_BAND_PX,
+                                                    fallback_screen=DEFAULT_FALLBACK_SCREEN),
                                 verify_fallbacks=DEFAULT_VERIFY_FALLBACKS)
     else:
         raise ValueError(f"forward detector method must be one of {', '.join(METHODS)}, got {method!r}")
@@ -889,6 +890,10 @@ DEFAULT_VERIFY_TRIES = 3
 DEFAULT_VERIFY_MODEL = "planar"
 DEFAULT_GUIDED_ESTIMATOR = "usac"
 DEFAULT_FALLBACK_BAND_PX = 10.0
+#: No screen before the band fallback's RANSAC: USAC's (``VerifyParams.fallback_screen``)
+#: refuses fallbacks RANSAC accepts on both development sequences (docs/forward.md, "Tried
+#: and not taken").
+DEFAULT_FALLBACK_SCREEN: str | None = None
 DEFAULT_VERIFY_FALLBACKS = 1
 
 

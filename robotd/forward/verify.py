@@ -95,7 +95,12 @@ outliers among them; its inliers still counted over all the matches), and the de
 the fallback for at most one view per image
 (:attr:`robotd.forward.detector.DetectorParams.verify_fallbacks`): the fallback was the
 99th percentile of the time per image. USAC in the fallback let a false loop through on
-the office route without a pose, so the fallback keeps RANSAC. ``model = "planar_motion"`` takes the level
+the office route without a pose, so the fallback keeps RANSAC. ``fallback_screen = "usac"``
+runs USAC in the band first and refuses the candidate when its best essential matrix has
+fewer than ``min_inliers`` inliers in front of both cameras, RANSAC deciding otherwise (so no
+acceptance is USAC's): measured, it refuses most of the fallbacks RANSAC accepts on the
+office route (views with little parallax, where many essential matrices fit the matches and
+the one drawn decides how many points lie in front) and one on rtabmap_samples, so it is off. ``model = "planar_motion"`` takes the level
 motion itself as the verified motion (no five-point search when it passes): measured, it
 passes aliased views (a wall's repeated pattern seen from a sideways shift) that the
 general test refuses, so it is not the default. ``model = "general"`` is the paper's
@@ -137,6 +142,9 @@ SMALL_SUPPORT = VerifyReason.SMALL_SUPPORT
 
 #: The searches for the essential matrix (:attr:`VerifyParams.estimator`).
 ESTIMATORS = ("ransac", "usac")
+
+#: The screens before the band fallback's general search (:attr:`VerifyParams.fallback_screen`).
+SCREENS = ("usac",)
 
 #: The motion models of the verification (:attr:`VerifyParams.model`).
 MODELS = ("general", "planar", "planar_motion")
@@ -214,6 +222,15 @@ class VerifyParams:
             few degrees off level keeps its inliers near the level motion; fewer outliers
             among the samples let RANSAC's adaptive stop come earlier), its inliers still
             counted over all the matches; None: among all the matches.
+        fallback_screen: with a planar model and ``fallback_band_px``, a cheaper search
+            run in the band before that general search, which can only refuse: when the
+            essential matrix it finds (``"usac"``: OpenCV's USAC, the same test and
+            iteration bound as the search it screens, a tenth of its cost per sample) has
+            fewer than ``min_inliers`` inliers over all the matches in front of both
+            cameras, the candidate is refused without the general search; otherwise the
+            general search runs as without the screen and decides. So every acceptance is
+            the general search's own; a consensus the screen misses and RANSAC would find
+            is lost (module notes, "The planar model"). None: no screen.
     """
 
     ratio: float = 0.8
@@ -238,6 +255,7 @@ class VerifyParams:
     guided_estimator: str | None = None
     fallback_estimator: str | None = None
     fallback_band_px: float | None = None
+    fallback_screen: str | None = None
 
     def __post_init__(self) -> None:
         if self.camera_height_m is not None and not self.camera_height_m > 0.0:
@@ -264,6 +282,8 @@ class VerifyParams:
             raise ValueError(f"fallback_band_px must be positive or None, got {self.fallback_band_px}")
         if self.fallback_inliers is not None and self.fallback_inliers < 0:
             raise ValueError(f"fallback_inliers must be >= 0 or None, got {self.fallback_inliers}")
+        if self.fallback_screen is not None and self.fallback_screen not in SCREENS:
+            raise ValueError(f"fallback_screen must be one of {', '.join(SCREENS)} or None, got {self.fallback_screen!r}")
         for name in ("estimator", "guided_estimator", "fallback_estimator"):
             value = getattr(self, name)
             if (value is not None or name == "estimator") and value not in ESTIMATORS:
@@ -292,7 +312,9 @@ class Verification:
     :attr:`robotd.forward.detector.DetectorParams.verify_fallbacks`); ``level_yaw_rad`` the
     heading change of the level motion the planar model's search found first (the two-point
     search that guides the others, :func:`robotd.forward.planefit.ransac_planar`; NaN when
-    it found none or the model is not ``"planar"``); ``match_index`` the matches' indices
+    it found none or the model is not ``"planar"``); ``screened`` whether the band
+    fallback's screen refused the candidate before its general search
+    (:attr:`VerifyParams.fallback_screen`); ``match_index`` the matches' indices
     into the old and the new image's keypoints (two ``(M,)`` int arrays, the order of the
     matched pixels the search ran on: :func:`match_indices`; None when not matched here), so
     that a user of the verification reads the same matches without matching again. When a pose was recovered: ``rotation (3, 3)`` and
@@ -319,6 +341,7 @@ class Verification:
     fallback: bool = False
     level_yaw_rad: float = float("nan")
     match_index: tuple[np.ndarray, np.ndarray] | None = None
+    screened: bool = False
 
 
 def camera_matrix_guess(width_px: int, height_px: int, focal_px: float | None = None) -> np.ndarray:
@@ -427,6 +450,8 @@ def _verify_matched(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: 
             band = search.inliers(p_old, p_new, k, params.fallback_band_px, xs)
             if int(band.sum()) < params.min_inliers:
                 return replace(guided, fallback=True)
+            if params.fallback_screen is not None and not _screen_passes(p_old, p_new, k, params, band, xs):
+                return replace(guided, fallback=True, screened=True)
             banded = _general_motion(p_old, p_new, k, params, n, band, half_inliers=False, normalised=xs)
             checked = banded if isinstance(banded, Verification) else _checked(old, new, p_old, p_new, k, params,
                                                                                 banded)
@@ -535,6 +560,25 @@ def _general_motion(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params:
                      normalised=None if normalised is None else (normalised[0][inl], normalised[1][inl]))
     return (inl, fit.rotation, fit.translation_dir, fit.sigma_bearing_rad, fit.sigma_yaw_rad, fit.noise_px,
             fit.planarity_chi2)
+
+
+def _screen_passes(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, params: VerifyParams, band: np.ndarray,
+                   normalised: tuple[np.ndarray, np.ndarray]) -> bool:
+    """Whether the band fallback's screen (``params.fallback_screen``) finds an essential
+    matrix among the matches in ``band (N,) bool`` with at least ``min_inliers`` inliers
+    over all the matches in front of both cameras (the test the general search after it
+    must pass); the same iteration bound as that search. It only decides whether that
+    search runs: its own matrix is never the verified one."""
+    sp = replace(params, estimator=params.fallback_screen or params.estimator)
+    e, _ = essential_matrix(p_old[band], p_new[band], k, sp)
+    if e is None or e.shape[0] < 3:
+        return False
+    e = e[:3]
+    mask = _epipolar_mask(p_old, p_new, k, e, params.ransac_threshold_px, normalised)
+    if int(mask.sum()) < params.min_inliers:
+        return False
+    n_inl, _, _, _ = cv2.recoverPose(e, p_old, p_new, k, mask=mask.copy())
+    return int(n_inl) >= params.min_inliers
 
 
 def _epipolar_mask(p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray, e: np.ndarray,

@@ -304,7 +304,8 @@ def test_the_planar_models_searches_take_their_own_estimators(monkeypatch):
 
 @pytest.mark.parametrize("kw", [{"model": "affine"}, {"planar_max_samples": 0}, {"fallback_inliers": -1},
                                 {"guide_threshold_px": 0.0}, {"fallback_max_iterations": 0},
-                                {"guided_estimator": "lmeds"}, {"fallback_estimator": "prosac"}])
+                                {"guided_estimator": "lmeds"}, {"fallback_estimator": "prosac"},
+                                {"fallback_screen": "ransac"}])
 def test_bad_model_parameters_are_refused(kw):
     with pytest.raises(ValueError, match=next(iter(kw))):
         VerifyParams(**kw)
@@ -488,3 +489,102 @@ def test_normalised_points_of_a_subset_are_the_rows_of_the_whole():
         assert xo[keep].tobytes() == so.tobytes() and xn[keep].tobytes() == sn.tobytes()
         kinv = np.linalg.inv(K)
         assert xo.tobytes() == (np.hstack([p_old, np.ones((n, 1))]) @ kinv.T).tobytes()
+
+
+def _guided_fails(monkeypatch, verify_mod) -> list[int]:
+    """The search near the level motion made to fail (the first ``_general_motion`` call of
+    each verification), so the band fallback runs; the calls' ``half_inliers`` recorded."""
+    inner = verify_mod._general_motion
+    calls: list[int] = []
+
+    def first_fails(p_o, p_n, k, prm, n, near=None, half_inliers=True, normalised=None):
+        calls.append(int(half_inliers))
+        if half_inliers:
+            return verify_mod.Verification(False, NO_GEOMETRIC_CONSISTENCY, n, 0)
+        return inner(p_o, p_n, k, prm, n, near, half_inliers, normalised)
+
+    monkeypatch.setattr(verify_mod, "_general_motion", first_fails)
+    return calls
+
+
+def _same_outcome(a, b) -> bool:
+    return (a.accepted, a.reason, a.n_matches, a.n_inliers, a.fallback) == (
+        b.accepted, b.reason, b.n_matches, b.n_inliers, b.fallback) and (
+        (a.rotation is None and b.rotation is None) or np.array_equal(a.rotation, b.rotation)) and (
+        (a.translation_dir is None and b.translation_dir is None) or np.array_equal(a.translation_dir,
+                                                                                      b.translation_dir))
+
+
+def test_the_band_screen_passes_what_both_searches_find_and_the_general_search_decides(monkeypatch):
+    """``fallback_screen``: a true pair whose consensus both USAC and RANSAC find in the band
+    is not screened out, and the verification is RANSAC's own (the same motion to the bit
+    as without the screen)."""
+    import robotd.forward.verify as verify_mod
+
+    old, new, r, _ = _level_pair_with_shuffled(np.random.default_rng(6))
+    calls = _guided_fails(monkeypatch, verify_mod)
+    base = VerifyParams(model="planar", fallback_inliers=0, fallback_band_px=10.0)
+    without = verify_pair(old, new, base)
+    assert calls == [1, 0]
+    calls.clear()
+    screened = verify_pair(old, new, VerifyParams(**{**base.__dict__, "fallback_screen": "usac"}))
+    assert calls == [1, 0]  # the screen passed: the band's general search ran
+    assert without.accepted and without.fallback and not without.screened
+    assert screened.accepted and not screened.screened and _same_outcome(screened, without)
+    assert _angle_deg(screened.rotation, r) < 0.3
+
+
+def test_the_band_screen_can_only_refuse(monkeypatch):
+    """The screen never accepts on its own: when it passes and the band's general search
+    (RANSAC) refuses, the candidate is refused; when it refuses, RANSAC is not run."""
+    import robotd.forward.verify as verify_mod
+
+    old, new, _, _ = _level_pair_with_shuffled(np.random.default_rng(6))
+    _guided_fails(monkeypatch, verify_mod)
+    inner = verify_mod.essential_matrix
+    estimators: list[str] = []
+
+    def ransac_refuses(p_old, p_new, k, params):
+        estimators.append(params.estimator)
+        if params.estimator == "ransac":
+            return None, None
+        return inner(p_old, p_new, k, params)
+
+    monkeypatch.setattr(verify_mod, "essential_matrix", ransac_refuses)
+    params = VerifyParams(model="planar", fallback_inliers=0, fallback_band_px=10.0, fallback_screen="usac")
+    v = verify_pair(old, new, params)
+    assert estimators == ["usac", "ransac"]  # the screen found the consensus, RANSAC then decided
+    assert not v.accepted and v.reason == NO_GEOMETRIC_CONSISTENCY and v.fallback and not v.screened
+    # The screen finding nothing: refused as screened, RANSAC not run.
+    estimators.clear()
+    monkeypatch.setattr(verify_mod, "_screen_passes", lambda *args: False)
+    v = verify_pair(old, new, params)
+    assert estimators == [] and not v.accepted and v.fallback and v.screened
+
+
+def test_the_band_screen_accepts_a_subset_of_what_ransac_accepts(monkeypatch):
+    """Pairs near the acceptance threshold (16-34 true matches among 60, the rest shuffled):
+    with the screen every accepted pair is accepted without it with the same motion, and
+    every pair the screen lets through has the same outcome as without it."""
+    import robotd.forward.verify as verify_mod
+
+    _guided_fails(monkeypatch, verify_mod)
+    rng = np.random.default_rng(100)
+    base = VerifyParams(model="planar", fallback_inliers=0, fallback_band_px=10.0)
+    on_params = VerifyParams(**{**base.__dict__, "fallback_screen": "usac"})
+    accepted = screened = 0
+    for n_true in [*range(16, 35, 2)] * 3:
+        x_old, x_new, _, _ = _scene(rng, 60)
+        desc = rng.standard_normal((60, 32)).astype(np.float32)
+        desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+        px_new = _project(x_new) + rng.normal(0, 0.3, (60, 2)).astype(np.float32)
+        shuffled = rng.permutation(np.arange(n_true, 60))
+        px_new[n_true:] = px_new[shuffled]
+        old, new = _features(_project(x_old), desc), _features(px_new, desc)
+        off, on = verify_pair(old, new, base), verify_pair(old, new, on_params)
+        assert not on.accepted or off.accepted
+        if not on.screened:
+            assert _same_outcome(on, off)
+        accepted += on.accepted
+        screened += on.screened
+    assert accepted > 0 and screened > 0
