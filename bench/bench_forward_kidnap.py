@@ -20,10 +20,11 @@ each run's ``summary.json`` and map file:
 
 ``--against DIR``: every demo also from the tree ``DIR`` (a snapshot of the code before,
 ``git archive``), one after the other per seed, both in the JSON and the page.
-``--plain``: also the demo over the whole route without the kidnapping and with the floor
-detector on (``robotd demo --forward --route office --seed N``), whose forward loops must
-stay all right. ``--full``: seeds 0-4 and ``--plain``; the default, seeds 0-2 kidnapped
-only (three demos of 3-8 minutes on a loaded two-core machine). ``--reuse`` keeps a run
+``--plain``: also this tree's demo over the whole route without the kidnapping and with the
+floor detector on (``robotd demo --forward --route office --seed N``), whose forward loops
+must stay all right (``--plain-seeds``: only on these). ``--full``: seeds 0-4 and
+``--plain``; the default, seeds 0-2 kidnapped only (three demos of 3-8 minutes on a loaded
+two-core machine). ``--reuse`` keeps a run
 whose ``summary.json`` exists in ``--work``; ``--page-from JSON`` writes the page only.
 """
 
@@ -182,6 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", default=None, help="default 0,1,2 (--full: 0,1,2,3,4)")
     ap.add_argument("--full", action="store_true", help="seeds 0-4 and --plain")
     ap.add_argument("--plain", action="store_true", help="also each seed's whole route, no kidnapping, floor on")
+    ap.add_argument("--plain-seeds", default=None, help="--plain on these seeds only (default: all)")
     ap.add_argument("--against", type=Path, default=None, help="a tree of the code before: its demos beside")
     ap.add_argument("--against-label", default="before")
     ap.add_argument("--against-commit", default=None, help="the commit the --against tree holds (for the JSON)")
@@ -202,6 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     if any(s not in KIDNAPPINGS for s in seeds):
         ap.error(f"seeds are {sorted(KIDNAPPINGS)}")
     plain = args.plain or args.full
+    plain_seeds = set(seeds) if args.plain_seeds is None else {int(s) for s in args.plain_seeds.split(",")}
     args.work.mkdir(parents=True, exist_ok=True)
     info = machine_info()
     trees = [{"label": args.label, "path": str(REPO), "commit": info["git_commit"]}]
@@ -226,13 +229,11 @@ def main(argv: list[str] | None = None) -> int:
                            ("--forward",), Path(t["path"]))
             k = kidnapped_row(run["summary"], keyframe_stamps(out))
             row["kidnapped"][t["label"]] = {**k, "cpu_s": run["cpu_s"], "wall_s": run["wall_s"]}
-        if plain:
-            for n, t in enumerate(trees):
-                out = (args.work / f"t{n}-seed{seed}-plain").resolve()
-                print(f"{t['label']} seed {seed} plain: {out}", file=sys.stderr, flush=True)
-                run = run_demo(out, seed, None, None, extra_cfg if n == 0 else None, args.reuse, ("--forward",),
-                               Path(t["path"]))
-                row["plain"][t["label"]] = {**plain_row(run["summary"]), "cpu_s": run["cpu_s"]}
+        if plain and seed in plain_seeds:  # this tree's only
+            out = (args.work / f"t0-seed{seed}-plain").resolve()
+            print(f"{trees[0]['label']} seed {seed} plain: {out}", file=sys.stderr, flush=True)
+            run = run_demo(out, seed, None, None, extra_cfg, args.reuse, ("--forward",), Path(trees[0]["path"]))
+            row["plain"][trees[0]["label"]] = {**plain_row(run["summary"]), "cpu_s": run["cpu_s"]}
         rows.append(row)
         for label, k in row["kidnapped"].items():
             print(f"{label} seed {seed}: relocalised {k['relocalised']} after {k['after_s']} s, "

@@ -32,7 +32,13 @@ A forward-camera loop (:class:`~robotd.base.messages.ForwardLoop`: heading chang
 bearing, no distance) becomes an SE(2) edge whose range is the graph's own prediction with a
 large uncertainty (:func:`robotd.forward.planar.loop_edge`), then meets the same gate at
 the same probability for the components it measures: 2 degrees of freedom without a
-range measured on the floor (13.8 by default), 3 with one (:func:`gate_threshold`).
+range measured on the floor (13.8 by default), 3 with one (:func:`gate_threshold`). A
+forward loop whose motion lies on a heading-bearing ridge that no prior heading settled
+(``ForwardLoop.sigma_yaw_rad``: a point the inliers' noise picked on the ridge, its heading
+and bearing each as uncertain as the ridge is wide) is refused by the gate, however well it
+agrees; it is held for relocalisation like any other (there its honest noise lets it weigh
+no more than it measures), and the forward stage settles the next view of the place at the
+heading the graph then gives.
 
 Relocalisation. The map frame is the frame of the run that started the
 map; a run that relocalises against it joins it (``MapStore.map_frame_runs``). A run that
@@ -179,12 +185,20 @@ class GatedGraph:
 
     def forward_candidate(self, from_id: int, to_id: int, probability: float,
                           edge: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], *,
-                          range_measured: bool = False) -> None:
+                          range_measured: bool = False, unsettled: bool = False) -> None:
         """A forward loop: ``edge(predicted)`` gives its ``(delta, information)`` from the
         graph's predicted relative pose (the forward camera measures no range, unless the
-        floor gave it: ``range_measured``)."""
+        floor gave it: ``range_measured``). ``unsettled``: its motion lies on a
+        heading-bearing ridge no prior heading settled (the forward stage's module notes):
+        held for relocalisation like any other, but never gated into the graph (module
+        notes)."""
         if self._relocalisation_takes(from_id, to_id, probability, None, None, "forward", edge=edge,
                                       measured_dims=3 if range_measured else 2):
+            return
+        if unsettled:
+            self.forward_failed_gate += 1
+            self._emit(CandidateFate(to_id, from_id, probability, LoopFate.FAILED_GATE,
+                                     "forward: on a heading-bearing ridge no heading settled"))
             return
         self._gate_and_add(from_id, to_id, probability, self._forward_edge(from_id, to_id, edge), "forward",
                            dof=3 if range_measured else 2)
