@@ -80,12 +80,17 @@ def kidnapped_row(summary: dict[str, Any], stamps: dict[int, float]) -> dict[str
     reloc_t = put_down + r["after_s"] if r.get("relocalised") else None
     member_ids = {(x["from"], x["to"]) for x in members}
     after = [x for x in accepted if stamps.get(x["to"], 0.0) >= put_down and (x["from"], x["to"]) not in member_ids]
-    wrong_after = [{"from": x["from"], "to": x["to"],
-                    "s_after_reloc": (None if reloc_t is None else round(stamps.get(x["to"], 0.0) - reloc_t, 2)),
-                    "gate_chi2": _gate_chi2(x.get("fate_detail", "")), "yaw_error_deg": round(x["yaw_error_deg"], 2),
-                    "bearing_error_deg": (None if x["bearing_error_deg"] is None else round(x["bearing_error_deg"], 1)),
-                    "true_distance_m": round(x["true_distance_m"], 2), "truth_chi2": round(x["truth_chi2"], 1)}
-                   for x in after if not x["right"]]
+    def judged(x: dict[str, Any]) -> dict[str, Any]:
+        return {"from": x["from"], "to": x["to"],
+                "s_after_reloc": (None if reloc_t is None else round(stamps.get(x["to"], 0.0) - reloc_t, 2)),
+                "gate_chi2": _gate_chi2(x.get("fate_detail", "")), "yaw_error_deg": round(x["yaw_error_deg"], 2),
+                "bearing_error_deg": (None if x["bearing_error_deg"] is None else round(x["bearing_error_deg"], 1)),
+                "true_distance_m": round(x["true_distance_m"], 2), "truth_chi2": round(x["truth_chi2"], 1),
+                "sigma_bearing_deg": (None if x.get("sigma_bearing_deg") is None else round(x["sigma_bearing_deg"], 1)),
+                "sigma_yaw_deg": (None if x.get("sigma_yaw_deg") is None else round(x["sigma_yaw_deg"], 1))}
+
+    wrong_after = [judged(x) for x in after if not x["right"]]
+    wrong_members = [judged(x) for x in members if not x["right"]]
     return {
         "relocalised": bool(r.get("relocalised", False)),
         "carried_m": r.get("carried_m"),
@@ -98,7 +103,7 @@ def kidnapped_row(summary: dict[str, Any], stamps: dict[int, float]) -> dict[str
         "forward_accepted_wrong": sum(not x["right"] for x in accepted),
         "forward_accepted_outside_own_noise": sum(x["outside_own_noise"] for x in accepted),
         "after_put_down_accepted": len(after), "after_put_down_wrong": len(wrong_after),
-        "wrong_after": wrong_after,
+        "wrong_after": wrong_after, "wrong_members": wrong_members,
     }
 
 
@@ -142,22 +147,28 @@ def markdown(payload: dict[str, Any]) -> list[str]:
                 f"{k['forward_accepted']} ({k['forward_accepted_right']} / **{k['forward_accepted_wrong']}**) | "
                 f"{k['forward_accepted_outside_own_noise']} | {k['after_put_down_accepted']} "
                 f"({k['after_put_down_wrong']}) | {_f(k.get('cpu_s'), '.0f')} |")
-    wrong = [(t["label"], row["seed"], w) for row in payload["seeds"] for t in trees
-             for w in (row["kidnapped"].get(t["label"]) or {}).get("wrong_after", [])]
+    wrong = [(t["label"], row["seed"], kind, w) for row in payload["seeds"] for t in trees
+             for kind, key in (("relocalising", "wrong_members"), ("after", "wrong_after"))
+             for w in (row["kidnapped"].get(t["label"]) or {}).get(key, [])]
     lines += ["", "Right by the demo's judge: heading change within 5 deg, bearing within 10 deg where the "
               "true cameras are more than 0.2 m apart. Outside own noise: the true relative pose past the "
               "99.9 % point under the loop edge's own information. Agreeing loops: the relocalising group "
               "(right by the same judge). Accepted after the put-down: forward loops from the lost "
               "trajectory the gate let in, the relocalising group not counted.", ""]
     if wrong:
-        lines += ["Wrong forward loops accepted after the put-down:", "",
-                  "| code | seed | loop (old -> query keyframe) | s after the relocalisation | gate chi2 | "
-                  "heading error (deg) | bearing error (deg) | true distance (m) | truth chi2 under its edge |",
-                  "|---|---|---|---|---|---|---|---|---|"]
-        for label, seed, w in wrong:
-            lines.append(f"| {label} | {seed} | {w['from']} -> {w['to']} | {_f(w['s_after_reloc'], '.1f')} | "
+        lines += ["Wrong forward loops accepted after the put-down (relocalising: a member of the relocalising "
+                  "group; after: gated in after the relocalisation). Sigmas: the loop's own bearing sigma and the "
+                  "heading sigma it adds for a ridge no heading settled (- where none, or not recorded by the code):", "",
+                  "| code | seed | loop (old -> query keyframe) | how | s after the relocalisation | gate chi2 | "
+                  "heading error (deg) | bearing error (deg) | true distance (m) | bearing / heading sigma (deg) | "
+                  "truth chi2 under its edge |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for label, seed, kind, w in wrong:
+            lines.append(f"| {label} | {seed} | {w['from']} -> {w['to']} | {kind} | {_f(w['s_after_reloc'], '.1f')} | "
                          f"{_f(w['gate_chi2'], '.2f')} | {w['yaw_error_deg']:.1f} | "
-                         f"{_f(w['bearing_error_deg'], '.1f')} | {w['true_distance_m']:.2f} | {w['truth_chi2']:.1f} |")
+                         f"{_f(w['bearing_error_deg'], '.1f')} | {w['true_distance_m']:.2f} | "
+                         f"{_f(w.get('sigma_bearing_deg'), '.1f')} / {_f(w.get('sigma_yaw_deg'), '.1f')} | "
+                         f"{w['truth_chi2']:.1f} |")
         lines.append("")
     plains = [(t["label"], row["seed"], row["plain"][t["label"]]) for row in payload["seeds"] for t in trees
               if t["label"] in row.get("plain", {})]
