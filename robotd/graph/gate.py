@@ -193,15 +193,18 @@ class GatedGraph:
         held for relocalisation like any other, but never gated into the graph (module
         notes)."""
         if self._relocalisation_takes(from_id, to_id, probability, None, None, "forward", edge=edge,
-                                      measured_dims=3 if range_measured else 2):
+                                      measured_dims=3 if range_measured else 2, unsettled=unsettled):
             return
         if unsettled:
-            self.forward_failed_gate += 1
-            self._emit(CandidateFate(to_id, from_id, probability, LoopFate.FAILED_GATE,
-                                     "forward: on a heading-bearing ridge no heading settled"))
+            self._refuse_unsettled(from_id, to_id, probability)
             return
         self._gate_and_add(from_id, to_id, probability, self._forward_edge(from_id, to_id, edge), "forward",
                            dof=3 if range_measured else 2)
+
+    def _refuse_unsettled(self, from_id: int, to_id: int, probability: float) -> None:
+        self.forward_failed_gate += 1
+        self._emit(CandidateFate(to_id, from_id, probability, LoopFate.FAILED_GATE,
+                                 "forward: on a heading-bearing ridge no heading settled"))
 
     def _forward_edge(self, from_id: int, to_id: int, edge: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
                       ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
@@ -410,7 +413,7 @@ class GatedGraph:
     def _relocalisation_takes(self, old: int, query: int, score: float, delta: np.ndarray | None,
                               info: np.ndarray | None, source: str, *,
                               edge: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
-                              measured_dims: int = 3) -> bool:
+                              measured_dims: int = 3, unsettled: bool = False) -> bool:
         """Handle a candidate whose two keyframes are not in one frame: hold it for
         relocalisation, or refuse it with the reason. False: the gate judges it (an old map
         keyframe it reaches is first added to the graph, fixed)."""
@@ -438,13 +441,16 @@ class GatedGraph:
             raise ValueError("a floor candidate needs its delta and information")
         cand = RelocCandidate(old, query, float(score), np.asarray(old_pose, float), np.asarray(delta, float),
                               np.asarray(info, float), self.graph.pose(query), self._travelled.get(query, 0.0),
-                              old_run, source, edge, measured_dims)
+                              old_run, source, edge, measured_dims, unsettled)
         decision = self._relocaliser.offer(cand)
         if decision.relocalised:
             self._relocalise(decision)
             # The other held candidates are in one frame with their old keyframes now: the gate
             # judges them as any later candidate (a look-alike among them fails it).
             for p, _why in decision.dropped:
+                if p.unsettled:
+                    self._refuse_unsettled(p.old_id, p.query_id, p.score)
+                    continue
                 if p.old_id not in self.graph.graph:
                     self.graph.add_fixed(p.old_id, p.old_pose)
                 if p.edge is not None:

@@ -291,14 +291,16 @@ def test_forward_loops_on_unsettled_ridges_relocalise_but_the_gate_takes_none_af
         after = _square_laps(1, start=7)
         new_ids = [drive.keyframe(t, 25 + k) for k, t in enumerate(after[:14])]
         ridge = math.radians(1.0)
-        for old, new in ((5, 1), (10, 5), (14, 9)):
+        # The second query 0.25 m from the first: not independent of it, held beside the group.
+        for old, new in ((5, 1), (6, 2), (10, 5), (14, 9)):
             _forward_loop(p, drive.ids[old], lap[old], new_ids[new], after[new], rng, sigma_yaw_rad=ridge)
         c = p.counters()
-        assert (c["relocalisations"], c["forward_loops_accepted"]) == (1, 3)
+        # Relocalised by three; the one held beside them is refused, not gated into the graph.
+        assert (c["relocalisations"], c["forward_loops_accepted"], c["forward_loops_failed_gate"]) == (1, 3, 1)
         assert graph.status_fragment().endswith(" (forward camera)")
         _forward_loop(p, drive.ids[15], lap[15], new_ids[10], after[10], rng, sigma_yaw_rad=ridge)
         c = p.counters()
-        assert (c["forward_loops_accepted"], c["forward_loops_failed_gate"]) == (3, 1)
+        assert (c["forward_loops_accepted"], c["forward_loops_failed_gate"]) == (3, 2)
         _forward_loop(p, drive.ids[16], lap[16], new_ids[11], after[11], rng)
         assert p.counters()["forward_loops_accepted"] == 4
         p.finish()
