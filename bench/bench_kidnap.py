@@ -71,15 +71,21 @@ def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def run_demo(out: Path, seed: int, duration_s: float, kidnap: tuple[float, float] | None,
-             config: Path | None, reuse: bool) -> dict[str, Any]:
-    """One demo into ``out``; its summary, wall and CPU seconds."""
+def run_demo(out: Path, seed: int, duration_s: float | None, kidnap: tuple[float, float] | None,
+             config: Path | None, reuse: bool, extra: tuple[str, ...] = (), repo: Path = REPO) -> dict[str, Any]:
+    """One demo into ``out``; its summary, wall and CPU seconds. ``duration_s`` None: the
+    whole route; ``extra``: more demo options (``--forward``); ``repo``: the tree whose
+    code runs (another snapshot, for the code before beside this one)."""
     summary_path = out / "summary.json"
+    times_path = out.parent / f"{out.name}.times.json"
     if reuse and summary_path.is_file():
         log(f"  reusing {out}")
-        return {"summary": json.loads(summary_path.read_text()), "wall_s": None, "cpu_s": None}
-    cmd = [sys.executable, "-m", "robotd.app.cli", "demo", "--route", "office", "--duration", f"{duration_s:g}",
-           "--seed", str(seed), "--no-plot", "--out", str(out)]
+        times = json.loads(times_path.read_text()) if times_path.is_file() else {"wall_s": None, "cpu_s": None}
+        return {"summary": json.loads(summary_path.read_text()), **times}
+    cmd = [sys.executable, "-m", "robotd.app.cli", "--log-level", "info", "demo", "--route", "office",
+           "--seed", str(seed), "--no-plot", "--out", str(out), *extra]
+    if duration_s is not None:
+        cmd += ["--duration", f"{duration_s:g}"]
     if kidnap is not None:
         cmd += ["--kidnap", f"{kidnap[0]:g}", "--kidnap-to", f"{kidnap[1]:g}"]
     if config is not None:
@@ -87,15 +93,17 @@ def run_demo(out: Path, seed: int, duration_s: float, kidnap: tuple[float, float
     summary_path.unlink(missing_ok=True)
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    done = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO,
-                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    done = subprocess.run(cmd, capture_output=True, text=True, cwd=repo,
+                          env={**os.environ, "PYTHONPATH": str(repo)})
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     (out.parent / f"{out.name}.stdout").write_text(done.stdout)
+    (out.parent / f"{out.name}.stderr").write_text(done.stderr)
     if not summary_path.is_file():
         raise RuntimeError(f"{' '.join(cmd)} wrote no summary (exit {done.returncode}): "
                            f"{done.stderr.strip().splitlines()[-1:] or ''}")
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    times_path.write_text(json.dumps({"wall_s": wall, "cpu_s": cpu}))
     return {"summary": json.loads(summary_path.read_text()), "wall_s": wall, "cpu_s": cpu}
 
 

@@ -275,7 +275,10 @@ class ForwardLoop:
     :func:`robotd.forward.verify.floor_range`) is given. ``probability``: the filter's
     posterior of the loop; ``inliers``: matches fitting the essential matrix;
     ``sigma_bearing_rad``: how well the inliers fix the bearing (1-sigma,
-    :func:`robotd.forward.planar.refine_motion`), None when not known."""
+    :func:`robotd.forward.planar.refine_motion`), None when not known; ``sigma_yaw_rad``:
+    how far the heading change is from fixed beyond the edge's own heading sigma (1-sigma,
+    added in quadrature), None when the images fix it: the half-width of a heading-bearing
+    ridge that no prior heading settled (:mod:`robotd.app.stages.forward_loops`)."""
 
     from_id: int
     to_id: int
@@ -285,6 +288,7 @@ class ForwardLoop:
     inliers: int
     range_m: float | None = None
     sigma_bearing_rad: float | None = None
+    sigma_yaw_rad: float | None = None
 
 
 class LoopFate(StrEnum):

@@ -150,7 +150,7 @@ def forward_evaluation(truth: GroundTruth, mount: np.ndarray, obs: RunObservatio
         right = yaw_err <= FORWARD_YAW_OK_DEG and (dist <= 0.2 or bearing_err <= FORWARD_BEARING_OK_DEG)
         robot_rel = between(truth.pose_at(stamp_of[m.from_id] / 1e9), truth.pose_at(stamp_of[m.to_id] / 1e9))
         delta, info = loop_edge(robot_rel, m.dyaw_rad, m.bearing_rad, mount, loop_params, range_m=m.range_m,
-                                sigma_bearing_rad=m.sigma_bearing_rad)
+                                sigma_bearing_rad=m.sigma_bearing_rad, sigma_yaw_rad=m.sigma_yaw_rad)
         cos, sin = math.cos(delta[2]), math.sin(delta[2])  # the edge's error coordinates (the gate's)
         d = robot_rel[:2] - delta[:2]
         e = np.array([cos * d[0] + sin * d[1], -sin * d[0] + cos * d[1], wrap_angle(robot_rel[2] - delta[2])])
@@ -165,6 +165,7 @@ def forward_evaluation(truth: GroundTruth, mount: np.ndarray, obs: RunObservatio
                      "true_bearing_deg": math.degrees(math.atan2(rel[1], rel[0])),
                      "sigma_bearing_deg": (None if m.sigma_bearing_rad is None
                                            else math.degrees(m.sigma_bearing_rad)),
+                     "sigma_yaw_deg": (None if m.sigma_yaw_rad is None else math.degrees(m.sigma_yaw_rad)),
                      "fate": str(obs.forward_fates.get((m.from_id, m.to_id), "none")),
                      "fate_detail": obs.forward_fate_details.get((m.from_id, m.to_id), "")})
     accepted = [r for r in rows if r["fate"] == LoopFate.ACCEPTED]

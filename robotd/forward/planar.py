@@ -152,7 +152,8 @@ def _between_error(nominal: np.ndarray, other: np.ndarray) -> np.ndarray:
 def loop_edge(predicted: np.ndarray, dyaw_rad: float, bearing_rad: float,
               mount: np.ndarray | None = None, params: PlanarLoopParams | None = None,
               range_m: float | None = None,
-              sigma_bearing_rad: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+              sigma_bearing_rad: float | None = None,
+              sigma_yaw_rad: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The robot-frame loop edge ``(delta (3,), information (3, 3))`` of a forward loop.
 
     ``predicted (3,)``: the graph's current relative pose of the two keyframes (robot
@@ -162,7 +163,9 @@ def loop_edge(predicted: np.ndarray, dyaw_rad: float, bearing_rad: float,
     at the robot's origin, looking forward); ``params``: the noise (default
     :class:`PlanarLoopParams`); ``sigma_bearing_rad``: how well the verification's inliers
     fixed the bearing (:func:`refine_motion`), added in quadrature to
-    ``params.sigma_bearing_rad`` (a floor for what the inliers do not show).
+    ``params.sigma_bearing_rad`` (a floor for what the inliers do not show);
+    ``sigma_yaw_rad``: how far the images are from fixing the heading change (a ridge no
+    prior heading settled), added in quadrature to ``params.sigma_yaw_rad``.
     """
     mount = np.zeros(3) if mount is None else np.asarray(mount, np.float64).reshape(3)
     params = PlanarLoopParams() if params is None else params
@@ -181,7 +184,10 @@ def loop_edge(predicted: np.ndarray, dyaw_rad: float, bearing_rad: float,
         raise ValueError(f"sigma_bearing_rad must be non-negative and finite, got {sigma_bearing_rad}")
     sig_bearing = params.sigma_bearing_rad if sigma_bearing_rad is None else math.hypot(params.sigma_bearing_rad,
                                                                                          sigma_bearing_rad)
-    sig = np.array([sig_bearing, params.sigma_yaw_rad, sig_range,
+    if sigma_yaw_rad is not None and not (math.isfinite(sigma_yaw_rad) and sigma_yaw_rad >= 0.0):
+        raise ValueError(f"sigma_yaw_rad must be non-negative and finite, got {sigma_yaw_rad}")
+    sig_yaw = params.sigma_yaw_rad if sigma_yaw_rad is None else math.hypot(params.sigma_yaw_rad, sigma_yaw_rad)
+    sig = np.array([sig_bearing, sig_yaw, sig_range,
                     params.sigma_translation_m, params.sigma_translation_m])
     jac = np.zeros((3, 5))
     for k in range(5):  # central differences, steps well inside each parameter's sigma

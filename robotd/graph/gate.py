@@ -32,7 +32,13 @@ A forward-camera loop (:class:`~robotd.base.messages.ForwardLoop`: heading chang
 bearing, no distance) becomes an SE(2) edge whose range is the graph's own prediction with a
 large uncertainty (:func:`robotd.forward.planar.loop_edge`), then meets the same gate at
 the same probability for the components it measures: 2 degrees of freedom without a
-range measured on the floor (13.8 by default), 3 with one (:func:`gate_threshold`).
+range measured on the floor (13.8 by default), 3 with one (:func:`gate_threshold`). A
+forward loop whose motion lies on a heading-bearing ridge that no prior heading settled
+(``ForwardLoop.sigma_yaw_rad``: a point the inliers' noise picked on the ridge, its heading
+and bearing each as uncertain as the ridge is wide) is refused by the gate, however well it
+agrees; it is held for relocalisation like any other (there its honest noise lets it weigh
+no more than it measures), and the forward stage settles the next view of the place at the
+heading the graph then gives.
 
 Relocalisation. The map frame is the frame of the run that started the
 map; a run that relocalises against it joins it (``MapStore.map_frame_runs``). A run that
@@ -179,15 +185,26 @@ class GatedGraph:
 
     def forward_candidate(self, from_id: int, to_id: int, probability: float,
                           edge: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], *,
-                          range_measured: bool = False) -> None:
+                          range_measured: bool = False, unsettled: bool = False) -> None:
         """A forward loop: ``edge(predicted)`` gives its ``(delta, information)`` from the
         graph's predicted relative pose (the forward camera measures no range, unless the
-        floor gave it: ``range_measured``)."""
+        floor gave it: ``range_measured``). ``unsettled``: its motion lies on a
+        heading-bearing ridge no prior heading settled (the forward stage's module notes):
+        held for relocalisation like any other, but never gated into the graph (module
+        notes)."""
         if self._relocalisation_takes(from_id, to_id, probability, None, None, "forward", edge=edge,
-                                      measured_dims=3 if range_measured else 2):
+                                      measured_dims=3 if range_measured else 2, unsettled=unsettled):
+            return
+        if unsettled:
+            self._refuse_unsettled(from_id, to_id, probability)
             return
         self._gate_and_add(from_id, to_id, probability, self._forward_edge(from_id, to_id, edge), "forward",
                            dof=3 if range_measured else 2)
+
+    def _refuse_unsettled(self, from_id: int, to_id: int, probability: float) -> None:
+        self.forward_failed_gate += 1
+        self._emit(CandidateFate(to_id, from_id, probability, LoopFate.FAILED_GATE,
+                                 "forward: on a heading-bearing ridge no heading settled"))
 
     def _forward_edge(self, from_id: int, to_id: int, edge: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
                       ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
@@ -396,7 +413,7 @@ class GatedGraph:
     def _relocalisation_takes(self, old: int, query: int, score: float, delta: np.ndarray | None,
                               info: np.ndarray | None, source: str, *,
                               edge: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
-                              measured_dims: int = 3) -> bool:
+                              measured_dims: int = 3, unsettled: bool = False) -> bool:
         """Handle a candidate whose two keyframes are not in one frame: hold it for
         relocalisation, or refuse it with the reason. False: the gate judges it (an old map
         keyframe it reaches is first added to the graph, fixed)."""
@@ -424,13 +441,16 @@ class GatedGraph:
             raise ValueError("a floor candidate needs its delta and information")
         cand = RelocCandidate(old, query, float(score), np.asarray(old_pose, float), np.asarray(delta, float),
                               np.asarray(info, float), self.graph.pose(query), self._travelled.get(query, 0.0),
-                              old_run, source, edge, measured_dims)
+                              old_run, source, edge, measured_dims, unsettled)
         decision = self._relocaliser.offer(cand)
         if decision.relocalised:
             self._relocalise(decision)
             # The other held candidates are in one frame with their old keyframes now: the gate
             # judges them as any later candidate (a look-alike among them fails it).
             for p, _why in decision.dropped:
+                if p.unsettled:
+                    self._refuse_unsettled(p.old_id, p.query_id, p.score)
+                    continue
                 if p.old_id not in self.graph.graph:
                     self.graph.add_fixed(p.old_id, p.old_pose)
                 if p.edge is not None:

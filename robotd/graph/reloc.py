@@ -149,7 +149,9 @@ class RelocCandidate:
     camera (``"floor"``, ``"forward"``). A forward loop has ``edge``: its ``(delta,
     information)`` given the predicted relative pose, ``delta`` and ``information`` being
     those at a first guess until the group's fit replaces them; ``measured_dims``: the
-    components the loop measures (3; 2 for a forward loop without a range of its own).
+    components the loop measures (3; 2 for a forward loop without a range of its own);
+    ``unsettled``: a forward loop on a heading-bearing ridge no prior heading settled (the
+    gate never takes it, :mod:`robotd.graph.gate`).
     """
 
     old_id: int
@@ -164,6 +166,7 @@ class RelocCandidate:
     source: str = "floor"
     edge: ForwardEdge | None = None
     measured_dims: int = 3
+    unsettled: bool = False
 
 
 @dataclass(frozen=True, eq=False)

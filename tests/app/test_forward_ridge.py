@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from robotd.app.stages.forward_loops import ForwardLoopStage, HeadingGraph
+from robotd.app.stages.forward_loops import ForwardLoopStage, HeadingGraph, ridge_headings
 from robotd.base.messages import Link
 from robotd.forward import ForwardDetector, method_params
 from robotd.forward.features import Features
@@ -210,3 +210,74 @@ def test_narrow_graph_takes_a_clear_loop_at_a_graph_heading_known_better_than_th
         assert math.degrees(stage._fits[0][0].dyaw_rad) == pytest.approx(prior_deg, abs=0.05)
     else:
         assert not stage._ridge_sigma
+
+
+def test_a_ridge_loop_without_an_odometry_heading_carries_the_whole_ridge_in_its_heading_sigma_too():
+    """Unsettled, the loop's heading is anywhere on the ridge as much as its bearing: the
+    edge's heading sigma takes the ridge's half-width (the relocalisation's fit and the gate
+    otherwise held a heading the images never fixed to the edge's 1 deg)."""
+    from robotd.forward.planar import loop_edge
+
+    po, pn = _wall()
+    fit = fit_planar(po, pn, K, math.radians(1.5))
+    stage = _stage(po, pn, prior_yaw_deg=None)
+    assert stage._level(0, _verification(fit.dyaw_rad, fit.bearing_rad))
+    scan = fit_planar(po, pn, K, fit.dyaw_rad)
+    lo, hi, _on = ridge_headings(scan, math.sqrt(float(scan.scan_inliers.max())))
+    assert stage._ridge_yaw[0] == pytest.approx(0.5 * (hi - lo))
+    assert math.degrees(stage._ridge_yaw[0]) > 1.5  # the ridge spans about +-1.8 deg
+    _d, info = loop_edge(np.array([0.3, 0.0, 0.0]), 0.0, 0.0, sigma_bearing_rad=stage._ridge_sigma[0],
+                         sigma_yaw_rad=stage._ridge_yaw[0])
+    _d, info_fixed = loop_edge(np.array([0.3, 0.0, 0.0]), 0.0, 0.0, sigma_bearing_rad=stage._ridge_sigma[0])
+    assert math.sqrt(np.linalg.inv(info)[2, 2]) == pytest.approx(
+        math.hypot(math.sqrt(np.linalg.inv(info_fixed)[2, 2]), stage._ridge_yaw[0]), rel=1e-3)
+    # Settled by a prior heading, the loop's heading is that prior's: no ridge-wide sigma.
+    settled = _stage(po, pn, prior_yaw_deg=0.0)
+    assert settled._level(0, _verification(fit.dyaw_rad, fit.bearing_rad)) and 0 not in settled._ridge_yaw
+    assert 0 in settled._at_prior
+
+
+def _links_now(stage: ForwardLoopStage) -> None:
+    """The current keyframe stored after the links the heading graph holds now."""
+    cur = stage._current
+    assert cur is not None
+    stage._current = (*cur[:5], len(stage.headings))
+
+
+def test_forward_loops_that_relocalised_the_robot_settle_a_ridge_loop_across_the_carry():
+    """Across a kidnapping without the floor camera nothing but forward loops ties the two
+    odometry chains' headings: their links (a measured heading) go into the heading graph,
+    so a later ridge loop across the carry is settled at the heading they give, not left at
+    the count's best (here 0.7 deg and 6.7 deg of bearing off)."""
+    po, pn = _wall()
+    fit = fit_planar(po, pn, K, math.radians(1.5))
+    stage = _stage(po, pn, prior_yaw_deg=None)
+    stage._chain_of.update({7: 0, 8: 1})  # the old image's keyframe on chain 0, the current one's on 1
+    stage.on_link(_link("loop", 7, 8, 0.0, 0.3, source="forward"))
+    _links_now(stage)
+    assert stage.headings.relative(7, 8) is not None
+    assert stage._level(0, _verification(fit.dyaw_rad, fit.bearing_rad))
+    assert stage.ridge_settled == 1 and stage.ridge_unsettled == 0
+    assert math.degrees(stage._fits[0][0].bearing_rad) == pytest.approx(0.0, abs=1.5)
+
+
+def test_a_forward_link_on_one_chain_or_taken_at_the_prior_stays_out_of_the_heading_graph():
+    po, pn = _wall()
+    # One chain: the forward loop's heading is what the graph is asked to judge.
+    same = _stage(po, pn, prior_yaw_deg=None)
+    same._chain_of.update({7: 0, 8: 0})
+    same.on_link(_link("loop", 7, 8, 0.0, 0.3, source="forward"))
+    assert len(same.headings) == 0
+    # Across chains, but published at the heading graph's own heading: an echo, not a measurement.
+    echo = _stage(po, pn, prior_yaw_deg=None)
+    echo._chain_of.update({7: 0, 8: 1})
+    echo._prior_loops.add((7, 8))
+    echo.on_link(_link("loop", 7, 8, 0.0, 0.3, source="forward"))
+    assert len(echo.headings) == 0
+    # A keyframe the stage has no image of (its chain unknown): left out.
+    unknown = _stage(po, pn, prior_yaw_deg=None)
+    unknown.on_link(_link("loop", 3, 8, 0.0, 0.3, source="forward"))
+    assert len(unknown.headings) == 0
+    # Odometry and floor loop links go in as before.
+    unknown.on_link(_link("odometry", 7, 8, 0.0, 0.3))
+    assert len(unknown.headings) == 1

@@ -223,12 +223,14 @@ def test_a_kidnapping_breaks_the_chain_and_relocalises_against_the_run_itself(tm
 
 
 def _forward_loop(p: Pipeline, old_id: int, old_truth: np.ndarray, new_id: int, new_truth: np.ndarray,
-                  rng: np.random.Generator) -> None:
+                  rng: np.random.Generator, sigma_yaw_rad: float | None = None) -> None:
     """A verified forward loop (the camera at the robot's origin, the stage's default mount):
-    the heading change and the bearing from the truth with noise, no range."""
+    the heading change and the bearing from the truth with noise, no range; ``sigma_yaw_rad``:
+    on a ridge no heading settled (its half-width)."""
     rel = between(old_truth, new_truth)
     p.publish(ForwardLoop(old_id, new_id, 0.9, float(rel[2] + rng.normal(0.0, math.radians(0.5))),
-                          float(math.atan2(rel[1], rel[0]) + rng.normal(0.0, math.radians(1.0))), 60))
+                          float(math.atan2(rel[1], rel[0]) + rng.normal(0.0, math.radians(1.0))), 60,
+                          sigma_yaw_rad=sigma_yaw_rad))
 
 
 def test_a_kidnapping_relocalises_from_three_forward_loops_without_the_floor_camera(tmp_path: Path):
@@ -268,6 +270,40 @@ def test_a_kidnapping_relocalises_from_three_forward_loops_without_the_floor_cam
         # The odometry alone went on from where the robot was lifted: more than a metre off.
         odo = store.keyframe(new_ids[0])
         assert np.hypot(odo.x_m - after[0][0], odo.y_m - after[0][1]) > 1.0
+
+
+def test_forward_loops_on_unsettled_ridges_relocalise_but_the_gate_takes_none_after(tmp_path: Path):
+    """A loop on a heading-bearing ridge no heading settled (its heading as uncertain as the
+    ridge is wide) is a relocalisation candidate like any other; once relocalised, the gate
+    refuses such a loop (the stage settles the next view of the place at the heading the
+    relocalising loops give) and takes a settled one."""
+    rng = np.random.default_rng(17)
+    with MapStore.open(tmp_path / "map.sqlite") as store:
+        run = store.begin_run("")
+        p, graph = _pipeline(store, run)
+        drive = _Odometry(p, store, run)
+        lap = _square_laps(2)
+        for k in range(21):
+            drive.keyframe(lap[k], k)
+        p.publish(WheelDrop(int(20.4e9), True, left=True, right=True))
+        p.publish(WheelDrop(int(24e9), False))
+        drive.carried()
+        after = _square_laps(1, start=7)
+        new_ids = [drive.keyframe(t, 25 + k) for k, t in enumerate(after[:14])]
+        ridge = math.radians(1.0)
+        # The second query 0.25 m from the first: not independent of it, held beside the group.
+        for old, new in ((5, 1), (6, 2), (10, 5), (14, 9)):
+            _forward_loop(p, drive.ids[old], lap[old], new_ids[new], after[new], rng, sigma_yaw_rad=ridge)
+        c = p.counters()
+        # Relocalised by three; the one held beside them is refused, not gated into the graph.
+        assert (c["relocalisations"], c["forward_loops_accepted"], c["forward_loops_failed_gate"]) == (1, 3, 1)
+        assert graph.status_fragment().endswith(" (forward camera)")
+        _forward_loop(p, drive.ids[15], lap[15], new_ids[10], after[10], rng, sigma_yaw_rad=ridge)
+        c = p.counters()
+        assert (c["forward_loops_accepted"], c["forward_loops_failed_gate"]) == (3, 2)
+        _forward_loop(p, drive.ids[16], lap[16], new_ids[11], after[11], rng)
+        assert p.counters()["forward_loops_accepted"] == 4
+        p.finish()
 
 
 def test_a_restart_relocalises_from_a_forward_and_a_floor_loop_that_agree(tmp_path: Path):

@@ -182,3 +182,25 @@ def test_a_forward_loop_without_a_range_is_gated_at_two_degrees_of_freedom():
                         range_measured=True)
     expected = "accepted" if d2(err, r) <= 16.27 else "failed_gate"
     assert [m.fate for m in emitted if isinstance(m, CandidateFate)][-1] == expected
+
+
+def test_a_forward_loop_on_a_ridge_no_heading_settled_is_refused_by_the_gate_but_a_right_one_is_taken():
+    """Its motion is a point the inliers' noise picked on a heading-bearing ridge: the gate
+    takes no such loop into the graph, however well it agrees (the same loop settled is
+    accepted)."""
+    from robotd.forward.planar import loop_edge
+
+    emitted: list = []
+    g = GatedGraph(IncrementalGraph(), emitted.append, [].append)
+    truth = _square(21)
+    ids = _drive(g, truth)
+    a, b = ids[1], ids[19]
+    rel = between(truth[1], truth[19])
+    bearing = math.atan2(rel[1], rel[0])
+    g.forward_candidate(a, b, 0.9, lambda pred: loop_edge(pred, rel[2], bearing, sigma_yaw_rad=math.radians(3.0)),
+                        unsettled=True)
+    fates = [m for m in emitted if isinstance(m, CandidateFate)]
+    assert fates[-1].fate == "failed_gate" and "ridge" in fates[-1].detail
+    assert g.counters()["forward_loops_failed_gate"] == 1 and g.counters()["forward_loops_accepted"] == 0
+    g.forward_candidate(a, b, 0.9, lambda pred: loop_edge(pred, rel[2], bearing))
+    assert [m for m in emitted if isinstance(m, CandidateFate)][-1].fate == "accepted"

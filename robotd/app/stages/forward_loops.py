@@ -87,8 +87,20 @@ the ridge (within three of its sigmas of one of its headings), publishes the rid
 planar fit with the heading held, :func:`robotd.forward.planefit.fit_planar` ``fix_yaw``),
 its bearing's sigma the fixed-heading fit's and the graph heading's sigma times the ridge's
 slope; off the ridge, the view is refused (``forward_ridge_refused``, a log line) and the
-detector may verify the next. Without any prior heading the loop keeps its motion and its
-bearing's sigma spans the ridge (``forward_ridge_unsettled``).
+detector may verify the next. Without any prior heading the loop keeps its motion, its
+bearing's sigma spans the ridge and its heading's sigma takes the ridge's half-width beside
+the edge's (``ForwardLoop.sigma_yaw_rad``, ``forward_ridge_unsettled``): such a loop is a
+relocalisation candidate, never an edge the gate takes (:mod:`robotd.graph.gate`).
+
+Across a kidnapping or a restart, with the floor camera off, no odometry or floor loop ties
+the two odometry chains' headings, so every ridge loop between them was unsettled and
+published at the point the inliers' noise picked, with the edge's 1 deg heading sigma: the
+relocalisation's fit and the gate after it held a heading the images never fixed (the
+forward-only kidnappings' wrong loops, ``docs/forward.md``). The pose graph's links of the
+forward loops that join two chains therefore go into the heading graph (:meth:`ForwardLoopStage.on_link`),
+except those the stage settled at the heading graph's own heading (their heading is that
+prior's, not a measurement): once the forward camera has relocalised the robot, its next
+ridge loops across the carry are settled at the heading the relocalising loops give.
 
 **The same input gives the same loops, whatever the machine's load.** The daemon's sources
 are read by their own threads, so how the forward frames interleave with the wheel
@@ -240,7 +252,8 @@ class HeadingGraph:
     relative pose's yaw is the difference of the two yaws, so this part of the graph is
     linear and solves exactly). It gives the relative heading of two keyframes and its
     1-sigma as the graph knows it (:meth:`relative`). The forward loops' own edges are left
-    out: the heading is asked to judge one of them.
+    out (the heading is asked to judge one of them), but for those that join two odometry
+    chains with a measured heading (:meth:`ForwardLoopStage.on_link`).
 
     Bounded: only the links among the ``window`` keyframes before the newer of the two are
     solved, and links entirely older than the newest keyframe's window are forgotten (the
@@ -279,8 +292,10 @@ class HeadingGraph:
         """The links received so far (forgotten ones included): a count for ``upto``."""
         return self._dropped + self._n
 
-    def add_link(self, link: Link) -> None:
-        if link.kind == "loop" and link.source == "forward":
+    def add_link(self, link: Link, across_chains: bool = False) -> None:
+        """Hold one link's yaw part. A forward loop's only with ``across_chains`` (the
+        stage's rule, :meth:`ForwardLoopStage.on_link`)."""
+        if link.kind == "loop" and link.source == "forward" and not across_chains:
             return
         info = np.asarray(link.information, np.float64)
         try:
@@ -475,6 +490,7 @@ class ForwardLoopStage(Publisher):
         self.ridge_settled = 0  # loops on a ridge, settled at the graph's heading (module notes)
         self.ridge_refused = 0  # loops on a ridge the graph's heading lies off
         self.ridge_unsettled = 0  # loops on a ridge without a graph or odometry heading: the bearing's sigma the ridge's
+        self._unsettled_half_width = 0.0  # the last unsettled ridge's half-width (rad), for _level
         self.narrow_settled = 0  # of the settled, loops with no ridge taken at the graph's heading (RidgeParams.narrow)
         # Per detector image: the keyframe pose's heading variance (rad^2), None when not known.
         self._yaw_vars: list[float | None] = []
@@ -483,6 +499,15 @@ class ForwardLoopStage(Publisher):
         self._current: tuple[np.ndarray, np.ndarray, float | None, int, int, int] | None = None
         # past image -> the bearing's sigma of a ridge loop (replaces its fit's)
         self._ridge_sigma: dict[int, float] = {}
+        # past image -> the heading's sigma of a ridge no prior heading settled (its half-width)
+        self._ridge_yaw: dict[int, float] = {}
+        # past images whose loop was taken at the prior heading (settled on a ridge)
+        self._at_prior: set[int] = set()
+        # loops (old keyframe, new keyframe) published at the prior heading: their heading is
+        # the heading graph's own, so their links do not go back into it
+        self._prior_loops: set[tuple[int, int]] = set()
+        # keyframe of a detector image -> its odometry chain (-1: an image taken up from the map)
+        self._chain_of: dict[int, int] = {}
         self.headings = HeadingGraph()  # the graph's headings, for a ridge loop's prior
         self.mount = np.zeros(3) if mount is None else np.asarray(mount, np.float64).reshape(3)
         # The wheel odometry's last seconds, (stamp_ns, (x_m, y_m, yaw_rad)), for the frames' offsets.
@@ -585,6 +610,7 @@ class ForwardLoopStage(Publisher):
             self._poses.append(None)
             self._yaw_vars.append(None)
             self._chains.append(-1)
+            self._chain_of[int(kf_id)] = -1
         word_desc = np.zeros((len(words), dim), dtype)  # purged words' descriptors are not kept
         for n, w in enumerate(words):
             if not w[4]:
@@ -654,7 +680,20 @@ class ForwardLoopStage(Publisher):
 
     def subscriptions(self) -> Mapping[type, Any]:
         return {Frame: self.on_frame, KeyframeStored: self.on_keyframe, OdometryUpdate: self.on_odometry,
-                Link: self.headings.add_link}
+                Link: self.on_link}
+
+    def on_link(self, link: Link) -> None:
+        """A pose graph link into the heading graph (:class:`HeadingGraph`). A forward loop's
+        goes in when it joins two odometry chains (a kidnapping or a restart apart: without
+        the floor camera nothing else ties their headings, and a ridge loop between them
+        could not be settled) and its heading was measured, not taken at the heading
+        graph's own prior (module notes)."""
+        across = False
+        if link.kind == "loop" and link.source == "forward":
+            a, b = self._chain_of.get(int(link.from_id)), self._chain_of.get(int(link.to_id))
+            across = (a is not None and b is not None and a != b
+                      and (int(link.from_id), int(link.to_id)) not in self._prior_loops)
+        self.headings.add_link(link, across_chains=across)
 
     def on_odometry(self, msg: OdometryUpdate) -> None:
         w = msg.wheel
@@ -836,6 +875,7 @@ class ForwardLoopStage(Publisher):
         self._poses.append(pose)
         self._yaw_vars.append(yaw_var)
         self._chains.append(chain)
+        self._chain_of[int(kf.keyframe_id)] = chain
         self.frame_offset_ms_max = max(self.frame_offset_ms_max, abs(frame.stamp_ns - kf.stamp_ns) / 1e6)
         if self.store is not None:
             t0 = time.thread_time()
@@ -848,6 +888,8 @@ class ForwardLoopStage(Publisher):
         if det.status != LOOP or det.verification is None or det.loop_id is None:
             self._fits.clear()
             self._ridge_sigma.clear()
+            self._ridge_yaw.clear()
+            self._at_prior.clear()
             if det.verification is not None and not det.verification.accepted:
                 self.rejected_geometry += 1
             elif det.verification is not None and self._last_refused is not None:
@@ -864,8 +906,13 @@ class ForwardLoopStage(Publisher):
         old = self._keyframe_ids[det.loop_id]
         refit = self._fits.pop(det.loop_id, None)
         ridge_sigma = self._ridge_sigma.pop(det.loop_id, None)
+        ridge_yaw = self._ridge_yaw.pop(det.loop_id, None)
+        if det.loop_id in self._at_prior:
+            self._prior_loops.add((int(old), int(kf.keyframe_id)))
         self._fits.clear()
         self._ridge_sigma.clear()
+        self._ridge_yaw.clear()
+        self._at_prior.clear()
         # The general fit's bearing sigma is the inliers' own noise; scaled as the planarity
         # test and the planar fit scale it (robotd.forward.planar.INLIER_NOISE_FACTOR).
         range_m, sigma_b = v.range_m, v.sigma_bearing_rad * INLIER_NOISE_FACTOR
@@ -888,7 +935,8 @@ class ForwardLoopStage(Publisher):
         log.debug("forward loop: keyframe %d sees keyframe %d (p %.2f, %d inliers%s)", kf.keyframe_id, old,
                   det.candidate_probability, v.n_inliers, ", refitted in the plane" if fit is not None else "")
         self._emit(ForwardLoop(old, kf.keyframe_id, det.candidate_probability, dyaw, bearing, v.n_inliers,
-                                  range_m=range_m, sigma_bearing_rad=sigma_b if np.isfinite(sigma_b) else None))
+                                  range_m=range_m, sigma_bearing_rad=sigma_b if np.isfinite(sigma_b) else None,
+                                  sigma_yaw_rad=ridge_yaw))
 
     def _to_keyframes(self, i_old: int, i_new: int, dyaw: float, bearing: float,
                       range_m: float | None) -> tuple[float, float, float | None]:
@@ -938,8 +986,10 @@ class ForwardLoopStage(Publisher):
             if isinstance(settled, tuple):
                 self._fits[image_id] = settled[0]
                 self._ridge_sigma[image_id] = settled[1]
+                self._at_prior.add(image_id)
             elif isinstance(settled, float):  # unsettled: the motion as chosen, the bearing's sigma the ridge's
                 self._ridge_sigma[image_id] = settled
+                self._ridge_yaw[image_id] = self._unsettled_half_width
         if refit is not None:
             self.refits += 1
             self.level_refits += ok
@@ -1059,6 +1109,8 @@ class ForwardLoopStage(Publisher):
                 return None
             spread = 0.5 * abs(math.remainder(ends[1].bearing_rad - ends[0].bearing_rad, math.tau))
             self.ridge_unsettled += 1
+            # the heading anywhere on the ridge: its half-width, beside the bearing's spread
+            self._unsettled_half_width = 0.5 * float(hi - lo)
             return float(math.hypot(fit.sigma_bearing_rad, spread)) if math.isfinite(fit.sigma_bearing_rad) \
                 else float(spread)
         yaw_p, sigma_p = prior

@@ -143,9 +143,11 @@ class PoseGraphStage(Publisher):
     def on_forward_loop(self, c: ForwardLoop) -> None:
         def edge(predicted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             return loop_edge(predicted, c.dyaw_rad, c.bearing_rad, self.forward_mount, self.forward_params,
-                             range_m=c.range_m, sigma_bearing_rad=c.sigma_bearing_rad)
+                             range_m=c.range_m, sigma_bearing_rad=c.sigma_bearing_rad,
+                             sigma_yaw_rad=c.sigma_yaw_rad)
 
-        self.gated.forward_candidate(c.from_id, c.to_id, c.probability, edge, range_measured=c.range_m is not None)
+        self.gated.forward_candidate(c.from_id, c.to_id, c.probability, edge, range_measured=c.range_m is not None,
+                                     unsettled=c.sigma_yaw_rad is not None)
 
     def solve_and_save(self) -> None:
         """Re-solve the whole graph robustly and store the optimised poses."""
