@@ -891,8 +891,8 @@ DEFAULT_VERIFY_MODEL = "planar"
 DEFAULT_GUIDED_ESTIMATOR = "usac"
 DEFAULT_FALLBACK_BAND_PX = 10.0
 #: No screen before the band fallback's RANSAC: USAC's (``VerifyParams.fallback_screen``)
-#: refuses fallbacks RANSAC accepts on both development sequences (docs/forward.md, "Tried
-#: and not taken").
+#: refuses fallbacks RANSAC accepts on both development sequences
+#: (docs/forward.md, "Tried and not taken").
 DEFAULT_FALLBACK_SCREEN: str | None = None
 DEFAULT_VERIFY_FALLBACKS = 1
 
