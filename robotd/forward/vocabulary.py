@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["BinaryWordTree", "InvertedIndex", "TreeParams", "Vocabulary", "VocabularyParams", "hamming_bits",
-           "pack_bits"]
+           "pack_bits", "sorted_isin", "sorted_union"]
 
 
 @dataclass(frozen=True)
@@ -219,7 +219,8 @@ class Vocabulary:
         self._images += 1
         self.last_new = (np.zeros(0, np.int64), d[:0])
         self.last_purged = np.zeros(0, np.int64)
-        found = np.unique(words[words >= 0])
+        # a word found twice in the image is written twice with the same value (no unique)
+        found = words[words >= 0]
         self._seen.view[found] = np.minimum(self._seen.view[found], 1) + 1  # only "more than once" matters
         new = np.flatnonzero(words < 0)
         if not len(new):
@@ -312,6 +313,28 @@ def hamming_bits(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     x = np.bitwise_count(a ^ b).view(np.uint32)[..., 0]
     y = x + (x >> 16)
     out: np.ndarray = ((y & 0xFF) + ((y >> 8) & 0xFF)).astype(np.int32)
+    return out
+
+
+def sorted_union(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.union1d(a, b)`` of two sorted 1-d arrays of unique values, by one sort of
+    both (``np.union1d`` goes through ``np.unique``'s hashing first)."""
+    c = np.concatenate([a, b])
+    c.sort()
+    keep = np.ones(len(c), bool)
+    np.not_equal(c[1:], c[:-1], out=keep[1:])
+    out: np.ndarray = c[keep]
+    return out
+
+
+def sorted_isin(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.isin(a, b)`` for a sorted 1-d ``b`` (``(len(a),) bool``), by binary search
+    (``np.isin`` fills a table over the values' whole range)."""
+    if not len(b):
+        return np.zeros(len(a), bool)
+    at = np.searchsorted(b, a)
+    at[at == len(b)] = 0
+    out: np.ndarray = b[at] == a
     return out
 
 
@@ -814,7 +837,7 @@ class InvertedIndex:
         if self._v_cand is not None:  # words now seen often enough join the candidates
             up = uw[self._occ.view[uw] >= self._v_floor]
             if len(up):
-                self._v_cand = np.union1d(self._v_cand, up)
+                self._v_cand = sorted_union(self._v_cand, up)
 
     def remove_image(self, image_id: int, words: np.ndarray) -> None:
         """Take image ``image_id`` out of the index, given the words it was added with
@@ -960,7 +983,7 @@ class InvertedIndex:
         weights = np.repeat(per_word, held) * n_wi / self._image_len.view[slots]
         scores += np.bincount(slots, weights=weights, minlength=self.n_slots)
         virt = self.virtual_image()
-        in_virt = np.isin(uw, virt)
+        in_virt = sorted_isin(uw, np.sort(virt))
         virtual = float((per_word[in_virt]).sum() / len(virt)) if len(virt) else 0.0
         return scores, virtual
 
