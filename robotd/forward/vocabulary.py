@@ -305,9 +305,14 @@ def hamming_bits(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     ``(...) int32``."""
     if a.shape != b.shape:
         # numpy broadcasts an XOR in inner loops of the 4 words (a tree level's 300 x 64
-        # strings: 3-5x the time of the XOR of two whole arrays); repeated whole first
+        # strings: 3-5x the time of the XOR of two whole arrays): the smaller operand is
+        # repeated whole to the other's shape first. Not when both would grow (an
+        # all-pairs table: the repeats would triple the megabytes it takes).
         shape = np.broadcast_shapes(a.shape, b.shape)
-        a, b = _spread(a, shape), _spread(b, shape)
+        if a.shape == shape:
+            b = _spread(b, shape)
+        elif b.shape == shape:
+            a = _spread(a, shape)
     # uint8 per 64 bits, summed as one uint32 per string (a reduce over 4 is slow): bytes 0
     # and 2, and 1 and 3, add without carry (64 + 64 < 256) in either byte order
     x = np.bitwise_count(a ^ b).view(np.uint32)[..., 0]
