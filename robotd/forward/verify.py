@@ -361,26 +361,36 @@ def match_indices(a: FeatureSet, b: FeatureSet, ratio: float = 0.8,
     empty = np.zeros(0, np.int64)
     if len(a) < 2 or len(b) < 2:
         return empty, empty
-    binary = a.descriptors.dtype == np.uint8
-    matcher = cv2.BFMatcher(cv2.NORM_HAMMING if binary else cv2.NORM_L2)
-    pairs = matcher.knnMatch(a.descriptors, b.descriptors, k=2)
-    best: dict[int, tuple[float, int]] = {}
-    for p in pairs:
-        if len(p) == 2:
-            m, second = p
-            d = m.distance
-            if d < ratio * second.distance:
-                j = m.trainIdx
-                held = best.get(j)
-                if held is None or d < held[0]:
-                    best[j] = (d, m.queryIdx)
-    if not best:
+    if a.descriptors.dtype == np.uint8:
+        # the two nearest as arrays: the distances and indices OpenCV's brute-force
+        # matcher's knnMatch computes (by this same call), without its DMatch objects
+        dist, nidx = cv2.batchDistance(a.descriptors, b.descriptors, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
+        d1, d2, train = dist[:, 0], dist[:, 1], nidx[:, 0]
+        query = np.arange(len(d1))
+        paired = nidx[:, 1] >= 0
+    else:
+        pairs = [p for p in cv2.BFMatcher(cv2.NORM_L2).knnMatch(a.descriptors, b.descriptors, k=2) if len(p) == 2]
+        d1 = np.fromiter((p[0].distance for p in pairs), np.float64, len(pairs))
+        d2 = np.fromiter((p[1].distance for p in pairs), np.float64, len(pairs))
+        train = np.fromiter((p[0].trainIdx for p in pairs), np.int64, len(pairs))
+        query = np.fromiter((p[0].queryIdx for p in pairs), np.int64, len(pairs))
+        paired = np.ones(len(pairs), bool)
+    q = np.flatnonzero(paired & (d1 < ratio * d2.astype(np.float64)))
+    if not len(q):
         return empty, empty
-    ib = np.fromiter(best.keys(), np.int64, len(best))
-    ia = np.fromiter((v[1] for v in best.values()), np.int64, len(best))
+    j, dq = train[q].astype(np.int64), d1[q]
+    # per keypoint of b: the nearest match, the first in a's order among equals; in b's
+    # order of first match
+    order = np.lexsort((np.arange(len(j)), dq, j))
+    js = j[order]
+    head = np.ones(len(js), bool)
+    head[1:] = js[1:] != js[:-1]
+    pick = order[head]                                   # by b's index
+    pick = pick[np.argsort(np.unique(j, return_index=True)[1], kind="stable")]
+    ia, ib = query[q[pick]].astype(np.int64), j[pick]
     if by_distance:
-        order = np.argsort(np.fromiter((v[0] for v in best.values()), np.float64, len(best)), kind="stable")
-        ia, ib = ia[order], ib[order]
+        o = np.argsort(dq[pick], kind="stable")
+        ia, ib = ia[o], ib[o]
     return ia, ib
 
 

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["BinaryWordTree", "InvertedIndex", "TreeParams", "Vocabulary", "VocabularyParams", "hamming_bits",
-           "pack_bits"]
+           "pack_bits", "sorted_isin", "sorted_union"]
 
 
 @dataclass(frozen=True)
@@ -219,7 +219,8 @@ class Vocabulary:
         self._images += 1
         self.last_new = (np.zeros(0, np.int64), d[:0])
         self.last_purged = np.zeros(0, np.int64)
-        found = np.unique(words[words >= 0])
+        # a word found twice in the image is written twice with the same value (no unique)
+        found = words[words >= 0]
         self._seen.view[found] = np.minimum(self._seen.view[found], 1) + 1  # only "more than once" matters
         new = np.flatnonzero(words < 0)
         if not len(new):
@@ -302,12 +303,54 @@ class Vocabulary:
 def hamming_bits(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Differing bits between packed 256-bit strings, ``(..., 4) uint64`` each (broadcast);
     ``(...) int32``."""
+    if a.shape != b.shape:
+        # numpy broadcasts an XOR in inner loops of the 4 words (a tree level's 300 x 64
+        # strings: 3-5x the time of the XOR of two whole arrays): the smaller operand is
+        # repeated whole to the other's shape first. Not when both would grow (an
+        # all-pairs table: the repeats would triple the megabytes it takes).
+        shape = np.broadcast_shapes(a.shape, b.shape)
+        if a.shape == shape:
+            b = _spread(b, shape)
+        elif b.shape == shape:
+            a = _spread(a, shape)
     # uint8 per 64 bits, summed as one uint32 per string (a reduce over 4 is slow): bytes 0
     # and 2, and 1 and 3, add without carry (64 + 64 < 256) in either byte order
     x = np.bitwise_count(a ^ b).view(np.uint32)[..., 0]
     y = x + (x >> 16)
     out: np.ndarray = ((y & 0xFF) + ((y >> 8) & 0xFF)).astype(np.int32)
     return out
+
+
+def sorted_union(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.union1d(a, b)`` of two sorted 1-d arrays of unique values, by one sort of
+    both (``np.union1d`` goes through ``np.unique``'s hashing first)."""
+    c = np.concatenate([a, b])
+    c.sort()
+    keep = np.ones(len(c), bool)
+    np.not_equal(c[1:], c[:-1], out=keep[1:])
+    out: np.ndarray = c[keep]
+    return out
+
+
+def sorted_isin(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.isin(a, b)`` for a sorted 1-d ``b`` (``(len(a),) bool``), by binary search
+    (``np.isin`` fills a table over the values' whole range)."""
+    if not len(b):
+        return np.zeros(len(a), bool)
+    at = np.searchsorted(b, a)
+    at[at == len(b)] = 0
+    out: np.ndarray = b[at] == a
+    return out
+
+
+def _spread(x: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """``x (..., 4)`` repeated along its axes of one to ``shape`` (its last axis kept): the
+    values of ``np.broadcast_to(x, shape)`` as a contiguous array, by whole strings."""
+    x = x.reshape((1,) * (len(shape) - x.ndim) + x.shape)
+    for axis, (have, want) in enumerate(zip(x.shape[:-1], shape[:-1])):
+        if have != want:
+            x = np.repeat(x, want, axis=axis)
+    return x
 
 
 def _first_k(dist: np.ndarray, k: int) -> np.ndarray:
@@ -799,7 +842,7 @@ class InvertedIndex:
         if self._v_cand is not None:  # words now seen often enough join the candidates
             up = uw[self._occ.view[uw] >= self._v_floor]
             if len(up):
-                self._v_cand = np.union1d(self._v_cand, up)
+                self._v_cand = sorted_union(self._v_cand, up)
 
     def remove_image(self, image_id: int, words: np.ndarray) -> None:
         """Take image ``image_id`` out of the index, given the words it was added with
@@ -945,7 +988,7 @@ class InvertedIndex:
         weights = np.repeat(per_word, held) * n_wi / self._image_len.view[slots]
         scores += np.bincount(slots, weights=weights, minlength=self.n_slots)
         virt = self.virtual_image()
-        in_virt = np.isin(uw, virt)
+        in_virt = sorted_isin(uw, np.sort(virt))
         virtual = float((per_word[in_virt]).sum() / len(virt)) if len(virt) else 0.0
         return scores, virtual
 

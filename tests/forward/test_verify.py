@@ -376,9 +376,10 @@ def test_the_verification_returns_the_indices_of_the_matches_it_ran_on(model):
     assert few.reason == TOO_FEW_MATCHES and few.match_index is not None and len(few.match_index[0]) <= 3
 
 
-def _match_indices_reference(a, b, ratio=0.8):
-    """:func:`robotd.forward.verify.match_indices`'s ratio-test loop as it was before it read
-    each match's fields once: the reference it must equal (the same pairs, the same order)."""
+def _match_indices_reference(a, b, ratio=0.8, by_distance=False):
+    """:func:`robotd.forward.verify.match_indices` as a loop over OpenCV's ``knnMatch``
+    pairs (as it was before it read the two nearest as arrays): the reference it must equal
+    (the same pairs, the same order)."""
     import cv2
 
     empty = np.zeros(0, np.int64)
@@ -393,8 +394,12 @@ def _match_indices_reference(a, b, ratio=0.8):
                 best[m.trainIdx] = (m.distance, m.queryIdx)
     if not best:
         return empty, empty
-    return (np.fromiter((v[1] for v in best.values()), np.int64, len(best)),
-            np.fromiter(best.keys(), np.int64, len(best)))
+    ia = np.fromiter((v[1] for v in best.values()), np.int64, len(best))
+    ib = np.fromiter(best.keys(), np.int64, len(best))
+    if by_distance:
+        order = np.argsort(np.fromiter((v[0] for v in best.values()), np.float64, len(best)), kind="stable")
+        ia, ib = ia[order], ib[order]
+    return ia, ib
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -414,9 +419,12 @@ def test_the_ratio_test_loop_gives_the_reference_s_matches_in_its_order(seed):
                   (640, 480))
     for x, y in ((fa, fb), (fb, fa), (ff, ff)):
         for ratio in (0.8, 0.95, 1.0):
-            got, ref = match_indices(x, y, ratio), _match_indices_reference(x, y, ratio)
-            assert len(ref[0]) > 0
-            assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])
+            for by_distance in (False, True):
+                got = match_indices(x, y, ratio, by_distance)
+                ref = _match_indices_reference(x, y, ratio, by_distance)
+                assert len(ref[0]) > 0
+                assert got[0].dtype == got[1].dtype == np.int64
+                assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])
 
 
 def _outcome(v) -> tuple:

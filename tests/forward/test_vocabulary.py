@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams
+from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams, sorted_isin, sorted_union
 
 
 def _unit(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -254,3 +254,22 @@ def test_virtual_image_from_its_candidates_is_the_choice_over_all_words():
                 for x in kept.pop(gone).tolist():
                     occ[x] -= 1
         np.testing.assert_array_equal(idx.virtual_image(), reference())
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_sorted_union_and_isin_give_numpy_s_answers(seed):
+    """The vote's and the index's set operations on sorted unique word ids, against
+    ``np.union1d`` and ``np.isin``: overlapping, disjoint, empty and one-sided inputs."""
+    rng = np.random.default_rng(seed)
+    for n_a, n_b, top in ((300, 40, 2000), (50, 300, 400), (0, 30, 100), (30, 0, 100), (0, 0, 10), (1, 1, 2)):
+        a = np.unique(rng.integers(0, top, n_a)).astype(np.int64)
+        b = np.unique(rng.integers(0, top, n_b)).astype(np.int64)
+        u = sorted_union(a, b)
+        assert u.dtype == np.union1d(a, b).dtype and np.array_equal(u, np.union1d(a, b))
+        got = sorted_isin(a, b)
+        assert got.dtype == bool and np.array_equal(got, np.isin(a, b))
+        assert np.array_equal(sorted_isin(b, a), np.isin(b, a))
+    # values past either end of b, and a's repeats
+    b = np.array([5, 9, 12], np.int64)
+    a = np.array([0, 5, 5, 7, 12, 13, 99], np.int64)
+    assert sorted_isin(a, b).tolist() == [False, True, True, False, True, False, False]

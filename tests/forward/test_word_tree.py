@@ -5,6 +5,7 @@ image's new descriptors."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from pathlib import Path
 
@@ -38,6 +39,26 @@ def test_hamming_bits_counts_differing_bits():
     full = np.full((1, 32), 0xFF, np.uint8)
     assert hamming_bits(pack_bits(a), pack_bits(b)).tolist() == [11]
     assert hamming_bits(pack_bits(a), pack_bits(full)).tolist() == [256]  # no wrap at 256
+
+
+@pytest.mark.parametrize("shape_a, shape_b", [((7, 1), (7, 5)), ((6, 1), (1, 9)), ((5,), ()), ((), (4,)),
+                                               ((3, 1, 2), (1, 4, 1)), ((0, 1), (1, 3)), ((4,), (4,))])
+def test_hamming_bits_broadcasts_as_numpy_does(shape_a, shape_b):
+    """Every broadcast (the repeated operands of the tree's searches) against each pair's
+    bits counted one by one; the all-different pair counts 256."""
+    rng = np.random.default_rng(len(shape_a) * 10 + len(shape_b))
+    a = rng.integers(0, 256, shape_a + (32,), dtype=np.uint8)
+    b = rng.integers(0, 256, shape_b + (32,), dtype=np.uint8)
+    if a.size and b.size:
+        a.reshape(-1, 32)[0] = 0xFF
+        b.reshape(-1, 32)[0] = 0
+    got = hamming_bits(pack_bits(a.reshape(-1, 32)).reshape(shape_a + (4,)),
+                       pack_bits(b.reshape(-1, 32)).reshape(shape_b + (4,)))
+    want = np.unpackbits(a[..., None, :] ^ b[..., None, :], axis=-1).sum(axis=(-2, -1))
+    assert got.dtype == np.int32 and got.shape == np.broadcast_shapes(shape_a, shape_b)
+    assert np.array_equal(got, want)
+    if a.size and b.size:
+        assert got.reshape(-1)[0] == 256
 
 
 def test_the_tree_finds_every_stored_word_and_mostly_the_nearest():
