@@ -161,6 +161,15 @@ SCAN_CENTRES = ("verified", "level", "both")
 
 
 @dataclass(frozen=True)
+class _Unsettled:
+    """A ridge no prior heading settled (:meth:`ForwardLoopStage._settle`): the bearing's
+    sigma over the whole ridge and the heading's, its half-width (rad)."""
+
+    sigma_bearing_rad: float
+    sigma_yaw_rad: float
+
+
+@dataclass(frozen=True)
 class RidgeParams:
     """When a loop's planar fit lies on a heading-bearing ridge, and how the odometry's
     heading settles it (module notes).
@@ -490,7 +499,6 @@ class ForwardLoopStage(Publisher):
         self.ridge_settled = 0  # loops on a ridge, settled at the graph's heading (module notes)
         self.ridge_refused = 0  # loops on a ridge the graph's heading lies off
         self.ridge_unsettled = 0  # loops on a ridge without a graph or odometry heading: the bearing's sigma the ridge's
-        self._unsettled_half_width = 0.0  # the last unsettled ridge's half-width (rad), for _level
         self.narrow_settled = 0  # of the settled, loops with no ridge taken at the graph's heading (RidgeParams.narrow)
         # Per detector image: the keyframe pose's heading variance (rad^2), None when not known.
         self._yaw_vars: list[float | None] = []
@@ -987,9 +995,9 @@ class ForwardLoopStage(Publisher):
                 self._fits[image_id] = settled[0]
                 self._ridge_sigma[image_id] = settled[1]
                 self._at_prior.add(image_id)
-            elif isinstance(settled, float):  # unsettled: the motion as chosen, the bearing's sigma the ridge's
-                self._ridge_sigma[image_id] = settled
-                self._ridge_yaw[image_id] = self._unsettled_half_width
+            elif isinstance(settled, _Unsettled):  # the motion as chosen, its sigmas the ridge's
+                self._ridge_sigma[image_id] = settled.sigma_bearing_rad
+                self._ridge_yaw[image_id] = settled.sigma_yaw_rad
         if refit is not None:
             self.refits += 1
             self.level_refits += ok
@@ -1077,13 +1085,13 @@ class ForwardLoopStage(Publisher):
         return yaw_fr, sigma
 
     def _settle(self, image_id: int, scan: tuple[PlanarFit, np.ndarray, np.ndarray]
-                ) -> tuple[tuple[PlanarFit, np.ndarray, np.ndarray], float] | float | bool | None:
+                ) -> tuple[tuple[PlanarFit, np.ndarray, np.ndarray], float] | _Unsettled | bool | None:
         """A planar fit on a heading-bearing ridge (module notes, :class:`RidgeParams`):
         None when ``scan``'s inlier profile is no ridge (half-width within the edge's heading
         sigma); else, with the graph's heading (:meth:`_prior_yaw`) on the ridge, the ridge's motion at that
         heading with its inlier pixels and the bearing's sigma along the ridge; False (the
-        loop refused) with it off the ridge; the bearing's sigma over the whole ridge (a
-        float) without a graph or odometry heading."""
+        loop refused) with it off the ridge; without a graph or odometry heading, the bearing's
+        sigma over the whole ridge and the heading's, its half-width (:class:`_Unsettled`)."""
         fit, p_old, p_new = scan
         rp = self.ridge
         k = self.detector.camera_matrix
@@ -1109,10 +1117,9 @@ class ForwardLoopStage(Publisher):
                 return None
             spread = 0.5 * abs(math.remainder(ends[1].bearing_rad - ends[0].bearing_rad, math.tau))
             self.ridge_unsettled += 1
+            sigma_b = math.hypot(fit.sigma_bearing_rad, spread) if math.isfinite(fit.sigma_bearing_rad) else spread
             # the heading anywhere on the ridge: its half-width, beside the bearing's spread
-            self._unsettled_half_width = 0.5 * float(hi - lo)
-            return float(math.hypot(fit.sigma_bearing_rad, spread)) if math.isfinite(fit.sigma_bearing_rad) \
-                else float(spread)
+            return _Unsettled(float(sigma_b), 0.5 * float(hi - lo))
         yaw_p, sigma_p = prior
         gate = rp.prior_gate_sigmas * sigma_p
         old_kf = self._keyframe_ids[image_id]
