@@ -260,28 +260,38 @@ class FloorCameraModel:
         return xd, yd
 
     def _undistort(self, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Invert :meth:`_distort` by Newton's method (converges to ~1e-15 for sane lenses)."""
+        """Invert :meth:`_distort` by Newton's method (converges to ~1e-15 for sane lenses).
+
+        Each iteration evaluates :meth:`_distort` and its Jacobian with their common terms
+        computed once (``r^2``, the radial factor, ``2 x x``, ``2 x y``, ...), each one by
+        the same operations in the same order as written out in full, so the same values to
+        the bit (``tests/base/test_camera.py`` holds it against the written-out form)."""
         k1, k2, p1, p2, k3 = self.intrinsics.distortion
         if not any(self.intrinsics.distortion):
             return xd.copy(), yd.copy()
         x, y = xd.copy(), yd.copy()
+        tp1, tp2, sp1, sp2, tk2, kk3 = 2.0 * p1, 2.0 * p2, 6.0 * p1, 6.0 * p2, 2.0 * k2, 3.0 * k3
         for _ in range(50):
             r2 = x * x + y * y
             radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
-            fx_, fy_ = self._distort(x, y)
-            ex, ey = fx_ - xd, fy_ - yd
-            # Jacobian of the distortion.
-            j11 = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
-            j12 = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
-            j21 = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
-            j22 = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
-            det = j11 * j22 - j12 * j21
+            dradial = k1 + r2 * (tk2 + kk3 * r2)  # d radial / d r2
+            x2 = 2.0 * x
+            xx, xy, yy = x2 * x, x2 * y, 2.0 * y * y  # 2 x x, 2 x y, 2 y y
+            p1x, p2y = tp1 * x, tp2 * y
+            # _distort(x, y) - (xd, yd), its terms shared with the Jacobian
+            ex = x * radial + p1x * y + p2 * (r2 + xx) - xd
+            ey = y * radial + p1 * (r2 + yy) + tp2 * x * y - yd
+            # Jacobian of the distortion (symmetric: j21 = j12)
+            j11 = radial + xx * dradial + tp1 * y + sp2 * x
+            j12 = xy * dradial + p1x + p2y
+            j22 = radial + yy * dradial + sp1 * y + tp2 * x
+            det = j11 * j22 - j12 * j12
             dx = (j22 * ex - j12 * ey) / det
-            dy = (-j21 * ex + j11 * ey) / det
+            dy = (-j12 * ex + j11 * ey) / det
             x -= dx
             y -= dy
-            if np.nanmax(np.abs(dx), initial=0.0) < 1e-15 and np.nanmax(np.abs(dy), initial=0.0) < 1e-15:
+            # max |d| < 1e-15 over the non-NaN entries (none: 0), as nanmax with initial 0
+            if not (np.abs(dx) >= 1e-15).any() and not (np.abs(dy) >= 1e-15).any():
                 break
         return x, y
 
