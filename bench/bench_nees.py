@@ -42,7 +42,11 @@ calibration's threshold, footprint overlap at least ``LOOP_R``) and whose transf
 right (within 5 cm of the truth, as the loop-closure benchmark counts a loop false) get
 their loop edge (:func:`robotd.floor.detector.loop_transform`). NEES of the covariance the
 detector gives now, and of the rigid fit's covariance alone (what it gave before the
-shared error of the frame pair was modelled: the baseline, in the same run).
+shared error of the frame pair was modelled: the baseline, in the same run); the position
+part by the turn between the two frames; and the loop edge's noise model fitted by maximum
+likelihood over modes 1-6 (:func:`loop_noise_ml`: the floor on the inliers' residual sigma,
+the offset the two views share in the camera's frame, which the turn makes a translation
+error, and a constant shared term beside it).
 
 Run from the repo root: ``.venv/bin/python bench/bench_nees.py [--seeds 5] [--pairs 120]
 [--floors planks,mixed] [--ekf NAME=VALUE ...] [--cost-seeds 1] [--compare OTHER.json]
@@ -963,7 +967,7 @@ def loop_part(floors: list[str], n_pairs: int, seed: int) -> dict[str, Any]:
     from robotd.base.geometry import rigid_fit_2d, rigid_fit_2d_covariance
     from robotd.evaluation.groundtruth import LOOP_R
     from robotd.floor.descriptor import decode, extract
-    from robotd.floor.detector import loop_transform
+    from robotd.floor.detector import MIN_POINT_SIGMA_M, loop_transform
     from robotd.floor.match import local_score
     from robotd.floor.vo import floor_point_pairs
     from robotd.io.calibfile import read_calibration
@@ -975,9 +979,9 @@ def loop_part(floors: list[str], n_pairs: int, seed: int) -> dict[str, Any]:
         raise SystemExit("the demo's shipped calibration (loop thresholds) is missing")
     cam = FloorCameraModel.default()
     out: dict[str, Any] = {}
-    shared: dict[str, float] = {}
+    shared: dict[str, dict[str, float]] = {}
     for name in floors:
-        samples: list[tuple[np.ndarray, np.ndarray]] = []  # (error, the fit's covariance) of every loop
+        samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]] = []  # see loop_noise_ml
         t0 = time.monotonic()
         pairs = random_pairs(_floor(name), cam, n_pairs, np.random.default_rng(seed),
                              near_fraction=1.0, max_offset_m=0.25)
@@ -989,7 +993,7 @@ def loop_part(floors: list[str], n_pairs: int, seed: int) -> dict[str, Any]:
                 continue
             da = [decode(extract(im, mode)) for im in pairs.images_a]
             db = [decode(extract(im, mode)) for im in pairs.images_b]
-            now, fit, inliers, false = [], [], [], 0
+            now, fit, inliers, false, by_turn = [], [], [], 0, [[], [], []]
             for k, (a, b) in enumerate(zip(da, db)):
                 if pairs.overlap[k] < LOOP_R:
                     continue
@@ -1006,44 +1010,70 @@ def loop_part(floors: list[str], n_pairs: int, seed: int) -> dict[str, Any]:
                     false += 1
                     continue
                 po, pq = floor_point_pairs(cam, match.xy_b, match.xy_a)
-                cov_fit, _sigma = rigid_fit_2d_covariance(pq, po, rigid_fit_2d(pq, po), 0.001)
+                cov_raw, sigma = rigid_fit_2d_covariance(pq, po, rigid_fit_2d(pq, po), 0.0)
+                cov_fit = cov_raw * (max(sigma, MIN_POINT_SIGMA_M) / sigma) ** 2
                 now.append(float(e @ info @ e))
+                cov_edge = np.linalg.inv(info)
+                by_turn[int(np.searchsorted(TURN_BINS_RAD, abs(delta[2])))].append(
+                    float(e[:2] @ np.linalg.solve(cov_edge[:2, :2], e[:2])))
                 cov_fit = between_error_covariance(delta, cov_fit)
                 fit.append(float(e @ np.linalg.solve(cov_fit, e)))
-                samples.append((e, cov_fit))
+                samples.append((e, cov_raw / sigma ** 2, delta, sigma ** 2))
                 inliers.append(len(pq))
             per_mode[str(mode)] = {
                 "loops": len(now), "false": false, "inliers_median": float(np.median(inliers)) if inliers else None,
                 "nees": float(np.mean(now)) if now else None, "nees_median": float(np.median(now)) if now else None,
                 "nees_fit_only": float(np.mean(fit)) if fit else None,
-                "nees_fit_only_median": float(np.median(fit)) if fit else None}
+                "nees_fit_only_median": float(np.median(fit)) if fit else None,
+                "position_nees_by_turn": [float(np.mean(b)) if b else None for b in by_turn],
+                "loops_by_turn": [len(b) for b in by_turn]}
             r = per_mode[str(mode)]
             log(f"{name} mode {mode}: {len(now)} loops ({false} false), NEES {r['nees']} (fit alone {r['nees_fit_only']})")
         out[name] = per_mode
-        shared[name] = shared_sigma_ml(samples)
-        log(f"{name}: shared translation error, maximum likelihood over modes 1-6: {shared[name] * 1e3:.3f} mm")
-    return {"pairs": n_pairs, "seed": seed, "max_offset_m": 0.25, "floors": out, "shared_sigma_ml_m": shared}
+        shared[name] = loop_noise_ml(samples)
+        log(f"{name}: the loop edge's noise model, maximum likelihood over modes 1-6: "
+            + ", ".join(f"{k} {v * 1e3:.4f} mm" for k, v in shared[name].items()))
+    return {"pairs": n_pairs, "seed": seed, "max_offset_m": 0.25, "floors": out, "noise_ml_m": shared}
 
 
-def shared_sigma_ml(samples: list[tuple[np.ndarray, np.ndarray]]) -> float:
-    """The maximum-likelihood sigma ``s`` (metres per translation axis) of an error shared
-    by all the inliers of a pair, given each loop's error ``e (3,)`` and its fit's
-    covariance ``C (3, 3)`` (in the frame of the edge's end, where an isotropic translation
-    term stays ``diag(s^2, s^2, 0)``): ``e ~ N(0, C + diag(s^2, s^2, 0))``, searched on a
-    log grid from 1 um to 1 mm (0.5 % steps)."""
+#: Edges of the turn bins (radians) the position part of the loop edges' NEES is shown by.
+TURN_BINS_RAD = (0.8, 1.7)
+
+
+def loop_noise_ml(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]) -> dict[str, float]:
+    """Maximum-likelihood values (metres) of the loop edge's noise model, given each loop's
+    error ``e (3,)``, its rigid fit's covariance per unit residual variance ``A (3, 3)``, its
+    transform ``delta (3,)`` and its residual variance ``s2``: ``e ~ N(0, J (max(s2, a^2) A +
+    (c^2 + 4 sin^2(dyaw / 2) b^2) diag(1, 1, 0)) J^T)``, ``J`` the turn into the edge's end
+    frame (:func:`robotd.base.geometry.between_error_covariance`): ``min_point_sigma_m`` (a),
+    ``turn_sigma_m`` (b, :data:`robotd.floor.detector.TURN_SIGMA_M`) and ``shared_sigma_m``
+    (c, a constant shared translation error). Nelder-Mead on their logarithms from three
+    starts."""
+    from scipy.optimize import minimize
+
     if not samples:
-        return math.nan
-    grid = np.exp(np.linspace(math.log(1e-6), math.log(1e-3), 1400))
-    best, best_ll = math.nan, -math.inf
-    for sig in grid:
-        add = np.diag([sig * sig, sig * sig, 0.0])
-        ll = 0.0
-        for e, c in samples:
-            cs = c + add
-            ll -= 0.5 * (float(e @ np.linalg.solve(cs, e)) + float(np.linalg.slogdet(cs)[1]))
-        if ll > best_ll:
-            best, best_ll = float(sig), ll
-    return best
+        return {"min_point_sigma_m": math.nan, "turn_sigma_m": math.nan, "shared_sigma_m": math.nan}
+    e = np.array([s[0] for s in samples])
+    a = np.array([between_error_covariance(s[2], s[1]) for s in samples])
+    b = np.array([between_error_covariance(s[2], np.diag([1.0, 1.0, 0.0])) for s in samples])
+    turn = np.array([4.0 * math.sin(0.5 * float(s[2][2])) ** 2 for s in samples])
+    s2 = np.array([s[3] for s in samples])
+
+    def nll(logp: np.ndarray) -> float:
+        floor, turn_sigma, const = np.exp(logp)
+        c = (np.maximum(s2, floor * floor)[:, None, None] * a
+             + (const * const + turn_sigma * turn_sigma * turn)[:, None, None] * b)
+        x = np.linalg.solve(c, e[:, :, None])[:, :, 0]
+        return 0.5 * float(np.sum(np.einsum("ij,ij->i", e, x)) + np.sum(np.linalg.slogdet(c)[1]))
+
+    best = None
+    for start in ((1e-3, 5e-5, 5e-5), (8e-4, 5e-5, 1e-5), (9e-4, 2e-5, 3e-5)):
+        r = minimize(nll, np.log(start), method="Nelder-Mead",
+                     options={"xatol": 1e-4, "fatol": 1e-6, "maxiter": 4000})
+        if best is None or r.fun < best.fun:
+            best = r
+    floor, turn_sigma, const = (float(v) for v in np.exp(best.x))
+    return {"min_point_sigma_m": floor, "turn_sigma_m": turn_sigma, "shared_sigma_m": const}
 
 
 def loop_rows(part: dict[str, Any]) -> list[list[Any]]:
@@ -1051,16 +1081,21 @@ def loop_rows(part: dict[str, Any]) -> list[list[Any]]:
     for name, per_mode in part["floors"].items():
         for mode, r in per_mode.items():
             if not r["loops"]:
-                rows.append([name, mode, 0, r["false"], "-", "-", "-"])
+                rows.append([name, mode, 0, r["false"], "-", "-", "-", "-"])
                 continue
+            turns = r.get("position_nees_by_turn")
+            by_turn = "-" if turns is None else " / ".join(
+                "-" if v is None else f"{v:.2f} ({k})" for v, k in zip(turns, r["loops_by_turn"], strict=True))
             rows.append([name, int(mode), r["loops"], r["false"], round(r["inliers_median"]),
                          f"{r['nees']:.2f} / {r['nees_median']:.2f}",
-                         f"{r['nees_fit_only']:.2f} / {r['nees_fit_only_median']:.2f}"])
+                         f"{r['nees_fit_only']:.2f} / {r['nees_fit_only_median']:.2f}", by_turn])
     return rows
 
 
 LOOP_HEAD = ["floor", "mode", "loops", "false", "inliers (median)", "NEES mean / median",
-             "rigid fit alone: mean / median"]
+             "rigid fit alone: mean / median",
+             f"position part by turn (loops): < {TURN_BINS_RAD[0]} / {TURN_BINS_RAD[0]}-{TURN_BINS_RAD[1]} / "
+             f"> {TURN_BINS_RAD[1]} rad"]
 ODO_PART_HEAD = ["N edges", "NEES", "yaw part", "position part"]
 
 
@@ -1202,11 +1237,14 @@ def markdown(payload: dict[str, Any]) -> list[str]:
                   "Pairs declared loops at the demo calibration's thresholds whose transform is right "
                   f"(within {FALSE_LOOP_M * 100:.0f} cm; the false ones counted apart).", ""]
         table(LOOP_HEAD, loop_rows(loops))
-        ml = loops.get("shared_sigma_ml_m", {})
+        ml = loops.get("noise_ml_m", {})
         if ml:
-            lines += ["Maximum-likelihood sigma of the translation error the inliers of a pair share "
-                      "(modes 1-6 pooled; `robotd.floor.detector.SHARED_SIGMA_M` is the plank floor's "
-                      "on another sample): " + ", ".join(f"{k} {v * 1e3:.3f} mm" for k, v in ml.items()) + ".", ""]
+            lines += ["The loop edge's noise model by maximum likelihood over modes 1-6 (`loop_noise_ml`; "
+                      "`robotd.floor.detector.MIN_POINT_SIGMA_M` and `TURN_SIGMA_M` are the plank floor's on "
+                      "another sample): " + "; ".join(
+                          f"{k}: floor on the inliers' sigma {v['min_point_sigma_m'] * 1e3:.3f} mm, offset the "
+                          f"views share {v['turn_sigma_m'] * 1e3:.4f} mm, constant shared term "
+                          f"{v['shared_sigma_m'] * 1e3:.4f} mm" for k, v in ml.items()) + ".", ""]
     return lines
 
 
@@ -1323,8 +1361,9 @@ def main(argv: list[str] | None = None) -> int:
         payload["loops"] = loop_part([f for f in args.floors.split(",") if f], n_pairs, args.seed)
         print("\nloop edges from rendered pairs")
         print_table(LOOP_HEAD, loop_rows(payload["loops"]))
-        for k, v in payload["loops"]["shared_sigma_ml_m"].items():
-            print(f"{k}: shared translation error (maximum likelihood, modes 1-6): {v * 1e3:.3f} mm")
+        for k, v in payload["loops"]["noise_ml_m"].items():
+            print(f"{k}: the loop edge's noise model (maximum likelihood, modes 1-6): "
+                  + ", ".join(f"{name} {x * 1e3:.4f} mm" for name, x in v.items()))
     path = write_json(args.out, payload)
     log(f"wrote {path}")
     if args.markdown is not None:

@@ -10,6 +10,7 @@ P(loop | score) thresholds (paper 003 Sec. III-B, IV-C).
 from __future__ import annotations
 
 import bisect
+import math
 import logging
 from dataclasses import dataclass
 from typing import Any
@@ -77,15 +78,18 @@ class KeyframeQuery:
     loops: list[Loop]
 
 
-#: 1-sigma translation error per axis, metres, that all the inliers of a loop share (see
-#: :func:`loop_transform`): the maximum-likelihood value over the loop edges of descriptor
-#: modes 1-6 on 150 rendered pairs of the printed-plank floor (``bench/bench_nees.py
-#: --skip-odometry --floors planks --pairs 150 --seed 7`` prints it).
-SHARED_SIGMA_M = 5e-5
+#: The loop edge's noise model (see :func:`loop_transform`): maximum-likelihood values over the
+#: loop edges of descriptor modes 1-6 on 150 rendered pairs of the printed-plank floor
+#: (``bench/bench_nees.py --skip-odometry --floors planks --pairs 150 --seed 7`` prints them).
+#: The floor on the inliers' residual sigma per coordinate, metres.
+MIN_POINT_SIGMA_M = 8.7e-4
+#: 1-sigma per axis, metres, of an offset the two views of a loop share in the camera's frame;
+#: the turn between the views makes it a translation error ``(I - R(dyaw)) b``.
+TURN_SIGMA_M = 4.5e-5
 
 
 def loop_transform(camera: Any, xy_query_px: np.ndarray, xy_old_px: np.ndarray,
-                   min_sigma_m: float = 0.001, shared_sigma_m: float = SHARED_SIGMA_M
+                   min_sigma_m: float = MIN_POINT_SIGMA_M, turn_sigma_m: float = TURN_SIGMA_M
                    ) -> tuple[np.ndarray, np.ndarray] | None:
     """Relative pose of the query keyframe in the old keyframe's frame, and its information.
 
@@ -93,25 +97,28 @@ def loop_transform(camera: Any, xy_query_px: np.ndarray, xy_old_px: np.ndarray,
     :func:`robotd.floor.vo.floor_point_pairs`); the rigid fit maps the query's points onto
     the old ones (paper 003 Sec. IV-D, as visual odometry does). The covariance is the
     fit's Gauss-Newton one from its residuals (at least ``min_sigma_m`` per coordinate),
-    :func:`robotd.base.geometry.rigid_fit_2d_covariance`, plus ``shared_sigma_m`` squared
-    on each translation axis, turned into the frame the pose graph measures the edge's
-    error in (:func:`robotd.base.geometry.between_error_covariance`). None if under 3 points.
+    :func:`robotd.base.geometry.rigid_fit_2d_covariance`, plus the error all the inliers share,
+    turned into the frame the pose graph measures the edge's error in
+    (:func:`robotd.base.geometry.between_error_covariance`). None if under 3 points.
 
     The fit's covariance takes the inliers' errors as independent, so it shrinks as one
-    over their number; the errors the inliers share do not (the registration of each image
-    to the floor as a whole: in the simulator the resampling of the floor's texture and
-    the camera's pixel grid, on a robot also the camera model). With the fit's alone the
-    loop edges' NEES grew with the inliers, from 2.1 in mode 1 (26 inliers) to 5.6 in mode 6
-    (316) on the plank floor: the RMS translation error fell only from 0.30 to 0.13 mm while
-    the inliers grew twelvefold.
+    over their number; the error they share does not (each image's registration to the floor
+    as a whole: in the simulator the resampling of the floor's texture and the camera's pixel
+    grid, on a robot also the camera model and its mounting). An offset ``b`` the two views
+    share in the camera's frame cancels when they look the same way and grows with the turn
+    ``dyaw`` between them: the fit's translation is off by ``(I - R(dyaw)) b``, of covariance
+    ``4 sin^2(dyaw / 2) turn_sigma_m^2`` on each axis. On rendered pairs the error shared by
+    the inliers grows so with the turn, and a constant term beside it fits to zero
+    (``docs/odometry.md``, "The loop edges' covariance").
     """
     po, pq = floor_point_pairs(camera, xy_old_px, xy_query_px)
     if len(pq) < 3:
         return None
     delta = rigid_fit_2d(pq, po)
     cov, _ = rigid_fit_2d_covariance(pq, po, delta, min_sigma_m)
-    cov[0, 0] += shared_sigma_m ** 2
-    cov[1, 1] += shared_sigma_m ** 2
+    shared = 4.0 * math.sin(0.5 * float(delta[2])) ** 2 * turn_sigma_m ** 2
+    cov[0, 0] += shared
+    cov[1, 1] += shared
     return delta, information_from_covariance(between_error_covariance(delta, cov))
 
 

@@ -1,71 +1,96 @@
 """The loop edge's covariance (:func:`robotd.floor.detector.loop_transform`): the fit's
 covariance from independent inlier errors plus the error all the inliers of a frame pair
-share, which more inliers do not average away."""
+share, which more inliers do not average away: an offset the two views share in the
+camera's frame, which the turn between them makes a translation error."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pytest
 
 from robotd.base.camera import FloorCameraModel
 from robotd.base.geometry import between, transform_points, wrap_angle
-from robotd.floor.detector import SHARED_SIGMA_M, loop_transform
+from robotd.floor.detector import MIN_POINT_SIGMA_M, TURN_SIGMA_M, loop_transform
 
-_TRUE = np.array([0.06, -0.03, 0.4])  # the query keyframe in the old one's frame
+
+def _true(turn: float) -> np.ndarray:
+    """The query keyframe in the old one's frame."""
+    return np.array([0.06, -0.03, turn])
 
 
 def _pixels(cam: FloorCameraModel, n: int, rng: np.random.Generator, point_sigma_m: float,
-            shared_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            offset_m: np.ndarray, turn: float) -> tuple[np.ndarray, np.ndarray]:
     """``n`` floor points both frames see, as pixels of the query and the old frame: each
-    point's position in the query frame off by ``point_sigma_m`` (independent) plus
-    ``shared_m (2,)`` (the same for all)."""
+    point's position in the query frame off by ``point_sigma_m`` (independent), and every
+    point in both frames off by ``offset_m (2,)`` in the robot's (the camera's) frame."""
     centre = cam.pixel_to_floor_robot(np.array([[cam.width_px / 2, cam.height_px / 2]]))[0]
     old = centre + rng.uniform(-0.02, 0.02, (n, 2))
-    query = transform_points(between(_TRUE, np.zeros(3)), old)  # the same floor points, query frame
-    query = query + rng.normal(0.0, point_sigma_m, (n, 2)) + shared_m
-    return cam.floor_robot_to_pixel(query), cam.floor_robot_to_pixel(old)
+    query = transform_points(between(_true(turn), np.zeros(3)), old)  # the same floor points, query frame
+    query = query + rng.normal(0.0, point_sigma_m, (n, 2)) + offset_m
+    return cam.floor_robot_to_pixel(query), cam.floor_robot_to_pixel(old + offset_m)
 
 
-def _nees(cam: FloorCameraModel, n: int, shared_sigma_m: float, model_sigma_m: float, trials: int) -> float:
+def _error(turn: float, delta: np.ndarray) -> np.ndarray:
+    e = between(_true(turn), delta)
+    e[2] = wrap_angle(e[2])
+    return e
+
+
+def _nees(cam: FloorCameraModel, n: int, offset_sigma_m: float, model_sigma_m: float, trials: int) -> float:
     rng = np.random.default_rng(3)
     out = []
     for _ in range(trials):
-        shared = rng.normal(0.0, shared_sigma_m, 2)
-        xy_q, xy_o = _pixels(cam, n, rng, 0.001, shared)
-        fit = loop_transform(cam, xy_q, xy_o, shared_sigma_m=model_sigma_m)
+        turn = float(rng.uniform(-math.pi, math.pi))
+        xy_q, xy_o = _pixels(cam, n, rng, 0.001, rng.normal(0.0, offset_sigma_m, 2), turn)
+        fit = loop_transform(cam, xy_q, xy_o, turn_sigma_m=model_sigma_m)
         assert fit is not None
         delta, info = fit
-        e = between(_TRUE, delta)
-        e[2] = wrap_angle(e[2])
+        e = _error(turn, delta)
         out.append(float(e @ info @ e))
     return float(np.mean(out))
 
 
-def test_the_shared_error_bounds_the_translation_covariance():
+def test_an_offset_both_views_share_cancels_when_they_look_the_same_way_and_doubles_when_opposite():
+    """Noise-free points with a 1 mm offset in the camera's frame: no error at no turn, twice
+    the offset (turned) half a turn apart: the geometry the shared term models."""
+    cam = FloorCameraModel.default()
+    offset = np.array([0.001, 0.0])
+    same, _ = loop_transform(cam, *_pixels(cam, 50, np.random.default_rng(0), 0.0, offset, 0.0))
+    assert _error(0.0, same) == pytest.approx(np.zeros(3), abs=2e-6)
+    opposite, _ = loop_transform(cam, *_pixels(cam, 50, np.random.default_rng(0), 0.0, offset, math.pi))
+    assert np.hypot(*_error(math.pi, opposite)[:2]) == pytest.approx(0.002, rel=0.01)
+
+
+def test_the_shared_term_grows_with_the_turn_and_bounds_the_translation_covariance():
     """The fit's covariance shrinks as one over the inliers (tenfold from 100 to 1000); the
-    edge's keeps the shared error's variance on each translation axis, the yaw's is the fit's."""
+    edge's keeps ``4 sin^2(turn / 2)`` times the offset's variance on each translation axis
+    (none when the views look the same way), the yaw's is the fit's."""
     cam = FloorCameraModel.default()
-    cov, alone = {}, {}
-    for n in (100, 1000):
-        xy_q, xy_o = _pixels(cam, n, np.random.default_rng(1), 0.001, np.zeros(2))
-        delta, info = loop_transform(cam, xy_q, xy_o)
-        assert delta[:2] == pytest.approx(_TRUE[:2], abs=1e-3)
-        assert delta[2] == pytest.approx(_TRUE[2], abs=2e-2)
-        cov[n] = np.linalg.inv(info)
-        alone[n] = np.linalg.inv(loop_transform(cam, xy_q, xy_o, shared_sigma_m=0.0)[1])
-        assert np.diag(cov[n] - alone[n]) == pytest.approx([SHARED_SIGMA_M ** 2] * 2 + [0.0], rel=1e-6, abs=1e-15)
-    assert np.diag(alone[100] / alone[1000]) == pytest.approx([10.0] * 3, rel=0.3)
-    assert np.diag(cov[1000])[:2].min() > SHARED_SIGMA_M ** 2
+    for turn in (0.0, 1.0, math.pi):
+        cov, alone = {}, {}
+        for n in (100, 1000):
+            xy_q, xy_o = _pixels(cam, n, np.random.default_rng(1), 0.001, np.zeros(2), turn)
+            delta, info = loop_transform(cam, xy_q, xy_o)
+            assert delta[:2] == pytest.approx(_true(turn)[:2], abs=1e-3)
+            assert wrap_angle(delta[2] - turn) == pytest.approx(0.0, abs=2e-2)
+            cov[n] = np.linalg.inv(info)
+            alone[n] = np.linalg.inv(loop_transform(cam, xy_q, xy_o, turn_sigma_m=0.0)[1])
+            shared = 4.0 * math.sin(0.5 * delta[2]) ** 2 * TURN_SIGMA_M ** 2
+            assert np.diag(cov[n] - alone[n]) == pytest.approx([shared] * 2 + [0.0], rel=1e-6, abs=1e-15)
+        assert np.diag(alone[100] / alone[1000]) == pytest.approx([10.0] * 3, rel=0.3)
+    assert np.diag(cov[1000])[:2].min() > 4.0 * TURN_SIGMA_M ** 2  # half a turn: the offset twice
 
 
-def test_loop_edges_with_a_shared_error_are_consistent():
-    """Frame pairs whose inliers share a translation error of SHARED_SIGMA_M: with it in the
-    model the edges' mean NEES is near 3 with 30 inliers and with 600; without it the NEES
-    grows with the inliers (the fit's covariance shrinks as one over their number)."""
+def test_loop_edges_with_a_shared_offset_are_consistent():
+    """Frame pairs at any turn whose views share an offset of TURN_SIGMA_M per axis: with it in
+    the model the edges' mean NEES is near 3 with 30 inliers and with 600; without it the
+    NEES grows with the inliers (the fit's covariance shrinks as one over their number)."""
     cam = FloorCameraModel.default()
-    few = _nees(cam, 30, SHARED_SIGMA_M, SHARED_SIGMA_M, 200)
-    many = _nees(cam, 600, SHARED_SIGMA_M, SHARED_SIGMA_M, 200)
-    many_alone = _nees(cam, 600, SHARED_SIGMA_M, 0.0, 200)
+    few = _nees(cam, 30, TURN_SIGMA_M, TURN_SIGMA_M, 200)
+    many = _nees(cam, 600, TURN_SIGMA_M, TURN_SIGMA_M, 200)
+    many_alone = _nees(cam, 600, TURN_SIGMA_M, 0.0, 200)
     assert 2.4 < few < 3.6
     assert 2.4 < many < 3.6
     assert many_alone > 5.0
@@ -107,7 +132,7 @@ def test_loop_edges_on_rendered_plank_pairs_are_consistent():
         e[2] = wrap_angle(e[2])
         assert np.hypot(e[0], e[1]) < 0.05  # a true transform
         po, pq = floor_point_pairs(cam, m.xy_b, m.xy_a)
-        cov = between_error_covariance(delta, rigid_fit_2d_covariance(pq, po, rigid_fit_2d(pq, po), 0.001)[0])
+        cov = between_error_covariance(delta, rigid_fit_2d_covariance(pq, po, rigid_fit_2d(pq, po), MIN_POINT_SIGMA_M)[0])
         model.append(float(e @ info @ e))
         alone.append(float(e @ np.linalg.solve(cov, e)))
     assert len(model) >= 15
