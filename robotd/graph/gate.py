@@ -49,7 +49,12 @@ its own frame, and holds the loop candidates that reach a map keyframe in a
 transform to the map frame (the rule and why: :mod:`robotd.graph.reloc`). Then the old
 keyframes of the agreeing loops enter the graph fixed at their optimised map poses, the
 run's trajectory is moved into the map frame and tied to them by those loops
-(:meth:`robotd.graph.incremental.IncrementalGraph.attach`), the log and STATUS say
+(:meth:`robotd.graph.incremental.IncrementalGraph.attach`); a group of forward loops only
+ties it by one edge instead, the group's fitted transform with the fit's covariance
+(:func:`robotd.graph.reloc.group_constraint`), and none of its members becomes a loop edge
+or an accepted loop (their fates say they relocalised the robot, :data:`GROUP_MEMBER`): a
+ridge loop that agrees with the group only within its wide noise places the segment no
+more than the fit lets it, and never enters as a loop of its own. The log and STATUS say
 "relocalised against run N after X s and Y m", and every later candidate meets the gate
 as usual (an old keyframe it reaches enters the graph fixed first). Held candidates that
 never agree are recorded as ``failed_gate`` with the reason (``relocalisation: ...``).

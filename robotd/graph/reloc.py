@@ -44,7 +44,11 @@ and the map's own error). The group agrees when the fit's chi-square is under th
 point (the probability of ``agree_chi2`` at 3 degrees of freedom, taken at the fit's own
 degrees of freedom: the members' measured components minus the transform's 3), and the fit
 must fix the robot's position (1-sigma at most ``max_position_sigma_m``): two bearings
-along one line of sight do not. A group of forward loops only needs ``min_forward_only`` (3)
+along one line of sight do not. A group of forward loops only then enters the pose graph
+as one edge, the fit's pose of its earliest query with the fit's covariance
+(:func:`group_constraint`), not as its members' edges: each member measured little (a ridge
+loop's heading and bearing are as uncertain as the ridge is wide), and the fit is what the
+group fixed together. A group of forward loops only needs ``min_forward_only`` (3)
 members: two bearings from places apart always cross, so a wrong bearing among two forward
 loops moves the fitted position without showing in the fit; a third loop (or a floor loop)
 over-determines it. When the whole group's fit disagrees, its subsets are fitted (one
