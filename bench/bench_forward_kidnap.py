@@ -69,19 +69,29 @@ def _gate_chi2(detail: str) -> float | None:
     return float(m.group(1)) if m else None
 
 
+def is_member(loop: dict[str, Any]) -> bool:
+    """Whether a forward loop of the summary relocalised the robot: accepted as an edge of
+    its own (``relocalisation: ...``), or a member of a group that entered the graph as one
+    edge (:data:`robotd.graph.gate.GROUP_MEMBER`, not accepted)."""
+    from robotd.graph.gate import GROUP_MEMBER
+
+    detail = loop.get("fate_detail", "")
+    return detail.startswith(GROUP_MEMBER) or (loop["fate"] == "accepted" and "relocalisation:" in detail)
+
+
 def kidnapped_row(summary: dict[str, Any], stamps: dict[int, float]) -> dict[str, Any]:
     """One kidnapped run's figures (module notes)."""
     r = summary.get("relocalisation", {})
     fw = summary.get("forward_detector", {})
     loops = fw.get("loops", [])
     accepted = [x for x in loops if x["fate"] == "accepted"]
-    members = [x for x in accepted if "relocalisation:" in x.get("fate_detail", "")]
+    members = [x for x in loops if is_member(x)]
     put_down = r.get("put_down_at_s", 0.0)
     reloc_t = put_down + r["after_s"] if r.get("relocalised") else None
     member_ids = {(x["from"], x["to"]) for x in members}
     after = [x for x in accepted if stamps.get(x["to"], 0.0) >= put_down and (x["from"], x["to"]) not in member_ids]
     def judged(x: dict[str, Any]) -> dict[str, Any]:
-        return {"from": x["from"], "to": x["to"],
+        return {"from": x["from"], "to": x["to"], "accepted": x["fate"] == "accepted",
                 "s_after_reloc": (None if reloc_t is None else round(stamps.get(x["to"], 0.0) - reloc_t, 2)),
                 "gate_chi2": _gate_chi2(x.get("fate_detail", "")), "yaw_error_deg": round(x["yaw_error_deg"], 2),
                 "bearing_error_deg": (None if x["bearing_error_deg"] is None else round(x["bearing_error_deg"], 1)),
@@ -97,6 +107,7 @@ def kidnapped_row(summary: dict[str, Any], stamps: dict[int, float]) -> dict[str
         "after_s": r.get("after_s"), "after_m_true": r.get("after_m_true"), "after_m_daemon": r.get("after_m_daemon"),
         "cameras": r.get("cameras"), "agreeing": r.get("agreeing_candidates"),
         "agreeing_right": sum(x["right"] for x in members),
+        "agreeing_accepted": sum(x["fate"] == "accepted" for x in members),
         "position_error_m": r.get("position_error_m"), "heading_error_deg": r.get("heading_error_deg"),
         "forward_verified": fw.get("verified_loops"), "forward_accepted": len(accepted),
         "forward_accepted_right": sum(x["right"] for x in accepted),
@@ -115,6 +126,21 @@ def plain_row(summary: dict[str, Any]) -> dict[str, Any]:
             "forward_accepted_outside_own_noise": sum(x["outside_own_noise"] for x in accepted)}
 
 
+def _as_edges(k: dict[str, Any]) -> str:
+    """How the relocalising group entered the graph (``; one edge`` or ``; N edges``), ""
+    when not relocalised or not recorded."""
+    if not k.get("relocalised") or k.get("agreeing_accepted") is None:
+        return ""
+    n = k["agreeing_accepted"]
+    return "; one edge" if n == 0 else f"; {n} edges"
+
+
+def _how(kind: str, w: dict[str, Any]) -> str:
+    if kind != "relocalising":
+        return kind
+    return "relocalising, an edge" if w.get("accepted", True) else "relocalising, one edge"
+
+
 def _f(v: Any, fmt: str, none: str = "-") -> str:
     return none if v is None else format(v, fmt)
 
@@ -128,7 +154,7 @@ def markdown(payload: dict[str, Any]) -> list[str]:
              "--duration D --seed N --no-plot --config nofloor.toml` (`[floor_detector] enabled = false`), "
              "one demo at a time; " + ("; ".join(f"{t['label']}: {t['commit'] or t['path']}" for t in trees)) + ".",
              "", "| code | seed | lifted at / put down where the route was at / drive (s) | carried | relocalised "
-             "after (time, driven truth / odometry) | cameras | agreeing loops (right) | pose error then | "
+             "after (time, driven truth / odometry) | cameras | agreeing loops (right); into the graph as | pose error then | "
              "forward loops accepted in the run (right / wrong) | outside own noise | accepted after the put-down "
              "(wrong) | CPU s |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -143,21 +169,24 @@ def markdown(payload: dict[str, Any]) -> list[str]:
             perr = (f"{k['position_error_m']:.2f} m, {k['heading_error_deg']:.2f} deg" if k["relocalised"] else "-")
             lines.append(
                 f"| {t['label']} | {row['seed']} | {at:g} / {to:g} / {dur:g} | {_f(k['carried_m'], '.1f')} m | {rel} | "
-                f"{k['cameras'] or '-'} | {_f(k['agreeing'], 'd')} ({k['agreeing_right']}) | {perr} | "
+                f"{k['cameras'] or '-'} | {_f(k['agreeing'], 'd')} ({k['agreeing_right']}){_as_edges(k)} | {perr} | "
                 f"{k['forward_accepted']} ({k['forward_accepted_right']} / **{k['forward_accepted_wrong']}**) | "
                 f"{k['forward_accepted_outside_own_noise']} | {k['after_put_down_accepted']} "
                 f"({k['after_put_down_wrong']}) | {_f(k.get('cpu_s'), '.0f')} |")
-    wrong = [(t["label"], row["seed"], kind, w) for row in payload["seeds"] for t in trees
+    wrong = [(t["label"], row["seed"], _how(kind, w), w) for row in payload["seeds"] for t in trees
              for kind, key in (("relocalising", "wrong_members"), ("after", "wrong_after"))
              for w in (row["kidnapped"].get(t["label"]) or {}).get(key, [])]
     lines += ["", "Right by the demo's judge: heading change within 5 deg, bearing within 10 deg where the "
               "true cameras are more than 0.2 m apart. Outside own noise: the true relative pose past the "
               "99.9 % point under the loop edge's own information. Agreeing loops: the relocalising group "
-              "(right by the same judge). Accepted after the put-down: forward loops from the lost "
-              "trajectory the gate let in, the relocalising group not counted.", ""]
+              "(right by the same judge), into the graph as one edge (its fit: the members are no accepted "
+              "loops) or as its members' edges (each an accepted loop). Accepted after the put-down: forward "
+              "loops from the lost trajectory the gate let in, the relocalising group not counted.", ""]
     if wrong:
-        lines += ["Wrong forward loops accepted after the put-down (relocalising: a member of the relocalising "
-                  "group; after: gated in after the relocalisation). Sigmas: the loop's own bearing sigma and the "
+        lines += ["Wrong forward loops after the put-down (relocalising, an edge: a member of the relocalising "
+                  "group accepted as a loop edge; relocalising, one edge: a member of a group that entered as one "
+                  "edge, not accepted; after: gated in after the relocalisation). Sigmas: the loop's own bearing "
+                  "sigma and the "
                   "heading sigma it adds for a ridge no heading settled (- where none, or not recorded by the code):", "",
                   "| code | seed | loop (old -> query keyframe) | how | s after the relocalisation | gate chi2 | "
                   "heading error (deg) | bearing error (deg) | true distance (m) | bearing / heading sigma (deg) | "

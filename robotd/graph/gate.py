@@ -49,7 +49,12 @@ its own frame, and holds the loop candidates that reach a map keyframe in a
 transform to the map frame (the rule and why: :mod:`robotd.graph.reloc`). Then the old
 keyframes of the agreeing loops enter the graph fixed at their optimised map poses, the
 run's trajectory is moved into the map frame and tied to them by those loops
-(:meth:`robotd.graph.incremental.IncrementalGraph.attach`), the log and STATUS say
+(:meth:`robotd.graph.incremental.IncrementalGraph.attach`); a group of forward loops only
+ties it by one edge instead, the group's fitted transform with the fit's covariance
+(:func:`robotd.graph.reloc.group_constraint`), and none of its members becomes a loop edge
+or an accepted loop (their fates say they relocalised the robot, :data:`GROUP_MEMBER`): a
+ridge loop that agrees with the group only within its wide noise places the segment no
+more than the fit lets it, and never enters as a loop of its own. The log and STATUS say
 "relocalised against run N after X s and Y m", and every later candidate meets the gate
 as usual (an old keyframe it reaches enters the graph fixed first). Held candidates that
 never agree are recorded as ``failed_gate`` with the reason (``relocalisation: ...``).
@@ -95,12 +100,17 @@ from robotd.graph.reloc import (
     RelocDecision,
     RelocParams,
     chain_relative,
+    group_constraint,
 )
 
 log = logging.getLogger(__name__)
 
 GATE_CHI2_3DOF_999 = 16.27  # chi-square, 3 degrees of freedom, 99.9 %
 DOWN_WEIGHTED = 0.5  # a loop whose final weight is under this counts as down-weighted
+GROUP_MEMBER = "relocalisation: a member of the relocalising group, which entered the graph as one edge"
+"""How a relocalising group's member's fate begins (after ``forward: ``) when the group
+entered the graph as one edge (:func:`robotd.graph.reloc.group_constraint`): the member is
+no loop edge of its own (fate ``failed_gate``; the gate never judged it)."""
 
 Emit = Callable[[CandidateFate | Link], None]
 
@@ -254,6 +264,7 @@ class GatedGraph:
                 "forward_loops_failed_gate": self.forward_failed_gate,
                 "localised": int(self.localised()),
                 "relocalisations": self.relocalisations, "reloc_candidates_refused": self.reloc_refused,
+                "reloc_group_edges": self.group_constraints,
                 "lifts": self.lifts,
                 **(self.mapped_ground.counters() if self.mapped_ground is not None else {})}
 
@@ -322,6 +333,7 @@ class GatedGraph:
         self.reloc_refused = 0
         self.lifts = 0
         self.relocalised_at: list[dict[str, Any]] = []  # per relocalisation: the figures logged
+        self.group_constraints = 0  # relocalising groups that entered the graph as one edge
         self._edges_into: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
         self._edges_seen = 0
 
@@ -473,16 +485,28 @@ class GatedGraph:
         """Anchor the current segment in the map frame with the agreeing loops."""
         seg = len(self._segments) - 1
         ids = [int(k) for k in self.graph.graph.ids if self._segment_of(int(k)) == seg]
-        for m in d.members:
-            if m.old_id not in self.graph.graph:
-                self.graph.add_fixed(m.old_id, m.old_pose)
         assert d.transform is not None  # relocalised
         transform = d.transform
+        one = (d.covariance is not None and self.reloc_params.forward_group_as_one
+               and all(m.source == "forward" for m in d.members))
+        loops = ([group_constraint(d.members, transform, d.covariance)] if one and d.covariance is not None
+                 else [(m.old_id, m.query_id, m.delta, m.information) for m in d.members])
+        olds = {old for old, _q, _d, _i in loops}
+        for m in d.members:
+            if m.old_id in olds and m.old_id not in self.graph.graph:
+                self.graph.add_fixed(m.old_id, m.old_pose)
         t0 = time.perf_counter()
-        self.graph.attach(ids, transform, [(m.old_id, m.query_id, m.delta, m.information) for m in d.members])
+        self.graph.attach(ids, transform, loops)
         self.update_ms.append((time.perf_counter() - t0) * 1e3)
         self._in_map.add(seg)
-        for m in d.members:
+        if one:  # the group is one edge: its members are evidence, none of them a loop edge
+            old, query, delta, info = loops[0]
+            self.group_constraints += 1
+            for m in d.members:
+                self._emit(CandidateFate(m.query_id, m.old_id, m.score, LoopFate.FAILED_GATE,
+                                         _prefixed(m.source, f"{GROUP_MEMBER} ({old}->{query}): {d.detail}")))
+            self._emit(Link("loop", old, query, delta, info, source="forward"))
+        for m in () if one else d.members:
             if m.source == "forward":
                 self.forward_accepted += 1
             else:

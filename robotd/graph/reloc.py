@@ -44,7 +44,11 @@ and the map's own error). The group agrees when the fit's chi-square is under th
 point (the probability of ``agree_chi2`` at 3 degrees of freedom, taken at the fit's own
 degrees of freedom: the members' measured components minus the transform's 3), and the fit
 must fix the robot's position (1-sigma at most ``max_position_sigma_m``): two bearings
-along one line of sight do not. A group of forward loops only needs ``min_forward_only`` (3)
+along one line of sight do not. A group of forward loops only then enters the pose graph
+as one edge, the fit's pose of its earliest query with the fit's covariance
+(:func:`group_constraint`), not as its members' edges: each member measured little (a ridge
+loop's heading and bearing are as uncertain as the ridge is wide), and the fit is what the
+group fixed together. A group of forward loops only needs ``min_forward_only`` (3)
 members: two bearings from places apart always cross, so a wrong bearing among two forward
 loops moves the fitted position without showing in the fit; a third loop (or a floor loop)
 over-determines it. When the whole group's fit disagrees, its subsets are fitted (one
@@ -79,7 +83,7 @@ from robotd.base.geometry import (
 )
 
 __all__ = ["RelocCandidate", "RelocDecision", "RelocParams", "Relocaliser", "TransformFit", "chain_relative",
-           "fit_transform", "implied_transform", "pair_chi2"]
+           "fit_transform", "group_constraint", "implied_transform", "pair_chi2"]
 
 AGREE_CHI2_3DOF_999 = 16.27  # chi-square, 3 degrees of freedom, 99.9 %
 MAX_GROUP_FITS = 32  # subsets of a group with a forward loop fitted per offered candidate
@@ -111,6 +115,10 @@ class RelocParams:
         somewhere, so the fit of two forward loops has no freedom left to show that one
         bearing is wrong (only their heading changes are compared); a third loop, or a
         floor loop, over-determines the position.
+    forward_group_as_one: a group of forward loops only enters the pose graph as one
+        edge, its fitted transform with the fit's covariance (:func:`group_constraint`),
+        and none of its members as a loop edge, default True; False: each member an edge at
+        the fitted transform (as a group with a floor loop always does).
     """
 
     min_agreeing: int = 2
@@ -121,6 +129,7 @@ class RelocParams:
     max_pending: int = 64
     max_position_sigma_m: float = 0.3
     min_forward_only: int = 3
+    forward_group_as_one: bool = True
 
     def __post_init__(self) -> None:
         if self.min_agreeing < 1:
@@ -175,9 +184,11 @@ class RelocDecision:
 
     ``relocalised``: the agreement rule holds; then ``transform (3,)`` takes lost-frame poses
     into the map frame (``map = transform (+) lost``) and ``members`` are the agreeing
-    candidates (the offered one first). ``dropped``: held candidates that will never count,
-    each with the reason (disagreeing with the accepted group, or too old). ``detail``
-    says in words and numbers why (not) relocalised.
+    candidates (the offered one first); for a group with a forward loop, ``covariance (3,
+    3)`` is the transform's from the group's fit (:class:`TransformFit`), None for floor
+    loops alone. ``dropped``: held candidates that will never count, each with the reason
+    (disagreeing with the accepted group, or too old). ``detail`` says in words and
+    numbers why (not) relocalised.
     """
 
     relocalised: bool
@@ -185,6 +196,7 @@ class RelocDecision:
     transform: np.ndarray | None = None
     members: tuple[RelocCandidate, ...] = ()
     dropped: tuple[tuple[RelocCandidate, str], ...] = field(default=())
+    covariance: np.ndarray | None = None
 
 
 def implied_transform(c: RelocCandidate) -> np.ndarray:
@@ -390,6 +402,33 @@ def fit_transform(members: Iterable[RelocCandidate],
     return TransformFit(t, 0.5 * (cov + cov.T), cost, dof, tuple(fitted))
 
 
+def group_constraint(members: Iterable[RelocCandidate], transform: np.ndarray,
+                     covariance: np.ndarray) -> tuple[int, int, np.ndarray, np.ndarray]:
+    """A relocalising group as one edge: ``(old_id, query_id, delta (3,), information (3,
+    3))`` from the old keyframe of the member with the earliest query to that query, its
+    ``delta`` the query's pose the fitted ``transform`` gives (``old_pose^-1 (+)
+    transform (+) query_pose``) and its covariance the transform's (``covariance``, the
+    group's fit, :class:`TransformFit`) carried to that delta to first order.
+
+    The fit holds the earliest query's pose in the lost frame as given and the odometry
+    from it to the later queries as noise (:func:`fit_transform`), so its covariance is
+    the uncertainty of that query's place in the map: one constraint on it stands for the
+    group, the graph's own odometry edges carry it to the others. No member's own
+    measurement enters the graph: a member that agrees with the group only within its
+    own (wide) noise places the segment no more than the fit lets it."""
+    ref = min(members, key=lambda m: m.query_id)
+    t0 = np.asarray(transform, float)
+
+    def delta_at(t: np.ndarray) -> np.ndarray:
+        return between(ref.old_pose, compose(t, ref.query_pose))
+
+    delta = delta_at(t0)
+    jac = _numeric_jacobian(lambda t: _error(delta, delta_at(t)), t0)
+    cov = jac @ np.asarray(covariance, float) @ jac.T
+    cov = 0.5 * (cov + cov.T)
+    return ref.old_id, ref.query_id, np.asarray(delta, float), np.linalg.inv(cov)
+
+
 def agreement_threshold(dof: int, params: RelocParams) -> float:
     """The chi-square bound of a fit with ``dof`` degrees of freedom at the probability
     ``params.agree_chi2`` has at 3 (99.9 % by default)."""
@@ -468,6 +507,7 @@ class Relocaliser:
         members = {id(m) for m in group}
         others = [p for p in self.pending if id(p) not in members]
         transform = implied_transform(c)
+        covariance = None
         detail = f"{len(group)} candidates agree (of {len(others) + len(group)} held)"
         if any(m.edge is not None for m in group):  # with a forward loop: the group's own fit
             fit, why = self._forward_fit(group)
@@ -478,12 +518,12 @@ class Relocaliser:
                 kept = {(m.old_id, m.query_id) for m in fit.members}
                 others += [m for m in group if (m.old_id, m.query_id) not in kept]
             group = list(fit.members)  # in the group's order, forward edges at the fitted transform
-            transform = fit.transform
+            transform, covariance = fit.transform, fit.covariance
             detail = (f"{len(group)} candidates agree (of {len(others) + len(group)} held), "
                       f"position 1-sigma {fit.position_sigma_m:.2f} m")
         left_out = tuple((p, self._why_not(c, p)) for p in others)
         self.pending = []
-        return RelocDecision(True, detail, transform, tuple(group), left_out)
+        return RelocDecision(True, detail, transform, tuple(group), left_out, covariance)
 
     def _forward_fit(self, group: list[RelocCandidate]) -> tuple[TransformFit | None, str]:
         """The fit of a pairwise-agreeing group with a forward loop, or None and why not.

@@ -234,10 +234,14 @@ def _forward_loop(p: Pipeline, old_id: int, old_truth: np.ndarray, new_id: int, 
 
 
 def test_a_kidnapping_relocalises_from_three_forward_loops_without_the_floor_camera(tmp_path: Path):
+    from robotd.evaluation.observations import RunObservations
+    from robotd.graph.gate import GROUP_MEMBER
+
     rng = np.random.default_rng(17)
     with MapStore.open(tmp_path / "map.sqlite") as store:
         run = store.begin_run("")
         p, graph = _pipeline(store, run)
+        obs = p.add(RunObservations())  # what the demo's summary counts its accepted forward loops from
         drive = _Odometry(p, store, run)
         lap = _square_laps(2)
         for k in range(21):
@@ -259,7 +263,14 @@ def test_a_kidnapping_relocalises_from_three_forward_loops_without_the_floor_cam
         # A third, further on, over-determines the position.
         _forward_loop(p, drive.ids[14], lap[14], new_ids[9], after[9], rng)
         c = p.counters()
-        assert (c["relocalisations"], c["localised"], c["forward_loops_accepted"], c["loops_accepted"]) == (1, 1, 3, 0)
+        # The group enters the graph as one edge (its fit), none of the three as a loop of its own.
+        assert (c["relocalisations"], c["localised"], c["forward_loops_accepted"], c["loops_accepted"]) == (1, 1, 0, 0)
+        assert c["reloc_group_edges"] == 1
+        assert [(lk.from_id, lk.to_id) for lk in store.links("loop")] == [(drive.ids[5], new_ids[1])]
+        members = {(drive.ids[5], new_ids[1]), (drive.ids[10], new_ids[5]), (drive.ids[14], new_ids[9])}
+        assert set(obs.forward_fates) == members
+        assert all(f == "failed_gate" for f in obs.forward_fates.values())
+        assert all(obs.forward_fate_details[m].startswith(GROUP_MEMBER) for m in members)
         assert graph.status_fragment().startswith("relocalised against run 1 after ")
         assert graph.status_fragment().endswith(" (forward camera)")
         assert graph.relocalised_at[-1]["cameras"] == "forward"
@@ -295,14 +306,15 @@ def test_forward_loops_on_unsettled_ridges_relocalise_but_the_gate_takes_none_af
         for old, new in ((5, 1), (6, 2), (10, 5), (14, 9)):
             _forward_loop(p, drive.ids[old], lap[old], new_ids[new], after[new], rng, sigma_yaw_rad=ridge)
         c = p.counters()
-        # Relocalised by three; the one held beside them is refused, not gated into the graph.
-        assert (c["relocalisations"], c["forward_loops_accepted"], c["forward_loops_failed_gate"]) == (1, 3, 1)
+        # Relocalised by three (one edge, none of them accepted as a loop); the one held beside
+        # them is refused, not gated into the graph.
+        assert (c["relocalisations"], c["forward_loops_accepted"], c["forward_loops_failed_gate"]) == (1, 0, 1)
         assert graph.status_fragment().endswith(" (forward camera)")
         _forward_loop(p, drive.ids[15], lap[15], new_ids[10], after[10], rng, sigma_yaw_rad=ridge)
         c = p.counters()
-        assert (c["forward_loops_accepted"], c["forward_loops_failed_gate"]) == (3, 2)
+        assert (c["forward_loops_accepted"], c["forward_loops_failed_gate"]) == (0, 2)
         _forward_loop(p, drive.ids[16], lap[16], new_ids[11], after[11], rng)
-        assert p.counters()["forward_loops_accepted"] == 4
+        assert p.counters()["forward_loops_accepted"] == 1
         p.finish()
 
 

@@ -204,3 +204,84 @@ def test_a_forward_loop_on_a_ridge_no_heading_settled_is_refused_by_the_gate_but
     assert g.counters()["forward_loops_failed_gate"] == 1 and g.counters()["forward_loops_accepted"] == 0
     g.forward_candidate(a, b, 0.9, lambda pred: loop_edge(pred, rel[2], bearing))
     assert [m for m in emitted if isinstance(m, CandidateFate)][-1].fate == "accepted"
+
+
+def test_a_relocalisation_by_forward_loops_enters_the_graph_as_one_edge_with_the_fits_covariance():
+    """Forward loops only relocalise a kidnapped segment: the group enters the graph as one
+    edge (the fitted transform's pose of its earliest query, with the fit's covariance),
+    none of its members as a loop edge or an accepted loop; a later loop to the same place
+    is gated against the pose that edge gave."""
+    from robotd.forward.planar import loop_edge
+    from robotd.graph.gate import GROUP_MEMBER
+    from robotd.graph.reloc import fit_transform
+
+    rng = np.random.default_rng(5)
+    emitted: list = []
+    g = GatedGraph(IncrementalGraph(), emitted.append, [].append)
+    truth = _square(21)
+    ids = _drive(g, truth)
+    g.wheel_drop(True, 21 * 10**9)
+    g.wheel_drop(False, 25 * 10**9)
+    after = _square(40)[27:]  # put down further round the square, its odometry in a frame of its own
+    odo = np.array([3.0, -1.0, 0.7])
+    new = []
+    for k, t in enumerate(after):
+        kid = 100 + k
+        if k:
+            step = between(after[k - 1], t)
+            odo = compose(odo, step)
+            g.odometry_link(kid - 1, kid, step, ODO_INFO)
+        g.keyframe(kid, 7, odo, (26 + k) * 10**9, lambda run: {})
+        new.append(kid)
+    decisions = []
+    offer = g._relocaliser.offer
+    g._relocaliser.offer = lambda c: decisions.append(offer(c)) or decisions[-1]
+
+    def forward(old: int, k: int, yaw_off: float = 0.0, bearing_off: float = 0.0, **kw) -> None:
+        rel = between(truth[old], after[k])
+        dyaw = rel[2] + rng.normal(0.0, math.radians(0.5)) + yaw_off
+        bearing = math.atan2(rel[1], rel[0]) + rng.normal(0.0, math.radians(1.0)) + bearing_off
+        g.forward_candidate(ids[old], new[k], 0.9, lambda pred: loop_edge(pred, dyaw, bearing, **kw),
+                            unsettled="sigma_yaw_rad" in kw)
+
+    ridge = math.radians(4.0)
+    for old, k in ((5, 1), (10, 5), (14, 9)):  # places apart, on ridges no heading settled
+        forward(old, k, sigma_yaw_rad=ridge)
+    c = g.counters()
+    assert (c["relocalisations"], c["reloc_group_edges"], c["forward_loops_accepted"]) == (1, 1, 0)
+    d = decisions[-1]
+    assert d.relocalised and d.covariance is not None and len(d.members) == 3
+    # The covariance is the group's fit's.
+    fit = fit_transform(d.members, g._odometry_between, g.reloc_params)
+    assert fit is not None and np.allclose(d.covariance, fit.covariance, rtol=1e-6, atol=1e-12)
+    # One loop edge, from the old keyframe of the earliest query's member to that query: the
+    # query's pose as the fitted transform puts it, with the fit's covariance carried there.
+    loops = [e for e in g.graph.graph.edges if e.kind == "loop"]
+    ref = min(d.members, key=lambda m: m.query_id)
+    assert [(e.from_id, e.to_id) for e in loops] == [(ref.old_id, ref.query_id)]
+
+    def delta_at(t: np.ndarray) -> np.ndarray:
+        return between(ref.old_pose, compose(t, ref.query_pose))
+
+    assert np.allclose(loops[0].delta, delta_at(d.transform), atol=1e-9)
+    # (in the edge's own error coordinates: the graph's between factor's, at its delta)
+    jac = np.stack([(between(loops[0].delta, delta_at(d.transform + h))
+                     - between(loops[0].delta, delta_at(d.transform - h))) / 2e-6 for h in np.eye(3) * 1e-6], 1)
+    assert np.allclose(np.linalg.inv(loops[0].information), jac @ d.covariance @ jac.T, rtol=1e-4, atol=1e-12)
+    # The members' fates: none accepted; the one link published is the group's edge.
+    fates = [m for m in emitted if isinstance(m, CandidateFate)]
+    members = {(m.query_id, m.old_id) for m in d.members}
+    assert {(f.query_id, f.candidate_id) for f in fates} == members
+    assert all(f.fate == "failed_gate" and f.detail.startswith("forward: " + GROUP_MEMBER) for f in fates)
+    links = [m for m in emitted if isinstance(m, Link)]
+    assert [(lk.from_id, lk.to_id, lk.source) for lk in links] == [(ref.old_id, ref.query_id, "forward")]
+    # Placed where the truth is (the odometry frame started 3 m away).
+    assert np.hypot(*(g.graph.pose(new[9])[:2] - (truth[0][:2] + after[9][:2]))) < 0.1
+    # A later settled loop to the same place is gated against that pose: a right one passes,
+    # the same one 6 deg off in heading does not.
+    forward(15, 11)
+    forward(16, 12, yaw_off=math.radians(6.0))
+    fates = [m for m in emitted if isinstance(m, CandidateFate)][-2:]
+    assert [f.fate for f in fates] == ["accepted", "failed_gate"]
+    assert all("chi2" in f.detail for f in fates)
+    assert g.counters()["forward_loops_accepted"] == 1
