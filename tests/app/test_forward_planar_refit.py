@@ -45,7 +45,7 @@ def test_a_level_motion_is_taken_as_verified():
     assert stage._level(0, _verification(10, 30, 0.0, 2.0))
     assert stage.not_planar == 0
     # Fitted in the plane too: kept only where it explains more matches, and then the same motion.
-    for fit, _, _ in stage._fits.values():
+    for fit, _, _ in (r.fit for r in stage._pending.values() if r.fit is not None):
         assert math.degrees(fit.dyaw_rad) == pytest.approx(10, abs=0.3)
         assert math.degrees(fit.bearing_rad) == pytest.approx(30, abs=2.0)
 
@@ -56,7 +56,7 @@ def test_a_level_motion_off_along_the_heading_bearing_ridge_takes_the_planar_fit
     matches say straight ahead."""
     stage = _stage(0, 0, 0.31)
     assert stage._level(0, _verification(1.5, -12, 0.0, 2.0))
-    fit, _, _ = stage._fits[0]
+    fit, _, _ = stage._pending[0].fit
     assert math.degrees(fit.bearing_rad) == pytest.approx(0, abs=2.0)
     assert math.degrees(fit.dyaw_rad) == pytest.approx(0, abs=0.3)
     assert stage.level_refits == stage.refits == 1 and stage.not_planar == 0
@@ -66,7 +66,7 @@ def test_a_leaning_motion_is_refitted_in_the_plane():
     """The verification says 60 deg of bearing and 20 deg of lean; the matches say 30."""
     stage = _stage(10, 30, 0.5)
     assert stage._level(0, _verification(11, 60, 20.0, 5000.0))
-    fit, p_old, p_new = stage._fits[0]
+    fit, p_old, p_new = stage._pending[0].fit
     assert math.degrees(fit.dyaw_rad) == pytest.approx(10, abs=0.3)
     assert math.degrees(fit.bearing_rad) == pytest.approx(30, abs=2.0)
     assert stage.refits == 1 and stage.not_planar == 0 and len(p_old) == len(p_new) == fit.n_inliers
@@ -75,7 +75,7 @@ def test_a_leaning_motion_is_refitted_in_the_plane():
 def test_a_leaning_motion_without_planar_support_is_refused():
     stage = _stage(10, 30, 0.5, same=False)
     assert not stage._level(0, _verification(10, 60, 20.0, 5000.0))
-    assert stage.not_planar == 1 and stage.refits == 0 and not stage._fits
+    assert stage.not_planar == 1 and stage.refits == 0 and not stage._pending
     off = _stage(10, 30, 0.5)  # the refit off: the planarity test alone, as before it
     off.planar_refit = False
     assert not off._level(0, _verification(10, 60, 20.0, 5000.0)) and off.not_planar == 1
@@ -96,7 +96,7 @@ def test_the_refit_scans_around_the_level_motion_the_verification_found():
         stage = _stage(10, 30, 0.5)
         stage.scan_centre = centre
         assert stage._level(0, v)
-        fit, _, _ = stage._fits[0]
+        fit, _, _ = stage._pending[0].fit
         assert math.degrees(fit.dyaw_rad) == pytest.approx(10, abs=0.3)
         assert math.degrees(fit.bearing_rad) == pytest.approx(30, abs=2.0)
         assert math.degrees(fit.scan_yaw_rad.min()) == pytest.approx(10.4 - 8.0, abs=1e-9)

@@ -84,19 +84,24 @@ def test_a_clear_motion_has_no_ridge():
     assert math.degrees(hi - lo) < 1.0
 
 
+def _ridge_sigmas(stage: ForwardLoopStage) -> dict[int, float]:
+    """The pending views' ridge bearing sigmas (those the level test set)."""
+    return {i: r.sigma_bearing_rad for i, r in stage._pending.items() if r.sigma_bearing_rad is not None}
+
+
 def test_a_ridge_loop_takes_the_odometry_heading_and_the_bearing_it_implies():
     po, pn = _wall()
     fit = fit_planar(po, pn, K, math.radians(1.5))
     stage = _stage(po, pn, prior_yaw_deg=0.0)
     assert stage._level(0, _verification(fit.dyaw_rad, fit.bearing_rad))
-    best, p_old, p_new = stage._fits[0]
+    best, p_old, p_new = stage._pending[0].fit
     assert math.degrees(best.dyaw_rad) == pytest.approx(0.0, abs=1e-9)
     assert math.degrees(best.bearing_rad) == pytest.approx(0.0, abs=1.5)  # the fit alone: 6.7 deg off
     assert len(p_old) == len(p_new) == best.n_inliers
     assert stage.ridge_settled == 1 and stage.ridge_refused == 0
     # The bearing's sigma along the ridge: about 10 deg of bearing per degree of heading
     # (3 m / 0.3 m) times the odometry's 0.1 deg, with the fixed-heading fit's own.
-    sigma = math.degrees(stage._ridge_sigma[0])
+    sigma = math.degrees(stage._pending[0].sigma_bearing_rad)
     assert 0.7 < sigma < 3.0
     assert stage.counters()["forward_ridge_settled"] == 1
 
@@ -106,14 +111,14 @@ def test_a_ridge_loop_the_odometry_heading_lies_off_is_refused():
     fit = fit_planar(po, pn, K, math.radians(1.5))
     stage = _stage(po, pn, prior_yaw_deg=6.0)
     assert not stage._level(0, _verification(fit.dyaw_rad, fit.bearing_rad))
-    assert stage.ridge_refused == 1 and stage.ridge_settled == 0 and 0 not in stage._fits
+    assert stage.ridge_refused == 1 and stage.ridge_settled == 0 and 0 not in stage._pending
     # An odometry heading that uncertain reaches the ridge: settled at the ridge's end.
     loose = _stage(po, pn, prior_yaw_deg=6.0, sigma_deg=2.0)
     assert loose._level(0, _verification(fit.dyaw_rad, fit.bearing_rad))
     scan = fit_planar(po, pn, K, fit.dyaw_rad)  # the stage scans around the verification's heading
     lo, hi = ridge_span(scan, math.sqrt(float(scan.scan_inliers.max())))
-    assert loose._fits[0][0].dyaw_rad == pytest.approx(hi)
-    assert loose._ridge_sigma[0] > stage.ridge.edge_sigma_yaw_rad * 5
+    assert loose._pending[0].fit[0].dyaw_rad == pytest.approx(hi)
+    assert loose._pending[0].sigma_bearing_rad > stage.ridge.edge_sigma_yaw_rad * 5
 
 
 def test_a_ridge_loop_without_an_odometry_heading_carries_the_whole_ridge_in_its_bearing_sigma():
@@ -122,7 +127,7 @@ def test_a_ridge_loop_without_an_odometry_heading_carries_the_whole_ridge_in_its
     stage = _stage(po, pn, prior_yaw_deg=None)
     assert stage._level(0, _verification(fit.dyaw_rad, fit.bearing_rad))
     assert stage.ridge_unsettled == 1 and stage.ridge_settled == 0
-    assert math.degrees(stage._ridge_sigma[0]) > 10.0  # the ridge spans +-1.8 deg at ~10 deg per deg
+    assert math.degrees(stage._pending[0].sigma_bearing_rad) > 10.0  # the ridge spans +-1.8 deg at ~10 deg per deg
 
 
 def test_a_clear_loop_ignores_the_odometry_heading():
@@ -130,7 +135,7 @@ def test_a_clear_loop_ignores_the_odometry_heading():
     po, pn = _views(10, 30, 0.5)
     stage = _stage(po, pn, prior_yaw_deg=16.0)
     assert stage._level(0, _verification(math.radians(10), math.radians(30)))
-    assert stage.ridge_settled == stage.ridge_refused == stage.ridge_unsettled == 0 and not stage._ridge_sigma
+    assert stage.ridge_settled == stage.ridge_refused == stage.ridge_unsettled == 0 and not _ridge_sigmas(stage)
 
 
 def test_the_ridge_test_takes_the_edge_heading_sigma_from_the_config():
@@ -207,9 +212,9 @@ def test_narrow_graph_takes_a_clear_loop_at_a_graph_heading_known_better_than_th
     assert stage._level(0, _verification(math.radians(10), math.radians(30)))
     assert stage.ridge_settled == stage.narrow_settled == int(settled) and stage.ridge_refused == 0
     if settled:
-        assert math.degrees(stage._fits[0][0].dyaw_rad) == pytest.approx(prior_deg, abs=0.05)
+        assert math.degrees(stage._pending[0].fit[0].dyaw_rad) == pytest.approx(prior_deg, abs=0.05)
     else:
-        assert not stage._ridge_sigma
+        assert not _ridge_sigmas(stage)
 
 
 def test_a_ridge_loop_without_an_odometry_heading_carries_the_whole_ridge_in_its_heading_sigma_too():
@@ -224,17 +229,17 @@ def test_a_ridge_loop_without_an_odometry_heading_carries_the_whole_ridge_in_its
     assert stage._level(0, _verification(fit.dyaw_rad, fit.bearing_rad))
     scan = fit_planar(po, pn, K, fit.dyaw_rad)
     lo, hi, _on = ridge_headings(scan, math.sqrt(float(scan.scan_inliers.max())))
-    assert stage._ridge_yaw[0] == pytest.approx(0.5 * (hi - lo))
-    assert math.degrees(stage._ridge_yaw[0]) > 1.5  # the ridge spans about +-1.8 deg
-    _d, info = loop_edge(np.array([0.3, 0.0, 0.0]), 0.0, 0.0, sigma_bearing_rad=stage._ridge_sigma[0],
-                         sigma_yaw_rad=stage._ridge_yaw[0])
-    _d, info_fixed = loop_edge(np.array([0.3, 0.0, 0.0]), 0.0, 0.0, sigma_bearing_rad=stage._ridge_sigma[0])
+    assert stage._pending[0].sigma_yaw_rad == pytest.approx(0.5 * (hi - lo))
+    assert math.degrees(stage._pending[0].sigma_yaw_rad) > 1.5  # the ridge spans about +-1.8 deg
+    _d, info = loop_edge(np.array([0.3, 0.0, 0.0]), 0.0, 0.0, sigma_bearing_rad=stage._pending[0].sigma_bearing_rad,
+                         sigma_yaw_rad=stage._pending[0].sigma_yaw_rad)
+    _d, info_fixed = loop_edge(np.array([0.3, 0.0, 0.0]), 0.0, 0.0, sigma_bearing_rad=stage._pending[0].sigma_bearing_rad)
     assert math.sqrt(np.linalg.inv(info)[2, 2]) == pytest.approx(
-        math.hypot(math.sqrt(np.linalg.inv(info_fixed)[2, 2]), stage._ridge_yaw[0]), rel=1e-3)
+        math.hypot(math.sqrt(np.linalg.inv(info_fixed)[2, 2]), stage._pending[0].sigma_yaw_rad), rel=1e-3)
     # Settled by a prior heading, the loop's heading is that prior's: no ridge-wide sigma.
     settled = _stage(po, pn, prior_yaw_deg=0.0)
-    assert settled._level(0, _verification(fit.dyaw_rad, fit.bearing_rad)) and 0 not in settled._ridge_yaw
-    assert 0 in settled._at_prior
+    assert settled._level(0, _verification(fit.dyaw_rad, fit.bearing_rad)) and settled._pending[0].sigma_yaw_rad is None
+    assert settled._pending[0].at_prior
 
 
 def _links_now(stage: ForwardLoopStage) -> None:
@@ -258,7 +263,7 @@ def test_forward_loops_that_relocalised_the_robot_settle_a_ridge_loop_across_the
     assert stage.headings.relative(7, 8) is not None
     assert stage._level(0, _verification(fit.dyaw_rad, fit.bearing_rad))
     assert stage.ridge_settled == 1 and stage.ridge_unsettled == 0
-    assert math.degrees(stage._fits[0][0].bearing_rad) == pytest.approx(0.0, abs=1.5)
+    assert math.degrees(stage._pending[0].fit[0].bearing_rad) == pytest.approx(0.0, abs=1.5)
 
 
 def test_a_forward_link_on_one_chain_or_taken_at_the_prior_stays_out_of_the_heading_graph():

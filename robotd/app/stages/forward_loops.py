@@ -169,6 +169,22 @@ class _Unsettled:
     sigma_yaw_rad: float
 
 
+@dataclass
+class _Pending:
+    """What the level test (:meth:`ForwardLoopStage._level`) found for the view of one past
+    image from the image being run, read when that view is the detector's loop: the loop's
+    motion in the floor plane with its inlier pixels (old, new) when refitted or settled on
+    a ridge (None: the verified motion's); the bearing's sigma of a ridge loop (replaces its
+    fit's); the heading's sigma of a ridge no prior heading settled (its half-width); and
+    whether it was taken at the prior heading (settled on a ridge: its link does not go
+    back into the heading graph)."""
+
+    fit: tuple[PlanarFit, np.ndarray, np.ndarray] | None = None
+    sigma_bearing_rad: float | None = None
+    sigma_yaw_rad: float | None = None
+    at_prior: bool = False
+
+
 @dataclass(frozen=True)
 class RidgeParams:
     """When a loop's planar fit lies on a heading-bearing ridge, and how the odometry's
@@ -405,10 +421,10 @@ class HeadingGraph:
         for k in (a, b):
             at = int(np.searchsorted(linked, k))
             if k >= lo and k in self._odom and not (at < len(linked) and int(linked[at]) == k):
-                older = linked[linked < k]
-                older = older[[int(i) in self._odom for i in older]] if len(older) else older
-                if len(older):
-                    m = int(older.max())
+                # the newest linked keyframe older than k with an odometry pose: searched from
+                # the newest down (the first found), not every linked keyframe tested
+                m = next((i for i in reversed(linked[:at].tolist()) if i in self._odom), None)
+                if m is not None:
                     (ya, va), (yb, vb) = self._odom[m], self._odom[k]
                     extra.append((m, k, float(wrap_angle(yb - ya)), max(vb - va, 1e-8)))
         if extra:
@@ -505,12 +521,8 @@ class ForwardLoopStage(Publisher):
         # The image being run: (offset, keyframe pose, its heading variance, chain, keyframe id,
         # the heading graph's links when the keyframe was stored), for _level.
         self._current: tuple[np.ndarray, np.ndarray, float | None, int, int, int] | None = None
-        # past image -> the bearing's sigma of a ridge loop (replaces its fit's)
-        self._ridge_sigma: dict[int, float] = {}
-        # past image -> the heading's sigma of a ridge no prior heading settled (its half-width)
-        self._ridge_yaw: dict[int, float] = {}
-        # past images whose loop was taken at the prior heading (settled on a ridge)
-        self._at_prior: set[int] = set()
+        # past image -> what _level found for its view of the image being run (_Pending)
+        self._pending: dict[int, _Pending] = {}
         # loops (old keyframe, new keyframe) published at the prior heading: their heading is
         # the heading graph's own, so their links do not go back into it
         self._prior_loops: set[tuple[int, int]] = set()
@@ -532,8 +544,6 @@ class ForwardLoopStage(Publisher):
         self.planar_refit = planar_refit
         self.refits = 0
         self.level_refits = 0  # of them, motions that passed the planarity test (module notes)
-        # past image -> its refit and the refit's inlier pixels (old, new), for the image being run
-        self._fits: dict[int, tuple[PlanarFit, np.ndarray, np.ndarray]] = {}
         self._last_refused: tuple[int, float, float] | None = None  # (past image, tilt, chi2)
         # A candidate whose motion is not a level camera's is not a loop: the detector then
         # verifies the next view it may try (DetectorParams.verify_tries).
@@ -894,10 +904,7 @@ class ForwardLoopStage(Publisher):
         self.verify_ms.append(det.times_s.get("verify", 0.0) * 1e3)
         self.features_ms.append(det.times_s.get("features", 0.0) * 1e3)
         if det.status != LOOP or det.verification is None or det.loop_id is None:
-            self._fits.clear()
-            self._ridge_sigma.clear()
-            self._ridge_yaw.clear()
-            self._at_prior.clear()
+            self._pending.clear()
             if det.verification is not None and not det.verification.accepted:
                 self.rejected_geometry += 1
             elif det.verification is not None and self._last_refused is not None:
@@ -912,15 +919,11 @@ class ForwardLoopStage(Publisher):
         if v.rotation is None or v.translation_dir is None:
             raise AssertionError("an accepted forward loop's verification has no relative pose")
         old = self._keyframe_ids[det.loop_id]
-        refit = self._fits.pop(det.loop_id, None)
-        ridge_sigma = self._ridge_sigma.pop(det.loop_id, None)
-        ridge_yaw = self._ridge_yaw.pop(det.loop_id, None)
-        if det.loop_id in self._at_prior:
+        pending = self._pending.pop(det.loop_id, None) or _Pending()
+        self._pending.clear()
+        refit, ridge_sigma, ridge_yaw = pending.fit, pending.sigma_bearing_rad, pending.sigma_yaw_rad
+        if pending.at_prior:
             self._prior_loops.add((int(old), int(kf.keyframe_id)))
-        self._fits.clear()
-        self._ridge_sigma.clear()
-        self._ridge_yaw.clear()
-        self._at_prior.clear()
         # The general fit's bearing sigma is the inliers' own noise; scaled as the planarity
         # test and the planar fit scale it (robotd.forward.planar.INLIER_NOISE_FACTOR).
         range_m, sigma_b = v.range_m, v.sigma_bearing_rad * INLIER_NOISE_FACTOR
@@ -992,16 +995,17 @@ class ForwardLoopStage(Publisher):
             if settled is False:
                 return False
             if isinstance(settled, tuple):
-                self._fits[image_id] = settled[0]
-                self._ridge_sigma[image_id] = settled[1]
-                self._at_prior.add(image_id)
+                rec = self._pending.setdefault(image_id, _Pending())
+                rec.fit, rec.sigma_bearing_rad, rec.at_prior = settled[0], settled[1], True
             elif isinstance(settled, _Unsettled):  # the motion as chosen, its sigmas the ridge's
-                self._ridge_sigma[image_id] = settled.sigma_bearing_rad
-                self._ridge_yaw[image_id] = settled.sigma_yaw_rad
+                rec = self._pending.setdefault(image_id, _Pending())
+                rec.sigma_bearing_rad, rec.sigma_yaw_rad = settled.sigma_bearing_rad, settled.sigma_yaw_rad
         if refit is not None:
             self.refits += 1
             self.level_refits += ok
-            self._fits.setdefault(image_id, refit)
+            rec = self._pending.setdefault(image_id, _Pending())
+            if rec.fit is None:  # the ridge's fit, when settled there, stays the loop's motion
+                rec.fit = refit
         return True
 
     def _scan(self, image_id: int, v: Any) -> tuple[PlanarFit, np.ndarray, np.ndarray] | None:
