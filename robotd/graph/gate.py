@@ -487,10 +487,11 @@ class GatedGraph:
         ids = [int(k) for k in self.graph.graph.ids if self._segment_of(int(k)) == seg]
         assert d.transform is not None  # relocalised
         transform = d.transform
-        one = (d.covariance is not None and self.reloc_params.forward_group_as_one
-               and all(m.source == "forward" for m in d.members))
-        loops = ([group_constraint(d.members, transform, d.covariance)] if one and d.covariance is not None
-                 else [(m.old_id, m.query_id, m.delta, m.information) for m in d.members])
+        group = (group_constraint(d.members, transform, d.covariance)
+                 if (d.covariance is not None and self.reloc_params.forward_group_as_one
+                     and all(m.source == "forward" for m in d.members)) else None)
+        loops = [group] if group is not None else [(m.old_id, m.query_id, m.delta, m.information)
+                                                   for m in d.members]
         olds = {old for old, _q, _d, _i in loops}
         for m in d.members:
             if m.old_id in olds and m.old_id not in self.graph.graph:
@@ -499,22 +500,23 @@ class GatedGraph:
         self.graph.attach(ids, transform, loops)
         self.update_ms.append((time.perf_counter() - t0) * 1e3)
         self._in_map.add(seg)
-        if one:  # the group is one edge: its members are evidence, none of them a loop edge
-            old, query, delta, info = loops[0]
+        if group is not None:  # the group is one edge: its members are evidence, none of them a loop edge
+            old, query, delta, info = group
             self.group_constraints += 1
             for m in d.members:
                 self._emit(CandidateFate(m.query_id, m.old_id, m.score, LoopFate.FAILED_GATE,
                                          _prefixed(m.source, f"{GROUP_MEMBER} ({old}->{query}): {d.detail}")))
             self._emit(Link("loop", old, query, delta, info, source="forward"))
-        for m in () if one else d.members:
-            if m.source == "forward":
-                self.forward_accepted += 1
-            else:
-                self.accepted += 1
-            self._loops[(m.old_id, m.query_id)] = (m.query_id, m.score)
-            self._emit(CandidateFate(m.query_id, m.old_id, m.score, LoopFate.ACCEPTED,
-                                     _prefixed(m.source, f"relocalisation: {d.detail}")))
-            self._emit(Link("loop", m.old_id, m.query_id, m.delta, m.information, source=m.source))
+        else:
+            for m in d.members:
+                if m.source == "forward":
+                    self.forward_accepted += 1
+                else:
+                    self.accepted += 1
+                self._loops[(m.old_id, m.query_id)] = (m.query_id, m.score)
+                self._emit(CandidateFate(m.query_id, m.old_id, m.score, LoopFate.ACCEPTED,
+                                         _prefixed(m.source, f"relocalisation: {d.detail}")))
+                self._emit(Link("loop", m.old_id, m.query_id, m.delta, m.information, source=m.source))
         self.relocalisations += 1
         newest = max(d.members, key=lambda m: m.query_id)
         runs = collections.Counter(m.old_run for m in d.members)
