@@ -156,7 +156,10 @@ def edge_disagreement(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.
     return float(e @ np.linalg.solve(s, e))
 
 
-def _error_and_jacobian(z: np.ndarray, x: np.ndarray, eps: float = 1e-7) -> tuple[np.ndarray, np.ndarray]:
+_EPS = 1e-7  # the central differences' step (the perturbations below are precomputed for it)
+
+
+def _error_and_jacobian(z: np.ndarray, x: np.ndarray, eps: float = _EPS) -> tuple[np.ndarray, np.ndarray]:
     """``log(z^-1 (+) x)`` and its Jacobian ``(3, 3)`` in a right perturbation of ``x``
     (central differences: the error's own Jacobian is near the identity).
 
@@ -227,5 +230,4 @@ def _perturbations(eps: float) -> tuple[tuple[_Pose, _Pose], ...]:
     return tuple(out)
 
 
-_EPS = 1e-7
 _PERTURBATIONS = _perturbations(_EPS)
