@@ -226,8 +226,10 @@ def _migrate_5_to_6(conn: sqlite3.Connection) -> None:
     conn.execute("DROP TABLE loop_candidates")
     conn.execute("ALTER TABLE loop_candidates_v6 RENAME TO loop_candidates")
     conn.execute("CREATE INDEX loop_candidates_by_query ON loop_candidates(query_id)")
-    if row is not None:  # the copy set the counter to the largest id; the old one may be higher
-        conn.execute("DELETE FROM sqlite_sequence WHERE name = 'loop_candidates'")
+    # The copy set the new table's counter (to its largest id, or 0 for no rows); the old
+    # one may be higher, or absent (never written): as it was.
+    conn.execute("DELETE FROM sqlite_sequence WHERE name = 'loop_candidates'")
+    if row is not None:
         conn.execute("INSERT INTO sqlite_sequence (name, seq) VALUES ('loop_candidates', ?)", (row[0],))
 
 
