@@ -72,11 +72,13 @@ def _gate_chi2(detail: str) -> float | None:
 def is_member(loop: dict[str, Any]) -> bool:
     """Whether a forward loop of the summary relocalised the robot: accepted as an edge of
     its own (``relocalisation: ...``), or a member of a group that entered the graph as one
-    edge (:data:`robotd.graph.gate.GROUP_MEMBER`, not accepted)."""
+    edge (fate ``grouped``; in summaries of robotd before it, ``failed_gate`` with the detail
+    :data:`robotd.graph.gate.GROUP_MEMBER`)."""
     from robotd.graph.gate import GROUP_MEMBER
 
     detail = loop.get("fate_detail", "")
-    return detail.startswith(GROUP_MEMBER) or (loop["fate"] == "accepted" and "relocalisation:" in detail)
+    return (loop["fate"] == "grouped" or detail.startswith(GROUP_MEMBER)
+            or (loop["fate"] == "accepted" and "relocalisation:" in detail))
 
 
 def kidnapped_row(summary: dict[str, Any], stamps: dict[int, float]) -> dict[str, Any]:

@@ -20,7 +20,7 @@ from typing import Any
 
 #: The forward summary's counts compared (``summary.json``'s ``forward_detector``).
 COUNTS = ("images", "verified_loops", "verified_right", "accepted", "accepted_right", "accepted_outside_own_noise",
-          "refused_by_gate", "failed_verification", "not_planar")
+          "refused_by_gate", "grouped", "failed_verification", "not_planar")
 
 #: The trajectories compared, one row per keyframe (TUM: stamp, x, y, z, quaternion).
 POSES = ("corrected.tum", "keyframes.tum")

@@ -153,7 +153,9 @@ def print_summary(s: Summary, f: TextIO) -> None:
               f"(heading within {FORWARD_YAW_OK_DEG:g} deg, bearing within {FORWARD_BEARING_OK_DEG:g} deg)", file=f)
         print(f"  into the pose graph: {fw['accepted']} accepted ({fw['accepted_right']} right, "
               f"{fw['accepted'] - fw['accepted_right']} wrong), "
-              f"{fw['refused_by_gate']} refused by the gate, {fw['not_planar']} not planar; "
+              f"{fw['refused_by_gate']} refused by the gate, "
+              + (f"{fw['grouped']} in through their relocalising group's one edge, " if fw.get("grouped") else "")
+              + f"{fw['not_planar']} not planar; "
               f"{fw['failed_verification']} candidates failed the epipolar check", file=f)
         if fw.get("accepted_outside_own_noise") is not None:
             print(f"  accepted edges whose truth lies outside their own noise (chi2, 99.9 %): "

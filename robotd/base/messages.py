@@ -293,8 +293,8 @@ class ForwardLoop:
 
 class LoopFate(StrEnum):
     """What became of a loop candidate. A :class:`~enum.StrEnum`: each member is its own
-    value, the text stored in the map's ``loop_candidates.fate`` (unchanged since the column
-    exists) and compared equal to it."""
+    value, the text stored in the map's ``loop_candidates.fate`` (whose CHECK lists them: a
+    new member needs a schema migration, :mod:`robotd.io.mapfile`) and compared equal to it."""
 
     ACCEPTED = "accepted"
     """Became a loop edge of the pose graph."""
@@ -306,6 +306,11 @@ class LoopFate(StrEnum):
     """No relative pose could be estimated between the two keyframes."""
     DOWN_WEIGHTED = "down_weighted"
     """Accepted, then down-weighted by the robust optimiser."""
+    GROUPED = "grouped"
+    """Entered the graph through its relocalising group's one edge (the group's fitted pose,
+    :func:`robotd.graph.reloc.group_constraint`), not as a loop edge of its own; the gate
+    never judged it. Since map schema 6; the migration to it relabels such rows of an older
+    map, which said ``failed_gate``."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -175,6 +175,7 @@ def forward_evaluation(truth: GroundTruth, mount: np.ndarray, obs: RunObservatio
             "accepted": len(accepted), "accepted_right": sum(r["right"] for r in accepted),
             "accepted_outside_own_noise": sum(r["outside_own_noise"] for r in accepted),
             "refused_by_gate": c.get("forward_loops_failed_gate", 0),
+            "grouped": c.get("forward_loops_grouped", 0),
             "failed_verification": c.get("forward_failed_verification", 0),
             "not_planar": c.get("forward_not_planar", 0),
             "vocabulary_words": c.get("forward_vocabulary", 0),

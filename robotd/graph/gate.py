@@ -52,7 +52,7 @@ run's trajectory is moved into the map frame and tied to them by those loops
 (:meth:`robotd.graph.incremental.IncrementalGraph.attach`); a group of forward loops only
 ties it by one edge instead, the group's fitted transform with the fit's covariance
 (:func:`robotd.graph.reloc.group_constraint`), and none of its members becomes a loop edge
-or an accepted loop (their fates say they relocalised the robot, :data:`GROUP_MEMBER`): a
+or an accepted loop (their fate is ``grouped``, its detail :data:`GROUP_MEMBER`): a
 ridge loop that agrees with the group only within its wide noise places the segment no
 more than the fit lets it, and never enters as a loop of its own. The log and STATUS say
 "relocalised against run N after X s and Y m", and every later candidate meets the gate
@@ -108,9 +108,9 @@ log = logging.getLogger(__name__)
 GATE_CHI2_3DOF_999 = 16.27  # chi-square, 3 degrees of freedom, 99.9 %
 DOWN_WEIGHTED = 0.5  # a loop whose final weight is under this counts as down-weighted
 GROUP_MEMBER = "relocalisation: a member of the relocalising group, which entered the graph as one edge"
-"""How a relocalising group's member's fate begins (after ``forward: ``) when the group
-entered the graph as one edge (:func:`robotd.graph.reloc.group_constraint`): the member is
-no loop edge of its own (fate ``failed_gate``; the gate never judged it)."""
+"""How the detail of a relocalising group's member's fate begins (after ``forward: ``) when
+the group entered the graph as one edge (:func:`robotd.graph.reloc.group_constraint`): the
+member is no loop edge of its own (fate ``grouped``; the gate never judged it)."""
 
 Emit = Callable[[CandidateFate | Link], None]
 
@@ -161,6 +161,7 @@ class GatedGraph:
         self.down_weighted = 0
         self.forward_accepted = 0
         self.forward_failed_gate = 0
+        self.forward_grouped = 0  # members of relocalising groups that entered as one edge
         self.update_ms = array.array("d")  # each incremental update's time (8 bytes each, no float objects)
         self._loops: dict[tuple[int, int], tuple[int, float]] = {}  # edge -> (query, score)
         self._init_relocalisation(reloc_params)
@@ -262,6 +263,7 @@ class GatedGraph:
                 "loops_earlier_run": self.earlier_run, "loops_down_weighted": self.down_weighted,
                 "forward_loops_accepted": self.forward_accepted,
                 "forward_loops_failed_gate": self.forward_failed_gate,
+                "forward_loops_grouped": self.forward_grouped,
                 "localised": int(self.localised()),
                 "relocalisations": self.relocalisations, "reloc_candidates_refused": self.reloc_refused,
                 "reloc_group_edges": self.group_constraints,
@@ -504,7 +506,8 @@ class GatedGraph:
             old, query, delta, info = group
             self.group_constraints += 1
             for m in d.members:
-                self._emit(CandidateFate(m.query_id, m.old_id, m.score, LoopFate.FAILED_GATE,
+                self.forward_grouped += 1
+                self._emit(CandidateFate(m.query_id, m.old_id, m.score, LoopFate.GROUPED,
                                          _prefixed(m.source, f"{GROUP_MEMBER} ({old}->{query}): {d.detail}")))
             self._emit(Link("loop", old, query, delta, info, source="forward"))
         else:

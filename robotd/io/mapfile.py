@@ -11,7 +11,11 @@ Version history:
 4. the forward camera's memory: ``forward_images`` (what the detector keeps of
    each forward keyframe: word ids, compact keypoints, descriptors) and ``forward_words``
    (the incremental vocabulary's words, with the image that made each one and whether it
-   was purged), so a restarted daemon goes on detecting forward loops against earlier runs.
+   was purged), so a restarted daemon goes on detecting forward loops against earlier runs;
+5. the same tables; forward word ids may be deflated, a word's descriptor left to its
+   founder feature's (a version-4 reader would misread them);
+6. ``loop_candidates.fate`` may be ``grouped`` (a member of a relocalising group that entered
+   the pose graph as one edge); the members' rows of an older map are relabelled so.
 """
 
 from __future__ import annotations
@@ -178,12 +182,64 @@ def _migrate_4_to_5(conn: sqlite3.Connection) -> None:
     del conn  # no table changes: the version number is the whole step
 
 
+_GROUP_MEMBER_DETAIL_V5 = ("forward: relocalisation: a member of the relocalising group, which entered "
+                          "the graph as one edge")
+"""How a version-5 map's row of a relocalising group's member begins its ``detail`` (the gate
+wrote it, fate ``failed_gate``, for these members only). Spelled out: a released step never
+changes, whatever the gate writes later."""
+
+
+def _migrate_5_to_6(conn: sqlite3.Connection) -> None:
+    """Version 6: ``loop_candidates.fate`` may also be ``grouped``: a member of a relocalising
+    group that entered the pose graph as one edge (the gate never judged it). SQLite cannot
+    change a CHECK in place, so the table is rebuilt as SQLite's ALTER TABLE page says: the
+    new table created, the rows copied with their ids, the old table dropped, the new one
+    renamed and its index made again; its AUTOINCREMENT counter is carried over, so an id
+    is never reused. Nothing refers to ``loop_candidates``, so the drop breaks no foreign
+    key. It all runs in the migration's transaction: a crash leaves version 5 as it was.
+
+    Rows of version 5 whose fate is ``failed_gate`` and whose detail begins with
+    :data:`_GROUP_MEMBER_DETAIL_V5` are relabelled ``grouped`` (their detail unchanged): the
+    gate wrote that text for those members alone, so the old fate misnamed what became of
+    them, and a map's fates then mean one thing whichever version recorded them."""
+    conn.execute(
+        """CREATE TABLE loop_candidates_v6 (
+            id           INTEGER PRIMARY KEY AUTOINCREMENT,
+            query_id     INTEGER NOT NULL REFERENCES keyframes(id),
+            candidate_id INTEGER NOT NULL REFERENCES keyframes(id),
+            score        REAL NOT NULL,
+            fate         TEXT NOT NULL CHECK (fate IN ('accepted', 'below_threshold',
+                             'failed_gate', 'no_transform', 'down_weighted', 'grouped')),
+            detail       TEXT NOT NULL DEFAULT ''
+        )"""
+    )
+    conn.execute(
+        """INSERT INTO loop_candidates_v6 (id, query_id, candidate_id, score, fate, detail)
+           SELECT id, query_id, candidate_id, score,
+                  CASE WHEN fate = 'failed_gate' AND substr(detail, 1, ?) = ? THEN 'grouped'
+                       ELSE fate END,
+                  detail
+           FROM loop_candidates ORDER BY id""",
+        (len(_GROUP_MEMBER_DETAIL_V5), _GROUP_MEMBER_DETAIL_V5),
+    )
+    row = conn.execute("SELECT seq FROM sqlite_sequence WHERE name = 'loop_candidates'").fetchone()
+    conn.execute("DROP TABLE loop_candidates")
+    conn.execute("ALTER TABLE loop_candidates_v6 RENAME TO loop_candidates")
+    conn.execute("CREATE INDEX loop_candidates_by_query ON loop_candidates(query_id)")
+    # The copy set the new table's counter (to its largest id, or 0 for no rows); the old
+    # one may be higher, or absent (never written): as it was.
+    conn.execute("DELETE FROM sqlite_sequence WHERE name = 'loop_candidates'")
+    if row is not None:
+        conn.execute("INSERT INTO sqlite_sequence (name, seq) VALUES ('loop_candidates', ?)", (row[0],))
+
+
 MIGRATIONS: Mapping[int, Migration] = {
     1: _migrate_0_to_1,
     2: _migrate_1_to_2,
     3: _migrate_2_to_3,
     4: _migrate_3_to_4,
     5: _migrate_4_to_5,
+    6: _migrate_5_to_6,
 }
 """Schema migrations keyed by the version each one produces, contiguous from 1.
 

@@ -126,7 +126,8 @@ def diagnostics(stamp_ns: int, counters: Mapping[str, Any], driver_stats: Mappin
     if localisation:
         status.append(ros2msg.diagnostic_status(
             _level(localisation != "localised"), "robotd: localisation", localisation, "",
-            {k: c[k] for k in ("localised", "relocalisations", "reloc_candidates_refused") if k in c}))
+            {k: c[k] for k in ("localised", "relocalisations", "reloc_candidates_refused", "reloc_group_edges",
+                               "forward_loops_grouped") if k in c}))
     for name, st in sorted(driver_stats.items()):
         connected = st.get("connected", 1)
         away = float(st.get("away_s", 0.0) or 0.0)

@@ -30,7 +30,8 @@ Tables (schema version :data:`SCHEMA_VERSION`):
 ``loop_candidates`` (since version 3)
     Every loop-closure candidate considered: ``query_id``, ``candidate_id`` (keyframes),
     the local ``score``, its ``fate`` (one of :data:`LOOP_CANDIDATE_FATES`) and a free
-    ``detail`` text (e.g. the chi-square value, the optimiser's weight).
+    ``detail`` text (e.g. the chi-square value, the optimiser's weight). Since version 6
+    the fate may be ``grouped`` (the table rebuilt with it in its CHECK).
 
 ``forward_images``, ``forward_words`` (since version 4)
     The forward camera's memory (:meth:`MapStore.add_forward_image`,

@@ -505,6 +505,36 @@ def test_a_damaged_map_is_refused_and_left_as_it_was(material: Path, tmp_path: P
     assert snapshot(tmp_path) == before
 
 
+_ROBOTD_OF_SCHEMA_5 = (
+    "import sys\n"
+    "from robotd.io import mapconnection\n"
+    "mapconnection.MIGRATIONS = {v: mapconnection.MIGRATIONS[v] for v in range(1, 6)}\n"
+    "from robotd.app.cli import main\n"
+    "sys.exit(main(sys.argv[1:]))\n"
+)
+"""``robotd`` as a release of map schema 5 is: this code with its migrations ending at 5."""
+
+
+def test_a_robotd_of_schema_5_refuses_a_map_of_schema_6_and_leaves_it_as_it_was(material: Path, tmp_path: Path):
+    """A map this robotd wrote (schema 6) opened by a robotd that knows schema 5 only, to
+    export it (read-only) and to replay into it (for writing): refused, one line naming
+    both versions, the map byte-identical."""
+    m = tmp_path / "m.sqlite"
+    shutil.copy(material / "demo" / "map.sqlite", m)
+    with sqlite3.connect(m) as raw:
+        assert raw.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone() == ("6",)
+    raw.close()
+    before = snapshot(tmp_path)
+    for args in (["graph", "export", m, "--out", tmp_path / "exp"],
+                 ["replay", material / "drive.mcap", "--map", m]):
+        r = subprocess.run([sys.executable, "-c", _ROBOTD_OF_SCHEMA_5, "--log-level", "error",
+                            *map(os.fsdecode, args)], stdin=subprocess.DEVNULL, capture_output=True, text=True,
+                           timeout=120)
+        assert_refused(r, f"map file {m} has schema version 6, newer than the 5 this robotd")
+        assert r.stderr.rstrip().endswith("understands; upgrade robotd"), r.stderr
+    assert snapshot(tmp_path) == before
+
+
 # -- 13. paths that are not UTF-8 --------------------------------------------------------
 
 def test_paths_that_are_not_utf8_are_refused_before_anything_is_written(material: Path,

@@ -37,9 +37,17 @@ def test_the_forward_camera_relocalises_a_kidnapped_robot_without_the_floor_dete
     assert rl["after_s"] < 25.0 and rl["after_m_true"] < 10.0
     assert rl["position_error_m"] < 0.4 and rl["heading_error_deg"] < 5.0
     fw = s["forward_detector"]
-    # The relocalising group entered the graph as one edge: its members are no accepted loops.
+    # The relocalising group entered the graph as one edge: its members are no accepted loops
+    # and none refused by the gate, but ``grouped``, counted so.
     members = [x for x in fw["loops"] if x["fate_detail"].startswith("relocalisation: a member of the relocalising")]
-    assert len(members) == rl["agreeing_candidates"] and all(x["fate"] == "failed_gate" for x in members)
+    assert len(members) == rl["agreeing_candidates"] and all(x["fate"] == "grouped" for x in members)
+    assert [x for x in fw["loops"] if x["fate"] == "grouped"] == members
+    assert fw["grouped"] == len(members)
+    assert f"{len(members)} in through their relocalising group's one edge" in r.stdout
+    from robotd.io.store import MapStore
+
+    with MapStore.open(out / "map.sqlite", read_only=True) as store:
+        assert len(store.loop_candidates("grouped")) == len(members)
     # Every accepted forward loop right by the demo's judge (measured: 22 of 22): across the
     # carry a ridge loop is settled at the relocalising loops' heading or not taken at all.
     assert fw["accepted_right"] == fw["accepted"]

@@ -244,6 +244,23 @@ def test_static_transforms_path_loops_and_diagnostics() -> None:
     assert sink.closed == 1
 
 
+def test_the_localisation_diagnostic_counts_a_relocalising_groups_members_as_grouped() -> None:
+    """A relocalisation by a group of forward loops that entered the pose graph as one edge:
+    the localisation status carries the group edge and its members under their own name;
+    no count of refused loops includes them."""
+    from robotd.io.rosview import diagnostics
+
+    counters = {"localised": 1, "relocalisations": 1, "reloc_candidates_refused": 0, "reloc_group_edges": 1,
+                "forward_loops_grouped": 3, "forward_loops_failed_gate": 0, "loops_failed_gate": 0,
+                "keyframes_stored": 40, "links_loop": 1}
+    msg = diagnostics(5, counters, {}, {}, "localised")
+    by_name = {s["name"]: {kv["key"]: kv["value"] for kv in s["values"]} for s in msg["status"]}
+    assert by_name["robotd: localisation"] == {"localised": "1", "relocalisations": "1",
+                                               "reloc_candidates_refused": "0", "reloc_group_edges": "1",
+                                               "forward_loops_grouped": "3"}
+    assert by_name["robotd: map"]["loops_failed_gate"] == "0"
+
+
 def test_keyframe_images_only_to_the_sinks_that_want_them() -> None:
     pipeline, _, sink, graph, _ = make(keys={"tf", "keyframe_floor"})
     pipeline.publish(odo(0, 0.0, 0.0, 0.0))

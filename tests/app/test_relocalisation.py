@@ -265,16 +265,20 @@ def test_a_kidnapping_relocalises_from_three_forward_loops_without_the_floor_cam
         c = p.counters()
         # The group enters the graph as one edge (its fit), none of the three as a loop of its own.
         assert (c["relocalisations"], c["localised"], c["forward_loops_accepted"], c["loops_accepted"]) == (1, 1, 0, 0)
-        assert c["reloc_group_edges"] == 1
+        assert (c["reloc_group_edges"], c["forward_loops_grouped"], c["forward_loops_failed_gate"]) == (1, 3, 0)
         assert [(lk.from_id, lk.to_id) for lk in store.links("loop")] == [(drive.ids[5], new_ids[1])]
         members = {(drive.ids[5], new_ids[1]), (drive.ids[10], new_ids[5]), (drive.ids[14], new_ids[9])}
         assert set(obs.forward_fates) == members
-        assert all(f == "failed_gate" for f in obs.forward_fates.values())
+        assert all(f == "grouped" for f in obs.forward_fates.values())
         assert all(obs.forward_fate_details[m].startswith(GROUP_MEMBER) for m in members)
         assert graph.status_fragment().startswith("relocalised against run 1 after ")
         assert graph.status_fragment().endswith(" (forward camera)")
         assert graph.relocalised_at[-1]["cameras"] == "forward"
         p.finish()
+        # The map records the members so too.
+        stored = {(r.candidate_id, r.query_id): r.fate for r in store.loop_candidates()}
+        assert stored == dict.fromkeys(members, "grouped")
+        assert sorted(r.query_id for r in store.loop_candidates("grouped")) == sorted(q for _o, q in members)
         opt = store.optimized_poses()
         err = [float(np.hypot(*(opt[k][:2] - t[:2]))) for k, t in zip(new_ids[:6], after[:6])]
         assert max(err) < 0.1, err

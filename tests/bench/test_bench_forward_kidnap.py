@@ -8,6 +8,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from bench.bench_forward_kidnap import kidnapped_row, main, markdown, plain_row
 from robotd.graph.gate import GROUP_MEMBER
 
@@ -46,10 +48,14 @@ def test_a_group_accepted_as_its_members_edges_counts_them_among_the_accepted():
     assert [(w["from"], w["to"], w["accepted"]) for w in k["wrong_members"]] == [(2, 31, True)]
 
 
-def test_a_group_that_entered_as_one_edge_is_not_counted_among_the_accepted():
-    detail = f"{GROUP_MEMBER} (2->30): 3 candidates agree"
-    members = [_loop(2, 30, "failed_gate", detail, True), _loop(2, 31, "failed_gate", detail, False),
-               _loop(3, 32, "failed_gate", detail, True)]
+@pytest.mark.parametrize("fate, detail", [
+    ("grouped", f"{GROUP_MEMBER} (2->30): 3 candidates agree"),
+    ("grouped", "relocalisation: 3 candidates agree"),  # by the fate alone
+    ("failed_gate", f"{GROUP_MEMBER} (2->30): 3 candidates agree"),  # a summary of robotd before ``grouped``
+])
+def test_a_group_that_entered_as_one_edge_is_not_counted_among_the_accepted(fate: str, detail: str):
+    members = [_loop(2, 30, fate, detail, True), _loop(2, 31, fate, detail, False),
+               _loop(3, 32, fate, detail, True)]
     k = kidnapped_row(_summary(members), STAMPS)
     assert (k["agreeing"], k["agreeing_right"], k["agreeing_accepted"]) == (3, 2, 0)
     assert (k["forward_accepted"], k["forward_accepted_right"], k["forward_accepted_wrong"]) == (3, 2, 1)
@@ -59,9 +65,9 @@ def test_a_group_that_entered_as_one_edge_is_not_counted_among_the_accepted():
 
 def test_the_page_from_the_json_says_how_the_group_entered_and_lists_the_wrong_loops(tmp_path: Path):
     detail = f"{GROUP_MEMBER} (2->30): 3 candidates agree"
-    one = kidnapped_row(_summary([_loop(2, 30, "failed_gate", detail, True),
-                                  _loop(2, 31, "failed_gate", detail, False),
-                                  _loop(3, 32, "failed_gate", detail, True)]), STAMPS)
+    one = kidnapped_row(_summary([_loop(2, 30, "grouped", detail, True),
+                                  _loop(2, 31, "grouped", detail, False),
+                                  _loop(3, 32, "grouped", detail, True)]), STAMPS)
     edges = kidnapped_row(_summary([_loop(2, 30, "accepted", "relocalisation: x", True),
                                     _loop(3, 32, "accepted", "relocalisation: x", True)]), STAMPS)
     plain = plain_row({"forward_detector": {"verified_loops": 3, "loops": [

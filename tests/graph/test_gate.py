@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from robotd.base.geometry import between, compose
-from robotd.base.messages import CandidateFate, Link
+from robotd.base.messages import CandidateFate, Link, LoopFate
 from robotd.graph.gate import GatedGraph
 from robotd.graph.incremental import IncrementalGraph
 
@@ -249,6 +249,8 @@ def test_a_relocalisation_by_forward_loops_enters_the_graph_as_one_edge_with_the
         forward(old, k, sigma_yaw_rad=ridge)
     c = g.counters()
     assert (c["relocalisations"], c["reloc_group_edges"], c["forward_loops_accepted"]) == (1, 1, 0)
+    # Counted under their own name, none as refused by the gate.
+    assert (c["forward_loops_grouped"], c["forward_loops_failed_gate"]) == (3, 0)
     d = decisions[-1]
     assert d.relocalised and d.covariance is not None and len(d.members) == 3
     # The covariance is the group's fit's.
@@ -268,11 +270,13 @@ def test_a_relocalisation_by_forward_loops_enters_the_graph_as_one_edge_with_the
     jac = np.stack([(between(loops[0].delta, delta_at(d.transform + h))
                      - between(loops[0].delta, delta_at(d.transform - h))) / 2e-6 for h in np.eye(3) * 1e-6], 1)
     assert np.allclose(np.linalg.inv(loops[0].information), jac @ d.covariance @ jac.T, rtol=1e-4, atol=1e-12)
-    # The members' fates: none accepted; the one link published is the group's edge.
+    # The members' fates: ``grouped`` (none accepted, none refused by the gate, which never
+    # judged them); the one link published is the group's edge.
     fates = [m for m in emitted if isinstance(m, CandidateFate)]
     members = {(m.query_id, m.old_id) for m in d.members}
     assert {(f.query_id, f.candidate_id) for f in fates} == members
-    assert all(f.fate == "failed_gate" and f.detail.startswith("forward: " + GROUP_MEMBER) for f in fates)
+    assert all(f.fate == LoopFate.GROUPED == "grouped" and f.detail.startswith("forward: " + GROUP_MEMBER)
+               for f in fates)
     links = [m for m in emitted if isinstance(m, Link)]
     assert [(lk.from_id, lk.to_id, lk.source) for lk in links] == [(ref.old_id, ref.query_id, "forward")]
     # Placed where the truth is (the odometry frame started 3 m away).
@@ -284,4 +288,5 @@ def test_a_relocalisation_by_forward_loops_enters_the_graph_as_one_edge_with_the
     fates = [m for m in emitted if isinstance(m, CandidateFate)][-2:]
     assert [f.fate for f in fates] == ["accepted", "failed_gate"]
     assert all("chi2" in f.detail for f in fates)
-    assert g.counters()["forward_loops_accepted"] == 1
+    c = g.counters()
+    assert (c["forward_loops_accepted"], c["forward_loops_failed_gate"], c["forward_loops_grouped"]) == (1, 1, 3)

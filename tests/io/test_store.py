@@ -442,7 +442,7 @@ def test_a_version_1_map_written_by_the_old_code_is_migrated(tmp_path: Path) -> 
         assert raw.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone() == ("1",)
     raw.close()
     with MapStore.open(path) as store:
-        assert store.schema_version == SCHEMA_VERSION == 5
+        assert store.schema_version == SCHEMA_VERSION == 6
         assert store.forward_memory() == ([], [])
         assert store.optimized_poses() == {}
         assert store.loop_candidates() == []
@@ -502,7 +502,7 @@ def test_a_version_2_map_written_by_the_current_code_is_migrated(tmp_path, monke
     monkeypatch.undo()
 
     with MapStore.open(path) as store:
-        assert store.schema_version == SCHEMA_VERSION == 5
+        assert store.schema_version == SCHEMA_VERSION == 6
         assert store.forward_memory() == ([], [])
         assert store.optimized_poses() == {} and store.loop_candidates() == []
         np.testing.assert_array_equal(store.keyframe_image(kfs[1]), image)
@@ -514,7 +514,7 @@ def test_a_version_2_map_written_by_the_current_code_is_migrated(tmp_path, monke
     # Every old row is still there, unchanged; only the schema version moved on.
     meta_before, meta_after = before.pop("meta"), after.pop("meta")
     assert after == before
-    assert dict(meta_after) == {**dict(meta_before), "schema_version": "5"}
+    assert dict(meta_after) == {**dict(meta_before), "schema_version": "6"}
 
     with MapStore.open(path) as store:  # and the new tables take rows
         store.put_optimized_poses(kfs, np.zeros((3, 3)), solved_unix_ns=1)
@@ -570,12 +570,13 @@ def test_loop_candidates_round_trip_with_every_fate(tmp_path: Path) -> None:
         assert [r.id for r in records] == list(range(1, len(rows) + 2))
         assert [r.query_id for r in store.loop_candidates("accepted")] == [c, b]
         assert [r.detail for r in store.loop_candidates("failed_gate")] == ["chi2=2.5"]
+        assert [r.detail for r in store.loop_candidates("grouped")] == ["chi2=5.5"]
         with pytest.raises(FrozenInstanceError):
             records[0].fate = "accepted"  # type: ignore[misc]
         with pytest.raises(ValueError, match="accepted"):
             store.loop_candidates("rejected")
     assert set(LOOP_CANDIDATE_FATES) == {
-        "accepted", "below_threshold", "failed_gate", "no_transform", "down_weighted"}
+        "accepted", "below_threshold", "failed_gate", "no_transform", "down_weighted", "grouped"}
     assert {"LOOP_CANDIDATE_FATES", "LoopCandidateRecord"} <= set(store_module.__all__)
     # The table itself refuses any other fate (its CHECK and the constant agree).
     with sqlite3.connect(path) as raw, pytest.raises(sqlite3.IntegrityError, match="CHECK"):
@@ -875,9 +876,9 @@ def test_a_version_4_map_with_forward_rows_is_marked_version_5_and_reads_as_befo
                          [(4, desc[0].tobytes()), (5, desc[1].tobytes())])
     conn.close()
     before = _all_rows(path)
-    monkeypatch.undo()
+    monkeypatch.setattr(mapconnection, "MIGRATIONS", {v: migrations[v] for v in (1, 2, 3, 4, 5)})
     with MapStore.open(path) as store:
-        assert store.schema_version == SCHEMA_VERSION == 5
+        assert store.schema_version == 5
         images, words = store.forward_memory()
     np.testing.assert_array_equal(images[0][4], [4, 5, 4])
     assert [(w[0], w[2]) for w in words] == [(4, desc[0].tobytes()), (5, desc[1].tobytes())]
@@ -885,6 +886,143 @@ def test_a_version_4_map_with_forward_rows_is_marked_version_5_and_reads_as_befo
     meta_before, meta_after = before.pop("meta"), after.pop("meta")
     assert after == before
     assert dict(meta_after) == {**dict(meta_before), "schema_version": "5"}
+
+
+def _version_5_map_with_fates(path: Path, monkeypatch) -> tuple[list[int], list[tuple]]:
+    """A map written by the store at version 5 (the migrations up to it), with loop
+    candidates as a version-5 daemon recorded them; the newest row deleted, so the table's
+    AUTOINCREMENT counter is above its largest id. Returns the keyframe ids and the rows
+    left ``(id, query, candidate, score, fate, detail)``."""
+    from robotd.graph.gate import GROUP_MEMBER
+
+    migrations = mapconnection.MIGRATIONS
+    monkeypatch.setattr(mapconnection, "MIGRATIONS", {v: migrations[v] for v in (1, 2, 3, 4, 5)})
+    member = f"forward: {GROUP_MEMBER} (2->7): 3 candidates agree"
+    with MapStore.open(path) as store:
+        assert store.schema_version == 5
+        run = store.begin_run("a = 1\n", started_ns=10)
+        kfs = [store.add_keyframe(run, 100 + i, (i, 0.0, 0.0), _cov(i), None) for i in range(4)]
+        store.add_link("odometry", kfs[0], kfs[1], (1, 0, 0), _cov(3))
+        store.put_optimized_poses(kfs[:2], np.zeros((2, 3)), solved_unix_ns=7)
+        store.add_loop_candidates([
+            (kfs[3], kfs[0], 0.9, "failed_gate", member),
+            (kfs[3], kfs[1], 0.8, "failed_gate", "forward: chi2 30.1 > 13.82"),
+            (kfs[2], kfs[0], 0.7, "failed_gate", "relocalisation: no agreeing candidate before the run ended"),
+            (kfs[3], kfs[2], 0.95, "failed_gate", member),
+            (kfs[2], kfs[1], 31.0, "accepted", "chi2 0.40"),
+            (kfs[3], kfs[0], 12.0, "below_threshold", f"score 12.0; {member}"),  # the text, not at the start
+            (kfs[2], kfs[0], 0.6, "down_weighted", "weight 0.100"),
+        ])
+    monkeypatch.undo()
+    with sqlite3.connect(path) as raw:
+        raw.execute("DELETE FROM loop_candidates WHERE id = 7")
+        with pytest.raises(sqlite3.IntegrityError, match="CHECK"):  # what version 5 cannot hold
+            raw.execute("INSERT INTO loop_candidates(query_id, candidate_id, score, fate) VALUES (?, ?, 0, 'grouped')",
+                        (kfs[3], kfs[0]))
+        rows = raw.execute("SELECT * FROM loop_candidates ORDER BY id").fetchall()
+    raw.close()
+    return kfs, rows
+
+
+def test_a_version_5_map_gains_the_grouped_fate_and_its_members_rows_are_relabelled(tmp_path, monkeypatch) -> None:
+    """Version 6 rebuilds ``loop_candidates`` with ``grouped`` in its CHECK: every row keeps
+    its id, keyframes, score and detail; a relocalising group's member (``failed_gate``
+    with the gate's member text at the start of its detail) becomes ``grouped``, every other
+    row keeps its fate; the index is back, the id counter goes on where it was (an id is
+    never reused), every other table is as it was; the CHECK takes ``grouped`` and still
+    refuses any other text."""
+    path = tmp_path / "map.sqlite"
+    kfs, rows = _version_5_map_with_fates(path, monkeypatch)
+    before = _all_rows(path)
+    assert ("loop_candidates", 7) in before["sqlite_sequence"]
+    with MapStore.open(path) as store:
+        assert store.schema_version == SCHEMA_VERSION == 6
+        records = store.loop_candidates()
+        assert [(r.id, r.query_id, r.candidate_id, r.score, r.detail) for r in records] == [
+            (i, q, c, sc, d) for i, q, c, sc, _f, d in rows]
+        assert [r.fate for r in records] == ["grouped", "failed_gate", "failed_gate", "grouped", "accepted",
+                                             "below_threshold"]
+        assert [r.id for r in store.loop_candidates("grouped")] == [1, 4]
+        store.add_loop_candidates([(kfs[3], kfs[1], 0.5, "grouped", "forward: new")])
+        assert store.loop_candidates()[-1].id == 8  # not 7: that id was used
+    after = _all_rows(path)
+    relabelled = [(i, q, c, sc, "grouped" if i in (1, 4) else f, d) for i, q, c, sc, f, d in rows]
+    assert after.pop("loop_candidates") == [*relabelled, (8, kfs[3], kfs[1], 0.5, "grouped", "forward: new")]
+    before.pop("loop_candidates")
+    seq_before, seq_after = dict(before.pop("sqlite_sequence")), dict(after.pop("sqlite_sequence"))
+    assert seq_after == {**seq_before, "loop_candidates": 8}
+    meta_before, meta_after = before.pop("meta"), after.pop("meta")
+    assert after == before
+    assert dict(meta_after) == {**dict(meta_before), "schema_version": "6"}
+    with sqlite3.connect(path) as raw:
+        assert raw.execute("SELECT name FROM sqlite_master WHERE tbl_name = 'loop_candidates' AND type = 'index'"
+                           ).fetchall() == [("loop_candidates_by_query",)]
+        assert raw.execute("EXPLAIN QUERY PLAN SELECT * FROM loop_candidates WHERE query_id = 1"
+                           ).fetchall()[0][3].endswith("USING INDEX loop_candidates_by_query (query_id=?)")
+        assert raw.execute("PRAGMA foreign_key_check").fetchall() == []
+        assert raw.execute("PRAGMA integrity_check").fetchall() == [("ok",)]
+        raw.execute("INSERT INTO loop_candidates(query_id, candidate_id, score, fate) VALUES (?, ?, 0, 'grouped')",
+                    (kfs[2], kfs[0]))
+        for junk in ("maybe", "Grouped", "group", ""):
+            with pytest.raises(sqlite3.IntegrityError, match="CHECK"):
+                raw.execute("INSERT INTO loop_candidates(query_id, candidate_id, score, fate) VALUES (?, ?, 0, ?)",
+                            (kfs[2], kfs[0], junk))
+    raw.close()
+
+
+def test_a_version_5_robotd_refuses_a_version_6_map_untouched(tmp_path, monkeypatch) -> None:
+    """The robotd before version 6 (its migrations end at 5) meets a version-6 map: its
+    clear error, the file not modified."""
+    path = tmp_path / "map.sqlite"
+    _make_map(path)
+    before = _digest(path)
+    migrations = mapconnection.MIGRATIONS
+    monkeypatch.setattr(mapconnection, "MIGRATIONS", {v: migrations[v] for v in (1, 2, 3, 4, 5)})
+    for read_only in (False, True):
+        with pytest.raises(MapStoreError, match="has schema version 6, newer than the 5 this robotd .* understands; "
+                                                "upgrade robotd"):
+            MapStore.open(path, read_only=read_only)
+    assert _digest(path) == before
+
+
+_KILLED_IN_MIGRATION = textwrap.dedent(
+    """
+    import os, signal, sys
+    from robotd.io import mapconnection
+    from robotd.io.store import MapStore
+
+    step = mapconnection.MIGRATIONS[6]
+
+    def step_then_power_cut(conn):
+        step(conn)  # the whole rebuild done, not committed
+        print("rebuilt", flush=True)
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    mapconnection.MIGRATIONS = {**mapconnection.MIGRATIONS, 6: step_then_power_cut}
+    MapStore.open(sys.argv[1])
+    """
+)
+
+
+def test_a_kill_during_the_migration_to_version_6_loses_nothing(tmp_path, monkeypatch) -> None:
+    """Killed after the table was rebuilt and before the migration committed: the file is
+    the version-5 map it was, row for row, and the next open migrates it."""
+    path = tmp_path / "map.sqlite"
+    _kfs, rows = _version_5_map_with_fates(path, monkeypatch)
+    before = _all_rows(path)
+    proc = subprocess.run([sys.executable, "-c", _KILLED_IN_MIGRATION, str(path)], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == -signal.SIGKILL and proc.stdout == "rebuilt\n", proc.stderr
+    assert _all_rows(path) == before  # version 5, every row as it was
+    with sqlite3.connect(path) as raw:
+        assert raw.execute("PRAGMA integrity_check").fetchall() == [("ok",)]
+        assert raw.execute("SELECT name FROM sqlite_master WHERE name LIKE 'loop_candidates%'").fetchall() == [
+            ("loop_candidates",), ("loop_candidates_by_query",)]
+    raw.close()
+    with MapStore.open(path) as store:
+        assert store.schema_version == 6
+        assert [r.id for r in store.loop_candidates("grouped")] == [1, 4]
+        assert len(store.loop_candidates()) == len(rows)
 
 
 @pytest.mark.parametrize("schema_less", ["empty file", "database without tables"])
