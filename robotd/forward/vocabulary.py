@@ -374,7 +374,7 @@ def _grown(n: int) -> int:
     """The capacity a growing array of capacity ``n`` takes next: a quarter more (amortised
     O(1) appends as with doubling, but at most a fifth of the memory is spare room; the
     per-word arrays hold every word ever made, about 90 per image on the office route)."""
-    return n + n // 4 + 16
+    return n + n // 8 + 16
 
 
 _LEAF_BLOCK = 16           # a leaf's block in the word tree's pool: a multiple of this many entries
@@ -447,7 +447,7 @@ class BinaryWordTree:
         # words: one slot each (descriptor, word id, leaf row, position in it)
         self._desc = np.zeros((64, 4), np.uint64)
         self._slot_word = np.full(64, -1, np.int32)
-        self._slot_row = np.zeros(64, np.int32)
+        self._slot_row = np.zeros(64, np.int16)         # int32 once there are more rows
         self._slot_pos = np.zeros(64, np.uint8 if params.leaf_size <= 256 else np.int32)
         self._n_slots = 0
         self._free_slots: list[int] = []
@@ -486,6 +486,8 @@ class BinaryWordTree:
             row = self._free_rows.pop()
         else:
             row = self._n_rows
+            if row > np.iinfo(self._slot_row.dtype).max:
+                self._slot_row = self._slot_row.astype(np.int32)
             self._row_start = self._grow(self._row_start, row + 1)
             self._row_cap = self._grow(self._row_cap, row + 1)
             self._fill = self._grow(self._fill, row + 1)
@@ -767,6 +769,9 @@ class BinaryWordTree:
             self.n_live -= 1
 
 
+_WIDER: dict[type, type] = {np.int16: np.int32, np.int32: np.int64}
+
+
 class _GrowingInts:
     """An integer array (int32 unless told) that grows by a quarter (:func:`_grown`; amortised O(1) append)."""
 
@@ -784,6 +789,15 @@ class _GrowingInts:
     @property
     def view(self) -> np.ndarray:
         return self._a[:self.n]
+
+    def add(self, at: np.ndarray, values: np.ndarray | int) -> None:
+        """``view[at] += values`` (``at`` distinct), the array first widened to the next
+        integer type when a sum would not fit its own (counters start narrow)."""
+        if len(at):
+            top = int(self._a[at].max()) + int(np.max(values))
+            while top > np.iinfo(self._a.dtype).max:
+                self._a = self._a.astype(_WIDER[self._a.dtype.type])
+        self._a[at] += values
 
     @property
     def nbytes(self) -> int:
@@ -962,8 +976,9 @@ class InvertedIndex:
         # Postings: per word, slot << _COUNT_BITS | n(w, i) of each image it is in (4 bytes
         # an entry, in flat arrays: no object per word)
         self._post = _Postings()
-        self._df = _GrowingInts()                # per word: images containing it
-        self._occ = _GrowingInts()               # per word: total occurrences
+        # (2 bytes a word until a count passes 32,767: most words are seen a few times)
+        self._df = _GrowingInts(np.int16)        # per word: images containing it
+        self._occ = _GrowingInts(np.int16)       # per word: total occurrences
         self._image_len = _GrowingInts()         # per slot: n(i), words (with repeats) in the image
         self._image_ids: list[int] = []          # per slot: the image in it, -1 when free
         self._slot_of: dict[int, int] = {}       # image id -> slot
@@ -1044,8 +1059,8 @@ class InvertedIndex:
         # its vote: not reached with a few hundred features per image).
         self._post.append(uw, ((slot << _COUNT_BITS) | np.minimum(cnt, _COUNT_MASK)).astype(np.uint32))
         self._n_unused -= int(np.count_nonzero(self._df.view[uw] == 0))
-        self._df.view[uw] += 1
-        self._occ.view[uw] += cnt
+        self._df.add(uw, 1)
+        self._occ.add(uw, cnt)
         if self._v_cand is not None:  # words now seen often enough join the candidates
             up = uw[self._occ.view[uw] >= self._v_floor]
             if len(up):
