@@ -17,7 +17,10 @@ library: incremental insertion, removal of keys); ``VocabularyParams.binary_sear
 "usearch"`` puts binary words there too, for comparison.
 
 **Inverted index** (:class:`InvertedIndex`). For every word, the images it was seen in and
-how often; for every image, its number of words. Nothing else is stored: the tf-idf weight
+how often; for every image, its number of words. The postings lie in flat arrays, not in an
+object per word: most words are seen in one image or a few, and an object's own overhead
+would outweigh their postings while the vocabulary is young (:class:`_Postings`). Nothing
+else is stored: the tf-idf weight
 of a (word, image) pair is computed when it is needed from the current counts, so it is
 always current as images arrive ("kept current online"):
 
@@ -371,9 +374,10 @@ def pack_bits(descriptors: np.ndarray) -> np.ndarray:
 
 
 def _grown(n: int) -> int:
-    """The capacity a growing array of capacity ``n`` takes next: a quarter more (amortised
-    O(1) appends as with doubling, but at most a fifth of the memory is spare room; the
-    per-word arrays hold every word ever made, about 90 per image on the office route)."""
+    """The capacity a growing array of capacity ``n`` takes next: an eighth more (amortised
+    O(1) appends as with doubling, but at most a ninth of the memory is spare room; the
+    per-word arrays hold every word ever made, the word tree's per-slot arrays every word
+    it can find)."""
     return n + n // 8 + 16
 
 
@@ -431,9 +435,10 @@ class BinaryWordTree:
         self._n_nodes = 1
         # leaves: each a row, whose slots lie in order in a block of one flat pool: a block
         # holds the leaf's words and room for a few more (a multiple of _LEAF_BLOCK, not
-        # ``leaf_size``: a leaf holds a tenth to a fifth of that between its splits); a
-        # leaf that outgrows its block moves to a bigger one at the pool's end, and the
-        # pool is compacted once the blocks left behind take a quarter of it
+        # ``leaf_size``: a leaf starts with about leaf_size / branching words at its
+        # parent's split); a leaf that outgrows its block moves to a longer one at the
+        # pool's end, and the pool is compacted once the blocks left behind take a quarter
+        # of it
         self._pool = np.full(64, -1, np.int32)
         self._pool_end = 0                               # the pool's used length
         self._pool_dead = 0                              # of it, in blocks left behind
@@ -773,7 +778,7 @@ _WIDER: dict[type, type] = {np.int16: np.int32, np.int32: np.int64}
 
 
 class _GrowingInts:
-    """An integer array (int32 unless told) that grows by a quarter (:func:`_grown`; amortised O(1) append)."""
+    """An integer array (int32 unless told) that grows by an eighth (:func:`_grown`; amortised O(1) append)."""
 
     def __init__(self, dtype: type = np.int32) -> None:
         self._a: np.ndarray = np.zeros(64, dtype)
