@@ -775,6 +775,7 @@ class BinaryWordTree:
 
 
 _WIDER: dict[type, type] = {np.int16: np.int32, np.int32: np.int64}
+_TOP: dict[type, int] = {t: int(np.iinfo(t).max) for t in (np.int16, np.int32, np.int64)}
 
 
 class _GrowingInts:
@@ -800,7 +801,7 @@ class _GrowingInts:
         integer type when a sum would not fit its own (counters start narrow)."""
         if len(at):
             top = int(self._a[at].max()) + int(np.max(values))
-            while top > np.iinfo(self._a.dtype).max:
+            while top > _TOP[self._a.dtype.type]:
                 self._a = self._a.astype(_WIDER[self._a.dtype.type])
         self._a[at] += values
 
@@ -847,17 +848,13 @@ class _Postings:
         """The postings of ``words`` (``(K,) int64``, distinct), word after word in that order,
         ``(total,) uint32``, and how many each has, ``(K,) int64``."""
         h = self.head.view[words]
-        held = (h != 0).astype(np.int64)
         block = h >= _BLOCK
-        single = (h != 0) & ~block
-        off, cnt = self._blocks(h[block])
-        held[block] = cnt
-        out = np.empty(int(held.sum()), np.uint32)
+        off = np.where(block, h & ~_BLOCK, 0).astype(np.int64)  # 0: read, then overwritten
+        held = np.where(block, self._store[off], h != 0).astype(np.int64)
         start = np.cumsum(held) - held
+        out = self._store.take(np.repeat(off + 1 - start, held) + np.arange(int(start[-1] + held[-1]) if len(held) else 0))
+        single = (h != 0) & ~block
         out[start[single]] = h[single]
-        if len(cnt):
-            within = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-            out[np.repeat(start[block], cnt) + within] = self._store[np.repeat(off + 1, cnt) + within]
         return out, held
 
     def of(self, word: int) -> np.ndarray:
@@ -874,38 +871,40 @@ class _Postings:
         self.head.view[words[none]] = values[none]
         block = h >= _BLOCK
         off, cnt = self._blocks(h[block])
-        room = cnt < _block_room(np.maximum(cnt, 2))
+        full = (cnt & (cnt - 1)) == 0                       # a power of two: no room left
+        room = ~full
+        vb = values[block]
         at = off[room]
-        self._store[at + 1 + cnt[room]] = values[block][room]
+        self._store[at + 1 + cnt[room]] = vb[room]
         self._store[at] += np.uint32(1)
-        # the rest move to a new block: a word with one posting to a block of 2, a full
-        # block to one twice as long
-        move = ~none & ~block
-        move[np.flatnonzero(block)[~room]] = True
-        if not move.any():
+        # the rest move to new blocks at the end: a word with one posting to a block of 2,
+        # a full block to one twice as long
+        single = ~none & ~block
+        hs, vs, ws = h[single], values[single], words[single]
+        fo, fc, fv, fw = off[full], cnt[full], vb[full], words[block][full]
+        k = len(hs)
+        if not k and not len(fc):
             return
-        self._dead += int((1 + cnt[~room]).sum())  # the full blocks: left behind
-        mw, mv = words[move], values[move]
-        h = self.head.view[mw]
-        was_block = h >= _BLOCK
-        off, cnt = np.zeros(len(mw), np.int64), np.ones(len(mw), np.int64)
-        off[was_block], cnt[was_block] = self._blocks(h[was_block])
-        size = 1 + 2 * cnt                                  # count, room for twice the postings
-        start = self._end + np.cumsum(size) - size
-        end = self._end + int(size.sum())
+        e0 = self._end
+        end = e0 + 3 * k + int((1 + 2 * fc).sum())
         if end > len(self._store):
             grown = np.zeros(max(end, _grown(len(self._store))), np.uint32)
-            grown[:self._end] = self._store[:self._end]
+            grown[:e0] = self._store[:e0]
             self._store = grown
         st = self._store
-        st[start] = (cnt + 1).astype(np.uint32)
-        st[start[~was_block] + 1] = h[~was_block]
-        cb = cnt[was_block]
-        if len(cb):
-            within = np.arange(int(cb.sum())) - np.repeat(np.cumsum(cb) - cb, cb)
-            st[np.repeat(start[was_block] + 1, cb) + within] = st[np.repeat(off[was_block] + 1, cb) + within]
-        st[start + 1 + cnt] = mv
-        self.head.view[mw] = start.astype(np.uint32) | _BLOCK
+        if k:
+            new = st[e0:e0 + 3 * k]
+            new[0::3], new[1::3], new[2::3] = 2, hs, vs
+            self.head.view[ws] = (e0 + 3 * np.arange(k)).astype(np.uint32) | _BLOCK
+        if len(fc):
+            size = 1 + 2 * fc
+            start = e0 + 3 * k + np.cumsum(size) - size
+            within = np.arange(int(fc.sum())) - np.repeat(np.cumsum(fc) - fc, fc)
+            st[np.repeat(start + 1, fc) + within] = st[np.repeat(fo + 1, fc) + within]
+            st[start] = (fc + 1).astype(np.uint32)
+            st[start + 1 + fc] = fv
+            self.head.view[fw] = start.astype(np.uint32) | _BLOCK
+            self._dead += int((1 + fc).sum())               # the full blocks: left behind
         self._end = end
         if self._dead * 4 > self._end:
             self._compact()
