@@ -427,7 +427,7 @@ class BinaryWordTree:
 
     def __init__(self, params: TreeParams = TreeParams()) -> None:
         self.params = params
-        b, leaf = params.branching, params.leaf_size
+        b = params.branching
         # nodes
         self._centre = np.zeros((16, 4), np.uint64)
         self._child = np.full((16, b), -1, np.int32)
