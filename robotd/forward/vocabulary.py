@@ -17,7 +17,10 @@ library: incremental insertion, removal of keys); ``VocabularyParams.binary_sear
 "usearch"`` puts binary words there too, for comparison.
 
 **Inverted index** (:class:`InvertedIndex`). For every word, the images it was seen in and
-how often; for every image, its number of words. Nothing else is stored: the tf-idf weight
+how often; for every image, its number of words. The postings lie in flat arrays, not in an
+object per word: most words are seen in one image or a few, and an object's own overhead
+would outweigh their postings while the vocabulary is young (:class:`_Postings`). Nothing
+else is stored: the tf-idf weight
 of a (word, image) pair is computed when it is needed from the current counts, so it is
 always current as images arrive ("kept current online"):
 
@@ -32,8 +35,6 @@ image, each counted once: tf = 1 / n.
 from __future__ import annotations
 
 import heapq
-import sys
-from array import array
 from dataclasses import dataclass
 
 import numpy as np
@@ -373,12 +374,14 @@ def pack_bits(descriptors: np.ndarray) -> np.ndarray:
 
 
 def _grown(n: int) -> int:
-    """The capacity a growing array of capacity ``n`` takes next: a quarter more (amortised
-    O(1) appends as with doubling, but at most a fifth of the memory is spare room; the
-    per-word arrays hold every word ever made, about 90 per image on the office route)."""
-    return n + n // 4 + 16
+    """The capacity a growing array of capacity ``n`` takes next: an eighth more (amortised
+    O(1) appends as with doubling, but at most a ninth of the memory is spare room; the
+    per-word arrays hold every word ever made, the word tree's per-slot arrays every word
+    it can find)."""
+    return n + n // 8 + 16
 
 
+_LEAF_BLOCK = 16           # a leaf's block in the word tree's pool: a multiple of this many entries
 _FAR = np.int32(1 << 20)  # a distance no real pair reaches (256 bits at most)
 _PREFILTER_BITS = 20       # see BinaryWordTree.nearest
 _NO_KEY = np.int64(np.iinfo(np.int64).max)  # no word found yet (BinaryWordTree._scan)
@@ -424,14 +427,23 @@ class BinaryWordTree:
 
     def __init__(self, params: TreeParams = TreeParams()) -> None:
         self.params = params
-        b, leaf = params.branching, params.leaf_size
+        b = params.branching
         # nodes
         self._centre = np.zeros((16, 4), np.uint64)
         self._child = np.full((16, b), -1, np.int32)
         self._leaf_row = np.full(16, -1, np.int32)      # per node: its row in the pool, -1 inner
         self._n_nodes = 1
-        # leaves: a pool of fixed-width rows of slots
-        self._pool = np.full((16, leaf), -1, np.int32)
+        # leaves: each a row, whose slots lie in order in a block of one flat pool: a block
+        # holds the leaf's words and room for a few more (a multiple of _LEAF_BLOCK, not
+        # ``leaf_size``: a leaf starts with about leaf_size / branching words at its
+        # parent's split); a leaf that outgrows its block moves to a longer one at the
+        # pool's end, and the pool is compacted once the blocks left behind take a quarter
+        # of it
+        self._pool = np.full(64, -1, np.int32)
+        self._pool_end = 0                               # the pool's used length
+        self._pool_dead = 0                              # of it, in blocks left behind
+        self._row_start = np.zeros(16, np.int32)         # per row: its block's start in the pool
+        self._row_cap = np.zeros(16, np.int32)           # per row: its block's length
         self._fill = np.zeros(16, np.int32)
         self._n_rows = 1
         self._free_rows: list[int] = []
@@ -440,8 +452,8 @@ class BinaryWordTree:
         # words: one slot each (descriptor, word id, leaf row, position in it)
         self._desc = np.zeros((64, 4), np.uint64)
         self._slot_word = np.full(64, -1, np.int32)
-        self._slot_row = np.zeros(64, np.int32)
-        self._slot_pos = np.zeros(64, np.int32)
+        self._slot_row = np.zeros(64, np.int16)         # int32 once there are more rows
+        self._slot_pos = np.zeros(64, np.uint8 if params.leaf_size <= 256 else np.int32)
         self._n_slots = 0
         self._free_slots: list[int] = []
         self.n_live = 0
@@ -452,8 +464,8 @@ class BinaryWordTree:
 
     def memory_bytes(self) -> int:
         """Bytes of the tree's arrays (their spare capacity included)."""
-        arrays = (self._centre, self._child, self._leaf_row, self._pool, self._fill, self._desc,
-                  self._slot_word, self._slot_row, self._slot_pos)
+        arrays = (self._centre, self._child, self._leaf_row, self._pool, self._row_start, self._row_cap, self._fill,
+                  self._desc, self._slot_word, self._slot_row, self._slot_pos)
         return sum(a.nbytes for a in arrays) + 8 * (len(self._free_rows) + len(self._free_slots))
 
     # -- growing arrays -------------------------------------------------------------------
@@ -479,13 +491,66 @@ class BinaryWordTree:
             row = self._free_rows.pop()
         else:
             row = self._n_rows
-            self._pool = self._grow(self._pool, row + 1, -1)
+            if row > np.iinfo(self._slot_row.dtype).max:
+                self._slot_row = self._slot_row.astype(np.int32)
+            self._row_start = self._grow(self._row_start, row + 1)
+            self._row_cap = self._grow(self._row_cap, row + 1)
             self._fill = self._grow(self._fill, row + 1)
             self._n_rows = row + 1
-        self._pool[row] = -1
+        self._row_start[row] = self._pool_end
+        self._row_cap[row] = 0                           # a block when its first word comes
         self._fill[row] = 0
         self._leaf_row[n] = row
         return n
+
+    def leaf_slots(self, node: int) -> np.ndarray:
+        """The slots of leaf ``node``'s words in their order, ``(fill,) int32`` (a view)."""
+        row = int(self._leaf_row[node])
+        start = int(self._row_start[row])
+        return self._pool[start:start + int(self._fill[row])]
+
+    def _reserve(self, rows: np.ndarray, need: np.ndarray) -> None:
+        """Give rows ``rows`` (``(K,)`` distinct) blocks of at least ``need`` entries: a row
+        whose block is too short moves (its words in order) to a new block at the pool's
+        end, a multiple of :data:`_LEAF_BLOCK` long (at most ``leaf_size``)."""
+        short = need > self._row_cap[rows]
+        if not short.any():
+            return
+        rows, need = rows[short], need[short]
+        cap = np.maximum(np.minimum(-(-need // _LEAF_BLOCK) * _LEAF_BLOCK, self.params.leaf_size), need)
+        self._pool_dead += int(self._row_cap[rows].sum())
+        start = self._pool_end + np.cumsum(cap) - cap
+        end = self._pool_end + int(cap.sum())
+        self._pool = self._grow(self._pool, end, -1)
+        fill = self._fill[rows]
+        total = int(fill.sum())
+        if total:
+            within = np.arange(total) - np.repeat(np.cumsum(fill) - fill, fill)
+            self._pool[np.repeat(start, fill) + within] = self._pool[np.repeat(self._row_start[rows], fill) + within]
+        self._row_start[rows] = start
+        self._row_cap[rows] = cap
+        self._pool_end = end
+        if self._pool_dead * 4 > self._pool_end:
+            self._compact()
+
+    def _compact(self) -> None:
+        """Move every leaf's block to the front of the pool, in row order, dropping the
+        blocks left behind (the rows' blocks keep their lengths)."""
+        n = self._n_rows
+        cap = self._row_cap[:n].copy()
+        live = np.flatnonzero(cap > 0)
+        cap_l = cap[live]
+        start = np.cumsum(cap_l) - cap_l
+        total = int(cap_l.sum())
+        pool = np.full(max(_grown(total), 64), -1, np.int32)
+        if total:
+            within = np.arange(total) - np.repeat(start, cap_l)
+            pool[:total] = self._pool[np.repeat(self._row_start[live], cap_l) + within]
+        self._pool = pool
+        self._row_start[live] = start
+        self._row_start[:n][cap == 0] = total
+        self._pool_end = total
+        self._pool_dead = 0
 
     # -- search ---------------------------------------------------------------------------
     def _descend(self, q: np.ndarray, beam: int) -> np.ndarray:
@@ -554,8 +619,8 @@ class BinaryWordTree:
         # query (np.take and np.repeat: numpy's fancy indexing of a 2-d array by an index
         # array and a scalar takes several times as long)
         first = np.cumsum(fill) - fill
-        pos = np.repeat(rows.astype(np.int64) * self.params.leaf_size - first, fill) + np.arange(total)
-        slots = self._pool.reshape(-1).take(pos)
+        pos = np.repeat(self._row_start.take(rows).astype(np.int64) - first, fill) + np.arange(total)
+        slots = self._pool.take(pos)
         d0 = np.bitwise_count(np.repeat(q.take(pair_q, axis=0)[:, 0], fill) ^ self._desc[:, 0].take(slots))
         keep = np.flatnonzero(d0 <= _PREFILTER_BITS)
         if not len(keep):
@@ -587,10 +652,12 @@ class BinaryWordTree:
         rank = np.arange(len(leaves)) - np.repeat(start, np.diff(np.append(start, len(leaves))))
         rows = self._leaf_row[leaves]
         pos = self._fill[rows] + rank
-        fits = np.repeat(np.add.reduceat(np.ones(len(leaves), np.int32), start), np.diff(np.append(start, len(leaves))))
-        fits = self._fill[rows] + fits <= self.params.leaf_size
-        # leaves with room: all at once; full ones one by one (they split)
-        self._pool[rows[fits], pos[fits]] = slots[fits]
+        need = self._fill[rows] + np.repeat(np.diff(np.append(start, len(leaves))), np.diff(np.append(start, len(leaves))))
+        fits = need <= self.params.leaf_size
+        # leaves with room: all at once (their blocks made long enough first); full ones
+        # one by one (they split)
+        self._reserve(rows[first & fits], need[first & fits])
+        self._pool[self._row_start[rows[fits]] + pos[fits]] = slots[fits]
         self._slot_row[slots[fits]] = rows[fits]
         self._slot_pos[slots[fits]] = pos[fits]
         np.add.at(self._fill, rows[fits], 1)
@@ -622,12 +689,16 @@ class BinaryWordTree:
         row = int(self._leaf_row[node])
         f = int(self._fill[row])
         if f + len(slots) <= self.params.leaf_size:
-            self._pool[row, f:f + len(slots)] = slots
+            self._reserve(np.array([row]), np.array([f + len(slots)]))
+            at = int(self._row_start[row]) + f
+            self._pool[at:at + len(slots)] = slots
             self._slot_row[slots] = row
             self._slot_pos[slots] = np.arange(f, f + len(slots), dtype=np.int32)
             self._fill[row] = f + len(slots)
             return
-        members = np.concatenate([self._pool[row, :f], slots])
+        members = np.concatenate([self.leaf_slots(node), slots])
+        self._pool_dead += int(self._row_cap[row])
+        self._row_cap[row] = 0
         self._free_rows.append(row)
         self._leaf_row[node] = -1
         self._child[node] = -1
@@ -684,26 +755,31 @@ class BinaryWordTree:
         # one word at a time (a removal moves the leaf's last entry into the hole, and the
         # entries' order decides a later split), through memoryviews: numpy's scalar
         # indexing costs several times a memoryview's
-        pool, fill = self._pool.data, self._fill.data
+        pool, fill, row_start = self._pool.data, self._fill.data, self._row_start.data
         slot_row, slot_pos, slot_word = self._slot_row.data, self._slot_pos.data, self._slot_word.data
         for w in w_all.tolist():
             s = slot_of.pop(w, -1)
             if s < 0:
                 continue
             row, pos = slot_row[s], slot_pos[s]
+            at = row_start[row]
             last = fill[row] - 1
-            moved = pool[row, last]
-            pool[row, pos] = moved
+            moved = pool[at + last]
+            pool[at + pos] = moved
             slot_pos[moved] = pos
-            pool[row, last] = -1
+            pool[at + last] = -1
             fill[row] = last
             slot_word[s] = -1
             self._free_slots.append(s)
             self.n_live -= 1
 
 
+_WIDER: dict[type, type] = {np.int16: np.int32, np.int32: np.int64}
+_TOP: dict[type, int] = {t: int(np.iinfo(t).max) for t in (np.int16, np.int32, np.int64)}
+
+
 class _GrowingInts:
-    """An integer array (int32 unless told) that grows by a quarter (:func:`_grown`; amortised O(1) append)."""
+    """An integer array (int32 unless told) that grows by an eighth (:func:`_grown`; amortised O(1) append)."""
 
     def __init__(self, dtype: type = np.int32) -> None:
         self._a: np.ndarray = np.zeros(64, dtype)
@@ -720,17 +796,171 @@ class _GrowingInts:
     def view(self) -> np.ndarray:
         return self._a[:self.n]
 
+    def add(self, at: np.ndarray, values: np.ndarray | int) -> None:
+        """``view[at] += values`` (``at`` distinct), the array first widened to the next
+        integer type when a sum would not fit its own (counters start narrow)."""
+        if len(at):
+            top = int(self._a[at].max()) + int(np.max(values))
+            while top > _TOP[self._a.dtype.type]:
+                self._a = self._a.astype(_WIDER[self._a.dtype.type])
+        self._a[at] += values
+
     @property
     def nbytes(self) -> int:
         """Bytes held (the spare capacity included)."""
         return int(self._a.nbytes)
 
 
-_POSTING = "I"              # a posting is one C unsigned int (4 bytes): slot << _COUNT_BITS | n(w, i)
-_NO_POSTINGS = array(_POSTING)  # shared by the words whose postings were dropped (never appended to)
+def _block_room(count: np.ndarray) -> np.ndarray:
+    """The postings a block of ``count`` (>= 2, ``(K,)`` int) holds: the power of two at or
+    above it (:class:`_Postings`)."""
+    return np.left_shift(1, np.frexp(np.asarray(count, np.float64) - 1.0)[1]).astype(np.int64)
+
+
+class _Postings:
+    """Every word's postings (``uint32``, ``slot << _COUNT_BITS | n(w, i)``) in the order they
+    came, in two flat arrays rather than an object per word (most words are seen in one
+    image or a few: an object's own overhead would outweigh its postings).
+
+    ``head[w]`` (one ``uint32`` per word): 0 when ``w`` has no posting; below :data:`_BLOCK`
+    its one posting itself; else ``_BLOCK | offset`` of its block in ``store``: the number
+    of postings ``c`` (>= 2), the postings, room up to the power of two at or above ``c``.
+    A block that fills up moves to a block twice as long at the store's end; the store is
+    compacted once the blocks left behind take a quarter of it."""
+
+    def __init__(self) -> None:
+        self.head = _GrowingInts(np.uint32)
+        self._store = np.zeros(64, np.uint32)
+        self._end = 0           # the store's used length
+        self._dead = 0          # of it, in blocks left behind (at least)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held (the spare capacity included)."""
+        return self.head.nbytes + int(self._store.nbytes)
+
+    def _blocks(self, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The offsets and posting counts of the blocks that heads ``h`` (all >= _BLOCK) point to."""
+        off = (h & ~_BLOCK).astype(np.int64)
+        return off, self._store[off].astype(np.int64)
+
+    def gather(self, words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The postings of ``words`` (``(K,) int64``, distinct), word after word in that order,
+        ``(total,) uint32``, and how many each has, ``(K,) int64``."""
+        h = self.head.view[words]
+        block = h >= _BLOCK
+        off = np.where(block, h & ~_BLOCK, 0).astype(np.int64)  # 0: read, then overwritten
+        held = np.where(block, self._store[off], h != 0).astype(np.int64)
+        start = np.cumsum(held) - held
+        out = self._store.take(np.repeat(off + 1 - start, held) + np.arange(int(start[-1] + held[-1]) if len(held) else 0))
+        single = (h != 0) & ~block
+        out[start[single]] = h[single]
+        return out, held
+
+    def of(self, word: int) -> np.ndarray:
+        """The postings of one word, ``(c,) uint32`` (empty beyond the words known)."""
+        if not 0 <= word < self.head.n:
+            return np.zeros(0, np.uint32)
+        return self.gather(np.array([word], np.int64))[0]
+
+    def append(self, words: np.ndarray, values: np.ndarray) -> None:
+        """Append posting ``values[k]`` (``uint32`` < _BLOCK) to word ``words[k]`` (``(K,)
+        int64``, distinct, below ``head.n``)."""
+        h = self.head.view[words]
+        none = h == 0
+        self.head.view[words[none]] = values[none]
+        block = h >= _BLOCK
+        off, cnt = self._blocks(h[block])
+        full = (cnt & (cnt - 1)) == 0                       # a power of two: no room left
+        room = ~full
+        vb = values[block]
+        at = off[room]
+        self._store[at + 1 + cnt[room]] = vb[room]
+        self._store[at] += np.uint32(1)
+        # the rest move to new blocks at the end: a word with one posting to a block of 2,
+        # a full block to one twice as long
+        single = ~none & ~block
+        hs, vs, ws = h[single], values[single], words[single]
+        fo, fc, fv, fw = off[full], cnt[full], vb[full], words[block][full]
+        k = len(hs)
+        if not k and not len(fc):
+            return
+        e0 = self._end
+        end = e0 + 3 * k + int((1 + 2 * fc).sum())
+        if end > len(self._store):
+            grown = np.zeros(max(end, _grown(len(self._store))), np.uint32)
+            grown[:e0] = self._store[:e0]
+            self._store = grown
+        st = self._store
+        if k:
+            new = st[e0:e0 + 3 * k]
+            new[0::3], new[1::3], new[2::3] = 2, hs, vs
+            self.head.view[ws] = (e0 + 3 * np.arange(k)).astype(np.uint32) | _BLOCK
+        if len(fc):
+            size = 1 + 2 * fc
+            start = e0 + 3 * k + np.cumsum(size) - size
+            within = np.arange(int(fc.sum())) - np.repeat(np.cumsum(fc) - fc, fc)
+            st[np.repeat(start + 1, fc) + within] = st[np.repeat(fo + 1, fc) + within]
+            st[start] = (fc + 1).astype(np.uint32)
+            st[start + 1 + fc] = fv
+            self.head.view[fw] = start.astype(np.uint32) | _BLOCK
+            self._dead += int((1 + fc).sum())               # the full blocks: left behind
+        self._end = end
+        if self._dead * 4 > self._end:
+            self._compact()
+
+    def find(self, word: int, value: int) -> int:
+        """Where posting ``value`` is in ``word``'s postings, -1 when it is not there."""
+        hit = np.flatnonzero(self.of(word) == value)
+        return int(hit[0]) if len(hit) else -1
+
+    def pop(self, word: int, k: int) -> None:
+        """Remove the ``k``-th posting of ``word`` (the others keep their order)."""
+        h = int(self.head.view[word])
+        if h < _BLOCK:
+            self.head.view[word] = 0
+            return
+        off = h & ~int(_BLOCK)
+        c = int(self._store[off])
+        self._store[off + 1 + k:off + c] = self._store[off + 2 + k:off + 1 + c].copy()
+        if c == 2:  # one left: it goes back into the head
+            self.head.view[word] = self._store[off + 1]
+            self._dead += 1 + int(_block_room(np.array([c]))[0])
+        else:
+            self._store[off] = c - 1
+
+    def drop(self, words: np.ndarray) -> None:
+        """Forget the postings of ``words`` (``(K,) int64`` below ``head.n``)."""
+        h = self.head.view[words]
+        _, cnt = self._blocks(h[h >= _BLOCK])
+        self._dead += int((1 + _block_room(cnt)).sum()) if len(cnt) else 0
+        self.head.view[words] = 0
+        if self._dead * 4 > self._end:
+            self._compact()
+
+    def _compact(self) -> None:
+        """Move every block to the front of a new store, in word order, each as long as
+        its count needs (:func:`_block_room`), dropping the blocks left behind."""
+        words = np.flatnonzero(self.head.view >= _BLOCK)
+        off, cnt = self._blocks(self.head.view[words])
+        size = 1 + _block_room(cnt) if len(cnt) else np.zeros(0, np.int64)
+        start = np.cumsum(size) - size
+        end = int(size.sum())
+        store = np.zeros(max(_grown(end), 64), np.uint32)
+        if len(cnt):
+            n = cnt + 1                                     # the count and the postings
+            within = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+            store[np.repeat(start, n) + within] = self._store[np.repeat(off, n) + within]
+        self._store = store
+        self.head.view[words] = start.astype(np.uint32) | _BLOCK
+        self._end = end
+        self._dead = 0
+
+
 _COUNT_BITS = 10            # n(w, i) up to 1023
 _COUNT_MASK = (1 << _COUNT_BITS) - 1
-_MAX_SLOTS = 1 << (8 * array(_POSTING).itemsize - _COUNT_BITS)  # 4,194,304 images indexed at once
+_BLOCK = np.uint32(1 << 31)  # a word's head with this bit set points to its block of postings
+_MAX_SLOTS = 1 << (31 - _COUNT_BITS)  # 2,097,152 images indexed at once (a posting stays below _BLOCK)
 _VIRTUAL_MARGIN = 256       # candidates kept for the virtual image beyond its n words
 
 
@@ -747,11 +977,12 @@ class InvertedIndex:
     """
 
     def __init__(self) -> None:
-        # Postings as one C unsigned int array per word (4 bytes an entry: the image's slot
-        # and n(w, i) packed, one array object per word, not a Python int object an entry).
-        self._post: list[array[int]] = []        # per word: slot << _COUNT_BITS | n(w, i), per image
-        self._df = _GrowingInts()                # per word: images containing it
-        self._occ = _GrowingInts()               # per word: total occurrences
+        # Postings: per word, slot << _COUNT_BITS | n(w, i) of each image it is in (4 bytes
+        # an entry, in flat arrays: no object per word)
+        self._post = _Postings()
+        # (2 bytes a word until a count passes 32,767: most words are seen a few times)
+        self._df = _GrowingInts(np.int16)        # per word: images containing it
+        self._occ = _GrowingInts(np.int16)       # per word: total occurrences
         self._image_len = _GrowingInts()         # per slot: n(i), words (with repeats) in the image
         self._image_ids: list[int] = []          # per slot: the image in it, -1 when free
         self._slot_of: dict[int, int] = {}       # image id -> slot
@@ -824,21 +1055,16 @@ class InvertedIndex:
         uw, cnt = np.unique(w, return_counts=True)
         top = int(uw[-1]) + 1
         if top > self._df.n:
-            self._post.extend(array(_POSTING) for _ in range(top - len(self._post)))
             self._n_unused += top - self._df.n
             self._df.resize(top)
             self._occ.resize(top)
+            self._post.head.resize(top)
         # n(w, i) is kept up to 1023 (a word more often in one image counts 1023 times in
         # its vote: not reached with a few hundred features per image).
-        post = self._post
-        for wid, v in zip(uw.tolist(), ((slot << _COUNT_BITS) | np.minimum(cnt, _COUNT_MASK)).tolist()):
-            ps = post[wid]
-            if ps is _NO_POSTINGS:
-                ps = post[wid] = array(_POSTING)
-            ps.append(v)
+        self._post.append(uw, ((slot << _COUNT_BITS) | np.minimum(cnt, _COUNT_MASK)).astype(np.uint32))
         self._n_unused -= int(np.count_nonzero(self._df.view[uw] == 0))
-        self._df.view[uw] += 1
-        self._occ.view[uw] += cnt
+        self._df.add(uw, 1)
+        self._occ.add(uw, cnt)
         if self._v_cand is not None:  # words now seen often enough join the candidates
             up = uw[self._occ.view[uw] >= self._v_floor]
             if len(up):
@@ -861,13 +1087,12 @@ class InvertedIndex:
             raise ValueError(f"image {image_id}: word ids outside 0 .. {self._df.n - 1}")
         where = []
         for wid, c in zip(uw.tolist(), np.minimum(cnt, _COUNT_MASK).tolist()):
-            ps = self._post[wid]
-            k = ps.index(slot << _COUNT_BITS | c) if (slot << _COUNT_BITS | c) in ps else -1
+            k = self._post.find(wid, slot << _COUNT_BITS | c)
             if k < 0:
                 raise ValueError(f"image {image_id} was not indexed with word {wid} x {c}")
             where.append(k)
         for wid, k in zip(uw.tolist(), where):
-            self._post[wid].pop(k)
+            self._post.pop(wid, k)
         del self._slot_of[image_id]
         if len(uw):
             self._df.view[uw] -= 1
@@ -885,9 +1110,8 @@ class InvertedIndex:
         from the vocabulary's search): their images keep their word counts and the words
         their document frequencies, so every other score stays as it was. Not for an index
         whose images may be removed again (a bounded working memory checks postings)."""
-        for wid in np.asarray(words, np.int64).tolist():
-            if 0 <= wid < len(self._post):
-                self._post[wid] = _NO_POSTINGS
+        w = np.asarray(words, np.int64)
+        self._post.drop(w[(w >= 0) & (w < self._post.head.n)])
 
     def document_frequency(self, word: int) -> int:
         """df(w): indexed images that contain ``word``."""
@@ -911,7 +1135,7 @@ class InvertedIndex:
     def tfidf(self, word: int, image_id: int) -> float:
         """tf(w, i) * idf(w) with the current counts (0 when ``word`` is not in the image)."""
         slot = self._slot_of[image_id]
-        post = np.frombuffer(self._post[word], np.uint32) if word < len(self._post) else np.zeros(0, np.uint32)
+        post = self._post.of(int(word))
         mine = post[(post >> _COUNT_BITS) == slot]
         if not len(mine):
             return 0.0
@@ -977,13 +1201,10 @@ class InvertedIndex:
         if not len(uw):
             return scores, 0.0
         idf = np.log(self.n_images / df)
-        post = self._post
-        bufs = [post[k] for k in uw.tolist()]
-        # the postings' bytes joined once (one numpy array per word took several times longer)
-        packed = np.frombuffer(b"".join(bufs), np.uint32).astype(np.int64)
+        postings, held = self._post.gather(uw)  # held: df, bar dropped postings
+        packed = postings.astype(np.int64)
         slots = packed >> _COUNT_BITS
         n_wi = packed & _COUNT_MASK
-        held = np.fromiter(map(len, bufs), np.int64, len(bufs))  # df, bar dropped postings
         per_word = cq * idf
         weights = np.repeat(per_word, held) * n_wi / self._image_len.view[slots]
         scores += np.bincount(slots, weights=weights, minlength=self.n_slots)
@@ -993,8 +1214,7 @@ class InvertedIndex:
         return scores, virtual
 
     def memory_bytes(self) -> int:
-        """Bytes held by the postings (the int arrays with their object overhead, and the
-        lists holding them) and the per-word and per-slot counters."""
-        posting = sum(sys.getsizeof(a) for a in self._post if a is not _NO_POSTINGS)
+        """Bytes held by the postings (their arrays, spare capacity included) and the
+        per-word and per-slot counters."""
         counters = sum(g.nbytes for g in (self._df, self._occ, self._image_len))
-        return posting + sys.getsizeof(self._post) + counters
+        return self._post.nbytes + counters

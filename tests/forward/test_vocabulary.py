@@ -169,13 +169,23 @@ def test_dropped_postings_change_no_score_of_the_other_words():
         idx.add_image(i, w)
         ref.add_image(i, w)
     only_once = [w for w in range(40) if idx.document_frequency(w) == 1]
-    before = idx.memory_bytes()
     idx.drop_postings(np.array(only_once))
-    assert idx.memory_bytes() < before
     query = np.array([w for w in range(40) if w not in only_once])
     np.testing.assert_array_equal(idx.vote(query)[0], ref.vote(query)[0])
     idx.add_image(8, np.array(only_once[:2]))  # a dropped word coming back gets postings again
     assert idx.document_frequency(only_once[0]) == 2 and idx.vote(np.array(only_once[:1]))[0][8] > 0
+
+
+def test_dropped_postings_free_their_memory():
+    rng = np.random.default_rng(12)
+    idx = InvertedIndex()
+    for i in range(300):
+        idx.add_image(i, rng.integers(0, 100, 20))
+    postings = sum(idx.document_frequency(w) for w in range(100))
+    before = idx.memory_bytes()
+    idx.drop_postings(np.arange(100))
+    assert idx.memory_bytes() <= before - 4 * postings  # 4 bytes a posting, all of them gone
+    assert idx.vote(np.arange(100))[0].max() == 0.0
 
 
 def test_postings_take_four_bytes_and_a_word_repeated_beyond_their_count_still_votes():
@@ -273,3 +283,13 @@ def test_sorted_union_and_isin_give_numpy_s_answers(seed):
     b = np.array([5, 9, 12], np.int64)
     a = np.array([0, 5, 5, 7, 12, 13, 99], np.int64)
     assert sorted_isin(a, b).tolist() == [False, True, True, False, True, False, False]
+
+
+def test_occurrences_past_the_narrow_counters_widen_them():
+    idx = InvertedIndex()
+    for i in range(40):  # word 2: 1000 times an image, 40,000 in all (past int16)
+        idx.add_image(i, np.array([2] * 1000 + [1]))
+    assert idx.occurrences()[2] == 40_000 and idx.occurrences()[1] == 40
+    assert list(idx.virtual_image()) == [2, 1]  # most frequent first
+    idx.remove_image(0, np.array([2] * 1000 + [1]))
+    assert idx.occurrences()[2] == 39_000

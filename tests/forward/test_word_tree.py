@@ -214,8 +214,7 @@ def _scan_reference(tree: BinaryWordTree, q: np.ndarray, beam: int) -> tuple[np.
         for node in leaves[i].tolist():
             if node < 0:
                 continue
-            row = int(tree._leaf_row[node])
-            for s in tree._pool[row, :tree._fill[row]].tolist():
+            for s in tree.leaf_slots(node).tolist():
                 if int(np.bitwise_count(q[i, 0] ^ tree._desc[s, 0])) > 20:
                     continue
                 d = int(np.bitwise_count(q[i] ^ tree._desc[s]).sum())

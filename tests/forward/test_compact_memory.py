@@ -1,0 +1,216 @@
+"""The forward detector's memory per image on the real corridor
+(../shared/data/forward/rtabmap_samples, 84 images): the inverted index's flat postings
+answer as one list of postings per word does, the memory held stays within what the
+structures need, and a detector restored from a map file holds the same index."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from robotd.forward import FeatureExtractor, ForwardDetector, method_params
+from robotd.forward.features import CompactFeatures
+from robotd.forward.vocabulary import _COUNT_BITS, _COUNT_MASK, InvertedIndex, Vocabulary, _block_room, _grown
+from robotd.io.sequence import list_images, read_image
+from tests.shared_data import require
+
+SAMPLES = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "forward" / "rtabmap_samples"
+
+
+@pytest.fixture(scope="module")
+def corridor():
+    """The default detector's features of the corridor's 84 images."""
+    gt = require(SAMPLES / "ground_truth.bmp", "real corridor images")
+    params = method_params("default")
+    ex = FeatureExtractor(params.features)
+    return [ex(read_image(f)) for f in list_images(SAMPLES, exclude=(gt,))]
+
+
+class _Lists:
+    """The inverted index as it was kept before its flat arrays: one list of postings per
+    word (slot << _COUNT_BITS | n(w, i), in the order they came), df and occurrences; the
+    vote computed as that index computed it (the postings joined word after word)."""
+
+    def __init__(self) -> None:
+        self.post: dict[int, list[int]] = {}
+        self.df: dict[int, int] = {}
+        self.occ: dict[int, int] = {}
+        self.image_len: dict[int, int] = {}
+
+    def add(self, slot: int, words: np.ndarray) -> None:
+        self.image_len[slot] = len(words)
+        uw, cnt = np.unique(words, return_counts=True)
+        for w, c in zip(uw.tolist(), cnt.tolist()):
+            self.post.setdefault(w, []).append(slot << _COUNT_BITS | min(c, _COUNT_MASK))
+            self.df[w] = self.df.get(w, 0) + 1
+            self.occ[w] = self.occ.get(w, 0) + c
+
+    def remove(self, slot: int, words: np.ndarray) -> None:
+        uw, cnt = np.unique(words, return_counts=True)
+        for w, c in zip(uw.tolist(), cnt.tolist()):
+            self.post[w].remove(slot << _COUNT_BITS | min(c, _COUNT_MASK))
+            self.df[w] -= 1
+            self.occ[w] -= c
+        self.image_len[slot] = 0
+
+    def drop(self, words: np.ndarray) -> None:
+        for w in words.tolist():
+            self.post[w] = []
+
+    def vote(self, words: np.ndarray, n_images: int, n_slots: int) -> np.ndarray:
+        uw, cq = np.unique(words, return_counts=True)
+        df = np.array([self.df.get(w, 0) for w in uw.tolist()], np.int64)
+        keep = df > 0
+        uw, cq, df = uw[keep], cq[keep], df[keep]
+        scores = np.zeros(n_slots)
+        if not len(uw):
+            return scores
+        lists = [self.post[w] for w in uw.tolist()]
+        packed = np.array([p for ps in lists for p in ps], np.int64)
+        slots = packed >> _COUNT_BITS
+        image_len = np.array([self.image_len[s] for s in slots.tolist()], np.float64)
+        weights = np.repeat(cq * np.log(n_images / df), [len(ps) for ps in lists]) * (packed & _COUNT_MASK) / image_len
+        return scores + np.bincount(slots, weights=weights, minlength=n_slots)
+
+
+def _same_index(idx: InvertedIndex, ref: _Lists) -> None:
+    words = np.arange(idx.n_words, dtype=np.int64)
+    got, held = idx._post.gather(words)
+    want = [ref.post.get(w, []) for w in range(idx.n_words)]
+    assert held.tolist() == [len(p) for p in want]
+    assert got.tolist() == [p for ps in want for p in ps]
+    assert idx._df.view.tolist() == [ref.df.get(w, 0) for w in range(idx.n_words)]
+    assert idx._occ.view.tolist() == [ref.occ.get(w, 0) for w in range(idx.n_words)]
+
+
+def test_flat_postings_hold_and_vote_what_per_word_lists_do_on_the_corridor(corridor):
+    """Every image's words (the default vocabulary, purging as the detector does) go into
+    the index and into per-word lists: the postings, counts and every vote agree to the
+    bit, through purged words' postings dropped, and through images taken out and put
+    back (a bounded working memory's moves), which shift postings inside their blocks."""
+    params = method_params("default")
+    voc = Vocabulary(dim=32, binary=True, params=params.vocabulary)
+    idx, ref = InvertedIndex(), _Lists()
+    kept = []
+    for t, f in enumerate(corridor):
+        words, _ = voc.add(f.descriptors)
+        if t:  # the vote of image t against the images before it, as the detector asks
+            got, _ = idx.vote(words)
+            np.testing.assert_array_equal(got, ref.vote(words, idx.n_images, idx.n_slots))
+        idx.add_image(t, words)
+        ref.add(t, words)
+        kept.append(words)
+        idx.drop_postings(voc.last_purged)
+        ref.drop(voc.last_purged)
+    _same_index(idx, ref)
+    assert int(idx._post.head.view.max()) >= 1 << 31  # words with blocks of postings are there
+    # a working memory's moves: images out of the index and back in (postings re-added
+    # after dropped ones are not: a bounded memory drops none); fresh index, no drops
+    idx, ref = InvertedIndex(), _Lists()
+    for t, w in enumerate(kept):
+        idx.add_image(t, w)
+        ref.add(t, w)
+    for t in (3, 40, 41, 10, 83, 0):
+        idx.remove_image(t, kept[t])
+        ref.remove(t, kept[t])  # slot t: no image left before
+    _same_index(idx, ref)
+    for t in (41, 3, 0):  # back into the freed slots, lowest first
+        slot = int(np.flatnonzero(idx.image_ids == -1)[0])
+        idx.add_image(t, kept[t])
+        ref.add(slot, kept[t])
+    _same_index(idx, ref)
+    for q in (kept[5], kept[41], kept[60]):
+        np.testing.assert_array_equal(idx.vote(q)[0], ref.vote(q, idx.n_images, idx.n_slots))
+
+
+def _capacity(n: int) -> int:
+    """The most elements a growing array (:func:`_grown`, from 64) holds for ``n`` in use."""
+    return max(64, _grown(n))
+
+
+def _structure_bound(det: ForwardDetector) -> dict[str, int]:
+    """What the detector's parts may hold, from what they contain: each growing array at
+    most an eighth (plus 16) beyond its use, the blocks left behind at most a third of
+    the live ones (compaction at a quarter of the store), a block of postings its count
+    rounded up to a power of two, plus its count."""
+    idx, voc = det.index, det.vocabulary
+    tree = voc._tree
+    n_words, n_slots, n_images = idx.n_words, idx.n_slots, len(det)
+    h = idx._post.head.view
+    block = h >= (1 << 31)
+    count = idx._post._store[(h[block] & 0x7FFFFFFF).astype(np.int64)].astype(np.int64)
+    live = int((1 + _block_room(count)).sum()) if len(count) else 0
+    index = (_capacity(n_words) * (4 + 2 + 2)                  # head, df, occurrences
+             + _capacity(live * 4 // 3) * 4                     # blocks of postings, those left behind
+             + _capacity(n_slots) * 4)                          # words per image
+    nodes, rows, slots = tree._n_nodes, tree._n_rows, tree._n_slots
+    blocks = int(tree._row_cap[:rows].sum())
+    search = (_capacity(nodes + 2) * (32 + 4 * tree.params.branching + 4)   # centre, children, leaf row
+              + _capacity(rows) * 3 * 4                                     # block start and length, fill
+              + _capacity(blocks * 4 // 3) * 4                              # the leaves' blocks
+              + _capacity(slots + 1) * (32 + 4 + 2 + 1)                     # descriptor, word, row, position
+              + 8 * (len(tree._free_rows) + len(tree._free_slots))
+              + _capacity(n_words) + _capacity(n_images) * 4)               # seen, first word per image
+    images = sum(det.features_of(t).nbytes for t in range(n_images))
+    return {"images": images, "index": index, "vocabulary": search}
+
+
+def test_memory_per_image_on_the_corridor_is_what_the_structures_need(corridor):
+    """After the corridor's 84 images each part holds no more than its contents need (the
+    bound above, computed from the counts), and the whole is within the 16 kB per image
+    of the target."""
+    det = ForwardDetector(method_params("default"))
+    for f in corridor:
+        det.process_features(f)
+    mem, bound = det.memory_bytes(), _structure_bound(det)
+    assert mem["images"] == bound["images"]
+    assert mem["index"] <= bound["index"]
+    assert mem["vocabulary"] <= bound["vocabulary"]
+    assert sum(mem.values()) / len(corridor) <= 16_000
+
+
+def test_a_detector_restored_from_its_map_holds_the_same_index_and_votes_alike(corridor, tmp_path):
+    """The detector's images and words written to a map file as the daemon writes them,
+    read back into a new detector after 60 images: its inverted index holds the same
+    postings and counts, and the last 24 images' words (as the first detector's vocabulary
+    quantises them; the restored word tree is built anew, so its own approximate search
+    may answer differently) get the same votes to the bit."""
+    from robotd.io.store import MapStore
+
+    params = method_params("default")
+    det = ForwardDetector(params)
+    path = tmp_path / "map.sqlite"
+    with MapStore.open(path) as store:
+        run = store.begin_run("test = 1\n", started_ns=1)
+        for t, f in enumerate(corridor[:60]):
+            det.process_features(f)
+            kf = store.add_keyframe(run, 10 + t, (0.1 * t, 0.0, 0.0), np.eye(3) * 1e-4, None)
+            ids, descs = det.vocabulary.last_new
+            c = det.features_of(t)
+            store.add_forward_image(t, kf, params.features.kind, c.image_size_px, c.words, c.keypoints_q,
+                                    c.descriptors, new_words=[(int(i), d.tobytes()) for i, d in zip(ids, descs)],
+                                    purged=[int(i) for i in det.vocabulary.last_purged])
+    with MapStore.open(path, read_only=True) as store:
+        images, words = store.forward_memory()
+    feats = [CompactFeatures(w, kq, np.frombuffer(d, np.uint8).reshape(-1, 32), size)
+             for (_, _, _, size, w, kq, d) in images]
+    wd = np.zeros((len(words), 32), np.uint8)
+    for k, w in enumerate(words):
+        if not w[4]:
+            wd[k] = np.frombuffer(w[2], np.uint8)
+    again = ForwardDetector(params)
+    again.restore(feats, wd, np.array([w[3] for w in words], np.int64), np.array([w[4] for w in words], bool))
+    all_words = np.arange(det.index.n_words, dtype=np.int64)
+    for a, b in zip(det.index._post.gather(all_words), again.index._post.gather(all_words)):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(det.index.occurrences(), again.index.occurrences())
+    assert det.vocabulary.n_searchable == again.vocabulary.n_searchable
+    for f in corridor[60:]:
+        q = det.vocabulary.quantize(f.descriptors)
+        (s1, v1), (s2, v2) = det.index.vote(q), again.index.vote(q)
+        np.testing.assert_array_equal(s1, s2)
+        assert v1 == v2
+    b1, b2 = _structure_bound(again), again.memory_bytes()
+    assert b2["index"] <= b1["index"] and b2["vocabulary"] <= b1["vocabulary"]
