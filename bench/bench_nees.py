@@ -1223,7 +1223,9 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
                         "demo's calibration (its fitted sensor noise and white accelerations: ")
                      + f"{p['accel_noise_density_mps2_per_sqrt_hz']:.4f} m/s^2 and "
                      f"{p['angular_accel_noise_density_radps2_per_sqrt_hz']:.4f} rad/s^2 per sqrt(Hz), wheel "
-                     f"speed {p['wheel_v_noise_mps']:.5f} m/s, gyro {p['gyro_noise_radps']:.5f} rad/s per reading)"
+                     f"speed {p['wheel_v_noise_mps']:.5f} m/s, gyro {p['gyro_noise_radps']:.5f} rad/s per reading"
+                     + (f", each wheel's slip {1e3 * math.sqrt(p['wheel_slip_var_m2_per_m']):.2f} mm per sqrt(m)"
+                        if "wheel_slip_var_m2_per_m" in p else "") + ")"
                      + (f", the wheel slip test at `slip_gate_sigma = {odo['slip_gate_sigma']:g}`"
                         if odo.get("slip_gate_sigma") else ", no slip test")
                      + (", and " + ", ".join(f"`{k}` = {v}" for k, v in ekf.items()) if ekf else ""))
