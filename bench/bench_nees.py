@@ -30,7 +30,10 @@ calibration); ``--shipped-geometry`` gives the filter the shipped calibration's 
 wheel base and gyro scale on every seed's base, as ``robotd demo --seed N`` runs it, and
 ``--daemon-models`` picks the ``[pose_graph] odometry_model`` values ``--daemon-graph``
 feeds (``bias_scale_window``: with the scale variable's prior of the shipped calibration
-and the default ``scale_wear``). The pose graph's cost of the bias-sharing factors (``--cost-seeds``,
+and the default ``scale_wear``; ``--scale-wear WHEEL,GYRO`` another). One interval is
+decomposed by kind (straight, arc, turn on the spot, start or stop) and component (along
+the track, across it, yaw): the true error against the filter's own covariance and the
+edge's (:func:`interval_parts`). The pose graph's cost of the bias-sharing factors (``--cost-seeds``,
 ``--cost-models``): iSAM2 per keyframe and batch Levenberg-Marquardt against independent
 edges, loop edges from the truth, same run.
 
