@@ -30,7 +30,10 @@ calibration); ``--shipped-geometry`` gives the filter the shipped calibration's 
 wheel base and gyro scale on every seed's base, as ``robotd demo --seed N`` runs it, and
 ``--daemon-models`` picks the ``[pose_graph] odometry_model`` values ``--daemon-graph``
 feeds (``bias_scale_window``: with the scale variable's prior of the shipped calibration
-and the default ``scale_wear``). The pose graph's cost of the bias-sharing factors (``--cost-seeds``,
+and the default ``scale_wear``; ``--scale-wear WHEEL,GYRO`` another). One interval is
+decomposed by kind (straight, arc, turn on the spot, start or stop) and component (along
+the track, across it, yaw): the true error against the filter's own covariance and the
+edge's (:func:`interval_parts`). The pose graph's cost of the bias-sharing factors (``--cost-seeds``,
 ``--cost-models``): iSAM2 per keyframe and batch Levenberg-Marquardt against independent
 edges, loop edges from the truth, same run.
 
@@ -372,6 +375,12 @@ def _joint_nees(d: dict[str, Any], i: int, j: int) -> tuple[float, float, float]
     """NEES of the filter's motion between keyframes ``i`` and ``j`` (its recorded states)
     against its joint covariance (the clone of :mod:`robotd.odometry.relative` over the
     whole window)."""
+    return _nees_parts(*_joint_error(d, i, j))
+
+
+def _joint_error(d: dict[str, Any], i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+    """The error ``(3,)`` of the filter's motion between keyframes ``i`` and ``j`` against
+    the truth and its joint covariance ``(3, 3)``, unfloored (:func:`_joint_nees`)."""
     phi = np.eye(d["maps"].shape[1])
     for m6 in d["maps"][i:j]:
         phi = m6 @ phi
@@ -383,7 +392,67 @@ def _joint_nees(d: dict[str, Any], i: int, j: int) -> tuple[float, float, float]
     c = between_error_covariance(h, c)
     e = between(h, between(d["rec_truth"][i], d["rec_truth"][j]))
     e[2] = wrap_angle(e[2])
-    return _nees_parts(e, c)
+    return e, c
+
+
+#: The kinds of single interval :func:`interval_parts` tells apart, then all of them.
+INTERVAL_KINDS = ("straight", "arc", "turn on the spot", "start or stop", "all")
+#: An interval whose true heading change is below this is a straight; one whose true
+#: translation is below ``SPOT_M`` a turn on the spot.
+STRAIGHT_RAD = math.radians(1.0)
+SPOT_M = 0.01
+
+
+def _interval_kind(true_delta: np.ndarray, dv_mps: float) -> str:
+    if abs(dv_mps) > SPEED_CHANGE_MPS:
+        return "start or stop"
+    if math.hypot(float(true_delta[0]), float(true_delta[1])) < SPOT_M:
+        return "turn on the spot"
+    return "straight" if abs(float(true_delta[2])) < STRAIGHT_RAD else "arc"
+
+
+def interval_parts(d: dict[str, Any], scale_sigmas: tuple[float, float]) -> dict[str, dict[str, float]]:
+    """One interval decomposed, per kind (:data:`INTERVAL_KINDS`): the true error of the
+    filter's motion along the track (x of the edge's end frame), across it (y) and in yaw,
+    RMS (um, urad), against the 1-sigma the filter's own covariance claims (unfloored, the
+    median) and each component's mean ``e_i^2 / C_ii``; the mean NEES (all, yaw, position)
+    of the filter's own covariance, of the edge as the graph gets it (floored,
+    :func:`robotd.odometry.increments.floor_covariance`), and of the edge with the scale
+    variable's prior marginalised (``scale_sigmas``: wheels, gyro; the daemon graph's
+    ``bias_scale_window`` over one edge); and the median 1-sigma the edge claims."""
+    delta, cov, truth, v = d["delta"], d["cov"], d["truth"], d["speed_mps"]
+    sw, sg = scale_sigmas
+    rows: dict[str, list[tuple[Any, ...]]] = {k: [] for k in INTERVAL_KINDS}
+    for k in range(len(delta)):
+        t = between(truth[k], truth[k + 1])
+        e_f, c_f = _joint_error(d, k, k + 1)
+        e = between(delta[k], t)
+        e[2] = wrap_angle(e[2])
+        js = scale_jacobian(delta[k])
+        c_s = cov[k] + sw ** 2 * np.outer(js[:, 0], js[:, 0]) + sg ** 2 * np.outer(js[:, 1], js[:, 1])
+        row = (e_f, c_f, _nees_parts(e_f, c_f), _nees_parts(e, cov[k]), _nees_parts(e, c_s), cov[k])
+        rows[_interval_kind(t, float(v[k + 1] - v[k]))].append(row)
+        rows["all"].append(row)
+    out: dict[str, dict[str, float]] = {}
+    for kind, rs in rows.items():
+        if not rs:
+            continue
+        err = np.array([r[0] for r in rs])
+        var = np.array([np.diag(r[1]) for r in rs])
+        edge_var = np.array([np.diag(r[5]) for r in rs])
+        rms = np.sqrt((err ** 2).mean(axis=0)) * 1e6
+        sd = np.sqrt(np.median(var, axis=0)) * 1e6
+        sd_edge = np.sqrt(np.median(edge_var, axis=0)) * 1e6
+        comp = (err ** 2 / var).mean(axis=0)
+        res: dict[str, float] = {"intervals": len(rs)}
+        for n, name in enumerate(("along", "across", "yaw")):
+            res[f"{name}_rms"], res[f"{name}_sigma"], res[f"{name}_nees"] = float(rms[n]), float(sd[n]), float(comp[n])
+            res[f"{name}_sigma_edge"] = float(sd_edge[n])
+        for col, name in ((2, "filter"), (3, "edge"), (4, "edge_scale")):
+            n3 = np.array([r[col] for r in rs]).mean(axis=0)
+            res[name], res[f"{name}_yaw"], res[f"{name}_position"] = (float(x) for x in n3)
+        out[kind] = res
+    return out
 
 
 #: What ``--without`` can take out of the simulated base (:class:`sim.sensors.BaseSensorParams`).
@@ -440,14 +509,18 @@ def shipped_geometry(calibration: Path | None = None) -> tuple[Any, float]:
     return drive, model.gyro_scale
 
 
-def daemon_scale_sigmas(calibration: Path | None = None) -> tuple[float, float]:
+def daemon_scale_sigmas(calibration: Path | None = None,
+                        wear: tuple[float, float] | None = None) -> tuple[float, float]:
     """The prior of the daemon graph's scale variable with the demo's shipped calibration
     (or the file ``calibration``) and the default ``[pose_graph] scale_wear`` and
-    ``scale_wear_gyro`` (:func:`robotd.app.assemble.scale_prior_sigmas`)."""
+    ``scale_wear_gyro`` (``wear``: those two instead; :func:`robotd.app.assemble.scale_prior_sigmas`)."""
     from robotd.app.assemble import scale_prior_sigmas
-    from robotd.base.config import Config
+    from robotd.base.config import Config, replace
 
-    return scale_prior_sigmas(Config(), _calibration(calibration))
+    cfg = Config()
+    if wear is not None:
+        cfg = replace(cfg, "pose_graph", scale_wear=wear[0], scale_wear_gyro=wear[1])
+    return scale_prior_sigmas(cfg, _calibration(calibration))
 
 
 def geometry_errors(calibration: Path | None, drawn: Any) -> dict[str, float]:
@@ -471,8 +544,10 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str,
                   daemon_graph_seeds: int = 0, noise_model: str = "config",
                   slip_gate_sigma: float = 0.0, shipped: bool = False,
                   daemon_models: tuple[str, ...] = ("independent", "bias_window"),
-                  own_calibration: str | None = None) -> dict[str, Any]:
-    """``own_calibration``: a calibration file per seed (``{seed}`` in the name: what that
+                  own_calibration: str | None = None,
+                  scale_wear: tuple[float, float] | None = None) -> dict[str, Any]:
+    """``scale_wear``: ``[pose_graph] scale_wear`` and ``scale_wear_gyro`` for the daemon
+    graph's scale prior (default: the config's defaults). ``own_calibration``: a calibration file per seed (``{seed}`` in the name: what that
     seed's own calibration drive gave, ``robotd calibrate odometry``), whose wheel radii,
     wheel base and gyro scale the filter takes on that seed's base, with its noise model
     (``daemon_model``) and its scale prior (``daemon_graph``), as ``robotd demo --seed N``
@@ -494,16 +569,16 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str,
         d = drive_edges(route, seed, keyframe_m, sensors, p_seed, true_model,
                         shipped_geometry(cal) if (shipped or cal is not None) else None)
         res = chained_nees(d)
+        sigmas = daemon_scale_sigmas(cal, scale_wear)
         cost = graph_cost(d, seed, (SCALE_SIGMA["wheel"], SCALE_SIGMA["gyro"]), cost_models) if seed < cost_seeds else None
         e = d["drawn"]
         sc = speed_change_edges(d)
         per_seed.append({"seed": seed, "edges": len(d["delta"]), "horizons": {str(k): v for k, v in res.items()},
-                         "cost": cost, "speed_change": sc,
-                         "daemon_graph": (daemon_graph(d, seed, models=daemon_models,
-                                                       scale_sigmas=daemon_scale_sigmas(cal))
+                         "cost": cost, "speed_change": sc, "interval": interval_parts(d, sigmas),
+                         "daemon_graph": (daemon_graph(d, seed, models=daemon_models, scale_sigmas=sigmas)
                                           if seed < daemon_graph_seeds else None),
                          "calibration": str(cal) if cal is not None else ("shipped" if shipped else None),
-                         "scale_sigmas": list(daemon_scale_sigmas(cal)),
+                         "scale_sigmas": list(sigmas),
                          "params": dataclasses.asdict(p_seed) if cal is not None else None,
                          "geometry_errors": (geometry_errors(cal, e) if (shipped or cal is not None) else None),
                          "drawn": {"wheel_base_error": e.wheel_base_error,
@@ -520,7 +595,8 @@ def odometry_part(seeds: int, route: str, keyframe_m: float, without: tuple[str,
     return {"route": route, "keyframe_m": keyframe_m, "without": list(without), "ekf": ekf or {},
             "true_model": true_model, "daemon_model": daemon_model, "noise_model": noise_model,
             "slip_gate_sigma": slip_gate_sigma, "shipped_geometry": shipped, "own_calibration": own_calibration,
-            "daemon_models": list(daemon_models), "scale_sigmas": list(daemon_scale_sigmas()),
+            "daemon_models": list(daemon_models), "scale_sigmas": list(daemon_scale_sigmas(None, scale_wear)),
+            "scale_wear": list(scale_wear) if scale_wear is not None else None,
             "params": dataclasses.asdict(params), "per_seed": per_seed}
 
 
@@ -573,6 +649,37 @@ def speed_change_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]
         if sc:
             rows.append([r["seed"], sc["edges"], f"{sc['nees']:.2f} ({sc['nees_position']:.2f})", f"{sc['tau_ms']:.1f}",
                          sc["others"], f"{sc['others_nees']:.2f} ({sc['others_nees_position']:.2f})"])
+    return head, rows
+
+
+def interval_rows(part: dict[str, Any]) -> tuple[list[str], list[list[Any]]]:
+    """One interval decomposed (:func:`interval_parts`), per kind pooled over the seeds
+    (weighted by their intervals; the claimed 1-sigma the seeds' mean median), then per seed
+    all its intervals; empty for a result written before it was stored."""
+    head = ["kind", "intervals", "along: true RMS / filter's 1-sigma / edge's (um), NEES",
+            "across: the same", "yaw: true RMS / filter's / edge's (urad), NEES",
+            "filter's own (yaw, position)", "edge, floored", "edge + scale prior"]
+    runs = [r for r in part["per_seed"] if r.get("interval")]
+    if not runs:
+        return head, []
+
+    def row(label: Any, parts: list[dict[str, float]]) -> list[Any]:
+        n = np.array([p["intervals"] for p in parts], float)
+        w = n / n.sum()
+        cells: list[Any] = [label, int(n.sum())]
+        for name in ("along", "across", "yaw"):
+            rms = math.sqrt(float(np.sum(w * np.array([p[f"{name}_rms"] ** 2 for p in parts]))))
+            sd = float(np.mean([p[f"{name}_sigma"] for p in parts]))
+            sde = float(np.mean([p[f"{name}_sigma_edge"] for p in parts]))
+            cells.append(f"{rms:.0f} / {sd:.0f} / {sde:.0f}, {float(np.sum(w * [p[f'{name}_nees'] for p in parts])):.2f}")
+        for key in ("filter", "edge", "edge_scale"):
+            m = [float(np.sum(w * [p[key + sfx] for p in parts])) for sfx in ("", "_yaw", "_position")]
+            cells.append(f"{m[0]:.2f} ({m[1]:.2f}, {m[2]:.2f})")
+        return cells
+
+    rows = [row(kind, [r["interval"][kind] for r in runs if kind in r["interval"]])
+            for kind in INTERVAL_KINDS if any(kind in r["interval"] for r in runs)]
+    rows += [row(f"seed {r['seed']}, all", [r["interval"]["all"]]) for r in runs]
     return head, rows
 
 
@@ -1119,7 +1226,9 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
                         "demo's calibration (its fitted sensor noise and white accelerations: ")
                      + f"{p['accel_noise_density_mps2_per_sqrt_hz']:.4f} m/s^2 and "
                      f"{p['angular_accel_noise_density_radps2_per_sqrt_hz']:.4f} rad/s^2 per sqrt(Hz), wheel "
-                     f"speed {p['wheel_v_noise_mps']:.5f} m/s, gyro {p['gyro_noise_radps']:.5f} rad/s per reading)"
+                     f"speed {p['wheel_v_noise_mps']:.5f} m/s, gyro {p['gyro_noise_radps']:.5f} rad/s per reading"
+                     + (f", each wheel's slip {1e3 * math.sqrt(p['wheel_slip_var_m2_per_m']):.2f} mm per sqrt(m)"
+                        if "wheel_slip_var_m2_per_m" in p else "") + ")"
                      + (f", the wheel slip test at `slip_gate_sigma = {odo['slip_gate_sigma']:g}`"
                         if odo.get("slip_gate_sigma") else ", no slip test")
                      + (", and " + ", ".join(f"`{k}` = {v}" for k, v in ekf.items()) if ekf else ""))
@@ -1157,7 +1266,7 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
     if rows:
         lines += ["The calibration's geometry on each seed's base, relative to the base's drawn values (its own "
                   "1-sigma in brackets), and the daemon graph's scale prior (wheels, gyro: the calibration's "
-                  "uncertainty with the default `[pose_graph] scale_wear` and `scale_wear_gyro`):", ""]
+                  "uncertainty with " + _wear_words(odo) + "):", ""]
         table(head, rows)
     lines += ["Per seed, bias + scale variables:", ""]
     table(*odometry_rows(odo, "scales"))
@@ -1166,6 +1275,18 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
         table(*odometry_rows(odo, "window"))
         lines += ["Per seed, independent edges:", ""]
         table(*odometry_rows(odo, "graph"))
+    head, rows = interval_rows(odo)
+    if rows:
+        lines += ["One interval decomposed (`interval_parts`): per kind of interval (a straight: true heading "
+                  f"change below {math.degrees(STRAIGHT_RAD):.0f} deg; a turn on the spot: true translation below "
+                  f"{SPOT_M * 100:.0f} cm; a start or stop: the keyframes' true speeds {SPEED_CHANGE_MPS} m/s apart), "
+                  "the true error of the filter's motion along the track, across it and in yaw (the edge's end "
+                  "frame) against the 1-sigma the filter's own covariance claims (unfloored) and the edge's "
+                  "(floored, as the graph gets it), medians, and each component's mean `e^2 / sigma^2` "
+                  "against the filter's own (expected 1); then the mean NEES (yaw, position) of the filter's "
+                  "own covariance, of the edge, and of the edge with the daemon graph's scale prior "
+                  "marginalised (`bias_scale_window` over one edge):", ""]
+        table(head, rows)
     head, rows = speed_change_rows(odo)
     if rows:
         lines += [f"Single edges whose two keyframes' true speeds differ by more than {SPEED_CHANGE_MPS} m/s "
@@ -1193,11 +1314,11 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
         table(*daemon_graph_rows(odo))
         for m in _daemon_models(odo)[1:]:
             lines += [f"Per seed, `{m}` in the daemon's graph"
-                      + ((" (the scale variable's prior: each seed's calibration's uncertainty and the default "
-                          "`[pose_graph] scale_wear`, above)") if m == "bias_scale_window" and odo.get("own_calibration")
+                      + ((" (the scale variable's prior: each seed's calibration's uncertainty and "
+                          + _wear_words(odo) + ", above)") if m == "bias_scale_window" and odo.get("own_calibration")
                          else " (the scale variable's prior: wheels {:.3f} %, gyro {:.4f} %, the shipped calibration's "
-                         "uncertainty and the default `[pose_graph] scale_wear`)".format(
-                             *(100 * x for x in odo["scale_sigmas"])) if m == "bias_scale_window" else "")
+                         "uncertainty and {})".format(*(100 * x for x in odo["scale_sigmas"]), _wear_words(odo))
+                         if m == "bias_scale_window" else "")
                       + ":", ""]
             table(*daemon_graph_seed_rows(odo, m))
         lines += ["How far one seed's mean can be from 3 when the covariances are right: a drive of the seeds' "
@@ -1210,6 +1331,15 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
                   "count in brackets), the ATE at the end (and with `bias_scale_window` the scale variable's "
                   "estimate); in brackets the ratio to independent edges, same run.", ""]
         table(head, rows)
+
+
+def _wear_words(odo: dict[str, Any]) -> str:
+    """How a run's scale prior was widened: the default ``[pose_graph] scale_wear`` and
+    ``scale_wear_gyro``, or the ones it was given (``--scale-wear``)."""
+    wear = odo.get("scale_wear")
+    if not wear:
+        return "the default `[pose_graph] scale_wear` and `scale_wear_gyro`"
+    return f"`[pose_graph] scale_wear` {wear[0]:g} and `scale_wear_gyro` {wear[1]:g} (`--scale-wear`)"
 
 
 def markdown(payload: dict[str, Any]) -> list[str]:
@@ -1295,6 +1425,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="odometry: each seed's base with its own calibration file (PATTERN with {seed}: what "
                          "`robotd calibrate odometry` made from that base's calibration drive): its wheel radii, "
                          "wheel base and gyro scale, its noise model (--daemon-model) and scale prior")
+    ap.add_argument("--scale-wear", default=None, metavar="WHEEL,GYRO",
+                    help="[pose_graph] scale_wear and scale_wear_gyro for the daemon graph's scale prior "
+                         "(default: the config's, 0.003,0.002)")
     ap.add_argument("--cost-models", default="independent,bias_window,bias",
                     help="odometry: the graph-cost models timed (of independent, bias_window, bias, bias_scales)")
     ap.add_argument("--compare", type=Path, action="append", default=[],
@@ -1311,6 +1444,14 @@ def main(argv: list[str] | None = None) -> int:
     if not set(without) <= set(WITHOUT):
         ap.error(f"--without takes {', '.join(WITHOUT)}")
     n_pairs = args.pairs or (400 if args.full else 120)
+    scale_wear = None
+    if args.scale_wear is not None:
+        try:
+            scale_wear = tuple(float(x) for x in args.scale_wear.split(","))
+        except ValueError:
+            scale_wear = ()
+        if len(scale_wear) != 2 or not all(1e-6 <= x <= 0.5 for x in scale_wear):
+            ap.error("--scale-wear takes WHEEL,GYRO, each within [1e-6, 0.5] (the config's bounds)")
     if args.own_calibration is not None:
         if args.shipped_geometry or args.true_model:
             ap.error("--own-calibration takes the place of --shipped-geometry and --true-model")
@@ -1345,7 +1486,7 @@ def main(argv: list[str] | None = None) -> int:
                                             tuple(m for m in args.cost_models.split(",") if m), args.daemon_graph,
                                             args.noise_model, args.slip_gate, args.shipped_geometry,
                                             tuple(m for m in args.daemon_models.split(",") if m),
-                                            args.own_calibration)
+                                            args.own_calibration, scale_wear)
         print(f"\nodometry edges, {args.route}: mean NEES of N chained edges per model (yaw, position) [seeds]")
         print_table(*odometry_model_rows(payload["odometry"]))
         print("\nper seed, bias + scale variables")

@@ -62,7 +62,8 @@ def build_odometry(cfg: Config, calibration: CalibrationFile | None = None) -> O
     demo's fits 0), and the config's wheel noise covers the tick quantisation and slip.
     ``[odometry] noise_model = "calibration"`` gives that filter the calibration's whole
     sensor-level noise model instead (:func:`calibration_noise`: the fitted densities, the
-    tick quantisation and the white accelerations fitted by maximum likelihood);
+    tick quantisation, each wheel's slip per metre of its own travel and the white
+    accelerations fitted by maximum likelihood);
     ``"calibration_fused"`` gives it to the fused filter too. Without a calibration's
     odometry model both keep the config's (logged)."""
     params = EkfParams.from_config(cfg.odometry)
@@ -90,10 +91,10 @@ def build_odometry(cfg: Config, calibration: CalibrationFile | None = None) -> O
         if cfg.odometry.noise_model == "calibration_fused" or not twin:
             params = edge_params
         log.info("noise model from the calibration (%s): white accelerations %.4f m/s^2 and %.4f rad/s^2 "
-                 "per sqrt(Hz), wheel speed noise %.5f m/s + %.4f of the speed, gyro %.5f rad/s per reading",
-                 cfg.odometry.noise_model, edge_params.accel_noise_density_mps2_per_sqrt_hz,
+                 "per sqrt(Hz), wheel speed noise %.5f m/s, each wheel's slip %.3f mm per sqrt(m), gyro %.5f "
+                 "rad/s per reading", cfg.odometry.noise_model, edge_params.accel_noise_density_mps2_per_sqrt_hz,
                  edge_params.angular_accel_noise_density_radps2_per_sqrt_hz, edge_params.wheel_v_noise_mps,
-                 edge_params.wheel_v_noise_frac, edge_params.gyro_noise_radps)
+                 1e3 * math.sqrt(edge_params.wheel_slip_var_m2_per_m), edge_params.gyro_noise_radps)
     elif cfg.odometry.noise_model != "config":
         log.warning("[odometry] noise_model = %r but no calibration's odometry model: the [odometry] noise "
                     "model is used", cfg.odometry.noise_model)

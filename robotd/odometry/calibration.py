@@ -67,8 +67,6 @@ __all__ = [
 READINGS_HZ = 50.0
 #: The Kobuki's encoder ticks per wheel turn (``[robot] ticks_per_rev``'s default).
 TICKS_PER_REV = 2578.33
-#: The speed at which the fitted slip density becomes a fraction of the speed.
-CRUISE_MPS = 0.5
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -187,24 +185,31 @@ def sensor_noise_params(base: EkfParams, gyro_noise_radps_sqrt_hz: float, wheel_
                         slip_gate_sigma: float = 0.0) -> EkfParams:
     """``base`` with the sensors' own noise: the gyro's white noise per reading (``density
     * sqrt(fs / 2)``, the convention :func:`fit_odometry` measures the density in), the
-    wheel speed's tick quantisation (``tick_m``: m of travel per tick; the difference of
-    two quantised counts over one packet, ``tick / dt / sqrt(6)``), the slip density as a
-    fraction of the speed at :data:`CRUISE_MPS` (``sqrt(q v / dt) / v``), and the white
-    accelerations when given (else ``base``'s). The wheel yaw-rate noise and the bias walk
-    stay ``base``'s. With ``wheel_base_m`` (m) and ``slip_gate_sigma`` both above 0, the
-    wheel slip test (``slip_gate_sigma`` in :class:`~robotd.odometry.ekf.EkfParams`): the
+    wheel speed's tick quantisation (``tick_m``: m of travel per tick; the speed is the
+    mean of the two wheels' counts, each the difference of two roundings over one packet,
+    variance ``tick^2 / 6`` per wheel: ``tick / dt / sqrt(12)``), each wheel's continuous
+    slip (``wheel_noise_m_sqrt_m`` squared, per metre of that wheel's own travel, as
+    :func:`fit_odometry` measures it from the wheels' heading against the gyro:
+    ``wheel_slip_var_m2_per_m`` in :class:`~robotd.odometry.ekf.EkfParams`, in quadrature
+    with the ticks', in place of ``base``'s slip fraction), and the white accelerations
+    when given (else ``base``'s). The wheel yaw-rate noise and the bias walk stay
+    ``base``'s. With ``wheel_base_m`` (m) above 0 the slip's wheel travel takes the turn
+    into account (half the wheel base); with ``slip_gate_sigma`` above 0 as well, the wheel
+    slip test (``slip_gate_sigma`` in :class:`~robotd.odometry.ekf.EkfParams`): the
     slipping wheel's lever is half the wheel base, and the wheels' own yaw-rate noise is
-    their tick quantisation (each wheel's ``tick / dt / sqrt(6)``, the yaw rate
-    ``sqrt(2)`` times it over the wheel base)."""
+    their tick quantisation (each wheel's ``tick / dt / sqrt(6)``, the yaw rate ``sqrt(2)``
+    times it over the wheel base)."""
     dt = 1.0 / readings_hz
-    q = wheel_noise_m_sqrt_m ** 2
+    wheel_tick_mps = tick_m / dt / math.sqrt(6.0)  # one wheel's count difference
     out = dataclasses.replace(
         base, gyro_noise_radps=gyro_noise_radps_sqrt_hz * math.sqrt(readings_hz / 2.0),
-        wheel_v_noise_mps=tick_m / dt / math.sqrt(6.0),
-        wheel_v_noise_frac=math.sqrt(q * CRUISE_MPS / dt) / CRUISE_MPS)
+        wheel_v_noise_mps=wheel_tick_mps / math.sqrt(2.0), wheel_v_noise_frac=0.0,
+        wheel_slip_var_m2_per_m=wheel_noise_m_sqrt_m ** 2)
+    if wheel_base_m > 0.0:
+        out = dataclasses.replace(out, slip_half_base_m=0.5 * wheel_base_m)
     if wheel_base_m > 0.0 and slip_gate_sigma > 0.0:
-        out = dataclasses.replace(out, slip_gate_sigma=slip_gate_sigma, slip_half_base_m=0.5 * wheel_base_m,
-                                  slip_yaw_rate_noise_radps=math.sqrt(2.0) * out.wheel_v_noise_mps / wheel_base_m)
+        out = dataclasses.replace(out, slip_gate_sigma=slip_gate_sigma,
+                                  slip_yaw_rate_noise_radps=math.sqrt(2.0) * wheel_tick_mps / wheel_base_m)
     if accel_mps2_sqrt_hz is not None:
         out = dataclasses.replace(out, accel_noise_density_mps2_per_sqrt_hz=accel_mps2_sqrt_hz)
     if angular_accel_radps2_sqrt_hz is not None:
@@ -314,7 +319,9 @@ def fit_process_noise(drive: CalibrationDrive, radius_left_m: float, radius_righ
     dt_w = float(np.median(np.diff(np.asarray(drive.wheel_stamp_ns, np.int64)))) * 1e-9
     params = sensor_noise_params(noise, gyro_noise_radps_sqrt_hz, wheel_noise_m_sqrt_m,
                                  tick_rad * 0.5 * (radius_left_m + radius_right_m), readings_hz=1.0 / dt_w)
-    sv = np.where(still, params.stationary_noise_mps, params.wheel_v_noise_mps + params.wheel_v_noise_frac * np.abs(v))
+    travel = np.abs(v - 0.5 * base_m * w) + np.abs(v + 0.5 * base_m * w)  # the wheels' speeds (EkfParams)
+    sv = np.where(still, params.stationary_noise_mps,
+                  np.sqrt(params.wheel_v_noise_mps ** 2 + params.wheel_slip_var_m2_per_m * travel / (4.0 * dt_w)))
     sw = np.where(still, params.stationary_noise_radps, params.wheel_w_noise_radps
                   + params.wheel_w_noise_frac * np.abs(w) + params.wheel_w_noise_per_mps * np.abs(v))
     t0 = int(drive.wheel_stamp_ns[0])

@@ -124,6 +124,13 @@ class EkfParams:
     - ``gyro_bias_walk_radps_per_sqrt_s``: gyro bias random walk, rad/s per sqrt(s).
     - ``wheel_v_noise_mps`` + ``wheel_v_noise_frac * |v|``: noise of the speed from
       one tick delta, m/s (tick quantisation, then scale error and slip growing with speed).
+    - ``wheel_slip_var_m2_per_m`` (default 0: none): each wheel's continuous slip, the
+      variance of its distance per metre of its own travel (m^2/m, the calibration's wheel
+      slip density squared). Over a reading of ``dt`` seconds the two wheels travel
+      ``|v -+ w h| dt`` (``h`` = ``slip_half_base_m``, half the wheel base; 0: a straight's
+      ``|v| dt`` each) and slip independently, so the speed (their mean) gets the variance
+      ``q (|v - w h| + |v + w h|) / (4 dt)`` in quadrature with the ticks' noise. It grows
+      with the wheels' travel, not the base's speed: a turn on the spot slips too.
     - ``wheel_w_noise_radps`` + ``wheel_w_noise_frac * |w|`` + ``wheel_w_noise_per_mps *
       |v|``: noise of the wheel yaw rate, rad/s (quantisation; wheel-base error growing
       with the turn rate; unequal wheels and slip growing with speed).
@@ -205,6 +212,7 @@ class EkfParams:
     slip_gate_sigma: float = 0.0
     slip_half_base_m: float = 0.0
     slip_yaw_rate_noise_radps: float = 0.0
+    wheel_slip_var_m2_per_m: float = 0.0
     wheel_increments: bool = False
     wheel_rounding: bool = False
 
@@ -483,8 +491,13 @@ def _joseph_columns(state: EkfState, innovation: np.ndarray, h: np.ndarray, r: n
 
 def wheel_noise(v_mps: float, w_radps: float, params: EkfParams,
                 stationary: bool = False, speed_var_m2ps2: float | None = None,
-                yaw_rate_var_rad2ps2: float | None = None) -> tuple[float, float]:
+                yaw_rate_var_rad2ps2: float | None = None,
+                dt_s: float | None = None) -> tuple[float, float]:
     """1-sigma noise ``(sigma_v_mps, sigma_w_radps)`` of one wheel speed measurement.
+
+    ``dt_s``: the reading's interval (s), for the wheels' continuous slip
+    (``wheel_slip_var_m2_per_m`` in :class:`EkfParams`, in quadrature with the speed's
+    noise); without it, or with a stated speed variance, no slip term.
 
     ``speed_var_m2ps2`` / ``yaw_rate_var_rad2ps2``: variances the source stated with the
     measurement (a ROS 2 odometry's twist covariance, checked valid by its driver); each
@@ -496,6 +509,11 @@ def wheel_noise(v_mps: float, w_radps: float, params: EkfParams,
         return params.stationary_noise_mps, params.stationary_noise_radps
     sv = (params.wheel_v_noise_mps + params.wheel_v_noise_frac * abs(v_mps)
           if speed_var_m2ps2 is None else math.sqrt(speed_var_m2ps2))
+    q = params.wheel_slip_var_m2_per_m
+    if q > 0.0 and dt_s is not None and dt_s > 0.0 and speed_var_m2ps2 is None:
+        turn = w_radps * params.slip_half_base_m
+        travel_mps = abs(v_mps - turn) + abs(v_mps + turn)  # the two wheels' speeds
+        sv = math.sqrt(sv * sv + q * travel_mps / (4.0 * dt_s))
     sw = (params.wheel_w_noise_radps + params.wheel_w_noise_frac * abs(w_radps)
           + params.wheel_w_noise_per_mps * abs(v_mps)
           if yaw_rate_var_rad2ps2 is None else math.sqrt(yaw_rate_var_rad2ps2))
@@ -526,9 +544,11 @@ def update_wheels(state: EkfState, v_mps: float, w_radps: float,
 def update_wheels_with_gain(state: EkfState, v_mps: float, w_radps: float,
                             params: EkfParams = EkfParams(), stationary: bool = False,
                             speed_var_m2ps2: float | None = None,
-                            yaw_rate_var_rad2ps2: float | None = None) -> RateUpdate:
-    """:func:`update_wheels` with its gain, noise and error map (:class:`RateUpdate`)."""
-    sv, sw = wheel_noise(v_mps, w_radps, params, stationary, speed_var_m2ps2, yaw_rate_var_rad2ps2)
+                            yaw_rate_var_rad2ps2: float | None = None,
+                            dt_s: float | None = None) -> RateUpdate:
+    """:func:`update_wheels` with its gain, noise and error map (:class:`RateUpdate`);
+    ``dt_s``: the reading's interval (:func:`wheel_noise`)."""
+    sv, sw = wheel_noise(v_mps, w_radps, params, stationary, speed_var_m2ps2, yaw_rate_var_rad2ps2, dt_s)
     m = state.mean
     innovation = np.array([v_mps - m[IV], w_radps - m[IW]])
     var_v, var_w = sv * sv, sw * sw

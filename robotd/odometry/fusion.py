@@ -394,7 +394,7 @@ class OdometryFilter:
         self._flush_gyro(t, stationary)
         self.counters.still_updates += int(stationary)
         self._advance_to(t)
-        self._apply_wheels(v, w, stationary, msg)
+        self._apply_wheels(v, w, stationary, msg, dt)
         if not still_now:
             self._new_count()
         self._record()
@@ -496,13 +496,15 @@ class OdometryFilter:
         self._xmap, self._map = xmap, _EYE
         r.reset()
 
-    def _apply_wheels(self, v: float, w: float, stationary: bool, msg: WheelTicks | None = None) -> None:
+    def _apply_wheels(self, v: float, w: float, stationary: bool, msg: WheelTicks | None = None,
+                      dt_s: float | None = None) -> None:
         """The wheel update, carrying a pose clone's cross-covariance along (``msg``: the
-        reading, whose stated variances replace the noise model's when it has them)."""
+        reading, whose stated variances replace the noise model's when it has them;
+        ``dt_s``: its interval, for the wheels' continuous slip)."""
         prior = self._state
         assert prior is not None
         var_v, var_w = (None, None) if msg is None else (msg.speed_var_m2ps2, msg.yaw_rate_var_rad2ps2)
-        up = update_wheels_with_gain(prior, v, w, self.params, stationary, var_v, var_w)
+        up = update_wheels_with_gain(prior, v, w, self.params, stationary, var_v, var_w, dt_s)
         self._state = up.state
         self._step_map(up.error_map)
 

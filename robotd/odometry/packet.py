@@ -248,7 +248,8 @@ def packet_wheels(p: Packet, ds_m: float, dyaw_rad: float, dt_s: float, params: 
                   speed_var_m2ps2: float | None = None, yaw_rate_var_rad2ps2: float | None = None) -> None:
     """The wheel reading of the packet (``p`` at its end): the distance ``ds_m`` and heading
     change ``dyaw_rad`` over ``dt_s`` measure ``(D, Th)``, with the rate noise of
-    :func:`robotd.odometry.ekf.wheel_noise` at the mean rates times ``dt_s`` (and the slip
+    :func:`robotd.odometry.ekf.wheel_noise` at the mean rates over ``dt_s`` (its continuous
+    slip included) times ``dt_s`` (and the slip
     test's widening, :func:`robotd.odometry.ekf.slip_variances`, on the yaw rate's
     disagreement over the packet).
 
@@ -270,7 +271,7 @@ def packet_wheels(p: Packet, ds_m: float, dyaw_rad: float, dt_s: float, params: 
     keyframe edges claimed as motion noise while the true corrections were a twentieth of
     it."""
     v, w = ds_m / dt_s, dyaw_rad / dt_s
-    sv, sw = wheel_noise(v, w, params, False, speed_var_m2ps2, yaw_rate_var_rad2ps2)
+    sv, sw = wheel_noise(v, w, params, False, speed_var_m2ps2, yaw_rate_var_rad2ps2, dt_s)
     n = p.mean.shape[0]
     h = _H_INC[n]
     predicted = h @ p.mean

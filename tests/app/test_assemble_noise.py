@@ -34,12 +34,14 @@ def test_calibration_noise_goes_to_the_edges_and_the_fused_filter_keeps_the_conf
     twin = f.wheel_gyro.params
     assert _accel(twin) == (m.accel_noise_mps2_sqrt_hz, m.angular_accel_noise_radps2_sqrt_hz)
     assert twin.gyro_noise_radps == pytest.approx(m.gyro_noise_radps_sqrt_hz * math.sqrt(GYRO_READINGS_HZ / 2))
-    # The wheel speed's noise: one tick of quantisation over a 20 ms packet (difference of
-    # two quantised counts), no slip (the demo's fitted slip density is 0).
+    # The wheel speed's noise: the ticks' quantisation over a 20 ms packet (the mean of the
+    # two wheels' counts, each the difference of two roundings), and each wheel's fitted
+    # slip density per metre of its own travel in place of the config's slip fraction.
     tick_m = 2 * math.pi * 0.5 * (m.wheel_radius_left_m + m.wheel_radius_right_m) / cfg.robot.ticks_per_rev
-    assert twin.wheel_v_noise_mps == pytest.approx(tick_m / 0.02 / math.sqrt(6))
-    assert twin.wheel_v_noise_frac == (0.0 if m.wheel_noise_m_sqrt_m == 0.0 else pytest.approx(
-        math.sqrt(m.wheel_noise_m_sqrt_m ** 2 * 0.5 / 0.02) / 0.5))
+    assert twin.wheel_v_noise_mps == pytest.approx(tick_m / 0.02 / math.sqrt(12))
+    assert twin.wheel_v_noise_frac == 0.0
+    assert twin.wheel_slip_var_m2_per_m == pytest.approx(m.wheel_noise_m_sqrt_m ** 2)
+    assert twin.slip_half_base_m == pytest.approx(0.5 * m.wheel_base_m)
     assert twin.wheel_w_noise_per_mps == cfg.odometry.wheel_w_noise_per_mps  # the config's
     # The fused filter: the config's white accelerations and reading noise.
     assert _accel(f.params) == (cfg.odometry.accel_noise_density_mps2_per_sqrt_hz,
@@ -89,8 +91,9 @@ def test_the_slip_test_goes_with_the_calibration_noise_over_the_calibrated_wheel
     p = build_odometry(cfg, cal).params
     assert p.slip_gate_sigma == 3.0
     assert p.slip_half_base_m == pytest.approx(0.5 * m.wheel_base_m)
-    # the wheels' own yaw-rate noise: each wheel's tick quantisation, sqrt(2) of it over the base
-    assert p.slip_yaw_rate_noise_radps == pytest.approx(math.sqrt(2) * p.wheel_v_noise_mps / m.wheel_base_m)
+    # the wheels' own yaw-rate noise: each wheel's tick quantisation (sqrt(2) times the speed's,
+    # the mean of two counts), sqrt(2) of it over the base
+    assert p.slip_yaw_rate_noise_radps == pytest.approx(2.0 * p.wheel_v_noise_mps / m.wheel_base_m)
     # off (0), or with the config's noise model, no slip test
     assert build_odometry(replace(cfg, "odometry", slip_gate_sigma=0.0), cal).params.slip_gate_sigma == 0.0
     plain = build_odometry(replace(cfg, "odometry", noise_model="config"), cal).params

@@ -1,4 +1,5 @@
-"""bench_nees's split of the single edges at a start or a stop, on edges whose lag is known."""
+"""bench_nees: the split of the single edges at a start or a stop, on edges whose lag is known; one
+interval decomposed by kind and component; the scale prior's wear."""
 
 from __future__ import annotations
 
@@ -73,6 +74,9 @@ def test_a_calibration_is_measured_against_the_base_it_was_made_for(tmp_path):
     (["--own-calibration", "cal.yml"], "needs {seed}"),
     (["--own-calibration", "cal{seed}.yml", "--shipped-geometry"], "takes the place of"),
     (["--own-calibration", "cal{seed}.yml", "--seeds", "2"], "no calibration file"),
+    (["--scale-wear", "0.003"], "--scale-wear takes"),
+    (["--scale-wear", "0,0.002"], "--scale-wear takes"),
+    (["--scale-wear", "a,b"], "--scale-wear takes"),
 ])
 def test_own_calibration_refuses_what_it_cannot_run(args, says, tmp_path, monkeypatch, capsys):
     from bench.bench_nees import main
@@ -99,3 +103,53 @@ def test_an_honest_seeds_spread_is_the_chi_square_of_its_disjoint_chains():
     rng = np.random.default_rng(1)  # the same chance by drawing two chains' chi2(3) and averaging
     means = rng.chisquare(3, (200_000, 2)).mean(axis=1)
     assert np.mean((means >= 2) & (means <= 4)) == pytest.approx(two["within_2_4"], abs=0.005)
+
+
+def test_the_scale_wear_widens_the_calibrations_own_uncertainty(tmp_path):
+    from bench.bench_nees import daemon_scale_sigmas
+    from sim.sensors import BaseSensorParams
+
+    d = BaseSensorParams().drive
+    path = tmp_path / "cal.yml"
+    _calibration_file(path, d.wheel_radius_m, d.wheel_radius_m, d.wheel_base_m, 1.0)
+    own_wheel = 0.5 * np.hypot(3.5e-6 / d.wheel_radius_m, 3.5e-6 / d.wheel_radius_m)
+    wheel, gyro = daemon_scale_sigmas(path, (0.01, 0.004))
+    assert wheel == pytest.approx(np.hypot(own_wheel, 0.01), rel=1e-9)
+    assert gyro == pytest.approx(np.hypot(1e-4, 0.004), rel=1e-9)
+    wheel, gyro = daemon_scale_sigmas(path)  # the config's defaults, 0.003 and 0.002
+    assert (wheel, gyro) == (pytest.approx(np.hypot(own_wheel, 0.003)), pytest.approx(np.hypot(1e-4, 0.002)))
+
+
+def test_one_interval_is_decomposed_by_kind_and_component(monkeypatch):
+    """Four straight edges of 5 cm (errors of 100 um along the track, 4 um across, 100 urad
+    in yaw), one turn on the spot, one arc: each kind's RMS errors, the claimed sigmas and
+    the NEES of the filter's own covariance and of the edge's (here the same but floored)."""
+    import math
+
+    import bench.bench_nees as bn
+    from robotd.base.geometry import compose
+
+    steps = [np.array([0.05, 0.0, 0.0])] * 4 + [np.array([0.0, 0.0, 0.17]), np.array([0.05, 0.002, 0.08])]
+    truth = [np.zeros(3)]
+    for s in steps:
+        truth.append(compose(truth[-1], s))
+    errs = [np.array([1e-4, 4e-6, 1e-4]), np.array([-1e-4, -4e-6, -1e-4])] * 3
+    own = np.diag([1e-8, 1.6e-11, 1e-8])  # the filter's claim: each component's error exactly 1 sigma
+    delta = np.array([compose(s, e) for s, e in zip(steps, errs)])  # between(delta, truth step) = -e
+    floored = np.diag([1e-8, 1e-8, 1e-8])
+    d = {"delta": delta, "cov": np.array([floored] * 6), "truth": np.array(truth), "speed_mps": np.full(7, 0.3)}
+    monkeypatch.setattr(bn, "_joint_error", lambda d, i, j: (errs[i], own))
+    out = bn.interval_parts(d, (1e-9, 1e-9))
+    assert out["straight"]["intervals"] == 4 and out["turn on the spot"]["intervals"] == 1
+    assert out["arc"]["intervals"] == 1 and out["all"]["intervals"] == 6
+    s = out["straight"]
+    assert (s["along_rms"], s["across_rms"], s["yaw_rms"]) == (pytest.approx(100.0), pytest.approx(4.0),
+                                                               pytest.approx(100.0))
+    assert (s["along_sigma"], s["across_sigma"], s["yaw_sigma"]) == (pytest.approx(100.0), pytest.approx(4.0),
+                                                                     pytest.approx(100.0))
+    assert s["along_nees"] == pytest.approx(1.0) and s["across_nees"] == pytest.approx(1.0)
+    assert s["filter"] == pytest.approx(3.0) and s["filter_position"] == pytest.approx(2.0)
+    # the floor: 100 um on the across-track 4 um leaves that component ~0 of its 1
+    assert s["edge_position"] == pytest.approx(1.0 + 0.0016, rel=1e-3)
+    assert s["across_sigma_edge"] == pytest.approx(100.0)
+    assert not math.isnan(out["arc"]["edge_scale"])

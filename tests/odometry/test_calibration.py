@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -222,3 +223,50 @@ def test_the_gyro_scale_from_the_drivers_packet_means_is_not_pulled_low(seed):
     f = fit_odometry(drive, p.drive.wheel_radius_m, p.drive.wheel_base_m)
     assert abs(f.gyro_scale / (1 + err.gyro_scale_error) - 1) < 1e-4
     assert f.gyro_scale_sigma < 4e-5
+
+
+def test_the_ticks_noise_is_that_of_two_quantised_counts_over_a_packet():
+    """The calibration's wheel noise against a Monte Carlo of the encoders: each wheel's
+    count over a 20 ms packet is the difference of its travel rounded to a tick at both
+    ends (a random phase); the speed is the two counts' mean, the yaw rate their
+    difference over the wheel base. Their spread is what :func:`sensor_noise_params`
+    claims (one wheel's ``tick / dt / sqrt(6)`` for the speed would be sqrt(2) too wide)."""
+    from robotd.odometry.calibration import TICKS_PER_REV, sensor_noise_params
+    from robotd.odometry.ekf import EkfParams
+
+    rng = np.random.default_rng(3)
+    tick, dt, b, n = 2 * math.pi * 0.035 / TICKS_PER_REV, 0.02, 0.23, 200_000
+    p = sensor_noise_params(EkfParams(), 5e-4, 0.0, tick, wheel_base_m=b, slip_gate_sigma=3.0)
+    start = rng.uniform(0.0, tick, (n, 2))
+    travel = rng.uniform(0.0, 0.012, (n, 2))  # up to 0.6 m/s per wheel
+    counts = np.floor((start + travel) / tick) - np.floor(start / tick)
+    err = (counts - travel / tick) * tick / dt  # (n, 2) m/s per wheel
+    speed_err, yaw_err = 0.5 * (err[:, 0] + err[:, 1]), (err[:, 1] - err[:, 0]) / b
+    assert float(np.std(speed_err)) == pytest.approx(p.wheel_v_noise_mps, rel=0.01)
+    assert float(np.std(yaw_err)) == pytest.approx(p.slip_yaw_rate_noise_radps, rel=0.01)
+
+
+@pytest.mark.parametrize(("v_mps", "w_radps"), [(0.3, 0.0), (0.0, 1.0), (0.2, 0.8)])
+def test_the_wheels_slip_noise_is_the_simulators_continuous_slip(v_mps, w_radps):
+    """Each wheel's continuous slip (the fitted density, per metre of its own travel) against
+    a Monte Carlo of the simulator's (``sim.sensors``: 0.5 mm per sqrt(m) on each wheel,
+    drawn per 2 ms step, no slip events): the distance over a 20 ms packet spreads as the
+    filter's speed noise claims beyond the ticks', on a straight, a turn on the spot (which
+    a slip fraction of the base's speed called noiseless) and an arc."""
+    from sim.sensors import BaseSensorParams, _wheel_slip
+
+    from robotd.odometry.calibration import TICKS_PER_REV, sensor_noise_params
+    from robotd.odometry.ekf import EkfParams, wheel_noise
+
+    sp = dataclasses.replace(BaseSensorParams(), slip_event_rate_hz=0.0)
+    b, dt, steps, n = sp.drive.wheel_base_m, 0.02, 10, 40_000
+    p = sensor_noise_params(EkfParams(), 5e-4, sp.slip_noise_m_per_sqrt_m, 2 * math.pi * 0.035 / TICKS_PER_REV,
+                            wheel_base_m=b)
+    wheel_mps = np.array([v_mps - 0.5 * b * w_radps, v_mps + 0.5 * b * w_radps])
+    ds = np.tile(wheel_mps * dt / steps, (n * steps, 1))
+    slip, _events = _wheel_slip(ds, np.zeros_like(ds), np.ones(len(ds), bool), dt / steps, sp,
+                                np.random.default_rng(4))
+    distance_err = slip.reshape(n, steps, 2).sum(axis=1).mean(axis=1)  # (n,) m over the packet
+    sv = wheel_noise(v_mps, w_radps, p, dt_s=dt)[0]
+    claimed_var = (sv ** 2 - p.wheel_v_noise_mps ** 2) * dt ** 2
+    assert float(np.var(distance_err)) == pytest.approx(claimed_var, rel=0.03)
