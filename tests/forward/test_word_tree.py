@@ -11,6 +11,7 @@ from pathlib import Path
 
 from robotd.forward.vocabulary import (BinaryWordTree, TreeParams, Vocabulary, VocabularyParams, hamming_bits,
                                        pack_bits)
+from tests.shared_data import require
 
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
@@ -84,7 +85,8 @@ def test_on_real_orb_words_the_tree_finds_a_word_where_an_exact_search_does():
     from robotd.forward.features import FeatureExtractor, FeatureParams
     from robotd.io.sequence import list_images, read_image
 
-    files = list_images(DATA / "forward" / "rtabmap_samples", exclude=(DATA / "forward" / "rtabmap_samples" / "ground_truth.bmp",))
+    samples = require(DATA / "forward" / "rtabmap_samples", "the rtabmap_samples corridor")
+    files = list_images(samples, exclude=(samples / "ground_truth.bmp",))
     ex = FeatureExtractor(FeatureParams(kind="orb", max_features=300))
     descs = [ex(read_image(f)).descriptors for f in files[:36]]
     voc = Vocabulary(dim=32, binary=True, params=VocabularyParams())
