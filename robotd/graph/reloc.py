@@ -78,6 +78,7 @@ from robotd.base.geometry import (
     between,
     compose,
     compose_with_covariance,
+    information_from_covariance,
     inverse,
     wrap_angle,
 )
@@ -425,8 +426,7 @@ def group_constraint(members: Iterable[RelocCandidate], transform: np.ndarray,
     delta = delta_at(t0)
     jac = _numeric_jacobian(lambda t: _error(delta, delta_at(t)), t0)
     cov = jac @ np.asarray(covariance, float) @ jac.T
-    cov = 0.5 * (cov + cov.T)
-    return ref.old_id, ref.query_id, np.asarray(delta, float), np.linalg.inv(cov)
+    return ref.old_id, ref.query_id, np.asarray(delta, float), information_from_covariance(cov)
 
 
 def agreement_threshold(dof: int, params: RelocParams) -> float:

@@ -49,7 +49,7 @@ import numpy as np
 
 from robotd.base.errors import CalibrationError
 from robotd.base.geometry import rot2
-from robotd.odometry.ekf import EkfParams
+from robotd.odometry.ekf import EkfParams, slip_speed_variance
 
 __all__ = [
     "CalibrationDrive",
@@ -319,9 +319,8 @@ def fit_process_noise(drive: CalibrationDrive, radius_left_m: float, radius_righ
     dt_w = float(np.median(np.diff(np.asarray(drive.wheel_stamp_ns, np.int64)))) * 1e-9
     params = sensor_noise_params(noise, gyro_noise_radps_sqrt_hz, wheel_noise_m_sqrt_m,
                                  tick_rad * 0.5 * (radius_left_m + radius_right_m), readings_hz=1.0 / dt_w)
-    travel = np.abs(v - 0.5 * base_m * w) + np.abs(v + 0.5 * base_m * w)  # the wheels' speeds (EkfParams)
-    sv = np.where(still, params.stationary_noise_mps,
-                  np.sqrt(params.wheel_v_noise_mps ** 2 + params.wheel_slip_var_m2_per_m * travel / (4.0 * dt_w)))
+    slip = slip_speed_variance(v, w, params.wheel_slip_var_m2_per_m, 0.5 * base_m, dt_w)
+    sv = np.where(still, params.stationary_noise_mps, np.sqrt(params.wheel_v_noise_mps ** 2 + slip))
     sw = np.where(still, params.stationary_noise_radps, params.wheel_w_noise_radps
                   + params.wheel_w_noise_frac * np.abs(w) + params.wheel_w_noise_per_mps * np.abs(v))
     t0 = int(drive.wheel_stamp_ns[0])

@@ -489,6 +489,16 @@ def _joseph_columns(state: EkfState, innovation: np.ndarray, h: np.ndarray, r: n
     return RateUpdate(EkfState._own(state.stamp_ns, mean, cov), gain, r, amap)
 
 
+def slip_speed_variance(v_mps: Any, w_radps: Any, slip_var_m2_per_m: float, half_base_m: float,
+                        dt_s: float) -> Any:
+    """The variance (m^2/s^2) the wheels' continuous slip adds to the speed over a reading of
+    ``dt_s`` seconds (``wheel_slip_var_m2_per_m`` in :class:`EkfParams`): the two wheels
+    travel ``|v -+ w h| dt`` (``h`` = ``half_base_m``) and slip independently, so their mean
+    gets ``q (|v - w h| + |v + w h|) / (4 dt)``. Floats or arrays alike."""
+    turn = w_radps * half_base_m
+    return slip_var_m2_per_m * (abs(v_mps - turn) + abs(v_mps + turn)) / (4.0 * dt_s)
+
+
 def wheel_noise(v_mps: float, w_radps: float, params: EkfParams,
                 stationary: bool = False, speed_var_m2ps2: float | None = None,
                 yaw_rate_var_rad2ps2: float | None = None,
@@ -511,9 +521,7 @@ def wheel_noise(v_mps: float, w_radps: float, params: EkfParams,
           if speed_var_m2ps2 is None else math.sqrt(speed_var_m2ps2))
     q = params.wheel_slip_var_m2_per_m
     if q > 0.0 and dt_s is not None and dt_s > 0.0 and speed_var_m2ps2 is None:
-        turn = w_radps * params.slip_half_base_m
-        travel_mps = abs(v_mps - turn) + abs(v_mps + turn)  # the two wheels' speeds
-        sv = math.sqrt(sv * sv + q * travel_mps / (4.0 * dt_s))
+        sv = math.sqrt(sv * sv + slip_speed_variance(v_mps, w_radps, q, params.slip_half_base_m, dt_s))
     sw = (params.wheel_w_noise_radps + params.wheel_w_noise_frac * abs(w_radps)
           + params.wheel_w_noise_per_mps * abs(v_mps)
           if yaw_rate_var_rad2ps2 is None else math.sqrt(yaw_rate_var_rad2ps2))
