@@ -106,7 +106,7 @@ def diagnostics(stamp_ns: int, counters: Mapping[str, Any], driver_stats: Mappin
                 queue_drops: Mapping[str, int], localisation: str) -> dict[str, Any]:
     """``diagnostic_msgs/DiagnosticArray`` from what the STATUS line shows: the odometry
     (degraded or not), each driver (connected, gaps), the queues (drops), the map
-    (keyframes, loops) and the localisation state (``localisation``: ``"localised"``,
+    (keyframes, loops; the floor's and the forward camera's accepted and refused apart) and the localisation state (``localisation``: ``"localised"``,
     ``"not localised in the stored map"``, ``"lost"``, or ``""`` without a pose graph)."""
     c = counters
     status = [
@@ -118,7 +118,8 @@ def diagnostics(stamp_ns: int, counters: Mapping[str, Any], driver_stats: Mappin
         ros2msg.diagnostic_status(
             0, "robotd: map", f"{c.get('keyframes_stored', 0)} keyframes, {c.get('links_loop', 0)} loops", "",
             {k: c[k] for k in ("keyframes", "keyframes_stored", "links_loop", "loops_accepted",
-                               "loops_failed_gate", "frames_unsynced") if k in c}),
+                               "loops_failed_gate", "forward_loops_accepted", "forward_loops_failed_gate",
+                               "frames_unsynced") if k in c}),
         ros2msg.diagnostic_status(
             _level(sum(queue_drops.values()) > 0), "robotd: queues",
             f"{sum(queue_drops.values())} dropped", "", {f"dropped_{k}": v for k, v in queue_drops.items()}),

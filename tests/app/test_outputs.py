@@ -261,6 +261,20 @@ def test_the_localisation_diagnostic_counts_a_relocalising_groups_members_as_gro
     assert by_name["robotd: map"]["loops_failed_gate"] == "0"
 
 
+def test_the_map_diagnostic_counts_each_cameras_refused_loops_apart() -> None:
+    """The map status names the floor's and the forward camera's gate refusals under their
+    own keys, so a forward loop the gate refused is visible beside the floor's."""
+    from robotd.io.rosview import diagnostics
+
+    counters = {"keyframes_stored": 40, "links_loop": 9, "loops_accepted": 7, "loops_failed_gate": 1,
+                "forward_loops_accepted": 2, "forward_loops_failed_gate": 4}
+    msg = diagnostics(5, counters, {}, {}, "")
+    by_name = {s["name"]: {kv["key"]: kv["value"] for kv in s["values"]} for s in msg["status"]}
+    assert by_name["robotd: map"] == {"keyframes_stored": "40", "links_loop": "9", "loops_accepted": "7",
+                                      "loops_failed_gate": "1", "forward_loops_accepted": "2",
+                                      "forward_loops_failed_gate": "4"}
+
+
 def test_keyframe_images_only_to_the_sinks_that_want_them() -> None:
     pipeline, _, sink, graph, _ = make(keys={"tf", "keyframe_floor"})
     pipeline.publish(odo(0, 0.0, 0.0, 0.0))
