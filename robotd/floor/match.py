@@ -205,11 +205,14 @@ def _augmented_b(d: FloorDescriptor | PartialDescriptor, out: np.ndarray | None 
     return out
 
 
+_add_reduce = np.add.reduce  # ndarray.sum's own reduction (the same sums), without its wrapper's cost
+
+
 def _rigid(xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
     """``[R | t]`` (2 x 3) of the least-squares rigid fit ``xb ~ R xa + t`` (as
     :func:`robotd.base.geometry.rigid_fit_2d`, from raw sums: this runs twice per match)."""
     n = len(xa)
-    (sax, say), (sbx, sby) = xa.sum(axis=0).tolist(), xb.sum(axis=0).tolist()
+    (sax, say), (sbx, sby) = _add_reduce(xa, axis=0).tolist(), _add_reduce(xb, axis=0).tolist()
     (h00, h01), (h10, h11) = (xa.T @ xb).tolist()
     # The cross-covariance's corrections in Python floats: the same IEEE operations as the
     # array expression h - sa[:, None] * sb[None, :] / n, element by element.
@@ -252,6 +255,22 @@ def _ransac_pairs(seed: int, m: int, iterations: int) -> tuple[np.ndarray, np.nd
         if len(cache) >= 4096:
             cache.clear()
         hit = cache[key] = (i, j)
+    return hit
+
+
+def _ransac_draws(seed: int, m: int, iterations: int) -> np.ndarray:
+    """:func:`_ransac_pairs` as one ``(2, iterations) int64`` array (kept per thread, read-only)."""
+    cache = getattr(_RNGS, "draws", None)
+    if cache is None:
+        cache = _RNGS.draws = {}
+    key = (seed, m, iterations)
+    hit = cache.get(key)
+    if hit is None:
+        hit = np.stack(_ransac_pairs(seed, m, iterations))
+        hit.flags.writeable = False
+        if len(cache) >= 4096:
+            cache.clear()
+        cache[key] = hit
     return hit
 
 
@@ -443,20 +462,24 @@ def _refined(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, fa: np.ndarray,
     the score; not only those near the orientation peak) from RANSAC's inliers ``sel``
     (rows of the matches), twice, and the result."""
     transform = None
+    tol2 = p.inlier_px**2
     for _ in range(2):
         if len(sel) < 2:
             break
         transform = _rigid(fa[sel], fb[sel])
-        res = fa @ transform[:, :2].T + transform[:, 2] - fb
-        fitted, sel = sel, np.flatnonzero((res * res).sum(1) <= p.inlier_px**2)
-        if len(sel) == len(fitted) and not (sel != fitted).any():
+        res = fa @ transform[:, :2].T
+        res += transform[:, 2]
+        res -= fb
+        np.multiply(res, res, out=res)
+        fitted, sel = sel, np.flatnonzero(_add_reduce(res, axis=1) <= tol2)
+        if len(sel) == len(fitted) and np.array_equal(sel, fitted):
             break  # a fixed point: a further step would fit these inliers again, to the same transform
     if len(sel) < p.min_inliers or transform is None:
         return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
-    score = float(wm[sel].sum())
-    return MatchResult(score, n_matches, len(sel), ia[sel].astype(np.int64, copy=False),
-                       ib[sel].astype(np.int64, copy=False),
-                       a.xy_px[ia[sel]], xy_b[ib[sel]], transform, MatchReason.OK)
+    score = float(_add_reduce(wm[sel]))
+    ia_sel, ib_sel = ia[sel], ib[sel]
+    return MatchResult(score, n_matches, len(sel), ia_sel.astype(np.int64, copy=False),
+                       ib_sel.astype(np.int64, copy=False), a.xy_px[ia_sel], xy_b[ib_sel], transform, MatchReason.OK)
 
 
 _PAD_NORM = np.float32(1e30)  # a padding row's |tb|^2: farther than any keypoint, finite
@@ -520,7 +543,7 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
         if n < p.min_matches:
             out[c] = _dismissed(TOO_FEW_MATCHES, n)
             continue
-        if bound is not None and float(bound[starts[r]: starts[r + 1]].sum()) * (1 + 1e-6) + 1e-6 < min_score:
+        if bound is not None and float(_add_reduce(bound[starts[r]: starts[r + 1]])) * (1 + 1e-6) + 1e-6 < min_score:
             out[c] = _dismissed(BELOW_MIN_SCORE, n)
             continue
         b = bs[c]
@@ -584,7 +607,7 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
         blk = xa1_all[3 * m_off[q]: 3 * m_off[q + 1]].reshape(3, ms[q])
         blk[:2] = xa[m_off[q]: m_off[q + 1]].T
         blk[2] = 1.0
-    draws = np.stack([np.stack(_ransac_pairs(p.seed, m, p.iterations)) for m in ms])  # (pairs, 2, iterations)
+    draws = np.stack([_ransac_draws(p.seed, m, p.iterations) for m in ms])  # (pairs, 2, iterations)
     draws += np.asarray(m_off[:-1], np.intp)[:, None, None]
     peak_of = peaks[check]
     masks = _ransac_many(xab, draws, peak_of, xa1_all, xb, w_all, ms, m_off, p)
