@@ -593,9 +593,13 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
         return out  # type: ignore[return-value]
     # Step 3 for the pairs checked: their matches near the peak, stacked (offset per pair).
     inc = near & np.isin(s_all, check) if len(check) < n_go else near
-    ka, kb_all, kd = ia[inc], ib_all[inc], dm[inc]
-    xa, xb = a.xy_px[ka].astype(np.float64), xy_all[kb_all].astype(np.float64)
-    weight = np.maximum(0.0, 1.0 - kd / p.weight_distance)
+    fa_all, fb_all = a.xy_px[ia].astype(np.float64), xy_all[ib_all].astype(np.float64)
+    # The weights as _score computes them, over every match (the bound's when there is one).
+    if bound is None:
+        wm_all = np.maximum(0.0, 1.0 - dm / p.weight_distance)
+    else:
+        wm_all = bound if bound.shape == dm.shape else bound[take]
+    xa, xb, weight = fa_all[inc], fb_all[inc], wm_all[inc]
     w_all = weight + 1e-6
     xab = np.concatenate([xa, xb], axis=1)
     n_check = len(check)
@@ -611,20 +615,72 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
     draws += np.asarray(m_off[:-1], np.intp)[:, None, None]
     peak_of = peaks[check]
     masks = _ransac_many(xab, draws, peak_of, xa1_all, xb, w_all, ms, m_off, p)
-    fa_all, fb_all = a.xy_px[ia].astype(np.float64), xy_all[ib_all].astype(np.float64)
-    wm_all = np.maximum(0.0, 1.0 - dm / p.weight_distance)
+    near_rows = np.flatnonzero(inc)
+    todo = []  # (result slot, first and last match row, RANSAC's inliers as rows of the pair's matches)
     for q, g in enumerate(check):
-        r = go[g]
-        c = live[r]
-        mask = masks[q]
-        n_matches = n_match[g]
-        if mask is None:
-            out[c] = _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
+        c = live[go[g]]
+        if masks[q] is None:
+            out[c] = _dismissed(NO_GEOMETRIC_CONSISTENCY, n_match[g])
             continue
         lo, hi = go_starts[g], go_starts[g + 1]
-        out[c] = _refined(a, ia[lo:hi], ib[lo:hi], fa_all[lo:hi], fb_all[lo:hi], wm_all[lo:hi], xys[g],
-                          np.flatnonzero(near[lo:hi])[mask], n_matches, p)
+        sel = near_rows[m_off[q]: m_off[q + 1]][masks[q]]
+        sel -= lo
+        todo.append((c, lo, hi, sel, xys[g]))
+    for c, result in _refined_many(a, ia, ib, fa_all, fb_all, wm_all, todo, p):
+        out[c] = result
     return out  # type: ignore[return-value]
+
+
+def _refined_many(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, fa_all: np.ndarray, fb_all: np.ndarray,
+                  wm_all: np.ndarray, todo: list[tuple[int, int, int, np.ndarray, np.ndarray]],
+                  p: MatchParams) -> list[tuple[int, MatchResult]]:
+    """:func:`_refined` of several pairs, the same results bit for bit: ``ia``, ``ib``,
+    ``fa_all``, ``fb_all``, ``wm_all`` their descriptor matches stacked, and per pair in
+    ``todo`` its result slot, its rows ``lo:hi`` of the stack, RANSAC's inliers (rows of the
+    pair's matches) and its keypoints' positions. Each fit and each residual product is
+    one call per pair on the arrays :func:`_refined` makes; the residuals' element-wise
+    steps (the translation, the difference, the squares and their sums over x and y, the
+    test) run over the stack at once."""
+    tol2 = p.inlier_px**2
+    sels = [t[3] for t in todo]
+    transforms: list[np.ndarray | None] = [None] * len(todo)
+    active = list(range(len(todo)))
+    res_all = np.zeros_like(fa_all)  # finite everywhere: rows of pairs done are computed on, unread
+    t_all = np.zeros_like(fa_all)
+    for _ in range(2):
+        active = [q for q in active if len(sels[q]) >= 2]
+        if not active:
+            break
+        for q in active:
+            _c, lo, hi, _s, _xy = todo[q]
+            transform = transforms[q] = _rigid(fa_all[lo:hi][sels[q]], fb_all[lo:hi][sels[q]])
+            np.matmul(fa_all[lo:hi], transform[:, :2].T, out=res_all[lo:hi])
+            t_all[lo:hi] = transform[:, 2]
+        lo_all, hi_all = todo[active[0]][1], todo[active[-1]][2]  # rows between belong to pairs done: unused
+        res = res_all[lo_all:hi_all]
+        res += t_all[lo_all:hi_all]
+        res -= fb_all[lo_all:hi_all]
+        np.multiply(res, res, out=res)
+        inl = _add_reduce(res, axis=1) <= tol2
+        still = []
+        for q in active:
+            _c, lo, hi, _s, _xy = todo[q]
+            fitted = sels[q]
+            sel = sels[q] = np.flatnonzero(inl[lo - lo_all: hi - lo_all])
+            if not (len(sel) == len(fitted) and np.array_equal(sel, fitted)):
+                still.append(q)  # not yet a fixed point (where a further step would fit these inliers again)
+        active = still
+    results = []
+    for q, (c, lo, hi, _s, xy_b) in enumerate(todo):
+        sel, transform = sels[q], transforms[q]
+        if len(sel) < p.min_inliers or transform is None:
+            results.append((c, _dismissed(NO_GEOMETRIC_CONSISTENCY, hi - lo)))
+            continue
+        ia_sel, ib_sel = ia[lo:hi][sel], ib[lo:hi][sel]
+        results.append((c, MatchResult(float(_add_reduce(wm_all[lo:hi][sel])), hi - lo, len(sel),
+                                       ia_sel.astype(np.int64, copy=False), ib_sel.astype(np.int64, copy=False),
+                                       a.xy_px[ia_sel], xy_b[ib_sel], transform, MatchReason.OK)))
+    return results
 
 
 def _ransac_many(xab: np.ndarray, draws: np.ndarray, peaks: np.ndarray, xa1_all: np.ndarray, xb: np.ndarray,
