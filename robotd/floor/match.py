@@ -532,7 +532,9 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
     d2 *= 1.0 / a.length
     keep = (d1 <= p.max_distance) & (d1 < p.ratio * p.ratio * d2)
     seg, ia = np.nonzero(keep.T)  # by pair, then by A's keypoint: each pair's matches as _score orders them
-    ib, dm = nn[ia, seg], d1[ia, seg]
+    at = ia * n_live
+    at += seg
+    ib, dm = nn.take(at), d1.take(at)  # nn[ia, seg], d1[ia, seg]
     n_of = np.bincount(seg, minlength=n_live).tolist()
     starts = [0, *itertools.accumulate(n_of)]
     bound = np.maximum(0.0, 1.0 - dm / p.weight_distance) if min_score > 0 else None
@@ -593,13 +595,13 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
         return out  # type: ignore[return-value]
     # Step 3 for the pairs checked: their matches near the peak, stacked (offset per pair).
     inc = near & np.isin(s_all, check) if len(check) < n_go else near
-    fa_all, fb_all = a.xy_px[ia].astype(np.float64), xy_all[ib_all].astype(np.float64)
+    fa_all, fb_all = a.xy_px.take(ia, axis=0).astype(np.float64), xy_all.take(ib_all, axis=0).astype(np.float64)
     # The weights as _score computes them, over every match (the bound's when there is one).
     if bound is None:
         wm_all = np.maximum(0.0, 1.0 - dm / p.weight_distance)
     else:
         wm_all = bound if bound.shape == dm.shape else bound[take]
-    xa, xb, weight = fa_all[inc], fb_all[inc], wm_all[inc]
+    xa, xb, weight = fa_all.compress(inc, axis=0), fb_all.compress(inc, axis=0), wm_all[inc]
     w_all = weight + 1e-6
     xab = np.concatenate([xa, xb], axis=1)
     n_check = len(check)
@@ -615,7 +617,7 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
     draws += np.asarray(m_off[:-1], np.intp)[:, None, None]
     peak_of = peaks[check]
     masks = _ransac_many(xab, draws, peak_of, xa1_all, xb, w_all, ms, m_off, p)
-    near_rows = np.flatnonzero(inc)
+    near_rows = inc.nonzero()[0]
     todo = []  # (result slot, first and last match row, RANSAC's inliers as rows of the pair's matches)
     for q, g in enumerate(check):
         c = live[go[g]]
@@ -653,7 +655,7 @@ def _refined_many(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, fa_all: np
             break
         for q in active:
             _c, lo, hi, _s, _xy = todo[q]
-            transform = transforms[q] = _rigid(fa_all[lo:hi][sels[q]], fb_all[lo:hi][sels[q]])
+            transform = transforms[q] = _rigid(fa_all[lo:hi].take(sels[q], axis=0), fb_all[lo:hi].take(sels[q], axis=0))
             np.matmul(fa_all[lo:hi], transform[:, :2].T, out=res_all[lo:hi])
             t_all[lo:hi] = transform[:, 2]
         lo_all, hi_all = todo[active[0]][1], todo[active[-1]][2]  # rows between belong to pairs done: unused
@@ -666,8 +668,8 @@ def _refined_many(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, fa_all: np
         for q in active:
             _c, lo, hi, _s, _xy = todo[q]
             fitted = sels[q]
-            sel = sels[q] = np.flatnonzero(inl[lo - lo_all: hi - lo_all])
-            if not (len(sel) == len(fitted) and np.array_equal(sel, fitted)):
+            sel = sels[q] = inl[lo - lo_all: hi - lo_all].nonzero()[0]
+            if not (len(sel) == len(fitted) and sel.tobytes() == fitted.tobytes()):
                 still.append(q)  # not yet a fixed point (where a further step would fit these inliers again)
         active = still
     results = []
@@ -679,7 +681,8 @@ def _refined_many(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, fa_all: np
         ia_sel, ib_sel = ia[lo:hi][sel], ib[lo:hi][sel]
         results.append((c, MatchResult(float(_add_reduce(wm_all[lo:hi][sel])), hi - lo, len(sel),
                                        ia_sel.astype(np.int64, copy=False), ib_sel.astype(np.int64, copy=False),
-                                       a.xy_px[ia_sel], xy_b[ib_sel], transform, MatchReason.OK)))
+                                       a.xy_px.take(ia_sel, axis=0), xy_b.take(ib_sel, axis=0), transform,
+                                       MatchReason.OK)))
     return results
 
 
@@ -755,7 +758,8 @@ def _hypotheses_many(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: np.nda
                      p: MatchParams) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """:func:`_hypotheses` of several pairs' samples at once (``peak`` per sample, or one
     for all): the rows of the samples that pass, and the ``(len(i),) bool`` mask of those."""
-    v = xab[j] - xab[i]
+    xi, xj = xab.take(i, axis=0), xab.take(j, axis=0)
+    v = xj - xi
     lab = np.hypot(v[:, 0::2], v[:, 1::2])
     la, lb = lab[:, 0], lab[:, 1]
     ang = np.arctan2(v[:, 1::2], v[:, 0::2])
@@ -771,8 +775,8 @@ def _hypotheses_many(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: np.nda
     c, s = np.cos(phi, out=rows_x[:, 0]), np.sin(phi, out=rows_y[:, 0])
     np.negative(s, out=rows_x[:, 1])
     rows_y[:, 1] = c
-    mid = xab[i]
-    mid += xab[j]
+    mid = xab.take(i, axis=0)
+    mid += xab.take(j, axis=0)
     mid *= 0.5  # sample midpoints: x, y in A, then in B
     np.subtract(mid[:, 2], c * mid[:, 0] - s * mid[:, 1], out=rows_x[:, 2])
     np.subtract(mid[:, 3], s * mid[:, 0] + c * mid[:, 1], out=rows_y[:, 2])
