@@ -170,6 +170,19 @@ def _augmented(d: FloorDescriptor, scale: float, last: np.ndarray | None) -> np.
     return out
 
 
+def _augmented_a(a: FloorDescriptor) -> np.ndarray:
+    """``_augmented(a, 1.0, None)``, the query's side of every local score: its trits built
+    from the bit planes in int8 and cast once (the same float32 values)."""
+    out = np.empty((len(a), a.length + 1), np.float32)
+    pos = np.unpackbits(np.ascontiguousarray(a.local_pos).astype("<u8", copy=False).view(np.uint8), axis=1,
+                        bitorder="little")
+    neg = np.unpackbits(np.ascontiguousarray(a.local_neg).astype("<u8", copy=False).view(np.uint8), axis=1,
+                        bitorder="little")
+    np.subtract(pos.view(np.int8)[:, :a.length], neg.view(np.int8)[:, :a.length], out=out[:, :-1], casting="unsafe")
+    out[:, -1] = 1.0
+    return out
+
+
 @lru_cache(maxsize=1)
 def _minus_two_trits() -> np.ndarray:
     """``(256, 5) float32``: per stored trit byte (5 base-3 digits, element + 1), its 5
@@ -208,11 +221,14 @@ def _augmented_b(d: FloorDescriptor | PartialDescriptor, out: np.ndarray | None 
 _add_reduce = np.add.reduce  # ndarray.sum's own reduction (the same sums), without its wrapper's cost
 
 
-def _rigid(xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
+def _rigid(xa: np.ndarray, xb: np.ndarray, sums: tuple[list[float], list[float]] | None = None) -> np.ndarray:
     """``[R | t]`` (2 x 3) of the least-squares rigid fit ``xb ~ R xa + t`` (as
-    :func:`robotd.base.geometry.rigid_fit_2d`, from raw sums: this runs twice per match)."""
+    :func:`robotd.base.geometry.rigid_fit_2d`, from raw sums: this runs twice per match).
+    ``sums``: ``xa`` and ``xb`` summed over their rows (``np.add.reduce(.., axis=0)``), when
+    the caller has them."""
     n = len(xa)
-    (sax, say), (sbx, sby) = _add_reduce(xa, axis=0).tolist(), _add_reduce(xb, axis=0).tolist()
+    (sax, say), (sbx, sby) = sums if sums is not None else (_add_reduce(xa, axis=0).tolist(),
+                                                            _add_reduce(xb, axis=0).tolist())
     (h00, h01), (h10, h11) = (xa.T @ xb).tolist()
     # The cross-covariance's corrections in Python floats: the same IEEE operations as the
     # array expression h - sa[:, None] * sb[None, :] / n, element by element.
@@ -376,7 +392,7 @@ class Matcher:
     def __init__(self, a: FloorDescriptor, params: MatchParams | None = None) -> None:
         self.a = a
         self.params = params or MatchParams()
-        self._aug = _augmented(a, 1.0, None) if len(a) >= 2 else None
+        self._aug = _augmented_a(a) if len(a) >= 2 else None
         self._norm = a.nonzero_trits()
 
     def score(self, b: FloorDescriptor | PartialDescriptor, min_score: float = 0.0) -> MatchResult:
@@ -581,7 +597,7 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
     bins = (dth * (nbins / (2 * math.pi))).astype(np.intp) % nbins
     bins += nbins * s_all
     hist = np.bincount(bins, minlength=nbins * n_go).reshape(n_go, nbins).astype(float)
-    hist = hist + 0.5 * (hist[:, _PREV_BIN] + hist[:, _NEXT_BIN])
+    hist = hist + 0.5 * (hist.take(_PREV_BIN, axis=1) + hist.take(_NEXT_BIN, axis=1))
     peaks = (np.argmax(hist, axis=1) + 0.5) * (2 * math.pi / nbins)
     near = np.abs(wrap_angle(dth - peaks[s_all])) <= p.angle_tol_rad + math.pi / nbins
     m_of = np.bincount(s_all[near], minlength=n_go).tolist()
@@ -653,9 +669,20 @@ def _refined_many(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, fa_all: np
         active = [q for q in active if len(sels[q]) >= 2]
         if not active:
             break
-        for q in active:
-            _c, lo, hi, _s, _xy = todo[q]
-            transform = transforms[q] = _rigid(fa_all[lo:hi].take(sels[q], axis=0), fb_all[lo:hi].take(sels[q], axis=0))
+        # Each pair's inliers gathered into its block of two padded stacks, whose sums over
+        # the rows are those of the pair's rows alone (an axis reduced in order, the padding
+        # -0.0: x + -0.0 is x for every x), one call for all the pairs.
+        mmax = max(len(sels[q]) for q in active)
+        pad_a = np.full((len(active), mmax, 2), -0.0)
+        pad_b = np.full((len(active), mmax, 2), -0.0)
+        for r, q in enumerate(active):
+            lo, hi, m = todo[q][1], todo[q][2], len(sels[q])
+            fa_all[lo:hi].take(sels[q], axis=0, out=pad_a[r, :m], mode="clip")
+            fb_all[lo:hi].take(sels[q], axis=0, out=pad_b[r, :m], mode="clip")
+        sum_a, sum_b = _add_reduce(pad_a, axis=1).tolist(), _add_reduce(pad_b, axis=1).tolist()
+        for r, q in enumerate(active):
+            lo, hi, m = todo[q][1], todo[q][2], len(sels[q])
+            transform = transforms[q] = _rigid(pad_a[r, :m], pad_b[r, :m], (sum_a[r], sum_b[r]))
             np.matmul(fa_all[lo:hi], transform[:, :2].T, out=res_all[lo:hi])
             t_all[lo:hi] = transform[:, 2]
         lo_all, hi_all = todo[active[0]][1], todo[active[-1]][2]  # rows between belong to pairs done: unused
@@ -706,7 +733,7 @@ def _ransac_many(xab: np.ndarray, draws: np.ndarray, peaks: np.ndarray, xa1_all:
     iterations = draws.shape[2]
     b0, b1 = 0, (_BLOCK if adaptive else iterations)
     while b0 < iterations and active:
-        blk = draws[active, :, b0:b1]
+        blk = draws[:, :, b0:b1] if len(active) == n else draws[active, :, b0:b1]
         hyp_of = np.repeat(np.asarray(active, np.intp), blk.shape[2])
         b0, b1 = b1, 3 * b1
         hyp = _hypotheses_many(xab, blk[:, 0].ravel(), blk[:, 1].ravel(), peaks[hyp_of], p)
