@@ -10,7 +10,9 @@ parent sends each query to every tree in turn (which goes first rotates by query
 trees share the machine's load; each worker times its query with thread CPU time.
 
 Per tree: the median and p90 ms per query, the ratio of its median to the first tree's
-(overall and by round), and whether its answers are the first tree's bit for bit (every
+(overall and by round), the median of its per-query ratios (each query's time over the
+first tree's for the same query, measured back to back: less swayed by the load's swings
+between queries), and whether its answers are the first tree's bit for bit (every
 candidate's keyframe id, scores, match counts, reason, inlier indices and positions and
 transform, compared as bytes). ``--profile N``: each worker also runs one more round under
 cProfile and reports its ``N`` functions of most own time (not timed with the rounds).
@@ -180,6 +182,7 @@ def run(trees: list[tuple[str, Path]], map_path: Path, sizes: list[int], queries
             row["trees"][lab] = {
                 "query_ms": {"median": med, "p90": statistics.quantiles(ms[lab], n=10)[-1]},
                 "ratio": med / base,
+                "paired_ratio": statistics.median(x / y for x, y in zip(ms[lab], ms[labels[0]])),
                 "ratio_by_round": [statistics.median(ms[lab][i * nq: (i + 1) * nq]) /
                                    statistics.median(ms[labels[0]][i * nq: (i + 1) * nq]) for i in range(rounds)],
                 "answers_same_as_first": same[lab], "answers": rounds * nq, "loops_first_round": loops[lab]}
@@ -194,7 +197,8 @@ def run(trees: list[tuple[str, Path]], map_path: Path, sizes: list[int], queries
             p.wait(timeout=60)
         for lab in labels:
             v = row["trees"][lab]
-            print(f"{n} keyframes, {lab}: {v['query_ms']['median']:.2f} ms median (ratio {v['ratio']:.3f}; by round "
+            print(f"{n} keyframes, {lab}: {v['query_ms']['median']:.2f} ms median (ratio {v['ratio']:.3f}, paired "
+                  f"{v['paired_ratio']:.3f}; by round "
                   f"{', '.join(f'{x:.2f}' for x in v['ratio_by_round'])}), answers as {labels[0]}'s "
                   f"{v['answers_same_as_first']}/{v['answers']}", flush=True)
         out["sizes"].append(row)
@@ -219,17 +223,19 @@ def _run_section(payload: dict[str, Any], head: str) -> list[str]:
              f"{r['mode']}) repeated to each size and read from the map as the daemon holds them (1,024 resident), "
              f"the last {r['queries']} queried in the order driven (loop threshold {r['min_score']:.2f}, k "
              f"{r['k']}); trees {trees}, one worker process each, alternated query by query, {r['rounds']} rounds, "
-             f"thread CPU. Ratio: the tree's median over the first tree's in the same run. Same answers: queries "
+             f"thread CPU. Ratio: the tree's median over the first tree's in the same run; paired ratio: the median "
+             f"of each query's time over the first tree's for the same query. Same answers: queries "
              f"whose candidates are the first tree's bit for bit.", "",
              f"Machine: {m['platform']} ({m.get('cpu_model')}), load {payload.get('load_start')} -> "
              f"{payload.get('load_end')}.", ""]
     for row in r["sizes"]:
         lines += [f"{head} {row['keyframes']} keyframes", "",
-                  "| tree | median ms | ratio (by round) | p90 ms | same answers | loops (first round) |",
-                  "|---|---:|---|---:|---:|---:|"]
+                  "| tree | median ms | ratio (by round) | paired ratio | p90 ms | same answers | loops (first round) |",
+                  "|---|---:|---|---:|---:|---:|---:|"]
         for lab, v in row["trees"].items():
             lines.append(f"| {lab} | {v['query_ms']['median']:.2f} | {v['ratio']:.3f} "
-                         f"({', '.join(f'{x:.2f}' for x in v['ratio_by_round'])}) | {v['query_ms']['p90']:.2f} | "
+                         f"({', '.join(f'{x:.2f}' for x in v['ratio_by_round'])}) | {v.get('paired_ratio', float('nan')):.3f} "
+                         f"| {v['query_ms']['p90']:.2f} | "
                          f"{v['answers_same_as_first']}/{v['answers']} | {v['loops_first_round']} |")
         lines.append("")
     return lines

@@ -221,14 +221,11 @@ def _augmented_b(d: FloorDescriptor | PartialDescriptor, out: np.ndarray | None 
 _add_reduce = np.add.reduce  # ndarray.sum's own reduction (the same sums), without its wrapper's cost
 
 
-def _rigid(xa: np.ndarray, xb: np.ndarray, sums: tuple[list[float], list[float]] | None = None) -> np.ndarray:
+def _rigid(xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
     """``[R | t]`` (2 x 3) of the least-squares rigid fit ``xb ~ R xa + t`` (as
-    :func:`robotd.base.geometry.rigid_fit_2d`, from raw sums: this runs twice per match).
-    ``sums``: ``xa`` and ``xb`` summed over their rows (``np.add.reduce(.., axis=0)``), when
-    the caller has them."""
+    :func:`robotd.base.geometry.rigid_fit_2d`, from raw sums: this runs twice per match)."""
     n = len(xa)
-    (sax, say), (sbx, sby) = sums if sums is not None else (_add_reduce(xa, axis=0).tolist(),
-                                                            _add_reduce(xb, axis=0).tolist())
+    (sax, say), (sbx, sby) = _add_reduce(xa, axis=0).tolist(), _add_reduce(xb, axis=0).tolist()
     (h00, h01), (h10, h11) = (xa.T @ xb).tolist()
     # The cross-covariance's corrections in Python floats: the same IEEE operations as the
     # array expression h - sa[:, None] * sb[None, :] / n, element by element.
@@ -669,21 +666,11 @@ def _refined_many(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, fa_all: np
         active = [q for q in active if len(sels[q]) >= 2]
         if not active:
             break
-        # Each pair's inliers gathered into its block of two padded stacks, whose sums over
-        # the rows are those of the pair's rows alone (an axis reduced in order, the padding
-        # -0.0: x + -0.0 is x for every x), one call for all the pairs.
-        mmax = max(len(sels[q]) for q in active)
-        pad_a = np.full((len(active), mmax, 2), -0.0)
-        pad_b = np.full((len(active), mmax, 2), -0.0)
-        for r, q in enumerate(active):
-            lo, hi, m = todo[q][1], todo[q][2], len(sels[q])
-            fa_all[lo:hi].take(sels[q], axis=0, out=pad_a[r, :m], mode="clip")
-            fb_all[lo:hi].take(sels[q], axis=0, out=pad_b[r, :m], mode="clip")
-        sum_a, sum_b = _add_reduce(pad_a, axis=1).tolist(), _add_reduce(pad_b, axis=1).tolist()
-        for r, q in enumerate(active):
-            lo, hi, m = todo[q][1], todo[q][2], len(sels[q])
-            transform = transforms[q] = _rigid(pad_a[r, :m], pad_b[r, :m], (sum_a[r], sum_b[r]))
-            np.matmul(fa_all[lo:hi], transform[:, :2].T, out=res_all[lo:hi])
+        for q in active:
+            lo, hi = todo[q][1], todo[q][2]
+            fa, fb = fa_all[lo:hi], fb_all[lo:hi]
+            transform = transforms[q] = _rigid(fa.take(sels[q], axis=0), fb.take(sels[q], axis=0))
+            np.matmul(fa, transform[:, :2].T, out=res_all[lo:hi])
             t_all[lo:hi] = transform[:, 2]
         lo_all, hi_all = todo[active[0]][1], todo[active[-1]][2]  # rows between belong to pairs done: unused
         res = res_all[lo_all:hi_all]
