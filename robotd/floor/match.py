@@ -688,14 +688,14 @@ def _refined_many(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, fa_all: np
         active = still
     results = []
     for q, (c, lo, hi, _s, xy_b) in enumerate(todo):
-        sel, transform = sels[q], transforms[q]
-        if len(sel) < p.min_inliers or transform is None:
+        sel, fit = sels[q], transforms[q]
+        if len(sel) < p.min_inliers or fit is None:
             results.append((c, _dismissed(NO_GEOMETRIC_CONSISTENCY, hi - lo)))
             continue
         ia_sel, ib_sel = ia[lo:hi][sel], ib[lo:hi][sel]
         results.append((c, MatchResult(float(_add_reduce(wm_all[lo:hi][sel])), hi - lo, len(sel),
                                        ia_sel.astype(np.int64, copy=False), ib_sel.astype(np.int64, copy=False),
-                                       a.xy_px.take(ia_sel, axis=0), xy_b.take(ib_sel, axis=0), transform,
+                                       a.xy_px.take(ia_sel, axis=0), xy_b.take(ib_sel, axis=0), fit,
                                        MatchReason.OK)))
     return results
 
