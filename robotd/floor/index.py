@@ -169,6 +169,9 @@ _BATCH = 8
 _ON_DEMAND = np.iinfo(np.int64).min
 """``FloorIndex._slot`` of a keyframe whose descriptor is read through the loader."""
 
+_EXCLUDED = np.iinfo(np.int64).max
+"""The shortlist's rank key of an excluded row (:meth:`FloorIndex._ranked`): after every other."""
+
 _ANGLE_STEP = 2 * math.pi / 2**ANGLE_BITS
 _ANGLES = (np.arange(2**ANGLE_BITS) * _ANGLE_STEP).astype(np.float32)  # code -> radians, as decode gives them
 
@@ -327,6 +330,7 @@ class FloorIndex:
         self._objects: list[Any] = []
         self._n = 0
         self._row_of: dict[int, int] = {}
+        self._ids_increasing = True  # every id added larger than the one before (rows found by bisection)
         self._local_nbytes = 0  # of the descriptors kept as they are
         self._loader = loader
         # keyframe id -> (decoded descriptor, its bytes), least recently used first
@@ -402,6 +406,8 @@ class FloorIndex:
         padded = np.zeros(8 * self._words, np.uint8)
         padded[: g.size] = g
         self._global[:, row] = padded.view(np.uint64)
+        if row and keyframe_id < self._ids[row - 1]:
+            self._ids_increasing = False
         self._ids[row] = keyframe_id
         if self._loader is not None:
             self._slot[row] = _ON_DEMAND
@@ -521,14 +527,16 @@ class FloorIndex:
 
     def _hamming(self, descriptor: FloorDescriptor) -> np.ndarray:
         """Hamming distance of ``descriptor``'s global bits to every indexed keyframe's,
-        ``(N,) int64`` in the order of :attr:`ids` (the index must not be empty)."""
+        ``(N,)`` integers (uint16, or int64 for descriptors of 65,536 bits or more) in the
+        order of :attr:`ids` (the index must not be empty)."""
         g = _global_bytes(descriptor)
         if 8 * g.size != self._bits:
             raise ValueError(f"query global descriptor has {8 * g.size} bits, the index holds {self._bits}")
         padded = np.zeros(8 * self._words, np.uint8)
         padded[: g.size] = g
         q = padded.view(np.uint64)
-        return np.bitwise_count(np.bitwise_xor(self._global[:, : len(self)], q[:, None])).sum(axis=0, dtype=np.int64)
+        return np.bitwise_count(np.bitwise_xor(self._global[:, : len(self)], q[:, None])).sum(
+            axis=0, dtype=np.uint16 if self._bits < 1 << 16 else np.int64)
 
     def shortlist(self, descriptor: FloorDescriptor, size: int | None = None,
                   exclude_ids: Callable[[int], bool] | Collection[int] | None = None,
@@ -546,28 +554,21 @@ class FloorIndex:
             return []
         # Ranked by Hamming distance, the global score's order (1 - hamming / bits).
         dist = self._hamming(descriptor)
+        if not callable(exclude_ids):
+            return self._ranked(dist, size, exclude_ids, exclude_after_id)
+        predicate: Callable[[int], bool] = exclude_ids
         bits = float(self._bits)
         ids = self._ids[:n]
         valid: np.ndarray | None = None
         if exclude_after_id is not None:
             valid = ids <= int(exclude_after_id)
-        predicate: Callable[[int], bool] | None = None
-        if callable(exclude_ids):
-            predicate = exclude_ids
-        elif exclude_ids is not None:
-            if isinstance(exclude_ids, np.ndarray):  # no Python loop over a large array of ids
-                excluded = exclude_ids.ravel().astype(np.int64, copy=False)
-            else:
-                excluded = np.fromiter((int(i) for i in exclude_ids), np.int64)
-            kept = ~np.isin(ids, excluded)
-            valid = kept if valid is None else valid & kept
         rows = np.arange(n) if valid is None else np.flatnonzero(valid)
         if rows.size == 0:
             return []
         d = dist if valid is None else dist[rows]
         # Best first; ties broken by row (= insertion order) through the stable sort.
-        # Only the top of the list is sorted unless a predicate rejects many of it.
-        want = size if predicate is None else 2 * size
+        # Only the top of the list is sorted unless the predicate rejects many of it.
+        want = 2 * size
         if rows.size > want:
             top = np.argpartition(d, want - 1)[:want]
             top = np.flatnonzero(d <= d[top].max())  # keep every tie at the cut
@@ -577,12 +578,12 @@ class FloorIndex:
         out: list[tuple[int, float]] = []
         for row in ordered:
             kf = int(ids[row])
-            if predicate is not None and predicate(kf):
+            if predicate(kf):
                 continue
             out.append((kf, float(1.0 - dist[row] / bits)))
             if len(out) == size:
                 return out
-        if predicate is not None and len(ordered) < rows.size:
+        if len(ordered) < rows.size:
             # The predicate rejected too many of the top rows: walk the rest in order.
             seen = set(ordered.tolist())
             rest = [r for r in rows[np.argsort(d, kind="stable")] if int(r) not in seen]
@@ -594,6 +595,38 @@ class FloorIndex:
                 if len(out) == size:
                     break
         return out
+
+    def _ranked(self, dist: np.ndarray, size: int, exclude_ids: Collection[int] | None,
+                exclude_after_id: int | None) -> list[tuple[int, float]]:
+        """:meth:`shortlist` without a predicate: the ``size`` smallest of one int64 key per
+        row, the distance above the row (unique, so that one partition finds them, ties in
+        row order), excluded rows keyed above every other."""
+        n = len(dist)
+        ids = self._ids[:n]
+        key = dist.astype(np.int64)
+        key <<= 32
+        key |= np.arange(n, dtype=np.int64)
+        if exclude_after_id is not None:
+            if self._ids_increasing:
+                key[int(np.searchsorted(ids, int(exclude_after_id), side="right")):] = _EXCLUDED
+            else:
+                key[ids > int(exclude_after_id)] = _EXCLUDED
+        if exclude_ids is not None:
+            if isinstance(exclude_ids, np.ndarray):  # no Python loop over a large array of ids
+                excluded = exclude_ids.ravel().astype(np.int64, copy=False)
+            else:
+                excluded = np.fromiter((int(i) for i in exclude_ids), np.int64)
+            if self._ids_increasing:
+                at = np.searchsorted(ids, excluded)
+                inside = at < n
+                at = at[inside]
+                key[at[ids[at] == excluded[inside]]] = _EXCLUDED
+            else:
+                key[np.isin(ids, excluded)] = _EXCLUDED
+        top = np.argpartition(key, size - 1)[:size] if n > size else np.arange(n)
+        top = top[np.argsort(key[top])]
+        bits = float(self._bits)
+        return [(int(ids[r]), 1.0 - int(dist[r]) / bits) for r in top.tolist() if key[r] != _EXCLUDED]
 
     def query(self, descriptor: FloorDescriptor, k: int | None = None,
               exclude_ids: Callable[[int], bool] | Collection[int] | None = None,

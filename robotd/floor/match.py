@@ -170,6 +170,19 @@ def _augmented(d: FloorDescriptor, scale: float, last: np.ndarray | None) -> np.
     return out
 
 
+def _augmented_a(a: FloorDescriptor) -> np.ndarray:
+    """``_augmented(a, 1.0, None)``, the query's side of every local score: its trits built
+    from the bit planes in int8 and cast once (the same float32 values)."""
+    out = np.empty((len(a), a.length + 1), np.float32)
+    pos = np.unpackbits(np.ascontiguousarray(a.local_pos).astype("<u8", copy=False).view(np.uint8), axis=1,
+                        bitorder="little")
+    neg = np.unpackbits(np.ascontiguousarray(a.local_neg).astype("<u8", copy=False).view(np.uint8), axis=1,
+                        bitorder="little")
+    np.subtract(pos.view(np.int8)[:, :a.length], neg.view(np.int8)[:, :a.length], out=out[:, :-1], casting="unsafe")
+    out[:, -1] = 1.0
+    return out
+
+
 @lru_cache(maxsize=1)
 def _minus_two_trits() -> np.ndarray:
     """``(256, 5) float32``: per stored trit byte (5 base-3 digits, element + 1), its 5
@@ -205,11 +218,14 @@ def _augmented_b(d: FloorDescriptor | PartialDescriptor, out: np.ndarray | None 
     return out
 
 
+_add_reduce = np.add.reduce  # ndarray.sum's own reduction (the same sums), without its wrapper's cost
+
+
 def _rigid(xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
     """``[R | t]`` (2 x 3) of the least-squares rigid fit ``xb ~ R xa + t`` (as
     :func:`robotd.base.geometry.rigid_fit_2d`, from raw sums: this runs twice per match)."""
     n = len(xa)
-    (sax, say), (sbx, sby) = xa.sum(axis=0).tolist(), xb.sum(axis=0).tolist()
+    (sax, say), (sbx, sby) = _add_reduce(xa, axis=0).tolist(), _add_reduce(xb, axis=0).tolist()
     (h00, h01), (h10, h11) = (xa.T @ xb).tolist()
     # The cross-covariance's corrections in Python floats: the same IEEE operations as the
     # array expression h - sa[:, None] * sb[None, :] / n, element by element.
@@ -252,6 +268,22 @@ def _ransac_pairs(seed: int, m: int, iterations: int) -> tuple[np.ndarray, np.nd
         if len(cache) >= 4096:
             cache.clear()
         hit = cache[key] = (i, j)
+    return hit
+
+
+def _ransac_draws(seed: int, m: int, iterations: int) -> np.ndarray:
+    """:func:`_ransac_pairs` as one ``(2, iterations) int64`` array (kept per thread, read-only)."""
+    cache = getattr(_RNGS, "draws", None)
+    if cache is None:
+        cache = _RNGS.draws = {}
+    key = (seed, m, iterations)
+    hit = cache.get(key)
+    if hit is None:
+        hit = np.stack(_ransac_pairs(seed, m, iterations))
+        hit.flags.writeable = False
+        if len(cache) >= 4096:
+            cache.clear()
+        cache[key] = hit
     return hit
 
 
@@ -357,7 +389,7 @@ class Matcher:
     def __init__(self, a: FloorDescriptor, params: MatchParams | None = None) -> None:
         self.a = a
         self.params = params or MatchParams()
-        self._aug = _augmented(a, 1.0, None) if len(a) >= 2 else None
+        self._aug = _augmented_a(a) if len(a) >= 2 else None
         self._norm = a.nonzero_trits()
 
     def score(self, b: FloorDescriptor | PartialDescriptor, min_score: float = 0.0) -> MatchResult:
@@ -443,20 +475,24 @@ def _refined(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, fa: np.ndarray,
     the score; not only those near the orientation peak) from RANSAC's inliers ``sel``
     (rows of the matches), twice, and the result."""
     transform = None
+    tol2 = p.inlier_px**2
     for _ in range(2):
         if len(sel) < 2:
             break
         transform = _rigid(fa[sel], fb[sel])
-        res = fa @ transform[:, :2].T + transform[:, 2] - fb
-        fitted, sel = sel, np.flatnonzero((res * res).sum(1) <= p.inlier_px**2)
-        if len(sel) == len(fitted) and not (sel != fitted).any():
+        res = fa @ transform[:, :2].T
+        res += transform[:, 2]
+        res -= fb
+        np.multiply(res, res, out=res)
+        fitted, sel = sel, np.flatnonzero(_add_reduce(res, axis=1) <= tol2)
+        if len(sel) == len(fitted) and np.array_equal(sel, fitted):
             break  # a fixed point: a further step would fit these inliers again, to the same transform
     if len(sel) < p.min_inliers or transform is None:
         return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
-    score = float(wm[sel].sum())
-    return MatchResult(score, n_matches, len(sel), ia[sel].astype(np.int64, copy=False),
-                       ib[sel].astype(np.int64, copy=False),
-                       a.xy_px[ia[sel]], xy_b[ib[sel]], transform, MatchReason.OK)
+    score = float(_add_reduce(wm[sel]))
+    ia_sel, ib_sel = ia[sel], ib[sel]
+    return MatchResult(score, n_matches, len(sel), ia_sel.astype(np.int64, copy=False),
+                       ib_sel.astype(np.int64, copy=False), a.xy_px[ia_sel], xy_b[ib_sel], transform, MatchReason.OK)
 
 
 _PAD_NORM = np.float32(1e30)  # a padding row's |tb|^2: farther than any keypoint, finite
@@ -509,7 +545,9 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
     d2 *= 1.0 / a.length
     keep = (d1 <= p.max_distance) & (d1 < p.ratio * p.ratio * d2)
     seg, ia = np.nonzero(keep.T)  # by pair, then by A's keypoint: each pair's matches as _score orders them
-    ib, dm = nn[ia, seg], d1[ia, seg]
+    at = ia * n_live
+    at += seg
+    ib, dm = nn.take(at), d1.take(at)  # nn[ia, seg], d1[ia, seg]
     n_of = np.bincount(seg, minlength=n_live).tolist()
     starts = [0, *itertools.accumulate(n_of)]
     bound = np.maximum(0.0, 1.0 - dm / p.weight_distance) if min_score > 0 else None
@@ -520,7 +558,7 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
         if n < p.min_matches:
             out[c] = _dismissed(TOO_FEW_MATCHES, n)
             continue
-        if bound is not None and float(bound[starts[r]: starts[r + 1]].sum()) * (1 + 1e-6) + 1e-6 < min_score:
+        if bound is not None and float(_add_reduce(bound[starts[r]: starts[r + 1]])) * (1 + 1e-6) + 1e-6 < min_score:
             out[c] = _dismissed(BELOW_MIN_SCORE, n)
             continue
         b = bs[c]
@@ -556,7 +594,7 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
     bins = (dth * (nbins / (2 * math.pi))).astype(np.intp) % nbins
     bins += nbins * s_all
     hist = np.bincount(bins, minlength=nbins * n_go).reshape(n_go, nbins).astype(float)
-    hist = hist + 0.5 * (hist[:, _PREV_BIN] + hist[:, _NEXT_BIN])
+    hist = hist + 0.5 * (hist.take(_PREV_BIN, axis=1) + hist.take(_NEXT_BIN, axis=1))
     peaks = (np.argmax(hist, axis=1) + 0.5) * (2 * math.pi / nbins)
     near = np.abs(wrap_angle(dth - peaks[s_all])) <= p.angle_tol_rad + math.pi / nbins
     m_of = np.bincount(s_all[near], minlength=n_go).tolist()
@@ -570,9 +608,13 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
         return out  # type: ignore[return-value]
     # Step 3 for the pairs checked: their matches near the peak, stacked (offset per pair).
     inc = near & np.isin(s_all, check) if len(check) < n_go else near
-    ka, kb_all, kd = ia[inc], ib_all[inc], dm[inc]
-    xa, xb = a.xy_px[ka].astype(np.float64), xy_all[kb_all].astype(np.float64)
-    weight = np.maximum(0.0, 1.0 - kd / p.weight_distance)
+    fa_all, fb_all = a.xy_px.take(ia, axis=0).astype(np.float64), xy_all.take(ib_all, axis=0).astype(np.float64)
+    # The weights as _score computes them, over every match (the bound's when there is one).
+    if bound is None:
+        wm_all = np.maximum(0.0, 1.0 - dm / p.weight_distance)
+    else:
+        wm_all = bound if bound.shape == dm.shape else bound[take]
+    xa, xb, weight = fa_all.compress(inc, axis=0), fb_all.compress(inc, axis=0), wm_all[inc]
     w_all = weight + 1e-6
     xab = np.concatenate([xa, xb], axis=1)
     n_check = len(check)
@@ -584,24 +626,78 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
         blk = xa1_all[3 * m_off[q]: 3 * m_off[q + 1]].reshape(3, ms[q])
         blk[:2] = xa[m_off[q]: m_off[q + 1]].T
         blk[2] = 1.0
-    draws = np.stack([np.stack(_ransac_pairs(p.seed, m, p.iterations)) for m in ms])  # (pairs, 2, iterations)
+    draws = np.stack([_ransac_draws(p.seed, m, p.iterations) for m in ms])  # (pairs, 2, iterations)
     draws += np.asarray(m_off[:-1], np.intp)[:, None, None]
     peak_of = peaks[check]
     masks = _ransac_many(xab, draws, peak_of, xa1_all, xb, w_all, ms, m_off, p)
-    fa_all, fb_all = a.xy_px[ia].astype(np.float64), xy_all[ib_all].astype(np.float64)
-    wm_all = np.maximum(0.0, 1.0 - dm / p.weight_distance)
+    near_rows = inc.nonzero()[0]
+    todo = []  # (result slot, first and last match row, RANSAC's inliers as rows of the pair's matches)
     for q, g in enumerate(check):
-        r = go[g]
-        c = live[r]
-        mask = masks[q]
-        n_matches = n_match[g]
-        if mask is None:
-            out[c] = _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
+        c = live[go[g]]
+        if masks[q] is None:
+            out[c] = _dismissed(NO_GEOMETRIC_CONSISTENCY, n_match[g])
             continue
         lo, hi = go_starts[g], go_starts[g + 1]
-        out[c] = _refined(a, ia[lo:hi], ib[lo:hi], fa_all[lo:hi], fb_all[lo:hi], wm_all[lo:hi], xys[g],
-                          np.flatnonzero(near[lo:hi])[mask], n_matches, p)
+        sel = near_rows[m_off[q]: m_off[q + 1]][masks[q]]
+        sel -= lo
+        todo.append((c, lo, hi, sel, xys[g]))
+    for c, result in _refined_many(a, ia, ib, fa_all, fb_all, wm_all, todo, p):
+        out[c] = result
     return out  # type: ignore[return-value]
+
+
+def _refined_many(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, fa_all: np.ndarray, fb_all: np.ndarray,
+                  wm_all: np.ndarray, todo: list[tuple[int, int, int, np.ndarray, np.ndarray]],
+                  p: MatchParams) -> list[tuple[int, MatchResult]]:
+    """:func:`_refined` of several pairs, the same results bit for bit: ``ia``, ``ib``,
+    ``fa_all``, ``fb_all``, ``wm_all`` their descriptor matches stacked, and per pair in
+    ``todo`` its result slot, its rows ``lo:hi`` of the stack, RANSAC's inliers (rows of the
+    pair's matches) and its keypoints' positions. Each fit and each residual product is
+    one call per pair on the arrays :func:`_refined` makes; the residuals' element-wise
+    steps (the translation, the difference, the squares and their sums over x and y, the
+    test) run over the stack at once."""
+    tol2 = p.inlier_px**2
+    sels = [t[3] for t in todo]
+    transforms: list[np.ndarray | None] = [None] * len(todo)
+    active = list(range(len(todo)))
+    res_all = np.zeros_like(fa_all)  # finite everywhere: rows of pairs done are computed on, unread
+    t_all = np.zeros_like(fa_all)
+    for _ in range(2):
+        active = [q for q in active if len(sels[q]) >= 2]
+        if not active:
+            break
+        for q in active:
+            lo, hi = todo[q][1], todo[q][2]
+            fa, fb = fa_all[lo:hi], fb_all[lo:hi]
+            transform = transforms[q] = _rigid(fa.take(sels[q], axis=0), fb.take(sels[q], axis=0))
+            np.matmul(fa, transform[:, :2].T, out=res_all[lo:hi])
+            t_all[lo:hi] = transform[:, 2]
+        lo_all, hi_all = todo[active[0]][1], todo[active[-1]][2]  # rows between belong to pairs done: unused
+        res = res_all[lo_all:hi_all]
+        res += t_all[lo_all:hi_all]
+        res -= fb_all[lo_all:hi_all]
+        np.multiply(res, res, out=res)
+        inl = _add_reduce(res, axis=1) <= tol2
+        still = []
+        for q in active:
+            _c, lo, hi, _s, _xy = todo[q]
+            fitted = sels[q]
+            sel = sels[q] = inl[lo - lo_all: hi - lo_all].nonzero()[0]
+            if not (len(sel) == len(fitted) and sel.tobytes() == fitted.tobytes()):
+                still.append(q)  # not yet a fixed point (where a further step would fit these inliers again)
+        active = still
+    results = []
+    for q, (c, lo, hi, _s, xy_b) in enumerate(todo):
+        sel, fit = sels[q], transforms[q]
+        if len(sel) < p.min_inliers or fit is None:
+            results.append((c, _dismissed(NO_GEOMETRIC_CONSISTENCY, hi - lo)))
+            continue
+        ia_sel, ib_sel = ia[lo:hi][sel], ib[lo:hi][sel]
+        results.append((c, MatchResult(float(_add_reduce(wm_all[lo:hi][sel])), hi - lo, len(sel),
+                                       ia_sel.astype(np.int64, copy=False), ib_sel.astype(np.int64, copy=False),
+                                       a.xy_px.take(ia_sel, axis=0), xy_b.take(ib_sel, axis=0), fit,
+                                       MatchReason.OK)))
+    return results
 
 
 def _ransac_many(xab: np.ndarray, draws: np.ndarray, peaks: np.ndarray, xa1_all: np.ndarray, xb: np.ndarray,
@@ -624,7 +720,7 @@ def _ransac_many(xab: np.ndarray, draws: np.ndarray, peaks: np.ndarray, xa1_all:
     iterations = draws.shape[2]
     b0, b1 = 0, (_BLOCK if adaptive else iterations)
     while b0 < iterations and active:
-        blk = draws[active, :, b0:b1]
+        blk = draws[:, :, b0:b1] if len(active) == n else draws[active, :, b0:b1]
         hyp_of = np.repeat(np.asarray(active, np.intp), blk.shape[2])
         b0, b1 = b1, 3 * b1
         hyp = _hypotheses_many(xab, blk[:, 0].ravel(), blk[:, 1].ravel(), peaks[hyp_of], p)
@@ -676,7 +772,8 @@ def _hypotheses_many(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: np.nda
                      p: MatchParams) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """:func:`_hypotheses` of several pairs' samples at once (``peak`` per sample, or one
     for all): the rows of the samples that pass, and the ``(len(i),) bool`` mask of those."""
-    v = xab[j] - xab[i]
+    xi, xj = xab.take(i, axis=0), xab.take(j, axis=0)
+    v = xj - xi
     lab = np.hypot(v[:, 0::2], v[:, 1::2])
     la, lb = lab[:, 0], lab[:, 1]
     ang = np.arctan2(v[:, 1::2], v[:, 0::2])
@@ -692,8 +789,8 @@ def _hypotheses_many(xab: np.ndarray, i: np.ndarray, j: np.ndarray, peak: np.nda
     c, s = np.cos(phi, out=rows_x[:, 0]), np.sin(phi, out=rows_y[:, 0])
     np.negative(s, out=rows_x[:, 1])
     rows_y[:, 1] = c
-    mid = xab[i]
-    mid += xab[j]
+    mid = xab.take(i, axis=0)
+    mid += xab.take(j, axis=0)
     mid *= 0.5  # sample midpoints: x, y in A, then in B
     np.subtract(mid[:, 2], c * mid[:, 0] - s * mid[:, 1], out=rows_x[:, 2])
     np.subtract(mid[:, 3], s * mid[:, 0] + c * mid[:, 1], out=rows_y[:, 2])

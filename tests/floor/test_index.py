@@ -466,3 +466,107 @@ def test_a_query_scores_with_its_own_match_params(gravel_run):
     assert [(c.keyframe_id, c.score) for c in again] == [(c.keyframe_id, c.score) for c in before]
     adaptive = index.query(query, k=3, shortlist=8, match_params=MatchParams(confidence=0.99))
     assert adaptive[0].keyframe_id == before[0].keyframe_id and adaptive[0].local.n_inliers >= 10
+
+
+# ------------------------------------------------------------ the shortlist's ranking
+
+
+def _reference_shortlist(index: FloorIndex, query: _Desc, size: int, excluded: set[int],
+                         after: int | None) -> list[tuple[int, float]]:
+    """Every keyframe's Hamming distance counted the slow way, sorted by (distance, row)."""
+    ids = index.ids.tolist()
+    rows = [r for r, kf in enumerate(ids)
+            if kf not in excluded and (after is None or kf <= after)]
+    bits = 8 * query.global_bits.size
+    dist = {r: _hamming(query.global_bits, index._global[:, r].view(np.uint8)[: query.global_bits.size])
+            for r in rows}
+    ranked = sorted(rows, key=lambda r: (dist[r], r))[:size]
+    return [(ids[r], 1.0 - dist[r] / bits) for r in ranked]
+
+
+@pytest.mark.parametrize("increasing", [True, False])
+def test_the_shortlist_is_the_stable_ranking_with_every_tie_and_exclusion(increasing):
+    """Two-byte global descriptors (hundreds of ties in 600 keyframes): the shortlist without a
+    predicate (one key per row, excluded rows found by bisection while ids only grow) is the
+    first ``size`` of the full ranking by distance then insertion order, as the predicate's
+    path (the sort it replaced) gives it, for exclusions as a set, an array and an id bound."""
+    rng = np.random.default_rng(11)
+    index = FloorIndex(IndexParams(), scorer=_CountingScorer())
+    ids = np.arange(1000, 1600) if increasing else rng.permutation(np.arange(1000, 1600))
+    for kf in ids.tolist():
+        index.add(kf, _Desc(rng.integers(0, 256, 2, dtype=np.uint8)))
+    assert index._ids_increasing == increasing
+    for trial in range(20):
+        query = _Desc(rng.integers(0, 256, 2, dtype=np.uint8))
+        size = int(rng.integers(1, 40))
+        excluded = set(rng.choice(ids, int(rng.integers(0, 300)), replace=False).tolist())
+        excluded |= {5, 99999}  # ids not in the index
+        after = int(rng.integers(1000, 1700)) if trial % 3 == 0 else None
+        want = _reference_shortlist(index, query, size, excluded, after)
+        as_array = np.array(sorted(excluded), np.int64)
+        for exclude in (excluded, as_array):
+            assert index.shortlist(query, size, exclude, after) == want
+        assert index.shortlist(query, size, lambda kf: kf in excluded, after) == want
+    everything = index.shortlist(query, 700)
+    assert len(everything) == 600 and everything == _reference_shortlist(index, query, 700, set(), None)
+    assert index.shortlist(query, 5, exclude_after_id=999) == []
+
+
+def test_queries_of_a_map_answer_as_scoring_the_ranked_keyframes_one_by_one(gravel_run, tmp_path):
+    """The query's own paths (the shortlist by one key per row, the pairs scored together and
+    refined together) against the plain one: every keyframe ranked by global distance then
+    id, each scored alone by ``Matcher.score`` in that order until ``k`` reach the loop
+    threshold, RANSAC at the daemon's confidence. Two passes over the gravel run in a map
+    read back (4 resident), every keyframe of the second pass queried with the first pass
+    alone allowed and then with an array of excluded ids: the same candidates, bit for bit
+    (scores, counts, inlier indices and points, transforms)."""
+    from robotd.app.demo import shipped_calibration
+    from robotd.base.config import FloorDetectorConfig
+    from robotd.floor.descriptor import decode, extract
+    from robotd.floor.match import Matcher, MatchParams
+    from robotd.io.calibfile import read_calibration
+    from robotd.io.store import MapStore
+
+    mode = 4
+    threshold = read_calibration(shipped_calibration()).loop.for_mode(mode)
+    mp = MatchParams(confidence=FloorDetectorConfig().ransac_confidence)
+    blobs = [extract(im, mode) for im in gravel_run[0]]
+    path = tmp_path / "map.db"
+    with MapStore.open(path, synchronous="NORMAL") as store:
+        run = store.begin_run("", started_ns=0)
+        ids = [store.add_keyframe(run, k, (0.1 * k, 0.0, 0.0), np.eye(3), None, b, mode)
+               for k, b in enumerate(blobs + blobs[::-1])]
+    decoded = {kf: decode(b) for kf, b in zip(ids, blobs + blobs[::-1])}
+
+    def plain(q, allowed: list[int], k: int = 5, shortlist: int = 10) -> list:
+        gb = np.asarray(q.global_bits)
+        dist = {kf: int(np.bitwise_count(gb ^ np.asarray(decoded[kf].global_bits)).sum()) for kf in allowed}
+        ranked = sorted(allowed, key=lambda kf: (dist[kf], ids.index(kf)))[:shortlist]
+        matcher, out = Matcher(q, mp), []
+        for kf in ranked:
+            result = matcher.score(decoded[kf], threshold)
+            out.append((kf, 1.0 - dist[kf] / (8 * gb.size), result))
+            if sum(r.score >= threshold for _kf, _g, r in out) == k:
+                break
+        out.sort(key=lambda c: (-c[2].score, -c[1], c[0]))
+        return out[:k]
+
+    def fields(kf, g, m) -> tuple:
+        return (kf, g, m.score, m.n_matches, m.n_inliers, str(m.reason), m.inliers_a.tolist(), m.inliers_b.tolist(),
+                m.xy_a.tobytes(), m.xy_b.tobytes(), None if m.transform is None else m.transform.tobytes())
+
+    first = ids[: len(blobs)]
+    loops = 0
+    with MapStore.open(path, create=False, read_only=True) as store:
+        index = FloorIndex.from_store(store, mode, IndexParams(shortlist=10, resident=4, match_params=mp))
+        for i, kf in enumerate(ids[len(blobs):]):
+            q = decoded[kf]
+            got = index.query(q, k=5, exclude_after_id=first[-1], min_score=threshold)
+            want = plain(q, first)
+            assert [fields(c.keyframe_id, c.global_score, c.local) for c in got] == [fields(*w) for w in want]
+            loops += sum(c.score >= threshold for c in got)
+            banned = np.array(ids[len(blobs) + max(0, i - 3):], np.int64)  # the query's pass, as the bench excludes
+            got = index.query(q, k=5, exclude_ids=banned, min_score=threshold)
+            want = plain(q, [x for x in ids if x not in set(banned.tolist())])
+            assert [fields(c.keyframe_id, c.global_score, c.local) for c in got] == [fields(*w) for w in want]
+    assert loops >= len(blobs) and index.loads > len(blobs)

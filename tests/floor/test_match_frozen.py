@@ -20,7 +20,7 @@ from robotd.base.geometry import wrap_angle
 from robotd.floor.descriptor import FloorDescriptor, decode, decode_local, extract
 from robotd.floor.match import (BELOW_MIN_SCORE, NO_GEOMETRIC_CONSISTENCY, TOO_FEW_FEATURES, TOO_FEW_MATCHES,
                                 Matcher, MatchParams, MatchReason, MatchResult, _augmented, _dismissed,
-                                _ransac_pairs, _ransac_rng, _rigid, _augmented_b)
+                                _ransac_pairs, _ransac_rng, _rigid, _augmented_a, _augmented_b)
 from sim.world.floor import Floor
 
 _PREV_BIN = np.roll(np.arange(32), 1)
@@ -163,6 +163,14 @@ def test_candidate_side_equals_the_augmented_trits(views: list[np.ndarray]) -> N
     for mode in (1, 4, 6):
         d = decode(extract(views[1], mode))
         assert np.array_equal(_augmented_b(d), _augmented(d, -2.0, d.nonzero_trits()))
+
+
+def test_query_side_equals_the_augmented_trits(views: list[np.ndarray]) -> None:
+    for mode in (1, 4, 6):
+        d = decode(extract(views[2], mode))
+        got, want = _augmented_a(d), _augmented(d, 1.0, None)
+        assert got.dtype == want.dtype == np.float32 and np.array_equal(got, want)
+        assert set(np.unique(got[:, :-1]).tolist()) == {-1.0, 0.0, 1.0}
 
 
 @pytest.mark.parametrize("m", [2, 3, 57, 186])
