@@ -41,7 +41,8 @@ from typing import TypedDict, Unpack
 
 import numpy as np
 
-from robotd.forward.features import CompactFeatures, FeatureExtractor, FeatureParams, Features, compact, without_words
+from robotd.forward.features import (CompactFeatures, FeatureExtractor, FeatureParams, Features, LentFeatures, compact,
+                                     lend, without_words)
 from robotd.forward.filter import (FilterParams, diffusion_weights, predict, predict_ids, select_candidate,
                                    select_candidate_ids, update)
 from robotd.forward.likelihood import LikelihoodMethod, adjust_likelihood
@@ -434,7 +435,9 @@ class ForwardDetector:
         self.memory = WorkingMemory(self.index, params.memory,
                                     protect_recent=params.recent_excluded + params.filter.neighbours,
                                     neighbours=params.filter.neighbours)
-        self._features: list[CompactFeatures | None] = []  # None: out of memory, the loader's
+        # per image: its features (lent: their founding descriptors read from the word
+        # search, :meth:`_keep`); None: out of memory, the loader's
+        self._features: list[CompactFeatures | LentFeatures | None] = []
         # (t, 3) x_m, y_m, yaw_rad of each image (NaN: unknown) and their variances: views
         # of the first t rows of growing buffers (no copy of every pose per image)
         self._pose_buf = np.zeros((0, 3))
@@ -455,9 +458,12 @@ class ForwardDetector:
         px, descriptors; they read like :class:`Features`); the word ids for the latest
         image only (empty for the others: the inverted index holds them). Those out of
         memory come from the :attr:`loader` (LookupError when it cannot give them)."""
-        f = self._features[image_id]
-        if f is not None:
-            return f
+        kept = self._features[image_id]
+        if isinstance(kept, LentFeatures):
+            lo, _ = self.vocabulary.image_words(image_id)
+            return kept.with_descriptors(self.vocabulary.word_descriptors(lo + kept.lent_rank.astype(np.int64)))
+        if kept is not None:
+            return kept
         f = self._read_back.get(image_id)
         if f is not None:
             self._read_back.move_to_end(image_id)
@@ -470,6 +476,33 @@ class ForwardDetector:
         if len(self._read_back) > READ_BACK_KEPT:
             self._read_back.popitem(last=False)
         return f
+
+    def _keep(self, image_id: int, f: CompactFeatures) -> CompactFeatures | LentFeatures:
+        """What stays in memory of image ``image_id``'s features ``f`` (with its word ids)
+        once it is not the latest: no word ids (the inverted index holds them), and when
+        the word search lends (:attr:`Vocabulary.lends`), not the descriptors that made
+        words it still holds either: each word's descriptor is its founding keypoint's
+        (the image's first keypoint with that word), so those are read back from it."""
+        voc = self.vocabulary
+        if not voc.lends or not len(f.words):
+            return without_words(f)
+        lo, hi = voc.image_words(image_id)
+        w = f.words.astype(np.int64)
+        pos = np.flatnonzero((w >= lo) & (w < hi))
+        made, first = np.unique(w[pos], return_index=True)
+        ok = voc.searchable(made)
+        return lend(f, pos[first[ok]], made[ok] - lo)
+
+    def _give_back(self, words: np.ndarray, descriptors: np.ndarray) -> None:
+        """Words ``words`` left the word search with their ``descriptors``: the images in
+        memory that lent them keep those descriptors again."""
+        born = self.vocabulary.born(words)
+        for t in np.unique(born).tolist():
+            kept = self._features[t] if t < len(self._features) else None
+            if isinstance(kept, LentFeatures):
+                mine = born == t
+                lo, _ = self.vocabulary.image_words(t)
+                self._features[t] = kept.give_back(words[mine] - lo, descriptors[mine])
 
     def mark_stored(self, image_id: int) -> None:
         """The :attr:`loader` can now give ``image_id``'s features: they may leave memory
@@ -513,8 +546,26 @@ class ForwardDetector:
         self._var_buf = np.full((len(self._features), 3), np.nan)
         self._poses, self._poses_var = self._pose_buf, self._var_buf
         self.vocabulary.restore(word_descriptors, word_born, word_purged, seen, len(images))
+        if self.vocabulary.lends:
+            for t, f in enumerate(images):
+                if self._features[t] is not None and len(f.words):
+                    self._features[t] = self._keep(t, self._founders_as_stored(t, f, word_descriptors))
         if not self.params.memory.bounded:
             self.index.drop_postings(np.flatnonzero(np.asarray(word_purged, bool)))
+
+    @staticmethod
+    def _founders_as_stored(t: int, f: CompactFeatures, word_descriptors: np.ndarray) -> CompactFeatures:
+        """``f`` with the word ids of keypoints whose descriptor is not their word's
+        descriptor as stored set apart (-1, so :meth:`_keep` lends nothing it could not
+        give back as it was); ``f`` itself when all agree."""
+        w = f.words.astype(np.int64)
+        d = np.asarray(f.descriptors)
+        if d.dtype != np.uint8 or d.ndim != 2 or d.shape[1] != word_descriptors.shape[1]:
+            return replace(f, words=np.full(len(w), -1, np.int64))
+        differ = np.any(d != np.asarray(word_descriptors)[w], axis=1)
+        if not differ.any():
+            return f
+        return replace(f, words=np.where(differ, -1, w))
 
     def _append_pose(self, pose: np.ndarray, var: np.ndarray) -> None:
         """The next image's pose and variances ``(3,)`` each (NaN: unknown)."""
@@ -620,8 +671,11 @@ class ForwardDetector:
 
         t0 = clock()
         words, new_words = self.vocabulary.add(feats.descriptors)
-        if len(self.vocabulary.last_purged) and not p.memory.bounded:
-            self.index.drop_postings(self.vocabulary.last_purged)  # no query can find them
+        gone = self.vocabulary.last_purged
+        if len(gone) and not p.memory.bounded:
+            self.index.drop_postings(gone)  # no query can find them
+        if len(gone) and self.vocabulary.lends:
+            self._give_back(gone, self.vocabulary.last_purged_descriptors)
         t1 = clock()
         times["words"] = t1 - t0
 
@@ -679,8 +733,8 @@ class ForwardDetector:
         self._in_store.append(0)
         if t:  # the word ids of older images live on in the index (and a map file) only
             prev = self._features[t - 1]
-            if prev is not None:
-                self._features[t - 1] = without_words(prev)
+            if isinstance(prev, CompactFeatures):
+                self._features[t - 1] = self._keep(t - 1, prev)
             self._release(t - self.resident)
         self._append_pose(pose_now, var_now)
         t3b = clock()

@@ -15,8 +15,8 @@ from typing import Literal, Protocol
 import cv2
 import numpy as np
 
-__all__ = ["CompactFeatures", "FeatureExtractor", "FeatureParams", "Features", "compact", "extract_features", "without_words",
-           "to_gray"]
+__all__ = ["CompactFeatures", "FeatureExtractor", "FeatureParams", "Features", "LentFeatures", "compact", "extract_features",
+           "lend", "without_words", "to_gray"]
 
 FeatureKind = Literal["sift", "orb"]
 
@@ -154,6 +154,116 @@ def without_words(f: CompactFeatures) -> CompactFeatures:
     """``f`` without its word ids (``words`` empty; keypoints and descriptors, which the
     verification reads, are the same arrays)."""
     return replace(f, words=_NO_WORDS)
+
+
+@dataclass(frozen=True, eq=False, slots=True)
+class LentFeatures:
+    """A past image's features whose *founding* descriptors (those that made a word the
+    word search still holds: the word's descriptor is that very descriptor) are left to
+    the word search, so that the two do not both keep them.
+
+    One buffer ``data`` (uint8, one array rather than four: an array's own header is about
+    a hundred bytes): the keypoints (``n`` x 2 uint16, 1/16 px, as
+    :attr:`CompactFeatures.keypoints_q`), the lent keypoints' indices (``k`` uint16,
+    increasing), their words' ranks among the words the image made (``k`` uint16: word id
+    minus the image's first word id), the other keypoints' descriptors (``(n - k)`` x 32
+    uint8, in keypoint order). ``n`` keypoints, ``k`` lent. :meth:`with_descriptors` puts
+    the image together again given the lent words' descriptors."""
+
+    data: np.ndarray
+    n: int
+    k: int
+    image_size_px: tuple[int, int]
+
+    def __len__(self) -> int:
+        return self.n
+
+    @property
+    def keypoints_q(self) -> np.ndarray:
+        """``(n, 2) uint16`` keypoint positions, 1/16 px (a view)."""
+        return self.data[:4 * self.n].view(np.uint16).reshape(self.n, 2)
+
+    @property
+    def lent_at(self) -> np.ndarray:
+        """``(k,) uint16``: the lent keypoints, increasing (a view)."""
+        return self.data[4 * self.n:4 * self.n + 2 * self.k].view(np.uint16)
+
+    @property
+    def lent_rank(self) -> np.ndarray:
+        """``(k,) uint16``: each lent keypoint's word, as its id minus the image's first word id."""
+        o = 4 * self.n + 2 * self.k
+        return self.data[o:o + 2 * self.k].view(np.uint16)
+
+    @property
+    def own(self) -> np.ndarray:
+        """``(n - k, 32) uint8``: the descriptors of the keypoints not lent, in keypoint order."""
+        return self.data[4 * self.n + 4 * self.k:].reshape(self.n - self.k, 32)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the buffer."""
+        return int(self.data.nbytes)
+
+    def _descriptors(self, lent: np.ndarray) -> np.ndarray:
+        d = np.empty((self.n, 32), np.uint8)
+        mine = np.ones(self.n, bool)
+        mine[self.lent_at] = False
+        d[mine] = self.own
+        d[self.lent_at] = lent
+        return d
+
+    def with_descriptors(self, lent: np.ndarray) -> CompactFeatures:
+        """The image as :class:`CompactFeatures` (no word ids), ``lent (k, 32) uint8`` the
+        lent keypoints' descriptors in :attr:`lent_at` order."""
+        return CompactFeatures(_NO_WORDS, self.keypoints_q, self._descriptors(lent), self.image_size_px)
+
+    def give_back(self, ranks: np.ndarray, descriptors: np.ndarray) -> LentFeatures | CompactFeatures:
+        """The record once the words of ``ranks`` (``(K,) int``) leave the word search with
+        their ``descriptors`` (``(K, 32) uint8``): those keypoints keep their descriptors
+        again (the others stay lent; :class:`CompactFeatures` without words when none is
+        left lent). Ranks the record did not lend are ignored."""
+        rank = self.lent_rank.astype(np.int64)
+        r = np.asarray(ranks, np.int64)
+        order = np.argsort(r)
+        at = np.minimum(np.searchsorted(r[order], rank), max(len(r) - 1, 0))
+        back = (r[order][at] == rank) if len(r) else np.zeros(self.k, bool)
+        if not back.any():
+            return self
+        lent = np.zeros((self.k, 32), np.uint8)
+        lent[back] = np.asarray(descriptors, np.uint8)[order[at[back]]]
+        d = self._descriptors(lent)
+        kq = self.keypoints_q
+        if back.all():
+            return CompactFeatures(_NO_WORDS, kq.copy(), d, self.image_size_px)
+        return _pack(kq, d, self.lent_at[~back].astype(np.int64), rank[~back], self.image_size_px)
+
+
+def _pack(keypoints_q: np.ndarray, descriptors: np.ndarray, at: np.ndarray, rank: np.ndarray,
+          size: tuple[int, int]) -> LentFeatures:
+    n, k = len(keypoints_q), len(at)
+    mine = np.ones(n, bool)
+    mine[at] = False
+    data = np.empty(4 * n + 4 * k + 32 * (n - k), np.uint8)
+    data[:4 * n] = np.ascontiguousarray(keypoints_q, np.uint16).view(np.uint8).reshape(-1)
+    data[4 * n:4 * n + 2 * k] = at.astype(np.uint16).view(np.uint8)
+    data[4 * n + 2 * k:4 * n + 4 * k] = rank.astype(np.uint16).view(np.uint8)
+    data[4 * n + 4 * k:] = descriptors[mine].reshape(-1)
+    return LentFeatures(data, n, k, size)
+
+
+def lend(f: CompactFeatures, at: np.ndarray, rank: np.ndarray) -> LentFeatures | CompactFeatures:
+    """``f`` (binary descriptors) with the descriptors of keypoints ``at`` (``(k,) int``,
+    distinct) left to the word search, which holds them as the words of ranks ``rank``
+    (``(k,) int``, below 65,536: the word's id minus the first id the image made); ``f``
+    without words when ``at`` is empty."""
+    if not len(at):
+        return without_words(f)
+    at = np.asarray(at, np.int64)
+    order = np.argsort(at)
+    if len(f) > 65535 or int(np.max(rank)) > 65535:
+        raise ValueError("an image lends at most 65,536 keypoints")
+    return _pack(f.keypoints_q, np.asarray(f.descriptors, np.uint8), at[order], np.asarray(rank, np.int64)[order],
+                 f.image_size_px)
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:

@@ -130,6 +130,7 @@ class Vocabulary:
         # What the last add() changed, for a store to write (robotd.io.store):
         self.last_new: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros((0, dim)))
         self.last_purged = np.zeros(0, np.int64)
+        self.last_purged_descriptors = np.zeros((0, dim), np.uint8 if binary else np.float32)
 
     def __len__(self) -> int:
         """Words made so far (purged ones included: ids are never reused)."""
@@ -145,6 +146,47 @@ class Vocabulary:
     def n_searchable(self) -> int:
         """Words the search can still find (made minus purged)."""
         return self._n_words - self.purged
+
+    @property
+    def lends(self) -> bool:
+        """True when the search keeps each word's descriptor where :meth:`word_descriptors`
+        reads it back, and :attr:`last_purged_descriptors` gives purged words' descriptors
+        (the binary word tree), so an image's store may leave its founding descriptors to
+        it (:class:`robotd.forward.detector.ForwardDetector`)."""
+        return self._tree is not None
+
+    def image_words(self, image: int) -> tuple[int, int]:
+        """The ids ``lo .. hi - 1`` of the words that image ``image`` (its :meth:`add` call,
+        0, 1, ...) made."""
+        hi = int(self._first.view[image + 1]) if image + 1 < self._images else self._n_words
+        return int(self._first.view[image]), hi
+
+    def born(self, words: np.ndarray) -> np.ndarray:
+        """``(K,) int64``: the image (its :meth:`add` call) that made each of ``words``."""
+        out: np.ndarray = np.searchsorted(self._first.view, np.asarray(words, np.int64), side="right") - 1
+        return out
+
+    def searchable(self, words: np.ndarray) -> np.ndarray:
+        """``(K,) bool``: which of ``words`` (``(K,) int``, made already) the search can
+        still find: not purged (a word is examined once, when it falls due; one found in a
+        second image is never purged)."""
+        w = np.asarray(words, np.int64)
+        if self.params.purge_after <= 0:
+            return np.ones(len(w), bool)
+        out: np.ndarray = (w >= self._unpurged_from) | (self._seen.view[w] > 1)
+        return out
+
+    def word_descriptors(self, words: np.ndarray) -> np.ndarray:
+        """The descriptors of searchable ``words`` (``(K,) int``), ``(K, 32) uint8`` as they
+        were added; LookupError for a word the search does not hold (purged, or a search
+        that does not lend: :attr:`lends`)."""
+        if self._tree is None:
+            raise LookupError("only the binary word tree gives its words' descriptors back")
+        d, found = self._tree.descriptors(words)
+        if not found.all():
+            raise LookupError(f"words {np.asarray(words)[~found][:5].tolist()} are not in the word search")
+        out: np.ndarray = d.view(np.uint8)
+        return out
 
     def _check(self, descriptors: np.ndarray) -> np.ndarray:
         d = np.ascontiguousarray(descriptors, np.uint8 if self.binary else np.float32)
@@ -220,6 +262,7 @@ class Vocabulary:
         self._images += 1
         self.last_new = (np.zeros(0, np.int64), d[:0])
         self.last_purged = np.zeros(0, np.int64)
+        self.last_purged_descriptors = d[:0]
         # a word found twice in the image is written twice with the same value (no unique)
         found = words[words >= 0]
         self._seen.view[found] = np.minimum(self._seen.view[found], 1) + 1  # only "more than once" matters
@@ -293,7 +336,7 @@ class Vocabulary:
         gone = lo + np.flatnonzero(self._seen.view[lo:hi] <= 1)
         if len(gone):
             if self._tree is not None:
-                self._tree.remove(gone)
+                self.last_purged_descriptors = self._tree.remove(gone).view(np.uint8)
             else:
                 self._index.remove(gone.astype(np.int64))
             self.purged += len(gone)
@@ -739,27 +782,55 @@ class BinaryWordTree:
             cents = [cents[0]] * len(groups)
         return groups, cents
 
-    def remove(self, words: np.ndarray) -> None:
-        """Take words out (ids held by the tree; others are ignored); their slots are reused.
+    def slots_of(self, words: np.ndarray) -> np.ndarray:
+        """The slot of each of ``words`` (``(K,) int``), ``(K,) int64``, -1 for a word the
+        tree does not hold.
 
-        The slots are found by a pass over the slots' word ids restricted to the ids'
-        range (a vocabulary purges words of one image's age at a time, a narrow range), so
-        the tree keeps no per-word array over every word id ever made (about 90 per image
-        on the office route, 4 bytes each)."""
-        w_all = np.asarray(words, np.int64)
-        if not len(w_all):
-            return
+        Found by a pass over the slots' word ids restricted to the ids' range (the words
+        asked for together are those of one image or of one image's age, a narrow range),
+        so the tree keeps no per-word array over every word id ever made (about 90 per
+        image on the office route, 4 bytes each)."""
+        w = np.asarray(words, np.int64)
+        out = np.full(len(w), -1, np.int64)
+        if not len(w):
+            return out
         held = self._slot_word[:self._n_slots]
-        near = np.flatnonzero((held >= w_all.min()) & (held <= w_all.max()))
-        slot_of = dict(zip(held[near].tolist(), near.tolist()))
+        near = np.flatnonzero((held >= w.min()) & (held <= w.max()))
+        keys = held[near]
+        order = np.argsort(keys)
+        keys, near = keys[order], near[order]
+        at = np.minimum(np.searchsorted(keys, w), max(len(keys) - 1, 0))
+        found = (keys[at] == w) if len(keys) else np.zeros(len(w), bool)
+        out[found] = near[at[found]]
+        return out
+
+    def descriptors(self, words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The descriptors of ``words`` (``(K,) int``): ``(K, 4) uint64`` (a zero row for a
+        word the tree does not hold) and ``(K,) bool`` whether it holds each."""
+        slots = self.slots_of(words)
+        found = slots >= 0
+        out = np.zeros((len(slots), 4), np.uint64)
+        out[found] = self._desc[slots[found]]
+        return out, found
+
+    def remove(self, words: np.ndarray) -> np.ndarray:
+        """Take words out (ids held by the tree; others are ignored); their slots are reused
+        (their descriptor rows by the next words added). Returns the words' descriptors as
+        they were, ``(K, 4) uint64`` (a zero row for a word the tree did not hold)."""
+        w_all = np.asarray(words, np.int64)
+        gone = np.zeros((len(w_all), 4), np.uint64)
+        if not len(w_all):
+            return gone
+        at = self.slots_of(w_all)
+        gone[at >= 0] = self._desc[at[at >= 0]]
+        slots = at.tolist()
         # one word at a time (a removal moves the leaf's last entry into the hole, and the
         # entries' order decides a later split), through memoryviews: numpy's scalar
         # indexing costs several times a memoryview's
         pool, fill, row_start = self._pool.data, self._fill.data, self._row_start.data
         slot_row, slot_pos, slot_word = self._slot_row.data, self._slot_pos.data, self._slot_word.data
-        for w in w_all.tolist():
-            s = slot_of.pop(w, -1)
-            if s < 0:
+        for w, s in zip(w_all.tolist(), slots):
+            if s < 0 or slot_word[s] != w:  # not held, or named twice
                 continue
             row, pos = slot_row[s], slot_pos[s]
             at = row_start[row]
@@ -772,6 +843,7 @@ class BinaryWordTree:
             slot_word[s] = -1
             self._free_slots.append(s)
             self.n_live -= 1
+        return gone
 
 
 _WIDER: dict[type, type] = {np.int16: np.int32, np.int32: np.int64}
