@@ -32,6 +32,7 @@ a place being recognised, and moves the least useful places out to keep the boun
 from __future__ import annotations
 
 import math
+import sys
 import time
 from collections import OrderedDict
 from collections.abc import Callable
@@ -425,6 +426,7 @@ class ForwardDetector:
         self.loader = loader
         self.resident = resident
         self._in_store = bytearray()  # per image: 1 once the loader can give its features
+        self._size: tuple[int, int] = (0, 0)  # the latest lent image's size
         self._read_back: OrderedDict[int, CompactFeatures] = OrderedDict()  # the latest read back
         self.read_back = 0  # images whose features the loader gave
         self.read_back_failed = 0  # images it could not give (their verification failed)
@@ -486,6 +488,9 @@ class ForwardDetector:
         voc = self.vocabulary
         if not voc.lends or not len(f.words):
             return without_words(f)
+        if f.image_size_px == self._size:  # one tuple for all (its ints are objects)
+            f = replace(f, image_size_px=self._size)
+        self._size = f.image_size_px
         lo, hi = voc.image_words(image_id)
         w = f.words.astype(np.int64)
         pos = np.flatnonzero((w >= lo) & (w < hi))
@@ -642,11 +647,15 @@ class ForwardDetector:
 
     def memory_bytes(self) -> dict[str, int]:
         """Bytes the detector holds, by part: ``images`` (word ids, keypoints, descriptors
-        of every past image in memory, those read back lately included), ``index`` (the inverted index), ``vocabulary`` (the word
-        search, as usearch reports it, reserved capacity included)."""
+        of every past image in memory, those read back lately included, and the per-image
+        list, flags and poses), ``index`` (the inverted index and the working memory's
+        per-place state), ``vocabulary`` (the word search, as usearch reports it, reserved
+        capacity included)."""
         kept = [f for f in self._features if f is not None] + list(self._read_back.values())
-        return {"images": sum(f.nbytes for f in kept),
-                "index": self.index.memory_bytes(),
+        per_image = (sys.getsizeof(self._features) + len(self._in_store) + self._pose_buf.nbytes
+                     + self._var_buf.nbytes)
+        return {"images": sum(_held_bytes(f) for f in kept) + per_image,
+                "index": self.index.memory_bytes() + self.memory.memory_bytes(),
                 "vocabulary": self.vocabulary.memory_bytes()}
 
     def process(self, image: np.ndarray, pose: np.ndarray | None = None,
@@ -785,6 +794,14 @@ class ForwardDetector:
             vocabulary_size=len(self.vocabulary), times_s=times, hypothesis_ids=hyp_ids,
             working_memory=len(self.memory), retrieved=tuple(retrieved),
             transferred=tuple(transferred))
+
+
+def _held_bytes(f: CompactFeatures | LentFeatures) -> int:
+    """Bytes an image's features hold in memory: a lent record with its object and its
+    buffer's header (Python's own figures: one per image, about 180 bytes), else the arrays."""
+    if isinstance(f, LentFeatures):
+        return sys.getsizeof(f) + sys.getsizeof(f.data)
+    return f.nbytes
 
 
 def _pose_row(pose: np.ndarray | None, pose_cov: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:

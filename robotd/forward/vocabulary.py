@@ -35,6 +35,7 @@ image, each counted once: tf = 1 / n.
 from __future__ import annotations
 
 import heapq
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -1056,11 +1057,13 @@ class InvertedIndex:
         self._df = _GrowingInts(np.int16)        # per word: images containing it
         self._occ = _GrowingInts(np.int16)       # per word: total occurrences
         self._image_len = _GrowingInts()         # per slot: n(i), words (with repeats) in the image
-        self._image_ids: list[int] = []          # per slot: the image in it, -1 when free
-        self._slot_of: dict[int, int] = {}       # image id -> slot
+        self._image_ids = _GrowingInts()         # per slot: the image in it, -1 when free
+        # per image id: its slot + 1 when indexed, 0 never added, -1 removed (it may be
+        # added again); arrays, not a dict and a list of Python ints (about 100 bytes an image)
+        self._slot_at = _GrowingInts()
+        self._n_indexed = 0                      # N
         self._free: list[int] = []               # free slots (a min-heap)
         self._last_added = -1                    # the highest image id added
-        self._removed: set[int] = set()          # ids removed (they may be added again)
         self._total = 0                          # sum of n(i) over the indexed images
         # Word ids below n_words with df == 0 (ids skipped, or words whose images all
         # left): while there is none, the virtual image is chosen among all the words
@@ -1074,26 +1077,32 @@ class InvertedIndex:
     @property
     def n_images(self) -> int:
         """N: images indexed."""
-        return len(self._slot_of)
+        return self._n_indexed
 
     @property
     def n_slots(self) -> int:
         """Slots (the length of :meth:`vote`'s scores): indexed images plus free slots."""
-        return len(self._image_ids)
+        return self._image_ids.n
 
     @property
     def image_ids(self) -> np.ndarray:
         """``(n_slots,) int64``: the id of the image in each slot (= score order), -1 when
         free; the insertion order when no image was removed."""
-        return np.asarray(self._image_ids, np.int64)
+        return self._image_ids.view.astype(np.int64)
 
     @property
     def n_words(self) -> int:
         """Words the index knows (the highest word id added + 1)."""
         return self._df.n
 
+    def _slot(self, image_id: int) -> int:
+        """The slot of image ``image_id``, -1 when it is not indexed."""
+        if not 0 <= image_id < self._slot_at.n:
+            return -1
+        return max(int(self._slot_at.view[image_id]) - 1, -1)
+
     def __contains__(self, image_id: int) -> bool:
-        return image_id in self._slot_of
+        return self._slot(int(image_id)) >= 0
 
     def add_image(self, image_id: int, words: np.ndarray) -> None:
         """Index image ``image_id`` with its words (``(K,) int``, repeats counted).
@@ -1101,24 +1110,26 @@ class InvertedIndex:
         A new image must have a higher id than every image added before; an image removed
         earlier may come back with its old id (and the same words)."""
         image_id = int(image_id)
-        if image_id in self._slot_of:
+        if self._slot(image_id) >= 0:
             raise ValueError(f"image {image_id} is indexed already")
-        if image_id <= self._last_added and image_id not in self._removed:
+        removed = 0 <= image_id < self._slot_at.n and int(self._slot_at.view[image_id]) == -1
+        if image_id <= self._last_added and not removed:
             raise ValueError(f"image ids must increase: {image_id} after {self._last_added}")
         w = np.asarray(words, np.int64)
         if len(w) and w.min() < 0:
             raise ValueError("word ids must be >= 0")
         if self._free:
             slot = heapq.heappop(self._free)
-            self._image_ids[slot] = image_id
         else:
-            slot = len(self._image_ids)
+            slot = self._image_ids.n
             if slot >= _MAX_SLOTS:
                 raise ValueError(f"the inverted index holds at most {_MAX_SLOTS} images at once")
-            self._image_ids.append(image_id)
+            self._image_ids.resize(slot + 1)
             self._image_len.resize(slot + 1)
-        self._slot_of[image_id] = slot
-        self._removed.discard(image_id)
+        self._image_ids.view[slot] = image_id
+        self._slot_at.resize(image_id + 1)
+        self._slot_at.view[image_id] = slot + 1
+        self._n_indexed += 1
         self._last_added = max(self._last_added, image_id)
         self._image_len.view[slot] = len(w)
         self._total += len(w)
@@ -1147,8 +1158,8 @@ class InvertedIndex:
         (``(K,) int``, repeats counted; the caller keeps them to add the image back).
         Costs the length of its words' posting lists, not the index's size."""
         image_id = int(image_id)
-        slot = self._slot_of.get(image_id)
-        if slot is None:
+        slot = self._slot(image_id)
+        if slot < 0:
             raise ValueError(f"image {image_id} is not indexed")
         w = np.asarray(words, np.int64)
         if len(w) != int(self._image_len.view[slot]):
@@ -1165,7 +1176,8 @@ class InvertedIndex:
             where.append(k)
         for wid, k in zip(uw.tolist(), where):
             self._post.pop(wid, k)
-        del self._slot_of[image_id]
+        self._slot_at.view[image_id] = -1
+        self._n_indexed -= 1
         if len(uw):
             self._df.view[uw] -= 1
             self._occ.view[uw] -= cnt
@@ -1173,9 +1185,8 @@ class InvertedIndex:
         self._total -= len(w)
         self._v_cand = None  # counts fell: the candidates are chosen again
         self._image_len.view[slot] = 0
-        self._image_ids[slot] = -1
+        self._image_ids.view[slot] = -1
         heapq.heappush(self._free, slot)
-        self._removed.add(image_id)
 
     def drop_postings(self, words: np.ndarray) -> None:
         """Free the postings of ``words`` that no query can contain any more (words purged
@@ -1206,7 +1217,9 @@ class InvertedIndex:
 
     def tfidf(self, word: int, image_id: int) -> float:
         """tf(w, i) * idf(w) with the current counts (0 when ``word`` is not in the image)."""
-        slot = self._slot_of[image_id]
+        slot = self._slot(int(image_id))
+        if slot < 0:
+            raise KeyError(image_id)
         post = self._post.of(int(word))
         mine = post[(post >> _COUNT_BITS) == slot]
         if not len(mine):
@@ -1286,7 +1299,8 @@ class InvertedIndex:
         return scores, virtual
 
     def memory_bytes(self) -> int:
-        """Bytes held by the postings (their arrays, spare capacity included) and the
-        per-word and per-slot counters."""
-        counters = sum(g.nbytes for g in (self._df, self._occ, self._image_len))
-        return self._post.nbytes + counters
+        """Bytes held by the postings (their arrays, spare capacity included), the per-word
+        and per-slot counters, the per-image slots, and the free slots' heap (a list of
+        Python ints: its pointers and the ints, which a working memory's removals make)."""
+        counters = sum(g.nbytes for g in (self._df, self._occ, self._image_len, self._image_ids, self._slot_at))
+        return self._post.nbytes + counters + sys.getsizeof(self._free) + 32 * len(self._free)
