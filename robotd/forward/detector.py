@@ -648,15 +648,18 @@ class ForwardDetector:
     def memory_bytes(self) -> dict[str, int]:
         """Bytes the detector holds, by part: ``images`` (word ids, keypoints, descriptors
         of every past image in memory, those read back lately included, and the per-image
-        list, flags and poses), ``index`` (the inverted index and the working memory's
+        list, flags, poses, posterior and hypothesis ids), ``index`` (the inverted index and the working memory's
         per-place state), ``vocabulary`` (the word search, as usearch reports it, reserved
         capacity included)."""
         kept = [f for f in self._features if f is not None] + list(self._read_back.values())
-        per_image = (sys.getsizeof(self._features) + len(self._in_store) + self._pose_buf.nbytes
-                     + self._var_buf.nbytes)
-        return {"images": sum(_held_bytes(f) for f in kept) + per_image,
+        return {"images": sum(_held_bytes(f) for f in kept) + self._bookkeeping_bytes(),
                 "index": self.index.memory_bytes() + self.memory.memory_bytes(),
                 "vocabulary": self.vocabulary.memory_bytes()}
+
+    def _bookkeeping_bytes(self) -> int:
+        """Bytes of the per-image list, flags, poses, posterior and hypothesis ids."""
+        return (sys.getsizeof(self._features) + len(self._in_store) + self._pose_buf.nbytes + self._var_buf.nbytes
+                + self._posterior.nbytes + self._hyp_ids.nbytes)
 
     def process(self, image: np.ndarray, pose: np.ndarray | None = None,
                 pose_cov: np.ndarray | None = None) -> Detection:

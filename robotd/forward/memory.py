@@ -157,7 +157,7 @@ class WorkingMemory:
         (its id and last use; the ints beyond the few Python shares)."""
         words = sum(sys.getsizeof(w) for w in self._words if w is not _NONE)
         tables = sum(sys.getsizeof(x) for x in (self._words, self._weight, self._used, self._wm))
-        return words + tables + 28 * len(self._words)
+        return words + tables + sys.getsizeof(1 << 20) * len(self._words)
 
     # --- changes --------------------------------------------------------------------------
     def add(self, place: int, words: np.ndarray, now: int) -> None:

@@ -425,6 +425,7 @@ def _grown(n: int) -> int:
     return n + n // 8 + 16
 
 
+_INT_BYTES = sys.getsizeof(1 << 20)  # a Python int beyond the small ones it shares (28 bytes)
 _LEAF_BLOCK = 16           # a leaf's block in the word tree's pool: a multiple of this many entries
 _FAR = np.int32(1 << 20)  # a distance no real pair reaches (256 bits at most)
 _PREFILTER_BITS = 20       # see BinaryWordTree.nearest
@@ -507,10 +508,12 @@ class BinaryWordTree:
         return self.n_live
 
     def memory_bytes(self) -> int:
-        """Bytes of the tree's arrays (their spare capacity included)."""
+        """Bytes of the tree's arrays (their spare capacity included) and of its lists of
+        free rows and slots (their tables and an int object per entry)."""
         arrays = (self._centre, self._child, self._leaf_row, self._pool, self._row_start, self._row_cap, self._fill,
                   self._desc, self._slot_word, self._slot_row, self._slot_pos)
-        return sum(a.nbytes for a in arrays) + 8 * (len(self._free_rows) + len(self._free_slots))
+        free = sys.getsizeof(self._free_rows) + sys.getsizeof(self._free_slots)
+        return sum(a.nbytes for a in arrays) + free + _INT_BYTES * (len(self._free_rows) + len(self._free_slots))
 
     # -- growing arrays -------------------------------------------------------------------
     @staticmethod
@@ -1300,7 +1303,9 @@ class InvertedIndex:
 
     def memory_bytes(self) -> int:
         """Bytes held by the postings (their arrays, spare capacity included), the per-word
-        and per-slot counters, the per-image slots, and the free slots' heap (a list of
-        Python ints: its pointers and the ints, which a working memory's removals make)."""
+        and per-slot counters, the per-image slots, the virtual image's candidates, and the
+        free slots' heap (a list of Python ints: its table and the ints, which a working
+        memory's removals make)."""
         counters = sum(g.nbytes for g in (self._df, self._occ, self._image_len, self._image_ids, self._slot_at))
-        return self._post.nbytes + counters + sys.getsizeof(self._free) + 32 * len(self._free)
+        virtual = self._v_cand.nbytes if self._v_cand is not None else 0
+        return self._post.nbytes + counters + virtual + sys.getsizeof(self._free) + _INT_BYTES * len(self._free)
