@@ -427,6 +427,7 @@ class ForwardDetector:
         self.resident = resident
         self._in_store = bytearray()  # per image: 1 once the loader can give its features
         self._size: tuple[int, int] = (0, 0)  # the latest lent image's size
+        self._made_at = np.zeros(0, np.int64)  # the latest image's founding keypoints
         self._read_back: OrderedDict[int, CompactFeatures] = OrderedDict()  # the latest read back
         self.read_back = 0  # images whose features the loader gave
         self.read_back_failed = 0  # images it could not give (their verification failed)
@@ -479,31 +480,37 @@ class ForwardDetector:
             self._read_back.popitem(last=False)
         return f
 
-    def _keep(self, image_id: int, f: CompactFeatures) -> CompactFeatures | LentFeatures:
+    def _keep(self, image_id: int, f: CompactFeatures,
+              made_at: np.ndarray | None = None) -> CompactFeatures | LentFeatures:
         """What stays in memory of image ``image_id``'s features ``f`` (with its word ids)
         once it is not the latest: no word ids (the inverted index holds them), and when
         the word search lends (:attr:`Vocabulary.lends`), not the descriptors that made
         words it still holds either: each word's descriptor is its founding keypoint's
-        (the image's first keypoint with that word), so those are read back from it."""
+        (the image's first keypoint with that word), so those are read back from it.
+        ``made_at``: the founding keypoints in the order of the words they made
+        (:attr:`Vocabulary.last_new_at` of the image's add), else found from the words."""
         voc = self.vocabulary
         if not voc.lends or not len(f.words):
             return without_words(f)
-        if f.image_size_px == self._size:  # one tuple for all (its ints are objects)
-            f = replace(f, image_size_px=self._size)
-        self._size = f.image_size_px
+        if f.image_size_px != self._size:  # one tuple for all the images of a size (its ints are objects)
+            self._size = f.image_size_px
         lo, hi = voc.image_words(image_id)
-        w = f.words.astype(np.int64)
-        pos = np.flatnonzero((w >= lo) & (w < hi))
-        made, first = np.unique(w[pos], return_index=True)
-        ok = voc.searchable(made)
-        return lend(f, pos[first[ok]], made[ok] - lo)
+        if made_at is not None and len(made_at) == hi - lo:
+            at, rank = made_at, np.arange(hi - lo, dtype=np.int64)
+        else:
+            w = f.words.astype(np.int64)
+            pos = np.flatnonzero((w >= lo) & (w < hi))
+            made, first = np.unique(w[pos], return_index=True)
+            at, rank = pos[first], made - lo
+        ok = voc.searchable(lo + rank)  # not purged meanwhile (a purge after a single image)
+        return lend(f, at[ok], rank[ok], self._size)
 
     def _give_back(self, words: np.ndarray, descriptors: np.ndarray) -> None:
         """Words ``words`` left the word search with their ``descriptors``: the images in
         memory that lent them keep those descriptors again."""
         born = self.vocabulary.born(words)
         for t in np.unique(born).tolist():
-            kept = self._features[t] if t < len(self._features) else None
+            kept = self._features[t]
             if isinstance(kept, LentFeatures):
                 mine = born == t
                 lo, _ = self.vocabulary.image_words(t)
@@ -682,7 +689,9 @@ class ForwardDetector:
         times = {"features": features_s}
 
         t0 = clock()
+        made_at = self._made_at  # the previous image's founding keypoints
         words, new_words = self.vocabulary.add(feats.descriptors)
+        self._made_at = self.vocabulary.last_new_at
         gone = self.vocabulary.last_purged
         if len(gone) and not p.memory.bounded:
             self.index.drop_postings(gone)  # no query can find them
@@ -746,7 +755,7 @@ class ForwardDetector:
         if t:  # the word ids of older images live on in the index (and a map file) only
             prev = self._features[t - 1]
             if isinstance(prev, CompactFeatures):
-                self._features[t - 1] = self._keep(t - 1, prev)
+                self._features[t - 1] = self._keep(t - 1, prev, made_at)
             self._release(t - self.resident)
         self._append_pose(pose_now, var_now)
         t3b = clock()

@@ -130,6 +130,7 @@ class Vocabulary:
         self.purged = 0
         # What the last add() changed, for a store to write (robotd.io.store):
         self.last_new: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros((0, dim)))
+        self.last_new_at = np.zeros(0, np.int64)  # the descriptors (of the last add()) that made them
         self.last_purged = np.zeros(0, np.int64)
         self.last_purged_descriptors = np.zeros((0, dim), np.uint8 if binary else np.float32)
 
@@ -262,6 +263,7 @@ class Vocabulary:
         self._first.view[self._images] = self._n_words
         self._images += 1
         self.last_new = (np.zeros(0, np.int64), d[:0])
+        self.last_new_at = np.zeros(0, np.int64)
         self.last_purged = np.zeros(0, np.int64)
         self.last_purged_descriptors = d[:0]
         # a word found twice in the image is written twice with the same value (no unique)
@@ -286,6 +288,7 @@ class Vocabulary:
         self._seen.view[n0:] = 1
         words[new] = self._n_words - len(founders) + owner
         self.last_new = (keys, d[new[founders]])
+        self.last_new_at = new[founders]
         self._purge()
         return words, len(founders)
 
@@ -799,7 +802,7 @@ class BinaryWordTree:
         if not len(w):
             return out
         held = self._slot_word[:self._n_slots]
-        near = np.flatnonzero((held >= w.min()) & (held <= w.max()))
+        near = np.flatnonzero((held >= int(w.min())) & (held <= int(w.max())))  # Python ints: no int64 copy
         keys = held[near]
         order = np.argsort(keys)
         keys, near = keys[order], near[order]

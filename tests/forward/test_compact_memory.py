@@ -360,3 +360,18 @@ def test_words_of_images_out_of_memory_keep_their_descriptors(corridor):
     assert np.mean(found == old) > 0.9  # the tree's search is approximate; the words are there
     for t in (0, 40, 75):
         np.testing.assert_array_equal(det.features_of(t).descriptors, corridor[t].descriptors)
+
+
+def test_words_purged_after_one_image_are_never_lent(corridor):
+    """With purging one image on, an image's words seen once leave the search at the next
+    image, before the image stops being the latest: it lends only the words seen again,
+    and every image reads back as given."""
+    params = method_params("default")
+    params = replace(params, vocabulary=replace(params.vocabulary, purge_after=1))
+    det = ForwardDetector(params)
+    for f in corridor[:30]:
+        det.process_features(f)
+    lent, made = _lent_words(det)
+    assert 0 < lent == made < det.vocabulary.n_searchable
+    for t, f in enumerate(corridor[:30]):
+        np.testing.assert_array_equal(det.features_of(t).descriptors, f.descriptors)
