@@ -166,14 +166,17 @@ class LentFeatures:
     a hundred bytes): the descriptors of the keypoints not lent (``(n - k)`` x 32, in
     keypoint order), the keypoints (``n`` x 2 uint16, 1/16 px, as
     :attr:`CompactFeatures.keypoints_q`), the lent keypoints' indices (``k`` uint16,
-    increasing), their words' ranks among the words the image made (``k`` uint16: word id
-    minus the image's first word id). ``n`` keypoints, ``k`` lent. :meth:`with_descriptors`
-    puts the image together again given the lent words' descriptors."""
+    increasing), and, when ``ranked``, their words' ranks among the words the image made
+    (``k`` uint16: word id minus the image's first word id; without, the ranks are 0 ..
+    k - 1: an image lends every word it made until the words seen once are purged).
+    ``n`` keypoints, ``k`` lent. :meth:`with_descriptors` puts the image together again
+    given the lent words' descriptors."""
 
     data: np.ndarray
     n: int
     k: int
     image_size_px: tuple[int, int]
+    ranked: bool = True
 
     def __len__(self) -> int:
         return self.n
@@ -198,6 +201,8 @@ class LentFeatures:
     @property
     def lent_rank(self) -> np.ndarray:
         """``(k,) uint16``: each lent keypoint's word, as its id minus the image's first word id."""
+        if not self.ranked:
+            return np.arange(self.k, dtype=np.uint16)
         o = 32 * (self.n - self.k) + 4 * self.n + 2 * self.k
         return self.data[o:o + 2 * self.k].view(np.uint16)
 
@@ -249,14 +254,16 @@ class LentFeatures:
 def _pack(keypoints_q: np.ndarray, rows: np.ndarray, at: np.ndarray, rank: np.ndarray,
           size: tuple[int, int]) -> LentFeatures:
     """A :class:`LentFeatures` of ``keypoints_q (n, 2) uint16``, descriptors ``rows (n, 4)
-    uint64``, lending keypoints ``at`` (``(k,)`` increasing) as words of ranks ``rank``."""
+    uint64``, lending keypoints ``at`` (``(k,)`` increasing) as words of ranks ``rank``
+    (not stored when they are 0 .. k - 1)."""
     n, k = len(keypoints_q), len(at)
     mine = np.ones(n, bool)
     mine[at] = False
-    data = np.concatenate([np.compress(mine, rows, axis=0).view(np.uint8).reshape(-1),
-                           np.ascontiguousarray(keypoints_q, np.uint16).reshape(-1).view(np.uint8),
-                           np.asarray(at, np.uint16).view(np.uint8), np.asarray(rank, np.uint16).view(np.uint8)])
-    return LentFeatures(data, n, k, size)
+    r = np.asarray(rank, np.uint16)
+    ranked = not np.array_equal(r, np.arange(k))
+    parts = [np.compress(mine, rows, axis=0).view(np.uint8).reshape(-1),
+             np.ascontiguousarray(keypoints_q, np.uint16).reshape(-1).view(np.uint8), np.asarray(at, np.uint16).view(np.uint8)]
+    return LentFeatures(np.concatenate(parts + [r.view(np.uint8)] if ranked else parts), n, k, size, ranked)
 
 
 def lend(f: CompactFeatures, at: np.ndarray, rank: np.ndarray,

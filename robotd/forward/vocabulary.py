@@ -478,7 +478,7 @@ class BinaryWordTree:
         b = params.branching
         # nodes
         self._centre = np.zeros((16, 4), np.uint64)
-        self._child = np.full((16, b), -1, np.int32)
+        self._child = np.full((16, b), -1, np.int16)   # int32 once there are more nodes
         self._leaf_row = np.full(16, -1, np.int32)      # per node: its row in the pool, -1 inner
         self._n_nodes = 1
         # leaves: each a row, whose slots lie in order in a block of one flat pool: a block
@@ -530,6 +530,8 @@ class BinaryWordTree:
     def _new_node(self, centre: np.ndarray) -> int:
         """A new leaf with this centre (it lists itself as its child)."""
         n = self._n_nodes
+        if n > np.iinfo(self._child.dtype).max:
+            self._child = self._child.astype(np.int32)
         self._centre = self._grow(self._centre, n + 2)   # + 2: the spare row -1 (no child)
         self._child = self._grow(self._child, n + 2, -1)
         self._leaf_row = self._grow(self._leaf_row, n + 2, -1)
@@ -612,7 +614,7 @@ class BinaryWordTree:
         so one gather expands a whole front."""
         n = len(q)
         rows = np.arange(n)
-        front = np.zeros((n, 1), np.int32)
+        front: np.ndarray = np.zeros((n, 1), np.int32)  # then the children's dtype
         b = self.params.branching
         while True:
             kids = self._child.take(front, axis=0)                    # (N, F, b)
@@ -1157,7 +1159,7 @@ class InvertedIndex:
         if self._v_cand is not None:  # words now seen often enough join the candidates
             up = uw[self._occ.view[uw] >= self._v_floor]
             if len(up):
-                self._v_cand = sorted_union(self._v_cand, up)
+                self._v_cand = sorted_union(self._v_cand, up.astype(np.int32))
 
     def remove_image(self, image_id: int, words: np.ndarray) -> None:
         """Take image ``image_id`` out of the index, given the words it was added with
@@ -1260,14 +1262,14 @@ class InvertedIndex:
 
     def _virtual_candidates(self, k: int) -> np.ndarray:
         """The words seen at least as often as the ``k``-th most frequent (all the words in
-        use when fewer), ``(M,) int64`` sorted, M >= min(k, words in use); kept as the
+        use when fewer), ``(M,) int32`` sorted, M >= min(k, words in use); kept as the
         candidates with that count as their floor (at least 1: words in use only)."""
         occ = self._occ.view
         floor = 1
         if k < len(occ):
             floor = max(1, int(np.partition(occ, len(occ) - k)[len(occ) - k]))
         self._v_floor = floor
-        self._v_cand = np.flatnonzero(occ >= floor).astype(np.int64)
+        self._v_cand = np.flatnonzero(occ >= floor).astype(np.int32)  # word ids: int32 is room enough
         return self._v_cand
 
     def vote(self, words: np.ndarray) -> tuple[np.ndarray, float]:

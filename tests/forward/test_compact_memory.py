@@ -158,20 +158,20 @@ def _structure_bound(det: ForwardDetector) -> dict[str, int]:
     nodes, rows, slots = tree._n_nodes, tree._n_rows, tree._n_slots
     blocks = int(tree._row_cap[:rows].sum())
     n_free = len(tree._free_rows) + len(tree._free_slots)
-    search = (_capacity(nodes + 2) * (32 + 4 * tree.params.branching + 4)   # centre, children, leaf row
+    search = (_capacity(nodes + 2) * (32 + 2 * tree.params.branching + 4)   # centre, children (int16), leaf row
               + _capacity(rows) * 3 * 4                                     # block start and length, fill
               + _capacity(blocks * 4 // 3) * 4                              # the leaves' blocks
               + _capacity(slots + 1) * (32 + 4 + 2 + 1)                     # descriptor, word, row, position
               + 2 * _list_bytes(n_free) + _INT * n_free                     # free rows and slots: lists of ints
               + _capacity(n_words) + _capacity(n_images) * 4)               # seen, first word per image
-    # a lent image: its keypoints (4 bytes each), the lent keypoints and their words' ranks
-    # (2 + 2 bytes), the other descriptors (32 bytes), one object and one array header;
-    # otherwise word ids, keypoints and descriptors
+    # a lent image: its keypoints (4 bytes each), the lent keypoints (2 bytes) and their
+    # words' ranks unless they are 0 .. k - 1 (2 bytes), the other descriptors (32 bytes),
+    # one object and one array header; otherwise word ids, keypoints and descriptors
     record = sys.getsizeof(LentFeatures(np.zeros(0, np.uint8), 0, 0, (0, 0))) + sys.getsizeof(np.zeros(0, np.uint8))
     images = 0
     for f in det._features:
         if isinstance(f, LentFeatures):
-            images += 4 * f.n + 4 * f.k + 32 * (f.n - f.k) + record
+            images += 4 * f.n + 2 * f.k + (2 * f.k if f.ranked else 0) + 32 * (f.n - f.k) + record
         elif f is not None:
             images += f.nbytes
     pose_rows = max(64, 1 << max(n_images - 1, 0).bit_length())            # doubled from 64
