@@ -459,8 +459,10 @@ class ForwardDetector:
     def features_of(self, image_id: int) -> CompactFeatures:
         """The stored features of a processed image (compact: word ids, keypoints in 1/16
         px, descriptors; they read like :class:`Features`); the word ids for the latest
-        image only (empty for the others: the inverted index holds them). Those out of
-        memory come from the :attr:`loader` (LookupError when it cannot give them)."""
+        image only (empty for the others: the inverted index holds them). An image that
+        lends descriptors to the word search is put together anew (equal at each call, not
+        the same object). Those out of memory come from the :attr:`loader` (LookupError
+        when it cannot give them)."""
         kept = self._features[image_id]
         if isinstance(kept, LentFeatures):
             lo, _ = self.vocabulary.image_words(image_id)
