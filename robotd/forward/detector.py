@@ -32,6 +32,7 @@ a place being recognised, and moves the least useful places out to keep the boun
 from __future__ import annotations
 
 import math
+import sys
 import time
 from collections import OrderedDict
 from collections.abc import Callable
@@ -41,7 +42,8 @@ from typing import TypedDict, Unpack
 
 import numpy as np
 
-from robotd.forward.features import CompactFeatures, FeatureExtractor, FeatureParams, Features, compact, without_words
+from robotd.forward.features import (CompactFeatures, FeatureExtractor, FeatureParams, Features, LentFeatures, compact,
+                                     lend, without_words)
 from robotd.forward.filter import (FilterParams, diffusion_weights, predict, predict_ids, select_candidate,
                                    select_candidate_ids, update)
 from robotd.forward.likelihood import LikelihoodMethod, adjust_likelihood
@@ -424,6 +426,8 @@ class ForwardDetector:
         self.loader = loader
         self.resident = resident
         self._in_store = bytearray()  # per image: 1 once the loader can give its features
+        self._size: tuple[int, int] = (0, 0)  # the latest lent image's size
+        self._made_at = np.zeros(0, np.int64)  # the latest image's founding keypoints
         self._read_back: OrderedDict[int, CompactFeatures] = OrderedDict()  # the latest read back
         self.read_back = 0  # images whose features the loader gave
         self.read_back_failed = 0  # images it could not give (their verification failed)
@@ -434,7 +438,9 @@ class ForwardDetector:
         self.memory = WorkingMemory(self.index, params.memory,
                                     protect_recent=params.recent_excluded + params.filter.neighbours,
                                     neighbours=params.filter.neighbours)
-        self._features: list[CompactFeatures | None] = []  # None: out of memory, the loader's
+        # per image: its features (lent: their founding descriptors read from the word
+        # search, :meth:`_keep`); None: out of memory, the loader's
+        self._features: list[CompactFeatures | LentFeatures | None] = []
         # (t, 3) x_m, y_m, yaw_rad of each image (NaN: unknown) and their variances: views
         # of the first t rows of growing buffers (no copy of every pose per image)
         self._pose_buf = np.zeros((0, 3))
@@ -453,11 +459,16 @@ class ForwardDetector:
     def features_of(self, image_id: int) -> CompactFeatures:
         """The stored features of a processed image (compact: word ids, keypoints in 1/16
         px, descriptors; they read like :class:`Features`); the word ids for the latest
-        image only (empty for the others: the inverted index holds them). Those out of
-        memory come from the :attr:`loader` (LookupError when it cannot give them)."""
-        f = self._features[image_id]
-        if f is not None:
-            return f
+        image only (empty for the others: the inverted index holds them). An image that
+        lends descriptors to the word search is put together anew (equal at each call, not
+        the same object). Those out of memory come from the :attr:`loader` (LookupError
+        when it cannot give them)."""
+        kept = self._features[image_id]
+        if isinstance(kept, LentFeatures):
+            lo, _ = self.vocabulary.image_words(image_id)
+            return kept.with_descriptors(self.vocabulary.word_descriptors(lo + kept.lent_rank.astype(np.int64)))
+        if kept is not None:
+            return kept
         f = self._read_back.get(image_id)
         if f is not None:
             self._read_back.move_to_end(image_id)
@@ -470,6 +481,42 @@ class ForwardDetector:
         if len(self._read_back) > READ_BACK_KEPT:
             self._read_back.popitem(last=False)
         return f
+
+    def _keep(self, image_id: int, f: CompactFeatures,
+              made_at: np.ndarray | None = None) -> CompactFeatures | LentFeatures:
+        """What stays in memory of image ``image_id``'s features ``f`` (with its word ids)
+        once it is not the latest: no word ids (the inverted index holds them), and when
+        the word search lends (:attr:`Vocabulary.lends`), not the descriptors that made
+        words it still holds either: each word's descriptor is its founding keypoint's
+        (the image's first keypoint with that word), so those are read back from it.
+        ``made_at``: the founding keypoints in the order of the words they made
+        (:attr:`Vocabulary.last_new_at` of the image's add), else found from the words."""
+        voc = self.vocabulary
+        if not voc.lends or not len(f.words):
+            return without_words(f)
+        if f.image_size_px != self._size:  # one tuple for all the images of a size (its ints are objects)
+            self._size = f.image_size_px
+        lo, hi = voc.image_words(image_id)
+        if made_at is not None and len(made_at) == hi - lo:
+            at, rank = made_at, np.arange(hi - lo, dtype=np.int64)
+        else:
+            w = f.words.astype(np.int64)
+            pos = np.flatnonzero((w >= lo) & (w < hi))
+            made, first = np.unique(w[pos], return_index=True)
+            at, rank = pos[first], made - lo
+        ok = voc.searchable(lo + rank)  # not purged meanwhile (a purge after a single image)
+        return lend(f, at[ok], rank[ok], self._size)
+
+    def _give_back(self, words: np.ndarray, descriptors: np.ndarray) -> None:
+        """Words ``words`` left the word search with their ``descriptors``: the images in
+        memory that lent them keep those descriptors again."""
+        born = self.vocabulary.born(words)
+        for t in np.unique(born).tolist():
+            kept = self._features[t]
+            if isinstance(kept, LentFeatures):
+                mine = born == t
+                lo, _ = self.vocabulary.image_words(t)
+                self._features[t] = kept.give_back(words[mine] - lo, descriptors[mine])
 
     def mark_stored(self, image_id: int) -> None:
         """The :attr:`loader` can now give ``image_id``'s features: they may leave memory
@@ -513,8 +560,26 @@ class ForwardDetector:
         self._var_buf = np.full((len(self._features), 3), np.nan)
         self._poses, self._poses_var = self._pose_buf, self._var_buf
         self.vocabulary.restore(word_descriptors, word_born, word_purged, seen, len(images))
+        if self.vocabulary.lends:
+            for t, f in enumerate(images):
+                if self._features[t] is not None and len(f.words):
+                    self._features[t] = self._keep(t, self._founders_as_stored(t, f, word_descriptors))
         if not self.params.memory.bounded:
             self.index.drop_postings(np.flatnonzero(np.asarray(word_purged, bool)))
+
+    @staticmethod
+    def _founders_as_stored(t: int, f: CompactFeatures, word_descriptors: np.ndarray) -> CompactFeatures:
+        """``f`` with the word ids of keypoints whose descriptor is not their word's
+        descriptor as stored set apart (-1, so :meth:`_keep` lends nothing it could not
+        give back as it was); ``f`` itself when all agree."""
+        w = f.words.astype(np.int64)
+        d = np.asarray(f.descriptors)
+        if d.dtype != np.uint8 or d.ndim != 2 or d.shape[1] != word_descriptors.shape[1]:
+            return replace(f, words=np.full(len(w), -1, np.int64))
+        differ = np.any(d != np.asarray(word_descriptors)[w], axis=1)
+        if not differ.any():
+            return f
+        return replace(f, words=np.where(differ, -1, w))
 
     def _append_pose(self, pose: np.ndarray, var: np.ndarray) -> None:
         """The next image's pose and variances ``(3,)`` each (NaN: unknown)."""
@@ -591,12 +656,19 @@ class ForwardDetector:
 
     def memory_bytes(self) -> dict[str, int]:
         """Bytes the detector holds, by part: ``images`` (word ids, keypoints, descriptors
-        of every past image in memory, those read back lately included), ``index`` (the inverted index), ``vocabulary`` (the word
-        search, as usearch reports it, reserved capacity included)."""
+        of every past image in memory, those read back lately included, and the per-image
+        list, flags, poses, posterior and hypothesis ids), ``index`` (the inverted index and the working memory's
+        per-place state), ``vocabulary`` (the word search, as usearch reports it, reserved
+        capacity included)."""
         kept = [f for f in self._features if f is not None] + list(self._read_back.values())
-        return {"images": sum(f.nbytes for f in kept),
-                "index": self.index.memory_bytes(),
+        return {"images": sum(_held_bytes(f) for f in kept) + self._bookkeeping_bytes(),
+                "index": self.index.memory_bytes() + self.memory.memory_bytes(),
                 "vocabulary": self.vocabulary.memory_bytes()}
+
+    def _bookkeeping_bytes(self) -> int:
+        """Bytes of the per-image list, flags, poses, posterior and hypothesis ids."""
+        return (sys.getsizeof(self._features) + len(self._in_store) + self._pose_buf.nbytes + self._var_buf.nbytes
+                + self._posterior.nbytes + self._hyp_ids.nbytes)
 
     def process(self, image: np.ndarray, pose: np.ndarray | None = None,
                 pose_cov: np.ndarray | None = None) -> Detection:
@@ -619,9 +691,14 @@ class ForwardDetector:
         times = {"features": features_s}
 
         t0 = clock()
+        made_at = self._made_at  # the previous image's founding keypoints
         words, new_words = self.vocabulary.add(feats.descriptors)
-        if len(self.vocabulary.last_purged) and not p.memory.bounded:
-            self.index.drop_postings(self.vocabulary.last_purged)  # no query can find them
+        self._made_at = self.vocabulary.last_new_at
+        gone = self.vocabulary.last_purged
+        if len(gone) and not p.memory.bounded:
+            self.index.drop_postings(gone)  # no query can find them
+        if len(gone) and self.vocabulary.lends:
+            self._give_back(gone, self.vocabulary.last_purged_descriptors)
         t1 = clock()
         times["words"] = t1 - t0
 
@@ -679,8 +756,8 @@ class ForwardDetector:
         self._in_store.append(0)
         if t:  # the word ids of older images live on in the index (and a map file) only
             prev = self._features[t - 1]
-            if prev is not None:
-                self._features[t - 1] = without_words(prev)
+            if isinstance(prev, CompactFeatures):
+                self._features[t - 1] = self._keep(t - 1, prev, made_at)
             self._release(t - self.resident)
         self._append_pose(pose_now, var_now)
         t3b = clock()
@@ -731,6 +808,14 @@ class ForwardDetector:
             vocabulary_size=len(self.vocabulary), times_s=times, hypothesis_ids=hyp_ids,
             working_memory=len(self.memory), retrieved=tuple(retrieved),
             transferred=tuple(transferred))
+
+
+def _held_bytes(f: CompactFeatures | LentFeatures) -> int:
+    """Bytes an image's features hold in memory: a lent record with its object and its
+    buffer's header (Python's own figures: one per image, about 180 bytes), else the arrays."""
+    if isinstance(f, LentFeatures):
+        return sys.getsizeof(f) + sys.getsizeof(f.data)
+    return f.nbytes
 
 
 def _pose_row(pose: np.ndarray | None, pose_cov: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:

@@ -15,8 +15,8 @@ from typing import Literal, Protocol
 import cv2
 import numpy as np
 
-__all__ = ["CompactFeatures", "FeatureExtractor", "FeatureParams", "Features", "compact", "extract_features", "without_words",
-           "to_gray"]
+__all__ = ["CompactFeatures", "FeatureExtractor", "FeatureParams", "Features", "LentFeatures", "compact", "extract_features",
+           "lend", "without_words", "to_gray"]
 
 FeatureKind = Literal["sift", "orb"]
 
@@ -154,6 +154,137 @@ def without_words(f: CompactFeatures) -> CompactFeatures:
     """``f`` without its word ids (``words`` empty; keypoints and descriptors, which the
     verification reads, are the same arrays)."""
     return replace(f, words=_NO_WORDS)
+
+
+@dataclass(frozen=True, eq=False, slots=True)
+class LentFeatures:
+    """A past image's features whose *founding* descriptors (those that made a word the
+    word search still holds: the word's descriptor is that very descriptor) are left to
+    the word search, so that the two do not both keep them.
+
+    One buffer ``data`` (uint8, one array rather than four: an array's own header is about
+    a hundred bytes): the descriptors of the keypoints not lent (``(n - k)`` x 32, in
+    keypoint order), the keypoints (``n`` x 2 uint16, 1/16 px, as
+    :attr:`CompactFeatures.keypoints_q`), the lent keypoints' indices (``k`` uint16,
+    increasing), and, when ``ranked``, their words' ranks among the words the image made
+    (``k`` uint16: word id minus the image's first word id; without, the ranks are 0 ..
+    k - 1: an image lends every word it made until the words seen once are purged).
+    ``n`` keypoints, ``k`` lent. :meth:`with_descriptors` puts the image together again
+    given the lent words' descriptors."""
+
+    data: np.ndarray
+    n: int
+    k: int
+    image_size_px: tuple[int, int]
+    ranked: bool = True
+
+    def __len__(self) -> int:
+        return self.n
+
+    @property
+    def own(self) -> np.ndarray:
+        """``(n - k, 32) uint8``: the descriptors of the keypoints not lent, in keypoint order."""
+        return self.data[:32 * (self.n - self.k)].reshape(self.n - self.k, 32)
+
+    @property
+    def keypoints_q(self) -> np.ndarray:
+        """``(n, 2) uint16`` keypoint positions, 1/16 px (a view)."""
+        o = 32 * (self.n - self.k)
+        return self.data[o:o + 4 * self.n].view(np.uint16).reshape(self.n, 2)
+
+    @property
+    def lent_at(self) -> np.ndarray:
+        """``(k,) uint16``: the lent keypoints, increasing (a view)."""
+        o = 32 * (self.n - self.k) + 4 * self.n
+        return self.data[o:o + 2 * self.k].view(np.uint16)
+
+    @property
+    def lent_rank(self) -> np.ndarray:
+        """``(k,) uint16``: each lent keypoint's word, as its id minus the image's first word id."""
+        if not self.ranked:
+            return np.arange(self.k, dtype=np.uint16)
+        o = 32 * (self.n - self.k) + 4 * self.n + 2 * self.k
+        return self.data[o:o + 2 * self.k].view(np.uint16)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the buffer."""
+        return int(self.data.nbytes)
+
+    def _rows(self, lent: np.ndarray) -> np.ndarray:
+        """All ``n`` descriptors as ``(n, 4) uint64`` rows, ``lent (k, 32) uint8`` in :attr:`lent_at` order."""
+        at = self.lent_at
+        mine = np.ones(self.n, bool)
+        mine[at] = False
+        d = np.empty((self.n, 4), np.uint64)
+        d[np.flatnonzero(mine)] = self.data[:32 * (self.n - self.k)].view(np.uint64).reshape(-1, 4)
+        d[at] = np.ascontiguousarray(lent, np.uint8).view(np.uint64).reshape(-1, 4)
+        return d
+
+    def with_descriptors(self, lent: np.ndarray) -> CompactFeatures:
+        """The image as :class:`CompactFeatures` (no word ids), ``lent (k, 32) uint8`` the
+        lent keypoints' descriptors in :attr:`lent_at` order."""
+        return CompactFeatures(_NO_WORDS, self.keypoints_q, self._rows(lent).view(np.uint8), self.image_size_px)
+
+    def give_back(self, ranks: np.ndarray, descriptors: np.ndarray) -> LentFeatures | CompactFeatures:
+        """The record once the words of ``ranks`` (``(K,) int``) leave the word search with
+        their ``descriptors`` (``(K, 32) uint8``): those keypoints keep their descriptors
+        again (the others stay lent; :class:`CompactFeatures` without words when none is
+        left lent). Ranks the record did not lend are ignored."""
+        rank = self.lent_rank.astype(np.int64)
+        r = np.asarray(ranks, np.int64)
+        r_ok = (r >= 0) & (r < 65536)
+        if not r_ok.any():
+            return self
+        which = np.full(max(int(r[r_ok].max()), int(rank.max(initial=0))) + 1, -1, np.int64)
+        which[r[r_ok]] = np.flatnonzero(r_ok)       # rank -> its row in ``descriptors``
+        row = which[rank]
+        back = row >= 0
+        if not back.any():
+            return self
+        lent = np.zeros((self.k, 32), np.uint8)
+        lent[back] = np.asarray(descriptors, np.uint8)[row[back]]
+        d = self._rows(lent)
+        kq = self.keypoints_q
+        if back.all():
+            return CompactFeatures(_NO_WORDS, kq.copy(), d.view(np.uint8), self.image_size_px)
+        return _pack(kq, d, self.lent_at[~back], rank[~back], self.image_size_px)
+
+
+def _pack(keypoints_q: np.ndarray, rows: np.ndarray, at: np.ndarray, rank: np.ndarray,
+          size: tuple[int, int]) -> LentFeatures:
+    """A :class:`LentFeatures` of ``keypoints_q (n, 2) uint16``, descriptors ``rows (n, 4)
+    uint64``, lending keypoints ``at`` (``(k,)`` increasing) as words of ranks ``rank``
+    (not stored when they are 0 .. k - 1)."""
+    n, k = len(keypoints_q), len(at)
+    mine = np.ones(n, bool)
+    mine[at] = False
+    r = np.asarray(rank, np.uint16)
+    ranked = not np.array_equal(r, np.arange(k))
+    parts = [np.compress(mine, rows, axis=0).view(np.uint8).reshape(-1),
+             np.ascontiguousarray(keypoints_q, np.uint16).reshape(-1).view(np.uint8), np.asarray(at, np.uint16).view(np.uint8)]
+    return LentFeatures(np.concatenate(parts + [r.view(np.uint8)] if ranked else parts), n, k, size, ranked)
+
+
+def lend(f: CompactFeatures, at: np.ndarray, rank: np.ndarray,
+         size: tuple[int, int] | None = None) -> LentFeatures | CompactFeatures:
+    """``f`` (binary descriptors, ``(N, 32) uint8``) with the descriptors of keypoints
+    ``at`` (``(k,) int``, distinct) left to the word search, which holds them as the words
+    of ranks ``rank`` (``(k,) int``, below 65,536: the word's id minus the first id the
+    image made); ``f`` without words when ``at`` is empty. ``size``: the image size to
+    keep (an equal tuple shared by many images; default ``f``'s)."""
+    size = f.image_size_px if size is None else size
+    if not len(at):
+        return replace(f, words=_NO_WORDS, image_size_px=size)
+    at = np.asarray(at, np.int64)
+    rank = np.asarray(rank, np.int64)
+    if np.any(at[1:] <= at[:-1]):
+        order = np.argsort(at)
+        at, rank = at[order], rank[order]
+    if len(f) > 65535 or int(rank.max()) > 65535:
+        raise ValueError("an image lends at most 65,536 keypoints")
+    rows = np.ascontiguousarray(f.descriptors, np.uint8).view(np.uint64).reshape(len(f), 4)
+    return _pack(f.keypoints_q, rows, at, rank, size)
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:

@@ -41,6 +41,7 @@ words of LTM places must still be found when those places come back.
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -151,8 +152,12 @@ class WorkingMemory:
         return self._weight[place]
 
     def memory_bytes(self) -> int:
-        """Bytes of the stored words (all places) and the per-place counters."""
-        return sum(w.nbytes for w in self._words) + 24 * len(self._words)
+        """Bytes of the stored words (all places; arrays with their headers) and the
+        per-place state: the lists' and the set's own tables, and an int object per place
+        (its id and last use; the ints beyond the few Python shares)."""
+        words = sum(sys.getsizeof(w) for w in self._words if w is not _NONE)
+        tables = sum(sys.getsizeof(x) for x in (self._words, self._weight, self._used, self._wm))
+        return words + tables + sys.getsizeof(1 << 20) * len(self._words)
 
     # --- changes --------------------------------------------------------------------------
     def add(self, place: int, words: np.ndarray, now: int) -> None:

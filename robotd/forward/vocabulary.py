@@ -35,6 +35,7 @@ image, each counted once: tf = 1 / n.
 from __future__ import annotations
 
 import heapq
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -129,7 +130,9 @@ class Vocabulary:
         self.purged = 0
         # What the last add() changed, for a store to write (robotd.io.store):
         self.last_new: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros((0, dim)))
+        self.last_new_at = np.zeros(0, np.int64)  # the descriptors (of the last add()) that made them
         self.last_purged = np.zeros(0, np.int64)
+        self.last_purged_descriptors = np.zeros((0, dim), np.uint8 if binary else np.float32)
 
     def __len__(self) -> int:
         """Words made so far (purged ones included: ids are never reused)."""
@@ -145,6 +148,47 @@ class Vocabulary:
     def n_searchable(self) -> int:
         """Words the search can still find (made minus purged)."""
         return self._n_words - self.purged
+
+    @property
+    def lends(self) -> bool:
+        """True when the search keeps each word's descriptor where :meth:`word_descriptors`
+        reads it back, and :attr:`last_purged_descriptors` gives purged words' descriptors
+        (the binary word tree), so an image's store may leave its founding descriptors to
+        it (:class:`robotd.forward.detector.ForwardDetector`)."""
+        return self._tree is not None
+
+    def image_words(self, image: int) -> tuple[int, int]:
+        """The ids ``lo .. hi - 1`` of the words that image ``image`` (its :meth:`add` call,
+        0, 1, ...) made."""
+        hi = int(self._first.view[image + 1]) if image + 1 < self._images else self._n_words
+        return int(self._first.view[image]), hi
+
+    def born(self, words: np.ndarray) -> np.ndarray:
+        """``(K,) int64``: the image (its :meth:`add` call) that made each of ``words``."""
+        out: np.ndarray = np.searchsorted(self._first.view, np.asarray(words, np.int64), side="right") - 1
+        return out
+
+    def searchable(self, words: np.ndarray) -> np.ndarray:
+        """``(K,) bool``: which of ``words`` (``(K,) int``, made already) the search can
+        still find: not purged (a word is examined once, when it falls due; one found in a
+        second image is never purged)."""
+        w = np.asarray(words, np.int64)
+        if self.params.purge_after <= 0:
+            return np.ones(len(w), bool)
+        out: np.ndarray = (w >= self._unpurged_from) | (self._seen.view[w] > 1)
+        return out
+
+    def word_descriptors(self, words: np.ndarray) -> np.ndarray:
+        """The descriptors of searchable ``words`` (``(K,) int``), ``(K, 32) uint8`` as they
+        were added; LookupError for a word the search does not hold (purged, or a search
+        that does not lend: :attr:`lends`)."""
+        if self._tree is None:
+            raise LookupError("only the binary word tree gives its words' descriptors back")
+        d, found = self._tree.descriptors(words)
+        if not found.all():
+            raise LookupError(f"words {np.asarray(words)[~found][:5].tolist()} are not in the word search")
+        out: np.ndarray = d.view(np.uint8)
+        return out
 
     def _check(self, descriptors: np.ndarray) -> np.ndarray:
         d = np.ascontiguousarray(descriptors, np.uint8 if self.binary else np.float32)
@@ -219,7 +263,9 @@ class Vocabulary:
         self._first.view[self._images] = self._n_words
         self._images += 1
         self.last_new = (np.zeros(0, np.int64), d[:0])
+        self.last_new_at = np.zeros(0, np.int64)
         self.last_purged = np.zeros(0, np.int64)
+        self.last_purged_descriptors = d[:0]
         # a word found twice in the image is written twice with the same value (no unique)
         found = words[words >= 0]
         self._seen.view[found] = np.minimum(self._seen.view[found], 1) + 1  # only "more than once" matters
@@ -242,6 +288,7 @@ class Vocabulary:
         self._seen.view[n0:] = 1
         words[new] = self._n_words - len(founders) + owner
         self.last_new = (keys, d[new[founders]])
+        self.last_new_at = new[founders]
         self._purge()
         return words, len(founders)
 
@@ -293,7 +340,7 @@ class Vocabulary:
         gone = lo + np.flatnonzero(self._seen.view[lo:hi] <= 1)
         if len(gone):
             if self._tree is not None:
-                self._tree.remove(gone)
+                self.last_purged_descriptors = self._tree.remove(gone).view(np.uint8)
             else:
                 self._index.remove(gone.astype(np.int64))
             self.purged += len(gone)
@@ -381,6 +428,7 @@ def _grown(n: int) -> int:
     return n + n // 8 + 16
 
 
+_INT_BYTES = sys.getsizeof(1 << 20)  # a Python int beyond the small ones it shares (28 bytes)
 _LEAF_BLOCK = 16           # a leaf's block in the word tree's pool: a multiple of this many entries
 _FAR = np.int32(1 << 20)  # a distance no real pair reaches (256 bits at most)
 _PREFILTER_BITS = 20       # see BinaryWordTree.nearest
@@ -430,7 +478,7 @@ class BinaryWordTree:
         b = params.branching
         # nodes
         self._centre = np.zeros((16, 4), np.uint64)
-        self._child = np.full((16, b), -1, np.int32)
+        self._child = np.full((16, b), -1, np.int16)   # int32 once there are more nodes
         self._leaf_row = np.full(16, -1, np.int32)      # per node: its row in the pool, -1 inner
         self._n_nodes = 1
         # leaves: each a row, whose slots lie in order in a block of one flat pool: a block
@@ -463,10 +511,12 @@ class BinaryWordTree:
         return self.n_live
 
     def memory_bytes(self) -> int:
-        """Bytes of the tree's arrays (their spare capacity included)."""
+        """Bytes of the tree's arrays (their spare capacity included) and of its lists of
+        free rows and slots (their tables and an int object per entry)."""
         arrays = (self._centre, self._child, self._leaf_row, self._pool, self._row_start, self._row_cap, self._fill,
                   self._desc, self._slot_word, self._slot_row, self._slot_pos)
-        return sum(a.nbytes for a in arrays) + 8 * (len(self._free_rows) + len(self._free_slots))
+        free = sys.getsizeof(self._free_rows) + sys.getsizeof(self._free_slots)
+        return sum(a.nbytes for a in arrays) + free + _INT_BYTES * (len(self._free_rows) + len(self._free_slots))
 
     # -- growing arrays -------------------------------------------------------------------
     @staticmethod
@@ -480,6 +530,8 @@ class BinaryWordTree:
     def _new_node(self, centre: np.ndarray) -> int:
         """A new leaf with this centre (it lists itself as its child)."""
         n = self._n_nodes
+        if n > np.iinfo(self._child.dtype).max:
+            self._child = self._child.astype(np.int32)
         self._centre = self._grow(self._centre, n + 2)   # + 2: the spare row -1 (no child)
         self._child = self._grow(self._child, n + 2, -1)
         self._leaf_row = self._grow(self._leaf_row, n + 2, -1)
@@ -562,7 +614,7 @@ class BinaryWordTree:
         so one gather expands a whole front."""
         n = len(q)
         rows = np.arange(n)
-        front = np.zeros((n, 1), np.int32)
+        front: np.ndarray = np.zeros((n, 1), np.int32)  # then the children's dtype
         b = self.params.branching
         while True:
             kids = self._child.take(front, axis=0)                    # (N, F, b)
@@ -739,27 +791,55 @@ class BinaryWordTree:
             cents = [cents[0]] * len(groups)
         return groups, cents
 
-    def remove(self, words: np.ndarray) -> None:
-        """Take words out (ids held by the tree; others are ignored); their slots are reused.
+    def slots_of(self, words: np.ndarray) -> np.ndarray:
+        """The slot of each of ``words`` (``(K,) int``), ``(K,) int64``, -1 for a word the
+        tree does not hold.
 
-        The slots are found by a pass over the slots' word ids restricted to the ids'
-        range (a vocabulary purges words of one image's age at a time, a narrow range), so
-        the tree keeps no per-word array over every word id ever made (about 90 per image
-        on the office route, 4 bytes each)."""
-        w_all = np.asarray(words, np.int64)
-        if not len(w_all):
-            return
+        Found by a pass over the slots' word ids restricted to the ids' range (the words
+        asked for together are those of one image or of one image's age, a narrow range),
+        so the tree keeps no per-word array over every word id ever made (about 90 per
+        image on the office route, 4 bytes each)."""
+        w = np.asarray(words, np.int64)
+        out = np.full(len(w), -1, np.int64)
+        if not len(w):
+            return out
         held = self._slot_word[:self._n_slots]
-        near = np.flatnonzero((held >= w_all.min()) & (held <= w_all.max()))
-        slot_of = dict(zip(held[near].tolist(), near.tolist()))
+        near = np.flatnonzero((held >= int(w.min())) & (held <= int(w.max())))  # Python ints: no int64 copy
+        keys = held[near]
+        order = np.argsort(keys)
+        keys, near = keys[order], near[order]
+        at = np.minimum(np.searchsorted(keys, w), max(len(keys) - 1, 0))
+        found = (keys[at] == w) if len(keys) else np.zeros(len(w), bool)
+        out[found] = near[at[found]]
+        return out
+
+    def descriptors(self, words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The descriptors of ``words`` (``(K,) int``): ``(K, 4) uint64`` (a zero row for a
+        word the tree does not hold) and ``(K,) bool`` whether it holds each."""
+        slots = self.slots_of(words)
+        found = slots >= 0
+        out = np.zeros((len(slots), 4), np.uint64)
+        out[found] = self._desc[slots[found]]
+        return out, found
+
+    def remove(self, words: np.ndarray) -> np.ndarray:
+        """Take words out (ids held by the tree; others are ignored); their slots are reused
+        (their descriptor rows by the next words added). Returns the words' descriptors as
+        they were, ``(K, 4) uint64`` (a zero row for a word the tree did not hold)."""
+        w_all = np.asarray(words, np.int64)
+        gone = np.zeros((len(w_all), 4), np.uint64)
+        if not len(w_all):
+            return gone
+        at = self.slots_of(w_all)
+        gone[at >= 0] = self._desc[at[at >= 0]]
+        slots = at.tolist()
         # one word at a time (a removal moves the leaf's last entry into the hole, and the
         # entries' order decides a later split), through memoryviews: numpy's scalar
         # indexing costs several times a memoryview's
         pool, fill, row_start = self._pool.data, self._fill.data, self._row_start.data
         slot_row, slot_pos, slot_word = self._slot_row.data, self._slot_pos.data, self._slot_word.data
-        for w in w_all.tolist():
-            s = slot_of.pop(w, -1)
-            if s < 0:
+        for w, s in zip(w_all.tolist(), slots):
+            if s < 0 or slot_word[s] != w:  # not held, or named twice
                 continue
             row, pos = slot_row[s], slot_pos[s]
             at = row_start[row]
@@ -772,6 +852,7 @@ class BinaryWordTree:
             slot_word[s] = -1
             self._free_slots.append(s)
             self.n_live -= 1
+        return gone
 
 
 _WIDER: dict[type, type] = {np.int16: np.int32, np.int32: np.int64}
@@ -984,11 +1065,13 @@ class InvertedIndex:
         self._df = _GrowingInts(np.int16)        # per word: images containing it
         self._occ = _GrowingInts(np.int16)       # per word: total occurrences
         self._image_len = _GrowingInts()         # per slot: n(i), words (with repeats) in the image
-        self._image_ids: list[int] = []          # per slot: the image in it, -1 when free
-        self._slot_of: dict[int, int] = {}       # image id -> slot
+        self._image_ids = _GrowingInts()         # per slot: the image in it, -1 when free
+        # per image id: its slot + 1 when indexed, 0 never added, -1 removed (it may be
+        # added again); arrays, not a dict and a list of Python ints (about 100 bytes an image)
+        self._slot_at = _GrowingInts()
+        self._n_indexed = 0                      # N
         self._free: list[int] = []               # free slots (a min-heap)
         self._last_added = -1                    # the highest image id added
-        self._removed: set[int] = set()          # ids removed (they may be added again)
         self._total = 0                          # sum of n(i) over the indexed images
         # Word ids below n_words with df == 0 (ids skipped, or words whose images all
         # left): while there is none, the virtual image is chosen among all the words
@@ -1002,26 +1085,32 @@ class InvertedIndex:
     @property
     def n_images(self) -> int:
         """N: images indexed."""
-        return len(self._slot_of)
+        return self._n_indexed
 
     @property
     def n_slots(self) -> int:
         """Slots (the length of :meth:`vote`'s scores): indexed images plus free slots."""
-        return len(self._image_ids)
+        return self._image_ids.n
 
     @property
     def image_ids(self) -> np.ndarray:
         """``(n_slots,) int64``: the id of the image in each slot (= score order), -1 when
         free; the insertion order when no image was removed."""
-        return np.asarray(self._image_ids, np.int64)
+        return self._image_ids.view.astype(np.int64)
 
     @property
     def n_words(self) -> int:
         """Words the index knows (the highest word id added + 1)."""
         return self._df.n
 
+    def _slot(self, image_id: int) -> int:
+        """The slot of image ``image_id``, -1 when it is not indexed."""
+        if not 0 <= image_id < self._slot_at.n:
+            return -1
+        return max(int(self._slot_at.view[image_id]) - 1, -1)
+
     def __contains__(self, image_id: int) -> bool:
-        return image_id in self._slot_of
+        return self._slot(int(image_id)) >= 0
 
     def add_image(self, image_id: int, words: np.ndarray) -> None:
         """Index image ``image_id`` with its words (``(K,) int``, repeats counted).
@@ -1029,24 +1118,26 @@ class InvertedIndex:
         A new image must have a higher id than every image added before; an image removed
         earlier may come back with its old id (and the same words)."""
         image_id = int(image_id)
-        if image_id in self._slot_of:
+        if self._slot(image_id) >= 0:
             raise ValueError(f"image {image_id} is indexed already")
-        if image_id <= self._last_added and image_id not in self._removed:
+        removed = 0 <= image_id < self._slot_at.n and int(self._slot_at.view[image_id]) == -1
+        if image_id <= self._last_added and not removed:
             raise ValueError(f"image ids must increase: {image_id} after {self._last_added}")
         w = np.asarray(words, np.int64)
         if len(w) and w.min() < 0:
             raise ValueError("word ids must be >= 0")
         if self._free:
             slot = heapq.heappop(self._free)
-            self._image_ids[slot] = image_id
         else:
-            slot = len(self._image_ids)
+            slot = self._image_ids.n
             if slot >= _MAX_SLOTS:
                 raise ValueError(f"the inverted index holds at most {_MAX_SLOTS} images at once")
-            self._image_ids.append(image_id)
+            self._image_ids.resize(slot + 1)
             self._image_len.resize(slot + 1)
-        self._slot_of[image_id] = slot
-        self._removed.discard(image_id)
+        self._image_ids.view[slot] = image_id
+        self._slot_at.resize(image_id + 1)
+        self._slot_at.view[image_id] = slot + 1
+        self._n_indexed += 1
         self._last_added = max(self._last_added, image_id)
         self._image_len.view[slot] = len(w)
         self._total += len(w)
@@ -1068,15 +1159,15 @@ class InvertedIndex:
         if self._v_cand is not None:  # words now seen often enough join the candidates
             up = uw[self._occ.view[uw] >= self._v_floor]
             if len(up):
-                self._v_cand = sorted_union(self._v_cand, up)
+                self._v_cand = sorted_union(self._v_cand, up.astype(np.int32))
 
     def remove_image(self, image_id: int, words: np.ndarray) -> None:
         """Take image ``image_id`` out of the index, given the words it was added with
         (``(K,) int``, repeats counted; the caller keeps them to add the image back).
         Costs the length of its words' posting lists, not the index's size."""
         image_id = int(image_id)
-        slot = self._slot_of.get(image_id)
-        if slot is None:
+        slot = self._slot(image_id)
+        if slot < 0:
             raise ValueError(f"image {image_id} is not indexed")
         w = np.asarray(words, np.int64)
         if len(w) != int(self._image_len.view[slot]):
@@ -1093,7 +1184,8 @@ class InvertedIndex:
             where.append(k)
         for wid, k in zip(uw.tolist(), where):
             self._post.pop(wid, k)
-        del self._slot_of[image_id]
+        self._slot_at.view[image_id] = -1
+        self._n_indexed -= 1
         if len(uw):
             self._df.view[uw] -= 1
             self._occ.view[uw] -= cnt
@@ -1101,9 +1193,8 @@ class InvertedIndex:
         self._total -= len(w)
         self._v_cand = None  # counts fell: the candidates are chosen again
         self._image_len.view[slot] = 0
-        self._image_ids[slot] = -1
+        self._image_ids.view[slot] = -1
         heapq.heappush(self._free, slot)
-        self._removed.add(image_id)
 
     def drop_postings(self, words: np.ndarray) -> None:
         """Free the postings of ``words`` that no query can contain any more (words purged
@@ -1134,7 +1225,9 @@ class InvertedIndex:
 
     def tfidf(self, word: int, image_id: int) -> float:
         """tf(w, i) * idf(w) with the current counts (0 when ``word`` is not in the image)."""
-        slot = self._slot_of[image_id]
+        slot = self._slot(int(image_id))
+        if slot < 0:
+            raise KeyError(image_id)
         post = self._post.of(int(word))
         mine = post[(post >> _COUNT_BITS) == slot]
         if not len(mine):
@@ -1169,14 +1262,14 @@ class InvertedIndex:
 
     def _virtual_candidates(self, k: int) -> np.ndarray:
         """The words seen at least as often as the ``k``-th most frequent (all the words in
-        use when fewer), ``(M,) int64`` sorted, M >= min(k, words in use); kept as the
+        use when fewer), ``(M,) int32`` sorted, M >= min(k, words in use); kept as the
         candidates with that count as their floor (at least 1: words in use only)."""
         occ = self._occ.view
         floor = 1
         if k < len(occ):
             floor = max(1, int(np.partition(occ, len(occ) - k)[len(occ) - k]))
         self._v_floor = floor
-        self._v_cand = np.flatnonzero(occ >= floor).astype(np.int64)
+        self._v_cand = np.flatnonzero(occ >= floor).astype(np.int32)  # word ids: int32 is room enough
         return self._v_cand
 
     def vote(self, words: np.ndarray) -> tuple[np.ndarray, float]:
@@ -1214,7 +1307,10 @@ class InvertedIndex:
         return scores, virtual
 
     def memory_bytes(self) -> int:
-        """Bytes held by the postings (their arrays, spare capacity included) and the
-        per-word and per-slot counters."""
-        counters = sum(g.nbytes for g in (self._df, self._occ, self._image_len))
-        return self._post.nbytes + counters
+        """Bytes held by the postings (their arrays, spare capacity included), the per-word
+        and per-slot counters, the per-image slots, the virtual image's candidates, and the
+        free slots' heap (a list of Python ints: its table and the ints, which a working
+        memory's removals make)."""
+        counters = sum(g.nbytes for g in (self._df, self._occ, self._image_len, self._image_ids, self._slot_at))
+        virtual = self._v_cand.nbytes if self._v_cand is not None else 0
+        return self._post.nbytes + counters + virtual + sys.getsizeof(self._free) + _INT_BYTES * len(self._free)
