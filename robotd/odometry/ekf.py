@@ -607,13 +607,22 @@ def slip_variances(yaw_rate_innovation_radps: float, yaw_rate_var_rad2ps2: float
     slipping by ``d`` metres over the reading's interval ``dt`` adds ``+-d / b / dt`` to the
     wheels' yaw rate and ``d / 2 / dt`` to their speed (``b`` the wheel base): the speed's
     error is ``+-(b / 2) z``, its sign the slipping wheel's, which the reading cannot tell
-    (so the variance, not the mean, takes it)."""
+    (so the variance, not the mean, takes it).
+
+    With the slip events modelled (``slip_event_rate_hz`` above 0) a slip the test sees is
+    part of an event of ``slip_event_duration_s`` (RMS, ``T``): its readings' slips have
+    one sign and add up, the distance off by ``(b / 2) z T`` over the event, where
+    independent readings' variances would give ``T / dt`` times less. Spread over the
+    event's ``T / dt`` readings as white noise (as :func:`sub_gate_slip_variances`), each
+    reading's variances are ``T / dt`` times the one reading's (at least once)."""
     z2 = yaw_rate_innovation_radps * yaw_rate_innovation_radps
     s = yaw_rate_var_rad2ps2 + params.slip_yaw_rate_noise_radps ** 2
     if params.slip_gate_sigma <= 0.0:
         return 0.0, 0.0
     if z2 <= params.slip_gate_sigma ** 2 * s:
         return sub_gate_slip_variances(s, params, dt_s) if demanded else (0.0, 0.0)
+    if params.slip_event_rate_hz > 0.0 and dt_s is not None and dt_s > 0.0:
+        z2 *= max(1.0, params.slip_event_duration_s / dt_s)
     return params.slip_half_base_m ** 2 * z2, z2
 
 

@@ -504,6 +504,32 @@ def test_the_sub_gate_slip_variance_matches_a_monte_carlo_of_the_events_it_stand
     assert float(short.var()) < 0.5 * add_v * dt * dt
 
 
+def test_a_slip_the_test_sees_counts_as_part_of_an_event_against_a_monte_carlo_of_events():
+    """Events above the test's bound, every reading of theirs flagged: the readings'
+    variances summed over spans of 5 s against the spans' squared distance errors, within
+    10 % (the RMS duration times the mean for the mean square: 0.92 of it here). Each
+    reading's own ``(b / 2 z)^2`` alone, as if the readings of one event were independent,
+    gives a tenth."""
+    rng = np.random.default_rng(3)
+    gate, test_var, half_base, dt = 3.0, 0.011 ** 2, 0.115, 0.02
+    bound = gate * math.sqrt(test_var)
+    durations = (0.05, 0.3)
+    t_rms = math.sqrt((durations[1] ** 3 - durations[0] ** 3) / (3.0 * (durations[1] - durations[0])))
+    params = EkfParams(slip_gate_sigma=gate, slip_half_base_m=half_base, slip_event_rate_hz=0.6,
+                       slip_event_duration_s=t_rms)
+    span, total = 5.0, 20_000.0
+    start, dur, z = _sub_gate_events(rng, total, 0.6, bound, durations)
+    z = np.sign(z) * (bound + 2.0 * np.abs(z))  # between one and three times the bound
+    errs = _span_errors((start, dur, z), span, total, half_base)
+    # each event's readings (dur / dt of them), each flagged with its z
+    per_reading = np.array([slip_variances(float(zk), 0.0, params, dt)[0] for zk in z]) * dt * dt
+    model = float((per_reading * dur / dt).sum()) / (total / span)
+    assert float((errs ** 2).mean()) == pytest.approx(model, rel=0.10)
+    one = np.array([slip_variances(float(zk), 0.0, dataclasses.replace(params, slip_event_rate_hz=0.0), dt)[0]
+                    for zk in z]) * dt * dt
+    assert float((one * dur / dt).sum()) / (total / span) < 0.15 * model
+
+
 def test_the_sub_gate_slip_variance_is_given_only_below_the_gate_while_the_base_accelerates_or_turns():
     params = EkfParams(slip_gate_sigma=3.0, slip_half_base_m=0.115, slip_yaw_rate_noise_radps=0.01,
                        slip_event_rate_hz=0.3, slip_event_duration_s=0.2)
@@ -513,7 +539,11 @@ def test_the_sub_gate_slip_variance_is_given_only_below_the_gate_while_the_base_
     assert below[1] == pytest.approx(0.3 * 3.0 * s * 0.04 / 0.02)
     assert slip_variances(0.05, 2e-4, params, 0.02, demanded=True) == below
     assert slip_variances(0.05, 2e-4, params, 0.02, demanded=False) == (0.0, 0.0)
-    assert slip_variances(-0.06, 2e-4, params, 0.02, demanded=True) == slip_variances(-0.06, 2e-4, params)
+    # above the gate: the reading's own widening, times the event's readings (0.2 s / 0.02 s)
+    above = slip_variances(-0.06, 2e-4, params, 0.02, demanded=True)
+    assert above == pytest.approx(((0.115 * 0.06) ** 2 * 10.0, 0.06 ** 2 * 10.0))
+    assert slip_variances(-0.06, 2e-4, dataclasses.replace(params, slip_event_rate_hz=0.0), 0.02) == \
+        slip_variances(-0.06, 2e-4, params) == pytest.approx(((0.115 * 0.06) ** 2, 0.06 ** 2))
     assert sub_gate_slip_variances(s, dataclasses.replace(params, slip_event_rate_hz=0.0), 0.02) == (0.0, 0.0)
     assert sub_gate_slip_variances(s, dataclasses.replace(params, slip_gate_sigma=0.0), 0.02) == (0.0, 0.0)
     assert sub_gate_slip_variances(s, params, None) == (0.0, 0.0)
