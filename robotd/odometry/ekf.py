@@ -84,7 +84,8 @@ __all__ = [
     "predict_with_jacobian",
     "slip_variances",
     "sub_gate_slip_variances",
-    "traction_demanded",
+    "speed_changing",
+    "turning",
     "update_gyro",
     "update_gyro_with_gain",
     "update_wheels",
@@ -571,36 +572,40 @@ def update_wheels_with_gain(state: EkfState, v_mps: float, w_radps: float,
     innovation = np.array([v_mps - m[IV], w_radps - m[IW]])
     var_v, var_w = sv * sv, sw * sw
     if not stationary and params.slip_gate_sigma > 0.0 and speed_var_m2ps2 is None:
-        demanded = traction_demanded(float(innovation[0]), float(state.cov[IV, IV]) + var_v, w_radps, params)
-        add_v, add_w = slip_variances(float(innovation[1]), float(state.cov[IW, IW]), params, dt_s, demanded)
+        changes = speed_changing(float(innovation[0]), float(state.cov[IV, IV]) + var_v, params)
+        add_v, add_w = slip_variances(float(innovation[1]), float(state.cov[IW, IW]), params, dt_s,
+                                      turning(w_radps, params), changes)
         var_v += add_v
         var_w += add_w
     return _update(state, innovation, H_WHEELS, np.array([[var_v, 0.0], [0.0, var_w]]),
                    stationary and params.smooth_pose)
 
 
-def traction_demanded(speed_innovation_mps: float, speed_innovation_var_m2ps2: float, w_radps: float,
-                      params: EkfParams) -> bool:
-    """Whether a moving wheel reading shows the base accelerating or turning, where a
-    wheel's grip is asked for more than rolling and slip events happen: its speed
+def speed_changing(speed_innovation_mps: float, speed_innovation_var_m2ps2: float, params: EkfParams) -> bool:
+    """Whether a moving wheel reading shows the base accelerating or braking: its speed
     disagrees with the filter's by more than ``slip_gate_sigma`` times that disagreement's
     1-sigma (``speed_innovation_var_m2ps2`` its variance: the speed changed beyond its
-    noise), or its yaw rate ``w_radps`` is above ``slip_gate_sigma`` times the wheels' own
-    yaw-rate noise (``slip_yaw_rate_noise_radps``: a turn the ticks resolve)."""
+    noise)."""
     g = params.slip_gate_sigma
-    return (speed_innovation_mps * speed_innovation_mps > g * g * speed_innovation_var_m2ps2
-            or abs(w_radps) > g * params.slip_yaw_rate_noise_radps)
+    return speed_innovation_mps * speed_innovation_mps > g * g * speed_innovation_var_m2ps2
+
+
+def turning(w_radps: float, params: EkfParams) -> bool:
+    """Whether a moving wheel reading's yaw rate ``w_radps`` is above ``slip_gate_sigma``
+    times the wheels' own yaw-rate noise (``slip_yaw_rate_noise_radps``): a turn the ticks
+    resolve."""
+    return abs(w_radps) > params.slip_gate_sigma * params.slip_yaw_rate_noise_radps
 
 
 def slip_variances(yaw_rate_innovation_radps: float, yaw_rate_var_rad2ps2: float,
                    params: EkfParams, dt_s: float | None = None,
-                   demanded: bool = False) -> tuple[float, float]:
+                   turns: bool = False, speed_changes: bool = False) -> tuple[float, float]:
     """The variances ``(m^2/s^2, rad^2/s^2)`` a slipping wheel adds to a moving wheel
     reading's speed and yaw rate; when the reading passes the slip test
-    (``slip_gate_sigma`` in :class:`EkfParams`) while the base accelerates or turns
-    (``demanded``, :func:`traction_demanded`), those of the slip events the test lets
-    through (:func:`sub_gate_slip_variances`, over the reading's interval ``dt_s``);
-    else ``(0, 0)``.
+    (``slip_gate_sigma`` in :class:`EkfParams`) while the base turns or its speed changes
+    (``turns``, :func:`turning`; ``speed_changes``, :func:`speed_changing`: where a wheel's
+    grip is asked for more than rolling), those of the slip events the test lets through
+    (:func:`sub_gate_slip_variances`, over the reading's interval ``dt_s``); else ``(0, 0)``.
 
     ``yaw_rate_innovation_radps``: the wheels' yaw rate minus the filter's (after the gyro's
     readings up to it); ``yaw_rate_var_rad2ps2``: the filter's yaw-rate variance. One wheel
@@ -614,14 +619,17 @@ def slip_variances(yaw_rate_innovation_radps: float, yaw_rate_var_rad2ps2: float
     one sign and add up, the distance off by ``(b / 2) z T`` over the event, where
     independent readings' variances would give ``T / dt`` times less. Spread over the
     event's ``T / dt`` readings as white noise (as :func:`sub_gate_slip_variances`), each
-    reading's variances are ``T / dt`` times the one reading's (at least once)."""
+    reading's variances are ``T / dt`` times the one reading's (at least once). Not while
+    the speed changes: there the readings are what tells the filter the speed, and
+    readings widened that much leave it to the white acceleration, which does not expect
+    a ramp (a start's or a stop's distance then lagged by up to centimetres)."""
     z2 = yaw_rate_innovation_radps * yaw_rate_innovation_radps
     s = yaw_rate_var_rad2ps2 + params.slip_yaw_rate_noise_radps ** 2
     if params.slip_gate_sigma <= 0.0:
         return 0.0, 0.0
     if z2 <= params.slip_gate_sigma ** 2 * s:
-        return sub_gate_slip_variances(s, params, dt_s) if demanded else (0.0, 0.0)
-    if params.slip_event_rate_hz > 0.0 and dt_s is not None and dt_s > 0.0:
+        return sub_gate_slip_variances(s, params, dt_s) if (turns or speed_changes) else (0.0, 0.0)
+    if params.slip_event_rate_hz > 0.0 and dt_s is not None and dt_s > 0.0 and not speed_changes:
         z2 *= max(1.0, params.slip_event_duration_s / dt_s)
     return params.slip_half_base_m ** 2 * z2, z2
 

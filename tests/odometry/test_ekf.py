@@ -25,8 +25,9 @@ from robotd.odometry.ekf import (
     predict_with_jacobian,
     rate_gain,
     slip_variances,
+    speed_changing,
     sub_gate_slip_variances,
-    traction_demanded,
+    turning,
     update_gyro,
     update_wheels,
     update_wheels_with_gain,
@@ -522,7 +523,7 @@ def test_a_slip_the_test_sees_counts_as_part_of_an_event_against_a_monte_carlo_o
     z = np.sign(z) * (bound + 2.0 * np.abs(z))  # between one and three times the bound
     errs = _span_errors((start, dur, z), span, total, half_base)
     # each event's readings (dur / dt of them), each flagged with its z
-    per_reading = np.array([slip_variances(float(zk), 0.0, params, dt)[0] for zk in z]) * dt * dt
+    per_reading = np.array([slip_variances(float(zk), 0.0, params, dt, turns=True)[0] for zk in z]) * dt * dt
     model = float((per_reading * dur / dt).sum()) / (total / span)
     assert float((errs ** 2).mean()) == pytest.approx(model, rel=0.10)
     one = np.array([slip_variances(float(zk), 0.0, dataclasses.replace(params, slip_event_rate_hz=0.0), dt)[0]
@@ -537,21 +538,25 @@ def test_the_sub_gate_slip_variance_is_given_only_below_the_gate_while_the_base_
     below = sub_gate_slip_variances(s, params, 0.02)
     # 0.3 /s * (9 s / 3) * 0.04 s^2 / 0.02 s
     assert below[1] == pytest.approx(0.3 * 3.0 * s * 0.04 / 0.02)
-    assert slip_variances(0.05, 2e-4, params, 0.02, demanded=True) == below
-    assert slip_variances(0.05, 2e-4, params, 0.02, demanded=False) == (0.0, 0.0)
-    # above the gate: the reading's own widening, times the event's readings (0.2 s / 0.02 s)
-    above = slip_variances(-0.06, 2e-4, params, 0.02, demanded=True)
+    assert slip_variances(0.05, 2e-4, params, 0.02, turns=True) == below
+    assert slip_variances(0.05, 2e-4, params, 0.02, speed_changes=True) == below
+    assert slip_variances(0.05, 2e-4, params, 0.02) == (0.0, 0.0)  # rolling straight on: no events
+    # above the gate: the reading's own widening, times the event's readings (0.2 s / 0.02 s),
+    # but while the speed changes (the readings then carry the ramp) the reading's own
+    above = slip_variances(-0.06, 2e-4, params, 0.02, turns=True)
     assert above == pytest.approx(((0.115 * 0.06) ** 2 * 10.0, 0.06 ** 2 * 10.0))
+    own = ((0.115 * 0.06) ** 2, 0.06 ** 2)
+    assert slip_variances(-0.06, 2e-4, params, 0.02, turns=True, speed_changes=True) == pytest.approx(own)
     assert slip_variances(-0.06, 2e-4, dataclasses.replace(params, slip_event_rate_hz=0.0), 0.02) == \
-        slip_variances(-0.06, 2e-4, params) == pytest.approx(((0.115 * 0.06) ** 2, 0.06 ** 2))
+        slip_variances(-0.06, 2e-4, params) == pytest.approx(own)
     assert sub_gate_slip_variances(s, dataclasses.replace(params, slip_event_rate_hz=0.0), 0.02) == (0.0, 0.0)
     assert sub_gate_slip_variances(s, dataclasses.replace(params, slip_gate_sigma=0.0), 0.02) == (0.0, 0.0)
     assert sub_gate_slip_variances(s, params, None) == (0.0, 0.0)
     # accelerating: the speed's disagreement beyond the gate's sigmas; turning: a yaw rate the ticks resolve
-    assert traction_demanded(0.01, 1e-5, 0.0, params)          # 0.01 > 3 * 0.0032
-    assert not traction_demanded(0.009, 1e-5, 0.0, params)
-    assert traction_demanded(0.0, 1e-5, -0.031, params)        # 0.031 > 3 * 0.01
-    assert not traction_demanded(0.0, 1e-5, 0.029, params)
+    assert speed_changing(0.01, 1e-5, params)          # 0.01 > 3 * 0.0032
+    assert not speed_changing(0.009, 1e-5, params)
+    assert turning(-0.031, params)                     # 0.031 > 3 * 0.01
+    assert not turning(0.029, params)
 
 
 def test_a_slipping_wheel_reading_widens_its_speed_noise_and_moves_the_speed_less():
