@@ -194,9 +194,10 @@ class OdometryConfig:
                               "count, carried from one wheel reading to the next (it enters two neighbouring "
                               "readings with opposite signs and does not add up over many), instead of white "
                               "noise per reading (docs/odometry.md)")
-    slip_event_rate_hz: float = _f(0.0, "with the slip test: slip events a second of accelerating or turning (a wheel over- or "
-                                   "under-rotating for a while); the ones the test lets through widen the wheel "
-                                   "readings' speed variance by what their bounded slip adds; 0: none "
+    slip_event_rate_hz: float = _f(0.0, "with the slip test: wheel slip events (a wheel over- or under-rotating "
+                                   "for a while) a second while the base accelerates or turns; the ones the test "
+                                   "lets through widen those wheel readings' speed variance by what their bounded "
+                                   "slip adds, and one it sees widens its reading as part of an event; 0: none "
                                    "(docs/odometry.md)", lo=0.0, hi=100.0)
     slip_event_duration_s: float = _f(0.2, "with slip_event_rate_hz: the slip events' RMS duration",
                                       lo=0.0, hi=10.0)

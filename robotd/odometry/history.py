@@ -268,7 +268,8 @@ class PoseHistory:
             # shift_measurement's arithmetic).
             delta, j_shift = shift_jacobian(h, inverse(self._kf_offset), inverse(offset))
             cov = between_error_covariance(delta, j_shift @ cov_h @ j_shift.T)
-            edge = delta, floor_covariance(cov, min_sigma_m=self._edge_floor_m), self._bias_terms(mean_a, cov_a, cross, j, delta, cov, jac, j_shift)
+            edge = (delta, floor_covariance(cov, min_sigma_m=self._edge_floor_m),
+                    self._bias_terms(mean_a, cov_a, cross, j, delta, cov, jac, j_shift))
         if self._vo_fused_since_keyframe:  # no twin: see the docstring
             edge = None
         self._vo_fused_since_keyframe = False
