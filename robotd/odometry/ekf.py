@@ -622,7 +622,7 @@ def slip_variances(yaw_rate_innovation_radps: float, yaw_rate_var_rad2ps2: float
     reading's variances are ``T / dt`` times the one reading's (at least once). Not while
     the speed changes: there the readings are what tells the filter the speed, and
     readings widened that much leave it to the white acceleration, which does not expect
-    a ramp (a start's or a stop's distance then lagged by up to centimetres)."""
+    a ramp (a start's or a stop's distance then lags)."""
     z2 = yaw_rate_innovation_radps * yaw_rate_innovation_radps
     s = yaw_rate_var_rad2ps2 + params.slip_yaw_rate_noise_radps ** 2
     if params.slip_gate_sigma <= 0.0:
