@@ -194,6 +194,15 @@ class OdometryConfig:
                               "count, carried from one wheel reading to the next (it enters two neighbouring "
                               "readings with opposite signs and does not add up over many), instead of white "
                               "noise per reading (docs/odometry.md)")
+    slip_event_rate_hz: float = _f(0.0, "with the slip test: wheel slip events (a wheel over- or under-rotating "
+                                   "for a while) a second while the base accelerates or turns; the ones the test "
+                                   "lets through widen those wheel readings' speed variance by what their bounded "
+                                   "slip adds, and one it sees widens its reading as part of an event; 0: none "
+                                   "(docs/odometry.md)", lo=0.0, hi=100.0)
+    slip_event_duration_s: float = _f(0.2, "with slip_event_rate_hz: the slip events' RMS duration",
+                                      lo=0.0, hi=10.0)
+    edge_floor_m: float = _f(1e-4, "floor on the 1-sigma of an odometry edge's position (the pose graph's "
+                             "conditioning; docs/odometry.md)", lo=1e-7, hi=0.01)
 
 
 @dataclass(frozen=True)

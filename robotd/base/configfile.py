@@ -101,6 +101,9 @@ def config_from_dict(data: dict[str, Any], *, origin: str = "", stored: bool = F
         # The roundings are carried between the packets of wheel_increments; alone the key
         # would do nothing, which a user who set it would not expect.
         raise ConfigError("[odometry] wheel_rounding: works only with wheel_increments = true")
+    if cfg.odometry.slip_event_rate_hz > 0.0 and cfg.odometry.slip_gate_sigma <= 0.0:
+        # The events' variances are those the slip test lets through or sees: no test, no term.
+        raise ConfigError("[odometry] slip_event_rate_hz: works only with slip_gate_sigma > 0")
     pg = cfg.pose_graph
     if pg.odometry_model != "bias_scale_window" and pg.scale_wear != PoseGraphConfig().scale_wear:
         # The wear widens the scale variable's prior; without the variable it would do nothing.

@@ -83,6 +83,9 @@ __all__ = [
     "predict_rates",
     "predict_with_jacobian",
     "slip_variances",
+    "sub_gate_slip_variances",
+    "speed_changing",
+    "turning",
     "update_gyro",
     "update_gyro_with_gain",
     "update_wheels",
@@ -190,6 +193,11 @@ class EkfParams:
       change as state from packet to packet (each fresh one uniform, variance ``tick^2 /
       12`` per wheel: :func:`robotd.odometry.packet.rounding_variances`), and the wheel
       noise keeps only what exceeds the two roundings' variance.
+    - ``slip_event_rate_hz`` (default 0: none), ``slip_event_duration_s``: the slip events
+      the slip test lets through (:func:`sub_gate_slip_variances`), with the test only:
+      events a second of accelerating or turning and their RMS duration, s.
+    - ``edge_floor_m`` (default 1e-4): the floor on the 1-sigma of a keyframe edge's
+      position, m (:func:`robotd.odometry.increments.floor_covariance`).
     """
 
     accel_noise_density_mps2_per_sqrt_hz: float = _CONFIG.accel_noise_density_mps2_per_sqrt_hz
@@ -215,6 +223,9 @@ class EkfParams:
     wheel_slip_var_m2_per_m: float = 0.0
     wheel_increments: bool = False
     wheel_rounding: bool = False
+    slip_event_rate_hz: float = _CONFIG.slip_event_rate_hz
+    slip_event_duration_s: float = _CONFIG.slip_event_duration_s
+    edge_floor_m: float = _CONFIG.edge_floor_m
 
     @classmethod
     def from_config(cls, section: OdometryConfig, **others: Any) -> EkfParams:
@@ -561,30 +572,96 @@ def update_wheels_with_gain(state: EkfState, v_mps: float, w_radps: float,
     innovation = np.array([v_mps - m[IV], w_radps - m[IW]])
     var_v, var_w = sv * sv, sw * sw
     if not stationary and params.slip_gate_sigma > 0.0 and speed_var_m2ps2 is None:
-        add_v, add_w = slip_variances(float(innovation[1]), float(state.cov[IW, IW]), params)
+        changes = speed_changing(float(innovation[0]), float(state.cov[IV, IV]) + var_v, params)
+        add_v, add_w = slip_variances(float(innovation[1]), float(state.cov[IW, IW]), params, dt_s,
+                                      turning(w_radps, params), changes)
         var_v += add_v
         var_w += add_w
     return _update(state, innovation, H_WHEELS, np.array([[var_v, 0.0], [0.0, var_w]]),
                    stationary and params.smooth_pose)
 
 
+def speed_changing(speed_innovation_mps: float, speed_innovation_var_m2ps2: float, params: EkfParams) -> bool:
+    """Whether a moving wheel reading shows the base accelerating or braking: its speed
+    disagrees with the filter's by more than ``slip_gate_sigma`` times that disagreement's
+    1-sigma (``speed_innovation_var_m2ps2`` its variance: the speed changed beyond its
+    noise)."""
+    g = params.slip_gate_sigma
+    return speed_innovation_mps * speed_innovation_mps > g * g * speed_innovation_var_m2ps2
+
+
+def turning(w_radps: float, params: EkfParams) -> bool:
+    """Whether a moving wheel reading's yaw rate ``w_radps`` is above ``slip_gate_sigma``
+    times the wheels' own yaw-rate noise (``slip_yaw_rate_noise_radps``): a turn the ticks
+    resolve."""
+    return abs(w_radps) > params.slip_gate_sigma * params.slip_yaw_rate_noise_radps
+
+
 def slip_variances(yaw_rate_innovation_radps: float, yaw_rate_var_rad2ps2: float,
-                   params: EkfParams) -> tuple[float, float]:
+                   params: EkfParams, dt_s: float | None = None,
+                   turns: bool = False, speed_changes: bool = False) -> tuple[float, float]:
     """The variances ``(m^2/s^2, rad^2/s^2)`` a slipping wheel adds to a moving wheel
-    reading's speed and yaw rate, ``(0, 0)`` when the reading passes the slip test
-    (``slip_gate_sigma`` in :class:`EkfParams`).
+    reading's speed and yaw rate; when the reading passes the slip test
+    (``slip_gate_sigma`` in :class:`EkfParams`) while the base turns or its speed changes
+    (``turns``, :func:`turning`; ``speed_changes``, :func:`speed_changing`: where a wheel's
+    grip is asked for more than rolling), those of the slip events the test lets through
+    (:func:`sub_gate_slip_variances`, over the reading's interval ``dt_s``); else ``(0, 0)``.
 
     ``yaw_rate_innovation_radps``: the wheels' yaw rate minus the filter's (after the gyro's
     readings up to it); ``yaw_rate_var_rad2ps2``: the filter's yaw-rate variance. One wheel
     slipping by ``d`` metres over the reading's interval ``dt`` adds ``+-d / b / dt`` to the
     wheels' yaw rate and ``d / 2 / dt`` to their speed (``b`` the wheel base): the speed's
     error is ``+-(b / 2) z``, its sign the slipping wheel's, which the reading cannot tell
-    (so the variance, not the mean, takes it)."""
+    (so the variance, not the mean, takes it).
+
+    With the slip events modelled (``slip_event_rate_hz`` above 0) a slip the test sees is
+    part of an event of ``slip_event_duration_s`` (RMS, ``T``): its readings' slips have
+    one sign and add up, the distance off by ``(b / 2) z T`` over the event, where
+    independent readings' variances would give ``T / dt`` times less. Spread over the
+    event's ``T / dt`` readings as white noise (as :func:`sub_gate_slip_variances`), each
+    reading's variances are ``T / dt`` times the one reading's (at least once). Not while
+    the speed changes: there the readings are what tells the filter the speed, and
+    readings widened that much leave it to the white acceleration, which does not expect
+    a ramp (a start's or a stop's distance then lags)."""
     z2 = yaw_rate_innovation_radps * yaw_rate_innovation_radps
     s = yaw_rate_var_rad2ps2 + params.slip_yaw_rate_noise_radps ** 2
-    if params.slip_gate_sigma <= 0.0 or z2 <= params.slip_gate_sigma ** 2 * s:
+    if params.slip_gate_sigma <= 0.0:
         return 0.0, 0.0
+    if z2 <= params.slip_gate_sigma ** 2 * s:
+        return sub_gate_slip_variances(s, params, dt_s) if (turns or speed_changes) else (0.0, 0.0)
+    if params.slip_event_rate_hz > 0.0 and dt_s is not None and dt_s > 0.0 and not speed_changes:
+        z2 *= max(1.0, params.slip_event_duration_s / dt_s)
     return params.slip_half_base_m ** 2 * z2, z2
+
+
+def sub_gate_slip_variances(test_var_rad2ps2: float, params: EkfParams,
+                            dt_s: float | None) -> tuple[float, float]:
+    """The variances ``(m^2/s^2, rad^2/s^2)`` that the slip events the slip test lets through
+    add to a moving wheel reading's speed and yaw rate over its interval ``dt_s`` (s);
+    ``(0, 0)`` without the test, without events (``slip_event_rate_hz`` 0) or ``dt_s``.
+
+    A slip event is one wheel over- or under-rotating for a while (``slip_event_duration_s``,
+    RMS), at ``slip_event_rate_hz`` events a second while the base accelerates or turns
+    (where a wheel's grip is asked for more than rolling). While it lasts the wheels'
+    yaw rate is off by ``z`` and their speed by ``(b / 2) z`` (one wheel's extra travel,
+    ``b`` the wheel base, :func:`slip_variances`). A reading that passes the test has
+    ``|z|`` at most ``g sqrt(S)`` (``g`` = ``slip_gate_sigma``, ``S`` = ``test_var_rad2ps2``
+    the test's variance); nothing favours one value below that bound over another, so
+    ``z`` is taken uniform below it: variance ``g^2 S / 3``. An event is one slip over its
+    whole duration ``T``, the distance off by ``(b / 2) z T`` and the heading by ``z T``;
+    events arriving at rate ``r`` make a shot noise whose integral over a span much longer
+    than ``T`` has the variance ``r E[z^2] E[T^2]`` per second, and over a shorter span
+    less (the events' share then grows as the span squared, not linearly). As white
+    noise of that density on each reading (the filter's wheel noise is white) the variance
+    over a span is right from a few events' durations on and too large below. Per reading
+    of ``dt`` seconds the yaw rate's variance is ``r E[z^2] T^2 / dt``, the speed's
+    ``(b / 2)^2`` times it."""
+    if (params.slip_gate_sigma <= 0.0 or params.slip_event_rate_hz <= 0.0 or dt_s is None
+            or dt_s <= 0.0):
+        return 0.0, 0.0
+    z2 = params.slip_gate_sigma ** 2 * test_var_rad2ps2 / 3.0
+    add_w = params.slip_event_rate_hz * z2 * params.slip_event_duration_s ** 2 / dt_s
+    return params.slip_half_base_m ** 2 * add_w, add_w
 
 
 def update_gyro(state: EkfState, w_radps: float, params: EkfParams = EkfParams(),

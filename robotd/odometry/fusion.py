@@ -267,7 +267,7 @@ class OdometryFilter:
         self._edge_history: PoseHistory | None = None
         self._chain: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
         if self._twin is not None and self.live_pose == "combined_edges":
-            self._twin._edge_history = PoseHistory(int(self.history_s * 1e9))
+            self._twin._edge_history = PoseHistory(int(self.history_s * 1e9), self._twin.params.edge_floor_m)
         if self.vo_twin and self.vo_rate_only:
             self.params = dataclasses.replace(self.params, rate_only_process=True)
             q = self.vo_angular_accel_noise_radps2_per_sqrt_hz
@@ -288,7 +288,7 @@ class OdometryFilter:
         self._clone: PoseClone | None = None  # the pose at the last keyframe (relative.py)
         self._max_gyro_wait_ns = int(self.max_gyro_wait_s * 1e9)
         self._map = _EYE  # the error's linear map since the last record
-        self._history = PoseHistory(int(self.history_s * 1e9))  # pose_at, keyframe_edge
+        self._history = PoseHistory(int(self.history_s * 1e9), self.params.edge_floor_m)  # pose_at, keyframe_edge
         # With visual odometry fused: each wheel or gyro message with the filter after it.
         self._journal: Journal | None = Journal() if self.vo_twin else None
         # wheel_increments: the wheel readings as integrated measurements (packet.py), in a

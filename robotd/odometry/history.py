@@ -84,10 +84,12 @@ class HistoryMark(NamedTuple):
 class PoseHistory:
     """The recorded states of the last ``history_ns`` (at least; pruned to it when twice as
     long), each with its mean and covariance and the linear map of the error since the
-    previous record, and the state the last keyframe's edge ends at."""
+    previous record, and the state the last keyframe's edge ends at. ``edge_floor_m``: the
+    floor on the 1-sigma of an edge's position (:func:`robotd.odometry.increments.floor_covariance`)."""
 
-    def __init__(self, history_ns: int) -> None:
+    def __init__(self, history_ns: int, edge_floor_m: float = 1e-4) -> None:
         self._history_ns = history_ns
+        self._edge_floor_m = edge_floor_m  # floor_covariance's min_sigma_m for the edges
         self._hist_t: list[int] = []
         self._hist_pose: list[np.ndarray] = []
         self._hist_cov: list[np.ndarray] = []
@@ -266,7 +268,8 @@ class PoseHistory:
             # shift_measurement's arithmetic).
             delta, j_shift = shift_jacobian(h, inverse(self._kf_offset), inverse(offset))
             cov = between_error_covariance(delta, j_shift @ cov_h @ j_shift.T)
-            edge = delta, floor_covariance(cov), self._bias_terms(mean_a, cov_a, cross, j, delta, cov, jac, j_shift)
+            edge = (delta, floor_covariance(cov, min_sigma_m=self._edge_floor_m),
+                    self._bias_terms(mean_a, cov_a, cross, j, delta, cov, jac, j_shift))
         if self._vo_fused_since_keyframe:  # no twin: see the docstring
             edge = None
         self._vo_fused_since_keyframe = False
@@ -286,7 +289,7 @@ class PoseHistory:
         g = j_shift @ g
         g[:2] = rot2(float(delta[2])).T @ g[:2]  # as between_error_covariance
         p = float(cov_a[IB, IB])
-        cond = floor_covariance(cov - np.outer(g, g) / p)
+        cond = floor_covariance(cov - np.outer(g, g) / p, min_sigma_m=self._edge_floor_m)
         end_cov = self._hist_cov6[j]
         return EdgeBiasTerms(cond, g / p, float(mean_a[IB]), p, float(self._hist_mean6[j][IB]),
                              float(end_cov[IB, IB]), float(cross[IB, IB]))

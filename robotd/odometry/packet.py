@@ -47,6 +47,8 @@ from robotd.odometry.ekf import (
     _arc,
     gyro_noise_var,
     slip_variances,
+    speed_changing,
+    turning,
     wheel_noise,
 )
 from robotd.base.geometry import wrap_angle
@@ -283,7 +285,10 @@ def packet_wheels(p: Packet, ds_m: float, dyaw_rad: float, dt_s: float, params: 
         var_v = max(var_v - 2.0 * fresh_d / dt2, 0.0)
         var_w = max(var_w - 2.0 * fresh_t / dt2, 0.0)
     if params.slip_gate_sigma > 0.0 and speed_var_m2ps2 is None:
-        add_v, add_w = slip_variances(float(innovation[1]) / dt_s, float(p.cov[ITH, ITH]) / dt_s ** 2, params)
+        yaw_var = float(p.cov[ITH, ITH]) / dt2
+        speed_var = float(h[0] @ p.cov @ h[0]) / dt2 + var_v  # the distance's innovation, in speed
+        add_v, add_w = slip_variances(float(innovation[1]) / dt_s, yaw_var, params, dt_s, turning(w, params),
+                                      speed_changing(float(innovation[0]) / dt_s, speed_var, params))
         var_v += add_v
         var_w += add_w
     # the two rows one after the other (their noises are independent: the same update as

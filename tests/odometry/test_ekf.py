@@ -25,6 +25,9 @@ from robotd.odometry.ekf import (
     predict_with_jacobian,
     rate_gain,
     slip_variances,
+    speed_changing,
+    sub_gate_slip_variances,
+    turning,
     update_gyro,
     update_wheels,
     update_wheels_with_gain,
@@ -445,6 +448,115 @@ def test_slip_variances_by_hand():
     assert w == pytest.approx(0.06 ** 2)
     off = dataclasses.replace(params, slip_gate_sigma=0.0)
     assert slip_variances(1.0, 2e-4, off) == (0.0, 0.0)
+
+
+def _sub_gate_events(rng: np.random.Generator, total_s: float, rate_hz: float, bound_radps: float,
+                     durations_s: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Slip events a slip test let through, as a real base makes them: starts at random
+    (``rate_hz``), each one wheel's yaw-rate disagreement ``z`` held for its duration
+    (uniform in ``durations_s``), ``|z|`` below the test's bound ``bound_radps`` (uniform
+    there). ``(start_s, duration_s, z_radps)`` arrays."""
+    n = rng.poisson(rate_hz * total_s)
+    return (rng.uniform(0.0, total_s, n), rng.uniform(*durations_s, n),
+            rng.uniform(-bound_radps, bound_radps, n))
+
+
+def _span_errors(events: tuple[np.ndarray, np.ndarray, np.ndarray], span_s: float, total_s: float,
+                 half_base_m: float) -> np.ndarray:
+    """The distance error (m) the events put into each span of ``span_s`` seconds: each
+    event moves the base by ``(b / 2) z`` per second of its overlap with the span (an event
+    shorter than a span overlaps at most two)."""
+    start, dur, z = events
+    n_spans = int(total_s // span_s)
+    out = np.zeros(n_spans + 2)
+    first = (start // span_s).astype(int)
+    for k in (0, 1):
+        lo = np.maximum(start, (first + k) * span_s)
+        hi = np.minimum(start + dur, (first + k + 1) * span_s)
+        np.add.at(out, first + k, half_base_m * z * np.clip(hi - lo, 0.0, None))
+    return out[1:n_spans - 1]  # whole spans away from the run's ends
+
+
+def test_the_sub_gate_slip_variance_matches_a_monte_carlo_of_the_events_it_stands_for():
+    """The variance the model gives a span of readings (the sum of its readings' speed
+    variances times dt^2) against the distance error of slip events drawn below the test's
+    bound: within 6 % over spans of 30 events' durations (8000 of them, 24000 events; the
+    estimate's own spread about 2 %, the events cut by a span's ends 1.5 % below). A wrong shape, duration or per-reading scaling is off
+    by far more: the bound itself instead of a uniform draw under it (x3), the mean
+    duration squared for the mean of the squares (-15 %), a reading's variance not divided by
+    its dt (x50)."""
+    rng = np.random.default_rng(7)
+    gate, test_var, half_base, dt = 3.0, 0.011 ** 2, 0.115, 0.02
+    durations = (0.05, 0.3)
+    t_rms = math.sqrt((durations[1] ** 3 - durations[0] ** 3) / (3.0 * (durations[1] - durations[0])))
+    params = EkfParams(slip_gate_sigma=gate, slip_half_base_m=half_base, slip_event_rate_hz=0.6,
+                       slip_event_duration_s=t_rms)
+    span, total = 5.0, 40_000.0
+    errs = _span_errors(_sub_gate_events(rng, total, 0.6, gate * math.sqrt(test_var), durations),
+                        span, total, half_base)
+    add_v, add_w = sub_gate_slip_variances(test_var, params, dt)
+    model = add_v * dt * dt * (span / dt)
+    assert float(errs.var()) == pytest.approx(model, rel=0.06)
+    assert add_w == pytest.approx(add_v / half_base ** 2)
+    # Over one reading (shorter than the events) the white model is cautious: the events'
+    # share grows as the span squared there, the model's linearly.
+    short = _span_errors(_sub_gate_events(np.random.default_rng(8), 2000.0, 0.6, gate * math.sqrt(test_var),
+                                          durations), dt, 2000.0, half_base)
+    assert float(short.var()) < 0.5 * add_v * dt * dt
+
+
+def test_a_slip_the_test_sees_counts_as_part_of_an_event_against_a_monte_carlo_of_events():
+    """Events above the test's bound, every reading of theirs flagged: the readings'
+    variances summed over spans of 5 s against the spans' squared distance errors, within
+    10 % (the RMS duration times the mean for the mean square: 0.92 of it here). Each
+    reading's own ``(b / 2 z)^2`` alone, as if the readings of one event were independent,
+    gives a tenth."""
+    rng = np.random.default_rng(3)
+    gate, test_var, half_base, dt = 3.0, 0.011 ** 2, 0.115, 0.02
+    bound = gate * math.sqrt(test_var)
+    durations = (0.05, 0.3)
+    t_rms = math.sqrt((durations[1] ** 3 - durations[0] ** 3) / (3.0 * (durations[1] - durations[0])))
+    params = EkfParams(slip_gate_sigma=gate, slip_half_base_m=half_base, slip_event_rate_hz=0.6,
+                       slip_event_duration_s=t_rms)
+    span, total = 5.0, 20_000.0
+    start, dur, z = _sub_gate_events(rng, total, 0.6, bound, durations)
+    z = np.sign(z) * (bound + 2.0 * np.abs(z))  # between one and three times the bound
+    errs = _span_errors((start, dur, z), span, total, half_base)
+    # each event's readings (dur / dt of them), each flagged with its z
+    per_reading = np.array([slip_variances(float(zk), 0.0, params, dt, turns=True)[0] for zk in z]) * dt * dt
+    model = float((per_reading * dur / dt).sum()) / (total / span)
+    assert float((errs ** 2).mean()) == pytest.approx(model, rel=0.10)
+    one = np.array([slip_variances(float(zk), 0.0, dataclasses.replace(params, slip_event_rate_hz=0.0), dt)[0]
+                    for zk in z]) * dt * dt
+    assert float((one * dur / dt).sum()) / (total / span) < 0.15 * model
+
+
+def test_the_sub_gate_slip_variance_is_given_only_below_the_gate_while_the_base_accelerates_or_turns():
+    params = EkfParams(slip_gate_sigma=3.0, slip_half_base_m=0.115, slip_yaw_rate_noise_radps=0.01,
+                       slip_event_rate_hz=0.3, slip_event_duration_s=0.2)
+    s = 2e-4 + 1e-4  # the test's variance (slip_variances' own arithmetic)
+    below = sub_gate_slip_variances(s, params, 0.02)
+    # 0.3 /s * (9 s / 3) * 0.04 s^2 / 0.02 s
+    assert below[1] == pytest.approx(0.3 * 3.0 * s * 0.04 / 0.02)
+    assert slip_variances(0.05, 2e-4, params, 0.02, turns=True) == below
+    assert slip_variances(0.05, 2e-4, params, 0.02, speed_changes=True) == below
+    assert slip_variances(0.05, 2e-4, params, 0.02) == (0.0, 0.0)  # rolling straight on: no events
+    # above the gate: the reading's own widening, times the event's readings (0.2 s / 0.02 s),
+    # but while the speed changes (the readings then carry the ramp) the reading's own
+    above = slip_variances(-0.06, 2e-4, params, 0.02, turns=True)
+    assert above == pytest.approx(((0.115 * 0.06) ** 2 * 10.0, 0.06 ** 2 * 10.0))
+    own = ((0.115 * 0.06) ** 2, 0.06 ** 2)
+    assert slip_variances(-0.06, 2e-4, params, 0.02, turns=True, speed_changes=True) == pytest.approx(own)
+    assert slip_variances(-0.06, 2e-4, dataclasses.replace(params, slip_event_rate_hz=0.0), 0.02) == \
+        slip_variances(-0.06, 2e-4, params) == pytest.approx(own)
+    assert sub_gate_slip_variances(s, dataclasses.replace(params, slip_event_rate_hz=0.0), 0.02) == (0.0, 0.0)
+    assert sub_gate_slip_variances(s, dataclasses.replace(params, slip_gate_sigma=0.0), 0.02) == (0.0, 0.0)
+    assert sub_gate_slip_variances(s, params, None) == (0.0, 0.0)
+    # accelerating: the speed's disagreement beyond the gate's sigmas; turning: a yaw rate the ticks resolve
+    assert speed_changing(0.01, 1e-5, params)          # 0.01 > 3 * 0.0032
+    assert not speed_changing(0.009, 1e-5, params)
+    assert turning(-0.031, params)                     # 0.031 > 3 * 0.01
+    assert not turning(0.029, params)
 
 
 def test_a_slipping_wheel_reading_widens_its_speed_noise_and_moves_the_speed_less():
