@@ -54,6 +54,7 @@ class _Deferring(order._Recorder):
         st = self.stage
         assert st is not None and st._current is not None
         self.tested.append((k, len(self.inputs) - 1, st._image, st._current[4]))
+        assert self.accept(0, self.v)  # the stage's hook (set on the detector by the stage), a level motion
 
     def resume(self, job: Any) -> tuple[Any, int, Any]:
         self._test(job.image_id)
@@ -109,6 +110,7 @@ def test_a_full_queue_runs_the_new_images_test_in_its_own_keyframe_and_counts_it
     assert ran == {4: 8, 5: 10, 6: 6, 7: 7, 9: 11}
     c = stage.counters()
     assert (c["forward_deferred"], c["forward_deferred_inline"], c["forward_deferred_at_end"]) == (3, 2, 0)
+    assert stage.tests == 5
     assert len([e for e in log if e[0] == "loop"]) == 5
 
 

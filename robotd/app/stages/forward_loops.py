@@ -561,6 +561,7 @@ class ForwardLoopStage(Publisher):
         self.deferred_at_end = 0  # images whose test ran at the end of the input
         self.deferred_wait_max = 0  # the most forward keyframes an image's test waited
         self._image: int | None = None  # the detector image being decided (for _scan)
+        self.tests = 0  # level tests run (views whose epipolar check passed)
         self.detector = detector
         self.ridge = RidgeParams() if ridge is None else ridge
         self.ridge_settled = 0  # loops on a ridge, settled at the graph's heading (module notes)
@@ -937,6 +938,7 @@ class ForwardLoopStage(Publisher):
         t = len(self._offsets)  # this image's number in the detector
         self._current, self._image = current, t
         defer = self.defer_accept and len(self._deferred) < self.max_deferred
+        tests = self.tests
         cpu0 = time.thread_time()
         det = self.detector.process(frame.image, pose, kf.pose.covariance,
                                     defer_accept=defer)  # the keyframe's odometry pose
@@ -951,7 +953,7 @@ class ForwardLoopStage(Publisher):
         self._chains.append(chain)
         self._chain_of[int(kf.keyframe_id)] = chain
         self.frame_offset_ms_max = max(self.frame_offset_ms_max, abs(frame.stamp_ns - kf.stamp_ns) / 1e6)
-        self.deferred_inline += bool(self.defer_accept and not defer and det.verification is not None)
+        self.deferred_inline += bool(self.defer_accept and not defer and self.tests > tests)
         decision = _Decision(t, kf.keyframe_id, current, det.candidate_probability)
         if det.status == ACCEPT_PENDING:
             decision.pending, decision.queued_at = det.pending, self.images
@@ -1098,6 +1100,7 @@ class ForwardLoopStage(Publisher):
         its inliers at least the verification's minimum and half of its inliers); and when
         the planar fit lies on a heading-bearing ridge, the graph's heading lies on it
         (:meth:`_settle`)."""
+        self.tests += 1
         ok, tilt = self._planar(v)
         scan = self._scan(image_id, v) if self.planar_refit else None
         refit = None if scan is None else self._choose(scan, v, level=ok)
