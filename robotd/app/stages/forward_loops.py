@@ -544,7 +544,7 @@ class ForwardLoopStage(Publisher):
                  store: Any = None, planarity_bound: float = planarity_bound(), planar_refit: bool = True,
                  mount: np.ndarray | None = None, ridge: RidgeParams | None = None,
                  publish_delay_s: float = 1.0, scan_centre: str = "both", defer_accept: bool = True,
-                 max_deferred: int = 8) -> None:
+                 max_deferred: int = 4) -> None:
         if scan_centre not in SCAN_CENTRES:
             raise ConfigError(f"forward stage: scan_centre must be one of {', '.join(SCAN_CENTRES)}, "
                               f"not {scan_centre!r}")
