@@ -6,7 +6,10 @@ the pose graph (``corrected.tum``, ``keyframes.tum``). Times are left out.
 
 Run: ``python bench/forward_demo_diff.py DIR_A DIR_B [--tol 0]`` (the two ``--out``
 folders); prints each difference and exits 1 when there is one. ``--tol``: the largest
-difference of a number still called the same (default 0: to the bit).
+difference of a number still called the same (default 0: to the bit). ``--by-pair``: the
+loops matched by their pair of keyframes (to, then from) instead of in the order they were
+published (a change that publishes a loop later, such as the forward stage's deferred level
+test, reorders them); a pair in one run only is named.
 """
 
 from __future__ import annotations
@@ -32,11 +35,22 @@ def _same(a: Any, b: Any, tol: float) -> bool:
     return bool(a == b)
 
 
-def summary_differences(a: dict[str, Any], b: dict[str, Any], tol: float = 0.0) -> list[str]:
-    """The differences of two demo summaries' forward answers, each named where it is."""
+def _pair(loop: dict[str, Any]) -> tuple[int, int]:
+    return int(loop.get("to", -1)), int(loop.get("from", -1))
+
+
+def summary_differences(a: dict[str, Any], b: dict[str, Any], tol: float = 0.0, by_pair: bool = False) -> list[str]:
+    """The differences of two demo summaries' forward answers, each named where it is
+    (``by_pair``: the loops matched by their keyframes, not by their order)."""
     fa, fb = a.get("forward_detector") or {}, b.get("forward_detector") or {}
     out = [f"{k}: {fa.get(k)!r} != {fb.get(k)!r}" for k in COUNTS if fa.get(k) != fb.get(k)]
     la, lb = fa.get("loops") or [], fb.get("loops") or []
+    if by_pair:
+        pa, pb = {_pair(x) for x in la}, {_pair(y) for y in lb}
+        out += [f"loop {p[1]} -> {p[0]}: in the first run only" for p in sorted(pa - pb)]
+        out += [f"loop {p[1]} -> {p[0]}: in the second run only" for p in sorted(pb - pa)]
+        la = sorted((x for x in la if _pair(x) in pb), key=_pair)
+        lb = sorted((y for y in lb if _pair(y) in pa), key=_pair)
     if len(la) != len(lb):
         out.append(f"loops: {len(la)} != {len(lb)}")
     for n, (x, y) in enumerate(zip(la, lb)):
@@ -63,10 +77,10 @@ def _tum(path: Path) -> list[list[float]]:
             if line.strip() and not line.startswith("#")]
 
 
-def differences(dir_a: Path, dir_b: Path, tol: float = 0.0) -> list[str]:
+def differences(dir_a: Path, dir_b: Path, tol: float = 0.0, by_pair: bool = False) -> list[str]:
     """Every difference of the two runs' forward answers and keyframe poses."""
     out = summary_differences(json.loads((dir_a / "summary.json").read_text()),
-                              json.loads((dir_b / "summary.json").read_text()), tol)
+                              json.loads((dir_b / "summary.json").read_text()), tol, by_pair)
     for name in POSES:
         if (dir_a / name).exists() or (dir_b / name).exists():
             if not ((dir_a / name).exists() and (dir_b / name).exists()):
@@ -81,8 +95,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("dir_a", type=Path)
     ap.add_argument("dir_b", type=Path)
     ap.add_argument("--tol", type=float, default=0.0, help="largest difference still the same (default 0)")
+    ap.add_argument("--by-pair", action="store_true",
+                    help="match the loops by their pair of keyframes, not by the order they were published")
     args = ap.parse_args(argv)
-    diff = differences(args.dir_a, args.dir_b, args.tol)
+    diff = differences(args.dir_a, args.dir_b, args.tol, args.by_pair)
     for line in diff:
         print(line)
     fa = json.loads((args.dir_a / "summary.json").read_text()).get("forward_detector") or {}

@@ -167,6 +167,11 @@ def print_summary(s: Summary, f: TextIO) -> None:
             print(f"  decided by arrival order, not by the data (0 when the run does not depend on the "
                   f"machine's load): {od['late']} forward keyframes published late, "
                   f"{od['frames_evicted']} frames pushed out of the buffer", file=f)
+        dq = fw.get("deferred")
+        if dq is not None and (dq["deferred"] or dq["inline"]):
+            print(f"  level tests left to a later forward keyframe that verified nothing: {dq['deferred']} "
+                  f"(waited up to {dq['wait_max']} keyframes; {dq['at_end']} at the end of the input), "
+                  f"{dq['inline']} run in their own keyframe (the queue full)", file=f)
         for r in fw.get("loops", []):
             if r["fate"] == "accepted" and not r["right"]:
                 bearing = "-" if r["bearing_error_deg"] is None else f"{r['bearing_error_deg']:.1f}"

@@ -119,6 +119,10 @@ def summarise(cfg: Config, cam_model: FloorCameraModel, robot: VirtualRobot, obs
         # run's forward loops do not depend on the machine's load.
         summary["forward_detector"]["order_dependent"] = {
             "late": c.get("forward_late", 0), "frames_evicted": c.get("forward_frames_evicted", 0)}
+        # Level tests that waited for a forward keyframe verifying nothing (the stage's notes).
+        summary["forward_detector"]["deferred"] = {
+            k: c.get(f"forward_deferred{s}", 0)
+            for k, s in (("deferred", ""), ("inline", "_inline"), ("at_end", "_at_end"), ("wait_max", "_wait_max"))}
     if robot.settings.kidnap is not None:
         summary["relocalisation"] = relocalisation_evaluation(robot.motion, robot.settings.kidnap, obs,
                                                               live.relocalisations, c)

@@ -51,7 +51,7 @@ from robotd.forward.memory import MemoryParams, WorkingMemory
 from robotd.forward.verify import TOO_FEW_MATCHES, Verification, VerifyParams, verify_pair
 from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams
 
-__all__ = ["Detection", "DetectionStatus", "DetectorParams", "ForwardDetector", "LOOP", "METHODS", "NO_HYPOTHESES",
+__all__ = ["ACCEPT_PENDING", "Detection", "DetectionStatus", "DetectorParams", "ForwardDetector", "LOOP", "METHODS", "NO_HYPOTHESES",
            "LOW_POSTERIOR", "NOT_CONSISTENT_YET", "NO_GEOMETRIC_CONSISTENCY", "OdometryParams", "STAGES",
            "bounded_verification", "daemon_params", "method_params", "odometry_factor", "pose_agreement", "predict_metric",
            "unbounded_verification"]
@@ -64,6 +64,7 @@ class DetectionStatus(StrEnum):
     LOW_POSTERIOR = "LOW_POSTERIOR"          # no neighbourhood's posterior above the threshold
     NO_GEOMETRIC_CONSISTENCY = "NO_GEOMETRIC_CONSISTENCY"  # the candidate failed verification
     NOT_CONSISTENT_YET = "NOT_CONSISTENT_YET"  # fewer than k consistent candidates in a row
+    ACCEPT_PENDING = "ACCEPT_PENDING"  # a view verified, its ``accept`` test left for :meth:`ForwardDetector.resume`
 
 
 LOOP = DetectionStatus.LOOP
@@ -71,6 +72,7 @@ NO_HYPOTHESES = DetectionStatus.NO_HYPOTHESES
 LOW_POSTERIOR = DetectionStatus.LOW_POSTERIOR
 NO_GEOMETRIC_CONSISTENCY = DetectionStatus.NO_GEOMETRIC_CONSISTENCY
 NOT_CONSISTENT_YET = DetectionStatus.NOT_CONSISTENT_YET
+ACCEPT_PENDING = DetectionStatus.ACCEPT_PENDING
 
 #: The detectors ``[forward_detector] method`` and ``robotd eval forward --method`` select.
 METHODS = ("default", "paper")
@@ -336,14 +338,43 @@ class DetectorOverrides(TypedDict, total=False):
     verify_fallbacks: int | None
 
 
+@dataclass(eq=False)
+class PendingVerification:
+    """An image's verification stopped at a view whose epipolar check passed, before the
+    detector's ``accept`` test (:meth:`ForwardDetector.process_features` with
+    ``defer_accept``); :meth:`ForwardDetector.resume` finishes it. It holds what the views
+    still to try need, taken when the image was run (its features, the views in order, which
+    of them odometry agrees with), so finishing it later gives the answer finishing it at
+    once would have (the detector's state after the image is not read; with a bounded
+    working memory the loop's places are linked when it finishes).
+
+    Fields: ``image_id`` (the image verified), ``candidate`` (the filter's), ``view`` and
+    ``verification`` (the view awaiting ``accept`` and its check), ``order`` (every view to
+    try, in order), ``next`` (the first not yet verified), ``agreed`` (views odometry agrees
+    with: their ``VerifyParams`` relaxed), ``fallbacks`` (general searches run so far),
+    ``failed`` (the checks of the views that failed)."""
+
+    image_id: int
+    candidate: int
+    feats: Features
+    order: list[int]
+    agreed: frozenset[int]
+    next: int = 0
+    fallbacks: int = 0
+    failed: list[Verification] = field(default_factory=list)
+    view: int | None = None
+    verification: Verification | None = None
+
+
 @dataclass(frozen=True, eq=False)
 class Detection:
     """What the detector decided for one image.
 
     Fields:
         image_id: t, the image's number (0 for the first).
-        status: ``LOOP``, ``NO_HYPOTHESES``, ``LOW_POSTERIOR``, ``NOT_CONSISTENT_YET`` or
-            ``NO_GEOMETRIC_CONSISTENCY``.
+        status: ``LOOP``, ``NO_HYPOTHESES``, ``LOW_POSTERIOR``, ``NOT_CONSISTENT_YET``,
+            ``NO_GEOMETRIC_CONSISTENCY`` or, asked to defer the ``accept`` test,
+            ``ACCEPT_PENDING`` (:attr:`pending` then holds the rest of the verification).
         loop_id: the past image it closes a loop with (status ``LOOP``), else None.
         candidate_id: the filter's candidate (verified or not), else None.
         candidate_probability: the largest posterior summed over a neighbourhood.
@@ -354,7 +385,8 @@ class Detection:
         likelihood: ``(1 + n,)`` factors of the hypotheses: no loop, then the images
             ``hypothesis_ids`` (0 .. t - p without a working memory).
         posterior: ``(1 + n,)`` p(S_t | z^t) over the same hypotheses.
-        verification: the epipolar check of the candidate, when one was made.
+        verification: the epipolar check of the candidate, when one was made (with
+            ``ACCEPT_PENDING``, the view's awaiting the ``accept`` test).
         n_features: keypoints in the image; new_words: words it created;
         vocabulary_size: words after it.
         times_s: seconds per stage (:data:`STAGES`) and ``"total"``.
@@ -362,6 +394,8 @@ class Detection:
         working_memory: places in the working memory after this image (all past images
             without a bound); retrieved, transferred: the places that came back from and
             went to long-term memory after it.
+        pending: with ``ACCEPT_PENDING``, the verification to finish with
+            :meth:`ForwardDetector.resume`; else None.
     """
 
     image_id: int
@@ -382,6 +416,7 @@ class Detection:
     working_memory: int = 0
     retrieved: tuple[int, ...] = ()
     transferred: tuple[int, ...] = ()
+    pending: PendingVerification | None = None
 
     @property
     def n_hypotheses(self) -> int:
@@ -600,13 +635,16 @@ class ForwardDetector:
         self._poses_var[:] = np.nan
 
     def _verify(self, candidate: int, feats: Features, hyp_ids: np.ndarray,
-                odo: np.ndarray | None) -> tuple[int, Verification, bool]:
+                odo: np.ndarray | None, t: int, defer_accept: bool = False
+                ) -> tuple[int, Verification, bool] | PendingVerification:
         """Verify ``candidate`` and, if it fails, its most probable neighbours that odometry
         agrees with (within ``filter.neighbours`` images; up to ``verify_tries`` images in
         all; ``odo``: the hypotheses' odometry factors, None without odometry): ``(image,
         its verification, whether it is a loop)``: the first accepted (and passing
         :attr:`accept`), else the candidate's (``accepted`` True there when only
-        :attr:`accept` refused it)."""
+        :attr:`accept` refused it). With ``defer_accept`` (and an :attr:`accept` test) the
+        first view whose check passes is not put to the test: the rest of the verification
+        is returned instead (:class:`PendingVerification`, finished by :meth:`resume`)."""
         p = self.params
         order = [candidate]
         o = p.odometry
@@ -628,14 +666,29 @@ class ForwardDetector:
             near = np.flatnonzero((np.abs(hyp_ids - candidate) <= p.filter.neighbours) & (hyp_ids != candidate)
                                   & (post > 0.0) & (odo >= p.odometry.agree_factor))
             order += hyp_ids[near[np.argsort(-post[near], kind="stable")]][:p.verify_tries - 1].tolist()
-        slot = {int(h): i for i, h in enumerate(hyp_ids.tolist())} if odo is not None else {}
-        failed: list[Verification] = []
-        fallbacks = 0
-        for j in order:
+        agreed = frozenset(int(h) for h, f in zip(hyp_ids.tolist(), odo.tolist()) if f >= o.agree_factor) \
+            if odo is not None else frozenset()
+        job = PendingVerification(t, int(candidate), feats, [int(j) for j in order], agreed)
+        return self._advance(job, defer_accept)
+
+    def _advance(self, job: PendingVerification, defer_accept: bool) -> tuple[int, Verification, bool] | PendingVerification:
+        """Go on with ``job``: the awaiting view's :attr:`accept` test, then the views not yet
+        verified, as :meth:`_verify` describes."""
+        p = self.params
+        o = p.odometry
+        if job.view is not None and job.verification is not None:
+            j, v = job.view, job.verification
+            job.view, job.verification = None, None
+            if self.accept is None or self.accept(j, v):
+                return j, v, True
+            job.failed.append(v)
+        while job.next < len(job.order):
+            j = job.order[job.next]
+            job.next += 1
             vp = p.verify
-            if p.verify_fallbacks is not None and fallbacks >= p.verify_fallbacks:
+            if p.verify_fallbacks is not None and job.fallbacks >= p.verify_fallbacks:
                 vp = replace(vp, fallback_inliers=None)  # the bound on the image's work
-            if odo is not None and j in slot and odo[slot[j]] >= o.agree_factor:
+            if j in job.agreed:
                 if o.agree_min_inliers is not None:
                     vp = replace(vp, min_inliers=o.agree_min_inliers)
                 if o.agree_min_support_area is not None:
@@ -645,14 +698,37 @@ class ForwardDetector:
             except LookupError:
                 self.read_back_failed += 1
                 continue
-            v = verify_pair(old, feats, vp, self.camera_matrix)
-            fallbacks += v.fallback
-            if v.accepted and (self.accept is None or self.accept(j, v)):
-                return j, v, True
-            failed.append(v)
-        if not failed:  # not one of them could be read back (counted): as if nothing matched
-            return candidate, Verification(False, TOO_FEW_MATCHES, 0, 0), False
-        return candidate, failed[0], False
+            v = verify_pair(old, job.feats, vp, self.camera_matrix)
+            job.fallbacks += v.fallback
+            if v.accepted:
+                if self.accept is None:
+                    return j, v, True
+                if defer_accept:
+                    job.view, job.verification = j, v
+                    return job
+                if self.accept(j, v):
+                    return j, v, True
+            job.failed.append(v)
+        if not job.failed:  # not one of them could be read back (counted): as if nothing matched
+            return job.candidate, Verification(False, TOO_FEW_MATCHES, 0, 0), False
+        return job.candidate, job.failed[0], False
+
+    def resume(self, job: PendingVerification) -> tuple[DetectionStatus, int, Verification]:
+        """Finish a verification left with ``ACCEPT_PENDING`` (:class:`PendingVerification`):
+        the awaiting view's :attr:`accept` test, and, when it fails, the views after it as
+        :meth:`process_features` would have tried them. Returns ``(LOOP, the loop's past
+        image, its verification)`` or ``(NO_GEOMETRIC_CONSISTENCY, the candidate, the
+        check kept for it)``; with a bounded working memory the loop's places are linked
+        now. :attr:`accept` runs for image ``job.image_id``, which may no longer be the
+        newest."""
+        if job.view is None:
+            raise ValueError("resume: this verification has no view awaiting its accept test")
+        out = self._advance(job, defer_accept=False)
+        assert not isinstance(out, PendingVerification)
+        j, v, ok = out
+        if ok and self.params.memory.bounded:
+            self.memory.link(job.image_id, int(j))
+        return (LOOP if ok else NO_GEOMETRIC_CONSISTENCY), int(j), v
 
     def memory_bytes(self) -> dict[str, int]:
         """Bytes the detector holds, by part: ``images`` (word ids, keypoints, descriptors
@@ -671,20 +747,23 @@ class ForwardDetector:
                 + self._posterior.nbytes + self._hyp_ids.nbytes)
 
     def process(self, image: np.ndarray, pose: np.ndarray | None = None,
-                pose_cov: np.ndarray | None = None) -> Detection:
+                pose_cov: np.ndarray | None = None, defer_accept: bool = False) -> Detection:
         """Run one image (``(H, W)`` gray or ``(H, W, 3)`` BGR uint8) through the detector;
-        ``pose``, ``pose_cov``: see :meth:`process_features`."""
+        ``pose``, ``pose_cov``, ``defer_accept``: see :meth:`process_features`."""
         t0 = self._timer()
         feats = self._extract(image)
-        return self.process_features(feats, self._timer() - t0, pose, pose_cov)
+        return self.process_features(feats, self._timer() - t0, pose, pose_cov, defer_accept)
 
     def process_features(self, feats: Features, features_s: float = 0.0, pose: np.ndarray | None = None,
-                         pose_cov: np.ndarray | None = None) -> Detection:
+                         pose_cov: np.ndarray | None = None, defer_accept: bool = False) -> Detection:
         """Run one image given its already extracted features (``features_s``: the time
         that took, for the record). ``pose (3,)``: the robot's odometry pose when the image
         was taken (x_m, y_m, yaw_rad; the fused odometry the daemon has, never a ground
         truth), ``pose_cov (3, 3)`` its covariance; used by :class:`OdometryParams`, kept
-        with the image either way (None: unknown)."""
+        with the image either way (None: unknown). ``defer_accept``: a view whose epipolar
+        check passes is not put to the :attr:`accept` test here; the image's status is then
+        ``ACCEPT_PENDING`` and :meth:`resume` finishes its verification (the caller chooses
+        when: the daemon's stage spreads the test over its keyframes)."""
         p = self.params
         clock = self._timer
         t = len(self._features)
@@ -772,6 +851,7 @@ class ForwardDetector:
             self._run = self._run + 1 if near else 1
             self._last_candidate = int(candidate)
         verification = None
+        pending = None
         if n_hyp == 0:
             status = NO_HYPOTHESES
         elif candidate is None:
@@ -779,8 +859,12 @@ class ForwardDetector:
         elif self._run < p.consistency:
             status = NOT_CONSISTENT_YET
         else:
-            candidate, verification, ok = self._verify(candidate, feats, hyp_ids, odo)
-            status = LOOP if ok else NO_GEOMETRIC_CONSISTENCY
+            out = self._verify(candidate, feats, hyp_ids, odo, t, defer_accept)
+            if isinstance(out, PendingVerification):
+                pending, verification, status = out, out.verification, ACCEPT_PENDING
+            else:
+                candidate, verification, ok = out
+                status = LOOP if ok else NO_GEOMETRIC_CONSISTENCY
         t4 = clock()
         times["verify"] = t4 - t3
 
@@ -807,7 +891,7 @@ class ForwardDetector:
             verification=verification, n_features=len(feats), new_words=new_words,
             vocabulary_size=len(self.vocabulary), times_s=times, hypothesis_ids=hyp_ids,
             working_memory=len(self.memory), retrieved=tuple(retrieved),
-            transferred=tuple(transferred))
+            transferred=tuple(transferred), pending=pending)
 
 
 def _held_bytes(f: CompactFeatures | LentFeatures) -> int:

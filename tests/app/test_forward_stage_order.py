@@ -54,7 +54,8 @@ class _Recorder:
     def __len__(self) -> int:
         return len(self.inputs)
 
-    def process(self, image: np.ndarray, pose: np.ndarray | None = None, pose_cov: Any = None) -> object:
+    def process(self, image: np.ndarray, pose: np.ndarray | None = None, pose_cov: Any = None,
+                defer_accept: bool = False) -> object:
         st = self.stage
         assert st is not None and st._current is not None
         k = len(self.inputs)

@@ -88,7 +88,8 @@ def test_without_deferral_poll_runs_nothing():
 class _Collecting(_Recorder):
     """The stage-order test's stand-in detector, collecting the youngest generation on every third image."""
 
-    def process(self, image: np.ndarray, pose: np.ndarray | None = None, pose_cov: Any = None) -> object:
+    def process(self, image: np.ndarray, pose: np.ndarray | None = None, pose_cov: Any = None,
+                defer_accept: bool = False) -> object:
         if len(self.inputs) % 3 == 0:
             _garbage(200)
             gc.collect(0)

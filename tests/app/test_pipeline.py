@@ -598,7 +598,8 @@ class _ScriptedDetector:
     def forget_poses(self) -> None:
         self.poses.append(None)
 
-    def process(self, image: np.ndarray, pose: np.ndarray | None = None, pose_cov: np.ndarray | None = None) -> object:
+    def process(self, image: np.ndarray, pose: np.ndarray | None = None, pose_cov: np.ndarray | None = None,
+                defer_accept: bool = False) -> object:
         from types import SimpleNamespace
 
         from robotd.forward import LOOP, LOW_POSTERIOR

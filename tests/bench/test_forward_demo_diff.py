@@ -36,3 +36,21 @@ def test_every_changed_answer_is_named(tmp_path):
     assert differences(a, _run(tmp_path, "e", bearing=12.5 + 1e-12), tol=1e-9) == []
     assert differences(a, _run(tmp_path, "f", pose_x=1.0 + 1e-9)) == ["corrected.tum row 0: differs by 1e-09"]
     assert differences(a, _run(tmp_path, "g", loops=2)) == ["loops: 1 != 2"]
+
+
+def test_by_pair_matches_the_loops_by_their_keyframes_not_their_order(tmp_path):
+    def run(name: str, loops: list[tuple[int, int, float]]) -> Path:
+        d = tmp_path / name
+        d.mkdir()
+        rows = [{"from": f, "to": t, "inliers": 30, "fate": "accepted", "bearing_deg": b} for f, t, b in loops]
+        (d / "summary.json").write_text(json.dumps({"forward_detector": {"loops": rows}}))
+        return d
+
+    a = run("a", [(3, 90, 1.0), (5, 95, 2.0)])
+    swapped = run("b", [(5, 95, 2.0), (3, 90, 1.0)])
+    assert differences(a, swapped) != []  # in order, every field of both rows differs
+    assert differences(a, swapped, by_pair=True) == []
+    moved = run("c", [(5, 95, 2.5), (4, 91, 1.0)])
+    assert differences(a, moved, by_pair=True) == [
+        "loop 3 -> 90: in the first run only", "loop 4 -> 91: in the second run only",
+        "loop 0 (5 -> 95).bearing_deg: 2.0 != 2.5"]

@@ -422,3 +422,64 @@ def test_the_fallbacks_per_image_are_bounded(monkeypatch):
     assert run(replace(params, verify_fallbacks=0)) == [None, None, None]
     with pytest.raises(ValueError, match="verify_fallbacks"):
         DetectorParams(verify_fallbacks=-1)
+
+
+@pytest.mark.parametrize("rule", ["accept", "refuse", "second"])
+def test_a_deferred_acceptance_test_gives_the_answer_of_the_test_at_once(monkeypatch, rule):
+    """``defer_accept``: the image stops at its first view whose check passes
+    (``ACCEPT_PENDING``, the ``accept`` test not run); :meth:`ForwardDetector.resume`, called
+    after the next images went through, runs the test and the views after a refused one, and
+    gives the loop, the views tested and their order that the test run at once gave."""
+    import robotd.forward.detector as det_mod
+    from robotd.forward.detector import ACCEPT_PENDING, daemon_params
+    from robotd.forward.verify import ACCEPTED, Verification
+
+    monkeypatch.setattr(det_mod, "verify_pair", lambda old, new, vp, k: Verification(True, ACCEPTED, 100, 100))
+    views = _views(30, [5, 6, 7, 8])
+    cov = np.diag([0.01, 0.01, 0.001])
+    poses = [np.array([float(i), 0.0, 0.0]) for i in range(30)] + [np.array([float(x), 0.0, 0.0]) for x in (5, 6, 7, 8)]
+    params = replace(daemon_params(method_params("default")), verify=ACCEPT_ALL, decision="score")
+
+    def run(defer: bool) -> tuple[list, list]:
+        seen: list[tuple[int, int]] = []
+        det = ForwardDetector(params)
+
+        def accept(j, v):
+            seen.append((len(seen), j))
+            return rule == "accept" or (rule == "second" and len(seen) % 2 == 0)
+
+        det.accept = accept
+        answers, waiting = [], []
+        for v, q in zip(views, poses):
+            n_seen = len(seen)
+            d = det.process_features(v, 0.0, q, cov, defer_accept=defer)
+            assert not defer or len(seen) == n_seen  # no test run inside the image's own call
+            if waiting:  # the previous image's test, after this image went through
+                job = waiting.pop()
+                status, j, _ = det.resume(job)
+                answers.append((job.image_id, status, j if status == LOOP else None))
+            if d.status == ACCEPT_PENDING:
+                assert d.pending is not None and d.loop_id is None and d.verification is not None
+                waiting.append(d.pending)
+            elif d.image_id >= 30:
+                answers.append((d.image_id, d.status, d.loop_id))
+        for job in waiting:
+            status, j, _ = det.resume(job)
+            answers.append((job.image_id, status, j if status == LOOP else None))
+        return answers, seen
+
+    at_once, seen_at_once = run(False)
+    deferred, seen_deferred = run(True)
+    assert deferred == at_once and seen_deferred == seen_at_once
+    assert len(at_once) == 4 and len(seen_at_once) == {"accept": 4, "refuse": 12, "second": 8}[rule]
+    assert {a[1] for a in at_once} == ({NO_GEOMETRIC_CONSISTENCY} if rule == "refuse" else {LOOP})
+
+
+def test_resume_needs_a_view_awaiting_its_test():
+    from robotd.forward.detector import PendingVerification
+
+    det = ForwardDetector(DetectorParams(features=FeatureParams(kind="orb")))
+    job = PendingVerification(0, 0, Features(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), (640, 480)),
+                              [], frozenset())
+    with pytest.raises(ValueError):
+        det.resume(job)

@@ -55,6 +55,28 @@ The detector runs in the pipeline's thread, once per forward keyframe (every hal
 default, about one image per 1.5 s at the demo's speed): a SIFT image costs tens of
 milliseconds, which the source queues absorb.
 
+**One verification's work per forward keyframe** (``defer_accept``, on by default). The
+costliest forward keyframes were those that verified a loop on a heading-bearing ridge: the
+detector's features, words and epipolar check, and then, inside the same call, the level
+test below (the planar scan, the ridge's fixed-heading fits, the heading graph's solve).
+Most forward keyframes verify nothing. So the detector stops an image at its first view
+whose epipolar check passes (:meth:`robotd.forward.ForwardDetector.process` with
+``defer_accept``) and the level test of that view waits in a queue for the next forward
+keyframe that verifies nothing (no epipolar check of its own), which finishes the oldest
+waiting image's verification after its own detector call (:meth:`~robotd.forward.ForwardDetector.resume`:
+the test and, when refused, the views after it, as the detector would have tried them).
+Every piece of the test reads the waiting image's own context (its frame's offset, pose,
+keyframe and the heading graph's links when it was stored), and nothing the detector does
+for the images between depends on a verification's outcome, so the loop is the one the test
+at once would have found; it is published with the keyframe that ran its test (one or more
+forward keyframes later: the gate sees it that much later). The work is counted on the
+keyframe that does it: its CPU per forward keyframe includes the finished verification
+(part ``deferred``). At most ``max_deferred`` images wait; a verifying image that finds the
+queue full is tested in its own keyframe (``forward_deferred_inline``); those still waiting
+at the end of the input are finished then, their CPU the last forward keyframe's
+(``forward_deferred_at_end``); ``forward_deferred_wait_max``: the most forward keyframes
+one waited.
+
 The forward frame is up to ``sync_tolerance_s`` off its keyframe's stamp (33 ms at the
 demo's 15 frames a second: 1 cm and 1 deg at its speeds), while the loop is an edge
 between the two keyframes. The stage keeps the last seconds of the wheel odometry
@@ -143,6 +165,7 @@ from robotd.base.errors import ConfigError, MapStoreError
 from robotd.base.geometry import between, compose, inverse, wrap_angle
 from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored, Link, LoopFate, OdometryUpdate
 from robotd.forward import LOOP, ForwardDetector
+from robotd.forward.detector import ACCEPT_PENDING, PendingVerification
 from robotd.forward.features import CompactFeatures
 from robotd.forward.planar import INLIER_NOISE_FACTOR, planar_motion, planarity_bound
 from robotd.forward.planefit import (SCAN_STEP_RAD, PlanarFit, fit_planar_fixed, fit_planar_scans, planar_inliers,
@@ -152,7 +175,7 @@ from robotd.forward.verify import VerifyParams, floor_range, match_features, mat
 log = logging.getLogger(__name__)
 
 # The stage's parts timed per forward keyframe (ForwardLoopStage.part_cpu_ms).
-PARTS = ("match", "scan", "level", "ridge", "graph", "readback", "store", "gc", "stage")
+PARTS = ("match", "scan", "level", "ridge", "graph", "readback", "store", "gc", "deferred", "stage")
 
 #: Where the planar refit's heading scan is centred (ForwardLoopStage ``scan_centre``): the
 #: verified motion's heading, the level motion's the verification's search found first, or
@@ -183,6 +206,21 @@ class _Pending:
     sigma_bearing_rad: float | None = None
     sigma_yaw_rad: float | None = None
     at_prior: bool = False
+
+
+@dataclass
+class _Decision:
+    """A forward image whose verification is being decided: its detector image, keyframe,
+    the context :meth:`ForwardLoopStage._level` reads (``ForwardLoopStage._current``), the
+    filter's probability, and, while its level test waits (``defer_accept``), the rest of
+    its verification and the forward keyframe it was queued at."""
+
+    image: int
+    keyframe_id: int
+    current: tuple[np.ndarray, np.ndarray, float | None, int, int, int]
+    probability: float
+    pending: PendingVerification | None = None
+    queued_at: int = 0
 
 
 @dataclass(frozen=True)
@@ -505,11 +543,25 @@ class ForwardLoopStage(Publisher):
                  max_tilt_rad: float = math.radians(10.0), camera: str = "forward",
                  store: Any = None, planarity_bound: float = planarity_bound(), planar_refit: bool = True,
                  mount: np.ndarray | None = None, ridge: RidgeParams | None = None,
-                 publish_delay_s: float = 1.0, scan_centre: str = "both") -> None:
+                 publish_delay_s: float = 1.0, scan_centre: str = "both", defer_accept: bool = True,
+                 max_deferred: int = 4) -> None:
         if scan_centre not in SCAN_CENTRES:
             raise ConfigError(f"forward stage: scan_centre must be one of {', '.join(SCAN_CENTRES)}, "
                               f"not {scan_centre!r}")
+        if max_deferred < 1:
+            raise ConfigError(f"forward stage: max_deferred must be >= 1, not {max_deferred}")
         self.scan_centre = scan_centre
+        # The level test of a verified view waits for a forward keyframe that verifies
+        # nothing (module notes, "One verification's work per keyframe"): the queue, its bound.
+        self.defer_accept = defer_accept
+        self.max_deferred = int(max_deferred)
+        self._deferred: deque[_Decision] = deque()
+        self.deferred = 0  # images whose level test waited for a later keyframe
+        self.deferred_inline = 0  # images tested in their own keyframe because the queue was full
+        self.deferred_at_end = 0  # images whose test ran at the end of the input
+        self.deferred_wait_max = 0  # the most forward keyframes an image's test waited
+        self._image: int | None = None  # the detector image being decided (for _scan)
+        self.tests = 0  # level tests run (views whose epipolar check passed)
         self.detector = detector
         self.ridge = RidgeParams() if ridge is None else ridge
         self.ridge_settled = 0  # loops on a ridge, settled at the graph's heading (module notes)
@@ -815,6 +867,7 @@ class ForwardLoopStage(Publisher):
         """End of the input: the keyframes still waiting for their frame run with what came,
         and every held message is published."""
         self._drain(force=True)
+        self._flush_deferred()
         n = len(self._outbox)
         self._release(2**62)
         if self.cpu_ms:
@@ -881,11 +934,16 @@ class ForwardLoopStage(Publisher):
         offset = self._frame_offset(kf.stamp_ns, frame.stamp_ns)
         cov = np.asarray(kf.pose.covariance, np.float64)
         yaw_var = float(cov[2, 2]) if cov.shape == (3, 3) and math.isfinite(float(cov[2, 2])) else None
-        self._current = (np.zeros(3) if offset is None else offset, pose, yaw_var, chain, kf.keyframe_id, links)
+        current = (np.zeros(3) if offset is None else offset, pose, yaw_var, chain, kf.keyframe_id, links)
+        t = len(self._offsets)  # this image's number in the detector
+        self._current, self._image = current, t
+        defer = self.defer_accept and len(self._deferred) < self.max_deferred
+        tests = self.tests
         cpu0 = time.thread_time()
-        det = self.detector.process(frame.image, pose, kf.pose.covariance)  # the keyframe's odometry pose
-        self.cpu_ms.append((time.thread_time() - cpu0) * 1e3)
-        self._current = None
+        det = self.detector.process(frame.image, pose, kf.pose.covariance,
+                                    defer_accept=defer)  # the keyframe's odometry pose
+        cpu_ms = (time.thread_time() - cpu0) * 1e3
+        self._current, self._image = None, None
         self._keyframe_ids.append(kf.keyframe_id)
         if offset is None:
             self.no_offset += 1
@@ -895,35 +953,96 @@ class ForwardLoopStage(Publisher):
         self._chains.append(chain)
         self._chain_of[int(kf.keyframe_id)] = chain
         self.frame_offset_ms_max = max(self.frame_offset_ms_max, abs(frame.stamp_ns - kf.stamp_ns) / 1e6)
+        self.deferred_inline += bool(self.defer_accept and not defer and self.tests > tests)
+        decision = _Decision(t, kf.keyframe_id, current, det.candidate_probability)
+        if det.status == ACCEPT_PENDING:
+            decision.pending, decision.queued_at = det.pending, self.images
+            self._deferred.append(decision)
+            self.deferred += 1
+        else:
+            self._decide(decision, det.status, det.loop_id, det.verification)
+        # A keyframe that verified nothing finishes the oldest waiting verification (its
+        # level test, and the views after it when refused): its CPU is this keyframe's.
+        resumed_s = 0.0
+        if det.verification is None and self._deferred:
+            t0, w0 = time.thread_time(), time.perf_counter()
+            self._resume_oldest()
+            resumed = (time.thread_time() - t0) * 1e3
+            cpu_ms += resumed
+            resumed_s = time.perf_counter() - w0
+            self._part["deferred"] = self._part.get("deferred", 0.0) + resumed
+        self.cpu_ms.append(cpu_ms)
         if self.store is not None:
             t0 = time.thread_time()
             self._store_image(kf.keyframe_id)
             self._add_cpu("store", t0)
         self.images += 1
-        self.total_ms.append(det.times_s["total"] * 1e3)
-        self.verify_ms.append(det.times_s.get("verify", 0.0) * 1e3)
+        self.total_ms.append((det.times_s["total"] + resumed_s) * 1e3)
+        self.verify_ms.append((det.times_s.get("verify", 0.0) + resumed_s) * 1e3)
         self.features_ms.append(det.times_s.get("features", 0.0) * 1e3)
-        if det.status != LOOP or det.verification is None or det.loop_id is None:
+
+    def _resume_oldest(self) -> None:
+        """Finish the oldest waiting verification (:meth:`ForwardDetector.resume`) and
+        publish what it decided with the keyframe being run."""
+        d = self._deferred.popleft()
+        assert d.pending is not None
+        self.deferred_wait_max = max(self.deferred_wait_max, self.images - d.queued_at)
+        self._pending.clear()
+        self._last_refused = None
+        self._current, self._image = d.current, d.image
+        try:
+            status, j, v = self.detector.resume(d.pending)
+        finally:
+            self._current, self._image = None, None
+        d.pending = None
+        self._decide(d, status, j if status == LOOP else None, v)
+
+    def _flush_deferred(self) -> None:
+        """The end of the input: every waiting verification finished, its CPU the last
+        forward keyframe's, what it decides held for the final release."""
+        if not self._deferred:
+            return
+        self.deferred_at_end += len(self._deferred)
+        self._out, self._part = [], {}
+        cpu0 = time.thread_time()
+        try:
+            while self._deferred:
+                self._resume_oldest()
+        finally:
+            ms = (time.thread_time() - cpu0) * 1e3
+            out, self._out = self._out, None
+        if self.cpu_ms:
+            self.cpu_ms[-1] += ms
+            for part, extra in {**self._part, "deferred": ms, "stage": ms}.items():
+                if part in self.part_cpu_ms and self.part_cpu_ms[part]:
+                    self.part_cpu_ms[part][-1] += extra
+        if out:
+            self._outbox.append((2**62, out))
+
+    def _decide(self, d: _Decision, status: Any, loop_id: int | None, verification: Any) -> None:
+        """What image ``d``'s verification decided, published: its loop, or the fate of a
+        view the level test found out of the floor plane."""
+        if status != LOOP or verification is None or loop_id is None:
             self._pending.clear()
-            if det.verification is not None and not det.verification.accepted:
+            if verification is not None and not verification.accepted:
                 self.rejected_geometry += 1
-            elif det.verification is not None and self._last_refused is not None:
+            elif verification is not None and self._last_refused is not None:
                 j, tilt, chi2 = self._last_refused
-                self._emit(CandidateFate(kf.keyframe_id, self._keyframe_ids[j], det.candidate_probability,
+                self._emit(CandidateFate(d.keyframe_id, self._keyframe_ids[j], d.probability,
                                             LoopFate.FAILED_GATE,
                                             f"forward: motion {math.degrees(tilt):.1f} deg out of the floor plane "
                                             f"(planarity chi2 {chi2:.0f}, bound {self.planarity_bound:.0f})"))
             self._last_refused = None
             return
-        v = det.verification
+        v = verification
         if v.rotation is None or v.translation_dir is None:
             raise AssertionError("an accepted forward loop's verification has no relative pose")
-        old = self._keyframe_ids[det.loop_id]
-        pending = self._pending.pop(det.loop_id, None) or _Pending()
+        old = self._keyframe_ids[loop_id]
+        pending = self._pending.pop(loop_id, None) or _Pending()
         self._pending.clear()
         refit, ridge_sigma, ridge_yaw = pending.fit, pending.sigma_bearing_rad, pending.sigma_yaw_rad
         if pending.at_prior:
-            self._prior_loops.add((int(old), int(kf.keyframe_id)))
+            self._prior_loops.add((int(old), int(d.keyframe_id)))
         # The general fit's bearing sigma is the inliers' own noise; scaled as the planarity
         # test and the planar fit scale it (robotd.forward.planar.INLIER_NOISE_FACTOR).
         range_m, sigma_b = v.range_m, v.sigma_bearing_rad * INLIER_NOISE_FACTOR
@@ -941,11 +1060,11 @@ class ForwardLoopStage(Publisher):
             dyaw, bearing, _ = planar_motion(v.rotation, v.translation_dir)
             if ridge_sigma is not None:
                 sigma_b = ridge_sigma
-        dyaw, bearing, range_m = self._to_keyframes(det.loop_id, len(self._offsets) - 1, dyaw, bearing, range_m)
+        dyaw, bearing, range_m = self._to_keyframes(loop_id, d.image, dyaw, bearing, range_m)
         self.loops += 1
-        log.debug("forward loop: keyframe %d sees keyframe %d (p %.2f, %d inliers%s)", kf.keyframe_id, old,
-                  det.candidate_probability, v.n_inliers, ", refitted in the plane" if fit is not None else "")
-        self._emit(ForwardLoop(old, kf.keyframe_id, det.candidate_probability, dyaw, bearing, v.n_inliers,
+        log.debug("forward loop: keyframe %d sees keyframe %d (p %.2f, %d inliers%s)", d.keyframe_id, old,
+                  d.probability, v.n_inliers, ", refitted in the plane" if fit is not None else "")
+        self._emit(ForwardLoop(old, d.keyframe_id, d.probability, dyaw, bearing, v.n_inliers,
                                   range_m=range_m, sigma_bearing_rad=sigma_b if np.isfinite(sigma_b) else None,
                                   sigma_yaw_rad=ridge_yaw))
 
@@ -981,6 +1100,7 @@ class ForwardLoopStage(Publisher):
         its inliers at least the verification's minimum and half of its inliers); and when
         the planar fit lies on a heading-bearing ridge, the graph's heading lies on it
         (:meth:`_settle`)."""
+        self.tests += 1
         ok, tilt = self._planar(v)
         scan = self._scan(image_id, v) if self.planar_refit else None
         refit = None if scan is None else self._choose(scan, v, level=ok)
@@ -1019,7 +1139,8 @@ class ForwardLoopStage(Publisher):
         if k is None:
             return None
         t0 = time.thread_time()
-        old, new = det.features_of(image_id), det.features_of(len(det) - 1)
+        new_id = len(det) - 1 if self._image is None else self._image
+        old, new = det.features_of(image_id), det.features_of(new_id)
         index = getattr(v, "match_index", None)
         if index is not None:  # the verification's matches (the same), not matched again
             p_old, p_new = matched_points(old, new, index)
@@ -1178,6 +1299,9 @@ class ForwardLoopStage(Publisher):
                 "forward_ridge_settled": self.ridge_settled, "forward_ridge_refused": self.ridge_refused,
                 "forward_ridge_unsettled": self.ridge_unsettled, "forward_narrow_settled": self.narrow_settled,
                 "forward_failed_verification": self.rejected_geometry,
+                "forward_deferred": self.deferred, "forward_deferred_inline": self.deferred_inline,
+                "forward_deferred_at_end": self.deferred_at_end, "forward_deferred_waiting": len(self._deferred),
+                "forward_deferred_wait_max": self.deferred_wait_max,
                 "forward_vocabulary": len(self.detector.vocabulary),
                 "forward_restored_images": self.restored, "forward_store_errors": self.store_errors,
                 "forward_ms_median": round(float(np.median(total)), 2),

@@ -1,0 +1,125 @@
+"""The forward stage's budget: one verification's work per forward keyframe.
+
+A forward keyframe whose image verified a view leaves that view's level test (the planar
+scan, the ridge's fits, the heading graph's solve: the stage's ``accept`` hook) to the next
+forward keyframe that verifies nothing; the queue of waiting tests is bounded (a full queue
+runs the new image's test in its own keyframe, counted) and emptied at the end of the input.
+The loop is the waiting image's (its keyframe, its context for the hook), published with
+the keyframe that ran its test (robotd.app.stages.forward_loops, module notes)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+
+import tests.app.test_forward_stage_order as order
+from robotd.app.pipeline import Pipeline
+from robotd.app.stages.forward_loops import ForwardLoopStage
+from robotd.base.errors import ConfigError
+from robotd.base.messages import ForwardLoop, KeyframeStored
+from robotd.forward import LOOP, LOW_POSTERIOR
+from robotd.forward.detector import ACCEPT_PENDING
+
+
+class _Deferring(order._Recorder):
+    """A stand-in detector: the images in ``verifying`` verify a view of image 0 (left to
+    :meth:`resume` when the stage defers, tested at once otherwise), the others nothing.
+    It records which forward keyframe ran each image's test, and the context the stage gave
+    its hook then."""
+
+    def __init__(self, verifying: set[int]) -> None:
+        super().__init__()
+        self.verifying = verifying
+        self.tested: list[tuple[int, int, int | None, int]] = []  # (image, keyframe running it, stage's image, its kf)
+        self.inline: list[int] = []
+
+    def process(self, image: np.ndarray, pose: np.ndarray | None = None, pose_cov: Any = None,
+                defer_accept: bool = False) -> object:
+        k = len(self.inputs)
+        self.inputs.append(k)
+        out = dict(loop_id=None, verification=None, candidate_probability=0.9, times_s={"total": 0.01}, pending=None)
+        if k not in self.verifying:
+            return SimpleNamespace(status=LOW_POSTERIOR, **out)
+        if defer_accept:
+            return SimpleNamespace(**{**out, "status": ACCEPT_PENDING, "verification": self.v,
+                                      "pending": SimpleNamespace(image_id=k)})
+        self.inline.append(k)
+        self._test(k)
+        return SimpleNamespace(**{**out, "status": LOOP, "loop_id": 0, "verification": self.v})
+
+    def _test(self, k: int) -> None:
+        st = self.stage
+        assert st is not None and st._current is not None
+        self.tested.append((k, len(self.inputs) - 1, st._image, st._current[4]))
+        assert self.accept(0, self.v)  # the stage's hook (set on the detector by the stage), a level motion
+
+    def resume(self, job: Any) -> tuple[Any, int, Any]:
+        self._test(job.image_id)
+        return LOOP, 0, self.v
+
+
+def _run(verifying: set[int], **kw: Any) -> tuple[_Deferring, ForwardLoopStage, list[Any]]:
+    det = _Deferring(verifying)
+    stage = ForwardLoopStage(det, distance_m=0.25, sync_tolerance_s=0.04, planar_refit=False, **kw)  # type: ignore[arg-type]
+    det.stage = stage
+    log: list[Any] = []
+    p = Pipeline()
+    p.add(stage)
+    p.add(SimpleNamespace(name="sink", subscriptions=lambda: {
+        KeyframeStored: lambda m: log.append(("keyframe", m.keyframe.keyframe_id)),
+        ForwardLoop: lambda m: log.append(("loop", m.from_id, m.to_id))}))
+    for m in order._deliver(None, 0.0, 0.03, 0.0):
+        p.publish(m)
+    p.finish()
+    return det, stage, log
+
+
+def test_a_verifying_keyframe_leaves_its_level_test_to_the_next_keyframe_that_verifies_nothing():
+    last = len(_run(set())[0].inputs) - 1
+    det, stage, log = _run({4, 5, 6, 8, last})
+    kf = stage._keyframe_ids
+    # image: the forward keyframe that ran its test. 7, 9, 10 verify nothing: one test each, oldest first;
+    # the last image's waits for the end of the input.
+    ran = {k: at for k, at, _, _ in det.tested}
+    assert ran == {4: 7, 5: 9, 6: 10, 8: 11, last: last}
+    # The hook saw the waiting image's context, not the newest image's.
+    assert all(img == k and kf_id == kf[k] for k, _, img, kf_id in det.tested)
+    # At most one test per keyframe, never in one that verified its own view.
+    at = [a for k, a, _, _ in det.tested if k != last]
+    assert len(at) == len(set(at)) and not set(at) & {4, 5, 6, 8}
+    assert det.inline == []
+    c = stage.counters()
+    assert (c["forward_deferred"], c["forward_deferred_inline"], c["forward_deferred_at_end"]) == (5, 0, 1)
+    assert c["forward_deferred_wait_max"] == 4 and c["forward_deferred_waiting"] == 0  # image 6, run at 10
+    # Each loop is its own image's keyframe's, published after the keyframe that ran its test.
+    loops = [e for e in log if e[0] == "loop"]
+    assert [e[2] for e in loops] == [kf[k] for k in (4, 5, 6, 8, last)]
+    for k in (4, 5, 6, 8):
+        assert log.index(("loop", kf[0], kf[k])) > log.index(("keyframe", kf[ran[k]]))
+    assert len(stage.cpu_ms) == stage.images and all(len(v) == stage.images for v in stage.part_cpu_ms.values())
+
+
+def test_a_full_queue_runs_the_new_images_test_in_its_own_keyframe_and_counts_it():
+    det, stage, log = _run({4, 5, 6, 7, 9}, max_deferred=2)
+    ran = {k: at for k, at, _, _ in det.tested}
+    # 4 and 5 wait; 6 and 7 find the queue full and are tested at once; 8 runs 4's, 9 waits, 10 runs 5's.
+    assert det.inline == [6, 7]
+    assert ran == {4: 8, 5: 10, 6: 6, 7: 7, 9: 11}
+    c = stage.counters()
+    assert (c["forward_deferred"], c["forward_deferred_inline"], c["forward_deferred_at_end"]) == (3, 2, 0)
+    assert stage.tests == 5
+    assert len([e for e in log if e[0] == "loop"]) == 5
+
+
+def test_without_deferral_every_test_runs_in_its_own_keyframe():
+    det, stage, _ = _run({4, 5, 8}, defer_accept=False)
+    assert det.inline == [4, 5, 8] and [(k, at) for k, at, _, _ in det.tested] == [(4, 4), (5, 5), (8, 8)]
+    assert stage.counters()["forward_deferred"] == 0 and stage.counters()["forward_deferred_inline"] == 0
+
+
+def test_the_queue_bound_must_be_positive():
+    with pytest.raises(ConfigError, match="max_deferred"):
+        ForwardLoopStage(order._Recorder(), max_deferred=0)  # type: ignore[arg-type]
