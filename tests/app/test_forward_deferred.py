@@ -123,3 +123,17 @@ def test_without_deferral_every_test_runs_in_its_own_keyframe():
 def test_the_queue_bound_must_be_positive():
     with pytest.raises(ConfigError, match="max_deferred"):
         ForwardLoopStage(order._Recorder(), max_deferred=0)  # type: ignore[arg-type]
+
+
+def test_the_config_sets_the_queue_of_waiting_tests_or_turns_the_deferral_off():
+    """``[forward_detector] max_deferred_tests`` reaches the stage: 0 runs every level test in
+    its own keyframe, N > 0 lets N wait."""
+    from robotd.app.assemble import build_forward_stage
+    from robotd.base.config import Config, replace
+
+    on = replace(Config(), "forward_detector", enabled=True)
+    assert (build_forward_stage(on).defer_accept, build_forward_stage(on).max_deferred) == (True, 4)
+    seven = replace(on, "forward_detector", max_deferred_tests=7)
+    assert (build_forward_stage(seven).defer_accept, build_forward_stage(seven).max_deferred) == (True, 7)
+    off = replace(on, "forward_detector", max_deferred_tests=0)
+    assert build_forward_stage(off).defer_accept is False
