@@ -45,7 +45,7 @@ class _Deferring(order._Recorder):
             return SimpleNamespace(status=LOW_POSTERIOR, **out)
         if defer_accept:
             return SimpleNamespace(**{**out, "status": ACCEPT_PENDING, "verification": self.v,
-                                      "pending": SimpleNamespace(image_id=k)})
+                                      "pending": SimpleNamespace(image_id=k, view=0)})
         self.inline.append(k)
         self._test(k)
         return SimpleNamespace(**{**out, "status": LOOP, "loop_id": 0, "verification": self.v})
@@ -61,8 +61,21 @@ class _Deferring(order._Recorder):
         return LOOP, 0, self.v
 
 
-def _run(verifying: set[int], **kw: Any) -> tuple[_Deferring, ForwardLoopStage, list[Any]]:
-    det = _Deferring(verifying)
+class _FromTheMap(_Deferring):
+    """Image 0 stands for an image taken up from the map (the stage's chain -1, as a
+    restarted daemon's are): every view of it lies in another odometry chain."""
+
+    def process(self, image: np.ndarray, pose: np.ndarray | None = None, pose_cov: Any = None,
+                defer_accept: bool = False) -> object:
+        if len(self.inputs) == 1:
+            assert self.stage is not None
+            self.stage._chains[0] = -1
+        return super().process(image, pose, pose_cov, defer_accept)
+
+
+def _run(verifying: set[int], kind: type[_Deferring] = _Deferring,
+         **kw: Any) -> tuple[_Deferring, ForwardLoopStage, list[Any]]:
+    det = kind(verifying)
     stage = ForwardLoopStage(det, distance_m=0.25, sync_tolerance_s=0.04, planar_refit=False, **kw)  # type: ignore[arg-type]
     det.stage = stage
     log: list[Any] = []
@@ -137,3 +150,15 @@ def test_the_config_sets_the_queue_of_waiting_tests_or_turns_the_deferral_off():
     assert (build_forward_stage(seven).defer_accept, build_forward_stage(seven).max_deferred) == (True, 7)
     off = replace(on, "forward_detector", max_deferred_tests=0)
     assert build_forward_stage(off).defer_accept is False
+
+
+def test_a_view_in_another_odometry_chain_is_tested_at_once():
+    """A loop to an image of another chain (the map's, or before a kidnapping) may relocalise
+    the robot: it never waits, and still counts its CPU on its own keyframe."""
+    det, stage, log = _run({4, 5, 8}, kind=_FromTheMap)
+    assert [(k, at) for k, at, _, _ in det.tested] == [(4, 4), (5, 5), (8, 8)]
+    assert det.inline == []  # each was stopped for the deferral, then resumed in its own keyframe
+    c = stage.counters()
+    assert (c["forward_deferred_across"], c["forward_deferred"], c["forward_deferred_at_end"]) == (3, 0, 0)
+    assert len([e for e in log if e[0] == "loop"]) == 3
+    assert len(stage.cpu_ms) == stage.images and all(len(v) == stage.images for v in stage.part_cpu_ms.values())

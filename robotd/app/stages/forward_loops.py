@@ -75,7 +75,9 @@ keyframe that does it: its CPU per forward keyframe includes the finished verifi
 queue full is tested in its own keyframe (``forward_deferred_inline``); those still waiting
 at the end of the input are finished then, their CPU the last forward keyframe's
 (``forward_deferred_at_end``); ``forward_deferred_wait_max``: the most forward keyframes
-one waited.
+one waited. A view of another odometry chain than the image's (across a kidnapping or a
+restart: the loop may relocalise the robot) never waits: its test runs in its own keyframe
+(``forward_deferred_across``), so the deferral does not delay a relocalisation.
 
 The forward frame is up to ``sync_tolerance_s`` off its keyframe's stamp (33 ms at the
 demo's 15 frames a second: 1 cm and 1 deg at its speeds), while the loop is an edge
@@ -558,6 +560,7 @@ class ForwardLoopStage(Publisher):
         self._deferred: deque[_Decision] = deque()
         self.deferred = 0  # images whose level test waited for a later keyframe
         self.deferred_inline = 0  # images tested in their own keyframe because the queue was full
+        self.deferred_across = 0  # images tested at once: their view in another odometry chain
         self.deferred_at_end = 0  # images whose test ran at the end of the input
         self.deferred_wait_max = 0  # the most forward keyframes an image's test waited
         self._image: int | None = None  # the detector image being decided (for _scan)
@@ -955,18 +958,28 @@ class ForwardLoopStage(Publisher):
         self.frame_offset_ms_max = max(self.frame_offset_ms_max, abs(frame.stamp_ns - kf.stamp_ns) / 1e6)
         self.deferred_inline += bool(self.defer_accept and not defer and self.tests > tests)
         decision = _Decision(t, kf.keyframe_id, current, det.candidate_probability)
+        across = False
         if det.status == ACCEPT_PENDING:
             decision.pending, decision.queued_at = det.pending, self.images
-            self._deferred.append(decision)
-            self.deferred += 1
+            view = det.pending.view if det.pending is not None else None
+            across = view is not None and self._chains[int(view)] != chain
+            if not across:
+                self._deferred.append(decision)
+                self.deferred += 1
         else:
             self._decide(decision, det.status, det.loop_id, det.verification)
-        # A keyframe that verified nothing finishes the oldest waiting verification (its
-        # level test, and the views after it when refused): its CPU is this keyframe's.
+        # A view of another odometry chain (across a kidnapping or a restart) may relocalise
+        # the robot: its level test runs now. Otherwise a keyframe that verified nothing
+        # finishes the oldest waiting verification (its level test, and the views after it
+        # when refused). Either way its CPU is this keyframe's.
         resumed_s = 0.0
-        if det.verification is None and self._deferred:
+        if across or (det.verification is None and self._deferred):
             t0, w0 = time.thread_time(), time.perf_counter()
-            self._resume_oldest()
+            if across:
+                self.deferred_across += 1
+                self._resume(decision)
+            else:
+                self._resume(self._deferred.popleft())
             resumed = (time.thread_time() - t0) * 1e3
             cpu_ms += resumed
             resumed_s = time.perf_counter() - w0
@@ -981,10 +994,9 @@ class ForwardLoopStage(Publisher):
         self.verify_ms.append((det.times_s.get("verify", 0.0) + resumed_s) * 1e3)
         self.features_ms.append(det.times_s.get("features", 0.0) * 1e3)
 
-    def _resume_oldest(self) -> None:
-        """Finish the oldest waiting verification (:meth:`ForwardDetector.resume`) and
-        publish what it decided with the keyframe being run."""
-        d = self._deferred.popleft()
+    def _resume(self, d: _Decision) -> None:
+        """Finish a waiting verification (:meth:`ForwardDetector.resume`) and publish what it
+        decided with the keyframe being run."""
         assert d.pending is not None
         self.deferred_wait_max = max(self.deferred_wait_max, self.images - d.queued_at)
         self._pending.clear()
@@ -1007,7 +1019,7 @@ class ForwardLoopStage(Publisher):
         cpu0 = time.thread_time()
         try:
             while self._deferred:
-                self._resume_oldest()
+                self._resume(self._deferred.popleft())
         finally:
             ms = (time.thread_time() - cpu0) * 1e3
             out, self._out = self._out, None
@@ -1300,6 +1312,7 @@ class ForwardLoopStage(Publisher):
                 "forward_ridge_unsettled": self.ridge_unsettled, "forward_narrow_settled": self.narrow_settled,
                 "forward_failed_verification": self.rejected_geometry,
                 "forward_deferred": self.deferred, "forward_deferred_inline": self.deferred_inline,
+                "forward_deferred_across": self.deferred_across,
                 "forward_deferred_at_end": self.deferred_at_end, "forward_deferred_waiting": len(self._deferred),
                 "forward_deferred_wait_max": self.deferred_wait_max,
                 "forward_vocabulary": len(self.detector.vocabulary),
