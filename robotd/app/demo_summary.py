@@ -122,7 +122,8 @@ def summarise(cfg: Config, cam_model: FloorCameraModel, robot: VirtualRobot, obs
         # Level tests that waited for a forward keyframe verifying nothing (the stage's notes).
         summary["forward_detector"]["deferred"] = {
             k: c.get(f"forward_deferred{s}", 0)
-            for k, s in (("deferred", ""), ("inline", "_inline"), ("at_end", "_at_end"), ("wait_max", "_wait_max"))}
+            for k, s in (("deferred", ""), ("inline", "_inline"), ("at_end", "_at_end"), ("wait_max", "_wait_max"),
+                                 ("across", "_across"))}
     if robot.settings.kidnap is not None:
         summary["relocalisation"] = relocalisation_evaluation(robot.motion, robot.settings.kidnap, obs,
                                                               live.relocalisations, c)
