@@ -251,40 +251,31 @@ def _ransac_rng(seed: int) -> np.random.Generator:
     return g
 
 
-def _ransac_pairs(seed: int, m: int, iterations: int) -> tuple[np.ndarray, np.ndarray]:
-    """RANSAC's sample indices ``(i, j)`` (``(iterations,) int64`` each, ``i != j``) among
-    ``m`` matches: the draws of a generator started at ``seed``, which depend only on
-    ``m`` and ``iterations``, so they are kept per thread (read-only arrays)."""
-    cache = getattr(_RNGS, "pairs", None)
-    if cache is None:
-        cache = _RNGS.pairs = {}
-    key = (seed, m, iterations)
-    hit = cache.get(key)
-    if hit is None:
-        rng = _ransac_rng(seed)
-        i = rng.integers(m, size=iterations)
-        j = (i + 1 + rng.integers(m - 1, size=iterations)) % m
-        i.flags.writeable = j.flags.writeable = False
-        if len(cache) >= 4096:
-            cache.clear()
-        hit = cache[key] = (i, j)
-    return hit
-
-
 def _ransac_draws(seed: int, m: int, iterations: int) -> np.ndarray:
-    """:func:`_ransac_pairs` as one ``(2, iterations) int64`` array (kept per thread, read-only)."""
+    """RANSAC's sample indices among ``m`` matches as one ``(2, iterations) int64`` array,
+    ``i`` then ``j`` (``i != j``): the draws of a generator started at ``seed``, which depend
+    only on ``m`` and ``iterations``, so they are kept per thread (read-only)."""
     cache = getattr(_RNGS, "draws", None)
     if cache is None:
         cache = _RNGS.draws = {}
     key = (seed, m, iterations)
     hit = cache.get(key)
     if hit is None:
-        hit = np.stack(_ransac_pairs(seed, m, iterations))
+        rng = _ransac_rng(seed)
+        i = rng.integers(m, size=iterations)
+        j = (i + 1 + rng.integers(m - 1, size=iterations)) % m
+        hit = np.stack((i, j))
         hit.flags.writeable = False
         if len(cache) >= 4096:
             cache.clear()
         cache[key] = hit
     return hit
+
+
+def _ransac_pairs(seed: int, m: int, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_ransac_draws` as ``(i, j)``, ``(iterations,) int64`` each (read-only views)."""
+    draws = _ransac_draws(seed, m, iterations)
+    return draws[0], draws[1]
 
 
 _BLOCK = 10  # RANSAC's first draws when it stops adaptively (MatchParams.confidence), then 3x as many each time
@@ -473,26 +464,9 @@ def _refined(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, fa: np.ndarray,
     """The end of a local score: the rigid fit refined on all ``n_matches`` descriptor
     matches ``(ia, ib)`` (``fa``, ``fb``: their points as float64; ``wm``: their weights in
     the score; not only those near the orientation peak) from RANSAC's inliers ``sel``
-    (rows of the matches), twice, and the result."""
-    transform = None
-    tol2 = p.inlier_px**2
-    for _ in range(2):
-        if len(sel) < 2:
-            break
-        transform = _rigid(fa[sel], fb[sel])
-        res = fa @ transform[:, :2].T
-        res += transform[:, 2]
-        res -= fb
-        np.multiply(res, res, out=res)
-        fitted, sel = sel, np.flatnonzero(_add_reduce(res, axis=1) <= tol2)
-        if len(sel) == len(fitted) and np.array_equal(sel, fitted):
-            break  # a fixed point: a further step would fit these inliers again, to the same transform
-    if len(sel) < p.min_inliers or transform is None:
-        return _dismissed(NO_GEOMETRIC_CONSISTENCY, n_matches)
-    score = float(_add_reduce(wm[sel]))
-    ia_sel, ib_sel = ia[sel], ib[sel]
-    return MatchResult(score, n_matches, len(sel), ia_sel.astype(np.int64, copy=False),
-                       ib_sel.astype(np.int64, copy=False), a.xy_px[ia_sel], xy_b[ib_sel], transform, MatchReason.OK)
+    (rows of the matches), twice, and the result (:func:`_refined_many` of one pair)."""
+    assert n_matches == len(ia)
+    return _refined_many(a, ia, ib, fa, fb, wm, [(0, 0, n_matches, sel, xy_b)], p)[0][1]
 
 
 _PAD_NORM = np.float32(1e30)  # a padding row's |tb|^2: farther than any keypoint, finite
@@ -649,11 +623,11 @@ def _score_many(a: FloorDescriptor, bs: list[FloorDescriptor | PartialDescriptor
 def _refined_many(a: FloorDescriptor, ia: np.ndarray, ib: np.ndarray, fa_all: np.ndarray, fb_all: np.ndarray,
                   wm_all: np.ndarray, todo: list[tuple[int, int, int, np.ndarray, np.ndarray]],
                   p: MatchParams) -> list[tuple[int, MatchResult]]:
-    """:func:`_refined` of several pairs, the same results bit for bit: ``ia``, ``ib``,
+    """The end of several pairs' local scores (:func:`_refined` is one pair's): ``ia``, ``ib``,
     ``fa_all``, ``fb_all``, ``wm_all`` their descriptor matches stacked, and per pair in
     ``todo`` its result slot, its rows ``lo:hi`` of the stack, RANSAC's inliers (rows of the
     pair's matches) and its keypoints' positions. Each fit and each residual product is
-    one call per pair on the arrays :func:`_refined` makes; the residuals' element-wise
+    one call per pair; the residuals' element-wise
     steps (the translation, the difference, the squares and their sums over x and y, the
     test) run over the stack at once."""
     tol2 = p.inlier_px**2
