@@ -273,6 +273,9 @@ def main(argv: list[str] | None = None) -> int:
             trees.append((label, Path(path)))
         if len(trees) < 2:
             ap.error("two or more --tree LABEL=PATH")
+        if not args.map.is_file():
+            ap.error(f"--map {args.map}: no such map (bench_daemon.py --memory 1500 --memory-seeds 0,0,0 "
+                     "--keep-map writes it)")
         sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
         from bench.common import machine_info, write_json
 

@@ -4,10 +4,12 @@ any field of any candidate) and the page of several runs."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
+import pytest
 
-from bench.bench_floor_query_trees import answer_digest, page
+from bench.bench_floor_query_trees import answer_digest, main, page
 from robotd.floor.match import MatchReason, MatchResult
 
 
@@ -63,3 +65,19 @@ def test_the_page_has_one_section_per_run_with_every_tree():
     assert "| before | 4.00 | 1.000 (1.00, 0.95) | 0.976 | 6.00 | 200/200 | 500 |" in text
     single = page([run(3.2)])
     assert "## Run" not in single and "## 10000 keyframes" in single and "after (commit def)" in single
+
+
+@pytest.mark.parametrize("trees, says", [
+    (["a=/nonexistent"], "--tree 'a=/nonexistent': LABEL=PATH of a tree holding robotd/"),
+    (["justapath"], "--tree 'justapath': LABEL=PATH"),
+    (["a=."], "two or more --tree LABEL=PATH"),
+    (["a=.", "b=."], "no such map"),
+])
+def test_the_bench_refuses_what_it_cannot_run_and_writes_nothing(trees, says, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(Path(__file__).resolve().parents[2])  # "." holds robotd/
+    args = [a for t in trees for a in ("--tree", t)]
+    with pytest.raises(SystemExit) as exc:
+        main(args + ["--map", str(tmp_path / "absent.sqlite"), "--out", str(tmp_path / "out")])
+    assert exc.value.code == 2
+    assert says in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
