@@ -143,7 +143,8 @@ class BaseSensorStreams:
     Gyro samples (``M``, every ``1 / gyro_rate_hz``): ``gyro_t_s`` ``(M,) float64``,
     s; ``gyro_radps`` ``(M, 3) float64`` angular rate about the robot's x, y and z axes
     (z up: the yaw rate, counter-clockwise positive), rad/s, with every modelled error.
-    ``slip_events`` counts the slip events of the run.
+    ``slip_events`` counts the slip events of the run, ``slip_event_durations_s`` ``(E,)``
+    their durations (s).
     """
 
     t_s: np.ndarray
@@ -154,6 +155,7 @@ class BaseSensorStreams:
     gyro_t_s: np.ndarray
     gyro_radps: np.ndarray
     slip_events: int
+    slip_event_durations_s: np.ndarray
     errors: BaseErrors
     params: BaseSensorParams
     rate_hz: float
@@ -180,25 +182,28 @@ def draw_errors(params: BaseSensorParams, rng: np.random.Generator) -> BaseError
 
 def _wheel_slip(ds: np.ndarray, accel_like: np.ndarray, demanding: np.ndarray, dt_s: float,
                 params: BaseSensorParams, rng: np.random.Generator) -> tuple[np.ndarray, int]:
-    """Slip distance of each wheel per step, ``(K, 2)`` metres, and the number of events."""
+    """Slip distance of each wheel per step, ``(K, 2)`` metres, and each event's duration
+    ``(E,)`` s."""
     slip = params.slip_noise_m_per_sqrt_m * np.sqrt(np.abs(ds)) * rng.standard_normal(ds.shape)
     p_event = params.slip_event_rate_hz * dt_s
     starts = np.flatnonzero(demanding & (rng.random(demanding.shape) < p_event))
     lo_r, hi_r = params.slip_event_ratio_range
     lo_d, hi_d = params.slip_event_duration_s_range
-    for k in starts:
+    durations = np.zeros(len(starts))
+    for i, k in enumerate(starts):
         wheel = int(rng.integers(2))
         ratio = rng.uniform(lo_r, hi_r)
         n = max(1, round(rng.uniform(lo_d, hi_d) / dt_s))
+        durations[i] = min(n, len(ds) - k) * dt_s
         trend = accel_like[k, wheel]
         sign = math.copysign(1.0, trend) if abs(trend) > 1e-9 else _draw_sign(rng)
         slip[k:k + n, wheel] += sign * ratio * ds[k:k + n, wheel]
-    return slip, len(starts)
+    return slip, durations
 
 
 def _wheel_angles(motion: Motion, params: BaseSensorParams, errors: BaseErrors,
                   t_s: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, int]:
-    """Cumulative wheel angles ``(N, 2)`` rad at ``t_s``, and the number of slip events."""
+    """Cumulative wheel angles ``(N, 2)`` rad at ``t_s``, and the slip events' durations ``(E,)`` s."""
     dt = motion.dt_s
     nominal = params.drive
     v = motion.v_mps[:-1]
@@ -209,12 +214,12 @@ def _wheel_angles(motion: Motion, params: BaseSensorParams, errors: BaseErrors,
     speed_trend = np.diff(np.abs(wheel_speed), axis=0, prepend=0.0)
     accel = np.abs(np.diff(v, prepend=0.0)) / dt
     demanding = (accel > _SLIP_ACCEL_MPS2) | (np.abs(w) > _SLIP_TURN_RADPS)
-    slip, n_events = _wheel_slip(ds, speed_trend, demanding, dt, params, rng)
+    slip, durations = _wheel_slip(ds, speed_trend, demanding, dt, params, rng)
     radius = nominal.wheel_radius_m * (1.0 + np.array([errors.left_radius_error,
                                                        errors.right_radius_error]))
     angle = np.concatenate([np.zeros((1, 2)), np.cumsum((ds + slip) / radius, axis=0)])
     at_t = np.stack([np.interp(t_s, motion.t_s, angle[:, i]) for i in range(2)], axis=-1)
-    return at_t, n_events
+    return at_t, durations
 
 
 def _gyro(motion: Motion, params: BaseSensorParams, errors: BaseErrors, t0_s: float,
@@ -264,12 +269,13 @@ def simulate_sensors(motion: Motion, params: BaseSensorParams, errors: BaseError
         gyro_rng = copy.deepcopy(rng)
         n_of = int(math.floor(float(draws_of.t_s[-1]) * rate_hz + 1e-9)) + 1
         _wheel_angles(draws_of, params, errors, draws_of.t_s[0] + np.arange(n_of) / rate_hz, gyro_rng)
-    wheel_angle_rad, n_events = _wheel_angles(motion, params, errors, t_s, rng)
+    wheel_angle_rad, durations = _wheel_angles(motion, params, errors, t_s, rng)
     gyro_t_s, gyro_radps = _gyro(motion, params, errors, float(t_s[0]), 1.0 / rate_hz, gyro_rng)
     if gyro_rng is not rng:  # the caller's generator ends where that drive's would
         rng.bit_generator.state = gyro_rng.bit_generator.state
     return BaseSensorStreams(
         t_s=t_s, stamp_ns=np.round(t_s * 1e9).astype(np.int64), device_clock_s=t_s - t_s[0],
         wheel_angle_rad=wheel_angle_rad, true_pose=motion.pose_at(t_s),
-        gyro_t_s=gyro_t_s, gyro_radps=gyro_radps, slip_events=int(n_events),
+        gyro_t_s=gyro_t_s, gyro_radps=gyro_radps, slip_events=len(durations),
+        slip_event_durations_s=durations,
         errors=errors, params=params, rate_hz=float(rate_hz))

@@ -50,6 +50,7 @@ import numpy as np
 from robotd.base.errors import CalibrationError
 from robotd.base.geometry import rot2
 from robotd.odometry.ekf import EkfParams, slip_speed_variance
+from robotd.odometry.slip_events import SlipDrive, SlipEventFit, estimate_slip_events, find_slip_events
 
 __all__ = [
     "CalibrationDrive",
@@ -103,6 +104,11 @@ class OdometryFitParams:
         (robust) sigma are slip events, left out with their neighbours and the keyframe
         intervals they fall in, default 4.
     window_s: length of the heading windows, default 0.2 s.
+    event_test_sigma: the wheel slip test's gate (``[odometry] slip_gate_sigma``) whose
+        accelerating or turning readings the slip events' rate is counted a second of,
+        default 3 (:mod:`robotd.odometry.slip_events`).
+    min_slip_events: slip events the heading windows must see for their rate and duration
+        to be fitted, default 10 (fewer: :attr:`OdometryFit.slip_events` says so).
     """
 
     min_turn_deg: float = 180.0
@@ -112,6 +118,8 @@ class OdometryFitParams:
     still_margin_s: float = 0.2
     slip_gate_sigma: float = 4.0
     window_s: float = 0.2
+    event_test_sigma: float = 3.0
+    min_slip_events: int = 10
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -129,7 +137,8 @@ class OdometryFit:
     interval_end_s ``(K-1,)``: each interval's end, s from the first keyframe.
     used ``(K-1,)`` bool: intervals kept by the slip gate; slip_windows: heading windows
     left out as slip (with their neighbours), of heading_windows. turn_left_deg, turn_right_deg,
-    distance_m, still_s: what the drive offered.
+    distance_m, still_s: what the drive offered. slip_events: the slip events' rate and
+    duration (:mod:`robotd.odometry.slip_events`; its ``refused`` says why not).
     """
 
     wheel_radius_left_m: float
@@ -156,6 +165,7 @@ class OdometryFit:
     distance_m: float
     still_s: float
     process: ProcessNoiseFit | None = None
+    slip_events: SlipEventFit | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -525,6 +535,7 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
     still = sum(b - a for a, b in _still_periods(drive, params.still_margin_s)) * 1e-9
     process = fit_process_noise(drive, float(p[0]), float(p[1]), float(p[2]), s, gyro_density,
                                 float(math.sqrt(wheels.q_w)), ticks_per_rev, noise)
+    events = _slip_events(drive, wheels, heading, process, params, ticks_per_rev)
     return OdometryFit(
         wheel_radius_left_m=float(p[0]), wheel_radius_right_m=float(p[1]), wheel_base_m=float(p[2]),
         wheel_radius_left_sigma=float(math.sqrt(cov_w[0, 0])),
@@ -536,7 +547,66 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
         residuals_before=before, residuals_after=after, interval_end_s=iv.t_end_s, used=wheels.used,
         slip_windows=wheels.slip_windows, heading_windows=wheels.heading_windows,
         turn_left_deg=left, turn_right_deg=right, distance_m=dist, still_s=still, process=process,
+        slip_events=events,
     )
+
+
+def _demanding(drive: CalibrationDrive, p: np.ndarray, process: ProcessNoiseFit, wheel_noise_m_sqrt_m: float,
+               gate: float, ticks_per_rev: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per wheel reading: its interval's start (s from the drive's first wheel reading) and
+    whether the filter's slip test calls it accelerating or turning
+    (:func:`robotd.odometry.ekf.turning`: the wheels' yaw rate beyond ``gate`` times the
+    ticks' own yaw-rate noise; :func:`robotd.odometry.ekf.speed_changing`: the speed beyond
+    ``gate`` sigmas of the speed's prediction, by the speed's own filter with the fitted
+    white acceleration, as :func:`fit_process_noise` runs it)."""
+    rl, rr, bb = (float(x) for x in p)
+    t_w, v, w, still = _rate_readings(drive, rl, rr, bb)
+    dt = np.diff(np.concatenate([[0.0], t_w]))
+    dt_w = float(np.median(dt))
+    tick_m = 2.0 * math.pi * 0.5 * (rl + rr) / ticks_per_rev
+    wheel_tick_mps = tick_m / dt_w / math.sqrt(6.0)
+    turning = np.abs(w) > gate * math.sqrt(2.0) * wheel_tick_mps / bb
+    r_v = (wheel_tick_mps ** 2 / 2.0
+           + slip_speed_variance(v, w, wheel_noise_m_sqrt_m ** 2, 0.5 * bb, dt_w))
+    q_l = process.accel_mps2_sqrt_hz ** 2
+    changing = np.zeros(len(v), bool)
+    x, var = 0.0, 1.0
+    for i in range(len(v)):
+        var += q_l * dt[i]
+        if still[i]:
+            x, var = 0.0, 1e-8
+            continue
+        s_i = var + r_v[i]
+        nu = v[i] - x
+        changing[i] = nu * nu > gate * gate * s_i
+        k = var / s_i
+        x += k * nu
+        var -= k * var
+    return t_w - dt, ~still & (turning | changing)
+
+
+def _slip_events(drive: CalibrationDrive, wheels: _WheelFit, heading: Callable[[np.ndarray], np.ndarray],
+                 process: ProcessNoiseFit, params: OdometryFitParams, ticks_per_rev: float) -> SlipEventFit:
+    """The slip events' rate and duration from the heading windows the wheel fit left out
+    (:mod:`robotd.odometry.slip_events`)."""
+    t0 = int(drive.ref_stamp_ns[0])
+    rl, rr, bb = (float(x) for x in wheels.p)
+    tw = (np.asarray(drive.wheel_stamp_ns, np.int64) - t0) * 1e-9
+    phi = np.asarray(drive.wheel_angle_rad, float)
+    residual = (rr * phi[:, 1] - rl * phi[:, 0]) / bb - heading(tw)
+    step = np.abs(np.diff(phi, axis=0)) * np.array([rl, rr])
+    travel = np.concatenate([[0.0], np.cumsum(0.5 * step.sum(axis=1))])
+    seen = find_slip_events(wheels.window_t0, wheels.window_t1, wheels.flagged, tw, residual, travel, bb)
+    start_s, demanding = _demanding(drive, wheels.p, process, math.sqrt(wheels.q_w), params.event_test_sigma,
+                                    ticks_per_rev)
+    start_s = start_s + (int(drive.wheel_stamp_ns[0]) - t0) * 1e-9
+    inside = (start_s >= wheels.window_edges[0]) & (start_s < wheels.window_edges[-1])
+    dt = np.diff(tw)
+    sel = demanding & inside
+    sd = SlipDrive(demand_t_s=start_s[sel], demand_s=float(dt[sel].sum()), travel_t_s=tw, travel_m=travel,
+                   window_edges_s=wheels.window_edges, threshold_rad=params.slip_gate_sigma * wheels.sig_h,
+                   wheel_base_m=bb)
+    return estimate_slip_events(seen, sd, params.min_slip_events)
 
 
 def _gyro_still(drive: CalibrationDrive, params: OdometryFitParams) -> tuple[float, float]:
@@ -594,6 +664,11 @@ class _WheelFit:
     q_w: float               # slip noise variance per metre (m^2 / m)
     slip_windows: int
     heading_windows: int
+    window_t0: np.ndarray    # (W,) the heading windows' starts, s from the first keyframe
+    window_t1: np.ndarray    # (W,) their ends
+    flagged: np.ndarray      # (W,) bool: beyond the gate (before their neighbours were added)
+    sig_h: float             # the windows' robust heading sigma (rad)
+    window_edges: np.ndarray  # the window grid's edges inside the reference (s)
 
 
 def _fit_wheels(drive: CalibrationDrive, iv: _Intervals, arcs: np.ndarray,
@@ -624,6 +699,8 @@ def _fit_wheels(drive: CalibrationDrive, iv: _Intervals, arcs: np.ndarray,
     w_t0, w_t1 = tw[cut[:-1]], tw[cut[1:]]
     w_dphi = phi[cut[1:]] - phi[cut[:-1]]
     inside = (w_t0 >= 0.0) & (w_t1 <= iv.t_end_s[-1]) & (np.abs(w_dphi).sum(axis=1) > 0)
+    edges = tw[cut]
+    edges = edges[(edges >= 0.0) & (edges <= iv.t_end_s[-1])]
     w_t0, w_t1, w_dphi = w_t0[inside], w_t1[inside], w_dphi[inside]
     w_y = heading(w_t1) - heading(w_t0)
     interval_of = np.searchsorted(iv.t_end_s, 0.5 * (w_t0 + w_t1))  # keyframe interval of each window
@@ -664,8 +741,8 @@ def _fit_wheels(drive: CalibrationDrive, iv: _Intervals, arcs: np.ndarray,
         e = heading_res(p)
         mad = float(np.median(np.abs(e[clean] - np.median(e[clean])))) * 1.4826
         sig_h = max(mad, 1e-9)
-        slip = np.abs(e) > params.slip_gate_sigma * sig_h
-        slip = slip | np.roll(slip, 1) | np.roll(slip, -1)
+        flagged = np.abs(e) > params.slip_gate_sigma * sig_h
+        slip = flagged | np.roll(flagged, 1) | np.roll(flagged, -1)
         clean = ~slip
         used = np.ones(n, bool)
         used[np.unique(interval_of[slip])] = False
@@ -686,7 +763,8 @@ def _fit_wheels(drive: CalibrationDrive, iv: _Intervals, arcs: np.ndarray,
     design = np.column_stack([2.0 * w_travel / p[2] ** 2, np.ones(len(e))])
     coef, *_ = np.linalg.lstsq(design, e ** 2 - q_g * (w_t1 - w_t0)[clean], rcond=None)
     return _WheelFit(p=p, cov=cov_w, residuals=residuals(p), used=used, q_w=max(float(coef[0]), 0.0),
-                     slip_windows=int((~clean).sum()), heading_windows=len(clean))
+                     slip_windows=int((~clean).sum()), heading_windows=len(clean), window_t0=w_t0,
+                     window_t1=w_t1, flagged=flagged, sig_h=sig_h, window_edges=edges)
 
 
 def _residuals_nominal(drive: CalibrationDrive, iv: _Intervals, nominal_radius_m: float,
