@@ -82,14 +82,15 @@ def repeated_route(route: str, laps: int) -> Any:
 
 
 def synthetic_model(seed: int, route: str, sigma_m: float, sigma_rad: float, laps: int = 1,
-                    drive_seed: int | None = None) -> Any:
+                    drive_seed: int | None = None) -> tuple[Any, dict[str, Any]]:
     """The model fitted to a drive of seed ``seed``'s base along ``route`` (``laps`` times;
     its own seed 100 + seed for the drive's other draws) against the true keyframe poses
     plus white noise (``sigma_m``, ``sigma_rad``): the fit alone, without the pipeline's
     reference. ``drive_seed``: instead the very drive ``robotd record --virtual --seed
     drive_seed --base-seed seed`` makes (its slip, gyro noise and bias walk), read as the
     daemon reads it (the Kobuki driver's wheel ticks and per-packet yaw rates), so the fit
-    alone and ``robotd calibrate odometry`` on that recording differ only by the reference."""
+    alone and ``robotd calibrate odometry`` on that recording differ only by the reference.
+    Returns the model and the slip events' fit against the simulator's (:func:`slip_truth`)."""
     from calibration.odometry import model_from_fit
     from robotd.odometry.calibration import CalibrationDrive, fit_odometry
     from sim.sensors import simulate_sensors
@@ -98,9 +99,9 @@ def synthetic_model(seed: int, route: str, sigma_m: float, sigma_rad: float, lap
     errors = draw_errors(p, np.random.default_rng(seed))
     motion = plan_motion(repeated_route(route, laps), MotionLimits())
     if drive_seed is not None:
-        return model_from_fit(fit_odometry(recorded_drive(motion, p, errors, drive_seed, sigma_m, sigma_rad,
-                                                          noise_seed=200 + seed),
-                                           p.drive.wheel_radius_m, p.drive.wheel_base_m))
+        drive, streams = recorded_drive(motion, p, errors, drive_seed, sigma_m, sigma_rad, noise_seed=200 + seed)
+        fit = fit_odometry(drive, p.drive.wheel_radius_m, p.drive.wheel_base_m)
+        return model_from_fit(fit), slip_truth(fit, streams)
     rng = np.random.default_rng(100 + seed)
     draw_errors(p, rng)  # the drive's own draws follow, as with --base-seed
     s = simulate_sensors(motion, p, errors, rng)
@@ -109,7 +110,32 @@ def synthetic_model(seed: int, route: str, sigma_m: float, sigma_rad: float, lap
     noise = np.random.default_rng(200 + seed).normal(0, [sigma_m, sigma_m, sigma_rad], (len(idx), 3))
     drive = CalibrationDrive(s.stamp_ns, s.wheel_angle_rad, np.round(s.gyro_t_s * 1e9).astype(np.int64),
                              s.gyro_radps[:, 2], s.stamp_ns[idx], tp[idx] + noise)
-    return model_from_fit(fit_odometry(drive, p.drive.wheel_radius_m, p.drive.wheel_base_m))
+    fit = fit_odometry(drive, p.drive.wheel_radius_m, p.drive.wheel_base_m)
+    return model_from_fit(fit), slip_truth(fit, s)
+
+
+def slip_truth(fit: Any, streams: Any | None) -> dict[str, Any]:
+    """The slip events' fit (:attr:`~robotd.odometry.calibration.OdometryFit.slip_events`)
+    beside the simulator's events of that drive (``streams``: its
+    :class:`~sim.sensors.BaseSensorStreams`, None when not known): their count, their RMS
+    duration and their count over the fit's time of accelerating or turning (the rate as
+    the filter's model uses it), and the fit's errors in its own sigmas."""
+    ev = fit.slip_events
+    out: dict[str, Any] = {"refused": ev.refused, "events_seen": ev.events_seen,
+                           "events_estimated": ev.events_estimated, "demand_s": ev.demand_s,
+                           "rate_hz": ev.rate_hz, "rate_sigma_hz": ev.rate_sigma_hz,
+                           "duration_s": ev.duration_s, "duration_sigma_s": ev.duration_sigma_s,
+                           "ratio_lo": ev.ratio_lo, "ratio_hi": ev.ratio_hi,
+                           "wheel_noise_m_sqrt_m": fit.wheel_noise_m_sqrt_m}
+    if streams is not None and streams.slip_events > 0:
+        d = np.asarray(streams.slip_event_durations_s, float)
+        out.update(true_events=int(streams.slip_events), true_duration_s=float(np.sqrt(np.mean(d ** 2))),
+                   true_rate_hz=streams.slip_events / ev.demand_s if ev.demand_s > 0 else None,
+                   true_slip_noise_m_sqrt_m=float(streams.params.slip_noise_m_per_sqrt_m))
+        if not ev.refused:
+            out.update(rate_err_sigmas=(ev.rate_hz - out["true_rate_hz"]) / ev.rate_sigma_hz,
+                       duration_err_sigmas=(ev.duration_s - out["true_duration_s"]) / ev.duration_sigma_s)
+    return out
 
 
 def reference_keyframes(true_pose: np.ndarray) -> list[int]:
@@ -124,12 +150,13 @@ def reference_keyframes(true_pose: np.ndarray) -> list[int]:
 
 
 def recorded_drive(motion: Any, p: BaseSensorParams, errors: Any, drive_seed: int, sigma_m: float,
-                   sigma_rad: float, noise_seed: int) -> Any:
+                   sigma_rad: float, noise_seed: int) -> tuple[Any, Any]:
     """The :class:`~robotd.odometry.calibration.CalibrationDrive` of the virtual robot's
     drive along ``motion`` with seed ``drive_seed`` and the base's ``errors`` (what
     ``robotd record --virtual --seed drive_seed --base-seed N`` draws): the Kobuki driver's
     wheel ticks and yaw rates, the true poses plus white noise (``sigma_m``, ``sigma_rad``;
-    generator ``noise_seed``) at :func:`reference_keyframes`, stamped at their wheel packets."""
+    generator ``noise_seed``) at :func:`reference_keyframes`, stamped at their wheel packets;
+    and the simulator's sensor streams of that drive (its slip events)."""
     from calibration.odometry import unwrapped_angles
     from robotd.base.messages import YawRate
     from robotd.odometry.calibration import CalibrationDrive
@@ -144,12 +171,35 @@ def recorded_drive(motion: Any, p: BaseSensorParams, errors: Any, drive_seed: in
     noise = np.random.default_rng(noise_seed).normal(0, [sigma_m, sigma_m, sigma_rad], (len(idx), 3))
     return CalibrationDrive(wheels[:, 0], unwrapped_angles(wheels[:, 1:], p.drive.ticks_per_rev),
                             np.array([t for t, _ in gyro], np.int64), np.array([w for _, w in gyro], float),
-                            feedback.stamp_ns[idx], tp[idx] + noise)
+                            feedback.stamp_ns[idx], tp[idx] + noise), feedback.sensors
 
 
 #: The fields of a fit :func:`write_geometry` puts into the shipped file.
 GEOMETRY_FIELDS = ("wheel_radius_left_m", "wheel_radius_right_m", "wheel_base_m", "gyro_scale",
                    "wheel_radius_left_sigma_m", "wheel_radius_right_sigma_m", "wheel_base_sigma_m", "gyro_scale_sigma")
+
+
+#: The fields of a fit :func:`write_slip` puts into a calibration file.
+SLIP_FIELDS = ("wheel_noise_m_sqrt_m", "slip_event_rate_hz", "slip_event_duration_s", "slip_event_rate_sigma_hz",
+               "slip_event_duration_sigma_s")
+
+
+def write_slip(path: Path, model: Any) -> None:
+    """The calibration file at ``path`` with ``model``'s slip events (:data:`SLIP_FIELDS`) and
+    its wheel slip density where the file holds none (0: a density fitted on the file's own
+    drive is kept), everything else of it kept."""
+    import dataclasses
+
+    from robotd.io.calibfile import write_calibration
+
+    cal = read_calibration(path)
+    if cal.odometry is None:
+        raise SystemExit(f"{path}: no odometry model to add the slip to")
+    if not model.has_slip_events:
+        raise SystemExit(f"{path}: the fit has no slip events to write")
+    fields = [k for k in SLIP_FIELDS if k != "wheel_noise_m_sqrt_m" or cal.odometry.wheel_noise_m_sqrt_m == 0.0]
+    write_calibration(path, dataclasses.replace(cal, odometry=dataclasses.replace(
+        cal.odometry, **{k: getattr(model, k) for k in fields})))
 
 
 def write_geometry(path: Path, model: Any) -> None:
@@ -242,6 +292,30 @@ def write_markdown(path: Path, rows: list[dict[str, Any]], route: str) -> None:
             f"{t['fused']['end_position_error_m']:.3f} | "
             f"{n['fused']['ape_origin_rmse_m']:.3f} | {c['fused']['ape_origin_rmse_m']:.3f} | "
             f"{t['fused']['ape_origin_rmse_m']:.3f} |")
+    slips = [r for r in rows if r.get("slip_events")]
+    if slips:
+        lines += ["", "Part 3: the wheel slip events' rate (a second of accelerating or turning, as the filter's "
+                  "3-sigma slip test calls it) and RMS duration fitted from the heading windows the fit leaves "
+                  "out (`robotd.odometry.slip_events`), against the simulator's events of that drive (their "
+                  "count over the same time; in brackets the fit's 1-sigma, in square brackets its error in "
+                  "those sigmas), and the wheels' continuous slip density.", "",
+                  "| seed | events seen | all, fitted | all, true | rate (/s) | true rate (/s) | RMS duration (s) | "
+                  "true RMS (s) | slip density (mm/sqrt(m)) |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for r in slips:
+            e = r["slip_events"]
+            if e["refused"]:
+                lines.append(f"| {r['seed']} | {e['events_seen']} | refused: {e['refused']} | "
+                             f"{e.get('true_events', '')} | | | | | {1e3 * e['wheel_noise_m_sqrt_m']:.3f} |")
+                continue
+            tr = e.get("true_rate_hz")
+            td = e.get("true_duration_s")
+            rate = f"{e['rate_hz']:.3f} ({e['rate_sigma_hz']:.3f})" + (f" [{e['rate_err_sigmas']:+.1f}]" if tr else "")
+            dur = (f"{e['duration_s']:.3f} ({e['duration_sigma_s']:.3f})"
+                   + (f" [{e['duration_err_sigmas']:+.1f}]" if td else ""))
+            lines.append(f"| {r['seed']} | {e['events_seen']} | {e['events_estimated']:.1f} | "
+                         f"{e.get('true_events', '')} | {rate} | {f'{tr:.3f}' if tr else ''} | {dur} | "
+                         f"{f'{td:.3f}' if td else ''} | {1e3 * e['wheel_noise_m_sqrt_m']:.3f} |")
     lines.append("")
     write_page(path, lines)
 
@@ -262,6 +336,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="with --synthetic-reference: write each seed's fit ({seed} in PATTERN) as a calibration "
                          "file: the demo's shipped file with the fitted wheel radii, wheel base and gyro scale and "
                          "their 1-sigmas (its noise model kept), for bench_nees.py --own-calibration")
+    ap.add_argument("--write-slip", default=None, metavar="PATTERN",
+                    help="with --synthetic-reference: put each seed's fitted wheel slip density and slip events "
+                         "into the existing calibration file ({seed} in PATTERN; the density only where the file "
+                         "holds none), the rest of it kept")
     ap.add_argument("--drive-seeds", default=None, metavar="S,S,...",
                     help="with --synthetic-reference: per seed of --seeds, the drive seed of its recorded "
                          "calibration drive (robotd record --virtual --seed S --base-seed N): the fit alone on "
@@ -279,6 +357,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.write_calibration is not None and (args.synthetic_reference is None
                                                or "{seed}" not in args.write_calibration):
         ap.error("--write-calibration needs --synthetic-reference and {seed} in its PATTERN")
+    if args.write_slip is not None and (args.synthetic_reference is None or "{seed}" not in args.write_slip):
+        ap.error("--write-slip needs --synthetic-reference and {seed} in its PATTERN")
     seeds = [int(s) for s in args.seeds.split(",")]
     drive_seeds: list[int | None] = [None] * len(seeds)
     if args.drive_seeds is not None:
@@ -290,10 +370,13 @@ def main(argv: list[str] | None = None) -> int:
     for seed, drive_seed in zip(seeds, drive_seeds):
         if args.synthetic_reference is not None:
             sm, sr = (float(v) for v in args.reference_noise.split(","))
-            model = synthetic_model(seed, args.synthetic_reference, sm, sr, args.laps, drive_seed)
+            model, slip = synthetic_model(seed, args.synthetic_reference, sm, sr, args.laps, drive_seed)
             if args.write_calibration is not None:
                 write_geometry(Path(args.write_calibration.format(seed=seed)), model)
+            if args.write_slip is not None:
+                write_slip(Path(args.write_slip.format(seed=seed)), model)
             rows.append(evaluate(seed, None, motion, model))
+            rows[-1]["slip_events"] = slip
             laps = f" x {args.laps} laps" if args.laps > 1 else ""
             drive = f", drive seed {drive_seed} (the driver's readings)" if drive_seed is not None else ""
             rows[-1]["calibration"] = (f"synthetic: {args.synthetic_reference}{laps}{drive}, reference noise {sm} m, "
@@ -323,6 +406,18 @@ def main(argv: list[str] | None = None) -> int:
                   round(r["calibrated"]["fused"]["end_position_error_m"], 3),
                   round(r["nominal"]["fused"]["ape_origin_rmse_m"], 3),
                   round(r["calibrated"]["fused"]["ape_origin_rmse_m"], 3)] for r in rows])
+    slips = [r for r in rows if r.get("slip_events")]
+    if slips:
+        print()
+        print_table(["seed", "seen", "all (fit)", "all (true)", "rate /s", "sigma", "true /s", "RMS s", "sigma",
+                     "true RMS s"],
+                    [[r["seed"], r["slip_events"]["events_seen"], round(r["slip_events"]["events_estimated"], 1),
+                      r["slip_events"].get("true_events"), round(r["slip_events"]["rate_hz"], 3),
+                      round(r["slip_events"]["rate_sigma_hz"], 3),
+                      round(r["slip_events"]["true_rate_hz"], 3) if r["slip_events"].get("true_rate_hz") else None,
+                      round(r["slip_events"]["duration_s"], 3), round(r["slip_events"]["duration_sigma_s"], 3),
+                      round(r["slip_events"]["true_duration_s"], 3) if r["slip_events"].get("true_duration_s")
+                      else None] for r in slips])
     if args.markdown is not None:
         write_markdown(args.markdown, rows, args.route)
     path = write_json(args.out, {"machine": machine_info(), "route": args.route, "seeds": rows})

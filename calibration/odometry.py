@@ -138,8 +138,15 @@ def add_odometry_arguments(p: Any) -> None:
     p.add_argument("--json", type=Path, default=None, metavar="FILE", help="also write the results as JSON")
 
 
-def model_from_fit(fit: Any) -> Any:
-    """The calibration file's :class:`~robotd.io.calibfile.OdometryModel` of a fit."""
+#: The calibration file's slip event fields (:class:`~robotd.io.calibfile.OdometryModel`).
+SLIP_EVENT_FIELDS = ("slip_event_rate_hz", "slip_event_duration_s", "slip_event_rate_sigma_hz",
+                     "slip_event_duration_sigma_s")
+
+
+def model_from_fit(fit: Any, old: Any = None) -> Any:
+    """The calibration file's :class:`~robotd.io.calibfile.OdometryModel` of a fit. When the
+    fit refused the slip events (too few seen), ``old``'s slip event values (the file's
+    model before) are kept, or none."""
     from robotd.io.calibfile import OdometryModel
 
     pr = fit.process
@@ -147,6 +154,12 @@ def model_from_fit(fit: Any) -> Any:
         "accel_noise_mps2_sqrt_hz": pr.accel_mps2_sqrt_hz, "accel_noise_sigma": pr.accel_sigma,
         "angular_accel_noise_radps2_sqrt_hz": pr.angular_accel_radps2_sqrt_hz,
         "angular_accel_noise_sigma": pr.angular_accel_sigma}
+    ev = fit.slip_events
+    if ev is not None and not ev.refused:
+        process.update(slip_event_rate_hz=ev.rate_hz, slip_event_duration_s=ev.duration_s,
+                       slip_event_rate_sigma_hz=ev.rate_sigma_hz, slip_event_duration_sigma_s=ev.duration_sigma_s)
+    elif old is not None and old.has_slip_events:
+        process.update({k: getattr(old, k) for k in SLIP_EVENT_FIELDS})
     return OdometryModel(
         **process,
         wheel_radius_left_m=fit.wheel_radius_left_m, wheel_radius_right_m=fit.wheel_radius_right_m,
@@ -181,6 +194,13 @@ def format_fit(fit: Any, nominal_radius_m: float, nominal_base_m: float) -> str:
                      "m/s^2/sqrt(Hz) (maximum likelihood)")
         lines.append(f"{'white angular acc.':<20}{pr.angular_accel_radps2_sqrt_hz:>12.5f}"
                      f"{pr.angular_accel_sigma:>12.5f} rad/s^2/sqrt(Hz) (maximum likelihood)")
+    ev = fit.slip_events
+    if ev is not None and not ev.refused:
+        lines.append(f"{'slip events':<20}{ev.rate_hz:>12.4f}{ev.rate_sigma_hz:>12.4f} a second of accelerating "
+                     f"or turning ({ev.events_seen} seen, {ev.events_estimated:.1f} with those the gate missed, "
+                     f"in {ev.demand_s:.1f} s)")
+        lines.append(f"{'slip event duration':<20}{ev.duration_s:>12.4f}{ev.duration_sigma_s:>12.4f} s RMS "
+                     f"(slip ratio taken uniform in {ev.ratio_lo:.3f}-{ev.ratio_hi:.3f})")
     rms_b = np.sqrt(np.mean(fit.residuals_before ** 2, axis=0))
     rms_a = np.sqrt(np.mean(fit.residuals_after[fit.used] ** 2, axis=0))
     lines.append(f"residuals per keyframe interval (RMS), nominal -> fitted: wheel dx "
@@ -262,7 +282,7 @@ def run_odometry(args: Any) -> int:
                                ticks_per_rev=cfg.robot.ticks_per_rev)
         except CalibrationError as exc:
             raise CalibrationError(f"{args.recording}: {exc}; {args.calibration} is left as it was") from None
-        model = model_from_fit(fit)
+        model = model_from_fit(fit, calib.odometry)
         if args.passes > 1:
             print(f"pass {rnd + 1}: radii {fit.wheel_radius_left_m:.6f} / {fit.wheel_radius_right_m:.6f} m, "
                   f"wheel base {fit.wheel_base_m:.6f} m, gyro scale {fit.gyro_scale:.6f}", file=out)
@@ -270,8 +290,13 @@ def run_odometry(args: Any) -> int:
           f"{fit.distance_m:.1f} m, turning {fit.turn_left_deg:.0f} deg left and {fit.turn_right_deg:.0f} "
           f"deg right, {fit.still_s:.1f} s still", file=out)
     print(format_fit(fit, nominal_r, nominal_b), file=out)
-    update_calibration(args.calibration, CalibrationFile(odometry=model_from_fit(fit)))
+    update_calibration(args.calibration, CalibrationFile(odometry=model))
     print(f"odometry model written to {args.calibration}", file=out)
+    if fit.slip_events is not None and fit.slip_events.refused:
+        kept = ("its slip event values are kept" if calib.odometry is not None and calib.odometry.has_slip_events
+                else "it holds no slip event values")
+        print(f"robotd: {args.recording}: the slip events' rate and duration not fitted: "
+              f"{fit.slip_events.refused}; {args.calibration}: {kept}", file=sys.stderr)
     if args.plot is not None:
         plot_residuals(args.plot, fit)
         print(f"residuals: {args.plot}", file=out)
@@ -280,13 +305,17 @@ def run_odometry(args: Any) -> int:
             "recording": str(args.recording), "keyframes": data.keyframes, "loops": data.loops,
             "distance_m": fit.distance_m, "turn_left_deg": fit.turn_left_deg,
             "turn_right_deg": fit.turn_right_deg, "still_s": fit.still_s,
-            "model": {k: float(getattr(model_from_fit(fit), k)) for k in (
+            "model": {k: float(getattr(model, k)) for k in (
                 "wheel_radius_left_m", "wheel_radius_right_m", "wheel_base_m", "gyro_scale", "gyro_bias_radps",
                 "gyro_noise_radps_sqrt_hz", "wheel_noise_m_sqrt_m", "wheel_radius_left_sigma_m",
                 "wheel_radius_right_sigma_m", "wheel_base_sigma_m", "gyro_scale_sigma",
                 "gyro_bias_sigma_radps", "accel_noise_mps2_sqrt_hz", "accel_noise_sigma",
-                "angular_accel_noise_radps2_sqrt_hz", "angular_accel_noise_sigma")
-                if getattr(model_from_fit(fit), k) is not None},
+                "angular_accel_noise_radps2_sqrt_hz", "angular_accel_noise_sigma", *SLIP_EVENT_FIELDS)
+                if getattr(model, k) is not None},
+            "slip_events": (None if fit.slip_events is None else {
+                "refused": fit.slip_events.refused, "events_seen": fit.slip_events.events_seen,
+                "events_estimated": fit.slip_events.events_estimated, "demand_s": fit.slip_events.demand_s,
+                "ratio_lo": fit.slip_events.ratio_lo, "ratio_hi": fit.slip_events.ratio_hi}),
             "residual_rms_before": np.sqrt(np.mean(fit.residuals_before ** 2, axis=0)).tolist(),
             "residual_rms_after": np.sqrt(np.mean(fit.residuals_after[fit.used] ** 2, axis=0)).tolist(),
         }, indent=2) + "\n")

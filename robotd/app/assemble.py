@@ -109,18 +109,27 @@ def calibration_noise(params: EkfParams, model: OdometryModel, ticks_per_rev: fl
     """``params`` with the calibration's noise model (``[odometry] noise_model =
     "calibration"``): the sensors' fitted densities (:func:`robotd.odometry.calibration.sensor_noise_params`)
     and the white accelerations fitted by maximum likelihood; with ``slip_gate_sigma`` > 0
-    (``[odometry] slip_gate_sigma``) the wheel slip test, over the calibrated wheel base.
-    A calibration written before they were fitted keeps ``params``' accelerations (logged)."""
+    (``[odometry] slip_gate_sigma``) the wheel slip test, over the calibrated wheel base,
+    and the calibration's slip events (their fitted rate and duration) unless ``params``
+    has a rate of its own (``[odometry] slip_event_rate_hz`` above 0: the config's rate and
+    duration instead). A calibration written before they were fitted keeps ``params``'
+    accelerations (logged) and has no slip events."""
     from robotd.odometry.calibration import sensor_noise_params
 
     if not model.has_process_noise:
         log.warning("the calibration's odometry model has no white accelerations (written before they "
                     "were fitted; run `robotd calibrate odometry` again): the [odometry] ones are used")
     tick_m = 2.0 * math.pi * 0.5 * (model.wheel_radius_left_m + model.wheel_radius_right_m) / ticks_per_rev
-    return sensor_noise_params(params, model.gyro_noise_radps_sqrt_hz, model.wheel_noise_m_sqrt_m, tick_m,
-                               model.accel_noise_mps2_sqrt_hz, model.angular_accel_noise_radps2_sqrt_hz,
-                               readings_hz=GYRO_READINGS_HZ, wheel_base_m=model.wheel_base_m,
-                               slip_gate_sigma=slip_gate_sigma)
+    out = sensor_noise_params(params, model.gyro_noise_radps_sqrt_hz, model.wheel_noise_m_sqrt_m, tick_m,
+                              model.accel_noise_mps2_sqrt_hz, model.angular_accel_noise_radps2_sqrt_hz,
+                              readings_hz=GYRO_READINGS_HZ, wheel_base_m=model.wheel_base_m,
+                              slip_gate_sigma=slip_gate_sigma)
+    if slip_gate_sigma > 0.0 and params.slip_event_rate_hz <= 0.0 and model.has_slip_events:
+        out = dataclasses.replace(out, slip_event_rate_hz=model.slip_event_rate_hz,
+                                  slip_event_duration_s=model.slip_event_duration_s)
+        log.info("slip events from the calibration: %.3f a second of accelerating or turning, %.3f s RMS",
+                 model.slip_event_rate_hz, model.slip_event_duration_s)
+    return out
 
 
 def load_calibration(cfg: Config) -> CalibrationFile | None:

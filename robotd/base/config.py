@@ -197,9 +197,11 @@ class OdometryConfig:
     slip_event_rate_hz: float = _f(0.0, "with the slip test: wheel slip events (a wheel over- or under-rotating "
                                    "for a while) a second while the base accelerates or turns; the ones the test "
                                    "lets through widen those wheel readings' speed variance by what their bounded "
-                                   "slip adds, and one it sees widens its reading as part of an event; 0: none "
+                                   "slip adds, and one it sees widens its reading as part of an event; 0: the "
+                                   "calibration's fitted rate and duration (noise_model 'calibration') when it "
+                                   "holds them, else none; above 0: this rate and slip_event_duration_s instead "
                                    "(docs/odometry.md)", lo=0.0, hi=100.0)
-    slip_event_duration_s: float = _f(0.2, "with slip_event_rate_hz: the slip events' RMS duration",
+    slip_event_duration_s: float = _f(0.2, "with slip_event_rate_hz above 0: the slip events' RMS duration",
                                       lo=0.0, hi=10.0)
     edge_floor_m: float = _f(1e-4, "floor on the 1-sigma of an odometry edge's position (the pose graph's "
                              "conditioning; docs/odometry.md)", lo=1e-7, hi=0.01)

@@ -86,7 +86,17 @@ _PROCESS_FIELDS = (
     ("angular_accel_noise_sigma", "odometry_angular_accel_noise_sigma"),
 )
 _PROCESS_KEYS = tuple(k for _f, k in _PROCESS_FIELDS)
-_ODOMETRY_KEYS = tuple(k for _f, k in _ODOMETRY_FIELDS) + _PROCESS_KEYS
+#: Optional (a calibration written before they were fitted, or from a drive with too few of
+#: them, has none): the wheel slip events' rate and RMS duration, with their 1-sigma; all
+#: four or none.
+_SLIP_EVENT_FIELDS = (
+    ("slip_event_rate_hz", "odometry_slip_event_rate_hz"),
+    ("slip_event_duration_s", "odometry_slip_event_duration_s"),
+    ("slip_event_rate_sigma_hz", "odometry_slip_event_rate_sigma_hz"),
+    ("slip_event_duration_sigma_s", "odometry_slip_event_duration_sigma_s"),
+)
+_SLIP_EVENT_KEYS = tuple(k for _f, k in _SLIP_EVENT_FIELDS)
+_ODOMETRY_KEYS = tuple(k for _f, k in _ODOMETRY_FIELDS) + _PROCESS_KEYS + _SLIP_EVENT_KEYS
 _INTRINSIC_KEYS = ("camera_matrix", "distortion_coefficients", "image_width", "image_height",
                    "avg_reprojection_error")
 
@@ -189,6 +199,10 @@ class OdometryModel:
     per sqrt(m) of travel); accel_noise_mps2_sqrt_hz, angular_accel_noise_radps2_sqrt_hz
     (the filter's white linear and angular accelerations, m/s^2 and rad/s^2 per sqrt(Hz),
     with their 1-sigma ``*_noise_sigma``): None in a file written before they were fitted.
+    slip_event_rate_hz (wheel slip events a second of accelerating or turning, all of
+    them), slip_event_duration_s (their RMS duration, s), with their 1-sigma
+    ``slip_event_*_sigma_*`` (:mod:`robotd.odometry.slip_events`): None in a file written
+    before they were fitted or from a drive with too few of them.
     """
 
     wheel_radius_left_m: float
@@ -207,11 +221,20 @@ class OdometryModel:
     angular_accel_noise_radps2_sqrt_hz: float | None = None
     accel_noise_sigma: float | None = None
     angular_accel_noise_sigma: float | None = None
+    slip_event_rate_hz: float | None = None
+    slip_event_duration_s: float | None = None
+    slip_event_rate_sigma_hz: float | None = None
+    slip_event_duration_sigma_s: float | None = None
 
     @property
     def has_process_noise(self) -> bool:
         """True when the file holds the fitted white accelerations."""
         return self.accel_noise_mps2_sqrt_hz is not None
+
+    @property
+    def has_slip_events(self) -> bool:
+        """True when the file holds the fitted slip events' rate and duration."""
+        return self.slip_event_rate_hz is not None
 
     def __post_init__(self) -> None:
         given = [getattr(self, f) is not None for f, _k in _PROCESS_FIELDS]
@@ -223,6 +246,16 @@ class OdometryModel:
                 if not (v > 0.0 if "sigma" not in key else v >= 0.0):
                     raise CalibrationError(f"{key} must be {'>= 0' if 'sigma' in key else 'positive'}, got {v}")
                 object.__setattr__(self, field_name, v)
+        slip_given = [getattr(self, f) is not None for f, _k in _SLIP_EVENT_FIELDS]
+        if any(slip_given) and not all(slip_given):
+            raise CalibrationError("the odometry's slip events need all of " + ", ".join(_SLIP_EVENT_KEYS))
+        for field_name, key in _SLIP_EVENT_FIELDS if slip_given[0] else ():
+            v = _finite(key, getattr(self, field_name))
+            if "sigma" in key and v < 0.0:
+                raise CalibrationError(f"{key} must be >= 0, got {v}")
+            if "sigma" not in key and not 0.0 < v <= (100.0 if "rate" in key else 10.0):
+                raise CalibrationError(f"{key} must be in (0, {100 if 'rate' in key else 10}], got {v}")
+            object.__setattr__(self, field_name, v)
         for field_name, key in _ODOMETRY_FIELDS:
             v = _finite(key, getattr(self, field_name))
             if field_name in ("wheel_radius_left_m", "wheel_radius_right_m", "wheel_base_m",
@@ -458,7 +491,7 @@ def _read_odometry(r: _Reader) -> OdometryModel | None:
     if not any(r.has(k) for k in _ODOMETRY_KEYS):
         return None
     _require(r, "the odometry section", tuple(k for _f, k in _ODOMETRY_FIELDS))
-    process = {f: r.number(k) for f, k in _PROCESS_FIELDS if r.has(k)}
+    process = {f: r.number(k) for f, k in _PROCESS_FIELDS + _SLIP_EVENT_FIELDS if r.has(k)}
     return OdometryModel(**{f: r.number(k) for f, k in _ODOMETRY_FIELDS}, **process)
 
 
@@ -506,6 +539,11 @@ def format_calibration(calib: CalibrationFile) -> str:
             fs.writeComment("The filter's white accelerations (m/s^2, rad/s^2 per sqrt(Hz)) by maximum "
                             "likelihood on the drive's readings, each with its 1-sigma.")
             for field_name, key in _PROCESS_FIELDS:
+                fs.write(key, float(getattr(od, field_name)))
+        if od.has_slip_events:
+            fs.writeComment("The wheel slip events: their rate (a second of accelerating or turning) and "
+                            "RMS duration (s), from the slip the drive's heading windows saw, each with its 1-sigma.")
+            for field_name, key in _SLIP_EVENT_FIELDS:
                 fs.write(key, float(getattr(od, field_name)))
     return fs.releaseAndGetString()
 

@@ -33,6 +33,7 @@ No I/O here.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -218,10 +219,12 @@ def _estimate(duration_s: np.ndarray, ratio: np.ndarray, parts: np.ndarray,
 
 
 def estimate_slip_events(seen: SeenSlipEvents, drive: SlipDrive, min_events: int = 10,
-                         bootstrap: int = 200, rng: np.random.Generator | None = None) -> SlipEventFit:
+                         bootstrap: int = 200, rng: np.random.Generator | None = None,
+                         max_moments: int = 2000) -> SlipEventFit:
     """The events' rate (a second of ``drive.demand_s``) and RMS duration from the ``seen``
     ones (see the module notes), with their bootstrap 1-sigma (``bootstrap`` draws;
-    ``rng``: the bootstrap's generator, seeded 0 when not given). Fewer than
+    ``rng``: the bootstrap's generator, seeded 0 when not given; at most ``max_moments``
+    of the drive's demanding moments, evenly spread, stand for them all). Fewer than
     ``min_events`` seen, or no demanding time: refused (:attr:`SlipEventFit.refused`)."""
     n = len(seen)
     if n < min_events or drive.demand_s <= 0.0:
@@ -229,6 +232,9 @@ def estimate_slip_events(seen: SeenSlipEvents, drive: SlipDrive, min_events: int
                else "no accelerating or turning")
         return SlipEventFit(0.0, 0.0, 0.0, 0.0, n, 0.0, float(drive.demand_s), 0.0, 0.0, refused=why)
     rng = np.random.default_rng(0) if rng is None else rng
+    if len(drive.demand_t_s) > max_moments:  # an even subsample stands for them all
+        pick = np.linspace(0, len(drive.demand_t_s) - 1, max_moments).round().astype(int)
+        drive = dataclasses.replace(drive, demand_t_s=np.asarray(drive.demand_t_s)[pick])
     dur = np.asarray(seen.duration_s, float)
     ratio = np.asarray(seen.ratio, float)
     # The events' travel per window is the drive's; only the duration picks which.

@@ -126,3 +126,23 @@ def test_the_scale_prior_adds_each_wear_to_its_own_sensor():
     wider = replace(cfg, "pose_graph", scale_wear_gyro=0.005)
     assert scale_prior_sigmas(wider, cal)[0] == scale_prior_sigmas(cfg, cal)[0]
     assert scale_prior_sigmas(wider, cal)[1] == pytest.approx(math.hypot(gyro, 0.005))
+
+
+def test_the_slip_events_come_from_the_calibration_unless_the_config_sets_a_rate():
+    """With the calibration's noise model and the slip test, the file's fitted slip events;
+    ``[odometry] slip_event_rate_hz`` above 0 overrides them (with its duration); without
+    the slip test, none."""
+    cal = _shipped()
+    m = dataclasses.replace(cal.odometry, slip_event_rate_hz=0.23, slip_event_duration_s=0.17,
+                            slip_event_rate_sigma_hz=0.05, slip_event_duration_sigma_s=0.02)
+    cal = dataclasses.replace(cal, odometry=m)
+    cfg = replace(Config(), "odometry", noise_model="calibration", slip_gate_sigma=3.0)
+    p = build_odometry(cfg, cal).wheel_gyro.params
+    assert (p.slip_event_rate_hz, p.slip_event_duration_s) == (0.23, 0.17)
+    own = build_odometry(replace(cfg, "odometry", slip_event_rate_hz=0.3, slip_event_duration_s=0.19),
+                         cal).wheel_gyro.params
+    assert (own.slip_event_rate_hz, own.slip_event_duration_s) == (0.3, 0.19)
+    off = build_odometry(replace(cfg, "odometry", slip_gate_sigma=0.0), cal).wheel_gyro.params
+    assert off.slip_event_rate_hz == 0.0
+    # A file without them: none, as before.
+    assert build_odometry(cfg, _shipped()).wheel_gyro.params.slip_event_rate_hz == 0.0

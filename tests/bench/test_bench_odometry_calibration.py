@@ -58,7 +58,7 @@ def test_the_fit_alone_on_a_recorded_drive_reads_that_very_drive():
     settings = VirtualRobotSettings(route="figure8", seed=12, base_seed=1, duration_s=4.0)
     with VirtualRobot(settings, FloorCameraModel.default(), ManualClock()) as robot:
         fb = robot.base.feedback
-        drive = recorded_drive(robot.motion, p, draw_errors(p, np.random.default_rng(1)), 12, 0.0, 0.0, 0)
+        drive, _streams = recorded_drive(robot.motion, p, draw_errors(p, np.random.default_rng(1)), 12, 0.0, 0.0, 0)
     np.testing.assert_array_equal(drive.wheel_stamp_ns, fb.stamp_ns)
     ticks = np.column_stack([fb.left_ticks, fb.right_ticks])
     np.testing.assert_array_equal(drive.wheel_angle_rad, unwrapped_angles(ticks, p.drive.ticks_per_rev))

@@ -303,3 +303,33 @@ def test_the_odometry_models_white_accelerations_are_optional(tmp_path):
         read_calibration(path)
     with pytest.raises(CalibrationError, match="positive"):
         dataclasses.replace(new, angular_accel_noise_radps2_sqrt_hz=0.0)
+
+
+def test_the_odometry_models_slip_events_are_optional_and_all_four_or_none(tmp_path):
+    """A file without the slip events loads without them; one with them round-trips; a
+    half group, a rate of 0 or a negative sigma is refused naming the key."""
+    import dataclasses
+
+    from robotd.io.calibfile import OdometryModel
+
+    old = OdometryModel(wheel_radius_left_m=0.035, wheel_radius_right_m=0.0351, wheel_base_m=0.232,
+                        gyro_scale=1.0004, gyro_bias_radps=0.005, gyro_noise_radps_sqrt_hz=5.6e-4,
+                        wheel_noise_m_sqrt_m=5e-4, wheel_radius_left_sigma_m=1e-6,
+                        wheel_radius_right_sigma_m=1e-6, wheel_base_sigma_m=1e-4, gyro_scale_sigma=1e-4,
+                        gyro_bias_sigma_radps=7e-5)
+    assert not old.has_slip_events
+    new = dataclasses.replace(old, slip_event_rate_hz=0.23, slip_event_duration_s=0.19,
+                              slip_event_rate_sigma_hz=0.05, slip_event_duration_sigma_s=0.02)
+    path = tmp_path / "c.yml"
+    write_calibration(path, CalibrationFile(odometry=new))
+    assert "odometry_slip_event_rate_hz: 0.23" in path.read_text()
+    back = read_calibration(path).odometry
+    assert back == new and back.has_slip_events
+    text = path.read_text()
+    path.write_text("\n".join(ln for ln in text.splitlines() if "slip_event_duration_sigma_s" not in ln) + "\n")
+    with pytest.raises(CalibrationError, match="odometry_slip_event_duration_sigma_s"):
+        read_calibration(path)
+    with pytest.raises(CalibrationError, match="odometry_slip_event_rate_hz must be in"):
+        dataclasses.replace(new, slip_event_rate_hz=0.0)
+    with pytest.raises(CalibrationError, match="odometry_slip_event_rate_sigma_hz must be >= 0"):
+        dataclasses.replace(new, slip_event_rate_sigma_hz=-1.0)

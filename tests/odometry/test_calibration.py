@@ -270,3 +270,81 @@ def test_the_wheels_slip_noise_is_the_simulators_continuous_slip(v_mps, w_radps)
     sv = wheel_noise(v_mps, w_radps, p, dt_s=dt)[0]
     claimed_var = (sv ** 2 - p.wheel_v_noise_mps ** 2) * dt ** 2
     assert float(np.var(distance_err)) == pytest.approx(claimed_var, rel=0.03)
+
+
+def _calibration_drive(seed: int, slip_event_rate_hz: float):
+    """The calibration route's drive of seed ``seed``'s base (slip events at
+    ``slip_event_rate_hz``) against its true poses plus 0.5 mm / 0.5 mrad, and its streams."""
+    p = dataclasses.replace(BaseSensorParams(), slip_event_rate_hz=slip_event_rate_hz)
+    rng = np.random.default_rng(seed)
+    err = draw_errors(p, rng)
+    s = simulate_sensors(plan_motion(build_route("calibration")), p, err, rng)
+    idx = [0]
+    for k in range(1, len(s.true_pose)):
+        a, b = s.true_pose[idx[-1]], s.true_pose[k]
+        if math.hypot(b[0] - a[0], b[1] - a[1]) >= 0.1 or abs(math.remainder(b[2] - a[2], 2 * math.pi)) >= 0.1:
+            idx.append(k)
+    noise = np.random.default_rng(100 + seed).normal(0, 5e-4, (len(idx), 3))
+    drive = CalibrationDrive(s.stamp_ns, s.wheel_angle_rad, np.round(s.gyro_t_s * 1e9).astype(np.int64),
+                             s.gyro_radps[:, 2], s.stamp_ns[idx], s.true_pose[idx] + noise)
+    return drive, s
+
+
+def _calibrate(tmp_path, monkeypatch, drive, calib_text: str) -> tuple[int, list[str], str]:
+    import calibration.odometry as cal_odometry
+    from robotd.app.cli import main
+
+    monkeypatch.setattr(cal_odometry, "load_drive",
+                        lambda path, cfg, calib: cal_odometry.OdometryDriveData(drive, None, 40, 5))
+    calib = tmp_path / "calib.yml"
+    calib.write_text(calib_text)
+    rec = tmp_path / "drive.mcap"
+    rec.write_bytes(b"")
+    cfg = tmp_path / "robotd.toml"
+    cfg.write_text("")
+    code = main(["calibrate", "odometry", str(rec), "--calibration", str(calib), "--config", str(cfg),
+                 "--passes", "1"])
+    return code, calib.read_text().splitlines(), str(calib)
+
+
+_LOOPS = "%YAML 1.2\n---\nloop_threshold_mode_4: 90.0\nloop_overlap_r: 0.33\nloop_confidence: 0.99\n"
+
+
+def test_the_command_writes_the_slip_events_rate_and_duration(tmp_path, monkeypatch, capsys):
+    """The calibration route with the simulated base's slip events: the fitted rate (a
+    second of the filter's accelerating or turning) and RMS duration within three of their
+    own sigmas of the drive's true events, written into the file."""
+    from robotd.io.calibfile import read_calibration
+
+    drive, s = _calibration_drive(0, 0.3)
+    code, _lines, path = _calibrate(tmp_path, monkeypatch, drive, _LOOPS)
+    assert code == 0 and capsys.readouterr().err == ""
+    m = read_calibration(path).odometry
+    assert m is not None and m.has_slip_events
+    fit = fit_odometry(drive, 0.035, 0.23)
+    ev = fit.slip_events
+    assert m.slip_event_rate_hz == pytest.approx(ev.rate_hz) and ev.events_seen >= 10
+    assert abs(ev.rate_hz - s.slip_events / ev.demand_s) < 3 * ev.rate_sigma_hz
+    assert abs(ev.duration_s - float(np.sqrt(np.mean(s.slip_event_durations_s ** 2)))) < 3 * ev.duration_sigma_s
+    assert 0.0 < ev.rate_sigma_hz < 0.5 * ev.rate_hz and 0.0 < ev.duration_sigma_s < 0.3 * ev.duration_s
+
+
+def test_too_few_slip_events_keep_the_files_values_in_one_line(tmp_path, monkeypatch, capsys):
+    """A drive without slip events: the geometry is written, the slip events' values the
+    file held are kept (to the byte: binary fractions, which the writer prints as given),
+    and one line on stderr says why."""
+    drive, _s = _calibration_drive(0, 0.0)
+    held = ("odometry_slip_event_rate_hz: 0.25\nodometry_slip_event_duration_s: 0.125\n"
+            "odometry_slip_event_rate_sigma_hz: 0.0625\nodometry_slip_event_duration_sigma_s: 0.03125\n")
+    old = (_LOOPS + "odometry_wheel_radius_left_m: 0.035\nodometry_wheel_radius_right_m: 0.035\n"
+           "odometry_wheel_base_m: 0.23\nodometry_gyro_scale: 1.0\nodometry_gyro_bias_radps: 0.0\n"
+           "odometry_gyro_noise_radps_sqrt_hz: 0.0005\nodometry_wheel_noise_m_sqrt_m: 0.0\n"
+           "odometry_wheel_radius_left_sigma_m: 1e-6\nodometry_wheel_radius_right_sigma_m: 1e-6\n"
+           "odometry_wheel_base_sigma_m: 1e-4\nodometry_gyro_scale_sigma: 1e-4\n"
+           "odometry_gyro_bias_sigma_radps: 1e-4\n" + held)
+    code, lines, path = _calibrate(tmp_path, monkeypatch, drive, old)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 0
+    assert len(err) == 1 and "slip events seen (needs 10)" in err[0] and "slip event values are kept" in err[0]
+    assert [ln for ln in lines if "slip_event" in ln and not ln.startswith("#")] == held.strip().splitlines()
+    assert "odometry_wheel_base_m: 0.23\n" not in "\n".join(lines) + "\n"  # the geometry was written
