@@ -181,7 +181,7 @@ def draw_errors(params: BaseSensorParams, rng: np.random.Generator) -> BaseError
 
 
 def _wheel_slip(ds: np.ndarray, accel_like: np.ndarray, demanding: np.ndarray, dt_s: float,
-                params: BaseSensorParams, rng: np.random.Generator) -> tuple[np.ndarray, int]:
+                params: BaseSensorParams, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Slip distance of each wheel per step, ``(K, 2)`` metres, and each event's duration
     ``(E,)`` s."""
     slip = params.slip_noise_m_per_sqrt_m * np.sqrt(np.abs(ds)) * rng.standard_normal(ds.shape)
@@ -194,7 +194,7 @@ def _wheel_slip(ds: np.ndarray, accel_like: np.ndarray, demanding: np.ndarray, d
         wheel = int(rng.integers(2))
         ratio = rng.uniform(lo_r, hi_r)
         n = max(1, round(rng.uniform(lo_d, hi_d) / dt_s))
-        durations[i] = min(n, len(ds) - k) * dt_s
+        durations[i] = min(n, len(ds) - int(k)) * dt_s
         trend = accel_like[k, wheel]
         sign = math.copysign(1.0, trend) if abs(trend) > 1e-9 else _draw_sign(rng)
         slip[k:k + n, wheel] += sign * ratio * ds[k:k + n, wheel]
@@ -202,7 +202,7 @@ def _wheel_slip(ds: np.ndarray, accel_like: np.ndarray, demanding: np.ndarray, d
 
 
 def _wheel_angles(motion: Motion, params: BaseSensorParams, errors: BaseErrors,
-                  t_s: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, int]:
+                  t_s: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Cumulative wheel angles ``(N, 2)`` rad at ``t_s``, and the slip events' durations ``(E,)`` s."""
     dt = motion.dt_s
     nominal = params.drive

@@ -124,7 +124,8 @@ def calibration_noise(params: EkfParams, model: OdometryModel, ticks_per_rev: fl
                               model.accel_noise_mps2_sqrt_hz, model.angular_accel_noise_radps2_sqrt_hz,
                               readings_hz=GYRO_READINGS_HZ, wheel_base_m=model.wheel_base_m,
                               slip_gate_sigma=slip_gate_sigma)
-    if slip_gate_sigma > 0.0 and params.slip_event_rate_hz <= 0.0 and model.has_slip_events:
+    if (slip_gate_sigma > 0.0 and params.slip_event_rate_hz <= 0.0 and model.slip_event_rate_hz is not None
+            and model.slip_event_duration_s is not None):
         out = dataclasses.replace(out, slip_event_rate_hz=model.slip_event_rate_hz,
                                   slip_event_duration_s=model.slip_event_duration_s)
         log.info("slip events from the calibration: %.3f a second of accelerating or turning, %.3f s RMS",
