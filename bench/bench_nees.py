@@ -1232,6 +1232,13 @@ def odometry_markdown(odo: dict[str, Any], table: Any, lines: list[str]) -> None
                      + (f", the wheel slip test at `slip_gate_sigma = {odo['slip_gate_sigma']:g}`"
                         if odo.get("slip_gate_sigma") else ", no slip test")
                      + (", and " + ", ".join(f"`{k}` = {v}" for k, v in ekf.items()) if ekf else ""))
+    fitted = [(ps["seed"], ps["params"]) for ps in odo.get("per_seed", []) if ps.get("params")]
+    if ("slip_event_rate_hz" not in ekf and fitted
+            and any(pr.get("slip_event_rate_hz", 0.0) > 0.0 for _seed, pr in fitted)):
+        noise += (", the slip events each seed's file holds (`robotd calibrate odometry`'s fit; rate a second of "
+                  "accelerating or turning, RMS duration: " + "; ".join(
+                      f"seed {seed} {pr['slip_event_rate_hz']:.3f}, {pr['slip_event_duration_s']:.3f} s"
+                      for seed, pr in fitted) + ")")
     model = (", the filter with each base's true wheel radii, wheel base and gyro scale (a calibrated model)"
              if odo.get("true_model") else
              ", the filter with the demo's shipped calibration's wheel radii, wheel base and gyro scale (seed 0's "
