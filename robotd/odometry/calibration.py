@@ -29,6 +29,11 @@ over every keyframe interval) and the random ones:
   innovation likelihood). No measurement involves the pose, so the rate states ``v`` and
   ``(w, bias)`` form two small linear filters whose likelihood depends on one density
   each; their uncertainty is the likelihood's curvature.
+- the wheel slip events' rate (a second of accelerating or turning, as the filter's slip
+  test calls it) and RMS duration, from the heading windows the wheel fit leaves out as
+  slip, the events its gate misses modelled from the drive's own travel per window
+  (:mod:`robotd.odometry.slip_events`); refused (the fit's other values kept) when the
+  windows see fewer than ``min_slip_events``.
 
 Uncertainties are the least-squares covariances, each scaled by the fit's reduced chi2
 when that exceeds one (the weights then understated the residuals). A drive that cannot
