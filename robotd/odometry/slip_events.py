@@ -28,6 +28,10 @@ the mean square duration ``sum T_i^2 / p_i / sum 1 / p_i`` (long events are seen
 often, and this undoes it). Uncertainties by the bootstrap: the count drawn Poisson, the
 events drawn again, the whole estimate (the ratio's range included) made again.
 
+Not modelled: two events within one event's span are seen as one longer event (the rate
+low and the duration long by about the rate times the duration), and the travel is the
+wheels' mean where one wheel slips (on an arc the inner wheel travels less).
+
 No I/O here.
 """
 
