@@ -49,7 +49,7 @@ from robotd.forward.filter import (FilterParams, diffusion_weights, predict, pre
 from robotd.forward.likelihood import LikelihoodMethod, adjust_likelihood
 from robotd.forward.memory import MemoryParams, WorkingMemory
 from robotd.forward.verify import TOO_FEW_MATCHES, Verification, VerifyParams, verify_pair
-from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams
+from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams, _grown
 
 __all__ = ["ACCEPT_PENDING", "Detection", "DetectionStatus", "DetectorParams", "ForwardDetector", "LOOP", "METHODS", "NO_HYPOTHESES",
            "LOW_POSTERIOR", "NOT_CONSISTENT_YET", "NO_GEOMETRIC_CONSISTENCY", "OdometryParams", "STAGES",
@@ -619,8 +619,8 @@ class ForwardDetector:
     def _append_pose(self, pose: np.ndarray, var: np.ndarray) -> None:
         """The next image's pose and variances ``(3,)`` each (NaN: unknown)."""
         n = len(self._poses)
-        if n == len(self._pose_buf):
-            cap = max(64, 2 * n)
+        if n == len(self._pose_buf):  # grown as the word arrays are (no doubling: its spare half would stay)
+            cap = _grown(n)
             self._pose_buf = np.concatenate([self._pose_buf, np.full((cap - n, 3), np.nan)])
             self._var_buf = np.concatenate([self._var_buf, np.full((cap - n, 3), np.nan)])
         self._pose_buf[n] = pose

@@ -421,11 +421,12 @@ def pack_bits(descriptors: np.ndarray) -> np.ndarray:
 
 
 def _grown(n: int) -> int:
-    """The capacity a growing array of capacity ``n`` takes next: an eighth more (amortised
-    O(1) appends as with doubling, but at most a ninth of the memory is spare room; the
+    """The capacity a growing array of capacity ``n`` takes next: a sixteenth more and 16
+    (amortised O(1) appends as with doubling, but at most about a sixteenth of the memory
+    is spare room, and an array starts at 16 entries, not a fixed larger first block: the
     per-word arrays hold every word ever made, the word tree's per-slot arrays every word
-    it can find)."""
-    return n + n // 8 + 16
+    it can find, and over a run's first images every word made is searchable)."""
+    return n + n // 16 + 16
 
 
 _INT_BYTES = sys.getsizeof(1 << 20)  # a Python int beyond the small ones it shares (28 bytes)
@@ -477,9 +478,9 @@ class BinaryWordTree:
         self.params = params
         b = params.branching
         # nodes
-        self._centre = np.zeros((16, 4), np.uint64)
-        self._child = np.full((16, b), -1, np.int16)   # int32 once there are more nodes
-        self._leaf_row = np.full(16, -1, np.int32)      # per node: its row in the pool, -1 inner
+        self._centre = np.zeros((2, 4), np.uint64)
+        self._child = np.full((2, b), -1, np.int16)    # int32 once there are more nodes
+        self._leaf_row = np.full(2, -1, np.int32)       # per node: its row in the pool, -1 inner
         self._n_nodes = 1
         # leaves: each a row, whose slots lie in order in a block of one flat pool: a block
         # holds the leaf's words and room for a few more (a multiple of _LEAF_BLOCK, not
@@ -487,21 +488,21 @@ class BinaryWordTree:
         # parent's split); a leaf that outgrows its block moves to a longer one at the
         # pool's end, and the pool is compacted once the blocks left behind take a quarter
         # of it
-        self._pool = np.full(64, -1, np.int32)
+        self._pool = np.full(0, -1, np.int32)
         self._pool_end = 0                               # the pool's used length
         self._pool_dead = 0                              # of it, in blocks left behind
-        self._row_start = np.zeros(16, np.int32)         # per row: its block's start in the pool
-        self._row_cap = np.zeros(16, np.int32)           # per row: its block's length
-        self._fill = np.zeros(16, np.int32)
+        self._row_start = np.zeros(1, np.int32)          # per row: its block's start in the pool
+        self._row_cap = np.zeros(1, np.int32)            # per row: its block's length
+        self._fill = np.zeros(1, np.int32)
         self._n_rows = 1
         self._free_rows: list[int] = []
         self._leaf_row[0] = 0
         self._child[0, 0] = 0                            # the root, a leaf to begin with
         # words: one slot each (descriptor, word id, leaf row, position in it)
-        self._desc = np.zeros((64, 4), np.uint64)
-        self._slot_word = np.full(64, -1, np.int32)
-        self._slot_row = np.zeros(64, np.int16)         # int32 once there are more rows
-        self._slot_pos = np.zeros(64, np.uint8 if params.leaf_size <= 256 else np.int32)
+        self._desc = np.zeros((1, 4), np.uint64)
+        self._slot_word = np.full(0, -1, np.int32)
+        self._slot_row = np.zeros(0, np.int16)          # int32 once there are more rows
+        self._slot_pos = np.zeros(0, np.uint8 if params.leaf_size <= 256 else np.int32)
         self._n_slots = 0
         self._free_slots: list[int] = []
         self.n_live = 0
@@ -594,7 +595,7 @@ class BinaryWordTree:
         cap_l = cap[live]
         start = np.cumsum(cap_l) - cap_l
         total = int(cap_l.sum())
-        pool = np.full(max(_grown(total), 64), -1, np.int32)
+        pool = np.full(_grown(total), -1, np.int32)
         if total:
             within = np.arange(total) - np.repeat(start, cap_l)
             pool[:total] = self._pool[np.repeat(self._row_start[live], cap_l) + within]
@@ -860,10 +861,10 @@ _TOP: dict[type, int] = {t: int(np.iinfo(t).max) for t in (np.int16, np.int32, n
 
 
 class _GrowingInts:
-    """An integer array (int32 unless told) that grows by an eighth (:func:`_grown`; amortised O(1) append)."""
+    """An integer array (int32 unless told) that grows by a sixteenth (:func:`_grown`; amortised O(1) append)."""
 
     def __init__(self, dtype: type = np.int32) -> None:
-        self._a: np.ndarray = np.zeros(64, dtype)
+        self._a: np.ndarray = np.zeros(0, dtype)
         self.n = 0
 
     def resize(self, n: int) -> None:
@@ -911,7 +912,7 @@ class _Postings:
 
     def __init__(self) -> None:
         self.head = _GrowingInts(np.uint32)
-        self._store = np.zeros(64, np.uint32)
+        self._store = np.zeros(2, np.uint32)  # gather reads entries 0 and 1 for a word without a block
         self._end = 0           # the store's used length
         self._dead = 0          # of it, in blocks left behind (at least)
 
@@ -1027,7 +1028,7 @@ class _Postings:
         size = 1 + _block_room(cnt) if len(cnt) else np.zeros(0, np.int64)
         start = np.cumsum(size) - size
         end = int(size.sum())
-        store = np.zeros(max(_grown(end), 64), np.uint32)
+        store = np.zeros(_grown(end), np.uint32)
         if len(cnt):
             n = cnt + 1                                     # the count and the postings
             within = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
@@ -1245,13 +1246,17 @@ class InvertedIndex:
         most frequent word is seen at least ``floor`` times, so every word that can be
         among the ``n`` (ties included) is a candidate and the choice is the one over all
         words. The candidates are chosen again over all words after a removal (counts
-        fall), or when they number fewer than ``n`` or many more."""
+        fall), or when they number fewer than ``n`` or many more; so many (over the first
+        images, when most words are seen once) are not kept: the choice is the same with
+        any candidates that hold every word that can be among the ``n``."""
         if not self.n_images or not self._total:
             return np.zeros(0, np.int64)
         n = max(1, int(round(self._total / self.n_images)))
         cand = self._v_cand
         if cand is None or len(cand) < n or len(cand) > 4 * n + _VIRTUAL_MARGIN:
             cand = self._virtual_candidates(n + _VIRTUAL_MARGIN)
+            if len(cand) > 4 * n + _VIRTUAL_MARGIN:  # they would be chosen again next time
+                self._v_cand = None
         occ = self._occ.view[cand]
         n = min(n, len(cand))  # fewer candidates only when fewer words are in use
         # Stable sort on -occurrences: equal counts keep word-id order.
