@@ -421,16 +421,18 @@ def pack_bits(descriptors: np.ndarray) -> np.ndarray:
 
 
 def _grown(n: int) -> int:
-    """The capacity a growing array of capacity ``n`` takes next: a sixteenth more and 16
-    (amortised O(1) appends as with doubling, but at most about a sixteenth of the memory
-    is spare room, and an array starts at 16 entries, not a fixed larger first block: the
-    per-word arrays hold every word ever made, the word tree's per-slot arrays every word
-    it can find, and over a run's first images every word made is searchable)."""
-    return n + n // 16 + 16
+    """The capacity a growing array of capacity ``n`` takes next: a thirty-second more and
+    16 (amortised O(1) appends as with doubling, but at most about a thirty-second of the
+    memory is spare room, and an array starts at 16 entries, not a fixed larger first
+    block: the per-word arrays hold every word ever made, the word tree's per-slot arrays
+    every word it can find, and they all grow at the same images, so their spare room adds
+    up; over a run's first images every word made is searchable). Copying an array a
+    thirty-second larger each time costs little beside the search over it."""
+    return n + n // 32 + 16
 
 
 _INT_BYTES = sys.getsizeof(1 << 20)  # a Python int beyond the small ones it shares (28 bytes)
-_LEAF_BLOCK = 16           # a leaf's block in the word tree's pool: a multiple of this many entries
+_LEAF_BLOCK = 16          # a leaf's block in the word tree's pool: a multiple of this many entries
 _FAR = np.int32(1 << 20)  # a distance no real pair reaches (256 bits at most)
 _PREFILTER_BITS = 20       # see BinaryWordTree.nearest
 _NO_KEY = np.int64(np.iinfo(np.int64).max)  # no word found yet (BinaryWordTree._scan)
@@ -861,7 +863,7 @@ _TOP: dict[type, int] = {t: int(np.iinfo(t).max) for t in (np.int16, np.int32, n
 
 
 class _GrowingInts:
-    """An integer array (int32 unless told) that grows by a sixteenth (:func:`_grown`; amortised O(1) append)."""
+    """An integer array (int32 unless told) that grows by a thirty-second (:func:`_grown`; amortised O(1) append)."""
 
     def __init__(self, dtype: type = np.int32) -> None:
         self._a: np.ndarray = np.zeros(0, dtype)
