@@ -504,7 +504,7 @@ class ForwardDetector:
             kept = kept.with_descriptors(self.vocabulary.word_descriptors(lo + kept.lent_rank.astype(np.int64)))
         if kept is not None:
             if image_id == len(self._features) - 1 and len(self._latest_words):
-                return replace(kept, words=self._latest_words)
+                return replace(kept, words=self._latest_words.astype(np.uint32))
             return kept
         f = self._read_back.get(image_id)
         if f is not None:
@@ -837,7 +837,8 @@ class ForwardDetector:
         self.memory.add(t, words, t)
         latest = compact(feats, words)
         self._features.append(self._keep(t, latest, made_at))
-        self._latest_words = latest.words
+        w = latest.words  # uint16 while the word ids fit (the first 65,536 words)
+        self._latest_words = w.astype(np.uint16) if len(w) and int(w.max()) <= 0xFFFF else w
         self._in_store.append(0)
         if t:
             self._release(t - self.resident)

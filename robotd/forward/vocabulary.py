@@ -858,8 +858,8 @@ class BinaryWordTree:
         return gone
 
 
-_WIDER: dict[type, type] = {np.int16: np.int32, np.int32: np.int64}
-_TOP: dict[type, int] = {t: int(np.iinfo(t).max) for t in (np.int16, np.int32, np.int64)}
+_WIDER: dict[type, type] = {np.int8: np.int16, np.int16: np.int32, np.int32: np.int64}
+_TOP: dict[type, int] = {t: int(np.iinfo(t).max) for t in (np.int8, np.int16, np.int32, np.int64)}
 
 
 class _GrowingInts:
@@ -1064,9 +1064,10 @@ class InvertedIndex:
         # Postings: per word, slot << _COUNT_BITS | n(w, i) of each image it is in (4 bytes
         # an entry, in flat arrays: no object per word)
         self._post = _Postings()
-        # (2 bytes a word until a count passes 32,767: most words are seen a few times)
-        self._df = _GrowingInts(np.int16)        # per word: images containing it
-        self._occ = _GrowingInts(np.int16)       # per word: total occurrences
+        # (1 byte a word until a count passes 127, then 2 until one passes 32,767: most words
+        # are seen a few times; counters start narrow and widen, :meth:`_GrowingInts.add`)
+        self._df = _GrowingInts(np.int8)         # per word: images containing it
+        self._occ = _GrowingInts(np.int8)        # per word: total occurrences
         self._image_len = _GrowingInts()         # per slot: n(i), words (with repeats) in the image
         self._image_ids = _GrowingInts()         # per slot: the image in it, -1 when free
         # per image id: its slot + 1 when indexed, 0 never added, -1 removed (it may be

@@ -181,7 +181,7 @@ def _structure_bound(det: ForwardDetector) -> dict[str, int]:
     latest = det.features_of(n_images - 1).words if n_images else np.zeros(0)
     images += (_list_bytes(n_images) + n_images + 2 * _capacity(n_images) * 3 * 8  # the list, flags, poses
                + 8 * (len(det._posterior) + len(det._hyp_ids))                    # the filter's state
-               + 4 * len(latest))                                                 # the latest image's words
+               + (2 if len(latest) and int(latest.max()) <= 0xFFFF else 4) * len(latest))  # the latest's words
     return {"images": images, "index": index, "vocabulary": search}
 
 
