@@ -436,6 +436,7 @@ _LEAF_BLOCK = 16          # a leaf's block in the word tree's pool: a multiple o
 _FAR = np.int32(1 << 20)  # a distance no real pair reaches (256 bits at most)
 _PREFILTER_BITS = 20       # see BinaryWordTree.nearest
 _NO_KEY = np.int64(np.iinfo(np.int64).max)  # no word found yet (BinaryWordTree._scan)
+_SLOT_TABLE_SPAN = 1 << 16  # BinaryWordTree.slots_of: ids spread over at most this many by a table
 
 
 @dataclass(frozen=True)
@@ -806,8 +807,15 @@ class BinaryWordTree:
         out = np.full(len(w), -1, np.int64)
         if not len(w):
             return out
+        lo, span = int(w.min()), int(w.max()) - int(w.min())
         held = self._slot_word[:self._n_slots]
-        near = np.flatnonzero((held >= int(w.min())) & (held <= int(w.max())))  # Python ints: no int64 copy
+        # held - lo as uint32 (a Python int: no int64 copy): free slots (-1) and ids below
+        # lo wrap around above the span, so one comparison finds the range
+        near = np.flatnonzero((held - lo).view(np.uint32) <= span)
+        if span <= _SLOT_TABLE_SPAN:  # a table over the range: each id there is held once at most
+            table = np.full(span + 1, -1, np.int64)
+            table[held.take(near) - lo] = near
+            return table.take(w - lo)
         keys = held[near]
         order = np.argsort(keys)
         keys, near = keys[order], near[order]
@@ -821,6 +829,8 @@ class BinaryWordTree:
         word the tree does not hold) and ``(K,) bool`` whether it holds each."""
         slots = self.slots_of(words)
         found = slots >= 0
+        if found.all():
+            return self._desc.take(slots, axis=0), found
         out = np.zeros((len(slots), 4), np.uint64)
         out[found] = self._desc[slots[found]]
         return out, found
