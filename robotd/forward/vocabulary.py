@@ -128,9 +128,12 @@ class Vocabulary:
         self._seen = _GrowingInts(np.uint8)     # per word: images it was found in, counted to 2
         self._unpurged_from = 0                 # words below this id were all examined
         self.purged = 0
-        # What the last add() changed, for a store to write (robotd.io.store):
-        self.last_new: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros((0, dim)))
-        self.last_new_at = np.zeros(0, np.int64)  # the descriptors (of the last add()) that made them
+        # What the last add() changed, for a store to write (robotd.io.store): the new words'
+        # ids (a range) and, unless the search holds them (last_new reads them there), their
+        # descriptors
+        self._last_new_ids = (0, 0)
+        self._last_new_desc: np.ndarray | None = np.zeros((0, dim), np.uint8 if binary else np.float32)
+        self.last_new_at = np.zeros(0, np.int32)  # the descriptors (of the last add()) that made them
         self.last_purged = np.zeros(0, np.int64)
         self.last_purged_descriptors = np.zeros((0, dim), np.uint8 if binary else np.float32)
 
@@ -140,9 +143,22 @@ class Vocabulary:
 
     def memory_bytes(self) -> int:
         """Bytes of the word search (the tree's arrays, or usearch's own figure; reserved
-        capacity included) and the per-word counters."""
+        capacity included), the per-word counters, and what the last :meth:`add` changed
+        (kept for a store to write)."""
         search = self._tree.memory_bytes() if self._tree is not None else int(self._index.memory_usage)
-        return search + self._first.nbytes + self._seen.nbytes
+        last = (self.last_new_at, self.last_purged, self.last_purged_descriptors)
+        held = self._last_new_desc.nbytes if self._last_new_desc is not None else 0
+        return search + self._first.nbytes + self._seen.nbytes + sum(a.nbytes for a in last) + held
+
+    @property
+    def last_new(self) -> tuple[np.ndarray, np.ndarray]:
+        """The words the last :meth:`add` made: ids ``(K,) int64`` and descriptors ``(K,
+        dim)`` as added (read from the word tree when it holds them, so not kept twice)."""
+        lo, hi = self._last_new_ids
+        keys = np.arange(lo, hi, dtype=np.int64)
+        if self._last_new_desc is not None:
+            return keys, self._last_new_desc
+        return keys, self.word_descriptors(keys)
 
     @property
     def n_searchable(self) -> int:
@@ -262,16 +278,19 @@ class Vocabulary:
         self._first.resize(self._images + 1)
         self._first.view[self._images] = self._n_words
         self._images += 1
-        self.last_new = (np.zeros(0, np.int64), d[:0])
-        self.last_new_at = np.zeros(0, np.int64)
+        none = d[:0].copy()  # not a view: that would keep the caller's descriptors alive
+        self._last_new_ids, self._last_new_desc = (self._n_words, self._n_words), none
+        self.last_new_at = np.zeros(0, np.int32)
         self.last_purged = np.zeros(0, np.int64)
-        self.last_purged_descriptors = d[:0]
+        self.last_purged_descriptors = none
         # a word found twice in the image is written twice with the same value (no unique)
         found = words[words >= 0]
         self._seen.view[found] = np.minimum(self._seen.view[found], 1) + 1  # only "more than once" matters
         new = np.flatnonzero(words < 0)
         if not len(new):
             self._purge()
+            if self._tree is not None:
+                self._tree.last_greedy = None  # a view of the search's (N, beam) leaves: not kept
             return words, 0
         owner, founders = self._group(d[new])
         keys = np.arange(self._n_words, self._n_words + len(founders), dtype=np.int64)
@@ -280,6 +299,7 @@ class Vocabulary:
             greedy = self._tree.last_greedy
             self._tree.add(keys, pack_bits(d[new[founders]]),
                            None if greedy is None else greedy[new[founders]])
+            self._tree.last_greedy = None  # a view of the search's (N, beam) leaves: not kept
         else:
             self._index.add(keys, d[new[founders]], threads=1)
         self._n_words += len(founders)
@@ -287,8 +307,9 @@ class Vocabulary:
         self._seen.resize(n0 + len(founders))
         self._seen.view[n0:] = 1
         words[new] = self._n_words - len(founders) + owner
-        self.last_new = (keys, d[new[founders]])
-        self.last_new_at = new[founders]
+        self._last_new_ids = (int(keys[0]), int(keys[-1]) + 1)
+        self._last_new_desc = None if self._tree is not None else d[new[founders]]
+        self.last_new_at = new[founders].astype(np.int32)
         self._purge()
         return words, len(founders)
 
