@@ -133,6 +133,7 @@ class Vocabulary:
         # descriptors
         self._last_new_ids = (0, 0)
         self._last_new_desc: np.ndarray | None = np.zeros((0, dim), np.uint8 if binary else np.float32)
+        self._last_new_slots: np.ndarray | None = None  # their slots in the word tree, until the next add()
         self.last_new_at = np.zeros(0, np.int32)  # the descriptors (of the last add()) that made them
         self.last_purged = np.zeros(0, np.int64)
         self.last_purged_descriptors = np.zeros((0, dim), np.uint8 if binary else np.float32)
@@ -147,7 +148,7 @@ class Vocabulary:
         (kept for a store to write)."""
         search = self._tree.memory_bytes() if self._tree is not None else int(self._index.memory_usage)
         last = (self.last_new_at, self.last_purged, self.last_purged_descriptors)
-        held = self._last_new_desc.nbytes if self._last_new_desc is not None else 0
+        held = sum(a.nbytes for a in (self._last_new_desc, self._last_new_slots) if a is not None)
         return search + self._first.nbytes + self._seen.nbytes + sum(a.nbytes for a in last) + held
 
     @property
@@ -200,6 +201,12 @@ class Vocabulary:
         that does not lend: :attr:`lends`)."""
         if self._tree is None:
             raise LookupError("only the binary word tree gives its words' descriptors back")
+        w = np.asarray(words, np.int64)
+        lo, hi = self._last_new_ids
+        if self._last_new_slots is not None and len(w) and int(w.min()) >= lo and int(w.max()) < hi:
+            # the last add()'s words (the latest image's, as a store reads them): their slots are known
+            last: np.ndarray = self._tree._desc.take(self._last_new_slots.take(w - lo), axis=0).view(np.uint8)
+            return last
         d, found = self._tree.descriptors(words)
         if not found.all():
             raise LookupError(f"words {np.asarray(words)[~found][:5].tolist()} are not in the word search")
@@ -279,7 +286,7 @@ class Vocabulary:
         self._first.view[self._images] = self._n_words
         self._images += 1
         none = d[:0].copy()  # not a view: that would keep the caller's descriptors alive
-        self._last_new_ids, self._last_new_desc = (self._n_words, self._n_words), none
+        self._last_new_ids, self._last_new_desc, self._last_new_slots = (self._n_words, self._n_words), none, None
         self.last_new_at = np.zeros(0, np.int32)
         self.last_purged = np.zeros(0, np.int64)
         self.last_purged_descriptors = none
@@ -297,8 +304,8 @@ class Vocabulary:
         if self._tree is not None:
             # the search above left the tree as it was: its greedy leaves are where they go
             greedy = self._tree.last_greedy
-            self._tree.add(keys, pack_bits(d[new[founders]]),
-                           None if greedy is None else greedy[new[founders]])
+            self._last_new_slots = self._tree.add(keys, pack_bits(d[new[founders]]),
+                                                  None if greedy is None else greedy[new[founders]])
             self._tree.last_greedy = None  # a view of the search's (N, beam) leaves: not kept
         else:
             self._index.add(keys, d[new[founders]], threads=1)
@@ -712,14 +719,15 @@ class BinaryWordTree:
         best[at] = np.minimum(best[at], np.minimum.reduceat(key, start))
 
     # -- changes --------------------------------------------------------------------------
-    def add(self, words: np.ndarray, q: np.ndarray, leaves: np.ndarray | None = None) -> None:
+    def add(self, words: np.ndarray, q: np.ndarray, leaves: np.ndarray | None = None) -> np.ndarray:
         """Add words (ids ``(N,)`` int, new to the tree) with descriptors ``(N, 4) uint64``;
         ``leaves (N,)``: their greedy leaves when known (:attr:`last_greedy` of a search of
-        the unchanged tree), else they are found here."""
+        the unchanged tree), else they are found here. Returns their slots, ``(N,) int32``
+        (where :meth:`descriptors` reads them until a removal frees one)."""
         words = np.asarray(words, np.int64)
         if not len(words):
-            return
-        slots = self._new_slots(words, q)
+            return np.zeros(0, np.int32)
+        slots = added = self._new_slots(words, q)
         leaves = self._descend(q, 1)[:, 0] if leaves is None else np.asarray(leaves, np.int32)
         order = np.argsort(leaves, kind="stable")
         leaves, slots = leaves[order], slots[order]
@@ -743,6 +751,7 @@ class BinaryWordTree:
             for node in np.unique(leaves[over]).tolist():
                 self._put(node, slots[over & (leaves == node)])
         self.n_live += len(words)
+        return added
 
     def _new_slots(self, words: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Slots for new words (free ones first, then new rows), holding their descriptors."""

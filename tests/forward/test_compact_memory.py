@@ -168,7 +168,7 @@ def _structure_bound(det: ForwardDetector) -> dict[str, int]:
               + _capacity(slots + 1) * (32 + 4 + 2 + 1)                     # descriptor, word, row, position
               + 2 * _list_bytes(n_free) + _INT * n_free                     # free rows and slots: lists of ints
               + _capacity(n_words) + _capacity(n_images) * 4                # seen, first word per image
-              + 4 * (n_words - voc.image_words(n_images - 1)[0] if n_images else 0)  # the last add's founders
+              + 8 * (n_words - voc.image_words(n_images - 1)[0] if n_images else 0)  # the last add's founders, slots
               + (8 + 32) * len(voc.last_purged))                            # and the words it purged
     # a lent image: its keypoints (4 bytes each), the lent keypoints (2 bytes) and their
     # words' ranks unless they are 0 .. k - 1 (2 bytes), the other descriptors (32 bytes),
