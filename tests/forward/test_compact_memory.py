@@ -150,7 +150,8 @@ def _structure_bound(det: ForwardDetector) -> dict[str, int]:
     block = h >= (1 << 31)
     count = idx._post._store[(h[block] & 0x7FFFFFFF).astype(np.int64)].astype(np.int64)
     live = int((1 + _block_room(count)).sum()) if len(count) else 0
-    index = (_capacity(n_words) * (4 + 2 + 2)                  # head, df, occurrences
+    df_occ = _width(int(idx._df.view.max(initial=0))) + _width(int(idx.occurrences().max(initial=0)))
+    index = (_capacity(n_words) * (4 + df_occ)                 # head, df, occurrences (as narrow as they fit)
              + _capacity(live * 4 // 3) * 4                     # blocks of postings, those left behind
              + _capacity(n_slots) * 4)                          # words per image
     wm = det.memory
@@ -188,6 +189,11 @@ def _structure_bound(det: ForwardDetector) -> dict[str, int]:
 
 
 _INT = sys.getsizeof(1 << 20)
+
+
+def _width(top: int) -> int:
+    """Bytes per entry of a counter whose largest value is ``top`` (int8, int16, int32, int64)."""
+    return 1 if top <= 127 else 2 if top <= 32767 else 4 if top < 2**31 else 8
 
 
 def _list_bytes(n: int) -> int:
@@ -239,6 +245,10 @@ def test_the_latest_image_lends_at_once_and_keeps_its_words(corridor):
         np.testing.assert_array_equal(got.words, words)
         np.testing.assert_array_equal(got.descriptors, f.descriptors)
         np.testing.assert_array_equal(got.keypoints_q, compact(f, words).keypoints_q)
+        ids, descs = det.vocabulary.last_new  # the new words, as the daemon's store reads them
+        lo, hi = det.vocabulary.image_words(t)
+        np.testing.assert_array_equal(ids, np.arange(lo, hi))
+        np.testing.assert_array_equal(descs, f.descriptors[det.vocabulary.last_new_at])
         if t:
             assert len(det.features_of(t - 1).words) == 0
 
