@@ -49,7 +49,7 @@ from robotd.forward.filter import (FilterParams, diffusion_weights, predict, pre
 from robotd.forward.likelihood import LikelihoodMethod, adjust_likelihood
 from robotd.forward.memory import MemoryParams, WorkingMemory
 from robotd.forward.verify import TOO_FEW_MATCHES, Verification, VerifyParams, verify_pair
-from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams
+from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams, _grown
 
 __all__ = ["ACCEPT_PENDING", "Detection", "DetectionStatus", "DetectorParams", "ForwardDetector", "LOOP", "METHODS", "NO_HYPOTHESES",
            "LOW_POSTERIOR", "NOT_CONSISTENT_YET", "NO_GEOMETRIC_CONSISTENCY", "OdometryParams", "STAGES",
@@ -462,7 +462,7 @@ class ForwardDetector:
         self.resident = resident
         self._in_store = bytearray()  # per image: 1 once the loader can give its features
         self._size: tuple[int, int] = (0, 0)  # the latest lent image's size
-        self._made_at = np.zeros(0, np.int64)  # the latest image's founding keypoints
+        self._latest_words = np.zeros(0, np.uint32)  # the latest image's word ids (its record keeps none)
         self._read_back: OrderedDict[int, CompactFeatures] = OrderedDict()  # the latest read back
         self.read_back = 0  # images whose features the loader gave
         self.read_back_failed = 0  # images it could not give (their verification failed)
@@ -495,14 +495,16 @@ class ForwardDetector:
         """The stored features of a processed image (compact: word ids, keypoints in 1/16
         px, descriptors; they read like :class:`Features`); the word ids for the latest
         image only (empty for the others: the inverted index holds them). An image that
-        lends descriptors to the word search is put together anew (equal at each call, not
-        the same object). Those out of memory come from the :attr:`loader` (LookupError
-        when it cannot give them)."""
+        lends descriptors to the word search (the latest too) is put together anew (equal
+        at each call, not the same object). Those out of memory come from the
+        :attr:`loader` (LookupError when it cannot give them)."""
         kept = self._features[image_id]
         if isinstance(kept, LentFeatures):
             lo, _ = self.vocabulary.image_words(image_id)
-            return kept.with_descriptors(self.vocabulary.word_descriptors(lo + kept.lent_rank.astype(np.int64)))
+            kept = kept.with_descriptors(self.vocabulary.word_descriptors(lo + kept.lent_rank.astype(np.int64)))
         if kept is not None:
+            if image_id == len(self._features) - 1 and len(self._latest_words):
+                return replace(kept, words=self._latest_words.astype(np.uint32))
             return kept
         f = self._read_back.get(image_id)
         if f is not None:
@@ -619,8 +621,8 @@ class ForwardDetector:
     def _append_pose(self, pose: np.ndarray, var: np.ndarray) -> None:
         """The next image's pose and variances ``(3,)`` each (NaN: unknown)."""
         n = len(self._poses)
-        if n == len(self._pose_buf):
-            cap = max(64, 2 * n)
+        if n == len(self._pose_buf):  # grown as the word arrays are (no doubling: its spare half would stay)
+            cap = _grown(n)
             self._pose_buf = np.concatenate([self._pose_buf, np.full((cap - n, 3), np.nan)])
             self._var_buf = np.concatenate([self._var_buf, np.full((cap - n, 3), np.nan)])
         self._pose_buf[n] = pose
@@ -742,9 +744,9 @@ class ForwardDetector:
                 "vocabulary": self.vocabulary.memory_bytes()}
 
     def _bookkeeping_bytes(self) -> int:
-        """Bytes of the per-image list, flags, poses, posterior and hypothesis ids."""
+        """Bytes of the per-image list, flags, poses, posterior, hypothesis ids and the latest image's word ids."""
         return (sys.getsizeof(self._features) + len(self._in_store) + self._pose_buf.nbytes + self._var_buf.nbytes
-                + self._posterior.nbytes + self._hyp_ids.nbytes)
+                + self._posterior.nbytes + self._hyp_ids.nbytes + self._latest_words.nbytes)
 
     def process(self, image: np.ndarray, pose: np.ndarray | None = None,
                 pose_cov: np.ndarray | None = None, defer_accept: bool = False) -> Detection:
@@ -770,9 +772,8 @@ class ForwardDetector:
         times = {"features": features_s}
 
         t0 = clock()
-        made_at = self._made_at  # the previous image's founding keypoints
         words, new_words = self.vocabulary.add(feats.descriptors)
-        self._made_at = self.vocabulary.last_new_at
+        made_at = self.vocabulary.last_new_at  # this image's founding keypoints
         gone = self.vocabulary.last_purged
         if len(gone) and not p.memory.bounded:
             self.index.drop_postings(gone)  # no query can find them
@@ -830,13 +831,16 @@ class ForwardDetector:
 
         # I_t joins the inverted index after its own vote (its words are part of Z_t+1);
         # that bookkeeping counts as word search.
+        # The image lends its founding descriptors at once (the word search holds them from
+        # now on); its word ids stay beside it until the next image (features_of gives them),
+        # then live on in the index (and a map file) only.
         self.memory.add(t, words, t)
-        self._features.append(compact(feats, words))
+        latest = compact(feats, words)
+        self._features.append(self._keep(t, latest, made_at))
+        w = latest.words  # uint16 while the word ids fit (the first 65,536 words)
+        self._latest_words = w.astype(np.uint16) if len(w) and int(w.max()) <= 0xFFFF else w
         self._in_store.append(0)
-        if t:  # the word ids of older images live on in the index (and a map file) only
-            prev = self._features[t - 1]
-            if isinstance(prev, CompactFeatures):
-                self._features[t - 1] = self._keep(t - 1, prev, made_at)
+        if t:
             self._release(t - self.resident)
         self._append_pose(pose_now, var_now)
         t3b = clock()

@@ -162,17 +162,18 @@ class LentFeatures:
     word search still holds: the word's descriptor is that very descriptor) are left to
     the word search, so that the two do not both keep them.
 
-    One buffer ``data`` (uint8, one array rather than four: an array's own header is about
-    a hundred bytes): the descriptors of the keypoints not lent (``(n - k)`` x 32, in
-    keypoint order), the keypoints (``n`` x 2 uint16, 1/16 px, as
-    :attr:`CompactFeatures.keypoints_q`), the lent keypoints' indices (``k`` uint16,
-    increasing), and, when ``ranked``, their words' ranks among the words the image made
-    (``k`` uint16: word id minus the image's first word id; without, the ranks are 0 ..
-    k - 1: an image lends every word it made until the words seen once are purged).
+    One buffer ``data`` (bytes: one object rather than four arrays, and a bytes object's
+    own header is a third of an array's, about a hundred bytes): the descriptors of the
+    keypoints not lent (``(n - k)`` x 32, in keypoint order), the keypoints (``n`` x 2
+    uint16, 1/16 px, as :attr:`CompactFeatures.keypoints_q`), the lent keypoints' indices
+    (``k`` uint16, increasing), and, when ``ranked``, their words' ranks among the words
+    the image made (``k`` uint16: word id minus the image's first word id; without, the
+    ranks are 0 .. k - 1: an image lends every word it made until the words seen once are
+    purged).
     ``n`` keypoints, ``k`` lent. :meth:`with_descriptors` puts the image together again
     given the lent words' descriptors."""
 
-    data: np.ndarray
+    data: bytes
     n: int
     k: int
     image_size_px: tuple[int, int]
@@ -184,19 +185,19 @@ class LentFeatures:
     @property
     def own(self) -> np.ndarray:
         """``(n - k, 32) uint8``: the descriptors of the keypoints not lent, in keypoint order."""
-        return self.data[:32 * (self.n - self.k)].reshape(self.n - self.k, 32)
+        return np.frombuffer(self.data, np.uint8, 32 * (self.n - self.k)).reshape(self.n - self.k, 32)
 
     @property
     def keypoints_q(self) -> np.ndarray:
-        """``(n, 2) uint16`` keypoint positions, 1/16 px (a view)."""
+        """``(n, 2) uint16`` keypoint positions, 1/16 px (a read-only view)."""
         o = 32 * (self.n - self.k)
-        return self.data[o:o + 4 * self.n].view(np.uint16).reshape(self.n, 2)
+        return np.frombuffer(self.data, np.uint16, 2 * self.n, o).reshape(self.n, 2)
 
     @property
     def lent_at(self) -> np.ndarray:
-        """``(k,) uint16``: the lent keypoints, increasing (a view)."""
+        """``(k,) uint16``: the lent keypoints, increasing (a read-only view)."""
         o = 32 * (self.n - self.k) + 4 * self.n
-        return self.data[o:o + 2 * self.k].view(np.uint16)
+        return np.frombuffer(self.data, np.uint16, self.k, o)
 
     @property
     def lent_rank(self) -> np.ndarray:
@@ -204,12 +205,12 @@ class LentFeatures:
         if not self.ranked:
             return np.arange(self.k, dtype=np.uint16)
         o = 32 * (self.n - self.k) + 4 * self.n + 2 * self.k
-        return self.data[o:o + 2 * self.k].view(np.uint16)
+        return np.frombuffer(self.data, np.uint16, self.k, o)
 
     @property
     def nbytes(self) -> int:
         """Bytes of the buffer."""
-        return int(self.data.nbytes)
+        return len(self.data)
 
     def _rows(self, lent: np.ndarray) -> np.ndarray:
         """All ``n`` descriptors as ``(n, 4) uint64`` rows, ``lent (k, 32) uint8`` in :attr:`lent_at` order."""
@@ -217,7 +218,7 @@ class LentFeatures:
         mine = np.ones(self.n, bool)
         mine[at] = False
         d = np.empty((self.n, 4), np.uint64)
-        d[np.flatnonzero(mine)] = self.data[:32 * (self.n - self.k)].view(np.uint64).reshape(-1, 4)
+        d[np.flatnonzero(mine)] = np.frombuffer(self.data, np.uint64, 4 * (self.n - self.k)).reshape(-1, 4)
         d[at] = np.ascontiguousarray(lent, np.uint8).view(np.uint64).reshape(-1, 4)
         return d
 
@@ -263,7 +264,8 @@ def _pack(keypoints_q: np.ndarray, rows: np.ndarray, at: np.ndarray, rank: np.nd
     ranked = not np.array_equal(r, np.arange(k))
     parts = [np.compress(mine, rows, axis=0).view(np.uint8).reshape(-1),
              np.ascontiguousarray(keypoints_q, np.uint16).reshape(-1).view(np.uint8), np.asarray(at, np.uint16).view(np.uint8)]
-    return LentFeatures(np.concatenate(parts + [r.view(np.uint8)] if ranked else parts), n, k, size, ranked)
+    return LentFeatures(b"".join(p.tobytes() for p in (parts + [r.view(np.uint8)] if ranked else parts)), n, k, size,
+                        ranked)
 
 
 def lend(f: CompactFeatures, at: np.ndarray, rank: np.ndarray,

@@ -46,11 +46,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robotd.forward.vocabulary import InvertedIndex
+from robotd.forward.vocabulary import InvertedIndex, _GrowingInts
 
 __all__ = ["MemoryParams", "WorkingMemory"]
-
-_NONE = np.zeros(0, np.int32)
 
 
 @dataclass(frozen=True)
@@ -111,11 +109,13 @@ class WorkingMemory:
         self.index = index
         self.params = params
         self.protect_recent = protect_recent
-        self._words: list[np.ndarray] = []      # per place: its words (int32, repeats kept)
-        self._weight: list[int] = []            # per place: verified loops it took part in
-        self._used: list[int] = []              # per place: last image at which it was used
+        # per place, in arrays (not lists of Python ints and a set: about 100 bytes a place)
+        self._words: list[np.ndarray] = []      # its words (int32, repeats kept); bounded only
+        self._weight = _GrowingInts()           # verified loops it took part in
+        self._used = _GrowingInts()             # last image at which it was used
+        self._in_wm = _GrowingInts(np.uint8)    # 1 while in WM
+        self._n_wm = 0
         self._links: dict[int, set[int]] = {}   # place -> places it closed verified loops with
-        self._wm: set[int] = set()
         self._wm_sorted: np.ndarray | None = np.zeros(0, np.int64)
         self.transferred = 0                    # places moved to LTM, in all
         self.retrieved = 0                      # places brought back, in all
@@ -123,66 +123,67 @@ class WorkingMemory:
     # --- state ----------------------------------------------------------------------------
     def __len__(self) -> int:
         """Places in WM."""
-        return len(self._wm)
+        return self._n_wm
 
     @property
     def n_places(self) -> int:
         """Places known (WM and LTM)."""
-        return len(self._words)
+        return self._used.n
 
     @property
     def n_ltm(self) -> int:
-        return self.n_places - len(self._wm)
+        return self.n_places - self._n_wm
 
     @property
     def dense(self) -> bool:
         """True while WM holds every place (nothing ever left, or all came back)."""
-        return len(self._wm) == len(self._words)
+        return self._n_wm == self.n_places
 
     def __contains__(self, place: int) -> bool:
-        return place in self._wm
+        return 0 <= place < self.n_places and bool(self._in_wm.view[place])
 
     def ids(self) -> np.ndarray:
         """``(n,) int64``: the places in WM, sorted."""
         if self._wm_sorted is None:
-            self._wm_sorted = np.fromiter(sorted(self._wm), np.int64, len(self._wm))
+            self._wm_sorted = np.flatnonzero(self._in_wm.view).astype(np.int64)
         return self._wm_sorted
 
     def weight(self, place: int) -> int:
-        return self._weight[place]
+        return int(self._weight.view[place])
 
     def memory_bytes(self) -> int:
-        """Bytes of the stored words (all places; arrays with their headers) and the
-        per-place state: the lists' and the set's own tables, and an int object per place
-        (its id and last use; the ints beyond the few Python shares)."""
-        words = sum(sys.getsizeof(w) for w in self._words if w is not _NONE)
-        tables = sum(sys.getsizeof(x) for x in (self._words, self._weight, self._used, self._wm))
-        return words + tables + sys.getsizeof(1 << 20) * len(self._words)
+        """Bytes of the stored words (a bounded memory's, all places: arrays with their
+        headers, and their list) and the per-place arrays (their spare capacity included,
+        and the sorted ids when they are kept)."""
+        words = sum(sys.getsizeof(w) for w in self._words) + (sys.getsizeof(self._words) if self._words else 0)
+        ids = self._wm_sorted.nbytes if self._wm_sorted is not None else 0
+        return words + self._weight.nbytes + self._used.nbytes + self._in_wm.nbytes + ids
 
     # --- changes --------------------------------------------------------------------------
     def add(self, place: int, words: np.ndarray, now: int) -> None:
         """A new place (image ``place``) with its words joins WM and the index."""
-        if place != len(self._words):
-            raise ValueError(f"places are added in order: expected {len(self._words)}, got {place}")
+        if place != self.n_places:
+            raise ValueError(f"places are added in order: expected {self.n_places}, got {place}")
         w = np.asarray(words, np.int64)
         self.index.add_image(place, w)
-        # Without a bound nothing ever leaves: keep no copy of the words.
-        self._words.append(w.astype(np.int32) if self.params.bounded else _NONE)
-        self._weight.append(0)
-        self._used.append(now)
-        self._wm.add(place)
+        if self.params.bounded:  # without a bound nothing ever leaves: no copy of the words
+            self._words.append(w.astype(np.int32))
+        for a in (self._weight, self._used, self._in_wm):
+            a.resize(place + 1)
+        self._used.view[place] = now
+        self._in_wm.view[place] = 1
+        self._n_wm += 1
         self._wm_sorted = None
 
     def touch(self, places: np.ndarray | list[int], now: int) -> None:
         """Mark WM places as used at image ``now``."""
-        for p in np.asarray(places, np.int64).tolist():
-            self._used[p] = now
+        self._used.view[np.asarray(places, np.int64)] = now
 
     def link(self, a: int, b: int) -> None:
         """A verified loop between places ``a`` and ``b``: both weigh one more and each
         becomes a retrieval neighbour of the other."""
         for x, y in ((a, b), (b, a)):
-            self._weight[x] += 1
+            self._weight.view[x] += 1
             self._links.setdefault(x, set()).add(y)
 
     def retrieve_around(self, place: int, now: int) -> list[int]:
@@ -191,20 +192,21 @@ class WorkingMemory:
         p = self.params
         if not p.max_retrieved or self.dense:
             return []
-        want: list[int] = sorted(x for x in self._links.get(place, ()) if x not in self._wm)
+        want: list[int] = sorted(x for x in self._links.get(place, ()) if x not in self)
         for d in range(1, p.retrieve_radius + 1):
             for q in (place - d, place + d):
-                if 0 <= q < len(self._words) and q not in self._wm:
+                if 0 <= q < self.n_places and q not in self:
                     want.append(q)
         out: list[int] = []
         for q in want:
             if len(out) == p.max_retrieved:
                 break
-            if q in self._wm:
+            if q in self:
                 continue
             self.index.add_image(q, self._words[q])
-            self._wm.add(q)
-            self._used[q] = now
+            self._in_wm.view[q] = 1
+            self._n_wm += 1
+            self._used.view[q] = now
             out.append(q)
         if out:
             self._wm_sorted = None
@@ -216,22 +218,24 @@ class WorkingMemory:
         took ``over_budget`` times the time budget (> 1), that share of the places more;
         returns them (least recently used, then lowest weight, then oldest first; never the
         last ``protect_recent`` images nor a place used at ``now``)."""
-        cap = self.params.max_places if self.params.max_places is not None else len(self._wm)
+        n_wm = self._n_wm
+        cap = self.params.max_places if self.params.max_places is not None else n_wm
         if over_budget > 1.0:
-            cap = min(cap, len(self._wm) - math.ceil(len(self._wm) * (1.0 - 1.0 / over_budget)))
-        if len(self._wm) <= cap:
+            cap = min(cap, n_wm - math.ceil(n_wm * (1.0 - 1.0 / over_budget)))
+        if n_wm <= cap:
             return []
         ids = self.ids()
         movable = ids[ids <= now - self.protect_recent]
-        used = np.asarray([self._used[i] for i in movable.tolist()], np.int64)
+        used = self._used.view[movable].astype(np.int64)
         movable, used = movable[used < now], used[used < now]
-        weight = np.asarray([self._weight[i] for i in movable.tolist()], np.int64)
-        n_out = len(self._wm) - cap  # fewer when not enough may move (a time budget)
+        weight = self._weight.view[movable].astype(np.int64)
+        n_out = n_wm - cap  # fewer when not enough may move (a time budget)
         order = np.lexsort((movable, weight, used))[:n_out]
         out = sorted(movable[order].tolist())
         for q in out:
             self.index.remove_image(q, self._words[q])
-            self._wm.discard(q)
+            self._in_wm.view[q] = 0
+            self._n_wm -= 1
         self._wm_sorted = None
         self.transferred += len(out)
         return out

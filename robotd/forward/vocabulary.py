@@ -128,9 +128,13 @@ class Vocabulary:
         self._seen = _GrowingInts(np.uint8)     # per word: images it was found in, counted to 2
         self._unpurged_from = 0                 # words below this id were all examined
         self.purged = 0
-        # What the last add() changed, for a store to write (robotd.io.store):
-        self.last_new: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros((0, dim)))
-        self.last_new_at = np.zeros(0, np.int64)  # the descriptors (of the last add()) that made them
+        # What the last add() changed, for a store to write (robotd.io.store): the new words'
+        # ids (a range) and, unless the search holds them (last_new reads them there), their
+        # descriptors
+        self._last_new_ids = (0, 0)
+        self._last_new_desc: np.ndarray | None = np.zeros((0, dim), np.uint8 if binary else np.float32)
+        self._last_new_slots: np.ndarray | None = None  # their slots in the word tree, until the next add()
+        self.last_new_at = np.zeros(0, np.int32)  # the descriptors (of the last add()) that made them
         self.last_purged = np.zeros(0, np.int64)
         self.last_purged_descriptors = np.zeros((0, dim), np.uint8 if binary else np.float32)
 
@@ -140,9 +144,22 @@ class Vocabulary:
 
     def memory_bytes(self) -> int:
         """Bytes of the word search (the tree's arrays, or usearch's own figure; reserved
-        capacity included) and the per-word counters."""
+        capacity included), the per-word counters, and what the last :meth:`add` changed
+        (kept for a store to write)."""
         search = self._tree.memory_bytes() if self._tree is not None else int(self._index.memory_usage)
-        return search + self._first.nbytes + self._seen.nbytes
+        last = (self.last_new_at, self.last_purged, self.last_purged_descriptors)
+        held = sum(a.nbytes for a in (self._last_new_desc, self._last_new_slots) if a is not None)
+        return search + self._first.nbytes + self._seen.nbytes + sum(a.nbytes for a in last) + held
+
+    @property
+    def last_new(self) -> tuple[np.ndarray, np.ndarray]:
+        """The words the last :meth:`add` made: ids ``(K,) int64`` and descriptors ``(K,
+        dim)`` as added (read from the word tree when it holds them, so not kept twice)."""
+        lo, hi = self._last_new_ids
+        keys = np.arange(lo, hi, dtype=np.int64)
+        if self._last_new_desc is not None:
+            return keys, self._last_new_desc
+        return keys, self.word_descriptors(keys)
 
     @property
     def n_searchable(self) -> int:
@@ -184,6 +201,12 @@ class Vocabulary:
         that does not lend: :attr:`lends`)."""
         if self._tree is None:
             raise LookupError("only the binary word tree gives its words' descriptors back")
+        w = np.asarray(words, np.int64)
+        lo, hi = self._last_new_ids
+        if self._last_new_slots is not None and len(w) and int(w.min()) >= lo and int(w.max()) < hi:
+            # the last add()'s words (the latest image's, as a store reads them): their slots are known
+            last: np.ndarray = self._tree._desc.take(self._last_new_slots.take(w - lo), axis=0).view(np.uint8)
+            return last
         d, found = self._tree.descriptors(words)
         if not found.all():
             raise LookupError(f"words {np.asarray(words)[~found][:5].tolist()} are not in the word search")
@@ -262,24 +285,28 @@ class Vocabulary:
         self._first.resize(self._images + 1)
         self._first.view[self._images] = self._n_words
         self._images += 1
-        self.last_new = (np.zeros(0, np.int64), d[:0])
-        self.last_new_at = np.zeros(0, np.int64)
+        none = d[:0].copy()  # not a view: that would keep the caller's descriptors alive
+        self._last_new_ids, self._last_new_desc, self._last_new_slots = (self._n_words, self._n_words), none, None
+        self.last_new_at = np.zeros(0, np.int32)
         self.last_purged = np.zeros(0, np.int64)
-        self.last_purged_descriptors = d[:0]
+        self.last_purged_descriptors = none
         # a word found twice in the image is written twice with the same value (no unique)
         found = words[words >= 0]
         self._seen.view[found] = np.minimum(self._seen.view[found], 1) + 1  # only "more than once" matters
         new = np.flatnonzero(words < 0)
         if not len(new):
             self._purge()
+            if self._tree is not None:
+                self._tree.last_greedy = None  # a view of the search's (N, beam) leaves: not kept
             return words, 0
         owner, founders = self._group(d[new])
         keys = np.arange(self._n_words, self._n_words + len(founders), dtype=np.int64)
         if self._tree is not None:
             # the search above left the tree as it was: its greedy leaves are where they go
             greedy = self._tree.last_greedy
-            self._tree.add(keys, pack_bits(d[new[founders]]),
-                           None if greedy is None else greedy[new[founders]])
+            self._last_new_slots = self._tree.add(keys, pack_bits(d[new[founders]]),
+                                                  None if greedy is None else greedy[new[founders]])
+            self._tree.last_greedy = None  # a view of the search's (N, beam) leaves: not kept
         else:
             self._index.add(keys, d[new[founders]], threads=1)
         self._n_words += len(founders)
@@ -287,8 +314,9 @@ class Vocabulary:
         self._seen.resize(n0 + len(founders))
         self._seen.view[n0:] = 1
         words[new] = self._n_words - len(founders) + owner
-        self.last_new = (keys, d[new[founders]])
-        self.last_new_at = new[founders]
+        self._last_new_ids = (int(keys[0]), int(keys[-1]) + 1)
+        self._last_new_desc = None if self._tree is not None else d[new[founders]]
+        self.last_new_at = new[founders].astype(np.int32)
         self._purge()
         return words, len(founders)
 
@@ -421,18 +449,22 @@ def pack_bits(descriptors: np.ndarray) -> np.ndarray:
 
 
 def _grown(n: int) -> int:
-    """The capacity a growing array of capacity ``n`` takes next: an eighth more (amortised
-    O(1) appends as with doubling, but at most a ninth of the memory is spare room; the
-    per-word arrays hold every word ever made, the word tree's per-slot arrays every word
-    it can find)."""
-    return n + n // 8 + 16
+    """The capacity a growing array of capacity ``n`` takes next: a thirty-second more and
+    16 (amortised O(1) appends as with doubling, but at most about a thirty-second of the
+    memory is spare room, and an array starts at 16 entries, not a fixed larger first
+    block: the per-word arrays hold every word ever made, the word tree's per-slot arrays
+    every word it can find, and they all grow at the same images, so their spare room adds
+    up; over a run's first images every word made is searchable). Copying an array a
+    thirty-second larger each time costs little beside the search over it."""
+    return n + n // 32 + 16
 
 
 _INT_BYTES = sys.getsizeof(1 << 20)  # a Python int beyond the small ones it shares (28 bytes)
-_LEAF_BLOCK = 16           # a leaf's block in the word tree's pool: a multiple of this many entries
+_LEAF_BLOCK = 16          # a leaf's block in the word tree's pool: a multiple of this many entries
 _FAR = np.int32(1 << 20)  # a distance no real pair reaches (256 bits at most)
 _PREFILTER_BITS = 20       # see BinaryWordTree.nearest
 _NO_KEY = np.int64(np.iinfo(np.int64).max)  # no word found yet (BinaryWordTree._scan)
+_SLOT_TABLE_SPAN = 1 << 16  # BinaryWordTree.slots_of: ids spread over at most this many by a table
 
 
 @dataclass(frozen=True)
@@ -477,9 +509,9 @@ class BinaryWordTree:
         self.params = params
         b = params.branching
         # nodes
-        self._centre = np.zeros((16, 4), np.uint64)
-        self._child = np.full((16, b), -1, np.int16)   # int32 once there are more nodes
-        self._leaf_row = np.full(16, -1, np.int32)      # per node: its row in the pool, -1 inner
+        self._centre = np.zeros((2, 4), np.uint64)
+        self._child = np.full((2, b), -1, np.int16)    # int32 once there are more nodes
+        self._leaf_row = np.full(2, -1, np.int32)       # per node: its row in the pool, -1 inner
         self._n_nodes = 1
         # leaves: each a row, whose slots lie in order in a block of one flat pool: a block
         # holds the leaf's words and room for a few more (a multiple of _LEAF_BLOCK, not
@@ -487,21 +519,21 @@ class BinaryWordTree:
         # parent's split); a leaf that outgrows its block moves to a longer one at the
         # pool's end, and the pool is compacted once the blocks left behind take a quarter
         # of it
-        self._pool = np.full(64, -1, np.int32)
+        self._pool = np.full(0, -1, np.int32)
         self._pool_end = 0                               # the pool's used length
         self._pool_dead = 0                              # of it, in blocks left behind
-        self._row_start = np.zeros(16, np.int32)         # per row: its block's start in the pool
-        self._row_cap = np.zeros(16, np.int32)           # per row: its block's length
-        self._fill = np.zeros(16, np.int32)
+        self._row_start = np.zeros(1, np.int32)          # per row: its block's start in the pool
+        self._row_cap = np.zeros(1, np.int32)            # per row: its block's length
+        self._fill = np.zeros(1, np.int32)
         self._n_rows = 1
         self._free_rows: list[int] = []
         self._leaf_row[0] = 0
         self._child[0, 0] = 0                            # the root, a leaf to begin with
         # words: one slot each (descriptor, word id, leaf row, position in it)
-        self._desc = np.zeros((64, 4), np.uint64)
-        self._slot_word = np.full(64, -1, np.int32)
-        self._slot_row = np.zeros(64, np.int16)         # int32 once there are more rows
-        self._slot_pos = np.zeros(64, np.uint8 if params.leaf_size <= 256 else np.int32)
+        self._desc = np.zeros((1, 4), np.uint64)
+        self._slot_word = np.full(0, -1, np.int32)
+        self._slot_row = np.zeros(0, np.int16)          # int32 once there are more rows
+        self._slot_pos = np.zeros(0, np.uint8 if params.leaf_size <= 256 else np.int32)
         self._n_slots = 0
         self._free_slots: list[int] = []
         self.n_live = 0
@@ -594,7 +626,7 @@ class BinaryWordTree:
         cap_l = cap[live]
         start = np.cumsum(cap_l) - cap_l
         total = int(cap_l.sum())
-        pool = np.full(max(_grown(total), 64), -1, np.int32)
+        pool = np.full(_grown(total), -1, np.int32)
         if total:
             within = np.arange(total) - np.repeat(start, cap_l)
             pool[:total] = self._pool[np.repeat(self._row_start[live], cap_l) + within]
@@ -687,14 +719,15 @@ class BinaryWordTree:
         best[at] = np.minimum(best[at], np.minimum.reduceat(key, start))
 
     # -- changes --------------------------------------------------------------------------
-    def add(self, words: np.ndarray, q: np.ndarray, leaves: np.ndarray | None = None) -> None:
+    def add(self, words: np.ndarray, q: np.ndarray, leaves: np.ndarray | None = None) -> np.ndarray:
         """Add words (ids ``(N,)`` int, new to the tree) with descriptors ``(N, 4) uint64``;
         ``leaves (N,)``: their greedy leaves when known (:attr:`last_greedy` of a search of
-        the unchanged tree), else they are found here."""
+        the unchanged tree), else they are found here. Returns their slots, ``(N,) int32``
+        (where :meth:`descriptors` reads them until a removal frees one)."""
         words = np.asarray(words, np.int64)
         if not len(words):
-            return
-        slots = self._new_slots(words, q)
+            return np.zeros(0, np.int32)
+        slots = added = self._new_slots(words, q)
         leaves = self._descend(q, 1)[:, 0] if leaves is None else np.asarray(leaves, np.int32)
         order = np.argsort(leaves, kind="stable")
         leaves, slots = leaves[order], slots[order]
@@ -718,6 +751,7 @@ class BinaryWordTree:
             for node in np.unique(leaves[over]).tolist():
                 self._put(node, slots[over & (leaves == node)])
         self.n_live += len(words)
+        return added
 
     def _new_slots(self, words: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Slots for new words (free ones first, then new rows), holding their descriptors."""
@@ -803,8 +837,15 @@ class BinaryWordTree:
         out = np.full(len(w), -1, np.int64)
         if not len(w):
             return out
+        lo, span = int(w.min()), int(w.max()) - int(w.min())
         held = self._slot_word[:self._n_slots]
-        near = np.flatnonzero((held >= int(w.min())) & (held <= int(w.max())))  # Python ints: no int64 copy
+        # held - lo as uint32 (a Python int: no int64 copy): free slots (-1) and ids below
+        # lo wrap around above the span, so one comparison finds the range
+        near = np.flatnonzero((held - lo).view(np.uint32) <= span)
+        if span <= _SLOT_TABLE_SPAN:  # a table over the range: each id there is held once at most
+            table = np.full(span + 1, -1, np.int64)
+            table[held.take(near) - lo] = near
+            return table.take(w - lo)
         keys = held[near]
         order = np.argsort(keys)
         keys, near = keys[order], near[order]
@@ -818,6 +859,8 @@ class BinaryWordTree:
         word the tree does not hold) and ``(K,) bool`` whether it holds each."""
         slots = self.slots_of(words)
         found = slots >= 0
+        if found.all():
+            return self._desc.take(slots, axis=0), found
         out = np.zeros((len(slots), 4), np.uint64)
         out[found] = self._desc[slots[found]]
         return out, found
@@ -855,15 +898,15 @@ class BinaryWordTree:
         return gone
 
 
-_WIDER: dict[type, type] = {np.int16: np.int32, np.int32: np.int64}
-_TOP: dict[type, int] = {t: int(np.iinfo(t).max) for t in (np.int16, np.int32, np.int64)}
+_WIDER: dict[type, type] = {np.int8: np.int16, np.int16: np.int32, np.int32: np.int64}
+_TOP: dict[type, int] = {t: int(np.iinfo(t).max) for t in (np.int8, np.int16, np.int32, np.int64)}
 
 
 class _GrowingInts:
-    """An integer array (int32 unless told) that grows by an eighth (:func:`_grown`; amortised O(1) append)."""
+    """An integer array (int32 unless told) that grows by a thirty-second (:func:`_grown`; amortised O(1) append)."""
 
     def __init__(self, dtype: type = np.int32) -> None:
-        self._a: np.ndarray = np.zeros(64, dtype)
+        self._a: np.ndarray = np.zeros(0, dtype)
         self.n = 0
 
     def resize(self, n: int) -> None:
@@ -911,7 +954,7 @@ class _Postings:
 
     def __init__(self) -> None:
         self.head = _GrowingInts(np.uint32)
-        self._store = np.zeros(64, np.uint32)
+        self._store = np.zeros(2, np.uint32)  # gather reads entries 0 and 1 for a word without a block
         self._end = 0           # the store's used length
         self._dead = 0          # of it, in blocks left behind (at least)
 
@@ -1027,7 +1070,7 @@ class _Postings:
         size = 1 + _block_room(cnt) if len(cnt) else np.zeros(0, np.int64)
         start = np.cumsum(size) - size
         end = int(size.sum())
-        store = np.zeros(max(_grown(end), 64), np.uint32)
+        store = np.zeros(_grown(end), np.uint32)
         if len(cnt):
             n = cnt + 1                                     # the count and the postings
             within = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
@@ -1061,9 +1104,10 @@ class InvertedIndex:
         # Postings: per word, slot << _COUNT_BITS | n(w, i) of each image it is in (4 bytes
         # an entry, in flat arrays: no object per word)
         self._post = _Postings()
-        # (2 bytes a word until a count passes 32,767: most words are seen a few times)
-        self._df = _GrowingInts(np.int16)        # per word: images containing it
-        self._occ = _GrowingInts(np.int16)       # per word: total occurrences
+        # (1 byte a word until a count passes 127, then 2 until one passes 32,767: most words
+        # are seen a few times; counters start narrow and widen, :meth:`_GrowingInts.add`)
+        self._df = _GrowingInts(np.int8)         # per word: images containing it
+        self._occ = _GrowingInts(np.int8)        # per word: total occurrences
         self._image_len = _GrowingInts()         # per slot: n(i), words (with repeats) in the image
         self._image_ids = _GrowingInts()         # per slot: the image in it, -1 when free
         # per image id: its slot + 1 when indexed, 0 never added, -1 removed (it may be
@@ -1245,13 +1289,17 @@ class InvertedIndex:
         most frequent word is seen at least ``floor`` times, so every word that can be
         among the ``n`` (ties included) is a candidate and the choice is the one over all
         words. The candidates are chosen again over all words after a removal (counts
-        fall), or when they number fewer than ``n`` or many more."""
+        fall), or when they number fewer than ``n`` or many more; so many (over the first
+        images, when most words are seen once) are not kept: the choice is the same with
+        any candidates that hold every word that can be among the ``n``."""
         if not self.n_images or not self._total:
             return np.zeros(0, np.int64)
         n = max(1, int(round(self._total / self.n_images)))
         cand = self._v_cand
         if cand is None or len(cand) < n or len(cand) > 4 * n + _VIRTUAL_MARGIN:
             cand = self._virtual_candidates(n + _VIRTUAL_MARGIN)
+            if len(cand) > 4 * n + _VIRTUAL_MARGIN:  # they would be chosen again next time
+                self._v_cand = None
         occ = self._occ.view[cand]
         n = min(n, len(cand))  # fewer candidates only when fewer words are in use
         # Stable sort on -occurrences: equal counts keep word-id order.

@@ -245,3 +245,29 @@ def test_the_vectorised_leaf_scan_is_the_plain_scan_after_removals():
     assert (ref[0] >= 0).sum() > len(q) // 2         # the prefilter lets words through
     np.testing.assert_array_equal(got[0], ref[0])
     np.testing.assert_array_equal(got[1], ref[1])
+
+
+@pytest.mark.parametrize("spread", [1, 1000], ids=["narrow ids (a table)", "ids spread wider than the table"])
+def test_slots_and_descriptors_of_words_are_where_the_words_were_put(spread):
+    """``slots_of`` finds each held word's slot (after removals, freed slots taken by new
+    words) and -1 for words not held (removed, never added, between held ids), whether
+    the ids asked for lie close together or far apart; ``descriptors`` reads each held
+    word's descriptor as added."""
+    rng = np.random.default_rng(5)
+    tree = BinaryWordTree(TreeParams(branching=4, leaf_size=16, beam=2))
+    ids = np.arange(300, dtype=np.int64) * spread
+    a = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+    tree.add(ids[:200], pack_bits(a[:200]))
+    tree.remove(ids[:200:3])
+    tree.add(ids[200:], pack_bits(a[200:]))
+    held = np.ones(300, bool)
+    held[:200:3] = False
+    ask = np.concatenate([ids, ids[1:] - 1 if spread > 1 else np.zeros(0, np.int64), [ids[-1] + 1]])
+    slots = tree.slots_of(ask)
+    want = {int(w): s for s, w in enumerate(tree._slot_word[:tree._n_slots].tolist()) if w >= 0}
+    assert slots.tolist() == [want.get(int(w), -1) for w in ask]
+    assert (slots[:300] >= 0).tolist() == held.tolist()
+    d, found = tree.descriptors(ids)
+    assert found.tolist() == held.tolist()
+    np.testing.assert_array_equal(d[held].view(np.uint8), a[held])
+    assert not d[~held].any()
