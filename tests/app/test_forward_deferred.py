@@ -140,17 +140,23 @@ def test_the_queue_bound_must_be_positive():
 
 
 def test_the_config_sets_the_queue_of_waiting_tests_or_turns_the_deferral_off():
-    """``[forward_detector] max_deferred_tests`` reaches the stage: 0 runs every level test in
-    its own keyframe, N > 0 lets N wait."""
+    """``[forward_detector] max_deferred_tests`` reaches the stage: 0 runs every image's
+    verification in its own keyframe, N > 0 lets N wait; ``checks_per_keyframe`` is the
+    stage's budget of checks (0: none, the queue of level tests alone)."""
     from robotd.app.assemble import build_forward_stage
     from robotd.base.config import Config, replace
 
+    def shape(cfg: Config) -> tuple[bool, int, int | None]:
+        st = build_forward_stage(cfg)
+        return st.defer_accept, st.max_deferred, st.check_budget
+
     on = replace(Config(), "forward_detector", enabled=True)
-    assert (build_forward_stage(on).defer_accept, build_forward_stage(on).max_deferred) == (True, 4)
-    seven = replace(on, "forward_detector", max_deferred_tests=7)
-    assert (build_forward_stage(seven).defer_accept, build_forward_stage(seven).max_deferred) == (True, 7)
+    assert shape(on) == (True, 8, 1)
+    assert shape(replace(on, "forward_detector", max_deferred_tests=7)) == (True, 7, 1)
+    assert shape(replace(on, "forward_detector", checks_per_keyframe=3)) == (True, 8, 3)
+    assert shape(replace(on, "forward_detector", checks_per_keyframe=0)) == (True, 8, None)
     off = replace(on, "forward_detector", max_deferred_tests=0)
-    assert build_forward_stage(off).defer_accept is False
+    assert shape(off)[0] is False and shape(off)[2] is None
 
 
 def test_a_view_in_another_odometry_chain_is_tested_at_once():

@@ -79,6 +79,27 @@ one waited. A view of another odometry chain than the image's (across a kidnappi
 restart: the loop may relocalise the robot) never waits: its test runs in its own keyframe
 (``forward_deferred_across``), so the deferral does not delay a relocalisation.
 
+**A budget of checks** (``check_budget``, ``[forward_detector] checks_per_keyframe``). The
+queue of level tests alone left the costliest keyframes to the images verified in their own
+keyframe: on the office route's revisits every forward keyframe verifies, the queue fills,
+and an image that finds it full runs its views' epipolar checks (several views, each an
+essential matrix, a homography and a pose) and its test in its own keyframe. With a budget
+the image's verification itself is split: each forward keyframe runs at most
+``check_budget`` epipolar checks, a level test counting :data:`TEST_CHECKS`, on the waiting
+verifications first, the oldest first, and on its own image's only when none waits
+(:meth:`robotd.forward.ForwardDetector.process` ``max_checks``, then
+:meth:`~robotd.forward.ForwardDetector.resume` with the budget left, call after call); what
+the budget leaves waits for the next forward keyframes. The count is of checks, not of
+time, so the same input gives the same schedule and the same loops whatever the load: each
+piece of the verification reads its image's own job (its features, its views in order, the
+checks so far) and context, never the images run since. At most ``max_deferred`` images
+wait after a keyframe; more finish the oldest at once, over the budget
+(``forward_deferred_forced``); those still waiting at the end of the input run then; a
+verification with a view of another odometry chain runs whole in its own keyframe
+(``forward_deferred_across``). ``forward_checks_max`` is the most checks (tests included) one
+forward keyframe ran, ``forward_checks_over_budget`` the keyframes over the budget
+(forced or across).
+
 The forward frame is up to ``sync_tolerance_s`` off its keyframe's stamp (33 ms at the
 demo's 15 frames a second: 1 cm and 1 deg at its speeds), while the loop is an edge
 between the two keyframes. The stage keeps the last seconds of the wheel odometry
