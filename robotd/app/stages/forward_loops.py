@@ -1121,7 +1121,7 @@ class ForwardLoopStage(Publisher):
         finally:
             self._current, self._image = None, None
         spent = (self.tests - tests) * TEST_CHECKS + job.checks - checks
-        if out is job:  # stopped by the budget, or at a view awaiting its test
+        if out is job or isinstance(out, PendingVerification):  # stopped by the budget, or at a view awaiting its test
             d.last_refused, self._last_refused = self._last_refused, None
             return spent
         status, j, v = out
