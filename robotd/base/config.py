@@ -334,7 +334,7 @@ class ForwardDetectorConfig:
                                  lo=0.0, hi=1.0)
     sigma_bearing_deg: float = _f(2.0, "1-sigma of a loop's translation direction", lo=0.01, hi=90.0)
     sigma_yaw_deg: float = _f(1.0, "1-sigma of a loop's heading change", lo=0.01, hi=90.0)
-    max_deferred_tests: int = _f(8, "images whose verification (epipolar checks, level tests: the planar "
+    max_deferred_tests: int = _f(16, "images whose verification (epipolar checks, level tests: the planar "
                                  "scan, the ridge's fits) may wait for later forward keyframes, to keep a "
                                  "keyframe's CPU bounded; more finish the oldest at once; their loops reach "
                                  "the pose graph that much later (0: every image verified in its own keyframe)",
