@@ -151,11 +151,12 @@ def test_the_config_sets_the_queue_of_waiting_tests_or_turns_the_deferral_off():
         return st.defer_accept, st.max_deferred, st.check_budget
 
     on = replace(Config(), "forward_detector", enabled=True)
-    assert shape(on) == (True, 16, 1)
-    assert shape(replace(on, "forward_detector", max_deferred_tests=7)) == (True, 7, 1)
-    assert shape(replace(on, "forward_detector", checks_per_keyframe=3)) == (True, 16, 3)
-    assert shape(replace(on, "forward_detector", checks_per_keyframe=0)) == (True, 16, None)
-    off = replace(on, "forward_detector", max_deferred_tests=0)
+    assert shape(on) == (True, 4, None)
+    assert shape(replace(on, "forward_detector", max_deferred_tests=7)) == (True, 7, None)
+    budget = replace(on, "forward_detector", checks_per_keyframe=1, max_deferred_tests=16)
+    assert shape(budget) == (True, 16, 1)
+    assert shape(replace(budget, "forward_detector", checks_per_keyframe=3)) == (True, 16, 3)
+    off = replace(budget, "forward_detector", max_deferred_tests=0)
     assert shape(off)[0] is False and shape(off)[2] is None
 
 
