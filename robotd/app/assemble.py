@@ -246,7 +246,9 @@ def build_forward_stage(cfg: Config, store: MapStore | None = None) -> Any:
                             rotation_rad=math.radians(f.rotation_deg), sync_tolerance_s=f.sync_tolerance_s,
                             store=store, mount=forward_mount(cfg),
                             ridge=RidgeParams(edge_sigma_yaw_rad=math.radians(f.sigma_yaw_deg)),
-                            defer_accept=f.max_deferred_tests > 0, max_deferred=max(1, f.max_deferred_tests))
+                            defer_accept=f.max_deferred_tests > 0, max_deferred=max(1, f.max_deferred_tests),
+                            check_budget=f.checks_per_keyframe if f.max_deferred_tests and f.checks_per_keyframe
+                            else None)
 
 
 #: The relative scale errors ``(wheel distance, gyro)`` (1-sigma) of a base run on its

@@ -169,10 +169,12 @@ def print_summary(s: Summary, f: TextIO) -> None:
                   f"{od['frames_evicted']} frames pushed out of the buffer", file=f)
         dq = fw.get("deferred")
         if dq is not None and (dq["deferred"] or dq["inline"] or dq.get("across")):
-            print(f"  level tests left to a later forward keyframe that verified nothing: {dq['deferred']} "
+            print(f"  verifications left to later forward keyframes: {dq['deferred']} "
                   f"(waited up to {dq['wait_max']} keyframes; {dq['at_end']} at the end of the input), "
-                  f"{dq['inline']} run in their own keyframe (the queue full), {dq.get('across', 0)} at once "
-                  f"(a view of another odometry chain)", file=f)
+                  f"{dq['inline']} run in their own keyframe (the queue full), {dq.get('forced', 0)} finished "
+                  f"over the budget (the queue over its bound), {dq.get('across', 0)} at once "
+                  f"(a view of another odometry chain); at most {dq.get('checks_max', 0)} checks in one keyframe",
+                  file=f)
         for r in fw.get("loops", []):
             if r["fate"] == "accepted" and not r["right"]:
                 bearing = "-" if r["bearing_error_deg"] is None else f"{r['bearing_error_deg']:.1f}"

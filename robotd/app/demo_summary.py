@@ -123,7 +123,8 @@ def summarise(cfg: Config, cam_model: FloorCameraModel, robot: VirtualRobot, obs
         summary["forward_detector"]["deferred"] = {
             k: c.get(f"forward_deferred{s}", 0)
             for k, s in (("deferred", ""), ("inline", "_inline"), ("at_end", "_at_end"), ("wait_max", "_wait_max"),
-                                 ("across", "_across"))}
+                                 ("across", "_across"), ("forced", "_forced"))}
+        summary["forward_detector"]["deferred"]["checks_max"] = c.get("forward_checks_max", 0)
     if robot.settings.kidnap is not None:
         summary["relocalisation"] = relocalisation_evaluation(robot.motion, robot.settings.kidnap, obs,
                                                               live.relocalisations, c)

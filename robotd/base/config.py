@@ -338,9 +338,16 @@ class ForwardDetectorConfig:
     sigma_yaw_deg: float = _f(1.0, "1-sigma of a loop's heading change", lo=0.01, hi=90.0)
     max_deferred_tests: int = _f(4, "verified views whose level test (the planar scan, the ridge's fits) "
                                  "may wait for a later forward keyframe that verifies nothing, one per "
-                                 "keyframe, to keep a keyframe's CPU bounded; their loops reach the pose "
-                                 "graph that much later (0: every test in its own keyframe)",
+                                 "keyframe, to keep a keyframe's CPU bounded; with checks_per_keyframe, images "
+                                 "whose verification (checks and tests) may wait, more finishing the oldest at "
+                                 "once; their loops reach the pose graph that much later (0: every test in its "
+                                 "own keyframe)",
                                  lo=0, hi=64, unit="")
+    checks_per_keyframe: int = _f(0, "a budget of epipolar checks per forward keyframe for the images' "
+                                  "verifications, the waiting ones first, a level test counting as one, the "
+                                  "rest waiting for the next keyframes (measured, not the default: docs/forward.md); "
+                                  "0: none, each image's checks in its own keyframe",
+                                  lo=0, hi=16, unit="")
 
 
 @dataclass(frozen=True)

@@ -51,7 +51,7 @@ from robotd.forward.memory import MemoryParams, WorkingMemory
 from robotd.forward.verify import TOO_FEW_MATCHES, Verification, VerifyParams, verify_pair
 from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams, _grown
 
-__all__ = ["ACCEPT_PENDING", "Detection", "DetectionStatus", "DetectorParams", "ForwardDetector", "LOOP", "METHODS", "NO_HYPOTHESES",
+__all__ = ["ACCEPT_PENDING", "VERIFY_PENDING", "Detection", "DetectionStatus", "DetectorParams", "ForwardDetector", "LOOP", "METHODS", "NO_HYPOTHESES",
            "LOW_POSTERIOR", "NOT_CONSISTENT_YET", "NO_GEOMETRIC_CONSISTENCY", "OdometryParams", "STAGES",
            "bounded_verification", "daemon_params", "method_params", "odometry_factor", "pose_agreement", "predict_metric",
            "unbounded_verification"]
@@ -65,6 +65,7 @@ class DetectionStatus(StrEnum):
     NO_GEOMETRIC_CONSISTENCY = "NO_GEOMETRIC_CONSISTENCY"  # the candidate failed verification
     NOT_CONSISTENT_YET = "NOT_CONSISTENT_YET"  # fewer than k consistent candidates in a row
     ACCEPT_PENDING = "ACCEPT_PENDING"  # a view verified, its ``accept`` test left for :meth:`ForwardDetector.resume`
+    VERIFY_PENDING = "VERIFY_PENDING"  # the image's check budget spent, its views left for :meth:`ForwardDetector.resume`
 
 
 LOOP = DetectionStatus.LOOP
@@ -73,6 +74,7 @@ LOW_POSTERIOR = DetectionStatus.LOW_POSTERIOR
 NO_GEOMETRIC_CONSISTENCY = DetectionStatus.NO_GEOMETRIC_CONSISTENCY
 NOT_CONSISTENT_YET = DetectionStatus.NOT_CONSISTENT_YET
 ACCEPT_PENDING = DetectionStatus.ACCEPT_PENDING
+VERIFY_PENDING = DetectionStatus.VERIFY_PENDING
 
 #: The detectors ``[forward_detector] method`` and ``robotd eval forward --method`` select.
 METHODS = ("default", "paper")
@@ -342,7 +344,8 @@ class DetectorOverrides(TypedDict, total=False):
 class PendingVerification:
     """An image's verification stopped at a view whose epipolar check passed, before the
     detector's ``accept`` test (:meth:`ForwardDetector.process_features` with
-    ``defer_accept``); :meth:`ForwardDetector.resume` finishes it. It holds what the views
+    ``defer_accept``), or before its next view's epipolar check when the call's
+    ``max_checks`` were spent; :meth:`ForwardDetector.resume` goes on with it. It holds what the views
     still to try need, taken when the image was run (its features, the views in order, which
     of them odometry agrees with), so finishing it later gives the answer finishing it at
     once would have (the detector's state after the image is not read; with a bounded
@@ -352,7 +355,8 @@ class PendingVerification:
     ``verification`` (the view awaiting ``accept`` and its check), ``order`` (every view to
     try, in order), ``next`` (the first not yet verified), ``agreed`` (views odometry agrees
     with: their ``VerifyParams`` relaxed), ``fallbacks`` (general searches run so far),
-    ``failed`` (the checks of the views that failed)."""
+    ``failed`` (the checks of the views that failed), ``checks`` (epipolar checks run for
+    it so far, over every call)."""
 
     image_id: int
     candidate: int
@@ -364,6 +368,7 @@ class PendingVerification:
     failed: list[Verification] = field(default_factory=list)
     view: int | None = None
     verification: Verification | None = None
+    checks: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -374,7 +379,8 @@ class Detection:
         image_id: t, the image's number (0 for the first).
         status: ``LOOP``, ``NO_HYPOTHESES``, ``LOW_POSTERIOR``, ``NOT_CONSISTENT_YET``,
             ``NO_GEOMETRIC_CONSISTENCY`` or, asked to defer the ``accept`` test,
-            ``ACCEPT_PENDING`` (:attr:`pending` then holds the rest of the verification).
+            ``ACCEPT_PENDING`` (:attr:`pending` then holds the rest of the verification),
+            or, its ``max_checks`` spent with views left, ``VERIFY_PENDING`` (the same).
         loop_id: the past image it closes a loop with (status ``LOOP``), else None.
         candidate_id: the filter's candidate (verified or not), else None.
         candidate_probability: the largest posterior summed over a neighbourhood.
@@ -394,8 +400,10 @@ class Detection:
         working_memory: places in the working memory after this image (all past images
             without a bound); retrieved, transferred: the places that came back from and
             went to long-term memory after it.
-        pending: with ``ACCEPT_PENDING``, the verification to finish with
-            :meth:`ForwardDetector.resume`; else None.
+        pending: with ``ACCEPT_PENDING`` or ``VERIFY_PENDING``, the verification to
+            finish with :meth:`ForwardDetector.resume`; else None.
+        checks: the epipolar checks (:func:`~robotd.forward.verify.verify_pair` calls) run
+            for the image in this call.
     """
 
     image_id: int
@@ -417,6 +425,7 @@ class Detection:
     retrieved: tuple[int, ...] = ()
     transferred: tuple[int, ...] = ()
     pending: PendingVerification | None = None
+    checks: int = 0
 
     @property
     def n_hypotheses(self) -> int:
@@ -637,16 +646,17 @@ class ForwardDetector:
         self._poses_var[:] = np.nan
 
     def _verify(self, candidate: int, feats: Features, hyp_ids: np.ndarray,
-                odo: np.ndarray | None, t: int, defer_accept: bool = False
-                ) -> tuple[int, Verification, bool] | PendingVerification:
+                odo: np.ndarray | None, t: int, defer_accept: bool = False, max_checks: int | None = None
+                ) -> tuple[PendingVerification, tuple[int, Verification, bool] | PendingVerification]:
         """Verify ``candidate`` and, if it fails, its most probable neighbours that odometry
         agrees with (within ``filter.neighbours`` images; up to ``verify_tries`` images in
         all; ``odo``: the hypotheses' odometry factors, None without odometry): ``(image,
         its verification, whether it is a loop)``: the first accepted (and passing
         :attr:`accept`), else the candidate's (``accepted`` True there when only
-        :attr:`accept` refused it). With ``defer_accept`` (and an :attr:`accept` test) the
+        :attr:`accept` refused it), after the job that ran them (its ``checks``). With ``defer_accept`` (and an :attr:`accept` test) the
         first view whose check passes is not put to the test: the rest of the verification
-        is returned instead (:class:`PendingVerification`, finished by :meth:`resume`)."""
+        is returned instead (:class:`PendingVerification`, finished by :meth:`resume`); so is
+        the rest when ``max_checks`` epipolar checks ran and views are left (None: no bound)."""
         p = self.params
         order = [candidate]
         o = p.odometry
@@ -671,11 +681,13 @@ class ForwardDetector:
         agreed = frozenset(int(h) for h, f in zip(hyp_ids.tolist(), odo.tolist()) if f >= o.agree_factor) \
             if odo is not None else frozenset()
         job = PendingVerification(t, int(candidate), feats, [int(j) for j in order], agreed)
-        return self._advance(job, defer_accept)
+        return job, self._advance(job, defer_accept, max_checks)
 
-    def _advance(self, job: PendingVerification, defer_accept: bool) -> tuple[int, Verification, bool] | PendingVerification:
+    def _advance(self, job: PendingVerification, defer_accept: bool, max_checks: int | None = None
+                 ) -> tuple[int, Verification, bool] | PendingVerification:
         """Go on with ``job``: the awaiting view's :attr:`accept` test, then the views not yet
-        verified, as :meth:`_verify` describes."""
+        verified (at most ``max_checks`` epipolar checks, None: all), as :meth:`_verify`
+        describes."""
         p = self.params
         o = p.odometry
         if job.view is not None and job.verification is not None:
@@ -684,7 +696,10 @@ class ForwardDetector:
             if self.accept is None or self.accept(j, v):
                 return j, v, True
             job.failed.append(v)
+        checks = 0
         while job.next < len(job.order):
+            if max_checks is not None and checks >= max_checks:
+                return job  # the budget spent: the views from job.next on are left
             j = job.order[job.next]
             job.next += 1
             vp = p.verify
@@ -701,6 +716,8 @@ class ForwardDetector:
                 self.read_back_failed += 1
                 continue
             v = verify_pair(old, job.feats, vp, self.camera_matrix)
+            checks += 1
+            job.checks += 1
             job.fallbacks += v.fallback
             if v.accepted:
                 if self.accept is None:
@@ -715,18 +732,24 @@ class ForwardDetector:
             return job.candidate, Verification(False, TOO_FEW_MATCHES, 0, 0), False
         return job.candidate, job.failed[0], False
 
-    def resume(self, job: PendingVerification) -> tuple[DetectionStatus, int, Verification]:
-        """Finish a verification left with ``ACCEPT_PENDING`` (:class:`PendingVerification`):
-        the awaiting view's :attr:`accept` test, and, when it fails, the views after it as
-        :meth:`process_features` would have tried them. Returns ``(LOOP, the loop's past
-        image, its verification)`` or ``(NO_GEOMETRIC_CONSISTENCY, the candidate, the
-        check kept for it)``; with a bounded working memory the loop's places are linked
-        now. :attr:`accept` runs for image ``job.image_id``, which may no longer be the
-        newest."""
-        if job.view is None:
-            raise ValueError("resume: this verification has no view awaiting its accept test")
-        out = self._advance(job, defer_accept=False)
-        assert not isinstance(out, PendingVerification)
+    def resume(self, job: PendingVerification, max_checks: int | None = None, defer_accept: bool = False
+               ) -> tuple[DetectionStatus, int, Verification] | PendingVerification:
+        """Go on with a verification left with ``ACCEPT_PENDING`` or ``VERIFY_PENDING``
+        (:class:`PendingVerification`): the awaiting view's :attr:`accept` test, and, when it
+        fails (or none awaits), the views after it as :meth:`process_features` would have
+        tried them. Returns ``(LOOP, the loop's past image, its verification)`` or
+        ``(NO_GEOMETRIC_CONSISTENCY, the candidate, the check kept for it)``; with a bounded
+        working memory the loop's places are linked now. :attr:`accept` runs for image
+        ``job.image_id``, which may no longer be the newest. ``max_checks``: at most this
+        many epipolar checks in this call (None: no bound); ``defer_accept``: a view whose
+        check passes is left awaiting its test. Either stops the call with ``job`` itself
+        returned, to be resumed again (the same answers as one call: the views, their order
+        and the tests are the job's, whatever ran between)."""
+        if job.view is None and job.next >= len(job.order):
+            raise ValueError("resume: this verification has no view awaiting its accept test and none left to check")
+        out = self._advance(job, defer_accept, max_checks)
+        if isinstance(out, PendingVerification):
+            return out
         j, v, ok = out
         if ok and self.params.memory.bounded:
             self.memory.link(job.image_id, int(j))
@@ -749,15 +772,17 @@ class ForwardDetector:
                 + self._posterior.nbytes + self._hyp_ids.nbytes + self._latest_words.nbytes)
 
     def process(self, image: np.ndarray, pose: np.ndarray | None = None,
-                pose_cov: np.ndarray | None = None, defer_accept: bool = False) -> Detection:
+                pose_cov: np.ndarray | None = None, defer_accept: bool = False,
+                max_checks: int | None = None) -> Detection:
         """Run one image (``(H, W)`` gray or ``(H, W, 3)`` BGR uint8) through the detector;
-        ``pose``, ``pose_cov``, ``defer_accept``: see :meth:`process_features`."""
+        ``pose``, ``pose_cov``, ``defer_accept``, ``max_checks``: see :meth:`process_features`."""
         t0 = self._timer()
         feats = self._extract(image)
-        return self.process_features(feats, self._timer() - t0, pose, pose_cov, defer_accept)
+        return self.process_features(feats, self._timer() - t0, pose, pose_cov, defer_accept, max_checks)
 
     def process_features(self, feats: Features, features_s: float = 0.0, pose: np.ndarray | None = None,
-                         pose_cov: np.ndarray | None = None, defer_accept: bool = False) -> Detection:
+                         pose_cov: np.ndarray | None = None, defer_accept: bool = False,
+                         max_checks: int | None = None) -> Detection:
         """Run one image given its already extracted features (``features_s``: the time
         that took, for the record). ``pose (3,)``: the robot's odometry pose when the image
         was taken (x_m, y_m, yaw_rad; the fused odometry the daemon has, never a ground
@@ -765,7 +790,9 @@ class ForwardDetector:
         with the image either way (None: unknown). ``defer_accept``: a view whose epipolar
         check passes is not put to the :attr:`accept` test here; the image's status is then
         ``ACCEPT_PENDING`` and :meth:`resume` finishes its verification (the caller chooses
-        when: the daemon's stage spreads the test over its keyframes)."""
+        when: the daemon's stage spreads the test over its keyframes). ``max_checks``: at
+        most this many epipolar checks for the image here (None: every view it tries); with
+        views left the status is ``VERIFY_PENDING`` and :meth:`resume` goes on with them."""
         p = self.params
         clock = self._timer
         t = len(self._features)
@@ -856,6 +883,7 @@ class ForwardDetector:
             self._last_candidate = int(candidate)
         verification = None
         pending = None
+        checks = 0
         if n_hyp == 0:
             status = NO_HYPOTHESES
         elif candidate is None:
@@ -863,9 +891,11 @@ class ForwardDetector:
         elif self._run < p.consistency:
             status = NOT_CONSISTENT_YET
         else:
-            out = self._verify(candidate, feats, hyp_ids, odo, t, defer_accept)
+            job, out = self._verify(candidate, feats, hyp_ids, odo, t, defer_accept, max_checks)
+            checks = job.checks
             if isinstance(out, PendingVerification):
-                pending, verification, status = out, out.verification, ACCEPT_PENDING
+                pending, verification = out, out.verification
+                status = ACCEPT_PENDING if out.view is not None else VERIFY_PENDING
             else:
                 candidate, verification, ok = out
                 status = LOOP if ok else NO_GEOMETRIC_CONSISTENCY
@@ -895,7 +925,7 @@ class ForwardDetector:
             verification=verification, n_features=len(feats), new_words=new_words,
             vocabulary_size=len(self.vocabulary), times_s=times, hypothesis_ids=hyp_ids,
             working_memory=len(self.memory), retrieved=tuple(retrieved),
-            transferred=tuple(transferred), pending=pending)
+            transferred=tuple(transferred), pending=pending, checks=checks)
 
 
 def _held_bytes(f: CompactFeatures | LentFeatures) -> int:

@@ -43,6 +43,8 @@ def test_values_are_read_and_converted(tmp_path):
     ("[odometry]\nslip_event_rate_hz = 0.3\n", "[odometry] slip_event_rate_hz: works only with slip_gate_sigma > 0"),
     ("[odometry]\nedge_floor_m = 0\n", "[odometry] edge_floor_m: 0.0 is below the minimum"),
     ("[forward_detector]\nmax_deferred_tests = -1\n", "[forward_detector] max_deferred_tests: -1 is below the minimum"),
+    ("[forward_detector]\nchecks_per_keyframe = -1\n", "[forward_detector] checks_per_keyframe: -1 is below the minimum"),
+    ("[forward_detector]\nchecks_per_keyframe = 1.5\n", "[forward_detector] checks_per_keyframe"),
     ("[odometry]\nslip_event_duration_s = -0.1\n", "[odometry] slip_event_duration_s: -0.1 is below the minimum"),
     ("[pose_graph]\nscale_wear = 0.005\n", "[pose_graph] scale_wear: works only with odometry_model"),
     ("[pose_graph]\nscale_wear_gyro = 0.001\n", "[pose_graph] scale_wear_gyro: works only with odometry_model"),

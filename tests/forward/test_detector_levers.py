@@ -483,3 +483,91 @@ def test_resume_needs_a_view_awaiting_its_test():
                               [], frozenset())
     with pytest.raises(ValueError):
         det.resume(job)
+
+
+@pytest.mark.parametrize("budget", [1, 2])
+@pytest.mark.parametrize("rule", ["accept", "refuse", "second", "checks"])
+def test_a_verification_split_by_a_check_budget_gives_the_answer_of_the_verification_at_once(monkeypatch, rule,
+                                                                                                   budget):
+    """``max_checks``: an image's epipolar checks stop after the budget (``VERIFY_PENDING``,
+    its views left in :attr:`Detection.pending`); :meth:`ForwardDetector.resume` with the same
+    budget goes on with them call after call, interleaved with the next images, each call
+    within the budget (a call that runs an awaiting ``accept`` test included), and gives the
+    loops, the views checked and tested and their order that the verification at once gave."""
+    import robotd.forward.detector as det_mod
+    from robotd.forward.detector import ACCEPT_PENDING, VERIFY_PENDING, PendingVerification, daemon_params
+    from robotd.forward.verify import ACCEPTED, NO_GEOMETRIC_CONSISTENCY as NGC, Verification
+
+    checked: list[tuple[bytes, bytes]] = []  # (the view's descriptors, the new image's) per check
+
+    def verify(old, new, vp, k):
+        checked.append((np.asarray(old.descriptors).tobytes(), np.asarray(new.descriptors).tobytes()))
+        if rule == "checks" and (int(np.asarray(old.descriptors)[:, 2].sum()) + int(np.asarray(new.descriptors)[:, 3].sum())) % 3:
+            return Verification(False, NGC, 50, 0)  # about two of three views fail: several checks per image
+        return Verification(True, ACCEPTED, 100, 100)
+
+    monkeypatch.setattr(det_mod, "verify_pair", verify)
+    # The revisits, then new places far away (nothing to verify: the waiting work goes on there).
+    views = _views(30, [5, 6, 7, 8]) + _views(6, [], seed=1)
+    cov = np.diag([0.01, 0.01, 0.001])
+    poses = ([np.array([float(i), 0.0, 0.0]) for i in range(30)] + [np.array([float(x), 0.0, 0.0]) for x in (5, 6, 7, 8)]
+             + [np.array([200.0 + i, 0.0, 0.0]) for i in range(6)])
+    params = replace(daemon_params(method_params("default")), verify=ACCEPT_ALL, decision="score")
+
+    def run(split: bool) -> tuple[list, list, list, list]:
+        seen: list[tuple[int, int]] = []
+        checked.clear()
+        det = ForwardDetector(params)
+
+        def accept(j, v):
+            seen.append((len(seen), j))
+            return rule in ("accept", "checks") or (rule == "second" and len(seen) % 2 == 0)
+
+        det.accept = accept
+        answers: list[tuple] = []
+        queue: list[PendingVerification] = []
+        per_call: list[int] = []  # checks + tests per call
+
+        def call(f):
+            n0, s0 = len(checked), len(seen)
+            out = f()
+            per_call.append(len(checked) - n0 + len(seen) - s0)
+            return out
+
+        for v, q in zip(views, poses):
+            if not split:
+                d = call(lambda: det.process_features(v, 0.0, q, cov))
+                if 30 <= d.image_id < 34:
+                    answers.append((d.image_id, d.status, d.loop_id))
+                continue
+            d = call(lambda: det.process_features(v, 0.0, q, cov, defer_accept=True, max_checks=budget))
+            assert d.checks == per_call[-1] <= budget
+            if d.status in (ACCEPT_PENDING, VERIFY_PENDING):
+                assert d.pending is not None and d.loop_id is None
+                assert (d.status == VERIFY_PENDING) == (d.pending.view is None)
+                queue.append(d.pending)
+            elif 30 <= d.image_id < 34:
+                answers.append((d.image_id, d.status, d.loop_id))
+            if queue and d.status not in (ACCEPT_PENDING, VERIFY_PENDING):  # one step of the oldest
+                job = queue[0]
+                out = call(lambda: det.resume(job, max_checks=budget - (job.view is not None), defer_accept=True))
+                if not isinstance(out, PendingVerification):
+                    queue.pop(0)
+                    answers.append((job.image_id, out[0], out[1] if out[0] == LOOP else None))
+        for job in queue:  # the end: each to its answer
+            out = det.resume(job)
+            assert not isinstance(out, PendingVerification)
+            answers.append((job.image_id, out[0], out[1] if out[0] == LOOP else None))
+        by_image: dict[bytes, list[bytes]] = {}  # each new image's views checked, in order
+        for old, new in checked:
+            by_image.setdefault(new, []).append(old)
+        return sorted(answers), seen, by_image, per_call
+
+    at_once, seen_at_once, checked_at_once, per_image = run(False)
+    split, seen_split, checked_split, per_call = run(True)
+    assert split == at_once and seen_split == seen_at_once and checked_split == checked_at_once
+    assert len(at_once) == 4 and max(per_call) <= budget
+    n_checks = {"accept": 4, "refuse": 12, "second": 8, "checks": 10}[rule]
+    assert sum(map(len, checked_at_once.values())) == n_checks
+    # The budget bound something: at once an image ran more checks and tests in its call.
+    assert max(per_image) > budget or (rule, budget) == ("accept", 2)

@@ -79,6 +79,27 @@ one waited. A view of another odometry chain than the image's (across a kidnappi
 restart: the loop may relocalise the robot) never waits: its test runs in its own keyframe
 (``forward_deferred_across``), so the deferral does not delay a relocalisation.
 
+**A budget of checks** (``check_budget``, ``[forward_detector] checks_per_keyframe``). The
+queue of level tests alone left the costliest keyframes to the images verified in their own
+keyframe: on the office route's revisits every forward keyframe verifies, the queue fills,
+and an image that finds it full runs its views' epipolar checks (several views, each an
+essential matrix, a homography and a pose) and its test in its own keyframe. With a budget
+the image's verification itself is split: each forward keyframe runs at most
+``check_budget`` epipolar checks, a level test counting :data:`TEST_CHECKS`, on the waiting
+verifications first, the oldest first, and on its own image's only when none waits
+(:meth:`robotd.forward.ForwardDetector.process` ``max_checks``, then
+:meth:`~robotd.forward.ForwardDetector.resume` with the budget left, call after call); what
+the budget leaves waits for the next forward keyframes. The count is of checks, not of
+time, so the same input gives the same schedule and the same loops whatever the load: each
+piece of the verification reads its image's own job (its features, its views in order, the
+checks so far) and context, never the images run since. At most ``max_deferred`` images
+wait after a keyframe; more finish the oldest at once, over the budget
+(``forward_deferred_forced``); those still waiting at the end of the input run then; a
+verification with a view of another odometry chain runs whole in its own keyframe
+(``forward_deferred_across``). ``forward_checks_max`` is the most checks (tests included) one
+forward keyframe ran, ``forward_checks_over_budget`` the keyframes over the budget
+(forced or across).
+
 The forward frame is up to ``sync_tolerance_s`` off its keyframe's stamp (33 ms at the
 demo's 15 frames a second: 1 cm and 1 deg at its speeds), while the loop is an edge
 between the two keyframes. The stage keeps the last seconds of the wheel odometry
@@ -167,7 +188,7 @@ from robotd.base.errors import ConfigError, MapStoreError
 from robotd.base.geometry import between, compose, inverse, wrap_angle
 from robotd.base.messages import CandidateFate, ForwardLoop, Frame, KeyframeStored, Link, LoopFate, OdometryUpdate
 from robotd.forward import LOOP, ForwardDetector
-from robotd.forward.detector import ACCEPT_PENDING, PendingVerification
+from robotd.forward.detector import ACCEPT_PENDING, VERIFY_PENDING, PendingVerification
 from robotd.forward.features import CompactFeatures
 from robotd.forward.planar import INLIER_NOISE_FACTOR, planar_motion, planarity_bound
 from robotd.forward.planefit import (SCAN_STEP_RAD, PlanarFit, fit_planar_fixed, fit_planar_scans, planar_inliers,
@@ -178,6 +199,10 @@ log = logging.getLogger(__name__)
 
 # The stage's parts timed per forward keyframe (ForwardLoopStage.part_cpu_ms).
 PARTS = ("match", "scan", "level", "ridge", "graph", "readback", "store", "gc", "deferred", "stage")
+
+#: What a level test (the planar scan, the ridge's fits, the heading graph's solve) counts
+#: for in a forward keyframe's budget of epipolar checks (ForwardLoopStage ``check_budget``).
+TEST_CHECKS = 1
 
 #: Where the planar refit's heading scan is centred (ForwardLoopStage ``scan_centre``): the
 #: verified motion's heading, the level motion's the verification's search found first, or
@@ -223,6 +248,7 @@ class _Decision:
     probability: float
     pending: PendingVerification | None = None
     queued_at: int = 0
+    last_refused: tuple[int, float, float] | None = None  # its last view out of the plane so far
 
 
 @dataclass(frozen=True)
@@ -546,12 +572,15 @@ class ForwardLoopStage(Publisher):
                  store: Any = None, planarity_bound: float = planarity_bound(), planar_refit: bool = True,
                  mount: np.ndarray | None = None, ridge: RidgeParams | None = None,
                  publish_delay_s: float = 1.0, scan_centre: str = "both", defer_accept: bool = True,
-                 max_deferred: int = 4) -> None:
+                 max_deferred: int = 4, check_budget: int | None = None) -> None:
         if scan_centre not in SCAN_CENTRES:
             raise ConfigError(f"forward stage: scan_centre must be one of {', '.join(SCAN_CENTRES)}, "
                               f"not {scan_centre!r}")
         if max_deferred < 1:
             raise ConfigError(f"forward stage: max_deferred must be >= 1, not {max_deferred}")
+        if check_budget is not None and check_budget < TEST_CHECKS:
+            raise ConfigError(f"forward stage: check_budget must be >= {TEST_CHECKS} (one level test), "
+                              f"not {check_budget}")
         self.scan_centre = scan_centre
         # The level test of a verified view waits for a forward keyframe that verifies
         # nothing (module notes, "One verification's work per keyframe"): the queue, its bound.
@@ -563,6 +592,12 @@ class ForwardLoopStage(Publisher):
         self.deferred_across = 0  # images tested at once: their view in another odometry chain
         self.deferred_at_end = 0  # images whose test ran at the end of the input
         self.deferred_wait_max = 0  # the most forward keyframes an image's test waited
+        # The verification's work per forward keyframe in epipolar checks, a level test counting
+        # TEST_CHECKS (module notes, "A budget of checks"); None: the queue of level tests alone.
+        self.check_budget = check_budget
+        self.deferred_forced = 0  # waiting verifications finished over the budget: the queue over its bound
+        self.checks_max = 0  # the most checks (a level test TEST_CHECKS) one forward keyframe ran
+        self.checks_over = 0  # forward keyframes whose checks went over the budget (forced, across, the end)
         self._image: int | None = None  # the detector image being decided (for _scan)
         self.tests = 0  # level tests run (views whose epipolar check passed)
         self.detector = detector
@@ -940,6 +975,9 @@ class ForwardLoopStage(Publisher):
         current = (np.zeros(3) if offset is None else offset, pose, yaw_var, chain, kf.keyframe_id, links)
         t = len(self._offsets)  # this image's number in the detector
         self._current, self._image = current, t
+        if self.check_budget is not None:
+            self._take_budgeted(kf, frame, pose, chain, current, t, offset, yaw_var)
+            return
         defer = self.defer_accept and len(self._deferred) < self.max_deferred
         tests = self.tests
         cpu0 = time.thread_time()
@@ -994,20 +1032,107 @@ class ForwardLoopStage(Publisher):
         self.verify_ms.append((det.times_s.get("verify", 0.0) + resumed_s) * 1e3)
         self.features_ms.append(det.times_s.get("features", 0.0) * 1e3)
 
+    def _take_budgeted(self, kf: Any, frame: Frame, pose: np.ndarray, chain: int,
+                       current: tuple[np.ndarray, np.ndarray, float | None, int, int, int], t: int,
+                       offset: np.ndarray | None, yaw_var: float | None) -> None:
+        """:meth:`_take_frame` with a budget of epipolar checks per forward keyframe (module
+        notes, "A budget of checks"): the waiting verifications go first, oldest first, then
+        the image's own; what the budget leaves waits, the queue bounded by ``max_deferred``."""
+        budget = self.check_budget
+        assert budget is not None
+        cpu0 = time.thread_time()
+        # The image's own checks only when nothing older waits (the oldest first).
+        own = 0 if self._deferred else budget
+        det = self.detector.process(frame.image, pose, kf.pose.covariance, defer_accept=True, max_checks=own)
+        cpu_ms = (time.thread_time() - cpu0) * 1e3
+        self._current, self._image = None, None
+        self._keyframe_ids.append(kf.keyframe_id)
+        if offset is None:
+            self.no_offset += 1
+        self._offsets.append(np.zeros(3) if offset is None else offset)
+        self._poses.append(pose)
+        self._yaw_vars.append(yaw_var)
+        self._chains.append(chain)
+        self._chain_of[int(kf.keyframe_id)] = chain
+        self.frame_offset_ms_max = max(self.frame_offset_ms_max, abs(frame.stamp_ns - kf.stamp_ns) / 1e6)
+        decision = _Decision(t, kf.keyframe_id, current, det.candidate_probability)
+        spent = det.checks
+        t0, w0 = time.thread_time(), time.perf_counter()
+        if det.status in (ACCEPT_PENDING, VERIFY_PENDING) and det.pending is not None:
+            decision.pending, decision.queued_at = det.pending, self.images
+            if any(self._chains[int(j)] != chain for j in det.pending.order):
+                # A view of another odometry chain may relocalise the robot: the image's whole
+                # verification now, over the budget (counted).
+                self.deferred_across += 1
+                spent += self._run_job(decision, None)
+            else:
+                self._deferred.append(decision)
+        else:
+            self._decide(decision, det.status, det.loop_id, det.verification)
+        # The budget left goes to the waiting verifications, the oldest first: a level test
+        # needs TEST_CHECKS of it, a view's epipolar check one.
+        while self._deferred and spent < budget:
+            d = self._deferred[0]
+            assert d.pending is not None
+            if d.pending.view is not None and budget - spent < TEST_CHECKS:
+                break
+            spent += self._run_job(d, budget - spent)
+            if d.pending is None:
+                self._deferred.popleft()
+            elif d.pending.view is None:
+                break  # stopped by the budget
+        # Over the bound: the oldest finished now, over the budget (counted).
+        while len(self._deferred) > self.max_deferred:
+            self.deferred_forced += 1
+            spent += self._run_job(self._deferred.popleft(), None)
+        self.deferred += decision.pending is not None  # its verification goes on in a later keyframe
+        resumed = (time.thread_time() - t0) * 1e3
+        resumed_s = time.perf_counter() - w0
+        cpu_ms += resumed
+        self._part["deferred"] = self._part.get("deferred", 0.0) + resumed
+        self.checks_max = max(self.checks_max, spent)
+        self.checks_over += spent > budget
+        self.cpu_ms.append(cpu_ms)
+        if self.store is not None:
+            t1 = time.thread_time()
+            self._store_image(kf.keyframe_id)
+            self._add_cpu("store", t1)
+        self.images += 1
+        self.total_ms.append((det.times_s["total"] + resumed_s) * 1e3)
+        self.verify_ms.append((det.times_s.get("verify", 0.0) + resumed_s) * 1e3)
+        self.features_ms.append(det.times_s.get("features", 0.0) * 1e3)
+
+    def _run_job(self, d: _Decision, max_checks: int | None) -> int:
+        """Go on with waiting verification ``d`` (:meth:`ForwardDetector.resume`): its awaiting
+        level test, then its views' checks, at most ``max_checks`` of budget (None: to the end);
+        what it decides is published with the keyframe being run. Returns the budget it spent
+        (a level test :data:`TEST_CHECKS`, a check one); ``d.pending`` is None once decided."""
+        job = d.pending
+        assert job is not None
+        if d.queued_at != self.images:
+            self.deferred_wait_max = max(self.deferred_wait_max, self.images - d.queued_at)
+        tests, checks = self.tests, job.checks
+        self._pending.clear()
+        self._last_refused = d.last_refused
+        self._current, self._image = d.current, d.image
+        try:
+            limit = None if max_checks is None else max_checks - (TEST_CHECKS if job.view is not None else 0)
+            out = self.detector.resume(job, max_checks=limit, defer_accept=max_checks is not None)
+        finally:
+            self._current, self._image = None, None
+        spent = (self.tests - tests) * TEST_CHECKS + job.checks - checks
+        if out is job or isinstance(out, PendingVerification):  # stopped by the budget, or at a view awaiting its test
+            d.last_refused, self._last_refused = self._last_refused, None
+            return spent
+        status, j, v = out
+        d.pending = None
+        self._decide(d, status, j if status == LOOP else None, v)
+        return spent
+
     def _resume(self, d: _Decision) -> None:
         """Finish a waiting verification (:meth:`ForwardDetector.resume`) and publish what it
         decided with the keyframe being run."""
-        assert d.pending is not None
-        self.deferred_wait_max = max(self.deferred_wait_max, self.images - d.queued_at)
-        self._pending.clear()
-        self._last_refused = None
-        self._current, self._image = d.current, d.image
-        try:
-            status, j, v = self.detector.resume(d.pending)
-        finally:
-            self._current, self._image = None, None
-        d.pending = None
-        self._decide(d, status, j if status == LOOP else None, v)
+        self._run_job(d, None)
 
     def _flush_deferred(self) -> None:
         """The end of the input: every waiting verification finished, its CPU the last
@@ -1315,6 +1440,8 @@ class ForwardLoopStage(Publisher):
                 "forward_deferred_across": self.deferred_across,
                 "forward_deferred_at_end": self.deferred_at_end, "forward_deferred_waiting": len(self._deferred),
                 "forward_deferred_wait_max": self.deferred_wait_max,
+                "forward_deferred_forced": self.deferred_forced,
+                "forward_checks_max": self.checks_max, "forward_checks_over_budget": self.checks_over,
                 "forward_vocabulary": len(self.detector.vocabulary),
                 "forward_restored_images": self.restored, "forward_store_errors": self.store_errors,
                 "forward_ms_median": round(float(np.median(total)), 2),
