@@ -407,7 +407,7 @@ def test_a_foreign_file_in_the_demo_folder_is_left_alone(demo_out: Path):
 
 @pytest.mark.parametrize("case", ["drive_too_short", "drive_missing", "calibration_missing",
                                   "drive_is_a_folder", "passes_zero", "plot_folder_missing",
-                                  "json_is_the_calibration"])
+                                  "json_is_the_calibration", "calibration_slip_events_partial"])
 def test_calibrate_odometry_refusals_keep_the_calibration_file(case: str, material: Path,
                                                                tmp_path: Path):
     cal = tmp_path / "cal.yml"
@@ -417,7 +417,8 @@ def test_calibrate_odometry_refusals_keep_the_calibration_file(case: str, materi
         "calibration_missing": "no such calibration file",
         "drive_is_a_folder": "cannot open the recording: Is a directory",
         "passes_zero": "--passes must be at least 1", "plot_folder_missing": "folder",
-        "json_is_the_calibration": "--json"}[case]
+        "json_is_the_calibration": "--json",
+        "calibration_slip_events_partial": "need all of odometry_slip_event_rate_hz"}[case]
     extra: list[object] = {"passes_zero": ["--passes", "0"],
                            "plot_folder_missing": ["--plot", tmp_path / "nowhere" / "r.png"],
                            "json_is_the_calibration": ["--json", cal]}.get(case, [])
@@ -427,6 +428,10 @@ def test_calibrate_odometry_refusals_keep_the_calibration_file(case: str, materi
         cal = tmp_path / "absent.yml"
     elif case == "drive_is_a_folder":
         drive = tmp_path
+    elif case == "calibration_slip_events_partial":  # a damaged file: three of the four slip event keys
+        with cal.open("a") as f:
+            f.write("odometry_slip_event_rate_hz: 0.2\nodometry_slip_event_duration_s: 0.19\n"
+                    "odometry_slip_event_rate_sigma_hz: 0.05\n")
     before = snapshot(tmp_path)
     assert_refused(run("calibrate", "odometry", drive, "--calibration", cal, *extra), says)
     assert snapshot(tmp_path) == before
