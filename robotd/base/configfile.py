@@ -104,6 +104,11 @@ def config_from_dict(data: dict[str, Any], *, origin: str = "", stored: bool = F
     if cfg.odometry.slip_event_rate_hz > 0.0 and cfg.odometry.slip_gate_sigma <= 0.0:
         # The events' variances are those the slip test lets through or sees: no test, no term.
         raise ConfigError("[odometry] slip_event_rate_hz: works only with slip_gate_sigma > 0")
+    fd = cfg.forward_detector
+    if fd.checks_per_keyframe > 0 and fd.max_deferred_tests == 0:
+        # The budget leaves the rest of a verification to later keyframes, which a queue of
+        # none forbids: the key would do nothing.
+        raise ConfigError("[forward_detector] checks_per_keyframe: works only with max_deferred_tests > 0")
     pg = cfg.pose_graph
     if pg.odometry_model != "bias_scale_window" and pg.scale_wear != PoseGraphConfig().scale_wear:
         # The wear widens the scale variable's prior; without the variable it would do nothing.

@@ -653,6 +653,8 @@ def test_a_broken_config_is_named_on_one_line(tmp_path: Path):
                        ("[odometry]\nedge_floor_m = 1.0\n", "[odometry] edge_floor_m: 1.0 is above the maximum"),
                        ("[forward_detector]\nmax_deferred_tests = 65\n",
                         "[forward_detector] max_deferred_tests: 65 is above the maximum"),
+                       ("[forward_detector]\nchecks_per_keyframe = 1\nmax_deferred_tests = 0\n",
+                        "[forward_detector] checks_per_keyframe: works only with max_deferred_tests > 0"),
                        ("[forward_detector]\nchecks_per_keyframe = 17\n",
                         "[forward_detector] checks_per_keyframe: 17 is above the maximum"),
                        ("[pose_graph]\nscale_wear = 0.005\n",
