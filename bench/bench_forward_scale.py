@@ -282,6 +282,7 @@ def run_scale(folder: Path, n: int, seed: int, partial: Callable[[dict[str, obje
     ex = FeatureExtractor(params.features)
     orb = cv2.ORB_create(nfeatures=300)
     total, orb_ms, words_ms, verify_ms = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    stage_ms = {s: np.zeros(n) for s in STAGES}
     samples = []
     loops = 0
 
@@ -291,7 +292,9 @@ def run_scale(folder: Path, n: int, seed: int, partial: Callable[[dict[str, obje
         sl = slice(at - WINDOW, at)
         return {"median_ms": float(np.median(total[sl])), "p99_ms": float(np.percentile(total[sl], 99)),
                 "opencv_orb_median_ms": float(np.median(orb_ms[sl])), "words_median_ms": float(np.median(words_ms[sl])),
-                "verify_p99_ms": float(np.percentile(verify_ms[sl], 99))}
+                "verify_p99_ms": float(np.percentile(verify_ms[sl], 99)),
+                "stages_median_ms": {s: float(np.median(v[sl])) for s, v in stage_ms.items()},
+                "stages_mean_ms": {s: float(np.mean(v[sl])) for s, v in stage_ms.items()}}
 
     def scale_result(done: int) -> dict[str, object]:
         at = {str(z): window(z) for z in sorted({1000, 2000, 5000, 10000, done}) if z <= done}
@@ -316,6 +319,8 @@ def run_scale(folder: Path, n: int, seed: int, partial: Callable[[dict[str, obje
         total[i] = d.times_s["total"] * 1e3
         words_ms[i] = d.times_s["words"] * 1e3
         verify_ms[i] = d.times_s["verify"] * 1e3
+        for s, v in stage_ms.items():
+            v[i] = d.times_s.get(s, 0.0) * 1e3
         loops += d.status == LOOP
         done = i + 1
         if done % 500 == 0 or done == n or done in EARLY_SAMPLES:
