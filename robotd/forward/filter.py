@@ -99,7 +99,10 @@ def _spread(n_prev: int, n_new: int, params: FilterParams) -> tuple[np.ndarray, 
     g = diffusion_weights(params)
     k = params.neighbours
     offsets = np.arange(-k, k + 1)
-    edge = np.unique(np.concatenate([np.arange(min(k, n_prev)), np.arange(max(0, n_prev - 2 * k - 1), n_prev)]))
+    if n_prev <= 3 * k + 1:  # a short history: every image near an end
+        edge = np.arange(n_prev)
+    else:
+        edge = np.concatenate([np.arange(k), np.arange(n_prev - 2 * k - 1, n_prev)])
     valid = (edge[:, None] + offsets[None, :] >= 0) & (edge[:, None] + offsets[None, :] < n_new)
     whole = np.ones((1, len(offsets)), bool)
     norm = np.full(n_prev, (whole * g[None, :]).sum(axis=1)[0])
