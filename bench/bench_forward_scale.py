@@ -21,7 +21,8 @@ Two parts, each against a baseline of the same run:
    laps, its brightness scaled and offset (per lap). The default detector (tree) runs over
    them; reported: the median and p99 of the per-image time (features included) over the
    200 images up to 1000 and up to the end, their ratio, OpenCV's ORB over the same
-   windows, and bytes per image in RAM (the detector's parts) and the process RSS after
+   windows, the same on the process's CPU clock (a loaded machine stretches wall times
+   more), each stage's median and mean per window, and bytes per image in RAM (the detector's parts) and the process RSS after
    100, 200, 300 and every 500 images.
 
 Run: ``PYTHONPATH=. .venv/bin/python bench/bench_forward_scale.py --dir /tmp/office``
