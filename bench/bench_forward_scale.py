@@ -21,8 +21,10 @@ Two parts, each against a baseline of the same run:
    laps, its brightness scaled and offset (per lap). The default detector (tree) runs over
    them; reported: the median and p99 of the per-image time (features included) over the
    200 images up to 1000 and up to the end, their ratio, OpenCV's ORB over the same
-   windows, and bytes per image in RAM (the detector's parts) and the process RSS after
-   10, 20, 50, 62, 100, 200, 300 and every 500 images.
+   windows, the same on the process's CPU clock (a loaded machine stretches wall times
+   more), each stage's median and mean per window, and bytes per image in RAM (the
+   detector's parts) and the process RSS after 10, 20, 50, 62, 100, 200, 300 and every 500
+   images.
 
 Run: ``PYTHONPATH=. .venv/bin/python bench/bench_forward_scale.py --dir /tmp/office``
 (about 10 minutes on the shared 2-core machine); ``--full`` for 10,000 images;
@@ -282,6 +284,8 @@ def run_scale(folder: Path, n: int, seed: int, partial: Callable[[dict[str, obje
     ex = FeatureExtractor(params.features)
     orb = cv2.ORB_create(nfeatures=300)
     total, orb_ms, words_ms, verify_ms = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    stage_ms = {s: np.zeros(n) for s in STAGES}
+    cpu_ms, orb_cpu_ms = np.zeros(n), np.zeros(n)  # the process's CPU (a loaded machine stretches wall times)
     samples = []
     loops = 0
 
@@ -291,7 +295,10 @@ def run_scale(folder: Path, n: int, seed: int, partial: Callable[[dict[str, obje
         sl = slice(at - WINDOW, at)
         return {"median_ms": float(np.median(total[sl])), "p99_ms": float(np.percentile(total[sl], 99)),
                 "opencv_orb_median_ms": float(np.median(orb_ms[sl])), "words_median_ms": float(np.median(words_ms[sl])),
-                "verify_p99_ms": float(np.percentile(verify_ms[sl], 99))}
+                "verify_p99_ms": float(np.percentile(verify_ms[sl], 99)),
+                "cpu_median_ms": float(np.median(cpu_ms[sl])), "opencv_orb_cpu_median_ms": float(np.median(orb_cpu_ms[sl])),
+                "stages_median_ms": {s: float(np.median(v[sl])) for s, v in stage_ms.items()},
+                "stages_mean_ms": {s: float(np.mean(v[sl])) for s, v in stage_ms.items()}}
 
     def scale_result(done: int) -> dict[str, object]:
         at = {str(z): window(z) for z in sorted({1000, 2000, 5000, 10000, done}) if z <= done}
@@ -306,16 +313,20 @@ def run_scale(folder: Path, n: int, seed: int, partial: Callable[[dict[str, obje
     print(f"\nscale: {n} images from {len(files)} office images, lap after lap (changed per lap)", flush=True)
     for i in range(n):
         im = changed(base_images[i % len(files)], i // len(files), seed)
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         orb.detectAndCompute(im, None)
-        t1 = time.perf_counter()
+        c1, t1 = time.process_time(), time.perf_counter()
         fe = ex(im)
         t2 = time.perf_counter()
         d = det.process_features(fe, t2 - t1)
+        c2 = time.process_time()
+        cpu_ms[i], orb_cpu_ms[i] = (c2 - c1) * 1e3, (c1 - c0) * 1e3
         orb_ms[i] = (t1 - t0) * 1e3
         total[i] = d.times_s["total"] * 1e3
         words_ms[i] = d.times_s["words"] * 1e3
         verify_ms[i] = d.times_s["verify"] * 1e3
+        for s, v in stage_ms.items():
+            v[i] = d.times_s.get(s, 0.0) * 1e3
         loops += d.status == LOOP
         done = i + 1
         if done % 500 == 0 or done == n or done in EARLY_SAMPLES:
@@ -444,20 +455,28 @@ def page(res: dict) -> list[str]:
                   f"lap are not those of the last one; the default detector (tree). Windows of the {sc['window']} "
                   "images up to the given count." + (f" {sc['note']}" if sc.get("note") else ""),
                   "",
-                  "| images | ms median | ms p99 | ORB ms median | words ms median | verify ms p99 |",
-                  "|---:|---:|---:|---:|---:|---:|"]
+                  "| images | ms median | ms p99 | ORB ms median | words ms median | likelihood + filter ms median "
+                  "| verify ms median / p99 | CPU ms median | ORB CPU ms median |",
+                  "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for z, wdw in sc["at"].items():
             if wdw:
+                st = wdw.get("stages_median_ms")
+                lf = fmt(st["likelihood"] + st["filter"]) if st else "-"
+                vm = fmt(st["verify"]) if st else "-"
                 lines.append(f"| {z} | {wdw['median_ms']:.1f} | {wdw['p99_ms']:.1f} | {wdw['opencv_orb_median_ms']:.1f} | "
-                             f"{wdw['words_median_ms']:.1f} | {fmt(wdw.get('verify_p99_ms'))} |")
+                             f"{wdw['words_median_ms']:.1f} | {lf} | {vm} / {fmt(wdw.get('verify_p99_ms'))} | "
+                             f"{fmt(wdw.get('cpu_median_ms'))} | {fmt(wdw.get('opencv_orb_cpu_median_ms'))} |")
         a, z = sc["at"].get("1000"), sc["at"].get(str(sc["images"]))
         if a and z and sc["images"] > 1000:
             rel = (z["median_ms"] / z["opencv_orb_median_ms"]) / (a["median_ms"] / a["opencv_orb_median_ms"])
             rel_w = (z["words_median_ms"] / z["opencv_orb_median_ms"]) / (a["words_median_ms"] / a["opencv_orb_median_ms"])
             lines += ["", f"Median at {sc['images']} over the median at 1000: {sc['median_ratio_end_to_1000']:.2f} as "
                           f"measured; {rel:.2f} with each window's time divided by OpenCV's ORB of the same window "
-                          f"(the load changed during the run); the word stage alone: {rel_w:.2f}. The process RSS "
-                          f"includes the bench's own {sc['base_images']} decoded images."]
+                          f"(the load changed during the run); the word stage alone: {rel_w:.2f}"
+                          + (f"; in the process's CPU {z['cpu_median_ms'] / a['cpu_median_ms']:.2f}, "
+                             f"{(z['cpu_median_ms'] / z['opencv_orb_cpu_median_ms']) / (a['cpu_median_ms'] / a['opencv_orb_cpu_median_ms']):.2f} "
+                             "divided by OpenCV's ORB CPU" if "cpu_median_ms" in z and "cpu_median_ms" in a else "")
+                          + f". The process RSS includes the bench's own {sc['base_images']} decoded images."]
         lines += ["", "| images | RAM B/image (images + index + search) | searchable words | process RSS MB |",
                   "|---:|---|---:|---:|"]
         for smp in sc["samples"]:

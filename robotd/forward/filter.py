@@ -90,12 +90,23 @@ def diffusion_weights(params: FilterParams = FilterParams()) -> np.ndarray:
 
 
 def _spread(n_prev: int, n_new: int, params: FilterParams) -> tuple[np.ndarray, np.ndarray]:
-    """Offsets and, per previous image j, the Gaussian's sum over j's existing neighbours."""
+    """Offsets and, per previous image j, the Gaussian's sum over j's existing neighbours.
+
+    Only the images within ``neighbours`` of either end lack a neighbour: their sums are
+    taken over their own neighbours, every other image's is the sum over all of them,
+    summed the same way (one row of the same reduction), so each is the value a sum per
+    image would give while the work stays at the ends and not the whole history."""
     g = diffusion_weights(params)
-    offsets = np.arange(-params.neighbours, params.neighbours + 1)
-    j = np.arange(n_prev)
-    valid = (j[:, None] + offsets[None, :] >= 0) & (j[:, None] + offsets[None, :] < n_new)
-    norm = (valid * g[None, :]).sum(axis=1)
+    k = params.neighbours
+    offsets = np.arange(-k, k + 1)
+    if n_prev <= 3 * k + 1:  # a short history: every image near an end
+        edge = np.arange(n_prev)
+    else:
+        edge = np.concatenate([np.arange(k), np.arange(n_prev - 2 * k - 1, n_prev)])
+    valid = (edge[:, None] + offsets[None, :] >= 0) & (edge[:, None] + offsets[None, :] < n_new)
+    whole = np.ones((1, len(offsets)), bool)
+    norm = np.full(n_prev, (whole * g[None, :]).sum(axis=1)[0])
+    norm[edge] = (valid * g[None, :]).sum(axis=1)
     return offsets, norm
 
 
@@ -167,6 +178,12 @@ def select_candidate(posterior: np.ndarray,
     ``image`` the most probable image in
     that neighbourhood when the sum exceeds ``loop_threshold``, else None.
     """
+    if params.rule == "total":  # the threshold first: the sums only for a candidate
+        if len(posterior) < 2:
+            return None, 0.0
+        prob = 1.0 - float(posterior[0])
+        if prob <= params.loop_threshold:
+            return None, prob
     sums = neighbourhood_sums(posterior, params)
     if not len(sums):
         return None, 0.0

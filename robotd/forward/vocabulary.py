@@ -643,20 +643,37 @@ class BinaryWordTree:
         The first of each row is the greedy path (the nearest child at every level): the
         path a word took when it was added, so a stored word is always found. A leaf lists
         itself as its only child, and row -1 of the node arrays is a spare with no child,
-        so one gather expands a whole front."""
+        so one gather expands a whole front.
+
+        A query whose front holds leaves only is done: a further level would give it the
+        same front (each leaf competes again with its own centre's distance, in the order
+        it was kept), so only the queries with an inner node in their front go down a level
+        (the tree's depth differs from branch to branch: one deep branch does not make the
+        whole image's queries go down again)."""
         n = len(q)
-        rows = np.arange(n)
         front: np.ndarray = np.zeros((n, 1), np.int32)  # then the children's dtype
         b = self.params.branching
         while True:
             kids = self._child.take(front, axis=0)                    # (N, F, b)
-            if np.array_equal(kids[:, :, 0], front):                  # all leaves (or -1)
+            active = np.flatnonzero((kids[:, :, 0] != front).any(axis=1))
+            if not len(active):                                       # all leaves (or -1)
                 return front
-            cand = kids.reshape(n, -1)
-            dist = hamming_bits(q[:, None, :], self._centre.take(cand, axis=0))
+            qa = q
+            if len(active) < n:
+                kids, qa = kids.take(active, axis=0), q.take(active, axis=0)
+            cand = kids.reshape(len(active), -1)
+            dist = hamming_bits(qa[:, None, :], self._centre.take(cand, axis=0))
             dist[cand < 0] = _FAR
-            dist[rows, np.argmin(dist[:, :b], axis=1)] = -1           # the greedy child: kept, first
-            front = np.take_along_axis(cand, _first_k(dist, beam), axis=1)
+            dist[np.arange(len(active)), np.argmin(dist[:, :b], axis=1)] = -1  # the greedy child: kept, first
+            below = np.take_along_axis(cand, _first_k(dist, beam), axis=1)
+            if len(active) < n:
+                if below.shape[1] != front.shape[1]:  # a beam wider than the branching: the front widens
+                    wide = np.full((n, below.shape[1]), -1, below.dtype)
+                    wide[:, :front.shape[1]] = front
+                    front = wide
+                front[active] = below
+            else:
+                front = below
 
     def nearest(self, q: np.ndarray, beam: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The nearest word found for each query (``(N, 4) uint64``): ``(word ids (N,)
@@ -1330,17 +1347,16 @@ class InvertedIndex:
         insertion order when no image was removed; 0 for a free slot), and the virtual
         image's score.
         """
-        scores = np.zeros(self.n_slots, np.float64)
         w = np.asarray(words, np.int64)
         w = w[(w >= 0) & (w < self._df.n)]
         if not len(w) or not self.n_images:
-            return scores, 0.0
+            return np.zeros(self.n_slots, np.float64), 0.0
         uw, cq = np.unique(w, return_counts=True)
         df = self._df.view[uw]
         keep = df > 0
         uw, cq, df = uw[keep], cq[keep], df[keep]
         if not len(uw):
-            return scores, 0.0
+            return np.zeros(self.n_slots, np.float64), 0.0
         idf = np.log(self.n_images / df)
         postings, held = self._post.gather(uw)  # held: df, bar dropped postings
         packed = postings.astype(np.int64)
@@ -1348,7 +1364,8 @@ class InvertedIndex:
         n_wi = packed & _COUNT_MASK
         per_word = cq * idf
         weights = np.repeat(per_word, held) * n_wi / self._image_len.view[slots]
-        scores += np.bincount(slots, weights=weights, minlength=self.n_slots)
+        # the sums themselves (one pass over the slots, not a zeroed array added to)
+        scores: np.ndarray = np.bincount(slots, weights=weights, minlength=self.n_slots).astype(np.float64, copy=False)
         virt = self.virtual_image()
         in_virt = sorted_isin(uw, np.sort(virt))
         virtual = float((per_word[in_virt]).sum() / len(virt)) if len(virt) else 0.0

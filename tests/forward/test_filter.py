@@ -94,3 +94,38 @@ def test_the_total_rule_thresholds_one_minus_the_no_loop_probability():
     assert select_candidate(post, FilterParams(rule="total", loop_threshold=0.95))[0] is None
     with pytest.raises(ValueError):
         FilterParams(rule="sum")
+
+
+@pytest.mark.parametrize("neighbours, sigma", [(0, 1.0), (1, 0.7), (2, 1.0), (3, 1.5)])
+def test_predict_spreads_each_image_over_its_existing_neighbours_at_any_length(neighbours, sigma):
+    """The prior against the transition matrix built column by column from its definition
+    (the Gaussian renormalised over the neighbours that exist), for histories shorter and
+    longer than the Gaussian: the ends lack neighbours, the middle has them all."""
+    p = FilterParams(neighbours=neighbours, sigma_images=sigma)
+    g = diffusion_weights(p)
+    rng = np.random.default_rng(neighbours)
+    for n_prev in (0, 1, 2, 3, 5, 8, 40):
+        for n_new in (n_prev, n_prev + 1, n_prev + 3):
+            if n_new == 0:
+                continue
+            t = np.zeros((1 + n_new, 1 + n_prev))
+            t[0, 0] = p.p_no_loop_stays
+            t[1:, 0] = (1 - p.p_no_loop_stays) / n_new
+            for j in range(n_prev):
+                t[0, 1 + j] = p.p_loop_ends
+                near = [(j + o, g[o + neighbours]) for o in range(-neighbours, neighbours + 1) if 0 <= j + o < n_new]
+                total = sum(w for _, w in near)
+                for i, w in near:
+                    t[1 + i, 1 + j] = (1 - p.p_loop_ends) * w / total
+            post = rng.random(1 + n_prev)
+            post /= post.sum()
+            assert predict(post, n_new, p) == pytest.approx(t @ post, abs=1e-15)
+
+
+def test_the_total_rule_below_its_threshold_gives_no_candidate_and_the_total():
+    """Under the threshold the total rule answers without a candidate and with the total
+    loop probability whatever the neighbourhoods hold; with no image hypothesis, (None, 0)."""
+    post = np.array([0.75, 0.2, 0.05])
+    assert select_candidate(post, FilterParams(rule="total", loop_threshold=0.3)) == (None, pytest.approx(0.25))
+    assert select_candidate(np.array([1.0]), FilterParams(rule="total", loop_threshold=0.0)) == (None, 0.0)
+    assert select_candidate(np.array([1.0]), FilterParams(loop_threshold=0.0)) == (None, 0.0)

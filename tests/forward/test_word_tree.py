@@ -271,3 +271,48 @@ def test_slots_and_descriptors_of_words_are_where_the_words_were_put(spread):
     assert found.tolist() == held.tolist()
     np.testing.assert_array_equal(d[held].view(np.uint8), a[held])
     assert not d[~held].any()
+
+
+def _descend_every_query(tree: BinaryWordTree, q: np.ndarray, beam: int) -> np.ndarray:
+    """The beam's leaves with every query taken down every level until all fronts are
+    leaves (each query's front kept, ranked again, at the levels below its leaves)."""
+    from robotd.forward.vocabulary import _FAR, _first_k
+
+    n = len(q)
+    front = np.zeros((n, 1), np.int32)
+    b = tree.params.branching
+    while True:
+        kids = tree._child.take(front, axis=0)
+        if np.array_equal(kids[:, :, 0], front):
+            return front
+        cand = kids.reshape(n, -1)
+        dist = hamming_bits(q[:, None, :], tree._centre.take(cand, axis=0))
+        dist[cand < 0] = _FAR
+        dist[np.arange(n), np.argmin(dist[:, :b], axis=1)] = -1
+        front = np.take_along_axis(cand, _first_k(dist, beam), axis=1)
+
+
+@pytest.mark.parametrize("branching, leaf_size, beam", [(16, 32, 4), (4, 6, 2), (2, 3, 4), (3, 4, 8), (2, 2, 1)])
+def test_queries_that_reached_their_leaves_stop_with_the_front_a_further_level_gives(branching, leaf_size, beam):
+    """A tree whose branches differ in depth (small leaves, words in clusters of different
+    sizes, some removed): the search's leaves and nearest words are those of taking every
+    query down every level, beams wider than the branching included."""
+    rng = np.random.default_rng(branching * 100 + leaf_size)
+    tree = BinaryWordTree(TreeParams(branching=branching, leaf_size=leaf_size, beam=beam))
+    words = np.concatenate([_clustered(rng, 4, 60, 20), _clustered(rng, 30, 3, 30)])
+    ids = np.arange(len(words))
+    for at in range(0, len(words), 37):
+        tree.add(ids[at:at + 37], pack_bits(words[at:at + 37]))
+    tree.remove(rng.choice(ids, 40, replace=False))
+    q = pack_bits(np.concatenate([_clustered(rng, 4, 25, 25), rng.integers(0, 256, (50, 32), dtype=np.uint8)]))
+    got = tree._descend(q, beam)
+    want = _descend_every_query(tree, q, beam)
+    assert np.array_equal(got, want)
+    leaf_depth = []
+    for node in np.unique(want[want >= 0]).tolist():  # the leaves reached lie at different depths
+        d, cur = 0, node
+        while cur != 0:
+            cur = int(np.flatnonzero((tree._child[:tree._n_nodes] == cur).any(axis=1) & (np.arange(tree._n_nodes) != cur))[0])
+            d += 1
+        leaf_depth.append(d)
+    assert len(set(leaf_depth)) > 1
