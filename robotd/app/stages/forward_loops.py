@@ -985,15 +985,7 @@ class ForwardLoopStage(Publisher):
                                     defer_accept=defer)  # the keyframe's odometry pose
         cpu_ms = (time.thread_time() - cpu0) * 1e3
         self._current, self._image = None, None
-        self._keyframe_ids.append(kf.keyframe_id)
-        if offset is None:
-            self.no_offset += 1
-        self._offsets.append(np.zeros(3) if offset is None else offset)
-        self._poses.append(pose)
-        self._yaw_vars.append(yaw_var)
-        self._chains.append(chain)
-        self._chain_of[int(kf.keyframe_id)] = chain
-        self.frame_offset_ms_max = max(self.frame_offset_ms_max, abs(frame.stamp_ns - kf.stamp_ns) / 1e6)
+        self._record_image(kf, frame, pose, chain, offset, yaw_var)
         self.deferred_inline += bool(self.defer_accept and not defer and self.tests > tests)
         decision = _Decision(t, kf.keyframe_id, current, det.candidate_probability)
         across = False
@@ -1022,6 +1014,25 @@ class ForwardLoopStage(Publisher):
             cpu_ms += resumed
             resumed_s = time.perf_counter() - w0
             self._part["deferred"] = self._part.get("deferred", 0.0) + resumed
+        self._finish_image(kf, det, cpu_ms, resumed_s)
+
+    def _record_image(self, kf: Any, frame: Frame, pose: np.ndarray, chain: int,
+                      offset: np.ndarray | None, yaw_var: float | None) -> None:
+        """Keep what later keyframes read of the image just given to the detector: its
+        keyframe, offset, pose, heading variance and odometry chain."""
+        self._keyframe_ids.append(kf.keyframe_id)
+        if offset is None:
+            self.no_offset += 1
+        self._offsets.append(np.zeros(3) if offset is None else offset)
+        self._poses.append(pose)
+        self._yaw_vars.append(yaw_var)
+        self._chains.append(chain)
+        self._chain_of[int(kf.keyframe_id)] = chain
+        self.frame_offset_ms_max = max(self.frame_offset_ms_max, abs(frame.stamp_ns - kf.stamp_ns) / 1e6)
+
+    def _finish_image(self, kf: Any, det: Any, cpu_ms: float, resumed_s: float) -> None:
+        """The keyframe's CPU and times (with the waiting work it ran, ``resumed_s`` of wall
+        time), and the image stored."""
         self.cpu_ms.append(cpu_ms)
         if self.store is not None:
             t0 = time.thread_time()
@@ -1046,15 +1057,7 @@ class ForwardLoopStage(Publisher):
         det = self.detector.process(frame.image, pose, kf.pose.covariance, defer_accept=True, max_checks=own)
         cpu_ms = (time.thread_time() - cpu0) * 1e3
         self._current, self._image = None, None
-        self._keyframe_ids.append(kf.keyframe_id)
-        if offset is None:
-            self.no_offset += 1
-        self._offsets.append(np.zeros(3) if offset is None else offset)
-        self._poses.append(pose)
-        self._yaw_vars.append(yaw_var)
-        self._chains.append(chain)
-        self._chain_of[int(kf.keyframe_id)] = chain
-        self.frame_offset_ms_max = max(self.frame_offset_ms_max, abs(frame.stamp_ns - kf.stamp_ns) / 1e6)
+        self._record_image(kf, frame, pose, chain, offset, yaw_var)
         decision = _Decision(t, kf.keyframe_id, current, det.candidate_probability)
         spent = det.checks
         t0, w0 = time.thread_time(), time.perf_counter()
@@ -1092,15 +1095,7 @@ class ForwardLoopStage(Publisher):
         self._part["deferred"] = self._part.get("deferred", 0.0) + resumed
         self.checks_max = max(self.checks_max, spent)
         self.checks_over += spent > budget
-        self.cpu_ms.append(cpu_ms)
-        if self.store is not None:
-            t1 = time.thread_time()
-            self._store_image(kf.keyframe_id)
-            self._add_cpu("store", t1)
-        self.images += 1
-        self.total_ms.append((det.times_s["total"] + resumed_s) * 1e3)
-        self.verify_ms.append((det.times_s.get("verify", 0.0) + resumed_s) * 1e3)
-        self.features_ms.append(det.times_s.get("features", 0.0) * 1e3)
+        self._finish_image(kf, det, cpu_ms, resumed_s)
 
     def _run_job(self, d: _Decision, max_checks: int | None) -> int:
         """Go on with waiting verification ``d`` (:meth:`ForwardDetector.resume`): its awaiting
