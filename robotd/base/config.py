@@ -346,7 +346,7 @@ class ForwardDetectorConfig:
     checks_per_keyframe: int = _f(0, "a budget of epipolar checks per forward keyframe for the images' "
                                   "verifications, the waiting ones first, a level test counting as one, the "
                                   "rest waiting for the next keyframes (measured, not the default: docs/forward.md); "
-                                  "0: none, each image's checks in its own keyframe",
+                                  "0: none, each image's checks in its own keyframe; needs max_deferred_tests > 0",
                                   lo=0, hi=16, unit="")
 
 
