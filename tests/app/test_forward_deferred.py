@@ -77,7 +77,13 @@ class _FromTheMap(_Deferring):
 def _run(verifying: set[int], kind: type[_Deferring] = _Deferring,
          **kw: Any) -> tuple[_Deferring, ForwardLoopStage, list[Any]]:
     det = kind(verifying)
-    stage = ForwardLoopStage(det, distance_m=0.25, sync_tolerance_s=0.04, planar_refit=False, **kw)  # type: ignore[arg-type]
+    stage, log = _drive(det, **kw)
+    return det, stage, log
+
+
+def _drive(det: Any, **kw: Any) -> tuple[ForwardLoopStage, list[Any]]:
+    """The office sequence through a stage over ``det``: the stage and what it published."""
+    stage = ForwardLoopStage(det, distance_m=0.25, sync_tolerance_s=0.04, planar_refit=False, **kw)
     det.stage = stage
     log: list[Any] = []
     p = Pipeline()
@@ -88,7 +94,7 @@ def _run(verifying: set[int], kind: type[_Deferring] = _Deferring,
     for m in order._deliver(None, 0.0, 0.03, 0.0):
         p.publish(m)
     p.finish()
-    return det, stage, log
+    return stage, log
 
 
 def test_a_verifying_keyframe_leaves_its_level_test_to_the_next_keyframe_that_verifies_nothing():
@@ -253,17 +259,7 @@ class _Planned(order._Recorder):
 def _run_planned(plan: dict[int, list[tuple[int, bool, bool]]], kind: type[_Planned] = _Planned,
                  **kw: Any) -> tuple[_Planned, ForwardLoopStage, list[Any]]:
     det = kind(plan)
-    stage = ForwardLoopStage(det, distance_m=0.25, sync_tolerance_s=0.04, planar_refit=False, **kw)  # type: ignore[arg-type]
-    det.stage = stage
-    log: list[Any] = []
-    p = Pipeline()
-    p.add(stage)
-    p.add(SimpleNamespace(name="sink", subscriptions=lambda: {
-        KeyframeStored: lambda m: log.append(("keyframe", m.keyframe.keyframe_id)),
-        ForwardLoop: lambda m: log.append(("loop", m.from_id, m.to_id))}))
-    for m in order._deliver(None, 0.0, 0.03, 0.0):
-        p.publish(m)
-    p.finish()
+    stage, log = _drive(det, **kw)
     return det, stage, log
 
 
