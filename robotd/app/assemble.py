@@ -247,7 +247,8 @@ def build_forward_stage(cfg: Config, store: MapStore | None = None) -> Any:
                             store=store, mount=forward_mount(cfg),
                             ridge=RidgeParams(edge_sigma_yaw_rad=math.radians(f.sigma_yaw_deg)),
                             defer_accept=f.max_deferred_tests > 0, max_deferred=max(1, f.max_deferred_tests),
-                            check_budget=f.checks_per_keyframe or None)  # the config check asks a queue for it
+                            check_budget=f.checks_per_keyframe if f.max_deferred_tests and f.checks_per_keyframe
+                            else None)
 
 
 #: The relative scale errors ``(wheel distance, gyro)`` (1-sigma) of a base run on its
