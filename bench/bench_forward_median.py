@@ -12,9 +12,10 @@ fused pose (``bench/bench_forward_ablation.py``'s ``odometry_fused.csv``, comput
 missing).
 
 The answers compared per image: the words of the image, the status, loop and candidate, the
-candidate's probability and the virtual image's vote (to 1e-9), and of a verification its
-outcome, reason, matches, inliers, plane inliers and the motion (rotation and translation
-direction, to 1e-9). Printed: differences (none expected), per sequence the CPU per image
+candidate's probability and the virtual image's vote (to 1e-9), one SHA-256 over the image's
+votes, likelihoods, posterior and hypothesis ids (to the bit: :func:`filter_digest`), and of a
+verification its outcome, reason, matches, inliers, plane inliers and the motion (rotation and
+translation direction, to 1e-9). Printed: differences (none expected), per sequence the CPU per image
 (features included) median and p99 of both and their ratio (now / before), and each stage's.
 Written: JSON (``--out``); ``--page FILE.json`` writes docs/benchmarks/forward_median.md
 from one.
@@ -26,6 +27,7 @@ Run: ``PYTHONPATH=. .venv/bin/python bench/bench_forward_median.py --dir /tmp/of
 from __future__ import annotations
 
 import argparse
+import hashlib
 import io
 import json
 import os
@@ -48,6 +50,17 @@ DATA = REPO_ROOT.parent / "shared" / "data"
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "forward_median.json"
 PAGE = REPO_ROOT / "docs" / "benchmarks" / "forward_median.md"
 TOL = 1e-9
+
+
+def filter_digest(d: Any) -> str:
+    """SHA-256 (hex) over a detection's votes, likelihoods, posterior and hypothesis ids, each
+    array's dtype, shape and bytes: equal only when every value is the same to the bit."""
+    h = hashlib.sha256()
+    for a in (d.scores, d.likelihood, d.posterior, d.hypothesis_ids):
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
 
 
 # -- the worker: one tree's detector, one image per request --------------------------------
@@ -81,6 +94,7 @@ def _worker(folder: str, truth: str, office: bool, fused: str) -> None:
         v = d.verification
         answer = {"words": det.features_of(t).words.tolist(), "status": str(d.status), "loop": d.loop_id,
                   "candidate": d.candidate_id, "p": d.candidate_probability, "virtual": d.virtual_score,
+                  "filter_sha256": filter_digest(d),
                   "verification": None if v is None else
                   {"accepted": v.accepted, "reason": v.reason, "n_matches": v.n_matches,
                    "n_inliers": v.n_inliers, "n_plane_inliers": v.n_plane_inliers, "fallback": v.fallback,
@@ -193,9 +207,10 @@ def write_markdown(result: dict[str, Any], json_name: str) -> None:
              f"{', '.join(f'{x:.1f}' for x in result['load_before'])} before, "
              f"{', '.join(f'{x:.1f}' for x in result['load_after'])} after. "
              f"Baseline: the code before the cuts, the revision given as `--baseline-rev` (in `{json_name}`).", ""]
+    arrays = "the votes, likelihoods and posterior to the bit, " if result.get("filter_digest") else ""
     for name, seq in result["sequences"].items():
         lines += [f"## {name} ({seq['images']} images)", "",
-                  f"Answers differing (words, decision, candidate, probability, verification and its motion): "
+                  f"Answers differing (words, decision, candidate, probability, {arrays}verification and its motion): "
                   f"**{seq['answers_differing']}**.", "",
                   "| ms | before median | now median | ratio | before p99 | now p99 | ratio |",
                   "|---|---:|---:|---:|---:|---:|---:|"]
@@ -237,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
         from bench_forward_ablation import office_fused_odometry, office_sequence  # type: ignore[no-redef]
     base_tree = export_tree(a.baseline_rev)
     result: dict[str, Any] = {"machine": machine_info(), "load_before": os.getloadavg(),
-                              "baseline_rev": a.baseline_rev, "sequences": {}}
+                              "baseline_rev": a.baseline_rev, "filter_digest": True, "sequences": {}}
     for name in a.sequences.split(";"):
         name = name.strip()
         if name == "rtabmap_samples":

@@ -3,7 +3,11 @@ every difference (the bench's claim that the cuts keep every answer rests on it)
 
 from __future__ import annotations
 
-from bench.bench_forward_median import TOL, differences
+from types import SimpleNamespace
+
+import numpy as np
+
+from bench.bench_forward_median import TOL, differences, filter_digest
 
 
 def _answer(**change):
@@ -33,3 +37,23 @@ def test_every_changed_field_is_named_where_it_is():
     assert differences(moved, _answer(), "i") == ["i.verification.translation_dir[1]: 1e-06 != 0.0"]
     assert len(differences(_answer(verification=None), _answer(), "i")) == 1
     assert differences(_answer(loop=None), _answer(), "i") == ["i.loop: None != 7"]
+
+
+def _detection(**change):
+    d = {"scores": np.array([0.5, 0.0, 1.25]), "likelihood": np.array([1.0, 1.0, 2.5]),
+         "posterior": np.array([0.7, 0.1, 0.2]), "hypothesis_ids": np.arange(2, dtype=np.int64)}
+    d.update(change)
+    return SimpleNamespace(**d)
+
+
+def test_the_filter_digest_changes_with_one_bit_of_any_array_and_with_a_dtype():
+    assert filter_digest(_detection()) == filter_digest(_detection())
+    base = filter_digest(_detection())
+    post = np.array([0.7, 0.1, 0.2])
+    post[2] = np.nextafter(post[2], 1.0)  # one ulp
+    assert filter_digest(_detection(posterior=post)) != base
+    assert filter_digest(_detection(likelihood=np.array([1.0, 1.0, 2.5000000000000004]))) != base
+    assert filter_digest(_detection(scores=np.array([0.5, 0.0, 1.25], np.float32))) != base
+    assert filter_digest(_detection(hypothesis_ids=np.arange(2, dtype=np.int32))) != base
+    # the same values split differently between two arrays are not the same answer
+    assert filter_digest(_detection(scores=np.array([0.5, 0.0]), likelihood=np.array([1.25, 1.0, 1.0, 2.5]))) != base
