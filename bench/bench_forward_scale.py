@@ -28,7 +28,8 @@ Two parts, each against a baseline of the same run:
 
 Run: ``PYTHONPATH=. .venv/bin/python bench/bench_forward_scale.py --dir /tmp/office``
 (about 10 minutes on the shared 2-core machine); ``--full`` for 10,000 images;
-``--page FILE.json`` rewrites ``docs/benchmarks/forward_scale.md`` from a result.
+``--page FILE.json`` rewrites ``docs/benchmarks/forward_scale.md`` from a result; a run with
+``--out`` elsewhere leaves the page as it is.
 """
 
 from __future__ import annotations
@@ -565,6 +566,9 @@ def main(argv: list[str] | None = None) -> int:
         sc = res[key]
         print(f"median at {n} / median at 1000: {sc['median_ratio_end_to_1000']}")
     print(f"wrote {write_json(args.out, res)}")
+    if args.out.resolve() != DEFAULT_OUT.resolve():
+        print(f"{PAGE} left as it is (a result written elsewhere; --page {args.out} renders it)")
+        return 0
     write_page(PAGE, page(res))
     print(f"wrote {PAGE}")
     return 0
