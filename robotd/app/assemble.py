@@ -58,8 +58,7 @@ def build_odometry(cfg: Config, calibration: CalibrationFile | None = None) -> O
     as the gyro's reading noise (``gyro_noise_radps``) of the filter whose edges the pose
     graph gets (the wheel + gyro twin when visual odometry is fused; the fused filter keeps
     the config's, as ``docs/calibration.md`` explains). The fitted wheel slip density is
-    not used: the calibration drive's reference resolves no slip below its own noise (the
-    demo's fits 0), and the config's wheel noise covers the tick quantisation and slip.
+    not used here: the config's wheel noise covers the tick quantisation and slip.
     ``[odometry] noise_model = "calibration"`` gives that filter the calibration's whole
     sensor-level noise model instead (:func:`calibration_noise`: the fitted densities, the
     tick quantisation, each wheel's slip per metre of its own travel and the white

@@ -529,7 +529,7 @@ def fit_odometry(drive: CalibrationDrive, nominal_radius_m: float, nominal_base_
         return (np.interp(t_s, tgi, gi) - b0 * t_s - 0.5 * b1 * t_s ** 2) / s
 
     wheels = _fit_wheels(drive, iv, _arc_regressors(drive, heading, t0), heading, nominal_radius_m,
-                         nominal_base_m, q_g, params)
+                         nominal_base_m, q_g, params, ticks_per_rev)
     p, cov_w = wheels.p, wheels.cov
     # The wheel base is measured against the gyro: its scale's uncertainty carries over.
     cov_w[2, 2] += (p[2] * math.sqrt(cov_g[0, 0]) / s) ** 2
@@ -676,9 +676,32 @@ class _WheelFit:
     window_edges: np.ndarray  # the window grid's edges inside the reference (s)
 
 
+def slip_density_from_windows(heading_error_rad: np.ndarray, travel_m: np.ndarray, span_s: np.ndarray,
+                              gyro_q: float, geometry: np.ndarray, ticks_per_rev: float) -> float:
+    """The wheels' continuous slip variance per metre of a wheel's own travel (m^2 / m) from
+    the wheels' heading change over short windows against the calibrated gyro's
+    (``heading_error_rad`` ``(W,)``, slip events left out), each window's mean wheel travel
+    ``travel_m`` ``(W,)`` and span ``span_s`` ``(W,)``. Each window's squared error is
+    modelled as ``2 q travel / B^2 + gyro_q span + c``: each wheel's slip (variance ``q``
+    per metre) moves the heading by its distance over the wheel base ``B``, the gyro's white
+    noise (``gyro_q``, (rad/s)^2 / Hz) integrates over the span, and ``c`` is the rounding of
+    the ticks (``ticks_per_rev``) at both ends of the window on both wheels, ``(r_L^2 +
+    r_R^2) tick^2 / (6 B^2)``. ``q`` is the method-of-moments ratio: the windows' squared
+    errors less the gyro's and the ticks' parts, summed, over their modelled slope summed
+    (0 when the rest leaves nothing). ``geometry``: ``(r_L, r_R, B)`` in metres."""
+    rl, rr, bb = (float(v) for v in geometry)
+    tick_rad = 2.0 * math.pi / ticks_per_rev
+    c = (rl ** 2 + rr ** 2) * tick_rad ** 2 / (6.0 * bb ** 2)
+    excess = np.asarray(heading_error_rad, float) ** 2 - gyro_q * np.asarray(span_s, float) - c
+    slope = 2.0 * np.asarray(travel_m, float) / bb ** 2
+    total = float(slope.sum())
+    return max(float(excess.sum()) / total, 0.0) if total > 0 else 0.0
+
+
 def _fit_wheels(drive: CalibrationDrive, iv: _Intervals, arcs: np.ndarray,
                 heading: Callable[[np.ndarray], np.ndarray], nominal_radius_m: float,
-                nominal_base_m: float, q_g: float, params: OdometryFitParams) -> _WheelFit:
+                nominal_base_m: float, q_g: float, params: OdometryFitParams,
+                ticks_per_rev: float = TICKS_PER_REV) -> _WheelFit:
     """The wheels: unknowns (r_L, r_R, B), solved by Gauss-Newton over two blocks of
     residuals: the displacement over each keyframe interval against the reference (the
     radii; ``arcs`` from :func:`_arc_regressors`), and the heading change over short
@@ -763,11 +786,13 @@ def _fit_wheels(drive: CalibrationDrive, iv: _Intervals, arcs: np.ndarray,
     cov_w = np.linalg.inv(a.T @ a) * max(red, 1.0)
     # The wheels' slip noise from the heading windows (the displacement's residuals are the
     # reference's own at this scale): var = 2 q |ds| / B^2 + q_g dt + c, with slip events out.
+    # c is the ticks' rounding at both ends of a window on both wheels, known from the
+    # encoders, not fitted: a drive at one cruising speed gives every window nearly the same
+    # travel, and a free c would then trade with q on the few slow windows alone.
     e = heading_res(p)[clean]
     w_travel = np.abs(w_dphi[clean]).mean(axis=1) * 0.5 * (p[0] + p[1])
-    design = np.column_stack([2.0 * w_travel / p[2] ** 2, np.ones(len(e))])
-    coef, *_ = np.linalg.lstsq(design, e ** 2 - q_g * (w_t1 - w_t0)[clean], rcond=None)
-    return _WheelFit(p=p, cov=cov_w, residuals=residuals(p), used=used, q_w=max(float(coef[0]), 0.0),
+    q_w = slip_density_from_windows(e, w_travel, (w_t1 - w_t0)[clean], q_g, p, ticks_per_rev)
+    return _WheelFit(p=p, cov=cov_w, residuals=residuals(p), used=used, q_w=q_w,
                      slip_windows=int((~clean).sum()), heading_windows=len(clean), window_t0=w_t0,
                      window_t1=w_t1, flagged=flagged, sig_h=sig_h, window_edges=edges)
 

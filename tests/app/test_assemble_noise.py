@@ -145,4 +145,10 @@ def test_the_slip_events_come_from_the_calibration_unless_the_config_sets_a_rate
     off = build_odometry(replace(cfg, "odometry", slip_gate_sigma=0.0), cal).wheel_gyro.params
     assert off.slip_event_rate_hz == 0.0
     # A file without them: none, as before.
-    assert build_odometry(cfg, _shipped()).wheel_gyro.params.slip_event_rate_hz == 0.0
+    bare = dataclasses.replace(cal.odometry, slip_event_rate_hz=None, slip_event_duration_s=None,
+                               slip_event_rate_sigma_hz=None, slip_event_duration_sigma_s=None)
+    assert build_odometry(cfg, dataclasses.replace(cal, odometry=bare)).wheel_gyro.params.slip_event_rate_hz == 0.0
+    # The shipped file holds them: the demo's honest edges take its fitted events.
+    shipped = _shipped().odometry
+    assert shipped.has_slip_events
+    assert build_odometry(cfg, _shipped()).wheel_gyro.params.slip_event_rate_hz == shipped.slip_event_rate_hz

@@ -429,9 +429,10 @@ def test_calibrate_odometry_refusals_keep_the_calibration_file(case: str, materi
     elif case == "drive_is_a_folder":
         drive = tmp_path
     elif case == "calibration_slip_events_partial":  # a damaged file: three of the four slip event keys
-        with cal.open("a") as f:
-            f.write("odometry_slip_event_rate_hz: 0.2\nodometry_slip_event_duration_s: 0.19\n"
-                    "odometry_slip_event_rate_sigma_hz: 0.05\n")
+        kept = [line for line in cal.read_text().splitlines(keepends=True)
+                if not line.startswith("odometry_slip_event_")]
+        cal.write_text("".join(kept) + "odometry_slip_event_rate_hz: 0.2\nodometry_slip_event_duration_s: 0.19\n"
+                       "odometry_slip_event_rate_sigma_hz: 0.05\n")
     before = snapshot(tmp_path)
     assert_refused(run("calibrate", "odometry", drive, "--calibration", cal, *extra), says)
     assert snapshot(tmp_path) == before

@@ -108,19 +108,21 @@ def test_write_slip_refuses_without_the_fit_alone_or_a_seed(args, tmp_path, monk
 def test_write_slip_adds_the_slip_events_and_a_missing_density_and_keeps_the_rest(tmp_path):
     """The slip events always; the wheel slip density only into a file that holds none (a
     density from the file's own drive is kept); geometry, noise model and loops kept."""
-    import shutil
-
     from bench.bench_odometry_calibration import write_slip
     from robotd.app.demo import shipped_calibration
     from robotd.io.calibfile import read_calibration, write_calibration
 
-    ship = read_calibration(shipped_calibration())
-    assert ship.odometry.wheel_noise_m_sqrt_m == 0.0 and not ship.odometry.has_slip_events
+    shipped = read_calibration(shipped_calibration())
+    # A file from before the slip fit: the shipped one without its density and slip events.
+    ship = dataclasses.replace(shipped, odometry=dataclasses.replace(
+        shipped.odometry, wheel_noise_m_sqrt_m=0.0, slip_event_rate_hz=None, slip_event_duration_s=None,
+        slip_event_rate_sigma_hz=None, slip_event_duration_sigma_s=None))
+    assert not ship.odometry.has_slip_events
     fitted = dataclasses.replace(ship.odometry, wheel_noise_m_sqrt_m=5e-4, wheel_base_m=0.3, slip_event_rate_hz=0.2,
                                  slip_event_duration_s=0.19, slip_event_rate_sigma_hz=0.05,
                                  slip_event_duration_sigma_s=0.02)
     path = tmp_path / "seed1.yml"
-    shutil.copy(shipped_calibration(), path)
+    write_calibration(path, ship)
     write_slip(path, fitted)
     got = read_calibration(path)
     assert got.odometry == dataclasses.replace(fitted, wheel_base_m=ship.odometry.wheel_base_m)
