@@ -519,7 +519,7 @@ class BinaryWordTree:
         # parent's split); a leaf that outgrows its block moves to a longer one at the
         # pool's end, and the pool is compacted once the blocks left behind take a quarter
         # of it
-        self._pool = np.full(0, -1, np.int32)
+        self._pool = np.full(0, -1, np.int16)           # int32 once there are more slots
         self._pool_end = 0                               # the pool's used length
         self._pool_dead = 0                              # of it, in blocks left behind
         self._row_start = np.zeros(1, np.int32)          # per row: its block's start in the pool
@@ -529,11 +529,16 @@ class BinaryWordTree:
         self._free_rows: list[int] = []
         self._leaf_row[0] = 0
         self._child[0, 0] = 0                            # the root, a leaf to begin with
-        # words: one slot each (descriptor, word id, leaf row, position in it)
+        # words: one slot each (descriptor, word id, leaf row, position in it). The word
+        # ids are kept only once a slot holds another word than its own number (None:
+        # slot s holds word s, as while words come in id order and none was removed), and
+        # the rows and positions only from the first removal, which alone reads them
+        # (None: not kept; built from the leaves' blocks then), so a young tree holds its
+        # descriptors and the leaves' blocks only
         self._desc = np.zeros((1, 4), np.uint64)
-        self._slot_word = np.full(0, -1, np.int32)
-        self._slot_row = np.zeros(0, np.int16)          # int32 once there are more rows
-        self._slot_pos = np.zeros(0, np.uint8 if params.leaf_size <= 256 else np.int32)
+        self._slot_word: np.ndarray | None = None
+        self._slot_row: np.ndarray | None = None        # int16 while the rows fit, then int32
+        self._slot_pos: np.ndarray | None = None
         self._n_slots = 0
         self._free_slots: list[int] = []
         self.n_live = 0
@@ -548,7 +553,39 @@ class BinaryWordTree:
         arrays = (self._centre, self._child, self._leaf_row, self._pool, self._row_start, self._row_cap, self._fill,
                   self._desc, self._slot_word, self._slot_row, self._slot_pos)
         free = sys.getsizeof(self._free_rows) + sys.getsizeof(self._free_slots)
-        return sum(a.nbytes for a in arrays) + free + _INT_BYTES * (len(self._free_rows) + len(self._free_slots))
+        return (sum(a.nbytes for a in arrays if a is not None) + free
+                + _INT_BYTES * (len(self._free_rows) + len(self._free_slots)))
+
+    def slot_words(self) -> np.ndarray:
+        """The word held by each slot, ``(n_slots,) int32``, -1 for a free slot."""
+        if self._slot_word is None:
+            return np.arange(self._n_slots, dtype=np.int32)
+        return self._slot_word[:self._n_slots]
+
+    def _keep_slot_words(self) -> None:
+        """Keep the slots' word ids from now on (a slot is about to hold another word
+        than its own number)."""
+        if self._slot_word is None:
+            self._slot_word = np.full(_grown(self._n_slots), -1, np.int32)
+            self._slot_word[:self._n_slots] = np.arange(self._n_slots, dtype=np.int32)
+
+    def _keep_slot_places(self) -> None:
+        """Keep each slot's leaf row and position in it from now on (the first removal),
+        read off the leaves' blocks."""
+        if self._slot_row is not None:
+            return
+        cap = _grown(self._n_slots)
+        self._slot_row = np.zeros(cap, np.int16 if self._n_rows <= np.iinfo(np.int16).max + 1 else np.int32)
+        self._slot_pos = np.zeros(cap, np.uint8 if self.params.leaf_size <= 256 else np.int32)
+        rows = self._leaf_row[:self._n_nodes]
+        rows = rows[rows >= 0].astype(np.int64)
+        fill = self._fill[rows].astype(np.int64)
+        total = int(fill.sum())
+        if total:
+            within = np.arange(total) - np.repeat(np.cumsum(fill) - fill, fill)
+            slots = self._pool[np.repeat(self._row_start[rows].astype(np.int64), fill) + within]
+            self._slot_row[slots] = np.repeat(rows, fill)
+            self._slot_pos[slots] = within
 
     # -- growing arrays -------------------------------------------------------------------
     @staticmethod
@@ -575,7 +612,7 @@ class BinaryWordTree:
             row = self._free_rows.pop()
         else:
             row = self._n_rows
-            if row > np.iinfo(self._slot_row.dtype).max:
+            if self._slot_row is not None and row > np.iinfo(self._slot_row.dtype).max:
                 self._slot_row = self._slot_row.astype(np.int32)
             self._row_start = self._grow(self._row_start, row + 1)
             self._row_cap = self._grow(self._row_cap, row + 1)
@@ -588,7 +625,7 @@ class BinaryWordTree:
         return n
 
     def leaf_slots(self, node: int) -> np.ndarray:
-        """The slots of leaf ``node``'s words in their order, ``(fill,) int32`` (a view)."""
+        """The slots of leaf ``node``'s words in their order, ``(fill,)`` int16 or int32 (a view)."""
         row = int(self._leaf_row[node])
         start = int(self._row_start[row])
         return self._pool[start:start + int(self._fill[row])]
@@ -626,7 +663,7 @@ class BinaryWordTree:
         cap_l = cap[live]
         start = np.cumsum(cap_l) - cap_l
         total = int(cap_l.sum())
-        pool = np.full(_grown(total), -1, np.int32)
+        pool = np.full(_grown(total), -1, self._pool.dtype)
         if total:
             within = np.arange(total) - np.repeat(start, cap_l)
             pool[:total] = self._pool[np.repeat(self._row_start[live], cap_l) + within]
@@ -701,7 +738,8 @@ class BinaryWordTree:
         self._scan(q, pair_q, leaves[pair_q, pair_k], best)
         found = best != _NO_KEY
         words, dist = none
-        words[found] = self._slot_word[best[found] & 0xFFFFFFFF]
+        slot = best[found] & 0xFFFFFFFF
+        words[found] = slot if self._slot_word is None else self._slot_word[slot]
         dist[found] = (best[found] >> 32).astype(np.int32)
         return words, dist
 
@@ -760,8 +798,9 @@ class BinaryWordTree:
         # one by one (they split)
         self._reserve(rows[first & fits], need[first & fits])
         self._pool[self._row_start[rows[fits]] + pos[fits]] = slots[fits]
-        self._slot_row[slots[fits]] = rows[fits]
-        self._slot_pos[slots[fits]] = pos[fits]
+        if self._slot_row is not None:
+            self._slot_row[slots[fits]] = rows[fits]
+            self._slot_pos[slots[fits]] = pos[fits]
         np.add.at(self._fill, rows[fits], 1)
         over = ~fits
         if over.any():
@@ -777,14 +816,21 @@ class BinaryWordTree:
         n0 = self._n_slots
         fresh = np.arange(n0, n0 + len(words) - k, dtype=np.int64)
         n1 = n0 + len(fresh)
-        self._desc = self._grow(self._desc, n1 + 1)  # + 1: a spare row, read for slot -1
-        self._slot_word = self._grow(self._slot_word, n1, -1)
-        self._slot_row = self._grow(self._slot_row, n1)
-        self._slot_pos = self._grow(self._slot_pos, n1)
-        self._n_slots = n1
         slots = np.concatenate([np.asarray(reused, np.int64), fresh])
+        if self._slot_word is None and not np.array_equal(words, slots):
+            self._keep_slot_words()
+        if n1 > np.iinfo(self._pool.dtype).max:
+            self._pool = self._pool.astype(np.int32)
+        self._desc = self._grow(self._desc, n1 + 1)  # + 1: a spare row, read for slot -1
+        if self._slot_word is not None:
+            self._slot_word = self._grow(self._slot_word, n1, -1)
+        if self._slot_row is not None:
+            self._slot_row = self._grow(self._slot_row, n1)
+            self._slot_pos = self._grow(self._slot_pos, n1)
+        self._n_slots = n1
         self._desc[slots] = q
-        self._slot_word[slots] = words
+        if self._slot_word is not None:
+            self._slot_word[slots] = words
         return slots.astype(np.int32)
 
     def _put(self, node: int, slots: np.ndarray) -> None:
@@ -795,8 +841,9 @@ class BinaryWordTree:
             self._reserve(np.array([row]), np.array([f + len(slots)]))
             at = int(self._row_start[row]) + f
             self._pool[at:at + len(slots)] = slots
-            self._slot_row[slots] = row
-            self._slot_pos[slots] = np.arange(f, f + len(slots), dtype=np.int32)
+            if self._slot_row is not None:
+                self._slot_row[slots] = row
+                self._slot_pos[slots] = np.arange(f, f + len(slots), dtype=np.int32)
             self._fill[row] = f + len(slots)
             return
         members = np.concatenate([self.leaf_slots(node), slots])
@@ -855,6 +902,8 @@ class BinaryWordTree:
         if not len(w):
             return out
         lo, span = int(w.min()), int(w.max()) - int(w.min())
+        if self._slot_word is None:  # slot s holds word s
+            return np.where((w >= 0) & (w < self._n_slots), w, -1)
         held = self._slot_word[:self._n_slots]
         # held - lo as uint32 (a Python int: no int64 copy): free slots (-1) and ids below
         # lo wrap around above the span, so one comparison finds the range
@@ -892,6 +941,10 @@ class BinaryWordTree:
             return gone
         at = self.slots_of(w_all)
         gone[at >= 0] = self._desc[at[at >= 0]]
+        if not (at >= 0).any():
+            return gone
+        self._keep_slot_words()
+        self._keep_slot_places()
         slots = at.tolist()
         # one word at a time (a removal moves the leaf's last entry into the hole, and the
         # entries' order decides a later split), through memoryviews: numpy's scalar

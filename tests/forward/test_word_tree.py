@@ -223,7 +223,7 @@ def _scan_reference(tree: BinaryWordTree, q: np.ndarray, beam: int) -> tuple[np.
                 if best is None or (d, s) < best:
                     best = (d, s)
         if best is not None:
-            words[i], dist[i] = tree._slot_word[best[1]], best[0]
+            words[i], dist[i] = tree.slot_words()[best[1]], best[0]
     return words, dist
 
 
@@ -264,7 +264,7 @@ def test_slots_and_descriptors_of_words_are_where_the_words_were_put(spread):
     held[:200:3] = False
     ask = np.concatenate([ids, ids[1:] - 1 if spread > 1 else np.zeros(0, np.int64), [ids[-1] + 1]])
     slots = tree.slots_of(ask)
-    want = {int(w): s for s, w in enumerate(tree._slot_word[:tree._n_slots].tolist()) if w >= 0}
+    want = {int(w): s for s, w in enumerate(tree.slot_words().tolist()) if w >= 0}
     assert slots.tolist() == [want.get(int(w), -1) for w in ask]
     assert (slots[:300] >= 0).tolist() == held.tolist()
     d, found = tree.descriptors(ids)
