@@ -133,8 +133,11 @@ class Vocabulary:
         # descriptors
         self._last_new_ids = (0, 0)
         self._last_new_desc: np.ndarray | None = np.zeros((0, dim), np.uint8 if binary else np.float32)
-        self._last_new_slots: np.ndarray | None = None  # their slots in the word tree, until the next add()
-        self.last_new_at = np.zeros(0, np.int32)  # the descriptors (of the last add()) that made them
+        # their slots in the word tree, until the next add() (None: not kept, as while the
+        # tree's slot s holds word s)
+        self._last_new_slots: np.ndarray | None = None
+        # the descriptors (of the last add()) that made them (uint16 while they fit)
+        self.last_new_at = np.zeros(0, np.uint16)
         self.last_purged = np.zeros(0, np.int64)
         self.last_purged_descriptors = np.zeros((0, dim), np.uint8 if binary else np.float32)
 
@@ -287,7 +290,7 @@ class Vocabulary:
         self._images += 1
         none = d[:0].copy()  # not a view: that would keep the caller's descriptors alive
         self._last_new_ids, self._last_new_desc, self._last_new_slots = (self._n_words, self._n_words), none, None
-        self.last_new_at = np.zeros(0, np.int32)
+        self.last_new_at = np.zeros(0, np.uint16)
         self.last_purged = np.zeros(0, np.int64)
         self.last_purged_descriptors = none
         # a word found twice in the image is written twice with the same value (no unique)
@@ -304,8 +307,8 @@ class Vocabulary:
         if self._tree is not None:
             # the search above left the tree as it was: its greedy leaves are where they go
             greedy = self._tree.last_greedy
-            self._last_new_slots = self._tree.add(keys, pack_bits(d[new[founders]]),
-                                                  None if greedy is None else greedy[new[founders]])
+            slots = self._tree.add(keys, pack_bits(d[new[founders]]), None if greedy is None else greedy[new[founders]])
+            self._last_new_slots = None if self._tree.slots_are_words else slots
             self._tree.last_greedy = None  # a view of the search's (N, beam) leaves: not kept
         else:
             self._index.add(keys, d[new[founders]], threads=1)
@@ -316,7 +319,7 @@ class Vocabulary:
         words[new] = self._n_words - len(founders) + owner
         self._last_new_ids = (int(keys[0]), int(keys[-1]) + 1)
         self._last_new_desc = None if self._tree is not None else d[new[founders]]
-        self.last_new_at = new[founders].astype(np.int32)
+        self.last_new_at = new[founders].astype(np.uint16 if len(d) <= 0xFFFF else np.int64)
         self._purge()
         return words, len(founders)
 
@@ -555,6 +558,11 @@ class BinaryWordTree:
         free = sys.getsizeof(self._free_rows) + sys.getsizeof(self._free_slots)
         return (sum(a.nbytes for a in arrays if a is not None) + free
                 + _INT_BYTES * (len(self._free_rows) + len(self._free_slots)))
+
+    @property
+    def slots_are_words(self) -> bool:
+        """True while slot s holds word s (no per-slot word ids kept)."""
+        return self._slot_word is None
 
     def slot_words(self) -> np.ndarray:
         """The word held by each slot, ``(n_slots,) int32``, -1 for a free slot."""
