@@ -125,7 +125,7 @@ class Vocabulary:
         self._n_words = 0
         self._images = 0                        # add() calls so far (one per image)
         self._first = _GrowingInts()            # per image (add() call): the first word id it made
-        self._seen = _GrowingInts(np.uint8)     # per word: images it was found in, counted to 2
+        self._again = _GrowingBits()            # per word: found in an image after the one that made it
         self._unpurged_from = 0                 # words below this id were all examined
         self.purged = 0
         # What the last add() changed, for a store to write (robotd.io.store): the new words'
@@ -152,7 +152,7 @@ class Vocabulary:
         search = self._tree.memory_bytes() if self._tree is not None else int(self._index.memory_usage)
         last = (self.last_new_at, self.last_purged, self.last_purged_descriptors)
         held = sum(a.nbytes for a in (self._last_new_desc, self._last_new_slots) if a is not None)
-        return search + self._first.nbytes + self._seen.nbytes + sum(a.nbytes for a in last) + held
+        return search + self._first.nbytes + self._again.nbytes + sum(a.nbytes for a in last) + held
 
     @property
     def last_new(self) -> tuple[np.ndarray, np.ndarray]:
@@ -195,7 +195,7 @@ class Vocabulary:
         w = np.asarray(words, np.int64)
         if self.params.purge_after <= 0:
             return np.ones(len(w), bool)
-        out: np.ndarray = (w >= self._unpurged_from) | (self._seen.view[w] > 1)
+        out: np.ndarray = (w >= self._unpurged_from) | self._again.get(w)
         return out
 
     def word_descriptors(self, words: np.ndarray) -> np.ndarray:
@@ -295,7 +295,7 @@ class Vocabulary:
         self.last_purged_descriptors = none
         # a word found twice in the image is written twice with the same value (no unique)
         found = words[words >= 0]
-        self._seen.view[found] = np.minimum(self._seen.view[found], 1) + 1  # only "more than once" matters
+        self._again.set(found)  # only "more than once" matters
         new = np.flatnonzero(words < 0)
         if not len(new):
             self._purge()
@@ -313,9 +313,7 @@ class Vocabulary:
         else:
             self._index.add(keys, d[new[founders]], threads=1)
         self._n_words += len(founders)
-        n0 = self._seen.n
-        self._seen.resize(n0 + len(founders))
-        self._seen.view[n0:] = 1
+        self._again.resize(self._n_words)
         words[new] = self._n_words - len(founders) + owner
         self._last_new_ids = (int(keys[0]), int(keys[-1]) + 1)
         self._last_new_desc = None if self._tree is not None else d[new[founders]]
@@ -347,8 +345,8 @@ class Vocabulary:
             raise ValueError("born must not decrease and must lie in 0 .. n_images - 1 (words are made in image order)")
         self._first.resize(int(n_images))
         self._first.view[:] = np.searchsorted(born, np.arange(int(n_images)), side="left")
-        self._seen.resize(n)
-        self._seen.view[:] = np.minimum(np.asarray(seen, np.int64), 2)
+        self._again.resize(n)
+        self._again.set(np.flatnonzero(np.asarray(seen, np.int64) > 1))
         self._images = int(n_images)
         self.purged = int(purged.sum())
         age = self.params.purge_after
@@ -368,7 +366,7 @@ class Vocabulary:
         hi = int(self._first.view[limit + 1])   # the first word made after image ``limit``
         if hi <= lo:
             return
-        gone = lo + np.flatnonzero(self._seen.view[lo:hi] <= 1)
+        gone = lo + np.flatnonzero(~self._again.between(lo, hi))
         if len(gone):
             if self._tree is not None:
                 self.last_purged_descriptors = self._tree.remove(gone).view(np.uint8)
@@ -1006,6 +1004,45 @@ class _GrowingInts:
             while top > _TOP[self._a.dtype.type]:
                 self._a = self._a.astype(_WIDER[self._a.dtype.type])
         self._a[at] += values
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held (the spare capacity included)."""
+        return int(self._a.nbytes)
+
+
+class _GrowingBits:
+    """A growing array of bits (one per word: 1/8 of a byte, not a byte), packed eight to a
+    byte, lowest bit first; new bits are 0."""
+
+    def __init__(self) -> None:
+        self._a: np.ndarray = np.zeros(0, np.uint8)
+        self.n = 0
+
+    def resize(self, n: int) -> None:
+        need = (n + 7) >> 3
+        if need > len(self._a):
+            b = np.zeros(max(need, _grown(len(self._a))), np.uint8)
+            b[:len(self._a)] = self._a
+            self._a = b
+        self.n = max(self.n, n)
+
+    def set(self, at: np.ndarray) -> None:
+        """Set the bits ``at`` (``(K,) int``, below ``n``, repeats allowed)."""
+        at = np.asarray(at, np.int64)
+        np.bitwise_or.at(self._a, at >> 3, np.left_shift(1, at & 7).astype(np.uint8))
+
+    def get(self, at: np.ndarray) -> np.ndarray:
+        """``(K,) bool``: the bits ``at`` (``(K,) int``, below ``n``)."""
+        at = np.asarray(at, np.int64)
+        out: np.ndarray = ((self._a[at >> 3] >> (at & 7).astype(np.uint8)) & 1).astype(bool)
+        return out
+
+    def between(self, lo: int, hi: int) -> np.ndarray:
+        """``(hi - lo,) bool``: the bits ``lo .. hi - 1``."""
+        bits = np.unpackbits(self._a[lo >> 3:(hi + 7) >> 3], bitorder="little")
+        out: np.ndarray = bits[lo & 7:(lo & 7) + hi - lo].astype(bool)
+        return out
 
     @property
     def nbytes(self) -> int:
