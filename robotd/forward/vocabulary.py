@@ -1051,37 +1051,42 @@ class _GrowingBits:
 
 
 def _block_room(count: np.ndarray) -> np.ndarray:
-    """The postings a block of ``count`` (>= 2, ``(K,)`` int) holds: the power of two at or
-    above it (:class:`_Postings`)."""
+    """The postings a block of ``count`` (>= 2, ``(K,)`` int) has room for: the power of two
+    at or above it (:class:`_Postings`)."""
     return np.left_shift(1, np.frexp(np.asarray(count, np.float64) - 1.0)[1]).astype(np.int64)
 
 
 class _Postings:
     """Every word's postings (``uint32``, ``slot << _COUNT_BITS | n(w, i)``) in the order they
     came, in two flat arrays rather than an object per word (most words are seen in one
-    image or a few: an object's own overhead would outweigh its postings).
+    image or a few: an object's own overhead would outweigh its postings), and every word's
+    document frequency ``df``, which is also how many postings a word with any holds.
 
     ``head[w]`` (one ``uint32`` per word): 0 when ``w`` has no posting; below :data:`_BLOCK`
-    its one posting itself; else ``_BLOCK | offset`` of its block in ``store``: the number
-    of postings ``c`` (>= 2), the postings, room up to the power of two at or above ``c``.
-    A block that fills up moves to a block twice as long at the store's end; the store is
-    compacted once the blocks left behind take a quarter of it."""
+    its one posting itself; else ``_BLOCK | offset`` of its block in ``store``: its ``df[w]``
+    (>= 2) postings, room up to the power of two at or above it (no count of its own: df
+    is it). A block that fills up moves to a block twice as long at the store's end; the
+    store is compacted once the blocks left behind take a quarter of it. A word whose
+    postings were dropped keeps its df (:meth:`drop`)."""
 
     def __init__(self) -> None:
         self.head = _GrowingInts(np.uint32)
-        self._store = np.zeros(2, np.uint32)  # gather reads entries 0 and 1 for a word without a block
+        # 1 byte a word until a count passes 127, then 2 until one passes 32,767: most words
+        # are seen a few times; counters start narrow and widen (:meth:`_GrowingInts.add`)
+        self.df = _GrowingInts(np.int8)
+        self._store = np.zeros(2, np.uint32)  # gather reads entry 0 for a word without a block
         self._end = 0           # the store's used length
         self._dead = 0          # of it, in blocks left behind (at least)
 
     @property
     def nbytes(self) -> int:
         """Bytes held (the spare capacity included)."""
-        return self.head.nbytes + int(self._store.nbytes)
+        return self.head.nbytes + self.df.nbytes + int(self._store.nbytes)
 
-    def _blocks(self, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The offsets and posting counts of the blocks that heads ``h`` (all >= _BLOCK) point to."""
-        off = (h & ~_BLOCK).astype(np.int64)
-        return off, self._store[off].astype(np.int64)
+    def resize(self, n: int) -> None:
+        """Room for words ``0 .. n - 1`` (new ones without postings, df 0)."""
+        self.head.resize(n)
+        self.df.resize(n)
 
     def gather(self, words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The postings of ``words`` (``(K,) int64``, distinct), word after word in that order,
@@ -1089,9 +1094,9 @@ class _Postings:
         h = self.head.view[words]
         block = h >= _BLOCK
         off = np.where(block, h & ~_BLOCK, 0).astype(np.int64)  # 0: read, then overwritten
-        held = np.where(block, self._store[off], h != 0).astype(np.int64)
+        held = np.where(block, self.df.view[words], h != 0).astype(np.int64)
         start = np.cumsum(held) - held
-        out = self._store.take(np.repeat(off + 1 - start, held) + np.arange(int(start[-1] + held[-1]) if len(held) else 0))
+        out = self._store.take(np.repeat(off - start, held) + np.arange(int(start[-1] + held[-1]) if len(held) else 0))
         single = (h != 0) & ~block
         out[start[single]] = h[single]
         return out, held
@@ -1104,47 +1109,46 @@ class _Postings:
 
     def append(self, words: np.ndarray, values: np.ndarray) -> None:
         """Append posting ``values[k]`` (``uint32`` < _BLOCK) to word ``words[k]`` (``(K,)
-        int64``, distinct, below ``head.n``)."""
+        int64``, distinct, below ``head.n``, none with dropped postings), each word's df
+        counting it."""
         h = self.head.view[words]
         none = h == 0
         self.head.view[words[none]] = values[none]
         block = h >= _BLOCK
-        off, cnt = self._blocks(h[block])
+        off = (h[block] & ~_BLOCK).astype(np.int64)
+        cnt = self.df.view[words[block]].astype(np.int64)
         full = (cnt & (cnt - 1)) == 0                       # a power of two: no room left
         room = ~full
         vb = values[block]
-        at = off[room]
-        self._store[at + 1 + cnt[room]] = vb[room]
-        self._store[at] += np.uint32(1)
+        self._store[off[room] + cnt[room]] = vb[room]
         # the rest move to new blocks at the end: a word with one posting to a block of 2,
         # a full block to one twice as long
         single = ~none & ~block
         hs, vs, ws = h[single], values[single], words[single]
         fo, fc, fv, fw = off[full], cnt[full], vb[full], words[block][full]
         k = len(hs)
-        if not k and not len(fc):
-            return
-        e0 = self._end
-        end = e0 + 3 * k + int((1 + 2 * fc).sum())
-        if end > len(self._store):
-            grown = np.zeros(max(end, _grown(len(self._store))), np.uint32)
-            grown[:e0] = self._store[:e0]
-            self._store = grown
-        st = self._store
-        if k:
-            new = st[e0:e0 + 3 * k]
-            new[0::3], new[1::3], new[2::3] = 2, hs, vs
-            self.head.view[ws] = (e0 + 3 * np.arange(k)).astype(np.uint32) | _BLOCK
-        if len(fc):
-            size = 1 + 2 * fc
-            start = e0 + 3 * k + np.cumsum(size) - size
-            within = np.arange(int(fc.sum())) - np.repeat(np.cumsum(fc) - fc, fc)
-            st[np.repeat(start + 1, fc) + within] = st[np.repeat(fo + 1, fc) + within]
-            st[start] = (fc + 1).astype(np.uint32)
-            st[start + 1 + fc] = fv
-            self.head.view[fw] = start.astype(np.uint32) | _BLOCK
-            self._dead += int((1 + fc).sum())               # the full blocks: left behind
-        self._end = end
+        if k or len(fc):
+            e0 = self._end
+            end = e0 + 2 * k + int((2 * fc).sum())
+            if end > len(self._store):
+                grown = np.zeros(max(end, _grown(len(self._store))), np.uint32)
+                grown[:e0] = self._store[:e0]
+                self._store = grown
+            st = self._store
+            if k:
+                new = st[e0:e0 + 2 * k]
+                new[0::2], new[1::2] = hs, vs
+                self.head.view[ws] = (e0 + 2 * np.arange(k)).astype(np.uint32) | _BLOCK
+            if len(fc):
+                size = 2 * fc
+                start = e0 + 2 * k + np.cumsum(size) - size
+                within = np.arange(int(fc.sum())) - np.repeat(np.cumsum(fc) - fc, fc)
+                st[np.repeat(start, fc) + within] = st[np.repeat(fo, fc) + within]
+                st[start + fc] = fv
+                self.head.view[fw] = start.astype(np.uint32) | _BLOCK
+                self._dead += int(fc.sum())                 # the full blocks: left behind
+            self._end = end
+        self.df.add(words, 1)
         if self._dead * 4 > self._end:
             self._compact()
 
@@ -1154,25 +1158,25 @@ class _Postings:
         return int(hit[0]) if len(hit) else -1
 
     def pop(self, word: int, k: int) -> None:
-        """Remove the ``k``-th posting of ``word`` (the others keep their order)."""
+        """Remove the ``k``-th posting of ``word`` (the others keep their order; its df
+        counts one less)."""
         h = int(self.head.view[word])
+        c = int(self.df.view[word])
+        self.df.view[word] = c - 1
         if h < _BLOCK:
             self.head.view[word] = 0
             return
         off = h & ~int(_BLOCK)
-        c = int(self._store[off])
-        self._store[off + 1 + k:off + c] = self._store[off + 2 + k:off + 1 + c].copy()
+        self._store[off + k:off + c - 1] = self._store[off + k + 1:off + c].copy()
         if c == 2:  # one left: it goes back into the head
-            self.head.view[word] = self._store[off + 1]
-            self._dead += 1 + int(_block_room(np.array([c]))[0])
-        else:
-            self._store[off] = c - 1
+            self.head.view[word] = self._store[off]
+            self._dead += int(_block_room(np.array([c]))[0])
 
     def drop(self, words: np.ndarray) -> None:
-        """Forget the postings of ``words`` (``(K,) int64`` below ``head.n``)."""
+        """Forget the postings of ``words`` (``(K,) int64`` below ``head.n``); their df stay."""
         h = self.head.view[words]
-        _, cnt = self._blocks(h[h >= _BLOCK])
-        self._dead += int((1 + _block_room(cnt)).sum()) if len(cnt) else 0
+        cnt = self.df.view[words[h >= _BLOCK]].astype(np.int64)
+        self._dead += int(_block_room(cnt).sum()) if len(cnt) else 0
         self.head.view[words] = 0
         if self._dead * 4 > self._end:
             self._compact()
@@ -1181,15 +1185,15 @@ class _Postings:
         """Move every block to the front of a new store, in word order, each as long as
         its count needs (:func:`_block_room`), dropping the blocks left behind."""
         words = np.flatnonzero(self.head.view >= _BLOCK)
-        off, cnt = self._blocks(self.head.view[words])
-        size = 1 + _block_room(cnt) if len(cnt) else np.zeros(0, np.int64)
+        off = (self.head.view[words] & ~_BLOCK).astype(np.int64)
+        cnt = self.df.view[words].astype(np.int64)
+        size = _block_room(cnt) if len(cnt) else np.zeros(0, np.int64)
         start = np.cumsum(size) - size
         end = int(size.sum())
         store = np.zeros(_grown(end), np.uint32)
         if len(cnt):
-            n = cnt + 1                                     # the count and the postings
-            within = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
-            store[np.repeat(start, n) + within] = self._store[np.repeat(off, n) + within]
+            within = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+            store[np.repeat(start, cnt) + within] = self._store[np.repeat(off, cnt) + within]
         self._store = store
         self.head.view[words] = start.astype(np.uint32) | _BLOCK
         self._end = end
@@ -1219,10 +1223,8 @@ class InvertedIndex:
         # Postings: per word, slot << _COUNT_BITS | n(w, i) of each image it is in (4 bytes
         # an entry, in flat arrays: no object per word)
         self._post = _Postings()
-        # (1 byte a word until a count passes 127, then 2 until one passes 32,767: most words
-        # are seen a few times; counters start narrow and widen, :meth:`_GrowingInts.add`)
-        self._df = _GrowingInts(np.int8)         # per word: images containing it
-        self._occ = _GrowingInts(np.int8)        # per word: total occurrences
+        self._df = self._post.df                 # per word: images containing it
+        self._occ = _GrowingInts(np.int8)        # per word: total occurrences (narrow as df)
         self._image_len = _GrowingInts()         # per slot: n(i), words (with repeats) in the image
         self._image_ids = _GrowingInts()         # per slot: the image in it, -1 when free
         # per image id: its slot + 1 when indexed, 0 never added, -1 removed (it may be
@@ -1306,14 +1308,12 @@ class InvertedIndex:
         top = int(uw[-1]) + 1
         if top > self._df.n:
             self._n_unused += top - self._df.n
-            self._df.resize(top)
+            self._post.resize(top)
             self._occ.resize(top)
-            self._post.head.resize(top)
-        # n(w, i) is kept up to 1023 (a word more often in one image counts 1023 times in
-        # its vote: not reached with a few hundred features per image).
-        self._post.append(uw, ((slot << _COUNT_BITS) | np.minimum(cnt, _COUNT_MASK)).astype(np.uint32))
         self._n_unused -= int(np.count_nonzero(self._df.view[uw] == 0))
-        self._df.add(uw, 1)
+        # n(w, i) is kept up to 1023 (a word more often in one image counts 1023 times in
+        # its vote: not reached with a few hundred features per image); df counts it
+        self._post.append(uw, ((slot << _COUNT_BITS) | np.minimum(cnt, _COUNT_MASK)).astype(np.uint32))
         self._occ.add(uw, cnt)
         if self._v_cand is not None:  # words now seen often enough join the candidates
             up = uw[self._occ.view[uw] >= self._v_floor]
@@ -1342,11 +1342,10 @@ class InvertedIndex:
                 raise ValueError(f"image {image_id} was not indexed with word {wid} x {c}")
             where.append(k)
         for wid, k in zip(uw.tolist(), where):
-            self._post.pop(wid, k)
+            self._post.pop(wid, k)  # df counts one less
         self._slot_at.view[image_id] = -1
         self._n_indexed -= 1
         if len(uw):
-            self._df.view[uw] -= 1
             self._occ.view[uw] -= cnt
             self._n_unused += int(np.count_nonzero(self._df.view[uw] == 0))
         self._total -= len(w)
@@ -1474,6 +1473,6 @@ class InvertedIndex:
         and per-slot counters, the per-image slots, the virtual image's candidates, and the
         free slots' heap (a list of Python ints: its table and the ints, which a working
         memory's removals make)."""
-        counters = sum(g.nbytes for g in (self._df, self._occ, self._image_len, self._image_ids, self._slot_at))
+        counters = sum(g.nbytes for g in (self._occ, self._image_len, self._image_ids, self._slot_at))
         virtual = self._v_cand.nbytes if self._v_cand is not None else 0
         return self._post.nbytes + counters + virtual + sys.getsizeof(self._free) + _INT_BYTES * len(self._free)
