@@ -511,7 +511,11 @@ class BinaryWordTree:
         b = params.branching
         # nodes
         self._centre = np.zeros((2, 4), np.uint64)
-        self._child = np.full((2, b), -1, np.int16)    # int32 once there are more nodes
+        # children: a row of ``branching`` node ids (-1 none) per inner node only (most
+        # nodes are leaves); row 0 is a spare with no child, the row of every leaf
+        self._inner = np.zeros(2, np.int16)             # per node: its row of children (int32 when more)
+        self._kids = np.full((1, b), -1, np.int16)      # int32 once there are more nodes
+        self._n_inner = 1
         self._leaf_row = np.full(2, -1, np.int32)       # per node: its row in the pool, -1 inner
         self._n_nodes = 1
         # leaves: each a row, whose slots lie in order in a block of one flat pool: a block
@@ -528,8 +532,7 @@ class BinaryWordTree:
         self._fill = np.zeros(1, np.int32)
         self._n_rows = 1
         self._free_rows: list[int] = []
-        self._leaf_row[0] = 0
-        self._child[0, 0] = 0                            # the root, a leaf to begin with
+        self._leaf_row[0] = 0                            # the root, a leaf to begin with
         # words: one slot each (descriptor, word id, leaf row, position in it). The word
         # ids are kept only once a slot holds another word than its own number (None:
         # slot s holds word s, as while words come in id order and none was removed), and
@@ -551,7 +554,7 @@ class BinaryWordTree:
     def memory_bytes(self) -> int:
         """Bytes of the tree's arrays (their spare capacity included) and of its lists of
         free rows and slots (their tables and an int object per entry)."""
-        arrays = (self._centre, self._child, self._leaf_row, self._pool, self._row_start, self._row_cap, self._fill,
+        arrays = (self._centre, self._inner, self._kids, self._leaf_row, self._pool, self._row_start, self._row_cap, self._fill,
                   self._desc, self._slot_word, self._slot_row, self._slot_pos)
         free = sys.getsizeof(self._free_rows) + sys.getsizeof(self._free_slots)
         return (sum(a.nbytes for a in arrays if a is not None) + free
@@ -603,16 +606,15 @@ class BinaryWordTree:
         return b
 
     def _new_node(self, centre: np.ndarray) -> int:
-        """A new leaf with this centre (it lists itself as its child)."""
+        """A new leaf with this centre (:meth:`_children` lists it as its own child)."""
         n = self._n_nodes
-        if n > np.iinfo(self._child.dtype).max:
-            self._child = self._child.astype(np.int32)
-        self._centre = self._grow(self._centre, n + 2)   # + 2: the spare row -1 (no child)
-        self._child = self._grow(self._child, n + 2, -1)
+        if n > np.iinfo(self._kids.dtype).max:
+            self._kids = self._kids.astype(np.int32)
+        self._centre = self._grow(self._centre, n + 2)   # + 2: the spare entry -1 (no child)
+        self._inner = self._grow(self._inner, n + 2)
         self._leaf_row = self._grow(self._leaf_row, n + 2, -1)
         self._centre[n] = centre
-        self._child[n] = -1
-        self._child[n, 0] = n
+        self._inner[n] = 0
         self._n_nodes = n + 1
         if self._free_rows:
             row = self._free_rows.pop()
@@ -629,6 +631,27 @@ class BinaryWordTree:
         self._fill[row] = 0
         self._leaf_row[n] = row
         return n
+
+    def _children(self, nodes: np.ndarray) -> np.ndarray:
+        """The children of ``nodes`` (``(...)`` node ids, -1 none), ``(..., branching)``, -1
+        none: an inner node's, a leaf itself as its only child, none for -1."""
+        rows = self._inner.take(nodes)
+        kids = self._kids.take(rows, axis=0)
+        np.copyto(kids[..., 0], nodes, where=rows == 0)
+        return kids
+
+    def _make_inner(self, node: int) -> None:
+        """Give leaf ``node`` a row of children (none yet)."""
+        r = self._n_inner
+        if r > np.iinfo(self._inner.dtype).max:
+            self._inner = self._inner.astype(np.int32)
+        if r == len(self._kids):  # a thirty-second more, not 16 rows more (inner nodes are few)
+            kids = np.full((r + r // 32 + 1, self._kids.shape[1]), -1, self._kids.dtype)
+            kids[:r] = self._kids
+            self._kids = kids
+        self._kids[r] = -1
+        self._inner[node] = r
+        self._n_inner = r + 1
 
     def leaf_slots(self, node: int) -> np.ndarray:
         """The slots of leaf ``node``'s words in their order, ``(fill,)`` int16 or int32 (a view)."""
@@ -697,7 +720,7 @@ class BinaryWordTree:
         front: np.ndarray = np.zeros((n, 1), np.int32)  # then the children's dtype
         b = self.params.branching
         while True:
-            kids = self._child.take(front, axis=0)                    # (N, F, b)
+            kids = self._children(front)                              # (N, F, b)
             active = np.flatnonzero((kids[:, :, 0] != front).any(axis=1))
             if not len(active):                                       # all leaves (or -1)
                 return front
@@ -857,11 +880,11 @@ class BinaryWordTree:
         self._row_cap[row] = 0
         self._free_rows.append(row)
         self._leaf_row[node] = -1
-        self._child[node] = -1
+        self._make_inner(node)
         groups, centres = self._split(self._desc[members])
         for j, (g, c) in enumerate(zip(groups, centres)):
             child = self._new_node(c)
-            self._child[node, j] = child
+            self._kids[self._inner[node], j] = child
             self._put(child, members[g])
 
     def _split(self, d: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:

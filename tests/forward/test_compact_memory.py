@@ -169,7 +169,8 @@ def _structure_bound(det: ForwardDetector) -> dict[str, int]:
     n_free = len(tree._free_rows) + len(tree._free_slots)
     per_slot = (32 + (0 if tree.slots_are_words else 4)                   # descriptor, word id once kept
                 + (0 if tree._slot_row is None else 2 + 1))                 # row and position once kept
-    search = (_capacity(nodes + 2) * (32 + 2 * tree.params.branching + 4)   # centre, children (int16), leaf row
+    search = (_capacity(nodes + 2) * (32 + 2 + 4)                           # centre, row of children, leaf row
+              + _capacity(tree._n_inner) * 2 * tree.params.branching        # inner nodes' children (int16)
               + _capacity(rows) * 3 * 4                                     # block start and length, fill
               + _capacity(blocks * 4 // 3) * (2 if slots <= 0x7FFF else 4)  # the leaves' blocks (int16 while it fits)
               + _capacity(slots) * per_slot + 32                            # the slots, a spare descriptor

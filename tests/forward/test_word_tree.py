@@ -282,7 +282,7 @@ def _descend_every_query(tree: BinaryWordTree, q: np.ndarray, beam: int) -> np.n
     front = np.zeros((n, 1), np.int32)
     b = tree.params.branching
     while True:
-        kids = tree._child.take(front, axis=0)
+        kids = tree._children(front)
         if np.array_equal(kids[:, :, 0], front):
             return front
         cand = kids.reshape(n, -1)
@@ -312,7 +312,7 @@ def test_queries_that_reached_their_leaves_stop_with_the_front_a_further_level_g
     for node in np.unique(want[want >= 0]).tolist():  # the leaves reached lie at different depths
         d, cur = 0, node
         while cur != 0:
-            cur = int(np.flatnonzero((tree._child[:tree._n_nodes] == cur).any(axis=1) & (np.arange(tree._n_nodes) != cur))[0])
+            cur = int(np.flatnonzero((tree._children(np.arange(tree._n_nodes)) == cur).any(axis=1) & (np.arange(tree._n_nodes) != cur))[0])
             d += 1
         leaf_depth.append(d)
     assert len(set(leaf_depth)) > 1
