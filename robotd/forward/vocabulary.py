@@ -1023,7 +1023,7 @@ class _GrowingInts:
         """``view[at] += values`` (``at`` distinct), the array first widened to the next
         integer type when a sum would not fit its own (counters start narrow)."""
         if len(at):
-            top = int(self._a[at].max()) + int(np.max(values))
+            top = int(np.max(self._a[at].astype(np.int64) + values))  # the largest sum itself
             while top > _TOP[self._a.dtype.type]:
                 self._a = self._a.astype(_WIDER[self._a.dtype.type])
         self._a[at] += values
@@ -1230,6 +1230,11 @@ _MAX_SLOTS = 1 << (31 - _COUNT_BITS)  # 2,097,152 images indexed at once (a post
 _VIRTUAL_MARGIN = 256       # candidates kept for the virtual image beyond its n words
 
 
+def _word_dtype(n_words: int) -> type:
+    """The narrowest type for word ids below ``n_words``: uint16 while they fit, else int32."""
+    return np.uint16 if n_words <= 0x10000 else np.int32
+
+
 class InvertedIndex:
     """Word -> images it was seen in (with counts), and the tf-idf statistics.
 
@@ -1341,7 +1346,8 @@ class InvertedIndex:
         if self._v_cand is not None:  # words now seen often enough join the candidates
             up = uw[self._occ.view[uw] >= self._v_floor]
             if len(up):
-                self._v_cand = sorted_union(self._v_cand, up.astype(np.int32))
+                dt = _word_dtype(self._df.n)
+                self._v_cand = sorted_union(self._v_cand.astype(dt, copy=False), up.astype(dt))
 
     def remove_image(self, image_id: int, words: np.ndarray) -> None:
         """Take image ``image_id`` out of the index, given the words it was added with
@@ -1447,14 +1453,15 @@ class InvertedIndex:
 
     def _virtual_candidates(self, k: int) -> np.ndarray:
         """The words seen at least as often as the ``k``-th most frequent (all the words in
-        use when fewer), ``(M,) int32`` sorted, M >= min(k, words in use); kept as the
-        candidates with that count as their floor (at least 1: words in use only)."""
+        use when fewer), ``(M,)`` sorted (uint16 or int32: :func:`_word_dtype`), M >= min(k,
+        words in use); kept as the candidates with that count as their floor (at least 1:
+        words in use only)."""
         occ = self._occ.view
         floor = 1
         if k < len(occ):
             floor = max(1, int(np.partition(occ, len(occ) - k)[len(occ) - k]))
         self._v_floor = floor
-        self._v_cand = np.flatnonzero(occ >= floor).astype(np.int32)  # word ids: int32 is room enough
+        self._v_cand = np.flatnonzero(occ >= floor).astype(_word_dtype(len(occ)))
         return self._v_cand
 
     def vote(self, words: np.ndarray) -> tuple[np.ndarray, float]:

@@ -162,7 +162,8 @@ def _structure_bound(det: ForwardDetector) -> dict[str, int]:
     stored = sum(sys.getsizeof(w) for w in wm._words) + (_list_bytes(len(wm._words)) if wm._words else 0)
     sorted_ids = 8 * len(wm) if wm._wm_sorted is not None else 0
     index += (_capacity(n_slots) * 4 + _capacity(n_images) * 4             # image per slot, slot per image
-              + (len(idx._v_cand) * 8 if idx._v_cand is not None else 0)    # the virtual image's candidates
+              + (len(idx._v_cand) * (2 if n_words <= 0x10000 else 4)        # the virtual image's candidates
+                 if idx._v_cand is not None else 0)
               + _capacity(wm.n_places) * (4 + 4 + 1) + stored + sorted_ids)  # the working memory
     nodes, rows, slots = tree._n_nodes, tree._n_rows, tree._n_slots
     blocks = int(tree._row_cap[:rows].sum())
