@@ -164,6 +164,12 @@ class Vocabulary:
             return keys, self._last_new_desc
         return keys, self.word_descriptors(keys)
 
+    def take_new_at(self) -> np.ndarray:
+        """:attr:`last_new_at`, handed over once: not kept after (the image that made the
+        words keeps them, as the keypoints it lends: not held twice)."""
+        at, self.last_new_at = self.last_new_at, np.zeros(0, np.uint16)
+        return at
+
     @property
     def n_searchable(self) -> int:
         """Words the search can still find (made minus purged)."""
@@ -451,13 +457,15 @@ def pack_bits(descriptors: np.ndarray) -> np.ndarray:
 
 def _grown(n: int) -> int:
     """The capacity a growing array of capacity ``n`` takes next: a thirty-second more and
-    16 (amortised O(1) appends as with doubling, but at most about a thirty-second of the
-    memory is spare room, and an array starts at 16 entries, not a fixed larger first
-    block: the per-word arrays hold every word ever made, the word tree's per-slot arrays
-    every word it can find, and they all grow at the same images, so their spare room adds
-    up; over a run's first images every word made is searchable). Copying an array a
-    thirty-second larger each time costs little beside the search over it."""
-    return n + n // 32 + 16
+    one (amortised O(1) appends as with doubling, but at most about a thirty-second of the
+    memory is spare room, and no first block: the per-word arrays hold every word ever
+    made, the word tree's per-slot arrays every word it can find, and they all grow at the
+    same images, so their spare room adds up; over a run's first images every word made is
+    searchable, and a first block of 16 entries in each of the two dozen arrays, per word,
+    per image, per node and per leaf, weighs most on the first image). Copying an array a
+    thirty-second larger each time costs little beside the search over it; an array that
+    grows by a whole image's entries at once takes what it needs."""
+    return n + n // 32 + 1
 
 
 _INT_BYTES = sys.getsizeof(1 << 20)  # a Python int beyond the small ones it shares (28 bytes)

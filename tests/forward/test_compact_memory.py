@@ -134,13 +134,13 @@ def test_flat_postings_hold_and_vote_what_per_word_lists_do_on_the_corridor(corr
 
 
 def _capacity(n: int) -> int:
-    """The most elements a growing array (:func:`_grown`, from at most 16) holds for ``n`` in use."""
+    """The most elements a growing array (:func:`_grown`) holds for ``n`` in use."""
     return _grown(n)
 
 
 def _structure_bound(det: ForwardDetector) -> dict[str, int]:
     """What the detector's parts may hold, from what they contain: each growing array at
-    most a thirty-second (plus 16) beyond its use, the blocks left behind at most a third
+    most a thirty-second (plus one) beyond its use, the blocks left behind at most a third
     of the live ones (compaction at a quarter of the store), a block of postings its count
     (its word's df) rounded up to a power of two; the working memory's three arrays per
     place (weight and last use int32, in WM one byte), a bounded one's stored words; the
@@ -177,7 +177,7 @@ def _structure_bound(det: ForwardDetector) -> dict[str, int]:
               + _capacity(slots) * per_slot + 32                            # the slots, a spare descriptor
               + 2 * _list_bytes(n_free) + _INT * n_free                     # free rows and slots: lists of ints
               + _capacity((n_words + 7) // 8) + _capacity(n_images) * 4     # found again, first word per image
-              + (2 + (0 if tree.slots_are_words else 4))                    # the last add's founders, slots
+              + (0 if tree.slots_are_words else 4)                          # the last add's slots
               * (n_words - voc.image_words(n_images - 1)[0] if n_images else 0)
               + (8 + 32) * len(voc.last_purged))                            # and the words it purged
     # a lent image: its keypoints (4 bytes each), the lent keypoints (2 bytes) and their
@@ -191,7 +191,7 @@ def _structure_bound(det: ForwardDetector) -> dict[str, int]:
         elif f is not None:
             images += f.nbytes
     latest = det.features_of(n_images - 1).words if n_images else np.zeros(0)
-    images += (_list_bytes(n_images) + n_images + 2 * _capacity(n_images) * 3 * 8  # the list, flags, poses
+    images += (_list_bytes(n_images) + n_images + 2 * (n_images + n_images // 32 + 1) * 3 * 8  # the list, flags, poses
                + 8 * (len(det._posterior) + len(det._hyp_ids))                    # the filter's state
                + (2 if len(latest) and int(latest.max()) <= 0xFFFF else 4) * len(latest))  # the latest's words
     return {"images": images, "index": index, "vocabulary": search}
@@ -257,7 +257,8 @@ def test_the_latest_image_lends_at_once_and_keeps_its_words(corridor):
         ids, descs = det.vocabulary.last_new  # the new words, as the daemon's store reads them
         lo, hi = det.vocabulary.image_words(t)
         np.testing.assert_array_equal(ids, np.arange(lo, hi))
-        np.testing.assert_array_equal(descs, f.descriptors[det.vocabulary.last_new_at])
+        np.testing.assert_array_equal(descs, f.descriptors[voc.last_new_at])  # the same words, made alike
+        assert len(det.vocabulary.last_new_at) == 0  # handed to the image, not kept twice
         if t:
             assert len(det.features_of(t - 1).words) == 0
 
