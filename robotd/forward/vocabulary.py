@@ -579,18 +579,19 @@ class BinaryWordTree:
             return np.arange(self._n_slots, dtype=np.int32)
         return self._slot_word[:self._n_slots]
 
-    def _keep_slot_words(self) -> None:
+    def _keep_slot_words(self) -> np.ndarray:
         """Keep the slots' word ids from now on (a slot is about to hold another word
-        than its own number)."""
+        than its own number); returns them."""
         if self._slot_word is None:
             self._slot_word = np.full(_grown(self._n_slots), -1, np.int32)
             self._slot_word[:self._n_slots] = np.arange(self._n_slots, dtype=np.int32)
+        return self._slot_word
 
-    def _keep_slot_places(self) -> None:
+    def _keep_slot_places(self) -> tuple[np.ndarray, np.ndarray]:
         """Keep each slot's leaf row and position in it from now on (the first removal),
-        read off the leaves' blocks."""
-        if self._slot_row is not None:
-            return
+        read off the leaves' blocks; returns them."""
+        if self._slot_row is not None and self._slot_pos is not None:
+            return self._slot_row, self._slot_pos
         cap = _grown(self._n_slots)
         self._slot_row = np.zeros(cap, np.int16 if self._n_rows <= np.iinfo(np.int16).max + 1 else np.int32)
         self._slot_pos = np.zeros(cap, np.uint8 if self.params.leaf_size <= 256 else np.int32)
@@ -603,6 +604,7 @@ class BinaryWordTree:
             slots = self._pool[np.repeat(self._row_start[rows].astype(np.int64), fill) + within]
             self._slot_row[slots] = np.repeat(rows, fill)
             self._slot_pos[slots] = within
+        return self._slot_row, self._slot_pos
 
     # -- growing arrays -------------------------------------------------------------------
     @staticmethod
@@ -835,7 +837,7 @@ class BinaryWordTree:
         # one by one (they split)
         self._reserve(rows[first & fits], need[first & fits])
         self._pool[self._row_start[rows[fits]] + pos[fits]] = slots[fits]
-        if self._slot_row is not None:
+        if self._slot_row is not None and self._slot_pos is not None:
             self._slot_row[slots[fits]] = rows[fits]
             self._slot_pos[slots[fits]] = pos[fits]
         np.add.at(self._fill, rows[fits], 1)
@@ -861,7 +863,7 @@ class BinaryWordTree:
         self._desc = self._grow(self._desc, n1 + 1)  # + 1: a spare row, read for slot -1
         if self._slot_word is not None:
             self._slot_word = self._grow(self._slot_word, n1, -1)
-        if self._slot_row is not None:
+        if self._slot_row is not None and self._slot_pos is not None:
             self._slot_row = self._grow(self._slot_row, n1)
             self._slot_pos = self._grow(self._slot_pos, n1)
         self._n_slots = n1
@@ -878,7 +880,7 @@ class BinaryWordTree:
             self._reserve(np.array([row]), np.array([f + len(slots)]))
             at = int(self._row_start[row]) + f
             self._pool[at:at + len(slots)] = slots
-            if self._slot_row is not None:
+            if self._slot_row is not None and self._slot_pos is not None:
                 self._slot_row[slots] = row
                 self._slot_pos[slots] = np.arange(f, f + len(slots), dtype=np.int32)
             self._fill[row] = f + len(slots)
@@ -980,14 +982,14 @@ class BinaryWordTree:
         gone[at >= 0] = self._desc[at[at >= 0]]
         if not (at >= 0).any():
             return gone
-        self._keep_slot_words()
-        self._keep_slot_places()
+        words_of = self._keep_slot_words()
+        rows_of, pos_of = self._keep_slot_places()
         slots = at.tolist()
         # one word at a time (a removal moves the leaf's last entry into the hole, and the
         # entries' order decides a later split), through memoryviews: numpy's scalar
         # indexing costs several times a memoryview's
         pool, fill, row_start = self._pool.data, self._fill.data, self._row_start.data
-        slot_row, slot_pos, slot_word = self._slot_row.data, self._slot_pos.data, self._slot_word.data
+        slot_row, slot_pos, slot_word = rows_of.data, pos_of.data, words_of.data
         for w, s in zip(w_all.tolist(), slots):
             if s < 0 or slot_word[s] != w:  # not held, or named twice
                 continue
