@@ -332,8 +332,8 @@ def test_memory_counted_is_what_python_allocated_for_the_detector(corridor):
     features made inside the run so that what the detector keeps of them counts): nothing
     it holds per image is left out (a dict of image ids, lists of Python ints, object and
     array headers), and nothing is counted twice. The cycle collector runs before each
-    reading: the images' Detection records wait for it in reference cycles (about 200
-    bytes each), which the detector does not hold."""
+    reading: what processing the images left in reference cycles (their Detection records
+    among it) waits for it, and the detector does not hold it."""
     warm = ForwardDetector(method_params("default"))
     for f in corridor:  # imports and caches before the measurement (the verification's too)
         warm.process_features(_copies(f))
