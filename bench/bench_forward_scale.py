@@ -23,7 +23,7 @@ Two parts, each against a baseline of the same run:
    200 images up to 1000 and up to the end, their ratio, OpenCV's ORB over the same
    windows, the same on the process's CPU clock (a loaded machine stretches wall times
    more), each stage's median and mean per window, and bytes per image in RAM (the
-   detector's parts) and the process RSS after 10, 20, 50, 62, 100, 200, 300 and every 500
+   detector's parts) and the process RSS after 1, 5, 10, 20, 50, 62, 100, 200, 300 and every 500
    images.
 
 Run: ``PYTHONPATH=. .venv/bin/python bench/bench_forward_scale.py --dir /tmp/office``
@@ -66,7 +66,7 @@ DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "forward_scale.json"
 PAGE = REPO / "docs" / "benchmarks" / "forward_scale.md"
 WINDOW = 200
 #: The scale part's memory samples: these image counts, and every 500 images.
-EARLY_SAMPLES = (10, 20, 50, 62, 100, 200, 300)
+EARLY_SAMPLES = (1, 5, 10, 20, 50, 62, 100, 200, 300)
 #: The variants compared: name -> fields of VocabularyParams, of VerifyParams and of
 #: DetectorParams replaced in the default (``--variants`` picks some).
 _BOUNDED: tuple[dict[str, object], dict[str, object]] = (

@@ -49,7 +49,7 @@ from robotd.forward.filter import (FilterParams, diffusion_weights, predict, pre
 from robotd.forward.likelihood import LikelihoodMethod, adjust_likelihood
 from robotd.forward.memory import MemoryParams, WorkingMemory
 from robotd.forward.verify import TOO_FEW_MATCHES, Verification, VerifyParams, verify_pair
-from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams, _grown
+from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams
 
 __all__ = ["ACCEPT_PENDING", "VERIFY_PENDING", "Detection", "DetectionStatus", "DetectorParams", "ForwardDetector", "LOOP", "METHODS", "NO_HYPOTHESES",
            "LOW_POSTERIOR", "NOT_CONSISTENT_YET", "NO_GEOMETRIC_CONSISTENCY", "OdometryParams", "STAGES",
@@ -630,8 +630,8 @@ class ForwardDetector:
     def _append_pose(self, pose: np.ndarray, var: np.ndarray) -> None:
         """The next image's pose and variances ``(3,)`` each (NaN: unknown)."""
         n = len(self._poses)
-        if n == len(self._pose_buf):  # grown as the word arrays are (no doubling: its spare half would stay)
-            cap = _grown(n)
+        if n == len(self._pose_buf):  # a thirty-second and one row more (48 bytes a row: no 16-row first block)
+            cap = n + n // 32 + 1
             self._pose_buf = np.concatenate([self._pose_buf, np.full((cap - n, 3), np.nan)])
             self._var_buf = np.concatenate([self._var_buf, np.full((cap - n, 3), np.nan)])
         self._pose_buf[n] = pose
@@ -800,7 +800,7 @@ class ForwardDetector:
 
         t0 = clock()
         words, new_words = self.vocabulary.add(feats.descriptors)
-        made_at = self.vocabulary.last_new_at  # this image's founding keypoints
+        made_at = self.vocabulary.take_new_at()  # this image's founding keypoints (kept by the image it lends)
         gone = self.vocabulary.last_purged
         if len(gone) and not p.memory.bounded:
             self.index.drop_postings(gone)  # no query can find them

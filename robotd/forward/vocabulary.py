@@ -125,7 +125,7 @@ class Vocabulary:
         self._n_words = 0
         self._images = 0                        # add() calls so far (one per image)
         self._first = _GrowingInts()            # per image (add() call): the first word id it made
-        self._seen = _GrowingInts(np.uint8)     # per word: images it was found in, counted to 2
+        self._again = _GrowingBits()            # per word: found in an image after the one that made it
         self._unpurged_from = 0                 # words below this id were all examined
         self.purged = 0
         # What the last add() changed, for a store to write (robotd.io.store): the new words'
@@ -133,8 +133,11 @@ class Vocabulary:
         # descriptors
         self._last_new_ids = (0, 0)
         self._last_new_desc: np.ndarray | None = np.zeros((0, dim), np.uint8 if binary else np.float32)
-        self._last_new_slots: np.ndarray | None = None  # their slots in the word tree, until the next add()
-        self.last_new_at = np.zeros(0, np.int32)  # the descriptors (of the last add()) that made them
+        # their slots in the word tree, until the next add() (None: not kept, as while the
+        # tree's slot s holds word s)
+        self._last_new_slots: np.ndarray | None = None
+        # the descriptors (of the last add()) that made them (uint16 while they fit)
+        self.last_new_at = np.zeros(0, np.uint16)
         self.last_purged = np.zeros(0, np.int64)
         self.last_purged_descriptors = np.zeros((0, dim), np.uint8 if binary else np.float32)
 
@@ -149,7 +152,7 @@ class Vocabulary:
         search = self._tree.memory_bytes() if self._tree is not None else int(self._index.memory_usage)
         last = (self.last_new_at, self.last_purged, self.last_purged_descriptors)
         held = sum(a.nbytes for a in (self._last_new_desc, self._last_new_slots) if a is not None)
-        return search + self._first.nbytes + self._seen.nbytes + sum(a.nbytes for a in last) + held
+        return search + self._first.nbytes + self._again.nbytes + sum(a.nbytes for a in last) + held
 
     @property
     def last_new(self) -> tuple[np.ndarray, np.ndarray]:
@@ -160,6 +163,12 @@ class Vocabulary:
         if self._last_new_desc is not None:
             return keys, self._last_new_desc
         return keys, self.word_descriptors(keys)
+
+    def take_new_at(self) -> np.ndarray:
+        """:attr:`last_new_at`, handed over once: not kept after (the image that made the
+        words keeps them, as the keypoints it lends: not held twice)."""
+        at, self.last_new_at = self.last_new_at, np.zeros(0, np.uint16)
+        return at
 
     @property
     def n_searchable(self) -> int:
@@ -192,7 +201,7 @@ class Vocabulary:
         w = np.asarray(words, np.int64)
         if self.params.purge_after <= 0:
             return np.ones(len(w), bool)
-        out: np.ndarray = (w >= self._unpurged_from) | (self._seen.view[w] > 1)
+        out: np.ndarray = (w >= self._unpurged_from) | self._again.get(w)
         return out
 
     def word_descriptors(self, words: np.ndarray) -> np.ndarray:
@@ -287,12 +296,12 @@ class Vocabulary:
         self._images += 1
         none = d[:0].copy()  # not a view: that would keep the caller's descriptors alive
         self._last_new_ids, self._last_new_desc, self._last_new_slots = (self._n_words, self._n_words), none, None
-        self.last_new_at = np.zeros(0, np.int32)
+        self.last_new_at = np.zeros(0, np.uint16)
         self.last_purged = np.zeros(0, np.int64)
         self.last_purged_descriptors = none
         # a word found twice in the image is written twice with the same value (no unique)
         found = words[words >= 0]
-        self._seen.view[found] = np.minimum(self._seen.view[found], 1) + 1  # only "more than once" matters
+        self._again.set(found)  # only "more than once" matters
         new = np.flatnonzero(words < 0)
         if not len(new):
             self._purge()
@@ -304,19 +313,17 @@ class Vocabulary:
         if self._tree is not None:
             # the search above left the tree as it was: its greedy leaves are where they go
             greedy = self._tree.last_greedy
-            self._last_new_slots = self._tree.add(keys, pack_bits(d[new[founders]]),
-                                                  None if greedy is None else greedy[new[founders]])
+            slots = self._tree.add(keys, pack_bits(d[new[founders]]), None if greedy is None else greedy[new[founders]])
+            self._last_new_slots = None if self._tree.slots_are_words else slots
             self._tree.last_greedy = None  # a view of the search's (N, beam) leaves: not kept
         else:
             self._index.add(keys, d[new[founders]], threads=1)
         self._n_words += len(founders)
-        n0 = self._seen.n
-        self._seen.resize(n0 + len(founders))
-        self._seen.view[n0:] = 1
+        self._again.resize(self._n_words)
         words[new] = self._n_words - len(founders) + owner
         self._last_new_ids = (int(keys[0]), int(keys[-1]) + 1)
         self._last_new_desc = None if self._tree is not None else d[new[founders]]
-        self.last_new_at = new[founders].astype(np.int32)
+        self.last_new_at = new[founders].astype(np.uint16 if len(d) <= 0xFFFF else np.int64)
         self._purge()
         return words, len(founders)
 
@@ -344,8 +351,8 @@ class Vocabulary:
             raise ValueError("born must not decrease and must lie in 0 .. n_images - 1 (words are made in image order)")
         self._first.resize(int(n_images))
         self._first.view[:] = np.searchsorted(born, np.arange(int(n_images)), side="left")
-        self._seen.resize(n)
-        self._seen.view[:] = np.minimum(np.asarray(seen, np.int64), 2)
+        self._again.resize(n)
+        self._again.set(np.flatnonzero(np.asarray(seen, np.int64) > 1))
         self._images = int(n_images)
         self.purged = int(purged.sum())
         age = self.params.purge_after
@@ -365,7 +372,7 @@ class Vocabulary:
         hi = int(self._first.view[limit + 1])   # the first word made after image ``limit``
         if hi <= lo:
             return
-        gone = lo + np.flatnonzero(self._seen.view[lo:hi] <= 1)
+        gone = lo + np.flatnonzero(~self._again.between(lo, hi))
         if len(gone):
             if self._tree is not None:
                 self.last_purged_descriptors = self._tree.remove(gone).view(np.uint8)
@@ -450,13 +457,15 @@ def pack_bits(descriptors: np.ndarray) -> np.ndarray:
 
 def _grown(n: int) -> int:
     """The capacity a growing array of capacity ``n`` takes next: a thirty-second more and
-    16 (amortised O(1) appends as with doubling, but at most about a thirty-second of the
-    memory is spare room, and an array starts at 16 entries, not a fixed larger first
-    block: the per-word arrays hold every word ever made, the word tree's per-slot arrays
-    every word it can find, and they all grow at the same images, so their spare room adds
-    up; over a run's first images every word made is searchable). Copying an array a
-    thirty-second larger each time costs little beside the search over it."""
-    return n + n // 32 + 16
+    one (amortised O(1) appends as with doubling, but at most about a thirty-second of the
+    memory is spare room, and no first block: the per-word arrays hold every word ever
+    made, the word tree's per-slot arrays every word it can find, and they all grow at the
+    same images, so their spare room adds up; over a run's first images every word made is
+    searchable, and a first block of 16 entries in each of the two dozen arrays, per word,
+    per image, per node and per leaf, weighs most on the first image). Copying an array a
+    thirty-second larger each time costs little beside the search over it; an array that
+    grows by a whole image's entries at once takes what it needs."""
+    return n + n // 32 + 1
 
 
 _INT_BYTES = sys.getsizeof(1 << 20)  # a Python int beyond the small ones it shares (28 bytes)
@@ -510,7 +519,11 @@ class BinaryWordTree:
         b = params.branching
         # nodes
         self._centre = np.zeros((2, 4), np.uint64)
-        self._child = np.full((2, b), -1, np.int16)    # int32 once there are more nodes
+        # children: a row of ``branching`` node ids (-1 none) per inner node only (most
+        # nodes are leaves); row 0 is a spare with no child, the row of every leaf
+        self._inner = np.zeros(2, np.int16)             # per node: its row of children (int32 when more)
+        self._kids = np.full((1, b), -1, np.int16)      # int32 once there are more nodes
+        self._n_inner = 1
         self._leaf_row = np.full(2, -1, np.int32)       # per node: its row in the pool, -1 inner
         self._n_nodes = 1
         # leaves: each a row, whose slots lie in order in a block of one flat pool: a block
@@ -519,7 +532,7 @@ class BinaryWordTree:
         # parent's split); a leaf that outgrows its block moves to a longer one at the
         # pool's end, and the pool is compacted once the blocks left behind take a quarter
         # of it
-        self._pool = np.full(0, -1, np.int32)
+        self._pool = np.full(0, -1, np.int16)           # int32 once there are more slots
         self._pool_end = 0                               # the pool's used length
         self._pool_dead = 0                              # of it, in blocks left behind
         self._row_start = np.zeros(1, np.int32)          # per row: its block's start in the pool
@@ -527,13 +540,17 @@ class BinaryWordTree:
         self._fill = np.zeros(1, np.int32)
         self._n_rows = 1
         self._free_rows: list[int] = []
-        self._leaf_row[0] = 0
-        self._child[0, 0] = 0                            # the root, a leaf to begin with
-        # words: one slot each (descriptor, word id, leaf row, position in it)
+        self._leaf_row[0] = 0                            # the root, a leaf to begin with
+        # words: one slot each (descriptor, word id, leaf row, position in it). The word
+        # ids are kept only once a slot holds another word than its own number (None:
+        # slot s holds word s, as while words come in id order and none was removed), and
+        # the rows and positions only from the first removal, which alone reads them
+        # (None: not kept; built from the leaves' blocks then), so a young tree holds its
+        # descriptors and the leaves' blocks only
         self._desc = np.zeros((1, 4), np.uint64)
-        self._slot_word = np.full(0, -1, np.int32)
-        self._slot_row = np.zeros(0, np.int16)          # int32 once there are more rows
-        self._slot_pos = np.zeros(0, np.uint8 if params.leaf_size <= 256 else np.int32)
+        self._slot_word: np.ndarray | None = None
+        self._slot_row: np.ndarray | None = None        # int16 while the rows fit, then int32
+        self._slot_pos: np.ndarray | None = None
         self._n_slots = 0
         self._free_slots: list[int] = []
         self.n_live = 0
@@ -545,10 +562,49 @@ class BinaryWordTree:
     def memory_bytes(self) -> int:
         """Bytes of the tree's arrays (their spare capacity included) and of its lists of
         free rows and slots (their tables and an int object per entry)."""
-        arrays = (self._centre, self._child, self._leaf_row, self._pool, self._row_start, self._row_cap, self._fill,
+        arrays = (self._centre, self._inner, self._kids, self._leaf_row, self._pool, self._row_start, self._row_cap, self._fill,
                   self._desc, self._slot_word, self._slot_row, self._slot_pos)
         free = sys.getsizeof(self._free_rows) + sys.getsizeof(self._free_slots)
-        return sum(a.nbytes for a in arrays) + free + _INT_BYTES * (len(self._free_rows) + len(self._free_slots))
+        return (sum(a.nbytes for a in arrays if a is not None) + free
+                + _INT_BYTES * (len(self._free_rows) + len(self._free_slots)))
+
+    @property
+    def slots_are_words(self) -> bool:
+        """True while slot s holds word s (no per-slot word ids kept)."""
+        return self._slot_word is None
+
+    def slot_words(self) -> np.ndarray:
+        """The word held by each slot, ``(n_slots,) int32``, -1 for a free slot."""
+        if self._slot_word is None:
+            return np.arange(self._n_slots, dtype=np.int32)
+        return self._slot_word[:self._n_slots]
+
+    def _keep_slot_words(self) -> np.ndarray:
+        """Keep the slots' word ids from now on (a slot is about to hold another word
+        than its own number); returns them."""
+        if self._slot_word is None:
+            self._slot_word = np.full(_grown(self._n_slots), -1, np.int32)
+            self._slot_word[:self._n_slots] = np.arange(self._n_slots, dtype=np.int32)
+        return self._slot_word
+
+    def _keep_slot_places(self) -> tuple[np.ndarray, np.ndarray]:
+        """Keep each slot's leaf row and position in it from now on (the first removal),
+        read off the leaves' blocks; returns them."""
+        if self._slot_row is not None and self._slot_pos is not None:
+            return self._slot_row, self._slot_pos
+        cap = _grown(self._n_slots)
+        self._slot_row = np.zeros(cap, np.int16 if self._n_rows <= np.iinfo(np.int16).max + 1 else np.int32)
+        self._slot_pos = np.zeros(cap, np.uint8 if self.params.leaf_size <= 256 else np.int32)
+        rows = self._leaf_row[:self._n_nodes]
+        rows = rows[rows >= 0].astype(np.int64)
+        fill = self._fill[rows].astype(np.int64)
+        total = int(fill.sum())
+        if total:
+            within = np.arange(total) - np.repeat(np.cumsum(fill) - fill, fill)
+            slots = self._pool[np.repeat(self._row_start[rows].astype(np.int64), fill) + within]
+            self._slot_row[slots] = np.repeat(rows, fill)
+            self._slot_pos[slots] = within
+        return self._slot_row, self._slot_pos
 
     # -- growing arrays -------------------------------------------------------------------
     @staticmethod
@@ -560,22 +616,21 @@ class BinaryWordTree:
         return b
 
     def _new_node(self, centre: np.ndarray) -> int:
-        """A new leaf with this centre (it lists itself as its child)."""
+        """A new leaf with this centre (:meth:`_children` lists it as its own child)."""
         n = self._n_nodes
-        if n > np.iinfo(self._child.dtype).max:
-            self._child = self._child.astype(np.int32)
-        self._centre = self._grow(self._centre, n + 2)   # + 2: the spare row -1 (no child)
-        self._child = self._grow(self._child, n + 2, -1)
+        if n > np.iinfo(self._kids.dtype).max:
+            self._kids = self._kids.astype(np.int32)
+        self._centre = self._grow(self._centre, n + 2)   # + 2: the spare entry -1 (no child)
+        self._inner = self._grow(self._inner, n + 2)
         self._leaf_row = self._grow(self._leaf_row, n + 2, -1)
         self._centre[n] = centre
-        self._child[n] = -1
-        self._child[n, 0] = n
+        self._inner[n] = 0
         self._n_nodes = n + 1
         if self._free_rows:
             row = self._free_rows.pop()
         else:
             row = self._n_rows
-            if row > np.iinfo(self._slot_row.dtype).max:
+            if self._slot_row is not None and row > np.iinfo(self._slot_row.dtype).max:
                 self._slot_row = self._slot_row.astype(np.int32)
             self._row_start = self._grow(self._row_start, row + 1)
             self._row_cap = self._grow(self._row_cap, row + 1)
@@ -587,8 +642,29 @@ class BinaryWordTree:
         self._leaf_row[n] = row
         return n
 
+    def _children(self, nodes: np.ndarray) -> np.ndarray:
+        """The children of ``nodes`` (``(...)`` node ids, -1 none), ``(..., branching)``, -1
+        none: an inner node's, a leaf itself as its only child, none for -1."""
+        rows = self._inner.take(nodes)
+        kids = self._kids.take(rows, axis=0)
+        np.copyto(kids[..., 0], nodes, where=rows == 0)
+        return kids
+
+    def _make_inner(self, node: int) -> None:
+        """Give leaf ``node`` a row of children (none yet)."""
+        r = self._n_inner
+        if r > np.iinfo(self._inner.dtype).max:
+            self._inner = self._inner.astype(np.int32)
+        if r == len(self._kids):  # a thirty-second more, not 16 rows more (inner nodes are few)
+            kids = np.full((r + r // 32 + 1, self._kids.shape[1]), -1, self._kids.dtype)
+            kids[:r] = self._kids
+            self._kids = kids
+        self._kids[r] = -1
+        self._inner[node] = r
+        self._n_inner = r + 1
+
     def leaf_slots(self, node: int) -> np.ndarray:
-        """The slots of leaf ``node``'s words in their order, ``(fill,) int32`` (a view)."""
+        """The slots of leaf ``node``'s words in their order, ``(fill,)`` int16 or int32 (a view)."""
         row = int(self._leaf_row[node])
         start = int(self._row_start[row])
         return self._pool[start:start + int(self._fill[row])]
@@ -626,7 +702,7 @@ class BinaryWordTree:
         cap_l = cap[live]
         start = np.cumsum(cap_l) - cap_l
         total = int(cap_l.sum())
-        pool = np.full(_grown(total), -1, np.int32)
+        pool = np.full(_grown(total), -1, self._pool.dtype)
         if total:
             within = np.arange(total) - np.repeat(start, cap_l)
             pool[:total] = self._pool[np.repeat(self._row_start[live], cap_l) + within]
@@ -654,7 +730,7 @@ class BinaryWordTree:
         front: np.ndarray = np.zeros((n, 1), np.int32)  # then the children's dtype
         b = self.params.branching
         while True:
-            kids = self._child.take(front, axis=0)                    # (N, F, b)
+            kids = self._children(front)                              # (N, F, b)
             active = np.flatnonzero((kids[:, :, 0] != front).any(axis=1))
             if not len(active):                                       # all leaves (or -1)
                 return front
@@ -701,7 +777,8 @@ class BinaryWordTree:
         self._scan(q, pair_q, leaves[pair_q, pair_k], best)
         found = best != _NO_KEY
         words, dist = none
-        words[found] = self._slot_word[best[found] & 0xFFFFFFFF]
+        slot = best[found] & 0xFFFFFFFF
+        words[found] = slot if self._slot_word is None else self._slot_word[slot]
         dist[found] = (best[found] >> 32).astype(np.int32)
         return words, dist
 
@@ -760,8 +837,9 @@ class BinaryWordTree:
         # one by one (they split)
         self._reserve(rows[first & fits], need[first & fits])
         self._pool[self._row_start[rows[fits]] + pos[fits]] = slots[fits]
-        self._slot_row[slots[fits]] = rows[fits]
-        self._slot_pos[slots[fits]] = pos[fits]
+        if self._slot_row is not None and self._slot_pos is not None:
+            self._slot_row[slots[fits]] = rows[fits]
+            self._slot_pos[slots[fits]] = pos[fits]
         np.add.at(self._fill, rows[fits], 1)
         over = ~fits
         if over.any():
@@ -777,14 +855,21 @@ class BinaryWordTree:
         n0 = self._n_slots
         fresh = np.arange(n0, n0 + len(words) - k, dtype=np.int64)
         n1 = n0 + len(fresh)
-        self._desc = self._grow(self._desc, n1 + 1)  # + 1: a spare row, read for slot -1
-        self._slot_word = self._grow(self._slot_word, n1, -1)
-        self._slot_row = self._grow(self._slot_row, n1)
-        self._slot_pos = self._grow(self._slot_pos, n1)
-        self._n_slots = n1
         slots = np.concatenate([np.asarray(reused, np.int64), fresh])
+        if self._slot_word is None and not np.array_equal(words, slots):
+            self._keep_slot_words()
+        if n1 > np.iinfo(self._pool.dtype).max:
+            self._pool = self._pool.astype(np.int32)
+        self._desc = self._grow(self._desc, n1 + 1)  # + 1: a spare row, read for slot -1
+        if self._slot_word is not None:
+            self._slot_word = self._grow(self._slot_word, n1, -1)
+        if self._slot_row is not None and self._slot_pos is not None:
+            self._slot_row = self._grow(self._slot_row, n1)
+            self._slot_pos = self._grow(self._slot_pos, n1)
+        self._n_slots = n1
         self._desc[slots] = q
-        self._slot_word[slots] = words
+        if self._slot_word is not None:
+            self._slot_word[slots] = words
         return slots.astype(np.int32)
 
     def _put(self, node: int, slots: np.ndarray) -> None:
@@ -795,8 +880,9 @@ class BinaryWordTree:
             self._reserve(np.array([row]), np.array([f + len(slots)]))
             at = int(self._row_start[row]) + f
             self._pool[at:at + len(slots)] = slots
-            self._slot_row[slots] = row
-            self._slot_pos[slots] = np.arange(f, f + len(slots), dtype=np.int32)
+            if self._slot_row is not None and self._slot_pos is not None:
+                self._slot_row[slots] = row
+                self._slot_pos[slots] = np.arange(f, f + len(slots), dtype=np.int32)
             self._fill[row] = f + len(slots)
             return
         members = np.concatenate([self.leaf_slots(node), slots])
@@ -804,11 +890,11 @@ class BinaryWordTree:
         self._row_cap[row] = 0
         self._free_rows.append(row)
         self._leaf_row[node] = -1
-        self._child[node] = -1
+        self._make_inner(node)
         groups, centres = self._split(self._desc[members])
         for j, (g, c) in enumerate(zip(groups, centres)):
             child = self._new_node(c)
-            self._child[node, j] = child
+            self._kids[self._inner[node], j] = child
             self._put(child, members[g])
 
     def _split(self, d: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -855,6 +941,8 @@ class BinaryWordTree:
         if not len(w):
             return out
         lo, span = int(w.min()), int(w.max()) - int(w.min())
+        if self._slot_word is None:  # slot s holds word s
+            return np.where((w >= 0) & (w < self._n_slots), w, -1)
         held = self._slot_word[:self._n_slots]
         # held - lo as uint32 (a Python int: no int64 copy): free slots (-1) and ids below
         # lo wrap around above the span, so one comparison finds the range
@@ -892,12 +980,16 @@ class BinaryWordTree:
             return gone
         at = self.slots_of(w_all)
         gone[at >= 0] = self._desc[at[at >= 0]]
+        if not (at >= 0).any():
+            return gone
+        words_of = self._keep_slot_words()
+        rows_of, pos_of = self._keep_slot_places()
         slots = at.tolist()
         # one word at a time (a removal moves the leaf's last entry into the hole, and the
         # entries' order decides a later split), through memoryviews: numpy's scalar
         # indexing costs several times a memoryview's
         pool, fill, row_start = self._pool.data, self._fill.data, self._row_start.data
-        slot_row, slot_pos, slot_word = self._slot_row.data, self._slot_pos.data, self._slot_word.data
+        slot_row, slot_pos, slot_word = rows_of.data, pos_of.data, words_of.data
         for w, s in zip(w_all.tolist(), slots):
             if s < 0 or slot_word[s] != w:  # not held, or named twice
                 continue
@@ -941,7 +1033,7 @@ class _GrowingInts:
         """``view[at] += values`` (``at`` distinct), the array first widened to the next
         integer type when a sum would not fit its own (counters start narrow)."""
         if len(at):
-            top = int(self._a[at].max()) + int(np.max(values))
+            top = int(np.max(self._a[at].astype(np.int64) + values))  # the largest sum itself
             while top > _TOP[self._a.dtype.type]:
                 self._a = self._a.astype(_WIDER[self._a.dtype.type])
         self._a[at] += values
@@ -952,38 +1044,82 @@ class _GrowingInts:
         return int(self._a.nbytes)
 
 
+class _GrowingBits:
+    """A growing array of bits (one per word: 1/8 of a byte, not a byte), packed eight to a
+    byte, lowest bit first; new bits are 0."""
+
+    def __init__(self) -> None:
+        self._a: np.ndarray = np.zeros(0, np.uint8)
+        self.n = 0
+
+    def resize(self, n: int) -> None:
+        need = (n + 7) >> 3
+        if need > len(self._a):
+            b = np.zeros(max(need, _grown(len(self._a))), np.uint8)
+            b[:len(self._a)] = self._a
+            self._a = b
+        self.n = max(self.n, n)
+
+    def set(self, at: np.ndarray) -> None:
+        """Set the bits ``at`` (``(K,) int``, below ``n``, repeats allowed)."""
+        at = np.asarray(at, np.int64)
+        np.bitwise_or.at(self._a, at >> 3, np.left_shift(1, at & 7).astype(np.uint8))
+
+    def get(self, at: np.ndarray) -> np.ndarray:
+        """``(K,) bool``: the bits ``at`` (``(K,) int``, below ``n``)."""
+        at = np.asarray(at, np.int64)
+        out: np.ndarray = ((self._a[at >> 3] >> (at & 7).astype(np.uint8)) & 1).astype(bool)
+        return out
+
+    def between(self, lo: int, hi: int) -> np.ndarray:
+        """``(hi - lo,) bool``: the bits ``lo .. hi - 1``."""
+        bits = np.unpackbits(self._a[lo >> 3:(hi + 7) >> 3], bitorder="little")
+        out: np.ndarray = bits[lo & 7:(lo & 7) + hi - lo].astype(bool)
+        return out
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held (the spare capacity included)."""
+        return int(self._a.nbytes)
+
+
 def _block_room(count: np.ndarray) -> np.ndarray:
-    """The postings a block of ``count`` (>= 2, ``(K,)`` int) holds: the power of two at or
-    above it (:class:`_Postings`)."""
+    """The postings a block of ``count`` (>= 2, ``(K,)`` int) has room for: the power of two
+    at or above it (:class:`_Postings`)."""
     return np.left_shift(1, np.frexp(np.asarray(count, np.float64) - 1.0)[1]).astype(np.int64)
 
 
 class _Postings:
     """Every word's postings (``uint32``, ``slot << _COUNT_BITS | n(w, i)``) in the order they
     came, in two flat arrays rather than an object per word (most words are seen in one
-    image or a few: an object's own overhead would outweigh its postings).
+    image or a few: an object's own overhead would outweigh its postings), and every word's
+    document frequency ``df``, which is also how many postings a word with any holds.
 
     ``head[w]`` (one ``uint32`` per word): 0 when ``w`` has no posting; below :data:`_BLOCK`
-    its one posting itself; else ``_BLOCK | offset`` of its block in ``store``: the number
-    of postings ``c`` (>= 2), the postings, room up to the power of two at or above ``c``.
-    A block that fills up moves to a block twice as long at the store's end; the store is
-    compacted once the blocks left behind take a quarter of it."""
+    its one posting itself; else ``_BLOCK | offset`` of its block in ``store``: its ``df[w]``
+    (>= 2) postings, room up to the power of two at or above it (no count of its own: df
+    is it). A block that fills up moves to a block twice as long at the store's end; the
+    store is compacted once the blocks left behind take a quarter of it. A word whose
+    postings were dropped keeps its df (:meth:`drop`)."""
 
     def __init__(self) -> None:
         self.head = _GrowingInts(np.uint32)
-        self._store = np.zeros(2, np.uint32)  # gather reads entries 0 and 1 for a word without a block
+        # 1 byte a word until a count passes 127, then 2 until one passes 32,767: most words
+        # are seen a few times; counters start narrow and widen (:meth:`_GrowingInts.add`)
+        self.df = _GrowingInts(np.int8)
+        self._store = np.zeros(2, np.uint32)  # gather reads entry 0 for a word without a block
         self._end = 0           # the store's used length
         self._dead = 0          # of it, in blocks left behind (at least)
 
     @property
     def nbytes(self) -> int:
         """Bytes held (the spare capacity included)."""
-        return self.head.nbytes + int(self._store.nbytes)
+        return self.head.nbytes + self.df.nbytes + int(self._store.nbytes)
 
-    def _blocks(self, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The offsets and posting counts of the blocks that heads ``h`` (all >= _BLOCK) point to."""
-        off = (h & ~_BLOCK).astype(np.int64)
-        return off, self._store[off].astype(np.int64)
+    def resize(self, n: int) -> None:
+        """Room for words ``0 .. n - 1`` (new ones without postings, df 0)."""
+        self.head.resize(n)
+        self.df.resize(n)
 
     def gather(self, words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The postings of ``words`` (``(K,) int64``, distinct), word after word in that order,
@@ -991,9 +1127,9 @@ class _Postings:
         h = self.head.view[words]
         block = h >= _BLOCK
         off = np.where(block, h & ~_BLOCK, 0).astype(np.int64)  # 0: read, then overwritten
-        held = np.where(block, self._store[off], h != 0).astype(np.int64)
+        held = np.where(block, self.df.view[words], h != 0).astype(np.int64)
         start = np.cumsum(held) - held
-        out = self._store.take(np.repeat(off + 1 - start, held) + np.arange(int(start[-1] + held[-1]) if len(held) else 0))
+        out = self._store.take(np.repeat(off - start, held) + np.arange(int(start[-1] + held[-1]) if len(held) else 0))
         single = (h != 0) & ~block
         out[start[single]] = h[single]
         return out, held
@@ -1006,47 +1142,46 @@ class _Postings:
 
     def append(self, words: np.ndarray, values: np.ndarray) -> None:
         """Append posting ``values[k]`` (``uint32`` < _BLOCK) to word ``words[k]`` (``(K,)
-        int64``, distinct, below ``head.n``)."""
+        int64``, distinct, below ``head.n``, none with dropped postings), each word's df
+        counting it."""
         h = self.head.view[words]
         none = h == 0
         self.head.view[words[none]] = values[none]
         block = h >= _BLOCK
-        off, cnt = self._blocks(h[block])
+        off = (h[block] & ~_BLOCK).astype(np.int64)
+        cnt = self.df.view[words[block]].astype(np.int64)
         full = (cnt & (cnt - 1)) == 0                       # a power of two: no room left
         room = ~full
         vb = values[block]
-        at = off[room]
-        self._store[at + 1 + cnt[room]] = vb[room]
-        self._store[at] += np.uint32(1)
+        self._store[off[room] + cnt[room]] = vb[room]
         # the rest move to new blocks at the end: a word with one posting to a block of 2,
         # a full block to one twice as long
         single = ~none & ~block
         hs, vs, ws = h[single], values[single], words[single]
         fo, fc, fv, fw = off[full], cnt[full], vb[full], words[block][full]
         k = len(hs)
-        if not k and not len(fc):
-            return
-        e0 = self._end
-        end = e0 + 3 * k + int((1 + 2 * fc).sum())
-        if end > len(self._store):
-            grown = np.zeros(max(end, _grown(len(self._store))), np.uint32)
-            grown[:e0] = self._store[:e0]
-            self._store = grown
-        st = self._store
-        if k:
-            new = st[e0:e0 + 3 * k]
-            new[0::3], new[1::3], new[2::3] = 2, hs, vs
-            self.head.view[ws] = (e0 + 3 * np.arange(k)).astype(np.uint32) | _BLOCK
-        if len(fc):
-            size = 1 + 2 * fc
-            start = e0 + 3 * k + np.cumsum(size) - size
-            within = np.arange(int(fc.sum())) - np.repeat(np.cumsum(fc) - fc, fc)
-            st[np.repeat(start + 1, fc) + within] = st[np.repeat(fo + 1, fc) + within]
-            st[start] = (fc + 1).astype(np.uint32)
-            st[start + 1 + fc] = fv
-            self.head.view[fw] = start.astype(np.uint32) | _BLOCK
-            self._dead += int((1 + fc).sum())               # the full blocks: left behind
-        self._end = end
+        if k or len(fc):
+            e0 = self._end
+            end = e0 + 2 * k + int((2 * fc).sum())
+            if end > len(self._store):
+                grown = np.zeros(max(end, _grown(len(self._store))), np.uint32)
+                grown[:e0] = self._store[:e0]
+                self._store = grown
+            st = self._store
+            if k:
+                new = st[e0:e0 + 2 * k]
+                new[0::2], new[1::2] = hs, vs
+                self.head.view[ws] = (e0 + 2 * np.arange(k)).astype(np.uint32) | _BLOCK
+            if len(fc):
+                size = 2 * fc
+                start = e0 + 2 * k + np.cumsum(size) - size
+                within = np.arange(int(fc.sum())) - np.repeat(np.cumsum(fc) - fc, fc)
+                st[np.repeat(start, fc) + within] = st[np.repeat(fo, fc) + within]
+                st[start + fc] = fv
+                self.head.view[fw] = start.astype(np.uint32) | _BLOCK
+                self._dead += int(fc.sum())                 # the full blocks: left behind
+            self._end = end
+        self.df.add(words, 1)
         if self._dead * 4 > self._end:
             self._compact()
 
@@ -1056,25 +1191,25 @@ class _Postings:
         return int(hit[0]) if len(hit) else -1
 
     def pop(self, word: int, k: int) -> None:
-        """Remove the ``k``-th posting of ``word`` (the others keep their order)."""
+        """Remove the ``k``-th posting of ``word`` (the others keep their order; its df
+        counts one less)."""
         h = int(self.head.view[word])
+        c = int(self.df.view[word])
+        self.df.view[word] = c - 1
         if h < _BLOCK:
             self.head.view[word] = 0
             return
         off = h & ~int(_BLOCK)
-        c = int(self._store[off])
-        self._store[off + 1 + k:off + c] = self._store[off + 2 + k:off + 1 + c].copy()
+        self._store[off + k:off + c - 1] = self._store[off + k + 1:off + c].copy()
         if c == 2:  # one left: it goes back into the head
-            self.head.view[word] = self._store[off + 1]
-            self._dead += 1 + int(_block_room(np.array([c]))[0])
-        else:
-            self._store[off] = c - 1
+            self.head.view[word] = self._store[off]
+            self._dead += int(_block_room(np.array([c]))[0])
 
     def drop(self, words: np.ndarray) -> None:
-        """Forget the postings of ``words`` (``(K,) int64`` below ``head.n``)."""
+        """Forget the postings of ``words`` (``(K,) int64`` below ``head.n``); their df stay."""
         h = self.head.view[words]
-        _, cnt = self._blocks(h[h >= _BLOCK])
-        self._dead += int((1 + _block_room(cnt)).sum()) if len(cnt) else 0
+        cnt = self.df.view[words[h >= _BLOCK]].astype(np.int64)
+        self._dead += int(_block_room(cnt).sum()) if len(cnt) else 0
         self.head.view[words] = 0
         if self._dead * 4 > self._end:
             self._compact()
@@ -1083,15 +1218,15 @@ class _Postings:
         """Move every block to the front of a new store, in word order, each as long as
         its count needs (:func:`_block_room`), dropping the blocks left behind."""
         words = np.flatnonzero(self.head.view >= _BLOCK)
-        off, cnt = self._blocks(self.head.view[words])
-        size = 1 + _block_room(cnt) if len(cnt) else np.zeros(0, np.int64)
+        off = (self.head.view[words] & ~_BLOCK).astype(np.int64)
+        cnt = self.df.view[words].astype(np.int64)
+        size = _block_room(cnt) if len(cnt) else np.zeros(0, np.int64)
         start = np.cumsum(size) - size
         end = int(size.sum())
         store = np.zeros(_grown(end), np.uint32)
         if len(cnt):
-            n = cnt + 1                                     # the count and the postings
-            within = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
-            store[np.repeat(start, n) + within] = self._store[np.repeat(off, n) + within]
+            within = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+            store[np.repeat(start, cnt) + within] = self._store[np.repeat(off, cnt) + within]
         self._store = store
         self.head.view[words] = start.astype(np.uint32) | _BLOCK
         self._end = end
@@ -1103,6 +1238,11 @@ _COUNT_MASK = (1 << _COUNT_BITS) - 1
 _BLOCK = np.uint32(1 << 31)  # a word's head with this bit set points to its block of postings
 _MAX_SLOTS = 1 << (31 - _COUNT_BITS)  # 2,097,152 images indexed at once (a posting stays below _BLOCK)
 _VIRTUAL_MARGIN = 256       # candidates kept for the virtual image beyond its n words
+
+
+def _word_dtype(n_words: int) -> type:
+    """The narrowest type for word ids below ``n_words``: uint16 while they fit, else int32."""
+    return np.uint16 if n_words <= 0x10000 else np.int32
 
 
 class InvertedIndex:
@@ -1121,10 +1261,8 @@ class InvertedIndex:
         # Postings: per word, slot << _COUNT_BITS | n(w, i) of each image it is in (4 bytes
         # an entry, in flat arrays: no object per word)
         self._post = _Postings()
-        # (1 byte a word until a count passes 127, then 2 until one passes 32,767: most words
-        # are seen a few times; counters start narrow and widen, :meth:`_GrowingInts.add`)
-        self._df = _GrowingInts(np.int8)         # per word: images containing it
-        self._occ = _GrowingInts(np.int8)        # per word: total occurrences
+        self._df = self._post.df                 # per word: images containing it
+        self._occ = _GrowingInts(np.int8)        # per word: total occurrences (narrow as df)
         self._image_len = _GrowingInts()         # per slot: n(i), words (with repeats) in the image
         self._image_ids = _GrowingInts()         # per slot: the image in it, -1 when free
         # per image id: its slot + 1 when indexed, 0 never added, -1 removed (it may be
@@ -1208,19 +1346,18 @@ class InvertedIndex:
         top = int(uw[-1]) + 1
         if top > self._df.n:
             self._n_unused += top - self._df.n
-            self._df.resize(top)
+            self._post.resize(top)
             self._occ.resize(top)
-            self._post.head.resize(top)
-        # n(w, i) is kept up to 1023 (a word more often in one image counts 1023 times in
-        # its vote: not reached with a few hundred features per image).
-        self._post.append(uw, ((slot << _COUNT_BITS) | np.minimum(cnt, _COUNT_MASK)).astype(np.uint32))
         self._n_unused -= int(np.count_nonzero(self._df.view[uw] == 0))
-        self._df.add(uw, 1)
+        # n(w, i) is kept up to 1023 (a word more often in one image counts 1023 times in
+        # its vote: not reached with a few hundred features per image); df counts it
+        self._post.append(uw, ((slot << _COUNT_BITS) | np.minimum(cnt, _COUNT_MASK)).astype(np.uint32))
         self._occ.add(uw, cnt)
         if self._v_cand is not None:  # words now seen often enough join the candidates
             up = uw[self._occ.view[uw] >= self._v_floor]
             if len(up):
-                self._v_cand = sorted_union(self._v_cand, up.astype(np.int32))
+                dt = _word_dtype(self._df.n)
+                self._v_cand = sorted_union(self._v_cand.astype(dt, copy=False), up.astype(dt))
 
     def remove_image(self, image_id: int, words: np.ndarray) -> None:
         """Take image ``image_id`` out of the index, given the words it was added with
@@ -1244,11 +1381,10 @@ class InvertedIndex:
                 raise ValueError(f"image {image_id} was not indexed with word {wid} x {c}")
             where.append(k)
         for wid, k in zip(uw.tolist(), where):
-            self._post.pop(wid, k)
+            self._post.pop(wid, k)  # df counts one less
         self._slot_at.view[image_id] = -1
         self._n_indexed -= 1
         if len(uw):
-            self._df.view[uw] -= 1
             self._occ.view[uw] -= cnt
             self._n_unused += int(np.count_nonzero(self._df.view[uw] == 0))
         self._total -= len(w)
@@ -1327,14 +1463,15 @@ class InvertedIndex:
 
     def _virtual_candidates(self, k: int) -> np.ndarray:
         """The words seen at least as often as the ``k``-th most frequent (all the words in
-        use when fewer), ``(M,) int32`` sorted, M >= min(k, words in use); kept as the
-        candidates with that count as their floor (at least 1: words in use only)."""
+        use when fewer), ``(M,)`` sorted (uint16 or int32: :func:`_word_dtype`), M >= min(k,
+        words in use); kept as the candidates with that count as their floor (at least 1:
+        words in use only)."""
         occ = self._occ.view
         floor = 1
         if k < len(occ):
             floor = max(1, int(np.partition(occ, len(occ) - k)[len(occ) - k]))
         self._v_floor = floor
-        self._v_cand = np.flatnonzero(occ >= floor).astype(np.int32)  # word ids: int32 is room enough
+        self._v_cand = np.flatnonzero(occ >= floor).astype(_word_dtype(len(occ)))
         return self._v_cand
 
     def vote(self, words: np.ndarray) -> tuple[np.ndarray, float]:
@@ -1376,6 +1513,6 @@ class InvertedIndex:
         and per-slot counters, the per-image slots, the virtual image's candidates, and the
         free slots' heap (a list of Python ints: its table and the ints, which a working
         memory's removals make)."""
-        counters = sum(g.nbytes for g in (self._df, self._occ, self._image_len, self._image_ids, self._slot_at))
+        counters = sum(g.nbytes for g in (self._occ, self._image_len, self._image_ids, self._slot_at))
         virtual = self._v_cand.nbytes if self._v_cand is not None else 0
         return self._post.nbytes + counters + virtual + sys.getsizeof(self._free) + _INT_BYTES * len(self._free)

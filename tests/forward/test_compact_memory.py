@@ -8,6 +8,7 @@ the same images."""
 
 from __future__ import annotations
 
+import gc
 import sys
 import tracemalloc
 from dataclasses import replace
@@ -133,23 +134,26 @@ def test_flat_postings_hold_and_vote_what_per_word_lists_do_on_the_corridor(corr
 
 
 def _capacity(n: int) -> int:
-    """The most elements a growing array (:func:`_grown`, from at most 16) holds for ``n`` in use."""
+    """The most elements a growing array (:func:`_grown`) holds for ``n`` in use."""
     return _grown(n)
 
 
 def _structure_bound(det: ForwardDetector) -> dict[str, int]:
     """What the detector's parts may hold, from what they contain: each growing array at
-    most a thirty-second (plus 16) beyond its use, the blocks left behind at most a third
+    most a thirty-second (plus one) beyond its use, the blocks left behind at most a third
     of the live ones (compaction at a quarter of the store), a block of postings its count
-    rounded up to a power of two, plus its count; the working memory's three arrays per
-    place (weight and last use int32, in WM one byte), a bounded one's stored words."""
+    (its word's df) rounded up to a power of two; the working memory's three arrays per
+    place (weight and last use int32, in WM one byte), a bounded one's stored words; the
+    word tree's slots their descriptors, and their word ids once a slot holds another word
+    than its number, their rows and positions once a word was removed; a bit per word for
+    whether it was found again."""
     idx, voc = det.index, det.vocabulary
     tree = voc._tree
     n_words, n_slots, n_images = idx.n_words, idx.n_slots, len(det)
     h = idx._post.head.view
     block = h >= (1 << 31)
-    count = idx._post._store[(h[block] & 0x7FFFFFFF).astype(np.int64)].astype(np.int64)
-    live = int((1 + _block_room(count)).sum()) if len(count) else 0
+    count = idx._df.view[np.flatnonzero(block)].astype(np.int64)  # a block's postings: its word's df
+    live = int(_block_room(count).sum()) if len(count) else 0
     df_occ = _width(int(idx._df.view.max(initial=0))) + _width(int(idx.occurrences().max(initial=0)))
     index = (_capacity(n_words) * (4 + df_occ)                 # head, df, occurrences (as narrow as they fit)
              + _capacity(live * 4 // 3) * 4                     # blocks of postings, those left behind
@@ -158,18 +162,23 @@ def _structure_bound(det: ForwardDetector) -> dict[str, int]:
     stored = sum(sys.getsizeof(w) for w in wm._words) + (_list_bytes(len(wm._words)) if wm._words else 0)
     sorted_ids = 8 * len(wm) if wm._wm_sorted is not None else 0
     index += (_capacity(n_slots) * 4 + _capacity(n_images) * 4             # image per slot, slot per image
-              + (len(idx._v_cand) * 8 if idx._v_cand is not None else 0)    # the virtual image's candidates
+              + (len(idx._v_cand) * (2 if n_words <= 0x10000 else 4)        # the virtual image's candidates
+                 if idx._v_cand is not None else 0)
               + _capacity(wm.n_places) * (4 + 4 + 1) + stored + sorted_ids)  # the working memory
     nodes, rows, slots = tree._n_nodes, tree._n_rows, tree._n_slots
     blocks = int(tree._row_cap[:rows].sum())
     n_free = len(tree._free_rows) + len(tree._free_slots)
-    search = (_capacity(nodes + 2) * (32 + 2 * tree.params.branching + 4)   # centre, children (int16), leaf row
+    per_slot = (32 + (0 if tree.slots_are_words else 4)                   # descriptor, word id once kept
+                + (0 if tree._slot_row is None else 2 + 1))                 # row and position once kept
+    search = (_capacity(nodes + 2) * (32 + 2 + 4)                           # centre, row of children, leaf row
+              + _capacity(tree._n_inner) * 2 * tree.params.branching        # inner nodes' children (int16)
               + _capacity(rows) * 3 * 4                                     # block start and length, fill
-              + _capacity(blocks * 4 // 3) * 4                              # the leaves' blocks
-              + _capacity(slots + 1) * (32 + 4 + 2 + 1)                     # descriptor, word, row, position
+              + _capacity(blocks * 4 // 3) * (2 if slots <= 0x7FFF else 4)  # the leaves' blocks (int16 while it fits)
+              + _capacity(slots) * per_slot + 32                            # the slots, a spare descriptor
               + 2 * _list_bytes(n_free) + _INT * n_free                     # free rows and slots: lists of ints
-              + _capacity(n_words) + _capacity(n_images) * 4                # seen, first word per image
-              + 8 * (n_words - voc.image_words(n_images - 1)[0] if n_images else 0)  # the last add's founders, slots
+              + _capacity((n_words + 7) // 8) + _capacity(n_images) * 4     # found again, first word per image
+              + (0 if tree.slots_are_words else 4)                          # the last add's slots
+              * (n_words - voc.image_words(n_images - 1)[0] if n_images else 0)
               + (8 + 32) * len(voc.last_purged))                            # and the words it purged
     # a lent image: its keypoints (4 bytes each), the lent keypoints (2 bytes) and their
     # words' ranks unless they are 0 .. k - 1 (2 bytes), the other descriptors (32 bytes),
@@ -182,7 +191,7 @@ def _structure_bound(det: ForwardDetector) -> dict[str, int]:
         elif f is not None:
             images += f.nbytes
     latest = det.features_of(n_images - 1).words if n_images else np.zeros(0)
-    images += (_list_bytes(n_images) + n_images + 2 * _capacity(n_images) * 3 * 8  # the list, flags, poses
+    images += (_list_bytes(n_images) + n_images + 2 * (n_images + n_images // 32 + 1) * 3 * 8  # the list, flags, poses
                + 8 * (len(det._posterior) + len(det._hyp_ids))                    # the filter's state
                + (2 if len(latest) and int(latest.max()) <= 0xFFFF else 4) * len(latest))  # the latest's words
     return {"images": images, "index": index, "vocabulary": search}
@@ -248,7 +257,8 @@ def test_the_latest_image_lends_at_once_and_keeps_its_words(corridor):
         ids, descs = det.vocabulary.last_new  # the new words, as the daemon's store reads them
         lo, hi = det.vocabulary.image_words(t)
         np.testing.assert_array_equal(ids, np.arange(lo, hi))
-        np.testing.assert_array_equal(descs, f.descriptors[det.vocabulary.last_new_at])
+        np.testing.assert_array_equal(descs, f.descriptors[voc.last_new_at])  # the same words, made alike
+        assert len(det.vocabulary.last_new_at) == 0  # handed to the image, not kept twice
         if t:
             assert len(det.features_of(t - 1).words) == 0
 
@@ -321,7 +331,9 @@ def test_memory_counted_is_what_python_allocated_for_the_detector(corridor):
     interpreter allocated for the detector while it ran (tracemalloc; each image's
     features made inside the run so that what the detector keeps of them counts): nothing
     it holds per image is left out (a dict of image ids, lists of Python ints, object and
-    array headers), and nothing is counted twice."""
+    array headers), and nothing is counted twice. The cycle collector runs before each
+    reading: what processing the images left in reference cycles (their Detection records
+    among it) waits for it, and the detector does not hold it."""
     warm = ForwardDetector(method_params("default"))
     for f in corridor:  # imports and caches before the measurement (the verification's too)
         warm.process_features(_copies(f))
@@ -334,7 +346,9 @@ def test_memory_counted_is_what_python_allocated_for_the_detector(corridor):
             det.process_features(_copies(f))
             f = None
             if t == 19:  # early, where what an image leaves behind for one image weighs most
+                gc.collect()
                 early = tracemalloc.get_traced_memory()[0] - start, sum(det.memory_bytes().values())
+        gc.collect()
         grown = tracemalloc.get_traced_memory()[0] - start
     finally:
         tracemalloc.stop()

@@ -295,3 +295,27 @@ def test_occurrences_past_the_narrow_counters_widen_them():
     assert list(idx.virtual_image()) == [2, 1]  # most frequent first
     idx.remove_image(0, np.array([2] * 1000 + [1]))
     assert idx.occurrences()[2] == 39_000
+
+
+def test_growing_bits_set_read_and_span_as_a_bool_array_does():
+    """The per-word "found again" bits (eight to a byte): set with repeats, read one by
+    one and over any span, across growth, as a bool array answers."""
+    from robotd.forward.vocabulary import _GrowingBits
+
+    rng = np.random.default_rng(2)
+    bits, ref = _GrowingBits(), np.zeros(0, bool)
+    for _ in range(40):
+        n = len(ref) + int(rng.integers(0, 90))
+        bits.resize(n)
+        ref = np.concatenate([ref, np.zeros(n - len(ref), bool)])
+        if n:
+            at = rng.integers(0, n, int(rng.integers(0, 30)))
+            bits.set(np.concatenate([at, at[:3]]))
+            ref[at] = True
+            lo = int(rng.integers(0, n))
+            hi = int(rng.integers(lo, n + 1))
+            assert bits.between(lo, hi).tolist() == ref[lo:hi].tolist()
+            probe = rng.integers(0, n, 20)
+            assert bits.get(probe).tolist() == ref[probe].tolist()
+    assert bits.between(0, len(ref)).tolist() == ref.tolist()
+    assert bits.nbytes <= (len(ref) + 7) // 8 + (len(ref) + 7) // 8 // 32 + 16

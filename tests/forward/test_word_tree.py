@@ -223,7 +223,7 @@ def _scan_reference(tree: BinaryWordTree, q: np.ndarray, beam: int) -> tuple[np.
                 if best is None or (d, s) < best:
                     best = (d, s)
         if best is not None:
-            words[i], dist[i] = tree._slot_word[best[1]], best[0]
+            words[i], dist[i] = tree.slot_words()[best[1]], best[0]
     return words, dist
 
 
@@ -264,7 +264,7 @@ def test_slots_and_descriptors_of_words_are_where_the_words_were_put(spread):
     held[:200:3] = False
     ask = np.concatenate([ids, ids[1:] - 1 if spread > 1 else np.zeros(0, np.int64), [ids[-1] + 1]])
     slots = tree.slots_of(ask)
-    want = {int(w): s for s, w in enumerate(tree._slot_word[:tree._n_slots].tolist()) if w >= 0}
+    want = {int(w): s for s, w in enumerate(tree.slot_words().tolist()) if w >= 0}
     assert slots.tolist() == [want.get(int(w), -1) for w in ask]
     assert (slots[:300] >= 0).tolist() == held.tolist()
     d, found = tree.descriptors(ids)
@@ -282,7 +282,7 @@ def _descend_every_query(tree: BinaryWordTree, q: np.ndarray, beam: int) -> np.n
     front = np.zeros((n, 1), np.int32)
     b = tree.params.branching
     while True:
-        kids = tree._child.take(front, axis=0)
+        kids = tree._children(front)
         if np.array_equal(kids[:, :, 0], front):
             return front
         cand = kids.reshape(n, -1)
@@ -312,7 +312,84 @@ def test_queries_that_reached_their_leaves_stop_with_the_front_a_further_level_g
     for node in np.unique(want[want >= 0]).tolist():  # the leaves reached lie at different depths
         d, cur = 0, node
         while cur != 0:
-            cur = int(np.flatnonzero((tree._child[:tree._n_nodes] == cur).any(axis=1) & (np.arange(tree._n_nodes) != cur))[0])
+            cur = int(np.flatnonzero((tree._children(np.arange(tree._n_nodes)) == cur).any(axis=1) & (np.arange(tree._n_nodes) != cur))[0])
             d += 1
         leaf_depth.append(d)
     assert len(set(leaf_depth)) > 1
+
+
+def _places_agree(tree: BinaryWordTree) -> None:
+    """Every held word's slot sits in its leaf's block where its row and position say, and
+    every leaf's filled entries are held slots."""
+    rows = tree._leaf_row[:tree._n_nodes]
+    rows = rows[rows >= 0]
+    listed = np.concatenate([tree._pool[tree._row_start[r]:tree._row_start[r] + tree._fill[r]] for r in rows])
+    held = np.flatnonzero(tree.slot_words() >= 0)
+    assert sorted(listed.tolist()) == held.tolist()
+    at = tree._row_start[tree._slot_row[held]].astype(np.int64) + tree._slot_pos[held]
+    np.testing.assert_array_equal(tree._pool[at], held)
+    assert (tree._fill[tree._slot_row[held]] > tree._slot_pos[held]).all()
+
+
+def test_a_young_tree_keeps_descriptors_and_leaves_only_and_the_rest_from_its_first_removal():
+    """While words come in id order and none was removed, slot s holds word s and the tree
+    keeps no per-slot word id, row or position (4 + 2 + 1 bytes a word): it holds the
+    descriptors, the leaves' blocks (2 bytes an entry while the slots fit int16) and the
+    nodes. Its first removal builds the rows and positions from the leaves; from then on
+    each removal moves a leaf's last entry into the hole, words land in freed slots, and
+    every word is found where it was put."""
+    rng = np.random.default_rng(21)
+    tree = BinaryWordTree(TreeParams(branching=4, leaf_size=24, beam=2))
+    a = _clustered(rng, 40, 10, 14)
+    tree.add(np.arange(len(a)), pack_bits(a))
+    assert tree.slots_are_words and tree._slot_row is None and tree._slot_pos is None
+    assert tree._pool.dtype == np.int16 and tree._n_nodes > 20
+    slots = len(a)
+    per_slot = (tree._desc.nbytes - 32) / slots                      # the spare descriptor row aside
+    assert per_slot <= 32 * (1 + 1 / 32 + 16 / slots)
+    assert (tree.nearest(pack_bits(a))[0] == np.arange(len(a))).all()
+    assert tree.slots_of(np.array([-1, 0, len(a) - 1, len(a)])).tolist() == [-1, 0, len(a) - 1, -1]
+    gone = rng.choice(len(a), 150, replace=False)
+    tree.remove(gone)
+    assert not tree.slots_are_words and tree._slot_row is not None
+    _places_agree(tree)
+    b = _clustered(rng, 20, 10, 14)
+    ids_b = np.arange(len(a), len(a) + len(b))
+    tree.add(ids_b, pack_bits(b))                                     # into the freed slots first
+    assert tree._n_slots == len(a) + len(b) - 150
+    _places_agree(tree)
+    tree.remove(np.concatenate([ids_b[::3], np.setdiff1d(np.arange(len(a)), gone)[::5]]))
+    _places_agree(tree)
+    left = np.setdiff1d(np.concatenate([np.arange(len(a)), ids_b]),
+                        np.concatenate([gone, ids_b[::3], np.setdiff1d(np.arange(len(a)), gone)[::5]]))
+    both = np.concatenate([a, b])
+    assert (tree.nearest(pack_bits(both[left]))[0] == left).all()
+
+
+def test_a_word_added_out_of_id_order_keeps_the_slots_word_ids():
+    """Slot s holds word s only while words come in id order: a tree given other ids
+    (a vocabulary restored without its purged words) keeps each slot's word id and
+    answers those ids."""
+    rng = np.random.default_rng(4)
+    a = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+    ids = np.arange(300) * 3 + 1
+    tree = BinaryWordTree(TreeParams(branching=4, leaf_size=32, beam=2))
+    tree.add(ids[:100], pack_bits(a[:100]))
+    assert not tree.slots_are_words
+    tree.add(ids[100:], pack_bits(a[100:]))
+    assert (tree.nearest(pack_bits(a))[0] == ids).all()
+    assert tree.slots_of(ids).tolist() == list(range(300))
+
+
+def test_the_leaves_pool_widens_when_the_slots_pass_int16():
+    """The leaves' blocks hold slots as int16 until a slot passes 32,767, then int32; every
+    word is found before and after."""
+    rng = np.random.default_rng(8)
+    a = rng.integers(0, 256, (33_000, 32), dtype=np.uint8)
+    tree = BinaryWordTree(TreeParams(branching=16, leaf_size=256, beam=1))
+    tree.add(np.arange(32_000), pack_bits(a[:32_000]))
+    assert tree._pool.dtype == np.int16
+    tree.add(np.arange(32_000, 33_000), pack_bits(a[32_000:]))
+    assert tree._pool.dtype == np.int32
+    probe = np.concatenate([np.arange(0, 33_000, 97), np.arange(32_700, 33_000)])
+    assert (tree.nearest(pack_bits(a[probe]))[0] == probe).all()
