@@ -111,7 +111,7 @@ Expected failures are values (:class:`Verification` with a reason), not exceptio
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from enum import StrEnum
 
 import cv2
@@ -119,10 +119,11 @@ import numpy as np
 
 from robotd.forward.features import FeatureSet
 from robotd.forward.planar import INLIER_NOISE_FACTOR, fit_motion, normalised_points
-from robotd.forward.planefit import ransac_planar
+from robotd.forward.planefit import PlanarSearch, ransac_planar
 
 __all__ = ["ACCEPTED", "NO_GEOMETRIC_CONSISTENCY", "SMALL_SUPPORT", "TOO_FEW_MATCHES", "Verification", "VerifyReason",
-           "VerifyParams", "camera_matrix_guess", "essential_matrix", "floor_range", "match_features", "match_indices",
+           "VerifyParams", "DueFallback", "FallbackWork", "camera_matrix_guess", "essential_matrix", "fallback_verification", "floor_range",
+           "match_features", "match_indices",
            "matched_points", "ransac_iterations", "support_area", "verify_pair"]
 
 class VerifyReason(StrEnum):
@@ -231,6 +232,12 @@ class VerifyParams:
             general search runs as without the screen and decides. So every acceptance is
             the general search's own; a consensus the screen misses and RANSAC would find
             is lost (module notes, "The planar model"). None: no screen.
+        defer_fallback: with a planar model, stop where the general search after a failed
+            search near the level motion would run, and return that failed check with what
+            the general search needs (a :class:`DueFallback`), so that the caller
+            runs it later, or not at all, by :func:`fallback_verification` (the same answer
+            as the search run at once; module notes, "The planar model"). False: run it at
+            once.
     """
 
     ratio: float = 0.8
@@ -256,6 +263,7 @@ class VerifyParams:
     fallback_estimator: str | None = None
     fallback_band_px: float | None = None
     fallback_screen: str | None = None
+    defer_fallback: bool = False
 
     def __post_init__(self) -> None:
         if self.camera_height_m is not None and not self.camera_height_m > 0.0:
@@ -452,22 +460,10 @@ def _verify_matched(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: 
             guided = replace(guided, level_yaw_rad=search.yaw_rad)
         if guided.accepted or params.fallback_inliers is None or search.best_inliers < params.fallback_inliers:
             return guided
-        # Not found near a level motion: the general search over all the matches, with at
-        # most fallback_max_iterations samples (the stated cap on the work per image).
-        params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations),
-                         estimator=params.fallback_estimator or params.estimator)
-        if params.fallback_band_px is not None:
-            band = search.inliers(p_old, p_new, k, params.fallback_band_px, xs)
-            if int(band.sum()) < params.min_inliers:
-                return replace(guided, fallback=True)
-            if params.fallback_screen is not None and not _screen_passes(p_old, p_new, k, params, band, xs):
-                return replace(guided, fallback=True, screened=True)
-            banded = _general_motion(p_old, p_new, k, params, n, band, half_inliers=False, normalised=xs)
-            checked = banded if isinstance(banded, Verification) else _checked(old, new, p_old, p_new, k, params,
-                                                                                banded)
-            return replace(checked, fallback=True, level_yaw_rad=guided.level_yaw_rad)
-        return replace(_general_verification(old, new, p_old, p_new, k, params, n, xs), fallback=True,
-                       level_yaw_rad=guided.level_yaw_rad)
+        work = FallbackWork(old, new, p_old, p_new, k, params, xs, search, guided)
+        if params.defer_fallback:
+            return DueFallback(**{f.name: getattr(guided, f.name) for f in fields(Verification)}, work=work)
+        return _fallback(work)
     elif params.model == "planar_motion":
         motion = _planar_motion(p_old, p_new, k, params)
         if isinstance(motion, int):
@@ -486,6 +482,71 @@ def _verify_matched(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: 
                          estimator=params.fallback_estimator or params.estimator)
         return replace(_general_verification(old, new, p_old, p_new, k, params, n), fallback=True)
     return _general_verification(old, new, p_old, p_new, k, params, n)
+
+
+@dataclass(frozen=True, eq=False)
+class FallbackWork:
+    """What a planar model's general search after a failed search near the level motion
+    needs, kept from that check (:attr:`VerifyParams.defer_fallback`): the two images, their
+    matched pixels ``p_old, p_new (N, 2)``, the camera matrix ``k (3, 3)``, the parameters,
+    the matches through ``K^-1`` (``xs``), the level search that guided the check and the
+    check's own (failed) verification."""
+
+    old: FeatureSet
+    new: FeatureSet
+    p_old: np.ndarray
+    p_new: np.ndarray
+    k: np.ndarray
+    params: VerifyParams
+    xs: tuple[np.ndarray, np.ndarray]
+    search: PlanarSearch
+    guided: Verification
+
+
+@dataclass(frozen=True, eq=False)
+class DueFallback(Verification):
+    """A failed check whose general search is due (:attr:`VerifyParams.defer_fallback`): the
+    check's :class:`Verification` and ``work``, what that search needs
+    (:func:`fallback_verification` runs it)."""
+
+    work: FallbackWork | None = None
+
+    def checked(self) -> Verification:
+        """The check itself, without the work (a plain :class:`Verification`)."""
+        return Verification(**{f.name: getattr(self, f.name) for f in fields(Verification)})
+
+
+def fallback_verification(v: DueFallback) -> Verification:
+    """The verification ``v`` (a failed check whose general search is due, returned by
+    :attr:`VerifyParams.defer_fallback`) finished: its general search run now, the answer
+    :func:`verify_pair` without ``defer_fallback`` gives (its ``match_index`` kept)."""
+    if v.work is None:
+        raise ValueError("fallback_verification: this verification has no general search due")
+    return replace(_fallback(v.work), match_index=v.match_index)
+
+
+def _fallback(work: FallbackWork) -> Verification:
+    """The planar model's general search over all the matches after its search near the
+    level motion failed (module notes, "The planar model"), checked as the general model's."""
+    old, new, p_old, p_new, k, xs, search, guided = (work.old, work.new, work.p_old, work.p_new, work.k, work.xs,
+                                                     work.search, work.guided)
+    n = len(p_old)
+    # Not found near a level motion: the general search over all the matches, with at
+    # most fallback_max_iterations samples (the stated cap on the work per image).
+    params = replace(work.params, max_iterations=min(work.params.max_iterations, work.params.fallback_max_iterations),
+                     estimator=work.params.fallback_estimator or work.params.estimator)
+    if params.fallback_band_px is not None:
+        band = search.inliers(p_old, p_new, k, params.fallback_band_px, xs)
+        if int(band.sum()) < params.min_inliers:
+            return replace(guided, fallback=True)
+        if params.fallback_screen is not None and not _screen_passes(p_old, p_new, k, params, band, xs):
+            return replace(guided, fallback=True, screened=True)
+        banded = _general_motion(p_old, p_new, k, params, n, band, half_inliers=False, normalised=xs)
+        checked = banded if isinstance(banded, Verification) else _checked(old, new, p_old, p_new, k, params,
+                                                                            banded)
+        return replace(checked, fallback=True, level_yaw_rad=guided.level_yaw_rad)
+    return replace(_general_verification(old, new, p_old, p_new, k, params, n, xs), fallback=True,
+                   level_yaw_rad=guided.level_yaw_rad)
 
 
 def _general_verification(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray,
@@ -514,6 +575,13 @@ def _checked(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: np.ndar
                             planarity_chi2=chi2)
     # Not in the paper: the inliers must not be one small plane (module notes).
     s_old, s_new = p_old[inl], p_new[inl]
+    # The support is all the inliers or a subset of them (its convex hull inside theirs): when
+    # all of them cover too little, the check fails whatever the homography (not fitted).
+    whole = min(support_area(s_old, old.image_size_px), support_area(s_new, new.image_size_px))
+    if whole < params.min_support_area:
+        return Verification(False, SMALL_SUPPORT, n, n_inl, r, t_dir, support_area=whole, range_m=range_m,
+                            n_floor_points=n_floor, sigma_bearing_rad=sig_b, sigma_yaw_rad=sig_y, noise_px=noise,
+                            planarity_chi2=chi2)
     _, hmask = cv2.findHomography(s_old, s_new, cv2.RANSAC, params.homography_threshold_px)
     on_plane = np.zeros(len(s_old), bool) if hmask is None else np.asarray(hmask).ravel() > 0
     n_plane = int(on_plane.sum())
