@@ -1065,7 +1065,8 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
       paper's general search stays selectable as ``model="general"``), with its work per
       image bounded by rule (:func:`bounded_verification`: the essential matrix near the
       level motion searched by OpenCV's USAC, the general search after a failed one in a
-      10 px band around the level motion and for one view per image); the verification
+      10 px band around the level motion and for one view per image, once every view was checked near
+      its level motion: ``fallbacks_last``); the verification
       without the bound stays selectable (:func:`unbounded_verification`). Measured
       (``docs/forward.md``, "Time and memory per image"): with the bound the p99 per image
       is within 40 ms of CPU in the bench (the office route's median is not shown within
@@ -1087,7 +1088,7 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
                                 verify=VerifyParams(model=DEFAULT_VERIFY_MODEL, guided_estimator=DEFAULT_GUIDED_ESTIMATOR,
                                                     fallback_band_px=DEFAULT_FALLBACK_BAND_PX,
                                                     fallback_screen=DEFAULT_FALLBACK_SCREEN),
-                                verify_fallbacks=DEFAULT_VERIFY_FALLBACKS)
+                                verify_fallbacks=DEFAULT_VERIFY_FALLBACKS, fallbacks_last=DEFAULT_FALLBACKS_LAST)
     else:
         raise ValueError(f"forward detector method must be one of {', '.join(METHODS)}, got {method!r}")
     return replace(params, **overrides) if overrides else params
@@ -1129,21 +1130,25 @@ DEFAULT_FALLBACK_BAND_PX = 10.0
 #: (docs/forward.md, "Tried and not taken").
 DEFAULT_FALLBACK_SCREEN: str | None = None
 DEFAULT_VERIFY_FALLBACKS = 1
+#: An image's fallbacks after every view's check near its level motion (docs/forward.md,
+#: "The verification"): a later view that passes near its level motion is found without
+#: the fallback of an earlier one.
+DEFAULT_FALLBACKS_LAST = True
 
 
 def bounded_verification(params: DetectorParams) -> DetectorParams:
     """``params`` with the planar verification's work per image bounded by rule (the
     ``"default"`` method's): the essential matrix near the level motion searched by
     OpenCV's USAC, the general search after a failed one drawing its samples within 10 px
-    of the level motion, and run for one view per image at most (``docs/forward.md``,
-    "Time and memory per image")."""
+    of the level motion, and run for one view per image at most, after every view's check near
+    its level motion (``docs/forward.md``, "Time and memory per image", "The verification")."""
     return replace(params, verify=replace(params.verify, guided_estimator="usac", fallback_band_px=10.0),
-                   verify_fallbacks=1)
+                   verify_fallbacks=1, fallbacks_last=True)
 
 
 def unbounded_verification(params: DetectorParams) -> DetectorParams:
     """``params`` with the planar verification's work per image not bounded (the default
     before the bound): RANSAC near the level motion, the general search over all the
-    matches after a failed one, for every view that fails."""
+    matches after a failed one, for every view that fails, right after its check."""
     return replace(params, verify=replace(params.verify, guided_estimator=None, fallback_band_px=None),
-                   verify_fallbacks=None)
+                   verify_fallbacks=None, fallbacks_last=False)
