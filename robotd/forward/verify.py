@@ -30,7 +30,11 @@ fix the epipolar geometry) all inliers do. The support must cover at least
 else the candidate is refused as ``SMALL_SUPPORT``. ``min_support_area = 0`` turns the check
 off and gives the paper's verification exactly. The check cannot refuse a copy that fills
 the view (two identical doors seen square-on): only the Bayes filter's temporal consistency
-keeps those out.
+keeps those out. The support is all the inliers or the homography's among them, whose convex
+hull lies inside theirs: when all the inliers already cover less than ``min_support_area``,
+the check is refused without fitting the homography (the same decision; RANSAC's homography
+runs its 2000 samples when the inliers are not one plane, milliseconds per check), and
+``n_plane_inliers`` and ``planar`` stay 0 and False.
 
 **The range from the floor (not in the paper).** The essential matrix fixes only the
 translation's direction, and a wrong loop can still fit one: on the virtual office route,
@@ -105,6 +109,16 @@ motion itself as the verified motion (no five-point search when it passes): meas
 passes aliased views (a wall's repeated pattern seen from a sideways shift) that the
 general test refuses, so it is not the default. ``model = "general"`` is the paper's
 search over all the matches (the paper's detector and the baselines keep it).
+
+**The fallback run later (not in the paper).** A detector that verifies several views of one
+place (:attr:`robotd.forward.detector.DetectorParams.fallbacks_last`) need not run a view's
+general search before it has checked the next views near their level motion: with
+``defer_fallback`` a check whose search near the level motion failed with the general search
+due returns as a :class:`DueFallback` (the failed check, and what that search needs: the
+matches, their normalised coordinates, the level search), and :func:`fallback_verification`
+runs the search later with the answer it would have given at once. The general search is the
+costliest part of a check (RANSAC's five-point samples in the band, all 200 when no consensus
+is there), and a view that passes near its level motion is a fraction of it.
 
 Expected failures are values (:class:`Verification` with a reason), not exceptions.
 """
@@ -236,8 +250,8 @@ class VerifyParams:
             search near the level motion would run, and return that failed check with what
             the general search needs (a :class:`DueFallback`), so that the caller
             runs it later, or not at all, by :func:`fallback_verification` (the same answer
-            as the search run at once; module notes, "The planar model"). False: run it at
-            once.
+            as the search run at once; module notes, "The fallback run later"). False: run it
+            at once.
     """
 
     ratio: float = 0.8
