@@ -420,7 +420,8 @@ class Detection:
             went to long-term memory after it.
         pending: with ``ACCEPT_PENDING`` or ``VERIFY_PENDING``, the verification to
             finish with :meth:`ForwardDetector.resume`; else None.
-        checks: the epipolar checks (:func:`~robotd.forward.verify.verify_pair` calls) run
+        checks: the epipolar checks (:func:`~robotd.forward.verify.verify_pair` calls, and the
+            fallbacks run after them, :func:`~robotd.forward.verify.fallback_verification`) run
             for the image in this call.
     """
 

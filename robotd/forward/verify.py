@@ -591,7 +591,7 @@ def _checked(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: np.ndar
     s_old, s_new = p_old[inl], p_new[inl]
     # The support is all the inliers or a subset of them (its convex hull inside theirs): when
     # all of them cover too little, the check fails whatever the homography (not fitted).
-    whole = min(support_area(s_old, old.image_size_px), support_area(s_new, new.image_size_px))
+    whole = _hull_support(s_old, s_new, old.image_size_px, new.image_size_px)
     if whole < params.min_support_area:
         return Verification(False, SMALL_SUPPORT, n, n_inl, r, t_dir, support_area=whole, range_m=range_m,
                             n_floor_points=n_floor, sigma_bearing_rad=sig_b, sigma_yaw_rad=sig_y, noise_px=noise,
@@ -608,6 +608,12 @@ def _checked(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: np.ndar
                         n_plane_inliers=n_plane, planar=bool(planar), support_area=area,
                         range_m=range_m, n_floor_points=n_floor, sigma_bearing_rad=sig_b,
                         sigma_yaw_rad=sig_y, noise_px=noise, planarity_chi2=chi2)
+
+
+def _hull_support(s_old: np.ndarray, s_new: np.ndarray, size_old: tuple[int, int], size_new: tuple[int, int]) -> float:
+    """The support all the inliers ``s_old, s_new (M, 2)`` give: the smaller fraction of the two
+    images their convex hulls cover (:func:`support_area`), an upper bound of the support test's."""
+    return min(support_area(s_old, size_old), support_area(s_new, size_new))
 
 
 #: A verified motion: (inlier mask (N,), rotation (3, 3), translation_dir (3,), sigma_bearing_rad,
