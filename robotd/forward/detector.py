@@ -48,7 +48,8 @@ from robotd.forward.filter import (FilterParams, diffusion_weights, predict, pre
                                    select_candidate_ids, update)
 from robotd.forward.likelihood import LikelihoodMethod, adjust_likelihood
 from robotd.forward.memory import MemoryParams, WorkingMemory
-from robotd.forward.verify import TOO_FEW_MATCHES, Verification, VerifyParams, verify_pair
+from robotd.forward.verify import (TOO_FEW_MATCHES, DueFallback, Verification, VerifyParams, fallback_verification,
+                                   verify_pair)
 from robotd.forward.vocabulary import InvertedIndex, Vocabulary, VocabularyParams
 
 __all__ = ["ACCEPT_PENDING", "VERIFY_PENDING", "Detection", "DetectionStatus", "DetectorParams", "ForwardDetector", "LOOP", "METHODS", "NO_HYPOTHESES",
@@ -280,6 +281,13 @@ class DetectorParams:
             :class:`~robotd.forward.verify.VerifyParams`; ``Verification.fallback``) one image
             runs over its ``verify_tries`` views; once they ran, the views after are verified
             near their level motion only. None: no bound (each may fall back).
+        fallbacks_last: the fallbacks after every view's check near its level motion: the
+            image's views are checked near their level motion first, in order, and only when
+            none passes do the fallbacks that were due run, in the views' order, at most
+            ``verify_fallbacks`` of them (:attr:`~robotd.forward.verify.VerifyParams.defer_fallback`).
+            A view's fallback no longer runs before a later view's check near its level
+            motion, which is a fraction of its cost (``docs/forward.md``, "The verification").
+            False: each view's fallback right after its own check.
     """
 
     features: FeatureParams = field(default_factory=FeatureParams)
@@ -298,6 +306,7 @@ class DetectorParams:
     islands: bool = False
     odometry: OdometryParams = field(default_factory=OdometryParams)
     verify_fallbacks: int | None = None
+    fallbacks_last: bool = False
 
     def __post_init__(self) -> None:
         if self.verify_fallbacks is not None and self.verify_fallbacks < 0:
@@ -338,6 +347,7 @@ class DetectorOverrides(TypedDict, total=False):
     islands: bool
     odometry: OdometryParams
     verify_fallbacks: int | None
+    fallbacks_last: bool
 
 
 @dataclass(eq=False)
@@ -355,8 +365,10 @@ class PendingVerification:
     ``verification`` (the view awaiting ``accept`` and its check), ``order`` (every view to
     try, in order), ``next`` (the first not yet verified), ``agreed`` (views odometry agrees
     with: their ``VerifyParams`` relaxed), ``fallbacks`` (general searches run so far),
-    ``failed`` (the checks of the views that failed), ``checks`` (epipolar checks run for
-    it so far, over every call)."""
+    ``failed`` (the checks of the views that failed, in the views' order), ``due`` (with
+    :attr:`DetectorParams.fallbacks_last`, the failed checks whose fallback is due, each
+    with its place in ``failed``), ``checks`` (epipolar checks run for it so far, over every
+    call: a check near the level motion and a fallback run later count one each)."""
 
     image_id: int
     candidate: int
@@ -369,6 +381,12 @@ class PendingVerification:
     view: int | None = None
     verification: Verification | None = None
     checks: int = 0
+    due: list[tuple[int, int, DueFallback]] = field(default_factory=list)
+
+    @property
+    def finished(self) -> bool:
+        """Nothing left: no view awaiting its test, none to check, no fallback due."""
+        return self.view is None and self.next >= len(self.order) and not self.due
 
 
 @dataclass(frozen=True, eq=False)
@@ -402,7 +420,8 @@ class Detection:
             went to long-term memory after it.
         pending: with ``ACCEPT_PENDING`` or ``VERIFY_PENDING``, the verification to
             finish with :meth:`ForwardDetector.resume`; else None.
-        checks: the epipolar checks (:func:`~robotd.forward.verify.verify_pair` calls) run
+        checks: the epipolar checks (:func:`~robotd.forward.verify.verify_pair` calls, and the
+            fallbacks run after them, :func:`~robotd.forward.verify.fallback_verification`) run
             for the image in this call.
     """
 
@@ -686,8 +705,8 @@ class ForwardDetector:
     def _advance(self, job: PendingVerification, defer_accept: bool, max_checks: int | None = None
                  ) -> tuple[int, Verification, bool] | PendingVerification:
         """Go on with ``job``: the awaiting view's :attr:`accept` test, then the views not yet
-        verified (at most ``max_checks`` epipolar checks, None: all), as :meth:`_verify`
-        describes."""
+        verified and, with :attr:`DetectorParams.fallbacks_last`, the fallbacks due after them
+        (at most ``max_checks`` epipolar checks, None: all), as :meth:`_verify` describes."""
         p = self.params
         o = p.odometry
         if job.view is not None and job.verification is not None:
@@ -695,27 +714,41 @@ class ForwardDetector:
             job.view, job.verification = None, None
             if self.accept is None or self.accept(j, v):
                 return j, v, True
-            job.failed.append(v)
         checks = 0
-        while job.next < len(job.order):
+        while job.next < len(job.order) or job.due:
             if max_checks is not None and checks >= max_checks:
-                return job  # the budget spent: the views from job.next on are left
-            j = job.order[job.next]
-            job.next += 1
-            vp = p.verify
-            if p.verify_fallbacks is not None and job.fallbacks >= p.verify_fallbacks:
-                vp = replace(vp, fallback_inliers=None)  # the bound on the image's work
-            if j in job.agreed:
-                if o.agree_min_inliers is not None:
-                    vp = replace(vp, min_inliers=o.agree_min_inliers)
-                if o.agree_min_support_area is not None:
-                    vp = replace(vp, min_support_area=o.agree_min_support_area)
-            try:
-                old = self.features_of(j)
-            except LookupError:
-                self.read_back_failed += 1
-                continue
-            v = verify_pair(old, job.feats, vp, self.camera_matrix)
+                return job  # the budget spent: the views from job.next on (and the fallbacks due) are left
+            room = p.verify_fallbacks is None or job.fallbacks < p.verify_fallbacks
+            if job.next >= len(job.order):  # every view checked near its level motion: the fallbacks due
+                if not room:
+                    job.due.clear()  # the bound on the image's work
+                    break
+                at, j, due = job.due.pop(0)
+                v = fallback_verification(due)
+                job.failed[at] = v
+            else:
+                j = job.order[job.next]
+                job.next += 1
+                vp = p.verify
+                if not room:
+                    vp = replace(vp, fallback_inliers=None)  # the bound on the image's work
+                elif p.fallbacks_last:
+                    vp = replace(vp, defer_fallback=True)
+                if j in job.agreed:
+                    if o.agree_min_inliers is not None:
+                        vp = replace(vp, min_inliers=o.agree_min_inliers)
+                    if o.agree_min_support_area is not None:
+                        vp = replace(vp, min_support_area=o.agree_min_support_area)
+                try:
+                    old = self.features_of(j)
+                except LookupError:
+                    self.read_back_failed += 1
+                    continue
+                v = verify_pair(old, job.feats, vp, self.camera_matrix)
+                if isinstance(v, DueFallback):
+                    job.due.append((len(job.failed), j, v))
+                    v = v.checked()
+                job.failed.append(v)
             checks += 1
             job.checks += 1
             job.fallbacks += v.fallback
@@ -727,7 +760,6 @@ class ForwardDetector:
                     return job
                 if self.accept(j, v):
                     return j, v, True
-            job.failed.append(v)
         if not job.failed:  # not one of them could be read back (counted): as if nothing matched
             return job.candidate, Verification(False, TOO_FEW_MATCHES, 0, 0), False
         return job.candidate, job.failed[0], False
@@ -745,7 +777,7 @@ class ForwardDetector:
         check passes is left awaiting its test. Either stops the call with ``job`` itself
         returned, to be resumed again (the same answers as one call: the views, their order
         and the tests are the job's, whatever ran between)."""
-        if job.view is None and job.next >= len(job.order):
+        if job.finished:
             raise ValueError("resume: this verification has no view awaiting its accept test and none left to check")
         out = self._advance(job, defer_accept, max_checks)
         if isinstance(out, PendingVerification):
@@ -1034,7 +1066,8 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
       paper's general search stays selectable as ``model="general"``), with its work per
       image bounded by rule (:func:`bounded_verification`: the essential matrix near the
       level motion searched by OpenCV's USAC, the general search after a failed one in a
-      10 px band around the level motion and for one view per image); the verification
+      10 px band around the level motion and for one view per image, once every view was checked near
+      its level motion: ``fallbacks_last``); the verification
       without the bound stays selectable (:func:`unbounded_verification`). Measured
       (``docs/forward.md``, "Time and memory per image"): with the bound the p99 per image
       is within 40 ms of CPU in the bench (the office route's median is not shown within
@@ -1056,7 +1089,7 @@ def method_params(method: str, **overrides: Unpack[DetectorOverrides]) -> Detect
                                 verify=VerifyParams(model=DEFAULT_VERIFY_MODEL, guided_estimator=DEFAULT_GUIDED_ESTIMATOR,
                                                     fallback_band_px=DEFAULT_FALLBACK_BAND_PX,
                                                     fallback_screen=DEFAULT_FALLBACK_SCREEN),
-                                verify_fallbacks=DEFAULT_VERIFY_FALLBACKS)
+                                verify_fallbacks=DEFAULT_VERIFY_FALLBACKS, fallbacks_last=DEFAULT_FALLBACKS_LAST)
     else:
         raise ValueError(f"forward detector method must be one of {', '.join(METHODS)}, got {method!r}")
     return replace(params, **overrides) if overrides else params
@@ -1098,21 +1131,25 @@ DEFAULT_FALLBACK_BAND_PX = 10.0
 #: (docs/forward.md, "Tried and not taken").
 DEFAULT_FALLBACK_SCREEN: str | None = None
 DEFAULT_VERIFY_FALLBACKS = 1
+#: An image's fallbacks after every view's check near its level motion (docs/forward.md,
+#: "The verification"): a later view that passes near its level motion is found without
+#: the fallback of an earlier one.
+DEFAULT_FALLBACKS_LAST = True
 
 
 def bounded_verification(params: DetectorParams) -> DetectorParams:
     """``params`` with the planar verification's work per image bounded by rule (the
     ``"default"`` method's): the essential matrix near the level motion searched by
     OpenCV's USAC, the general search after a failed one drawing its samples within 10 px
-    of the level motion, and run for one view per image at most (``docs/forward.md``,
-    "Time and memory per image")."""
+    of the level motion, and run for one view per image at most, after every view's check near
+    its level motion (``docs/forward.md``, "Time and memory per image", "The verification")."""
     return replace(params, verify=replace(params.verify, guided_estimator="usac", fallback_band_px=10.0),
-                   verify_fallbacks=1)
+                   verify_fallbacks=1, fallbacks_last=True)
 
 
 def unbounded_verification(params: DetectorParams) -> DetectorParams:
     """``params`` with the planar verification's work per image not bounded (the default
     before the bound): RANSAC near the level motion, the general search over all the
-    matches after a failed one, for every view that fails."""
+    matches after a failed one, for every view that fails, right after its check."""
     return replace(params, verify=replace(params.verify, guided_estimator=None, fallback_band_px=None),
-                   verify_fallbacks=None)
+                   verify_fallbacks=None, fallbacks_last=False)

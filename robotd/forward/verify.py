@@ -30,7 +30,11 @@ fix the epipolar geometry) all inliers do. The support must cover at least
 else the candidate is refused as ``SMALL_SUPPORT``. ``min_support_area = 0`` turns the check
 off and gives the paper's verification exactly. The check cannot refuse a copy that fills
 the view (two identical doors seen square-on): only the Bayes filter's temporal consistency
-keeps those out.
+keeps those out. The support is all the inliers or the homography's among them, whose convex
+hull lies inside theirs: when all the inliers already cover less than ``min_support_area``,
+the check is refused without fitting the homography (the same decision; RANSAC's homography
+runs its 2000 samples when the inliers are not one plane, milliseconds per check), and
+``n_plane_inliers`` and ``planar`` stay 0 and False.
 
 **The range from the floor (not in the paper).** The essential matrix fixes only the
 translation's direction, and a wrong loop can still fit one: on the virtual office route,
@@ -106,12 +110,22 @@ passes aliased views (a wall's repeated pattern seen from a sideways shift) that
 general test refuses, so it is not the default. ``model = "general"`` is the paper's
 search over all the matches (the paper's detector and the baselines keep it).
 
+**The fallback run later (not in the paper).** A detector that verifies several views of one
+place (:attr:`robotd.forward.detector.DetectorParams.fallbacks_last`) need not run a view's
+general search before it has checked the next views near their level motion: with
+``defer_fallback`` a check whose search near the level motion failed with the general search
+due returns as a :class:`DueFallback` (the failed check, and what that search needs: the
+matches, their normalised coordinates, the level search), and :func:`fallback_verification`
+runs the search later with the answer it would have given at once. The general search is the
+costliest part of a check (RANSAC's five-point samples in the band, all 200 when no consensus
+is there), and a view that passes near its level motion is a fraction of it.
+
 Expected failures are values (:class:`Verification` with a reason), not exceptions.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from enum import StrEnum
 
 import cv2
@@ -119,10 +133,11 @@ import numpy as np
 
 from robotd.forward.features import FeatureSet
 from robotd.forward.planar import INLIER_NOISE_FACTOR, fit_motion, normalised_points
-from robotd.forward.planefit import ransac_planar
+from robotd.forward.planefit import PlanarSearch, ransac_planar
 
 __all__ = ["ACCEPTED", "NO_GEOMETRIC_CONSISTENCY", "SMALL_SUPPORT", "TOO_FEW_MATCHES", "Verification", "VerifyReason",
-           "VerifyParams", "camera_matrix_guess", "essential_matrix", "floor_range", "match_features", "match_indices",
+           "VerifyParams", "DueFallback", "FallbackWork", "camera_matrix_guess", "essential_matrix", "fallback_verification", "floor_range",
+           "match_features", "match_indices",
            "matched_points", "ransac_iterations", "support_area", "verify_pair"]
 
 class VerifyReason(StrEnum):
@@ -231,6 +246,12 @@ class VerifyParams:
             general search runs as without the screen and decides. So every acceptance is
             the general search's own; a consensus the screen misses and RANSAC would find
             is lost (module notes, "The planar model"). None: no screen.
+        defer_fallback: with a planar model, stop where the general search after a failed
+            search near the level motion would run, and return that failed check with what
+            the general search needs (a :class:`DueFallback`), so that the caller
+            runs it later, or not at all, by :func:`fallback_verification` (the same answer
+            as the search run at once; module notes, "The fallback run later"). False: run it
+            at once.
     """
 
     ratio: float = 0.8
@@ -256,6 +277,7 @@ class VerifyParams:
     fallback_estimator: str | None = None
     fallback_band_px: float | None = None
     fallback_screen: str | None = None
+    defer_fallback: bool = False
 
     def __post_init__(self) -> None:
         if self.camera_height_m is not None and not self.camera_height_m > 0.0:
@@ -452,22 +474,10 @@ def _verify_matched(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: 
             guided = replace(guided, level_yaw_rad=search.yaw_rad)
         if guided.accepted or params.fallback_inliers is None or search.best_inliers < params.fallback_inliers:
             return guided
-        # Not found near a level motion: the general search over all the matches, with at
-        # most fallback_max_iterations samples (the stated cap on the work per image).
-        params = replace(params, max_iterations=min(params.max_iterations, params.fallback_max_iterations),
-                         estimator=params.fallback_estimator or params.estimator)
-        if params.fallback_band_px is not None:
-            band = search.inliers(p_old, p_new, k, params.fallback_band_px, xs)
-            if int(band.sum()) < params.min_inliers:
-                return replace(guided, fallback=True)
-            if params.fallback_screen is not None and not _screen_passes(p_old, p_new, k, params, band, xs):
-                return replace(guided, fallback=True, screened=True)
-            banded = _general_motion(p_old, p_new, k, params, n, band, half_inliers=False, normalised=xs)
-            checked = banded if isinstance(banded, Verification) else _checked(old, new, p_old, p_new, k, params,
-                                                                                banded)
-            return replace(checked, fallback=True, level_yaw_rad=guided.level_yaw_rad)
-        return replace(_general_verification(old, new, p_old, p_new, k, params, n, xs), fallback=True,
-                       level_yaw_rad=guided.level_yaw_rad)
+        work = FallbackWork(old, new, p_old, p_new, k, params, xs, search, guided)
+        if params.defer_fallback:
+            return DueFallback(**{f.name: getattr(guided, f.name) for f in fields(Verification)}, work=work)
+        return _fallback(work)
     elif params.model == "planar_motion":
         motion = _planar_motion(p_old, p_new, k, params)
         if isinstance(motion, int):
@@ -486,6 +496,71 @@ def _verify_matched(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: 
                          estimator=params.fallback_estimator or params.estimator)
         return replace(_general_verification(old, new, p_old, p_new, k, params, n), fallback=True)
     return _general_verification(old, new, p_old, p_new, k, params, n)
+
+
+@dataclass(frozen=True, eq=False)
+class FallbackWork:
+    """What a planar model's general search after a failed search near the level motion
+    needs, kept from that check (:attr:`VerifyParams.defer_fallback`): the two images, their
+    matched pixels ``p_old, p_new (N, 2)``, the camera matrix ``k (3, 3)``, the parameters,
+    the matches through ``K^-1`` (``xs``), the level search that guided the check and the
+    check's own (failed) verification."""
+
+    old: FeatureSet
+    new: FeatureSet
+    p_old: np.ndarray
+    p_new: np.ndarray
+    k: np.ndarray
+    params: VerifyParams
+    xs: tuple[np.ndarray, np.ndarray]
+    search: PlanarSearch
+    guided: Verification
+
+
+@dataclass(frozen=True, eq=False)
+class DueFallback(Verification):
+    """A failed check whose general search is due (:attr:`VerifyParams.defer_fallback`): the
+    check's :class:`Verification` and ``work``, what that search needs
+    (:func:`fallback_verification` runs it)."""
+
+    work: FallbackWork | None = None
+
+    def checked(self) -> Verification:
+        """The check itself, without the work (a plain :class:`Verification`)."""
+        return Verification(**{f.name: getattr(self, f.name) for f in fields(Verification)})
+
+
+def fallback_verification(v: DueFallback) -> Verification:
+    """The verification ``v`` (a failed check whose general search is due, returned by
+    :attr:`VerifyParams.defer_fallback`) finished: its general search run now, the answer
+    :func:`verify_pair` without ``defer_fallback`` gives (its ``match_index`` kept)."""
+    if v.work is None:
+        raise ValueError("fallback_verification: this verification has no general search due")
+    return replace(_fallback(v.work), match_index=v.match_index)
+
+
+def _fallback(work: FallbackWork) -> Verification:
+    """The planar model's general search over all the matches after its search near the
+    level motion failed (module notes, "The planar model"), checked as the general model's."""
+    old, new, p_old, p_new, k, xs, search, guided = (work.old, work.new, work.p_old, work.p_new, work.k, work.xs,
+                                                     work.search, work.guided)
+    n = len(p_old)
+    # Not found near a level motion: the general search over all the matches, with at
+    # most fallback_max_iterations samples (the stated cap on the work per image).
+    params = replace(work.params, max_iterations=min(work.params.max_iterations, work.params.fallback_max_iterations),
+                     estimator=work.params.fallback_estimator or work.params.estimator)
+    if params.fallback_band_px is not None:
+        band = search.inliers(p_old, p_new, k, params.fallback_band_px, xs)
+        if int(band.sum()) < params.min_inliers:
+            return replace(guided, fallback=True)
+        if params.fallback_screen is not None and not _screen_passes(p_old, p_new, k, params, band, xs):
+            return replace(guided, fallback=True, screened=True)
+        banded = _general_motion(p_old, p_new, k, params, n, band, half_inliers=False, normalised=xs)
+        checked = banded if isinstance(banded, Verification) else _checked(old, new, p_old, p_new, k, params,
+                                                                            banded)
+        return replace(checked, fallback=True, level_yaw_rad=guided.level_yaw_rad)
+    return replace(_general_verification(old, new, p_old, p_new, k, params, n, xs), fallback=True,
+                   level_yaw_rad=guided.level_yaw_rad)
 
 
 def _general_verification(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: np.ndarray, k: np.ndarray,
@@ -514,6 +589,13 @@ def _checked(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: np.ndar
                             planarity_chi2=chi2)
     # Not in the paper: the inliers must not be one small plane (module notes).
     s_old, s_new = p_old[inl], p_new[inl]
+    # The support is all the inliers or a subset of them (its convex hull inside theirs): when
+    # all of them cover too little, the check fails whatever the homography (not fitted).
+    whole = _hull_support(s_old, s_new, old.image_size_px, new.image_size_px)
+    if whole < params.min_support_area:
+        return Verification(False, SMALL_SUPPORT, n, n_inl, r, t_dir, support_area=whole, range_m=range_m,
+                            n_floor_points=n_floor, sigma_bearing_rad=sig_b, sigma_yaw_rad=sig_y, noise_px=noise,
+                            planarity_chi2=chi2)
     _, hmask = cv2.findHomography(s_old, s_new, cv2.RANSAC, params.homography_threshold_px)
     on_plane = np.zeros(len(s_old), bool) if hmask is None else np.asarray(hmask).ravel() > 0
     n_plane = int(on_plane.sum())
@@ -526,6 +608,12 @@ def _checked(old: FeatureSet, new: FeatureSet, p_old: np.ndarray, p_new: np.ndar
                         n_plane_inliers=n_plane, planar=bool(planar), support_area=area,
                         range_m=range_m, n_floor_points=n_floor, sigma_bearing_rad=sig_b,
                         sigma_yaw_rad=sig_y, noise_px=noise, planarity_chi2=chi2)
+
+
+def _hull_support(s_old: np.ndarray, s_new: np.ndarray, size_old: tuple[int, int], size_new: tuple[int, int]) -> float:
+    """The support all the inliers ``s_old, s_new (M, 2)`` give: the smaller fraction of the two
+    images their convex hulls cover (:func:`support_area`), an upper bound of the support test's."""
+    return min(support_area(s_old, size_old), support_area(s_new, size_new))
 
 
 #: A verified motion: (inlier mask (N,), rotation (3, 3), translation_dir (3,), sigma_bearing_rad,

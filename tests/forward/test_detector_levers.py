@@ -102,7 +102,8 @@ def test_the_methods():
     u = unbounded_verification(default)
     assert (u.verify.guided_estimator, u.verify.fallback_band_px, u.verify_fallbacks) == (None, None, None)
     assert bounded_verification(u) == default
-    assert replace(u, verify=default.verify, verify_fallbacks=1) == default
+    assert u.fallbacks_last is False and default.fallbacks_last is True
+    assert replace(u, verify=default.verify, verify_fallbacks=1, fallbacks_last=True) == default
     assert not paper.odometry.use and paper.verify_tries == 1
     assert method_params("paper", recent_excluded=5).recent_excluded == 5
     with pytest.raises(ValueError):
@@ -571,3 +572,64 @@ def test_a_verification_split_by_a_check_budget_gives_the_answer_of_the_verifica
     assert sum(map(len, checked_at_once.values())) == n_checks
     # The budget bound something: at once an image ran more checks and tests in its call.
     assert max(per_image) > budget or (rule, budget) == ("accept", 2)
+
+
+@pytest.mark.parametrize("second_passes", [True, False])
+def test_the_fallbacks_run_after_every_view_is_checked_near_its_level_motion(monkeypatch, second_passes):
+    """``fallbacks_last``: the candidate (place 5) fails near its level motion with its
+    fallback due (a :class:`~robotd.forward.verify.DueFallback`), place 6 is checked next;
+    when place 6 passes it is the loop and the fallback never runs; when it fails, the
+    fallback runs after it (one check more) and decides. Without ``fallbacks_last`` the
+    candidate's fallback runs first. At most ``verify_fallbacks`` fallbacks run either way."""
+    import robotd.forward.detector as det_mod
+    from robotd.forward.verify import ACCEPTED, NO_GEOMETRIC_CONSISTENCY as BAD, DueFallback, Verification
+
+    views = _views(30, [])
+    poses = [np.array([float(i), 0.0, 0.0]) for i in range(30)] + [np.array([5.5, 0.0, 0.0])]
+    cov = np.diag([0.01, 0.01, 0.001])
+    work = object()  # what the fallback would need: only passed through here
+
+    def run(p: DetectorParams) -> tuple[object, list[str]]:
+        log: list[str] = []
+        det = ForwardDetector(p)
+        places: dict[int, object] = {}
+
+        def verify(old, new, vp, k):
+            place = next(i for i, f in places.items() if _same_image(old, f))
+            log.append(f"check {place}")
+            if place == 6:
+                return Verification(True, ACCEPTED, 100, 100) if second_passes else Verification(False, BAD, 40, 5)
+            if vp.fallback_inliers is None:  # no fallback left for this image
+                return Verification(False, BAD, 60, 12)
+            if vp.defer_fallback:
+                return DueFallback(False, BAD, 60, 12, work=work)  # type: ignore[arg-type]
+            log.append(f"fallback {place}")
+            return Verification(True, ACCEPTED, 60, 30, fallback=True)
+
+        def fallback(v):
+            assert isinstance(v, DueFallback) and v.work is work
+            log.append("fallback due")
+            return Verification(True, ACCEPTED, 60, 30, fallback=True)
+
+        monkeypatch.setattr(det_mod, "verify_pair", verify)
+        monkeypatch.setattr(det_mod, "fallback_verification", fallback)
+        for i, v in enumerate(views[:30]):
+            det.process_features(v, 0.0, poses[i], cov)
+        places.update({5: det.features_of(5), 6: det.features_of(6)})
+        mixed = np.concatenate([views[5].descriptors[:70], views[6].descriptors[:50]])
+        mixed[:, 0] ^= 0x03
+        return det.process_features(Features(views[5].keypoints_px[:120], mixed, (640, 480)), 0.0, poses[30], cov), log
+
+    params = DetectorParams(features=FeatureParams(kind="orb"), decision="score", verify=ACCEPT_ALL,
+                            odometry=OdometryParams(use=True), verify_tries=2, verify_fallbacks=1)
+    at_once, log_at_once = run(params)
+    assert log_at_once == ["check 5", "fallback 5"] and at_once.loop_id == 5 and at_once.checks == 1
+    last, log_last = run(replace(params, fallbacks_last=True))
+    assert last.status == LOOP
+    if second_passes:
+        assert log_last == ["check 5", "check 6"] and last.loop_id == 6 and last.checks == 2
+    else:
+        assert log_last == ["check 5", "check 6", "fallback due"] and last.loop_id == 5 and last.checks == 3
+        assert last.verification.fallback and not isinstance(last.verification, DueFallback)
+    none, log_none = run(replace(params, fallbacks_last=True, verify_fallbacks=0))
+    assert log_none == ["check 5", "check 6"] and (none.status == LOOP) == second_passes

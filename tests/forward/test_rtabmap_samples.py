@@ -3,6 +3,7 @@ images going round a loop about twice, strong perceptual aliasing)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -64,3 +65,43 @@ def test_the_default_detector_on_the_corridor():
     s, _ = _run(method_params("default"))
     assert s.false_positives == 0
     assert s.recall_at_full_precision >= 37 / 44
+
+
+def test_the_support_bound_refuses_no_check_the_homography_passes(monkeypatch):
+    """The support test refuses a check without its homography when all its inliers cover
+    less than ``min_support_area`` (``verify._hull_support``). On the corridor's own
+    verifications (the default detector's, every check it ran recorded) each check gives
+    the same answer with the bound as with the homography always fitted: accepted, reason,
+    inliers, motion and sigmas; and the bound does refuse some of them without it."""
+    import robotd.forward.detector as det_mod
+    import robotd.forward.verify as verify_mod
+    from robotd.forward import method_params
+
+    gt_path = require(SAMPLES / "ground_truth.bmp", "real corridor images")
+    files = list_images(SAMPLES, exclude=(gt_path,))
+    calls = []
+    inner = det_mod.verify_pair
+    monkeypatch.setattr(det_mod, "verify_pair", lambda old, new, vp, k: (calls.append((old, new, vp, k)),
+                                                                         inner(old, new, vp, k))[1])
+    det = ForwardDetector(method_params("default"))
+    for f in files:
+        det.process(read_image(f))
+    monkeypatch.undo()
+    assert len(calls) > 40
+
+    def answer(v):
+        return (v.accepted, v.reason, v.n_matches, v.n_inliers, None if v.rotation is None else v.rotation.tobytes(),
+                v.sigma_bearing_rad, v.sigma_yaw_rad, v.fallback)
+
+    # the detector's bound (0.03), and twice it: more of the corridor's checks fall under it
+    checks = [(old, new, replace(vp, min_support_area=a), k) for old, new, vp, k in calls for a in (0.03, 0.06)]
+    hulls: list[tuple[float, float]] = []
+    hull = verify_mod._hull_support
+    for c in checks:
+        monkeypatch.setattr(verify_mod, "_hull_support", lambda *a: hulls.append((hull(*a), c[2].min_support_area))
+                            or hulls[-1][0])
+        bounded = verify_mod.verify_pair(*c)
+        monkeypatch.setattr(verify_mod, "_hull_support", lambda *a: 1.0)  # never under the bound: the homography
+        assert answer(bounded) == answer(verify_mod.verify_pair(*c))
+    assert {c[2].min_support_area for c in calls} == {0.03}
+    assert sum(h < a for h, a in hulls) >= 3  # checks the bound refused (measured: 11, all at 0.06)

@@ -85,7 +85,9 @@ keyframe: on the office route's revisits every forward keyframe verifies, the qu
 and an image that finds it full runs its views' epipolar checks (several views, each an
 essential matrix, a homography and a pose) and its test in its own keyframe. With a budget
 the image's verification itself is split: each forward keyframe runs at most
-``check_budget`` epipolar checks, a level test counting :data:`TEST_CHECKS`, on the waiting
+``check_budget`` epipolar checks (a view's check near its level motion and, with the detector's
+``fallbacks_last``, its fallback run after the image's other views one each), a level test counting
+:data:`TEST_CHECKS`, on the waiting
 verifications first, the oldest first, and on its own image's only when none waits
 (:meth:`robotd.forward.ForwardDetector.process` ``max_checks``, then
 :meth:`~robotd.forward.ForwardDetector.resume` with the budget left, call after call); what
