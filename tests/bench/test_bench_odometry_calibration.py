@@ -27,18 +27,26 @@ def test_the_fit_alones_file_is_the_shipped_one_with_the_fitted_geometry(tmp_pat
     assert got.loop == ship.loop and got.mount == ship.mount
 
 
-@pytest.mark.parametrize("args", [
-    ["--calibration", "cal{seed}.yml", "--write-calibration", "out{seed}.yml"],
-    ["--synthetic-reference", "calibration", "--write-calibration", "out.yml"],
+@pytest.mark.parametrize("args, message", [
+    (["--calibration", "cal{seed}.yml", "--write-calibration", "out{seed}.yml"], "--write-calibration needs"),
+    (["--synthetic-reference", "calibration", "--write-calibration", "out.yml"], "--write-calibration needs"),
+    (["--calibration", "cal{seed}.yml", "--write-slip", "out{seed}.yml"], "--write-slip needs"),
+    (["--synthetic-reference", "calibration", "--write-slip", "out.yml"], "--write-slip needs"),
+    (["--calibration", "cal{seed}.yml", "--drive-seeds", "11"], "--drive-seeds needs --synthetic-reference"),
+    (["--synthetic-reference", "figure8", "--seeds", "0,1", "--drive-seeds", "11"],
+     "--drive-seeds gives 1 drive seeds for 2 seeds"),
 ])
-def test_write_calibration_refuses_without_the_fit_alone_or_a_seed(args, tmp_path, monkeypatch, capsys):
+def test_options_refused_without_what_they_need(args, message, tmp_path, monkeypatch, capsys):
+    """``--write-calibration`` and ``--write-slip`` need the fit alone and a seed pattern;
+    ``--drive-seeds`` needs the fit alone and one drive seed per seed: exit 2, the reason on
+    stderr, nothing written."""
     from bench.bench_odometry_calibration import main
 
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exc:
         main(args + ["--out", str(tmp_path / "o.json")])
     assert exc.value.code == 2
-    assert "--write-calibration needs" in capsys.readouterr().err
+    assert message in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
 
 
@@ -72,37 +80,6 @@ def test_the_fit_alone_on_a_recorded_drive_reads_that_very_drive():
     rows = np.searchsorted(fb.stamp_ns, drive.ref_stamp_ns)
     np.testing.assert_array_equal(drive.ref_pose, fb.true_pose[rows])
     assert len(drive.ref_stamp_ns) > 5 and drive.ref_stamp_ns[0] == fb.stamp_ns[0]
-
-
-@pytest.mark.parametrize("args, message", [
-    (["--calibration", "cal{seed}.yml", "--drive-seeds", "11"], "--drive-seeds needs --synthetic-reference"),
-    (["--synthetic-reference", "figure8", "--seeds", "0,1", "--drive-seeds", "11"],
-     "--drive-seeds gives 1 drive seeds for 2 seeds"),
-])
-def test_drive_seeds_refused_without_the_fit_alone_or_one_per_seed(args, message, tmp_path, monkeypatch, capsys):
-    from bench.bench_odometry_calibration import main
-
-    monkeypatch.chdir(tmp_path)
-    with pytest.raises(SystemExit) as exc:
-        main(args + ["--out", str(tmp_path / "o.json")])
-    assert exc.value.code == 2
-    assert message in capsys.readouterr().err
-    assert not list(tmp_path.iterdir())
-
-
-@pytest.mark.parametrize("args", [
-    ["--calibration", "cal{seed}.yml", "--write-slip", "out{seed}.yml"],
-    ["--synthetic-reference", "calibration", "--write-slip", "out.yml"],
-])
-def test_write_slip_refuses_without_the_fit_alone_or_a_seed(args, tmp_path, monkeypatch, capsys):
-    from bench.bench_odometry_calibration import main
-
-    monkeypatch.chdir(tmp_path)
-    with pytest.raises(SystemExit) as exc:
-        main(args + ["--out", str(tmp_path / "o.json")])
-    assert exc.value.code == 2
-    assert "--write-slip needs" in capsys.readouterr().err
-    assert not list(tmp_path.iterdir())
 
 
 def test_write_slip_adds_the_slip_events_and_a_missing_density_and_keeps_the_rest(tmp_path):
