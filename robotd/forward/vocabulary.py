@@ -468,6 +468,13 @@ def _grown(n: int) -> int:
     return n + n // 32 + 1
 
 
+def _within(lengths: np.ndarray) -> np.ndarray:
+    """Each entry's position in its run, for runs of ``lengths`` laid end to end:
+    ``[0, 1, .., lengths[0] - 1, 0, 1, ..]`` (``np.repeat(start, lengths) + _within(lengths)``
+    are the runs' flat positions)."""
+    return np.arange(int(lengths.sum())) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+
+
 _INT_BYTES = sys.getsizeof(1 << 20)  # a Python int beyond the small ones it shares (28 bytes)
 _LEAF_BLOCK = 16          # a leaf's block in the word tree's pool: a multiple of this many entries
 _FAR = np.int32(1 << 20)  # a distance no real pair reaches (256 bits at most)
@@ -600,7 +607,7 @@ class BinaryWordTree:
         fill = self._fill[rows].astype(np.int64)
         total = int(fill.sum())
         if total:
-            within = np.arange(total) - np.repeat(np.cumsum(fill) - fill, fill)
+            within = _within(fill)
             slots = self._pool[np.repeat(self._row_start[rows].astype(np.int64), fill) + within]
             self._slot_row[slots] = np.repeat(rows, fill)
             self._slot_pos[slots] = within
@@ -685,7 +692,7 @@ class BinaryWordTree:
         fill = self._fill[rows]
         total = int(fill.sum())
         if total:
-            within = np.arange(total) - np.repeat(np.cumsum(fill) - fill, fill)
+            within = _within(fill)
             self._pool[np.repeat(start, fill) + within] = self._pool[np.repeat(self._row_start[rows], fill) + within]
         self._row_start[rows] = start
         self._row_cap[rows] = cap
@@ -1175,7 +1182,7 @@ class _Postings:
             if len(fc):
                 size = 2 * fc
                 start = e0 + 2 * k + np.cumsum(size) - size
-                within = np.arange(int(fc.sum())) - np.repeat(np.cumsum(fc) - fc, fc)
+                within = _within(fc)
                 st[np.repeat(start, fc) + within] = st[np.repeat(fo, fc) + within]
                 st[start + fc] = fv
                 self.head.view[fw] = start.astype(np.uint32) | _BLOCK
@@ -1225,7 +1232,7 @@ class _Postings:
         end = int(size.sum())
         store = np.zeros(_grown(end), np.uint32)
         if len(cnt):
-            within = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+            within = _within(cnt)
             store[np.repeat(start, cnt) + within] = self._store[np.repeat(off, cnt) + within]
         self._store = store
         self.head.view[words] = start.astype(np.uint32) | _BLOCK
