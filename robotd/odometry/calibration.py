@@ -55,6 +55,7 @@ import numpy as np
 from robotd.base.errors import CalibrationError
 from robotd.base.geometry import rot2
 from robotd.odometry.ekf import EkfParams, slip_speed_variance
+from robotd.odometry.packet import rounding_variances
 from robotd.odometry.slip_events import SlipDrive, SlipEventFit, estimate_slip_events, find_slip_events
 
 __all__ = [
@@ -691,7 +692,7 @@ def slip_density_from_windows(heading_error_rad: np.ndarray, travel_m: np.ndarra
     (0 when the rest leaves nothing). ``geometry``: ``(r_L, r_R, B)`` in metres."""
     rl, rr, bb = (float(v) for v in geometry)
     tick_rad = 2.0 * math.pi / ticks_per_rev
-    c = (rl ** 2 + rr ** 2) * tick_rad ** 2 / (6.0 * bb ** 2)
+    c = 2.0 * float(rounding_variances(rl * tick_rad, rr * tick_rad, bb)[1])  # one count's rounding at each end
     excess = np.asarray(heading_error_rad, float) ** 2 - gyro_q * np.asarray(span_s, float) - c
     slope = 2.0 * np.asarray(travel_m, float) / bb ** 2
     total = float(slope.sum())
