@@ -390,6 +390,17 @@ def calibration_params(model: Any) -> EkfParams:
     return calibration_noise(EkfParams(), model, 2578.33)
 
 
+def sensor_noise_config_process(model: Any) -> EkfParams:
+    """The calibration's sensor-level noise (:func:`calibration_params`: the fitted gyro and
+    wheel densities, the ticks' quantisation) with the config's white accelerations: the
+    filter weighs the wheels' yaw as the calibration measured it, and its motion model stays
+    as loose in the turns as the config's (the fitted accelerations lag them)."""
+    d = EkfParams()
+    return dataclasses.replace(calibration_params(model),
+                               accel_noise_density_mps2_per_sqrt_hz=d.accel_noise_density_mps2_per_sqrt_hz,
+                               angular_accel_noise_density_radps2_per_sqrt_hz=d.angular_accel_noise_density_radps2_per_sqrt_hz)
+
+
 VARIANTS: dict[str, Any] = {
     "the config's noise model (before)": lambda model: (EkfParams(), None, BEFORE),
     "the fused pose follows its rates (the daemon)": lambda model: (EkfParams(), None, {}),
@@ -416,6 +427,10 @@ DESIGNS: dict[str, Any] = {
         EkfParams(), None, {**BEFORE, **NO_BIAS}),
     "the combined edges as the live pose (live_pose = \"combined_edges\")": lambda model: (
         EkfParams(), None, {"live_pose": "combined_edges"}),
+    "the fused filter with the calibration's sensor noise, the config's accelerations": lambda model: (
+        sensor_noise_config_process(model), None, {}),
+    "both filters with the calibration's sensor noise, the config's accelerations": lambda model: (
+        sensor_noise_config_process(model), None, {"twin_params": sensor_noise_config_process(model)}),
 }
 #: Measured too (``--variants all``): the calibration drive's turn-on bias as the prior; the
 #: calibration's fitted noise densities with the sensor-level process noise.
