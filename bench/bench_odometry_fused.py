@@ -280,9 +280,13 @@ def models(seed: int, calibration: str | None, synthetic: str | None) -> Any:
             return read_calibration(cal).odometry, "shipped demo calibration"
     if synthetic is None:
         return None, ""
-    from bench_odometry_calibration import synthetic_model
+    try:
+        from bench.bench_odometry_calibration import synthetic_model
+    except ImportError:  # run as a script: bench/ is on sys.path
+        from bench_odometry_calibration import synthetic_model
 
-    return synthetic_model(seed, synthetic, 0.0005, 0.0005), f"fit alone, {synthetic} route"
+    model, _slip = synthetic_model(seed, synthetic, 0.0005, 0.0005)
+    return model, f"fit alone, {synthetic} route"
 
 
 def synthetic_steps(steps: list[Any], motion: Any, seed: int) -> list[Any]:

@@ -27,3 +27,18 @@ def test_the_targets_count_a_seed_only_when_both_figures_beat_the_baseline():
     live = next(line for line in lines if line.startswith("| the combined edges as a live pose"))
     assert "| 3 of 3 | (itself) |" in live
     assert targets([{k: v for k, v in r.items() if not k.startswith(BASELINE)} for r in rows]) == []
+
+
+def test_a_seed_without_a_calibration_file_gets_the_model_of_the_fit_alone(monkeypatch):
+    from bench import bench_odometry_calibration, bench_odometry_fused
+
+    calls = []
+
+    def fit_alone(seed, route, sigma_m, sigma_rad):
+        calls.append((seed, route, sigma_m, sigma_rad))
+        return "the fitted model", {"slip": "its truth"}
+
+    monkeypatch.setattr(bench_odometry_calibration, "synthetic_model", fit_alone)
+    assert bench_odometry_fused.models(3, None, "calibration") == ("the fitted model", "fit alone, calibration route")
+    assert calls == [(3, "calibration", 0.0005, 0.0005)]
+    assert bench_odometry_fused.models(3, None, None) == (None, "")
