@@ -431,10 +431,8 @@ DESIGNS: dict[str, Any] = {
         EkfParams(), None, {**BEFORE, **NO_BIAS}),
     "the combined edges as the live pose (live_pose = \"combined_edges\")": lambda model: (
         EkfParams(), None, {"live_pose": "combined_edges"}),
-    "the fused filter with the calibration's sensor noise, the config's accelerations": lambda model: (
+    "the calibration's sensor noise, the config's accelerations (both filters)": lambda model: (
         sensor_noise_config_process(model), None, {}),
-    "both filters with the calibration's sensor noise, the config's accelerations": lambda model: (
-        sensor_noise_config_process(model), None, {"twin_params": sensor_noise_config_process(model)}),
 }
 #: Measured too (``--variants all``): the calibration drive's turn-on bias as the prior; the
 #: calibration's fitted noise densities with the sensor-level process noise.
