@@ -3,6 +3,7 @@ refusals, and the replay part's reading of a revision's ``robotd replay``."""
 
 from __future__ import annotations
 
+import json
 import math
 import subprocess
 import sys
@@ -11,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.bench_revisions import REPO, fused_errors, graph_errors, replay_once, verdict
+from bench.bench_revisions import DESCRIBE_CHILD, REPO, fused_errors, graph_errors, replay_once, verdict
 from robotd.base.geometry import compose
 from robotd.io.trajectory import write_tum
 
@@ -58,6 +59,7 @@ def test_an_older_revisions_graph_figures_are_read_under_their_old_name():
     (["--before", "no-such-revision-here"], "unknown revision 'no-such-revision-here'"),
     ([], "--before REV is needed"),
     (["replay", "--before", "HEAD", "--pairs", "0"], "--pairs must be at least 1"),
+    (["describe", "--before", "HEAD", "--frames", "0"], "--frames must be at least 1"),
     (["--page-from", "x.json"], "--page-from needs --markdown"),
 ])
 def test_refusals_are_one_line_and_write_nothing(tmp_path: Path, args: list[str], message: str):
@@ -92,3 +94,22 @@ def test_a_replay_that_fails_is_an_error_that_names_its_command(tmp_path: Path):
     tree = fake_tree(tmp_path / "tree", "robotd replay: no such file", code=2)
     with pytest.raises(RuntimeError, match="exit 2"):
         replay_once(tree, tmp_path / "x.mcap", tmp_path, None)
+
+
+def test_the_describe_child_times_every_frame_with_the_trees_own_extract(tmp_path: Path):
+    floor = tmp_path / "tree" / "robotd" / "floor"
+    floor.mkdir(parents=True)
+    for d in (floor.parent, floor):
+        (d / "__init__.py").write_text("")
+    # an extract that counts its calls (5 warm-up frames, then every frame timed)
+    (floor / "descriptor.py").write_text(
+        f"calls = []\ndef extract(image, mode):\n    calls.append(mode)\n"
+        f"    open({str(tmp_path / 'calls')!r}, 'a').write(f'{{image.shape}} {{mode}}\\n')\n")
+    np.save(tmp_path / "frames.npy", np.zeros((7, 4, 6), np.uint8))
+    done = subprocess.run([sys.executable, "-c", DESCRIBE_CHILD, str(tmp_path / "frames.npy"), "4"],
+                          capture_output=True, text=True, cwd=tmp_path / "tree",
+                          env={"PYTHONPATH": str(tmp_path / "tree")})
+    assert done.returncode == 0, done.stderr
+    r = json.loads(done.stdout.strip().splitlines()[-1])
+    assert r["frames"] == 7 and r["median_ms"] >= 0.0 and r["p90_ms"] >= r["median_ms"]
+    assert (tmp_path / "calls").read_text().splitlines() == ["(4, 6) 4"] * 12
