@@ -81,13 +81,15 @@ def snapshot(rev: str, work: Path) -> tuple[Path, str]:
         raise SystemExit(f"bench_revisions: unknown revision {rev!r}")
     commit = done.stdout.strip()
     tree = work / f"tree-{commit[:12]}"
-    if not (tree / "robotd").is_dir():
-        tree.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile() as tar:
+    if not tree.is_dir():  # extracted beside it and renamed: an interrupted export leaves no half tree
+        work.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=work) as part, tempfile.TemporaryFile() as tar:
             subprocess.run(["git", "archive", "--format=tar", commit], cwd=REPO, stdout=tar, check=True)
             tar.seek(0)
             with tarfile.open(fileobj=tar) as t:
-                t.extractall(tree, filter="data")
+                t.extractall(part, filter="data")
+            os.rename(part, tree)
+            os.mkdir(part)  # for the context's own clean-up
     return tree, commit
 
 

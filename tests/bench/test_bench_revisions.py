@@ -113,3 +113,14 @@ def test_the_describe_child_times_every_frame_with_the_trees_own_extract(tmp_pat
     r = json.loads(done.stdout.strip().splitlines()[-1])
     assert r["frames"] == 7 and r["median_ms"] >= 0.0 and r["p90_ms"] >= r["median_ms"]
     assert (tmp_path / "calls").read_text().splitlines() == ["(4, 6) 4"] * 12
+
+
+def test_a_revisions_snapshot_is_its_tree_exported_whole_and_kept(tmp_path: Path):
+    from bench.bench_revisions import snapshot
+
+    tree, commit = snapshot("HEAD", tmp_path)
+    assert len(commit) == 40 and tree == tmp_path / f"tree-{commit[:12]}"
+    assert (tree / "robotd" / "floor" / "descriptor.py").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [tree.name]  # nothing half-made beside it
+    (tree / "marker").write_text("kept")
+    assert snapshot("HEAD", tmp_path) == (tree, commit) and (tree / "marker").is_file()
