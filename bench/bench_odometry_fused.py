@@ -395,9 +395,9 @@ def calibration_params(model: Any) -> EkfParams:
 
 
 def sensor_noise_config_process(model: Any) -> EkfParams:
-    """The calibration's sensor-level noise (:func:`calibration_params`: the fitted gyro and
-    wheel densities, the ticks' quantisation) with the config's white accelerations: the
-    filter weighs the wheels' yaw as the calibration measured it, and its motion model stays
+    """The calibration's sensor-level noise (:func:`calibration_params`: the fitted gyro
+    density, the wheel speed's tick quantisation and each wheel's slip; the wheels' yaw-rate
+    noise stays the config's) with the config's white accelerations: the motion model stays
     as loose in the turns as the config's (the fitted accelerations lag them)."""
     d = EkfParams()
     return dataclasses.replace(calibration_params(model),

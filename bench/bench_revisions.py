@@ -174,7 +174,7 @@ def markdown(payload: dict[str, Any]) -> list[str]:
     return lines
 
 
-def demo_part(tree: Path, commit: str, work: Path, seeds: list[int], reuse: bool) -> list[dict[str, Any]]:
+def demo_part(tree: Path, work: Path, seeds: list[int], reuse: bool) -> list[dict[str, Any]]:
     """The demo rows (see the module notes), one seed at a time."""
     rows = []
     for seed in seeds:
@@ -236,7 +236,7 @@ def replay_part(tree: Path, work: Path, pairs: int) -> list[dict[str, Any]]:
     except ImportError:
         from bench_floor_descriptor import office_recording
     recording = office_recording(argparse.Namespace(recording=None))
-    robot_s = 60.0
+    robot_s = 60.0  # the drive office_recording records (and the cache keeps)
     rows = []
     for cname in ("defaults", "the shipped calibration's loop thresholds"):
         runs: dict[str, list[dict[str, Any]]] = {"before": [], "now": []}
@@ -377,7 +377,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         seeds = [0, 1, 2, 3, 4] if args.full else [int(s) for s in args.seeds.split(",")]
         payload["params"] = {"before": commit, "seeds": seeds, "route": "office"}
-        payload["seeds"] = demo_part(tree, commit, work, seeds, args.reuse)
+        payload["seeds"] = demo_part(tree, work, seeds, args.reuse)
     payload["load_end"] = [round(x, 2) for x in os.getloadavg()]
     path = write_json(args.out or DEFAULT_OUT[args.part], payload)
     print(f"\nwrote {path}")
