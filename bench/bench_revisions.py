@@ -174,13 +174,26 @@ def markdown(payload: dict[str, Any]) -> list[str]:
     return lines
 
 
+def alternated(i: int, tree: Path) -> tuple[tuple[str, Path], tuple[str, Path]]:
+    """The two revisions in the order of run ``i``: the code before first on even runs."""
+    return (("before", tree), ("now", REPO)) if i % 2 == 0 else (("now", REPO), ("before", tree))
+
+
+def recorded_drive() -> Path:
+    """The recorded 60 s office drive ``./dev bench daemon`` keeps (recorded if missing)."""
+    try:
+        from bench.bench_floor_descriptor import office_recording
+    except ImportError:
+        from bench_floor_descriptor import office_recording
+    return office_recording(argparse.Namespace(recording=None))
+
+
 def demo_part(tree: Path, work: Path, seeds: list[int], reuse: bool) -> list[dict[str, Any]]:
     """The demo rows (see the module notes), one seed at a time."""
     rows = []
     for seed in seeds:
         runs: dict[str, dict[str, Any]] = {}
-        order = (("before", tree), ("now", REPO)) if seed % 2 == 0 else (("now", REPO), ("before", tree))
-        for name, repo in order:
+        for name, repo in alternated(seed, tree):
             out = work / f"seed{seed}-{name}"
             log(f"seed {seed} {name}: {out}")
             runs[name] = figures(run_demo(out, seed, None, None, None, reuse, repo=repo), out)
@@ -231,18 +244,13 @@ def loop_config(tree: Path, work: Path, name: str) -> Path:
 
 def replay_part(tree: Path, work: Path, pairs: int) -> list[dict[str, Any]]:
     """The replay rows (see the module notes): per config, ``pairs`` alternated pairs."""
-    try:
-        from bench.bench_floor_descriptor import office_recording
-    except ImportError:
-        from bench_floor_descriptor import office_recording
-    recording = office_recording(argparse.Namespace(recording=None))
-    robot_s = 60.0  # the drive office_recording records (and the cache keeps)
+    recording = recorded_drive()
+    robot_s = 60.0  # the length of the drive recorded_drive gives
     rows = []
     for cname in ("defaults", "the shipped calibration's loop thresholds"):
         runs: dict[str, list[dict[str, Any]]] = {"before": [], "now": []}
         for i in range(pairs):
-            order = (("before", tree), ("now", REPO)) if i % 2 == 0 else (("now", REPO), ("before", tree))
-            for name, repo in order:
+            for name, repo in alternated(i, tree):
                 config = None if cname == "defaults" else loop_config(repo, work, name)
                 r = replay_once(repo, recording, work, config)
                 runs[name].append(r)
@@ -276,18 +284,15 @@ def describe_part(tree: Path, work: Path, pairs: int, frames: int, mode: int = 4
     """The describe rows (see the module notes)."""
     try:
         from bench.bench_describe_compiled import office_frames
-        from bench.bench_floor_descriptor import office_recording
     except ImportError:
         from bench_describe_compiled import office_frames
-        from bench_floor_descriptor import office_recording
-    recording = office_recording(argparse.Namespace(recording=None))
+    recording = recorded_drive()
     path = work / f"floor-frames-{frames}.npy"
     if not path.is_file():
         np.save(path, np.stack(office_frames(recording, frames)))
     runs: dict[str, list[dict[str, Any]]] = {"before": [], "now": []}
     for i in range(pairs):
-        order = (("before", tree), ("now", REPO)) if i % 2 == 0 else (("now", REPO), ("before", tree))
-        for name, repo in order:
+        for name, repo in alternated(i, tree):
             done = subprocess.run([sys.executable, "-c", DESCRIBE_CHILD, str(path), str(mode)], capture_output=True,
                                   text=True, cwd=repo, env={**os.environ, "PYTHONPATH": str(repo)})
             if done.returncode != 0:
