@@ -267,6 +267,10 @@ class VisualOdometryConfig:
                         "last keyframe; docs/odometry.md)", choices=("fused", "combined_edges"))
     min_inliers: int = _f(8, "fewest metric inliers of a usable step", lo=3, hi=10_000)
     ransac_threshold_m: float = _f(0.003, "RANSAC inlier distance on the floor", lo=1e-5, hi=0.1)
+    keypoint_positions: str = _f("detected", "the points of the metric fit: 'detected' (where the keypoint "
+                                 "detector found them, sub-pixel, kept beside the keyframe's descriptor) or "
+                                 "'coded' (the descriptor's coordinate grid, as paper 003 reuses the stored "
+                                 "descriptor; docs/odometry.md)", choices=("detected", "coded"))
 
 
 @dataclass(frozen=True)

@@ -155,6 +155,10 @@ class DescribedKeyframe(Keyframe):
     stage's output), which the map stores in the keyframe's row."""
 
     descriptor: tuple[int, bytes] | None = None
+    keypoints_px: np.ndarray | None = None
+    """``(N, 2) float32`` the descriptor's keypoints where the detector found them (sub-pixel,
+    in the coded order; :func:`robotd.floor.descriptor.extract_with_positions`), for floor
+    visual odometry; the map stores the descriptor alone."""
 
 
 @dataclass(frozen=True, slots=True, eq=False, kw_only=True)

@@ -96,7 +96,8 @@ from robotd.floor.keypoints import (candidates, drop_repeats, grey, kept_for_bud
                                     workspace)
 
 __all__ = ["ANGLE_BITS", "FULL_RESOLUTION", "MODE_BYTES", "MODES", "POSITION_STEP_PX", "QUARTER", "ExtractParams", "FloorDescriptor",
-           "Learned", "PartialDescriptor", "decode", "decode_local", "describe", "drop_repeats", "extract", "load_learned"]
+           "Learned", "PartialDescriptor", "decode", "decode_local", "describe", "drop_repeats", "extract",
+           "extract_with_positions", "load_learned"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -148,6 +149,22 @@ def extract(image: np.ndarray, mode: int, params: ExtractParams | None = None) -
 
     Raises ``ValueError`` for an unknown mode or an image that is not uint8 2-D/BGR.
     """
+    return _extract(image, mode, params)[0]
+
+
+def extract_with_positions(image: np.ndarray, mode: int,
+                           params: ExtractParams | None = None) -> tuple[bytes, np.ndarray]:
+    """:func:`extract`, and its keypoints' positions as the detector found them (sub-pixel,
+    before the coordinate grid): ``(N, 2) float32`` pixels of the described image, in the
+    coded order, so row ``i`` belongs to keypoint ``i`` of ``decode(bytes)``.
+
+    The bytes are :func:`extract`'s to the bit; the positions are not part of them (the
+    byte budget holds the grid's), so whoever keeps them keeps them beside the descriptor.
+    """
+    return _extract(image, mode, params)
+
+
+def _extract(image: np.ndarray, mode: int, params: ExtractParams | None) -> tuple[bytes, np.ndarray]:
     # 2.0 == 2 is in MODES too, but struct.pack refuses a float after all the work is done.
     if isinstance(mode, bool) or not isinstance(mode, (int, np.integer)) or mode not in MODES:
         raise ValueError(f"mode must be one of {sorted(MODES)}, got {mode!r}")
@@ -186,7 +203,9 @@ def extract(image: np.ndarray, mode: int, params: ExtractParams | None = None) -
     crc = zlib.crc32(body, zlib.crc32(head[:16]))
     out = head[:16] + struct.pack("<I", crc) + body
     assert len(out) <= spec.bytes, "byte budget overrun"  # guaranteed by _fit
-    return out
+    # The detected positions in the described image's pixels, as decode maps a cell's centre.
+    xy = (c.xy[:n][order] + np.float32(0.5)) * np.array([grey_img.shape[1] / ww, grey_img.shape[0] / wh], np.float32)
+    return out, np.asarray(xy - np.float32(0.5), np.float32)
 
 
 @lru_cache(maxsize=8)

@@ -7,7 +7,11 @@ For keyframes ``k-1`` and ``k`` (paper 003, Sec. IV-D):
    CDVS already performs);
 2. the matched pixels become metric floor points in each keyframe's robot frame through
    the camera-to-floor calibration (:meth:`FloorCameraModel.pixel_to_floor_robot`),
-   ``P_{k-1}`` and ``P_k``;
+   ``P_{k-1}`` and ``P_k``; by default the pixels are where the detector found the
+   keypoints (``keypoint_positions = "detected"``, kept beside the descriptor), not the
+   descriptor's coordinate grid, whose quantisation (4 mm of floor on the default camera)
+   would otherwise set the step's precision; ``"coded"`` is the paper's reuse of the
+   descriptor as it is;
 3. "a few RANSAC cycles remove possible remaining outliers": 2-point rigid hypotheses on
    the floor points, inliers within ``ransac_threshold_m`` (metres, not pixels: the
    camera's distortion and tilt no longer matter here);
@@ -36,7 +40,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import Any
 
@@ -45,12 +49,12 @@ import numpy as np
 from robotd.base.config import FloorDetectorConfig, VisualOdometryConfig
 from robotd.base.geometry import (compose, rigid_fit_2d, rigid_fit_2d_covariance,
                                   rigid_from_two_pairs, transform_points)
-from robotd.floor.descriptor import MODES, FloorDescriptor, decode, extract
+from robotd.floor.descriptor import MODES, FloorDescriptor, decode, extract, extract_with_positions
 from robotd.floor.match import MatchParams, local_score
 
-__all__ = ["DEGENERATE_GEOMETRY", "NO_PREVIOUS_KEYFRAME", "TOO_FEW_INLIERS", "TOO_FEW_MATCHES",
+__all__ = ["DEGENERATE_GEOMETRY", "KEYPOINT_POSITIONS", "NO_PREVIOUS_KEYFRAME", "TOO_FEW_INLIERS", "TOO_FEW_MATCHES",
            "FloorVisualOdometry", "VoParams", "VoReason", "VoResult", "VoTrack", "estimate_motion",
-           "floor_motion", "floor_point_pairs", "integrate"]
+           "floor_motion", "floor_point_pairs", "integrate", "with_detected_positions"]
 
 class VoReason(StrEnum):
     """Why a visual step failed (a :class:`~enum.StrEnum`: equal to its text; ``OK``, the
@@ -62,6 +66,8 @@ class VoReason(StrEnum):
     TOO_FEW_INLIERS = "TOO_FEW_INLIERS"
     DEGENERATE_GEOMETRY = "DEGENERATE_GEOMETRY"
 
+
+KEYPOINT_POSITIONS = ("detected", "coded")
 
 NO_PREVIOUS_KEYFRAME = VoReason.NO_PREVIOUS_KEYFRAME
 TOO_FEW_MATCHES = VoReason.TOO_FEW_MATCHES
@@ -89,6 +95,15 @@ class VoParams:
             metres, or the step is ``DEGENERATE_GEOMETRY`` (rotation not determined).
         min_sigma_m: floor on the residual sigma per coordinate, metres, in the
             covariance (the position quantisation alone is ~0.6 mm on the default camera).
+        keypoint_positions: ``"detected"`` (default): the keypoints where the detector found
+            them (sub-pixel), when the step has them: an image described here, or
+            positions given beside the descriptor (:meth:`FloorVisualOdometry.step`);
+            ``"coded"``: the descriptor's grid positions, as paper 003 reuses the
+            keyframe's descriptor. The matcher is the same either way; only the metric
+            fit's points differ.
+        min_sigma_detected_m: :attr:`min_sigma_m` for a step between two keyframes with
+            detected positions (no grid's quantisation; a tenth of a pixel of the default
+            camera).
         match: the descriptor matcher's parameters (step 1).
     """
 
@@ -99,6 +114,8 @@ class VoParams:
     seed: int = 0
     min_spread_m: float = 0.02
     min_sigma_m: float = 0.0005
+    keypoint_positions: str = "detected"
+    min_sigma_detected_m: float = 0.0001
     match: MatchParams = field(default_factory=MatchParams)
 
     @classmethod
@@ -106,14 +123,18 @@ class VoParams:
         """The params of a ``[visual_odometry]`` table (whose defaults these are), on
         descriptors of ``[floor_detector] descriptor_mode`` (the keyframe's are reused)."""
         return cls(descriptor_mode=descriptor_mode, min_inliers=section.min_inliers,
-                   ransac_threshold_m=section.ransac_threshold_m)
+                   ransac_threshold_m=section.ransac_threshold_m,
+                   keypoint_positions=section.keypoint_positions)
 
     def __post_init__(self) -> None:
         if self.descriptor_mode not in MODES:
             raise ValueError(f"descriptor_mode must be one of {sorted(MODES)}, got {self.descriptor_mode!r}")
         if not (self.min_inliers >= 3 and self.ransac_threshold_m > 0 and self.iterations >= 1
-                and self.min_spread_m >= 0 and self.min_sigma_m > 0):
+                and self.min_spread_m >= 0 and self.min_sigma_m > 0 and self.min_sigma_detected_m > 0):
             raise ValueError(f"visual odometry parameters out of range: {self}")
+        if self.keypoint_positions not in KEYPOINT_POSITIONS:
+            raise ValueError(f"keypoint_positions must be one of {KEYPOINT_POSITIONS}, "
+                             f"got {self.keypoint_positions!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -183,9 +204,10 @@ def _ransac(src: np.ndarray, dst: np.ndarray, p: VoParams) -> np.ndarray:
 
 
 def floor_motion(p_prev: np.ndarray, p_cur: np.ndarray, params: VoParams | None = None,
-                 n_matches: int | None = None) -> VoResult:
+                 n_matches: int | None = None, *, min_sigma_m: float | None = None) -> VoResult:
     """Steps 3-5 on matched floor points: ``(N, 2)`` metres in the robot frames of keyframes
-    ``k-1`` and ``k`` -> the pose of ``k`` in ``k-1``'s frame, its covariance, or a reason."""
+    ``k-1`` and ``k`` -> the pose of ``k`` in ``k-1``'s frame, its covariance, or a reason.
+    ``min_sigma_m``: the residual sigma's floor (default ``params.min_sigma_m``)."""
     p = params or VoParams()
     src = np.asarray(p_cur, float).reshape(-1, 2)
     dst = np.asarray(p_prev, float).reshape(-1, 2)
@@ -207,19 +229,39 @@ def floor_motion(p_prev: np.ndarray, p_cur: np.ndarray, params: VoParams | None 
     centred = src[inl] - src[inl].mean(axis=0)
     if math.sqrt(float(np.mean(np.sum(centred * centred, axis=1)))) < p.min_spread_m:
         return _failed(DEGENERATE_GEOMETRY, n)
-    cov, sigma = rigid_fit_2d_covariance(src[inl], dst[inl], pose, p.min_sigma_m)
+    cov, sigma = rigid_fit_2d_covariance(src[inl], dst[inl], pose,
+                                         p.min_sigma_m if min_sigma_m is None else min_sigma_m)
     return VoResult(pose, cov, n, k, sigma, VoReason.OK)
 
 
 def estimate_motion(prev: FloorDescriptor, cur: FloorDescriptor, camera: Any,
                     params: VoParams | None = None) -> VoResult:
-    """Steps 1-5 for two decoded descriptors of the same mode (``prev`` = keyframe ``k-1``)."""
+    """Steps 1-5 for two decoded descriptors of the same mode (``prev`` = keyframe ``k-1``).
+    Their ``xy_px`` are the points fitted: the grid's, or the detector's
+    (:func:`with_detected_positions`; the residual floor is then
+    ``params.min_sigma_detected_m`` when both have them)."""
     p = params or VoParams()
     m = local_score(prev, cur, p.match)
     if m.reason:
         return _failed(TOO_FEW_MATCHES, m.n_matches, m.reason)
     p_prev, p_cur = floor_point_pairs(camera, m.xy_a, m.xy_b)
-    return floor_motion(p_prev, p_cur, p, m.n_inliers)
+    detected = prev.position_step_px == 0 and cur.position_step_px == 0
+    return floor_motion(p_prev, p_cur, p, m.n_inliers,
+                        min_sigma_m=p.min_sigma_detected_m if detected else p.min_sigma_m)
+
+
+def with_detected_positions(desc: FloorDescriptor, xy_px: np.ndarray) -> FloorDescriptor:
+    """``desc`` with its keypoints where the detector found them
+    (:func:`robotd.floor.descriptor.extract_with_positions`'s ``(N, 2)`` pixels, in the
+    coded order) in place of the grid's; ``position_step_px`` 0 says so. Raises
+    ``ValueError`` when the positions cannot be this descriptor's (another count, out of
+    the image by more than the grid's half step, or not finite)."""
+    xy = np.asarray(xy_px, np.float32)
+    if xy.shape != desc.xy_px.shape or not np.isfinite(xy).all():
+        raise ValueError(f"detected positions {xy.shape} do not fit a descriptor of {len(desc)} keypoints")
+    if len(xy) and float(np.max(np.abs(xy - desc.xy_px))) > desc.position_step_px:
+        raise ValueError("detected positions are not this descriptor's (beyond its coordinate grid's cells)")
+    return replace(desc, xy_px=xy, position_step_px=0.0)
 
 
 class FloorVisualOdometry:
@@ -242,19 +284,28 @@ class FloorVisualOdometry:
         """Forget the previous keyframe (the next step is a new chain's first)."""
         self._prev = None
 
-    def describe(self, keyframe: np.ndarray | bytes | FloorDescriptor) -> FloorDescriptor:
+    def describe(self, keyframe: np.ndarray | bytes | FloorDescriptor,
+                 positions: np.ndarray | None = None) -> FloorDescriptor:
         """A keyframe as a decoded descriptor: an image ``(H, W) uint8`` is described in
-        ``params.descriptor_mode``, bytes are decoded, a descriptor is passed through."""
+        ``params.descriptor_mode``, bytes are decoded, a descriptor is passed through.
+        With ``keypoint_positions = "detected"``, ``positions`` (the detector's, beside a
+        descriptor) or an image's own replace the grid's; ``"coded"`` ignores them."""
+        detected = self.params.keypoint_positions == "detected"
         if isinstance(keyframe, FloorDescriptor):
-            return keyframe
-        if isinstance(keyframe, (bytes, bytearray, memoryview)):
-            return decode(bytes(keyframe))
-        return decode(extract(np.asarray(keyframe), self.params.descriptor_mode))
+            desc = keyframe
+        elif isinstance(keyframe, (bytes, bytearray, memoryview)):
+            desc = decode(bytes(keyframe))
+        elif detected and positions is None:
+            coded, positions = extract_with_positions(np.asarray(keyframe), self.params.descriptor_mode)
+            desc = decode(coded)
+        else:
+            desc = decode(extract(np.asarray(keyframe), self.params.descriptor_mode))
+        return with_detected_positions(desc, positions) if detected and positions is not None else desc
 
-    def step(self, keyframe: np.ndarray | bytes | FloorDescriptor) -> VoResult:
+    def step(self, keyframe: np.ndarray | bytes | FloorDescriptor, positions: np.ndarray | None = None) -> VoResult:
         """The motion from the previous keyframe to ``keyframe``
-        (``NO_PREVIOUS_KEYFRAME`` on the first call)."""
-        cur = self.describe(keyframe)
+        (``NO_PREVIOUS_KEYFRAME`` on the first call); ``positions`` as :meth:`describe`."""
+        cur = self.describe(keyframe, positions)
         prev, self._prev = self._prev, cur
         if prev is None:
             return _failed(NO_PREVIOUS_KEYFRAME)

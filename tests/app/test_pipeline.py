@@ -706,6 +706,50 @@ def test_visual_odometry_status_and_its_own_chain():
     assert np.allclose(chain, [[1.0, 2.0, 0.0], [1.1, 2.0, 0.0], [1.15, 2.0, 0.0], [1.15, 2.1, 0.0]])
 
 
+@pytest.mark.parametrize("positions", ["detected", "coded"])
+def test_the_floor_stage_hands_its_detected_positions_to_visual_odometry(tmp_path: Path, positions: str):
+    """The floor stage keeps the detector's sub-pixel positions beside the descriptor; the
+    visual odometry stage fits on them (its residual below the grid's floor, which a fit on
+    the grid's 4 mm cells cannot reach) unless ``keypoint_positions = "coded"``; the map
+    stores the descriptor alone, the same bytes either way."""
+    from robotd.app.stages.visual_odometry import VisualOdometryStage
+    from robotd.base.camera import FloorCameraModel
+    from robotd.base.geometry import compose
+    from robotd.floor.descriptor import decode, extract
+    from robotd.floor.vo import FloorVisualOdometry, VoParams
+    from sim.cameras.floor import FloorRenderer, RenderParams
+    from sim.world.floor import Floor
+
+    cam = FloorCameraModel.default()
+    rend = FloorRenderer(Floor.default(seed=3), cam, RenderParams(), np.random.default_rng(1))
+    p0 = np.array([0.5, -0.3, 0.7])
+    images = [rend.render(p0, 0.0, 0.0, 0.0), rend.render(compose(p0, np.array([0.05, 0.0, 0.1])), 0.0, 0.0, 0.1)]
+    vo = FloorVisualOdometry(cam, VoParams(descriptor_mode=2, keypoint_positions=positions))
+    steps: list = []
+    original = vo.step
+    vo.step = lambda *a: steps.append(original(*a)) or steps[-1]  # type: ignore[method-assign]
+    with MapStore.open(tmp_path / "map.sqlite") as store:
+        p = _floor_stages(store, store.begin_run("[run]", 0))
+        stage = VisualOdometryStage(vo, "fused")
+        p.add(stage)
+        got: list = []
+        p.add(type("Sink", (), {"name": "sink", "subscriptions": lambda self: {MeasuredKeyframe: got.append}})())
+        pose = PoseStamped(0, 0.0, 0.0, 0.0, np.eye(3) * 1e-4)
+        for i, img in enumerate(images):
+            p.publish(Keyframe(Frame(i * 100_000_000, "floor", img, i), pose))
+        stored = [store.keyframe_descriptor(r.id) for r in store.keyframes()]
+    assert len(got) == 2 and stage.counters()["vo_ok"] == 1
+    for kf, img in zip(got, images):
+        assert kf.descriptor == (2, extract(img, 2))
+        assert kf.keypoints_px.shape == decode(kf.descriptor[1]).xy_px.shape
+    assert stored == [(extract(img, 2), 2) for img in images]
+    residual = steps[1].residual_m
+    if positions == "detected":
+        assert residual < 0.5 * VoParams().min_sigma_m
+    else:
+        assert residual >= VoParams().min_sigma_m
+
+
 def _fused_vo_stage(deltas: list, scale_sigmas: tuple[float, float] | None = None):
     """A fused visual odometry stage over keyframes whose floor steps are ``deltas`` in turn
     (``(dx_m, dy_m, dyaw_rad)``, each with 1 mm / 1 mrad sigma; None: the step failed);

@@ -11,11 +11,12 @@ import pytest
 
 from robotd.base.camera import FloorCameraModel
 from robotd.base.geometry import between, compose
-from robotd.floor.descriptor import describe
+from robotd.floor.descriptor import decode, describe, extract, extract_with_positions
 from robotd.floor.vo import (DEGENERATE_GEOMETRY, NO_PREVIOUS_KEYFRAME, TOO_FEW_INLIERS, TOO_FEW_MATCHES,
                              FloorVisualOdometry, VoParams, VoResult, floor_motion, integrate)
 from sim.cameras.floor import FloorRenderer, RenderParams
 from sim.world.floor import Floor
+from tests.shared_data import SHARED_DATA, require
 
 CAM = FloorCameraModel.default()
 
@@ -87,9 +88,88 @@ def test_descriptor_bytes_and_decoded_descriptors_are_accepted(renderer):
     a, b = renderer.render(p0, 0.0, 0.0, 0.0), renderer.render(compose(p0, d), 0.0, 0.0, 0.0)
     vo = FloorVisualOdometry(CAM, VoParams(descriptor_mode=3))
     vo.step(describe(a, 3))
-    from robotd.floor.descriptor import extract
     r = vo.step(extract(b, 3))
     assert r.ok and r.delta == pytest.approx(d, abs=2e-3)
+
+
+# ------------------------------------------------- detected positions against the grid's
+
+def _detected_and_coded(renderer: FloorRenderer, n: int, seed: int) -> dict[str, dict[str, np.ndarray]]:
+    """The same rendered pairs stepped with each choice of keypoint positions: errors and NEES."""
+    p0, d = _pairs(n, seed)
+    out = {}
+    for positions in ("detected", "coded"):
+        vo = FloorVisualOdometry(CAM, VoParams(keypoint_positions=positions))
+        res = [_step_pair(vo, renderer, p0[k], d[k], 10.0 * k) for k in range(n)]
+        assert all(r.ok for r in res)
+        err = np.array([r.delta - dk for r, dk in zip(res, d)])
+        out[positions] = {"err": err, "nees": np.array([e @ np.linalg.solve(r.covariance, e)
+                                                          for e, r in zip(err, res)]),
+                          "inliers": np.array([r.n_inliers for r in res])}
+    return out
+
+
+def _rms(a: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(a))))
+
+
+def _assert_detected_better(runs: dict[str, dict[str, np.ndarray]]) -> None:
+    det, cod = runs["detected"], runs["coded"]
+    # the matcher is the same: the fits differ in their points, not in their matches
+    assert np.abs(det["inliers"] - cod["inliers"]).max() <= 0.1 * cod["inliers"].min()
+    assert _rms(det["err"][:, 2]) < 0.4 * _rms(cod["err"][:, 2])
+    assert _rms(det["err"][:, :2]) < 0.4 * _rms(cod["err"][:, :2])
+    # each covariance follows its own residuals: honest on both (3 degrees of freedom)
+    for run in (det, cod):
+        assert 1.0 < np.mean(run["nees"]) < 6.0
+
+
+def test_detected_positions_measure_the_step_better_than_the_grid(renderer):
+    """30 rendered pairs on the default mixed floor, stepped on the detector's sub-pixel
+    positions and on the descriptor's 2 px grid (4 px of the image, 4 mm of floor).
+    Measured: yaw error RMS 0.046 against 0.33 mrad, translation 0.011 against 0.093 mm,
+    NEES mean 2.3 and 3.5; a grid of 4 mm cannot give the former, and a covariance that
+    kept the grid's floor would be several times too cautious."""
+    _assert_detected_better(_detected_and_coded(renderer, 30, seed=7))
+
+
+def test_detected_positions_on_a_real_floor_photograph():
+    """The same on a real photograph of a herringbone brick floor (``../shared/data/floor``),
+    the renderer's blur, noise and vignetting over it. Measured: yaw 0.060 against 0.27
+    mrad RMS, translation 0.019 against 0.088 mm, NEES mean 2.1 and 3.1."""
+    photo = require(SHARED_DATA / "floor" / "brick_floor_herringbone_1k.png", "the herringbone floor photograph")
+    rend = FloorRenderer(Floor.from_photos(photo), CAM, RenderParams(), np.random.default_rng(1))
+    _assert_detected_better(_detected_and_coded(rend, 30, seed=7))
+
+
+def test_positions_beside_a_descriptor_are_those_of_its_image(renderer):
+    """A descriptor's bytes with its detected positions step as its image does; ``coded``
+    ignores them; positions that are not the descriptor's are refused."""
+    p0, d = np.array([0.5, -0.3, 0.7]), np.array([0.05, 0.0, 0.1])
+    a, b = renderer.render(p0, 0.0, 0.0, 0.0), renderer.render(compose(p0, d), 0.0, 0.0, 0.0)
+    (ba, xa), (bb, xb) = extract_with_positions(a, 4), extract_with_positions(b, 4)
+    assert ba == extract(a, 4) and bb == extract(b, 4)
+    da = decode(ba)
+    assert xa.shape == da.xy_px.shape and xa.dtype == np.float32
+    assert 0 < np.abs(xa - da.xy_px).max() <= da.position_step_px / 2 + 1e-3
+    vo = FloorVisualOdometry(CAM)
+    vo.step(a)
+    from_images = vo.step(b)
+    vo.reset()
+    vo.step(ba, xa)
+    from_bytes = vo.step(bb, xb)
+    assert from_bytes.delta == pytest.approx(from_images.delta, abs=1e-12)
+    assert from_bytes.residual_m < 0.5 * VoParams().min_sigma_m
+    coded = FloorVisualOdometry(CAM, VoParams(keypoint_positions="coded"))
+    coded.step(ba, xa)
+    r = coded.step(bb, xb)
+    assert r.residual_m >= VoParams().min_sigma_m and r.delta != pytest.approx(from_bytes.delta, abs=1e-9)
+    with pytest.raises(ValueError, match="do not fit"):
+        vo.step(ba, xa[:-1])
+    with pytest.raises(ValueError, match="not this descriptor's"):
+        vo.step(ba, xb[: len(xa)] if len(xb) >= len(xa) else np.zeros_like(xa))
+    with pytest.raises(ValueError, match="keypoint_positions"):
+        VoParams(keypoint_positions="rounded")
 
 
 # ------------------------------------------------------------- the metric fit on its own

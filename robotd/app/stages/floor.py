@@ -66,8 +66,9 @@ class FloorDetectorStage(Publisher):
         self.detector.params = dataclasses.replace(self.detector.params, **changes)  # type: ignore[arg-type]
 
     def describe(self, kf: Keyframe) -> None:
-        self._publish(keyframe_as(DescribedKeyframe, kf, descriptor=(
-            self.detector.params.descriptor_mode, self.detector.describe(kf.frame.image))))
+        coded, positions = self.detector.describe_with_positions(kf.frame.image)
+        self._publish(keyframe_as(DescribedKeyframe, kf, descriptor=(self.detector.params.descriptor_mode, coded),
+                                  keypoints_px=positions))
 
     def query_transient(self, msg: TransientKeyframe) -> None:
         kf = msg.keyframe

@@ -72,8 +72,10 @@ class VisualOdometryStage(Publisher):
 
     def on_keyframe(self, kf: Keyframe) -> None:
         desc = kf.descriptor if isinstance(kf, DescribedKeyframe) else None
-        result = self.vo.step(desc[1] if desc is not None and desc[0] == self.vo.params.descriptor_mode
-                              else kf.frame.image)
+        if isinstance(kf, DescribedKeyframe) and desc is not None and desc[0] == self.vo.params.descriptor_mode:
+            result = self.vo.step(desc[1], kf.keypoints_px)
+        else:
+            result = self.vo.step(kf.frame.image)
         first = self._prev_stamp_ns is None
         if not first:
             self.steps += 1
