@@ -379,26 +379,29 @@ def test_the_configured_jpeg_quality_reaches_the_map(tmp_path: Path):
     assert sizes["err20"] > sizes["err95"]
 
 
-def _vo_demo(tmp_path: Path, mode: str) -> tuple[dict, Path]:
+def _vo_demo(tmp_path: Path, mode: str, **vo: object) -> tuple[dict, Path]:
     from robotd.app.demo import run_demo
 
-    cfg = replace(Config(), "visual_odometry", enabled=True, role=mode)
+    cfg = replace(Config(), "visual_odometry", enabled=True, role=mode, **vo)
     cfg = replace(cfg, "calibration", path=str(tmp_path / "none.yml"))
     out = tmp_path / mode
     return run_demo(cfg, out=out, route="square", duration_s=10.0, seed=1, plot=False), out
 
 
-def test_vision_only_odometry_edges_are_the_floor_motion(tmp_path: Path):
+@pytest.mark.parametrize("positions", ["coded", "detected"])
+def test_vision_only_odometry_edges_are_the_floor_motion(tmp_path: Path, positions: str):
     """With [visual_odometry] role = "vision_only", the map's odometry links are the floor
-    visual odometry's steps: the same numbers as visual odometry recomputed from the stored
-    descriptors, and within 0.5 mm of the ground truth at the 95th percentile (the filter's
-    own increments on this drive: 1.5 mm)."""
+    visual odometry's steps, within 0.5 mm of the ground truth at the 95th percentile (the
+    filter's own increments on this drive: 1.5 mm). On the grid's positions
+    (``keypoint_positions = "coded"``) they are the same numbers as visual odometry
+    recomputed from the stored descriptors; on the detected ones (the default, not stored)
+    they differ from that recomputation and are nearer the truth than it."""
     from robotd.base.camera import FloorCameraModel
     from robotd.base.geometry import interpolate_poses
     from robotd.floor.vo import FloorVisualOdometry, VoParams
     from robotd.io.trajectory import read_tum
 
-    s, out = _vo_demo(tmp_path, "vision_only")
+    s, out = _vo_demo(tmp_path, "vision_only", keypoint_positions=positions)
     vo = s["visual_odometry"]
     assert vo["vo_steps"] == s["keyframes"] - 1 and vo["vo_ok"] + vo["vo_fallback"] == vo["vo_steps"]
     assert vo["vo_ok"] >= 0.95 * vo["vo_steps"]
@@ -408,20 +411,25 @@ def test_vision_only_odometry_edges_are_the_floor_motion(tmp_path: Path):
         links = {(lk.from_id, lk.to_id): lk for lk in store.links("odometry")}
     assert len(links) == vo["vo_steps"]
     again = FloorVisualOdometry(FloorCameraModel.from_config(Config().floor_camera),
-                                VoParams(descriptor_mode=Config().floor_detector.descriptor_mode))
+                                VoParams(descriptor_mode=Config().floor_detector.descriptor_mode,
+                                         keypoint_positions="coded"))
     true_kf = interpolate_poses(t_ns, truth, np.array([k.stamp_ns for k in kfs]))
-    errors, same = [], 0
+    errors, errors_again, same = [], [], 0
     again.step(kfs[0].descriptor)
     for i in range(1, len(kfs)):
         lk = links[(kfs[i - 1].id, kfs[i].id)]
         r = again.step(kfs[i].descriptor)
-        if r.ok:
-            assert [lk.dx_m, lk.dy_m, lk.dyaw_rad] == pytest.approx(r.delta, abs=1e-12)
-            same += 1
         want = between(true_kf[i - 1], true_kf[i])
+        if r.ok:
+            if positions == "coded":
+                assert [lk.dx_m, lk.dy_m, lk.dyaw_rad] == pytest.approx(r.delta, abs=1e-12)
+            same += [lk.dx_m, lk.dy_m, lk.dyaw_rad] == pytest.approx(r.delta, abs=1e-12)
+            errors_again.append(math.hypot(r.delta[0] - want[0], r.delta[1] - want[1]))
         errors.append(math.hypot(lk.dx_m - want[0], lk.dy_m - want[1]))
-    assert same == vo["vo_ok"]
+    assert same == (vo["vo_ok"] if positions == "coded" else 0)
     assert float(np.percentile(errors, 95)) < 0.0005
+    if positions == "detected":
+        assert float(np.sqrt(np.mean(np.square(errors)))) < 0.5 * float(np.sqrt(np.mean(np.square(errors_again))))
     # The summary's "VO only" column: visual odometry chained, here the map's odometry; the
     # graph has no loop yet (10 s of the square), so its optimum is that same chain.
     g = s["pose_graph"]
