@@ -114,10 +114,10 @@ def print_summary(s: Summary, f: TextIO) -> None:
     if s.get("wheel_only_nominal"):  # the odometry model is calibrated: before and after
         columns = [("wheel nom.", s["wheel_only_nominal"]), ("wheel cal.", w), ("fused", fu)]
     _print_comparison(f, "odometry vs ground truth", columns, (
-        ("end position error (m)", "end_position_error_m", "{:.3f}"),
-        ("end heading error (deg)", "end_heading_error_deg", "{:.2f}"),
-        ("max position error (m)", "ape_origin_max_m", "{:.3f}"),
-        ("end drift per 100 m (m)", "end_drift_per_100m_m", "{:.3f}"),
+        ("end position error (m)", "end_position_error_m", "{:.4f}"),
+        ("end heading error (deg)", "end_heading_error_deg", "{:.3f}"),
+        ("max position error (m)", "ape_origin_max_m", "{:.4f}"),
+        ("end drift per 100 m (m)", "end_drift_per_100m_m", "{:.4f}"),
     ))
     g = s.get("pose_graph")
     if g:
@@ -126,11 +126,11 @@ def print_summary(s: Summary, f: TextIO) -> None:
         if "vo_only" in g:
             columns.insert(1, ("VO only", g["vo_only"]))
         _print_comparison(f, f"at the {g['keyframes']} keyframes", columns, (
-            ("end position error (m)", "end_position_error_m", "{:.3f}"),
-            ("end heading error (deg)", "end_heading_error_deg", "{:.2f}"),
-            ("APE RMS, anchored (m)", "ape_origin_rmse_m", "{:.3f}"),
-            ("ATE RMS, aligned (m)", "ate_aligned_rmse_m", "{:.3f}"),
-            ("RPE per step, RMS (mm)", "rpe_rmse_mm", "{:.2f}"),
+            ("end position error (m)", "end_position_error_m", "{:.4f}"),
+            ("end heading error (deg)", "end_heading_error_deg", "{:.3f}"),
+            ("APE RMS, anchored (m)", "ape_origin_rmse_m", "{:.4f}"),
+            ("ATE RMS, aligned (m)", "ate_aligned_rmse_m", "{:.4f}"),
+            ("RPE per step, RMS (mm)", "rpe_rmse_mm", "{:.3f}"),
         ))
         print(f"pose graph: {g['loops_in_graph']} loop edges accepted, {g.get('loops_failed_gate', 0)} "
               f"refused by the chi-square gate, {g.get('loops_down_weighted', 0)} down-weighted by the "
