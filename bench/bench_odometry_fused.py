@@ -381,9 +381,11 @@ def fitted_params(model: Any, base: EkfParams = EkfParams(), process: bool = Tru
 
 
 #: Each variant: the filter's noise model, the bias prior and more of
-#: :class:`~robotd.odometry.fusion.OdometryFilter`'s fields.
-BEFORE = {"vo_rate_only": False}
-TRAPEZOID = {"pose_after_rates": True, "vo_angular_accel_noise_radps2_per_sqrt_hz": 0.1}
+#: :class:`~robotd.odometry.fusion.OdometryFilter`'s fields. ``OWN``: the fused pose keeps
+#: its own process noise (the daemon's); ``RATES``: it follows its rates alone.
+OWN = {"vo_rate_only": False}
+RATES = {"vo_rate_only": True}
+TRAPEZOID = {**RATES, "pose_after_rates": True, "vo_angular_accel_noise_radps2_per_sqrt_hz": 0.1}
 
 
 def calibration_params(model: Any) -> EkfParams:
@@ -406,60 +408,61 @@ def sensor_noise_config_process(model: Any) -> EkfParams:
 
 
 VARIANTS: dict[str, Any] = {
-    "the config's noise model (before)": lambda model: (EkfParams(), None, BEFORE),
-    "the fused pose follows its rates (the daemon)": lambda model: (EkfParams(), None, {}),
+    "the pose's own process noise (the daemon)": lambda model: (EkfParams(), None, OWN),
+    "the fused pose follows its rates": lambda model: (EkfParams(), None, RATES),
     "the pose by the trapezoid rule, angular process noise 0.1 (not the default)": lambda model: (
         EkfParams(), None, TRAPEZOID),
     "the calibration's noise model for the edges (noise_model = \"calibration\")": lambda model: (
-        EkfParams(), None, {"twin_params": calibration_params(model)}),
+        EkfParams(), None, {**OWN, "twin_params": calibration_params(model)}),
     "the calibration's noise model for the edges and the fused filter (\"calibration_fused\")": lambda model: (
-        calibration_params(model), None, {}),
+        calibration_params(model), None, OWN),
 }
 #: The fused filter's designs against the combined edges (``--variants designs``): the
 #: baseline, the daemon, the trapezoid rule with 0.1, and the visual step as a relative-pose
 #: update that leaves the gyro bias alone (a Schmidt "consider" bias, ``vo_bias_update``).
 NO_BIAS = {"vo_bias_update": False}
 DESIGNS: dict[str, Any] = {
-    "the config's noise model (before)": VARIANTS["the config's noise model (before)"],
-    "the fused pose follows its rates (the daemon)": VARIANTS["the fused pose follows its rates (the daemon)"],
+    "the pose's own process noise (the daemon)": VARIANTS["the pose's own process noise (the daemon)"],
+    "the fused pose follows its rates": VARIANTS["the fused pose follows its rates"],
     "the pose by the trapezoid rule, angular process noise 0.1 (not the default)":
         VARIANTS["the pose by the trapezoid rule, angular process noise 0.1 (not the default)"],
-    "the visual step leaves the bias alone": lambda model: (EkfParams(), None, NO_BIAS),
+    "the visual step leaves the bias alone, the pose follows its rates": lambda model: (
+        EkfParams(), None, {**RATES, **NO_BIAS}),
     "the visual step leaves the bias alone, trapezoid rule and 0.1": lambda model: (
         EkfParams(), None, {**TRAPEZOID, **NO_BIAS}),
     "the visual step leaves the bias alone, the pose's own process noise": lambda model: (
-        EkfParams(), None, {**BEFORE, **NO_BIAS}),
+        EkfParams(), None, {**OWN, **NO_BIAS}),
     "the combined edges as the live pose (live_pose = \"combined_edges\")": lambda model: (
         EkfParams(), None, {"live_pose": "combined_edges"}),
     "the calibration's sensor noise, the config's accelerations (both filters)": lambda model: (
-        sensor_noise_config_process(model), None, {}),
+        sensor_noise_config_process(model), None, OWN),
 }
 #: Measured too (``--variants all``): the calibration drive's turn-on bias as the prior; the
 #: calibration's fitted noise densities with the sensor-level process noise.
 MORE_VARIANTS: dict[str, Any] = {
     "default noise, calibration's bias prior": lambda model: (
         EkfParams(), (model.gyro_bias_radps / model.gyro_scale, model.gyro_bias_sigma_radps / model.gyro_scale),
-        BEFORE),
-    "fitted noise": lambda model: (fitted_params(model), None, BEFORE),
+        OWN),
+    "fitted noise": lambda model: (fitted_params(model), None, OWN),
     "trapezoid rule, the config's angular process noise": lambda model: (
-        EkfParams(), None, {"pose_after_rates": True}),
+        EkfParams(), None, {**RATES, "pose_after_rates": True}),
 }
 
 
-BASELINE = "the config's noise model (before)"
+BASELINE = "the pose's own process noise (the daemon)"
 
 
 def targets(rows: list[dict[str, Any]]) -> list[str]:
     """The issue's two fused targets per variant (calibrated model), from the rows:
     end error and APE anchored both below the baseline's (the nominal model with the
-    config's noise model, before), and the fused ATE at the keyframes no worse than the
+    daemon's filter), and the fused ATE at the keyframes no worse than the
     graph's combined edges chained without loops; with the combined edges as a live pose
     (the chain to the last keyframe, then the twin's motion) as a candidate of its own."""
     names = [k.split("/")[0] for k in rows[0] if k.endswith("/calibrated")]
     if BASELINE not in names:
         return []
-    lines = ["", "## The targets per design (calibrated model; baseline: the nominal model, the config's noise "
-             "model, before)", "",
+    lines = ["", "## The targets per design (calibrated model; baseline: the nominal model with the daemon's "
+             "filter)", "",
              "End error / APE anchored (m), bold where both are better than the baseline's; at the keyframes, "
              "the fused ATE against the combined edges chained without loops (m), bold where no worse. The "
              "combined edges as a live pose are the chain up to the last keyframe followed by the twin's motion "
@@ -493,7 +496,7 @@ def targets(rows: list[dict[str, Any]]) -> list[str]:
     base = [(r[f"{BASELINE}/nominal"]["end_position_error_m"], r[f"{BASELINE}/nominal"]["ape_origin_rmse_m"],
              r[f"{BASELINE}/nominal"]["kf_ape_fused_m"], r[f"{BASELINE}/nominal"]["kf_ape_chained_edges_m"])
             for r in rows]
-    lines.append(row("the baseline (nominal model, before)", base))
+    lines.append(row("the baseline (nominal model, the daemon's filter)", base))
     for name in names:
         lines.append(row(name, [(r[f"{name}/calibrated"]["end_position_error_m"],
                                  r[f"{name}/calibrated"]["ape_origin_rmse_m"],

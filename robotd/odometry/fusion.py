@@ -176,15 +176,15 @@ class OdometryFilter:
     calibrate odometry``), by which every reading is divided; 1 uncalibrated.
     ``initial_bias``: the gyro bias's prior ``(mean, sigma)`` in rad/s of the scaled
     readings (default: 0 and ``params.initial_gyro_bias_sigma_radps``).
-    ``vo_rate_only`` (default True): with ``vo_twin``, the fused filter's pose gets no
+    ``vo_rate_only`` (default False): with ``vo_twin``, the fused filter's pose gets no
     process noise of its own (:attr:`robotd.odometry.ekf.EkfParams.rate_only_process`),
     so that a visual step's heading reaches the gyro bias instead of being taken for
     unmodelled turning; the twin, whose edges the pose graph and its gate use, keeps
-    ``params`` as given. On the office route (seeds 0-4, the daemon's own visual steps,
-    ``bench/bench_odometry_fused.py``), with the calibrated model, it lowers the fused APE
-    on seeds 0 and 2 of 0-4; with ``pose_after_rates`` and a fused angular noise of 0.1
-    (both below), on seeds 0, 1 and 3 (seeds 2 and 4 are worse than the config's noise
-    model: the fused heading follows the visual steps' heading random walk).
+    ``params`` as given. It helped while the visual steps were fitted on the descriptor's
+    coordinate grid; on the detector's positions (steps several times more precise) the
+    filter whose pose keeps its own process noise is the better one, and a filter whose
+    pose follows its rates alone refuses some of those steps (docs/odometry.md, "The
+    visual steps on the detected positions").
     ``pose_after_rates`` (default False): a filter whose pose follows its rates
     (``rate_only_process``, which ``vo_twin`` with ``vo_rate_only`` sets) moves its pose
     over each interval between two readings by the trapezoid rule: the first half with the
@@ -249,7 +249,7 @@ class OdometryFilter:
     vo_twin: bool = False
     gyro_scale: float = 1.0
     initial_bias: tuple[float, float] | None = None
-    vo_rate_only: bool = True
+    vo_rate_only: bool = False
     pose_after_rates: bool = False
     vo_angular_accel_noise_radps2_per_sqrt_hz: float | None = None
     twin_params: EkfParams | None = None

@@ -58,7 +58,7 @@ def test_calibration_fused_gives_the_fused_filter_the_same_noise():
     twin = f.wheel_gyro.params
     assert _accel(f.params) == _accel(twin)
     assert f.params.gyro_noise_radps == twin.gyro_noise_radps
-    assert f.params.rate_only_process and not twin.rate_only_process  # the fused pose follows its rates
+    assert not f.params.rate_only_process and not twin.rate_only_process  # the pose keeps its own process noise
 
 
 def test_without_a_calibration_or_its_accelerations_the_config_is_kept(caplog):

@@ -223,7 +223,7 @@ def test_a_late_visual_step_gives_the_same_filter_as_an_immediate_one():
     without the journal applies the step to its current state instead, and ends elsewhere."""
     rng = np.random.default_rng(0)
     late = [int(x) for x in rng.integers(0, 60, 40)]
-    now, later = OdometryFilter(vo_twin=True), OdometryFilter(vo_twin=True)
+    now, later = OdometryFilter(vo_twin=True, vo_rate_only=True), OdometryFilter(vo_twin=True, vo_rate_only=True)
     track_now = _run_with_latency(now, [0])
     track_late = _run_with_latency(later, late)
     assert now.counters.vo_fused == later.counters.vo_fused == 23
@@ -239,8 +239,8 @@ def test_a_late_visual_step_gives_the_same_filter_as_an_immediate_one():
     assert now.wheel_gyro.counters == later.wheel_gyro.counters
     assert now.wheel_pose().x_m == later.wheel_pose().x_m  # (PoseStamped has no ==)
     # Without the journal the late steps land on the current state: another end pose.
-    # (The same noise model as the fused filter's: with vo_twin its pose follows its rates,
-    # with its own angular process noise.)
+    # (The same noise model as the fused filter's: with vo_rate_only its pose follows its
+    # rates, with its own angular process noise.)
     rates = now.params
     assert rates.rate_only_process
     bare_now, bare_late = OdometryFilter(params=rates), OdometryFilter(params=rates)
@@ -257,16 +257,21 @@ def test_a_late_visual_step_gives_the_same_filter_as_an_immediate_one():
 def test_visual_steps_teach_the_fused_filter_the_gyro_bias_and_the_twin_keeps_its_noise_model():
     """The gyro reads 0.04 rad/s too much and the drive has no standstill: the twin (wheels
     and gyro) learns it only slowly from the wheels; the fused filter learns it from the
-    visual steps' heading through the clone's cross-covariance. With visual odometry fused
-    the filter's pose follows its rates (``rate_only_process``); the twin, whose edges the
-    pose graph uses, keeps the noise model it was given."""
-    f = OdometryFilter(vo_twin=True)
+    visual steps' heading through the clone's cross-covariance. With ``vo_rate_only`` the
+    filter's pose follows its rates (``rate_only_process``); the twin, whose edges the pose
+    graph uses, keeps the noise model it was given. By default the pose keeps its own
+    process noise."""
+    f = OdometryFilter(vo_twin=True, vo_rate_only=True)
     assert f.params.rate_only_process and not f.wheel_gyro.params.rate_only_process
-    assert not OdometryFilter(vo_twin=True, vo_rate_only=False).params.rate_only_process
+    assert not OdometryFilter(vo_twin=True).params.rate_only_process
     assert not OdometryFilter().params.rate_only_process
     _run_with_latency(f, [0], n_packets=600)
     assert abs(f.state.gyro_bias_radps - 0.04) < 1e-3
     assert abs(f.wheel_gyro.state.gyro_bias_radps - 0.04) > 5e-3
+    # The default pose (its own process noise) learns it from the steps as well.
+    own = OdometryFilter(vo_twin=True)
+    _run_with_latency(own, [0], n_packets=600)
+    assert abs(own.state.gyro_bias_radps - 0.04) < 1e-3
 
 
 def _spin_up(f: OdometryFilter, alpha_radps2: float, n_packets: int) -> float:
@@ -290,8 +295,8 @@ def test_the_fused_pose_follows_the_readings_by_the_trapezoid_rule():
     follows the truth to a tenth of that. (The gyro bias is known here, so that only the
     integration differs.)"""
     known = (0.0, 1e-7)
-    now = OdometryFilter(vo_twin=True, initial_bias=known, pose_after_rates=True)
-    before = OdometryFilter(vo_twin=True, initial_bias=known)
+    now = OdometryFilter(vo_twin=True, vo_rate_only=True, initial_bias=known, pose_after_rates=True)
+    before = OdometryFilter(vo_twin=True, vo_rate_only=True, initial_bias=known)
     assert now.params.rate_only_process and before.params.rate_only_process
     errors = []
     for f in (now, before):
@@ -324,8 +329,8 @@ def test_visual_steps_that_leave_the_bias_alone_still_hold_the_heading():
     standstill); the visual steps no longer teach the fused filter the bias, but they still
     correct its heading, which ends far nearer the one of a filter that knows the bias than
     the twin's does."""
-    f = OdometryFilter(vo_twin=True, vo_bias_update=False)
-    learnt = OdometryFilter(vo_twin=True)
+    f = OdometryFilter(vo_twin=True, vo_rate_only=True, vo_bias_update=False)
+    learnt = OdometryFilter(vo_twin=True, vo_rate_only=True)
     track = _run_with_latency(f, [0], n_packets=600)
     _run_with_latency(learnt, [0], n_packets=600)
     assert f.counters.vo_fused == learnt.counters.vo_fused == 23
