@@ -2,7 +2,9 @@
 
 For each floor (the printed plank floor, the paper's worst case, and the default floor of
 real photos), each odometry (``vo``: vision-only, the map's odometry edges are floor
-visual odometry as in the paper; ``wheel``: the wheel + gyro filter's edges) and each
+visual odometry, its steps on the detected keypoint positions; ``vo-coded``: the same on
+the descriptor's coordinate grid, as the paper reuses the descriptor; ``wheel``: the wheel
++ gyro filter's edges) and each
 descriptor mode, the virtual robot drives the route through the whole daemon, exactly as
 ``robotd demo`` does (Kobuki bytes over a pty, rendered floor frames, keyframes, the
 floor loop detector with the floor's trained thresholds, the live pose graph with its
@@ -81,7 +83,8 @@ DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "loop_closure"
 FALSE_LOOP_M = 0.05
 #: Wrong loop edges join keyframes at least this far apart by the truth.
 WRONG_LOOP_MIN_M = 1.0
-ODOMETRY = {"vo": "floor VO alone", "wheel": "wheel + gyro"}
+ODOMETRY = {"vo": "floor VO alone", "vo-coded": "floor VO alone on the descriptor's grid (paper 003)",
+            "wheel": "wheel + gyro"}
 MODES = (1, 2, 3, 4, 5, 6)
 
 
@@ -165,8 +168,9 @@ def run_one(floor: str, odometry: str, mode: int, route: str, seed: int, calibra
     """One drive through the daemon, then its figures against the truth."""
     cfg = replace(Config(), "calibration", path=str(calibration))
     cfg = replace(cfg, "floor_detector", descriptor_mode=mode)
-    if odometry == "vo":
-        cfg = replace(cfg, "visual_odometry", enabled=True, role="vision_only")
+    if odometry in ("vo", "vo-coded"):
+        cfg = replace(cfg, "visual_odometry", enabled=True, role="vision_only",
+                      keypoint_positions="coded" if odometry == "vo-coded" else "detected")
     else:  # the wheel + gyro filter's own edges
         cfg = replace(cfg, "visual_odometry", enabled=False)
     watcher = LoopWatcher()
@@ -439,7 +443,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--full", action="store_true", help="the office route (~110 m) with both odometries (~2 h)")
     ap.add_argument("--route", default=None, help="route (default square; office with --full)")
     ap.add_argument("--floors", default=None, help="comma-separated: planks, mixed (default planks; both with --full)")
-    ap.add_argument("--odometry", default=None, help="comma-separated: vo, wheel (default vo; both with --full)")
+    ap.add_argument("--odometry", default=None, help="comma-separated: vo, vo-coded (the paper's: the steps on the descriptor's "
+                    "grid), wheel (default vo; vo and wheel with --full)")
     ap.add_argument("--modes", default="1,2,3,4,5,6", help="comma-separated descriptor modes")
     ap.add_argument("--inject", default="0.05,0.2", help="fractions of accepted loops replaced by wrong ones")
     ap.add_argument("--seed", type=int, default=0)
@@ -455,7 +460,7 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"unknown floor {f!r} (planks, mixed)")
     for o in odometries:
         if o not in ODOMETRY:
-            ap.error(f"unknown odometry {o!r} (vo, wheel)")
+            ap.error(f"unknown odometry {o!r} (vo, vo-coded, wheel)")
     if not set(modes) <= set(MODES):
         ap.error("modes are 1..6")
     out = args.out / route
