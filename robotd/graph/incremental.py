@@ -51,7 +51,10 @@ class IncrementalParams:
     """Parameters of :class:`IncrementalGraph`.
 
     relinearize_threshold: iSAM2 relinearises a variable whose update exceeds this
-        (m and rad), default 0.01.
+        (m and rad), default 1e-4. A pose linearised 1 mrad away from its estimate puts a
+        loop closed metres away millimetres off, more than the floor's edges now measure:
+        at 1e-3 and 1e-2 the gate refused true loops across a relocalised segment's
+        re-driven ground (docs/odometry.md, Known limits).
     relinearize_skip: check for relinearisation every this many updates, default 1.
     loop_updates: extra iSAM2 iterations after a loop edge (it moves many poses), default 5 (2 left 0.2 m errors on a 24-pose ring).
     batch: parameters of :meth:`IncrementalGraph.resolve` and of the loop edges' kernel
@@ -110,7 +113,7 @@ class IncrementalParams:
         variable (``"bias_scale_window"``), default 0.3 % and 0.02 %.
     """
 
-    relinearize_threshold: float = 0.01
+    relinearize_threshold: float = 1e-4
     relinearize_skip: int = 1
     loop_updates: int = 5
     batch: BatchParams = field(default_factory=BatchParams)
