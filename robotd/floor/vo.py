@@ -114,7 +114,7 @@ class VoParams:
     seed: int = 0
     min_spread_m: float = 0.02
     min_sigma_m: float = 0.0005
-    keypoint_positions: str = "detected"
+    keypoint_positions: str = VisualOdometryConfig.keypoint_positions
     min_sigma_detected_m: float = 0.0001
     match: MatchParams = field(default_factory=MatchParams)
 
