@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from robotd.base.config import FloorDetectorConfig
-from robotd.floor.descriptor import decode, extract, extract_with_positions
+from robotd.floor.descriptor import decode, extract_with_positions
 from robotd.floor.index import Candidate, FloorIndex
 from robotd.floor.match import MatchParams
 from robotd.base.geometry import (between_error_covariance, information_from_covariance, rigid_fit_2d,
@@ -156,12 +156,9 @@ class FloorLoopDetector:
             log.info("floor index: %d keyframes loaded from the map", len(index))
         return cls(params, index, threshold, camera)
 
-    def describe(self, image: np.ndarray) -> bytes:
-        """The keyframe's compact descriptor (at most the mode's byte budget)."""
-        return extract(image, self.params.descriptor_mode)
-
-    def describe_with_positions(self, image: np.ndarray) -> tuple[bytes, np.ndarray]:
-        """:meth:`describe`, and its keypoints where the detector found them
+    def describe(self, image: np.ndarray) -> tuple[bytes, np.ndarray]:
+        """The keyframe's compact descriptor (at most the mode's byte budget), and its
+        keypoints where the detector found them, which the map does not store
         (:func:`robotd.floor.descriptor.extract_with_positions`)."""
         return extract_with_positions(image, self.params.descriptor_mode)
 

@@ -49,7 +49,7 @@ import numpy as np
 from robotd.base.config import FloorDetectorConfig, VisualOdometryConfig
 from robotd.base.geometry import (compose, rigid_fit_2d, rigid_fit_2d_covariance,
                                   rigid_from_two_pairs, transform_points)
-from robotd.floor.descriptor import MODES, FloorDescriptor, decode, extract, extract_with_positions
+from robotd.floor.descriptor import MODES, FloorDescriptor, decode, extract_with_positions
 from robotd.floor.match import MatchParams, local_score
 
 __all__ = ["DEGENERATE_GEOMETRY", "KEYPOINT_POSITIONS", "NO_PREVIOUS_KEYFRAME", "TOO_FEW_INLIERS", "TOO_FEW_MATCHES",
@@ -254,8 +254,8 @@ def with_detected_positions(desc: FloorDescriptor, xy_px: np.ndarray) -> FloorDe
     """``desc`` with its keypoints where the detector found them
     (:func:`robotd.floor.descriptor.extract_with_positions`'s ``(N, 2)`` pixels, in the
     coded order) in place of the grid's; ``position_step_px`` 0 says so. Raises
-    ``ValueError`` when the positions cannot be this descriptor's (another count, out of
-    the image by more than the grid's half step, or not finite)."""
+    ``ValueError`` when the positions cannot be this descriptor's (another count, not
+    finite, or farther than one grid step from the cells the descriptor codes)."""
     xy = np.asarray(xy_px, np.float32)
     if xy.shape != desc.xy_px.shape or not np.isfinite(xy).all():
         raise ValueError(f"detected positions {xy.shape} do not fit a descriptor of {len(desc)} keypoints")
@@ -295,11 +295,10 @@ class FloorVisualOdometry:
             desc = keyframe
         elif isinstance(keyframe, (bytes, bytearray, memoryview)):
             desc = decode(bytes(keyframe))
-        elif detected and positions is None:
-            coded, positions = extract_with_positions(np.asarray(keyframe), self.params.descriptor_mode)
+        else:  # an image: its positions come with its description, at no cost
+            coded, own = extract_with_positions(np.asarray(keyframe), self.params.descriptor_mode)
             desc = decode(coded)
-        else:
-            desc = decode(extract(np.asarray(keyframe), self.params.descriptor_mode))
+            positions = own if positions is None else positions
         return with_detected_positions(desc, positions) if detected and positions is not None else desc
 
     def step(self, keyframe: np.ndarray | bytes | FloorDescriptor, positions: np.ndarray | None = None) -> VoResult:

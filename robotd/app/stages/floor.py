@@ -66,7 +66,7 @@ class FloorDetectorStage(Publisher):
         self.detector.params = dataclasses.replace(self.detector.params, **changes)  # type: ignore[arg-type]
 
     def describe(self, kf: Keyframe) -> None:
-        coded, positions = self.detector.describe_with_positions(kf.frame.image)
+        coded, positions = self.detector.describe(kf.frame.image)
         self._publish(keyframe_as(DescribedKeyframe, kf, descriptor=(self.detector.params.descriptor_mode, coded),
                                   keypoints_px=positions))
 

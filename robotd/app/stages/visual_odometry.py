@@ -71,9 +71,9 @@ class VisualOdometryStage(Publisher):
         return {self.takes: self.on_keyframe}
 
     def on_keyframe(self, kf: Keyframe) -> None:
-        desc = kf.descriptor if isinstance(kf, DescribedKeyframe) else None
-        if isinstance(kf, DescribedKeyframe) and desc is not None and desc[0] == self.vo.params.descriptor_mode:
-            result = self.vo.step(desc[1], kf.keypoints_px)
+        if isinstance(kf, DescribedKeyframe) and kf.descriptor is not None \
+                and kf.descriptor[0] == self.vo.params.descriptor_mode:
+            result = self.vo.step(kf.descriptor[1], kf.keypoints_px)
         else:
             result = self.vo.step(kf.frame.image)
         first = self._prev_stamp_ns is None
